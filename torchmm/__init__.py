@@ -1,0 +1,83 @@
+"""torchmm: batched multiple-model state estimation in PyTorch.
+
+The public API is importable from the top level; see ``README.md`` for a one-page tour and
+:mod:`torchmm.typing` for the shape vocabulary.
+"""
+
+from torchmm.beliefs import Belief, GaussianBelief, ModeBelief, ParticleBelief
+from torchmm.filters import (
+    CubatureSigmaPoints,
+    ExtendedKalmanFilter,
+    Filter,
+    JulierSigmaPoints,
+    KalmanFilter,
+    MerweScaledSigmaPoints,
+    StepOutput,
+    UnscentedKalmanFilter,
+    rts_smoother,
+)
+from torchmm.models import (
+    ConstantAcceleration,
+    ConstantVelocity,
+    CoordinatedTurn,
+    LinearMeasurement,
+    LinearMotion,
+    MeasurementModel,
+    MotionModel,
+    NonlinearCoordinatedTurn,
+    PositionMeasurement,
+    RangeBearing,
+)
+from torchmm.multimodel import (
+    GPB1,
+    GPB2,
+    IMM,
+    FilterBank,
+    ListBank,
+    ModeTransition,
+    VectorizedBank,
+    alpha_transition,
+    make_bank,
+    validate_transition,
+)
+from torchmm.run import Trajectory, run_filter
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "GPB1",
+    "GPB2",
+    "IMM",
+    "Belief",
+    "ConstantAcceleration",
+    "ConstantVelocity",
+    "CoordinatedTurn",
+    "CubatureSigmaPoints",
+    "ExtendedKalmanFilter",
+    "Filter",
+    "FilterBank",
+    "GaussianBelief",
+    "JulierSigmaPoints",
+    "KalmanFilter",
+    "LinearMeasurement",
+    "LinearMotion",
+    "ListBank",
+    "MeasurementModel",
+    "MerweScaledSigmaPoints",
+    "ModeBelief",
+    "ModeTransition",
+    "MotionModel",
+    "NonlinearCoordinatedTurn",
+    "ParticleBelief",
+    "PositionMeasurement",
+    "RangeBearing",
+    "StepOutput",
+    "Trajectory",
+    "UnscentedKalmanFilter",
+    "VectorizedBank",
+    "alpha_transition",
+    "make_bank",
+    "rts_smoother",
+    "run_filter",
+    "validate_transition",
+]

@@ -1,0 +1,21 @@
+"""Belief value objects with explicit batch shapes."""
+
+from torchmm.beliefs.base import Belief, cat, register_belief, stack
+from torchmm.beliefs.gaussian import GaussianBelief
+from torchmm.beliefs.mode import ModeBelief
+from torchmm.beliefs.ops import mix_gaussians, normalize_log_probs, psd_sqrt, symmetrize
+from torchmm.beliefs.particle import ParticleBelief
+
+__all__ = [
+    "Belief",
+    "GaussianBelief",
+    "ModeBelief",
+    "ParticleBelief",
+    "cat",
+    "mix_gaussians",
+    "normalize_log_probs",
+    "psd_sqrt",
+    "register_belief",
+    "stack",
+    "symmetrize",
+]

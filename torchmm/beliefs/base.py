@@ -1,0 +1,162 @@
+"""Shared machinery of belief value objects: batch-shape bookkeeping and tensor mapping.
+
+A belief is a frozen dataclass of tensors. Each tensor field has a number of *event* dimensions on
+the right (``mean``: 1, ``cov``: 2, ...); everything to their left is the batch shape, shared by all
+fields. Fields may also be beliefs themselves (the per-mode components of a :class:`ModeBelief`),
+in which case their batch has one extra axis on the right (the mode axis).
+
+Batch operations (``reshape``, ``expand``, indexing, ``stack``...) are written once here in terms of
+:meth:`Belief.map_tensors`, so a new belief type only declares its event dimensions.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Sequence
+from typing import ClassVar, TypeVar
+
+import torch
+import torch.utils._pytree as pytree
+from torch import Tensor
+
+__all__ = ["Belief", "register_belief", "stack", "cat"]
+
+B = TypeVar("B", bound="Belief")
+
+
+def register_belief(cls: type[B]) -> type[B]:
+    """Register a belief dataclass as a pytree node (for ``tree_map``, ``vmap``, ``torch.compile``).
+
+    ``torch.utils._pytree`` is semi-private; this is the one place torchmm touches it.
+    """
+    pytree.register_dataclass(cls)
+    return cls
+
+
+class Belief:
+    """Mixin for belief dataclasses. Subclasses set ``event_dims = {field: n_event_dims}``.
+
+    Fields not listed in ``event_dims`` must be beliefs whose batch is this belief's batch plus one
+    trailing axis (see :class:`~torchmm.beliefs.ModeBelief`).
+    """
+
+    event_dims: ClassVar[dict[str, int]] = {}
+
+    # -- generic mapping ------------------------------------------------------------------------
+    def map_tensors(self: B, fn: Callable[[Tensor, int], Tensor]) -> B:
+        """Return a copy with ``fn(tensor, n_event_dims)`` applied to every tensor field."""
+        values = {}
+        for field in dataclasses.fields(self):
+            value = getattr(self, field.name)
+            if field.name in self.event_dims:
+                values[field.name] = fn(value, self.event_dims[field.name])
+            elif isinstance(value, Belief):
+                values[field.name] = value.map_tensors(lambda t, e: fn(t, e + 1))
+            else:
+                values[field.name] = value
+        return type(self)(**values)
+
+    def _tensors(self) -> list[tuple[Tensor, int]]:
+        out: list[tuple[Tensor, int]] = []
+        self.map_tensors(lambda t, e: out.append((t, e)) or t)
+        return out
+
+    # -- shape ------------------------------------------------------------------------------------
+    @property
+    def batch_shape(self) -> torch.Size:
+        """Broadcast batch shape of all fields."""
+        shapes = [t.shape[: t.dim() - e] for t, e in self._tensors()]
+        return torch.broadcast_shapes(*shapes)
+
+    @property
+    def batch_dim(self) -> int:
+        return len(self.batch_shape)
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self._tensors()[0][0].dtype
+
+    @property
+    def device(self) -> torch.device:
+        return self._tensors()[0][0].device
+
+    # -- batch operations ---------------------------------------------------------------------
+    def reshape(self: B, *shape: int) -> B:
+        """Reshape the batch dimensions: ``(*batch, ...) -> (*shape, ...)``."""
+        shape = _shape_arg(shape)
+        return self.map_tensors(lambda t, e: t.reshape(*shape, *t.shape[t.dim() - e :]))
+
+    def expand(self: B, *shape: int) -> B:
+        """Broadcast the batch dimensions to ``shape`` (views, no copy)."""
+        shape = _shape_arg(shape)
+        return self.map_tensors(lambda t, e: t.expand(*shape, *t.shape[t.dim() - e :]))
+
+    def unsqueeze(self: B, dim: int) -> B:
+        """Insert a batch axis of size 1 at batch position ``dim`` (negative counts from the right)."""
+        return self.map_tensors(lambda t, e: t.unsqueeze(_batch_axis(dim, e)))
+
+    def select(self: B, dim: int, index: int) -> B:
+        """Index batch axis ``dim`` (negative counts from the right end of the batch shape)."""
+        return self.map_tensors(lambda t, e: t.select(_batch_axis(dim, e), index))
+
+    def transpose_batch(self: B, dim0: int, dim1: int) -> B:
+        """Swap two batch axes (negative axes count from the right end of the batch shape)."""
+        return self.map_tensors(lambda t, e: t.transpose(_batch_axis(dim0, e), _batch_axis(dim1, e)))
+
+    def __getitem__(self: B, index) -> B:
+        """Index the leading batch dimensions (ints, slices, tensors; no Ellipsis)."""
+        if index is Ellipsis or (isinstance(index, tuple) and Ellipsis in index):
+            raise IndexError("belief indexing applies to leading batch dims; Ellipsis is not supported")
+        return self.map_tensors(lambda t, e: t[index])
+
+    def to(self: B, *args, **kwargs) -> B:
+        """``Tensor.to`` on every field (device and/or dtype)."""
+        return self.map_tensors(lambda t, e: t.to(*args, **kwargs))
+
+    def detach(self: B) -> B:
+        return self.map_tensors(lambda t, e: t.detach())
+
+    def materialize(self: B) -> B:
+        """Expand every field to the full batch shape (contiguous copies)."""
+        shape = self.batch_shape
+        return self.map_tensors(lambda t, e: t.expand(*shape, *t.shape[t.dim() - e :]).contiguous())
+
+
+def _shape_arg(shape) -> tuple[int, ...]:
+    if len(shape) == 1 and isinstance(shape[0], (tuple, list, torch.Size)):
+        return tuple(shape[0])
+    return tuple(shape)
+
+
+def _batch_axis(dim: int, event_ndim: int) -> int:
+    """Translate a batch-relative axis to a tensor axis (negative axes skip the event dims).
+
+    Valid for indexing, ``select``, ``unsqueeze`` and ``stack``: batch axis ``-1`` of a field with
+    ``e`` event dims is tensor axis ``-1 - e`` in each case.
+    """
+    return dim if dim >= 0 else dim - event_ndim
+
+
+def stack(beliefs: Sequence[B], dim: int = 0) -> B:
+    """Stack beliefs of equal batch shape along a new batch axis ``dim``."""
+    beliefs = list(beliefs)
+    if not beliefs:
+        raise ValueError("beliefs: cannot stack an empty sequence")
+    shape = beliefs[0].batch_shape
+    flat = [pytree.tree_flatten(b.expand(shape))[0] for b in beliefs]
+    spec = pytree.tree_flatten(beliefs[0])[1]
+    events = [e for _, e in beliefs[0]._tensors()]
+    leaves = [torch.stack(ts, _batch_axis(dim, e)) for ts, e in zip(zip(*flat), events)]
+    return pytree.tree_unflatten(leaves, spec)
+
+
+def cat(beliefs: Sequence[B], dim: int = 0) -> B:
+    """Concatenate beliefs along an existing batch axis ``dim``."""
+    beliefs = list(beliefs)
+    if not beliefs:
+        raise ValueError("beliefs: cannot concatenate an empty sequence")
+    flat = [pytree.tree_flatten(b.materialize())[0] for b in beliefs]
+    spec = pytree.tree_flatten(beliefs[0])[1]
+    events = [e for _, e in beliefs[0]._tensors()]
+    leaves = [torch.cat(ts, _batch_axis(dim, e)) for ts, e in zip(zip(*flat), events)]
+    return pytree.tree_unflatten(leaves, spec)

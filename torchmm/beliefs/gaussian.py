@@ -1,0 +1,95 @@
+"""Gaussian belief: mean and covariance with an arbitrary batch shape."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import ClassVar
+
+import torch
+from torch import Tensor
+
+from torchmm.beliefs.base import Belief, register_belief
+from torchmm.beliefs.ops import mix_gaussians
+from torchmm.validation import as_tensor, check_covariance, check_shape
+
+__all__ = ["GaussianBelief"]
+
+
+@register_belief
+@dataclass(frozen=True)
+class GaussianBelief(Belief):
+    """A batch of Gaussian beliefs ``N(mean, cov)``.
+
+    Shapes:
+        mean: ``(*B, n)``
+        cov: ``(*B, n, n)``
+
+    Batch dims of ``mean`` and ``cov`` broadcast (a shared covariance may be ``(n, n)``).
+
+    Examples:
+        >>> b = GaussianBelief(torch.zeros(4, 2), torch.eye(2).expand(4, 2, 2))
+        >>> b.batch_shape, b.state_dim
+        (torch.Size([4]), 2)
+    """
+
+    mean: Tensor
+    cov: Tensor
+
+    event_dims: ClassVar[dict[str, int]] = {"mean": 1, "cov": 2}
+
+    @classmethod
+    def create(cls, mean, cov, *, dtype=None, device=None) -> GaussianBelief:
+        """Validated constructor: converts to tensors, checks shapes and that ``cov`` is PSD."""
+        mean = as_tensor(mean, "mean", dtype=dtype, device=device)
+        cov = as_tensor(cov, "cov", dtype=mean.dtype, device=mean.device)
+        if mean.dim() < 1:
+            raise ValueError(f"mean: expected shape (*B, n), got {tuple(mean.shape)}")
+        check_shape(cov, "cov", (mean.shape[-1], mean.shape[-1]))
+        check_covariance(cov, "cov")
+        try:
+            torch.broadcast_shapes(mean.shape[:-1], cov.shape[:-2])
+        except RuntimeError:
+            raise ValueError(
+                f"cov: batch shape {tuple(cov.shape[:-2])} does not broadcast with mean batch "
+                f"shape {tuple(mean.shape[:-1])}"
+            ) from None
+        return cls(mean, cov)
+
+    @property
+    def state_dim(self) -> int:
+        return self.mean.shape[-1]
+
+    def estimate(self) -> GaussianBelief:
+        """The point estimate with its covariance (the belief itself)."""
+        return self
+
+    def mix(self, log_weights: Tensor) -> GaussianBelief:
+        """Moment-matched mixtures over batch axis -1, one per column of ``weights``.
+
+        Shapes:
+            self: batch ``(*B, K)``; log_weights: ``(*B, K, J)`` (columns normalised over K)
+            -> batch ``(*B, J)``
+        """
+        mean, cov = mix_gaussians(self.mean, self.cov, log_weights.exp())
+        return GaussianBelief(mean, cov)
+
+    def collapse(self, log_weights: Tensor) -> GaussianBelief:
+        """Moment-matched single Gaussian of the mixture over batch axis -1.
+
+        Shapes:
+            self: batch ``(*B, K)``; log_weights: ``(*B, K)`` (normalised) -> batch ``(*B,)``
+        """
+        return self.mix(log_weights.unsqueeze(-1)).select(-1, 0)
+
+    def log_prob(self, x: Tensor) -> Tensor:
+        """Log-density at ``x``.
+
+        Shapes:
+            x: ``(*B, n)`` (broadcast with the batch) -> ``(*B,)``
+        """
+        chol = torch.linalg.cholesky(self.cov)
+        diff = (x - self.mean).unsqueeze(-1)
+        white = torch.linalg.solve_triangular(chol, diff, upper=False).squeeze(-1)
+        half_logdet = chol.diagonal(dim1=-2, dim2=-1).log().sum(-1)
+        return -0.5 * (white.square().sum(-1) + self.state_dim * math.log(2 * math.pi)) - half_logdet

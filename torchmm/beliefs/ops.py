@@ -1,0 +1,73 @@
+"""Moment matching and small tensor helpers shared by beliefs and filters."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+__all__ = ["symmetrize", "mix_gaussians", "normalize_log_probs", "psd_sqrt"]
+
+
+def symmetrize(matrix: Tensor) -> Tensor:
+    """Return ``(A + A^T) / 2``.
+
+    Shapes:
+        matrix: ``(..., d, d)`` -> ``(..., d, d)``
+    """
+    return 0.5 * (matrix + matrix.mT)
+
+
+def normalize_log_probs(log_probs: Tensor, dim: int = -1) -> Tensor:
+    """Subtract ``logsumexp`` along ``dim`` so that ``exp`` sums to one.
+
+    A slice that is ``-inf`` everywhere (no finite evidence at all) becomes uniform instead of NaN.
+
+    Shapes:
+        log_probs: ``(..., K, ...)`` -> same shape
+    """
+    norm = torch.logsumexp(log_probs, dim=dim, keepdim=True)
+    out = log_probs - norm
+    bad = ~torch.isfinite(norm)
+    if bool(bad.any()):
+        uniform = -torch.log(torch.tensor(float(log_probs.shape[dim]), dtype=out.dtype))
+        out = torch.where(bad, uniform.to(out.device), out)
+    return out
+
+
+def mix_gaussians(mean: Tensor, cov: Tensor, weights: Tensor) -> tuple[Tensor, Tensor]:
+    r"""Moment-match weighted Gaussian mixtures: one output per column of ``weights``.
+
+    .. math::
+        \bar x_j = \sum_k w_{kj} x_k, \qquad
+        \bar P_j = \sum_k w_{kj} \left[P_k + (x_k - \bar x_j)(x_k - \bar x_j)^\top\right]
+
+    Columns of ``weights`` must sum to one over ``k``; the spread term is formed from centred
+    differences (no ``E[xx^T] - \bar x \bar x^T`` cancellation in float32).
+
+    Shapes:
+        mean: ``(*B, K, n)``; cov: ``(*B, K, n, n)``; weights: ``(*B, K, J)``
+        -> mean ``(*B, J, n)``, cov ``(*B, J, n, n)``
+    """
+    mixed_mean = torch.einsum("...kj,...kn->...jn", weights, mean)
+    diff = mean.unsqueeze(-2) - mixed_mean.unsqueeze(-3)  # (*B, K, J, n)
+    weighted_diff = diff * weights.unsqueeze(-1)
+    spread = torch.einsum("...kjn,...kjm->...jnm", weighted_diff, diff)
+    mixed_cov = torch.einsum("...kj,...knm->...jnm", weights, cov) + spread
+    return mixed_mean, mixed_cov
+
+
+def psd_sqrt(cov: Tensor) -> Tensor:
+    """A square root ``L`` with ``L L^T = cov`` for symmetric PSD (possibly singular) matrices.
+
+    Uses Cholesky where it succeeds and a symmetric eigendecomposition elsewhere, so that
+    rank-deficient process noise such as ``G G^T`` can be sampled.
+
+    Shapes:
+        cov: ``(..., d, d)`` -> ``(..., d, d)``
+    """
+    chol, info = torch.linalg.cholesky_ex(cov)
+    if not bool((info != 0).any()):
+        return chol
+    eigvals, eigvecs = torch.linalg.eigh(symmetrize(cov))
+    eig_sqrt = eigvecs * eigvals.clamp_min(0).sqrt().unsqueeze(-2)
+    return torch.where((info != 0)[..., None, None], eig_sqrt, chol)

@@ -1,0 +1,82 @@
+"""Particle belief: weighted samples with log-weights and an arbitrary batch shape."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import ClassVar
+
+import torch
+from torch import Tensor
+
+from torchmm.beliefs.base import Belief, register_belief
+from torchmm.beliefs.gaussian import GaussianBelief
+from torchmm.beliefs.ops import normalize_log_probs, symmetrize
+
+__all__ = ["ParticleBelief"]
+
+
+@register_belief
+@dataclass(frozen=True)
+class ParticleBelief(Belief):
+    """A batch of weighted particle sets.
+
+    Log-weights need not be normalised; every statistic normalises them first.
+
+    Shapes:
+        particles: ``(*B, Np, n)``
+        log_weights: ``(*B, Np)``
+    """
+
+    particles: Tensor
+    log_weights: Tensor
+
+    event_dims: ClassVar[dict[str, int]] = {"particles": 2, "log_weights": 1}
+
+    @property
+    def state_dim(self) -> int:
+        return self.particles.shape[-1]
+
+    @property
+    def num_particles(self) -> int:
+        return self.particles.shape[-2]
+
+    def normalized(self) -> ParticleBelief:
+        """Same belief with log-weights normalised to ``logsumexp = 0``."""
+        return ParticleBelief(self.particles, normalize_log_probs(self.log_weights))
+
+    def effective_sample_size(self) -> Tensor:
+        """``1 / sum(w^2)`` of the normalised weights. Shape ``(*B,)``."""
+        log_w = normalize_log_probs(self.log_weights)
+        return torch.exp(-torch.logsumexp(2 * log_w, dim=-1))
+
+    def estimate(self) -> GaussianBelief:
+        """Weighted mean and covariance as a Gaussian belief with batch ``(*B,)``."""
+        weights = normalize_log_probs(self.log_weights).exp()
+        mean = torch.einsum("...p,...pn->...n", weights, self.particles)
+        diff = self.particles - mean.unsqueeze(-2)
+        cov = torch.einsum("...p,...pn,...pm->...nm", weights, diff, diff)
+        return GaussianBelief(mean, symmetrize(cov))
+
+    def mix(self, log_weights: Tensor) -> ParticleBelief:
+        """Exact mixtures over batch axis -1: the union of the K particle sets, reweighted.
+
+        The particle count grows to ``K * Np``; a particle filter resamples back.
+
+        Shapes:
+            self: batch ``(*B, K)``; log_weights: ``(*B, K, J)`` -> batch ``(*B, J)``,
+            ``K * Np`` particles
+        """
+        log_w = normalize_log_probs(self.log_weights)  # (*B, K, Np)
+        combined = log_weights.unsqueeze(-1) + log_w.unsqueeze(-2)  # (*B, K, J, Np)
+        combined = combined.movedim(-3, -2)  # (*B, J, K, Np)
+        batch, num_k, num_p, n = self.particles.shape[:-3], *self.particles.shape[-3:]
+        num_j = log_weights.shape[-1]
+        particles = self.particles.unsqueeze(-4).expand(*batch, num_j, num_k, num_p, n)
+        return ParticleBelief(
+            particles.reshape(*batch, num_j, num_k * num_p, n),
+            combined.reshape(*combined.shape[:-2], num_k * num_p),
+        )
+
+    def collapse(self, log_weights: Tensor) -> ParticleBelief:
+        """The mixture over batch axis -1 as one particle set. ``log_weights``: ``(*B, K)``."""
+        return self.mix(log_weights.unsqueeze(-1)).select(-1, 0)

@@ -1,0 +1,140 @@
+r"""Kalman and extended Kalman filters.
+
+.. math::
+    x^- = f(x),\quad P^- = F P F^\top + Q \qquad (F = \partial f/\partial x)
+
+    \nu = z - h(x^-),\quad S = H P^- H^\top + R,\quad C = P^- H^\top \qquad (H = \partial h/\partial x)
+
+followed by :func:`torchmm.filters.linalg.condition`. For linear models ``F`` and ``H`` are the
+model matrices and this is the Kalman filter; otherwise Jacobians come from autograd.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from torch import Tensor
+
+from torchmm.beliefs import GaussianBelief, symmetrize
+from torchmm.filters.base import Filter, StepOutput
+from torchmm.filters.linalg import condition
+from torchmm.models.base import MeasurementModel, MotionModel
+from torchmm.models.linear import LinearMeasurement, LinearMotion
+
+__all__ = ["ExtendedKalmanFilter", "KalmanFilter"]
+
+
+class ExtendedKalmanFilter(Filter):
+    """Extended Kalman filter over any differentiable motion and measurement models.
+
+    Args:
+        motion: a :class:`~torchmm.models.MotionModel` (its ``jacobian`` defaults to autograd).
+        measurement: a :class:`~torchmm.models.MeasurementModel`.
+        joseph: update the covariance in Joseph form (recommended in float32).
+
+    Shapes:
+        belief: :class:`GaussianBelief` with batch ``(*B,)``; ``z``: ``(*B, m)`` (NaN = missing);
+        ``u``: ``(*B, k)``. Model parameter batches broadcast with ``*B`` (mode banks: ``*B``
+        ends with the mode axis).
+
+    Examples:
+        >>> from torchmm.models import ConstantVelocity, PositionMeasurement
+        >>> kf = KalmanFilter(ConstantVelocity(1, dt=1.0, q=1.0), PositionMeasurement(2, [0], 100.0))
+        >>> prior = GaussianBelief(torch.zeros(5, 2), 10 * torch.eye(2))
+        >>> out = kf.step(prior, torch.randn(5, 1))
+        >>> out.belief.mean.shape, out.log_likelihood.shape
+        (torch.Size([5, 2]), torch.Size([5]))
+    """
+
+    def __init__(self, motion: MotionModel, measurement: MeasurementModel, *, joseph: bool = False):
+        super().__init__()
+        if not isinstance(motion, MotionModel):
+            raise ValueError(f"motion: expected a MotionModel, got {type(motion).__name__}")
+        if not isinstance(measurement, MeasurementModel):
+            raise ValueError(f"measurement: expected a MeasurementModel, got {type(measurement).__name__}")
+        if motion.state_dim != measurement.state_dim:
+            raise ValueError(
+                f"measurement: state_dim {measurement.state_dim} does not match the motion model's "
+                f"{motion.state_dim}"
+            )
+        self.motion = motion
+        self.measurement = measurement
+        self.joseph = joseph
+
+    @property
+    def state_dim(self) -> int:
+        return self.motion.state_dim
+
+    @property
+    def meas_dim(self) -> int:
+        return self.measurement.meas_dim
+
+    def _transition_matrix(self, mean: Tensor, u: Tensor | None) -> Tensor:
+        return self.motion.jacobian(mean, u=u)
+
+    def _measurement_matrix(self, mean: Tensor) -> Tensor:
+        return self.measurement.jacobian(mean)
+
+    def predict(self, belief: GaussianBelief, *, u: Tensor | None = None) -> GaussianBelief:
+        F = self._transition_matrix(belief.mean, u)
+        mean = self.motion(belief.mean, u=u)  # x- = f(x)
+        cov = F @ belief.cov @ F.mT + self.motion.noise_cov(belief.mean)  # P- = F P F' + Q
+        return GaussianBelief(mean, symmetrize(cov))
+
+    def update(self, belief: GaussianBelief, z: Tensor) -> StepOutput:
+        H = self._measurement_matrix(belief.mean)
+        R = self.measurement.noise_cov(belief.mean)
+        innovation = z - self.measurement(belief.mean)  # nu = z - h(x-)
+        cross_cov = belief.cov @ H.mT  # C = P- H'
+        innovation_cov = H @ cross_cov + R  # S = H P- H' + R
+        mean, cov, log_likelihood = condition(
+            belief.mean, belief.cov, innovation, innovation_cov, cross_cov,
+            joseph=(H, R) if self.joseph else None,
+        )
+        return StepOutput(GaussianBelief(mean, cov), belief, log_likelihood, innovation, innovation_cov)
+
+
+class KalmanFilter(ExtendedKalmanFilter):
+    """Kalman filter for :class:`LinearMotion` / :class:`LinearMeasurement` models (and banks).
+
+    Same interface and shapes as :class:`ExtendedKalmanFilter`; uses the model matrices directly.
+    A list of Kalman filters with unbatched models can be fused into one vectorised bank with
+    :meth:`stack`.
+    """
+
+    def __init__(self, motion: LinearMotion, measurement: LinearMeasurement, *, joseph: bool = False):
+        if not isinstance(motion, LinearMotion):
+            raise ValueError(
+                f"motion: KalmanFilter needs a LinearMotion, got {type(motion).__name__} "
+                "(use ExtendedKalmanFilter or UnscentedKalmanFilter for nonlinear models)"
+            )
+        if not isinstance(measurement, LinearMeasurement):
+            raise ValueError(
+                f"measurement: KalmanFilter needs a LinearMeasurement, got {type(measurement).__name__}"
+            )
+        super().__init__(motion, measurement, joseph=joseph)
+
+    @property
+    def param_batch_shape(self) -> torch.Size:
+        return torch.broadcast_shapes(self.motion.param_batch_shape, self.measurement.param_batch_shape)
+
+    def _transition_matrix(self, mean: Tensor, u: Tensor | None) -> Tensor:
+        return self.motion.F
+
+    def _measurement_matrix(self, mean: Tensor) -> Tensor:
+        return self.measurement.H
+
+    @classmethod
+    def stack(cls, filters: Sequence[KalmanFilter]) -> KalmanFilter:
+        """One Kalman filter whose models are banks, mode ``j`` being ``filters[j]``."""
+        filters = list(filters)
+        if len({f.joseph for f in filters}) > 1:
+            raise ValueError("filters: cannot stack filters with different joseph settings")
+        motion = LinearMotion.stack([f.motion for f in filters])
+        measurements = [f.measurement for f in filters]
+        if all(m is measurements[0] for m in measurements):
+            measurement = measurements[0]
+        else:
+            measurement = LinearMeasurement.stack(measurements)
+        return cls(motion, measurement, joseph=filters[0].joseph)

@@ -1,0 +1,104 @@
+"""Model interfaces: motion and measurement models are stateless ``nn.Module`` s.
+
+Broadcasting convention: a model may carry a batch of parameters (e.g. ``F: (M, n, n)`` for a
+bank of ``M`` modes). Parameters broadcast against the *leading* batch dims of the state, so a
+belief with batch ``(*B, M)`` is predicted by all ``M`` modes in one call. Filters that add sample
+axes (sigma points, particles) put those axes leftmost when they call a model.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor, nn
+
+__all__ = ["MotionModel", "MeasurementModel", "forward_jacobian", "store_tensor"]
+
+
+def store_tensor(module: nn.Module, name: str, value: Tensor) -> None:
+    """Register ``value`` as a parameter if it is an ``nn.Parameter``, else as a buffer."""
+    if isinstance(value, nn.Parameter):
+        module.register_parameter(name, value)
+    else:
+        module.register_buffer(name, value)
+
+
+def forward_jacobian(fn, x: Tensor) -> Tensor:
+    """Jacobian of a batched, element-wise-in-batch function by forward-mode autograd.
+
+    ``fn`` maps ``(*B, n) -> (*B, k)`` and must treat batch elements independently (any model
+    does). All ``n`` directional derivatives are taken in one call on a ``(n, *B, n)`` input, so
+    model parameters keep broadcasting against the batch, and the result is differentiable with
+    respect to the model's parameters (usable when training through an EKF).
+
+    Shapes:
+        x: ``(*B, n)`` -> ``(*B, k, n)``
+    """
+    n = x.shape[-1]
+    primal = x.unsqueeze(0).expand(n, *x.shape).clone()
+    basis = torch.eye(n, dtype=x.dtype, device=x.device)
+    tangent = basis.reshape(n, *([1] * (x.dim() - 1)), n).expand(n, *x.shape).clone()
+    _, columns = torch.func.jvp(fn, (primal,), (tangent,))
+    return columns.movedim(0, -1)
+
+
+class MotionModel(nn.Module):
+    """State transition ``x_k = f(x_{k-1}, u_k) + w_k``, ``w_k ~ N(0, Q)``.
+
+    Subclasses implement :meth:`forward` and :meth:`noise_cov`; :meth:`jacobian` defaults to
+    forward-mode autograd and is overridden by linear models.
+    """
+
+    state_dim: int
+
+    def forward(self, x: Tensor, *, u: Tensor | None = None) -> Tensor:
+        """Propagate states. Shapes: ``x: (*B, n)`` -> ``(*B, n)``."""
+        raise NotImplementedError
+
+    def noise_cov(self, x: Tensor | None = None) -> Tensor:
+        """Process-noise covariance ``Q``, broadcastable to ``(*B, n, n)``."""
+        raise NotImplementedError
+
+    def jacobian(self, x: Tensor, *, u: Tensor | None = None) -> Tensor:
+        """``df/dx`` at ``x``. Shapes: ``x: (*B, n)`` -> ``(*B, n, n)``."""
+        return forward_jacobian(lambda s: self(s, u=u), x)
+
+
+class MeasurementModel(nn.Module):
+    """Measurement ``z_k = h(x_k) + v_k``, ``v_k ~ N(0, R)``."""
+
+    state_dim: int
+    meas_dim: int
+
+    def forward(self, x: Tensor) -> Tensor:
+        """Predicted measurement. Shapes: ``x: (*B, n)`` -> ``(*B, m)``."""
+        raise NotImplementedError
+
+    def noise_cov(self, x: Tensor | None = None) -> Tensor:
+        """Measurement-noise covariance ``R``, broadcastable to ``(*B, m, m)``."""
+        raise NotImplementedError
+
+    def jacobian(self, x: Tensor) -> Tensor:
+        """``dh/dx`` at ``x``. Shapes: ``x: (*B, n)`` -> ``(*B, m, n)``."""
+        return forward_jacobian(self, x)
+
+    def log_likelihood(self, z: Tensor, x: Tensor) -> Tensor:
+        """Gaussian ``log p(z | x)``; NaN components of ``z`` are treated as missing.
+
+        Shapes:
+            z: ``(*B, m)``, x: ``(*B, n)`` (e.g. particles ``(Np, *B, n)`` with ``z`` broadcast)
+            -> ``(*B,)``
+        """
+        resid = z - self(x)
+        observed = ~torch.isnan(resid)
+        resid = torch.where(observed, resid, 0.0)
+        cov = self.noise_cov(x)
+        pair = observed.unsqueeze(-1) & observed.unsqueeze(-2)
+        eye = torch.eye(cov.shape[-1], dtype=cov.dtype, device=cov.device)
+        cov = torch.where(pair, cov, eye)
+        chol = torch.linalg.cholesky(cov)
+        white = torch.linalg.solve_triangular(chol, resid.unsqueeze(-1), upper=False).squeeze(-1)
+        logdet = 2 * chol.diagonal(dim1=-2, dim2=-1).log().sum(-1)
+        count = observed.sum(-1).to(resid.dtype)
+        return -0.5 * (white.square().sum(-1) + logdet + count * math.log(2 * math.pi))

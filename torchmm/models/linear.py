@@ -1,0 +1,165 @@
+"""Linear-Gaussian motion and measurement models, optionally stacked into per-mode banks."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from torch import Tensor
+
+from torchmm.models.base import MeasurementModel, MotionModel, store_tensor
+from torchmm.validation import as_tensor, check_covariance, check_shape, check_square
+
+__all__ = ["LinearMotion", "LinearMeasurement"]
+
+
+def _param_batch(name_shapes: dict[str, torch.Size], event: dict[str, int], owner: str) -> torch.Size:
+    shapes = {k: s[: len(s) - event[k]] for k, s in name_shapes.items()}
+    try:
+        return torch.broadcast_shapes(*shapes.values())
+    except RuntimeError:
+        raise ValueError(
+            f"{owner}: parameter batch shapes do not broadcast: "
+            + ", ".join(f"{k} {tuple(v)}" for k, v in shapes.items())
+        ) from None
+
+
+class LinearMotion(MotionModel):
+    r"""Linear-Gaussian motion ``x_k = F x_{k-1} + B u_k + b + w_k``, ``w_k ~ N(0, Q)``.
+
+    A *bank* of modes is the same object with leading parameter dims: ``F: (M, n, n)``,
+    ``offset: (M, n)`` (e.g. ``G a_j`` for acceleration modes), ``Q: (M, n, n)``; any of them may
+    also be shared (unbatched). One call then predicts every mode of a belief with batch
+    ``(*B, M)``.
+
+    Args:
+        F: transition matrix, ``(*P, n, n)`` in math orientation (``x_out = F x_in``).
+        Q: process-noise covariance, ``(*P, n, n)``, symmetric PSD (may be singular).
+        offset: constant input ``b``, ``(*P, n)``; default zero.
+        input_matrix: ``B`` for a time-varying control ``u_k``, ``(*P, n, k)``; default none.
+
+    Shapes:
+        forward: ``x (*B, n)``, ``u (*B, k)`` -> ``(*B, n)``; ``*P`` broadcasts with ``*B``.
+    """
+
+    def __init__(self, F, Q, offset=None, input_matrix=None):
+        super().__init__()
+        F = as_tensor(F, "F")
+        n = check_square(F, "F")
+        Q = as_tensor(Q, "Q", dtype=F.dtype)
+        check_shape(Q, "Q", (n, n))
+        check_covariance(Q, "Q")
+        offset = torch.zeros(n, dtype=F.dtype) if offset is None else as_tensor(offset, "offset", dtype=F.dtype)
+        check_shape(offset, "offset", (n,))
+        shapes = {"F": F.shape, "Q": Q.shape, "offset": offset.shape}
+        events = {"F": 2, "Q": 2, "offset": 1}
+        if input_matrix is not None:
+            input_matrix = as_tensor(input_matrix, "input_matrix", dtype=F.dtype)
+            check_shape(input_matrix, "input_matrix", (n, None))
+            shapes["input_matrix"] = input_matrix.shape
+            events["input_matrix"] = 2
+        self.param_batch_shape = _param_batch(shapes, events, "LinearMotion")
+        self.state_dim = n
+        store_tensor(self, "F", F)
+        store_tensor(self, "Q", Q)
+        store_tensor(self, "offset", offset)
+        self.input_matrix: Tensor | None
+        if input_matrix is None:
+            self.input_matrix = None
+        else:
+            store_tensor(self, "input_matrix", input_matrix)
+
+    def forward(self, x: Tensor, *, u: Tensor | None = None) -> Tensor:
+        out = (self.F @ x.unsqueeze(-1)).squeeze(-1) + self.offset
+        if u is not None:
+            if self.input_matrix is None:
+                raise ValueError("u: this LinearMotion has no input_matrix")
+            out = out + (self.input_matrix @ u.unsqueeze(-1)).squeeze(-1)
+        return out
+
+    def noise_cov(self, x: Tensor | None = None) -> Tensor:
+        return self.Q
+
+    def jacobian(self, x: Tensor, *, u: Tensor | None = None) -> Tensor:
+        return self.F.expand(*torch.broadcast_shapes(x.shape[:-1], self.F.shape[:-2]), -1, -1)
+
+    @classmethod
+    def stack(cls, models: Sequence[LinearMotion]) -> LinearMotion:
+        """A bank whose leading parameter axis enumerates ``models`` (all unbatched)."""
+        _check_stackable(models, cls, "models")
+        if any(m.input_matrix is not None for m in models) and not all(
+            m.input_matrix is not None for m in models
+        ):
+            raise ValueError("models: either all or none of the models must have an input_matrix")
+        inputs = None
+        if models[0].input_matrix is not None:
+            inputs = torch.stack([m.input_matrix for m in models])
+        return LinearMotion(
+            F=torch.stack([m.F for m in models]),
+            Q=torch.stack([m.Q for m in models]),
+            offset=torch.stack([m.offset for m in models]),
+            input_matrix=inputs,
+        )
+
+    def extra_repr(self) -> str:
+        return f"state_dim={self.state_dim}, param_batch_shape={tuple(self.param_batch_shape)}"
+
+
+class LinearMeasurement(MeasurementModel):
+    """Linear-Gaussian measurement ``z_k = H x_k + v_k``, ``v_k ~ N(0, R)``.
+
+    Args:
+        H: measurement matrix ``(*P, m, n)``.
+        R: measurement-noise covariance ``(*P, m, m)``, symmetric PSD.
+    """
+
+    def __init__(self, H, R):
+        super().__init__()
+        H = as_tensor(H, "H")
+        if H.dim() < 2:
+            raise ValueError(f"H: expected shape (*P, m, n), got {tuple(H.shape)}")
+        m, n = H.shape[-2:]
+        R = as_tensor(R, "R", dtype=H.dtype)
+        check_shape(R, "R", (m, m))
+        check_covariance(R, "R")
+        self.param_batch_shape = _param_batch(
+            {"H": H.shape, "R": R.shape}, {"H": 2, "R": 2}, "LinearMeasurement"
+        )
+        self.state_dim, self.meas_dim = n, m
+        store_tensor(self, "H", H)
+        store_tensor(self, "R", R)
+
+    def forward(self, x: Tensor) -> Tensor:
+        return (self.H @ x.unsqueeze(-1)).squeeze(-1)
+
+    def noise_cov(self, x: Tensor | None = None) -> Tensor:
+        return self.R
+
+    def jacobian(self, x: Tensor) -> Tensor:
+        return self.H.expand(*torch.broadcast_shapes(x.shape[:-1], self.H.shape[:-2]), -1, -1)
+
+    @classmethod
+    def stack(cls, models: Sequence[LinearMeasurement]) -> LinearMeasurement:
+        """A bank whose leading parameter axis enumerates ``models`` (all unbatched)."""
+        _check_stackable(models, cls, "models")
+        return LinearMeasurement(H=torch.stack([m.H for m in models]), R=torch.stack([m.R for m in models]))
+
+    def extra_repr(self) -> str:
+        return (
+            f"state_dim={self.state_dim}, meas_dim={self.meas_dim}, "
+            f"param_batch_shape={tuple(self.param_batch_shape)}"
+        )
+
+
+def _check_stackable(models, cls, name: str) -> None:
+    models = list(models)
+    if not models:
+        raise ValueError(f"{name}: need at least one model")
+    for i, m in enumerate(models):
+        if not isinstance(m, cls):
+            raise ValueError(f"{name}[{i}]: expected {cls.__name__}, got {type(m).__name__}")
+        if len(m.param_batch_shape):
+            raise ValueError(f"{name}[{i}]: is already a bank (param batch {tuple(m.param_batch_shape)})")
+    dims = {(m.state_dim, getattr(m, "meas_dim", None)) for m in models}
+    if len(dims) > 1:
+        raise ValueError(f"{name}: models have different dimensions {sorted(dims)}")

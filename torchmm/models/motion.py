@@ -1,0 +1,178 @@
+"""Kinematic motion models: constant velocity / acceleration, coordinated turn.
+
+State ordering is per axis, position first: ``[x, vx]`` (1-D), ``[x, vx, y, vy]`` (2-D CV and CT),
+``[x, vx, ax, y, vy, ay]`` (2-D CA). Process noise is either ``"discrete"`` (piecewise-constant
+white acceleration/jerk over the sample, ``Q = q G G^T``) or ``"continuous"`` (continuous white
+noise integrated over ``dt``). The default is ``"discrete"``, the model of papers 000 and 003.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from torchmm.models.base import MotionModel, store_tensor
+from torchmm.models.linear import LinearMotion
+from torchmm.validation import as_tensor
+
+__all__ = [
+    "ConstantVelocity",
+    "ConstantAcceleration",
+    "CoordinatedTurn",
+    "NonlinearCoordinatedTurn",
+    "kinematic_matrices",
+]
+
+
+def _as_float(value, name: str) -> float:
+    try:
+        value = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: expected a number, got {value!r}") from None
+    if not math.isfinite(value):
+        raise ValueError(f"{name}: must be finite, got {value}")
+    return value
+
+
+def kinematic_matrices(order: int, dt: float, q: float, noise: str, dtype=None) -> tuple[Tensor, Tensor, Tensor]:
+    """One-axis kinematic ``F``, noise gain ``G`` and ``Q`` for a state of ``order`` derivatives.
+
+    ``order = 2`` is ``[p, v]`` (CV), ``order = 3`` is ``[p, v, a]`` (CA).
+
+    Returns:
+        ``F (order, order)``, ``G (order,)`` (the input gain of the highest derivative's driving
+        noise, e.g. ``[dt^2/2, dt]`` for CV) and ``Q (order, order)``.
+    """
+    dtype = dtype or torch.get_default_dtype()
+    dt = _as_float(dt, "dt")
+    q = _as_float(q, "q")
+    if dt <= 0:
+        raise ValueError(f"dt: must be positive, got {dt}")
+    if q < 0:
+        raise ValueError(f"q: must be non-negative, got {q}")
+    F = torch.zeros(order, order, dtype=dtype)
+    for i in range(order):
+        for j in range(i, order):
+            F[i, j] = dt ** (j - i) / math.factorial(j - i)
+    G = torch.tensor([dt ** (order - i) / math.factorial(order - i) for i in range(order)], dtype=dtype)
+    if noise == "discrete":
+        Q = q * torch.outer(G, G)
+    elif noise == "continuous":
+        Q = torch.zeros(order, order, dtype=dtype)
+        for i in range(order):
+            for j in range(order):
+                p = (order - 1 - i) + (order - 1 - j) + 1
+                Q[i, j] = q * dt**p / (p * math.factorial(order - 1 - i) * math.factorial(order - 1 - j))
+    else:
+        raise ValueError(f"noise: expected 'discrete' or 'continuous', got {noise!r}")
+    return F, G, Q
+
+
+def _block_diag_axes(block: Tensor, ndim: int) -> Tensor:
+    return torch.block_diag(*([block] * ndim))
+
+
+class ConstantVelocity(LinearMotion):
+    """Constant-velocity model in ``ndim`` axes, optionally with known acceleration inputs.
+
+    With ``acceleration`` of shape ``(*P, ndim)`` the model is a bank of acceleration modes
+    ``x_k = F x_{k-1} + G a_j + G w_k`` (paper 000, eq. (37); paper 003's 21 models).
+
+    Args:
+        ndim: number of spatial axes.
+        dt: sample period.
+        q: acceleration-noise intensity (variance for ``noise="discrete"``, PSD otherwise).
+        noise: ``"discrete"`` (``Q = q G G^T``) or ``"continuous"``.
+        acceleration: known acceleration per mode, ``(*P, ndim)``; default none.
+    """
+
+    def __init__(self, ndim: int = 1, dt: float = 1.0, q: float = 1.0, *, noise: str = "discrete",
+                 acceleration=None, dtype=None):
+        F1, G1, Q1 = kinematic_matrices(2, dt, q, noise, dtype)
+        F = _block_diag_axes(F1, ndim)
+        Q = _block_diag_axes(Q1, ndim)
+        gain = _block_diag_axes(G1.unsqueeze(-1), ndim)  # (2 ndim, ndim)
+        offset = None
+        if acceleration is not None:
+            acceleration = as_tensor(acceleration, "acceleration", dtype=F.dtype)
+            if acceleration.dim() < 1 or acceleration.shape[-1] != ndim:
+                raise ValueError(
+                    f"acceleration: expected shape (*P, {ndim}), got {tuple(acceleration.shape)}"
+                )
+            offset = (gain @ acceleration.unsqueeze(-1)).squeeze(-1)
+        super().__init__(F, Q, offset=offset)
+        store_tensor(self, "noise_gain", gain)
+        self.ndim, self.dt, self.q = ndim, float(dt), float(q)
+
+
+class ConstantAcceleration(LinearMotion):
+    """Constant-acceleration (Wiener-process acceleration) model in ``ndim`` axes.
+
+    State per axis ``[p, v, a]``; ``q`` drives the jerk.
+    """
+
+    def __init__(self, ndim: int = 1, dt: float = 1.0, q: float = 1.0, *, noise: str = "discrete", dtype=None):
+        F1, _, Q1 = kinematic_matrices(3, dt, q, noise, dtype)
+        super().__init__(_block_diag_axes(F1, ndim), _block_diag_axes(Q1, ndim))
+        self.ndim, self.dt, self.q = ndim, float(dt), float(q)
+
+
+def _turn_matrix(omega: Tensor, dt: float) -> Tensor:
+    """Known-turn-rate transition for ``[x, vx, y, vy]``; ``omega: (*P,)`` -> ``(*P, 4, 4)``."""
+    wt = omega * dt
+    small = omega.abs() < 1e-9
+    safe = torch.where(small, torch.ones_like(omega), omega)
+    s = torch.where(small, torch.full_like(omega, dt), torch.sin(wt) / safe)  # sin(wT)/w
+    c = torch.where(small, torch.zeros_like(omega), (1 - torch.cos(wt)) / safe)  # (1-cos wT)/w
+    cos, sin = torch.cos(wt), torch.sin(wt)
+    one, zero = torch.ones_like(omega), torch.zeros_like(omega)
+    rows = [
+        [one, s, zero, -c],
+        [zero, cos, zero, -sin],
+        [zero, c, one, s],
+        [zero, sin, zero, cos],
+    ]
+    return torch.stack([torch.stack(r, -1) for r in rows], -2)
+
+
+class CoordinatedTurn(LinearMotion):
+    """Coordinated turn with known turn rate ``omega`` (rad per unit time), state ``[x, vx, y, vy]``.
+
+    ``omega`` may be a tensor ``(*P,)`` for a bank of turn rates; ``omega = 0`` is CV.
+    Process noise is white acceleration on both axes (``noise`` as in :class:`ConstantVelocity`).
+    """
+
+    def __init__(self, omega, dt: float = 1.0, q: float = 1.0, *, noise: str = "discrete", dtype=None):
+        _, _, Q1 = kinematic_matrices(2, dt, q, noise, dtype)
+        omega = as_tensor(omega, "omega", dtype=Q1.dtype)
+        super().__init__(_turn_matrix(omega, float(dt)), _block_diag_axes(Q1, 2))
+        store_tensor(self, "omega", omega)
+        self.dt, self.q = float(dt), float(q)
+
+
+class NonlinearCoordinatedTurn(MotionModel):
+    """Coordinated turn with the turn rate in the state: ``[x, vx, y, vy, omega]`` (nonlinear).
+
+    For EKF/UKF. ``q`` is the white-acceleration intensity on both axes, ``q_omega`` the
+    turn-rate random-walk variance per step.
+    """
+
+    def __init__(self, dt: float = 1.0, q: float = 1.0, q_omega: float = 1e-4, *, noise: str = "discrete",
+                 dtype=None):
+        super().__init__()
+        _, _, Q1 = kinematic_matrices(2, dt, q, noise, dtype)
+        Q = torch.zeros(5, 5, dtype=Q1.dtype)
+        Q[:4, :4] = _block_diag_axes(Q1, 2)
+        Q[4, 4] = _as_float(q_omega, "q_omega")
+        store_tensor(self, "Q", Q)
+        self.state_dim, self.dt = 5, float(dt)
+
+    def forward(self, x: Tensor, *, u: Tensor | None = None) -> Tensor:
+        F = _turn_matrix(x[..., 4], self.dt)
+        pos_vel = (F @ x[..., :4].unsqueeze(-1)).squeeze(-1)
+        return torch.cat([pos_vel, x[..., 4:]], dim=-1)
+
+    def noise_cov(self, x: Tensor | None = None) -> Tensor:
+        return self.Q

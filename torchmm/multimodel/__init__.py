@@ -1,0 +1,25 @@
+"""Multiple-model estimation: transition matrices, filter banks, IMM / GPB1 / GPB2."""
+
+from torchmm.multimodel.bank import FilterBank, ListBank, VectorizedBank, make_bank
+from torchmm.multimodel.imm import GPB1, GPB2, IMM, MultipleModelFilter
+from torchmm.multimodel.transition import (
+    ModeTransition,
+    alpha_transition,
+    transition_alpha,
+    validate_transition,
+)
+
+__all__ = [
+    "GPB1",
+    "GPB2",
+    "IMM",
+    "FilterBank",
+    "ListBank",
+    "ModeTransition",
+    "MultipleModelFilter",
+    "VectorizedBank",
+    "alpha_transition",
+    "make_bank",
+    "transition_alpha",
+    "validate_transition",
+]

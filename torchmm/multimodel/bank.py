@@ -1,0 +1,130 @@
+"""Filter banks: ``M`` mode-conditioned filters applied along the last batch axis of a belief.
+
+Two kinds, one interface:
+
+* :class:`VectorizedBank` - one filter whose models carry a mode axis (``F: (M, n, n)`` ...);
+  a single call predicts/updates every mode of every run.
+* :class:`ListBank` - a list of arbitrary filters (e.g. a KF mode next to a UKF mode); one call
+  per *distinct filter*, results stacked on the mode axis.
+
+:func:`make_bank` builds the right one, fusing a list of stackable filters (e.g. Kalman filters
+with linear models) into a vectorised bank automatically.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from torch import Tensor, nn
+
+from torchmm.beliefs import stack
+from torchmm.filters.base import Filter, StepOutput
+
+__all__ = ["FilterBank", "ListBank", "VectorizedBank", "make_bank"]
+
+
+class FilterBank(nn.Module):
+    """Interface of a bank of ``num_modes`` filters.
+
+    Shapes:
+        beliefs have batch ``(*B, M)`` (any leading dims, mode axis last); ``z`` and ``u`` are
+        broadcastable to ``(*B, M, m)`` / ``(*B, M, k)`` (pass ``z.unsqueeze(-2)``).
+    """
+
+    num_modes: int
+
+    def predict(self, belief, *, u: Tensor | None = None):
+        raise NotImplementedError
+
+    def update(self, belief, z: Tensor) -> StepOutput:
+        raise NotImplementedError
+
+
+class VectorizedBank(FilterBank):
+    """A single filter whose model parameters broadcast over the mode axis (batch ``(M,)``)."""
+
+    def __init__(self, filter: Filter, num_modes: int):
+        super().__init__()
+        shape = getattr(filter, "param_batch_shape", None)
+        if shape is not None and len(shape) and tuple(shape) not in {(1,), (num_modes,)}:
+            raise ValueError(
+                f"bank: model parameter batch {tuple(shape)} does not match {num_modes} modes "
+                f"(expected () or ({num_modes},))"
+            )
+        self.filter = filter
+        self.num_modes = num_modes
+
+    def predict(self, belief, *, u: Tensor | None = None):
+        return self.filter.predict(belief, u=u)
+
+    def update(self, belief, z: Tensor) -> StepOutput:
+        return self.filter.update(belief, z)
+
+
+class ListBank(FilterBank):
+    """Heterogeneous filters, mode ``j`` handled by ``filters[j]`` (one call per filter)."""
+
+    def __init__(self, filters: Sequence[Filter]):
+        super().__init__()
+        self.filters = nn.ModuleList(filters)
+        self.num_modes = len(self.filters)
+
+    def predict(self, belief, *, u: Tensor | None = None):
+        priors = [
+            f.predict(belief.select(-1, j), u=None if u is None else _select_mode(u, j))
+            for j, f in enumerate(self.filters)
+        ]
+        return stack(priors, dim=-1)
+
+    def update(self, belief, z: Tensor) -> StepOutput:
+        outs = [f.update(belief.select(-1, j), _select_mode(z, j)) for j, f in enumerate(self.filters)]
+        return StepOutput(
+            belief=stack([o.belief for o in outs], dim=-1),
+            prior=belief,
+            log_likelihood=torch.stack([o.log_likelihood for o in outs], dim=-1),
+            innovation=_stack_optional([o.innovation for o in outs], event=1),
+            innovation_cov=_stack_optional([o.innovation_cov for o in outs], event=2),
+        )
+
+
+def _select_mode(value: Tensor, j: int) -> Tensor:
+    """Pick mode ``j`` from a tensor whose mode axis (size 1 or M) sits just left of the event."""
+    return value.select(-2, 0 if value.shape[-2] == 1 else j)
+
+
+def _stack_optional(values, event: int):
+    if any(v is None for v in values):
+        return None
+    shape = torch.broadcast_shapes(*[v.shape for v in values])
+    return torch.stack([v.expand(shape) for v in values], dim=-1 - event)
+
+
+def make_bank(bank, num_modes: int) -> FilterBank:
+    """Build a :class:`FilterBank` for ``num_modes`` modes.
+
+    Args:
+        bank: a :class:`FilterBank`; a single :class:`Filter` whose models are banks (vectorised);
+            or a sequence of ``num_modes`` filters. A sequence of filters of one class that
+            provides ``stack`` (e.g. :class:`~torchmm.filters.KalmanFilter`) is fused into a
+            vectorised bank; otherwise it becomes a :class:`ListBank`.
+    """
+    if isinstance(bank, FilterBank):
+        if bank.num_modes != num_modes:
+            raise ValueError(f"bank: has {bank.num_modes} modes, the transition matrix {num_modes}")
+        return bank
+    if isinstance(bank, Filter):
+        return VectorizedBank(bank, num_modes)
+    if isinstance(bank, Sequence) and all(isinstance(f, Filter) for f in bank):
+        if len(bank) != num_modes:
+            raise ValueError(f"bank: has {len(bank)} filters, the transition matrix {num_modes} modes")
+        kinds = {type(f) for f in bank}
+        if len(kinds) == 1 and hasattr(type(bank[0]), "stack"):
+            try:
+                return VectorizedBank(type(bank[0]).stack(list(bank)), num_modes)
+            except ValueError:
+                pass  # e.g. different state dims or options: fall back to a list bank
+        return ListBank(bank)
+    raise ValueError(
+        f"bank: expected a Filter, a sequence of Filters or a FilterBank, got {type(bank).__name__}"
+    )

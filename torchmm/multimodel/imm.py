@@ -1,0 +1,214 @@
+r"""Multiple-model combinators over any filter bank: IMM, GPB1 and GPB2, in log space.
+
+Notation (Bar-Shalom, Li, Kirubarajan 2001, ch. 11; paper 001 eqs. (2.7)-(2.14); paper 000
+section 2.2): ``mu_i`` posterior mode probabilities at ``k-1``, ``pi_ij`` the transition matrix
+(``P(mode_k = j | mode_{k-1} = i)``), ``ell_j`` the mode-matched log-likelihoods at ``k``.
+
+.. math::
+    \log \bar c_j = \operatorname{logsumexp}_i(\log\mu_i + \log\pi_{ij}),\qquad
+    \log \mu_{i|j} = \log\mu_i + \log\pi_{ij} - \log\bar c_j
+
+    \log\mu^+_j = \ell_j + \log\bar c_j - \operatorname{logsumexp}_l(\ell_l + \log\bar c_l),\qquad
+    \log p(z_k | z_{1:k-1}) = \operatorname{logsumexp}_l(\ell_l + \log\bar c_l)
+
+Every mode and every run is handled by one batched call of the bank.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from torchmm.beliefs import Belief, ModeBelief
+from torchmm.filters.base import Filter, StepOutput
+from torchmm.multimodel.bank import make_bank
+from torchmm.multimodel.transition import ModeTransition
+from torchmm.validation import as_tensor
+
+__all__ = ["GPB1", "GPB2", "IMM", "MultipleModelFilter"]
+
+
+def _safe_sub(joint: Tensor, norm: Tensor) -> Tensor:
+    """``joint - norm`` where ``norm = logsumexp`` of ``joint``; all ``-inf`` groups -> uniform."""
+    out = joint - norm
+    if not bool(torch.isfinite(norm).all()):
+        size = joint.numel() // max(norm.numel(), 1)
+        out = torch.where(torch.isfinite(norm), out, -torch.log(torch.tensor(float(size), dtype=out.dtype)))
+    return out
+
+
+class MultipleModelFilter(Filter):
+    """Shared set-up of the multiple-model combinators.
+
+    Args:
+        bank: the mode-matched filters (see :func:`~torchmm.multimodel.make_bank`): one filter
+            with mode-bank models, a list of filters, or a :class:`~torchmm.multimodel.FilterBank`.
+        transition: ``(M, M)`` row-stochastic matrix or a
+            :class:`~torchmm.multimodel.ModeTransition` (learnable).
+    """
+
+    def __init__(self, bank, transition):
+        super().__init__()
+        self.transition = transition if isinstance(transition, ModeTransition) else ModeTransition(transition)
+        self.num_modes = self.transition.num_modes
+        self.bank = make_bank(bank, self.num_modes)
+
+    def initial_belief(self, belief: Belief, mode_probs=None) -> ModeBelief:
+        """Start every mode from ``belief`` with prior mode probabilities ``mode_probs``.
+
+        Shapes:
+            belief: batch ``(*B,)``; mode_probs: ``(M,)`` or ``(*B, M)``, default uniform
+            -> :class:`ModeBelief` with batch ``(*B,)``
+        """
+        M = self.num_modes
+        batch = belief.batch_shape
+        if mode_probs is None:
+            log_probs = torch.full((M,), -torch.log(torch.tensor(float(M))).item(), dtype=belief.dtype,
+                                   device=belief.device)
+        else:
+            probs = as_tensor(mode_probs, "mode_probs", dtype=belief.dtype, device=belief.device)
+            if probs.shape[-1] != M:
+                raise ValueError(f"mode_probs: expected {M} modes, got shape {tuple(probs.shape)}")
+            if bool((probs.detach() < 0).any()) or bool(((probs.detach().sum(-1) - 1).abs() > 1e-6).any()):
+                raise ValueError("mode_probs: must be non-negative and sum to 1")
+            log_probs = probs.log()
+        log_probs = log_probs.expand(*batch, M)
+        components = belief.unsqueeze(-1).expand(*batch, M)
+        return ModeBelief(log_probs, components)
+
+    def _update_modes(self, prior: ModeBelief, z: Tensor) -> StepOutput:
+        """Mode-matched updates and the mode-probability update (shared by IMM and GPB1)."""
+        out = self.bank.update(prior.components, z.unsqueeze(-2))
+        joint = out.log_likelihood + prior.mode_log_probs  # ell_j + log c_j
+        log_likelihood = torch.logsumexp(joint, dim=-1)
+        mode_log_probs = _safe_sub(joint, log_likelihood.unsqueeze(-1))
+        return StepOutput(
+            belief=ModeBelief(mode_log_probs, out.belief),
+            prior=prior,
+            log_likelihood=log_likelihood,
+            innovation=out.innovation,
+            innovation_cov=out.innovation_cov,
+            extras={"mode_log_likelihood": out.log_likelihood},
+        )
+
+    def mix(self, belief: ModeBelief) -> ModeBelief:
+        """Interaction step: predicted mode log-probs and the mode-conditioned start beliefs."""
+        raise NotImplementedError
+
+    def predict(self, belief: ModeBelief, *, u: Tensor | None = None) -> ModeBelief:
+        mixed = self.mix(belief)
+        u = None if u is None else u.unsqueeze(-2)
+        return ModeBelief(mixed.mode_log_probs, self.bank.predict(mixed.components, u=u))
+
+    def update(self, belief: ModeBelief, z: Tensor) -> StepOutput:
+        return self._update_modes(belief, z)
+
+    def step(self, belief: ModeBelief, z: Tensor, *, u: Tensor | None = None) -> StepOutput:
+        mixed = self.mix(belief)
+        u = None if u is None else u.unsqueeze(-2)
+        prior = ModeBelief(mixed.mode_log_probs, self.bank.predict(mixed.components, u=u))
+        out = self.update(prior, z)
+        out.extras["mixed"] = mixed
+        return out
+
+
+class IMM(MultipleModelFilter):
+    r"""Interacting multiple model estimator (Blom and Bar-Shalom 1988) over any filter bank.
+
+    Mixing: mode ``j`` starts from the moment-matched mixture of the mode posteriors with weights
+    ``mu_{i|j}``; each mode filter then runs one step; the output estimate (not fed back) is the
+    moment-matched collapse, ``belief.estimate()``.
+
+    Args:
+        bank: mode-matched filters (one vectorised filter, a list, or a ``FilterBank``).
+        transition: ``(M, M)`` matrix with ``P[i, j] = P(mode_k = j | mode_{k-1} = i)``.
+
+    Shapes:
+        belief: :class:`ModeBelief`, ``mode_log_probs (*B, M)``, components batch ``(*B, M)``;
+        ``z``: ``(*B, m)``; the step's ``innovation`` is ``(*B, M, m)``. ``extras`` holds
+        ``"mixed"`` (``ModeBelief`` of the mixed start beliefs with ``log c_j``) and
+        ``"mode_log_likelihood"`` ``(*B, M)``.
+
+    Examples:
+        >>> from torchmm.filters import KalmanFilter
+        >>> from torchmm.models import ConstantVelocity, PositionMeasurement
+        >>> motion = ConstantVelocity(1, q=1.0, acceleration=[[0.25], [0.0], [-0.25]])
+        >>> imm = IMM(KalmanFilter(motion, PositionMeasurement(2, [0], 100.0)),
+        ...           torch.tensor([[0.5, 0.25, 0.25], [0.25, 0.5, 0.25], [0.25, 0.25, 0.5]]))
+        >>> belief = imm.initial_belief(GaussianBelief(torch.zeros(8, 2), 100 * torch.eye(2)))
+        >>> out = imm.step(belief, torch.randn(8, 1))
+        >>> out.belief.mode_probs.shape, out.belief.estimate().mean.shape
+        (torch.Size([8, 3]), torch.Size([8, 2]))
+    """
+
+    def mix(self, belief: ModeBelief) -> ModeBelief:
+        joint = belief.mode_log_probs.unsqueeze(-1) + self.transition.log_matrix()  # (*B, i, j)
+        log_cbar = torch.logsumexp(joint, dim=-2)  # predicted mode log-probabilities
+        log_weights = _safe_sub(joint, log_cbar.unsqueeze(-2))  # mixing probabilities mu_{i|j}
+        return ModeBelief(log_cbar, belief.components.mix(log_weights))
+
+
+class GPB1(MultipleModelFilter):
+    """First-order generalised pseudo-Bayesian estimator.
+
+    Every mode filter starts from the single collapsed belief of the previous step (the mixing
+    weights are ``mu_i`` for every ``j``). Same interface and shapes as :class:`IMM`.
+    """
+
+    def mix(self, belief: ModeBelief) -> ModeBelief:
+        joint = belief.mode_log_probs.unsqueeze(-1) + self.transition.log_matrix()
+        log_cbar = torch.logsumexp(joint, dim=-2)
+        collapsed = belief.components.collapse(belief.mode_log_probs)
+        return ModeBelief(log_cbar, collapsed.unsqueeze(-1).expand(*collapsed.batch_shape, self.num_modes))
+
+
+class GPB2(MultipleModelFilter):
+    r"""Second-order generalised pseudo-Bayesian estimator (``M^2`` mode-matched filters).
+
+    For every pair ``(i, j)`` the mode-``j`` filter runs from mode ``i``'s posterior; pair weights
+    ``log w_ij = ell_ij + log pi_ij + log mu_i``; mode ``j``'s posterior is the collapse over ``i``
+    with weights ``w_ij / sum_i w_ij``.
+
+    Shapes:
+        as :class:`IMM`, except: :meth:`predict` returns a ``ModeBelief`` over the ``M^2`` pairs
+        (mode axis ``i * M + j``), and ``innovation`` is ``(*B, M, M, m)`` (``[..., i, j, :]``).
+    """
+
+    def mix(self, belief: ModeBelief) -> ModeBelief:
+        """Pair hypotheses: component ``(i, j)`` is mode ``i``'s posterior; weight ``mu_i pi_ij``."""
+        M = self.num_modes
+        joint = belief.mode_log_probs.unsqueeze(-1) + self.transition.log_matrix()  # (*B, i, j)
+        batch = belief.batch_shape
+        components = belief.components.unsqueeze(-1).expand(*batch, M, M)
+        return ModeBelief(joint.flatten(-2), components.reshape(*batch, M * M))
+
+    def predict(self, belief: ModeBelief, *, u: Tensor | None = None) -> ModeBelief:
+        M = self.num_modes
+        pairs = self.mix(belief)
+        batch = belief.batch_shape
+        components = pairs.components.reshape(*batch, M, M)
+        u = None if u is None else u.unsqueeze(-2).unsqueeze(-2)
+        prior = self.bank.predict(components, u=u)
+        return ModeBelief(pairs.mode_log_probs, prior.reshape(*batch, M * M))
+
+    def update(self, belief: ModeBelief, z: Tensor) -> StepOutput:
+        M = self.num_modes
+        batch = belief.batch_shape
+        prior_pairs = belief.components.reshape(*batch, M, M)
+        out = self.bank.update(prior_pairs, z.unsqueeze(-2).unsqueeze(-2))
+        joint = out.log_likelihood + belief.mode_log_probs.unflatten(-1, (M, M))  # log w_ij
+        log_mode = torch.logsumexp(joint, dim=-2)  # (*B, j): unnormalised log mu_j
+        log_likelihood = torch.logsumexp(log_mode, dim=-1)
+        merge_weights = _safe_sub(joint, log_mode.unsqueeze(-2))  # mu_{i|j}, (*B, i, j)
+        merged = out.belief.transpose_batch(-1, -2).collapse(merge_weights.mT)  # (*B, j)
+        return StepOutput(
+            belief=ModeBelief(_safe_sub(log_mode, log_likelihood.unsqueeze(-1)), merged),
+            prior=belief,
+            log_likelihood=log_likelihood,
+            innovation=out.innovation,
+            innovation_cov=out.innovation_cov,
+            extras={"mode_log_likelihood": out.log_likelihood},
+        )
+
+    def step(self, belief: ModeBelief, z: Tensor, *, u: Tensor | None = None) -> StepOutput:
+        return self.update(self.predict(belief, u=u), z)

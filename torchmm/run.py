@@ -1,0 +1,119 @@
+"""The time-loop driver: the only place in torchmm that loops over time steps."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+import torch.utils._pytree as pytree
+from torch import Tensor
+
+from torchmm.beliefs import GaussianBelief
+from torchmm.filters.base import Filter, StepOutput
+
+__all__ = ["Trajectory", "run_filter", "stack_outputs"]
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """Time-major record of a filter run: the fields of :class:`StepOutput`, stacked.
+
+    Shapes:
+        belief, prior: beliefs with batch ``(T, *B)``; log_likelihood ``(T, *B)``;
+        innovation ``(T, *B, [M,] m)``; innovation_cov ``(T, *B, [M,] m, m)``;
+        extras: dict of stacked diagnostics (``(T, ...)``). Fields dropped by ``record`` are None.
+    """
+
+    belief: Any
+    prior: Any
+    log_likelihood: Tensor | None
+    innovation: Tensor | None
+    innovation_cov: Tensor | None
+    extras: dict | None
+
+    def estimate(self) -> GaussianBelief:
+        """Point estimates and covariances, batch ``(T, *B)`` (IMM/GPB: the combined output)."""
+        return self.belief.estimate()
+
+    def total_log_likelihood(self) -> Tensor:
+        """``log p(z_{1:T})`` per run, shape ``(*B,)``."""
+        return self.log_likelihood.sum(0)
+
+    @property
+    def final_belief(self) -> Any:
+        """The last posterior, batch ``(*B,)`` (to continue filtering)."""
+        return self.belief[-1]
+
+
+def stack_outputs(outputs: list) -> Any:
+    """Stack a list of equally structured pytrees (e.g. StepOutputs) along a new leading axis."""
+    flat, specs = zip(*(pytree.tree_flatten(o) for o in outputs))
+    spec = specs[0]
+    if any(s != spec for s in specs[1:]):
+        raise ValueError("outputs: step outputs differ in structure between time steps")
+    leaves = []
+    for column in zip(*flat):
+        if column[0] is None:
+            leaves.append(None)
+            continue
+        shape = torch.broadcast_shapes(*(t.shape for t in column))
+        leaves.append(torch.stack([t.expand(shape) for t in column]))
+    return pytree.tree_unflatten(leaves, spec)
+
+
+def run_filter(
+    filter: Filter,
+    belief0: Any,
+    measurements: Any,
+    *,
+    controls: Tensor | None = None,
+    record: Callable[[StepOutput], StepOutput] | None = None,
+    progress: bool | str = False,
+) -> Trajectory:
+    """Run ``filter.step`` over a time-major measurement sequence.
+
+    Args:
+        filter: any :class:`~torchmm.filters.Filter` (KF, EKF, UKF, IMM, GPB, ...).
+        belief0: belief at time 0, batch ``(*B,)`` (for IMM/GPB: ``filter.initial_belief(...)``).
+        measurements: ``(T, *B, m)`` with NaN for missing data, or any pytree of time-major
+            tensors (each filter step receives the pytree indexed at ``k``).
+        controls: optional inputs ``(T, *B, k)``.
+        record: maps each :class:`StepOutput` to what is kept (e.g.
+            ``lambda o: o._replace(prior=None)`` to save memory); default keeps everything.
+        progress: show a tqdm bar (a string is used as its description).
+
+    Returns:
+        :class:`Trajectory` with every kept field stacked on a leading time axis.
+
+    Examples:
+        >>> from torchmm.filters import KalmanFilter
+        >>> from torchmm.models import ConstantVelocity, PositionMeasurement
+        >>> kf = KalmanFilter(ConstantVelocity(1), PositionMeasurement(2, [0], 1.0))
+        >>> traj = run_filter(kf, GaussianBelief(torch.zeros(4, 2), torch.eye(2)), torch.randn(10, 4, 1))
+        >>> traj.estimate().mean.shape
+        torch.Size([10, 4, 2])
+    """
+    leaves = pytree.tree_leaves(measurements)
+    if not leaves:
+        raise ValueError("measurements: empty")
+    steps = leaves[0].shape[0]
+    if any(t.shape[0] != steps for t in leaves):
+        raise ValueError("measurements: all streams must share the leading time axis")
+    if controls is not None and controls.shape[0] != steps:
+        raise ValueError(f"controls: expected {steps} time steps, got {controls.shape[0]}")
+    iterator = range(steps)
+    if progress:
+        from tqdm.auto import tqdm
+
+        iterator = tqdm(iterator, desc=progress if isinstance(progress, str) else None, leave=False)
+    belief = belief0
+    kept = []
+    for k in iterator:
+        z = pytree.tree_map(lambda t: t[k], measurements)
+        out = filter.step(belief, z, u=None if controls is None else controls[k])
+        belief = out.belief
+        kept.append(out if record is None else record(out))
+    stacked = stack_outputs(kept)
+    return Trajectory(*stacked)

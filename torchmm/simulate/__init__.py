@@ -1,0 +1,21 @@
+"""Batched simulators (ground truth and sensors) with explicit generators."""
+
+from torchmm.simulate.markov import (
+    JumpSimulation,
+    bernoulli_mask,
+    periodic_mask,
+    sample_categorical,
+    simulate_jump_system,
+    simulate_measurements,
+    simulate_modes,
+)
+
+__all__ = [
+    "JumpSimulation",
+    "bernoulli_mask",
+    "periodic_mask",
+    "sample_categorical",
+    "simulate_jump_system",
+    "simulate_measurements",
+    "simulate_modes",
+]

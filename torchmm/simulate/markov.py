@@ -1,0 +1,206 @@
+r"""Batched simulation of Markov-jump systems: all Monte Carlo runs at once, loops over time only.
+
+System (paper 000, eqs. (1)-(2); paper 001, eqs. (1.1)-(1.2)):
+
+.. math::
+    r_k \sim \pi_{r_{k-1}, \cdot},\qquad x_k = f_{r_k}(x_{k-1}) + w_k,\ w_k \sim N(0, Q_{r_k}),
+    \qquad z_k = h_{(r_k)}(x_k) + v_k,\ v_k \sim N(0, R)
+
+with ``x_0 ~ N(x0_mean, x0_cov)`` and ``r_0 ~ initial_mode_probs``; ``r_k`` is the mode in force
+over ``(k-1, k]``. Randomness comes only from the ``generator`` argument.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from torchmm.beliefs import GaussianBelief, psd_sqrt
+from torchmm.models.base import MeasurementModel, MotionModel
+from torchmm.multimodel.transition import validate_transition
+from torchmm.validation import as_tensor
+
+__all__ = [
+    "JumpSimulation",
+    "bernoulli_mask",
+    "periodic_mask",
+    "sample_categorical",
+    "simulate_jump_system",
+    "simulate_measurements",
+    "simulate_modes",
+]
+
+
+@dataclass(frozen=True)
+class JumpSimulation:
+    """Ground truth of a batch of Markov-jump trajectories.
+
+    Shapes:
+        states: ``(T, *B, n)`` - ``x_1 .. x_T``
+        modes: ``(T, *B)`` (int64) - ``r_1 .. r_T``
+        initial_state: ``(*B, n)`` - ``x_0``
+        initial_mode: ``(*B,)`` - ``r_0``
+    """
+
+    states: Tensor
+    modes: Tensor
+    initial_state: Tensor
+    initial_mode: Tensor
+
+
+def sample_categorical(probs: Tensor, generator: torch.Generator | None = None) -> Tensor:
+    """One draw per batch element from ``probs (*B, M)`` (rows sum to one) -> ``(*B,)`` int64."""
+    u = torch.rand(probs.shape[:-1], generator=generator, dtype=probs.dtype, device=probs.device)
+    cdf = probs.cumsum(-1)
+    return (u.unsqueeze(-1) >= cdf).sum(-1).clamp_max(probs.shape[-1] - 1)
+
+
+def simulate_modes(
+    transition,
+    steps: int,
+    batch_shape=(),
+    *,
+    initial_probs=None,
+    generator: torch.Generator | None = None,
+) -> tuple[Tensor, Tensor]:
+    """Markov chain paths ``r_1 .. r_T`` for every batch element.
+
+    Returns:
+        ``(modes (T, *B), initial_mode (*B,))``
+    """
+    transition = validate_transition(transition)
+    M = transition.shape[-1]
+    batch_shape = torch.Size(batch_shape)
+    if initial_probs is None:
+        initial_probs = torch.full((M,), 1.0 / M, dtype=transition.dtype, device=transition.device)
+    initial_probs = as_tensor(initial_probs, "initial_probs", dtype=transition.dtype, device=transition.device)
+    if initial_probs.shape[-1] != M:
+        raise ValueError(f"initial_probs: expected {M} entries, got shape {tuple(initial_probs.shape)}")
+    mode = sample_categorical(initial_probs.expand(*batch_shape, M), generator)
+    initial_mode = mode
+    modes = []
+    for _ in range(steps):
+        mode = sample_categorical(transition[mode], generator)
+        modes.append(mode)
+    return torch.stack(modes), initial_mode
+
+
+def _gather_mode(values: Tensor, modes: Tensor, event: int) -> Tensor:
+    """Pick the active mode per batch element.
+
+    ``values`` has a mode axis (size ``M``, or 1 for a shared model, or absent) just left of its
+    ``event`` dims and leading dims broadcastable to ``modes.shape``.
+
+    Shapes:
+        values: ``([*B,] [M,] *event)``, modes: ``(*B,)`` -> ``(*B, *event)``
+    """
+    if values.dim() < event + 1:
+        values = values.unsqueeze(0)
+    event_shape = values.shape[values.dim() - event :]
+    values = values.expand(*modes.shape, values.shape[-1 - event], *event_shape)
+    if values.shape[-1 - event] == 1:
+        return values.squeeze(-1 - event)
+    index = modes.reshape(*modes.shape, 1, *([1] * event)).expand(*modes.shape, 1, *event_shape)
+    return torch.take_along_dim(values, index, dim=-1 - event).squeeze(-1 - event)
+
+
+def simulate_jump_system(
+    motion: MotionModel,
+    transition,
+    initial: GaussianBelief,
+    steps: int,
+    batch_shape=(),
+    *,
+    initial_mode_probs=None,
+    generator: torch.Generator | None = None,
+) -> JumpSimulation:
+    """Simulate ``steps`` transitions of a Markov-jump system for a batch of runs.
+
+    Args:
+        motion: a motion model whose parameters form a mode bank (batch ``(M,)``, or shared);
+            evaluated for all modes at once and the active mode picked per run.
+        transition: ``(M, M)`` row-stochastic matrix.
+        initial: distribution of ``x_0`` (batch ``()`` or ``(*B,)``).
+        steps: ``T``.
+        batch_shape: ``*B``, e.g. ``(mc_runs,)``.
+        initial_mode_probs: distribution of ``r_0``, default uniform.
+        generator: the only source of randomness.
+
+    Returns:
+        :class:`JumpSimulation`.
+    """
+    transition = validate_transition(transition)
+    batch_shape = torch.Size(batch_shape)
+    modes, initial_mode = simulate_modes(
+        transition, steps, batch_shape, initial_probs=initial_mode_probs, generator=generator
+    )
+    dtype, device = initial.dtype, initial.device
+    n = initial.state_dim
+    noise = torch.randn(*batch_shape, n, generator=generator, dtype=dtype, device=device)
+    x = initial.mean + (psd_sqrt(initial.cov) @ noise.unsqueeze(-1)).squeeze(-1)
+    x = x.expand(*batch_shape, n)
+    initial_state = x
+    states = []
+    for k in range(steps):
+        mode = modes[k]
+        propagated = _gather_mode(motion(x.unsqueeze(-2)), mode, event=1)
+        scale = _gather_mode(psd_sqrt(motion.noise_cov(x.unsqueeze(-2))), mode, event=2)
+        eps = torch.randn(*batch_shape, n, generator=generator, dtype=dtype, device=device)
+        x = propagated + (scale @ eps.unsqueeze(-1)).squeeze(-1)
+        states.append(x)
+    return JumpSimulation(torch.stack(states), modes, initial_state, initial_mode)
+
+
+def simulate_measurements(
+    measurement: MeasurementModel,
+    states: Tensor,
+    *,
+    modes: Tensor | None = None,
+    available: Tensor | None = None,
+    generator: torch.Generator | None = None,
+) -> Tensor:
+    """Noisy measurements of a state sequence; NaN where ``available`` is false.
+
+    Args:
+        measurement: the sensor model. With ``modes`` given it is treated as a mode bank
+            (parameters with batch ``(M,)``) and the mode in force is used per run and step.
+        states: ``(T, *B, n)``.
+        modes: ``(T, *B)`` mode indices, for mode-dependent sensors.
+        available: ``(T, *B)`` bool; False entries become NaN (missing, e.g. slow-rate sensors).
+        generator: the only source of randomness.
+
+    Returns:
+        ``(T, *B, m)`` measurements.
+    """
+    if modes is None:
+        predicted = measurement(states)
+        cov = measurement.noise_cov(states)
+    else:
+        predicted = _gather_mode(measurement(states.unsqueeze(-2)), modes, event=1)
+        cov = _gather_mode(measurement.noise_cov(states.unsqueeze(-2)), modes, event=2)
+    eps = torch.randn(predicted.shape, generator=generator, dtype=predicted.dtype, device=predicted.device)
+    z = predicted + (psd_sqrt(cov) @ eps.unsqueeze(-1)).squeeze(-1)
+    if available is not None:
+        if available.shape != z.shape[:-1]:
+            raise ValueError(f"available: expected shape {tuple(z.shape[:-1])}, got {tuple(available.shape)}")
+        z = torch.where(available.unsqueeze(-1), z, torch.nan)
+    return z
+
+
+def bernoulli_mask(steps: int, batch_shape, probability: float, *, generator=None, device=None) -> Tensor:
+    """``(T, *B)`` bool mask, each entry true with ``probability`` (irregular slow-rate data)."""
+    if not 0.0 <= probability <= 1.0:
+        raise ValueError(f"probability: must lie in [0, 1], got {probability}")
+    u = torch.rand(steps, *batch_shape, generator=generator, device=device)
+    return u < probability
+
+
+def periodic_mask(steps: int, batch_shape, period: int, *, offset: int = 0, device=None) -> Tensor:
+    """``(T, *B)`` bool mask true at steps ``k`` (1-based) with ``(k - offset) % period == 0``."""
+    if period < 1:
+        raise ValueError(f"period: must be a positive integer, got {period}")
+    k = torch.arange(1, steps + 1, device=device)
+    mask = (k - offset) % period == 0
+    return mask.reshape(steps, *([1] * len(batch_shape))).expand(steps, *batch_shape)
