@@ -1,0 +1,109 @@
+"""Batched Markov-jump simulator: statistics against the model, reproducibility, masks."""
+
+from __future__ import annotations
+
+import math
+from functools import partial
+
+import pytest
+import torch
+
+from torchmm import ConstantVelocity, GaussianBelief, LinearMeasurement, PositionMeasurement
+from torchmm.simulate import (
+    bernoulli_mask,
+    periodic_mask,
+    simulate_jump_system,
+    simulate_measurements,
+    simulate_modes,
+)
+
+close = partial(torch.testing.assert_close, rtol=0, atol=1e-12)
+PI = torch.tensor([[0.8, 0.15, 0.05], [0.1, 0.7, 0.2], [0.3, 0.3, 0.4]])
+
+
+def test_mode_transition_frequencies_match_the_matrix():
+    g = torch.Generator().manual_seed(0)
+    modes, first = simulate_modes(PI, 60, (2000,), generator=g)
+    prev = torch.cat([first[None], modes[:-1]])
+    for i in range(3):
+        from_i = modes[prev == i]
+        counts = torch.bincount(from_i, minlength=3).double()
+        freq = counts / counts.sum()
+        se = (PI[i] * (1 - PI[i]) / counts.sum()).sqrt()
+        assert bool(((freq - PI[i]).abs() < 5 * se).all()), (i, freq, PI[i])
+
+
+def test_reproducible_with_explicit_generator():
+    motion = ConstantVelocity(1, acceleration=[[0.25], [0.0], [-0.25]])
+    x0 = GaussianBelief(torch.tensor([10.0, 10.0]), torch.tensor([[100.0, 1.0], [1.0, 100.0]]))
+    a = simulate_jump_system(motion, PI, x0, 20, (5,), generator=torch.Generator().manual_seed(3))
+    b = simulate_jump_system(motion, PI, x0, 20, (5,), generator=torch.Generator().manual_seed(3))
+    c = simulate_jump_system(motion, PI, x0, 20, (5,), generator=torch.Generator().manual_seed(4))
+    close(a.states, b.states)
+    assert torch.equal(a.modes, b.modes)
+    assert not torch.equal(a.states, c.states)
+    assert a.states.shape == (20, 5, 2) and a.modes.shape == (20, 5) and a.initial_state.shape == (5, 2)
+
+
+def test_state_increments_follow_the_active_mode():
+    """x_k - F x_{k-1} - G a_{r_k} must be N(0, q G G^T) whatever the mode."""
+    g = torch.Generator().manual_seed(1)
+    acc = torch.tensor([[2.0], [0.0], [-2.0]])
+    motion = ConstantVelocity(1, q=1.0, acceleration=acc)
+    x0 = GaussianBelief(torch.zeros(2), torch.eye(2))
+    sim = simulate_jump_system(motion, PI, x0, 30, (4000,), generator=g)
+    prev = torch.cat([sim.initial_state[None], sim.states[:-1]])
+    gain = torch.tensor([0.5, 1.0])
+    resid = sim.states - prev @ motion.F.mT - acc[sim.modes] * gain
+    # the residual lies on G: resid = G w, w ~ N(0, 1)
+    w = resid[..., 1]
+    close(resid[..., 0], 0.5 * w)
+    n = w.numel()
+    assert abs(w.mean().item()) < 5 / math.sqrt(n)
+    assert abs(w.var().item() - 1.0) < 5 * math.sqrt(2 / n)
+
+
+def test_initial_state_distribution():
+    g = torch.Generator().manual_seed(2)
+    cov = torch.tensor([[100.0, 1.0], [1.0, 100.0]])
+    x0 = GaussianBelief(torch.tensor([10.0, 10.0]), cov)
+    sim = simulate_jump_system(ConstantVelocity(1), torch.ones(1, 1), x0, 1, (20000,), generator=g)
+    mean = sim.initial_state.mean(0)
+    emp_cov = torch.cov(sim.initial_state.T)
+    assert bool(((mean - 10).abs() < 5 * 10 / math.sqrt(20000)).all())
+    assert bool(((emp_cov - cov).abs() < 5 * 100 * math.sqrt(2 / 20000)).all())
+
+
+def test_measurements_noise_and_availability():
+    g = torch.Generator().manual_seed(5)
+    states = torch.randn(50, 400, 2, generator=g)
+    sensor = PositionMeasurement(2, [0], 4.0)
+    avail = bernoulli_mask(50, (400,), 0.6, generator=g)
+    z = simulate_measurements(sensor, states, available=avail, generator=g)
+    assert z.shape == (50, 400, 1)
+    assert torch.equal(torch.isnan(z[..., 0]), ~avail)
+    noise = (z[..., 0] - states[..., 0])[avail]
+    assert abs(noise.var().item() - 4.0) < 5 * 4.0 * math.sqrt(2 / noise.numel())
+    frac = avail.double().mean().item()
+    assert abs(frac - 0.6) < 5 * math.sqrt(0.24 / avail.numel())
+
+
+def test_mode_dependent_sensor():
+    g = torch.Generator().manual_seed(6)
+    H = torch.tensor([[[1.0, 0.0]], [[0.0, 1.0]]])
+    sensor = LinearMeasurement(H, torch.full((2, 1, 1), 1e-12))
+    states = torch.randn(4, 3, 2, generator=g)
+    modes = torch.randint(0, 2, (4, 3), generator=g)
+    z = simulate_measurements(sensor, states, modes=modes, generator=g)
+    expected = torch.where(modes == 0, states[..., 0], states[..., 1])
+    torch.testing.assert_close(z[..., 0], expected, atol=1e-4, rtol=0)
+
+
+def test_periodic_mask():
+    mask = periodic_mask(10, (2,), 3)
+    assert mask.shape == (10, 2)
+    assert mask[:, 0].nonzero().squeeze(-1).tolist() == [2, 5, 8]  # steps 3, 6, 9
+    with pytest.raises(ValueError, match="period"):
+        periodic_mask(10, (2,), 0)
+    with pytest.raises(ValueError, match="probability"):
+        bernoulli_mask(10, (2,), 1.5)

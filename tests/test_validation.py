@@ -1,0 +1,114 @@
+"""Bad input gets a ValueError naming the argument."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from torchmm import (
+    IMM,
+    ConstantVelocity,
+    GaussianBelief,
+    KalmanFilter,
+    LinearMeasurement,
+    LinearMotion,
+    ModeTransition,
+    PositionMeasurement,
+    alpha_transition,
+    validate_transition,
+)
+
+
+@pytest.mark.parametrize(
+    "matrix,message",
+    [
+        ([[0.9, 0.2], [0.1, 0.9]], "rows must sum to 1"),
+        ([[1.1, -0.1], [0.5, 0.5]], "negative"),
+        ([[0.5, 0.5, 0.0], [0.5, 0.5, 0.0]], "square"),
+        ([[float("nan"), 1.0], [0.5, 0.5]], "NaN"),
+    ],
+)
+def test_transition_matrix_errors(matrix, message):
+    with pytest.raises(ValueError, match=rf"transition: .*{message}"):
+        validate_transition(matrix)
+    with pytest.raises(ValueError, match=rf"matrix: .*{message}"):
+        ModeTransition(matrix)
+
+
+def test_imm_names_the_transition_argument():
+    kf = KalmanFilter(ConstantVelocity(1), PositionMeasurement(2, [0], 1.0))
+    with pytest.raises(ValueError, match="matrix: rows must sum to 1"):
+        IMM(kf, torch.tensor([[0.9, 0.2], [0.1, 0.9]]))
+
+
+def test_bank_mode_count_mismatch():
+    motion = ConstantVelocity(1, acceleration=[[0.0], [1.0], [2.0]])
+    kf = KalmanFilter(motion, PositionMeasurement(2, [0], 1.0))
+    with pytest.raises(ValueError, match="bank: model parameter batch"):
+        IMM(kf, torch.eye(2))
+    with pytest.raises(ValueError, match="bank: has 2 filters"):
+        IMM([kf, kf], torch.eye(3))
+
+
+@pytest.mark.parametrize(
+    "kwargs,name,message",
+    [
+        ({"F": torch.eye(2), "Q": torch.tensor([[1.0, 0.5], [0.0, 1.0]])}, "Q", "not symmetric"),
+        ({"F": torch.eye(2), "Q": torch.tensor([[1.0, 2.0], [2.0, 1.0]])}, "Q", "not positive semi-definite"),
+        ({"F": torch.eye(2), "Q": torch.eye(3)}, "Q", "trailing shape"),
+        ({"F": torch.ones(2, 3), "Q": torch.eye(2)}, "F", "square"),
+        ({"F": torch.eye(2), "Q": torch.eye(2), "offset": torch.zeros(3)}, "offset", "trailing shape"),
+        ({"F": torch.eye(2).expand(3, 2, 2), "Q": torch.eye(2).expand(2, 2, 2)}, "LinearMotion", "broadcast"),
+    ],
+)
+def test_linear_motion_errors(kwargs, name, message):
+    with pytest.raises(ValueError, match=rf"{name}: .*{message}"):
+        LinearMotion(**kwargs)
+
+
+def test_measurement_errors():
+    with pytest.raises(ValueError, match="R: covariance is not positive semi-definite"):
+        LinearMeasurement(torch.ones(1, 2), -torch.eye(1))
+    with pytest.raises(ValueError, match="R: expected trailing shape"):
+        LinearMeasurement(torch.ones(1, 2), torch.eye(2))
+    with pytest.raises(ValueError, match="measurement: state_dim 3"):
+        KalmanFilter(ConstantVelocity(1), PositionMeasurement(3, [0], 1.0))
+    with pytest.raises(ValueError, match="motion: KalmanFilter needs a LinearMotion"):
+        from torchmm import NonlinearCoordinatedTurn
+
+        KalmanFilter(NonlinearCoordinatedTurn(), PositionMeasurement(5, [0], 1.0))
+
+
+def test_belief_errors():
+    with pytest.raises(ValueError, match="cov: covariance is not symmetric"):
+        GaussianBelief.create(torch.zeros(2), torch.tensor([[1.0, 0.3], [0.0, 1.0]]))
+    with pytest.raises(ValueError, match="cov: expected trailing shape"):
+        GaussianBelief.create(torch.zeros(2), torch.eye(3))
+    with pytest.raises(ValueError, match="cov: batch shape"):
+        GaussianBelief.create(torch.zeros(3, 2), torch.eye(2).expand(4, 2, 2))
+
+
+def test_alpha_transition_errors():
+    with pytest.raises(ValueError, match="alpha: entries must be non-negative"):
+        alpha_transition([0.1, -0.1])
+    with pytest.raises(ValueError, match="alpha: sum"):
+        alpha_transition([0.6, 0.6, 0.6])
+
+
+def test_initial_mode_probability_errors():
+    kf = KalmanFilter(ConstantVelocity(1, acceleration=[[0.0], [1.0]]), PositionMeasurement(2, [0], 1.0))
+    imm = IMM(kf, torch.eye(2))
+    prior = GaussianBelief(torch.zeros(2), torch.eye(2))
+    with pytest.raises(ValueError, match="mode_probs: must be non-negative and sum to 1"):
+        imm.initial_belief(prior, [0.5, 0.6])
+    with pytest.raises(ValueError, match="mode_probs: expected 2 modes"):
+        imm.initial_belief(prior, [0.2, 0.3, 0.5])
+
+
+def test_kinematic_argument_errors():
+    with pytest.raises(ValueError, match="noise: expected 'discrete' or 'continuous'"):
+        ConstantVelocity(1, noise="white")
+    with pytest.raises(ValueError, match="dt: must be positive"):
+        ConstantVelocity(1, dt=0.0)
+    with pytest.raises(ValueError, match=r"acceleration: expected shape \(\*P, 2\)"):
+        ConstantVelocity(2, acceleration=[0.1, 0.2, 0.3])
