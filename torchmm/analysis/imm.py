@@ -253,7 +253,7 @@ def check_probability_bounds(
 
     Returns:
         ``{"3.2/3.3": ..., "3.8": ...}``; premises ``(*B, M)`` and ``(*B, M, M)``. (3.8) requires
-        ``sum(alpha) <= 1``, ``alpha > 0`` and ``u > 0``.
+        ``sum(alpha) <= 1``, ``alpha > 0`` and ``u > 0``, and is counted on pairs ``i != j``.
     """
     lower, upper = mixed_probability_bounds(alpha)
     margin = tol * (1 + predicted.abs())
@@ -263,7 +263,8 @@ def check_probability_bounds(
     lo, hi = ratio_bounds(alpha, mode_probs)
     ratio = predicted.unsqueeze(-1) / predicted.unsqueeze(-2)
     valid = (mode_probs > 0).unsqueeze(-1) & (mode_probs > 0).unsqueeze(-2)
-    valid = valid & bool(alpha.sum() <= 1) & bool((alpha > 0).all())
+    off_diagonal = ~torch.eye(alpha.shape[-1], dtype=torch.bool, device=alpha.device)
+    valid = valid & off_diagonal & bool(alpha.sum() <= 1) & bool((alpha > 0).all())
     margin = tol * (1 + ratio.abs())
     holds = (ratio >= lo - margin) & (ratio <= hi + margin)
     return {"3.2/3.3": bounds, "3.8": ConclusionCheck(valid, holds)}

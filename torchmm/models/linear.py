@@ -83,6 +83,20 @@ class LinearMotion(MotionModel):
     def jacobian(self, x: Tensor, *, u: Tensor | None = None) -> Tensor:
         return self.F.expand(*torch.broadcast_shapes(x.shape[:-1], self.F.shape[:-2]), -1, -1)
 
+    def select_mode(self, index: int) -> LinearMotion:
+        """The single model ``index`` of a bank (parameters indexed on the parameter batch)."""
+        shape = self.param_batch_shape
+        if len(shape) != 1:
+            raise ValueError(f"index: select_mode needs a bank with one parameter axis, got {tuple(shape)}")
+        if not -shape[0] <= index < shape[0]:
+            raise ValueError(f"index: {index} out of range for a bank of {shape[0]} modes")
+
+        def pick(t: Tensor, event: int) -> Tensor:
+            return t.expand(*shape, *t.shape[t.dim() - event :])[index]
+
+        inputs = None if self.input_matrix is None else pick(self.input_matrix, 2)
+        return LinearMotion(pick(self.F, 2), pick(self.Q, 2), offset=pick(self.offset, 1), input_matrix=inputs)
+
     @classmethod
     def stack(cls, models: Sequence[LinearMotion]) -> LinearMotion:
         """A bank whose leading parameter axis enumerates ``models`` (all unbatched)."""

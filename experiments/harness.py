@@ -1,0 +1,295 @@
+"""Study harness: results files, TensorBoard, figures, seeding and resumable work units.
+
+Everything Hydra- and TensorBoard-specific lives here and in ``run.py``; the library never
+imports either. A study receives a :class:`StudyContext` and writes through it:
+
+* ``results.json`` (SPEC section 3 schema) and ``results.md``, rewritten after every finished
+  unit, so an interrupted study keeps what it finished;
+* ``checkpoint.json``: finished units by key; re-running with the same config in the same run
+  directory (``hydra.run.dir=<dir>``) skips them;
+* PNG figures under ``figures/`` (also logged to TensorBoard);
+* TensorBoard events under ``tb/`` (or nothing with ``logger=none``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import math
+import os
+import zlib
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+
+log = logging.getLogger("torchmm.experiments")
+
+DTYPES = {"float64": torch.float64, "float32": torch.float32, "double": torch.float64, "float": torch.float32}
+
+
+def resolve_dtype(name: str) -> torch.dtype:
+    try:
+        return DTYPES[str(name)]
+    except KeyError:
+        raise ValueError(f"dtype: expected one of {sorted(DTYPES)}, got {name!r}") from None
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    device = torch.device(name)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device: {name!r} requested but CUDA is not available")
+    return device
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, torch.Tensor):
+        value = value.detach().cpu()
+        return value.item() if value.dim() == 0 else value.tolist()
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    return value
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def _format(value: Any) -> str:
+    if isinstance(value, float):
+        if value != value:
+            return "nan"
+        if value == 0 or 1e-3 <= abs(value) < 1e5:
+            return f"{value:.4f}"
+        return f"{value:.3e}"
+    return "" if value is None else str(value)
+
+
+@dataclass
+class Table:
+    columns: list[str]
+    rows: list[list[Any]] = field(default_factory=list)
+    note: str = ""
+    #: optional published values: ``{"columns": [...], "rows": [...], "source": "..."}``
+    published: dict | None = None
+
+    def markdown(self) -> str:
+        lines = ["| " + " | ".join(self.columns) + " |", "|" + "---|" * len(self.columns)]
+        lines += ["| " + " | ".join(_format(v) for v in row) + " |" for row in self.rows]
+        return "\n".join(lines)
+
+
+class Results:
+    """The machine- and human-readable results of one study run.
+
+    ``results.json``: ``{"experiment", "config", "metrics": {estimator: {metric: value}},
+    "tables": {name: {"columns", "rows"}}, "timing": {estimator: seconds_per_step}}``.
+    """
+
+    def __init__(self, output_dir: Path, experiment: str, config: dict, description: str = ""):
+        self.output_dir = output_dir
+        self.experiment = experiment
+        self.config = config
+        self.description = description
+        self.metrics: dict[str, dict[str, Any]] = {}
+        self.tables: dict[str, Table] = {}
+        self.timing: dict[str, float] = {}
+        self.notes: list[str] = []
+
+    def table(self, name: str, columns: Sequence[str], *, note: str = "", published: dict | None = None) -> Table:
+        """Create (or reset) a table; append rows to ``.rows``."""
+        self.tables[name] = Table(list(columns), [], note, published)
+        return self.tables[name]
+
+    def metric(self, estimator: str, name: str, value: Any) -> None:
+        self.metrics.setdefault(estimator, {})[name] = _jsonable(value)
+
+    def to_json(self) -> dict:
+        return {
+            "experiment": self.experiment,
+            "config": self.config,
+            "metrics": _jsonable(self.metrics),
+            "tables": {k: {"columns": t.columns, "rows": _jsonable(t.rows)} for k, t in self.tables.items()},
+            "timing": _jsonable(self.timing),
+        }
+
+    def to_markdown(self) -> str:
+        out = [f"# {self.experiment}", ""]
+        if self.description:
+            out += [self.description, ""]
+        for name, table in self.tables.items():
+            out += [f"## {name}", ""]
+            if table.note:
+                out += [table.note, ""]
+            out += [table.markdown(), ""]
+            if table.published:
+                pub = Table(table.published["columns"], table.published["rows"])
+                out += [f"Published ({table.published.get('source', 'paper')}):", "", pub.markdown(), ""]
+        if self.metrics:
+            names = sorted({m for v in self.metrics.values() for m in v})
+            metrics = Table(["estimator", *names], [[e, *[v.get(m) for m in names]] for e, v in self.metrics.items()])
+            out += ["## metrics", "", metrics.markdown(), ""]
+        if self.timing:
+            timing = Table(["estimator", "seconds_per_step"], [[k, v] for k, v in self.timing.items()])
+            out += ["## timing", "", "Wall time per time step for all Monte Carlo runs at once.", "",
+                    timing.markdown(), ""]
+        if self.notes:
+            out += ["## notes", ""] + [f"- {n}" for n in self.notes] + [""]
+        return "\n".join(out)
+
+    def save(self) -> None:
+        self.output_dir.mkdir(parents=True, exist_ok=True)
+        _write_atomic(self.output_dir / "results.json", json.dumps(self.to_json(), indent=2) + "\n")
+        _write_atomic(self.output_dir / "results.md", self.to_markdown())
+
+
+class Logger:
+    """Logging interface of studies (TensorBoard or nothing)."""
+
+    def scalar(self, tag: str, value: float, step: int = 0) -> None: ...
+
+    def series(self, tag: str, values: Iterable[float], start: int = 1) -> None:
+        """One scalar per time step (TensorBoard x-axis = time step)."""
+        for k, v in enumerate(values, start=start):
+            self.scalar(tag, float(v), k)
+
+    def histogram(self, tag: str, values: torch.Tensor, step: int = 0) -> None: ...
+
+    def figure(self, tag: str, figure) -> None: ...
+
+    def text(self, tag: str, text: str) -> None: ...
+
+    def close(self) -> None: ...
+
+
+class NullLogger(Logger):
+    """``logger=none``: discard everything."""
+
+
+class TensorBoardLogger(Logger):
+    """TensorBoard event files under ``<run dir>/tb``."""
+
+    def __init__(self, log_dir: Path, flush_secs: int = 10):
+        from torch.utils.tensorboard import SummaryWriter
+
+        self.writer = SummaryWriter(log_dir=str(log_dir), flush_secs=flush_secs)
+
+    def scalar(self, tag, value, step=0):
+        self.writer.add_scalar(tag, value, step)
+
+    def histogram(self, tag, values, step=0):
+        self.writer.add_histogram(tag, values.detach().cpu(), step)
+
+    def figure(self, tag, figure):
+        self.writer.add_figure(tag, figure, close=False)
+
+    def text(self, tag, text):
+        self.writer.add_text(tag, text)
+
+    def close(self):
+        self.writer.flush()
+        self.writer.close()
+
+
+def make_logger(cfg: dict | None, output_dir: Path) -> Logger:
+    kind = (cfg or {}).get("kind", "none")
+    if kind == "tensorboard":
+        return TensorBoardLogger(output_dir / cfg.get("subdir", "tb"), flush_secs=int(cfg.get("flush_secs", 10)))
+    if kind == "none":
+        return NullLogger()
+    raise ValueError(f"logger.kind: expected 'tensorboard' or 'none', got {kind!r}")
+
+
+@dataclass
+class StudyContext:
+    """What a study gets: its config, where to write, and the shared services."""
+
+    cfg: Any
+    output_dir: Path
+    results: Results
+    logger: Logger
+    dtype: torch.dtype
+    device: torch.device
+    seed: int
+    progress: bool = True
+    _checkpoint: dict = field(default_factory=dict)
+    _config_hash: str = ""
+
+    # -- randomness ----------------------------------------------------------------------------
+    def generator(self, *key: Any) -> torch.Generator:
+        """A generator seeded from ``seed`` and ``key``: independent of the order units run in."""
+        token = zlib.crc32(repr(key).encode())
+        gen = torch.Generator(device=self.device)
+        gen.manual_seed((self.seed * 1_000_003 + token) % (2**63 - 1))
+        return gen
+
+    # -- resumable units -----------------------------------------------------------------------
+    def unit(self, key: str, compute: Callable[[], Any]) -> Any:
+        """Return the cached value of ``key`` or compute, checkpoint and return it.
+
+        ``compute`` must return JSON-serialisable data (rows, numbers, lists).
+        """
+        if key in self._checkpoint:
+            log.info("resuming: unit %s already done", key)
+            return self._checkpoint[key]
+        value = _jsonable(compute())
+        self._checkpoint[key] = value
+        _write_atomic(self.output_dir / "checkpoint.json",
+                      json.dumps({"config_hash": self._config_hash, "units": self._checkpoint}) + "\n")
+        return value
+
+    # -- outputs -------------------------------------------------------------------------------
+    def save_figure(self, name: str, figure) -> Path:
+        """Save ``figures/<name>.png`` and log it to TensorBoard under ``figures/<name>``."""
+        import matplotlib.pyplot as plt
+
+        path = self.output_dir / "figures" / f"{name}.png"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        figure.savefig(path, dpi=120, bbox_inches="tight")
+        self.logger.figure(f"figures/{name}", figure)
+        plt.close(figure)
+        return path
+
+    def progress_bar(self, iterable, **kwargs):
+        from tqdm.auto import tqdm
+
+        return tqdm(iterable, disable=not self.progress, **kwargs)
+
+
+def open_context(cfg: Any, output_dir: Path, config_dict: dict, experiment: str, description: str = "") -> StudyContext:
+    """Create the context; pick up a checkpoint left in ``output_dir`` by the same config."""
+    output_dir.mkdir(parents=True, exist_ok=True)
+    config_hash = hashlib.sha256(json.dumps(config_dict, sort_keys=True, default=str).encode()).hexdigest()[:16]
+    checkpoint: dict = {}
+    ckpt_path = output_dir / "checkpoint.json"
+    if ckpt_path.exists():
+        saved = json.loads(ckpt_path.read_text())
+        if saved.get("config_hash") == config_hash:
+            checkpoint = saved.get("units", {})
+            log.info("found %d finished units in %s", len(checkpoint), ckpt_path)
+        else:
+            log.warning("%s belongs to a different config; starting afresh", ckpt_path)
+    results = Results(output_dir, experiment, config_dict, description)
+    return StudyContext(
+        cfg=cfg,
+        output_dir=output_dir,
+        results=results,
+        logger=make_logger(config_dict.get("logger"), output_dir),
+        dtype=resolve_dtype(cfg.dtype),
+        device=resolve_device(cfg.device),
+        seed=int(cfg.seed),
+        progress=bool(cfg.get("progress", True)),
+        _checkpoint=checkpoint,
+        _config_hash=config_hash,
+    )

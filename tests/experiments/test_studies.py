@@ -1,0 +1,145 @@
+"""Every conf/experiment/*.yaml composes and runs with a tiny mc_runs; CLI, sweeps and resume."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+
+from experiments.run import CONFIG_DIR, run_study
+
+EXPERIMENTS = sorted(p.stem for p in (Path(CONFIG_DIR) / "experiment").glob("*.yaml"))
+SCHEMA = {"experiment", "config", "metrics", "tables", "timing"}
+#: per-study overrides that keep the fast suite fast (the structure is unchanged)
+FAST = {
+    "imm_analysis": ["analysis.alphas.two_model=[0.01,0.6]", "analysis.alphas.three_model=[0.01,0.4]"],
+}
+REQUIRED_TABLES = {
+    "imm_baseline": {"rmse": ["estimator", "pos_rmse", "vel_rmse"]},
+    "imm_analysis": {
+        "conclusions": ["conclusion", "premise_steps", "holds_fraction"],
+        "alpha_sweep": ["alpha", "estimator", "pos_rmse", "vel_rmse"],
+    },
+}
+
+
+def _compose(name: str, *overrides: str):
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+        return compose("config", overrides=[f"experiment={name}", *overrides])
+
+
+def test_every_experiment_has_required_tables_listed():
+    assert set(EXPERIMENTS) >= set(REQUIRED_TABLES)
+
+
+@pytest.mark.parametrize("name", EXPERIMENTS)
+def test_experiment_composes_and_runs(name, tmp_path):
+    cfg = _compose(name, "mc_runs=4", "progress=false", "logger=tensorboard", *FAST.get(name, []))
+    results = run_study(cfg, tmp_path)
+    data = json.loads((tmp_path / "results.json").read_text())
+    assert set(data) == SCHEMA
+    assert data["experiment"] == name
+    assert data["config"]["mc_runs"] == 4
+    for table, columns in REQUIRED_TABLES.get(name, {}).items():
+        assert table in data["tables"], table
+        got = data["tables"][table]["columns"]
+        assert got[: len(columns)] == columns or set(columns) <= set(got), (table, got)
+        assert data["tables"][table]["rows"], f"{table} is empty"
+    assert (tmp_path / "results.md").read_text().startswith(f"# {name}")
+    assert list((tmp_path / "figures").glob("*.png"))
+    assert list((tmp_path / "tb").glob("events.out.tfevents.*"))
+    assert results.tables
+
+
+def test_imm_analysis_conclusions_hold(tmp_path):
+    cfg = _compose("imm_analysis", "mc_runs=6", "progress=false", "logger=none", *FAST["imm_analysis"])
+    results = run_study(cfg, tmp_path)
+    rows = {row[0]: row for row in results.tables["conclusions"].rows}
+    for conclusion in (1, 2, 3, 4, 5):
+        premise, fraction = rows[conclusion][1], rows[conclusion][2]
+        assert premise > 0, f"Conclusion {conclusion}: premise never held"
+        assert fraction == 1.0, f"Conclusion {conclusion} held on {fraction:.4f} of premise steps"
+    estimators = {row[2] for row in results.tables["alpha_sweep"].rows}
+    assert {"IMM", "GPB1"} <= estimators
+
+
+def test_imm_baseline_estimators_and_timing(tmp_path):
+    cfg = _compose("imm_baseline", "mc_runs=5", "progress=false", "logger=none")
+    results = run_study(cfg, tmp_path)
+    names = [row[0] for row in results.tables["rmse"].rows]
+    assert names == ["IMM", "GPB1", "GPB2", "KF"]
+    assert set(results.timing) == set(names) and all(t > 0 for t in results.timing.values())
+    for row in results.tables["rmse"].rows:
+        assert 0 < row[1] < 50 and 0 < row[2] < 20  # finite, sane RMSEs
+
+
+def test_same_seed_same_numbers_and_chunking_is_transparent(tmp_path):
+    a = run_study(_compose("imm_baseline", "mc_runs=6", "progress=false", "logger=none"), tmp_path / "a")
+    b = run_study(_compose("imm_baseline", "mc_runs=6", "progress=false", "logger=none", "chunk_runs=4"),
+                  tmp_path / "b")
+    c = run_study(_compose("imm_baseline", "mc_runs=6", "progress=false", "logger=none", "seed=1"), tmp_path / "c")
+    rows_a, rows_b = a.tables["rmse"].rows, b.tables["rmse"].rows
+    for ra, rb in zip(rows_a, rows_b):
+        assert ra[1] == pytest.approx(rb[1], rel=1e-12) and ra[2] == pytest.approx(rb[2], rel=1e-12)
+    assert rows_a[0][1] != c.tables["rmse"].rows[0][1]
+
+
+def test_resume_skips_finished_units(tmp_path, monkeypatch):
+    overrides = ["mc_runs=3", "progress=false", "logger=none", *FAST["imm_analysis"]]
+    first = run_study(_compose("imm_analysis", *overrides), tmp_path)
+    assert json.loads((tmp_path / "checkpoint.json").read_text())["units"]
+
+    import experiments.studies.imm_analysis as study
+
+    def fail(*args, **kwargs):
+        raise AssertionError("a finished unit was recomputed")
+
+    monkeypatch.setattr(study, "_analyse", fail)
+    second = run_study(_compose("imm_analysis", *overrides), tmp_path)
+    assert second.tables["alpha_sweep"].rows == first.tables["alpha_sweep"].rows
+    # a different config does not reuse the checkpoint
+    with pytest.raises(AssertionError, match="recomputed"):
+        run_study(_compose("imm_analysis", *overrides, "seed=5"), tmp_path)
+
+
+def _cli(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    exe = Path(sys.executable).with_name("torchmm-run")
+    env = {**os.environ, "HYDRA_FULL_ERROR": "1"}
+    return subprocess.run([str(exe), *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=300)
+
+
+def test_cli_default_study_writes_every_artefact(tmp_path):
+    out = tmp_path / "run"
+    proc = _cli("mc_runs=3", "progress=false", f"hydra.run.dir={out}", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    data = json.loads((out / "results.json").read_text())
+    assert data["experiment"] == "imm_baseline"
+    assert (out / "results.md").exists()
+    assert (out / "figures" / "rmse_over_time.png").exists()
+    assert list((out / "tb").glob("events.out.tfevents.*"))
+    assert (out / ".hydra" / "config.yaml").exists()
+
+
+def test_python_module_entry_point(tmp_path):
+    out = tmp_path / "run"
+    proc = subprocess.run(
+        [sys.executable, "-m", "experiments.run", "mc_runs=2", "progress=false", "logger=none",
+         f"hydra.run.dir={out}"],
+        cwd=Path(CONFIG_DIR).parent, capture_output=True, text=True, timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert (out / "results.json").exists()
+
+
+def test_joblib_multirun_sweep(tmp_path):
+    sweep = tmp_path / "sweep"
+    proc = _cli("-m", "mc_runs=2,3", "progress=false", "logger=none", f"hydra.sweep.dir={sweep}", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "Joblib" in proc.stdout + proc.stderr
+    runs = sorted(json.loads(p.read_text())["config"]["mc_runs"] for p in sweep.glob("*/results.json"))
+    assert runs == [2, 3]
