@@ -68,7 +68,7 @@ def test_collapse_preserves_mixture_moments(seed, K, n):
     rng = np.random.default_rng(seed)
     comps = _random_gaussian((K,), n, seed)
     w = torch.tensor(rng.dirichlet(np.ones(K)))
-    out = comps.collapse(w.log())
+    out = comps.collapse(w)
     # E[x] and E[x x^T] of the mixture, computed directly
     mean = (w[:, None] * comps.mean).sum(0)
     second = (w[:, None, None] * (comps.cov + comps.mean[:, :, None] * comps.mean[:, None, :])).sum(0)
@@ -83,7 +83,7 @@ def test_mix_gaussians_columns():
     mean, cov = mix_gaussians(comps.mean, comps.cov, weights)
     assert mean.shape == (2, 2, 2) and cov.shape == (2, 2, 2, 2)
     for j in range(2):
-        ref = comps.collapse(weights[..., j].log())
+        ref = comps.collapse(weights[..., j])
         close(mean[:, j], ref.mean)
         close(cov[:, j], ref.cov)
 
@@ -120,7 +120,7 @@ def test_particle_mix_is_the_exact_mixture():
     g = torch.Generator().manual_seed(1)
     b = ParticleBelief(torch.randn(2, 3, 50, 2, generator=g), torch.randn(2, 3, 50, generator=g))
     w = torch.softmax(torch.randn(2, 3, 4, generator=g), dim=-2)
-    mixed = b.mix(w.log())
+    mixed = b.mix(w)
     assert mixed.particles.shape == (2, 4, 150, 2)
     assert mixed.batch_shape == (2, 4)
     # the mixture mean equals the weighted component means

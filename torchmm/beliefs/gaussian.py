@@ -64,23 +64,23 @@ class GaussianBelief(Belief):
         """The point estimate with its covariance (the belief itself)."""
         return self
 
-    def mix(self, log_weights: Tensor) -> GaussianBelief:
+    def mix(self, weights: Tensor) -> GaussianBelief:
         """Moment-matched mixtures over batch axis -1, one per column of ``weights``.
 
         Shapes:
-            self: batch ``(*B, K)``; log_weights: ``(*B, K, J)`` (columns normalised over K)
+            self: batch ``(*B, K)``; weights: ``(*B, K, J)`` (columns sum to one over K)
             -> batch ``(*B, J)``
         """
-        mean, cov = mix_gaussians(self.mean, self.cov, log_weights.exp())
+        mean, cov = mix_gaussians(self.mean, self.cov, weights)
         return GaussianBelief(mean, cov)
 
-    def collapse(self, log_weights: Tensor) -> GaussianBelief:
+    def collapse(self, weights: Tensor) -> GaussianBelief:
         """Moment-matched single Gaussian of the mixture over batch axis -1.
 
         Shapes:
-            self: batch ``(*B, K)``; log_weights: ``(*B, K)`` (normalised) -> batch ``(*B,)``
+            self: batch ``(*B, K)``; weights: ``(*B, K)`` (summing to one) -> batch ``(*B,)``
         """
-        return self.mix(log_weights.unsqueeze(-1)).select(-1, 0)
+        return self.mix(weights.unsqueeze(-1)).select(-1, 0)
 
     def log_prob(self, x: Tensor) -> Tensor:
         """Log-density at ``x``.

@@ -42,7 +42,7 @@ class ModeBelief(Belief):
 
     def collapse(self) -> Belief:
         """The mode-marginal belief (moment-matched for Gaussian components), batch ``(*B,)``."""
-        return self.components.collapse(self.mode_log_probs)
+        return self.components.collapse(self.mode_probs)
 
     def estimate(self) -> GaussianBelief:
         """Overall mean and covariance (the IMM output combination), batch ``(*B,)``."""

@@ -41,19 +41,21 @@ def mix_gaussians(mean: Tensor, cov: Tensor, weights: Tensor) -> tuple[Tensor, T
         \bar x_j = \sum_k w_{kj} x_k, \qquad
         \bar P_j = \sum_k w_{kj} \left[P_k + (x_k - \bar x_j)(x_k - \bar x_j)^\top\right]
 
-    Columns of ``weights`` must sum to one over ``k``; the spread term is formed from centred
-    differences (no ``E[xx^T] - \bar x \bar x^T`` cancellation in float32).
+    Columns of ``weights`` must sum to one over ``k``. The spread term is formed from centred
+    differences (no ``E[xx^T] - \bar x \bar x^T`` cancellation in float32); all contractions are
+    batched matmuls.
 
     Shapes:
         mean: ``(*B, K, n)``; cov: ``(*B, K, n, n)``; weights: ``(*B, K, J)``
         -> mean ``(*B, J, n)``, cov ``(*B, J, n, n)``
     """
-    mixed_mean = torch.einsum("...kj,...kn->...jn", weights, mean)
-    diff = mean.unsqueeze(-2) - mixed_mean.unsqueeze(-3)  # (*B, K, J, n)
-    weighted_diff = diff * weights.unsqueeze(-1)
-    spread = torch.einsum("...kjn,...kjm->...jnm", weighted_diff, diff)
-    mixed_cov = torch.einsum("...kj,...knm->...jnm", weights, cov) + spread
-    return mixed_mean, mixed_cov
+    n = mean.shape[-1]
+    wt = weights.mT  # (*B, J, K)
+    mixed_mean = wt @ mean
+    mixed_cov = (wt @ cov.flatten(-2)).unflatten(-1, (n, n))
+    diff = mean.unsqueeze(-3) - mixed_mean.unsqueeze(-2)  # (*B, J, K, n)
+    spread = (diff * wt.unsqueeze(-1)).mT @ diff
+    return mixed_mean, mixed_cov + spread
 
 
 def psd_sqrt(cov: Tensor) -> Tensor:

@@ -57,26 +57,26 @@ class ParticleBelief(Belief):
         cov = torch.einsum("...p,...pn,...pm->...nm", weights, diff, diff)
         return GaussianBelief(mean, symmetrize(cov))
 
-    def mix(self, log_weights: Tensor) -> ParticleBelief:
+    def mix(self, weights: Tensor) -> ParticleBelief:
         """Exact mixtures over batch axis -1: the union of the K particle sets, reweighted.
 
         The particle count grows to ``K * Np``; a particle filter resamples back.
 
         Shapes:
-            self: batch ``(*B, K)``; log_weights: ``(*B, K, J)`` -> batch ``(*B, J)``,
-            ``K * Np`` particles
+            self: batch ``(*B, K)``; weights: ``(*B, K, J)`` (columns sum to one)
+            -> batch ``(*B, J)``, ``K * Np`` particles
         """
         log_w = normalize_log_probs(self.log_weights)  # (*B, K, Np)
-        combined = log_weights.unsqueeze(-1) + log_w.unsqueeze(-2)  # (*B, K, J, Np)
+        combined = weights.log().unsqueeze(-1) + log_w.unsqueeze(-2)  # (*B, K, J, Np)
         combined = combined.movedim(-3, -2)  # (*B, J, K, Np)
         batch, num_k, num_p, n = self.particles.shape[:-3], *self.particles.shape[-3:]
-        num_j = log_weights.shape[-1]
+        num_j = weights.shape[-1]
         particles = self.particles.unsqueeze(-4).expand(*batch, num_j, num_k, num_p, n)
         return ParticleBelief(
             particles.reshape(*batch, num_j, num_k * num_p, n),
             combined.reshape(*combined.shape[:-2], num_k * num_p),
         )
 
-    def collapse(self, log_weights: Tensor) -> ParticleBelief:
-        """The mixture over batch axis -1 as one particle set. ``log_weights``: ``(*B, K)``."""
-        return self.mix(log_weights.unsqueeze(-1)).select(-1, 0)
+    def collapse(self, weights: Tensor) -> ParticleBelief:
+        """The mixture over batch axis -1 as one particle set. ``weights``: ``(*B, K)``."""
+        return self.mix(weights.unsqueeze(-1)).select(-1, 0)

@@ -16,7 +16,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-from torchmm.beliefs import GaussianBelief, symmetrize
+from torchmm.beliefs import GaussianBelief
 from torchmm.filters.base import Filter, StepOutput
 from torchmm.filters.linalg import condition
 from torchmm.models.base import MeasurementModel, MotionModel
@@ -79,15 +79,17 @@ class ExtendedKalmanFilter(Filter):
     def predict(self, belief: GaussianBelief, *, u: Tensor | None = None) -> GaussianBelief:
         F = self._transition_matrix(belief.mean, u)
         mean = self.motion(belief.mean, u=u)  # x- = f(x)
-        cov = F @ belief.cov @ F.mT + self.motion.noise_cov(belief.mean)  # P- = F P F' + Q
-        return GaussianBelief(mean, symmetrize(cov))
+        # P- = F P F' + Q (symmetric up to rounding; the update symmetrises its output)
+        cov = F @ belief.cov @ F.mT + self.motion.noise_cov(belief.mean)
+        return GaussianBelief(mean, cov)
 
     def update(self, belief: GaussianBelief, z: Tensor) -> StepOutput:
         H = self._measurement_matrix(belief.mean)
         R = self.measurement.noise_cov(belief.mean)
         innovation = z - self.measurement(belief.mean)  # nu = z - h(x-)
         cross_cov = belief.cov @ H.mT  # C = P- H'
-        innovation_cov = H @ cross_cov + R  # S = H P- H' + R
+        # S = H P- H' + R, written (P- H')' H' so that an unbatched H folds into one matmul
+        innovation_cov = (cross_cov.mT @ H.mT if H.dim() == 2 else H @ cross_cov) + R
         mean, cov, log_likelihood = condition(
             belief.mean, belief.cov, innovation, innovation_cov, cross_cov,
             joseph=(H, R) if self.joseph else None,

@@ -28,6 +28,7 @@ from torchmm.beliefs.ops import symmetrize
 __all__ = ["cholesky", "cholesky_solve", "condition", "solve_lower", "solve_lower_transposed"]
 
 log = logging.getLogger("torchmm")
+_LOG_2PI = math.log(2 * math.pi)
 
 
 def cholesky(S: Tensor) -> Tensor:
@@ -117,6 +118,8 @@ def condition(
         ``(*B, m, m)``, cross_cov ``(*B, n, m)`` -> ``(*B, n)``, ``(*B, n, n)``, ``(*B,)``
     """
     n, m = mean.shape[-1], innovation.shape[-1]
+    if m == 1 and joseph is None:
+        return _condition_scalar(mean, cov, innovation, innovation_cov, cross_cov)
     observed = ~torch.isnan(innovation)
     nu = torch.where(observed, innovation, 0.0)
     if m == 1:
@@ -141,6 +144,20 @@ def condition(
     half_logdet = L.diagonal(dim1=-2, dim2=-1).log().sum(-1)
     count = observed.sum(-1).to(nu.dtype)
     log_likelihood = -0.5 * (w.square().sum(-1) + count * math.log(2 * math.pi)) - half_logdet
+    return post_mean, symmetrize(post_cov), log_likelihood
+
+
+def _condition_scalar(mean, cov, innovation, innovation_cov, cross_cov):
+    """``m = 1``: the same update in closed form (``K = c / s``, ``P+ = P - c c^T / s``)."""
+    nu = innovation[..., 0]
+    observed = nu == nu  # False where NaN (missing)
+    nu = torch.where(observed, nu, 0.0)
+    s = innovation_cov[..., 0, 0].clamp_min(torch.finfo(nu.dtype).tiny)
+    c = cross_cov[..., 0]
+    gain = c * (observed / s).unsqueeze(-1)  # K = c / s, zero where missing
+    post_mean = mean + gain * nu.unsqueeze(-1)
+    post_cov = cov - gain.unsqueeze(-1) * c.unsqueeze(-2)  # P - K c^T (symmetrised below)
+    log_likelihood = torch.where(observed, -0.5 * (nu * nu / s + s.log() + _LOG_2PI), 0.0)
     return post_mean, symmetrize(post_cov), log_likelihood
 
 

@@ -11,7 +11,9 @@ section 2.2): ``mu_i`` posterior mode probabilities at ``k-1``, ``pi_ij`` the tr
     \log\mu^+_j = \ell_j + \log\bar c_j - \operatorname{logsumexp}_l(\ell_l + \log\bar c_l),\qquad
     \log p(z_k | z_{1:k-1}) = \operatorname{logsumexp}_l(\ell_l + \log\bar c_l)
 
-Every mode and every run is handled by one batched call of the bank.
+Every mode and every run is handled by one batched call of the bank. The interaction uses the
+normalised probabilities ``mu`` in linear space (``c = mu @ P``, ``mu_{i|j} = pi_ij mu_i / c_j``),
+which is exact and cannot overflow; likelihoods are combined in log space.
 """
 
 from __future__ import annotations
@@ -26,6 +28,21 @@ from torchmm.multimodel.transition import ModeTransition
 from torchmm.validation import as_tensor
 
 __all__ = ["GPB1", "GPB2", "IMM", "MultipleModelFilter"]
+
+
+def _tiny(x: Tensor) -> float:
+    return torch.finfo(x.dtype).tiny
+
+
+def _predicted(mode_probs: Tensor, transition: Tensor) -> Tensor:
+    """``c_j = sum_i mu_i pi_ij``, shape ``(*B, M)``.
+
+    Mixing works on the *normalised* probabilities in linear space (no overflow possible; exact
+    down to underflow below the smallest normal number), which saves the log-sum-exp over the
+    mode axis; the likelihood combination in :meth:`MultipleModelFilter._update_modes` is in log
+    space, where underflow actually happens.
+    """
+    return mode_probs @ transition
 
 
 def _safe_sub(joint: Tensor, norm: Tensor) -> Tensor:
@@ -142,10 +159,11 @@ class IMM(MultipleModelFilter):
     """
 
     def mix(self, belief: ModeBelief) -> ModeBelief:
-        joint = belief.mode_log_probs.unsqueeze(-1) + self.transition.log_matrix()  # (*B, i, j)
-        log_cbar = torch.logsumexp(joint, dim=-2)  # predicted mode log-probabilities
-        log_weights = _safe_sub(joint, log_cbar.unsqueeze(-2))  # mixing probabilities mu_{i|j}
-        return ModeBelief(log_cbar, belief.components.mix(log_weights))
+        mode_probs, transition = belief.mode_probs, self.transition.matrix()
+        cbar = _predicted(mode_probs, transition)
+        # mixing probabilities mu_{i|j} = pi_ij mu_i / c_j, (*B, i, j)
+        weights = mode_probs.unsqueeze(-1) * transition / cbar.clamp_min(_tiny(cbar)).unsqueeze(-2)
+        return ModeBelief(cbar.log(), belief.components.mix(weights))
 
 
 class GPB1(MultipleModelFilter):
@@ -156,10 +174,10 @@ class GPB1(MultipleModelFilter):
     """
 
     def mix(self, belief: ModeBelief) -> ModeBelief:
-        joint = belief.mode_log_probs.unsqueeze(-1) + self.transition.log_matrix()
-        log_cbar = torch.logsumexp(joint, dim=-2)
-        collapsed = belief.components.collapse(belief.mode_log_probs)
-        return ModeBelief(log_cbar, collapsed.unsqueeze(-1).expand(*collapsed.batch_shape, self.num_modes))
+        mode_probs = belief.mode_probs
+        cbar = _predicted(mode_probs, self.transition.matrix())
+        collapsed = belief.components.collapse(mode_probs)
+        return ModeBelief(cbar.log(), collapsed.unsqueeze(-1).expand(*collapsed.batch_shape, self.num_modes))
 
 
 class GPB2(MultipleModelFilter):
@@ -200,7 +218,7 @@ class GPB2(MultipleModelFilter):
         log_mode = torch.logsumexp(joint, dim=-2)  # (*B, j): unnormalised log mu_j
         log_likelihood = torch.logsumexp(log_mode, dim=-1)
         merge_weights = _safe_sub(joint, log_mode.unsqueeze(-2))  # mu_{i|j}, (*B, i, j)
-        merged = out.belief.transpose_batch(-1, -2).collapse(merge_weights.mT)  # (*B, j)
+        merged = out.belief.transpose_batch(-1, -2).collapse(merge_weights.mT.exp())  # (*B, j)
         return StepOutput(
             belief=ModeBelief(_safe_sub(log_mode, log_likelihood.unsqueeze(-1)), merged),
             prior=belief,
