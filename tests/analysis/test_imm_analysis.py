@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 from tests.conftest import random_psd
 from torchmm import IMM, GaussianBelief, KalmanFilter, ModeBelief, alpha_transition
 from torchmm.analysis import (
+    matched_model,
     check_conclusions,
     check_probability_bounds,
     delta_ratio,
@@ -158,3 +159,34 @@ def test_conclusion_1_claim_fails_when_transition_is_not_diagonally_dominant():
 def test_zeta_needs_two_models():
     with pytest.raises(ValueError, match="two models"):
         zeta_ratio(torch.eye(3), torch.ones(1, 3) / 3, torch.tensor([0]))
+
+
+@settings(max_examples=15, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), M=st.sampled_from([2, 3]), alpha=st.floats(0.001, 0.3))
+def test_conclusions_hold_on_imm_runs_of_random_scenarios(seed, M, alpha):
+    """The checks fed from a real IMM trajectory (mixed start beliefs from ``extras``)."""
+    from torchmm import run_filter
+    from torchmm.simulate import simulate_jump_system, simulate_measurements
+
+    rng = np.random.default_rng(seed)
+    g = torch.Generator().manual_seed(seed)
+    acc = torch.tensor(rng.normal(scale=2.0, size=(M, 1)))
+    motion = ConstantVelocity(1, q=float(rng.uniform(0.01, 1.0)), acceleration=acc)
+    sensor = PositionMeasurement(2, [0], float(rng.uniform(1.0, 100.0)))
+    truth_tpm = torch.tensor(rng.dirichlet(np.ones(M) * 0.3, size=M)) * 0.3 + 0.7 * torch.eye(M)
+    x0 = GaussianBelief(torch.zeros(2), torch.eye(2) * 10)
+    sim = simulate_jump_system(motion, truth_tpm, x0, 30, (16,), generator=g)
+    z = simulate_measurements(sensor, sim.states, generator=g)
+    P = alpha_transition(torch.full((M,), alpha))
+    imm = IMM(KalmanFilter(motion, sensor), P)
+    traj = run_filter(imm, imm.initial_belief(x0.expand(16)), z)
+    probs = traj.belief.mode_probs[:-1]
+    means = traj.belief.components.mean[:-1]
+    mixed = traj.extras["mixed"].components.mean[1:]
+    close(traj.prior.mode_log_probs[1:].exp(), predicted_mode_probs(torch.full((M,), alpha), probs))
+    checks = check_conclusions(P, probs, means, mixed, matched_model(means, sim.states[:-1]))
+    for number in (1, 3, 5):
+        check = checks[number]
+        if number == 1 or (number == 3 and M == 2) or (number == 5 and M == 3):
+            assert bool(check.premise.any()), f"Conclusion {number}: premise never held"
+        assert bool(check.holds[check.premise].all()), f"Conclusion {number} violated"

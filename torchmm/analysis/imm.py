@@ -142,13 +142,17 @@ def interaction_deviations(
 
 
 class ConclusionCheck(NamedTuple):
-    """Where a conclusion's premise held, and whether its claim held there.
+    """Where a conclusion's premise held, whether its claim held, and where it applies at all.
 
-    Shapes: both bool, ``(*B,)`` or ``(*B, M)`` (per mismatched model, Conclusion 2).
+    ``applicable`` marks the entries the conclusion speaks about (its model count; for
+    Conclusion 2 the mismatched models), so ``applicable & ~premise`` is where the premise failed.
+
+    Shapes: all bool, ``(*B,)`` or ``(*B, M)`` (per model, Conclusion 2).
     """
 
     premise: Tensor
     holds: Tensor
+    applicable: Tensor
 
 
 def check_conclusions(
@@ -192,6 +196,7 @@ def check_conclusions(
     floor = tol * scale  # (*B,)
     batch = matched.shape
     false = torch.zeros(batch, dtype=torch.bool, device=matched.device)
+    true = ~false
     one_hot = torch.nn.functional.one_hot(matched, M).bool()
     mixed_i = dev.mixed.gather(-1, matched.unsqueeze(-1)).squeeze(-1)
     def le(a: Tensor, b: Tensor) -> Tensor:  # "a <= b" up to rounding
@@ -205,12 +210,12 @@ def check_conclusions(
 
     # Conclusion 1 (eq. 4.10): the matched model's interacted estimate beats the output.
     premise = (dev.output > min_norm) & (total is not None and total < 1)
-    out[1] = ConclusionCheck(premise, le(mixed_i, dev.output))
+    out[1] = ConclusionCheck(premise, le(mixed_i, dev.output), true)
 
     # Conclusion 2 (eqs. 4.11-4.13), per mismatched model j.
     premise = (~one_hot) & (dev.model > min_norm.unsqueeze(-1)) & le(dev.output.unsqueeze(-1), dev.model)
     premise = premise & (total is not None and total <= 1)
-    out[2] = ConclusionCheck(premise, le(dev.mixed, dev.model))
+    out[2] = ConclusionCheck(premise, le(dev.mixed, dev.model), ~one_hot)
 
     if M == 2:
         other = 1 - matched
@@ -219,15 +224,15 @@ def check_conclusions(
         mixed_j = dev.mixed.gather(-1, other.unsqueeze(-1)).squeeze(-1)
         model_j = dev.model.gather(-1, other.unsqueeze(-1)).squeeze(-1)
         # Conclusion 3 (eq. 4.14).
-        out[3] = ConclusionCheck((pi_ij > 0) & (model_j > min_norm), le(mixed_j, model_j))
+        out[3] = ConclusionCheck((pi_ij > 0) & (model_j > min_norm), le(mixed_j, model_j), true)
         # Conclusion 4 (eq. 4.17 with Conclusion 1).
         dominant = (transition[other, other] > pi_ij) & (transition[matched, matched] > pi_ji)
         premise = dominant & (dev.output > min_norm)
         holds = le(mixed_i, dev.output) & le(dev.output, mixed_j)
-        out[4] = ConclusionCheck(premise, holds)
+        out[4] = ConclusionCheck(premise, holds, true)
     else:
-        out[3] = ConclusionCheck(false, false)
-        out[4] = ConclusionCheck(false, false)
+        out[3] = ConclusionCheck(false, false, false)
+        out[4] = ConclusionCheck(false, false, false)
 
     if M == 3:
         # Conclusion 5 (eqs. 4.18-4.22): not every mismatched model can get worse.
@@ -235,9 +240,9 @@ def check_conclusions(
         positive = torch.where(one_hot, True, row > 0).all(-1)
         nondegenerate = torch.where(one_hot, True, dev.model > min_norm.unsqueeze(-1)).all(-1)
         improved = (~one_hot) & le(dev.mixed, dev.model)
-        out[5] = ConclusionCheck(positive & nondegenerate, improved.any(-1))
+        out[5] = ConclusionCheck(positive & nondegenerate, improved.any(-1), true)
     else:
-        out[5] = ConclusionCheck(false, false)
+        out[5] = ConclusionCheck(false, false, false)
     return out
 
 
@@ -258,7 +263,7 @@ def check_probability_bounds(
     lower, upper = mixed_probability_bounds(alpha)
     margin = tol * (1 + predicted.abs())
     inside = (predicted >= lower - margin) & (predicted <= upper + margin)
-    bounds = ConclusionCheck(torch.ones_like(inside), inside)
+    bounds = ConclusionCheck(torch.ones_like(inside), inside, torch.ones_like(inside))
 
     lo, hi = ratio_bounds(alpha, mode_probs)
     ratio = predicted.unsqueeze(-1) / predicted.unsqueeze(-2)
@@ -267,4 +272,4 @@ def check_probability_bounds(
     valid = valid & off_diagonal & bool(alpha.sum() <= 1) & bool((alpha > 0).all())
     margin = tol * (1 + ratio.abs())
     holds = (ratio >= lo - margin) & (ratio <= hi + margin)
-    return {"3.2/3.3": bounds, "3.8": ConclusionCheck(valid, holds)}
+    return {"3.2/3.3": bounds, "3.8": ConclusionCheck(valid, holds, off_diagonal.expand_as(holds))}
