@@ -41,6 +41,7 @@ from torchmm.multimodel import (
     validate_transition,
 )
 from torchmm.run import Trajectory, run_filter
+from torchmm import analysis, metrics, simulate  # noqa: E402  (subpackages as attributes)
 
 __version__ = "0.1.0"
 

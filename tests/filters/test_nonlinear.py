@@ -138,7 +138,7 @@ def test_sigma_points_are_exact_for_linear_maps(seed, n, strategy):
 
 def _exact_smoothing_posterior(system, zs):
     """Posterior of x_1..x_T given z_1..z_T by conditioning the stacked joint Gaussian."""
-    n, m = system.F.shape[0], system.H.shape[0]
+    n = system.F.shape[0]
     steps = len(zs)
     mean_x, means = system.x0.copy(), []
     powers = [np.eye(n)]
@@ -150,11 +150,11 @@ def _exact_smoothing_posterior(system, zs):
     mean_x = np.concatenate(means)
     cov_x = np.zeros((steps * n, steps * n))
     for k in range(1, steps + 1):
-        for l in range(1, steps + 1):
-            c = powers[k] @ system.P0 @ powers[l].T
-            for j in range(1, min(k, l) + 1):
-                c = c + powers[k - j] @ system.Q @ powers[l - j].T
-            cov_x[(k - 1) * n : k * n, (l - 1) * n : l * n] = c
+        for kk in range(1, steps + 1):
+            c = powers[k] @ system.P0 @ powers[kk].T
+            for j in range(1, min(k, kk) + 1):
+                c = c + powers[k - j] @ system.Q @ powers[kk - j].T
+            cov_x[(k - 1) * n : k * n, (kk - 1) * n : kk * n] = c
     H = np.kron(np.eye(steps), system.H)
     R = np.kron(np.eye(steps), system.R)
     S = H @ cov_x @ H.T + R

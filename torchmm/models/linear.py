@@ -57,15 +57,18 @@ class LinearMotion(MotionModel):
         super().__init__()
         F = as_tensor(F, "F")
         n = check_square(F, "F")
-        Q = as_tensor(Q, "Q", dtype=F.dtype)
+        Q = as_tensor(Q, "Q", dtype=F.dtype, device=F.device)
         check_shape(Q, "Q", (n, n))
         check_covariance(Q, "Q")
-        offset = torch.zeros(n, dtype=F.dtype) if offset is None else as_tensor(offset, "offset", dtype=F.dtype)
+        if offset is None:
+            offset = torch.zeros(n, dtype=F.dtype, device=F.device)
+        else:
+            offset = as_tensor(offset, "offset", dtype=F.dtype, device=F.device)
         check_shape(offset, "offset", (n,))
         shapes = {"F": F.shape, "Q": Q.shape, "offset": offset.shape}
         events = {"F": 2, "Q": 2, "offset": 1}
         if input_matrix is not None:
-            input_matrix = as_tensor(input_matrix, "input_matrix", dtype=F.dtype)
+            input_matrix = as_tensor(input_matrix, "input_matrix", dtype=F.dtype, device=F.device)
             check_shape(input_matrix, "input_matrix", (n, None))
             shapes["input_matrix"] = input_matrix.shape
             events["input_matrix"] = 2
@@ -144,7 +147,7 @@ class LinearMeasurement(MeasurementModel):
         if H.dim() < 2:
             raise ValueError(f"H: expected shape (*P, m, n), got {tuple(H.shape)}")
         m, n = H.shape[-2:]
-        R = as_tensor(R, "R", dtype=H.dtype)
+        R = as_tensor(R, "R", dtype=H.dtype, device=H.device)
         check_shape(R, "R", (m, m))
         check_covariance(R, "R")
         self.param_batch_shape = _param_batch(

@@ -26,11 +26,11 @@ class PositionMeasurement(LinearMeasurement):
         if not indices or any(not 0 <= i < state_dim for i in indices):
             raise ValueError(f"indices: must be a non-empty list of components < {state_dim}, got {indices}")
         dtype = dtype or (R.dtype if isinstance(R, Tensor) else torch.get_default_dtype())
-        H = torch.zeros(len(indices), state_dim, dtype=dtype)
-        H[torch.arange(len(indices)), torch.tensor(indices)] = 1.0
         R = as_tensor(R, "R", dtype=dtype)
+        H = torch.zeros(len(indices), state_dim, dtype=dtype, device=R.device)
+        H[torch.arange(len(indices)), torch.tensor(indices)] = 1.0
         if R.dim() == 0:
-            R = R * torch.eye(len(indices), dtype=dtype)
+            R = R * torch.eye(len(indices), dtype=dtype, device=R.device)
         super().__init__(H, R)
         self.indices = indices
 
@@ -54,7 +54,7 @@ class RangeBearing(MeasurementModel):
         check_shape(R, "R", (2, 2))
         check_covariance(R, "R", definite=True)
         store_tensor(self, "R", R)
-        store_tensor(self, "origin", as_tensor(origin, "origin", dtype=R.dtype))
+        store_tensor(self, "origin", as_tensor(origin, "origin", dtype=R.dtype, device=R.device))
         self.position_indices = tuple(position_indices)
         self.state_dim, self.meas_dim = state_dim, 2
 

@@ -96,7 +96,7 @@ class ConstantVelocity(LinearMotion):
         gain = _block_diag_axes(G1.unsqueeze(-1), ndim)  # (2 ndim, ndim)
         offset = None
         if acceleration is not None:
-            acceleration = as_tensor(acceleration, "acceleration", dtype=F.dtype)
+            acceleration = as_tensor(acceleration, "acceleration", dtype=F.dtype, device=F.device)
             if acceleration.dim() < 1 or acceleration.shape[-1] != ndim:
                 raise ValueError(
                     f"acceleration: expected shape (*P, {ndim}), got {tuple(acceleration.shape)}"
@@ -146,7 +146,7 @@ class CoordinatedTurn(LinearMotion):
 
     def __init__(self, omega, dt: float = 1.0, q: float = 1.0, *, noise: str = "discrete", dtype=None):
         _, _, Q1 = kinematic_matrices(2, dt, q, noise, dtype)
-        omega = as_tensor(omega, "omega", dtype=Q1.dtype)
+        omega = as_tensor(omega, "omega", dtype=Q1.dtype, device=Q1.device)
         super().__init__(_turn_matrix(omega, float(dt)), _block_diag_axes(Q1, 2))
         store_tensor(self, "omega", omega)
         self.dt, self.q = float(dt), float(q)
