@@ -51,6 +51,29 @@ class LinearSystem:
     def prior(self) -> GaussianBelief:
         return GaussianBelief(torch.tensor(self.x0), torch.tensor(self.P0))
 
+    def joint_state_moments(self, steps: int) -> tuple[np.ndarray, np.ndarray]:
+        """Exact mean ``(steps n,)`` and covariance of the stacked states ``x_1 .. x_T``.
+
+        ``x_k = F^k x_0 + sum_j F^(k-j) (b + w_j)``, so
+        ``Cov(x_k, x_l) = F^k P0 F^l' + sum_{j <= min(k, l)} F^(k-j) Q F^(l-j)'``.
+        """
+        n = self.F.shape[0]
+        powers = [np.eye(n)]
+        for _ in range(steps):
+            powers.append(self.F @ powers[-1])
+        mean_x, means = self.x0.copy(), []
+        for _ in range(steps):
+            mean_x = self.F @ mean_x + self.offset
+            means.append(mean_x)
+        cov = np.zeros((steps * n, steps * n))
+        for k in range(1, steps + 1):
+            for kk in range(1, steps + 1):
+                c = powers[k] @ self.P0 @ powers[kk].T
+                for j in range(1, min(k, kk) + 1):
+                    c = c + powers[k - j] @ self.Q @ powers[kk - j].T
+                cov[(k - 1) * n : k * n, (kk - 1) * n : kk * n] = c
+        return np.concatenate(means), cov
+
     def simulate(self, steps: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
         n, m = self.F.shape[0], self.H.shape[0]
         x = rng.multivariate_normal(self.x0, self.P0)

@@ -41,11 +41,14 @@ from torchmm.multimodel import (
     validate_transition,
 )
 from torchmm.run import Trajectory, run_filter
-from torchmm import analysis, metrics, simulate  # noqa: E402  (subpackages as attributes)
+from torchmm import analysis, metrics, simulate  # subpackages, reachable as attributes
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "analysis",
+    "metrics",
+    "simulate",
     "GPB1",
     "GPB2",
     "IMM",

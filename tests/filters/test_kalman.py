@@ -52,26 +52,9 @@ def test_kalman_matches_filterpy(n, m, joseph):
 
 def _stacked_measurement_distribution(system, steps):
     """Exact joint mean and covariance of z_1..z_T of the linear system (independent oracle)."""
-    n, m = system.F.shape[0], system.H.shape[0]
-    # x_k = A_k x_0 + sum_j B_kj (offset + w_j)
-    means = []
-    mean_x = system.x0.copy()
-    transfer = [np.eye(n)]  # F^k
-    for _ in range(steps):
-        transfer.append(system.F @ transfer[-1])
-    for _ in range(steps):
-        mean_x = system.F @ mean_x + system.offset
-        means.append(system.H @ mean_x)
-    cov = np.zeros((steps * m, steps * m))
-    for k in range(1, steps + 1):
-        for kk in range(1, steps + 1):
-            # Cov(x_k, x_kk) = F^k P0 F^kk' + sum_{j <= min(k, kk)} F^(k-j) Q F^(kk-j)'
-            c = transfer[k] @ system.P0 @ transfer[kk].T
-            for j in range(1, min(k, kk) + 1):
-                c = c + transfer[k - j] @ system.Q @ transfer[kk - j].T
-            block = system.H @ c @ system.H.T + (system.R if k == kk else 0)
-            cov[(k - 1) * m : k * m, (kk - 1) * m : kk * m] = block
-    return np.concatenate(means), cov
+    mean_x, cov_x = system.joint_state_moments(steps)
+    H = np.kron(np.eye(steps), system.H)
+    return H @ mean_x, H @ cov_x @ H.T + np.kron(np.eye(steps), system.R)
 
 
 @pytest.mark.parametrize("n,m", [(1, 1), (2, 2), (3, 1)], ids=str)

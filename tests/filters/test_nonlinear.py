@@ -138,26 +138,10 @@ def test_sigma_points_are_exact_for_linear_maps(seed, n, strategy):
 
 def _exact_smoothing_posterior(system, zs):
     """Posterior of x_1..x_T given z_1..z_T by conditioning the stacked joint Gaussian."""
-    n = system.F.shape[0]
-    steps = len(zs)
-    mean_x, means = system.x0.copy(), []
-    powers = [np.eye(n)]
-    for _ in range(steps):
-        powers.append(system.F @ powers[-1])
-    for _ in range(steps):
-        mean_x = system.F @ mean_x + system.offset
-        means.append(mean_x)
-    mean_x = np.concatenate(means)
-    cov_x = np.zeros((steps * n, steps * n))
-    for k in range(1, steps + 1):
-        for kk in range(1, steps + 1):
-            c = powers[k] @ system.P0 @ powers[kk].T
-            for j in range(1, min(k, kk) + 1):
-                c = c + powers[k - j] @ system.Q @ powers[kk - j].T
-            cov_x[(k - 1) * n : k * n, (kk - 1) * n : kk * n] = c
+    n, steps = system.F.shape[0], len(zs)
+    mean_x, cov_x = system.joint_state_moments(steps)
     H = np.kron(np.eye(steps), system.H)
-    R = np.kron(np.eye(steps), system.R)
-    S = H @ cov_x @ H.T + R
+    S = H @ cov_x @ H.T + np.kron(np.eye(steps), system.R)
     gain = cov_x @ H.T @ np.linalg.inv(S)
     post_mean = mean_x + gain @ (zs.ravel() - H @ mean_x)
     post_cov = cov_x - gain @ S @ gain.T

@@ -19,7 +19,7 @@ from torch import Tensor
 from torchmm.beliefs import GaussianBelief
 from torchmm.filters.base import Filter, StepOutput
 from torchmm.filters.linalg import condition
-from torchmm.models.base import MeasurementModel, MotionModel
+from torchmm.models.base import MeasurementModel, MotionModel, check_model_pair
 from torchmm.models.linear import LinearMeasurement, LinearMotion
 
 __all__ = ["ExtendedKalmanFilter", "KalmanFilter"]
@@ -49,15 +49,7 @@ class ExtendedKalmanFilter(Filter):
 
     def __init__(self, motion: MotionModel, measurement: MeasurementModel, *, joseph: bool = False):
         super().__init__()
-        if not isinstance(motion, MotionModel):
-            raise ValueError(f"motion: expected a MotionModel, got {type(motion).__name__}")
-        if not isinstance(measurement, MeasurementModel):
-            raise ValueError(f"measurement: expected a MeasurementModel, got {type(measurement).__name__}")
-        if motion.state_dim != measurement.state_dim:
-            raise ValueError(
-                f"measurement: state_dim {measurement.state_dim} does not match the motion model's "
-                f"{motion.state_dim}"
-            )
+        check_model_pair(motion, measurement)
         self.motion = motion
         self.measurement = measurement
         self.joseph = joseph

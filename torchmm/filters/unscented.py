@@ -21,7 +21,7 @@ from torch import Tensor
 from torchmm.beliefs import GaussianBelief, symmetrize
 from torchmm.filters.base import Filter, StepOutput
 from torchmm.filters.linalg import condition
-from torchmm.models.base import MeasurementModel, MotionModel
+from torchmm.models.base import MeasurementModel, MotionModel, check_model_pair
 
 __all__ = [
     "CubatureSigmaPoints",
@@ -146,15 +146,7 @@ class UnscentedKalmanFilter(Filter):
     def __init__(self, motion: MotionModel, measurement: MeasurementModel,
                  sigma_points: SigmaPointStrategy | None = None):
         super().__init__()
-        if not isinstance(motion, MotionModel):
-            raise ValueError(f"motion: expected a MotionModel, got {type(motion).__name__}")
-        if not isinstance(measurement, MeasurementModel):
-            raise ValueError(f"measurement: expected a MeasurementModel, got {type(measurement).__name__}")
-        if motion.state_dim != measurement.state_dim:
-            raise ValueError(
-                f"measurement: state_dim {measurement.state_dim} does not match the motion model's "
-                f"{motion.state_dim}"
-            )
+        check_model_pair(motion, measurement)
         self.motion = motion
         self.measurement = measurement
         self.sigma_points = sigma_points or MerweScaledSigmaPoints()

@@ -13,7 +13,7 @@ import math
 import torch
 from torch import Tensor, nn
 
-__all__ = ["MotionModel", "MeasurementModel", "forward_jacobian", "store_tensor"]
+__all__ = ["MeasurementModel", "MotionModel", "check_model_pair", "forward_jacobian", "store_tensor"]
 
 
 def store_tensor(module: nn.Module, name: str, value: Tensor) -> None:
@@ -102,3 +102,16 @@ class MeasurementModel(nn.Module):
         logdet = 2 * chol.diagonal(dim1=-2, dim2=-1).log().sum(-1)
         count = observed.sum(-1).to(resid.dtype)
         return -0.5 * (white.square().sum(-1) + logdet + count * math.log(2 * math.pi))
+
+
+def check_model_pair(motion, measurement) -> None:
+    """Check the model types of a filter and that their state dimensions agree."""
+    if not isinstance(motion, MotionModel):
+        raise ValueError(f"motion: expected a MotionModel, got {type(motion).__name__}")
+    if not isinstance(measurement, MeasurementModel):
+        raise ValueError(f"measurement: expected a MeasurementModel, got {type(measurement).__name__}")
+    if motion.state_dim != measurement.state_dim:
+        raise ValueError(
+            f"measurement: state_dim {measurement.state_dim} does not match the motion model's "
+            f"{motion.state_dim}"
+        )
