@@ -90,7 +90,8 @@ def evaluate(estimator: Estimator, scenario, sim, z: Tensor, *, chunk_runs: int 
              keep_trajectory: bool = False) -> Evaluation:
     """Run ``estimator`` on every Monte Carlo run (in chunks of ``chunk_runs`` if given).
 
-    Errors are accumulated per step over runs, so memory is bounded by the chunk size.
+    Errors are accumulated per step over runs, so memory is bounded by the chunk size;
+    ``keep_trajectory`` keeps the (first chunk's) trajectory for plots and diagnostics.
     """
     runs = z.shape[1]
     chunk = runs if not chunk_runs else int(chunk_runs)

@@ -5,15 +5,16 @@ section 2.2): ``mu_i`` posterior mode probabilities at ``k-1``, ``pi_ij`` the tr
 (``P(mode_k = j | mode_{k-1} = i)``), ``ell_j`` the mode-matched log-likelihoods at ``k``.
 
 .. math::
-    \log \bar c_j = \operatorname{logsumexp}_i(\log\mu_i + \log\pi_{ij}),\qquad
-    \log \mu_{i|j} = \log\mu_i + \log\pi_{ij} - \log\bar c_j
+    \bar c_j = \textstyle\sum_i \mu_i \pi_{ij},\qquad
+    \mu_{i|j} = \pi_{ij}\,\mu_i / \bar c_j
 
     \log\mu^+_j = \ell_j + \log\bar c_j - \operatorname{logsumexp}_l(\ell_l + \log\bar c_l),\qquad
     \log p(z_k | z_{1:k-1}) = \operatorname{logsumexp}_l(\ell_l + \log\bar c_l)
 
-Every mode and every run is handled by one batched call of the bank. The interaction uses the
-normalised probabilities ``mu`` in linear space (``c = mu @ P``, ``mu_{i|j} = pi_ij mu_i / c_j``),
-which is exact and cannot overflow; likelihoods are combined in log space.
+Every mode and every run is handled by one batched call of the bank. Mode probabilities are stored
+as logarithms. The interaction uses the *normalised* probabilities in linear space (one matmul,
+no overflow possible, exact down to underflow below the smallest normal number); the likelihoods,
+which do underflow (a far outlier gives ``exp(ell) = 0`` for every mode), are combined in log space.
 """
 
 from __future__ import annotations
