@@ -193,7 +193,7 @@ def check_conclusions(
     M = transition.shape[-1]
     dev = interaction_deviations(mode_probs, means, mixed_means, matched)
     scale = 1 + means.abs().amax(dim=(-1, -2))
-    floor = tol * scale  # (*B,)
+    floor = tol * scale  # (*B,): rounding level of the deviations; also the non-degeneracy threshold
     batch = matched.shape
     false = torch.zeros(batch, dtype=torch.bool, device=matched.device)
     true = ~false
@@ -203,17 +203,16 @@ def check_conclusions(
         f = floor if a.dim() == floor.dim() else floor.unsqueeze(-1)
         return a <= b * (1 + tol) + f
 
-    min_norm = floor
     alpha = transition_alpha(transition)
     total = None if alpha is None else float(alpha.sum())
     out: dict[int, ConclusionCheck] = {}
 
     # Conclusion 1 (eq. 4.10): the matched model's interacted estimate beats the output.
-    premise = (dev.output > min_norm) & (total is not None and total < 1)
+    premise = (dev.output > floor) & (total is not None and total < 1)
     out[1] = ConclusionCheck(premise, le(mixed_i, dev.output), true)
 
     # Conclusion 2 (eqs. 4.11-4.13), per mismatched model j.
-    premise = (~one_hot) & (dev.model > min_norm.unsqueeze(-1)) & le(dev.output.unsqueeze(-1), dev.model)
+    premise = (~one_hot) & (dev.model > floor.unsqueeze(-1)) & le(dev.output.unsqueeze(-1), dev.model)
     premise = premise & (total is not None and total <= 1)
     out[2] = ConclusionCheck(premise, le(dev.mixed, dev.model), ~one_hot)
 
@@ -224,10 +223,10 @@ def check_conclusions(
         mixed_j = dev.mixed.gather(-1, other.unsqueeze(-1)).squeeze(-1)
         model_j = dev.model.gather(-1, other.unsqueeze(-1)).squeeze(-1)
         # Conclusion 3 (eq. 4.14).
-        out[3] = ConclusionCheck((pi_ij > 0) & (model_j > min_norm), le(mixed_j, model_j), true)
+        out[3] = ConclusionCheck((pi_ij > 0) & (model_j > floor), le(mixed_j, model_j), true)
         # Conclusion 4 (eq. 4.17 with Conclusion 1).
         dominant = (transition[other, other] > pi_ij) & (transition[matched, matched] > pi_ji)
-        premise = dominant & (dev.output > min_norm)
+        premise = dominant & (dev.output > floor)
         holds = le(mixed_i, dev.output) & le(dev.output, mixed_j)
         out[4] = ConclusionCheck(premise, holds, true)
     else:
@@ -238,7 +237,7 @@ def check_conclusions(
         # Conclusion 5 (eqs. 4.18-4.22): not every mismatched model can get worse.
         row = transition[matched]  # (*B, M): pi_i.
         positive = torch.where(one_hot, True, row > 0).all(-1)
-        nondegenerate = torch.where(one_hot, True, dev.model > min_norm.unsqueeze(-1)).all(-1)
+        nondegenerate = torch.where(one_hot, True, dev.model > floor.unsqueeze(-1)).all(-1)
         improved = (~one_hot) & le(dev.mixed, dev.model)
         out[5] = ConclusionCheck(positive & nondegenerate, improved.any(-1), true)
     else:

@@ -124,7 +124,7 @@ class CubatureSigmaPoints(SigmaPointStrategy):
         return w, w.clone()
 
 
-def _weighted_moments(points: Tensor, wm: Tensor, wc: Tensor) -> tuple[Tensor, Tensor]:
+def _weighted_moments(points: Tensor, wm: Tensor) -> tuple[Tensor, Tensor]:
     """Mean ``(*B, d)`` and centred deviations ``(S, *B, d)`` of sigma points ``(S, *B, d)``."""
     shape = (-1,) + (1,) * (points.dim() - 1)
     mean = (wm.reshape(shape) * points).sum(0)
@@ -156,7 +156,7 @@ class UnscentedKalmanFilter(Filter):
         wm, wc = self.sigma_points.weights(n, belief.dtype, belief.device)
         points = self.sigma_points.points(belief.mean, belief.cov)
         propagated = self.motion(points, u=None if u is None else u.unsqueeze(0))
-        mean, dev = _weighted_moments(propagated, wm, wc)
+        mean, dev = _weighted_moments(propagated, wm)
         shape = (-1,) + (1,) * (dev.dim() - 1)
         cov = torch.einsum("s...i,s...j->...ij", wc.reshape(shape) * dev, dev)
         cov = cov + self.motion.noise_cov(belief.mean)
@@ -167,7 +167,7 @@ class UnscentedKalmanFilter(Filter):
         wm, wc = self.sigma_points.weights(n, belief.dtype, belief.device)
         points = self.sigma_points.points(belief.mean, belief.cov)
         predicted = self.measurement(points)
-        z_pred, z_dev = _weighted_moments(predicted, wm, wc)
+        z_pred, z_dev = _weighted_moments(predicted, wm)
         x_dev = points - belief.mean
         shape = (-1,) + (1,) * (z_dev.dim() - 1)
         weighted = wc.reshape(shape) * z_dev
