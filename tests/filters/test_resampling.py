@@ -1,0 +1,136 @@
+"""Resampling schemes: valid indices, unbiased counts, scheme-specific count bounds, ESS gating."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from torchmm.beliefs import ParticleBelief
+from torchmm.filters.resampling import (
+    RESAMPLING_SCHEMES,
+    apply_indices,
+    effective_sample_size,
+    resample,
+    resample_where_needed,
+)
+
+SCHEMES = sorted(RESAMPLING_SCHEMES)
+
+
+def _weights(num: int, seed: int = 0) -> torch.Tensor:
+    rng = np.random.default_rng(seed)
+    w = rng.gamma(0.7, size=num)
+    w[3] = 0.0  # a zero-weight particle is never chosen
+    return torch.tensor(w / w.sum())
+
+
+def _counts(indices: torch.Tensor, num: int) -> torch.Tensor:
+    counts = torch.zeros(*indices.shape[:-1], num, dtype=torch.float64)
+    return counts.scatter_add_(-1, indices, torch.ones_like(indices, dtype=torch.float64))
+
+
+@pytest.mark.parametrize("scheme", SCHEMES)
+@pytest.mark.parametrize("batch", [(), (4,), (3, 2)], ids=str)
+def test_indices_shape_dtype_range(scheme, batch, generator):
+    log_w = torch.randn(*batch, 17, generator=generator)
+    idx = resample(log_w, scheme, generator=generator)
+    assert idx.shape == (*batch, 17) and idx.dtype == torch.int64
+    assert int(idx.min()) >= 0 and int(idx.max()) < 17
+    idx = resample(log_w, scheme, 40, generator=generator)
+    assert idx.shape == (*batch, 40)
+
+
+@pytest.mark.parametrize("scheme", SCHEMES)
+def test_unbiased_counts_within_monte_carlo_error(scheme):
+    """E[N_i] = N w_i: mean counts over 20 000 repetitions within 5 standard errors."""
+    num, reps = 40, 20_000
+    w = _weights(num)
+    log_w = w.log().expand(reps, num)
+    g = torch.Generator().manual_seed(7)
+    counts = _counts(resample(log_w, scheme, generator=g), num)  # (reps, num)
+    mean, std = counts.mean(0), counts.std(0)
+    expected = num * w
+    assert torch.all(counts[:, 3] == 0)
+    big = expected > 0.2  # z-tests on rare particles are unreliable (ALGORITHMS.md 8)
+    se = std[big] / math.sqrt(reps)
+    z = (mean[big] - expected[big]) / se.clamp_min(1e-12)
+    assert float(z.abs().max()) < 5.0, (scheme, float(z.abs().max()))
+    assert torch.allclose(counts.sum(-1), torch.full((reps,), float(num)))
+
+
+def test_systematic_and_stratified_bounds_residual_floor():
+    num, reps = 50, 4000
+    w = _weights(num, seed=3)
+    log_w = w.log().expand(reps, num)
+    g = torch.Generator().manual_seed(11)
+    expected = num * w
+    sys_counts = _counts(resample(log_w, "systematic", generator=g), num)
+    assert torch.all(sys_counts >= torch.floor(expected) - 1e-9)
+    assert torch.all(sys_counts <= torch.ceil(expected) + 1e-9)
+    strat = _counts(resample(log_w, "stratified", generator=g), num)
+    assert float((strat - expected).abs().max()) < 2.0
+    resid = _counts(resample(log_w, "residual", generator=g), num)
+    assert torch.all(resid >= torch.floor(expected) - 1e-9)
+    # variance ordering the theory guarantees: residual and stratified <= multinomial
+    multi = _counts(resample(log_w, "multinomial", generator=g), num)
+    assert resid.var(0).mean() < multi.var(0).mean()
+    assert strat.var(0).mean() < multi.var(0).mean()
+
+
+def test_residual_with_exact_copies_is_deterministic(generator):
+    log_w = torch.tensor([0.5, 0.25, 0.25]).log()
+    idx = resample(log_w, "residual", 4, generator=generator)
+    assert idx.tolist() == [0, 0, 1, 2]
+
+
+def test_fixed_generator_reproducible():
+    log_w = torch.randn(5, 30, generator=torch.Generator().manual_seed(0))
+    for scheme in SCHEMES:
+        a = resample(log_w, scheme, generator=torch.Generator().manual_seed(3))
+        b = resample(log_w, scheme, generator=torch.Generator().manual_seed(3))
+        assert torch.equal(a, b)
+
+
+def test_effective_sample_size_matches_definition(generator):
+    log_w = torch.randn(6, 25, generator=generator) * 2 + 30.0  # unnormalised, large offset
+    w = torch.softmax(log_w, -1)
+    torch.testing.assert_close(effective_sample_size(log_w), 1 / (w**2).sum(-1))
+    ess = effective_sample_size(torch.full((2, 4), -float("inf")))
+    assert torch.equal(ess, torch.zeros(2))
+
+
+def test_apply_indices_and_ess_gating(generator):
+    particles = torch.randn(3, 10, 2, generator=generator)
+    log_w = torch.zeros(3, 10)
+    log_w[1] = torch.linspace(0, 30, 10)  # degenerate: ESS ~ 1
+    belief = ParticleBelief(particles, log_w)
+    new, mask, ess = resample_where_needed(belief, 0.5, generator=generator)
+    assert mask.tolist() == [False, True, False]
+    assert torch.equal(new.particles[0], particles[0]) and torch.equal(new.log_weights[2], log_w[2])
+    torch.testing.assert_close(new.log_weights[1], torch.full((10,), -math.log(10)))
+    assert torch.all(new.particles[1] == particles[1, -1])  # all mass on the last particle
+    assert ess.shape == (3,)
+    gathered = apply_indices(belief, torch.tensor([[0, 0], [9, 1], [2, 3]]))
+    assert gathered.particles.shape == (3, 2, 2)
+    torch.testing.assert_close(gathered.particles[1, 0], particles[1, 9])
+
+
+def test_bad_input_raises():
+    with pytest.raises(ValueError, match="scheme"):
+        resample(torch.zeros(4), "bogus")
+    with pytest.raises(ValueError, match="num_samples"):
+        resample(torch.zeros(4), "systematic", 0)
+    with pytest.raises(ValueError, match="log_weights"):
+        resample(torch.zeros(4, dtype=torch.int64), "systematic")
+    with pytest.raises(ValueError, match="threshold"):
+        resample_where_needed(ParticleBelief(torch.zeros(2, 1), torch.zeros(2)), -1.0)
+
+
+def test_float32_runs(generator):
+    log_w = torch.randn(4, 100, generator=generator).float()
+    for scheme in SCHEMES:
+        idx = resample(log_w, scheme, generator=generator)
+        assert int(idx.max()) < 100

@@ -1,0 +1,238 @@
+r"""Resampling schemes and effective sample size, as pure functions on log-weights.
+
+Every scheme takes unnormalised log-weights ``(*B, Np)`` and returns ancestor **indices**
+``(*B, N)`` (``N = Np`` unless ``num_samples`` says otherwise), drawn independently for every batch
+element with an explicit ``torch.Generator``. :func:`apply_indices` turns indices into a resampled
+:class:`~torchmm.beliefs.ParticleBelief`; :func:`resample_where_needed` resamples only the batch
+elements whose effective sample size fell below a threshold (``torch.where``, so shapes stay static).
+
+Selection is by the inverse CDF (ALGORITHMS.md section 8): ``c = cumsum(w)`` with ``c[-1] = 1``
+forced, ``index = searchsorted(c, u, right=True)`` (zero-weight particles are never selected).
+
+* multinomial: ``u_j`` i.i.d. ``U(0, 1)``; counts ``~ Multinomial(N, w)``.
+* stratified: ``u_j = (j + U_j) / N``; ``|N_i - N w_i| < 2``.
+* systematic: ``u_j = (j + U) / N`` (one ``U`` per batch element); ``N_i`` in
+  ``{floor(N w_i), ceil(N w_i)}``.
+* residual (Liu and Chen 1998): ``floor(N w_i)`` deterministic copies, the remaining
+  ``R = N - sum floor(N w_i)`` drawn multinomially from ``(N w_i - floor(N w_i)) / R``.
+
+All four are unbiased: ``E[N_i] = N w_i``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import torch
+from torch import Tensor
+
+from torchmm.beliefs.ops import normalize_log_probs
+from torchmm.beliefs.particle import ParticleBelief
+
+__all__ = [
+    "RESAMPLING_SCHEMES",
+    "apply_indices",
+    "effective_sample_size",
+    "inverse_cdf",
+    "multinomial_resample",
+    "resample",
+    "resample_where_needed",
+    "residual_resample",
+    "stratified_resample",
+    "systematic_resample",
+]
+
+
+def effective_sample_size(log_weights: Tensor) -> Tensor:
+    r"""Kong-Liu-Wong effective sample size ``1 / sum w_i^2`` from unnormalised log-weights.
+
+    Computed as ``exp(2 logsumexp(l) - logsumexp(2 l))``; an all ``-inf`` slice gives 0.
+
+    Shapes:
+        log_weights: ``(*B, Np)`` -> ``(*B,)``
+
+    Examples:
+        >>> effective_sample_size(torch.zeros(3, 10))
+        tensor([10., 10., 10.])
+    """
+    total = torch.logsumexp(log_weights, dim=-1)
+    square = torch.logsumexp(2 * log_weights, dim=-1)
+    ess = torch.exp(2 * total - square)
+    return torch.where(torch.isfinite(total), ess, torch.zeros_like(ess))
+
+
+def _cdf(log_weights: Tensor) -> Tensor:
+    """Normalised cumulative weights with the last entry forced to exactly 1. ``(*B, Np)``."""
+    weights = normalize_log_probs(log_weights).exp()
+    cdf = torch.cumsum(weights, dim=-1)
+    cdf = cdf / cdf[..., -1:]
+    return torch.cat([cdf[..., :-1], torch.ones_like(cdf[..., -1:])], dim=-1)
+
+
+def inverse_cdf(log_weights: Tensor, u: Tensor) -> Tensor:
+    """Indices ``searchsorted(cdf, u, right=True)`` for points ``u`` in ``[0, 1)``.
+
+    Shapes:
+        log_weights: ``(*B, Np)``; u: ``(*B, N)`` -> ``(*B, N)`` (int64)
+    """
+    cdf = _cdf(log_weights)
+    batch = torch.broadcast_shapes(cdf.shape[:-1], u.shape[:-1])
+    cdf = cdf.expand(*batch, cdf.shape[-1]).contiguous()
+    u = u.expand(*batch, u.shape[-1]).contiguous()
+    index = torch.searchsorted(cdf, u, right=True)
+    return index.clamp_max(cdf.shape[-1] - 1)
+
+
+def _check(log_weights: Tensor, num_samples: int | None) -> int:
+    if not isinstance(log_weights, Tensor) or log_weights.dim() < 1 or log_weights.shape[-1] < 1:
+        raise ValueError("log_weights: expected a tensor of shape (*B, Np) with Np >= 1")
+    if not log_weights.is_floating_point():
+        raise ValueError(f"log_weights: expected a floating-point tensor, got {log_weights.dtype}")
+    n = log_weights.shape[-1] if num_samples is None else int(num_samples)
+    if n < 1:
+        raise ValueError(f"num_samples: must be >= 1, got {num_samples}")
+    return n
+
+
+def _uniform(shape, like: Tensor, generator: torch.Generator | None) -> Tensor:
+    return torch.rand(shape, dtype=like.dtype, device=like.device, generator=generator)
+
+
+def multinomial_resample(log_weights: Tensor, num_samples: int | None = None, *,
+                         generator: torch.Generator | None = None) -> Tensor:
+    """Multinomial resampling: ``N`` i.i.d. draws from the weights.
+
+    Shapes:
+        log_weights: ``(*B, Np)`` -> indices ``(*B, N)``
+
+    Examples:
+        >>> g = torch.Generator().manual_seed(0)
+        >>> multinomial_resample(torch.tensor([0.0, -float("inf")]), 3, generator=g)
+        tensor([0, 0, 0])
+    """
+    n = _check(log_weights, num_samples)
+    u = _uniform((*log_weights.shape[:-1], n), log_weights, generator)
+    return inverse_cdf(log_weights, u)
+
+
+def stratified_resample(log_weights: Tensor, num_samples: int | None = None, *,
+                        generator: torch.Generator | None = None) -> Tensor:
+    """Stratified resampling: one uniform in each stratum ``[j/N, (j+1)/N)``.
+
+    Shapes:
+        log_weights: ``(*B, Np)`` -> indices ``(*B, N)`` (non-decreasing)
+    """
+    n = _check(log_weights, num_samples)
+    offsets = torch.arange(n, dtype=log_weights.dtype, device=log_weights.device)
+    u = (offsets + _uniform((*log_weights.shape[:-1], n), log_weights, generator)) / n
+    return inverse_cdf(log_weights, u)
+
+
+def systematic_resample(log_weights: Tensor, num_samples: int | None = None, *,
+                        generator: torch.Generator | None = None) -> Tensor:
+    """Systematic resampling: ``u_j = (j + U) / N`` with one uniform per batch element.
+
+    Shapes:
+        log_weights: ``(*B, Np)`` -> indices ``(*B, N)`` (non-decreasing)
+
+    Examples:
+        >>> systematic_resample(torch.tensor([0.5, 0.25, 0.25]).log(), 4).tolist()
+        [0, 0, 1, 2]
+    """
+    n = _check(log_weights, num_samples)
+    offsets = torch.arange(n, dtype=log_weights.dtype, device=log_weights.device)
+    u = (offsets + _uniform((*log_weights.shape[:-1], 1), log_weights, generator)) / n
+    return inverse_cdf(log_weights, u)
+
+
+def residual_resample(log_weights: Tensor, num_samples: int | None = None, *,
+                      generator: torch.Generator | None = None) -> Tensor:
+    """Residual resampling: deterministic ``floor(N w_i)`` copies plus a multinomial residual.
+
+    The number of deterministic copies differs between batch elements; output slot ``s`` takes
+    the deterministic copy number ``s`` where ``s < sum floor(N w)``, else a residual draw, so the
+    output shape is static.
+
+    Shapes:
+        log_weights: ``(*B, Np)`` -> indices ``(*B, N)``
+    """
+    n = _check(log_weights, num_samples)
+    weights = normalize_log_probs(log_weights).exp()
+    scaled = n * weights
+    copies = torch.floor(scaled)
+    residual = scaled - copies
+    cum_copies = torch.cumsum(copies, dim=-1)  # (*B, Np), last = number of deterministic copies
+    slots = torch.arange(n, dtype=weights.dtype, device=weights.device).expand(*weights.shape[:-1], n)
+    deterministic = torch.searchsorted(cum_copies.contiguous(), slots.contiguous(), right=True)
+    deterministic = deterministic.clamp_max(weights.shape[-1] - 1)
+    # residual weights: a row without residual mass (all copies exact) is never used below
+    has_residual = residual.sum(-1, keepdim=True) > 0
+    residual_log = torch.where(has_residual, residual.log(), torch.zeros_like(residual))
+    drawn = multinomial_resample(residual_log, n, generator=generator)
+    return torch.where(slots < cum_copies[..., -1:], deterministic, drawn)
+
+
+#: name -> scheme, for configs (``resampling="systematic"``)
+RESAMPLING_SCHEMES: dict[str, Callable[..., Tensor]] = {
+    "multinomial": multinomial_resample,
+    "residual": residual_resample,
+    "stratified": stratified_resample,
+    "systematic": systematic_resample,
+}
+
+
+def resample(log_weights: Tensor, scheme: str = "systematic", num_samples: int | None = None, *,
+             generator: torch.Generator | None = None) -> Tensor:
+    """Ancestor indices by a named scheme (one of :data:`RESAMPLING_SCHEMES`).
+
+    Shapes:
+        log_weights: ``(*B, Np)`` -> indices ``(*B, N)``
+    """
+    try:
+        fn = RESAMPLING_SCHEMES[scheme]
+    except KeyError:
+        raise ValueError(f"scheme: expected one of {sorted(RESAMPLING_SCHEMES)}, got {scheme!r}") from None
+    return fn(log_weights, num_samples, generator=generator)
+
+
+def apply_indices(belief: ParticleBelief, indices: Tensor) -> ParticleBelief:
+    """The resampled belief: particles gathered at ``indices``, uniform log-weights ``-log N``.
+
+    Shapes:
+        belief: particles ``(*B, Np, n)``; indices ``(*B, N)`` -> particles ``(*B, N, n)``
+    """
+    particles = belief.particles
+    batch = torch.broadcast_shapes(particles.shape[:-2], indices.shape[:-1])
+    particles = particles.expand(*batch, *particles.shape[-2:])
+    indices = indices.expand(*batch, indices.shape[-1])
+    gathered = torch.gather(particles, -2, indices.unsqueeze(-1).expand(*indices.shape, particles.shape[-1]))
+    log_w = torch.full(indices.shape, -math.log(indices.shape[-1]), dtype=particles.dtype,
+                       device=particles.device)
+    return ParticleBelief(gathered, log_w)
+
+
+def resample_where_needed(belief: ParticleBelief, threshold: float = 0.5, scheme: str = "systematic", *,
+                          generator: torch.Generator | None = None) -> tuple[ParticleBelief, Tensor, Tensor]:
+    """Resample the batch elements whose ESS is below ``threshold * Np``; keep the others.
+
+    ``threshold = 0`` never resamples, ``threshold > 1`` always (the ESS never exceeds ``Np``). Every element is resampled internally and the result chosen
+    per element with ``torch.where``, so shapes and the random stream are independent of which
+    elements needed it.
+
+    Returns:
+        ``(belief, resampled, ess)``: the new belief, a bool mask ``(*B,)``, the ESS before
+        resampling ``(*B,)``.
+
+    Shapes:
+        belief: particles ``(*B, Np, n)``, log_weights ``(*B, Np)`` -> same shapes
+    """
+    if threshold < 0:
+        raise ValueError(f"threshold: must be >= 0, got {threshold}")
+    ess = effective_sample_size(belief.log_weights)
+    num = belief.num_particles
+    mask = ess < threshold * num
+    new = apply_indices(belief, resample(belief.log_weights, scheme, num, generator=generator))
+    particles = torch.where(mask[..., None, None], new.particles, belief.particles)
+    log_w = torch.where(mask[..., None], new.log_weights, belief.log_weights)
+    return ParticleBelief(particles, log_w), mask, ess
