@@ -1,0 +1,336 @@
+"""Paper 002: local estimators, augmented cross-check, cross-covariances, fusion, steady state."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from torchmm.fusion import (
+    augmented_cross_predictor,
+    augmented_local_estimates,
+    centralized_estimates,
+    cross_covariances,
+    cross_predictor_stats,
+    fuse,
+    fusion_weights,
+    local_covariances,
+    local_estimates,
+    local_predictor_stats,
+    simulate_fusion,
+    steady_fused_estimates,
+    steady_moments,
+    steady_state,
+)
+from torchmm.fusion.system import MultiSensorSystem
+
+from .systems import oracle, radar_system, random_system, ups_system
+
+HORIZONS = [-3, -2, -1, 0, 1, 2]
+DIAG = dict(dim1=-2, dim2=-1)
+
+
+def _rel(a, b):
+    return float((a - b).abs().max() / b.abs().max().clamp_min(1e-300))
+
+
+# ---------------------------------------------------------------------------------------------
+# system and simulator
+# ---------------------------------------------------------------------------------------------
+
+
+def test_simulator_shapes_and_second_moments():
+    sys = random_system(1)
+    T, R = 12, 20000
+    sim = simulate_fusion(sys, T, (R,), torch.Generator().manual_seed(0))
+    assert sim.x.shape == (T, R, 2) and sim.r.shape == (T, R, 3) and sim.y.shape == (T, R, 3, 2)
+    Xi, Qr, _ = sys.second_moments(T)
+    emp_xi = torch.einsum("tra,trb->tab", sim.x, sim.x) / R
+    emp_r = (sim.r**2).mean(1)
+    # sample second moments within 5 standard errors (Gaussian x: var of x_a x_b <= 2 Xi_aa Xi_bb)
+    se = (2 * Xi.diagonal(**DIAG)[..., :, None] * Xi.diagonal(**DIAG)[..., None, :] / R).sqrt()
+    assert bool(((emp_xi - Xi).abs() <= 5 * se).all())
+    assert bool(((emp_r - Qr).abs() <= 5 * (2 * Qr**2 / R).sqrt()).all())
+    # the w/v correlation R_i = E[w v_i^T] is realised: v = y - (C + Ct r) x
+    v = sim.y - ((sys.C + sys.Ct * sim.r[..., None, None]) @ sim.x[:, :, None, :, None]).squeeze(-1)
+    x_next = sim.x[1:] - sim.x[:-1] @ sys.A.T  # = Gamma w
+    emp = torch.einsum("tra,trib->iab", x_next, v[:-1]) / (R * (T - 1))
+    assert torch.allclose(emp, sys.Gamma @ sys.R, atol=0.05 * float(sys.R.abs().max()) + 0.02)
+
+
+def test_system_validation_errors():
+    good = dict(A=[[0.5]], Gamma=[[1.0]], Qw=[[1.0]], C=[[[1.0]]], Ct=[[[0.5]]], h=[0.6], Qp=[0.1],
+                d=[[[0.0]]], Q_eta=[[[1.0]]], mu0=[0.0], P0=[[1.0]])
+    MultiSensorSystem.from_correlation(**good)
+    with pytest.raises(ValueError, match="h:"):
+        MultiSensorSystem.from_correlation(**{**good, "h": [1.2214]})  # the printed e^{T/5}
+    with pytest.raises(ValueError, match="Qp"):
+        MultiSensorSystem.from_correlation(**{**good, "Qp": [-1.0]})
+    with pytest.raises(ValueError, match="Ct"):
+        MultiSensorSystem.from_correlation(**{**good, "Ct": [[[0.5, 1.0]]]})
+    with pytest.raises(ValueError, match="P0"):
+        MultiSensorSystem.from_correlation(**{**good, "P0": [[-1.0]]})
+    with pytest.raises(ValueError, match="Q_eta"):
+        MultiSensorSystem.from_correlation(**{**good, "Q_eta": [[[-1.0]]]})
+    sys = MultiSensorSystem.from_correlation(**good)
+    with pytest.raises(ValueError, match="y:"):
+        local_estimates(sys, torch.full((3, 2, 1, 1), float("nan")))
+    with pytest.raises(ValueError, match="y:"):
+        local_estimates(sys, torch.zeros(3, 2, 2, 1))
+    with pytest.raises(ValueError, match="method"):
+        fusion_weights(torch.eye(1).expand(2, 2, 1, 1), "median")
+    unstable = MultiSensorSystem.from_correlation(**{**good, "A": [[1.0]]})
+    with pytest.raises(ValueError, match="A:"):
+        steady_state(unstable)
+
+
+# ---------------------------------------------------------------------------------------------
+# local estimators: oracle, augmented cross-check
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("N", HORIZONS)
+def test_local_and_cross_covariances_match_batch_lmmse_oracle(N):
+    sys = random_system(2)
+    T = 7
+    orc = oracle(sys, T)
+    stats = local_predictor_stats(sys, T)
+    cross = cross_predictor_stats(sys, stats)
+    Pij = cross_covariances(sys, stats, cross, N).numpy()
+    Pl = local_covariances(sys, stats, N).numpy()
+    sim = simulate_fusion(sys, T, (2,), torch.Generator().manual_seed(5))
+    mean, _ = local_estimates(sys, sim.y, N, stats)
+    cmean, ccov = centralized_estimates(sys, sim.y, N)
+    y0 = sim.y[:, 0].numpy()
+    for t in range(T):
+        for i in range(3):
+            np.testing.assert_allclose(Pl[t, i], orc.error_cov(t, N, [i], [i]), rtol=1e-8, atol=1e-10)
+            np.testing.assert_allclose(mean[t, 0, i].numpy(), orc.estimate(y0, t, N, [i]),
+                                       rtol=1e-8, atol=1e-9)
+            for j in range(3):
+                np.testing.assert_allclose(Pij[t, i, j], orc.error_cov(t, N, [i], [j]), rtol=1e-8, atol=1e-10)
+        allS = [0, 1, 2]
+        np.testing.assert_allclose(ccov[t].numpy(), orc.error_cov(t, N, allS, allS), rtol=1e-8, atol=1e-10)
+        np.testing.assert_allclose(cmean[t, 0].numpy(), orc.estimate(y0, t, N, allS), rtol=1e-8, atol=1e-9)
+
+
+@pytest.mark.parametrize("make", [ups_system, radar_system, random_system])
+def test_augmented_agrees_with_non_augmented(make):
+    sys = make()
+    T = 40
+    sim = simulate_fusion(sys, T, (5,), torch.Generator().manual_seed(0))
+    stats = local_predictor_stats(sys, T)
+    for N in HORIZONS:
+        m, P = local_estimates(sys, sim.y, N, stats)
+        ma, Pa = augmented_local_estimates(sys, sim.y, N)
+        # 1e-8 relative to the largest entry at every step (Example 1: |x| ~ 4e4, P ~ 1e9)
+        assert _rel(m, ma) < 1e-8, N
+        assert float(((P - Pa).abs().amax((-1, -2)) / Pa.abs().amax((-1, -2)).clamp_min(1e-300)).max()) < 1e-8
+    cross = cross_predictor_stats(sys, stats)
+    Pb = augmented_cross_predictor(sys, T)
+    assert _rel(cross.joint(), Pb) < 1e-8
+    idx = torch.arange(sys.num_sensors)
+    assert _rel(cross.P[:, idx, idx], stats.Px) < 1e-12
+    for N in HORIZONS:
+        diag = cross_covariances(sys, stats, cross, N)[:, idx, idx]
+        assert _rel(diag, local_covariances(sys, stats, N)) < 1e-10
+
+
+def test_float32_runs_and_stays_finite():
+    sys = ups_system(torch.float32)
+    sim = simulate_fusion(sys, 30, (16,), torch.Generator().manual_seed(0))
+    stats = local_predictor_stats(sys, 30)
+    cross = cross_predictor_stats(sys, stats)
+    for N in (-2, 0, 2):
+        m, P = local_estimates(sys, sim.y, N, stats)
+        f = fuse(m, cross_covariances(sys, stats, cross, N), "matrix")
+        assert m.dtype == torch.float32 and f.mean.dtype == torch.float32
+        assert bool(torch.isfinite(f.mean).all() & torch.isfinite(f.cov).all() & torch.isfinite(P).all())
+    cm, _ = centralized_estimates(sys, sim.y, 0)
+    assert bool(torch.isfinite(cm).all())
+
+
+# ---------------------------------------------------------------------------------------------
+# Monte Carlo consistency
+# ---------------------------------------------------------------------------------------------
+
+
+def _z(err2: torch.Tensor, computed: torch.Tensor) -> torch.Tensor:
+    """z-score of the per-run time average of squared errors (runs iid) against the computed value."""
+    per_run = err2.mean(0)  # (R, ...)
+    se = per_run.std(0) / per_run.shape[0] ** 0.5
+    return (per_run.mean(0) - computed) / se
+
+
+def test_monte_carlo_variances_match_computed_ones():
+    """Tolerance: |z| < 4.5, z = (MC - computed) / SE, SE from the spread of the runs' time-averaged
+    squared errors (runs are independent, time steps within a run are not). The z-scores of all
+    estimators share one realisation, so they move together; 4.5 keeps the test reliable."""
+    sys = ups_system()
+    T, R, w = 40, 3000, slice(15, 40)
+    sim = simulate_fusion(sys, T, (R,), torch.Generator().manual_seed(11))
+    stats = local_predictor_stats(sys, T)
+    cross = cross_predictor_stats(sys, stats)
+    for N in (-2, 0, 2):
+        wN = slice(15, 38) if N > 0 else w  # the smoother's last N steps lack future data
+        m, P = local_estimates(sys, sim.y, N, stats)
+        err = sim.x[:, :, None] - m
+        assert bool((_z(err[wN] ** 2, P[wN].diagonal(**DIAG).mean(0)).abs() < 4.5).all())
+        Pij = cross_covariances(sys, stats, cross, N)
+        cross_err = err[wN, :, 0, 0] * err[wN, :, 1, 0]
+        assert float(_z(cross_err[..., None], Pij[wN, 0, 1, 0, 0].mean(0)[None]).abs()) < 4.5
+        for method in ("matrix", "diagonal", "scalar"):
+            f = fuse(m, Pij, method)
+            assert bool((_z((sim.x - f.mean)[wN] ** 2, f.cov[wN].diagonal(**DIAG).mean(0)).abs() < 4.5).all())
+        cm, cP = centralized_estimates(sys, sim.y, N)
+        assert bool((_z((sim.x - cm)[wN] ** 2, cP[wN].diagonal(**DIAG).mean(0)).abs() < 4.5).all())
+
+
+# ---------------------------------------------------------------------------------------------
+# fusion weights
+# ---------------------------------------------------------------------------------------------
+
+
+def _random_joint(L, n, seed):
+    g = torch.Generator().manual_seed(seed)
+    X = torch.randn(L * n, L * n + 3, generator=g)
+    S = X @ X.T / (L * n) + 0.1 * torch.eye(L * n)
+    return S.reshape(L, n, L, n).transpose(1, 2)
+
+
+@pytest.mark.parametrize("method", ["matrix", "diagonal", "scalar"])
+def test_fusion_weights_sum_to_identity_and_beat_local(method):
+    L, n = 4, 3
+    P = torch.stack([_random_joint(L, n, s) for s in range(5)])  # batch of 5
+    A, Po = fusion_weights(P, method)
+    eye = torch.eye(n).expand(5, n, n)
+    assert torch.allclose(A.sum(-3), eye, atol=1e-10)
+    if method == "scalar":
+        assert torch.allclose(A[..., 0, 0], A.diagonal(**DIAG)[..., 0].expand_as(A[..., 0, 0]))
+        assert torch.allclose(A.diagonal(**DIAG).mean(-1), A[..., 0, 0])
+    if method == "diagonal":
+        assert torch.allclose(A, torch.diag_embed(A.diagonal(**DIAG)))
+    idx = torch.arange(L)
+    Pl = P[:, idx, idx]
+    if method == "matrix":  # Po <= P_i in the matrix sense, and Po = (F^T P^-1 F)^-1 (45)
+        assert bool((torch.linalg.eigvalsh(Pl - Po[:, None]) > -1e-10).all())
+        Sigma = P.transpose(-3, -2).reshape(5, L * n, L * n)
+        F = torch.eye(n).repeat(L, 1)
+        assert torch.allclose(Po, torch.linalg.inv(F.T @ torch.linalg.solve(Sigma, F)), atol=1e-10)
+    elif method == "diagonal":
+        assert bool((Po.diagonal(**DIAG)[:, None] <= Pl.diagonal(**DIAG) + 1e-10).all())
+    else:
+        assert bool((Po.diagonal(**DIAG).sum(-1)[:, None] <= Pl.diagonal(**DIAG).sum(-1) + 1e-10).all())
+
+
+def test_matrix_weights_are_optimal_among_unbiased_weights():
+    L, n = 3, 2
+    P = _random_joint(L, n, 7)
+    A, Po = fusion_weights(P, "matrix")
+    g = torch.Generator().manual_seed(1)
+    for _ in range(20):
+        B = A + 0.3 * torch.randn(L, n, n, generator=g)
+        B[-1] = torch.eye(n) - B[:-1].sum(0)  # still sums to I
+        Pb = torch.einsum("iab,ijbc,jdc->ad", B, P, B)
+        assert bool((torch.linalg.eigvalsh(Pb - Po) > -1e-10).all())
+
+
+@pytest.mark.parametrize("method", ["matrix", "diagonal", "scalar"])
+def test_identical_uncorrelated_sensors_fuse_to_P_over_L(method):
+    L, n = 5, 3
+    X = torch.randn(n, n, generator=torch.Generator().manual_seed(2))
+    Pi = X @ X.T + 0.5 * torch.eye(n)
+    P = torch.zeros(L, L, n, n)
+    P[torch.arange(L), torch.arange(L)] = Pi
+    A, Po = fusion_weights(P, method)
+    assert torch.allclose(Po, Pi / L, atol=1e-12)
+    assert torch.allclose(A, torch.eye(n).expand(L, n, n) / L, atol=1e-12)
+
+
+def test_singular_joint_covariance_gives_admissible_weights():
+    """Before any data all local errors are identical (P_ij = P0): every unbiased weight is optimal."""
+    P = torch.eye(2).expand(3, 3, 2, 2)
+    for method in ("matrix", "diagonal", "scalar"):
+        A, Po = fusion_weights(P, method)
+        assert torch.allclose(A.sum(0), torch.eye(2), atol=1e-10)
+        assert torch.allclose(Po, torch.eye(2), atol=1e-10)
+
+
+# ---------------------------------------------------------------------------------------------
+# orderings (Example 2)
+# ---------------------------------------------------------------------------------------------
+
+
+def test_variance_orderings_example2():
+    sys = ups_system()
+    T = 60
+    stats = local_predictor_stats(sys, T)
+    cross = cross_predictor_stats(sys, stats)
+    dummy = torch.zeros(T, 1, 3, 1)
+    fused = {}
+    for N in (-2, -1, 0, 1, 2):
+        Pij = cross_covariances(sys, stats, cross, N)
+        var = {meth: fuse(torch.zeros(T, 1, 3, 3), Pij, meth).cov.diagonal(**DIAG) for meth in
+               ("matrix", "diagonal", "scalar")}
+        var["CF"] = centralized_estimates(sys, dummy, N)[1].diagonal(**DIAG)
+        LF = local_covariances(sys, stats, N).diagonal(**DIAG)  # (T, L, n)
+        tol = 1e-10
+        assert bool((var["CF"] <= var["matrix"] + tol).all()), N
+        assert bool((var["matrix"] <= var["diagonal"] + tol).all()), N
+        assert bool((var["diagonal"] <= var["scalar"] + tol).all()), N
+        # SF <= each LF per component is not a theorem (SF minimises the trace): for this example
+        # it fails by ~5e-3 at t = 1, 2 (prediction horizons) and holds from t = 3 on
+        assert bool((var["scalar"][3:, None] <= LF[3:] + tol).all()), N
+        assert bool((var["scalar"].sum(-1)[:, None] <= LF.sum(-1) + tol).all()), N
+        fused[N] = var["matrix"][: T - 2]  # exclude the end where the smoother has no future data
+    # predictor >= filter >= smoother per component; not a theorem for fused estimates: the second
+    # component of N = 2 exceeds N = 1 by <= 1.2e-4 at t = 1..4, from t = 5 on it holds
+    for a, b in ((-2, -1), (-1, 0), (0, 1), (1, 2)):
+        assert bool((fused[b][5:] <= fused[a][5:] + 1e-10).all()), (a, b)
+        assert bool((fused[b].sum(-1) <= fused[a].sum(-1) + 1e-10).all()), (a, b)
+
+
+# ---------------------------------------------------------------------------------------------
+# steady state
+# ---------------------------------------------------------------------------------------------
+
+
+def test_steady_moments_solve_the_lyapunov_equations():
+    scipy_linalg = pytest.importorskip("scipy.linalg")
+    sys = ups_system()
+    Xi, Qr, Qxi = steady_moments(sys)
+    ref = scipy_linalg.solve_discrete_lyapunov(sys.A.numpy(), sys.GQG.numpy())
+    np.testing.assert_allclose(Xi.numpy(), ref, rtol=1e-10, atol=1e-12)
+    assert torch.allclose(Qr, sys.h**2 * Qr + sys.Qp)
+    assert torch.allclose(Qxi, sys.virtual_noise_cov(Xi, Qr))
+
+
+def test_steady_state_is_the_limit_of_the_time_varying_recursions():
+    sys = ups_system()
+    ss = steady_state(sys)
+    T = 150
+    stats = local_predictor_stats(sys, T)
+    cross = cross_predictor_stats(sys, stats)
+    assert _rel(stats.Lx[-1], ss.stats.Lx[0]) < 1e-9
+    assert _rel(stats.Lr[-1], ss.stats.Lr[0]) < 1e-9
+    assert _rel(stats.Px[-1], ss.stats.Px[0]) < 1e-9
+    for N in (-2, -1, 0, 1, 2):
+        t = T - 10
+        assert _rel(cross_covariances(sys, stats, cross, N)[t], ss.cross_covariances(sys, N)) < 1e-9, N
+        assert _rel(local_covariances(sys, stats, N)[t], ss.local_covariances(sys, N)) < 1e-9, N
+    A_tv, _ = fusion_weights(cross_covariances(sys, stats, cross, 0)[T - 10], "matrix")
+    A_ss, _ = fusion_weights(ss.cross_covariances(sys, 0), "matrix")
+    assert _rel(A_tv, A_ss) < 1e-8
+
+
+def test_steady_state_fused_estimator_monte_carlo():
+    """Steady-state (offline-gain) MF predictor/filter/smoother: MC variance vs computed, |z| < 4.5."""
+    sys = ups_system()
+    ss = steady_state(sys)
+    T, R = 60, 3000
+    sim = simulate_fusion(sys, T, (R,), torch.Generator().manual_seed(4))
+    for N in (-2, 0, 2):
+        xo, Po, W = steady_fused_estimates(sys, ss, sim.y, N)
+        assert torch.allclose(W.sum(0), torch.eye(3), atol=1e-10)
+        err2 = (sim.x - xo)[25:55] ** 2
+        assert bool((_z(err2, Po.diagonal()).abs() < 4.5).all()), N

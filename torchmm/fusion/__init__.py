@@ -1,0 +1,62 @@
+"""Distributed fusion under time-correlated multiplicative noise (paper 002).
+
+* :mod:`.system`: the multi-sensor system (1)-(3) and its batched simulator;
+* :mod:`.local`: non-augmented local predictors / filters / smoothers (Theorems 1-3) and the
+  cross-covariances between sensors (Theorems 4-6), sensors as a batch axis;
+* :mod:`.augmented`: the augmented formulation (12)-(15) and centralized fusion (Remark 10);
+* :mod:`.weights`: matrix / diagonal / scalar weighted fusion (44)-(47);
+* :mod:`.steady`: steady-state gains, cross-covariances and fused estimators (Theorems 7-8).
+"""
+
+from torchmm.fusion.augmented import (
+    augmented_cross_predictor,
+    augmented_local_estimates,
+    centralized_estimates,
+    correlated_kf,
+)
+from torchmm.fusion.local import (
+    CrossStats,
+    LocalStats,
+    cross_covariances,
+    cross_predictor_stats,
+    local_covariances,
+    local_estimates,
+    local_one_step,
+    local_predictor_stats,
+)
+from torchmm.fusion.steady import (
+    SteadyState,
+    steady_fused_estimates,
+    steady_local_estimates,
+    steady_moments,
+    steady_state,
+)
+from torchmm.fusion.system import FusionSimulation, MultiSensorSystem, simulate_fusion
+from torchmm.fusion.weights import FUSION_METHODS, FusedEstimate, fuse, fusion_weights
+
+__all__ = [
+    "FUSION_METHODS",
+    "CrossStats",
+    "FusedEstimate",
+    "FusionSimulation",
+    "LocalStats",
+    "MultiSensorSystem",
+    "SteadyState",
+    "augmented_cross_predictor",
+    "augmented_local_estimates",
+    "centralized_estimates",
+    "correlated_kf",
+    "cross_covariances",
+    "cross_predictor_stats",
+    "fuse",
+    "fusion_weights",
+    "local_covariances",
+    "local_estimates",
+    "local_one_step",
+    "local_predictor_stats",
+    "simulate_fusion",
+    "steady_fused_estimates",
+    "steady_local_estimates",
+    "steady_moments",
+    "steady_state",
+]

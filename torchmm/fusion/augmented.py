@@ -1,0 +1,237 @@
+r"""Augmented formulation (12)-(15) and centralized fusion (Remark 10), paper 002.
+
+Both are a standard Kalman filter for correlated process/measurement noise on an augmented state,
+written here in *filter form* (measurement update, then a time update that removes the
+``w``-``v`` correlation), independently of the predictor-form recursions of :mod:`.local`:
+
+.. math::
+    Q^\epsilon = H P H^T + Q^v,\quad K = P H^T (Q^\epsilon)^{-1},\quad
+    \hat x(t|t) = \hat x(t|t-1) + K \epsilon,\quad P(t|t) = P - K Q^\epsilon K^T,\\
+    J = G S (Q^\epsilon)^{-1},\quad \hat x(t+1|t) = \Phi \hat x(t|t) + J \epsilon,\\
+    P(t+1|t) = \Phi P(t|t) \Phi^T + G Q(t) G^T - J Q^\epsilon J^T - \Phi K S^T G^T - G S K^T \Phi^T.
+
+Local augmented system of sensor ``i``: ``x^-_i = [x; x^r_i]``, ``Phi^-_i = diag(A, h_i A)``,
+``G = diag(Gamma, I_n)``, ``Q_i(t) = diag(Q^w, Q^xi_i(t))``, ``S_i = [R_i; 0]``, ``H = [C_i, C~_i]``.
+Centralized: ``[x; x^r_1; ..; x^r_L]`` with the stacked measurements of all sensors.
+
+Smoothing on the augmented state: ``x^(t|t+k) = x^(t|t+k-1) + Omega(t+k) H^T (Q^eps)^{-1} eps(t+k)``,
+``Omega <- Omega (Phi - L^- H)^T`` with the one-step gain ``L^- = Phi K + J``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from torchmm.beliefs.ops import symmetrize
+from torchmm.fusion.system import MultiSensorSystem
+
+__all__ = [
+    "CorrelatedKFResult",
+    "correlated_kf",
+    "correlated_kf_estimates",
+    "augmented_local_estimates",
+    "centralized_estimates",
+    "augmented_system",
+    "centralized_system",
+    "augmented_cross_predictor",
+]
+
+
+def _solve_right(G: Tensor, S: Tensor) -> Tensor:
+    return torch.linalg.solve(S, G.mT).mT
+
+
+@dataclass(frozen=True)
+class CorrelatedKFResult:
+    """Outputs of :func:`correlated_kf` (``*S``: system batch, e.g. sensors).
+
+    Shapes:
+        x_pred, x_filt: ``(T, *B, *S, d)``; eps: ``(T, *B, *S, m)``
+        P_pred, P_filt: ``(T, *S, d, d)``; Qeps: ``(T, *S, m, m)``; gain: ``(T, *S, d, m)`` (one-step ``L^-``)
+    """
+
+    x_pred: Tensor
+    x_filt: Tensor
+    eps: Tensor
+    P_pred: Tensor
+    P_filt: Tensor
+    Qeps: Tensor
+    gain: Tensor
+
+
+def correlated_kf(Phi, G, Q, S, Qv, H, x0, P0, y) -> CorrelatedKFResult:
+    r"""Kalman filter (filter form) for ``x(t+1) = Phi x + G w``, ``y = H x + v``, ``E[w v^T] = S``.
+
+    Shapes:
+        Phi: ``(*S, d, d)``; G: ``(*S, d, q)``; Q: ``(T, *S, q, q)`` (time-varying);
+        S: ``(*S, q, m)``; Qv: ``(*S, m, m)``; H: ``(*S, m, d)``; x0: ``(*S, d)``; P0: ``(*S, d, d)``;
+        y: ``(T, *B, *S, m)``
+    """
+    T = y.shape[0]
+    x = x0.expand(*y.shape[1:-1], x0.shape[-1])
+    P = P0
+    xs, xfs, es, Ps, Pfs, Qs, gains = [], [], [], [], [], [], []
+    GS = G @ S
+    for t in range(T):
+        Qe = symmetrize(H @ P @ H.mT + Qv)
+        K = _solve_right(P @ H.mT, Qe)
+        J = _solve_right(GS, Qe)
+        eps = y[t] - (H @ x.unsqueeze(-1)).squeeze(-1)
+        xf = x + (K @ eps.unsqueeze(-1)).squeeze(-1)
+        Pf = symmetrize(P - K @ Qe @ K.mT)
+        xs.append(x), xfs.append(xf), es.append(eps), Ps.append(P), Pfs.append(Pf), Qs.append(Qe)
+        gains.append(Phi @ K + J)
+        x = (Phi @ xf.unsqueeze(-1) + J @ eps.unsqueeze(-1)).squeeze(-1)
+        PhiKSG = Phi @ K @ GS.mT
+        P = symmetrize(Phi @ Pf @ Phi.mT + G @ Q[t] @ G.mT - J @ Qe @ J.mT - PhiKSG - PhiKSG.mT)
+    st = torch.stack
+    return CorrelatedKFResult(st(xs), st(xfs), st(es), st(Ps), st(Pfs), st(Qs), st(gains))
+
+
+def correlated_kf_estimates(res: CorrelatedKFResult, Phi, G, Q, H, x0, P0, N: int):
+    r"""N-step estimates on the augmented state from a :func:`correlated_kf` run.
+
+    ``N < 0``: ``Phi^{-N-1}`` applied to ``x^(t+N+1|t+N)`` (prior ``x0, P0`` before the data);
+    ``N = 0``: the filter; ``N > 0``: the innovations smoother (one batched update per lag).
+
+    Shapes:
+        -> mean ``(T, *B, *S, d)``, cov ``(T, *S, d, d)``
+    """
+    T = res.x_pred.shape[0]
+    if N < 0:
+        mean, cov = res.x_pred, res.P_pred
+        for _ in range(-N - 1):
+            mean = torch.cat([x0.expand_as(mean[:1]), (Phi @ mean[:-1].unsqueeze(-1)).squeeze(-1)], 0)
+            step = symmetrize(Phi @ cov[:-1] @ Phi.mT + G @ Q[:-1] @ G.mT)
+            cov = torch.cat([P0.expand_as(cov[:1]), step], 0)
+        return mean, cov
+    mean, cov, Om = res.x_pred, res.P_pred, res.P_pred
+    Psi = Phi - res.gain @ H
+    for k in range(N + 1):
+        valid = (torch.arange(T, device=mean.device) + k < T).to(mean.dtype)
+        idx = torch.clamp(torch.arange(T, device=mean.device) + k, max=T - 1)
+        Kg = _solve_right(Om @ H.mT, res.Qeps[idx]) * valid.reshape(T, *([1] * (Om.dim() - 1)))
+        Kb = Kg.reshape(T, *([1] * (mean.dim() - Kg.dim() + 1)), *Kg.shape[1:])
+        mean = mean + (Kb @ res.eps[idx].unsqueeze(-1)).squeeze(-1)
+        cov = symmetrize(cov - Kg @ res.Qeps[idx] @ Kg.mT)
+        Om = Om @ Psi[idx].mT
+    return mean, cov
+
+
+def _blockdiag2(a: Tensor, b: Tensor) -> Tensor:
+    """``diag(a, b)`` batched: ``a (*S, p, q)``, ``b (*S, r, s)``."""
+    batch = torch.broadcast_shapes(a.shape[:-2], b.shape[:-2])
+    a, b = a.expand(*batch, *a.shape[-2:]), b.expand(*batch, *b.shape[-2:])
+    top = torch.cat([a, a.new_zeros(*batch, a.shape[-2], b.shape[-1])], -1)
+    bottom = torch.cat([b.new_zeros(*batch, b.shape[-2], a.shape[-1]), b], -1)
+    return torch.cat([top, bottom], -2)
+
+
+def augmented_system(system: MultiSensorSystem, steps: int):
+    """Matrices (14)-(15) of every sensor's augmented system, sensor axis ``L`` as ``*S``.
+
+    Returns ``(Phi (L, 2n, 2n), G (L, 2n, p+n), Q (T, L, p+n, p+n), S (L, p+n, m), Qv (L, m, m),
+    H (L, m, 2n), x0 (L, 2n), P0 (L, 2n, 2n))``.
+    """
+    n, L = system.state_dim, system.num_sensors
+    Xi, _, Qxi = system.second_moments(steps)
+    eye = torch.eye(n, dtype=Xi.dtype, device=Xi.device)
+    Phi = _blockdiag2(system.A.expand(L, n, n), system.Phi)
+    G = _blockdiag2(system.Gamma.expand(L, *system.Gamma.shape), eye.expand(L, n, n))
+    Q = _blockdiag2(system.Qw.expand(steps, L, *system.Qw.shape), Qxi)
+    S = torch.cat([system.R, system.R.new_zeros(L, n, system.meas_dim)], dim=-2)
+    Qv = system.Qv.diagonal(dim1=0, dim2=1).permute(2, 0, 1)
+    H = torch.cat([system.C, system.Ct], dim=-1)
+    x0 = torch.cat([system.mu0.expand(L, n), system.mu0.new_zeros(L, n)], -1)
+    P0 = _blockdiag2(system.P0.expand(L, n, n), system.Qr0[:, None, None] * Xi[0])
+    return Phi, G, Q, S, Qv, H, x0, P0
+
+
+def augmented_local_estimates(system: MultiSensorSystem, y: Tensor, N: int = 0):
+    r"""Local N-step estimates of ``x`` from the augmented system (12)-(15), all sensors batched.
+
+    Shapes:
+        y: ``(T, *B, L, m)`` -> mean ``(T, *B, L, n)``, cov ``(T, L, n, n)``
+    """
+    from torchmm.fusion.local import check_measurements
+
+    check_measurements(system, y)
+    n = system.state_dim
+    mats = augmented_system(system, y.shape[0])
+    Phi, G, Q, S, Qv, H, x0, P0 = mats
+    res = correlated_kf(Phi, G, Q, S, Qv, H, x0, P0, y)
+    mean, cov = correlated_kf_estimates(res, Phi, G, Q, H, x0, P0, N)
+    return mean[..., :n], cov[..., :n, :n]
+
+
+def centralized_system(system: MultiSensorSystem, steps: int):
+    """Remark 10: matrices of the centralized augmented system ``[x; x^r_1; ..; x^r_L]``."""
+    n, L, m, p = system.state_dim, system.num_sensors, system.meas_dim, system.noise_dim
+    Xi, _, Qxi = system.second_moments(steps)
+    d = n * (L + 1)
+    kw = dict(dtype=Xi.dtype, device=Xi.device)
+    Phi = torch.block_diag(system.A, *system.Phi.unbind(0))
+    G = torch.block_diag(system.Gamma, torch.eye(n * L, **kw))
+    Q = torch.stack([torch.block_diag(system.Qw, *Qxi[t].unbind(0)) for t in range(steps)])
+    S = torch.cat([system.R.permute(1, 0, 2).reshape(p, L * m), torch.zeros(n * L, L * m, **kw)], 0)
+    Qv = system.stacked_Qv()
+    H = torch.cat([system.C.reshape(L * m, n), torch.block_diag(*system.Ct.unbind(0))], dim=-1)
+    x0 = torch.cat([system.mu0, torch.zeros(n * L, **kw)])
+    P0 = torch.block_diag(system.P0, *(system.Qr0[:, None, None] * Xi[0]).unbind(0))
+    assert Phi.shape == (d, d)
+    return Phi, G, Q, S, Qv, H, x0, P0
+
+
+def centralized_estimates(system: MultiSensorSystem, y: Tensor, N: int = 0):
+    r"""Centralized fusion (Remark 10): the LMMSE estimate of ``x(t)`` from all sensors' data.
+
+    Shapes:
+        y: ``(T, *B, L, m)`` -> mean ``(T, *B, n)``, cov ``(T, n, n)``
+    """
+    from torchmm.fusion.local import check_measurements
+
+    check_measurements(system, y)
+    n = system.state_dim
+    Phi, G, Q, S, Qv, H, x0, P0 = centralized_system(system, y.shape[0])
+    res = correlated_kf(Phi, G, Q, S, Qv, H, x0, P0, y.flatten(-2))
+    mean, cov = correlated_kf_estimates(res, Phi, G, Q, H, x0, P0, N)
+    return mean[..., :n], cov[..., :n, :n]
+
+
+def augmented_cross_predictor(system: MultiSensorSystem, steps: int) -> Tensor:
+    r"""Cross-covariances of the augmented one-step errors from the error equation (49):
+
+    ``x~^-_i(t+1|t) = Psi_i x~^-_i + G w^-_i - L^-_i v_i``, so
+    ``P^-_ij <- Psi_i P^-_ij Psi_j^T + G E[w^-_i w^-_j^T] G^T - G S_j L^{-T}_j - L^-_i S_i^T G^T``
+    ``+ L^-_i Q^v_ij L^{-T}_j``
+    with ``E[w^-_i w^-_j^T] = diag(Q^w, delta_ij Q^xi_i)`` and ``E[w^-_i v_j^T] = [R_j; 0]``.
+    An independent reference for Theorem 4 (gains from :func:`correlated_kf`).
+
+    Shapes:
+        -> ``(T, L, L, 2n, 2n)``
+    """
+    L, n, m = system.num_sensors, system.state_dim, system.meas_dim
+    Phi, G, Q, S, Qv, H, x0, P0 = augmented_system(system, steps)
+    dummy = torch.zeros(steps, L, m, dtype=Phi.dtype, device=Phi.device)
+    res = correlated_kf(Phi, G, Q, S, Qv, H, x0, P0, dummy)
+    Psi = Phi - res.gain @ H  # (T, L, 2n, 2n)
+    Gi, Gj = G[:, None], G[None]
+    Xi0 = system.P0 + torch.outer(system.mu0, system.mu0)
+    eye = torch.eye(L, dtype=Phi.dtype, device=Phi.device)[..., None, None]
+    Pb = torch.zeros(L, L, 2 * n, 2 * n, dtype=Phi.dtype, device=Phi.device)
+    Pb[..., :n, :n] = system.P0
+    Pb[..., n:, n:] = eye * (system.Qr0[:, None, None] * Xi0)[:, None]
+    out = []
+    for t in range(steps):
+        out.append(Pb)
+        Lb = res.gain[t]
+        Li, Lj = Lb[:, None], Lb[None]
+        Qw_ij = Q[t][:, None].clone().expand(L, L, *Q.shape[-2:]).clone()
+        Qw_ij[..., system.noise_dim:, system.noise_dim:] *= eye
+        Si, Sj = S[:, None], S[None]
+        Pb = (Psi[t][:, None] @ Pb @ Psi[t][None].mT + Gi @ Qw_ij @ Gj.mT - Gi @ Sj @ Lj.mT
+              - Li @ Si.mT @ Gj.mT + Li @ system.Qv @ Lj.mT)
+    return torch.stack(out)

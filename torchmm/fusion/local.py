@@ -1,0 +1,428 @@
+r"""Non-augmented local estimators (Theorems 1-3) and cross-covariances (Theorems 4-6), paper 002.
+
+All ``L`` sensors are one batch axis; gains and covariances do not depend on the data, so they are
+computed once (shape ``(T, L, ...)`` or ``(T, L, L, ...)`` for sensor pairs) and shared by every
+Monte Carlo run. The only Python loops are over time and, for the N-step smoothers, over the
+``N + 1`` lags (each lag is one batched update of every time step at once).
+
+Readings of the printed equations (see ``docs/reproduction-002.md``):
+
+* (20) uses ``P^{xx^r}`` (the printed ``P^{x^r}`` is the cross term): ``L_i = [A (P^x C^T +
+  P^{xx^r} C~^T) + Gamma R_i] (Q^eps)^{-1}``;
+* (21) is ``L^{x^r}_i = Phi_i [(P^{xx^r})^T C^T + P^{x^r} C~^T] (Q^eps)^{-1}`` (the printed
+  second term lacks ``Phi_i``; the projection ``E[x^r(t+1) eps^T] = Phi_i E[x~^r eps^T]`` needs it);
+* initial ``P^{x^r}(0|-1) = Q^{r_0}_i Xi(0) = Q^{r_0}_i (P0 + mu0 mu0^T)`` (printed ``P0 Q^{r_0}``,
+  equal only for ``mu0 = 0``);
+* (35) gets ``+ delta_ij Q^xi_i(t)`` (the virtual process noise, as in (23));
+* the filter/smoother cross-covariances (39)-(43) are evaluated by the equivalent forward
+  recursion of the joint errors ``[x~_i(t|s-1); x~_i(s|s-1); x~^r_i(s|s-1)]`` over ``s = t..t+N``
+  that the proof (E4), (C3), (C4), (G1) starts from, rather than the nested closed sums.
+* measurements start at ``t = 0`` (initial values ``x^(0|-1) = mu0``); the N-step predictor for
+  ``t + N + 1 < 0`` is the prior; the smoother for ``t + N > T - 1`` uses the data up to ``T - 1``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from torchmm.beliefs.ops import symmetrize
+from torchmm.fusion.system import MultiSensorSystem
+
+__all__ = [
+    "LocalStats",
+    "CrossStats",
+    "local_predictor_stats",
+    "local_one_step",
+    "local_estimates",
+    "local_covariances",
+    "cross_predictor_stats",
+    "cross_covariances",
+    "check_measurements",
+]
+
+
+def check_measurements(system: MultiSensorSystem, y: Tensor) -> None:
+    """``y (T, *B, L, m)``; NaN (missing) values are rejected: the gains are computed offline."""
+    if y.dim() < 3 or tuple(y.shape[-2:]) != (system.num_sensors, system.meas_dim):
+        raise ValueError(
+            f"y: expected shape (T, *B, {system.num_sensors}, {system.meas_dim}), got {tuple(y.shape)}"
+        )
+    if bool(torch.isnan(y).any()):
+        raise ValueError(
+            "y: contains NaN (missing) measurements; the fusion estimators precompute their gains "
+            "for complete data and do not support missing measurements"
+        )
+
+
+def _solve_right(G: Tensor, S: Tensor) -> Tensor:
+    """``G S^{-1}`` for symmetric ``S``."""
+    return torch.linalg.solve(S, G.mT).mT
+
+
+@dataclass(frozen=True)
+class LocalStats:
+    """Theorem 1 quantities per sensor at ``t|t-1`` (``T = 1`` and ``stationary`` for steady state).
+
+    Shapes:
+        Px, Pr, Pxr: ``(T, L, n, n)`` (``P^x``, ``P^{x^r}``, ``P^{xx^r}``); Qeps: ``(T, L, m, m)``
+        Lx, Lr: ``(T, L, n, m)`` (``L_i``, ``L^{x^r}_i``); Qxi: ``(T, L, n, n)``
+    """
+
+    Px: Tensor
+    Pr: Tensor
+    Pxr: Tensor
+    Qeps: Tensor
+    Lx: Tensor
+    Lr: Tensor
+    Qxi: Tensor
+    stationary: bool = False
+
+    def at(self, t: int) -> "LocalStats":
+        k = 0 if self.stationary else t
+        return LocalStats(*(getattr(self, f)[k] for f in ("Px", "Pr", "Pxr", "Qeps", "Lx", "Lr", "Qxi")))
+
+
+def _local_gains(system: MultiSensorSystem, Px, Pr, Pxr):
+    """Innovation covariance (17) and gains (20), (21). Shapes ``(..., L, n, n)``."""
+    C, Ct, A, Phi = system.C, system.Ct, system.A, system.Phi
+    PCt = Px @ C.mT + Pxr @ Ct.mT  # E[x~ eps^T]   (L, n, m)
+    PrCt = Pxr.mT @ C.mT + Pr @ Ct.mT  # E[x~^r eps^T]
+    Qeps = symmetrize(C @ PCt + Ct @ PrCt + system.Qv.diagonal(dim1=0, dim2=1).permute(2, 0, 1))
+    Lx = _solve_right(A @ PCt + system.Gamma @ system.R, Qeps)
+    Lr = _solve_right(Phi @ PrCt, Qeps)
+    return Qeps, Lx, Lr
+
+
+def _local_riccati(system: MultiSensorSystem, Px, Pr, Pxr, Qeps, Lx, Lr, Qxi):
+    """(22)-(24): one step of the predictor covariances."""
+    A, Phi = system.A, system.Phi
+    Px1 = symmetrize(A @ Px @ A.T - Lx @ Qeps @ Lx.mT + system.GQG)
+    Pr1 = symmetrize(Phi @ Pr @ Phi.mT - Lr @ Qeps @ Lr.mT + Qxi)
+    Pxr1 = A @ Pxr @ Phi.mT - Lx @ Qeps @ Lr.mT
+    return Px1, Pr1, Pxr1
+
+
+def local_predictor_stats(system: MultiSensorSystem, steps: int) -> LocalStats:
+    r"""Theorem 1: gains and one-step prediction covariances of every sensor, ``t = 0..T-1``.
+
+    Initial values ``P^x(0|-1) = P0``, ``P^{x^r}(0|-1) = Q^{r_0}_i Xi(0)``, ``P^{xx^r}(0|-1) = 0``.
+
+    Shapes:
+        -> :class:`LocalStats` with leading ``(T, L)``
+    """
+    L, n = system.num_sensors, system.state_dim
+    Xi, _, Qxi = system.second_moments(steps)
+    Px = system.P0.expand(L, n, n)
+    Pr = system.Qr0[:, None, None] * Xi[0]
+    Pxr = torch.zeros_like(Pr)
+    out = {k: [] for k in ("Px", "Pr", "Pxr", "Qeps", "Lx", "Lr")}
+    for t in range(steps):
+        Qeps, Lx, Lr = _local_gains(system, Px, Pr, Pxr)
+        for k, v in zip(out, (Px, Pr, Pxr, Qeps, Lx, Lr)):
+            out[k].append(v)
+        Px, Pr, Pxr = _local_riccati(system, Px, Pr, Pxr, Qeps, Lx, Lr, Qxi[t])
+    return LocalStats(**{k: torch.stack(v) for k, v in out.items()}, Qxi=Qxi)
+
+
+def local_one_step(system: MultiSensorSystem, stats: LocalStats, y: Tensor):
+    r"""(16), (18), (19): one-step predictors of ``x`` and ``x^r_i`` and the innovations.
+
+    Shapes:
+        y: ``(T, *B, L, m)`` -> x_pred ``(T, *B, L, n)`` (``x^_i(t|t-1)``), xr_pred ``(T, *B, L, n)``,
+        eps ``(T, *B, L, m)``
+    """
+    check_measurements(system, y)
+    T = y.shape[0]
+    B = y.shape[1:-2]
+    L, n = system.num_sensors, system.state_dim
+    x = system.mu0.expand(*B, L, n)
+    xr = torch.zeros(*B, L, n, dtype=y.dtype, device=y.device)
+    A, Phi, C, Ct = system.A, system.Phi, system.C, system.Ct
+    xs, xrs, es = [], [], []
+    for t in range(T):
+        st = stats.at(t)
+        eps = y[t] - (C @ x.unsqueeze(-1) + Ct @ xr.unsqueeze(-1)).squeeze(-1)
+        xs.append(x), xrs.append(xr), es.append(eps)
+        x = x @ A.T + (st.Lx @ eps.unsqueeze(-1)).squeeze(-1)
+        xr = (Phi @ xr.unsqueeze(-1) + st.Lr @ eps.unsqueeze(-1)).squeeze(-1)
+    return torch.stack(xs), torch.stack(xrs), torch.stack(es)
+
+
+def _shift(arr: Tensor, k: int, fill: Tensor | None = None) -> Tensor:
+    """``out[t] = arr[t + k]`` (``fill`` or zeros past the end). ``arr (T, ...)``."""
+    if k == 0:
+        return arr
+    pad = torch.zeros_like(arr[:k]) if fill is None else fill.expand_as(arr[:k])
+    return torch.cat([arr[k:], pad], dim=0)
+
+
+def _valid(T: int, k: int, like: Tensor) -> Tensor:
+    return (torch.arange(T, device=like.device) + k < T).to(like.dtype)
+
+
+def _pred_shift(mean: Tensor | None, cov: Tensor, k: int, system: MultiSensorSystem, prior_cov: Tensor,
+                pairs: bool = False):
+    r"""N-step predictor (25)/(26)/(38) with ``k = -N-1`` applications of ``A`` to ``x^(t-k|t-k-1)``.
+
+    ``mean (T, *B, L, n)``; ``cov (T, *S, n, n)``; for ``t < k`` the prior (``A^t mu0``).
+    ``pairs``: ``cov`` holds cross-covariances ``(T, L, L, n, n)`` (blocks are not symmetric).
+    """
+    A, GQG = system.A, system.GQG
+    sym = symmetrize_pairs if pairs else symmetrize
+    for _ in range(k):
+        if mean is not None:
+            head = system.mu0.expand_as(mean[:1])
+            mean = torch.cat([head, mean[:-1] @ A.T], dim=0)
+        head = prior_cov.expand_as(cov[:1])
+        cov = torch.cat([head, sym(A @ cov[:-1] @ A.T + GQG)], dim=0)
+    return mean, cov
+
+
+def local_estimates(system: MultiSensorSystem, y: Tensor, N: int = 0, stats: LocalStats | None = None):
+    r"""Local N-step estimates of every sensor: predictor (N < 0, Thm 2), filter (N = 0) and
+    smoother (N > 0, Thm 3), with their error covariances.
+
+    Smoother/filter (27)-(31): ``x^(t|t+k) = x^(t|t+k-1) + K(t|t+k) eps(t+k)``,
+    ``K = [Omega^x C^T + Omega^{xx^r} C~^T] (Q^eps)^{-1}``,
+    ``Omega^x <- Omega^x A^T - K Q^eps L^T``, ``Omega^{xx^r} <- Omega^{xx^r} Phi^T - K Q^eps (L^{x^r})^T``,
+    ``P(t|t+k) = P(t|t+k-1) - K Q^eps K^T``, one batched update of all ``t`` per lag ``k = 0..N``.
+
+    Shapes:
+        y: ``(T, *B, L, m)`` -> mean ``(T, *B, L, n)``, cov ``(T, L, n, n)``
+
+    Example:
+        >>> import torch
+        >>> from torchmm.fusion import MultiSensorSystem, simulate_fusion
+        >>> sys = MultiSensorSystem.from_correlation(
+        ...     A=[[0.5]], Gamma=[[1.0]], Qw=[[1.0]], C=[[[1.0]], [[1.0]]], Ct=[[[0.5]], [[0.2]]],
+        ...     h=[0.6, 0.7], Qp=[0.1, 0.1], d=[[[0.0]], [[0.3]]], Q_eta=[[[1.0]], [[2.0]]],
+        ...     mu0=[0.0], P0=[[1.0]])
+        >>> sim = simulate_fusion(sys, 20, (8,), torch.Generator().manual_seed(0))
+        >>> mean, cov = local_estimates(sys, sim.y, N=1)
+        >>> tuple(mean.shape), tuple(cov.shape)
+        ((20, 8, 2, 1), (20, 2, 1, 1))
+    """
+    T = y.shape[0]
+    stats = local_predictor_stats(system, T) if stats is None else stats
+    x_pred, _, eps = local_one_step(system, stats, y)
+    return _local_from_pred(system, stats, x_pred, eps, N)
+
+
+def local_covariances(system: MultiSensorSystem, stats: LocalStats, N: int,
+                      steps: int | None = None) -> Tensor:
+    """Error covariances ``P_i(t|t+N)`` only (no data). Shapes: -> ``(T, L, n, n)``."""
+    return _local_from_pred(system, stats, None, None, N, steps)[1]
+
+
+def _local_from_pred(system, stats: LocalStats, x_pred, eps, N: int, steps: int | None = None):
+    if steps is None:
+        steps = x_pred.shape[0] if x_pred is not None else stats.Px.shape[0]
+    T = steps
+    Px = stats.Px.expand(T, *stats.Px.shape[1:]) if stats.stationary else stats.Px
+    if N < 0:
+        mean, cov = _pred_shift(x_pred, Px, -N - 1, system, system.P0)
+        if stats.stationary:  # steady state: the limit, no prior transient
+            cov = _steady_pred_cov(system, stats.Px[0], -N - 1).expand_as(Px)
+        return mean, cov
+    C, Ct, A, Phi = system.C, system.Ct, system.A, system.Phi
+    mean, cov = x_pred, Px
+    Om_x = Px
+    Om_r = stats.Pxr.expand_as(Px) if stats.stationary else stats.Pxr
+    eye = torch.eye(system.meas_dim, dtype=Px.dtype, device=Px.device)
+    for k in range(N + 1):
+        if stats.stationary:
+            Qe, Lx, Lr = stats.Qeps, stats.Lx, stats.Lr
+        else:
+            Qe = _shift(stats.Qeps, k, eye)
+            Lx, Lr = _shift(stats.Lx, k), _shift(stats.Lr, k)
+        valid = _valid(T, k, Px)[:, None, None, None]
+        K = _solve_right(Om_x @ C.mT + Om_r @ Ct.mT, Qe)  # (T, L, n, m)
+        if not stats.stationary:
+            K = K * valid
+        if mean is not None:
+            Km = K.expand(T, *K.shape[1:]) * valid
+            Kb = Km.reshape(T, *([1] * (mean.dim() - 3)), *K.shape[1:])
+            mean = mean + (Kb @ _shift(eps, k).unsqueeze(-1)).squeeze(-1)
+        KQ = K @ Qe
+        cov = symmetrize(cov - KQ @ K.mT)
+        Om_x = Om_x @ A.T - KQ @ Lx.mT
+        Om_r = Om_r @ Phi.mT - KQ @ Lr.mT
+    return mean, cov
+
+
+def _steady_pred_cov(system, P1, k):
+    P = P1
+    for _ in range(k):
+        P = symmetrize(system.A @ P @ system.A.T + system.GQG)
+    return P
+
+
+# ------------------------------------------------------------------------------------------------
+# Cross-covariances between sensors (Theorems 4-6)
+# ------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class CrossStats:
+    """Theorem 4 quantities for every sensor pair ``(i, j)`` at ``t|t-1``.
+
+    Shapes:
+        P: ``(T, L, L, n, n)`` ``E[x~_i x~_j^T]``; Pr: ``E[x~^r_i x~^r_j^T]``;
+        Pxr: ``E[x~_i x~^r_j^T]``; Qeps: ``(T, L, L, m, m)`` ``E[eps_i eps_j^T]``
+    """
+
+    P: Tensor
+    Pr: Tensor
+    Pxr: Tensor
+    Qeps: Tensor
+    stationary: bool = False
+
+    def joint(self) -> Tensor:
+        """Augmented ``E[[x~_i; x~^r_i][x~_j; x~^r_j]^T]``, ``(T, L, L, 2n, 2n)``."""
+        top = torch.cat([self.P, self.Pxr], dim=-1)
+        bottom = torch.cat([self.Pxr.transpose(1, 2).mT, self.Pr], dim=-1)
+        return torch.cat([top, bottom], dim=-2)
+
+
+def _tr(x: Tensor) -> Tensor:
+    """Swap the pair axes ``(.., i, j, a, b) -> (.., j, i, b, a)``: ``X_ji^T``."""
+    return x.transpose(-4, -3).mT
+
+
+def _cross_innovation(system, P, Pr, Pxr):
+    """(33), (34), (36) for all pairs. Shapes ``(..., L, L, n, n)``."""
+    Ci, Cj = system.C[:, None], system.C[None]
+    Cti, Ctj = system.Ct[:, None], system.Ct[None]
+    Pxe = P @ Cj.mT + Pxr @ Ctj.mT  # E[x~_i eps_j^T]        (33)
+    Pre = _tr(Pxr) @ Cj.mT + Pr @ Ctj.mT  # E[x~^r_i eps_j^T]  (36)
+    Qeps = Ci @ Pxe + Cti @ Pre + system.Qv  # (34)
+    return Pxe, Pre, Qeps
+
+
+def _cross_step(system, P, Pr, Pxr, Lx, Lr, Qxi):
+    """(32), (35), (37): one step for all pairs; ``Lx, Lr (L, n, m)``, ``Qxi (L, n, n)``."""
+    A, G = system.A, system.Gamma
+    Phi_i, Phi_j = system.Phi[:, None], system.Phi[None]
+    Li, Lj = Lx[:, None], Lx[None]
+    Lri, Lrj = Lr[:, None], Lr[None]
+    Ri = system.R[:, None]  # (L, 1, p, m)
+    Rj = system.R[None]
+    Pxe, Pre, Qeps = _cross_innovation(system, P, Pr, Pxr)
+    P1 = (A @ P @ A.T - A @ Pxe @ Lj.mT - Li @ _tr(Pxe) @ A.T + Li @ Qeps @ Lj.mT
+          - Li @ Ri.mT @ G.T - G @ Rj @ Lj.mT + system.GQG)
+    eye = torch.eye(system.num_sensors, dtype=P.dtype, device=P.device)[..., None, None]
+    Pr1 = (Phi_i @ Pr @ Phi_j.mT - Phi_i @ Pre @ Lrj.mT - Lri @ _tr(Pre) @ Phi_j.mT
+           + Lri @ Qeps @ Lrj.mT + eye * Qxi[:, None])
+    Pxr1 = (A @ Pxr @ Phi_j.mT - A @ Pxe @ Lrj.mT - Li @ _tr(Pre) @ Phi_j.mT
+            + Li @ Qeps @ Lrj.mT - G @ Rj @ Lrj.mT)
+    return P1, Pr1, Pxr1, Qeps
+
+
+def cross_predictor_stats(system: MultiSensorSystem, stats: LocalStats,
+                          steps: int | None = None) -> CrossStats:
+    r"""Theorem 4: one-step prediction error cross-covariances of all sensor pairs.
+
+    Initial values ``P_ij(0|-1) = P0``, ``P^{x^r}_ij(0|-1) = delta_ij Q^{r_0}_i Xi(0)``,
+    ``P^{xx^r}_ij(0|-1) = 0``. The diagonal ``i = j`` reproduces Theorem 1.
+
+    Shapes:
+        -> :class:`CrossStats` with leading ``(T, L, L)``
+    """
+    T = stats.Px.shape[0] if steps is None else steps
+    L, n = system.num_sensors, system.state_dim
+    Xi0 = system.P0 + torch.outer(system.mu0, system.mu0)
+    P = system.P0.expand(L, L, n, n)
+    eye = torch.eye(L, dtype=P.dtype, device=P.device)[..., None, None]
+    Pr = eye * (system.Qr0[:, None, None] * Xi0)[:, None]
+    Pxr = torch.zeros_like(Pr)
+    out = {k: [] for k in ("P", "Pr", "Pxr", "Qeps")}
+    for t in range(T):
+        st = stats.at(t)
+        P1, Pr1, Pxr1, Qeps = _cross_step(system, P, Pr, Pxr, st.Lx, st.Lr, st.Qxi)
+        for k, v in zip(out, (P, Pr, Pxr, Qeps)):
+            out[k].append(v)
+        P, Pr, Pxr = symmetrize_pairs(P1), symmetrize_pairs(Pr1), Pxr1
+    return CrossStats(**{k: torch.stack(v) for k, v in out.items()})
+
+
+def _augmented_blocks(system, stats: LocalStats):
+    """``C^- = [C, C~]`` (L, m, 2n), ``L^- = [L; L^r]`` (T, L, 2n, m), ``Psi = Phi^- - L^- C^-``
+    (T, L, 2n, 2n)."""
+    n, L = system.state_dim, system.num_sensors
+    Cbar = torch.cat([system.C, system.Ct], dim=-1)
+    Lbar = torch.cat([stats.Lx, stats.Lr], dim=-2)
+    Phibar = torch.zeros(L, 2 * n, 2 * n, dtype=Cbar.dtype, device=Cbar.device)
+    Phibar[:, :n, :n] = system.A
+    Phibar[:, n:, n:] = system.Phi
+    return Cbar, Lbar, Phibar - Lbar @ Cbar
+
+
+def cross_covariances(system: MultiSensorSystem, stats: LocalStats, cross: CrossStats, N: int,
+                      steps: int | None = None) -> Tensor:
+    r"""Cross-covariances ``P_ij(t|t+N)`` of all sensor pairs' estimation errors (Thms 4-6).
+
+    ``N = -1``: Theorem 4. ``N < -1``: (38). ``N >= 0``: Theorem 6, evaluated by the forward
+    recursion over ``s = t..t+N`` of ``e_i(s) = x~_i(t|s-1)`` and ``z_i(s) = x~^-_i(s|s-1)``
+    (augmented one-step error): ``e_i(s+1) = e_i - K_i(t|s)(C^-_i z_i + v_i)``,
+    ``z_i(s+1) = Psi_i z_i + Gamma^- w^-_i - L^-_i v_i``, with ``X_ij = E[e_i z_j^T]``:
+
+    .. math::
+        E_{ij} \leftarrow E_{ij} - X_{ij} C^{-T}_j K_j^T - K_i C^-_i X_{ji}^T
+            + K_i Q^\epsilon_{ij} K_j^T,\quad
+        X_{ij} \leftarrow (X_{ij} - K_i C^-_i P^-_{ij}) \Psi_j^T - K_i [R_i^T \Gamma^T, 0]
+            + K_i Q^v_{ij} L^{-T}_j
+
+    starting from ``E_ij = P_ij(t|t-1)``, ``X_ij = [P_ij, P^{xx^r}_ij](t|t-1)``; ``K_i(t|s) = X_ii C^{-T}_i
+    (Q^eps_i)^{-1}`` is Theorem 3's gain (28). Each lag is one batched update of all ``t`` and pairs.
+
+    Shapes:
+        -> ``(T, L, L, n, n)``
+    """
+    T = cross.P.shape[0] if steps is None else steps
+    stat = cross.stationary
+    P_pred = cross.P.expand(T, *cross.P.shape[1:]) if stat else cross.P
+    if N < 0:
+        k = -N - 1
+        if stat:
+            out = P_pred[:1]
+            for _ in range(k):
+                out = system.A @ out @ system.A.T + system.GQG
+            return out.expand_as(P_pred)
+        return _pred_shift(None, P_pred, k, system, system.P0, pairs=True)[1]
+    n, L, m = system.state_dim, system.num_sensors, system.meas_dim
+    Cbar, Lbar, Psi = _augmented_blocks(system, stats)
+    Pbar = cross.joint()
+    Qe = cross.Qeps
+    Qe_loc = stats.Qeps
+    E = P_pred
+    X = Pbar[..., :n, :] if not stat else Pbar[..., :n, :].expand(T, *Pbar.shape[1:-2], n, 2 * n)
+    RG = torch.cat([system.R.mT @ system.Gamma.T, torch.zeros(L, m, n, dtype=E.dtype, device=E.device)], -1)
+    eye_m = torch.eye(m, dtype=E.dtype, device=E.device)
+    Ci, Cj = Cbar[:, None], Cbar[None]
+    idx = torch.arange(L, device=E.device)
+    for k in range(N + 1):
+        if stat:
+            Pb, Qk, Psik, Lk, Qlk, valid = Pbar, Qe, Psi, Lbar, Qe_loc, None
+        else:
+            Pb, Qk = _shift(Pbar, k), _shift(Qe, k)
+            Psik, Lk = _shift(Psi, k), _shift(Lbar, k)
+            Qlk = _shift(Qe_loc, k, eye_m)
+            valid = _valid(T, k, E)
+        Xii = X[:, idx, idx]  # (T, L, n, 2n)
+        K = _solve_right(Xii @ Cbar.mT, Qlk)  # (T, L, n, m)
+        if valid is not None:
+            K = K * valid[:, None, None, None]
+        Ki, Kj = K[:, :, None], K[:, None, :]
+        XC = X @ Cj.mT  # E[e_i eps_j^T] minus the v term (e_i is orthogonal to v_j(s))
+        E = symmetrize_pairs(E - XC @ Kj.mT - Ki @ _tr(XC) + Ki @ Qk @ Kj.mT)
+        X = ((X - Ki @ Ci @ Pb) @ Psik[:, None].mT - Ki @ RG[:, None]
+             + Ki @ system.Qv @ Lk[:, None].mT)
+    return E
+
+
+def symmetrize_pairs(P: Tensor) -> Tensor:
+    """``(P_ij + P_ji^T) / 2`` over the pair axes ``(..., L, L, n, n)``."""
+    return 0.5 * (P + _tr(P))
