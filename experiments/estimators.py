@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import torch
+import torch.utils._pytree as pytree
 from torch import Tensor
 
 from torchmm import GPB1, GPB2, IMM, Filter, GaussianBelief, KalmanFilter, run_filter
@@ -28,9 +29,12 @@ class Estimator:
     filter: Filter
     init: Callable[[GaussianBelief], Any]
     multiple_model: bool
+    #: picks this estimator's input from the study's measurements (e.g. the target stream of a
+    #: multi-rate pytree); None = all of it
+    select: Callable[[Any], Any] | None = None
 
-    def run(self, prior: GaussianBelief, z: Tensor) -> Trajectory:
-        return run_filter(self.filter, self.init(prior), z)
+    def run(self, prior: GaussianBelief, z: Any) -> Trajectory:
+        return run_filter(self.filter, self.init(prior), z if self.select is None else self.select(z))
 
 
 def _transition(scenario, transition) -> Tensor:
@@ -86,16 +90,19 @@ class Evaluation:
         return out
 
 
-def evaluate(estimator: Estimator, scenario, sim, z: Tensor, *, chunk_runs: int | None = None,
+def evaluate(estimator: Estimator, scenario, sim, z: Any, *, chunk_runs: int | None = None,
              keep_trajectory: bool = False) -> Evaluation:
     """Run ``estimator`` on every Monte Carlo run (in chunks of ``chunk_runs`` if given).
+
+    ``z`` is ``(T, runs, m)`` or a pytree of such streams (e.g. :class:`~torchmm.multimodel.MultiRate`).
 
     Errors are accumulated per step over runs, so memory is bounded by the chunk size;
     ``keep_trajectory`` keeps the (first chunk's) trajectory for plots and diagnostics.
     """
-    runs = z.shape[1]
+    leaf = pytree.tree_leaves(z)[0]
+    runs = leaf.shape[1]
     chunk = runs if not chunk_runs else int(chunk_runs)
-    steps = z.shape[0]
+    steps = leaf.shape[0]
     sums = {"pos": 0.0, "vel": 0.0, "nees": 0.0, "hits": 0.0}
     elapsed = 0.0
     kept = None
@@ -104,7 +111,7 @@ def evaluate(estimator: Estimator, scenario, sim, z: Tensor, *, chunk_runs: int 
         sl = slice(start, min(start + chunk, runs))
         size = sl.stop - sl.start
         tic = time.perf_counter()
-        traj = estimator.run(prior.expand(size), z[:, sl])
+        traj = estimator.run(prior.expand(size), pytree.tree_map(lambda t: t[:, sl], z))
         est = traj.estimate()
         elapsed += time.perf_counter() - tic
         truth = sim.states[:, sl]

@@ -16,8 +16,15 @@ from experiments.run import CONFIG_DIR, run_study
 EXPERIMENTS = sorted(p.stem for p in (Path(CONFIG_DIR) / "experiment").glob("*.yaml"))
 SCHEMA = {"experiment", "config", "metrics", "tables", "timing"}
 #: per-study overrides that keep the fast suite fast (the structure is unchanged)
+TF_FAST = ["table1_ratios=[0.3,0.99]", "rs_sweep=[1.0,1000.0]"]
 FAST = {
     "imm_analysis": ["analysis.alphas.two_model=[0.01,0.6]", "analysis.alphas.three_model=[0.01,0.4]"],
+    "imm_tf": TF_FAST,
+    "imm_tf_quick": TF_FAST,
+}
+TF_TABLES = {
+    "table1": ["source_ratio", "estimator", "pos_rmse", "vel_rmse"],
+    "rs_sweep": ["R_S", "estimator", "pos_rmse", "vel_rmse"],
 }
 REQUIRED_TABLES = {
     "imm_baseline": {"rmse": ["estimator", "pos_rmse", "vel_rmse"]},
@@ -25,6 +32,8 @@ REQUIRED_TABLES = {
         "conclusions": ["conclusion", "premise_steps", "holds_fraction"],
         "alpha_sweep": ["alpha", "estimator", "pos_rmse", "vel_rmse"],
     },
+    "imm_tf": TF_TABLES,
+    "imm_tf_quick": TF_TABLES,
 }
 
 
@@ -115,10 +124,11 @@ def _cli(*args: str, cwd: Path) -> subprocess.CompletedProcess:
 
 def test_cli_default_study_writes_every_artefact(tmp_path):
     out = tmp_path / "run"
-    proc = _cli("mc_runs=3", "progress=false", f"hydra.run.dir={out}", cwd=tmp_path)
+    proc = _cli("mc_runs=3", "progress=false", f"hydra.run.dir={out}", *TF_FAST, cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr[-3000:]
     data = json.loads((out / "results.json").read_text())
-    assert data["experiment"] == "imm_baseline"
+    assert data["experiment"] == "imm_tf_quick"  # the flagship study, few runs
+    assert {"table1", "rs_sweep"} <= set(data["tables"])
     assert (out / "results.md").exists()
     assert (out / "figures" / "rmse_over_time.png").exists()
     assert list((out / "tb").glob("events.out.tfevents.*"))
@@ -129,7 +139,7 @@ def test_python_module_entry_point(tmp_path):
     out = tmp_path / "run"
     proc = subprocess.run(
         [sys.executable, "-m", "experiments.run", "mc_runs=2", "progress=false", "logger=none",
-         f"hydra.run.dir={out}"],
+         f"hydra.run.dir={out}", *TF_FAST],
         cwd=Path(CONFIG_DIR).parent, capture_output=True, text=True, timeout=300,
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -138,7 +148,8 @@ def test_python_module_entry_point(tmp_path):
 
 def test_joblib_multirun_sweep(tmp_path):
     sweep = tmp_path / "sweep"
-    proc = _cli("-m", "mc_runs=2,3", "progress=false", "logger=none", f"hydra.sweep.dir={sweep}", cwd=tmp_path)
+    proc = _cli("-m", "experiment=imm_baseline", "mc_runs=2,3", "progress=false", "logger=none",
+                f"hydra.sweep.dir={sweep}", cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "Joblib" in proc.stdout + proc.stderr
     runs = sorted(json.loads(p.read_text())["config"]["mc_runs"] for p in sweep.glob("*/results.json"))

@@ -2,7 +2,7 @@
 
 from torchmm.filters.base import Filter, StepOutput
 from torchmm.filters.kalman import ExtendedKalmanFilter, KalmanFilter
-from torchmm.filters.smoother import rts_smoother
+from torchmm.filters.smoother import rts_smoother, rts_step
 from torchmm.filters.unscented import (
     CubatureSigmaPoints,
     JulierSigmaPoints,
@@ -22,4 +22,5 @@ __all__ = [
     "StepOutput",
     "UnscentedKalmanFilter",
     "rts_smoother",
+    "rts_step",
 ]

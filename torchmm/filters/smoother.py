@@ -18,7 +18,7 @@ from torchmm.beliefs import GaussianBelief, symmetrize
 from torchmm.filters.linalg import cholesky, cholesky_solve
 from torchmm.models.base import MotionModel
 
-__all__ = ["rts_smoother"]
+__all__ = ["rts_smoother", "rts_step"]
 
 
 def rts_smoother(
@@ -49,15 +49,50 @@ def rts_smoother(
         )
     filtered = filtered.materialize()
     steps = filtered.batch_shape[0]
-    means, covs = [filtered.mean[-1]], [filtered.cov[-1]]
+    smoothed = [filtered[steps - 1]]
     for k in range(steps - 2, -1, -1):
         u = None if controls is None else controls[k + 1]
-        F = motion.jacobian(filtered.mean[k], u=u)
-        P, P_pred = filtered.cov[k], predicted.cov[k + 1]
-        gain_t = cholesky_solve(cholesky(P_pred), F @ P)  # G^T = (P-)^{-1} F P
-        gain = gain_t.mT
-        mean = filtered.mean[k] + (gain @ (means[-1] - predicted.mean[k + 1]).unsqueeze(-1)).squeeze(-1)
-        cov = P + gain @ (covs[-1] - P_pred) @ gain_t
-        means.append(mean)
-        covs.append(symmetrize(cov))
-    return GaussianBelief(torch.stack(means[::-1]), torch.stack(covs[::-1]))
+        smoothed.append(rts_step(motion, filtered[k], predicted[k + 1], smoothed[-1], u=u))
+    means = torch.stack([b.mean for b in smoothed[::-1]])
+    covs = torch.stack([b.cov for b in smoothed[::-1]])
+    return GaussianBelief(means, covs)
+
+
+def rts_step(
+    motion: MotionModel,
+    filtered: GaussianBelief,
+    predicted: GaussianBelief,
+    smoothed_next: GaussianBelief,
+    *,
+    u: Tensor | None = None,
+) -> GaussianBelief:
+    r"""One backward RTS step: ``x_{k|T}`` from ``x_{k|k}``, ``x_{k+1|k}`` and ``x_{k+1|T}``.
+
+    ``G = P_k F^T (P^-_{k+1})^{-1}``, ``x^s_k = x_k + G (x^s_{k+1} - x^-_{k+1})``,
+    ``P^s_k = P_k + G (P^s_{k+1} - P^-_{k+1}) G^T``. Paper 000's transfer smoothing (13)-(14) is
+    this step with the source filter's posterior in place of ``x_{k+1|T}``.
+
+    Args:
+        motion: the motion model of the prediction ``k -> k+1`` (Jacobian at the filtered mean).
+        filtered: ``x_{k|k}``; predicted: ``x_{k+1|k}``; smoothed_next: ``x_{k+1|T}`` (or any
+            later posterior of ``x_{k+1}`` that refines ``predicted``).
+        u: the input of that prediction.
+
+    Shapes:
+        all beliefs with batch ``(*B,)`` (broadcasting) -> batch ``(*B,)``
+
+    Examples:
+        >>> from torchmm.models import ConstantVelocity
+        >>> cv = ConstantVelocity(1, q=1.0)
+        >>> x = GaussianBelief(torch.zeros(3, 2), torch.eye(2).expand(3, 2, 2))
+        >>> pred = GaussianBelief(cv(x.mean), cv.F @ x.cov @ cv.F.mT + cv.Q)
+        >>> rts_step(cv, x, pred, pred).cov.allclose(x.cov)  # nothing learnt: smoothed = filtered
+        True
+    """
+    F = motion.jacobian(filtered.mean, u=u)
+    P, P_pred = filtered.cov, predicted.cov
+    gain_t = cholesky_solve(cholesky(P_pred), F @ P)  # G^T = (P-)^{-1} F P
+    gain = gain_t.mT
+    mean = filtered.mean + (gain @ (smoothed_next.mean - predicted.mean).unsqueeze(-1)).squeeze(-1)
+    cov = P + gain @ (smoothed_next.cov - P_pred) @ gain_t
+    return GaussianBelief(mean, symmetrize(cov))

@@ -1,7 +1,17 @@
-"""Multiple-model estimation: transition matrices, filter banks, IMM / GPB1 / GPB2."""
+"""Multiple-model estimation: transition matrices, filter banks, IMM / GPB1 / GPB2, multi-rate IMMs."""
 
 from torchmm.multimodel.bank import FilterBank, ListBank, VectorizedBank, make_bank
 from torchmm.multimodel.imm import GPB1, GPB2, IMM, MultipleModelFilter
+from torchmm.multimodel.transfer import (
+    FusionIMM,
+    InfluenceGate,
+    MultiRate,
+    SourceModeVSIMM,
+    SourceTrackBelief,
+    SourceUpdateIMM,
+    TransferIMM,
+    influence_value,
+)
 from torchmm.multimodel.transition import (
     ModeTransition,
     alpha_transition,
@@ -14,6 +24,14 @@ __all__ = [
     "GPB2",
     "IMM",
     "FilterBank",
+    "FusionIMM",
+    "InfluenceGate",
+    "MultiRate",
+    "SourceModeVSIMM",
+    "SourceTrackBelief",
+    "SourceUpdateIMM",
+    "TransferIMM",
+    "influence_value",
     "ListBank",
     "ModeTransition",
     "MultipleModelFilter",

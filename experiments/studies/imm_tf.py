@@ -1,0 +1,236 @@
+"""Paper 000 study: IMM-TF with slow, irregular source measurements (SPEC section 3.1).
+
+Scenario (section 3 of the paper): 1-D target ``[p, v]`` whose acceleration jumps in
+``{0.25, 0, -0.25}`` (transition matrix (38)), ``w ~ N(0, 1)`` on the acceleration, target sensor
+``y = p + v`` with ``R = 100`` every step, source sensor ``y_S = p + v_S`` with ``R_S`` present
+with probability ``source.ratio`` (Bernoulli, or periodic). Estimators (``torchmm.multimodel``):
+IMM (target only), IMM-TF, IF-TF, IMM-FU, VSIMM, IMM-SU.
+
+Work units (each on its own simulated data, shared by all estimators of the unit):
+
+* ``default``: ``source.ratio`` (0.6) and ``source.R`` (10): table ``metrics`` per estimator
+  (pos_rmse, vel_rmse, nees), RMSE over time (Fig. 4), influence value over time (Fig. 3);
+* ``table1/<ratio>``: the source ratios of Table 1 -> table ``table1``;
+* ``rs_sweep/<R_S>``: source noise variances of Fig. 5 / Fig. 6 at the default ratio -> ``rs_sweep``.
+
+Data depend on the source ratio only: every ``R_S`` of the sweep (and the default setting) sees the
+same truth, target data and source times, and source noise ``sqrt(R_S) e`` with the same ``e``
+(common random numbers), so the IMM reference is one line and the sweep isolates the source quality.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import torch
+from hydra.utils import instantiate
+
+from experiments.estimators import Estimator, evaluate
+from experiments.harness import StudyContext
+from experiments.studies import plots
+from torchmm import IMM, KalmanFilter, PositionMeasurement
+from torchmm.multimodel import (
+    FusionIMM,
+    InfluenceGate,
+    MultiRate,
+    SourceModeVSIMM,
+    SourceUpdateIMM,
+    TransferIMM,
+)
+from torchmm.simulate import bernoulli_mask, periodic_mask, simulate_measurements
+
+log = logging.getLogger("torchmm.experiments")
+
+ESTIMATORS = ("IMM", "IMM-TF", "IF-TF", "IMM-FU", "VSIMM", "IMM-SU")
+
+PUBLISHED_TABLE1 = {
+    "columns": ["source_ratio", "estimator", "pos_rmse", "vel_rmse"],
+    "rows": [[0.1, "IMM-TF", 5.8755, 2.0266], [0.3, "IMM-TF", 5.4070, 1.9567], [0.5, "IMM-TF", 4.8868, 1.8798],
+             [0.7, "IMM-TF", 4.5314, 1.8465], [0.99, "IMM-TF", 4.0999, 1.7674]],
+    "source": "Gao et al. 2023, Table 1 (IMM-TF only; the 99 % row is the paper's '99')",
+}
+
+
+def build_estimators(scenario, source_R: float, cfg, names=ESTIMATORS) -> list[Estimator]:
+    """The multi-rate estimators of the study for a source sensor with noise ``source_R``."""
+    tcfg, vcfg = cfg.transfer, cfg.vsimm
+    kf = KalmanFilter(scenario.motion, scenario.measurement)
+    P = scenario.transition
+    source = PositionMeasurement(scenario.motion.state_dim, scenario.position,
+                                 torch.tensor(float(source_R), dtype=P.dtype), dtype=P.dtype).to(P.device)
+    gate = InfluenceGate(threshold=float(tcfg.influence.threshold), mode=int(tcfg.influence.mode),
+                         weight=str(tcfg.influence.weight))
+    options = dict(smoothing_reference=str(tcfg.smoothing_reference), mode_likelihood=str(tcfg.mode_likelihood))
+    makers = {
+        "IMM": lambda: IMM(kf, P),
+        "IMM-TF": lambda: TransferIMM(kf, P, source, **options),
+        "IF-TF": lambda: TransferIMM(kf, P, source, gate=gate, **options),
+        "IMM-FU": lambda: FusionIMM(kf, P, source),
+        "VSIMM": lambda: SourceModeVSIMM(kf, P, source, extra_model=int(vcfg.extra_model), p_new=vcfg.p_new,
+                                         p_ee=float(vcfg.p_ee), eps=float(vcfg.eps),
+                                         drop_below=float(vcfg.drop_below)),
+        "IMM-SU": lambda: SourceUpdateIMM(kf, P, source),
+    }
+    unknown = set(names) - set(makers)
+    if unknown:
+        raise ValueError(f"estimators: unknown {sorted(unknown)}; choose from {list(makers)}")
+    out = []
+    for name in names:
+        filt = makers[name]()
+        select = (lambda z: z.target) if name == "IMM" else None
+        out.append(Estimator(name, filt, lambda prior, f=filt: f.initial_belief(prior, scenario.initial_mode_probs),
+                             True, select))
+    return out
+
+
+def simulate(ctx: StudyContext, scenario, ratio: float, source_R: float, key: str):
+    """Truth, target stream and source stream (NaN where ``gamma_k = 0``) for ``mc_runs`` runs."""
+    cfg = ctx.cfg
+    runs = int(cfg.mc_runs)
+    g = ctx.generator("data", key)
+    sim, y = scenario.simulate(runs, g)
+    if cfg.source.availability == "bernoulli":
+        mask = bernoulli_mask(scenario.steps, (runs,), float(ratio), generator=g, device=ctx.device)
+    elif cfg.source.availability == "periodic":
+        mask = periodic_mask(scenario.steps, (runs,), int(cfg.source.period), device=ctx.device)
+    else:
+        raise ValueError(f"source.availability: expected 'bernoulli' or 'periodic', got {cfg.source.availability!r}")
+    sensor = PositionMeasurement(scenario.motion.state_dim, scenario.position,
+                                 torch.tensor(float(source_R), dtype=ctx.dtype), dtype=ctx.dtype).to(ctx.device)
+    ys = simulate_measurements(sensor, sim.states, available=mask, generator=g)
+    return sim, MultiRate(y, ys), mask
+
+
+def _unit(ctx: StudyContext, scenario, ratio: float, source_R: float, key: str, names, curves: bool) -> dict:
+    sim, z, mask = simulate(ctx, scenario, ratio, source_R, key)
+    out: dict = {"summary": {}, "present_fraction": mask.double().mean().item()}
+    for est in build_estimators(scenario, source_R, ctx.cfg, names):
+        ev = evaluate(est, scenario, sim, z, chunk_runs=ctx.cfg.get("chunk_runs"), keep_trajectory=curves)
+        summary = ev.summary()
+        summary["seconds_per_step"] = ev.seconds_per_step
+        extras = ev.trajectory.extras if curves else None
+        if extras is not None and "transfer_used" in extras:
+            summary["transfer_fraction"] = extras["transfer_used"].double().mean().item()
+        out["summary"][est.name] = summary
+        if curves:
+            curve = {"pos_rmse": ev.pos_rmse.tolist(), "vel_rmse": ev.vel_rmse.tolist(), "nees": ev.nees.tolist(),
+                     "mode_probs": ev.trajectory.belief.mode_probs.mean(1).tolist()}
+            if extras is not None and "influence" in extras:
+                influence = extras["influence"][..., 0]  # (T, runs), m = 1 here
+                curve["influence_abs"] = influence.abs().mean(1).tolist()
+                curve["influence_mean"] = influence.mean(1).tolist()
+            out.setdefault("curves", {})[est.name] = curve
+    return out
+
+
+def run(ctx: StudyContext) -> None:
+    cfg = ctx.cfg
+    tic = time.perf_counter()
+    scenario = instantiate(cfg.scenario, dtype=ctx.dtype, device=ctx.device)
+    names = list(cfg.estimator_names)
+    ratio, source_R = float(cfg.source.ratio), float(cfg.source.R)
+    R = float(scenario.measurement.R.reshape(-1)[0])
+    ctx.results.description = (
+        f"Paper 000 (IMM-TF), scenario `{scenario.name}`: {scenario.num_modes} modes, {scenario.steps} steps, "
+        f"{cfg.mc_runs} Monte Carlo runs (seed {cfg.seed}, {cfg.dtype}); target R = {R:g}, source R_S = "
+        f"{source_R:g} present with probability {ratio:g} ({cfg.source.availability}). RMSE per step over runs, "
+        "averaged over time. Each source ratio has its own simulated data, shared by all estimators; the R_S "
+        "sweep reuses the data of its ratio with the source noise rescaled (common random numbers)."
+    )
+
+    # -- the default setting: metrics, Fig. 3 and Fig. 4 --------------------------------------------
+    default = ctx.unit("default", lambda: _unit(ctx, scenario, ratio, source_R, f"source/{ratio}",
+                                                names, curves=True))
+    for name, summary in default["summary"].items():
+        for key in ("pos_rmse", "vel_rmse", "nees", "mode_accuracy", "transfer_fraction"):
+            if key in summary:
+                ctx.results.metric(name, key, summary[key])
+        ctx.results.timing[name] = summary["seconds_per_step"]
+    curves = default["curves"]
+    for name, curve in curves.items():
+        ctx.logger.series(f"pos_rmse/{name}", curve["pos_rmse"])
+        ctx.logger.series(f"vel_rmse/{name}", curve["vel_rmse"])
+        ctx.logger.series(f"nees/{name}", curve["nees"])
+        for j, label in enumerate(scenario.mode_labels):
+            ctx.logger.series(f"mode_probability/{name}/{label}", [p[j] for p in curve["mode_probs"]])
+        if "influence_abs" in curve:
+            ctx.logger.series(f"influence/{name}", curve["influence_mean"])
+            ctx.logger.series(f"influence_abs/{name}", curve["influence_abs"])
+    as_tensor = {panel: {n: torch.tensor(c[key]) for n, c in curves.items()}
+                 for panel, key in (("position RMSE", "pos_rmse"), ("velocity RMSE", "vel_rmse"))}
+    ctx.save_figure("rmse_over_time", plots.rmse_over_time(
+        as_tensor, f"{cfg.mc_runs} runs, source ratio {ratio:g}, R_S = {source_R:g}"))
+    if "IMM-TF" in curves:
+        ctx.save_figure("influence", _influence_figure(curves, ratio, source_R))
+    ctx.results.save()
+
+    # -- Table 1: source ratios -------------------------------------------------------------------
+    table1 = ctx.results.table("table1", ["source_ratio", "estimator", "pos_rmse", "vel_rmse"],
+                               note=f"R_S = {source_R:g}; every estimator at every ratio, each ratio on its own data.",
+                               published=PUBLISHED_TABLE1)
+    ratios = [float(r) for r in cfg.table1_ratios]
+    for r in ctx.progress_bar(ratios, desc="table1"):
+        unit = ctx.unit(f"table1/{r}", lambda r=r: _unit(ctx, scenario, r, source_R, f"source/{r}",
+                                                         names, curves=False))
+        for name, s in unit["summary"].items():
+            table1.rows.append([r, name, s["pos_rmse"], s["vel_rmse"]])
+            ctx.logger.scalar(f"table1/pos_rmse/{name}", s["pos_rmse"], int(round(100 * r)))
+        ctx.results.save()
+    ctx.save_figure("table1", _sweep_figure(table1.rows, "source ratio", logx=False,
+                                            published=PUBLISHED_TABLE1["rows"]))
+
+    # -- R_S sweep (Fig. 5, Fig. 6) ---------------------------------------------------------------
+    sweep = ctx.results.table("rs_sweep", ["R_S", "estimator", "pos_rmse", "vel_rmse"],
+                              note=f"source ratio {ratio:g}, target R = {R:g}; IMM (no source) is the reference.")
+    for rs in ctx.progress_bar([float(v) for v in cfg.rs_sweep], desc="rs_sweep"):
+        unit = ctx.unit(f"rs_sweep/{rs}", lambda rs=rs: _unit(ctx, scenario, ratio, rs, f"source/{ratio}",
+                                                             names, curves=False))
+        for name, s in unit["summary"].items():
+            sweep.rows.append([rs, name, s["pos_rmse"], s["vel_rmse"]])
+        ctx.results.save()
+    ctx.save_figure("rs_sweep", _sweep_figure(sweep.rows, "source noise variance R_S", logx=True))
+    ctx.results.notes.append(f"wall time of the study: {time.perf_counter() - tic:.1f} s")
+
+
+def _influence_figure(curves: dict, ratio: float, source_R: float):
+    """Fig. 3: the influence value over time next to the RMSE, IMM-TF (and IF-TF)."""
+    import matplotlib.pyplot as plt
+
+    fig, (ax0, ax1) = plt.subplots(2, 1, figsize=(7.5, 5.5), sharex=True)
+    for name in ("IMM", "IMM-TF", "IF-TF"):
+        if name in curves:
+            values = curves[name]["pos_rmse"]
+            ax0.plot(range(1, len(values) + 1), values, label=name, lw=1.2)
+    ax0.set_ylabel("position RMSE")
+    ax0.legend(fontsize=8)
+    ax0.grid(alpha=0.3)
+    for name in ("IMM-TF", "IF-TF"):
+        if name in curves and "influence_abs" in curves[name]:
+            values = curves[name]["influence_abs"]
+            ax1.plot(range(1, len(values) + 1), values, label=f"{name}: mean |L_k|", lw=1.2)
+    ax1.set_ylabel("influence value (33)")
+    ax1.set_xlabel("time step k")
+    ax1.legend(fontsize=8)
+    ax1.grid(alpha=0.3)
+    ax0.set_title(f"influence of the source data (ratio {ratio:g}, R_S = {source_R:g})")
+    fig.tight_layout()
+    return fig
+
+
+def _sweep_figure(rows: list, xlabel: str, *, logx: bool, published: list | None = None):
+    """Position and velocity RMSE against the swept quantity, one line per estimator."""
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 3.8))
+    names = list(dict.fromkeys(r[1] for r in rows))
+    xs = sorted({r[0] for r in rows})
+    for col, (ax, label) in enumerate(zip(axes, ("position RMSE", "velocity RMSE"))):
+        series = {n: [next(r[2 + col] for r in rows if r[0] == x and r[1] == n) for x in xs] for n in names}
+        plots.lines(xs, series, xlabel=xlabel, ylabel=label, logx=logx, ax=ax)
+        if published:
+            ax.plot([r[0] for r in published], [r[2 + col] for r in published], "k--", marker="x",
+                    label="IMM-TF (published)")
+            ax.legend(fontsize=8)
+    fig.tight_layout()
+    return fig
