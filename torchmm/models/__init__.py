@@ -1,5 +1,13 @@
 """Motion and measurement models (stateless ``nn.Module`` s)."""
 
+from torchmm.models.adapters import (
+    CholeskyCovariance,
+    LearnedMeasurement,
+    LearnedMotion,
+    LogDiagonalCovariance,
+    LogScaleCovariance,
+    learnable_noise,
+)
 from torchmm.models.base import MeasurementModel, MotionModel, forward_jacobian
 from torchmm.models.linear import LinearMeasurement, LinearMotion
 from torchmm.models.measurement import PositionMeasurement, RangeBearing
@@ -12,6 +20,12 @@ from torchmm.models.motion import (
 )
 
 __all__ = [
+    "CholeskyCovariance",
+    "LearnedMeasurement",
+    "LearnedMotion",
+    "LogDiagonalCovariance",
+    "LogScaleCovariance",
+    "learnable_noise",
     "ConstantAcceleration",
     "ConstantVelocity",
     "CoordinatedTurn",

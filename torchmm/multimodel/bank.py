@@ -106,8 +106,9 @@ def make_bank(bank, num_modes: int) -> FilterBank:
     Args:
         bank: a :class:`FilterBank`; a single :class:`Filter` whose models are banks (vectorised);
             or a sequence of ``num_modes`` filters. A sequence of filters of one class that
-            provides ``stack`` (e.g. :class:`~torchmm.filters.KalmanFilter`) is fused into a
-            vectorised bank; otherwise it becomes a :class:`ListBank`.
+            provides ``stack`` (e.g. :class:`~torchmm.filters.KalmanFilter`) and holds no
+            ``nn.Parameter`` is fused into a vectorised bank; otherwise (heterogeneous filters,
+            learned models) it becomes a :class:`ListBank`, which keeps every mode's own module.
     """
     if isinstance(bank, FilterBank):
         if bank.num_modes != num_modes:
@@ -119,7 +120,10 @@ def make_bank(bank, num_modes: int) -> FilterBank:
         if len(bank) != num_modes:
             raise ValueError(f"bank: has {len(bank)} filters, the transition matrix {num_modes} modes")
         kinds = {type(f) for f in bank}
-        if len(kinds) == 1 and hasattr(type(bank[0]), "stack"):
+        # Fusing copies the models' current tensors into new stacked ones, which would cut learnable
+        # parameters (nn.Parameters, parametrised noise) off from the bank: keep those as a list.
+        learnable = any(True for f in bank for _ in f.parameters())
+        if len(kinds) == 1 and hasattr(type(bank[0]), "stack") and not learnable:
             try:
                 return VectorizedBank(type(bank[0]).stack(list(bank)), num_modes)
             except ValueError:

@@ -1,0 +1,23 @@
+"""Learning by gradient through the filters: marginal log-likelihood losses and a trainer.
+
+* :func:`negative_log_likelihood` - ``-log p(z_{1:T})`` of a batch of sequences through any
+  filter (KF, EKF, UKF, IMM, GPB1/2, ...), differentiable w.r.t. every parameter of the filter's
+  modules (transition logits, parametrised noise covariances, networks).
+* :func:`truncated_segments` and :class:`Trainer` (``window=``) - truncated back-propagation
+  through time for long sequences.
+* :class:`Trainer` - a training loop with a logger/callback hook (no TensorBoard import: pass any
+  object with ``scalar(tag, value, step)``), parameter tracking and checkpoints
+  (:func:`save_checkpoint` / :func:`load_checkpoint`).
+"""
+
+from torchmm.learn.loss import negative_log_likelihood, truncated_segments
+from torchmm.learn.trainer import TrainRecord, Trainer, load_checkpoint, save_checkpoint
+
+__all__ = [
+    "TrainRecord",
+    "Trainer",
+    "load_checkpoint",
+    "negative_log_likelihood",
+    "save_checkpoint",
+    "truncated_segments",
+]

@@ -1,0 +1,242 @@
+"""A small training loop for filters: full or truncated BPTT, logging hooks and checkpoints.
+
+The library does not import TensorBoard (or any experiment framework): pass a ``logger`` - any
+object with ``scalar(tag, value, step)`` such as the studies' TensorBoard logger - and/or
+``callbacks`` (callables receiving each :class:`TrainRecord`).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from torchmm.learn.loss import _ensure_mode_belief, negative_log_likelihood, truncated_segments
+
+__all__ = ["TrainRecord", "Trainer", "load_checkpoint", "save_checkpoint"]
+
+
+@dataclass
+class TrainRecord:
+    """One training iteration (one pass over the sequences, possibly several optimiser steps).
+
+    Attributes:
+        iteration: 1-based iteration count (continues across resumed runs).
+        loss: the iteration's mean per-step negative log-likelihood (segments weighted by length),
+            as last evaluated by the optimiser's closure: before the update for first-order
+            optimisers (Adam, SGD), at the last line-search point for LBFGS.
+        grad_norm: total gradient 2-norm before clipping, from the same evaluation.
+        parameters: values reported by the trainer's ``track`` function.
+        seconds: wall time of the iteration.
+    """
+
+    iteration: int
+    loss: float
+    grad_norm: float
+    parameters: dict[str, float] = field(default_factory=dict)
+    seconds: float = 0.0
+
+
+def save_checkpoint(path, module: nn.Module, optimizer: torch.optim.Optimizer | None = None,
+                    **extra: Any) -> Path:
+    """Write ``module`` (and ``optimizer``) state and any ``extra`` picklable data to ``path``."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    state = {"model": module.state_dict(), "extra": extra}
+    if optimizer is not None:
+        state["optimizer"] = optimizer.state_dict()
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    torch.save(state, tmp)
+    tmp.replace(path)
+    return path
+
+
+def load_checkpoint(path, module: nn.Module, optimizer: torch.optim.Optimizer | None = None) -> dict:
+    """Restore ``module`` (and ``optimizer``) from :func:`save_checkpoint`; returns the ``extra`` dict.
+
+    The module must have the same structure (including parametrised noise) as when saved.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise ValueError(f"path: no checkpoint at {path}")
+    state = torch.load(path, map_location="cpu", weights_only=False)
+    module.load_state_dict(state["model"])
+    if optimizer is not None:
+        if "optimizer" not in state:
+            raise ValueError(f"path: checkpoint {path} holds no optimizer state")
+        optimizer.load_state_dict(state["optimizer"])
+    return state.get("extra", {})
+
+
+class Trainer:
+    """Fit a filter's parameters by minimising the negative marginal log-likelihood.
+
+    Every iteration filters all (or a random ``batch_size`` subset of the) sequences; with
+    ``window`` set it does truncated back-propagation through time: the sequence is cut into
+    segments of ``window`` steps, each segment is filtered from the previous one's final belief
+    (detached) and gets its own optimiser step.
+
+    Args:
+        filter: the module to train (its ``parameters()`` are what ``optimizer`` holds).
+        optimizer: any ``torch.optim`` optimiser (``step(closure)`` is used, so LBFGS works).
+        window: TBPTT segment length in steps; ``None`` = full sequences.
+        clip_grad_norm: clip the total gradient norm to this value (``None`` = no clipping).
+        loss_fn: ``loss_fn(filter, belief0, measurements, controls=..., return_final=...)``;
+            default :func:`~torchmm.learn.negative_log_likelihood` (``reduction="mean"``).
+        track: returns ``{name: value}`` of quantities to record and log each iteration (e.g.
+            transition-matrix entries, noise levels).
+        logger: object with ``scalar(tag, value, step)``; logs ``<prefix>/loss``,
+            ``<prefix>/grad_norm`` and ``<prefix>/param/<name>``.
+        callbacks: callables ``callback(trainer, record)`` run after every iteration.
+        checkpoint_path, checkpoint_every: save a checkpoint every ``checkpoint_every``
+            iterations (and at the end of :meth:`fit`) when a path is given.
+        prefix: tag prefix for the logger.
+
+    Shapes:
+        :meth:`fit`: ``belief0`` batch ``(N,)`` (or ``(N, ...)``), ``measurements (T, N, ..., m)``,
+        ``controls (T, N, ..., k)``; mini-batches index the first batch axis ``N``.
+
+    Examples:
+        >>> from torchmm.filters import KalmanFilter
+        >>> from torchmm.models import ConstantVelocity, PositionMeasurement, learnable_noise
+        >>> motion = learnable_noise(ConstantVelocity(1, q=1.0), "Q", "scale")
+        >>> kf = KalmanFilter(motion, PositionMeasurement(2, [0], 1.0))
+        >>> trainer = Trainer(kf, torch.optim.Adam(kf.parameters(), lr=0.1))
+        >>> history = trainer.fit(GaussianBelief(torch.zeros(8, 2), torch.eye(2)), torch.randn(30, 8, 1), 3)
+        >>> [r.iteration for r in history]
+        [1, 2, 3]
+    """
+
+    def __init__(
+        self,
+        filter: nn.Module,
+        optimizer: torch.optim.Optimizer,
+        *,
+        window: int | None = None,
+        clip_grad_norm: float | None = None,
+        loss_fn: Callable | None = None,
+        track: Callable[[], Mapping[str, float]] | None = None,
+        logger: Any = None,
+        callbacks: Iterable[Callable[[Trainer, TrainRecord], None]] = (),
+        checkpoint_path: str | Path | None = None,
+        checkpoint_every: int = 0,
+        prefix: str = "train",
+    ):
+        if window is not None and int(window) < 1:
+            raise ValueError(f"window: must be a positive number of steps, got {window}")
+        if clip_grad_norm is not None and not clip_grad_norm > 0:
+            raise ValueError(f"clip_grad_norm: must be positive, got {clip_grad_norm}")
+        if checkpoint_every < 0:
+            raise ValueError(f"checkpoint_every: must be >= 0, got {checkpoint_every}")
+        self.filter = filter
+        self.optimizer = optimizer
+        self.window = None if window is None else int(window)
+        self.clip_grad_norm = clip_grad_norm
+        self.loss_fn = loss_fn or negative_log_likelihood
+        self.track = track
+        self.logger = logger
+        self.callbacks = list(callbacks)
+        self.checkpoint_path = None if checkpoint_path is None else Path(checkpoint_path)
+        self.checkpoint_every = int(checkpoint_every)
+        self.prefix = prefix
+        self.history: list[TrainRecord] = []
+
+    @property
+    def iteration(self) -> int:
+        return self.history[-1].iteration if self.history else 0
+
+    def _params(self) -> list[Tensor]:
+        return [p for group in self.optimizer.param_groups for p in group["params"]]
+
+    def _segment_step(self, belief, z: Tensor, u: Tensor | None) -> tuple[float, float, Any]:
+        """One optimiser step on one segment; returns (loss, grad_norm, final belief detached)."""
+        state: dict[str, Any] = {}
+        params = self._params()
+
+        def closure():
+            self.optimizer.zero_grad()
+            loss, final = self.loss_fn(self.filter, belief, z, controls=u, return_final=True)
+            if not bool(torch.isfinite(loss.detach())):
+                raise FloatingPointError(f"loss is {loss.item()} at iteration {self.iteration + 1}")
+            loss.backward()
+            max_norm = self.clip_grad_norm if self.clip_grad_norm is not None else math.inf
+            norm = torch.nn.utils.clip_grad_norm_(params, max_norm)
+            state.update(loss=loss.item(), grad_norm=float(norm), final=final)
+            return loss
+
+        self.optimizer.step(closure)
+        return state["loss"], state["grad_norm"], state["final"]
+
+    def fit(self, belief0, measurements: Tensor, iterations: int, *, controls: Tensor | None = None,
+            batch_size: int | None = None, generator: torch.Generator | None = None) -> list[TrainRecord]:
+        """Run ``iterations`` more iterations; returns the records of this call.
+
+        Args:
+            belief0: initial belief of every sequence, batch ``(N, ...)`` (a Gaussian belief for
+                a multiple-model filter is started with uniform mode probabilities).
+            measurements: ``(T, N, ..., m)``, NaN = missing.
+            iterations: number of iterations to run now.
+            controls: optional ``(T, N, ..., k)``.
+            batch_size: sequences per iteration, drawn without replacement with ``generator``;
+                default all ``N``.
+            generator: randomness of the mini-batches.
+        """
+        if iterations < 0:
+            raise ValueError(f"iterations: must be >= 0, got {iterations}")
+        steps, runs = measurements.shape[0], measurements.shape[1]
+        if batch_size is not None and not 0 < batch_size <= runs:
+            raise ValueError(f"batch_size: must lie in 1..{runs}, got {batch_size}")
+        belief0 = _ensure_mode_belief(self.filter, belief0)
+        segments = truncated_segments(steps, self.window)
+        records = []
+        for _ in range(iterations):
+            tic = time.perf_counter()
+            if batch_size is None or batch_size == runs:
+                start, z, u = belief0, measurements, controls
+            else:
+                index = torch.randperm(runs, generator=generator, device=measurements.device)[:batch_size]
+                start = belief0.expand(runs, *belief0.batch_shape[1:])[index]
+                z = measurements[:, index]
+                u = None if controls is None else controls[:, index]
+            total, norm, belief = 0.0, 0.0, start
+            for seg in segments:
+                loss, norm, belief = self._segment_step(belief, z[seg], None if u is None else u[seg])
+                total += loss * (seg.stop - seg.start)
+            record = TrainRecord(self.iteration + 1, total / steps, norm,
+                                 {k: float(v) for k, v in (self.track() if self.track else {}).items()},
+                                 time.perf_counter() - tic)
+            self.history.append(record)
+            records.append(record)
+            self._log(record)
+            for callback in self.callbacks:
+                callback(self, record)
+            if self.checkpoint_path is not None and self.checkpoint_every and \
+                    record.iteration % self.checkpoint_every == 0:
+                self.save(self.checkpoint_path)
+        if self.checkpoint_path is not None and records:
+            self.save(self.checkpoint_path)
+        return records
+
+    def _log(self, record: TrainRecord) -> None:
+        if self.logger is None:
+            return
+        self.logger.scalar(f"{self.prefix}/loss", record.loss, record.iteration)
+        self.logger.scalar(f"{self.prefix}/grad_norm", record.grad_norm, record.iteration)
+        for name, value in record.parameters.items():
+            self.logger.scalar(f"{self.prefix}/param/{name}", value, record.iteration)
+
+    # -- checkpoints ---------------------------------------------------------------------------
+    def save(self, path) -> Path:
+        """Checkpoint the filter, the optimiser and the history."""
+        return save_checkpoint(path, self.filter, self.optimizer, history=[asdict(r) for r in self.history])
+
+    def load(self, path) -> None:
+        """Restore the filter, the optimiser and the history saved by :meth:`save`."""
+        extra = load_checkpoint(path, self.filter, self.optimizer)
+        self.history = [TrainRecord(**r) for r in extra.get("history", [])]
