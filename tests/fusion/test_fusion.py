@@ -334,3 +334,25 @@ def test_steady_state_fused_estimator_monte_carlo():
         assert torch.allclose(W.sum(0), torch.eye(3), atol=1e-10)
         err2 = (sim.x - xo)[25:55] ** 2
         assert bool((_z(err2, Po.diagonal()).abs() < 4.5).all()), N
+
+
+@pytest.mark.parametrize("make", [ups_system, random_system])
+def test_theorem6_closed_sums_match_the_recursion(make):
+    from torchmm.fusion.local import theorem6_cross_covariances
+
+    sys = make()
+    T = 25
+    stats = local_predictor_stats(sys, T)
+    cross = cross_predictor_stats(sys, stats)
+    idx = torch.arange(sys.num_sensors)
+    for N in range(4):
+        rec = cross_covariances(sys, stats, cross, N)
+        assert _rel(theorem6_cross_covariances(sys, stats, cross, N), rec) < 1e-10, N
+        printed = theorem6_cross_covariances(sys, stats, cross, N, xi_term=False)
+        off = torch.ones(sys.num_sensors, sys.num_sensors, dtype=torch.bool)
+        off[idx, idx] = False
+        assert _rel(printed[:, off], rec[:, off]) < 1e-10, N  # i != j: (42) as printed is exact
+        if N <= 1:
+            assert _rel(printed, rec) < 1e-10
+        else:  # i = j, N >= 2: the printed (42) misses E[eps_i xi_i^T]; (39) then differs from (31)
+            assert _rel(printed[:, idx, idx], local_covariances(sys, stats, N)) > 1e-4

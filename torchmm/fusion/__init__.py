@@ -23,6 +23,7 @@ from torchmm.fusion.local import (
     local_estimates,
     local_one_step,
     local_predictor_stats,
+    theorem6_cross_covariances,
 )
 from torchmm.fusion.steady import (
     SteadyState,
@@ -59,4 +60,5 @@ __all__ = [
     "steady_local_estimates",
     "steady_moments",
     "steady_state",
+    "theorem6_cross_covariances",
 ]

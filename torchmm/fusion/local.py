@@ -40,6 +40,7 @@ __all__ = [
     "local_covariances",
     "cross_predictor_stats",
     "cross_covariances",
+    "theorem6_cross_covariances",
     "check_measurements",
 ]
 
@@ -426,3 +427,108 @@ def cross_covariances(system: MultiSensorSystem, stats: LocalStats, cross: Cross
 def symmetrize_pairs(P: Tensor) -> Tensor:
     """``(P_ij + P_ji^T) / 2`` over the pair axes ``(..., L, L, n, n)``."""
     return 0.5 * (P + _tr(P))
+
+
+def theorem6_cross_covariances(system: MultiSensorSystem, stats: LocalStats, cross: CrossStats, N: int,
+                               xi_term: bool = True) -> Tensor:
+    r"""Theorem 6: the closed sums (39)-(43) for the filter/smoother cross-covariances.
+
+    An evaluation of the printed sums (loops over the lags ``k_i, k_j, m_j <= N``; every time step
+    and sensor pair batched), a second implementation of :func:`cross_covariances` (``N >= 0``),
+    with the readings ``P^{xx^r}`` for the cross terms printed ``P^{x^r}`` in (40)-(41) and
+    ``(P^{x^r eps}_ji)^T`` for the printed ``(P^{x^r eps}_ij)^T`` in (42).
+
+    ``xi_term=False`` is (42) as printed. Its proof (G12) drops ``E[eps_i(t+k_i) xi_j^T(t+k_j-m_j)]``
+    by Remark 4, which holds for ``j != i`` but not for ``j = i`` when ``k_j - m_j < k_i`` (the
+    future innovation contains the virtual noise through ``x^r_i``); the printed theorem is exact
+    for ``N <= 1`` only. ``xi_term=True`` (default) adds, for ``i = j``,
+    ``sum_{m_j > k_j - k_i} Omega^{eps xi}_i(t+k_i, t+k_j-m_j) (C~_i Phi_i^{m_j-1})^T`` with
+    ``Omega^{eps xi}_i(t+a, t+s) = -sum_{m_i} M_i Omega^{eps xi}_i(t+a-m_i, t+s)
+    + C~_i Phi_i^{a-s-1} Q^xi_i(t+s)`` (the analogue of (43); see ``docs/reproduction-002.md``).
+
+    Shapes:
+        -> ``(T, L, L, n, n)``
+    """
+    if N < 0:
+        raise ValueError(f"N: Theorem 6 covers N >= 0, got {N}")
+    if stats.stationary:
+        raise ValueError("stats: Theorem 6's closed sums are evaluated for the time-varying statistics")
+    T = stats.Px.shape[0]
+    A, G, C, Ct = system.A, system.Gamma, system.C, system.Ct
+    h = system.h
+    eye_m = torch.eye(system.meas_dim, dtype=A.dtype, device=A.device)
+    Apow = [torch.linalg.matrix_power(A, k) for k in range(N + 1)]
+    Phipow = [h[:, None, None] ** k * Apow[k] for k in range(N + 1)]  # (L, n, n)
+
+    # local smoothing gains K_i(t|t+k), Theorem 3 (28)-(30)
+    Ks, Om_x, Om_r = [], stats.Px, stats.Pxr
+    for k in range(N + 1):
+        Qe = _shift(stats.Qeps, k, eye_m)
+        K = _solve_right(Om_x @ C.mT + Om_r @ Ct.mT, Qe) * _valid(T, k, Om_x)[:, None, None, None]
+        Ks.append(K)
+        KQ = K @ Qe
+        Om_x = Om_x @ A.T - KQ @ _shift(stats.Lx, k).mT
+        Om_r = Om_r @ system.Phi.mT - KQ @ _shift(stats.Lr, k).mT
+
+    def M(offset: int, mj: int) -> Tensor:
+        """``C_j A^{m-1} L_j(t+offset) + C~_j Phi_j^{m-1} L^{x^r}_j(t+offset)``, ``(T, L, m, m)``."""
+        return C @ Apow[mj - 1] @ _shift(stats.Lx, offset) + Ct @ Phipow[mj - 1] @ _shift(stats.Lr, offset)
+
+    P, Pxr, Pr = cross.P, cross.Pxr, cross.Pr
+    Cj, Ctj = C[None], Ct[None]
+    # (40), (41): E[x~_i(t|t-1) eps_j^T(t+k)] and E[x~^r_i(t|t-1) eps_j^T(t+k)]
+    Pxe, Pre = [], []
+    for kj in range(N + 1):
+        a = P @ Apow[kj].T @ Cj.mT + Pxr @ Phipow[kj][None].mT @ Ctj.mT
+        b = _tr(Pxr) @ Apow[kj].T @ Cj.mT + Pr @ Phipow[kj][None].mT @ Ctj.mT
+        for mj in range(1, kj + 1):
+            Mt = M(kj - mj, mj)[:, None].mT
+            a = a - Pxe[kj - mj] @ Mt
+            b = b - Pre[kj - mj] @ Mt
+        Pxe.append(a), Pre.append(b)
+    # (43): Omega^{eps w}_i(t+a, t+s), 0 <= s <= a
+    Om: dict[tuple[int, int], Tensor] = {}
+    RT = system.R.mT  # (L, m, p)
+    for a in range(N + 1):
+        for s in range(a + 1):
+            val = RT.expand(T, *RT.shape) if a == s else RT.new_zeros(T, *RT.shape)
+            for mi in range(1, a + 1):
+                if a - mi >= s:
+                    val = val - M(a - mi, mi) @ Om[(a - mi, s)]
+                if a - mi == s:
+                    val = val + C @ Apow[mi - 1] @ G @ system.Qw
+            Om[(a, s)] = val
+    # E[eps_i(t+a) xi_i^T(t+s)], s < a (zero for s >= a); the term (42) omits
+    Oxi: dict[tuple[int, int], Tensor] = {}
+    if xi_term:
+        for a in range(N + 1):
+            for s in range(a):
+                val = Ct @ Phipow[a - s - 1] @ _shift(stats.Qxi, s)
+                for mi in range(1, a - s):
+                    val = val - M(a - mi, mi) @ Oxi[(a - mi, s)]
+                Oxi[(a, s)] = val
+    pair_eye = torch.eye(system.num_sensors, dtype=A.dtype, device=A.device)[..., None, None]
+    # (42): Q^eps_ij(t+ki, t+kj)
+    Q: dict[tuple[int, int], Tensor] = {}
+    for ki in range(N + 1):
+        Q[(ki, ki)] = _shift(cross.Qeps, ki)
+        for b in range(ki):
+            Q[(ki, b)] = _tr(Q[(b, ki)])
+        for kj in range(ki + 1, N + 1):
+            val = _tr(Pxe[ki]) @ Apow[kj].T @ Cj.mT + _tr(Pre[ki]) @ Phipow[kj][None].mT @ Ctj.mT
+            for mj in range(1, kj + 1):
+                val = val - Q[(ki, kj - mj)] @ M(kj - mj, mj)[:, None].mT
+                if mj >= kj - ki:
+                    val = val + Om[(ki, kj - mj)][:, :, None] @ (C @ Apow[mj - 1] @ G)[None].mT
+                if xi_term and kj - mj < ki:
+                    val = val + pair_eye * (Oxi[(ki, kj - mj)] @ (Ct @ Phipow[mj - 1]).mT)[:, :, None]
+            Q[(ki, kj)] = val
+    # (39)
+    out = P
+    for kj in range(N + 1):
+        Kj = Ks[kj][:, None]
+        out = out - Pxe[kj] @ Kj.mT - Ks[kj][:, :, None] @ _tr(Pxe[kj])
+    for ki in range(N + 1):
+        for kj in range(N + 1):
+            out = out + Ks[ki][:, :, None] @ Q[(ki, kj)] @ Ks[kj][:, None].mT
+    return out
