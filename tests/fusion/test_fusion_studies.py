@@ -47,3 +47,22 @@ def test_fusion_ups_tables_and_orderings(tmp_path):
     for a, b in zip(hz.rows, hz.rows[1:]):  # predictor >= filter >= smoother, per component
         assert all(b[c] <= a[c] + 1e-12 for c in (1, 2, 3))
     assert {"fig3_variances.png", "fig4_horizon.png"} <= {p.name for p in (tmp_path / "figures").iterdir()}
+
+
+def test_fusion_benchmark_runs_and_agrees():
+    import re
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    proc = subprocess.run(
+        [sys.executable, str(root / "benchmarks" / "fusion_throughput.py"),
+         "--runs", "8", "--steps", "12", "--numpy-runs", "3", "--repeats", "1"],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    lines = proc.stdout.strip().splitlines()
+    assert re.fullmatch(r"speedup_vs_numpy_loop=[0-9.]+ augmented_over_nonaugmented=[0-9.]+", lines[-1])
+    diff = float(re.search(r"numpy reference: ([0-9.e+-]+)", proc.stdout).group(1))
+    assert diff < 1e-9
