@@ -25,6 +25,7 @@ All classes follow ``torch.distributions`` conventions (``batch_shape``, ``event
 from __future__ import annotations
 
 import math
+from typing import ClassVar
 
 import torch
 from torch import Tensor
@@ -182,7 +183,8 @@ def student_t_cdf(x: Tensor, df: Tensor) -> Tensor:
 
 
 # -- Gamma sampling --------------------------------------------------------------------------------
-def sample_gamma(shape_param: Tensor, rate: Tensor, sample_shape=(), generator: torch.Generator | None = None) -> Tensor:
+def sample_gamma(shape_param: Tensor, rate: Tensor, sample_shape=(),
+                 generator: torch.Generator | None = None) -> Tensor:
     """``Ga(shape, rate)`` samples (mean ``shape / rate``) with an explicit generator.
 
     Shapes:
@@ -228,7 +230,7 @@ class MultivariateStudentT(Distribution):
         torch.Size([3, 2])
     """
 
-    arg_constraints: dict = {}
+    arg_constraints: ClassVar[dict] = {}
     has_rsample = False
 
     def __init__(self, loc, scale, df, validate_args=None):
@@ -236,7 +238,8 @@ class MultivariateStudentT(Distribution):
         scale = as_tensor(scale, "scale", dtype=loc.dtype, device=loc.device)
         df = as_tensor(df, "df", dtype=loc.dtype, device=loc.device)
         if loc.dim() < 1 or scale.shape[-2:] != (loc.shape[-1], loc.shape[-1]):
-            raise ValueError(f"scale: expected (*B, {loc.shape[-1]}, {loc.shape[-1]}), got {tuple(scale.shape)}")
+            m = loc.shape[-1]
+            raise ValueError(f"scale: expected (*B, {m}, {m}), got {tuple(scale.shape)}")
         _check_df(df)
         chol, info = torch.linalg.cholesky_ex(scale)
         if bool((info != 0).any()):
@@ -258,7 +261,7 @@ class MultivariateStudentT(Distribution):
         factor = torch.where(self.df > 2, self.df / (self.df - 2), torch.inf)
         return factor[..., None, None] * self.scale_matrix
 
-    def sample(self, sample_shape=torch.Size(), generator: torch.Generator | None = None) -> Tensor:
+    def sample(self, sample_shape=(), generator: torch.Generator | None = None) -> Tensor:
         shape = torch.Size(sample_shape) + self.batch_shape + self.event_shape
         n = torch.randn(shape, dtype=self.loc.dtype, device=self.loc.device, generator=generator)
         lam = sample_gamma(0.5 * self.df, 0.5 * self.df, sample_shape, generator)
@@ -314,7 +317,7 @@ class SkewT(Distribution):
         (torch.Size([1000, 2]), torch.Size([1000]))
     """
 
-    arg_constraints: dict = {}
+    arg_constraints: ClassVar[dict] = {}
     has_rsample = False
 
     def __init__(self, loc, scale, skewness, df, validate_args=None):
@@ -352,7 +355,7 @@ class SkewT(Distribution):
     def covariance_matrix(self) -> Tensor:
         return torch.diag_embed(self.variance)
 
-    def sample(self, sample_shape=torch.Size(), generator: torch.Generator | None = None) -> Tensor:
+    def sample(self, sample_shape=(), generator: torch.Generator | None = None) -> Tensor:
         shape = torch.Size(sample_shape) + self.batch_shape + self.event_shape
         kw = {"dtype": self.loc.dtype, "device": self.loc.device, "generator": generator}
         lam = sample_gamma(0.5 * self.df, 0.5 * self.df, sample_shape, generator)

@@ -36,7 +36,9 @@ log = logging.getLogger("torchmm.experiments")
 
 ESTIMATORS = ["IMM-VBT", "STVBF", "VBAKF-PR", "GIMMAF"]
 #: Table 2 of paper 004 (position m, velocity m/s)
-PUBLISHED_T2 = {"IMM-VBT": (100.76, 3.16), "STVBF": (137.74, 2.18), "VBAKF-PR": (103.03, 2.63), "GIMMAF": (4.67, 1.53)}
+PUBLISHED_T2 = {
+    "IMM-VBT": (100.76, 3.16), "STVBF": (137.74, 2.18), "VBAKF-PR": (103.03, 2.63), "GIMMAF": (4.67, 1.53),
+}
 #: Table 4 of paper 004 (position ARMSE, robot experiment of section 3.2)
 PUBLISHED_T4 = {
     "skew_t": {"IMM-VBT": 13.10, "STVBF": 22.79, "VBAKF-PR": 14.40, "GIMMAF": 8.61},
@@ -64,7 +66,8 @@ def noise_distribution(kind: str, R: float, delta: float, nu: float, **kw) -> Sk
     raise ValueError(f"gimmaf.noise.kind: expected skew_t | student_t | gaussian, got {kind!r}")
 
 
-def simulate(g, runs: int, generator: torch.Generator, kind: str, R: float, delta: float, nu: float, *, dtype, device):
+def simulate(g, runs: int, generator: torch.Generator, kind: str, R: float, delta: float, nu: float, *,
+             dtype, device):
     """Truth ``(T, runs, 4)``, measurements ``(T, runs, 2)``, per-step ``F_k``, ``Q_k``, the noise mean and
     covariance, and the initial estimates ``(runs, 4)``."""
     kw = {"dtype": dtype, "device": device}
@@ -107,9 +110,11 @@ def build_estimators(g, R: float, delta: float, nu: float, *, dtype, device) -> 
     meas = PositionMeasurement(4, [0, 2], torch.tensor(R, **kw))
     transition = torch.tensor([list(r) for r in g.transition], **kw)
     return {
-        "IMM-VBT": imm_vbt(bank, meas, transition, df=nu, iterations=iters, elbo_history=bool(g.elbo_history)),
+        "IMM-VBT": imm_vbt(bank, meas, transition, df=nu, iterations=iters,
+                           elbo_history=bool(g.elbo_history)),
         "STVBF": SkewTVBFilter(cv, meas, skewness=delta, df=nu, iterations=iters),
-        "VBAKF-PR": VBAKFPR(cv, meas, tau=tau, rho=float(g.vbakf.rho), iterations=iters, tau_r=float(g.vbakf.tau_r)),
+        "VBAKF-PR": VBAKFPR(cv, meas, tau=tau, rho=float(g.vbakf.rho), iterations=iters,
+                            tau_r=float(g.vbakf.tau_r)),
         "GIMMAF": gimmaf(bank, meas, transition, skewness=delta, df=nu, tau=tau, iterations=iters,
                          gamma_shape=str(g.gamma_shape), elbo_history=bool(g.elbo_history)),
     }
@@ -137,7 +142,8 @@ def _srnfn(estimate: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
     return ((estimate - truth).square().sum((-1, -2)).mean(-1) / d**2) ** 0.25
 
 
-def run_unit(g, noise_kind: str, noise_params, runs: int, generator, *, dtype, device, with_oracle: bool) -> dict:
+def run_unit(g, noise_kind: str, noise_params, runs: int, generator, *, dtype, device,
+             with_oracle: bool) -> dict:
     R, delta, nu = float(noise_params.R), float(noise_params.delta), float(noise_params.nu)
     steps = int(g.steps)
     data = simulate(g, runs, generator, noise_kind, R, delta, nu, dtype=dtype, device=device)
@@ -147,15 +153,10 @@ def run_unit(g, noise_kind: str, noise_params, runs: int, generator, *, dtype, d
     start = GaussianBelief(data["xhat0"], data["P0"].expand(runs, 4, 4))
     out = {}
     for name, est in estimators.items():
-        if name in ("IMM-VBT", "GIMMAF"):
-            b0 = est.initial_belief(start)
-        elif name == "VBAKF-PR":
-            b0 = est.initial_belief(start)
-        else:
-            b0 = start
+        b0 = est.initial_belief(start) if name in ("IMM-VBT", "GIMMAF", "VBAKF-PR") else start
         traj = run_filter(est, b0, data["z"], record=lambda o: o._replace(prior=None))
         mean = traj.estimate().mean
-        extras = traj.extras["modes"] if "modes" in traj.extras else traj.extras
+        extras = traj.extras.get("modes", traj.extras)
         if "modes" in traj.extras:
             w = traj.belief.mode_probs[..., None, None]
             P_hat = (w * extras["predicted_cov"]).sum(-3)
@@ -180,11 +181,14 @@ def run_unit(g, noise_kind: str, noise_params, runs: int, generator, *, dtype, d
         err = oracle_mean - truth
         out["KF-oracle"] = {"pos": err[..., [0, 2]].square().sum(-1).mean(-1).sqrt(),
                             "vel": err[..., [1, 3]].square().sum(-1).mean(-1).sqrt(), "finite": True}
-    return {name: {k: (v.tolist() if torch.is_tensor(v) else v) for k, v in e.items()} for name, e in out.items()}
+    return {name: {k: (v.tolist() if torch.is_tensor(v) else v) for k, v in e.items()}
+            for name, e in out.items()}
 
 
 def _segments_labels(g) -> list[str]:
-    return ["CV", "CT(pi/400)", "CT(-pi/600)"] if len(g.model_rates) == 3 else [f"w={w:.4f}" for w in g.model_rates]
+    if len(g.model_rates) == 3:
+        return ["CV", "CT(pi/400)", "CT(-pi/600)"]
+    return [f"w={w:.4f}" for w in g.model_rates]
 
 
 def run(ctx: StudyContext) -> None:
@@ -201,7 +205,8 @@ def run(ctx: StudyContext) -> None:
         "KF-oracle is a reference (true F_k, Q_k, noise mean and covariance), not in the paper."
     )
     main = ctx.unit(f"table2/{main_kind}", lambda: run_unit(
-        g, main_kind, g.noise, runs, ctx.generator("data", main_kind, "table2"), with_oracle=bool(g.oracle), **kw))
+        g, main_kind, g.noise, runs, ctx.generator("data", main_kind, "table2"),
+        with_oracle=bool(g.oracle), **kw))
     t2 = ctx.results.table(
         "table2", ["estimator", "pos_armse", "vel_armse", "finite"],
         note="Position ARMSE in m, velocity ARMSE in m/s.",
@@ -209,7 +214,8 @@ def run(ctx: StudyContext) -> None:
                    "rows": [[k, *v] for k, v in PUBLISHED_T2.items()], "source": "paper 004, Table 2"},
     )
     srnfn = ctx.results.table("srnfn", ["estimator", "srnfn_P", "srnfn_R"],
-                              note="Time-averaged SRNFN of P_{k|k-1} (vs the oracle KF's) and of R (vs the noise covariance).")
+                              note="Time-averaged SRNFN of P_{k|k-1} (vs the oracle KF's) and of R "
+                                   "(vs the noise covariance).")
     curves = {"position RMSE": {}, "velocity RMSE": {}}
     sr_curves = {"SRNFN of P_k|k-1": {}, "SRNFN of R": {}}
     for name, e in main.items():
@@ -243,7 +249,8 @@ def run(ctx: StudyContext) -> None:
     t4 = ctx.results.table(
         "table4", ["noise", "estimator", "pos_armse"],
         note=f"Simulation scenario of section 3.1 with the Table-4 noise parameters {dict(g.table4.noise)} "
-             "(the paper's Table 4 is from the robot experiment of section 3.2, whose data are not available).",
+             "(the paper's Table 4 is from the robot experiment of section 3.2, whose data are not "
+             "available).",
         published={"columns": ["noise", "estimator", "pos_armse"],
                    "rows": [[n, e, v] for n, d in PUBLISHED_T4.items() for e, v in d.items()],
                    "source": "paper 004, Table 4 (robot experiment)"},
@@ -251,7 +258,8 @@ def run(ctx: StudyContext) -> None:
     for kind in g.table4.noises:
         kind = str(kind)
         res = ctx.unit(f"table4/{kind}", lambda kind=kind: run_unit(
-            g, kind, g.table4.noise, runs, ctx.generator("data", kind, "table4"), with_oracle=bool(g.oracle), **kw))
+            g, kind, g.table4.noise, runs, ctx.generator("data", kind, "table4"),
+            with_oracle=bool(g.oracle), **kw))
         for name, e in res.items():
             t4.rows.append([kind, name, torch.tensor(e["pos"]).mean().item()])
         ctx.results.save()
@@ -261,7 +269,8 @@ def _mode_figure(mode_probs: dict, g):
     import matplotlib.pyplot as plt
 
     labels = _segments_labels(g)
-    fig, axes = plt.subplots(len(mode_probs), 1, figsize=(8, 2.6 * len(mode_probs)), sharex=True, squeeze=False)
+    fig, axes = plt.subplots(len(mode_probs), 1, figsize=(8, 2.6 * len(mode_probs)), sharex=True,
+                             squeeze=False)
     for ax, (name, probs) in zip(axes[:, 0], mode_probs.items()):
         for j, label in enumerate(labels):
             ax.plot(range(1, probs.shape[0] + 1), probs[:, j], label=label)

@@ -55,7 +55,8 @@ def huang_scenario(runs: int, generator: torch.Generator, *, steps: int = 1000, 
     return torch.stack(xs), torch.stack(zs), F, Qs, Rs, P0, xhat0
 
 
-def run_huang(runs: int, generator: torch.Generator, *, steps: int = 1000, nominal_q="true", beta: float = 100.0,
+def run_huang(runs: int, generator: torch.Generator, *, steps: int = 1000, nominal_q="true",
+              beta: float = 100.0,
               tau: float = 3.0, rho: float = 1 - math.exp(-4), iterations: int = 10, dtype=torch.float64,
               device=None) -> dict:
     """Run the three filters; returns per-estimator ``{"pos": (T,), "vel": (T,)}`` RMSE curves plus the
@@ -93,7 +94,8 @@ def run_huang(runs: int, generator: torch.Generator, *, steps: int = 1000, nomin
         vel = err[..., 2:].square().sum(-1).mean(-1).sqrt()
         tail = slice(max(steps - 100, 0), steps)
         out[name] = {"pos": pos, "vel": vel,
-                     "summary": (pos[tail].mean().item(), vel[tail].mean().item(), pos.mean().item(), vel.mean().item())}
+                     "summary": (pos[tail].mean().item(), vel[tail].mean().item(),
+                                 pos.mean().item(), vel.mean().item())}
     return out
 
 
@@ -108,7 +110,8 @@ def run(ctx: StudyContext) -> None:
                                  iterations=int(h.iterations), dtype=ctx.dtype, device=ctx.device).items()
     })
     ctx.results.description = (
-        f"Huang et al. 2018 scenario, {h.steps} steps, {runs} Monte Carlo runs (seed {cfg.seed}, {cfg.dtype}), "
+        f"Huang et al. 2018 scenario, {h.steps} steps, {runs} Monte Carlo runs "
+        f"(seed {cfg.seed}, {cfg.dtype}), "
         f"nominal Q = {h.nominal_q}, R~ = {h.beta} I, tau = {h.tau}, rho = {h.rho:.4f}, N = {h.iterations}."
     )
     table = ctx.results.table(

@@ -105,7 +105,8 @@ def _exact_skew_iw_evidence(z, P_nom, r, delta, nu, tau, N=1500):
     A, B = P + r / lam, 1 / lam  # z = a + delta v, a ~ N(0, A), v ~ N+(0, B)
     C = A + delta**2 * B
     p = 2 * stats.norm.pdf(z, scale=np.sqrt(C)) * stats.norm.cdf(delta * B * z / C / np.sqrt(A * B / C))
-    w = stats.invgamma(tau / 2, scale=tau * P_nom / 2).pdf(P) * P * stats.gamma(nu / 2, scale=2 / nu).pdf(lam) * lam
+    w = stats.invgamma(tau / 2, scale=tau * P_nom / 2).pdf(P) * P
+    w = w * stats.gamma(nu / 2, scale=2 / nu).pdf(lam) * lam
     return math.log(np.trapezoid(np.trapezoid(p * w, t, axis=1), s))
 
 
@@ -141,7 +142,8 @@ def test_skew_t_iw_elbo_formula_matches_monte_carlo_over_q():
     log_joint = (
         stats.norm.logpdf(x, 0.0, np.sqrt(P)) + stats.invgamma(tau / 2, scale=tau * P_nom / 2).logpdf(P)
         + stats.norm.logpdf(z, x + delta * u, np.sqrt(r / lam))
-        + np.log(2) + stats.norm.logpdf(u, 0.0, np.sqrt(1 / lam)) + stats.gamma(nu / 2, scale=2 / nu).logpdf(lam)
+        + np.log(2) + stats.norm.logpdf(u, 0.0, np.sqrt(1 / lam))
+        + stats.gamma(nu / 2, scale=2 / nu).logpdf(lam)
     )
     log_q = q_x.logpdf(x) + q_P.logpdf(P) + q_u.logpdf(u) + q_l.logpdf(lam)
     sample = log_joint - log_q
@@ -154,9 +156,11 @@ def test_student_t_elbo_bounds_the_exact_marginal_in_1d(z):
     motion = LinearMotion(torch.eye(1), torch.zeros(1, 1))
     meas = LinearMeasurement(torch.eye(1), torch.tensor([[r]]))
     f = StudentTVBFilter(motion, meas, df=nu, iterations=60)
-    elbo = f.update(GaussianBelief(torch.zeros(1), torch.tensor([[P]])), torch.tensor([z])).log_likelihood.item()
+    prior = GaussianBelief(torch.zeros(1), torch.tensor([[P]]))
+    elbo = f.update(prior, torch.tensor([z])).log_likelihood.item()
     g = stats.gamma(nu / 2, scale=2 / nu)
-    exact = math.log(integrate.quad(lambda u: stats.norm.pdf(z, scale=math.sqrt(P + r / u)) * g.pdf(u), 0, np.inf)[0])
+    exact = math.log(integrate.quad(lambda u: stats.norm.pdf(z, scale=math.sqrt(P + r / u)) * g.pdf(u),
+                                    0, np.inf)[0])
     assert elbo <= exact + 1e-9
     assert exact - elbo < 0.25
 

@@ -52,11 +52,11 @@ from torchmm.models.linear import LinearMeasurement, LinearMotion, matvec
 from torchmm.validation import as_tensor
 
 __all__ = [
+    "VBAKFPR",
     "AdaptiveGaussianBelief",
     "SkewTIWVBFilter",
     "SkewTVBFilter",
     "StudentTVBFilter",
-    "VBAKFPR",
     "gamma_kl",
     "wishart_kl",
 ]
@@ -215,13 +215,15 @@ class StudentTVBFilter(_LinearVBFilter):
 
     Examples:
         >>> from torchmm.models import ConstantVelocity, PositionMeasurement
-        >>> f = StudentTVBFilter(ConstantVelocity(1), PositionMeasurement(2, [0], 1.0), df=5.0, elbo_history=True)
+        >>> f = StudentTVBFilter(ConstantVelocity(1), PositionMeasurement(2, [0], 1.0), df=5.0,
+        ...                      elbo_history=True)
         >>> out = f.step(GaussianBelief(torch.zeros(3, 2), torch.eye(2)), torch.randn(3, 1))
         >>> out.belief.mean.shape, out.extras["elbo"].shape
         (torch.Size([3, 2]), torch.Size([3, 10]))
     """
 
-    def __init__(self, motion, measurement, df: float = 5.0, iterations: int = 10, elbo_history: bool = False):
+    def __init__(self, motion, measurement, df: float = 5.0, iterations: int = 10,
+                 elbo_history: bool = False):
         super().__init__(motion, measurement, iterations)
         self.elbo_history = bool(elbo_history)
         df = as_tensor(df, "df", dtype=measurement.R.dtype, device=measurement.R.device)
@@ -323,8 +325,8 @@ class SkewTIWVBFilter(_LinearVBFilter):
 
     Examples:
         >>> from torchmm.models import CoordinatedTurn, PositionMeasurement
-        >>> f = SkewTIWVBFilter(CoordinatedTurn(0.0), PositionMeasurement(4, [0, 2], 4.0), skewness=1.0, df=10.0,
-        ...                     elbo_history=True)
+        >>> f = SkewTIWVBFilter(CoordinatedTurn(0.0), PositionMeasurement(4, [0, 2], 4.0),
+        ...                     skewness=1.0, df=10.0, elbo_history=True)
         >>> out = f.step(GaussianBelief(torch.zeros(5, 4), torch.eye(4)), torch.randn(5, 2))
         >>> out.belief.mean.shape, out.extras["elbo"].shape
         (torch.Size([5, 4]), torch.Size([5, 10]))
@@ -354,7 +356,7 @@ class SkewTIWVBFilter(_LinearVBFilter):
     def update(self, belief: GaussianBelief, z: Tensor) -> StepOutput:
         H = self.measurement.H
         r, delta, nu, tau = self.r, self.delta, self.nu, self.tau
-        n, m = belief.mean.shape[-1], r.shape[-1]
+        n = belief.mean.shape[-1]
         x_pred, P_nom = belief.mean, belief.cov
         z_pred = matvec(H, x_pred)
         missing, z = _fill_missing(z, z_pred)
@@ -388,8 +390,8 @@ class SkewTIWVBFilter(_LinearVBFilter):
                 elbos.append(self._elbo(x_pred, P_nom, T, t_q, mean, cov, z, u_loc, u_scale, Eu, Varu,
                                         shape_a, rate_b))
         noise_var = (r + delta.square() * (1 - 2 / math.pi)) / lam
-        extras = {"predicted_cov": P_hat, "noise_cov": torch.diag_embed(noise_var), "precision": lam, "skew": Eu,
-                  "u_loc": u_loc, "u_scale": u_scale, "gamma_rate": rate_b}
+        extras = {"predicted_cov": P_hat, "noise_cov": torch.diag_embed(noise_var), "precision": lam,
+                  "skew": Eu, "u_loc": u_loc, "u_scale": u_scale, "gamma_rate": rate_b}
         if history:
             extras["elbo"] = torch.stack(elbos, -1)
             log.debug("SkewTIWVBFilter ELBO per iteration (mean over batch): %s",
@@ -477,7 +479,8 @@ class SkewTVBFilter(_LinearVBFilter):
         missing, z = _fill_missing(z, z_pred)
         Hb = H.expand(*batch, m, n)
         A = torch.cat([Hb, torch.diag_embed(delta).expand(*batch, m, m)], -1)  # [H Delta], (*B, m, n+m)
-        xi_prior = torch.cat([x_pred.expand(*batch, n), torch.zeros(*batch, m, dtype=z.dtype, device=z.device)], -1)
+        u_prior = torch.zeros(*batch, m, dtype=z.dtype, device=z.device)
+        xi_prior = torch.cat([x_pred.expand(*batch, n), u_prior], -1)
         lam = torch.ones(*batch, m, dtype=z.dtype, device=z.device)
         zeros = torch.zeros(n + m, n + m, dtype=z.dtype, device=z.device)
         for _ in range(self.iterations):
@@ -493,7 +496,8 @@ class SkewTVBFilter(_LinearVBFilter):
                 t_mean, t_var = truncated_normal_moments(xi[..., j], var_j.sqrt())
                 g = Sigma[..., :, j] / var_j.unsqueeze(-1)
                 xi = xi + g * (t_mean - xi[..., j]).unsqueeze(-1)
-                Sigma = symmetrize(Sigma + g.unsqueeze(-1) * g.unsqueeze(-2) * (t_var - var_j)[..., None, None])
+                shrink = (t_var - var_j)[..., None, None]
+                Sigma = symmetrize(Sigma + g.unsqueeze(-1) * g.unsqueeze(-2) * shrink)
             resid = z - (A @ xi.unsqueeze(-1)).squeeze(-1)
             Er = resid.square() + (A @ Sigma @ A.mT).diagonal(dim1=-2, dim2=-1)
             Eu2 = Sigma[..., n:, n:].diagonal(dim1=-2, dim2=-1) + xi[..., n:].square()
@@ -502,7 +506,8 @@ class SkewTVBFilter(_LinearVBFilter):
         mean, cov, loglik = _keep_prior(missing, belief, mean, cov, loglik)
         noise_var = (r + delta.square() * (1 - 2 / math.pi)) / lam
         return StepOutput(
-            GaussianBelief(mean, cov), belief, loglik, z - z_pred, H @ P_pred @ H.mT + torch.diag_embed(noise_var),
+            GaussianBelief(mean, cov), belief, loglik, z - z_pred,
+            H @ P_pred @ H.mT + torch.diag_embed(noise_var),
             extras={"noise_cov": torch.diag_embed(noise_var), "predicted_cov": P_pred.expand(*batch, n, n),
                     "precision": lam, "skew": xi[..., n:]},
         )
@@ -547,10 +552,12 @@ class VBAKFPR(Filter):
         x^- = F\hat x,\ \tilde P = F P F^\top + \tilde Q,\ \hat t = n + \tau + 1,\ \hat T = \tau\tilde P,\
         \hat u^- = \rho(\hat u - m - 1) + m + 1,\ \hat U^- = \rho\hat U
 
-        \text{repeat } N:\ A = P^{(i)} + (x^{(i)} - x^-)(\cdot)^\top,\ \hat P = (\hat T + A)/(\hat t + 1 - n - 1),\
+        \text{repeat } N:\ A = P^{(i)} + (x^{(i)} - x^-)(\cdot)^\top,\
+        \hat P = (\hat T + A)/(\hat t + 1 - n - 1),\
         B = (z - Hx^{(i)})(\cdot)^\top + HP^{(i)}H^\top,\ \hat R = (\hat U^- + B)/(\hat u^- + 1 - m - 1)
 
-        K = \hat PH^\top(H\hat PH^\top + \hat R)^{-1},\ x^{(i+1)} = x^- + K(z - Hx^-),\ P^{(i+1)} = \hat P - KH\hat P
+        K = \hat PH^\top(H\hat PH^\top + \hat R)^{-1},\ x^{(i+1)} = x^- + K(z - Hx^-),\ 
+        P^{(i+1)} = \hat P - KH\hat P
 
     Output ``u = û^- + 1``, ``U = Û^- + B`` (from the last iteration's ``B``, as in the code).
     ``log_likelihood`` is the plug-in ``log N(z; Hx^-, H P^ H^T + R^)`` of the last iteration.
@@ -574,8 +581,8 @@ class VBAKFPR(Filter):
         torch.Size([6, 2, 2])
     """
 
-    def __init__(self, motion, measurement, tau: float = 3.0, rho: float = 1 - math.exp(-4), iterations: int = 10,
-                 tau_r: float = 3.0):
+    def __init__(self, motion, measurement, tau: float = 3.0, rho: float = 1 - math.exp(-4),
+                 iterations: int = 10, tau_r: float = 3.0):
         super().__init__()
         _check_linear(motion, measurement)
         self.motion, self.measurement = motion, measurement
@@ -592,7 +599,10 @@ class VBAKFPR(Filter):
         Shapes:
             belief batch ``(*B,)``; R0 ``(m, m)`` or ``(*B, m, m)`` -> batch ``(*B,)``
         """
-        R0 = self.measurement.R if R0 is None else as_tensor(R0, "R0", dtype=belief.dtype, device=belief.device)
+        if R0 is None:
+            R0 = self.measurement.R
+        else:
+            R0 = as_tensor(R0, "R0", dtype=belief.dtype, device=belief.device)
         m = R0.shape[-1]
         batch = belief.batch_shape
         dof = torch.full(batch, m + 1 + self.tau_r, dtype=belief.dtype, device=belief.device)
