@@ -28,9 +28,10 @@ PUBLISHED = {"KF-nominal": (4.63, 4.58), "KF-true": (2.77, 3.38), "VBAKF-PR": (2
 
 
 def huang_scenario(runs: int, generator: torch.Generator, *, steps: int = 1000, dtype=torch.float64,
-                   device=None, q: float = 1.0, r: float = 100.0):
+                   device=None, q: float = 1.0, r: float = 100.0, period: float = 1000.0):
     """Truth ``(T, runs, 4)``, measurements ``(T, runs, 2)``, ``Q_k (T, 4, 4)``, ``R_k (T, 2, 2)``,
-    ``x0 (4,)`` and the initial estimates ``(runs, 4)``."""
+    ``x0 (4,)`` and the initial estimates ``(runs, 4)``; the noise levels vary as ``cos(pi k / period)``
+    (the paper's 1000 s, whatever ``steps`` is)."""
     kw = {"dtype": dtype, "device": device}
     dt = 1.0
     eye2 = torch.eye(2, **kw)
@@ -39,9 +40,9 @@ def huang_scenario(runs: int, generator: torch.Generator, *, steps: int = 1000, 
     Q1 = q * torch.cat([torch.cat([dt**3 / 3 * eye2, dt**2 / 2 * eye2], 1),
                         torch.cat([dt**2 / 2 * eye2, dt * eye2], 1)], 0)
     k = torch.arange(1, steps + 1, **kw)
-    Qs = (6.5 + 0.5 * torch.cos(math.pi * k / steps))[:, None, None] * Q1
+    Qs = (6.5 + 0.5 * torch.cos(math.pi * k / period))[:, None, None] * Q1
     R1 = r * torch.tensor([[1.0, 0.5], [0.5, 1.0]], **kw)
-    Rs = (0.1 + 0.05 * torch.cos(math.pi * k / steps))[:, None, None] * R1
+    Rs = (0.1 + 0.05 * torch.cos(math.pi * k / period))[:, None, None] * R1
     x0 = torch.tensor([100.0, 100.0, 10.0, 10.0], **kw)
     P0 = 100.0 * torch.eye(4, **kw)
     x = x0.expand(runs, 4)

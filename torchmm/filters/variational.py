@@ -24,8 +24,10 @@ Inverse-Wishart convention (shared by VBAKF-PR and GIMMAF). ``IW(t, T)`` is the 
 point estimate ``T / (t - n - 1)`` used in the gains (Huang's code) *is* the variational update,
 the prior ``t = n + 1 + tau, T = tau P`` has ``E[P^{-1}]^{-1} = P`` and the fixed-point iterations
 are a coordinate ascent of one ELBO (tested: it never decreases). When ``tau <= n - 1`` that
-prior is improper; its normaliser ``log Gamma_n(tau/2)`` is then left out of the ELBO (it is the
-same for every mode, run and iteration, so mode probabilities are unaffected).
+prior is improper; its normaliser ``log Gamma_n(tau/2)`` is then left out of the ELBO, and when
+``tau + 1 <= n - 1`` also the posterior's ``psi_n``/``log Gamma_n`` terms (they depend on ``tau`` and
+``n`` only: the same for every mode, run and iteration, so mode probabilities and the ELBO's
+monotonicity are unaffected).
 
 Missing data: a measurement with any NaN component is skipped for that run (posterior = prior,
 ``log_likelihood = 0``).
@@ -93,7 +95,9 @@ def wishart_kl(dof_q: float, scale_q: Tensor, dof_p: float, scale_p: Tensor) -> 
         \tfrac{\nu_q - \nu_p}{2}\psi_n(\nu_q/2) + \ln\Gamma_n(\nu_p/2) - \ln\Gamma_n(\nu_q/2)
         + \tfrac{\nu_p}{2}(\ln|\Psi_q| - \ln|\Psi_p|) + \tfrac{\nu_q}{2}(\mathrm{tr}(\Psi_p\Psi_q^{-1}) - n)
 
-    ``ln Gamma_n(dof_p/2)`` is omitted when ``dof_p <= n - 1`` (improper prior; see module doc).
+    Terms that depend on the degrees of freedom only are omitted where they are infinite: ``ln
+    Gamma_n(dof_p/2)`` when ``dof_p <= n - 1``, and ``psi_n(dof_q/2)``, ``ln Gamma_n(dof_q/2)`` when
+    ``dof_q <= n - 1`` (improper inverse Wisharts; see the module doc).
 
     Shapes:
         scale_q, scale_p: ``(*B, n, n)`` -> ``(*B,)``
@@ -103,11 +107,10 @@ def wishart_kl(dof_q: float, scale_q: Tensor, dof_p: float, scale_p: Tensor) -> 
     logdet_q = 2 * Lq.diagonal(dim1=-2, dim2=-1).log().sum(-1)
     logdet_p = 2 * Lp.diagonal(dim1=-2, dim2=-1).log().sum(-1)
     trace = torch.cholesky_solve(scale_p, Lq).diagonal(dim1=-2, dim2=-1).sum(-1)
-    dq = torch.tensor(dof_q, dtype=scale_q.dtype, device=scale_q.device)
-    kl = (
-        0.5 * (dof_q - dof_p) * _mvdigamma(0.5 * dq, n) - torch.mvlgamma(0.5 * dq, n)
-        + 0.5 * dof_p * (logdet_q - logdet_p) + 0.5 * dof_q * (trace - n)
-    )
+    kl = 0.5 * dof_p * (logdet_q - logdet_p) + 0.5 * dof_q * (trace - n)
+    dq = torch.tensor(0.5 * dof_q, dtype=scale_q.dtype, device=scale_q.device)
+    if dof_q > n - 1:
+        kl = kl + 0.5 * (dof_q - dof_p) * _mvdigamma(dq, n) - torch.mvlgamma(dq, n)
     if dof_p > n - 1:
         kl = kl + torch.mvlgamma(torch.tensor(0.5 * dof_p, dtype=scale_q.dtype), n)
     return kl
@@ -411,7 +414,9 @@ class SkewTIWVBFilter(_LinearVBFilter):
         diff = (mean - x_pred).unsqueeze(-1)
         A = cov + diff @ diff.mT
         tr = torch.cholesky_solve(A, L_T).diagonal(dim1=-2, dim2=-1).sum(-1)
-        e_logdet_P = logdet_T - n * math.log(2.0) - _mvdigamma(torch.tensor(0.5 * dof_q, dtype=T.dtype), n)
+        e_logdet_P = logdet_T - n * math.log(2.0)
+        if dof_q > n - 1:  # otherwise an infinite constant (same for every mode and iteration): left out
+            e_logdet_P = e_logdet_P - _mvdigamma(torch.tensor(0.5 * dof_q, dtype=T.dtype), n)
         e_log_px = -0.5 * n * _LOG_2PI - 0.5 * e_logdet_P - 0.5 * dof_q * tr
         neg_kl_P = -wishart_kl(dof_q, T, dof_p, tau * P_nom)
         # measurement, half-normal and gamma terms (independent components)
