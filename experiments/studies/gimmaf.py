@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import logging
 import math
+import time
 
 import torch
 
@@ -154,8 +155,10 @@ def run_unit(g, noise_kind: str, noise_params, runs: int, generator, *, dtype, d
     out = {}
     for name, est in estimators.items():
         b0 = est.initial_belief(start) if name in ("IMM-VBT", "GIMMAF", "VBAKF-PR") else start
+        tic = time.perf_counter()
         traj = run_filter(est, b0, data["z"], record=lambda o: o._replace(prior=None))
         mean = traj.estimate().mean
+        seconds_per_step = (time.perf_counter() - tic) / steps
         extras = traj.extras.get("modes", traj.extras)
         if "modes" in traj.extras:
             w = traj.belief.mode_probs[..., None, None]
@@ -171,6 +174,7 @@ def run_unit(g, noise_kind: str, noise_params, runs: int, generator, *, dtype, d
             "srnfn_P": _srnfn(P_hat, oracle_pred),
             "srnfn_R": _srnfn(R_hat, data["e_cov"].expand_as(R_hat)),
             "finite": bool(torch.isfinite(mean).all()),
+            "seconds_per_step": seconds_per_step,
         }
         if mode_probs is not None:
             entry["mode_probs"] = mode_probs
@@ -221,6 +225,8 @@ def run(ctx: StudyContext) -> None:
     for name, e in main.items():
         pos, vel = torch.tensor(e["pos"]), torch.tensor(e["vel"])
         t2.rows.append([name, pos.mean().item(), vel.mean().item(), e["finite"]])
+        if "seconds_per_step" in e:
+            ctx.results.timing[name] = e["seconds_per_step"]
         ctx.results.metric(name, "pos_armse", pos.mean().item())
         ctx.results.metric(name, "vel_armse", vel.mean().item())
         curves["position RMSE"][name], curves["velocity RMSE"][name] = pos, vel
