@@ -75,8 +75,17 @@ class Oracle:
                     Cxy[s, :, blk(t, i)] = covx[s, t] @ self.C[i].T + xv(s, t, i)
         self.mean, self.covx, self.Ey, self.Cyy, self.Cxy, self.blk = mean, covx, Ey, Cyy, Cxy, blk
 
+    #: optional (T, L, m) bool: which measurement components exist (missing ones are not projected on)
+    present = None
+
     def _index(self, last: int, sensors) -> np.ndarray:
-        idx = [np.arange(self.blk(t, i).start, self.blk(t, i).stop) for t in range(last + 1) for i in sensors]
+        idx = []
+        for t in range(last + 1):
+            for i in sensors:
+                rows = np.arange(self.blk(t, i).start, self.blk(t, i).stop)
+                if self.present is not None:
+                    rows = rows[np.asarray(self.present[t, i], bool)]
+                idx.append(rows)
         return np.concatenate(idx) if idx else np.zeros(0, int)
 
     def gain(self, t: int, last: int, sensors):

@@ -73,12 +73,19 @@ def test_system_validation_errors():
     with pytest.raises(ValueError, match="Q_eta"):
         MultiSensorSystem.from_correlation(**{**good, "Q_eta": [[[-1.0]]]})
     sys = MultiSensorSystem.from_correlation(**good)
-    with pytest.raises(ValueError, match="y:"):
-        local_estimates(sys, torch.full((3, 2, 1, 1), float("nan")))
+    y = torch.zeros(3, 2, 1, 1)
+    y[1, 0] = float("nan")  # missing in run 0 only: the shared gains cannot represent it
+    with pytest.raises(ValueError, match="pattern"):
+        local_estimates(sys, y)
     with pytest.raises(ValueError, match="y:"):
         local_estimates(sys, torch.zeros(3, 2, 2, 1))
     with pytest.raises(ValueError, match="method"):
         fusion_weights(torch.eye(1).expand(2, 2, 1, 1), "median")
+    y_all = torch.zeros(3, 2, 1, 1)
+    y_all[1] = float("nan")  # same pattern in both runs: fine for the time-varying estimators
+    assert bool(torch.isfinite(local_estimates(sys, y_all, 1)[0]).all())
+    with pytest.raises(ValueError, match="steady-state"):
+        steady_fused_estimates(sys, steady_state(sys), y_all, 0)
     unstable = MultiSensorSystem.from_correlation(**{**good, "A": [[1.0]]})
     with pytest.raises(ValueError, match="A:"):
         steady_state(unstable)
@@ -356,3 +363,44 @@ def test_theorem6_closed_sums_match_the_recursion(make):
             assert _rel(printed, rec) < 1e-10
         else:  # i = j, N >= 2: the printed (42) misses E[eps_i xi_i^T]; (39) then differs from (31)
             assert _rel(printed[:, idx, idx], local_covariances(sys, stats, N)) > 1e-4
+
+
+@pytest.mark.parametrize("N", [-2, 0, 2])
+def test_missing_measurements_match_the_oracle_without_them(N):
+    """NaN = missing: the same pattern in every run; estimates equal the projection on the data left."""
+    sys = random_system(3)
+    T = 7
+    sim = simulate_fusion(sys, T, (3,), torch.Generator().manual_seed(8))
+    y = sim.y.clone()
+    present = torch.ones(T, 3, 2, dtype=torch.bool)
+    present[0, 0] = False  # sensor 1 silent at t = 0
+    present[1::2, 1] = False  # sensor 2 at half rate
+    present[2:4, 2, 0] = False  # one component of sensor 3 missing at t = 2, 3
+    y[~present[:, None].expand(T, 3, 3, 2)] = float("nan")
+    orc = oracle(sys, T)
+    orc.present = present.numpy()
+    stats = local_predictor_stats(sys, T, present)
+    cross = cross_predictor_stats(sys, stats)
+    mean, P = local_estimates(sys, y, N, stats)
+    amean, aP = augmented_local_estimates(sys, y, N)
+    Pij = cross_covariances(sys, stats, cross, N)
+    cmean, ccov = centralized_estimates(sys, y, N)
+    assert bool(torch.isfinite(mean).all() & torch.isfinite(cmean).all() & torch.isfinite(Pij).all())
+    assert _rel(mean, amean) < 1e-8 and _rel(P, aP) < 1e-8
+    y0 = torch.nan_to_num(y[:, 0]).numpy()
+    for t in range(T):
+        for i in range(3):
+            np.testing.assert_allclose(mean[t, 0, i].numpy(), orc.estimate(y0, t, N, [i]),
+                                       rtol=1e-8, atol=1e-9)
+            for j in range(3):
+                np.testing.assert_allclose(Pij[t, i, j], orc.error_cov(t, N, [i], [j]),
+                                           rtol=1e-8, atol=1e-10)
+        everyone = [0, 1, 2]
+        np.testing.assert_allclose(ccov[t].numpy(), orc.error_cov(t, N, everyone, everyone),
+                                   rtol=1e-8, atol=1e-10)
+        np.testing.assert_allclose(cmean[t, 0].numpy(), orc.estimate(y0, t, N, everyone),
+                                   rtol=1e-8, atol=1e-9)
+    f = fuse(mean, Pij, "matrix")
+    assert bool(torch.isfinite(f.mean).all())
+    with pytest.raises(ValueError, match="pattern"):
+        local_estimates(sys, sim.y, N, stats)  # complete data against stats for the masked pattern

@@ -6,6 +6,9 @@
 * :mod:`.augmented`: the augmented formulation (12)-(15) and centralized fusion (Remark 10);
 * :mod:`.weights`: matrix / diagonal / scalar weighted fusion (44)-(47);
 * :mod:`.steady`: steady-state gains, cross-covariances and fused estimators (Theorems 7-8).
+
+Missing measurements (NaN) are supported when the pattern is the same in every run (multi-rate
+sensors, dropouts shared by a batch): they become a time-varying measurement model with zero gain.
 """
 
 from torchmm.fusion.augmented import (
@@ -32,7 +35,14 @@ from torchmm.fusion.steady import (
     steady_moments,
     steady_state,
 )
-from torchmm.fusion.system import FusionSimulation, MultiSensorSystem, simulate_fusion
+from torchmm.fusion.system import (
+    FusionSimulation,
+    MeasurementSequence,
+    MultiSensorSystem,
+    measurement_pattern,
+    measurement_sequence,
+    simulate_fusion,
+)
 from torchmm.fusion.weights import FUSION_METHODS, FusedEstimate, fuse, fusion_weights
 
 __all__ = [
@@ -41,6 +51,7 @@ __all__ = [
     "FusedEstimate",
     "FusionSimulation",
     "LocalStats",
+    "MeasurementSequence",
     "MultiSensorSystem",
     "SteadyState",
     "augmented_cross_predictor",
@@ -55,6 +66,8 @@ __all__ = [
     "local_estimates",
     "local_one_step",
     "local_predictor_stats",
+    "measurement_pattern",
+    "measurement_sequence",
     "simulate_fusion",
     "steady_fused_estimates",
     "steady_local_estimates",

@@ -26,7 +26,7 @@ import torch
 from torch import Tensor
 
 from torchmm.beliefs.ops import symmetrize
-from torchmm.fusion.system import MultiSensorSystem
+from torchmm.fusion.system import MultiSensorSystem, measurement_sequence
 
 __all__ = [
     "CorrelatedKFResult",
@@ -65,21 +65,25 @@ class CorrelatedKFResult:
 def correlated_kf(Phi, G, Q, S, Qv, H, x0, P0, y) -> CorrelatedKFResult:
     r"""Kalman filter (filter form) for ``x(t+1) = Phi x + G w``, ``y = H x + v``, ``E[w v^T] = S``.
 
+    ``Q``, ``S``, ``Qv`` and ``H`` are given per step (a missing measurement component is a zero row
+    of ``H`` and ``S^T`` with unit, uncorrelated noise and a zero value, see
+    :class:`~torchmm.fusion.system.MeasurementSequence`).
+
     Shapes:
-        Phi: ``(*S, d, d)``; G: ``(*S, d, q)``; Q: ``(T, *S, q, q)`` (time-varying);
-        S: ``(*S, q, m)``; Qv: ``(*S, m, m)``; H: ``(*S, m, d)``; x0: ``(*S, d)``; P0: ``(*S, d, d)``;
+        Phi: ``(*S, d, d)``; G: ``(*S, d, q)``; Q: ``(T, *S, q, q)``; S: ``(T, *S, q, m)``;
+        Qv: ``(T, *S, m, m)``; H: ``(T, *S, m, d)``; x0: ``(*S, d)``; P0: ``(*S, d, d)``;
         y: ``(T, *B, *S, m)``
     """
     T = y.shape[0]
     x = x0.expand(*y.shape[1:-1], x0.shape[-1])
     P = P0
     xs, xfs, es, Ps, Pfs, Qs, gains = [], [], [], [], [], [], []
-    GS = G @ S
     for t in range(T):
-        Qe = symmetrize(H @ P @ H.mT + Qv)
-        K = _solve_right(P @ H.mT, Qe)
+        Ht, GS = H[t], G @ S[t]
+        Qe = symmetrize(Ht @ P @ Ht.mT + Qv[t])
+        K = _solve_right(P @ Ht.mT, Qe)
         J = _solve_right(GS, Qe)
-        eps = y[t] - (H @ x.unsqueeze(-1)).squeeze(-1)
+        eps = y[t] - (Ht @ x.unsqueeze(-1)).squeeze(-1)
         xf = x + (K @ eps.unsqueeze(-1)).squeeze(-1)
         Pf = symmetrize(P - K @ Qe @ K.mT)
         xs.append(x), xfs.append(xf), es.append(eps), Ps.append(P), Pfs.append(Pf), Qs.append(Qe)
@@ -113,7 +117,7 @@ def correlated_kf_estimates(res: CorrelatedKFResult, Phi, G, Q, H, x0, P0, N: in
     for k in range(N + 1):
         valid = (torch.arange(T, device=mean.device) + k < T).to(mean.dtype)
         idx = torch.clamp(torch.arange(T, device=mean.device) + k, max=T - 1)
-        Kg = _solve_right(Om @ H.mT, res.Qeps[idx]) * valid.reshape(T, *([1] * (Om.dim() - 1)))
+        Kg = _solve_right(Om @ H[idx].mT, res.Qeps[idx]) * valid.reshape(T, *([1] * (Om.dim() - 1)))
         Kb = Kg.reshape(T, *([1] * (mean.dim() - Kg.dim() + 1)), *Kg.shape[1:])
         mean = mean + (Kb @ res.eps[idx].unsqueeze(-1)).squeeze(-1)
         cov = symmetrize(cov - Kg @ res.Qeps[idx] @ Kg.mT)
@@ -130,21 +134,23 @@ def _blockdiag2(a: Tensor, b: Tensor) -> Tensor:
     return torch.cat([top, bottom], -2)
 
 
-def augmented_system(system: MultiSensorSystem, steps: int):
+def augmented_system(system: MultiSensorSystem, steps: int, present: Tensor | None = None):
     """Matrices (14)-(15) of every sensor's augmented system, sensor axis ``L`` as ``*S``.
 
-    Returns ``(Phi (L, 2n, 2n), G (L, 2n, p+n), Q (T, L, p+n, p+n), S (L, p+n, m), Qv (L, m, m),
-    H (L, m, 2n), x0 (L, 2n), P0 (L, 2n, 2n))``.
+    Returns ``(Phi (L, 2n, 2n), G (L, 2n, p+n), Q (T, L, p+n, p+n), S (T, L, p+n, m),
+    Qv (T, L, m, m), H (T, L, m, 2n), x0 (L, 2n), P0 (L, 2n, 2n))``; ``present (T, L, m)`` masks
+    missing components.
     """
+    meas = measurement_sequence(system, steps, present)
     n, L = system.state_dim, system.num_sensors
     Xi, _, Qxi = system.second_moments(steps)
     eye = torch.eye(n, dtype=Xi.dtype, device=Xi.device)
     Phi = _blockdiag2(system.A.expand(L, n, n), system.Phi)
     G = _blockdiag2(system.Gamma.expand(L, *system.Gamma.shape), eye.expand(L, n, n))
     Q = _blockdiag2(system.Qw.expand(steps, L, *system.Qw.shape), Qxi)
-    S = torch.cat([system.R, system.R.new_zeros(L, n, system.meas_dim)], dim=-2)
-    Qv = system.Qv.diagonal(dim1=0, dim2=1).permute(2, 0, 1)
-    H = torch.cat([system.C, system.Ct], dim=-1)
+    S = torch.cat([meas.R, meas.R.new_zeros(steps, L, n, system.meas_dim)], dim=-2)
+    Qv = meas.Qv.diagonal(dim1=1, dim2=2).permute(0, 3, 1, 2)
+    H = torch.cat([meas.C, meas.Ct], dim=-1)
     x0 = torch.cat([system.mu0.expand(L, n), system.mu0.new_zeros(L, n)], -1)
     P0 = _blockdiag2(system.P0.expand(L, n, n), system.Qr0[:, None, None] * Xi[0])
     return Phi, G, Q, S, Qv, H, x0, P0
@@ -158,17 +164,20 @@ def augmented_local_estimates(system: MultiSensorSystem, y: Tensor, N: int = 0):
     """
     from torchmm.fusion.local import check_measurements
 
-    check_measurements(system, y)
+    present = check_measurements(system, y)
+    if present is not None:
+        y = torch.where(torch.isnan(y), torch.zeros_like(y), y)
     n = system.state_dim
-    mats = augmented_system(system, y.shape[0])
-    Phi, G, Q, S, Qv, H, x0, P0 = mats
+    Phi, G, Q, S, Qv, H, x0, P0 = augmented_system(system, y.shape[0], present)
     res = correlated_kf(Phi, G, Q, S, Qv, H, x0, P0, y)
     mean, cov = correlated_kf_estimates(res, Phi, G, Q, H, x0, P0, N)
     return mean[..., :n], cov[..., :n, :n]
 
 
-def centralized_system(system: MultiSensorSystem, steps: int):
-    """Remark 10: matrices of the centralized augmented system ``[x; x^r_1; ..; x^r_L]``."""
+def centralized_system(system: MultiSensorSystem, steps: int, present: Tensor | None = None):
+    """Remark 10: matrices of the centralized augmented system ``[x; x^r_1; ..; x^r_L]``
+    (``S``, ``Qv``, ``H`` per step, as :func:`correlated_kf` takes them)."""
+    meas = measurement_sequence(system, steps, present)
     n, L, m, p = system.state_dim, system.num_sensors, system.meas_dim, system.noise_dim
     Xi, _, Qxi = system.second_moments(steps)
     d = n * (L + 1)
@@ -176,9 +185,12 @@ def centralized_system(system: MultiSensorSystem, steps: int):
     Phi = torch.block_diag(system.A, *system.Phi.unbind(0))
     G = torch.block_diag(system.Gamma, torch.eye(n * L, **kw))
     Q = torch.stack([torch.block_diag(system.Qw, *Qxi[t].unbind(0)) for t in range(steps)])
-    S = torch.cat([system.R.permute(1, 0, 2).reshape(p, L * m), torch.zeros(n * L, L * m, **kw)], 0)
-    Qv = system.stacked_Qv()
-    H = torch.cat([system.C.reshape(L * m, n), torch.block_diag(*system.Ct.unbind(0))], dim=-1)
+    T = steps
+    S = torch.cat([meas.R.permute(0, 2, 1, 3).reshape(T, p, L * m), torch.zeros(T, n * L, L * m, **kw)], 1)
+    Qv = meas.Qv.permute(0, 1, 3, 2, 4).reshape(T, L * m, L * m)
+    eye_L = torch.eye(L, **kw)
+    Ct_blocks = (eye_L[:, None, :, None] * meas.Ct[:, :, :, None, :]).reshape(T, L * m, L * n)
+    H = torch.cat([meas.C.reshape(T, L * m, n), Ct_blocks], dim=-1)
     x0 = torch.cat([system.mu0, torch.zeros(n * L, **kw)])
     P0 = torch.block_diag(system.P0, *(system.Qr0[:, None, None] * Xi[0]).unbind(0))
     assert Phi.shape == (d, d)
@@ -193,9 +205,11 @@ def centralized_estimates(system: MultiSensorSystem, y: Tensor, N: int = 0):
     """
     from torchmm.fusion.local import check_measurements
 
-    check_measurements(system, y)
+    present = check_measurements(system, y)
+    if present is not None:
+        y = torch.where(torch.isnan(y), torch.zeros_like(y), y)
     n = system.state_dim
-    Phi, G, Q, S, Qv, H, x0, P0 = centralized_system(system, y.shape[0])
+    Phi, G, Q, S, Qv, H, x0, P0 = centralized_system(system, y.shape[0], present)
     res = correlated_kf(Phi, G, Q, S, Qv, H, x0, P0, y.flatten(-2))
     mean, cov = correlated_kf_estimates(res, Phi, G, Q, H, x0, P0, N)
     return mean[..., :n], cov[..., :n, :n]
@@ -231,7 +245,7 @@ def augmented_cross_predictor(system: MultiSensorSystem, steps: int) -> Tensor:
         Li, Lj = Lb[:, None], Lb[None]
         Qw_ij = Q[t][:, None].clone().expand(L, L, *Q.shape[-2:]).clone()
         Qw_ij[..., system.noise_dim:, system.noise_dim:] *= eye
-        Si, Sj = S[:, None], S[None]
+        Si, Sj = S[t][:, None], S[t][None]
         Pb = (Psi[t][:, None] @ Pb @ Psi[t][None].mT + Gi @ Qw_ij @ Gj.mT - Gi @ Sj @ Lj.mT
               - Li @ Si.mT @ Gj.mT + Li @ system.Qv @ Lj.mT)
     return torch.stack(out)

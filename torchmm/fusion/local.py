@@ -19,6 +19,10 @@ Readings of the printed equations (see ``docs/reproduction-002.md``):
   that the proof (E4), (C3), (C4), (G1) starts from, rather than the nested closed sums.
 * measurements start at ``t = 0`` (initial values ``x^(0|-1) = mu0``); the N-step predictor for
   ``t + N + 1 < 0`` is the prior; the smoother for ``t + N > T - 1`` uses the data up to ``T - 1``.
+
+Missing measurements (NaN) are handled as a time-varying measurement model
+(:class:`~torchmm.fusion.system.MeasurementSequence`): their gains are exactly zero. The pattern
+must be the same for all runs.
 """
 
 from __future__ import annotations
@@ -29,7 +33,12 @@ import torch
 from torch import Tensor
 
 from torchmm.beliefs.ops import symmetrize
-from torchmm.fusion.system import MultiSensorSystem
+from torchmm.fusion.system import (
+    MeasurementSequence,
+    MultiSensorSystem,
+    measurement_pattern,
+    measurement_sequence,
+)
 
 __all__ = [
     "LocalStats",
@@ -45,17 +54,20 @@ __all__ = [
 ]
 
 
-def check_measurements(system: MultiSensorSystem, y: Tensor) -> None:
-    """``y (T, *B, L, m)``; NaN (missing) values are rejected: the gains are computed offline."""
-    if y.dim() < 3 or tuple(y.shape[-2:]) != (system.num_sensors, system.meas_dim):
-        raise ValueError(
-            f"y: expected shape (T, *B, {system.num_sensors}, {system.meas_dim}), got {tuple(y.shape)}"
-        )
-    if bool(torch.isnan(y).any()):
-        raise ValueError(
-            "y: contains NaN (missing) measurements; the fusion estimators precompute their gains "
-            "for complete data and do not support missing measurements"
-        )
+def check_measurements(system: MultiSensorSystem, y: Tensor, stats: "LocalStats | None" = None):
+    """Validate ``y (T, *B, L, m)`` and return its missing pattern ``(T, L, m)`` (``None``: complete).
+
+    With ``stats``, the pattern must be the one the statistics were computed for.
+    """
+    present = measurement_pattern(system, y)
+    if stats is not None:
+        want = stats.meas.present
+        same = (present is None and want is None) or (
+            present is not None and want is not None and present.shape == want.shape
+            and bool((present == want).all()))
+        if not same:
+            raise ValueError("y: its missing (NaN) pattern differs from the one `stats` were computed for")
+    return present
 
 
 def _solve_right(G: Tensor, S: Tensor) -> Tensor:
@@ -69,7 +81,8 @@ class LocalStats:
 
     Shapes:
         Px, Pr, Pxr: ``(T, L, n, n)`` (``P^x``, ``P^{x^r}``, ``P^{xx^r}``); Qeps: ``(T, L, m, m)``
-        Lx, Lr: ``(T, L, n, m)`` (``L_i``, ``L^{x^r}_i``); Qxi: ``(T, L, n, n)``
+        Lx, Lr: ``(T, L, n, m)`` (``L_i``, ``L^{x^r}_i``); Qxi: ``(T, L, n, n)``;
+        meas: the measurement model per step (:class:`MeasurementSequence`, ``T`` steps)
     """
 
     Px: Tensor
@@ -79,20 +92,23 @@ class LocalStats:
     Lx: Tensor
     Lr: Tensor
     Qxi: Tensor
+    meas: MeasurementSequence
     stationary: bool = False
 
     def at(self, t: int) -> "LocalStats":
         k = 0 if self.stationary else t
-        return LocalStats(*(getattr(self, f)[k] for f in ("Px", "Pr", "Pxr", "Qeps", "Lx", "Lr", "Qxi")))
+        return LocalStats(*(getattr(self, f)[k] for f in ("Px", "Pr", "Pxr", "Qeps", "Lx", "Lr", "Qxi")),
+                          meas=self.meas)
 
 
-def _local_gains(system: MultiSensorSystem, Px, Pr, Pxr):
-    """Innovation covariance (17) and gains (20), (21). Shapes ``(..., L, n, n)``."""
-    C, Ct, A, Phi = system.C, system.Ct, system.A, system.Phi
+def _local_gains(system: MultiSensorSystem, meas_t, Px, Pr, Pxr):
+    """Innovation covariance (17) and gains (20), (21) with ``meas_t = (C, C~, R, Q^v)`` of one step."""
+    C, Ct, R, Qv = meas_t
+    A, Phi = system.A, system.Phi
     PCt = Px @ C.mT + Pxr @ Ct.mT  # E[x~ eps^T]   (L, n, m)
     PrCt = Pxr.mT @ C.mT + Pr @ Ct.mT  # E[x~^r eps^T]
-    Qeps = symmetrize(C @ PCt + Ct @ PrCt + system.Qv.diagonal(dim1=0, dim2=1).permute(2, 0, 1))
-    Lx = _solve_right(A @ PCt + system.Gamma @ system.R, Qeps)
+    Qeps = symmetrize(C @ PCt + Ct @ PrCt + Qv.diagonal(dim1=0, dim2=1).permute(2, 0, 1))
+    Lx = _solve_right(A @ PCt + system.Gamma @ R, Qeps)
     Lr = _solve_right(Phi @ PrCt, Qeps)
     return Qeps, Lx, Lr
 
@@ -106,14 +122,16 @@ def _local_riccati(system: MultiSensorSystem, Px, Pr, Pxr, Qeps, Lx, Lr, Qxi):
     return Px1, Pr1, Pxr1
 
 
-def local_predictor_stats(system: MultiSensorSystem, steps: int) -> LocalStats:
+def local_predictor_stats(system: MultiSensorSystem, steps: int, present: Tensor | None = None) -> LocalStats:
     r"""Theorem 1: gains and one-step prediction covariances of every sensor, ``t = 0..T-1``.
 
     Initial values ``P^x(0|-1) = P0``, ``P^{x^r}(0|-1) = Q^{r_0}_i Xi(0)``, ``P^{xx^r}(0|-1) = 0``.
+    ``present (T, L, m)``: which measurement components exist (``None``: all).
 
     Shapes:
         -> :class:`LocalStats` with leading ``(T, L)``
     """
+    meas = measurement_sequence(system, steps, present)
     L, n = system.num_sensors, system.state_dim
     Xi, _, Qxi = system.second_moments(steps)
     Px = system.P0.expand(L, n, n)
@@ -121,11 +139,11 @@ def local_predictor_stats(system: MultiSensorSystem, steps: int) -> LocalStats:
     Pxr = torch.zeros_like(Pr)
     out = {k: [] for k in ("Px", "Pr", "Pxr", "Qeps", "Lx", "Lr")}
     for t in range(steps):
-        Qeps, Lx, Lr = _local_gains(system, Px, Pr, Pxr)
+        Qeps, Lx, Lr = _local_gains(system, meas.at(t), Px, Pr, Pxr)
         for k, v in zip(out, (Px, Pr, Pxr, Qeps, Lx, Lr)):
             out[k].append(v)
         Px, Pr, Pxr = _local_riccati(system, Px, Pr, Pxr, Qeps, Lx, Lr, Qxi[t])
-    return LocalStats(**{k: torch.stack(v) for k, v in out.items()}, Qxi=Qxi)
+    return LocalStats(**{k: torch.stack(v) for k, v in out.items()}, Qxi=Qxi, meas=meas)
 
 
 def local_one_step(system: MultiSensorSystem, stats: LocalStats, y: Tensor):
@@ -135,16 +153,22 @@ def local_one_step(system: MultiSensorSystem, stats: LocalStats, y: Tensor):
         y: ``(T, *B, L, m)`` -> x_pred ``(T, *B, L, n)`` (``x^_i(t|t-1)``), xr_pred ``(T, *B, L, n)``,
         eps ``(T, *B, L, m)``
     """
-    check_measurements(system, y)
+    if stats.stationary:
+        if check_measurements(system, y) is not None:
+            raise ValueError("y: the steady-state estimators need complete data (no NaN measurements)")
+    else:
+        if check_measurements(system, y, stats) is not None:
+            y = torch.where(torch.isnan(y), torch.zeros_like(y), y)  # masked rows: C = C~ = 0, eps = 0
     T = y.shape[0]
     B = y.shape[1:-2]
     L, n = system.num_sensors, system.state_dim
     x = system.mu0.expand(*B, L, n)
     xr = torch.zeros(*B, L, n, dtype=y.dtype, device=y.device)
-    A, Phi, C, Ct = system.A, system.Phi, system.C, system.Ct
+    A, Phi = system.A, system.Phi
     xs, xrs, es = [], [], []
     for t in range(T):
         st = stats.at(t)
+        C, Ct = stats.meas.at(t)[:2]
         eps = y[t] - (C @ x.unsqueeze(-1) + Ct @ xr.unsqueeze(-1)).squeeze(-1)
         xs.append(x), xrs.append(xr), es.append(eps)
         x = x @ A.T + (st.Lx @ eps.unsqueeze(-1)).squeeze(-1)
@@ -207,7 +231,8 @@ def local_estimates(system: MultiSensorSystem, y: Tensor, N: int = 0, stats: Loc
         ((20, 8, 2, 1), (20, 2, 1, 1))
     """
     T = y.shape[0]
-    stats = local_predictor_stats(system, T) if stats is None else stats
+    if stats is None:
+        stats = local_predictor_stats(system, T, check_measurements(system, y))
     x_pred, _, eps = local_one_step(system, stats, y)
     return _local_from_pred(system, stats, x_pred, eps, N)
 
@@ -228,7 +253,7 @@ def _local_from_pred(system, stats: LocalStats, x_pred, eps, N: int, steps: int 
         if stats.stationary:  # steady state: the limit, no prior transient
             cov = _steady_pred_cov(system, stats.Px[0], -N - 1).expand_as(Px)
         return mean, cov
-    C, Ct, A, Phi = system.C, system.Ct, system.A, system.Phi
+    A, Phi = system.A, system.Phi
     mean, cov = x_pred, Px
     Om_x = Px
     Om_r = stats.Pxr.expand_as(Px) if stats.stationary else stats.Pxr
@@ -236,9 +261,11 @@ def _local_from_pred(system, stats: LocalStats, x_pred, eps, N: int, steps: int 
     for k in range(N + 1):
         if stats.stationary:
             Qe, Lx, Lr = stats.Qeps, stats.Lx, stats.Lr
+            C, Ct = stats.meas.C, stats.meas.Ct
         else:
             Qe = _shift(stats.Qeps, k, eye)
             Lx, Lr = _shift(stats.Lx, k), _shift(stats.Lr, k)
+            C, Ct = _shift(stats.meas.C, k), _shift(stats.meas.Ct, k)
         valid = _valid(T, k, Px)[:, None, None, None]
         K = _solve_right(Om_x @ C.mT + Om_r @ Ct.mT, Qe)  # (T, L, n, m)
         if not stats.stationary:
@@ -293,25 +320,27 @@ def _tr(x: Tensor) -> Tensor:
     return x.transpose(-4, -3).mT
 
 
-def _cross_innovation(system, P, Pr, Pxr):
-    """(33), (34), (36) for all pairs. Shapes ``(..., L, L, n, n)``."""
-    Ci, Cj = system.C[:, None], system.C[None]
-    Cti, Ctj = system.Ct[:, None], system.Ct[None]
+def _cross_innovation(meas_t, P, Pr, Pxr):
+    """(33), (34), (36) for all pairs; ``meas_t = (C, C~, R, Q^v)``. Shapes ``(..., L, L, n, n)``."""
+    C, Ct, _, Qv = meas_t
+    Ci, Cj = C[:, None], C[None]
+    Cti, Ctj = Ct[:, None], Ct[None]
     Pxe = P @ Cj.mT + Pxr @ Ctj.mT  # E[x~_i eps_j^T]        (33)
     Pre = _tr(Pxr) @ Cj.mT + Pr @ Ctj.mT  # E[x~^r_i eps_j^T]  (36)
-    Qeps = Ci @ Pxe + Cti @ Pre + system.Qv  # (34)
+    Qeps = Ci @ Pxe + Cti @ Pre + Qv  # (34)
     return Pxe, Pre, Qeps
 
 
-def _cross_step(system, P, Pr, Pxr, Lx, Lr, Qxi):
+def _cross_step(system, meas_t, P, Pr, Pxr, Lx, Lr, Qxi):
     """(32), (35), (37): one step for all pairs; ``Lx, Lr (L, n, m)``, ``Qxi (L, n, n)``."""
     A, G = system.A, system.Gamma
     Phi_i, Phi_j = system.Phi[:, None], system.Phi[None]
     Li, Lj = Lx[:, None], Lx[None]
     Lri, Lrj = Lr[:, None], Lr[None]
-    Ri = system.R[:, None]  # (L, 1, p, m)
-    Rj = system.R[None]
-    Pxe, Pre, Qeps = _cross_innovation(system, P, Pr, Pxr)
+    R = meas_t[2]
+    Ri = R[:, None]  # (L, 1, p, m)
+    Rj = R[None]
+    Pxe, Pre, Qeps = _cross_innovation(meas_t, P, Pr, Pxr)
     P1 = (A @ P @ A.T - A @ Pxe @ Lj.mT - Li @ _tr(Pxe) @ A.T + Li @ Qeps @ Lj.mT
           - Li @ Ri.mT @ G.T - G @ Rj @ Lj.mT + system.GQG)
     eye = torch.eye(system.num_sensors, dtype=P.dtype, device=P.device)[..., None, None]
@@ -342,7 +371,7 @@ def cross_predictor_stats(system: MultiSensorSystem, stats: LocalStats,
     out = {k: [] for k in ("P", "Pr", "Pxr", "Qeps")}
     for t in range(T):
         st = stats.at(t)
-        P1, Pr1, Pxr1, Qeps = _cross_step(system, P, Pr, Pxr, st.Lx, st.Lr, st.Qxi)
+        P1, Pr1, Pxr1, Qeps = _cross_step(system, stats.meas.at(t), P, Pr, Pxr, st.Lx, st.Lr, st.Qxi)
         for k, v in zip(out, (P, Pr, Pxr, Qeps)):
             out[k].append(v)
         P, Pr, Pxr = symmetrize_pairs(P1), symmetrize_pairs(Pr1), Pxr1
@@ -350,10 +379,10 @@ def cross_predictor_stats(system: MultiSensorSystem, stats: LocalStats,
 
 
 def _augmented_blocks(system, stats: LocalStats):
-    """``C^- = [C, C~]`` (L, m, 2n), ``L^- = [L; L^r]`` (T, L, 2n, m), ``Psi = Phi^- - L^- C^-``
-    (T, L, 2n, 2n)."""
+    """``C^- = [C, C~]`` (T, L, m, 2n), ``L^- = [L; L^r]`` (T, L, 2n, m), ``Psi = Phi^- - L^- C^-``
+    (T, L, 2n, 2n); ``T = 1`` for stationary statistics."""
     n, L = system.state_dim, system.num_sensors
-    Cbar = torch.cat([system.C, system.Ct], dim=-1)
+    Cbar = torch.cat([stats.meas.C, stats.meas.Ct], dim=-1)
     Lbar = torch.cat([stats.Lx, stats.Lr], dim=-2)
     Phibar = torch.zeros(L, 2 * n, 2 * n, dtype=Cbar.dtype, device=Cbar.device)
     Phibar[:, :n, :n] = system.A
@@ -400,27 +429,30 @@ def cross_covariances(system: MultiSensorSystem, stats: LocalStats, cross: Cross
     Qe_loc = stats.Qeps
     E = P_pred
     X = Pbar[..., :n, :] if not stat else Pbar[..., :n, :].expand(T, *Pbar.shape[1:-2], n, 2 * n)
-    RG = torch.cat([system.R.mT @ system.Gamma.T, torch.zeros(L, m, n, dtype=E.dtype, device=E.device)], -1)
+    R, Qv = stats.meas.R, stats.meas.Qv  # (T, L, p, m), (T, L, L, m, m)
+    RG = torch.cat([R.mT @ system.Gamma.T, R.new_zeros(*R.shape[:2], m, n)], -1)  # [R_i^T Gamma^T, 0]
     eye_m = torch.eye(m, dtype=E.dtype, device=E.device)
-    Ci, Cj = Cbar[:, None], Cbar[None]
     idx = torch.arange(L, device=E.device)
     for k in range(N + 1):
         if stat:
             Pb, Qk, Psik, Lk, Qlk, valid = Pbar, Qe, Psi, Lbar, Qe_loc, None
+            Cb, RGk, Qvk = Cbar, RG, Qv
         else:
             Pb, Qk = _shift(Pbar, k), _shift(Qe, k)
             Psik, Lk = _shift(Psi, k), _shift(Lbar, k)
             Qlk = _shift(Qe_loc, k, eye_m)
+            Cb, RGk, Qvk = _shift(Cbar, k), _shift(RG, k), _shift(Qv, k)
             valid = _valid(T, k, E)
         Xii = X[:, idx, idx]  # (T, L, n, 2n)
-        K = _solve_right(Xii @ Cbar.mT, Qlk)  # (T, L, n, m)
+        K = _solve_right(Xii @ Cb.mT, Qlk)  # (T, L, n, m)
         if valid is not None:
             K = K * valid[:, None, None, None]
         Ki, Kj = K[:, :, None], K[:, None, :]
+        Ci, Cj = Cb[:, :, None], Cb[:, None]
         XC = X @ Cj.mT  # E[e_i eps_j^T] minus the v term (e_i is orthogonal to v_j(s))
         E = symmetrize_pairs(E - XC @ Kj.mT - Ki @ _tr(XC) + Ki @ Qk @ Kj.mT)
-        X = ((X - Ki @ Ci @ Pb) @ Psik[:, None].mT - Ki @ RG[:, None]
-             + Ki @ system.Qv @ Lk[:, None].mT)
+        X = ((X - Ki @ Ci @ Pb) @ Psik[:, None].mT - Ki @ RGk[:, :, None]
+             + Ki @ Qvk @ Lk[:, None].mT)
     return E
 
 
@@ -453,6 +485,8 @@ def theorem6_cross_covariances(system: MultiSensorSystem, stats: LocalStats, cro
         raise ValueError(f"N: Theorem 6 covers N >= 0, got {N}")
     if stats.stationary:
         raise ValueError("stats: Theorem 6's closed sums are evaluated for the time-varying statistics")
+    if stats.meas.present is not None:
+        raise ValueError("stats: Theorem 6's closed sums are implemented for complete data only")
     T = stats.Px.shape[0]
     A, G, C, Ct = system.A, system.Gamma, system.C, system.Ct
     h = system.h

@@ -24,6 +24,7 @@ from torchmm.beliefs.ops import symmetrize
 from torchmm.fusion.local import (
     CrossStats,
     LocalStats,
+    _cross_innovation,
     _cross_step,
     _local_from_pred,
     _local_gains,
@@ -31,7 +32,7 @@ from torchmm.fusion.local import (
     local_one_step,
     symmetrize_pairs,
 )
-from torchmm.fusion.system import MultiSensorSystem
+from torchmm.fusion.system import MultiSensorSystem, measurement_sequence
 from torchmm.fusion.weights import fusion_weights
 
 __all__ = [
@@ -138,16 +139,17 @@ def steady_state(system: MultiSensorSystem, tol: float = 1e-12, max_iter: int = 
         if change <= tol:
             break
     Px, Pr, Pxr = P[:, :n, :n], P[:, n:, n:], P[:, :n, n:]
-    Qeps, Lx, Lr = _local_gains(system, Px, Pr, Pxr)
+    meas = measurement_sequence(system, 1)
+    Qeps, Lx, Lr = _local_gains(system, meas.at(0), Px, Pr, Pxr)
     stats = LocalStats(Px[None], Pr[None], Pxr[None], Qeps[None], Lx[None], Lr[None], Qxi[None],
-                       stationary=True)
+                       meas=meas, stationary=True)
     # Remark 9: cross-covariances with the fixed gains, from any initial value (here zero)
     Pij = torch.zeros(L, L, n, n, dtype=Xi.dtype, device=Xi.device)
     Prij = torch.zeros_like(Pij)
     Pxrij = torch.zeros_like(Pij)
     cit = 0
     for cit in range(1, max_iter + 1):
-        P1, Pr1, Pxr1, Qe_ij = _cross_step(system, Pij, Prij, Pxrij, Lx, Lr, Qxi)
+        P1, Pr1, Pxr1, Qe_ij = _cross_step(system, meas.at(0), Pij, Prij, Pxrij, Lx, Lr, Qxi)
         P1, Pr1 = symmetrize_pairs(P1), symmetrize_pairs(Pr1)
         scale = max(float(P1.abs().max()), float(Pr1.abs().max()), 1e-300)
         change = max(float((P1 - Pij).abs().max()), float((Pr1 - Prij).abs().max()),
@@ -155,9 +157,7 @@ def steady_state(system: MultiSensorSystem, tol: float = 1e-12, max_iter: int = 
         Pij, Prij, Pxrij = P1, Pr1, Pxr1
         if change <= tol:
             break
-    from torchmm.fusion.local import _cross_innovation
-
-    Qe_ij = _cross_innovation(system, Pij, Prij, Pxrij)[2]
+    Qe_ij = _cross_innovation(meas.at(0), Pij, Prij, Pxrij)[2]
     cross = CrossStats(Pij[None], Prij[None], Pxrij[None], Qe_ij[None], stationary=True)
     return SteadyState(stats, cross, P, torch.cat([Lx, Lr], dim=-2), it, cit)
 

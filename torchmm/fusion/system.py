@@ -31,7 +31,14 @@ from torch import Tensor
 from torchmm.beliefs.ops import psd_sqrt, symmetrize
 from torchmm.validation import as_tensor, check_covariance, check_shape, check_square
 
-__all__ = ["MultiSensorSystem", "FusionSimulation", "simulate_fusion"]
+__all__ = [
+    "MultiSensorSystem",
+    "FusionSimulation",
+    "MeasurementSequence",
+    "measurement_pattern",
+    "measurement_sequence",
+    "simulate_fusion",
+]
 
 
 @dataclass(frozen=True)
@@ -291,3 +298,70 @@ def simulate_fusion(system: MultiSensorSystem, steps: int, batch_shape=(),
         x = x @ system.A.T + w @ system.Gamma.T
         r = system.h * r + torch.randn(*B, L, **kw) * qp_sqrt
     return FusionSimulation(torch.stack(xs), torch.stack(rs), torch.stack(ys))
+
+
+@dataclass(frozen=True)
+class MeasurementSequence:
+    r"""Per-step measurement model with missing components masked out.
+
+    A missing component (NaN in ``y``) is the same as a measurement row with ``C = C~ = 0``, no
+    correlation (``R``, ``Q^v_ij`` rows zero) and an independent unit-variance noise, observed as 0:
+    the paper's equations then hold unchanged with time-varying matrices, and the gains of missing
+    components are exactly zero. The pattern must be the same for all runs (the gains are shared).
+
+    Shapes:
+        C, Ct: ``(T, L, m, n)``; R: ``(T, L, p, m)``; Qv: ``(T, L, L, m, m)``;
+        present: ``(T, L, m)`` bool, or ``None`` (complete data)
+    """
+
+    C: Tensor
+    Ct: Tensor
+    R: Tensor
+    Qv: Tensor
+    present: Tensor | None = None
+
+    def at(self, t: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        k = 0 if self.C.shape[0] == 1 else t
+        return self.C[k], self.Ct[k], self.R[k], self.Qv[k]
+
+
+def measurement_sequence(system: MultiSensorSystem, steps: int,
+                         present: Tensor | None = None) -> MeasurementSequence:
+    """Build the :class:`MeasurementSequence` of ``steps`` steps (``present (T, L, m)`` or ``None``)."""
+    if present is None:
+        T = steps
+        return MeasurementSequence(system.C.expand(T, *system.C.shape), system.Ct.expand(T, *system.Ct.shape),
+                                   system.R.expand(T, *system.R.shape), system.Qv.expand(T, *system.Qv.shape))
+    L, m = system.num_sensors, system.meas_dim
+    if tuple(present.shape) != (steps, L, m):
+        raise ValueError(f"present: expected shape {(steps, L, m)}, got {tuple(present.shape)}")
+    M = present.to(system.C.dtype)
+    C = M[..., None] * system.C
+    Ct = M[..., None] * system.Ct
+    R = system.R * M[:, :, None, :]
+    eye_L = torch.eye(L, dtype=M.dtype, device=M.device)[..., None, None]
+    Qv = (M[:, :, None, :, None] * system.Qv * M[:, None, :, None, :]
+          + eye_L * torch.diag_embed(1 - M)[:, :, None])
+    return MeasurementSequence(C, Ct, R, Qv, present.clone())
+
+
+def measurement_pattern(system: MultiSensorSystem, y: Tensor) -> Tensor | None:
+    """Missing-data pattern ``(T, L, m)`` of ``y (T, *B, L, m)`` (``None`` when complete).
+
+    Raises:
+        ValueError: if ``y`` has the wrong shape or the pattern differs between runs.
+    """
+    if y.dim() < 3 or tuple(y.shape[-2:]) != (system.num_sensors, system.meas_dim):
+        raise ValueError(
+            f"y: expected shape (T, *B, {system.num_sensors}, {system.meas_dim}), got {tuple(y.shape)}"
+        )
+    missing = torch.isnan(y)
+    if not bool(missing.any()):
+        return None
+    flat = missing.reshape(y.shape[0], -1, *y.shape[-2:])
+    if not bool((flat == flat[:, :1]).all()):
+        raise ValueError(
+            "y: the missing (NaN) pattern differs between runs; the fusion estimators share their "
+            "gains across runs and support missing measurements only with one pattern for all runs"
+        )
+    return ~flat[:, 0]
