@@ -1,0 +1,207 @@
+"""Particle filters: PF ~ KF on linear-Gaussian models (Monte Carlo error), shapes, missing data,
+the all-underflow guard, IMM over a PF bank, and the multiple-model PF's interaction step."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from torchmm import IMM, GaussianBelief, KalmanFilter, run_filter
+from torchmm.beliefs import ParticleBelief
+from torchmm.filters.particle import (
+    MultipleModelParticleFilter,
+    ParticleFilter,
+    gaussian_log_likelihood,
+    mixing_indices,
+    noise_factor,
+)
+from torchmm.models import ConstantVelocity, PositionMeasurement
+from torchmm.simulate import simulate_jump_system, simulate_measurements
+
+PI3 = (torch.full((3, 3), 0.05) + 0.85 * torch.eye(3)).double()
+
+
+def _linear_data(steps: int, runs: int, seed: int = 0):
+    g = torch.Generator().manual_seed(seed)
+    prior = GaussianBelief.create([0.0, 1.0], [[4.0, 0.0], [0.0, 1.0]])
+    truth = simulate_jump_system(ConstantVelocity(1, q=0.5, acceleration=[[0.0]]), torch.ones(1, 1), prior,
+                                 steps, (runs,), generator=g)
+    sensor = PositionMeasurement(2, [0], 1.0)
+    return prior, sensor, simulate_measurements(sensor, truth.states, generator=g)
+
+
+def test_pf_matches_kalman_filter_within_monte_carlo_error():
+    """64 independent PFs (2000 particles) on the same data: their average posterior mean is the
+    KF mean within 6 standard errors; the likelihood estimate is unbiased in linear space."""
+    steps, reps = 10, 64
+    prior, sensor, z = _linear_data(steps, 2)
+    motion = ConstantVelocity(1, q=0.5)
+    kf = run_filter(KalmanFilter(motion, sensor), prior.expand(2), z)
+    pf = ParticleFilter(motion, sensor, generator=torch.Generator().manual_seed(5))
+    traj = run_filter(pf, pf.initial_belief(prior.expand(reps, 2), 2000), z.unsqueeze(1).expand(steps, reps, 2, 1))
+    ek, ep = kf.estimate(), traj.estimate()
+    se = ep.mean.std(1) / math.sqrt(reps)
+    zscore = (ep.mean.mean(1) - ek.mean) / se
+    assert float(zscore.abs().max()) < 6.0
+    var_ratio = ep.cov.diagonal(dim1=-2, dim2=-1).mean(1) / ek.cov.diagonal(dim1=-2, dim2=-1)
+    assert float((var_ratio - 1).abs().max()) < 0.1
+    ratio = torch.exp(traj.log_likelihood.sum(0) - kf.log_likelihood.sum(0))  # (reps, 2), E = 1
+    zl = (ratio.mean(0) - 1) / (ratio.std(0) / math.sqrt(reps))
+    assert float(zl.abs().max()) < 6.0
+    assert bool(traj.extras["resampled"].any()) and traj.extras["ess"].shape == (steps, reps, 2)
+
+
+@pytest.mark.parametrize("batch", [(), (4,), (3, 2)], ids=str)
+@pytest.mark.parametrize("scheme", ["systematic", "residual"])
+def test_shapes_and_float32(batch, scheme):
+    g = torch.Generator().manual_seed(0)
+    for dtype in (torch.float64, torch.float32):
+        motion = ConstantVelocity(2, q=0.1, dtype=dtype)
+        sensor = PositionMeasurement(4, [0, 2], 1.0, dtype=dtype)
+        pf = ParticleFilter(motion, sensor, resampling=scheme, generator=g)
+        prior = GaussianBelief(torch.zeros(*batch, 4, dtype=dtype), torch.eye(4, dtype=dtype).expand(*batch, 4, 4))
+        belief = pf.initial_belief(prior, 64)
+        assert belief.particles.shape == (*batch, 64, 4) and belief.particles.dtype == dtype
+        traj = run_filter(pf, belief, torch.randn(5, *batch, 2, generator=g).to(dtype))
+        assert traj.belief.particles.shape == (5, *batch, 64, 4)
+        assert traj.log_likelihood.shape == (5, *batch)
+        assert traj.innovation.shape == (5, *batch, 2) and traj.innovation_cov.shape == (5, *batch, 2, 2)
+        assert torch.isfinite(traj.estimate().mean).all() and torch.isfinite(traj.log_likelihood).all()
+
+
+def test_missing_measurements_are_skipped_exactly():
+    g = torch.Generator().manual_seed(1)
+    motion = ConstantVelocity(2, q=0.1)
+    sensor = PositionMeasurement(4, [0, 2], torch.tensor([[2.0, 0.5], [0.5, 1.0]]))
+    pf = ParticleFilter(motion, sensor, ess_threshold=0.0, generator=g)
+    belief = pf.initial_belief(GaussianBelief(torch.zeros(3, 4), torch.eye(4).expand(3, 4, 4)), 50)
+    z = torch.tensor([[float("nan"), float("nan")], [0.3, float("nan")], [0.3, -0.2]])
+    out = pf.update(belief, z)
+    torch.testing.assert_close(out.belief.log_weights[0], belief.log_weights[0])
+    assert out.log_likelihood[0] == 0.0
+    # partially observed: the marginal likelihood of the observed component (variance 2)
+    x = belief.particles[1, :, 0]
+    ll = -0.5 * ((0.3 - x) ** 2 / 2.0 + math.log(2 * math.pi * 2.0))
+    expected = torch.log_softmax(ll + belief.log_weights[1], -1)
+    torch.testing.assert_close(out.belief.log_weights[1], expected)
+    assert torch.isfinite(out.belief.estimate().mean).all()
+
+
+def test_gaussian_log_likelihood_matches_scipy():
+    stats = pytest.importorskip("scipy.stats")
+    rng = np.random.default_rng(0)
+    cov = np.array([[2.0, 0.3], [0.3, 0.5]])
+    resid = rng.normal(size=(3, 7, 2))
+    got = gaussian_log_likelihood(torch.tensor(resid), torch.tensor(cov))
+    want = stats.multivariate_normal(np.zeros(2), cov).logpdf(resid)
+    np.testing.assert_allclose(got.numpy(), want, rtol=1e-12)
+
+
+def test_all_underflow_guard_reports_and_stays_finite(caplog):
+    for dtype in (torch.float32, torch.float64):
+        g = torch.Generator().manual_seed(0)
+        motion = ConstantVelocity(1, q=0.1, dtype=dtype)
+        sensor = PositionMeasurement(2, [0], 1.0, dtype=dtype)
+        pf = ParticleFilter(motion, sensor, generator=g)
+        belief = pf.initial_belief(GaussianBelief(torch.zeros(2, 2, dtype=dtype), torch.eye(2, dtype=dtype).expand(2, 2, 2)), 100)
+        z = torch.tensor([[float("inf")], [0.1]], dtype=dtype)  # run 0: impossible under every particle
+        with caplog.at_level("WARNING", logger="torchmm"):
+            out = pf.step(belief, z)
+        assert out.extras["degenerate"].tolist() == [True, False]
+        assert "vanished" in caplog.text
+        assert not torch.isnan(out.belief.log_weights).any()
+        assert torch.isfinite(out.belief.estimate().mean).all()
+        assert out.log_likelihood[0] == -math.inf and torch.isfinite(out.log_likelihood[1])
+
+
+def test_imm_accepts_particle_filters():
+    """IMM over a one-mode PF bank is the PF itself (same random stream); over three modes it
+    tracks the IMM-KF's mode probabilities."""
+    prior, sensor, z = _linear_data(10, 4, seed=2)
+    motion1 = ConstantVelocity(1, q=0.5, acceleration=[[0.0]])
+    pf_a = ParticleFilter(motion1, sensor, generator=torch.Generator().manual_seed(3), ess_threshold=2.0)
+    pf_b = ParticleFilter(motion1, sensor, generator=torch.Generator().manual_seed(3), ess_threshold=2.0)
+    single = run_filter(pf_a, pf_a.initial_belief(prior.expand(4), 300), z)
+    imm1 = IMM(pf_b, torch.ones(1, 1))
+    start = pf_b.initial_belief(prior.expand(4), 300)
+    traj = run_filter(imm1, imm1.initial_belief(start), z)
+    torch.testing.assert_close(traj.estimate().mean, single.estimate().mean)
+    torch.testing.assert_close(traj.log_likelihood, single.log_likelihood)
+
+    bank = ConstantVelocity(1, q=0.5, acceleration=[[0.5], [0.0], [-0.5]])
+    g = torch.Generator().manual_seed(4)
+    imm_pf = IMM(ParticleFilter(bank, sensor, num_particles=2000, generator=g), PI3)
+    imm_kf = IMM(KalmanFilter(bank, sensor), PI3)
+    b0 = imm_pf.initial_belief(ParticleFilter(bank, sensor, generator=g).initial_belief(prior.expand(4), 2000))
+    t_pf, t_kf = run_filter(imm_pf, b0, z), run_filter(imm_kf, imm_kf.initial_belief(prior.expand(4)), z)
+    assert t_pf.belief.components.particles.shape == (10, 4, 3, 2000, 2)
+    assert float((t_pf.belief.mode_probs - t_kf.belief.mode_probs).abs().mean()) < 0.05
+
+
+def test_mixing_indices_are_unbiased_and_respect_the_transition():
+    """Ancestor (a, b) of target model i is drawn with probability mu_a pi_ai w_{b|a} / c_i."""
+    g = torch.Generator().manual_seed(0)
+    M, Np, reps = 3, 6, 20_000
+    mode_lp = torch.log(torch.tensor([0.5, 0.3, 0.2]))
+    within = torch.log_softmax(torch.randn(M, Np, generator=g), -1)
+    for scheme in ("systematic", "stratified", "multinomial"):
+        flat, log_cbar = mixing_indices(mode_lp.expand(reps, M), PI3.log(), within.expand(reps, M, Np), Np,
+                                        scheme, generator=g)
+        torch.testing.assert_close(log_cbar[0], torch.log(mode_lp.exp() @ PI3))
+        counts = torch.zeros(reps, M, M * Np).scatter_add_(-1, flat, torch.ones_like(flat, dtype=torch.float64))
+        joint = (mode_lp.exp()[:, None] * PI3)  # (a, i)
+        expected = Np * (joint / joint.sum(0)).T[:, :, None] * within.exp()[None]  # (i, a, b)
+        mean, se = counts.mean(0), counts.std(0) / math.sqrt(reps)
+        zs = (mean - expected.reshape(M, M * Np)) / se.clamp_min(1e-12)
+        big = expected.reshape(M, M * Np) > 0.05
+        assert float(zs[big].abs().max()) < 5.0, scheme
+    # identity transition: every model draws only from itself
+    flat, _ = mixing_indices(mode_lp.expand(4, M), torch.eye(M).log(), within.expand(4, M, Np), 50, generator=g)
+    assert torch.equal(torch.div(flat, Np, rounding_mode="floor"), torch.arange(M).view(1, M, 1).expand(4, M, 50))
+
+
+def test_multiple_model_pf_tracks_imm():
+    prior, sensor, z = _linear_data(10, 4, seed=3)
+    bank = ConstantVelocity(1, q=0.5, acceleration=[[0.5], [0.0], [-0.5]])
+    mm = MultipleModelParticleFilter(bank, sensor, PI3, 3000, generator=torch.Generator().manual_seed(0))
+    traj = run_filter(mm, mm.initial_belief(prior.expand(4)), z)
+    kf = run_filter(IMM(KalmanFilter(bank, sensor), PI3), IMM(KalmanFilter(bank, sensor), PI3).initial_belief(prior.expand(4)), z)
+    assert traj.belief.components.particles.shape == (10, 4, 3, 3000, 2)
+    torch.testing.assert_close(traj.belief.mode_probs.sum(-1), torch.ones(10, 4))
+    assert float((traj.belief.mode_probs - kf.belief.mode_probs).abs().mean()) < 0.05
+    sd = kf.estimate().cov.diagonal(dim1=-2, dim2=-1).sqrt()
+    assert float(((traj.estimate().mean - kf.estimate().mean) / sd).abs().max()) < 0.5
+    assert torch.allclose(traj.log_likelihood.sum(0), kf.log_likelihood.sum(0), atol=0.5)
+
+
+def test_noise_factor_rank_and_reconstruction():
+    motion = ConstantVelocity(2, q=0.3)
+    Q = motion.noise_cov()
+    L = noise_factor(Q)
+    torch.testing.assert_close(L @ L.mT, Q, atol=1e-12, rtol=0)
+    eig = noise_factor(torch.diag(torch.tensor([1.0, 0.0, 2.0])))
+    assert eig.shape == (3, 2)
+    torch.testing.assert_close(eig @ eig.mT, torch.diag(torch.tensor([1.0, 0.0, 2.0])))
+
+
+def test_bad_arguments_raise():
+    motion, sensor = ConstantVelocity(1), PositionMeasurement(2, [0], 1.0)
+    with pytest.raises(ValueError, match="resampling"):
+        ParticleFilter(motion, sensor, resampling="bogus")
+    with pytest.raises(ValueError, match="ess_threshold"):
+        ParticleFilter(motion, sensor, ess_threshold=-1)
+    with pytest.raises(ValueError, match="num_particles"):
+        ParticleFilter(motion, sensor).initial_belief(GaussianBelief(torch.zeros(2), torch.eye(2)))
+    with pytest.raises(ValueError, match="belief"):
+        ParticleFilter(motion, sensor).update(GaussianBelief(torch.zeros(2), torch.eye(2)), torch.zeros(1))
+    with pytest.raises(ValueError, match="mixing"):
+        MultipleModelParticleFilter(motion, sensor, torch.ones(1, 1), 10, mixing="residual")
+    with pytest.raises(ValueError, match="motion"):
+        MultipleModelParticleFilter(ConstantVelocity(1, acceleration=[[1.0], [0.0]]), sensor, PI3, 10)
+    with pytest.raises(ValueError, match="measurement"):
+        ParticleFilter(motion, PositionMeasurement(4, [0], 1.0))
+    assert isinstance(ParticleFilter(motion, sensor).initial_belief(GaussianBelief(torch.zeros(2), torch.eye(2)), 3),
+                      ParticleBelief)

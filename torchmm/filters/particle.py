@@ -1,0 +1,489 @@
+r"""Particle filters: the bootstrap filter of the common interface and a multiple-model PF.
+
+:class:`ParticleFilter` is a bootstrap (SIR) filter over a :class:`~torchmm.beliefs.ParticleBelief`:
+particles are propagated through the motion model with sampled process noise, weighted by the
+measurement likelihood in log space, and resampled per batch element when the effective sample
+size drops below ``ess_threshold * Np`` (static shapes, ``torch.where``). It implements
+``predict`` / ``update`` / ``step`` like the Kalman filters, so IMM / GPB and the other combinators
+accept it as a mode filter (with a mode bank as motion model, all modes in one call).
+
+:class:`MultipleModelParticleFilter` keeps ``Np`` particles **per model**, ``(*B, M, Np, n)``
+(paper 003's "NP particles for every model", eqs. (32)-(34)). Its belief is a
+:class:`~torchmm.beliefs.ModeBelief` whose components are per-model particle sets. One step:
+
+1. interaction: the ``Np`` particles of model ``i`` are drawn from the mixture of all particles of
+   the previous step with weights ``mu_a pi_ai w_{b|a}`` (model ``a``, particle ``b``), i.e. the
+   predicted density of model ``i``; this is one inverse-CDF resampling of the product
+   distribution (ancestor model, then particle inside it) per ``(run, i)``;
+2. propagation with model ``i`` and its process noise;
+3. weights (33)-(34): ``w_{ij} ∝ c_i p(z_k | x_{ij})`` with ``c_i = sum_a mu_a pi_ai``, normalised
+   jointly over models and particles; mode probabilities are the per-model sums.
+
+Random numbers come from the ``generator`` given to the filter (an explicit
+``torch.Generator``; the filter module itself holds no state between calls).
+
+All-underflow guard: if every weight of a batch element is zero (``-inf`` log-weight, e.g. a
+measurement impossible under every particle, or NaN likelihoods), that element keeps its prior
+weights, the step reports ``extras["degenerate"] = True`` and ``log_likelihood = -inf`` for it, a
+warning is logged, and no NaN is produced.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import torch
+from torch import Tensor
+
+from torchmm.beliefs import GaussianBelief, ModeBelief, ParticleBelief, psd_sqrt, symmetrize
+from torchmm.beliefs.ops import normalize_log_probs
+from torchmm.filters.base import Filter, StepOutput
+from torchmm.filters.resampling import (
+    RESAMPLING_SCHEMES,
+    apply_indices,
+    effective_sample_size,
+    resample,
+    resample_where_needed,
+)
+from torchmm.models.base import MeasurementModel, MotionModel, check_model_pair
+from torchmm.models.linear import LinearMeasurement, LinearMotion
+from torchmm.multimodel.transition import ModeTransition
+
+__all__ = [
+    "MultipleModelParticleFilter",
+    "ParticleFilter",
+    "gaussian_log_likelihood",
+    "noise_factor",
+    "propagate_particles",
+    "sample_gaussian",
+]
+
+log = logging.getLogger("torchmm")
+
+_INVERSE_CDF_SCHEMES = ("multinomial", "stratified", "systematic")
+
+
+def noise_factor(cov: Tensor, rtol: float = 1e-12) -> Tensor:
+    """A factor ``L`` with ``L L^T = cov``, dropping null directions shared by every matrix.
+
+    Rank-deficient process noise such as ``q G G^T`` is sampled from ``r < n`` normals only.
+
+    Shapes:
+        cov: ``(..., n, n)`` -> ``(..., n, r)``
+    """
+    chol, info = torch.linalg.cholesky_ex(cov)
+    if not bool((info != 0).any()):
+        return chol
+    eigvals, eigvecs = torch.linalg.eigh(symmetrize(cov))
+    scale = eigvals.amax(-1, keepdim=True).clamp_min(torch.finfo(cov.dtype).tiny)
+    keep = eigvals > rtol * scale
+    rank = max(int(keep.sum(-1).max()), 1)
+    factor = eigvecs * eigvals.clamp_min(0).sqrt().unsqueeze(-2)
+    return factor[..., -rank:]
+
+
+def sample_gaussian(belief: GaussianBelief, num_particles: int, *,
+                    generator: torch.Generator | None = None) -> Tensor:
+    """``num_particles`` draws from every Gaussian of a batch.
+
+    Shapes:
+        belief: mean ``(*B, n)``, cov ``(*B, n, n)`` -> ``(*B, Np, n)``
+    """
+    if int(num_particles) < 1:
+        raise ValueError(f"num_particles: must be >= 1, got {num_particles}")
+    root = psd_sqrt(belief.cov)
+    batch, n = belief.batch_shape, belief.state_dim
+    eps = torch.randn(*batch, int(num_particles), n, dtype=belief.dtype, device=belief.device,
+                      generator=generator)
+    return belief.mean.unsqueeze(-2) + eps @ root.mT
+
+
+def propagate_particles(motion: MotionModel, particles: Tensor, *, u: Tensor | None = None,
+                        generator: torch.Generator | None = None) -> Tensor:
+    """``x_k = f(x_{k-1}, u_k) + w_k``, ``w_k ~ N(0, Q)``, for particle sets.
+
+    The model's parameter batch ``*P`` broadcasts against the particle sets' batch ``*B`` (a bank
+    of ``M`` modes against ``(*B, M)``). Linear models are applied as one matmul on the particle
+    layout; any other model is called with the particle axis leftmost (the torchmm convention for
+    sample axes). The process noise ``Q = motion.noise_cov()`` is taken as state-independent.
+
+    Shapes:
+        particles: ``(*B, Np, n)``; u: ``(*B, k)`` -> ``(*B, Np, n)``
+    """
+    if isinstance(motion, LinearMotion):
+        out = particles @ motion.F.mT + motion.offset.unsqueeze(-2)
+        if u is not None:
+            if motion.input_matrix is None:
+                raise ValueError("u: this LinearMotion has no input_matrix")
+            out = out + (u.unsqueeze(-2) @ motion.input_matrix.mT)
+    else:
+        out = motion(particles.movedim(-2, 0), u=None if u is None else u.unsqueeze(0)).movedim(0, -2)
+    factor = noise_factor(motion.noise_cov())  # (*P, n, r), shared by the particles of a set
+    eps = torch.randn(*out.shape[:-1], factor.shape[-1], dtype=out.dtype, device=out.device,
+                      generator=generator)
+    return out + eps @ factor.mT
+
+
+def _predicted_measurement(measurement: MeasurementModel, particles: Tensor) -> Tensor:
+    """``h(x)`` for particle sets ``(*B, Np, n)`` -> ``(*B, Np, m)``."""
+    if isinstance(measurement, LinearMeasurement):
+        return particles @ measurement.H.mT
+    return measurement(particles.movedim(-2, 0)).movedim(0, -2)
+
+
+def gaussian_log_likelihood(resid: Tensor, cov: Tensor, observed: Tensor | None = None) -> Tensor:
+    """Gaussian log-density of residuals of particle sets, with per-batch missing components.
+
+    ``observed`` marks the measured components of each batch element (NaN = missing); missing
+    components are marginalised out exactly (an all-missing element gives 0).
+
+    Shapes:
+        resid: ``(*B, Np, m)``; cov: ``(*P, m, m)`` broadcasting with ``*B``;
+        observed: ``(*B, m)`` bool or None -> ``(*B, Np)``
+    """
+    m = resid.shape[-1]
+    eye = torch.eye(m, dtype=resid.dtype, device=resid.device)
+    if observed is None:
+        chol = torch.linalg.cholesky(cov)
+        count = torch.tensor(float(m), dtype=resid.dtype, device=resid.device)
+    else:
+        resid = torch.where(observed.unsqueeze(-2), resid, torch.zeros((), dtype=resid.dtype, device=resid.device))
+        pair = observed.unsqueeze(-1) & observed.unsqueeze(-2)
+        chol = torch.linalg.cholesky(torch.where(pair, cov, eye))
+        count = observed.sum(-1).to(resid.dtype).unsqueeze(-1)
+    inv = torch.linalg.solve_triangular(chol, eye.expand_as(chol), upper=False)
+    white = resid @ inv.mT
+    logdet = 2 * chol.diagonal(dim1=-2, dim2=-1).log().sum(-1)
+    return -0.5 * (white.square().sum(-1) + logdet.unsqueeze(-1) + count * math.log(2 * math.pi))
+
+
+def _particle_log_likelihood(measurement: MeasurementModel, z: Tensor, particles: Tensor,
+                             state_dependent_noise: bool) -> tuple[Tensor, Tensor]:
+    """``log p(z | x)`` per particle and the predicted measurements.
+
+    Shapes:
+        z: ``(*B, m)`` (NaN = missing); particles ``(*B, Np, n)`` -> ``(*B, Np)``, ``(*B, Np, m)``
+    """
+    predicted = _predicted_measurement(measurement, particles)
+    if state_dependent_noise:
+        loglik = measurement.log_likelihood(z.unsqueeze(0), particles.movedim(-2, 0)).movedim(0, -1)
+        return loglik, predicted
+    missing = torch.isnan(z)
+    observed = None if not bool(missing.any()) else ~missing
+    resid = z.unsqueeze(-2) - predicted
+    return gaussian_log_likelihood(resid, measurement.noise_cov(), observed), predicted
+
+
+def _guard(log_evidence: Tensor, where: str) -> Tensor:
+    degenerate = ~torch.isfinite(log_evidence)
+    if bool(degenerate.any()):
+        log.warning("%s: all particle weights vanished in %d of %d batch elements; their prior weights "
+                    "are kept (extras['degenerate'])", where, int(degenerate.sum()), degenerate.numel())
+    return degenerate
+
+
+def _innovation(z: Tensor, predicted: Tensor, log_w: Tensor, cov: Tensor | None) -> tuple[Tensor, Tensor | None]:
+    """Innovation ``z - E[h(x)]`` and ``Cov[h(x)] + R`` under normalised log-weights ``(*B, Np)``."""
+    w = log_w.exp().unsqueeze(-1)
+    mean = (w * predicted).sum(-2)
+    if cov is None:
+        return z - mean, None
+    diff = predicted - mean.unsqueeze(-2)
+    spread = (diff * w).mT @ diff
+    return z - mean, symmetrize(spread + cov)
+
+
+class ParticleFilter(Filter):
+    r"""Bootstrap particle filter (sampling importance resampling) in log space.
+
+    Predict: ``x^i_k = f(x^i_{k-1}, u_k) + w^i_k`` (prior as proposal). Update:
+    ``log w^i_k = log w^i_{k-1} + log p(z_k | x^i_k) - log p(z_k | z_{1:k-1})`` with
+    ``log p(z_k | z_{1:k-1}) = logsumexp_i(log w^i_{k-1} + log p(z_k | x^i_k))``; then resampling
+    of the batch elements whose ESS is below ``ess_threshold * Np``.
+
+    Args:
+        motion, measurement: the models (a mode bank broadcasts against a belief batch ``(*B, M)``).
+        resampling: ``"systematic"`` (default), ``"stratified"``, ``"multinomial"``, ``"residual"``.
+        ess_threshold: resample when ``ESS < ess_threshold * Np`` (0: never; > 1: every step).
+        num_particles: if given, :meth:`predict` first resamples a belief with a different particle
+            count to this many (e.g. after IMM mixing, which concatenates mode particle sets).
+        generator: the random stream (``torch.Generator`` on the belief's device).
+        state_dependent_noise: use the measurement model's own ``log_likelihood`` per particle
+            (noise depending on the state); default: ``R = measurement.noise_cov()`` shared.
+
+    Shapes:
+        belief: :class:`ParticleBelief`, particles ``(*B, Np, n)``, log_weights ``(*B, Np)``;
+        z: ``(*B, m)`` (NaN = missing); the step's ``log_likelihood`` is ``(*B,)``, ``innovation``
+        ``(*B, m)``, ``innovation_cov`` ``(*B, m, m)``; ``extras``: ``"ess"`` (before resampling),
+        ``"resampled"`` and ``"degenerate"`` ``(*B,)``.
+
+    Examples:
+        >>> from torchmm.models import ConstantVelocity, PositionMeasurement
+        >>> g = torch.Generator().manual_seed(0)
+        >>> pf = ParticleFilter(ConstantVelocity(1), PositionMeasurement(2, [0], 1.0), generator=g)
+        >>> belief = pf.initial_belief(GaussianBelief(torch.zeros(4, 2), torch.eye(2)), 500)
+        >>> out = pf.step(belief, torch.randn(4, 1, generator=g))
+        >>> out.belief.particles.shape, out.log_likelihood.shape
+        (torch.Size([4, 500, 2]), torch.Size([4]))
+    """
+
+    def __init__(self, motion: MotionModel, measurement: MeasurementModel, *, resampling: str = "systematic",
+                 ess_threshold: float = 0.5, num_particles: int | None = None,
+                 generator: torch.Generator | None = None, state_dependent_noise: bool = False):
+        super().__init__()
+        check_model_pair(motion, measurement)
+        if resampling not in RESAMPLING_SCHEMES:
+            raise ValueError(f"resampling: expected one of {sorted(RESAMPLING_SCHEMES)}, got {resampling!r}")
+        if not ess_threshold >= 0:
+            raise ValueError(f"ess_threshold: must be >= 0, got {ess_threshold}")
+        if num_particles is not None and int(num_particles) < 1:
+            raise ValueError(f"num_particles: must be >= 1, got {num_particles}")
+        self.motion, self.measurement = motion, measurement
+        self.resampling, self.ess_threshold = resampling, float(ess_threshold)
+        self.num_particles = None if num_particles is None else int(num_particles)
+        self.generator = generator
+        self.state_dependent_noise = bool(state_dependent_noise)
+
+    def initial_belief(self, belief: GaussianBelief, num_particles: int | None = None) -> ParticleBelief:
+        """Sample a particle belief from a Gaussian prior (uniform weights).
+
+        Shapes:
+            belief: batch ``(*B,)`` -> particles ``(*B, Np, n)``
+        """
+        num = num_particles or self.num_particles
+        if num is None:
+            raise ValueError("num_particles: give it here or to the filter")
+        particles = sample_gaussian(belief, num, generator=self.generator)
+        log_w = torch.full(particles.shape[:-1], -math.log(num), dtype=particles.dtype, device=particles.device)
+        return ParticleBelief(particles, log_w)
+
+    def predict(self, belief: ParticleBelief, *, u: Tensor | None = None) -> ParticleBelief:
+        if not isinstance(belief, ParticleBelief):
+            raise ValueError(f"belief: expected a ParticleBelief, got {type(belief).__name__}")
+        if self.num_particles is not None and belief.num_particles != self.num_particles:
+            indices = resample(belief.log_weights, self.resampling, self.num_particles, generator=self.generator)
+            belief = apply_indices(belief, indices)
+        particles = propagate_particles(self.motion, belief.particles, u=u, generator=self.generator)
+        log_w = belief.log_weights.expand(particles.shape[:-1])
+        return ParticleBelief(particles, log_w)
+
+    def update(self, belief: ParticleBelief, z: Tensor) -> StepOutput:
+        if not isinstance(belief, ParticleBelief):
+            raise ValueError(f"belief: expected a ParticleBelief, got {type(belief).__name__}")
+        prior_log_w = normalize_log_probs(belief.log_weights)
+        loglik, predicted = _particle_log_likelihood(self.measurement, z, belief.particles,
+                                                     self.state_dependent_noise)
+        loglik = torch.where(torch.isnan(loglik), -math.inf, loglik)
+        joint = prior_log_w + loglik
+        log_evidence = torch.logsumexp(joint, dim=-1)
+        degenerate = _guard(log_evidence, "ParticleFilter.update")
+        post_log_w = torch.where(degenerate.unsqueeze(-1), prior_log_w, joint - log_evidence.unsqueeze(-1))
+        posterior = ParticleBelief(belief.particles, post_log_w)
+        posterior, resampled, ess = resample_where_needed(posterior, self.ess_threshold, self.resampling,
+                                                          generator=self.generator)
+        cov = None if self.state_dependent_noise else self.measurement.noise_cov()
+        innovation, innovation_cov = _innovation(z, predicted, prior_log_w, cov)
+        return StepOutput(
+            belief=posterior,
+            prior=belief,
+            log_likelihood=log_evidence,
+            innovation=innovation,
+            innovation_cov=innovation_cov,
+            extras={"ess": ess, "resampled": resampled, "degenerate": degenerate},
+        )
+
+
+def _forced_cdf(probs: Tensor) -> Tensor:
+    """Cumulative sums along -1, normalised, last entry exactly 1."""
+    cdf = torch.cumsum(probs, dim=-1)
+    cdf = cdf / cdf[..., -1:].clamp_min(torch.finfo(cdf.dtype).tiny)
+    return torch.cat([cdf[..., :-1], torch.ones_like(cdf[..., -1:])], dim=-1)
+
+
+def _stratified_points(shape, scheme: str, like: Tensor, generator) -> Tensor:
+    """Points in ``[0, 1)`` for inverse-CDF sampling along the last axis of ``shape``."""
+    n = shape[-1]
+    if scheme == "multinomial":
+        return torch.rand(shape, dtype=like.dtype, device=like.device, generator=generator)
+    offsets = torch.arange(n, dtype=like.dtype, device=like.device)
+    if scheme == "stratified":
+        u = torch.rand(shape, dtype=like.dtype, device=like.device, generator=generator)
+    else:  # systematic
+        u = torch.rand((*shape[:-1], 1), dtype=like.dtype, device=like.device, generator=generator)
+    return (offsets + u) / n
+
+
+def mixing_indices(mode_log_probs: Tensor, log_transition: Tensor, within_log_weights: Tensor,
+                   num_particles: int, scheme: str = "systematic", *,
+                   generator: torch.Generator | None = None) -> tuple[Tensor, Tensor]:
+    r"""Ancestors of the interaction step of a multiple-model particle filter.
+
+    For every target model ``i``, ``Np`` ancestors ``(a, b)`` (model ``a``, particle ``b``) are drawn
+    from ``p(a, b | i) = mu_a pi_ai w_{b|a} / c_i`` by one inverse-CDF pass over the product
+    distribution (lexicographic in ``(a, b)``), with the points ``u`` of ``scheme`` (multinomial,
+    stratified or systematic). Computed in float64 whatever the input dtype.
+
+    Returns:
+        ``(indices, log_cbar)``: flat indices ``a * Np_prev + b`` ``(*B, M, Np)`` and the predicted
+        mode log-probabilities ``log c_i = logsumexp_a(log mu_a + log pi_ai)`` ``(*B, M)``.
+
+    Shapes:
+        mode_log_probs: ``(*B, M)`` (normalised; inactive models ``-inf``);
+        log_transition: ``(M, M)``; within_log_weights: ``(*B, M, Np_prev)`` -> see Returns
+    """
+    if scheme not in _INVERSE_CDF_SCHEMES:
+        raise ValueError(f"scheme: the interaction step supports {_INVERSE_CDF_SCHEMES}, got {scheme!r}")
+    joint = (mode_log_probs.unsqueeze(-1) + log_transition).double()  # (*B, a, i)
+    log_cbar = torch.logsumexp(joint, dim=-2)  # (*B, i)
+    mixing = normalize_log_probs(joint.mT, dim=-1).exp()  # (*B, i, a): mu_{a|i}
+    cdf_models = _forced_cdf(mixing)
+    batch, num_models = mixing.shape[:-2], mixing.shape[-1]
+    u = _stratified_points((*batch, num_models, num_particles), scheme, cdf_models, generator)
+    ancestor = torch.searchsorted(cdf_models, u, right=True).clamp_max(num_models - 1)  # (*B, i, Np)
+    low = torch.cat([torch.zeros_like(cdf_models[..., :1]), cdf_models[..., :-1]], dim=-1)
+    lo, hi = torch.gather(low, -1, ancestor), torch.gather(cdf_models, -1, ancestor)
+    eps = torch.finfo(torch.float64).eps
+    inner = ((u - lo) / (hi - lo).clamp_min(torch.finfo(torch.float64).tiny)).clamp(0.0, 1.0 - eps)
+    within = normalize_log_probs(within_log_weights.double()).exp()
+    offsets = torch.arange(num_models, dtype=torch.float64, device=within.device).unsqueeze(-1)
+    cdf_within = (_forced_cdf(within) + offsets).flatten(-2)  # (*B, M * Np_prev), row a in (a, a+1]
+    cdf_within = cdf_within.expand(*batch, cdf_within.shape[-1]).contiguous()
+    values = (ancestor.double() + inner).flatten(-2)
+    flat = torch.searchsorted(cdf_within, values, right=True).clamp_max(cdf_within.shape[-1] - 1)
+    return flat.view(*batch, num_models, num_particles), log_cbar.to(mode_log_probs.dtype)
+
+
+class MultipleModelParticleFilter(Filter):
+    r"""Interacting multiple-model particle filter with ``Np`` particles per model.
+
+    Paper 003 eqs. (32)-(34): every model of the set carries ``Np`` particles; the weight of
+    particle ``j`` of model ``i`` is ``c_i p(z_k | x^j_k(m_i))`` (33), normalised over all models
+    and particles (34). The interaction step draws model ``i``'s particles from the previous
+    mixture (see :func:`mixing_indices`), so every model keeps exactly ``Np`` particles (static
+    shapes) and the model probabilities carry the evidence.
+
+    Args:
+        motion: a mode bank (parameter batch ``(M,)``, e.g. ``ConstantVelocity(..., acceleration=A)``)
+            or any motion model whose parameters broadcast against ``(*B, M)``.
+        measurement: the measurement model (shared by all modes).
+        transition: ``(M, M)`` row-stochastic matrix or :class:`~torchmm.multimodel.ModeTransition`.
+        num_particles: ``Np`` per model.
+        mixing: inverse-CDF scheme of the interaction (``"systematic"``, ``"stratified"``,
+            ``"multinomial"``).
+        generator: the random stream.
+
+    Shapes:
+        belief: :class:`ModeBelief` with ``mode_log_probs (*B, M)`` and components
+        ``ParticleBelief(particles (*B, M, Np, n), log_weights (*B, M, Np))`` (normalised within
+        each model); z: ``(*B, m)``; ``log_likelihood`` ``(*B,)``; ``extras``: ``"ess"`` (of the
+        joint weights, ``(*B,)``), ``"mode_log_likelihood"`` ``(*B, M)``, ``"degenerate"`` ``(*B,)``.
+
+    Examples:
+        >>> from torchmm.models import ConstantVelocity, PositionMeasurement
+        >>> g = torch.Generator().manual_seed(0)
+        >>> motion = ConstantVelocity(1, acceleration=[[0.5], [0.0], [-0.5]])
+        >>> pi = torch.full((3, 3), 0.05) + 0.85 * torch.eye(3)
+        >>> mmpf = MultipleModelParticleFilter(motion, PositionMeasurement(2, [0], 1.0), pi, 200, generator=g)
+        >>> belief = mmpf.initial_belief(GaussianBelief(torch.zeros(5, 2), torch.eye(2)))
+        >>> out = mmpf.step(belief, torch.randn(5, 1, generator=g))
+        >>> out.belief.components.particles.shape, out.belief.mode_probs.sum(-1).shape
+        (torch.Size([5, 3, 200, 2]), torch.Size([5]))
+    """
+
+    def __init__(self, motion: MotionModel, measurement: MeasurementModel, transition, num_particles: int, *,
+                 mixing: str = "systematic", generator: torch.Generator | None = None):
+        super().__init__()
+        check_model_pair(motion, measurement)
+        if mixing not in _INVERSE_CDF_SCHEMES:
+            raise ValueError(f"mixing: expected one of {_INVERSE_CDF_SCHEMES}, got {mixing!r}")
+        if int(num_particles) < 1:
+            raise ValueError(f"num_particles: must be >= 1, got {num_particles}")
+        self.motion, self.measurement = motion, measurement
+        self.transition = transition if isinstance(transition, ModeTransition) else ModeTransition(transition)
+        self.num_modes = self.transition.num_modes
+        self.num_particles = int(num_particles)
+        self.mixing, self.generator = mixing, generator
+        self._check_motion()
+
+    def _check_motion(self) -> None:
+        shape = getattr(self.motion, "param_batch_shape", None)
+        if shape is not None and len(shape) > 0 and shape[-1] not in (1, self.num_modes):
+            raise ValueError(f"motion: parameter batch {tuple(shape)} does not match {self.num_modes} modes")
+
+    def initial_belief(self, belief: GaussianBelief, mode_probs=None) -> ModeBelief:
+        """``Np`` particles per model, each set drawn independently from the Gaussian prior (32).
+
+        Shapes:
+            belief: batch ``(*B,)``; mode_probs ``(M,)`` or ``(*B, M)``, default uniform
+            -> :class:`ModeBelief` with components of batch ``(*B, M)``
+        """
+        M, batch = self.num_modes, belief.batch_shape
+        expanded = belief.unsqueeze(-1).expand(*batch, M)
+        particles = sample_gaussian(expanded, self.num_particles, generator=self.generator)
+        log_w = torch.full(particles.shape[:-1], -math.log(self.num_particles), dtype=belief.dtype,
+                           device=belief.device)
+        if mode_probs is None:
+            log_probs = torch.full((*batch, M), -math.log(M), dtype=belief.dtype, device=belief.device)
+        else:
+            probs = torch.as_tensor(mode_probs, dtype=belief.dtype, device=belief.device)
+            if probs.shape[-1] != M or bool((probs < 0).any()) or bool(((probs.sum(-1) - 1).abs() > 1e-6).any()):
+                raise ValueError(f"mode_probs: expected non-negative probabilities over {M} modes summing to 1")
+            log_probs = probs.log().expand(*batch, M)
+        return ModeBelief(log_probs, ParticleBelief(particles, log_w))
+
+    def _propagate(self, particles: Tensor, *, u: Tensor | None, log_cbar: Tensor) -> Tensor:
+        """Propagate each model's particles with its own model. ``(*B, M, Np, n)``."""
+        return propagate_particles(self.motion, particles, u=None if u is None else u.unsqueeze(-2),
+                                   generator=self.generator)
+
+    def predict(self, belief: ModeBelief, *, u: Tensor | None = None) -> ModeBelief:
+        comps = belief.components
+        mode_log_probs = normalize_log_probs(belief.mode_log_probs)
+        flat, log_cbar = mixing_indices(mode_log_probs, self.transition.log_matrix(), comps.log_weights,
+                                        self.num_particles, self.mixing, generator=self.generator)
+        batch = flat.shape[:-2]
+        source = comps.particles.expand(*batch, *comps.particles.shape[-3:]).flatten(-3, -2)
+        n = source.shape[-1]
+        index = flat.flatten(-2)
+        ancestors = torch.gather(source, -2, index.unsqueeze(-1).expand(*index.shape, n))
+        ancestors = ancestors.view(*batch, self.num_modes, self.num_particles, n)
+        particles = self._propagate(ancestors, u=u, log_cbar=log_cbar)
+        log_w = torch.full(particles.shape[:-1], -math.log(self.num_particles), dtype=particles.dtype,
+                           device=particles.device)
+        return ModeBelief(log_cbar, ParticleBelief(particles, log_w))
+
+    def _weigh(self, prior: ModeBelief, z: Tensor):
+        """Weights (33)-(34): joint normalised log-weights ``(*B, M, Np)`` and diagnostics."""
+        comps = prior.components
+        loglik, predicted = _particle_log_likelihood(self.measurement, z.unsqueeze(-2), comps.particles, False)
+        loglik = torch.where(torch.isnan(loglik), -math.inf, loglik)
+        prior_joint = prior.mode_log_probs.unsqueeze(-1) + normalize_log_probs(comps.log_weights)
+        joint = prior_joint + loglik
+        log_evidence = torch.logsumexp(joint.flatten(-2), dim=-1)
+        degenerate = _guard(log_evidence, type(self).__name__)
+        norm = torch.where(degenerate[..., None, None], prior_joint, joint - log_evidence[..., None, None])
+        mode_ll = torch.logsumexp(normalize_log_probs(comps.log_weights) + loglik, dim=-1)
+        return norm, log_evidence, degenerate, mode_ll, predicted, prior_joint
+
+    @staticmethod
+    def _split(joint: Tensor) -> tuple[Tensor, Tensor]:
+        """Joint log-weights ``(*B, M, Np)`` -> mode log-probs ``(*B, M)`` and within-model weights."""
+        mode_log_probs = torch.logsumexp(joint, dim=-1)
+        return mode_log_probs, normalize_log_probs(joint)
+
+    def update(self, belief: ModeBelief, z: Tensor) -> StepOutput:
+        norm, log_evidence, degenerate, mode_ll, predicted, prior_joint = self._weigh(belief, z)
+        mode_log_probs, within = self._split(norm)
+        flat_prior = prior_joint.flatten(-2)
+        innovation, innovation_cov = _innovation(z, predicted.flatten(-3, -2), flat_prior,
+                                                 self.measurement.noise_cov())
+        return StepOutput(
+            belief=ModeBelief(mode_log_probs, ParticleBelief(belief.components.particles, within)),
+            prior=belief,
+            log_likelihood=log_evidence,
+            innovation=innovation,
+            innovation_cov=innovation_cov,
+            extras={"ess": effective_sample_size(norm.flatten(-2)), "mode_log_likelihood": mode_ll,
+                    "degenerate": degenerate},
+        )
