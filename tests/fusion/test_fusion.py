@@ -155,6 +155,10 @@ def test_float32_runs_and_stays_finite():
         assert bool(torch.isfinite(f.mean).all() & torch.isfinite(f.cov).all() & torch.isfinite(P).all())
     cm, _ = centralized_estimates(sys, sim.y, 0)
     assert bool(torch.isfinite(cm).all())
+    ss = steady_state(sys)  # stops at float32 rounding level instead of running to max_iter
+    assert ss.iterations < 1000 and ss.cross_iterations < 1000
+    xo, Po, _ = steady_fused_estimates(sys, ss, sim.y, 1)
+    assert xo.dtype == torch.float32 and bool(torch.isfinite(xo).all() & torch.isfinite(Po).all())
 
 
 # ---------------------------------------------------------------------------------------------
@@ -404,3 +408,22 @@ def test_missing_measurements_match_the_oracle_without_them(N):
     assert bool(torch.isfinite(f.mean).all())
     with pytest.raises(ValueError, match="pattern"):
         local_estimates(sys, sim.y, N, stats)  # complete data against stats for the masked pattern
+
+
+def test_gradients_flow_through_local_estimators_and_fusion():
+    """Differentiable in the noise parameters (e.g. to learn h_i, Q^p_i by gradient)."""
+
+    def fused(h, qp):
+        sys = MultiSensorSystem.from_correlation(
+            A=[[0.5, 0.1], [0.0, 0.7]], Gamma=[[1.0], [0.5]], Qw=[[1.0]], C=[[[1.0, 0.0]], [[1.0, 1.0]]],
+            Ct=[[[0.5, 0.1]], [[0.2, 0.3]]], h=h, Qp=qp, d=[[[0.0]], [[0.3]]], Q_eta=[[[1.0]], [[2.0]]],
+            mu0=[0.1, 0.0], P0=torch.eye(2))
+        y = torch.linspace(-1, 1, 12).reshape(6, 1, 2, 1)
+        stats = local_predictor_stats(sys, 6)
+        mean, _ = local_estimates(sys, y, 1, stats)
+        f = fuse(mean, cross_covariances(sys, stats, cross_predictor_stats(sys, stats), 1), "matrix")
+        return f.mean.sum() + f.cov.diagonal(**DIAG).sum()
+
+    h = torch.tensor([0.6, 0.7], requires_grad=True)
+    qp = torch.tensor([0.1, 0.2], requires_grad=True)
+    assert torch.autograd.gradcheck(fused, (h, qp))

@@ -15,6 +15,7 @@ constant gains (``stationary=True`` statistics).
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import torch
@@ -34,6 +35,8 @@ from torchmm.fusion.local import (
 )
 from torchmm.fusion.system import MultiSensorSystem, measurement_sequence
 from torchmm.fusion.weights import fusion_weights
+
+log = logging.getLogger("torchmm")
 
 __all__ = [
     "SteadyState",
@@ -64,6 +67,7 @@ def steady_moments(system: MultiSensorSystem, tol: float = 1e-14, max_iter: int 
         raise ValueError(f"A: steady state needs rho(A) < 1 (Theorem 7), got {rho:.6g}")
     if bool((system.h.abs() >= 1).any()):
         raise ValueError(f"h: steady state needs |h_i| < 1 (Theorem 7), got {system.h.tolist()}")
+    tol = max(float(tol), 10 * torch.finfo(system.A.dtype).eps)
     X, Ak = system.GQG.clone(), system.A.clone()
     for _ in range(max_iter):
         X_new = symmetrize(X + Ak @ X @ Ak.T)
@@ -104,7 +108,8 @@ class SteadyState:
 def steady_state(system: MultiSensorSystem, tol: float = 1e-12, max_iter: int = 100_000) -> SteadyState:
     r"""Theorems 7-8 and Remark 9: iterate (50) and then the cross recursions to convergence.
 
-    Convergence: relative max-abs change below ``tol``.
+    Convergence: relative max-abs change below ``max(tol, 100 eps)`` (``eps`` of the dtype, so that
+    float32 stops at its rounding level); a ``RuntimeWarning`` is logged if ``max_iter`` is reached.
 
     Example:
         >>> sys = MultiSensorSystem.from_correlation(
@@ -118,6 +123,7 @@ def steady_state(system: MultiSensorSystem, tol: float = 1e-12, max_iter: int = 
     from torchmm.fusion.augmented import _blockdiag2
 
     Xi, Qr, Qxi = steady_moments(system)
+    tol = max(float(tol), 100 * torch.finfo(Xi.dtype).eps)
     n, L, m = system.state_dim, system.num_sensors, system.meas_dim
     eye_n = torch.eye(n, dtype=Xi.dtype, device=Xi.device)
     Phi = _blockdiag2(system.A.expand(L, n, n), system.Phi)
@@ -138,6 +144,8 @@ def steady_state(system: MultiSensorSystem, tol: float = 1e-12, max_iter: int = 
         P = P_new
         if change <= tol:
             break
+    else:
+        log.warning("steady_state: the Riccati iteration (50) did not converge in %d steps", max_iter)
     Px, Pr, Pxr = P[:, :n, :n], P[:, n:, n:], P[:, :n, n:]
     meas = measurement_sequence(system, 1)
     Qeps, Lx, Lr = _local_gains(system, meas.at(0), Px, Pr, Pxr)
@@ -157,6 +165,8 @@ def steady_state(system: MultiSensorSystem, tol: float = 1e-12, max_iter: int = 
         Pij, Prij, Pxrij = P1, Pr1, Pxr1
         if change <= tol:
             break
+    else:
+        log.warning("steady_state: the cross-covariance iteration did not converge in %d steps", max_iter)
     Qe_ij = _cross_innovation(meas.at(0), Pij, Prij, Pxrij)[2]
     cross = CrossStats(Pij[None], Prij[None], Pxrij[None], Qe_ij[None], stationary=True)
     return SteadyState(stats, cross, P, torch.cat([Lx, Lr], dim=-2), it, cit)
