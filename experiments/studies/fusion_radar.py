@@ -120,27 +120,40 @@ def run(ctx: StudyContext) -> None:
         ctx.results.timing[name] = seconds / steps
         ctx.logger.series(f"pos_rmse/{name}", rmse, start=0)
 
-    t0 = time.perf_counter()
-    stats = local_predictor_stats(system, steps)
-    mean, cov = local_estimates(system, sim.y, 0, stats)
-    t_local = time.perf_counter() - t0
-    for i in range(system.num_sensors):
-        record(f"LF{i + 1}", mean[:, :, i, pos], cov[:, i, pos, pos], t_local)
-    t0 = time.perf_counter()
-    amean, acov = augmented_local_estimates(system, sim.y, 0)
-    t_aug = time.perf_counter() - t0
-    for i in range(system.num_sensors):
-        record(f"AUG{i + 1}", amean[:, :, i, pos], acov[:, i, pos, pos], t_aug)
-    ctx.results.metric("AUG", "max_abs_diff_vs_LF", float((amean - mean).abs().max()))
-    t0 = time.perf_counter()
-    cross = cross_predictor_stats(system, stats)
-    Pij = cross_covariances(system, stats, cross, 0)
-    fused = fuse(mean, Pij, "matrix", components=[pos])
-    t_mf = time.perf_counter() - t0 + t_local
-    record("MF", fused.mean[..., 0], fused.cov[:, 0, 0], t_mf)
-    t0 = time.perf_counter()
-    cmean, ccov = centralized_estimates(system, sim.y, 0)
-    record("CF", cmean[..., pos], ccov[:, pos, pos], time.perf_counter() - t0)
+    state: dict = {}
+
+    def local_filters():
+        t0 = time.perf_counter()
+        state["stats"] = local_predictor_stats(system, steps)
+        state["mean"], cov = local_estimates(system, sim.y, 0, state["stats"])
+        state["t_local"] = time.perf_counter() - t0
+        for i in range(system.num_sensors):
+            record(f"LF{i + 1}", state["mean"][:, :, i, pos], cov[:, i, pos, pos], state["t_local"])
+
+    def augmented():
+        t0 = time.perf_counter()
+        amean, acov = augmented_local_estimates(system, sim.y, 0)
+        t_aug = time.perf_counter() - t0
+        for i in range(system.num_sensors):
+            record(f"AUG{i + 1}", amean[:, :, i, pos], acov[:, i, pos, pos], t_aug)
+        ctx.results.metric("AUG", "max_abs_diff_vs_LF", float((amean - state["mean"]).abs().max()))
+
+    def matrix_fusion():
+        t0 = time.perf_counter()
+        stats = state["stats"]
+        Pij = cross_covariances(system, stats, cross_predictor_stats(system, stats), 0)
+        state["fused"] = fuse(state["mean"], Pij, "matrix", components=[pos])
+        t_mf = time.perf_counter() - t0 + state["t_local"]
+        record("MF", state["fused"].mean[..., 0], state["fused"].cov[:, 0, 0], t_mf)
+
+    def centralized():
+        t0 = time.perf_counter()
+        cmean, ccov = centralized_estimates(system, sim.y, 0)
+        record("CF", cmean[..., pos], ccov[:, pos, pos], time.perf_counter() - t0)
+
+    for stage in ctx.progress_bar([local_filters, augmented, matrix_fusion, centralized], desc="estimators"):
+        stage()
+    fused = state["fused"]
     table = ctx.results.table(
         "ex1_rmse", ["estimator", "pos_rmse", "computed_rmse", "final_rmse", "final_computed_rmse"],
         note=("pos_rmse: RMSE over runs per step, averaged over all steps; computed_rmse: the same "

@@ -102,7 +102,7 @@ def run(ctx: StudyContext) -> None:
     stats = local_predictor_stats(system, steps)
     cross = cross_predictor_stats(system, stats)
     local, fused, cent = {}, {}, {}
-    for N in horizons:
+    for N in ctx.progress_bar(horizons, desc="horizons N"):
         local[N] = local_estimates(system, sim.y, N, stats)
         Pij = cross_covariances(system, stats, cross, N)
         fused[N] = {name: fuse(local[N][0], Pij, method) for name, method in METHODS.items()}
