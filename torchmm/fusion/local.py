@@ -14,9 +14,10 @@ Readings of the printed equations (see ``docs/reproduction-002.md``):
 * initial ``P^{x^r}(0|-1) = Q^{r_0}_i Xi(0) = Q^{r_0}_i (P0 + mu0 mu0^T)`` (printed ``P0 Q^{r_0}``,
   equal only for ``mu0 = 0``);
 * (35) gets ``+ delta_ij Q^xi_i(t)`` (the virtual process noise, as in (23));
-* the filter/smoother cross-covariances (39)-(43) are evaluated by the equivalent forward
-  recursion of the joint errors ``[x~_i(t|s-1); x~_i(s|s-1); x~^r_i(s|s-1)]`` over ``s = t..t+N``
-  that the proof (E4), (C3), (C4), (G1) starts from, rather than the nested closed sums.
+* the filter/smoother cross-covariances (39)-(43) are evaluated by the forward recursion of the
+  joint errors ``[x~_i(t|s-1); x~_i(s|s-1); x~^r_i(s|s-1)]`` over ``s = t..t+N`` that the proof
+  (E4), (C3), (C4), (G1) starts from; :func:`theorem6_cross_covariances` evaluates the closed sums
+  (the printed (42) lacks a term for ``i = j``, ``N >= 2``, and is offered with and without it).
 * measurements start at ``t = 0`` (initial values ``x^(0|-1) = mu0``); the N-step predictor for
   ``t + N + 1 < 0`` is the prior; the smoother for ``t + N > T - 1`` uses the data up to ``T - 1``.
 
