@@ -1,0 +1,254 @@
+"""Minimum-entropy VSMM: exact subset entropies vs a brute-force loop, chunking, families, the
+challenge match vs topk, the selection policies, and the MEVSMM / EqMA filters."""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from torchmm import GaussianBelief, run_filter
+from torchmm.models import ConstantVelocity, LinearMotion, PositionMeasurement
+from torchmm.multimodel.mevsmm import (
+    ChallengeMatch,
+    EqMAParticleFilter,
+    ExactMinimumEntropy,
+    MinimumEntropyVSMM,
+    ModelSetBelief,
+    as_family,
+    challenge_match,
+    min_entropy_subset,
+    model_statistics,
+    subset_entropies,
+    subset_masks,
+    uniform_transition,
+)
+
+
+def _brute_force(log_w: np.ndarray, entropy: str) -> dict[tuple[int, ...], float]:
+    """Entropy of every non-empty subset by an explicit loop (float64 NumPy, no shared code)."""
+    w = np.exp(log_w - log_w.max())
+    M = w.shape[0]
+    out = {}
+    for size in range(1, M + 1):
+        for subset in itertools.combinations(range(M), size):
+            ws = w[list(subset)]
+            if entropy == "joint":
+                p = ws / ws.sum()
+                p = p[p > 0]
+                out[subset] = float(-(p * np.log(p)).sum())
+            else:  # omega (28) times p(m_j | S) (29), as printed
+                omega = ws / ws.sum()
+                pm = ws.sum(-1) / ws.sum()
+                q = omega * pm[:, None]
+                q = q[q > 0]
+                out[subset] = float(-(q * np.log(q)).sum())
+    return out
+
+
+def _random_log_weights(batch, M, Np, seed=0):
+    rng = np.random.default_rng(seed)
+    lw = rng.normal(size=(*batch, M, Np)) * 1.5 + rng.normal(size=(*batch, M, 1)) * 2.0
+    return torch.tensor(lw)
+
+
+@pytest.mark.parametrize("entropy", ["joint", "literal"])
+def test_exact_entropies_equal_brute_force_loop(entropy):
+    M, Np = 5, 7
+    lw = _random_log_weights((3,), M, Np)
+    subsets = subset_masks(M)
+    values = subset_entropies(lw, subsets, entropy)
+    active, best = min_entropy_subset(lw, entropy=entropy)
+    for b in range(3):
+        ref = _brute_force(lw[b].numpy(), entropy)
+        for k, row in enumerate(subsets):
+            key = tuple(int(j) for j in torch.nonzero(row).flatten())
+            assert values[b, k].item() == pytest.approx(ref[key], rel=1e-10, abs=1e-12)
+        arg = min(ref, key=ref.get)
+        assert tuple(int(j) for j in torch.nonzero(active[b]).flatten()) == arg
+        assert best[b].item() == pytest.approx(ref[arg], rel=1e-10)
+
+
+def test_joint_minimum_is_the_most_concentrated_single_model():
+    """H(S) = H(p) + sum p_j h_j >= min_j h_j: the joint reading always selects one model."""
+    lw = _random_log_weights((6,), 6, 20, seed=4)
+    active, best = min_entropy_subset(lw)
+    _, h = model_statistics(lw)
+    assert torch.all(active.sum(-1) == 1)
+    assert torch.equal(active.float().argmax(-1), h.argmin(-1))
+    torch.testing.assert_close(best, h.min(-1).values)
+
+
+@pytest.mark.parametrize("entropy", ["joint", "literal"])
+def test_chunked_equals_unchunked(entropy):
+    lw = _random_log_weights((2, 3), 9, 11, seed=1)
+    full = min_entropy_subset(lw, chunk_size=1 << 9, entropy=entropy)
+    for chunk in (1, 7, 64):
+        got = min_entropy_subset(lw, chunk_size=chunk, entropy=entropy)
+        assert torch.equal(got[0], full[0])
+        torch.testing.assert_close(got[1], full[1], rtol=0, atol=0)
+    assert full[0].shape == (2, 3, 9) and full[1].shape == (2, 3)
+
+
+def test_user_family_and_list_family():
+    lw = _random_log_weights((4,), 4, 10, seed=2)
+    sets = [[0, 1], [2], [1, 2, 3]]
+    family = as_family(sets, 4)
+    values = subset_entropies(lw, family)
+    active, best = ExactMinimumEntropy(sets)(lw)[0], ExactMinimumEntropy(family)(lw)[1]["entropy"]
+    torch.testing.assert_close(best, values.min(-1).values)
+    assert torch.equal(active, family[values.argmin(-1)])
+    with pytest.raises(ValueError, match="family"):
+        min_entropy_subset(lw, torch.zeros(2, 4, dtype=torch.bool))
+    with pytest.raises(ValueError, match="family"):
+        min_entropy_subset(lw, torch.ones(2, 3, dtype=torch.bool))
+
+
+def test_exact_selection_handles_empty_models_and_float32():
+    lw = _random_log_weights((3,), 4, 6, seed=5)
+    lw[:, 1] = -math.inf  # a model with no mass
+    lw[0, 2] = lw[0, 2] - 800.0  # far below the heaviest model: beyond float64 scaling
+    active, best = min_entropy_subset(lw)
+    assert torch.isfinite(best).all() and not bool(active[:, 1].any())
+    a32, b32 = min_entropy_subset(lw.float())
+    assert torch.isfinite(b32).all() and b32.dtype == torch.float32
+
+
+def test_twenty_one_models_all_subsets_in_bounded_chunks():
+    lw = _random_log_weights((2,), 21, 5, seed=6)
+    active, best = min_entropy_subset(lw, chunk_size=1 << 18)
+    _, h = model_statistics(lw)
+    torch.testing.assert_close(best, h.min(-1).values)
+
+
+def test_challenge_match_with_enough_passes_equals_topk():
+    g = torch.Generator().manual_seed(0)
+    scores = torch.randn(6, 400, generator=g)
+    exact = torch.topk(scores, 20, dim=-1).indices.sort(-1).values
+    cm = challenge_match(scores, 20, passes=300, generator=g).sort(-1).values
+    assert torch.equal(cm, exact)
+    # a single pass is a valid, weaker selection: distinct indices, better than random
+    one = challenge_match(scores, 20, passes=1, generator=g)
+    assert all(len(set(row.tolist())) == 20 for row in one)
+    held = torch.gather(scores, 1, one).mean()
+    assert float(held) > float(scores.mean()) + 1.0
+    zero = challenge_match(scores, 20, passes=0, generator=g)
+    assert zero.shape == (6, 20)
+    with pytest.raises(ValueError, match="num_winners"):
+        challenge_match(scores, 0)
+
+
+def test_challenge_match_policy_counts_and_fallback():
+    M, Np = 4, 50
+    lw = torch.full((2, M, Np), -10.0)
+    lw[0, 2, :30] = 0.0  # run 0: 30 heavy particles of model 2
+    lw[0, 0, :20] = -1.0
+    lw[1] = torch.randn(M, Np, generator=torch.Generator().manual_seed(1))
+    policy = ChallengeMatch(40, 10, method="topk")
+    active, info = policy(lw)
+    assert info["winner_counts"].sum(-1).tolist() == [40.0, 40.0]
+    assert active[0].tolist() == [True, False, True, False]
+    strict = ChallengeMatch(40, 41, method="topk")
+    active, info = strict(lw)
+    assert info["fallback"].all() and torch.all(active.sum(-1) == 1)
+    cm = ChallengeMatch(40, 10, method="cm", passes=200)
+    active_cm, _ = cm(lw, torch.Generator().manual_seed(2))
+    assert active_cm[0].tolist() == [True, False, True, False]
+
+
+def _tracking_problem(runs=4, steps=12, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    motion = ConstantVelocity(1, q=0.2, acceleration=[[1.0], [0.0], [-1.0]])
+    sensor = PositionMeasurement(2, [0], 1.0)
+    prior = GaussianBelief(torch.zeros(runs, 2), torch.eye(2).expand(runs, 2, 2))
+    z = torch.cumsum(torch.randn(steps, runs, 1, generator=g), 0)
+    return motion, sensor, prior, z
+
+
+def test_mevsmm_without_selection_equals_the_mm_pf():
+    """Threshold 0 keeps every model: PF-MEVSMM is then the multiple-model PF (same stream)."""
+    from torchmm.filters.particle import MultipleModelParticleFilter
+
+    motion, sensor, prior, z = _tracking_problem()
+    pi = uniform_transition(3, 0.8)
+    a = MinimumEntropyVSMM(motion, sensor, pi, 200, selection=ChallengeMatch(10, 0, method="topk"),
+                           generator=torch.Generator().manual_seed(1))
+    b = MultipleModelParticleFilter(motion, sensor, pi, 200, generator=torch.Generator().manual_seed(1))
+    ta, tb = run_filter(a, a.initial_belief(prior), z), run_filter(b, b.initial_belief(prior), z)
+    torch.testing.assert_close(ta.estimate().mean, tb.estimate().mean)
+    torch.testing.assert_close(ta.log_likelihood, tb.log_likelihood)
+    assert torch.all(ta.extras["model_count"] == 3)
+
+
+@pytest.mark.parametrize("feedback", [True, False])
+def test_mevsmm_selection_step_and_estimate(feedback):
+    motion, sensor, prior, z = _tracking_problem()
+    f = MinimumEntropyVSMM(motion, sensor, uniform_transition(3), 300, selection=ExactMinimumEntropy(),
+                           feedback=feedback, generator=torch.Generator().manual_seed(0))
+    traj = run_filter(f, f.initial_belief(prior), z)
+    assert isinstance(traj.belief, ModelSetBelief)
+    active = traj.extras["active"]
+    assert active.shape == (12, 4, 3) and torch.all(traj.extras["model_count"] == 1)
+    probs = traj.belief.mode_probs
+    if feedback:
+        assert torch.all(probs[~active] == 0)
+    else:
+        assert bool((probs[~active] > 0).any())
+    # (31): the estimate is the weighted mean over the selected model's particles only
+    k = 5
+    sel = active[k].float().argmax(-1)
+    parts = traj.belief.components.particles[k][torch.arange(4), sel]
+    w = traj.belief.components.log_weights[k][torch.arange(4), sel].softmax(-1)
+    torch.testing.assert_close(traj.estimate().mean[k], (w.unsqueeze(-1) * parts).sum(-2))
+
+
+def test_eqma_equivalent_model_matches_mixture_moments():
+    F = torch.tensor([[1.0, 1.0], [0.0, 1.0]])
+    G = torch.tensor([[0.5], [1.0]])
+    acc = torch.tensor([[-1.0], [0.0], [2.0]])
+    f = EqMAParticleFilter(F, G, acc, torch.eye(1) * 0.3, PositionMeasurement(2, [0], 1.0), 100,
+                           generator=torch.Generator().manual_seed(0))
+    log_c = torch.log(torch.tensor([[0.2, 0.3, 0.1, 0.4]]))
+    mean, cov = f.equivalent_model(log_c)
+    c = torch.tensor([0.2, 0.3, 0.1]) / 0.6
+    torch.testing.assert_close(mean, (c @ acc).view(1, 1))
+    torch.testing.assert_close(cov, (0.3 + (c * (acc.flatten() - c @ acc.flatten()) ** 2).sum()).view(1, 1, 1))
+    # propagation: the equivalent model's particles have the matched acceleration mean and spread
+    parts = torch.zeros(1, 4, 20000, 2)
+    out = f._propagate(parts, u=None, log_cbar=log_c.expand(1, 4))
+    vel = out[0, 3, :, 1]
+    assert abs(float(vel.mean() - mean.item())) < 5 * math.sqrt(cov.item() / 20000)
+    assert abs(float(vel.var() / cov.item()) - 1) < 0.05
+    prior = GaussianBelief(torch.zeros(3, 2), torch.eye(2).expand(3, 2, 2))
+    traj = run_filter(f, f.initial_belief(prior), torch.randn(6, 3, 1, generator=torch.Generator().manual_seed(1)))
+    assert traj.belief.mode_probs.shape == (6, 3, 4) and torch.isfinite(traj.estimate().mean).all()
+
+
+def test_mevsmm_float32_runs():
+    motion = ConstantVelocity(1, q=0.2, acceleration=[[1.0], [0.0], [-1.0]], dtype=torch.float32)
+    sensor = PositionMeasurement(2, [0], 1.0, dtype=torch.float32)
+    f = MinimumEntropyVSMM(motion, sensor, uniform_transition(3, dtype=torch.float32), 100,
+                           selection=ChallengeMatch(30, 5), generator=torch.Generator().manual_seed(0))
+    prior = GaussianBelief(torch.zeros(2, 2, dtype=torch.float32), torch.eye(2, dtype=torch.float32).expand(2, 2, 2))
+    traj = run_filter(f, f.initial_belief(prior), torch.randn(5, 2, 1).float())
+    assert traj.estimate().mean.dtype == torch.float32 and torch.isfinite(traj.estimate().mean).all()
+
+
+def test_bad_arguments():
+    motion, sensor = ConstantVelocity(1, acceleration=[[0.0], [1.0]]), PositionMeasurement(2, [0], 1.0)
+    with pytest.raises(ValueError, match="selection"):
+        MinimumEntropyVSMM(motion, sensor, uniform_transition(2), 10, selection=None)
+    with pytest.raises(ValueError, match="entropy"):
+        ExactMinimumEntropy(entropy="bogus")
+    with pytest.raises(ValueError, match="method"):
+        ChallengeMatch(method="bogus")
+    with pytest.raises(ValueError, match="stay"):
+        uniform_transition(3, 1.5)
+    with pytest.raises(ValueError, match="accelerations"):
+        EqMAParticleFilter(torch.eye(2), torch.ones(2, 1), torch.zeros(3, 2), torch.eye(1), sensor, 10)
+    with pytest.raises(ValueError, match="family"):
+        min_entropy_subset(torch.zeros(1, 31, 2))
+    assert isinstance(LinearMotion(torch.eye(2), torch.eye(2)), LinearMotion)

@@ -1,0 +1,531 @@
+r"""Minimum-entropy variable-structure multiple-model estimation (paper 003) and EqMA baselines.
+
+Paper 003 (Shen-Tu, Peng, Xue) selects, at every step, the candidate model set whose particle
+approximation of ``p(x_k, m_k | Z_k)`` has the smallest Shannon entropy, and outputs the estimate
+over that set. Everything here runs on :class:`~torchmm.filters.particle.MultipleModelParticleFilter`
+(``Np`` particles per model, weights (33)-(34)); only the selection of the model set differs.
+
+**Exact myopic selection** (25)-(31), :class:`ExactMinimumEntropy`. With joint normalised weights
+``w_{jl}`` (model ``j``, particle ``l``), per-model masses ``W_j = sum_l w_{jl}`` and within-model
+entropies ``h_j = -sum_l (w_{jl}/W_j) log(w_{jl}/W_j)``, the entropy of the weights restricted to
+and renormalised on a set ``S`` is (reading "joint", see docs/reproduction-003.md)
+
+.. math::
+    H(S) = \log W_S - \frac{1}{W_S}\sum_{j\in S} W_j(\log W_j - h_j),\qquad W_S = \sum_{j\in S} W_j,
+
+so the entropies of *all* ``2^M - 1`` non-empty subsets are one subset-indicator matrix times
+two per-model sums, evaluated in chunks of subsets (bounded memory). The literal reading of (26)
+(``omega`` of (28) times ``p(m_j | S)`` of (29)) gives ``H(S) = sum_j p_j^2 (h_j - 2 log p_j)`` with
+``p_j = W_j / W_S`` and is available as ``entropy="literal"``. Since
+``H(S) = H(p) + sum_j p_j h_j >= min_j h_j``, the "joint" minimum is always attained by a single
+model (the one whose particle weights are most concentrated).
+
+**Challenge match** (32)-(34) and section 3.4.3, :class:`ChallengeMatch`: the ``N`` heaviest of the
+``M Np`` particles are found by the randomised tournament of the paper (vectorised over runs) or
+exactly by ``topk``; a model stays in the set if it has at least ``Thre`` of the ``N`` winners.
+
+**EqMA N+1** (ALGORITHMS.md 2.2, reconstruction): :class:`EqMAParticleFilter`, an acceleration-grid
+MM-PF with one extra *equivalent* model per step whose acceleration mean and covariance match the
+predicted mode distribution of the fixed grid.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import ClassVar
+
+import torch
+from torch import Tensor
+
+from torchmm.beliefs import GaussianBelief, ModeBelief, ParticleBelief, register_belief, symmetrize
+from torchmm.beliefs.ops import normalize_log_probs
+from torchmm.filters.base import StepOutput
+from torchmm.filters.particle import MultipleModelParticleFilter
+from torchmm.models.base import MeasurementModel, MotionModel
+from torchmm.models.linear import LinearMotion
+from torchmm.validation import as_tensor
+
+__all__ = [
+    "ChallengeMatch",
+    "EqMAParticleFilter",
+    "ExactMinimumEntropy",
+    "MinimumEntropyVSMM",
+    "ModelSetBelief",
+    "as_family",
+    "challenge_match",
+    "min_entropy_subset",
+    "model_statistics",
+    "subset_entropies",
+    "subset_masks",
+    "uniform_transition",
+]
+
+ENTROPY_READINGS = ("joint", "literal")
+
+
+# ------------------------------------------------------------------------------------------------
+# belief
+# ------------------------------------------------------------------------------------------------
+@register_belief
+@dataclass(frozen=True)
+class ModelSetBelief(ModeBelief):
+    """A :class:`ModeBelief` over per-model particle sets with the selected model set.
+
+    ``mode_log_probs`` are the probabilities the recursion carries (restricted to the set when the
+    selection is fed back, ``-inf`` outside it); :meth:`estimate` is (31), always over the set.
+
+    Shapes:
+        mode_log_probs: ``(*B, M)``; components: ``ParticleBelief`` with particles
+        ``(*B, M, Np, n)``, log_weights ``(*B, M, Np)``; active: ``(*B, M)`` bool
+    """
+
+    active: Tensor
+
+    event_dims: ClassVar[dict[str, int]] = {"mode_log_probs": 1, "active": 1}
+
+    def estimate(self) -> GaussianBelief:
+        """Weighted mean and covariance over the active models' particles (31), batch ``(*B,)``."""
+        comps = self.components
+        restricted = torch.where(self.active, self.mode_log_probs, torch.full_like(self.mode_log_probs, -math.inf))
+        w = (normalize_log_probs(restricted).unsqueeze(-1) + normalize_log_probs(comps.log_weights)).exp()
+        w = w.flatten(-2)
+        particles = comps.particles.flatten(-3, -2)
+        mean = (w.unsqueeze(-1) * particles).sum(-2)
+        diff = particles - mean.unsqueeze(-2)
+        cov = (diff * w.unsqueeze(-1)).mT @ diff
+        return GaussianBelief(mean, symmetrize(cov))
+
+
+# ------------------------------------------------------------------------------------------------
+# exact subset entropies
+# ------------------------------------------------------------------------------------------------
+def model_statistics(log_weights: Tensor) -> tuple[Tensor, Tensor]:
+    """Per-model log-masses ``log W_j`` and within-model entropies ``h_j`` of joint log-weights.
+
+    A model with no mass (all ``-inf``) gets ``log W_j = -inf`` and ``h_j = 0``.
+
+    Shapes:
+        log_weights: ``(*B, M, Np)`` (any normalisation) -> ``(*B, M)``, ``(*B, M)``
+    """
+    log_mass = torch.logsumexp(log_weights, dim=-1)
+    within = normalize_log_probs(log_weights)
+    p = within.exp()
+    h = -(torch.where(p > 0, p * within, torch.zeros_like(p))).sum(-1)
+    h = torch.where(torch.isfinite(log_mass), h, torch.zeros_like(h))
+    return log_mass, h
+
+
+def _scaled_stats(log_weights: Tensor, entropy: str) -> Tensor:
+    """Per-model sufficient statistics ``(*B, M, s)`` for :func:`_entropy_from_sums`."""
+    if entropy not in ENTROPY_READINGS:
+        raise ValueError(f"entropy: expected one of {ENTROPY_READINGS}, got {entropy!r}")
+    log_mass, h = model_statistics(log_weights)
+    top = log_mass.amax(-1, keepdim=True)
+    top = torch.where(torch.isfinite(top), top, torch.zeros_like(top))
+    log_scaled = log_mass - top  # <= 0, max 0
+    mass = log_scaled.exp()
+    safe_log = torch.where(mass > 0, log_scaled, torch.zeros_like(log_scaled))
+    if entropy == "joint":
+        return torch.stack([mass, mass * (safe_log - h)], dim=-1)
+    sq = mass.square()
+    return torch.stack([mass, sq * (h - 2 * safe_log), sq], dim=-1)
+
+
+def _entropy_from_sums(sums: Tensor, entropy: str) -> Tensor:
+    """Entropies from subset sums ``(..., s)``; subsets without (representable) mass -> ``+inf``."""
+    mass = sums[..., 0]
+    ok = mass > 0
+    safe = torch.where(ok, mass, torch.ones_like(mass))
+    if entropy == "joint":
+        value = safe.log() - sums[..., 1] / safe
+    else:
+        value = (sums[..., 1] + 2 * safe.log() * sums[..., 2]) / safe.square()
+    return torch.where(ok, value, torch.full_like(value, math.inf))
+
+
+def subset_masks(num_models: int, start: int = 1, stop: int | None = None, *, device=None) -> Tensor:
+    """Indicator rows of the subsets with binary codes ``start .. stop-1`` (bit ``j`` = model ``j``).
+
+    Shapes:
+        -> ``(stop - start, M)`` bool
+    """
+    stop = (1 << num_models) if stop is None else stop
+    codes = torch.arange(start, stop, dtype=torch.int64, device=device)
+    bits = torch.arange(num_models, dtype=torch.int64, device=device)
+    return ((codes.unsqueeze(-1) >> bits) & 1).bool()
+
+
+def subset_entropies(log_weights: Tensor, subsets: Tensor, entropy: str = "joint") -> Tensor:
+    """Entropy (26) of the particle weights restricted to each candidate set.
+
+    Shapes:
+        log_weights: ``(*B, M, Np)`` joint log-weights; subsets: ``(K, M)`` bool -> ``(*B, K)``
+    """
+    stats = _scaled_stats(log_weights, entropy)  # (*B, M, s)
+    subsets = _check_subsets(subsets, log_weights.shape[-2])
+    sums = torch.einsum("km,...ms->...ks", subsets.to(stats.dtype), stats)
+    return _entropy_from_sums(sums, entropy)
+
+
+def _check_subsets(subsets, num_models: int) -> Tensor:
+    subsets = torch.as_tensor(subsets)
+    if subsets.dim() != 2 or subsets.shape[-1] != num_models:
+        raise ValueError(f"family: expected a (K, {num_models}) indicator matrix, got {tuple(subsets.shape)}")
+    subsets = subsets.bool()
+    if not bool(subsets.any(-1).all()):
+        raise ValueError("family: every candidate set must contain at least one model")
+    return subsets
+
+
+def min_entropy_subset(log_weights: Tensor, family: Tensor | None = None, *, chunk_size: int = 16384,
+                       entropy: str = "joint") -> tuple[Tensor, Tensor]:
+    """The minimum-entropy candidate set (30) per batch element.
+
+    ``family=None`` searches all ``2^M - 1`` non-empty subsets, generated and evaluated
+    ``chunk_size`` at a time (memory ``~ chunk_size * prod(B) * 3 * 8`` bytes); otherwise the rows
+    of ``family`` are the candidates. Ties go to the first candidate (lowest binary code).
+
+    Returns:
+        ``(active, entropy)``: the selected set ``(*B, M)`` bool and its entropy ``(*B,)``.
+
+    Shapes:
+        log_weights: ``(*B, M, Np)``; family: ``(K, M)`` bool -> ``(*B, M)``, ``(*B,)``
+
+    Examples:
+        >>> lw = torch.log(torch.tensor([[[0.3, 0.1], [0.3, 0.3]]]))
+        >>> active, h = min_entropy_subset(lw)
+        >>> active.tolist()
+        [[True, False]]
+    """
+    num_models = log_weights.shape[-2]
+    if chunk_size < 1:
+        raise ValueError(f"chunk_size: must be >= 1, got {chunk_size}")
+    stats = _scaled_stats(log_weights, entropy)
+    batch = stats.shape[:-2]
+    flat = stats.reshape(-1, num_models, stats.shape[-1])  # (Bf, M, s)
+    operand = flat.permute(1, 0, 2).reshape(num_models, -1)  # (M, Bf * s)
+    if family is None:
+        if num_models > 30:
+            raise ValueError(f"family: all subsets of {num_models} models are too many; give a family")
+        total = (1 << num_models) - 1
+    else:
+        family = _check_subsets(family, num_models).to(log_weights.device)
+        total = family.shape[0]
+    best = torch.full((flat.shape[0],), math.inf, dtype=stats.dtype, device=stats.device)
+    best_index = torch.zeros(flat.shape[0], dtype=torch.int64, device=stats.device)
+    for start in range(0, total, chunk_size):
+        stop = min(start + chunk_size, total)
+        if family is None:
+            rows = subset_masks(num_models, start + 1, stop + 1, device=stats.device)
+        else:
+            rows = family[start:stop]
+        sums = (rows.to(stats.dtype) @ operand).view(stop - start, flat.shape[0], stats.shape[-1])
+        values = _entropy_from_sums(sums, entropy)  # (K_c, Bf)
+        chunk_best, chunk_arg = values.min(0)
+        better = chunk_best < best
+        best = torch.where(better, chunk_best, best)
+        best_index = torch.where(better, chunk_arg + start, best_index)
+    if family is None:
+        bits = torch.arange(num_models, device=stats.device)
+        active = (((best_index + 1).unsqueeze(-1) >> bits) & 1).bool()
+    else:
+        active = family[best_index]
+    # no candidate with representable mass (cannot happen with a finite weight): keep all
+    active = torch.where(torch.isfinite(best).unsqueeze(-1), active, torch.ones_like(active))
+    return active.view(*batch, num_models), best.view(batch)
+
+
+# ------------------------------------------------------------------------------------------------
+# challenge match
+# ------------------------------------------------------------------------------------------------
+def challenge_match(scores: Tensor, num_winners: int, *, passes: int = 1,
+                    generator: torch.Generator | None = None) -> Tensor:
+    """The randomised tournament of paper 003, section 3.4.3, for the ``N`` heaviest particles.
+
+    a) a random ``N`` particles form sequence 1; b) ``N`` further particles, taken from the
+    remaining pool in a random order, form sequence 2; c) the two sequences are compared position
+    by position (sequence 1 rotated by a random offset each round) and a heavier challenger takes
+    the place of the holder, who goes back to the pool; d) b)-c) repeat until every pool position
+    has challenged ``passes`` times. Each round is a few tensor ops over all runs at once.
+    The number of true top-``N`` particles held never decreases, and with enough passes the
+    result equals ``topk`` (for distinct scores).
+
+    Returns:
+        indices of the winners into the last axis of ``scores``, ``(*B, N)`` (unordered).
+
+    Shapes:
+        scores: ``(*B, P)`` (e.g. log-weights of all ``M Np`` particles) -> ``(*B, N)``
+    """
+    P = scores.shape[-1]
+    if not 1 <= num_winners <= P:
+        raise ValueError(f"num_winners: must be in [1, {P}], got {num_winners}")
+    if passes < 0:
+        raise ValueError(f"passes: must be >= 0, got {passes}")
+    batch = scores.shape[:-1]
+    flat = scores.reshape(-1, P)
+    Bf, device = flat.shape[0], flat.device
+    order = torch.rand(Bf, P, device=device, generator=generator).argsort(-1)
+    seq1 = order[:, :num_winners].contiguous()
+    pool = order[:, num_winners:].contiguous()
+    held = torch.gather(flat, 1, seq1)
+    pool_size = P - num_winners
+    if pool_size > 0 and passes > 0:
+        block = min(num_winners, pool_size)
+        rounds = passes * math.ceil(pool_size / block)
+        ar = torch.arange(block, device=device)
+        for r in range(rounds):
+            slots = (r * block + ar) % pool_size
+            challengers = pool[:, slots]
+            challenger_scores = torch.gather(flat, 1, challengers)
+            shift = torch.randint(0, num_winners, (Bf, 1), device=device, generator=generator)
+            pos = (ar + shift) % num_winners
+            holders = torch.gather(seq1, 1, pos)
+            holder_scores = torch.gather(held, 1, pos)
+            win = challenger_scores > holder_scores
+            seq1.scatter_(1, pos, torch.where(win, challengers, holders))
+            held.scatter_(1, pos, torch.where(win, challenger_scores, holder_scores))
+            pool[:, slots] = torch.where(win, holders, challengers)
+    return seq1.view(*batch, num_winners)
+
+
+# ------------------------------------------------------------------------------------------------
+# selection policies
+# ------------------------------------------------------------------------------------------------
+class ExactMinimumEntropy:
+    """Select the minimum-entropy set (30) among all non-empty subsets or a given ``family``.
+
+    Args:
+        family: ``(K, M)`` bool candidate sets, or a list of lists of model indices; None = all.
+        chunk_size: subsets evaluated at once.
+        entropy: ``"joint"`` (default; entropy of the renormalised weights on the set) or
+            ``"literal"`` (the product of (28) and (29) as printed).
+    """
+
+    def __init__(self, family=None, *, chunk_size: int = 16384, entropy: str = "joint"):
+        if entropy not in ENTROPY_READINGS:
+            raise ValueError(f"entropy: expected one of {ENTROPY_READINGS}, got {entropy!r}")
+        self.family, self.chunk_size, self.entropy = family, int(chunk_size), entropy
+
+    def _family(self, num_models: int, device) -> Tensor | None:
+        if self.family is None:
+            return None
+        fam = self.family
+        if isinstance(fam, (list, tuple)) and fam and isinstance(fam[0], (list, tuple)):
+            rows = torch.zeros(len(fam), num_models, dtype=torch.bool)
+            for k, members in enumerate(fam):
+                rows[k, list(members)] = True
+            fam = rows
+        return _check_subsets(fam, num_models).to(device)
+
+    def __call__(self, log_weights: Tensor, generator=None) -> tuple[Tensor, dict]:
+        family = self._family(log_weights.shape[-2], log_weights.device)
+        active, value = min_entropy_subset(log_weights, family, chunk_size=self.chunk_size, entropy=self.entropy)
+        return active, {"entropy": value}
+
+
+class ChallengeMatch:
+    """Keep the models with at least ``threshold`` of the ``num_winners`` heaviest particles.
+
+    Args:
+        num_winners: ``N`` (paper: 420).
+        threshold: ``Thre`` (paper: 23).
+        method: ``"cm"`` (the randomised tournament, :func:`challenge_match`) or ``"topk"`` (exact).
+        passes: tournament passes over the pool (the paper leaves the end condition open).
+
+    If no model reaches the threshold, the model with the most winners is kept (the set is never
+    empty); ``info["fallback"]`` marks those runs.
+    """
+
+    def __init__(self, num_winners: int = 420, threshold: int = 23, *, method: str = "cm", passes: int = 1):
+        if method not in ("cm", "topk"):
+            raise ValueError(f"method: expected 'cm' or 'topk', got {method!r}")
+        if int(num_winners) < 1 or int(threshold) < 0:
+            raise ValueError("num_winners must be >= 1 and threshold >= 0")
+        self.num_winners, self.threshold = int(num_winners), int(threshold)
+        self.method, self.passes = method, int(passes)
+
+    def __call__(self, log_weights: Tensor, generator=None) -> tuple[Tensor, dict]:
+        M, Np = log_weights.shape[-2:]
+        scores = log_weights.flatten(-2)
+        if self.method == "topk":
+            winners = torch.topk(scores, self.num_winners, dim=-1).indices
+        else:
+            winners = challenge_match(scores, self.num_winners, passes=self.passes, generator=generator)
+        model = torch.div(winners, Np, rounding_mode="floor")
+        counts = torch.zeros(*scores.shape[:-1], M, dtype=log_weights.dtype, device=log_weights.device)
+        counts.scatter_add_(-1, model, torch.ones_like(model, dtype=counts.dtype))
+        active = counts >= self.threshold
+        empty = ~active.any(-1)
+        best = torch.nn.functional.one_hot(counts.argmax(-1), M).bool()
+        active = torch.where(empty.unsqueeze(-1), best, active)
+        return active, {"winner_counts": counts, "fallback": empty}
+
+
+# ------------------------------------------------------------------------------------------------
+# filters
+# ------------------------------------------------------------------------------------------------
+def uniform_transition(num_models: int, stay: float = 0.9, *, dtype=None, device=None) -> Tensor:
+    """``p_ii = stay``, off-diagonals ``(1 - stay) / (M - 1)`` (the ALGORITHMS.md default).
+
+    Shapes:
+        -> ``(M, M)``
+    """
+    if not 0 <= stay <= 1:
+        raise ValueError(f"stay: must be in [0, 1], got {stay}")
+    if num_models == 1:
+        return torch.ones(1, 1, dtype=dtype, device=device)
+    off = (1 - stay) / (num_models - 1)
+    eye = torch.eye(num_models, dtype=dtype, device=device)
+    return eye * stay + (1 - eye) * off
+
+
+class MinimumEntropyVSMM(MultipleModelParticleFilter):
+    r"""PF-MEVSMM: a multiple-model PF whose model set is re-selected every step (paper 003).
+
+    Step ``k``: every model of the total set gets ``Np`` particles drawn from the interaction of
+    the previous *selected* set (the sum over ``m_a in S_{k-1}`` of (27)/(33)), weights (33)-(34),
+    then the ``selection`` policy chooses ``S_k`` (:class:`ExactMinimumEntropy` for (30) or
+    :class:`ChallengeMatch` for section 3.4.3) and the belief is renormalised on ``S_k``; its
+    ``estimate()`` is (31).
+
+    Args:
+        motion, measurement, transition, num_particles, mixing, generator: as
+            :class:`~torchmm.filters.particle.MultipleModelParticleFilter`.
+        selection: the model-set policy (callable ``(log_weights (*B, M, Np), generator) ->
+            (active (*B, M), info)``).
+        feedback: ``True`` (the paper's (27)/(33): the next step starts from the selected set
+            only, its probabilities renormalised on it); ``False``: the selection only chooses the
+            output set of (31) and the recursion keeps every model.
+
+    Shapes:
+        belief: :class:`ModelSetBelief`; ``extras``: ``"active"`` ``(*B, M)``, ``"model_count"``
+        ``(*B,)``, ``"ess"`` ``(*B,)`` (all candidate particles), plus the policy's diagnostics
+        (``"entropy"`` or ``"winner_counts"``, ``"fallback"``).
+
+    Examples:
+        >>> from torchmm.models import ConstantVelocity, PositionMeasurement
+        >>> g = torch.Generator().manual_seed(0)
+        >>> motion = ConstantVelocity(1, acceleration=[[1.0], [0.0], [-1.0]])
+        >>> f = MinimumEntropyVSMM(motion, PositionMeasurement(2, [0], 1.0), uniform_transition(3), 100,
+        ...                        selection=ChallengeMatch(30, 5), generator=g)
+        >>> out = f.step(f.initial_belief(GaussianBelief(torch.zeros(4, 2), torch.eye(2))), torch.zeros(4, 1))
+        >>> out.extras["active"].shape, out.belief.estimate().mean.shape
+        (torch.Size([4, 3]), torch.Size([4, 2]))
+    """
+
+    def __init__(self, motion: MotionModel, measurement: MeasurementModel, transition, num_particles: int, *,
+                 selection, feedback: bool = True, mixing: str = "systematic",
+                 generator: torch.Generator | None = None):
+        super().__init__(motion, measurement, transition, num_particles, mixing=mixing, generator=generator)
+        if not callable(selection):
+            raise ValueError("selection: expected a callable policy (ExactMinimumEntropy, ChallengeMatch)")
+        self.selection, self.feedback = selection, bool(feedback)
+
+    def initial_belief(self, belief: GaussianBelief, mode_probs=None) -> ModelSetBelief:
+        """Every model active with ``Np`` particles from the prior (32). Shapes as the base class."""
+        base = super().initial_belief(belief, mode_probs)
+        active = torch.ones(base.mode_log_probs.shape, dtype=torch.bool, device=belief.device)
+        return ModelSetBelief(base.mode_log_probs, base.components, active)
+
+    def predict(self, belief: ModeBelief, *, u: Tensor | None = None) -> ModelSetBelief:
+        prior = super().predict(belief, u=u)
+        active = torch.ones(prior.mode_log_probs.shape, dtype=torch.bool, device=prior.mode_log_probs.device)
+        return ModelSetBelief(prior.mode_log_probs, prior.components, active)
+
+    def update(self, belief: ModeBelief, z: Tensor) -> StepOutput:
+        out = super().update(belief, z)
+        post = out.belief
+        joint = post.mode_log_probs.unsqueeze(-1) + post.components.log_weights  # (34), (*B, M, Np)
+        active, info = self.selection(joint, self.generator)
+        carried = post.mode_log_probs
+        if self.feedback:
+            carried = normalize_log_probs(torch.where(active, carried, torch.full_like(carried, -math.inf)))
+        selected = ModelSetBelief(carried, post.components, active)
+        extras = dict(out.extras)
+        extras.update(info)
+        extras["active"] = active
+        extras["model_count"] = active.sum(-1)
+        return out._replace(belief=selected, extras=extras)
+
+
+class EqMAParticleFilter(MultipleModelParticleFilter):
+    r"""EqMA ``N+1`` on particle filters (ALGORITHMS.md 2.2, reconstruction).
+
+    ``N`` fixed acceleration models ``x_k = F x_{k-1} + G a_i + G w``, ``w ~ N(0, Q_a)``, plus one
+    equivalent model per step, ``a_e = sum_i c_i a_i`` and ``Q_e = Q_a + sum_i c_i (a_i - a_e)(a_i
+    - a_e)^T`` with ``c_i`` the predicted probabilities of the fixed models renormalised over
+    them (variant A). The equivalent model keeps slot ``N`` in the ``(N+1, N+1)`` transition matrix
+    (its predecessor is the previous equivalent model). Particles: ``Np`` per model (interaction as
+    the MM-PF).
+
+    Args:
+        F: ``(n, n)``; gain: ``G`` ``(n, d)``; accelerations: ``(N, d)``; accel_noise_cov: ``Q_a`` ``(d, d)``.
+        measurement: the measurement model.
+        num_particles: ``Np`` per model.
+        transition: ``(N+1, N+1)``; default :func:`uniform_transition` with ``stay``.
+
+    Shapes:
+        as :class:`~torchmm.filters.particle.MultipleModelParticleFilter` with ``M = N + 1``;
+        ``extras["equivalent_acceleration"]`` is not recorded (the prior belief's model N carries it).
+    """
+
+    def __init__(self, F, gain, accelerations, accel_noise_cov, measurement: MeasurementModel, num_particles: int, *,
+                 transition=None, stay: float = 0.9, mixing: str = "systematic",
+                 generator: torch.Generator | None = None):
+        F = as_tensor(F, "F")
+        gain = as_tensor(gain, "gain", dtype=F.dtype, device=F.device)
+        acc = as_tensor(accelerations, "accelerations", dtype=F.dtype, device=F.device)
+        qa = as_tensor(accel_noise_cov, "accel_noise_cov", dtype=F.dtype, device=F.device)
+        if acc.dim() != 2 or acc.shape[-1] != gain.shape[-1]:
+            raise ValueError(f"accelerations: expected (N, {gain.shape[-1]}), got {tuple(acc.shape)}")
+        num_fixed = acc.shape[0]
+        motion = LinearMotion(F, gain @ qa @ gain.mT, offset=acc @ gain.mT)
+        if transition is None:
+            transition = uniform_transition(num_fixed + 1, stay, dtype=F.dtype, device=F.device)
+        self._num_fixed = num_fixed
+        super().__init__(motion, measurement, transition, num_particles, mixing=mixing, generator=generator)
+        if self.num_modes != num_fixed + 1:
+            raise ValueError(f"transition: expected {num_fixed + 1} models (N + 1), got {self.num_modes}")
+        self.register_buffer("accelerations", acc)
+        self.register_buffer("gain", gain)
+        self.register_buffer("accel_noise_cov", qa)
+
+    def _check_motion(self) -> None:  # the bank holds the N fixed models only
+        pass
+
+    def equivalent_model(self, log_cbar: Tensor) -> tuple[Tensor, Tensor]:
+        """Mean acceleration and noise covariance of the equivalent model.
+
+        Shapes:
+            log_cbar: ``(*B, N + 1)`` predicted log-probabilities -> ``(*B, d)``, ``(*B, d, d)``
+        """
+        c = normalize_log_probs(log_cbar[..., : self._num_fixed]).exp()  # (*B, N)
+        mean = c @ self.accelerations
+        diff = self.accelerations - mean.unsqueeze(-2)  # (*B, N, d)
+        spread = (diff * c.unsqueeze(-1)).mT @ diff
+        return mean, symmetrize(self.accel_noise_cov + spread)
+
+    def _propagate(self, particles: Tensor, *, u: Tensor | None, log_cbar: Tensor) -> Tensor:
+        if u is not None:
+            raise ValueError("u: EqMAParticleFilter takes no control input")
+        F, G = self.motion.F, self.gain
+        mean, cov = self.equivalent_model(log_cbar)
+        batch = log_cbar.shape[:-1]
+        acc = torch.cat([self.accelerations.expand(*batch, *self.accelerations.shape), mean.unsqueeze(-2)], -2)
+        qa = self.accel_noise_cov.expand(*batch, self._num_fixed, *self.accel_noise_cov.shape)
+        factor = torch.linalg.cholesky(torch.cat([qa, cov.unsqueeze(-3)], -3))  # (*B, N+1, d, d)
+        eps = torch.randn(*particles.shape[:-1], G.shape[-1], dtype=particles.dtype, device=particles.device,
+                          generator=self.generator)
+        accel = acc.unsqueeze(-2) + eps @ factor.mT  # (*B, N+1, Np, d)
+        return particles @ F.mT + accel @ G.mT
+
+
+def as_family(sets: Sequence[Sequence[int]], num_models: int) -> Tensor:
+    """Indicator matrix of a family of candidate sets given as lists of model indices.
+
+    Shapes:
+        -> ``(K, M)`` bool
+    """
+    return ExactMinimumEntropy(list(map(list, sets)))._family(num_models, None)
