@@ -26,6 +26,7 @@ import torch
 from torch import Tensor
 
 from torchmm.beliefs.ops import symmetrize
+from torchmm.fusion.local import check_measurements
 from torchmm.fusion.system import MultiSensorSystem, measurement_sequence
 
 __all__ = [
@@ -162,8 +163,6 @@ def augmented_local_estimates(system: MultiSensorSystem, y: Tensor, N: int = 0):
     Shapes:
         y: ``(T, *B, L, m)`` -> mean ``(T, *B, L, n)``, cov ``(T, L, n, n)``
     """
-    from torchmm.fusion.local import check_measurements
-
     present = check_measurements(system, y)
     if present is not None:
         y = torch.where(torch.isnan(y), torch.zeros_like(y), y)
@@ -180,7 +179,6 @@ def centralized_system(system: MultiSensorSystem, steps: int, present: Tensor | 
     meas = measurement_sequence(system, steps, present)
     n, L, m, p = system.state_dim, system.num_sensors, system.meas_dim, system.noise_dim
     Xi, _, Qxi = system.second_moments(steps)
-    d = n * (L + 1)
     kw = dict(dtype=Xi.dtype, device=Xi.device)
     Phi = torch.block_diag(system.A, *system.Phi.unbind(0))
     G = torch.block_diag(system.Gamma, torch.eye(n * L, **kw))
@@ -193,7 +191,6 @@ def centralized_system(system: MultiSensorSystem, steps: int, present: Tensor | 
     H = torch.cat([meas.C.reshape(T, L * m, n), Ct_blocks], dim=-1)
     x0 = torch.cat([system.mu0, torch.zeros(n * L, **kw)])
     P0 = torch.block_diag(system.P0, *(system.Qr0[:, None, None] * Xi[0]).unbind(0))
-    assert Phi.shape == (d, d)
     return Phi, G, Q, S, Qv, H, x0, P0
 
 
@@ -203,8 +200,6 @@ def centralized_estimates(system: MultiSensorSystem, y: Tensor, N: int = 0):
     Shapes:
         y: ``(T, *B, L, m)`` -> mean ``(T, *B, n)``, cov ``(T, n, n)``
     """
-    from torchmm.fusion.local import check_measurements
-
     present = check_measurements(system, y)
     if present is not None:
         y = torch.where(torch.isnan(y), torch.zeros_like(y), y)

@@ -22,6 +22,7 @@ import torch
 from torch import Tensor
 
 from torchmm.beliefs.ops import symmetrize
+from torchmm.fusion.augmented import _blockdiag2
 from torchmm.fusion.local import (
     CrossStats,
     LocalStats,
@@ -120,8 +121,6 @@ def steady_state(system: MultiSensorSystem, tol: float = 1e-12, max_iter: int = 
         >>> tuple(ss.cross_covariances(sys, 0).shape)
         (2, 2, 1, 1)
     """
-    from torchmm.fusion.augmented import _blockdiag2
-
     Xi, Qr, Qxi = steady_moments(system)
     tol = max(float(tol), 100 * torch.finfo(Xi.dtype).eps)
     n, L, m = system.state_dim, system.num_sensors, system.meas_dim
