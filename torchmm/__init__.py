@@ -41,12 +41,13 @@ from torchmm.multimodel import (
     validate_transition,
 )
 from torchmm.run import Trajectory, run_filter
-from torchmm import analysis, metrics, simulate  # subpackages, reachable as attributes
+from torchmm import analysis, fusion, metrics, simulate  # subpackages, reachable as attributes
 
 __version__ = "0.1.0"
 
 __all__ = [
     "analysis",
+    "fusion",
     "metrics",
     "simulate",
     "GPB1",

@@ -34,6 +34,10 @@ REQUIRED_TABLES = {
     },
     "imm_tf": TF_TABLES,
     "imm_tf_quick": TF_TABLES,
+    "fusion_radar": {"ex1_rmse": ["estimator", "pos_rmse"]},
+    "fusion_ups": {"ex2_variance": ["estimator", "comp1", "comp2", "comp3"],
+                   "ex2_mc": ["estimator", "comp1", "comp2", "comp3"],
+                   "ex2_horizon": ["N", "comp1", "comp2", "comp3"]},
 }
 
 
