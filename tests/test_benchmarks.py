@@ -37,3 +37,14 @@ def test_imm_tf_benchmark_runs_and_agrees():
     assert re.fullmatch(r"speedup_vs_numpy_loop=[0-9.]+ transfer_overhead_vs_imm=[0-9.]+", lines[-1]), lines[-1]
     diff = float(re.search(r"reference: ([0-9.e+-]+)", proc.stdout).group(1))
     assert diff < 1e-8
+
+
+def test_gimmaf_benchmark_runs_and_agrees():
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "gimmaf_vs_numpy.py"),
+         "--runs", "4", "--steps", "10", "--numpy-runs", "1", "--repeats", "1"],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:] + proc.stdout[-2000:]
+    assert re.match(r"speedup_vs_numpy_loop=[0-9.]+", proc.stdout.strip().splitlines()[-1])
+    assert float(re.search(r"reference: ([0-9.e+-]+)", proc.stdout).group(1)) < 1e-8

@@ -41,11 +41,47 @@ from torchmm.multimodel import (
     validate_transition,
 )
 from torchmm.run import Trajectory, run_filter
+from torchmm.distributions import MultivariateStudentT, SkewT, truncated_normal_moments
+from torchmm.filters.variational import (
+    VBAKFPR,
+    AdaptiveGaussianBelief,
+    SkewTIWVBFilter,
+    SkewTVBFilter,
+    StudentTVBFilter,
+)
+from torchmm.multimodel import (
+    FusionIMM,
+    InfluenceGate,
+    MultiRate,
+    SourceModeVSIMM,
+    SourceUpdateIMM,
+    TransferIMM,
+    influence_value,
+)
+from torchmm.multimodel.variational import VariationalIMM, gimmaf, imm_vbt
 from torchmm import analysis, fusion, metrics, simulate  # subpackages, reachable as attributes
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "AdaptiveGaussianBelief",
+    "FusionIMM",
+    "InfluenceGate",
+    "MultiRate",
+    "MultivariateStudentT",
+    "SkewT",
+    "SkewTIWVBFilter",
+    "SkewTVBFilter",
+    "SourceModeVSIMM",
+    "SourceUpdateIMM",
+    "StudentTVBFilter",
+    "TransferIMM",
+    "VBAKFPR",
+    "VariationalIMM",
+    "gimmaf",
+    "imm_vbt",
+    "influence_value",
+    "truncated_normal_moments",
     "analysis",
     "fusion",
     "metrics",

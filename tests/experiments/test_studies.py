@@ -21,6 +21,8 @@ FAST = {
     "imm_analysis": ["analysis.alphas.two_model=[0.01,0.6]", "analysis.alphas.three_model=[0.01,0.4]"],
     "imm_tf": TF_FAST,
     "imm_tf_quick": TF_FAST,
+    "gimmaf": ["gimmaf.steps=40", "gimmaf.table4.noises=[gaussian]"],
+    "vbakf_huang": ["huang.steps=150"],
 }
 TF_TABLES = {
     "table1": ["source_ratio", "estimator", "pos_rmse", "vel_rmse"],
@@ -38,6 +40,10 @@ REQUIRED_TABLES = {
     "fusion_ups": {"ex2_variance": ["estimator", "comp1", "comp2", "comp3"],
                    "ex2_mc": ["estimator", "comp1", "comp2", "comp3"],
                    "ex2_horizon": ["N", "comp1", "comp2", "comp3"]},
+    "gimmaf": {"table2": ["estimator", "pos_armse", "vel_armse"],
+               "table4": ["noise", "estimator", "pos_armse"],
+               "srnfn": ["estimator", "srnfn_P", "srnfn_R"]},
+    "vbakf_huang": {"table1": ["estimator", "pos_armse", "vel_armse"]},
 }
 
 
