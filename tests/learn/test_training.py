@@ -173,3 +173,11 @@ def test_minibatches_and_bad_arguments():
     clipped = Trainer(kf, torch.optim.SGD(kf.parameters(), lr=0.0), clip_grad_norm=1e-3)
     record = clipped.fit(prior, z, 1)[0]
     assert record.grad_norm > 1e-3  # the reported norm is the one before clipping
+
+
+def test_a_callback_returning_true_stops_training():
+    prior, z = _data(6, 10, 0.5, 2.0, seed=6)
+    kf = _kf(1.0, 3.0)
+    trainer = Trainer(kf, torch.optim.Adam(kf.parameters(), lr=0.01),
+                      callbacks=[lambda t, r: r.iteration >= 2])
+    assert [r.iteration for r in trainer.fit(prior, z, 5)] == [1, 2]

@@ -8,9 +8,11 @@
 * :class:`Trainer` - a training loop with a logger/callback hook (no TensorBoard import: pass any
   object with ``scalar(tag, value, step)``), parameter tracking and checkpoints
   (:func:`save_checkpoint` / :func:`load_checkpoint`).
+* :func:`soft_resample` - differentiable (soft) resampling of particle beliefs.
 """
 
 from torchmm.learn.loss import negative_log_likelihood, truncated_segments
+from torchmm.learn.resampling import soft_resample, soft_resample_where_needed
 from torchmm.learn.trainer import TrainRecord, Trainer, load_checkpoint, save_checkpoint
 
 __all__ = [
@@ -19,5 +21,7 @@ __all__ = [
     "load_checkpoint",
     "negative_log_likelihood",
     "save_checkpoint",
+    "soft_resample",
+    "soft_resample_where_needed",
     "truncated_segments",
 ]

@@ -28,9 +28,9 @@ class TrainRecord:
 
     Attributes:
         iteration: 1-based iteration count (continues across resumed runs).
-        loss: the iteration's mean per-step negative log-likelihood (segments weighted by length),
-            as last evaluated by the optimiser's closure: before the update for first-order
-            optimisers (Adam, SGD), at the last line-search point for LBFGS.
+        loss: the iteration's mean per-step negative log-likelihood (segments weighted by length)
+            at the parameters the iteration started from (the optimiser's first closure
+            evaluation; line-search probes of LBFGS are not reported).
         grad_norm: total gradient 2-norm before clipping, from the same evaluation.
         parameters: values reported by the trainer's ``track`` function.
         seconds: wall time of the iteration.
@@ -93,7 +93,8 @@ class Trainer:
             transition-matrix entries, noise levels).
         logger: object with ``scalar(tag, value, step)``; logs ``<prefix>/loss``,
             ``<prefix>/grad_norm`` and ``<prefix>/param/<name>``.
-        callbacks: callables ``callback(trainer, record)`` run after every iteration.
+        callbacks: callables ``callback(trainer, record)`` run after every iteration; one that
+            returns ``True`` stops :meth:`fit` after that iteration (early stopping).
         checkpoint_path, checkpoint_every: save a checkpoint every ``checkpoint_every``
             iterations (and at the end of :meth:`fit`) when a path is given.
         prefix: tag prefix for the logger.
@@ -155,7 +156,11 @@ class Trainer:
         return [p for group in self.optimizer.param_groups for p in group["params"]]
 
     def _segment_step(self, belief, z: Tensor, u: Tensor | None) -> tuple[float, float, Any]:
-        """One optimiser step on one segment; returns (loss, grad_norm, final belief detached)."""
+        """One optimiser step on one segment; returns (loss, grad_norm, final belief detached).
+
+        The belief handed on is the one filtered with the parameters before the step (the first
+        closure evaluation), as in standard truncated BPTT.
+        """
         state: dict[str, Any] = {}
         params = self._params()
 
@@ -163,14 +168,24 @@ class Trainer:
             self.optimizer.zero_grad()
             loss, final = self.loss_fn(self.filter, belief, z, controls=u, return_final=True)
             if not bool(torch.isfinite(loss.detach())):
-                raise FloatingPointError(f"loss is {loss.item()} at iteration {self.iteration + 1}")
+                raise FloatingPointError(
+                    f"loss is {loss.item()} at iteration {self.iteration + 1}: the model diverged for "
+                    "the current parameters; lower the learning rate, clip gradients (clip_grad_norm=) "
+                    "or bound the model's outputs"
+                )
             loss.backward()
             max_norm = self.clip_grad_norm if self.clip_grad_norm is not None else math.inf
             norm = torch.nn.utils.clip_grad_norm_(params, max_norm)
-            state.update(loss=loss.item(), grad_norm=float(norm), final=final)
+            if "loss" not in state:  # the first evaluation: at the parameters before the update
+                state.update(loss=loss.item(), grad_norm=float(norm), final=final)
             return loss
 
         self.optimizer.step(closure)
+        if not all(bool(torch.isfinite(p.detach()).all()) for p in params):
+            raise FloatingPointError(
+                f"non-finite parameters after iteration {self.iteration + 1} (last loss {state['loss']}); "
+                "lower the learning rate or clip gradients (clip_grad_norm=)"
+            )
         return state["loss"], state["grad_norm"], state["final"]
 
     def fit(self, belief0, measurements: Tensor, iterations: int, *, controls: Tensor | None = None,
@@ -214,11 +229,14 @@ class Trainer:
             self.history.append(record)
             records.append(record)
             self._log(record)
+            stop = False
             for callback in self.callbacks:
-                callback(self, record)
+                stop = bool(callback(self, record)) or stop
             if self.checkpoint_path is not None and self.checkpoint_every and \
                     record.iteration % self.checkpoint_every == 0:
                 self.save(self.checkpoint_path)
+            if stop:
+                break
         if self.checkpoint_path is not None and records:
             self.save(self.checkpoint_path)
         return records

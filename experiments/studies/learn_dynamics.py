@@ -1,0 +1,440 @@
+"""Study ``learn_dynamics`` (SPEC section 4): learning an IMM's parameters and a mode's dynamics.
+
+Scenario: a 2-D target ``[x, vx, y, vy]`` whose motion switches (Markov chain, ``stay`` on the
+diagonal of the transition matrix) between constant velocity and coordinated turns at
+``+turn_rate`` and ``-turn_rate`` rad/s, white-acceleration noise ``Q = q G G^T`` and position
+measurements with noise ``R I``. ``mc_runs`` runs are simulated for training and ``test_runs``
+(default ``mc_runs``) independent runs are held out for the RMSE comparison.
+
+(a) The transition matrix (row-wise softmax logits) and the shared noise level ``q`` (a log-scale
+    on ``G G^T``) of a 3-mode CV/CT/CT IMM are learned by maximising the IMM's marginal
+    log-likelihood of the training measurements, starting from a uniform matrix and
+    ``q_initial = initial_q_factor * q``.
+(b) One analytic mode (``replaced_mode``, by default the left turn) is replaced by a small MLP
+    motion model ``x_k = F_CV x_{k-1} + G a_theta(v_{k-1})`` (an EKF mode: Jacobians from autograd),
+    its last layer initialised at zero (so it starts as a second CV mode), and trained through the
+    IMM with the other modes, the transition matrix and ``q`` fixed at their true values.
+
+Tables: ``learn`` (quantity, true, learned, initial, abs_error) and ``rmse`` (estimator,
+pos_rmse, vel_rmse, part) on the held-out runs. Figures: loss curves, parameter trajectories,
+RMSE before/after and RMSE over time. TensorBoard: ``learn_a/*`` and ``learn_b/*`` training
+scalars (loss, gradient norm, parameters) and per-step RMSE.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import torch  # noqa: E402
+from torch import nn  # noqa: E402
+
+from experiments.estimators import Estimator, evaluate  # noqa: E402
+from experiments.harness import StudyContext  # noqa: E402
+from experiments.scenarios import JumpScenario  # noqa: E402
+from experiments.studies import plots  # noqa: E402
+from torchmm import (  # noqa: E402
+    IMM,
+    ConstantVelocity,
+    CoordinatedTurn,
+    ExtendedKalmanFilter,
+    GaussianBelief,
+    KalmanFilter,
+    ModeTransition,
+    PositionMeasurement,
+)
+from torchmm.learn import Trainer  # noqa: E402
+from torchmm.models import LearnedMotion, learnable_noise  # noqa: E402
+
+log = logging.getLogger("torchmm.experiments")
+
+ESTIMATORS = ("true-model IMM", "learned IMM", "initial IMM")
+
+
+# -- scenario --------------------------------------------------------------------------------------
+def turning_scenario(cfg, dtype, device) -> JumpScenario:
+    """The CV / CT(+w) / CT(-w) Markov-jump scenario of the study (``cfg = learn.scenario``)."""
+    w = float(cfg.turn_rate)
+    rates = torch.tensor([0.0, w, -w], dtype=dtype)
+    motion = CoordinatedTurn(rates, dt=float(cfg.dt), q=float(cfg.q), dtype=dtype)
+    sensor = PositionMeasurement(4, [0, 2], torch.tensor(float(cfg.R), dtype=dtype), dtype=dtype)
+    stay = float(cfg.stay)
+    if not 0.0 < stay <= 1.0:
+        raise ValueError(f"learn.scenario.stay: must lie in (0, 1], got {stay}")
+    transition = _stay_matrix(stay, dtype, "cpu")
+    std = torch.tensor(list(cfg.initial_std), dtype=dtype)
+    initial = GaussianBelief.create(list(cfg.initial_mean), torch.diag(std.square()), dtype=dtype)
+    return JumpScenario(
+        name="turning_2d", motion=motion.to(device), measurement=sensor.to(device),
+        transition=transition.to(device), initial=initial.to(device), steps=int(cfg.steps),
+        initial_mode_probs=None, mode_labels=["CV", f"CT(+{w:g})", f"CT(-{w:g})"],
+        position=[0, 2], velocity=[1, 3],
+    )
+
+
+def _stay_matrix(stay: float, dtype, device) -> torch.Tensor:
+    """3x3 matrix with ``stay`` on the diagonal and ``(1 - stay) / 2`` elsewhere."""
+    off = (1 - stay) / 2
+    eye = torch.eye(3, dtype=dtype, device=device)
+    return torch.full((3, 3), off, dtype=dtype, device=device) + (stay - off) * eye
+
+
+def _imm(scenario: JumpScenario, transition, q: float) -> IMM:
+    """A plain (non-learnable) IMM over the CV/CT bank with noise level ``q``."""
+    cfg_motion = scenario.motion
+    motion = CoordinatedTurn(cfg_motion.omega, dt=cfg_motion.dt, q=q, dtype=scenario.transition.dtype)
+    like = scenario.transition
+    return IMM(KalmanFilter(motion.to(like.device), scenario.measurement),
+               torch.as_tensor(transition, dtype=like.dtype, device=like.device))
+
+
+def _estimator(name: str, imm: IMM) -> Estimator:
+    return Estimator(name, imm, lambda prior: imm.initial_belief(prior), True)
+
+
+def _optimizer(params, ocfg):
+    kind = str(ocfg.optimizer)
+    if kind == "lbfgs":
+        # one L-BFGS iteration (with a strong-Wolfe line search) per trainer iteration; its
+        # curvature history carries over between iterations. max_eval must be given: torch's
+        # default (max_iter * 5 // 4 = 1) leaves the line search no evaluations at all
+        return torch.optim.LBFGS(params, lr=float(ocfg.lr), max_iter=1,
+                                 max_eval=int(ocfg.max_line_search) + 1, history_size=20,
+                                 line_search_fn="strong_wolfe")
+    if kind == "adam":
+        return torch.optim.Adam(params, lr=float(ocfg.lr))
+    raise ValueError(f"optimizer: expected 'lbfgs' or 'adam', got {kind!r}")
+
+
+class RestartStalledLBFGS:
+    """Trainer callback: clear L-BFGS's memory when an iteration left the parameters unchanged,
+    and stop training when it happens twice in a row (no step improves the loss: converged).
+
+    When torch's strong-Wolfe line search fails it returns a zero step; with no new curvature
+    pair L-BFGS then proposes the same direction again and never moves. Restarting from steepest
+    descent is the standard remedy (a safety net: with a line-search budget it rarely triggers).
+    """
+
+    def __init__(self, params):
+        self.params = list(params)
+        self.last = self._flat()
+        self.restarts = 0
+        self.in_a_row = 0
+
+    def _flat(self) -> torch.Tensor:
+        return torch.cat([p.detach().flatten() for p in self.params]).clone()
+
+    def __call__(self, trainer, record) -> bool:
+        """Restart on a stall; stop (return True) after two stalls in a row (converged)."""
+        now = self._flat()
+        stalled = isinstance(trainer.optimizer, torch.optim.LBFGS) and torch.equal(now, self.last)
+        self.last = now
+        if not stalled:
+            self.in_a_row = 0
+            return False
+        self.in_a_row += 1
+        if self.in_a_row >= 2:
+            log.info("L-BFGS made no progress twice at iteration %d: converged, stopping", record.iteration)
+            return True
+        trainer.optimizer.state.clear()
+        self.restarts += 1
+        log.info("L-BFGS made no progress at iteration %d: memory cleared", record.iteration)
+        return False
+
+
+# -- part (b): the MLP motion model ----------------------------------------------------------------
+class AccelerationMLP(nn.Module):
+    r"""``f(x) = F_CV x + G a(v)`` with ``a(v) = a_scale * MLP(v / v_scale)`` (a small tanh MLP).
+
+    The network sees only the velocity ``v = (vx, vy)`` (the dynamics do not depend on position)
+    and outputs an acceleration over the step, entered through the white-acceleration gain ``G``;
+    a coordinated turn at rate ``w`` is ``a ~ (R(wT) - I) v / T``. The last layer starts at zero,
+    so the untrained model is constant velocity.
+
+    Shapes:
+        x ``(*B, 4)`` -> ``(*B, 4)``
+    """
+
+    def __init__(self, hidden: int, dt: float, v_scale: float, a_scale: float, *, generator=None,
+                 dtype=None, device=None):
+        super().__init__()
+        self.mlp = nn.Sequential(nn.Linear(2, hidden), nn.Tanh(), nn.Linear(hidden, 2))
+        self.mlp.to(dtype=dtype, device=device)
+        with torch.no_grad():
+            bound = 1.0 / math.sqrt(2)
+            self.mlp[0].weight.uniform_(-bound, bound, generator=generator)
+            self.mlp[0].bias.uniform_(-bound, bound, generator=generator)
+            self.mlp[2].weight.zero_()
+            self.mlp[2].bias.zero_()
+        cv = ConstantVelocity(2, dt=dt, dtype=dtype)
+        self.register_buffer("F", cv.F.to(device))
+        self.register_buffer("G", cv.noise_gain.to(device))
+        self.v_scale, self.a_scale = float(v_scale), float(a_scale)
+
+    def acceleration(self, v: torch.Tensor) -> torch.Tensor:
+        return self.a_scale * self.mlp(v / self.v_scale)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x @ self.F.mT + self.acceleration(x[..., [1, 3]]) @ self.G.mT
+
+
+def implied_turn_rate(net: AccelerationMLP, velocities: torch.Tensor, dt: float) -> float:
+    """The turn rate whose coordinated turn best matches the network on ``velocities (K, 2)``.
+
+    A turn at rate ``w`` changes the velocity by ``(R(wT) - I) v``, whose component along
+    ``J v = (-vy, vx)`` is ``sin(wT) |v|^2``; the least-squares projection of the network's
+    ``T a(v)`` on ``J v`` gives ``sin(wT)``.
+    """
+    with torch.no_grad():
+        dv = dt * net.acceleration(velocities)
+        jv = torch.stack([-velocities[:, 1], velocities[:, 0]], -1)
+        s = (dv * jv).sum() / jv.square().sum()
+    return math.asin(max(-1.0, min(1.0, s.item()))) / dt
+
+
+# -- the study -------------------------------------------------------------------------------------
+def run(ctx: StudyContext) -> None:
+    threads = ctx.cfg.learn.get("num_threads")
+    previous = torch.get_num_threads()
+    if threads:
+        # the filters' tensors are tiny: extra intra-op threads only add synchronisation, and on a
+        # shared machine spinning threads slow a step down by an order of magnitude
+        torch.set_num_threads(int(threads))
+    try:
+        _run(ctx)
+    finally:
+        torch.set_num_threads(previous)
+
+
+def _run(ctx: StudyContext) -> None:
+    cfg, lcfg = ctx.cfg, ctx.cfg.learn
+    scenario = turning_scenario(lcfg.scenario, ctx.dtype, ctx.device)
+    runs = int(cfg.mc_runs)
+    test_runs = int(lcfg.test_runs) if lcfg.get("test_runs") else runs
+    sim, z = scenario.simulate(runs, ctx.generator("train", scenario.name))
+    test_sim, test_z = scenario.simulate(test_runs, ctx.generator("test", scenario.name))
+    q_true = float(lcfg.scenario.q)
+    true_tpm = scenario.transition
+    prior = scenario.initial.expand(runs)
+    ctx.results.description = (
+        f"Scenario `{scenario.name}`: CV / CT(+-{lcfg.scenario.turn_rate} rad/s), q = {q_true}, "
+        f"R = {lcfg.scenario.R} I, stay = {lcfg.scenario.stay}, {scenario.steps} steps; "
+        f"{runs} training runs, {test_runs} held-out runs (seed {cfg.seed}, {cfg.dtype}). "
+        "Parameters are learned by maximising the IMM's marginal log-likelihood of the training "
+        "measurements; RMSEs are time-averaged per-step RMSEs on the held-out runs."
+    )
+
+    rmse_table = ctx.results.table("rmse", ["estimator", "pos_rmse", "vel_rmse", "part"],
+                                   note="Held-out runs. part a: transition matrix + q learned; "
+                                        "part b: one CT mode replaced by an MLP trained through the IMM.")
+    curves: dict[str, dict[str, torch.Tensor]] = {"position RMSE": {}, "velocity RMSE": {}}
+    scores: dict[str, tuple[float, float]] = {}
+
+    def score(label: str, estimator: Estimator, part: str) -> tuple[float, float]:
+        with torch.no_grad():
+            ev = evaluate(estimator, scenario, test_sim, test_z, chunk_runs=cfg.get("chunk_runs"))
+        summary = ev.summary()
+        rmse_table.rows.append([estimator.name, summary["pos_rmse"], summary["vel_rmse"], part])
+        for key, value in summary.items():
+            ctx.results.metric(label, key, value)
+        ctx.results.timing[label] = ev.seconds_per_step
+        curves["position RMSE"][label] = ev.pos_rmse
+        curves["velocity RMSE"][label] = ev.vel_rmse
+        ctx.logger.series(f"pos_rmse/{label}", ev.pos_rmse)
+        ctx.logger.series(f"vel_rmse/{label}", ev.vel_rmse)
+        scores[label] = (summary["pos_rmse"], summary["vel_rmse"])
+        ctx.results.save()
+        return scores[label]
+
+    score("true-model IMM", _estimator("true-model IMM", _imm(scenario, true_tpm, q_true)), "a, b")
+
+    learn_table = ctx.results.table("learn", ["quantity", "true", "learned", "initial", "abs_error"],
+                                    note="Maximum-likelihood estimates through the IMM (part a); "
+                                         "mlp_turn_rate: the turn rate implied by the trained MLP mode "
+                                         "(part b).")
+    histories: dict[str, list[dict]] = {}
+
+    # ---- part (a): transition matrix and q --------------------------------------------------
+    acfg = lcfg.part_a
+    if acfg.enabled:
+        init_stay = acfg.get("initial_stay")
+        if init_stay is None:
+            init_tpm = torch.full((3, 3), 1.0 / 3, dtype=ctx.dtype, device=ctx.device)
+        else:
+            init_tpm = _stay_matrix(float(init_stay), ctx.dtype, ctx.device)
+        q_init = float(acfg.initial_q_factor) * q_true
+
+        def train_a() -> dict:
+            bank = CoordinatedTurn(scenario.motion.omega, dt=scenario.motion.dt, q=q_init, dtype=ctx.dtype)
+            learnable_noise(bank.to(ctx.device), "Q", "scale")
+            imm = IMM(KalmanFilter(bank, scenario.measurement), ModeTransition(init_tpm, learnable=True))
+            theta = bank.parametrizations.Q.original
+
+            def track() -> dict:
+                tpm = imm.transition.matrix().detach()
+                values = {f"tpm[{i},{j}]": tpm[i, j].item() for i in range(3) for j in range(3)}
+                values["q"] = q_init * theta.detach().exp().item()
+                return values
+
+            restart = RestartStalledLBFGS(imm.parameters())
+            trainer = Trainer(imm, _optimizer(imm.parameters(), acfg), window=acfg.get("window"),
+                              track=track, logger=ctx.logger, prefix="learn_a", callbacks=[restart])
+            tic = time.perf_counter()
+            trainer.fit(prior, z, int(acfg.iterations), batch_size=acfg.get("batch_size"),
+                        generator=ctx.generator("minibatch", "a"))
+            final = track()
+            return {"seconds": time.perf_counter() - tic, "final": final, "restarts": restart.restarts,
+                    "history": [{"iteration": r.iteration, "loss": r.loss, "grad_norm": r.grad_norm,
+                                 **r.parameters} for r in trainer.history]}
+
+        result_a = ctx.unit("part_a", train_a)
+        histories["a"] = result_a["history"]
+        final = result_a["final"]
+        learned_tpm = torch.tensor([[final[f"tpm[{i},{j}]"] for j in range(3)] for i in range(3)],
+                                   dtype=ctx.dtype, device=ctx.device)
+        learned_tpm = learned_tpm / learned_tpm.sum(-1, keepdim=True)  # JSON rounding
+        for i in range(3):
+            for j in range(3):
+                t, got, start = true_tpm[i, j].item(), learned_tpm[i, j].item(), init_tpm[i, j].item()
+                learn_table.rows.append([f"tpm[{i},{j}]", t, got, start, abs(got - t)])
+        learn_table.rows.append(["q", q_true, final["q"], q_init, abs(final["q"] - q_true)])
+        ctx.results.metric("training (a)", "seconds", result_a["seconds"])
+        ctx.results.metric("training (a)", "iterations", len(result_a["history"]))
+        learned_imm = _imm(scenario, learned_tpm, final["q"])
+        pos_learned, _ = score("learned IMM (a)", _estimator("learned IMM", learned_imm), "a")
+        score("initial IMM (a)", _estimator("initial IMM", _imm(scenario, init_tpm, q_init)), "a")
+        max_err = (learned_tpm - true_tpm).abs().max().item()
+        ratio = pos_learned / scores["true-model IMM"][0]
+        ctx.results.notes.append(
+            f"part a: max |learned - true| over the transition matrix = {max_err:.4f} (target < 0.05: "
+            f"{'met' if max_err < 0.05 else 'NOT met'}); learned/true-model position RMSE = {ratio:.4f} "
+            f"(target within 5 %: {'met' if abs(ratio - 1) <= 0.05 else 'NOT met'}); learned q = "
+            f"{final['q']:.4g} (true {q_true:g}); training {result_a['seconds']:.1f} s."
+        )
+
+    # ---- part (b): an MLP mode trained through the IMM -----------------------------------------
+    bcfg = lcfg.part_b
+    if bcfg.enabled:
+        replaced = int(bcfg.replaced_mode)
+        if not 0 <= replaced < 3:
+            raise ValueError(f"learn.part_b.replaced_mode: expected 0, 1 or 2, got {replaced}")
+        checkpoint = ctx.output_dir / "checkpoints" / "mlp_mode.pt"
+        velocities = sim.states[..., [1, 3]].reshape(-1, 2)[:: max(1, sim.states[..., 0].numel() // 4000)]
+        true_rate = scenario.motion.omega[replaced].item()
+
+        def build_b():
+            net = AccelerationMLP(int(bcfg.hidden), scenario.motion.dt, float(bcfg.v_scale),
+                                  float(bcfg.a_scale), generator=ctx.generator("mlp_init"),
+                                  dtype=ctx.dtype, device=ctx.device)
+            learned = LearnedMotion(net, 4, Q=scenario.motion.Q, noise="fixed")
+            filters = [KalmanFilter(scenario.motion.select_mode(j), scenario.measurement) for j in range(3)]
+            filters[replaced] = ExtendedKalmanFilter(learned, scenario.measurement)
+            return net, IMM(filters, true_tpm)
+
+        net0, imm0 = build_b()
+        initial_rate = implied_turn_rate(net0, velocities, scenario.motion.dt)
+
+        def train_b() -> dict:
+            net, imm = build_b()
+            def track() -> dict:
+                return {"mlp_turn_rate": implied_turn_rate(net, velocities, scenario.motion.dt)}
+
+            restart = RestartStalledLBFGS(net.parameters())
+            trainer = Trainer(imm, _optimizer(net.parameters(), bcfg), window=bcfg.get("window"), track=track,
+                              logger=ctx.logger, prefix="learn_b", checkpoint_path=checkpoint,
+                              callbacks=[restart])
+            tic = time.perf_counter()
+            trainer.fit(prior, z, int(bcfg.iterations), batch_size=bcfg.get("batch_size"),
+                        generator=ctx.generator("minibatch", "b"))
+            return {"seconds": time.perf_counter() - tic, "restarts": restart.restarts,
+                    "history": [{"iteration": r.iteration, "loss": r.loss, "grad_norm": r.grad_norm,
+                                 **r.parameters} for r in trainer.history]}
+
+        result_b = ctx.unit("part_b", train_b)
+        histories["b"] = result_b["history"]
+        net, imm = build_b()
+        if int(bcfg.iterations) > 0:
+            Trainer(imm, _optimizer(net.parameters(), bcfg)).load(checkpoint)
+        rate = implied_turn_rate(net, velocities, scenario.motion.dt)
+        learn_table.rows.append(["mlp_turn_rate", true_rate, rate, initial_rate, abs(rate - true_rate)])
+        ctx.results.metric("training (b)", "seconds", result_b["seconds"])
+        ctx.results.metric("training (b)", "iterations", len(result_b["history"]))
+        pos_b, _ = score("learned IMM (b)", _estimator("learned IMM", imm), "b")
+        pos_b0, _ = score("initial IMM (b)", _estimator("initial IMM", imm0), "b")
+        ctx.results.notes.append(
+            f"part b: mode {scenario.mode_labels[replaced]} replaced by an MLP; held-out position RMSE "
+            f"initial {pos_b0:.4f} -> trained {pos_b:.4f} "
+            f"(true-model IMM {scores['true-model IMM'][0]:.4f}); "
+            f"implied turn rate {rate:.4f} (true {true_rate:g}); training {result_b['seconds']:.1f} s."
+        )
+
+    ctx.results.save()
+    _figures(ctx, histories, scores, curves, true_tpm, q_true, scenario)
+
+
+# -- figures ---------------------------------------------------------------------------------------
+def _figures(ctx, histories, scores, curves, true_tpm, q_true, scenario) -> None:
+    if histories:
+        fig, axes = plt.subplots(1, len(histories), figsize=(5.5 * len(histories), 3.6), squeeze=False)
+        for ax, (part, hist) in zip(axes[0], histories.items()):
+            ax.plot([h["iteration"] for h in hist], [h["loss"] for h in hist], marker="o", ms=3)
+            ax.set_xlabel("iteration")
+            ax.set_ylabel("NLL per step and run")
+            ax.set_title(f"part {part}")
+            ax.grid(alpha=0.3)
+        fig.tight_layout()
+        ctx.save_figure("loss_curve", fig)
+
+        panels = []
+        if "a" in histories:
+            panels += ["tpm", "q"]
+        if "b" in histories:
+            panels.append("mlp")
+        fig, axes = plt.subplots(1, len(panels), figsize=(5.2 * len(panels), 3.6), squeeze=False)
+        for ax, panel in zip(axes[0], panels):
+            if panel == "tpm":
+                hist = histories["a"]
+                its = [h["iteration"] for h in hist]
+                for i in range(3):
+                    for j in range(3):
+                        line, = ax.plot(its, [h[f"tpm[{i},{j}]"] for h in hist], lw=1.2,
+                                        label=f"[{i},{j}]" if i == j or (i, j) == (0, 1) else None)
+                        ax.axhline(true_tpm[i, j].item(), color=line.get_color(), ls=":", lw=0.8)
+                ax.set_ylabel("transition-matrix entry")
+                ax.legend(fontsize=7, title="dotted: true", title_fontsize=7)
+            elif panel == "q":
+                hist = histories["a"]
+                ax.plot([h["iteration"] for h in hist], [h["q"] for h in hist], marker="o", ms=3)
+                ax.axhline(q_true, color="k", ls=":", label="true")
+                ax.set_yscale("log")
+                ax.set_ylabel("q")
+                ax.legend(fontsize=8)
+            else:
+                hist = histories["b"]
+                ax.plot([h["iteration"] for h in hist], [h["mlp_turn_rate"] for h in hist], marker="o", ms=3)
+                ax.axhline(scenario.motion.omega[int(ctx.cfg.learn.part_b.replaced_mode)].item(), color="k",
+                           ls=":", label="true")
+                ax.set_ylabel("turn rate implied by the MLP mode")
+                ax.legend(fontsize=8)
+            ax.set_xlabel("iteration")
+            ax.grid(alpha=0.3)
+        fig.tight_layout()
+        ctx.save_figure("parameter_trajectories", fig)
+
+    labels = list(scores)
+    fig, axes = plt.subplots(1, 2, figsize=(11, 3.8))
+    for ax, k, name in ((axes[0], 0, "position RMSE"), (axes[1], 1, "velocity RMSE")):
+        values = [scores[label][k] for label in labels]
+        ax.bar(range(len(labels)), values, color=[f"C{i}" for i in range(len(labels))])
+        ax.set_xticks(range(len(labels)), labels, rotation=25, ha="right", fontsize=8)
+        ax.set_ylabel(name)
+        ax.grid(alpha=0.3, axis="y")
+    fig.suptitle("held-out RMSE before / after learning")
+    fig.tight_layout()
+    ctx.save_figure("rmse_before_after", fig)
+    ctx.save_figure("rmse_over_time", plots.rmse_over_time(curves, f"{scenario.name}, held-out runs"))

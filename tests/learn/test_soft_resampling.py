@@ -1,0 +1,82 @@
+"""Soft resampling: proper weighting (unbiased), alpha limits, finite gradients, bad input."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from torchmm import ParticleBelief
+from torchmm.beliefs.ops import normalize_log_probs
+from torchmm.learn import soft_resample, soft_resample_where_needed
+
+
+def _belief(generator, batch=(3,), num=50, n=2):
+    particles = torch.randn(*batch, num, n, generator=generator)
+    log_w = 2.0 * torch.randn(*batch, num, generator=generator)
+    return ParticleBelief(particles, log_w)
+
+
+@pytest.mark.parametrize("alpha", [0.0, 0.3, 0.7])
+@pytest.mark.parametrize("scheme", ["systematic", "multinomial"])
+def test_soft_resampling_is_properly_weighted(alpha, scheme, generator):
+    """E[sum_j w~_j g(x_j)] = sum_i w_i g(x_i): check the mean over many independent draws."""
+    base = _belief(generator, batch=(), num=20)
+    reps = 4000
+    many = ParticleBelief(base.particles.expand(reps, 20, 2), base.log_weights.expand(reps, 20))
+    out = soft_resample(many, alpha, scheme, generator=generator)
+    w = normalize_log_probs(base.log_weights).exp()
+    g = base.particles[..., 0] ** 2 + base.particles[..., 1]  # a test function of the state
+    exact = (w * g).sum()
+    estimates = (out.log_weights.exp() * (out.particles[..., 0] ** 2 + out.particles[..., 1])).sum(-1)
+    # self-normalised weights: unbiased up to O(1/N); within 6 standard errors plus an O(1/N) allowance
+    se = estimates.std() / math.sqrt(reps)
+    assert abs(estimates.mean() - exact) < 6 * se + 0.05 * exact.abs(), (estimates.mean(), exact)
+    torch.testing.assert_close(out.log_weights.logsumexp(-1), torch.zeros(reps))
+
+
+def test_alpha_one_is_ordinary_resampling_and_alpha_zero_keeps_weights_uniform_ancestors(generator):
+    b = _belief(generator)
+    hard = soft_resample(b, 1.0, generator=torch.Generator().manual_seed(0))
+    torch.testing.assert_close(hard.log_weights, torch.full_like(hard.log_weights, -math.log(50)))
+    soft0 = soft_resample(b, 0.0, "systematic", generator=torch.Generator().manual_seed(0))
+    # uniform systematic draws with N = Np pick every particle once: the belief is unchanged
+    torch.testing.assert_close(soft0.particles, b.particles)
+    torch.testing.assert_close(soft0.log_weights, normalize_log_probs(b.log_weights))
+
+
+def test_gradients_flow_through_soft_but_not_hard_resampling(generator):
+    b = _belief(generator)
+    log_w = b.log_weights.clone().requires_grad_()
+    particles = b.particles.clone().requires_grad_()
+    out = soft_resample(ParticleBelief(particles, log_w), 0.5, generator=generator)
+    loss = out.estimate().mean.square().sum()
+    loss.backward()
+    assert log_w.grad is not None and bool(torch.isfinite(log_w.grad).all()) and log_w.grad.abs().sum() > 0
+    assert bool(torch.isfinite(particles.grad).all())
+    # alpha = 1: weights reset to 1/N, so the estimate carries no gradient to the old weights
+    hard = soft_resample(ParticleBelief(particles, log_w), 1.0, generator=generator)
+    (grad,) = torch.autograd.grad(hard.estimate().mean.sum(), log_w, allow_unused=True)
+    assert grad is None or bool((grad == 0).all())
+
+
+def test_where_needed_only_touches_degenerate_elements(generator):
+    b = _belief(generator, batch=(4,))
+    log_w = b.log_weights.clone()
+    log_w[0] = 0.0  # uniform: ESS = Np, never resampled
+    b = ParticleBelief(b.particles, log_w)
+    out, mask, ess = soft_resample_where_needed(b, 0.9, 0.5, generator=generator)
+    assert not mask[0] and bool(mask[1:].all())
+    torch.testing.assert_close(out.particles[0], b.particles[0])
+    torch.testing.assert_close(ess[0], torch.tensor(50.0))
+
+
+def test_bad_arguments(generator):
+    b = _belief(generator)
+    with pytest.raises(ValueError, match="alpha"):
+        soft_resample(b, 1.5)
+    with pytest.raises(ValueError, match="scheme"):
+        soft_resample(b, 0.5, "roulette")
+    with pytest.raises(ValueError, match="threshold"):
+        soft_resample_where_needed(b, -1.0)

@@ -1,0 +1,104 @@
+r"""Soft resampling (Karkus, Hsu and Lee 2018): a differentiable resampling option for particle filters.
+
+Ordinary resampling draws ancestors from the weights ``w`` and resets the weights to ``1/N``: the
+new weights do not depend on the old ones, so no gradient flows through the resampling step.
+Soft resampling draws ancestors from the mixture ``q_i = alpha w_i + (1 - alpha) / Np`` and keeps
+the importance correction as the new weight,
+
+.. math::
+    a_j \sim q,\qquad \tilde w_j \propto w_{a_j} / q_{a_j},
+
+so the new weights are a differentiable function of the old ones and the resampled belief stays an
+unbiased (properly weighted) representation: ``E[sum_j w~_j g(x_{a_j})] = sum_i w_i g(x_i)`` up to
+normalisation. ``alpha = 1`` is ordinary resampling (weights ``1/N``, no gradient); ``alpha = 0``
+keeps the particles' weights and draws ancestors uniformly. Ancestors come from any scheme of
+:mod:`torchmm.filters.resampling` (systematic by default).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from torchmm.beliefs.ops import normalize_log_probs
+from torchmm.beliefs.particle import ParticleBelief
+from torchmm.filters.resampling import effective_sample_size, resample
+
+__all__ = ["soft_resample", "soft_resample_where_needed"]
+
+
+def _check_alpha(alpha: float) -> float:
+    alpha = float(alpha)
+    if not 0.0 <= alpha <= 1.0:
+        raise ValueError(f"alpha: must lie in [0, 1], got {alpha}")
+    return alpha
+
+
+def soft_resample(belief: ParticleBelief, alpha: float = 0.5, scheme: str = "systematic", *,
+                  generator: torch.Generator | None = None) -> ParticleBelief:
+    """Soft-resample every batch element (see the module docstring).
+
+    Args:
+        belief: particles ``(*B, Np, n)`` with (unnormalised) ``log_weights (*B, Np)``.
+        alpha: mixing weight of the particle weights in the proposal ``q``, in ``[0, 1]``.
+        scheme: ancestor sampling scheme (``"systematic"``, ``"stratified"``, ``"multinomial"``,
+            ``"residual"``).
+        generator: the only source of randomness.
+
+    Returns:
+        a belief with the same shapes; log-weights normalised, differentiable w.r.t. the input
+        log-weights (and particles) whenever ``alpha < 1``.
+
+    Shapes:
+        particles ``(*B, Np, n)``, log_weights ``(*B, Np)`` -> same
+
+    Examples:
+        >>> b = ParticleBelief(torch.randn(4, 100, 2), torch.randn(4, 100).requires_grad_())
+        >>> out = soft_resample(b, 0.5, generator=torch.Generator().manual_seed(0))
+        >>> out.particles.shape, out.log_weights.requires_grad
+        (torch.Size([4, 100, 2]), True)
+    """
+    alpha = _check_alpha(alpha)
+    num = belief.num_particles
+    log_w = normalize_log_probs(belief.log_weights)
+    # log q = log(alpha w + (1 - alpha) / Np)
+    if alpha == 1.0:
+        log_q = log_w
+    elif alpha == 0.0:
+        log_q = torch.full_like(log_w, -math.log(num))
+    else:
+        uniform = torch.full_like(log_w, math.log(1 - alpha) - math.log(num))
+        log_q = torch.logaddexp(log_w + math.log(alpha), uniform)
+    indices = resample(log_q.detach(), scheme, num, generator=generator)
+    particles = belief.particles
+    batch = torch.broadcast_shapes(particles.shape[:-2], indices.shape[:-1])
+    particles = particles.expand(*batch, *particles.shape[-2:])
+    gathered = torch.gather(particles, -2, indices.unsqueeze(-1).expand(*indices.shape, particles.shape[-1]))
+    correction = torch.gather((log_w - log_q).expand(*batch, num), -1, indices)  # log(w / q) at ancestors
+    return ParticleBelief(gathered, normalize_log_probs(correction))
+
+
+def soft_resample_where_needed(belief: ParticleBelief, threshold: float = 0.5, alpha: float = 0.5,
+                               scheme: str = "systematic", *, generator: torch.Generator | None = None
+                               ) -> tuple[ParticleBelief, Tensor, Tensor]:
+    """Soft-resample the batch elements whose ESS is below ``threshold * Np``; keep the others.
+
+    Like :func:`torchmm.filters.resampling.resample_where_needed` (static shapes via
+    ``torch.where``), with :func:`soft_resample` in place of ordinary resampling.
+
+    Returns:
+        ``(belief, resampled (*B,) bool, ess (*B,))``.
+
+    Shapes:
+        particles ``(*B, Np, n)``, log_weights ``(*B, Np)`` -> same
+    """
+    if threshold < 0:
+        raise ValueError(f"threshold: must be >= 0, got {threshold}")
+    ess = effective_sample_size(belief.log_weights)
+    mask = ess < threshold * belief.num_particles
+    new = soft_resample(belief, alpha, scheme, generator=generator)
+    particles = torch.where(mask[..., None, None], new.particles, belief.particles)
+    log_w = torch.where(mask[..., None], new.log_weights, belief.log_weights)
+    return ParticleBelief(particles, log_w), mask, ess
