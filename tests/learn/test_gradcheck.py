@@ -127,3 +127,19 @@ def test_multiple_model_nll_gradcheck_transition_noise_and_network(combinator):
                 "bank.filters.2.motion.parametrizations.Q.original"}
     expected |= {f"bank.filters.0.motion.net.{i}.{w}" for i in (0, 2) for w in ("weight", "bias")}
     _check_every_parameter(mm, lambda f: negative_log_likelihood(f, prior, z), expected)
+
+
+def test_variational_filter_elbo_loss_gradcheck():
+    """VB filters report the ELBO as their log-likelihood: the loss is its negative (a bound)."""
+    from torchmm.filters.variational import StudentTVBFilter
+
+    motion = LinearMotion(torch.tensor(F2, dtype=D), 0.3 * torch.eye(2, dtype=D))
+    learnable_noise(motion, "Q", "scale")
+    sensor = LinearMeasurement(torch.tensor([[1.0, 0.0]], dtype=D), torch.tensor([[0.7]], dtype=D))
+    learnable_noise(sensor, "R", "log_diagonal")
+    vb = StudentTVBFilter(motion, sensor, df=4.0, iterations=3)
+    prior = GaussianBelief(torch.zeros(2, 2, dtype=D), 2 * torch.eye(2, dtype=D))
+    z = _measurements(5, 2, 1)
+    _check_every_parameter(vb, lambda f: negative_log_likelihood(f, prior, z),
+                           {"kalman.motion.parametrizations.Q.original",
+                            "kalman.measurement.parametrizations.R.original"})

@@ -80,3 +80,27 @@ def test_bad_arguments(generator):
         soft_resample(b, 0.5, "roulette")
     with pytest.raises(ValueError, match="threshold"):
         soft_resample_where_needed(b, -1.0)
+
+
+def test_soft_resampling_particle_filter_tracks_the_kalman_filter_and_is_trainable():
+    from torchmm import ConstantVelocity, GaussianBelief, KalmanFilter, PositionMeasurement, run_filter
+    from torchmm.learn import SoftResamplingParticleFilter
+    from torchmm.models import learnable_noise
+
+    g = torch.Generator().manual_seed(7)
+    prior = GaussianBelief(torch.zeros(6, 2), torch.eye(2))
+    z = torch.randn(15, 6, 1, generator=g).cumsum(0)
+    kf = KalmanFilter(ConstantVelocity(1, q=0.5), PositionMeasurement(2, [0], 1.0))
+    motion = learnable_noise(ConstantVelocity(1, q=0.5), "Q", "scale")
+    pf = SoftResamplingParticleFilter(motion, PositionMeasurement(2, [0], 1.0), alpha=0.5,
+                                      ess_threshold=0.5, generator=g)
+    exact = run_filter(kf, prior, z)
+    traj = run_filter(pf, pf.initial_belief(prior, 4000), z)
+    assert bool(traj.extras["resampled"].any())  # the soft step really ran
+    # the particle estimate of the posterior mean and of log p(z_1:T) match the exact KF
+    torch.testing.assert_close(traj.estimate().mean, exact.estimate().mean, atol=0.15, rtol=0)
+    torch.testing.assert_close(traj.total_log_likelihood(), exact.total_log_likelihood(), atol=0.3, rtol=0)
+    # gradients of the particle log-likelihood flow through the soft resampling steps
+    (-traj.total_log_likelihood().sum()).backward()
+    grad = motion.parametrizations.Q.original.grad
+    assert grad is not None and bool(torch.isfinite(grad)) and grad != 0

@@ -8,14 +8,20 @@
 * :class:`Trainer` - a training loop with a logger/callback hook (no TensorBoard import: pass any
   object with ``scalar(tag, value, step)``), parameter tracking and checkpoints
   (:func:`save_checkpoint` / :func:`load_checkpoint`).
-* :func:`soft_resample` - differentiable (soft) resampling of particle beliefs.
+* :func:`soft_resample`, :class:`SoftResamplingParticleFilter` - differentiable (soft)
+  resampling of particle beliefs and a particle filter that uses it.
 """
 
 from torchmm.learn.loss import negative_log_likelihood, truncated_segments
-from torchmm.learn.resampling import soft_resample, soft_resample_where_needed
+from torchmm.learn.resampling import (
+    SoftResamplingParticleFilter,
+    soft_resample,
+    soft_resample_where_needed,
+)
 from torchmm.learn.trainer import TrainRecord, Trainer, load_checkpoint, save_checkpoint
 
 __all__ = [
+    "SoftResamplingParticleFilter",
     "TrainRecord",
     "Trainer",
     "load_checkpoint",

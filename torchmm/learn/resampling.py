@@ -13,6 +13,11 @@ unbiased (properly weighted) representation: ``E[sum_j w~_j g(x_{a_j})] = sum_i 
 normalisation. ``alpha = 1`` is ordinary resampling (weights ``1/N``, no gradient); ``alpha = 0``
 keeps the particles' weights and draws ancestors uniformly. Ancestors come from any scheme of
 :mod:`torchmm.filters.resampling` (systematic by default).
+
+:class:`SoftResamplingParticleFilter` is the bootstrap
+:class:`~torchmm.filters.particle.ParticleFilter` with this resampling step, so the particle
+estimate of the log-likelihood can be trained through (the particles themselves are
+reparametrised: ``x = f(x) + L eps``).
 """
 
 from __future__ import annotations
@@ -24,9 +29,11 @@ from torch import Tensor
 
 from torchmm.beliefs.ops import normalize_log_probs
 from torchmm.beliefs.particle import ParticleBelief
+from torchmm.filters.base import StepOutput
+from torchmm.filters.particle import ParticleFilter
 from torchmm.filters.resampling import effective_sample_size, resample
 
-__all__ = ["soft_resample", "soft_resample_where_needed"]
+__all__ = ["SoftResamplingParticleFilter", "soft_resample", "soft_resample_where_needed"]
 
 
 def _check_alpha(alpha: float) -> float:
@@ -102,3 +109,36 @@ def soft_resample_where_needed(belief: ParticleBelief, threshold: float = 0.5, a
     particles = torch.where(mask[..., None, None], new.particles, belief.particles)
     log_w = torch.where(mask[..., None], new.log_weights, belief.log_weights)
     return ParticleBelief(particles, log_w), mask, ess
+
+
+class SoftResamplingParticleFilter(ParticleFilter):
+    """Bootstrap particle filter whose ESS-gated resampling is soft (differentiable).
+
+    Same interface, arguments and shapes as :class:`~torchmm.filters.particle.ParticleFilter`
+    (``resampling`` names the ancestor scheme), plus ``alpha`` of :func:`soft_resample`. The
+    weights are updated by the parent class (which is run with resampling disabled); the batch
+    elements whose ESS fell below ``ess_threshold * Np`` are then soft-resampled.
+
+    Examples:
+        >>> from torchmm.models import ConstantVelocity, PositionMeasurement
+        >>> g = torch.Generator().manual_seed(0)
+        >>> pf = SoftResamplingParticleFilter(ConstantVelocity(1), PositionMeasurement(2, [0], 1.0),
+        ...                                   alpha=0.5, generator=g)
+        >>> belief = pf.initial_belief(GaussianBelief(torch.zeros(4, 2), torch.eye(2)), 200)
+        >>> pf.step(belief, torch.randn(4, 1, generator=g)).belief.particles.shape
+        torch.Size([4, 200, 2])
+    """
+
+    def __init__(self, motion, measurement, *, alpha: float = 0.5, ess_threshold: float = 0.5, **kwargs):
+        super().__init__(motion, measurement, ess_threshold=0.0, **kwargs)
+        if not ess_threshold >= 0:
+            raise ValueError(f"ess_threshold: must be >= 0, got {ess_threshold}")
+        self.alpha = _check_alpha(alpha)
+        self.soft_ess_threshold = float(ess_threshold)
+
+    def update(self, belief: ParticleBelief, z: Tensor) -> StepOutput:
+        out = super().update(belief, z)  # weights only: the parent's threshold is 0
+        posterior, resampled, ess = soft_resample_where_needed(
+            out.belief, self.soft_ess_threshold, self.alpha, self.resampling, generator=self.generator)
+        extras = {**(out.extras or {}), "ess": ess, "resampled": resampled}
+        return out._replace(belief=posterior, extras=extras)
