@@ -91,6 +91,10 @@ def test_chunked_equals_unchunked(entropy):
         assert torch.equal(got[0], full[0])
         torch.testing.assert_close(got[1], full[1], rtol=0, atol=0)
     assert full[0].shape == (2, 3, 9) and full[1].shape == (2, 3)
+    # the factorised all-subsets path equals the plain indicator-matrix path over the same family
+    fam = min_entropy_subset(lw, subset_masks(9), chunk_size=100, entropy=entropy)
+    assert torch.equal(fam[0], full[0])
+    torch.testing.assert_close(fam[1], full[1])
 
 
 def test_user_family_and_list_family():

@@ -42,7 +42,6 @@ from torchmm.filters.base import Filter, StepOutput
 from torchmm.filters.resampling import (
     RESAMPLING_SCHEMES,
     apply_indices,
-    effective_sample_size,
     resample,
     resample_where_needed,
 )
@@ -372,12 +371,15 @@ class MultipleModelParticleFilter(Filter):
         mixing: inverse-CDF scheme of the interaction (``"systematic"``, ``"stratified"``,
             ``"multinomial"``).
         generator: the random stream.
+        innovation_stats: compute the step's innovation and its covariance (one extra pass over
+            the particles); ``False`` returns None for both.
 
     Shapes:
         belief: :class:`ModeBelief` with ``mode_log_probs (*B, M)`` and components
         ``ParticleBelief(particles (*B, M, Np, n), log_weights (*B, M, Np))`` (normalised within
         each model); z: ``(*B, m)``; ``log_likelihood`` ``(*B,)``; ``extras``: ``"ess"`` (of the
-        joint weights, ``(*B,)``), ``"mode_log_likelihood"`` ``(*B, M)``, ``"degenerate"`` ``(*B,)``.
+        joint weights, ``(*B,)``), ``"mode_log_likelihood"`` ``(*B, M)``, ``"degenerate"`` ``(*B,)``,
+        ``"joint_log_weights"`` (33) before normalisation ``(*B, M, Np)``.
 
     Examples:
         >>> from torchmm.models import ConstantVelocity, PositionMeasurement
@@ -392,7 +394,8 @@ class MultipleModelParticleFilter(Filter):
     """
 
     def __init__(self, motion: MotionModel, measurement: MeasurementModel, transition, num_particles: int, *,
-                 mixing: str = "systematic", generator: torch.Generator | None = None):
+                 mixing: str = "systematic", generator: torch.Generator | None = None,
+                 innovation_stats: bool = True):
         super().__init__()
         check_model_pair(motion, measurement)
         if mixing not in _INVERSE_CDF_SCHEMES:
@@ -404,6 +407,7 @@ class MultipleModelParticleFilter(Filter):
         self.num_modes = self.transition.num_modes
         self.num_particles = int(num_particles)
         self.mixing, self.generator = mixing, generator
+        self.innovation_stats = bool(innovation_stats)
         self._check_motion()
 
     def _check_motion(self) -> None:
@@ -454,36 +458,47 @@ class MultipleModelParticleFilter(Filter):
         return ModeBelief(log_cbar, ParticleBelief(particles, log_w))
 
     def _weigh(self, prior: ModeBelief, z: Tensor):
-        """Weights (33)-(34): joint normalised log-weights ``(*B, M, Np)`` and diagnostics."""
+        """Weights (33)-(34) as per-model quantities (few passes over the particles).
+
+        Returns ``(joint, per_model, log_evidence, degenerate, predicted, prior_within)`` with the
+        unnormalised joint log-weights ``(*B, M, Np)`` and their per-model ``logsumexp`` ``(*B, M)``.
+        """
         comps = prior.components
         loglik, predicted = _particle_log_likelihood(self.measurement, z.unsqueeze(-2), comps.particles, False)
         loglik = torch.where(torch.isnan(loglik), -math.inf, loglik)
-        prior_joint = prior.mode_log_probs.unsqueeze(-1) + normalize_log_probs(comps.log_weights)
-        joint = prior_joint + loglik
-        log_evidence = torch.logsumexp(joint.flatten(-2), dim=-1)
+        prior_within = normalize_log_probs(comps.log_weights)
+        prior_mode = normalize_log_probs(prior.mode_log_probs)
+        joint = (prior_within + prior_mode.unsqueeze(-1)) + loglik  # (33), unnormalised
+        per_model = torch.logsumexp(joint, dim=-1)
+        log_evidence = torch.logsumexp(per_model, dim=-1)
         degenerate = _guard(log_evidence, type(self).__name__)
-        norm = torch.where(degenerate[..., None, None], prior_joint, joint - log_evidence[..., None, None])
-        mode_ll = torch.logsumexp(normalize_log_probs(comps.log_weights) + loglik, dim=-1)
-        return norm, log_evidence, degenerate, mode_ll, predicted, prior_joint
-
-    @staticmethod
-    def _split(joint: Tensor) -> tuple[Tensor, Tensor]:
-        """Joint log-weights ``(*B, M, Np)`` -> mode log-probs ``(*B, M)`` and within-model weights."""
-        mode_log_probs = torch.logsumexp(joint, dim=-1)
-        return mode_log_probs, normalize_log_probs(joint)
+        if bool(degenerate.any()):
+            keep = degenerate[..., None, None]
+            joint = torch.where(keep, prior_within + prior_mode.unsqueeze(-1), joint)
+            per_model = torch.where(degenerate[..., None], prior_mode, per_model)
+        return joint, per_model, log_evidence, degenerate, predicted, prior_within, prior_mode
 
     def update(self, belief: ModeBelief, z: Tensor) -> StepOutput:
-        norm, log_evidence, degenerate, mode_ll, predicted, prior_joint = self._weigh(belief, z)
-        mode_log_probs, within = self._split(norm)
-        flat_prior = prior_joint.flatten(-2)
-        innovation, innovation_cov = _innovation(z, predicted.flatten(-3, -2), flat_prior,
-                                                 self.measurement.noise_cov())
+        joint, per_model, log_evidence, degenerate, predicted, prior_within, prior_mode = self._weigh(belief, z)
+        safe_ev = torch.where(degenerate, torch.zeros_like(log_evidence), log_evidence)
+        mode_log_probs = per_model - safe_ev.unsqueeze(-1)  # (34) summed over particles
+        within = joint - per_model.unsqueeze(-1)
+        within = torch.where(torch.isfinite(per_model).unsqueeze(-1), within,
+                             torch.full_like(within, -math.log(within.shape[-1])))
+        innovation = innovation_cov = None
+        if self.innovation_stats:
+            flat_prior = (prior_within + prior_mode.unsqueeze(-1)).flatten(-2)
+            innovation, innovation_cov = _innovation(z, predicted.flatten(-3, -2), flat_prior,
+                                                     self.measurement.noise_cov())
+        # ESS of the normalised joint weights: 1 / sum_j p_j^2 sum_l v_jl^2
+        sq = torch.logsumexp(2 * mode_log_probs.unsqueeze(-1) + 2 * within, dim=(-2, -1))
+        extras = {"ess": torch.exp(-sq), "mode_log_likelihood": per_model - prior_mode, "degenerate": degenerate,
+                  "joint_log_weights": joint}
         return StepOutput(
             belief=ModeBelief(mode_log_probs, ParticleBelief(belief.components.particles, within)),
             prior=belief,
             log_likelihood=log_evidence,
             innovation=innovation,
             innovation_cov=innovation_cov,
-            extras={"ess": effective_sample_size(norm.flatten(-2)), "mode_log_likelihood": mode_ll,
-                    "degenerate": degenerate},
+            extras=extras,
         )

@@ -31,6 +31,7 @@ predicted mode distribution of the fixed grid.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -183,9 +184,11 @@ def min_entropy_subset(log_weights: Tensor, family: Tensor | None = None, *, chu
                        entropy: str = "joint") -> tuple[Tensor, Tensor]:
     """The minimum-entropy candidate set (30) per batch element.
 
-    ``family=None`` searches all ``2^M - 1`` non-empty subsets, generated and evaluated
-    ``chunk_size`` at a time (memory ``~ chunk_size * prod(B) * 3 * 8`` bytes); otherwise the rows
-    of ``family`` are the candidates. Ties go to the first candidate (lowest binary code).
+    ``family=None`` searches all ``2^M - 1`` non-empty subsets (binary code ``c``, bit ``j`` = model
+    ``j``), evaluated about ``chunk_size`` at a time (memory ``~ chunk_size * prod(B) * 3 * 8``
+    bytes): the per-subset sums are those of the low and high halves of the code, each an
+    indicator matrix times the per-model sums. Otherwise the rows of ``family`` are the
+    candidates. Ties go to the first candidate (lowest code / row).
 
     Returns:
         ``(active, entropy)``: the selected set ``(*B, M)`` bool and its entropy ``(*B,)``.
@@ -215,18 +218,34 @@ def min_entropy_subset(log_weights: Tensor, family: Tensor | None = None, *, chu
         total = family.shape[0]
     best = torch.full((flat.shape[0],), math.inf, dtype=stats.dtype, device=stats.device)
     best_index = torch.zeros(flat.shape[0], dtype=torch.int64, device=stats.device)
-    for start in range(0, total, chunk_size):
-        stop = min(start + chunk_size, total)
-        if family is None:
-            rows = subset_masks(num_models, start + 1, stop + 1, device=stats.device)
-        else:
+    if family is None:
+        # all subsets: code = (high << a) | low, so a subset's sums are the sums of its low-half
+        # and high-half members: two small indicator matrices times the per-model sums, combined
+        # by broadcasting (one add per subset and statistic instead of M multiply-adds)
+        a = (num_models + 1) // 2
+        low = subset_masks(a, 0, device=stats.device).to(stats.dtype) @ operand[:a]  # (2^a, Bf*s)
+        high_masks = subset_masks(num_models - a, 0, device=stats.device).to(stats.dtype)
+        high = high_masks @ operand[a:]  # (2^b, Bf*s)
+        rows_per_chunk = max(1, chunk_size // low.shape[0])
+        for start in range(0, high.shape[0], rows_per_chunk):
+            stop = min(start + rows_per_chunk, high.shape[0])
+            sums = (high[start:stop, None] + low[None]).view(stop - start, low.shape[0], flat.shape[0], -1)
+            values = _entropy_from_sums(sums, entropy).flatten(0, 1)  # (chunk, Bf); code 0 -> +inf
+            chunk_best, chunk_arg = values.min(0)
+            better = chunk_best < best
+            best = torch.where(better, chunk_best, best)
+            best_index = torch.where(better, chunk_arg + start * low.shape[0], best_index)
+        best_index = best_index - 1  # codes start at 1 below
+    else:
+        for start in range(0, total, chunk_size):
+            stop = min(start + chunk_size, total)
             rows = family[start:stop]
-        sums = (rows.to(stats.dtype) @ operand).view(stop - start, flat.shape[0], stats.shape[-1])
-        values = _entropy_from_sums(sums, entropy)  # (K_c, Bf)
-        chunk_best, chunk_arg = values.min(0)
-        better = chunk_best < best
-        best = torch.where(better, chunk_best, best)
-        best_index = torch.where(better, chunk_arg + start, best_index)
+            sums = (rows.to(stats.dtype) @ operand).view(stop - start, flat.shape[0], stats.shape[-1])
+            values = _entropy_from_sums(sums, entropy)  # (K_c, Bf)
+            chunk_best, chunk_arg = values.min(0)
+            better = chunk_best < best
+            best = torch.where(better, chunk_best, best)
+            best_index = torch.where(better, chunk_arg + start, best_index)
     if family is None:
         bits = torch.arange(num_models, device=stats.device)
         active = (((best_index + 1).unsqueeze(-1) >> bits) & 1).bool()
@@ -245,7 +264,7 @@ def challenge_match(scores: Tensor, num_winners: int, *, passes: int = 1,
     """The randomised tournament of paper 003, section 3.4.3, for the ``N`` heaviest particles.
 
     a) a random ``N`` particles form sequence 1; b) ``N`` further particles, taken from the
-    remaining pool in a random order, form sequence 2; c) the two sequences are compared position
+    remaining pool in a random order (a random affine permutation per run), form sequence 2; c) the two sequences are compared position
     by position (sequence 1 rotated by a random offset each round) and a heavier challenger takes
     the place of the holder, who goes back to the pool; d) b)-c) repeat until every pool position
     has challenged ``passes`` times. Each round is a few tensor ops over all runs at once.
@@ -266,7 +285,7 @@ def challenge_match(scores: Tensor, num_winners: int, *, passes: int = 1,
     batch = scores.shape[:-1]
     flat = scores.reshape(-1, P)
     Bf, device = flat.shape[0], flat.device
-    order = torch.rand(Bf, P, device=device, generator=generator).argsort(-1)
+    order = _random_affine_permutation(Bf, P, device, generator)
     seq1 = order[:, :num_winners].contiguous()
     pool = order[:, num_winners:].contiguous()
     held = torch.gather(flat, 1, seq1)
@@ -288,6 +307,28 @@ def challenge_match(scores: Tensor, num_winners: int, *, passes: int = 1,
             held.scatter_(1, pos, torch.where(win, challenger_scores, holder_scores))
             pool[:, slots] = torch.where(win, holders, challengers)
     return seq1.view(*batch, num_winners)
+
+
+@functools.lru_cache(maxsize=16)
+def _units(size: int) -> Tensor:
+    return torch.tensor([a for a in range(1, size) if math.gcd(a, size) == 1] or [1])
+
+
+def _random_affine_permutation(rows: int, size: int, device, generator) -> Tensor:
+    """Per row a random permutation ``j -> (a j + b) mod size`` (``a`` coprime with ``size``).
+
+    O(size) instead of a sort; the tournament's random meeting order (random rotations each
+    round) does the rest.
+
+    Shapes:
+        -> ``(rows, size)`` int64
+    """
+    units = _units(size).to(device)
+    pick = torch.randint(0, units.numel(), (rows, 1), device=device, generator=generator)
+    a = units[pick]
+    b = torch.randint(0, size, (rows, 1), device=device, generator=generator)
+    j = torch.arange(size, device=device)
+    return (a * j + b) % size
 
 
 # ------------------------------------------------------------------------------------------------
@@ -417,8 +458,9 @@ class MinimumEntropyVSMM(MultipleModelParticleFilter):
 
     def __init__(self, motion: MotionModel, measurement: MeasurementModel, transition, num_particles: int, *,
                  selection, feedback: bool = True, mixing: str = "systematic",
-                 generator: torch.Generator | None = None):
-        super().__init__(motion, measurement, transition, num_particles, mixing=mixing, generator=generator)
+                 generator: torch.Generator | None = None, innovation_stats: bool = True):
+        super().__init__(motion, measurement, transition, num_particles, mixing=mixing, generator=generator,
+                         innovation_stats=innovation_stats)
         if not callable(selection):
             raise ValueError("selection: expected a callable policy (ExactMinimumEntropy, ChallengeMatch)")
         self.selection, self.feedback = selection, bool(feedback)
@@ -437,13 +479,13 @@ class MinimumEntropyVSMM(MultipleModelParticleFilter):
     def update(self, belief: ModeBelief, z: Tensor) -> StepOutput:
         out = super().update(belief, z)
         post = out.belief
-        joint = post.mode_log_probs.unsqueeze(-1) + post.components.log_weights  # (34), (*B, M, Np)
+        extras = dict(out.extras)
+        joint = extras.pop("joint_log_weights")  # (33); the policies are invariant to its normalisation
         active, info = self.selection(joint, self.generator)
         carried = post.mode_log_probs
         if self.feedback:
             carried = normalize_log_probs(torch.where(active, carried, torch.full_like(carried, -math.inf)))
         selected = ModelSetBelief(carried, post.components, active)
-        extras = dict(out.extras)
         extras.update(info)
         extras["active"] = active
         extras["model_count"] = active.sum(-1)
@@ -473,7 +515,7 @@ class EqMAParticleFilter(MultipleModelParticleFilter):
 
     def __init__(self, F, gain, accelerations, accel_noise_cov, measurement: MeasurementModel, num_particles: int, *,
                  transition=None, stay: float = 0.9, mixing: str = "systematic",
-                 generator: torch.Generator | None = None):
+                 generator: torch.Generator | None = None, innovation_stats: bool = True):
         F = as_tensor(F, "F")
         gain = as_tensor(gain, "gain", dtype=F.dtype, device=F.device)
         acc = as_tensor(accelerations, "accelerations", dtype=F.dtype, device=F.device)
@@ -485,7 +527,8 @@ class EqMAParticleFilter(MultipleModelParticleFilter):
         if transition is None:
             transition = uniform_transition(num_fixed + 1, stay, dtype=F.dtype, device=F.device)
         self._num_fixed = num_fixed
-        super().__init__(motion, measurement, transition, num_particles, mixing=mixing, generator=generator)
+        super().__init__(motion, measurement, transition, num_particles, mixing=mixing, generator=generator,
+                         innovation_stats=innovation_stats)
         if self.num_modes != num_fixed + 1:
             raise ValueError(f"transition: expected {num_fixed + 1} models (N + 1), got {self.num_modes}")
         self.register_buffer("accelerations", acc)
