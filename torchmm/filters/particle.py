@@ -63,21 +63,23 @@ log = logging.getLogger("torchmm")
 _INVERSE_CDF_SCHEMES = ("multinomial", "stratified", "systematic")
 
 
-def noise_factor(cov: Tensor, rtol: float = 1e-12) -> Tensor:
+def noise_factor(cov: Tensor, rtol: float = 1e-10) -> Tensor:
     """A factor ``L`` with ``L L^T = cov``, dropping null directions shared by every matrix.
 
-    Rank-deficient process noise such as ``q G G^T`` is sampled from ``r < n`` normals only.
+    Full-rank matrices get their Cholesky factor; rank-deficient process noise such as
+    ``q G G^T`` gets an eigen-factor with only the ``r < n`` significant directions (eigenvalues
+    above ``rtol`` times the largest), so it is sampled from ``r`` normals.
 
     Shapes:
         cov: ``(..., n, n)`` -> ``(..., n, r)``
     """
-    chol, info = torch.linalg.cholesky_ex(cov)
-    if not bool((info != 0).any()):
-        return chol
     eigvals, eigvecs = torch.linalg.eigh(symmetrize(cov))
     scale = eigvals.amax(-1, keepdim=True).clamp_min(torch.finfo(cov.dtype).tiny)
-    keep = eigvals > rtol * scale
-    rank = max(int(keep.sum(-1).max()), 1)
+    rank = max(int((eigvals > rtol * scale).sum(-1).max()), 1)
+    if rank == cov.shape[-1]:
+        chol, info = torch.linalg.cholesky_ex(cov)
+        if not bool((info != 0).any()):
+            return chol
     factor = eigvecs * eigvals.clamp_min(0).sqrt().unsqueeze(-2)
     return factor[..., -rank:]
 
