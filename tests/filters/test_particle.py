@@ -205,3 +205,25 @@ def test_bad_arguments_raise():
         ParticleFilter(motion, PositionMeasurement(4, [0], 1.0))
     assert isinstance(ParticleFilter(motion, sensor).initial_belief(GaussianBelief(torch.zeros(2), torch.eye(2)), 3),
                       ParticleBelief)
+
+
+def test_pf_throughput_benchmark_runs_and_agrees_with_numpy():
+    """benchmarks/pf_throughput.py at tiny size: same random numbers -> same step as NumPy."""
+    import re
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    proc = subprocess.run(
+        [sys.executable, str(root / "benchmarks" / "pf_throughput.py"), "--runs", "3", "--particles", "40",
+         "--winners", "20", "--threshold", "2", "--steps", "1", "--repeats", "1", "--bandwidth-mb", "8"],
+        capture_output=True, text=True, timeout=300, env={"OMP_NUM_THREADS": "1", "PATH": ""},
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    lines = proc.stdout.strip().splitlines()
+    assert re.fullmatch(r"particle_steps_per_s=\S+ speedup_vs_numpy=[0-9.]+ fraction_of_bandwidth=[0-9.]+",
+                        lines[-1]), lines[-1]
+    diffs = dict(re.findall(r"(\w+)=([0-9.e+-]+)", next(line for line in lines if "difference" in line)))
+    assert float(diffs["particles"]) < 1e-12 and float(diffs["estimate"]) < 1e-12
+    assert float(diffs["log_weights"]) < 1e-9 and float(diffs["model_sets"]) == 0
