@@ -33,12 +33,11 @@ from torchmm import IMM, KalmanFilter, PositionMeasurement
 from torchmm.multimodel import (
     FusionIMM,
     InfluenceGate,
-    MultiRate,
     SourceModeVSIMM,
     SourceUpdateIMM,
     TransferIMM,
 )
-from torchmm.simulate import bernoulli_mask, periodic_mask, simulate_measurements
+from torchmm.simulate import simulate_jump_system, simulate_multirate
 
 log = logging.getLogger("torchmm.experiments")
 
@@ -89,17 +88,17 @@ def simulate(ctx: StudyContext, scenario, ratio: float, source_R: float, key: st
     cfg = ctx.cfg
     runs = int(cfg.mc_runs)
     g = ctx.generator("data", key)
-    sim, y = scenario.simulate(runs, g)
-    if cfg.source.availability == "bernoulli":
-        mask = bernoulli_mask(scenario.steps, (runs,), float(ratio), generator=g, device=ctx.device)
-    elif cfg.source.availability == "periodic":
-        mask = periodic_mask(scenario.steps, (runs,), int(cfg.source.period), device=ctx.device)
-    else:
-        raise ValueError(f"source.availability: expected 'bernoulli' or 'periodic', got {cfg.source.availability!r}")
+    sim = simulate_jump_system(scenario.motion, scenario.transition, scenario.initial, scenario.steps, (runs,),
+                               initial_mode_probs=scenario.initial_mode_probs, generator=g)
     sensor = PositionMeasurement(scenario.motion.state_dim, scenario.position,
                                  torch.tensor(float(source_R), dtype=ctx.dtype), dtype=ctx.dtype).to(ctx.device)
-    ys = simulate_measurements(sensor, sim.states, available=mask, generator=g)
-    return sim, MultiRate(y, ys), mask
+    if cfg.source.availability == "bernoulli":
+        z = simulate_multirate(scenario.measurement, sensor, sim.states, probability=float(ratio), generator=g)
+    elif cfg.source.availability == "periodic":
+        z = simulate_multirate(scenario.measurement, sensor, sim.states, period=int(cfg.source.period), generator=g)
+    else:
+        raise ValueError(f"source.availability: expected 'bernoulli' or 'periodic', got {cfg.source.availability!r}")
+    return sim, z, torch.isfinite(z.source).all(-1)
 
 
 def _unit(ctx: StudyContext, scenario, ratio: float, source_R: float, key: str, names, curves: bool) -> dict:

@@ -412,3 +412,28 @@ def test_transfer_imm_is_differentiable():
     traj = _run(f, prior, z)
     traj.log_likelihood.sum().backward()
     assert R.grad is not None and torch.isfinite(R.grad)
+
+
+def test_simulate_multirate_statistics():
+    from torchmm.simulate import simulate_multirate
+
+    target, source = PositionMeasurement(2, [0], 100.0), PositionMeasurement(2, [0], 10.0)
+    states = torch.randn(200, 500, 2)
+    g = torch.Generator().manual_seed(7)
+    z = simulate_multirate(target, source, states, probability=0.3, generator=g)
+    present = torch.isfinite(z.source[..., 0])
+    n = present.numel()
+    assert abs(present.double().mean().item() - 0.3) < 4 * (0.3 * 0.7 / n) ** 0.5
+    assert torch.isfinite(z.target).all()
+    # noise variances within 4 standard errors (var of a sample variance ~ 2 sigma^4 / n)
+    v_t = (z.target[..., 0] - states[..., 0]).var().item()
+    v_s = (z.source[..., 0] - states[..., 0])[present].var().item()
+    assert abs(v_t - 100.0) < 4 * 100.0 * (2 / n) ** 0.5
+    assert abs(v_s - 10.0) < 4 * 10.0 * (2 / present.sum().item()) ** 0.5
+    periodic = simulate_multirate(target, source, states, period=4, offset=1, generator=g)
+    mask = torch.isfinite(periodic.source[..., 0])
+    assert bool(mask[0].all()) and not bool(mask[1:4].any()) and bool(mask[4].all())
+    with pytest.raises(ValueError, match="exactly one"):
+        simulate_multirate(target, source, states, generator=g)
+    with pytest.raises(ValueError, match="exactly one"):
+        simulate_multirate(target, source, states, probability=0.5, period=2, generator=g)

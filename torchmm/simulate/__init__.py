@@ -8,6 +8,7 @@ from torchmm.simulate.markov import (
     simulate_jump_system,
     simulate_measurements,
     simulate_modes,
+    simulate_multirate,
 )
 
 __all__ = [
@@ -18,4 +19,5 @@ __all__ = [
     "simulate_jump_system",
     "simulate_measurements",
     "simulate_modes",
+    "simulate_multirate",
 ]

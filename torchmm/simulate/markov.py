@@ -30,6 +30,7 @@ __all__ = [
     "simulate_jump_system",
     "simulate_measurements",
     "simulate_modes",
+    "simulate_multirate",
 ]
 
 
@@ -204,3 +205,47 @@ def periodic_mask(steps: int, batch_shape, period: int, *, offset: int = 0, devi
     k = torch.arange(1, steps + 1, device=device)
     mask = (k - offset) % period == 0
     return mask.reshape(steps, *([1] * len(batch_shape))).expand(steps, *batch_shape)
+
+
+def simulate_multirate(
+    target: MeasurementModel,
+    source: MeasurementModel,
+    states: Tensor,
+    *,
+    probability: float | None = None,
+    period: int | None = None,
+    offset: int = 0,
+    generator: torch.Generator | None = None,
+):
+    """Fast target data every step and slow, irregular source data (paper 000, (2)-(3)).
+
+    The source is present with ``probability`` per run and step (``gamma_k ~ Bernoulli``) or every
+    ``period`` steps (exactly one of the two); it is NaN elsewhere. The target stream is drawn
+    first, then the availability mask, then the source noise, from the one ``generator``.
+
+    Args:
+        target: the fast sensor (noise ``R``); source: the slow sensor (noise ``R_S``).
+        states: ``(T, *B, n)``, e.g. ``simulate_jump_system(...).states``.
+
+    Returns:
+        :class:`~torchmm.multimodel.MultiRate` with ``target (T, *B, m)`` and ``source
+        (T, *B, m_S)``.
+
+    Examples:
+        >>> from torchmm.models import PositionMeasurement
+        >>> z = simulate_multirate(PositionMeasurement(2, [0], 100.0), PositionMeasurement(2, [0], 10.0),
+        ...                        torch.zeros(50, 8, 2), probability=0.6, generator=torch.Generator().manual_seed(0))
+        >>> z.target.shape, z.source.shape, bool(z.source.isnan().any())
+        (torch.Size([50, 8, 1]), torch.Size([50, 8, 1]), True)
+    """
+    from torchmm.multimodel.transfer import MultiRate
+
+    if (probability is None) == (period is None):
+        raise ValueError("probability, period: give exactly one of them")
+    steps, batch = states.shape[0], states.shape[1:-1]
+    y = simulate_measurements(target, states, generator=generator)
+    if probability is not None:
+        mask = bernoulli_mask(steps, batch, probability, generator=generator, device=states.device)
+    else:
+        mask = periodic_mask(steps, batch, period, offset=offset, device=states.device)
+    return MultiRate(y, simulate_measurements(source, states, available=mask, generator=generator))
