@@ -32,7 +32,7 @@ class TrainRecord:
             at the parameters the iteration started from (the optimiser's first closure
             evaluation; line-search probes of LBFGS are not reported).
         grad_norm: total gradient 2-norm before clipping, from the same evaluation.
-        parameters: values reported by the trainer's ``track`` function.
+        parameters: values reported by the trainer's ``track`` function after the update.
         seconds: wall time of the iteration.
     """
 
