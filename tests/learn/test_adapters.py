@@ -193,3 +193,32 @@ def test_float32_learned_imm_runs_finite():
     assert traj.estimate().mean.dtype == torch.float32
     assert bool(torch.isfinite(traj.estimate().mean).all()) and bool(torch.isfinite(loss))
     assert all(bool(torch.isfinite(p.grad).all()) for p in imm.parameters())
+
+
+class _Controlled(nn.Module):
+    """x_k = A x + B u (a user network taking the control as a second argument)."""
+
+    def __init__(self, A, B):
+        super().__init__()
+        self.A, self.B = nn.Parameter(A.clone()), nn.Parameter(B.clone())
+
+    def forward(self, x, u):
+        return x @ self.A.mT + u @ self.B.mT
+
+
+def test_learned_motion_with_controls_matches_the_linear_model(generator):
+    A = torch.tensor([[1.0, 0.5], [0.0, 0.9]])
+    B = torch.tensor([[0.1], [1.0]])
+    Q = torch.tensor([[0.2, 0.0], [0.0, 0.3]])
+    sensor = PositionMeasurement(2, [0], 1.0)
+    kf = KalmanFilter(LinearMotion(A, Q, input_matrix=B), sensor)
+    learned = LearnedMotion(_Controlled(A, B), 2, Q=Q, noise="log_diagonal", uses_input=True)
+    ekf = ExtendedKalmanFilter(learned, sensor)
+    prior = GaussianBelief(torch.zeros(4, 2), torch.eye(2))
+    z = torch.randn(6, 4, 1, generator=generator)
+    u = torch.randn(6, 4, 1, generator=generator)
+    a, b = run_filter(kf, prior, z, controls=u), run_filter(ekf, prior, z, controls=u)
+    close(b.belief.mean, a.belief.mean)
+    close(b.log_likelihood, a.log_likelihood)
+    b.total_log_likelihood().sum().backward()
+    assert learned.net.B.grad is not None and learned.net.B.grad.abs().sum() > 0
