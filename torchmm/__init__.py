@@ -17,16 +17,22 @@ from torchmm.filters import (
     rts_smoother,
 )
 from torchmm.models import (
+    CholeskyCovariance,
     ConstantAcceleration,
     ConstantVelocity,
     CoordinatedTurn,
+    LearnedMeasurement,
+    LearnedMotion,
     LinearMeasurement,
     LinearMotion,
+    LogDiagonalCovariance,
+    LogScaleCovariance,
     MeasurementModel,
     MotionModel,
     NonlinearCoordinatedTurn,
     PositionMeasurement,
     RangeBearing,
+    learnable_noise,
 )
 from torchmm.multimodel import (
     GPB1,
@@ -59,12 +65,18 @@ from torchmm.multimodel import (
     influence_value,
 )
 from torchmm.multimodel.variational import VariationalIMM, gimmaf, imm_vbt
-from torchmm import analysis, fusion, metrics, simulate  # subpackages, reachable as attributes
+from torchmm import analysis, fusion, learn, metrics, simulate  # subpackages, reachable as attributes
 
 __version__ = "0.1.0"
 
 __all__ = [
     "AdaptiveGaussianBelief",
+    "CholeskyCovariance",
+    "LearnedMeasurement",
+    "LearnedMotion",
+    "LogDiagonalCovariance",
+    "LogScaleCovariance",
+    "learnable_noise",
     "FusionIMM",
     "InfluenceGate",
     "MultiRate",
@@ -84,6 +96,7 @@ __all__ = [
     "truncated_normal_moments",
     "analysis",
     "fusion",
+    "learn",
     "metrics",
     "simulate",
     "GPB1",

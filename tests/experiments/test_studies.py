@@ -23,6 +23,7 @@ FAST = {
     "imm_tf_quick": TF_FAST,
     "gimmaf": ["gimmaf.steps=40", "gimmaf.table4.noises=[gaussian]"],
     "vbakf_huang": ["huang.steps=150"],
+    "learn_dynamics": ["learn.scenario.steps=30", "learn.part_a.iterations=2", "learn.part_b.iterations=2"],
 }
 TF_TABLES = {
     "table1": ["source_ratio", "estimator", "pos_rmse", "vel_rmse"],
@@ -44,6 +45,8 @@ REQUIRED_TABLES = {
                "table4": ["noise", "estimator", "pos_armse"],
                "srnfn": ["estimator", "srnfn_P", "srnfn_R"]},
     "vbakf_huang": {"table1": ["estimator", "pos_armse", "vel_armse"]},
+    "learn_dynamics": {"learn": ["quantity", "true", "learned", "initial"],
+                       "rmse": ["estimator", "pos_rmse", "vel_rmse"]},
 }
 
 
