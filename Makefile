@@ -20,14 +20,15 @@ install: $(STAMP)
 run: $(STAMP)
 	$(BIN)/torchmm-run $(ARGS)
 
+# one torch/OpenMP thread per process: the suite's tensors are small (see tests/conftest.py)
 test: $(STAMP)
-	$(BIN)/python -m pytest -m "not slow" $(ARGS)
+	OMP_NUM_THREADS=1 $(BIN)/python -m pytest -m "not slow" $(ARGS)
 
 test-slow: $(STAMP)
-	$(BIN)/python -m pytest -m slow $(ARGS)
+	OMP_NUM_THREADS=1 $(BIN)/python -m pytest -m slow $(ARGS)
 
 test-all: $(STAMP)
-	$(BIN)/python -m pytest $(ARGS)
+	OMP_NUM_THREADS=1 $(BIN)/python -m pytest $(ARGS)
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/imm_vs_filterpy.py $(ARGS)

@@ -12,6 +12,7 @@ import logging
 from pathlib import Path
 
 import hydra
+import torch
 from hydra.core.hydra_config import HydraConfig
 from hydra.utils import get_method
 from omegaconf import DictConfig, OmegaConf
@@ -29,11 +30,18 @@ def run_study(cfg: DictConfig, output_dir: Path) -> Results:
     config = OmegaConf.to_container(cfg, resolve=True)
     study = get_method(cfg.study)
     ctx = open_context(cfg, Path(output_dir), config, experiment=str(cfg.experiment_name))
+    previous_threads = torch.get_num_threads()
+    threads = cfg.get("threads")
+    if threads:
+        if int(threads) < 1:
+            raise ValueError(f"threads: expected a positive integer or null, got {threads}")
+        torch.set_num_threads(int(threads))
     try:
         study(ctx)
         ctx.results.save()
     finally:
         ctx.logger.close()
+        torch.set_num_threads(previous_threads)
     log.info("results written to %s", ctx.output_dir)
     return ctx.results
 

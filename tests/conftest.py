@@ -12,6 +12,11 @@ from torchmm import GaussianBelief, LinearMeasurement, LinearMotion
 
 BATCH_SHAPES = [(), (4,), (3, 2)]
 
+# The suite's tensors are small: one intra-op thread is fastest and immune to a busy machine (two
+# threads spinning against other processes slowed the suite ~10x). Subprocesses get OMP_NUM_THREADS=1
+# from the Makefile.
+torch.set_num_threads(1)
+
 
 @pytest.fixture(autouse=True)
 def _float64_default():
