@@ -131,6 +131,8 @@ def _build(name: str, kind: str, scenario: Paper003Scenario, opts, generator: to
     if kind == "exact":
         selection = ExactMinimumEntropy(chunk_size=int(opts.exact_chunk), entropy=str(opts.entropy))
         feedback = bool(opts.feedback)
+    elif kind == "mmpf":  # no selection: every model stays (the plain multiple-model PF over all 21)
+        selection, feedback = ChallengeMatch(1, 0, method="topk"), True
     else:
         method = "topk" if kind == "topk" else "cm"
         selection = ChallengeMatch(int(opts.num_winners), int(opts.threshold), method=method,
