@@ -31,10 +31,10 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from experiments.studies.mevsmm import MODELS, paper003_scenario  # noqa: E402
-from torchmm import LinearMotion  # noqa: E402
-from torchmm.filters.particle import noise_factor  # noqa: E402
-from torchmm.multimodel.mevsmm import ChallengeMatch, MinimumEntropyVSMM, _units, uniform_transition  # noqa: E402
+from experiments.studies.mevsmm import MODELS, paper003_scenario
+from torchmm import LinearMotion
+from torchmm.filters.particle import noise_factor
+from torchmm.multimodel.mevsmm import ChallengeMatch, MinimumEntropyVSMM, _units, uniform_transition
 
 
 # ------------------------------------------------------------------------------------------------

@@ -40,7 +40,7 @@ from typing import ClassVar
 import torch
 from torch import Tensor
 
-from torchmm.beliefs import GaussianBelief, ModeBelief, ParticleBelief, register_belief, symmetrize
+from torchmm.beliefs import GaussianBelief, ModeBelief, register_belief, symmetrize
 from torchmm.beliefs.ops import normalize_log_probs
 from torchmm.filters.base import StepOutput
 from torchmm.filters.particle import MultipleModelParticleFilter
