@@ -65,12 +65,27 @@ from torchmm.multimodel import (
     influence_value,
 )
 from torchmm.multimodel.variational import VariationalIMM, gimmaf, imm_vbt
+from torchmm.filters.particle import MultipleModelParticleFilter, ParticleFilter
+from torchmm.multimodel.mevsmm import (
+    ChallengeMatch,
+    EqMAParticleFilter,
+    ExactMinimumEntropy,
+    MinimumEntropyVSMM,
+    ModelSetBelief,
+)
 from torchmm import analysis, fusion, learn, metrics, simulate  # subpackages, reachable as attributes
 
 __version__ = "0.1.0"
 
 __all__ = [
     "AdaptiveGaussianBelief",
+    "ChallengeMatch",
+    "EqMAParticleFilter",
+    "ExactMinimumEntropy",
+    "MinimumEntropyVSMM",
+    "ModelSetBelief",
+    "MultipleModelParticleFilter",
+    "ParticleFilter",
     "CholeskyCovariance",
     "LearnedMeasurement",
     "LearnedMotion",

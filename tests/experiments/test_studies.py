@@ -24,6 +24,7 @@ FAST = {
     "gimmaf": ["gimmaf.steps=40", "gimmaf.table4.noises=[gaussian]"],
     "vbakf_huang": ["huang.steps=150"],
     "learn_dynamics": ["learn.scenario.steps=30", "learn.part_a.iterations=2", "learn.part_b.iterations=2"],
+    "mevsmm": ["mevsmm.num_particles=100", "mevsmm.num_winners=42", "mevsmm.threshold=3"],
 }
 TF_TABLES = {
     "table1": ["source_ratio", "estimator", "pos_rmse", "vel_rmse"],
@@ -47,6 +48,9 @@ REQUIRED_TABLES = {
     "vbakf_huang": {"table1": ["estimator", "pos_armse", "vel_armse"]},
     "learn_dynamics": {"learn": ["quantity", "true", "learned", "initial"],
                        "rmse": ["estimator", "pos_rmse", "vel_rmse"]},
+    "mevsmm": {"rmse": ["estimator", "pos_rmse", "vel_rmse", "maneuver_pos_rmse"],
+               "table1": ["estimator", "avg_model_count"],
+               "table2": ["estimator", "seconds_per_step", "relative_time"]},
 }
 
 

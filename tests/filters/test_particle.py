@@ -227,3 +227,17 @@ def test_pf_throughput_benchmark_runs_and_agrees_with_numpy():
     diffs = dict(re.findall(r"(\w+)=([0-9.e+-]+)", next(line for line in lines if "difference" in line)))
     assert float(diffs["particles"]) < 1e-12 and float(diffs["estimate"]) < 1e-12
     assert float(diffs["log_weights"]) < 1e-9 and float(diffs["model_sets"]) == 0
+
+
+def test_singular_process_noise_gives_finite_gradients():
+    """noise_factor drops the null directions before the square root (no NaN through sqrt(0))."""
+    from torchmm.filters.particle import noise_factor
+
+    q = torch.tensor(0.5, requires_grad=True)
+    G = torch.tensor([[0.5], [1.0]])
+    Q = q * (G @ G.T)  # rank one
+    factor = noise_factor(Q)
+    assert factor.shape == (2, 1)
+    torch.testing.assert_close(factor @ factor.T, Q, rtol=1e-10, atol=1e-12)
+    (factor.square().sum()).backward()
+    assert torch.isfinite(q.grad) and q.grad > 0

@@ -80,8 +80,10 @@ def noise_factor(cov: Tensor, rtol: float = 1e-10) -> Tensor:
         chol, info = torch.linalg.cholesky_ex(cov)
         if not bool((info != 0).any()):
             return chol
-    factor = eigvecs * eigvals.clamp_min(0).sqrt().unsqueeze(-2)
-    return factor[..., -rank:]
+    # keep the r significant directions *before* the square root: sqrt has an infinite derivative
+    # at the (numerically) zero eigenvalues, which would turn gradients w.r.t. Q into NaN
+    top = eigvals[..., -rank:].clamp_min(torch.finfo(cov.dtype).tiny)
+    return eigvecs[..., -rank:] * top.sqrt().unsqueeze(-2)
 
 
 def sample_gaussian(belief: GaussianBelief, num_particles: int, *,
