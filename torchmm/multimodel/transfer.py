@@ -123,7 +123,9 @@ def influence_value(estimate: Tensor, prior_mean: Tensor, z: Tensor, H: Tensor, 
     ``d x / d rho = Phi Theta``: (33) equals half of (D1), ``1/2 dF/dx (d^2F/dx^2)^{-1}
     d^2F/dxdy`` (the printed ``F`` has no factor 1/2). With ``x* = argmin_x F(x, y)`` it reduces to
     ``L^T = -(H(x - x*))^T R^{-1}``: the shift of the estimate's predicted measurement away from
-    the datum-only optimum, in units of ``R``. Missing (NaN) data give 0.
+    the datum-only optimum, in units of ``R``; this identity is how it is computed (``x*`` is the
+    Kalman update of ``N(x^-, W)`` with ``y``: no inverse of ``W``). Missing (NaN) components are
+    conditioned out of ``x*`` and give 0.
 
     Args:
         estimate: ``x_k`` (the estimator's output), ``(*B, n)``.
@@ -140,16 +142,14 @@ def influence_value(estimate: Tensor, prior_mean: Tensor, z: Tensor, H: Tensor, 
         >>> influence_value(x_star, torch.zeros(2), torch.ones(1), H, R, W).abs().max().item() < 1e-7
         True
     """
+    # L^T = -Psi Phi Theta = -(H(x - x*))^T R^{-1} with x* = argmin F: the Kalman update of the
+    # prior (x^-, W) with z (exact identity, tested against autograd); no inverse of W needed, and
+    # missing components are conditioned out by the shared update
     observed = ~torch.isnan(z)
-    y = torch.where(observed, z, 0.0)
-    Hx = matvec(H, estimate)
-    res = torch.where(observed, y - Hx, 0.0)
-    Rinv_res = torch.linalg.solve(R, res.unsqueeze(-1))  # R^{-1}(y - Hx)
-    psi = torch.linalg.solve(weight_cov, (estimate - prior_mean).unsqueeze(-1)) - H.mT @ Rinv_res
-    theta = torch.linalg.solve(R, H).mT  # H^T R^{-1}, (n, m) for symmetric R
-    info = torch.linalg.inv(weight_cov) + theta @ H
-    phi_theta = torch.linalg.solve(info, theta)  # Phi Theta
-    value = -(psi.mT @ phi_theta).squeeze(-2)
+    cross = weight_cov @ H.mT  # W H^T
+    x_star, _, _ = condition(prior_mean, weight_cov, z - matvec(H, prior_mean), H @ cross + R, cross)
+    shift = matvec(H, estimate - x_star).unsqueeze(-1)
+    value = -torch.linalg.solve(R, shift).squeeze(-1)
     return torch.where(observed, value, 0.0)
 
 
@@ -548,8 +548,8 @@ class SourceModeVSIMM(_SourceTrackIMM):
         joint = out.log_likelihood + log_cbar
         norm = torch.logsumexp(joint, dim=-1, keepdim=True)
         log_mu = _safe_sub(joint, norm)
-        drop = torch.cat([torch.zeros_like(present.unsqueeze(-1).expand(*present.shape, M)),
-                          log_mu[..., M:] < torch.log(torch.tensor(self.drop_below, dtype=mu.dtype))], -1)
+        is_extra = torch.arange(M + 1, device=mu.device) == M
+        drop = is_extra & (log_mu < torch.log(torch.tensor(self.drop_below, dtype=mu.dtype)))
         log_mu = torch.where(drop, -torch.inf, log_mu)
         log_mu = _safe_sub(log_mu, torch.logsumexp(log_mu, dim=-1, keepdim=True))
         new_target = ModeBelief(log_mu, out.belief)
