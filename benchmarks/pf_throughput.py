@@ -56,9 +56,10 @@ def _forced_cdf(p):
 class NumpyPFMEVSMM:
     """The same step, NumPy float64, batch axis first. ``randoms`` replays torchmm's draws."""
 
-    def __init__(self, F, offsets, factor, R, log_transition, num_winners, threshold):
+    def __init__(self, F, offsets, factor, H, R, log_transition, num_winners, threshold):
         self.F, self.offsets, self.factor = F, offsets, factor  # (n,n), (M,n), (n,r)
         self.Rinv_chol = np.linalg.inv(np.linalg.cholesky(R))
+        self.white_H = self.Rinv_chol @ H
         self.logdet = 2 * np.log(np.diag(np.linalg.cholesky(R))).sum()
         self.log_transition = log_transition
         self.N, self.thre = num_winners, threshold
@@ -74,10 +75,12 @@ class NumpyPFMEVSMM:
         cdf_m = _forced_cdf(mixing)
         u0 = randoms["u_mix"] if randoms is not None else rng.random((B, M, 1))
         u = (np.arange(Np)[None, None] + u0) / Np  # (B, i, Np)
-        # np.searchsorted is 1-D: shift row r of every CDF to [r, r + 1] and search once
-        row = np.arange(B * M, dtype=np.float64).reshape(B, M, 1)
-        anc = np.searchsorted((cdf_m + row).ravel(), (u + row).ravel(), side="right").reshape(B, M, Np)
-        anc = np.minimum(anc - (row.astype(np.int64) * M), M - 1)
+        # systematic points: the ancestor of point q is the number of CDF entries at grid position
+        # ceil(Np * c - u0) <= q -- one bincount and a cumsum (as torchmm), not Np binary searches
+        pos = np.clip(np.ceil(cdf_m * Np - u0), 0, Np).astype(np.int64)  # (B, i, a)
+        pos += (np.arange(B * M, dtype=np.int64) * (Np + 1)).reshape(B, M, 1)
+        counts = np.bincount(pos.ravel(), minlength=B * M * (Np + 1)).reshape(B, M, Np + 1)
+        anc = np.minimum(np.cumsum(counts[..., :Np], -1), M - 1)
         low = np.concatenate([np.zeros((B, M, 1)), cdf_m[..., :-1]], -1)
         lo = np.take_along_axis(low, anc, -1)
         hi = np.take_along_axis(cdf_m, anc, -1)
@@ -91,12 +94,19 @@ class NumpyPFMEVSMM:
         src = particles.reshape(B, M * Np, n)
         x = np.take_along_axis(src, flat[..., None], 1).reshape(B, M, Np, n)
         # -- propagation
-        eps = randoms["eps"] if randoms is not None else rng.standard_normal((B, M, Np, self.factor.shape[-1]))
-        x = x @ self.F.T + self.offsets[None, :, None, :] + eps @ self.factor.T
-        # -- weights (33)-(34)
-        resid = z[:, None, None, :] - x[..., [0, 2]]
-        white = resid @ self.Rinv_chol.T
-        loglik = -0.5 * ((white**2).sum(-1) + self.logdet + 2 * math.log(2 * math.pi))
+        eps = randoms["eps"] if randoms is not None else rng.standard_normal((B, M, Np, self.factor.shape[-1]),
+                                                                             dtype=np.float32)
+        noise = eps.astype(np.float64) @ self.factor.T
+        noise += self.offsets[None, :, None, :]
+        x = x @ self.F.T
+        x += noise
+        # -- weights (33)-(34), whitened: L^-1 (z - H x) = L^-1 z - (L^-1 H) x
+        white = x @ self.white_H.T
+        white -= (z @ self.Rinv_chol.T)[:, None, None, :]
+        sq = white[..., 0] * white[..., 0]
+        for j in range(1, white.shape[-1]):
+            sq += white[..., j] * white[..., j]
+        loglik = -0.5 * (sq + self.logdet + white.shape[-1] * math.log(2 * math.pi))
         jointw = log_cbar[:, :, None] - math.log(Np) + loglik
         per_model = _logsumexp(jointw, -1)
         ev = _logsumexp(per_model, -1)
@@ -121,10 +131,20 @@ class NumpyPFMEVSMM:
         ar = np.arange(block)
         rows = np.arange(B)[:, None]
         for r in range(rounds):
+            shift = shifts[r] if shifts is not None else rng.integers(0, N, (B, 1))
+            start = r * block
+            if block == N and start + block <= pool_size:  # as torchmm: holder p meets challenger p - shift
+                window = pool[:, start:start + block]
+                ch = np.take_along_axis(window, (ar[None] - shift) % N, 1)
+                chs = np.take_along_axis(scores, ch, 1)
+                win = chs > held
+                window[...] = np.where(win, seq1, ch)
+                seq1 = np.where(win, ch, seq1)
+                held = np.where(win, chs, held)
+                continue
             slots = (r * block + ar) % pool_size
             ch = pool[:, slots]
             chs = np.take_along_axis(scores, ch, 1)
-            shift = shifts[r] if shifts is not None else rng.integers(0, N, (B, 1))
             pos = (ar[None] + shift) % N
             hold = seq1[rows, pos]
             holds = held[rows, pos]
@@ -150,7 +170,7 @@ class NumpyPFMEVSMM:
 def _replay(gen: torch.Generator, B, M, Np, r, P, N):
     """The random numbers one torchmm PF-MEVSMM step draws, in its order, as NumPy arrays."""
     u_mix = torch.rand((B, M, 1), dtype=torch.float64, generator=gen)
-    eps = torch.randn((B, M, Np, r), dtype=torch.float64, generator=gen)
+    eps = torch.randn((B, M, Np, r), dtype=torch.float32, generator=gen)
     units = _units(P)
     pick = torch.randint(0, units.numel(), (B, 1), generator=gen)
     b0 = torch.randint(0, P, (B, 1), generator=gen)
@@ -193,9 +213,10 @@ def main(argv=None) -> None:
     transition = uniform_transition(M, 1.0 / M)
     gen = torch.Generator().manual_seed(1)
     filt = MinimumEntropyVSMM(motion, scen.measurement, transition, Np, selection=ChallengeMatch(N, args.threshold),
-                              generator=gen, innovation_stats=False)
+                              generator=gen, innovation_stats=False, noise_dtype=torch.float32)
     factor = noise_factor(motion.noise_cov())
-    ref = NumpyPFMEVSMM(scen.F.numpy(), motion.offset.numpy(), factor.numpy(), scen.measurement.R.numpy(),
+    ref = NumpyPFMEVSMM(scen.F.numpy(), motion.offset.numpy(), factor.numpy(), scen.measurement.H.numpy(),
+                        scen.measurement.R.numpy(),
                         transition.log().numpy(), N, args.threshold)
     # a start belief some steps into the scenario
     belief = filt.update(filt.initial_belief(scen.prior(B)), z[0]).belief

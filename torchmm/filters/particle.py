@@ -44,6 +44,7 @@ from torchmm.filters.resampling import (
     apply_indices,
     resample,
     resample_where_needed,
+    searchsorted_rows,
 )
 from torchmm.models.base import MeasurementModel, MotionModel, check_model_pair
 from torchmm.models.linear import LinearMeasurement, LinearMotion
@@ -56,6 +57,7 @@ __all__ = [
     "noise_factor",
     "propagate_particles",
     "sample_gaussian",
+    "standard_normal",
 ]
 
 log = logging.getLogger("torchmm")
@@ -102,30 +104,63 @@ def sample_gaussian(belief: GaussianBelief, num_particles: int, *,
     return belief.mean.unsqueeze(-2) + eps @ root.mT
 
 
+def standard_normal(shape, like: Tensor, *, generator: torch.Generator | None = None,
+                    noise_dtype: torch.dtype | None = None) -> Tensor:
+    """Standard normals of ``shape`` in ``like``'s dtype, optionally drawn in ``noise_dtype``.
+
+    ``noise_dtype=torch.float32`` draws float32 normals and casts them: on CPU about 4x faster
+    than float64 draws (torch's vectorised float32 Box-Muller), at the cost of 24-bit normals
+    whose tails end near 5.8 sigma (``sqrt(-2 ln 2^-24)``), which a particle filter's process
+    noise does not notice. ``None`` draws in ``like``'s dtype.
+
+    Shapes:
+        -> ``shape``
+    """
+    dtype = like.dtype if noise_dtype is None else noise_dtype
+    eps = torch.randn(shape, dtype=dtype, device=like.device, generator=generator)
+    return eps if dtype == like.dtype else eps.to(like.dtype)
+
+
+def _add(a: Tensor, b: Tensor) -> Tensor:
+    """``a + b``, in place into the fresh temporary ``a`` when the shapes allow it."""
+    if torch.broadcast_shapes(a.shape, b.shape) == a.shape and a.dtype == b.dtype:
+        return a.add_(b)
+    return a + b
+
+
 def propagate_particles(motion: MotionModel, particles: Tensor, *, u: Tensor | None = None,
-                        generator: torch.Generator | None = None) -> Tensor:
+                        generator: torch.Generator | None = None,
+                        noise_dtype: torch.dtype | None = None) -> Tensor:
     """``x_k = f(x_{k-1}, u_k) + w_k``, ``w_k ~ N(0, Q)``, for particle sets.
 
     The model's parameter batch ``*P`` broadcasts against the particle sets' batch ``*B`` (a bank
     of ``M`` modes against ``(*B, M)``). Linear models are applied as one matmul on the particle
-    layout; any other model is called with the particle axis leftmost (the torchmm convention for
-    sample axes). The process noise ``Q = motion.noise_cov()`` is taken as state-independent.
+    layout (with an unbatched ``F``: one ``addmm`` that also adds the noise and offset); any other
+    model is called with the particle axis leftmost (the torchmm convention for sample axes). The
+    process noise ``Q = motion.noise_cov()`` is taken as state-independent; its standard normals
+    are drawn in ``noise_dtype`` (see :func:`standard_normal`).
 
     Shapes:
         particles: ``(*B, Np, n)``; u: ``(*B, k)`` -> ``(*B, Np, n)``
     """
+    factor = noise_factor(motion.noise_cov())  # (*P, n, r), shared by the particles of a set
+    eps = standard_normal((*particles.shape[:-1], factor.shape[-1]), particles, generator=generator,
+                          noise_dtype=noise_dtype)
+    noise = eps @ factor.mT  # (*B, Np, n)
     if isinstance(motion, LinearMotion):
-        out = particles @ motion.F.mT + motion.offset.unsqueeze(-2)
+        noise = _add(noise, motion.offset.unsqueeze(-2))
         if u is not None:
             if motion.input_matrix is None:
                 raise ValueError("u: this LinearMotion has no input_matrix")
-            out = out + (u.unsqueeze(-2) @ motion.input_matrix.mT)
-    else:
-        out = motion(particles.movedim(-2, 0), u=None if u is None else u.unsqueeze(0)).movedim(0, -2)
-    factor = noise_factor(motion.noise_cov())  # (*P, n, r), shared by the particles of a set
-    eps = torch.randn(*out.shape[:-1], factor.shape[-1], dtype=out.dtype, device=out.device,
-                      generator=generator)
-    return out + eps @ factor.mT
+            noise = _add(noise, u.unsqueeze(-2) @ motion.input_matrix.mT)
+        F = motion.F
+        if F.dim() == 2 and noise.shape == particles.shape:
+            n = particles.shape[-1]
+            # in place into the fresh noise tensor: one GEMM with beta = 1, no copy of the input
+            return noise.view(-1, n).addmm_(particles.reshape(-1, n), F.mT).view(particles.shape)
+        return particles @ F.mT + noise
+    out = motion(particles.movedim(-2, 0), u=None if u is None else u.unsqueeze(0)).movedim(0, -2)
+    return out + noise
 
 
 def _predicted_measurement(measurement: MeasurementModel, particles: Tensor) -> Tensor:
@@ -133,6 +168,26 @@ def _predicted_measurement(measurement: MeasurementModel, particles: Tensor) -> 
     if isinstance(measurement, LinearMeasurement):
         return particles @ measurement.H.mT
     return measurement(particles.movedim(-2, 0)).movedim(0, -2)
+
+
+def _sum_squares(x: Tensor) -> Tensor:
+    """``(x ** 2).sum(-1)``; for a short last axis as a chain of ``addcmul`` over its columns, which
+    on CPU is several times faster than a reduction over a tiny innermost axis."""
+    m = x.shape[-1]
+    if m > 8:
+        return x.square().sum(-1)
+    out = x[..., 0] * x[..., 0]
+    for j in range(1, m):  # over the measurement components (m <= 8), not over runs or particles
+        out = torch.addcmul(out, x[..., j], x[..., j])
+    return out
+
+
+def _whitening(cov: Tensor) -> tuple[Tensor, Tensor]:
+    """``(L^{-1}, log det cov)`` with ``L L^T = cov``. Shapes: ``(..., m, m)`` -> same, ``(...)``."""
+    chol = torch.linalg.cholesky(cov)
+    eye = torch.eye(cov.shape[-1], dtype=cov.dtype, device=cov.device)
+    inv = torch.linalg.solve_triangular(chol, eye.expand_as(chol), upper=False)
+    return inv, 2 * chol.diagonal(dim1=-2, dim2=-1).log().sum(-1)
 
 
 def gaussian_log_likelihood(resid: Tensor, cov: Tensor, observed: Tensor | None = None) -> Tensor:
@@ -146,36 +201,60 @@ def gaussian_log_likelihood(resid: Tensor, cov: Tensor, observed: Tensor | None 
         observed: ``(*B, m)`` bool or None -> ``(*B, Np)``
     """
     m = resid.shape[-1]
-    eye = torch.eye(m, dtype=resid.dtype, device=resid.device)
     if observed is None:
-        chol = torch.linalg.cholesky(cov)
+        inv, logdet = _whitening(cov)
         count = torch.tensor(float(m), dtype=resid.dtype, device=resid.device)
     else:
+        eye = torch.eye(m, dtype=resid.dtype, device=resid.device)
         resid = torch.where(observed.unsqueeze(-2), resid, torch.zeros((), dtype=resid.dtype, device=resid.device))
         pair = observed.unsqueeze(-1) & observed.unsqueeze(-2)
-        chol = torch.linalg.cholesky(torch.where(pair, cov, eye))
+        inv, logdet = _whitening(torch.where(pair, cov, eye))
         count = observed.sum(-1).to(resid.dtype).unsqueeze(-1)
-    inv = torch.linalg.solve_triangular(chol, eye.expand_as(chol), upper=False)
     white = resid @ inv.mT
-    logdet = 2 * chol.diagonal(dim1=-2, dim2=-1).log().sum(-1)
-    return -0.5 * (white.square().sum(-1) + logdet.unsqueeze(-1) + count * math.log(2 * math.pi))
+    return -0.5 * (_sum_squares(white) + logdet.unsqueeze(-1) + count * math.log(2 * math.pi))
 
 
 def _particle_log_likelihood(measurement: MeasurementModel, z: Tensor, particles: Tensor,
-                             state_dependent_noise: bool) -> tuple[Tensor, Tensor]:
-    """``log p(z | x)`` per particle and the predicted measurements.
+                             state_dependent_noise: bool, *,
+                             need_predicted: bool = True) -> tuple[Tensor, Tensor | None]:
+    """``log p(z | x)`` per particle and the predicted measurements (None unless ``need_predicted``
+    or needed anyway).
+
+    A linear measurement with unbatched ``H`` and ``R`` and no missing data is whitened before the
+    particles are touched: ``L^{-1}(z - H x) = L^{-1} z - (L^{-1} H) x``, one matmul over them.
 
     Shapes:
         z: ``(*B, m)`` (NaN = missing); particles ``(*B, Np, n)`` -> ``(*B, Np)``, ``(*B, Np, m)``
     """
+    missing = torch.isnan(z)
+    any_missing = bool(missing.any())
+    if (not need_predicted and not state_dependent_noise and not any_missing
+            and isinstance(measurement, LinearMeasurement) and measurement.H.dim() == 2):
+        cov = measurement.noise_cov()
+        if cov.dim() == 2:
+            inv, logdet = _whitening(cov)
+            white = particles @ (inv @ measurement.H).mT  # (*B, Np, m)
+            white = _add(white, -(z @ inv.mT).unsqueeze(-2))
+            m = z.shape[-1]
+            const = logdet + m * math.log(2 * math.pi)
+            return _sum_squares(white).add_(const).mul_(-0.5), None
     predicted = _predicted_measurement(measurement, particles)
     if state_dependent_noise:
         loglik = measurement.log_likelihood(z.unsqueeze(0), particles.movedim(-2, 0)).movedim(0, -1)
         return loglik, predicted
-    missing = torch.isnan(z)
-    observed = None if not bool(missing.any()) else ~missing
+    observed = None if not any_missing else ~missing
     resid = z.unsqueeze(-2) - predicted
     return gaussian_log_likelihood(resid, measurement.noise_cov(), observed), predicted
+
+
+def _check_noise_dtype(noise_dtype):
+    if noise_dtype is None:
+        return None
+    if isinstance(noise_dtype, str):
+        noise_dtype = getattr(torch, noise_dtype, None)
+    if not isinstance(noise_dtype, torch.dtype) or not noise_dtype.is_floating_point:
+        raise ValueError(f"noise_dtype: expected a floating-point torch dtype (e.g. torch.float32), got {noise_dtype!r}")
+    return noise_dtype
 
 
 def _guard(log_evidence: Tensor, where: str) -> Tensor:
@@ -214,6 +293,8 @@ class ParticleFilter(Filter):
         generator: the random stream (``torch.Generator`` on the belief's device).
         state_dependent_noise: use the measurement model's own ``log_likelihood`` per particle
             (noise depending on the state); default: ``R = measurement.noise_cov()`` shared.
+        noise_dtype: dtype of the process-noise normals (``torch.float32``: ~4x faster draws on
+            CPU, see :func:`standard_normal`); default the particles' dtype.
 
     Shapes:
         belief: :class:`ParticleBelief`, particles ``(*B, Np, n)``, log_weights ``(*B, Np)``;
@@ -233,7 +314,8 @@ class ParticleFilter(Filter):
 
     def __init__(self, motion: MotionModel, measurement: MeasurementModel, *, resampling: str = "systematic",
                  ess_threshold: float = 0.5, num_particles: int | None = None,
-                 generator: torch.Generator | None = None, state_dependent_noise: bool = False):
+                 generator: torch.Generator | None = None, state_dependent_noise: bool = False,
+                 noise_dtype: torch.dtype | None = None):
         super().__init__()
         check_model_pair(motion, measurement)
         if resampling not in RESAMPLING_SCHEMES:
@@ -247,6 +329,7 @@ class ParticleFilter(Filter):
         self.num_particles = None if num_particles is None else int(num_particles)
         self.generator = generator
         self.state_dependent_noise = bool(state_dependent_noise)
+        self.noise_dtype = _check_noise_dtype(noise_dtype)
 
     def initial_belief(self, belief: GaussianBelief, num_particles: int | None = None) -> ParticleBelief:
         """Sample a particle belief from a Gaussian prior (uniform weights).
@@ -267,7 +350,8 @@ class ParticleFilter(Filter):
         if self.num_particles is not None and belief.num_particles != self.num_particles:
             indices = resample(belief.log_weights, self.resampling, self.num_particles, generator=self.generator)
             belief = apply_indices(belief, indices)
-        particles = propagate_particles(self.motion, belief.particles, u=u, generator=self.generator)
+        particles = propagate_particles(self.motion, belief.particles, u=u, generator=self.generator,
+                                        noise_dtype=self.noise_dtype)
         log_w = belief.log_weights.expand(particles.shape[:-1])
         return ParticleBelief(particles, log_w)
 
@@ -317,6 +401,22 @@ def _stratified_points(shape, scheme: str, like: Tensor, generator) -> Tensor:
     return (offsets + u) / n
 
 
+def _systematic_search(cdf: Tensor, u0: Tensor, num: int) -> Tensor:
+    """``searchsorted(cdf, (arange(num) + u0) / num, right=True)`` by counting, ``O(K + num)``.
+
+    The systematic points form a regular grid, so the number of CDF entries ``<= (q + u0) / num``
+    is the number of entries whose grid position ``ceil(num * c - u0)`` is at most ``q``: one
+    scatter-add of the ``K`` positions and a cumulative sum replace ``num`` binary searches.
+
+    Shapes:
+        cdf: ``(*B, K)`` non-decreasing, last entry 1; u0: ``(*B, 1)`` in ``[0, 1)`` -> ``(*B, num)``
+    """
+    pos = torch.ceil(cdf * num - u0).clamp_(0, num).long()
+    counts = torch.zeros((*cdf.shape[:-1], num + 1), dtype=torch.int64, device=cdf.device)
+    counts.scatter_add_(-1, pos, torch.ones_like(pos))
+    return torch.cumsum(counts[..., :num], dim=-1).clamp_max_(cdf.shape[-1] - 1)
+
+
 def mixing_indices(mode_log_probs: Tensor, log_transition: Tensor, within_log_weights: Tensor,
                    num_particles: int, scheme: str = "systematic", *,
                    generator: torch.Generator | None = None) -> tuple[Tensor, Tensor]:
@@ -325,7 +425,10 @@ def mixing_indices(mode_log_probs: Tensor, log_transition: Tensor, within_log_we
     For every target model ``i``, ``Np`` ancestors ``(a, b)`` (model ``a``, particle ``b``) are drawn
     from ``p(a, b | i) = mu_a pi_ai w_{b|a} / c_i`` by one inverse-CDF pass over the product
     distribution (lexicographic in ``(a, b)``), with the points ``u`` of ``scheme`` (multinomial,
-    stratified or systematic). Computed in float64 whatever the input dtype.
+    stratified or systematic): the ancestor model ``a`` is the segment of the model CDF that holds
+    ``u`` (for systematic points found by counting, see :func:`_systematic_search`), and the
+    particle is found by searching ``a + (u - C_{a-1}) / mu_{a|i}`` in the within-model CDFs laid
+    end to end (row ``a`` shifted to ``(a, a + 1]``). Computed in float64 whatever the input dtype.
 
     Returns:
         ``(indices, log_cbar)``: flat indices ``a * Np_prev + b`` ``(*B, M, Np)`` and the predicted
@@ -342,19 +445,30 @@ def mixing_indices(mode_log_probs: Tensor, log_transition: Tensor, within_log_we
     mixing = normalize_log_probs(joint.mT, dim=-1).exp()  # (*B, i, a): mu_{a|i}
     cdf_models = _forced_cdf(mixing)
     batch, num_models = mixing.shape[:-2], mixing.shape[-1]
-    u = _stratified_points((*batch, num_models, num_particles), scheme, cdf_models, generator)
-    ancestor = torch.searchsorted(cdf_models, u, right=True).clamp_max(num_models - 1)  # (*B, i, Np)
+    shape = (*batch, num_models, num_particles)
+    if scheme == "systematic":
+        u0 = torch.rand((*shape[:-1], 1), dtype=torch.float64, device=cdf_models.device, generator=generator)
+        u = (torch.arange(num_particles, dtype=torch.float64, device=u0.device) + u0) / num_particles
+        ancestor = _systematic_search(cdf_models, u0, num_particles)  # (*B, i, Np)
+    else:
+        u = _stratified_points(shape, scheme, cdf_models, generator)
+        ancestor = torch.searchsorted(cdf_models, u, right=True).clamp_max(num_models - 1)
     low = torch.cat([torch.zeros_like(cdf_models[..., :1]), cdf_models[..., :-1]], dim=-1)
     lo, hi = torch.gather(low, -1, ancestor), torch.gather(cdf_models, -1, ancestor)
     eps = torch.finfo(torch.float64).eps
-    inner = ((u - lo) / (hi - lo).clamp_min(torch.finfo(torch.float64).tiny)).clamp(0.0, 1.0 - eps)
-    within = normalize_log_probs(within_log_weights.double()).exp()
-    offsets = torch.arange(num_models, dtype=torch.float64, device=within.device).unsqueeze(-1)
-    cdf_within = (_forced_cdf(within) + offsets).flatten(-2)  # (*B, M * Np_prev), row a in (a, a+1]
-    cdf_within = cdf_within.expand(*batch, cdf_within.shape[-1]).contiguous()
-    values = (ancestor.double() + inner).flatten(-2)
-    flat = torch.searchsorted(cdf_within, values, right=True).clamp_max(cdf_within.shape[-1] - 1)
-    return flat.view(*batch, num_models, num_particles), log_cbar.to(mode_log_probs.dtype)
+    values = u.sub_(lo).div_((hi - lo).clamp_min_(torch.finfo(torch.float64).tiny)).clamp_(0.0, 1.0 - eps)
+    values = values.add_(ancestor).flatten(-2)  # a + inner, (*B, M * Np)
+    # within-model CDFs, row a shifted to (a, a + 1], laid end to end: (*B', M * Np_prev)
+    w = within_log_weights.double()
+    top = w.amax(-1, keepdim=True)
+    w = (w - torch.where(torch.isfinite(top), top, torch.zeros_like(top))).exp_()
+    cdf_within = torch.cumsum(w, dim=-1)
+    cdf_within.div_(cdf_within[..., -1:].clamp_min(torch.finfo(torch.float64).tiny))
+    cdf_within[..., -1] = 1.0
+    cdf_within.add_(torch.arange(num_models, dtype=torch.float64, device=w.device).unsqueeze(-1))
+    cdf_within = cdf_within.flatten(-2).expand(*batch, num_models * w.shape[-1]).contiguous()
+    flat = searchsorted_rows(cdf_within, values).clamp_max_(cdf_within.shape[-1] - 1)
+    return flat.view(shape), log_cbar.to(mode_log_probs.dtype)
 
 
 class MultipleModelParticleFilter(Filter):
@@ -377,6 +491,8 @@ class MultipleModelParticleFilter(Filter):
         generator: the random stream.
         innovation_stats: compute the step's innovation and its covariance (one extra pass over
             the particles); ``False`` returns None for both.
+        noise_dtype: dtype of the process-noise normals (``torch.float32``: ~4x faster draws on
+            CPU, see :func:`standard_normal`); default the particles' dtype.
 
     Shapes:
         belief: :class:`ModeBelief` with ``mode_log_probs (*B, M)`` and components
@@ -399,7 +515,7 @@ class MultipleModelParticleFilter(Filter):
 
     def __init__(self, motion: MotionModel, measurement: MeasurementModel, transition, num_particles: int, *,
                  mixing: str = "systematic", generator: torch.Generator | None = None,
-                 innovation_stats: bool = True):
+                 innovation_stats: bool = True, noise_dtype: torch.dtype | None = None):
         super().__init__()
         check_model_pair(motion, measurement)
         if mixing not in _INVERSE_CDF_SCHEMES:
@@ -412,6 +528,7 @@ class MultipleModelParticleFilter(Filter):
         self.num_particles = int(num_particles)
         self.mixing, self.generator = mixing, generator
         self.innovation_stats = bool(innovation_stats)
+        self.noise_dtype = _check_noise_dtype(noise_dtype)
         self._check_motion()
 
     def _check_motion(self) -> None:
@@ -443,7 +560,7 @@ class MultipleModelParticleFilter(Filter):
     def _propagate(self, particles: Tensor, *, u: Tensor | None, log_cbar: Tensor) -> Tensor:
         """Propagate each model's particles with its own model. ``(*B, M, Np, n)``."""
         return propagate_particles(self.motion, particles, u=None if u is None else u.unsqueeze(-2),
-                                   generator=self.generator)
+                                   generator=self.generator, noise_dtype=self.noise_dtype)
 
     def predict(self, belief: ModeBelief, *, u: Tensor | None = None) -> ModeBelief:
         comps = belief.components
@@ -468,7 +585,8 @@ class MultipleModelParticleFilter(Filter):
         unnormalised joint log-weights ``(*B, M, Np)`` and their per-model ``logsumexp`` ``(*B, M)``.
         """
         comps = prior.components
-        loglik, predicted = _particle_log_likelihood(self.measurement, z.unsqueeze(-2), comps.particles, False)
+        loglik, predicted = _particle_log_likelihood(self.measurement, z.unsqueeze(-2), comps.particles, False,
+                                                     need_predicted=self.innovation_stats)
         loglik = torch.where(torch.isnan(loglik), -math.inf, loglik)
         prior_within = normalize_log_probs(comps.log_weights)
         prior_mode = normalize_log_probs(prior.mode_log_probs)

@@ -24,6 +24,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -39,6 +40,7 @@ __all__ = [
     "resample",
     "resample_where_needed",
     "residual_resample",
+    "searchsorted_rows",
     "stratified_resample",
     "systematic_resample",
 ]
@@ -70,6 +72,46 @@ def _cdf(log_weights: Tensor) -> Tensor:
     return torch.cat([cdf[..., :-1], torch.ones_like(cdf[..., -1:])], dim=-1)
 
 
+def searchsorted_rows(sorted_seq: Tensor, values: Tensor) -> Tensor:
+    """``torch.searchsorted(sorted_seq, values, right=True)`` for equally batched rows.
+
+    On CPU (float inputs, finite) this runs NumPy's ``searchsorted`` once over all rows laid end to
+    end as integer keys ``row * stride + floor((x - lo) * 2^k)``, about twice as fast as torch's
+    kernel here (NumPy narrows the search for sorted queries). The keys are monotone in ``x``
+    (equal entries stay equal, so zero-weight particles are never selected); they resolve
+    differences down to ``2^-k`` of the data range, with ``k >= 40`` (typically ~50), else, and on
+    other devices, torch's kernel is used.
+
+    Shapes:
+        sorted_seq: ``(*B, K)`` non-decreasing rows; values: ``(*B, Q)`` -> ``(*B, Q)`` int64
+    """
+    if sorted_seq.shape[:-1] != values.shape[:-1]:
+        raise ValueError(f"values: batch {tuple(values.shape[:-1])} differs from sorted_seq {tuple(sorted_seq.shape[:-1])}")
+    K, Q = sorted_seq.shape[-1], values.shape[-1]
+    if (sorted_seq.device.type != "cpu" or not sorted_seq.is_floating_point() or sorted_seq.numel() == 0
+            or values.numel() == 0):
+        return torch.searchsorted(sorted_seq.contiguous(), values.contiguous(), right=True)
+    seq = sorted_seq.detach().reshape(-1, K).double()
+    val = values.detach().reshape(-1, Q).double()
+    lo = torch.minimum(seq[:, 0].min(), val.min())
+    hi = torch.maximum(seq[:, -1].max(), val.max())
+    span = float(hi - lo)
+    rows = seq.shape[0]
+    if not math.isfinite(span) or not math.isfinite(float(lo)):
+        return torch.searchsorted(sorted_seq.contiguous(), values.contiguous(), right=True)
+    k = math.floor(62 - math.log2(rows) - math.log2(span + 1.0))
+    if k < 40:
+        return torch.searchsorted(sorted_seq.contiguous(), values.contiguous(), right=True)
+    scale = 2.0**min(k, 60)
+    stride = math.floor(span * scale) + 1
+    offset = torch.arange(rows, dtype=torch.int64).mul_(stride).unsqueeze(-1)
+    key_seq = (seq - lo).mul_(scale).floor_().long().add_(offset)
+    key_val = (val - lo).mul_(scale).floor_().long().add_(offset)
+    flat = np.searchsorted(key_seq.numpy().ravel(), key_val.numpy().ravel(), side="right")
+    index = torch.from_numpy(flat).view(rows, Q).sub_(torch.arange(rows, dtype=torch.int64).mul_(K).unsqueeze(-1))
+    return index.view(values.shape)
+
+
 def inverse_cdf(log_weights: Tensor, u: Tensor) -> Tensor:
     """Indices ``searchsorted(cdf, u, right=True)`` for points ``u`` in ``[0, 1)``.
 
@@ -80,7 +122,7 @@ def inverse_cdf(log_weights: Tensor, u: Tensor) -> Tensor:
     batch = torch.broadcast_shapes(cdf.shape[:-1], u.shape[:-1])
     cdf = cdf.expand(*batch, cdf.shape[-1]).contiguous()
     u = u.expand(*batch, u.shape[-1]).contiguous()
-    index = torch.searchsorted(cdf, u, right=True)
+    index = searchsorted_rows(cdf, u)
     return index.clamp_max(cdf.shape[-1] - 1)
 
 

@@ -43,7 +43,7 @@ from torch import Tensor
 from torchmm.beliefs import GaussianBelief, ModeBelief, register_belief, symmetrize
 from torchmm.beliefs.ops import normalize_log_probs
 from torchmm.filters.base import StepOutput
-from torchmm.filters.particle import MultipleModelParticleFilter
+from torchmm.filters.particle import MultipleModelParticleFilter, standard_normal
 from torchmm.models.base import MeasurementModel, MotionModel
 from torchmm.models.linear import LinearMotion
 from torchmm.validation import as_tensor
@@ -293,13 +293,29 @@ def challenge_match(scores: Tensor, num_winners: int, *, passes: int = 1,
     if pool_size > 0 and passes > 0:
         block = min(num_winners, pool_size)
         rounds = passes * math.ceil(pool_size / block)
+        # all rounds' rotations at once (the same stream as one draw per round)
+        shifts = torch.randint(0, num_winners, (rounds * Bf, 1), device=device, generator=generator).view(rounds, Bf, 1)
         ar = torch.arange(block, device=device)
+        if block == num_winners:  # (p - shift) mod N for every round at once, without a division
+            rotations = ar - shifts
+            rotations += num_winners * (rotations < 0)
         for r in range(rounds):
+            start = (r * block) % pool_size
+            if block == num_winners and start + block <= pool_size:
+                # holder p meets challenger (p - shift) mod N of this round's pool slice: the pairing
+                # of the paper's step c) written as one gather, the loser goes back to the slice
+                window = pool[:, start:start + block]
+                challengers = torch.gather(window, 1, rotations[r])
+                challenger_scores = torch.gather(flat, 1, challengers)
+                win = challenger_scores > held
+                window.copy_(torch.where(win, seq1, challengers))
+                seq1 = torch.where(win, challengers, seq1)
+                held = torch.where(win, challenger_scores, held)
+                continue
             slots = (r * block + ar) % pool_size
             challengers = pool[:, slots]
             challenger_scores = torch.gather(flat, 1, challengers)
-            shift = torch.randint(0, num_winners, (Bf, 1), device=device, generator=generator)
-            pos = (ar + shift) % num_winners
+            pos = (ar + shifts[r]) % num_winners
             holders = torch.gather(seq1, 1, pos)
             holder_scores = torch.gather(held, 1, pos)
             win = challenger_scores > holder_scores
@@ -432,8 +448,8 @@ class MinimumEntropyVSMM(MultipleModelParticleFilter):
     ``estimate()`` is (31).
 
     Args:
-        motion, measurement, transition, num_particles, mixing, generator: as
-            :class:`~torchmm.filters.particle.MultipleModelParticleFilter`.
+        motion, measurement, transition, num_particles, mixing, generator, innovation_stats,
+            noise_dtype: as :class:`~torchmm.filters.particle.MultipleModelParticleFilter`.
         selection: the model-set policy (callable ``(log_weights (*B, M, Np), generator) ->
             (active (*B, M), info)``).
         feedback: ``True`` (the paper's (27)/(33): the next step starts from the selected set
@@ -458,9 +474,10 @@ class MinimumEntropyVSMM(MultipleModelParticleFilter):
 
     def __init__(self, motion: MotionModel, measurement: MeasurementModel, transition, num_particles: int, *,
                  selection, feedback: bool = True, mixing: str = "systematic",
-                 generator: torch.Generator | None = None, innovation_stats: bool = True):
+                 generator: torch.Generator | None = None, innovation_stats: bool = True,
+                 noise_dtype: torch.dtype | None = None):
         super().__init__(motion, measurement, transition, num_particles, mixing=mixing, generator=generator,
-                         innovation_stats=innovation_stats)
+                         innovation_stats=innovation_stats, noise_dtype=noise_dtype)
         if not callable(selection):
             raise ValueError("selection: expected a callable policy (ExactMinimumEntropy, ChallengeMatch)")
         self.selection, self.feedback = selection, bool(feedback)
@@ -507,6 +524,8 @@ class EqMAParticleFilter(MultipleModelParticleFilter):
         measurement: the measurement model.
         num_particles: ``Np`` per model.
         transition: ``(N+1, N+1)``; default :func:`uniform_transition` with ``stay``.
+        mixing, generator, innovation_stats, noise_dtype: as
+            :class:`~torchmm.filters.particle.MultipleModelParticleFilter`.
 
     Shapes:
         as :class:`~torchmm.filters.particle.MultipleModelParticleFilter` with ``M = N + 1``;
@@ -515,7 +534,8 @@ class EqMAParticleFilter(MultipleModelParticleFilter):
 
     def __init__(self, F, gain, accelerations, accel_noise_cov, measurement: MeasurementModel, num_particles: int, *,
                  transition=None, stay: float = 0.9, mixing: str = "systematic",
-                 generator: torch.Generator | None = None, innovation_stats: bool = True):
+                 generator: torch.Generator | None = None, innovation_stats: bool = True,
+                 noise_dtype: torch.dtype | None = None):
         F = as_tensor(F, "F")
         gain = as_tensor(gain, "gain", dtype=F.dtype, device=F.device)
         acc = as_tensor(accelerations, "accelerations", dtype=F.dtype, device=F.device)
@@ -528,7 +548,7 @@ class EqMAParticleFilter(MultipleModelParticleFilter):
             transition = uniform_transition(num_fixed + 1, stay, dtype=F.dtype, device=F.device)
         self._num_fixed = num_fixed
         super().__init__(motion, measurement, transition, num_particles, mixing=mixing, generator=generator,
-                         innovation_stats=innovation_stats)
+                         innovation_stats=innovation_stats, noise_dtype=noise_dtype)
         if self.num_modes != num_fixed + 1:
             raise ValueError(f"transition: expected {num_fixed + 1} models (N + 1), got {self.num_modes}")
         self.register_buffer("accelerations", acc)
@@ -559,8 +579,8 @@ class EqMAParticleFilter(MultipleModelParticleFilter):
         acc = torch.cat([self.accelerations.expand(*batch, *self.accelerations.shape), mean.unsqueeze(-2)], -2)
         qa = self.accel_noise_cov.expand(*batch, self._num_fixed, *self.accel_noise_cov.shape)
         factor = torch.linalg.cholesky(torch.cat([qa, cov.unsqueeze(-3)], -3))  # (*B, N+1, d, d)
-        eps = torch.randn(*particles.shape[:-1], G.shape[-1], dtype=particles.dtype, device=particles.device,
-                          generator=self.generator)
+        eps = standard_normal((*particles.shape[:-1], G.shape[-1]), particles, generator=self.generator,
+                              noise_dtype=self.noise_dtype)
         accel = acc.unsqueeze(-2) + eps @ factor.mT  # (*B, N+1, Np, d)
         return particles @ F.mT + accel @ G.mT
 
