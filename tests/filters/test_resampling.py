@@ -134,3 +134,36 @@ def test_float32_runs(generator):
     for scheme in SCHEMES:
         idx = resample(log_w, scheme, generator=generator)
         assert int(idx.max()) < 100
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_searchsorted_rows_equals_torch_searchsorted(threads):
+    from torchmm.filters.resampling import searchsorted_rows
+
+    g = torch.Generator().manual_seed(0)
+    w = torch.rand(3, 4, 5000, generator=g, dtype=torch.float64) ** 6
+    w[..., ::7] = 0.0  # zero-weight particles: runs of equal CDF entries
+    cdf = torch.cumsum(w, -1)
+    cdf = cdf / cdf[..., -1:]
+    cdf[..., -1] = 1.0
+    u = torch.rand(3, 4, 12000, generator=g, dtype=torch.float64)  # > 2^17 queries: the threaded path
+    u[..., :10] = cdf[..., 100:110]  # queries exactly on CDF entries
+    previous = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        got = searchsorted_rows(cdf, u)
+    finally:
+        torch.set_num_threads(previous)
+    assert got.shape == u.shape and got.dtype == torch.int64
+    assert torch.equal(got, torch.searchsorted(cdf, u, right=True))
+    # never a zero-weight particle
+    chosen = torch.gather(w, -1, got.clamp_max(4999))
+    assert bool((chosen > 0).all())
+    # float32 rows, and the torch fallback for non-finite data, agree as well
+    assert torch.equal(searchsorted_rows(cdf.float(), u.float()),
+                       torch.searchsorted(cdf.float(), u.float(), right=True))
+    bad = u.clone()
+    bad[0, 0, 0] = float("inf")
+    assert torch.equal(searchsorted_rows(cdf, bad), torch.searchsorted(cdf, bad, right=True))
+    with pytest.raises(ValueError, match="values"):
+        searchsorted_rows(cdf, u[:2])

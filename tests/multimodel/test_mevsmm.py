@@ -145,6 +145,42 @@ def test_challenge_match_with_enough_passes_equals_topk():
         challenge_match(scores, 0)
 
 
+def _sequential_challenge_match(scores, num_winners, passes, generator):
+    """The tournament of section 3.4.3 written literally: run by run, round by round, match by match."""
+    from torchmm.multimodel.mevsmm import _random_affine_permutation
+
+    B, P = scores.shape
+    N = num_winners
+    order = _random_affine_permutation(B, P, "cpu", generator).numpy()
+    pool_size = P - N
+    rounds = math.ceil(pool_size / N)
+    shifts = torch.randint(0, N, (passes * rounds * B, 1), generator=generator).view(passes, rounds, B).numpy()
+    s = scores.numpy()
+    out = []
+    for b in range(B):
+        seq1, pool = list(order[b, :N]), list(order[b, N:])
+        for p in range(passes):
+            for r in range(rounds):
+                for k in range(N):
+                    slot = r * N + k
+                    if slot >= pool_size:  # the padded end of the last window: nobody challenges
+                        continue
+                    pos = (k + shifts[p, r, b]) % N
+                    if s[b, pool[slot]] > s[b, seq1[pos]]:
+                        seq1[pos], pool[slot] = pool[slot], seq1[pos]
+        out.append(seq1)
+    return torch.tensor(np.array(out))
+
+
+@pytest.mark.parametrize(("P", "N", "passes"), [(400, 20, 1), (400, 20, 3), (130, 20, 2), (25, 20, 2), (60, 7, 4)])
+def test_challenge_match_equals_the_literal_round_by_round_tournament(P, N, passes):
+    # ties included: rounded scores make equal weights common, and strict ">" decides them
+    scores = torch.randn(5, P, generator=torch.Generator().manual_seed(P + N)).mul(2).round()
+    fast = challenge_match(scores, N, passes=passes, generator=torch.Generator().manual_seed(7))
+    slow = _sequential_challenge_match(scores, N, passes, torch.Generator().manual_seed(7))
+    assert torch.equal(fast, slow)
+
+
 def test_challenge_match_policy_counts_and_fallback():
     M, Np = 4, 50
     lw = torch.full((2, M, Np), -10.0)

@@ -72,6 +72,29 @@ def _cdf(log_weights: Tensor) -> Tensor:
     return torch.cat([cdf[..., :-1], torch.ones_like(cdf[..., -1:])], dim=-1)
 
 
+_POOL: list = []
+
+
+def _np_searchsorted(keys: np.ndarray, queries: np.ndarray) -> np.ndarray:
+    """``np.searchsorted(keys, queries, side="right")``, the queries split over torch's intra-op
+    thread count (NumPy releases the GIL while searching)."""
+    threads = torch.get_num_threads()
+    if threads <= 1 or queries.size < 1 << 17:
+        return np.searchsorted(keys, queries, side="right")
+    if not _POOL or _POOL[0]._max_workers != threads:
+        from concurrent.futures import ThreadPoolExecutor
+
+        _POOL[:] = [ThreadPoolExecutor(threads, thread_name_prefix="torchmm-search")]
+    out = np.empty(queries.shape, dtype=np.intp)
+    bounds = np.linspace(0, queries.size, threads + 1).astype(int)
+
+    def work(j):
+        out[bounds[j]:bounds[j + 1]] = np.searchsorted(keys, queries[bounds[j]:bounds[j + 1]], side="right")
+
+    list(_POOL[0].map(work, range(threads)))  # chunks of one flat search, not a loop over runs
+    return out
+
+
 def searchsorted_rows(sorted_seq: Tensor, values: Tensor) -> Tensor:
     """``torch.searchsorted(sorted_seq, values, right=True)`` for equally batched rows.
 
@@ -107,7 +130,7 @@ def searchsorted_rows(sorted_seq: Tensor, values: Tensor) -> Tensor:
     offset = torch.arange(rows, dtype=torch.int64).mul_(stride).unsqueeze(-1)
     key_seq = (seq - lo).mul_(scale).floor_().long().add_(offset)
     key_val = (val - lo).mul_(scale).floor_().long().add_(offset)
-    flat = np.searchsorted(key_seq.numpy().ravel(), key_val.numpy().ravel(), side="right")
+    flat = _np_searchsorted(key_seq.numpy().ravel(), key_val.numpy().ravel())
     index = torch.from_numpy(flat).view(rows, Q).sub_(torch.arange(rows, dtype=torch.int64).mul_(K).unsqueeze(-1))
     return index.view(values.shape)
 

@@ -267,7 +267,11 @@ def challenge_match(scores: Tensor, num_winners: int, *, passes: int = 1,
     remaining pool in a random order (a random affine permutation per run), form sequence 2; c) the two sequences are compared position
     by position (sequence 1 rotated by a random offset each round) and a heavier challenger takes
     the place of the holder, who goes back to the pool; d) b)-c) repeat until every pool position
-    has challenged ``passes`` times. Each round is a few tensor ops over all runs at once.
+    has challenged ``passes`` times (the last window padded with a particle that never wins).
+    Since a holder is only replaced by a strictly heavier challenger, the holder of position
+    ``p`` after a pass is the first maximum over it and its challengers, so a whole pass is a
+    handful of tensor ops over all runs and rounds at once (``max``; ``cummax`` to send the
+    losers back to the pool when another pass follows), equal to the round-by-round loop.
     The number of true top-``N`` particles held never decreases, and with enough passes the
     result equals ``topk`` (for distinct scores).
 
@@ -291,37 +295,47 @@ def challenge_match(scores: Tensor, num_winners: int, *, passes: int = 1,
     held = torch.gather(flat, 1, seq1)
     pool_size = P - num_winners
     if pool_size > 0 and passes > 0:
-        block = min(num_winners, pool_size)
-        rounds = passes * math.ceil(pool_size / block)
-        # all rounds' rotations at once (the same stream as one draw per round)
-        shifts = torch.randint(0, num_winners, (rounds * Bf, 1), device=device, generator=generator).view(rounds, Bf, 1)
-        ar = torch.arange(block, device=device)
-        if block == num_winners:  # (p - shift) mod N for every round at once, without a division
-            rotations = ar - shifts
-            rotations += num_winners * (rotations < 0)
-        for r in range(rounds):
-            start = (r * block) % pool_size
-            if block == num_winners and start + block <= pool_size:
-                # holder p meets challenger (p - shift) mod N of this round's pool slice: the pairing
-                # of the paper's step c) written as one gather, the loser goes back to the slice
-                window = pool[:, start:start + block]
-                challengers = torch.gather(window, 1, rotations[r])
-                challenger_scores = torch.gather(flat, 1, challengers)
-                win = challenger_scores > held
-                window.copy_(torch.where(win, seq1, challengers))
-                seq1 = torch.where(win, challengers, seq1)
-                held = torch.where(win, challenger_scores, held)
-                continue
-            slots = (r * block + ar) % pool_size
-            challengers = pool[:, slots]
-            challenger_scores = torch.gather(flat, 1, challengers)
-            pos = (ar + shifts[r]) % num_winners
-            holders = torch.gather(seq1, 1, pos)
-            holder_scores = torch.gather(held, 1, pos)
-            win = challenger_scores > holder_scores
-            seq1.scatter_(1, pos, torch.where(win, challengers, holders))
-            held.scatter_(1, pos, torch.where(win, challenger_scores, holder_scores))
-            pool[:, slots] = torch.where(win, holders, challengers)
+        N = num_winners
+        rounds = math.ceil(pool_size / N)
+        # every round's rotation at once (the same random stream as one draw per round)
+        shifts = torch.randint(0, N, (passes * rounds * Bf, 1), device=device, generator=generator)
+        shifts = shifts.view(passes, rounds, Bf, 1).transpose(1, 2)  # (passes, Bf, rounds, 1)
+        ar = torch.arange(N, device=device)
+        meet = ar - shifts  # holder p meets challenger (p - shift) mod N of the round's window
+        meet += N * (meet < 0)
+        # the pool as `rounds` windows of N, the last one padded with a dummy particle (index P,
+        # score -inf) that never wins; the dummy scores sit in an extra column of the score table
+        pad = rounds * N - pool_size
+        table = flat
+        if pad:
+            table = torch.cat([flat, torch.full((Bf, 1), -math.inf, dtype=flat.dtype, device=device)], 1)
+            dummy = torch.full((Bf, pad), P, dtype=pool.dtype, device=device)
+        for p in range(passes):  # over tournament passes (default 1), not over runs or particles
+            windows = (torch.cat([pool, dummy], 1) if pad else pool).view(Bf, rounds, N)
+            challengers = torch.gather(windows, 2, meet[p])  # (Bf, rounds, N), in meeting order
+            challenger_scores = torch.gather(table, 1, challengers.view(Bf, -1)).view(Bf, rounds, N)
+            # holder p after all rounds is the running maximum over its challengers, ties to the
+            # earlier one (a challenger replaces the holder only if strictly heavier)
+            if p == passes - 1:
+                top, arg = challenger_scores.max(1)  # first maximum among the challengers
+                win = top > held
+                held = torch.where(win, top, held)
+                seq1 = torch.where(win, torch.gather(challengers, 1, arg.unsqueeze(1)).squeeze(1), seq1)
+                break
+            cand = torch.cat([held.unsqueeze(1), challenger_scores], 1)  # (Bf, rounds + 1, N)
+            cand_index = torch.cat([seq1.unsqueeze(1), challengers], 1)
+            # losers go back to the pool slot of the challenger they met (for the next pass):
+            # the holder of round r is the candidate of the last strict improvement up to r
+            best, _ = torch.cummax(cand, 1)
+            win = challenger_scores > best[:, :-1]
+            steps = torch.arange(rounds + 1, device=device).view(1, -1, 1)
+            changed = torch.cat([torch.ones_like(win[:, :1]), win], 1)
+            last, _ = torch.cummax(torch.where(changed, steps, torch.zeros_like(steps)), 1)
+            holder = torch.gather(cand_index, 1, last)  # (Bf, rounds + 1, N)
+            losers = torch.where(win, holder[:, :-1], challengers)  # in meeting order
+            back = (ar + shifts[p]) % N  # challenger slot k met holder (k + shift) mod N
+            pool = torch.gather(losers, 2, back).reshape(Bf, -1)[:, :pool_size].contiguous()
+            held, seq1 = best[:, -1], holder[:, -1]
     return seq1.view(*batch, num_winners)
 
 
