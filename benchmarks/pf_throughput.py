@@ -35,6 +35,7 @@ from experiments.studies.mevsmm import MODELS, paper003_scenario
 from torchmm import LinearMotion
 from torchmm.filters.particle import noise_factor
 from torchmm.multimodel.mevsmm import ChallengeMatch, MinimumEntropyVSMM, _units, uniform_transition
+from torchmm.runtime import retain_freed_memory
 
 
 # ------------------------------------------------------------------------------------------------
@@ -201,7 +202,10 @@ def main(argv=None) -> None:
     parser.add_argument("--winners", type=int, default=420)
     parser.add_argument("--threshold", type=int, default=23)
     parser.add_argument("--bandwidth-mb", type=int, default=256, help="buffer size of the copy-bandwidth probe")
+    parser.add_argument("--no-retain", action="store_true",
+                        help="leave malloc as it is (default: torchmm.runtime.retain_freed_memory for both)")
     args = parser.parse_args(argv)
+    retained = False if args.no_retain else retain_freed_memory()
     torch.set_default_dtype(torch.float64)
     B, Np, M = args.runs, args.particles, len(MODELS)
     N = min(args.winners, M * Np - 1)
@@ -268,7 +272,8 @@ def main(argv=None) -> None:
     n = 4
     moved = 2 * B * M * Np * (n + 1) * 8
     bandwidth = copy_bandwidth(args.bandwidth_mb << 20)
-    print(f"runs={B} models={M} particles_per_model={Np} threads={torch.get_num_threads()}")
+    print(f"runs={B} models={M} particles_per_model={Np} threads={torch.get_num_threads()} "
+          f"retain_freed_memory={retained}")
     print(f"seconds_per_step torchmm={t_torch:.4f} numpy={t_numpy:.4f}")
     print(f"bytes_per_step={moved:.3e} achieved={moved / t_torch / 1e9:.3f} GB/s "
           f"copy_bandwidth={bandwidth / 1e9:.2f} GB/s (shared machine: timings are contended)")

@@ -18,6 +18,7 @@ from hydra.utils import get_method
 from omegaconf import DictConfig, OmegaConf
 
 from experiments.harness import Results, open_context
+from torchmm.runtime import retain_freed_memory
 
 log = logging.getLogger("torchmm.experiments")
 
@@ -36,6 +37,8 @@ def run_study(cfg: DictConfig, output_dir: Path) -> Results:
         if int(threads) < 1:
             raise ValueError(f"threads: expected a positive integer or null, got {threads}")
         torch.set_num_threads(int(threads))
+    if cfg.get("retain_freed_memory"):
+        retain_freed_memory()
     try:
         study(ctx)
         ctx.results.save()

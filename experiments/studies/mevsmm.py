@@ -120,10 +120,12 @@ def _build(name: str, kind: str, scenario: Paper003Scenario, opts, generator: to
     acc = torch.tensor(MODELS, dtype=dtype, device=device)
     qa = float(opts.accel_std) ** 2 * torch.eye(2, dtype=dtype, device=device)
     sensor, Np = scenario.measurement, int(opts.num_particles)
+    noise_dtype = opts.get("noise_dtype")  # e.g. "float32": faster process-noise draws
     if kind in ("eqma9", "eqma21"):
         grid = acc[EQMA9] if kind == "eqma9" else acc
         return EqMAParticleFilter(scenario.F, scenario.D, grid, qa, sensor, Np, stay=float(opts.stay_prob),
-                                  mixing=str(opts.mixing), generator=generator, innovation_stats=False)
+                                  mixing=str(opts.mixing), generator=generator, innovation_stats=False,
+                                  noise_dtype=noise_dtype)
     motion = LinearMotion(scenario.F, scenario.D @ qa @ scenario.D.mT, offset=acc @ scenario.D.mT)
     stay = opts.get("mevsmm_stay_prob")
     stay = 1.0 / len(MODELS) if stay is None else float(stay)  # null: uniform, the "maximum-likelihood" competition
@@ -139,7 +141,8 @@ def _build(name: str, kind: str, scenario: Paper003Scenario, opts, generator: to
                                    passes=int(opts.cm_passes))
         feedback = bool(opts.feedback) if kind != "nofeedback" else False
     return MinimumEntropyVSMM(motion, sensor, transition, Np, selection=selection, feedback=feedback,
-                              mixing=str(opts.mixing), generator=generator, innovation_stats=False)
+                              mixing=str(opts.mixing), generator=generator, innovation_stats=False,
+                              noise_dtype=noise_dtype)
 
 
 def _run(filt, scenario: Paper003Scenario, z: Tensor, hist_steps: set[int]) -> dict:

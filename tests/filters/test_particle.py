@@ -33,15 +33,18 @@ def _linear_data(steps: int, runs: int, seed: int = 0):
     return prior, sensor, simulate_measurements(sensor, truth.states, generator=g)
 
 
-def test_pf_matches_kalman_filter_within_monte_carlo_error():
+@pytest.mark.parametrize("noise_dtype", [None, "float32"])
+def test_pf_matches_kalman_filter_within_monte_carlo_error(noise_dtype):
     """64 independent PFs (2000 particles) on the same data: their average posterior mean is the
-    KF mean within 6 standard errors; the likelihood estimate is unbiased in linear space."""
+    KF mean within 6 standard errors; the likelihood estimate is unbiased in linear space. Also
+    with float32 process-noise draws (the particles stay float64)."""
     steps, reps = 10, 64
     prior, sensor, z = _linear_data(steps, 2)
     motion = ConstantVelocity(1, q=0.5)
     kf = run_filter(KalmanFilter(motion, sensor), prior.expand(2), z)
-    pf = ParticleFilter(motion, sensor, generator=torch.Generator().manual_seed(5))
+    pf = ParticleFilter(motion, sensor, generator=torch.Generator().manual_seed(5), noise_dtype=noise_dtype)
     traj = run_filter(pf, pf.initial_belief(prior.expand(reps, 2), 2000), z.unsqueeze(1).expand(steps, reps, 2, 1))
+    assert traj.belief.particles.dtype == torch.float64
     ek, ep = kf.estimate(), traj.estimate()
     se = ep.mean.std(1) / math.sqrt(reps)
     zscore = (ep.mean.mean(1) - ek.mean) / se
@@ -241,3 +244,85 @@ def test_singular_process_noise_gives_finite_gradients():
     torch.testing.assert_close(factor @ factor.T, Q, rtol=1e-10, atol=1e-12)
     (factor.square().sum()).backward()
     assert torch.isfinite(q.grad) and q.grad > 0
+
+
+def _reference_mixing(mode_lp, log_pi, within, Np, u0):
+    """The interaction of MultipleModelParticleFilter with plain searchsorted calls (no counting)."""
+    joint = mode_lp.unsqueeze(-1) + log_pi
+    mix = (joint.mT - torch.logsumexp(joint, -2).unsqueeze(-1)).exp()
+    cdf = torch.cumsum(mix, -1)
+    cdf = cdf / cdf[..., -1:]
+    cdf[..., -1] = 1.0
+    u = (torch.arange(Np, dtype=torch.float64) + u0) / Np
+    anc = torch.searchsorted(cdf, u, right=True).clamp_max(cdf.shape[-1] - 1)
+    low = torch.cat([torch.zeros_like(cdf[..., :1]), cdf[..., :-1]], -1)
+    lo, hi = torch.gather(low, -1, anc), torch.gather(cdf, -1, anc)
+    inner = ((u - lo) / (hi - lo)).clamp(0, 1 - 2.0**-52)
+    w = (within - torch.logsumexp(within, -1, keepdim=True)).exp()
+    cw = torch.cumsum(w, -1)
+    cw = cw / cw[..., -1:]
+    cw[..., -1] = 1.0
+    M = cdf.shape[-1]
+    cw = (cw + torch.arange(M, dtype=torch.float64).unsqueeze(-1)).flatten(-2)
+    flat = torch.searchsorted(cw, (anc + inner).flatten(-2), right=True).clamp_max(cw.shape[-1] - 1)
+    return flat.view(anc.shape)
+
+
+def test_systematic_mixing_by_counting_equals_plain_searchsorted():
+    g = torch.Generator().manual_seed(3)
+    B, M, Np = 7, 4, 300
+    mode_lp = torch.log_softmax(torch.randn(B, M, generator=g, dtype=torch.float64) * 2, -1)
+    mode_lp[0, 1] = -math.inf  # an inactive model
+    within = torch.randn(B, M, Np, generator=g, dtype=torch.float64) * 3
+    within[..., ::5] = -math.inf  # zero-weight particles are never drawn
+    log_pi = PI3.new_full((M, M), 0.1).fill_diagonal_(0.7).log()
+    state = g.get_state()
+    flat, _ = mixing_indices(mode_lp, log_pi, within, Np, "systematic", generator=g)
+    g.set_state(state)
+    u0 = torch.rand((B, M, 1), dtype=torch.float64, generator=g)
+    assert torch.equal(flat, _reference_mixing(mode_lp, log_pi, within, Np, u0))
+    assert bool(torch.isfinite(torch.gather(within.flatten(-2), -1, flat.flatten(-2))).all())
+
+
+def test_linear_fast_paths_equal_the_generic_formulas():
+    from torchmm.filters.particle import _particle_log_likelihood, propagate_particles
+    from torchmm.models import LinearMotion
+
+    g = torch.Generator().manual_seed(0)
+    cv = ConstantVelocity(2, q=0.3, acceleration=[[1.0, 0.0], [0.0, -1.0], [0.5, 0.5]])
+    motion = LinearMotion(cv.F, cv.Q, offset=cv.offset)  # offset per mode (3, 4)
+    x = torch.randn(5, 3, 40, 4, generator=g, dtype=torch.float64)
+    state = g.get_state()
+    out = propagate_particles(motion, x, generator=g)
+    g.set_state(state)
+    factor = noise_factor(motion.noise_cov())
+    eps = torch.randn(5, 3, 40, factor.shape[-1], generator=g, dtype=torch.float64)
+    expected = x @ motion.F.mT + motion.offset.unsqueeze(-2) + eps @ factor.mT
+    torch.testing.assert_close(out, expected, rtol=1e-12, atol=1e-12)
+    # float32 normals: the same draws as a float32 randn, cast
+    g.set_state(state)
+    out32 = propagate_particles(motion, x, generator=g, noise_dtype=torch.float32)
+    g.set_state(state)
+    eps32 = torch.randn(5, 3, 40, factor.shape[-1], generator=g, dtype=torch.float32).double()
+    assert out32.dtype == torch.float64
+    torch.testing.assert_close(out32, x @ motion.F.mT + motion.offset.unsqueeze(-2) + eps32 @ factor.mT,
+                               rtol=1e-12, atol=1e-12)
+    # whitened likelihood without predicted measurements == the generic residual form
+    sensor = PositionMeasurement(4, [0, 2], [[4.0, 1.0], [1.0, 9.0]])
+    z = torch.randn(5, 3, 2, generator=g, dtype=torch.float64)
+    fast, none = _particle_log_likelihood(sensor, z, x, False, need_predicted=False)
+    slow, predicted = _particle_log_likelihood(sensor, z, x, False)
+    assert none is None and predicted.shape == (5, 3, 40, 2)
+    torch.testing.assert_close(fast, slow, rtol=1e-12, atol=1e-10)
+
+
+def test_noise_dtype_must_be_a_float_dtype():
+    with pytest.raises(ValueError, match="noise_dtype"):
+        ParticleFilter(ConstantVelocity(1), PositionMeasurement(2, [0], 1.0), noise_dtype=torch.int32)
+
+
+def test_retain_freed_memory_is_idempotent():
+    from torchmm.runtime import retain_freed_memory
+
+    first = retain_freed_memory()
+    assert isinstance(first, bool) and retain_freed_memory() is first

@@ -455,15 +455,19 @@ def mixing_indices(mode_log_probs: Tensor, log_transition: Tensor, within_log_we
     else:
         u = _stratified_points(shape, scheme, cdf_models, generator)
         ancestor = torch.searchsorted(cdf_models, u, right=True).clamp_max(num_models - 1)
+    # position inside the ancestor's segment [C_{a-1}, C_a): per (run, i, a) tables, two gathers
     low = torch.cat([torch.zeros_like(cdf_models[..., :1]), cdf_models[..., :-1]], dim=-1)
-    lo, hi = torch.gather(low, -1, ancestor), torch.gather(cdf_models, -1, ancestor)
+    inv_width = (cdf_models - low).clamp_min_(torch.finfo(torch.float64).tiny).reciprocal_()
     eps = torch.finfo(torch.float64).eps
-    values = u.sub_(lo).div_((hi - lo).clamp_min_(torch.finfo(torch.float64).tiny)).clamp_(0.0, 1.0 - eps)
-    values = values.add_(ancestor).flatten(-2)  # a + inner, (*B, M * Np)
+    inner = u.sub_(torch.gather(low, -1, ancestor)).mul_(torch.gather(inv_width, -1, ancestor)).clamp_(0.0, 1.0 - eps)
+    values = inner.add_(ancestor).flatten(-2)  # a + inner, (*B, M * Np)
     # within-model CDFs, row a shifted to (a, a + 1], laid end to end: (*B', M * Np_prev)
     w = within_log_weights.double()
     top = w.amax(-1, keepdim=True)
-    w = (w - torch.where(torch.isfinite(top), top, torch.zeros_like(top))).exp_()
+    if bool(((top <= 0) & (top > -100)).all()):  # normalised-like: exp cannot overflow or all underflow
+        w = w.exp()
+    else:
+        w = (w - torch.where(torch.isfinite(top), top, torch.zeros_like(top))).exp_()
     cdf_within = torch.cumsum(w, dim=-1)
     cdf_within.div_(cdf_within[..., -1:].clamp_min(torch.finfo(torch.float64).tiny))
     cdf_within[..., -1] = 1.0

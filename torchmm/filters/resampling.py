@@ -116,11 +116,11 @@ def searchsorted_rows(sorted_seq: Tensor, values: Tensor) -> Tensor:
         return torch.searchsorted(sorted_seq.contiguous(), values.contiguous(), right=True)
     seq = sorted_seq.detach().reshape(-1, K).double()
     val = values.detach().reshape(-1, Q).double()
-    lo = torch.minimum(seq[:, 0].min(), val.min())
-    hi = torch.maximum(seq[:, -1].max(), val.max())
-    span = float(hi - lo)
+    lo = min(float(seq[:, 0].min()), float(val.min()), 0.0)  # 0 for CDFs: no shift needed
+    hi = max(float(seq[:, -1].max()), float(val.max()))
+    span = hi - lo
     rows = seq.shape[0]
-    if not math.isfinite(span) or not math.isfinite(float(lo)):
+    if not math.isfinite(span):
         return torch.searchsorted(sorted_seq.contiguous(), values.contiguous(), right=True)
     k = math.floor(62 - math.log2(rows) - math.log2(span + 1.0))
     if k < 40:
@@ -128,8 +128,12 @@ def searchsorted_rows(sorted_seq: Tensor, values: Tensor) -> Tensor:
     scale = 2.0**min(k, 60)
     stride = math.floor(span * scale) + 1
     offset = torch.arange(rows, dtype=torch.int64).mul_(stride).unsqueeze(-1)
-    key_seq = (seq - lo).mul_(scale).floor_().long().add_(offset)
-    key_val = (val - lo).mul_(scale).floor_().long().add_(offset)
+
+    def keys(x):  # x - lo >= 0, so the truncating cast is the floor
+        shifted = x * scale if lo == 0.0 else (x - lo).mul_(scale)
+        return shifted.long().add_(offset)
+
+    key_seq, key_val = keys(seq), keys(val)
     flat = _np_searchsorted(key_seq.numpy().ravel(), key_val.numpy().ravel())
     index = torch.from_numpy(flat).view(rows, Q).sub_(torch.arange(rows, dtype=torch.int64).mul_(K).unsqueeze(-1))
     return index.view(values.shape)
