@@ -450,7 +450,7 @@ def mixing_indices(mode_log_probs: Tensor, log_transition: Tensor, within_log_we
     shape = (*batch, num_models, num_particles)
     if scheme == "systematic":
         u0 = torch.rand((*shape[:-1], 1), dtype=torch.float64, device=cdf_models.device, generator=generator)
-        u = (torch.arange(num_particles, dtype=torch.float64, device=u0.device) + u0) / num_particles
+        u = torch.arange(num_particles, dtype=torch.float64, device=u0.device).add(u0).div_(num_particles)
         ancestor = _systematic_search(cdf_models, u0, num_particles)  # (*B, i, Np)
     else:
         u = _stratified_points(shape, scheme, cdf_models, generator)
@@ -595,7 +595,7 @@ class MultipleModelParticleFilter(Filter):
         comps = prior.components
         loglik, predicted = _particle_log_likelihood(self.measurement, z.unsqueeze(-2), comps.particles, False,
                                                      need_predicted=self.innovation_stats)
-        loglik = torch.nan_to_num(loglik, nan=-math.inf, posinf=math.inf, neginf=-math.inf)  # fresh: add_ below
+        loglik = torch.nan_to_num(loglik, nan=-math.inf, posinf=math.inf, neginf=-math.inf)  # fresh, for add_
         lw = comps.log_weights
         prior_mode = normalize_log_probs(prior.mode_log_probs)
         if lw.dim() > 0 and lw.stride(-1) == 0 and lw.shape[-1] > 0:

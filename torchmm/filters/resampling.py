@@ -116,8 +116,9 @@ def searchsorted_rows(sorted_seq: Tensor, values: Tensor) -> Tensor:
         return torch.searchsorted(sorted_seq.contiguous(), values.contiguous(), right=True)
     seq = sorted_seq.detach().reshape(-1, K).double()
     val = values.detach().reshape(-1, Q).double()
-    lo = min(float(seq[:, 0].min()), float(val.min()), 0.0)  # 0 for CDFs: no shift needed
-    hi = max(float(seq[:, -1].max()), float(val.max()))
+    vmin, vmax = torch.aminmax(val)
+    lo = min(float(seq[:, 0].min()), float(vmin), 0.0)  # 0 for CDFs: no shift needed
+    hi = max(float(seq[:, -1].max()), float(vmax))
     span = hi - lo
     rows = seq.shape[0]
     if not math.isfinite(span):
