@@ -24,7 +24,8 @@ FAST = {
     "gimmaf": ["gimmaf.steps=40", "gimmaf.table4.noises=[gaussian]"],
     "vbakf_huang": ["huang.steps=150"],
     "learn_dynamics": ["learn.scenario.steps=30", "learn.part_a.iterations=2", "learn.part_b.iterations=2"],
-    "mevsmm": ["mevsmm.num_particles=100", "mevsmm.num_winners=42", "mevsmm.threshold=3"],
+    "mevsmm": ["mevsmm.num_particles=100", "mevsmm.num_winners=42", "mevsmm.threshold=3",
+               "retain_freed_memory=false"],  # process-wide malloc setting: not inside the test session
 }
 TF_TABLES = {
     "table1": ["source_ratio", "estimator", "pos_rmse", "vel_rmse"],

@@ -323,7 +323,13 @@ def test_noise_dtype_must_be_a_float_dtype():
 
 
 def test_retain_freed_memory_is_idempotent():
-    from torchmm.runtime import retain_freed_memory
+    """In a child process: the setting is process-wide and must not leak into the test session."""
+    import subprocess
+    import sys
 
-    first = retain_freed_memory()
-    assert isinstance(first, bool) and retain_freed_memory() is first
+    code = ("from torchmm.runtime import retain_freed_memory as r; import torch; a = r(); b = r(); "
+            "x = torch.ones(1 << 23) * 2; print(a, b, float(x.sum()))")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=False)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    first, second, total = proc.stdout.split()
+    assert first == second and first in ("True", "False") and float(total) == 2.0 * (1 << 23)
