@@ -62,13 +62,14 @@ def _forced_cdf(p):
 class NumpyPFMEVSMM:
     """The same step, NumPy float64, batch axis first. ``randoms`` replays torchmm's draws."""
 
-    def __init__(self, F, offsets, factor, H, R, log_transition, num_winners, threshold):
+    def __init__(self, F, offsets, factor, H, R, log_transition, num_winners, threshold, mixing="two_stage"):
         self.F, self.offsets, self.factor = F, offsets, factor  # (n,n), (M,n), (n,r)
         self.Rinv_chol = np.linalg.inv(np.linalg.cholesky(R))
         self.white_H = self.Rinv_chol @ H
         self.logdet = 2 * np.log(np.diag(np.linalg.cholesky(R))).sum()
         self.log_transition = log_transition
         self.N, self.thre = num_winners, threshold
+        self.mixing = mixing
 
     def step(self, particles, within, mode_lp, active, z, rng=None, randoms=None):
         B, M, Np, n = particles.shape
@@ -92,11 +93,23 @@ class NumpyPFMEVSMM:
         hi = np.take_along_axis(cdf_m, anc, -1)
         inner = np.clip((u - lo) / np.maximum(hi - lo, np.finfo(float).tiny), 0, 1 - np.finfo(float).eps)
         w_within = np.exp(within - _logsumexp(within, -1)[..., None])
-        cdf_w = (_forced_cdf(w_within) + np.arange(M)[None, :, None]).reshape(B, M * Np)
-        values = (anc + inner).reshape(B, M * Np)
-        run = (M * np.arange(B, dtype=np.float64))[:, None]
-        flat = np.searchsorted((cdf_w + run).ravel(), (values + run).ravel(), side="right").reshape(B, M * Np)
-        flat = np.minimum(flat - (np.arange(B)[:, None] * M * Np), M * Np - 1)
+        if self.mixing == "two_stage":
+            # a systematic resample of every model's particles (by counting), then entry
+            # floor(Np * inner) of the ancestor's resample
+            v0 = randoms["v_mix"] if randoms is not None else rng.random((B, M, 1))
+            cw = _forced_cdf(w_within)
+            pos = np.clip(np.ceil(cw * Np - v0), 0, Np).astype(np.int64)
+            pos += (np.arange(B * M, dtype=np.int64) * (Np + 1)).reshape(B, M, 1)
+            counts = np.bincount(pos.ravel(), minlength=B * M * (Np + 1)).reshape(B, M, Np + 1)
+            resampled = np.minimum(np.cumsum(counts[..., :Np], -1), Np - 1).reshape(B, M * Np)
+            slot = np.minimum((inner * Np).astype(np.int64), Np - 1) + anc * Np
+            flat = (np.take_along_axis(resampled, slot.reshape(B, M * Np), 1) + (anc * Np).reshape(B, M * Np))
+        else:  # inverse CDF of the product distribution (float run offsets, one flat search)
+            cdf_w = (_forced_cdf(w_within) + np.arange(M)[None, :, None]).reshape(B, M * Np)
+            values = (anc + inner).reshape(B, M * Np)
+            run = (M * np.arange(B, dtype=np.float64))[:, None]
+            flat = np.searchsorted((cdf_w + run).ravel(), (values + run).ravel(), side="right").reshape(B, M * Np)
+            flat = np.minimum(flat - (np.arange(B)[:, None] * M * Np), M * Np - 1)
         src = particles.reshape(B, M * Np, n)
         x = np.take_along_axis(src, flat[..., None], 1).reshape(B, M, Np, n)
         # -- propagation
@@ -176,16 +189,17 @@ class NumpyPFMEVSMM:
 
 
 # ------------------------------------------------------------------------------------------------
-def _replay(gen: torch.Generator, B, M, Np, r, P, N):
+def _replay(gen: torch.Generator, B, M, Np, r, P, N, mixing):
     """The random numbers one torchmm PF-MEVSMM step draws, in its order, as NumPy arrays."""
     u_mix = torch.rand((B, M, 1), dtype=torch.float64, generator=gen)
+    v_mix = torch.rand((B, M, 1), dtype=torch.float64, generator=gen) if mixing == "two_stage" else None
     eps = torch.randn((B, M, Np, r), dtype=torch.float32, generator=gen)
     units = _units(P)
     pick = torch.randint(0, units.numel(), (B, 1), generator=gen)
     b0 = torch.randint(0, P, (B, 1), generator=gen)
     block = min(N, P - N)
     shifts = [torch.randint(0, N, (B, 1), generator=gen).numpy() for _ in range(math.ceil((P - N) / block))]
-    return {"u_mix": u_mix.numpy(), "eps": eps.numpy(), "cm_a": units[pick].numpy(), "cm_b": b0.numpy(),
+    return {"u_mix": u_mix.numpy(), "v_mix": None if v_mix is None else v_mix.numpy(), "eps": eps.numpy(), "cm_a": units[pick].numpy(), "cm_b": b0.numpy(),
             "cm_shift": shifts}
 
 
@@ -219,6 +233,8 @@ def main(argv=None) -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--winners", type=int, default=420)
     parser.add_argument("--threshold", type=int, default=23)
+    parser.add_argument("--mixing", default="two_stage", choices=["two_stage", "systematic"],
+                        help="interaction scheme (the mevsmm study's default: two_stage)")
     parser.add_argument("--bandwidth-mb", type=int, default=256, help="buffer size of the copy-bandwidth probe")
     parser.add_argument("--no-retain", action="store_true",
                         help="leave malloc as it is (default: torchmm.runtime.retain_freed_memory for both)")
@@ -235,11 +251,11 @@ def main(argv=None) -> None:
     transition = uniform_transition(M, 1.0 / M)
     gen = torch.Generator().manual_seed(1)
     filt = MinimumEntropyVSMM(motion, scen.measurement, transition, Np, selection=ChallengeMatch(N, args.threshold),
-                              generator=gen, innovation_stats=False, noise_dtype=torch.float32)
+                              generator=gen, innovation_stats=False, noise_dtype=torch.float32, mixing=args.mixing)
     factor = noise_factor(motion.noise_cov())
     ref = NumpyPFMEVSMM(scen.F.numpy(), motion.offset.numpy(), factor.numpy(), scen.measurement.H.numpy(),
                         scen.measurement.R.numpy(),
-                        transition.log().numpy(), N, args.threshold)
+                        transition.log().numpy(), N, args.threshold, mixing=args.mixing)
     # a start belief some steps into the scenario
     belief = filt.update(filt.initial_belief(scen.prior(B)), z[0]).belief
     for k in range(1, 4):
@@ -248,7 +264,7 @@ def main(argv=None) -> None:
     # 1. agreement on one step with replayed random numbers
     replay_gen = torch.Generator()
     replay_gen.set_state(gen.get_state())
-    randoms = _replay(replay_gen, B, M, Np, factor.shape[-1], M * Np, N)
+    randoms = _replay(replay_gen, B, M, Np, factor.shape[-1], M * Np, N, args.mixing)
     out = filt.step(belief, z[4])
     comps = belief.components
     x, within, carried, active, mean = ref.step(comps.particles.numpy(), comps.log_weights.numpy(),
@@ -291,21 +307,21 @@ def main(argv=None) -> None:
     moved = 2 * B * M * Np * (n + 1) * 8
     bandwidth = copy_bandwidth(args.bandwidth_mb << 20)
     print(f"runs={B} models={M} particles_per_model={Np} threads={torch.get_num_threads()} "
-          f"retain_freed_memory={retained}")
+          f"retain_freed_memory={retained} mixing={args.mixing}")
     print(f"seconds_per_step torchmm={t_torch:.4f} numpy={t_numpy:.4f}")
     print(f"bytes_per_step={moved:.3e} achieved={moved / t_torch / 1e9:.3f} GB/s "
           f"copy_bandwidth={bandwidth / 1e9:.2f} GB/s (shared machine: timings are contended)")
-    # the two parts no formulation of this step avoids: the process-noise normals (torch's CPU
-    # generator is serial) and one search per particle in the within-model CDFs (interaction)
+    # what no eager formulation of this step avoids: the process-noise normals (torch's CPU
+    # generator is serial) and, for the inverse-CDF interaction, one search per particle in the
+    # within-model CDFs (two_stage needs none)
     from torchmm.filters.resampling import searchsorted_rows
 
-    cdf = torch.cumsum(comps.log_weights.exp(), -1)
-    cdf = (cdf / cdf[..., -1:] + torch.arange(M, dtype=cdf.dtype).unsqueeze(-1)).flatten(-2).contiguous()
-    queries = torch.sort(torch.rand(B, M * Np, dtype=cdf.dtype) * M, -1).values
-    floor = {
-        "normals": _best(lambda: torch.randn(B, M, Np, factor.shape[-1], dtype=torch.float32, generator=gen)),
-        "search": _best(lambda: searchsorted_rows(cdf, queries)),
-    }
+    floor = {"normals": _best(lambda: torch.randn(B, M, Np, factor.shape[-1], dtype=torch.float32, generator=gen))}
+    if args.mixing == "systematic":
+        cdf = torch.cumsum(comps.log_weights.exp(), -1)
+        cdf = (cdf / cdf[..., -1:] + torch.arange(M, dtype=cdf.dtype).unsqueeze(-1)).flatten(-2).contiguous()
+        queries = torch.sort(torch.rand(B, M * Np, dtype=cdf.dtype) * M, -1).values
+        floor["search"] = _best(lambda: searchsorted_rows(cdf, queries))
     t_floor = sum(floor.values())
     print("unavoidable parts: " + " ".join(f"{k}={v:.4f}s" for k, v in floor.items())
           + f" -> at most {moved / t_floor / bandwidth:.3f} of the bandwidth bound with these kernels")

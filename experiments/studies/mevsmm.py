@@ -200,7 +200,8 @@ def run(ctx: StudyContext) -> None:
         f"{opts.num_particles} particles per model, N = {opts.num_winners}, Thre = {opts.threshold}, "
         f"filter acceleration noise std {opts.accel_std} m/s^2, EqMA p_ii = {opts.stay_prob}, "
         f"MEVSMM p_ii = {opts.get('mevsmm_stay_prob') or 'uniform 1/21'}, "
-        f"feedback = {opts.feedback}. Timings on {ctx.device} (shared machine: contended)."
+        f"feedback = {opts.feedback}, interaction `{opts.mixing}`, process-noise normals in "
+        f"{opts.get('noise_dtype') or cfg.dtype}. Timings on {ctx.device} (shared machine: contended)."
     )
     rmse = ctx.results.table("rmse", ["estimator", "pos_rmse", "vel_rmse", "maneuver_pos_rmse"],
                              note="maneuver_pos_rmse: time average over 81-120 s (deterministic scenarios).")

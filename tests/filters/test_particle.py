@@ -150,7 +150,7 @@ def test_mixing_indices_are_unbiased_and_respect_the_transition():
     M, Np, reps = 3, 6, 20_000
     mode_lp = torch.log(torch.tensor([0.5, 0.3, 0.2]))
     within = torch.log_softmax(torch.randn(M, Np, generator=g), -1)
-    for scheme in ("systematic", "stratified", "multinomial"):
+    for scheme in ("systematic", "stratified", "multinomial", "two_stage"):
         flat, log_cbar = mixing_indices(mode_lp.expand(reps, M), PI3.log(), within.expand(reps, M, Np), Np,
                                         scheme, generator=g)
         torch.testing.assert_close(log_cbar[0], torch.log(mode_lp.exp() @ PI3))
@@ -162,8 +162,10 @@ def test_mixing_indices_are_unbiased_and_respect_the_transition():
         big = expected.reshape(M, M * Np) > 0.05
         assert float(zs[big].abs().max()) < 5.0, scheme
     # identity transition: every model draws only from itself
-    flat, _ = mixing_indices(mode_lp.expand(4, M), torch.eye(M).log(), within.expand(4, M, Np), 50, generator=g)
-    assert torch.equal(torch.div(flat, Np, rounding_mode="floor"), torch.arange(M).view(1, M, 1).expand(4, M, 50))
+    for scheme in ("systematic", "two_stage"):
+        flat, _ = mixing_indices(mode_lp.expand(4, M), torch.eye(M).log(), within.expand(4, M, Np), 50, scheme,
+                                 generator=g)
+        assert torch.equal(torch.div(flat, Np, rounding_mode="floor"), torch.arange(M).view(1, M, 1).expand(4, M, 50))
 
 
 def test_multiple_model_pf_tracks_imm():

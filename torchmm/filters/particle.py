@@ -62,7 +62,7 @@ __all__ = [
 
 log = logging.getLogger("torchmm")
 
-_INVERSE_CDF_SCHEMES = ("multinomial", "stratified", "systematic")
+_INVERSE_CDF_SCHEMES = ("multinomial", "stratified", "systematic", "two_stage")
 
 
 def noise_factor(cov: Tensor, rtol: float = 1e-10) -> Tensor:
@@ -410,13 +410,17 @@ def _systematic_search(cdf: Tensor, u0: Tensor, num: int) -> Tensor:
     is the number of entries whose grid position ``ceil(num * c - u0)`` is at most ``q``: one
     scatter-add of the ``K`` positions and a cumulative sum replace ``num`` binary searches.
 
+    With ``c`` in ``[0, 1]`` the positions lie in ``[0, num]`` without clamping, and the last
+    entry (exactly 1) sits at ``num``, past every point, so the counts stay below ``K``.
+
     Shapes:
-        cdf: ``(*B, K)`` non-decreasing, last entry 1; u0: ``(*B, 1)`` in ``[0, 1)`` -> ``(*B, num)``
+        cdf: ``(*B, K)`` non-decreasing in ``[0, 1]``, last entry exactly 1; u0: ``(*B, 1)`` in
+        ``[0, 1)`` -> ``(*B, num)``
     """
-    pos = torch.ceil(cdf * num - u0).clamp_(0, num).long()
+    pos = (cdf * num).sub_(u0).ceil_().long()
     counts = torch.zeros((*cdf.shape[:-1], num + 1), dtype=torch.int64, device=cdf.device)
-    counts.scatter_add_(-1, pos, torch.ones_like(pos))
-    return torch.cumsum(counts[..., :num], dim=-1).clamp_max_(cdf.shape[-1] - 1)
+    counts.scatter_add_(-1, pos, torch.ones((), dtype=torch.int64, device=cdf.device).expand_as(pos))
+    return torch.cumsum(counts[..., :num], dim=-1)
 
 
 def mixing_indices(mode_log_probs: Tensor, log_transition: Tensor, within_log_weights: Tensor,
@@ -431,6 +435,15 @@ def mixing_indices(mode_log_probs: Tensor, log_transition: Tensor, within_log_we
     ``u`` (for systematic points found by counting, see :func:`_systematic_search`), and the
     particle is found by searching ``a + (u - C_{a-1}) / mu_{a|i}`` in the within-model CDFs laid
     end to end (row ``a`` shifted to ``(a, a + 1]``). Computed in float64 whatever the input dtype.
+
+    ``scheme="two_stage"`` takes the same systematic points over the ancestor models, but the
+    particle inside ancestor ``a`` is entry ``floor(Np_prev * inner)`` of one systematic resample of
+    ``a``'s particles (drawn per run and model, shared by all targets ``i``; ``inner`` is the
+    position of ``u`` inside ``a``'s segment): no search, ``O(1)`` per particle. It is unbiased,
+    ``E[count of (a, b) for target i] = Np mu_{a|i} w_{b|a}`` (the resample's offset is uniform
+    and independent of the cell ``floor(Np_prev * inner)``, whose expected number of hits is
+    ``mu_{a|i}``), and keeps the systematic schemes' low variance; draws of different targets from
+    the same ancestor share its resample.
 
     Returns:
         ``(indices, log_cbar)``: flat indices ``a * Np_prev + b`` ``(*B, M, Np)`` and the predicted
@@ -448,7 +461,7 @@ def mixing_indices(mode_log_probs: Tensor, log_transition: Tensor, within_log_we
     cdf_models = _forced_cdf(mixing)
     batch, num_models = mixing.shape[:-2], mixing.shape[-1]
     shape = (*batch, num_models, num_particles)
-    if scheme == "systematic":
+    if scheme in ("systematic", "two_stage"):
         u0 = torch.rand((*shape[:-1], 1), dtype=torch.float64, device=cdf_models.device, generator=generator)
         u = torch.arange(num_particles, dtype=torch.float64, device=u0.device).add(u0).div_(num_particles)
         ancestor = _systematic_search(cdf_models, u0, num_particles)  # (*B, i, Np)
@@ -460,8 +473,7 @@ def mixing_indices(mode_log_probs: Tensor, log_transition: Tensor, within_log_we
     inv_width = (cdf_models - low).clamp_min_(torch.finfo(torch.float64).tiny).reciprocal_()
     eps = torch.finfo(torch.float64).eps
     inner = u.sub_(torch.gather(low, -1, ancestor)).mul_(torch.gather(inv_width, -1, ancestor)).clamp_(0.0, 1.0 - eps)
-    values = inner.add_(ancestor).flatten(-2)  # a + inner, (*B, M * Np)
-    # within-model CDFs, row a shifted to (a, a + 1], laid end to end: (*B', M * Np_prev)
+    # within-model CDFs (*B', M, Np_prev), last entry exactly 1
     w = within_log_weights.double()
     top = w.amax(-1, keepdim=True)
     if bool(((top <= 0) & (top > -100)).all()):  # normalised-like: exp cannot overflow or all underflow
@@ -471,6 +483,18 @@ def mixing_indices(mode_log_probs: Tensor, log_transition: Tensor, within_log_we
     cdf_within = torch.cumsum(w, dim=-1)
     cdf_within.div_(cdf_within[..., -1:].clamp_min(torch.finfo(torch.float64).tiny))
     cdf_within[..., -1] = 1.0
+    num_prev = w.shape[-1]
+    if scheme == "two_stage":
+        # a systematic resample of every model's particles (one per run and model, by counting),
+        # then the particle at index floor(Np_prev * inner) of the ancestor's resample: no search
+        v0 = torch.rand((*batch, num_models, 1), dtype=torch.float64, device=w.device, generator=generator)
+        resampled = _systematic_search(cdf_within.expand(*batch, num_models, num_prev), v0, num_prev)
+        base = ancestor.mul_(num_prev)  # a * Np_prev (ancestor is not used afterwards)
+        slot = inner.mul_(num_prev).long().add_(base)  # inner <= 1 - eps: floor < Np_prev
+        particle = torch.gather(resampled.flatten(-2), -1, slot.flatten(-2)).view(shape)
+        return particle.add_(base), log_cbar.to(mode_log_probs.dtype)
+    values = inner.add_(ancestor).flatten(-2)  # a + inner, (*B, M * Np)
+    # rows shifted to (a, a + 1] and laid end to end: (*B', M * Np_prev)
     cdf_within.add_(torch.arange(num_models, dtype=torch.float64, device=w.device).unsqueeze(-1))
     cdf_within = cdf_within.flatten(-2).expand(*batch, num_models * w.shape[-1]).contiguous()
     flat = searchsorted_rows(cdf_within, values).clamp_max_(cdf_within.shape[-1] - 1)
@@ -492,8 +516,10 @@ class MultipleModelParticleFilter(Filter):
         measurement: the measurement model (shared by all modes).
         transition: ``(M, M)`` row-stochastic matrix or :class:`~torchmm.multimodel.ModeTransition`.
         num_particles: ``Np`` per model.
-        mixing: inverse-CDF scheme of the interaction (``"systematic"``, ``"stratified"``,
-            ``"multinomial"``).
+        mixing: scheme of the interaction (``"systematic"``, ``"stratified"``, ``"multinomial"``:
+            inverse CDF of the product distribution; ``"two_stage"``: systematic over the
+            ancestor models, then a per-model systematic resample, no search; see
+            :func:`mixing_indices`).
         generator: the random stream.
         innovation_stats: compute the step's innovation and its covariance (one extra pass over
             the particles); ``False`` returns None for both.
