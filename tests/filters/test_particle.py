@@ -285,6 +285,22 @@ def test_systematic_mixing_by_counting_equals_plain_searchsorted():
     u0 = torch.rand((B, M, 1), dtype=torch.float64, generator=g)
     assert torch.equal(flat, _reference_mixing(mode_lp, log_pi, within, Np, u0))
     assert bool(torch.isfinite(torch.gather(within.flatten(-2), -1, flat.flatten(-2))).all())
+    # two_stage: the same ancestor models (same points), never a zero-weight particle, and each
+    # (run, model a) contributes particles of its own systematic resample only
+    g.set_state(state)
+    two, _ = mixing_indices(mode_lp, log_pi, within, Np, "two_stage", generator=g)
+    assert torch.equal(torch.div(two, Np, rounding_mode="floor"), torch.div(flat, Np, rounding_mode="floor"))
+    assert bool(torch.isfinite(torch.gather(within.flatten(-2), -1, two.flatten(-2))).all())
+    g.set_state(state)
+    torch.rand((B, M, 1), dtype=torch.float64, generator=g)  # u0
+    v0 = torch.rand((B, M, 1), dtype=torch.float64, generator=g)
+    w = within.exp()
+    cdf = torch.cumsum(w, -1) / w.sum(-1, keepdim=True)
+    cdf[..., -1] = 1.0
+    resample = torch.searchsorted(cdf, (torch.arange(Np, dtype=torch.float64) + v0) / Np, right=True)
+    allowed = torch.zeros(B, M * Np, dtype=torch.bool)
+    allowed.scatter_(1, (resample + Np * torch.arange(M).view(1, M, 1)).flatten(-2), True)
+    assert bool(torch.gather(allowed, 1, two.flatten(-2)).all())
 
 
 def test_linear_fast_paths_equal_the_generic_formulas():
