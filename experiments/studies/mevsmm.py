@@ -253,11 +253,12 @@ def run(ctx: StudyContext) -> None:
             }
 
         res = ctx.unit(f"{scenario.name}/{name}", compute)
-        pos, vel = torch.tensor(res["pos"]), torch.tensor(res["vel"])
+        # checkpointed lists of floats: keep float64 (torch.tensor would default to float32)
+        pos, vel = torch.tensor(res["pos"], dtype=torch.float64), torch.tensor(res["vel"], dtype=torch.float64)
         maneuver = pos[80:120].mean().item() if deterministic and scenario.steps >= 120 else None
         label = name if res["runs"] == runs else f"{name} ({res['runs']} runs)"
         rmse.rows.append([label, pos.mean().item(), vel.mean().item(), maneuver])
-        avg_count = float(torch.tensor(res["count"]).mean())
+        avg_count = float(torch.tensor(res["count"], dtype=torch.float64).mean())
         table1.rows.append([label, avg_count])
         if base_time is None and kind == "eqma9":
             base_time = res["seconds_per_step"]
@@ -267,7 +268,7 @@ def run(ctx: StudyContext) -> None:
                            ("avg_model_count", avg_count)):
             ctx.results.metric(name, key, value)
         curves[label] = pos
-        count_curves[label] = torch.tensor(res["count"])
+        count_curves[label] = torch.tensor(res["count"], dtype=torch.float64)
         if res["members"] is not None:
             memberships[label] = torch.tensor(res["members"])
         ctx.logger.series(f"pos_rmse/{name}", pos)
