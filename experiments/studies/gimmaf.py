@@ -223,7 +223,7 @@ def run(ctx: StudyContext) -> None:
     curves = {"position RMSE": {}, "velocity RMSE": {}}
     sr_curves = {"SRNFN of P_k|k-1": {}, "SRNFN of R": {}}
     for name, e in main.items():
-        pos, vel = torch.tensor(e["pos"]), torch.tensor(e["vel"])
+        pos, vel = torch.tensor(e["pos"], dtype=torch.float64), torch.tensor(e["vel"], dtype=torch.float64)
         t2.rows.append([name, pos.mean().item(), vel.mean().item(), e["finite"]])
         if "seconds_per_step" in e:
             ctx.results.timing[name] = e["seconds_per_step"]
@@ -233,7 +233,7 @@ def run(ctx: StudyContext) -> None:
         ctx.logger.series(f"pos_rmse/{name}", pos)
         ctx.logger.series(f"vel_rmse/{name}", vel)
         if "srnfn_P" in e:
-            sp, sr = torch.tensor(e["srnfn_P"]), torch.tensor(e["srnfn_R"])
+            sp, sr = torch.tensor(e["srnfn_P"], dtype=torch.float64), torch.tensor(e["srnfn_R"], dtype=torch.float64)
             srnfn.rows.append([name, sp.mean().item(), sr.mean().item()])
             sr_curves["SRNFN of P_k|k-1"][name], sr_curves["SRNFN of R"][name] = sp, sr
             ctx.logger.series(f"srnfn_P/{name}", sp)
@@ -241,14 +241,14 @@ def run(ctx: StudyContext) -> None:
         if "elbo_iterations" in e:
             ctx.logger.series(f"elbo_per_iteration/{name}", e["elbo_iterations"])
         if "mode_probs" in e:
-            probs = torch.tensor(e["mode_probs"])
+            probs = torch.tensor(e["mode_probs"], dtype=torch.float64)
             for j, label in enumerate(_segments_labels(g)):
                 ctx.logger.series(f"mode_probability/{name}/{label}", probs[:, j])
     ctx.results.save()
     title = f"paper 004 scenario, {main_kind} noise, {runs} runs"
     ctx.save_figure("rmse_over_time", plots.rmse_over_time(curves, title))
     ctx.save_figure("srnfn_over_time", plots.rmse_over_time(sr_curves, title))
-    mm = {n: torch.tensor(e["mode_probs"]) for n, e in main.items() if "mode_probs" in e}
+    mm = {n: torch.tensor(e["mode_probs"], dtype=torch.float64) for n, e in main.items() if "mode_probs" in e}
     if mm:
         ctx.save_figure("mode_probabilities", _mode_figure(mm, g))
 
@@ -267,7 +267,7 @@ def run(ctx: StudyContext) -> None:
             g, kind, g.table4.noise, runs, ctx.generator("data", kind, "table4"),
             with_oracle=bool(g.oracle), **kw))
         for name, e in res.items():
-            t4.rows.append([kind, name, torch.tensor(e["pos"]).mean().item()])
+            t4.rows.append([kind, name, torch.tensor(e["pos"], dtype=torch.float64).mean().item()])
         ctx.results.save()
 
 
