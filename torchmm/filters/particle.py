@@ -45,6 +45,7 @@ from torchmm.filters.resampling import (
     resample,
     resample_where_needed,
     searchsorted_rows,
+    systematic_search,
 )
 from torchmm.models.base import MeasurementModel, MotionModel, check_model_pair
 from torchmm.models.linear import LinearMeasurement, LinearMotion
@@ -403,26 +404,6 @@ def _stratified_points(shape, scheme: str, like: Tensor, generator) -> Tensor:
     return (offsets + u) / n
 
 
-def _systematic_search(cdf: Tensor, u0: Tensor, num: int) -> Tensor:
-    """``searchsorted(cdf, (arange(num) + u0) / num, right=True)`` by counting, ``O(K + num)``.
-
-    The systematic points form a regular grid, so the number of CDF entries ``<= (q + u0) / num``
-    is the number of entries whose grid position ``ceil(num * c - u0)`` is at most ``q``: one
-    scatter-add of the ``K`` positions and a cumulative sum replace ``num`` binary searches.
-
-    With ``c`` in ``[0, 1]`` the positions lie in ``[0, num]`` without clamping, and the last
-    entry (exactly 1) sits at ``num``, past every point, so the counts stay below ``K``.
-
-    Shapes:
-        cdf: ``(*B, K)`` non-decreasing in ``[0, 1]``, last entry exactly 1; u0: ``(*B, 1)`` in
-        ``[0, 1)`` -> ``(*B, num)``
-    """
-    pos = (cdf * num).sub_(u0).ceil_().long()
-    counts = torch.zeros((*cdf.shape[:-1], num + 1), dtype=torch.int64, device=cdf.device)
-    counts.scatter_add_(-1, pos, torch.ones((), dtype=torch.int64, device=cdf.device).expand_as(pos))
-    return torch.cumsum(counts[..., :num], dim=-1)
-
-
 def mixing_indices(mode_log_probs: Tensor, log_transition: Tensor, within_log_weights: Tensor,
                    num_particles: int, scheme: str = "systematic", *,
                    generator: torch.Generator | None = None) -> tuple[Tensor, Tensor]:
@@ -432,7 +413,7 @@ def mixing_indices(mode_log_probs: Tensor, log_transition: Tensor, within_log_we
     from ``p(a, b | i) = mu_a pi_ai w_{b|a} / c_i`` by one inverse-CDF pass over the product
     distribution (lexicographic in ``(a, b)``), with the points ``u`` of ``scheme`` (multinomial,
     stratified or systematic): the ancestor model ``a`` is the segment of the model CDF that holds
-    ``u`` (for systematic points found by counting, see :func:`_systematic_search`), and the
+    ``u`` (for systematic points found by counting, see :func:`systematic_search`), and the
     particle is found by searching ``a + (u - C_{a-1}) / mu_{a|i}`` in the within-model CDFs laid
     end to end (row ``a`` shifted to ``(a, a + 1]``). Computed in float64 whatever the input dtype.
 
@@ -464,7 +445,7 @@ def mixing_indices(mode_log_probs: Tensor, log_transition: Tensor, within_log_we
     if scheme in ("systematic", "two_stage"):
         u0 = torch.rand((*shape[:-1], 1), dtype=torch.float64, device=cdf_models.device, generator=generator)
         u = torch.arange(num_particles, dtype=torch.float64, device=u0.device).add(u0).div_(num_particles)
-        ancestor = _systematic_search(cdf_models, u0, num_particles)  # (*B, i, Np)
+        ancestor = systematic_search(cdf_models, u0, num_particles)  # (*B, i, Np)
     else:
         u = _stratified_points(shape, scheme, cdf_models, generator)
         ancestor = torch.searchsorted(cdf_models, u, right=True).clamp_max(num_models - 1)
@@ -488,7 +469,7 @@ def mixing_indices(mode_log_probs: Tensor, log_transition: Tensor, within_log_we
         # a systematic resample of every model's particles (one per run and model, by counting),
         # then the particle at index floor(Np_prev * inner) of the ancestor's resample: no search
         v0 = torch.rand((*batch, num_models, 1), dtype=torch.float64, device=w.device, generator=generator)
-        resampled = _systematic_search(cdf_within.expand(*batch, num_models, num_prev), v0, num_prev)
+        resampled = systematic_search(cdf_within.expand(*batch, num_models, num_prev), v0, num_prev)
         base = ancestor.mul_(num_prev)  # a * Np_prev (ancestor is not used afterwards)
         slot = inner.mul_(num_prev).long().add_(base)  # inner <= 1 - eps: floor < Np_prev
         particle = torch.gather(resampled.flatten(-2), -1, slot.flatten(-2)).view(shape)

@@ -12,7 +12,8 @@ forced, ``index = searchsorted(c, u, right=True)`` (zero-weight particles are ne
 * multinomial: ``u_j`` i.i.d. ``U(0, 1)``; counts ``~ Multinomial(N, w)``.
 * stratified: ``u_j = (j + U_j) / N``; ``|N_i - N w_i| < 2``.
 * systematic: ``u_j = (j + U) / N`` (one ``U`` per batch element); ``N_i`` in
-  ``{floor(N w_i), ceil(N w_i)}``.
+  ``{floor(N w_i), ceil(N w_i)}``. The points form a grid, so the search is a count
+  (:func:`systematic_search`, ``O(Np + N)``).
 * residual (Liu and Chen 1998): ``floor(N w_i)`` deterministic copies, the remaining
   ``R = N - sum floor(N w_i)`` drawn multinomially from ``(N w_i - floor(N w_i)) / R``.
 
@@ -43,6 +44,7 @@ __all__ = [
     "searchsorted_rows",
     "stratified_resample",
     "systematic_resample",
+    "systematic_search",
 ]
 
 
@@ -199,6 +201,26 @@ def stratified_resample(log_weights: Tensor, num_samples: int | None = None, *,
     return inverse_cdf(log_weights, u)
 
 
+def systematic_search(cdf: Tensor, u0: Tensor, num: int) -> Tensor:
+    """``searchsorted(cdf, (arange(num) + u0) / num, right=True)`` by counting, ``O(K + num)``.
+
+    The systematic points form a regular grid, so the number of CDF entries ``<= (q + u0) / num``
+    is the number of entries whose grid position ``ceil(num * c - u0)`` is at most ``q``: one
+    scatter-add of the ``K`` positions and a cumulative sum replace ``num`` binary searches.
+
+    With ``c`` in ``[0, 1]`` the positions lie in ``[0, num]`` without clamping, and the last
+    entry (exactly 1) sits at ``num``, past every point, so the counts stay below ``K``.
+
+    Shapes:
+        cdf: ``(*B, K)`` non-decreasing in ``[0, 1]``, last entry exactly 1; u0: ``(*B, 1)`` in
+        ``[0, 1)`` -> ``(*B, num)``
+    """
+    pos = (cdf * num).sub_(u0).ceil_().long()
+    counts = torch.zeros((*cdf.shape[:-1], num + 1), dtype=torch.int64, device=cdf.device)
+    counts.scatter_add_(-1, pos, torch.ones((), dtype=torch.int64, device=cdf.device).expand_as(pos))
+    return torch.cumsum(counts[..., :num], dim=-1)
+
+
 def systematic_resample(log_weights: Tensor, num_samples: int | None = None, *,
                         generator: torch.Generator | None = None) -> Tensor:
     """Systematic resampling: ``u_j = (j + U) / N`` with one uniform per batch element.
@@ -211,9 +233,7 @@ def systematic_resample(log_weights: Tensor, num_samples: int | None = None, *,
         [0, 0, 1, 2]
     """
     n = _check(log_weights, num_samples)
-    offsets = torch.arange(n, dtype=log_weights.dtype, device=log_weights.device)
-    u = (offsets + _uniform((*log_weights.shape[:-1], 1), log_weights, generator)) / n
-    return inverse_cdf(log_weights, u)
+    return systematic_search(_cdf(log_weights), _uniform((*log_weights.shape[:-1], 1), log_weights, generator), n)
 
 
 def residual_resample(log_weights: Tensor, num_samples: int | None = None, *,

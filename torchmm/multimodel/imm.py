@@ -100,13 +100,16 @@ class MultipleModelFilter(Filter):
         joint = out.log_likelihood + prior.mode_log_probs  # ell_j + log c_j
         log_likelihood = torch.logsumexp(joint, dim=-1)
         mode_log_probs = _safe_sub(joint, log_likelihood.unsqueeze(-1))
+        extras = {"mode_log_likelihood": out.log_likelihood}
+        if out.extras:  # the mode filters' own diagnostics (e.g. VB iterations), batch (*B, M)
+            extras["modes"] = dict(out.extras)
         return StepOutput(
             belief=ModeBelief(mode_log_probs, out.belief),
             prior=prior,
             log_likelihood=log_likelihood,
             innovation=out.innovation,
             innovation_cov=out.innovation_cov,
-            extras={"mode_log_likelihood": out.log_likelihood},
+            extras=extras,
         )
 
     def mix(self, belief: ModeBelief) -> ModeBelief:
@@ -144,8 +147,9 @@ class IMM(MultipleModelFilter):
     Shapes:
         belief: :class:`ModeBelief`, ``mode_log_probs (*B, M)``, components batch ``(*B, M)``;
         ``z``: ``(*B, m)``; the step's ``innovation`` is ``(*B, M, m)``. ``extras`` holds
-        ``"mixed"`` (``ModeBelief`` of the mixed start beliefs with ``log c_j``) and
-        ``"mode_log_likelihood"`` ``(*B, M)``.
+        ``"mixed"`` (``ModeBelief`` of the mixed start beliefs with ``log c_j``),
+        ``"mode_log_likelihood"`` ``(*B, M)`` and, when the mode filters report diagnostics,
+        ``"modes"`` (their ``extras``, batch ``(*B, M)``).
 
     Examples:
         >>> from torchmm.filters import KalmanFilter

@@ -370,14 +370,6 @@ class SourceUpdateIMM(IMM):
         out.extras["mode_log_likelihood"] = out.extras["mode_log_likelihood"] + first.log_likelihood
         return out._replace(prior=belief)
 
-    def step(self, belief: ModeBelief, z, *, u: Tensor | None = None) -> StepOutput:
-        mixed = self.mix(belief)
-        uj = None if u is None else u.unsqueeze(-2)
-        prior = ModeBelief(mixed.mode_log_probs, self.bank.predict(mixed.components, u=uj))
-        out = self.update(prior, z)
-        out.extras["mixed"] = mixed
-        return out
-
 
 # --------------------------------------------------------------------------------------------
 # beliefs carrying a separate source-only track (IMM-FU, VSIMM)

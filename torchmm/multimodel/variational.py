@@ -12,38 +12,20 @@ noise-covariance estimates) in ``extras["modes"]``.
 
 from __future__ import annotations
 
-import torch
-from torch import Tensor
-
-from torchmm.beliefs import ModeBelief
-from torchmm.filters.base import StepOutput
 from torchmm.filters.variational import SkewTIWVBFilter, StudentTVBFilter
-from torchmm.multimodel.imm import IMM, _safe_sub
+from torchmm.multimodel.imm import IMM
 
 __all__ = ["VariationalIMM", "gimmaf", "imm_vbt"]
 
 
 class VariationalIMM(IMM):
-    """An :class:`IMM` that also returns the bank's ``extras`` (per mode) as ``extras["modes"]``.
+    """The :class:`IMM` over a VB bank (the return type of :func:`gimmaf` / :func:`imm_vbt`); the
+    bank's ``extras`` (per mode) come back as ``extras["modes"]``, as from any IMM.
 
     Shapes:
         as :class:`IMM`; ``extras["modes"]`` values have batch ``(*B, M)`` (e.g.
         ``elbo (*B, M, iterations)``, ``predicted_cov (*B, M, n, n)``).
     """
-
-    def _update_modes(self, prior: ModeBelief, z: Tensor) -> StepOutput:
-        out = self.bank.update(prior.components, z.unsqueeze(-2))
-        joint = out.log_likelihood + prior.mode_log_probs
-        log_likelihood = torch.logsumexp(joint, dim=-1)
-        mode_log_probs = _safe_sub(joint, log_likelihood.unsqueeze(-1))
-        return StepOutput(
-            belief=ModeBelief(mode_log_probs, out.belief),
-            prior=prior,
-            log_likelihood=log_likelihood,
-            innovation=out.innovation,
-            innovation_cov=out.innovation_cov,
-            extras={"mode_log_likelihood": out.log_likelihood, "modes": dict(out.extras or {})},
-        )
 
 
 def gimmaf(motion, measurement, transition, *, skewness, df, tau: float = 3.0, iterations: int = 10,
@@ -61,6 +43,7 @@ def gimmaf(motion, measurement, transition, *, skewness, df, tau: float = 3.0, i
         as :class:`~torchmm.multimodel.IMM`.
 
     Examples:
+        >>> import torch
         >>> from torchmm import GaussianBelief
         >>> from torchmm.models import CoordinatedTurn, PositionMeasurement
         >>> imm = gimmaf(CoordinatedTurn(torch.tensor([0.0, 0.1])), PositionMeasurement(4, [0, 2], 4.0),
