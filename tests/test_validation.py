@@ -37,7 +37,7 @@ def test_transition_matrix_errors(matrix, message):
 
 def test_imm_names_the_transition_argument():
     kf = KalmanFilter(ConstantVelocity(1), PositionMeasurement(2, [0], 1.0))
-    with pytest.raises(ValueError, match="matrix: rows must sum to 1"):
+    with pytest.raises(ValueError, match="transition: rows must sum to 1"):
         IMM(kf, torch.tensor([[0.9, 0.2], [0.1, 0.9]]))
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -10,10 +11,13 @@ import torch
 import torch.utils._pytree as pytree
 from torch import Tensor
 
-from torchmm.beliefs import GaussianBelief
+from torchmm.beliefs import Belief, GaussianBelief
 from torchmm.filters.base import Filter, StepOutput
+from torchmm.validation import check_filter_dtype
 
 __all__ = ["Trajectory", "run_filter", "stack_outputs"]
+
+log = logging.getLogger("torchmm")
 
 
 @dataclass(frozen=True)
@@ -77,8 +81,9 @@ def run_filter(
     Args:
         filter: any :class:`~torchmm.filters.Filter` (KF, EKF, UKF, IMM, GPB, ...).
         belief0: belief at time 0, batch ``(*B,)`` (for IMM/GPB: ``filter.initial_belief(...)``).
-        measurements: ``(T, *B, m)`` with NaN for missing data, or any pytree of time-major
-            tensors (each filter step receives the pytree indexed at ``k``).
+        measurements: ``(T, *B, m)`` with NaN for missing data (any non-finite entry is missing;
+            infinite ones are counted in a warning), or any pytree of time-major tensors (each
+            filter step receives the pytree indexed at ``k``); ``T >= 1``.
         controls: optional inputs ``(T, *B, k)``.
         record: maps each :class:`StepOutput` to what is kept (e.g.
             ``lambda o: o._replace(prior=None)`` to save memory); default keeps everything.
@@ -86,6 +91,11 @@ def run_filter(
 
     Returns:
         :class:`Trajectory` with every kept field stacked on a leading time axis.
+
+    Raises:
+        ValueError / TypeError: naming ``belief0``, ``measurements`` or ``controls``, checked once
+        here: ``belief0``'s values (:meth:`~torchmm.beliefs.Belief.validate`), its dtype against
+        the filter's, the measurement streams' time axis; every step then checks shapes only.
 
     Examples:
         >>> from torchmm.filters import KalmanFilter
@@ -95,14 +105,36 @@ def run_filter(
         >>> traj.estimate().mean.shape
         torch.Size([10, 4, 2])
     """
+    if not isinstance(filter, Filter):
+        raise TypeError(f"filter: expected a torchmm Filter, got {type(filter).__name__}")
+    if not isinstance(belief0, Belief):
+        raise TypeError(f"belief0: expected a belief (e.g. GaussianBelief or filter.initial_belief(...)), got "
+                        f"{type(belief0).__name__}")
+    belief0.validate("belief0")
+    check_filter_dtype(filter, belief0, "belief0")
     leaves = pytree.tree_leaves(measurements)
     if not leaves:
         raise ValueError("measurements: empty")
+    if not all(isinstance(t, Tensor) for t in leaves):
+        bad = next(type(t).__name__ for t in leaves if not isinstance(t, Tensor))
+        raise TypeError(f"measurements: expected a tensor (T, *B, m) or a pytree of tensors, got {bad}")
+    if any(t.dim() < 2 for t in leaves):
+        shapes = [tuple(t.shape) for t in leaves]
+        raise ValueError(f"measurements: expected time-major (T, *B, m), got shapes {shapes}")
     steps = leaves[0].shape[0]
     if any(t.shape[0] != steps for t in leaves):
         raise ValueError("measurements: all streams must share the leading time axis")
-    if controls is not None and controls.shape[0] != steps:
-        raise ValueError(f"controls: expected {steps} time steps, got {controls.shape[0]}")
+    if steps == 0:
+        raise ValueError("measurements: no time steps (T = 0); run_filter needs at least one")
+    infinite = sum(int(torch.isinf(t).sum()) for t in leaves if t.is_floating_point())
+    if infinite:
+        log.warning("measurements: %d infinite entries are treated as missing data (non-finite = missing, "
+                    "see docs/robustness.md)", infinite)
+    if controls is not None:
+        if not isinstance(controls, Tensor) or controls.dim() < 2:
+            raise ValueError("controls: expected a tensor (T, *B, k)")
+        if controls.shape[0] != steps:
+            raise ValueError(f"controls: expected {steps} time steps, got {controls.shape[0]}")
     iterator = range(steps)
     if progress:
         from tqdm.auto import tqdm
@@ -115,5 +147,17 @@ def run_filter(
         out = filter.step(belief, z, u=None if controls is None else controls[k])
         belief = out.belief
         kept.append(out if record is None else record(out))
-    stacked = stack_outputs(kept)
-    return Trajectory(*stacked)
+    stacked = Trajectory(*stack_outputs(kept))
+    _report_flags(stacked.extras)
+    return stacked
+
+
+def _report_flags(extras: dict | None) -> None:
+    """One warning per run for updates whose innovation covariance had to be regularised."""
+    flags = (extras or {}).get("singular")
+    if isinstance(flags, Tensor) and flags.dtype == torch.bool and flags.numel():
+        count = int(flags.sum())
+        if count:
+            log.warning("%d of %d updates had an innovation covariance that is not numerically positive definite; "
+                        "they used a regularised factor (extras['singular'], docs/robustness.md)", count,
+                        flags.numel())

@@ -1,23 +1,44 @@
 """Input validation with errors that name the offending argument.
 
-Every public constructor in torchmm validates its tensors once, at construction time, with these
-helpers; filter steps never validate (they sit on the hot path). All checks work on detached
+Two kinds of checks, with different costs (``docs/robustness.md`` lists where each runs):
+
+* **Shape, type and dtype checks** read no tensor values (a few Python comparisons), so they run
+  everywhere, also inside every filter step: :func:`check_measurement`, :func:`gaussian_batch`,
+  :func:`check_same_dtype`.
+* **Value checks** (finite entries, symmetric PSD covariances, stochastic matrices,
+  probabilities) synchronise with the device, so they run once at the entry points a user calls -
+  constructors, ``initial_belief``, the start of :func:`~torchmm.run_filter` - and never inside a
+  step: :func:`as_tensor`, :func:`check_covariance`, :func:`check_stochastic_rows`,
+  :func:`check_probabilities`.
+
+Every error is a ``ValueError`` (a wrong value or shape) or ``TypeError`` (a wrong type or dtype)
+whose message starts with the name of the argument the user passed. All checks work on detached
 values, so tensors that require grad (learnable parameters, ``gradcheck`` inputs) pass through.
 """
 
 from __future__ import annotations
 
+import math
+import numbers
 from collections.abc import Sequence
 
 import torch
 from torch import Tensor
 
 __all__ = [
+    "as_choice",
+    "as_float",
+    "as_int",
     "as_tensor",
     "check_covariance",
+    "check_filter_dtype",
+    "check_measurement",
+    "check_probabilities",
+    "check_same_dtype",
     "check_shape",
     "check_square",
     "check_stochastic_rows",
+    "gaussian_batch",
 ]
 
 #: Absolute tolerance on row sums and symmetry. Loose enough for float32 inputs and for the
@@ -26,22 +47,77 @@ STOCHASTIC_ATOL = 1e-5
 SYMMETRY_RTOL = 1e-5
 
 
-def as_tensor(value, name: str, *, dtype: torch.dtype | None = None, device=None) -> Tensor:
-    """Convert ``value`` to a floating tensor; raise ``ValueError`` naming ``name`` if it cannot be.
+# -- numbers and options -------------------------------------------------------------------------
+def as_int(value, name: str, *, minimum: int | None = None) -> int:
+    """An integer argument (``int``, NumPy integer, integral 0-d tensor; not ``bool`` or ``1.5``).
 
-    Tensors keep their dtype unless ``dtype`` is given (autograd history is preserved).
+    Raises:
+        TypeError: if ``value`` is not an integer; ValueError: if it is below ``minimum``.
+    """
+    if isinstance(value, Tensor) and value.dim() == 0 and not value.is_floating_point() \
+            and value.dtype != torch.bool:
+        value = int(value)
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+        raise TypeError(f"{name}: expected an integer, got {value!r}")
+    value = int(value)
+    if minimum is not None and value < minimum:
+        raise ValueError(f"{name}: must be >= {minimum}, got {value}")
+    return value
+
+
+def as_float(value, name: str, *, minimum: float | None = None, maximum: float | None = None,
+             positive: bool = False) -> float:
+    """A finite real argument, optionally bounded (``positive``: strictly above 0).
+
+    Raises:
+        TypeError: if ``value`` is not a real number; ValueError: if it is not finite or out of range.
+    """
+    if isinstance(value, Tensor) and value.numel() == 1:
+        value = value.detach().reshape(()).item()
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise TypeError(f"{name}: expected a number, got {value!r}")
+    value = float(value)
+    if not math.isfinite(value):
+        raise ValueError(f"{name}: must be finite, got {value}")
+    if positive and not value > 0:
+        raise ValueError(f"{name}: must be positive, got {value}")
+    if minimum is not None and value < minimum:
+        raise ValueError(f"{name}: must be >= {minimum}, got {value}")
+    if maximum is not None and value > maximum:
+        raise ValueError(f"{name}: must be <= {maximum}, got {value}")
+    return value
+
+
+def as_choice(value, name: str, choices: Sequence[str]) -> str:
+    """One of ``choices`` (strings). Raises ``ValueError`` listing them."""
+    if not isinstance(value, str) or value not in choices:
+        raise ValueError(f"{name}: expected one of {list(choices)}, got {value!r}")
+    return value
+
+
+# -- tensors (values read: entry points only) ------------------------------------------------------
+def as_tensor(value, name: str, *, dtype: torch.dtype | None = None, device=None) -> Tensor:
+    """Convert ``value`` to a floating tensor; raise ``ValueError`` naming ``name`` if it cannot be
+    or if it has NaN or infinite entries.
+
+    Tensors keep their dtype unless ``dtype`` is given (autograd history is preserved); integer and
+    boolean inputs become the default floating dtype.
     """
     if isinstance(value, Tensor):
         out = value
         if dtype is not None or device is not None:
             out = out.to(dtype=dtype or out.dtype, device=device or out.device)
     else:
+        if isinstance(value, str):
+            raise TypeError(f"{name}: expected numbers, got the string {value!r}")
         try:
             out = torch.as_tensor(value, dtype=dtype or torch.get_default_dtype(), device=device)
         except (TypeError, ValueError, RuntimeError) as err:
             raise ValueError(f"{name}: cannot convert to a tensor ({err})") from None
     if not out.is_floating_point():
-        out = out.to(torch.get_default_dtype())
+        if out.is_complex():
+            raise TypeError(f"{name}: expected real numbers, got dtype {out.dtype}")
+        out = out.to(dtype or torch.get_default_dtype())
     if not bool(torch.isfinite(out.detach()).all()):
         raise ValueError(f"{name}: contains NaN or infinite entries")
     return out
@@ -64,20 +140,29 @@ def check_shape(tensor: Tensor, name: str, trailing: Sequence[int | None]) -> No
 
 
 def check_square(tensor: Tensor, name: str) -> int:
-    """Check that the last two dimensions are equal; return their size."""
+    """Check that the last two dimensions are equal and non-zero; return their size."""
     if tensor.dim() < 2 or tensor.shape[-1] != tensor.shape[-2]:
         raise ValueError(f"{name}: expected a square matrix (..., d, d), got shape {tuple(tensor.shape)}")
+    if tensor.shape[-1] == 0:
+        raise ValueError(f"{name}: expected a non-empty square matrix, got shape {tuple(tensor.shape)}")
     return tensor.shape[-1]
 
 
 def check_covariance(tensor: Tensor, name: str, *, definite: bool = False) -> None:
-    """Check that ``tensor`` (..., d, d) is symmetric positive semi-definite (or definite).
+    """Check that ``tensor`` (..., d, d) is finite, symmetric and positive semi-definite (or definite).
+
+    Symmetry is checked to ``1e-5`` relative to the largest entry (float32 inputs pass), the
+    eigenvalues to ``-1e-10`` times it (``<= 1e-10`` times it fails ``definite``).
 
     Raises:
         ValueError: naming ``name`` and the failed property.
     """
     check_square(tensor, name)
     value = tensor.detach().to(torch.float64)
+    if not bool(torch.isfinite(value).all()):
+        raise ValueError(f"{name}: contains NaN or infinite entries")
+    if value.numel() == 0:
+        return
     scale = value.abs().amax(dim=(-1, -2), keepdim=True).clamp_min(1.0)
     if bool(((value - value.mT).abs() > SYMMETRY_RTOL * scale).any()):
         raise ValueError(f"{name}: covariance is not symmetric")
@@ -96,9 +181,11 @@ def check_covariance(tensor: Tensor, name: str, *, definite: bool = False) -> No
 
 
 def check_stochastic_rows(matrix: Tensor, name: str) -> None:
-    """Check a (..., M, M) matrix of probabilities whose rows sum to one."""
+    """Check a finite (..., M, M) matrix of probabilities whose rows sum to one."""
     check_square(matrix, name)
     value = matrix.detach()
+    if not bool(torch.isfinite(value).all()):
+        raise ValueError(f"{name}: contains NaN or infinite entries")
     if bool((value < 0).any()):
         raise ValueError(f"{name}: has negative entries")
     row_sums = value.sum(-1)
@@ -107,3 +194,110 @@ def check_stochastic_rows(matrix: Tensor, name: str) -> None:
             f"{name}: rows must sum to 1 (P[i, j] = P(mode_k = j | mode_k-1 = i)); "
             f"row sums are {row_sums.tolist()}"
         )
+
+
+def check_probabilities(probs, name: str, size: int, *, dtype=None, device=None) -> Tensor:
+    """Convert and check a probability vector ``(size,)`` or a batch ``(*B, size)``.
+
+    Finite, non-negative, summing to one (to ``1e-5``) along the last axis.
+
+    Raises:
+        ValueError: naming ``name``.
+    """
+    probs = as_tensor(probs, name, dtype=dtype, device=device)
+    if probs.dim() < 1 or probs.shape[-1] != size:
+        raise ValueError(f"{name}: expected {size} modes, shape ({size},) or (*B, {size}); "
+                         f"got shape {tuple(probs.shape)}")
+    value = probs.detach()
+    if bool((value < 0).any()) or bool(((value.sum(-1) - 1).abs() > STOCHASTIC_ATOL).any()):
+        raise ValueError(f"{name}: must be non-negative and sum to 1")
+    return probs
+
+
+# -- per-step shape checks (no values read) ----------------------------------------------------------
+def gaussian_batch(belief, state_dim: int, name: str = "belief") -> torch.Size:
+    """Batch shape of a Gaussian-type belief (``mean (*B, n)``, ``cov (*B, n, n)``), checked against
+    the model's state dimension. Reads shapes only.
+
+    Raises:
+        TypeError: ``belief`` has no ``mean``/``cov`` tensors; ValueError: wrong state dimension.
+    """
+    mean, cov = getattr(belief, "mean", None), getattr(belief, "cov", None)
+    if not isinstance(mean, Tensor) or not isinstance(cov, Tensor):
+        raise TypeError(f"{name}: expected a GaussianBelief (mean, cov), got {type(belief).__name__}")
+    if mean.shape[-1] != state_dim:
+        raise ValueError(f"{name}: state dimension {mean.shape[-1]} does not match the model's "
+                         f"state_dim {state_dim} (mean has shape {tuple(mean.shape)})")
+    mb, cb = mean.shape[:-1], cov.shape[:-2]
+    if mb == cb:
+        return mb
+    try:
+        return torch.broadcast_shapes(mb, cb)
+    except RuntimeError:
+        raise ValueError(f"{name}: batch shapes of mean {tuple(mb)} and cov {tuple(cb)} do not "
+                         "broadcast") from None
+
+
+def check_measurement(z, meas_dim: int, batch: torch.Size, like: Tensor, name: str = "z") -> Tensor:
+    """Check a measurement ``(*B', m)`` against the sensor and the belief; return it as a tensor.
+
+    Reads shapes only. ``z``'s last axis must be the sensor's ``m`` and its batch must broadcast
+    *to* the belief's batch ``batch`` (a measurement shared by all runs is allowed; a measurement
+    batch that would enlarge the belief's batch - ``(B, 1, m)`` against ``(B,)`` runs - is not).
+    Lists and integer tensors are converted, other floating dtypes cast to ``like``'s dtype.
+    Non-finite components (NaN, ``+-inf``) are missing data; they are not touched here.
+
+    Raises:
+        ValueError: naming ``name``, with the expected and the given shapes.
+    """
+    if not isinstance(z, Tensor):
+        if z is None or isinstance(z, str):
+            raise TypeError(f"{name}: expected a tensor of shape (*B, {meas_dim}), got {type(z).__name__}")
+        try:
+            z = torch.as_tensor(z, dtype=like.dtype, device=like.device)
+        except (TypeError, ValueError, RuntimeError) as err:
+            raise TypeError(f"{name}: cannot convert to a tensor ({err})") from None
+    elif z.dtype != like.dtype:
+        if z.is_complex():
+            raise TypeError(f"{name}: expected real numbers, got dtype {z.dtype}")
+        z = z.to(like.dtype)
+    if z.dim() == 0 or z.shape[-1] != meas_dim:
+        hint = " (a scalar sensor's measurements need their event axis: z.unsqueeze(-1))" \
+            if meas_dim == 1 and z.dim() >= 1 else ""
+        raise ValueError(f"{name}: expected shape (*B, {meas_dim}) for a {meas_dim}-dimensional "
+                         f"sensor, got {tuple(z.shape)}{hint}")
+    zb = z.shape[:-1]
+    if zb != batch:
+        try:
+            ok = torch.broadcast_shapes(zb, batch) == batch
+        except RuntimeError:
+            ok = False
+        if not ok:
+            raise ValueError(f"{name}: batch shape {tuple(zb)} does not broadcast to the belief's batch "
+                             f"{tuple(batch)} (expected z of shape {(*batch, meas_dim)}; to filter several "
+                             "runs from one prior, expand the prior: belief.expand(runs))")
+    if z.device != like.device:
+        z = z.to(like.device)
+    return z
+
+
+def check_same_dtype(tensor: Tensor, name: str, like: Tensor, what: str = "the belief") -> None:
+    """``TypeError`` naming ``name`` if ``tensor``'s floating dtype differs from ``like``'s."""
+    if tensor.dtype != like.dtype:
+        raise TypeError(f"{name}: dtype {tensor.dtype} differs from {what}'s {like.dtype}; convert one "
+                        f"of them (e.g. filter.to({like.dtype}) or belief.to({tensor.dtype}))")
+
+
+def check_filter_dtype(filter, belief, name: str) -> None:
+    """``TypeError`` naming ``name`` if the filter's floating tensors and the belief differ in dtype.
+
+    Reads dtypes only (an entry-point check: it walks the filter's parameters and buffers).
+    """
+    dtype = getattr(belief, "dtype", None)
+    if dtype is None:
+        return
+    for tensor_name, tensor in (*filter.named_parameters(), *filter.named_buffers()):
+        if tensor.is_floating_point() and tensor.dtype != dtype:
+            raise TypeError(f"{name}: dtype {dtype} differs from the filter's {tensor.dtype} ({tensor_name}); "
+                            f"convert one of them, e.g. filter.to({dtype}) or {name}.to({tensor.dtype})")
+

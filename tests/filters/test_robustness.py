@@ -71,15 +71,20 @@ def test_singular_innovation_covariance_stays_finite_closed_form(m):
     assert bool(torch.isfinite(out.log_likelihood))
 
 
-def test_singular_innovation_covariance_is_jittered_and_logged(caplog):
-    """m > 2 goes through cholesky_ex: a failed factorisation is retried with jitter and logged."""
+def test_singular_innovation_covariance_is_regularised_flagged_and_reported(caplog):
+    """m > 2 goes through cholesky_ex: a failed factorisation is repaired (jitter, then the diagonal),
+    the run is flagged in extras['singular'] and run_filter reports the count once."""
     H = torch.eye(3, 4)
     kf = KalmanFilter(LinearMotion(torch.eye(4), torch.zeros(4, 4)), LinearMeasurement(H, torch.zeros(3, 3)))
-    prior = GaussianBelief(torch.zeros(2, 4), torch.diag(torch.tensor([1.0, 0.0, 1.0, 1.0])))
-    with caplog.at_level(logging.WARNING, logger="torchmm"):
-        out = kf.update(prior, torch.ones(2, 3))
-    assert "jitter" in caplog.text
+    prior = GaussianBelief(torch.zeros(2, 4), torch.diag(torch.tensor([1.0, 0.0, 1.0, 1.0])).expand(2, 4, 4))
+    out = kf.update(prior, torch.ones(2, 3))
+    assert out.extras["singular"].tolist() == [True, True]
     assert bool(torch.isfinite(out.belief.mean).all() and torch.isfinite(out.belief.cov).all())
+    healthy = kf.update(GaussianBelief(torch.zeros(2, 4), torch.eye(4).expand(2, 4, 4)), torch.ones(2, 3))
+    assert healthy.extras["singular"].tolist() == [False, False]
+    with caplog.at_level(logging.WARNING, logger="torchmm"):
+        run_filter(kf, prior, torch.ones(3, 2, 3))
+    assert "not numerically positive definite" in caplog.text
 
 
 def test_imm_float32_stays_finite_over_a_long_run():

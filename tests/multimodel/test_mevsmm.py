@@ -279,7 +279,7 @@ def test_mevsmm_float32_runs():
 
 def test_bad_arguments():
     motion, sensor = ConstantVelocity(1, acceleration=[[0.0], [1.0]]), PositionMeasurement(2, [0], 1.0)
-    with pytest.raises(ValueError, match="selection"):
+    with pytest.raises(TypeError, match="selection"):
         MinimumEntropyVSMM(motion, sensor, uniform_transition(2), 10, selection=None)
     with pytest.raises(ValueError, match="entropy"):
         ExactMinimumEntropy(entropy="bogus")

@@ -396,7 +396,7 @@ def test_validation_errors():
     with pytest.raises(ValueError, match="bank"):
         TransferIMM([ukf, ukf, ukf], P, source)
     f = TransferIMM(kf, P, source)
-    with pytest.raises(ValueError, match="z:"):
+    with pytest.raises(TypeError, match="z:"):
         f.step(f.initial_belief(prior), z.target[0])
     with pytest.raises(ValueError, match="extra_model"):
         SourceModeVSIMM(kf, P, source, extra_model=3)

@@ -64,9 +64,38 @@ class Belief:
     # -- shape ------------------------------------------------------------------------------------
     @property
     def batch_shape(self) -> torch.Size:
-        """Broadcast batch shape of all fields."""
+        """Broadcast batch shape of all fields (``ValueError`` if they do not broadcast)."""
         shapes = [t.shape[: t.dim() - e] for t, e in self._tensors()]
-        return torch.broadcast_shapes(*shapes)
+        try:
+            return torch.broadcast_shapes(*shapes)
+        except RuntimeError:
+            raise ValueError(f"{type(self).__name__}: batch shapes of the fields do not broadcast: "
+                             f"{[tuple(s) for s in shapes]}") from None
+
+    # -- values (entry points only) ---------------------------------------------------------------
+    def validate(self: B, name: str = "belief") -> B:
+        """Check the belief's values once, at an entry point; return it unchanged.
+
+        The base check: every tensor field finite, the batch shapes broadcast; subclasses add what
+        their fields mean (PSD covariances, normalised probabilities, ...). Reads tensor values
+        (a device synchronisation), so filters call it in ``initial_belief`` and
+        :func:`~torchmm.run_filter` calls it on ``belief0``, never inside a step.
+
+        Raises:
+            ValueError: naming ``name`` and the offending field, e.g. ``belief0.cov``.
+        """
+        try:
+            self.batch_shape
+        except ValueError as err:
+            raise ValueError(f"{name}: {err}") from None
+        for field in dataclasses.fields(self):
+            value = getattr(self, field.name)
+            if isinstance(value, Belief):
+                value.validate(f"{name}.{field.name}")
+            elif isinstance(value, Tensor) and value.is_floating_point():
+                if not bool(torch.isfinite(value.detach()).all()):
+                    raise ValueError(f"{name}.{field.name}: contains NaN or infinite entries")
+        return self
 
     @property
     def batch_dim(self) -> int:

@@ -16,6 +16,22 @@ from torchmm.validation import as_tensor, check_covariance, check_shape
 __all__ = ["GaussianBelief"]
 
 
+def _floating(value, name: str, like=None) -> Tensor:
+    """``value`` as a floating tensor (lists, integer tensors: the default dtype or ``like``'s)."""
+    if isinstance(value, Tensor):
+        if value.is_floating_point():
+            return value
+        if value.is_complex():
+            raise TypeError(f"{name}: expected real numbers, got dtype {value.dtype}")
+    elif isinstance(value, str) or value is None:
+        raise TypeError(f"{name}: expected a tensor, got {type(value).__name__}")
+    dtype = like.dtype if isinstance(like, Tensor) and like.is_floating_point() else torch.get_default_dtype()
+    try:
+        return torch.as_tensor(value, dtype=dtype)
+    except (TypeError, ValueError, RuntimeError) as err:
+        raise TypeError(f"{name}: cannot convert to a tensor ({err})") from None
+
+
 @register_belief
 @dataclass(frozen=True)
 class GaussianBelief(Belief):
@@ -37,6 +53,23 @@ class GaussianBelief(Belief):
     cov: Tensor
 
     event_dims: ClassVar[dict[str, int]] = {"mean": 1, "cov": 2}
+
+    def __post_init__(self):
+        # shapes only (no values: this runs at every step); lists and integer tensors are converted
+        mean, cov = _floating(self.mean, "mean"), _floating(self.cov, "cov", self.mean)
+        if mean is not self.mean:
+            object.__setattr__(self, "mean", mean)
+        if cov is not self.cov:
+            object.__setattr__(self, "cov", cov)
+        if mean.dim() < 1 or cov.dim() < 2 or cov.shape[-1] != mean.shape[-1] or cov.shape[-2] != mean.shape[-1]:
+            raise ValueError(f"cov: expected shape (*B, n, n) for mean (*B, n); got mean {tuple(mean.shape)}, "
+                             f"cov {tuple(cov.shape)}")
+
+    def validate(self, name: str = "belief") -> GaussianBelief:
+        """Finite mean, symmetric PSD covariance (see :meth:`Belief.validate`)."""
+        super().validate(name)
+        check_covariance(self.cov, f"{name}.cov")
+        return self
 
     @classmethod
     def create(cls, mean, cov, *, dtype=None, device=None) -> GaussianBelief:

@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import ClassVar
 
+import torch
 from torch import Tensor
 
 from torchmm.beliefs.base import Belief, register_belief
 from torchmm.beliefs.gaussian import GaussianBelief
+from torchmm.validation import STOCHASTIC_ATOL
 
 __all__ = ["ModeBelief"]
 
@@ -30,6 +33,28 @@ class ModeBelief(Belief):
     components: Belief
 
     event_dims: ClassVar[dict[str, int]] = {"mode_log_probs": 1}
+
+    def __post_init__(self):
+        if self.mode_log_probs.dim() < 1:
+            raise ValueError(f"mode_log_probs: expected shape (*B, M), got {tuple(self.mode_log_probs.shape)}")
+        if not isinstance(self.components, Belief):
+            raise TypeError(f"components: expected a belief with batch (*B, M), got {type(self.components).__name__}")
+
+    def validate(self, name: str = "belief") -> ModeBelief:
+        """Mode log-probabilities normalised (not NaN, probabilities summing to 1 within 1e-5), the
+        components' batch ending with the ``M`` modes, and the components valid themselves."""
+        lp = self.mode_log_probs.detach()
+        if bool(torch.isnan(lp).any()) or bool((lp == math.inf).any()):
+            raise ValueError(f"{name}.mode_log_probs: contains NaN or +inf")
+        if lp.numel() and bool(((lp.exp().sum(-1) - 1).abs() > STOCHASTIC_ATOL).any()):
+            raise ValueError(f"{name}.mode_log_probs: probabilities must sum to 1 (normalised log-probabilities)")
+        comp_batch = self.components.batch_shape
+        if not comp_batch or comp_batch[-1] not in (1, self.num_modes):
+            raise ValueError(f"{name}.components: batch {tuple(comp_batch)} must end with the {self.num_modes} "
+                             "modes")
+        self.batch_shape
+        self.components.validate(f"{name}.components")
+        return self
 
     @property
     def num_modes(self) -> int:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
@@ -61,8 +63,10 @@ def mix_gaussians(mean: Tensor, cov: Tensor, weights: Tensor) -> tuple[Tensor, T
 def psd_sqrt(cov: Tensor) -> Tensor:
     """A square root ``L`` with ``L L^T = cov`` for symmetric PSD (possibly singular) matrices.
 
-    Uses Cholesky where it succeeds and a symmetric eigendecomposition elsewhere, so that
-    rank-deficient process noise such as ``G G^T`` can be sampled.
+    Uses Cholesky where it succeeds and a symmetric eigendecomposition elsewhere (negative
+    eigenvalues of a matrix indefinite by rounding clamped to 0), so that rank-deficient process
+    noise such as ``G G^T`` can be sampled. Never raises: a matrix with NaN or infinite entries
+    gets a NaN factor (that batch element only).
 
     Shapes:
         cov: ``(..., d, d)`` -> ``(..., d, d)``
@@ -70,6 +74,10 @@ def psd_sqrt(cov: Tensor) -> Tensor:
     chol, info = torch.linalg.cholesky_ex(cov)
     if not bool((info != 0).any()):
         return chol
-    eigvals, eigvecs = torch.linalg.eigh(symmetrize(cov))
+    finite = torch.isfinite(cov).all(-1).all(-1)
+    eye = torch.eye(cov.shape[-1], dtype=cov.dtype, device=cov.device)
+    safe = torch.where(finite[..., None, None], symmetrize(cov), eye)  # eigh raises on NaN input
+    eigvals, eigvecs = torch.linalg.eigh(safe)
     eig_sqrt = eigvecs * eigvals.clamp_min(0).sqrt().unsqueeze(-2)
+    eig_sqrt = torch.where(finite[..., None, None], eig_sqrt, torch.full_like(eig_sqrt, math.nan))
     return torch.where((info != 0)[..., None, None], eig_sqrt, chol)

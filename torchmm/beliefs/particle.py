@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -31,6 +32,24 @@ class ParticleBelief(Belief):
     log_weights: Tensor
 
     event_dims: ClassVar[dict[str, int]] = {"particles": 2, "log_weights": 1}
+
+    def __post_init__(self):
+        p, w = self.particles, self.log_weights
+        if p.dim() < 2 or w.dim() < 1 or w.shape[-1] != p.shape[-2]:
+            raise ValueError(f"log_weights: expected shape (*B, Np) for particles (*B, Np, n); got particles "
+                             f"{tuple(p.shape)}, log_weights {tuple(w.shape)}")
+
+    def validate(self, name: str = "belief") -> ParticleBelief:
+        """Finite particles; log-weights not NaN or ``+inf``, at least one finite per particle set."""
+        self.batch_shape
+        if not bool(torch.isfinite(self.particles.detach()).all()):
+            raise ValueError(f"{name}.particles: contains NaN or infinite entries")
+        w = self.log_weights.detach()
+        if bool(torch.isnan(w).any()) or bool((w == math.inf).any()):
+            raise ValueError(f"{name}.log_weights: contains NaN or +inf (log-weights are finite or -inf)")
+        if w.numel() and not bool(torch.isfinite(w).any(-1).all()):
+            raise ValueError(f"{name}.log_weights: a particle set has no particle of positive weight")
+        return self
 
     @property
     def state_dim(self) -> int:

@@ -40,9 +40,27 @@ class Filter(nn.Module):
     :meth:`update`; :meth:`step` is predict-then-update.
     """
 
+    @property
+    def state_dim(self) -> int | None:
+        """The state dimension ``n`` of the filter's motion model (None if it has none)."""
+        return getattr(self._modules.get("motion"), "state_dim", None)
+
+    @property
+    def meas_dim(self) -> int | None:
+        """The measurement dimension ``m`` of the filter's sensor (None if it has none)."""
+        return getattr(self._modules.get("measurement"), "meas_dim", None)
+
     def predict(self, belief: Any, *, u: Tensor | None = None) -> Any:
         """Time update. Returns the prior belief for the next measurement."""
         raise NotImplementedError
+
+    def check_bank_member(self, name: str, num_modes: int) -> None:
+        """Raise if this filter, as configured, cannot be a mode filter of a bank of ``num_modes``.
+
+        Called by the banks of IMM / GPB at construction (``name`` is the argument to blame). The
+        default accepts; e.g. a :class:`~torchmm.filters.ParticleFilter` needs a fixed
+        ``num_particles`` when ``num_modes > 1`` because mixing merges the particle sets.
+        """
 
     def update(self, belief: Any, z: Any) -> StepOutput:
         """Measurement update of a prior ``belief`` with ``z`` (NaN = missing)."""

@@ -21,6 +21,7 @@ from torchmm.filters.base import Filter, StepOutput
 from torchmm.filters.linalg import condition
 from torchmm.models.base import MeasurementModel, MotionModel, check_model_pair
 from torchmm.models.linear import LinearMeasurement, LinearMotion
+from torchmm.validation import check_measurement, gaussian_batch
 
 __all__ = ["ExtendedKalmanFilter", "KalmanFilter"]
 
@@ -34,9 +35,12 @@ class ExtendedKalmanFilter(Filter):
         joseph: update the covariance in Joseph form (recommended in float32).
 
     Shapes:
-        belief: :class:`GaussianBelief` with batch ``(*B,)``; ``z``: ``(*B, m)`` (NaN = missing);
+        belief: :class:`GaussianBelief` with batch ``(*B,)``; ``z``: ``(*B, m)`` (non-finite
+        components - NaN, ``+-inf`` - are missing; ``z``'s batch must broadcast to ``*B``);
         ``u``: ``(*B, k)``. Model parameter batches broadcast with ``*B`` (mode banks: ``*B``
-        ends with the mode axis).
+        ends with the mode axis). ``extras["singular"]`` ``(*B,)`` bool: the innovation
+        covariance was not numerically positive definite and was regularised (see
+        :func:`~torchmm.filters.linalg.cholesky`).
 
     Examples:
         >>> from torchmm.models import ConstantVelocity, PositionMeasurement
@@ -69,6 +73,7 @@ class ExtendedKalmanFilter(Filter):
         return self.measurement.jacobian(mean)
 
     def predict(self, belief: GaussianBelief, *, u: Tensor | None = None) -> GaussianBelief:
+        gaussian_batch(belief, self.state_dim)
         F = self._transition_matrix(belief.mean, u)
         mean = self.motion(belief.mean, u=u)  # x- = f(x)
         # P- = F P F' + Q (symmetric up to rounding; the update symmetrises its output)
@@ -76,17 +81,19 @@ class ExtendedKalmanFilter(Filter):
         return GaussianBelief(mean, cov)
 
     def update(self, belief: GaussianBelief, z: Tensor) -> StepOutput:
+        z = check_measurement(z, self.meas_dim, gaussian_batch(belief, self.state_dim), belief.mean)
         H = self._measurement_matrix(belief.mean)
         R = self.measurement.noise_cov(belief.mean)
         innovation = z - self.measurement(belief.mean)  # nu = z - h(x-)
         cross_cov = belief.cov @ H.mT  # C = P- H'
         # S = H P- H' + R, written (P- H')' H' so that an unbatched H folds into one matmul
         innovation_cov = (cross_cov.mT @ H.mT if H.dim() == 2 else H @ cross_cov) + R
-        mean, cov, log_likelihood = condition(
+        mean, cov, log_likelihood, singular = condition(
             belief.mean, belief.cov, innovation, innovation_cov, cross_cov,
-            joseph=(H, R) if self.joseph else None,
+            joseph=(H, R) if self.joseph else None, with_flag=True,
         )
-        return StepOutput(GaussianBelief(mean, cov), belief, log_likelihood, innovation, innovation_cov)
+        return StepOutput(GaussianBelief(mean, cov), belief, log_likelihood, innovation, innovation_cov,
+                          {"singular": singular})
 
 
 class KalmanFilter(ExtendedKalmanFilter):

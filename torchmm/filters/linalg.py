@@ -10,15 +10,15 @@ update uses one forward substitution on ``[C^T | nu]``:
     x^+ = x + V^\top w,\quad P^+ = P - V^\top V,\quad
     \log p(z) = -\tfrac12\left(\|w\|^2 + 2\textstyle\sum_i \log L_{ii} + m \log 2\pi\right)
 
-Missing components (NaN in ``nu``) are conditioned out exactly with static shapes: their rows and
+Missing components (non-finite ``nu``: NaN or ``+-inf`` data) are conditioned out exactly with static shapes: their rows and
 columns of ``S`` are replaced by the identity, their columns of ``C`` and entries of ``nu`` by
 zero, so the gain for them is zero and they add nothing to the log-likelihood.
 """
 
 from __future__ import annotations
 
-import logging
 import math
+from collections.abc import Callable
 
 import torch
 from torch import Tensor
@@ -27,42 +27,51 @@ from torchmm.beliefs.ops import symmetrize
 
 __all__ = ["cholesky", "cholesky_solve", "condition", "solve_lower", "solve_lower_transposed"]
 
-log = logging.getLogger("torchmm")
 _LOG_2PI = math.log(2 * math.pi)
 
 
-def cholesky(S: Tensor) -> Tensor:
-    """Lower Cholesky factor of symmetric PD ``S (..., m, m)``, robust to near-singularity.
+def cholesky(S: Tensor, *, with_flag: bool = False):
+    r"""Lower Cholesky factor of symmetric PD ``S (..., m, m)``, finite for every matrix.
 
-    Closed form for ``m <= 2`` (pivots clamped at ``eps * scale`` so the factor stays finite);
-    for larger ``m``, failed factorisations are retried with growing diagonal jitter and a
-    warning is logged.
+    A matrix that is not numerically positive definite gets a regularised factor instead of an
+    error (one run's trouble never stops the others); no host synchronisation:
+
+    * ``m <= 2``: closed form with the pivots clamped at ``eps * max|S_ii|`` (``tiny`` for
+      ``m = 1``);
+    * ``m > 2``: ``torch.linalg.cholesky_ex``; where it fails, again with ``S + sqrt(eps) s I``
+      (``s = max|S_ii|``), and where that fails too, ``diag(sqrt(max(S_ii, eps s)))``.
+
+    A NaN matrix gives a NaN factor (for that batch element only).
+
+    Args:
+        with_flag: also return ``singular (...)`` bool, True where ``S`` was regularised.
     """
     m = S.shape[-1]
-    eps = torch.finfo(S.dtype).eps
+    eps, tiny = torch.finfo(S.dtype).eps, torch.finfo(S.dtype).tiny
     if m == 1:
-        return S.clamp_min(torch.finfo(S.dtype).tiny).sqrt()
+        L = S.clamp_min(tiny).sqrt()
+        return (L, ~(S[..., 0, 0] > tiny)) if with_flag else L
     if m == 2:
         a, b, c = S[..., 0, 0], S[..., 1, 0], S[..., 1, 1]
-        scale = torch.maximum(a.abs(), c.abs()) * eps + torch.finfo(S.dtype).tiny
+        scale = torch.maximum(a.abs(), c.abs()) * eps + tiny
         l11 = a.clamp_min(0).maximum(scale).sqrt()
         l21 = b / l11
-        l22 = (c - l21 * l21).maximum(scale).sqrt()
+        pivot = c - l21 * l21
+        l22 = pivot.maximum(scale).sqrt()
         zero = torch.zeros_like(a)
-        return torch.stack([torch.stack([l11, zero], -1), torch.stack([l21, l22], -1)], -2)
+        L = torch.stack([torch.stack([l11, zero], -1), torch.stack([l21, l22], -1)], -2)
+        return (L, ~((a > scale) & (pivot > scale))) if with_flag else L
     chol, info = torch.linalg.cholesky_ex(S)
-    if bool((info != 0).any()):
-        diag_scale = S.diagonal(dim1=-2, dim2=-1).abs().mean(-1, keepdim=True).clamp_min(1.0)
-        eye = torch.eye(m, dtype=S.dtype, device=S.device)
-        for power in range(-10, 1, 2):
-            jitter = (diag_scale * 10.0**power).unsqueeze(-1) * eye
-            chol_j, info_j = torch.linalg.cholesky_ex(S + jitter)
-            chol = torch.where((info != 0)[..., None, None], chol_j, chol)
-            info = torch.where(info != 0, info_j, info)
-            if not bool((info != 0).any()):
-                break
-        log.warning("innovation covariance not positive definite; added diagonal jitter")
-    return chol
+    failed = info != 0
+    diag = S.diagonal(dim1=-2, dim2=-1)
+    scale = diag.abs().amax(-1).nan_to_num(nan=1.0).clamp_min(tiny)  # (...)
+    eye = torch.eye(m, dtype=S.dtype, device=S.device)
+    jitter = torch.where(failed, scale * math.sqrt(eps), torch.zeros_like(scale))
+    chol2, info2 = torch.linalg.cholesky_ex(S + jitter[..., None, None] * eye)
+    fallback = torch.diag_embed(diag.maximum(eps * scale.unsqueeze(-1)).sqrt())
+    repaired = torch.where((info2 != 0)[..., None, None], fallback, chol2)
+    L = torch.where(failed[..., None, None], repaired, chol)
+    return (L, failed) if with_flag else L
 
 
 def solve_lower(L: Tensor, rhs: Tensor) -> Tensor:
@@ -97,30 +106,38 @@ def condition(
     cross_cov: Tensor,
     *,
     joseph: tuple[Tensor, Tensor] | None = None,
-) -> tuple[Tensor, Tensor, Tensor]:
-    r"""Condition a Gaussian on an innovation (the shared core of KF, EKF and UKF updates).
+    posterior_cov: Callable[[Tensor], Tensor] | None = None,
+    with_flag: bool = False,
+):
+    r"""Condition a Gaussian on an innovation (the shared core of KF, EKF, UKF and VB updates).
 
     Args:
         mean: prior mean ``x``.
         cov: prior covariance ``P``.
-        innovation: ``nu = z - z_pred``; NaN entries are missing components.
+        innovation: ``nu = z - z_pred``; non-finite entries (NaN, ``+-inf``) are missing components.
         innovation_cov: ``S = Cov[z]``.
         cross_cov: ``C = Cov[x, z]`` (``P H^T`` for linear models).
         joseph: ``(H, R)`` to update the covariance in Joseph form
             ``(I - K H) P (I - K H)^T + K R K^T`` instead of ``P - K S K^T``.
+        posterior_cov: any other PSD-preserving form of the covariance update: a function of the
+            gain ``K (*B, n, m)`` (zero columns for missing components) returning ``P+``.
+        with_flag: also return ``singular (*B,)``: True where ``S`` restricted to the observed
+            components was not numerically positive definite and was regularised
+            (:func:`cholesky`); the update is then finite but not meaningful for that element.
 
     Returns:
         posterior mean, posterior covariance (symmetrised) and ``log N(nu; 0, S)`` over the
-        observed components (0 if none is observed).
+        observed components (exactly 0 if none is observed) [, singular].
 
     Shapes:
         mean ``(*B, n)``, cov ``(*B, n, n)``, innovation ``(*B, m)``, innovation_cov
-        ``(*B, m, m)``, cross_cov ``(*B, n, m)`` -> ``(*B, n)``, ``(*B, n, n)``, ``(*B,)``
+        ``(*B, m, m)``, cross_cov ``(*B, n, m)`` -> ``(*B, n)``, ``(*B, n, n)``, ``(*B,)`` [, ``(*B,)``]
     """
     n, m = mean.shape[-1], innovation.shape[-1]
-    if m == 1 and joseph is None:
-        return _condition_scalar(mean, cov, innovation, innovation_cov, cross_cov)
-    observed = ~torch.isnan(innovation)
+    if m == 1 and joseph is None and posterior_cov is None:
+        out = _condition_scalar(mean, cov, innovation, innovation_cov, cross_cov)
+        return out if with_flag else out[:3]
+    observed = torch.isfinite(innovation)
     nu = torch.where(observed, innovation, 0.0)
     if m == 1:
         S = torch.where(observed.unsqueeze(-1), innovation_cov, 1.0)
@@ -128,37 +145,43 @@ def condition(
         pair = observed.unsqueeze(-1) & observed.unsqueeze(-2)
         S = torch.where(pair, innovation_cov, torch.eye(m, dtype=nu.dtype, device=nu.device))
     C = cross_cov * observed.unsqueeze(-2)
-    L = cholesky(S)
+    L, singular = cholesky(S, with_flag=True)
     rhs = torch.cat([C.mT, nu.unsqueeze(-1)], dim=-1)  # (*B, m, n + 1)
     solved = solve_lower(L, rhs)
     V, w = solved[..., :n], solved[..., n]
     post_mean = mean + (V.mT @ w.unsqueeze(-1)).squeeze(-1)
-    if joseph is None:
+    if joseph is None and posterior_cov is None:
         post_cov = cov - V.mT @ V
     else:
-        H, R = joseph
         gain = solve_lower_transposed(L, V).mT  # K = C S^{-1}, zero columns where missing
-        eye = torch.eye(n, dtype=cov.dtype, device=cov.device)
-        A = eye - gain @ H
-        post_cov = A @ cov @ A.mT + gain @ R @ gain.mT
+        if posterior_cov is not None:
+            post_cov = posterior_cov(gain)
+        else:
+            H, R = joseph
+            eye = torch.eye(n, dtype=cov.dtype, device=cov.device)
+            A = eye - gain @ H
+            post_cov = A @ cov @ A.mT + gain @ R @ gain.mT
     half_logdet = L.diagonal(dim1=-2, dim2=-1).log().sum(-1)
     count = observed.sum(-1).to(nu.dtype)
     log_likelihood = -0.5 * (w.square().sum(-1) + count * math.log(2 * math.pi)) - half_logdet
-    return post_mean, symmetrize(post_cov), log_likelihood
+    out = post_mean, symmetrize(post_cov), log_likelihood
+    return (*out, singular) if with_flag else out
 
 
 def _condition_scalar(mean, cov, innovation, innovation_cov, cross_cov):
     """``m = 1``: the same update in closed form (``K = c / s``, ``P+ = P - c c^T / s``)."""
     nu = innovation[..., 0]
-    observed = nu == nu  # False where NaN (missing)
+    observed = torch.isfinite(nu)  # False where NaN or +-inf (missing)
     nu = torch.where(observed, nu, 0.0)
-    s = innovation_cov[..., 0, 0].clamp_min(torch.finfo(nu.dtype).tiny)
+    tiny = torch.finfo(nu.dtype).tiny
+    s_raw = innovation_cov[..., 0, 0]
+    s = s_raw.clamp_min(tiny)
     c = cross_cov[..., 0]
     gain = c * (observed / s).unsqueeze(-1)  # K = c / s, zero where missing
     post_mean = mean + gain * nu.unsqueeze(-1)
     post_cov = cov - gain.unsqueeze(-1) * c.unsqueeze(-2)  # P - K c^T (symmetrised below)
     log_likelihood = torch.where(observed, -0.5 * (nu * nu / s + s.log() + _LOG_2PI), 0.0)
-    return post_mean, symmetrize(post_cov), log_likelihood
+    return post_mean, symmetrize(post_cov), log_likelihood, observed & ~(s_raw > tiny)
 
 
 def cholesky_solve(L: Tensor, rhs: Tensor) -> Tensor:

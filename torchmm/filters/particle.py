@@ -49,7 +49,17 @@ from torchmm.filters.resampling import (
 )
 from torchmm.models.base import MeasurementModel, MotionModel, check_model_pair
 from torchmm.models.linear import LinearMeasurement, LinearMotion
+from torchmm.filters.linalg import cholesky
 from torchmm.multimodel.transition import ModeTransition
+from torchmm.validation import (
+    as_float,
+    as_int,
+    check_covariance,
+    check_filter_dtype,
+    check_measurement,
+    check_probabilities,
+    gaussian_batch,
+)
 
 __all__ = [
     "MultipleModelParticleFilter",
@@ -96,8 +106,7 @@ def sample_gaussian(belief: GaussianBelief, num_particles: int, *,
     Shapes:
         belief: mean ``(*B, n)``, cov ``(*B, n, n)`` -> ``(*B, Np, n)``
     """
-    if int(num_particles) < 1:
-        raise ValueError(f"num_particles: must be >= 1, got {num_particles}")
+    num_particles = as_int(num_particles, "num_particles", minimum=1)
     root = psd_sqrt(belief.cov)
     batch, n = belief.batch_shape, belief.state_dim
     eps = torch.randn(*batch, int(num_particles), n, dtype=belief.dtype, device=belief.device,
@@ -160,7 +169,8 @@ def propagate_particles(motion: MotionModel, particles: Tensor, *, u: Tensor | N
         if F.dim() == 2 and noise.shape == particles.shape:
             n = particles.shape[-1]
             # in place into the fresh noise tensor: one GEMM with beta = 1, no copy of the input
-            return noise.view(-1, n).addmm_(particles.reshape(-1, n), F.mT.contiguous()).view(particles.shape)
+            rows = particles.shape[:-1].numel()
+            return noise.view(rows, n).addmm_(particles.reshape(rows, n), F.mT.contiguous()).view(particles.shape)
         return particles @ F.mT + noise
     out = motion(particles.movedim(-2, 0), u=None if u is None else u.unsqueeze(0)).movedim(0, -2)
     return out + noise
@@ -186,8 +196,11 @@ def _sum_squares(x: Tensor) -> Tensor:
 
 
 def _whitening(cov: Tensor) -> tuple[Tensor, Tensor]:
-    """``(L^{-1}, log det cov)`` with ``L L^T = cov``. Shapes: ``(..., m, m)`` -> same, ``(...)``."""
-    chol = torch.linalg.cholesky(cov)
+    """``(L^{-1}, log det cov)`` with ``L L^T = cov``. Shapes: ``(..., m, m)`` -> same, ``(...)``.
+
+    The factor is :func:`~torchmm.filters.linalg.cholesky` (never raises; regularised where
+    ``cov`` is not numerically positive definite)."""
+    chol = cholesky(cov)
     eye = torch.eye(cov.shape[-1], dtype=cov.dtype, device=cov.device)
     inv = torch.linalg.solve_triangular(chol, eye.expand_as(chol), upper=False)
     return inv, 2 * chol.diagonal(dim1=-2, dim2=-1).log().sum(-1)
@@ -229,7 +242,7 @@ def _particle_log_likelihood(measurement: MeasurementModel, z: Tensor, particles
     Shapes:
         z: ``(*B, m)`` (NaN = missing); particles ``(*B, Np, n)`` -> ``(*B, Np)``, ``(*B, Np, m)``
     """
-    missing = torch.isnan(z)
+    missing = ~torch.isfinite(z)
     any_missing = bool(missing.any())
     if (not need_predicted and not state_dependent_noise and not any_missing
             and isinstance(measurement, LinearMeasurement) and measurement.H.dim() == 2):
@@ -258,6 +271,47 @@ def _check_noise_dtype(noise_dtype):
     if not isinstance(noise_dtype, torch.dtype) or not noise_dtype.is_floating_point:
         raise ValueError(f"noise_dtype: expected a floating-point torch dtype (e.g. torch.float32), got {noise_dtype!r}")
     return noise_dtype
+
+
+def _check_generator(generator):
+    if generator is not None and not isinstance(generator, torch.Generator):
+        raise TypeError(f"generator: expected a torch.Generator or None, got {type(generator).__name__}")
+    return generator
+
+
+def _check_likelihood_noise(measurement: MeasurementModel) -> None:
+    """The particle weights need a positive definite measurement noise (a singular ``R`` makes the
+    likelihood a point mass)."""
+    try:
+        cov = measurement.noise_cov()
+    except (TypeError, ValueError, RuntimeError):
+        return  # state-dependent by construction: checked when evaluated
+    if isinstance(cov, Tensor):
+        check_covariance(cov, "measurement.R", definite=True)
+
+
+def _check_prior(filter: Filter, belief) -> None:
+    """Entry-point checks of the Gaussian prior particles are drawn from."""
+    if not isinstance(belief, GaussianBelief):
+        raise TypeError(f"belief: expected a GaussianBelief prior to sample from, got {type(belief).__name__}")
+    gaussian_batch(belief, filter.motion.state_dim)
+    belief.validate("belief")
+    check_filter_dtype(filter, belief, "belief")
+
+
+def _particle_batch(belief, state_dim: int, name: str = "belief") -> torch.Size:
+    """Batch shape of a particle belief, checked against the state dimension (shapes only)."""
+    if not isinstance(belief, ParticleBelief):
+        raise TypeError(f"{name}: expected a ParticleBelief, got {type(belief).__name__}")
+    if belief.particles.shape[-1] != state_dim:
+        raise ValueError(f"{name}: particles have state dimension {belief.particles.shape[-1]}, the model "
+                         f"{state_dim}")
+    return belief.log_weights.shape[:-1]
+
+
+def _no_datum(z: Tensor) -> Tensor:
+    """``(*B,)`` True where every component of ``z`` is missing (non-finite)."""
+    return ~torch.isfinite(z).any(-1)
 
 
 def _guard(log_evidence: Tensor, where: str) -> Tensor:
@@ -323,16 +377,22 @@ class ParticleFilter(Filter):
         check_model_pair(motion, measurement)
         if resampling not in RESAMPLING_SCHEMES:
             raise ValueError(f"resampling: expected one of {sorted(RESAMPLING_SCHEMES)}, got {resampling!r}")
-        if not ess_threshold >= 0:
-            raise ValueError(f"ess_threshold: must be >= 0, got {ess_threshold}")
-        if num_particles is not None and int(num_particles) < 1:
-            raise ValueError(f"num_particles: must be >= 1, got {num_particles}")
+        ess_threshold = as_float(ess_threshold, "ess_threshold", minimum=0.0)
+        if num_particles is not None:
+            num_particles = as_int(num_particles, "num_particles", minimum=1)
         self.motion, self.measurement = motion, measurement
-        self.resampling, self.ess_threshold = resampling, float(ess_threshold)
-        self.num_particles = None if num_particles is None else int(num_particles)
-        self.generator = generator
+        self.resampling, self.ess_threshold = resampling, ess_threshold
+        self.num_particles = num_particles
+        self.generator = _check_generator(generator)
         self.state_dependent_noise = bool(state_dependent_noise)
         self.noise_dtype = _check_noise_dtype(noise_dtype)
+        if not self.state_dependent_noise:
+            _check_likelihood_noise(measurement)
+
+    def check_bank_member(self, name: str, num_modes: int) -> None:
+        if self.num_particles is None and num_modes > 1:
+            raise ValueError(f"{name}: a ParticleFilter inside IMM/GPB needs num_particles= (mixing merges the "
+                             "M particle sets into M * Np particles; the filter resamples back to num_particles)")
 
     def initial_belief(self, belief: GaussianBelief, num_particles: int | None = None) -> ParticleBelief:
         """Sample a particle belief from a Gaussian prior (uniform weights).
@@ -340,16 +400,16 @@ class ParticleFilter(Filter):
         Shapes:
             belief: batch ``(*B,)`` -> particles ``(*B, Np, n)``
         """
-        num = num_particles or self.num_particles
+        num = self.num_particles if num_particles is None else as_int(num_particles, "num_particles", minimum=1)
         if num is None:
             raise ValueError("num_particles: give it here or to the filter")
+        _check_prior(self, belief)
         particles = sample_gaussian(belief, num, generator=self.generator)
         log_w = torch.full(particles.shape[:-1], -math.log(num), dtype=particles.dtype, device=particles.device)
         return ParticleBelief(particles, log_w)
 
     def predict(self, belief: ParticleBelief, *, u: Tensor | None = None) -> ParticleBelief:
-        if not isinstance(belief, ParticleBelief):
-            raise ValueError(f"belief: expected a ParticleBelief, got {type(belief).__name__}")
+        _particle_batch(belief, self.motion.state_dim)
         if self.num_particles is not None and belief.num_particles != self.num_particles:
             indices = resample(belief.log_weights, self.resampling, self.num_particles, generator=self.generator)
             belief = apply_indices(belief, indices)
@@ -359,14 +419,15 @@ class ParticleFilter(Filter):
         return ParticleBelief(particles, log_w)
 
     def update(self, belief: ParticleBelief, z: Tensor) -> StepOutput:
-        if not isinstance(belief, ParticleBelief):
-            raise ValueError(f"belief: expected a ParticleBelief, got {type(belief).__name__}")
+        z = check_measurement(z, self.measurement.meas_dim, _particle_batch(belief, self.motion.state_dim),
+                              belief.particles)
         prior_log_w = normalize_log_probs(belief.log_weights)
         loglik, predicted = _particle_log_likelihood(self.measurement, z, belief.particles,
                                                      self.state_dependent_noise)
         loglik = torch.where(torch.isnan(loglik), -math.inf, loglik)
         joint = prior_log_w + loglik
         log_evidence = torch.logsumexp(joint, dim=-1)
+        log_evidence = torch.where(_no_datum(z), 0.0, log_evidence)  # exactly 0 without a datum
         degenerate = _guard(log_evidence, "ParticleFilter.update")
         post_log_w = torch.where(degenerate.unsqueeze(-1), prior_log_w, joint - log_evidence.unsqueeze(-1))
         posterior = ParticleBelief(belief.particles, post_log_w)
@@ -533,13 +594,19 @@ class MultipleModelParticleFilter(Filter):
         check_model_pair(motion, measurement)
         if mixing not in _INVERSE_CDF_SCHEMES:
             raise ValueError(f"mixing: expected one of {_INVERSE_CDF_SCHEMES}, got {mixing!r}")
-        if int(num_particles) < 1:
-            raise ValueError(f"num_particles: must be >= 1, got {num_particles}")
+        num_particles = as_int(num_particles, "num_particles", minimum=1)
         self.motion, self.measurement = motion, measurement
-        self.transition = transition if isinstance(transition, ModeTransition) else ModeTransition(transition)
+        if isinstance(transition, ModeTransition):
+            self.transition = transition
+        else:
+            try:
+                self.transition = ModeTransition(transition)
+            except ValueError as err:
+                raise ValueError(f"transition: {str(err).removeprefix('matrix: ')}") from None
         self.num_modes = self.transition.num_modes
-        self.num_particles = int(num_particles)
-        self.mixing, self.generator = mixing, generator
+        self.num_particles = num_particles
+        self.mixing, self.generator = mixing, _check_generator(generator)
+        _check_likelihood_noise(measurement)
         self.innovation_stats = bool(innovation_stats)
         self.noise_dtype = _check_noise_dtype(noise_dtype)
         self._check_motion()
@@ -556,6 +623,7 @@ class MultipleModelParticleFilter(Filter):
             belief: batch ``(*B,)``; mode_probs ``(M,)`` or ``(*B, M)``, default uniform
             -> :class:`ModeBelief` with components of batch ``(*B, M)``
         """
+        _check_prior(self, belief)
         M, batch = self.num_modes, belief.batch_shape
         expanded = belief.unsqueeze(-1).expand(*batch, M)
         particles = sample_gaussian(expanded, self.num_particles, generator=self.generator)
@@ -564,10 +632,12 @@ class MultipleModelParticleFilter(Filter):
         if mode_probs is None:
             log_probs = torch.full((*batch, M), -math.log(M), dtype=belief.dtype, device=belief.device)
         else:
-            probs = torch.as_tensor(mode_probs, dtype=belief.dtype, device=belief.device)
-            if probs.shape[-1] != M or bool((probs < 0).any()) or bool(((probs.sum(-1) - 1).abs() > 1e-6).any()):
-                raise ValueError(f"mode_probs: expected non-negative probabilities over {M} modes summing to 1")
-            log_probs = probs.log().expand(*batch, M)
+            probs = check_probabilities(mode_probs, "mode_probs", M, dtype=belief.dtype, device=belief.device)
+            try:
+                log_probs = probs.log().expand(*batch, M)
+            except RuntimeError:
+                raise ValueError(f"mode_probs: shape {tuple(probs.shape)} does not broadcast to the belief's "
+                                 f"batch {tuple(batch)} x {M} modes") from None
         return ModeBelief(log_probs, ParticleBelief(particles, log_w))
 
     def _propagate(self, particles: Tensor, *, u: Tensor | None, log_cbar: Tensor) -> Tensor:
@@ -575,7 +645,19 @@ class MultipleModelParticleFilter(Filter):
         return propagate_particles(self.motion, particles, u=None if u is None else u.unsqueeze(-2),
                                    generator=self.generator, noise_dtype=self.noise_dtype)
 
+    def _check_belief(self, belief) -> torch.Size:
+        """Batch ``(*B,)`` of a per-model particle belief, checked (shapes only)."""
+        if not isinstance(belief, ModeBelief) or not isinstance(belief.components, ParticleBelief):
+            raise TypeError(f"belief: expected a ModeBelief over per-model particle sets (from initial_belief), "
+                            f"got {type(belief).__name__}")
+        comps = belief.components
+        if comps.particles.dim() < 3 or comps.particles.shape[-3] != self.num_modes:
+            raise ValueError(f"belief: particles {tuple(comps.particles.shape)} must be (*B, {self.num_modes}, Np, n)")
+        _particle_batch(comps, self.motion.state_dim)
+        return belief.mode_log_probs.shape[:-1]
+
     def predict(self, belief: ModeBelief, *, u: Tensor | None = None) -> ModeBelief:
+        self._check_belief(belief)
         comps = belief.components
         mode_log_probs = normalize_log_probs(belief.mode_log_probs)
         flat, log_cbar = mixing_indices(mode_log_probs, self.transition.log_matrix(), comps.log_weights,
@@ -584,8 +666,8 @@ class MultipleModelParticleFilter(Filter):
         source = comps.particles.expand(*batch, *comps.particles.shape[-3:])
         n, per_run = source.shape[-1], source.shape[-3] * source.shape[-2]
         # one row gather over all runs: index into the (runs * M * Np_prev, n) particle table
-        runs = torch.arange(flat[..., 0, 0].numel(), device=flat.device).view(*batch, 1, 1) * per_run
-        ancestors = torch.index_select(source.reshape(-1, n), 0, (flat + runs).view(-1))
+        runs = torch.arange(batch.numel(), device=flat.device).view(*batch, 1, 1) * per_run
+        ancestors = torch.index_select(source.reshape(source.shape[:-1].numel(), n), 0, (flat + runs).reshape(-1))
         ancestors = ancestors.view(*batch, self.num_modes, self.num_particles, n)
         particles = self._propagate(ancestors, u=u, log_cbar=log_cbar)
         # uniform within-model weights as a broadcast view (no memory; `_weigh` recognises it)
@@ -614,6 +696,7 @@ class MultipleModelParticleFilter(Filter):
             joint = (prior_within + prior_mode.unsqueeze(-1)) + loglik  # (33), unnormalised
         per_model = torch.logsumexp(joint, dim=-1)
         log_evidence = torch.logsumexp(per_model, dim=-1)
+        log_evidence = torch.where(_no_datum(z), 0.0, log_evidence)  # exactly 0 without a datum
         degenerate = _guard(log_evidence, type(self).__name__)
         if bool(degenerate.any()):
             keep = degenerate[..., None, None]
@@ -622,6 +705,7 @@ class MultipleModelParticleFilter(Filter):
         return joint, per_model, log_evidence, degenerate, predicted, prior_within, prior_mode
 
     def update(self, belief: ModeBelief, z: Tensor) -> StepOutput:
+        z = check_measurement(z, self.measurement.meas_dim, self._check_belief(belief), belief.components.particles)
         joint, per_model, log_evidence, degenerate, predicted, prior_within, prior_mode = self._weigh(belief, z)
         safe_ev = torch.where(degenerate, torch.zeros_like(log_evidence), log_evidence)
         mode_log_probs = per_model - safe_ev.unsqueeze(-1)  # (34) summed over particles

@@ -18,10 +18,11 @@ import math
 import torch
 from torch import Tensor
 
-from torchmm.beliefs import GaussianBelief, symmetrize
+from torchmm.beliefs import GaussianBelief, psd_sqrt, symmetrize
 from torchmm.filters.base import Filter, StepOutput
 from torchmm.filters.linalg import condition
 from torchmm.models.base import MeasurementModel, MotionModel, check_model_pair
+from torchmm.validation import as_float, check_measurement, gaussian_batch
 
 __all__ = [
     "CubatureSigmaPoints",
@@ -47,15 +48,21 @@ class SigmaPointStrategy:
     def include_center(self) -> bool:
         return True
 
+    def check(self, n: int) -> None:
+        """Raise ``ValueError`` if the rule is not defined for state dimension ``n``."""
+        self.spread(n)
+
     def points(self, mean: Tensor, cov: Tensor) -> Tensor:
-        """Sigma points. Shapes: ``mean (*B, n)``, ``cov (*B, n, n)`` -> ``(S, *B, n)``."""
+        """Sigma points. Shapes: ``mean (*B, n)``, ``cov (*B, n, n)`` -> ``(S, *B, n)``.
+
+        The square root is the Cholesky factor, or for a covariance that is not numerically
+        positive definite (singular, or indefinite by rounding) the eigen-factor with negative
+        eigenvalues clamped to 0 (:func:`~torchmm.beliefs.psd_sqrt`); a non-finite covariance
+        gives non-finite points for that batch element only.
+        """
         n = mean.shape[-1]
         batch = torch.broadcast_shapes(mean.shape[:-1], cov.shape[:-2])
-        chol, info = torch.linalg.cholesky_ex(symmetrize(cov))
-        if bool((info != 0).any()):
-            eigvals, eigvecs = torch.linalg.eigh(symmetrize(cov))
-            chol = eigvecs * eigvals.clamp_min(0).sqrt().unsqueeze(-2)
-        chol = chol.expand(*batch, n, n)
+        chol = psd_sqrt(symmetrize(cov)).expand(*batch, n, n)
         offsets = math.sqrt(self.spread(n)) * chol.movedim(-1, 0)  # (n, *B, n): columns of L
         mean = mean.expand(*batch, n).unsqueeze(0).expand(n, *batch, n)
         parts = [mean + offsets, mean - offsets]
@@ -68,22 +75,23 @@ class MerweScaledSigmaPoints(SigmaPointStrategy):
     """Van der Merwe's scaled sigma points (``lambda = alpha^2 (n + kappa) - n``)."""
 
     def __init__(self, alpha: float = 1.0, beta: float = 2.0, kappa: float = 0.0):
-        if alpha <= 0:
-            raise ValueError(f"alpha: must be positive, got {alpha}")
-        self.alpha, self.beta, self.kappa = alpha, beta, kappa
+        self.alpha = as_float(alpha, "alpha", positive=True)
+        self.beta = as_float(beta, "beta")
+        self.kappa = as_float(kappa, "kappa")
 
     def _lambda(self, n: int) -> float:
         return self.alpha**2 * (n + self.kappa) - n
 
     def spread(self, n: int) -> float:
         c = n + self._lambda(n)
-        if c <= 0:
-            raise ValueError(f"alpha, kappa: n + lambda = {c} must be positive")
+        if not c > 0:
+            raise ValueError(f"alpha, kappa: n + lambda = alpha^2 (n + kappa) = {c:g} must be positive for "
+                             f"state dimension n = {n} (alpha={self.alpha:g}, kappa={self.kappa:g})")
         return c
 
     def weights(self, n, dtype, device):
-        lam = self._lambda(n)
-        c = n + lam
+        c = self.spread(n)
+        lam = c - n
         wm = torch.full((2 * n + 1,), 0.5 / c, dtype=dtype, device=device)
         wc = wm.clone()
         wm[0] = lam / c
@@ -95,15 +103,15 @@ class JulierSigmaPoints(SigmaPointStrategy):
     """Julier's original sigma points with weight ``kappa / (n + kappa)`` at the centre."""
 
     def __init__(self, kappa: float = 0.0):
-        self.kappa = kappa
+        self.kappa = as_float(kappa, "kappa")
 
     def spread(self, n: int) -> float:
-        if n + self.kappa <= 0:
-            raise ValueError(f"kappa: n + kappa = {n + self.kappa} must be positive")
+        if not n + self.kappa > 0:
+            raise ValueError(f"kappa: n + kappa = {n + self.kappa:g} must be positive for state dimension n = {n}")
         return n + self.kappa
 
     def weights(self, n, dtype, device):
-        c = n + self.kappa
+        c = self.spread(n)
         w = torch.full((2 * n + 1,), 0.5 / c, dtype=dtype, device=device)
         w[0] = self.kappa / c
         return w, w.clone()
@@ -132,27 +140,52 @@ def _weighted_moments(points: Tensor, wm: Tensor) -> tuple[Tensor, Tensor]:
 
 
 class UnscentedKalmanFilter(Filter):
-    """Unscented Kalman filter.
+    r"""Unscented Kalman filter.
+
+    The covariance update is the sigma-point Joseph form
+
+    .. math::
+        P^+ = \textstyle\sum_s W^c_s\,(\mathcal X_s - x^- - K(\mathcal Z_s - \hat z))(\cdot)^\top + K R K^\top,
+
+    algebraically ``P^- - K S K^T`` but a sum of PSD terms whenever the covariance weights are
+    non-negative (the default points, Julier's with ``kappa >= 0``, cubature), so the posterior
+    stays symmetric PSD also in float32 with an accurate sensor (``P^- - K S K^T`` cancels there).
 
     Args:
         motion: any :class:`~torchmm.models.MotionModel`.
         measurement: any :class:`~torchmm.models.MeasurementModel`.
-        sigma_points: a :class:`SigmaPointStrategy`; default :class:`MerweScaledSigmaPoints`.
+        sigma_points: a :class:`SigmaPointStrategy`; default :class:`MerweScaledSigmaPoints`
+            (checked for the model's state dimension here).
 
     Shapes:
-        as :class:`~torchmm.filters.ExtendedKalmanFilter`.
+        as :class:`~torchmm.filters.ExtendedKalmanFilter` (``extras["singular"]`` likewise).
     """
 
     def __init__(self, motion: MotionModel, measurement: MeasurementModel,
                  sigma_points: SigmaPointStrategy | None = None):
         super().__init__()
         check_model_pair(motion, measurement)
+        if sigma_points is not None and not isinstance(sigma_points, SigmaPointStrategy):
+            raise TypeError(f"sigma_points: expected a SigmaPointStrategy, got {type(sigma_points).__name__}")
         self.motion = motion
         self.measurement = measurement
         self.sigma_points = sigma_points or MerweScaledSigmaPoints()
+        try:
+            self.sigma_points.check(motion.state_dim)
+        except ValueError as err:
+            raise ValueError(f"sigma_points: {err}") from None
+
+    @property
+    def state_dim(self) -> int:
+        return self.motion.state_dim
+
+    @property
+    def meas_dim(self) -> int:
+        return self.measurement.meas_dim
 
     def predict(self, belief: GaussianBelief, *, u: Tensor | None = None) -> GaussianBelief:
         n = belief.state_dim
+        gaussian_batch(belief, self.state_dim)
         wm, wc = self.sigma_points.weights(n, belief.dtype, belief.device)
         points = self.sigma_points.points(belief.mean, belief.cov)
         propagated = self.motion(points, u=None if u is None else u.unsqueeze(0))
@@ -164,18 +197,29 @@ class UnscentedKalmanFilter(Filter):
 
     def update(self, belief: GaussianBelief, z: Tensor) -> StepOutput:
         n = belief.state_dim
+        z = check_measurement(z, self.meas_dim, gaussian_batch(belief, self.state_dim), belief.mean)
         wm, wc = self.sigma_points.weights(n, belief.dtype, belief.device)
         points = self.sigma_points.points(belief.mean, belief.cov)
         predicted = self.measurement(points)
         z_pred, z_dev = _weighted_moments(predicted, wm)
         x_dev = points - belief.mean
         shape = (-1,) + (1,) * (z_dev.dim() - 1)
-        weighted = wc.reshape(shape) * z_dev
-        innovation_cov = torch.einsum("s...i,s...j->...ij", weighted, z_dev)
-        innovation_cov = innovation_cov + self.measurement.noise_cov(belief.mean)
+        wc = wc.reshape(shape)
+        weighted = wc * z_dev
+        R = self.measurement.noise_cov(belief.mean)
+        innovation_cov = torch.einsum("s...i,s...j->...ij", weighted, z_dev) + R
         cross_cov = torch.einsum("s...i,s...j->...ij", x_dev, weighted)
         innovation = z - z_pred
-        mean, cov, log_likelihood = condition(
-            belief.mean, belief.cov, innovation, symmetrize(innovation_cov), cross_cov
+
+        def joseph(gain: Tensor) -> Tensor:
+            # sum_s W_s (dx_s - K dz_s)(dx_s - K dz_s)^T + K R K^T  (= P - K S K^T)
+            err = x_dev - (gain @ z_dev.unsqueeze(-1)).squeeze(-1)
+            spread = torch.einsum("s...i,s...j->...ij", wc * err, err)
+            return spread + gain @ R @ gain.mT
+
+        mean, cov, log_likelihood, singular = condition(
+            belief.mean, belief.cov, innovation, symmetrize(innovation_cov), cross_cov,
+            posterior_cov=joseph, with_flag=True,
         )
-        return StepOutput(GaussianBelief(mean, cov), belief, log_likelihood, innovation, innovation_cov)
+        return StepOutput(GaussianBelief(mean, cov), belief, log_likelihood, innovation, innovation_cov,
+                          {"singular": singular})

@@ -51,7 +51,15 @@ from torchmm.filters.base import Filter, StepOutput
 from torchmm.filters.kalman import KalmanFilter
 from torchmm.filters.linalg import cholesky, cholesky_solve, condition
 from torchmm.models.linear import LinearMeasurement, LinearMotion, matvec
-from torchmm.validation import as_tensor
+from torchmm.validation import (
+    as_float,
+    as_int,
+    as_tensor,
+    check_covariance,
+    check_measurement,
+    check_shape,
+    gaussian_batch,
+)
 
 __all__ = [
     "VBAKFPR",
@@ -103,7 +111,7 @@ def wishart_kl(dof_q: float, scale_q: Tensor, dof_p: float, scale_p: Tensor) -> 
         scale_q, scale_p: ``(*B, n, n)`` -> ``(*B,)``
     """
     n = scale_q.shape[-1]
-    Lq, Lp = torch.linalg.cholesky(scale_q), torch.linalg.cholesky(scale_p)
+    Lq, Lp = cholesky(scale_q), cholesky(scale_p)
     logdet_q = 2 * Lq.diagonal(dim1=-2, dim2=-1).log().sum(-1)
     logdet_p = 2 * Lp.diagonal(dim1=-2, dim2=-1).log().sum(-1)
     trace = torch.cholesky_solve(scale_p, Lq).diagonal(dim1=-2, dim2=-1).sum(-1)
@@ -118,7 +126,7 @@ def wishart_kl(dof_q: float, scale_q: Tensor, dof_p: float, scale_p: Tensor) -> 
 
 def _gaussian_entropy(cov: Tensor) -> Tensor:
     n = cov.shape[-1]
-    L = torch.linalg.cholesky(cov)
+    L = cholesky(cov)
     return 0.5 * n * (_LOG_2PI + 1.0) + L.diagonal(dim1=-2, dim2=-1).log().sum(-1)
 
 
@@ -150,22 +158,19 @@ def _check_linear(motion, measurement) -> None:
 
 
 def _iterations(value) -> int:
-    value = int(value)
-    if value < 1:
-        raise ValueError(f"iterations: must be >= 1, got {value}")
-    return value
+    return as_int(value, "iterations", minimum=1)
 
 
 def _fill_missing(z: Tensor, z_pred: Tensor) -> tuple[Tensor, Tensor]:
-    """Runs whose measurement has a NaN are skipped: ``(mask (*B,), z with the prediction filled in)``."""
-    missing = torch.isnan(z).any(-1)
-    z = torch.where(torch.isnan(z), z_pred, z)
+    """Runs whose measurement has a non-finite component (NaN = missing, or +-inf) are skipped:
+    ``(mask (*B,), z with the prediction filled in)``."""
+    finite = torch.isfinite(z)
+    missing = ~finite.all(-1)
+    z = torch.where(finite, z, z_pred)
     return missing, z
 
 
 def _keep_prior(missing: Tensor, prior: GaussianBelief, mean: Tensor, cov: Tensor, loglik: Tensor):
-    if not bool(missing.any()):
-        return mean, cov, loglik
     mean = torch.where(missing.unsqueeze(-1), prior.mean, mean)
     cov = torch.where(missing[..., None, None], prior.cov, cov)
     return mean, cov, torch.where(missing, torch.zeros_like(loglik), loglik)
@@ -188,6 +193,11 @@ class _LinearVBFilter(Filter):
     def predict(self, belief: GaussianBelief, *, u: Tensor | None = None) -> GaussianBelief:
         """Kalman time update with the nominal ``Q``: ``x- = F x``, ``P~ = F P F^T + Q``."""
         return self.kalman.predict(belief, u=u)
+
+    def _measurement(self, belief: GaussianBelief, z) -> Tensor:
+        """``z`` checked against the sensor and the belief (shapes only)."""
+        return check_measurement(z, self.measurement.meas_dim, gaussian_batch(belief, self.motion.state_dim),
+                                 belief.mean)
 
 
 # -- Student-t VB (IMM-VBT mode filter) ----------------------------------------------------------------
@@ -228,12 +238,14 @@ class StudentTVBFilter(_LinearVBFilter):
     def __init__(self, motion, measurement, df: float = 5.0, iterations: int = 10,
                  elbo_history: bool = False):
         super().__init__(motion, measurement, iterations)
+        check_covariance(measurement.R, "measurement.R", definite=True)  # R^{-1} enters D
         self.elbo_history = bool(elbo_history)
         df = as_tensor(df, "df", dtype=measurement.R.dtype, device=measurement.R.device)
         _check_positive(df, "df")
         self.register_buffer("df", df)
 
     def update(self, belief: GaussianBelief, z: Tensor) -> StepOutput:
+        z = self._measurement(belief, z)
         H, R = self.measurement.H, self.measurement.R
         m, n = R.shape[-1], belief.mean.shape[-1]
         z_pred = matvec(H, belief.mean)
@@ -246,12 +258,15 @@ class StudentTVBFilter(_LinearVBFilter):
         Eu = torch.ones(z.shape[:-1], dtype=z.dtype, device=z.device)
         a = 0.5 * (nu + m)
         half_logdet_R = L_R.diagonal(dim1=-2, dim2=-1).log().sum(-1)
-        L_prior = torch.linalg.cholesky(belief.cov)
+        L_prior = cholesky(belief.cov)
         elbos = []
         history = self.elbo_history or log.isEnabledFor(logging.DEBUG)
+        singular = torch.zeros(z.shape[:-1], dtype=torch.bool, device=z.device)
         for it in range(self.iterations):
-            S = HPH + R / Eu[..., None, None]
-            mean, cov, _ = condition(belief.mean, belief.cov, innovation, S, cross)
+            R_eff = R / Eu[..., None, None]
+            mean, cov, _, flag = condition(belief.mean, belief.cov, innovation, HPH + R_eff, cross,
+                                           joseph=(H, R_eff), with_flag=True)
+            singular = singular | flag
             resid = z - matvec(H, mean)
             quad = cholesky_solve(L_R, resid.unsqueeze(-1)).squeeze(-1).mul(resid).sum(-1)
             D = quad + cholesky_solve(L_R, H @ cov @ H.mT).diagonal(dim1=-2, dim2=-1).sum(-1)
@@ -259,7 +274,8 @@ class StudentTVBFilter(_LinearVBFilter):
             Eu = a / b
             if history or it == self.iterations - 1:
                 elbos.append(self._elbo(belief, mean, cov, a, b, D, half_logdet_R, L_prior, m, n))
-        extras = {"noise_cov": R / Eu[..., None, None], "predicted_cov": belief.cov.expand_as(cov)}
+        extras = {"noise_cov": R / Eu[..., None, None], "predicted_cov": belief.cov.expand_as(cov),
+                  "singular": singular}
         if history:
             extras["elbo"] = torch.stack(elbos, -1)
             log.debug("StudentTVBFilter ELBO per iteration (mean over batch): %s",
@@ -273,7 +289,7 @@ class StudentTVBFilter(_LinearVBFilter):
         Elog_u = torch.digamma(a) - torch.log(b)
         diff = (mean - prior.mean).unsqueeze(-1)
         # KL(N(mean, cov) || N(x-, P-))
-        Lc = torch.linalg.cholesky(cov)
+        Lc = cholesky(cov)
         kl_x = 0.5 * (
             torch.cholesky_solve(cov, L_prior).diagonal(dim1=-2, dim2=-1).sum(-1)
             + torch.cholesky_solve(diff, L_prior).mul(diff).sum((-1, -2)) - n
@@ -346,9 +362,7 @@ class SkewTIWVBFilter(_LinearVBFilter):
         delta = _diag_param(skewness, "skewness", m, R)
         nu = _diag_param(df, "df", m, R)
         _check_positive(nu, "df")
-        tau = float(tau)
-        if not tau > 0:
-            raise ValueError(f"tau: must be positive, got {tau}")
+        tau = as_float(tau, "tau", positive=True)
         if gamma_shape not in ("derived", "printed"):
             raise ValueError(f"gamma_shape: expected 'derived' or 'printed', got {gamma_shape!r}")
         self.register_buffer("r", r)
@@ -357,6 +371,7 @@ class SkewTIWVBFilter(_LinearVBFilter):
         self.tau, self.gamma_shape = tau, gamma_shape
 
     def update(self, belief: GaussianBelief, z: Tensor) -> StepOutput:
+        z = self._measurement(belief, z)
         H = self.measurement.H
         r, delta, nu, tau = self.r, self.delta, self.nu, self.tau
         n = belief.mean.shape[-1]
@@ -374,13 +389,16 @@ class SkewTIWVBFilter(_LinearVBFilter):
         mean, cov = x_pred, P_nom
         elbos = []
         history = self.elbo_history or log.isEnabledFor(logging.DEBUG)
+        singular = torch.zeros(z.shape[:-1], dtype=torch.bool, device=z.device)
         for it in range(self.iterations):
             diff = mean - x_pred
             T = T_prior + cov + diff.unsqueeze(-1) * diff.unsqueeze(-2)  # (28)
             P_hat = symmetrize(T / (t_q - n - 1))
             cross = P_hat @ H.mT
-            S = H @ cross + torch.diag_embed(r / lam)
-            mean, cov, _ = condition(x_pred, P_hat, z - z_pred - delta * Eu, S, cross)  # (29)-(31)
+            R_eff = torch.diag_embed(r / lam)
+            mean, cov, _, flag = condition(x_pred, P_hat, z - z_pred - delta * Eu, H @ cross + R_eff, cross,
+                                           joseph=(H, R_eff), with_flag=True)  # (29)-(31), Joseph form
+            singular = singular | flag
             resid = z - matvec(H, mean)
             u_loc = gain_u * resid  # (32)
             u_scale = (r / (delta.square() + r) / lam).sqrt()  # (33)
@@ -394,7 +412,7 @@ class SkewTIWVBFilter(_LinearVBFilter):
                                         shape_a, rate_b))
         noise_var = (r + delta.square() * (1 - 2 / math.pi)) / lam
         extras = {"predicted_cov": P_hat, "noise_cov": torch.diag_embed(noise_var), "precision": lam,
-                  "skew": Eu, "u_loc": u_loc, "u_scale": u_scale, "gamma_rate": rate_b}
+                  "skew": Eu, "u_loc": u_loc, "u_scale": u_scale, "gamma_rate": rate_b, "singular": singular}
         if history:
             extras["elbo"] = torch.stack(elbos, -1)
             log.debug("SkewTIWVBFilter ELBO per iteration (mean over batch): %s",
@@ -409,7 +427,7 @@ class SkewTIWVBFilter(_LinearVBFilter):
         n = x_pred.shape[-1]
         dof_q, dof_p = t_q - n - 1, tau  # standard IW degrees of freedom (module doc)
         # E_q[ln N(x; x-, P)] with E[P^-1] = dof_q T^-1, E[ln|P|] = ln|T| - n ln 2 - psi_n(dof_q/2)
-        L_T = torch.linalg.cholesky(T)
+        L_T = cholesky(T)
         logdet_T = 2 * L_T.diagonal(dim1=-2, dim2=-1).log().sum(-1)
         diff = (mean - x_pred).unsqueeze(-1)
         A = cov + diff @ diff.mT
@@ -476,6 +494,7 @@ class SkewTVBFilter(_LinearVBFilter):
         self.register_buffer("nu", nu)
 
     def update(self, belief: GaussianBelief, z: Tensor) -> StepOutput:
+        z = self._measurement(belief, z)
         H, r, delta, nu = self.measurement.H, self.r, self.delta, self.nu
         n, m = belief.mean.shape[-1], r.shape[-1]
         x_pred, P_pred = belief.mean, belief.cov
@@ -488,21 +507,28 @@ class SkewTVBFilter(_LinearVBFilter):
         xi_prior = torch.cat([x_pred.expand(*batch, n), u_prior], -1)
         lam = torch.ones(*batch, m, dtype=z.dtype, device=z.device)
         zeros = torch.zeros(n + m, n + m, dtype=z.dtype, device=z.device)
+        eye = torch.eye(n + m, dtype=z.dtype, device=z.device)
+        singular = torch.zeros(batch, dtype=torch.bool, device=z.device)
         for _ in range(self.iterations):
             Sigma_prior = zeros.expand(*batch, n + m, n + m).clone()
             Sigma_prior[..., :n, :n] = P_pred
             Sigma_prior[..., n:, n:] = torch.diag_embed(1.0 / lam)
             cross = Sigma_prior @ A.mT
-            S = A @ cross + torch.diag_embed(r / lam)
-            xi, Sigma, loglik = condition(xi_prior, Sigma_prior, z - z_pred, S, cross)
+            R_eff = torch.diag_embed(r / lam)
+            xi, Sigma, loglik, flag = condition(xi_prior, Sigma_prior, z - z_pred, A @ cross + R_eff, cross,
+                                                joseph=(A, R_eff), with_flag=True)
+            singular = singular | flag
             for i in range(m):  # sequential truncation u_i >= 0 (a loop over measurement coordinates)
                 j = n + i
                 var_j = Sigma[..., j, j].clamp_min(torch.finfo(z.dtype).tiny)
                 t_mean, t_var = truncated_normal_moments(xi[..., j], var_j.sqrt())
                 g = Sigma[..., :, j] / var_j.unsqueeze(-1)
                 xi = xi + g * (t_mean - xi[..., j]).unsqueeze(-1)
-                shrink = (t_var - var_j)[..., None, None]
-                Sigma = symmetrize(Sigma + g.unsqueeze(-1) * g.unsqueeze(-2) * shrink)
+                # Sigma - g g^T (var_j - t_var) as the product A Sigma A^T, A = I - a g e_j^T with
+                # a = 1 - sqrt(t_var / var_j): PSD by construction (no cancellation in float32)
+                a = 1 - (t_var / var_j).clamp(0.0, 1.0).sqrt()
+                Aj = eye - (a.unsqueeze(-1) * g).unsqueeze(-1) * eye[j]
+                Sigma = symmetrize(Aj @ Sigma @ Aj.mT)
             resid = z - (A @ xi.unsqueeze(-1)).squeeze(-1)
             Er = resid.square() + (A @ Sigma @ A.mT).diagonal(dim1=-2, dim2=-1)
             Eu2 = Sigma[..., n:, n:].diagonal(dim1=-2, dim2=-1) + xi[..., n:].square()
@@ -514,7 +540,7 @@ class SkewTVBFilter(_LinearVBFilter):
             GaussianBelief(mean, cov), belief, loglik, z - z_pred,
             H @ P_pred @ H.mT + torch.diag_embed(noise_var),
             extras={"noise_cov": torch.diag_embed(noise_var), "predicted_cov": P_pred.expand(*batch, n, n),
-                    "precision": lam, "skew": xi[..., n:]},
+                    "precision": lam, "skew": xi[..., n:], "singular": singular},
         )
 
 
@@ -534,6 +560,24 @@ class AdaptiveGaussianBelief(Belief):
     r_scale: Tensor
 
     event_dims: ClassVar[dict[str, int]] = {"mean": 1, "cov": 2, "r_dof": 0, "r_scale": 2}
+
+    def __post_init__(self):
+        mean, cov, scale = self.mean, self.cov, self.r_scale
+        if mean.dim() < 1 or cov.dim() < 2 or cov.shape[-2:] != (mean.shape[-1], mean.shape[-1]):
+            raise ValueError(f"cov: expected shape (*B, n, n) for mean (*B, n); got mean {tuple(mean.shape)}, "
+                             f"cov {tuple(cov.shape)}")
+        if scale.dim() < 2 or scale.shape[-1] != scale.shape[-2]:
+            raise ValueError(f"r_scale: expected shape (*B, m, m), got {tuple(scale.shape)}")
+
+    def validate(self, name: str = "belief") -> AdaptiveGaussianBelief:
+        """Finite fields, PSD ``cov``, positive definite ``r_scale`` and ``r_dof > m + 1``."""
+        super().validate(name)
+        check_covariance(self.cov, f"{name}.cov")
+        check_covariance(self.r_scale, f"{name}.r_scale", definite=True)
+        m = self.r_scale.shape[-1]
+        if bool((self.r_dof.detach() <= m + 1).any()):
+            raise ValueError(f"{name}.r_dof: must exceed m + 1 = {m + 1} (a proper inverse-Wishart mean)")
+        return self
 
     @property
     def state_dim(self) -> int:
@@ -591,11 +635,9 @@ class VBAKFPR(Filter):
         super().__init__()
         _check_linear(motion, measurement)
         self.motion, self.measurement = motion, measurement
-        self.tau, self.rho, self.tau_r = float(tau), float(rho), float(tau_r)
-        if not self.tau > 0 or not self.tau_r > 0:
-            raise ValueError("tau: tau and tau_r must be positive")
-        if not 0 < self.rho <= 1:
-            raise ValueError(f"rho: must be in (0, 1], got {rho}")
+        self.tau = as_float(tau, "tau", positive=True)
+        self.tau_r = as_float(tau_r, "tau_r", positive=True)
+        self.rho = as_float(rho, "rho", positive=True, maximum=1.0)
         self.iterations = _iterations(iterations)
 
     def initial_belief(self, belief: GaussianBelief, R0: Tensor | None = None) -> AdaptiveGaussianBelief:
@@ -604,16 +646,21 @@ class VBAKFPR(Filter):
         Shapes:
             belief batch ``(*B,)``; R0 ``(m, m)`` or ``(*B, m, m)`` -> batch ``(*B,)``
         """
+        belief.validate("belief")
+        m = self.measurement.meas_dim
         if R0 is None:
             R0 = self.measurement.R
         else:
             R0 = as_tensor(R0, "R0", dtype=belief.dtype, device=belief.device)
-        m = R0.shape[-1]
-        batch = belief.batch_shape
+            check_shape(R0, "R0", (m, m))
+        check_covariance(R0, "R0", definite=True)
+        batch = gaussian_batch(belief, self.motion.state_dim)
         dof = torch.full(batch, m + 1 + self.tau_r, dtype=belief.dtype, device=belief.device)
         return AdaptiveGaussianBelief(belief.mean, belief.cov, dof, (self.tau_r * R0).expand(*batch, m, m))
 
     def predict(self, belief: AdaptiveGaussianBelief, *, u: Tensor | None = None) -> AdaptiveGaussianBelief:
+        _check_adaptive(belief)
+        gaussian_batch(belief, self.motion.state_dim)
         F = self.motion.F
         m = belief.r_scale.shape[-1]
         mean = self.motion(belief.mean, u=u)
@@ -622,6 +669,9 @@ class VBAKFPR(Filter):
         return AdaptiveGaussianBelief(mean, cov, dof, self.rho * belief.r_scale)
 
     def update(self, belief: AdaptiveGaussianBelief, z: Tensor) -> StepOutput:
+        _check_adaptive(belief)
+        z = check_measurement(z, self.measurement.meas_dim, gaussian_batch(belief, self.motion.state_dim),
+                              belief.mean)
         H = self.measurement.H
         n, m = belief.mean.shape[-1], z.shape[-1]
         x_pred, P_nom = belief.mean, belief.cov
@@ -631,6 +681,7 @@ class VBAKFPR(Filter):
         T_prior, t_q = self.tau * P_nom, n + self.tau + 1 + 1
         u_q = belief.r_dof + 1
         mean, cov = x_pred, P_nom
+        singular = torch.zeros(z.shape[:-1], dtype=torch.bool, device=z.device)
         for _ in range(self.iterations):
             dx = mean - x_pred
             T = T_prior + cov + dx.unsqueeze(-1) * dx.unsqueeze(-2)
@@ -641,12 +692,20 @@ class VBAKFPR(Filter):
             R_hat = symmetrize(U / (u_q - m - 1)[..., None, None])
             cross = P_hat @ H.mT
             S = H @ cross + R_hat
-            mean, cov, loglik = condition(x_pred, P_hat, innovation, S, cross)
+            mean, cov, loglik, flag = condition(x_pred, P_hat, innovation, S, cross, joseph=(H, R_hat),
+                                                with_flag=True)
+            singular = singular | flag
         keep = missing
         mean, cov, loglik = _keep_prior(keep, belief.estimate(), mean, cov, loglik)
         dof = torch.where(keep, belief.r_dof, u_q)
         U = torch.where(keep[..., None, None], belief.r_scale, U)
         return StepOutput(
             AdaptiveGaussianBelief(mean, cov, dof, U), belief, loglik, innovation, S,
-            extras={"predicted_cov": P_hat, "noise_cov": R_hat},
+            extras={"predicted_cov": P_hat, "noise_cov": R_hat, "singular": singular},
         )
+
+
+def _check_adaptive(belief) -> None:
+    if not isinstance(belief, AdaptiveGaussianBelief):
+        raise TypeError(f"belief: VBAKFPR needs an AdaptiveGaussianBelief (from VBAKFPR.initial_belief), got "
+                        f"{type(belief).__name__}")

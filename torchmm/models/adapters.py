@@ -36,7 +36,7 @@ from torch import Tensor, nn
 from torch.nn.utils import parametrize
 
 from torchmm.models.base import MeasurementModel, MotionModel
-from torchmm.validation import as_tensor, check_covariance, check_shape
+from torchmm.validation import as_int, as_tensor, check_covariance, check_shape
 
 __all__ = [
     "CholeskyCovariance",
@@ -50,23 +50,38 @@ __all__ = [
 
 
 class CholeskyCovariance(nn.Module):
-    r"""Full covariance ``L L^T`` from an unconstrained square matrix (positive definite).
+    r"""Full covariance ``L L^T + delta I`` from an unconstrained square matrix (positive definite).
 
     ``L = tril(theta, -1) + diag(exp(diag(theta)))``: the strict lower triangle of ``theta`` is
     ``L``'s, its diagonal holds ``log L_ii``; the upper triangle is unused (zero gradient).
+
+    What it promises in floating point: ``L L^T`` is positive definite in exact arithmetic, but
+    formed in floating point it is only PSD up to rounding (``d eps tr(L L^T)``), so a badly
+    conditioned ``L`` (a large negative log-diagonal next to large entries) can come out with a
+    slightly negative eigenvalue. The floor ``delta = 16 d eps tr(L L^T)`` (``eps`` of the dtype;
+    a relative change of ``6e-14`` for ``d = 4`` in float64) keeps every covariance this returns
+    positive definite to working precision: its computed eigenvalues and its Cholesky
+    factorisation see it as positive definite, for any finite ``theta``.
 
     Shapes:
         theta ``(*P, d, d)`` -> covariance ``(*P, d, d)``
     """
 
+    #: ``delta = FLOOR * d * eps * tr(L L^T)``
+    FLOOR = 16.0
+
     def forward(self, theta: Tensor) -> Tensor:
         lower = torch.tril(theta, -1) + torch.diag_embed(theta.diagonal(dim1=-2, dim2=-1).exp())
-        return lower @ lower.mT
+        cov = lower @ lower.mT
+        d = cov.shape[-1]
+        delta = self.FLOOR * d * torch.finfo(cov.dtype).eps * lower.square().sum((-1, -2))
+        eye = torch.eye(d, dtype=cov.dtype, device=cov.device)
+        return cov + delta[..., None, None] * eye
 
     def right_inverse(self, cov: Tensor) -> Tensor:
         chol, info = torch.linalg.cholesky_ex(cov)
         if bool((info != 0).any()):
-            raise ValueError("cov: CholeskyCovariance needs a positive definite initial covariance")
+            raise ValueError("CholeskyCovariance needs a positive definite initial covariance")
         return torch.tril(chol, -1) + torch.diag_embed(chol.diagonal(dim1=-2, dim2=-1).log())
 
 
@@ -84,9 +99,9 @@ class LogDiagonalCovariance(nn.Module):
         diag = cov.diagonal(dim1=-2, dim2=-1)
         off = cov - torch.diag_embed(diag)
         if bool((off.detach().abs() > 1e-12 * (1 + diag.detach().abs().amax())).any()):
-            raise ValueError("cov: LogDiagonalCovariance needs a diagonal initial covariance")
+            raise ValueError("LogDiagonalCovariance needs a diagonal initial covariance")
         if bool((diag.detach() <= 0).any()):
-            raise ValueError("cov: LogDiagonalCovariance needs positive variances")
+            raise ValueError("LogDiagonalCovariance needs positive variances")
         return diag.log()
 
 
@@ -193,8 +208,22 @@ def learnable_noise(model: nn.Module, name: str = "Q", kind: str = "cholesky", *
     # unconstrained parameter) and computes model.<name> = param(original) on every access.
     delattr(model, name)
     model.register_parameter(name, nn.Parameter(value.detach().clone()))
-    parametrize.register_parametrization(model, name, param, unsafe=(kind == "scale"))
+    try:
+        parametrize.register_parametrization(model, name, param, unsafe=(kind == "scale"))
+    except ValueError as err:  # the initial value does not fit the parametrisation: restore it
+        delattr(model, name)
+        model.register_buffer(name, value)
+        raise ValueError(f"{name}: {err}") from None
     return model
+
+
+NOISE_KINDS = ("cholesky", "log_diagonal", "scale", "fixed")
+
+
+def _noise_kind(noise) -> str:
+    if noise not in NOISE_KINDS:
+        raise ValueError(f"noise: expected one of {list(NOISE_KINDS)}, got {noise!r}")
+    return noise
 
 
 def _check_net(net, name: str) -> nn.Module:
@@ -253,12 +282,10 @@ class LearnedMotion(MotionModel):
                  uses_input: bool = False):
         super().__init__()
         self.net = _check_net(net, "net")
-        if int(state_dim) < 1:
-            raise ValueError(f"state_dim: must be a positive integer, got {state_dim}")
-        self.state_dim = int(state_dim)
+        self.state_dim = as_int(state_dim, "state_dim", minimum=1)
         self.residual, self.uses_input = bool(residual), bool(uses_input)
         self.register_buffer("Q", _noise_tensor(Q, self.state_dim, "Q", _first_tensor(net)))
-        self.noise = noise
+        self.noise = _noise_kind(noise)
         if noise != "fixed":
             learnable_noise(self, "Q", noise)
 
@@ -293,11 +320,10 @@ class LearnedMeasurement(MeasurementModel):
     def __init__(self, net, state_dim: int, meas_dim: int, R, *, noise: str = "cholesky"):
         super().__init__()
         self.net = _check_net(net, "net")
-        if int(state_dim) < 1 or int(meas_dim) < 1:
-            raise ValueError(f"state_dim, meas_dim: must be positive integers, got {state_dim}, {meas_dim}")
-        self.state_dim, self.meas_dim = int(state_dim), int(meas_dim)
+        self.state_dim = as_int(state_dim, "state_dim", minimum=1)
+        self.meas_dim = as_int(meas_dim, "meas_dim", minimum=1)
         self.register_buffer("R", _noise_tensor(R, self.meas_dim, "R", _first_tensor(net)))
-        self.noise = noise
+        self.noise = _noise_kind(noise)
         if noise != "fixed":
             learnable_noise(self, "R", noise)
 

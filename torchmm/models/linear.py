@@ -88,6 +88,9 @@ class LinearMotion(MotionModel):
         if u is not None:
             if self.input_matrix is None:
                 raise ValueError("u: this LinearMotion has no input_matrix")
+            if u.dim() == 0 or u.shape[-1] != self.input_matrix.shape[-1]:
+                raise ValueError(f"u: expected shape (*B, {self.input_matrix.shape[-1]}) for input_matrix "
+                                 f"{tuple(self.input_matrix.shape)}, got {tuple(u.shape)}")
             out = out + matvec(self.input_matrix, u)
         return out
 

@@ -19,6 +19,8 @@ which do underflow (a far outlier gives ``exp(ell) = 0`` for every mode), are co
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
@@ -26,7 +28,12 @@ from torchmm.beliefs import Belief, ModeBelief
 from torchmm.filters.base import Filter, StepOutput
 from torchmm.multimodel.bank import make_bank
 from torchmm.multimodel.transition import ModeTransition
-from torchmm.validation import as_tensor
+from torchmm.validation import (
+    check_filter_dtype,
+    check_measurement,
+    check_probabilities,
+    check_same_dtype,
+)
 
 __all__ = ["GPB1", "GPB2", "IMM", "MultipleModelFilter"]
 
@@ -47,12 +54,36 @@ def _predicted(mode_probs: Tensor, transition: Tensor) -> Tensor:
 
 
 def _safe_sub(joint: Tensor, norm: Tensor) -> Tensor:
-    """``joint - norm`` where ``norm = logsumexp`` of ``joint``; all ``-inf`` groups -> uniform."""
-    out = joint - norm
-    if not bool(torch.isfinite(norm).all()):
-        size = joint.numel() // max(norm.numel(), 1)
-        out = torch.where(torch.isfinite(norm), out, -torch.log(torch.tensor(float(size), dtype=out.dtype)))
-    return out
+    """``joint - norm`` where ``norm = logsumexp`` of ``joint`` over the axes ``norm`` keeps with size 1;
+    groups that are all ``-inf`` (or NaN) become uniform. No host synchronisation."""
+    size = joint.numel() // max(norm.numel(), 1)
+    uniform = torch.full((), -math.log(size) if size else 0.0, dtype=joint.dtype, device=joint.device)
+    return torch.where(torch.isfinite(norm), joint - norm, uniform)
+
+
+def _mode_batch(belief, name: str = "belief") -> torch.Size:
+    """Batch shape of a mode belief (from its mode log-probabilities; shapes only)."""
+    mode_log_probs = getattr(belief, "mode_log_probs", None)
+    if not isinstance(mode_log_probs, Tensor):
+        raise TypeError(f"{name}: expected a ModeBelief (from initial_belief), got {type(belief).__name__}")
+    return mode_log_probs.shape[:-1]
+
+
+def _all_missing(z: Tensor) -> Tensor:
+    """``(*B,)`` True where every component of ``z (*B, m)`` is missing (non-finite)."""
+    return ~torch.isfinite(z).any(-1)
+
+
+def _mode_extras(out: StepOutput, mode_axes: int = 1) -> dict:
+    """The bank's diagnostics as ``extras["modes"]`` (batch ``(*B, M)``), its ``mode_log_likelihood``
+    and ``extras["singular"] (*B,)``: any mode filter's innovation covariance was regularised."""
+    extras = {"mode_log_likelihood": out.log_likelihood}
+    if out.extras:  # the mode filters' own diagnostics (e.g. VB iterations), batch (*B, M)
+        extras["modes"] = dict(out.extras)
+        singular = out.extras.get("singular")
+        if isinstance(singular, Tensor) and singular.dim() >= mode_axes:
+            extras["singular"] = singular.flatten(-mode_axes).any(-1)
+    return extras
 
 
 class MultipleModelFilter(Filter):
@@ -67,9 +98,34 @@ class MultipleModelFilter(Filter):
 
     def __init__(self, bank, transition):
         super().__init__()
-        self.transition = transition if isinstance(transition, ModeTransition) else ModeTransition(transition)
+        if isinstance(transition, ModeTransition):
+            self.transition = transition
+        else:
+            try:
+                self.transition = ModeTransition(transition)
+            except ValueError as err:
+                raise ValueError(f"transition: {str(err).removeprefix('matrix: ')}") from None
         self.num_modes = self.transition.num_modes
         self.bank = make_bank(bank, self.num_modes)
+
+    @property
+    def meas_dim(self) -> int | None:
+        return self.bank.meas_dim
+
+    def _measurement(self, belief, z, name: str = "z") -> Tensor:
+        """``z (*B, m)`` checked against the bank's sensor and the belief's batch (shapes only)."""
+        batch = _mode_batch(belief)
+        m = self.bank.meas_dim
+        like = belief.mode_log_probs
+        if m is None:
+            return z if isinstance(z, Tensor) else torch.as_tensor(z, dtype=like.dtype, device=like.device)
+        return check_measurement(z, m, batch, like, name)
+
+    def _matrix(self, like: Tensor) -> Tensor:
+        matrix = self.transition.matrix()
+        if matrix.dtype != like.dtype:
+            check_same_dtype(matrix, "transition", like)
+        return matrix
 
     def initial_belief(self, belief: Belief, mode_probs=None) -> ModeBelief:
         """Start every mode from ``belief`` with prior mode probabilities ``mode_probs``.
@@ -79,30 +135,44 @@ class MultipleModelFilter(Filter):
             -> :class:`ModeBelief` with batch ``(*B,)``
         """
         M = self.num_modes
+        if not isinstance(belief, Belief):
+            raise TypeError(f"belief: expected a belief (e.g. GaussianBelief), got {type(belief).__name__}")
+        belief.validate("belief")
+        check_filter_dtype(self, belief, "belief")
         batch = belief.batch_shape
         if mode_probs is None:
-            log_probs = torch.full((M,), -torch.log(torch.tensor(float(M))).item(), dtype=belief.dtype,
-                                   device=belief.device)
+            log_probs = torch.full((M,), -math.log(M), dtype=belief.dtype, device=belief.device)
         else:
-            probs = as_tensor(mode_probs, "mode_probs", dtype=belief.dtype, device=belief.device)
-            if probs.shape[-1] != M:
-                raise ValueError(f"mode_probs: expected {M} modes, got shape {tuple(probs.shape)}")
-            if bool((probs.detach() < 0).any()) or bool(((probs.detach().sum(-1) - 1).abs() > 1e-6).any()):
-                raise ValueError("mode_probs: must be non-negative and sum to 1")
+            probs = check_probabilities(mode_probs, "mode_probs", M, dtype=belief.dtype, device=belief.device)
+            try:
+                batch = torch.broadcast_shapes(batch, probs.shape[:-1])
+            except RuntimeError:
+                raise ValueError(f"mode_probs: batch {tuple(probs.shape[:-1])} does not broadcast with the "
+                                 f"belief's {tuple(batch)}") from None
+            if batch != belief.batch_shape:
+                raise ValueError(f"mode_probs: batch {tuple(probs.shape[:-1])} would enlarge the belief's batch "
+                                 f"{tuple(belief.batch_shape)}")
             log_probs = probs.log()
         log_probs = log_probs.expand(*batch, M)
         components = belief.unsqueeze(-1).expand(*batch, M)
         return ModeBelief(log_probs, components)
 
-    def _update_modes(self, prior: ModeBelief, z: Tensor) -> StepOutput:
-        """Mode-matched updates and the mode-probability update (shared by IMM and GPB1)."""
+    def _update_modes(self, prior: ModeBelief, z: Tensor, *, missing: Tensor | None = None) -> StepOutput:
+        """Mode-matched updates and the mode-probability update (shared by IMM and GPB1).
+
+        Where ``z`` is entirely missing (or ``missing (*B,)`` says so: no datum at all this step)
+        the step's log-likelihood is exactly 0 and the posterior mode probabilities are exactly
+        the predicted ones.
+        """
+        z = self._measurement(prior, z)
         out = self.bank.update(prior.components, z.unsqueeze(-2))
         joint = out.log_likelihood + prior.mode_log_probs  # ell_j + log c_j
         log_likelihood = torch.logsumexp(joint, dim=-1)
         mode_log_probs = _safe_sub(joint, log_likelihood.unsqueeze(-1))
-        extras = {"mode_log_likelihood": out.log_likelihood}
-        if out.extras:  # the mode filters' own diagnostics (e.g. VB iterations), batch (*B, M)
-            extras["modes"] = dict(out.extras)
+        missing = _all_missing(z) if missing is None else missing
+        log_likelihood = torch.where(missing, 0.0, log_likelihood)
+        mode_log_probs = torch.where(missing.unsqueeze(-1), prior.mode_log_probs, mode_log_probs)
+        extras = _mode_extras(out)
         return StepOutput(
             belief=ModeBelief(mode_log_probs, out.belief),
             prior=prior,
@@ -164,7 +234,9 @@ class IMM(MultipleModelFilter):
     """
 
     def mix(self, belief: ModeBelief) -> ModeBelief:
-        mode_probs, transition = belief.mode_probs, self.transition.matrix()
+        _mode_batch(belief)
+        mode_probs = belief.mode_probs
+        transition = self._matrix(mode_probs)
         cbar = _predicted(mode_probs, transition)
         # mixing probabilities mu_{i|j} = pi_ij mu_i / c_j, (*B, i, j)
         weights = mode_probs.unsqueeze(-1) * transition / cbar.clamp_min(_tiny(cbar)).unsqueeze(-2)
@@ -179,8 +251,9 @@ class GPB1(MultipleModelFilter):
     """
 
     def mix(self, belief: ModeBelief) -> ModeBelief:
+        _mode_batch(belief)
         mode_probs = belief.mode_probs
-        cbar = _predicted(mode_probs, self.transition.matrix())
+        cbar = _predicted(mode_probs, self._matrix(mode_probs))
         collapsed = belief.components.collapse(mode_probs)
         return ModeBelief(cbar.log(), collapsed.unsqueeze(-1).expand(*collapsed.batch_shape, self.num_modes))
 
@@ -200,7 +273,11 @@ class GPB2(MultipleModelFilter):
     def mix(self, belief: ModeBelief) -> ModeBelief:
         """Pair hypotheses: component ``(i, j)`` is mode ``i``'s posterior; weight ``mu_i pi_ij``."""
         M = self.num_modes
-        joint = belief.mode_log_probs.unsqueeze(-1) + self.transition.log_matrix()  # (*B, i, j)
+        _mode_batch(belief)
+        log_matrix = self.transition.log_matrix()
+        if log_matrix.dtype != belief.mode_log_probs.dtype:
+            check_same_dtype(log_matrix, "transition", belief.mode_log_probs)
+        joint = belief.mode_log_probs.unsqueeze(-1) + log_matrix  # (*B, i, j)
         batch = belief.batch_shape
         components = belief.components.unsqueeze(-1).expand(*batch, M, M)
         return ModeBelief(joint.flatten(-2), components.reshape(*batch, M * M))
@@ -216,21 +293,29 @@ class GPB2(MultipleModelFilter):
 
     def update(self, belief: ModeBelief, z: Tensor) -> StepOutput:
         M = self.num_modes
-        batch = belief.batch_shape
+        z = self._measurement(belief, z)
+        batch = _mode_batch(belief)
         prior_pairs = belief.components.reshape(*batch, M, M)
         out = self.bank.update(prior_pairs, z.unsqueeze(-2).unsqueeze(-2))
-        joint = out.log_likelihood + belief.mode_log_probs.unflatten(-1, (M, M))  # log w_ij
+        prior_joint = belief.mode_log_probs.unflatten(-1, (M, M))
+        joint = out.log_likelihood + prior_joint  # log w_ij
         log_mode = torch.logsumexp(joint, dim=-2)  # (*B, j): unnormalised log mu_j
         log_likelihood = torch.logsumexp(log_mode, dim=-1)
         merge_weights = _safe_sub(joint, log_mode.unsqueeze(-2))  # mu_{i|j}, (*B, i, j)
         merged = out.belief.transpose_batch(-1, -2).collapse(merge_weights.mT.exp())  # (*B, j)
+        mode_log_probs = _safe_sub(log_mode, log_likelihood.unsqueeze(-1))
+        missing = _all_missing(z)  # exactly the predicted mode probabilities, log-likelihood 0
+        log_likelihood = torch.where(missing, 0.0, log_likelihood)
+        predicted = torch.logsumexp(prior_joint, dim=-2)
+        mode_log_probs = torch.where(missing.unsqueeze(-1), predicted, mode_log_probs)
+        extras = _mode_extras(out, mode_axes=2)
         return StepOutput(
-            belief=ModeBelief(_safe_sub(log_mode, log_likelihood.unsqueeze(-1)), merged),
+            belief=ModeBelief(mode_log_probs, merged),
             prior=belief,
             log_likelihood=log_likelihood,
             innovation=out.innovation,
             innovation_cov=out.innovation_cov,
-            extras={"mode_log_likelihood": out.log_likelihood},
+            extras=extras,
         )
 
     def step(self, belief: ModeBelief, z: Tensor, *, u: Tensor | None = None) -> StepOutput:

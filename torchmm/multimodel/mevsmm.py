@@ -40,13 +40,13 @@ from typing import ClassVar
 import torch
 from torch import Tensor
 
-from torchmm.beliefs import GaussianBelief, ModeBelief, register_belief, symmetrize
+from torchmm.beliefs import GaussianBelief, ModeBelief, psd_sqrt, register_belief, symmetrize
 from torchmm.beliefs.ops import normalize_log_probs
 from torchmm.filters.base import StepOutput
 from torchmm.filters.particle import MultipleModelParticleFilter, standard_normal
 from torchmm.models.base import MeasurementModel, MotionModel
 from torchmm.models.linear import LinearMotion
-from torchmm.validation import as_tensor
+from torchmm.validation import as_int, as_tensor, check_covariance, check_square
 
 __all__ = [
     "ChallengeMatch",
@@ -207,7 +207,7 @@ def min_entropy_subset(log_weights: Tensor, family: Tensor | None = None, *, chu
         raise ValueError(f"chunk_size: must be >= 1, got {chunk_size}")
     stats = _scaled_stats(log_weights, entropy)
     batch = stats.shape[:-2]
-    flat = stats.reshape(-1, num_models, stats.shape[-1])  # (Bf, M, s)
+    flat = stats.reshape(batch.numel(), num_models, stats.shape[-1])  # (Bf, M, s)
     operand = flat.permute(1, 0, 2).reshape(num_models, -1)  # (M, Bf * s)
     if family is None:
         if num_models > 30:
@@ -229,7 +229,8 @@ def min_entropy_subset(log_weights: Tensor, family: Tensor | None = None, *, chu
         rows_per_chunk = max(1, chunk_size // low.shape[0])
         for start in range(0, high.shape[0], rows_per_chunk):
             stop = min(start + rows_per_chunk, high.shape[0])
-            sums = (high[start:stop, None] + low[None]).view(stop - start, low.shape[0], flat.shape[0], -1)
+            sums = (high[start:stop, None] + low[None]).view(stop - start, low.shape[0], flat.shape[0],
+                                                             stats.shape[-1])
             values = _entropy_from_sums(sums, entropy).flatten(0, 1)  # (chunk, Bf); code 0 -> +inf
             chunk_best, chunk_arg = values.min(0)
             better = chunk_best < best
@@ -287,7 +288,7 @@ def challenge_match(scores: Tensor, num_winners: int, *, passes: int = 1,
     if passes < 0:
         raise ValueError(f"passes: must be >= 0, got {passes}")
     batch = scores.shape[:-1]
-    flat = scores.reshape(-1, P)
+    flat = scores.reshape(batch.numel(), P)
     Bf, device = flat.shape[0], flat.device
     order = _random_affine_permutation(Bf, P, device, generator)
     seq1 = order[:, :num_winners].contiguous()
@@ -313,7 +314,7 @@ def challenge_match(scores: Tensor, num_winners: int, *, passes: int = 1,
         for p in range(passes):  # over tournament passes (default 1), not over runs or particles
             windows = (torch.cat([pool, dummy], 1) if pad else pool).view(Bf, rounds, N)
             challengers = torch.gather(windows, 2, meet[p])  # (Bf, rounds, N), in meeting order
-            challenger_scores = torch.gather(table, 1, challengers.view(Bf, -1)).view(Bf, rounds, N)
+            challenger_scores = torch.gather(table, 1, challengers.view(Bf, rounds * N)).view(Bf, rounds, N)
             # holder p after all rounds is the running maximum over its challengers, ties to the
             # earlier one (a challenger replaces the holder only if strictly heavier)
             if p == passes - 1:
@@ -377,7 +378,7 @@ class ExactMinimumEntropy:
     def __init__(self, family=None, *, chunk_size: int = 16384, entropy: str = "joint"):
         if entropy not in ENTROPY_READINGS:
             raise ValueError(f"entropy: expected one of {ENTROPY_READINGS}, got {entropy!r}")
-        self.family, self.chunk_size, self.entropy = family, int(chunk_size), entropy
+        self.family, self.chunk_size, self.entropy = family, as_int(chunk_size, "chunk_size", minimum=1), entropy
 
     def _family(self, num_models: int, device) -> Tensor | None:
         if self.family is None:
@@ -412,13 +413,14 @@ class ChallengeMatch:
     def __init__(self, num_winners: int = 420, threshold: int = 23, *, method: str = "cm", passes: int = 1):
         if method not in ("cm", "topk"):
             raise ValueError(f"method: expected 'cm' or 'topk', got {method!r}")
-        if int(num_winners) < 1 or int(threshold) < 0:
-            raise ValueError("num_winners must be >= 1 and threshold >= 0")
-        self.num_winners, self.threshold = int(num_winners), int(threshold)
-        self.method, self.passes = method, int(passes)
+        self.num_winners = as_int(num_winners, "num_winners", minimum=1)
+        self.threshold = as_int(threshold, "threshold", minimum=0)
+        self.method, self.passes = method, as_int(passes, "passes", minimum=0)
 
     def __call__(self, log_weights: Tensor, generator=None) -> tuple[Tensor, dict]:
         M, Np = log_weights.shape[-2:]
+        if self.num_winners > M * Np:
+            raise ValueError(f"num_winners: {self.num_winners} exceeds the {M} x {Np} = {M * Np} particles")
         scores = log_weights.flatten(-2)
         if self.method == "topk":
             winners = torch.topk(scores, self.num_winners, dim=-1).indices
@@ -493,7 +495,10 @@ class MinimumEntropyVSMM(MultipleModelParticleFilter):
         super().__init__(motion, measurement, transition, num_particles, mixing=mixing, generator=generator,
                          innovation_stats=innovation_stats, noise_dtype=noise_dtype)
         if not callable(selection):
-            raise ValueError("selection: expected a callable policy (ExactMinimumEntropy, ChallengeMatch)")
+            raise TypeError("selection: expected a callable policy (ExactMinimumEntropy, ChallengeMatch)")
+        if isinstance(selection, ChallengeMatch) and selection.num_winners > self.num_modes * self.num_particles:
+            raise ValueError(f"selection: num_winners {selection.num_winners} exceeds the {self.num_modes} x "
+                             f"{self.num_particles} particles")
         self.selection, self.feedback = selection, bool(feedback)
 
     def initial_belief(self, belief: GaussianBelief, mode_probs=None) -> ModelSetBelief:
@@ -551,13 +556,22 @@ class EqMAParticleFilter(MultipleModelParticleFilter):
                  generator: torch.Generator | None = None, innovation_stats: bool = True,
                  noise_dtype: torch.dtype | None = None):
         F = as_tensor(F, "F")
+        n = check_square(F, "F")
+        if F.dim() != 2:
+            raise ValueError(f"F: expected one (n, n) matrix, got shape {tuple(F.shape)}")
         gain = as_tensor(gain, "gain", dtype=F.dtype, device=F.device)
+        if gain.dim() != 2 or gain.shape[0] != n:
+            raise ValueError(f"gain: expected shape ({n}, d), got {tuple(gain.shape)}")
+        d = gain.shape[-1]
         acc = as_tensor(accelerations, "accelerations", dtype=F.dtype, device=F.device)
         qa = as_tensor(accel_noise_cov, "accel_noise_cov", dtype=F.dtype, device=F.device)
-        if acc.dim() != 2 or acc.shape[-1] != gain.shape[-1]:
-            raise ValueError(f"accelerations: expected (N, {gain.shape[-1]}), got {tuple(acc.shape)}")
+        if acc.dim() != 2 or acc.shape[-1] != d or acc.shape[0] < 1:
+            raise ValueError(f"accelerations: expected (N, {d}) with N >= 1, got {tuple(acc.shape)}")
+        if qa.shape != (d, d):
+            raise ValueError(f"accel_noise_cov: expected shape ({d}, {d}), got {tuple(qa.shape)}")
+        check_covariance(qa, "accel_noise_cov")
         num_fixed = acc.shape[0]
-        motion = LinearMotion(F, gain @ qa @ gain.mT, offset=acc @ gain.mT)
+        motion = LinearMotion(F, symmetrize(gain @ qa @ gain.mT), offset=acc @ gain.mT)
         if transition is None:
             transition = uniform_transition(num_fixed + 1, stay, dtype=F.dtype, device=F.device)
         self._num_fixed = num_fixed
@@ -592,7 +606,7 @@ class EqMAParticleFilter(MultipleModelParticleFilter):
         batch = log_cbar.shape[:-1]
         acc = torch.cat([self.accelerations.expand(*batch, *self.accelerations.shape), mean.unsqueeze(-2)], -2)
         qa = self.accel_noise_cov.expand(*batch, self._num_fixed, *self.accel_noise_cov.shape)
-        factor = torch.linalg.cholesky(torch.cat([qa, cov.unsqueeze(-3)], -3))  # (*B, N+1, d, d)
+        factor = psd_sqrt(torch.cat([qa, cov.unsqueeze(-3)], -3))  # (*B, N+1, d, d); Q_a may be singular
         eps = standard_normal((*particles.shape[:-1], G.shape[-1]), particles, generator=self.generator,
                               noise_dtype=self.noise_dtype)
         accel = acc.unsqueeze(-2) + eps @ factor.mT  # (*B, N+1, Np, d)

@@ -36,12 +36,13 @@ from torchmm.beliefs import Belief, GaussianBelief, ModeBelief
 from torchmm.beliefs.base import register_belief
 from torchmm.filters.base import StepOutput
 from torchmm.filters.kalman import ExtendedKalmanFilter, KalmanFilter
-from torchmm.filters.linalg import condition
+from torchmm.filters.linalg import cholesky, cholesky_solve, condition
 from torchmm.filters.smoother import rts_step
 from torchmm.models.base import MeasurementModel
 from torchmm.models.linear import LinearMeasurement, LinearMotion, matvec
 from torchmm.multimodel.bank import VectorizedBank
-from torchmm.multimodel.imm import IMM, _safe_sub
+from torchmm.multimodel.imm import IMM, _all_missing, _mode_batch, _safe_sub
+from torchmm.validation import check_measurement
 
 __all__ = [
     "FusionIMM",
@@ -74,10 +75,29 @@ def _split(z: Any) -> tuple[Tensor, Tensor]:
         return z["target"], z["source"]
     if isinstance(z, (tuple, list)) and len(z) == 2:
         return z[0], z[1]
-    raise ValueError(
+    raise TypeError(
         "z: expected MultiRate(target, source), a (target, source) pair or a dict with keys "
         f"'target' and 'source', got {type(z).__name__}"
     )
+
+
+def _streams(imm: IMM, belief, z: Any, source: MeasurementModel) -> tuple[Tensor, Tensor]:
+    """The target and source data of one step, shape-checked (``z.target`` against the bank's
+    sensor, ``z.source`` against ``source``, both against the belief's batch)."""
+    y, ys = _split(z)
+    target_belief = belief.target if isinstance(belief, SourceTrackBelief) else belief
+    y = imm._measurement(target_belief, y, "z.target")
+    ys = check_measurement(ys, source.meas_dim, _mode_batch(target_belief), target_belief.mode_log_probs,
+                           "z.source")
+    return y, ys
+
+
+def _source_sensor(source, state_dim: int) -> MeasurementModel:
+    if not isinstance(source, MeasurementModel):
+        raise TypeError(f"source: expected a MeasurementModel (the source sensor), got {type(source).__name__}")
+    if source.state_dim != state_dim:
+        raise ValueError(f"source: state_dim {source.state_dim} differs from the bank's {state_dim}")
+    return source
 
 
 def _where(cond: Tensor, a: GaussianBelief, b: GaussianBelief) -> GaussianBelief:
@@ -145,11 +165,11 @@ def influence_value(estimate: Tensor, prior_mean: Tensor, z: Tensor, H: Tensor, 
     # L^T = -Psi Phi Theta = -(H(x - x*))^T R^{-1} with x* = argmin F: the Kalman update of the
     # prior (x^-, W) with z (exact identity, tested against autograd); no inverse of W needed, and
     # missing components are conditioned out by the shared update
-    observed = ~torch.isnan(z)
+    observed = torch.isfinite(z)
     cross = weight_cov @ H.mT  # W H^T
     x_star, _, _ = condition(prior_mean, weight_cov, z - matvec(H, prior_mean), H @ cross + R, cross)
     shift = matvec(H, estimate - x_star).unsqueeze(-1)
-    value = -torch.linalg.solve(R, shift).squeeze(-1)
+    value = -cholesky_solve(cholesky(R), shift).squeeze(-1)  # R^{-1} shift (regularised if R is singular)
     return torch.where(observed, value, 0.0)
 
 
@@ -251,8 +271,7 @@ class TransferIMM(IMM):
         if gate is not None and not isinstance(gate, InfluenceGate):
             raise ValueError(f"gate: expected an InfluenceGate or None, got {type(gate).__name__}")
         target = _mode_filter(self.bank, "TransferIMM")
-        if source.state_dim != target.state_dim:
-            raise ValueError(f"source: state_dim {source.state_dim} differs from the bank's {target.state_dim}")
+        _source_sensor(source, target.state_dim)
         if gate is not None and not 0 <= gate.mode < self.num_modes:
             raise ValueError(f"gate: mode {gate.mode} out of range for {self.num_modes} modes")
         self.target_filter = target
@@ -265,7 +284,7 @@ class TransferIMM(IMM):
         raise NotImplementedError("TransferIMM: the transfer needs the posterior at k-1; call step()")
 
     def step(self, belief: ModeBelief, z, *, u: Tensor | None = None) -> StepOutput:
-        y, ys = _split(z)
+        y, ys = _streams(self, belief, z, self.source_filter.measurement)
         uj = None if u is None else u.unsqueeze(-2)
         mixed = self.mix(belief)
         prior = ModeBelief(mixed.mode_log_probs, self.bank.predict(mixed.components, u=uj))
@@ -293,8 +312,10 @@ class TransferIMM(IMM):
             ll = torch.where(present.unsqueeze(-1), transferred.log_likelihood, plain.extras["mode_log_likelihood"])
             joint = ll + prior.mode_log_probs
             norm = torch.logsumexp(joint, dim=-1)
-            mode_log_probs = _safe_sub(joint, norm.unsqueeze(-1))
-            log_likelihood = norm
+            missing = _all_missing(y)
+            mode_log_probs = torch.where(missing.unsqueeze(-1), prior.mode_log_probs,
+                                         _safe_sub(joint, norm.unsqueeze(-1)))
+            log_likelihood = torch.where(missing, 0.0, norm)
         else:
             log_likelihood = plain.log_likelihood
 
@@ -358,13 +379,14 @@ class SourceUpdateIMM(IMM):
 
     def __init__(self, bank, transition, source: MeasurementModel):
         super().__init__(bank, transition)
-        self.source_filter = _kalman_like(_mode_filter(self.bank, "SourceUpdateIMM"), source)
+        target = _mode_filter(self.bank, "SourceUpdateIMM")
+        self.source_filter = _kalman_like(target, _source_sensor(source, target.state_dim))
 
     def update(self, belief: ModeBelief, z) -> StepOutput:
-        y, ys = _split(z)
+        y, ys = _streams(self, belief, z, self.source_filter.measurement)
         first = self.source_filter.update(belief.components, ys.unsqueeze(-2))
         intermediate = ModeBelief(belief.mode_log_probs + first.log_likelihood, first.belief)
-        out = self._update_modes(intermediate, y)
+        out = self._update_modes(intermediate, y, missing=_all_missing(y) & _all_missing(ys))
         # log p(y, y_S | past): the source factor is folded into the prior weights above
         out.extras["source_log_likelihood"] = first.log_likelihood
         out.extras["mode_log_likelihood"] = out.extras["mode_log_likelihood"] + first.log_likelihood
@@ -410,7 +432,8 @@ class _SourceTrackIMM(IMM):
 
     def __init__(self, bank, transition, source: MeasurementModel):
         super().__init__(bank, transition)
-        source_filter = _kalman_like(_mode_filter(self.bank, type(self).__name__), source)
+        target = _mode_filter(self.bank, type(self).__name__)
+        source_filter = _kalman_like(target, _source_sensor(source, target.state_dim))
         self.source_track = IMM(source_filter, self.transition)
 
     def initial_belief(self, belief: Belief, mode_probs=None) -> SourceTrackBelief:
@@ -441,7 +464,8 @@ class FusionIMM(_SourceTrackIMM):
     """
 
     def step(self, belief: SourceTrackBelief, z, *, u: Tensor | None = None) -> StepOutput:
-        y, ys = _split(z)
+        _check_track(belief, type(self).__name__)
+        y, ys = _streams(self, belief, z, self.source_track.bank.filter.measurement)
         source = self.source_track.step(belief.source, ys, u=u).belief
         mixed = self.mix(belief.target)
         uj = None if u is None else u.unsqueeze(-2)
@@ -513,7 +537,8 @@ class SourceModeVSIMM(_SourceTrackIMM):
         return SourceTrackBelief(ModeBelief(log_probs, comps), start)
 
     def step(self, belief: SourceTrackBelief, z, *, u: Tensor | None = None) -> StepOutput:
-        y, ys = _split(z)
+        _check_track(belief, type(self).__name__)
+        y, ys = _streams(self, belief, z, self.source_track.bank.filter.measurement)
         M = self.num_modes
         source = self.source_track.step(belief.source, ys, u=u).belief
         present = torch.isfinite(ys).all(-1)  # (*B,)
@@ -539,6 +564,7 @@ class SourceModeVSIMM(_SourceTrackIMM):
         out = self.extended.update(predicted, y.unsqueeze(-2))
         joint = out.log_likelihood + log_cbar
         norm = torch.logsumexp(joint, dim=-1, keepdim=True)
+        norm = torch.where(_all_missing(y).unsqueeze(-1), 0.0, norm)  # no datum: exactly 0
         log_mu = _safe_sub(joint, norm)
         is_extra = torch.arange(M + 1, device=mu.device) == M
         drop = is_extra & (log_mu < torch.log(torch.tensor(self.drop_below, dtype=mu.dtype)))
@@ -547,8 +573,16 @@ class SourceModeVSIMM(_SourceTrackIMM):
         new_target = ModeBelief(log_mu, out.belief)
         extras = {"mode_log_likelihood": out.log_likelihood, "source_present": present,
                   "extra_mode_active": log_mu[..., M] > -torch.inf}
+        if out.extras and "singular" in out.extras:
+            extras["singular"] = out.extras["singular"].any(-1)
         return StepOutput(SourceTrackBelief(new_target, source), prior, norm.squeeze(-1),
                           out.innovation, out.innovation_cov, extras)
+
+
+def _check_track(belief, who: str) -> None:
+    if not isinstance(belief, SourceTrackBelief):
+        raise TypeError(f"belief: {who} needs a SourceTrackBelief (from {who}.initial_belief), got "
+                        f"{type(belief).__name__}")
 
 
 def _extend_filter(filter: ExtendedKalmanFilter, index: Tensor) -> ExtendedKalmanFilter:
