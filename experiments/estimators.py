@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import torch
@@ -78,6 +78,8 @@ class Evaluation:
     mode_accuracy: Tensor | None
     seconds_per_step: float
     trajectory: Trajectory | None = None
+    #: per-step means over all runs of the ``per_step`` statistics, ``(T, ...)`` each
+    means: dict[str, Tensor] = field(default_factory=dict)
 
     def summary(self) -> dict[str, float]:
         out = {
@@ -91,19 +93,25 @@ class Evaluation:
 
 
 def evaluate(estimator: Estimator, scenario, sim, z: Any, *, chunk_runs: int | None = None,
-             keep_trajectory: bool = False) -> Evaluation:
+             keep_trajectory: bool = False,
+             per_step: dict[str, Callable[[Trajectory], Tensor]] | None = None) -> Evaluation:
     """Run ``estimator`` on every Monte Carlo run (in chunks of ``chunk_runs`` if given).
 
     ``z`` is ``(T, runs, m)`` or a pytree of such streams (e.g. :class:`~torchmm.multimodel.MultiRate`).
 
-    Errors are accumulated per step over runs, so memory is bounded by the chunk size;
-    ``keep_trajectory`` keeps the (first chunk's) trajectory for plots and diagnostics.
+    Every reported statistic combines all chunks: errors are accumulated per step over runs (memory
+    is bounded by the chunk size), and so is every ``per_step`` statistic - a function of a chunk's
+    trajectory returning its per-step *sum over the chunk's runs*, ``(T, ...)`` - whose mean over
+    all runs is returned in ``Evaluation.means``. ``keep_trajectory`` keeps the first chunk's
+    trajectory, for plots of single runs (run 0 is in it) and diagnostics only.
     """
     leaf = pytree.tree_leaves(z)[0]
     runs = leaf.shape[1]
     chunk = runs if not chunk_runs else int(chunk_runs)
     steps = leaf.shape[0]
     sums = {"pos": 0.0, "vel": 0.0, "nees": 0.0, "hits": 0.0}
+    per_step = per_step or {}
+    extra_sums: dict[str, Tensor] = {}
     elapsed = 0.0
     kept = None
     prior = scenario.initial
@@ -120,6 +128,9 @@ def evaluate(estimator: Estimator, scenario, sim, z: Any, *, chunk_runs: int | N
         sums["nees"] = sums["nees"] + nees(est, truth).sum(1)
         if estimator.multiple_model:
             sums["hits"] = sums["hits"] + mode_accuracy(traj.belief.mode_log_probs, sim.modes[:, sl]) * size
+        for key, fn in per_step.items():
+            value = fn(traj)
+            extra_sums[key] = value if key not in extra_sums else extra_sums[key] + value
         if keep_trajectory and kept is None:
             kept = traj
     return Evaluation(
@@ -129,4 +140,5 @@ def evaluate(estimator: Estimator, scenario, sim, z: Any, *, chunk_runs: int | N
         mode_accuracy=(sums["hits"] / runs) if estimator.multiple_model else None,
         seconds_per_step=elapsed / steps,
         trajectory=kept,
+        means={key: value / runs for key, value in extra_sums.items()},
     )

@@ -4,11 +4,20 @@ Equivalently ``python -m experiments.run ...``. The study named by ``study`` (a 
 ``run(ctx)`` function) gets a :class:`~experiments.harness.StudyContext` and writes
 ``results.json``, ``results.md``, ``figures/*.png`` and TensorBoard events into the Hydra run
 directory.
+
+Before Hydra starts, :func:`experiments.config.precheck` validates the whole config (every job of
+a sweep): a user error is one line on stderr and exit status 2, and no run folder is created.
+Run folders are unique: ``${torchmm.unique_dir:<base>}`` (``conf/config.yaml``) creates
+``<base>``, or ``<base>_1``, ``<base>_2``, ... if it exists, atomically (``os.mkdir``), so two
+runs started in the same second never share a folder.
 """
 
 from __future__ import annotations
 
 import logging
+import os
+import shutil
+import sys
 from pathlib import Path
 
 import hydra
@@ -17,6 +26,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.utils import get_method
 from omegaconf import DictConfig, OmegaConf
 
+from experiments.config import ConfigError, precheck, validate
 from experiments.harness import Results, open_context
 from torchmm.runtime import retain_freed_memory
 
@@ -26,16 +36,41 @@ log = logging.getLogger("torchmm.experiments")
 CONFIG_DIR = str(Path(__file__).resolve().parent.parent / "conf")
 
 
+def unique_dir(base: str) -> str:
+    """Create ``base`` (or the first free ``base_1``, ``base_2``, ...) atomically; return its path.
+
+    Registered as the OmegaConf resolver ``torchmm.unique_dir`` with caching, so one Hydra run
+    (and every job of a sweep, whose configs share the cache) resolves it to one folder.
+    """
+    path = Path(base)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    for attempt in range(10_000):
+        candidate = path if attempt == 0 else path.with_name(f"{path.name}_{attempt}")
+        try:
+            os.mkdir(candidate)
+        except FileExistsError:
+            continue
+        return str(candidate)
+    raise RuntimeError(f"hydra.run.dir: no free folder name next to {base}")
+
+
+if not OmegaConf.has_resolver("torchmm.unique_dir"):
+    OmegaConf.register_new_resolver("torchmm.unique_dir", unique_dir, use_cache=True)
+
+
 def run_study(cfg: DictConfig, output_dir: Path) -> Results:
-    """Run the configured study into ``output_dir`` (usable without Hydra's main, e.g. in tests)."""
+    """Run the configured study into ``output_dir`` (usable without Hydra's main, e.g. in tests).
+
+    The config is validated first (:func:`experiments.config.validate`): a bad key raises
+    :class:`~experiments.config.ConfigError` before anything is written.
+    """
+    validate(cfg)
     config = OmegaConf.to_container(cfg, resolve=True)
     study = get_method(cfg.study)
     ctx = open_context(cfg, Path(output_dir), config, experiment=str(cfg.experiment_name))
     previous_threads = torch.get_num_threads()
     threads = cfg.get("threads")
     if threads:
-        if int(threads) < 1:
-            raise ValueError(f"threads: expected a positive integer or null, got {threads}")
         torch.set_num_threads(int(threads))
     if cfg.get("retain_freed_memory"):
         retain_freed_memory()
@@ -50,8 +85,26 @@ def run_study(cfg: DictConfig, output_dir: Path) -> Results:
 
 
 @hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="config")
-def main(cfg: DictConfig) -> None:
-    run_study(cfg, Path(HydraConfig.get().runtime.output_dir))
+def _hydra_main(cfg: DictConfig) -> None:
+    output_dir = Path(HydraConfig.get().runtime.output_dir)
+    try:
+        run_study(cfg, output_dir)
+    except ConfigError as err:  # precheck missed it (e.g. a config dir of the user's): one line, no folder
+        _remove_if_unused(output_dir)
+        print(f"torchmm-run: error: {err}", file=sys.stderr)
+        raise SystemExit(2) from None
+
+
+def _remove_if_unused(output_dir: Path) -> None:
+    """Delete a run folder holding nothing but Hydra's own files (``.hydra/``, ``*.log``)."""
+    if output_dir.is_dir() and all(p.name == ".hydra" or p.suffix == ".log" for p in output_dir.iterdir()):
+        shutil.rmtree(output_dir, ignore_errors=True)
+
+
+def main() -> None:
+    """The ``torchmm-run`` console script: validate the command line's config, then run Hydra."""
+    precheck(sys.argv[1:], CONFIG_DIR)
+    _hydra_main()
 
 
 if __name__ == "__main__":

@@ -32,7 +32,9 @@ def run(ctx: StudyContext) -> None:
     curves = {"position RMSE": {}, "velocity RMSE": {}}
     example = None
     for est in ctx.progress_bar(estimators, desc="estimators"):
-        ev = evaluate(est, scenario, sim, z, chunk_runs=cfg.get("chunk_runs"), keep_trajectory=True)
+        stats = {"mode_probs": lambda traj: traj.belief.mode_probs.sum(1)} if est.multiple_model else {}
+        ev = evaluate(est, scenario, sim, z, chunk_runs=cfg.get("chunk_runs"), keep_trajectory=True,
+                      per_step=stats)
         summary = ev.summary()
         table.rows.append([est.name, summary["pos_rmse"], summary["vel_rmse"], summary["nees"],
                            summary.get("mode_accuracy")])
@@ -46,11 +48,11 @@ def run(ctx: StudyContext) -> None:
         ctx.logger.series(f"nees/{est.name}", ev.nees)
         if est.multiple_model:
             ctx.logger.series(f"mode_accuracy/{est.name}", ev.mode_accuracy)
-            probs = ev.trajectory.belief.mode_probs.mean(1)  # average over runs, (T, M)
+            probs = ev.means["mode_probs"]  # average over all runs (every chunk), (T, M)
             for j, label in enumerate(scenario.mode_labels):
                 ctx.logger.series(f"mode_probability/{est.name}/{label}", probs[:, j])
             if example is None:
-                example = (est.name, ev.trajectory.belief.mode_probs[:, 0])
+                example = (est.name, ev.trajectory.belief.mode_probs[:, 0])  # run 0 (first chunk)
         log.info("%s: %s", est.name, {k: round(v, 4) for k, v in summary.items()})
         ctx.results.save()
     ctx.save_figure("rmse_over_time", plots.rmse_over_time(curves, f"{scenario.name}, {cfg.mc_runs} runs"))

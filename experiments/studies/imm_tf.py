@@ -105,20 +105,27 @@ def _unit(ctx: StudyContext, scenario, ratio: float, source_R: float, key: str, 
     sim, z, mask = simulate(ctx, scenario, ratio, source_R, key)
     out: dict = {"summary": {}, "present_fraction": mask.double().mean().item()}
     for est in build_estimators(scenario, source_R, ctx.cfg, names):
-        ev = evaluate(est, scenario, sim, z, chunk_runs=ctx.cfg.get("chunk_runs"), keep_trajectory=curves)
+        transfer = isinstance(est.filter, TransferIMM)
+        stats = {}  # per-step sums over each chunk's runs, combined over all chunks by evaluate
+        if transfer:
+            stats["transfer_used"] = lambda traj: traj.extras["transfer_used"].double().sum(1)
+        if curves:
+            stats["mode_probs"] = lambda traj: traj.belief.mode_probs.sum(1)
+            if transfer:  # influence value (33), m = 1 here
+                stats["influence_abs"] = lambda traj: traj.extras["influence"][..., 0].abs().sum(1)
+                stats["influence_mean"] = lambda traj: traj.extras["influence"][..., 0].sum(1)
+        ev = evaluate(est, scenario, sim, z, chunk_runs=ctx.cfg.get("chunk_runs"), per_step=stats)
         summary = ev.summary()
         summary["seconds_per_step"] = ev.seconds_per_step
-        extras = ev.trajectory.extras if curves else None
-        if extras is not None and "transfer_used" in extras:
-            summary["transfer_fraction"] = extras["transfer_used"].double().mean().item()
+        if "transfer_used" in ev.means:
+            summary["transfer_fraction"] = ev.means["transfer_used"].mean().item()
         out["summary"][est.name] = summary
         if curves:
             curve = {"pos_rmse": ev.pos_rmse.tolist(), "vel_rmse": ev.vel_rmse.tolist(), "nees": ev.nees.tolist(),
-                     "mode_probs": ev.trajectory.belief.mode_probs.mean(1).tolist()}
-            if extras is not None and "influence" in extras:
-                influence = extras["influence"][..., 0]  # (T, runs), m = 1 here
-                curve["influence_abs"] = influence.abs().mean(1).tolist()
-                curve["influence_mean"] = influence.mean(1).tolist()
+                     "mode_probs": ev.means["mode_probs"].tolist()}
+            if transfer:
+                curve["influence_abs"] = ev.means["influence_abs"].tolist()
+                curve["influence_mean"] = ev.means["influence_mean"].tolist()
             out.setdefault("curves", {})[est.name] = curve
     return out
 

@@ -45,7 +45,7 @@ def test_imm_tf_periodic_source_and_estimator_subset(tmp_path):
     results = run_study(_compose("mc_runs=5", "source.availability=periodic", "source.period=3",
                                  "estimator_names=[IMM,IMM-TF]", "table1_ratios=[0.5]", "rs_sweep=[10.0]"), tmp_path)
     assert {row[1] for row in results.tables["table1"].rows} == {"IMM", "IMM-TF"}
-    with pytest.raises(ValueError, match="estimators"):
+    with pytest.raises(ValueError, match="estimator_names=.*entry KF9: expected one of IMM"):
         run_study(_compose("mc_runs=2", "estimator_names=[IMM,KF9]"), tmp_path / "bad")
     with pytest.raises(ValueError, match="availability"):
         run_study(_compose("mc_runs=2", "source.availability=sometimes"), tmp_path / "bad2")

@@ -7,9 +7,23 @@ from torch import Tensor
 
 from torchmm.models.base import MeasurementModel, store_tensor
 from torchmm.models.linear import LinearMeasurement
-from torchmm.validation import as_tensor, check_covariance, check_shape
+from torchmm.validation import as_int, as_tensor, check_covariance, check_shape
 
 __all__ = ["PositionMeasurement", "RangeBearing"]
+
+
+def _indices(indices, name: str, state_dim: int) -> list[int]:
+    """A non-empty list of state components ``0 <= i < state_dim`` (integers)."""
+    if isinstance(indices, (str, bytes)):
+        raise TypeError(f"{name}: expected a list of integer state components, got {indices!r}")
+    try:
+        values = list(indices)
+    except TypeError:
+        raise TypeError(f"{name}: expected a list of integer state components, got {indices!r}") from None
+    out = [as_int(i, f"{name}[{k}]") for k, i in enumerate(values)]
+    if not out or any(not 0 <= i < state_dim for i in out):
+        raise ValueError(f"{name}: must be a non-empty list of components in [0, {state_dim}), got {values}")
+    return out
 
 
 class PositionMeasurement(LinearMeasurement):
@@ -22,9 +36,8 @@ class PositionMeasurement(LinearMeasurement):
     """
 
     def __init__(self, state_dim: int, indices, R, *, dtype=None):
-        indices = list(indices)
-        if not indices or any(not 0 <= i < state_dim for i in indices):
-            raise ValueError(f"indices: must be a non-empty list of components < {state_dim}, got {indices}")
+        state_dim = as_int(state_dim, "state_dim", minimum=1)
+        indices = _indices(indices, "indices", state_dim)
         dtype = dtype or (R.dtype if isinstance(R, Tensor) else torch.get_default_dtype())
         R = as_tensor(R, "R", dtype=dtype)
         H = torch.zeros(len(indices), state_dim, dtype=dtype, device=R.device)
@@ -50,11 +63,18 @@ class RangeBearing(MeasurementModel):
 
     def __init__(self, state_dim: int, R, position_indices=(0, 2), origin=(0.0, 0.0), *, dtype=None):
         super().__init__()
+        state_dim = as_int(state_dim, "state_dim", minimum=1)
         R = as_tensor(R, "R", dtype=dtype)
         check_shape(R, "R", (2, 2))
         check_covariance(R, "R", definite=True)
         store_tensor(self, "R", R)
-        store_tensor(self, "origin", as_tensor(origin, "origin", dtype=R.dtype, device=R.device))
+        origin = as_tensor(origin, "origin", dtype=R.dtype, device=R.device)
+        if origin.shape != (2,):
+            raise ValueError(f"origin: expected the sensor position (2,), got shape {tuple(origin.shape)}")
+        store_tensor(self, "origin", origin)
+        position_indices = _indices(position_indices, "position_indices", state_dim)
+        if len(position_indices) != 2 or position_indices[0] == position_indices[1]:
+            raise ValueError(f"position_indices: expected two different components (x, y), got {position_indices}")
         self.position_indices = tuple(position_indices)
         self.state_dim, self.meas_dim = state_dim, 2
 

@@ -15,7 +15,7 @@ from torch import Tensor
 
 from torchmm.models.base import MotionModel, store_tensor
 from torchmm.models.linear import LinearMotion
-from torchmm.validation import as_tensor
+from torchmm.validation import as_int, as_tensor
 
 __all__ = [
     "ConstantVelocity",
@@ -27,10 +27,12 @@ __all__ = [
 
 
 def _as_float(value, name: str) -> float:
+    if isinstance(value, (str, bool)):
+        raise TypeError(f"{name}: expected a number, got {value!r}")
     try:
         value = float(value)
     except (TypeError, ValueError):
-        raise ValueError(f"{name}: expected a number, got {value!r}") from None
+        raise TypeError(f"{name}: expected a number, got {value!r}") from None
     if not math.isfinite(value):
         raise ValueError(f"{name}: must be finite, got {value}")
     return value
@@ -71,7 +73,7 @@ def kinematic_matrices(order: int, dt: float, q: float, noise: str, dtype=None) 
 
 
 def _block_diag_axes(block: Tensor, ndim: int) -> Tensor:
-    return torch.block_diag(*([block] * ndim))
+    return torch.block_diag(*([block] * as_int(ndim, "ndim", minimum=1)))
 
 
 class ConstantVelocity(LinearMotion):
@@ -90,6 +92,7 @@ class ConstantVelocity(LinearMotion):
 
     def __init__(self, ndim: int = 1, dt: float = 1.0, q: float = 1.0, *, noise: str = "discrete",
                  acceleration=None, dtype=None):
+        ndim = as_int(ndim, "ndim", minimum=1)
         F1, G1, Q1 = kinematic_matrices(2, dt, q, noise, dtype)
         F = _block_diag_axes(F1, ndim)
         Q = _block_diag_axes(Q1, ndim)
@@ -114,6 +117,7 @@ class ConstantAcceleration(LinearMotion):
     """
 
     def __init__(self, ndim: int = 1, dt: float = 1.0, q: float = 1.0, *, noise: str = "discrete", dtype=None):
+        ndim = as_int(ndim, "ndim", minimum=1)
         F1, _, Q1 = kinematic_matrices(3, dt, q, noise, dtype)
         super().__init__(_block_diag_axes(F1, ndim), _block_diag_axes(Q1, ndim))
         self.ndim, self.dt, self.q = ndim, float(dt), float(q)
@@ -199,7 +203,10 @@ class NonlinearCoordinatedTurn(MotionModel):
         _, _, Q1 = kinematic_matrices(2, dt, q, noise, dtype)
         Q = torch.zeros(5, 5, dtype=Q1.dtype)
         Q[:4, :4] = _block_diag_axes(Q1, 2)
-        Q[4, 4] = _as_float(q_omega, "q_omega")
+        q_omega = _as_float(q_omega, "q_omega")
+        if q_omega < 0:
+            raise ValueError(f"q_omega: must be non-negative, got {q_omega}")
+        Q[4, 4] = q_omega
         store_tensor(self, "Q", Q)
         self.state_dim, self.dt = 5, float(dt)
 

@@ -54,7 +54,7 @@ def gimmaf(motion, measurement, transition, *, skewness, df, tau: float = 3.0, i
     """
     bank = SkewTIWVBFilter(motion, measurement, skewness=skewness, df=df, tau=tau, iterations=iterations,
                            gamma_shape=gamma_shape, elbo_history=elbo_history)
-    return VariationalIMM(bank, transition)
+    return _build(bank, transition)
 
 
 def imm_vbt(motion, measurement, transition, *, df, iterations: int = 10,
@@ -70,4 +70,15 @@ def imm_vbt(motion, measurement, transition, *, df, iterations: int = 10,
         as :class:`~torchmm.multimodel.IMM`.
     """
     bank = StudentTVBFilter(motion, measurement, df=df, iterations=iterations, elbo_history=elbo_history)
-    return VariationalIMM(bank, transition)
+    return _build(bank, transition)
+
+
+def _build(bank, transition) -> VariationalIMM:
+    """The IMM over ``bank``; errors about the bank name the argument the user passed (``motion``)."""
+    try:
+        return VariationalIMM(bank, transition)
+    except ValueError as err:
+        message = str(err)
+        if message.startswith("bank: model parameter batch"):
+            raise ValueError("motion: parameter batch" + message.removeprefix("bank: model parameter batch")) from None
+        raise

@@ -1,0 +1,441 @@
+"""Typed study configs: every key is checked before anything runs; user errors are one line.
+
+The schemas are dataclasses (OmegaConf structured configs, the Hydra ecosystem's typed configs):
+:class:`Common` for the keys every study shares, one dataclass per study for its own keys
+(:mod:`experiments.schemas`), one per scenario builder and estimator builder. :func:`validate`
+merges the composed config into them - OmegaConf converts and type-checks every value and
+rejects unknown keys - and then runs each field's range check (``metadata={"check": ...}``).
+Any problem is a :class:`ConfigError`, a ``ValueError`` whose message is one line naming the key,
+the value and what is allowed, e.g. ``mc_runs=0: must be a positive integer``.
+
+:func:`precheck` is the command line's gate: ``torchmm-run`` composes the config of the run (or
+of every job of a ``-m`` sweep) from the command-line overrides and validates it *before* Hydra
+starts, so a user error prints that one line, exits with status 2, and leaves no run folder
+behind. :func:`~experiments.run.run_study` validates again (for use without the command line).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import importlib
+import math
+import sys
+from dataclasses import dataclass, field
+from typing import Any, Callable, Optional
+
+from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import ConfigAttributeError, ConfigKeyError, MissingMandatoryValue, OmegaConfBaseException
+
+__all__ = ["Common", "ConfigError", "precheck", "spec", "validate"]
+
+
+class ConfigError(ValueError):
+    """A user error in a study config: ``key=value: what is allowed`` (one line)."""
+
+    def __init__(self, key: str, value: Any, allowed: str):
+        self.key, self.value, self.allowed = key, value, allowed
+        shown = "" if value is _NO_VALUE else f"={_show(value)}"
+        super().__init__(f"{key}{shown}: {allowed}")
+
+
+_NO_VALUE = object()
+
+
+def _show(value: Any) -> str:
+    if isinstance(value, str):
+        return value
+    if isinstance(value, float) and value.is_integer():
+        return repr(value)
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+# -- field checks ------------------------------------------------------------------------------
+Check = Callable[[Any], Optional[str]]
+
+
+def spec(default: Any = dataclasses.MISSING, check: Check | None = None, *, factory=None):
+    """A schema field with an optional range check ``check(value) -> error text | None``."""
+    kwargs: dict = {"metadata": {"check": check}}
+    if factory is not None:
+        kwargs["default_factory"] = factory
+    elif default is not dataclasses.MISSING:
+        kwargs["default"] = default
+    return field(**kwargs)
+
+
+def positive(value) -> str | None:
+    return None if value is None or value > 0 else "must be positive"
+
+
+def positive_int(value) -> str | None:
+    return None if value is None or value >= 1 else "must be a positive integer"
+
+
+def non_negative(value) -> str | None:
+    return None if value is None or value >= 0 else "must be non-negative"
+
+
+def probability(value) -> str | None:
+    return None if value is None or 0 <= value <= 1 else "must be a probability in [0, 1]"
+
+
+def open_probability(value) -> str | None:
+    return None if value is None or 0 < value < 1 else "must lie in (0, 1)"
+
+
+def one_of(*choices: str) -> Check:
+    def check(value):
+        return None if value is None or value in choices else f"expected one of {', '.join(choices)}"
+    return check
+
+
+def each(check: Check) -> Check:
+    """Apply ``check`` to every element of a list."""
+    def run(values):
+        for v in values or []:
+            error = check(v)
+            if error:
+                return f"entry {_show(v)}: {error}"
+        return None
+    return run
+
+
+def matrix(value) -> str | None:
+    """A list of rows of numbers (typed ``List[Any]``: OmegaConf rejects ints in nested float lists)."""
+    if value is None:
+        return None
+    if not isinstance(value, list) or not all(isinstance(row, list) and all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) for v in row) for row in value):
+        return "expected a matrix: a list of rows of numbers"
+    return None
+
+
+def non_empty(values) -> str | None:
+    return None if values is None or len(values) else "must not be empty"
+
+
+def both(*checks: Check) -> Check:
+    def run(value):
+        for check in checks:
+            error = check(value)
+            if error:
+                return error
+        return None
+    return run
+
+
+def _device(value) -> str | None:
+    import torch
+
+    if value == "auto":
+        return None
+    try:
+        device = torch.device(value)
+    except (RuntimeError, TypeError):
+        return "expected cpu, cuda, cuda:<index> or auto"
+    if device.type not in ("cpu", "cuda"):
+        return "expected cpu, cuda, cuda:<index> or auto"
+    if device.type == "cuda" and not torch.cuda.is_available():
+        return "CUDA is not available on this machine (torch.cuda.is_available() is False); use device=cpu"
+    if device.type == "cuda" and device.index is not None and device.index >= torch.cuda.device_count():
+        return f"this machine has {torch.cuda.device_count()} CUDA device(s)"
+    return None
+
+
+def _seed(value) -> str | None:
+    return None if 0 <= value < 2**63 else "must be an integer in [0, 2^63)"
+
+
+# -- the common keys ---------------------------------------------------------------------------
+@dataclass
+class Logger:
+    kind: str = spec("tensorboard", one_of("tensorboard", "none"))
+    subdir: str = "tb"
+    flush_secs: int = spec(10, positive_int)
+
+
+@dataclass
+class Common:
+    """Keys every study has (``conf/config.yaml``)."""
+
+    mc_runs: int = spec(100, positive_int)
+    seed: int = spec(0, _seed)
+    device: str = spec("cpu", _device)
+    dtype: str = spec("float64", one_of("float64", "float32", "double", "float"))
+    progress: bool = True
+    chunk_runs: Optional[int] = spec(None, positive_int)
+    threads: Optional[int] = spec(1, positive_int)
+    retain_freed_memory: bool = False
+    experiment_name: str = "study"
+    study: str = "experiments.studies.imm_tf.run"
+    logger: Logger = field(default_factory=Logger)
+
+
+#: top-level keys that are neither common nor a study's own: checked separately
+_SHARED = {"scenario", "estimators"}
+
+
+# -- validation --------------------------------------------------------------------------------
+def _merge(schema: type, values: dict, prefix: str = "") -> Any:
+    """``values`` merged into ``schema`` and converted to the dataclass (type errors: ConfigError)."""
+    try:
+        merged = OmegaConf.merge(OmegaConf.structured(schema), values)
+        obj = OmegaConf.to_object(merged)
+    except (ConfigKeyError, ConfigAttributeError) as err:
+        key = _join(prefix, str(err.full_key or err.key))
+        known = [f.name for f in dataclasses.fields(_schema_at(schema, str(err.full_key or "")))]
+        leaf = key.rsplit(".", 1)[-1]
+        close = difflib.get_close_matches(leaf, known, n=1)
+        hint = f"; did you mean {close[0]}?" if close else f" (known: {', '.join(known)})"
+        raise ConfigError(key, _NO_VALUE, f"unknown key{hint}") from None
+    except MissingMandatoryValue as err:
+        raise ConfigError(_join(prefix, str(err.full_key)), _NO_VALUE, "missing (a required key)") from None
+    except OmegaConfBaseException as err:
+        key = _join(prefix, str(err.full_key or err.key))
+        raise ConfigError(key, err.value if err.value is not None else _NO_VALUE, _type_message(err)) from None
+    _check_fields(obj, prefix)
+    return obj
+
+
+def _schema_at(schema: type, path: str) -> type:
+    """The dataclass of the node that holds ``path``'s last key."""
+    parts = [p for p in path.split(".")[:-1] if p]
+    for part in parts:
+        fields = {f.name: f for f in dataclasses.fields(schema)}
+        if part not in fields or not dataclasses.is_dataclass(fields[part].type if isinstance(fields[part].type, type)
+                                                              else None):
+            break
+        schema = fields[part].type
+    return schema
+
+
+def _type_message(err: OmegaConfBaseException) -> str:
+    msg = str(err.msg).splitlines()[0]
+    for word, text in (("Integer", "expected an integer"), ("Float", "expected a number"),
+                       ("valid bool", "expected true or false"), ("String", "expected a string")):
+        if word in msg:
+            return text
+    return msg
+
+
+def _join(prefix: str, key: str) -> str:
+    return f"{prefix}.{key}" if prefix else key
+
+
+def _check_fields(obj: Any, prefix: str) -> None:
+    for f in dataclasses.fields(obj):
+        value = getattr(obj, f.name)
+        key = _join(prefix, f.name)
+        check = f.metadata.get("check")
+        if check is not None:
+            error = check(value)
+            if error:
+                raise ConfigError(key, value, error)
+        if dataclasses.is_dataclass(value):
+            _check_fields(value, key)
+        elif isinstance(value, dict):
+            for k, v in value.items():
+                if dataclasses.is_dataclass(v):
+                    _check_fields(v, f"{key}.{k}")
+        elif isinstance(value, float) and not math.isfinite(value):
+            raise ConfigError(key, value, "must be finite")
+    relation = getattr(obj, "config_check", None)
+    if relation is not None:
+        problem = relation()  # a check across fields: (key, value, message) or None
+        if problem:
+            raise ConfigError(_join(prefix, problem[0]), problem[1], problem[2])
+
+
+def _study_entry(study: str) -> tuple[type | None, tuple[str, ...] | None]:
+    from experiments import schemas
+
+    entry = schemas.STUDIES.get(study)
+    if entry is None:
+        try:
+            module, _, name = study.rpartition(".")
+            getattr(importlib.import_module(module), name)
+        except (ImportError, AttributeError, ValueError):
+            raise ConfigError("study", study, "not an importable study function (module.run)") from None
+        return None, None  # a user's own study: only the common keys are checked
+    return entry
+
+
+def validate(cfg: DictConfig | dict, *, scenario_choice: str | None = None) -> None:
+    """Check every key of a composed study config (no ``hydra`` node); raise :class:`ConfigError`.
+
+    Args:
+        cfg: the composed config (``hydra.compose`` or Hydra's task config).
+        scenario_choice: the ``scenario=<name>`` chosen on the command line, for the message when
+            the scenario does not fit the study (default: ``scenario.name``).
+    """
+    from experiments import schemas
+
+    data = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg)
+    data.pop("hydra", None)
+    common_keys = {f.name for f in dataclasses.fields(Common)}
+    _merge(Common, {k: v for k, v in data.items() if k in common_keys})
+    study = str(data.get("study"))
+    schema, scenarios = _study_entry(study)
+    if schema is None:
+        return
+    own = {f.name for f in dataclasses.fields(schema)}
+    for key in data:
+        if key not in common_keys and key not in own and key not in _SHARED:
+            known = sorted(own | _SHARED | common_keys)
+            close = difflib.get_close_matches(key, known, n=1)
+            hint = f"did you mean {close[0]}?" if close else f"the {data.get('experiment_name')} study's keys: " \
+                + ", ".join(sorted(own))
+            raise ConfigError(key, _NO_VALUE, f"not a key of the {data.get('experiment_name')} study ({hint})")
+    _merge(schema, {k: v for k, v in data.items() if k in own})
+    _validate_scenario(data, scenarios, scenario_choice)
+    if "estimators" in own or "estimators" in data:
+        for name, est in (data.get("estimators") or {}).items():
+            _merge(schemas.Estimator, est or {}, f"estimators.{name}")
+    if hasattr(schema, "check"):
+        schema.check(data)
+
+
+def _validate_scenario(data: dict, scenarios: tuple[str, ...] | None, choice: str | None) -> None:
+    from experiments import schemas
+
+    scenario = data.get("scenario")
+    name = choice or (scenario or {}).get("name")
+    experiment = data.get("experiment_name")
+    if not scenarios:
+        if scenario:
+            raise ConfigError("scenario", name, f"the {experiment} study takes no scenario")
+        return
+    if not scenario:
+        raise ConfigError("scenario", _NO_VALUE, f"missing: the {experiment} study needs one of "
+                          f"{', '.join(schemas.scenario_names(scenarios))}")
+    target = scenario.get("_target_")
+    if target not in scenarios:
+        raise ConfigError("scenario", name, f"does not fit the {experiment} study; choose one of "
+                          f"{', '.join(schemas.scenario_names(scenarios))}")
+    _merge(schemas.SCENARIOS[target], scenario, "scenario")
+
+
+# -- the command line ------------------------------------------------------------------------------
+def precheck(argv: list[str], config_dir: str, config_name: str = "config") -> None:
+    """Validate the run (or every job of a ``-m`` sweep) that ``argv`` asks for; on a user error
+    print one line to stderr and exit with status 2 (before Hydra creates any folder)."""
+    try:
+        _precheck(argv, config_dir, config_name)
+    except ConfigError as err:
+        print(f"torchmm-run: error: {err}", file=sys.stderr)
+        raise SystemExit(2) from None
+
+
+def _precheck(argv: list[str], config_dir: str, config_name: str) -> None:
+    from hydra._internal.utils import get_args_parser
+
+    try:
+        args, unknown = get_args_parser().parse_known_args(argv)
+    except SystemExit:
+        return  # Hydra's own argument errors: Hydra reports them
+    passthrough = ("help", "hydra_help", "cfg", "info", "shell_completion", "version", "config_path",
+                   "config_name", "config_dir", "experimental_rerun")
+    if unknown or any(getattr(args, name, None) for name in passthrough):
+        return  # Hydra's own modes (help, --cfg, a config dir of the user's, ...): Hydra handles them
+    overrides = list(args.overrides)
+    jobs = _sweep_jobs(overrides) if args.multirun else [overrides]
+    for job in jobs:
+        cfg, choice = _compose(job, config_dir, config_name)
+        validate(cfg, scenario_choice=choice)
+
+
+def _sweep_jobs(overrides: list[str]) -> list[list[str]]:
+    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import HydraException
+
+    try:
+        parsed = OverridesParser.create().parse_overrides(overrides)
+    except HydraException as err:
+        raise ConfigError("overrides", " ".join(overrides), str(err).splitlines()[0]) from None
+    batches = BasicSweeper.split_arguments(parsed, max_batch_size=None)
+    return [job for batch in batches for job in batch]
+
+
+def _compose(overrides: list[str], config_dir: str, config_name: str) -> tuple[DictConfig, str | None]:
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.errors import HydraException, MissingConfigException
+    from omegaconf import open_dict
+
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_dir(config_dir=config_dir, version_base="1.3"):
+            cfg = compose(config_name, overrides=overrides, return_hydra_config=True)
+    except MissingConfigException as err:
+        raise _missing_config(err, overrides) from None
+    except (HydraException, OmegaConfBaseException) as err:
+        raise _composition_error(err, overrides) from None
+    finally:
+        GlobalHydra.instance().clear()
+    choice = OmegaConf.select(cfg, "hydra.runtime.choices.scenario")
+    with open_dict(cfg):
+        del cfg["hydra"]  # never resolve hydra.run.dir here: its resolver creates the run folder
+    return cfg, choice
+
+
+def _override_for(key: str, overrides: list[str]) -> str | None:
+    for item in overrides:
+        name = item.lstrip("+~").split("=", 1)[0]
+        if name == key or name.split("@", 1)[0] == key:
+            return item
+    return None
+
+
+def _close_keys(key: str, other_overrides: list[str]) -> str | None:
+    """The existing key closest to a misspelt ``key`` (composing the config without it)."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    from experiments.run import CONFIG_DIR
+
+    parent, _, leaf = key.rpartition(".")
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+            cfg = compose("config", overrides=other_overrides)
+        node = OmegaConf.select(cfg, parent) if parent else cfg
+    except Exception:  # noqa: BLE001 - only a hint
+        return None
+    finally:
+        GlobalHydra.instance().clear()
+    if not isinstance(node, DictConfig):
+        return None
+    close = difflib.get_close_matches(leaf, [str(k) for k in node.keys()], n=1)
+    return f"{parent}.{close[0]}" if close and parent else (close[0] if close else None)
+
+
+def _missing_config(err, overrides: list[str]) -> ConfigError:
+    text = str(err)
+    group = None
+    if "Could not find '" in text:
+        group = text.split("Could not find '", 1)[1].split("'", 1)[0].rsplit("/", 1)[0]
+    options = list(getattr(err, "options", None) or [])
+    if group and options:
+        item = _override_for(group, overrides)
+        value = item.split("=", 1)[1] if item and "=" in item else _NO_VALUE
+        return ConfigError(group, value, f"no such config; choose one of {', '.join(sorted(options))}")
+    return ConfigError("config", _NO_VALUE, text.splitlines()[0])
+
+
+def _composition_error(err, overrides: list[str]) -> ConfigError:
+    cause = err.__cause__ if isinstance(err.__cause__, OmegaConfBaseException) else err
+    key = getattr(cause, "full_key", None) or getattr(cause, "key", None)
+    text = str(err).splitlines()[0]
+    if isinstance(cause, (ConfigKeyError, ConfigAttributeError)) and key:
+        item = _override_for(str(key), overrides) or ""
+        value = item.split("=", 1)[1] if "=" in item else _NO_VALUE
+        close = _close_keys(str(key), [o for o in overrides if o != item])
+        hint = f"did you mean {close}? " if close else ""
+        return ConfigError(str(key), value, f"unknown key ({hint}to add a new key write +{key}=...)")
+    if isinstance(cause, OmegaConfBaseException) and key:
+        return ConfigError(str(key), cause.value if cause.value is not None else _NO_VALUE,
+                           _type_message(cause))
+    return ConfigError("overrides", " ".join(overrides), text)

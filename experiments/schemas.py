@@ -1,0 +1,449 @@
+"""The typed schema of every study's own keys, of the scenario builders and of the estimators.
+
+One dataclass per study section (checked by :func:`experiments.config.validate`); a field's type
+is enforced by OmegaConf, its range by ``spec(..., check)``. ``STUDIES`` maps a study function to
+its schema and the scenario builders it accepts (``None``: it takes no ``scenario``). A study
+that is not listed here gets its common keys checked only.
+
+Matrices and vectors are typed ``List[...]`` of numbers; their sizes are checked by the library
+constructors the study calls (with errors naming the library argument).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Dict, List, Optional
+
+import yaml
+
+from experiments.config import (
+    ConfigError,
+    both,
+    each,
+    matrix as matrix_check,
+    non_empty,
+    non_negative,
+    one_of,
+    open_probability,
+    positive,
+    positive_int,
+    probability,
+    spec,
+)
+
+KINEMATIC = "experiments.scenarios.kinematic_1d"
+PAPER003 = "experiments.studies.mevsmm.paper003_scenario"
+
+
+def _rows_stochastic(matrix) -> str | None:
+    if matrix is None:
+        return None
+    error = matrix_check(matrix)
+    if error:
+        return error
+    if not matrix or any(len(row) != len(matrix) for row in matrix):
+        return "must be a square matrix (list of rows)"
+    for row in matrix:
+        if any(p < 0 for p in row) or abs(sum(row) - 1) > 1e-6:
+            return "every row must be non-negative and sum to 1"
+    return None
+
+
+# -- scenarios -----------------------------------------------------------------------------------
+@dataclass
+class KinematicScenario:
+    """``experiments.scenarios.kinematic_1d`` (paper000, maneuver2, maneuver3)."""
+
+    _target_: str = KINEMATIC
+    name: str = "scenario"
+    accelerations: List[float] = spec(factory=list, check=non_empty)
+    q: float = spec(1.0, non_negative)
+    noise: str = spec("discrete", one_of("discrete", "continuous"))
+    R: float = spec(100.0, positive)
+    transition: List[Any] = spec(factory=list, check=_rows_stochastic)
+    initial_mean: List[float] = field(default_factory=list)
+    initial_cov: List[Any] = spec(factory=list, check=matrix_check)
+    initial_mode_probs: Optional[List[float]] = None
+    steps: int = spec(100, positive_int)
+    dt: float = spec(1.0, positive)
+
+    def config_check(self):
+        if len(self.transition) != len(self.accelerations):
+            return ("transition", self.transition,
+                    f"must be {len(self.accelerations)} x {len(self.accelerations)}: one row per acceleration mode")
+        if self.initial_mode_probs is not None and len(self.initial_mode_probs) != len(self.accelerations):
+            return ("initial_mode_probs", self.initial_mode_probs,
+                    f"expected {len(self.accelerations)} probabilities (one per mode)")
+        return None
+
+
+@dataclass
+class RandomManeuvers:
+    maneuver_prob: float = spec(0.7, probability)
+    accel_std: float = spec(30.0, non_negative)
+    hold: str = spec("previous", one_of("previous", "zero"))
+
+
+@dataclass
+class Paper003Scenario:
+    """``experiments.studies.mevsmm.paper003_scenario`` (det_small, det_large, random)."""
+
+    _target_: str = PAPER003
+    name: str = "scenario"
+    R: float = spec(150.0, positive)
+    steps: int = spec(180, positive_int)
+    initial_state: List[float] = field(default_factory=list)
+    initial_std: Optional[List[float]] = spec(None, each(positive))
+    maneuvers: List[Any] = field(default_factory=list)
+    random: Optional[RandomManeuvers] = None
+    D: str = spec("kinematic", one_of("kinematic", "printed"))
+
+
+SCENARIOS = {KINEMATIC: KinematicScenario, PAPER003: Paper003Scenario}
+
+
+def scenario_names(targets) -> list[str]:
+    """The ``conf/scenario/*.yaml`` names whose builder is one of ``targets``."""
+    folder = Path(__file__).resolve().parent.parent / "conf" / "scenario"
+    names = []
+    for path in sorted(folder.glob("*.yaml")):
+        if (yaml.safe_load(path.read_text()) or {}).get("_target_") in targets:
+            names.append(path.stem)
+    return names
+
+
+# -- estimators (conf/estimator/*.yaml) ------------------------------------------------------------
+@dataclass
+class Estimator:
+    _target_: str = spec("experiments.estimators.imm", one_of(
+        "experiments.estimators.imm", "experiments.estimators.gpb1", "experiments.estimators.gpb2",
+        "experiments.estimators.kalman"))
+    _partial_: bool = True
+    transition: Optional[List[Any]] = spec(None, _rows_stochastic)
+    joseph: bool = False
+    mode: int = spec(0, non_negative)
+
+
+# -- studies ---------------------------------------------------------------------------------------
+@dataclass
+class ImmBaseline:
+    estimators: Dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class Influence:
+    threshold: float = 0.0
+    mode: int = spec(0, non_negative)
+    weight: str = spec("prior", one_of("prior", "process"))
+
+
+@dataclass
+class Transfer:
+    smoothing_reference: str = spec("combined", one_of("combined", "mixed"))
+    mode_likelihood: str = spec("prior", one_of("prior", "corrected"))
+    influence: Influence = field(default_factory=Influence)
+
+
+@dataclass
+class Source:
+    R: float = spec(10.0, positive)
+    ratio: float = spec(0.6, probability)
+    availability: str = spec("bernoulli", one_of("bernoulli", "periodic"))
+    period: int = spec(2, positive_int)
+
+
+@dataclass
+class Vsimm:
+    extra_model: int = spec(1, non_negative)
+    p_new: Optional[float] = spec(None, open_probability)
+    p_ee: float = spec(0.9, lambda v: None if 0 <= v < 1 else "must lie in [0, 1)")
+    eps: float = spec(0.01, lambda v: None if 0 <= v < 1 else "must lie in [0, 1)")
+    drop_below: float = spec(1e-3, lambda v: None if 0 <= v < 1 else "must lie in [0, 1)")
+
+
+TF_ESTIMATORS = ("IMM", "IMM-TF", "IF-TF", "IMM-FU", "VSIMM", "IMM-SU")
+
+
+@dataclass
+class ImmTf:
+    estimator_names: List[str] = spec(factory=lambda: list(TF_ESTIMATORS),
+                                      check=both(non_empty, each(one_of(*TF_ESTIMATORS))))
+    source: Source = field(default_factory=Source)
+    table1_ratios: List[float] = spec(factory=list, check=each(probability))
+    rs_sweep: List[float] = spec(factory=list, check=each(positive))
+    transfer: Transfer = field(default_factory=Transfer)
+    vsimm: Vsimm = field(default_factory=Vsimm)
+
+
+@dataclass
+class Alphas:
+    two_model: List[float] = spec(factory=list, check=each(non_negative))
+    three_model: List[float] = spec(factory=list, check=each(non_negative))
+
+
+@dataclass
+class AnalysisScenarios:
+    two_model: KinematicScenario = field(default_factory=KinematicScenario)
+    three_model: KinematicScenario = field(default_factory=KinematicScenario)
+
+
+@dataclass
+class Analysis:
+    scenarios: AnalysisScenarios = field(default_factory=AnalysisScenarios)
+    alphas: Alphas = field(default_factory=Alphas)
+    matched: str = spec("closest", one_of("closest", "true_mode"))
+    interaction_estimator: str = "IMM"
+    tol: float = spec(1e-9, non_negative)
+
+
+@dataclass
+class ImmAnalysis:
+    analysis: Analysis = field(default_factory=Analysis)
+    estimators: Dict[str, Any] = field(default_factory=dict)
+
+    @staticmethod
+    def check(data: dict) -> None:
+        name = data["analysis"]["interaction_estimator"]
+        if name not in (data.get("estimators") or {}):
+            raise ConfigError("analysis.interaction_estimator", name,
+                              f"must name one of the estimators: {', '.join(data.get('estimators') or {})}")
+
+
+@dataclass
+class GimmafNoise:
+    kind: str = spec("skew_t", one_of("skew_t", "student_t", "gaussian"))
+    R: float = spec(2500.0, positive)
+    delta: float = 9.0
+    nu: float = spec(20.0, positive)
+
+
+@dataclass
+class Table4Noise:
+    R: float = spec(400.0, positive)
+    delta: float = 9.0
+    nu: float = spec(10.0, positive)
+
+
+@dataclass
+class Table4:
+    noises: List[str] = spec(factory=list, check=each(one_of("skew_t", "student_t", "gaussian")))
+    noise: Table4Noise = field(default_factory=Table4Noise)
+
+
+@dataclass
+class Vbakf:
+    rho: float = spec(0.98, lambda v: None if 0 < v <= 1 else "must lie in (0, 1]")
+    tau_r: float = spec(3.0, positive)
+
+
+@dataclass
+class GimmafSection:
+    steps: int = spec(250, positive_int)
+    dt: float = spec(1.0, positive)
+    x0: List[float] = field(default_factory=list)
+    P0: List[float] = spec(factory=list, check=each(positive))
+    segments: List[Any] = spec(factory=list, check=matrix_check)
+    noise: GimmafNoise = field(default_factory=GimmafNoise)
+    model_rates: List[float] = spec(factory=list, check=non_empty)
+    transition: List[Any] = spec(factory=list, check=_rows_stochastic)
+    nominal_q: float = spec(1e-2, positive)
+    tau: float = spec(3.0, positive)
+    iterations: int = spec(10, positive_int)
+    elbo_history: bool = False
+    gamma_shape: str = spec("derived", one_of("derived", "printed"))
+    vbakf: Vbakf = field(default_factory=Vbakf)
+    oracle: bool = True
+    table4: Table4 = field(default_factory=Table4)
+
+    def config_check(self):
+        if len(self.transition) != len(self.model_rates):
+            return ("transition", self.transition,
+                    f"must be {len(self.model_rates)} x {len(self.model_rates)}: one row per model rate")
+        return None
+
+
+@dataclass
+class Gimmaf:
+    noise: str = spec("skew_t", one_of("skew_t", "student_t", "gaussian"))
+    gimmaf: GimmafSection = field(default_factory=GimmafSection)
+
+
+def _nominal_q(value) -> str | None:
+    if value == "true":
+        return None
+    try:
+        return None if float(value) > 0 else 'must be "true" or a positive number'
+    except (TypeError, ValueError):
+        return 'must be "true" or a positive number'
+
+
+@dataclass
+class Huang:
+    steps: int = spec(1000, positive_int)
+    nominal_q: Any = spec("true", _nominal_q)
+    beta: float = spec(100.0, positive)
+    tau: float = spec(3.0, positive)
+    rho: float = spec(0.98, lambda v: None if 0 < v <= 1 else "must lie in (0, 1]")
+    iterations: int = spec(10, positive_int)
+
+
+@dataclass
+class VbakfHuang:
+    huang: Huang = field(default_factory=Huang)
+
+
+@dataclass
+class LearnScenario:
+    steps: int = spec(100, positive_int)
+    dt: float = spec(1.0, positive)
+    turn_rate: float = 0.1
+    q: float = spec(0.05, positive)
+    R: float = spec(25.0, positive)
+    stay: float = spec(0.9, open_probability)
+    initial_mean: List[float] = field(default_factory=list)
+    initial_std: List[float] = spec(factory=list, check=each(non_negative))
+
+
+@dataclass
+class LearnPart:
+    enabled: bool = True
+    optimizer: str = spec("lbfgs", one_of("lbfgs", "adam"))
+    lr: float = spec(1.0, positive)
+    max_line_search: int = spec(20, positive_int)
+    iterations: int = spec(10, non_negative)
+    window: Optional[int] = spec(None, positive_int)
+    batch_size: Optional[int] = spec(None, positive_int)
+
+
+@dataclass
+class LearnPartA(LearnPart):
+    initial_stay: Optional[float] = spec(None, open_probability)
+    initial_q_factor: float = spec(10.0, positive)
+
+
+@dataclass
+class LearnPartB(LearnPart):
+    replaced_mode: int = spec(1, lambda v: None if v in (0, 1, 2) else "expected 0 (CV), 1 or 2 (CT)")
+    hidden: int = spec(16, positive_int)
+    v_scale: float = spec(15.0, positive)
+    a_scale: float = spec(1.5, positive)
+
+
+@dataclass
+class LearnSection:
+    test_runs: Optional[int] = spec(None, positive_int)
+    num_threads: Optional[int] = spec(1, positive_int)
+    scenario: LearnScenario = field(default_factory=LearnScenario)
+    part_a: LearnPartA = field(default_factory=LearnPartA)
+    part_b: LearnPartB = field(default_factory=LearnPartB)
+
+
+@dataclass
+class LearnDynamics:
+    learn: LearnSection = field(default_factory=LearnSection)
+
+
+MEVSMM_KINDS = ("eqma9", "eqma21", "cm", "topk", "nofeedback", "exact", "mmpf")
+
+
+@dataclass
+class MevsmmSection:
+    estimators: Dict[str, str] = spec(factory=dict, check=lambda d: None if d and all(
+        k in MEVSMM_KINDS for k in d.values()) else f"every estimator kind must be one of {', '.join(MEVSMM_KINDS)}")
+    num_particles: int = spec(1000, positive_int)
+    num_winners: int = spec(420, positive_int)
+    threshold: int = spec(23, non_negative)
+    cm_passes: int = spec(1, non_negative)
+    stay_prob: float = spec(0.9, probability)
+    mevsmm_stay_prob: Optional[float] = spec(None, probability)
+    accel_std: float = spec(5.0, positive)
+    mixing: str = spec("two_stage", one_of("two_stage", "systematic", "stratified", "multinomial"))
+    noise_dtype: Optional[str] = spec(None, one_of("float32", "float64"))
+    feedback: bool = True
+    entropy: str = spec("joint", one_of("joint", "literal"))
+    exact_runs: int = spec(20, positive_int)
+    exact_chunk: int = spec(65536, positive_int)
+    histogram_steps: List[int] = spec(factory=list, check=each(positive_int))
+
+
+@dataclass
+class Mevsmm:
+    mevsmm: MevsmmSection = field(default_factory=MevsmmSection)
+
+    @staticmethod
+    def check(data: dict) -> None:
+        opts = data["mevsmm"]
+        if opts["num_winners"] > 21 * opts["num_particles"]:
+            raise ConfigError("mevsmm.num_winners", opts["num_winners"],
+                              f"must not exceed the 21 x {opts['num_particles']} particles")
+
+
+@dataclass
+class Radar:
+    steps: int = spec(100, positive_int)
+    T: float = spec(1.0, positive)
+    rho: List[float] = field(default_factory=list)
+    tau: float = spec(5.0, positive)
+    h_sign: int = spec(-1, lambda v: None if v in (-1, 1) else "expected -1 or 1")
+    h_factor: List[float] = field(default_factory=list)
+    sigma_r: List[float] = spec(factory=list, check=each(non_negative))
+    Qr0: Optional[List[float]] = None
+    eta_std: List[Any] = spec(factory=list, check=matrix_check)
+    Qw_diag: List[float] = spec(factory=list, check=each(non_negative))
+    x0: List[float] = field(default_factory=list)
+    P0_diag: List[float] = spec(factory=list, check=each(non_negative))
+    position_index: int = spec(0, non_negative)
+    C: List[Any] = field(default_factory=list)
+    Ct: List[Any] = field(default_factory=list)
+    d: List[Any] = field(default_factory=list)
+
+
+@dataclass
+class FusionRadar:
+    radar: Radar = field(default_factory=Radar)
+
+
+@dataclass
+class Ups:
+    steps: int = spec(100, positive_int)
+    burn_in: int = spec(30, non_negative)
+    horizons: List[int] = spec(factory=list, check=non_empty)
+    ss_tol: float = spec(1e-12, positive)
+    cf_ss_steps: int = spec(300, positive_int)
+    A: List[Any] = spec(factory=list, check=matrix_check)
+    Gamma: List[Any] = spec(factory=list, check=matrix_check)
+    Qw: float = spec(5.0, non_negative)
+    C: List[float] = field(default_factory=list)
+    Ct: List[Any] = spec(factory=list, check=matrix_check)
+    h: List[float] = field(default_factory=list)
+    Qp: List[float] = spec(factory=list, check=each(non_negative))
+    d: List[float] = field(default_factory=list)
+    Q_eta: List[float] = spec(factory=list, check=each(positive))
+    mu0: List[float] = field(default_factory=list)
+    P0_scale: float = spec(0.1, non_negative)
+    Qr0: Optional[List[float]] = None
+
+
+@dataclass
+class FusionUps:
+    ups: Ups = field(default_factory=Ups)
+
+    @staticmethod
+    def check(data: dict) -> None:
+        ups = data["ups"]
+        if ups["burn_in"] >= ups["steps"]:
+            raise ConfigError("ups.burn_in", ups["burn_in"], f"must be below ups.steps = {ups['steps']}")
+
+
+STUDIES: dict[str, tuple[type, tuple[str, ...] | None]] = {
+    "experiments.studies.imm_baseline.run": (ImmBaseline, (KINEMATIC,)),
+    "experiments.studies.imm_tf.run": (ImmTf, (KINEMATIC,)),
+    "experiments.studies.imm_analysis.run": (ImmAnalysis, None),
+    "experiments.studies.gimmaf.run": (Gimmaf, None),
+    "experiments.studies.vbakf_huang.run": (VbakfHuang, None),
+    "experiments.studies.learn_dynamics.run": (LearnDynamics, None),
+    "experiments.studies.mevsmm.run": (Mevsmm, (PAPER003,)),
+    "experiments.studies.fusion_radar.run": (FusionRadar, None),
+    "experiments.studies.fusion_ups.run": (FusionUps, None),
+}
