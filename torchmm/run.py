@@ -13,7 +13,7 @@ from torch import Tensor
 
 from torchmm.beliefs import Belief, GaussianBelief
 from torchmm.filters.base import Filter, StepOutput
-from torchmm.validation import check_filter_dtype
+from torchmm.validation import broadcast_shape, check_filter_dtype
 
 __all__ = ["Trajectory", "run_filter", "stack_outputs"]
 
@@ -62,7 +62,7 @@ def stack_outputs(outputs: list) -> Any:
         if column[0] is None:
             leaves.append(None)
             continue
-        shape = torch.broadcast_shapes(*(t.shape for t in column))
+        shape = broadcast_shape(*(t.shape for t in column))
         leaves.append(torch.stack([t.expand(shape) for t in column]))
     return pytree.tree_unflatten(leaves, spec)
 
@@ -153,8 +153,12 @@ def run_filter(
 
 
 def _report_flags(extras: dict | None) -> None:
-    """One warning per run for updates whose innovation covariance had to be regularised."""
-    flags = (extras or {}).get("singular")
+    """One warning per run for updates whose innovation covariance had to be regularised
+    (``extras["singular"]``, or the mode filters' ``extras["modes"]["singular"]``)."""
+    extras = extras or {}
+    flags = extras.get("singular")
+    if flags is None and isinstance(extras.get("modes"), dict):
+        flags = extras["modes"].get("singular")
     if isinstance(flags, Tensor) and flags.dtype == torch.bool and flags.numel():
         count = int(flags.sum())
         if count:

@@ -19,6 +19,8 @@ import torch
 import torch.utils._pytree as pytree
 from torch import Tensor
 
+from torchmm.validation import broadcast_shape
+
 __all__ = ["Belief", "register_belief", "stack", "cat"]
 
 B = TypeVar("B", bound="Belief")
@@ -67,7 +69,7 @@ class Belief:
         """Broadcast batch shape of all fields (``ValueError`` if they do not broadcast)."""
         shapes = [t.shape[: t.dim() - e] for t, e in self._tensors()]
         try:
-            return torch.broadcast_shapes(*shapes)
+            return broadcast_shape(*shapes)
         except RuntimeError:
             raise ValueError(f"{type(self).__name__}: batch shapes of the fields do not broadcast: "
                              f"{[tuple(s) for s in shapes]}") from None

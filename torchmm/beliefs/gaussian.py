@@ -56,10 +56,12 @@ class GaussianBelief(Belief):
 
     def __post_init__(self):
         # shapes only (no values: this runs at every step); lists and integer tensors are converted
-        mean, cov = _floating(self.mean, "mean"), _floating(self.cov, "cov", self.mean)
-        if mean is not self.mean:
+        mean, cov = self.mean, self.cov
+        if not (isinstance(mean, Tensor) and mean.is_floating_point()):
+            mean = _floating(mean, "mean")
             object.__setattr__(self, "mean", mean)
-        if cov is not self.cov:
+        if not (isinstance(cov, Tensor) and cov.is_floating_point()):
+            cov = _floating(cov, "cov", mean)
             object.__setattr__(self, "cov", cov)
         if mean.dim() < 1 or cov.dim() < 2 or cov.shape[-1] != mean.shape[-1] or cov.shape[-2] != mean.shape[-1]:
             raise ValueError(f"cov: expected shape (*B, n, n) for mean (*B, n); got mean {tuple(mean.shape)}, "

@@ -16,7 +16,7 @@ def symmetrize(matrix: Tensor) -> Tensor:
     Shapes:
         matrix: ``(..., d, d)`` -> ``(..., d, d)``
     """
-    return 0.5 * (matrix + matrix.mT)
+    return (matrix + matrix.mT).mul_(0.5)
 
 
 def normalize_log_probs(log_probs: Tensor, dim: int = -1) -> Tensor:

@@ -178,10 +178,11 @@ def _condition_scalar(mean, cov, innovation, innovation_cov, cross_cov):
     s = s_raw.clamp_min(tiny)
     c = cross_cov[..., 0]
     gain = c * (observed / s).unsqueeze(-1)  # K = c / s, zero where missing
-    post_mean = mean + gain * nu.unsqueeze(-1)
-    post_cov = cov - gain.unsqueeze(-1) * c.unsqueeze(-2)  # P - K c^T (symmetrised below)
-    log_likelihood = torch.where(observed, -0.5 * (nu * nu / s + s.log() + _LOG_2PI), 0.0)
-    return post_mean, symmetrize(post_cov), log_likelihood, observed & ~(s_raw > tiny)
+    post_mean = torch.addcmul(mean, gain, nu.unsqueeze(-1))  # x + K nu
+    post_cov = torch.addcmul(cov, gain.unsqueeze(-1), c.unsqueeze(-2), value=-1.0)  # P - K c^T (symmetrised below)
+    quad_logdet = torch.addcdiv(s.log().add_(_LOG_2PI), nu * nu, s)  # nu^2 / s + log s + log 2 pi
+    log_likelihood = torch.where(observed, quad_logdet.mul_(-0.5), 0.0)
+    return post_mean, symmetrize(post_cov), log_likelihood, s_raw <= tiny
 
 
 def cholesky_solve(L: Tensor, rhs: Tensor) -> Tensor:

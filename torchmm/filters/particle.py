@@ -52,6 +52,7 @@ from torchmm.models.linear import LinearMeasurement, LinearMotion
 from torchmm.filters.linalg import cholesky
 from torchmm.multimodel.transition import ModeTransition
 from torchmm.validation import (
+    broadcast_shape,
     as_float,
     as_int,
     check_covariance,
@@ -133,7 +134,7 @@ def standard_normal(shape, like: Tensor, *, generator: torch.Generator | None = 
 
 def _add(a: Tensor, b: Tensor) -> Tensor:
     """``a + b``, in place into the fresh temporary ``a`` when the shapes allow it."""
-    if torch.broadcast_shapes(a.shape, b.shape) == a.shape and a.dtype == b.dtype:
+    if broadcast_shape(a.shape, b.shape) == a.shape and a.dtype == b.dtype:
         return a.add_(b)
     return a + b
 

@@ -31,6 +31,7 @@ from torch import Tensor
 
 from torchmm.beliefs.ops import normalize_log_probs
 from torchmm.beliefs.particle import ParticleBelief
+from torchmm.validation import broadcast_shape
 
 __all__ = [
     "RESAMPLING_SCHEMES",
@@ -149,7 +150,7 @@ def inverse_cdf(log_weights: Tensor, u: Tensor) -> Tensor:
         log_weights: ``(*B, Np)``; u: ``(*B, N)`` -> ``(*B, N)`` (int64)
     """
     cdf = _cdf(log_weights)
-    batch = torch.broadcast_shapes(cdf.shape[:-1], u.shape[:-1])
+    batch = broadcast_shape(cdf.shape[:-1], u.shape[:-1])
     cdf = cdf.expand(*batch, cdf.shape[-1]).contiguous()
     u = u.expand(*batch, u.shape[-1]).contiguous()
     index = searchsorted_rows(cdf, u)
@@ -293,7 +294,7 @@ def apply_indices(belief: ParticleBelief, indices: Tensor) -> ParticleBelief:
         belief: particles ``(*B, Np, n)``; indices ``(*B, N)`` -> particles ``(*B, N, n)``
     """
     particles = belief.particles
-    batch = torch.broadcast_shapes(particles.shape[:-2], indices.shape[:-1])
+    batch = broadcast_shape(particles.shape[:-2], indices.shape[:-1])
     particles = particles.expand(*batch, *particles.shape[-2:])
     indices = indices.expand(*batch, indices.shape[-1])
     gathered = torch.gather(particles, -2, indices.unsqueeze(-1).expand(*indices.shape, particles.shape[-1]))

@@ -22,7 +22,7 @@ from torchmm.beliefs import GaussianBelief, psd_sqrt, symmetrize
 from torchmm.filters.base import Filter, StepOutput
 from torchmm.filters.linalg import condition
 from torchmm.models.base import MeasurementModel, MotionModel, check_model_pair
-from torchmm.validation import as_float, check_measurement, gaussian_batch
+from torchmm.validation import as_float, broadcast_shape, check_measurement, gaussian_batch
 
 __all__ = [
     "CubatureSigmaPoints",
@@ -61,7 +61,7 @@ class SigmaPointStrategy:
         gives non-finite points for that batch element only.
         """
         n = mean.shape[-1]
-        batch = torch.broadcast_shapes(mean.shape[:-1], cov.shape[:-2])
+        batch = broadcast_shape(mean.shape[:-1], cov.shape[:-2])
         chol = psd_sqrt(symmetrize(cov)).expand(*batch, n, n)
         offsets = math.sqrt(self.spread(n)) * chol.movedim(-1, 0)  # (n, *B, n): columns of L
         mean = mean.expand(*batch, n).unsqueeze(0).expand(n, *batch, n)

@@ -52,6 +52,7 @@ from torchmm.filters.kalman import KalmanFilter
 from torchmm.filters.linalg import cholesky, cholesky_solve, condition
 from torchmm.models.linear import LinearMeasurement, LinearMotion, matvec
 from torchmm.validation import (
+    broadcast_shape,
     as_float,
     as_int,
     as_tensor,
@@ -498,7 +499,7 @@ class SkewTVBFilter(_LinearVBFilter):
         H, r, delta, nu = self.measurement.H, self.r, self.delta, self.nu
         n, m = belief.mean.shape[-1], r.shape[-1]
         x_pred, P_pred = belief.mean, belief.cov
-        batch = torch.broadcast_shapes(x_pred.shape[:-1], z.shape[:-1])
+        batch = broadcast_shape(x_pred.shape[:-1], z.shape[:-1])
         z_pred = matvec(H, x_pred)
         missing, z = _fill_missing(z, z_pred)
         Hb = H.expand(*batch, m, n)

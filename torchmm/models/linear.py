@@ -8,7 +8,7 @@ import torch
 from torch import Tensor
 
 from torchmm.models.base import MeasurementModel, MotionModel, store_tensor
-from torchmm.validation import as_tensor, check_covariance, check_shape, check_square
+from torchmm.validation import as_tensor, broadcast_shape, check_covariance, check_shape, check_square
 
 __all__ = ["LinearMeasurement", "LinearMotion", "matvec"]
 
@@ -98,7 +98,7 @@ class LinearMotion(MotionModel):
         return self.Q
 
     def jacobian(self, x: Tensor, *, u: Tensor | None = None) -> Tensor:
-        return self.F.expand(*torch.broadcast_shapes(x.shape[:-1], self.F.shape[:-2]), -1, -1)
+        return self.F.expand(*broadcast_shape(x.shape[:-1], self.F.shape[:-2]), -1, -1)
 
     def select_mode(self, index: int) -> LinearMotion:
         """The single model ``index`` of a bank (parameters indexed on the parameter batch)."""
@@ -167,7 +167,7 @@ class LinearMeasurement(MeasurementModel):
         return self.R
 
     def jacobian(self, x: Tensor) -> Tensor:
-        return self.H.expand(*torch.broadcast_shapes(x.shape[:-1], self.H.shape[:-2]), -1, -1)
+        return self.H.expand(*broadcast_shape(x.shape[:-1], self.H.shape[:-2]), -1, -1)
 
     @classmethod
     def stack(cls, models: Sequence[LinearMeasurement]) -> LinearMeasurement:

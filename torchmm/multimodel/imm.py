@@ -55,10 +55,11 @@ def _predicted(mode_probs: Tensor, transition: Tensor) -> Tensor:
 
 def _safe_sub(joint: Tensor, norm: Tensor) -> Tensor:
     """``joint - norm`` where ``norm = logsumexp`` of ``joint`` over the axes ``norm`` keeps with size 1;
-    groups that are all ``-inf`` (or NaN) become uniform. No host synchronisation."""
+    groups that are all ``-inf`` (``-inf - -inf = NaN``; or NaN) become uniform, ``-inf`` entries of
+    a finite group stay ``-inf``. One fused pass, no host synchronisation."""
     size = joint.numel() // max(norm.numel(), 1)
-    uniform = torch.full((), -math.log(size) if size else 0.0, dtype=joint.dtype, device=joint.device)
-    return torch.where(torch.isfinite(norm), joint - norm, uniform)
+    uniform = -math.log(size) if size else 0.0
+    return (joint - norm).nan_to_num_(nan=uniform, posinf=math.inf, neginf=-math.inf)
 
 
 def _mode_batch(belief, name: str = "belief") -> torch.Size:
@@ -69,20 +70,17 @@ def _mode_batch(belief, name: str = "belief") -> torch.Size:
     return mode_log_probs.shape[:-1]
 
 
-def _all_missing(z: Tensor) -> Tensor:
-    """``(*B,)`` True where every component of ``z (*B, m)`` is missing (non-finite)."""
-    return ~torch.isfinite(z).any(-1)
+def _any_datum(z: Tensor) -> Tensor:
+    """``(*B,)`` True where ``z (*B, m)`` has a finite (observed) component."""
+    return torch.isfinite(z[..., 0]) if z.shape[-1] == 1 else torch.isfinite(z).any(-1)
 
 
 def _mode_extras(out: StepOutput, mode_axes: int = 1) -> dict:
-    """The bank's diagnostics as ``extras["modes"]`` (batch ``(*B, M)``), its ``mode_log_likelihood``
-    and ``extras["singular"] (*B,)``: any mode filter's innovation covariance was regularised."""
+    """The bank's diagnostics as ``extras["modes"]`` (batch ``(*B, M)``; e.g. the mode filters'
+    ``singular`` flags) and its ``mode_log_likelihood``."""
     extras = {"mode_log_likelihood": out.log_likelihood}
     if out.extras:  # the mode filters' own diagnostics (e.g. VB iterations), batch (*B, M)
         extras["modes"] = dict(out.extras)
-        singular = out.extras.get("singular")
-        if isinstance(singular, Tensor) and singular.dim() >= mode_axes:
-            extras["singular"] = singular.flatten(-mode_axes).any(-1)
     return extras
 
 
@@ -157,21 +155,19 @@ class MultipleModelFilter(Filter):
         components = belief.unsqueeze(-1).expand(*batch, M)
         return ModeBelief(log_probs, components)
 
-    def _update_modes(self, prior: ModeBelief, z: Tensor, *, missing: Tensor | None = None) -> StepOutput:
+    def _update_modes(self, prior: ModeBelief, z: Tensor, *, observed: Tensor | None = None) -> StepOutput:
         """Mode-matched updates and the mode-probability update (shared by IMM and GPB1).
 
-        Where ``z`` is entirely missing (or ``missing (*B,)`` says so: no datum at all this step)
-        the step's log-likelihood is exactly 0 and the posterior mode probabilities are exactly
-        the predicted ones.
+        Where ``z`` has no finite component (or ``observed (*B,)`` is False: no datum at all this
+        step) the log-likelihood is exactly 0 (``logsumexp_j(log c_j)`` is 0 only up to rounding).
         """
         z = self._measurement(prior, z)
         out = self.bank.update(prior.components, z.unsqueeze(-2))
         joint = out.log_likelihood + prior.mode_log_probs  # ell_j + log c_j
         log_likelihood = torch.logsumexp(joint, dim=-1)
         mode_log_probs = _safe_sub(joint, log_likelihood.unsqueeze(-1))
-        missing = _all_missing(z) if missing is None else missing
-        log_likelihood = torch.where(missing, 0.0, log_likelihood)
-        mode_log_probs = torch.where(missing.unsqueeze(-1), prior.mode_log_probs, mode_log_probs)
+        observed = _any_datum(z) if observed is None else observed
+        log_likelihood = torch.where(observed, log_likelihood, 0.0)
         extras = _mode_extras(out)
         return StepOutput(
             belief=ModeBelief(mode_log_probs, out.belief),
@@ -304,10 +300,7 @@ class GPB2(MultipleModelFilter):
         merge_weights = _safe_sub(joint, log_mode.unsqueeze(-2))  # mu_{i|j}, (*B, i, j)
         merged = out.belief.transpose_batch(-1, -2).collapse(merge_weights.mT.exp())  # (*B, j)
         mode_log_probs = _safe_sub(log_mode, log_likelihood.unsqueeze(-1))
-        missing = _all_missing(z)  # exactly the predicted mode probabilities, log-likelihood 0
-        log_likelihood = torch.where(missing, 0.0, log_likelihood)
-        predicted = torch.logsumexp(prior_joint, dim=-2)
-        mode_log_probs = torch.where(missing.unsqueeze(-1), predicted, mode_log_probs)
+        log_likelihood = torch.where(_any_datum(z), log_likelihood, 0.0)  # exactly 0 without a datum
         extras = _mode_extras(out, mode_axes=2)
         return StepOutput(
             belief=ModeBelief(mode_log_probs, merged),

@@ -41,7 +41,7 @@ from torchmm.filters.smoother import rts_step
 from torchmm.models.base import MeasurementModel
 from torchmm.models.linear import LinearMeasurement, LinearMotion, matvec
 from torchmm.multimodel.bank import VectorizedBank
-from torchmm.multimodel.imm import IMM, _all_missing, _mode_batch, _safe_sub
+from torchmm.multimodel.imm import IMM, _any_datum, _mode_batch, _safe_sub
 from torchmm.validation import check_measurement
 
 __all__ = [
@@ -312,10 +312,8 @@ class TransferIMM(IMM):
             ll = torch.where(present.unsqueeze(-1), transferred.log_likelihood, plain.extras["mode_log_likelihood"])
             joint = ll + prior.mode_log_probs
             norm = torch.logsumexp(joint, dim=-1)
-            missing = _all_missing(y)
-            mode_log_probs = torch.where(missing.unsqueeze(-1), prior.mode_log_probs,
-                                         _safe_sub(joint, norm.unsqueeze(-1)))
-            log_likelihood = torch.where(missing, 0.0, norm)
+            mode_log_probs = _safe_sub(joint, norm.unsqueeze(-1))
+            log_likelihood = torch.where(_any_datum(y), norm, 0.0)  # exactly 0 without a datum
         else:
             log_likelihood = plain.log_likelihood
 
@@ -386,7 +384,7 @@ class SourceUpdateIMM(IMM):
         y, ys = _streams(self, belief, z, self.source_filter.measurement)
         first = self.source_filter.update(belief.components, ys.unsqueeze(-2))
         intermediate = ModeBelief(belief.mode_log_probs + first.log_likelihood, first.belief)
-        out = self._update_modes(intermediate, y, missing=_all_missing(y) & _all_missing(ys))
+        out = self._update_modes(intermediate, y, observed=_any_datum(y) | _any_datum(ys))
         # log p(y, y_S | past): the source factor is folded into the prior weights above
         out.extras["source_log_likelihood"] = first.log_likelihood
         out.extras["mode_log_likelihood"] = out.extras["mode_log_likelihood"] + first.log_likelihood
@@ -564,7 +562,6 @@ class SourceModeVSIMM(_SourceTrackIMM):
         out = self.extended.update(predicted, y.unsqueeze(-2))
         joint = out.log_likelihood + log_cbar
         norm = torch.logsumexp(joint, dim=-1, keepdim=True)
-        norm = torch.where(_all_missing(y).unsqueeze(-1), 0.0, norm)  # no datum: exactly 0
         log_mu = _safe_sub(joint, norm)
         is_extra = torch.arange(M + 1, device=mu.device) == M
         drop = is_extra & (log_mu < torch.log(torch.tensor(self.drop_below, dtype=mu.dtype)))
@@ -573,9 +570,10 @@ class SourceModeVSIMM(_SourceTrackIMM):
         new_target = ModeBelief(log_mu, out.belief)
         extras = {"mode_log_likelihood": out.log_likelihood, "source_present": present,
                   "extra_mode_active": log_mu[..., M] > -torch.inf}
-        if out.extras and "singular" in out.extras:
-            extras["singular"] = out.extras["singular"].any(-1)
-        return StepOutput(SourceTrackBelief(new_target, source), prior, norm.squeeze(-1),
+        if out.extras:
+            extras["modes"] = dict(out.extras)
+        log_likelihood = torch.where(_any_datum(y), norm.squeeze(-1), 0.0)  # exactly 0 without a datum
+        return StepOutput(SourceTrackBelief(new_target, source), prior, log_likelihood,
                           out.innovation, out.innovation_cov, extras)
 
 
