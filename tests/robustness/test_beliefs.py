@@ -36,8 +36,8 @@ BAD_COVS = {
     "indefinite": ([[1.0, 2.0], [2.0, 1.0]], "not positive semi-definite"),
     "negative": ([[-1.0, 0.0], [0.0, 1.0]], "not positive semi-definite"),
 }
-KF = KalmanFilter(ConstantVelocity(1), PositionMeasurement(2, [0], 1.0))
-Z = torch.zeros(3, 2, 1)
+KF = KalmanFilter(ConstantVelocity(1, dtype=torch.float64), PositionMeasurement(2, [0], 1.0, dtype=torch.float64))
+Z = torch.zeros(3, 2, 1, dtype=torch.float64)
 
 
 @pytest.mark.parametrize("kind", BAD_COVS)

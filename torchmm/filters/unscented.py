@@ -142,7 +142,8 @@ def _weighted_moments(points: Tensor, wm: Tensor) -> tuple[Tensor, Tensor]:
 class UnscentedKalmanFilter(Filter):
     r"""Unscented Kalman filter.
 
-    The covariance update is the sigma-point Joseph form
+    With ``joseph`` (the default in float32 and below) the covariance update is the sigma-point
+    Joseph form
 
     .. math::
         P^+ = \textstyle\sum_s W^c_s\,(\mathcal X_s - x^- - K(\mathcal Z_s - \hat z))(\cdot)^\top + K R K^\top,
@@ -156,14 +157,19 @@ class UnscentedKalmanFilter(Filter):
         measurement: any :class:`~torchmm.models.MeasurementModel`.
         sigma_points: a :class:`SigmaPointStrategy`; default :class:`MerweScaledSigmaPoints`
             (checked for the model's state dimension here).
+        joseph: ``True`` / ``False`` forces the form; ``None`` (default): Joseph in float32 and
+            below, ``P - K S K^T`` in float64.
 
     Shapes:
         as :class:`~torchmm.filters.ExtendedKalmanFilter` (``extras["singular"]`` likewise).
     """
 
     def __init__(self, motion: MotionModel, measurement: MeasurementModel,
-                 sigma_points: SigmaPointStrategy | None = None):
+                 sigma_points: SigmaPointStrategy | None = None, *, joseph: bool | None = None):
         super().__init__()
+        if joseph is not None and not isinstance(joseph, bool):
+            raise TypeError(f"joseph: expected True, False or None (automatic), got {joseph!r}")
+        self.joseph = joseph
         check_model_pair(motion, measurement)
         if sigma_points is not None and not isinstance(sigma_points, SigmaPointStrategy):
             raise TypeError(f"sigma_points: expected a SigmaPointStrategy, got {type(sigma_points).__name__}")
@@ -217,9 +223,12 @@ class UnscentedKalmanFilter(Filter):
             spread = torch.einsum("s...i,s...j->...ij", wc * err, err)
             return spread + gain @ R @ gain.mT
 
+        psd_form = self.joseph if self.joseph is not None else torch.finfo(belief.dtype).eps > 1e-10
         mean, cov, log_likelihood, singular = condition(
             belief.mean, belief.cov, innovation, symmetrize(innovation_cov), cross_cov,
-            posterior_cov=joseph, with_flag=True,
+            posterior_cov=joseph if psd_form else None, with_flag=True,
         )
+        if psd_form:  # no datum at all: exactly the prior (the sigma-point sum reproduces P to rounding)
+            cov = torch.where(torch.isfinite(innovation).any(-1)[..., None, None], cov, belief.cov)
         return StepOutput(GaussianBelief(mean, cov), belief, log_likelihood, innovation, innovation_cov,
                           {"singular": singular})

@@ -177,15 +177,30 @@ def _keep_prior(missing: Tensor, prior: GaussianBelief, mean: Tensor, cov: Tenso
     return mean, cov, torch.where(missing, torch.zeros_like(loglik), loglik)
 
 
+def _check_joseph(value) -> bool | None:
+    if value is not None and not isinstance(value, bool):
+        raise TypeError(f"joseph: expected True, False or None (automatic), got {value!r}")
+    return value
+
+
+def use_joseph(joseph: bool | None, dtype: torch.dtype) -> bool:
+    """The covariance-update form of the VB filters and the UKF: ``joseph=None`` (the default) is
+    the PSD-preserving Joseph form in float32 and below, where ``P - K S K^T`` cancels with
+    accurate sensors, and the cheaper ``P - K S K^T`` in float64."""
+    return joseph if joseph is not None else torch.finfo(dtype).eps > 1e-10
+
+
 class _LinearVBFilter(Filter):
     """Shared set-up: a linear motion (nominal ``Q``) and a linear measurement (scale ``R``)."""
 
-    def __init__(self, motion: LinearMotion, measurement: LinearMeasurement, iterations: int):
+    def __init__(self, motion: LinearMotion, measurement: LinearMeasurement, iterations: int,
+                 joseph: bool | None = None):
         super().__init__()
         _check_linear(motion, measurement)
         self.kalman = KalmanFilter(motion, measurement)
         self.motion, self.measurement = motion, measurement
         self.iterations = _iterations(iterations)
+        self.joseph = _check_joseph(joseph)
 
     @property
     def param_batch_shape(self) -> torch.Size:
@@ -221,6 +236,8 @@ class StudentTVBFilter(_LinearVBFilter):
         df: ``nu > 0``.
         iterations: fixed-point iterations per step.
         elbo_history: also return the ELBO after every iteration (always on at DEBUG log level).
+        joseph: Joseph-form (PSD-preserving) inner updates; ``None`` (default): in float32 and
+            below only (:func:`use_joseph`).
 
     Shapes:
         belief ``GaussianBelief`` batch ``(*B,)``; ``z (*B, m)``; ``extras["elbo"] (*B, iterations)``
@@ -237,8 +254,8 @@ class StudentTVBFilter(_LinearVBFilter):
     """
 
     def __init__(self, motion, measurement, df: float = 5.0, iterations: int = 10,
-                 elbo_history: bool = False):
-        super().__init__(motion, measurement, iterations)
+                 elbo_history: bool = False, joseph: bool | None = None):
+        super().__init__(motion, measurement, iterations, joseph)
         check_covariance(measurement.R, "measurement.R", definite=True)  # R^{-1} enters D
         self.elbo_history = bool(elbo_history)
         df = as_tensor(df, "df", dtype=measurement.R.dtype, device=measurement.R.device)
@@ -263,10 +280,11 @@ class StudentTVBFilter(_LinearVBFilter):
         elbos = []
         history = self.elbo_history or log.isEnabledFor(logging.DEBUG)
         singular = torch.zeros(z.shape[:-1], dtype=torch.bool, device=z.device)
+        joseph = use_joseph(self.joseph, z.dtype)
         for it in range(self.iterations):
             R_eff = R / Eu[..., None, None]
             mean, cov, _, flag = condition(belief.mean, belief.cov, innovation, HPH + R_eff, cross,
-                                           joseph=(H, R_eff), with_flag=True)
+                                           joseph=(H, R_eff) if joseph else None, with_flag=True)
             singular = singular | flag
             resid = z - matvec(H, mean)
             quad = cholesky_solve(L_R, resid.unsqueeze(-1)).squeeze(-1).mul(resid).sum(-1)
@@ -335,6 +353,8 @@ class SkewTIWVBFilter(_LinearVBFilter):
         iterations: ``S`` fixed-point iterations.
         gamma_shape: ``"derived"`` (default) or ``"printed"``.
         elbo_history: also return the ELBO after every iteration (always on at DEBUG log level).
+        joseph: Joseph-form (PSD-preserving) inner updates; ``None`` (default): in float32 and
+            below only (:func:`use_joseph`).
 
     Shapes:
         belief ``GaussianBelief`` batch ``(*B,)``; ``z (*B, m)``; extras ``elbo (*B, S)`` (with
@@ -353,8 +373,8 @@ class SkewTIWVBFilter(_LinearVBFilter):
     """
 
     def __init__(self, motion, measurement, skewness=0.0, df=5.0, tau: float = 3.0, iterations: int = 10,
-                 gamma_shape: str = "derived", elbo_history: bool = False):
-        super().__init__(motion, measurement, iterations)
+                 gamma_shape: str = "derived", elbo_history: bool = False, joseph: bool | None = None):
+        super().__init__(motion, measurement, iterations, joseph)
         self.elbo_history = bool(elbo_history)
         R = measurement.R
         m = R.shape[-1]
@@ -391,6 +411,7 @@ class SkewTIWVBFilter(_LinearVBFilter):
         elbos = []
         history = self.elbo_history or log.isEnabledFor(logging.DEBUG)
         singular = torch.zeros(z.shape[:-1], dtype=torch.bool, device=z.device)
+        joseph = use_joseph(self.joseph, z.dtype)
         for it in range(self.iterations):
             diff = mean - x_pred
             T = T_prior + cov + diff.unsqueeze(-1) * diff.unsqueeze(-2)  # (28)
@@ -398,7 +419,7 @@ class SkewTIWVBFilter(_LinearVBFilter):
             cross = P_hat @ H.mT
             R_eff = torch.diag_embed(r / lam)
             mean, cov, _, flag = condition(x_pred, P_hat, z - z_pred - delta * Eu, H @ cross + R_eff, cross,
-                                           joseph=(H, R_eff), with_flag=True)  # (29)-(31), Joseph form
+                                           joseph=(H, R_eff) if joseph else None, with_flag=True)  # (29)-(31)
             singular = singular | flag
             resid = z - matvec(H, mean)
             u_loc = gain_u * resid  # (32)
@@ -470,6 +491,8 @@ class SkewTVBFilter(_LinearVBFilter):
         motion, measurement: linear models; ``measurement.R`` is the (diagonal) spread matrix.
         skewness, df: ``Delta`` and ``nu`` (numbers, ``(m,)`` or diagonal matrices).
         iterations: VB iterations per step.
+        joseph: Joseph-form (PSD-preserving) inner updates; ``None`` (default): in float32 and
+            below only (:func:`use_joseph`).
 
     Shapes:
         belief ``GaussianBelief`` batch ``(*B,)``; ``z (*B, m)``; extras ``noise_cov (*B, m, m)``,
@@ -482,8 +505,9 @@ class SkewTVBFilter(_LinearVBFilter):
         torch.Size([5, 4])
     """
 
-    def __init__(self, motion, measurement, skewness=0.0, df=5.0, iterations: int = 10):
-        super().__init__(motion, measurement, iterations)
+    def __init__(self, motion, measurement, skewness=0.0, df=5.0, iterations: int = 10,
+                 joseph: bool | None = None):
+        super().__init__(motion, measurement, iterations, joseph)
         R = measurement.R
         m = R.shape[-1]
         r = _diag_param(R, "measurement.R", m, R)
@@ -510,6 +534,7 @@ class SkewTVBFilter(_LinearVBFilter):
         zeros = torch.zeros(n + m, n + m, dtype=z.dtype, device=z.device)
         eye = torch.eye(n + m, dtype=z.dtype, device=z.device)
         singular = torch.zeros(batch, dtype=torch.bool, device=z.device)
+        joseph = use_joseph(self.joseph, z.dtype)
         for _ in range(self.iterations):
             Sigma_prior = zeros.expand(*batch, n + m, n + m).clone()
             Sigma_prior[..., :n, :n] = P_pred
@@ -517,7 +542,7 @@ class SkewTVBFilter(_LinearVBFilter):
             cross = Sigma_prior @ A.mT
             R_eff = torch.diag_embed(r / lam)
             xi, Sigma, loglik, flag = condition(xi_prior, Sigma_prior, z - z_pred, A @ cross + R_eff, cross,
-                                                joseph=(A, R_eff), with_flag=True)
+                                                joseph=(A, R_eff) if joseph else None, with_flag=True)
             singular = singular | flag
             for i in range(m):  # sequential truncation u_i >= 0 (a loop over measurement coordinates)
                 j = n + i
@@ -525,11 +550,15 @@ class SkewTVBFilter(_LinearVBFilter):
                 t_mean, t_var = truncated_normal_moments(xi[..., j], var_j.sqrt())
                 g = Sigma[..., :, j] / var_j.unsqueeze(-1)
                 xi = xi + g * (t_mean - xi[..., j]).unsqueeze(-1)
-                # Sigma - g g^T (var_j - t_var) as the product A Sigma A^T, A = I - a g e_j^T with
-                # a = 1 - sqrt(t_var / var_j): PSD by construction (no cancellation in float32)
-                a = 1 - (t_var / var_j).clamp(0.0, 1.0).sqrt()
-                Aj = eye - (a.unsqueeze(-1) * g).unsqueeze(-1) * eye[j]
-                Sigma = symmetrize(Aj @ Sigma @ Aj.mT)
+                if joseph:
+                    # Sigma - g g^T (var_j - t_var) as the product A Sigma A^T, A = I - a g e_j^T,
+                    # a = 1 - sqrt(t_var / var_j): PSD by construction (no cancellation in float32)
+                    a = 1 - (t_var / var_j).clamp(0.0, 1.0).sqrt()
+                    Aj = eye - (a.unsqueeze(-1) * g).unsqueeze(-1) * eye[j]
+                    Sigma = symmetrize(Aj @ Sigma @ Aj.mT)
+                else:
+                    shrink = (t_var - var_j)[..., None, None]
+                    Sigma = symmetrize(Sigma + g.unsqueeze(-1) * g.unsqueeze(-2) * shrink)
             resid = z - (A @ xi.unsqueeze(-1)).squeeze(-1)
             Er = resid.square() + (A @ Sigma @ A.mT).diagonal(dim1=-2, dim2=-1)
             Eu2 = Sigma[..., n:, n:].diagonal(dim1=-2, dim2=-1) + xi[..., n:].square()
@@ -617,6 +646,8 @@ class VBAKFPR(Filter):
         measurement: linear measurement (its ``R`` is only a default for :meth:`initial_belief`).
         tau: ``tau_P`` (default 3); rho: forgetting factor (default ``1 - exp(-4)``);
         iterations: ``N`` (default 10); tau_r: ``tau_R`` for :meth:`initial_belief` (default 3).
+        joseph: Joseph-form (PSD-preserving) inner updates; ``None`` (default): in float32 and
+            below only (:func:`use_joseph`).
 
     Shapes:
         belief :class:`AdaptiveGaussianBelief` batch ``(*B,)``; ``z (*B, m)``; extras
@@ -632,7 +663,7 @@ class VBAKFPR(Filter):
     """
 
     def __init__(self, motion, measurement, tau: float = 3.0, rho: float = 1 - math.exp(-4),
-                 iterations: int = 10, tau_r: float = 3.0):
+                 iterations: int = 10, tau_r: float = 3.0, joseph: bool | None = None):
         super().__init__()
         _check_linear(motion, measurement)
         self.motion, self.measurement = motion, measurement
@@ -640,6 +671,7 @@ class VBAKFPR(Filter):
         self.tau_r = as_float(tau_r, "tau_r", positive=True)
         self.rho = as_float(rho, "rho", positive=True, maximum=1.0)
         self.iterations = _iterations(iterations)
+        self.joseph = _check_joseph(joseph)
 
     def initial_belief(self, belief: GaussianBelief, R0: Tensor | None = None) -> AdaptiveGaussianBelief:
         """``u_0 = m + 1 + tau_R``, ``U_0 = tau_R R~_0`` (so ``E[R_0] = R~_0``; default the model's R).
@@ -683,6 +715,7 @@ class VBAKFPR(Filter):
         u_q = belief.r_dof + 1
         mean, cov = x_pred, P_nom
         singular = torch.zeros(z.shape[:-1], dtype=torch.bool, device=z.device)
+        joseph = use_joseph(self.joseph, z.dtype)
         for _ in range(self.iterations):
             dx = mean - x_pred
             T = T_prior + cov + dx.unsqueeze(-1) * dx.unsqueeze(-2)
@@ -693,8 +726,8 @@ class VBAKFPR(Filter):
             R_hat = symmetrize(U / (u_q - m - 1)[..., None, None])
             cross = P_hat @ H.mT
             S = H @ cross + R_hat
-            mean, cov, loglik, flag = condition(x_pred, P_hat, innovation, S, cross, joseph=(H, R_hat),
-                                                with_flag=True)
+            mean, cov, loglik, flag = condition(x_pred, P_hat, innovation, S, cross,
+                                                joseph=(H, R_hat) if joseph else None, with_flag=True)
             singular = singular | flag
         keep = missing
         mean, cov, loglik = _keep_prior(keep, belief.estimate(), mean, cov, loglik)

@@ -29,7 +29,7 @@ class VariationalIMM(IMM):
 
 
 def gimmaf(motion, measurement, transition, *, skewness, df, tau: float = 3.0, iterations: int = 10,
-           gamma_shape: str = "derived", elbo_history: bool = False) -> VariationalIMM:
+           gamma_shape: str = "derived", elbo_history: bool = False, joseph: bool | None = None) -> VariationalIMM:
     r"""GIMMAF: IMM over skew-t + inverse-Wishart VB filters (:class:`SkewTIWVBFilter`).
 
     Args:
@@ -37,7 +37,7 @@ def gimmaf(motion, measurement, transition, *, skewness, df, tau: float = 3.0, i
             process noise ``Q_0``.
         measurement: :class:`~torchmm.models.LinearMeasurement` with the skew-t spread ``R``.
         transition: ``(M, M)``, ``P[i, j] = P(mode_k = j | mode_{k-1} = i)``.
-        skewness, df, tau, iterations, gamma_shape, elbo_history: as :class:`SkewTIWVBFilter`.
+        skewness, df, tau, iterations, gamma_shape, elbo_history, joseph: as :class:`SkewTIWVBFilter`.
 
     Shapes:
         as :class:`~torchmm.multimodel.IMM`.
@@ -53,23 +53,24 @@ def gimmaf(motion, measurement, transition, *, skewness, df, tau: float = 3.0, i
         torch.Size([3, 2])
     """
     bank = SkewTIWVBFilter(motion, measurement, skewness=skewness, df=df, tau=tau, iterations=iterations,
-                           gamma_shape=gamma_shape, elbo_history=elbo_history)
+                           gamma_shape=gamma_shape, elbo_history=elbo_history, joseph=joseph)
     return _build(bank, transition)
 
 
 def imm_vbt(motion, measurement, transition, *, df, iterations: int = 10,
-            elbo_history: bool = False) -> VariationalIMM:
+            elbo_history: bool = False, joseph: bool | None = None) -> VariationalIMM:
     """IMM-VBT: IMM over Student-t VB filters (:class:`StudentTVBFilter`), ELBO mode likelihood.
 
     Args:
         motion: linear motion bank with the nominal ``Q``; measurement: linear, ``R`` the t scale;
-        transition: ``(M, M)``; df: ``nu``; iterations: VB iterations per step; elbo_history: as
-        :class:`StudentTVBFilter`.
+        transition: ``(M, M)``; df: ``nu``; iterations: VB iterations per step; elbo_history,
+        joseph: as :class:`StudentTVBFilter`.
 
     Shapes:
         as :class:`~torchmm.multimodel.IMM`.
     """
-    bank = StudentTVBFilter(motion, measurement, df=df, iterations=iterations, elbo_history=elbo_history)
+    bank = StudentTVBFilter(motion, measurement, df=df, iterations=iterations, elbo_history=elbo_history,
+                            joseph=joseph)
     return _build(bank, transition)
 
 
