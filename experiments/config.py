@@ -25,7 +25,12 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Optional
 
 from omegaconf import DictConfig, OmegaConf
-from omegaconf.errors import ConfigAttributeError, ConfigKeyError, MissingMandatoryValue, OmegaConfBaseException
+from omegaconf.errors import (
+    ConfigAttributeError,
+    ConfigKeyError,
+    MissingMandatoryValue,
+    OmegaConfBaseException,
+)
 
 __all__ = ["Common", "ConfigError", "precheck", "spec", "validate"]
 

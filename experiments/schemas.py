@@ -21,7 +21,6 @@ from experiments.config import (
     ConfigError,
     both,
     each,
-    matrix as matrix_check,
     non_empty,
     non_negative,
     one_of,
@@ -30,6 +29,9 @@ from experiments.config import (
     positive_int,
     probability,
     spec,
+)
+from experiments.config import (
+    matrix as matrix_check,
 )
 
 KINEMATIC = "experiments.scenarios.kinematic_1d"

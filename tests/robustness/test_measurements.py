@@ -14,8 +14,8 @@ import torch
 
 from tests.robustness.cases import CASES, Case
 from torchmm import GaussianBelief, KalmanFilter, PositionMeasurement, RangeBearing, run_filter
-from torchmm.models import ConstantVelocity, NonlinearCoordinatedTurn
 from torchmm.filters import ExtendedKalmanFilter
+from torchmm.models import ConstantVelocity, NonlinearCoordinatedTurn
 from torchmm.multimodel import MultiRate
 
 RUNS = 4

@@ -39,6 +39,7 @@ from torch import Tensor
 from torchmm.beliefs import GaussianBelief, ModeBelief, ParticleBelief, psd_sqrt, symmetrize
 from torchmm.beliefs.ops import normalize_log_probs
 from torchmm.filters.base import Filter, StepOutput
+from torchmm.filters.linalg import cholesky
 from torchmm.filters.resampling import (
     RESAMPLING_SCHEMES,
     apply_indices,
@@ -49,12 +50,11 @@ from torchmm.filters.resampling import (
 )
 from torchmm.models.base import MeasurementModel, MotionModel, check_model_pair
 from torchmm.models.linear import LinearMeasurement, LinearMotion
-from torchmm.filters.linalg import cholesky
 from torchmm.multimodel.transition import ModeTransition
 from torchmm.validation import (
-    broadcast_shape,
     as_float,
     as_int,
+    broadcast_shape,
     check_covariance,
     check_filter_dtype,
     check_measurement,

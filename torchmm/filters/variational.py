@@ -52,10 +52,10 @@ from torchmm.filters.kalman import KalmanFilter
 from torchmm.filters.linalg import cholesky, cholesky_solve, condition
 from torchmm.models.linear import LinearMeasurement, LinearMotion, matvec
 from torchmm.validation import (
-    broadcast_shape,
     as_float,
     as_int,
     as_tensor,
+    broadcast_shape,
     check_covariance,
     check_measurement,
     check_shape,
