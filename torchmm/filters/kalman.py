@@ -58,14 +58,6 @@ class ExtendedKalmanFilter(Filter):
         self.measurement = measurement
         self.joseph = joseph
 
-    @property
-    def state_dim(self) -> int:
-        return self.motion.state_dim
-
-    @property
-    def meas_dim(self) -> int:
-        return self.measurement.meas_dim
-
     def _transition_matrix(self, mean: Tensor, u: Tensor | None) -> Tensor:
         return self.motion.jacobian(mean, u=u)
 

@@ -182,7 +182,7 @@ def _condition_scalar(mean, cov, innovation, innovation_cov, cross_cov):
     post_cov = torch.addcmul(cov, gain.unsqueeze(-1), c.unsqueeze(-2), value=-1.0)  # P - K c^T (symmetrised below)
     quad_logdet = torch.addcdiv(s.log().add_(_LOG_2PI), nu * nu, s)  # nu^2 / s + log s + log 2 pi
     log_likelihood = torch.where(observed, quad_logdet.mul_(-0.5), 0.0)
-    return post_mean, symmetrize(post_cov), log_likelihood, s_raw <= tiny
+    return post_mean, symmetrize(post_cov), log_likelihood, (s_raw <= tiny) & observed
 
 
 def cholesky_solve(L: Tensor, rhs: Tensor) -> Tensor:

@@ -50,7 +50,7 @@ from torchmm.filters.resampling import (
 )
 from torchmm.models.base import MeasurementModel, MotionModel, check_model_pair
 from torchmm.models.linear import LinearMeasurement, LinearMotion
-from torchmm.multimodel.transition import ModeTransition
+from torchmm.multimodel.transition import as_transition
 from torchmm.validation import (
     as_float,
     as_int,
@@ -597,13 +597,7 @@ class MultipleModelParticleFilter(Filter):
             raise ValueError(f"mixing: expected one of {_INVERSE_CDF_SCHEMES}, got {mixing!r}")
         num_particles = as_int(num_particles, "num_particles", minimum=1)
         self.motion, self.measurement = motion, measurement
-        if isinstance(transition, ModeTransition):
-            self.transition = transition
-        else:
-            try:
-                self.transition = ModeTransition(transition)
-            except ValueError as err:
-                raise ValueError(f"transition: {str(err).removeprefix('matrix: ')}") from None
+        self.transition = as_transition(transition)
         self.num_modes = self.transition.num_modes
         self.num_particles = num_particles
         self.mixing, self.generator = mixing, _check_generator(generator)

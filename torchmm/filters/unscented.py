@@ -181,14 +181,6 @@ class UnscentedKalmanFilter(Filter):
         except ValueError as err:
             raise ValueError(f"sigma_points: {err}") from None
 
-    @property
-    def state_dim(self) -> int:
-        return self.motion.state_dim
-
-    @property
-    def meas_dim(self) -> int:
-        return self.measurement.meas_dim
-
     def predict(self, belief: GaussianBelief, *, u: Tensor | None = None) -> GaussianBelief:
         n = belief.state_dim
         gaussian_batch(belief, self.state_dim)

@@ -27,7 +27,7 @@ from torch import Tensor
 from torchmm.beliefs import Belief, ModeBelief
 from torchmm.filters.base import Filter, StepOutput
 from torchmm.multimodel.bank import make_bank
-from torchmm.multimodel.transition import ModeTransition
+from torchmm.multimodel.transition import as_transition
 from torchmm.validation import (
     check_filter_dtype,
     check_measurement,
@@ -96,13 +96,7 @@ class MultipleModelFilter(Filter):
 
     def __init__(self, bank, transition):
         super().__init__()
-        if isinstance(transition, ModeTransition):
-            self.transition = transition
-        else:
-            try:
-                self.transition = ModeTransition(transition)
-            except ValueError as err:
-                raise ValueError(f"transition: {str(err).removeprefix('matrix: ')}") from None
+        self.transition = as_transition(transition)
         self.num_modes = self.transition.num_modes
         self.bank = make_bank(bank, self.num_modes)
 

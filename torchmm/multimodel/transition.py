@@ -12,7 +12,7 @@ from torch import Tensor, nn
 
 from torchmm.validation import as_tensor, check_stochastic_rows
 
-__all__ = ["ModeTransition", "alpha_transition", "transition_alpha", "validate_transition"]
+__all__ = ["ModeTransition", "alpha_transition", "as_transition", "transition_alpha", "validate_transition"]
 
 
 def validate_transition(matrix, name: str = "transition") -> Tensor:
@@ -117,3 +117,13 @@ class ModeTransition(nn.Module):
     def matrix(self) -> Tensor:
         """``P``, shape ``(M, M)``."""
         return self.log_matrix().exp() if self.learnable else self.value
+
+
+def as_transition(transition, name: str = "transition") -> ModeTransition:
+    """``transition`` as a :class:`ModeTransition` (a matrix is validated; errors name ``name``)."""
+    if isinstance(transition, ModeTransition):
+        return transition
+    try:
+        return ModeTransition(transition)
+    except ValueError as err:
+        raise ValueError(f"{name}: {str(err).removeprefix('matrix: ')}") from None
