@@ -16,12 +16,13 @@ class StepOutput(NamedTuple):
         belief: the posterior belief, batch ``(*B,)``.
         prior: the predicted belief the update started from, batch ``(*B,)``.
         log_likelihood: ``log p(z_k | z_{1:k-1})``, ``(*B,)``; exactly 0 where ``z_k`` is
-            entirely missing (NaN).
+            entirely missing (every component non-finite: NaN or ``+-inf``).
         innovation: ``z_k - E[z_k | z_{1:k-1}]``, ``(*B, m)`` (``(*B, M, m)`` per mode for
-            multiple-model filters); NaN where the measurement is missing.
+            multiple-model filters); non-finite where the measurement is missing.
         innovation_cov: its covariance ``S``, ``(*B, m, m)`` (per mode likewise).
-        extras: filter-specific diagnostics (e.g. ``"mixed"`` beliefs of the IMM); a dict of
-            tensors/beliefs with batch ``(*B, ...)``.
+        extras: filter-specific diagnostics (e.g. ``"mixed"`` beliefs of the IMM,
+            ``"singular"`` flags of regularised innovation covariances, docs/robustness.md); a
+            dict of tensors/beliefs with batch ``(*B, ...)``.
     """
 
     belief: Any
