@@ -25,9 +25,30 @@ from torch import Tensor
 
 from torchmm.beliefs.ops import symmetrize
 
-__all__ = ["cholesky", "cholesky_solve", "condition", "solve_lower", "solve_lower_transposed"]
+__all__ = ["any_observed", "check_joseph", "cholesky", "cholesky_solve", "condition", "solve_lower",
+           "solve_lower_transposed", "use_joseph"]
 
 _LOG_2PI = math.log(2 * math.pi)
+
+
+def any_observed(z: Tensor) -> Tensor:
+    """``(*B,)`` True where ``z (*B, m)`` has a finite (observed) component; False means no datum
+    at all this step (every component NaN or ``+-inf``: missing)."""
+    return torch.isfinite(z[..., 0]) if z.shape[-1] == 1 else torch.isfinite(z).any(-1)
+
+
+def check_joseph(value) -> bool | None:
+    """The ``joseph`` option of the UKF and the VB filters: True, False or None (automatic)."""
+    if value is not None and not isinstance(value, bool):
+        raise TypeError(f"joseph: expected True, False or None (automatic), got {value!r}")
+    return value
+
+
+def use_joseph(joseph: bool | None, dtype: torch.dtype) -> bool:
+    """The covariance-update form of the UKF and the VB filters: ``joseph=None`` (the default) is
+    the PSD-preserving Joseph form in float32 and below, where ``P - K S K^T`` cancels with
+    accurate sensors, and the cheaper ``P - K S K^T`` in float64."""
+    return joseph if joseph is not None else torch.finfo(dtype).eps > 1e-10
 
 
 def cholesky(S: Tensor, *, with_flag: bool = False):

@@ -39,7 +39,7 @@ from torch import Tensor
 from torchmm.beliefs import GaussianBelief, ModeBelief, ParticleBelief, psd_sqrt, symmetrize
 from torchmm.beliefs.ops import normalize_log_probs
 from torchmm.filters.base import Filter, StepOutput
-from torchmm.filters.linalg import cholesky
+from torchmm.filters.linalg import any_observed, cholesky
 from torchmm.filters.resampling import (
     RESAMPLING_SCHEMES,
     apply_indices,
@@ -310,11 +310,6 @@ def _particle_batch(belief, state_dim: int, name: str = "belief") -> torch.Size:
     return belief.log_weights.shape[:-1]
 
 
-def _no_datum(z: Tensor) -> Tensor:
-    """``(*B,)`` True where every component of ``z`` is missing (non-finite)."""
-    return ~torch.isfinite(z).any(-1)
-
-
 def _guard(log_evidence: Tensor, where: str) -> Tensor:
     degenerate = ~torch.isfinite(log_evidence)
     if bool(degenerate.any()):
@@ -428,7 +423,7 @@ class ParticleFilter(Filter):
         loglik = torch.where(torch.isnan(loglik), -math.inf, loglik)
         joint = prior_log_w + loglik
         log_evidence = torch.logsumexp(joint, dim=-1)
-        log_evidence = torch.where(_no_datum(z), 0.0, log_evidence)  # exactly 0 without a datum
+        log_evidence = torch.where(any_observed(z), log_evidence, 0.0)  # exactly 0 without a datum
         degenerate = _guard(log_evidence, "ParticleFilter.update")
         post_log_w = torch.where(degenerate.unsqueeze(-1), prior_log_w, joint - log_evidence.unsqueeze(-1))
         posterior = ParticleBelief(belief.particles, post_log_w)
@@ -691,7 +686,7 @@ class MultipleModelParticleFilter(Filter):
             joint = (prior_within + prior_mode.unsqueeze(-1)) + loglik  # (33), unnormalised
         per_model = torch.logsumexp(joint, dim=-1)
         log_evidence = torch.logsumexp(per_model, dim=-1)
-        log_evidence = torch.where(_no_datum(z), 0.0, log_evidence)  # exactly 0 without a datum
+        log_evidence = torch.where(any_observed(z), log_evidence, 0.0)  # exactly 0 without a datum
         degenerate = _guard(log_evidence, type(self).__name__)
         if bool(degenerate.any()):
             keep = degenerate[..., None, None]

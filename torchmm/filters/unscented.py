@@ -20,7 +20,7 @@ from torch import Tensor
 
 from torchmm.beliefs import GaussianBelief, psd_sqrt, symmetrize
 from torchmm.filters.base import Filter, StepOutput
-from torchmm.filters.linalg import condition
+from torchmm.filters.linalg import any_observed, check_joseph, condition, use_joseph
 from torchmm.models.base import MeasurementModel, MotionModel, check_model_pair
 from torchmm.validation import as_float, broadcast_shape, check_measurement, gaussian_batch
 
@@ -167,9 +167,7 @@ class UnscentedKalmanFilter(Filter):
     def __init__(self, motion: MotionModel, measurement: MeasurementModel,
                  sigma_points: SigmaPointStrategy | None = None, *, joseph: bool | None = None):
         super().__init__()
-        if joseph is not None and not isinstance(joseph, bool):
-            raise TypeError(f"joseph: expected True, False or None (automatic), got {joseph!r}")
-        self.joseph = joseph
+        self.joseph = check_joseph(joseph)
         check_model_pair(motion, measurement)
         if sigma_points is not None and not isinstance(sigma_points, SigmaPointStrategy):
             raise TypeError(f"sigma_points: expected a SigmaPointStrategy, got {type(sigma_points).__name__}")
@@ -215,12 +213,12 @@ class UnscentedKalmanFilter(Filter):
             spread = torch.einsum("s...i,s...j->...ij", wc * err, err)
             return spread + gain @ R @ gain.mT
 
-        psd_form = self.joseph if self.joseph is not None else torch.finfo(belief.dtype).eps > 1e-10
+        psd_form = use_joseph(self.joseph, belief.dtype)
         mean, cov, log_likelihood, singular = condition(
             belief.mean, belief.cov, innovation, symmetrize(innovation_cov), cross_cov,
             posterior_cov=joseph if psd_form else None, with_flag=True,
         )
         if psd_form:  # no datum at all: exactly the prior (the sigma-point sum reproduces P to rounding)
-            cov = torch.where(torch.isfinite(innovation).any(-1)[..., None, None], cov, belief.cov)
+            cov = torch.where(any_observed(innovation)[..., None, None], cov, belief.cov)
         return StepOutput(GaussianBelief(mean, cov), belief, log_likelihood, innovation, innovation_cov,
                           {"singular": singular})

@@ -49,7 +49,7 @@ from torchmm.beliefs.ops import symmetrize
 from torchmm.distributions import truncated_normal_entropy, truncated_normal_moments
 from torchmm.filters.base import Filter, StepOutput
 from torchmm.filters.kalman import KalmanFilter
-from torchmm.filters.linalg import cholesky, cholesky_solve, condition
+from torchmm.filters.linalg import check_joseph, cholesky, cholesky_solve, condition, use_joseph
 from torchmm.models.linear import LinearMeasurement, LinearMotion, matvec
 from torchmm.validation import (
     as_float,
@@ -177,19 +177,6 @@ def _keep_prior(missing: Tensor, prior: GaussianBelief, mean: Tensor, cov: Tenso
     return mean, cov, torch.where(missing, torch.zeros_like(loglik), loglik)
 
 
-def _check_joseph(value) -> bool | None:
-    if value is not None and not isinstance(value, bool):
-        raise TypeError(f"joseph: expected True, False or None (automatic), got {value!r}")
-    return value
-
-
-def use_joseph(joseph: bool | None, dtype: torch.dtype) -> bool:
-    """The covariance-update form of the VB filters and the UKF: ``joseph=None`` (the default) is
-    the PSD-preserving Joseph form in float32 and below, where ``P - K S K^T`` cancels with
-    accurate sensors, and the cheaper ``P - K S K^T`` in float64."""
-    return joseph if joseph is not None else torch.finfo(dtype).eps > 1e-10
-
-
 class _LinearVBFilter(Filter):
     """Shared set-up: a linear motion (nominal ``Q``) and a linear measurement (scale ``R``)."""
 
@@ -200,7 +187,7 @@ class _LinearVBFilter(Filter):
         self.kalman = KalmanFilter(motion, measurement)
         self.motion, self.measurement = motion, measurement
         self.iterations = _iterations(iterations)
-        self.joseph = _check_joseph(joseph)
+        self.joseph = check_joseph(joseph)
 
     @property
     def param_batch_shape(self) -> torch.Size:
@@ -237,7 +224,7 @@ class StudentTVBFilter(_LinearVBFilter):
         iterations: fixed-point iterations per step.
         elbo_history: also return the ELBO after every iteration (always on at DEBUG log level).
         joseph: Joseph-form (PSD-preserving) inner updates; ``None`` (default): in float32 and
-            below only (:func:`use_joseph`).
+            below only (:func:`~torchmm.filters.linalg.use_joseph`).
 
     Shapes:
         belief ``GaussianBelief`` batch ``(*B,)``; ``z (*B, m)``; ``extras["elbo"] (*B, iterations)``
@@ -354,7 +341,7 @@ class SkewTIWVBFilter(_LinearVBFilter):
         gamma_shape: ``"derived"`` (default) or ``"printed"``.
         elbo_history: also return the ELBO after every iteration (always on at DEBUG log level).
         joseph: Joseph-form (PSD-preserving) inner updates; ``None`` (default): in float32 and
-            below only (:func:`use_joseph`).
+            below only (:func:`~torchmm.filters.linalg.use_joseph`).
 
     Shapes:
         belief ``GaussianBelief`` batch ``(*B,)``; ``z (*B, m)``; extras ``elbo (*B, S)`` (with
@@ -492,7 +479,7 @@ class SkewTVBFilter(_LinearVBFilter):
         skewness, df: ``Delta`` and ``nu`` (numbers, ``(m,)`` or diagonal matrices).
         iterations: VB iterations per step.
         joseph: Joseph-form (PSD-preserving) inner updates; ``None`` (default): in float32 and
-            below only (:func:`use_joseph`).
+            below only (:func:`~torchmm.filters.linalg.use_joseph`).
 
     Shapes:
         belief ``GaussianBelief`` batch ``(*B,)``; ``z (*B, m)``; extras ``noise_cov (*B, m, m)``,
@@ -647,7 +634,7 @@ class VBAKFPR(Filter):
         tau: ``tau_P`` (default 3); rho: forgetting factor (default ``1 - exp(-4)``);
         iterations: ``N`` (default 10); tau_r: ``tau_R`` for :meth:`initial_belief` (default 3).
         joseph: Joseph-form (PSD-preserving) inner updates; ``None`` (default): in float32 and
-            below only (:func:`use_joseph`).
+            below only (:func:`~torchmm.filters.linalg.use_joseph`).
 
     Shapes:
         belief :class:`AdaptiveGaussianBelief` batch ``(*B,)``; ``z (*B, m)``; extras
@@ -671,7 +658,7 @@ class VBAKFPR(Filter):
         self.tau_r = as_float(tau_r, "tau_r", positive=True)
         self.rho = as_float(rho, "rho", positive=True, maximum=1.0)
         self.iterations = _iterations(iterations)
-        self.joseph = _check_joseph(joseph)
+        self.joseph = check_joseph(joseph)
 
     def initial_belief(self, belief: GaussianBelief, R0: Tensor | None = None) -> AdaptiveGaussianBelief:
         """``u_0 = m + 1 + tau_R``, ``U_0 = tau_R R~_0`` (so ``E[R_0] = R~_0``; default the model's R).

@@ -15,7 +15,7 @@ from torch import Tensor
 
 from torchmm.models.base import MotionModel, store_tensor
 from torchmm.models.linear import LinearMotion
-from torchmm.validation import as_int, as_tensor
+from torchmm.validation import as_float, as_int, as_tensor
 
 __all__ = [
     "ConstantVelocity",
@@ -24,18 +24,6 @@ __all__ = [
     "NonlinearCoordinatedTurn",
     "kinematic_matrices",
 ]
-
-
-def _as_float(value, name: str) -> float:
-    if isinstance(value, (str, bool)):
-        raise TypeError(f"{name}: expected a number, got {value!r}")
-    try:
-        value = float(value)
-    except (TypeError, ValueError):
-        raise TypeError(f"{name}: expected a number, got {value!r}") from None
-    if not math.isfinite(value):
-        raise ValueError(f"{name}: must be finite, got {value}")
-    return value
 
 
 def kinematic_matrices(order: int, dt: float, q: float, noise: str, dtype=None) -> tuple[Tensor, Tensor, Tensor]:
@@ -48,12 +36,8 @@ def kinematic_matrices(order: int, dt: float, q: float, noise: str, dtype=None) 
         noise, e.g. ``[dt^2/2, dt]`` for CV) and ``Q (order, order)``.
     """
     dtype = dtype or torch.get_default_dtype()
-    dt = _as_float(dt, "dt")
-    q = _as_float(q, "q")
-    if dt <= 0:
-        raise ValueError(f"dt: must be positive, got {dt}")
-    if q < 0:
-        raise ValueError(f"q: must be non-negative, got {q}")
+    dt = as_float(dt, "dt", positive=True)
+    q = as_float(q, "q", minimum=0.0)
     F = torch.zeros(order, order, dtype=dtype)
     for i in range(order):
         for j in range(i, order):
@@ -73,7 +57,7 @@ def kinematic_matrices(order: int, dt: float, q: float, noise: str, dtype=None) 
 
 
 def _block_diag_axes(block: Tensor, ndim: int) -> Tensor:
-    return torch.block_diag(*([block] * as_int(ndim, "ndim", minimum=1)))
+    return torch.block_diag(*([block] * ndim))
 
 
 class ConstantVelocity(LinearMotion):
@@ -203,10 +187,7 @@ class NonlinearCoordinatedTurn(MotionModel):
         _, _, Q1 = kinematic_matrices(2, dt, q, noise, dtype)
         Q = torch.zeros(5, 5, dtype=Q1.dtype)
         Q[:4, :4] = _block_diag_axes(Q1, 2)
-        q_omega = _as_float(q_omega, "q_omega")
-        if q_omega < 0:
-            raise ValueError(f"q_omega: must be non-negative, got {q_omega}")
-        Q[4, 4] = q_omega
+        Q[4, 4] = as_float(q_omega, "q_omega", minimum=0.0)
         store_tensor(self, "Q", Q)
         self.state_dim, self.dt = 5, float(dt)
 

@@ -20,6 +20,7 @@ from torch import Tensor, nn
 
 from torchmm.beliefs import stack
 from torchmm.filters.base import Filter, StepOutput
+from torchmm.validation import broadcast_shape
 
 __all__ = ["FilterBank", "ListBank", "VectorizedBank", "make_bank"]
 
@@ -132,7 +133,7 @@ def _stack_extras(extras, axis: int) -> dict | None:
     for key in keys:
         values = [e[key] for e in extras]
         try:
-            shape = torch.broadcast_shapes(*[v.shape for v in values])
+            shape = broadcast_shape(*[v.shape for v in values])
         except RuntimeError:
             continue  # e.g. per-mode tensors of different sizes: not stackable
         out[key] = torch.stack([v.expand(shape) for v in values], dim=axis)

@@ -26,6 +26,7 @@ from torch import Tensor
 
 from torchmm.beliefs import Belief, ModeBelief
 from torchmm.filters.base import Filter, StepOutput
+from torchmm.filters.linalg import any_observed
 from torchmm.multimodel.bank import make_bank
 from torchmm.multimodel.transition import as_transition
 from torchmm.validation import (
@@ -68,11 +69,6 @@ def _mode_batch(belief, name: str = "belief") -> torch.Size:
     if not isinstance(mode_log_probs, Tensor):
         raise TypeError(f"{name}: expected a ModeBelief (from initial_belief), got {type(belief).__name__}")
     return mode_log_probs.shape[:-1]
-
-
-def _any_datum(z: Tensor) -> Tensor:
-    """``(*B,)`` True where ``z (*B, m)`` has a finite (observed) component."""
-    return torch.isfinite(z[..., 0]) if z.shape[-1] == 1 else torch.isfinite(z).any(-1)
 
 
 def _mode_extras(out: StepOutput, mode_axes: int = 1) -> dict:
@@ -160,7 +156,7 @@ class MultipleModelFilter(Filter):
         joint = out.log_likelihood + prior.mode_log_probs  # ell_j + log c_j
         log_likelihood = torch.logsumexp(joint, dim=-1)
         mode_log_probs = _safe_sub(joint, log_likelihood.unsqueeze(-1))
-        observed = _any_datum(z) if observed is None else observed
+        observed = any_observed(z) if observed is None else observed
         log_likelihood = torch.where(observed, log_likelihood, 0.0)
         extras = _mode_extras(out)
         return StepOutput(
@@ -294,7 +290,7 @@ class GPB2(MultipleModelFilter):
         merge_weights = _safe_sub(joint, log_mode.unsqueeze(-2))  # mu_{i|j}, (*B, i, j)
         merged = out.belief.transpose_batch(-1, -2).collapse(merge_weights.mT.exp())  # (*B, j)
         mode_log_probs = _safe_sub(log_mode, log_likelihood.unsqueeze(-1))
-        log_likelihood = torch.where(_any_datum(z), log_likelihood, 0.0)  # exactly 0 without a datum
+        log_likelihood = torch.where(any_observed(z), log_likelihood, 0.0)  # exactly 0 without a datum
         extras = _mode_extras(out, mode_axes=2)
         return StepOutput(
             belief=ModeBelief(mode_log_probs, merged),

@@ -36,12 +36,12 @@ from torchmm.beliefs import Belief, GaussianBelief, ModeBelief
 from torchmm.beliefs.base import register_belief
 from torchmm.filters.base import StepOutput
 from torchmm.filters.kalman import ExtendedKalmanFilter, KalmanFilter
-from torchmm.filters.linalg import cholesky, cholesky_solve, condition
+from torchmm.filters.linalg import any_observed, cholesky, cholesky_solve, condition
 from torchmm.filters.smoother import rts_step
 from torchmm.models.base import MeasurementModel
 from torchmm.models.linear import LinearMeasurement, LinearMotion, matvec
 from torchmm.multimodel.bank import VectorizedBank
-from torchmm.multimodel.imm import IMM, _any_datum, _mode_batch, _safe_sub
+from torchmm.multimodel.imm import IMM, _mode_batch, _safe_sub
 from torchmm.validation import check_measurement
 
 __all__ = [
@@ -313,7 +313,7 @@ class TransferIMM(IMM):
             joint = ll + prior.mode_log_probs
             norm = torch.logsumexp(joint, dim=-1)
             mode_log_probs = _safe_sub(joint, norm.unsqueeze(-1))
-            log_likelihood = torch.where(_any_datum(y), norm, 0.0)  # exactly 0 without a datum
+            log_likelihood = torch.where(any_observed(y), norm, 0.0)  # exactly 0 without a datum
         else:
             log_likelihood = plain.log_likelihood
 
@@ -384,7 +384,7 @@ class SourceUpdateIMM(IMM):
         y, ys = _streams(self, belief, z, self.source_filter.measurement)
         first = self.source_filter.update(belief.components, ys.unsqueeze(-2))
         intermediate = ModeBelief(belief.mode_log_probs + first.log_likelihood, first.belief)
-        out = self._update_modes(intermediate, y, observed=_any_datum(y) | _any_datum(ys))
+        out = self._update_modes(intermediate, y, observed=any_observed(y) | any_observed(ys))
         # log p(y, y_S | past): the source factor is folded into the prior weights above
         out.extras["source_log_likelihood"] = first.log_likelihood
         out.extras["mode_log_likelihood"] = out.extras["mode_log_likelihood"] + first.log_likelihood
@@ -572,7 +572,7 @@ class SourceModeVSIMM(_SourceTrackIMM):
                   "extra_mode_active": log_mu[..., M] > -torch.inf}
         if out.extras:
             extras["modes"] = dict(out.extras)
-        log_likelihood = torch.where(_any_datum(y), norm.squeeze(-1), 0.0)  # exactly 0 without a datum
+        log_likelihood = torch.where(any_observed(y), norm.squeeze(-1), 0.0)  # exactly 0 without a datum
         return StepOutput(SourceTrackBelief(new_target, source), prior, log_likelihood,
                           out.innovation, out.innovation_cov, extras)
 
