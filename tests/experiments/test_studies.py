@@ -12,6 +12,8 @@ import pytest
 from hydra import compose, initialize_config_dir
 
 from experiments.run import CONFIG_DIR, run_study
+from tests.regression.compare import mismatches
+from tests.regression.record import COMMON
 
 EXPERIMENTS = sorted(p.stem for p in (Path(CONFIG_DIR) / "experiment").glob("*.yaml"))
 SCHEMA = {"experiment", "config", "metrics", "tables", "timing"}
@@ -66,7 +68,8 @@ def test_every_experiment_has_required_tables_listed():
 
 @pytest.mark.parametrize("name", EXPERIMENTS)
 def test_experiment_composes_and_runs(name, tmp_path):
-    cfg = _compose(name, "mc_runs=4", "progress=false", "logger=tensorboard", *FAST.get(name, []))
+    """Every study runs, writes every artefact, and gives the recorded numbers (tests/regression)."""
+    cfg = _compose(name, *COMMON, "logger=tensorboard", *FAST.get(name, []))
     results = run_study(cfg, tmp_path)
     data = json.loads((tmp_path / "results.json").read_text())
     assert set(data) == SCHEMA
@@ -81,6 +84,7 @@ def test_experiment_composes_and_runs(name, tmp_path):
     assert list((tmp_path / "figures").glob("*.png"))
     assert list((tmp_path / "tb").glob("events.out.tfevents.*"))
     assert results.tables
+    assert not mismatches(name, data), "\n".join(mismatches(name, data)[:20])
 
 
 def test_imm_analysis_conclusions_hold(tmp_path):

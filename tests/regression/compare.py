@@ -1,0 +1,59 @@
+"""Compare a study's results.json with its record (tests/regression/records, see record.py)."""
+
+from __future__ import annotations
+
+import json
+import math
+
+from tests.regression.record import RECORDS, STOCHASTIC, numbers, rng_fingerprint
+
+#: deterministic studies (the same data give the same numbers): relative tolerance
+DETERMINISTIC_RTOL = 1e-9
+#: on a CPU whose seeded streams differ from the recording machine's the data differ too; the numbers
+#: then agree only within the Monte Carlo error of 4 runs
+FOREIGN_RTOL = 0.6
+
+
+def load(name: str) -> dict:
+    return json.loads((RECORDS / f"{name}.json").read_text())
+
+
+def mismatches(name: str, results: dict) -> list[str]:
+    """Every recorded number the new results miss; empty when they agree."""
+    record = load(name)
+    got = numbers(results)
+    same_streams = record["rng_fingerprint"] == rng_fingerprint()
+    if not same_streams:
+        rtol, atol = FOREIGN_RTOL, 1e-6
+    elif name in STOCHASTIC:
+        rtol, atol = 0.0, 0.0  # bit-identical while the random streams are kept
+    else:
+        rtol, atol = DETERMINISTIC_RTOL, 1e-12
+    out: list[str] = []
+
+    def check(path: str, want, have):
+        if isinstance(want, dict):
+            if not isinstance(have, dict) or set(want) != set(have):
+                out.append(f"{path}: keys {sorted(want)} != {sorted(have) if isinstance(have, dict) else have}")
+                return
+            for key in want:
+                check(f"{path}.{key}", want[key], have[key])
+        elif isinstance(want, list):
+            if not isinstance(have, list) or len(want) != len(have):
+                out.append(f"{path}: {want!r} != {have!r}")
+                return
+            for i, (w, h) in enumerate(zip(want, have)):
+                check(f"{path}[{i}]", w, h)
+        elif isinstance(want, float) or isinstance(have, float):
+            if want is None or have is None or isinstance(want, str) or isinstance(have, str):
+                out.append(f"{path}: {want!r} != {have!r}")
+            elif math.isnan(want) or math.isnan(have):
+                if not (math.isnan(want) and math.isnan(have)):
+                    out.append(f"{path}: {want!r} != {have!r}")
+            elif not abs(want - have) <= atol + rtol * abs(want):
+                out.append(f"{path}: recorded {want!r}, got {have!r}")
+        elif want != have:
+            out.append(f"{path}: recorded {want!r}, got {have!r}")
+
+    check(name, {"tables": record["tables"], "metrics": record["metrics"]}, got)
+    return out
