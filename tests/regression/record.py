@@ -49,9 +49,9 @@ def rng_fingerprint() -> str:
     import torch
 
     g = torch.Generator().manual_seed(1234)
-    parts = [torch.randn(4099, generator=g, dtype=torch.float64), torch.randn(4099, generator=g),
+    parts = [torch.randn(4099, generator=g, dtype=torch.float64), torch.randn(4099, generator=g, dtype=torch.float32),
              torch.rand(4099, generator=g, dtype=torch.float64),
-             torch.multinomial(torch.rand(64, generator=g), 500, replacement=True, generator=g).double()]
+             torch.multinomial(torch.rand(64, generator=g, dtype=torch.float32), 500, replacement=True, generator=g).double()]
     digest = hashlib.sha256()
     for part in parts:
         digest.update(part.numpy().tobytes())
