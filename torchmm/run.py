@@ -12,7 +12,7 @@ import torch.utils._pytree as pytree
 from torch import Tensor
 
 from torchmm.beliefs import Belief, GaussianBelief
-from torchmm.filters.base import Filter, StepOutput
+from torchmm.filters.base import Filter, StepOutput, call_with
 from torchmm.validation import broadcast_shape, check_filter_dtype
 
 __all__ = ["Trajectory", "run_filter", "stack_outputs"]
@@ -73,6 +73,10 @@ def run_filter(
     measurements: Any,
     *,
     controls: Tensor | None = None,
+    motions: Any = None,
+    sensors: Any = None,
+    generator: torch.Generator | None = None,
+    update_first: bool = False,
     record: Callable[[StepOutput], StepOutput] | None = None,
     progress: bool | str = False,
 ) -> Trajectory:
@@ -85,6 +89,16 @@ def run_filter(
             infinite ones are counted in a warning), or any pytree of time-major tensors (each
             filter step receives the pytree indexed at ``k``); ``T >= 1``.
         controls: optional inputs ``(T, *B, k)``.
+        motions: per-step motion models (time-varying parameters, a per-step ``dt``): a sequence
+            of ``T`` models (None entries keep the filter's) or a callable ``k -> model or None``;
+            step ``k`` predicts with it (:meth:`~torchmm.filters.Filter.with_motion`). For a
+            multiple-model filter a mode-bank model (parameter batch ``(M,)``).
+        sensors: per-step sensors, likewise (e.g. a sensor whose noise changes, or which sensor
+            reported at step ``k``); step ``k`` updates with it.
+        generator: the random stream of filters that draw random numbers (particle filters; passed
+            to every step); two calls with equally seeded generators give identical results.
+        update_first: the first measurement is at the time of ``belief0``: step 0 is an update
+            only (no prediction).
         record: maps each :class:`StepOutput` to what is kept (e.g.
             ``lambda o: o._replace(prior=None)`` to save memory); default keeps everything.
         progress: show a tqdm bar (a string is used as its description).
@@ -135,6 +149,8 @@ def run_filter(
             raise ValueError("controls: expected a tensor (T, *B, k)")
         if controls.shape[0] != steps:
             raise ValueError(f"controls: expected {steps} time steps, got {controls.shape[0]}")
+    motion_at = _per_step(motions, steps, "motions")
+    sensor_at = _per_step(sensors, steps, "sensors")
     iterator = range(steps)
     if progress:
         from tqdm.auto import tqdm
@@ -144,12 +160,40 @@ def run_filter(
     kept = []
     for k in iterator:
         z = pytree.tree_map(lambda t: t[k], measurements)
-        out = filter.step(belief, z, u=None if controls is None else controls[k])
+        inputs = {}
+        motion, sensor = motion_at(k), sensor_at(k)
+        if sensor is not None:
+            inputs["sensor"] = sensor
+        if k == 0 and update_first:
+            out = call_with(filter, "update", belief, z, generator=generator, **inputs)
+        else:
+            if motion is not None:
+                inputs["motion"] = motion
+            out = call_with(filter, "step", belief, z, u=None if controls is None else controls[k],
+                            generator=generator, **inputs)
         belief = out.belief
         kept.append(out if record is None else record(out))
     stacked = Trajectory(*stack_outputs(kept))
     _report_flags(stacked.extras)
     return stacked
+
+
+def _per_step(models: Any, steps: int, name: str) -> Callable[[int], Any]:
+    """``k -> model or None`` from a sequence of ``steps`` models, a callable, or None."""
+    if models is None:
+        return lambda k: None
+    if callable(models) and not isinstance(models, torch.nn.Module):
+        return models
+    if isinstance(models, torch.nn.Module):
+        return lambda k: models
+    try:
+        count = len(models)
+    except TypeError:
+        raise TypeError(f"{name}: expected a sequence of models, a callable k -> model, or None, got "
+                        f"{type(models).__name__}") from None
+    if count != steps:
+        raise ValueError(f"{name}: expected {steps} per-step models (one per time step), got {count}")
+    return lambda k: models[k]
 
 
 def _report_flags(extras: dict | None) -> None:

@@ -392,9 +392,8 @@ def test_validation_errors():
         TransferIMM(kf, P, source, mode_likelihood="elbo")
     with pytest.raises(ValueError, match="source"):
         TransferIMM(kf, P, PositionMeasurement(4, [0], 1.0))
-    ukf = UnscentedKalmanFilter(kf.motion, kf.measurement)
-    with pytest.raises(ValueError, match="bank"):
-        TransferIMM([ukf, ukf, ukf], P, source)
+    with pytest.raises(ValueError, match="source: state_dim"):
+        SourceUpdateIMM(UnscentedKalmanFilter(kf.motion, kf.measurement), P, PositionMeasurement(4, [0], 1.0))
     f = TransferIMM(kf, P, source)
     with pytest.raises(TypeError, match="z:"):
         f.step(f.initial_belief(prior), z.target[0])

@@ -12,6 +12,8 @@ import math
 import pytest
 import torch
 
+from torchmm.filters.base import Filter
+
 from tests.robustness.cases import CASES
 from torchmm import (
     IMM,
@@ -65,9 +67,12 @@ def test_initial_belief_and_run_filter_reject_a_bad_prior_for_every_filter(case,
     bad_cov = torch.eye(n).clone()
     bad_cov[:2, :2] = cov
     bad = GaussianBelief(torch.zeros(2, n), bad_cov.expand(2, n, n))
-    if hasattr(f, "initial_belief"):
+    if type(f).initial_belief is not Filter.initial_belief:  # the case starts through initial_belief
         with pytest.raises(ValueError, match=r"belief(0)?\.cov"):
             case.start(_Replace(f, bad), 2)
+    else:  # the base's initial_belief validates the prior
+        with pytest.raises(ValueError, match=r"belief\.cov"):
+            f.initial_belief(bad)
     if isinstance(good, GaussianBelief):
         with pytest.raises(ValueError, match=r"belief0\.cov"):
             run_filter(f, bad, case.data(2, 2))

@@ -13,6 +13,8 @@ import math
 import pytest
 import torch
 
+from torchmm.multimodel import IndexedBank, make_bank
+
 from tests.robustness.cases import CASES
 from torchmm import (
     GPB2,
@@ -145,7 +147,8 @@ INVALID = {
                             TypeError, "belief"),
     "float32 transition": (lambda: IMM(KalmanFilter(BANK, POS), P3.float()).initial_belief(PRIOR),
                            TypeError, "belief.*float32"),
-    "transfer bank": (lambda: TransferIMM([UnscentedKalmanFilter(CV, POS)] * 3, P3, POS), ValueError, "bank"),
+    "transfer bank": (lambda: TransferIMM(IndexedBank(make_bank(KalmanFilter(BANK, POS), 3), [0, 1, 2]), P3, POS),
+                      ValueError, "bank"),
     "transfer source dims": (lambda: TransferIMM(KalmanFilter(BANK, POS), P3, PositionMeasurement(4, [0], 1.0)),
                              ValueError, "source"),
     "transfer source type": (lambda: TransferIMM(KalmanFilter(BANK, POS), P3, CV), TypeError, "source"),

@@ -1,8 +1,8 @@
 """Belief value objects with explicit batch shapes."""
 
-from torchmm.beliefs.base import Belief, cat, register_belief, stack
+from torchmm.beliefs.base import Belief, cat, register_belief, stack, where
 from torchmm.beliefs.gaussian import GaussianBelief
-from torchmm.beliefs.mode import ModeBelief
+from torchmm.beliefs.mode import ModeBelief, ModelSetBelief
 from torchmm.beliefs.ops import mix_gaussians, normalize_log_probs, psd_sqrt, symmetrize
 from torchmm.beliefs.particle import ParticleBelief
 
@@ -10,6 +10,7 @@ __all__ = [
     "Belief",
     "GaussianBelief",
     "ModeBelief",
+    "ModelSetBelief",
     "ParticleBelief",
     "cat",
     "mix_gaussians",
@@ -18,4 +19,5 @@ __all__ = [
     "register_belief",
     "stack",
     "symmetrize",
+    "where",
 ]

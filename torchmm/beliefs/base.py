@@ -21,7 +21,7 @@ from torch import Tensor
 
 from torchmm.validation import broadcast_shape
 
-__all__ = ["Belief", "register_belief", "stack", "cat"]
+__all__ = ["Belief", "register_belief", "stack", "cat", "where"]
 
 B = TypeVar("B", bound="Belief")
 
@@ -43,6 +43,25 @@ class Belief:
     """
 
     event_dims: ClassVar[dict[str, int]] = {}
+
+    # -- the protocol combinators use (docs/architecture.md) --------------------------------------
+    # estimate() -> GaussianBelief (*B,): the point estimate and its covariance (moments).
+    # mix(weights (*B, K, J)) -> batch (*B, J): mixtures over batch axis -1 (IMM interaction).
+    # collapse(weights (*B, K)) -> batch (*B,): the mixture over batch axis -1 as one belief.
+    # Belief types that cannot mix (e.g. a belief with per-run adaptive noise) leave mix/collapse
+    # out; the combinators that need them then fail with a TypeError naming the belief type.
+    def estimate(self):
+        """Point estimate and covariance as a :class:`~torchmm.beliefs.GaussianBelief`, batch ``(*B,)``."""
+        raise TypeError(f"{type(self).__name__} does not define estimate()")
+
+    def mix(self: B, weights: Tensor) -> B:
+        """Mixtures over batch axis -1, one per column of ``weights`` ``(*B, K, J)`` -> batch ``(*B, J)``."""
+        raise TypeError(f"{type(self).__name__} does not define mix(); it cannot be a mode filter's belief in an "
+                        "interacting (mixing) combinator")
+
+    def collapse(self: B, weights: Tensor) -> B:
+        """The mixture over batch axis -1 with ``weights`` ``(*B, K)`` as one belief, batch ``(*B,)``."""
+        return self.mix(weights.unsqueeze(-1)).select(-1, 0)
 
     # -- generic mapping ------------------------------------------------------------------------
     def map_tensors(self: B, fn: Callable[[Tensor, int], Tensor]) -> B:
@@ -191,3 +210,22 @@ def cat(beliefs: Sequence[B], dim: int = 0) -> B:
     events = [e for _, e in beliefs[0]._tensors()]
     leaves = [torch.cat(ts, _batch_axis(dim, e)) for ts, e in zip(zip(*flat), events)]
     return pytree.tree_unflatten(leaves, spec)
+
+
+def where(condition: Tensor, a: B, b: B) -> B:
+    """Per batch element, ``a`` where ``condition`` holds and ``b`` elsewhere (same belief type).
+
+    Shapes:
+        condition: bool, broadcastable to the beliefs' batch ``(*B,)`` (right-aligned);
+        a, b: beliefs of one type and broadcastable batches -> batch ``(*B,)``
+    """
+    if type(a) is not type(b):
+        raise TypeError(f"where: beliefs of different types {type(a).__name__} and {type(b).__name__}")
+    leaves_a, spec = pytree.tree_flatten(a)
+    leaves_b, spec_b = pytree.tree_flatten(b)
+    if spec != spec_b:
+        raise ValueError("where: the two beliefs differ in structure")
+    events = [e for _, e in a._tensors()]
+    out = [torch.where(condition.reshape(*condition.shape, *(1,) * e), x, y)
+           for x, y, e in zip(leaves_a, leaves_b, events)]
+    return pytree.tree_unflatten(out, spec)

@@ -11,6 +11,7 @@ from torch import Tensor
 
 from torchmm.beliefs.base import Belief, register_belief
 from torchmm.beliefs.ops import mix_gaussians
+from torchmm.linalg import cholesky
 from torchmm.validation import as_tensor, check_covariance, check_shape
 
 __all__ = ["GaussianBelief"]
@@ -116,6 +117,12 @@ class GaussianBelief(Belief):
             self: batch ``(*B, K)``; weights: ``(*B, K)`` (summing to one) -> batch ``(*B,)``
         """
         return self.mix(weights.unsqueeze(-1)).select(-1, 0)
+
+    def entropy(self) -> Tensor:
+        """Differential entropy ``(1/2) log det(2 pi e P)``, shape ``(*B,)`` (regularised factor:
+        never raises; ``-inf``-free for a numerically singular ``P`` only up to the repair)."""
+        half_logdet = cholesky(self.cov).diagonal(dim1=-2, dim2=-1).log().sum(-1)
+        return half_logdet + 0.5 * self.state_dim * (1.0 + math.log(2 * math.pi))
 
     def log_prob(self, x: Tensor) -> Tensor:
         """Log-density at ``x``.

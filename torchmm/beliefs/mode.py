@@ -11,9 +11,11 @@ from torch import Tensor
 
 from torchmm.beliefs.base import Belief, register_belief
 from torchmm.beliefs.gaussian import GaussianBelief
+from torchmm.beliefs.ops import normalize_log_probs, symmetrize
+from torchmm.beliefs.particle import ParticleBelief
 from torchmm.validation import STOCHASTIC_ATOL
 
-__all__ = ["ModeBelief"]
+__all__ = ["ModeBelief", "ModelSetBelief"]
 
 
 @register_belief
@@ -72,3 +74,45 @@ class ModeBelief(Belief):
     def estimate(self) -> GaussianBelief:
         """Overall mean and covariance (the IMM output combination), batch ``(*B,)``."""
         return self.collapse().estimate()
+
+
+@register_belief
+@dataclass(frozen=True)
+class ModelSetBelief(ModeBelief):
+    """A :class:`ModeBelief` with the model set a variable-structure policy selected.
+
+    ``mode_log_probs`` are the probabilities the recursion carries (restricted to the set when the
+    selection is fed back, ``-inf`` outside it); :meth:`estimate` is always over the set (paper
+    003's (31) for particle components; the moment-matched collapse over the set otherwise).
+
+    Shapes:
+        mode_log_probs: ``(*B, M)``; components: any belief with batch ``(*B, M)`` (for particle
+        components ``ParticleBelief`` with particles ``(*B, M, Np, n)``); active: ``(*B, M)`` bool
+    """
+
+    active: Tensor
+
+    event_dims: ClassVar[dict[str, int]] = {"mode_log_probs": 1, "active": 1}
+
+    def restricted_log_probs(self) -> Tensor:
+        """Mode log-probabilities renormalised on the active set, ``(*B, M)``."""
+        restricted = torch.where(self.active, self.mode_log_probs, torch.full_like(self.mode_log_probs, -math.inf))
+        return normalize_log_probs(restricted)
+
+    def collapse(self) -> Belief:
+        """The mixture over the active models as one belief, batch ``(*B,)``."""
+        return self.components.collapse(self.restricted_log_probs().exp())
+
+    def estimate(self) -> GaussianBelief:
+        """Weighted mean and covariance over the active models, batch ``(*B,)``."""
+        comps = self.components
+        if not isinstance(comps, ParticleBelief):
+            return self.collapse().estimate()
+        # particles: (31), the weighted moments of every active model's particles in one pass
+        w = (self.restricted_log_probs().unsqueeze(-1) + normalize_log_probs(comps.log_weights)).exp()
+        w = w.flatten(-2)
+        particles = comps.particles.flatten(-3, -2)
+        mean = (w.unsqueeze(-1) * particles).sum(-2)
+        diff = particles - mean.unsqueeze(-2)
+        cov = (diff * w.unsqueeze(-1)).mT @ diff
+        return GaussianBelief(mean, symmetrize(cov))

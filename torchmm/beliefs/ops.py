@@ -7,16 +7,9 @@ import math
 import torch
 from torch import Tensor
 
+from torchmm.linalg import psd_sqrt, symmetrize
+
 __all__ = ["symmetrize", "mix_gaussians", "normalize_log_probs", "psd_sqrt"]
-
-
-def symmetrize(matrix: Tensor) -> Tensor:
-    """Return ``(A + A^T) / 2``.
-
-    Shapes:
-        matrix: ``(..., d, d)`` -> ``(..., d, d)``
-    """
-    return (matrix + matrix.mT).mul_(0.5)
 
 
 def normalize_log_probs(log_probs: Tensor, dim: int = -1) -> Tensor:
@@ -58,26 +51,3 @@ def mix_gaussians(mean: Tensor, cov: Tensor, weights: Tensor) -> tuple[Tensor, T
     diff = mean.unsqueeze(-3) - mixed_mean.unsqueeze(-2)  # (*B, J, K, n)
     spread = (diff * wt.unsqueeze(-1)).mT @ diff
     return mixed_mean, mixed_cov + spread
-
-
-def psd_sqrt(cov: Tensor) -> Tensor:
-    """A square root ``L`` with ``L L^T = cov`` for symmetric PSD (possibly singular) matrices.
-
-    Uses Cholesky where it succeeds and a symmetric eigendecomposition elsewhere (negative
-    eigenvalues of a matrix indefinite by rounding clamped to 0), so that rank-deficient process
-    noise such as ``G G^T`` can be sampled. Never raises: a matrix with NaN or infinite entries
-    gets a NaN factor (that batch element only).
-
-    Shapes:
-        cov: ``(..., d, d)`` -> ``(..., d, d)``
-    """
-    chol, info = torch.linalg.cholesky_ex(cov)
-    if not bool((info != 0).any()):
-        return chol
-    finite = torch.isfinite(cov).all(-1).all(-1)
-    eye = torch.eye(cov.shape[-1], dtype=cov.dtype, device=cov.device)
-    safe = torch.where(finite[..., None, None], symmetrize(cov), eye)  # eigh raises on NaN input
-    eigvals, eigvecs = torch.linalg.eigh(safe)
-    eig_sqrt = eigvecs * eigvals.clamp_min(0).sqrt().unsqueeze(-2)
-    eig_sqrt = torch.where(finite[..., None, None], eig_sqrt, torch.full_like(eig_sqrt, math.nan))
-    return torch.where((info != 0)[..., None, None], eig_sqrt, chol)

@@ -68,6 +68,12 @@ class ParticleBelief(Belief):
         log_w = normalize_log_probs(self.log_weights)
         return torch.exp(-torch.logsumexp(2 * log_w, dim=-1))
 
+    def entropy(self) -> Tensor:
+        """Shannon entropy of the normalised weights ``-sum_i w_i log w_i``, shape ``(*B,)``."""
+        log_w = normalize_log_probs(self.log_weights)
+        p = log_w.exp()
+        return -torch.where(p > 0, p * log_w, torch.zeros_like(p)).sum(-1)
+
     def estimate(self) -> GaussianBelief:
         """Weighted mean and covariance as a Gaussian belief with batch ``(*B,)``."""
         weights = normalize_log_probs(self.log_weights).exp()

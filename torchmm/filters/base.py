@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import copy
 from typing import Any, NamedTuple
 
+import torch
 from torch import Tensor, nn
 
 __all__ = ["Filter", "StepOutput"]
@@ -39,7 +41,24 @@ class Filter(nn.Module):
     The module holds models and options only; nothing changes between calls, so one filter can
     serve any number of independent batches. Subclasses implement :meth:`predict` and
     :meth:`update`; :meth:`step` is predict-then-update.
+
+    The contract (docs/architecture.md):
+
+    * ``initial_belief(belief, ...)`` turns a Gaussian (or any) prior into this filter's belief
+      type; the default returns ``belief`` validated. Multiple-model filters add ``mode_probs``.
+    * ``predict(belief, *, u=None)`` and ``update(belief, z)``; per step, the models can be
+      replaced without building a filter: ``update(..., sensor=s)`` uses the sensor ``s`` for this
+      update (multi-sensor and multi-rate updates), ``predict(..., motion=f)`` the motion model
+      ``f`` (a time-varying or per-step ``dt`` model); both go through :meth:`with_sensor` /
+      :meth:`with_motion`, which every filter inherits.
+    * Filters that draw random numbers set ``uses_generator = True`` and take
+      ``generator=`` in ``initial_belief``, ``predict``, ``update`` and ``step``: the random stream
+      is an argument of the call, never state of the module. Combinators and
+      :func:`~torchmm.run_filter` pass it only to filters that declare it.
     """
+
+    #: True for filters whose steps draw random numbers (they accept ``generator=``)
+    uses_generator: bool = False
 
     @property
     def state_dim(self) -> int | None:
@@ -50,6 +69,21 @@ class Filter(nn.Module):
     def meas_dim(self) -> int | None:
         """The measurement dimension ``m`` of the filter's sensor (None if it has none)."""
         return getattr(self._modules.get("measurement"), "meas_dim", None)
+
+    def initial_belief(self, belief: Any, **kwargs) -> Any:
+        """This filter's belief at time 0 from a prior ``belief`` (batch ``(*B,)``).
+
+        The default checks the prior's values (:meth:`~torchmm.beliefs.Belief.validate`) and
+        returns it; filters whose belief is not the prior's type (particles, mode beliefs, adaptive
+        noise) override it, keeping ``belief`` as the first argument.
+        """
+        from torchmm.beliefs import Belief
+
+        if kwargs:
+            raise TypeError(f"{type(self).__name__}.initial_belief: unexpected arguments {sorted(kwargs)}")
+        if not isinstance(belief, Belief):
+            raise TypeError(f"belief: expected a belief (e.g. GaussianBelief), got {type(belief).__name__}")
+        return belief.validate("belief")
 
     def predict(self, belief: Any, *, u: Tensor | None = None) -> Any:
         """Time update. Returns the prior belief for the next measurement."""
@@ -67,9 +101,71 @@ class Filter(nn.Module):
         """Measurement update of a prior ``belief`` with ``z`` (NaN = missing)."""
         raise NotImplementedError
 
-    def step(self, belief: Any, z: Any, *, u: Tensor | None = None) -> StepOutput:
-        """One predict/update cycle from the posterior at ``k-1`` to the posterior at ``k``."""
-        return self.update(self.predict(belief, u=u), z)
+    def step(self, belief: Any, z: Any, *, u: Tensor | None = None, motion: nn.Module | None = None,
+             sensor: nn.Module | None = None, generator: torch.Generator | None = None) -> StepOutput:
+        """One predict/update cycle from the posterior at ``k-1`` to the posterior at ``k``.
 
-    def forward(self, belief: Any, z: Any, *, u: Tensor | None = None) -> StepOutput:
-        return self.step(belief, z, u=u)
+        ``motion`` / ``sensor`` replace the filter's models for this step (:meth:`with_motion`,
+        :meth:`with_sensor`); ``generator`` is the random stream of filters that draw random numbers.
+        """
+        predictor = self if motion is None else self.with_motion(motion)
+        prior = call_with(predictor, "predict", belief, u=u, generator=generator)
+        updater = self if sensor is None else self.with_sensor(sensor)
+        return call_with(updater, "update", prior, z, generator=generator)
+
+    def forward(self, belief: Any, z: Any, **inputs) -> StepOutput:
+        return self.step(belief, z, **inputs)
+
+    # -- per-step models ------------------------------------------------------------------------
+    def with_sensor(self, sensor: nn.Module) -> Filter:
+        """This filter with ``sensor`` as its measurement model (shares every other module).
+
+        A shallow copy, cached per sensor object, so calling it every step costs a dictionary
+        lookup. Raises ``ValueError`` naming ``sensor`` if its state dimension differs from the
+        filter's; filters that derive buffers from their sensor at construction override
+        :meth:`_sensor_changed`.
+        """
+        return self._with_module("measurement", sensor, "sensor")
+
+    def with_motion(self, motion: nn.Module) -> Filter:
+        """This filter with ``motion`` as its motion model (cached like :meth:`with_sensor`)."""
+        return self._with_module("motion", motion, "motion")
+
+    def _sensor_changed(self) -> None:
+        """Hook run on the copy made by :meth:`with_sensor` (re-derive sensor-dependent buffers)."""
+
+    def _with_module(self, slot: str, module: nn.Module, name: str) -> Filter:
+        current = self._modules.get(slot)
+        if module is current:
+            return self
+        if current is None:
+            raise TypeError(f"{name}: {type(self).__name__} has no {slot} model to replace")
+        if not isinstance(module, nn.Module):
+            raise TypeError(f"{name}: expected a torchmm model (nn.Module), got {type(module).__name__}")
+        n_new, n_old = getattr(module, "state_dim", None), self.state_dim
+        if n_new is not None and n_old is not None and n_new != n_old:
+            raise ValueError(f"{name}: state_dim {n_new} differs from the filter's {n_old}")
+        cache = self.__dict__.setdefault("_model_cache", {})
+        key = (slot, id(module))
+        hit = cache.get(key)
+        if hit is not None and hit._modules.get(slot) is module:
+            return hit
+        clone = copy.copy(self)
+        for table in ("_modules", "_buffers", "_parameters"):
+            clone.__dict__[table] = dict(self.__dict__[table])
+        clone.__dict__["_model_cache"] = {}
+        clone._modules[slot] = module
+        if slot == "measurement":
+            clone._sensor_changed()
+        if len(cache) > 64:  # a per-step sequence of fresh models: do not grow without bound
+            cache.clear()
+        cache[key] = clone
+        return clone
+
+
+def call_with(filter: Filter, method: str, *args, generator: torch.Generator | None = None, **kwargs):
+    """``getattr(filter, method)(*args, **kwargs)``, passing ``generator`` only to filters that draw
+    random numbers (``filter.uses_generator``)."""
+    if generator is not None and filter.uses_generator:
+        kwargs["generator"] = generator
+    return getattr(filter, method)(*args, **kwargs)

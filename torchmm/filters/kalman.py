@@ -5,7 +5,7 @@ r"""Kalman and extended Kalman filters.
 
     \nu = z - h(x^-),\quad S = H P^- H^\top + R,\quad C = P^- H^\top \qquad (H = \partial h/\partial x)
 
-followed by :func:`torchmm.filters.linalg.condition`. For linear models ``F`` and ``H`` are the
+followed by :func:`torchmm.linalg.condition`. For linear models ``F`` and ``H`` are the
 model matrices and this is the Kalman filter; otherwise Jacobians come from autograd.
 """
 
@@ -18,7 +18,7 @@ from torch import Tensor
 
 from torchmm.beliefs import GaussianBelief
 from torchmm.filters.base import Filter, StepOutput
-from torchmm.filters.linalg import condition
+from torchmm.linalg import condition
 from torchmm.models.base import MeasurementModel, MotionModel, check_model_pair
 from torchmm.models.linear import LinearMeasurement, LinearMotion
 from torchmm.validation import check_measurement, gaussian_batch
@@ -40,7 +40,7 @@ class ExtendedKalmanFilter(Filter):
         ``u``: ``(*B, k)``. Model parameter batches broadcast with ``*B`` (mode banks: ``*B``
         ends with the mode axis). ``extras["singular"]`` ``(*B,)`` bool: the innovation
         covariance was not numerically positive definite and was regularised (see
-        :func:`~torchmm.filters.linalg.cholesky`).
+        :func:`~torchmm.linalg.cholesky`).
 
     Examples:
         >>> from torchmm.models import ConstantVelocity, PositionMeasurement
@@ -64,7 +64,10 @@ class ExtendedKalmanFilter(Filter):
     def _measurement_matrix(self, mean: Tensor) -> Tensor:
         return self.measurement.jacobian(mean)
 
-    def predict(self, belief: GaussianBelief, *, u: Tensor | None = None) -> GaussianBelief:
+    def predict(self, belief: GaussianBelief, *, u: Tensor | None = None,
+                motion: MotionModel | None = None) -> GaussianBelief:
+        if motion is not None:
+            return self.with_motion(motion).predict(belief, u=u)
         gaussian_batch(belief, self.state_dim)
         F = self._transition_matrix(belief.mean, u)
         mean = self.motion(belief.mean, u=u)  # x- = f(x)
@@ -72,7 +75,9 @@ class ExtendedKalmanFilter(Filter):
         cov = F @ belief.cov @ F.mT + self.motion.noise_cov(belief.mean)
         return GaussianBelief(mean, cov)
 
-    def update(self, belief: GaussianBelief, z: Tensor) -> StepOutput:
+    def update(self, belief: GaussianBelief, z: Tensor, *, sensor: MeasurementModel | None = None) -> StepOutput:
+        if sensor is not None:
+            return self.with_sensor(sensor).update(belief, z)
         z = check_measurement(z, self.meas_dim, gaussian_batch(belief, self.state_dim), belief.mean)
         H = self._measurement_matrix(belief.mean)
         R = self.measurement.noise_cov(belief.mean)
@@ -107,6 +112,13 @@ class KalmanFilter(ExtendedKalmanFilter):
                 f"measurement: KalmanFilter needs a LinearMeasurement, got {type(measurement).__name__}"
             )
         super().__init__(motion, measurement, joseph=joseph)
+
+    def _with_module(self, slot, module, name):
+        expected = LinearMotion if slot == "motion" else LinearMeasurement
+        if isinstance(module, torch.nn.Module) and not isinstance(module, expected):
+            raise ValueError(f"{name}: KalmanFilter needs a {expected.__name__}, got {type(module).__name__} "
+                             "(use ExtendedKalmanFilter or UnscentedKalmanFilter for nonlinear models)")
+        return super()._with_module(slot, module, name)
 
     @property
     def param_batch_shape(self) -> torch.Size:

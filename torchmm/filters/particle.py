@@ -39,7 +39,7 @@ from torch import Tensor
 from torchmm.beliefs import GaussianBelief, ModeBelief, ParticleBelief, psd_sqrt, symmetrize
 from torchmm.beliefs.ops import normalize_log_probs
 from torchmm.filters.base import Filter, StepOutput
-from torchmm.filters.linalg import any_observed, cholesky
+from torchmm.linalg import any_observed, cholesky
 from torchmm.filters.resampling import (
     RESAMPLING_SCHEMES,
     apply_indices,
@@ -199,7 +199,7 @@ def _sum_squares(x: Tensor) -> Tensor:
 def _whitening(cov: Tensor) -> tuple[Tensor, Tensor]:
     """``(L^{-1}, log det cov)`` with ``L L^T = cov``. Shapes: ``(..., m, m)`` -> same, ``(...)``.
 
-    The factor is :func:`~torchmm.filters.linalg.cholesky` (never raises; regularised where
+    The factor is :func:`~torchmm.linalg.cholesky` (never raises; regularised where
     ``cov`` is not numerically positive definite)."""
     chol = cholesky(cov)
     eye = torch.eye(cov.shape[-1], dtype=cov.dtype, device=cov.device)
@@ -390,31 +390,44 @@ class ParticleFilter(Filter):
             raise ValueError(f"{name}: a ParticleFilter inside IMM/GPB needs num_particles= (mixing merges the "
                              "M particle sets into M * Np particles; the filter resamples back to num_particles)")
 
-    def initial_belief(self, belief: GaussianBelief, num_particles: int | None = None) -> ParticleBelief:
+    uses_generator = True
+
+    def initial_belief(self, belief: GaussianBelief, num_particles: int | None = None, *,
+                       generator: torch.Generator | None = None) -> ParticleBelief:
         """Sample a particle belief from a Gaussian prior (uniform weights).
 
         Shapes:
             belief: batch ``(*B,)`` -> particles ``(*B, Np, n)``
         """
+        if isinstance(belief, ParticleBelief) and num_particles is None:  # already particles (e.g. in a bank)
+            _particle_batch(belief, self.motion.state_dim)
+            return belief.validate("belief")
         num = self.num_particles if num_particles is None else as_int(num_particles, "num_particles", minimum=1)
         if num is None:
             raise ValueError("num_particles: give it here or to the filter")
         _check_prior(self, belief)
-        particles = sample_gaussian(belief, num, generator=self.generator)
+        particles = sample_gaussian(belief, num, generator=self._generator(generator))
         log_w = torch.full(particles.shape[:-1], -math.log(num), dtype=particles.dtype, device=particles.device)
         return ParticleBelief(particles, log_w)
 
-    def predict(self, belief: ParticleBelief, *, u: Tensor | None = None) -> ParticleBelief:
+    def predict(self, belief: ParticleBelief, *, u: Tensor | None = None, motion: MotionModel | None = None,
+                generator: torch.Generator | None = None) -> ParticleBelief:
+        if motion is not None:
+            return self.with_motion(motion).predict(belief, u=u, generator=generator)
+        generator = self._generator(generator)
         _particle_batch(belief, self.motion.state_dim)
         if self.num_particles is not None and belief.num_particles != self.num_particles:
-            indices = resample(belief.log_weights, self.resampling, self.num_particles, generator=self.generator)
+            indices = resample(belief.log_weights, self.resampling, self.num_particles, generator=generator)
             belief = apply_indices(belief, indices)
-        particles = propagate_particles(self.motion, belief.particles, u=u, generator=self.generator,
+        particles = propagate_particles(self.motion, belief.particles, u=u, generator=generator,
                                         noise_dtype=self.noise_dtype)
         log_w = belief.log_weights.expand(particles.shape[:-1])
         return ParticleBelief(particles, log_w)
 
-    def update(self, belief: ParticleBelief, z: Tensor) -> StepOutput:
+    def update(self, belief: ParticleBelief, z: Tensor, *, sensor: MeasurementModel | None = None,
+               generator: torch.Generator | None = None) -> StepOutput:
+        if sensor is not None:
+            return self.with_sensor(sensor).update(belief, z, generator=generator)
         z = check_measurement(z, self.measurement.meas_dim, _particle_batch(belief, self.motion.state_dim),
                               belief.particles)
         prior_log_w = normalize_log_probs(belief.log_weights)
@@ -428,7 +441,7 @@ class ParticleFilter(Filter):
         post_log_w = torch.where(degenerate.unsqueeze(-1), prior_log_w, joint - log_evidence.unsqueeze(-1))
         posterior = ParticleBelief(belief.particles, post_log_w)
         posterior, resampled, ess = resample_where_needed(posterior, self.ess_threshold, self.resampling,
-                                                          generator=self.generator)
+                                                          generator=self._generator(generator))
         cov = None if self.state_dependent_noise else self.measurement.noise_cov()
         innovation, innovation_cov = _innovation(z, predicted, prior_log_w, cov)
         return StepOutput(
@@ -439,6 +452,11 @@ class ParticleFilter(Filter):
             innovation_cov=innovation_cov,
             extras={"ess": ess, "resampled": resampled, "degenerate": degenerate},
         )
+
+
+    def _generator(self, generator: torch.Generator | None) -> torch.Generator | None:
+        """The call's random stream; the filter's ``generator`` (a default) when none is given."""
+        return self.generator if generator is None else _check_generator(generator)
 
 
 def _forced_cdf(probs: Tensor) -> Tensor:
@@ -606,7 +624,14 @@ class MultipleModelParticleFilter(Filter):
         if shape is not None and len(shape) > 0 and shape[-1] not in (1, self.num_modes):
             raise ValueError(f"motion: parameter batch {tuple(shape)} does not match {self.num_modes} modes")
 
-    def initial_belief(self, belief: GaussianBelief, mode_probs=None) -> ModeBelief:
+    uses_generator = True
+
+    def _generator(self, generator: torch.Generator | None) -> torch.Generator | None:
+        """The call's random stream; the filter's ``generator`` (a default) when none is given."""
+        return self.generator if generator is None else _check_generator(generator)
+
+    def initial_belief(self, belief: GaussianBelief, mode_probs=None, *,
+                       generator: torch.Generator | None = None) -> ModeBelief:
         """``Np`` particles per model, each set drawn independently from the Gaussian prior (32).
 
         Shapes:
@@ -616,7 +641,7 @@ class MultipleModelParticleFilter(Filter):
         _check_prior(self, belief)
         M, batch = self.num_modes, belief.batch_shape
         expanded = belief.unsqueeze(-1).expand(*batch, M)
-        particles = sample_gaussian(expanded, self.num_particles, generator=self.generator)
+        particles = sample_gaussian(expanded, self.num_particles, generator=self._generator(generator))
         log_w = torch.full(particles.shape[:-1], -math.log(self.num_particles), dtype=belief.dtype,
                            device=belief.device)
         if mode_probs is None:
@@ -630,10 +655,11 @@ class MultipleModelParticleFilter(Filter):
                                  f"batch {tuple(batch)} x {M} modes") from None
         return ModeBelief(log_probs, ParticleBelief(particles, log_w))
 
-    def _propagate(self, particles: Tensor, *, u: Tensor | None, log_cbar: Tensor) -> Tensor:
+    def _propagate(self, particles: Tensor, *, u: Tensor | None, log_cbar: Tensor,
+                   generator: torch.Generator | None = None) -> Tensor:
         """Propagate each model's particles with its own model. ``(*B, M, Np, n)``."""
         return propagate_particles(self.motion, particles, u=None if u is None else u.unsqueeze(-2),
-                                   generator=self.generator, noise_dtype=self.noise_dtype)
+                                   generator=generator, noise_dtype=self.noise_dtype)
 
     def _check_belief(self, belief) -> torch.Size:
         """Batch ``(*B,)`` of a per-model particle belief, checked (shapes only)."""
@@ -646,12 +672,16 @@ class MultipleModelParticleFilter(Filter):
         _particle_batch(comps, self.motion.state_dim)
         return belief.mode_log_probs.shape[:-1]
 
-    def predict(self, belief: ModeBelief, *, u: Tensor | None = None) -> ModeBelief:
+    def predict(self, belief: ModeBelief, *, u: Tensor | None = None, motion: MotionModel | None = None,
+                generator: torch.Generator | None = None) -> ModeBelief:
+        if motion is not None:
+            return self.with_motion(motion).predict(belief, u=u, generator=generator)
+        generator = self._generator(generator)
         self._check_belief(belief)
         comps = belief.components
         mode_log_probs = normalize_log_probs(belief.mode_log_probs)
         flat, log_cbar = mixing_indices(mode_log_probs, self.transition.log_matrix(), comps.log_weights,
-                                        self.num_particles, self.mixing, generator=self.generator)
+                                        self.num_particles, self.mixing, generator=generator)
         batch = flat.shape[:-2]
         source = comps.particles.expand(*batch, *comps.particles.shape[-3:])
         n, per_run = source.shape[-1], source.shape[-3] * source.shape[-2]
@@ -659,7 +689,7 @@ class MultipleModelParticleFilter(Filter):
         runs = torch.arange(batch.numel(), device=flat.device).view(*batch, 1, 1) * per_run
         ancestors = torch.index_select(source.reshape(source.shape[:-1].numel(), n), 0, (flat + runs).reshape(-1))
         ancestors = ancestors.view(*batch, self.num_modes, self.num_particles, n)
-        particles = self._propagate(ancestors, u=u, log_cbar=log_cbar)
+        particles = self._propagate(ancestors, u=u, log_cbar=log_cbar, generator=generator)
         # uniform within-model weights as a broadcast view (no memory; `_weigh` recognises it)
         log_w = torch.full((), -math.log(self.num_particles), dtype=particles.dtype,
                            device=particles.device).expand(particles.shape[:-1])
@@ -694,7 +724,10 @@ class MultipleModelParticleFilter(Filter):
             per_model = torch.where(degenerate[..., None], prior_mode, per_model)
         return joint, per_model, log_evidence, degenerate, predicted, prior_within, prior_mode
 
-    def update(self, belief: ModeBelief, z: Tensor) -> StepOutput:
+    def update(self, belief: ModeBelief, z: Tensor, *, sensor: MeasurementModel | None = None,
+               generator: torch.Generator | None = None) -> StepOutput:
+        if sensor is not None:
+            return self.with_sensor(sensor).update(belief, z)
         z = check_measurement(z, self.measurement.meas_dim, self._check_belief(belief), belief.components.particles)
         joint, per_model, log_evidence, degenerate, predicted, prior_within, prior_mode = self._weigh(belief, z)
         safe_ev = torch.where(degenerate, torch.zeros_like(log_evidence), log_evidence)

@@ -15,7 +15,7 @@ import torch
 from torch import Tensor
 
 from torchmm.beliefs import GaussianBelief, symmetrize
-from torchmm.filters.linalg import cholesky, cholesky_solve
+from torchmm.linalg import cholesky, cholesky_solve
 from torchmm.models.base import MotionModel
 
 __all__ = ["rts_smoother", "rts_step"]

@@ -20,7 +20,7 @@ from torch import Tensor
 
 from torchmm.beliefs import GaussianBelief, psd_sqrt, symmetrize
 from torchmm.filters.base import Filter, StepOutput
-from torchmm.filters.linalg import any_observed, check_joseph, condition, use_joseph
+from torchmm.linalg import any_observed, check_joseph, condition, use_joseph
 from torchmm.models.base import MeasurementModel, MotionModel, check_model_pair
 from torchmm.validation import as_float, broadcast_shape, check_measurement, gaussian_batch
 
@@ -179,7 +179,10 @@ class UnscentedKalmanFilter(Filter):
         except ValueError as err:
             raise ValueError(f"sigma_points: {err}") from None
 
-    def predict(self, belief: GaussianBelief, *, u: Tensor | None = None) -> GaussianBelief:
+    def predict(self, belief: GaussianBelief, *, u: Tensor | None = None,
+                motion: MotionModel | None = None) -> GaussianBelief:
+        if motion is not None:
+            return self.with_motion(motion).predict(belief, u=u)
         n = belief.state_dim
         gaussian_batch(belief, self.state_dim)
         wm, wc = self.sigma_points.weights(n, belief.dtype, belief.device)
@@ -191,7 +194,9 @@ class UnscentedKalmanFilter(Filter):
         cov = cov + self.motion.noise_cov(belief.mean)
         return GaussianBelief(mean, symmetrize(cov))
 
-    def update(self, belief: GaussianBelief, z: Tensor) -> StepOutput:
+    def update(self, belief: GaussianBelief, z: Tensor, *, sensor: MeasurementModel | None = None) -> StepOutput:
+        if sensor is not None:
+            return self.with_sensor(sensor).update(belief, z)
         n = belief.state_dim
         z = check_measurement(z, self.meas_dim, gaussian_batch(belief, self.state_dim), belief.mean)
         wm, wc = self.sigma_points.weights(n, belief.dtype, belief.device)

@@ -49,7 +49,7 @@ from torchmm.beliefs.ops import symmetrize
 from torchmm.distributions import truncated_normal_entropy, truncated_normal_moments
 from torchmm.filters.base import Filter, StepOutput
 from torchmm.filters.kalman import KalmanFilter
-from torchmm.filters.linalg import check_joseph, cholesky, cholesky_solve, condition, use_joseph
+from torchmm.linalg import check_joseph, cholesky, cholesky_solve, condition, use_joseph
 from torchmm.models.linear import LinearMeasurement, LinearMotion, matvec
 from torchmm.validation import (
     as_float,
@@ -158,6 +158,19 @@ def _check_linear(motion, measurement) -> None:
         raise ValueError(f"measurement: expected a LinearMeasurement, got {type(measurement).__name__}")
 
 
+def _rederive_scale(filter) -> None:
+    """A skew-t filter given another sensor (``with_sensor``): its per-component scale ``r`` from the
+    new ``R``; skewness and degrees of freedom are per component, so ``m`` must not change."""
+    R = filter.measurement.R
+    m = R.shape[-1]
+    if m != filter.r.shape[-1]:
+        raise ValueError(f"sensor: {type(filter).__name__}'s skewness and df have {filter.r.shape[-1]} components, "
+                         f"the sensor {m}")
+    r = _diag_param(R, "sensor.R", m, R)
+    _check_positive(r, "sensor.R")
+    filter._buffers["r"] = r
+
+
 def _iterations(value) -> int:
     return as_int(value, "iterations", minimum=1)
 
@@ -193,9 +206,20 @@ class _LinearVBFilter(Filter):
     def param_batch_shape(self) -> torch.Size:
         return self.kalman.param_batch_shape
 
-    def predict(self, belief: GaussianBelief, *, u: Tensor | None = None) -> GaussianBelief:
+    def predict(self, belief: GaussianBelief, *, u: Tensor | None = None, motion=None) -> GaussianBelief:
         """Kalman time update with the nominal ``Q``: ``x- = F x``, ``P~ = F P F^T + Q``."""
+        if motion is not None:
+            return self.with_motion(motion).predict(belief, u=u)
         return self.kalman.predict(belief, u=u)
+
+    def _with_module(self, slot, module, name):
+        expected = LinearMotion if slot == "motion" else LinearMeasurement
+        if isinstance(module, torch.nn.Module) and not isinstance(module, expected):
+            raise ValueError(f"{name}: {type(self).__name__} needs a {expected.__name__}, got {type(module).__name__}")
+        clone = super()._with_module(slot, module, name)
+        if clone is not self:
+            clone._modules["kalman"] = self.kalman._with_module(slot, module, name)
+        return clone
 
     def _measurement(self, belief: GaussianBelief, z) -> Tensor:
         """``z`` checked against the sensor and the belief (shapes only)."""
@@ -224,7 +248,7 @@ class StudentTVBFilter(_LinearVBFilter):
         iterations: fixed-point iterations per step.
         elbo_history: also return the ELBO after every iteration (always on at DEBUG log level).
         joseph: Joseph-form (PSD-preserving) inner updates; ``None`` (default): in float32 and
-            below only (:func:`~torchmm.filters.linalg.use_joseph`).
+            below only (:func:`~torchmm.linalg.use_joseph`).
 
     Shapes:
         belief ``GaussianBelief`` batch ``(*B,)``; ``z (*B, m)``; ``extras["elbo"] (*B, iterations)``
@@ -249,7 +273,9 @@ class StudentTVBFilter(_LinearVBFilter):
         _check_positive(df, "df")
         self.register_buffer("df", df)
 
-    def update(self, belief: GaussianBelief, z: Tensor) -> StepOutput:
+    def update(self, belief: GaussianBelief, z: Tensor, *, sensor=None) -> StepOutput:
+        if sensor is not None:
+            return self.with_sensor(sensor).update(belief, z)
         z = self._measurement(belief, z)
         H, R = self.measurement.H, self.measurement.R
         m, n = R.shape[-1], belief.mean.shape[-1]
@@ -341,7 +367,7 @@ class SkewTIWVBFilter(_LinearVBFilter):
         gamma_shape: ``"derived"`` (default) or ``"printed"``.
         elbo_history: also return the ELBO after every iteration (always on at DEBUG log level).
         joseph: Joseph-form (PSD-preserving) inner updates; ``None`` (default): in float32 and
-            below only (:func:`~torchmm.filters.linalg.use_joseph`).
+            below only (:func:`~torchmm.linalg.use_joseph`).
 
     Shapes:
         belief ``GaussianBelief`` batch ``(*B,)``; ``z (*B, m)``; extras ``elbo (*B, S)`` (with
@@ -378,7 +404,12 @@ class SkewTIWVBFilter(_LinearVBFilter):
         self.register_buffer("nu", nu)
         self.tau, self.gamma_shape = tau, gamma_shape
 
-    def update(self, belief: GaussianBelief, z: Tensor) -> StepOutput:
+    def _sensor_changed(self) -> None:
+        _rederive_scale(self)
+
+    def update(self, belief: GaussianBelief, z: Tensor, *, sensor=None) -> StepOutput:
+        if sensor is not None:
+            return self.with_sensor(sensor).update(belief, z)
         z = self._measurement(belief, z)
         H = self.measurement.H
         r, delta, nu, tau = self.r, self.delta, self.nu, self.tau
@@ -479,7 +510,7 @@ class SkewTVBFilter(_LinearVBFilter):
         skewness, df: ``Delta`` and ``nu`` (numbers, ``(m,)`` or diagonal matrices).
         iterations: VB iterations per step.
         joseph: Joseph-form (PSD-preserving) inner updates; ``None`` (default): in float32 and
-            below only (:func:`~torchmm.filters.linalg.use_joseph`).
+            below only (:func:`~torchmm.linalg.use_joseph`).
 
     Shapes:
         belief ``GaussianBelief`` batch ``(*B,)``; ``z (*B, m)``; extras ``noise_cov (*B, m, m)``,
@@ -505,7 +536,12 @@ class SkewTVBFilter(_LinearVBFilter):
         self.register_buffer("delta", _diag_param(skewness, "skewness", m, R))
         self.register_buffer("nu", nu)
 
-    def update(self, belief: GaussianBelief, z: Tensor) -> StepOutput:
+    def _sensor_changed(self) -> None:
+        _rederive_scale(self)
+
+    def update(self, belief: GaussianBelief, z: Tensor, *, sensor=None) -> StepOutput:
+        if sensor is not None:
+            return self.with_sensor(sensor).update(belief, z)
         z = self._measurement(belief, z)
         H, r, delta, nu = self.measurement.H, self.r, self.delta, self.nu
         n, m = belief.mean.shape[-1], r.shape[-1]
@@ -634,7 +670,7 @@ class VBAKFPR(Filter):
         tau: ``tau_P`` (default 3); rho: forgetting factor (default ``1 - exp(-4)``);
         iterations: ``N`` (default 10); tau_r: ``tau_R`` for :meth:`initial_belief` (default 3).
         joseph: Joseph-form (PSD-preserving) inner updates; ``None`` (default): in float32 and
-            below only (:func:`~torchmm.filters.linalg.use_joseph`).
+            below only (:func:`~torchmm.linalg.use_joseph`).
 
     Shapes:
         belief :class:`AdaptiveGaussianBelief` batch ``(*B,)``; ``z (*B, m)``; extras
@@ -660,6 +696,12 @@ class VBAKFPR(Filter):
         self.iterations = _iterations(iterations)
         self.joseph = check_joseph(joseph)
 
+    def _with_module(self, slot, module, name):
+        expected = LinearMotion if slot == "motion" else LinearMeasurement
+        if isinstance(module, torch.nn.Module) and not isinstance(module, expected):
+            raise ValueError(f"{name}: VBAKFPR needs a {expected.__name__}, got {type(module).__name__}")
+        return super()._with_module(slot, module, name)
+
     def initial_belief(self, belief: GaussianBelief, R0: Tensor | None = None) -> AdaptiveGaussianBelief:
         """``u_0 = m + 1 + tau_R``, ``U_0 = tau_R R~_0`` (so ``E[R_0] = R~_0``; default the model's R).
 
@@ -678,7 +720,10 @@ class VBAKFPR(Filter):
         dof = torch.full(batch, m + 1 + self.tau_r, dtype=belief.dtype, device=belief.device)
         return AdaptiveGaussianBelief(belief.mean, belief.cov, dof, (self.tau_r * R0).expand(*batch, m, m))
 
-    def predict(self, belief: AdaptiveGaussianBelief, *, u: Tensor | None = None) -> AdaptiveGaussianBelief:
+    def predict(self, belief: AdaptiveGaussianBelief, *, u: Tensor | None = None,
+                motion=None) -> AdaptiveGaussianBelief:
+        if motion is not None:
+            return self.with_motion(motion).predict(belief, u=u)
         _check_adaptive(belief)
         gaussian_batch(belief, self.motion.state_dim)
         F = self.motion.F
@@ -688,7 +733,9 @@ class VBAKFPR(Filter):
         dof = self.rho * (belief.r_dof - m - 1) + m + 1
         return AdaptiveGaussianBelief(mean, cov, dof, self.rho * belief.r_scale)
 
-    def update(self, belief: AdaptiveGaussianBelief, z: Tensor) -> StepOutput:
+    def update(self, belief: AdaptiveGaussianBelief, z: Tensor, *, sensor=None) -> StepOutput:
+        if sensor is not None:
+            return self.with_sensor(sensor).update(belief, z)
         _check_adaptive(belief)
         z = check_measurement(z, self.measurement.meas_dim, gaussian_batch(belief, self.motion.state_dim),
                               belief.mean)

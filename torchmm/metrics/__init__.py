@@ -18,7 +18,7 @@ import torch
 from torch import Tensor
 
 from torchmm.beliefs import GaussianBelief
-from torchmm.filters.linalg import cholesky, solve_lower
+from torchmm.linalg import cholesky, solve_lower
 
 __all__ = ["armse", "mode_accuracy", "nees", "nis", "rmse", "squared_error"]
 

@@ -160,6 +160,25 @@ class LinearMeasurement(MeasurementModel):
         store_tensor(self, "H", H)
         store_tensor(self, "R", R)
 
+    @classmethod
+    def unchecked(cls, H: Tensor, R: Tensor) -> LinearMeasurement:
+        """A pseudo-measurement built inside a step from a filter's own tensors (e.g. a track's
+        estimate fused as a datum with ``R`` = its covariance): shapes are checked, values are not
+        (no device synchronisation; ``R`` is a covariance by construction).
+
+        Shapes:
+            H: ``(*P, m, n)``; R: ``(*P, m, m)``
+        """
+        self = cls.__new__(cls)
+        MeasurementModel.__init__(self)
+        m, n = H.shape[-2:]
+        check_shape(R, "R", (m, m))
+        self.param_batch_shape = torch.Size(broadcast_shape(H.shape[:-2], R.shape[:-2]))
+        self.state_dim, self.meas_dim = n, m
+        store_tensor(self, "H", H)
+        store_tensor(self, "R", R)
+        return self
+
     def forward(self, x: Tensor) -> Tensor:
         return matvec(self.H, x)
 

@@ -1,7 +1,9 @@
 """Multiple-model estimation: transition matrices, filter banks, IMM / GPB1 / GPB2, multi-rate IMMs."""
 
-from torchmm.multimodel.bank import FilterBank, ListBank, VectorizedBank, make_bank
-from torchmm.multimodel.imm import GPB1, GPB2, IMM, MultipleModelFilter
+from torchmm.multimodel.bank import FilterBank, IndexedBank, ListBank, VectorizedBank, make_bank
+from torchmm.multimodel.embedding import Embedded, kinematic_index
+from torchmm.multimodel.imm import GPB1, GPB2, IMM, MultipleModelFilter, StaticMM
+from torchmm.multimodel.structure import AllModels, FixedSet, ModelSetPolicy, VariableStructureIMM
 from torchmm.multimodel.transfer import (
     FusionIMM,
     InfluenceGate,
@@ -20,10 +22,16 @@ from torchmm.multimodel.transition import (
 )
 
 __all__ = [
+    "AllModels",
+    "FixedSet",
+    "ModelSetPolicy",
+    "VariableStructureIMM",
     "GPB1",
     "GPB2",
     "IMM",
+    "Embedded",
     "FilterBank",
+    "IndexedBank",
     "FusionIMM",
     "InfluenceGate",
     "MultiRate",
@@ -35,8 +43,10 @@ __all__ = [
     "ListBank",
     "ModeTransition",
     "MultipleModelFilter",
+    "StaticMM",
     "VectorizedBank",
     "alpha_transition",
+    "kinematic_index",
     "make_bank",
     "transition_alpha",
     "validate_transition",

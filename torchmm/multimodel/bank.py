@@ -18,11 +18,11 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor, nn
 
-from torchmm.beliefs import stack
-from torchmm.filters.base import Filter, StepOutput
+from torchmm.beliefs import Belief, stack
+from torchmm.filters.base import Filter, StepOutput, call_with
 from torchmm.validation import broadcast_shape
 
-__all__ = ["FilterBank", "ListBank", "VectorizedBank", "make_bank"]
+__all__ = ["FilterBank", "IndexedBank", "ListBank", "VectorizedBank", "make_bank"]
 
 
 class FilterBank(nn.Module):
@@ -40,10 +40,28 @@ class FilterBank(nn.Module):
         """The measurement dimension every mode filter expects (None if a filter does not say)."""
         return None
 
-    def predict(self, belief, *, u: Tensor | None = None):
+    @property
+    def state_dim(self) -> int | None:
+        """The state dimension the modes share (None if a filter does not say)."""
+        return None
+
+    @property
+    def uses_generator(self) -> bool:
+        """Whether a mode filter draws random numbers (then ``generator=`` is passed to it)."""
+        return False
+
+    def initial_belief(self, belief, *, generator=None):
+        """Every mode filter's belief at time 0 from ``belief`` with batch ``(*B, M)`` (e.g. a
+        particle filter samples its particles; a Kalman filter keeps the Gaussian)."""
+        return belief
+
+    def predict(self, belief, *, u: Tensor | None = None, motion=None, generator=None):
+        """Every mode's time update; ``motion`` replaces the models for this call (a mode bank model,
+        or for a :class:`ListBank` one model per mode)."""
         raise NotImplementedError
 
-    def update(self, belief, z: Tensor) -> StepOutput:
+    def update(self, belief, z: Tensor, *, sensor=None, generator=None) -> StepOutput:
+        """Every mode's measurement update; ``sensor`` replaces the measurement model for this call."""
         raise NotImplementedError
 
 
@@ -68,11 +86,26 @@ class VectorizedBank(FilterBank):
     def meas_dim(self) -> int | None:
         return getattr(self.filter, "meas_dim", None)
 
-    def predict(self, belief, *, u: Tensor | None = None):
-        return self.filter.predict(belief, u=u)
+    @property
+    def state_dim(self) -> int | None:
+        return getattr(self.filter, "state_dim", None)
 
-    def update(self, belief, z: Tensor) -> StepOutput:
-        return self.filter.update(belief, z)
+    @property
+    def uses_generator(self) -> bool:
+        return bool(getattr(self.filter, "uses_generator", False))
+
+    def initial_belief(self, belief, *, generator=None):
+        if type(self.filter).initial_belief is Filter.initial_belief:
+            return belief  # the prior is the mode filters' belief (validated by the combinator)
+        return call_with(self.filter, "initial_belief", belief, generator=generator)
+
+    def predict(self, belief, *, u: Tensor | None = None, motion=None, generator=None):
+        f = self.filter if motion is None else self.filter.with_motion(motion)
+        return call_with(f, "predict", belief, u=u, generator=generator)
+
+    def update(self, belief, z: Tensor, *, sensor=None, generator=None) -> StepOutput:
+        f = self.filter if sensor is None else self.filter.with_sensor(sensor)
+        return call_with(f, "update", belief, z, generator=generator)
 
 
 class ListBank(FilterBank):
@@ -90,8 +123,10 @@ class ListBank(FilterBank):
         for attr in ("state_dim", "meas_dim"):
             dims = [getattr(f, attr, None) for f in filters]
             if len({d for d in dims if d is not None}) > 1:
+                hint = (" (modes with different state dimensions: wrap each in torchmm.multimodel.Embedded, "
+                        "which maps it into a common state space, docs/architecture.md)" if attr == "state_dim" else "")
                 raise ValueError(f"bank: the mode filters have different {attr}s {dims}; the modes of one bank "
-                                 "share the state and the measurement")
+                                 f"share the state and the measurement{hint}")
         self.filters = nn.ModuleList(filters)
         self.num_modes = len(self.filters)
 
@@ -99,15 +134,44 @@ class ListBank(FilterBank):
     def meas_dim(self) -> int | None:
         return getattr(self.filters[0], "meas_dim", None)
 
-    def predict(self, belief, *, u: Tensor | None = None):
+    @property
+    def state_dim(self) -> int | None:
+        return getattr(self.filters[0], "state_dim", None)
+
+    @property
+    def uses_generator(self) -> bool:
+        return any(getattr(f, "uses_generator", False) for f in self.filters)
+
+    def _members(self, models, replace: str, name: str) -> list[Filter]:
+        """The mode filters, with ``models`` (one for all, or a sequence of one per mode) swapped in."""
+        if models is None:
+            return list(self.filters)
+        if isinstance(models, Sequence):
+            if len(models) != self.num_modes:
+                raise ValueError(f"{name}: expected one model per mode ({self.num_modes}), got {len(models)}")
+            return [getattr(f, replace)(m) for f, m in zip(self.filters, models)]
+        return [getattr(f, replace)(models) for f in self.filters]
+
+    def initial_belief(self, belief, *, generator=None):
+        if all(type(f).initial_belief is Filter.initial_belief for f in self.filters):
+            return belief
+        starts = [f.initial_belief(belief.select(-1, j)) if type(f).initial_belief is Filter.initial_belief
+                  else call_with(f, "initial_belief", belief.select(-1, j), generator=generator)
+                  for j, f in enumerate(self.filters)]
+        return stack(starts, dim=-1)
+
+    def predict(self, belief, *, u: Tensor | None = None, motion=None, generator=None):
         priors = [
-            f.predict(belief.select(-1, j), u=None if u is None else _select_mode(u, j))
-            for j, f in enumerate(self.filters)
+            call_with(f, "predict", belief.select(-1, j), u=None if u is None else _select_mode(u, j),
+                      generator=generator)
+            for j, f in enumerate(self._members(motion, "with_motion", "motion"))
         ]
         return stack(priors, dim=-1)
 
-    def update(self, belief, z: Tensor) -> StepOutput:
-        outs = [f.update(belief.select(-1, j), _select_mode(z, j)) for j, f in enumerate(self.filters)]
+    def update(self, belief, z: Tensor, *, sensor=None, generator=None) -> StepOutput:
+        members = self._members(sensor, "with_sensor", "sensor")
+        outs = [call_with(f, "update", belief.select(-1, j), _select_mode(z, j), generator=generator)
+                for j, f in enumerate(members)]
         log_likelihood = torch.stack([o.log_likelihood for o in outs], dim=-1)
         return StepOutput(
             belief=stack([o.belief for o in outs], dim=-1),
@@ -116,6 +180,107 @@ class ListBank(FilterBank):
             innovation=_stack_optional([o.innovation for o in outs], event=1),
             innovation_cov=_stack_optional([o.innovation_cov for o in outs], event=2),
             extras=_stack_extras([o.extras for o in outs], log_likelihood.dim() - 1),
+        )
+
+
+class IndexedBank(FilterBank):
+    """The modes ``index`` of another bank, repeats allowed: mode ``i`` of this bank is mode
+    ``index[i]`` of ``bank`` (e.g. VSIMM's fixed modes plus one more copy of the CV mode).
+
+    Works for any bank: the components are laid out in rounds of at most one slot per mode of
+    ``bank`` (a mode listed ``r`` times costs ``r`` rounds, each one batched call of ``bank``).
+
+    Shapes:
+        beliefs with batch ``(*B, K)``, ``K = len(index)``; ``z``/``u`` broadcastable to
+        ``(*B, K, m)`` / ``(*B, K, k)`` (a size-1 mode axis, as ``z.unsqueeze(-2)``).
+    """
+
+    def __init__(self, bank: FilterBank, index: Sequence[int]):
+        super().__init__()
+        index = [int(i) for i in index]
+        if not index or not all(0 <= i < bank.num_modes for i in index):
+            raise ValueError(f"index: expected mode indices in [0, {bank.num_modes}), got {index}")
+        self.bank, self.index, self.num_modes = bank, index, len(index)
+        rounds: list[dict[int, int]] = []  # round -> {mode of bank: slot of this bank}
+        for slot, mode in enumerate(index):
+            for r in rounds:
+                if mode not in r:
+                    r[mode] = slot
+                    break
+            else:
+                rounds.append({mode: slot})
+        M = bank.num_modes
+        # per round, the slot each bank mode reads (an unused mode reads the round's first slot)
+        self._gather = [torch.tensor([r.get(j, next(iter(r.values()))) for j in range(M)]) for r in rounds]
+        # slot i of the result is entry round * M + index[i] of the rounds laid end to end
+        position = {}
+        for r_i, r in enumerate(rounds):
+            for mode, slot in r.items():
+                position[slot] = r_i * M + mode
+        self._scatter = torch.tensor([position[i] for i in range(len(index))])
+
+    @property
+    def meas_dim(self) -> int | None:
+        return self.bank.meas_dim
+
+    @property
+    def state_dim(self) -> int | None:
+        return self.bank.state_dim
+
+    @property
+    def uses_generator(self) -> bool:
+        return self.bank.uses_generator
+
+    def _rounds(self, belief, value: Tensor | None, event: int):
+        for gather in self._gather:
+            g = gather.to(belief.device)
+            comps = belief.map_tensors(lambda t, e: t.index_select(t.dim() - e - 1, g)
+                                       if t.shape[t.dim() - e - 1] > 1 else t)
+            v = value
+            if value is not None and value.shape[-1 - event] > 1:
+                v = value.index_select(value.dim() - event - 1, g)
+            yield comps, v
+
+    def _assemble(self, parts: list, batch_dim: int):
+        """Concatenate per-round results on the mode axis (left-indexed ``batch_dim - 1``) and pick the slots."""
+        first = parts[0]
+        if first is None:
+            return None
+        axis = batch_dim - 1
+        scatter = self._scatter
+        if isinstance(first, Tensor):
+            if first.dim() < batch_dim or any(p.shape[axis] != self.bank.num_modes for p in parts):
+                return None
+            full = torch.cat(parts, dim=axis)
+            return full.index_select(axis, scatter.to(full.device))
+        if isinstance(first, dict):
+            out = {}
+            for key in first:
+                value = self._assemble([p.get(key) for p in parts], batch_dim)
+                if value is not None:
+                    out[key] = value
+            return out
+        if isinstance(first, Belief):
+            from torchmm.beliefs import cat
+
+            full = cat(parts, dim=-1)
+            return full.map_tensors(lambda t, e: t.index_select(t.dim() - e - 1, scatter.to(t.device)))
+        return None
+
+    def predict(self, belief, *, u: Tensor | None = None, motion=None, generator=None):
+        parts = [self.bank.predict(c, u=v, motion=motion, generator=generator) for c, v in self._rounds(belief, u, 1)]
+        return self._assemble(parts, belief.batch_dim)
+
+    def update(self, belief, z: Tensor, *, sensor=None, generator=None) -> StepOutput:
+        outs = [self.bank.update(c, v, sensor=sensor, generator=generator) for c, v in self._rounds(belief, z, 1)]
+        bd = belief.batch_dim
+        return StepOutput(
+            belief=self._assemble([o.belief for o in outs], bd),
+            prior=belief,
+            log_likelihood=self._assemble([o.log_likelihood for o in outs], bd),
+            innovation=self._assemble([o.innovation for o in outs], bd),
+            innovation_cov=self._assemble([o.innovation_cov for o in outs], bd),
+            extras=self._assemble([o.extras or {} for o in outs], bd) or None,
         )
 
 

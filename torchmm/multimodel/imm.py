@@ -26,7 +26,7 @@ from torch import Tensor
 
 from torchmm.beliefs import Belief, ModeBelief
 from torchmm.filters.base import Filter, StepOutput
-from torchmm.filters.linalg import any_observed
+from torchmm.linalg import any_observed
 from torchmm.multimodel.bank import make_bank
 from torchmm.multimodel.transition import as_transition
 from torchmm.validation import (
@@ -36,7 +36,7 @@ from torchmm.validation import (
     check_same_dtype,
 )
 
-__all__ = ["GPB1", "GPB2", "IMM", "MultipleModelFilter"]
+__all__ = ["GPB1", "GPB2", "IMM", "MultipleModelFilter", "StaticMM"]
 
 
 def _tiny(x: Tensor) -> float:
@@ -100,10 +100,18 @@ class MultipleModelFilter(Filter):
     def meas_dim(self) -> int | None:
         return self.bank.meas_dim
 
-    def _measurement(self, belief, z, name: str = "z") -> Tensor:
-        """``z (*B, m)`` checked against the bank's sensor and the belief's batch (shapes only)."""
+    @property
+    def state_dim(self) -> int | None:
+        return self.bank.state_dim
+
+    @property
+    def uses_generator(self) -> bool:
+        return self.bank.uses_generator
+
+    def _measurement(self, belief, z, name: str = "z", sensor=None) -> Tensor:
+        """``z (*B, m)`` checked against the sensor (default the bank's) and the belief's batch."""
         batch = _mode_batch(belief)
-        m = self.bank.meas_dim
+        m = self.bank.meas_dim if sensor is None or isinstance(sensor, (list, tuple)) else sensor.meas_dim
         like = belief.mode_log_probs
         if m is None:
             return z if isinstance(z, Tensor) else torch.as_tensor(z, dtype=like.dtype, device=like.device)
@@ -115,8 +123,11 @@ class MultipleModelFilter(Filter):
             check_same_dtype(matrix, "transition", like)
         return matrix
 
-    def initial_belief(self, belief: Belief, mode_probs=None) -> ModeBelief:
+    def initial_belief(self, belief: Belief, mode_probs=None, *, generator=None) -> ModeBelief:
         """Start every mode from ``belief`` with prior mode probabilities ``mode_probs``.
+
+        The mode filters turn ``belief`` into their own belief type (a particle-filter bank draws
+        its particles from the Gaussian prior with ``generator``; Kalman-type banks keep it).
 
         Shapes:
             belief: batch ``(*B,)``; mode_probs: ``(M,)`` or ``(*B, M)``, default uniform
@@ -142,17 +153,18 @@ class MultipleModelFilter(Filter):
                                  f"{tuple(belief.batch_shape)}")
             log_probs = probs.log()
         log_probs = log_probs.expand(*batch, M)
-        components = belief.unsqueeze(-1).expand(*batch, M)
+        components = self.bank.initial_belief(belief.unsqueeze(-1).expand(*batch, M), generator=generator)
         return ModeBelief(log_probs, components)
 
-    def _update_modes(self, prior: ModeBelief, z: Tensor, *, observed: Tensor | None = None) -> StepOutput:
+    def _update_modes(self, prior: ModeBelief, z: Tensor, *, observed: Tensor | None = None, sensor=None,
+                      generator=None) -> StepOutput:
         """Mode-matched updates and the mode-probability update (shared by IMM and GPB1).
 
         Where ``z`` has no finite component (or ``observed (*B,)`` is False: no datum at all this
         step) the log-likelihood is exactly 0 (``logsumexp_j(log c_j)`` is 0 only up to rounding).
         """
-        z = self._measurement(prior, z)
-        out = self.bank.update(prior.components, z.unsqueeze(-2))
+        z = self._measurement(prior, z, sensor=sensor)
+        out = self.bank.update(prior.components, z.unsqueeze(-2), sensor=sensor, generator=generator)
         joint = out.log_likelihood + prior.mode_log_probs  # ell_j + log c_j
         log_likelihood = torch.logsumexp(joint, dim=-1)
         mode_log_probs = _safe_sub(joint, log_likelihood.unsqueeze(-1))
@@ -172,19 +184,25 @@ class MultipleModelFilter(Filter):
         """Interaction step: predicted mode log-probs and the mode-conditioned start beliefs."""
         raise NotImplementedError
 
-    def predict(self, belief: ModeBelief, *, u: Tensor | None = None) -> ModeBelief:
-        mixed = self.mix(belief)
-        u = None if u is None else u.unsqueeze(-2)
-        return ModeBelief(mixed.mode_log_probs, self.bank.predict(mixed.components, u=u))
+    def predict(self, belief: ModeBelief, *, u: Tensor | None = None, motion=None, generator=None) -> ModeBelief:
+        """Interaction (:meth:`mix`) and every mode's time update (``motion``: per-step mode models)."""
+        return self._predict(self.mix(belief), u=u, motion=motion, generator=generator)
 
-    def update(self, belief: ModeBelief, z: Tensor) -> StepOutput:
-        return self._update_modes(belief, z)
-
-    def step(self, belief: ModeBelief, z: Tensor, *, u: Tensor | None = None) -> StepOutput:
-        mixed = self.mix(belief)
+    def _predict(self, mixed: ModeBelief, *, u=None, motion=None, generator=None) -> ModeBelief:
         u = None if u is None else u.unsqueeze(-2)
-        prior = ModeBelief(mixed.mode_log_probs, self.bank.predict(mixed.components, u=u))
-        out = self.update(prior, z)
+        components = self.bank.predict(mixed.components, u=u, motion=motion, generator=generator)
+        return ModeBelief(mixed.mode_log_probs, components)
+
+    def update(self, belief: ModeBelief, z: Tensor, *, sensor=None, generator=None) -> StepOutput:
+        """Mode-matched updates and the mode probabilities; ``sensor`` replaces the bank's
+        measurement model for this update (e.g. a second sensor at the same time step)."""
+        return self._update_modes(belief, z, sensor=sensor, generator=generator)
+
+    def step(self, belief: ModeBelief, z: Tensor, *, u: Tensor | None = None, motion=None, sensor=None,
+             generator=None) -> StepOutput:
+        mixed = self.mix(belief)
+        prior = self._predict(mixed, u=u, motion=motion, generator=generator)
+        out = self.update(prior, z, sensor=sensor, generator=generator)
         out.extras["mixed"] = mixed
         return out
 
@@ -229,6 +247,54 @@ class IMM(MultipleModelFilter):
         return ModeBelief(cbar.log(), belief.components.mix(weights))
 
 
+class StaticMM(MultipleModelFilter):
+    r"""Static multiple-model estimator (Magill 1965): a bank of filters that never interact.
+
+    The mode is constant over time (identity transition): each mode filter runs on its own, and
+    the mode probabilities are the running posterior ``mu_j ∝ mu_j p_j(z_k | z_{1:k-1})``. It is
+    :class:`IMM` with ``transition = I`` without the (then trivial) mixing.
+
+    Args:
+        bank: the mode filters (as :class:`IMM`).
+        num_modes: ``M`` (default: the length of a list bank or ``bank.num_modes``; required for
+            one vectorised filter whose models have no mode axis).
+
+    Shapes:
+        as :class:`IMM` (``extras`` without ``"mixed"``).
+
+    Examples:
+        >>> from torchmm.filters import KalmanFilter
+        >>> from torchmm.models import ConstantVelocity, PositionMeasurement
+        >>> sensors = [PositionMeasurement(2, [0], r) for r in (1.0, 10.0)]
+        >>> mm = StaticMM([KalmanFilter(ConstantVelocity(1), s) for s in sensors])
+        >>> out = mm.step(mm.initial_belief(GaussianBelief(torch.zeros(4, 2), torch.eye(2))), torch.zeros(4, 1))
+        >>> out.belief.mode_probs.shape
+        torch.Size([4, 2])
+    """
+
+    def __init__(self, bank, num_modes: int | None = None):
+        if num_modes is None:
+            if isinstance(bank, (list, tuple)):
+                num_modes = len(bank)
+            elif hasattr(bank, "num_modes"):
+                num_modes = bank.num_modes
+            else:
+                shape = getattr(bank, "param_batch_shape", None)
+                if not shape:
+                    raise ValueError("num_modes: give it for a single filter whose models have no mode axis")
+                num_modes = shape[-1]
+        super().__init__(bank, torch.eye(int(num_modes), dtype=torch.get_default_dtype()))
+
+    def mix(self, belief: ModeBelief) -> ModeBelief:
+        _mode_batch(belief)
+        return belief
+
+    def step(self, belief: ModeBelief, z: Tensor, *, u: Tensor | None = None, motion=None, sensor=None,
+             generator=None) -> StepOutput:
+        prior = self._predict(belief, u=u, motion=motion, generator=generator)
+        return self.update(prior, z, sensor=sensor, generator=generator)
+
+
 class GPB1(MultipleModelFilter):
     """First-order generalised pseudo-Bayesian estimator.
 
@@ -268,21 +334,21 @@ class GPB2(MultipleModelFilter):
         components = belief.components.unsqueeze(-1).expand(*batch, M, M)
         return ModeBelief(joint.flatten(-2), components.reshape(*batch, M * M))
 
-    def predict(self, belief: ModeBelief, *, u: Tensor | None = None) -> ModeBelief:
+    def predict(self, belief: ModeBelief, *, u: Tensor | None = None, motion=None, generator=None) -> ModeBelief:
         M = self.num_modes
         pairs = self.mix(belief)
         batch = belief.batch_shape
         components = pairs.components.reshape(*batch, M, M)
         u = None if u is None else u.unsqueeze(-2).unsqueeze(-2)
-        prior = self.bank.predict(components, u=u)
+        prior = self.bank.predict(components, u=u, motion=motion, generator=generator)
         return ModeBelief(pairs.mode_log_probs, prior.reshape(*batch, M * M))
 
-    def update(self, belief: ModeBelief, z: Tensor) -> StepOutput:
+    def update(self, belief: ModeBelief, z: Tensor, *, sensor=None, generator=None) -> StepOutput:
         M = self.num_modes
-        z = self._measurement(belief, z)
+        z = self._measurement(belief, z, sensor=sensor)
         batch = _mode_batch(belief)
         prior_pairs = belief.components.reshape(*batch, M, M)
-        out = self.bank.update(prior_pairs, z.unsqueeze(-2).unsqueeze(-2))
+        out = self.bank.update(prior_pairs, z.unsqueeze(-2).unsqueeze(-2), sensor=sensor, generator=generator)
         prior_joint = belief.mode_log_probs.unflatten(-1, (M, M))
         joint = out.log_likelihood + prior_joint  # log w_ij
         log_mode = torch.logsumexp(joint, dim=-2)  # (*B, j): unnormalised log mu_j
@@ -301,5 +367,7 @@ class GPB2(MultipleModelFilter):
             extras=extras,
         )
 
-    def step(self, belief: ModeBelief, z: Tensor, *, u: Tensor | None = None) -> StepOutput:
-        return self.update(self.predict(belief, u=u), z)
+    def step(self, belief: ModeBelief, z: Tensor, *, u: Tensor | None = None, motion=None, sensor=None,
+             generator=None) -> StepOutput:
+        prior = self.predict(belief, u=u, motion=motion, generator=generator)
+        return self.update(prior, z, sensor=sensor, generator=generator)

@@ -34,13 +34,10 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
-from typing import ClassVar
-
 import torch
 from torch import Tensor
 
-from torchmm.beliefs import GaussianBelief, ModeBelief, psd_sqrt, register_belief, symmetrize
+from torchmm.beliefs import GaussianBelief, ModeBelief, ModelSetBelief, ParticleBelief, psd_sqrt, symmetrize
 from torchmm.beliefs.ops import normalize_log_probs
 from torchmm.filters.base import StepOutput
 from torchmm.filters.particle import MultipleModelParticleFilter, standard_normal
@@ -56,6 +53,7 @@ __all__ = [
     "ModelSetBelief",
     "as_family",
     "challenge_match",
+    "min_entropy_set",
     "min_entropy_subset",
     "model_statistics",
     "subset_entropies",
@@ -69,36 +67,6 @@ ENTROPY_READINGS = ("joint", "literal")
 # ------------------------------------------------------------------------------------------------
 # belief
 # ------------------------------------------------------------------------------------------------
-@register_belief
-@dataclass(frozen=True)
-class ModelSetBelief(ModeBelief):
-    """A :class:`ModeBelief` over per-model particle sets with the selected model set.
-
-    ``mode_log_probs`` are the probabilities the recursion carries (restricted to the set when the
-    selection is fed back, ``-inf`` outside it); :meth:`estimate` is (31), always over the set.
-
-    Shapes:
-        mode_log_probs: ``(*B, M)``; components: ``ParticleBelief`` with particles
-        ``(*B, M, Np, n)``, log_weights ``(*B, M, Np)``; active: ``(*B, M)`` bool
-    """
-
-    active: Tensor
-
-    event_dims: ClassVar[dict[str, int]] = {"mode_log_probs": 1, "active": 1}
-
-    def estimate(self) -> GaussianBelief:
-        """Weighted mean and covariance over the active models' particles (31), batch ``(*B,)``."""
-        comps = self.components
-        restricted = torch.where(self.active, self.mode_log_probs, torch.full_like(self.mode_log_probs, -math.inf))
-        w = (normalize_log_probs(restricted).unsqueeze(-1) + normalize_log_probs(comps.log_weights)).exp()
-        w = w.flatten(-2)
-        particles = comps.particles.flatten(-3, -2)
-        mean = (w.unsqueeze(-1) * particles).sum(-2)
-        diff = particles - mean.unsqueeze(-2)
-        cov = (diff * w.unsqueeze(-1)).mT @ diff
-        return GaussianBelief(mean, symmetrize(cov))
-
-
 # ------------------------------------------------------------------------------------------------
 # exact subset entropies
 # ------------------------------------------------------------------------------------------------
@@ -122,7 +90,11 @@ def _scaled_stats(log_weights: Tensor, entropy: str) -> Tensor:
     """Per-model sufficient statistics ``(*B, M, s)`` for :func:`_entropy_from_sums`."""
     if entropy not in ENTROPY_READINGS:
         raise ValueError(f"entropy: expected one of {ENTROPY_READINGS}, got {entropy!r}")
-    log_mass, h = model_statistics(log_weights)
+    return _stats_from(*model_statistics(log_weights), entropy)
+
+
+def _stats_from(log_mass: Tensor, h: Tensor, entropy: str) -> Tensor:
+    """The sufficient statistics from per-model log-masses and within-model entropies ``(*B, M)``."""
     top = log_mass.amax(-1, keepdim=True)
     top = torch.where(torch.isfinite(top), top, torch.zeros_like(top))
     log_scaled = log_mass - top  # <= 0, max 0
@@ -202,10 +174,30 @@ def min_entropy_subset(log_weights: Tensor, family: Tensor | None = None, *, chu
         >>> active.tolist()
         [[True, False]]
     """
-    num_models = log_weights.shape[-2]
+    return _min_entropy(_scaled_stats(log_weights, entropy), family, chunk_size, entropy)
+
+
+def min_entropy_set(log_mass: Tensor, within_entropy: Tensor, family: Tensor | None = None, *,
+                    chunk_size: int = 16384, entropy: str = "joint") -> tuple[Tensor, Tensor]:
+    """:func:`min_entropy_subset` from per-model statistics: any mode filter's beliefs.
+
+    ``log_mass`` are the models' (log) posterior probabilities, ``within_entropy`` the entropies of
+    their beliefs (the weights' Shannon entropy for particles, the differential entropy
+    ``(1/2) log det(2 pi e P)`` for Gaussians: :meth:`~torchmm.beliefs.GaussianBelief.entropy`).
+
+    Shapes:
+        log_mass, within_entropy: ``(*B, M)``; family ``(K, M)`` bool -> ``(*B, M)``, ``(*B,)``
+    """
+    if entropy not in ENTROPY_READINGS:
+        raise ValueError(f"entropy: expected one of {ENTROPY_READINGS}, got {entropy!r}")
+    h = torch.where(torch.isfinite(log_mass), within_entropy, torch.zeros_like(within_entropy))
+    return _min_entropy(_stats_from(log_mass, h, entropy), family, chunk_size, entropy)
+
+
+def _min_entropy(stats: Tensor, family, chunk_size: int, entropy: str) -> tuple[Tensor, Tensor]:
+    num_models = stats.shape[-2]
     if chunk_size < 1:
         raise ValueError(f"chunk_size: must be >= 1, got {chunk_size}")
-    stats = _scaled_stats(log_weights, entropy)
     batch = stats.shape[:-2]
     flat = stats.reshape(batch.numel(), num_models, stats.shape[-1])  # (Bf, M, s)
     operand = flat.permute(1, 0, 2).reshape(num_models, -1)  # (M, Bf * s)
@@ -214,7 +206,7 @@ def min_entropy_subset(log_weights: Tensor, family: Tensor | None = None, *, chu
             raise ValueError(f"family: all subsets of {num_models} models are too many; give a family")
         total = (1 << num_models) - 1
     else:
-        family = _check_subsets(family, num_models).to(log_weights.device)
+        family = _check_subsets(family, num_models).to(stats.device)
         total = family.shape[0]
     best = torch.full((flat.shape[0],), math.inf, dtype=stats.dtype, device=stats.device)
     best_index = torch.zeros(flat.shape[0], dtype=torch.int64, device=stats.device)
@@ -396,6 +388,17 @@ class ExactMinimumEntropy:
         active, value = min_entropy_subset(log_weights, family, chunk_size=self.chunk_size, entropy=self.entropy)
         return active, {"entropy": value}
 
+    def select(self, belief: ModeBelief, generator=None) -> tuple[Tensor, dict]:
+        """The policy over any bank: the models' posterior probabilities and their beliefs' entropies
+        (:func:`min_entropy_set`). ``belief``: the posterior over all models, batch ``(*B,)``."""
+        comps = belief.components
+        if not hasattr(comps, "entropy"):
+            raise TypeError(f"ExactMinimumEntropy: the mode filters' belief {type(comps).__name__} defines no entropy()")
+        family = self._family(belief.num_modes, belief.mode_log_probs.device)
+        active, value = min_entropy_set(belief.mode_log_probs, comps.entropy(), family, chunk_size=self.chunk_size,
+                                        entropy=self.entropy)
+        return active, {"entropy": value}
+
 
 class ChallengeMatch:
     """Keep the models with at least ``threshold`` of the ``num_winners`` heaviest particles.
@@ -434,6 +437,15 @@ class ChallengeMatch:
         best = torch.nn.functional.one_hot(counts.argmax(-1), M).bool()
         active = torch.where(empty.unsqueeze(-1), best, active)
         return active, {"winner_counts": counts, "fallback": empty}
+
+    def select(self, belief: ModeBelief, generator=None) -> tuple[Tensor, dict]:
+        """The policy over a bank of particle filters: the joint weights of every model's particles."""
+        comps = belief.components
+        if not isinstance(comps, ParticleBelief):
+            raise TypeError(f"ChallengeMatch: needs particle mode filters (it ranks particles), got beliefs of type "
+                            f"{type(comps).__name__}; use ExactMinimumEntropy for other banks")
+        joint = belief.mode_log_probs.unsqueeze(-1) + normalize_log_probs(comps.log_weights)
+        return self(joint, generator)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -501,23 +513,28 @@ class MinimumEntropyVSMM(MultipleModelParticleFilter):
                              f"{self.num_particles} particles")
         self.selection, self.feedback = selection, bool(feedback)
 
-    def initial_belief(self, belief: GaussianBelief, mode_probs=None) -> ModelSetBelief:
+    def initial_belief(self, belief: GaussianBelief, mode_probs=None, *,
+                       generator: torch.Generator | None = None) -> ModelSetBelief:
         """Every model active with ``Np`` particles from the prior (32). Shapes as the base class."""
-        base = super().initial_belief(belief, mode_probs)
+        base = super().initial_belief(belief, mode_probs, generator=generator)
         active = torch.ones(base.mode_log_probs.shape, dtype=torch.bool, device=belief.device)
         return ModelSetBelief(base.mode_log_probs, base.components, active)
 
-    def predict(self, belief: ModeBelief, *, u: Tensor | None = None) -> ModelSetBelief:
-        prior = super().predict(belief, u=u)
+    def predict(self, belief: ModeBelief, *, u: Tensor | None = None, motion=None,
+                generator: torch.Generator | None = None) -> ModelSetBelief:
+        prior = super().predict(belief, u=u, motion=motion, generator=generator)
         active = torch.ones(prior.mode_log_probs.shape, dtype=torch.bool, device=prior.mode_log_probs.device)
         return ModelSetBelief(prior.mode_log_probs, prior.components, active)
 
-    def update(self, belief: ModeBelief, z: Tensor) -> StepOutput:
+    def update(self, belief: ModeBelief, z: Tensor, *, sensor=None,
+               generator: torch.Generator | None = None) -> StepOutput:
+        if sensor is not None:
+            return self.with_sensor(sensor).update(belief, z, generator=generator)
         out = super().update(belief, z)
         post = out.belief
         extras = dict(out.extras)
         joint = extras.pop("joint_log_weights")  # (33); the policies are invariant to its normalisation
-        active, info = self.selection(joint, self.generator)
+        active, info = self.selection(joint, self._generator(generator))
         carried = post.mode_log_probs
         if self.feedback:
             carried = normalize_log_probs(torch.where(active, carried, torch.full_like(carried, -math.inf)))
@@ -598,7 +615,8 @@ class EqMAParticleFilter(MultipleModelParticleFilter):
         spread = (diff * c.unsqueeze(-1)).mT @ diff
         return mean, symmetrize(self.accel_noise_cov + spread)
 
-    def _propagate(self, particles: Tensor, *, u: Tensor | None, log_cbar: Tensor) -> Tensor:
+    def _propagate(self, particles: Tensor, *, u: Tensor | None, log_cbar: Tensor,
+                   generator: torch.Generator | None = None) -> Tensor:
         if u is not None:
             raise ValueError("u: EqMAParticleFilter takes no control input")
         F, G = self.motion.F, self.gain
@@ -607,7 +625,7 @@ class EqMAParticleFilter(MultipleModelParticleFilter):
         acc = torch.cat([self.accelerations.expand(*batch, *self.accelerations.shape), mean.unsqueeze(-2)], -2)
         qa = self.accel_noise_cov.expand(*batch, self._num_fixed, *self.accel_noise_cov.shape)
         factor = psd_sqrt(torch.cat([qa, cov.unsqueeze(-3)], -3))  # (*B, N+1, d, d); Q_a may be singular
-        eps = standard_normal((*particles.shape[:-1], G.shape[-1]), particles, generator=self.generator,
+        eps = standard_normal((*particles.shape[:-1], G.shape[-1]), particles, generator=generator,
                               noise_dtype=self.noise_dtype)
         accel = acc.unsqueeze(-2) + eps @ factor.mT  # (*B, N+1, Np, d)
         return particles @ F.mT + accel @ G.mT

@@ -32,15 +32,14 @@ from typing import Any, Callable, ClassVar, NamedTuple
 import torch
 from torch import Tensor
 
-from torchmm.beliefs import Belief, GaussianBelief, ModeBelief
+from torchmm.beliefs import Belief, GaussianBelief, ModeBelief, cat, where
 from torchmm.beliefs.base import register_belief
 from torchmm.filters.base import StepOutput
-from torchmm.filters.kalman import ExtendedKalmanFilter, KalmanFilter
-from torchmm.filters.linalg import any_observed, cholesky, cholesky_solve, condition
+from torchmm.linalg import any_observed, cholesky, cholesky_solve, condition
 from torchmm.filters.smoother import rts_step
 from torchmm.models.base import MeasurementModel
-from torchmm.models.linear import LinearMeasurement, LinearMotion, matvec
-from torchmm.multimodel.bank import VectorizedBank
+from torchmm.models.linear import LinearMeasurement, matvec
+from torchmm.multimodel.bank import FilterBank, IndexedBank, ListBank, VectorizedBank
 from torchmm.multimodel.imm import IMM, _mode_batch, _safe_sub
 from torchmm.validation import check_measurement
 
@@ -100,28 +99,68 @@ def _source_sensor(source, state_dim: int) -> MeasurementModel:
     return source
 
 
-def _where(cond: Tensor, a: GaussianBelief, b: GaussianBelief) -> GaussianBelief:
-    """Per-batch-element choice between two Gaussian beliefs (``cond`` has their batch shape)."""
-    return GaussianBelief(torch.where(cond.unsqueeze(-1), a.mean, b.mean),
-                          torch.where(cond[..., None, None], a.cov, b.cov))
+def _members(bank: FilterBank, who: str) -> list:
+    """``[(filter, mode)]``: the filter computing each mode of ``bank`` and that mode's index in its
+    models' parameter batch (``None`` for a list bank's unbatched filters)."""
+    if isinstance(bank, VectorizedBank):
+        return [(bank.filter, j) for j in range(bank.num_modes)]
+    if isinstance(bank, ListBank):
+        return [(f, None) for f in bank.filters]
+    raise ValueError(f"bank: {who} needs a vectorised or list bank of filters with motion and measurement "
+                     f"models, got {type(bank).__name__}")
 
 
-def _kalman_like(filter: ExtendedKalmanFilter, measurement: MeasurementModel) -> ExtendedKalmanFilter:
-    """The same motion bank with another sensor (the source filter of a mode bank)."""
-    if isinstance(filter, KalmanFilter) and isinstance(measurement, LinearMeasurement):
-        return KalmanFilter(filter.motion, measurement, joseph=filter.joseph)
-    return ExtendedKalmanFilter(filter.motion, measurement, joseph=filter.joseph)
+def _models(filter, who: str):
+    motion, sensor = filter._modules.get("motion"), filter._modules.get("measurement")
+    if motion is None or sensor is None:
+        raise ValueError(f"bank: {who} needs mode filters with motion and measurement models, got "
+                         f"{type(filter).__name__}")
+    return motion, sensor
 
 
-def _mode_filter(bank, who: str) -> ExtendedKalmanFilter:
-    """The single vectorised Kalman/EKF filter behind ``bank`` (IMM-TF needs its models)."""
-    inner = bank.filter if isinstance(bank, VectorizedBank) else bank
-    if not isinstance(inner, ExtendedKalmanFilter):
-        raise ValueError(
-            f"bank: {who} needs one KalmanFilter/ExtendedKalmanFilter whose models are mode banks, "
-            f"got {type(inner).__name__}"
-        )
-    return inner
+def _per_mode(bank: FilterBank, fn, x: Tensor, u: Tensor | None, who: str) -> Tensor:
+    """``fn(motion, sensor, x, u)`` evaluated with each mode's models on ``x (*B, M, d)`` (``u``
+    ``(*B, 1 or M, k)``) -> ``(*B, M, d')``: one call for a vectorised bank (its models carry the
+    mode axis), one per filter for a list bank."""
+    members = _members(bank, who)
+    if isinstance(bank, VectorizedBank):
+        return fn(*_models(bank.filter, who), x, u)
+    return torch.stack([fn(*_models(f, who), x[..., j, :], None if u is None else u.select(-2, 0 if u.shape[-2] == 1
+                                                                                        else j))
+                        for j, (f, _) in enumerate(members)], dim=-2)
+
+
+def _moments(belief: Belief) -> GaussianBelief:
+    """The Gaussian moments of a mode filter's belief (the belief itself for Gaussians)."""
+    return belief if type(belief) is GaussianBelief else belief.estimate()
+
+
+def _linearised_predict(bank: FilterBank, belief: GaussianBelief, u: Tensor | None, who: str):
+    """``f_j(x)``, ``F_j P F_j^T + Q_j`` and ``F_j`` per mode (the extended Kalman prediction; the
+    Kalman prediction for linear models), batch ``(*B, M)``."""
+    members = _members(bank, who)
+
+    def predict(motion, sensor, mean, cov, uj):
+        F = motion.jacobian(mean, u=uj)
+        return motion(mean, u=uj), F @ cov @ F.mT + motion.noise_cov(mean), F
+
+    if isinstance(bank, VectorizedBank):
+        return predict(*_models(bank.filter, who), belief.mean, belief.cov, u)
+    outs = [predict(*_models(f, who), belief.mean[..., j, :], belief.cov[..., j, :, :],
+                    None if u is None else u.select(-2, 0 if u.shape[-2] == 1 else j))
+            for j, (f, _) in enumerate(members)]
+    return tuple(torch.stack([o[i] for o in outs], dim=-1 - (1 if i == 0 else 2)) for i in range(3))
+
+
+def _transfer_smoothing(reference: GaussianBelief, mean_pred: Tensor, cov_pred: Tensor, F: Tensor,
+                        source_post: GaussianBelief) -> GaussianBelief:
+    """The RTS step (13)-(14) from ``reference`` at ``k-1`` to the source posterior at ``k``:
+    ``G = P F^T (P^-)^{-1}`` with the motion Jacobian ``F`` (:func:`~torchmm.filters.rts_step`)."""
+    P = reference.cov
+    gain_t = cholesky_solve(cholesky(cov_pred), F @ P)
+    mean = reference.mean + (gain_t.mT @ (source_post.mean - mean_pred).unsqueeze(-1)).squeeze(-1)
+    cov = P + gain_t.mT @ (source_post.cov - cov_pred) @ gain_t
+    return GaussianBelief(mean, (cov + cov.mT) * 0.5)
 
 
 # --------------------------------------------------------------------------------------------
@@ -270,42 +309,41 @@ class TransferIMM(IMM):
             raise ValueError(f"mode_likelihood: expected 'prior' or 'corrected', got {mode_likelihood!r}")
         if gate is not None and not isinstance(gate, InfluenceGate):
             raise ValueError(f"gate: expected an InfluenceGate or None, got {type(gate).__name__}")
-        target = _mode_filter(self.bank, "TransferIMM")
-        _source_sensor(source, target.state_dim)
+        _members(self.bank, type(self).__name__)
+        self.source = _source_sensor(source, self.bank.state_dim)
         if gate is not None and not 0 <= gate.mode < self.num_modes:
             raise ValueError(f"gate: mode {gate.mode} out of range for {self.num_modes} modes")
-        self.target_filter = target
-        self.source_filter = _kalman_like(target, source)
         self.smoothing_reference = smoothing_reference
         self.mode_likelihood = mode_likelihood
         self.gate = gate
 
-    def update(self, belief, z):
+    def update(self, belief, z, **kwargs):
         raise NotImplementedError("TransferIMM: the transfer needs the posterior at k-1; call step()")
 
-    def step(self, belief: ModeBelief, z, *, u: Tensor | None = None) -> StepOutput:
-        y, ys = _streams(self, belief, z, self.source_filter.measurement)
+    def step(self, belief: ModeBelief, z, *, u: Tensor | None = None, generator=None) -> StepOutput:
+        who = type(self).__name__
+        y, ys = _streams(self, belief, z, self.source)
         uj = None if u is None else u.unsqueeze(-2)
         mixed = self.mix(belief)
-        prior = ModeBelief(mixed.mode_log_probs, self.bank.predict(mixed.components, u=uj))
-        plain = self._update_modes(prior, y)  # the IMM update, Lambda_j from the prediction (25)
+        prior = self._predict(mixed, u=u, generator=generator)
+        plain = self._update_modes(prior, y, generator=generator)  # the IMM update, Lambda_j from (25)
         present = torch.isfinite(ys).all(-1)  # gamma_k, (*B,)
 
         # source filter posterior N(m_k^j, D_k^j): the mode-j prediction updated with y_S, R_S
-        source_post = self.source_filter.update(prior.components, ys.unsqueeze(-2)).belief
+        source_post = _moments(self.bank.update(prior.components, ys.unsqueeze(-2), sensor=self.source,
+                                                generator=generator).belief)
         # transfer smoothing (13)-(14) from the target filter's estimate at k-1
         if self.smoothing_reference == "combined":
             reference = belief.estimate().unsqueeze(-1).expand(*belief.batch_shape, self.num_modes)
         else:
-            reference = mixed.components
-        reference_pred = self.bank.predict(reference, u=uj)  # f_j(x_{k-1}), F P F^T + Q
-        motion = self.target_filter.motion
-        smoothed = rts_step(motion, reference, reference_pred, source_post, u=uj)
-        # transferred knowledge u_S = H_j F_j m_{k-1}^j, absent where gamma_k = 0
-        u_s = self.target_filter.measurement(motion(smoothed.mean, u=uj))
+            reference = _moments(mixed.components)
+        mean_pred, cov_pred, F = _linearised_predict(self.bank, reference, uj, who)  # f_j(x_{k-1}), F P F^T + Q
+        smoothed = _transfer_smoothing(reference, mean_pred, cov_pred, F, source_post)
+        # transferred knowledge u_S = h(f_j(m_{k-1}^j)) (H_j F_j m for linear models), absent where gamma_k = 0
+        u_s = _per_mode(self.bank, lambda motion, sensor, x, uk: sensor(motion(x, u=uk)), smoothed.mean, uj, who)
         u_s = torch.where(present[..., None, None], u_s, torch.nan)
-        corrected = self.bank.update(prior.components, u_s)  # (20)-(21), gain from P^-
-        transferred = self.bank.update(corrected.belief, y.unsqueeze(-2))  # (22)-(23)
+        corrected = self.bank.update(prior.components, u_s, generator=generator)  # (20)-(21), gain from P^-
+        transferred = self.bank.update(corrected.belief, y.unsqueeze(-2), generator=generator)  # (22)-(23)
 
         mode_log_probs = plain.belief.mode_log_probs
         if self.mode_likelihood == "corrected":
@@ -320,25 +358,27 @@ class TransferIMM(IMM):
         tentative = ModeBelief(mode_log_probs, transferred.belief).estimate()  # (27) with transfer
         influence, harmful = self._influence(tentative.mean, prior.components, y)
         used = present & ~harmful if self.gate is not None else present
-        components = _where(used.unsqueeze(-1), transferred.belief, plain.belief.components)
+        components = where(used.unsqueeze(-1), transferred.belief, plain.belief.components)
         extras = dict(plain.extras)
         extras.update(mixed=mixed, influence=influence, transfer_used=used, source_present=present,
                       smoothed=smoothed, transferred_knowledge=u_s)
         return StepOutput(ModeBelief(mode_log_probs, components), prior, log_likelihood,
                           plain.innovation, plain.innovation_cov, extras)
 
-    def _influence(self, estimate: Tensor, prior: GaussianBelief, y: Tensor) -> tuple[Tensor, Tensor]:
+    def _influence(self, estimate: Tensor, prior: Belief, y: Tensor) -> tuple[Tensor, Tensor]:
         """Influence value (33) at the transferred output and the gate's harm flag."""
         gate = self.gate or InfluenceGate()
         j = gate.mode
-        anchor = prior.select(-1, j)
-        motion, sensor = self.target_filter.motion, self.target_filter.measurement
-        H = _mode_param(sensor.jacobian(anchor.mean.unsqueeze(-2)), j)
-        R = _mode_param(sensor.noise_cov(anchor.mean.unsqueeze(-2)), j)
+        anchor = _moments(prior.select(-1, j))
+        filter, index = _members(self.bank, type(self).__name__)[j]
+        motion, sensor = _models(filter, type(self).__name__)
+        at = anchor.mean.unsqueeze(-2) if index is not None else anchor.mean
+        H = _mode_param(sensor.jacobian(at), index)
+        R = _mode_param(sensor.noise_cov(at), index)
         if gate.weight == "prior":
             W = anchor.cov
         else:
-            W = _mode_param(motion.noise_cov(anchor.mean.unsqueeze(-2)), j)
+            W = _mode_param(motion.noise_cov(at), index)
             if bool((torch.linalg.cholesky_ex(W)[1] != 0).any()):
                 raise ValueError("gate: weight='process' needs a non-singular process noise Q of the "
                                  f"anchor mode {j}; use weight='prior'")
@@ -350,8 +390,11 @@ class TransferIMM(IMM):
         return value, harmful
 
 
-def _mode_param(value: Tensor, j: int) -> Tensor:
-    """Mode ``j``'s entry of a model parameter evaluated with batch ``(*B, 1)`` (or shared)."""
+def _mode_param(value: Tensor, j: int | None) -> Tensor:
+    """Mode ``j``'s entry of a model parameter evaluated with batch ``(*B, 1)`` (or shared; ``j = None``:
+    a list bank's filter, evaluated with batch ``(*B,)``)."""
+    if j is None:
+        return value
     if value.dim() >= 3 and value.shape[-3] > 1:
         return value.select(-3, j)
     return value.squeeze(-3) if value.dim() >= 3 else value
@@ -377,14 +420,15 @@ class SourceUpdateIMM(IMM):
 
     def __init__(self, bank, transition, source: MeasurementModel):
         super().__init__(bank, transition)
-        target = _mode_filter(self.bank, "SourceUpdateIMM")
-        self.source_filter = _kalman_like(target, _source_sensor(source, target.state_dim))
+        self.source = _source_sensor(source, self.bank.state_dim)
 
-    def update(self, belief: ModeBelief, z) -> StepOutput:
-        y, ys = _streams(self, belief, z, self.source_filter.measurement)
-        first = self.source_filter.update(belief.components, ys.unsqueeze(-2))
+    def update(self, belief: ModeBelief, z, *, sensor=None, generator=None) -> StepOutput:
+        if sensor is not None:
+            raise TypeError("sensor: SourceUpdateIMM's sensors are the bank's (target) and source=")
+        y, ys = _streams(self, belief, z, self.source)
+        first = self.bank.update(belief.components, ys.unsqueeze(-2), sensor=self.source, generator=generator)
         intermediate = ModeBelief(belief.mode_log_probs + first.log_likelihood, first.belief)
-        out = self._update_modes(intermediate, y, observed=any_observed(y) | any_observed(ys))
+        out = self._update_modes(intermediate, y, observed=any_observed(y) | any_observed(ys), generator=generator)
         # log p(y, y_S | past): the source factor is folded into the prior weights above
         out.extras["source_log_likelihood"] = first.log_likelihood
         out.extras["mode_log_likelihood"] = out.extras["mode_log_likelihood"] + first.log_likelihood
@@ -430,16 +474,19 @@ class _SourceTrackIMM(IMM):
 
     def __init__(self, bank, transition, source: MeasurementModel):
         super().__init__(bank, transition)
-        target = _mode_filter(self.bank, type(self).__name__)
-        source_filter = _kalman_like(target, _source_sensor(source, target.state_dim))
-        self.source_track = IMM(source_filter, self.transition)
+        self.source = _source_sensor(source, self.bank.state_dim)
 
-    def initial_belief(self, belief: Belief, mode_probs=None) -> SourceTrackBelief:
+    def initial_belief(self, belief: Belief, mode_probs=None, *, generator=None) -> SourceTrackBelief:
         """Both tracks start from ``belief`` (batch ``(*B,)``) -> :class:`SourceTrackBelief`."""
-        start = super().initial_belief(belief, mode_probs)
+        start = super().initial_belief(belief, mode_probs, generator=generator)
         return SourceTrackBelief(start, start)
 
-    def update(self, belief, z):
+    def _source_step(self, belief: ModeBelief, ys: Tensor, u, generator) -> ModeBelief:
+        """The source-only IMM track: the same bank and transition, updated with ``y_S`` alone."""
+        prior = self._predict(self.mix(belief), u=u, generator=generator)
+        return self._update_modes(prior, ys, sensor=self.source, generator=generator).belief
+
+    def update(self, belief, z, **kwargs):
         raise NotImplementedError(f"{type(self).__name__}: call step()")
 
 
@@ -461,18 +508,23 @@ class FusionIMM(_SourceTrackIMM):
         belief: :class:`SourceTrackBelief`; ``z``: :class:`MultiRate`.
     """
 
-    def step(self, belief: SourceTrackBelief, z, *, u: Tensor | None = None) -> StepOutput:
+    def step(self, belief: SourceTrackBelief, z, *, u: Tensor | None = None, generator=None) -> StepOutput:
         _check_track(belief, type(self).__name__)
-        y, ys = _streams(self, belief, z, self.source_track.bank.filter.measurement)
-        source = self.source_track.step(belief.source, ys, u=u).belief
+        y, ys = _streams(self, belief, z, self.source)
+        source = self._source_step(belief.source, ys, u, generator)
         mixed = self.mix(belief.target)
-        uj = None if u is None else u.unsqueeze(-2)
-        out = self._update_modes(ModeBelief(mixed.mode_log_probs, self.bank.predict(mixed.components, u=uj)), y)
+        out = self._update_modes(self._predict(mixed, u=u, generator=generator), y, generator=generator)
         present = torch.isfinite(ys).all(-1)
         track = source.estimate().unsqueeze(-1).expand(*present.shape, self.num_modes)
         comps = out.belief.components
-        mean, cov, _ = condition(comps.mean, comps.cov, track.mean - comps.mean, comps.cov + track.cov, comps.cov)
-        fused = _where(present.unsqueeze(-1), GaussianBelief(mean, cov), comps)
+        if type(comps) is GaussianBelief:  # information fusion in closed form
+            mean, cov, _ = condition(comps.mean, comps.cov, track.mean - comps.mean, comps.cov + track.cov, comps.cov)
+            fused = GaussianBelief(mean, cov)
+        else:  # any other mode filter: the track's estimate as a datum x_s with noise P_s
+            eye = torch.eye(track.mean.shape[-1], dtype=track.mean.dtype, device=track.mean.device)
+            pseudo = LinearMeasurement.unchecked(eye, track.cov)
+            fused = self.bank.update(comps, track.mean, sensor=pseudo, generator=generator).belief
+        fused = where(present.unsqueeze(-1), fused, comps)
         target = ModeBelief(out.belief.mode_log_probs, fused)
         out.extras["source_present"] = present
         return out._replace(belief=SourceTrackBelief(target, source), prior=belief)
@@ -512,9 +564,9 @@ class SourceModeVSIMM(_SourceTrackIMM):
                 raise ValueError(f"{name}: must lie in [0, 1), got {value}")
         self.extra_model, self.p_new, self.drop_below = extra_model, p_new, drop_below
         self.p_ee, self.eps = p_ee, eps
-        inner = _mode_filter(self.bank, "SourceModeVSIMM")
-        index = torch.tensor([*range(M), extra_model])
-        self.extended = _extend_filter(inner, index)
+        # the fixed modes plus mode e (a second copy of extra_model's filter), over any bank; not a
+        # registered submodule: it shares self.bank's modules (no duplicate state_dict entries)
+        object.__setattr__(self, "extended", IndexedBank(self.bank, [*range(M), extra_model]))
 
     def extended_transition(self) -> Tensor:
         """``(M + 1, M + 1)`` matrix over the fixed modes and mode ``e`` (rows sum to one)."""
@@ -526,19 +578,20 @@ class SourceModeVSIMM(_SourceTrackIMM):
         full = torch.cat([top, bottom], dim=-2)
         return full / full.sum(-1, keepdim=True)
 
-    def initial_belief(self, belief: Belief, mode_probs=None) -> SourceTrackBelief:
-        start = IMM.initial_belief(self, belief, mode_probs)
+    def initial_belief(self, belief: Belief, mode_probs=None, *, generator=None) -> SourceTrackBelief:
+        start = IMM.initial_belief(self, belief, mode_probs, generator=generator)
         batch = belief.batch_shape
         log_probs = torch.cat([start.mode_log_probs,
                                torch.full((*batch, 1), -torch.inf, dtype=belief.dtype, device=belief.device)], -1)
-        comps = belief.unsqueeze(-1).expand(*batch, self.num_modes + 1)
+        extra = start.components.select(-1, self.extra_model).unsqueeze(-1)  # mode e: inactive until a source datum
+        comps = cat([start.components, extra], dim=-1)
         return SourceTrackBelief(ModeBelief(log_probs, comps), start)
 
-    def step(self, belief: SourceTrackBelief, z, *, u: Tensor | None = None) -> StepOutput:
+    def step(self, belief: SourceTrackBelief, z, *, u: Tensor | None = None, generator=None) -> StepOutput:
         _check_track(belief, type(self).__name__)
-        y, ys = _streams(self, belief, z, self.source_track.bank.filter.measurement)
+        y, ys = _streams(self, belief, z, self.source)
         M = self.num_modes
-        source = self.source_track.step(belief.source, ys, u=u).belief
+        source = self._source_step(belief.source, ys, u, generator)
         present = torch.isfinite(ys).all(-1)  # (*B,)
         target = belief.target
         mu = target.mode_probs  # (*B, M+1)
@@ -549,17 +602,17 @@ class SourceModeVSIMM(_SourceTrackIMM):
         weights = mu.unsqueeze(-1) * P / cbar.clamp_min(torch.finfo(mu.dtype).tiny).unsqueeze(-2)
         mixed = target.components.mix(weights)
         uj = None if u is None else u.unsqueeze(-2)
-        predicted = self.extended.predict(mixed, u=uj)
+        predicted = self.extended.predict(mixed, u=uj, generator=generator)
         # a source datum: mode e restarts from the source track's estimate at k
         arrival = present.unsqueeze(-1) & (torch.arange(M + 1, device=mu.device) == M)
         track = source.estimate().unsqueeze(-1).expand(*present.shape, M + 1)
-        predicted = _where(arrival, track, predicted)
+        predicted = where(arrival, _as_component(track, predicted), predicted)
         restart = torch.cat([cbar[..., :M] / cbar[..., :M].sum(-1, keepdim=True) * (1 - self.p_new),
                              torch.full_like(cbar[..., M:], self.p_new)], -1)
         cbar = torch.where(present.unsqueeze(-1), restart, cbar)
         log_cbar = torch.where(cbar > 0, cbar.clamp_min(torch.finfo(mu.dtype).tiny).log(), -torch.inf)
         prior = ModeBelief(log_cbar, predicted)
-        out = self.extended.update(predicted, y.unsqueeze(-2))
+        out = self.extended.update(predicted, y.unsqueeze(-2), generator=generator)
         joint = out.log_likelihood + log_cbar
         norm = torch.logsumexp(joint, dim=-1, keepdim=True)
         log_mu = _safe_sub(joint, norm)
@@ -583,23 +636,21 @@ def _check_track(belief, who: str) -> None:
                         f"{type(belief).__name__}")
 
 
-def _extend_filter(filter: ExtendedKalmanFilter, index: Tensor) -> ExtendedKalmanFilter:
-    """A copy of a mode-bank filter whose modes are ``index`` (e.g. the fixed modes plus one)."""
-    motion = filter.motion
-    if not isinstance(filter, KalmanFilter):
-        raise ValueError("bank: SourceModeVSIMM needs a KalmanFilter bank (linear models)")
-    def pick(t: Tensor, event: int) -> Tensor:
-        if t.dim() > event and t.shape[t.dim() - event - 1] > 1:
-            return t.index_select(t.dim() - event - 1, index.to(t.device))
-        return t
-
-    params = {"F": pick(motion.F, 2), "Q": pick(motion.Q, 2), "offset": pick(motion.offset, 1)}
-    if motion.input_matrix is not None:
-        params["input_matrix"] = pick(motion.input_matrix, 2)
-    extended = LinearMotion(**params)
-    sensor = filter.measurement
-    H, R = sensor.H, sensor.R
-    if (H.dim() > 2 and H.shape[-3] > 1) or (R.dim() > 2 and R.shape[-3] > 1):
-        sensor = LinearMeasurement(pick(H, 2), pick(R, 2))
-    return KalmanFilter(extended, sensor, joseph=filter.joseph)
-
+def _as_component(track: GaussianBelief, like: Belief) -> Belief:
+    """The source track's estimate as a mode filter's belief of ``like``'s type (a Gaussian is
+    itself; a particle set is drawn from nothing new: its particles are moved to the track's
+    moments by an affine map, keeping their weights)."""
+    if type(like) is GaussianBelief:
+        return track
+    particles = getattr(like, "particles", None)
+    if particles is None:
+        raise TypeError(f"SourceModeVSIMM: cannot restart a mode filter belief of type {type(like).__name__} from "
+                        "the source track's estimate")
+    moments = like.estimate()
+    # x -> m_s + L_s L^{-1} (x - m): the weighted particle set gets mean m_s and covariance P_s exactly
+    L = cholesky(moments.cov)
+    L_s = cholesky(track.cov)
+    white = torch.linalg.solve_triangular(L.unsqueeze(-3), (particles - moments.mean.unsqueeze(-2)).unsqueeze(-1),
+                                          upper=False).squeeze(-1)
+    moved = track.mean.unsqueeze(-2) + (L_s.unsqueeze(-3) @ white.unsqueeze(-1)).squeeze(-1)
+    return type(like)(moved, like.log_weights.expand(moved.shape[:-1]))

@@ -1,0 +1,133 @@
+r"""Variable structure as a policy: a model-set policy picks the active models every step.
+
+A variable-structure multiple-model (VSMM) estimator runs a bank over the *total* model set with
+static shapes and keeps an ``active`` mask ``(*B, M)`` per run: every step
+
+1. the interaction (IMM mixing) starts from the previous active set only: models outside it
+   carry probability 0 (``-inf`` in log space), so ``c_j = sum_{i in S_{k-1}} mu_i pi_ij`` (paper
+   003's (27)/(33) for particle banks);
+2. every model of the total set is predicted and updated (one batched call of the bank);
+3. the policy selects ``S_k`` from the posterior, and the belief is renormalised on it
+   (``feedback=True``) or the set only chooses the output (``feedback=False``).
+
+Policies are objects with ``select(posterior, generator) -> (active (*B, M) bool, info dict)``:
+:class:`AllModels` and :class:`FixedSet` here, paper 003's
+:class:`~torchmm.multimodel.mevsmm.ExactMinimumEntropy` (any bank whose beliefs define
+``entropy()``: Kalman, unscented, particle) and :class:`~torchmm.multimodel.mevsmm.ChallengeMatch`
+(particle banks). A new policy is one class with a ``select`` method (docs/architecture.md).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from torchmm.beliefs import Belief, ModeBelief, ModelSetBelief
+from torchmm.beliefs.ops import normalize_log_probs
+from torchmm.filters.base import StepOutput
+from torchmm.multimodel.imm import IMM
+
+__all__ = ["AllModels", "FixedSet", "ModelSetPolicy", "VariableStructureIMM"]
+
+
+class ModelSetPolicy:
+    """Interface of a model-set policy (see the module docstring)."""
+
+    def select(self, belief: ModeBelief, generator: torch.Generator | None = None) -> tuple[Tensor, dict]:
+        """The active set ``(*B, M)`` bool (never empty) and diagnostics (tensors with batch ``(*B, ...)``)
+        from the posterior ``belief`` over the total set (normalised mode probabilities)."""
+        raise NotImplementedError
+
+
+class AllModels(ModelSetPolicy):
+    """Every model, every step: the VSMM estimator is then the fixed-structure IMM."""
+
+    def select(self, belief, generator=None):
+        return torch.ones(belief.mode_log_probs.shape, dtype=torch.bool, device=belief.mode_log_probs.device), {}
+
+
+class FixedSet(ModelSetPolicy):
+    """A given model set, the same every step.
+
+    Args:
+        members: indices of the active models (non-empty).
+    """
+
+    def __init__(self, members):
+        self.members = sorted({int(i) for i in members})
+        if not self.members:
+            raise ValueError("members: the model set must not be empty")
+
+    def select(self, belief, generator=None):
+        M = belief.num_modes
+        if self.members[-1] >= M or self.members[0] < 0:
+            raise ValueError(f"members: {self.members} out of range for {M} models")
+        mask = torch.zeros(M, dtype=torch.bool, device=belief.mode_log_probs.device)
+        mask[self.members] = True
+        return mask.expand(belief.mode_log_probs.shape), {}
+
+
+class VariableStructureIMM(IMM):
+    r"""A variable-structure IMM over any bank: IMM interaction from the active set, a policy after
+    every update (see the module docstring).
+
+    Args:
+        bank: the mode filters of the total model set (any bank, as :class:`~torchmm.multimodel.IMM`).
+        transition: ``(M, M)`` over the total set.
+        policy: a :class:`ModelSetPolicy` (e.g. ``ExactMinimumEntropy()`` for paper 003's rule).
+        feedback: ``True``: the recursion continues from the selected set (probabilities
+            renormalised on it); ``False``: the recursion keeps every model and the set only
+            chooses the output :meth:`~torchmm.beliefs.ModelSetBelief.estimate`.
+
+    Shapes:
+        belief: :class:`~torchmm.beliefs.ModelSetBelief` (``active (*B, M)``); ``z (*B, m)``;
+        ``extras`` as :class:`~torchmm.multimodel.IMM` plus ``"active"`` ``(*B, M)``,
+        ``"model_count"`` ``(*B,)`` and the policy's diagnostics.
+
+    Examples:
+        >>> from torchmm.filters import KalmanFilter
+        >>> from torchmm.models import ConstantVelocity, PositionMeasurement
+        >>> from torchmm.multimodel.mevsmm import ExactMinimumEntropy
+        >>> motion = ConstantVelocity(1, q=1.0, acceleration=[[0.5], [0.0], [-0.5]])
+        >>> vs = VariableStructureIMM(KalmanFilter(motion, PositionMeasurement(2, [0], 1.0)),
+        ...                           torch.full((3, 3), 0.1) + 0.7 * torch.eye(3), ExactMinimumEntropy())
+        >>> out = vs.step(vs.initial_belief(GaussianBelief(torch.zeros(4, 2), torch.eye(2))), torch.zeros(4, 1))
+        >>> out.extras["active"].shape, out.belief.estimate().mean.shape
+        (torch.Size([4, 3]), torch.Size([4, 2]))
+    """
+
+    def __init__(self, bank, transition, policy: ModelSetPolicy, *, feedback: bool = True):
+        super().__init__(bank, transition)
+        if not callable(getattr(policy, "select", None)):
+            raise TypeError(f"policy: expected a model-set policy with a select(belief, generator) method, got "
+                            f"{type(policy).__name__}")
+        self.policy, self.feedback = policy, bool(feedback)
+
+    @property
+    def uses_generator(self) -> bool:
+        return True  # policies may draw random numbers (e.g. the challenge-match tournament)
+
+    def initial_belief(self, belief: Belief, mode_probs=None, *, generator=None) -> ModelSetBelief:
+        """Every model active. Shapes as :meth:`~torchmm.multimodel.IMM.initial_belief`."""
+        start = super().initial_belief(belief, mode_probs, generator=generator)
+        active = torch.ones(start.mode_log_probs.shape, dtype=torch.bool, device=start.mode_log_probs.device)
+        return ModelSetBelief(start.mode_log_probs, start.components, active)
+
+    def mix(self, belief: ModeBelief) -> ModeBelief:
+        mixed = super().mix(belief)
+        return ModeBelief(mixed.mode_log_probs, mixed.components)
+
+    def update(self, belief: ModeBelief, z: Tensor, *, sensor=None, generator=None) -> StepOutput:
+        out = super().update(belief, z, sensor=sensor, generator=generator)
+        post = out.belief
+        active, info = self.policy.select(post, generator)
+        carried = post.mode_log_probs
+        if self.feedback:
+            carried = normalize_log_probs(torch.where(active, carried, torch.full_like(carried, -math.inf)))
+        extras = dict(out.extras)
+        extras.update(info)
+        extras["active"] = active
+        extras["model_count"] = active.sum(-1)
+        return out._replace(belief=ModelSetBelief(carried, post.components, active), extras=extras)
