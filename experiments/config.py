@@ -161,6 +161,45 @@ class Logger:
     flush_secs: int = spec(10, positive_int)
 
 
+MODE_FILTERS = ("torchmm.KalmanFilter", "torchmm.ExtendedKalmanFilter", "torchmm.UnscentedKalmanFilter",
+                "torchmm.ParticleFilter")
+POLICIES = ("torchmm.multimodel.mevsmm.ExactMinimumEntropy", "torchmm.multimodel.mevsmm.ChallengeMatch",
+            "torchmm.multimodel.AllModels")
+
+
+@dataclass
+class ModeFilter:
+    """``conf/mode_filter``: the mode filters of the multiple-model estimators (a torchmm filter class)."""
+
+    _target_: str = spec("torchmm.KalmanFilter", one_of(*MODE_FILTERS))
+    _partial_: bool = True
+    num_particles: Optional[int] = spec(None, positive_int)
+    ess_threshold: Optional[float] = spec(None, non_negative)
+    resampling: Optional[str] = spec(None, one_of("systematic", "stratified", "multinomial", "residual"))
+
+    def config_check(self):
+        particle = self._target_ == "torchmm.ParticleFilter"
+        if particle and self.num_particles is None:
+            return "num_particles", None, "missing: particle mode filters need num_particles"
+        if not particle:
+            for key in ("num_particles", "ess_threshold", "resampling"):
+                if getattr(self, key) is not None:
+                    return key, getattr(self, key), f"only particle mode filters take {key}"
+        return None
+
+
+@dataclass
+class Policy:
+    """``conf/policy``: the model-set policy of the ``vsmm`` estimator."""
+
+    _target_: str = spec("torchmm.multimodel.mevsmm.ExactMinimumEntropy", one_of(*POLICIES))
+    entropy: Optional[str] = spec(None, one_of("joint", "literal"))
+    num_winners: Optional[int] = spec(None, positive_int)
+    threshold: Optional[int] = spec(None, non_negative)
+    method: Optional[str] = spec(None, one_of("cm", "topk"))
+    passes: Optional[int] = spec(None, non_negative)
+
+
 @dataclass
 class Common:
     """Keys every study has (``conf/config.yaml``)."""
@@ -176,6 +215,8 @@ class Common:
     experiment_name: str = "study"
     study: str = "experiments.studies.imm_tf.run"
     logger: Logger = field(default_factory=Logger)
+    mode_filter: ModeFilter = field(default_factory=ModeFilter)
+    policy: Policy = field(default_factory=Policy)
 
 
 #: top-level keys that are neither common nor a study's own: checked separately

@@ -3,6 +3,12 @@
 A builder takes the scenario and returns an :class:`Estimator`: a torchmm filter plus how to start
 it from the scenario's prior. Builders are instantiated by Hydra with ``_partial_: true`` so that
 config values (options) and study values (scenario, transition) combine.
+
+Every builder composes library parts from config groups (docs/architecture.md, docs/studies.md):
+the combinator is the builder (``imm``, ``gpb1``, ``gpb2``, ``static``, ``vsmm``, ``kalman``), the
+mode filter comes from the ``mode_filter`` group (``conf/mode_filter``: ``kalman`` | ``extended`` |
+``unscented`` | ``particle``, a partial of a torchmm filter class called with the scenario's motion
+and sensor models), the model-set policy of ``vsmm`` from the ``policy`` group (``conf/policy``).
 """
 
 from __future__ import annotations
@@ -17,24 +23,48 @@ import torch.utils._pytree as pytree
 from torch import Tensor
 
 from torchmm import GPB1, GPB2, IMM, Filter, GaussianBelief, KalmanFilter, run_filter
+from torchmm.multimodel import StaticMM, VariableStructureIMM
 from torchmm.metrics import mode_accuracy, nees, squared_error
 from torchmm.run import Trajectory
 
-__all__ = ["Estimator", "Evaluation", "evaluate", "gpb1", "gpb2", "imm", "kalman"]
+__all__ = ["Estimator", "Evaluation", "evaluate", "gpb1", "gpb2", "imm", "build_mode_filter", "kalman", "static", "starter", "vsmm"]
 
 
 @dataclass
 class Estimator:
     name: str
     filter: Filter
-    init: Callable[[GaussianBelief], Any]
+    #: ``(prior, generator) -> start belief`` (the generator: for filters that draw random numbers)
+    init: Callable[..., Any]
     multiple_model: bool
     #: picks this estimator's input from the study's measurements (e.g. the target stream of a
     #: multi-rate pytree); None = all of it
     select: Callable[[Any], Any] | None = None
 
-    def run(self, prior: GaussianBelief, z: Any) -> Trajectory:
-        return run_filter(self.filter, self.init(prior), z if self.select is None else self.select(z))
+    def run(self, prior: GaussianBelief, z: Any, generator: torch.Generator | None = None) -> Trajectory:
+        """Filter every run of ``z``; ``generator`` is the random stream of particle mode filters."""
+        z = z if self.select is None else self.select(z)
+        if not self.filter.uses_generator:
+            generator = None
+        return run_filter(self.filter, self.init(prior, generator), z, generator=generator)
+
+
+def starter(filt: Filter, mode_probs=None) -> Callable[..., Any]:
+    """``(prior, generator) -> filt.initial_belief(prior, [mode_probs,] generator=...)``."""
+    def init(prior, generator=None):
+        options = {"generator": generator} if generator is not None else {}
+        if mode_probs is not None:
+            return filt.initial_belief(prior, mode_probs, **options)
+        return filt.initial_belief(prior, **options)
+    return init
+
+
+def build_mode_filter(factory, motion, measurement, *, joseph: bool = False) -> Filter:
+    """The mode filter a ``mode_filter`` config builds (``conf/mode_filter``) for ``motion`` and
+    ``measurement`` (a mode bank for multiple-model estimators); None: a Kalman filter."""
+    if factory is None:
+        return KalmanFilter(motion, measurement, joseph=joseph)
+    return factory(motion, measurement, **({"joseph": True} if joseph else {}))
 
 
 def _transition(scenario, transition) -> Tensor:
@@ -43,29 +73,48 @@ def _transition(scenario, transition) -> Tensor:
     return torch.as_tensor(transition, dtype=scenario.transition.dtype, device=scenario.transition.device)
 
 
-def _multiple_model(cls, scenario, name, transition, joseph) -> Estimator:
-    bank = KalmanFilter(scenario.motion, scenario.measurement, joseph=joseph)
-    filt = cls(bank, _transition(scenario, transition))
-    return Estimator(name, filt, lambda prior: filt.initial_belief(prior, scenario.initial_mode_probs), True)
+def _multiple_model(build, scenario, name, transition, joseph, factory) -> Estimator:
+    bank = build_mode_filter(factory, scenario.motion, scenario.measurement, joseph=joseph)
+    filt = build(bank, _transition(scenario, transition))
+    return Estimator(name, filt, starter(filt, scenario.initial_mode_probs), True)
 
 
-def imm(scenario, *, name: str = "IMM", transition=None, joseph: bool = False) -> Estimator:
-    """IMM over the scenario's Kalman mode bank (transition: the scenario's, unless given)."""
-    return _multiple_model(IMM, scenario, name, transition, joseph)
+def imm(scenario, *, name: str = "IMM", transition=None, joseph: bool = False, mode_filter=None) -> Estimator:
+    """IMM over the scenario's mode bank (transition: the scenario's, unless given)."""
+    return _multiple_model(IMM, scenario, name, transition, joseph, mode_filter)
 
 
-def gpb1(scenario, *, name: str = "GPB1", transition=None, joseph: bool = False) -> Estimator:
-    return _multiple_model(GPB1, scenario, name, transition, joseph)
+def gpb1(scenario, *, name: str = "GPB1", transition=None, joseph: bool = False, mode_filter=None) -> Estimator:
+    return _multiple_model(GPB1, scenario, name, transition, joseph, mode_filter)
 
 
-def gpb2(scenario, *, name: str = "GPB2", transition=None, joseph: bool = False) -> Estimator:
-    return _multiple_model(GPB2, scenario, name, transition, joseph)
+def gpb2(scenario, *, name: str = "GPB2", transition=None, joseph: bool = False, mode_filter=None) -> Estimator:
+    return _multiple_model(GPB2, scenario, name, transition, joseph, mode_filter)
 
 
-def kalman(scenario, *, name: str = "KF", mode: int = 0, joseph: bool = False, transition=None) -> Estimator:
-    """A single Kalman filter on mode ``mode``'s model (e.g. the zero-acceleration CV model)."""
-    filt = KalmanFilter(scenario.motion.select_mode(mode), scenario.measurement, joseph=joseph)
-    return Estimator(name, filt, lambda prior: prior, False)
+def static(scenario, *, name: str = "StaticMM", transition=None, joseph: bool = False,
+           mode_filter=None) -> Estimator:
+    """The static multiple-model estimator (no mode switching) over the scenario's mode bank."""
+    return _multiple_model(lambda bank, _: StaticMM(bank, scenario.transition.shape[-1]), scenario, name,
+                           transition, joseph, mode_filter)
+
+
+def vsmm(scenario, *, name: str = "VSMM", transition=None, joseph: bool = False, mode_filter=None,
+         policy=None, feedback: bool = True) -> Estimator:
+    """A variable-structure IMM: the model-set ``policy`` (``conf/policy``) picks the active models."""
+    if policy is None:
+        from torchmm.multimodel.mevsmm import ExactMinimumEntropy
+
+        policy = ExactMinimumEntropy()
+    return _multiple_model(lambda bank, P: VariableStructureIMM(bank, P, policy, feedback=feedback), scenario,
+                           name, transition, joseph, mode_filter)
+
+
+def kalman(scenario, *, name: str = "KF", mode: int = 0, joseph: bool = False, transition=None,
+           mode_filter=None) -> Estimator:
+    """A single filter (``mode_filter``; default Kalman) on mode ``mode``'s model (e.g. the CV model)."""
+    filt = build_mode_filter(mode_filter, scenario.motion.select_mode(mode), scenario.measurement, joseph=joseph)
+    return Estimator(name, filt, starter(filt), False)
 
 
 @dataclass
@@ -94,7 +143,8 @@ class Evaluation:
 
 def evaluate(estimator: Estimator, scenario, sim, z: Any, *, chunk_runs: int | None = None,
              keep_trajectory: bool = False,
-             per_step: dict[str, Callable[[Trajectory], Tensor]] | None = None) -> Evaluation:
+             per_step: dict[str, Callable[[Trajectory], Tensor]] | None = None,
+             generator: torch.Generator | None = None) -> Evaluation:
     """Run ``estimator`` on every Monte Carlo run (in chunks of ``chunk_runs`` if given).
 
     ``z`` is ``(T, runs, m)`` or a pytree of such streams (e.g. :class:`~torchmm.multimodel.MultiRate`).
@@ -102,7 +152,9 @@ def evaluate(estimator: Estimator, scenario, sim, z: Any, *, chunk_runs: int | N
     Every reported statistic combines all chunks: errors are accumulated per step over runs (memory
     is bounded by the chunk size), and so is every ``per_step`` statistic - a function of a chunk's
     trajectory returning its per-step *sum over the chunk's runs*, ``(T, ...)`` - whose mean over
-    all runs is returned in ``Evaluation.means``. ``keep_trajectory`` keeps the first chunk's
+    all runs is returned in ``Evaluation.means``. ``generator`` is the random stream of estimators
+    with particle mode filters (deterministic filters ignore it; with particles the numbers depend
+    on the chunk layout until the run-indexed streams of the scale-out work). ``keep_trajectory`` keeps the first chunk's
     trajectory, for plots of single runs (run 0 is in it) and diagnostics only.
     """
     leaf = pytree.tree_leaves(z)[0]
@@ -119,7 +171,7 @@ def evaluate(estimator: Estimator, scenario, sim, z: Any, *, chunk_runs: int | N
         sl = slice(start, min(start + chunk, runs))
         size = sl.stop - sl.start
         tic = time.perf_counter()
-        traj = estimator.run(prior.expand(size), pytree.tree_map(lambda t: t[:, sl], z))
+        traj = estimator.run(prior.expand(size), pytree.tree_map(lambda t: t[:, sl], z), generator)
         est = traj.estimate()
         elapsed += time.perf_counter() - tic
         truth = sim.states[:, sl]

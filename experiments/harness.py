@@ -3,7 +3,7 @@
 Everything Hydra- and TensorBoard-specific lives here and in ``run.py``; the library never
 imports either. A study receives a :class:`StudyContext` and writes through it:
 
-* ``results.json`` (SPEC section 3 schema) and ``results.md``, rewritten after every finished
+* ``results.json`` (docs/specification.md §3 schema) and ``results.md``, rewritten after every finished
   unit, so an interrupted study keeps what it finished;
 * ``checkpoint.json``: finished units by key; re-running with the same config in the same run
   directory (``hydra.run.dir=<dir>``) skips them;

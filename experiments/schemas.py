@@ -120,11 +120,14 @@ def scenario_names(targets) -> list[str]:
 class Estimator:
     _target_: str = spec("experiments.estimators.imm", one_of(
         "experiments.estimators.imm", "experiments.estimators.gpb1", "experiments.estimators.gpb2",
-        "experiments.estimators.kalman"))
+        "experiments.estimators.kalman", "experiments.estimators.static", "experiments.estimators.vsmm"))
     _partial_: bool = True
     transition: Optional[List[Any]] = spec(None, _rows_stochastic)
     joseph: bool = False
     mode: int = spec(0, non_negative)
+    feedback: bool = True
+    mode_filter: Optional[Any] = None  # the conf/mode_filter node (checked as the common key mode_filter)
+    policy: Optional[Any] = None  # the conf/policy node
 
 
 # -- studies ---------------------------------------------------------------------------------------

@@ -65,7 +65,8 @@ from torchmm.multimodel import (
     influence_value,
 )
 from torchmm.multimodel.variational import VariationalIMM, gimmaf, imm_vbt
-from torchmm.filters.particle import MultipleModelParticleFilter, ParticleFilter
+from torchmm.filters.particle import ParticleFilter
+from torchmm.multimodel.particle import MultipleModelParticleFilter
 from torchmm.multimodel.mevsmm import (
     ChallengeMatch,
     EqMAParticleFilter,

@@ -15,7 +15,7 @@ r"""Heavy-tailed and skewed noise distributions, and stable truncated-normal mom
   ``delta -> 0`` gives the Student-t, and ``delta -> 0, nu -> inf`` the Gaussian.
 * :func:`truncated_normal_moments` / :func:`truncated_normal_entropy` — ``N(mu, s^2)`` truncated
   to ``[0, inf)``, computed in float64 through ``erfcx`` (the naive ``phi / (1 - Phi)`` fails
-  from ``alpha = -mu/s ~ 8`` on) with an asymptotic series for ``alpha > 30`` (ALGORITHMS.md 5).
+  from ``alpha = -mu/s ~ 8`` on) with an asymptotic series for ``alpha > 30`` (docs/baselines.md §5).
 
 All classes follow ``torch.distributions`` conventions (``batch_shape``, ``event_shape``,
 ``sample(sample_shape)``, ``log_prob``, ``mean``), and ``sample`` takes an explicit

@@ -30,7 +30,7 @@ from torchmm import GaussianBelief, KalmanFilter, LinearMotion, run_filter
 from torchmm.distributions import SkewT
 from torchmm.filters.variational import VBAKFPR, SkewTVBFilter
 from torchmm.models import ConstantVelocity, CoordinatedTurn, PositionMeasurement
-from torchmm.models.motion import _turn_matrix
+from torchmm.models.motion import turn_matrix
 from torchmm.multimodel.variational import gimmaf, imm_vbt
 
 log = logging.getLogger("torchmm.experiments")
@@ -79,7 +79,7 @@ def simulate(g, runs: int, generator: torch.Generator, kind: str, R: float, delt
     for first, last, omega, q in g.segments:
         omegas[int(first) - 1:int(last)] = float(omega)
         qs[int(first) - 1:int(last)] = float(q)
-    Fs = _turn_matrix(omegas, dt)
+    Fs = turn_matrix(omegas, dt)
     Qs = qs[:, None, None] * (G @ G.mT)
     x0 = torch.tensor(list(g.x0), **kw)
     P0 = torch.diag(torch.tensor(list(g.P0), **kw))

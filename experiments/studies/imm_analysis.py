@@ -1,4 +1,4 @@
-"""Paper 001 study: IMM input-interaction analysis over an alpha sweep (SPEC section 3.2).
+"""Paper 001 study: IMM input-interaction analysis over an alpha sweep (docs/specification.md §3.2).
 
 For each scenario (a 2- and a 3-model maneuvering target) and each ``alpha`` of the symmetric
 transition matrix (2.2) (``alpha_j = alpha`` for every mode), the estimators run on the same
@@ -51,7 +51,7 @@ def _analyse(ctx: StudyContext, scenario, sim, z, alpha: float) -> dict:
     out: dict = {"rmse": {}, "bounds": {}}
     for name, ecfg in cfg.estimators.items():
         est = instantiate(ecfg)(scenario, name=name, transition=transition)
-        ev = evaluate(est, scenario, sim, z, keep_trajectory=True)
+        ev = evaluate(est, scenario, sim, z, keep_trajectory=True, generator=ctx.generator("filter", alpha, name))
         out["rmse"][name] = ev.summary()
         traj = ev.trajectory
         # (3.2)/(3.3) and (3.8): posterior u(k) and predicted u^0(k) of the next cycle

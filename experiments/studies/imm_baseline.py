@@ -34,7 +34,7 @@ def run(ctx: StudyContext) -> None:
     for est in ctx.progress_bar(estimators, desc="estimators"):
         stats = {"mode_probs": lambda traj: traj.belief.mode_probs.sum(1)} if est.multiple_model else {}
         ev = evaluate(est, scenario, sim, z, chunk_runs=cfg.get("chunk_runs"), keep_trajectory=True,
-                      per_step=stats)
+                      per_step=stats, generator=ctx.generator("filter", scenario.name, est.name))
         summary = ev.summary()
         table.rows.append([est.name, summary["pos_rmse"], summary["vel_rmse"], summary["nees"],
                            summary.get("mode_accuracy")])

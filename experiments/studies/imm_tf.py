@@ -1,4 +1,4 @@
-"""Paper 000 study: IMM-TF with slow, irregular source measurements (SPEC section 3.1).
+"""Paper 000 study: IMM-TF with slow, irregular source measurements (docs/specification.md §3.1).
 
 Scenario (section 3 of the paper): 1-D target ``[p, v]`` whose acceleration jumps in
 ``{0.25, 0, -0.25}`` (transition matrix (38)), ``w ~ N(0, 1)`` on the acceleration, target sensor
@@ -26,10 +26,10 @@ import time
 import torch
 from hydra.utils import instantiate
 
-from experiments.estimators import Estimator, evaluate
+from experiments.estimators import Estimator, build_mode_filter, evaluate, starter
 from experiments.harness import StudyContext
 from experiments.studies import plots
-from torchmm import IMM, KalmanFilter, PositionMeasurement
+from torchmm import IMM, PositionMeasurement
 from torchmm.multimodel import (
     FusionIMM,
     InfluenceGate,
@@ -54,7 +54,8 @@ PUBLISHED_TABLE1 = {
 def build_estimators(scenario, source_R: float, cfg, names=ESTIMATORS) -> list[Estimator]:
     """The multi-rate estimators of the study for a source sensor with noise ``source_R``."""
     tcfg, vcfg = cfg.transfer, cfg.vsimm
-    kf = KalmanFilter(scenario.motion, scenario.measurement)
+    kf = build_mode_filter(instantiate(cfg.get("mode_filter")) if cfg.get("mode_filter") else None,
+                           scenario.motion, scenario.measurement)  # the mode filters (conf/mode_filter)
     P = scenario.transition
     source = PositionMeasurement(scenario.motion.state_dim, scenario.position,
                                  torch.tensor(float(source_R), dtype=P.dtype), dtype=P.dtype).to(P.device)
@@ -78,8 +79,7 @@ def build_estimators(scenario, source_R: float, cfg, names=ESTIMATORS) -> list[E
     for name in names:
         filt = makers[name]()
         select = (lambda z: z.target) if name == "IMM" else None
-        out.append(Estimator(name, filt, lambda prior, f=filt: f.initial_belief(prior, scenario.initial_mode_probs),
-                             True, select))
+        out.append(Estimator(name, filt, starter(filt, scenario.initial_mode_probs), True, select))
     return out
 
 
@@ -114,7 +114,8 @@ def _unit(ctx: StudyContext, scenario, ratio: float, source_R: float, key: str, 
             if transfer:  # influence value (33), m = 1 here
                 stats["influence_abs"] = lambda traj: traj.extras["influence"][..., 0].abs().sum(1)
                 stats["influence_mean"] = lambda traj: traj.extras["influence"][..., 0].sum(1)
-        ev = evaluate(est, scenario, sim, z, chunk_runs=ctx.cfg.get("chunk_runs"), per_step=stats)
+        ev = evaluate(est, scenario, sim, z, chunk_runs=ctx.cfg.get("chunk_runs"), per_step=stats,
+                      generator=ctx.generator("filter", key, est.name))
         summary = ev.summary()
         summary["seconds_per_step"] = ev.seconds_per_step
         if "transfer_used" in ev.means:

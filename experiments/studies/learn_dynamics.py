@@ -1,4 +1,4 @@
-"""Study ``learn_dynamics`` (SPEC section 4): learning an IMM's parameters and a mode's dynamics.
+"""Study ``learn_dynamics`` (docs/specification.md §4): learning an IMM's parameters and a mode's dynamics.
 
 Scenario: a 2-D target ``[x, vx, y, vy]`` whose motion switches (Markov chain, ``stay`` on the
 diagonal of the transition matrix) between constant velocity and coordinated turns at
@@ -34,7 +34,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import torch  # noqa: E402
 from torch import nn  # noqa: E402
 
-from experiments.estimators import Estimator, evaluate  # noqa: E402
+from experiments.estimators import Estimator, evaluate, starter  # noqa: E402
 from experiments.harness import StudyContext  # noqa: E402
 from experiments.scenarios import JumpScenario  # noqa: E402
 from experiments.studies import plots  # noqa: E402
@@ -94,7 +94,7 @@ def _imm(scenario: JumpScenario, transition, q: float) -> IMM:
 
 
 def _estimator(name: str, imm: IMM) -> Estimator:
-    return Estimator(name, imm, lambda prior: imm.initial_belief(prior), True)
+    return Estimator(name, imm, starter(imm), True)
 
 
 def _optimizer(params, ocfg):

@@ -291,7 +291,7 @@ def run(ctx: StudyContext) -> None:
     if not deterministic:
         ctx.results.notes.append("random scenario: maneuver_pos_rmse is not defined (no fixed maneuver window)")
     ctx.results.notes.append(
-        "EqMA (ALGORITHMS.md 2.2) is a reconstruction; the filter process noise, initial particle spread and "
+        "EqMA (docs/baselines.md §2.2) is a reconstruction; the filter process noise, initial particle spread and "
         "transition matrix are not given by the paper (see docs/reproduction-003.md)."
     )
 

@@ -1,4 +1,4 @@
-"""VBAKF-PR on its authors' scenario (Huang et al., IEEE TAC 2018; ALGORITHMS.md section 6).
+"""VBAKF-PR on its authors' scenario (Huang et al., IEEE TAC 2018; docs/baselines.md §6).
 
 2-D constant velocity, state ``[x, y, vx, vy]``, ``H = [I 0]``, 1000 steps,
 ``Q_k = (6.5 + 0.5 cos(pi k / 1000)) q [dt^3/3 I, dt^2/2 I; dt^2/2 I, dt I]``,

@@ -11,13 +11,8 @@ import torch
 
 from torchmm import IMM, GaussianBelief, KalmanFilter, run_filter
 from torchmm.beliefs import ParticleBelief
-from torchmm.filters.particle import (
-    MultipleModelParticleFilter,
-    ParticleFilter,
-    gaussian_log_likelihood,
-    mixing_indices,
-    noise_factor,
-)
+from torchmm.filters.particle import ParticleFilter, gaussian_log_likelihood, noise_factor
+from torchmm.multimodel.particle import MultipleModelParticleFilter, mixing_indices
 from torchmm.models import ConstantVelocity, PositionMeasurement
 from torchmm.simulate import simulate_jump_system, simulate_measurements
 
@@ -307,7 +302,7 @@ def test_systematic_mixing_by_counting_equals_plain_searchsorted():
 
 
 def test_linear_fast_paths_equal_the_generic_formulas():
-    from torchmm.filters.particle import _particle_log_likelihood, propagate_particles
+    from torchmm.filters.particle import particle_log_likelihood, propagate_particles
     from torchmm.models import LinearMotion
 
     g = torch.Generator().manual_seed(0)
@@ -332,8 +327,8 @@ def test_linear_fast_paths_equal_the_generic_formulas():
     # whitened likelihood without predicted measurements == the generic residual form
     sensor = PositionMeasurement(4, [0, 2], [[4.0, 1.0], [1.0, 9.0]])
     z = torch.randn(5, 3, 2, generator=g, dtype=torch.float64)
-    fast, none = _particle_log_likelihood(sensor, z, x, False, need_predicted=False)
-    slow, predicted = _particle_log_likelihood(sensor, z, x, False)
+    fast, none = particle_log_likelihood(sensor, z, x, False, need_predicted=False)
+    slow, predicted = particle_log_likelihood(sensor, z, x, False)
     assert none is None and predicted.shape == (5, 3, 40, 2)
     torch.testing.assert_close(fast, slow, rtol=1e-12, atol=1e-10)
 

@@ -54,7 +54,7 @@ def test_unbiased_counts_within_monte_carlo_error(scheme):
     mean, std = counts.mean(0), counts.std(0)
     expected = num * w
     assert torch.all(counts[:, 3] == 0)
-    big = expected > 0.2  # z-tests on rare particles are unreliable (ALGORITHMS.md 8)
+    big = expected > 0.2  # z-tests on rare particles are unreliable (docs/baselines.md §8)
     se = std[big] / math.sqrt(reps)
     z = (mean[big] - expected[big]) / se.clamp_min(1e-12)
     assert float(z.abs().max()) < 5.0, (scheme, float(z.abs().max()))

@@ -1,4 +1,4 @@
-"""Faults from SPEC section 6: missing data, near-singular covariances, float32, all filter kinds."""
+"""Faults from docs/specification.md §6: missing data, near-singular covariances, float32, all filter kinds."""
 
 from __future__ import annotations
 

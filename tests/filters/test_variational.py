@@ -2,7 +2,7 @@
 
 Independent references: the Kalman filter (limits of non-informative priors / Gaussian noise),
 scipy quadrature of the exact marginal likelihood of the 1-D models, a float64 NumPy
-re-implementation of the VBAKF-PR equations (ALGORITHMS.md 6), and the published Table I of
+re-implementation of the VBAKF-PR equations (docs/baselines.md §6), and the published Table I of
 Huang et al. (2018).
 """
 
@@ -199,7 +199,7 @@ def test_stvbf_one_constraint_matches_importance_sampling():
 
 # -- VBAKF-PR ------------------------------------------------------------------------------------------
 def _vbakf_numpy(x, P, u, U, z, F, Q, H, tau, rho, N):
-    """Float64 NumPy transcription of ALGORITHMS.md section 6 (one run)."""
+    """Float64 NumPy transcription of docs/baselines.md §6 (one run)."""
     n, m = len(x), len(z)
     xm = F @ x
     Pm = F @ P @ F.T + Q

@@ -210,7 +210,7 @@ def _tracking_problem(runs=4, steps=12, seed=0):
 
 def test_mevsmm_without_selection_equals_the_mm_pf():
     """Threshold 0 keeps every model: PF-MEVSMM is then the multiple-model PF (same stream)."""
-    from torchmm.filters.particle import MultipleModelParticleFilter
+    from torchmm.multimodel.particle import MultipleModelParticleFilter
 
     motion, sensor, prior, z = _tracking_problem()
     pi = uniform_transition(3, 0.8)

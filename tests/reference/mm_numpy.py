@@ -1,6 +1,6 @@
 """Naive float64 NumPy references of Bar-Shalom's IMM, GPB1 and GPB2 (one run, loops everywhere).
 
-Written straight from ALGORITHMS.md section 1 in linear space, independent of torchmm's code.
+Written straight from docs/baselines.md §1 in linear space, independent of torchmm's code.
 """
 
 from __future__ import annotations

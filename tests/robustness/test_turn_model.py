@@ -20,7 +20,7 @@ from torchmm import (
     NonlinearCoordinatedTurn,
     PositionMeasurement,
 )
-from torchmm.models.motion import _turn_matrix
+from torchmm.models.motion import turn_matrix
 
 mpmath.mp.dps = 50
 OMEGAS = [0.0] + [10.0**e for e in range(-15, 1)] + [0.03, 0.0499, 0.05, 0.0501, 0.3, 0.7]
@@ -44,7 +44,7 @@ def _exact(omega: float, T: float) -> dict[str, float]:
 def test_turn_terms_and_derivatives_match_the_analytic_values(T, sign):
     for omega in OMEGAS:
         w = torch.tensor(sign * omega, requires_grad=True)
-        F = _turn_matrix(w, T)
+        F = turn_matrix(w, T)
         s, c = F[0, 1], F[2, 1]
         ds, = torch.autograd.grad(s, w, retain_graph=True)
         dc, = torch.autograd.grad(c, w)
@@ -123,7 +123,7 @@ def test_zero_turn_rate_is_exactly_constant_velocity_and_float32_is_accurate():
 
     torch.testing.assert_close(CoordinatedTurn(0.0, dt=2.0).F, ConstantVelocity(2, dt=2.0).F, rtol=0, atol=0)
     w = torch.tensor([0.0, 1e-6, 1e-3, 0.2], dtype=torch.float32, requires_grad=True)
-    F = _turn_matrix(w, 1.0)
+    F = turn_matrix(w, 1.0)
     dc = torch.autograd.grad(F[:, 2, 1].sum(), w)[0]
     ref = torch.tensor([_exact(float(v), 1.0)["dc"] for v in w.detach()], dtype=torch.float32)
     torch.testing.assert_close(dc, ref, rtol=1e-6, atol=1e-7)

@@ -21,7 +21,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchmm.multimodel.transition import transition_alpha
+from torchmm.models.transition import transition_alpha
 
 __all__ = [
     "ConclusionCheck",

@@ -6,7 +6,7 @@ element with an explicit ``torch.Generator``. :func:`apply_indices` turns indice
 :class:`~torchmm.beliefs.ParticleBelief`; :func:`resample_where_needed` resamples only the batch
 elements whose effective sample size fell below a threshold (``torch.where``, so shapes stay static).
 
-Selection is by the inverse CDF (ALGORITHMS.md section 8): ``c = cumsum(w)`` with ``c[-1] = 1``
+Selection is by the inverse CDF (docs/baselines.md §8): ``c = cumsum(w)`` with ``c[-1] = 1``
 forced, ``index = searchsorted(c, u, right=True)`` (zero-weight particles are never selected).
 
 * multinomial: ``u_j`` i.i.d. ``U(0, 1)``; counts ``~ Multinomial(N, w)``.
@@ -307,9 +307,10 @@ def resample_where_needed(belief: ParticleBelief, threshold: float = 0.5, scheme
                           generator: torch.Generator | None = None) -> tuple[ParticleBelief, Tensor, Tensor]:
     """Resample the batch elements whose ESS is below ``threshold * Np``; keep the others.
 
-    ``threshold = 0`` never resamples, ``threshold > 1`` always (the ESS never exceeds ``Np``). Every element is resampled internally and the result chosen
-    per element with ``torch.where``, so shapes and the random stream are independent of which
-    elements needed it.
+    ``threshold = 0`` never resamples (and draws no random numbers), ``threshold > 1`` always (the
+    ESS never exceeds ``Np``). Otherwise every element is resampled internally and the result
+    chosen per element with ``torch.where``, so shapes and the random stream are independent of
+    which elements needed it.
 
     Returns:
         ``(belief, resampled, ess)``: the new belief, a bool mask ``(*B,)``, the ESS before
@@ -322,6 +323,8 @@ def resample_where_needed(belief: ParticleBelief, threshold: float = 0.5, scheme
         raise ValueError(f"threshold: must be >= 0, got {threshold}")
     ess = effective_sample_size(belief.log_weights)
     num = belief.num_particles
+    if threshold == 0:  # an option, not data: never resample, draw nothing
+        return belief, torch.zeros(ess.shape, dtype=torch.bool, device=ess.device), ess
     mask = ess < threshold * num
     new = apply_indices(belief, resample(belief.log_weights, scheme, num, generator=generator))
     particles = torch.where(mask[..., None, None], new.particles, belief.particles)

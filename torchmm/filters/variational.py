@@ -7,15 +7,15 @@ nominal process noise of the motion model.
 
 * :class:`StudentTVBFilter` — Student-t measurement noise with one scalar mixing variable
   ``z ~ N(Hx, R/u)``, ``u ~ Ga(nu/2, nu/2)`` (Shen et al. 2015, the mode filter of IMM-VBT;
-  ALGORITHMS.md 4). ``log_likelihood`` is the ELBO of the converged ``q(x) q(u)``.
-* :class:`SkewTVBFilter` — STVBF (Nurminen, Ardeshiri, Piché, Gustafsson 2018; ALGORITHMS.md 5):
+  docs/baselines.md §4). ``log_likelihood`` is the ELBO of the converged ``q(x) q(u)``.
+* :class:`SkewTVBFilter` — STVBF (Nurminen, Ardeshiri, Piché, Gustafsson 2018; docs/baselines.md §5):
   independent skew-t components, coupled ``q(x, u) q(Lambda)``, the truncated Gaussian ``q(x, u)``
   approximated by sequential truncation of the ``u`` coordinates.
 * :class:`SkewTIWVBFilter` — the per-model filter of GIMMAF (paper 004, eqs. (9)-(35)): skew-t noise
   (14)-(16) and an inverse-Wishart prior on ``P_{k|k-1}`` (12), mean-field
   ``q(x) q(P) q(u) q(Lambda)`` (18); ``log_likelihood`` is the ELBO (39), the mode likelihood (38).
 * :class:`VBAKFPR` — Huang, Zhang, Wu, Li, Chambers (IEEE TAC 2018): inverse-Wishart priors on
-  ``P_{k|k-1}`` and ``R_k`` (ALGORITHMS.md 6, pinned down against the authors' MATLAB). Its
+  ``P_{k|k-1}`` and ``R_k`` (docs/baselines.md §6, pinned down against the authors' MATLAB). Its
   belief, :class:`AdaptiveGaussianBelief`, carries the ``R`` posterior ``IW(u, U)`` between steps.
 
 Inverse-Wishart convention (shared by VBAKF-PR and GIMMAF). ``IW(t, T)`` is the density
@@ -229,7 +229,7 @@ class _LinearVBFilter(Filter):
 
 # -- Student-t VB (IMM-VBT mode filter) ----------------------------------------------------------------
 class StudentTVBFilter(_LinearVBFilter):
-    r"""VB filter for Student-t measurement noise with one scalar mixing variable (ALGORITHMS.md 4).
+    r"""VB filter for Student-t measurement noise with one scalar mixing variable (docs/baselines.md §4).
 
     Model: ``z ~ N(H x, R / u)``, ``u ~ Ga(nu/2, nu/2)`` (``R`` the scale matrix of the
     measurement model). Iterations from ``E[u] = 1``:
@@ -648,7 +648,7 @@ class AdaptiveGaussianBelief(Belief):
 class VBAKFPR(Filter):
     r"""VBAKF-PR (Huang et al., IEEE TAC 63(2), 2018): IW priors on ``P_{k|k-1}`` and ``R_k``.
 
-    Exactly ALGORITHMS.md section 6 (the authors' ``aprivbkf.m``):
+    Exactly docs/baselines.md §6 (the authors' ``aprivbkf.m``):
 
     .. math::
         x^- = F\hat x,\ \tilde P = F P F^\top + \tilde Q,\ \hat t = n + \tau + 1,\ \hat T = \tau\tilde P,\

@@ -126,7 +126,7 @@ def correlated_kf_estimates(res: CorrelatedKFResult, Phi, G, Q, H, x0, P0, N: in
     return mean, cov
 
 
-def _blockdiag2(a: Tensor, b: Tensor) -> Tensor:
+def block_diagonal2(a: Tensor, b: Tensor) -> Tensor:
     """``diag(a, b)`` batched: ``a (*S, p, q)``, ``b (*S, r, s)``."""
     batch = torch.broadcast_shapes(a.shape[:-2], b.shape[:-2])
     a, b = a.expand(*batch, *a.shape[-2:]), b.expand(*batch, *b.shape[-2:])
@@ -146,14 +146,14 @@ def augmented_system(system: MultiSensorSystem, steps: int, present: Tensor | No
     n, L = system.state_dim, system.num_sensors
     Xi, _, Qxi = system.second_moments(steps)
     eye = torch.eye(n, dtype=Xi.dtype, device=Xi.device)
-    Phi = _blockdiag2(system.A.expand(L, n, n), system.Phi)
-    G = _blockdiag2(system.Gamma.expand(L, *system.Gamma.shape), eye.expand(L, n, n))
-    Q = _blockdiag2(system.Qw.expand(steps, L, *system.Qw.shape), Qxi)
+    Phi = block_diagonal2(system.A.expand(L, n, n), system.Phi)
+    G = block_diagonal2(system.Gamma.expand(L, *system.Gamma.shape), eye.expand(L, n, n))
+    Q = block_diagonal2(system.Qw.expand(steps, L, *system.Qw.shape), Qxi)
     S = torch.cat([meas.R, meas.R.new_zeros(steps, L, n, system.meas_dim)], dim=-2)
     Qv = meas.Qv.diagonal(dim1=1, dim2=2).permute(0, 3, 1, 2)
     H = torch.cat([meas.C, meas.Ct], dim=-1)
     x0 = torch.cat([system.mu0.expand(L, n), system.mu0.new_zeros(L, n)], -1)
-    P0 = _blockdiag2(system.P0.expand(L, n, n), system.Qr0[:, None, None] * Xi[0])
+    P0 = block_diagonal2(system.P0.expand(L, n, n), system.Qr0[:, None, None] * Xi[0])
     return Phi, G, Q, S, Qv, H, x0, P0
 
 

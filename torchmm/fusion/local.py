@@ -102,7 +102,7 @@ class LocalStats:
                           meas=self.meas)
 
 
-def _local_gains(system: MultiSensorSystem, meas_t, Px, Pr, Pxr):
+def local_gains(system: MultiSensorSystem, meas_t, Px, Pr, Pxr):
     """Innovation covariance (17) and gains (20), (21) with ``meas_t = (C, C~, R, Q^v)`` of one step."""
     C, Ct, R, Qv = meas_t
     A, Phi = system.A, system.Phi
@@ -140,7 +140,7 @@ def local_predictor_stats(system: MultiSensorSystem, steps: int, present: Tensor
     Pxr = torch.zeros_like(Pr)
     out = {k: [] for k in ("Px", "Pr", "Pxr", "Qeps", "Lx", "Lr")}
     for t in range(steps):
-        Qeps, Lx, Lr = _local_gains(system, meas.at(t), Px, Pr, Pxr)
+        Qeps, Lx, Lr = local_gains(system, meas.at(t), Px, Pr, Pxr)
         for k, v in zip(out, (Px, Pr, Pxr, Qeps, Lx, Lr)):
             out[k].append(v)
         Px, Pr, Pxr = _local_riccati(system, Px, Pr, Pxr, Qeps, Lx, Lr, Qxi[t])
@@ -235,16 +235,16 @@ def local_estimates(system: MultiSensorSystem, y: Tensor, N: int = 0, stats: Loc
     if stats is None:
         stats = local_predictor_stats(system, T, check_measurements(system, y))
     x_pred, _, eps = local_one_step(system, stats, y)
-    return _local_from_pred(system, stats, x_pred, eps, N)
+    return local_from_pred(system, stats, x_pred, eps, N)
 
 
 def local_covariances(system: MultiSensorSystem, stats: LocalStats, N: int,
                       steps: int | None = None) -> Tensor:
     """Error covariances ``P_i(t|t+N)`` only (no data). Shapes: -> ``(T, L, n, n)``."""
-    return _local_from_pred(system, stats, None, None, N, steps)[1]
+    return local_from_pred(system, stats, None, None, N, steps)[1]
 
 
-def _local_from_pred(system, stats: LocalStats, x_pred, eps, N: int, steps: int | None = None):
+def local_from_pred(system, stats: LocalStats, x_pred, eps, N: int, steps: int | None = None):
     if steps is None:
         steps = x_pred.shape[0] if x_pred is not None else stats.Px.shape[0]
     T = steps
@@ -321,7 +321,7 @@ def _tr(x: Tensor) -> Tensor:
     return x.transpose(-4, -3).mT
 
 
-def _cross_innovation(meas_t, P, Pr, Pxr):
+def cross_innovation(meas_t, P, Pr, Pxr):
     """(33), (34), (36) for all pairs; ``meas_t = (C, C~, R, Q^v)``. Shapes ``(..., L, L, n, n)``."""
     C, Ct, _, Qv = meas_t
     Ci, Cj = C[:, None], C[None]
@@ -332,7 +332,7 @@ def _cross_innovation(meas_t, P, Pr, Pxr):
     return Pxe, Pre, Qeps
 
 
-def _cross_step(system, meas_t, P, Pr, Pxr, Lx, Lr, Qxi):
+def cross_step(system, meas_t, P, Pr, Pxr, Lx, Lr, Qxi):
     """(32), (35), (37): one step for all pairs; ``Lx, Lr (L, n, m)``, ``Qxi (L, n, n)``."""
     A, G = system.A, system.Gamma
     Phi_i, Phi_j = system.Phi[:, None], system.Phi[None]
@@ -341,7 +341,7 @@ def _cross_step(system, meas_t, P, Pr, Pxr, Lx, Lr, Qxi):
     R = meas_t[2]
     Ri = R[:, None]  # (L, 1, p, m)
     Rj = R[None]
-    Pxe, Pre, Qeps = _cross_innovation(meas_t, P, Pr, Pxr)
+    Pxe, Pre, Qeps = cross_innovation(meas_t, P, Pr, Pxr)
     P1 = (A @ P @ A.T - A @ Pxe @ Lj.mT - Li @ _tr(Pxe) @ A.T + Li @ Qeps @ Lj.mT
           - Li @ Ri.mT @ G.T - G @ Rj @ Lj.mT + system.GQG)
     eye = torch.eye(system.num_sensors, dtype=P.dtype, device=P.device)[..., None, None]
@@ -372,7 +372,7 @@ def cross_predictor_stats(system: MultiSensorSystem, stats: LocalStats,
     out = {k: [] for k in ("P", "Pr", "Pxr", "Qeps")}
     for t in range(T):
         st = stats.at(t)
-        P1, Pr1, Pxr1, Qeps = _cross_step(system, stats.meas.at(t), P, Pr, Pxr, st.Lx, st.Lr, st.Qxi)
+        P1, Pr1, Pxr1, Qeps = cross_step(system, stats.meas.at(t), P, Pr, Pxr, st.Lx, st.Lr, st.Qxi)
         for k, v in zip(out, (P, Pr, Pxr, Qeps)):
             out[k].append(v)
         P, Pr, Pxr = symmetrize_pairs(P1), symmetrize_pairs(Pr1), Pxr1

@@ -22,14 +22,14 @@ import torch
 from torch import Tensor
 
 from torchmm.beliefs.ops import symmetrize
-from torchmm.fusion.augmented import _blockdiag2
+from torchmm.fusion.augmented import block_diagonal2
 from torchmm.fusion.local import (
     CrossStats,
     LocalStats,
-    _cross_innovation,
-    _cross_step,
-    _local_from_pred,
-    _local_gains,
+    cross_innovation,
+    cross_step,
+    local_from_pred,
+    local_gains,
     cross_covariances,
     local_one_step,
     symmetrize_pairs,
@@ -103,7 +103,7 @@ class SteadyState:
 
     def local_covariances(self, system: MultiSensorSystem, N: int) -> Tensor:
         """Steady ``P_i(N)``, ``(L, n, n)``."""
-        return _local_from_pred(system, self.stats, None, None, N, steps=1)[1][0]
+        return local_from_pred(system, self.stats, None, None, N, steps=1)[1][0]
 
 
 def steady_state(system: MultiSensorSystem, tol: float = 1e-12, max_iter: int = 100_000) -> SteadyState:
@@ -125,9 +125,9 @@ def steady_state(system: MultiSensorSystem, tol: float = 1e-12, max_iter: int = 
     tol = max(float(tol), 100 * torch.finfo(Xi.dtype).eps)
     n, L, m = system.state_dim, system.num_sensors, system.meas_dim
     eye_n = torch.eye(n, dtype=Xi.dtype, device=Xi.device)
-    Phi = _blockdiag2(system.A.expand(L, n, n), system.Phi)
-    G = _blockdiag2(system.Gamma.expand(L, *system.Gamma.shape), eye_n.expand(L, n, n))
-    Q = _blockdiag2(system.Qw.expand(L, *system.Qw.shape), Qxi)
+    Phi = block_diagonal2(system.A.expand(L, n, n), system.Phi)
+    G = block_diagonal2(system.Gamma.expand(L, *system.Gamma.shape), eye_n.expand(L, n, n))
+    Q = block_diagonal2(system.Qw.expand(L, *system.Qw.shape), Qxi)
     S = torch.cat([system.R, system.R.new_zeros(L, n, m)], dim=-2)
     Qv = system.Qv.diagonal(dim1=0, dim2=1).permute(2, 0, 1)
     H = torch.cat([system.C, system.Ct], dim=-1)
@@ -147,7 +147,7 @@ def steady_state(system: MultiSensorSystem, tol: float = 1e-12, max_iter: int = 
         log.warning("steady_state: the Riccati iteration (50) did not converge in %d steps", max_iter)
     Px, Pr, Pxr = P[:, :n, :n], P[:, n:, n:], P[:, :n, n:]
     meas = measurement_sequence(system, 1)
-    Qeps, Lx, Lr = _local_gains(system, meas.at(0), Px, Pr, Pxr)
+    Qeps, Lx, Lr = local_gains(system, meas.at(0), Px, Pr, Pxr)
     stats = LocalStats(Px[None], Pr[None], Pxr[None], Qeps[None], Lx[None], Lr[None], Qxi[None],
                        meas=meas, stationary=True)
     # Remark 9: cross-covariances with the fixed gains, from any initial value (here zero)
@@ -156,7 +156,7 @@ def steady_state(system: MultiSensorSystem, tol: float = 1e-12, max_iter: int = 
     Pxrij = torch.zeros_like(Pij)
     cit = 0
     for cit in range(1, max_iter + 1):
-        P1, Pr1, Pxr1, Qe_ij = _cross_step(system, meas.at(0), Pij, Prij, Pxrij, Lx, Lr, Qxi)
+        P1, Pr1, Pxr1, Qe_ij = cross_step(system, meas.at(0), Pij, Prij, Pxrij, Lx, Lr, Qxi)
         P1, Pr1 = symmetrize_pairs(P1), symmetrize_pairs(Pr1)
         scale = max(float(P1.abs().max()), float(Pr1.abs().max()), 1e-300)
         change = max(float((P1 - Pij).abs().max()), float((Pr1 - Prij).abs().max()),
@@ -166,7 +166,7 @@ def steady_state(system: MultiSensorSystem, tol: float = 1e-12, max_iter: int = 
             break
     else:
         log.warning("steady_state: the cross-covariance iteration did not converge in %d steps", max_iter)
-    Qe_ij = _cross_innovation(meas.at(0), Pij, Prij, Pxrij)[2]
+    Qe_ij = cross_innovation(meas.at(0), Pij, Prij, Pxrij)[2]
     cross = CrossStats(Pij[None], Prij[None], Pxrij[None], Qe_ij[None], stationary=True)
     return SteadyState(stats, cross, P, torch.cat([Lx, Lr], dim=-2), it, cit)
 
@@ -178,7 +178,7 @@ def steady_local_estimates(system: MultiSensorSystem, ss: SteadyState, y: Tensor
         y: ``(T, *B, L, m)`` -> mean ``(T, *B, L, n)``, cov ``(T, L, n, n)`` (the constant limit)
     """
     x_pred, _, eps = local_one_step(system, ss.stats, y)
-    return _local_from_pred(system, ss.stats, x_pred, eps, N)
+    return local_from_pred(system, ss.stats, x_pred, eps, N)
 
 
 def steady_fused_estimates(system: MultiSensorSystem, ss: SteadyState, y: Tensor, N: int = 0,

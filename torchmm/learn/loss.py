@@ -76,7 +76,7 @@ def negative_log_likelihood(
         raise ValueError(f"reduction: expected one of {_REDUCTIONS}, got {reduction!r}")
     if not isinstance(measurements, Tensor) or measurements.dim() < 2:
         raise ValueError("measurements: expected a time-major tensor (T, *B, m)")
-    belief0 = _ensure_mode_belief(filter, belief0)
+    belief0 = as_start_belief(filter, belief0)
     record = _keep_likelihood_and_detached_belief if return_final else _keep_likelihood
     with parametrize.cached():  # parametrised covariances are computed once per pass
         traj = run_filter(filter, belief0, measurements, controls=controls, record=record)
@@ -109,7 +109,7 @@ def truncated_segments(steps: int, window: int | None) -> list[slice]:
     return [slice(start, min(start + window, steps)) for start in range(0, steps, window)]
 
 
-def _ensure_mode_belief(filter, belief0):
+def as_start_belief(filter, belief0):
     if hasattr(filter, "initial_belief") and not isinstance(belief0, ModeBelief):
         return filter.initial_belief(belief0)
     return belief0

@@ -17,7 +17,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from torchmm.learn.loss import _ensure_mode_belief, negative_log_likelihood, truncated_segments
+from torchmm.learn.loss import as_start_belief, negative_log_likelihood, truncated_segments
 
 __all__ = ["TrainRecord", "Trainer", "load_checkpoint", "save_checkpoint"]
 
@@ -207,7 +207,7 @@ class Trainer:
         steps, runs = measurements.shape[0], measurements.shape[1]
         if batch_size is not None and not 0 < batch_size <= runs:
             raise ValueError(f"batch_size: must lie in 1..{runs}, got {batch_size}")
-        belief0 = _ensure_mode_belief(self.filter, belief0)
+        belief0 = as_start_belief(self.filter, belief0)
         segments = truncated_segments(steps, self.window)
         records = []
         for _ in range(iterations):

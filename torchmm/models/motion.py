@@ -140,7 +140,7 @@ def _turn_terms(omega: Tensor, dt: float) -> tuple[Tensor, Tensor]:
     return torch.where(small, s_series, s_closed), torch.where(small, c_series, c_closed)
 
 
-def _turn_matrix(omega: Tensor, dt: float) -> Tensor:
+def turn_matrix(omega: Tensor, dt: float) -> Tensor:
     """Known-turn-rate transition for ``[x, vx, y, vy]``; ``omega: (*P,)`` -> ``(*P, 4, 4)``.
 
     ``omega = 0`` is exactly the constant-velocity matrix; values and derivatives with respect to
@@ -169,7 +169,7 @@ class CoordinatedTurn(LinearMotion):
     def __init__(self, omega, dt: float = 1.0, q: float = 1.0, *, noise: str = "discrete", dtype=None):
         _, _, Q1 = kinematic_matrices(2, dt, q, noise, dtype)
         omega = as_tensor(omega, "omega", dtype=Q1.dtype, device=Q1.device)
-        super().__init__(_turn_matrix(omega, float(dt)), _block_diag_axes(Q1, 2))
+        super().__init__(turn_matrix(omega, float(dt)), _block_diag_axes(Q1, 2))
         store_tensor(self, "omega", omega)
         self.dt, self.q = float(dt), float(q)
 
@@ -192,7 +192,7 @@ class NonlinearCoordinatedTurn(MotionModel):
         self.state_dim, self.dt = 5, float(dt)
 
     def forward(self, x: Tensor, *, u: Tensor | None = None) -> Tensor:
-        F = _turn_matrix(x[..., 4], self.dt)
+        F = turn_matrix(x[..., 4], self.dt)
         pos_vel = (F @ x[..., :4].unsqueeze(-1)).squeeze(-1)
         return torch.cat([pos_vel, x[..., 4:]], dim=-1)
 

@@ -2,7 +2,18 @@
 
 from torchmm.multimodel.bank import FilterBank, IndexedBank, ListBank, VectorizedBank, make_bank
 from torchmm.multimodel.embedding import Embedded, kinematic_index
-from torchmm.multimodel.imm import GPB1, GPB2, IMM, MultipleModelFilter, StaticMM
+from torchmm.multimodel.imm import (
+    GPB1,
+    GPB2,
+    IMM,
+    Collapse,
+    Interaction,
+    MomentMixing,
+    MultipleModelFilter,
+    NoInteraction,
+    StaticMM,
+)
+from torchmm.multimodel.particle import MultipleModelParticleFilter, ParticleMixing, mixing_indices
 from torchmm.multimodel.structure import AllModels, FixedSet, ModelSetPolicy, VariableStructureIMM
 from torchmm.multimodel.transfer import (
     FusionIMM,
@@ -14,7 +25,7 @@ from torchmm.multimodel.transfer import (
     TransferIMM,
     influence_value,
 )
-from torchmm.multimodel.transition import (
+from torchmm.models.transition import (
     ModeTransition,
     alpha_transition,
     transition_alpha,
@@ -22,6 +33,11 @@ from torchmm.multimodel.transition import (
 )
 
 __all__ = [
+    "Collapse",
+    "Interaction",
+    "MomentMixing",
+    "NoInteraction",
+    "ParticleMixing",
     "AllModels",
     "FixedSet",
     "ModelSetPolicy",
@@ -43,11 +59,13 @@ __all__ = [
     "ListBank",
     "ModeTransition",
     "MultipleModelFilter",
+    "MultipleModelParticleFilter",
     "StaticMM",
     "VectorizedBank",
     "alpha_transition",
     "kinematic_index",
     "make_bank",
+    "mixing_indices",
     "transition_alpha",
     "validate_transition",
 ]

@@ -50,6 +50,14 @@ class FilterBank(nn.Module):
         """Whether a mode filter draws random numbers (then ``generator=`` is passed to it)."""
         return False
 
+    def with_sensor(self, sensor) -> FilterBank:
+        """This bank with every mode filter's sensor replaced (:meth:`~torchmm.filters.Filter.with_sensor`)."""
+        raise NotImplementedError(f"{type(self).__name__} cannot replace its sensor")
+
+    def with_motion(self, motion) -> FilterBank:
+        """This bank with the motion models replaced (a mode bank model; a list bank: one per mode)."""
+        raise NotImplementedError(f"{type(self).__name__} cannot replace its motion models")
+
     def initial_belief(self, belief, *, generator=None):
         """Every mode filter's belief at time 0 from ``belief`` with batch ``(*B, M)`` (e.g. a
         particle filter samples its particles; a Kalman filter keeps the Gaussian)."""
@@ -93,6 +101,14 @@ class VectorizedBank(FilterBank):
     @property
     def uses_generator(self) -> bool:
         return bool(getattr(self.filter, "uses_generator", False))
+
+    def with_sensor(self, sensor) -> VectorizedBank:
+        f = self.filter.with_sensor(sensor)
+        return self if f is self.filter else VectorizedBank(f, self.num_modes)
+
+    def with_motion(self, motion) -> VectorizedBank:
+        f = self.filter.with_motion(motion)
+        return self if f is self.filter else VectorizedBank(f, self.num_modes)
 
     def initial_belief(self, belief, *, generator=None):
         if type(self.filter).initial_belief is Filter.initial_belief:
@@ -151,6 +167,12 @@ class ListBank(FilterBank):
                 raise ValueError(f"{name}: expected one model per mode ({self.num_modes}), got {len(models)}")
             return [getattr(f, replace)(m) for f, m in zip(self.filters, models)]
         return [getattr(f, replace)(models) for f in self.filters]
+
+    def with_sensor(self, sensor) -> ListBank:
+        return ListBank(self._members(sensor, "with_sensor", "sensor"))
+
+    def with_motion(self, motion) -> ListBank:
+        return ListBank(self._members(motion, "with_motion", "motion"))
 
     def initial_belief(self, belief, *, generator=None):
         if all(type(f).initial_belief is Filter.initial_belief for f in self.filters):

@@ -19,6 +19,7 @@ which do underflow (a far outlier gives ``exp(ell) = 0`` for every mode), are co
 
 from __future__ import annotations
 
+import copy
 import math
 
 import torch
@@ -28,7 +29,7 @@ from torchmm.beliefs import Belief, ModeBelief
 from torchmm.filters.base import Filter, StepOutput
 from torchmm.linalg import any_observed
 from torchmm.multimodel.bank import make_bank
-from torchmm.multimodel.transition import as_transition
+from torchmm.models.transition import as_transition
 from torchmm.validation import (
     check_filter_dtype,
     check_measurement,
@@ -36,7 +37,8 @@ from torchmm.validation import (
     check_same_dtype,
 )
 
-__all__ = ["GPB1", "GPB2", "IMM", "MultipleModelFilter", "StaticMM"]
+__all__ = ["GPB1", "GPB2", "IMM", "Collapse", "Interaction", "MomentMixing", "MultipleModelFilter", "NoInteraction",
+           "StaticMM"]
 
 
 def _tiny(x: Tensor) -> float:
@@ -54,7 +56,62 @@ def _predicted(mode_probs: Tensor, transition: Tensor) -> Tensor:
     return mode_probs @ transition
 
 
-def _safe_sub(joint: Tensor, norm: Tensor) -> Tensor:
+class Interaction:
+    """How the mode filters start each step: ``(posterior at k-1, transition) -> (log c_j, start beliefs)``.
+
+    Subclasses implement :meth:`__call__`; :class:`MultipleModelFilter` calls it in ``predict``
+    (the result's ``mode_log_probs`` are the predicted ``log c_j``, its components the mode filters'
+    start beliefs, batch ``(*B, M)``). Randomised interactions (the particle mixing) take
+    ``generator``. A new interaction is one class (docs/architecture.md).
+    """
+
+    #: True if the interaction draws random numbers
+    uses_generator: bool = False
+
+    def __call__(self, belief: ModeBelief, transition, generator=None) -> ModeBelief:
+        raise NotImplementedError
+
+
+class MomentMixing(Interaction):
+    """The IMM interaction (Blom and Bar-Shalom 1988): mode ``j`` starts from the mixture of the mode
+    posteriors with weights ``mu_{i|j} = pi_ij mu_i / c_j`` (moment-matched for Gaussians, exact
+    unions for particle sets, via the components' ``mix``)."""
+
+    def __call__(self, belief, transition, generator=None):
+        mode_probs = belief.mode_probs
+        matrix = _matrix(transition, mode_probs)
+        cbar = _predicted(mode_probs, matrix)
+        # mixing probabilities mu_{i|j} = pi_ij mu_i / c_j, (*B, i, j)
+        weights = mode_probs.unsqueeze(-1) * matrix / cbar.clamp_min(_tiny(cbar)).unsqueeze(-2)
+        return ModeBelief(cbar.log(), belief.components.mix(weights))
+
+
+class Collapse(Interaction):
+    """The GPB1 interaction: every mode starts from the single collapsed posterior (weights ``mu_i``)."""
+
+    def __call__(self, belief, transition, generator=None):
+        mode_probs = belief.mode_probs
+        cbar = _predicted(mode_probs, _matrix(transition, mode_probs))
+        collapsed = belief.components.collapse(mode_probs)
+        return ModeBelief(cbar.log(), collapsed.unsqueeze(-1).expand(*collapsed.batch_shape, cbar.shape[-1]))
+
+
+class NoInteraction(Interaction):
+    """No interaction (the static multiple-model estimator): every mode continues from its own
+    posterior and the mode probabilities are carried unchanged (identity transition)."""
+
+    def __call__(self, belief, transition, generator=None):
+        return ModeBelief(belief.mode_log_probs, belief.components)
+
+
+def _matrix(transition, like: Tensor) -> Tensor:
+    matrix = transition.matrix()
+    if matrix.dtype != like.dtype:
+        check_same_dtype(matrix, "transition", like)
+    return matrix
+
+
+def safe_log_normalize(joint: Tensor, norm: Tensor) -> Tensor:
     """``joint - norm`` where ``norm = logsumexp`` of ``joint`` over the axes ``norm`` keeps with size 1;
     groups that are all ``-inf`` (``-inf - -inf = NaN``; or NaN) become uniform, ``-inf`` entries of
     a finite group stay ``-inf``. One fused pass, no host synchronisation."""
@@ -63,7 +120,7 @@ def _safe_sub(joint: Tensor, norm: Tensor) -> Tensor:
     return (joint - norm).nan_to_num_(nan=uniform, posinf=math.inf, neginf=-math.inf)
 
 
-def _mode_batch(belief, name: str = "belief") -> torch.Size:
+def mode_batch(belief, name: str = "belief") -> torch.Size:
     """Batch shape of a mode belief (from its mode log-probabilities; shapes only)."""
     mode_log_probs = getattr(belief, "mode_log_probs", None)
     if not isinstance(mode_log_probs, Tensor):
@@ -90,11 +147,22 @@ class MultipleModelFilter(Filter):
             :class:`~torchmm.multimodel.ModeTransition` (learnable).
     """
 
-    def __init__(self, bank, transition):
+    #: the interaction of subclasses that do not pass one (IMM: :class:`MomentMixing`)
+    default_interaction: type[Interaction] | None = None
+
+    def __init__(self, bank, transition, interaction: Interaction | None = None):
         super().__init__()
         self.transition = as_transition(transition)
         self.num_modes = self.transition.num_modes
         self.bank = make_bank(bank, self.num_modes)
+        if interaction is None:
+            if self.default_interaction is None:
+                raise TypeError("interaction: MultipleModelFilter needs an Interaction (e.g. MomentMixing() for IMM)")
+            interaction = self.default_interaction()
+        if not isinstance(interaction, Interaction):
+            raise TypeError(f"interaction: expected an Interaction (MomentMixing, Collapse, NoInteraction, "
+                            f"ParticleMixing), got {type(interaction).__name__}")
+        self.interaction = interaction
 
     @property
     def meas_dim(self) -> int | None:
@@ -106,11 +174,28 @@ class MultipleModelFilter(Filter):
 
     @property
     def uses_generator(self) -> bool:
-        return self.bank.uses_generator
+        return self.bank.uses_generator or self.interaction.uses_generator
+
+    def with_sensor(self, sensor) -> MultipleModelFilter:
+        """This filter with every mode filter's sensor replaced (see :meth:`Filter.with_sensor`)."""
+        return self._with_bank(self.bank.with_sensor(sensor))
+
+    def with_motion(self, motion) -> MultipleModelFilter:
+        """This filter with the mode filters' motion models replaced (a mode bank model, or one per mode)."""
+        return self._with_bank(self.bank.with_motion(motion))
+
+    def _with_bank(self, bank) -> MultipleModelFilter:
+        if bank is self.bank:
+            return self
+        clone = copy.copy(self)
+        for table in ("_modules", "_buffers", "_parameters"):
+            clone.__dict__[table] = dict(self.__dict__[table])
+        clone._modules["bank"] = bank
+        return clone
 
     def _measurement(self, belief, z, name: str = "z", sensor=None) -> Tensor:
         """``z (*B, m)`` checked against the sensor (default the bank's) and the belief's batch."""
-        batch = _mode_batch(belief)
+        batch = mode_batch(belief)
         m = self.bank.meas_dim if sensor is None or isinstance(sensor, (list, tuple)) else sensor.meas_dim
         like = belief.mode_log_probs
         if m is None:
@@ -118,10 +203,7 @@ class MultipleModelFilter(Filter):
         return check_measurement(z, m, batch, like, name)
 
     def _matrix(self, like: Tensor) -> Tensor:
-        matrix = self.transition.matrix()
-        if matrix.dtype != like.dtype:
-            check_same_dtype(matrix, "transition", like)
-        return matrix
+        return _matrix(self.transition, like)
 
     def initial_belief(self, belief: Belief, mode_probs=None, *, generator=None) -> ModeBelief:
         """Start every mode from ``belief`` with prior mode probabilities ``mode_probs``.
@@ -167,7 +249,7 @@ class MultipleModelFilter(Filter):
         out = self.bank.update(prior.components, z.unsqueeze(-2), sensor=sensor, generator=generator)
         joint = out.log_likelihood + prior.mode_log_probs  # ell_j + log c_j
         log_likelihood = torch.logsumexp(joint, dim=-1)
-        mode_log_probs = _safe_sub(joint, log_likelihood.unsqueeze(-1))
+        mode_log_probs = safe_log_normalize(joint, log_likelihood.unsqueeze(-1))
         observed = any_observed(z) if observed is None else observed
         log_likelihood = torch.where(observed, log_likelihood, 0.0)
         extras = _mode_extras(out)
@@ -180,13 +262,14 @@ class MultipleModelFilter(Filter):
             extras=extras,
         )
 
-    def mix(self, belief: ModeBelief) -> ModeBelief:
+    def mix(self, belief: ModeBelief, generator=None) -> ModeBelief:
         """Interaction step: predicted mode log-probs and the mode-conditioned start beliefs."""
-        raise NotImplementedError
+        mode_batch(belief)
+        return self.interaction(belief, self.transition, generator)
 
     def predict(self, belief: ModeBelief, *, u: Tensor | None = None, motion=None, generator=None) -> ModeBelief:
         """Interaction (:meth:`mix`) and every mode's time update (``motion``: per-step mode models)."""
-        return self._predict(self.mix(belief), u=u, motion=motion, generator=generator)
+        return self._predict(self.mix(belief, generator), u=u, motion=motion, generator=generator)
 
     def _predict(self, mixed: ModeBelief, *, u=None, motion=None, generator=None) -> ModeBelief:
         u = None if u is None else u.unsqueeze(-2)
@@ -200,7 +283,7 @@ class MultipleModelFilter(Filter):
 
     def step(self, belief: ModeBelief, z: Tensor, *, u: Tensor | None = None, motion=None, sensor=None,
              generator=None) -> StepOutput:
-        mixed = self.mix(belief)
+        mixed = self.mix(belief, generator)
         prior = self._predict(mixed, u=u, motion=motion, generator=generator)
         out = self.update(prior, z, sensor=sensor, generator=generator)
         out.extras["mixed"] = mixed
@@ -237,14 +320,7 @@ class IMM(MultipleModelFilter):
         (torch.Size([8, 3]), torch.Size([8, 2]))
     """
 
-    def mix(self, belief: ModeBelief) -> ModeBelief:
-        _mode_batch(belief)
-        mode_probs = belief.mode_probs
-        transition = self._matrix(mode_probs)
-        cbar = _predicted(mode_probs, transition)
-        # mixing probabilities mu_{i|j} = pi_ij mu_i / c_j, (*B, i, j)
-        weights = mode_probs.unsqueeze(-1) * transition / cbar.clamp_min(_tiny(cbar)).unsqueeze(-2)
-        return ModeBelief(cbar.log(), belief.components.mix(weights))
+    default_interaction = MomentMixing
 
 
 class StaticMM(MultipleModelFilter):
@@ -283,15 +359,11 @@ class StaticMM(MultipleModelFilter):
                 if not shape:
                     raise ValueError("num_modes: give it for a single filter whose models have no mode axis")
                 num_modes = shape[-1]
-        super().__init__(bank, torch.eye(int(num_modes), dtype=torch.get_default_dtype()))
-
-    def mix(self, belief: ModeBelief) -> ModeBelief:
-        _mode_batch(belief)
-        return belief
+        super().__init__(bank, torch.eye(int(num_modes), dtype=torch.get_default_dtype()), NoInteraction())
 
     def step(self, belief: ModeBelief, z: Tensor, *, u: Tensor | None = None, motion=None, sensor=None,
              generator=None) -> StepOutput:
-        prior = self._predict(belief, u=u, motion=motion, generator=generator)
+        prior = self._predict(self.mix(belief), u=u, motion=motion, generator=generator)
         return self.update(prior, z, sensor=sensor, generator=generator)
 
 
@@ -302,12 +374,7 @@ class GPB1(MultipleModelFilter):
     weights are ``mu_i`` for every ``j``). Same interface and shapes as :class:`IMM`.
     """
 
-    def mix(self, belief: ModeBelief) -> ModeBelief:
-        _mode_batch(belief)
-        mode_probs = belief.mode_probs
-        cbar = _predicted(mode_probs, self._matrix(mode_probs))
-        collapsed = belief.components.collapse(mode_probs)
-        return ModeBelief(cbar.log(), collapsed.unsqueeze(-1).expand(*collapsed.batch_shape, self.num_modes))
+    default_interaction = Collapse
 
 
 class GPB2(MultipleModelFilter):
@@ -322,10 +389,12 @@ class GPB2(MultipleModelFilter):
         (mode axis ``i * M + j``), and ``innovation`` is ``(*B, M, M, m)`` (``[..., i, j, :]``).
     """
 
-    def mix(self, belief: ModeBelief) -> ModeBelief:
+    default_interaction = NoInteraction  # GPB2 forms the M^2 pair hypotheses itself (mix below)
+
+    def mix(self, belief: ModeBelief, generator=None) -> ModeBelief:
         """Pair hypotheses: component ``(i, j)`` is mode ``i``'s posterior; weight ``mu_i pi_ij``."""
         M = self.num_modes
-        _mode_batch(belief)
+        mode_batch(belief)
         log_matrix = self.transition.log_matrix()
         if log_matrix.dtype != belief.mode_log_probs.dtype:
             check_same_dtype(log_matrix, "transition", belief.mode_log_probs)
@@ -346,16 +415,16 @@ class GPB2(MultipleModelFilter):
     def update(self, belief: ModeBelief, z: Tensor, *, sensor=None, generator=None) -> StepOutput:
         M = self.num_modes
         z = self._measurement(belief, z, sensor=sensor)
-        batch = _mode_batch(belief)
+        batch = mode_batch(belief)
         prior_pairs = belief.components.reshape(*batch, M, M)
         out = self.bank.update(prior_pairs, z.unsqueeze(-2).unsqueeze(-2), sensor=sensor, generator=generator)
         prior_joint = belief.mode_log_probs.unflatten(-1, (M, M))
         joint = out.log_likelihood + prior_joint  # log w_ij
         log_mode = torch.logsumexp(joint, dim=-2)  # (*B, j): unnormalised log mu_j
         log_likelihood = torch.logsumexp(log_mode, dim=-1)
-        merge_weights = _safe_sub(joint, log_mode.unsqueeze(-2))  # mu_{i|j}, (*B, i, j)
+        merge_weights = safe_log_normalize(joint, log_mode.unsqueeze(-2))  # mu_{i|j}, (*B, i, j)
         merged = out.belief.transpose_batch(-1, -2).collapse(merge_weights.mT.exp())  # (*B, j)
-        mode_log_probs = _safe_sub(log_mode, log_likelihood.unsqueeze(-1))
+        mode_log_probs = safe_log_normalize(log_mode, log_likelihood.unsqueeze(-1))
         log_likelihood = torch.where(any_observed(z), log_likelihood, 0.0)  # exactly 0 without a datum
         extras = _mode_extras(out, mode_axes=2)
         return StepOutput(

@@ -24,7 +24,7 @@ model (the one whose particle weights are most concentrated).
 ``M Np`` particles are found by the randomised tournament of the paper (vectorised over runs) or
 exactly by ``topk``; a model stays in the set if it has at least ``Thre`` of the ``N`` winners.
 
-**EqMA N+1** (ALGORITHMS.md 2.2, reconstruction): :class:`EqMAParticleFilter`, an acceleration-grid
+**EqMA N+1** (docs/baselines.md §2.2, reconstruction): :class:`EqMAParticleFilter`, an acceleration-grid
 MM-PF with one extra *equivalent* model per step whose acceleration mean and covariance match the
 predicted mode distribution of the fixed grid.
 """
@@ -40,7 +40,8 @@ from torch import Tensor
 from torchmm.beliefs import GaussianBelief, ModeBelief, ModelSetBelief, ParticleBelief, psd_sqrt, symmetrize
 from torchmm.beliefs.ops import normalize_log_probs
 from torchmm.filters.base import StepOutput
-from torchmm.filters.particle import MultipleModelParticleFilter, standard_normal
+from torchmm.filters.particle import standard_normal
+from torchmm.multimodel.particle import MultipleModelParticleFilter
 from torchmm.models.base import MeasurementModel, MotionModel
 from torchmm.models.linear import LinearMotion
 from torchmm.validation import as_int, as_tensor, check_covariance, check_square
@@ -452,7 +453,7 @@ class ChallengeMatch:
 # filters
 # ------------------------------------------------------------------------------------------------
 def uniform_transition(num_models: int, stay: float = 0.9, *, dtype=None, device=None) -> Tensor:
-    """``p_ii = stay``, off-diagonals ``(1 - stay) / (M - 1)`` (the ALGORITHMS.md default).
+    """``p_ii = stay``, off-diagonals ``(1 - stay) / (M - 1)`` (the docs/baselines.md default).
 
     Shapes:
         -> ``(M, M)``
@@ -546,7 +547,7 @@ class MinimumEntropyVSMM(MultipleModelParticleFilter):
 
 
 class EqMAParticleFilter(MultipleModelParticleFilter):
-    r"""EqMA ``N+1`` on particle filters (ALGORITHMS.md 2.2, reconstruction).
+    r"""EqMA ``N+1`` on particle filters (docs/baselines.md §2.2, reconstruction).
 
     ``N`` fixed acceleration models ``x_k = F x_{k-1} + G a_i + G w``, ``w ~ N(0, Q_a)``, plus one
     equivalent model per step, ``a_e = sum_i c_i a_i`` and ``Q_e = Q_a + sum_i c_i (a_i - a_e)(a_i

@@ -115,8 +115,8 @@ class VariableStructureIMM(IMM):
         active = torch.ones(start.mode_log_probs.shape, dtype=torch.bool, device=start.mode_log_probs.device)
         return ModelSetBelief(start.mode_log_probs, start.components, active)
 
-    def mix(self, belief: ModeBelief) -> ModeBelief:
-        mixed = super().mix(belief)
+    def mix(self, belief: ModeBelief, generator=None) -> ModeBelief:
+        mixed = super().mix(belief, generator)
         return ModeBelief(mixed.mode_log_probs, mixed.components)
 
     def update(self, belief: ModeBelief, z: Tensor, *, sensor=None, generator=None) -> StepOutput:

@@ -17,9 +17,9 @@ Estimators (all modes and runs in one batched call per step, loops only over tim
 * :class:`SourceUpdateIMM` - **IMM-SU**: every mode updated sequentially with ``y_S`` (noise
   ``R_S``) when present, then with ``y`` (the Bayes-optimal use of an undelayed source datum).
 * :class:`FusionIMM` - **IMM-FU**: a separate source-only IMM track, fused into every mode's
-  posterior when a source datum arrives (ALGORITHMS.md 3.2).
+  posterior when a source datum arrives (docs/baselines.md §3.2).
 * :class:`SourceModeVSIMM` - **VSIMM**: the source track's estimate enters as an extra mode
-  (ALGORITHMS.md 3.3).
+  (docs/baselines.md §3.3).
 
 The target-only baseline is the plain :class:`~torchmm.multimodel.IMM` on the ``target`` stream.
 """
@@ -27,7 +27,7 @@ The target-only baseline is the plain :class:`~torchmm.multimodel.IMM` on the ``
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Callable, ClassVar, NamedTuple
+from typing import Any, Callable, ClassVar
 
 import torch
 from torch import Tensor
@@ -39,8 +39,9 @@ from torchmm.linalg import any_observed, cholesky, cholesky_solve, condition
 from torchmm.filters.smoother import rts_step
 from torchmm.models.base import MeasurementModel
 from torchmm.models.linear import LinearMeasurement, matvec
+from torchmm.models.streams import MultiRate
 from torchmm.multimodel.bank import FilterBank, IndexedBank, ListBank, VectorizedBank
-from torchmm.multimodel.imm import IMM, _mode_batch, _safe_sub
+from torchmm.multimodel.imm import IMM, mode_batch, safe_log_normalize
 from torchmm.validation import check_measurement
 
 __all__ = [
@@ -53,18 +54,6 @@ __all__ = [
     "TransferIMM",
     "influence_value",
 ]
-
-
-class MultiRate(NamedTuple):
-    """Target and source measurement streams (a pytree: ``run_filter`` indexes both at ``k``).
-
-    Shapes:
-        target: ``(*B, m)`` per step (``(T, *B, m)`` as a sequence), NaN = missing
-        source: ``(*B, m_S)`` per step, NaN where no source datum (``gamma_k = 0``)
-    """
-
-    target: Tensor
-    source: Tensor
 
 
 def _split(z: Any) -> tuple[Tensor, Tensor]:
@@ -86,7 +75,7 @@ def _streams(imm: IMM, belief, z: Any, source: MeasurementModel) -> tuple[Tensor
     y, ys = _split(z)
     target_belief = belief.target if isinstance(belief, SourceTrackBelief) else belief
     y = imm._measurement(target_belief, y, "z.target")
-    ys = check_measurement(ys, source.meas_dim, _mode_batch(target_belief), target_belief.mode_log_probs,
+    ys = check_measurement(ys, source.meas_dim, mode_batch(target_belief), target_belief.mode_log_probs,
                            "z.source")
     return y, ys
 
@@ -350,7 +339,7 @@ class TransferIMM(IMM):
             ll = torch.where(present.unsqueeze(-1), transferred.log_likelihood, plain.extras["mode_log_likelihood"])
             joint = ll + prior.mode_log_probs
             norm = torch.logsumexp(joint, dim=-1)
-            mode_log_probs = _safe_sub(joint, norm.unsqueeze(-1))
+            mode_log_probs = safe_log_normalize(joint, norm.unsqueeze(-1))
             log_likelihood = torch.where(any_observed(y), norm, 0.0)  # exactly 0 without a datum
         else:
             log_likelihood = plain.log_likelihood
@@ -497,7 +486,7 @@ class FusionIMM(_SourceTrackIMM):
     (prediction only between source data). When a source datum arrives, each mode's posterior is
     fused with the source track's combined estimate ``(x_s, P_s)`` by information fusion
     (``P_js = 0``): ``P_f = (P_j^{-1} + P_s^{-1})^{-1}``, ``x_f = P_f (P_j^{-1} x_j + P_s^{-1} x_s)``
-    (ALGORITHMS.md 3.2 default), computed as the equivalent update with ``z = x_s``, ``R = P_s``.
+    (docs/baselines.md §3.2 default), computed as the equivalent update with ``z = x_s``, ``R = P_s``.
     The fused mode estimates are what the next mixing uses (fusion inside the IMM); mode
     probabilities use the target likelihood only.
 
@@ -531,7 +520,7 @@ class FusionIMM(_SourceTrackIMM):
 
 
 class SourceModeVSIMM(_SourceTrackIMM):
-    r"""VSIMM with a mode built from the source estimate (ALGORITHMS.md 3.3).
+    r"""VSIMM with a mode built from the source estimate (docs/baselines.md §3.3).
 
     The fixed set of ``M`` modes runs as an IMM on ``y``; mode ``e`` (index ``M``, dynamics of
     mode ``extra_model``) is active per run while its probability is at least ``drop_below``.
@@ -615,11 +604,11 @@ class SourceModeVSIMM(_SourceTrackIMM):
         out = self.extended.update(predicted, y.unsqueeze(-2), generator=generator)
         joint = out.log_likelihood + log_cbar
         norm = torch.logsumexp(joint, dim=-1, keepdim=True)
-        log_mu = _safe_sub(joint, norm)
+        log_mu = safe_log_normalize(joint, norm)
         is_extra = torch.arange(M + 1, device=mu.device) == M
         drop = is_extra & (log_mu < torch.log(torch.tensor(self.drop_below, dtype=mu.dtype)))
         log_mu = torch.where(drop, -torch.inf, log_mu)
-        log_mu = _safe_sub(log_mu, torch.logsumexp(log_mu, dim=-1, keepdim=True))
+        log_mu = safe_log_normalize(log_mu, torch.logsumexp(log_mu, dim=-1, keepdim=True))
         new_target = ModeBelief(log_mu, out.belief)
         extras = {"mode_log_likelihood": out.log_likelihood, "source_present": present,
                   "extra_mode_active": log_mu[..., M] > -torch.inf}

@@ -19,7 +19,8 @@ from torch import Tensor
 
 from torchmm.beliefs import GaussianBelief, psd_sqrt
 from torchmm.models.base import MeasurementModel, MotionModel
-from torchmm.multimodel.transition import validate_transition
+from torchmm.models.streams import MultiRate
+from torchmm.models.transition import validate_transition
 from torchmm.validation import as_tensor
 
 __all__ = [
@@ -238,7 +239,6 @@ def simulate_multirate(
         >>> z.target.shape, z.source.shape, bool(z.source.isnan().any())
         (torch.Size([50, 8, 1]), torch.Size([50, 8, 1]), True)
     """
-    from torchmm.multimodel.transfer import MultiRate
 
     if (probability is None) == (period is None):
         raise ValueError("probability, period: give exactly one of them")

@@ -1,0 +1,129 @@
+r"""Markov mode-transition matrices.
+
+Convention (stated once, used everywhere): ``P[i, j] = P(mode_k = j | mode_{k-1} = i)``; rows
+sum to one; predicted mode probabilities are ``mu @ P``. This is Bar-Shalom's and FilterPy's
+(code) orientation. Matrices printed the other way round must be transposed before use.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from torchmm.validation import as_tensor, check_stochastic_rows
+
+__all__ = ["ModeTransition", "alpha_transition", "as_transition", "transition_alpha", "validate_transition"]
+
+
+def validate_transition(matrix, name: str = "transition") -> Tensor:
+    """Convert and check a row-stochastic transition matrix ``(..., M, M)``.
+
+    Raises:
+        ValueError: naming ``name`` if the matrix is not square, has negative entries, or has a
+            row that does not sum to one.
+    """
+    matrix = as_tensor(matrix, name)
+    check_stochastic_rows(matrix, name)
+    return matrix
+
+
+def alpha_transition(alpha, *, dtype=None) -> Tensor:
+    r"""The ``m``-parameter transition matrix of paper 001, eq. (2.2).
+
+    .. math::
+        \pi_{ij} = \alpha_j \; (i \ne j), \qquad \pi_{jj} = 1 - \textstyle\sum_l \alpha_l + \alpha_j
+
+    Rows sum to one by construction. (The matrix printed as (2.3) in the paper is the transpose of
+    (2.2) and is column-stochastic; see ``docs/reproduction.md``.)
+
+    Args:
+        alpha: ``(..., M)`` non-negative, with ``sum(alpha) - alpha_j <= 1`` for every ``j``.
+
+    Returns:
+        ``(..., M, M)`` row-stochastic matrix.
+    """
+    alpha = as_tensor(alpha, "alpha", dtype=dtype)
+    if alpha.dim() < 1 or alpha.shape[-1] < 1:
+        raise ValueError(f"alpha: expected shape (..., M), got {tuple(alpha.shape)}")
+    if bool((alpha.detach() < 0).any()):
+        raise ValueError(f"alpha: entries must be non-negative, got {alpha.tolist()}")
+    total = alpha.sum(-1, keepdim=True)
+    diagonal = 1 - total + alpha
+    if bool((diagonal.detach() < -1e-12).any()):
+        raise ValueError(
+            f"alpha: sum(alpha) - alpha_j must be <= 1 for every j (diagonal would be negative: "
+            f"{diagonal.tolist()})"
+        )
+    M = alpha.shape[-1]
+    eye = torch.eye(M, dtype=alpha.dtype, device=alpha.device)
+    matrix = alpha.unsqueeze(-2).expand(*alpha.shape[:-1], M, M)
+    return matrix * (1 - eye) + torch.diag_embed(diagonal.clamp_min(0))
+
+
+def transition_alpha(matrix: Tensor, atol: float = 1e-12) -> Tensor | None:
+    """The ``alpha`` of a matrix in the form (2.2), or ``None`` if it is not of that form.
+
+    A matrix is of the form (2.2) when every column is constant off the diagonal
+    (``pi_ij = alpha_j`` for all ``i != j``); then ``alpha_j`` is that value.
+
+    Shapes:
+        matrix: ``(M, M)`` -> ``(M,)`` or ``None``
+    """
+    M = matrix.shape[-1]
+    if M == 1:
+        return matrix.new_zeros(1)
+    off = ~torch.eye(M, dtype=torch.bool, device=matrix.device)
+    column_max = torch.where(off, matrix, -torch.inf).amax(-2)
+    column_min = torch.where(off, matrix, torch.inf).amin(-2)
+    if bool(((column_max - column_min).abs() > atol).any()):
+        return None
+    return column_max
+
+
+class ModeTransition(nn.Module):
+    """A transition matrix as a module: fixed (buffer) or learnable (row-wise softmax logits).
+
+    Args:
+        matrix: ``(M, M)`` row-stochastic matrix (validated).
+        learnable: if true, the matrix is parametrised by logits ``log(matrix)`` as an
+            ``nn.Parameter``; ``matrix()`` is then ``softmax(logits, -1)`` (rows stay stochastic).
+
+    Examples:
+        >>> t = ModeTransition(torch.tensor([[0.9, 0.1], [0.2, 0.8]]))
+        >>> t.log_matrix().exp()
+        tensor([[0.9000, 0.1000],
+                [0.2000, 0.8000]])
+    """
+
+    def __init__(self, matrix, *, learnable: bool = False):
+        super().__init__()
+        matrix = validate_transition(matrix, "matrix")
+        self.learnable = learnable
+        if learnable:
+            self.logits = nn.Parameter(matrix.detach().clamp_min(1e-12).log())
+        else:
+            self.register_buffer("value", matrix)
+
+    @property
+    def num_modes(self) -> int:
+        return (self.logits if self.learnable else self.value).shape[-1]
+
+    def log_matrix(self) -> Tensor:
+        """``log P`` (``-inf`` for zero entries). Shape ``(M, M)``."""
+        if self.learnable:
+            return torch.log_softmax(self.logits, dim=-1)
+        return self.value.log()
+
+    def matrix(self) -> Tensor:
+        """``P``, shape ``(M, M)``."""
+        return self.log_matrix().exp() if self.learnable else self.value
+
+
+def as_transition(transition, name: str = "transition") -> ModeTransition:
+    """``transition`` as a :class:`ModeTransition` (a matrix is validated; errors name ``name``)."""
+    if isinstance(transition, ModeTransition):
+        return transition
+    try:
+        return ModeTransition(transition)
+    except ValueError as err:
+        raise ValueError(f"{name}: {str(err).removeprefix('matrix: ')}") from None
