@@ -349,7 +349,7 @@ class LearnDynamics:
     learn: LearnSection = field(default_factory=LearnSection)
 
 
-MEVSMM_KINDS = ("eqma9", "eqma21", "cm", "topk", "nofeedback", "exact", "mmpf")
+MEVSMM_KINDS = ("eqma9", "eqma21", "cm", "topk", "nofeedback", "exact", "mmpf", "vsmm")
 
 
 @dataclass

@@ -127,14 +127,9 @@ def _oracle(data, steps: int):
     H[0, 0] = H[1, 2] = 1.0
     meas = PositionMeasurement(4, [0, 2], data["e_cov"])
     belief = GaussianBelief(data["xhat0"], data["P0"].expand(*data["xhat0"].shape, 4))
-    means, preds = [], []
-    for k in range(steps):
-        kf = KalmanFilter(LinearMotion(data["F"][k], data["Q"][k]), meas)
-        prior = kf.predict(belief)
-        belief = kf.update(prior, data["z"][k] - data["e_mean"]).belief
-        means.append(belief.mean)
-        preds.append(prior.cov)
-    return torch.stack(means), torch.stack(preds)
+    motions = [LinearMotion(data["F"][k], data["Q"][k]) for k in range(steps)]  # the true F_k, Q_k per step
+    traj = run_filter(KalmanFilter(motions[0], meas), belief, data["z"][:steps] - data["e_mean"], motions=motions)
+    return traj.belief.mean, traj.prior.cov
 
 
 def _srnfn(estimate: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:

@@ -23,7 +23,10 @@ from torch import Tensor
 
 from experiments.harness import StudyContext
 from experiments.studies import plots
-from torchmm import GaussianBelief, LinearMotion, PositionMeasurement
+from experiments.estimators import build_mode_filter
+from torchmm import GaussianBelief, LinearMotion, PositionMeasurement, run_filter
+from torchmm.filters import StepOutput
+from torchmm.multimodel import VariableStructureIMM
 from torchmm.multimodel.mevsmm import (
     ChallengeMatch,
     EqMAParticleFilter,
@@ -115,7 +118,8 @@ def paper003_scenario(*, name: str, R: float, steps: int = 180, initial_state=(1
     )
 
 
-def _build(name: str, kind: str, scenario: Paper003Scenario, opts, generator: torch.Generator):
+def _build(name: str, kind: str, scenario: Paper003Scenario, opts, mode_filter=None, policy=None):
+    """The estimator of ``kind``; its random stream is an argument of every call (:func:`_run`)."""
     dtype, device = scenario.F.dtype, scenario.F.device
     acc = torch.tensor(MODELS, dtype=dtype, device=device)
     qa = float(opts.accel_std) ** 2 * torch.eye(2, dtype=dtype, device=device)
@@ -124,12 +128,15 @@ def _build(name: str, kind: str, scenario: Paper003Scenario, opts, generator: to
     if kind in ("eqma9", "eqma21"):
         grid = acc[EQMA9] if kind == "eqma9" else acc
         return EqMAParticleFilter(scenario.F, scenario.D, grid, qa, sensor, Np, stay=float(opts.stay_prob),
-                                  mixing=str(opts.mixing), generator=generator, innovation_stats=False,
-                                  noise_dtype=noise_dtype)
+                                  mixing=str(opts.mixing), innovation_stats=False, noise_dtype=noise_dtype)
     motion = LinearMotion(scenario.F, scenario.D @ qa @ scenario.D.mT, offset=acc @ scenario.D.mT)
     stay = opts.get("mevsmm_stay_prob")
     stay = 1.0 / len(MODELS) if stay is None else float(stay)  # null: uniform, the "maximum-likelihood" competition
     transition = uniform_transition(len(MODELS), stay, dtype=dtype, device=device)
+    if kind == "vsmm":  # the model-set policy (conf/policy) over the configured bank (conf/mode_filter)
+        bank = build_mode_filter(mode_filter, motion, sensor)
+        return VariableStructureIMM(bank, transition, policy or ExactMinimumEntropy(entropy=str(opts.entropy)),
+                                    feedback=bool(opts.feedback))
     if kind == "exact":
         selection = ExactMinimumEntropy(chunk_size=int(opts.exact_chunk), entropy=str(opts.entropy))
         feedback = bool(opts.feedback)
@@ -141,40 +148,46 @@ def _build(name: str, kind: str, scenario: Paper003Scenario, opts, generator: to
                                    passes=int(opts.cm_passes))
         feedback = bool(opts.feedback) if kind != "nofeedback" else False
     return MinimumEntropyVSMM(motion, sensor, transition, Np, selection=selection, feedback=feedback,
-                              mixing=str(opts.mixing), generator=generator, innovation_stats=False,
-                              noise_dtype=noise_dtype)
+                              mixing=str(opts.mixing), innovation_stats=False, noise_dtype=noise_dtype)
 
 
-def _run(filt, scenario: Paper003Scenario, z: Tensor, hist_steps: set[int]) -> dict:
-    """Filter all runs; returns per-step estimates, model counts, membership, ESS, weights, time."""
+def _run(filt, scenario: Paper003Scenario, z: Tensor, hist_steps: set[int], generator: torch.Generator) -> dict:
+    """Filter all runs (:func:`~torchmm.run_filter`, the first datum at the prior's time: update only);
+    returns per-step estimates, model counts, membership, ESS, weight histograms and the time per step."""
     runs = z.shape[1]
-    means, counts, members, ess, hists = [], [], [], [], {}
-    tic = time.perf_counter()
-    belief = filt.initial_belief(scenario.prior(runs))
-    for k in range(z.shape[0]):
-        out = filt.update(belief, z[k]) if k == 0 else filt.step(belief, z[k])
-        belief = out.belief
-        means.append(_estimate_mean(belief))
-        extras = out.extras
+    hists: dict[int, Tensor] = {}
+    step = iter(range(1, z.shape[0] + 1))
+
+    def record(out):  # keep only what the study reports (the particle sets are too large to keep)
+        k, belief, extras = next(step), out.belief, out.extras
+        kept = {"mean": _estimate_mean(belief),
+                "count": extras["model_count"].to(z.dtype) if "active" in extras
+                else torch.full((runs,), float(filt.num_modes), dtype=z.dtype, device=z.device)}
         if "active" in extras:
-            members.append(extras["active"])
-            counts.append(extras["model_count"].to(z.dtype))
-        else:
-            counts.append(torch.full((runs,), float(filt.num_modes), dtype=z.dtype, device=z.device))
-        ess.append(extras["ess"])
-        if k + 1 in hist_steps:
+            kept["active"] = extras["active"]
+        if "ess" in extras:
+            kept["ess"] = extras["ess"]
+        if k in hist_steps and hasattr(belief.components, "log_weights"):
             lw = belief.mode_log_probs[0].unsqueeze(-1) + belief.components.log_weights[0]
-            hists[k + 1] = lw.flatten().detach().clamp_min(-700.0)  # JSON-safe (no -inf)
+            hists[k] = lw.flatten().detach().clamp_min(-700.0)  # JSON-safe (no -inf)
+        return StepOutput(None, None, out.log_likelihood, None, None, kept)
+
+    tic = time.perf_counter()
+    belief0 = filt.initial_belief(scenario.prior(runs), generator=generator)
+    traj = run_filter(filt, belief0, z, generator=generator, update_first=True, record=record)
     elapsed = time.perf_counter() - tic
+    kept = traj.extras
     return {
-        "mean": torch.stack(means), "count": torch.stack(counts),
-        "members": torch.stack(members) if members else None, "ess": torch.stack(ess),
+        "mean": kept["mean"], "count": kept["count"], "members": kept.get("active"),
+        "ess": kept.get("ess"),  # particle estimators only
         "hists": hists, "seconds_per_step": elapsed / z.shape[0],
     }
 
 
 def _estimate_mean(belief) -> Tensor:
     """The output estimate's mean (31) without its covariance: one batched matmul. ``(*B, n)``."""
+    if not hasattr(belief.components, "log_weights"):  # Gaussian mode filters (estimator kind vsmm)
+        return belief.estimate().mean
     lp = belief.mode_log_probs
     if hasattr(belief, "active"):
         lp = torch.where(belief.active, lp, torch.full_like(lp, -float("inf")))
@@ -231,15 +244,19 @@ def run(ctx: StudyContext) -> None:
             sq_vel = torch.zeros_like(sq_pos)
             count_sum, member_sum, ess_sum, seconds, hists = torch.zeros_like(sq_pos), None, torch.zeros_like(sq_pos), 0.0, {}
             gen = ctx.generator("filter", scenario.name, name)
+            mode_filter = instantiate(cfg.mode_filter) if kind == "vsmm" else None
+            policy = instantiate(cfg.policy) if kind == "vsmm" and cfg.get("policy") else None
+            filt = _build(name, kind, scenario, opts, mode_filter, policy)
             for start in range(0, est_runs, chunk):
                 sl = slice(start, min(start + chunk, est_runs))
-                filt = _build(name, kind, scenario, opts, gen)
-                res = _run(filt, scenario, z[:, sl], hist_steps if start == 0 else set())
+                res = _run(filt, scenario, z[:, sl], hist_steps if start == 0 else set(), gen)
                 err = res["mean"] - truth[:, sl]
                 sq_pos += err[..., [0, 2]].square().sum(-1).sum(1)
                 sq_vel += err[..., [1, 3]].square().sum(-1).sum(1)
                 count_sum += res["count"].sum(1)
-                ess_sum += res["ess"].sum(1)
+                has_ess = res["ess"] is not None
+                if has_ess:
+                    ess_sum += res["ess"].sum(1)
                 if res["members"] is not None:
                     m = res["members"].to(ctx.dtype).sum(1)
                     member_sum = m if member_sum is None else member_sum + m
@@ -247,7 +264,7 @@ def run(ctx: StudyContext) -> None:
                 hists = hists or {str(k): v.tolist() for k, v in res["hists"].items()}
             return {
                 "pos": (sq_pos / est_runs).sqrt().tolist(), "vel": (sq_vel / est_runs).sqrt().tolist(),
-                "count": (count_sum / est_runs).tolist(), "ess": (ess_sum / est_runs).tolist(),
+                "count": (count_sum / est_runs).tolist(), "ess": (ess_sum / est_runs).tolist() if has_ess else None,
                 "members": None if member_sum is None else (member_sum / est_runs).tolist(),
                 "seconds_per_step": seconds * (runs / est_runs), "runs": est_runs, "hists": hists,
             }
@@ -274,7 +291,8 @@ def run(ctx: StudyContext) -> None:
         ctx.logger.series(f"pos_rmse/{name}", pos)
         ctx.logger.series(f"vel_rmse/{name}", vel)
         ctx.logger.series(f"model_count/{name}", res["count"])
-        ctx.logger.series(f"ess/{name}", res["ess"])
+        if res["ess"] is not None:
+            ctx.logger.series(f"ess/{name}", res["ess"])
         for step, values in res["hists"].items():
             ctx.logger.histogram(f"log_weights/{name}", torch.tensor(values), int(step))
         log.info("%s: pos %.2f vel %.2f count %.2f %.3f s/step", name, pos.mean(), vel.mean(), avg_count,

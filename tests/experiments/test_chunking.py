@@ -86,7 +86,7 @@ def test_mevsmm_combines_every_chunk(tmp_path, monkeypatch):
     stand-in for the filter run: every statistic is a function of the run index."""
     import experiments.studies.mevsmm as study
 
-    def fake_run(filt, scenario, z, hist_steps):
+    def fake_run(filt, scenario, z, hist_steps, generator):
         T, runs = z.shape[0], z.shape[1]
         ids = z[0, :, 0:1]  # the run's index, planted in the data below
         mean = ids.unsqueeze(0).expand(T, runs, 4) * torch.arange(1, 5, dtype=z.dtype)

@@ -18,7 +18,7 @@ from pathlib import Path
 
 RECORDS = Path(__file__).with_name("records")
 
-#: the sizes of the recorded runs: the fast suite's per-study overrides with 4 Monte Carlo runs
+#: the sizes of the recorded runs: the study's conf/debug sizes (4 Monte Carlo runs), added per study
 COMMON = ["mc_runs=4", "progress=false", "logger=none"]
 
 #: studies whose estimators draw random numbers themselves (particle filters): bit-identical while the
