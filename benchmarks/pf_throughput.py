@@ -39,7 +39,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from experiments.studies.mevsmm import MODELS, paper003_scenario
 from torchmm import LinearMotion
 from torchmm.filters.particle import noise_factor
-from torchmm.multimodel.mevsmm import ChallengeMatch, MinimumEntropyVSMM, _units, uniform_transition
+from torchmm.multimodel.mevsmm import ChallengeMatch, MinimumEntropyVSMM, uniform_transition
+from torchmm.multimodel.policies import _units
 from torchmm.runtime import retain_freed_memory
 
 

@@ -428,3 +428,42 @@ def test_gradients_flow_through_local_estimators_and_fusion():
     h = torch.tensor([0.6, 0.7], requires_grad=True)
     qp = torch.tensor([0.1, 0.2], requires_grad=True)
     assert torch.autograd.gradcheck(fused, (h, qp))
+
+
+def test_fuse_tracks_on_beliefs_matches_information_fusion_and_fuses_imm_tracks():
+    """Independent tracks: the matrix weights give information fusion; any estimator's belief is a track."""
+    import torch
+
+    from torchmm import IMM, ConstantVelocity, GaussianBelief, KalmanFilter, PositionMeasurement, run_filter
+    from torchmm.fusion import fuse_tracks
+
+    g = torch.Generator().manual_seed(0)
+    A = torch.randn(5, 2, 2, generator=g, dtype=torch.float64)
+    P1 = A @ A.mT + 0.5 * torch.eye(2, dtype=torch.float64)
+    B = torch.randn(5, 2, 2, generator=g, dtype=torch.float64)
+    P2 = B @ B.mT + 0.5 * torch.eye(2, dtype=torch.float64)
+    x1, x2 = torch.randn(5, 2, generator=g, dtype=torch.float64), torch.randn(5, 2, generator=g, dtype=torch.float64)
+    fused = fuse_tracks([GaussianBelief(x1, P1), GaussianBelief(x2, P2)])
+    info = torch.linalg.inv(P1) + torch.linalg.inv(P2)
+    want_cov = torch.linalg.inv(info)
+    want_mean = (want_cov @ (torch.linalg.solve(P1, x1.unsqueeze(-1)) + torch.linalg.solve(P2, x2.unsqueeze(-1)))
+                 ).squeeze(-1)
+    torch.testing.assert_close(fused.cov, want_cov, rtol=0, atol=1e-10)
+    torch.testing.assert_close(fused.mean, want_mean, rtol=0, atol=1e-10)
+    # two IMM tracks of one target from two sensors: the fused track is tighter than either
+    motion = ConstantVelocity(1, q=0.5, acceleration=torch.tensor([[0.5], [0.0], [-0.5]], dtype=torch.float64),
+                              dtype=torch.float64)
+    P = torch.full((3, 3), 0.05, dtype=torch.float64) + 0.85 * torch.eye(3, dtype=torch.float64)
+    z = torch.cumsum(torch.randn(20, 4, 1, generator=g, dtype=torch.float64), 0)
+    prior = GaussianBelief(torch.zeros(4, 2, dtype=torch.float64), 10 * torch.eye(2, dtype=torch.float64))
+    tracks = []
+    for r in (1.0, 4.0):
+        imm = IMM(KalmanFilter(motion, PositionMeasurement(2, [0], torch.tensor(r, dtype=torch.float64),
+                                                         dtype=torch.float64)), P)
+        tracks.append(run_filter(imm, imm.initial_belief(prior), z + r * torch.randn(20, 4, 1, generator=g,
+                                                                                  dtype=torch.float64)).belief)
+    out = fuse_tracks(tracks)
+    for t in tracks:
+        assert (out.cov.diagonal(dim1=-2, dim2=-1) <= t.estimate().cov.diagonal(dim1=-2, dim2=-1) + 1e-12).all()
+    with pytest.raises(ValueError, match="cross_covs"):
+        fuse_tracks(tracks, torch.zeros(2, 2, 3, 3, dtype=torch.float64))

@@ -221,6 +221,11 @@ def where(condition: Tensor, a: B, b: B) -> B:
     """
     if type(a) is not type(b):
         raise TypeError(f"where: beliefs of different types {type(a).__name__} and {type(b).__name__}")
+    fields = getattr(type(a), "event_dims", {})
+    if fields and len(fields) == len(dataclasses.fields(a)):  # flat beliefs (Gaussian, particle): direct
+        values = {name: torch.where(condition.reshape(*condition.shape, *(1,) * e), getattr(a, name), getattr(b, name))
+                  for name, e in fields.items()}
+        return type(a)(**values)
     leaves_a, spec = pytree.tree_flatten(a)
     leaves_b, spec_b = pytree.tree_flatten(b)
     if spec != spec_b:

@@ -4,7 +4,8 @@
 * :mod:`.local`: non-augmented local predictors / filters / smoothers (Theorems 1-3) and the
   cross-covariances between sensors (Theorems 4-6), sensors as a batch axis;
 * :mod:`.augmented`: the augmented formulation (12)-(15) and centralized fusion (Remark 10);
-* :mod:`.weights`: matrix / diagonal / scalar weighted fusion (44)-(47);
+* :mod:`.weights`: matrix / diagonal / scalar weighted fusion (44)-(47), also of any estimators' beliefs
+  (:func:`fuse_tracks`: IMM, UKF or particle tracks);
 * :mod:`.steady`: steady-state gains, cross-covariances and fused estimators (Theorems 7-8).
 
 Missing measurements (NaN) are supported when the pattern is the same in every run (multi-rate
@@ -43,7 +44,7 @@ from torchmm.fusion.system import (
     measurement_sequence,
     simulate_fusion,
 )
-from torchmm.fusion.weights import FUSION_METHODS, FusedEstimate, fuse, fusion_weights
+from torchmm.fusion.weights import FUSION_METHODS, FusedEstimate, fuse, fuse_tracks, fusion_weights
 
 __all__ = [
     "FUSION_METHODS",
@@ -61,6 +62,7 @@ __all__ = [
     "cross_covariances",
     "cross_predictor_stats",
     "fuse",
+    "fuse_tracks",
     "fusion_weights",
     "local_covariances",
     "local_estimates",

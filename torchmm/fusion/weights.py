@@ -21,9 +21,10 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from torchmm.beliefs import Belief, GaussianBelief, stack
 from torchmm.beliefs.ops import symmetrize
 
-__all__ = ["FusedEstimate", "constrained_weights", "fusion_weights", "fuse", "FUSION_METHODS"]
+__all__ = ["FusedEstimate", "constrained_weights", "fusion_weights", "fuse", "fuse_tracks", "FUSION_METHODS"]
 
 FUSION_METHODS = ("matrix", "diagonal", "scalar")
 
@@ -124,3 +125,54 @@ def fuse(mean: Tensor, P: Tensor, method: str = "matrix", components=None) -> Fu
     W = weights.reshape(T, *([1] * (mean.dim() - 3)), *weights.shape[1:])
     fused = (W @ mean.unsqueeze(-1)).squeeze(-1).sum(-2)
     return FusedEstimate(fused, Po, weights)
+
+
+def fuse_tracks(tracks, cross_covs: Tensor | None = None, method: str = "matrix") -> GaussianBelief:
+    r"""Track-to-track fusion of ``L`` local estimates of one state, on torchmm's belief types.
+
+    Any estimator's output can be a track: a Kalman or unscented filter's posterior, an IMM's
+    ``belief.estimate()``, a particle filter's moments (each ``track.estimate()`` is used). With the
+    local errors' joint covariance ``P = [P_ij]`` (``P_ii`` the tracks' own covariances, ``P_ij``
+    the cross-covariances; zero when ``cross_covs`` is None, i.e. independent tracks) the fused
+    estimate is ``sum_i A_i x_i`` with the matrix, diagonal-matrix or scalar weights of (45)-(47)
+    (:func:`fusion_weights`), per batch element.
+
+    Args:
+        tracks: a sequence of ``L`` beliefs with batch ``(*B,)``, or one belief with batch
+            ``(*B, L)`` (the track axis last).
+        cross_covs: ``(*B, L, L, n, n)`` joint error covariance (its diagonal blocks are replaced by
+            the tracks' own covariances), or None.
+        method: ``"matrix"`` (default), ``"diagonal"`` or ``"scalar"``.
+
+    Returns:
+        :class:`~torchmm.beliefs.GaussianBelief` with batch ``(*B,)``: the fused mean and ``P_o``.
+
+    Examples:
+        >>> a = GaussianBelief(torch.zeros(1), torch.eye(1))
+        >>> b = GaussianBelief(torch.ones(1), 3 * torch.eye(1))
+        >>> fused = fuse_tracks([a, b])
+        >>> round(fused.mean.item(), 4), round(fused.cov.item(), 4)
+        (0.25, 0.75)
+    """
+    if isinstance(tracks, Belief):
+        moments = tracks.estimate()
+    else:
+        tracks = list(tracks)
+        if not tracks or not all(isinstance(t, Belief) for t in tracks):
+            raise TypeError("tracks: expected a non-empty sequence of beliefs or one belief with a track axis")
+        moments = stack([t.estimate() for t in tracks], dim=-1)
+    moments = moments.materialize()
+    mean, cov = moments.mean, moments.cov  # (*B, L, n), (*B, L, n, n)
+    *batch, L, n = mean.shape
+    if cross_covs is None:
+        P = torch.zeros(*batch, L, L, n, n, dtype=mean.dtype, device=mean.device)
+    else:
+        if cross_covs.shape[-4:] != (L, L, n, n):
+            raise ValueError(f"cross_covs: expected shape (*B, {L}, {L}, {n}, {n}), got {tuple(cross_covs.shape)}")
+        P = cross_covs.expand(*batch, L, L, n, n).clone()
+    idx = torch.arange(L, device=mean.device)
+    P[..., idx, idx, :, :] = cov
+    weights, Po = fusion_weights(P, method)  # (*B, L, n, n)
+    fused = (weights @ mean.unsqueeze(-1)).squeeze(-1).sum(-2)
+    return GaussianBelief(fused, Po)
+

@@ -110,6 +110,9 @@ def truncated_segments(steps: int, window: int | None) -> list[slice]:
 
 
 def as_start_belief(filter, belief0):
-    if hasattr(filter, "initial_belief") and not isinstance(belief0, ModeBelief):
-        return filter.initial_belief(belief0)
-    return belief0
+    """The filter's belief at time 0: ``belief0`` itself if it is already a mode belief (from
+    ``initial_belief``), otherwise ``filter.initial_belief(belief0)`` (every filter has one; the
+    base returns the prior validated)."""
+    if isinstance(belief0, ModeBelief):
+        return belief0
+    return filter.initial_belief(belief0)

@@ -117,10 +117,14 @@ class VectorizedBank(FilterBank):
 
     def predict(self, belief, *, u: Tensor | None = None, motion=None, generator=None):
         f = self.filter if motion is None else self.filter.with_motion(motion)
+        if generator is None:  # the common case, without the dispatch
+            return f.predict(belief, u=u)
         return call_with(f, "predict", belief, u=u, generator=generator)
 
     def update(self, belief, z: Tensor, *, sensor=None, generator=None) -> StepOutput:
         f = self.filter if sensor is None else self.filter.with_sensor(sensor)
+        if generator is None:
+            return f.update(belief, z)
         return call_with(f, "update", belief, z, generator=generator)
 
 

@@ -32,7 +32,6 @@ from torchmm.filters.base import StepOutput
 from torchmm.filters.particle import (
     ParticleFilter,
     check_generator,
-    check_noise_dtype,
     check_particle_prior,
     degenerate_guard,
     particle_batch,
@@ -44,7 +43,6 @@ from torchmm.filters.particle import (
 from torchmm.filters.resampling import searchsorted_rows, systematic_search
 from torchmm.linalg import any_observed
 from torchmm.models.base import MeasurementModel, MotionModel, check_model_pair
-from torchmm.models.transition import as_transition
 from torchmm.multimodel.imm import Interaction, MultipleModelFilter
 from torchmm.validation import as_int, check_measurement, check_probabilities
 

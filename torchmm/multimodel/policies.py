@@ -1,0 +1,435 @@
+r"""Model-set policies of paper 003 (25)-(34): exact minimum entropy and the challenge match.
+
+Both select, per run and step, the active models of a variable-structure estimator: as
+``policy(joint_log_weights (*B, M, Np), generator)`` on a multiple-model particle filter's joint
+weights (:class:`~torchmm.multimodel.mevsmm.MinimumEntropyVSMM`), or as
+``policy.select(posterior, generator)`` over any bank
+(:class:`~torchmm.multimodel.VariableStructureIMM`; the entropy then uses the beliefs' own
+``entropy()``: Shannon for particle weights, differential for Gaussians).
+
+**Exact myopic selection** (25)-(31), :class:`ExactMinimumEntropy`. With joint normalised weights
+``w_{jl}`` (model ``j``, particle ``l``), per-model masses ``W_j = sum_l w_{jl}`` and within-model
+entropies ``h_j = -sum_l (w_{jl}/W_j) log(w_{jl}/W_j)``, the entropy of the weights restricted to
+and renormalised on a set ``S`` is (reading "joint", see docs/reproduction-003.md)
+
+.. math::
+    H(S) = \log W_S - \frac{1}{W_S}\sum_{j\in S} W_j(\log W_j - h_j),\qquad W_S = \sum_{j\in S} W_j,
+
+so the entropies of *all* ``2^M - 1`` non-empty subsets are one subset-indicator matrix times
+two per-model sums, evaluated in chunks of subsets (bounded memory). The literal reading of (26)
+(``omega`` of (28) times ``p(m_j | S)`` of (29)) gives ``H(S) = sum_j p_j^2 (h_j - 2 log p_j)`` with
+``p_j = W_j / W_S`` and is available as ``entropy="literal"``. Since
+``H(S) = H(p) + sum_j p_j h_j >= min_j h_j``, the "joint" minimum is always attained by a single
+model (the one whose belief is most concentrated).
+
+**Challenge match** (32)-(34) and section 3.4.3, :class:`ChallengeMatch`: the ``N`` heaviest of the
+``M Np`` particles are found by the randomised tournament of the paper (vectorised over runs) or
+exactly by ``topk``; a model stays in the set if it has at least ``Thre`` of the ``N`` winners.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import torch
+from torch import Tensor
+
+from torchmm.beliefs import ModeBelief, ParticleBelief
+from torchmm.beliefs.ops import normalize_log_probs
+from torchmm.validation import as_int
+
+__all__ = [
+    "ChallengeMatch",
+    "ENTROPY_READINGS",
+    "ExactMinimumEntropy",
+    "challenge_match",
+    "min_entropy_set",
+    "min_entropy_subset",
+    "model_statistics",
+    "subset_entropies",
+    "subset_masks",
+]
+
+ENTROPY_READINGS = ("joint", "literal")
+
+
+# ------------------------------------------------------------------------------------------------
+# exact subset entropies
+# ------------------------------------------------------------------------------------------------
+def model_statistics(log_weights: Tensor) -> tuple[Tensor, Tensor]:
+    """Per-model log-masses ``log W_j`` and within-model entropies ``h_j`` of joint log-weights.
+
+    A model with no mass (all ``-inf``) gets ``log W_j = -inf`` and ``h_j = 0``.
+
+    Shapes:
+        log_weights: ``(*B, M, Np)`` (any normalisation) -> ``(*B, M)``, ``(*B, M)``
+    """
+    log_mass = torch.logsumexp(log_weights, dim=-1)
+    within = normalize_log_probs(log_weights)
+    p = within.exp()
+    h = -(torch.where(p > 0, p * within, torch.zeros_like(p))).sum(-1)
+    h = torch.where(torch.isfinite(log_mass), h, torch.zeros_like(h))
+    return log_mass, h
+
+
+def _scaled_stats(log_weights: Tensor, entropy: str) -> Tensor:
+    """Per-model sufficient statistics ``(*B, M, s)`` for :func:`_entropy_from_sums`."""
+    if entropy not in ENTROPY_READINGS:
+        raise ValueError(f"entropy: expected one of {ENTROPY_READINGS}, got {entropy!r}")
+    return _stats_from(*model_statistics(log_weights), entropy)
+
+
+def _stats_from(log_mass: Tensor, h: Tensor, entropy: str) -> Tensor:
+    """The sufficient statistics from per-model log-masses and within-model entropies ``(*B, M)``."""
+    top = log_mass.amax(-1, keepdim=True)
+    top = torch.where(torch.isfinite(top), top, torch.zeros_like(top))
+    log_scaled = log_mass - top  # <= 0, max 0
+    mass = log_scaled.exp()
+    safe_log = torch.where(mass > 0, log_scaled, torch.zeros_like(log_scaled))
+    if entropy == "joint":
+        return torch.stack([mass, mass * (safe_log - h)], dim=-1)
+    sq = mass.square()
+    return torch.stack([mass, sq * (h - 2 * safe_log), sq], dim=-1)
+
+
+def _entropy_from_sums(sums: Tensor, entropy: str) -> Tensor:
+    """Entropies from subset sums ``(..., s)``; subsets without (representable) mass -> ``+inf``."""
+    mass = sums[..., 0]
+    ok = mass > 0
+    safe = torch.where(ok, mass, torch.ones_like(mass))
+    if entropy == "joint":
+        value = safe.log() - sums[..., 1] / safe
+    else:
+        value = (sums[..., 1] + 2 * safe.log() * sums[..., 2]) / safe.square()
+    return torch.where(ok, value, torch.full_like(value, math.inf))
+
+
+def subset_masks(num_models: int, start: int = 1, stop: int | None = None, *, device=None) -> Tensor:
+    """Indicator rows of the subsets with binary codes ``start .. stop-1`` (bit ``j`` = model ``j``).
+
+    Shapes:
+        -> ``(stop - start, M)`` bool
+    """
+    stop = (1 << num_models) if stop is None else stop
+    codes = torch.arange(start, stop, dtype=torch.int64, device=device)
+    bits = torch.arange(num_models, dtype=torch.int64, device=device)
+    return ((codes.unsqueeze(-1) >> bits) & 1).bool()
+
+
+def subset_entropies(log_weights: Tensor, subsets: Tensor, entropy: str = "joint") -> Tensor:
+    """Entropy (26) of the particle weights restricted to each candidate set.
+
+    Shapes:
+        log_weights: ``(*B, M, Np)`` joint log-weights; subsets: ``(K, M)`` bool -> ``(*B, K)``
+    """
+    stats = _scaled_stats(log_weights, entropy)  # (*B, M, s)
+    subsets = _check_subsets(subsets, log_weights.shape[-2])
+    sums = torch.einsum("km,...ms->...ks", subsets.to(stats.dtype), stats)
+    return _entropy_from_sums(sums, entropy)
+
+
+def _check_subsets(subsets, num_models: int) -> Tensor:
+    subsets = torch.as_tensor(subsets)
+    if subsets.dim() != 2 or subsets.shape[-1] != num_models:
+        raise ValueError(f"family: expected a (K, {num_models}) indicator matrix, got {tuple(subsets.shape)}")
+    subsets = subsets.bool()
+    if not bool(subsets.any(-1).all()):
+        raise ValueError("family: every candidate set must contain at least one model")
+    return subsets
+
+
+def min_entropy_subset(log_weights: Tensor, family: Tensor | None = None, *, chunk_size: int = 16384,
+                       entropy: str = "joint") -> tuple[Tensor, Tensor]:
+    """The minimum-entropy candidate set (30) per batch element.
+
+    ``family=None`` searches all ``2^M - 1`` non-empty subsets (binary code ``c``, bit ``j`` = model
+    ``j``), evaluated about ``chunk_size`` at a time (memory ``~ chunk_size * prod(B) * 3 * 8``
+    bytes): the per-subset sums are those of the low and high halves of the code, each an
+    indicator matrix times the per-model sums. Otherwise the rows of ``family`` are the
+    candidates. Ties go to the first candidate (lowest code / row).
+
+    Returns:
+        ``(active, entropy)``: the selected set ``(*B, M)`` bool and its entropy ``(*B,)``.
+
+    Shapes:
+        log_weights: ``(*B, M, Np)``; family: ``(K, M)`` bool -> ``(*B, M)``, ``(*B,)``
+
+    Examples:
+        >>> lw = torch.log(torch.tensor([[[0.3, 0.1], [0.3, 0.3]]]))
+        >>> active, h = min_entropy_subset(lw)
+        >>> active.tolist()
+        [[True, False]]
+    """
+    return _min_entropy(_scaled_stats(log_weights, entropy), family, chunk_size, entropy)
+
+
+def min_entropy_set(log_mass: Tensor, within_entropy: Tensor, family: Tensor | None = None, *,
+                    chunk_size: int = 16384, entropy: str = "joint") -> tuple[Tensor, Tensor]:
+    """:func:`min_entropy_subset` from per-model statistics: any mode filter's beliefs.
+
+    ``log_mass`` are the models' (log) posterior probabilities, ``within_entropy`` the entropies of
+    their beliefs (the weights' Shannon entropy for particles, the differential entropy
+    ``(1/2) log det(2 pi e P)`` for Gaussians: :meth:`~torchmm.beliefs.GaussianBelief.entropy`).
+
+    Shapes:
+        log_mass, within_entropy: ``(*B, M)``; family ``(K, M)`` bool -> ``(*B, M)``, ``(*B,)``
+    """
+    if entropy not in ENTROPY_READINGS:
+        raise ValueError(f"entropy: expected one of {ENTROPY_READINGS}, got {entropy!r}")
+    h = torch.where(torch.isfinite(log_mass), within_entropy, torch.zeros_like(within_entropy))
+    return _min_entropy(_stats_from(log_mass, h, entropy), family, chunk_size, entropy)
+
+
+def _min_entropy(stats: Tensor, family, chunk_size: int, entropy: str) -> tuple[Tensor, Tensor]:
+    num_models = stats.shape[-2]
+    if chunk_size < 1:
+        raise ValueError(f"chunk_size: must be >= 1, got {chunk_size}")
+    batch = stats.shape[:-2]
+    flat = stats.reshape(batch.numel(), num_models, stats.shape[-1])  # (Bf, M, s)
+    operand = flat.permute(1, 0, 2).reshape(num_models, -1)  # (M, Bf * s)
+    if family is None:
+        if num_models > 30:
+            raise ValueError(f"family: all subsets of {num_models} models are too many; give a family")
+        total = (1 << num_models) - 1
+    else:
+        family = _check_subsets(family, num_models).to(stats.device)
+        total = family.shape[0]
+    best = torch.full((flat.shape[0],), math.inf, dtype=stats.dtype, device=stats.device)
+    best_index = torch.zeros(flat.shape[0], dtype=torch.int64, device=stats.device)
+    if family is None:
+        # all subsets: code = (high << a) | low, so a subset's sums are the sums of its low-half
+        # and high-half members: two small indicator matrices times the per-model sums, combined
+        # by broadcasting (one add per subset and statistic instead of M multiply-adds)
+        a = (num_models + 1) // 2
+        low = subset_masks(a, 0, device=stats.device).to(stats.dtype) @ operand[:a]  # (2^a, Bf*s)
+        high_masks = subset_masks(num_models - a, 0, device=stats.device).to(stats.dtype)
+        high = high_masks @ operand[a:]  # (2^b, Bf*s)
+        rows_per_chunk = max(1, chunk_size // low.shape[0])
+        for start in range(0, high.shape[0], rows_per_chunk):
+            stop = min(start + rows_per_chunk, high.shape[0])
+            sums = (high[start:stop, None] + low[None]).view(stop - start, low.shape[0], flat.shape[0],
+                                                             stats.shape[-1])
+            values = _entropy_from_sums(sums, entropy).flatten(0, 1)  # (chunk, Bf); code 0 -> +inf
+            chunk_best, chunk_arg = values.min(0)
+            better = chunk_best < best
+            best = torch.where(better, chunk_best, best)
+            best_index = torch.where(better, chunk_arg + start * low.shape[0], best_index)
+        best_index = best_index - 1  # codes start at 1 below
+    else:
+        for start in range(0, total, chunk_size):
+            stop = min(start + chunk_size, total)
+            rows = family[start:stop]
+            sums = (rows.to(stats.dtype) @ operand).view(stop - start, flat.shape[0], stats.shape[-1])
+            values = _entropy_from_sums(sums, entropy)  # (K_c, Bf)
+            chunk_best, chunk_arg = values.min(0)
+            better = chunk_best < best
+            best = torch.where(better, chunk_best, best)
+            best_index = torch.where(better, chunk_arg + start, best_index)
+    if family is None:
+        bits = torch.arange(num_models, device=stats.device)
+        active = (((best_index + 1).unsqueeze(-1) >> bits) & 1).bool()
+    else:
+        active = family[best_index]
+    # no candidate with representable mass (cannot happen with a finite weight): keep all
+    active = torch.where(torch.isfinite(best).unsqueeze(-1), active, torch.ones_like(active))
+    return active.view(*batch, num_models), best.view(batch)
+
+
+# ------------------------------------------------------------------------------------------------
+# challenge match
+# ------------------------------------------------------------------------------------------------
+def challenge_match(scores: Tensor, num_winners: int, *, passes: int = 1,
+                    generator: torch.Generator | None = None) -> Tensor:
+    """The randomised tournament of paper 003, section 3.4.3, for the ``N`` heaviest particles.
+
+    a) a random ``N`` particles form sequence 1; b) ``N`` further particles, taken from the
+    remaining pool in a random order (a random affine permutation per run), form sequence 2; c) the two sequences are compared position
+    by position (sequence 1 rotated by a random offset each round) and a heavier challenger takes
+    the place of the holder, who goes back to the pool; d) b)-c) repeat until every pool position
+    has challenged ``passes`` times (the last window padded with a particle that never wins).
+    Since a holder is only replaced by a strictly heavier challenger, the holder of position
+    ``p`` after a pass is the first maximum over it and its challengers, so a whole pass is a
+    handful of tensor ops over all runs and rounds at once (``max``; ``cummax`` to send the
+    losers back to the pool when another pass follows), equal to the round-by-round loop.
+    The number of true top-``N`` particles held never decreases, and with enough passes the
+    result equals ``topk`` (for distinct scores).
+
+    Returns:
+        indices of the winners into the last axis of ``scores``, ``(*B, N)`` (unordered).
+
+    Shapes:
+        scores: ``(*B, P)`` (e.g. log-weights of all ``M Np`` particles) -> ``(*B, N)``
+    """
+    P = scores.shape[-1]
+    if not 1 <= num_winners <= P:
+        raise ValueError(f"num_winners: must be in [1, {P}], got {num_winners}")
+    if passes < 0:
+        raise ValueError(f"passes: must be >= 0, got {passes}")
+    batch = scores.shape[:-1]
+    flat = scores.reshape(batch.numel(), P)
+    Bf, device = flat.shape[0], flat.device
+    order = _random_affine_permutation(Bf, P, device, generator)
+    seq1 = order[:, :num_winners].contiguous()
+    pool = order[:, num_winners:].contiguous()
+    held = torch.gather(flat, 1, seq1)
+    pool_size = P - num_winners
+    if pool_size > 0 and passes > 0:
+        N = num_winners
+        rounds = math.ceil(pool_size / N)
+        # every round's rotation at once (the same random stream as one draw per round)
+        shifts = torch.randint(0, N, (passes * rounds * Bf, 1), device=device, generator=generator)
+        shifts = shifts.view(passes, rounds, Bf, 1).transpose(1, 2)  # (passes, Bf, rounds, 1)
+        ar = torch.arange(N, device=device)
+        meet = ar - shifts  # holder p meets challenger (p - shift) mod N of the round's window
+        meet += N * (meet < 0)
+        # the pool as `rounds` windows of N, the last one padded with a dummy particle (index P,
+        # score -inf) that never wins; the dummy scores sit in an extra column of the score table
+        pad = rounds * N - pool_size
+        table = flat
+        if pad:
+            table = torch.cat([flat, torch.full((Bf, 1), -math.inf, dtype=flat.dtype, device=device)], 1)
+            dummy = torch.full((Bf, pad), P, dtype=pool.dtype, device=device)
+        for p in range(passes):  # over tournament passes (default 1), not over runs or particles
+            windows = (torch.cat([pool, dummy], 1) if pad else pool).view(Bf, rounds, N)
+            challengers = torch.gather(windows, 2, meet[p])  # (Bf, rounds, N), in meeting order
+            challenger_scores = torch.gather(table, 1, challengers.view(Bf, rounds * N)).view(Bf, rounds, N)
+            # holder p after all rounds is the running maximum over its challengers, ties to the
+            # earlier one (a challenger replaces the holder only if strictly heavier)
+            if p == passes - 1:
+                top, arg = challenger_scores.max(1)  # first maximum among the challengers
+                win = top > held
+                held = torch.where(win, top, held)
+                seq1 = torch.where(win, torch.gather(challengers, 1, arg.unsqueeze(1)).squeeze(1), seq1)
+                break
+            cand = torch.cat([held.unsqueeze(1), challenger_scores], 1)  # (Bf, rounds + 1, N)
+            cand_index = torch.cat([seq1.unsqueeze(1), challengers], 1)
+            # losers go back to the pool slot of the challenger they met (for the next pass):
+            # the holder of round r is the candidate of the last strict improvement up to r
+            best, _ = torch.cummax(cand, 1)
+            win = challenger_scores > best[:, :-1]
+            steps = torch.arange(rounds + 1, device=device).view(1, -1, 1)
+            changed = torch.cat([torch.ones_like(win[:, :1]), win], 1)
+            last, _ = torch.cummax(torch.where(changed, steps, torch.zeros_like(steps)), 1)
+            holder = torch.gather(cand_index, 1, last)  # (Bf, rounds + 1, N)
+            losers = torch.where(win, holder[:, :-1], challengers)  # in meeting order
+            back = (ar + shifts[p]) % N  # challenger slot k met holder (k + shift) mod N
+            pool = torch.gather(losers, 2, back).reshape(Bf, -1)[:, :pool_size].contiguous()
+            held, seq1 = best[:, -1], holder[:, -1]
+    return seq1.view(*batch, num_winners)
+
+
+@functools.lru_cache(maxsize=16)
+def _units(size: int) -> Tensor:
+    return torch.tensor([a for a in range(1, size) if math.gcd(a, size) == 1] or [1])
+
+
+def _random_affine_permutation(rows: int, size: int, device, generator) -> Tensor:
+    """Per row a random permutation ``j -> (a j + b) mod size`` (``a`` coprime with ``size``).
+
+    O(size) instead of a sort; the tournament's random meeting order (random rotations each
+    round) does the rest.
+
+    Shapes:
+        -> ``(rows, size)`` int64
+    """
+    units = _units(size).to(device)
+    pick = torch.randint(0, units.numel(), (rows, 1), device=device, generator=generator)
+    a = units[pick]
+    b = torch.randint(0, size, (rows, 1), device=device, generator=generator)
+    j = torch.arange(size, device=device)
+    return (a * j + b) % size
+
+
+# ------------------------------------------------------------------------------------------------
+# selection policies
+# ------------------------------------------------------------------------------------------------
+class ExactMinimumEntropy:
+    """Select the minimum-entropy set (30) among all non-empty subsets or a given ``family``.
+
+    Args:
+        family: ``(K, M)`` bool candidate sets, or a list of lists of model indices; None = all.
+        chunk_size: subsets evaluated at once.
+        entropy: ``"joint"`` (default; entropy of the renormalised weights on the set) or
+            ``"literal"`` (the product of (28) and (29) as printed).
+    """
+
+    def __init__(self, family=None, *, chunk_size: int = 16384, entropy: str = "joint"):
+        if entropy not in ENTROPY_READINGS:
+            raise ValueError(f"entropy: expected one of {ENTROPY_READINGS}, got {entropy!r}")
+        self.family, self.chunk_size, self.entropy = family, as_int(chunk_size, "chunk_size", minimum=1), entropy
+
+    def _family(self, num_models: int, device) -> Tensor | None:
+        if self.family is None:
+            return None
+        fam = self.family
+        if isinstance(fam, (list, tuple)) and fam and isinstance(fam[0], (list, tuple)):
+            rows = torch.zeros(len(fam), num_models, dtype=torch.bool)
+            for k, members in enumerate(fam):
+                rows[k, list(members)] = True
+            fam = rows
+        return _check_subsets(fam, num_models).to(device)
+
+    def __call__(self, log_weights: Tensor, generator=None) -> tuple[Tensor, dict]:
+        family = self._family(log_weights.shape[-2], log_weights.device)
+        active, value = min_entropy_subset(log_weights, family, chunk_size=self.chunk_size, entropy=self.entropy)
+        return active, {"entropy": value}
+
+    def select(self, belief: ModeBelief, generator=None) -> tuple[Tensor, dict]:
+        """The policy over any bank: the models' posterior probabilities and their beliefs' entropies
+        (:func:`min_entropy_set`). ``belief``: the posterior over all models, batch ``(*B,)``."""
+        comps = belief.components
+        if not hasattr(comps, "entropy"):
+            raise TypeError(f"ExactMinimumEntropy: the mode filters' belief {type(comps).__name__} defines no entropy()")
+        family = self._family(belief.num_modes, belief.mode_log_probs.device)
+        active, value = min_entropy_set(belief.mode_log_probs, comps.entropy(), family, chunk_size=self.chunk_size,
+                                        entropy=self.entropy)
+        return active, {"entropy": value}
+
+
+class ChallengeMatch:
+    """Keep the models with at least ``threshold`` of the ``num_winners`` heaviest particles.
+
+    Args:
+        num_winners: ``N`` (paper: 420).
+        threshold: ``Thre`` (paper: 23).
+        method: ``"cm"`` (the randomised tournament, :func:`challenge_match`) or ``"topk"`` (exact).
+        passes: tournament passes over the pool (the paper leaves the end condition open).
+
+    If no model reaches the threshold, the model with the most winners is kept (the set is never
+    empty); ``info["fallback"]`` marks those runs.
+    """
+
+    def __init__(self, num_winners: int = 420, threshold: int = 23, *, method: str = "cm", passes: int = 1):
+        if method not in ("cm", "topk"):
+            raise ValueError(f"method: expected 'cm' or 'topk', got {method!r}")
+        self.num_winners = as_int(num_winners, "num_winners", minimum=1)
+        self.threshold = as_int(threshold, "threshold", minimum=0)
+        self.method, self.passes = method, as_int(passes, "passes", minimum=0)
+
+    def __call__(self, log_weights: Tensor, generator=None) -> tuple[Tensor, dict]:
+        M, Np = log_weights.shape[-2:]
+        if self.num_winners > M * Np:
+            raise ValueError(f"num_winners: {self.num_winners} exceeds the {M} x {Np} = {M * Np} particles")
+        scores = log_weights.flatten(-2)
+        if self.method == "topk":
+            winners = torch.topk(scores, self.num_winners, dim=-1).indices
+        else:
+            winners = challenge_match(scores, self.num_winners, passes=self.passes, generator=generator)
+        model = torch.div(winners, Np, rounding_mode="floor")
+        counts = torch.zeros(*scores.shape[:-1], M, dtype=log_weights.dtype, device=log_weights.device)
+        counts.scatter_add_(-1, model, torch.ones_like(model, dtype=counts.dtype))
+        active = counts >= self.threshold
+        empty = ~active.any(-1)
+        best = torch.nn.functional.one_hot(counts.argmax(-1), M).bool()
+        active = torch.where(empty.unsqueeze(-1), best, active)
+        return active, {"winner_counts": counts, "fallback": empty}
+
+    def select(self, belief: ModeBelief, generator=None) -> tuple[Tensor, dict]:
+        """The policy over a bank of particle filters: the joint weights of every model's particles."""
+        comps = belief.components
+        if not isinstance(comps, ParticleBelief):
+            raise TypeError(f"ChallengeMatch: needs particle mode filters (it ranks particles), got beliefs of type "
+                            f"{type(comps).__name__}; use ExactMinimumEntropy for other banks")
+        joint = belief.mode_log_probs.unsqueeze(-1) + normalize_log_probs(comps.log_weights)
+        return self(joint, generator)
