@@ -154,3 +154,30 @@ def test_a_new_mode_filter_gets_every_combinator(combinator):
     a, b = run_filter(new, new.initial_belief(prior), z), run_filter(ref, ref.initial_belief(prior), z)
     torch.testing.assert_close(a.estimate().mean, b.estimate().mean, rtol=0, atol=1e-8)
     torch.testing.assert_close(a.belief.mode_probs, b.belief.mode_probs, rtol=0, atol=1e-8)
+
+
+def test_active_set_mixing_renormalises_rows_and_drop_below(generator):
+    from torchmm.beliefs import ModelSetBelief
+    from torchmm.multimodel import ActiveSetMixing, DropBelow, MomentMixing, ModeTransition
+
+    M = 4
+    P = torch.softmax(torch.randn(M, M, generator=generator), -1)
+    comps = GaussianBelief(torch.randn(3, M, 2, generator=generator), torch.eye(2).expand(3, M, 2, 2))
+    mu = torch.softmax(torch.randn(3, M, generator=generator), -1)
+    mu[:, 3] = 0.0
+    mu = mu / mu.sum(-1, keepdim=True)
+    all_active = ModelSetBelief(mu.log(), comps, torch.ones(3, M, dtype=torch.bool))
+    a = ActiveSetMixing()(all_active, ModeTransition(P))
+    b = MomentMixing()(all_active, ModeTransition(P))
+    torch.testing.assert_close(a.mode_log_probs, b.mode_log_probs, rtol=0, atol=1e-14)
+    torch.testing.assert_close(a.components.mean, b.components.mean, rtol=0, atol=1e-14)
+    active = torch.tensor([True, True, True, False]).expand(3, M)
+    c = ActiveSetMixing()(ModelSetBelief(mu.log(), comps, active), P)
+    Pr = P[:, :3] / P[:, :3].sum(-1, keepdim=True)  # rows renormalised over the active set
+    torch.testing.assert_close(c.mode_log_probs[:, :3].exp(), mu[:, :3] @ Pr[:3], rtol=0, atol=1e-14)
+    assert torch.all(c.mode_log_probs[:, 3] == -math.inf)
+    lp = torch.log(torch.tensor([[0.5, 0.4999, 0.0001], [0.3, 0.3, 0.4]]))
+    from torchmm import ModeBelief
+
+    keep, _ = DropBelow(1e-3, [2]).select(ModeBelief(lp, GaussianBelief(torch.zeros(2, 3, 2), torch.eye(2))))
+    assert keep.tolist() == [[True, True, False], [True, True, True]]

@@ -1,17 +1,21 @@
 """Belief value objects with explicit batch shapes."""
 
+from torchmm.beliefs.adaptive import AdaptiveGaussianBelief
 from torchmm.beliefs.base import Belief, cat, register_belief, stack, where
 from torchmm.beliefs.gaussian import GaussianBelief
 from torchmm.beliefs.mode import ModeBelief, ModelSetBelief
 from torchmm.beliefs.ops import mix_gaussians, normalize_log_probs, psd_sqrt, symmetrize
 from torchmm.beliefs.particle import ParticleBelief
+from torchmm.beliefs.track import SourceTrackBelief
 
 __all__ = [
+    "AdaptiveGaussianBelief",
     "Belief",
     "GaussianBelief",
     "ModeBelief",
     "ModelSetBelief",
     "ParticleBelief",
+    "SourceTrackBelief",
     "cat",
     "mix_gaussians",
     "normalize_log_probs",

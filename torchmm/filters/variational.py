@@ -37,14 +37,11 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
-from typing import ClassVar
 
 import torch
 from torch import Tensor
 
 from torchmm.beliefs import GaussianBelief
-from torchmm.beliefs.base import Belief, register_belief
 from torchmm.beliefs.ops import symmetrize
 from torchmm.distributions import truncated_normal_entropy, truncated_normal_moments
 from torchmm.filters.base import Filter, StepOutput
@@ -58,7 +55,6 @@ from torchmm.validation import (
     broadcast_shape,
     check_covariance,
     check_measurement,
-    check_shape,
     gaussian_batch,
 )
 
@@ -151,7 +147,7 @@ def _check_positive(value: Tensor, name: str) -> None:
         raise ValueError(f"{name}: must be positive")
 
 
-def _check_linear(motion, measurement) -> None:
+def check_linear_models(motion, measurement) -> None:
     if not isinstance(motion, LinearMotion):
         raise ValueError(f"motion: expected a LinearMotion, got {type(motion).__name__}")
     if not isinstance(measurement, LinearMeasurement):
@@ -171,11 +167,11 @@ def _rederive_scale(filter) -> None:
     filter._buffers["r"] = r
 
 
-def _iterations(value) -> int:
+def check_iterations(value) -> int:
     return as_int(value, "iterations", minimum=1)
 
 
-def _fill_missing(z: Tensor, z_pred: Tensor) -> tuple[Tensor, Tensor]:
+def fill_missing(z: Tensor, z_pred: Tensor) -> tuple[Tensor, Tensor]:
     """Runs whose measurement has a non-finite component (NaN = missing, or +-inf) are skipped:
     ``(mask (*B,), z with the prediction filled in)``."""
     finite = torch.isfinite(z)
@@ -184,7 +180,7 @@ def _fill_missing(z: Tensor, z_pred: Tensor) -> tuple[Tensor, Tensor]:
     return missing, z
 
 
-def _keep_prior(missing: Tensor, prior: GaussianBelief, mean: Tensor, cov: Tensor, loglik: Tensor):
+def keep_prior_where_missing(missing: Tensor, prior: GaussianBelief, mean: Tensor, cov: Tensor, loglik: Tensor):
     mean = torch.where(missing.unsqueeze(-1), prior.mean, mean)
     cov = torch.where(missing[..., None, None], prior.cov, cov)
     return mean, cov, torch.where(missing, torch.zeros_like(loglik), loglik)
@@ -196,10 +192,10 @@ class _LinearVBFilter(Filter):
     def __init__(self, motion: LinearMotion, measurement: LinearMeasurement, iterations: int,
                  joseph: bool | None = None):
         super().__init__()
-        _check_linear(motion, measurement)
+        check_linear_models(motion, measurement)
         self.kalman = KalmanFilter(motion, measurement)
         self.motion, self.measurement = motion, measurement
-        self.iterations = _iterations(iterations)
+        self.iterations = check_iterations(iterations)
         self.joseph = check_joseph(joseph)
 
     @property
@@ -280,7 +276,7 @@ class StudentTVBFilter(_LinearVBFilter):
         H, R = self.measurement.H, self.measurement.R
         m, n = R.shape[-1], belief.mean.shape[-1]
         z_pred = matvec(H, belief.mean)
-        missing, z = _fill_missing(z, z_pred)
+        missing, z = fill_missing(z, z_pred)
         innovation = z - z_pred
         cross = belief.cov @ H.mT
         HPH = H @ cross
@@ -312,7 +308,7 @@ class StudentTVBFilter(_LinearVBFilter):
             extras["elbo"] = torch.stack(elbos, -1)
             log.debug("StudentTVBFilter ELBO per iteration (mean over batch): %s",
                       extras["elbo"].detach().flatten(0, -2).mean(0).tolist())
-        mean, cov, loglik = _keep_prior(missing, belief, mean, cov, elbos[-1])
+        mean, cov, loglik = keep_prior_where_missing(missing, belief, mean, cov, elbos[-1])
         return StepOutput(GaussianBelief(mean, cov), belief, loglik, innovation, HPH + extras["noise_cov"],
                           extras=extras)
 
@@ -416,7 +412,7 @@ class SkewTIWVBFilter(_LinearVBFilter):
         n = belief.mean.shape[-1]
         x_pred, P_nom = belief.mean, belief.cov
         z_pred = matvec(H, x_pred)
-        missing, z = _fill_missing(z, z_pred)
+        missing, z = fill_missing(z, z_pred)
         T_prior = tau * P_nom
         t_q = n + 1 + tau + 1  # (27): t = t^ + 1 (never accumulated)
         shape_a = 0.5 * nu + (1.0 if self.gamma_shape == "derived" else 0.0)
@@ -457,7 +453,7 @@ class SkewTIWVBFilter(_LinearVBFilter):
             extras["elbo"] = torch.stack(elbos, -1)
             log.debug("SkewTIWVBFilter ELBO per iteration (mean over batch): %s",
                       extras["elbo"].detach().flatten(0, -2).mean(0).tolist())
-        mean, cov, loglik = _keep_prior(missing, belief, mean, cov, elbos[-1])
+        mean, cov, loglik = keep_prior_where_missing(missing, belief, mean, cov, elbos[-1])
         return StepOutput(GaussianBelief(mean, cov), belief, loglik, z - z_pred,
                           H @ P_hat @ H.mT + extras["noise_cov"], extras=extras)
 
@@ -548,7 +544,7 @@ class SkewTVBFilter(_LinearVBFilter):
         x_pred, P_pred = belief.mean, belief.cov
         batch = broadcast_shape(x_pred.shape[:-1], z.shape[:-1])
         z_pred = matvec(H, x_pred)
-        missing, z = _fill_missing(z, z_pred)
+        missing, z = fill_missing(z, z_pred)
         Hb = H.expand(*batch, m, n)
         A = torch.cat([Hb, torch.diag_embed(delta).expand(*batch, m, m)], -1)  # [H Delta], (*B, m, n+m)
         u_prior = torch.zeros(*batch, m, dtype=z.dtype, device=z.device)
@@ -587,7 +583,7 @@ class SkewTVBFilter(_LinearVBFilter):
             Eu2 = Sigma[..., n:, n:].diagonal(dim1=-2, dim2=-1) + xi[..., n:].square()
             lam = (0.5 * nu + 1.0) / (0.5 * nu + 0.5 * (Er / r + Eu2))
         mean, cov = xi[..., :n], symmetrize(Sigma[..., :n, :n])
-        mean, cov, loglik = _keep_prior(missing, belief, mean, cov, loglik)
+        mean, cov, loglik = keep_prior_where_missing(missing, belief, mean, cov, loglik)
         noise_var = (r + delta.square() * (1 - 2 / math.pi)) / lam
         return StepOutput(
             GaussianBelief(mean, cov), belief, loglik, z - z_pred,
@@ -597,183 +593,7 @@ class SkewTVBFilter(_LinearVBFilter):
         )
 
 
-# -- VBAKF-PR ------------------------------------------------------------------------------------------
-@register_belief
-@dataclass(frozen=True)
-class AdaptiveGaussianBelief(Belief):
-    """Gaussian state belief plus the inverse-Wishart posterior ``IW(r_dof, r_scale)`` of ``R``.
+# VBAKF-PR lives in torchmm.filters.vbakf and its belief in torchmm.beliefs (re-exported here)
+from torchmm.beliefs.adaptive import AdaptiveGaussianBelief  # noqa: E402
+from torchmm.filters.vbakf import VBAKFPR  # noqa: E402
 
-    Shapes:
-        mean ``(*B, n)``, cov ``(*B, n, n)``, r_dof ``(*B,)``, r_scale ``(*B, m, m)``
-    """
-
-    mean: Tensor
-    cov: Tensor
-    r_dof: Tensor
-    r_scale: Tensor
-
-    event_dims: ClassVar[dict[str, int]] = {"mean": 1, "cov": 2, "r_dof": 0, "r_scale": 2}
-
-    def __post_init__(self):
-        mean, cov, scale = self.mean, self.cov, self.r_scale
-        if mean.dim() < 1 or cov.dim() < 2 or cov.shape[-2:] != (mean.shape[-1], mean.shape[-1]):
-            raise ValueError(f"cov: expected shape (*B, n, n) for mean (*B, n); got mean {tuple(mean.shape)}, "
-                             f"cov {tuple(cov.shape)}")
-        if scale.dim() < 2 or scale.shape[-1] != scale.shape[-2]:
-            raise ValueError(f"r_scale: expected shape (*B, m, m), got {tuple(scale.shape)}")
-
-    def validate(self, name: str = "belief") -> AdaptiveGaussianBelief:
-        """Finite fields, PSD ``cov``, positive definite ``r_scale`` and ``r_dof > m + 1``."""
-        super().validate(name)
-        check_covariance(self.cov, f"{name}.cov")
-        check_covariance(self.r_scale, f"{name}.r_scale", definite=True)
-        m = self.r_scale.shape[-1]
-        if bool((self.r_dof.detach() <= m + 1).any()):
-            raise ValueError(f"{name}.r_dof: must exceed m + 1 = {m + 1} (a proper inverse-Wishart mean)")
-        return self
-
-    @property
-    def state_dim(self) -> int:
-        return self.mean.shape[-1]
-
-    def estimate(self) -> GaussianBelief:
-        return GaussianBelief(self.mean, self.cov)
-
-    def noise_cov(self) -> Tensor:
-        """``R^ = U / (u - m - 1)``. Shapes: ``(*B, m, m)``."""
-        m = self.r_scale.shape[-1]
-        return self.r_scale / (self.r_dof - m - 1)[..., None, None]
-
-
-class VBAKFPR(Filter):
-    r"""VBAKF-PR (Huang et al., IEEE TAC 63(2), 2018): IW priors on ``P_{k|k-1}`` and ``R_k``.
-
-    Exactly docs/baselines.md §6 (the authors' ``aprivbkf.m``):
-
-    .. math::
-        x^- = F\hat x,\ \tilde P = F P F^\top + \tilde Q,\ \hat t = n + \tau + 1,\ \hat T = \tau\tilde P,\
-        \hat u^- = \rho(\hat u - m - 1) + m + 1,\ \hat U^- = \rho\hat U
-
-        \text{repeat } N:\ A = P^{(i)} + (x^{(i)} - x^-)(\cdot)^\top,\
-        \hat P = (\hat T + A)/(\hat t + 1 - n - 1),\
-        B = (z - Hx^{(i)})(\cdot)^\top + HP^{(i)}H^\top,\ \hat R = (\hat U^- + B)/(\hat u^- + 1 - m - 1)
-
-        K = \hat PH^\top(H\hat PH^\top + \hat R)^{-1},\ x^{(i+1)} = x^- + K(z - Hx^-),\ 
-        P^{(i+1)} = \hat P - KH\hat P
-
-    Output ``u = û^- + 1``, ``U = Û^- + B`` (from the last iteration's ``B``, as in the code).
-    ``log_likelihood`` is the plug-in ``log N(z; Hx^-, H P^ H^T + R^)`` of the last iteration.
-
-    Args:
-        motion: linear motion with the nominal ``Q~``.
-        measurement: linear measurement (its ``R`` is only a default for :meth:`initial_belief`).
-        tau: ``tau_P`` (default 3); rho: forgetting factor (default ``1 - exp(-4)``);
-        iterations: ``N`` (default 10); tau_r: ``tau_R`` for :meth:`initial_belief` (default 3).
-        joseph: Joseph-form (PSD-preserving) inner updates; ``None`` (default): in float32 and
-            below only (:func:`~torchmm.linalg.use_joseph`).
-
-    Shapes:
-        belief :class:`AdaptiveGaussianBelief` batch ``(*B,)``; ``z (*B, m)``; extras
-        ``predicted_cov (*B, n, n)`` (``P^``), ``noise_cov (*B, m, m)`` (``R^``).
-
-    Examples:
-        >>> from torchmm.models import ConstantVelocity, PositionMeasurement
-        >>> f = VBAKFPR(ConstantVelocity(2), PositionMeasurement(4, [0, 2], 100.0))
-        >>> b0 = f.initial_belief(GaussianBelief(torch.zeros(6, 4), torch.eye(4)))
-        >>> out = f.step(b0, torch.randn(6, 2))
-        >>> out.belief.noise_cov().shape
-        torch.Size([6, 2, 2])
-    """
-
-    def __init__(self, motion, measurement, tau: float = 3.0, rho: float = 1 - math.exp(-4),
-                 iterations: int = 10, tau_r: float = 3.0, joseph: bool | None = None):
-        super().__init__()
-        _check_linear(motion, measurement)
-        self.motion, self.measurement = motion, measurement
-        self.tau = as_float(tau, "tau", positive=True)
-        self.tau_r = as_float(tau_r, "tau_r", positive=True)
-        self.rho = as_float(rho, "rho", positive=True, maximum=1.0)
-        self.iterations = _iterations(iterations)
-        self.joseph = check_joseph(joseph)
-
-    def _with_module(self, slot, module, name):
-        expected = LinearMotion if slot == "motion" else LinearMeasurement
-        if isinstance(module, torch.nn.Module) and not isinstance(module, expected):
-            raise ValueError(f"{name}: VBAKFPR needs a {expected.__name__}, got {type(module).__name__}")
-        return super()._with_module(slot, module, name)
-
-    def initial_belief(self, belief: GaussianBelief, R0: Tensor | None = None) -> AdaptiveGaussianBelief:
-        """``u_0 = m + 1 + tau_R``, ``U_0 = tau_R R~_0`` (so ``E[R_0] = R~_0``; default the model's R).
-
-        Shapes:
-            belief batch ``(*B,)``; R0 ``(m, m)`` or ``(*B, m, m)`` -> batch ``(*B,)``
-        """
-        belief.validate("belief")
-        m = self.measurement.meas_dim
-        if R0 is None:
-            R0 = self.measurement.R
-        else:
-            R0 = as_tensor(R0, "R0", dtype=belief.dtype, device=belief.device)
-            check_shape(R0, "R0", (m, m))
-        check_covariance(R0, "R0", definite=True)
-        batch = gaussian_batch(belief, self.motion.state_dim)
-        dof = torch.full(batch, m + 1 + self.tau_r, dtype=belief.dtype, device=belief.device)
-        return AdaptiveGaussianBelief(belief.mean, belief.cov, dof, (self.tau_r * R0).expand(*batch, m, m))
-
-    def predict(self, belief: AdaptiveGaussianBelief, *, u: Tensor | None = None,
-                motion=None) -> AdaptiveGaussianBelief:
-        if motion is not None:
-            return self.with_motion(motion).predict(belief, u=u)
-        _check_adaptive(belief)
-        gaussian_batch(belief, self.motion.state_dim)
-        F = self.motion.F
-        m = belief.r_scale.shape[-1]
-        mean = self.motion(belief.mean, u=u)
-        cov = F @ belief.cov @ F.mT + self.motion.Q
-        dof = self.rho * (belief.r_dof - m - 1) + m + 1
-        return AdaptiveGaussianBelief(mean, cov, dof, self.rho * belief.r_scale)
-
-    def update(self, belief: AdaptiveGaussianBelief, z: Tensor, *, sensor=None) -> StepOutput:
-        if sensor is not None:
-            return self.with_sensor(sensor).update(belief, z)
-        _check_adaptive(belief)
-        z = check_measurement(z, self.measurement.meas_dim, gaussian_batch(belief, self.motion.state_dim),
-                              belief.mean)
-        H = self.measurement.H
-        n, m = belief.mean.shape[-1], z.shape[-1]
-        x_pred, P_nom = belief.mean, belief.cov
-        z_pred = matvec(H, x_pred)
-        missing, z = _fill_missing(z, z_pred)
-        innovation = z - z_pred
-        T_prior, t_q = self.tau * P_nom, n + self.tau + 1 + 1
-        u_q = belief.r_dof + 1
-        mean, cov = x_pred, P_nom
-        singular = torch.zeros(z.shape[:-1], dtype=torch.bool, device=z.device)
-        joseph = use_joseph(self.joseph, z.dtype)
-        for _ in range(self.iterations):
-            dx = mean - x_pred
-            T = T_prior + cov + dx.unsqueeze(-1) * dx.unsqueeze(-2)
-            rz = z - matvec(H, mean)
-            Bm = rz.unsqueeze(-1) * rz.unsqueeze(-2) + H @ cov @ H.mT
-            U = belief.r_scale + Bm
-            P_hat = symmetrize(T / (t_q - n - 1))
-            R_hat = symmetrize(U / (u_q - m - 1)[..., None, None])
-            cross = P_hat @ H.mT
-            S = H @ cross + R_hat
-            mean, cov, loglik, flag = condition(x_pred, P_hat, innovation, S, cross,
-                                                joseph=(H, R_hat) if joseph else None, with_flag=True)
-            singular = singular | flag
-        keep = missing
-        mean, cov, loglik = _keep_prior(keep, belief.estimate(), mean, cov, loglik)
-        dof = torch.where(keep, belief.r_dof, u_q)
-        U = torch.where(keep[..., None, None], belief.r_scale, U)
-        return StepOutput(
-            AdaptiveGaussianBelief(mean, cov, dof, U), belief, loglik, innovation, S,
-            extras={"predicted_cov": P_hat, "noise_cov": R_hat, "singular": singular},
-        )
-
-
-def _check_adaptive(belief) -> None:
-    if not isinstance(belief, AdaptiveGaussianBelief):
-        raise TypeError(f"belief: VBAKFPR needs an AdaptiveGaussianBelief (from VBAKFPR.initial_belief), got "
-                        f"{type(belief).__name__}")

@@ -14,7 +14,14 @@ from torchmm.multimodel.imm import (
     StaticMM,
 )
 from torchmm.multimodel.particle import MultipleModelParticleFilter, ParticleMixing, mixing_indices
-from torchmm.multimodel.structure import AllModels, FixedSet, ModelSetPolicy, VariableStructureIMM
+from torchmm.multimodel.structure import (
+    ActiveSetMixing,
+    AllModels,
+    DropBelow,
+    FixedSet,
+    ModelSetPolicy,
+    VariableStructureIMM,
+)
 from torchmm.multimodel.transfer import (
     FusionIMM,
     InfluenceGate,
@@ -33,6 +40,8 @@ from torchmm.models.transition import (
 )
 
 __all__ = [
+    "ActiveSetMixing",
+    "DropBelow",
     "Collapse",
     "Interaction",
     "MomentMixing",

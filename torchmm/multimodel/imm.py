@@ -120,6 +120,25 @@ def safe_log_normalize(joint: Tensor, norm: Tensor) -> Tensor:
     return (joint - norm).nan_to_num_(nan=uniform, posinf=math.inf, neginf=-math.inf)
 
 
+def mode_posterior(mode_log_likelihood: Tensor, prior_log_probs: Tensor,
+                   observed: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    r"""The Bayes mode update in log space, shared by every multiple-model estimator.
+
+    ``log mu_j = ell_j + log c_j - logsumexp_l(ell_l + log c_l)`` and
+    ``log p(z_k | z_{1:k-1}) = logsumexp_l(ell_l + log c_l)``, exactly 0 where ``observed`` is False
+    (no datum this step). Groups that are all ``-inf`` become uniform (:func:`safe_log_normalize`).
+
+    Shapes:
+        mode_log_likelihood, prior_log_probs: ``(*B, M)``; observed ``(*B,)`` -> ``(*B, M)``, ``(*B,)``
+    """
+    joint = mode_log_likelihood + prior_log_probs
+    log_likelihood = torch.logsumexp(joint, dim=-1)
+    mode_log_probs = safe_log_normalize(joint, log_likelihood.unsqueeze(-1))
+    if observed is not None:
+        log_likelihood = torch.where(observed, log_likelihood, 0.0)
+    return mode_log_probs, log_likelihood
+
+
 def mode_batch(belief, name: str = "belief") -> torch.Size:
     """Batch shape of a mode belief (from its mode log-probabilities; shapes only)."""
     mode_log_probs = getattr(belief, "mode_log_probs", None)
@@ -247,11 +266,8 @@ class MultipleModelFilter(Filter):
         """
         z = self._measurement(prior, z, sensor=sensor)
         out = self.bank.update(prior.components, z.unsqueeze(-2), sensor=sensor, generator=generator)
-        joint = out.log_likelihood + prior.mode_log_probs  # ell_j + log c_j
-        log_likelihood = torch.logsumexp(joint, dim=-1)
-        mode_log_probs = safe_log_normalize(joint, log_likelihood.unsqueeze(-1))
         observed = any_observed(z) if observed is None else observed
-        log_likelihood = torch.where(observed, log_likelihood, 0.0)
+        mode_log_probs, log_likelihood = mode_posterior(out.log_likelihood, prior.mode_log_probs, observed)
         extras = _mode_extras(out)
         return StepOutput(
             belief=ModeBelief(mode_log_probs, out.belief),

@@ -13,21 +13,18 @@ bank may hold Kalman, extended, unscented, particle or learned mode filters.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Callable, ClassVar
-
 import torch
 from torch import Tensor
 
-from torchmm.beliefs import Belief, GaussianBelief, ModeBelief, cat, where
-from torchmm.beliefs.base import register_belief
+from torchmm.beliefs import Belief, GaussianBelief, ModeBelief, ModelSetBelief, SourceTrackBelief, cat, where
 from torchmm.filters.base import StepOutput
 from torchmm.linalg import any_observed, cholesky, condition
 from torchmm.models.base import MeasurementModel
 from torchmm.models.linear import LinearMeasurement
 from torchmm.multimodel.bank import IndexedBank
-from torchmm.multimodel.imm import IMM, safe_log_normalize
+from torchmm.multimodel.imm import IMM, mode_posterior, safe_log_normalize
 from torchmm.multimodel.multirate import check_source_sensor, multirate_streams
+from torchmm.multimodel.structure import ActiveSetMixing, DropBelow
 
 __all__ = ["FusionIMM", "SourceModeVSIMM", "SourceTrackBelief", "SourceUpdateIMM"]
 
@@ -70,37 +67,6 @@ class SourceUpdateIMM(IMM):
 # --------------------------------------------------------------------------------------------
 # beliefs carrying a separate source-only track (IMM-FU, VSIMM)
 # --------------------------------------------------------------------------------------------
-@register_belief
-@dataclass(frozen=True)
-class SourceTrackBelief(Belief):
-    """A target-side mode belief and the separate source-only IMM track, same batch ``(*B,)``.
-
-    ``estimate()``, ``mode_log_probs`` and ``mode_probs`` are the target side's.
-
-    Shapes:
-        target: :class:`ModeBelief`, batch ``(*B,)``; source: :class:`ModeBelief`, batch ``(*B,)``
-    """
-
-    target: ModeBelief
-    source: ModeBelief
-
-    event_dims: ClassVar[dict[str, int]] = {}
-
-    def map_tensors(self, fn: Callable[[Tensor, int], Tensor]) -> SourceTrackBelief:
-        return SourceTrackBelief(self.target.map_tensors(fn), self.source.map_tensors(fn))
-
-    @property
-    def mode_log_probs(self) -> Tensor:
-        return self.target.mode_log_probs
-
-    @property
-    def mode_probs(self) -> Tensor:
-        return self.target.mode_probs
-
-    def estimate(self) -> GaussianBelief:
-        return self.target.estimate()
-
-
 class _SourceTrackIMM(IMM):
     """Shared set-up: the target IMM plus an independent source-only IMM over the same modes."""
 
@@ -199,6 +165,10 @@ class SourceModeVSIMM(_SourceTrackIMM):
         # the fixed modes plus mode e (a second copy of extra_model's filter), over any bank; not a
         # registered submodule: it shares self.bank's modules (no duplicate state_dict entries)
         object.__setattr__(self, "extended", IndexedBank(self.bank, [*range(M), extra_model]))
+        # the engine's pieces: mixing over the active set with renormalised rows, and the source
+        # mode as a model-set policy (dropped below drop_below)
+        self.set_mixing = ActiveSetMixing()
+        self.set_policy = DropBelow(drop_below, [M])
 
     def extended_transition(self) -> Tensor:
         """``(M + 1, M + 1)`` matrix over the fixed modes and mode ``e`` (rows sum to one)."""
@@ -217,7 +187,9 @@ class SourceModeVSIMM(_SourceTrackIMM):
                                torch.full((*batch, 1), -torch.inf, dtype=belief.dtype, device=belief.device)], -1)
         extra = start.components.select(-1, self.extra_model).unsqueeze(-1)  # mode e: inactive until a source datum
         comps = cat([start.components, extra], dim=-1)
-        return SourceTrackBelief(ModeBelief(log_probs, comps), start)
+        active = torch.cat([torch.ones(log_probs.shape[-1] - 1, dtype=torch.bool, device=log_probs.device),
+                            torch.zeros(1, dtype=torch.bool, device=log_probs.device)]).expand(log_probs.shape)
+        return SourceTrackBelief(ModelSetBelief(log_probs, comps, active), start)
 
     def step(self, belief: SourceTrackBelief, z, *, u: Tensor | None = None, generator=None) -> StepOutput:
         _check_track(belief, type(self).__name__)
@@ -225,41 +197,43 @@ class SourceModeVSIMM(_SourceTrackIMM):
         M = self.num_modes
         source = self._source_step(belief.source, ys, u, generator)
         present = torch.isfinite(ys).all(-1)  # (*B,)
-        target = belief.target
-        mu = target.mode_probs  # (*B, M+1)
-        active = torch.cat([torch.ones_like(mu[..., :M], dtype=torch.bool), mu[..., M:] > 0], -1)
-        P = self.extended_transition() * active.unsqueeze(-2).to(mu.dtype)  # restrict to active set
-        P = P / P.sum(-1, keepdim=True)
-        cbar = (mu.unsqueeze(-2) @ P).squeeze(-2)  # (*B, M+1)
-        weights = mu.unsqueeze(-1) * P / cbar.clamp_min(torch.finfo(mu.dtype).tiny).unsqueeze(-2)
-        mixed = target.components.mix(weights)
+        target = _with_active_set(belief.target, M)
+        mixed = self.set_mixing(target, self.extended_transition())  # over the active set, rows renormalised
         uj = None if u is None else u.unsqueeze(-2)
-        predicted = self.extended.predict(mixed, u=uj, generator=generator)
-        # a source datum: mode e restarts from the source track's estimate at k
-        arrival = present.unsqueeze(-1) & (torch.arange(M + 1, device=mu.device) == M)
+        predicted = self.extended.predict(mixed.components, u=uj, generator=generator)
+        # a source datum: mode e restarts from the source track's estimate at k, with probability p_new
+        arrival = present.unsqueeze(-1) & (torch.arange(M + 1, device=present.device) == M)
         track = source.estimate().unsqueeze(-1).expand(*present.shape, M + 1)
         predicted = where(arrival, _as_component(track, predicted), predicted)
+        cbar = mixed.mode_log_probs.exp()
         restart = torch.cat([cbar[..., :M] / cbar[..., :M].sum(-1, keepdim=True) * (1 - self.p_new),
                              torch.full_like(cbar[..., M:], self.p_new)], -1)
-        cbar = torch.where(present.unsqueeze(-1), restart, cbar)
-        log_cbar = torch.where(cbar > 0, cbar.clamp_min(torch.finfo(mu.dtype).tiny).log(), -torch.inf)
+        tiny = torch.finfo(cbar.dtype).tiny
+        restart = torch.where(restart > 0, restart.clamp_min(tiny).log(), -torch.inf)
+        log_cbar = torch.where(present.unsqueeze(-1), restart, mixed.mode_log_probs)
         prior = ModeBelief(log_cbar, predicted)
         out = self.extended.update(predicted, y.unsqueeze(-2), generator=generator)
-        joint = out.log_likelihood + log_cbar
-        norm = torch.logsumexp(joint, dim=-1, keepdim=True)
-        log_mu = safe_log_normalize(joint, norm)
-        is_extra = torch.arange(M + 1, device=mu.device) == M
-        drop = is_extra & (log_mu < torch.log(torch.tensor(self.drop_below, dtype=mu.dtype)))
-        log_mu = torch.where(drop, -torch.inf, log_mu)
+        log_mu, log_likelihood = mode_posterior(out.log_likelihood, log_cbar, any_observed(y))
+        active, _ = self.set_policy.select(ModeBelief(log_mu, out.belief))  # mode e dropped below drop_below
+        log_mu = torch.where(active, log_mu, -torch.inf)
         log_mu = safe_log_normalize(log_mu, torch.logsumexp(log_mu, dim=-1, keepdim=True))
-        new_target = ModeBelief(log_mu, out.belief)
+        new_target = ModelSetBelief(log_mu, out.belief, active)
         extras = {"mode_log_likelihood": out.log_likelihood, "source_present": present,
-                  "extra_mode_active": log_mu[..., M] > -torch.inf}
+                  "extra_mode_active": active[..., M], "active": active}
         if out.extras:
             extras["modes"] = dict(out.extras)
-        log_likelihood = torch.where(any_observed(y), norm.squeeze(-1), 0.0)  # exactly 0 without a datum
         return StepOutput(SourceTrackBelief(new_target, source), prior, log_likelihood,
                           out.innovation, out.innovation_cov, extras)
+
+
+def _with_active_set(target: ModeBelief, num_fixed: int) -> ModelSetBelief:
+    """The target side with its active set (a plain mode belief: the fixed modes and, where its
+    probability is positive, mode e)."""
+    if isinstance(target, ModelSetBelief):
+        return target
+    lp = target.mode_log_probs
+    fixed = torch.arange(lp.shape[-1], device=lp.device) < num_fixed
+    return ModelSetBelief(lp, target.components, fixed | (lp > -torch.inf))
 
 
 def _check_track(belief, who: str) -> None:

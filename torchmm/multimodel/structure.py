@@ -27,9 +27,9 @@ from torch import Tensor
 from torchmm.beliefs import Belief, ModeBelief, ModelSetBelief
 from torchmm.beliefs.ops import normalize_log_probs
 from torchmm.filters.base import StepOutput
-from torchmm.multimodel.imm import IMM
+from torchmm.multimodel.imm import IMM, Interaction
 
-__all__ = ["AllModels", "FixedSet", "ModelSetPolicy", "VariableStructureIMM"]
+__all__ = ["ActiveSetMixing", "AllModels", "DropBelow", "FixedSet", "ModelSetPolicy", "VariableStructureIMM"]
 
 
 class ModelSetPolicy:
@@ -67,6 +67,56 @@ class FixedSet(ModelSetPolicy):
         mask = torch.zeros(M, dtype=torch.bool, device=belief.mode_log_probs.device)
         mask[self.members] = True
         return mask.expand(belief.mode_log_probs.shape), {}
+
+
+class DropBelow(ModelSetPolicy):
+    """Keep every model except the ``candidates`` whose posterior probability falls below ``threshold``
+    (or is 0): VSIMM's rule for its source mode (docs/baselines.md §3.3).
+
+    Args:
+        threshold: probability in ``[0, 1)``.
+        candidates: indices of the models that may be dropped (the others are always active).
+    """
+
+    def __init__(self, threshold: float, candidates):
+        self.threshold = float(threshold)
+        if not 0.0 <= self.threshold < 1.0:
+            raise ValueError(f"threshold: must lie in [0, 1), got {threshold}")
+        self.candidates = sorted({int(i) for i in candidates})
+
+    def select(self, belief, generator=None):
+        lp = belief.mode_log_probs
+        candidate = torch.zeros(lp.shape[-1], dtype=torch.bool, device=lp.device)
+        candidate[self.candidates] = True
+        low = lp < torch.log(torch.tensor(self.threshold, dtype=lp.dtype, device=lp.device))
+        return ~(candidate & (low | (lp == -math.inf))), {}
+
+
+class ActiveSetMixing(Interaction):
+    r"""IMM mixing over the active models of a :class:`~torchmm.beliefs.ModelSetBelief`, with every
+    row of the transition matrix renormalised over the active set,
+    ``pi_ij = p_ij / sum_{l active} p_il`` (docs/baselines.md §3.3: the mixing of a set that
+    changes). The plain :class:`~torchmm.multimodel.MomentMixing` restricts the set only through
+    the zero probabilities of inactive models (the rows keep their full mass).
+
+    ``transition`` may be a :class:`~torchmm.multimodel.ModeTransition` or a matrix ``(M, M)``.
+
+    Shapes:
+        belief: ``ModelSetBelief`` (or a ``ModeBelief``: all active), batch ``(*B,)`` -> ``log c``
+        ``(*B, M)`` (``-inf`` where no active model leads) and start beliefs with batch ``(*B, M)``
+    """
+
+    def __call__(self, belief, transition, generator=None):
+        mu = belief.mode_probs
+        matrix = transition if isinstance(transition, Tensor) else transition.matrix()
+        active = getattr(belief, "active", None)
+        if active is not None:
+            matrix = matrix * active.unsqueeze(-2).to(mu.dtype)  # restrict to the active set
+            matrix = matrix / matrix.sum(-1, keepdim=True)
+        cbar = (mu.unsqueeze(-2) @ matrix).squeeze(-2)
+        weights = mu.unsqueeze(-1) * matrix / cbar.clamp_min(torch.finfo(mu.dtype).tiny).unsqueeze(-2)
+        log_cbar = torch.where(cbar > 0, cbar.clamp_min(torch.finfo(mu.dtype).tiny).log(), -math.inf)
+        return ModeBelief(log_cbar, belief.components.mix(weights))
 
 
 class VariableStructureIMM(IMM):

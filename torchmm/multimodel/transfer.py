@@ -33,7 +33,7 @@ from torchmm.models.base import MeasurementModel
 from torchmm.models.linear import LinearMotion, matvec
 from torchmm.models.streams import MultiRate
 from torchmm.multimodel.bank import FilterBank, VectorizedBank
-from torchmm.multimodel.imm import IMM, safe_log_normalize
+from torchmm.multimodel.imm import IMM, mode_posterior
 from torchmm.validation import broadcast_shape
 from torchmm.multimodel.multirate import (
     bank_members,
@@ -277,10 +277,7 @@ class TransferIMM(IMM):
         mode_log_probs = plain.belief.mode_log_probs
         if self.mode_likelihood == "corrected":
             ll = torch.where(present.unsqueeze(-1), transferred.log_likelihood, plain.extras["mode_log_likelihood"])
-            joint = ll + prior.mode_log_probs
-            norm = torch.logsumexp(joint, dim=-1)
-            mode_log_probs = safe_log_normalize(joint, norm.unsqueeze(-1))
-            log_likelihood = torch.where(any_observed(y), norm, 0.0)  # exactly 0 without a datum
+            mode_log_probs, log_likelihood = mode_posterior(ll, prior.mode_log_probs, any_observed(y))
         else:
             log_likelihood = plain.log_likelihood
 
