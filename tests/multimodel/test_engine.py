@@ -231,3 +231,40 @@ def test_particle_engine_equals_the_multiple_model_particle_filter(scheme):
     g = torch.Generator().manual_seed(11)
     c = run_filter(imm, imm.initial_belief(prior, generator=g), z, generator=g)
     assert torch.isfinite(c.estimate().mean).all()
+
+
+def test_per_step_mode_bank_models_through_an_imm(generator):
+    """A per-step dt for an IMM: the mode-bank motion of each step, equal to the hand-written loop."""
+    P = torch.full((3, 3), 0.05) + 0.85 * torch.eye(3)
+    acc = [[0.5], [0.0], [-0.5]]
+    dts = [1.0, 0.5, 2.0, 1.5]
+    banks = [ConstantVelocity(1, dt=dt, q=0.3, acceleration=acc) for dt in dts]
+    sensor = PositionMeasurement(2, [0], 1.0)
+    imm = IMM(KalmanFilter(banks[0], sensor), P)
+    belief0 = imm.initial_belief(GaussianBelief(torch.zeros(3, 2), torch.eye(2)))
+    z = torch.randn(4, 3, 1, generator=generator)
+    traj = run_filter(imm, belief0, z, motions=banks)
+    belief = belief0
+    for k, bank in enumerate(banks):
+        belief = IMM(KalmanFilter(bank, sensor), P).step(belief, z[k]).belief
+        torch.testing.assert_close(traj.belief[k].estimate().mean, belief.estimate().mean, rtol=0, atol=1e-14)
+
+
+def test_variational_and_particle_filters_take_a_sensor_per_call(generator):
+    from torchmm import SkewTVBFilter, StudentTVBFilter
+
+    cv = ConstantVelocity(2, q=0.5)
+    s1, s2 = PositionMeasurement(4, [0, 2], 4.0), PositionMeasurement(4, [0, 2], 0.5)
+    prior = GaussianBelief(torch.randn(5, 4, generator=generator), 2 * torch.eye(4).expand(5, 4, 4))
+    z = torch.randn(5, 2, generator=generator)
+    for make in (lambda s: StudentTVBFilter(cv, s, df=4.0), lambda s: SkewTVBFilter(cv, s, skewness=1.0, df=5.0)):
+        got = make(s1).update(prior, z, sensor=s2)
+        want = make(s2).update(prior, z)
+        torch.testing.assert_close(got.belief.mean, want.belief.mean, rtol=0, atol=1e-13)
+        torch.testing.assert_close(got.log_likelihood, want.log_likelihood, rtol=0, atol=1e-13)
+    pf1, pf2 = ParticleFilter(cv, s1, num_particles=64), ParticleFilter(cv, s2, num_particles=64)
+    particles = pf1.initial_belief(prior, generator=torch.Generator().manual_seed(0))
+    a = pf1.update(particles, z, sensor=s2, generator=torch.Generator().manual_seed(1))
+    b = pf2.update(particles, z, generator=torch.Generator().manual_seed(1))
+    torch.testing.assert_close(a.belief.particles, b.belief.particles, rtol=0, atol=0)
+    torch.testing.assert_close(a.log_likelihood, b.log_likelihood, rtol=0, atol=0)
