@@ -38,9 +38,13 @@ from torchmm.multimodel import (
     GPB1,
     GPB2,
     IMM,
+    Embedded,
     FilterBank,
     ListBank,
     ModeTransition,
+    MultipleModelFilter,
+    StaticMM,
+    VariableStructureIMM,
     VectorizedBank,
     alpha_transition,
     make_bank,
@@ -79,6 +83,10 @@ from torchmm import analysis, fusion, learn, metrics, simulate  # subpackages, r
 __version__ = "0.1.0"
 
 __all__ = [
+    "Embedded",
+    "MultipleModelFilter",
+    "StaticMM",
+    "VariableStructureIMM",
     "AdaptiveGaussianBelief",
     "ChallengeMatch",
     "EqMAParticleFilter",

@@ -268,3 +268,22 @@ def test_variational_and_particle_filters_take_a_sensor_per_call(generator):
     b = pf2.update(particles, z, generator=torch.Generator().manual_seed(1))
     torch.testing.assert_close(a.belief.particles, b.belief.particles, rtol=0, atol=0)
     torch.testing.assert_close(a.log_likelihood, b.log_likelihood, rtol=0, atol=0)
+
+
+def test_list_bank_keeps_every_mode_filters_diagnostics(generator):
+    """A Kalman mode beside a particle mode: shared keys stacked, the particle filter's own per mode."""
+    cv = ConstantVelocity(1, q=0.5)
+    sensor = PositionMeasurement(2, [0], 1.0)
+    imm = IMM([KalmanFilter(cv, sensor), ParticleFilter(cv, sensor, num_particles=50)], torch.tensor([[0.9, 0.1],
+                                                                                                     [0.1, 0.9]]))
+    with pytest.raises(TypeError):  # a Gaussian mode and a particle mode cannot be mixed into one belief type
+        g = torch.Generator().manual_seed(0)
+        run_filter(imm, imm.initial_belief(GaussianBelief(torch.zeros(3, 2), torch.eye(2)), generator=g),
+                   torch.randn(4, 3, 1, generator=generator), generator=g)
+    from torchmm.multimodel.bank import _stack_extras
+
+    kf_extras = {"singular": torch.zeros(3, dtype=torch.bool)}
+    pf_extras = {"singular": torch.ones(3, dtype=torch.bool), "ess": torch.full((3,), 40.0)}
+    out = _stack_extras([kf_extras, pf_extras], axis=-1)
+    assert out["singular"].shape == (3, 2) and out["singular"][:, 1].all()
+    assert torch.equal(out["by_mode"][1]["ess"], pf_extras["ess"])

@@ -187,12 +187,24 @@ def _batch_axis(dim: int, event_ndim: int) -> int:
     return dim if dim >= 0 else dim - event_ndim
 
 
+def _same_type(beliefs: list, what: str) -> None:
+    kinds = sorted({type(b).__name__ for b in beliefs})
+    if len(kinds) > 1:
+        raise TypeError(f"beliefs: cannot {what} beliefs of different types {kinds} (e.g. the modes of one "
+                        "bank: mode filters must share a belief type; use Gaussian or particle filters "
+                        "throughout)")
+    shapes = {tuple(t.shape[t.dim() - e:]) for b in beliefs for t, e in b._tensors()[:1]}
+    if len(shapes) > 1:
+        raise ValueError(f"beliefs: cannot {what} beliefs whose event shapes differ: {sorted(shapes)}")
+
+
 def stack(beliefs: Sequence[B], dim: int = 0) -> B:
     """Stack beliefs of equal batch shape along a new batch axis ``dim``."""
     beliefs = list(beliefs)
     if not beliefs:
         raise ValueError("beliefs: cannot stack an empty sequence")
-    shape = beliefs[0].batch_shape
+    _same_type(beliefs, "stack")
+    shape = broadcast_shape(*(b.batch_shape for b in beliefs))
     flat = [pytree.tree_flatten(b.expand(shape))[0] for b in beliefs]
     spec = pytree.tree_flatten(beliefs[0])[1]
     events = [e for _, e in beliefs[0]._tensors()]
@@ -205,6 +217,7 @@ def cat(beliefs: Sequence[B], dim: int = 0) -> B:
     beliefs = list(beliefs)
     if not beliefs:
         raise ValueError("beliefs: cannot concatenate an empty sequence")
+    _same_type(beliefs, "concatenate")
     flat = [pytree.tree_flatten(b.materialize())[0] for b in beliefs]
     spec = pytree.tree_flatten(beliefs[0])[1]
     events = [e for _, e in beliefs[0]._tensors()]

@@ -316,18 +316,23 @@ def _select_mode(value: Tensor, j: int) -> Tensor:
 
 
 def _stack_extras(extras, axis: int) -> dict | None:
-    """The mode filters' diagnostics that every filter reports as a tensor, stacked on the mode axis."""
-    if not all(extras):
+    """The mode filters' diagnostics, stacked on the mode axis: every key that all of them report as
+    a tensor (e.g. ``singular``); a key only some of them report (a particle filter's ``ess`` beside a
+    Kalman mode) is kept per mode as ``extras["by_mode"][j]``."""
+    if not any(extras):
         return None
-    keys = [k for k in extras[0] if all(isinstance(e.get(k), Tensor) for e in extras)]
+    present = [e or {} for e in extras]
+    keys = [k for k in present[0] if all(isinstance(e.get(k), Tensor) for e in present)]
     out = {}
     for key in keys:
-        values = [e[key] for e in extras]
+        values = [e[key] for e in present]
         try:
             shape = broadcast_shape(*[v.shape for v in values])
         except RuntimeError:
             continue  # e.g. per-mode tensors of different sizes: not stackable
         out[key] = torch.stack([v.expand(shape) for v in values], dim=axis)
+    if any(set(e) - set(out) for e in present):
+        out["by_mode"] = present  # the rest, as each mode filter reported it
     return out or None
 
 
