@@ -23,7 +23,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-__all__ = ["any_observed", "check_joseph", "cholesky", "cholesky_solve", "condition", "psd_sqrt", "solve_lower",
+__all__ = ["any_observed", "check_joseph", "cholesky", "cholesky_solve", "condition", "psd_sqrt", "solve_lower", "solve_right",
            "solve_lower_transposed", "symmetrize", "use_joseph"]
 
 _LOG_2PI = math.log(2 * math.pi)
@@ -123,6 +123,15 @@ def cholesky(S: Tensor, *, with_flag: bool = False):
     repaired = torch.where((info2 != 0)[..., None, None], fallback, chol2)
     L = torch.where(failed[..., None, None], repaired, chol)
     return (L, failed) if with_flag else L
+
+
+def solve_right(G: Tensor, S: Tensor) -> Tensor:
+    """``G S^{-1}`` for a symmetric non-singular ``S`` (a gain ``C S^{-1}``), by one solve.
+
+    Shapes:
+        G: ``(..., k, m)``; S: ``(..., m, m)`` -> ``(..., k, m)``
+    """
+    return torch.linalg.solve(S, G.mT).mT
 
 
 def solve_lower(L: Tensor, rhs: Tensor) -> Tensor:

@@ -138,7 +138,7 @@ def test_augmented_agrees_with_non_augmented(make):
     Pb = augmented_cross_predictor(sys, T)
     assert _rel(cross.joint(), Pb) < 1e-8
     idx = torch.arange(sys.num_sensors)
-    assert _rel(cross.P[:, idx, idx], stats.Px) < 1e-12
+    assert _rel(cross.state_cov[:, idx, idx], stats.state_cov) < 1e-12
     for N in HORIZONS:
         diag = cross_covariances(sys, stats, cross, N)[:, idx, idx]
         assert _rel(diag, local_covariances(sys, stats, N)) < 1e-10
@@ -323,9 +323,9 @@ def test_steady_state_is_the_limit_of_the_time_varying_recursions():
     T = 150
     stats = local_predictor_stats(sys, T)
     cross = cross_predictor_stats(sys, stats)
-    assert _rel(stats.Lx[-1], ss.stats.Lx[0]) < 1e-9
-    assert _rel(stats.Lr[-1], ss.stats.Lr[0]) < 1e-9
-    assert _rel(stats.Px[-1], ss.stats.Px[0]) < 1e-9
+    assert _rel(stats.state_gain[-1], ss.stats.state_gain[0]) < 1e-9
+    assert _rel(stats.aux_gain[-1], ss.stats.aux_gain[0]) < 1e-9
+    assert _rel(stats.state_cov[-1], ss.stats.state_cov[0]) < 1e-9
     for N in (-2, -1, 0, 1, 2):
         t = T - 10
         assert _rel(cross_covariances(sys, stats, cross, N)[t], ss.cross_covariances(sys, N)) < 1e-9, N
@@ -467,3 +467,38 @@ def test_fuse_tracks_on_beliefs_matches_information_fusion_and_fuses_imm_tracks(
         assert (out.cov.diagonal(dim1=-2, dim2=-1) <= t.estimate().cov.diagonal(dim1=-2, dim2=-1) + 1e-12).all()
     with pytest.raises(ValueError, match="cross_covs"):
         fuse_tracks(tracks, torch.zeros(2, 2, 3, 3, dtype=torch.float64))
+
+
+def test_local_unscented_filters_fused_by_covariance_intersection():
+    """Any filter as a local estimator: two UKF tracks of one target from two range-bearing radars,
+    fused by covariance intersection (unknown cross-covariance): consistent and tighter than the worse."""
+    import math
+
+    import torch
+
+    from torchmm import ConstantVelocity, GaussianBelief, PositionMeasurement, UnscentedKalmanFilter, run_filter
+    from torchmm.fusion import fuse_tracks
+    from torchmm.simulate import simulate_jump_system, simulate_measurements
+
+    kw = dict(dtype=torch.float64)
+    cv = ConstantVelocity(2, q=0.05, dtype=torch.float64)
+    sensors = [PositionMeasurement(4, [0, 2], torch.tensor(r, **kw), dtype=torch.float64) for r in (1.0, 9.0)]
+    prior = GaussianBelief(torch.zeros(4, **kw), 4 * torch.eye(4, **kw))
+    g = torch.Generator().manual_seed(3)
+    truth = simulate_jump_system(cv, torch.ones(1, 1, **kw), prior, 30, (200,), generator=g).states
+    tracks = []
+    for s in sensors:
+        z = simulate_measurements(s, truth, generator=g)
+        tracks.append(run_filter(UnscentedKalmanFilter(cv, s), prior.expand(200), z).belief)
+    fused = fuse_tracks(tracks, method="covariance_intersection")
+    w = torch.tensor([1 / t.cov.diagonal(dim1=-2, dim2=-1).sum(-1).mean() for t in tracks])
+    assert w[0] > w[1]  # the accurate radar dominates
+    # consistency: the NEES of the fused estimate does not exceed its dimension (CI is conservative)
+    err = (fused.mean - truth).unsqueeze(-1)
+    nees = (err.mT @ torch.linalg.solve(fused.cov, err)).squeeze().mean()
+    assert nees < 4.0 * 1.1, nees
+    worse = tracks[1].cov.diagonal(dim1=-2, dim2=-1).sum(-1)
+    assert (fused.cov.diagonal(dim1=-2, dim2=-1).sum(-1) < worse).all()
+    assert math.isfinite(float(nees))
+    with pytest.raises(ValueError, match="cross_covs"):
+        fuse_tracks(tracks, torch.zeros(30, 200, 2, 2, 4, 4, **kw), method="covariance_intersection")

@@ -26,6 +26,7 @@ import torch
 from torch import Tensor
 
 from torchmm.beliefs.ops import symmetrize
+from torchmm.linalg import solve_right
 from torchmm.fusion.local import check_measurements
 from torchmm.fusion.system import MultiSensorSystem, measurement_sequence
 
@@ -41,17 +42,13 @@ __all__ = [
 ]
 
 
-def _solve_right(G: Tensor, S: Tensor) -> Tensor:
-    return torch.linalg.solve(S, G.mT).mT
-
-
 @dataclass(frozen=True)
 class CorrelatedKFResult:
     """Outputs of :func:`correlated_kf` (``*S``: system batch, e.g. sensors).
 
     Shapes:
         x_pred, x_filt: ``(T, *B, *S, d)``; eps: ``(T, *B, *S, m)``
-        P_pred, P_filt: ``(T, *S, d, d)``; Qeps: ``(T, *S, m, m)``; gain: ``(T, *S, d, m)`` (one-step ``L^-``)
+        P_pred, P_filt: ``(T, *S, d, d)``; innovation_cov ``Q^eps``: ``(T, *S, m, m)``; gain: ``(T, *S, d, m)`` (one-step ``L^-``)
     """
 
     x_pred: Tensor
@@ -59,7 +56,7 @@ class CorrelatedKFResult:
     eps: Tensor
     P_pred: Tensor
     P_filt: Tensor
-    Qeps: Tensor
+    innovation_cov: Tensor
     gain: Tensor
 
 
@@ -82,8 +79,8 @@ def correlated_kf(Phi, G, Q, S, Qv, H, x0, P0, y) -> CorrelatedKFResult:
     for t in range(T):
         Ht, GS = H[t], G @ S[t]
         Qe = symmetrize(Ht @ P @ Ht.mT + Qv[t])
-        K = _solve_right(P @ Ht.mT, Qe)
-        J = _solve_right(GS, Qe)
+        K = solve_right(P @ Ht.mT, Qe)
+        J = solve_right(GS, Qe)
         eps = y[t] - (Ht @ x.unsqueeze(-1)).squeeze(-1)
         xf = x + (K @ eps.unsqueeze(-1)).squeeze(-1)
         Pf = symmetrize(P - K @ Qe @ K.mT)
@@ -118,10 +115,10 @@ def correlated_kf_estimates(res: CorrelatedKFResult, Phi, G, Q, H, x0, P0, N: in
     for k in range(N + 1):
         valid = (torch.arange(T, device=mean.device) + k < T).to(mean.dtype)
         idx = torch.clamp(torch.arange(T, device=mean.device) + k, max=T - 1)
-        Kg = _solve_right(Om @ H[idx].mT, res.Qeps[idx]) * valid.reshape(T, *([1] * (Om.dim() - 1)))
+        Kg = solve_right(Om @ H[idx].mT, res.innovation_cov[idx]) * valid.reshape(T, *([1] * (Om.dim() - 1)))
         Kb = Kg.reshape(T, *([1] * (mean.dim() - Kg.dim() + 1)), *Kg.shape[1:])
         mean = mean + (Kb @ res.eps[idx].unsqueeze(-1)).squeeze(-1)
-        cov = symmetrize(cov - Kg @ res.Qeps[idx] @ Kg.mT)
+        cov = symmetrize(cov - Kg @ res.innovation_cov[idx] @ Kg.mT)
         Om = Om @ Psi[idx].mT
     return mean, cov
 

@@ -34,6 +34,7 @@ import torch
 from torch import Tensor
 
 from torchmm.beliefs.ops import symmetrize
+from torchmm.linalg import solve_right
 from torchmm.fusion.system import (
     MeasurementSequence,
     MultiSensorSystem,
@@ -71,35 +72,34 @@ def check_measurements(system: MultiSensorSystem, y: Tensor, stats: "LocalStats 
     return present
 
 
-def _solve_right(G: Tensor, S: Tensor) -> Tensor:
-    """``G S^{-1}`` for symmetric ``S``."""
-    return torch.linalg.solve(S, G.mT).mT
-
-
 @dataclass(frozen=True)
 class LocalStats:
     """Theorem 1 quantities per sensor at ``t|t-1`` (``T = 1`` and ``stationary`` for steady state).
 
+    The auxiliary state ``x^r_i = r_i x`` is the state scaled by sensor ``i``'s multiplicative noise
+    (the paper's ``x^r``); the fields name the theorem's symbols in words.
+
     Shapes:
-        Px, Pr, Pxr: ``(T, L, n, n)`` (``P^x``, ``P^{x^r}``, ``P^{xx^r}``); Qeps: ``(T, L, m, m)``
-        Lx, Lr: ``(T, L, n, m)`` (``L_i``, ``L^{x^r}_i``); Qxi: ``(T, L, n, n)``;
+        state_cov ``P^x``, aux_cov ``P^{x^r}``, state_aux_cov ``P^{xx^r}``: ``(T, L, n, n)``;
+        innovation_cov ``Q^eps``: ``(T, L, m, m)``; state_gain ``L_i``, aux_gain ``L^{x^r}_i``:
+        ``(T, L, n, m)``; aux_noise_cov ``Q^xi`` (the virtual process noise): ``(T, L, n, n)``;
         meas: the measurement model per step (:class:`MeasurementSequence`, ``T`` steps)
     """
 
-    Px: Tensor
-    Pr: Tensor
-    Pxr: Tensor
-    Qeps: Tensor
-    Lx: Tensor
-    Lr: Tensor
-    Qxi: Tensor
+    state_cov: Tensor
+    aux_cov: Tensor
+    state_aux_cov: Tensor
+    innovation_cov: Tensor
+    state_gain: Tensor
+    aux_gain: Tensor
+    aux_noise_cov: Tensor
     meas: MeasurementSequence
     stationary: bool = False
 
     def at(self, t: int) -> "LocalStats":
         k = 0 if self.stationary else t
-        return LocalStats(*(getattr(self, f)[k] for f in ("Px", "Pr", "Pxr", "Qeps", "Lx", "Lr", "Qxi")),
-                          meas=self.meas)
+        names = ("state_cov", "aux_cov", "state_aux_cov", "innovation_cov", "state_gain", "aux_gain", "aux_noise_cov")
+        return LocalStats(*(getattr(self, f)[k] for f in names), meas=self.meas)
 
 
 def local_gains(system: MultiSensorSystem, meas_t, Px, Pr, Pxr):
@@ -109,8 +109,8 @@ def local_gains(system: MultiSensorSystem, meas_t, Px, Pr, Pxr):
     PCt = Px @ C.mT + Pxr @ Ct.mT  # E[x~ eps^T]   (L, n, m)
     PrCt = Pxr.mT @ C.mT + Pr @ Ct.mT  # E[x~^r eps^T]
     Qeps = symmetrize(C @ PCt + Ct @ PrCt + Qv.diagonal(dim1=0, dim2=1).permute(2, 0, 1))
-    Lx = _solve_right(A @ PCt + system.Gamma @ R, Qeps)
-    Lr = _solve_right(Phi @ PrCt, Qeps)
+    Lx = solve_right(A @ PCt + system.Gamma @ R, Qeps)
+    Lr = solve_right(Phi @ PrCt, Qeps)
     return Qeps, Lx, Lr
 
 
@@ -138,13 +138,13 @@ def local_predictor_stats(system: MultiSensorSystem, steps: int, present: Tensor
     Px = system.P0.expand(L, n, n)
     Pr = system.Qr0[:, None, None] * Xi[0]
     Pxr = torch.zeros_like(Pr)
-    out = {k: [] for k in ("Px", "Pr", "Pxr", "Qeps", "Lx", "Lr")}
+    out = {k: [] for k in ("state_cov", "aux_cov", "state_aux_cov", "innovation_cov", "state_gain", "aux_gain")}
     for t in range(steps):
         Qeps, Lx, Lr = local_gains(system, meas.at(t), Px, Pr, Pxr)
         for k, v in zip(out, (Px, Pr, Pxr, Qeps, Lx, Lr)):
             out[k].append(v)
         Px, Pr, Pxr = _local_riccati(system, Px, Pr, Pxr, Qeps, Lx, Lr, Qxi[t])
-    return LocalStats(**{k: torch.stack(v) for k, v in out.items()}, Qxi=Qxi, meas=meas)
+    return LocalStats(**{k: torch.stack(v) for k, v in out.items()}, aux_noise_cov=Qxi, meas=meas)
 
 
 def local_one_step(system: MultiSensorSystem, stats: LocalStats, y: Tensor):
@@ -172,8 +172,8 @@ def local_one_step(system: MultiSensorSystem, stats: LocalStats, y: Tensor):
         C, Ct = stats.meas.at(t)[:2]
         eps = y[t] - (C @ x.unsqueeze(-1) + Ct @ xr.unsqueeze(-1)).squeeze(-1)
         xs.append(x), xrs.append(xr), es.append(eps)
-        x = x @ A.T + (st.Lx @ eps.unsqueeze(-1)).squeeze(-1)
-        xr = (Phi @ xr.unsqueeze(-1) + st.Lr @ eps.unsqueeze(-1)).squeeze(-1)
+        x = x @ A.T + (st.state_gain @ eps.unsqueeze(-1)).squeeze(-1)
+        xr = (Phi @ xr.unsqueeze(-1) + st.aux_gain @ eps.unsqueeze(-1)).squeeze(-1)
     return torch.stack(xs), torch.stack(xrs), torch.stack(es)
 
 
@@ -246,29 +246,29 @@ def local_covariances(system: MultiSensorSystem, stats: LocalStats, N: int,
 
 def local_from_pred(system, stats: LocalStats, x_pred, eps, N: int, steps: int | None = None):
     if steps is None:
-        steps = x_pred.shape[0] if x_pred is not None else stats.Px.shape[0]
+        steps = x_pred.shape[0] if x_pred is not None else stats.state_cov.shape[0]
     T = steps
-    Px = stats.Px.expand(T, *stats.Px.shape[1:]) if stats.stationary else stats.Px
+    Px = stats.state_cov.expand(T, *stats.state_cov.shape[1:]) if stats.stationary else stats.state_cov
     if N < 0:
         mean, cov = _pred_shift(x_pred, Px, -N - 1, system, system.P0)
         if stats.stationary:  # steady state: the limit, no prior transient
-            cov = _steady_pred_cov(system, stats.Px[0], -N - 1).expand_as(Px)
+            cov = _steady_pred_cov(system, stats.state_cov[0], -N - 1).expand_as(Px)
         return mean, cov
     A, Phi = system.A, system.Phi
     mean, cov = x_pred, Px
     Om_x = Px
-    Om_r = stats.Pxr.expand_as(Px) if stats.stationary else stats.Pxr
+    Om_r = stats.state_aux_cov.expand_as(Px) if stats.stationary else stats.state_aux_cov
     eye = torch.eye(system.meas_dim, dtype=Px.dtype, device=Px.device)
     for k in range(N + 1):
         if stats.stationary:
-            Qe, Lx, Lr = stats.Qeps, stats.Lx, stats.Lr
+            Qe, Lx, Lr = stats.innovation_cov, stats.state_gain, stats.aux_gain
             C, Ct = stats.meas.C, stats.meas.Ct
         else:
-            Qe = _shift(stats.Qeps, k, eye)
-            Lx, Lr = _shift(stats.Lx, k), _shift(stats.Lr, k)
+            Qe = _shift(stats.innovation_cov, k, eye)
+            Lx, Lr = _shift(stats.state_gain, k), _shift(stats.aux_gain, k)
             C, Ct = _shift(stats.meas.C, k), _shift(stats.meas.Ct, k)
         valid = _valid(T, k, Px)[:, None, None, None]
-        K = _solve_right(Om_x @ C.mT + Om_r @ Ct.mT, Qe)  # (T, L, n, m)
+        K = solve_right(Om_x @ C.mT + Om_r @ Ct.mT, Qe)  # (T, L, n, m)
         if not stats.stationary:
             K = K * valid
         if mean is not None:
@@ -299,20 +299,20 @@ class CrossStats:
     """Theorem 4 quantities for every sensor pair ``(i, j)`` at ``t|t-1``.
 
     Shapes:
-        P: ``(T, L, L, n, n)`` ``E[x~_i x~_j^T]``; Pr: ``E[x~^r_i x~^r_j^T]``;
-        Pxr: ``E[x~_i x~^r_j^T]``; Qeps: ``(T, L, L, m, m)`` ``E[eps_i eps_j^T]``
+        state_cov: ``(T, L, L, n, n)`` ``E[x~_i x~_j^T]``; aux_cov: ``E[x~^r_i x~^r_j^T]``;
+        state_aux_cov: ``E[x~_i x~^r_j^T]``; innovation_cov: ``(T, L, L, m, m)`` ``E[eps_i eps_j^T]``
     """
 
-    P: Tensor
-    Pr: Tensor
-    Pxr: Tensor
-    Qeps: Tensor
+    state_cov: Tensor
+    aux_cov: Tensor
+    state_aux_cov: Tensor
+    innovation_cov: Tensor
     stationary: bool = False
 
     def joint(self) -> Tensor:
         """Augmented ``E[[x~_i; x~^r_i][x~_j; x~^r_j]^T]``, ``(T, L, L, 2n, 2n)``."""
-        top = torch.cat([self.P, self.Pxr], dim=-1)
-        bottom = torch.cat([self.Pxr.transpose(1, 2).mT, self.Pr], dim=-1)
+        top = torch.cat([self.state_cov, self.state_aux_cov], dim=-1)
+        bottom = torch.cat([self.state_aux_cov.transpose(1, 2).mT, self.aux_cov], dim=-1)
         return torch.cat([top, bottom], dim=-2)
 
 
@@ -362,17 +362,17 @@ def cross_predictor_stats(system: MultiSensorSystem, stats: LocalStats,
     Shapes:
         -> :class:`CrossStats` with leading ``(T, L, L)``
     """
-    T = stats.Px.shape[0] if steps is None else steps
+    T = stats.state_cov.shape[0] if steps is None else steps
     L, n = system.num_sensors, system.state_dim
     Xi0 = system.P0 + torch.outer(system.mu0, system.mu0)
     P = system.P0.expand(L, L, n, n)
     eye = torch.eye(L, dtype=P.dtype, device=P.device)[..., None, None]
     Pr = eye * (system.Qr0[:, None, None] * Xi0)[:, None]
     Pxr = torch.zeros_like(Pr)
-    out = {k: [] for k in ("P", "Pr", "Pxr", "Qeps")}
+    out = {k: [] for k in ("state_cov", "aux_cov", "state_aux_cov", "innovation_cov")}
     for t in range(T):
         st = stats.at(t)
-        P1, Pr1, Pxr1, Qeps = cross_step(system, stats.meas.at(t), P, Pr, Pxr, st.Lx, st.Lr, st.Qxi)
+        P1, Pr1, Pxr1, Qeps = cross_step(system, stats.meas.at(t), P, Pr, Pxr, st.state_gain, st.aux_gain, st.aux_noise_cov)
         for k, v in zip(out, (P, Pr, Pxr, Qeps)):
             out[k].append(v)
         P, Pr, Pxr = symmetrize_pairs(P1), symmetrize_pairs(Pr1), Pxr1
@@ -384,7 +384,7 @@ def _augmented_blocks(system, stats: LocalStats):
     (T, L, 2n, 2n); ``T = 1`` for stationary statistics."""
     n, L = system.state_dim, system.num_sensors
     Cbar = torch.cat([stats.meas.C, stats.meas.Ct], dim=-1)
-    Lbar = torch.cat([stats.Lx, stats.Lr], dim=-2)
+    Lbar = torch.cat([stats.state_gain, stats.aux_gain], dim=-2)
     Phibar = torch.zeros(L, 2 * n, 2 * n, dtype=Cbar.dtype, device=Cbar.device)
     Phibar[:, :n, :n] = system.A
     Phibar[:, n:, n:] = system.Phi
@@ -412,9 +412,9 @@ def cross_covariances(system: MultiSensorSystem, stats: LocalStats, cross: Cross
     Shapes:
         -> ``(T, L, L, n, n)``
     """
-    T = cross.P.shape[0] if steps is None else steps
+    T = cross.state_cov.shape[0] if steps is None else steps
     stat = cross.stationary
-    P_pred = cross.P.expand(T, *cross.P.shape[1:]) if stat else cross.P
+    P_pred = cross.state_cov.expand(T, *cross.state_cov.shape[1:]) if stat else cross.state_cov
     if N < 0:
         k = -N - 1
         if stat:
@@ -426,8 +426,8 @@ def cross_covariances(system: MultiSensorSystem, stats: LocalStats, cross: Cross
     n, L, m = system.state_dim, system.num_sensors, system.meas_dim
     Cbar, Lbar, Psi = _augmented_blocks(system, stats)
     Pbar = cross.joint()
-    Qe = cross.Qeps
-    Qe_loc = stats.Qeps
+    Qe = cross.innovation_cov
+    Qe_loc = stats.innovation_cov
     E = P_pred
     X = Pbar[..., :n, :] if not stat else Pbar[..., :n, :].expand(T, *Pbar.shape[1:-2], n, 2 * n)
     R, Qv = stats.meas.R, stats.meas.Qv  # (T, L, p, m), (T, L, L, m, m)
@@ -445,7 +445,7 @@ def cross_covariances(system: MultiSensorSystem, stats: LocalStats, cross: Cross
             Cb, RGk, Qvk = _shift(Cbar, k), _shift(RG, k), _shift(Qv, k)
             valid = _valid(T, k, E)
         Xii = X[:, idx, idx]  # (T, L, n, 2n)
-        K = _solve_right(Xii @ Cb.mT, Qlk)  # (T, L, n, m)
+        K = solve_right(Xii @ Cb.mT, Qlk)  # (T, L, n, m)
         if valid is not None:
             K = K * valid[:, None, None, None]
         Ki, Kj = K[:, :, None], K[:, None, :]
@@ -488,7 +488,7 @@ def theorem6_cross_covariances(system: MultiSensorSystem, stats: LocalStats, cro
         raise ValueError("stats: Theorem 6's closed sums are evaluated for the time-varying statistics")
     if stats.meas.present is not None:
         raise ValueError("stats: Theorem 6's closed sums are implemented for complete data only")
-    T = stats.Px.shape[0]
+    T = stats.state_cov.shape[0]
     A, G, C, Ct = system.A, system.Gamma, system.C, system.Ct
     h = system.h
     eye_m = torch.eye(system.meas_dim, dtype=A.dtype, device=A.device)
@@ -496,20 +496,20 @@ def theorem6_cross_covariances(system: MultiSensorSystem, stats: LocalStats, cro
     Phipow = [h[:, None, None] ** k * Apow[k] for k in range(N + 1)]  # (L, n, n)
 
     # local smoothing gains K_i(t|t+k), Theorem 3 (28)-(30)
-    Ks, Om_x, Om_r = [], stats.Px, stats.Pxr
+    Ks, Om_x, Om_r = [], stats.state_cov, stats.state_aux_cov
     for k in range(N + 1):
-        Qe = _shift(stats.Qeps, k, eye_m)
-        K = _solve_right(Om_x @ C.mT + Om_r @ Ct.mT, Qe) * _valid(T, k, Om_x)[:, None, None, None]
+        Qe = _shift(stats.innovation_cov, k, eye_m)
+        K = solve_right(Om_x @ C.mT + Om_r @ Ct.mT, Qe) * _valid(T, k, Om_x)[:, None, None, None]
         Ks.append(K)
         KQ = K @ Qe
-        Om_x = Om_x @ A.T - KQ @ _shift(stats.Lx, k).mT
-        Om_r = Om_r @ system.Phi.mT - KQ @ _shift(stats.Lr, k).mT
+        Om_x = Om_x @ A.T - KQ @ _shift(stats.state_gain, k).mT
+        Om_r = Om_r @ system.Phi.mT - KQ @ _shift(stats.aux_gain, k).mT
 
     def M(offset: int, mj: int) -> Tensor:
         """``C_j A^{m-1} L_j(t+offset) + C~_j Phi_j^{m-1} L^{x^r}_j(t+offset)``, ``(T, L, m, m)``."""
-        return C @ Apow[mj - 1] @ _shift(stats.Lx, offset) + Ct @ Phipow[mj - 1] @ _shift(stats.Lr, offset)
+        return C @ Apow[mj - 1] @ _shift(stats.state_gain, offset) + Ct @ Phipow[mj - 1] @ _shift(stats.aux_gain, offset)
 
-    P, Pxr, Pr = cross.P, cross.Pxr, cross.Pr
+    P, Pxr, Pr = cross.state_cov, cross.state_aux_cov, cross.aux_cov
     Cj, Ctj = C[None], Ct[None]
     # (40), (41): E[x~_i(t|t-1) eps_j^T(t+k)] and E[x~^r_i(t|t-1) eps_j^T(t+k)]
     Pxe, Pre = [], []
@@ -538,7 +538,7 @@ def theorem6_cross_covariances(system: MultiSensorSystem, stats: LocalStats, cro
     if xi_term:
         for a in range(N + 1):
             for s in range(a):
-                val = Ct @ Phipow[a - s - 1] @ _shift(stats.Qxi, s)
+                val = Ct @ Phipow[a - s - 1] @ _shift(stats.aux_noise_cov, s)
                 for mi in range(1, a - s):
                     val = val - M(a - mi, mi) @ Oxi[(a - mi, s)]
                 Oxi[(a, s)] = val
@@ -546,7 +546,7 @@ def theorem6_cross_covariances(system: MultiSensorSystem, stats: LocalStats, cro
     # (42): Q^eps_ij(t+ki, t+kj)
     Q: dict[tuple[int, int], Tensor] = {}
     for ki in range(N + 1):
-        Q[(ki, ki)] = _shift(cross.Qeps, ki)
+        Q[(ki, ki)] = _shift(cross.innovation_cov, ki)
         for b in range(ki):
             Q[(ki, b)] = _tr(Q[(b, ki)])
         for kj in range(ki + 1, N + 1):

@@ -137,12 +137,17 @@ def fuse_tracks(tracks, cross_covs: Tensor | None = None, method: str = "matrix"
     estimate is ``sum_i A_i x_i`` with the matrix, diagonal-matrix or scalar weights of (45)-(47)
     (:func:`fusion_weights`), per batch element.
 
+    ``method="covariance_intersection"`` fuses tracks whose cross-covariances are unknown (e.g.
+    local filters that share the process noise): ``P^{-1} = sum_i w_i P_i^{-1}``,
+    ``x = P sum_i w_i P_i^{-1} x_i``, consistent for any correlation (Julier and Uhlmann 1997), with
+    the fast weights ``w_i ∝ 1 / tr P_i`` (Niehsen 2002); ``cross_covs`` must then be None.
+
     Args:
         tracks: a sequence of ``L`` beliefs with batch ``(*B,)``, or one belief with batch
             ``(*B, L)`` (the track axis last).
         cross_covs: ``(*B, L, L, n, n)`` joint error covariance (its diagonal blocks are replaced by
             the tracks' own covariances), or None.
-        method: ``"matrix"`` (default), ``"diagonal"`` or ``"scalar"``.
+        method: ``"matrix"`` (default), ``"diagonal"``, ``"scalar"`` or ``"covariance_intersection"``.
 
     Returns:
         :class:`~torchmm.beliefs.GaussianBelief` with batch ``(*B,)``: the fused mean and ``P_o``.
@@ -164,6 +169,16 @@ def fuse_tracks(tracks, cross_covs: Tensor | None = None, method: str = "matrix"
     moments = moments.materialize()
     mean, cov = moments.mean, moments.cov  # (*B, L, n), (*B, L, n, n)
     *batch, L, n = mean.shape
+    if method == "covariance_intersection":
+        if cross_covs is not None:
+            raise ValueError("cross_covs: covariance intersection is for unknown cross-covariances; pass None")
+        inv_trace = 1.0 / cov.diagonal(dim1=-2, dim2=-1).sum(-1)  # (*B, L)
+        w = inv_trace / inv_trace.sum(-1, keepdim=True)
+        info = torch.linalg.inv(cov)  # (*B, L, n, n): tiny matrices, one batched call
+        fused_info = (w[..., None, None] * info).sum(-3)
+        fused_cov = symmetrize(torch.linalg.inv(fused_info))
+        vec = (w[..., None] * (info @ mean.unsqueeze(-1)).squeeze(-1)).sum(-2)
+        return GaussianBelief((fused_cov @ vec.unsqueeze(-1)).squeeze(-1), fused_cov)
     if cross_covs is None:
         P = torch.zeros(*batch, L, L, n, n, dtype=mean.dtype, device=mean.device)
     else:
