@@ -287,3 +287,37 @@ def test_list_bank_keeps_every_mode_filters_diagnostics(generator):
     out = _stack_extras([kf_extras, pf_extras], axis=-1)
     assert out["singular"].shape == (3, 2) and out["singular"][:, 1].all()
     assert torch.equal(out["by_mode"][1]["ess"], pf_extras["ess"])
+
+
+def _bad_inputs():
+    from torchmm.fusion import fuse_tracks
+    from torchmm.multimodel import (DropBelow, FixedSet, MultipleModelFilter, ParticleMixing,
+                                    VariableStructureIMM)
+
+    motion = ConstantVelocity(1, acceleration=[[0.5], [0.0], [-0.5]])
+    kf = KalmanFilter(motion, PositionMeasurement(2, [0], 1.0))
+    P = torch.full((3, 3), 1 / 3)
+    belief0 = GaussianBelief(torch.zeros(2, 2), torch.eye(2))
+    return {
+        "no interaction": (lambda: MultipleModelFilter(kf, P), TypeError, "interaction: MultipleModelFilter needs"),
+        "interaction string": (lambda: MultipleModelFilter(kf, P, "imm"), TypeError, "interaction: expected"),
+        "policy object": (lambda: VariableStructureIMM(kf, P, object()), TypeError, "policy: expected"),
+        "empty fixed set": (lambda: FixedSet([]), ValueError, "members"),
+        "drop threshold": (lambda: DropBelow(1.5, [0]), ValueError, "threshold"),
+        "indexed bank": (lambda: IndexedBank(make_bank(kf, 3), [0, 5]), ValueError, "index"),
+        "mixing scheme": (lambda: ParticleMixing("bogus"), ValueError, "mixing"),
+        "sensors type": (lambda: run_filter(kf, belief0, torch.zeros(3, 2, 1), sensors=42), TypeError, "sensors"),
+        "motions count": (lambda: run_filter(kf, belief0, torch.zeros(3, 2, 1), motions=[motion]), ValueError,
+                          "motions"),
+        "no tracks": (lambda: fuse_tracks([]), TypeError, "tracks"),
+        "fixed set range": (lambda: VariableStructureIMM(kf, P, FixedSet([7])).step(
+            VariableStructureIMM(kf, P, FixedSet([7])).initial_belief(belief0), torch.zeros(2, 1)),
+            ValueError, "members"),
+    }
+
+
+@pytest.mark.parametrize("case", sorted(_bad_inputs()))
+def test_engine_entry_points_reject_bad_input_naming_the_argument(case):
+    build, error, pattern = _bad_inputs()[case]
+    with pytest.raises(error, match=rf"^{pattern}"):
+        build()

@@ -210,8 +210,9 @@ class EqMAParticleFilter(MultipleModelParticleFilter):
         self.register_buffer("gain", gain)
         self.register_buffer("accel_noise_cov", qa)
 
-    def _check_motion(self) -> None:  # the bank holds the N fixed models only
-        pass
+    def _motion_modes(self) -> int:
+        """The bank holds the ``N`` fixed models; the equivalent model is built every step."""
+        return self._num_fixed
 
     def equivalent_model(self, log_cbar: Tensor) -> tuple[Tensor, Tensor]:
         """Mean acceleration and noise covariance of the equivalent model.

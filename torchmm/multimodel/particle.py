@@ -272,10 +272,15 @@ class MultipleModelParticleFilter(MultipleModelFilter):
     def measurement(self) -> MeasurementModel:
         return self.bank.filter.measurement
 
+    def _motion_modes(self) -> int:
+        """How many models the motion bank holds (all ``M``; a subclass may build some per step)."""
+        return self.num_modes
+
     def _check_motion(self) -> None:
         shape = getattr(self.motion, "param_batch_shape", None)
-        if shape is not None and len(shape) > 0 and shape[-1] not in (1, self.num_modes):
-            raise ValueError(f"motion: parameter batch {tuple(shape)} does not match {self.num_modes} modes")
+        expected = self._motion_modes()
+        if shape is not None and len(shape) > 0 and shape[-1] not in (1, expected):
+            raise ValueError(f"motion: parameter batch {tuple(shape)} does not match {expected} modes")
 
     @property
     def uses_generator(self) -> bool:
