@@ -27,7 +27,7 @@ from torchmm.multimodel import StaticMM, VariableStructureIMM
 from torchmm.metrics import mode_accuracy, nees, squared_error
 from torchmm.run import Trajectory
 
-__all__ = ["Estimator", "Evaluation", "evaluate", "gpb1", "gpb2", "imm", "build_mode_filter", "kalman", "static", "starter", "vsmm"]
+__all__ = ["Estimator", "Evaluation", "evaluate", "multiple_model", "gpb1", "gpb2", "imm", "build_mode_filter", "kalman", "static", "starter", "vsmm"]
 
 
 @dataclass
@@ -77,6 +77,21 @@ def _multiple_model(build, scenario, name, transition, joseph, factory) -> Estim
     bank = build_mode_filter(factory, scenario.motion, scenario.measurement, joseph=joseph)
     filt = build(bank, _transition(scenario, transition))
     return Estimator(name, filt, starter(filt, scenario.initial_mode_probs), True)
+
+
+def multiple_model(scenario, *, name: str = "MM", combinator=None, mode_filter=None, transition=None,
+                   joseph: bool = False) -> Estimator:
+    """The generic builder: ``combinator(bank, transition)`` over the scenario's mode bank.
+
+    Args:
+        combinator: a partial of a torchmm multiple-model class (``conf/estimator``'s
+            ``combinator`` node: ``torchmm.IMM``, ``torchmm.GPB1``, ``torchmm.GPB2``,
+            ``torchmm.MultipleModelFilter`` with an ``interaction``, ``torchmm.VariableStructureIMM``
+            with a ``policy``); default IMM.
+        mode_filter: a partial of a torchmm filter class (``conf/mode_filter``); default Kalman.
+        transition: ``(M, M)``; default the scenario's.
+    """
+    return _multiple_model(combinator or IMM, scenario, name, transition, joseph, mode_filter)
 
 
 def imm(scenario, *, name: str = "IMM", transition=None, joseph: bool = False, mode_filter=None) -> Estimator:

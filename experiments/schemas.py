@@ -116,11 +116,26 @@ def scenario_names(targets) -> list[str]:
 
 
 # -- estimators (conf/estimator/*.yaml) ------------------------------------------------------------
+COMBINATORS = ("torchmm.IMM", "torchmm.GPB1", "torchmm.GPB2", "torchmm.MultipleModelFilter",
+               "torchmm.VariableStructureIMM", "torchmm.StaticMM")
+
+
+def _combinator(node) -> str | None:
+    if node is None:
+        return None
+    target = node.get("_target_") if isinstance(node, dict) else None
+    if target not in COMBINATORS:
+        return f"_target_ must be one of {', '.join(COMBINATORS)} (got {target!r})"
+    return None
+
+
 @dataclass
 class Estimator:
-    _target_: str = spec("experiments.estimators.imm", one_of(
-        "experiments.estimators.imm", "experiments.estimators.gpb1", "experiments.estimators.gpb2",
-        "experiments.estimators.kalman", "experiments.estimators.static", "experiments.estimators.vsmm"))
+    _target_: str = spec("experiments.estimators.multiple_model", one_of(
+        "experiments.estimators.multiple_model", "experiments.estimators.imm", "experiments.estimators.gpb1",
+        "experiments.estimators.gpb2", "experiments.estimators.kalman", "experiments.estimators.static",
+        "experiments.estimators.vsmm"))
+    combinator: Optional[Any] = spec(None, _combinator)  # a torchmm multiple-model class (partial)
     _partial_: bool = True
     transition: Optional[List[Any]] = spec(None, _rows_stochastic)
     joseph: bool = False

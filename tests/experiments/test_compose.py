@@ -54,6 +54,7 @@ def test_mevsmm_selection_over_a_kalman_bank(tmp_path):
     (["+mode_filter.num_particles=5"], "mode_filter.num_particles"),
     (["mode_filter=particle", "mode_filter.num_particles=0"], "mode_filter.num_particles"),
     (["policy.entropy=exact"], "policy.entropy"),
+    (["estimators.IMM.combinator._target_=torch.nn.Linear"], "estimators.IMM.combinator"),
 ])
 def test_bad_composition_keys_name_the_key(override, key):
     with pytest.raises(ConfigError, match=rf"^{key}"):
