@@ -19,7 +19,6 @@ import yaml
 
 from experiments.config import (
     ConfigError,
-    both,
     each,
     non_empty,
     non_negative,
@@ -183,17 +182,36 @@ class Vsimm:
 
 
 TF_ESTIMATORS = ("IMM", "IMM-TF", "IF-TF", "IMM-FU", "VSIMM", "IMM-SU")
+TF_CLASSES = ("torchmm.IMM", "torchmm.GPB1", "torchmm.GPB2", "torchmm.TransferIMM", "torchmm.SourceUpdateIMM",
+              "torchmm.FusionIMM", "torchmm.SourceModeVSIMM", "torchmm.VariableStructureIMM")
+
+
+def _tf_estimators(nodes) -> str | None:
+    for name, node in (nodes or {}).items():
+        target = node.get("_target_") if isinstance(node, dict) else None
+        if target not in TF_CLASSES:
+            return f"entry {name}: _target_ must be one of {', '.join(TF_CLASSES)} (got {target!r})"
+    return None
 
 
 @dataclass
 class ImmTf:
-    estimator_names: List[str] = spec(factory=lambda: list(TF_ESTIMATORS),
-                                      check=both(non_empty, each(one_of(*TF_ESTIMATORS))))
+    estimator_names: List[str] = spec(factory=lambda: list(TF_ESTIMATORS), check=non_empty)
+    tf_estimators: Dict[str, Any] = spec(factory=dict, check=_tf_estimators)
     source: Source = field(default_factory=Source)
     table1_ratios: List[float] = spec(factory=list, check=each(probability))
     rs_sweep: List[float] = spec(factory=list, check=each(positive))
     transfer: Transfer = field(default_factory=Transfer)
     vsimm: Vsimm = field(default_factory=Vsimm)
+
+
+    @staticmethod
+    def check(data: dict) -> None:
+        known = list(data.get("tf_estimators") or {})
+        for name in data["estimator_names"]:
+            if name not in known:
+                raise ConfigError("estimator_names", data["estimator_names"],
+                                  f"entry {name}: expected one of {', '.join(known)} (the keys of tf_estimators)")
 
 
 @dataclass

@@ -21,6 +21,7 @@ same truth, target data and source times, and source noise ``sqrt(R_S) e`` with 
 from __future__ import annotations
 
 import logging
+import inspect
 import time
 
 import torch
@@ -29,14 +30,8 @@ from hydra.utils import instantiate
 from experiments.estimators import Estimator, build_mode_filter, evaluate, starter
 from experiments.harness import StudyContext
 from experiments.studies import plots
-from torchmm import IMM, PositionMeasurement
-from torchmm.multimodel import (
-    FusionIMM,
-    InfluenceGate,
-    SourceModeVSIMM,
-    SourceUpdateIMM,
-    TransferIMM,
-)
+from torchmm import PositionMeasurement
+from torchmm.multimodel import TransferIMM
 from torchmm.simulate import simulate_jump_system, simulate_multirate
 
 log = logging.getLogger("torchmm.experiments")
@@ -52,33 +47,29 @@ PUBLISHED_TABLE1 = {
 
 
 def build_estimators(scenario, source_R: float, cfg, names=ESTIMATORS) -> list[Estimator]:
-    """The multi-rate estimators of the study for a source sensor with noise ``source_R``."""
-    tcfg, vcfg = cfg.transfer, cfg.vsimm
-    kf = build_mode_filter(instantiate(cfg.get("mode_filter")) if cfg.get("mode_filter") else None,
-                           scenario.motion, scenario.measurement)  # the mode filters (conf/mode_filter)
+    """The multi-rate estimators ``names`` of ``cfg.tf_estimators`` for a source sensor with noise
+    ``source_R``, over the configured mode filters (``conf/mode_filter``).
+
+    Each ``tf_estimators`` entry is a partial of a torchmm class, called as
+    ``cls(mode_filters, transition, source_sensor)`` when the class takes a ``source`` argument
+    (IMM-TF, IF-TF, IMM-SU, IMM-FU, VSIMM) and as ``cls(mode_filters, transition)`` otherwise (the
+    target-only IMM, which then filters the target stream only).
+    """
+    bank = build_mode_filter(instantiate(cfg.mode_filter) if cfg.get("mode_filter") else None,
+                             scenario.motion, scenario.measurement)  # the mode filters (conf/mode_filter)
     P = scenario.transition
     source = PositionMeasurement(scenario.motion.state_dim, scenario.position,
                                  torch.tensor(float(source_R), dtype=P.dtype), dtype=P.dtype).to(P.device)
-    gate = InfluenceGate(threshold=float(tcfg.influence.threshold), mode=int(tcfg.influence.mode),
-                         weight=str(tcfg.influence.weight))
-    options = dict(smoothing_reference=str(tcfg.smoothing_reference), mode_likelihood=str(tcfg.mode_likelihood))
-    makers = {
-        "IMM": lambda: IMM(kf, P),
-        "IMM-TF": lambda: TransferIMM(kf, P, source, **options),
-        "IF-TF": lambda: TransferIMM(kf, P, source, gate=gate, **options),
-        "IMM-FU": lambda: FusionIMM(kf, P, source),
-        "VSIMM": lambda: SourceModeVSIMM(kf, P, source, extra_model=int(vcfg.extra_model), p_new=vcfg.p_new,
-                                         p_ee=float(vcfg.p_ee), eps=float(vcfg.eps),
-                                         drop_below=float(vcfg.drop_below)),
-        "IMM-SU": lambda: SourceUpdateIMM(kf, P, source),
-    }
-    unknown = set(names) - set(makers)
+    nodes = cfg.tf_estimators
+    unknown = [n for n in names if n not in nodes]
     if unknown:
-        raise ValueError(f"estimators: unknown {sorted(unknown)}; choose from {list(makers)}")
+        raise ValueError(f"estimators: unknown {sorted(unknown)}; choose from {list(nodes)}")
     out = []
     for name in names:
-        filt = makers[name]()
-        select = (lambda z: z.target) if name == "IMM" else None
+        make = instantiate(nodes[name])
+        takes_source = "source" in inspect.signature(make.func).parameters
+        filt = make(bank, P, source) if takes_source else make(bank, P)
+        select = None if takes_source else (lambda z: z.target)
         out.append(Estimator(name, filt, starter(filt, scenario.initial_mode_probs), True, select))
     return out
 

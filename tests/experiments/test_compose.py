@@ -59,3 +59,19 @@ def test_mevsmm_selection_over_a_kalman_bank(tmp_path):
 def test_bad_composition_keys_name_the_key(override, key):
     with pytest.raises(ConfigError, match=rf"^{key}"):
         validate(_compose("imm_baseline", *override))
+
+
+def test_imm_tf_estimators_are_config_nodes(tmp_path):
+    """A new multi-rate estimator is a config entry: a TransferIMM with the other smoothing reference
+    equals the IMM-TF of a run where that is the study-wide option."""
+    added = _tables("imm_tf", tmp_path / "a",
+                    "+tf_estimators.TF-mixed={_target_:torchmm.TransferIMM,_partial_:true,smoothing_reference:mixed}",
+                    "estimator_names=[IMM-TF,TF-mixed]")
+    global_mixed = _tables("imm_tf", tmp_path / "b", "transfer.smoothing_reference=mixed", "estimator_names=[IMM-TF]")
+    rows = {(r[0], r[1]): r for r in added["table1"]["rows"]}
+    ref = {(r[0], r[1]): r for r in global_mixed["table1"]["rows"]}
+    for (ratio, name), row in ref.items():
+        assert rows[(ratio, "TF-mixed")][2:] == pytest.approx(row[2:], rel=1e-12)
+        assert rows[(ratio, "IMM-TF")][2] != row[2]  # the default (combined) reference differs
+    with pytest.raises(ConfigError, match=r"^tf_estimators"):
+        validate(_compose("imm_tf", "tf_estimators.IMM._target_=torch.nn.Linear"))
