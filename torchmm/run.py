@@ -151,6 +151,10 @@ def run_filter(
             raise ValueError(f"controls: expected {steps} time steps, got {controls.shape[0]}")
     motion_at = _per_step(motions, steps, "motions")
     sensor_at = _per_step(sensors, steps, "sensors")
+    for given, keyword, name in ((motions, "motion", "motions"), (sensors, "sensor", "sensors")):
+        if given is not None and not _accepts(filter.step, keyword):
+            raise TypeError(f"{name}: {type(filter).__name__}.step takes no per-step {keyword} (its models are "
+                            "fixed by its construction, e.g. the source sensor of a multi-rate estimator)")
     iterator = range(steps)
     if progress:
         from tqdm.auto import tqdm
@@ -176,6 +180,13 @@ def run_filter(
     stacked = Trajectory(*stack_outputs(kept))
     _report_flags(stacked.extras)
     return stacked
+
+
+def _accepts(fn: Callable, keyword: str) -> bool:
+    import inspect
+
+    params = inspect.signature(fn).parameters
+    return keyword in params or any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
 
 
 def _per_step(models: Any, steps: int, name: str) -> Callable[[int], Any]:

@@ -321,3 +321,12 @@ def test_engine_entry_points_reject_bad_input_naming_the_argument(case):
     build, error, pattern = _bad_inputs()[case]
     with pytest.raises(error, match=rf"^{pattern}"):
         build()
+
+
+def test_run_filter_names_per_step_models_a_filter_cannot_take():
+    kf, P, source, prior, z, _ = paper_setup(runs=2, steps=3)
+    from torchmm.multimodel import TransferIMM
+
+    tf = TransferIMM(kf, P, source)
+    with pytest.raises(TypeError, match="^sensors: TransferIMM.step takes no per-step sensor"):
+        run_filter(tf, tf.initial_belief(prior), z, sensors=[source] * 3)
