@@ -94,7 +94,9 @@ class Results:
     """The machine- and human-readable results of one study run.
 
     ``results.json``: ``{"experiment", "config", "metrics": {estimator: {metric: value}},
-    "tables": {name: {"columns", "rows"}}, "timing": {estimator: seconds_per_step}}``.
+    "tables": {name: {"columns", "rows"}}, "timing": {estimator: seconds_per_step},
+    "provenance": {versions, git, host, platform, command, start, end, wall_seconds, device, dtype,
+    threads}}`` (docs/studies.md).
     """
 
     def __init__(self, output_dir: Path, experiment: str, config: dict, description: str = ""):
@@ -106,6 +108,7 @@ class Results:
         self.tables: dict[str, Table] = {}
         self.timing: dict[str, float] = {}
         self.notes: list[str] = []
+        self.provenance: dict[str, Any] = {}
 
     def table(self, name: str, columns: Sequence[str], *, note: str = "", published: dict | None = None) -> Table:
         """Create (or reset) a table; append rows to ``.rows``."""
@@ -122,6 +125,7 @@ class Results:
             "metrics": _jsonable(self.metrics),
             "tables": {k: {"columns": t.columns, "rows": _jsonable(t.rows)} for k, t in self.tables.items()},
             "timing": _jsonable(self.timing),
+            "provenance": _jsonable(self.provenance),
         }
 
     def to_markdown(self) -> str:
@@ -146,6 +150,16 @@ class Results:
                     timing.markdown(), ""]
         if self.notes:
             out += ["## notes", ""] + [f"- {n}" for n in self.notes] + [""]
+        if self.provenance:
+            p = self.provenance
+            git = p.get("git") or {}
+            commit = (git.get("commit") or "unknown")[:12] + (" (uncommitted changes)" if git.get("dirty") else "")
+            v = p.get("versions") or {}
+            out += ["## provenance", "",
+                    f"torchmm {v.get('torchmm')}, torch {v.get('torch')}, numpy {v.get('numpy')}, "
+                    f"Python {v.get('python')}; commit {commit}; {p.get('host')}; device {p.get('device')}, "
+                    f"{p.get('dtype')}, {p.get('threads')} threads; {p.get('start')} to {p.get('end')} "
+                    f"({p.get('wall_seconds')} s).", ""]
         return "\n".join(out)
 
     def save(self) -> None:

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 import shutil
 import sys
 from pathlib import Path
@@ -27,6 +28,7 @@ from hydra.utils import get_method
 from omegaconf import DictConfig, OmegaConf
 
 from experiments.config import ConfigError, precheck, validate
+from experiments.provenance import Provenance
 from experiments.harness import Results, open_context
 from torchmm.runtime import retain_freed_memory
 
@@ -74,8 +76,12 @@ def run_study(cfg: DictConfig, output_dir: Path) -> Results:
         torch.set_num_threads(int(threads))
     if cfg.get("retain_freed_memory"):
         retain_freed_memory()
+    provenance = Provenance()
+    provenance.start(device=ctx.device, dtype=ctx.dtype, threads=torch.get_num_threads())
     try:
         study(ctx)
+        provenance.finish()
+        ctx.results.provenance = provenance.data
         ctx.results.save()
     finally:
         ctx.logger.close()
@@ -87,12 +93,64 @@ def run_study(cfg: DictConfig, output_dir: Path) -> Results:
 @hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="config")
 def _hydra_main(cfg: DictConfig) -> None:
     output_dir = Path(HydraConfig.get().runtime.output_dir)
+    print(f"torchmm-run: {cfg.get('experiment_name', 'study')} -> {output_dir}", file=sys.stderr, flush=True)
     try:
-        run_study(cfg, output_dir)
+        results = run_study(cfg, output_dir)
     except ConfigError as err:  # precheck missed it (e.g. a config dir of the user's): one line, no folder
         _remove_if_unused(output_dir)
         print(f"torchmm-run: error: {err}", file=sys.stderr)
         raise SystemExit(2) from None
+    except KeyboardInterrupt:
+        print(f"torchmm-run: interrupted; the finished units are kept in {output_dir / 'checkpoint.json'}. "
+              f"Resume with the same command and hydra.run.dir={output_dir}", file=sys.stderr)
+        raise SystemExit(130) from None
+    _print_headline(results, output_dir)
+
+
+def _print_headline(results: Results, output_dir: Path) -> None:
+    """The study's first table and where everything is, at the end of a run."""
+    if results.tables:
+        name, table = next(iter(results.tables.items()))
+        print(f"\n{results.experiment}: {name}\n\n{table.markdown()}\n")
+    print(f"torchmm-run: results in {output_dir / 'results.md'} (tables, figures/, provenance)", file=sys.stderr)
+
+
+def study_summaries(config_dir: str = CONFIG_DIR) -> list[tuple[str, str]]:
+    """``(name, summary)`` of every ``conf/experiment/*.yaml`` (its ``# summary:`` comment line)."""
+    out = []
+    for path in sorted(Path(config_dir, "experiment").glob("*.yaml")):
+        summary = next((m.group(1).strip() for m in map(re.compile(r"^#\s*summary:(.*)$").match,
+                                                          path.read_text().splitlines()) if m), "")
+        out.append((path.stem, summary))
+    return out
+
+
+def help_text() -> str:
+    """``torchmm-run --help``: the studies, the common keys and the config groups."""
+    import dataclasses
+
+    from experiments.config import Common
+
+    studies = "\n".join(f"  {name:<16} {line}" for name, line in study_summaries())
+    keys = []
+    for f in dataclasses.fields(Common):
+        if f.name in ("study", "experiment_name"):
+            continue
+        default = f.default if f.default is not dataclasses.MISSING else "(see conf/config.yaml)"
+        if dataclasses.is_dataclass(default) or f.default is dataclasses.MISSING:
+            default = "(group)"
+        keys.append(f"  {f.name}={default}")
+    groups = sorted(p.name for p in Path(CONFIG_DIR).iterdir() if p.is_dir())
+    return (
+        "usage: torchmm-run [experiment=NAME] [key=value ...] [-m key=a,b ...]\n\n"
+        "Runs a torchmm study: Monte Carlo runs batched in one call per time step; writes results.json,\n"
+        "results.md, figures/ and TensorBoard logs into a fresh run folder (named when it starts).\n\n"
+        f"studies (experiment=NAME; default imm_tf_quick):\n{studies}\n\n"
+        "common keys:\n" + "\n".join(keys) + "\n\n"
+        f"config groups: {', '.join(groups)} (e.g. mode_filter=unscented, debug=NAME for tiny sizes)\n"
+        "-m sweeps (Hydra's joblib launcher); docs/studies.md lists every study's keys.\n"
+        "Hydra's own options: --hydra-help, --cfg job, --info.\n"
+    )
 
 
 def _remove_if_unused(output_dir: Path) -> None:
@@ -103,7 +161,16 @@ def _remove_if_unused(output_dir: Path) -> None:
 
 def main() -> None:
     """The ``torchmm-run`` console script: validate the command line's config, then run Hydra."""
-    precheck(sys.argv[1:], CONFIG_DIR)
+    args = sys.argv[1:]
+    if "--version" in args:
+        import torchmm
+
+        print(f"torchmm-run (torchmm {torchmm.__version__})")
+        return
+    if "--help" in args or "-h" in args:
+        print(help_text(), end="")
+        return
+    precheck(args, CONFIG_DIR)
     _hydra_main()
 
 

@@ -16,7 +16,7 @@ from tests.regression.compare import mismatches
 from tests.regression.record import COMMON
 
 EXPERIMENTS = sorted(p.stem for p in (Path(CONFIG_DIR) / "experiment").glob("*.yaml"))
-SCHEMA = {"experiment", "config", "metrics", "tables", "timing"}
+SCHEMA = {"experiment", "config", "metrics", "tables", "timing", "provenance"}
 #: per-study overrides that keep the fast suite fast (the structure is unchanged)
 TF_FAST = ["table1_ratios=[0.3,0.99]", "rs_sweep=[1.0,1000.0]"]
 #: every study's tiny sizes: the conf/debug group (the structure is unchanged)
