@@ -239,6 +239,7 @@ class StudyContext:
     progress: bool = True
     _checkpoint: dict = field(default_factory=dict)
     _config_hash: str = ""
+    _result_config: dict = field(default_factory=dict)
 
     # -- randomness ----------------------------------------------------------------------------
     def generator(self, *key: Any) -> torch.Generator:
@@ -260,7 +261,8 @@ class StudyContext:
         value = _jsonable(compute())
         self._checkpoint[key] = value
         _write_atomic(self.output_dir / "checkpoint.json",
-                      json.dumps({"config_hash": self._config_hash, "units": self._checkpoint}) + "\n")
+                      json.dumps({"config_hash": self._config_hash, "config": self._result_config,
+                                  "units": self._checkpoint}, default=str) + "\n")
         return value
 
     # -- outputs -------------------------------------------------------------------------------
@@ -281,19 +283,75 @@ class StudyContext:
         return tqdm(iterable, disable=not self.progress, **kwargs)
 
 
+def unique_dir(base: str) -> str:
+    """Create ``base`` (or the first free ``base_1``, ``base_2``, ...) atomically; return its path.
+
+    Registered as the OmegaConf resolver ``torchmm.unique_dir`` with caching, so one Hydra run
+    (and every job of a sweep, whose configs share the cache) resolves it to one folder.
+    """
+    path = Path(base)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    for attempt in range(10_000):
+        candidate = path if attempt == 0 else path.with_name(f"{path.name}_{attempt}")
+        try:
+            os.mkdir(candidate)
+        except FileExistsError:
+            continue
+        return str(candidate)
+    raise RuntimeError(f"hydra.run.dir: no free folder name next to {base}")
+
+
+#: keys that do not change a study's numbers: a checkpoint made with other values is reused
+#: (``chunk_runs``: identical to rounding, except particle streams, see docs/studies.md)
+NON_RESULT_KEYS = ("progress", "logger", "threads", "chunk_runs", "retain_freed_memory")
+
+
+def result_config(config_dict: dict) -> dict:
+    """The part of a resolved config that decides the numbers (without :data:`NON_RESULT_KEYS`)."""
+    return {k: v for k, v in config_dict.items() if k not in NON_RESULT_KEYS and k != "hydra"}
+
+
+def _differing_keys(a: Any, b: Any, prefix: str = "") -> list[str]:
+    if isinstance(a, dict) and isinstance(b, dict):
+        out = []
+        for key in sorted(set(a) | set(b), key=str):
+            name = f"{prefix}.{key}" if prefix else str(key)
+            if key not in a or key not in b:
+                out.append(name)
+            else:
+                out += _differing_keys(a[key], b[key], name)
+        return out
+    return [] if a == b else [prefix or "(config)"]
+
+
 def open_context(cfg: Any, output_dir: Path, config_dict: dict, experiment: str, description: str = "") -> StudyContext:
-    """Create the context; pick up a checkpoint left in ``output_dir`` by the same config."""
+    """Create the context; pick up a checkpoint left in ``output_dir`` by the same config.
+
+    The checkpoint is keyed on the keys that change results only (:func:`result_config`). If
+    ``output_dir`` holds a checkpoint of a config that differs in such keys, the differing keys are
+    named and the study runs in a fresh sibling folder (``<dir>_1``, ...): nothing is overwritten.
+    """
     output_dir.mkdir(parents=True, exist_ok=True)
-    config_hash = hashlib.sha256(json.dumps(config_dict, sort_keys=True, default=str).encode()).hexdigest()[:16]
+    kept = result_config(config_dict)
+    config_hash = hashlib.sha256(json.dumps(kept, sort_keys=True, default=str).encode()).hexdigest()[:16]
     checkpoint: dict = {}
-    ckpt_path = output_dir / "checkpoint.json"
+    ckpt_path, results_path = output_dir / "checkpoint.json", output_dir / "results.json"
+    saved_hash = saved_config = None
     if ckpt_path.exists():
         saved = json.loads(ckpt_path.read_text())
-        if saved.get("config_hash") == config_hash:
+        saved_hash, saved_config = saved.get("config_hash"), saved.get("config")
+        if saved_hash == config_hash:
             checkpoint = saved.get("units", {})
             log.info("found %d finished units in %s", len(checkpoint), ckpt_path)
-        else:
-            log.warning("%s belongs to a different config; starting afresh", ckpt_path)
+    elif results_path.exists():  # a finished study without units: compare the configs it recorded
+        saved_config = result_config(json.loads(results_path.read_text()).get("config") or {})
+        saved_hash = hashlib.sha256(json.dumps(saved_config, sort_keys=True, default=str).encode()).hexdigest()[:16]
+    if saved_hash is not None and saved_hash != config_hash:
+        differ = _differing_keys(saved_config or {}, json.loads(json.dumps(kept, default=str)))
+        fresh = Path(unique_dir(str(output_dir)))
+        log.warning("%s holds a run whose %s differ; this run goes to %s (the old one is kept)", output_dir,
+                    ", ".join(differ[:8]) or "config", fresh)
+        output_dir = fresh
     results = Results(output_dir, experiment, config_dict, description)
     return StudyContext(
         cfg=cfg,
@@ -306,4 +364,5 @@ def open_context(cfg: Any, output_dir: Path, config_dict: dict, experiment: str,
         progress=bool(cfg.get("progress", True)),
         _checkpoint=checkpoint,
         _config_hash=config_hash,
+        _result_config=json.loads(json.dumps(kept, default=str)),
     )

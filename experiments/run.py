@@ -15,7 +15,6 @@ runs started in the same second never share a folder.
 from __future__ import annotations
 
 import logging
-import os
 import re
 import shutil
 import sys
@@ -29,31 +28,13 @@ from omegaconf import DictConfig, OmegaConf
 
 from experiments.config import ConfigError, precheck, validate
 from experiments.provenance import Provenance
-from experiments.harness import Results, open_context
+from experiments.harness import Results, open_context, unique_dir
 from torchmm.runtime import retain_freed_memory
 
 log = logging.getLogger("torchmm.experiments")
 
 #: conf/ next to this package (absolute, so the console script works from any directory)
 CONFIG_DIR = str(Path(__file__).resolve().parent.parent / "conf")
-
-
-def unique_dir(base: str) -> str:
-    """Create ``base`` (or the first free ``base_1``, ``base_2``, ...) atomically; return its path.
-
-    Registered as the OmegaConf resolver ``torchmm.unique_dir`` with caching, so one Hydra run
-    (and every job of a sweep, whose configs share the cache) resolves it to one folder.
-    """
-    path = Path(base)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    for attempt in range(10_000):
-        candidate = path if attempt == 0 else path.with_name(f"{path.name}_{attempt}")
-        try:
-            os.mkdir(candidate)
-        except FileExistsError:
-            continue
-        return str(candidate)
-    raise RuntimeError(f"hydra.run.dir: no free folder name next to {base}")
 
 
 if not OmegaConf.has_resolver("torchmm.unique_dir"):
@@ -104,7 +85,7 @@ def _hydra_main(cfg: DictConfig) -> None:
         print(f"torchmm-run: interrupted; the finished units are kept in {output_dir / 'checkpoint.json'}. "
               f"Resume with the same command and hydra.run.dir={output_dir}", file=sys.stderr)
         raise SystemExit(130) from None
-    _print_headline(results, output_dir)
+    _print_headline(results, results.output_dir)
 
 
 def _print_headline(results: Results, output_dir: Path) -> None:

@@ -79,3 +79,42 @@ def test_ctrl_c_ends_with_one_line_that_says_how_to_resume(tmp_path):
     lines = [line for line in err.splitlines() if line.strip()]
     assert lines[-1].startswith("torchmm-run: interrupted;") and f"hydra.run.dir={out_dir}" in lines[-1]
     assert "Traceback" not in err
+
+
+def test_resume_keeps_units_across_non_result_keys_and_a_changed_seed_gets_a_new_folder(tmp_path, monkeypatch):
+    import pytest
+
+    import experiments.studies.imm_analysis as study
+
+    base = ["debug=imm_analysis", "logger=none"]
+    first = run_study(_compose("imm_analysis", *base), tmp_path / "run")
+
+    def fail(*args, **kwargs):
+        raise AssertionError("a finished unit was recomputed")
+
+    monkeypatch.setattr(study, "_analyse", fail)
+    # progress, logger, threads, chunk_runs do not change results: every unit is reused
+    again = run_study(_compose("imm_analysis", *base, "progress=true", "logger=tensorboard", "threads=2",
+                               "chunk_runs=2"), tmp_path / "run")
+    assert again.tables["alpha_sweep"].rows == first.tables["alpha_sweep"].rows
+    before = (tmp_path / "run" / "results.json").read_text()
+    # a changed seed: a new folder next to the old one, which stays as it was
+    with pytest.raises(AssertionError, match="recomputed"):
+        run_study(_compose("imm_analysis", *base, "seed=7"), tmp_path / "run")
+    assert (tmp_path / "run_1").is_dir()
+    assert json.loads((tmp_path / "run" / "results.json").read_text()) == json.loads(before)
+    monkeypatch.undo()
+    moved = run_study(_compose("imm_analysis", *base, "seed=7"), tmp_path / "run")
+    assert moved.output_dir.name.startswith("run_") and moved.output_dir != tmp_path / "run"
+    assert json.loads((tmp_path / "run" / "results.json").read_text()) == json.loads(before)
+
+
+def test_changed_result_keys_are_named(tmp_path, caplog):
+    import logging
+
+    base = ["debug=imm_baseline", "logger=none"]
+    run_study(_compose("imm_baseline", *base), tmp_path / "run")
+    with caplog.at_level(logging.WARNING, logger="torchmm.experiments"):
+        run_study(_compose("imm_baseline", *base, "seed=3", "scenario.R=50"), tmp_path / "run")
+    text = " ".join(r.getMessage() for r in caplog.records)
+    assert "seed" in text and "scenario.R" in text and "the old one is kept" in text
