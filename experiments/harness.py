@@ -242,6 +242,20 @@ class StudyContext:
     _result_config: dict = field(default_factory=dict)
 
     # -- randomness ----------------------------------------------------------------------------
+    #: the dtype every study simulates its data in, whatever ``dtype`` the filters run in: float32
+    #: and float64 runs of a study see the same data (float64 draws, cast down) - common random numbers
+    data_dtype: torch.dtype = torch.float64
+
+    def scenarios(self, node, **kwargs) -> tuple[Any, Any]:
+        """``(scenario for the filters in ctx.dtype, the same scenario in data_dtype for simulating)``;
+        one object when the two dtypes agree."""
+        from hydra.utils import instantiate
+
+        scenario = instantiate(node, dtype=self.dtype, device=self.device, **kwargs)
+        if self.dtype == self.data_dtype:
+            return scenario, scenario
+        return scenario, instantiate(node, dtype=self.data_dtype, device=self.device, **kwargs)
+
     def generator(self, *key: Any) -> torch.Generator:
         """A generator seeded from ``seed`` and ``key``: independent of the order units run in."""
         token = zlib.crc32(repr(key).encode())

@@ -100,7 +100,9 @@ def run(ctx: StudyContext) -> None:
     rc = cfg.radar
     system = radar_system(rc, ctx.dtype, ctx.device)
     steps, runs = int(rc.steps), int(cfg.mc_runs)
-    sim = simulate_fusion(system, steps, (runs,), ctx.generator("fusion_radar", "data"))
+    # simulated with the system in float64 and cast: float32 and float64 runs see the same data
+    data_system = system if ctx.dtype == ctx.data_dtype else radar_system(rc, ctx.data_dtype, ctx.device)
+    sim = simulate_fusion(data_system, steps, (runs,), ctx.generator("fusion_radar", "data")).to(ctx.dtype)
     ctx.results.description = (
         f"Paper 002 Example 1: 3-sensor radar, {steps} steps, {runs} Monte Carlo runs (seed {cfg.seed}, "
         f"{cfg.dtype}); h = exp({float(rc.h_sign):+g} T/{float(rc.tau):g}). "

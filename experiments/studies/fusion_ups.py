@@ -94,7 +94,9 @@ def run(ctx: StudyContext) -> None:
         f"{cfg.dtype}); Monte Carlo variances averaged over t = {burn}..{steps - 1} (smoothers: up to "
         f"{steps - 1} - N). Steady state: Theorems 7-8, Remark 9."
     )
-    sim = simulate_fusion(system, steps, (runs,), ctx.generator("fusion_ups", "data"))
+    # simulated with the system in float64 and cast: float32 and float64 runs see the same data
+    data_system = system if ctx.dtype == ctx.data_dtype else ups_system(uc, ctx.data_dtype, ctx.device)
+    sim = simulate_fusion(data_system, steps, (runs,), ctx.generator("fusion_ups", "data")).to(ctx.dtype)
     diag = dict(dim1=-2, dim2=-1)
 
     # ---- time-varying estimators --------------------------------------------------------------

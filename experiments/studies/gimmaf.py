@@ -142,7 +142,9 @@ def run_unit(g, noise_kind: str, noise_params, runs: int, generator, *, dtype, d
              with_oracle: bool) -> dict:
     R, delta, nu = float(noise_params.R), float(noise_params.delta), float(noise_params.nu)
     steps = int(g.steps)
-    data = simulate(g, runs, generator, noise_kind, R, delta, nu, dtype=dtype, device=device)
+    # simulated in float64 and cast: float32 and float64 runs see the same data
+    data = simulate(g, runs, generator, noise_kind, R, delta, nu, dtype=torch.float64, device=device)
+    data = {k: v.to(dtype) if isinstance(v, torch.Tensor) and v.is_floating_point() else v for k, v in data.items()}
     truth = data["truth"]
     oracle_mean, oracle_pred = _oracle(data, steps)
     estimators = build_estimators(g, R, delta, nu, dtype=dtype, device=device)

@@ -97,8 +97,9 @@ def run(ctx: StudyContext) -> None:
     )
     units = []
     for key, scen_cfg in acfg.scenarios.items():
-        scenario = instantiate(scen_cfg, dtype=ctx.dtype, device=ctx.device)
-        sim, z = scenario.simulate(int(cfg.mc_runs), ctx.generator("data", scenario.name))
+        scenario, data_scenario = ctx.scenarios(scen_cfg)
+        sim, z = data_scenario.simulate(int(cfg.mc_runs), ctx.generator("data", scenario.name))
+        sim, z = sim.to(ctx.dtype), z.to(ctx.dtype)  # the same data in float32 and float64
         for alpha in ctx.progress_bar(list(acfg.alphas[key]), desc=f"{key} alpha sweep"):
             value = ctx.unit(f"{key}/alpha={alpha}", lambda: _analyse(ctx, scenario, sim, z, alpha))
             units.append((scenario.num_modes, float(alpha), value))

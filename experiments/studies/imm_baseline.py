@@ -20,9 +20,10 @@ log = logging.getLogger("torchmm.experiments")
 
 def run(ctx: StudyContext) -> None:
     cfg = ctx.cfg
-    scenario = instantiate(cfg.scenario, dtype=ctx.dtype, device=ctx.device)
+    scenario, data_scenario = ctx.scenarios(cfg.scenario)
     estimators = [instantiate(ecfg)(scenario, name=name) for name, ecfg in cfg.estimators.items()]
-    sim, z = scenario.simulate(int(cfg.mc_runs), ctx.generator("data", scenario.name))
+    sim, z = data_scenario.simulate(int(cfg.mc_runs), ctx.generator("data", scenario.name))
+    sim, z = sim.to(ctx.dtype), z.to(ctx.dtype)  # the same data in float32 and float64
     ctx.results.description = (
         f"Scenario `{scenario.name}`: {scenario.num_modes} modes, {scenario.steps} steps, "
         f"{cfg.mc_runs} Monte Carlo runs (seed {cfg.seed}, {cfg.dtype}). RMSE is per step over runs, "

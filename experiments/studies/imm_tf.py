@@ -79,17 +79,27 @@ def simulate(ctx: StudyContext, scenario, ratio: float, source_R: float, key: st
     cfg = ctx.cfg
     runs = int(cfg.mc_runs)
     g = ctx.generator("data", key)
+    scenario = _data_scenario(ctx, scenario)  # float64 draws: the same data in float32 and float64
+    dtype = scenario.transition.dtype
     sim = simulate_jump_system(scenario.motion, scenario.transition, scenario.initial, scenario.steps, (runs,),
                                initial_mode_probs=scenario.initial_mode_probs, generator=g)
     sensor = PositionMeasurement(scenario.motion.state_dim, scenario.position,
-                                 torch.tensor(float(source_R), dtype=ctx.dtype), dtype=ctx.dtype).to(ctx.device)
+                                 torch.tensor(float(source_R), dtype=dtype), dtype=dtype).to(ctx.device)
     if cfg.source.availability == "bernoulli":
         z = simulate_multirate(scenario.measurement, sensor, sim.states, probability=float(ratio), generator=g)
     elif cfg.source.availability == "periodic":
         z = simulate_multirate(scenario.measurement, sensor, sim.states, period=int(cfg.source.period), generator=g)
     else:
         raise ValueError(f"source.availability: expected 'bernoulli' or 'periodic', got {cfg.source.availability!r}")
+    sim, z = sim.to(ctx.dtype), type(z)(z.target.to(ctx.dtype), z.source.to(ctx.dtype))
     return sim, z, torch.isfinite(z.source).all(-1)
+
+
+def _data_scenario(ctx: StudyContext, scenario):
+    """The scenario in the data dtype (float64), built from the config like the filters' one."""
+    if ctx.dtype == ctx.data_dtype:
+        return scenario
+    return instantiate(ctx.cfg.scenario, dtype=ctx.data_dtype, device=ctx.device)
 
 
 def _unit(ctx: StudyContext, scenario, ratio: float, source_R: float, key: str, names, curves: bool) -> dict:

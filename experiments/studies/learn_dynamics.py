@@ -236,10 +236,14 @@ def run(ctx: StudyContext) -> None:
 def _run(ctx: StudyContext) -> None:
     cfg, lcfg = ctx.cfg, ctx.cfg.learn
     scenario = turning_scenario(lcfg.scenario, ctx.dtype, ctx.device)
+    data_scenario = scenario if ctx.dtype == ctx.data_dtype else turning_scenario(lcfg.scenario, ctx.data_dtype,
+                                                                                   ctx.device)
     runs = int(cfg.mc_runs)
     test_runs = int(lcfg.test_runs) if lcfg.get("test_runs") else runs
-    sim, z = scenario.simulate(runs, ctx.generator("train", scenario.name))
-    test_sim, test_z = scenario.simulate(test_runs, ctx.generator("test", scenario.name))
+    # float64 draws, cast to the study dtype: float32 and float64 runs see the same data
+    sim, z = data_scenario.simulate(runs, ctx.generator("train", scenario.name))
+    test_sim, test_z = data_scenario.simulate(test_runs, ctx.generator("test", scenario.name))
+    sim, z, test_sim, test_z = sim.to(ctx.dtype), z.to(ctx.dtype), test_sim.to(ctx.dtype), test_z.to(ctx.dtype)
     q_true = float(lcfg.scenario.q)
     true_tpm = scenario.transition
     prior = scenario.initial.expand(runs)

@@ -202,9 +202,10 @@ def run(ctx: StudyContext) -> None:
     opts = cfg.mevsmm
     from hydra.utils import instantiate
 
-    scenario = instantiate(cfg.scenario, dtype=ctx.dtype, device=ctx.device)
+    scenario, data_scenario = ctx.scenarios(cfg.scenario)
     runs = int(cfg.mc_runs)
-    truth, _, z = scenario.simulate(runs, ctx.generator("data", scenario.name))
+    truth, _, z = data_scenario.simulate(runs, ctx.generator("data", scenario.name))
+    truth, z = truth.to(ctx.dtype), z.to(ctx.dtype)  # float64 draws: the same data in float32 and float64
     chunk = int(cfg.chunk_runs) if cfg.get("chunk_runs") else runs
     deterministic = scenario.random is None
     ctx.results.description = (

@@ -256,6 +256,10 @@ class FusionSimulation:
     r: Tensor
     y: Tensor
 
+    def to(self, dtype: torch.dtype) -> "FusionSimulation":
+        """The simulation in ``dtype`` (float64 data for a float32 study: common random numbers)."""
+        return FusionSimulation(self.x.to(dtype), self.r.to(dtype), self.y.to(dtype))
+
 
 def simulate_fusion(system: MultiSensorSystem, steps: int, batch_shape=(),
                     generator: torch.Generator | None = None) -> FusionSimulation:

@@ -51,6 +51,10 @@ class JumpSimulation:
     initial_state: Tensor
     initial_mode: Tensor
 
+    def to(self, dtype: torch.dtype) -> JumpSimulation:
+        """The states in ``dtype`` (the modes stay integers), e.g. float64 data for a float32 filter."""
+        return JumpSimulation(self.states.to(dtype), self.modes, self.initial_state.to(dtype), self.initial_mode)
+
 
 def sample_categorical(probs: Tensor, generator: torch.Generator | None = None) -> Tensor:
     """One draw per batch element from ``probs (*B, M)`` (rows sum to one) -> ``(*B,)`` int64."""
