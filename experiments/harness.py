@@ -216,6 +216,60 @@ class TensorBoardLogger(Logger):
         self.writer.close()
 
 
+class CurveRecorder(Logger):
+    """Records every per-step series a study logs (``series(tag, values)``) as data, whatever the
+    logger; forwards everything to ``inner``. :meth:`save` writes ``curves.npz`` and ``curves.csv``."""
+
+    def __init__(self, inner: Logger):
+        self.inner = inner
+        self.curves: dict[str, tuple[list[int], list[float]]] = {}
+
+    def series(self, tag, values, start=1):
+        values = [float(v) for v in (values.tolist() if isinstance(values, torch.Tensor) else values)]
+        self.curves[tag] = (list(range(start, start + len(values))), values)
+        self.inner.series(tag, values, start)
+
+    def scalar(self, tag, value, step=0):
+        self.inner.scalar(tag, value, step)
+
+    def histogram(self, tag, values, step=0):
+        self.inner.histogram(tag, values, step)
+
+    def figure(self, tag, figure):
+        self.inner.figure(tag, figure)
+
+    def text(self, tag, text):
+        self.inner.text(tag, text)
+
+    def close(self):
+        self.inner.close()
+
+    def save(self, output_dir: Path) -> None:
+        """``curves.npz`` (per curve ``<tag>`` the values and ``<tag>#step`` the time steps) and a tidy
+        ``curves.csv`` (``quantity, series, step, value``; the tag is ``quantity/series``)."""
+        if not self.curves:
+            return
+        import numpy as np
+
+        arrays = {}
+        for tag, (steps, values) in self.curves.items():
+            arrays[tag] = np.asarray(values, dtype=np.float64)
+            arrays[f"{tag}#step"] = np.asarray(steps, dtype=np.int64)
+        tmp = output_dir / "curves.tmp.npz"
+        np.savez(tmp, **arrays)
+        os.replace(tmp, output_dir / "curves.npz")
+        lines = ["quantity,series,step,value"]
+        for tag, (steps, values) in self.curves.items():
+            quantity, _, series = tag.partition("/")
+            for k, v in zip(steps, values):
+                lines.append(f"{_csv(quantity)},{_csv(series)},{k},{v!r}")
+        _write_atomic(output_dir / "curves.csv", "\n".join(lines) + "\n")
+
+
+def _csv(text: str) -> str:
+    return f'"{text}"' if any(c in text for c in ',"\n') else text
+
+
 def make_logger(cfg: dict | None, output_dir: Path) -> Logger:
     kind = (cfg or {}).get("kind", "none")
     if kind == "tensorboard":
@@ -371,7 +425,7 @@ def open_context(cfg: Any, output_dir: Path, config_dict: dict, experiment: str,
         cfg=cfg,
         output_dir=output_dir,
         results=results,
-        logger=make_logger(config_dict.get("logger"), output_dir),
+        logger=CurveRecorder(make_logger(config_dict.get("logger"), output_dir)),
         dtype=resolve_dtype(cfg.dtype),
         device=resolve_device(cfg.device),
         seed=int(cfg.seed),

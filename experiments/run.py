@@ -64,6 +64,7 @@ def run_study(cfg: DictConfig, output_dir: Path) -> Results:
         provenance.finish()
         ctx.results.provenance = provenance.data
         ctx.results.save()
+        ctx.logger.save(ctx.output_dir)  # curves.npz / curves.csv: every per-step curve as data
     finally:
         ctx.logger.close()
         torch.set_num_threads(previous_threads)

@@ -11,6 +11,8 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
+
 from experiments.run import run_study, study_summaries
 from tests.experiments.test_studies import EXPERIMENTS, _compose
 
@@ -82,8 +84,6 @@ def test_ctrl_c_ends_with_one_line_that_says_how_to_resume(tmp_path):
 
 
 def test_resume_keeps_units_across_non_result_keys_and_a_changed_seed_gets_a_new_folder(tmp_path, monkeypatch):
-    import pytest
-
     import experiments.studies.imm_analysis as study
 
     base = ["debug=imm_analysis", "logger=none"]
@@ -118,3 +118,37 @@ def test_changed_result_keys_are_named(tmp_path, caplog):
         run_study(_compose("imm_baseline", *base, "seed=3", "scenario.R=50"), tmp_path / "run")
     text = " ".join(r.getMessage() for r in caplog.records)
     assert "seed" in text and "scenario.R" in text and "the old one is kept" in text
+
+
+def test_curves_are_data_and_torchmm_plot_redraws_them_from_the_file_alone(tmp_path):
+    import csv
+
+    import numpy as np
+
+    run_study(_compose("imm_baseline", "debug=imm_baseline", "logger=none"), tmp_path / "run")
+    run_dir = tmp_path / "run"
+    data = json.loads((run_dir / "results.json").read_text())
+    with np.load(run_dir / "curves.npz") as curves:
+        keys = set(curves.files)
+        imm = curves["pos_rmse/IMM"]
+        steps = curves["pos_rmse/IMM#step"]
+    assert {"pos_rmse/IMM", "pos_rmse/GPB1", "vel_rmse/KF"} <= keys
+    assert steps[0] == 1 and len(steps) == len(imm)
+    # the per-step RMSE averages to the table's figure (the papers' average RMSE)
+    row = next(r for r in data["tables"]["rmse"]["rows"] if r[0] == "IMM")
+    assert float(imm.mean()) == pytest.approx(row[1], rel=1e-12)
+    with open(run_dir / "curves.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert {"quantity", "series", "step", "value"} == set(rows[0])
+    assert sum(1 for r in rows if r["quantity"] == "pos_rmse" and r["series"] == "IMM") == len(imm)
+    # redraw from the curves file alone (results and events removed)
+    for name in ("results.json", "results.md", "checkpoint.json"):
+        (run_dir / name).unlink(missing_ok=True)
+    out = subprocess.run([str(Path(sys.executable).with_name("torchmm-plot")), str(run_dir), "--format", "png,pdf"],
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    figures = run_dir / "figures" / "curves"
+    assert (figures / "pos_rmse.png").exists() and (figures / "pos_rmse.pdf").exists()
+    bad = subprocess.run([str(Path(sys.executable).with_name("torchmm-plot")), str(tmp_path / "nothing")],
+                         capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and bad.stderr.startswith("torchmm-plot: error: RUN_DIR")
