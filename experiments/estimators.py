@@ -27,6 +27,8 @@ from torchmm.multimodel import StaticMM, VariableStructureIMM
 from torchmm.metrics import mode_accuracy, nees, squared_error
 from torchmm.run import Trajectory
 
+from experiments.uncertainty import armse_se
+
 __all__ = ["Estimator", "Evaluation", "evaluate", "multiple_model", "gpb1", "gpb2", "imm", "build_mode_filter", "kalman", "static", "starter", "vsmm"]
 
 
@@ -144,12 +146,20 @@ class Evaluation:
     trajectory: Trajectory | None = None
     #: per-step means over all runs of the ``per_step`` statistics, ``(T, ...)`` each
     means: dict[str, Tensor] = field(default_factory=dict)
+    #: delta-method standard errors of the average RMSEs (experiments/uncertainty.py)
+    pos_rmse_se: float = float("nan")
+    vel_rmse_se: float = float("nan")
+    #: runs and state dimension (for the NEES chi-square bounds)
+    runs: int = 0
+    state_dim: int = 0
 
     def summary(self) -> dict[str, float]:
         out = {
             "pos_rmse": self.pos_rmse.mean().item(),
             "vel_rmse": self.vel_rmse.mean().item(),
             "nees": self.nees.mean().item(),
+            "pos_rmse_se": self.pos_rmse_se,
+            "vel_rmse_se": self.vel_rmse_se,
         }
         if self.mode_accuracy is not None:
             out["mode_accuracy"] = self.mode_accuracy.mean().item()
@@ -177,6 +187,7 @@ def evaluate(estimator: Estimator, scenario, sim, z: Any, *, chunk_runs: int | N
     chunk = runs if not chunk_runs else int(chunk_runs)
     steps = leaf.shape[0]
     sums = {"pos": 0.0, "vel": 0.0, "nees": 0.0, "hits": 0.0}
+    per_run = {"pos": [], "vel": []}  # squared errors (T, chunk) per chunk: the standard errors
     per_step = per_step or {}
     extra_sums: dict[str, Tensor] = {}
     elapsed = 0.0
@@ -190,8 +201,12 @@ def evaluate(estimator: Estimator, scenario, sim, z: Any, *, chunk_runs: int | N
         est = traj.estimate()
         elapsed += time.perf_counter() - tic
         truth = sim.states[:, sl]
-        sums["pos"] = sums["pos"] + squared_error(est.mean, truth, scenario.position).sum(1)
-        sums["vel"] = sums["vel"] + squared_error(est.mean, truth, scenario.velocity).sum(1)
+        sq_pos = squared_error(est.mean, truth, scenario.position)
+        sq_vel = squared_error(est.mean, truth, scenario.velocity)
+        per_run["pos"].append(sq_pos.detach().to(torch.float64))
+        per_run["vel"].append(sq_vel.detach().to(torch.float64))
+        sums["pos"] = sums["pos"] + sq_pos.sum(1)
+        sums["vel"] = sums["vel"] + sq_vel.sum(1)
         sums["nees"] = sums["nees"] + nees(est, truth).sum(1)
         if estimator.multiple_model:
             sums["hits"] = sums["hits"] + mode_accuracy(traj.belief.mode_log_probs, sim.modes[:, sl]) * size
@@ -208,4 +223,8 @@ def evaluate(estimator: Estimator, scenario, sim, z: Any, *, chunk_runs: int | N
         seconds_per_step=elapsed / steps,
         trajectory=kept,
         means={key: value / runs for key, value in extra_sums.items()},
+        pos_rmse_se=armse_se(torch.cat(per_run["pos"], 1)),
+        vel_rmse_se=armse_se(torch.cat(per_run["vel"], 1)),
+        runs=runs,
+        state_dim=int(sim.states.shape[-1]),
     )

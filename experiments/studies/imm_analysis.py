@@ -111,7 +111,8 @@ def run(ctx: StudyContext) -> None:
 
 def _tables(ctx: StudyContext, units) -> None:
     results = ctx.results
-    sweep = results.table("alpha_sweep", ["models", "alpha", "estimator", "pos_rmse", "vel_rmse", "mode_accuracy"])
+    sweep = results.table("alpha_sweep", ["models", "alpha", "estimator", "pos_rmse", "vel_rmse", "mode_accuracy",
+                                           "pos_rmse_se", "vel_rmse_se"])
     by_alpha = results.table("conclusions_by_alpha", ["models", "alpha", "conclusion", "premise_steps", "holds_fraction"])
     compression = results.table(
         "compression", ["models", "alpha", "mean_delta", "mean_zeta"],
@@ -121,7 +122,8 @@ def _tables(ctx: StudyContext, units) -> None:
     bound_totals: dict[str, list[int]] = {}
     for models, alpha, value in units:
         for name, r in value["rmse"].items():
-            sweep.rows.append([models, alpha, name, r["pos_rmse"], r["vel_rmse"], r.get("mode_accuracy")])
+            sweep.rows.append([models, alpha, name, r["pos_rmse"], r["vel_rmse"], r.get("mode_accuracy"),
+                               r.get("pos_rmse_se"), r.get("vel_rmse_se")])
             ctx.logger.scalar(f"alpha_sweep/{models}_models/{name}/pos_rmse", r["pos_rmse"], int(round(alpha * 1000)))
         for c, counts in value.get("conclusions", {}).items():
             totals[int(c)] = [t + n for t, n in zip(totals[int(c)], counts)]

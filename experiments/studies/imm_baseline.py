@@ -12,6 +12,7 @@ import logging
 from hydra.utils import instantiate
 
 from experiments.estimators import evaluate
+from experiments.uncertainty import chi2_interval
 from experiments.harness import StudyContext
 from experiments.studies import plots
 
@@ -29,7 +30,12 @@ def run(ctx: StudyContext) -> None:
         f"{cfg.mc_runs} Monte Carlo runs (seed {cfg.seed}, {cfg.dtype}). RMSE is per step over runs, "
         "then averaged over time (the papers' average RMSE)."
     )
-    table = ctx.results.table("rmse", ["estimator", "pos_rmse", "vel_rmse", "nees", "mode_accuracy"])
+    table = ctx.results.table(
+        "rmse", ["estimator", "pos_rmse", "vel_rmse", "nees", "mode_accuracy", "pos_rmse_se", "vel_rmse_se",
+                 "nees_low", "nees_high", "nees_steps_inside"],
+        note="_se: delta-method standard errors of the average RMSE over runs (95 % interval: +- 1.96 se). "
+             "nees_low/high: the 95 % chi-square interval of a step's NEES averaged over the runs; "
+             "nees_steps_inside: the fraction of steps inside it (0.95 for a consistent filter).")
     curves = {"position RMSE": {}, "velocity RMSE": {}}
     example = None
     for est in ctx.progress_bar(estimators, desc="estimators"):
@@ -37,8 +43,12 @@ def run(ctx: StudyContext) -> None:
         ev = evaluate(est, scenario, sim, z, chunk_runs=cfg.get("chunk_runs"), keep_trajectory=True,
                       per_step=stats, generator=ctx.generator("filter", scenario.name, est.name))
         summary = ev.summary()
+        lo, hi = chi2_interval(ev.runs * ev.state_dim)
+        lo, hi = lo * ev.state_dim, hi * ev.state_dim  # the interval of the run-averaged NEES
+        inside = ((ev.nees >= lo) & (ev.nees <= hi)).double().mean().item()
         table.rows.append([est.name, summary["pos_rmse"], summary["vel_rmse"], summary["nees"],
-                           summary.get("mode_accuracy")])
+                           summary.get("mode_accuracy"), summary["pos_rmse_se"], summary["vel_rmse_se"], lo, hi,
+                           inside])
         for key, value in summary.items():
             ctx.results.metric(est.name, key, value)
         ctx.results.timing[est.name] = ev.seconds_per_step

@@ -174,7 +174,8 @@ def run(ctx: StudyContext) -> None:
     ctx.results.save()
 
     # -- Table 1: source ratios -------------------------------------------------------------------
-    table1 = ctx.results.table("table1", ["source_ratio", "estimator", "pos_rmse", "vel_rmse"],
+    table1 = ctx.results.table("table1", ["source_ratio", "estimator", "pos_rmse", "vel_rmse", "pos_rmse_se",
+                                          "vel_rmse_se"],
                                note=f"R_S = {source_R:g}; every estimator at every ratio, each ratio on its own data.",
                                published=PUBLISHED_TABLE1)
     ratios = [float(r) for r in cfg.table1_ratios]
@@ -182,20 +183,20 @@ def run(ctx: StudyContext) -> None:
         unit = ctx.unit(f"table1/{r}", lambda r=r: _unit(ctx, scenario, r, source_R, f"source/{r}",
                                                          names, curves=False))
         for name, s in unit["summary"].items():
-            table1.rows.append([r, name, s["pos_rmse"], s["vel_rmse"]])
+            table1.rows.append([r, name, s["pos_rmse"], s["vel_rmse"], s.get("pos_rmse_se"), s.get("vel_rmse_se")])
             ctx.logger.scalar(f"table1/pos_rmse/{name}", s["pos_rmse"], int(round(100 * r)))
         ctx.results.save()
     ctx.save_figure("table1", _sweep_figure(table1.rows, "source ratio", logx=False,
                                             published=PUBLISHED_TABLE1["rows"]))
 
     # -- R_S sweep (Fig. 5, Fig. 6) ---------------------------------------------------------------
-    sweep = ctx.results.table("rs_sweep", ["R_S", "estimator", "pos_rmse", "vel_rmse"],
+    sweep = ctx.results.table("rs_sweep", ["R_S", "estimator", "pos_rmse", "vel_rmse", "pos_rmse_se", "vel_rmse_se"],
                               note=f"source ratio {ratio:g}, target R = {R:g}; IMM (no source) is the reference.")
     for rs in ctx.progress_bar([float(v) for v in cfg.rs_sweep], desc="rs_sweep"):
         unit = ctx.unit(f"rs_sweep/{rs}", lambda rs=rs: _unit(ctx, scenario, ratio, rs, f"source/{ratio}",
                                                              names, curves=False))
         for name, s in unit["summary"].items():
-            sweep.rows.append([rs, name, s["pos_rmse"], s["vel_rmse"]])
+            sweep.rows.append([rs, name, s["pos_rmse"], s["vel_rmse"], s.get("pos_rmse_se"), s.get("vel_rmse_se")])
         ctx.results.save()
     ctx.save_figure("rs_sweep", _sweep_figure(sweep.rows, "source noise variance R_S", logx=True))
     ctx.results.notes.append(f"wall time of the study: {time.perf_counter() - tic:.1f} s")

@@ -255,7 +255,7 @@ def _run(ctx: StudyContext) -> None:
         "measurements; RMSEs are time-averaged per-step RMSEs on the held-out runs."
     )
 
-    rmse_table = ctx.results.table("rmse", ["estimator", "pos_rmse", "vel_rmse", "part"],
+    rmse_table = ctx.results.table("rmse", ["estimator", "pos_rmse", "vel_rmse", "part", "pos_rmse_se", "vel_rmse_se"],
                                    note="Held-out runs. part a: transition matrix + q learned; "
                                         "part b: one CT mode replaced by an MLP trained through the IMM.")
     curves: dict[str, dict[str, torch.Tensor]] = {"position RMSE": {}, "velocity RMSE": {}}
@@ -265,7 +265,8 @@ def _run(ctx: StudyContext) -> None:
         with torch.no_grad():
             ev = evaluate(estimator, scenario, test_sim, test_z, chunk_runs=cfg.get("chunk_runs"))
         summary = ev.summary()
-        rmse_table.rows.append([estimator.name, summary["pos_rmse"], summary["vel_rmse"], part])
+        rmse_table.rows.append([estimator.name, summary["pos_rmse"], summary["vel_rmse"], part,
+                                summary.get("pos_rmse_se"), summary.get("vel_rmse_se")])
         for key, value in summary.items():
             ctx.results.metric(label, key, value)
         ctx.results.timing[label] = ev.seconds_per_step

@@ -34,7 +34,11 @@ def test_imm_tf_tables_cover_every_estimator_and_setting(tmp_path):
     # an accurate, frequent source helps the transfer
     assert table1[(0.99, "IMM-TF")][2] < table1[(0.99, "IMM")][2]
     data = json.loads((tmp_path / "results.json").read_text())
-    assert data["tables"]["table1"]["columns"] == ["source_ratio", "estimator", "pos_rmse", "vel_rmse"]
+    # the published columns stay first; Monte Carlo standard errors are added after them
+    assert data["tables"]["table1"]["columns"] == ["source_ratio", "estimator", "pos_rmse", "vel_rmse", "pos_rmse_se",
+                                                   "vel_rmse_se"]
+    for row in data["tables"]["table1"]["rows"]:
+        assert 0 < row[4] < row[2] and 0 < row[5] < row[3]  # 20 runs: an SE well below the RMSE itself
     md = (tmp_path / "results.md").read_text()
     assert "5.8755" in md and "Published" in md  # the published Table 1 beside ours
     for figure in ("rmse_over_time", "influence", "table1", "rs_sweep"):

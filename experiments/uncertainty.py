@@ -1,0 +1,61 @@
+r"""Monte Carlo uncertainty of the studies' figures.
+
+**Average RMSE** (the papers' figure): ``A = (1/T) sum_t sqrt(m_t)`` with ``m_t = (1/N) sum_r e_{t,r}``
+the mean squared error of step ``t`` over the ``N`` runs. Runs are independent, so by the delta
+method (the root of a mean: linearise ``sqrt`` at ``m_t``)
+
+.. math::
+    \operatorname{se}(A) = \frac{\operatorname{sd}_r(h_r)}{\sqrt N},\qquad
+    h_r = \sum_t \frac{e_{t,r}}{2 T \sqrt{m_t}},
+
+which accounts for the correlation of a run's errors over time. For iid errors of variance
+``sigma^2`` it is ``sigma / sqrt(2 N T)`` (tests/experiments/test_uncertainty.py checks both that
+and the spread over repeated experiments). A 95 % interval is ``A +- 1.96 se``.
+
+**NEES**: with ``N`` runs and an ``n``-dimensional state, ``N`` times the average NEES of a step is
+``chi^2(N n)`` for a consistent filter; :func:`chi2_interval` gives the two-sided bounds of the
+average (Wilson-Hilferty, accurate to well under 1 % for ``N n >= 10``).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+__all__ = ["armse_se", "chi2_interval", "inside"]
+
+#: two-sided 95 % normal quantile
+Z95 = 1.959963984540054
+
+
+def armse_se(sq_err: Tensor) -> float:
+    """Delta-method standard error of the average RMSE from squared errors ``(T, N)`` (step, run)."""
+    T, N = sq_err.shape
+    if N < 2:
+        return float("nan")
+    m = sq_err.mean(1)  # (T,)
+    weight = 1.0 / (2 * T * m.clamp_min(torch.finfo(m.dtype).tiny).sqrt())
+    h = (sq_err * weight.unsqueeze(1)).sum(0)  # (N,)
+    return float(h.std(unbiased=True) / math.sqrt(N))
+
+
+def chi2_interval(dof: int, level: float = 0.95) -> tuple[float, float]:
+    """Bounds ``(lo, hi)`` with ``P(lo <= chi^2(dof) / dof <= hi) = level`` (Wilson-Hilferty)."""
+    from statistics import NormalDist
+
+    z = NormalDist().inv_cdf(0.5 + level / 2)
+    c = 2.0 / (9.0 * dof)
+
+    def q(zz):
+        return max(1.0 - c + zz * math.sqrt(c), 0.0) ** 3
+
+    return q(-z), q(z)
+
+
+def inside(value: float, estimate: float, se: float, z: float = Z95) -> bool | None:
+    """Whether ``value`` (e.g. a published figure) lies inside ``estimate +- z se`` (None if unknown)."""
+    if value is None or estimate is None or se is None or not math.isfinite(se):
+        return None
+    return abs(value - estimate) <= z * se

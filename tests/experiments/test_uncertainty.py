@@ -1,0 +1,46 @@
+"""Monte Carlo uncertainty: the delta-method SE of the average RMSE and the NEES chi-square interval."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from scipy import stats
+
+from experiments.uncertainty import armse_se, chi2_interval, inside
+
+
+def test_armse_se_matches_theory_for_iid_errors_and_the_spread_over_experiments():
+    """iid N(0, sigma^2) scalar errors: se(A) = sigma / sqrt(2 N T); and the delta-method SE of one
+    experiment matches the standard deviation of A over many independent experiments."""
+    g = torch.Generator().manual_seed(0)
+    sigma, T, N, experiments = 3.0, 50, 200, 400
+    e = sigma * torch.randn(experiments, T, N, generator=g, dtype=torch.float64)
+    sq = e.square()
+    averages = sq.mean(2).sqrt().mean(1)  # A per experiment
+    ses = torch.tensor([armse_se(sq[i]) for i in range(experiments)])
+    theory = sigma / math.sqrt(2 * N * T)
+    assert ses.mean().item() == pytest.approx(theory, rel=0.03)
+    assert averages.std().item() == pytest.approx(theory, rel=0.1)  # 400 experiments: ~3.5 % sampling error
+    # coverage of A +- 1.96 se around the true value (sigma, to O(1/N)) is near 95 %
+    truth = sigma * (1 - 1 / (4 * N))  # E[sqrt(m)] for chi-square m: sigma (1 - 1/(4N) + ...)
+    covered = sum(bool(inside(truth, a.item(), s.item())) for a, s in zip(averages, ses)) / experiments
+    assert 0.91 <= covered <= 0.99
+
+
+def test_armse_se_accounts_for_errors_correlated_over_time():
+    """A run's error constant over time: the SE is that of one draw per run, sigma / sqrt(2 N)."""
+    g = torch.Generator().manual_seed(1)
+    sigma, T, N = 2.0, 40, 4000
+    per_run = sigma * torch.randn(1, N, generator=g, dtype=torch.float64)
+    sq = per_run.expand(T, N).square()
+    assert armse_se(sq) == pytest.approx(sigma / math.sqrt(2 * N), rel=0.05)
+    assert math.isnan(armse_se(sq[:, :1]))  # one run: no spread to estimate
+
+
+@pytest.mark.parametrize("dof", [10, 40, 400, 4000])
+def test_chi2_interval_against_scipy(dof):
+    lo, hi = chi2_interval(dof)
+    want_lo, want_hi = stats.chi2.ppf([0.025, 0.975], dof) / dof
+    assert lo == pytest.approx(want_lo, rel=0.01) and hi == pytest.approx(want_hi, rel=0.005)
