@@ -335,12 +335,14 @@ class StudyContext:
 
     # -- outputs -------------------------------------------------------------------------------
     def save_figure(self, name: str, figure) -> Path:
-        """Save ``figures/<name>.png`` and log it to TensorBoard under ``figures/<name>``."""
+        """Save ``figures/<name>.png`` (200 dpi) and ``figures/<name>.pdf`` (vector, for papers), and log
+        it to TensorBoard under ``figures/<name>``."""
         import matplotlib.pyplot as plt
 
         path = self.output_dir / "figures" / f"{name}.png"
         path.parent.mkdir(parents=True, exist_ok=True)
-        figure.savefig(path, dpi=120, bbox_inches="tight")
+        figure.savefig(path, dpi=200, bbox_inches="tight")
+        figure.savefig(path.with_suffix(".pdf"), bbox_inches="tight")
         self.logger.figure(f"figures/{name}", figure)
         plt.close(figure)
         return path
