@@ -321,9 +321,11 @@ def _membership_figure(memberships: dict[str, Tensor], title: str):
     fig, axes = plt.subplots(1, len(memberships), figsize=(5.2 * len(memberships), 3.8), squeeze=False)
     for ax, (name, frac) in zip(axes[0], memberships.items()):
         im = ax.imshow(frac.T.numpy(), aspect="auto", origin="lower", cmap="viridis", vmin=0, vmax=1,
-                       extent=[0.5, frac.shape[0] + 0.5, 0.5, frac.shape[1] + 0.5])
+                       extent=[0.5, frac.shape[0] + 0.5, 0.5, frac.shape[1] + 0.5], interpolation="nearest")
         ax.set_xlabel("time step k")
         ax.set_ylabel("model m_j")
+        models = frac.shape[1]  # integer model indices (1-based, as the paper's m_1 .. m_21), no blurring
+        ax.set_yticks(range(1, models + 1, max(1, models // 7)))
         ax.set_title(name, fontsize=9)
     fig.colorbar(im, ax=axes[0].tolist(), label="fraction of runs with m_j selected")
     fig.suptitle(title)

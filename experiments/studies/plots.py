@@ -21,7 +21,8 @@ def rmse_over_time(curves: Mapping[str, Mapping[str, torch.Tensor]], title: str 
         ax.set_xlabel("time step k")
         ax.set_ylabel(panel)
         ax.grid(alpha=0.3)
-    axes[0][0].legend()
+    # one legend outside the curves (right of the last panel): it never hides a line
+    axes[0][-1].legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8, frameon=False, borderaxespad=0)
     if title:
         fig.suptitle(title)
     fig.tight_layout()
