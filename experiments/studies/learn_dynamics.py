@@ -441,11 +441,12 @@ def _figures(ctx, histories, scores, curves, true_tpm, q_true, scenario) -> None
                 its = [h["iteration"] for h in hist]
                 for i in range(3):
                     for j in range(3):
-                        line, = ax.plot(its, [h[f"tpm[{i},{j}]"] for h in hist], lw=1.2,
-                                        label=f"[{i},{j}]" if i == j or (i, j) == (0, 1) else None)
+                        line, = ax.plot(its, [h[f"tpm[{i},{j}]"] for h in hist], lw=1.2, label=f"[{i},{j}]")
                         ax.axhline(true_tpm[i, j].item(), color=line.get_color(), ls=":", lw=0.8)
                 ax.set_ylabel("transition-matrix entry")
-                ax.legend(fontsize=7, title="dotted: true", title_fontsize=7)
+                # every entry labelled, outside the curves
+                ax.legend(fontsize=7, title="entry (dotted: true)", title_fontsize=7, loc="upper left",
+                          bbox_to_anchor=(1.02, 1.0), frameon=False, borderaxespad=0)
             elif panel == "q":
                 hist = histories["a"]
                 ax.plot([h["iteration"] for h in hist], [h["q"] for h in hist], marker="o", ms=3)
