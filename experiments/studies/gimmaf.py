@@ -139,7 +139,7 @@ def _srnfn(estimate: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
 
 
 def run_unit(g, noise_kind: str, noise_params, runs: int, generator, *, dtype, device,
-             with_oracle: bool) -> dict:
+             with_oracle: bool, progress: bool = False) -> dict:
     R, delta, nu = float(noise_params.R), float(noise_params.delta), float(noise_params.nu)
     steps = int(g.steps)
     # simulated in float64 and cast: float32 and float64 runs see the same data
@@ -153,7 +153,8 @@ def run_unit(g, noise_kind: str, noise_params, runs: int, generator, *, dtype, d
     for name, est in estimators.items():
         b0 = est.initial_belief(start) if name in ("IMM-VBT", "GIMMAF", "VBAKF-PR") else start
         tic = time.perf_counter()
-        traj = run_filter(est, b0, data["z"], record=lambda o: o._replace(prior=None))
+        traj = run_filter(est, b0, data["z"], record=lambda o: o._replace(prior=None),
+                          progress=f"{noise_kind}: {name}" if progress else False)
         mean = traj.estimate().mean
         seconds_per_step = (time.perf_counter() - tic) / steps
         extras = traj.extras.get("modes", traj.extras)
@@ -196,7 +197,7 @@ def run(ctx: StudyContext) -> None:
     cfg = ctx.cfg
     g = cfg.gimmaf
     runs = int(cfg.mc_runs)
-    kw = {"dtype": ctx.dtype, "device": ctx.device}
+    kw = {"dtype": ctx.dtype, "device": ctx.device, "progress": ctx.progress}  # a bar per filter run
     main_kind = str(g.noise.kind)
     ctx.results.description = (
         f"Paper 004 section 3.1: {g.steps} steps, {runs} Monte Carlo runs (seed {cfg.seed}, {cfg.dtype}); "

@@ -59,7 +59,7 @@ def huang_scenario(runs: int, generator: torch.Generator, *, steps: int = 1000, 
 def run_huang(runs: int, generator: torch.Generator, *, steps: int = 1000, nominal_q="true",
               beta: float = 100.0,
               tau: float = 3.0, rho: float = 1 - math.exp(-4), iterations: int = 10, dtype=torch.float64,
-              device=None) -> dict:
+              device=None, progress: bool = False) -> dict:
     """Run the three filters; returns per-estimator ``{"pos": (T,), "vel": (T,)}`` RMSE curves plus the
     SRNFN-free summary ``{"estimator": (pos_last100, vel_last100, pos_all, vel_all)}``."""
     # simulated in float64 and cast: float32 and float64 runs see the same data
@@ -81,11 +81,13 @@ def run_huang(runs: int, generator: torch.Generator, *, steps: int = 1000, nomin
     vbakf = VBAKFPR(nominal_motions[0], nominal_meas, tau=tau, rho=rho, iterations=iterations)
     runs_of = {
         "KF-nominal": lambda: run_filter(KalmanFilter(nominal_motions[0], nominal_meas), start, z,
-                                         motions=nominal_motions, record=_means_only),
+                                         motions=nominal_motions, record=_means_only,
+                                         progress="KF-nominal" if progress else False),
         "KF-true": lambda: run_filter(KalmanFilter(true_motions[0], true_sensors[0]), start, z,
-                                      motions=true_motions, sensors=true_sensors, record=_means_only),
+                                      motions=true_motions, sensors=true_sensors, record=_means_only,
+                                      progress="KF-true" if progress else False),
         "VBAKF-PR": lambda: run_filter(vbakf, vbakf.initial_belief(start, R_nom), z, motions=nominal_motions,
-                                       record=_means_only),
+                                       record=_means_only, progress="VBAKF-PR" if progress else False),
     }
     estimates = {name: go().belief.mean for name, go in runs_of.items()}
     out = {}
@@ -113,7 +115,8 @@ def run(ctx: StudyContext) -> None:
         name: {"summary": list(v["summary"]), "pos": v["pos"].tolist(), "vel": v["vel"].tolist()}
         for name, v in run_huang(runs, ctx.generator("huang"), steps=int(h.steps), nominal_q=h.nominal_q,
                                  beta=float(h.beta), tau=float(h.tau), rho=float(h.rho),
-                                 iterations=int(h.iterations), dtype=ctx.dtype, device=ctx.device).items()
+                                 iterations=int(h.iterations), dtype=ctx.dtype, device=ctx.device,
+                                 progress=ctx.progress).items()
     })
     ctx.results.description = (
         f"Huang et al. 2018 scenario, {h.steps} steps, {runs} Monte Carlo runs "
