@@ -5,8 +5,9 @@ it from the scenario's prior. Builders are instantiated by Hydra with ``_partial
 config values (options) and study values (scenario, transition) combine.
 
 Every builder composes library parts from config groups (docs/architecture.md, docs/studies.md):
-the combinator is the builder (``imm``, ``gpb1``, ``gpb2``, ``static``, ``vsmm``, ``kalman``), the
-mode filter comes from the ``mode_filter`` group (``conf/mode_filter``: ``kalman`` | ``extended`` |
+the combinator is a ``combinator`` config node built into a torchmm class (:func:`multiple_model`;
+``conf/estimator``: imm, gpb1, gpb2, static, vsmm; ``kalman`` for one filter), the mode filter comes
+from the ``mode_filter`` group (``conf/mode_filter``: ``kalman`` | ``extended`` |
 ``unscented`` | ``particle``, a partial of a torchmm filter class called with the scenario's motion
 and sensor models), the model-set policy of ``vsmm`` from the ``policy`` group (``conf/policy``).
 """
@@ -23,13 +24,13 @@ import torch.utils._pytree as pytree
 from torch import Tensor
 
 from torchmm import GPB1, GPB2, IMM, Filter, GaussianBelief, KalmanFilter, run_filter
-from torchmm.multimodel import StaticMM, VariableStructureIMM
 from torchmm.metrics import mode_accuracy, nees, squared_error
 from torchmm.run import Trajectory
 
 from experiments.uncertainty import armse_se
 
-__all__ = ["Estimator", "Evaluation", "evaluate", "multiple_model", "gpb1", "gpb2", "imm", "build_mode_filter", "kalman", "static", "starter", "vsmm"]
+__all__ = ["Estimator", "Evaluation", "build_mode_filter", "evaluate", "gpb1", "gpb2", "imm", "kalman",
+           "multiple_model", "starter"]
 
 
 @dataclass
@@ -107,24 +108,6 @@ def gpb1(scenario, *, name: str = "GPB1", transition=None, joseph: bool = False,
 
 def gpb2(scenario, *, name: str = "GPB2", transition=None, joseph: bool = False, mode_filter=None) -> Estimator:
     return _multiple_model(GPB2, scenario, name, transition, joseph, mode_filter)
-
-
-def static(scenario, *, name: str = "StaticMM", transition=None, joseph: bool = False,
-           mode_filter=None) -> Estimator:
-    """The static multiple-model estimator (no mode switching) over the scenario's mode bank."""
-    return _multiple_model(lambda bank, _: StaticMM(bank, scenario.transition.shape[-1]), scenario, name,
-                           transition, joseph, mode_filter)
-
-
-def vsmm(scenario, *, name: str = "VSMM", transition=None, joseph: bool = False, mode_filter=None,
-         policy=None, feedback: bool = True) -> Estimator:
-    """A variable-structure IMM: the model-set ``policy`` (``conf/policy``) picks the active models."""
-    if policy is None:
-        from torchmm.multimodel.mevsmm import ExactMinimumEntropy
-
-        policy = ExactMinimumEntropy()
-    return _multiple_model(lambda bank, P: VariableStructureIMM(bank, P, policy, feedback=feedback), scenario,
-                           name, transition, joseph, mode_filter)
 
 
 def kalman(scenario, *, name: str = "KF", mode: int = 0, joseph: bool = False, transition=None,

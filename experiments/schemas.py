@@ -132,8 +132,7 @@ def _combinator(node) -> str | None:
 class Estimator:
     _target_: str = spec("experiments.estimators.multiple_model", one_of(
         "experiments.estimators.multiple_model", "experiments.estimators.imm", "experiments.estimators.gpb1",
-        "experiments.estimators.gpb2", "experiments.estimators.kalman", "experiments.estimators.static",
-        "experiments.estimators.vsmm"))
+        "experiments.estimators.gpb2", "experiments.estimators.kalman"))
     combinator: Optional[Any] = spec(None, _combinator)  # a torchmm multiple-model class (partial)
     _partial_: bool = True
     transition: Optional[List[Any]] = spec(None, _rows_stochastic)

@@ -8,6 +8,8 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor, nn
 
+from torchmm.beliefs import Belief
+
 __all__ = ["Filter", "StepOutput"]
 
 
@@ -77,8 +79,6 @@ class Filter(nn.Module):
         returns it; filters whose belief is not the prior's type (particles, mode beliefs, adaptive
         noise) override it, keeping ``belief`` as the first argument.
         """
-        from torchmm.beliefs import Belief
-
         if kwargs:
             raise TypeError(f"{type(self).__name__}.initial_belief: unexpected arguments {sorted(kwargs)}")
         if not isinstance(belief, Belief):

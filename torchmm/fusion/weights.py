@@ -23,6 +23,7 @@ from torch import Tensor
 
 from torchmm.beliefs import Belief, GaussianBelief, stack
 from torchmm.beliefs.ops import symmetrize
+from torchmm.linalg import cholesky, cholesky_solve
 
 __all__ = ["FusedEstimate", "constrained_weights", "fusion_weights", "fuse", "fuse_tracks", "FUSION_METHODS"]
 
@@ -174,11 +175,14 @@ def fuse_tracks(tracks, cross_covs: Tensor | None = None, method: str = "matrix"
             raise ValueError("cross_covs: covariance intersection is for unknown cross-covariances; pass None")
         inv_trace = 1.0 / cov.diagonal(dim1=-2, dim2=-1).sum(-1)  # (*B, L)
         w = inv_trace / inv_trace.sum(-1, keepdim=True)
-        info = torch.linalg.inv(cov)  # (*B, L, n, n): tiny matrices, one batched call
+        # information form by Cholesky factors (no general inverse): P_i^{-1}, P_i^{-1} x_i, then P
+        chol = cholesky(cov)  # (*B, L, n, n), regularised if a track's P is not positive definite
+        info = torch.cholesky_inverse(chol)
         fused_info = (w[..., None, None] * info).sum(-3)
-        fused_cov = symmetrize(torch.linalg.inv(fused_info))
-        vec = (w[..., None] * (info @ mean.unsqueeze(-1)).squeeze(-1)).sum(-2)
-        return GaussianBelief((fused_cov @ vec.unsqueeze(-1)).squeeze(-1), fused_cov)
+        vec = (w[..., None] * cholesky_solve(chol, mean.unsqueeze(-1)).squeeze(-1)).sum(-2)
+        fused_chol = cholesky(symmetrize(fused_info))
+        fused_cov = symmetrize(torch.cholesky_inverse(fused_chol))
+        return GaussianBelief(cholesky_solve(fused_chol, vec.unsqueeze(-1)).squeeze(-1), fused_cov)
     if cross_covs is None:
         P = torch.zeros(*batch, L, L, n, n, dtype=mean.dtype, device=mean.device)
     else:
