@@ -1,4 +1,5 @@
 # torchmm: `make run` (set up + default study) and `make test` (set up + test suite).
+SHELL  := /bin/bash
 PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
@@ -9,10 +10,12 @@ ARGS   ?=
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	@echo "torchmm install [1/3]: pip"
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	# the local CPU build first: an unpinned torch would pull a multi-GB CUDA build
+	@echo "torchmm install [2/3]: torch 2.13.0 (CPU build first: an unpinned torch would pull a multi-GB CUDA build)"
 	$(BIN)/python -m pip install --quiet torch==2.13.0
-	$(BIN)/python -m pip install --quiet -e ".[dev]"
+	@echo "torchmm install [3/3]: torchmm and its dependencies (about a minute on a fresh machine)"
+	set -o pipefail; $(BIN)/python -m pip install -e ".[dev]" 2>&1 | { grep --line-buffered -E "^(Collecting|Successfully installed|ERROR)" || true; }
 	touch $(STAMP)
 
 install: $(STAMP)

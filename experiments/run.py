@@ -14,11 +14,13 @@ runs started in the same second never share a folder.
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import re
 import shutil
 import sys
 from pathlib import Path
+from typing import Any
 
 import hydra
 import torch
@@ -37,8 +39,20 @@ log = logging.getLogger("torchmm.experiments")
 CONFIG_DIR = str(Path(__file__).resolve().parent.parent / "conf")
 
 
+def sweep_subdir(num: Any, overrides: Any = "") -> str:
+    """A sweep job's folder name: its number and its overrides, ``3_alpha=0.5,seed=1`` (``/`` and
+    other characters unsafe in a file name become ``_``; long names are cut and end in a hash)."""
+    name = f"{num}_{overrides}" if overrides else str(num)
+    name = re.sub(r"[^A-Za-z0-9=,._+\-\[\]]", "_", name)
+    if len(name) > 120:
+        name = f"{name[:103]}_{hashlib.sha1(name.encode()).hexdigest()[:16]}"
+    return name
+
+
 if not OmegaConf.has_resolver("torchmm.unique_dir"):
     OmegaConf.register_new_resolver("torchmm.unique_dir", unique_dir, use_cache=True)
+if not OmegaConf.has_resolver("torchmm.sweep_subdir"):
+    OmegaConf.register_new_resolver("torchmm.sweep_subdir", sweep_subdir)
 
 
 def run_study(cfg: DictConfig, output_dir: Path) -> Results:

@@ -1,0 +1,345 @@
+"""``torchmm-report PATH...``: one table across runs - seed sweeps, override sweeps, separate runs.
+
+Every ``results.json`` under the given paths (a run folder, a ``-m`` sweep folder, ``outputs/``)
+is one run. Runs of the same study are grouped by their *result config* (the resolved config
+without the keys that do not change numbers, :data:`experiments.harness.NON_RESULT_KEYS`):
+
+* the **replicate key** (``seed`` by default, ``--replicate``) varies within a group: its runs are
+  independent replications of one experiment;
+* every other key that differs between runs is a **factor**: one row (block of rows) per value.
+
+Within a group, the rows of each results table line up run by run. A column is a **label** (it
+names the row: ``estimator``, ``alpha``, ...) if it is not numeric or if it holds the same value in
+every run of each group (``nees_low`` of a given ``mc_runs``; with one run per group: in every
+run); every other numeric column is a **measurement**, reported as the mean over
+the group's runs with a Student-t confidence interval (``--level``, 95 % by default):
+``mean +- t_{n-1} sd / sqrt(n)`` with ``sd`` the sample standard deviation over the ``n`` runs
+(no interval for ``n = 1``; non-finite values are left out of ``n``).
+
+Writes into ``--out`` (default: ``<PATH>/report`` for one PATH, else ``./report``):
+``report.md`` (mean +- half-width), ``report.csv`` (tidy: one line per study, table, group, row and
+measurement, with ``n, mean, sd, ci_low, ci_high``), ``report.json`` (the same, nested) and
+``report.png`` / ``report.pdf`` (each study's first table's first measurement with its intervals).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import json
+import math
+import sys
+from collections import defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from experiments.harness import NON_RESULT_KEYS, _format, _write_atomic
+
+__all__ = ["Run", "collect_runs", "combine", "main", "mean_interval", "write_report"]
+
+#: keys never treated as factors (they do not change the numbers, or are bookkeeping)
+IGNORED_KEYS = (*NON_RESULT_KEYS, "resume", "hydra")
+
+
+@dataclass
+class Run:
+    """One finished study run: its folder, its results.json and its (flattened) result config."""
+
+    path: Path
+    results: dict
+    overrides: list[str] = field(default_factory=list)
+
+    @property
+    def experiment(self) -> str:
+        return str(self.results.get("experiment", "study"))
+
+    @property
+    def config(self) -> dict[str, Any]:
+        return _flatten({k: v for k, v in (self.results.get("config") or {}).items() if k not in IGNORED_KEYS})
+
+
+def _flatten(tree: Any, prefix: str = "") -> dict[str, Any]:
+    if isinstance(tree, dict):
+        out: dict[str, Any] = {}
+        for key, value in tree.items():
+            out.update(_flatten(value, f"{prefix}.{key}" if prefix else str(key)))
+        return out
+    if isinstance(tree, list):  # compare and display lists as one value
+        return {prefix: json.dumps(tree, sort_keys=True, default=str)}
+    return {prefix: tree}
+
+
+def collect_runs(paths: list[Path]) -> list[Run]:
+    """Every run under ``paths`` (a folder holding ``results.json``, or any folder above such ones)."""
+    found: dict[Path, None] = {}
+    for path in map(Path, paths):
+        if not path.exists():
+            raise FileNotFoundError(f"PATH: {path} does not exist")
+        if path.is_file():
+            candidates = [path] if path.name == "results.json" else []
+        else:
+            candidates = [path / "results.json"] if (path / "results.json").exists() else sorted(path.rglob("results.json"))
+        for candidate in candidates:
+            found[candidate.resolve()] = None
+    runs = []
+    for file in found:
+        try:
+            results = json.loads(file.read_text())
+        except (OSError, json.JSONDecodeError) as err:
+            print(f"torchmm-report: skipping {file}: {err}", file=sys.stderr)
+            continue
+        overrides_file = file.parent / ".hydra" / "overrides.yaml"
+        overrides = []
+        if overrides_file.exists():
+            overrides = [line[2:].strip() for line in overrides_file.read_text().splitlines() if line.startswith("- ")]
+        runs.append(Run(file.parent, results, overrides))
+    return runs
+
+
+def mean_interval(values: list[float], level: float = 0.95) -> dict[str, float | int | None]:
+    """``{"n", "mean", "sd", "ci_low", "ci_high"}`` of the finite ``values`` (Student-t interval)."""
+    finite = [float(v) for v in values if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)]
+    n = len(finite)
+    if n == 0:
+        return {"n": 0, "mean": None, "sd": None, "ci_low": None, "ci_high": None}
+    mean = math.fsum(finite) / n
+    if n == 1:
+        return {"n": 1, "mean": mean, "sd": None, "ci_low": None, "ci_high": None}
+    from scipy.stats import t as student_t
+
+    if min(finite) == max(finite):
+        mean, sd = finite[0], 0.0  # exactly: no rounding noise in the interval of a constant
+    else:
+        sd = math.sqrt(math.fsum((v - mean) ** 2 for v in finite) / (n - 1))
+    half = float(student_t.ppf(0.5 + level / 2, n - 1)) * sd / math.sqrt(n)
+    return {"n": n, "mean": mean, "sd": sd, "ci_low": mean - half, "ci_high": mean + half}
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _label_columns(tables_by_group: list[list[dict]]) -> list[bool]:
+    """Per column: is it a label? Non-numeric columns are; a numeric one is if it holds the same
+    value in every run of each group (at every row), given that some group has replicates - else
+    (one run per group) if it holds the same value in every run."""
+    columns = tables_by_group[0][0]["columns"]
+    replicated = [g for g in tables_by_group if len(g) > 1]
+    pools = replicated or [[t for g in tables_by_group for t in g]]
+    labels = []
+    for c in range(len(columns)):
+        numeric = any(_is_number(row[c]) for g in tables_by_group for t in g for row in t["rows"])
+        same = all([row[c] for row in t["rows"]] == [row[c] for row in pool[0]["rows"]] for pool in pools for t in pool)
+        labels.append(not numeric or same)
+    return labels
+
+
+def combine(runs: list[Run], replicate: str = "seed", level: float = 0.95) -> dict[str, Any]:
+    """Combine ``runs`` into ``{experiment: {"factors", "groups", "tables": {name: {...}}}}``.
+
+    ``groups``: one entry per distinct factor setting, ``{"factors": {key: value}, "runs": [paths],
+    "replicates": [replicate values]}``. Each table: ``{"labels": [columns], "measurements":
+    [columns], "rows": [{"group": i, "labels": {...}, "values": {column: mean_interval}}]}``.
+    """
+    by_experiment: dict[str, list[Run]] = defaultdict(list)
+    for run in runs:
+        by_experiment[run.experiment].append(run)
+    report: dict[str, Any] = {}
+    for experiment, members in sorted(by_experiment.items()):
+        configs = [run.config for run in members]
+        keys = sorted({k for c in configs for k in c})
+        varying = [k for k in keys if len({json.dumps(c.get(k), default=str) for c in configs}) > 1]
+        factors = [k for k in varying if k != replicate]
+        groups: dict[str, dict] = {}
+        order: list[str] = []
+        for run, config in zip(members, configs):
+            setting = {k: config.get(k) for k in factors}
+            token = json.dumps(setting, sort_keys=True, default=str)
+            if token not in groups:
+                groups[token] = {"factors": setting, "runs": [], "replicates": []}
+                order.append(token)
+            groups[token]["runs"].append(run)
+            groups[token]["replicates"].append(config.get(replicate))
+        order.sort(key=lambda tok: [_sort_key(groups[tok]["factors"][k]) for k in factors])
+        group_list = [groups[tok] for tok in order]
+        duplicated = [g for g in group_list if len(set(map(str, g["replicates"]))) < len(g["replicates"])]
+        if duplicated:
+            paths = ", ".join(str(r.path) for r in duplicated[0]["runs"])
+            print(f"torchmm-report: warning: {experiment}: runs with the same config and {replicate} are "
+                  f"combined as if independent ({paths})", file=sys.stderr)
+        tables_out: dict[str, Any] = {}
+        table_names = list(dict.fromkeys(n for run in members for n in run.results.get("tables", {})))
+        for name in table_names:
+            tables = [run.results["tables"].get(name) for run in members]
+            if any(t is None for t in tables):
+                continue
+            columns = tables[0]["columns"]
+            comparable = [t for t in tables if t["columns"] == columns and len(t["rows"]) == len(tables[0]["rows"])]
+            if len(comparable) < len(tables):
+                print(f"torchmm-report: warning: {experiment}/{name}: runs differ in the table's columns or "
+                      "rows; it is left out", file=sys.stderr)
+                continue
+            is_label = _label_columns([[run.results["tables"][name] for run in g["runs"]] for g in group_list])
+            label_cols = [c for c, lab in zip(columns, is_label) if lab]
+            measure_cols = [c for c, lab in zip(columns, is_label) if not lab]
+            rows = []
+            for gi, group in enumerate(group_list):
+                group_tables = [run.results["tables"][name] for run in group["runs"]]
+                for r in range(len(tables[0]["rows"])):
+                    labels = {c: group_tables[0]["rows"][r][i] for i, c in enumerate(columns) if is_label[i]}
+                    values = {c: mean_interval([t["rows"][r][i] for t in group_tables], level)
+                              for i, c in enumerate(columns) if not is_label[i]}
+                    rows.append({"group": gi, "labels": labels, "values": values})
+            tables_out[name] = {"labels": label_cols, "measurements": measure_cols, "rows": rows}
+        report[experiment] = {
+            "replicate": replicate,
+            "level": level,
+            "factors": factors,
+            "groups": [{"factors": g["factors"], "runs": [str(r.path) for r in g["runs"]],
+                        "replicates": g["replicates"]} for g in group_list],
+            "tables": tables_out,
+        }
+    return report
+
+
+def _sort_key(value: Any):
+    return (0, value, "") if _is_number(value) else (1, 0, str(value))
+
+
+def _cell(stats: dict) -> str:
+    if stats["mean"] is None:
+        return ""
+    if stats["ci_low"] is None:
+        return _format(stats["mean"])
+    return f"{_format(stats['mean'])} ± {_format((stats['ci_high'] - stats['ci_low']) / 2)}"
+
+
+def to_markdown(report: dict[str, Any]) -> str:
+    out = ["# torchmm report", ""]
+    for experiment, body in report.items():
+        groups = body["groups"]
+        pct = f"{100 * body['level']:g} %"
+        out += [f"## {experiment}", "",
+                f"{sum(len(g['runs']) for g in groups)} runs in {len(groups)} group(s); factors: "
+                f"{', '.join(body['factors']) or 'none'}; replicates: {body['replicate']} "
+                f"(mean ± half-width of the {pct} Student-t interval over the replicates; n = replicates).", ""]
+        for name, table in body["tables"].items():
+            factor_cols = body["factors"]
+            columns = [*factor_cols, *table["labels"], "n", *table["measurements"]]
+            lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
+            for row in table["rows"]:
+                g = groups[row["group"]]
+                n = max((v["n"] for v in row["values"].values()), default=len(g["runs"]))
+                cells = [*(_format(g["factors"][k]) for k in factor_cols), *(_format(row["labels"][c]) for c in table["labels"]),
+                         str(n), *(_cell(row["values"][c]) for c in table["measurements"])]
+                lines.append("| " + " | ".join(cells) + " |")
+            out += [f"### {name}", "", *lines, ""]
+    return "\n".join(out)
+
+
+def to_csv(report: dict[str, Any]) -> str:
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(["experiment", "table", "group", "factors", "labels", "measurement", "n", "mean", "sd",
+                     "ci_low", "ci_high"])
+    for experiment, body in report.items():
+        for name, table in body["tables"].items():
+            for row in table["rows"]:
+                factors = json.dumps(body["groups"][row["group"]]["factors"], default=str)
+                labels = json.dumps(row["labels"], default=str)
+                for measurement, s in row["values"].items():
+                    writer.writerow([experiment, name, row["group"], factors, labels, measurement, s["n"],
+                                     *("" if s[k] is None else repr(s[k]) for k in ("mean", "sd", "ci_low", "ci_high"))])
+    return buf.getvalue()
+
+
+def figure(report: dict[str, Any]):
+    """Each study's first table's first measurement: means with their intervals, per group and row."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    panels = [(exp, name, table) for exp, body in report.items()
+              for name, table in list(body["tables"].items())[:1] if table["measurements"]]
+    if not panels:
+        return None
+    fig, axes = plt.subplots(len(panels), 1, figsize=(6.5, 2.2 + 0.18 * max(len(t["rows"]) for *_, t in panels)),
+                             squeeze=False)
+    for ax, (exp, name, table) in zip(axes[:, 0], panels):
+        measure = table["measurements"][0]
+        body = report[exp]
+        labels, means, lows, highs = [], [], [], []
+        for row in table["rows"]:
+            s = row["values"][measure]
+            if s["mean"] is None:
+                continue
+            factors = body["groups"][row["group"]]["factors"]
+            names = [c for c in table["labels"] if not _is_number(row["labels"][c])] or table["labels"]
+            text = ", ".join([*(f"{k}={_format(v)}" for k, v in factors.items()),
+                              *(_format(row["labels"][c]) for c in names)])
+            labels.append(text or exp)
+            means.append(s["mean"])
+            lows.append(s["mean"] - (s["ci_low"] if s["ci_low"] is not None else s["mean"]))
+            highs.append((s["ci_high"] if s["ci_high"] is not None else s["mean"]) - s["mean"])
+        y = list(range(len(means)))[::-1]
+        ax.errorbar(means, y, xerr=[lows, highs], fmt="o", ms=3, capsize=2, lw=1)
+        ax.set_yticks(y, labels, fontsize=7)
+        ax.set_xlabel(f"{measure} (mean, {100 * body['level']:g} % interval over {body['replicate']})", fontsize=8)
+        ax.set_title(f"{exp}: {name}", fontsize=9)
+        ax.grid(True, axis="x", linewidth=0.3, alpha=0.5)
+    fig.tight_layout()
+    return fig
+
+
+def write_report(report: dict[str, Any], out_dir: Path) -> list[Path]:
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = []
+    for name, text in (("report.md", to_markdown(report)), ("report.csv", to_csv(report)),
+                       ("report.json", json.dumps(report, indent=2, default=str) + "\n")):
+        _write_atomic(out_dir / name, text)
+        written.append(out_dir / name)
+    fig = figure(report)
+    if fig is not None:
+        import matplotlib.pyplot as plt
+
+        for fmt in ("png", "pdf"):
+            fig.savefig(out_dir / f"report.{fmt}", dpi=200, bbox_inches="tight")
+            written.append(out_dir / f"report.{fmt}")
+        plt.close(fig)
+    return written
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="torchmm-report", description=__doc__.splitlines()[0])
+    parser.add_argument("paths", nargs="+", metavar="PATH", help="run folders, sweep folders or outputs/")
+    parser.add_argument("--out", type=Path, default=None, help="output folder (default PATH/report or ./report)")
+    parser.add_argument("--replicate", default="seed", help="the config key whose runs are replications (seed)")
+    parser.add_argument("--level", type=float, default=0.95, help="confidence level of the intervals (0.95)")
+    args = parser.parse_args(argv)
+    if not 0 < args.level < 1:
+        print(f"torchmm-report: error: --level: expected a number in (0, 1), got {args.level}", file=sys.stderr)
+        return 2
+    try:
+        runs = collect_runs([Path(p) for p in args.paths])
+    except FileNotFoundError as err:
+        print(f"torchmm-report: error: {err}", file=sys.stderr)
+        return 2
+    if not runs:
+        print(f"torchmm-report: error: PATH: no results.json under {' '.join(args.paths)}", file=sys.stderr)
+        return 2
+    report = combine(runs, args.replicate, args.level)
+    out = args.out or (Path(args.paths[0]) / "report" if len(args.paths) == 1 else Path("report"))
+    write_report(report, out)
+    for experiment, body in report.items():
+        groups = body["groups"]
+        print(f"torchmm-report: {experiment}: {sum(len(g['runs']) for g in groups)} runs, {len(groups)} group(s) "
+              f"(factors: {', '.join(body['factors']) or 'none'})")
+    print(f"torchmm-report: report.md, report.csv, report.json, report.png in {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

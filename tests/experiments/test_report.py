@@ -1,0 +1,133 @@
+"""torchmm-report: runs and sweeps combined into one table with Student-t intervals over seeds."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from experiments import report as rep
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _write_run(path: Path, config: dict, tables: dict, overrides=()) -> None:
+    path.mkdir(parents=True)
+    (path / "results.json").write_text(json.dumps({"experiment": "toy", "config": config, "tables": tables}))
+    if overrides:
+        (path / ".hydra").mkdir()
+        (path / ".hydra" / "overrides.yaml").write_text("".join(f"- {o}\n" for o in overrides))
+
+
+def _synthetic_sweep(root: Path, rng: np.random.Generator) -> dict:
+    """A 2 x 2 override sweep (a, b) x 3 seeds; returns the values written, by (a, b, estimator, column)."""
+    written: dict = {}
+    job = 0
+    for a in (1, 2):
+        for b in ("x", "y"):
+            for seed in (0, 1, 2):
+                rows = []
+                for est in ("IMM", "KF"):
+                    rmse, nees = rng.normal(5 + a, 1), rng.normal(2, 0.5)
+                    written.setdefault((a, b, est, "rmse"), []).append(rmse)
+                    written.setdefault((a, b, est, "nees"), []).append(nees)
+                    rows.append([est, 0.25, rmse, nees])  # 0.25: the same in every run -> a label
+                config = {"experiment_name": "toy", "seed": seed, "a": a, "model": {"b": b}, "mc_runs": 10,
+                          "progress": job % 2 == 0, "logger": {"kind": "none"}}  # progress/logger: not factors
+                _write_run(root / f"{job}_a={a},b={b},seed={seed}", config,
+                           {"rmse": {"columns": ["estimator", "alpha", "rmse", "nees"], "rows": rows}},
+                           overrides=[f"a={a}", f"model.b={b}", f"seed={seed}"])
+                job += 1
+    return written
+
+
+def test_report_of_a_2x2_sweep_over_3_seeds_gives_the_means_and_t_intervals(tmp_path):
+    written = _synthetic_sweep(tmp_path / "sweep", np.random.default_rng(7))
+    runs = rep.collect_runs([tmp_path / "sweep"])
+    assert len(runs) == 12
+    out = rep.combine(runs)["toy"]
+    assert out["factors"] == ["a", "model.b"]  # seed is the replicate; progress and logger are ignored
+    assert len(out["groups"]) == 4 and all(sorted(g["replicates"]) == [0, 1, 2] for g in out["groups"])
+    table = out["tables"]["rmse"]
+    assert table["labels"] == ["estimator", "alpha"] and table["measurements"] == ["rmse", "nees"]
+    assert len(table["rows"]) == 8
+    for row in table["rows"]:
+        factors = out["groups"][row["group"]]["factors"]
+        for column in ("rmse", "nees"):
+            values = np.array(written[(factors["a"], factors["model.b"], row["labels"]["estimator"], column)])
+            got = row["values"][column]
+            low, high = stats.t.interval(0.95, df=2, loc=values.mean(), scale=stats.sem(values))
+            assert got["n"] == 3
+            assert got["mean"] == pytest.approx(values.mean(), rel=1e-12)
+            assert got["sd"] == pytest.approx(values.std(ddof=1), rel=1e-12)
+            assert (got["ci_low"], got["ci_high"]) == pytest.approx((low, high), rel=1e-10)
+
+
+def test_report_files_and_cli(tmp_path):
+    _synthetic_sweep(tmp_path / "sweep", np.random.default_rng(1))
+    assert rep.main([str(tmp_path / "sweep"), "--level", "0.9"]) == 0
+    out = tmp_path / "sweep" / "report"
+    for name in ("report.md", "report.csv", "report.json", "report.png", "report.pdf"):
+        assert (out / name).stat().st_size > 0, name
+    md = (out / "report.md").read_text()
+    assert "| a | model.b | estimator | alpha | n | rmse | nees |" in md and "±" in md
+    lines = (out / "report.csv").read_text().splitlines()
+    assert lines[0].split(",")[:7] == ["experiment", "table", "group", "factors", "labels", "measurement", "n"]
+    assert len(lines) == 1 + 8 * 2  # 8 rows x 2 measurements
+    assert json.loads((out / "report.json").read_text())["toy"]["level"] == 0.9
+
+
+def test_report_errors_are_one_line(tmp_path, capsys):
+    assert rep.main([str(tmp_path / "missing")]) == 2
+    assert "PATH" in capsys.readouterr().err
+    (tmp_path / "empty").mkdir()
+    assert rep.main([str(tmp_path / "empty")]) == 2
+    assert rep.main([str(tmp_path / "empty"), "--level", "95"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and "--level" in err[-1]
+
+
+def test_single_runs_and_constant_columns():
+    assert rep.mean_interval([3.0])["ci_low"] is None
+    constant = rep.mean_interval([2.5, 2.5, 2.5])
+    assert constant["sd"] == 0.0 and constant["ci_low"] == constant["ci_high"] == 2.5
+    nan = rep.mean_interval([1.0, float("nan"), 3.0])
+    assert nan["n"] == 2 and nan["mean"] == 2.0
+    assert not math.isnan(nan["ci_high"])
+
+
+def test_report_of_a_real_sweep(tmp_path):
+    """torchmm-run -m over 2 x 2 overrides x 3 seeds, then torchmm-report: the report's means are the
+    means of the runs' own results.json (folders named by their overrides)."""
+    sweep = tmp_path / "sweep"
+    cmd = [sys.executable, "-m", "experiments.run", "-m", "experiment=imm_baseline", "debug=imm_baseline",
+           "mc_runs=2,3", "dtype=float32,float64", "seed=0,1,2", "progress=false", "logger=none",
+           "hydra/launcher=basic", f"hydra.sweep.dir={sweep}"]
+    proc = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    folders = sorted(p.name for p in sweep.iterdir() if p.is_dir())
+    assert len(folders) == 12 and "0_debug=imm_baseline,dtype=float32,mc_runs=2,seed=0" in folders
+    proc = subprocess.run([sys.executable, "-m", "experiments.report", str(sweep)], cwd=tmp_path,
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    body = json.loads((sweep / "report" / "report.json").read_text())["imm_baseline"]
+    assert body["factors"] == ["dtype", "mc_runs"] and len(body["groups"]) == 4
+    own = {}
+    for path in sweep.glob("*/results.json"):
+        res = json.loads(path.read_text())
+        cfg = res["config"]
+        for row in res["tables"]["rmse"]["rows"]:
+            own.setdefault((cfg["dtype"], cfg["mc_runs"], row[0]), []).append(row[1])
+    rows = body["tables"]["rmse"]["rows"]
+    assert len(rows) == 4 * 4
+    for row in rows:
+        f = body["groups"][row["group"]]["factors"]
+        values = own[(f["dtype"], f["mc_runs"], row["labels"]["estimator"])]
+        assert row["values"]["pos_rmse"]["n"] == 3
+        assert row["values"]["pos_rmse"]["mean"] == pytest.approx(float(np.mean(values)), rel=1e-12)
