@@ -27,7 +27,7 @@ from torchmm import GPB1, GPB2, IMM, Filter, GaussianBelief, KalmanFilter, run_f
 from torchmm.metrics import mode_accuracy, nees, squared_error
 from torchmm.run import Trajectory
 
-from experiments.uncertainty import armse_se
+from experiments.uncertainty import armse_se, rmse_se_per_step
 
 __all__ = ["Estimator", "Evaluation", "build_mode_filter", "evaluate", "gpb1", "gpb2", "imm", "kalman",
            "multiple_model", "starter"]
@@ -132,6 +132,9 @@ class Evaluation:
     #: delta-method standard errors of the average RMSEs (experiments/uncertainty.py)
     pos_rmse_se: float = float("nan")
     vel_rmse_se: float = float("nan")
+    #: delta-method standard errors of each step's RMSE, ``(T,)`` (the curves' bands: +- 1.96 se)
+    pos_rmse_band: Tensor | None = None
+    vel_rmse_band: Tensor | None = None
     #: runs and state dimension (for the NEES chi-square bounds)
     runs: int = 0
     state_dim: int = 0
@@ -198,6 +201,7 @@ def evaluate(estimator: Estimator, scenario, sim, z: Any, *, chunk_runs: int | N
             extra_sums[key] = value if key not in extra_sums else extra_sums[key] + value
         if keep_trajectory and kept is None:
             kept = traj
+    sq_pos_all, sq_vel_all = torch.cat(per_run["pos"], 1), torch.cat(per_run["vel"], 1)  # (T, runs) float64
     return Evaluation(
         pos_rmse=(sums["pos"] / runs).sqrt(),
         vel_rmse=(sums["vel"] / runs).sqrt(),
@@ -206,8 +210,10 @@ def evaluate(estimator: Estimator, scenario, sim, z: Any, *, chunk_runs: int | N
         seconds_per_step=elapsed / steps,
         trajectory=kept,
         means={key: value / runs for key, value in extra_sums.items()},
-        pos_rmse_se=armse_se(torch.cat(per_run["pos"], 1)),
-        vel_rmse_se=armse_se(torch.cat(per_run["vel"], 1)),
+        pos_rmse_se=armse_se(sq_pos_all),
+        vel_rmse_se=armse_se(sq_vel_all),
+        pos_rmse_band=rmse_se_per_step(sq_pos_all),
+        vel_rmse_band=rmse_se_per_step(sq_vel_all),
         runs=runs,
         state_dim=int(sim.states.shape[-1]),
     )

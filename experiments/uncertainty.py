@@ -12,6 +12,14 @@ which accounts for the correlation of a run's errors over time. For iid errors o
 ``sigma^2`` it is ``sigma / sqrt(2 N T)`` (tests/experiments/test_uncertainty.py checks both that
 and the spread over repeated experiments). A 95 % interval is ``A +- 1.96 se``.
 
+**RMSE of one step** (the curves' bands): ``sqrt(m_t)`` has, by the same linearisation,
+
+.. math::
+    \operatorname{se}(\sqrt{m_t}) = \frac{\operatorname{sd}_r(e_{t,r})}{2 \sqrt{m_t} \sqrt N},
+
+:func:`rmse_se_per_step`; for iid errors of variance ``sigma^2`` (scalar, ``e = x^2``) it is
+``sigma / sqrt(2 N)``. A step whose errors are all zero (a deterministic start) gets 0.
+
 **NEES**: with ``N`` runs and an ``n``-dimensional state, ``N`` times the average NEES of a step is
 ``chi^2(N n)`` for a consistent filter; :func:`chi2_interval` gives the two-sided bounds of the
 average (Wilson-Hilferty, accurate to well under 1 % for ``N n >= 10``).
@@ -24,7 +32,7 @@ import math
 import torch
 from torch import Tensor
 
-__all__ = ["armse_se", "chi2_interval", "inside"]
+__all__ = ["armse_se", "chi2_interval", "inside", "nees_consistency", "rmse_se_per_step"]
 
 #: two-sided 95 % normal quantile
 Z95 = 1.959963984540054
@@ -41,6 +49,20 @@ def armse_se(sq_err: Tensor) -> float:
     return float(h.std(unbiased=True) / math.sqrt(N))
 
 
+def rmse_se_per_step(sq_err: Tensor) -> Tensor:
+    """Delta-method standard error of each step's RMSE from squared errors ``(T, N)`` (step, run): ``(T,)``.
+
+    ``sd_r(e_t) / (2 sqrt(m_t) sqrt(N))`` with ``m_t`` the step's mean squared error (module docstring);
+    NaN for one run, 0 where every run's error is 0. A 95 % band is ``rmse_t +- 1.96 se_t``.
+    """
+    T, N = sq_err.shape
+    if N < 2:
+        return torch.full((T,), float("nan"), dtype=sq_err.dtype, device=sq_err.device)
+    m = sq_err.mean(1)
+    sd = sq_err.std(1, unbiased=True)
+    return sd / (2 * m.clamp_min(torch.finfo(m.dtype).tiny).sqrt() * math.sqrt(N))
+
+
 def chi2_interval(dof: int, level: float = 0.95) -> tuple[float, float]:
     """Bounds ``(lo, hi)`` with ``P(lo <= chi^2(dof) / dof <= hi) = level`` (Wilson-Hilferty)."""
     from statistics import NormalDist
@@ -52,6 +74,16 @@ def chi2_interval(dof: int, level: float = 0.95) -> tuple[float, float]:
         return max(1.0 - c + zz * math.sqrt(c), 0.0) ** 3
 
     return q(-z), q(z)
+
+
+def nees_consistency(nees: Tensor, runs: int, state_dim: int, level: float = 0.95) -> tuple[float, float, float]:
+    """``(low, high, steps_inside)``: the ``level`` chi-square interval of a step's run-averaged NEES
+    (``chi^2(N n) / N``) and the fraction of the steps of ``nees (T,)`` inside it (``level`` for a
+    consistent filter)."""
+    lo, hi = chi2_interval(runs * state_dim, level)
+    lo, hi = lo * state_dim, hi * state_dim
+    nees = torch.as_tensor(nees, dtype=torch.float64)
+    return lo, hi, ((nees >= lo) & (nees <= hi)).double().mean().item()
 
 
 def inside(value: float, estimate: float, se: float, z: float = Z95) -> bool | None:

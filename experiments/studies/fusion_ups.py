@@ -8,9 +8,9 @@ fusion and centralized fusion (CF). Tables:
   for CF);
 * ``ex2_mc``: Monte Carlo error variances of the time-varying estimators, averaged over runs and the
   steps ``burn_in..T-1``, with the largest |z| against the computed variances (SE from the runs'
-  time-averaged squared errors; runs are independent);
+  time-averaged squared errors; runs are independent) and those SEs (``comp*_se``);
 * ``ex2_horizon``: MF fused predictor (N = -2, -1), filter (0) and smoother (1, 2), steady-state
-  computed variances, with the Monte Carlo ones beside them (Fig. 4);
+  computed variances, with the Monte Carlo ones and their SEs (``mc*_se``) beside them (Fig. 4);
 * ``ex2_steady``: the steady-state (offline-gain) MF estimators' Monte Carlo variance against their
   computed variance.
 
@@ -56,6 +56,14 @@ def ups_system(cfg, dtype, device) -> MultiSensorSystem:
         h=t(cfg.h), Qp=t(cfg.Qp), d=t(cfg.d).reshape(L, 1, 1), Q_eta=t(cfg.Q_eta).reshape(L, 1, 1),
         mu0=t(cfg.mu0), P0=float(cfg.P0_scale) * torch.eye(3, **kw),
         Qr0=None if cfg.Qr0 is None else t(cfg.Qr0))
+
+
+def _se(err2: torch.Tensor) -> torch.Tensor:
+    """Standard error of the Monte Carlo variance ``err2.mean((0, 1))`` from squared errors ``(steps, runs,
+    3)``: the sd over the runs of a run's window-averaged squared error over sqrt(runs) (runs are
+    independent; a run's errors are correlated over time). ``(3,)``; the SE that :func:`_z` divides by."""
+    per_run = err2.mean(0)
+    return per_run.std(0) / per_run.shape[0] ** 0.5
 
 
 def _z(err2: torch.Tensor, computed: torch.Tensor) -> torch.Tensor:
@@ -145,13 +153,15 @@ def run(ctx: StudyContext) -> None:
         err2 = (sim.x[w] - mean[w]) ** 2
         mcv = err2.mean((0, 1))
         z = _z(err2, computed_tv[w].diagonal(**diag).mean(0))
-        return mcv, z
+        return mcv, z, _se(err2)
 
     t_mc = ctx.results.table(
-        "ex2_mc", cols + ["computed1", "computed2", "computed3", "max_abs_z"],
+        "ex2_mc", cols + ["computed1", "computed2", "computed3", "max_abs_z", "comp1_se", "comp2_se", "comp3_se"],
         note=("Monte Carlo error variances of the time-varying filters (N = 0) against the computed ones "
               "(window averages). max_abs_z: largest |MC - computed| / SE over components; SE from the "
-              f"{runs} runs' time-averaged squared errors. Consistency: |z| < 4.5."))
+              f"{runs} runs' time-averaged squared errors. Consistency: |z| < 4.5. comp*_se: that SE of the "
+              "Monte Carlo variances comp* (sd over the runs of a run's window-averaged squared error / "
+              "sqrt(runs); 95 % interval: +- 1.96 se). The computed columns are exact."))
     series = {}
     for name in names:
         if name.startswith("LF"):
@@ -161,29 +171,33 @@ def run(ctx: StudyContext) -> None:
             mean, cov = cent[0]
         else:
             mean, cov = fused[0][name].mean, fused[0][name].cov
-        mcv, z = mc(mean, 0, cov)
+        mcv, z, se = mc(mean, 0, cov)
         comp = cov[window[0]].diagonal(**diag).mean(0)
-        t_mc.rows.append([name, *mcv.tolist(), *comp.tolist(), float(z.abs().max())])
+        t_mc.rows.append([name, *mcv.tolist(), *comp.tolist(), float(z.abs().max()), *se.tolist()])
         series[name] = cov.diagonal(**diag)
         for c in range(3):
             ctx.logger.series(f"variance/comp{c + 1}/{name}", cov.diagonal(**diag)[:, c], start=0)
     t_h = ctx.results.table(
-        "ex2_horizon", ["N", "comp1", "comp2", "comp3", "mc1", "mc2", "mc3", "max_abs_z"],
+        "ex2_horizon", ["N", "comp1", "comp2", "comp3", "mc1", "mc2", "mc3", "max_abs_z", "mc1_se", "mc2_se",
+                        "mc3_se"],
         note="MF fused estimator x_o(t|t+N): steady-state computed variances and Monte Carlo variances "
-             "of the time-varying MF (window averages).",
+             "of the time-varying MF (window averages). mc*_se: standard errors of the Monte Carlo "
+             "variances (as in ex2_mc).",
         published={"columns": ["ordering"], "rows": [["N = 2 smallest, N = -2 largest (Fig. 4, curves)"]],
                    "source": "paper 002, Fig. 4"})
     horizon_series = {}
     for N in horizons:
         f = fused[N]["MF"]
-        mcv, z = mc(f.mean, N, f.cov)
-        t_h.rows.append([N, *ss_vars[N]["MF"].tolist(), *mcv.tolist(), float(z.abs().max())])
+        mcv, z, se = mc(f.mean, N, f.cov)
+        t_h.rows.append([N, *ss_vars[N]["MF"].tolist(), *mcv.tolist(), float(z.abs().max()), *se.tolist()])
         horizon_series[f"N = {N}"] = f.cov.diagonal(**diag)
     t_p = ctx.results.table(
-        "ex2_horizon_printed_thm6", ["N", "comp1", "comp2", "comp3", "mc1", "mc2", "mc3", "max_abs_z"],
+        "ex2_horizon_printed_thm6", ["N", "comp1", "comp2", "comp3", "mc1", "mc2", "mc3", "max_abs_z", "mc1_se",
+                                     "mc2_se", "mc3_se"],
         note=("MF with the cross-covariances of Theorem 6 as printed ((42) without E[eps_i xi_i^T], exact "
               "only for N <= 1): its computed fused variance vs the Monte Carlo variance of that fused "
-              "estimator (window averages), N >= 0. Shows what the printed theorem reports."))
+              "estimator (window averages), N >= 0. Shows what the printed theorem reports. mc*_se: "
+              "standard errors of the Monte Carlo variances (as in ex2_mc)."))
     for N in [n for n in horizons if n >= 0]:
         Pij = theorem6_cross_covariances(system, stats, cross, N, xi_term=False)
         f = fuse(local[N][0], Pij, "matrix")
@@ -191,15 +205,18 @@ def run(ctx: StudyContext) -> None:
         err2 = (sim.x[w] - f.mean[w]) ** 2
         z = _z(err2, f.cov[w].diagonal(**diag).mean(0))
         t_p.rows.append([N, *f.cov[w].diagonal(**diag).mean(0).tolist(), *err2.mean((0, 1)).tolist(),
-                         float(z.abs().max())])
+                         float(z.abs().max()), *_se(err2).tolist()])
     t_s = ctx.results.table(
-        "ex2_steady", ["N", "comp1", "comp2", "comp3", "mc1", "mc2", "mc3", "max_abs_z"],
-        note="Steady-state MF estimators (offline gains and weights): computed vs Monte Carlo variance.")
+        "ex2_steady", ["N", "comp1", "comp2", "comp3", "mc1", "mc2", "mc3", "max_abs_z", "mc1_se", "mc2_se",
+                       "mc3_se"],
+        note="Steady-state MF estimators (offline gains and weights): computed vs Monte Carlo variance. "
+             "mc*_se: standard errors of the Monte Carlo variances (as in ex2_mc).")
     for N in horizons:
         mean, Po, _ = steady_fused_estimates(system, ss, sim.y, N, "matrix")
         err2 = (sim.x - mean)[window[N]] ** 2
         z = _z(err2, Po.diagonal())
-        t_s.rows.append([N, *Po.diagonal().tolist(), *err2.mean((0, 1)).tolist(), float(z.abs().max())])
+        t_s.rows.append([N, *Po.diagonal().tolist(), *err2.mean((0, 1)).tolist(), float(z.abs().max()),
+                         *_se(err2).tolist()])
     for name in names:
         ctx.results.metric(name, "steady_trace", float(ss_vars[0][name].sum()))
     ctx.results.save()

@@ -11,8 +11,9 @@ axes, eq. (2)), Student-t or Gaussian. Estimators (all with the nominal ``Q_0``)
 * ``KF-oracle`` (reference, not in the paper) — KF with the true ``F_k``, ``Q_k`` and the noise's
   true mean and covariance.
 
-Tables: ``table2`` (estimator, pos_armse, vel_armse; published Table 2 beside), ``table4`` (noise,
-estimator, pos_armse), ``srnfn`` (estimator, srnfn_P, srnfn_R, time-averaged). Figures: position
+Tables: ``table2`` (estimator, pos_armse, vel_armse, finite, their standard errors ``*_se`` and
+whether the published Table 2 figure beside lies inside our 95 % interval), ``table4`` (noise,
+estimator, pos_armse, pos_armse_se), ``srnfn`` (estimator, srnfn_P, srnfn_R, time-averaged). Figures: position
 and velocity RMSE over time (Figs. 1-2), SRNFN over time (Fig. 3), mean mode probabilities.
 """
 
@@ -26,6 +27,7 @@ import torch
 
 from experiments.harness import StudyContext
 from experiments.studies import plots
+from experiments.uncertainty import armse_se, inside, rmse_se_per_step
 from torchmm import GaussianBelief, KalmanFilter, LinearMotion, run_filter
 from torchmm.distributions import SkewT
 from torchmm.filters.variational import VBAKFPR, SkewTVBFilter
@@ -169,6 +171,7 @@ def run_unit(g, noise_kind: str, noise_params, runs: int, generator, *, dtype, d
         entry = {
             "pos": err[..., [0, 2]].square().sum(-1).mean(-1).sqrt(),
             "vel": err[..., [1, 3]].square().sum(-1).mean(-1).sqrt(),
+            **_uncertainty(err),
             "srnfn_P": _srnfn(P_hat, oracle_pred),
             "srnfn_R": _srnfn(R_hat, data["e_cov"].expand_as(R_hat)),
             "finite": bool(torch.isfinite(mean).all()),
@@ -182,9 +185,19 @@ def run_unit(g, noise_kind: str, noise_params, runs: int, generator, *, dtype, d
     if with_oracle:
         err = oracle_mean - truth
         out["KF-oracle"] = {"pos": err[..., [0, 2]].square().sum(-1).mean(-1).sqrt(),
-                            "vel": err[..., [1, 3]].square().sum(-1).mean(-1).sqrt(), "finite": True}
+                            "vel": err[..., [1, 3]].square().sum(-1).mean(-1).sqrt(), "finite": True,
+                            **_uncertainty(err)}
     return {name: {k: (v.tolist() if torch.is_tensor(v) else v) for k, v in e.items()}
             for name, e in out.items()}
+
+
+def _uncertainty(err: torch.Tensor) -> dict:
+    """Monte Carlo standard errors from the estimation errors ``(T, runs, 4)``: the delta-method SE of the
+    position / velocity ARMSE (floats) and of each step's RMSE (``(T,)`` bands)."""
+    sq_pos = err[..., [0, 2]].square().sum(-1).to(torch.float64)  # (T, runs)
+    sq_vel = err[..., [1, 3]].square().sum(-1).to(torch.float64)
+    return {"pos_se": armse_se(sq_pos), "vel_se": armse_se(sq_vel),
+            "pos_band": rmse_se_per_step(sq_pos), "vel_band": rmse_se_per_step(sq_vel)}
 
 
 def _segments_labels(g) -> list[str]:
@@ -210,8 +223,11 @@ def run(ctx: StudyContext) -> None:
         g, main_kind, g.noise, runs, ctx.generator("data", main_kind, "table2"),
         with_oracle=bool(g.oracle), **kw))
     t2 = ctx.results.table(
-        "table2", ["estimator", "pos_armse", "vel_armse", "finite"],
-        note="Position ARMSE in m, velocity ARMSE in m/s.",
+        "table2", ["estimator", "pos_armse", "vel_armse", "finite", "pos_armse_se", "vel_armse_se",
+                   "pos_armse_inside_95", "vel_armse_inside_95"],
+        note="Position ARMSE in m, velocity ARMSE in m/s. _se: delta-method standard errors of the ARMSE "
+             "over the runs (95 % interval: +- 1.96 se); _inside_95: whether the published figure lies "
+             "inside that interval (null without one).",
         published={"columns": ["estimator", "pos_armse", "vel_armse"],
                    "rows": [[k, *v] for k, v in PUBLISHED_T2.items()], "source": "paper 004, Table 2"},
     )
@@ -219,10 +235,14 @@ def run(ctx: StudyContext) -> None:
                               note="Time-averaged SRNFN of P_{k|k-1} (vs the oracle KF's) and of R "
                                    "(vs the noise covariance).")
     curves = {"position RMSE": {}, "velocity RMSE": {}}
+    bands = {"position RMSE": {}, "velocity RMSE": {}}  # per-step standard errors of the curves
     sr_curves = {"SRNFN of P_k|k-1": {}, "SRNFN of R": {}}
     for name, e in main.items():
         pos, vel = torch.tensor(e["pos"], dtype=torch.float64), torch.tensor(e["vel"], dtype=torch.float64)
-        t2.rows.append([name, pos.mean().item(), vel.mean().item(), e["finite"]])
+        pub_pos, pub_vel = PUBLISHED_T2.get(name, (None, None))
+        pos_se, vel_se = e.get("pos_se"), e.get("vel_se")
+        t2.rows.append([name, pos.mean().item(), vel.mean().item(), e["finite"], pos_se, vel_se,
+                        inside(pub_pos, pos.mean().item(), pos_se), inside(pub_vel, vel.mean().item(), vel_se)])
         if "seconds_per_step" in e:
             ctx.results.timing[name] = e["seconds_per_step"]
         ctx.results.metric(name, "pos_armse", pos.mean().item())
@@ -230,6 +250,11 @@ def run(ctx: StudyContext) -> None:
         curves["position RMSE"][name], curves["velocity RMSE"][name] = pos, vel
         ctx.logger.series(f"pos_rmse/{name}", pos)
         ctx.logger.series(f"vel_rmse/{name}", vel)
+        if "pos_band" in e:  # per-step standard errors of the RMSE curves
+            bands["position RMSE"][name] = torch.tensor(e["pos_band"], dtype=torch.float64)
+            bands["velocity RMSE"][name] = torch.tensor(e["vel_band"], dtype=torch.float64)
+            ctx.logger.series(f"pos_rmse_se/{name}", e["pos_band"])
+            ctx.logger.series(f"vel_rmse_se/{name}", e["vel_band"])
         if "srnfn_P" in e:
             sp, sr = torch.tensor(e["srnfn_P"], dtype=torch.float64), torch.tensor(e["srnfn_R"], dtype=torch.float64)
             srnfn.rows.append([name, sp.mean().item(), sr.mean().item()])
@@ -244,17 +269,18 @@ def run(ctx: StudyContext) -> None:
                 ctx.logger.series(f"mode_probability/{name}/{label}", probs[:, j])
     ctx.results.save()
     title = f"paper 004 scenario, {main_kind} noise, {runs} runs"
-    ctx.save_figure("rmse_over_time", plots.rmse_over_time(curves, title))
+    ctx.save_figure("rmse_over_time", plots.rmse_over_time(curves, title, bands=bands))
     ctx.save_figure("srnfn_over_time", plots.rmse_over_time(sr_curves, title))
     mm = {n: torch.tensor(e["mode_probs"], dtype=torch.float64) for n, e in main.items() if "mode_probs" in e}
     if mm:
         ctx.save_figure("mode_probabilities", _mode_figure(mm, g))
 
     t4 = ctx.results.table(
-        "table4", ["noise", "estimator", "pos_armse"],
+        "table4", ["noise", "estimator", "pos_armse", "pos_armse_se"],
         note=f"Simulation scenario of section 3.1 with the Table-4 noise parameters {dict(g.table4.noise)} "
              "(the paper's Table 4 is from the robot experiment of section 3.2, whose data are not "
-             "available).",
+             "available: no interval check against it). pos_armse_se: delta-method standard error of the "
+             "ARMSE over the runs (95 % interval: +- 1.96 se).",
         published={"columns": ["noise", "estimator", "pos_armse"],
                    "rows": [[n, e, v] for n, d in PUBLISHED_T4.items() for e, v in d.items()],
                    "source": "paper 004, Table 4 (robot experiment)"},
@@ -265,7 +291,7 @@ def run(ctx: StudyContext) -> None:
             g, kind, g.table4.noise, runs, ctx.generator("data", kind, "table4"),
             with_oracle=bool(g.oracle), **kw))
         for name, e in res.items():
-            t4.rows.append([kind, name, torch.tensor(e["pos"], dtype=torch.float64).mean().item()])
+            t4.rows.append([kind, name, torch.tensor(e["pos"], dtype=torch.float64).mean().item(), e.get("pos_se")])
         ctx.results.save()
 
 

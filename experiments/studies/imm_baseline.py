@@ -37,6 +37,7 @@ def run(ctx: StudyContext) -> None:
              "nees_low/high: the 95 % chi-square interval of a step's NEES averaged over the runs; "
              "nees_steps_inside: the fraction of steps inside it (0.95 for a consistent filter).")
     curves = {"position RMSE": {}, "velocity RMSE": {}}
+    bands = {"position RMSE": {}, "velocity RMSE": {}}  # per-step standard errors of the curves
     example = None
     for est in ctx.progress_bar(estimators, desc="estimators"):
         stats = {"mode_probs": lambda traj: traj.belief.mode_probs.sum(1)} if est.multiple_model else {}
@@ -54,8 +55,12 @@ def run(ctx: StudyContext) -> None:
         ctx.results.timing[est.name] = ev.seconds_per_step
         curves["position RMSE"][est.name] = ev.pos_rmse
         curves["velocity RMSE"][est.name] = ev.vel_rmse
+        bands["position RMSE"][est.name] = ev.pos_rmse_band
+        bands["velocity RMSE"][est.name] = ev.vel_rmse_band
         ctx.logger.series(f"pos_rmse/{est.name}", ev.pos_rmse)
         ctx.logger.series(f"vel_rmse/{est.name}", ev.vel_rmse)
+        ctx.logger.series(f"pos_rmse_se/{est.name}", ev.pos_rmse_band)
+        ctx.logger.series(f"vel_rmse_se/{est.name}", ev.vel_rmse_band)
         ctx.logger.series(f"nees/{est.name}", ev.nees)
         if est.multiple_model:
             ctx.logger.series(f"mode_accuracy/{est.name}", ev.mode_accuracy)
@@ -66,7 +71,8 @@ def run(ctx: StudyContext) -> None:
                 example = (est.name, ev.trajectory.belief.mode_probs[:, 0])  # run 0 (first chunk)
         log.info("%s: %s", est.name, {k: round(v, 4) for k, v in summary.items()})
         ctx.results.save()
-    ctx.save_figure("rmse_over_time", plots.rmse_over_time(curves, f"{scenario.name}, {cfg.mc_runs} runs"))
+    ctx.save_figure("rmse_over_time", plots.rmse_over_time(curves, f"{scenario.name}, {cfg.mc_runs} runs",
+                                                                  bands=bands))
     if example is not None:
         name, probs = example
         ctx.save_figure("mode_probabilities", plots.mode_probabilities(

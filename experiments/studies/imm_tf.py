@@ -29,7 +29,7 @@ from hydra.utils import instantiate
 
 from experiments.estimators import Estimator, build_mode_filter, evaluate, starter
 from experiments.harness import StudyContext
-from experiments.uncertainty import inside
+from experiments.uncertainty import inside, nees_consistency
 from experiments.studies import plots
 from torchmm import PositionMeasurement
 from torchmm.multimodel import TransferIMM
@@ -120,12 +120,15 @@ def _unit(ctx: StudyContext, scenario, ratio: float, source_R: float, key: str, 
                       generator=ctx.generator("filter", key, est.name))
         summary = ev.summary()
         summary["seconds_per_step"] = ev.seconds_per_step
+        summary["nees_low"], summary["nees_high"], summary["nees_steps_inside"] = nees_consistency(
+            ev.nees, ev.runs, ev.state_dim)
         if "transfer_used" in ev.means:
             summary["transfer_fraction"] = ev.means["transfer_used"].mean().item()
         out["summary"][est.name] = summary
         if curves:
             curve = {"pos_rmse": ev.pos_rmse.tolist(), "vel_rmse": ev.vel_rmse.tolist(), "nees": ev.nees.tolist(),
-                     "mode_probs": ev.means["mode_probs"].tolist()}
+                     "mode_probs": ev.means["mode_probs"].tolist(),
+                     "pos_rmse_se": ev.pos_rmse_band.tolist(), "vel_rmse_se": ev.vel_rmse_band.tolist()}
             if transfer:
                 curve["influence_abs"] = ev.means["influence_abs"].tolist()
                 curve["influence_mean"] = ev.means["influence_mean"].tolist()
@@ -152,7 +155,8 @@ def run(ctx: StudyContext) -> None:
     default = ctx.unit("default", lambda: _unit(ctx, scenario, ratio, source_R, f"source/{ratio}",
                                                 names, curves=True))
     for name, summary in default["summary"].items():
-        for key in ("pos_rmse", "vel_rmse", "nees", "mode_accuracy", "transfer_fraction"):
+        for key in ("pos_rmse", "vel_rmse", "nees", "mode_accuracy", "transfer_fraction", "nees_low", "nees_high",
+                    "nees_steps_inside"):
             if key in summary:
                 ctx.results.metric(name, key, summary[key])
         ctx.results.timing[name] = summary["seconds_per_step"]
@@ -160,6 +164,9 @@ def run(ctx: StudyContext) -> None:
     for name, curve in curves.items():
         ctx.logger.series(f"pos_rmse/{name}", curve["pos_rmse"])
         ctx.logger.series(f"vel_rmse/{name}", curve["vel_rmse"])
+        for key in ("pos_rmse_se", "vel_rmse_se"):  # the per-step standard errors (bands)
+            if key in curve:
+                ctx.logger.series(f"{key}/{name}", curve[key])
         ctx.logger.series(f"nees/{name}", curve["nees"])
         for j, label in enumerate(scenario.mode_labels):
             ctx.logger.series(f"mode_probability/{name}/{label}", [p[j] for p in curve["mode_probs"]])
@@ -168,8 +175,10 @@ def run(ctx: StudyContext) -> None:
             ctx.logger.series(f"influence_abs/{name}", curve["influence_abs"])
     as_tensor = {panel: {n: torch.tensor(c[key]) for n, c in curves.items()}
                  for panel, key in (("position RMSE", "pos_rmse"), ("velocity RMSE", "vel_rmse"))}
+    bands = {panel: {n: torch.tensor(c[f"{key}_se"]) for n, c in curves.items() if f"{key}_se" in c}
+             for panel, key in (("position RMSE", "pos_rmse"), ("velocity RMSE", "vel_rmse"))}
     ctx.save_figure("rmse_over_time", plots.rmse_over_time(
-        as_tensor, f"{cfg.mc_runs} runs, source ratio {ratio:g}, R_S = {source_R:g}"))
+        as_tensor, f"{cfg.mc_runs} runs, source ratio {ratio:g}, R_S = {source_R:g}", bands=bands))
     if "IMM-TF" in curves:
         ctx.save_figure("influence", _influence_figure(curves, ratio, source_R))
     ctx.results.save()

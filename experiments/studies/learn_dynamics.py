@@ -36,6 +36,7 @@ from torch import nn  # noqa: E402
 
 from experiments.estimators import Estimator, evaluate, starter  # noqa: E402
 from experiments.harness import StudyContext  # noqa: E402
+from experiments.uncertainty import nees_consistency  # noqa: E402
 from experiments.scenarios import JumpScenario  # noqa: E402
 from experiments.studies import plots  # noqa: E402
 from torchmm import (  # noqa: E402
@@ -259,12 +260,15 @@ def _run(ctx: StudyContext) -> None:
                                    note="Held-out runs. part a: transition matrix + q learned; "
                                         "part b: one CT mode replaced by an MLP trained through the IMM.")
     curves: dict[str, dict[str, torch.Tensor]] = {"position RMSE": {}, "velocity RMSE": {}}
+    bands: dict[str, dict[str, torch.Tensor]] = {"position RMSE": {}, "velocity RMSE": {}}  # per-step se
     scores: dict[str, tuple[float, float]] = {}
 
     def score(label: str, estimator: Estimator, part: str) -> tuple[float, float]:
         with torch.no_grad():
             ev = evaluate(estimator, scenario, test_sim, test_z, chunk_runs=cfg.get("chunk_runs"))
         summary = ev.summary()
+        summary["nees_low"], summary["nees_high"], summary["nees_steps_inside"] = nees_consistency(
+            ev.nees, ev.runs, ev.state_dim)  # the 95 % chi-square interval of a step's run-averaged NEES
         rmse_table.rows.append([estimator.name, summary["pos_rmse"], summary["vel_rmse"], part,
                                 summary.get("pos_rmse_se"), summary.get("vel_rmse_se")])
         for key, value in summary.items():
@@ -272,8 +276,12 @@ def _run(ctx: StudyContext) -> None:
         ctx.results.timing[label] = ev.seconds_per_step
         curves["position RMSE"][label] = ev.pos_rmse
         curves["velocity RMSE"][label] = ev.vel_rmse
+        bands["position RMSE"][label] = ev.pos_rmse_band
+        bands["velocity RMSE"][label] = ev.vel_rmse_band
         ctx.logger.series(f"pos_rmse/{label}", ev.pos_rmse)
         ctx.logger.series(f"vel_rmse/{label}", ev.vel_rmse)
+        ctx.logger.series(f"pos_rmse_se/{label}", ev.pos_rmse_band)
+        ctx.logger.series(f"vel_rmse_se/{label}", ev.vel_rmse_band)
         scores[label] = (summary["pos_rmse"], summary["vel_rmse"])
         ctx.results.save()
         return scores[label]
@@ -413,11 +421,11 @@ def _run(ctx: StudyContext) -> None:
         )
 
     ctx.results.save()
-    _figures(ctx, histories, scores, curves, true_tpm, q_true, scenario)
+    _figures(ctx, histories, scores, curves, true_tpm, q_true, scenario, bands=bands)
 
 
 # -- figures ---------------------------------------------------------------------------------------
-def _figures(ctx, histories, scores, curves, true_tpm, q_true, scenario) -> None:
+def _figures(ctx, histories, scores, curves, true_tpm, q_true, scenario, bands=None) -> None:
     if histories:
         fig, axes = plt.subplots(1, len(histories), figsize=(5.5 * len(histories), 3.6), squeeze=False)
         for ax, (part, hist) in zip(axes[0], histories.items()):
@@ -477,4 +485,5 @@ def _figures(ctx, histories, scores, curves, true_tpm, q_true, scenario) -> None
     fig.suptitle("held-out RMSE before / after learning")
     fig.tight_layout()
     ctx.save_figure("rmse_before_after", fig)
-    ctx.save_figure("rmse_over_time", plots.rmse_over_time(curves, f"{scenario.name}, held-out runs"))
+    ctx.save_figure("rmse_over_time", plots.rmse_over_time(curves, f"{scenario.name}, held-out runs",
+                                                                  bands=bands))

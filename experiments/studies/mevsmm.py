@@ -6,10 +6,11 @@ Scenarios (``conf/scenario/det_small.yaml``, ``det_large.yaml``, ``random.yaml``
 ``R = 25^2 I`` or ``150^2 I``, or random maneuvers (probability 0.7 per step of a new
 ``A ~ N(0, 30^2 I)``) with ``R = 150^2 I``. The 21 acceleration models of section 4.
 
-Tables: ``rmse`` (estimator, pos_rmse, vel_rmse, maneuver_pos_rmse), ``table1`` (estimator,
-avg_model_count), ``table2`` (estimator, seconds_per_step, relative_time). Figures: position RMSE
-over time, selected model count over time, model-set membership (time x model). TensorBoard: ESS,
-model count and RMSE per step, particle-weight histograms.
+Tables: ``rmse`` (estimator, pos_rmse, vel_rmse, maneuver_pos_rmse, and their standard errors
+``*_se``), ``table1`` (estimator, avg_model_count, avg_model_count_se, published_inside_95),
+``table2`` (estimator, seconds_per_step, relative_time). Figures: position RMSE over time (with
+95 % bands), selected model count over time, model-set membership (time x model). TensorBoard: ESS,
+model count and RMSE (and its standard error) per step, particle-weight histograms.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from torch import Tensor
 from experiments.harness import StudyContext
 from experiments.studies import plots
 from experiments.estimators import build_mode_filter
+from experiments.uncertainty import armse_se, inside, rmse_se_per_step
 from torchmm import GaussianBelief, LinearMotion, PositionMeasurement, run_filter
 from torchmm.filters import StepOutput
 from torchmm.multimodel import VariableStructureIMM
@@ -217,15 +219,21 @@ def run(ctx: StudyContext) -> None:
         f"feedback = {opts.feedback}, interaction `{opts.mixing}`, process-noise normals in "
         f"{opts.get('noise_dtype') or cfg.dtype}. Timings on {ctx.device} (shared machine: contended)."
     )
-    rmse = ctx.results.table("rmse", ["estimator", "pos_rmse", "vel_rmse", "maneuver_pos_rmse"],
-                             note="maneuver_pos_rmse: time average over 81-120 s (deterministic scenarios).")
+    rmse = ctx.results.table(
+        "rmse", ["estimator", "pos_rmse", "vel_rmse", "maneuver_pos_rmse", "pos_rmse_se", "vel_rmse_se",
+                 "maneuver_pos_rmse_se"],
+        note="maneuver_pos_rmse: time average over 81-120 s (deterministic scenarios). _se: delta-method "
+             "standard errors of the average RMSEs over the runs (95 % interval: +- 1.96 se).")
     pub1 = PUBLISHED_TABLE1.get(scenario.name)
+    published_counts = {} if pub1 is None else {"EqMA9+1": 10, "EqMA21+1": 22, "PF-MEVSMM": pub1}
     table1 = ctx.results.table(
-        "table1", ["estimator", "avg_model_count"],
-        note="EqMA counts include the +1 equivalent model, as the paper does.",
+        "table1", ["estimator", "avg_model_count", "avg_model_count_se", "published_inside_95"],
+        note="EqMA counts include the +1 equivalent model, as the paper does. avg_model_count_se: standard "
+             "error over the runs (sd of a run's time-averaged count / sqrt(runs)); published_inside_95: "
+             "whether the published count lies inside our +- 1.96 se (null without a published figure).",
         published=None if pub1 is None else {
             "columns": ["estimator", "avg_model_count"],
-            "rows": [["EqMA9+1", 10], ["EqMA21+1", 22], ["PF-MEVSMM", pub1]],
+            "rows": [[k, v] for k, v in published_counts.items()],
             "source": f"paper 003 Table 1 ({'small' if scenario.R < 100 else 'large'} error)"},
     )
     table2 = ctx.results.table(
@@ -235,7 +243,7 @@ def run(ctx: StudyContext) -> None:
                    "source": "paper 003 Table 2"},
     )
     hist_steps = {int(s) for s in opts.histogram_steps}
-    curves, count_curves, memberships, base_time = {}, {}, {}, None
+    curves, count_curves, memberships, base_time, bands = {}, {}, {}, None, {}
     estimators = dict(opts.estimators)
     for name, kind in ctx.progress_bar(list(estimators.items()), desc="estimators"):
         est_runs = runs if kind != "exact" else min(runs, int(opts.exact_runs))
@@ -244,6 +252,7 @@ def run(ctx: StudyContext) -> None:
             sq_pos = torch.zeros(scenario.steps, dtype=ctx.dtype, device=ctx.device)
             sq_vel = torch.zeros_like(sq_pos)
             count_sum, member_sum, ess_sum, seconds, hists = torch.zeros_like(sq_pos), None, torch.zeros_like(sq_pos), 0.0, {}
+            per_run = {"pos": [], "vel": [], "count": []}  # float64 (T, chunk) per chunk: the standard errors
             gen = ctx.generator("filter", scenario.name, name)
             mode_filter = instantiate(cfg.mode_filter) if kind == "vsmm" else None
             policy = instantiate(cfg.policy) if kind == "vsmm" and cfg.get("policy") else None
@@ -252,9 +261,13 @@ def run(ctx: StudyContext) -> None:
                 sl = slice(start, min(start + chunk, est_runs))
                 res = _run(filt, scenario, z[:, sl], hist_steps if start == 0 else set(), gen)
                 err = res["mean"] - truth[:, sl]
-                sq_pos += err[..., [0, 2]].square().sum(-1).sum(1)
-                sq_vel += err[..., [1, 3]].square().sum(-1).sum(1)
+                e_pos, e_vel = err[..., [0, 2]].square().sum(-1), err[..., [1, 3]].square().sum(-1)  # (T, chunk)
+                sq_pos += e_pos.sum(1)
+                sq_vel += e_vel.sum(1)
                 count_sum += res["count"].sum(1)
+                per_run["pos"].append(e_pos.detach().to(torch.float64))
+                per_run["vel"].append(e_vel.detach().to(torch.float64))
+                per_run["count"].append(res["count"].detach().to(torch.float64))
                 has_ess = res["ess"] is not None
                 if has_ess:
                     ess_sum += res["ess"].sum(1)
@@ -263,11 +276,22 @@ def run(ctx: StudyContext) -> None:
                     member_sum = m if member_sum is None else member_sum + m
                 seconds += res["seconds_per_step"]
                 hists = hists or {str(k): v.tolist() for k, v in res["hists"].items()}
+            e_pos, e_vel = torch.cat(per_run["pos"], 1), torch.cat(per_run["vel"], 1)  # (T, est_runs)
+            run_counts = torch.cat(per_run["count"], 1).mean(0)  # a run's time-averaged model count
+            window = slice(80, 120) if deterministic and scenario.steps >= 120 else None
+            # only the standard errors are kept (floats and (T,) bands): the checkpoint stays small
+            uncertainty = {
+                "pos_se": armse_se(e_pos), "vel_se": armse_se(e_vel),
+                "maneuver_pos_se": armse_se(e_pos[window]) if window is not None else None,
+                "count_se": (run_counts.std() / est_runs**0.5).item() if est_runs > 1 else float("nan"),
+                "pos_band": rmse_se_per_step(e_pos).tolist(), "vel_band": rmse_se_per_step(e_vel).tolist(),
+            }
             return {
                 "pos": (sq_pos / est_runs).sqrt().tolist(), "vel": (sq_vel / est_runs).sqrt().tolist(),
                 "count": (count_sum / est_runs).tolist(), "ess": (ess_sum / est_runs).tolist() if has_ess else None,
                 "members": None if member_sum is None else (member_sum / est_runs).tolist(),
                 "seconds_per_step": seconds * (runs / est_runs), "runs": est_runs, "hists": hists,
+                **uncertainty,
             }
 
         res = ctx.unit(f"{scenario.name}/{name}", compute)
@@ -275,9 +299,11 @@ def run(ctx: StudyContext) -> None:
         pos, vel = torch.tensor(res["pos"], dtype=torch.float64), torch.tensor(res["vel"], dtype=torch.float64)
         maneuver = pos[80:120].mean().item() if deterministic and scenario.steps >= 120 else None
         label = name if res["runs"] == runs else f"{name} ({res['runs']} runs)"
-        rmse.rows.append([label, pos.mean().item(), vel.mean().item(), maneuver])
+        rmse.rows.append([label, pos.mean().item(), vel.mean().item(), maneuver, res.get("pos_se"),
+                          res.get("vel_se"), res.get("maneuver_pos_se")])
         avg_count = float(torch.tensor(res["count"], dtype=torch.float64).mean())
-        table1.rows.append([label, avg_count])
+        table1.rows.append([label, avg_count, res.get("count_se"),
+                            inside(published_counts.get(label), avg_count, res.get("count_se"))])
         if base_time is None and kind == "eqma9":
             base_time = res["seconds_per_step"]
         table2.rows.append([label, res["seconds_per_step"], None])
@@ -286,11 +312,16 @@ def run(ctx: StudyContext) -> None:
                            ("avg_model_count", avg_count)):
             ctx.results.metric(name, key, value)
         curves[label] = pos
+        if "pos_band" in res:
+            bands[label] = torch.tensor(res["pos_band"], dtype=torch.float64)
         count_curves[label] = torch.tensor(res["count"], dtype=torch.float64)
         if res["members"] is not None:
             memberships[label] = torch.tensor(res["members"])
         ctx.logger.series(f"pos_rmse/{name}", pos)
         ctx.logger.series(f"vel_rmse/{name}", vel)
+        if "pos_band" in res:  # per-step standard errors of the RMSE curves
+            ctx.logger.series(f"pos_rmse_se/{name}", res["pos_band"])
+            ctx.logger.series(f"vel_rmse_se/{name}", res["vel_band"])
         ctx.logger.series(f"model_count/{name}", res["count"])
         if res["ess"] is not None:
             ctx.logger.series(f"ess/{name}", res["ess"])
@@ -303,7 +334,8 @@ def run(ctx: StudyContext) -> None:
         for row in table2.rows:
             row[2] = row[1] / base_time
     title = f"{scenario.name}, {runs} runs"
-    ctx.save_figure("position_rmse", plots.rmse_over_time({"position RMSE (m)": curves}, title))
+    ctx.save_figure("position_rmse", plots.rmse_over_time({"position RMSE (m)": curves}, title,
+                                                                    bands={"position RMSE (m)": bands}))
     ctx.save_figure("model_count", plots.rmse_over_time({"selected model count": count_curves}, title))
     if memberships:
         ctx.save_figure("model_set_membership", _membership_figure(memberships, title))

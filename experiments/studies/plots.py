@@ -10,14 +10,29 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import torch  # noqa: E402
 
+from experiments.uncertainty import Z95  # noqa: E402
 
-def rmse_over_time(curves: Mapping[str, Mapping[str, torch.Tensor]], title: str = ""):
-    """``curves[panel][estimator] = (T,)`` -> one subplot per panel (e.g. position, velocity)."""
+
+def rmse_over_time(curves: Mapping[str, Mapping[str, torch.Tensor]], title: str = "",
+                   bands: Mapping[str, Mapping[str, torch.Tensor]] | None = None):
+    """``curves[panel][estimator] = (T,)`` -> one subplot per panel (e.g. position, velocity).
+
+    ``bands[panel][estimator] = (T,)``, optional: the standard error of each step's value
+    (experiments/uncertainty.py :func:`rmse_se_per_step`), drawn as a +- 1.96 se band (95 %) in the
+    line's colour.
+    """
+    bands = bands or {}
     fig, axes = plt.subplots(1, len(curves), figsize=(5.5 * len(curves), 3.8), squeeze=False)
     for ax, (panel, series) in zip(axes[0], curves.items()):
         for name, values in series.items():
-            values = values.detach().cpu()
-            ax.plot(range(1, len(values) + 1), values, label=name, lw=1.3)
+            values = torch.as_tensor(values).detach().cpu().double()
+            steps = range(1, len(values) + 1)
+            (line,) = ax.plot(steps, values, label=name, lw=1.3)
+            se = bands.get(panel, {}).get(name)
+            if se is not None:
+                se = torch.as_tensor(se).detach().cpu().double()
+                ax.fill_between(steps, values - Z95 * se, values + Z95 * se, color=line.get_color(), alpha=0.2,
+                                lw=0)
         ax.set_xlabel("time step k")
         ax.set_ylabel(panel)
         ax.grid(alpha=0.3)

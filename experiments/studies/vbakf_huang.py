@@ -8,8 +8,9 @@
 rho = 1 - exp(-4), N = 10). ``nominal_q: true`` is the setting of the paper's Table I
 (``Q~ = Q_k``); ``nominal_q: <alpha>`` uses ``Q~ = alpha I`` (the paper's Fig. 1 setting).
 
-Table ``table1``: estimator, pos_armse / vel_armse over the last 100 s and over all steps, with
-the published Table I values (last 100 s) beside them.
+Table ``table1``: estimator, pos_armse / vel_armse over the last 100 s and over all steps, their
+delta-method standard errors (``*_se``) and whether the published Table I value (last 100 s, beside
+them) lies inside our 95 % interval (``*_inside_95``).
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ import torch
 
 from experiments.harness import StudyContext
 from experiments.studies import plots
+from experiments.uncertainty import armse_se, inside, rmse_se_per_step
 from torchmm import GaussianBelief, KalmanFilter, LinearMeasurement, LinearMotion, run_filter
 from torchmm.filters.variational import VBAKFPR
 
@@ -60,8 +62,10 @@ def run_huang(runs: int, generator: torch.Generator, *, steps: int = 1000, nomin
               beta: float = 100.0,
               tau: float = 3.0, rho: float = 1 - math.exp(-4), iterations: int = 10, dtype=torch.float64,
               device=None, progress: bool = False) -> dict:
-    """Run the three filters; returns per-estimator ``{"pos": (T,), "vel": (T,)}`` RMSE curves plus the
-    SRNFN-free summary ``{"estimator": (pos_last100, vel_last100, pos_all, vel_all)}``."""
+    """Run the three filters; returns per-estimator ``{"pos": (T,), "vel": (T,)}`` RMSE curves, the
+    SRNFN-free summary ``{"estimator": (pos_last100, vel_last100, pos_all, vel_all)}``, its delta-method
+    standard errors ``"se"`` (the same four) and the per-step standard errors ``"pos_band"``,
+    ``"vel_band"`` ``(T,)`` (experiments/uncertainty.py)."""
     # simulated in float64 and cast: float32 and float64 runs see the same data
     data = huang_scenario(runs, generator, steps=steps, dtype=torch.float64, device=device)
     truth, z, F, Qs, Rs, P0, xhat0 = (t.to(dtype) for t in data)
@@ -96,9 +100,13 @@ def run_huang(runs: int, generator: torch.Generator, *, steps: int = 1000, nomin
         pos = err[..., :2].square().sum(-1).mean(-1).sqrt()
         vel = err[..., 2:].square().sum(-1).mean(-1).sqrt()
         tail = slice(max(steps - 100, 0), steps)
+        sq_pos = err[..., :2].square().sum(-1).to(torch.float64)  # (T, runs): the standard errors
+        sq_vel = err[..., 2:].square().sum(-1).to(torch.float64)
         out[name] = {"pos": pos, "vel": vel,
                      "summary": (pos[tail].mean().item(), vel[tail].mean().item(),
-                                 pos.mean().item(), vel.mean().item())}
+                                 pos.mean().item(), vel.mean().item()),
+                     "se": (armse_se(sq_pos[tail]), armse_se(sq_vel[tail]), armse_se(sq_pos), armse_se(sq_vel)),
+                     "pos_band": rmse_se_per_step(sq_pos), "vel_band": rmse_se_per_step(sq_vel)}
     return out
 
 
@@ -112,7 +120,8 @@ def run(ctx: StudyContext) -> None:
     h = cfg.huang
     runs = int(cfg.mc_runs)
     res = ctx.unit("huang", lambda: {
-        name: {"summary": list(v["summary"]), "pos": v["pos"].tolist(), "vel": v["vel"].tolist()}
+        name: {"summary": list(v["summary"]), "pos": v["pos"].tolist(), "vel": v["vel"].tolist(),
+               "se": list(v["se"]), "pos_band": v["pos_band"].tolist(), "vel_band": v["vel_band"].tolist()}
         for name, v in run_huang(runs, ctx.generator("huang"), steps=int(h.steps), nominal_q=h.nominal_q,
                                  beta=float(h.beta), tau=float(h.tau), rho=float(h.rho),
                                  iterations=int(h.iterations), dtype=ctx.dtype, device=ctx.device,
@@ -124,19 +133,33 @@ def run(ctx: StudyContext) -> None:
         f"nominal Q = {h.nominal_q}, R~ = {h.beta} I, tau = {h.tau}, rho = {h.rho:.4f}, N = {h.iterations}."
     )
     table = ctx.results.table(
-        "table1", ["estimator", "pos_armse", "vel_armse", "pos_armse_all", "vel_armse_all"],
-        note="ARMSE over the last 100 s (the paper's Table I) and over all steps.",
+        "table1", ["estimator", "pos_armse", "vel_armse", "pos_armse_all", "vel_armse_all", "pos_armse_se",
+                   "vel_armse_se", "pos_armse_all_se", "vel_armse_all_se", "pos_armse_inside_95",
+                   "vel_armse_inside_95"],
+        note="ARMSE over the last 100 s (the paper's Table I) and over all steps. _se: delta-method standard "
+             "errors of the ARMSE over the runs (95 % interval: +- 1.96 se); _inside_95: whether the "
+             "published Table I figure lies inside that interval (null without one).",
         published={"columns": ["estimator", "pos_armse", "vel_armse"],
                    "rows": [[k, *v] for k, v in PUBLISHED.items()], "source": "Huang et al. 2018, Table I"},
     )
     curves = {"position RMSE": {}, "velocity RMSE": {}}
+    bands = {"position RMSE": {}, "velocity RMSE": {}}  # per-step standard errors of the curves
     for name, v in res.items():
-        table.rows.append([name, *v["summary"]])
+        se = v.get("se", [None] * 4)
+        pub_pos, pub_vel = PUBLISHED.get(name, (None, None))
+        table.rows.append([name, *v["summary"], *se, inside(pub_pos, v["summary"][0], se[0]),
+                           inside(pub_vel, v["summary"][1], se[1])])
         ctx.results.metric(name, "pos_armse_last100", v["summary"][0])
         ctx.results.metric(name, "vel_armse_last100", v["summary"][1])
         curves["position RMSE"][name] = torch.tensor(v["pos"], dtype=torch.float64)
         curves["velocity RMSE"][name] = torch.tensor(v["vel"], dtype=torch.float64)
         ctx.logger.series(f"pos_rmse/{name}", v["pos"])
         ctx.logger.series(f"vel_rmse/{name}", v["vel"])
+        if "pos_band" in v:
+            bands["position RMSE"][name] = torch.tensor(v["pos_band"], dtype=torch.float64)
+            bands["velocity RMSE"][name] = torch.tensor(v["vel_band"], dtype=torch.float64)
+            ctx.logger.series(f"pos_rmse_se/{name}", v["pos_band"])
+            ctx.logger.series(f"vel_rmse_se/{name}", v["vel_band"])
     ctx.results.save()
-    ctx.save_figure("rmse_over_time", plots.rmse_over_time(curves, f"Huang et al. scenario, {runs} runs"))
+    ctx.save_figure("rmse_over_time", plots.rmse_over_time(curves, f"Huang et al. scenario, {runs} runs",
+                                                                  bands=bands))

@@ -8,7 +8,7 @@ import pytest
 import torch
 from scipy import stats
 
-from experiments.uncertainty import armse_se, chi2_interval, inside
+from experiments.uncertainty import armse_se, chi2_interval, inside, rmse_se_per_step
 
 
 def test_armse_se_matches_theory_for_iid_errors_and_the_spread_over_experiments():
@@ -37,6 +37,40 @@ def test_armse_se_accounts_for_errors_correlated_over_time():
     sq = per_run.expand(T, N).square()
     assert armse_se(sq) == pytest.approx(sigma / math.sqrt(2 * N), rel=0.05)
     assert math.isnan(armse_se(sq[:, :1]))  # one run: no spread to estimate
+
+
+def test_rmse_se_per_step_matches_theory_and_the_spread_over_experiments():
+    """iid N(0, sigma^2) scalar errors: se(rmse_t) = sigma / sqrt(2 N) at every step; and, with a noise
+    level varying over the steps (2-D errors, as a position), each step's SE matches the standard
+    deviation of that step's RMSE over many independent experiments."""
+    g = torch.Generator().manual_seed(2)
+    sigma, T, N, experiments = 3.0, 50, 200, 400
+    sq = (sigma * torch.randn(experiments, T, N, generator=g, dtype=torch.float64)).square()
+    ses = torch.stack([rmse_se_per_step(sq[i]) for i in range(experiments)])  # (experiments, T)
+    assert ses.shape == (experiments, T)
+    theory = sigma / math.sqrt(2 * N)
+    assert ses.mean().item() == pytest.approx(theory, rel=0.03)  # O(1/N) bias of the ratio: ~ -1 %
+    spread = sq.mean(2).sqrt().std(0)  # (T,): the spread of each step's RMSE over the experiments
+    assert spread.mean().item() == pytest.approx(theory, rel=0.03)
+
+    levels = torch.linspace(0.5, 20.0, T, dtype=torch.float64)  # per-step noise std
+    e = levels[:, None, None] * torch.randn(experiments, T, N, 2, generator=g, dtype=torch.float64)
+    sq = e.square().sum(-1)  # (experiments, T, N)
+    ses = torch.stack([rmse_se_per_step(sq[i]) for i in range(experiments)])
+    spread = sq.mean(2).sqrt().std(0)
+    ratio = spread / ses.mean(0)  # 400 experiments: ~3.5 % sampling error per step
+    assert ratio.mean().item() == pytest.approx(1.0, abs=0.03)
+    assert ((ratio - 1).abs() < 0.2).all(), ratio
+    # 2-D Gaussian errors: e = sigma^2 chi^2(2), sd(e) = 2 sigma^2, m = 2 sigma^2 -> se = sigma / sqrt(2 N)
+    assert (ses.mean(0) / (levels / math.sqrt(2 * N))).sub(1).abs().max().item() < 0.05
+
+
+def test_rmse_se_per_step_edge_cases():
+    sq = torch.zeros(5, 10, dtype=torch.float64)
+    sq[3] = torch.arange(10, dtype=torch.float64)
+    se = rmse_se_per_step(sq)
+    assert se[[0, 1, 2, 4]].eq(0).all() and se[3] > 0  # deterministic steps: no spread
+    assert rmse_se_per_step(sq[:, :1]).isnan().all()  # one run: no spread to estimate
 
 
 @pytest.mark.parametrize("dof", [10, 40, 400, 4000])
