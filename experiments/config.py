@@ -21,6 +21,7 @@ import difflib
 import importlib
 import math
 import sys
+from pathlib import Path
 from dataclasses import dataclass, field
 from typing import Any, Callable, Optional
 
@@ -153,6 +154,12 @@ def _seed(value) -> str | None:
     return None if 0 <= value < 2**63 else "must be an integer in [0, 2^63)"
 
 
+def _resume(value) -> str | None:
+    if value is None or value == "latest" or Path(str(value)).is_dir():
+        return None
+    return "expected latest or an existing run folder"
+
+
 # -- the common keys ---------------------------------------------------------------------------
 @dataclass
 class Logger:
@@ -212,6 +219,7 @@ class Common:
     chunk_runs: Optional[int] = spec(None, positive_int)
     threads: Optional[int] = spec(1, positive_int)
     retain_freed_memory: bool = False
+    resume: Optional[str] = spec(None, _resume)
     experiment_name: str = "study"
     study: str = "experiments.studies.imm_tf.run"
     logger: Logger = field(default_factory=Logger)

@@ -178,11 +178,18 @@ class Logger:
         for k, v in enumerate(values, start=start):
             self.scalar(tag, float(v), k)
 
+    def sweep(self, tag: str, x: Sequence[float], values: Iterable[float], axis: str) -> None:
+        """One value per point of an in-study parameter sweep (``axis``, e.g. ``alpha``): a curve
+        over that parameter, not over time steps (TensorBoard: drawn as a figure, ``sweeps/``)."""
+
     def histogram(self, tag: str, values: torch.Tensor, step: int = 0) -> None: ...
 
     def figure(self, tag: str, figure) -> None: ...
 
     def text(self, tag: str, text: str) -> None: ...
+
+    def hparams(self, hparams: dict, metrics: dict) -> None:
+        """The run's settings and headline numbers (TensorBoard's HPARAMS tab: a row per run)."""
 
     def close(self) -> None: ...
 
@@ -211,6 +218,16 @@ class TensorBoardLogger(Logger):
     def text(self, tag, text):
         self.writer.add_text(tag, text)
 
+    def hparams(self, hparams, metrics):
+        # into this run's own event file (SummaryWriter.add_hparams would open a second writer)
+        from torch.utils.tensorboard.summary import hparams as hparams_summary
+
+        writer = self.writer._get_file_writer()
+        for summary in hparams_summary(hparams, metrics):
+            writer.add_summary(summary)
+        for key, value in metrics.items():
+            self.writer.add_scalar(key, value)
+
     def close(self):
         self.writer.flush()
         self.writer.close()
@@ -222,12 +239,25 @@ class CurveRecorder(Logger):
 
     def __init__(self, inner: Logger):
         self.inner = inner
-        self.curves: dict[str, tuple[list[int], list[float]]] = {}
+        #: tag -> (axis name, x values, values); axis "step" for per-step curves
+        self.curves: dict[str, tuple[str, list, list[float]]] = {}
 
     def series(self, tag, values, start=1):
-        values = [float(v) for v in (values.tolist() if isinstance(values, torch.Tensor) else values)]
-        self.curves[tag] = (list(range(start, start + len(values))), values)
+        values = _floats(values)
+        self.curves[tag] = ("step", list(range(start, start + len(values))), values)
         self.inner.series(tag, values, start)
+
+    def sweep(self, tag, x, values, axis):
+        if not axis or "#" in axis or axis == "step":
+            raise ValueError(f"axis: a parameter name without '#' other than 'step', got {axis!r}")
+        x, values = _floats(x), _floats(values)
+        if len(x) != len(values):
+            raise ValueError(f"sweep {tag}: {len(x)} x values but {len(values)} values")
+        self.curves[tag] = (axis, x, values)  # once per tag: a re-logged sweep replaces the old points
+        self.inner.sweep(tag, x, values, axis)
+
+    def hparams(self, hparams, metrics):
+        self.inner.hparams(hparams, metrics)
 
     def scalar(self, tag, value, step=0):
         self.inner.scalar(tag, value, step)
@@ -245,25 +275,39 @@ class CurveRecorder(Logger):
         self.inner.close()
 
     def save(self, output_dir: Path) -> None:
-        """``curves.npz`` (per curve ``<tag>`` the values and ``<tag>#step`` the time steps) and a tidy
-        ``curves.csv`` (``quantity, series, step, value``; the tag is ``quantity/series``)."""
+        """``curves.npz``: per curve ``<tag>`` the values and ``<tag>#<axis>`` its x values - the time
+        steps (``#step``) or a swept parameter (e.g. ``#alpha``); and a tidy ``curves.csv``
+        (``quantity, series, axis, x, value``; the tag is ``quantity/series``)."""
         if not self.curves:
             return
         import numpy as np
 
         arrays = {}
-        for tag, (steps, values) in self.curves.items():
+        for tag, (axis, x, values) in self.curves.items():
             arrays[tag] = np.asarray(values, dtype=np.float64)
-            arrays[f"{tag}#step"] = np.asarray(steps, dtype=np.int64)
+            arrays[f"{tag}#{axis}"] = np.asarray(x, dtype=np.int64 if axis == "step" else np.float64)
         tmp = output_dir / "curves.tmp.npz"
         np.savez(tmp, **arrays)
         os.replace(tmp, output_dir / "curves.npz")
-        lines = ["quantity,series,step,value"]
-        for tag, (steps, values) in self.curves.items():
+        lines = ["quantity,series,axis,x,value"]
+        for tag, (axis, x, values) in self.curves.items():
             quantity, _, series = tag.partition("/")
-            for k, v in zip(steps, values):
-                lines.append(f"{_csv(quantity)},{_csv(series)},{k},{v!r}")
+            for k, v in zip(x, values):
+                lines.append(f"{_csv(quantity)},{_csv(series)},{_csv(axis)},{k!r},{v!r}")
         _write_atomic(output_dir / "curves.csv", "\n".join(lines) + "\n")
+        sweeps = {tag: c for tag, c in self.curves.items() if c[0] != "step"}
+        if sweeps and not isinstance(self.inner, NullLogger):  # TensorBoard: sweeps on their own axis
+            from experiments.plot import draw_groups
+
+            for quantity, fig in draw_groups(sweeps):
+                self.inner.figure(f"sweeps/{quantity}", fig)
+                import matplotlib.pyplot as plt
+
+                plt.close(fig)
+
+
+def _floats(values) -> list[float]:
+    return [float(v) for v in (values.tolist() if isinstance(values, torch.Tensor) else values)]
 
 
 def _csv(text: str) -> str:
@@ -347,7 +391,8 @@ class StudyContext:
         plt.close(figure)
         return path
 
-    def progress_bar(self, iterable, **kwargs):
+    def progress_bar(self, iterable=None, **kwargs):
+        """A tqdm bar over ``iterable`` (or a manual one: ``total=``), off with ``progress=false``."""
         from tqdm.auto import tqdm
 
         return tqdm(iterable, disable=not self.progress, **kwargs)
@@ -378,7 +423,34 @@ NON_RESULT_KEYS = ("progress", "logger", "threads", "chunk_runs", "retain_freed_
 
 def result_config(config_dict: dict) -> dict:
     """The part of a resolved config that decides the numbers (without :data:`NON_RESULT_KEYS`)."""
-    return {k: v for k, v in config_dict.items() if k not in NON_RESULT_KEYS and k != "hydra"}
+    return {k: v for k, v in config_dict.items() if k not in NON_RESULT_KEYS and k not in ("hydra", "resume")}
+
+
+def config_hash(config_dict: dict) -> str:
+    """The hash finished units are keyed on: of :func:`result_config`."""
+    kept = result_config(config_dict)
+    return hashlib.sha256(json.dumps(kept, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def latest_run(base: Path, config_dict: dict) -> Path | None:
+    """The newest run folder under ``base`` (``outputs/<study>``) holding work of this config
+    (a ``checkpoint.json`` or ``results.json`` of the same :func:`config_hash`), or None."""
+    wanted = config_hash(config_dict)
+    found = []
+    for folder in Path(base).glob("*/"):
+        for name in ("checkpoint.json", "results.json"):
+            file = folder / name
+            if not file.exists():
+                continue
+            try:
+                data = json.loads(file.read_text())
+            except (OSError, json.JSONDecodeError):
+                continue
+            saved = data.get("config_hash") if name == "checkpoint.json" else config_hash(data.get("config") or {})
+            if saved == wanted:
+                found.append((file.stat().st_mtime, str(folder)))
+            break
+    return Path(max(found)[1]).resolve() if found else None
 
 
 def _differing_keys(a: Any, b: Any, prefix: str = "") -> list[str]:
@@ -403,20 +475,20 @@ def open_context(cfg: Any, output_dir: Path, config_dict: dict, experiment: str,
     """
     output_dir.mkdir(parents=True, exist_ok=True)
     kept = result_config(config_dict)
-    config_hash = hashlib.sha256(json.dumps(kept, sort_keys=True, default=str).encode()).hexdigest()[:16]
+    digest = config_hash(config_dict)
     checkpoint: dict = {}
     ckpt_path, results_path = output_dir / "checkpoint.json", output_dir / "results.json"
     saved_hash = saved_config = None
     if ckpt_path.exists():
         saved = json.loads(ckpt_path.read_text())
         saved_hash, saved_config = saved.get("config_hash"), saved.get("config")
-        if saved_hash == config_hash:
+        if saved_hash == digest:
             checkpoint = saved.get("units", {})
             log.info("found %d finished units in %s", len(checkpoint), ckpt_path)
     elif results_path.exists():  # a finished study without units: compare the configs it recorded
-        saved_config = result_config(json.loads(results_path.read_text()).get("config") or {})
-        saved_hash = hashlib.sha256(json.dumps(saved_config, sort_keys=True, default=str).encode()).hexdigest()[:16]
-    if saved_hash is not None and saved_hash != config_hash:
+        recorded = json.loads(results_path.read_text()).get("config") or {}
+        saved_config, saved_hash = result_config(recorded), config_hash(recorded)
+    if saved_hash is not None and saved_hash != digest:
         differ = _differing_keys(saved_config or {}, json.loads(json.dumps(kept, default=str)))
         fresh = Path(unique_dir(str(output_dir)))
         log.warning("%s holds a run whose %s differ; this run goes to %s (the old one is kept)", output_dir,
@@ -433,6 +505,6 @@ def open_context(cfg: Any, output_dir: Path, config_dict: dict, experiment: str,
         seed=int(cfg.seed),
         progress=bool(cfg.get("progress", True)),
         _checkpoint=checkpoint,
-        _config_hash=config_hash,
+        _config_hash=digest,
         _result_config=json.loads(json.dumps(kept, default=str)),
     )

@@ -1,8 +1,10 @@
 """``torchmm-plot RUN_DIR``: redraw a run's per-step curves from ``curves.npz`` alone.
 
 One figure per quantity (the part of a curve's tag before ``/``, e.g. ``pos_rmse``), one labelled
-line per series (``pos_rmse/IMM``, ``pos_rmse/GPB1``, ...), the legend outside the axes, sized for a
-paper's column (3.4 in wide), written as PNG (300 dpi) and PDF into ``RUN_DIR/figures/curves/``.
+line per series (``pos_rmse/IMM``, ``pos_rmse/GPB1``, ...), over time steps or over a swept
+parameter (``alpha``), 95 % bands where the run saved standard errors (``pos_rmse_se/IMM``), the
+legend outside the axes, sized for a paper's column (3.4 in wide), written as PNG (300 dpi) and
+PDF into ``RUN_DIR/figures/curves/``.
 """
 
 from __future__ import annotations
@@ -12,45 +14,78 @@ import sys
 from collections import defaultdict
 from pathlib import Path
 
-__all__ = ["load_curves", "main", "plot_curves"]
+__all__ = ["draw_groups", "load_curves", "main", "plot_curves"]
+
+#: a band of +- Z95 standard errors is drawn around ``<q>/<s>`` where ``<q>_se/<s>`` exists
+Z95 = 1.959963984540054
 
 
-def load_curves(run_dir: Path) -> dict[str, tuple]:
-    """``{tag: (steps, values)}`` from ``run_dir/curves.npz``."""
+def load_curves(run_dir: Path) -> dict[str, tuple[str, object, object]]:
+    """``{tag: (axis, x, values)}`` from ``run_dir/curves.npz``; ``axis`` is ``"step"`` for per-step
+    curves, else the swept parameter's name (e.g. ``"alpha"``)."""
     import numpy as np
 
     path = Path(run_dir) / "curves.npz"
     if not path.exists():
         raise FileNotFoundError(f"RUN_DIR: {path} does not exist (a study run writes it; older runs have none)")
     with np.load(path) as data:
-        return {key: (data[f"{key}#step"], data[key]) for key in data.files if not key.endswith("#step")}
+        axes = {}
+        for key in data.files:
+            tag, sep, axis = key.rpartition("#")
+            if sep:
+                axes[tag] = (axis, data[key])
+        return {key: (*axes.get(key, ("step", np.arange(1, len(data[key]) + 1))), data[key])
+                for key in data.files if "#" not in key}
 
 
-def plot_curves(run_dir: Path, formats=("png", "pdf")) -> list[Path]:
-    """Draw every quantity's curves; returns the files written."""
+def draw_groups(curves: dict[str, tuple[str, object, object]]) -> list[tuple[str, object]]:
+    """One figure per quantity (the tag before its first ``/``), one labelled line per series, the
+    legend outside the axes, 3.4 in wide (a paper's column). ``<q>_se/<s>`` curves become shaded
+    95 % bands around ``<q>/<s>`` (and get no figure of their own when that curve exists)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import numpy as np
 
-    curves = load_curves(run_dir)
-    groups: dict[str, list[tuple[str, tuple]]] = defaultdict(list)
+    groups: dict[str, list[tuple[str, str, tuple]]] = defaultdict(list)
     for tag, curve in curves.items():
         quantity, _, series = tag.partition("/")
-        groups[quantity].append((series or quantity, curve))
-    out_dir = Path(run_dir) / "figures" / "curves"
-    out_dir.mkdir(parents=True, exist_ok=True)
-    written = []
+        groups[quantity].append((series or quantity, tag, curve))
+    figures = []
     for quantity, lines in sorted(groups.items()):
+        if quantity.endswith("_se") and quantity[:-3] in groups:
+            continue  # drawn as bands
         fig, ax = plt.subplots(figsize=(3.4, 2.4), constrained_layout=True)
-        for label, (steps, values) in lines:
-            ax.plot(steps, values, label=label, linewidth=1.0)
-        ax.set_xlabel("time step")
-        ax.set_ylabel(quantity.replace("_", " "))
+        axis = lines[0][2][0]
+        for label, tag, (_, x, values) in lines:
+            (line,) = ax.plot(x, values, label=label, linewidth=1.0, marker="o" if axis != "step" else None, ms=2.5)
+            band = curves.get(f"{quantity}_se/{tag.partition('/')[2]}")
+            if band is not None and len(band[2]) == len(values):
+                se = np.asarray(band[2], dtype=float)
+                ax.fill_between(x, values - Z95 * se, values + Z95 * se, color=line.get_color(), alpha=0.2,
+                                linewidth=0)
+        xs = np.concatenate([np.asarray(c[1], dtype=float) for _, _, c in lines])
+        if axis != "step" and xs.size and (xs > 0).all() and xs.max() / xs.min() >= 100:
+            ax.set_xscale("log")
+        ax.set_xlabel("time step" if axis == "step" else axis, fontsize=8)
+        ax.set_ylabel(quantity.replace("_", " "), fontsize=8)
         ax.grid(True, linewidth=0.3, alpha=0.5)
         ax.tick_params(labelsize=7)
         if len(lines) > 1:
             ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=6, frameon=False, borderaxespad=0)
+        figures.append((quantity, fig))
+    return figures
+
+
+def plot_curves(run_dir: Path, formats=("png", "pdf")) -> list[Path]:
+    """Draw every quantity's curves into ``run_dir/figures/curves/``; returns the files written."""
+    import matplotlib.pyplot as plt
+
+    out_dir = Path(run_dir) / "figures" / "curves"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = []
+    for quantity, fig in draw_groups(load_curves(run_dir)):
         name = quantity.replace("/", "_") or "curve"
         for fmt in formats:
             path = out_dir / f"{name}.{fmt}"

@@ -55,16 +55,20 @@ if not OmegaConf.has_resolver("torchmm.sweep_subdir"):
     OmegaConf.register_new_resolver("torchmm.sweep_subdir", sweep_subdir)
 
 
-def run_study(cfg: DictConfig, output_dir: Path) -> Results:
+def run_study(cfg: DictConfig, output_dir: Path, overrides: list[str] | None = None) -> Results:
     """Run the configured study into ``output_dir`` (usable without Hydra's main, e.g. in tests).
 
     The config is validated first (:func:`experiments.config.validate`): a bad key raises
-    :class:`~experiments.config.ConfigError` before anything is written.
+    :class:`~experiments.config.ConfigError` before anything is written. ``overrides`` (the
+    command line's ``key=value``; Hydra's task overrides) name the run in TensorBoard's hparams.
     """
     validate(cfg)
     config = OmegaConf.to_container(cfg, resolve=True)
     study = get_method(cfg.study)
     ctx = open_context(cfg, Path(output_dir), config, experiment=str(cfg.experiment_name))
+    if ctx._checkpoint:
+        print(f"torchmm-run: resuming: {len(ctx._checkpoint)} finished units kept from {ctx.output_dir}",
+              file=sys.stderr, flush=True)
     previous_threads = torch.get_num_threads()
     threads = cfg.get("threads")
     if threads:
@@ -73,12 +77,18 @@ def run_study(cfg: DictConfig, output_dir: Path) -> Results:
         retain_freed_memory()
     provenance = Provenance()
     provenance.start(device=ctx.device, dtype=ctx.dtype, threads=torch.get_num_threads())
+    ctx.logger.text("config", "```yaml\n" + OmegaConf.to_yaml(config) + "```")  # the resolved config
     try:
         study(ctx)
         provenance.finish()
         ctx.results.provenance = provenance.data
         ctx.results.save()
         ctx.logger.save(ctx.output_dir)  # curves.npz / curves.csv: every per-step curve as data
+        if (ctx.output_dir / "curves.npz").exists():  # figures/curves/: drawn from that file alone
+            from experiments.plot import plot_curves
+
+            plot_curves(ctx.output_dir)
+        ctx.logger.hparams(*hparams(config, overrides or [], ctx.results))
     finally:
         ctx.logger.close()
         torch.set_num_threads(previous_threads)
@@ -86,19 +96,52 @@ def run_study(cfg: DictConfig, output_dir: Path) -> Results:
     return ctx.results
 
 
+def hparams(config: dict, overrides: list[str], results: Results, max_metrics: int = 64) -> tuple[dict, dict]:
+    """TensorBoard hparams of a run: ``(settings, headline metrics)``.
+
+    Settings: ``experiment``, ``seed``, ``mc_runs``, ``dtype``, ``device`` and every command-line
+    override (``key=value``) except those that do not change results; metrics: the finite numbers
+    of ``results.metrics`` as ``headline/<estimator>/<metric>`` (the first ``max_metrics``)."""
+    from experiments.harness import NON_RESULT_KEYS
+
+    settings: dict[str, Any] = {"experiment": results.experiment}
+    for key in ("seed", "mc_runs", "dtype", "device"):
+        if config.get(key) is not None:
+            settings[key] = config[key]
+    for item in overrides:
+        key, sep, value = item.lstrip("+~").partition("=")
+        if not sep or key.split(".")[0] in (*NON_RESULT_KEYS, "resume") or key.startswith("hydra"):
+            continue
+        try:
+            settings[key] = int(value)
+        except ValueError:
+            try:
+                settings[key] = float(value)
+            except ValueError:
+                settings[key] = value
+    settings = {k: v if isinstance(v, (int, float, str, bool)) else str(v) for k, v in settings.items()}
+    metrics = {}
+    for estimator, values in results.metrics.items():
+        for name, value in values.items():
+            if isinstance(value, (int, float)) and not isinstance(value, bool) and value == value \
+                    and abs(value) != float("inf") and len(metrics) < max_metrics:
+                metrics[f"headline/{estimator}/{name}"] = float(value)
+    return settings, metrics
+
+
 @hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="config")
 def _hydra_main(cfg: DictConfig) -> None:
     output_dir = Path(HydraConfig.get().runtime.output_dir)
     print(f"torchmm-run: {cfg.get('experiment_name', 'study')} -> {output_dir}", file=sys.stderr, flush=True)
     try:
-        results = run_study(cfg, output_dir)
+        results = run_study(cfg, output_dir, overrides=list(HydraConfig.get().overrides.task))
     except ConfigError as err:  # precheck missed it (e.g. a config dir of the user's): one line, no folder
         _remove_if_unused(output_dir)
         print(f"torchmm-run: error: {err}", file=sys.stderr)
         raise SystemExit(2) from None
     except KeyboardInterrupt:
         print(f"torchmm-run: interrupted; the finished units are kept in {output_dir / 'checkpoint.json'}. "
-              f"Resume with the same command and hydra.run.dir={output_dir}", file=sys.stderr)
+              f"Resume with the same command and resume=latest (or resume={output_dir})", file=sys.stderr)
         raise SystemExit(130) from None
     _print_headline(results, results.output_dir)
 
@@ -167,7 +210,44 @@ def main() -> None:
         print(help_text(), end="")
         return
     precheck(args, CONFIG_DIR)
+    sys.argv[1:] = resolve_resume(args, CONFIG_DIR)
     _hydra_main()
+
+
+def resolve_resume(args: list[str], config_dir: str = CONFIG_DIR) -> list[str]:
+    """``resume=latest`` / ``resume=<run folder>``: the command line with ``hydra.run.dir`` set to
+    the folder to continue (the newest one of the same result config under ``outputs/<study>``).
+
+    With no earlier run of the config, the run starts in a fresh folder (said on stderr). Not for
+    ``-m`` sweeps: re-run a sweep with ``hydra.sweep.dir=<its folder>`` to continue its jobs.
+    """
+    values = [a.split("=", 1)[1] for a in args if a.startswith("resume=")]
+    if not values or values[-1] in ("null", "None", ""):
+        return args
+    if "-m" in args or "--multirun" in args:
+        _fail("resume: not for -m sweeps; re-run the sweep with hydra.sweep.dir=<its folder> to continue it")
+    if any(a.startswith("hydra.run.dir=") for a in args):
+        _fail("resume: give either resume= or hydra.run.dir=, not both")
+    if values[-1] != "latest":
+        return [*args, f"hydra.run.dir={values[-1]}"]
+    from experiments.config import _compose
+    from experiments.harness import latest_run
+
+    cfg, _ = _compose([a for a in args if not a.startswith("-")], config_dir, "config")
+    config = OmegaConf.to_container(cfg, resolve=True)
+    base = Path("outputs") / str(config.get("experiment_name", "study"))
+    folder = latest_run(base, config)
+    if folder is None:
+        print(f"torchmm-run: resume=latest: no earlier run of this config under {base}; starting a fresh one",
+              file=sys.stderr)
+        return args
+    print(f"torchmm-run: resume=latest: continuing {folder}", file=sys.stderr)
+    return [*args, f"hydra.run.dir={folder}"]
+
+
+def _fail(message: str) -> None:
+    print(f"torchmm-run: error: {message}", file=sys.stderr)
+    raise SystemExit(2)
 
 
 if __name__ == "__main__":

@@ -106,7 +106,28 @@ def run(ctx: StudyContext) -> None:
             _tables(ctx, units)
             results.save()
     _tables(ctx, units)
+    _curves(ctx, units)
     _figures(ctx, units)
+
+
+def _curves(ctx: StudyContext, units) -> None:
+    """The sweep as data (curves.npz, over alpha): RMSEs and their standard errors, delta(k)
+    averaged over steps and runs, and delta(k) over time at every alpha; logged once per study."""
+    for models in sorted({m for m, _, _ in units}):
+        rows = [(a, v) for m, a, v in units if m == models]
+        alphas = [a for a, _ in rows]
+        for name in rows[0][1]["rmse"]:
+            for key in ("pos_rmse", "vel_rmse", "pos_rmse_se", "vel_rmse_se", "mode_accuracy"):
+                values = [v["rmse"][name].get(key) for _, v in rows]
+                quantity = f"{key[:-3]}_vs_alpha_se" if key.endswith("_se") else f"{key}_vs_alpha"  # se: bands
+                if all(x is not None for x in values):
+                    ctx.logger.sweep(f"{quantity}/{models}_models/{name}", alphas, values, "alpha")
+        if all("mean_delta" in v for _, v in rows):
+            ctx.logger.sweep(f"mean_delta_vs_alpha/{models}_models", alphas, [v["mean_delta"] for _, v in rows],
+                             "alpha")
+        for alpha, v in rows:
+            if v.get("delta_over_time"):
+                ctx.logger.series(f"delta/{models}_models/alpha={alpha:g}", v["delta_over_time"])
 
 
 def _tables(ctx: StudyContext, units) -> None:
@@ -124,7 +145,6 @@ def _tables(ctx: StudyContext, units) -> None:
         for name, r in value["rmse"].items():
             sweep.rows.append([models, alpha, name, r["pos_rmse"], r["vel_rmse"], r.get("mode_accuracy"),
                                r.get("pos_rmse_se"), r.get("vel_rmse_se")])
-            ctx.logger.scalar(f"alpha_sweep/{models}_models/{name}/pos_rmse", r["pos_rmse"], int(round(alpha * 1000)))
         for c, counts in value.get("conclusions", {}).items():
             totals[int(c)] = [t + n for t, n in zip(totals[int(c)], counts)]
             premise, holds = counts[:2]

@@ -79,8 +79,39 @@ def test_ctrl_c_ends_with_one_line_that_says_how_to_resume(tmp_path):
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 130, err[-2000:]
     lines = [line for line in err.splitlines() if line.strip()]
-    assert lines[-1].startswith("torchmm-run: interrupted;") and f"hydra.run.dir={out_dir}" in lines[-1]
+    assert lines[-1].startswith("torchmm-run: interrupted;") and "resume=latest" in lines[-1]
+    assert f"resume={out_dir}" in lines[-1]
     assert "Traceback" not in err
+
+
+def _run_cli(cwd, *args):
+    return subprocess.run([_exe(), *args], capture_output=True, text=True, timeout=300, cwd=cwd,
+                          env={**os.environ, "OMP_NUM_THREADS": "1"})
+
+
+def test_resume_latest_continues_the_newest_run_of_the_same_config(tmp_path):
+    base = ["experiment=imm_analysis", "debug=imm_analysis", "logger=none", "progress=false"]
+    first = _run_cli(tmp_path, *base)
+    assert first.returncode == 0, first.stderr[-2000:]
+    folders = sorted((tmp_path / "outputs" / "imm_analysis").iterdir())
+    assert len(folders) == 1
+    kept = json.loads((folders[0] / "checkpoint.json").read_text())["units"]
+    # a non-result key changed: the same folder is continued and every unit is kept
+    again = _run_cli(tmp_path, *base, "resume=latest", "progress=true")
+    assert again.returncode == 0, again.stderr[-2000:]
+    assert f"resume=latest: continuing {folders[0]}" in again.stderr
+    assert sorted((tmp_path / "outputs" / "imm_analysis").iterdir()) == folders
+    assert f"resuming: {len(kept)} finished units kept" in again.stderr
+    assert json.loads((folders[0] / "checkpoint.json").read_text())["units"] == kept
+    # another seed: no earlier run of that config, so a fresh folder; the old one is left alone
+    other = _run_cli(tmp_path, *base, "resume=latest", "seed=5")
+    assert other.returncode == 0 and "no earlier run of this config" in other.stderr
+    assert len(list((tmp_path / "outputs" / "imm_analysis").iterdir())) == 2
+    assert json.loads((folders[0] / "checkpoint.json").read_text())["units"] == kept
+    # user errors: one line, exit 2
+    for bad, key in ((["resume=/no/such/folder"], "resume"), (["-m", "resume=latest", "seed=1,2"], "resume")):
+        proc = _run_cli(tmp_path, *base, *bad)
+        assert proc.returncode == 2 and proc.stderr.startswith(f"torchmm-run: error: {key}"), proc.stderr
 
 
 def test_resume_keeps_units_across_non_result_keys_and_a_changed_seed_gets_a_new_folder(tmp_path, monkeypatch):
@@ -139,9 +170,13 @@ def test_curves_are_data_and_torchmm_plot_redraws_them_from_the_file_alone(tmp_p
     assert float(imm.mean()) == pytest.approx(row[1], rel=1e-12)
     with open(run_dir / "curves.csv") as f:
         rows = list(csv.DictReader(f))
-    assert {"quantity", "series", "step", "value"} == set(rows[0])
+    assert {"quantity", "series", "axis", "x", "value"} == set(rows[0])
     assert sum(1 for r in rows if r["quantity"] == "pos_rmse" and r["series"] == "IMM") == len(imm)
-    # redraw from the curves file alone (results and events removed)
+    assert (run_dir / "figures" / "curves" / "pos_rmse.png").exists()  # the run drew them from the file
+    # redraw from the curves file alone (results, events and figures removed)
+    import shutil
+
+    shutil.rmtree(run_dir / "figures")
     for name in ("results.json", "results.md", "checkpoint.json"):
         (run_dir / name).unlink(missing_ok=True)
     out = subprocess.run([str(Path(sys.executable).with_name("torchmm-plot")), str(run_dir), "--format", "png,pdf"],
@@ -152,3 +187,47 @@ def test_curves_are_data_and_torchmm_plot_redraws_them_from_the_file_alone(tmp_p
     bad = subprocess.run([str(Path(sys.executable).with_name("torchmm-plot")), str(tmp_path / "nothing")],
                          capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and bad.stderr.startswith("torchmm-plot: error: RUN_DIR")
+
+
+def test_sweep_curves_keep_their_own_axis_and_are_logged_once(tmp_path):
+    import numpy as np
+
+    from experiments.plot import load_curves
+
+    results = run_study(_compose("imm_analysis", "debug=imm_analysis", "logger=none"), tmp_path / "run")
+    curves = load_curves(tmp_path / "run")
+    rows = [r for r in results.tables["alpha_sweep"].rows if r[0] == 2 and r[2] == "IMM"]
+    axis, x, values = curves["pos_rmse_vs_alpha/2_models/IMM"]
+    assert axis == "alpha" and list(x) == [r[1] for r in rows]  # the alphas themselves, not alpha * 1000
+    np.testing.assert_allclose(values, [r[3] for r in rows], rtol=1e-12)
+    assert curves["pos_rmse_vs_alpha_se/2_models/IMM"][0] == "alpha"
+    with np.load(tmp_path / "run" / "curves.npz") as data:
+        assert "pos_rmse_vs_alpha/2_models/IMM#alpha" in data.files
+    assert (tmp_path / "run" / "figures" / "curves" / "pos_rmse_vs_alpha.png").exists()
+
+
+def test_tensorboard_has_the_config_text_hparams_and_headline_metrics(tmp_path):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    from experiments.run import hparams
+
+    run_study(_compose("imm_baseline", "debug=imm_baseline", "logger=tensorboard"), tmp_path / "run",
+              overrides=["experiment=imm_baseline", "scenario.R=50", "progress=false"])
+    tags, plugins = {}, set()
+    for f in sorted((tmp_path / "run" / "tb").glob("events*")):
+        acc = EventAccumulator(str(f), size_guidance={"tensors": 0})
+        acc.Reload()
+        tags.update({k: v for k, v in acc.Tags().items() if isinstance(v, list) and v})
+        for plugin in ("hparams", "text"):
+            try:
+                plugins |= {f"{plugin}:{t}" for t in acc.PluginTagToContent(plugin)}
+            except KeyError:
+                pass
+    assert "text:config/text_summary" in plugins and "hparams:_hparams_/experiment" in plugins
+    assert "headline/IMM/pos_rmse" in tags["scalars"]
+    settings, metrics = hparams({"seed": 0, "mc_runs": 4, "dtype": "float64", "device": "cpu"},
+                                ["scenario.R=50", "progress=false", "+extra=abc", "hydra.verbose=true"],
+                                run_study.__globals__["Results"](tmp_path, "x", {}))
+    assert settings == {"experiment": "x", "seed": 0, "mc_runs": 4, "dtype": "float64", "device": "cpu",
+                        "scenario.R": 50, "extra": "abc"}
+    assert metrics == {}
