@@ -335,6 +335,10 @@ class StudyContext:
     device: torch.device
     seed: int
     progress: bool = True
+    #: in a ``-m`` sweep: the job's label on its bars (``[job 3]``) and the terminal line they keep, so
+    #: parallel jobs' bars do not interleave
+    bar_label: str = ""
+    bar_position: int | None = None
     _checkpoint: dict = field(default_factory=dict)
     _config_hash: str = ""
     _result_config: dict = field(default_factory=dict)
@@ -395,6 +399,11 @@ class StudyContext:
         """A tqdm bar over ``iterable`` (or a manual one: ``total=``), off with ``progress=false``."""
         from tqdm.auto import tqdm
 
+        if self.bar_label:
+            kwargs["desc"] = f"{self.bar_label} {kwargs.get('desc') or ''}".rstrip()
+        if self.bar_position is not None:
+            kwargs.setdefault("position", self.bar_position)
+            kwargs.setdefault("leave", False)
         return tqdm(iterable, disable=not self.progress, **kwargs)
 
 

@@ -58,8 +58,9 @@ def draw_groups(curves: dict[str, tuple[str, object, object]]) -> list[tuple[str
             continue  # drawn as bands
         fig, ax = plt.subplots(figsize=(3.4, 2.4), constrained_layout=True)
         axis = lines[0][2][0]
-        for label, tag, (_, x, values) in lines:
-            (line,) = ax.plot(x, values, label=label, linewidth=1.0, marker="o" if axis != "step" else None, ms=2.5)
+        for i, (label, tag, (_, x, values)) in enumerate(lines):  # past 10 lines: the next line style
+            (line,) = ax.plot(x, values, label=label, linewidth=1.0, marker="o" if axis != "step" else None, ms=2.5,
+                              linestyle=("-", "--", ":", "-.")[(i // 10) % 4])
             band = curves.get(f"{quantity}_se/{tag.partition('/')[2]}")
             if band is not None and len(band[2]) == len(values):
                 se = np.asarray(band[2], dtype=float)

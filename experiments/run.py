@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import os
 import re
 import shutil
 import sys
@@ -66,6 +67,7 @@ def run_study(cfg: DictConfig, output_dir: Path, overrides: list[str] | None = N
     config = OmegaConf.to_container(cfg, resolve=True)
     study = get_method(cfg.study)
     ctx = open_context(cfg, Path(output_dir), config, experiment=str(cfg.experiment_name))
+    ctx.bar_label, ctx.bar_position = _sweep_bars()
     if ctx._checkpoint:
         print(f"torchmm-run: resuming: {len(ctx._checkpoint)} finished units kept from {ctx.output_dir}",
               file=sys.stderr, flush=True)
@@ -87,13 +89,26 @@ def run_study(cfg: DictConfig, output_dir: Path, overrides: list[str] | None = N
         if (ctx.output_dir / "curves.npz").exists():  # figures/curves/: drawn from that file alone
             from experiments.plot import plot_curves
 
-            plot_curves(ctx.output_dir)
+            plot_curves(ctx.output_dir, formats=("png",))  # PDF/SVG: torchmm-plot RUN_DIR
         ctx.logger.hparams(*hparams(config, overrides or [], ctx.results))
     finally:
         ctx.logger.close()
         torch.set_num_threads(previous_threads)
     log.info("results written to %s", ctx.output_dir)
     return ctx.results
+
+
+def _sweep_bars() -> tuple[str, int | None]:
+    """In a ``-m`` sweep: ``("[job N]", terminal line)`` for the job's progress bars, else ``("", None)``."""
+    from hydra.types import RunMode
+
+    if not HydraConfig.initialized() or HydraConfig.get().mode != RunMode.MULTIRUN:
+        return "", None
+    hc = HydraConfig.get()
+    num = int(hc.job.num)
+    jobs = OmegaConf.select(hc, "launcher.n_jobs", default=1) or 1
+    jobs = (os.cpu_count() or 1) if int(jobs) < 0 else int(jobs)
+    return f"[job {num}]", num % max(jobs, 1)
 
 
 def hparams(config: dict, overrides: list[str], results: Results, max_metrics: int = 64) -> tuple[dict, dict]:

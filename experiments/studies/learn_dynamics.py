@@ -321,11 +321,13 @@ def _run(ctx: StudyContext) -> None:
                 return values
 
             restart = RestartStalledLBFGS(imm.parameters())
+            bar, tick = _training_bar(ctx, int(acfg.iterations), "training (a)")
             trainer = Trainer(imm, _optimizer(imm.parameters(), acfg), window=acfg.get("window"),
-                              track=track, logger=ctx.logger, prefix="learn_a", callbacks=[restart])
+                              track=track, logger=ctx.logger, prefix="learn_a", callbacks=[restart, tick])
             tic = time.perf_counter()
             trainer.fit(prior, z, int(acfg.iterations), batch_size=acfg.get("batch_size"),
                         generator=ctx.generator("minibatch", "a"))
+            bar.close()
             final = track()
             return {"seconds": time.perf_counter() - tic, "final": final, "restarts": restart.restarts,
                     "history": [{"iteration": r.iteration, "loss": r.loss, "grad_norm": r.grad_norm,
@@ -333,6 +335,7 @@ def _run(ctx: StudyContext) -> None:
 
         result_a = ctx.unit("part_a", train_a)
         histories["a"] = result_a["history"]
+        _log_history(ctx, "part_a", result_a["history"])
         final = result_a["final"]
         learned_tpm = torch.tensor([[final[f"tpm[{i},{j}]"] for j in range(3)] for i in range(3)],
                                    dtype=ctx.dtype, device=ctx.device)
@@ -392,18 +395,21 @@ def _run(ctx: StudyContext) -> None:
                 return {"mlp_turn_rate": implied_turn_rate(net, velocities, scenario.motion.dt)}
 
             restart = RestartStalledLBFGS(net.parameters())
+            bar, tick = _training_bar(ctx, int(bcfg.iterations), "training (b)")
             trainer = Trainer(imm, _optimizer(net.parameters(), bcfg), window=bcfg.get("window"), track=track,
                               logger=ctx.logger, prefix="learn_b", checkpoint_path=checkpoint,
-                              callbacks=[restart])
+                              callbacks=[restart, tick])
             tic = time.perf_counter()
             trainer.fit(prior, z, int(bcfg.iterations), batch_size=bcfg.get("batch_size"),
                         generator=ctx.generator("minibatch", "b"))
+            bar.close()
             return {"seconds": time.perf_counter() - tic, "restarts": restart.restarts,
                     "history": [{"iteration": r.iteration, "loss": r.loss, "grad_norm": r.grad_norm,
                                  **r.parameters} for r in trainer.history]}
 
         result_b = ctx.unit("part_b", train_b)
         histories["b"] = result_b["history"]
+        _log_history(ctx, "part_b", result_b["history"])
         net, imm = build_b()
         if int(bcfg.iterations) > 0:
             Trainer(imm, _optimizer(net.parameters(), bcfg)).load(checkpoint)
@@ -422,6 +428,34 @@ def _run(ctx: StudyContext) -> None:
 
     ctx.results.save()
     _figures(ctx, histories, scores, curves, true_tpm, q_true, scenario, bands=bands)
+
+
+def _training_bar(ctx, iterations: int, desc: str):
+    """A progress bar over training iterations and the Trainer callback that advances it."""
+    bar = ctx.progress_bar(total=iterations, desc=desc, unit="it")
+
+    def tick(trainer, record) -> bool:
+        bar.update(1)
+        bar.set_postfix(loss=f"{record.loss:.4g}", refresh=False)
+        return False
+
+    return bar, tick
+
+
+def _log_history(ctx, part: str, history: list[dict]) -> None:
+    """The training curves as data (curves.npz, over the iteration): loss, gradient norm and every
+    tracked parameter - also for a resumed (checkpointed) part, whose training did not run now."""
+    if not history:
+        return
+    iterations = [h["iteration"] for h in history]
+    for key in history[0]:
+        if key == "iteration":
+            continue
+        values = [h.get(key) for h in history]
+        if all(isinstance(v, (int, float)) for v in values):
+            quantity = {"loss": "training_loss", "grad_norm": "training_grad_norm"}.get(key)
+            tag = f"{quantity}/{part}" if quantity else f"training_param/{part}/{key}"
+            ctx.logger.sweep(tag, iterations, values, "iteration")
 
 
 # -- figures ---------------------------------------------------------------------------------------

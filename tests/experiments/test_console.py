@@ -231,3 +231,12 @@ def test_tensorboard_has_the_config_text_hparams_and_headline_metrics(tmp_path):
     assert settings == {"experiment": "x", "seed": 0, "mc_runs": 4, "dtype": "float64", "device": "cpu",
                         "scenario.R": 50, "extra": "abc"}
     assert metrics == {}
+
+
+def test_sweep_jobs_label_their_progress_bars(tmp_path):
+    proc = _run_cli(tmp_path, "-m", "experiment=imm_baseline", "debug=imm_baseline", "seed=0,1", "progress=true",
+                    "logger=none", "hydra/launcher=basic", f"hydra.sweep.dir={tmp_path / 'sweep'}")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "[job 0] estimators" in proc.stderr and "[job 1] estimators" in proc.stderr
+    assert sorted(p.name for p in (tmp_path / "sweep").iterdir() if p.is_dir()) == [
+        "0_debug=imm_baseline,seed=0", "1_debug=imm_baseline,seed=1"]  # progress: not in the names

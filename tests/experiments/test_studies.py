@@ -74,9 +74,21 @@ def test_experiment_composes_and_runs(name, tmp_path):
         assert data["tables"][table]["rows"], f"{table} is empty"
     assert (tmp_path / "results.md").read_text().startswith(f"# {name}")
     assert list((tmp_path / "figures").glob("*.png"))
-    assert list((tmp_path / "tb").glob("events.out.tfevents.*"))
+    assert len(list((tmp_path / "tb").glob("events.out.tfevents.*"))) == 1  # one event file per run
     assert results.tables
     assert not mismatches(name, data), "\n".join(mismatches(name, data)[:20])
+    # every study writes its curves as data, each with its axis, and figures drawn from them
+    from experiments.plot import load_curves
+
+    curves = load_curves(tmp_path)
+    assert curves, f"{name} writes no curves"
+    for tag, (axis, x, values) in curves.items():
+        assert len(x) == len(values) > 0, tag
+        assert axis != "step" or list(x) == list(range(int(x[0]), int(x[0]) + len(x))), tag
+        base, _, series = tag.partition("/")
+        if base.endswith("_se") and f"{base[:-3]}/{series}" in curves:  # a band: same x as its curve
+            assert list(curves[f"{base[:-3]}/{series}"][1]) == list(x), tag
+    assert list((tmp_path / "figures" / "curves").glob("*.png"))
 
 
 def test_imm_analysis_conclusions_hold(tmp_path):
