@@ -168,6 +168,23 @@ class Logger:
     flush_secs: int = spec(10, positive_int)
 
 
+@dataclass
+class ExecutorConfig:
+    """``executor=local|processes|submitit_local|slurm|ray`` (conf/executor; experiments/executors.py)."""
+
+    kind: str = spec("local", one_of("local", "processes", "submitit_local", "slurm", "ray"))
+    workers: int = spec(2, positive_int)
+    retries: int = spec(2, non_negative)
+    address: Optional[str] = None
+    folder: Optional[str] = None
+    partition: Optional[str] = None
+    timeout_min: Optional[int] = spec(60, positive_int)
+    cpus_per_task: Optional[int] = spec(1, positive_int)
+    mem_gb: Optional[float] = spec(None, positive)
+    array_parallelism: Optional[int] = spec(64, positive_int)
+    slurm_parameters: dict = field(default_factory=dict)
+
+
 MODE_FILTERS = ("torchmm.KalmanFilter", "torchmm.ExtendedKalmanFilter", "torchmm.UnscentedKalmanFilter",
                 "torchmm.ParticleFilter")
 POLICIES = ("torchmm.multimodel.mevsmm.ExactMinimumEntropy", "torchmm.multimodel.mevsmm.ChallengeMatch",
@@ -223,6 +240,7 @@ class Common:
     experiment_name: str = "study"
     study: str = "experiments.studies.imm_tf.run"
     logger: Logger = field(default_factory=Logger)
+    executor: ExecutorConfig = field(default_factory=ExecutorConfig)
     mode_filter: ModeFilter = field(default_factory=ModeFilter)
     policy: Policy = field(default_factory=Policy)
 

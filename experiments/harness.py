@@ -342,6 +342,12 @@ class StudyContext:
     _checkpoint: dict = field(default_factory=dict)
     _config_hash: str = ""
     _result_config: dict = field(default_factory=dict)
+    #: the resolved config (JSON): what travels to workers
+    _config: dict = field(default_factory=dict)
+    _executor: Any = None
+    #: per-process memo of a study's shared inputs (e.g. simulated data of a scenario), keyed by the
+    #: study; workers fill their own
+    cache: dict = field(default_factory=dict)
 
     # -- randomness ----------------------------------------------------------------------------
     #: the dtype every study simulates its data in, whatever ``dtype`` the filters run in: float32
@@ -375,11 +381,50 @@ class StudyContext:
             log.info("resuming: unit %s already done", key)
             return self._checkpoint[key]
         value = _jsonable(compute())
+        self._store(key, value)
+        return value
+
+    def map_units(self, units: Sequence[Any], desc: str = "units") -> list[Any]:
+        """The values of ``units`` (:class:`experiments.executors.Unit`), in order, computed by the
+        study's executor (``executor=...``) - here, in a process pool, on SLURM or Ray - with the
+        same numbers everywhere. Finished units come from the checkpoint; each value is
+        checkpointed as it arrives; a bar counts the units across all workers."""
+        from experiments.executors import Job
+
+        units = list(units)
+        keys = [u.key for u in units]
+        if len(set(keys)) != len(keys):
+            raise ValueError(f"map_units: duplicate unit keys {sorted({k for k in keys if keys.count(k) > 1})}")
+        todo = [u for u in units if u.key not in self._checkpoint]
+        if todo:
+            executor = self.executor
+            jobs = [Job(self._config, str(self.output_dir), u) for u in todo]
+            with self.progress_bar(total=len(units), initial=len(units) - len(todo), desc=desc) as bar:
+                for index, value in executor.run(jobs, ctx=self):
+                    self._store(todo[index].key, value)
+                    bar.update(1)
+        return [self._checkpoint[k] for k in keys]
+
+    def _store(self, key: str, value: Any) -> None:
         self._checkpoint[key] = value
         _write_atomic(self.output_dir / "checkpoint.json",
                       json.dumps({"config_hash": self._config_hash, "config": self._result_config,
                                   "units": self._checkpoint}, default=str) + "\n")
-        return value
+
+    @property
+    def executor(self):
+        """The executor of ``cfg.executor`` (made on first use; closed when the study ends)."""
+        if self._executor is None:
+            from experiments.executors import make_executor
+
+            node = self._config.get("executor") if isinstance(self._config, dict) else None
+            self._executor = make_executor(node, self.output_dir, self._config.get("threads", 1))
+        return self._executor
+
+    def close_executor(self) -> None:
+        if self._executor is not None:
+            self._executor.close()
+            self._executor = None
 
     # -- outputs -------------------------------------------------------------------------------
     def save_figure(self, name: str, figure) -> Path:
@@ -427,7 +472,7 @@ def unique_dir(base: str) -> str:
 
 #: keys that do not change a study's numbers: a checkpoint made with other values is reused
 #: (``chunk_runs``: identical to rounding, except particle streams, see docs/studies.md)
-NON_RESULT_KEYS = ("progress", "logger", "threads", "chunk_runs", "retain_freed_memory")
+NON_RESULT_KEYS = ("progress", "logger", "threads", "chunk_runs", "retain_freed_memory", "executor")
 
 
 def result_config(config_dict: dict) -> dict:
@@ -516,4 +561,27 @@ def open_context(cfg: Any, output_dir: Path, config_dict: dict, experiment: str,
         _checkpoint=checkpoint,
         _config_hash=digest,
         _result_config=json.loads(json.dumps(kept, default=str)),
+        _config=json.loads(json.dumps(config_dict, default=str)),
     )
+
+
+#: worker contexts by (config, folder): one per process, so a worker's units share its cache
+_WORKER_CONTEXTS: dict[str, StudyContext] = {}
+
+
+def worker_context(config: dict, output_dir: Path) -> StudyContext:
+    """A study context rebuilt from a resolved config in a worker process (no logger, no results
+    files, no checkpoint): what :func:`experiments.executors.execute` runs a unit with."""
+    from omegaconf import OmegaConf
+
+    token = hashlib.sha256(json.dumps([config, str(output_dir)], sort_keys=True, default=str).encode()).hexdigest()
+    ctx = _WORKER_CONTEXTS.get(token)
+    if ctx is None:
+        cfg = OmegaConf.create(config)
+        ctx = StudyContext(cfg=cfg, output_dir=Path(output_dir),
+                           results=Results(Path(output_dir), str(config.get("experiment_name", "study")), config),
+                           logger=NullLogger(), dtype=resolve_dtype(cfg.dtype), device=resolve_device(cfg.device),
+                           seed=int(cfg.seed), progress=False, _config=config)
+        _WORKER_CONTEXTS.clear()  # one study per worker at a time
+        _WORKER_CONTEXTS[token] = ctx
+    return ctx

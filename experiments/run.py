@@ -92,6 +92,7 @@ def run_study(cfg: DictConfig, output_dir: Path, overrides: list[str] | None = N
             plot_curves(ctx.output_dir, formats=("png",))  # PDF/SVG: torchmm-plot RUN_DIR
         ctx.logger.hparams(*hparams(config, overrides or [], ctx.results))
     finally:
+        ctx.close_executor()
         ctx.logger.close()
         torch.set_num_threads(previous_threads)
     log.info("results written to %s", ctx.output_dir)

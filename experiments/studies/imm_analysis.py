@@ -19,6 +19,7 @@ import torch
 from hydra.utils import instantiate
 
 from experiments.estimators import evaluate
+from experiments.executors import Unit
 from experiments.harness import StudyContext
 from experiments.studies import plots
 from torchmm import alpha_transition
@@ -81,6 +82,25 @@ def _analyse(ctx: StudyContext, scenario, sim, z, alpha: float) -> dict:
     return out
 
 
+#: the study's unit function (what an executor ships: this path, the config and the arguments)
+UNIT = "experiments.studies.imm_analysis:unit"
+
+
+def _data(ctx: StudyContext, key: str):
+    """``(scenario, sim, z)`` of ``analysis.scenarios[key]``, simulated once per process from the seed."""
+    if ("data", key) not in ctx.cache:
+        scenario, data_scenario = ctx.scenarios(ctx.cfg.analysis.scenarios[key])
+        sim, z = data_scenario.simulate(int(ctx.cfg.mc_runs), ctx.generator("data", scenario.name))
+        ctx.cache[("data", key)] = (scenario, sim.to(ctx.dtype), z.to(ctx.dtype))  # the same data in any dtype
+    return ctx.cache[("data", key)]
+
+
+def unit(ctx: StudyContext, *, scenario: str, alpha: float) -> dict:
+    """One (scenario, alpha) unit; a function of the config and these arguments only."""
+    scen, sim, z = _data(ctx, scenario)
+    return _analyse(ctx, scen, sim, z, float(alpha))
+
+
 def run(ctx: StudyContext) -> None:
     cfg, acfg = ctx.cfg, ctx.cfg.analysis
     if acfg.interaction_estimator not in cfg.estimators:
@@ -95,16 +115,12 @@ def run(ctx: StudyContext) -> None:
         f"(tol {acfg.tol}); premise_steps counts the (step, run) pairs where its premise held "
         "(Conclusion 2: (step, run, mismatched model) triples)."
     )
-    units = []
-    for key, scen_cfg in acfg.scenarios.items():
-        scenario, data_scenario = ctx.scenarios(scen_cfg)
-        sim, z = data_scenario.simulate(int(cfg.mc_runs), ctx.generator("data", scenario.name))
-        sim, z = sim.to(ctx.dtype), z.to(ctx.dtype)  # the same data in float32 and float64
-        for alpha in ctx.progress_bar(list(acfg.alphas[key]), desc=f"{key} alpha sweep"):
-            value = ctx.unit(f"{key}/alpha={alpha}", lambda: _analyse(ctx, scenario, sim, z, alpha))
-            units.append((scenario.num_modes, float(alpha), value))
-            _tables(ctx, units)
-            results.save()
+    # one unit per (scenario, alpha), all at once: an executor (executor=processes|slurm|ray) runs them
+    # side by side; each simulates (or reuses, per process) its scenario's data from the seed
+    todo = [(key, float(alpha)) for key in acfg.scenarios for alpha in acfg.alphas[key]]
+    values = ctx.map_units([Unit(f"{key}/alpha={alpha}", UNIT, {"scenario": key, "alpha": alpha})
+                            for key, alpha in todo], desc="alpha sweep")
+    units = [(_data(ctx, key)[0].num_modes, alpha, value) for (key, alpha), value in zip(todo, values)]
     _tables(ctx, units)
     _curves(ctx, units)
     _figures(ctx, units)

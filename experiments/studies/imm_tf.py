@@ -28,6 +28,7 @@ import torch
 from hydra.utils import instantiate
 
 from experiments.estimators import Estimator, build_mode_filter, evaluate, starter
+from experiments.executors import Unit
 from experiments.harness import StudyContext
 from experiments.uncertainty import inside, nees_consistency
 from experiments.studies import plots
@@ -148,12 +149,25 @@ def _unit(ctx: StudyContext, scenario, ratio: float, source_R: float, key: str, 
     return out
 
 
+#: the study's unit function (what an executor ships: this path, the config and the arguments)
+UNIT = "experiments.studies.imm_tf:unit"
+
+
+def unit(ctx: StudyContext, *, ratio: float, source_R: float, key: str, curves: bool) -> dict:
+    """One unit: every estimator of ``estimator_names`` on the data of ``key`` (source ratio
+    ``ratio``, source noise ``source_R``); a function of the config and these arguments only."""
+    if "scenario" not in ctx.cache:
+        ctx.cache["scenario"] = instantiate(ctx.cfg.scenario, dtype=ctx.dtype, device=ctx.device)
+    return _unit(ctx, ctx.cache["scenario"], float(ratio), float(source_R), key, list(ctx.cfg.estimator_names),
+                 curves=curves)
+
+
 def run(ctx: StudyContext) -> None:
     cfg = ctx.cfg
     tic = time.perf_counter()
-    scenario = instantiate(cfg.scenario, dtype=ctx.dtype, device=ctx.device)
-    names = list(cfg.estimator_names)
+    scenario = ctx.cache["scenario"] = instantiate(cfg.scenario, dtype=ctx.dtype, device=ctx.device)
     ratio, source_R = float(cfg.source.ratio), float(cfg.source.R)
+    build_estimators(scenario, source_R, cfg, list(cfg.estimator_names))  # a bad name: an error before any unit
     R = float(scenario.measurement.R.reshape(-1)[0])
     ctx.results.description = (
         f"Paper 000 (IMM-TF), scenario `{scenario.name}`: {scenario.num_modes} modes, {scenario.steps} steps, "
@@ -164,8 +178,16 @@ def run(ctx: StudyContext) -> None:
     )
 
     # -- the default setting: metrics, Fig. 3 and Fig. 4 --------------------------------------------
-    default = ctx.unit("default", lambda: _unit(ctx, scenario, ratio, source_R, f"source/{ratio}",
-                                                names, curves=True))
+    # every unit at once, so an executor (executor=processes|slurm|ray) runs them side by side
+    ratios = [float(r) for r in cfg.table1_ratios]
+    rs_values = [float(v) for v in cfg.rs_sweep]
+    units = [Unit("default", UNIT, {"ratio": ratio, "source_R": source_R, "key": f"source/{ratio}", "curves": True})]
+    units += [Unit(f"table1/{r}", UNIT, {"ratio": r, "source_R": source_R, "key": f"source/{r}", "curves": False})
+              for r in ratios]
+    units += [Unit(f"rs_sweep/{rs}", UNIT, {"ratio": ratio, "source_R": rs, "key": f"source/{ratio}",
+                                            "curves": False}) for rs in rs_values]
+    values = dict(zip((u.key for u in units), ctx.map_units(units, desc="units")))
+    default = values["default"]
     for name, summary in default["summary"].items():
         for key in ("pos_rmse", "vel_rmse", "nees", "mode_accuracy", "transfer_fraction", "nees_low", "nees_high",
                     "nees_steps_inside"):
@@ -200,10 +222,8 @@ def run(ctx: StudyContext) -> None:
                                           "vel_rmse_se"],
                                note=f"R_S = {source_R:g}; every estimator at every ratio, each ratio on its own data.",
                                published=PUBLISHED_TABLE1)
-    ratios = [float(r) for r in cfg.table1_ratios]
-    for r in ctx.progress_bar(ratios, desc="table1"):
-        unit = ctx.unit(f"table1/{r}", lambda r=r: _unit(ctx, scenario, r, source_R, f"source/{r}",
-                                                         names, curves=False))
+    for r in ratios:
+        unit = values[f"table1/{r}"]
         for name, s in unit["summary"].items():
             table1.rows.append([r, name, s["pos_rmse"], s["vel_rmse"], s.get("pos_rmse_se"), s.get("vel_rmse_se")])
         ctx.results.save()
@@ -215,9 +235,8 @@ def run(ctx: StudyContext) -> None:
     # -- R_S sweep (Fig. 5, Fig. 6) ---------------------------------------------------------------
     sweep = ctx.results.table("rs_sweep", ["R_S", "estimator", "pos_rmse", "vel_rmse", "pos_rmse_se", "vel_rmse_se"],
                               note=f"source ratio {ratio:g}, target R = {R:g}; IMM (no source) is the reference.")
-    for rs in ctx.progress_bar([float(v) for v in cfg.rs_sweep], desc="rs_sweep"):
-        unit = ctx.unit(f"rs_sweep/{rs}", lambda rs=rs: _unit(ctx, scenario, ratio, rs, f"source/{ratio}",
-                                                             names, curves=False))
+    for rs in rs_values:
+        unit = values[f"rs_sweep/{rs}"]
         for name, s in unit["summary"].items():
             sweep.rows.append([rs, name, s["pos_rmse"], s["vel_rmse"], s.get("pos_rmse_se"), s.get("vel_rmse_se")])
         ctx.results.save()

@@ -195,11 +195,16 @@ def simulate_measurements(
     return z
 
 
-def bernoulli_mask(steps: int, batch_shape, probability: float, *, generator=None, device=None) -> Tensor:
-    """``(T, *B)`` bool mask, each entry true with ``probability`` (irregular slow-rate data)."""
+def bernoulli_mask(steps: int, batch_shape, probability: float, *, generator=None, device=None,
+                   dtype: torch.dtype = torch.float64) -> Tensor:
+    """``(T, *B)`` bool mask, each entry true with ``probability`` (irregular slow-rate data).
+
+    The uniforms are drawn in ``dtype`` (float64 by default, not the process's default dtype), so
+    the mask and every later draw from ``generator`` do not depend on ``torch.get_default_dtype()``.
+    """
     if not 0.0 <= probability <= 1.0:
         raise ValueError(f"probability: must lie in [0, 1], got {probability}")
-    u = torch.rand(steps, *batch_shape, generator=generator, device=device)
+    u = torch.rand(steps, *batch_shape, generator=generator, device=device, dtype=dtype)
     return u < probability
 
 

@@ -1,0 +1,141 @@
+"""Executors: a study's units in this process, a process pool, submitit jobs or Ray - bit-identical
+results; a worker that dies is re-run; a unit's own error is raised, not retried."""
+
+from __future__ import annotations
+
+import json
+import logging
+import multiprocessing
+import os
+import signal
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from experiments.executors import Job, ProcessExecutor, Unit, UnitError, make_executor
+from experiments.run import run_study
+from tests.experiments.test_studies import _compose
+
+WORKER_CONFIG = {"dtype": "float64", "device": "cpu", "seed": 0, "experiment_name": "executor_test"}
+
+
+def _tables(name: str, tmp_path: Path, *overrides: str) -> dict:
+    out = tmp_path / "_".join(o.replace("=", "-").replace(".", "-") for o in overrides or ("default",))
+    run_study(_compose(name, f"debug={name}", "logger=none", *overrides), out)
+    return json.loads((out / "results.json").read_text())["tables"]
+
+
+def test_processes_submitit_and_ray_give_the_local_tables_bit_for_bit(tmp_path):
+    """imm_analysis: 8 units (2 scenarios x 4 alphas) over every executor (imm_tf's units: below)."""
+    name = "imm_analysis"
+    local = _tables(name, tmp_path, "executor=local")
+    assert _tables(name, tmp_path, "executor=processes", "executor.workers=2") == local
+    assert _tables(name, tmp_path, "executor=submitit_local") == local
+    assert _tables(name, tmp_path, "executor=ray", "executor.workers=2") == local
+
+
+def test_imm_tf_units_in_a_process_pool_give_the_recorded_numbers(tmp_path):
+    from tests.regression.compare import mismatches
+
+    out = tmp_path / "pool"
+    run_study(_compose("imm_tf", "debug=imm_tf", "logger=none", "executor=processes"), out)
+    data = json.loads((out / "results.json").read_text())
+    assert not mismatches("imm_tf", data), mismatches("imm_tf", data)[:5]
+
+
+# -- workers that die, units that fail ----------------------------------------------------------
+def die_once(ctx, *, marker: str, value: int) -> int:
+    """Kills its own process the first time it runs (as SIGKILL or an out-of-memory kill would)."""
+    path = Path(marker)
+    if not path.exists():
+        path.write_text("died")
+        os._exit(1)
+    return value * 10
+
+
+def fail(ctx, *, value: int) -> int:
+    raise ValueError(f"bad value {value}")
+
+
+def _jobs(tmp_path, fn: str, n: int, **extra) -> list[Job]:
+    return [Job(WORKER_CONFIG, str(tmp_path), Unit(f"u{i}", fn, {"value": i, **extra})) for i in range(n)]
+
+
+def test_a_process_worker_that_dies_is_re_run(tmp_path, caplog):
+    jobs = _jobs(tmp_path, "tests.experiments.test_executors:die_once", 4, marker=str(tmp_path / "died"))
+    with caplog.at_level(logging.WARNING, logger="torchmm.experiments"):
+        got = dict(ProcessExecutor(workers=2, retries=2).run(jobs))
+    assert got == {i: 10 * i for i in range(4)}
+    assert "a worker died" in caplog.text
+    with pytest.raises(RuntimeError, match="retries=0"):  # with no retries left: an error naming the key
+        (tmp_path / "died").unlink()
+        dict(ProcessExecutor(workers=1, retries=0).run(jobs))
+
+
+def test_a_submitit_job_that_dies_is_resubmitted(tmp_path):
+    jobs = _jobs(tmp_path, "tests.experiments.test_executors:die_once", 2, marker=str(tmp_path / "died"))
+    executor = make_executor({"kind": "submitit_local", "retries": 1, "timeout_min": 5}, tmp_path)
+    assert dict(executor.run(jobs)) == {0: 0, 1: 10}
+
+
+@pytest.mark.parametrize("kind", ["local", "processes", "submitit_local"])
+def test_a_units_own_error_is_raised_not_retried(kind, tmp_path):
+    executor = make_executor({"kind": kind, "workers": 1, "retries": 3}, tmp_path)
+    with pytest.raises((UnitError, ValueError), match="bad value 0"):
+        dict(executor.run(_jobs(tmp_path, "tests.experiments.test_executors:fail", 1)))
+
+
+def test_a_study_whose_worker_is_killed_gives_unchanged_tables(tmp_path, caplog):
+    """A pool worker is killed (SIGKILL) while the study runs: its units re-run, the tables equal
+    a local run's, and the study's checkpoint holds every unit."""
+    local = _tables("imm_analysis", tmp_path, "executor=local")
+
+    def kill_a_worker():
+        deadline = time.time() + 120
+        while time.time() < deadline:
+            children = multiprocessing.active_children()
+            if children:
+                time.sleep(0.5)
+                os.kill(children[0].pid, signal.SIGKILL)
+                return
+            time.sleep(0.05)
+
+    killer = threading.Thread(target=kill_a_worker, daemon=True)
+    killer.start()
+    with caplog.at_level(logging.WARNING, logger="torchmm.experiments"):
+        killed = _tables("imm_analysis", tmp_path, "executor=processes", "executor.workers=2")
+    killer.join(timeout=5)
+    assert "a worker died" in caplog.text
+    assert killed == local
+
+
+def test_unit_keys_must_be_unique_and_executors_are_named(tmp_path):
+    from experiments.harness import open_context
+
+    cfg = _compose("imm_baseline", "debug=imm_baseline", "logger=none")
+    from omegaconf import OmegaConf
+
+    ctx = open_context(cfg, tmp_path, OmegaConf.to_container(cfg, resolve=True), "imm_baseline")
+    with pytest.raises(ValueError, match="duplicate unit keys"):
+        ctx.map_units([Unit("a", "x:y"), Unit("a", "x:y")])
+    with pytest.raises(ValueError, match="executor.kind"):
+        make_executor({"kind": "dask"}, tmp_path)
+
+
+def test_numbers_do_not_depend_on_the_process_default_dtype(tmp_path):
+    """The command line runs with torch's default float32, the test session with float64: a study's
+    numbers must not depend on it (the source mask of imm_tf drew float32 uniforms once)."""
+    import subprocess
+    import sys
+
+    from tests.regression.compare import mismatches
+
+    out = tmp_path / "cli"
+    proc = subprocess.run([sys.executable, "-m", "experiments.run", "experiment=imm_tf", "debug=imm_tf",
+                           "mc_runs=4", "logger=none", f"hydra.run.dir={out}"], capture_output=True, text=True,
+                          timeout=300, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    data = json.loads((out / "results.json").read_text())
+    assert not mismatches("imm_tf", data), mismatches("imm_tf", data)[:5]
