@@ -230,6 +230,7 @@ class Common:
 
     mc_runs: int = spec(100, positive_int)
     seed: int = spec(0, _seed)
+    block_runs: int = spec(50, positive_int)
     device: str = spec("cpu", _device)
     dtype: str = spec("float64", one_of("float64", "float32", "double", "float"))
     progress: bool = True

@@ -24,7 +24,7 @@ import torch.utils._pytree as pytree
 from torch import Tensor
 
 from torchmm import GPB1, GPB2, IMM, Filter, GaussianBelief, KalmanFilter, run_filter
-from torchmm.metrics import mode_accuracy, nees, squared_error
+from torchmm.metrics import nees, squared_error
 from torchmm.run import Trajectory
 
 from experiments.uncertainty import armse_se, rmse_se_per_step
@@ -155,61 +155,72 @@ class Evaluation:
 def evaluate(estimator: Estimator, scenario, sim, z: Any, *, chunk_runs: int | None = None,
              keep_trajectory: bool = False,
              per_step: dict[str, Callable[[Trajectory], Tensor]] | None = None,
-             generator: torch.Generator | None = None) -> Evaluation:
+             generator: torch.Generator | None = None,
+             block_runs: int | None = None,
+             generators: Callable[[int], torch.Generator] | None = None) -> Evaluation:
     """Run ``estimator`` on every Monte Carlo run (in chunks of ``chunk_runs`` if given).
 
     ``z`` is ``(T, runs, m)`` or a pytree of such streams (e.g. :class:`~torchmm.multimodel.MultiRate`).
 
-    Every reported statistic combines all chunks: errors are accumulated per step over runs (memory
-    is bounded by the chunk size), and so is every ``per_step`` statistic - a function of a chunk's
-    trajectory returning its per-step *sum over the chunk's runs*, ``(T, ...)`` - whose mean over
-    all runs is returned in ``Evaluation.means``. ``generator`` is the random stream of estimators
-    with particle mode filters (deterministic filters ignore it; with particles the numbers depend
-    on the chunk layout until the run-indexed streams of the scale-out work). ``keep_trajectory`` keeps the first chunk's
-    trajectory, for plots of single runs (run 0 is in it) and diagnostics only.
+    Every statistic is a function of per-run values, reduced over all runs at once at the end, so
+    the numbers do not depend on the chunking (a filter's result for a run does not depend on the
+    batch it runs in). ``per_step`` functions take a chunk's trajectory and return per-run values
+    ``(T, chunk, ...)``; their means over all runs are in ``Evaluation.means``.
+    ``keep_trajectory`` keeps the first chunk's trajectory (run 0 is in it), for plots and diagnostics.
+
+    Randomness of estimators that draw random numbers (particle mode filters): with
+    ``block_runs`` and ``generators`` (``b -> generator``, e.g. ``ctx.block_generators(...)``),
+    each block of ``block_runs`` runs is filtered with its own generator - run-indexed streams: any
+    chunking (and any split over workers) gives the same numbers; chunks are then whole blocks.
+    Without them, ``generator`` is one stream for each chunk (the numbers depend on the chunking).
     """
     leaf = pytree.tree_leaves(z)[0]
     runs = leaf.shape[1]
-    chunk = runs if not chunk_runs else int(chunk_runs)
     steps = leaf.shape[0]
-    sums = {"pos": 0.0, "vel": 0.0, "nees": 0.0, "hits": 0.0}
-    per_run = {"pos": [], "vel": []}  # squared errors (T, chunk) per chunk: the standard errors
+    random = estimator.filter.uses_generator
+    if random and block_runs and generators is not None:
+        block = int(block_runs)
+        # chunks of whole blocks; each block filtered on its own stream
+        chunk = block if not chunk_runs else max(block, (int(chunk_runs) // block) * block)
+        pieces = [(slice(s, min(s + block, runs)), s // block) for s in range(0, runs, block)]
+    else:
+        chunk = runs if not chunk_runs else int(chunk_runs)
+        pieces = None
+    values: dict[str, list[Tensor]] = {"pos": [], "vel": [], "nees": [], "hits": []}
     per_step = per_step or {}
-    extra_sums: dict[str, Tensor] = {}
+    extra: dict[str, list[Tensor]] = {key: [] for key in per_step}
     elapsed = 0.0
     kept = None
     prior = scenario.initial
-    for start in range(0, runs, chunk):
-        sl = slice(start, min(start + chunk, runs))
+    if pieces is None:
+        pieces = [(slice(s, min(s + chunk, runs)), None) for s in range(0, runs, chunk)]
+    for sl, block_index in pieces:
         size = sl.stop - sl.start
+        stream = generator if block_index is None else generators(block_index)
         tic = time.perf_counter()
-        traj = estimator.run(prior.expand(size), pytree.tree_map(lambda t: t[:, sl], z), generator)
+        traj = estimator.run(prior.expand(size), pytree.tree_map(lambda t: t[:, sl], z), stream)
         est = traj.estimate()
         elapsed += time.perf_counter() - tic
         truth = sim.states[:, sl]
-        sq_pos = squared_error(est.mean, truth, scenario.position)
-        sq_vel = squared_error(est.mean, truth, scenario.velocity)
-        per_run["pos"].append(sq_pos.detach().to(torch.float64))
-        per_run["vel"].append(sq_vel.detach().to(torch.float64))
-        sums["pos"] = sums["pos"] + sq_pos.sum(1)
-        sums["vel"] = sums["vel"] + sq_vel.sum(1)
-        sums["nees"] = sums["nees"] + nees(est, truth).sum(1)
+        values["pos"].append(squared_error(est.mean, truth, scenario.position).detach())
+        values["vel"].append(squared_error(est.mean, truth, scenario.velocity).detach())
+        values["nees"].append(nees(est, truth).detach())
         if estimator.multiple_model:
-            sums["hits"] = sums["hits"] + mode_accuracy(traj.belief.mode_log_probs, sim.modes[:, sl]) * size
+            values["hits"].append((traj.belief.mode_log_probs.argmax(-1) == sim.modes[:, sl]).to(est.mean.dtype))
         for key, fn in per_step.items():
-            value = fn(traj)
-            extra_sums[key] = value if key not in extra_sums else extra_sums[key] + value
+            extra[key].append(fn(traj).detach())
         if keep_trajectory and kept is None:
             kept = traj
-    sq_pos_all, sq_vel_all = torch.cat(per_run["pos"], 1), torch.cat(per_run["vel"], 1)  # (T, runs) float64
+    joined = {key: torch.cat(v, 1) for key, v in values.items() if v}  # (T, runs): one reduction each
+    sq_pos_all, sq_vel_all = joined["pos"].to(torch.float64), joined["vel"].to(torch.float64)
     return Evaluation(
-        pos_rmse=(sums["pos"] / runs).sqrt(),
-        vel_rmse=(sums["vel"] / runs).sqrt(),
-        nees=sums["nees"] / runs,
-        mode_accuracy=(sums["hits"] / runs) if estimator.multiple_model else None,
+        pos_rmse=(joined["pos"].sum(1) / runs).sqrt(),
+        vel_rmse=(joined["vel"].sum(1) / runs).sqrt(),
+        nees=joined["nees"].sum(1) / runs,
+        mode_accuracy=(joined["hits"].sum(1) / runs) if estimator.multiple_model else None,
         seconds_per_step=elapsed / steps,
         trajectory=kept,
-        means={key: value / runs for key, value in extra_sums.items()},
+        means={key: torch.cat(v, 1).sum(1) / runs for key, v in extra.items()},
         pos_rmse_se=armse_se(sq_pos_all),
         vel_rmse_se=armse_se(sq_vel_all),
         pos_rmse_band=rmse_se_per_step(sq_pos_all),

@@ -306,6 +306,27 @@ class CurveRecorder(Logger):
                 plt.close(fig)
 
 
+def cat_runs(parts: Sequence[Any]) -> Any:
+    """Join per-block simulation outputs along the run axis: ``dim 1`` of time-major tensors
+    ``(T, runs, ...)``; a :class:`~torchmm.simulate.JumpSimulation` field by field (its initial state
+    and mode have the runs first); named tuples and tuples element-wise."""
+    from torchmm.simulate import JumpSimulation
+
+    first = parts[0]
+    if len(parts) == 1:
+        return first
+    if isinstance(first, torch.Tensor):
+        return torch.cat(list(parts), 1)
+    if isinstance(first, JumpSimulation):
+        return JumpSimulation(torch.cat([p.states for p in parts], 1), torch.cat([p.modes for p in parts], 1),
+                              torch.cat([p.initial_state for p in parts], 0),
+                              torch.cat([p.initial_mode for p in parts], 0))
+    if isinstance(first, tuple):
+        joined = [cat_runs([p[i] for p in parts]) for i in range(len(first))]
+        return type(first)(*joined) if hasattr(first, "_fields") else tuple(joined)
+    raise TypeError(f"cat_runs: cannot join {type(first).__name__} along the runs")
+
+
 def _floats(values) -> list[float]:
     return [float(v) for v in (values.tolist() if isinstance(values, torch.Tensor) else values)]
 
@@ -363,6 +384,32 @@ class StudyContext:
         if self.dtype == self.data_dtype:
             return scenario, scenario
         return scenario, instantiate(node, dtype=self.data_dtype, device=self.device, **kwargs)
+
+    @property
+    def block_runs(self) -> int:
+        """Monte Carlo runs per random-number block (``block_runs``): run ``i`` draws from block
+        ``i // block_runs``'s own generator, so its data depend on (seed, key, i) only."""
+        return int(self.cfg.get("block_runs") or 50)
+
+    def blocks(self, runs: int) -> list[slice]:
+        """The runs ``0..runs-1`` in blocks of :attr:`block_runs` (the last one may be shorter)."""
+        size = self.block_runs
+        return [slice(start, min(start + size, runs)) for start in range(0, int(runs), size)]
+
+    def simulate_runs(self, simulate: Callable[[int, torch.Generator], Any], runs: int, *key: Any) -> Any:
+        """Run-indexed random streams: ``simulate(n, generator)`` once per block of runs, with the
+        generator of ``(*key, "block", b)``, and the blocks joined along the run axis (time-major
+        tensors ``(T, runs, ...)``; :class:`~torchmm.simulate.JumpSimulation`; tuples of them).
+
+        The data of run ``i`` depend on the seed, ``key`` and ``i`` only - not on ``mc_runs``, the
+        chunking or which worker or machine simulates it: any split of the runs gives the same data.
+        """
+        parts = [simulate(b.stop - b.start, self.generator(*key, "block", i)) for i, b in enumerate(self.blocks(runs))]
+        return cat_runs(parts)
+
+    def block_generators(self, *key: Any) -> Callable[[int], torch.Generator]:
+        """``b -> generator of (*key, "block", b)``: a filter's random stream for block ``b`` of runs."""
+        return lambda b: self.generator(*key, "block", b)
 
     def generator(self, *key: Any) -> torch.Generator:
         """A generator seeded from ``seed`` and ``key``: independent of the order units run in."""

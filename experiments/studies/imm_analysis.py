@@ -52,7 +52,8 @@ def _analyse(ctx: StudyContext, scenario, sim, z, alpha: float) -> dict:
     out: dict = {"rmse": {}, "bounds": {}}
     for name, ecfg in cfg.estimators.items():
         est = instantiate(ecfg)(scenario, name=name, transition=transition)
-        ev = evaluate(est, scenario, sim, z, keep_trajectory=True, generator=ctx.generator("filter", alpha, name))
+        ev = evaluate(est, scenario, sim, z, keep_trajectory=True, block_runs=ctx.block_runs,
+                      generators=ctx.block_generators("filter", alpha, name))
         out["rmse"][name] = ev.summary()
         traj = ev.trajectory
         # (3.2)/(3.3) and (3.8): posterior u(k) and predicted u^0(k) of the next cycle
@@ -90,7 +91,7 @@ def _data(ctx: StudyContext, key: str):
     """``(scenario, sim, z)`` of ``analysis.scenarios[key]``, simulated once per process from the seed."""
     if ("data", key) not in ctx.cache:
         scenario, data_scenario = ctx.scenarios(ctx.cfg.analysis.scenarios[key])
-        sim, z = data_scenario.simulate(int(ctx.cfg.mc_runs), ctx.generator("data", scenario.name))
+        sim, z = ctx.simulate_runs(data_scenario.simulate, int(ctx.cfg.mc_runs), "data", scenario.name)
         ctx.cache[("data", key)] = (scenario, sim.to(ctx.dtype), z.to(ctx.dtype))  # the same data in any dtype
     return ctx.cache[("data", key)]
 

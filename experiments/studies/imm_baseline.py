@@ -23,7 +23,7 @@ def run(ctx: StudyContext) -> None:
     cfg = ctx.cfg
     scenario, data_scenario = ctx.scenarios(cfg.scenario)
     estimators = [instantiate(ecfg)(scenario, name=name) for name, ecfg in cfg.estimators.items()]
-    sim, z = data_scenario.simulate(int(cfg.mc_runs), ctx.generator("data", scenario.name))
+    sim, z = ctx.simulate_runs(data_scenario.simulate, int(cfg.mc_runs), "data", scenario.name)  # run-indexed
     sim, z = sim.to(ctx.dtype), z.to(ctx.dtype)  # the same data in float32 and float64
     ctx.results.description = (
         f"Scenario `{scenario.name}`: {scenario.num_modes} modes, {scenario.steps} steps, "
@@ -40,9 +40,10 @@ def run(ctx: StudyContext) -> None:
     bands = {"position RMSE": {}, "velocity RMSE": {}}  # per-step standard errors of the curves
     example = None
     for est in ctx.progress_bar(estimators, desc="estimators"):
-        stats = {"mode_probs": lambda traj: traj.belief.mode_probs.sum(1)} if est.multiple_model else {}
+        stats = {"mode_probs": lambda traj: traj.belief.mode_probs} if est.multiple_model else {}
         ev = evaluate(est, scenario, sim, z, chunk_runs=cfg.get("chunk_runs"), keep_trajectory=True,
-                      per_step=stats, generator=ctx.generator("filter", scenario.name, est.name))
+                      per_step=stats, block_runs=ctx.block_runs,
+                      generators=ctx.block_generators("filter", scenario.name, est.name))
         summary = ev.summary()
         lo, hi = chi2_interval(ev.runs * ev.state_dim)
         lo, hi = lo * ev.state_dim, hi * ev.state_dim  # the interval of the run-averaged NEES

@@ -80,19 +80,24 @@ def simulate(ctx: StudyContext, scenario, ratio: float, source_R: float, key: st
     """Truth, target stream and source stream (NaN where ``gamma_k = 0``) for ``mc_runs`` runs."""
     cfg = ctx.cfg
     runs = int(cfg.mc_runs)
-    g = ctx.generator("data", key)
     scenario = _data_scenario(ctx, scenario)  # float64 draws: the same data in float32 and float64
     dtype = scenario.transition.dtype
-    sim = simulate_jump_system(scenario.motion, scenario.transition, scenario.initial, scenario.steps, (runs,),
-                               initial_mode_probs=scenario.initial_mode_probs, generator=g)
     sensor = PositionMeasurement(scenario.motion.state_dim, scenario.position,
                                  torch.tensor(float(source_R), dtype=dtype), dtype=dtype).to(ctx.device)
-    if cfg.source.availability == "bernoulli":
-        z = simulate_multirate(scenario.measurement, sensor, sim.states, probability=float(ratio), generator=g)
-    elif cfg.source.availability == "periodic":
-        z = simulate_multirate(scenario.measurement, sensor, sim.states, period=int(cfg.source.period), generator=g)
-    else:
+    if cfg.source.availability not in ("bernoulli", "periodic"):
         raise ValueError(f"source.availability: expected 'bernoulli' or 'periodic', got {cfg.source.availability!r}")
+
+    def draw(n: int, g: torch.Generator):
+        sim = simulate_jump_system(scenario.motion, scenario.transition, scenario.initial, scenario.steps, (n,),
+                                   initial_mode_probs=scenario.initial_mode_probs, generator=g)
+        if cfg.source.availability == "bernoulli":
+            z = simulate_multirate(scenario.measurement, sensor, sim.states, probability=float(ratio), generator=g)
+        else:
+            z = simulate_multirate(scenario.measurement, sensor, sim.states, period=int(cfg.source.period),
+                                   generator=g)
+        return sim, z
+
+    sim, z = ctx.simulate_runs(draw, runs, "data", key)  # run-indexed streams: blocks of block_runs runs
     sim, z = sim.to(ctx.dtype), type(z)(z.target.to(ctx.dtype), z.source.to(ctx.dtype))
     return sim, z, torch.isfinite(z.source).all(-1)
 
@@ -121,16 +126,16 @@ def _unit(ctx: StudyContext, scenario, ratio: float, source_R: float, key: str, 
     out: dict = {"summary": {}, "present_fraction": mask.double().mean().item()}
     for est in build_estimators(scenario, source_R, ctx.cfg, names):
         transfer = isinstance(est.filter, TransferIMM)
-        stats = {}  # per-step sums over each chunk's runs, combined over all chunks by evaluate
+        stats = {}  # per-run values (T, chunk, ...) of each chunk, averaged over all runs by evaluate
         if transfer:
-            stats["transfer_used"] = lambda traj: traj.extras["transfer_used"].double().sum(1)
+            stats["transfer_used"] = lambda traj: traj.extras["transfer_used"].double()
         if curves:
-            stats["mode_probs"] = lambda traj: traj.belief.mode_probs.sum(1)
+            stats["mode_probs"] = lambda traj: traj.belief.mode_probs
             if transfer:  # influence value (33), m = 1 here
-                stats["influence_abs"] = lambda traj: traj.extras["influence"][..., 0].abs().sum(1)
-                stats["influence_mean"] = lambda traj: traj.extras["influence"][..., 0].sum(1)
+                stats["influence_abs"] = lambda traj: traj.extras["influence"][..., 0].abs()
+                stats["influence_mean"] = lambda traj: traj.extras["influence"][..., 0]
         ev = evaluate(est, scenario, sim, z, chunk_runs=ctx.cfg.get("chunk_runs"), per_step=stats,
-                      generator=ctx.generator("filter", key, est.name))
+                      block_runs=ctx.block_runs, generators=ctx.block_generators("filter", key, est.name))
         summary = ev.summary()
         summary["seconds_per_step"] = ev.seconds_per_step
         summary["nees_low"], summary["nees_high"], summary["nees_steps_inside"] = nees_consistency(

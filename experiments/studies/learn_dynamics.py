@@ -242,8 +242,8 @@ def _run(ctx: StudyContext) -> None:
     runs = int(cfg.mc_runs)
     test_runs = int(lcfg.test_runs) if lcfg.get("test_runs") else runs
     # float64 draws, cast to the study dtype: float32 and float64 runs see the same data
-    sim, z = data_scenario.simulate(runs, ctx.generator("train", scenario.name))
-    test_sim, test_z = data_scenario.simulate(test_runs, ctx.generator("test", scenario.name))
+    sim, z = ctx.simulate_runs(data_scenario.simulate, runs, "train", scenario.name)  # run-indexed streams
+    test_sim, test_z = ctx.simulate_runs(data_scenario.simulate, test_runs, "test", scenario.name)
     sim, z, test_sim, test_z = sim.to(ctx.dtype), z.to(ctx.dtype), test_sim.to(ctx.dtype), test_z.to(ctx.dtype)
     q_true = float(lcfg.scenario.q)
     true_tpm = scenario.transition
