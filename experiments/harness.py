@@ -306,25 +306,39 @@ class CurveRecorder(Logger):
                 plt.close(fig)
 
 
-def cat_runs(parts: Sequence[Any]) -> Any:
-    """Join per-block simulation outputs along the run axis: ``dim 1`` of time-major tensors
-    ``(T, runs, ...)``; a :class:`~torchmm.simulate.JumpSimulation` field by field (its initial state
-    and mode have the runs first); named tuples and tuples element-wise."""
+def cat_runs(parts: Sequence[Any], axes: Any = 1) -> Any:
+    """Join per-block simulation outputs along the run axis.
+
+    ``axes`` says where the runs are, with the structure of the outputs (or one value for all):
+    an int (the run axis: 1 for time-major tensors ``(T, runs, ...)``, 0 for ``(runs, ...)``) or None
+    (shared by all runs, e.g. per-step model matrices: the first block's value is kept).
+    :class:`~torchmm.simulate.JumpSimulation` and :class:`~torchmm.fusion.FusionSimulation` know
+    their own axes; named tuples, tuples and dicts are joined element-wise."""
+    from torchmm.fusion import FusionSimulation
     from torchmm.simulate import JumpSimulation
 
     first = parts[0]
     if len(parts) == 1:
         return first
+    if isinstance(axes, dict):
+        return {k: cat_runs([p[k] for p in parts], axes.get(k, 1)) for k in first}
+    if isinstance(axes, (tuple, list)):
+        joined = [cat_runs([p[i] for p in parts], axes[i]) for i in range(len(first))]
+        return type(first)(*joined) if hasattr(first, "_fields") else type(first)(joined)
+    if axes is None:
+        return first
     if isinstance(first, torch.Tensor):
-        return torch.cat(list(parts), 1)
+        return torch.cat(list(parts), int(axes))
+    if isinstance(first, FusionSimulation):
+        return FusionSimulation(*(torch.cat([getattr(p, f) for p in parts], 1) for f in ("x", "r", "y")))
     if isinstance(first, JumpSimulation):
         return JumpSimulation(torch.cat([p.states for p in parts], 1), torch.cat([p.modes for p in parts], 1),
                               torch.cat([p.initial_state for p in parts], 0),
                               torch.cat([p.initial_mode for p in parts], 0))
     if isinstance(first, tuple):
-        joined = [cat_runs([p[i] for p in parts]) for i in range(len(first))]
+        joined = [cat_runs([p[i] for p in parts], axes) for i in range(len(first))]
         return type(first)(*joined) if hasattr(first, "_fields") else tuple(joined)
-    raise TypeError(f"cat_runs: cannot join {type(first).__name__} along the runs")
+    raise TypeError(f"cat_runs: cannot join {type(first).__name__} along the runs (give axes=)")
 
 
 def _floats(values) -> list[float]:
@@ -396,16 +410,18 @@ class StudyContext:
         size = self.block_runs
         return [slice(start, min(start + size, runs)) for start in range(0, int(runs), size)]
 
-    def simulate_runs(self, simulate: Callable[[int, torch.Generator], Any], runs: int, *key: Any) -> Any:
+    def simulate_runs(self, simulate: Callable[[int, torch.Generator], Any], runs: int, *key: Any,
+                      axes: Any = 1) -> Any:
         """Run-indexed random streams: ``simulate(n, generator)`` once per block of runs, with the
         generator of ``(*key, "block", b)``, and the blocks joined along the run axis (time-major
         tensors ``(T, runs, ...)``; :class:`~torchmm.simulate.JumpSimulation`; tuples of them).
 
         The data of run ``i`` depend on the seed, ``key`` and ``i`` only - not on ``mc_runs``, the
         chunking or which worker or machine simulates it: any split of the runs gives the same data.
+        ``axes``: where the outputs hold the runs (:func:`cat_runs`).
         """
         parts = [simulate(b.stop - b.start, self.generator(*key, "block", i)) for i, b in enumerate(self.blocks(runs))]
-        return cat_runs(parts)
+        return cat_runs(parts, axes)
 
     def block_generators(self, *key: Any) -> Callable[[int], torch.Generator]:
         """``b -> generator of (*key, "block", b)``: a filter's random stream for block ``b`` of runs."""

@@ -117,7 +117,8 @@ def run(ctx: StudyContext) -> None:
     steps, runs = int(rc.steps), int(cfg.mc_runs)
     # simulated with the system in float64 and cast: float32 and float64 runs see the same data
     data_system = system if ctx.dtype == ctx.data_dtype else radar_system(rc, ctx.data_dtype, ctx.device)
-    sim = simulate_fusion(data_system, steps, (runs,), ctx.generator("fusion_radar", "data")).to(ctx.dtype)
+    sim = ctx.simulate_runs(lambda n, g: simulate_fusion(data_system, steps, (n,), g), runs,
+                            "fusion_radar", "data").to(ctx.dtype)  # run-indexed streams (blocks of block_runs)
     ctx.results.description = (
         f"Paper 002 Example 1: 3-sensor radar, {steps} steps, {runs} Monte Carlo runs (seed {cfg.seed}, "
         f"{cfg.dtype}); h = exp({float(rc.h_sign):+g} T/{float(rc.tau):g}). "

@@ -104,7 +104,8 @@ def run(ctx: StudyContext) -> None:
     )
     # simulated with the system in float64 and cast: float32 and float64 runs see the same data
     data_system = system if ctx.dtype == ctx.data_dtype else ups_system(uc, ctx.data_dtype, ctx.device)
-    sim = simulate_fusion(data_system, steps, (runs,), ctx.generator("fusion_ups", "data")).to(ctx.dtype)
+    sim = ctx.simulate_runs(lambda n, g: simulate_fusion(data_system, steps, (n,), g), runs,
+                            "fusion_ups", "data").to(ctx.dtype)  # run-indexed streams (blocks of block_runs)
     diag = dict(dim1=-2, dim2=-1)
 
     # ---- time-varying estimators --------------------------------------------------------------

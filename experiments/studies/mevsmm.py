@@ -206,9 +206,9 @@ def run(ctx: StudyContext) -> None:
 
     scenario, data_scenario = ctx.scenarios(cfg.scenario)
     runs = int(cfg.mc_runs)
-    truth, _, z = data_scenario.simulate(runs, ctx.generator("data", scenario.name))
+    # run-indexed streams: the data in blocks of block_runs runs, each block from its own generator
+    truth, _, z = ctx.simulate_runs(data_scenario.simulate, runs, "data", scenario.name)
     truth, z = truth.to(ctx.dtype), z.to(ctx.dtype)  # float64 draws: the same data in float32 and float64
-    chunk = int(cfg.chunk_runs) if cfg.get("chunk_runs") else runs
     deterministic = scenario.random is None
     ctx.results.description = (
         f"Paper 003, scenario `{scenario.name}` (R = {scenario.R:g}^2 I, {scenario.steps} steps, D reading "
@@ -249,35 +249,30 @@ def run(ctx: StudyContext) -> None:
         est_runs = runs if kind != "exact" else min(runs, int(opts.exact_runs))
 
         def compute(name=name, kind=kind, est_runs=est_runs):
-            sq_pos = torch.zeros(scenario.steps, dtype=ctx.dtype, device=ctx.device)
-            sq_vel = torch.zeros_like(sq_pos)
-            count_sum, member_sum, ess_sum, seconds, hists = torch.zeros_like(sq_pos), None, torch.zeros_like(sq_pos), 0.0, {}
-            per_run = {"pos": [], "vel": [], "count": []}  # float64 (T, chunk) per chunk: the standard errors
-            gen = ctx.generator("filter", scenario.name, name)
+            # the particle filters draw from one stream per block of runs (run-indexed): any chunking or
+            # split over workers gives the same numbers; every figure is reduced over all runs at once
+            values: dict[str, list] = {"pos": [], "vel": [], "count": [], "ess": [], "members": []}
+            seconds, hists = 0.0, {}
             mode_filter = instantiate(cfg.mode_filter) if kind == "vsmm" else None
             policy = instantiate(cfg.policy) if kind == "vsmm" and cfg.get("policy") else None
             filt = _build(name, kind, scenario, opts, mode_filter, policy)
-            for start in range(0, est_runs, chunk):
-                sl = slice(start, min(start + chunk, est_runs))
-                res = _run(filt, scenario, z[:, sl], hist_steps if start == 0 else set(), gen)
+            for b, sl in enumerate(ctx.blocks(est_runs)):
+                gen = ctx.generator("filter", scenario.name, name, "block", b)
+                res = _run(filt, scenario, z[:, sl], hist_steps if b == 0 else set(), gen)
                 err = res["mean"] - truth[:, sl]
-                e_pos, e_vel = err[..., [0, 2]].square().sum(-1), err[..., [1, 3]].square().sum(-1)  # (T, chunk)
-                sq_pos += e_pos.sum(1)
-                sq_vel += e_vel.sum(1)
-                count_sum += res["count"].sum(1)
-                per_run["pos"].append(e_pos.detach().to(torch.float64))
-                per_run["vel"].append(e_vel.detach().to(torch.float64))
-                per_run["count"].append(res["count"].detach().to(torch.float64))
-                has_ess = res["ess"] is not None
-                if has_ess:
-                    ess_sum += res["ess"].sum(1)
+                values["pos"].append(err[..., [0, 2]].square().sum(-1).detach())  # (T, block)
+                values["vel"].append(err[..., [1, 3]].square().sum(-1).detach())
+                values["count"].append(res["count"].detach().to(ctx.dtype))
+                if res["ess"] is not None:
+                    values["ess"].append(res["ess"].detach())
                 if res["members"] is not None:
-                    m = res["members"].to(ctx.dtype).sum(1)
-                    member_sum = m if member_sum is None else member_sum + m
+                    values["members"].append(res["members"].to(ctx.dtype))
                 seconds += res["seconds_per_step"]
                 hists = hists or {str(k): v.tolist() for k, v in res["hists"].items()}
-            e_pos, e_vel = torch.cat(per_run["pos"], 1), torch.cat(per_run["vel"], 1)  # (T, est_runs)
-            run_counts = torch.cat(per_run["count"], 1).mean(0)  # a run's time-averaged model count
+            joined = {k: torch.cat(v, 1) for k, v in values.items() if v}  # (T, est_runs, ...)
+            mean = {k: v.sum(1) / est_runs for k, v in joined.items()}
+            e_pos, e_vel = joined["pos"].to(torch.float64), joined["vel"].to(torch.float64)
+            run_counts = joined["count"].to(torch.float64).mean(0)  # a run's time-averaged model count
             window = slice(80, 120) if deterministic and scenario.steps >= 120 else None
             # only the standard errors are kept (floats and (T,) bands): the checkpoint stays small
             uncertainty = {
@@ -287,9 +282,9 @@ def run(ctx: StudyContext) -> None:
                 "pos_band": rmse_se_per_step(e_pos).tolist(), "vel_band": rmse_se_per_step(e_vel).tolist(),
             }
             return {
-                "pos": (sq_pos / est_runs).sqrt().tolist(), "vel": (sq_vel / est_runs).sqrt().tolist(),
-                "count": (count_sum / est_runs).tolist(), "ess": (ess_sum / est_runs).tolist() if has_ess else None,
-                "members": None if member_sum is None else (member_sum / est_runs).tolist(),
+                "pos": mean["pos"].sqrt().tolist(), "vel": mean["vel"].sqrt().tolist(),
+                "count": mean["count"].tolist(), "ess": mean["ess"].tolist() if "ess" in mean else None,
+                "members": mean["members"].tolist() if "members" in mean else None,
                 "seconds_per_step": seconds * (runs / est_runs), "runs": est_runs, "hists": hists,
                 **uncertainty,
             }

@@ -58,16 +58,24 @@ def huang_scenario(runs: int, generator: torch.Generator, *, steps: int = 1000, 
     return torch.stack(xs), torch.stack(zs), F, Qs, Rs, P0, xhat0
 
 
-def run_huang(runs: int, generator: torch.Generator, *, steps: int = 1000, nominal_q="true",
+#: where huang_scenario's outputs hold the runs (truth, z: time-major; F, Q_k, R_k, P0: shared; x̂0: first)
+HUANG_AXES = (1, 1, None, None, None, None, 0)
+
+
+def run_huang(runs: int, generator: torch.Generator | None, *, steps: int = 1000, nominal_q="true",
               beta: float = 100.0,
               tau: float = 3.0, rho: float = 1 - math.exp(-4), iterations: int = 10, dtype=torch.float64,
-              device=None, progress: bool = False) -> dict:
+              device=None, progress: bool = False, simulate_runs=None) -> dict:
     """Run the three filters; returns per-estimator ``{"pos": (T,), "vel": (T,)}`` RMSE curves, the
     SRNFN-free summary ``{"estimator": (pos_last100, vel_last100, pos_all, vel_all)}``, its delta-method
     standard errors ``"se"`` (the same four) and the per-step standard errors ``"pos_band"``,
-    ``"vel_band"`` ``(T,)`` (experiments/uncertainty.py)."""
+    ``"vel_band"`` ``(T,)`` (experiments/uncertainty.py). ``simulate_runs(draw, runs)`` (e.g. the
+    study's run-indexed blocks) simulates instead of one stream from ``generator``."""
     # simulated in float64 and cast: float32 and float64 runs see the same data
-    data = huang_scenario(runs, generator, steps=steps, dtype=torch.float64, device=device)
+    def draw(n, gen):
+        return huang_scenario(n, gen, steps=steps, dtype=torch.float64, device=device)
+
+    data = draw(runs, generator) if simulate_runs is None else simulate_runs(draw, runs)
     truth, z, F, Qs, Rs, P0, xhat0 = (t.to(dtype) for t in data)
     kw = {"dtype": dtype, "device": device}
     H = torch.cat([torch.eye(2, **kw), torch.zeros(2, 2, **kw)], 1)
@@ -122,10 +130,12 @@ def run(ctx: StudyContext) -> None:
     res = ctx.unit("huang", lambda: {
         name: {"summary": list(v["summary"]), "pos": v["pos"].tolist(), "vel": v["vel"].tolist(),
                "se": list(v["se"]), "pos_band": v["pos_band"].tolist(), "vel_band": v["vel_band"].tolist()}
-        for name, v in run_huang(runs, ctx.generator("huang"), steps=int(h.steps), nominal_q=h.nominal_q,
+        for name, v in run_huang(runs, None, steps=int(h.steps), nominal_q=h.nominal_q,
                                  beta=float(h.beta), tau=float(h.tau), rho=float(h.rho),
                                  iterations=int(h.iterations), dtype=ctx.dtype, device=ctx.device,
-                                 progress=ctx.progress).items()
+                                 progress=ctx.progress,
+                                 simulate_runs=lambda draw, n: ctx.simulate_runs(draw, n, "huang", axes=HUANG_AXES)
+                                 ).items()
     })
     ctx.results.description = (
         f"Huang et al. 2018 scenario, {h.steps} steps, {runs} Monte Carlo runs "

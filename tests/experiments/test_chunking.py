@@ -2,8 +2,9 @@
 
 ``transfer_fraction`` of imm_tf and the mode-probability and influence curves used to be read from
 the first chunk only (IMM-TF 0.586 -> 0.565 with ``chunk_runs=2``). For every study that chunks -
-imm_tf, imm_baseline, learn_dynamics (held-out evaluation) and mevsmm - the chunked and unchunked
-results are compared (to the rounding of the re-ordered sums).
+imm_tf, imm_baseline and learn_dynamics (held-out evaluation) - the chunked and unchunked results are
+compared. (mevsmm filters its runs in blocks of ``block_runs`` with one random stream each, whatever
+``chunk_runs``: tests/experiments/test_run_streams.py; so do the particle mode filters elsewhere.)
 """
 
 from __future__ import annotations
@@ -78,45 +79,3 @@ def test_imm_tf_transfer_fraction_and_curves_cover_every_chunk(tmp_path):
         for curve in ("mode_probs", "influence_abs", "influence_mean"):
             assert torch.allclose(torch.tensor(b["curves"][name][curve], dtype=torch.float64),
                                   torch.tensor(a["curves"][name][curve], dtype=torch.float64), rtol=1e-11, atol=1e-13)
-
-
-def test_mevsmm_combines_every_chunk(tmp_path, monkeypatch):
-    """mevsmm's particle randomness depends on the chunk layout until runs get their own random
-    streams (the scale-out issue); its *combination* of chunks is tested with a deterministic
-    stand-in for the filter run: every statistic is a function of the run index."""
-    import experiments.studies.mevsmm as study
-
-    def fake_run(filt, scenario, z, hist_steps, generator):
-        T, runs = z.shape[0], z.shape[1]
-        ids = z[0, :, 0:1]  # the run's index, planted in the data below
-        mean = ids.unsqueeze(0).expand(T, runs, 4) * torch.arange(1, 5, dtype=z.dtype)
-        count = ids[:, 0].expand(T, runs) + torch.arange(T, dtype=z.dtype).unsqueeze(-1)
-        members = torch.remainder(count.unsqueeze(-1) + torch.arange(21, dtype=z.dtype), 2) > 0
-        return {"mean": mean, "count": count, "members": members if filt.num_modes == 21 else None,
-                "ess": count * 2, "hists": {}, "seconds_per_step": 1.0}
-
-    original = study.paper003_scenario
-
-    def scenario_with_ids(**kwargs):
-        sc = original(**kwargs)
-        simulate = sc.simulate
-
-        def planted(runs, generator):
-            truth, extra, z = simulate(runs, generator)
-            z = z.clone()
-            z[0, :, 0] = torch.arange(runs, dtype=z.dtype)
-            return truth, extra, z
-        sc.simulate = planted
-        return sc
-
-    monkeypatch.setattr(study, "_run", fake_run)
-    monkeypatch.setattr(study, "paper003_scenario", scenario_with_ids)
-    fast = ["mevsmm.num_particles=10", "mevsmm.num_winners=5", "mevsmm.threshold=1", "retain_freed_memory=false",
-            "mc_runs=7"]
-    run_study(_compose("mevsmm", *fast), tmp_path / "whole")
-    run_study(_compose("mevsmm", *fast, "chunk_runs=3"), tmp_path / "chunked")
-    for file in ("results.json", "checkpoint.json"):
-        a = json.loads((tmp_path / "whole" / file).read_text())
-        b = json.loads((tmp_path / "chunked" / file).read_text())
-        a.pop("config_hash", None), b.pop("config_hash", None)
-        _assert_same(_drop_timing_rows(a), _drop_timing_rows(b), file)

@@ -58,6 +58,7 @@ FAST = {
     "imm_analysis": ["debug=imm_analysis"],
     "imm_tf": ["debug=imm_tf"],
     "learn_dynamics": ["debug=learn_dynamics"],
+    "mevsmm": ["debug=mevsmm"],  # particle filters, one stream per block: chunk_runs changes nothing
 }
 
 
