@@ -534,7 +534,7 @@ def unique_dir(base: str) -> str:
 
 
 #: keys that do not change a study's numbers: a checkpoint made with other values is reused
-#: (``chunk_runs``: identical to rounding, except particle streams, see docs/studies.md)
+#: (``chunk_runs``: identical bit for bit - run-indexed streams, per-run reductions; docs/scaling.md)
 NON_RESULT_KEYS = ("progress", "logger", "threads", "chunk_runs", "retain_freed_memory", "executor")
 
 

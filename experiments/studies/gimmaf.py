@@ -25,6 +25,7 @@ import time
 
 import torch
 
+from experiments.executors import Unit
 from experiments.harness import StudyContext
 from experiments.studies import plots
 from experiments.uncertainty import armse_se, inside, rmse_se_per_step
@@ -215,11 +216,24 @@ def _segments_labels(g) -> list[str]:
     return [f"w={w:.4f}" for w in g.model_rates]
 
 
+#: the study's unit function (what an executor ships: this path, the config and the arguments)
+UNIT = "experiments.studies.gimmaf:unit"
+
+
+def unit(ctx: StudyContext, *, table: str, kind: str) -> dict:
+    """Table 2 (``table="table2"``, the main noise) or one Table 4 noise ``kind``: every filter on its
+    run-indexed data; a function of the config and these arguments only."""
+    g = ctx.cfg.gimmaf
+    params = g.noise if table == "table2" else g.table4.noise
+    return run_unit(g, kind, params, int(ctx.cfg.mc_runs), None, dtype=ctx.dtype, device=ctx.device,
+                    progress=ctx.progress, with_oracle=bool(g.oracle),
+                    simulate_runs=lambda draw, n: ctx.simulate_runs(draw, n, "data", kind, table, axes=SIM_AXES))
+
+
 def run(ctx: StudyContext) -> None:
     cfg = ctx.cfg
     g = cfg.gimmaf
     runs = int(cfg.mc_runs)
-    kw = {"dtype": ctx.dtype, "device": ctx.device, "progress": ctx.progress}  # a bar per filter run
     main_kind = str(g.noise.kind)
     ctx.results.description = (
         f"Paper 004 section 3.1: {g.steps} steps, {runs} Monte Carlo runs (seed {cfg.seed}, {cfg.dtype}); "
@@ -228,12 +242,13 @@ def run(ctx: StudyContext) -> None:
         "ARMSE = time average of the per-step RMSE over runs (position: x and y together). "
         "KF-oracle is a reference (true F_k, Q_k, noise mean and covariance), not in the paper."
     )
-    def blocks(*key):  # run-indexed streams: the data in blocks of block_runs runs
-        return lambda draw, n: ctx.simulate_runs(draw, n, *key, axes=SIM_AXES)
-
-    main = ctx.unit(f"table2/{main_kind}", lambda: run_unit(
-        g, main_kind, g.noise, runs, None, with_oracle=bool(g.oracle),
-        simulate_runs=blocks("data", main_kind, "table2"), **kw))
+    # Table 2 and every Table 4 noise are units, all at once: an executor (executor=processes|slurm|ray)
+    # runs them side by side
+    todo = [("table2", main_kind)] + [("table4", str(kind)) for kind in g.table4.noises]
+    values = ctx.map_units([Unit(f"{table}/{kind}", UNIT, {"table": table, "kind": kind}) for table, kind in todo],
+                           desc="units")
+    value_of = dict(zip(todo, values))
+    main = value_of[("table2", main_kind)]
     t2 = ctx.results.table(
         "table2", ["estimator", "pos_armse", "vel_armse", "finite", "pos_armse_se", "vel_armse_se",
                    "pos_armse_inside_95", "vel_armse_inside_95"],
@@ -299,9 +314,7 @@ def run(ctx: StudyContext) -> None:
     )
     for kind in g.table4.noises:
         kind = str(kind)
-        res = ctx.unit(f"table4/{kind}", lambda kind=kind: run_unit(
-            g, kind, g.table4.noise, runs, None, with_oracle=bool(g.oracle),
-            simulate_runs=blocks("data", kind, "table4"), **kw))
+        res = value_of[("table4", kind)]
         for name, e in res.items():
             t4.rows.append([kind, name, torch.tensor(e["pos"], dtype=torch.float64).mean().item(), e.get("pos_se")])
         ctx.results.save()

@@ -9,22 +9,53 @@ from __future__ import annotations
 
 import logging
 
+import torch
 from hydra.utils import instantiate
 
 from experiments.estimators import evaluate
 from experiments.uncertainty import chi2_interval
+from experiments.executors import Unit
 from experiments.harness import StudyContext
 from experiments.studies import plots
 
 log = logging.getLogger("torchmm.experiments")
 
 
+def _data(ctx: StudyContext):
+    """``(scenario, sim, z)``: the scenario and its run-indexed data, simulated once per process."""
+    if "data" not in ctx.cache:
+        scenario, data_scenario = ctx.scenarios(ctx.cfg.scenario)
+        sim, z = ctx.simulate_runs(data_scenario.simulate, int(ctx.cfg.mc_runs), "data", scenario.name)
+        ctx.cache["data"] = (scenario, sim.to(ctx.dtype), z.to(ctx.dtype))  # the same data in any dtype
+    return ctx.cache["data"]
+
+
+#: the study's unit function (what an executor ships: this path, the config and the arguments)
+UNIT = "experiments.studies.imm_baseline:unit"
+
+
+def unit(ctx: StudyContext, *, name: str) -> dict:
+    """Estimator ``name`` on every run: its summary, per-step curves and run 0's mode probabilities."""
+    scenario, sim, z = _data(ctx)
+    est = instantiate(ctx.cfg.estimators[name])(scenario, name=name)
+    stats = {"mode_probs": lambda traj: traj.belief.mode_probs} if est.multiple_model else {}
+    ev = evaluate(est, scenario, sim, z, chunk_runs=ctx.cfg.get("chunk_runs"), keep_trajectory=True,
+                  per_step=stats, block_runs=ctx.block_runs,
+                  generators=ctx.block_generators("filter", scenario.name, est.name))
+    mm = est.multiple_model
+    return {"summary": ev.summary(), "seconds_per_step": ev.seconds_per_step, "runs": ev.runs,
+            "state_dim": ev.state_dim, "pos": ev.pos_rmse, "vel": ev.vel_rmse, "pos_se": ev.pos_rmse_band,
+            "vel_se": ev.vel_rmse_band, "nees": ev.nees, "mode_accuracy": ev.mode_accuracy if mm else None,
+            "mode_probs": ev.means["mode_probs"] if mm else None,  # average over all runs, (T, M)
+            "example": ev.trajectory.belief.mode_probs[:, 0] if mm else None}  # run 0, (T, M)
+
+
 def run(ctx: StudyContext) -> None:
     cfg = ctx.cfg
-    scenario, data_scenario = ctx.scenarios(cfg.scenario)
-    estimators = [instantiate(ecfg)(scenario, name=name) for name, ecfg in cfg.estimators.items()]
-    sim, z = ctx.simulate_runs(data_scenario.simulate, int(cfg.mc_runs), "data", scenario.name)  # run-indexed
-    sim, z = sim.to(ctx.dtype), z.to(ctx.dtype)  # the same data in float32 and float64
+    scenario, sim, z = _data(ctx)  # run-indexed streams
+    names = list(cfg.estimators)
+    for name in names:  # a bad estimator config: an error before any unit runs
+        instantiate(cfg.estimators[name])(scenario, name=name)
     ctx.results.description = (
         f"Scenario `{scenario.name}`: {scenario.num_modes} modes, {scenario.steps} steps, "
         f"{cfg.mc_runs} Monte Carlo runs (seed {cfg.seed}, {cfg.dtype}). RMSE is per step over runs, "
@@ -39,39 +70,40 @@ def run(ctx: StudyContext) -> None:
     curves = {"position RMSE": {}, "velocity RMSE": {}}
     bands = {"position RMSE": {}, "velocity RMSE": {}}  # per-step standard errors of the curves
     example = None
-    for est in ctx.progress_bar(estimators, desc="estimators"):
-        stats = {"mode_probs": lambda traj: traj.belief.mode_probs} if est.multiple_model else {}
-        ev = evaluate(est, scenario, sim, z, chunk_runs=cfg.get("chunk_runs"), keep_trajectory=True,
-                      per_step=stats, block_runs=ctx.block_runs,
-                      generators=ctx.block_generators("filter", scenario.name, est.name))
-        summary = ev.summary()
-        lo, hi = chi2_interval(ev.runs * ev.state_dim)
-        lo, hi = lo * ev.state_dim, hi * ev.state_dim  # the interval of the run-averaged NEES
-        inside = ((ev.nees >= lo) & (ev.nees <= hi)).double().mean().item()
-        table.rows.append([est.name, summary["pos_rmse"], summary["vel_rmse"], summary["nees"],
+    # every estimator is a unit, all at once: an executor (executor=processes|slurm|ray) runs them side by side
+    values = ctx.map_units([Unit(name, UNIT, {"name": name}) for name in names], desc="estimators")
+
+    def f64(values):
+        return torch.tensor(values, dtype=torch.float64)
+
+    for name, v in zip(names, values):
+        summary = v["summary"]
+        lo, hi = chi2_interval(v["runs"] * v["state_dim"])
+        lo, hi = lo * v["state_dim"], hi * v["state_dim"]  # the interval of the run-averaged NEES
+        nees_curve = f64(v["nees"])
+        inside = ((nees_curve >= lo) & (nees_curve <= hi)).double().mean().item()
+        table.rows.append([name, summary["pos_rmse"], summary["vel_rmse"], summary["nees"],
                            summary.get("mode_accuracy"), summary["pos_rmse_se"], summary["vel_rmse_se"], lo, hi,
                            inside])
         for key, value in summary.items():
-            ctx.results.metric(est.name, key, value)
-        ctx.results.timing[est.name] = ev.seconds_per_step
-        curves["position RMSE"][est.name] = ev.pos_rmse
-        curves["velocity RMSE"][est.name] = ev.vel_rmse
-        bands["position RMSE"][est.name] = ev.pos_rmse_band
-        bands["velocity RMSE"][est.name] = ev.vel_rmse_band
-        ctx.logger.series(f"pos_rmse/{est.name}", ev.pos_rmse)
-        ctx.logger.series(f"vel_rmse/{est.name}", ev.vel_rmse)
-        ctx.logger.series(f"pos_rmse_se/{est.name}", ev.pos_rmse_band)
-        ctx.logger.series(f"vel_rmse_se/{est.name}", ev.vel_rmse_band)
-        ctx.logger.series(f"nees/{est.name}", ev.nees)
-        if est.multiple_model:
-            ctx.logger.series(f"mode_accuracy/{est.name}", ev.mode_accuracy)
-            probs = ev.means["mode_probs"]  # average over all runs (every chunk), (T, M)
+            ctx.results.metric(name, key, value)
+        ctx.results.timing[name] = v["seconds_per_step"]
+        curves["position RMSE"][name], curves["velocity RMSE"][name] = f64(v["pos"]), f64(v["vel"])
+        bands["position RMSE"][name], bands["velocity RMSE"][name] = f64(v["pos_se"]), f64(v["vel_se"])
+        ctx.logger.series(f"pos_rmse/{name}", v["pos"])
+        ctx.logger.series(f"vel_rmse/{name}", v["vel"])
+        ctx.logger.series(f"pos_rmse_se/{name}", v["pos_se"])
+        ctx.logger.series(f"vel_rmse_se/{name}", v["vel_se"])
+        ctx.logger.series(f"nees/{name}", v["nees"])
+        if v["mode_probs"] is not None:
+            ctx.logger.series(f"mode_accuracy/{name}", v["mode_accuracy"])
+            probs = f64(v["mode_probs"])
             for j, label in enumerate(scenario.mode_labels):
-                ctx.logger.series(f"mode_probability/{est.name}/{label}", probs[:, j])
+                ctx.logger.series(f"mode_probability/{name}/{label}", probs[:, j])
             if example is None:
-                example = (est.name, ev.trajectory.belief.mode_probs[:, 0])  # run 0 (first chunk)
-        log.info("%s: %s", est.name, {k: round(v, 4) for k, v in summary.items()})
-        ctx.results.save()
+                example = (name, f64(v["example"]))
+        log.info("%s: %s", name, {k: round(val, 4) for k, val in summary.items() if isinstance(val, float)})
+    ctx.results.save()
     ctx.save_figure("rmse_over_time", plots.rmse_over_time(curves, f"{scenario.name}, {cfg.mc_runs} runs",
                                                                   bands=bands))
     if example is not None:

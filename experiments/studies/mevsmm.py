@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from experiments.executors import Unit
 from experiments.harness import StudyContext
 from experiments.studies import plots
 from experiments.estimators import build_mode_filter
@@ -199,16 +200,77 @@ def _estimate_mean(belief) -> Tensor:
     return (w.unsqueeze(-2) @ comps.particles.flatten(-3, -2)).squeeze(-2)
 
 
+def _data(ctx: StudyContext):
+    """``(scenario, truth, z)``: the scenario and its run-indexed data, simulated once per process."""
+    if "data" not in ctx.cache:
+        scenario, data_scenario = ctx.scenarios(ctx.cfg.scenario)
+        truth, _, z = ctx.simulate_runs(data_scenario.simulate, int(ctx.cfg.mc_runs), "data", scenario.name)
+        # float64 draws: the same data in float32 and float64
+        ctx.cache["data"] = (scenario, truth.to(ctx.dtype), z.to(ctx.dtype))
+    return ctx.cache["data"]
+
+
+#: the study's unit function (what an executor ships: this path, the config and the arguments)
+UNIT = "experiments.studies.mevsmm:unit"
+
+
+def unit(ctx: StudyContext, *, name: str, kind: str, est_runs: int) -> dict:
+    """One estimator over its runs; a function of the config and these arguments only."""
+    from hydra.utils import instantiate
+
+    cfg, opts = ctx.cfg, ctx.cfg.mevsmm
+    scenario, truth, z = _data(ctx)
+    runs = int(cfg.mc_runs)
+    deterministic = scenario.random is None
+    hist_steps = {int(s) for s in opts.histogram_steps}
+    # the particle filters draw from one stream per block of runs (run-indexed): any chunking or
+    # split over workers gives the same numbers; every figure is reduced over all runs at once
+    values: dict[str, list] = {"pos": [], "vel": [], "count": [], "ess": [], "members": []}
+    seconds, hists = 0.0, {}
+    mode_filter = instantiate(cfg.mode_filter) if kind == "vsmm" else None
+    policy = instantiate(cfg.policy) if kind == "vsmm" and cfg.get("policy") else None
+    filt = _build(name, kind, scenario, opts, mode_filter, policy)
+    for b, sl in enumerate(ctx.blocks(est_runs)):
+        gen = ctx.generator("filter", scenario.name, name, "block", b)
+        res = _run(filt, scenario, z[:, sl], hist_steps if b == 0 else set(), gen)
+        err = res["mean"] - truth[:, sl]
+        values["pos"].append(err[..., [0, 2]].square().sum(-1).detach())  # (T, block)
+        values["vel"].append(err[..., [1, 3]].square().sum(-1).detach())
+        values["count"].append(res["count"].detach().to(ctx.dtype))
+        if res["ess"] is not None:
+            values["ess"].append(res["ess"].detach())
+        if res["members"] is not None:
+            values["members"].append(res["members"].to(ctx.dtype))
+        seconds += res["seconds_per_step"]
+        hists = hists or {str(k): v.tolist() for k, v in res["hists"].items()}
+    joined = {k: torch.cat(v, 1) for k, v in values.items() if v}  # (T, est_runs, ...)
+    mean = {k: v.sum(1) / est_runs for k, v in joined.items()}
+    e_pos, e_vel = joined["pos"].to(torch.float64), joined["vel"].to(torch.float64)
+    run_counts = joined["count"].to(torch.float64).mean(0)  # a run's time-averaged model count
+    window = slice(80, 120) if deterministic and scenario.steps >= 120 else None
+    # only the standard errors are kept (floats and (T,) bands): the checkpoint stays small
+    uncertainty = {
+        "pos_se": armse_se(e_pos), "vel_se": armse_se(e_vel),
+        "maneuver_pos_se": armse_se(e_pos[window]) if window is not None else None,
+        "count_se": (run_counts.std() / est_runs**0.5).item() if est_runs > 1 else float("nan"),
+        "pos_band": rmse_se_per_step(e_pos).tolist(), "vel_band": rmse_se_per_step(e_vel).tolist(),
+    }
+    return {
+        "pos": mean["pos"].sqrt().tolist(), "vel": mean["vel"].sqrt().tolist(),
+        "count": mean["count"].tolist(), "ess": mean["ess"].tolist() if "ess" in mean else None,
+        "members": mean["members"].tolist() if "members" in mean else None,
+        "seconds_per_step": seconds * (runs / est_runs), "runs": est_runs, "hists": hists,
+        **uncertainty,
+    }
+
+
 def run(ctx: StudyContext) -> None:
     cfg = ctx.cfg
     opts = cfg.mevsmm
-    from hydra.utils import instantiate
 
-    scenario, data_scenario = ctx.scenarios(cfg.scenario)
-    runs = int(cfg.mc_runs)
     # run-indexed streams: the data in blocks of block_runs runs, each block from its own generator
-    truth, _, z = ctx.simulate_runs(data_scenario.simulate, runs, "data", scenario.name)
-    truth, z = truth.to(ctx.dtype), z.to(ctx.dtype)  # float64 draws: the same data in float32 and float64
+    scenario, truth, z = _data(ctx)
+    runs = int(cfg.mc_runs)
     deterministic = scenario.random is None
     ctx.results.description = (
         f"Paper 003, scenario `{scenario.name}` (R = {scenario.R:g}^2 I, {scenario.steps} steps, D reading "
@@ -242,54 +304,13 @@ def run(ctx: StudyContext) -> None:
         published={"columns": ["estimator", "relative_time"], "rows": PUBLISHED_TABLE2,
                    "source": "paper 003 Table 2"},
     )
-    hist_steps = {int(s) for s in opts.histogram_steps}
     curves, count_curves, memberships, base_time, bands = {}, {}, {}, None, {}
     estimators = dict(opts.estimators)
-    for name, kind in ctx.progress_bar(list(estimators.items()), desc="estimators"):
-        est_runs = runs if kind != "exact" else min(runs, int(opts.exact_runs))
-
-        def compute(name=name, kind=kind, est_runs=est_runs):
-            # the particle filters draw from one stream per block of runs (run-indexed): any chunking or
-            # split over workers gives the same numbers; every figure is reduced over all runs at once
-            values: dict[str, list] = {"pos": [], "vel": [], "count": [], "ess": [], "members": []}
-            seconds, hists = 0.0, {}
-            mode_filter = instantiate(cfg.mode_filter) if kind == "vsmm" else None
-            policy = instantiate(cfg.policy) if kind == "vsmm" and cfg.get("policy") else None
-            filt = _build(name, kind, scenario, opts, mode_filter, policy)
-            for b, sl in enumerate(ctx.blocks(est_runs)):
-                gen = ctx.generator("filter", scenario.name, name, "block", b)
-                res = _run(filt, scenario, z[:, sl], hist_steps if b == 0 else set(), gen)
-                err = res["mean"] - truth[:, sl]
-                values["pos"].append(err[..., [0, 2]].square().sum(-1).detach())  # (T, block)
-                values["vel"].append(err[..., [1, 3]].square().sum(-1).detach())
-                values["count"].append(res["count"].detach().to(ctx.dtype))
-                if res["ess"] is not None:
-                    values["ess"].append(res["ess"].detach())
-                if res["members"] is not None:
-                    values["members"].append(res["members"].to(ctx.dtype))
-                seconds += res["seconds_per_step"]
-                hists = hists or {str(k): v.tolist() for k, v in res["hists"].items()}
-            joined = {k: torch.cat(v, 1) for k, v in values.items() if v}  # (T, est_runs, ...)
-            mean = {k: v.sum(1) / est_runs for k, v in joined.items()}
-            e_pos, e_vel = joined["pos"].to(torch.float64), joined["vel"].to(torch.float64)
-            run_counts = joined["count"].to(torch.float64).mean(0)  # a run's time-averaged model count
-            window = slice(80, 120) if deterministic and scenario.steps >= 120 else None
-            # only the standard errors are kept (floats and (T,) bands): the checkpoint stays small
-            uncertainty = {
-                "pos_se": armse_se(e_pos), "vel_se": armse_se(e_vel),
-                "maneuver_pos_se": armse_se(e_pos[window]) if window is not None else None,
-                "count_se": (run_counts.std() / est_runs**0.5).item() if est_runs > 1 else float("nan"),
-                "pos_band": rmse_se_per_step(e_pos).tolist(), "vel_band": rmse_se_per_step(e_vel).tolist(),
-            }
-            return {
-                "pos": mean["pos"].sqrt().tolist(), "vel": mean["vel"].sqrt().tolist(),
-                "count": mean["count"].tolist(), "ess": mean["ess"].tolist() if "ess" in mean else None,
-                "members": mean["members"].tolist() if "members" in mean else None,
-                "seconds_per_step": seconds * (runs / est_runs), "runs": est_runs, "hists": hists,
-                **uncertainty,
-            }
-
-        res = ctx.unit(f"{scenario.name}/{name}", compute)
+    # every estimator is a unit, all at once: an executor (executor=processes|slurm|ray) runs them side by side
+    items = [(name, kind, runs if kind != "exact" else min(runs, int(opts.exact_runs))) for name, kind in estimators.items()]
+    values = ctx.map_units([Unit(f"{scenario.name}/{name}", UNIT, {"name": name, "kind": kind, "est_runs": n})
+                            for name, kind, n in items], desc="estimators")
+    for (name, kind, est_runs), res in zip(items, values):
         # checkpointed lists of floats: keep float64 (torch.tensor would default to float32)
         pos, vel = torch.tensor(res["pos"], dtype=torch.float64), torch.tensor(res["vel"], dtype=torch.float64)
         maneuver = pos[80:120].mean().item() if deterministic and scenario.steps >= 120 else None

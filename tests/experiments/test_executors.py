@@ -36,13 +36,16 @@ def test_processes_submitit_and_ray_give_the_local_tables_bit_for_bit(tmp_path):
     assert _tables(name, tmp_path, "executor=ray", "executor.workers=2") == local
 
 
-def test_imm_tf_units_in_a_process_pool_give_the_recorded_numbers(tmp_path):
+@pytest.mark.parametrize("name", ["imm_tf", "imm_baseline", "mevsmm", "gimmaf"])
+def test_units_in_a_process_pool_give_the_recorded_numbers(name, tmp_path):
+    """Each study that hands its units to the executor gives its regression record from a pool."""
     from tests.regression.compare import mismatches
+    from tests.regression.record import COMMON
 
     out = tmp_path / "pool"
-    run_study(_compose("imm_tf", "debug=imm_tf", "logger=none", "executor=processes"), out)
+    run_study(_compose(name, f"debug={name}", *COMMON, "executor=processes", "executor.workers=2"), out)
     data = json.loads((out / "results.json").read_text())
-    assert not mismatches("imm_tf", data), mismatches("imm_tf", data)[:5]
+    assert not mismatches(name, data), mismatches(name, data)[:5]
 
 
 # -- workers that die, units that fail ----------------------------------------------------------
