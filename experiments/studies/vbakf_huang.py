@@ -19,6 +19,7 @@ import math
 
 import torch
 
+from experiments.executors import Unit
 from experiments.harness import StudyContext
 from experiments.studies import plots
 from experiments.uncertainty import armse_se, inside, rmse_se_per_step
@@ -65,12 +66,13 @@ HUANG_AXES = (1, 1, None, None, None, None, 0)
 def run_huang(runs: int, generator: torch.Generator | None, *, steps: int = 1000, nominal_q="true",
               beta: float = 100.0,
               tau: float = 3.0, rho: float = 1 - math.exp(-4), iterations: int = 10, dtype=torch.float64,
-              device=None, progress: bool = False, simulate_runs=None) -> dict:
+              device=None, progress: bool = False, simulate_runs=None, names=None) -> dict:
     """Run the three filters; returns per-estimator ``{"pos": (T,), "vel": (T,)}`` RMSE curves, the
     SRNFN-free summary ``{"estimator": (pos_last100, vel_last100, pos_all, vel_all)}``, its delta-method
     standard errors ``"se"`` (the same four) and the per-step standard errors ``"pos_band"``,
     ``"vel_band"`` ``(T,)`` (experiments/uncertainty.py). ``simulate_runs(draw, runs)`` (e.g. the
-    study's run-indexed blocks) simulates instead of one stream from ``generator``."""
+    study's run-indexed blocks) simulates instead of one stream from ``generator``; ``names``: only
+    these filters (default all three)."""
     # simulated in float64 and cast: float32 and float64 runs see the same data
     def draw(n, gen):
         return huang_scenario(n, gen, steps=steps, dtype=torch.float64, device=device)
@@ -101,7 +103,7 @@ def run_huang(runs: int, generator: torch.Generator | None, *, steps: int = 1000
         "VBAKF-PR": lambda: run_filter(vbakf, vbakf.initial_belief(start, R_nom), z, motions=nominal_motions,
                                        record=_means_only, progress="VBAKF-PR" if progress else False),
     }
-    estimates = {name: go().belief.mean for name, go in runs_of.items()}
+    estimates = {name: go().belief.mean for name, go in runs_of.items() if names is None or name in names}
     out = {}
     for name, est in estimates.items():
         err = est - truth
@@ -123,20 +125,36 @@ def _means_only(out):
     return out._replace(prior=None, innovation=None, innovation_cov=None, extras=None)
 
 
+#: the filters of Table I, and the study's unit function (what an executor ships)
+FILTERS = ("KF-nominal", "KF-true", "VBAKF-PR")
+UNIT = "experiments.studies.vbakf_huang:unit"
+
+
+def unit(ctx: StudyContext, *, name: str) -> dict:
+    """Filter ``name`` of Table I on the run-indexed data (simulated once per process)."""
+    h = ctx.cfg.huang
+
+    def simulate_runs(draw, n):
+        if "data" not in ctx.cache:
+            ctx.cache["data"] = ctx.simulate_runs(draw, n, "huang", axes=HUANG_AXES)
+        return ctx.cache["data"]
+
+    out = run_huang(int(ctx.cfg.mc_runs), None, steps=int(h.steps), nominal_q=h.nominal_q, beta=float(h.beta),
+                    tau=float(h.tau), rho=float(h.rho), iterations=int(h.iterations), dtype=ctx.dtype,
+                    device=ctx.device, progress=ctx.progress, simulate_runs=simulate_runs, names=[name])
+    v = out[name]
+    return {"summary": list(v["summary"]), "pos": v["pos"], "vel": v["vel"], "se": list(v["se"]),
+            "pos_band": v["pos_band"], "vel_band": v["vel_band"]}
+
+
 def run(ctx: StudyContext) -> None:
     cfg = ctx.cfg
     h = cfg.huang
     runs = int(cfg.mc_runs)
-    res = ctx.unit("huang", lambda: {
-        name: {"summary": list(v["summary"]), "pos": v["pos"].tolist(), "vel": v["vel"].tolist(),
-               "se": list(v["se"]), "pos_band": v["pos_band"].tolist(), "vel_band": v["vel_band"].tolist()}
-        for name, v in run_huang(runs, None, steps=int(h.steps), nominal_q=h.nominal_q,
-                                 beta=float(h.beta), tau=float(h.tau), rho=float(h.rho),
-                                 iterations=int(h.iterations), dtype=ctx.dtype, device=ctx.device,
-                                 progress=ctx.progress,
-                                 simulate_runs=lambda draw, n: ctx.simulate_runs(draw, n, "huang", axes=HUANG_AXES)
-                                 ).items()
-    })
+    # one unit per filter, all at once: an executor (executor=processes|slurm|ray) runs them side by side
+    names = list(FILTERS)
+    values = ctx.map_units([Unit(f"huang/{name}", UNIT, {"name": name}) for name in names], desc="filters")
+    res = dict(zip(names, values))
     ctx.results.description = (
         f"Huang et al. 2018 scenario, {h.steps} steps, {runs} Monte Carlo runs "
         f"(seed {cfg.seed}, {cfg.dtype}), "
