@@ -171,29 +171,24 @@ def evaluate(estimator: Estimator, scenario, sim, z: Any, *, chunk_runs: int | N
     Randomness of estimators that draw random numbers (particle mode filters): with
     ``block_runs`` and ``generators`` (``b -> generator``, e.g. ``ctx.block_generators(...)``),
     each block of ``block_runs`` runs is filtered with its own generator - run-indexed streams: any
-    chunking (and any split over workers) gives the same numbers; chunks are then whole blocks.
+    chunking (and any split over workers) gives the same numbers; ``chunk_runs`` is then unused.
     Without them, ``generator`` is one stream for each chunk (the numbers depend on the chunking).
     """
     leaf = pytree.tree_leaves(z)[0]
     runs = leaf.shape[1]
     steps = leaf.shape[0]
-    random = estimator.filter.uses_generator
-    if random and block_runs and generators is not None:
-        block = int(block_runs)
-        # chunks of whole blocks; each block filtered on its own stream
-        chunk = block if not chunk_runs else max(block, (int(chunk_runs) // block) * block)
+    if estimator.filter.uses_generator and block_runs and generators is not None:
+        block = int(block_runs)  # each block of runs filtered alone, on its own stream
         pieces = [(slice(s, min(s + block, runs)), s // block) for s in range(0, runs, block)]
     else:
         chunk = runs if not chunk_runs else int(chunk_runs)
-        pieces = None
+        pieces = [(slice(s, min(s + chunk, runs)), None) for s in range(0, runs, chunk)]
     values: dict[str, list[Tensor]] = {"pos": [], "vel": [], "nees": [], "hits": []}
     per_step = per_step or {}
     extra: dict[str, list[Tensor]] = {key: [] for key in per_step}
     elapsed = 0.0
     kept = None
     prior = scenario.initial
-    if pieces is None:
-        pieces = [(slice(s, min(s + chunk, runs)), None) for s in range(0, runs, chunk)]
     for sl, block_index in pieces:
         size = sl.stop - sl.start
         stream = generator if block_index is None else generators(block_index)

@@ -322,6 +322,8 @@ def cat_runs(parts: Sequence[Any], axes: Any = 1) -> Any:
         return first
     if isinstance(axes, dict):
         return {k: cat_runs([p[k] for p in parts], axes.get(k, 1)) for k in first}
+    if isinstance(first, tuple) and not isinstance(axes, (tuple, list)):
+        axes = (axes,) * len(first)
     if isinstance(axes, (tuple, list)):
         joined = [cat_runs([p[i] for p in parts], axes[i]) for i in range(len(first))]
         return type(first)(*joined) if hasattr(first, "_fields") else type(first)(joined)
@@ -335,9 +337,6 @@ def cat_runs(parts: Sequence[Any], axes: Any = 1) -> Any:
         return JumpSimulation(torch.cat([p.states for p in parts], 1), torch.cat([p.modes for p in parts], 1),
                               torch.cat([p.initial_state for p in parts], 0),
                               torch.cat([p.initial_mode for p in parts], 0))
-    if isinstance(first, tuple):
-        joined = [cat_runs([p[i] for p in parts], axes) for i in range(len(first))]
-        return type(first)(*joined) if hasattr(first, "_fields") else tuple(joined)
     raise TypeError(f"cat_runs: cannot join {type(first).__name__} along the runs (give axes=)")
 
 
@@ -420,8 +419,15 @@ class StudyContext:
         chunking or which worker or machine simulates it: any split of the runs gives the same data.
         ``axes``: where the outputs hold the runs (:func:`cat_runs`).
         """
-        parts = [simulate(b.stop - b.start, self.generator(*key, "block", i)) for i, b in enumerate(self.blocks(runs))]
-        return cat_runs(parts, axes)
+        stream = self.block_generators(*key)
+        return cat_runs([simulate(b.stop - b.start, stream(i)) for i, b in enumerate(self.blocks(runs))], axes)
+
+    def memo(self, key: Any, compute: Callable[[], Any]) -> Any:
+        """``compute()`` once per process (its value kept in :attr:`cache` under ``key``): a study's
+        shared inputs, e.g. a scenario's simulated data, which every unit of a worker reuses."""
+        if key not in self.cache:
+            self.cache[key] = compute()
+        return self.cache[key]
 
     def block_generators(self, *key: Any) -> Callable[[int], torch.Generator]:
         """``b -> generator of (*key, "block", b)``: a filter's random stream for block ``b`` of runs."""
@@ -480,8 +486,7 @@ class StudyContext:
         if self._executor is None:
             from experiments.executors import make_executor
 
-            node = self._config.get("executor") if isinstance(self._config, dict) else None
-            self._executor = make_executor(node, self.output_dir, self._config.get("threads", 1))
+            self._executor = make_executor(self._config.get("executor"), self.output_dir, self._config.get("threads", 1))
         return self._executor
 
     def close_executor(self) -> None:
@@ -535,12 +540,12 @@ def unique_dir(base: str) -> str:
 
 #: keys that do not change a study's numbers: a checkpoint made with other values is reused
 #: (``chunk_runs``: identical bit for bit - run-indexed streams, per-run reductions; docs/scaling.md)
-NON_RESULT_KEYS = ("progress", "logger", "threads", "chunk_runs", "retain_freed_memory", "executor")
+NON_RESULT_KEYS = ("progress", "logger", "threads", "chunk_runs", "retain_freed_memory", "executor", "resume")
 
 
 def result_config(config_dict: dict) -> dict:
     """The part of a resolved config that decides the numbers (without :data:`NON_RESULT_KEYS`)."""
-    return {k: v for k, v in config_dict.items() if k not in NON_RESULT_KEYS and k not in ("hydra", "resume")}
+    return {k: v for k, v in config_dict.items() if k not in NON_RESULT_KEYS and k != "hydra"}
 
 
 def config_hash(config_dict: dict) -> str:

@@ -40,7 +40,7 @@ from experiments.harness import NON_RESULT_KEYS, _format, _write_atomic
 __all__ = ["Run", "collect_runs", "combine", "main", "mean_interval", "write_report"]
 
 #: keys never treated as factors (they do not change the numbers, or are bookkeeping)
-IGNORED_KEYS = (*NON_RESULT_KEYS, "resume", "hydra")
+IGNORED_KEYS = (*NON_RESULT_KEYS, "hydra")
 
 
 @dataclass
@@ -100,7 +100,7 @@ def collect_runs(paths: list[Path]) -> list[Run]:
 
 def mean_interval(values: list[float], level: float = 0.95) -> dict[str, float | int | None]:
     """``{"n", "mean", "sd", "ci_low", "ci_high"}`` of the finite ``values`` (Student-t interval)."""
-    finite = [float(v) for v in values if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)]
+    finite = [float(v) for v in values if _is_number(v) and math.isfinite(v)]
     n = len(finite)
     if n == 0:
         return {"n": 0, "mean": None, "sd": None, "ci_low": None, "ci_high": None}

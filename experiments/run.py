@@ -126,7 +126,7 @@ def hparams(config: dict, overrides: list[str], results: Results, max_metrics: i
             settings[key] = config[key]
     for item in overrides:
         key, sep, value = item.lstrip("+~").partition("=")
-        if not sep or key.split(".")[0] in (*NON_RESULT_KEYS, "resume") or key.startswith("hydra"):
+        if not sep or key.split(".")[0] in NON_RESULT_KEYS or key.startswith("hydra"):
             continue
         try:
             settings[key] = int(value)

@@ -89,11 +89,12 @@ UNIT = "experiments.studies.imm_analysis:unit"
 
 def _data(ctx: StudyContext, key: str):
     """``(scenario, sim, z)`` of ``analysis.scenarios[key]``, simulated once per process from the seed."""
-    if ("data", key) not in ctx.cache:
+    def simulate():
         scenario, data_scenario = ctx.scenarios(ctx.cfg.analysis.scenarios[key])
         sim, z = ctx.simulate_runs(data_scenario.simulate, int(ctx.cfg.mc_runs), "data", scenario.name)
-        ctx.cache[("data", key)] = (scenario, sim.to(ctx.dtype), z.to(ctx.dtype))  # the same data in any dtype
-    return ctx.cache[("data", key)]
+        return scenario, sim.to(ctx.dtype), z.to(ctx.dtype)  # the same data in any dtype
+
+    return ctx.memo(("data", key), simulate)
 
 
 def unit(ctx: StudyContext, *, scenario: str, alpha: float) -> dict:

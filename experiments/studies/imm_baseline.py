@@ -23,11 +23,12 @@ log = logging.getLogger("torchmm.experiments")
 
 def _data(ctx: StudyContext):
     """``(scenario, sim, z)``: the scenario and its run-indexed data, simulated once per process."""
-    if "data" not in ctx.cache:
+    def simulate():
         scenario, data_scenario = ctx.scenarios(ctx.cfg.scenario)
         sim, z = ctx.simulate_runs(data_scenario.simulate, int(ctx.cfg.mc_runs), "data", scenario.name)
-        ctx.cache["data"] = (scenario, sim.to(ctx.dtype), z.to(ctx.dtype))  # the same data in any dtype
-    return ctx.cache["data"]
+        return scenario, sim.to(ctx.dtype), z.to(ctx.dtype)  # the same data in any dtype
+
+    return ctx.memo("data", simulate)
 
 
 #: the study's unit function (what an executor ships: this path, the config and the arguments)

@@ -161,16 +161,15 @@ UNIT = "experiments.studies.imm_tf:unit"
 def unit(ctx: StudyContext, *, ratio: float, source_R: float, key: str, curves: bool) -> dict:
     """One unit: every estimator of ``estimator_names`` on the data of ``key`` (source ratio
     ``ratio``, source noise ``source_R``); a function of the config and these arguments only."""
-    if "scenario" not in ctx.cache:
-        ctx.cache["scenario"] = instantiate(ctx.cfg.scenario, dtype=ctx.dtype, device=ctx.device)
-    return _unit(ctx, ctx.cache["scenario"], float(ratio), float(source_R), key, list(ctx.cfg.estimator_names),
+    scenario = ctx.memo("scenario", lambda: instantiate(ctx.cfg.scenario, dtype=ctx.dtype, device=ctx.device))
+    return _unit(ctx, scenario, float(ratio), float(source_R), key, list(ctx.cfg.estimator_names),
                  curves=curves)
 
 
 def run(ctx: StudyContext) -> None:
     cfg = ctx.cfg
     tic = time.perf_counter()
-    scenario = ctx.cache["scenario"] = instantiate(cfg.scenario, dtype=ctx.dtype, device=ctx.device)
+    scenario = ctx.memo("scenario", lambda: instantiate(cfg.scenario, dtype=ctx.dtype, device=ctx.device))
     ratio, source_R = float(cfg.source.ratio), float(cfg.source.R)
     build_estimators(scenario, source_R, cfg, list(cfg.estimator_names))  # a bad name: an error before any unit
     R = float(scenario.measurement.R.reshape(-1)[0])

@@ -202,12 +202,12 @@ def _estimate_mean(belief) -> Tensor:
 
 def _data(ctx: StudyContext):
     """``(scenario, truth, z)``: the scenario and its run-indexed data, simulated once per process."""
-    if "data" not in ctx.cache:
+    def simulate():
         scenario, data_scenario = ctx.scenarios(ctx.cfg.scenario)
         truth, _, z = ctx.simulate_runs(data_scenario.simulate, int(ctx.cfg.mc_runs), "data", scenario.name)
-        # float64 draws: the same data in float32 and float64
-        ctx.cache["data"] = (scenario, truth.to(ctx.dtype), z.to(ctx.dtype))
-    return ctx.cache["data"]
+        return scenario, truth.to(ctx.dtype), z.to(ctx.dtype)  # float64 draws: the same data in any dtype
+
+    return ctx.memo("data", simulate)
 
 
 #: the study's unit function (what an executor ships: this path, the config and the arguments)
@@ -230,9 +230,9 @@ def unit(ctx: StudyContext, *, name: str, kind: str, est_runs: int) -> dict:
     mode_filter = instantiate(cfg.mode_filter) if kind == "vsmm" else None
     policy = instantiate(cfg.policy) if kind == "vsmm" and cfg.get("policy") else None
     filt = _build(name, kind, scenario, opts, mode_filter, policy)
+    stream = ctx.block_generators("filter", scenario.name, name)
     for b, sl in enumerate(ctx.blocks(est_runs)):
-        gen = ctx.generator("filter", scenario.name, name, "block", b)
-        res = _run(filt, scenario, z[:, sl], hist_steps if b == 0 else set(), gen)
+        res = _run(filt, scenario, z[:, sl], hist_steps if b == 0 else set(), stream(b))
         err = res["mean"] - truth[:, sl]
         values["pos"].append(err[..., [0, 2]].square().sum(-1).detach())  # (T, block)
         values["vel"].append(err[..., [1, 3]].square().sum(-1).detach())

@@ -135,9 +135,7 @@ def unit(ctx: StudyContext, *, name: str) -> dict:
     h = ctx.cfg.huang
 
     def simulate_runs(draw, n):
-        if "data" not in ctx.cache:
-            ctx.cache["data"] = ctx.simulate_runs(draw, n, "huang", axes=HUANG_AXES)
-        return ctx.cache["data"]
+        return ctx.memo("data", lambda: ctx.simulate_runs(draw, n, "huang", axes=HUANG_AXES))
 
     out = run_huang(int(ctx.cfg.mc_runs), None, steps=int(h.steps), nominal_q=h.nominal_q, beta=float(h.beta),
                     tau=float(h.tau), rho=float(h.rho), iterations=int(h.iterations), dtype=ctx.dtype,
