@@ -235,6 +235,7 @@ class Common:
     dtype: str = spec("float64", one_of("float64", "float32", "double", "float"))
     progress: bool = True
     chunk_runs: Optional[int] = spec(None, positive_int)
+    unit_runs: Optional[int] = spec(None, positive_int)
     threads: Optional[int] = spec(1, positive_int)
     retain_freed_memory: bool = False
     resume: Optional[str] = spec(None, _resume)
@@ -244,6 +245,12 @@ class Common:
     executor: ExecutorConfig = field(default_factory=ExecutorConfig)
     mode_filter: ModeFilter = field(default_factory=ModeFilter)
     policy: Policy = field(default_factory=Policy)
+
+    def config_check(self):
+        if self.unit_runs is not None and self.unit_runs % self.block_runs:
+            return ("unit_runs", self.unit_runs,
+                    f"must be a multiple of block_runs ({self.block_runs}): a unit holds whole random-number blocks")
+        return None
 
 
 #: top-level keys that are neither common nor a study's own: checked separately

@@ -14,6 +14,7 @@ and sensor models), the model-set policy of ``vsmm`` from the ``policy`` group (
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -29,8 +30,8 @@ from torchmm.run import Trajectory
 
 from experiments.uncertainty import armse_se, rmse_se_per_step
 
-__all__ = ["Estimator", "Evaluation", "build_mode_filter", "evaluate", "gpb1", "gpb2", "imm", "kalman",
-           "multiple_model", "starter"]
+__all__ = ["Estimator", "Evaluation", "build_mode_filter", "evaluate", "evaluate_runs", "gpb1", "gpb2", "imm",
+           "kalman", "multiple_model", "reduce_runs", "starter"]
 
 
 @dataclass
@@ -173,13 +174,45 @@ def evaluate(estimator: Estimator, scenario, sim, z: Any, *, chunk_runs: int | N
     each block of ``block_runs`` runs is filtered with its own generator - run-indexed streams: any
     chunking (and any split over workers) gives the same numbers; ``chunk_runs`` is then unused.
     Without them, ``generator`` is one stream for each chunk (the numbers depend on the chunking).
+
+    The same as ``reduce_runs([evaluate_runs(...)])``: a study split into units of runs
+    (``unit_runs``) calls :func:`evaluate_runs` in each unit and :func:`reduce_runs` on their values.
     """
+    values, kept = evaluate_runs(estimator, scenario, sim, z, chunk_runs=chunk_runs, keep_trajectory=keep_trajectory,
+                                 per_step=per_step, generator=generator, block_runs=block_runs,
+                                 generators=generators)
+    evaluation = reduce_runs([values])
+    evaluation.trajectory = kept
+    return evaluation
+
+
+def evaluate_runs(estimator: Estimator, scenario, sim, z: Any, *, chunk_runs: int | None = None,
+                  keep_trajectory: bool = False,
+                  per_step: dict[str, Callable[[Trajectory], Tensor]] | None = None,
+                  generator: torch.Generator | None = None,
+                  block_runs: int | None = None,
+                  generators: Callable[[int], torch.Generator] | None = None,
+                  first_run: int = 0) -> tuple[dict, Trajectory | None]:
+    """The per-run values of ``estimator`` on the runs of ``sim`` and ``z`` (a unit's runs): what
+    :func:`reduce_runs` turns into an :class:`Evaluation`, and the kept trajectory (or None).
+
+    Arguments as :func:`evaluate` (``keep_trajectory="all"``: every chunk's trajectory, joined along
+    the runs); ``first_run`` (a multiple of ``block_runs``) is the study-wide index
+    of the first run here, so that block ``b`` of these runs draws from ``generators(first_run //
+    block_runs + b)`` wherever the unit runs. The value is small to ship and exact to store (numpy,
+    ``experiments.harness.per_run``): ``pos``/``vel`` squared errors ``(T, runs)`` (the standard errors
+    need them per run), and sums over these runs of the NEES, the mode hits and each ``per_step``
+    statistic.
+    """
+    from experiments.harness import per_run
+
     leaf = pytree.tree_leaves(z)[0]
     runs = leaf.shape[1]
-    steps = leaf.shape[0]
     if estimator.filter.uses_generator and block_runs and generators is not None:
         block = int(block_runs)  # each block of runs filtered alone, on its own stream
-        pieces = [(slice(s, min(s + block, runs)), s // block) for s in range(0, runs, block)]
+        if first_run % block:
+            raise ValueError(f"evaluate_runs: first_run {first_run} is not a multiple of block_runs ({block})")
+        pieces = [(slice(s, min(s + block, runs)), (first_run + s) // block) for s in range(0, runs, block)]
     else:
         chunk = runs if not chunk_runs else int(chunk_runs)
         pieces = [(slice(s, min(s + chunk, runs)), None) for s in range(0, runs, chunk)]
@@ -204,22 +237,55 @@ def evaluate(estimator: Estimator, scenario, sim, z: Any, *, chunk_runs: int | N
             values["hits"].append((traj.belief.mode_log_probs.argmax(-1) == sim.modes[:, sl]).to(est.mean.dtype))
         for key, fn in per_step.items():
             extra[key].append(fn(traj).detach())
-        if keep_trajectory and kept is None:
-            kept = traj
-    joined = {key: torch.cat(v, 1) for key, v in values.items() if v}  # (T, runs): one reduction each
-    sq_pos_all, sq_vel_all = joined["pos"].to(torch.float64), joined["vel"].to(torch.float64)
+        if keep_trajectory == "all" or (keep_trajectory and kept is None):
+            kept = traj if kept is None else _join_trajectories(kept, traj)
+    joined = {key: torch.cat(v, 1) for key, v in values.items() if v}  # (T, runs)
+    return {
+        "pos": per_run(joined["pos"]), "vel": per_run(joined["vel"]),
+        "nees_sum": per_run(joined["nees"].sum(1)),
+        "hits_sum": per_run(joined["hits"].sum(1)) if estimator.multiple_model else None,
+        "sums": {key: per_run(torch.cat(v, 1).sum(1)) for key, v in extra.items()},
+        "runs": runs, "elapsed": elapsed, "state_dim": int(sim.states.shape[-1]),
+    }, kept
+
+
+def _join_trajectories(a: Trajectory, b: Trajectory) -> Trajectory:
+    """Two trajectories of consecutive runs as one (every field is time-major: runs on axis 1)."""
+    def cat(x, y):
+        return None if x is None else pytree.tree_map(lambda s, t: torch.cat([s, t], 1), x, y)
+
+    return Trajectory(**{f.name: cat(getattr(a, f.name), getattr(b, f.name)) for f in dataclasses.fields(Trajectory)})
+
+
+def reduce_runs(parts: list[dict]) -> Evaluation:
+    """One :class:`Evaluation` from the :func:`evaluate_runs` values of consecutive units of runs, in
+    run order (the order of arrival never matters): per-run values joined, sums added, then reduced
+    once - a single part gives exactly :func:`evaluate`'s numbers."""
+    def cat(key):
+        return torch.cat([torch.as_tensor(p[key]) for p in parts], 1)
+
+    def add(get):
+        total = torch.as_tensor(get(parts[0]))
+        for p in parts[1:]:
+            total = total + torch.as_tensor(get(p))
+        return total
+
+    runs = sum(int(p["runs"]) for p in parts)
+    pos, vel = cat("pos"), cat("vel")
+    steps = pos.shape[0]
+    sq_pos_all, sq_vel_all = pos.to(torch.float64), vel.to(torch.float64)
+    multiple_model = parts[0]["hits_sum"] is not None
     return Evaluation(
-        pos_rmse=(joined["pos"].sum(1) / runs).sqrt(),
-        vel_rmse=(joined["vel"].sum(1) / runs).sqrt(),
-        nees=joined["nees"].sum(1) / runs,
-        mode_accuracy=(joined["hits"].sum(1) / runs) if estimator.multiple_model else None,
-        seconds_per_step=elapsed / steps,
-        trajectory=kept,
-        means={key: torch.cat(v, 1).sum(1) / runs for key, v in extra.items()},
+        pos_rmse=(pos.sum(1) / runs).sqrt(),
+        vel_rmse=(vel.sum(1) / runs).sqrt(),
+        nees=add(lambda p: p["nees_sum"]) / runs,
+        mode_accuracy=(add(lambda p: p["hits_sum"]) / runs) if multiple_model else None,
+        seconds_per_step=sum(float(p["elapsed"]) for p in parts) / steps,
+        means={key: add(lambda p, k=key: p["sums"][k]) / runs for key in parts[0]["sums"]},
         pos_rmse_se=armse_se(sq_pos_all),
         vel_rmse_se=armse_se(sq_vel_all),
         pos_rmse_band=rmse_se_per_step(sq_pos_all),
         vel_rmse_band=rmse_se_per_step(sq_vel_all),
         runs=runs,
-        state_dim=int(sim.states.shape[-1]),
+        state_dim=int(parts[0]["state_dim"]),
     )

@@ -60,6 +60,72 @@ def _jsonable(value: Any) -> Any:
     return value
 
 
+# -- per-run arrays in the checkpoint ---------------------------------------------------------------
+#: a unit's value may hold numpy arrays (per-run values of its runs, e.g. squared errors ``(T, runs)``):
+#: they are written to ``units/<key>.npz`` (exact, binary) and ``checkpoint.json`` holds a reference
+ARRAY_REF = "__array__"
+
+
+def per_run(tensor: torch.Tensor):
+    """A unit's per-run values as a numpy array (exact: the same bits in any executor and on resume)."""
+    return tensor.detach().cpu().numpy()
+
+
+def _arrays_file(key: str) -> str:
+    safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in key)[:80]
+    return f"units/{safe}-{hashlib.sha256(key.encode()).hexdigest()[:8]}.npz"
+
+
+def _array_refs(key: str, value: Any, output_dir: Path) -> Any:
+    """``value`` with its numpy arrays replaced by a reference to ``units/<key>.npz`` (written here)."""
+    import numpy as np
+
+    arrays: dict[str, Any] = {}
+
+    def walk(v):
+        if isinstance(v, np.ndarray):
+            name = f"a{len(arrays)}"
+            arrays[name] = v
+            return {ARRAY_REF: name}
+        if isinstance(v, dict):
+            return {k: walk(x) for k, x in v.items()}
+        if isinstance(v, (list, tuple)):
+            return [walk(x) for x in v]
+        return v
+
+    refs = walk(value)
+    if arrays:
+        rel = _arrays_file(key)
+        path = output_dir / rel
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.name + ".tmp.npz")
+        np.savez(tmp, **arrays)
+        os.replace(tmp, path)
+        refs = {ARRAY_REF + "file": rel, "value": refs}
+    return refs
+
+
+def _load_arrays(value: Any, output_dir: Path) -> Any:
+    """Inverse of :func:`_array_refs`: a checkpointed value with its arrays read back."""
+    import numpy as np
+
+    if not (isinstance(value, dict) and ARRAY_REF + "file" in value):
+        return value
+    with np.load(output_dir / value[ARRAY_REF + "file"]) as data:
+        arrays = {name: data[name] for name in data.files}
+
+    def walk(v):
+        if isinstance(v, dict):
+            if set(v) == {ARRAY_REF}:
+                return arrays[v[ARRAY_REF]]
+            return {k: walk(x) for k, x in v.items()}
+        if isinstance(v, list):
+            return [walk(x) for x in v]
+        return v
+
+    return walk(value["value"])
+
+
 def _write_atomic(path: Path, text: str) -> None:
     tmp = path.with_suffix(path.suffix + ".tmp")
     tmp.write_text(text)
@@ -374,6 +440,8 @@ class StudyContext:
     bar_label: str = ""
     bar_position: int | None = None
     _checkpoint: dict = field(default_factory=dict)
+    #: the checkpoint as written to checkpoint.json (arrays as references to units/*.npz)
+    _checkpoint_refs: dict = field(default_factory=dict)
     _config_hash: str = ""
     _result_config: dict = field(default_factory=dict)
     #: the resolved config (JSON): what travels to workers
@@ -409,18 +477,37 @@ class StudyContext:
         size = self.block_runs
         return [slice(start, min(start + size, runs)) for start in range(0, int(runs), size)]
 
+    @property
+    def unit_runs(self) -> int | None:
+        """Runs per unit (``unit_runs``, a multiple of :attr:`block_runs`); None: one unit per setting."""
+        value = self.cfg.get("unit_runs")
+        return None if value is None else int(value)
+
+    def run_ranges(self, runs: int) -> list[tuple[int, int]]:
+        """The runs ``0..runs-1`` split into units of :attr:`unit_runs` runs: ``[(start, stop), ...]``
+        (one range of all runs by default). Every start is a multiple of :attr:`block_runs`, so a unit
+        holds whole random-number blocks and simulates, filters and reduces them as the whole study would."""
+        runs, size = int(runs), self.unit_runs or int(runs)
+        if size % self.block_runs and size < runs:
+            raise ValueError(f"unit_runs: {size} is not a multiple of block_runs ({self.block_runs})")
+        return [(start, min(start + size, runs)) for start in range(0, runs, size)]
+
     def simulate_runs(self, simulate: Callable[[int, torch.Generator], Any], runs: int, *key: Any,
-                      axes: Any = 1) -> Any:
+                      axes: Any = 1, start: int = 0) -> Any:
         """Run-indexed random streams: ``simulate(n, generator)`` once per block of runs, with the
         generator of ``(*key, "block", b)``, and the blocks joined along the run axis (time-major
         tensors ``(T, runs, ...)``; :class:`~torchmm.simulate.JumpSimulation`; tuples of them).
 
         The data of run ``i`` depend on the seed, ``key`` and ``i`` only - not on ``mc_runs``, the
         chunking or which worker or machine simulates it: any split of the runs gives the same data.
-        ``axes``: where the outputs hold the runs (:func:`cat_runs`).
+        ``axes``: where the outputs hold the runs (:func:`cat_runs`). ``start`` (a multiple of
+        :attr:`block_runs`): simulate runs ``start..runs-1`` only (a unit's range, :meth:`run_ranges`).
         """
-        stream = self.block_generators(*key)
-        return cat_runs([simulate(b.stop - b.start, stream(i)) for i, b in enumerate(self.blocks(runs))], axes)
+        if start % self.block_runs:
+            raise ValueError(f"simulate_runs: start {start} is not a multiple of block_runs ({self.block_runs})")
+        stream, first = self.block_generators(*key), start // self.block_runs
+        pieces = self.blocks(int(runs) - start)
+        return cat_runs([simulate(b.stop - b.start, stream(first + i)) for i, b in enumerate(pieces)], axes)
 
     def memo(self, key: Any, compute: Callable[[], Any]) -> Any:
         """``compute()`` once per process (its value kept in :attr:`cache` under ``key``): a study's
@@ -476,9 +563,11 @@ class StudyContext:
 
     def _store(self, key: str, value: Any) -> None:
         self._checkpoint[key] = value
+        self._checkpoint_refs[key] = _array_refs(key, value, self.output_dir)  # arrays: units/<key>.npz
         _write_atomic(self.output_dir / "checkpoint.json",
                       json.dumps({"config_hash": self._config_hash, "config": self._result_config,
-                                  "units": self._checkpoint}, default=str) + "\n")
+                                  "units": self._checkpoint_refs}, 
+                                 default=str) + "\n")
 
     @property
     def executor(self):
@@ -540,7 +629,9 @@ def unique_dir(base: str) -> str:
 
 #: keys that do not change a study's numbers: a checkpoint made with other values is reused
 #: (``chunk_runs``: identical bit for bit - run-indexed streams, per-run reductions; docs/scaling.md)
-NON_RESULT_KEYS = ("progress", "logger", "threads", "chunk_runs", "retain_freed_memory", "executor", "resume")
+#: (``unit_runs``: the same to rounding - a unit's runs are filtered in one batch - and its own unit keys)
+NON_RESULT_KEYS = ("progress", "logger", "threads", "chunk_runs", "unit_runs", "retain_freed_memory", "executor",
+                   "resume")
 
 
 def result_config(config_dict: dict) -> dict:
@@ -599,13 +690,15 @@ def open_context(cfg: Any, output_dir: Path, config_dict: dict, experiment: str,
     kept = result_config(config_dict)
     digest = config_hash(config_dict)
     checkpoint: dict = {}
+    refs: dict = {}
     ckpt_path, results_path = output_dir / "checkpoint.json", output_dir / "results.json"
     saved_hash = saved_config = None
     if ckpt_path.exists():
         saved = json.loads(ckpt_path.read_text())
         saved_hash, saved_config = saved.get("config_hash"), saved.get("config")
         if saved_hash == digest:
-            checkpoint = saved.get("units", {})
+            refs = saved.get("units", {})
+            checkpoint = {k: _load_arrays(v, output_dir) for k, v in refs.items()}
             log.info("found %d finished units in %s", len(checkpoint), ckpt_path)
     elif results_path.exists():  # a finished study without units: compare the configs it recorded
         recorded = json.loads(results_path.read_text()).get("config") or {}
@@ -627,6 +720,7 @@ def open_context(cfg: Any, output_dir: Path, config_dict: dict, experiment: str,
         seed=int(cfg.seed),
         progress=bool(cfg.get("progress", True)),
         _checkpoint=checkpoint,
+        _checkpoint_refs=refs,
         _config_hash=digest,
         _result_config=json.loads(json.dumps(kept, default=str)),
         _config=json.loads(json.dumps(config_dict, default=str)),

@@ -135,77 +135,106 @@ def _oracle(data, steps: int):
     return traj.belief.mean, traj.prior.cov
 
 
-def _srnfn(estimate: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
-    """``(1/(d^2 Mc) sum_mc ||est - truth||_F^2)^(1/4)`` per step; ``(T, runs, d, d)`` -> ``(T,)``."""
-    d = estimate.shape[-1]
-    return ((estimate - truth).square().sum((-1, -2)).mean(-1) / d**2) ** 0.25
-
-
 #: where simulate()'s outputs hold the runs (time-major truth and z, x̂0 runs first; the rest shared)
 SIM_AXES = {"truth": 1, "z": 1, "F": None, "Q": None, "e_mean": None, "e_cov": None, "xhat0": 0, "P0": None}
 
 
 def run_unit(g, noise_kind: str, noise_params, runs: int, generator, *, dtype, device,
-             with_oracle: bool, progress: bool = False, simulate_runs=None) -> dict:
-    """``simulate_runs(draw, runs)`` (the study's run-indexed blocks) simulates instead of one stream
-    from ``generator``."""
+             with_oracle: bool, progress: bool = False, simulate_runs=None, start: int = 0) -> dict:
+    """Every filter on runs ``start..runs-1`` of the data: per-run squared errors and sums over these
+    runs of the per-step statistics, per estimator (one value of a setting's units: :func:`merge`).
+    ``simulate_runs(draw, runs, start)`` (the study's run-indexed blocks) simulates instead of one
+    stream from ``generator``."""
+    from experiments.harness import per_run
+
     R, delta, nu = float(noise_params.R), float(noise_params.delta), float(noise_params.nu)
     steps = int(g.steps)
     # simulated in float64 and cast: float32 and float64 runs see the same data
     def draw(n, gen):
         return simulate(g, n, gen, noise_kind, R, delta, nu, dtype=torch.float64, device=device)
 
-    data = draw(runs, generator) if simulate_runs is None else simulate_runs(draw, runs)
+    data = draw(runs - start, generator) if simulate_runs is None else simulate_runs(draw, runs, start)
     data = {k: v.to(dtype) if isinstance(v, torch.Tensor) and v.is_floating_point() else v for k, v in data.items()}
     truth = data["truth"]
+    n = truth.shape[1]
     oracle_mean, oracle_pred = _oracle(data, steps)
     estimators = build_estimators(g, R, delta, nu, dtype=dtype, device=device)
-    start = GaussianBelief(data["xhat0"], data["P0"].expand(runs, 4, 4))
+    start_belief = GaussianBelief(data["xhat0"], data["P0"].expand(n, 4, 4))
+
+    def errors(mean):
+        err = mean - truth
+        return {"pos": per_run(err[..., [0, 2]].square().sum(-1)), "vel": per_run(err[..., [1, 3]].square().sum(-1)),
+                "runs": n, "finite": bool(torch.isfinite(mean).all())}
+
+    def frobenius(estimate, reference):  # per step, summed over these runs: (T,)
+        return per_run((estimate - reference).square().sum((-1, -2)).sum(-1))
+
     out = {}
     for name, est in estimators.items():
-        b0 = est.initial_belief(start) if name in ("IMM-VBT", "GIMMAF", "VBAKF-PR") else start
+        b0 = est.initial_belief(start_belief) if name in ("IMM-VBT", "GIMMAF", "VBAKF-PR") else start_belief
         tic = time.perf_counter()
         traj = run_filter(est, b0, data["z"], record=lambda o: o._replace(prior=None),
                           progress=f"{noise_kind}: {name}" if progress else False)
         mean = traj.estimate().mean
-        seconds_per_step = (time.perf_counter() - tic) / steps
+        seconds = time.perf_counter() - tic
         extras = traj.extras.get("modes", traj.extras)
         if "modes" in traj.extras:
             w = traj.belief.mode_probs[..., None, None]
             P_hat = (w * extras["predicted_cov"]).sum(-3)
             R_hat = (w * extras["noise_cov"]).sum(-3)
-            mode_probs = traj.belief.mode_probs.mean(1)
+            mode_probs = per_run(traj.belief.mode_probs.sum(1))
         else:
             P_hat, R_hat, mode_probs = extras["predicted_cov"], extras["noise_cov"], None
-        err = mean - truth
-        entry = {
-            "pos": err[..., [0, 2]].square().sum(-1).mean(-1).sqrt(),
-            "vel": err[..., [1, 3]].square().sum(-1).mean(-1).sqrt(),
-            **_uncertainty(err),
-            "srnfn_P": _srnfn(P_hat, oracle_pred),
-            "srnfn_R": _srnfn(R_hat, data["e_cov"].expand_as(R_hat)),
-            "finite": bool(torch.isfinite(mean).all()),
-            "seconds_per_step": seconds_per_step,
-        }
+        entry = {**errors(mean), "srnfn_P_sum": frobenius(P_hat, oracle_pred),
+                 "srnfn_R_sum": frobenius(R_hat, data["e_cov"].expand_as(R_hat)),
+                 "d": [int(P_hat.shape[-1]), int(R_hat.shape[-1])],
+                 "seconds": seconds, "steps": steps}
         if mode_probs is not None:
-            entry["mode_probs"] = mode_probs
+            entry["mode_probs_sum"] = mode_probs
         if "elbo" in extras:
-            entry["elbo_iterations"] = extras["elbo"].flatten(0, -2).mean(0)
+            elbo = extras["elbo"].flatten(0, -2)
+            entry["elbo_sum"], entry["elbo_count"] = per_run(elbo.sum(0)), elbo.shape[0]
         out[name] = entry
     if with_oracle:
-        err = oracle_mean - truth
-        out["KF-oracle"] = {"pos": err[..., [0, 2]].square().sum(-1).mean(-1).sqrt(),
-                            "vel": err[..., [1, 3]].square().sum(-1).mean(-1).sqrt(), "finite": True,
-                            **_uncertainty(err)}
-    return {name: {k: (v.tolist() if torch.is_tensor(v) else v) for k, v in e.items()}
-            for name, e in out.items()}
+        out["KF-oracle"] = errors(oracle_mean)
+        out["KF-oracle"]["finite"] = True
+    return out
 
 
-def _uncertainty(err: torch.Tensor) -> dict:
-    """Monte Carlo standard errors from the estimation errors ``(T, runs, 4)``: the delta-method SE of the
-    position / velocity ARMSE (floats) and of each step's RMSE (``(T,)`` bands)."""
-    sq_pos = err[..., [0, 2]].square().sum(-1).to(torch.float64)  # (T, runs)
-    sq_vel = err[..., [1, 3]].square().sum(-1).to(torch.float64)
+def merge(parts: list[dict]) -> dict:
+    """A setting's units of runs (in run order) as one value per estimator: RMSE curves, standard
+    errors, SRNFN curves, finiteness, mean mode probabilities and ELBO, seconds per step."""
+    out = {}
+    for name, first in parts[0].items():
+        mine = [p[name] for p in parts]
+        runs = sum(m["runs"] for m in mine)
+
+        def add(key):
+            total = torch.as_tensor(mine[0][key])
+            for m in mine[1:]:
+                total = total + torch.as_tensor(m[key])
+            return total
+
+        sq_pos, sq_vel = (torch.cat([torch.as_tensor(m[k]) for m in mine], 1) for k in ("pos", "vel"))
+        entry = {"pos": (sq_pos.sum(1) / runs).sqrt(), "vel": (sq_vel.sum(1) / runs).sqrt(),
+                 **_uncertainty(sq_pos, sq_vel), "finite": all(m["finite"] for m in mine)}
+        if "srnfn_P_sum" in first:
+            d_P, d_R = first["d"]  # SRNFN: (1/(d^2 runs) sum_runs ||est - truth||_F^2)^(1/4) per step
+            entry["srnfn_P"] = (add("srnfn_P_sum") / runs / d_P**2) ** 0.25
+            entry["srnfn_R"] = (add("srnfn_R_sum") / runs / d_R**2) ** 0.25
+            entry["seconds_per_step"] = sum(m["seconds"] for m in mine) / first["steps"]
+        if "mode_probs_sum" in first:
+            entry["mode_probs"] = add("mode_probs_sum") / runs
+        if "elbo_sum" in first:
+            entry["elbo_iterations"] = add("elbo_sum") / sum(m["elbo_count"] for m in mine)
+        out[name] = {k: (v.tolist() if torch.is_tensor(v) else v) for k, v in entry.items()}
+    return out
+
+
+def _uncertainty(sq_pos: torch.Tensor, sq_vel: torch.Tensor) -> dict:
+    """Monte Carlo standard errors from the squared position / velocity errors ``(T, runs)``: the
+    delta-method SE of the ARMSEs (floats) and of each step's RMSE (``(T,)`` bands)."""
+    sq_pos, sq_vel = sq_pos.to(torch.float64), sq_vel.to(torch.float64)
     return {"pos_se": armse_se(sq_pos), "vel_se": armse_se(sq_vel),
             "pos_band": rmse_se_per_step(sq_pos), "vel_band": rmse_se_per_step(sq_vel)}
 
@@ -220,14 +249,15 @@ def _segments_labels(g) -> list[str]:
 UNIT = "experiments.studies.gimmaf:unit"
 
 
-def unit(ctx: StudyContext, *, table: str, kind: str) -> dict:
-    """Table 2 (``table="table2"``, the main noise) or one Table 4 noise ``kind``: every filter on its
-    run-indexed data; a function of the config and these arguments only."""
+def unit(ctx: StudyContext, *, table: str, kind: str, start: int, stop: int) -> dict:
+    """Table 2 (``table="table2"``, the main noise) or one Table 4 noise ``kind``: every filter on runs
+    ``start..stop-1`` of its run-indexed data; a function of the config and these arguments only."""
     g = ctx.cfg.gimmaf
     params = g.noise if table == "table2" else g.table4.noise
-    return run_unit(g, kind, params, int(ctx.cfg.mc_runs), None, dtype=ctx.dtype, device=ctx.device,
+    return run_unit(g, kind, params, stop, None, dtype=ctx.dtype, device=ctx.device, start=start,
                     progress=ctx.progress, with_oracle=bool(g.oracle),
-                    simulate_runs=lambda draw, n: ctx.simulate_runs(draw, n, "data", kind, table, axes=SIM_AXES))
+                    simulate_runs=lambda draw, n, a: ctx.simulate_runs(draw, n, "data", kind, table, axes=SIM_AXES,
+                                                                      start=a))
 
 
 def run(ctx: StudyContext) -> None:
@@ -244,10 +274,14 @@ def run(ctx: StudyContext) -> None:
     )
     # Table 2 and every Table 4 noise are units, all at once: an executor (executor=processes|slurm|ray)
     # runs them side by side
+    # (and each range of runs, unit_runs=...; a setting's ranges are merged in run order)
     todo = [("table2", main_kind)] + [("table4", str(kind)) for kind in g.table4.noises]
-    values = ctx.map_units([Unit(f"{table}/{kind}", UNIT, {"table": table, "kind": kind}) for table, kind in todo],
-                           desc="units")
-    value_of = dict(zip(todo, values))
+    ranges = ctx.run_ranges(runs)
+    parts = ctx.map_units([Unit(f"{table}/{kind}/runs{a}-{b}", UNIT, {"table": table, "kind": kind, "start": a,
+                                                                      "stop": b})
+                           for table, kind in todo for a, b in ranges], desc="units")
+    n = len(ranges)
+    value_of = {setting: merge(parts[i * n:(i + 1) * n]) for i, setting in enumerate(todo)}
     main = value_of[("table2", main_kind)]
     t2 = ctx.results.table(
         "table2", ["estimator", "pos_armse", "vel_armse", "finite", "pos_armse_se", "vel_armse_se",

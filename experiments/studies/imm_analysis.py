@@ -18,7 +18,7 @@ import logging
 import torch
 from hydra.utils import instantiate
 
-from experiments.estimators import evaluate
+from experiments.estimators import evaluate_runs, reduce_runs
 from experiments.executors import Unit
 from experiments.harness import StudyContext
 from experiments.studies import plots
@@ -43,19 +43,20 @@ STATEMENTS = {
 }
 
 
-def _analyse(ctx: StudyContext, scenario, sim, z, alpha: float) -> dict:
-    """One (scenario, alpha) unit: RMSE of every estimator, conclusion and bound counts."""
+def _analyse(ctx: StudyContext, scenario, sim, z, alpha: float, start: int = 0) -> dict:
+    """One (scenario, alpha) unit on the runs of ``sim``/``z`` (runs ``start..``): every estimator's
+    per-run values (:func:`~experiments.estimators.evaluate_runs`), conclusion and bound counts, and
+    sums of delta(k) and zeta(k) - all additive over units of runs (:func:`_merge`)."""
     cfg, acfg = ctx.cfg, ctx.cfg.analysis
     M = scenario.num_modes
     alphas = torch.full((M,), float(alpha), dtype=ctx.dtype, device=ctx.device)
     transition = alpha_transition(alphas)
-    out: dict = {"rmse": {}, "bounds": {}}
+    out: dict = {"runs": {}, "bounds": {}}
     for name, ecfg in cfg.estimators.items():
         est = instantiate(ecfg)(scenario, name=name, transition=transition)
-        ev = evaluate(est, scenario, sim, z, keep_trajectory=True, block_runs=ctx.block_runs,
-                      generators=ctx.block_generators("filter", alpha, name))
-        out["rmse"][name] = ev.summary()
-        traj = ev.trajectory
+        out["runs"][name], traj = evaluate_runs(est, scenario, sim, z, keep_trajectory="all",  # every run
+                                                block_runs=ctx.block_runs, first_run=start,
+                                                generators=ctx.block_generators("filter", alpha, name))
         # (3.2)/(3.3) and (3.8): posterior u(k) and predicted u^0(k) of the next cycle
         probs = traj.belief.mode_probs[:-1]
         predicted = traj.prior.mode_log_probs[1:].exp()
@@ -77,9 +78,29 @@ def _analyse(ctx: StudyContext, scenario, sim, z, alpha: float) -> dict:
             outside = chk.applicable & ~chk.premise
             out["conclusions"][str(c)] = [int(chk.premise.sum()), int((chk.premise & chk.holds).sum()),
                                           int(outside.sum()), int((outside & chk.holds).sum())]
-        out["mean_delta"] = delta_ratio(alphas, probs, matched).mean().item()
-        out["mean_zeta"] = zeta_ratio(transition, probs, matched).mean().item() if M == 2 else None
-        out["delta_over_time"] = delta_ratio(alphas, probs, matched).mean(-1).tolist()
+        delta = delta_ratio(alphas, probs, matched)  # (T-1, runs)
+        out["delta_sum"], out["delta_count"] = delta.sum().item(), delta.numel()
+        out["delta_over_time_sum"] = delta.sum(-1).tolist()
+        out["zeta_sum"] = zeta_ratio(transition, probs, matched).sum().item() if M == 2 else None
+    return out
+
+
+def _merge(parts: list[dict]) -> dict:
+    """A (scenario, alpha) setting's units of runs, in run order, as one value: RMSE summaries,
+    conclusion and bound counts, mean delta and zeta, delta(k) over time."""
+    first = parts[0]
+    runs = sum(int(p["runs"][next(iter(p["runs"]))]["runs"]) for p in parts)
+    out: dict = {"rmse": {name: reduce_runs([p["runs"][name] for p in parts]).summary() for name in first["runs"]},
+                 "bounds": {key: [sum(p["bounds"][key][i] for p in parts) for i in range(2)]
+                            for key in first["bounds"]}}
+    if "conclusions" in first:
+        out["conclusions"] = {c: [sum(p["conclusions"][c][i] for p in parts) for i in range(4)]
+                              for c in first["conclusions"]}
+        count = sum(p["delta_count"] for p in parts)
+        out["mean_delta"] = sum(p["delta_sum"] for p in parts) / count
+        out["mean_zeta"] = sum(p["zeta_sum"] for p in parts) / count if first["zeta_sum"] is not None else None
+        steps = len(first["delta_over_time_sum"])
+        out["delta_over_time"] = [sum(p["delta_over_time_sum"][k] for p in parts) / runs for k in range(steps)]
     return out
 
 
@@ -87,20 +108,24 @@ def _analyse(ctx: StudyContext, scenario, sim, z, alpha: float) -> dict:
 UNIT = "experiments.studies.imm_analysis:unit"
 
 
-def _data(ctx: StudyContext, key: str):
-    """``(scenario, sim, z)`` of ``analysis.scenarios[key]``, simulated once per process from the seed."""
+def _data(ctx: StudyContext, key: str, start: int = 0, stop: int | None = None):
+    """``(scenario, sim, z)`` of ``analysis.scenarios[key]``, runs ``start..stop-1`` (all by default),
+    simulated once per process from the seed."""
+    stop = int(ctx.cfg.mc_runs) if stop is None else stop
+
     def simulate():
         scenario, data_scenario = ctx.scenarios(ctx.cfg.analysis.scenarios[key])
-        sim, z = ctx.simulate_runs(data_scenario.simulate, int(ctx.cfg.mc_runs), "data", scenario.name)
+        sim, z = ctx.simulate_runs(data_scenario.simulate, stop, "data", scenario.name, start=start)
         return scenario, sim.to(ctx.dtype), z.to(ctx.dtype)  # the same data in any dtype
 
-    return ctx.memo(("data", key), simulate)
+    return ctx.memo(("data", key, start, stop), simulate)
 
 
-def unit(ctx: StudyContext, *, scenario: str, alpha: float) -> dict:
-    """One (scenario, alpha) unit; a function of the config and these arguments only."""
-    scen, sim, z = _data(ctx, scenario)
-    return _analyse(ctx, scen, sim, z, float(alpha))
+def unit(ctx: StudyContext, *, scenario: str, alpha: float, start: int, stop: int) -> dict:
+    """One (scenario, alpha) setting on runs ``start..stop-1``; a function of the config and these
+    arguments only."""
+    scen, sim, z = _data(ctx, scenario, start, stop)
+    return _analyse(ctx, scen, sim, z, float(alpha), start)
 
 
 def run(ctx: StudyContext) -> None:
@@ -119,10 +144,15 @@ def run(ctx: StudyContext) -> None:
     )
     # one unit per (scenario, alpha), all at once: an executor (executor=processes|slurm|ray) runs them
     # side by side; each simulates (or reuses, per process) its scenario's data from the seed
+    # (and each range of runs, unit_runs=...)
     todo = [(key, float(alpha)) for key in acfg.scenarios for alpha in acfg.alphas[key]]
-    values = ctx.map_units([Unit(f"{key}/alpha={alpha}", UNIT, {"scenario": key, "alpha": alpha})
-                            for key, alpha in todo], desc="alpha sweep")
-    units = [(_data(ctx, key)[0].num_modes, alpha, value) for (key, alpha), value in zip(todo, values)]
+    ranges = ctx.run_ranges(cfg.mc_runs)
+    values = ctx.map_units([Unit(f"{key}/alpha={alpha}/runs{a}-{b}", UNIT,
+                                 {"scenario": key, "alpha": alpha, "start": a, "stop": b})
+                            for key, alpha in todo for a, b in ranges], desc="alpha sweep")
+    n = len(ranges)
+    units = [(ctx.scenarios(acfg.scenarios[key])[0].num_modes, alpha, _merge(values[i * n:(i + 1) * n]))
+             for i, (key, alpha) in enumerate(todo)]
     _tables(ctx, units)
     _curves(ctx, units)
     _figures(ctx, units)

@@ -12,7 +12,7 @@ import logging
 import torch
 from hydra.utils import instantiate
 
-from experiments.estimators import evaluate
+from experiments.estimators import evaluate_runs, reduce_runs
 from experiments.uncertainty import chi2_interval
 from experiments.executors import Unit
 from experiments.harness import StudyContext
@@ -21,39 +21,40 @@ from experiments.studies import plots
 log = logging.getLogger("torchmm.experiments")
 
 
-def _data(ctx: StudyContext):
-    """``(scenario, sim, z)``: the scenario and its run-indexed data, simulated once per process."""
+def _data(ctx: StudyContext, start: int = 0, stop: int | None = None):
+    """``(scenario, sim, z)``: the scenario and its run-indexed data of runs ``start..stop-1`` (all
+    by default), simulated once per process."""
+    stop = int(ctx.cfg.mc_runs) if stop is None else stop
+
     def simulate():
         scenario, data_scenario = ctx.scenarios(ctx.cfg.scenario)
-        sim, z = ctx.simulate_runs(data_scenario.simulate, int(ctx.cfg.mc_runs), "data", scenario.name)
+        sim, z = ctx.simulate_runs(data_scenario.simulate, stop, "data", scenario.name, start=start)
         return scenario, sim.to(ctx.dtype), z.to(ctx.dtype)  # the same data in any dtype
 
-    return ctx.memo("data", simulate)
+    return ctx.memo(("data", start, stop), simulate)
 
 
 #: the study's unit function (what an executor ships: this path, the config and the arguments)
 UNIT = "experiments.studies.imm_baseline:unit"
 
 
-def unit(ctx: StudyContext, *, name: str) -> dict:
-    """Estimator ``name`` on every run: its summary, per-step curves and run 0's mode probabilities."""
-    scenario, sim, z = _data(ctx)
+def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
+    """Estimator ``name`` on runs ``start..stop-1`` (``ctx.run_ranges``): per-run values
+    (:func:`~experiments.estimators.evaluate_runs`), and run 0's mode probabilities in the first unit."""
+    scenario, sim, z = _data(ctx, start, stop)
     est = instantiate(ctx.cfg.estimators[name])(scenario, name=name)
     stats = {"mode_probs": lambda traj: traj.belief.mode_probs} if est.multiple_model else {}
-    ev = evaluate(est, scenario, sim, z, chunk_runs=ctx.cfg.get("chunk_runs"), keep_trajectory=True,
-                  per_step=stats, block_runs=ctx.block_runs,
-                  generators=ctx.block_generators("filter", scenario.name, est.name))
-    mm = est.multiple_model
-    return {"summary": ev.summary(), "seconds_per_step": ev.seconds_per_step, "runs": ev.runs,
-            "state_dim": ev.state_dim, "pos": ev.pos_rmse, "vel": ev.vel_rmse, "pos_se": ev.pos_rmse_band,
-            "vel_se": ev.vel_rmse_band, "nees": ev.nees, "mode_accuracy": ev.mode_accuracy if mm else None,
-            "mode_probs": ev.means["mode_probs"] if mm else None,  # average over all runs, (T, M)
-            "example": ev.trajectory.belief.mode_probs[:, 0] if mm else None}  # run 0, (T, M)
+    values, kept = evaluate_runs(est, scenario, sim, z, chunk_runs=ctx.cfg.get("chunk_runs"),
+                                 keep_trajectory=start == 0, per_step=stats, block_runs=ctx.block_runs,
+                                 generators=ctx.block_generators("filter", scenario.name, est.name), first_run=start)
+    values["example"] = kept.belief.mode_probs[:, 0] if est.multiple_model and kept is not None else None  # (T, M)
+    return values
 
 
 def run(ctx: StudyContext) -> None:
     cfg = ctx.cfg
-    scenario, sim, z = _data(ctx)  # run-indexed streams
+    ranges = ctx.run_ranges(cfg.mc_runs)
+    scenario, sim, z = _data(ctx, *ranges[0])  # run-indexed streams (here: the first unit's runs, for run 0)
     names = list(cfg.estimators)
     for name in names:  # a bad estimator config: an error before any unit runs
         instantiate(cfg.estimators[name])(scenario, name=name)
@@ -71,16 +72,27 @@ def run(ctx: StudyContext) -> None:
     curves = {"position RMSE": {}, "velocity RMSE": {}}
     bands = {"position RMSE": {}, "velocity RMSE": {}}  # per-step standard errors of the curves
     example = None
-    # every estimator is a unit, all at once: an executor (executor=processes|slurm|ray) runs them side by side
-    values = ctx.map_units([Unit(name, UNIT, {"name": name}) for name in names], desc="estimators")
+    # every estimator x range of runs is a unit, all at once: an executor (executor=processes|slurm|ray)
+    # runs them side by side; each estimator's ranges are reduced in run order
+    units = [Unit(f"{name}/runs{a}-{b}", UNIT, {"name": name, "start": a, "stop": b})
+             for name in names for a, b in ranges]
+    parts = ctx.map_units(units, desc="units")
 
     def f64(values):
-        return torch.tensor(values, dtype=torch.float64)
+        return torch.as_tensor(values, dtype=torch.float64)
 
-    for name, v in zip(names, values):
+    for i, name in enumerate(names):
+        mine = parts[i * len(ranges):(i + 1) * len(ranges)]
+        ev = reduce_runs(mine)
+        mm = mine[0]["hits_sum"] is not None  # a multiple-model estimator
+        v = {"summary": ev.summary(), "seconds_per_step": ev.seconds_per_step, "pos": ev.pos_rmse,
+             "vel": ev.vel_rmse, "pos_se": ev.pos_rmse_band, "vel_se": ev.vel_rmse_band, "nees": ev.nees,
+             "mode_accuracy": ev.mode_accuracy if mm else None,
+             "mode_probs": ev.means["mode_probs"] if mm else None,  # average over all runs, (T, M)
+             "example": mine[0]["example"]}  # run 0, (T, M)
         summary = v["summary"]
-        lo, hi = chi2_interval(v["runs"] * v["state_dim"])
-        lo, hi = lo * v["state_dim"], hi * v["state_dim"]  # the interval of the run-averaged NEES
+        lo, hi = chi2_interval(ev.runs * ev.state_dim)
+        lo, hi = lo * ev.state_dim, hi * ev.state_dim  # the interval of the run-averaged NEES
         nees_curve = f64(v["nees"])
         inside = ((nees_curve >= lo) & (nees_curve <= hi)).double().mean().item()
         table.rows.append([name, summary["pos_rmse"], summary["vel_rmse"], summary["nees"],

@@ -27,7 +27,7 @@ import time
 import torch
 from hydra.utils import instantiate
 
-from experiments.estimators import Estimator, build_mode_filter, evaluate, starter
+from experiments.estimators import Estimator, build_mode_filter, evaluate_runs, reduce_runs, starter
 from experiments.executors import Unit
 from experiments.harness import StudyContext
 from experiments.uncertainty import inside, nees_consistency
@@ -76,10 +76,12 @@ def build_estimators(scenario, source_R: float, cfg, names=ESTIMATORS) -> list[E
     return out
 
 
-def simulate(ctx: StudyContext, scenario, ratio: float, source_R: float, key: str):
-    """Truth, target stream and source stream (NaN where ``gamma_k = 0``) for ``mc_runs`` runs."""
+def simulate(ctx: StudyContext, scenario, ratio: float, source_R: float, key: str, start: int = 0,
+             stop: int | None = None):
+    """Truth, target stream and source stream (NaN where ``gamma_k = 0``) for runs ``start..stop-1``
+    (all ``mc_runs`` by default)."""
     cfg = ctx.cfg
-    runs = int(cfg.mc_runs)
+    runs = int(cfg.mc_runs) if stop is None else int(stop)
     scenario = _data_scenario(ctx, scenario)  # float64 draws: the same data in float32 and float64
     dtype = scenario.transition.dtype
     sensor = PositionMeasurement(scenario.motion.state_dim, scenario.position,
@@ -97,7 +99,7 @@ def simulate(ctx: StudyContext, scenario, ratio: float, source_R: float, key: st
                                    generator=g)
         return sim, z
 
-    sim, z = ctx.simulate_runs(draw, runs, "data", key)  # run-indexed streams: blocks of block_runs runs
+    sim, z = ctx.simulate_runs(draw, runs, "data", key, start=start)  # run-indexed streams: blocks of block_runs runs
     sim, z = sim.to(ctx.dtype), type(z)(z.target.to(ctx.dtype), z.source.to(ctx.dtype))
     return sim, z, torch.isfinite(z.source).all(-1)
 
@@ -121,9 +123,12 @@ def _log_sweep(ctx: StudyContext, rows: list, axis: str) -> None:
                 ctx.logger.sweep(f"{quantity}/{name}", xs, values, axis)
 
 
-def _unit(ctx: StudyContext, scenario, ratio: float, source_R: float, key: str, names, curves: bool) -> dict:
-    sim, z, mask = simulate(ctx, scenario, ratio, source_R, key)
-    out: dict = {"summary": {}, "present_fraction": mask.double().mean().item()}
+def _unit(ctx: StudyContext, scenario, ratio: float, source_R: float, key: str, names, curves: bool,
+          start: int, stop: int) -> dict:
+    """Every estimator of ``names`` on runs ``start..stop-1`` of ``key``'s data: per-run values
+    (:func:`~experiments.estimators.evaluate_runs`) and the count of source measurements present."""
+    sim, z, mask = simulate(ctx, scenario, ratio, source_R, key, start, stop)
+    out: dict = {"present": [int(mask.sum()), mask.numel()], "runs": {}}
     for est in build_estimators(scenario, source_R, ctx.cfg, names):
         transfer = isinstance(est.filter, TransferIMM)
         stats = {}  # per-run values (T, chunk, ...) of each chunk, averaged over all runs by evaluate
@@ -134,23 +139,34 @@ def _unit(ctx: StudyContext, scenario, ratio: float, source_R: float, key: str, 
             if transfer:  # influence value (33), m = 1 here
                 stats["influence_abs"] = lambda traj: traj.extras["influence"][..., 0].abs()
                 stats["influence_mean"] = lambda traj: traj.extras["influence"][..., 0]
-        ev = evaluate(est, scenario, sim, z, chunk_runs=ctx.cfg.get("chunk_runs"), per_step=stats,
-                      block_runs=ctx.block_runs, generators=ctx.block_generators("filter", key, est.name))
+        out["runs"][est.name], _ = evaluate_runs(
+            est, scenario, sim, z, chunk_runs=ctx.cfg.get("chunk_runs"), per_step=stats, block_runs=ctx.block_runs,
+            generators=ctx.block_generators("filter", key, est.name), first_run=start)
+    return out
+
+
+def _merge(parts: list[dict], curves: bool) -> dict:
+    """A setting's units of runs (in run order) as one value: each estimator's summary and, with
+    ``curves``, its per-step curves."""
+    present = [sum(p["present"][i] for p in parts) for i in range(2)]
+    out: dict = {"summary": {}, "present_fraction": present[0] / present[1]}
+    for name in parts[0]["runs"]:
+        ev = reduce_runs([p["runs"][name] for p in parts])
         summary = ev.summary()
         summary["seconds_per_step"] = ev.seconds_per_step
         summary["nees_low"], summary["nees_high"], summary["nees_steps_inside"] = nees_consistency(
             ev.nees, ev.runs, ev.state_dim)
         if "transfer_used" in ev.means:
             summary["transfer_fraction"] = ev.means["transfer_used"].mean().item()
-        out["summary"][est.name] = summary
+        out["summary"][name] = summary
         if curves:
             curve = {"pos_rmse": ev.pos_rmse.tolist(), "vel_rmse": ev.vel_rmse.tolist(), "nees": ev.nees.tolist(),
                      "mode_probs": ev.means["mode_probs"].tolist(),
                      "pos_rmse_se": ev.pos_rmse_band.tolist(), "vel_rmse_se": ev.vel_rmse_band.tolist()}
-            if transfer:
+            if "influence_abs" in ev.means:
                 curve["influence_abs"] = ev.means["influence_abs"].tolist()
                 curve["influence_mean"] = ev.means["influence_mean"].tolist()
-            out.setdefault("curves", {})[est.name] = curve
+            out.setdefault("curves", {})[name] = curve
     return out
 
 
@@ -158,12 +174,13 @@ def _unit(ctx: StudyContext, scenario, ratio: float, source_R: float, key: str, 
 UNIT = "experiments.studies.imm_tf:unit"
 
 
-def unit(ctx: StudyContext, *, ratio: float, source_R: float, key: str, curves: bool) -> dict:
-    """One unit: every estimator of ``estimator_names`` on the data of ``key`` (source ratio
-    ``ratio``, source noise ``source_R``); a function of the config and these arguments only."""
+def unit(ctx: StudyContext, *, ratio: float, source_R: float, key: str, curves: bool, start: int, stop: int) -> dict:
+    """One unit: every estimator of ``estimator_names`` on runs ``start..stop-1`` of the data of
+    ``key`` (source ratio ``ratio``, source noise ``source_R``); a function of the config and these
+    arguments only."""
     scenario = ctx.memo("scenario", lambda: instantiate(ctx.cfg.scenario, dtype=ctx.dtype, device=ctx.device))
     return _unit(ctx, scenario, float(ratio), float(source_R), key, list(ctx.cfg.estimator_names),
-                 curves=curves)
+                 curves=curves, start=start, stop=stop)
 
 
 def run(ctx: StudyContext) -> None:
@@ -185,12 +202,18 @@ def run(ctx: StudyContext) -> None:
     # every unit at once, so an executor (executor=processes|slurm|ray) runs them side by side
     ratios = [float(r) for r in cfg.table1_ratios]
     rs_values = [float(v) for v in cfg.rs_sweep]
-    units = [Unit("default", UNIT, {"ratio": ratio, "source_R": source_R, "key": f"source/{ratio}", "curves": True})]
-    units += [Unit(f"table1/{r}", UNIT, {"ratio": r, "source_R": source_R, "key": f"source/{r}", "curves": False})
-              for r in ratios]
-    units += [Unit(f"rs_sweep/{rs}", UNIT, {"ratio": ratio, "source_R": rs, "key": f"source/{ratio}",
-                                            "curves": False}) for rs in rs_values]
-    values = dict(zip((u.key for u in units), ctx.map_units(units, desc="units")))
+    # (and each range of runs, unit_runs=...; a setting's ranges are merged in run order)
+    settings = {"default": {"ratio": ratio, "source_R": source_R, "key": f"source/{ratio}", "curves": True}}
+    settings.update({f"table1/{r}": {"ratio": r, "source_R": source_R, "key": f"source/{r}", "curves": False}
+                     for r in ratios})
+    settings.update({f"rs_sweep/{rs}": {"ratio": ratio, "source_R": rs, "key": f"source/{ratio}", "curves": False}
+                     for rs in rs_values})
+    ranges = ctx.run_ranges(cfg.mc_runs)
+    units = [Unit(f"{name}/runs{a}-{b}", UNIT, {**args, "start": a, "stop": b})
+             for name, args in settings.items() for a, b in ranges]
+    parts = ctx.map_units(units, desc="units")
+    n = len(ranges)
+    values = {name: _merge(parts[i * n:(i + 1) * n], args["curves"]) for i, (name, args) in enumerate(settings.items())}
     default = values["default"]
     for name, summary in default["summary"].items():
         for key in ("pos_rmse", "vel_rmse", "nees", "mode_accuracy", "transfer_fraction", "nees_low", "nees_high",

@@ -200,28 +200,33 @@ def _estimate_mean(belief) -> Tensor:
     return (w.unsqueeze(-2) @ comps.particles.flatten(-3, -2)).squeeze(-2)
 
 
-def _data(ctx: StudyContext):
-    """``(scenario, truth, z)``: the scenario and its run-indexed data, simulated once per process."""
+def _data(ctx: StudyContext, start: int = 0, stop: int | None = None):
+    """``(scenario, truth, z)``: the scenario and its run-indexed data of runs ``start..stop-1`` (all
+    by default), simulated once per process."""
+    stop = int(ctx.cfg.mc_runs) if stop is None else stop
+
     def simulate():
         scenario, data_scenario = ctx.scenarios(ctx.cfg.scenario)
-        truth, _, z = ctx.simulate_runs(data_scenario.simulate, int(ctx.cfg.mc_runs), "data", scenario.name)
+        truth, _, z = ctx.simulate_runs(data_scenario.simulate, stop, "data", scenario.name, start=start)
         return scenario, truth.to(ctx.dtype), z.to(ctx.dtype)  # float64 draws: the same data in any dtype
 
-    return ctx.memo("data", simulate)
+    return ctx.memo(("data", start, stop), simulate)
 
 
 #: the study's unit function (what an executor ships: this path, the config and the arguments)
 UNIT = "experiments.studies.mevsmm:unit"
 
 
-def unit(ctx: StudyContext, *, name: str, kind: str, est_runs: int) -> dict:
-    """One estimator over its runs; a function of the config and these arguments only."""
+def unit(ctx: StudyContext, *, name: str, kind: str, start: int, stop: int) -> dict:
+    """One estimator on runs ``start..stop-1``: per-run squared errors and model counts, and sums over
+    these runs of the per-step statistics (merged over units by :func:`_merge`); a function of the
+    config and these arguments only."""
     from hydra.utils import instantiate
 
+    from experiments.harness import per_run
+
     cfg, opts = ctx.cfg, ctx.cfg.mevsmm
-    scenario, truth, z = _data(ctx)
-    runs = int(cfg.mc_runs)
-    deterministic = scenario.random is None
+    scenario, truth, z = _data(ctx, start, stop)
     hist_steps = {int(s) for s in opts.histogram_steps}
     # the particle filters draw from one stream per block of runs (run-indexed): any chunking or
     # split over workers gives the same numbers; every figure is reduced over all runs at once
@@ -230,9 +235,9 @@ def unit(ctx: StudyContext, *, name: str, kind: str, est_runs: int) -> dict:
     mode_filter = instantiate(cfg.mode_filter) if kind == "vsmm" else None
     policy = instantiate(cfg.policy) if kind == "vsmm" and cfg.get("policy") else None
     filt = _build(name, kind, scenario, opts, mode_filter, policy)
-    stream = ctx.block_generators("filter", scenario.name, name)
-    for b, sl in enumerate(ctx.blocks(est_runs)):
-        res = _run(filt, scenario, z[:, sl], hist_steps if b == 0 else set(), stream(b))
+    stream, first = ctx.block_generators("filter", scenario.name, name), start // ctx.block_runs
+    for b, sl in enumerate(ctx.blocks(stop - start)):
+        res = _run(filt, scenario, z[:, sl], hist_steps if first + b == 0 else set(), stream(first + b))
         err = res["mean"] - truth[:, sl]
         values["pos"].append(err[..., [0, 2]].square().sum(-1).detach())  # (T, block)
         values["vel"].append(err[..., [1, 3]].square().sum(-1).detach())
@@ -243,24 +248,42 @@ def unit(ctx: StudyContext, *, name: str, kind: str, est_runs: int) -> dict:
             values["members"].append(res["members"].to(ctx.dtype))
         seconds += res["seconds_per_step"]
         hists = hists or {str(k): v.tolist() for k, v in res["hists"].items()}
-    joined = {k: torch.cat(v, 1) for k, v in values.items() if v}  # (T, est_runs, ...)
-    mean = {k: v.sum(1) / est_runs for k, v in joined.items()}
-    e_pos, e_vel = joined["pos"].to(torch.float64), joined["vel"].to(torch.float64)
-    run_counts = joined["count"].to(torch.float64).mean(0)  # a run's time-averaged model count
-    window = slice(80, 120) if deterministic and scenario.steps >= 120 else None
-    # only the standard errors are kept (floats and (T,) bands): the checkpoint stays small
-    uncertainty = {
+    joined = {k: torch.cat(v, 1) for k, v in values.items() if v}  # (T, runs here, ...)
+    return {
+        "pos": per_run(joined["pos"]), "vel": per_run(joined["vel"]),
+        "run_counts": per_run(joined["count"].to(torch.float64).mean(0)),  # a run's time-averaged model count
+        "sums": {k: per_run(joined[k].sum(1)) for k in ("count", "ess", "members") if k in joined},
+        "runs": stop - start, "seconds": seconds, "hists": hists,
+    }
+
+
+def _merge(parts: list[dict], runs: int, window: slice | None) -> dict:
+    """An estimator's units of runs (in run order) as one value: RMSE curves, mean model count, ESS
+    and membership, timing (scaled to all ``runs``), standard errors."""
+    est_runs = sum(int(p["runs"]) for p in parts)
+
+    def add(key):
+        if key not in parts[0]["sums"]:
+            return None
+        total = torch.as_tensor(parts[0]["sums"][key])
+        for p in parts[1:]:
+            total = total + torch.as_tensor(p["sums"][key])
+        return total / est_runs
+
+    pos, vel = (torch.cat([torch.as_tensor(p[k]) for p in parts], 1) for k in ("pos", "vel"))
+    e_pos, e_vel = pos.to(torch.float64), vel.to(torch.float64)
+    run_counts = torch.cat([torch.as_tensor(p["run_counts"]) for p in parts])
+    count, ess, members = add("count"), add("ess"), add("members")
+    return {
+        "pos": (pos.sum(1) / est_runs).sqrt().tolist(), "vel": (vel.sum(1) / est_runs).sqrt().tolist(),
+        "count": count.tolist(), "ess": ess.tolist() if ess is not None else None,
+        "members": members.tolist() if members is not None else None,
+        "seconds_per_step": sum(p["seconds"] for p in parts) * (runs / est_runs), "runs": est_runs,
+        "hists": parts[0]["hists"],
         "pos_se": armse_se(e_pos), "vel_se": armse_se(e_vel),
         "maneuver_pos_se": armse_se(e_pos[window]) if window is not None else None,
         "count_se": (run_counts.std() / est_runs**0.5).item() if est_runs > 1 else float("nan"),
         "pos_band": rmse_se_per_step(e_pos).tolist(), "vel_band": rmse_se_per_step(e_vel).tolist(),
-    }
-    return {
-        "pos": mean["pos"].sqrt().tolist(), "vel": mean["vel"].sqrt().tolist(),
-        "count": mean["count"].tolist(), "ess": mean["ess"].tolist() if "ess" in mean else None,
-        "members": mean["members"].tolist() if "members" in mean else None,
-        "seconds_per_step": seconds * (runs / est_runs), "runs": est_runs, "hists": hists,
-        **uncertainty,
     }
 
 
@@ -269,8 +292,8 @@ def run(ctx: StudyContext) -> None:
     opts = cfg.mevsmm
 
     # run-indexed streams: the data in blocks of block_runs runs, each block from its own generator
-    scenario, truth, z = _data(ctx)
     runs = int(cfg.mc_runs)
+    scenario, _, _ = _data(ctx, *ctx.run_ranges(runs)[0])  # (the parent needs only the scenario)
     deterministic = scenario.random is None
     ctx.results.description = (
         f"Paper 003, scenario `{scenario.name}` (R = {scenario.R:g}^2 I, {scenario.steps} steps, D reading "
@@ -307,9 +330,17 @@ def run(ctx: StudyContext) -> None:
     curves, count_curves, memberships, base_time, bands = {}, {}, {}, None, {}
     estimators = dict(opts.estimators)
     # every estimator is a unit, all at once: an executor (executor=processes|slurm|ray) runs them side by side
+    # (and each range of runs, unit_runs=...; an estimator's ranges are merged in run order)
     items = [(name, kind, runs if kind != "exact" else min(runs, int(opts.exact_runs))) for name, kind in estimators.items()]
-    values = ctx.map_units([Unit(f"{scenario.name}/{name}", UNIT, {"name": name, "kind": kind, "est_runs": n})
-                            for name, kind, n in items], desc="estimators")
+    ranges = {name: ctx.run_ranges(n) for name, _, n in items}
+    parts = ctx.map_units([Unit(f"{scenario.name}/{name}/runs{a}-{b}", UNIT, {"name": name, "kind": kind, "start": a,
+                                                                           "stop": b})
+                           for name, kind, _ in items for a, b in ranges[name]], desc="units")
+    window = slice(80, 120) if deterministic and scenario.steps >= 120 else None
+    values, i = [], 0
+    for name, _, _ in items:
+        values.append(_merge(parts[i:i + len(ranges[name])], runs, window))
+        i += len(ranges[name])
     for (name, kind, est_runs), res in zip(items, values):
         # checkpointed lists of floats: keep float64 (torch.tensor would default to float32)
         pos, vel = torch.tensor(res["pos"], dtype=torch.float64), torch.tensor(res["vel"], dtype=torch.float64)

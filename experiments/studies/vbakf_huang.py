@@ -70,14 +70,28 @@ def run_huang(runs: int, generator: torch.Generator | None, *, steps: int = 1000
     """Run the three filters; returns per-estimator ``{"pos": (T,), "vel": (T,)}`` RMSE curves, the
     SRNFN-free summary ``{"estimator": (pos_last100, vel_last100, pos_all, vel_all)}``, its delta-method
     standard errors ``"se"`` (the same four) and the per-step standard errors ``"pos_band"``,
-    ``"vel_band"`` ``(T,)`` (experiments/uncertainty.py). ``simulate_runs(draw, runs)`` (e.g. the
-    study's run-indexed blocks) simulates instead of one stream from ``generator``; ``names``: only
-    these filters (default all three)."""
+    ``"vel_band"`` ``(T,)`` (experiments/uncertainty.py). ``simulate_runs(draw, runs, start)`` (e.g.
+    the study's run-indexed blocks) simulates instead of one stream from ``generator``; ``names``:
+    only these filters (default all three)."""
+    errors = huang_errors(runs, generator, steps=steps, nominal_q=nominal_q, beta=beta, tau=tau, rho=rho,
+                          iterations=iterations, dtype=dtype, device=device, progress=progress,
+                          simulate_runs=simulate_runs, names=names)
+    return {name: summarize(*map(torch.as_tensor, sq)) for name, sq in errors.items()}
+
+
+def huang_errors(runs: int, generator: torch.Generator | None, *, steps: int = 1000, nominal_q="true",
+                 beta: float = 100.0, tau: float = 3.0, rho: float = 1 - math.exp(-4), iterations: int = 10,
+                 dtype=torch.float64, device=None, progress: bool = False, simulate_runs=None, names=None,
+                 start: int = 0) -> dict:
+    """Per-run squared position and velocity errors ``(T, runs - start)`` (numpy) of each filter on runs
+    ``start..runs-1``: what :func:`summarize` reduces (arguments: :func:`run_huang`)."""
+    from experiments.harness import per_run
+
     # simulated in float64 and cast: float32 and float64 runs see the same data
     def draw(n, gen):
         return huang_scenario(n, gen, steps=steps, dtype=torch.float64, device=device)
 
-    data = draw(runs, generator) if simulate_runs is None else simulate_runs(draw, runs)
+    data = draw(runs - start, generator) if simulate_runs is None else simulate_runs(draw, runs, start)
     truth, z, F, Qs, Rs, P0, xhat0 = (t.to(dtype) for t in data)
     kw = {"dtype": dtype, "device": device}
     H = torch.cat([torch.eye(2, **kw), torch.zeros(2, 2, **kw)], 1)
@@ -86,7 +100,7 @@ def run_huang(runs: int, generator: torch.Generator | None, *, steps: int = 1000
         Q_nom = Qs
     else:
         Q_nom = float(nominal_q) * torch.eye(4, **kw).expand(steps, 4, 4)
-    start = GaussianBelief(xhat0, P0.expand(runs, 4, 4))
+    belief0 = GaussianBelief(xhat0, P0.expand(truth.shape[1], 4, 4))
     nominal_meas = LinearMeasurement(H, R_nom)
     # the time-varying Q~_k, Q_k, R_k: per-step models through run_filter (no filter rebuilt, no buffer rewritten)
     nominal_motions = [LinearMotion(F, Q_nom[t]) for t in range(steps)]
@@ -94,30 +108,34 @@ def run_huang(runs: int, generator: torch.Generator | None, *, steps: int = 1000
     true_sensors = [LinearMeasurement(H, Rs[t]) for t in range(steps)]
     vbakf = VBAKFPR(nominal_motions[0], nominal_meas, tau=tau, rho=rho, iterations=iterations)
     runs_of = {
-        "KF-nominal": lambda: run_filter(KalmanFilter(nominal_motions[0], nominal_meas), start, z,
+        "KF-nominal": lambda: run_filter(KalmanFilter(nominal_motions[0], nominal_meas), belief0, z,
                                          motions=nominal_motions, record=_means_only,
                                          progress="KF-nominal" if progress else False),
-        "KF-true": lambda: run_filter(KalmanFilter(true_motions[0], true_sensors[0]), start, z,
+        "KF-true": lambda: run_filter(KalmanFilter(true_motions[0], true_sensors[0]), belief0, z,
                                       motions=true_motions, sensors=true_sensors, record=_means_only,
                                       progress="KF-true" if progress else False),
-        "VBAKF-PR": lambda: run_filter(vbakf, vbakf.initial_belief(start, R_nom), z, motions=nominal_motions,
+        "VBAKF-PR": lambda: run_filter(vbakf, vbakf.initial_belief(belief0, R_nom), z, motions=nominal_motions,
                                        record=_means_only, progress="VBAKF-PR" if progress else False),
     }
-    estimates = {name: go().belief.mean for name, go in runs_of.items() if names is None or name in names}
     out = {}
-    for name, est in estimates.items():
-        err = est - truth
-        pos = err[..., :2].square().sum(-1).mean(-1).sqrt()
-        vel = err[..., 2:].square().sum(-1).mean(-1).sqrt()
-        tail = slice(max(steps - 100, 0), steps)
-        sq_pos = err[..., :2].square().sum(-1).to(torch.float64)  # (T, runs): the standard errors
-        sq_vel = err[..., 2:].square().sum(-1).to(torch.float64)
-        out[name] = {"pos": pos, "vel": vel,
-                     "summary": (pos[tail].mean().item(), vel[tail].mean().item(),
-                                 pos.mean().item(), vel.mean().item()),
-                     "se": (armse_se(sq_pos[tail]), armse_se(sq_vel[tail]), armse_se(sq_pos), armse_se(sq_vel)),
-                     "pos_band": rmse_se_per_step(sq_pos), "vel_band": rmse_se_per_step(sq_vel)}
+    for name, go in runs_of.items():
+        if names is None or name in names:
+            err = go().belief.mean - truth
+            out[name] = (per_run(err[..., :2].square().sum(-1)), per_run(err[..., 2:].square().sum(-1)))
     return out
+
+
+def summarize(sq_pos: torch.Tensor, sq_vel: torch.Tensor) -> dict:
+    """RMSE curves, Table I summary (last 100 steps and all steps), standard errors and bands from the
+    squared errors ``(T, runs)`` of all runs."""
+    steps, runs = sq_pos.shape
+    pos, vel = (sq_pos.sum(1) / runs).sqrt(), (sq_vel.sum(1) / runs).sqrt()
+    tail = slice(max(steps - 100, 0), steps)
+    sq_pos, sq_vel = sq_pos.to(torch.float64), sq_vel.to(torch.float64)  # the standard errors
+    return {"pos": pos, "vel": vel,
+            "summary": (pos[tail].mean().item(), vel[tail].mean().item(), pos.mean().item(), vel.mean().item()),
+            "se": (armse_se(sq_pos[tail]), armse_se(sq_vel[tail]), armse_se(sq_pos), armse_se(sq_vel)),
+            "pos_band": rmse_se_per_step(sq_pos), "vel_band": rmse_se_per_step(sq_vel)}
 
 
 def _means_only(out):
@@ -130,19 +148,20 @@ FILTERS = ("KF-nominal", "KF-true", "VBAKF-PR")
 UNIT = "experiments.studies.vbakf_huang:unit"
 
 
-def unit(ctx: StudyContext, *, name: str) -> dict:
-    """Filter ``name`` of Table I on the run-indexed data (simulated once per process)."""
+def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
+    """Filter ``name`` of Table I on runs ``start..stop-1`` of the run-indexed data (simulated once per
+    process): its per-run squared errors."""
     h = ctx.cfg.huang
 
-    def simulate_runs(draw, n):
-        return ctx.memo("data", lambda: ctx.simulate_runs(draw, n, "huang", axes=HUANG_AXES))
+    def simulate_runs(draw, n, a):
+        return ctx.memo(("data", a, n), lambda: ctx.simulate_runs(draw, n, "huang", axes=HUANG_AXES, start=a))
 
-    out = run_huang(int(ctx.cfg.mc_runs), None, steps=int(h.steps), nominal_q=h.nominal_q, beta=float(h.beta),
-                    tau=float(h.tau), rho=float(h.rho), iterations=int(h.iterations), dtype=ctx.dtype,
-                    device=ctx.device, progress=ctx.progress, simulate_runs=simulate_runs, names=[name])
-    v = out[name]
-    return {"summary": list(v["summary"]), "pos": v["pos"], "vel": v["vel"], "se": list(v["se"]),
-            "pos_band": v["pos_band"], "vel_band": v["vel_band"]}
+    out = huang_errors(stop, None, steps=int(h.steps), nominal_q=h.nominal_q, beta=float(h.beta),
+                       tau=float(h.tau), rho=float(h.rho), iterations=int(h.iterations), dtype=ctx.dtype,
+                       device=ctx.device, progress=ctx.progress, simulate_runs=simulate_runs, names=[name],
+                       start=start)
+    sq_pos, sq_vel = out[name]
+    return {"pos": sq_pos, "vel": sq_vel}
 
 
 def run(ctx: StudyContext) -> None:
@@ -150,9 +169,18 @@ def run(ctx: StudyContext) -> None:
     h = cfg.huang
     runs = int(cfg.mc_runs)
     # one unit per filter, all at once: an executor (executor=processes|slurm|ray) runs them side by side
+    # (and each range of runs, unit_runs=...; a filter's ranges are joined in run order)
     names = list(FILTERS)
-    values = ctx.map_units([Unit(f"huang/{name}", UNIT, {"name": name}) for name in names], desc="filters")
-    res = dict(zip(names, values))
+    ranges = ctx.run_ranges(runs)
+    parts = ctx.map_units([Unit(f"huang/{name}/runs{a}-{b}", UNIT, {"name": name, "start": a, "stop": b})
+                           for name in names for a, b in ranges], desc="units")
+    n = len(ranges)
+    res = {}
+    for i, name in enumerate(names):
+        mine = parts[i * n:(i + 1) * n]
+        v = summarize(*(torch.cat([torch.as_tensor(p[k]) for p in mine], 1) for k in ("pos", "vel")))
+        res[name] = {"pos": v["pos"].tolist(), "vel": v["vel"].tolist(), "summary": list(v["summary"]),
+                     "se": list(v["se"]), "pos_band": v["pos_band"].tolist(), "vel_band": v["vel_band"].tolist()}
     ctx.results.description = (
         f"Huang et al. 2018 scenario, {h.steps} steps, {runs} Monte Carlo runs "
         f"(seed {cfg.seed}, {cfg.dtype}), "

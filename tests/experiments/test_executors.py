@@ -142,3 +142,47 @@ def test_numbers_do_not_depend_on_the_process_default_dtype(tmp_path):
     assert proc.returncode == 0, proc.stderr[-2000:]
     data = json.loads((out / "results.json").read_text())
     assert not mismatches("imm_tf", data), mismatches("imm_tf", data)[:5]
+
+
+# -- units of runs (unit_runs): one setting's runs split over units ----------------------------------
+UNIT_RUNS = ["mc_runs=6", "block_runs=2"]  # unit_runs=4: units of runs 0-3 and 4-5
+
+
+@pytest.mark.parametrize("name", ["imm_baseline", "imm_analysis", "imm_tf", "mevsmm", "gimmaf", "vbakf_huang"])
+def test_units_of_runs_give_the_unsplit_numbers_and_resume_from_their_arrays(name, tmp_path, monkeypatch):
+    """With ``unit_runs`` a setting's runs are units of their own, reduced in run order: the numbers
+    equal the unsplit study's (to rounding: a unit's runs are filtered in one batch), the per-run
+    arrays are checkpointed in units/*.npz, and a resumed study reads them back to identical tables."""
+    from tests.experiments.test_chunking import _assert_same, _drop_timing_rows
+
+    whole = _tables(name, tmp_path, *UNIT_RUNS)
+    split_dir = tmp_path / "split"
+    run_study(_compose(name, f"debug={name}", "logger=none", *UNIT_RUNS, "unit_runs=4"), split_dir)
+    split = json.loads((split_dir / "results.json").read_text())["tables"]
+    _assert_same(_drop_timing_rows({"tables": whole}), _drop_timing_rows({"tables": split}))
+    units = json.loads((split_dir / "checkpoint.json").read_text())["units"]
+    assert any(key.endswith("/runs0-4") for key in units) and any(key.endswith("/runs4-6") for key in units)
+    assert len(list((split_dir / "units").glob("*.npz"))) == len(units)  # every unit's arrays, none lost
+    (split_dir / "results.json").unlink()
+
+    def recompute(ctx, **args):
+        raise AssertionError(f"unit {args} recomputed on resume")
+
+    monkeypatch.setattr(f"experiments.studies.{name}.unit", recompute)  # every unit from checkpoint + npz
+    run_study(_compose(name, f"debug={name}", "logger=none", *UNIT_RUNS, "unit_runs=4"), split_dir)  # resumes
+    again = json.loads((split_dir / "results.json").read_text())["tables"]
+    assert _drop_timing_rows({"tables": again}) == _drop_timing_rows({"tables": split})
+
+
+def test_units_of_runs_in_a_process_pool_are_bit_identical(tmp_path):
+    """The same units of runs locally and in a pool of 2: the tables bit for bit."""
+    local = _tables("imm_baseline", tmp_path, *UNIT_RUNS, "unit_runs=2")
+    pool = _tables("imm_baseline", tmp_path, *UNIT_RUNS, "unit_runs=2", "executor=processes", "executor.workers=2")
+    assert pool == local
+
+
+def test_unit_runs_must_hold_whole_blocks():
+    from experiments.config import ConfigError, validate
+
+    with pytest.raises(ConfigError, match="unit_runs.*multiple of block_runs"):
+        validate(_compose("imm_baseline", "debug=imm_baseline", "block_runs=4", "unit_runs=6"))
