@@ -1,12 +1,14 @@
 """Scale-out inside one study: wall time of the same study under each executor, side by side.
 
-    python benchmarks/executors.py [--study imm_analysis] [--mc-runs 200] [--workers 1 2]
+    python benchmarks/executors.py [--study imm_analysis] [--mc-runs 200] [--workers 1 2] [--unit-runs N]
 
 Runs the study once with ``executor=local`` (the reference: today's single process) and then with
 ``executor=processes`` for each worker count (and ``submitit_local`` / ``ray`` where installed),
 checks that every run's tables equal the local run's bit for bit, and prints the wall times, the
 speed-up over local and the fixed cost per unit (start-up of the workers, shipping, rebuild of the
 study context). On a machine with C free cores, expect at most min(C, workers) times.
+``--unit-runs N`` splits each setting's runs into units of N runs (``unit_runs``) in every run,
+and adds a line for the unsplit local study (the cost of splitting).
 """
 
 from __future__ import annotations
@@ -43,18 +45,25 @@ def main() -> None:
     parser.add_argument("--mc-runs", type=int, default=200)
     parser.add_argument("--workers", type=int, nargs="+", default=[1, 2])
     parser.add_argument("--only-processes", action="store_true", help="skip submitit_local and ray")
+    parser.add_argument("--unit-runs", type=int, default=None, help="unit_runs (a multiple of block_runs)")
     args = parser.parse_args()
+    split = () if args.unit_runs is None else (f"unit_runs={args.unit_runs}",)
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        base, tables, units = _run(args.study, args.mc_runs, tmp / "local", "executor=local")
-        print(f"{args.study}, {args.mc_runs} runs, {units} units")
+        base, tables, units = _run(args.study, args.mc_runs, tmp / "local", "executor=local", *split)
+        print(f"{args.study}, {args.mc_runs} runs, {units} units" + (f" of {args.unit_runs} runs" if split else ""))
         print(f"{'executor':<28}{'wall s':>9}{'speed-up':>10}{'overhead s/unit':>17}  identical")
         print(f"{'local (reference)':<28}{base:>9.2f}{1.0:>10.2f}{0.0:>17.3f}  -")
-        cases = [(f"processes, {w} workers", ("executor=processes", f"executor.workers={w}"), w) for w in args.workers]
+        if split:
+            whole, _, _ = _run(args.study, args.mc_runs, tmp / "unsplit", "executor=local")
+            print(f"{'local, unsplit':<28}{whole:>9.2f}{base / whole:>10.2f}{'-':>17}  (to rounding)")
+        cases = [(f"processes, {w} workers", ("executor=processes", f"executor.workers={w}", *split), w)
+                 for w in args.workers]
         if importlib.util.find_spec("submitit") and not args.only_processes:
-            cases.append(("submitit_local", ("executor=submitit_local",), None))
+            cases.append(("submitit_local", ("executor=submitit_local", *split), None))
         if importlib.util.find_spec("ray") and not args.only_processes:
-            cases += [(f"ray, {w} workers", ("executor=ray", f"executor.workers={w}"), w) for w in args.workers]
+            cases += [(f"ray, {w} workers", ("executor=ray", f"executor.workers={w}", *split), w)
+                      for w in args.workers]
         for label, overrides, workers in cases:
             wall, got, _ = _run(args.study, args.mc_runs, tmp / label.replace(" ", "_").replace(",", ""), *overrides)
             # overhead per unit: what the run cost beyond the local work shared over its workers

@@ -35,6 +35,7 @@ import torch  # noqa: E402
 from torch import nn  # noqa: E402
 
 from experiments.estimators import Estimator, evaluate, starter  # noqa: E402
+from experiments.executors import Unit  # noqa: E402
 from experiments.harness import StudyContext  # noqa: E402
 from experiments.uncertainty import nees_consistency  # noqa: E402
 from experiments.scenarios import JumpScenario  # noqa: E402
@@ -234,20 +235,126 @@ def run(ctx: StudyContext) -> None:
         torch.set_num_threads(previous)
 
 
+def _inputs(ctx: StudyContext) -> dict:
+    """The scenario (study dtype), the training runs' data and their prior, once per process."""
+    def build():
+        lcfg = ctx.cfg.learn
+        scenario = turning_scenario(lcfg.scenario, ctx.dtype, ctx.device)
+        data_scenario = scenario if ctx.dtype == ctx.data_dtype else turning_scenario(lcfg.scenario, ctx.data_dtype,
+                                                                                       ctx.device)
+        runs = int(ctx.cfg.mc_runs)
+        # float64 draws, cast to the study dtype: float32 and float64 runs see the same data
+        sim, z = ctx.simulate_runs(data_scenario.simulate, runs, "train", scenario.name)  # run-indexed streams
+        return {"scenario": scenario, "data_scenario": data_scenario, "sim": sim.to(ctx.dtype), "z": z.to(ctx.dtype),
+                "prior": scenario.initial.expand(runs)}
+
+    return ctx.memo("inputs", build)
+
+
+def _initial_tpm(ctx: StudyContext) -> torch.Tensor:
+    init_stay = ctx.cfg.learn.part_a.get("initial_stay")
+    if init_stay is None:
+        return torch.full((3, 3), 1.0 / 3, dtype=ctx.dtype, device=ctx.device)
+    return _stay_matrix(float(init_stay), ctx.dtype, ctx.device)
+
+
+def _history(trainer) -> list[dict]:
+    return [{"iteration": r.iteration, "loss": r.loss, "grad_norm": r.grad_norm, **r.parameters}
+            for r in trainer.history]
+
+
+def train_a(ctx: StudyContext) -> dict:
+    """Part (a): the transition matrix and ``q`` by maximum likelihood through the IMM."""
+    acfg, inputs = ctx.cfg.learn.part_a, _inputs(ctx)
+    scenario = inputs["scenario"]
+    init_tpm, q_init = _initial_tpm(ctx), float(acfg.initial_q_factor) * float(ctx.cfg.learn.scenario.q)
+    bank = CoordinatedTurn(scenario.motion.omega, dt=scenario.motion.dt, q=q_init, dtype=ctx.dtype)
+    learnable_noise(bank.to(ctx.device), "Q", "scale")
+    imm = IMM(KalmanFilter(bank, scenario.measurement), ModeTransition(init_tpm, learnable=True))
+    theta = bank.parametrizations.Q.original
+
+    def track() -> dict:
+        tpm = imm.transition.matrix().detach()
+        values = {f"tpm[{i},{j}]": tpm[i, j].item() for i in range(3) for j in range(3)}
+        values["q"] = q_init * theta.detach().exp().item()
+        return values
+
+    restart = RestartStalledLBFGS(imm.parameters())
+    bar, tick = _training_bar(ctx, int(acfg.iterations), "training (a)")
+    trainer = Trainer(imm, _optimizer(imm.parameters(), acfg), window=acfg.get("window"),
+                      track=track, logger=ctx.logger, prefix="learn_a", callbacks=[restart, tick])
+    tic = time.perf_counter()
+    trainer.fit(inputs["prior"], inputs["z"], int(acfg.iterations), batch_size=acfg.get("batch_size"),
+                generator=ctx.generator("minibatch", "a"))
+    bar.close()
+    return {"seconds": time.perf_counter() - tic, "final": track(), "restarts": restart.restarts,
+            "history": _history(trainer)}
+
+
+def _velocities(sim) -> torch.Tensor:
+    """Training velocities (at most about 4000) at which the MLP's implied turn rate is measured."""
+    return sim.states[..., [1, 3]].reshape(-1, 2)[:: max(1, sim.states[..., 0].numel() // 4000)]
+
+
+def build_b(ctx: StudyContext):
+    """Part (b)'s ``(net, IMM)``: mode ``replaced_mode`` an MLP motion (EKF mode), freshly initialised."""
+    bcfg, scenario = ctx.cfg.learn.part_b, _inputs(ctx)["scenario"]
+    replaced = int(bcfg.replaced_mode)
+    if not 0 <= replaced < 3:
+        raise ValueError(f"learn.part_b.replaced_mode: expected 0, 1 or 2, got {replaced}")
+    net = AccelerationMLP(int(bcfg.hidden), scenario.motion.dt, float(bcfg.v_scale),
+                          float(bcfg.a_scale), generator=ctx.generator("mlp_init"),
+                          dtype=ctx.dtype, device=ctx.device)
+    learned = LearnedMotion(net, 4, Q=scenario.motion.Q, noise="fixed")
+    filters = [KalmanFilter(scenario.motion.select_mode(j), scenario.measurement) for j in range(3)]
+    filters[replaced] = ExtendedKalmanFilter(learned, scenario.measurement)
+    return net, IMM(filters, scenario.transition)
+
+
+def train_b(ctx: StudyContext) -> dict:
+    """Part (b): the MLP mode trained through the IMM; its trained parameters come back as arrays."""
+    from experiments.harness import per_run
+
+    bcfg, inputs = ctx.cfg.learn.part_b, _inputs(ctx)
+    scenario, velocities = inputs["scenario"], _velocities(inputs["sim"])
+    net, imm = build_b(ctx)
+
+    def track() -> dict:
+        return {"mlp_turn_rate": implied_turn_rate(net, velocities, scenario.motion.dt)}
+
+    restart = RestartStalledLBFGS(net.parameters())
+    bar, tick = _training_bar(ctx, int(bcfg.iterations), "training (b)")
+    trainer = Trainer(imm, _optimizer(net.parameters(), bcfg), window=bcfg.get("window"), track=track,
+                      logger=ctx.logger, prefix="learn_b",
+                      checkpoint_path=ctx.output_dir / "checkpoints" / "mlp_mode.pt", callbacks=[restart, tick])
+    tic = time.perf_counter()
+    trainer.fit(inputs["prior"], inputs["z"], int(bcfg.iterations), batch_size=bcfg.get("batch_size"),
+                generator=ctx.generator("minibatch", "b"))
+    bar.close()
+    return {"seconds": time.perf_counter() - tic, "restarts": restart.restarts, "history": _history(trainer),
+            "state": {k: per_run(v) for k, v in net.state_dict().items()}}  # exact (units/*.npz)
+
+
+#: the study's unit function (what an executor ships): one training part
+UNIT = "experiments.studies.learn_dynamics:unit"
+
+
+def unit(ctx: StudyContext, *, part: str) -> dict:
+    """Training part ``"a"`` or ``"b"``; the two are independent and run side by side on an executor."""
+    return {"a": train_a, "b": train_b}[part](ctx)
+
+
 def _run(ctx: StudyContext) -> None:
     cfg, lcfg = ctx.cfg, ctx.cfg.learn
-    scenario = turning_scenario(lcfg.scenario, ctx.dtype, ctx.device)
-    data_scenario = scenario if ctx.dtype == ctx.data_dtype else turning_scenario(lcfg.scenario, ctx.data_dtype,
-                                                                                   ctx.device)
+    inputs = _inputs(ctx)
+    scenario, sim, z, prior = inputs["scenario"], inputs["sim"], inputs["z"], inputs["prior"]
     runs = int(cfg.mc_runs)
     test_runs = int(lcfg.test_runs) if lcfg.get("test_runs") else runs
     # float64 draws, cast to the study dtype: float32 and float64 runs see the same data
-    sim, z = ctx.simulate_runs(data_scenario.simulate, runs, "train", scenario.name)  # run-indexed streams
-    test_sim, test_z = ctx.simulate_runs(data_scenario.simulate, test_runs, "test", scenario.name)
-    sim, z, test_sim, test_z = sim.to(ctx.dtype), z.to(ctx.dtype), test_sim.to(ctx.dtype), test_z.to(ctx.dtype)
+    test_sim, test_z = ctx.simulate_runs(inputs["data_scenario"].simulate, test_runs, "test", scenario.name)
+    test_sim, test_z = test_sim.to(ctx.dtype), test_z.to(ctx.dtype)
     q_true = float(lcfg.scenario.q)
     true_tpm = scenario.transition
-    prior = scenario.initial.expand(runs)
     ctx.results.description = (
         f"Scenario `{scenario.name}`: CV / CT(+-{lcfg.scenario.turn_rate} rad/s), q = {q_true}, "
         f"R = {lcfg.scenario.R} I, stay = {lcfg.scenario.stay}, {scenario.steps} steps; "
@@ -298,42 +405,19 @@ def _run(ctx: StudyContext) -> None:
     counted_tpm, counted_q = complete_data_estimates(scenario, sim)
     histories: dict[str, list[dict]] = {}
 
+    # ---- the training parts: two independent units, side by side on an executor ----------------
+    acfg, bcfg = lcfg.part_a, lcfg.part_b
+    if bcfg.enabled and not 0 <= int(bcfg.replaced_mode) < 3:
+        raise ValueError(f"learn.part_b.replaced_mode: expected 0, 1 or 2, got {int(bcfg.replaced_mode)}")
+    parts = [part for part, node in (("a", acfg), ("b", bcfg)) if node.enabled]
+    trained = dict(zip(parts, ctx.map_units([Unit(f"train/{part}", UNIT, {"part": part}) for part in parts],
+                                            desc="training parts")))
+
     # ---- part (a): transition matrix and q --------------------------------------------------
-    acfg = lcfg.part_a
     if acfg.enabled:
-        init_stay = acfg.get("initial_stay")
-        if init_stay is None:
-            init_tpm = torch.full((3, 3), 1.0 / 3, dtype=ctx.dtype, device=ctx.device)
-        else:
-            init_tpm = _stay_matrix(float(init_stay), ctx.dtype, ctx.device)
+        init_tpm = _initial_tpm(ctx)
         q_init = float(acfg.initial_q_factor) * q_true
-
-        def train_a() -> dict:
-            bank = CoordinatedTurn(scenario.motion.omega, dt=scenario.motion.dt, q=q_init, dtype=ctx.dtype)
-            learnable_noise(bank.to(ctx.device), "Q", "scale")
-            imm = IMM(KalmanFilter(bank, scenario.measurement), ModeTransition(init_tpm, learnable=True))
-            theta = bank.parametrizations.Q.original
-
-            def track() -> dict:
-                tpm = imm.transition.matrix().detach()
-                values = {f"tpm[{i},{j}]": tpm[i, j].item() for i in range(3) for j in range(3)}
-                values["q"] = q_init * theta.detach().exp().item()
-                return values
-
-            restart = RestartStalledLBFGS(imm.parameters())
-            bar, tick = _training_bar(ctx, int(acfg.iterations), "training (a)")
-            trainer = Trainer(imm, _optimizer(imm.parameters(), acfg), window=acfg.get("window"),
-                              track=track, logger=ctx.logger, prefix="learn_a", callbacks=[restart, tick])
-            tic = time.perf_counter()
-            trainer.fit(prior, z, int(acfg.iterations), batch_size=acfg.get("batch_size"),
-                        generator=ctx.generator("minibatch", "a"))
-            bar.close()
-            final = track()
-            return {"seconds": time.perf_counter() - tic, "final": final, "restarts": restart.restarts,
-                    "history": [{"iteration": r.iteration, "loss": r.loss, "grad_norm": r.grad_norm,
-                                 **r.parameters} for r in trainer.history]}
-
-        result_a = ctx.unit("part_a", train_a)
+        result_a = trained["a"]
         histories["a"] = result_a["history"]
         _log_history(ctx, "part_a", result_a["history"])
         final = result_a["final"]
@@ -368,51 +452,17 @@ def _run(ctx: StudyContext) -> None:
         )
 
     # ---- part (b): an MLP mode trained through the IMM -----------------------------------------
-    bcfg = lcfg.part_b
     if bcfg.enabled:
         replaced = int(bcfg.replaced_mode)
-        if not 0 <= replaced < 3:
-            raise ValueError(f"learn.part_b.replaced_mode: expected 0, 1 or 2, got {replaced}")
-        checkpoint = ctx.output_dir / "checkpoints" / "mlp_mode.pt"
-        velocities = sim.states[..., [1, 3]].reshape(-1, 2)[:: max(1, sim.states[..., 0].numel() // 4000)]
+        velocities = _velocities(sim)
         true_rate = scenario.motion.omega[replaced].item()
-
-        def build_b():
-            net = AccelerationMLP(int(bcfg.hidden), scenario.motion.dt, float(bcfg.v_scale),
-                                  float(bcfg.a_scale), generator=ctx.generator("mlp_init"),
-                                  dtype=ctx.dtype, device=ctx.device)
-            learned = LearnedMotion(net, 4, Q=scenario.motion.Q, noise="fixed")
-            filters = [KalmanFilter(scenario.motion.select_mode(j), scenario.measurement) for j in range(3)]
-            filters[replaced] = ExtendedKalmanFilter(learned, scenario.measurement)
-            return net, IMM(filters, true_tpm)
-
-        net0, imm0 = build_b()
+        net0, imm0 = build_b(ctx)
         initial_rate = implied_turn_rate(net0, velocities, scenario.motion.dt)
-
-        def train_b() -> dict:
-            net, imm = build_b()
-            def track() -> dict:
-                return {"mlp_turn_rate": implied_turn_rate(net, velocities, scenario.motion.dt)}
-
-            restart = RestartStalledLBFGS(net.parameters())
-            bar, tick = _training_bar(ctx, int(bcfg.iterations), "training (b)")
-            trainer = Trainer(imm, _optimizer(net.parameters(), bcfg), window=bcfg.get("window"), track=track,
-                              logger=ctx.logger, prefix="learn_b", checkpoint_path=checkpoint,
-                              callbacks=[restart, tick])
-            tic = time.perf_counter()
-            trainer.fit(prior, z, int(bcfg.iterations), batch_size=bcfg.get("batch_size"),
-                        generator=ctx.generator("minibatch", "b"))
-            bar.close()
-            return {"seconds": time.perf_counter() - tic, "restarts": restart.restarts,
-                    "history": [{"iteration": r.iteration, "loss": r.loss, "grad_norm": r.grad_norm,
-                                 **r.parameters} for r in trainer.history]}
-
-        result_b = ctx.unit("part_b", train_b)
+        result_b = trained["b"]
         histories["b"] = result_b["history"]
         _log_history(ctx, "part_b", result_b["history"])
-        net, imm = build_b()
-        if int(bcfg.iterations) > 0:
-            Trainer(imm, _optimizer(net.parameters(), bcfg)).load(checkpoint)
+        net, imm = build_b(ctx)
+        net.load_state_dict({k: torch.as_tensor(v, device=ctx.device) for k, v in result_b["state"].items()})
         rate = implied_turn_rate(net, velocities, scenario.motion.dt)
         learn_table.rows.append(["mlp_turn_rate", true_rate, rate, initial_rate, abs(rate - true_rate), None])
         ctx.results.metric("training (b)", "seconds", result_b["seconds"])

@@ -36,7 +36,7 @@ def test_processes_submitit_and_ray_give_the_local_tables_bit_for_bit(tmp_path):
     assert _tables(name, tmp_path, "executor=ray", "executor.workers=2") == local
 
 
-@pytest.mark.parametrize("name", ["imm_baseline", "mevsmm", "gimmaf", "vbakf_huang"])  # imm_tf: the CLI test below
+@pytest.mark.parametrize("name", ["imm_baseline", "mevsmm", "gimmaf", "vbakf_huang", "learn_dynamics"])  # imm_tf: below
 def test_units_in_a_process_pool_give_the_recorded_numbers(name, tmp_path):
     """Each study that hands its units to the executor gives its regression record from a pool."""
     from tests.regression.compare import mismatches
