@@ -76,7 +76,7 @@ def run(ctx: StudyContext) -> None:
     # runs them side by side; each estimator's ranges are reduced in run order
     units = [Unit(f"{name}/runs{a}-{b}", UNIT, {"name": name, "start": a, "stop": b})
              for name in names for a, b in ranges]
-    parts = ctx.map_units(units, desc="units")
+    parts = ctx.map_units(units, desc="estimators")
 
     def f64(values):
         return torch.as_tensor(values, dtype=torch.float64)

@@ -335,7 +335,7 @@ def run(ctx: StudyContext) -> None:
     ranges = {name: ctx.run_ranges(n) for name, _, n in items}
     parts = ctx.map_units([Unit(f"{scenario.name}/{name}/runs{a}-{b}", UNIT, {"name": name, "kind": kind, "start": a,
                                                                            "stop": b})
-                           for name, kind, _ in items for a, b in ranges[name]], desc="units")
+                           for name, kind, _ in items for a, b in ranges[name]], desc="estimators")
     window = slice(80, 120) if deterministic and scenario.steps >= 120 else None
     values, i = [], 0
     for name, _, _ in items:

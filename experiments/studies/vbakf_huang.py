@@ -173,7 +173,7 @@ def run(ctx: StudyContext) -> None:
     names = list(FILTERS)
     ranges = ctx.run_ranges(runs)
     parts = ctx.map_units([Unit(f"huang/{name}/runs{a}-{b}", UNIT, {"name": name, "start": a, "stop": b})
-                           for name in names for a, b in ranges], desc="units")
+                           for name in names for a, b in ranges], desc="filters")
     n = len(ranges)
     res = {}
     for i, name in enumerate(names):
