@@ -51,6 +51,7 @@ from torchmm.multimodel import (
     validate_transition,
 )
 from torchmm.run import Trajectory, run_filter
+from torchmm.smooth import smooth
 from torchmm.distributions import MultivariateStudentT, SkewT, truncated_normal_moments
 from torchmm.filters.variational import (
     VBAKFPR,
@@ -157,5 +158,6 @@ __all__ = [
     "make_bank",
     "rts_smoother",
     "run_filter",
+    "smooth",
     "validate_transition",
 ]

@@ -1,0 +1,319 @@
+r"""Fixed-interval smoothing: ``smooth(filter, trajectory) -> Trajectory`` of ``p(x_k | z_{1:T})``.
+
+One entry point, dispatching on the filter that produced ``trajectory`` (docs/smoothing.md):
+
+* :class:`~torchmm.KalmanFilter` - the Rauch-Tung-Striebel smoother;
+* :class:`~torchmm.ExtendedKalmanFilter` - the extended RTS smoother: the same backward step with
+  the motion Jacobian ``F_{k+1}`` at the filtered mean (:func:`~torchmm.filters.rts_step`);
+* :class:`~torchmm.UnscentedKalmanFilter` - the unscented RTS smoother of Särkkä (IEEE TAC 53(3),
+  2008, Algorithm 2.1): sigma points of ``x_{k|k}`` through the motion model give the predicted
+  moments and the cross-covariance ``C_{k+1}``, ``G_k = C_{k+1} (P^-_{k+1})^{-1}``,
+
+  .. math::
+      x^s_k = x_k + G_k (x^s_{k+1} - x^-_{k+1}),\qquad P^s_k = P_k + G_k (P^s_{k+1} - P^-_{k+1}) G_k^\top.
+
+* :class:`~torchmm.ParticleFilter` - forward-filtering backward-smoothing (FFBSm) of the particle
+  weights (Doucet, Godsill & Andrieu, Stat. Comput. 10, 2000, eq. (14); Godsill, Doucet & West,
+  JASA 99, 2004, section 2): the filter's particles keep their places and get smoothed weights
+  ``w_{k|T}^i = w_k^i sum_j w_{k+1|T}^j f(x_{k+1}^j | x_k^i) / sum_l w_k^l f(x_{k+1}^j | x_k^l)``,
+  :func:`ffbsm_step`. Cost ``O(T B Np^2 n)`` time and ``O(B Np^2)`` memory per step (all pairs of
+  particles): thousands of particles, not millions. Needs a positive-definite process noise ``Q``
+  (the transition density);
+* :class:`~torchmm.IMM`, :class:`~torchmm.GPB1`, :class:`~torchmm.GPB2` (and any
+  :class:`~torchmm.multimodel.MultipleModelFilter` with Gaussian mode beliefs, over Kalman,
+  extended or unscented mode filters) - Kim's fixed-interval smoother for Markov-switching models
+  (Kim, J. Econometrics 60, 1994, eqs. (2.18)-(2.21) and (2.24)-(2.25)), :func:`kim_step`: smoothed
+  mode probabilities and mode-conditioned smoothed beliefs, from the filter's mode-conditioned
+  posteriors ``x^j_{k|k}`` and mode probabilities.
+
+The backward pass is the only loop (over time), batched over every run (and mode) axis; it is
+differentiable, and reads no tensor value into Python. Missing data (NaN measurements) need nothing
+here: the filter's posterior at a missing step is its prior, and the backward pass uses beliefs only.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from torchmm.beliefs import GaussianBelief, ModeBelief, ParticleBelief, symmetrize
+from torchmm.filters.kalman import ExtendedKalmanFilter, KalmanFilter
+from torchmm.filters.particle import ParticleFilter
+from torchmm.filters.smoother import rts_step
+from torchmm.filters.unscented import SigmaPointStrategy, UnscentedKalmanFilter
+from torchmm.linalg import cholesky, cholesky_solve
+from torchmm.models.base import MotionModel
+from torchmm.multimodel.bank import ListBank, VectorizedBank
+from torchmm.multimodel.imm import MultipleModelFilter, safe_log_normalize
+from torchmm.run import Trajectory
+
+__all__ = ["ffbsm_step", "kim_step", "smooth", "unscented_rts_step"]
+
+
+def _weighted(points: Tensor, wm: Tensor) -> tuple[Tensor, Tensor]:
+    shape = (-1,) + (1,) * (points.dim() - 1)
+    mean = (wm.reshape(shape) * points).sum(0)
+    return mean, points - mean
+
+
+def unscented_rts_step(motion: MotionModel, sigma_points: SigmaPointStrategy, filtered: GaussianBelief,
+                       smoothed_next: GaussianBelief, *, u: Tensor | None = None) -> GaussianBelief:
+    r"""One backward step of the unscented RTS smoother (Särkkä 2008): ``x_{k|T}`` from ``x_{k|k}``
+    and ``x_{k+1|T}``.
+
+    Sigma points ``X`` of ``x_{k|k}`` are propagated, ``x^- = sum W^m f(X)``,
+    ``P^- = sum W^c (f(X) - x^-)(.)^T + Q``, ``C = sum W^c (X - x_k)(f(X) - x^-)^T``,
+    ``G = C (P^-)^{-1}``; then ``x^s_k = x_k + G (x^s_{k+1} - x^-)`` and
+    ``P^s_k = P_k + G (P^s_{k+1} - P^-) G^T``. On a linear model it is the RTS step.
+
+    Shapes:
+        beliefs with batch ``(*B,)`` (broadcasting) -> batch ``(*B,)``; ``u``: ``(*B, k)``.
+    """
+    n = filtered.state_dim
+    wm, wc = sigma_points.weights(n, filtered.dtype, filtered.device)
+    points = sigma_points.points(filtered.mean, filtered.cov)  # (S, *B, n)
+    propagated = motion(points, u=None if u is None else u.unsqueeze(0))
+    mean_pred, dev = _weighted(propagated, wm)
+    shape = (-1,) + (1,) * (dev.dim() - 1)
+    weighted = wc.reshape(shape) * dev
+    cov_pred = symmetrize(torch.einsum("s...i,s...j->...ij", weighted, dev) + motion.noise_cov(filtered.mean))
+    cross = torch.einsum("s...i,s...j->...ij", points - filtered.mean, weighted)  # C = E[(x_k - m)(x_{k+1} - m^-)^T]
+    gain_t = cholesky_solve(cholesky(cov_pred), cross.mT)  # G^T = (P^-)^{-1} C^T
+    gain = gain_t.mT
+    mean = filtered.mean + (gain @ (smoothed_next.mean - mean_pred).unsqueeze(-1)).squeeze(-1)
+    cov = filtered.cov + gain @ (smoothed_next.cov - cov_pred) @ gain_t
+    return GaussianBelief(mean, symmetrize(cov))
+
+
+def _transition_log_density(motion: MotionModel, particles: Tensor, following: Tensor, u: Tensor | None,
+                            chol_q: Tensor) -> Tensor:
+    """``log N(following_j; f(particles_i), Q)`` up to a constant, ``(*B, i, j)``: whitened by
+    ``chol(Q)`` and expanded as ``|a|^2 + |b|^2 - 2 a.b`` (one matmul, no ``(*B, Np, Np, n)`` tensor)."""
+    mean = motion(particles.movedim(-2, 0), u=None if u is None else u.unsqueeze(0)).movedim(0, -2)  # f(x_i)
+    a = torch.linalg.solve_triangular(chol_q, mean.mT, upper=False).mT  # (*B, i, n)
+    b = torch.linalg.solve_triangular(chol_q, following.mT, upper=False).mT  # (*B, j, n)
+    sq = (a.square().sum(-1).unsqueeze(-1) + b.square().sum(-1).unsqueeze(-2) - 2 * a @ b.mT).clamp_min(0)
+    return -0.5 * sq
+
+
+def ffbsm_step(motion: MotionModel, filtered: ParticleBelief, following: ParticleBelief,
+               smoothed_log_weights: Tensor, *, u: Tensor | None = None) -> Tensor:
+    r"""One backward FFBSm step: the smoothed log-weights of ``filtered``'s particles at step ``k``.
+
+    ``log w_{k|T}^i = log w_k^i + logsumexp_j(log w_{k+1|T}^j + log f_ij - logsumexp_l(log w_k^l + log f_lj))``
+    with ``f_ij = N(x_{k+1}^j; f(x_k^i, u_{k+1}), Q)`` (Doucet, Godsill & Andrieu 2000, eq. (14)).
+
+    Args:
+        motion: the model of the prediction ``k -> k+1`` (its ``noise_cov()`` positive definite).
+        filtered: the filter's particles at ``k``; following: its particles at ``k+1``, whose
+            smoothed log-weights are ``smoothed_log_weights``.
+
+    Shapes:
+        filtered, following: particles ``(*B, Np, n)``; smoothed_log_weights ``(*B, Np)`` -> ``(*B, Np)``
+    """
+    chol_q = torch.linalg.cholesky(motion.noise_cov())
+    log_f = _transition_log_density(motion, filtered.particles, following.particles, u, chol_q)  # (*B, i, j)
+    log_w = torch.log_softmax(filtered.log_weights, dim=-1)
+    denom = torch.logsumexp(log_w.unsqueeze(-1) + log_f, dim=-2)  # (*B, j)
+    back = (torch.log_softmax(smoothed_log_weights, dim=-1) - denom).nan_to_num(nan=-torch.inf)
+    return torch.log_softmax(log_w + torch.logsumexp(log_f + back.unsqueeze(-2), dim=-1), dim=-1)
+
+
+def _smooth_particles(filter: ParticleFilter, trajectory: Trajectory, controls, motions) -> Trajectory:
+    filtered = trajectory.belief
+    if not isinstance(filtered, ParticleBelief):
+        raise TypeError(f"trajectory.belief: expected particle beliefs, got {type(filtered).__name__}")
+    steps = filtered.batch_shape[0]
+    if controls is not None and controls.shape[0] != steps:
+        raise ValueError(f"controls: expected {steps} steps on the leading axis, got shape {tuple(controls.shape)}")
+    motions = _per_step(motions, steps, "motions")
+    for k, motion in enumerate([filter.motion] if motions is None else motions):  # once, at the entry point
+        eig = torch.linalg.eigvalsh(motion.noise_cov())  # rank-deficient Q (e.g. q G G^T): no density
+        if bool((eig[..., 0] <= 1e-10 * eig[..., -1].abs()).any()):
+            where = "the filter's motion" if motions is None else f"motions[{k}]"
+            raise ValueError(f"filter: FFBSm needs a positive-definite process noise Q (the transition "
+                             f"density); {where} has a singular one")
+    log_weights = [torch.log_softmax(filtered.log_weights[steps - 1], dim=-1)]
+    for k in range(steps - 2, -1, -1):
+        motion = filter.motion if motions is None else motions[k + 1]
+        log_weights.append(ffbsm_step(motion, filtered[k], filtered[k + 1], log_weights[-1],
+                                      u=None if controls is None else controls[k + 1]))
+    belief = ParticleBelief(filtered.particles, torch.stack(log_weights[::-1]))
+    return Trajectory(belief=belief, prior=None, log_likelihood=trajectory.log_likelihood, innovation=None,
+                      innovation_cov=None, extras={})
+
+
+def _cross_covariance(member: Any, filtered: GaussianBelief, u: Tensor | None) -> Tensor:
+    """``Cov(x_k, x_{k+1} | z_{1:k})`` through ``member``'s motion model: ``P F^T`` (Kalman, extended:
+    ``F`` the Jacobian at the mean) or the sigma-point cross-covariance (unscented). ``(*B, n, n)``."""
+    if isinstance(member, UnscentedKalmanFilter):
+        n = filtered.state_dim
+        wm, wc = member.sigma_points.weights(n, filtered.dtype, filtered.device)
+        points = member.sigma_points.points(filtered.mean, filtered.cov)
+        _, dev = _weighted(member.motion(points, u=None if u is None else u.unsqueeze(0)), wm)
+        shape = (-1,) + (1,) * (dev.dim() - 1)
+        return torch.einsum("s...i,s...j->...ij", points - filtered.mean, wc.reshape(shape) * dev)
+    if isinstance(member, (KalmanFilter, ExtendedKalmanFilter)):
+        return filtered.cov @ member.motion.jacobian(filtered.mean, u=u).mT
+    raise TypeError(f"filter: no smoother for mode filters of type {type(member).__name__}; supported: "
+                    "KalmanFilter, ExtendedKalmanFilter, UnscentedKalmanFilter")
+
+
+def _pair_cross_covariance(bank: Any, pairs: GaussianBelief, u: Tensor | None) -> Tensor:
+    """Cross-covariances of every pair ``(j, i)``: mode ``j``'s posterior through mode ``i``'s motion.
+    ``pairs``: batch ``(*B, M, M)`` (last axis: the motion's mode) -> ``(*B, M, M, n, n)``."""
+    if isinstance(bank, VectorizedBank):  # the models broadcast over the last batch axis
+        return _cross_covariance(bank.filter, pairs, u)
+    if isinstance(bank, ListBank):  # one call per member filter, as the bank's own predict
+        return torch.stack([_cross_covariance(f, pairs.select(-1, i), None if u is None else u[..., i, :])
+                            for i, f in enumerate(bank.filters)], dim=-3)
+    raise TypeError(f"filter: no smoother for a bank of type {type(bank).__name__}")
+
+
+def kim_step(filter: MultipleModelFilter, filtered: ModeBelief, smoothed_next: ModeBelief, *,
+             u: Tensor | None = None, motion: Any = None) -> ModeBelief:
+    r"""One backward step of Kim's smoother (Kim 1994): ``p(x_k, s_k | z_{1:T})`` from the filter's
+    ``p(x_k, s_k | z_{1:k})`` and ``p(x_{k+1}, s_{k+1} | z_{1:T})``.
+
+    With ``mu_j`` the filtered mode probabilities, ``pi_ji`` the transition matrix and
+    ``mu^-_i = sum_j pi_ji mu_j`` the predicted ones, the joint of ``(s_k, s_{k+1})`` is
+    ``P(j, i | z_{1:T}) = mu^s_{k+1}(i) mu_j pi_ji / mu^-_i`` (2.20), ``mu^s_k(j) = sum_i P(j, i)`` (2.21).
+    For every pair, the RTS step from mode ``j``'s posterior through mode ``i``'s model (2.18)-(2.19):
+    ``G_ji = C_ji (P^-_ji)^{-1}``, ``x_ji = x_j + G_ji (x^s_{k+1, i} - x^-_ji)``,
+    ``P_ji = P_j + G_ji (P^s_{k+1, i} - P^-_ji) G_ji^T``; mode ``j``'s smoothed belief is their
+    moment-matched collapse over ``i`` with weights ``P(j, i) / mu^s_k(j)`` (2.24)-(2.25).
+
+    Shapes:
+        filtered, smoothed_next: batch ``(*B,)``, components ``(*B, M)`` -> batch ``(*B,)``;
+        ``u``: ``(*B, k)``.
+    """
+    M = filter.num_modes
+    comps = filtered.components
+    batch = comps.batch_shape[:-1]
+    pairs = comps.unsqueeze(-1).expand(*batch, M, M)  # [..., j, i]: mode j's posterior, mode i's model
+    u_pairs = None if u is None else u.unsqueeze(-2).unsqueeze(-2)
+    bank = filter.bank if motion is None else filter.bank.with_motion(motion)
+    predicted = bank.predict(pairs, u=u_pairs)  # x^-_ji, P^-_ji
+    cross = _pair_cross_covariance(bank, pairs, u_pairs)  # C_ji
+    gain_t = cholesky_solve(cholesky(predicted.cov), cross.mT)  # G_ji^T
+    nxt = smoothed_next.components.unsqueeze(-2)  # (*B, 1, i)
+    mean = pairs.mean + (gain_t.mT @ (nxt.mean - predicted.mean).unsqueeze(-1)).squeeze(-1)
+    cov = symmetrize(pairs.cov + gain_t.mT @ (nxt.cov - predicted.cov) @ gain_t)
+    # mode probabilities (2.20)-(2.21), in log space
+    log_pi = filter.transition.log_matrix()
+    joint_pred = filtered.mode_log_probs.unsqueeze(-1) + log_pi  # log mu_j pi_ji, (*B, j, i)
+    log_pred = torch.logsumexp(joint_pred, dim=-2, keepdim=True)  # log mu^-_i
+    ratio = (smoothed_next.mode_log_probs.unsqueeze(-2) - log_pred).nan_to_num(nan=-torch.inf)  # 0/0: no mass
+    log_pair = joint_pred + ratio
+    log_pair = log_pair - torch.logsumexp(log_pair.flatten(-2), dim=-1)[..., None, None]  # sums to one
+    log_mode = torch.logsumexp(log_pair, dim=-1)  # log mu^s_k(j)
+    weights = safe_log_normalize(log_pair, log_mode.unsqueeze(-1)).exp()  # P(i | j, z_{1:T})
+    merged = GaussianBelief(mean, cov).collapse(weights)  # (*B, j)
+    return ModeBelief(log_mode, merged)
+
+
+def _per_step(value: Any, steps: int, name: str) -> list | None:
+    if value is None:
+        return None
+    if len(value) != steps:
+        raise ValueError(f"{name}: expected one entry per step ({steps}), got {len(value)}")
+    return list(value)
+
+
+def smooth(filter: Any, trajectory: Trajectory, *, controls: Tensor | None = None,
+           motions: Any = None) -> Trajectory:
+    r"""The fixed-interval smoothed beliefs ``p(x_k | z_{1:T})`` of a filtered ``trajectory``.
+
+    Args:
+        filter: the filter that made ``trajectory`` (:func:`~torchmm.run_filter`): a
+            :class:`~torchmm.KalmanFilter` (RTS), :class:`~torchmm.ExtendedKalmanFilter`
+            (extended RTS) or :class:`~torchmm.UnscentedKalmanFilter` (unscented RTS).
+        trajectory: its output, with the priors recorded (``trajectory.prior``; the default
+            ``record`` keeps them).
+        controls: the inputs ``u_k`` given to ``run_filter``, ``(T, *B, k)``.
+        motions: the per-step motion models given to ``run_filter`` (a sequence of ``T``).
+
+    Returns:
+        a :class:`~torchmm.run.Trajectory` whose ``belief`` is the smoothed beliefs, batch ``(T, *B)``
+        (``x_{k|T}``; the last equals the filter's last posterior), with the filter's
+        ``log_likelihood`` (that of the data, unchanged by smoothing) and no priors or innovations.
+
+    Shapes:
+        trajectory.belief, trajectory.prior: batch ``(T, *B)`` -> belief batch ``(T, *B)``.
+
+    Examples:
+        >>> import torch
+        >>> from torchmm import GaussianBelief, KalmanFilter, run_filter, smooth
+        >>> from torchmm.models import ConstantVelocity, PositionMeasurement
+        >>> kf = KalmanFilter(ConstantVelocity(1, q=0.1), PositionMeasurement(2, [0], 1.0))
+        >>> z = torch.randn(20, 3, 1, generator=torch.Generator().manual_seed(0))
+        >>> traj = run_filter(kf, GaussianBelief(torch.zeros(3, 2), torch.eye(2)), z)
+        >>> smoothed = smooth(kf, traj).belief
+        >>> tuple(smoothed.mean.shape), bool((smoothed.cov[:-1].diagonal(dim1=-2, dim2=-1)
+        ...                                   <= traj.belief.cov[:-1].diagonal(dim1=-2, dim2=-1)).all())
+        ((20, 3, 2), True)
+    """
+    if not isinstance(trajectory, Trajectory):
+        raise TypeError(f"trajectory: expected the Trajectory of run_filter, got {type(trajectory).__name__}")
+    if isinstance(filter, MultipleModelFilter):
+        return _smooth_modes(filter, trajectory, controls, motions)
+    if isinstance(filter, ParticleFilter):
+        return _smooth_particles(filter, trajectory, controls, motions)
+    if isinstance(filter, UnscentedKalmanFilter):
+        kind = "unscented"
+    elif isinstance(filter, (KalmanFilter, ExtendedKalmanFilter)):
+        kind = "rts"
+    else:
+        raise TypeError(f"filter: no smoother for {type(filter).__name__} yet; supported: KalmanFilter (RTS), "
+                        "ExtendedKalmanFilter (extended RTS), UnscentedKalmanFilter (unscented RTS), ParticleFilter "
+                        "(FFBSm), IMM / GPB1 / GPB2 over Gaussian mode filters (Kim's smoother)")
+    filtered = trajectory.belief
+    if not isinstance(filtered, GaussianBelief):
+        raise TypeError(f"trajectory.belief: expected Gaussian beliefs, got {type(filtered).__name__}")
+    if kind == "rts" and trajectory.prior is None:
+        raise ValueError("trajectory.prior: the smoother needs the filter's priors; run run_filter without a "
+                         "record that drops them")
+    filtered = filtered.materialize()
+    steps = filtered.batch_shape[0]
+    if controls is not None and controls.shape[0] != steps:
+        raise ValueError(f"controls: expected {steps} steps on the leading axis, got shape {tuple(controls.shape)}")
+    motions = _per_step(motions, steps, "motions")
+    predicted = trajectory.prior.materialize() if kind == "rts" else None
+    smoothed = [filtered[steps - 1]]
+    for k in range(steps - 2, -1, -1):  # the prediction k -> k+1 used motions[k+1] and controls[k+1]
+        motion = filter.motion if motions is None else motions[k + 1]
+        u = None if controls is None else controls[k + 1]
+        if kind == "rts":
+            smoothed.append(rts_step(motion, filtered[k], predicted[k + 1], smoothed[-1], u=u))
+        else:
+            smoothed.append(unscented_rts_step(motion, filter.sigma_points, filtered[k], smoothed[-1], u=u))
+    belief = GaussianBelief(torch.stack([b.mean for b in smoothed[::-1]]),
+                            torch.stack([b.cov for b in smoothed[::-1]]))
+    return Trajectory(belief=belief, prior=None, log_likelihood=trajectory.log_likelihood, innovation=None,
+                      innovation_cov=None, extras={})
+
+
+def _smooth_modes(filter: MultipleModelFilter, trajectory: Trajectory, controls, motions) -> Trajectory:
+    filtered = trajectory.belief
+    if type(filtered) is not ModeBelief or not isinstance(filtered.components, GaussianBelief):
+        raise TypeError(f"trajectory.belief: Kim's smoother needs a ModeBelief of Gaussian modes, got "
+                        f"{type(filtered).__name__}" + ("" if type(filtered) is not ModeBelief else
+                                                        f" of {type(filtered.components).__name__}"))
+    steps = filtered.batch_shape[0]
+    if controls is not None and controls.shape[0] != steps:
+        raise ValueError(f"controls: expected {steps} steps on the leading axis, got shape {tuple(controls.shape)}")
+    motions = _per_step(motions, steps, "motions")
+    components = filtered.components.materialize()
+    filtered = ModeBelief(filtered.mode_log_probs, components)
+    smoothed = [filtered[steps - 1]]
+    for k in range(steps - 2, -1, -1):  # the prediction k -> k+1 used motions[k+1] and controls[k+1]
+        smoothed.append(kim_step(filter, filtered[k], smoothed[-1], u=None if controls is None else controls[k + 1],
+                                 motion=None if motions is None else motions[k + 1]))
+    smoothed = smoothed[::-1]
+    belief = ModeBelief(torch.stack([b.mode_log_probs for b in smoothed]),
+                        GaussianBelief(torch.stack([b.components.mean for b in smoothed]),
+                                       torch.stack([b.components.cov for b in smoothed])))
+    return Trajectory(belief=belief, prior=None, log_likelihood=trajectory.log_likelihood, innovation=None,
+                      innovation_cov=None, extras={})
