@@ -245,7 +245,7 @@ def evaluate_runs(estimator: Estimator, scenario, sim, z: Any, *, chunk_runs: in
         "nees_sum": per_run(joined["nees"].sum(1)),
         "hits_sum": per_run(joined["hits"].sum(1)) if estimator.multiple_model else None,
         "sums": {key: per_run(torch.cat(v, 1).sum(1)) for key, v in extra.items()},
-        "runs": runs, "elapsed": elapsed, "state_dim": int(sim.states.shape[-1]),
+        "runs": runs, "seconds": elapsed, "state_dim": int(sim.states.shape[-1]),
     }, kept
 
 
@@ -280,7 +280,7 @@ def reduce_runs(parts: list[dict]) -> Evaluation:
         vel_rmse=(vel.sum(1) / runs).sqrt(),
         nees=add(lambda p: p["nees_sum"]) / runs,
         mode_accuracy=(add(lambda p: p["hits_sum"]) / runs) if multiple_model else None,
-        seconds_per_step=sum(float(p["elapsed"]) for p in parts) / steps,
+        seconds_per_step=sum(float(p["seconds"]) for p in parts) / steps,
         means={key: add(lambda p, k=key: p["sums"][k]) / runs for key in parts[0]["sums"]},
         pos_rmse_se=armse_se(sq_pos_all),
         vel_rmse_se=armse_se(sq_vel_all),

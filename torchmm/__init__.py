@@ -79,7 +79,7 @@ from torchmm.multimodel.mevsmm import (
     MinimumEntropyVSMM,
     ModelSetBelief,
 )
-from torchmm import analysis, fusion, learn, metrics, simulate  # subpackages, reachable as attributes
+from torchmm import analysis, fusion, learn, metrics, parallel, simulate  # subpackages, reachable as attributes
 
 __version__ = "0.1.0"
 
@@ -123,6 +123,7 @@ __all__ = [
     "fusion",
     "learn",
     "metrics",
+    "parallel",
     "simulate",
     "GPB1",
     "GPB2",

@@ -23,8 +23,8 @@ def _capture(monkeypatch, module, name, pick):
 
 CASES = {
     # study: (module, function to wrap, which argument is the simulated data)
-    "imm_baseline": ("experiments.studies.imm_baseline", "evaluate", lambda a, k: a[3]),
-    "imm_tf": ("experiments.studies.imm_tf", "evaluate", lambda a, k: a[3].target),
+    "imm_baseline": ("experiments.studies.imm_baseline", "evaluate_runs", lambda a, k: a[3]),
+    "imm_tf": ("experiments.studies.imm_tf", "evaluate_runs", lambda a, k: a[3].target),
     "mevsmm": ("experiments.studies.mevsmm", "_run", lambda a, k: a[2]),
     "fusion_radar": ("experiments.studies.fusion_radar", "local_estimates", lambda a, k: a[1]),
     "vbakf_huang": ("experiments.studies.vbakf_huang", "run_filter", lambda a, k: a[2]),
