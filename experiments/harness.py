@@ -112,7 +112,7 @@ def _load_arrays(value: Any, output_dir: Path) -> Any:
     if not (isinstance(value, dict) and ARRAY_REF + "file" in value):
         return value
     with np.load(output_dir / value[ARRAY_REF + "file"]) as data:
-        arrays = {name: data[name] for name in data.files}
+        arrays = {name: np.require(data[name], requirements="W") for name in data.files}  # writable for torch
 
     def walk(v):
         if isinstance(v, dict):

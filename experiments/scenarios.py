@@ -8,10 +8,17 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from torchmm import ConstantVelocity, GaussianBelief, LinearMotion, PositionMeasurement, validate_transition
+from torchmm import (
+    ConstantVelocity,
+    CoordinatedTurn,
+    GaussianBelief,
+    LinearMotion,
+    PositionMeasurement,
+    validate_transition,
+)
 from torchmm.simulate import JumpSimulation, simulate_jump_system, simulate_measurements
 
-__all__ = ["JumpScenario", "kinematic_1d"]
+__all__ = ["JumpScenario", "kinematic_1d", "stay_matrix", "turning_2d"]
 
 
 @dataclass
@@ -88,4 +95,43 @@ def kinematic_1d(
         mode_labels=[f"a={a:g}" for a in accelerations],
         position=[0],
         velocity=[1],
+    )
+
+
+def stay_matrix(stay: float, modes: int = 3, *, dtype=torch.float64, device="cpu") -> Tensor:
+    """``(modes, modes)`` matrix with ``stay`` on the diagonal and ``(1 - stay) / (modes - 1)`` elsewhere."""
+    off = (1 - stay) / (modes - 1)
+    eye = torch.eye(modes, dtype=dtype, device=device)
+    return torch.full((modes, modes), off, dtype=dtype, device=device) + (stay - off) * eye
+
+
+def turning_2d(
+    *,
+    name: str = "turning_2d",
+    turn_rate: float,
+    q: float,
+    R: float,
+    stay: float,
+    steps: int,
+    initial_mean: Sequence[float],
+    initial_std: Sequence[float],
+    dt: float = 1.0,
+    dtype: torch.dtype = torch.float64,
+    device: torch.device | str = "cpu",
+) -> JumpScenario:
+    """2-D target ``[x, vx, y, vy]`` switching (Markov chain, ``stay`` on the diagonal) between
+    constant velocity and coordinated turns at ``+turn_rate`` and ``-turn_rate`` rad/s;
+    white-acceleration noise ``Q = q G G^T``, positions measured with noise ``R I``."""
+    w = float(turn_rate)
+    if not 0.0 < float(stay) <= 1.0:
+        raise ValueError(f"scenario {name}: stay: must lie in (0, 1], got {stay}")
+    motion = CoordinatedTurn(torch.tensor([0.0, w, -w], dtype=dtype), dt=float(dt), q=float(q), dtype=dtype)
+    sensor = PositionMeasurement(4, [0, 2], torch.tensor(float(R), dtype=dtype), dtype=dtype)
+    std = torch.tensor(list(initial_std), dtype=dtype)
+    initial = GaussianBelief.create(list(initial_mean), torch.diag(std.square()), dtype=dtype)
+    return JumpScenario(
+        name=name, motion=motion.to(device), measurement=sensor.to(device),
+        transition=stay_matrix(float(stay), 3, dtype=dtype).to(device), initial=initial.to(device), steps=int(steps),
+        initial_mode_probs=None, mode_labels=["CV", f"CT(+{w:g})", f"CT(-{w:g})"],
+        position=[0, 2], velocity=[1, 3],
     )

@@ -473,6 +473,28 @@ class FusionUps:
             raise ConfigError("ups.burn_in", ups["burn_in"], f"must be below ups.steps = {ups['steps']}")
 
 
+@dataclass
+class SmoothingStudy:
+    scenarios: Dict[str, Any] = spec(factory=dict, check=non_empty)
+    cv_mode: Dict[str, int] = field(default_factory=dict)
+    speed_steps: List[int] = spec(factory=list, check=each(positive))
+    speed_runs: int = spec(10, positive_int)
+
+
+@dataclass
+class Smoothing:
+    smoothing: SmoothingStudy = field(default_factory=SmoothingStudy)
+    estimators: Dict[str, Any] = field(default_factory=dict)
+
+    @staticmethod
+    def check(data: dict) -> None:
+        sm = data["smoothing"]
+        missing = [k for k in sm["scenarios"] if k not in (sm.get("cv_mode") or {})]
+        if missing:
+            raise ConfigError("smoothing.cv_mode", sm.get("cv_mode"),
+                              f"needs the constant-velocity mode of every scenario; missing {', '.join(missing)}")
+
+
 STUDIES: dict[str, tuple[type, tuple[str, ...] | None]] = {
     "experiments.studies.imm_baseline.run": (ImmBaseline, (KINEMATIC,)),
     "experiments.studies.imm_tf.run": (ImmTf, (KINEMATIC,)),
@@ -483,4 +505,5 @@ STUDIES: dict[str, tuple[type, tuple[str, ...] | None]] = {
     "experiments.studies.mevsmm.run": (Mevsmm, (PAPER003,)),
     "experiments.studies.fusion_radar.run": (FusionRadar, None),
     "experiments.studies.fusion_ups.run": (FusionUps, None),
+    "experiments.studies.smoothing.run": (Smoothing, None),
 }

@@ -17,6 +17,7 @@ LAYERS = [
     {"models"},
     {"filters", "simulate"},
     {"run", "multimodel"},
+    {"smooth", "parallel"},  # the backward passes (over every filter and bank) and the time-parallel scans
     {"fusion", "learn", "metrics", "analysis"},
     {"torchmm"},  # the top-level namespace
 ]

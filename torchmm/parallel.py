@@ -1,7 +1,7 @@
 r"""Parallel-in-time Kalman filtering and RTS smoothing through an associative scan (O(log T) depth).
 
 Särkkä & García-Fernández, "Temporal parallelization of Bayesian smoothers", IEEE TAC 66(1), 2021,
-section IV (docs/smoothing.md). Each step ``k`` of a linear-Gaussian model
+(docs/smoothing.md). Each step ``k`` of a linear-Gaussian model
 ``x_k = F x_{k-1} + c + w`` (``Q``), ``z_k = H x_k + d + v`` (``R``) is an element
 ``(A_k, b_k, C_k, eta_k, J_k)``: with ``S = H Q H^T + R``, ``K = Q H^T S^{-1}``,
 
@@ -10,7 +10,7 @@ section IV (docs/smoothing.md). Each step ``k`` of a linear-Gaussian model
     \eta_k = F^T H^T S^{-1} (z_k - H c - d),\ J_k = F^T H^T S^{-1} H F
 
 (step 1 uses ``F = 0``, ``c = F m_0 + c``, ``Q = F P_0 F^T + Q``: its element is the first filtered
-belief). The associative operator (their eq. (19)) combines two of them; the prefix "sums" are the
+belief). The associative operator of their filtering elements combines two of them; the prefix "sums" are the
 filtered means ``b`` and covariances ``C``. The smoother's elements ``(E_k, g_k, L_k)``,
 ``E_k = P_k F^T (P^-_{k+1})^{-1}``, ``g_k = m_k - E_k m^-_{k+1}``, ``L_k = P_k - E_k P^-_{k+1} E_k^T``
 (``(0, m_T, P_T)`` last), combine backwards as ``(E_i E_j, E_i g_j + g_i, E_i L_j E_i^T + L_i)``.
@@ -73,7 +73,7 @@ def _solve(A: Tensor, B: Tensor) -> Tensor:
 
 
 def _filter_op(a: Elements, b: Elements) -> Elements:
-    """Särkkä & García-Fernández (2021), eq. (19): element ``a`` (earlier) then ``b`` (later)."""
+    """Särkkä & García-Fernández (2021), the filtering operator: element ``a`` (earlier) then ``b`` (later)."""
     A1, b1, C1, e1, J1 = a
     A2, b2, C2, e2, J2 = b
     eye = torch.eye(A1.shape[-1], dtype=A1.dtype, device=A1.device)

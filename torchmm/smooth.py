@@ -6,15 +6,15 @@ One entry point, dispatching on the filter that produced ``trajectory`` (docs/sm
 * :class:`~torchmm.ExtendedKalmanFilter` - the extended RTS smoother: the same backward step with
   the motion Jacobian ``F_{k+1}`` at the filtered mean (:func:`~torchmm.filters.rts_step`);
 * :class:`~torchmm.UnscentedKalmanFilter` - the unscented RTS smoother of Särkkä (IEEE TAC 53(3),
-  2008, Algorithm 2.1): sigma points of ``x_{k|k}`` through the motion model give the predicted
+  2008): sigma points of ``x_{k|k}`` through the motion model give the predicted
   moments and the cross-covariance ``C_{k+1}``, ``G_k = C_{k+1} (P^-_{k+1})^{-1}``,
 
   .. math::
       x^s_k = x_k + G_k (x^s_{k+1} - x^-_{k+1}),\qquad P^s_k = P_k + G_k (P^s_{k+1} - P^-_{k+1}) G_k^\top.
 
 * :class:`~torchmm.ParticleFilter` - forward-filtering backward-smoothing (FFBSm) of the particle
-  weights (Doucet, Godsill & Andrieu, Stat. Comput. 10, 2000, eq. (14); Godsill, Doucet & West,
-  JASA 99, 2004, section 2): the filter's particles keep their places and get smoothed weights
+  weights (Doucet, Godsill & Andrieu, Stat. Comput. 10, 2000; Godsill, Doucet & West,
+  JASA 99, 2004): the filter's particles keep their places and get smoothed weights
   ``w_{k|T}^i = w_k^i sum_j w_{k+1|T}^j f(x_{k+1}^j | x_k^i) / sum_l w_k^l f(x_{k+1}^j | x_k^l)``,
   :func:`ffbsm_step`. Cost ``O(T B Np^2 n)`` time and ``O(B Np^2)`` memory per step (all pairs of
   particles): thousands of particles, not millions. Needs a positive-definite process noise ``Q``
@@ -22,7 +22,7 @@ One entry point, dispatching on the filter that produced ``trajectory`` (docs/sm
 * :class:`~torchmm.IMM`, :class:`~torchmm.GPB1`, :class:`~torchmm.GPB2` (and any
   :class:`~torchmm.multimodel.MultipleModelFilter` with Gaussian mode beliefs, over Kalman,
   extended or unscented mode filters) - Kim's fixed-interval smoother for Markov-switching models
-  (Kim, J. Econometrics 60, 1994, eqs. (2.18)-(2.21) and (2.24)-(2.25)), :func:`kim_step`: smoothed
+  (Kim, J. Econometrics 60, 1994), :func:`kim_step`: smoothed
   mode probabilities and mode-conditioned smoothed beliefs, from the filter's mode-conditioned
   posteriors ``x^j_{k|k}`` and mode probabilities.
 
@@ -103,7 +103,7 @@ def ffbsm_step(motion: MotionModel, filtered: ParticleBelief, following: Particl
     r"""One backward FFBSm step: the smoothed log-weights of ``filtered``'s particles at step ``k``.
 
     ``log w_{k|T}^i = log w_k^i + logsumexp_j(log w_{k+1|T}^j + log f_ij - logsumexp_l(log w_k^l + log f_lj))``
-    with ``f_ij = N(x_{k+1}^j; f(x_k^i, u_{k+1}), Q)`` (Doucet, Godsill & Andrieu 2000, eq. (14)).
+    with ``f_ij = N(x_{k+1}^j; f(x_k^i, u_{k+1}), Q)`` (Doucet, Godsill & Andrieu 2000).
 
     Args:
         motion: the model of the prediction ``k -> k+1`` (its ``noise_cov()`` positive definite).
@@ -179,11 +179,11 @@ def kim_step(filter: MultipleModelFilter, filtered: ModeBelief, smoothed_next: M
 
     With ``mu_j`` the filtered mode probabilities, ``pi_ji`` the transition matrix and
     ``mu^-_i = sum_j pi_ji mu_j`` the predicted ones, the joint of ``(s_k, s_{k+1})`` is
-    ``P(j, i | z_{1:T}) = mu^s_{k+1}(i) mu_j pi_ji / mu^-_i`` (2.20), ``mu^s_k(j) = sum_i P(j, i)`` (2.21).
-    For every pair, the RTS step from mode ``j``'s posterior through mode ``i``'s model (2.18)-(2.19):
+    ``P(j, i | z_{1:T}) = mu^s_{k+1}(i) mu_j pi_ji / mu^-_i``, ``mu^s_k(j) = sum_i P(j, i)``.
+    For every pair, the RTS step from mode ``j``'s posterior through mode ``i``'s model:
     ``G_ji = C_ji (P^-_ji)^{-1}``, ``x_ji = x_j + G_ji (x^s_{k+1, i} - x^-_ji)``,
     ``P_ji = P_j + G_ji (P^s_{k+1, i} - P^-_ji) G_ji^T``; mode ``j``'s smoothed belief is their
-    moment-matched collapse over ``i`` with weights ``P(j, i) / mu^s_k(j)`` (2.24)-(2.25).
+    moment-matched collapse over ``i`` with weights ``P(j, i) / mu^s_k(j)``.
 
     Shapes:
         filtered, smoothed_next: batch ``(*B,)``, components ``(*B, M)`` -> batch ``(*B,)``;
@@ -201,7 +201,7 @@ def kim_step(filter: MultipleModelFilter, filtered: ModeBelief, smoothed_next: M
     nxt = smoothed_next.components.unsqueeze(-2)  # (*B, 1, i)
     mean = pairs.mean + (gain_t.mT @ (nxt.mean - predicted.mean).unsqueeze(-1)).squeeze(-1)
     cov = symmetrize(pairs.cov + gain_t.mT @ (nxt.cov - predicted.cov) @ gain_t)
-    # mode probabilities (2.20)-(2.21), in log space
+    # mode probabilities, in log space
     log_pi = filter.transition.log_matrix()
     joint_pred = filtered.mode_log_probs.unsqueeze(-1) + log_pi  # log mu_j pi_ji, (*B, j, i)
     log_pred = torch.logsumexp(joint_pred, dim=-2, keepdim=True)  # log mu^-_i

@@ -38,17 +38,15 @@ from experiments.estimators import Estimator, evaluate, starter  # noqa: E402
 from experiments.executors import Unit  # noqa: E402
 from experiments.harness import StudyContext  # noqa: E402
 from experiments.uncertainty import nees_consistency  # noqa: E402
-from experiments.scenarios import JumpScenario  # noqa: E402
+from experiments.scenarios import JumpScenario, stay_matrix, turning_2d  # noqa: E402
 from experiments.studies import plots  # noqa: E402
 from torchmm import (  # noqa: E402
     IMM,
     ConstantVelocity,
     CoordinatedTurn,
     ExtendedKalmanFilter,
-    GaussianBelief,
     KalmanFilter,
     ModeTransition,
-    PositionMeasurement,
 )
 from torchmm.learn import Trainer, negative_log_likelihood  # noqa: E402
 from torchmm.models import LearnedMotion, learnable_noise  # noqa: E402
@@ -60,30 +58,18 @@ ESTIMATORS = ("true-model IMM", "learned IMM", "initial IMM")
 
 # -- scenario --------------------------------------------------------------------------------------
 def turning_scenario(cfg, dtype, device) -> JumpScenario:
-    """The CV / CT(+w) / CT(-w) Markov-jump scenario of the study (``cfg = learn.scenario``)."""
-    w = float(cfg.turn_rate)
-    rates = torch.tensor([0.0, w, -w], dtype=dtype)
-    motion = CoordinatedTurn(rates, dt=float(cfg.dt), q=float(cfg.q), dtype=dtype)
-    sensor = PositionMeasurement(4, [0, 2], torch.tensor(float(cfg.R), dtype=dtype), dtype=dtype)
-    stay = float(cfg.stay)
-    if not 0.0 < stay <= 1.0:
-        raise ValueError(f"learn.scenario.stay: must lie in (0, 1], got {stay}")
-    transition = _stay_matrix(stay, dtype, "cpu")
-    std = torch.tensor(list(cfg.initial_std), dtype=dtype)
-    initial = GaussianBelief.create(list(cfg.initial_mean), torch.diag(std.square()), dtype=dtype)
-    return JumpScenario(
-        name="turning_2d", motion=motion.to(device), measurement=sensor.to(device),
-        transition=transition.to(device), initial=initial.to(device), steps=int(cfg.steps),
-        initial_mode_probs=None, mode_labels=["CV", f"CT(+{w:g})", f"CT(-{w:g})"],
-        position=[0, 2], velocity=[1, 3],
-    )
+    """The CV / CT(+w) / CT(-w) Markov-jump scenario of the study (``cfg = learn.scenario``;
+    :func:`experiments.scenarios.turning_2d`)."""
+    try:
+        return turning_2d(turn_rate=cfg.turn_rate, q=cfg.q, R=cfg.R, stay=cfg.stay, steps=cfg.steps, dt=cfg.dt,
+                          initial_mean=cfg.initial_mean, initial_std=cfg.initial_std, dtype=dtype, device=device)
+    except ValueError as err:
+        raise ValueError(str(err).replace("scenario turning_2d: ", "learn.scenario.")) from None
 
 
 def _stay_matrix(stay: float, dtype, device) -> torch.Tensor:
     """3x3 matrix with ``stay`` on the diagonal and ``(1 - stay) / 2`` elsewhere."""
-    off = (1 - stay) / 2
-    eye = torch.eye(3, dtype=dtype, device=device)
-    return torch.full((3, 3), off, dtype=dtype, device=device) + (stay - off) * eye
+    return stay_matrix(stay, 3, dtype=dtype, device=device)
 
 
 def _imm(scenario: JumpScenario, transition, q: float) -> IMM:

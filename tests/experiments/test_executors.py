@@ -148,16 +148,18 @@ def test_numbers_do_not_depend_on_the_process_default_dtype(tmp_path):
 UNIT_RUNS = ["mc_runs=6", "block_runs=2"]  # unit_runs=4: units of runs 0-3 and 4-5
 
 
-@pytest.mark.parametrize("name", ["imm_baseline", "imm_analysis", "imm_tf", "mevsmm", "gimmaf", "vbakf_huang"])
+@pytest.mark.parametrize("name", ["imm_baseline", "imm_analysis", "imm_tf", "mevsmm", "gimmaf", "vbakf_huang",
+                                  "smoothing"])
 def test_units_of_runs_give_the_unsplit_numbers_and_resume_from_their_arrays(name, tmp_path, monkeypatch):
     """With ``unit_runs`` a setting's runs are units of their own, reduced in run order: the numbers
     equal the unsplit study's (to rounding: a unit's runs are filtered in one batch), the per-run
     arrays are checkpointed in units/*.npz, and a resumed study reads them back to identical tables."""
     from tests.experiments.test_chunking import _assert_same, _drop_timing_rows
 
-    whole = _tables(name, tmp_path, *UNIT_RUNS)
+    sizes = [*UNIT_RUNS, *(["table1_ratios=[0.3]", "rs_sweep=[1.0]"] if name == "imm_tf" else [])]
+    whole = _tables(name, tmp_path, *sizes)
     split_dir = tmp_path / "split"
-    run_study(_compose(name, f"debug={name}", "logger=none", *UNIT_RUNS, "unit_runs=4"), split_dir)
+    run_study(_compose(name, f"debug={name}", "logger=none", *sizes, "unit_runs=4"), split_dir)
     split = json.loads((split_dir / "results.json").read_text())["tables"]
     _assert_same(_drop_timing_rows({"tables": whole}), _drop_timing_rows({"tables": split}))
     units = json.loads((split_dir / "checkpoint.json").read_text())["units"]
@@ -169,7 +171,7 @@ def test_units_of_runs_give_the_unsplit_numbers_and_resume_from_their_arrays(nam
         raise AssertionError(f"unit {args} recomputed on resume")
 
     monkeypatch.setattr(f"experiments.studies.{name}.unit", recompute)  # every unit from checkpoint + npz
-    run_study(_compose(name, f"debug={name}", "logger=none", *UNIT_RUNS, "unit_runs=4"), split_dir)  # resumes
+    run_study(_compose(name, f"debug={name}", "logger=none", *sizes, "unit_runs=4"), split_dir)  # resumes
     again = json.loads((split_dir / "results.json").read_text())["tables"]
     assert _drop_timing_rows({"tables": again}) == _drop_timing_rows({"tables": split})
 

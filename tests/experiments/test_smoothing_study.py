@@ -1,0 +1,32 @@
+"""Study smoothing: the smoother beats the filter where theory says it must (linear-Gaussian RTS),
+the extended / unscented smoothers equal RTS on these linear scenarios, and the parallel scan
+agrees with the sequential smoother."""
+
+from __future__ import annotations
+
+import json
+
+from experiments.run import run_study
+from tests.experiments.test_studies import _compose
+
+
+def test_smoothing_study_tables(tmp_path):
+    run_study(_compose("smoothing", "debug=smoothing", "logger=none", "mc_runs=20",
+                       "smoothing.scenarios.paper000.steps=40", "smoothing.scenarios.turning.steps=40"), tmp_path)
+    tables = json.loads((tmp_path / "results.json").read_text())["tables"]
+    cols = tables["rmse"]["columns"]
+    rows = {(r[0], r[1]): dict(zip(cols, r)) for r in tables["rmse"]["rows"]}
+    for scenario in ("paper000", "paper001", "turning"):
+        kf = rows[(scenario, "KF")]
+        # RTS is the posterior mean: on 20 runs its RMSE is below the filter's, with margin
+        assert kf["smoother_pos_rmse"] < 0.95 * kf["filter_pos_rmse"], kf
+        assert kf["smoother_vel_rmse"] < kf["filter_vel_rmse"], kf
+        for same, ref in (("EKF", "KF"), ("UKF", "KF"), ("IMM-UKF", "IMM")):  # linear scenarios
+            for key in ("filter_pos_rmse", "smoother_pos_rmse", "smoother_vel_rmse"):
+                assert abs(rows[(scenario, same)][key] - rows[(scenario, ref)][key]) <= 1e-8 * rows[(scenario, ref)][key]
+    modes = tables["modes"]
+    assert {r[1] for r in modes["rows"]} == {"IMM", "GPB2", "IMM-UKF"}
+    assert all(0 <= r[2] <= 1 and 0 <= r[3] <= 1 for r in modes["rows"])
+    speed = tables["parallel_speed"]
+    assert [r[0] for r in speed["rows"]] == [16, 64]
+    assert all(r[-1] < 1e-9 for r in speed["rows"])  # parallel == sequential smoothed means
