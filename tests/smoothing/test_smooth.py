@@ -352,3 +352,54 @@ def test_ffbsm_needs_a_positive_definite_process_noise():
                       generator=g)
     with pytest.raises(ValueError, match="positive-definite process noise"):
         smooth(pf, traj)
+
+
+def _numpy_kim(F, Q, off, transition, mu, means, covs):
+    """Kim's smoother in float64 NumPy with loops over modes (one run): ``mu (T, M)``, the forward
+    mode-conditioned ``means (T, M, n)`` and ``covs (T, M, n, n)``."""
+    steps, M, n = means.shape
+    ms, Ps, mus = [means[-1]], [covs[-1]], [mu[-1]]
+    for t in range(steps - 2, -1, -1):
+        pred = transition.T @ mu[t]  # mu^-_{t+1}(i)
+        joint = np.array([[mus[-1][i] * mu[t, j] * transition[j, i] / pred[i] for i in range(M)] for j in range(M)])
+        joint /= joint.sum()
+        mode = joint.sum(1)
+        m_new, P_new = np.zeros((M, n)), np.zeros((M, n, n))
+        for j in range(M):
+            pair_m, pair_P, w = [], [], joint[j] / mode[j]
+            for i in range(M):
+                mp = F[i] @ means[t, j] + off[i]
+                Pp = F[i] @ covs[t, j] @ F[i].T + Q[i]
+                G = covs[t, j] @ F[i].T @ np.linalg.inv(Pp)
+                pair_m.append(means[t, j] + G @ (ms[-1][i] - mp))
+                pair_P.append(covs[t, j] + G @ (Ps[-1][i] - Pp) @ G.T)
+            m_new[j] = sum(w[i] * pair_m[i] for i in range(M))
+            P_new[j] = sum(w[i] * (pair_P[i] + np.outer(pair_m[i] - m_new[j], pair_m[i] - m_new[j])) for i in range(M))
+        ms.append(m_new), Ps.append(P_new), mus.append(mode)
+    return np.stack(mus[::-1]), np.stack(ms[::-1]), np.stack(Ps[::-1])
+
+
+@pytest.mark.parametrize("combinator", [IMM, GPB2])
+def test_kim_smoother_agrees_with_an_independent_numpy_implementation(combinator):
+    """Two modes differing in acceleration and noise, 40 steps: the batched Kim step against loops."""
+    acc = torch.tensor([[0.0], [2.0]], dtype=torch.float64)
+    cv = ConstantVelocity(1, q=0.1, acceleration=acc, dtype=torch.float64)
+    G = torch.tensor([[0.5], [1.0]], dtype=torch.float64)
+    bank = LinearMotion(cv.F, torch.stack([0.1 * G @ G.mT + 1e-3 * torch.eye(2, dtype=torch.float64),
+                                           0.5 * G @ G.mT + 1e-3 * torch.eye(2, dtype=torch.float64)]), offset=cv.offset)
+    sensor = PositionMeasurement(2, [0], 100.0, dtype=torch.float64)
+    transition = torch.tensor([[0.95, 0.05], [0.1, 0.9]], dtype=torch.float64)
+    belief0 = GaussianBelief(torch.tensor([0.0, 10.0], dtype=torch.float64).expand(2, 2),
+                             torch.diag(torch.tensor([100.0, 10.0], dtype=torch.float64)).expand(2, 2, 2))
+    z = 10 * torch.cumsum(torch.randn(40, 2, 1, generator=torch.Generator().manual_seed(3), dtype=torch.float64), 0)
+    mm = combinator(KalmanFilter(bank, sensor), transition)
+    traj = run_filter(mm, mm.initial_belief(belief0), z)
+    kim = smooth(mm, traj).belief
+    F = cv.F.expand(2, 2, 2).numpy()
+    for b in range(2):
+        mu, means, covs = _numpy_kim(F, bank.Q.numpy(), cv.offset.numpy(), transition.numpy(),
+                                     traj.belief.mode_probs[:, b].numpy(), traj.belief.components.mean[:, b].numpy(),
+                                     traj.belief.components.cov[:, b].numpy())
+        np.testing.assert_allclose(kim.mode_probs[:, b].numpy(), mu, rtol=1e-8, atol=1e-12)
+        np.testing.assert_allclose(kim.components.mean[:, b].numpy(), means, rtol=1e-8, atol=1e-8)
+        np.testing.assert_allclose(kim.components.cov[:, b].numpy(), covs, rtol=1e-8, atol=1e-8)
