@@ -223,7 +223,7 @@ def _per_step(value: Any, steps: int, name: str) -> list | None:
 
 
 def smooth(filter: Any, trajectory: Trajectory, *, controls: Tensor | None = None,
-           motions: Any = None) -> Trajectory:
+           motions: Any = None, lag: int | None = None) -> Trajectory:
     r"""The fixed-interval smoothed beliefs ``p(x_k | z_{1:T})`` of a filtered ``trajectory``.
 
     Args:
@@ -234,6 +234,9 @@ def smooth(filter: Any, trajectory: Trajectory, *, controls: Tensor | None = Non
             ``record`` keeps them).
         controls: the inputs ``u_k`` given to ``run_filter``, ``(T, *B, k)``.
         motions: the per-step motion models given to ``run_filter`` (a sequence of ``T``).
+        lag: fixed-lag smoothing (Kalman, extended and unscented filters): step ``k`` is smoothed with
+            the data up to ``k + lag``, ``p(x_k | z_{1:min(k + lag, T)})``. All ``T`` windows go back
+            together: ``lag`` batched backward steps (``O(T lag)`` work). ``None``: fixed interval.
 
     Returns:
         a :class:`~torchmm.run.Trajectory` whose ``belief`` is the smoothed beliefs, batch ``(T, *B)``
@@ -257,6 +260,9 @@ def smooth(filter: Any, trajectory: Trajectory, *, controls: Tensor | None = Non
     """
     if not isinstance(trajectory, Trajectory):
         raise TypeError(f"trajectory: expected the Trajectory of run_filter, got {type(trajectory).__name__}")
+    if lag is not None and isinstance(filter, (MultipleModelFilter, ParticleFilter)):
+        raise ValueError(f"lag: fixed-lag smoothing is implemented for Kalman, extended and unscented filters, "
+                         f"not {type(filter).__name__}")
     if isinstance(filter, MultipleModelFilter):
         return _smooth_modes(filter, trajectory, controls, motions)
     if isinstance(filter, ParticleFilter):
@@ -281,6 +287,8 @@ def smooth(filter: Any, trajectory: Trajectory, *, controls: Tensor | None = Non
         raise ValueError(f"controls: expected {steps} steps on the leading axis, got shape {tuple(controls.shape)}")
     motions = _per_step(motions, steps, "motions")
     predicted = trajectory.prior.materialize() if kind == "rts" else None
+    if lag is not None:
+        return _fixed_lag(filter, kind, filtered, predicted, controls, motions, lag, trajectory)
     smoothed = [filtered[steps - 1]]
     for k in range(steps - 2, -1, -1):  # the prediction k -> k+1 used motions[k+1] and controls[k+1]
         motion = filter.motion if motions is None else motions[k + 1]
@@ -317,3 +325,32 @@ def _smooth_modes(filter: MultipleModelFilter, trajectory: Trajectory, controls,
                                        torch.stack([b.components.cov for b in smoothed])))
     return Trajectory(belief=belief, prior=None, log_likelihood=trajectory.log_likelihood, innovation=None,
                       innovation_cov=None, extras={})
+
+
+def _fixed_lag(filter, kind: str, filtered: GaussianBelief, predicted: GaussianBelief | None, controls, motions,
+               lag: Any, trajectory: Trajectory) -> Trajectory:
+    """Every window ``k .. min(k + lag, T)`` smoothed back to ``k`` at once: ``lag`` backward steps,
+    each over all ``T`` windows (window ``k`` at step ``k + d``); steps outside a window keep its value."""
+    if isinstance(lag, bool) or not isinstance(lag, int) or lag < 0:
+        raise ValueError(f"lag: expected a non-negative integer, got {lag!r}")
+    if motions is not None:
+        raise ValueError("lag: fixed-lag smoothing with per-step motions is not implemented; pass lag=None")
+    steps = filtered.batch_shape[0]
+    L = min(lag, steps - 1)
+    index = torch.arange(steps, device=filtered.mean.device)
+    end = (index + L).clamp(max=steps - 1)  # the last step of window k
+    mean, cov = filtered.mean[end], filtered.cov[end]
+    for d in range(L - 1, -1, -1):
+        t = (index + d).clamp(max=steps - 1)
+        t1 = (index + d + 1).clamp(max=steps - 1)
+        active = (index + d < end).view(steps, *([1] * (mean.dim() - 1)))  # t inside window k, before its end
+        nxt = GaussianBelief(mean, cov)
+        u = None if controls is None else controls[t1]
+        if kind == "rts":
+            new = rts_step(filter.motion, filtered[t], predicted[t1], nxt, u=u)
+        else:
+            new = unscented_rts_step(filter.motion, filter.sigma_points, filtered[t], nxt, u=u)
+        mean = torch.where(active, new.mean, mean)
+        cov = torch.where(active.unsqueeze(-1), new.cov, cov)
+    return Trajectory(belief=GaussianBelief(mean, cov), prior=None, log_likelihood=trajectory.log_likelihood,
+                      innovation=None, innovation_cov=None, extras={})

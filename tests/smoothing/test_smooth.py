@@ -403,3 +403,30 @@ def test_kim_smoother_agrees_with_an_independent_numpy_implementation(combinator
         np.testing.assert_allclose(kim.mode_probs[:, b].numpy(), mu, rtol=1e-8, atol=1e-12)
         np.testing.assert_allclose(kim.components.mean[:, b].numpy(), means, rtol=1e-8, atol=1e-8)
         np.testing.assert_allclose(kim.components.cov[:, b].numpy(), covs, rtol=1e-8, atol=1e-8)
+
+
+@pytest.mark.parametrize("lag", [0, 1, 3, T - 1, T + 5])
+@pytest.mark.parametrize("kind", ["kalman", "unscented"])
+def test_fixed_lag_smoothing_is_the_fixed_interval_smoother_of_the_data_so_far(kind, lag):
+    """x_{k|k+lag} against brute force: for every k, the fixed-interval smoother of z_{1:k+lag}."""
+    cv, sensor, belief0, z = _linear()
+    f = KalmanFilter(cv, sensor) if kind == "kalman" else UnscentedKalmanFilter(cv, sensor)
+    out = smooth(f, run_filter(f, belief0, z), lag=lag).belief
+    for k in range(T):
+        last = min(k + lag, T - 1)
+        want = smooth(f, run_filter(f, belief0, z[:last + 1])).belief[k]
+        torch.testing.assert_close(out.mean[k], want.mean, rtol=1e-10, atol=1e-10)
+        torch.testing.assert_close(out.cov[k], want.cov, rtol=1e-10, atol=1e-10)
+    if lag == 0:
+        torch.testing.assert_close(out.mean, run_filter(f, belief0, z).belief.mean)
+
+
+def test_fixed_lag_errors():
+    cv, sensor, belief0, z = _linear()
+    kf = KalmanFilter(cv, sensor)
+    traj = run_filter(kf, belief0, z)
+    with pytest.raises(ValueError, match="lag: expected a non-negative integer"):
+        smooth(kf, traj, lag=-1)
+    imm = IMM(KalmanFilter(LinearMotion(cv.F, cv.Q.expand(2, 2, 2)), sensor), torch.eye(2, dtype=torch.float64))
+    with pytest.raises(ValueError, match="lag: fixed-lag smoothing is implemented for Kalman"):
+        smooth(imm, run_filter(imm, imm.initial_belief(belief0), z), lag=2)
