@@ -85,3 +85,16 @@ def test_clear_errors():
 
     with pytest.raises(TypeError, match="kf: the parallel filter needs a KalmanFilter"):
         parallel.filter(UnscentedKalmanFilter(kf.motion, kf.measurement), belief0, z)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA (runs where a GPU is present)")
+def test_smoothers_on_cuda_equal_the_cpu_ones():
+    kf, belief0, z = _random_system(3, 2, 40, runs=4, seed=8)
+    cpu_seq = smooth(kf, run_filter(kf, belief0, z)).belief
+    dev = torch.device("cuda")
+    kf_d = KalmanFilter(LinearMotion(kf.motion.F.to(dev), kf.motion.Q.to(dev)),
+                        LinearMeasurement(kf.measurement.H.to(dev), kf.measurement.R.to(dev)))
+    b0 = GaussianBelief(belief0.mean.to(dev), belief0.cov.to(dev))
+    for got in (smooth(kf_d, run_filter(kf_d, b0, z.to(dev))).belief, parallel.smooth(kf_d, b0, z.to(dev)).belief):
+        torch.testing.assert_close(got.mean.cpu(), cpu_seq.mean, rtol=1e-9, atol=1e-9)
+        torch.testing.assert_close(got.cov.cpu(), cpu_seq.cov, rtol=1e-9, atol=1e-9)
