@@ -23,8 +23,8 @@ def _numbers(rows):
 def test_imm_tf_with_unscented_modes_equals_kalman_modes(tmp_path):
     """`mode_filter=unscented` runs all six paper-000 estimators over UKF modes; on the linear model
     they compute the Kalman versions' numbers."""
-    a = _tables("imm_tf", tmp_path / "kf")
-    b = _tables("imm_tf", tmp_path / "ukf", "mode_filter=unscented")
+    a = _tables("imm_tf", tmp_path / "kf", "scenario.steps=40")
+    b = _tables("imm_tf", tmp_path / "ukf", "scenario.steps=40", "mode_filter=unscented")
     for table in ("table1", "rs_sweep"):
         for ra, rb in zip(_numbers(a[table]["rows"]), _numbers(b[table]["rows"])):
             assert ra == pytest.approx(rb, rel=1e-8, abs=1e-10)

@@ -57,7 +57,7 @@ FAST = {
     "imm_baseline": [],
     "imm_baseline_particle": ["mode_filter=particle", "mode_filter.num_particles=64"],
     "imm_analysis": ["debug=imm_analysis"],
-    "imm_tf": ["debug=imm_tf"],
+    "imm_tf": ["debug=imm_tf", "rs_sweep=[1.0]", "scenario.steps=40"],
     "learn_dynamics": ["debug=learn_dynamics"],
     "mevsmm": ["debug=mevsmm"],  # particle filters, one stream per block: chunk_runs changes nothing
 }
