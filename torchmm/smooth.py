@@ -26,8 +26,12 @@ One entry point, dispatching on the filter that produced ``trajectory`` (docs/sm
   mode probabilities and mode-conditioned smoothed beliefs, from the filter's mode-conditioned
   posteriors ``x^j_{k|k}`` and mode probabilities.
 
+``smooth(..., lag=L)`` is fixed-lag smoothing, ``p(x_k | z_{1:k+L})``, for the Kalman, extended and
+unscented filters: all windows go back together, ``L`` batched backward steps.
+
 The backward pass is the only loop (over time), batched over every run (and mode) axis; it is
-differentiable, and reads no tensor value into Python. Missing data (NaN measurements) need nothing
+differentiable, and reads no tensor value into Python (FFBSm checks ``Q`` once, at the entry point,
+before any step). Missing data (NaN measurements) need nothing
 here: the filter's posterior at a missing step is its prior, and the backward pass uses beliefs only.
 """
 
