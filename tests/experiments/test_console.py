@@ -90,23 +90,23 @@ def _run_cli(cwd, *args):
 
 
 def test_resume_latest_continues_the_newest_run_of_the_same_config(tmp_path):
-    base = ["experiment=imm_analysis", "debug=imm_analysis", "logger=none", "progress=false"]
+    base = ["experiment=imm_baseline", "debug=imm_baseline", "logger=none", "progress=false"]
     first = _run_cli(tmp_path, *base)
     assert first.returncode == 0, first.stderr[-2000:]
-    folders = sorted((tmp_path / "outputs" / "imm_analysis").iterdir())
+    folders = sorted((tmp_path / "outputs" / "imm_baseline").iterdir())
     assert len(folders) == 1
     kept = json.loads((folders[0] / "checkpoint.json").read_text())["units"]
     # a non-result key changed: the same folder is continued and every unit is kept
     again = _run_cli(tmp_path, *base, "resume=latest", "progress=true")
     assert again.returncode == 0, again.stderr[-2000:]
     assert f"resume=latest: continuing {folders[0]}" in again.stderr
-    assert sorted((tmp_path / "outputs" / "imm_analysis").iterdir()) == folders
+    assert sorted((tmp_path / "outputs" / "imm_baseline").iterdir()) == folders
     assert f"resuming: {len(kept)} finished units kept" in again.stderr
     assert json.loads((folders[0] / "checkpoint.json").read_text())["units"] == kept
     # another seed: no earlier run of that config, so a fresh folder; the old one is left alone
     other = _run_cli(tmp_path, *base, "resume=latest", "seed=5")
     assert other.returncode == 0 and "no earlier run of this config" in other.stderr
-    assert len(list((tmp_path / "outputs" / "imm_analysis").iterdir())) == 2
+    assert len(list((tmp_path / "outputs" / "imm_baseline").iterdir())) == 2
     assert json.loads((folders[0] / "checkpoint.json").read_text())["units"] == kept
     # user errors: one line, exit 2
     for bad, key in ((["resume=/no/such/folder"], "resume"), (["-m", "resume=latest", "seed=1,2"], "resume")):

@@ -148,8 +148,8 @@ def test_numbers_do_not_depend_on_the_process_default_dtype(tmp_path):
 UNIT_RUNS = ["mc_runs=6", "block_runs=2"]  # unit_runs=4: units of runs 0-3 and 4-5
 
 
-@pytest.mark.parametrize("name", ["imm_baseline", "imm_analysis", "imm_tf", "mevsmm", "gimmaf", "vbakf_huang",
-                                  "smoothing"])
+@pytest.mark.parametrize("name", ["imm_baseline", "imm_analysis", pytest.param("imm_tf", marks=pytest.mark.slow),
+                                  "mevsmm", "gimmaf", "vbakf_huang", "smoothing"])
 def test_units_of_runs_give_the_unsplit_numbers_and_resume_from_their_arrays(name, tmp_path, monkeypatch):
     """With ``unit_runs`` a setting's runs are units of their own, reduced in run order: the numbers
     equal the unsplit study's (to rounding: a unit's runs are filtered in one batch), the per-run

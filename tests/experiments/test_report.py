@@ -103,31 +103,31 @@ def test_single_runs_and_constant_columns():
 
 
 def test_report_of_a_real_sweep(tmp_path):
-    """torchmm-run -m over 2 x 2 overrides x 2 seeds, then torchmm-report: the report's means are the
+    """torchmm-run -m over 2 mc_runs x 2 seeds, then torchmm-report: the report's means are the
     means of the runs' own results.json (folders named by their overrides)."""
     sweep = tmp_path / "sweep"
     cmd = [sys.executable, "-m", "experiments.run", "-m", "experiment=imm_baseline", "debug=imm_baseline",
-           "mc_runs=2,3", "dtype=float32,float64", "seed=0,1", "scenario.steps=30", "progress=false", "logger=none",
+           "mc_runs=2,3", "seed=0,1", "scenario.steps=30", "progress=false", "logger=none",
            "hydra/launcher=basic", f"hydra.sweep.dir={sweep}"]
     proc = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     folders = sorted(p.name for p in sweep.iterdir() if p.is_dir())
-    assert len(folders) == 8 and "0_debug=imm_baseline,dtype=float32,mc_runs=2,scenario.steps=30,seed=0" in folders
+    assert len(folders) == 4 and "0_debug=imm_baseline,mc_runs=2,scenario.steps=30,seed=0" in folders
     proc = subprocess.run([sys.executable, "-m", "experiments.report", str(sweep)], cwd=tmp_path,
                           capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
     body = json.loads((sweep / "report" / "report.json").read_text())["imm_baseline"]
-    assert body["factors"] == ["dtype", "mc_runs"] and len(body["groups"]) == 4
+    assert body["factors"] == ["mc_runs"] and len(body["groups"]) == 2
     own = {}
     for path in sweep.glob("*/results.json"):
         res = json.loads(path.read_text())
         cfg = res["config"]
         for row in res["tables"]["rmse"]["rows"]:
-            own.setdefault((cfg["dtype"], cfg["mc_runs"], row[0]), []).append(row[1])
+            own.setdefault((cfg["mc_runs"], row[0]), []).append(row[1])
     rows = body["tables"]["rmse"]["rows"]
-    assert len(rows) == 4 * 4
+    assert len(rows) == 2 * 4
     for row in rows:
         f = body["groups"][row["group"]]["factors"]
-        values = own[(f["dtype"], f["mc_runs"], row["labels"]["estimator"])]
+        values = own[(f["mc_runs"], row["labels"]["estimator"])]
         assert row["values"]["pos_rmse"]["n"] == 2
         assert row["values"]["pos_rmse"]["mean"] == pytest.approx(float(np.mean(values)), rel=1e-12)
