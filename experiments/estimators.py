@@ -28,6 +28,7 @@ from torchmm import GPB1, GPB2, IMM, Filter, GaussianBelief, KalmanFilter, run_f
 from torchmm.metrics import nees, squared_error
 from torchmm.run import Trajectory
 
+from experiments.harness import add_runs, join_runs, per_run
 from experiments.uncertainty import armse_se, rmse_se_per_step
 
 __all__ = ["Estimator", "Evaluation", "build_mode_filter", "evaluate", "evaluate_runs", "gpb1", "gpb2", "imm",
@@ -204,8 +205,6 @@ def evaluate_runs(estimator: Estimator, scenario, sim, z: Any, *, chunk_runs: in
     need them per run), and sums over these runs of the NEES, the mode hits and each ``per_step``
     statistic.
     """
-    from experiments.harness import per_run
-
     leaf = pytree.tree_leaves(z)[0]
     runs = leaf.shape[1]
     if estimator.filter.uses_generator and block_runs and generators is not None:
@@ -261,27 +260,18 @@ def reduce_runs(parts: list[dict]) -> Evaluation:
     """One :class:`Evaluation` from the :func:`evaluate_runs` values of consecutive units of runs, in
     run order (the order of arrival never matters): per-run values joined, sums added, then reduced
     once - a single part gives exactly :func:`evaluate`'s numbers."""
-    def cat(key):
-        return torch.cat([torch.as_tensor(p[key]) for p in parts], 1)
-
-    def add(get):
-        total = torch.as_tensor(get(parts[0]))
-        for p in parts[1:]:
-            total = total + torch.as_tensor(get(p))
-        return total
-
     runs = sum(int(p["runs"]) for p in parts)
-    pos, vel = cat("pos"), cat("vel")
+    pos, vel = join_runs([p["pos"] for p in parts]), join_runs([p["vel"] for p in parts])
     steps = pos.shape[0]
     sq_pos_all, sq_vel_all = pos.to(torch.float64), vel.to(torch.float64)
     multiple_model = parts[0]["hits_sum"] is not None
     return Evaluation(
         pos_rmse=(pos.sum(1) / runs).sqrt(),
         vel_rmse=(vel.sum(1) / runs).sqrt(),
-        nees=add(lambda p: p["nees_sum"]) / runs,
-        mode_accuracy=(add(lambda p: p["hits_sum"]) / runs) if multiple_model else None,
+        nees=add_runs([p["nees_sum"] for p in parts]) / runs,
+        mode_accuracy=(add_runs([p["hits_sum"] for p in parts]) / runs) if multiple_model else None,
         seconds_per_step=sum(float(p["seconds"]) for p in parts) / steps,
-        means={key: add(lambda p, k=key: p["sums"][k]) / runs for key in parts[0]["sums"]},
+        means={key: add_runs([p["sums"][key] for p in parts]) / runs for key in parts[0]["sums"]},
         pos_rmse_se=armse_se(sq_pos_all),
         vel_rmse_se=armse_se(sq_vel_all),
         pos_rmse_band=rmse_se_per_step(sq_pos_all),

@@ -71,6 +71,19 @@ def per_run(tensor: torch.Tensor):
     return tensor.detach().cpu().numpy()
 
 
+def join_runs(arrays: Sequence[Any], dim: int = 1) -> torch.Tensor:
+    """Per-run values of consecutive units, in run order, as one tensor (runs on ``dim``)."""
+    return torch.cat([torch.as_tensor(a) for a in arrays], dim)
+
+
+def add_runs(arrays: Sequence[Any]) -> torch.Tensor:
+    """Sums over the runs of consecutive units, added in run order (a single unit: its own sum)."""
+    total = torch.as_tensor(arrays[0])
+    for a in arrays[1:]:
+        total = total + torch.as_tensor(a)
+    return total
+
+
 def _arrays_file(key: str) -> str:
     safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in key)[:80]
     return f"units/{safe}-{hashlib.sha256(key.encode()).hexdigest()[:8]}.npz"

@@ -68,10 +68,6 @@ def associative_scan(op: Callable[[Elements, Elements], Elements], elems: Elemen
     return tuple(out)
 
 
-def _solve(A: Tensor, B: Tensor) -> Tensor:
-    return torch.linalg.solve(A, B)
-
-
 def _filter_op(a: Elements, b: Elements) -> Elements:
     """Särkkä & García-Fernández (2021), the filtering operator: element ``a`` (earlier) then ``b`` (later)."""
     A1, b1, C1, e1, J1 = a
@@ -79,13 +75,13 @@ def _filter_op(a: Elements, b: Elements) -> Elements:
     eye = torch.eye(A1.shape[-1], dtype=A1.dtype, device=A1.device)
     M = eye + C1 @ J2  # (I + C_i J_j)
     rhs = torch.cat([A1, (b1 + (C1 @ e2.unsqueeze(-1)).squeeze(-1)).unsqueeze(-1), C1], -1)
-    X = _solve(M, rhs)  # (I + C_i J_j)^{-1} [A_i, b_i + C_i eta_j, C_i]
+    X = torch.linalg.solve(M, rhs)  # (I + C_i J_j)^{-1} [A_i, b_i + C_i eta_j, C_i]
     n = A1.shape[-1]
     A = A2 @ X[..., :n]
     bb = (A2 @ X[..., n:n + 1]).squeeze(-1) + b2
     C = symmetrize(A2 @ X[..., n + 1:] @ A2.mT + C2)
     N = eye + J2 @ C1  # (I + J_j C_i)
-    Y = _solve(N, torch.cat([(e2 - (J2 @ b1.unsqueeze(-1)).squeeze(-1)).unsqueeze(-1), J2 @ A1], -1))
+    Y = torch.linalg.solve(N, torch.cat([(e2 - (J2 @ b1.unsqueeze(-1)).squeeze(-1)).unsqueeze(-1), J2 @ A1], -1))
     e = (A1.mT @ Y[..., :1]).squeeze(-1) + e1
     J = symmetrize(A1.mT @ Y[..., 1:] + J1)
     return A, bb, C, e, J

@@ -56,10 +56,19 @@ from torchmm.run import Trajectory
 __all__ = ["ffbsm_step", "kim_step", "smooth", "unscented_rts_step"]
 
 
-def _weighted(points: Tensor, wm: Tensor) -> tuple[Tensor, Tensor]:
-    shape = (-1,) + (1,) * (points.dim() - 1)
-    mean = (wm.reshape(shape) * points).sum(0)
-    return mean, points - mean
+def _sigma_moments(motion: MotionModel, sigma_points: SigmaPointStrategy, belief: GaussianBelief,
+                   u: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
+    """Sigma points of ``belief`` through ``motion``: predicted mean ``(*B, n)``, predicted covariance
+    (with ``Q``) and cross-covariance ``C = E[(x - m)(f(x) - m^-)^T]``, ``(*B, n, n)`` each."""
+    wm, wc = sigma_points.weights(belief.state_dim, belief.dtype, belief.device)
+    points = sigma_points.points(belief.mean, belief.cov)  # (S, *B, n)
+    propagated = motion(points, u=None if u is None else u.unsqueeze(0))
+    shape = (-1,) + (1,) * (propagated.dim() - 1)
+    mean = (wm.reshape(shape) * propagated).sum(0)
+    weighted = wc.reshape(shape) * (propagated - mean)
+    cov = symmetrize(torch.einsum("s...i,s...j->...ij", weighted, propagated - mean) + motion.noise_cov(belief.mean))
+    cross = torch.einsum("s...i,s...j->...ij", points - belief.mean, weighted)
+    return mean, cov, cross
 
 
 def unscented_rts_step(motion: MotionModel, sigma_points: SigmaPointStrategy, filtered: GaussianBelief,
@@ -75,15 +84,7 @@ def unscented_rts_step(motion: MotionModel, sigma_points: SigmaPointStrategy, fi
     Shapes:
         beliefs with batch ``(*B,)`` (broadcasting) -> batch ``(*B,)``; ``u``: ``(*B, k)``.
     """
-    n = filtered.state_dim
-    wm, wc = sigma_points.weights(n, filtered.dtype, filtered.device)
-    points = sigma_points.points(filtered.mean, filtered.cov)  # (S, *B, n)
-    propagated = motion(points, u=None if u is None else u.unsqueeze(0))
-    mean_pred, dev = _weighted(propagated, wm)
-    shape = (-1,) + (1,) * (dev.dim() - 1)
-    weighted = wc.reshape(shape) * dev
-    cov_pred = symmetrize(torch.einsum("s...i,s...j->...ij", weighted, dev) + motion.noise_cov(filtered.mean))
-    cross = torch.einsum("s...i,s...j->...ij", points - filtered.mean, weighted)  # C = E[(x_k - m)(x_{k+1} - m^-)^T]
+    mean_pred, cov_pred, cross = _sigma_moments(motion, sigma_points, filtered, u)
     gain_t = cholesky_solve(cholesky(cov_pred), cross.mT)  # G^T = (P^-)^{-1} C^T
     gain = gain_t.mT
     mean = filtered.mean + (gain @ (smoothed_next.mean - mean_pred).unsqueeze(-1)).squeeze(-1)
@@ -130,9 +131,6 @@ def _smooth_particles(filter: ParticleFilter, trajectory: Trajectory, controls, 
     if not isinstance(filtered, ParticleBelief):
         raise TypeError(f"trajectory.belief: expected particle beliefs, got {type(filtered).__name__}")
     steps = filtered.batch_shape[0]
-    if controls is not None and controls.shape[0] != steps:
-        raise ValueError(f"controls: expected {steps} steps on the leading axis, got shape {tuple(controls.shape)}")
-    motions = _per_step(motions, steps, "motions")
     for k, motion in enumerate([filter.motion] if motions is None else motions):  # once, at the entry point
         eig = torch.linalg.eigvalsh(motion.noise_cov())  # rank-deficient Q (e.g. q G G^T): no density
         if bool((eig[..., 0] <= 1e-10 * eig[..., -1].abs()).any()):
@@ -153,12 +151,7 @@ def _cross_covariance(member: Any, filtered: GaussianBelief, u: Tensor | None) -
     """``Cov(x_k, x_{k+1} | z_{1:k})`` through ``member``'s motion model: ``P F^T`` (Kalman, extended:
     ``F`` the Jacobian at the mean) or the sigma-point cross-covariance (unscented). ``(*B, n, n)``."""
     if isinstance(member, UnscentedKalmanFilter):
-        n = filtered.state_dim
-        wm, wc = member.sigma_points.weights(n, filtered.dtype, filtered.device)
-        points = member.sigma_points.points(filtered.mean, filtered.cov)
-        _, dev = _weighted(member.motion(points, u=None if u is None else u.unsqueeze(0)), wm)
-        shape = (-1,) + (1,) * (dev.dim() - 1)
-        return torch.einsum("s...i,s...j->...ij", points - filtered.mean, wc.reshape(shape) * dev)
+        return _sigma_moments(member.motion, member.sigma_points, filtered, u)[2]
     if isinstance(member, (KalmanFilter, ExtendedKalmanFilter)):
         return filtered.cov @ member.motion.jacobian(filtered.mean, u=u).mT
     raise TypeError(f"filter: no smoother for mode filters of type {type(member).__name__}; supported: "
@@ -264,6 +257,10 @@ def smooth(filter: Any, trajectory: Trajectory, *, controls: Tensor | None = Non
     """
     if not isinstance(trajectory, Trajectory):
         raise TypeError(f"trajectory: expected the Trajectory of run_filter, got {type(trajectory).__name__}")
+    steps = trajectory.belief.batch_shape[0]
+    if controls is not None and controls.shape[0] != steps:
+        raise ValueError(f"controls: expected {steps} steps on the leading axis, got shape {tuple(controls.shape)}")
+    motions = _per_step(motions, steps, "motions")
     if lag is not None and isinstance(filter, (MultipleModelFilter, ParticleFilter)):
         raise ValueError(f"lag: fixed-lag smoothing is implemented for Kalman, extended and unscented filters, "
                          f"not {type(filter).__name__}")
@@ -286,10 +283,6 @@ def smooth(filter: Any, trajectory: Trajectory, *, controls: Tensor | None = Non
         raise ValueError("trajectory.prior: the smoother needs the filter's priors; run run_filter without a "
                          "record that drops them")
     filtered = filtered.materialize()
-    steps = filtered.batch_shape[0]
-    if controls is not None and controls.shape[0] != steps:
-        raise ValueError(f"controls: expected {steps} steps on the leading axis, got shape {tuple(controls.shape)}")
-    motions = _per_step(motions, steps, "motions")
     predicted = trajectory.prior.materialize() if kind == "rts" else None
     if lag is not None:
         return _fixed_lag(filter, kind, filtered, predicted, controls, motions, lag, trajectory)
@@ -314,9 +307,6 @@ def _smooth_modes(filter: MultipleModelFilter, trajectory: Trajectory, controls,
                         f"{type(filtered).__name__}" + ("" if type(filtered) is not ModeBelief else
                                                         f" of {type(filtered.components).__name__}"))
     steps = filtered.batch_shape[0]
-    if controls is not None and controls.shape[0] != steps:
-        raise ValueError(f"controls: expected {steps} steps on the leading axis, got shape {tuple(controls.shape)}")
-    motions = _per_step(motions, steps, "motions")
     components = filtered.components.materialize()
     filtered = ModeBelief(filtered.mode_log_probs, components)
     smoothed = [filtered[steps - 1]]

@@ -26,7 +26,7 @@ import time
 import torch
 
 from experiments.executors import Unit
-from experiments.harness import StudyContext
+from experiments.harness import StudyContext, add_runs, join_runs, per_run
 from experiments.studies import plots
 from experiments.uncertainty import armse_se, inside, rmse_se_per_step
 from torchmm import GaussianBelief, KalmanFilter, LinearMotion, run_filter
@@ -145,8 +145,6 @@ def run_unit(g, noise_kind: str, noise_params, runs: int, generator, *, dtype, d
     runs of the per-step statistics, per estimator (one value of a setting's units: :func:`merge`).
     ``simulate_runs(draw, runs, start)`` (the study's run-indexed blocks) simulates instead of one
     stream from ``generator``."""
-    from experiments.harness import per_run
-
     R, delta, nu = float(noise_params.R), float(noise_params.delta), float(noise_params.nu)
     steps = int(g.steps)
     # simulated in float64 and cast: float32 and float64 runs see the same data
@@ -210,12 +208,9 @@ def merge(parts: list[dict]) -> dict:
         runs = sum(m["runs"] for m in mine)
 
         def add(key):
-            total = torch.as_tensor(mine[0][key])
-            for m in mine[1:]:
-                total = total + torch.as_tensor(m[key])
-            return total
+            return add_runs([m[key] for m in mine])
 
-        sq_pos, sq_vel = (torch.cat([torch.as_tensor(m[k]) for m in mine], 1) for k in ("pos", "vel"))
+        sq_pos, sq_vel = (join_runs([m[k] for m in mine]) for k in ("pos", "vel"))
         entry = {"pos": (sq_pos.sum(1) / runs).sqrt(), "vel": (sq_vel.sum(1) / runs).sqrt(),
                  **_uncertainty(sq_pos, sq_vel), "finite": all(m["finite"] for m in mine)}
         if "srnfn_P_sum" in first:

@@ -13,7 +13,7 @@ import torch
 from hydra.utils import instantiate
 
 from experiments.estimators import evaluate_runs, reduce_runs
-from experiments.uncertainty import chi2_interval
+from experiments.uncertainty import nees_consistency
 from experiments.executors import Unit
 from experiments.harness import StudyContext
 from experiments.studies import plots
@@ -84,37 +84,28 @@ def run(ctx: StudyContext) -> None:
     for i, name in enumerate(names):
         mine = parts[i * len(ranges):(i + 1) * len(ranges)]
         ev = reduce_runs(mine)
-        mm = mine[0]["hits_sum"] is not None  # a multiple-model estimator
-        v = {"summary": ev.summary(), "seconds_per_step": ev.seconds_per_step, "pos": ev.pos_rmse,
-             "vel": ev.vel_rmse, "pos_se": ev.pos_rmse_band, "vel_se": ev.vel_rmse_band, "nees": ev.nees,
-             "mode_accuracy": ev.mode_accuracy if mm else None,
-             "mode_probs": ev.means["mode_probs"] if mm else None,  # average over all runs, (T, M)
-             "example": mine[0]["example"]}  # run 0, (T, M)
-        summary = v["summary"]
-        lo, hi = chi2_interval(ev.runs * ev.state_dim)
-        lo, hi = lo * ev.state_dim, hi * ev.state_dim  # the interval of the run-averaged NEES
-        nees_curve = f64(v["nees"])
-        inside = ((nees_curve >= lo) & (nees_curve <= hi)).double().mean().item()
+        summary = ev.summary()
+        lo, hi, inside = nees_consistency(ev.nees, ev.runs, ev.state_dim)  # 95 % band of the run-averaged NEES
         table.rows.append([name, summary["pos_rmse"], summary["vel_rmse"], summary["nees"],
                            summary.get("mode_accuracy"), summary["pos_rmse_se"], summary["vel_rmse_se"], lo, hi,
                            inside])
         for key, value in summary.items():
             ctx.results.metric(name, key, value)
-        ctx.results.timing[name] = v["seconds_per_step"]
-        curves["position RMSE"][name], curves["velocity RMSE"][name] = f64(v["pos"]), f64(v["vel"])
-        bands["position RMSE"][name], bands["velocity RMSE"][name] = f64(v["pos_se"]), f64(v["vel_se"])
-        ctx.logger.series(f"pos_rmse/{name}", v["pos"])
-        ctx.logger.series(f"vel_rmse/{name}", v["vel"])
-        ctx.logger.series(f"pos_rmse_se/{name}", v["pos_se"])
-        ctx.logger.series(f"vel_rmse_se/{name}", v["vel_se"])
-        ctx.logger.series(f"nees/{name}", v["nees"])
-        if v["mode_probs"] is not None:
-            ctx.logger.series(f"mode_accuracy/{name}", v["mode_accuracy"])
-            probs = f64(v["mode_probs"])
+        ctx.results.timing[name] = ev.seconds_per_step
+        curves["position RMSE"][name], curves["velocity RMSE"][name] = f64(ev.pos_rmse), f64(ev.vel_rmse)
+        bands["position RMSE"][name], bands["velocity RMSE"][name] = f64(ev.pos_rmse_band), f64(ev.vel_rmse_band)
+        ctx.logger.series(f"pos_rmse/{name}", ev.pos_rmse)
+        ctx.logger.series(f"vel_rmse/{name}", ev.vel_rmse)
+        ctx.logger.series(f"pos_rmse_se/{name}", ev.pos_rmse_band)
+        ctx.logger.series(f"vel_rmse_se/{name}", ev.vel_rmse_band)
+        ctx.logger.series(f"nees/{name}", ev.nees)
+        if ev.mode_accuracy is not None:  # a multiple-model estimator
+            ctx.logger.series(f"mode_accuracy/{name}", ev.mode_accuracy)
+            probs = f64(ev.means["mode_probs"])  # average over all runs, (T, M)
             for j, label in enumerate(scenario.mode_labels):
                 ctx.logger.series(f"mode_probability/{name}/{label}", probs[:, j])
             if example is None:
-                example = (name, f64(v["example"]))
+                example = (name, f64(mine[0]["example"]))  # run 0, (T, M)
         log.info("%s: %s", name, {k: round(val, 4) for k, val in summary.items() if isinstance(val, float)})
     ctx.results.save()
     ctx.save_figure("rmse_over_time", plots.rmse_over_time(curves, f"{scenario.name}, {cfg.mc_runs} runs",

@@ -36,7 +36,7 @@ from torch import nn  # noqa: E402
 
 from experiments.estimators import Estimator, evaluate, starter  # noqa: E402
 from experiments.executors import Unit  # noqa: E402
-from experiments.harness import StudyContext  # noqa: E402
+from experiments.harness import StudyContext, per_run  # noqa: E402
 from experiments.uncertainty import nees_consistency  # noqa: E402
 from experiments.scenarios import JumpScenario, stay_matrix, turning_2d  # noqa: E402
 from experiments.studies import plots  # noqa: E402
@@ -65,11 +65,6 @@ def turning_scenario(cfg, dtype, device) -> JumpScenario:
                           initial_mean=cfg.initial_mean, initial_std=cfg.initial_std, dtype=dtype, device=device)
     except ValueError as err:
         raise ValueError(str(err).replace("scenario turning_2d: ", "learn.scenario.")) from None
-
-
-def _stay_matrix(stay: float, dtype, device) -> torch.Tensor:
-    """3x3 matrix with ``stay`` on the diagonal and ``(1 - stay) / 2`` elsewhere."""
-    return stay_matrix(stay, 3, dtype=dtype, device=device)
 
 
 def _imm(scenario: JumpScenario, transition, q: float) -> IMM:
@@ -241,7 +236,7 @@ def _initial_tpm(ctx: StudyContext) -> torch.Tensor:
     init_stay = ctx.cfg.learn.part_a.get("initial_stay")
     if init_stay is None:
         return torch.full((3, 3), 1.0 / 3, dtype=ctx.dtype, device=ctx.device)
-    return _stay_matrix(float(init_stay), ctx.dtype, ctx.device)
+    return stay_matrix(float(init_stay), 3, dtype=ctx.dtype, device=ctx.device)
 
 
 def _history(trainer) -> list[dict]:
@@ -299,8 +294,6 @@ def build_b(ctx: StudyContext):
 
 def train_b(ctx: StudyContext) -> dict:
     """Part (b): the MLP mode trained through the IMM; its trained parameters come back as arrays."""
-    from experiments.harness import per_run
-
     bcfg, inputs = ctx.cfg.learn.part_b, _inputs(ctx)
     scenario, velocities = inputs["scenario"], _velocities(inputs["sim"])
     net, imm = build_b(ctx)

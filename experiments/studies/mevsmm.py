@@ -23,7 +23,7 @@ import torch
 from torch import Tensor
 
 from experiments.executors import Unit
-from experiments.harness import StudyContext
+from experiments.harness import StudyContext, add_runs, join_runs, per_run
 from experiments.studies import plots
 from experiments.estimators import build_mode_filter
 from experiments.uncertainty import armse_se, inside, rmse_se_per_step
@@ -223,8 +223,6 @@ def unit(ctx: StudyContext, *, name: str, kind: str, start: int, stop: int) -> d
     config and these arguments only."""
     from hydra.utils import instantiate
 
-    from experiments.harness import per_run
-
     cfg, opts = ctx.cfg, ctx.cfg.mevsmm
     scenario, truth, z = _data(ctx, start, stop)
     hist_steps = {int(s) for s in opts.histogram_steps}
@@ -263,16 +261,11 @@ def _merge(parts: list[dict], runs: int, window: slice | None) -> dict:
     est_runs = sum(int(p["runs"]) for p in parts)
 
     def add(key):
-        if key not in parts[0]["sums"]:
-            return None
-        total = torch.as_tensor(parts[0]["sums"][key])
-        for p in parts[1:]:
-            total = total + torch.as_tensor(p["sums"][key])
-        return total / est_runs
+        return add_runs([p["sums"][key] for p in parts]) / est_runs if key in parts[0]["sums"] else None
 
-    pos, vel = (torch.cat([torch.as_tensor(p[k]) for p in parts], 1) for k in ("pos", "vel"))
+    pos, vel = (join_runs([p[k] for p in parts]) for k in ("pos", "vel"))
     e_pos, e_vel = pos.to(torch.float64), vel.to(torch.float64)
-    run_counts = torch.cat([torch.as_tensor(p["run_counts"]) for p in parts])
+    run_counts = join_runs([p["run_counts"] for p in parts], 0)
     count, ess, members = add("count"), add("ess"), add("members")
     return {
         "pos": (pos.sum(1) / est_runs).sqrt().tolist(), "vel": (vel.sum(1) / est_runs).sqrt().tolist(),

@@ -20,7 +20,7 @@ import math
 import torch
 
 from experiments.executors import Unit
-from experiments.harness import StudyContext
+from experiments.harness import StudyContext, join_runs, per_run
 from experiments.studies import plots
 from experiments.uncertainty import armse_se, inside, rmse_se_per_step
 from torchmm import GaussianBelief, KalmanFilter, LinearMeasurement, LinearMotion, run_filter
@@ -85,8 +85,6 @@ def huang_errors(runs: int, generator: torch.Generator | None, *, steps: int = 1
                  start: int = 0) -> dict:
     """Per-run squared position and velocity errors ``(T, runs - start)`` (numpy) of each filter on runs
     ``start..runs-1``: what :func:`summarize` reduces (arguments: :func:`run_huang`)."""
-    from experiments.harness import per_run
-
     # simulated in float64 and cast: float32 and float64 runs see the same data
     def draw(n, gen):
         return huang_scenario(n, gen, steps=steps, dtype=torch.float64, device=device)
@@ -178,7 +176,7 @@ def run(ctx: StudyContext) -> None:
     res = {}
     for i, name in enumerate(names):
         mine = parts[i * n:(i + 1) * n]
-        v = summarize(*(torch.cat([torch.as_tensor(p[k]) for p in mine], 1) for k in ("pos", "vel")))
+        v = summarize(*(join_runs([p[k] for p in mine]) for k in ("pos", "vel")))
         res[name] = {"pos": v["pos"].tolist(), "vel": v["vel"].tolist(), "summary": list(v["summary"]),
                      "se": list(v["se"]), "pos_band": v["pos_band"].tolist(), "vel_band": v["vel_band"].tolist()}
     ctx.results.description = (
