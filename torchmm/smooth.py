@@ -37,6 +37,7 @@ here: the filter's posterior at a missing step is its prior, and the backward pa
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import torch
@@ -47,10 +48,10 @@ from torchmm.filters.kalman import ExtendedKalmanFilter, KalmanFilter
 from torchmm.filters.particle import ParticleFilter
 from torchmm.filters.smoother import rts_step
 from torchmm.filters.unscented import SigmaPointStrategy, UnscentedKalmanFilter
-from torchmm.linalg import cholesky, cholesky_solve
+from torchmm.linalg import cholesky, cholesky_solve, solve_lower
 from torchmm.models.base import MotionModel
 from torchmm.multimodel.bank import ListBank, VectorizedBank
-from torchmm.multimodel.imm import MultipleModelFilter, safe_log_normalize
+from torchmm.multimodel.imm import MultipleModelFilter, mode_posterior, safe_log_normalize
 from torchmm.run import Trajectory
 
 __all__ = ["ffbsm_step", "kim_step", "smooth", "unscented_rts_step"]
@@ -211,6 +212,214 @@ def kim_step(filter: MultipleModelFilter, filtered: ModeBelief, smoothed_next: M
     return ModeBelief(log_mode, merged)
 
 
+# -- the two-filter IMM smoother (Helmick, Blair & Hoffman 1995) -------------------------------------
+
+def _member_motion(member: Any) -> MotionModel:
+    if isinstance(member, (KalmanFilter, ExtendedKalmanFilter, UnscentedKalmanFilter)):
+        return member.motion
+    raise TypeError(f"filter: the two-filter smoother runs the mode filters' motion models backwards; no support "
+                    f"for mode filters of type {type(member).__name__} (supported: KalmanFilter, "
+                    "ExtendedKalmanFilter, UnscentedKalmanFilter)")
+
+
+def _linearized_motions(bank: Any, at: Tensor, u: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
+    """Every mode's motion at ``at``: ``f_i(at)``, the Jacobian ``F_i(at)`` and ``Q_i``.
+
+    Shapes:
+        at: ``(*B, M, n)``; u: ``(*B, 1, k)`` -> ``(*B, M, n)``, ``(*B, M, n, n)``, ``(*B, M, n, n)``
+    """
+    n = at.shape[-1]
+    if isinstance(bank, VectorizedBank):  # the models broadcast over the mode axis
+        motion = _member_motion(bank.filter)
+        fx, F = motion(at, u=u), motion.jacobian(at, u=u)
+        return fx, F.expand(*at.shape, n), motion.noise_cov(at).expand(*at.shape, n)
+    if isinstance(bank, ListBank):  # one call per mode filter
+        parts = []
+        for i, member in enumerate(bank.filters):
+            motion, x = _member_motion(member), at.select(-2, i)
+            ui = None if u is None else u.select(-2, 0 if u.shape[-2] == 1 else i)
+            parts.append((motion(x, u=ui), motion.jacobian(x, u=ui), motion.noise_cov(x).expand(*x.shape, n)))
+        return tuple(torch.stack([p[k] for p in parts], dim=-2 - min(k, 1)) for k in range(3))
+    raise TypeError(f"filter: no two-filter smoother for a bank of type {type(bank).__name__}")
+
+
+def backward_predict(bank: Any, belief: GaussianBelief, at: Tensor, u: Tensor | None = None) -> GaussianBelief:
+    r"""The backward time update of every mode: ``p(x_k | s_{k+1} = i, z_{k+1:T})`` from
+    ``p(x_{k+1} | s_{k+1} = i, z_{k+1:T})``, through mode ``i``'s motion run backwards.
+
+    With ``x_{k+1} = f_i(x_k) + w``, ``w ~ N(0, Q_i)``, ``f_i`` linearised at ``at``
+    (``f_i(x) ~ f_i(at) + F_i (x - at)``, exact for linear models) and the backward belief
+    ``N(m, P)``: ``x_k = at + F_i^{-1}(m - f_i(at))``, ``P_k = F_i^{-1} (P + Q_i) F_i^{-T}``,
+    the likelihood of the future data carried back through the transition density.
+
+    Shapes:
+        belief: batch ``(*B, M)``; at: ``(*B, M, n)``; u: ``(*B, 1, k)`` -> batch ``(*B, M)``
+    """
+    fx, F, Q = _linearized_motions(bank, at, u)
+    rhs = torch.cat([(belief.mean - fx).unsqueeze(-1), belief.cov + Q], dim=-1)  # (*B, M, n, 1 + n)
+    solved = torch.linalg.solve_ex(F, rhs)[0]  # F^{-1} [m - f, P + Q]
+    cov = torch.linalg.solve_ex(F, solved[..., 1:].mT)[0]  # F^{-1} (P + Q) F^{-T}
+    return GaussianBelief(at + solved[..., 0], symmetrize(cov))
+
+
+def _prior_mode_log_probs(filter: MultipleModelFilter, trajectory: Trajectory, steps: int, like: Tensor) -> Tensor:
+    """``log P(s_k = j)`` before any datum, ``k = 0 .. T-1``, ``(T, *B, M)`` (or ``(T, M)``).
+
+    Step 0's is read from the trajectory's first prior (the IMM's predicted ``log c_j``, GPB2's pair
+    weights summed over the previous mode, or the initial belief with ``update_first``): the prior
+    mode probabilities of ``initial_belief`` through the chain, before any datum. Without recorded
+    priors, ``initial_belief``'s default (uniform) is assumed. Later steps follow the chain.
+    """
+    M = filter.num_modes
+    matrix = filter.transition.matrix().to(like)
+    prior = trajectory.prior
+    first = prior.mode_log_probs[0] if type(prior) is ModeBelief else None
+    if first is not None and first.shape[-1] == M * M:  # GPB2: log mu_i pi_ij over the pairs (i, j)
+        first = torch.logsumexp(first.unflatten(-1, (M, M)), dim=-2)
+    if first is None or first.shape[-1] != M:
+        first = (torch.full((M,), 1.0 / M, dtype=like.dtype, device=like.device) @ matrix).log()
+    p = first.exp()
+    out = [p]
+    for _ in range(steps - 1):  # the time loop; (*B, M) x (M, M) products
+        p = p @ matrix
+        out.append(p)
+    return torch.stack(out).log()
+
+
+def two_filter_step(filter: MultipleModelFilter, filtered: ModeBelief, backward_prior: ModeBelief,
+                    prior_log_probs_next: Tensor) -> ModeBelief:
+    r"""The smoothed ``p(x_k, s_k | z_{1:T})`` of the two-filter IMM smoother from the forward filter's
+    ``p(x_k, s_k | z_{1:k})`` and the backward-predicted ``p(x_k | s_{k+1} = i, z_{k+1:T})``
+    (:func:`backward_predict`, with the backward mode probabilities ``P(s_{k+1} = i | z_{k+1:T})``).
+
+    For every pair ``(j, i)`` (mode ``j`` at ``k``, ``i`` at ``k + 1``), the forward ``N(x_j, P_j)`` and
+    the backward ``N(b_i, B_i)`` are fused, ``D = P_j + B_i``:
+    ``x_ji = x_j + P_j D^{-1} (b_i - x_j)``, ``P_ji = P_j - P_j D^{-1} P_j``, and
+    ``Lambda_ji = N(b_i - x_j; 0, D) mu^b_i / p_{k+1}(i)`` approximates
+    ``p(z_{k+1:T} | s_k = j, s_{k+1} = i, z_{1:k})`` (``p_{k+1}`` the prior mode probabilities, the
+    backward filter's flat start). ``P(s_k = j, s_{k+1} = i | z_{1:T}) ∝ mu_j pi_ji Lambda_ji``;
+    mode ``j``'s smoothed belief is the moment-matched collapse of ``x_ji`` over ``i``.
+
+    Shapes:
+        filtered, backward_prior: batch ``(*B,)``, components ``(*B, M)``; prior_log_probs_next
+        ``log p_{k+1}``, ``(*B, M)`` or ``(M,)`` -> batch ``(*B,)``
+    """
+    fwd, bwd = filtered.components, backward_prior.components
+    n = fwd.state_dim
+    Pj = fwd.cov.unsqueeze(-3)  # (*B, j, 1, n, n)
+    D = Pj + bwd.cov.unsqueeze(-4)  # (*B, j, i, n, n)
+    delta = bwd.mean.unsqueeze(-3) - fwd.mean.unsqueeze(-2)  # (*B, j, i, n)
+    L = cholesky(D)
+    solved = solve_lower(L, torch.cat([Pj.expand(D.shape), delta.unsqueeze(-1)], dim=-1))
+    V, w = solved[..., :n], solved[..., n]  # L^{-1} P_j, L^{-1} delta
+    mean = fwd.mean.unsqueeze(-2) + (V.mT @ w.unsqueeze(-1)).squeeze(-1)
+    cov = symmetrize(Pj - V.mT @ V)
+    log_overlap = -0.5 * (w.square().sum(-1) + n * math.log(2 * math.pi)) - L.diagonal(dim1=-2, dim2=-1).log().sum(-1)
+    evidence = backward_prior.mode_log_probs - prior_log_probs_next  # log mu^b_i / p_{k+1}(i), (*B, i)
+    log_pair = (filtered.mode_log_probs.unsqueeze(-1) + filter.transition.log_matrix() + log_overlap
+                + evidence.unsqueeze(-2))
+    norm = torch.logsumexp(log_pair.flatten(-2), dim=-1)[..., None, None]
+    log_pair = safe_log_normalize(log_pair, norm)
+    log_mode = torch.logsumexp(log_pair, dim=-1)  # log mu^s_k(j)
+    weights = safe_log_normalize(log_pair, log_mode.unsqueeze(-1)).exp()  # P(s_{k+1} = i | s_k = j, z_{1:T})
+    return ModeBelief(log_mode, GaussianBelief(mean, cov).collapse(weights))
+
+
+def backward_imm_update(filter: MultipleModelFilter, bank: Any, predicted: ModeBelief, z: Tensor,
+                        prior_log_probs: Tensor, *, sensor: Any = None) -> ModeBelief:
+    r"""The backward IMM's interaction and update at step ``k``: ``p(x_k, s_k | z_{k:T})`` from the
+    backward-predicted ``p(x_k | s_{k+1} = i, z_{k+1:T})`` with ``P(s_{k+1} = i | z_{k+1:T})``.
+
+    Backward transition ``P(s_k = j | s_{k+1} = i) = pi_ji p_k(j) / sum_l pi_li p_k(l)`` (``p_k`` the
+    prior mode probabilities); mixing weights ``P(s_{k+1} = i | s_k = j, z_{k+1:T}) ∝
+    P(s_k = j | s_{k+1} = i) mu^b_{k+1}(i)``; mode ``j``'s mixed belief is updated with ``z_k`` by mode
+    ``j``'s filter; ``mu^b_k(j) ∝ a_j Lambda_j``.
+
+    Shapes:
+        predicted: batch ``(*B,)``, components ``(*B, M)``; z ``(*B, m)``; prior_log_probs ``log p_k``,
+        ``(*B, M)`` or ``(M,)`` -> batch ``(*B,)``
+    """
+    log_pi = filter.transition.log_matrix()  # [j, i]
+    log_back = (log_pi + prior_log_probs.unsqueeze(-1)).mT  # [i, j]: log pi_ji p_k(j)
+    log_back = log_back - torch.logsumexp(log_back, dim=-1, keepdim=True)  # P(s_k = j | s_{k+1} = i)
+    log_joint = predicted.mode_log_probs.unsqueeze(-1) + log_back  # (*B, i, j)
+    log_a = torch.logsumexp(log_joint, dim=-2)  # (*B, j)
+    weights = safe_log_normalize(log_joint, log_a.unsqueeze(-2)).exp()
+    mixed = predicted.components.mix(weights)  # (*B, j)
+    out = bank.update(mixed, z.unsqueeze(-2), sensor=sensor)
+    log_mode, _ = mode_posterior(out.log_likelihood, log_a)
+    return ModeBelief(log_mode, out.belief)
+
+
+def diffuse_factor(dtype: torch.dtype) -> float:
+    """The backward filter's start: the last collapsed estimate with its covariance times this factor,
+    the same for every mode - a nearly flat prior, so that the backward filter carries the likelihood of
+    the future data alone. ``eps^{-1/2}`` (6.7e7 in float64, 2.9e3 in float32) balances what the prior
+    still weighs (``~1/factor``) against the rounding of the first update (``~eps factor``); the results
+    are insensitive from about 1e3 up (docs/smoothing.md)."""
+    return torch.finfo(dtype).eps ** -0.5
+
+
+def _smooth_two_filter(filter: MultipleModelFilter, trajectory: Trajectory, measurements: Tensor, controls, motions,
+                       sensors) -> Trajectory:
+    filtered = _gaussian_modes(trajectory)
+    steps = filtered.batch_shape[0]
+    comps = filtered.components
+    z = _two_filter_measurements(filter, measurements, comps)
+    prior_log = _prior_mode_log_probs(filter, trajectory, steps, filtered.mode_log_probs)
+    last = filtered[steps - 1]
+    if steps > 1:  # once, at the entry point: the backward filter runs every mode's motion backwards
+        _check_invertible(filter.bank if motions is None else filter.bank.with_motion(motions[steps - 1]),
+                          last.components.mean, None if controls is None else controls[steps - 1].unsqueeze(-2))
+    # the backward filter starts from a nearly flat prior, updated with the last datum
+    est = last.estimate()
+    flat = GaussianBelief(est.mean.unsqueeze(-2).expand_as(last.components.mean),
+                          (diffuse_factor(est.cov.dtype) * est.cov).unsqueeze(-3).expand_as(last.components.cov))
+    out = filter.bank.update(flat, z[steps - 1].unsqueeze(-2), sensor=None if sensors is None else sensors[-1])
+    backward = ModeBelief(mode_posterior(out.log_likelihood, prior_log[steps - 1])[0], out.belief)
+    smoothed = [last]
+    for k in range(steps - 2, -1, -1):  # the prediction k -> k+1 used motions[k+1] and controls[k+1]
+        bank = filter.bank if motions is None else filter.bank.with_motion(motions[k + 1])
+        u = None if controls is None else controls[k + 1].unsqueeze(-2)
+        at = filtered[k].estimate().mean.unsqueeze(-2).expand(comps.mean[k].shape)  # the linearisation point
+        predicted = ModeBelief(backward.mode_log_probs, backward_predict(bank, backward.components, at, u))
+        smoothed.append(two_filter_step(filter, filtered[k], predicted, prior_log[k + 1]))
+        if k > 0:
+            backward = backward_imm_update(filter, filter.bank, predicted, z[k], prior_log[k],
+                                           sensor=None if sensors is None else sensors[k])
+    return _mode_trajectory(smoothed[::-1], trajectory)
+
+
+def _two_filter_measurements(filter: MultipleModelFilter, measurements: Any, comps: GaussianBelief) -> Tensor:
+    steps, batch = comps.batch_shape[0], comps.batch_shape[1:-1]
+    if measurements is None:
+        raise ValueError("measurements: the two-filter smoother (the default for multiple-model filters) runs a "
+                         "backward IMM over the data: pass the measurements given to run_filter, "
+                         "smooth(filter, trajectory, z); method='kim' smooths without them (docs/smoothing.md)")
+    if not isinstance(measurements, Tensor):
+        raise TypeError(f"measurements: expected a tensor (T, *B, m), got {type(measurements).__name__}")
+    m = filter.meas_dim
+    expected = (steps, *batch) + ((m,) if m is not None else tuple(measurements.shape[len(batch) + 1:]))
+    if tuple(measurements.shape) != expected:
+        raise ValueError(f"measurements: expected shape {expected} (the trajectory's steps and runs), got "
+                         f"{tuple(measurements.shape)}")
+    if measurements.dtype != comps.mean.dtype:
+        raise TypeError(f"measurements: dtype {measurements.dtype} differs from the trajectory's {comps.mean.dtype}")
+    return measurements
+
+
+def _check_invertible(bank: Any, at: Tensor, u: Tensor | None) -> None:
+    """Refuse a motion whose Jacobian is singular at ``at`` (the backward filter inverts it). One host
+    read, at the entry point."""
+    F = _linearized_motions(bank, at, u)[1]
+    sv = torch.linalg.svdvals(F)
+    bad = (sv[..., -1] <= 1e3 * torch.finfo(F.dtype).eps * sv[..., 0]).reshape(-1, F.shape[-3]).any(0)
+    if bool(bad.any()):
+        modes = [i for i, b in enumerate(bad.tolist()) if b]
+        raise ValueError(f"filter: the two-filter smoother runs the motion backwards and needs an invertible motion "
+                         f"Jacobian; mode(s) {modes} have a singular one. Use method='kim'")
+
+
 def _per_step(value: Any, steps: int, name: str) -> list | None:
     if value is None:
         return None
@@ -219,8 +428,9 @@ def _per_step(value: Any, steps: int, name: str) -> list | None:
     return list(value)
 
 
-def smooth(filter: Any, trajectory: Trajectory, *, controls: Tensor | None = None,
-           motions: Any = None, lag: int | None = None) -> Trajectory:
+def smooth(filter: Any, trajectory: Trajectory, measurements: Tensor | None = None, *,
+           controls: Tensor | None = None, motions: Any = None, sensors: Any = None, lag: int | None = None,
+           method: str | None = None) -> Trajectory:
     r"""The fixed-interval smoothed beliefs ``p(x_k | z_{1:T})`` of a filtered ``trajectory``.
 
     Args:
@@ -265,7 +475,15 @@ def smooth(filter: Any, trajectory: Trajectory, *, controls: Tensor | None = Non
         raise ValueError(f"lag: fixed-lag smoothing is implemented for Kalman, extended and unscented filters, "
                          f"not {type(filter).__name__}")
     if isinstance(filter, MultipleModelFilter):
-        return _smooth_modes(filter, trajectory, controls, motions)
+        if method not in (None, "two_filter", "kim"):
+            raise ValueError(f"method: expected 'two_filter' or 'kim' for {type(filter).__name__}, got {method!r}")
+        if method == "kim":
+            return _smooth_modes(filter, trajectory, controls, motions)
+        return _smooth_two_filter(filter, trajectory, measurements, controls, motions,
+                                  _per_step(sensors, steps, "sensors"))
+    if method is not None:
+        raise ValueError(f"method: only multiple-model filters have a choice of smoother ('two_filter', 'kim'); "
+                         f"got {method!r} for {type(filter).__name__}")
     if isinstance(filter, ParticleFilter):
         return _smooth_particles(filter, trajectory, controls, motions)
     if isinstance(filter, UnscentedKalmanFilter):
@@ -300,25 +518,32 @@ def smooth(filter: Any, trajectory: Trajectory, *, controls: Tensor | None = Non
                       innovation_cov=None, extras={})
 
 
-def _smooth_modes(filter: MultipleModelFilter, trajectory: Trajectory, controls, motions) -> Trajectory:
+def _gaussian_modes(trajectory: Trajectory) -> ModeBelief:
+    """The filtered mode beliefs of ``trajectory``, checked to be Gaussian modes, materialised."""
     filtered = trajectory.belief
     if type(filtered) is not ModeBelief or not isinstance(filtered.components, GaussianBelief):
-        raise TypeError(f"trajectory.belief: Kim's smoother needs a ModeBelief of Gaussian modes, got "
+        raise TypeError(f"trajectory.belief: the multiple-model smoothers need a ModeBelief of Gaussian modes, got "
                         f"{type(filtered).__name__}" + ("" if type(filtered) is not ModeBelief else
                                                         f" of {type(filtered.components).__name__}"))
-    steps = filtered.batch_shape[0]
-    components = filtered.components.materialize()
-    filtered = ModeBelief(filtered.mode_log_probs, components)
-    smoothed = [filtered[steps - 1]]
-    for k in range(steps - 2, -1, -1):  # the prediction k -> k+1 used motions[k+1] and controls[k+1]
-        smoothed.append(kim_step(filter, filtered[k], smoothed[-1], u=None if controls is None else controls[k + 1],
-                                 motion=None if motions is None else motions[k + 1]))
-    smoothed = smoothed[::-1]
+    return ModeBelief(filtered.mode_log_probs, filtered.components.materialize())
+
+
+def _mode_trajectory(smoothed: list[ModeBelief], trajectory: Trajectory) -> Trajectory:
     belief = ModeBelief(torch.stack([b.mode_log_probs for b in smoothed]),
                         GaussianBelief(torch.stack([b.components.mean for b in smoothed]),
                                        torch.stack([b.components.cov for b in smoothed])))
     return Trajectory(belief=belief, prior=None, log_likelihood=trajectory.log_likelihood, innovation=None,
                       innovation_cov=None, extras={})
+
+
+def _smooth_modes(filter: MultipleModelFilter, trajectory: Trajectory, controls, motions) -> Trajectory:
+    filtered = _gaussian_modes(trajectory)
+    steps = filtered.batch_shape[0]
+    smoothed = [filtered[steps - 1]]
+    for k in range(steps - 2, -1, -1):  # the prediction k -> k+1 used motions[k+1] and controls[k+1]
+        smoothed.append(kim_step(filter, filtered[k], smoothed[-1], u=None if controls is None else controls[k + 1],
+                                 motion=None if motions is None else motions[k + 1]))
+    return _mode_trajectory(smoothed[::-1], trajectory)
 
 
 def _fixed_lag(filter, kind: str, filtered: GaussianBelief, predicted: GaussianBelief | None, controls, motions,

@@ -173,7 +173,7 @@ def test_kim_smoother_with_one_mode_is_rts():
     kf = KalmanFilter(cv, sensor)
     imm = IMM(KalmanFilter(LinearMotion(cv.F, cv.Q.unsqueeze(0)), sensor), torch.ones(1, 1, dtype=torch.float64))
     rts = smooth(kf, run_filter(kf, belief0, z)).belief
-    kim = smooth(imm, run_filter(imm, imm.initial_belief(belief0), z)).belief
+    kim = smooth(imm, run_filter(imm, imm.initial_belief(belief0), z), method="kim").belief
     assert kim.mode_probs.shape == (T, B, 1)
     torch.testing.assert_close(kim.estimate().mean, rts.mean, rtol=1e-10, atol=1e-10)
     torch.testing.assert_close(kim.estimate().cov, rts.cov, rtol=1e-10, atol=1e-10)
@@ -188,7 +188,7 @@ def test_kim_smoother_with_identical_modes_is_rts_for_any_transition(combinator)
     mm = combinator(KalmanFilter(same, sensor), transition)
     start = mm.initial_belief(belief0, torch.tensor([0.2, 0.5, 0.3], dtype=torch.float64))
     rts = smooth(kf, run_filter(kf, belief0, z)).belief
-    kim = smooth(mm, run_filter(mm, start, z)).belief
+    kim = smooth(mm, run_filter(mm, start, z), method="kim").belief
     torch.testing.assert_close(kim.estimate().mean, rts.mean, rtol=1e-9, atol=1e-9)
     torch.testing.assert_close(kim.estimate().cov, rts.cov, rtol=1e-9, atol=1e-9)
     torch.testing.assert_close(kim.mode_probs.sum(-1), torch.ones(T, B, dtype=torch.float64))
@@ -246,7 +246,7 @@ def test_kim_smoother_is_much_closer_to_the_exact_smoother_than_the_filter(combi
     exact_mean, exact_probs = _exact_switching_smoother(F, Q, sensor, transition, mu0, belief0, z)
     mm = combinator(KalmanFilter(motion, sensor), transition)
     traj = run_filter(mm, mm.initial_belief(belief0, mu0), z)
-    kim = smooth(mm, traj).belief
+    kim = smooth(mm, traj, method="kim").belief
     filter_err = (traj.estimate().mean - exact_mean).norm(dim=-1)[:-1].mean()
     smoother_err = (kim.estimate().mean - exact_mean).norm(dim=-1)[:-1].mean()
     assert smoother_err < 0.3 * filter_err, (smoother_err, filter_err)
@@ -267,7 +267,7 @@ def test_kim_smoother_is_exact_for_static_modes(combinator):
     belief0 = GaussianBelief(torch.zeros(5, 2, dtype=torch.float64), torch.eye(2, dtype=torch.float64) * 4)
     exact_mean, exact_probs = _exact_switching_smoother(F, Q, sensor, identity, mu0, belief0, z)
     mm = combinator(KalmanFilter(motion, sensor), identity)
-    kim = smooth(mm, run_filter(mm, mm.initial_belief(belief0, mu0), z)).belief
+    kim = smooth(mm, run_filter(mm, mm.initial_belief(belief0, mu0), z), method="kim").belief
     torch.testing.assert_close(kim.estimate().mean, exact_mean, rtol=1e-9, atol=1e-9)
     torch.testing.assert_close(kim.mode_probs, exact_probs, rtol=1e-9, atol=1e-9)
 
@@ -282,7 +282,7 @@ def test_kim_smoother_over_unscented_and_heterogeneous_banks():
     ukf_bank = UnscentedKalmanFilter(LinearMotion(cv.F, cv.Q.expand(2, 2, 2)), sensor)
     for mm in (IMM(ukf_bank, transition), IMM([KalmanFilter(cv, sensor), ExtendedKalmanFilter(cv, sensor)],
                                               transition)):
-        kim = smooth(mm, run_filter(mm, mm.initial_belief(belief0), z)).belief
+        kim = smooth(mm, run_filter(mm, mm.initial_belief(belief0), z), method="kim").belief
         torch.testing.assert_close(kim.estimate().mean, rts.mean, rtol=1e-9, atol=1e-9)
         torch.testing.assert_close(kim.estimate().cov, rts.cov, rtol=1e-9, atol=1e-9)
 
@@ -394,7 +394,7 @@ def test_kim_smoother_agrees_with_an_independent_numpy_implementation(combinator
     z = 10 * torch.cumsum(torch.randn(40, 2, 1, generator=torch.Generator().manual_seed(3), dtype=torch.float64), 0)
     mm = combinator(KalmanFilter(bank, sensor), transition)
     traj = run_filter(mm, mm.initial_belief(belief0), z)
-    kim = smooth(mm, traj).belief
+    kim = smooth(mm, traj, method="kim").belief
     F = cv.F.expand(2, 2, 2).numpy()
     for b in range(2):
         mu, means, covs = _numpy_kim(F, bank.Q.numpy(), cv.offset.numpy(), transition.numpy(),
