@@ -25,7 +25,7 @@ import torch.utils._pytree as pytree
 from torch import Tensor
 
 from torchmm import GPB1, GPB2, IMM, Filter, GaussianBelief, KalmanFilter, run_filter
-from torchmm.metrics import nees, squared_error
+from torchmm.metrics import mode_hits, nees, squared_error
 from torchmm.run import Trajectory
 
 from experiments.harness import add_runs, join_runs, per_run
@@ -233,7 +233,7 @@ def evaluate_runs(estimator: Estimator, scenario, sim, z: Any, *, chunk_runs: in
         values["vel"].append(squared_error(est.mean, truth, scenario.velocity).detach())
         values["nees"].append(nees(est, truth).detach())
         if estimator.multiple_model:
-            values["hits"].append((traj.belief.mode_log_probs.argmax(-1) == sim.modes[:, sl]).to(est.mean.dtype))
+            values["hits"].append(mode_hits(traj.belief.mode_log_probs, sim.modes[:, sl]).to(est.mean.dtype))
         for key, fn in per_step.items():
             extra[key].append(fn(traj).detach())
         if keep_trajectory == "all" or (keep_trajectory and kept is None):

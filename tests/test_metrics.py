@@ -44,3 +44,21 @@ def test_mode_accuracy():
     probs = torch.tensor([[[0.7, 0.3], [0.2, 0.8]], [[0.6, 0.4], [0.9, 0.1]]])
     truth = torch.tensor([[0, 0], [0, 0]])
     close(mode_accuracy(probs, truth), torch.tensor([0.5, 1.0]))
+
+
+def test_mode_hits_score_ties_the_same_whatever_the_rounding():
+    """A tie of k modes that includes the true one scores 1/k, also when rounding has split the tie
+    (the learn_dynamics chunking test flipped an argmax between batch sizes on an AVX-512 CPU)."""
+    from torchmm.metrics import mode_hits
+
+    log_half = torch.tensor(0.5, dtype=torch.float64).log()
+    split = log_half * (1 + 1e-15)  # the same probability, rounded differently
+    scores = torch.stack([torch.stack([log_half, split]), torch.stack([split, log_half]),
+                          torch.tensor([-0.1, -2.4], dtype=torch.float64),
+                          torch.tensor([-2.4, -0.1], dtype=torch.float64)])
+    truth = torch.tensor([1, 1, 1, 1])
+    close(mode_hits(scores, truth), torch.tensor([0.5, 0.5, 0.0, 1.0], dtype=torch.float64))
+    three = torch.full((2, 3), 1 / 3, dtype=torch.float64)  # probabilities, not logs
+    close(mode_hits(three, torch.tensor([0, 2])), torch.full((2,), 1 / 3, dtype=torch.float64))
+    close(mode_accuracy(torch.stack([scores, scores]), torch.stack([truth, truth])),
+          torch.tensor([0.5, 0.5], dtype=torch.float64))

@@ -21,10 +21,15 @@ One entry point, dispatching on the filter that produced ``trajectory`` (docs/sm
   (the transition density);
 * :class:`~torchmm.IMM`, :class:`~torchmm.GPB1`, :class:`~torchmm.GPB2` (and any
   :class:`~torchmm.multimodel.MultipleModelFilter` with Gaussian mode beliefs, over Kalman,
-  extended or unscented mode filters) - Kim's fixed-interval smoother for Markov-switching models
-  (Kim, J. Econometrics 60, 1994), :func:`kim_step`: smoothed
-  mode probabilities and mode-conditioned smoothed beliefs, from the filter's mode-conditioned
-  posteriors ``x^j_{k|k}`` and mode probabilities.
+  extended or unscented mode filters) - by default the two-filter IMM smoother (Helmick, Blair &
+  Hoffman, IEEE Trans. Inf. Theory 41(6), 1995; :func:`backward_predict`,
+  :func:`backward_imm_update`, :func:`two_filter_step`): a backward-time IMM over the same data
+  (``smooth(filter, trajectory, z)``) whose mode-conditioned beliefs are fused with the forward
+  ones for every pair of modes at ``k`` and ``k + 1``; it needs invertible motion Jacobians.
+  ``method="kim"``: Kim's smoother (Kim, J. Econometrics 60, 1994; :func:`kim_step`), RTS steps
+  from the forward beliefs alone, which needs no data but loses accuracy backwards over long
+  horizons on kinematic targets (docs/smoothing.md). Both return smoothed mode probabilities and
+  mode-conditioned smoothed beliefs.
 
 ``smooth(..., lag=L)`` is fixed-lag smoothing, ``p(x_k | z_{1:k+L})``, for the Kalman, extended and
 unscented filters: all windows go back together, ``L`` batched backward steps.
@@ -32,7 +37,8 @@ unscented filters: all windows go back together, ``L`` batched backward steps.
 The backward pass is the only loop (over time), batched over every run (and mode) axis; it is
 differentiable, and reads no tensor value into Python (FFBSm checks ``Q`` once, at the entry point,
 before any step). Missing data (NaN measurements) need nothing
-here: the filter's posterior at a missing step is its prior, and the backward pass uses beliefs only.
+here: the filter's posterior at a missing step is its prior, and the backward pass uses beliefs only
+(the two-filter smoother's backward IMM skips them as the forward one does).
 """
 
 from __future__ import annotations
@@ -54,7 +60,8 @@ from torchmm.multimodel.bank import ListBank, VectorizedBank
 from torchmm.multimodel.imm import MultipleModelFilter, mode_posterior, safe_log_normalize
 from torchmm.run import Trajectory
 
-__all__ = ["ffbsm_step", "kim_step", "smooth", "unscented_rts_step"]
+__all__ = ["backward_imm_update", "backward_predict", "diffuse_factor", "ffbsm_step", "kim_step", "smooth",
+           "two_filter_step", "unscented_rts_step"]
 
 
 def _sigma_moments(motion: MotionModel, sigma_points: SigmaPointStrategy, belief: GaussianBelief,
@@ -436,11 +443,19 @@ def smooth(filter: Any, trajectory: Trajectory, measurements: Tensor | None = No
     Args:
         filter: the filter that made ``trajectory`` (:func:`~torchmm.run_filter`): a
             :class:`~torchmm.KalmanFilter` (RTS), :class:`~torchmm.ExtendedKalmanFilter`
-            (extended RTS) or :class:`~torchmm.UnscentedKalmanFilter` (unscented RTS).
+            (extended RTS), :class:`~torchmm.UnscentedKalmanFilter` (unscented RTS), a
+            :class:`~torchmm.ParticleFilter` (FFBSm) or a multiple-model filter over Gaussian modes
+            (two-filter IMM smoother, or Kim's).
         trajectory: its output, with the priors recorded (``trajectory.prior``; the default
             ``record`` keeps them).
+        measurements: the measurements given to ``run_filter``, ``(T, *B, m)`` (NaN: missing). Needed
+            by the two-filter smoother of multiple-model filters (its backward IMM filters them
+            again); the other smoothers use the filtered beliefs only.
         controls: the inputs ``u_k`` given to ``run_filter``, ``(T, *B, k)``.
         motions: the per-step motion models given to ``run_filter`` (a sequence of ``T``).
+        sensors: the per-step sensors given to ``run_filter`` (a sequence of ``T``; the two-filter
+            smoother's backward updates use them).
+        method: multiple-model filters only: ``"two_filter"`` (default) or ``"kim"``.
         lag: fixed-lag smoothing (Kalman, extended and unscented filters): step ``k`` is smoothed with
             the data up to ``k + lag``, ``p(x_k | z_{1:min(k + lag, T)})``. All ``T`` windows go back
             together: ``lag`` batched backward steps (``O(T lag)`` work). ``None``: fixed interval.
@@ -464,6 +479,16 @@ def smooth(filter: Any, trajectory: Trajectory, measurements: Tensor | None = No
         >>> tuple(smoothed.mean.shape), bool((smoothed.cov[:-1].diagonal(dim1=-2, dim2=-1)
         ...                                   <= traj.belief.cov[:-1].diagonal(dim1=-2, dim2=-1)).all())
         ((20, 3, 2), True)
+
+        A multiple-model filter is smoothed with the data (the two-filter smoother):
+
+        >>> from torchmm import IMM
+        >>> bank = ConstantVelocity(1, q=0.1, acceleration=[[0.0], [2.0]])
+        >>> imm = IMM(KalmanFilter(bank, PositionMeasurement(2, [0], 1.0)), torch.tensor([[0.9, 0.1], [0.1, 0.9]]))
+        >>> traj = run_filter(imm, imm.initial_belief(GaussianBelief(torch.zeros(3, 2), torch.eye(2))), z)
+        >>> out = smooth(imm, traj, z).belief
+        >>> out.mode_probs.shape, out.estimate().mean.shape
+        (torch.Size([20, 3, 2]), torch.Size([20, 3, 2]))
     """
     if not isinstance(trajectory, Trajectory):
         raise TypeError(f"trajectory: expected the Trajectory of run_filter, got {type(trajectory).__name__}")

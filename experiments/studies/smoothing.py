@@ -4,11 +4,12 @@ For every scenario of ``smoothing.scenarios`` (by default paper 000's 1-D target
 two-model maneuvering target and a 2-D CV/CT maneuvering target) and every estimator (a Kalman,
 an extended and an unscented Kalman filter on the constant-velocity model, IMM and GPB2 over the
 scenario's mode bank, IMM over unscented mode filters), the runs are filtered and then smoothed
-with :func:`torchmm.smooth` (RTS, extended RTS, unscented RTS, Kim's smoother: docs/smoothing.md).
+with :func:`torchmm.smooth` (RTS, extended RTS, unscented RTS, the two-filter IMM smoother, and Kim's
+smoother beside it for the multiple-model estimators: docs/smoothing.md).
 
-Tables: ``rmse`` (scenario, estimator, filter and smoother position / velocity RMSE with their
-delta-method standard errors, the smoother's position gain), ``modes`` (filter and smoother mode
-accuracy of the multiple-model estimators), ``parallel_speed`` (sequential against associative-scan
+Tables: ``rmse`` (scenario, estimator, smoother, filter and smoother position / velocity RMSE with
+their delta-method standard errors, the smoother's position gain and NEES), ``modes`` (filter and
+smoother mode accuracy of the multiple-model estimators), ``parallel_speed`` (sequential against associative-scan
 Kalman filtering + smoothing, ``torchmm.parallel``, for ``smoothing.speed_steps``). Curves: position
 RMSE over time, filter and smoother, per scenario; figures of them and of the speed table.
 """
@@ -25,8 +26,8 @@ from experiments.estimators import evaluate_runs, reduce_runs
 from experiments.executors import Unit
 from experiments.harness import StudyContext, per_run
 from experiments.studies import plots
-from torchmm import GaussianBelief, KalmanFilter, parallel, run_filter, smooth
-from torchmm.metrics import nees, squared_error
+from torchmm import GaussianBelief, KalmanFilter, UnscentedKalmanFilter, parallel, run_filter, smooth
+from torchmm.metrics import mode_hits, nees, squared_error
 from torchmm.models import ConstantVelocity, PositionMeasurement
 
 log = logging.getLogger("torchmm.experiments")
@@ -55,28 +56,42 @@ def _estimator(ctx: StudyContext, key: str, name: str, scenario):
 UNIT = "experiments.studies.smoothing:unit"
 
 
+def _smoother_label(est) -> str:
+    """The smoother torchmm.smooth picks for the estimator's filter."""
+    if est.multiple_model:
+        return "two-filter"
+    if isinstance(est.filter, UnscentedKalmanFilter):
+        return "unscented RTS"
+    return "RTS" if isinstance(est.filter, KalmanFilter) else "extended RTS"
+
+
 def unit(ctx: StudyContext, *, scenario: str, name: str, start: int, stop: int) -> dict:
     """Estimator ``name`` on runs ``start..stop-1`` of ``scenario``: per-run values of the filter and
-    of the smoother (:func:`~experiments.estimators.evaluate_runs`'s format, merged by ``reduce_runs``)."""
+    of its smoothers (:func:`~experiments.estimators.evaluate_runs`'s format, merged by ``reduce_runs``):
+    ``smoother`` (RTS, extended or unscented RTS, or the two-filter IMM smoother) and, for the
+    multiple-model estimators, ``kim`` (Kim's smoother)."""
     scen, sim, z = _data(ctx, scenario, start, stop)
     est = _estimator(ctx, scenario, name, scen)
     filtered, traj = evaluate_runs(est, scen, sim, z, keep_trajectory="all", block_runs=ctx.block_runs,
                                    generators=ctx.block_generators("filter", scenario, name), first_run=start)
-    tic = time.perf_counter()
-    smoothed = smooth(est.filter, traj)
-    seconds = time.perf_counter() - tic
-    est_s = smoothed.estimate()
-    truth = sim.states
-    hits = None
-    if est.multiple_model:
-        hits = per_run((smoothed.belief.mode_log_probs.argmax(-1) == sim.modes).to(est_s.mean.dtype).sum(1))
-    smoother = {
-        "pos": per_run(squared_error(est_s.mean, truth, scen.position)),
-        "vel": per_run(squared_error(est_s.mean, truth, scen.velocity)),
-        "nees_sum": per_run(nees(est_s, truth).sum(1)), "hits_sum": hits, "sums": {},
-        "runs": filtered["runs"], "seconds": seconds, "state_dim": filtered["state_dim"],
-    }
-    return {"filter": filtered, "smoother": smoother}
+    out = {"filter": filtered}
+    for key, method in (("smoother", None), ("kim", "kim")) if est.multiple_model else (("smoother", None),):
+        tic = time.perf_counter()
+        smoothed = smooth(est.filter, traj, z, method=method)
+        seconds = time.perf_counter() - tic
+        est_s = smoothed.estimate()
+        truth = sim.states
+        hits = None
+        if est.multiple_model:
+            hits = per_run(mode_hits(smoothed.belief.mode_log_probs, sim.modes).to(est_s.mean.dtype).sum(1))
+        out[key] = {
+            "pos": per_run(squared_error(est_s.mean, truth, scen.position)),
+            "vel": per_run(squared_error(est_s.mean, truth, scen.velocity)),
+            "nees_sum": per_run(nees(est_s, truth).sum(1)), "hits_sum": hits, "sums": {},
+            "runs": filtered["runs"], "seconds": seconds, "state_dim": filtered["state_dim"],
+        }
+    out["label"] = _smoother_label(est)
+    return out
 
 
 def _speed_table(ctx: StudyContext):
@@ -131,36 +146,46 @@ def run(ctx: StudyContext) -> None:
         f"Filter against fixed-interval smoother (torchmm.smooth) on {len(keys)} scenarios, {cfg.mc_runs} Monte "
         f"Carlo runs each (seed {cfg.seed}, {cfg.dtype}); RMSE per step over the runs, averaged over time. "
         "Single filters run on the scenario's constant-velocity mode; the multiple-model ones over its mode bank "
-        "(Kim's smoother). Every scenario here is linear: the extended and unscented filters and smoothers equal "
-        "the Kalman ones to rounding."
+        "(the two-filter IMM smoother, and Kim's beside it). Every scenario here is linear: the extended and "
+        "unscented filters and smoothers equal the Kalman ones to rounding."
     )
     units = [Unit(f"{k}/{name}/runs{a}-{b}", UNIT, {"scenario": k, "name": name, "start": a, "stop": b})
              for k in keys for name in names for a, b in ranges]
     parts = ctx.map_units(units, desc="estimators")
     rmse = ctx.results.table(
-        "rmse", ["scenario", "estimator", "filter_pos_rmse", "smoother_pos_rmse", "filter_vel_rmse",
+        "rmse", ["scenario", "estimator", "smoother", "filter_pos_rmse", "smoother_pos_rmse", "filter_vel_rmse",
                  "smoother_vel_rmse", "filter_pos_rmse_se", "smoother_pos_rmse_se", "filter_vel_rmse_se",
-                 "smoother_vel_rmse_se", "pos_gain"],
-        note="_se: delta-method standard errors over the runs (95 %: +- 1.96 se; filter and smoother are "
-             "computed on the same runs, so their difference is far more certain than either). pos_gain: "
-             "1 - smoother / filter position RMSE.")
-    modes = ctx.results.table("modes", ["scenario", "estimator", "filter_mode_accuracy", "smoother_mode_accuracy"],
-                              note="Fraction of (step, run) pairs whose most probable mode is the true one.")
+                 "smoother_vel_rmse_se", "pos_gain", "smoother_nees"],
+        note="smoother: RTS, extended / unscented RTS, the two-filter IMM smoother (the default for multiple-model "
+             "filters) or Kim's (a second row). _se: delta-method standard errors over the runs (95 %: +- 1.96 "
+             "se; filter and smoother are computed on the same runs, so their difference is far more certain "
+             "than either). pos_gain: 1 - smoother / filter position RMSE. smoother_nees: mean NEES of the "
+             "smoothed estimate (its state dimension when the covariance is consistent).")
+    modes = ctx.results.table(
+        "modes", ["scenario", "estimator", "smoother", "filter_mode_accuracy", "smoother_mode_accuracy"],
+        note="Fraction of (step, run) pairs whose most probable mode is the true one.")
     n = len(ranges)
     for i, (k, name) in enumerate((k, name) for k in keys for name in names):
         mine = parts[i * n:(i + 1) * n]
         ev_f = reduce_runs([p["filter"] for p in mine])
-        ev_s = reduce_runs([p["smoother"] for p in mine])
-        f, s = ev_f.summary(), ev_s.summary()
-        rmse.rows.append([k, name, f["pos_rmse"], s["pos_rmse"], f["vel_rmse"], s["vel_rmse"], f["pos_rmse_se"],
-                          s["pos_rmse_se"], f["vel_rmse_se"], s["vel_rmse_se"], 1 - s["pos_rmse"] / f["pos_rmse"]])
-        if ev_f.mode_accuracy is not None:
-            modes.rows.append([k, name, f["mode_accuracy"], s["mode_accuracy"]])
-        for label, ev, summary in (("filter", ev_f, f), ("smoother", ev_s, s)):
-            ctx.results.metric(f"{k}/{name} {label}", "pos_rmse", summary["pos_rmse"])
-            ctx.logger.series(f"pos_rmse_{k}/{name} {label}", ev.pos_rmse)  # one figure per scenario
-            ctx.logger.series(f"pos_rmse_{k}_se/{name} {label}", ev.pos_rmse_band)
-        ctx.results.timing[f"{k}/{name} smoother"] = ev_s.seconds_per_step
+        f = ev_f.summary()
+        smoothers = [("smoother", mine[0]["label"])] + ([("kim", "Kim")] if "kim" in mine[0] else [])
+        for key, smoother in smoothers:
+            ev_s = reduce_runs([p[key] for p in mine])
+            s = ev_s.summary()
+            rmse.rows.append([k, name, smoother, f["pos_rmse"], s["pos_rmse"], f["vel_rmse"], s["vel_rmse"],
+                              f["pos_rmse_se"], s["pos_rmse_se"], f["vel_rmse_se"], s["vel_rmse_se"],
+                              1 - s["pos_rmse"] / f["pos_rmse"], s["nees"]])
+            if ev_f.mode_accuracy is not None:
+                modes.rows.append([k, name, smoother, f["mode_accuracy"], s["mode_accuracy"]])
+            label = "smoother" if key == "smoother" else "Kim smoother"
+            ctx.results.metric(f"{k}/{name} {label}", "pos_rmse", s["pos_rmse"])
+            ctx.logger.series(f"pos_rmse_{k}/{name} {label}", ev_s.pos_rmse)  # one figure per scenario
+            ctx.logger.series(f"pos_rmse_{k}_se/{name} {label}", ev_s.pos_rmse_band)
+            ctx.results.timing[f"{k}/{name} {label}"] = ev_s.seconds_per_step
+        ctx.results.metric(f"{k}/{name} filter", "pos_rmse", f["pos_rmse"])
+        ctx.logger.series(f"pos_rmse_{k}/{name} filter", ev_f.pos_rmse)
+        ctx.logger.series(f"pos_rmse_{k}_se/{name} filter", ev_f.pos_rmse_band)
     ctx.results.save()
     for k in keys:
         rows = [r for r in rmse.rows if r[0] == k]
@@ -178,9 +203,9 @@ def _bars(rows, key: str, runs: int):
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6.0, 3.4))
-    names = [r[1] for r in rows]
+    names = [r[1] if r[2] != "Kim" else f"{r[1]} (Kim)" for r in rows]
     xs = torch.arange(len(rows), dtype=torch.float64)
-    for offset, (label, col, se) in zip((-0.2, 0.2), (("filter", 2, 6), ("smoother", 3, 7))):
+    for offset, (label, col, se) in zip((-0.2, 0.2), (("filter", 3, 7), ("smoother", 4, 8))):
         ax.bar((xs + offset).tolist(), [r[col] for r in rows], width=0.4, label=label,
                yerr=[1.96 * (r[se] or 0.0) for r in rows], capsize=3)
     ax.set_xticks(xs.tolist(), names, rotation=20)

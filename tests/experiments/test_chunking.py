@@ -30,19 +30,19 @@ def _compose(name: str, *overrides: str):
         return compose("config", overrides=[f"experiment={name}", "progress=false", "logger=none", *overrides])
 
 
-def _assert_same(a, b, path="results"):
+def _assert_same(a, b, path="results", rel_tol=1e-11):
     if isinstance(a, dict):
         assert set(a) == set(b), path
         for key in a:
             if key in ("timing", "config", "relative_time", "provenance") or "seconds" in key:
                 continue  # wall times, and the run's provenance (its times)
-            _assert_same(a[key], b[key], f"{path}.{key}")
+            _assert_same(a[key], b[key], f"{path}.{key}", rel_tol)
     elif isinstance(a, list):
         assert len(a) == len(b), path
         for i, (x, y) in enumerate(zip(a, b)):
-            _assert_same(x, y, f"{path}[{i}]")
+            _assert_same(x, y, f"{path}[{i}]", rel_tol)
     elif isinstance(a, float) and isinstance(b, float):
-        assert math.isclose(a, b, rel_tol=1e-11, abs_tol=1e-13), (path, a, b)
+        assert math.isclose(a, b, rel_tol=rel_tol, abs_tol=1e-13), (path, a, b)
     else:
         assert a == b, (path, a, b)
 

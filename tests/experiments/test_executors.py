@@ -161,7 +161,10 @@ def test_units_of_runs_give_the_unsplit_numbers_and_resume_from_their_arrays(nam
     split_dir = tmp_path / "split"
     run_study(_compose(name, f"debug={name}", "logger=none", *sizes, "unit_runs=4"), split_dir)
     split = json.loads((split_dir / "results.json").read_text())["tables"]
-    _assert_same(_drop_timing_rows({"tables": whole}), _drop_timing_rows({"tables": split}))
+    # the two-filter IMM smoother's backward filter starts from covariances ~1e8 times the filter's
+    # (nearly flat): the rounding of a batch of another size grows to ~1e-10 there (measured 2e-10)
+    _assert_same(_drop_timing_rows({"tables": whole}), _drop_timing_rows({"tables": split}),
+                 rel_tol=1e-8 if name == "smoothing" else 1e-11)
     units = json.loads((split_dir / "checkpoint.json").read_text())["units"]
     assert any(key.endswith("/runs0-4") for key in units) and any(key.endswith("/runs4-6") for key in units)
     assert len(list((split_dir / "units").glob("*.npz"))) == len(units)  # every unit's arrays, none lost

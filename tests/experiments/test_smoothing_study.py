@@ -15,18 +15,27 @@ def test_smoothing_study_tables(tmp_path):
                        "smoothing.scenarios.paper000.steps=40", "smoothing.scenarios.turning.steps=40"), tmp_path)
     tables = json.loads((tmp_path / "results.json").read_text())["tables"]
     cols = tables["rmse"]["columns"]
-    rows = {(r[0], r[1]): dict(zip(cols, r)) for r in tables["rmse"]["rows"]}
+    rows = {(r[0], r[1]): dict(zip(cols, r)) for r in tables["rmse"]["rows"] if r[2] != "Kim"}
+    kim = {(r[0], r[1]): dict(zip(cols, r)) for r in tables["rmse"]["rows"] if r[2] == "Kim"}
+    assert set(kim) == {(s, e) for s in ("paper000", "paper001", "turning") for e in ("IMM", "GPB2", "IMM-UKF")}
+    assert {rows[(s, e)]["smoother"] for s, e in kim} == {"two-filter"}
+    assert {r["smoother"] for key, r in rows.items() if key[1] in ("KF", "EKF")} == {"RTS", "extended RTS"}
     for scenario in ("paper000", "paper001", "turning"):
         kf = rows[(scenario, "KF")]
         # RTS is the posterior mean: on 20 runs its RMSE is below the filter's, with margin
         assert kf["smoother_pos_rmse"] < 0.95 * kf["filter_pos_rmse"], kf
         assert kf["smoother_vel_rmse"] < kf["filter_vel_rmse"], kf
+        for mm in ("IMM", "GPB2"):  # the two-filter smoother gains on every scenario, Kim's loses on the maneuvers
+            assert rows[(scenario, mm)]["smoother_pos_rmse"] < 0.9 * rows[(scenario, mm)]["filter_pos_rmse"]
+            if scenario != "paper000":
+                assert rows[(scenario, mm)]["smoother_pos_rmse"] < 0.8 * kim[(scenario, mm)]["smoother_pos_rmse"]
         for same, ref in (("EKF", "KF"), ("UKF", "KF"), ("IMM-UKF", "IMM")):  # linear scenarios
             for key in ("filter_pos_rmse", "smoother_pos_rmse", "smoother_vel_rmse"):
                 assert abs(rows[(scenario, same)][key] - rows[(scenario, ref)][key]) <= 1e-8 * rows[(scenario, ref)][key]
     modes = tables["modes"]
     assert {r[1] for r in modes["rows"]} == {"IMM", "GPB2", "IMM-UKF"}
-    assert all(0 <= r[2] <= 1 and 0 <= r[3] <= 1 for r in modes["rows"])
+    assert {r[2] for r in modes["rows"]} == {"two-filter", "Kim"}
+    assert all(0 <= r[3] <= 1 and 0 <= r[4] <= 1 for r in modes["rows"])
     speed = tables["parallel_speed"]
     assert [r[0] for r in speed["rows"]] == [16, 64]
     assert all(r[-1] < 1e-9 for r in speed["rows"])  # parallel == sequential smoothed means

@@ -5,12 +5,12 @@ from __future__ import annotations
 import json
 import math
 
-from tests.regression.record import RECORDS, STOCHASTIC, numbers, rng_fingerprint
+from tests.regression.record import RECORDS, STOCHASTIC, machine_fingerprint, numbers
 
 #: deterministic studies (the same data give the same numbers): relative tolerance
 DETERMINISTIC_RTOL = 1e-9
-#: on a CPU whose seeded streams differ from the recording machine's the data differ too; the numbers
-#: then agree only within the Monte Carlo error of 4 runs
+#: on a machine that draws or rounds differently from the recording one (record.machine_fingerprint) the
+#: data can differ too; the numbers then agree only within the Monte Carlo error of 4 runs
 FOREIGN_RTOL = 0.6
 
 
@@ -22,8 +22,8 @@ def mismatches(name: str, results: dict) -> list[str]:
     """Every recorded number the new results miss; empty when they agree."""
     record = load(name)
     got = numbers(results)
-    same_streams = record["rng_fingerprint"] == rng_fingerprint()
-    if not same_streams:
+    same_machine = record["machine_fingerprint"] == machine_fingerprint()
+    if not same_machine:
         rtol, atol = FOREIGN_RTOL, 1e-6
     elif name in STOCHASTIC:
         rtol, atol = 0.0, 0.0  # bit-identical while the random streams are kept

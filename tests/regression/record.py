@@ -4,9 +4,10 @@ Run ``python -m tests.regression.record`` (from the repository root, in the test
 when a change is *meant* to change a study's numbers, and say so in the commit message; the records
 in ``tests/regression/records/`` are otherwise never rewritten. Timing columns are left out.
 
-Each record carries a fingerprint of the seeded random streams of the machine it was made on
-(:func:`rng_fingerprint`): on a CPU whose seeded streams differ, the comparison of the studies that
-draw random numbers inside the estimators (particle filters) falls back to Monte Carlo tolerance.
+Each record carries a fingerprint of the machine it was made on (:func:`machine_fingerprint`: its
+seeded random streams and the rounding of the kernels the studies use). On a machine whose fingerprint
+differs (another processor, another torch build) the data themselves can differ, and every comparison
+falls back to the Monte Carlo tolerance of 4 runs.
 """
 
 from __future__ import annotations
@@ -44,17 +45,36 @@ def numbers(results: dict) -> dict:
     return {"tables": tables, "metrics": metrics}
 
 
-def rng_fingerprint() -> str:
-    """A hash of seeded torch draws (normal, uniform, multinomial; float32 and float64)."""
+def machine_fingerprint() -> str:
+    """A hash of what makes a study's numbers machine-specific: seeded torch draws (normal, uniform,
+    multinomial; float32 and float64) and the arithmetic of the kernels the studies lean on.
+
+    Two machines with the same seeded streams can still round differently: vectorised ``exp``/``log``
+    and matrix products (AVX-512 against AVX2, fused multiply-add), and so whether the Cholesky factor
+    of a singular process noise ``q G G^T`` "succeeds" with a pivot of rounding size or falls back to
+    an eigendecomposition (``torchmm.linalg.psd_sqrt``), which draws other random vectors. Both are in
+    the hash, so a record compares exactly only on a machine that computes as the recording one did.
+    """
     import torch
+
+    from torchmm.linalg import psd_sqrt
+    from torchmm.models import ConstantVelocity
 
     g = torch.Generator().manual_seed(1234)
     parts = [torch.randn(4099, generator=g, dtype=torch.float64), torch.randn(4099, generator=g, dtype=torch.float32),
              torch.rand(4099, generator=g, dtype=torch.float64),
              torch.multinomial(torch.rand(64, generator=g, dtype=torch.float32), 500, replacement=True, generator=g).double()]
+    x = torch.rand(1031, generator=g, dtype=torch.float64) + 0.5
+    a = torch.randn(37, 53, generator=g, dtype=torch.float64)
+    b = torch.randn(53, 29, generator=g, dtype=torch.float64)
+    parts += [x.exp(), x.log(), x.float().exp().double(), x.float().log().double(), a @ b, (a.float() @ b.float()).double(),
+              torch.linalg.eigh(a[:6, :8] @ a[:6, :8].mT)[1]]
+    for ndim, q in ((1, 0.1), (1, 1.0), (1, 0.01), (2, 0.5)):
+        Q = ConstantVelocity(ndim, q=q, dtype=torch.float64).Q
+        parts += [psd_sqrt(Q), psd_sqrt(Q.float()).double()]
     digest = hashlib.sha256()
     for part in parts:
-        digest.update(part.numpy().tobytes())
+        digest.update(part.contiguous().numpy().tobytes())
     return digest.hexdigest()[:16]
 
 
@@ -75,7 +95,7 @@ def main(names: list[str]) -> None:
     for name in names or EXPERIMENTS:
         with tempfile.TemporaryDirectory() as tmp:
             results = run(name, Path(tmp))
-        record = {"experiment": name, "rng_fingerprint": rng_fingerprint(), **numbers(results)}
+        record = {"experiment": name, "machine_fingerprint": machine_fingerprint(), **numbers(results)}
         (RECORDS / f"{name}.json").write_text(json.dumps(record, indent=1) + "\n")
         print(f"recorded {name}")
 

@@ -310,3 +310,20 @@ def test_clear_errors():
         smooth(singular, run_filter(singular, singular.initial_belief(belief0), z), z)
     # Kim's smoother still needs no measurements
     assert smooth(mm, traj, method="kim").belief.mode_probs.shape == (5, 2, 2)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA (runs where a GPU is present)")
+def test_on_cuda_equal_the_cpu_ones():
+    transition = torch.tensor([[0.95, 0.05], [0.1, 0.9]], dtype=D)
+    cv, sensor, belief0, z = _maneuvering(30, 8, 6, transition)
+    z[5, 2] = float("nan")
+    dev = torch.device("cuda")
+    results = {}
+    for device in (torch.device("cpu"), dev):
+        mm = IMM(KalmanFilter(cv.to(device), sensor.to(device)), transition.to(device))
+        b0 = GaussianBelief(belief0.mean.to(device), belief0.cov.to(device))
+        traj = run_filter(mm, mm.initial_belief(b0), z.to(device))
+        results[device.type] = [smooth(mm, traj, z.to(device)).belief, smooth(mm, traj, method="kim").belief]
+    for cpu, gpu in zip(results["cpu"], results["cuda"]):
+        torch.testing.assert_close(gpu.estimate().mean.cpu(), cpu.estimate().mean, rtol=1e-7, atol=1e-7)
+        torch.testing.assert_close(gpu.mode_probs.cpu(), cpu.mode_probs, rtol=1e-7, atol=1e-9)

@@ -20,7 +20,7 @@ from torch import Tensor
 from torchmm.beliefs import GaussianBelief
 from torchmm.linalg import cholesky, solve_lower
 
-__all__ = ["armse", "mode_accuracy", "nees", "nis", "rmse", "squared_error"]
+__all__ = ["armse", "mode_accuracy", "mode_hits", "nees", "nis", "rmse", "squared_error"]
 
 
 def squared_error(estimate: Tensor, truth: Tensor, components: Sequence[int] | None = None) -> Tensor:
@@ -84,11 +84,28 @@ def nis(innovation: Tensor, innovation_cov: Tensor) -> Tensor:
     return _quadratic(innovation, innovation_cov)
 
 
+def mode_hits(mode_probs: Tensor, true_modes: Tensor) -> Tensor:
+    """1 where the true mode is the most probable one, ``1/k`` where it ties with ``k - 1`` others,
+    0 elsewhere.
+
+    Modes within ``1e-9`` (relative) of the largest value count as tied. Exactly equal probabilities
+    (e.g. identical modes, or no datum yet) are then scored the same on every processor and for any
+    batch size, where an ``argmax`` would let rounding pick the winner.
+
+    Shapes:
+        mode_probs (or log-probs): ``(*B, M)``; true_modes ``(*B)`` -> ``(*B)``
+    """
+    top = mode_probs.amax(-1, keepdim=True)
+    tied = mode_probs >= top - 1e-9 * top.abs()
+    true = tied.gather(-1, true_modes.long().unsqueeze(-1)).squeeze(-1)
+    return true.to(mode_probs.dtype) / tied.sum(-1).to(mode_probs.dtype)
+
+
 def mode_accuracy(mode_probs: Tensor, true_modes: Tensor) -> Tensor:
-    """Fraction of runs whose most probable mode is the true one, per step.
+    """Fraction of runs whose most probable mode is the true one, per step (a tie of ``k`` modes
+    that includes the true one counts ``1/k``, :func:`mode_hits`).
 
     Shapes:
         mode_probs (or log-probs): ``(T, *B, M)``; true_modes ``(T, *B)`` -> ``(T,)``
     """
-    hits = (mode_probs.argmax(-1) == true_modes).to(mode_probs.dtype)
-    return hits.flatten(1).mean(-1)
+    return mode_hits(mode_probs, true_modes).flatten(1).mean(-1)
