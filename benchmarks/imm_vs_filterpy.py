@@ -6,11 +6,16 @@ runs x ``--steps`` steps in float64, on the same simulated data in this one proc
 * torchmm: ``IMM(KalmanFilter(bank))`` over all runs at once (``run_filter``);
 * FilterPy: one ``IMMEstimator`` per run, looping over runs (its intended use);
 * NumPy: the same IMM vectorised by hand over runs and modes (batch axis first, generic
-  matmul / ``np.linalg.solve``, like torchmm's public layout).
+  matmul / ``np.linalg.solve``, like torchmm's public layout);
+* NumPy SoA: the strong reference - the IMM written by hand for this problem's sizes (n = 2,
+  m = 1) with the batch axis last ("structure of arrays": one contiguous array per matrix entry,
+  shape ``(M, runs)``) and the 2 x 2 Kalman algebra in closed form, so that every operation is one
+  elementwise pass over all runs and modes.
 
-All three must give the same estimates (checked to 1e-9). torchmm and NumPy are timed as the best
-of ``--repeats`` runs, FilterPy once. The last line is
-``speedup_vs_filterpy=<x> speedup_vs_numpy=<y>`` (wall-time ratios, > 1 means torchmm is faster).
+All four must give the same estimates (checked to 1e-9). torchmm and the NumPy versions are timed as
+the best of ``--repeats`` runs, FilterPy once; one thread each (``--threads``). The last line is
+``speedup_vs_filterpy=<x> speedup_vs_numpy=<y> speedup_vs_numpy_soa=<z>`` (wall-time ratios, > 1
+means torchmm is faster).
 
 Usage: ``python benchmarks/imm_vs_filterpy.py [--runs 400] [--steps 100] [--filterpy-runs N]``
 (``--filterpy-runs`` times FilterPy on the first N runs only and scales its time by runs / N).
@@ -18,14 +23,19 @@ Usage: ``python benchmarks/imm_vs_filterpy.py [--runs 400] [--steps 100] [--filt
 
 from __future__ import annotations
 
-import argparse
-import time
+import os
 
-import numpy as np
-import torch
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):  # one thread each (before numpy)
+    os.environ.setdefault(_var, "1")
+
+import argparse  # noqa: E402
+import time  # noqa: E402
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
 
 from torchmm import IMM, ConstantVelocity, GaussianBelief, KalmanFilter, PositionMeasurement, run_filter
-from torchmm.simulate import simulate_jump_system, simulate_measurements
+from torchmm.simulate import simulate_jump_system, simulate_measurements  # noqa: E402
 
 ACCELERATIONS = [0.25, 0.0, -0.25]
 TRANSITION = [[0.50, 0.25, 0.25], [0.25, 0.50, 0.25], [0.25, 0.25, 0.50]]
@@ -92,6 +102,53 @@ def run_numpy(F, b, Q, H, Rm, Pi, x0, P0, mu0, zs):
     return out
 
 
+def run_numpy_soa(F, b, Q, H, Rm, Pi, x0, P0, mu0, zs):
+    """The IMM for n = 2, m = 1 with the batch axis last: every quantity is an ``(M, N)`` array per
+    matrix entry, the Kalman algebra in closed form (no matmul, no solve). Loops over time only."""
+    T, N, _ = zs.shape
+    M = b.shape[0]
+    f00, f01, f10, f11 = (F[:, i, j][:, None] for i, j in ((0, 0), (0, 1), (1, 0), (1, 1)))
+    b0, b1 = b[:, 0:1], b[:, 1:2]
+    q00, q01, q11 = Q[:, 0, 0][:, None], Q[:, 0, 1][:, None], Q[:, 1, 1][:, None]
+    h0, h1, r = H[0, 0], H[0, 1], Rm[0, 0]
+    x0_, x1_ = np.full((M, N), x0[0]), np.full((M, N), x0[1])
+    p00, p01, p11 = np.full((M, N), P0[0, 0]), np.full((M, N), P0[0, 1]), np.full((M, N), P0[1, 1])
+    mu = np.repeat(mu0[:, None], N, axis=1)
+    PiT = np.ascontiguousarray(Pi.T)
+    out = np.empty((T, N, 2))
+    half_log2pi = 0.5 * np.log(2 * np.pi)
+    for k in range(T):
+        cbar = PiT @ mu  # (j, N)
+        w = Pi[:, :, None] * mu[:, None, :] / cbar[None, :, :]  # (i, j, N)
+        m0 = np.einsum("ijn,in->jn", w, x0_)
+        m1 = np.einsum("ijn,in->jn", w, x1_)
+        d0 = x0_[:, None, :] - m0[None]  # (i, j, N)
+        d1 = x1_[:, None, :] - m1[None]
+        c00 = np.einsum("ijn,in->jn", w, p00) + np.einsum("ijn,ijn->jn", w, d0 * d0)
+        c01 = np.einsum("ijn,in->jn", w, p01) + np.einsum("ijn,ijn->jn", w, d0 * d1)
+        c11 = np.einsum("ijn,in->jn", w, p11) + np.einsum("ijn,ijn->jn", w, d1 * d1)
+        # prediction: x- = F m + b, P- = F C F^T + Q (closed form)
+        xp0, xp1 = f00 * m0 + f01 * m1 + b0, f10 * m0 + f11 * m1 + b1
+        a00, a01 = f00 * c00 + f01 * c01, f00 * c01 + f01 * c11
+        a10, a11 = f10 * c00 + f11 * c01, f10 * c01 + f11 * c11
+        pp00, pp01, pp11 = a00 * f00 + a01 * f01 + q00, a00 * f10 + a01 * f11 + q01, a10 * f10 + a11 * f11 + q11
+        # update with the scalar measurement z = h x + v
+        g0, g1 = pp00 * h0 + pp01 * h1, pp01 * h0 + pp11 * h1  # P- H^T
+        s = h0 * g0 + h1 * g1 + r
+        nu = zs[k, :, 0][None, :] - (h0 * xp0 + h1 * xp1)
+        k0, k1 = g0 / s, g1 / s
+        x0_, x1_ = xp0 + k0 * nu, xp1 + k1 * nu
+        p00, p01, p11 = pp00 - k0 * g0, pp01 - k0 * g1, pp11 - k1 * g1
+        ll = -0.5 * nu * nu / s - 0.5 * np.log(s) - half_log2pi
+        a = ll + np.log(cbar)
+        a -= a.max(0, keepdims=True)
+        mu = np.exp(a)
+        mu /= mu.sum(0, keepdims=True)
+        out[k, :, 0] = (mu * x0_).sum(0)
+        out[k, :, 1] = (mu * x1_).sum(0)
+    return out
+
+
 def run_filterpy(F, b, Q, H, Rm, Pi, x0, P0, mu0, zs, runs: int):
     from filterpy.kalman import IMMEstimator
     from filterpy.kalman import KalmanFilter as FPKalmanFilter
@@ -131,7 +188,9 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--filterpy-runs", type=int, default=None, help="time FilterPy on this many runs only")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (NumPy: one, set before import)")
     args = parser.parse_args()
+    torch.set_num_threads(args.threads)
 
     motion, sensor, prior, transition, z = scenario(args.runs, args.steps, args.seed)
     F = motion.F.numpy()
@@ -146,6 +205,7 @@ def main() -> None:
     run_torchmm(motion, sensor, prior, transition, z[:2])  # warm-up (lazy inits)
     t_torch, est_torch = best_of(lambda: run_torchmm(motion, sensor, prior, transition, z), args.repeats)
     t_numpy, est_numpy = best_of(lambda: run_numpy(F, b, Q, H, Rm, Pi, x0, P0, mu0, zs), args.repeats)
+    t_soa, est_soa = best_of(lambda: run_numpy_soa(F, b, Q, H, Rm, Pi, x0, P0, mu0, zs), args.repeats)
     fp_runs = min(args.filterpy_runs or args.runs, args.runs)
     tic = time.perf_counter()
     est_fp = run_filterpy(F, b, Q, H, Rm, Pi, x0, P0, mu0, zs, fp_runs)
@@ -154,14 +214,21 @@ def main() -> None:
     scale = 1 + np.abs(est_fp).max()
     err_fp = np.abs(est_torch.numpy()[:, :fp_runs] - est_fp).max() / scale
     err_np = np.abs(est_torch.numpy() - est_numpy).max() / scale
-    print(f"max relative difference: torchmm vs FilterPy {err_fp:.2e}, torchmm vs NumPy {err_np:.2e}")
-    if err_fp > 1e-9 or err_np > 1e-9:
+    err_soa = np.abs(est_torch.numpy() - est_soa).max() / scale
+    print(f"max relative difference: torchmm vs FilterPy {err_fp:.2e}, torchmm vs NumPy {err_np:.2e}, "
+          f"torchmm vs NumPy SoA {err_soa:.2e}")
+    if err_fp > 1e-9 or err_np > 1e-9 or err_soa > 1e-9:
         raise SystemExit("estimates disagree: the comparison is void")
     note = "" if fp_runs == args.runs else f" (measured on {fp_runs} runs, scaled)"
     print(f"torchmm  {t_torch:8.4f} s")
     print(f"NumPy    {t_numpy:8.4f} s")
+    print(f"NumPy SoA {t_soa:7.4f} s")
     print(f"FilterPy {t_fp:8.4f} s{note}")
-    print(f"speedup_vs_filterpy={t_fp / t_torch:.1f} speedup_vs_numpy={t_numpy / t_torch:.2f}")
+    steps = args.runs * args.steps
+    print(f"run-steps/s: torchmm {steps / t_torch:.3g}, NumPy {steps / t_numpy:.3g}, NumPy SoA {steps / t_soa:.3g}, "
+          f"FilterPy {steps / t_fp:.3g}")
+    print(f"speedup_vs_filterpy={t_fp / t_torch:.1f} speedup_vs_numpy={t_numpy / t_torch:.2f} "
+          f"speedup_vs_numpy_soa={t_soa / t_torch:.2f}")
 
 
 if __name__ == "__main__":

@@ -18,7 +18,8 @@ same algorithmic choices; each is written in its library's idiom.
    ``2 * runs * M * Np * (n + 1) * 8``) over the machine's measured copy bandwidth; and the same
    bound for the two parts no formulation avoids (the serial normals and one search per particle).
 
-Last line: ``particle_steps_per_s=<x> speedup_vs_numpy=<y> fraction_of_bandwidth=<z>``.
+Last line: ``particle_steps_per_s=<x> speedup_vs_numpy=<y> fraction_of_bandwidth=<z> fraction_of_rng_cap=<w>``
+(the random-number cap: the throughput of a step that only drew its process-noise normals).
 Timings on a shared machine are contended; ratios are what matter.
 """
 
@@ -326,8 +327,11 @@ def main(argv=None) -> None:
     t_floor = sum(floor.values())
     print("unavoidable parts: " + " ".join(f"{k}={v:.4f}s" for k, v in floor.items())
           + f" -> at most {moved / t_floor / bandwidth:.3f} of the bandwidth bound with these kernels")
+    # the random-number cap: the particle-steps/s of a step that did nothing but draw its normals
+    cap = B * M * Np / floor["normals"]
+    print(f"rng_cap={cap:.4g} particle-steps/s (the process-noise normals alone: {floor['normals']:.4f} s a step)")
     print(f"particle_steps_per_s={B * M * Np / t_torch:.4g} speedup_vs_numpy={t_numpy / t_torch:.3f} "
-          f"fraction_of_bandwidth={moved / t_torch / bandwidth:.4f}")
+          f"fraction_of_bandwidth={moved / t_torch / bandwidth:.4f} fraction_of_rng_cap={floor['normals'] / t_torch:.4f}")
 
 
 if __name__ == "__main__":

@@ -21,7 +21,8 @@ def test_imm_benchmark_runs_and_agrees():
     )
     assert proc.returncode == 0, proc.stderr[-2000:] + proc.stdout[-2000:]
     lines = proc.stdout.strip().splitlines()
-    assert re.fullmatch(r"speedup_vs_filterpy=[0-9.]+ speedup_vs_numpy=[0-9.]+", lines[-1]), lines[-1]
+    assert re.fullmatch(r"speedup_vs_filterpy=[0-9.]+ speedup_vs_numpy=[0-9.]+ speedup_vs_numpy_soa=[0-9.]+",
+                        lines[-1]), lines[-1]
     diffs = [float(x) for x in re.findall(r"([0-9.]+e[-+][0-9]+)", next(line for line in lines if "difference" in line))]
     assert diffs and max(diffs) < 1e-9
 

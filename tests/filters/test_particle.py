@@ -226,8 +226,8 @@ def test_pf_throughput_benchmark_runs_and_agrees_with_numpy(winners):
     )
     assert proc.returncode == 0, proc.stderr[-2000:]
     lines = proc.stdout.strip().splitlines()
-    assert re.fullmatch(r"particle_steps_per_s=\S+ speedup_vs_numpy=[0-9.]+ fraction_of_bandwidth=[0-9.]+",
-                        lines[-1]), lines[-1]
+    assert re.fullmatch(r"particle_steps_per_s=\S+ speedup_vs_numpy=[0-9.]+ fraction_of_bandwidth=[0-9.]+ "
+                        r"fraction_of_rng_cap=[0-9.]+", lines[-1]), lines[-1]
     diffs = dict(re.findall(r"(\w+)=([0-9.e+-]+)", next(line for line in lines if "difference" in line)))
     assert float(diffs["particles"]) < 1e-12 and float(diffs["estimate"]) < 1e-12
     assert float(diffs["log_weights"]) < 1e-9 and float(diffs["model_sets"]) == 0
