@@ -49,3 +49,18 @@ def test_gimmaf_benchmark_runs_and_agrees():
     assert proc.returncode == 0, proc.stderr[-2000:] + proc.stdout[-2000:]
     assert re.match(r"speedup_vs_numpy_loop=[0-9.]+", proc.stdout.strip().splitlines()[-1])
     assert float(re.search(r"reference: ([0-9.e+-]+)", proc.stdout).group(1)) < 1e-8
+
+
+def test_gpu_benchmark_runs_on_the_cpu_and_agrees():
+    """benchmarks/gpu.py needs only torch and numpy; on the CPU at tiny sizes (no compile) it prints
+    its figures and the agreement with the CPU (trivially the same device here, but the same code)."""
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "gpu.py"), "--device", "cpu", "--runs", "100", "300",
+         "--steps", "5", "--check-runs", "20", "--repeats", "1", "--no-compile"],
+        capture_output=True, text=True, timeout=300, env={"PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "PATH": ""},
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:] + proc.stdout[-2000:]
+    lines = proc.stdout.strip().splitlines()
+    assert re.fullmatch(r"imm_run_steps_per_s=[0-9.e+]+ pf_particle_steps_per_s=[0-9.e+]+ agree=True", lines[-1]), lines
+    assert sum(line.startswith("IMM runs=") for line in lines) == 2
+    assert sum(line.startswith("PF  runs=") for line in lines) == 2

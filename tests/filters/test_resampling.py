@@ -167,3 +167,22 @@ def test_searchsorted_rows_equals_torch_searchsorted(threads):
     assert torch.equal(searchsorted_rows(cdf, bad), torch.searchsorted(cdf, bad, right=True))
     with pytest.raises(ValueError, match="values"):
         searchsorted_rows(cdf, u[:2])
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_systematic_search_never_returns_an_index_past_the_particles(dtype):
+    """The largest uniform below 1 in float32 made ``num - u0`` round to ``num - 1``, so the last
+    entry was counted and the index was ``K`` (an out-of-range gather in benchmarks/gpu.py's PF)."""
+    from torchmm.filters.resampling import systematic_search
+
+    K = num = 100
+    weights = torch.rand(K, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    weights[-2:] = 0.0  # two trailing zero-weight particles: never selected either
+    cdf = (weights.cumsum(0) / weights.sum()).to(dtype).unsqueeze(0)
+    cdf[0, -3:] = 1.0
+    for u0 in (1 - torch.finfo(dtype).eps / 2, 0.5, 0.0):
+        index = systematic_search(cdf, torch.tensor([[u0]], dtype=dtype), num)
+        assert int(index.max()) <= K - 3, (u0, index.max())
+        if u0 != 1 - torch.finfo(dtype).eps / 2:  # where the grid itself does not round: plain searchsorted
+            want = torch.searchsorted(cdf[0], (torch.arange(num, dtype=dtype) + u0) / num, right=True)
+            torch.testing.assert_close(index, want.unsqueeze(0))

@@ -209,14 +209,16 @@ def systematic_search(cdf: Tensor, u0: Tensor, num: int) -> Tensor:
     is the number of entries whose grid position ``ceil(num * c - u0)`` is at most ``q``: one
     scatter-add of the ``K`` positions and a cumulative sum replace ``num`` binary searches.
 
-    With ``c`` in ``[0, 1]`` the positions lie in ``[0, num]`` without clamping, and the last
-    entry (exactly 1) sits at ``num``, past every point, so the counts stay below ``K``.
+    With ``c`` in ``[0, 1]`` the positions lie in ``[0, num]`` without clamping, and the entries
+    equal to 1 (the last one, at least) sit at ``num``, past every point, so the counts stay below
+    ``K``. They are put there explicitly: in float32 ``num - u0`` rounds to ``num - 1`` for ``u0``
+    within ``num * 2^-24`` of 1, which would count the last entry too (an index ``K``).
 
     Shapes:
         cdf: ``(*B, K)`` non-decreasing in ``[0, 1]``, last entry exactly 1; u0: ``(*B, 1)`` in
         ``[0, 1)`` -> ``(*B, num)``
     """
-    pos = (cdf * num).sub_(u0).ceil_().long()
+    pos = (cdf * num).sub_(u0).ceil_().long().masked_fill_(cdf >= 1, num)
     counts = torch.zeros((*cdf.shape[:-1], num + 1), dtype=torch.int64, device=cdf.device)
     counts.scatter_add_(-1, pos, torch.ones((), dtype=torch.int64, device=cdf.device).expand_as(pos))
     return torch.cumsum(counts[..., :num], dim=-1)

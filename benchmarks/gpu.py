@@ -1,0 +1,209 @@
+"""GPU throughput: IMM run-steps/s and particle-filter particle-steps/s from 10^3 to 10^6 runs,
+eager against compiled (``torch.compile``; on CUDA ``mode="reduce-overhead"``, i.e. CUDA graphs),
+and agreement with the CPU.
+
+Needs only torch and numpy (and this repository on the path)::
+
+    PYTHONPATH=. python3 benchmarks/gpu.py                 # CUDA when present, else CPU
+    PYTHONPATH=. python3 benchmarks/gpu.py --device cpu --runs 1000 10000 --steps 20
+
+* IMM: paper 000's IMM (3 acceleration modes, n = 2, m = 1), float64, ``--steps`` steps of
+  ``IMM.step`` on all runs at once. Agreement: the estimates of the first ``--check-runs`` runs on
+  the device against the same runs filtered on the CPU (float64, relative difference printed, must
+  be below 1e-9).
+* PF: a bootstrap particle filter (``--particles`` per run, systematic resampling, float32
+  process-noise normals) on the constant-velocity model, float32 state. Agreement: the device's
+  own random stream differs from the CPU's, so its position RMSE over ``--check-runs`` runs is
+  compared with the CPU's (must agree to 10 %).
+* Compiled: the compiled step's estimates must equal the eager ones (1e-9, printed).
+* Sizes whose particle count exceeds ``--max-particles`` are skipped. A size that takes longer than
+  ``--size-seconds`` ends the escalation. The whole script stays under 5 minutes.
+
+Every timing synchronises the device. The last line is
+``imm_run_steps_per_s=<at the largest IMM size> pf_particle_steps_per_s=<at the largest PF size>
+agree=<True|False>``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+
+import torch
+
+from torchmm import IMM, ConstantVelocity, GaussianBelief, KalmanFilter, ParticleFilter, PositionMeasurement
+from torchmm.simulate import simulate_jump_system, simulate_measurements
+
+ACCELERATIONS = [0.25, 0.0, -0.25]
+TRANSITION = [[0.50, 0.25, 0.25], [0.25, 0.50, 0.25], [0.25, 0.25, 0.50]]
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def imm_setup(runs: int, steps: int, device: torch.device, seed: int = 0):
+    """Paper 000's IMM and ``runs`` simulated runs (simulated on the CPU, then moved)."""
+    dtype = torch.float64
+    motion = ConstantVelocity(1, q=1.0, acceleration=torch.tensor(ACCELERATIONS, dtype=dtype)[:, None], dtype=dtype)
+    sensor = PositionMeasurement(2, [0], torch.tensor(100.0, dtype=dtype), dtype=dtype)
+    prior = GaussianBelief(torch.tensor([10.0, 10.0], dtype=dtype), torch.tensor([[100.0, 1.0], [1.0, 100.0]], dtype=dtype))
+    transition = torch.tensor(TRANSITION, dtype=dtype)
+    gen = torch.Generator().manual_seed(seed)
+    sim = simulate_jump_system(motion, transition, prior, steps, (runs,), generator=gen)
+    z = simulate_measurements(sensor, sim.states, generator=gen)
+    imm = IMM(KalmanFilter(motion.to(device), sensor.to(device)), transition.to(device))
+    return imm, imm.initial_belief(prior.to(device).expand(runs)), z.to(device)
+
+
+def imm_estimates(imm, belief, z, step):
+    out = []
+    for k in range(z.shape[0]):
+        belief = step(belief, z[k])
+        out.append(belief.estimate().mean)
+    return torch.stack(out)
+
+
+def pf_setup(runs: int, particles: int, steps: int, device: torch.device, seed: int = 0):
+    """A constant-velocity target in one axis, positions measured (R = 4); float32 particles."""
+    dtype = torch.float32
+    motion = ConstantVelocity(1, q=0.5, noise="continuous", dtype=dtype)
+    sensor = PositionMeasurement(2, [0], torch.tensor(4.0, dtype=dtype), dtype=dtype)
+    prior = GaussianBelief(torch.tensor([0.0, 1.0], dtype=dtype), torch.eye(2, dtype=dtype))
+    gen = torch.Generator().manual_seed(seed)
+    x = prior.mean + torch.randn(runs, 2, generator=gen, dtype=dtype)
+    states, zs = [], []
+    noise = torch.linalg.cholesky(motion.noise_cov())
+    for _ in range(steps):
+        x = motion(x) + torch.randn(runs, 2, generator=gen, dtype=dtype) @ noise.mT
+        states.append(x)
+        zs.append(x[:, :1] + 2.0 * torch.randn(runs, 1, generator=gen, dtype=dtype))
+    device_gen = torch.Generator(device=device).manual_seed(seed + 1)
+    pf = ParticleFilter(motion.to(device), sensor.to(device), generator=device_gen, noise_dtype=torch.float32)
+    belief = pf.initial_belief(prior.to(device).expand(runs), particles)
+    return pf, belief, torch.stack(zs).to(device), torch.stack(states).to(device)
+
+
+def pf_positions(pf, belief, z, step):
+    """The filtered positions ``(T, runs)``; no host read inside the loop."""
+    out = []
+    for k in range(z.shape[0]):
+        belief = step(belief, z[k])
+        out.append(belief.estimate().mean[..., 0])
+    return torch.stack(out)
+
+
+def pf_rmse(pf, belief, z, truth, step) -> float:
+    return float((pf_positions(pf, belief, z, step) - truth[..., 0]).square().mean().sqrt())
+
+
+def timed(fn, device: torch.device, repeats: int) -> float:
+    best = math.inf
+    for _ in range(repeats):
+        _sync(device)
+        tic = time.perf_counter()
+        fn()
+        _sync(device)
+        best = min(best, time.perf_counter() - tic)
+    return best
+
+
+def compiled(step, device: torch.device):
+    mode = "reduce-overhead" if device.type == "cuda" else "default"
+    return torch.compile(step, mode=mode, dynamic=False)
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--runs", type=float, nargs="+", default=[1e3, 1e4, 1e5, 1e6])
+    parser.add_argument("--steps", type=int, default=50)
+    parser.add_argument("--particles", type=int, default=100, help="per run (PF)")
+    parser.add_argument("--max-particles", type=float, default=None,
+                        help="largest runs x particles for the PF (default 2e8 on CUDA, 4e6 on CPU)")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--check-runs", type=int, default=200)
+    parser.add_argument("--size-seconds", type=float, default=40.0, help="stop escalating after a size this slow")
+    parser.add_argument("--no-compile", action="store_true")
+    args = parser.parse_args(argv)
+    device = torch.device(args.device)
+    runs_list = [int(r) for r in args.runs]
+    max_particles = args.max_particles or (2e8 if device.type == "cuda" else 4e6)
+    name = torch.cuda.get_device_name(device) if device.type == "cuda" else "CPU"
+    print(f"device={device} ({name}) torch={torch.__version__} threads={torch.get_num_threads()} steps={args.steps}")
+    started = time.perf_counter()
+    agree = True
+
+    # -- agreement with the CPU ------------------------------------------------------------------
+    n = args.check_runs
+    imm_c, b_c, z_c = imm_setup(n, args.steps, torch.device("cpu"))
+    imm_d, b_d, z_d = imm_setup(n, args.steps, device)
+    with torch.no_grad():
+        est_c = imm_estimates(imm_c, b_c, z_c, lambda b, z: imm_c.step(b, z).belief)
+        est_d = imm_estimates(imm_d, b_d, z_d, lambda b, z: imm_d.step(b, z).belief)
+    diff = float((est_d.cpu() - est_c).abs().max() / (1 + est_c.abs().max()))
+    print(f"agreement IMM: max relative difference device vs CPU {diff:.2e} ({n} runs)")
+    agree &= diff < 1e-9
+    with torch.no_grad():
+        rmse = {}
+        for dev in (torch.device("cpu"), device):
+            pf, b, z, truth = pf_setup(n, args.particles, args.steps, dev)
+            rmse[dev.type] = pf_rmse(pf, b, z, truth, lambda b, z, pf=pf: pf.step(b, z).belief)
+    rel = abs(rmse[device.type] - rmse["cpu"]) / rmse["cpu"]
+    print(f"agreement PF: position RMSE device {rmse[device.type]:.4f} CPU {rmse['cpu']:.4f} (relative {rel:.3f}, "
+          f"own random streams)")
+    agree &= rel < 0.1
+
+    # -- throughput ------------------------------------------------------------------------------
+    imm_rate = pf_rate = float("nan")
+    for runs in runs_list:
+        tic = time.perf_counter()
+        imm, belief, z = imm_setup(runs, args.steps, device)
+        eager_step = lambda b, zk: imm.step(b, zk).belief  # noqa: E731
+        with torch.no_grad():
+            t_eager = timed(lambda: imm_estimates(imm, belief, z, eager_step), device, args.repeats)
+            line = f"IMM runs={runs:>8} eager {runs * args.steps / t_eager:10.4g} run-steps/s"
+            if not args.no_compile:
+                try:
+                    step_c = compiled(eager_step, device)
+                    tc = time.perf_counter()
+                    imm_estimates(imm, belief, z[:2], step_c)  # compile (and capture)
+                    t_compile = time.perf_counter() - tc
+                    t_comp = timed(lambda: imm_estimates(imm, belief, z, step_c), device, args.repeats)
+                    same = imm_estimates(imm, belief, z, step_c) - imm_estimates(imm, belief, z, eager_step)
+                    scale = 1 + float(imm_estimates(imm, belief, z[:1], eager_step).abs().max())
+                    diff_c = float(same.abs().max()) / scale
+                    agree &= diff_c < 1e-9
+                    line += (f" | compiled {runs * args.steps / t_comp:10.4g} run-steps/s (compile {t_compile:.1f} s, "
+                             f"vs eager {diff_c:.1e})")
+                except Exception as error:  # a compiler failure is a measurement, not a crash
+                    line += f" | compiled: failed ({type(error).__name__}: {str(error).splitlines()[0][:80]})"
+        print(line, flush=True)
+        imm_rate = runs * args.steps / t_eager
+        del imm, belief, z
+        if time.perf_counter() - tic > args.size_seconds or time.perf_counter() - started > 200:
+            print(f"IMM: stopping after runs={runs} (time budget)")
+            break
+    for runs in runs_list:
+        if runs * args.particles > max_particles:
+            print(f"PF runs={runs:>8}: skipped ({runs * args.particles:.2g} particles > --max-particles {max_particles:.2g})")
+            continue
+        tic = time.perf_counter()
+        pf, belief, z, truth = pf_setup(runs, args.particles, args.steps, device)
+        with torch.no_grad():
+            t_eager = timed(lambda: pf_positions(pf, belief, z, lambda b, zk: pf.step(b, zk).belief),
+                            device, max(1, args.repeats - 1))
+        pf_rate = runs * args.particles * args.steps / t_eager
+        print(f"PF  runs={runs:>8} particles={args.particles} eager {pf_rate:10.4g} particle-steps/s", flush=True)
+        del pf, belief, z, truth
+        if time.perf_counter() - tic > args.size_seconds or time.perf_counter() - started > 270:
+            print(f"PF: stopping after runs={runs} (time budget)")
+            break
+    print(f"total {time.perf_counter() - started:.1f} s")
+    print(f"imm_run_steps_per_s={imm_rate:.4g} pf_particle_steps_per_s={pf_rate:.4g} agree={agree}")
+
+
+if __name__ == "__main__":
+    main()
