@@ -64,3 +64,16 @@ def test_gpu_benchmark_runs_on_the_cpu_and_agrees():
     assert re.fullmatch(r"imm_run_steps_per_s=[0-9.e+]+ pf_particle_steps_per_s=[0-9.e+]+ agree=True", lines[-1]), lines
     assert sum(line.startswith("IMM runs=") for line in lines) == 2
     assert sum(line.startswith("PF  runs=") for line in lines) == 2
+
+
+def test_imm_layout_benchmark_runs_and_agrees():
+    """benchmarks/imm_layout.py (the batch-last route of issue 17) at tiny size, without compiling: its
+    SoA step must equal the NumPy SoA reference and torchmm (the script exits non-zero otherwise)."""
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "imm_layout.py"), "--runs", "20", "--steps", "10",
+         "--repeats", "1", "--no-compile"], capture_output=True, text=True, timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:] + proc.stdout[-2000:]
+    last = proc.stdout.strip().splitlines()[-1]
+    assert re.fullmatch(r"soa_eager_vs_numpy_soa=[0-9.]+ soa_compiled_vs_numpy_soa=nan torchmm_vs_numpy_soa=[0-9.]+",
+                        last), last
