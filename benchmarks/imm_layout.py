@@ -3,13 +3,14 @@ axis last ("structure of arrays", one ``(M, runs)`` tensor per matrix entry, the
 in closed form), eager and under ``torch.compile``, against the NumPy SoA reference of
 ``imm_vs_filterpy.py`` and torchmm's public ``IMM(KalmanFilter(bank))`` (batch first).
 
-This is a measurement of a route, not an API: the SoA step here is written for n = 2, m = 1. It
-tells how far a batch-last kernel behind the batch-first API would move the generic IMM. All
-estimates are checked equal (1e-9 relative). One thread each.
+The hand-written SoA step here is for n = 2, m = 1: the bound of the route. Beside it,
+``torchmm.soa.filter`` is the same layout generic in n, m and M (an opt-in kernel of the library),
+eager and compiled. All estimates are checked equal (1e-9 relative). One thread each.
 
 Usage: ``python benchmarks/imm_layout.py [--runs 400 40000] [--steps 100] [--no-compile]``. Last
-line: ``soa_eager_vs_numpy_soa=<x> soa_compiled_vs_numpy_soa=<y> torchmm_vs_numpy_soa=<z>`` (at the
-largest size; > 1 means faster than the NumPy SoA reference).
+line: ``soa_eager_vs_numpy_soa=... soa_compiled_vs_numpy_soa=... torchmm_vs_numpy_soa=...
+torchmm_soa_vs_numpy_soa=... torchmm_soa_compiled_vs_numpy_soa=...`` (at the largest size; > 1
+means faster than the NumPy SoA reference).
 """
 
 from __future__ import annotations
@@ -30,6 +31,8 @@ import torch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from imm_vs_filterpy import best_of, run_numpy_soa, run_torchmm, scenario  # noqa: E402
+
+from torchmm import IMM, KalmanFilter, soa  # noqa: E402
 
 
 def soa_step(F, b, Q, H, R, Pi):
@@ -97,7 +100,11 @@ def main(argv=None) -> None:
             t_np, est_np = best_of(lambda: run_numpy_soa(*numpy_args), args.repeats)
             t_mm, est_mm = best_of(lambda: run_torchmm(motion, sensor, prior, transition, z), args.repeats)
             t_eager, est_eager = best_of(lambda: run_soa(step, prior.mean, prior.cov, M, z), args.repeats)
-            results = {"torchmm": (t_mm, est_mm), "torch SoA eager": (t_eager, est_eager)}
+            imm = IMM(KalmanFilter(motion, sensor), transition)
+            belief0 = imm.initial_belief(prior.expand(runs))
+            generic = lambda **kw: soa.filter(imm, belief0, z, output="estimate", **kw).belief.mean  # noqa: E731
+            results = {"torchmm": (t_mm, est_mm), "torch SoA eager": (t_eager, est_eager),
+                       "torchmm.soa eager": best_of(generic, args.repeats)}
             line = ""
             if not args.no_compile:
                 compiled = torch.compile(step, dynamic=False)
@@ -106,6 +113,10 @@ def main(argv=None) -> None:
                 line = f" (compile {time.perf_counter() - tic:.1f} s)"
                 results["torch SoA compiled"] = best_of(lambda: run_soa(compiled, prior.mean, prior.cov, M, z),
                                                         args.repeats)
+                tic = time.perf_counter()
+                generic(compile=True)
+                line += f" (torchmm.soa compile {time.perf_counter() - tic:.1f} s)"
+                results["torchmm.soa compiled"] = best_of(lambda: generic(compile=True), args.repeats)
         scale = 1 + np.abs(est_np).max()
         for name, (t, est) in results.items():
             diff = np.abs(est.numpy() - est_np).max() / scale
@@ -117,7 +128,9 @@ def main(argv=None) -> None:
         ratios = {name: t_np / t for name, (t, _) in results.items()}
     print(f"soa_eager_vs_numpy_soa={ratios['torch SoA eager']:.2f} "
           f"soa_compiled_vs_numpy_soa={ratios.get('torch SoA compiled', float('nan')):.2f} "
-          f"torchmm_vs_numpy_soa={ratios['torchmm']:.2f}")
+          f"torchmm_vs_numpy_soa={ratios['torchmm']:.2f} "
+          f"torchmm_soa_vs_numpy_soa={ratios['torchmm.soa eager']:.2f} "
+          f"torchmm_soa_compiled_vs_numpy_soa={ratios.get('torchmm.soa compiled', float('nan')):.2f}")
 
 
 if __name__ == "__main__":

@@ -17,7 +17,7 @@ LAYERS = [
     {"models"},
     {"filters", "simulate"},
     {"run", "multimodel"},
-    {"smooth", "parallel"},  # the backward passes (over every filter and bank) and the time-parallel scans
+    {"smooth", "parallel", "soa"},  # the backward passes, the time-parallel scans, the batch-last IMM kernel
     {"fusion", "learn", "metrics", "analysis"},
     {"torchmm"},  # the top-level namespace
 ]
