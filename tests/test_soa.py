@@ -76,6 +76,8 @@ def test_clear_errors():
         soa.filter(dense, belief0, z)
     with pytest.raises(ValueError, match="output: expected 'beliefs' or 'estimate'"):
         soa.filter(imm, belief0, z, output="means")
+    with pytest.raises(TypeError, match="z: dtype"):
+        soa.filter(imm, belief0, z.float())
     with pytest.raises(ValueError, match=r"z: expected shape \(T, 3, 2\)"):
         soa.filter(imm, belief0, z[..., :1])
     with pytest.raises(ValueError, match="belief0: torchmm.soa.filter takes one batch axis"):

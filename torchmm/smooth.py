@@ -332,8 +332,8 @@ def two_filter_step(filter: MultipleModelFilter, filtered: ModeBelief, backward_
     return ModeBelief(log_mode, GaussianBelief(mean, cov).collapse(weights))
 
 
-def backward_imm_update(filter: MultipleModelFilter, bank: Any, predicted: ModeBelief, z: Tensor,
-                        prior_log_probs: Tensor, *, sensor: Any = None) -> ModeBelief:
+def backward_imm_update(filter: MultipleModelFilter, predicted: ModeBelief, z: Tensor, prior_log_probs: Tensor, *,
+                        sensor: Any = None) -> ModeBelief:
     r"""The backward IMM's interaction and update at step ``k``: ``p(x_k, s_k | z_{k:T})`` from the
     backward-predicted ``p(x_k | s_{k+1} = i, z_{k+1:T})`` with ``P(s_{k+1} = i | z_{k+1:T})``.
 
@@ -353,7 +353,7 @@ def backward_imm_update(filter: MultipleModelFilter, bank: Any, predicted: ModeB
     log_a = torch.logsumexp(log_joint, dim=-2)  # (*B, j)
     weights = safe_log_normalize(log_joint, log_a.unsqueeze(-2)).exp()
     mixed = predicted.components.mix(weights)  # (*B, j)
-    out = bank.update(mixed, z.unsqueeze(-2), sensor=sensor)
+    out = filter.bank.update(mixed, z.unsqueeze(-2), sensor=sensor)
     log_mode, _ = mode_posterior(out.log_likelihood, log_a)
     return ModeBelief(log_mode, out.belief)
 
@@ -392,7 +392,7 @@ def _smooth_two_filter(filter: MultipleModelFilter, trajectory: Trajectory, meas
         predicted = ModeBelief(backward.mode_log_probs, backward_predict(bank, backward.components, at, u))
         smoothed.append(two_filter_step(filter, filtered[k], predicted, prior_log[k + 1]))
         if k > 0:
-            backward = backward_imm_update(filter, filter.bank, predicted, z[k], prior_log[k],
+            backward = backward_imm_update(filter, predicted, z[k], prior_log[k],
                                            sensor=None if sensors is None else sensors[k])
     return _mode_trajectory(smoothed[::-1], trajectory)
 

@@ -75,6 +75,8 @@ def _check(imm, belief0, z) -> tuple:
     B, n, m = belief0.mode_log_probs.shape[0], kf.state_dim, kf.meas_dim
     if not isinstance(z, Tensor) or z.dim() != 3 or tuple(z.shape[1:]) != (B, m):
         raise ValueError(f"z: expected shape (T, {B}, {m}), got {tuple(getattr(z, 'shape', ()))}")
+    if z.dtype != belief0.mode_log_probs.dtype:
+        raise TypeError(f"z: dtype {z.dtype} differs from belief0's {belief0.mode_log_probs.dtype}")
     return kf, B, n, m
 
 

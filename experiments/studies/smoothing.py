@@ -90,7 +90,6 @@ def unit(ctx: StudyContext, *, scenario: str, name: str, start: int, stop: int) 
             "nees_sum": per_run(nees(est_s, truth).sum(1)), "hits_sum": hits, "sums": {},
             "runs": filtered["runs"], "seconds": seconds, "state_dim": filtered["state_dim"],
         }
-    out["label"] = _smoother_label(est)
     return out
 
 
@@ -169,7 +168,8 @@ def run(ctx: StudyContext) -> None:
         mine = parts[i * n:(i + 1) * n]
         ev_f = reduce_runs([p["filter"] for p in mine])
         f = ev_f.summary()
-        smoothers = [("smoother", mine[0]["label"])] + ([("kim", "Kim")] if "kim" in mine[0] else [])
+        est = _estimator(ctx, k, name, scenarios[k])
+        smoothers = [("smoother", _smoother_label(est))] + ([("kim", "Kim")] if est.multiple_model else [])
         for key, smoother in smoothers:
             ev_s = reduce_runs([p[key] for p in mine])
             s = ev_s.summary()

@@ -57,18 +57,20 @@ def machine_fingerprint() -> str:
     """
     import torch
 
-    from torchmm.linalg import psd_sqrt
-    from torchmm.models import ConstantVelocity
-
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # the kernels' rounding, not the thread split's
     try:
-        return _fingerprint(torch, psd_sqrt, ConstantVelocity)
+        return _fingerprint()
     finally:
         torch.set_num_threads(threads)
 
 
-def _fingerprint(torch, psd_sqrt, ConstantVelocity) -> str:
+def _fingerprint() -> str:
+    import torch
+
+    from torchmm.linalg import psd_sqrt
+    from torchmm.models import ConstantVelocity
+
     g = torch.Generator().manual_seed(1234)
     parts = [torch.randn(4099, generator=g, dtype=torch.float64), torch.randn(4099, generator=g, dtype=torch.float32),
              torch.rand(4099, generator=g, dtype=torch.float64),
