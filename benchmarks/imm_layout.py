@@ -3,14 +3,16 @@ axis last ("structure of arrays", one ``(M, runs)`` tensor per matrix entry, the
 in closed form), eager and under ``torch.compile``, against the NumPy SoA reference of
 ``imm_vs_filterpy.py`` and torchmm's public ``IMM(KalmanFilter(bank))`` (batch first).
 
-The hand-written SoA step here is for n = 2, m = 1: the bound of the route. Beside it,
-``torchmm.soa.filter`` is the same layout generic in n, m and M (an opt-in kernel of the library),
-eager and compiled. All estimates are checked equal (1e-9 relative). One thread each.
+The hand-written SoA step here is for n = 2, m = 1: the bound of the route. Beside it, torchmm's
+engine: its batch-first steps (``run_filter(..., fast_path=False)``) and its batch-last fast path
+(``torchmm/multimodel/batch_last.py``, generic in n, m and M, the default of ``run_filter``), eager
+and with ``compile=True``; all with ``record="estimate"``. All estimates are checked equal (1e-9
+relative). One thread each.
 
 Usage: ``python benchmarks/imm_layout.py [--runs 400 40000] [--steps 100] [--no-compile]``. Last
-line: ``soa_eager_vs_numpy_soa=... soa_compiled_vs_numpy_soa=... torchmm_vs_numpy_soa=...
-torchmm_soa_vs_numpy_soa=... torchmm_soa_compiled_vs_numpy_soa=...`` (at the largest size; > 1
-means faster than the NumPy SoA reference).
+line: ``soa_eager_vs_numpy_soa=... soa_compiled_vs_numpy_soa=... torchmm_batch_first_vs_numpy_soa=...
+torchmm_vs_numpy_soa=... torchmm_compiled_vs_numpy_soa=...`` (at the largest size; > 1 means faster
+than the NumPy SoA reference).
 """
 
 from __future__ import annotations
@@ -30,9 +32,9 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from imm_vs_filterpy import best_of, run_numpy_soa, run_torchmm, scenario  # noqa: E402
+from imm_vs_filterpy import best_of, run_numpy_soa, scenario  # noqa: E402
 
-from torchmm import IMM, KalmanFilter, soa  # noqa: E402
+from torchmm import IMM, KalmanFilter, run_filter  # noqa: E402
 
 
 def soa_step(F, b, Q, H, R, Pi):
@@ -98,13 +100,13 @@ def main(argv=None) -> None:
         step = soa_step(F, b, Q, sensor.H, sensor.R, transition)
         with torch.no_grad():
             t_np, est_np = best_of(lambda: run_numpy_soa(*numpy_args), args.repeats)
-            t_mm, est_mm = best_of(lambda: run_torchmm(motion, sensor, prior, transition, z), args.repeats)
             t_eager, est_eager = best_of(lambda: run_soa(step, prior.mean, prior.cov, M, z), args.repeats)
             imm = IMM(KalmanFilter(motion, sensor), transition)
             belief0 = imm.initial_belief(prior.expand(runs))
-            generic = lambda **kw: soa.filter(imm, belief0, z, output="estimate", **kw).belief.mean  # noqa: E731
-            results = {"torchmm": (t_mm, est_mm), "torch SoA eager": (t_eager, est_eager),
-                       "torchmm.soa eager": best_of(generic, args.repeats)}
+            engine = lambda **kw: run_filter(imm, belief0, z, record="estimate", **kw).belief.mean  # noqa: E731
+            results = {"torch SoA eager": (t_eager, est_eager),
+                       "torchmm batch-first": best_of(lambda: engine(fast_path=False), args.repeats),
+                       "torchmm": best_of(engine, args.repeats)}
             line = ""
             if not args.no_compile:
                 compiled = torch.compile(step, dynamic=False)
@@ -114,9 +116,9 @@ def main(argv=None) -> None:
                 results["torch SoA compiled"] = best_of(lambda: run_soa(compiled, prior.mean, prior.cov, M, z),
                                                         args.repeats)
                 tic = time.perf_counter()
-                generic(compile=True)
-                line += f" (torchmm.soa compile {time.perf_counter() - tic:.1f} s)"
-                results["torchmm.soa compiled"] = best_of(lambda: generic(compile=True), args.repeats)
+                engine(compile=True)
+                line += f" (torchmm compile {time.perf_counter() - tic:.1f} s)"
+                results["torchmm compiled"] = best_of(lambda: engine(compile=True), args.repeats)
         scale = 1 + np.abs(est_np).max()
         for name, (t, est) in results.items():
             diff = np.abs(est.numpy() - est_np).max() / scale
@@ -128,10 +130,9 @@ def main(argv=None) -> None:
         ratios = {name: t_np / t for name, (t, _) in results.items()}
     print(f"soa_eager_vs_numpy_soa={ratios['torch SoA eager']:.2f} "
           f"soa_compiled_vs_numpy_soa={ratios.get('torch SoA compiled', float('nan')):.2f} "
+          f"torchmm_batch_first_vs_numpy_soa={ratios['torchmm batch-first']:.2f} "
           f"torchmm_vs_numpy_soa={ratios['torchmm']:.2f} "
-          f"torchmm_soa_vs_numpy_soa={ratios['torchmm.soa eager']:.2f} "
-          f"torchmm_soa_compiled_vs_numpy_soa={ratios.get('torchmm.soa compiled', float('nan')):.2f}")
-
+          f"torchmm_compiled_vs_numpy_soa={ratios.get('torchmm compiled', float('nan')):.2f}")
 
 if __name__ == "__main__":
     main()

@@ -3,7 +3,8 @@
 The paper-000 IMM (3 acceleration modes, n = 2, m = 1, transition (38)), ``--runs`` Monte Carlo
 runs x ``--steps`` steps in float64, on the same simulated data in this one process:
 
-* torchmm: ``IMM(KalmanFilter(bank))`` over all runs at once (``run_filter``);
+* torchmm: ``IMM(KalmanFilter(bank))`` over all runs at once (``run_filter(..., record="estimate")``,
+  which takes the engine's batch-last fast path), eager (the default) and with ``compile=True``;
 * FilterPy: one ``IMMEstimator`` per run, looping over runs (its intended use);
 * NumPy: the same IMM vectorised by hand over runs and modes (batch axis first, generic
   matmul / ``np.linalg.solve``, like torchmm's public layout);
@@ -14,10 +15,11 @@ runs x ``--steps`` steps in float64, on the same simulated data in this one proc
 
 All four must give the same estimates (checked to 1e-9). torchmm and the NumPy versions are timed as
 the best of ``--repeats`` runs, FilterPy once; one thread each (``--threads``). The last line is
-``speedup_vs_filterpy=<x> speedup_vs_numpy=<y> speedup_vs_numpy_soa=<z>`` (wall-time ratios, > 1
-means torchmm is faster).
+``speedup_vs_filterpy=<x> speedup_vs_numpy=<y> speedup_vs_numpy_soa=<z> compiled_vs_numpy_soa=<c>
+compiled_vs_filterpy=<f> compile_s=<s>`` (wall-time ratios, > 1 means torchmm is faster; the first
+three for eager torchmm; ``compile_s`` is the first compiled call, compile included).
 
-Usage: ``python benchmarks/imm_vs_filterpy.py [--runs 400] [--steps 100] [--filterpy-runs N]``
+Usage: ``python benchmarks/imm_vs_filterpy.py [--runs 400] [--steps 100] [--filterpy-runs N] [--no-compile]``
 (``--filterpy-runs`` times FilterPy on the first N runs only and scales its time by runs / N).
 """
 
@@ -54,12 +56,11 @@ def scenario(runs: int, steps: int, seed: int):
     return motion, sensor, prior, transition, z
 
 
-def run_torchmm(motion, sensor, prior, transition, z):
+def run_torchmm(motion, sensor, prior, transition, z, compile: bool = False):
     imm = IMM(KalmanFilter(motion, sensor), transition)
     belief0 = imm.initial_belief(prior.expand(z.shape[1]))
-    record = lambda out: out._replace(prior=None, innovation=None, innovation_cov=None, extras=None)  # noqa: E731
     with torch.no_grad():
-        traj = run_filter(imm, belief0, z, record=record)
+        traj = run_filter(imm, belief0, z, record="estimate", compile=compile)
         return traj.estimate().mean
 
 
@@ -189,6 +190,7 @@ def main() -> None:
     parser.add_argument("--filterpy-runs", type=int, default=None, help="time FilterPy on this many runs only")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=1, help="torch threads (NumPy: one, set before import)")
+    parser.add_argument("--no-compile", action="store_true", help="skip torchmm with compile=True")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
 
@@ -204,6 +206,13 @@ def main() -> None:
 
     run_torchmm(motion, sensor, prior, transition, z[:2])  # warm-up (lazy inits)
     t_torch, est_torch = best_of(lambda: run_torchmm(motion, sensor, prior, transition, z), args.repeats)
+    t_compiled = compile_s = float("nan")
+    if not args.no_compile:
+        tic = time.perf_counter()
+        est_compiled = run_torchmm(motion, sensor, prior, transition, z, compile=True)  # compiles (cached on disk)
+        compile_s = time.perf_counter() - tic
+        t_compiled, est_compiled = best_of(lambda: run_torchmm(motion, sensor, prior, transition, z, compile=True),
+                                           args.repeats)
     t_numpy, est_numpy = best_of(lambda: run_numpy(F, b, Q, H, Rm, Pi, x0, P0, mu0, zs), args.repeats)
     t_soa, est_soa = best_of(lambda: run_numpy_soa(F, b, Q, H, Rm, Pi, x0, P0, mu0, zs), args.repeats)
     fp_runs = min(args.filterpy_runs or args.runs, args.runs)
@@ -217,10 +226,12 @@ def main() -> None:
     err_soa = np.abs(est_torch.numpy() - est_soa).max() / scale
     print(f"max relative difference: torchmm vs FilterPy {err_fp:.2e}, torchmm vs NumPy {err_np:.2e}, "
           f"torchmm vs NumPy SoA {err_soa:.2e}")
-    if err_fp > 1e-9 or err_np > 1e-9 or err_soa > 1e-9:
+    err_compiled = 0.0 if args.no_compile else np.abs(est_compiled.numpy() - est_soa).max() / scale
+    if err_fp > 1e-9 or err_np > 1e-9 or err_soa > 1e-9 or err_compiled > 1e-9:
         raise SystemExit("estimates disagree: the comparison is void")
     note = "" if fp_runs == args.runs else f" (measured on {fp_runs} runs, scaled)"
-    print(f"torchmm  {t_torch:8.4f} s")
+    print(f"torchmm  {t_torch:8.4f} s (eager, the default)")
+    print(f"torchmm compiled {t_compiled:8.4f} s (compile=True; the first call took {compile_s:.1f} s)")
     print(f"NumPy    {t_numpy:8.4f} s")
     print(f"NumPy SoA {t_soa:7.4f} s")
     print(f"FilterPy {t_fp:8.4f} s{note}")
@@ -228,7 +239,8 @@ def main() -> None:
     print(f"run-steps/s: torchmm {steps / t_torch:.3g}, NumPy {steps / t_numpy:.3g}, NumPy SoA {steps / t_soa:.3g}, "
           f"FilterPy {steps / t_fp:.3g}")
     print(f"speedup_vs_filterpy={t_fp / t_torch:.1f} speedup_vs_numpy={t_numpy / t_torch:.2f} "
-          f"speedup_vs_numpy_soa={t_soa / t_torch:.2f}")
+          f"speedup_vs_numpy_soa={t_soa / t_torch:.2f} compiled_vs_numpy_soa={t_soa / t_compiled:.2f} "
+          f"compiled_vs_filterpy={t_fp / t_compiled:.1f} compile_s={compile_s:.1f}")
 
 
 if __name__ == "__main__":

@@ -17,7 +17,7 @@ LAYERS = [
     {"models"},
     {"filters", "simulate"},
     {"run", "multimodel"},
-    {"smooth", "parallel", "soa"},  # the backward passes, the time-parallel scans, the batch-last IMM kernel
+    {"smooth", "parallel"},  # the backward passes, the time-parallel scans
     {"fusion", "learn", "metrics", "analysis"},
     {"torchmm"},  # the top-level namespace
 ]

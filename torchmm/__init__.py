@@ -79,7 +79,7 @@ from torchmm.multimodel.mevsmm import (
     MinimumEntropyVSMM,
     ModelSetBelief,
 )
-from torchmm import analysis, fusion, learn, metrics, parallel, simulate, soa  # subpackages, reachable as attributes
+from torchmm import analysis, fusion, learn, metrics, parallel, simulate  # subpackages, reachable as attributes
 
 __version__ = "0.1.0"
 
@@ -124,7 +124,6 @@ __all__ = [
     "learn",
     "metrics",
     "parallel",
-    "soa",
     "simulate",
     "GPB1",
     "GPB2",

@@ -63,8 +63,26 @@ def stack_outputs(outputs: list) -> Any:
             leaves.append(None)
             continue
         shape = broadcast_shape(*(t.shape for t in column))
-        leaves.append(torch.stack([t.expand(shape) for t in column]))
+        leaves.append(_stack_in_memory_order([t.expand(shape) for t in column]))
     return pytree.tree_unflatten(leaves, spec)
+
+
+def _stack_in_memory_order(tensors: list) -> Tensor:
+    """``torch.stack(tensors)``, copied in the tensors' own memory order when they are equally
+    permuted dense views (a batch-last kernel's batch-first outputs): the same values and shape, a
+    contiguous copy instead of a transposing gather, and a result that is a permuted view."""
+    first = tensors[0]
+    strides = first.stride()
+    if first.is_contiguous() or first.dim() < 2 or any(t.stride() != strides for t in tensors[1:]):
+        return torch.stack(tensors)
+    order = sorted(range(first.dim()), key=lambda i: -strides[i])
+    if not first.permute(order).is_contiguous():
+        return torch.stack(tensors)
+    stacked = torch.stack([t.permute(order) for t in tensors])
+    inverse = [0] * first.dim()
+    for position, axis in enumerate(order):
+        inverse[axis] = position + 1
+    return stacked.permute(0, *inverse)
 
 
 def run_filter(
@@ -77,8 +95,10 @@ def run_filter(
     sensors: Any = None,
     generator: torch.Generator | None = None,
     update_first: bool = False,
-    record: Callable[[StepOutput], StepOutput] | None = None,
+    record: Callable[[StepOutput], StepOutput] | str | None = None,
     progress: bool | str = False,
+    fast_path: bool | None = None,
+    compile: bool = False,  # noqa: A002
 ) -> Trajectory:
     """Run ``filter.step`` over a time-major measurement sequence.
 
@@ -101,7 +121,16 @@ def run_filter(
             only (no prediction).
         record: maps each :class:`StepOutput` to what is kept (e.g.
             ``lambda o: o._replace(prior=None)`` to save memory); default keeps everything.
+            ``"estimate"``: keep only the point estimate (``belief.estimate()``, the IMM's combined
+            output) and the log-likelihood; the fast path then computes the estimate inside its step.
         progress: show a tqdm bar (a string is used as its description).
+        fast_path: run the filter's whole-run kernel (:meth:`~torchmm.filters.Filter.fast_steps`;
+            e.g. the IMM over linear Kalman modes in a batch-last layout, docs/performance.md), which
+            returns what the steps return, to rounding. None (default): where the filter has one and
+            the run has no ``controls``, ``motions``, ``sensors`` or ``update_first``; True: always
+            (a ``ValueError`` naming ``fast_path`` says why not where it cannot); False: never.
+        compile: run the fast path's step under ``torch.compile`` (seconds of compiling, cached on
+            disk, then fused kernels: docs/performance.md says when it pays); needs a fast path.
 
     Returns:
         :class:`Trajectory` with every kept field stacked on a leading time axis.
@@ -155,6 +184,28 @@ def run_filter(
         if given is not None and not _accepts(filter.step, keyword):
             raise TypeError(f"{name}: {type(filter).__name__}.step takes no per-step {keyword} (its models are "
                             "fixed by its construction, e.g. the source sensor of a multi-rate estimator)")
+    estimate_only = isinstance(record, str)
+    if estimate_only:
+        if record != "estimate":
+            raise ValueError(f"record: expected a callable, None or 'estimate', got {record!r}")
+        record = keep_estimate
+    elif record is not None and not callable(record):
+        raise TypeError(f"record: expected a callable, None or 'estimate', got {type(record).__name__}")
+    if fast_path not in (None, True, False):
+        raise TypeError(f"fast_path: expected None, True or False, got {fast_path!r}")
+    fast = None
+    if fast_path is not False:
+        plain = controls is None and motions is None and sensors is None and not update_first
+        fast = (filter.fast_steps(belief0, measurements, compile=bool(compile)) if plain
+                else "controls, per-step models or update_first")
+        if isinstance(fast, str):
+            if fast_path:
+                raise ValueError(f"fast_path: no fast path for this run ({fast}); use fast_path=None or False")
+            if compile:
+                raise ValueError(f"compile: compiles the fast path, which this run has not ({fast})")
+            fast = None
+    elif compile:
+        raise ValueError("compile: compiles the fast path, and fast_path=False turns it off")
     iterator = range(steps)
     if progress:
         from tqdm.auto import tqdm
@@ -162,6 +213,18 @@ def run_filter(
         iterator = tqdm(iterator, desc=progress if isinstance(progress, str) else None, leave=False)
     belief = belief0
     kept = []
+    if fast is not None:
+        state = fast.state
+        if estimate_only and fast.omit is not None:
+            fast.omit(frozenset(StepOutput._fields) - {"belief", "log_likelihood"}, estimate=True)
+        for k in iterator:
+            state, out = fast.step(state, measurements[k])
+            kept.append(out if record is None else record(out))
+            if (k == 0 and not estimate_only and record is not None and fast.omit is not None
+                    and isinstance(kept[0], StepOutput)):  # what record drops need not be built
+                fast.omit(frozenset(f for f in StepOutput._fields
+                                    if getattr(kept[0], f) is None and getattr(out, f) is not None))
+        iterator = ()
     for k in iterator:
         z = pytree.tree_map(lambda t: t[k], measurements)
         inputs = {}
@@ -180,6 +243,11 @@ def run_filter(
     stacked = Trajectory(*stack_outputs(kept))
     _report_flags(stacked.extras)
     return stacked
+
+
+def keep_estimate(out: StepOutput) -> StepOutput:
+    """``record="estimate"`` of :func:`run_filter`: the point estimate and the log-likelihood only."""
+    return StepOutput(out.belief.estimate(), None, out.log_likelihood)
 
 
 def _accepts(fn: Callable, keyword: str) -> bool:

@@ -26,9 +26,10 @@ import torch
 from torch import Tensor
 
 from torchmm.beliefs import Belief, ModeBelief
-from torchmm.filters.base import Filter, StepOutput
+from torchmm.filters.base import FastSteps, Filter, StepOutput
 from torchmm.linalg import any_observed
-from torchmm.multimodel.bank import make_bank
+from torchmm.multimodel.bank import VectorizedBank, make_bank
+from torchmm.multimodel.batch_last import BatchLastIMM, why_not
 from torchmm.models.transition import as_transition
 from torchmm.validation import (
     check_filter_dtype,
@@ -337,6 +338,22 @@ class IMM(MultipleModelFilter):
     """
 
     default_interaction = MomentMixing
+
+    def fast_steps(self, belief0, measurements, *, compile: bool = False) -> FastSteps | str:  # noqa: A002
+        """The batch-last kernel over linear Kalman modes (``torchmm/multimodel/batch_last.py``,
+        docs/performance.md) for :func:`~torchmm.run_filter`, or the reason it does not apply."""
+        if type(self) is not IMM or type(self.interaction) is not MomentMixing:
+            return "only IMM itself, with moment mixing, has a fast path"
+        if type(self.bank) is not VectorizedBank:
+            return "the bank is not one filter with mode-bank models"
+        reason = why_not(self, belief0, measurements)
+        if reason is not None:
+            return reason
+        like = belief0.mode_log_probs
+        kernel = BatchLastIMM(self, like.dim() - 1, like, safe_log_normalize)
+        if compile:
+            kernel.compile()
+        return FastSteps(kernel.to_batch_last(belief0), lambda state, z: kernel.step(*state, z), kernel.omit)
 
 
 class StaticMM(MultipleModelFilter):

@@ -1,0 +1,245 @@
+"""The engine's fast path (torchmm/multimodel/batch_last.py): run_filter's IMM over linear Kalman
+modes in the batch-last layout returns what the batch-first steps return - every Trajectory field,
+for random banks of every small size, per-mode and shared parameters, exact zeros and ones,
+missing components, batch shapes (), (B,) and (B1, B2), float32, gradients, record="estimate",
+compiled - and it is taken only where it applies."""
+
+from __future__ import annotations
+
+import itertools
+import logging
+
+import pytest
+import torch
+import torch.utils._pytree as pytree
+
+from torchmm import (
+    GPB1,
+    IMM,
+    ConstantVelocity,
+    GaussianBelief,
+    KalmanFilter,
+    LinearMeasurement,
+    LinearMotion,
+    PositionMeasurement,
+    run_filter,
+)
+from torchmm.filters import ExtendedKalmanFilter
+
+D = torch.float64
+
+
+def _random_imm(n, m, M, batch, steps, seed, dtype=D, shared=False):
+    """A random IMM over linear Kalman modes, its initial belief and measurements with 20 % of the
+    components missing. ``shared``: F, H and R the same in every mode (no mode axis), with exact
+    zeros and ones in F and H (the kernel's scalar and skipped coefficients)."""
+    g = torch.Generator().manual_seed(seed)
+    r = lambda *s: torch.randn(*s, generator=g, dtype=D)  # noqa: E731
+    A = r(M, n, n)
+    Q = 0.2 * A @ A.mT + 0.05 * torch.eye(n, dtype=D)
+    offset = 0.5 * r(M, n)
+    if shared:
+        F = torch.eye(n, dtype=D) + torch.triu(torch.full((n, n), 0.5, dtype=D), 1)  # CV-like: 0, 1, 0.5
+        H = torch.zeros(m, n, dtype=D)
+        H[torch.arange(m), torch.arange(m)] = 1.0
+        R = torch.diag(0.5 + torch.rand(m, generator=g, dtype=D))
+    else:
+        F = torch.eye(n, dtype=D) + 0.3 * r(M, n, n)
+        H = r(M, m, n)
+        R = torch.diag_embed(0.5 + torch.rand(M, m, generator=g, dtype=D))
+    stay = 0.6 + 0.3 * torch.rand(M, generator=g, dtype=D)
+    P = (1 - stay).unsqueeze(-1) / max(M - 1, 1) * (1 - torch.eye(M, dtype=D)) + torch.diag(stay) if M > 1 \
+        else torch.ones(1, 1, dtype=D)
+    imm = IMM(KalmanFilter(LinearMotion(F.to(dtype), Q.to(dtype), offset.to(dtype)),
+                           LinearMeasurement(H.to(dtype), R.to(dtype))), P.to(dtype))
+    B0 = r(*batch, n, n)
+    prior = GaussianBelief(r(*batch, n).to(dtype), (B0 @ B0.mT + torch.eye(n, dtype=D)).to(dtype))
+    mode_probs = torch.softmax(r(M), 0).to(dtype)
+    z = (2 * r(steps, *batch, m)).to(dtype)
+    z[torch.rand(steps, *batch, m, generator=g) < 0.2] = float("nan")  # missing components, some whole steps
+    return imm, imm.initial_belief(prior, mode_probs), z
+
+
+def _fields(traj):
+    return [traj.belief, traj.prior, traj.log_likelihood, traj.innovation, traj.innovation_cov, traj.extras]
+
+
+def assert_same_trajectory(got, want, tol=1e-10):
+    """Every field of two trajectories: the same structure, shapes and dtypes, equal values (NaN
+    where NaN: the innovations of missing components), equal flags."""
+    got_leaves, got_spec = pytree.tree_flatten(_fields(got))
+    want_leaves, want_spec = pytree.tree_flatten(_fields(want))
+    assert got_spec == want_spec
+    for a, b in zip(got_leaves, want_leaves):
+        if a is None or b is None:
+            assert a is None and b is None
+            continue
+        assert a.shape == b.shape and a.dtype == b.dtype
+        if a.dtype == torch.bool:
+            assert torch.equal(a, b)
+        else:
+            torch.testing.assert_close(a, b, rtol=tol, atol=tol, equal_nan=True)
+
+
+SIZES = [(n, m, M) for n, m, M in itertools.product([1, 2, 3, 4], [1, 2, 3], [1, 2, 3]) if m <= n]
+
+
+@pytest.mark.parametrize("n,m,M", SIZES)
+def test_every_field_equals_the_batch_first_steps(n, m, M):
+    imm, belief0, z = _random_imm(n, m, M, (7,), steps=12, seed=10 * n + 3 * m + M)
+    assert run_filter(imm, belief0, z, fast_path=True) is not None  # the fast path applies
+    assert_same_trajectory(run_filter(imm, belief0, z), run_filter(imm, belief0, z, fast_path=False))
+
+
+@pytest.mark.parametrize("batch", [(), (5,), (2, 3)])
+@pytest.mark.parametrize("shared", [False, True])
+def test_batch_shapes_and_structured_models(batch, shared):
+    imm, belief0, z = _random_imm(3, 2, 3, batch, steps=10, seed=len(batch) + 7 * shared, shared=shared)
+    assert_same_trajectory(run_filter(imm, belief0, z, fast_path=True), run_filter(imm, belief0, z, fast_path=False))
+
+
+def test_the_default_takes_it_and_record_sees_the_same_outputs():
+    imm, belief0, z = _random_imm(2, 1, 3, (6,), steps=9, seed=3)
+    seen = []
+
+    def record(out):  # drops the prior and the extras: the kernel stops building them after step 0
+        seen.append(out)
+        return out._replace(prior=None, extras=None)
+
+    got = run_filter(imm, belief0, z, record=record)
+    want = run_filter(imm, belief0, z, record=record, fast_path=False)
+    assert_same_trajectory(got, want)
+    assert got.prior is None and got.extras is None
+    assert seen[0].belief.components.mean.stride()[-1] != 1  # the fast path ran: batch-last memory
+
+
+def test_record_estimate():
+    imm, belief0, z = _random_imm(3, 2, 3, (8,), steps=10, seed=4)
+    want = run_filter(imm, belief0, z, fast_path=False)
+    for fast in (True, False):
+        got = run_filter(imm, belief0, z, record="estimate", fast_path=fast)
+        assert isinstance(got.belief, GaussianBelief) and got.prior is None and got.extras is None
+        torch.testing.assert_close(got.belief.mean, want.estimate().mean, rtol=1e-10, atol=1e-10)
+        torch.testing.assert_close(got.belief.cov, want.estimate().cov, rtol=1e-10, atol=1e-10)
+        torch.testing.assert_close(got.log_likelihood, want.log_likelihood, rtol=1e-10, atol=1e-10)
+    with pytest.raises(ValueError, match="record: expected a callable, None or 'estimate'"):
+        run_filter(imm, belief0, z, record="means")
+
+
+def test_float32():
+    imm64, b64, z64 = _random_imm(2, 1, 3, (9,), steps=15, seed=5)
+    imm32, b32, z32 = _random_imm(2, 1, 3, (9,), steps=15, seed=5, dtype=torch.float32)
+    got = run_filter(imm32, b32, z32, fast_path=True)
+    assert got.estimate().mean.dtype == torch.float32
+    torch.testing.assert_close(got.estimate().mean.double(), run_filter(imm64, b64, z64).estimate().mean,
+                               rtol=1e-4, atol=1e-4)
+    assert_same_trajectory(got, run_filter(imm32, b32, z32, fast_path=False), tol=2e-4)
+
+
+def test_missing_steps_have_zero_log_likelihood_and_keep_the_prediction():
+    imm, belief0, z = _random_imm(2, 2, 2, (4,), steps=6, seed=6)
+    z[2] = float("nan")  # no datum at step 2
+    got = run_filter(imm, belief0, z, fast_path=True)
+    assert torch.equal(got.log_likelihood[2], torch.zeros(4, dtype=D))
+    torch.testing.assert_close(got.belief.components.mean[2], got.prior.components.mean[2], rtol=0, atol=0)
+
+
+def test_singular_innovation_is_flagged_as_the_engine_does(caplog):
+    motion = LinearMotion(torch.eye(2, dtype=D), torch.zeros(2, 2, dtype=D))
+    sensor = LinearMeasurement(torch.tensor([[1.0, 0.0]], dtype=D), torch.zeros(1, 1, dtype=D))
+    imm = IMM(KalmanFilter(motion, sensor), torch.full((2, 2), 0.5, dtype=D))
+    belief0 = imm.initial_belief(GaussianBelief(torch.zeros(3, 2, dtype=D), torch.diag(torch.tensor([0.0, 1.0],
+                                                                                                    dtype=D))))
+    z = torch.ones(2, 3, 1, dtype=D)
+    with caplog.at_level(logging.WARNING, logger="torchmm"):
+        got = run_filter(imm, belief0, z, fast_path=True)
+    want = run_filter(imm, belief0, z, fast_path=False)
+    assert bool(got.extras["modes"]["singular"].all())
+    assert_same_trajectory(got, want)
+    assert "not numerically positive definite" in caplog.text
+
+
+def test_gradients_equal_the_batch_first_steps():
+    def loss(fast, F, q):
+        kf = KalmanFilter(LinearMotion(F, q * torch.eye(2, dtype=D)), PositionMeasurement(2, [0], 1.0, dtype=D))
+        imm = IMM(kf, torch.tensor([[0.9, 0.1], [0.2, 0.8]], dtype=D))
+        belief0 = imm.initial_belief(GaussianBelief(torch.zeros(5, 2, dtype=D), torch.eye(2, dtype=D)))
+        z = torch.linspace(-1, 2, 40, dtype=D).reshape(8, 5, 1)
+        return -run_filter(imm, belief0, z, fast_path=fast).total_log_likelihood().sum()
+
+    grads = []
+    for fast in (True, False):
+        F = torch.tensor([[[1.0, 1.0], [0.0, 1.0]], [[1.0, 0.0], [0.0, 0.5]]], dtype=D, requires_grad=True)
+        q = torch.tensor(0.3, dtype=D, requires_grad=True)
+        grads.append(torch.autograd.grad(loss(fast, F, q), (F, q)))
+    for a, b in zip(*grads):  # the zero entries of F keep their gradients (no skipped terms under autograd)
+        assert bool(a.ne(0).any())
+        torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-12)
+
+
+def test_compiled_equals_eager():
+    imm, belief0, z = _random_imm(2, 1, 3, (6,), steps=8, seed=8)
+    got = run_filter(imm, belief0, z, compile=True)
+    assert_same_trajectory(got, run_filter(imm, belief0, z, fast_path=False), tol=1e-9)
+    est = run_filter(imm, belief0, z, compile=True, record="estimate")
+    torch.testing.assert_close(est.belief.mean, got.estimate().mean, rtol=1e-9, atol=1e-9)
+
+
+def _list_bank(imm):
+    """A list bank of two Kalman filters with different (non-stackable) options: not the vectorised bank."""
+    kf = imm.bank.filter
+    return [KalmanFilter(LinearMotion(kf.motion.F[j], kf.motion.Q[j], kf.motion.offset[j]),
+                         LinearMeasurement(kf.measurement.H[j], kf.measurement.R[j]), joseph=bool(j))
+            for j in range(2)]
+
+
+class _MyIMM(IMM):
+    """A subclass may override any step: it runs the batch-first steps."""
+
+
+class _Shifted(LinearMotion):
+    def forward(self, x, *, u=None):  # not F x + b: the fast path must not take it
+        return super().forward(x, u=u) + 1.0
+
+
+def test_taken_only_where_it_applies():
+    imm, belief0, z = _random_imm(2, 2, 2, (3,), steps=4, seed=1)
+    kf = imm.bank.filter
+    full = kf.measurement.R.clone()
+    full[:, 0, 1] = full[:, 1, 0] = 0.1
+    cases = {
+        "R is not diagonal": IMM(KalmanFilter(kf.motion, LinearMeasurement(kf.measurement.H, full)),
+                                 imm.transition.matrix()),
+        "GPB1 has no fast path": GPB1(kf, imm.transition.matrix()),
+        "only IMM itself": _MyIMM(kf, imm.transition.matrix()),
+        "not one filter with mode-bank models": IMM(_list_bank(imm), imm.transition.matrix()),
+        "the Joseph form": IMM(KalmanFilter(kf.motion, kf.measurement, joseph=True), imm.transition.matrix()),
+        "not a KalmanFilter": IMM(ExtendedKalmanFilter(kf.motion, kf.measurement), imm.transition.matrix()),
+        "not a LinearMotion": IMM(KalmanFilter(_Shifted(kf.motion.F, kf.motion.Q, kf.motion.offset), kf.measurement),
+                                  imm.transition.matrix()),
+    }
+    for reason, filt in cases.items():
+        with pytest.raises(ValueError, match=f"fast_path: no fast path for this run .*{reason}"):
+            run_filter(filt, belief0, z, fast_path=True)
+        with pytest.raises(ValueError, match="compile: compiles the fast path"):
+            run_filter(filt, belief0, z, compile=True)
+        assert_same_trajectory(run_filter(filt, belief0, z), run_filter(filt, belief0, z, fast_path=False))
+    with pytest.raises(ValueError, match="fast_path: no fast path .*controls, per-step models or update_first"):
+        run_filter(imm, belief0, z, fast_path=True, update_first=True)
+    with pytest.raises(ValueError, match="measurements' dtype"):
+        run_filter(imm, belief0, z.float(), fast_path=True)
+    with pytest.raises(ValueError, match="compile: compiles the fast path, and fast_path=False"):
+        run_filter(imm, belief0, z, fast_path=False, compile=True)
+    with pytest.raises(TypeError, match="fast_path: expected None, True or False"):
+        run_filter(imm, belief0, z, fast_path="yes")
+
+
+def test_constant_velocity_bank_of_the_benchmarks():
+    """Paper 000's IMM (ConstantVelocity acceleration modes: shared F, per-mode offsets)."""
+    motion = ConstantVelocity(1, q=1.0, acceleration=torch.tensor([[0.25], [0.0], [-0.25]], dtype=D), dtype=D)
+    imm = IMM(KalmanFilter(motion, PositionMeasurement(2, [0], torch.tensor(100.0, dtype=D), dtype=D)),
+              torch.tensor([[0.5, 0.25, 0.25], [0.25, 0.5, 0.25], [0.25, 0.25, 0.5]], dtype=D))
+    belief0 = imm.initial_belief(GaussianBelief(torch.tensor([10.0, 10.0], dtype=D),
+                                                torch.tensor([[100.0, 1.0], [1.0, 100.0]], dtype=D)).expand(11))
+    z = 10 * torch.randn(40, 11, 1, generator=torch.Generator().manual_seed(0), dtype=D)
+    assert_same_trajectory(run_filter(imm, belief0, z, fast_path=True), run_filter(imm, belief0, z, fast_path=False))

@@ -1,0 +1,352 @@
+r"""The IMM over linear Kalman modes in the batch-last layout: the engine's fast path (issue 17).
+
+:func:`~torchmm.run_filter` runs an :class:`~torchmm.IMM` over one :class:`~torchmm.KalmanFilter`
+with mode-bank linear models through this kernel (docs/performance.md). The public layout stays
+batch-first; inside, the state is kept with the batch axes *last*:
+
+- mode means ``X (n, M, *B)``, covariances ``P (n, n, M, *B)``, mode log-probabilities ``(M, *B)``;
+- model parameters as ``(n, n, M, 1, ...)`` (a mode bank) or ``(n, n, 1, 1, ...)``.
+
+Every small matrix product (``F C F^T``, ``P h``, the mixing sums) is then a broadcast elementwise
+product over the leading small axes and a sum over one of them: one contiguous pass over all runs
+and modes, where the batch-first engine calls ``bmm`` on ``2 x 2`` matrices and broadcasts over a
+trailing ``(n, n)``. The step computes what :meth:`IMM.step` does, in the same order:
+
+- mixing ``mu_{i|j} = pi_ij mu_i / c_j`` and the moment-matched start beliefs (centred spread);
+- each mode's prediction ``F_j m + b_j``, ``F_j C F_j^T + Q_j``;
+- the update one measurement component after the other, exact for a diagonal ``R`` (the only case
+  taken; anything else runs the batch-first engine): ``s = h P h^T + r``, ``K = P h^T / s``,
+  ``P+ = P - K (P h^T)^T`` symmetrised, ``s`` clamped at the smallest normal number and flagged as
+  in :func:`torchmm.linalg.condition`. A non-finite component is skipped (missing data, exact);
+- the mode posterior in log space (:func:`~torchmm.multimodel.imm.mode_posterior`).
+
+Every :class:`~torchmm.filters.StepOutput` field (prior, innovations, ``extras``: ``mixed``,
+``mode_log_likelihood``, ``modes.singular``) is returned as a batch-first *view* of the batch-last
+tensors, so the outputs equal the batch-first engine's to rounding (tests/multimodel/test_batch_last.py)
+and cost nothing until :func:`~torchmm.run.stack_outputs` stacks what ``record`` keeps.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from torchmm.beliefs import GaussianBelief, ModeBelief
+from torchmm.filters.base import StepOutput
+from torchmm.filters.kalman import KalmanFilter
+from torchmm.models.linear import LinearMeasurement, LinearMotion
+
+__all__ = ["BatchLastIMM", "why_not"]
+
+_LOG_2PI = math.log(2 * math.pi)
+
+
+def why_not(imm, belief0, measurements) -> str | None:
+    """Why the IMM ``imm`` (moment mixing, a vectorised bank: checked by the caller) cannot run on
+    this kernel (a short reason), or None if it can.
+
+    Shapes and types only, plus one look at ``R``'s off-diagonal values (the entry point's value
+    check, once per run). The reasons: a bank filter other than one :class:`~torchmm.KalmanFilter` with :class:`~torchmm.LinearMotion` (no control input) and
+    :class:`~torchmm.LinearMeasurement` models whose parameter batch is ``()`` or ``(M,)``; the Joseph
+    form; a non-diagonal ``R``; a belief that is not the ``ModeBelief`` of Gaussians of
+    ``imm.initial_belief``; measurements that are not one tensor ``(T, *B, m)`` of the belief's dtype.
+    """
+    kf = imm.bank.filter
+    if type(kf) is not KalmanFilter:
+        return f"the bank's filter is a {type(kf).__name__}, not a KalmanFilter"
+    if not _plain(kf.motion, LinearMotion, ("forward", "noise_cov", "jacobian")) or kf.motion.input_matrix is not None:
+        return "the motion is not a LinearMotion (its own forward and noise) without a control input"
+    if not _plain(kf.measurement, LinearMeasurement, ("forward", "noise_cov", "jacobian")):
+        return "the measurement is not a LinearMeasurement (its own forward and noise)"
+    if kf.joseph:
+        return "the Joseph form"
+    M = imm.num_modes
+    if any(tuple(s) not in {(), (1,), (M,)} for s in (kf.motion.param_batch_shape, kf.measurement.param_batch_shape)):
+        return "model parameters batched over more than the modes"
+    if not isinstance(belief0, ModeBelief) or type(belief0.components) is not GaussianBelief:
+        return "belief0 is not a ModeBelief of Gaussians"
+    if not isinstance(measurements, Tensor) or not measurements.is_floating_point():
+        return "the measurements are not one floating-point tensor"
+    batch = belief0.mode_log_probs.shape[:-1]
+    m = kf.meas_dim
+    if measurements.dim() != len(batch) + 2 or measurements.shape[1:] != (*batch, m):
+        return "the measurements' batch differs from belief0's"
+    if measurements.dtype != belief0.mode_log_probs.dtype:
+        return "the measurements' dtype differs from belief0's"
+    if belief0.components.mean.shape[-2:] != (M, kf.state_dim):
+        return "belief0's components are not (*B, M, n)"
+    R = kf.measurement.R
+    if m > 1 and bool((R - torch.diag_embed(R.diagonal(dim1=-2, dim2=-1))).abs().amax() > 0):  # once per run
+        return "R is not diagonal"
+    return None
+
+
+def _plain(model, base: type, methods: tuple) -> bool:
+    """``model`` is a ``base`` whose ``methods`` are ``base``'s own (a subclass that only builds the
+    matrices, like ConstantVelocity, computes ``F x + b``; one overriding them may not)."""
+    return isinstance(model, base) and all(getattr(type(model), name) is getattr(base, name) for name in methods)
+
+
+class _Coef:
+    """One entry of a model matrix, classified once at the entry point: exactly zero or one in every
+    mode (its products are skipped: bit-identical, as ``x * 0 = 0`` and ``x * 1 = x`` are exact), one
+    number shared by the modes (a Python scalar), or a tensor ``(1 or M, 1, ...)``. Entries of
+    parameters that require gradients are always tensors (a skipped zero would lose its gradient)."""
+
+    __slots__ = ("kind", "value")
+
+    def __init__(self, kind: str, value=None):
+        self.kind, self.value = kind, value
+
+
+_ZERO, _ONE = _Coef("zero"), _Coef("one")
+
+
+def _coefficients(t: Tensor, M: int, event: int, batch_dims: int) -> list:
+    """A parameter ``([1 or M,] *event)`` as nested lists (``event`` deep) of :class:`_Coef`."""
+    if t.dim() == event:
+        t = t.unsqueeze(0)
+    front = t.movedim(0, -1)  # (*event, P)
+    front = front.reshape(*front.shape, *([1] * batch_dims))  # (*event, P, 1...)
+    traced = t.requires_grad and torch.is_grad_enabled()
+    if not traced:
+        values = t.detach().cpu()  # one host read, at the entry point
+    flat = []
+    for index in torch.cartesian_prod(*[torch.arange(s) for s in t.shape[1:]]).reshape(-1, event).tolist():
+        entry = front[tuple(index)]
+        if traced:
+            flat.append(_Coef("tensor", entry))
+            continue
+        column = values[(slice(None), *index)]
+        if bool((column == 0).all()):
+            flat.append(_ZERO)
+        elif bool((column == 1).all()):
+            flat.append(_ONE)
+        elif bool((column == column[0]).all()):
+            flat.append(_Coef("scalar", float(column[0])))
+        else:
+            flat.append(_Coef("tensor", entry))
+    if event == 1:
+        return flat
+    cols = t.shape[-1]
+    return [flat[a * cols:(a + 1) * cols] for a in range(t.shape[-2])]
+
+
+def _linear(terms, const: _Coef = _ZERO, like: Tensor | None = None) -> Tensor:
+    """``sum_e coef_e * t_e + const`` with the fewest operations (zero terms skipped, ones added,
+    shared scalars through ``alpha``, per-mode tensors through ``addcmul``).
+
+    ``like``: a tensor to take the shape from when every term is zero."""
+    acc = None
+    for coef, t in terms:
+        if coef.kind == "zero":
+            continue
+        if acc is None:
+            acc = t if coef.kind == "one" else t * coef.value
+        elif coef.kind == "one":
+            acc = acc + t
+        elif coef.kind == "scalar":
+            acc = torch.add(acc, t, alpha=coef.value)
+        else:
+            acc = torch.addcmul(acc, t, coef.value)
+    if acc is None:
+        acc = torch.zeros_like(like)
+    if const.kind == "zero":
+        return acc
+    return acc + (1.0 if const.kind == "one" else const.value)
+
+
+class BatchLastIMM:
+    """One IMM step in the batch-last layout (module docstring), and the conversions.
+
+    Args:
+        imm: an IMM for which :func:`why_not` is None.
+        batch_dims: the number of batch axes ``len(B)``.
+        like: a tensor of the run's dtype and device.
+        normalize: :func:`~torchmm.multimodel.imm.safe_log_normalize` (passed in: imm imports this module).
+    """
+
+    def __init__(self, imm, batch_dims: int, like: Tensor, normalize):
+        self.normalize = normalize
+        kf = imm.bank.filter
+        M, d = imm.num_modes, batch_dims
+        self.M, self.n, self.m, self.d = M, kf.state_dim, kf.meas_dim, d
+        self.F = _coefficients(kf.motion.F, M, 2, d)
+        self.Q = _coefficients(kf.motion.Q, M, 2, d)
+        self.b = _coefficients(kf.motion.offset, M, 1, d)
+        self.H = _coefficients(kf.measurement.H, M, 2, d)
+        self.r = _coefficients(kf.measurement.R.diagonal(dim1=-2, dim2=-1), M, 1, d)
+        R = kf.measurement.R
+        self.R_front = (R if R.dim() == 3 else R.unsqueeze(0)).movedim(0, -1).reshape(
+            self.m, self.m, -1, *([1] * d))  # (m, m, P, 1...), for the recorded S only
+        matrix = imm.transition.matrix()
+        if matrix.dtype != like.dtype:  # the engine's own error for a transition of another dtype
+            imm._matrix(like)
+        self.matrix = matrix.reshape(M, M, *([1] * d))  # (i, j, 1...)
+        self.tiny = torch.finfo(like.dtype).tiny
+        self.omitted: frozenset = frozenset()
+        self.estimate_only = False
+        self._core = self.core
+
+    def compile(self) -> None:
+        """Run :meth:`core` under ``torch.compile`` (fused kernels after seconds of compiling;
+        docs/performance.md)."""
+        self._core = torch.compile(self.core, dynamic=False)
+
+    def omit(self, fields, estimate: bool = False) -> None:
+        """The :class:`StepOutput` fields ``record`` discards (returned as None from now on);
+        ``estimate``: return the belief's point estimate (computed inside the step) in its place."""
+        self.omitted = frozenset(fields)
+        self.estimate_only = estimate
+
+    # -- layout -----------------------------------------------------------------------------------
+    def to_batch_last(self, belief: ModeBelief) -> tuple[Tensor, Tensor, Tensor]:
+        """``ModeBelief`` (batch-first) -> ``X (n, M, *B)``, ``P (n, n, M, *B)``, ``log_mu (M, *B)``."""
+        d = self.d
+        comps = belief.components
+        X = comps.mean.movedim((d, d + 1), (1, 0))
+        P = comps.cov.movedim((d, d + 1, d + 2), (2, 0, 1))
+        log_mu = belief.mode_log_probs.movedim(d, 0)
+        return X, P, log_mu
+
+    def stack(self, C: list) -> Tensor:
+        """The upper triangle ``C[a][c]`` (``a <= c``) of per-entry tensors as one symmetric ``(n, n, ...)``."""
+        n = self.n
+        return torch.stack([C[min(a, c)][max(a, c)] for a in range(n) for c in range(n)]).unflatten(0, (n, n))
+
+    def gaussian(self, X: Tensor, P: Tensor) -> GaussianBelief:
+        """Batch-first views ``(*B, M, n)`` and ``(*B, M, n, n)`` of batch-last ``X (n, M, *B)``, ``P (n, n, M, *B)``."""
+        d = self.d
+        return GaussianBelief(X.movedim((1, 0), (d, d + 1)), P.movedim((2, 0, 1), (d, d + 1, d + 2)))
+
+    def modes(self, t: Tensor) -> Tensor:
+        """``(M, *B)`` -> ``(*B, M)`` (a view)."""
+        return t.movedim(0, self.d)
+
+    # -- the step ---------------------------------------------------------------------------------
+    def core(self, X: Tensor, P: Tensor, log_mu: Tensor, z: Tensor) -> tuple:
+        """The step's arithmetic, tensors in and out (what ``compile=True`` compiles).
+
+        Shapes:
+            X ``(n, M, *B)``, P ``(n, n, M, *B)``, log_mu ``(M, *B)``, z ``(*B, m)`` -> the new
+            ``X, P, log_mu``, the log-likelihood ``(*B,)``, then (None where omitted) the predicted
+            ``X-, P-``, ``log c (M, *B)``, the mode log-likelihoods and singular flags ``(M, *B)``, the
+            mixed ``X0, P0``, the innovations ``(m, M, *B)`` and their covariances ``(m, m, M, *B)``.
+        """
+        n, m, tiny, omitted = self.n, self.m, self.tiny, self.omitted
+        F, Q, b, H, r = self.F, self.Q, self.b, self.H, self.r
+        upper = [(a, c) for a in range(n) for c in range(a, n)]
+        # interaction: c_j = sum_i mu_i pi_ij, mu_{i|j} = pi_ij mu_i / c_j
+        mu = log_mu.exp()
+        mu_i = mu.unsqueeze(1)
+        cbar = (mu_i * self.matrix).sum(0)  # (j, *B)
+        w = mu_i * self.matrix / cbar.clamp_min(tiny).unsqueeze(0)  # (i, j, *B)
+        xs = [(w * X[a].unsqueeze(1)).sum(0) for a in range(n)]  # mixed means (j, *B)
+        D = [X[a].unsqueeze(1) - xs[a].unsqueeze(0) for a in range(n)]  # (i, j, *B)
+        wD = [w * D[a] for a in range(n)]
+        Cm = [[None] * n for _ in range(n)]
+        for a, c in upper:  # sum_i w_ij (P_i + d_ij d_ij^T)
+            Cm[a][c] = torch.addcmul(w * P[a, c].unsqueeze(1), wD[a], D[c]).sum(0)
+        sym = lambda T, a, c: T[min(a, c)][max(a, c)]  # noqa: E731
+        # prediction: x- = F m + b, P- = F C F^T + Q
+        xp = [_linear([(F[a][e], xs[e]) for e in range(n)], b[a], xs[0]) for a in range(n)]
+        A = [[_linear([(F[a][e], sym(Cm, e, c)) for e in range(n)], _ZERO, xs[0]) for c in range(n)]
+             for a in range(n)]  # F C
+        Pp = [[None] * n for _ in range(n)]
+        for a, c in upper:
+            Pp[a][c] = _linear([(F[c][e], A[a][e]) for e in range(n)], Q[a][c], xs[0])
+        # update, one component at a time (diagonal R)
+        zt = z.movedim(-1, 0)  # (m, *B)
+        x, C = xp, Pp
+        ll = singular = innovation = s_first = None
+        for k in range(m):
+            g = [_linear([(H[k][c], sym(C, a, c)) for c in range(n)], _ZERO, xs[0]) for a in range(n)]  # P h^T
+            s_raw = _linear([(H[k][a], g[a]) for a in range(n)], r[k], xs[0])  # (M, *B)
+            nu_raw = zt[k] - _linear([(H[k][a], x[a]) for a in range(n)], _ZERO, xs[0])  # NaN where missing
+            observed = torch.isfinite(nu_raw)
+            nu = torch.where(observed, nu_raw, 0.0)
+            s = s_raw.clamp_min(tiny)
+            ratio = observed / s
+            gain = [g[a] * ratio for a in range(n)]
+            x = [torch.addcmul(x[a], gain[a], nu) for a in range(n)]
+            new = [[None] * n for _ in range(n)]
+            for a, c in upper:
+                new[a][c] = torch.addcmul(C[a][c], gain[a], g[c], value=-1.0)
+            C = new
+            term = torch.where(observed, torch.addcdiv(s.log().add_(_LOG_2PI), nu * nu, s).mul_(-0.5), 0.0)
+            ll = term if ll is None else ll + term
+            if "extras" not in omitted:
+                flag = (s_raw <= tiny) & observed
+                singular = flag if singular is None else singular | flag
+            if k == 0:
+                innovation, s_first = nu_raw, s_raw
+        # mode posterior: log mu_j = ell_j + log c_j - logsumexp_l(ell_l + log c_l)
+        log_cbar = cbar.log()
+        joint = ll + log_cbar
+        total = torch.logsumexp(joint, dim=0)
+        new_log_mu = self.normalize(joint, total.unsqueeze(0))
+        any_observed = torch.isfinite(zt[0]) if m == 1 else torch.isfinite(zt).any(0)
+        total = torch.where(any_observed, total, 0.0)
+        stack = self.stack
+        keep_prior, keep_extras = "prior" not in omitted, "extras" not in omitted
+        nu_out = S_out = None
+        if "innovation" not in omitted or "innovation_cov" not in omitted:
+            nu_out, S_out = self._innovation(zt, xp, Pp, innovation, s_first)
+        X_new, P_new = torch.stack(x), stack(C)
+        if self.estimate_only:  # the moment-matched collapse, (n, *B) and (n, n, *B)
+            mu = new_log_mu.exp()
+            est = [(mu * x[a]).sum(0) for a in range(n)]
+            spread = [x[a] - est[a] for a in range(n)]
+            mu_spread = [mu * spread[a] for a in range(n)]
+            est_cov = [[None] * n for _ in range(n)]
+            for a, c in upper:
+                est_cov[a][c] = torch.addcmul(mu * C[a][c], mu_spread[a], spread[c]).sum(0)
+            nu_out, S_out = torch.stack(est), stack(est_cov)  # returned in the innovation slots
+        return (
+            X_new, P_new, new_log_mu, total,
+            torch.stack(xp) if keep_prior else None, stack(Pp) if keep_prior else None, log_cbar,
+            ll if keep_extras else None, singular,
+            torch.stack(xs) if keep_extras else None, stack(Cm) if keep_extras else None,
+            nu_out, S_out,
+        )
+
+    def step(self, X: Tensor, P: Tensor, log_mu: Tensor, z: Tensor) -> tuple[tuple, StepOutput]:
+        """One IMM step: :meth:`core` (compiled with ``compile=True``), its outputs as a
+        :class:`StepOutput` of batch-first views (batch ``(*B,)``) and the next state ``(X, P, log_mu)``."""
+        (X, P, log_mu, total, Xp, Pp, log_cbar, ll, singular, Xm, Pm, nu, S) = self._core(X, P, log_mu, z)
+        d, modes, gaussian = self.d, self.modes, self.gaussian
+        if self.estimate_only:
+            estimate = GaussianBelief(nu.movedim(0, d), S.movedim((0, 1), (d, d + 1)))
+            return (X, P, log_mu), StepOutput(estimate, None, total)
+        extras = None
+        if ll is not None:
+            extras = {
+                "mode_log_likelihood": modes(ll),
+                "modes": {"singular": modes(singular)},
+                "mixed": ModeBelief(modes(log_cbar), gaussian(Xm, Pm)),
+            }
+        out = StepOutput(
+            belief=ModeBelief(modes(log_mu), gaussian(X, P)),
+            prior=None if Xp is None else ModeBelief(modes(log_cbar), gaussian(Xp, Pp)),
+            log_likelihood=total,
+            innovation=None if nu is None or "innovation" in self.omitted else nu.movedim((1, 0), (d, d + 1)),
+            innovation_cov=None if S is None or "innovation_cov" in self.omitted
+            else S.movedim((2, 0, 1), (d, d + 1, d + 2)),
+            extras=extras,
+        )
+        return (X, P, log_mu), out
+
+    def _innovation(self, zt, xp, Pp, nu_first, s_first) -> tuple[Tensor, Tensor]:
+        """The step's record of ``z - H x-`` ``(m, M, *B)`` and ``S = H P- H^T + R`` ``(m, m, M, *B)``."""
+        m, n, H = self.m, self.n, self.H
+        if m == 1:
+            return nu_first.unsqueeze(0), s_first.unsqueeze(0).unsqueeze(0)
+        sym = lambda T, a, c: T[min(a, c)][max(a, c)]  # noqa: E731
+        nu = torch.stack([zt[k] - _linear([(H[k][a], xp[a]) for a in range(n)], _ZERO, xp[0]) for k in range(m)])
+        HP = [[_linear([(H[k][e], sym(Pp, e, c)) for e in range(n)], _ZERO, xp[0]) for c in range(n)]
+              for k in range(m)]
+        S = torch.stack([torch.stack([_linear([(H[l][c], HP[k][c]) for c in range(n)], _ZERO, xp[0])
+                                      for l in range(m)]) for k in range(m)])
+        return nu, S + self.R_front
