@@ -238,6 +238,7 @@ class Common:
     unit_runs: Optional[int] = spec(None, positive_int)
     threads: Optional[int] = spec(1, positive_int)
     retain_freed_memory: bool = False
+    compile: bool = False
     resume: Optional[str] = spec(None, _resume)
     experiment_name: str = "study"
     study: str = "experiments.studies.imm_tf.run"

@@ -26,6 +26,8 @@ from typing import Any
 
 import torch
 
+from torchmm.runtime import compile_fast_paths
+
 log = logging.getLogger("torchmm.experiments")
 
 DTYPES = {"float64": torch.float64, "float32": torch.float32, "double": torch.float64, "float": torch.float32}
@@ -643,8 +645,9 @@ def unique_dir(base: str) -> str:
 #: keys that do not change a study's numbers: a checkpoint made with other values is reused
 #: (``chunk_runs``: identical bit for bit - run-indexed streams, per-run reductions; docs/scaling.md)
 #: (``unit_runs``: the same to rounding - a unit's runs are filtered in one batch - and its own unit keys)
-NON_RESULT_KEYS = ("progress", "logger", "threads", "chunk_runs", "unit_runs", "retain_freed_memory", "executor",
-                   "resume")
+#: (``compile``: the fast paths compiled, the same to rounding)
+NON_RESULT_KEYS = ("progress", "logger", "threads", "chunk_runs", "unit_runs", "retain_freed_memory", "compile",
+                   "executor", "resume")
 
 
 def result_config(config_dict: dict) -> dict:
@@ -759,4 +762,5 @@ def worker_context(config: dict, output_dir: Path) -> StudyContext:
                            seed=int(cfg.seed), progress=False, _config=config)
         _WORKER_CONTEXTS.clear()  # one study per worker at a time
         _WORKER_CONTEXTS[token] = ctx
+        compile_fast_paths(bool(config.get("compile", False)))
     return ctx

@@ -32,7 +32,7 @@ from omegaconf import DictConfig, OmegaConf
 from experiments.config import ConfigError, precheck, validate
 from experiments.provenance import Provenance
 from experiments.harness import Results, open_context, unique_dir
-from torchmm.runtime import retain_freed_memory
+from torchmm.runtime import compile_fast_paths, retain_freed_memory
 
 log = logging.getLogger("torchmm.experiments")
 
@@ -77,6 +77,7 @@ def run_study(cfg: DictConfig, output_dir: Path, overrides: list[str] | None = N
         torch.set_num_threads(int(threads))
     if cfg.get("retain_freed_memory"):
         retain_freed_memory()
+    previous_compile = compile_fast_paths(bool(cfg.get("compile", False)))
     provenance = Provenance()
     provenance.start(device=ctx.device, dtype=ctx.dtype, threads=torch.get_num_threads())
     ctx.logger.text("config", "```yaml\n" + OmegaConf.to_yaml(config) + "```")  # the resolved config
@@ -95,6 +96,7 @@ def run_study(cfg: DictConfig, output_dir: Path, overrides: list[str] | None = N
         ctx.close_executor()
         ctx.logger.close()
         torch.set_num_threads(previous_threads)
+        compile_fast_paths(previous_compile)
     log.info("results written to %s", ctx.output_dir)
     return ctx.results
 

@@ -13,6 +13,7 @@ from torch import Tensor
 
 from torchmm.beliefs import Belief, GaussianBelief
 from torchmm.filters.base import Filter, StepOutput, call_with
+from torchmm.runtime import fast_paths_compiled
 from torchmm.validation import broadcast_shape, check_filter_dtype
 
 __all__ = ["Trajectory", "run_filter", "stack_outputs"]
@@ -98,7 +99,7 @@ def run_filter(
     record: Callable[[StepOutput], StepOutput] | str | None = None,
     progress: bool | str = False,
     fast_path: bool | None = None,
-    compile: bool = False,  # noqa: A002
+    compile: bool | None = None,  # noqa: A002
 ) -> Trajectory:
     """Run ``filter.step`` over a time-major measurement sequence.
 
@@ -130,7 +131,9 @@ def run_filter(
             the run has no ``controls``, ``motions``, ``sensors`` or ``update_first``; True: always
             (a ``ValueError`` naming ``fast_path`` says why not where it cannot); False: never.
         compile: run the fast path's step under ``torch.compile`` (seconds of compiling, cached on
-            disk, then fused kernels: docs/performance.md says when it pays); needs a fast path.
+            disk, then fused kernels: docs/performance.md says when it pays); True needs a fast path.
+            None (default): the process default of :func:`torchmm.runtime.compile_fast_paths` (off
+            unless set), for runs that have a fast path.
 
     Returns:
         :class:`Trajectory` with every kept field stacked on a leading time axis.
@@ -193,6 +196,11 @@ def run_filter(
         raise TypeError(f"record: expected a callable, None or 'estimate', got {type(record).__name__}")
     if fast_path not in (None, True, False):
         raise TypeError(f"fast_path: expected None, True or False, got {fast_path!r}")
+    if compile not in (None, True, False):
+        raise TypeError(f"compile: expected None, True or False, got {compile!r}")
+    explicit = compile is True
+    if compile is None:
+        compile = fast_paths_compiled() and fast_path is not False
     fast = None
     if fast_path is not False:
         plain = controls is None and motions is None and sensors is None and not update_first
@@ -201,7 +209,7 @@ def run_filter(
         if isinstance(fast, str):
             if fast_path:
                 raise ValueError(f"fast_path: no fast path for this run ({fast}); use fast_path=None or False")
-            if compile:
+            if explicit:
                 raise ValueError(f"compile: compiles the fast path, which this run has not ({fast})")
             fast = None
     elif compile:

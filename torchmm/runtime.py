@@ -16,13 +16,33 @@ import ctypes
 import ctypes.util
 import logging
 
-__all__ = ["retain_freed_memory"]
+__all__ = ["compile_fast_paths", "fast_paths_compiled", "retain_freed_memory"]
 
 log = logging.getLogger("torchmm")
 
 _M_TRIM_THRESHOLD = -1
 _M_MMAP_MAX = -4
 _DONE: list[bool] = []
+_COMPILE: list[bool] = [False]
+
+
+def compile_fast_paths(enabled: bool = True) -> bool:
+    """Make ``compile=True`` the default of :func:`~torchmm.run_filter`'s fast paths in this
+    process (the study key ``compile``); returns the previous setting.
+
+    Compiling costs seconds per new shape (cached on disk by inductor) and then runs the fused
+    step: docs/performance.md says when that pays. Runs without a fast path are not affected.
+    """
+    if not isinstance(enabled, bool):
+        raise TypeError(f"enabled: expected True or False, got {enabled!r}")
+    previous = _COMPILE[0]
+    _COMPILE[0] = enabled
+    return previous
+
+
+def fast_paths_compiled() -> bool:
+    """The process default set by :func:`compile_fast_paths` (False unless set)."""
+    return _COMPILE[0]
 
 
 def retain_freed_memory(trim_threshold: int = 1 << 30) -> bool:

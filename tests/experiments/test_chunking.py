@@ -85,3 +85,17 @@ def test_imm_tf_transfer_fraction_and_curves_cover_every_chunk(tmp_path):
         assert len(tags) >= 3, curves_a.files
         for tag in tags:
             np.testing.assert_allclose(curves_b[tag], curves_a[tag], rtol=1e-11, atol=1e-13)
+
+
+def test_compile_key_gives_the_same_numbers_and_is_restored(tmp_path):
+    """``compile=true``: imm_baseline's IMMs over linear Kalman modes run their fast path under
+    torch.compile, with the eager numbers to rounding; the process default is restored afterwards."""
+    from torchmm.runtime import fast_paths_compiled
+
+    run_study(_compose("imm_baseline", "mc_runs=4"), tmp_path / "eager")
+    run_study(_compose("imm_baseline", "mc_runs=4", "compile=true"), tmp_path / "compiled")
+    assert not fast_paths_compiled()
+    a, b = (json.loads((tmp_path / d / "results.json").read_text()) for d in ("eager", "compiled"))
+    assert a["config"]["compile"] is False and b["config"]["compile"] is True
+    a.pop("config"), b.pop("config")
+    _assert_same(_drop_timing_rows(a), _drop_timing_rows(b), "results.json", rel_tol=1e-9)

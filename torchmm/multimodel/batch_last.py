@@ -192,7 +192,13 @@ class BatchLastIMM:
 
     def compile(self) -> None:
         """Run :meth:`core` under ``torch.compile`` (fused kernels after seconds of compiling;
-        docs/performance.md)."""
+        docs/performance.md). Every model, shape and record option is its own compiled graph of
+        this one method; dynamo's per-function limit (8, after which it runs eagerly) is raised
+        to 64 so that a study's estimators all stay compiled."""
+        import torch._dynamo.config as dynamo_config  # noqa: PLC0415
+
+        if getattr(dynamo_config, "recompile_limit", 64) < 64:
+            dynamo_config.recompile_limit = 64
         self._core = torch.compile(self.core, dynamic=False)
 
     def omit(self, fields, estimate: bool = False) -> None:
@@ -226,30 +232,44 @@ class BatchLastIMM:
         return t.movedim(0, self.d)
 
     # -- the step ---------------------------------------------------------------------------------
-    def core(self, X: Tensor, P: Tensor, log_mu: Tensor, z: Tensor) -> tuple:
+    def prepare(self, measurements: Tensor) -> None:
+        """Once per run: the measurements ``(T, *B, m)`` as ``(T, m, *B)``, with missing components
+        (non-finite) set to 0 and their masks, so that no step tests its data."""
+        z = measurements.movedim(-1, 1)
+        observed = torch.isfinite(z)
+        self.z_raw = z
+        self.z_clean = torch.where(observed, z, 0.0)
+        self.observed = observed.to(z.dtype)  # 1 observed, 0 missing
+        self.any_observed = observed.any(1)  # (T, *B)
+        self.zero = torch.zeros((), dtype=z.dtype, device=z.device)
+
+    def core(self, x: list, C: list, log_mu: Tensor, zc: Tensor, ob: Tensor, anyob: Tensor, zraw: Tensor) -> tuple:
         """The step's arithmetic, tensors in and out (what ``compile=True`` compiles).
 
         Shapes:
-            X ``(n, M, *B)``, P ``(n, n, M, *B)``, log_mu ``(M, *B)``, z ``(*B, m)`` -> the new
-            ``X, P, log_mu``, the log-likelihood ``(*B,)``, then (None where omitted) the predicted
-            ``X-, P-``, ``log c (M, *B)``, the mode log-likelihoods and singular flags ``(M, *B)``, the
-            mixed ``X0, P0``, the innovations ``(m, M, *B)`` and their covariances ``(m, m, M, *B)``.
+            x: ``n`` tensors ``(M, *B)``; C: nested lists, ``C[a][c]`` ``(M, *B)`` for ``a <= c``;
+            log_mu ``(M, *B)``; zc, ob, zraw ``(m, *B)`` (the data with 0 where missing, the observed
+            mask, the data); anyob ``(*B,)`` -> the new ``x, C, log_mu``, the log-likelihood ``(*B,)``,
+            then (None where not needed) the posterior ``X (n, M, *B), P (n, n, M, *B)``, the
+            predicted ones, ``log c (M, *B)``, the mode log-likelihoods and singular flags ``(M, *B)``,
+            the mixed ``X0, P0``, the innovations ``(m, M, *B)`` and their covariances
+            ``(m, m, M, *B)`` (``estimate_only``: the estimate ``(n, *B)``, ``(n, n, *B)`` in these two).
         """
         n, m, tiny, omitted = self.n, self.m, self.tiny, self.omitted
         F, Q, b, H, r = self.F, self.Q, self.b, self.H, self.r
         upper = [(a, c) for a in range(n) for c in range(a, n)]
+        sym = lambda T, a, c: T[min(a, c)][max(a, c)]  # noqa: E731
         # interaction: c_j = sum_i mu_i pi_ij, mu_{i|j} = pi_ij mu_i / c_j
         mu = log_mu.exp()
         mu_i = mu.unsqueeze(1)
         cbar = (mu_i * self.matrix).sum(0)  # (j, *B)
         w = mu_i * self.matrix / cbar.clamp_min(tiny).unsqueeze(0)  # (i, j, *B)
-        xs = [(w * X[a].unsqueeze(1)).sum(0) for a in range(n)]  # mixed means (j, *B)
-        D = [X[a].unsqueeze(1) - xs[a].unsqueeze(0) for a in range(n)]  # (i, j, *B)
+        xs = [(w * x[a].unsqueeze(1)).sum(0) for a in range(n)]  # mixed means (j, *B)
+        D = [x[a].unsqueeze(1) - xs[a].unsqueeze(0) for a in range(n)]  # (i, j, *B)
         wD = [w * D[a] for a in range(n)]
         Cm = [[None] * n for _ in range(n)]
         for a, c in upper:  # sum_i w_ij (P_i + d_ij d_ij^T)
-            Cm[a][c] = torch.addcmul(w * P[a, c].unsqueeze(1), wD[a], D[c]).sum(0)
-        sym = lambda T, a, c: T[min(a, c)][max(a, c)]  # noqa: E731
+            Cm[a][c] = torch.addcmul(w * C[a][c].unsqueeze(1), wD[a], D[c]).sum(0)
         # prediction: x- = F m + b, P- = F C F^T + Q
         xp = [_linear([(F[a][e], xs[e]) for e in range(n)], b[a], xs[0]) for a in range(n)]
         A = [[_linear([(F[a][e], sym(Cm, e, c)) for e in range(n)], _ZERO, xs[0]) for c in range(n)]
@@ -257,69 +277,80 @@ class BatchLastIMM:
         Pp = [[None] * n for _ in range(n)]
         for a, c in upper:
             Pp[a][c] = _linear([(F[c][e], A[a][e]) for e in range(n)], Q[a][c], xs[0])
-        # update, one component at a time (diagonal R)
-        zt = z.movedim(-1, 0)  # (m, *B)
-        x, C = xp, Pp
-        ll = singular = innovation = s_first = None
+        # update, one component at a time (diagonal R); a missing component has ob = 0, zc = 0
+        xu, Cu = xp, Pp
+        ll = singular = s_first = None
         for k in range(m):
-            g = [_linear([(H[k][c], sym(C, a, c)) for c in range(n)], _ZERO, xs[0]) for a in range(n)]  # P h^T
+            g = [_linear([(H[k][c], sym(Cu, a, c)) for c in range(n)], _ZERO, xs[0]) for a in range(n)]  # P h^T
             s_raw = _linear([(H[k][a], g[a]) for a in range(n)], r[k], xs[0])  # (M, *B)
-            nu_raw = zt[k] - _linear([(H[k][a], x[a]) for a in range(n)], _ZERO, xs[0])  # NaN where missing
-            observed = torch.isfinite(nu_raw)
-            nu = torch.where(observed, nu_raw, 0.0)
+            nu = zc[k] - _linear([(H[k][a], xu[a]) for a in range(n)], _ZERO, xs[0])
             s = s_raw.clamp_min(tiny)
-            ratio = observed / s
+            ratio = ob[k] / s
             gain = [g[a] * ratio for a in range(n)]
-            x = [torch.addcmul(x[a], gain[a], nu) for a in range(n)]
+            xu = [torch.addcmul(xu[a], gain[a], nu) for a in range(n)]
             new = [[None] * n for _ in range(n)]
             for a, c in upper:
-                new[a][c] = torch.addcmul(C[a][c], gain[a], g[c], value=-1.0)
-            C = new
-            term = torch.where(observed, torch.addcdiv(s.log().add_(_LOG_2PI), nu * nu, s).mul_(-0.5), 0.0)
+                new[a][c] = torch.addcmul(Cu[a][c], gain[a], g[c], value=-1.0)
+            Cu = new
+            term = torch.addcdiv(s.log().add_(_LOG_2PI), nu * nu, s).mul_(-0.5 * ob[k])
             ll = term if ll is None else ll + term
             if "extras" not in omitted:
-                flag = (s_raw <= tiny) & observed
+                flag = (s_raw <= tiny) & (ob[k] > 0)
                 singular = flag if singular is None else singular | flag
             if k == 0:
-                innovation, s_first = nu_raw, s_raw
-        # mode posterior: log mu_j = ell_j + log c_j - logsumexp_l(ell_l + log c_l)
+                s_first = s_raw
+        # mode posterior: log mu_j = ell_j + log c_j - logsumexp_l(ell_l + log c_l), as torch.logsumexp
+        # and safe_log_normalize compute it (all -inf: -inf and uniform), in fewer passes
         log_cbar = cbar.log()
         joint = ll + log_cbar
-        total = torch.logsumexp(joint, dim=0)
-        new_log_mu = self.normalize(joint, total.unsqueeze(0))
-        any_observed = torch.isfinite(zt[0]) if m == 1 else torch.isfinite(zt).any(0)
-        total = torch.where(any_observed, total, 0.0)
-        stack = self.stack
-        keep_prior, keep_extras = "prior" not in omitted, "extras" not in omitted
-        nu_out = S_out = None
-        if "innovation" not in omitted or "innovation_cov" not in omitted:
-            nu_out, S_out = self._innovation(zt, xp, Pp, innovation, s_first)
-        X_new, P_new = torch.stack(x), stack(C)
+        top = joint.amax(0).clamp_min(torch.finfo(joint.dtype).min)
+        shifted = joint - top
+        log_sum = shifted.exp().sum(0).log()
+        new_log_mu = (shifted - log_sum).nan_to_num_(nan=-math.log(self.M), posinf=math.inf, neginf=-math.inf)
+        total = torch.where(anyob, top + log_sum, self.zero)  # exactly 0 without a datum
+        stack, keep_extras = self.stack, "extras" not in omitted
+        X = P = Xp = Ppt = nu_out = S_out = None
         if self.estimate_only:  # the moment-matched collapse, (n, *B) and (n, n, *B)
             mu = new_log_mu.exp()
-            est = [(mu * x[a]).sum(0) for a in range(n)]
-            spread = [x[a] - est[a] for a in range(n)]
+            est = [(mu * xu[a]).sum(0) for a in range(n)]
+            spread = [xu[a] - est[a] for a in range(n)]
             mu_spread = [mu * spread[a] for a in range(n)]
             est_cov = [[None] * n for _ in range(n)]
             for a, c in upper:
-                est_cov[a][c] = torch.addcmul(mu * C[a][c], mu_spread[a], spread[c]).sum(0)
+                est_cov[a][c] = torch.addcmul(mu * Cu[a][c], mu_spread[a], spread[c]).sum(0)
             nu_out, S_out = torch.stack(est), stack(est_cov)  # returned in the innovation slots
+        else:
+            X, P = torch.stack(xu), stack(Cu)
+            if "prior" not in omitted:
+                Xp, Ppt = torch.stack(xp), stack(Pp)
+            if "innovation" not in omitted or "innovation_cov" not in omitted:
+                nu_out, S_out = self._innovation(zraw, xp, Pp, s_first)
         return (
-            X_new, P_new, new_log_mu, total,
-            torch.stack(xp) if keep_prior else None, stack(Pp) if keep_prior else None, log_cbar,
+            xu, Cu, new_log_mu, total, X, P, Xp, Ppt, log_cbar,
             ll if keep_extras else None, singular,
             torch.stack(xs) if keep_extras else None, stack(Cm) if keep_extras else None,
             nu_out, S_out,
         )
 
-    def step(self, X: Tensor, P: Tensor, log_mu: Tensor, z: Tensor) -> tuple[tuple, StepOutput]:
-        """One IMM step: :meth:`core` (compiled with ``compile=True``), its outputs as a
-        :class:`StepOutput` of batch-first views (batch ``(*B,)``) and the next state ``(X, P, log_mu)``."""
-        (X, P, log_mu, total, Xp, Pp, log_cbar, ll, singular, Xm, Pm, nu, S) = self._core(X, P, log_mu, z)
+    def initial_state(self, belief: ModeBelief) -> tuple:
+        """The state of :meth:`step` at time 0 from the batch-first ``belief``."""
+        X, P, log_mu = self.to_batch_last(belief)
+        n = self.n
+        C = [[P[a, c] if c >= a else None for c in range(n)] for a in range(n)]
+        return list(X.unbind(0)), C, log_mu, 0
+
+    def step(self, state: tuple, z: Tensor) -> tuple[tuple, StepOutput]:
+        """One IMM step: :meth:`core` (compiled with ``compile=True``) on the prepared data of the
+        state's step, its outputs as a :class:`StepOutput` of batch-first views (batch ``(*B,)``),
+        and the next state. ``z`` is the step's measurement, which :meth:`prepare` holds."""
+        x, C, log_mu, k = state
+        (x, C, log_mu, total, X, P, Xp, Pp, log_cbar, ll, singular, Xm, Pm, nu, S) = self._core(
+            x, C, log_mu, self.z_clean[k], self.observed[k], self.any_observed[k], self.z_raw[k])
+        state = (x, C, log_mu, k + 1)
         d, modes, gaussian = self.d, self.modes, self.gaussian
         if self.estimate_only:
             estimate = GaussianBelief(nu.movedim(0, d), S.movedim((0, 1), (d, d + 1)))
-            return (X, P, log_mu), StepOutput(estimate, None, total)
+            return state, StepOutput(estimate, None, total)
         extras = None
         if ll is not None:
             extras = {
@@ -336,15 +367,16 @@ class BatchLastIMM:
             else S.movedim((2, 0, 1), (d, d + 1, d + 2)),
             extras=extras,
         )
-        return (X, P, log_mu), out
+        return state, out
 
-    def _innovation(self, zt, xp, Pp, nu_first, s_first) -> tuple[Tensor, Tensor]:
-        """The step's record of ``z - H x-`` ``(m, M, *B)`` and ``S = H P- H^T + R`` ``(m, m, M, *B)``."""
+    def _innovation(self, zraw, xp, Pp, s_first) -> tuple[Tensor, Tensor]:
+        """The step's record of ``z - H x-`` ``(m, M, *B)`` (non-finite where missing) and
+        ``S = H P- H^T + R`` ``(m, m, M, *B)``."""
         m, n, H = self.m, self.n, self.H
+        nu = torch.stack([zraw[k] - _linear([(H[k][a], xp[a]) for a in range(n)], _ZERO, xp[0]) for k in range(m)])
         if m == 1:
-            return nu_first.unsqueeze(0), s_first.unsqueeze(0).unsqueeze(0)
+            return nu, s_first.unsqueeze(0).unsqueeze(0)
         sym = lambda T, a, c: T[min(a, c)][max(a, c)]  # noqa: E731
-        nu = torch.stack([zt[k] - _linear([(H[k][a], xp[a]) for a in range(n)], _ZERO, xp[0]) for k in range(m)])
         HP = [[_linear([(H[k][e], sym(Pp, e, c)) for e in range(n)], _ZERO, xp[0]) for c in range(n)]
               for k in range(m)]
         S = torch.stack([torch.stack([_linear([(H[l][c], HP[k][c]) for c in range(n)], _ZERO, xp[0])

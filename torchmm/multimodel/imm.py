@@ -353,7 +353,8 @@ class IMM(MultipleModelFilter):
         kernel = BatchLastIMM(self, like.dim() - 1, like, safe_log_normalize)
         if compile:
             kernel.compile()
-        return FastSteps(kernel.to_batch_last(belief0), lambda state, z: kernel.step(*state, z), kernel.omit)
+        kernel.prepare(measurements)
+        return FastSteps(kernel.initial_state(belief0), kernel.step, kernel.omit)
 
 
 class StaticMM(MultipleModelFilter):
