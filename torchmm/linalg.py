@@ -23,6 +23,8 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
+from torchmm.runtime import host_reads_ok
+
 __all__ = ["any_observed", "check_joseph", "cholesky", "cholesky_solve", "condition", "psd_sqrt", "solve_lower", "solve_right",
            "solve_lower_transposed", "symmetrize", "use_joseph"]
 
@@ -43,14 +45,16 @@ def psd_sqrt(cov: Tensor) -> Tensor:
 
     Uses Cholesky where it succeeds and a symmetric eigendecomposition elsewhere (negative
     eigenvalues of a matrix indefinite by rounding clamped to 0), so that rank-deficient process
-    noise such as ``G G^T`` can be sampled. Never raises: a matrix with NaN or infinite entries
+    noise such as ``G G^T`` can be sampled. On the CPU the eigendecomposition is skipped when every
+    Cholesky succeeds; on other devices it is always computed, so that the host never waits
+    (:func:`torchmm.runtime.host_reads_ok`); the factor is the same. Never raises: a matrix with NaN or infinite entries
     gets a NaN factor (that batch element only).
 
     Shapes:
         cov: ``(..., d, d)`` -> ``(..., d, d)``
     """
     chol, info = torch.linalg.cholesky_ex(cov)
-    if not bool((info != 0).any()):
+    if host_reads_ok(info) and not bool((info != 0).any()):  # on a GPU: no read, the fallback always
         return chol
     finite = torch.isfinite(cov).all(-1).all(-1)
     eye = torch.eye(cov.shape[-1], dtype=cov.dtype, device=cov.device)

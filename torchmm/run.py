@@ -285,14 +285,22 @@ def _per_step(models: Any, steps: int, name: str) -> Callable[[int], Any]:
 
 def _report_flags(extras: dict | None) -> None:
     """One warning per run for updates whose innovation covariance had to be regularised
-    (``extras["singular"]``, or the mode filters' ``extras["modes"]["singular"]``)."""
+    (``extras["singular"]``, or the mode filters' ``extras["modes"]["singular"]``) and for particle
+    updates whose weights all vanished (``extras["degenerate"]``): the steps only flag them, so that
+    no step reads values on the host."""
     extras = extras or {}
-    flags = extras.get("singular")
-    if flags is None and isinstance(extras.get("modes"), dict):
-        flags = extras["modes"].get("singular")
-    if isinstance(flags, Tensor) and flags.dtype == torch.bool and flags.numel():
-        count = int(flags.sum())
-        if count:
-            log.warning("%d of %d updates had an innovation covariance that is not numerically positive definite; "
-                        "they used a regularised factor (extras['singular'], docs/robustness.md)", count,
-                        flags.numel())
+    modes = extras.get("modes") if isinstance(extras.get("modes"), dict) else {}
+    messages = {
+        "singular": "%d of %d updates had an innovation covariance that is not numerically positive definite; "
+                    "they used a regularised factor (extras['singular'], docs/robustness.md)",
+        "degenerate": "%d of %d particle updates had every weight vanish; their prior weights were kept "
+                      "(extras['degenerate'], docs/robustness.md)",
+    }
+    for key, message in messages.items():
+        flags = extras.get(key)
+        if flags is None:
+            flags = modes.get(key)
+        if isinstance(flags, Tensor) and flags.dtype == torch.bool and flags.numel():
+            count = int(flags.sum())
+            if count:
+                log.warning(message, count, flags.numel())

@@ -12,11 +12,13 @@ on import: the particle-filter studies (config key ``retain_freed_memory``) and
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import ctypes.util
 import logging
 
-__all__ = ["compile_fast_paths", "fast_paths_compiled", "retain_freed_memory"]
+__all__ = ["HostSyncError", "compile_fast_paths", "fast_paths_compiled", "host_reads_ok", "no_host_sync",
+           "retain_freed_memory"]
 
 log = logging.getLogger("torchmm")
 
@@ -66,3 +68,67 @@ def retain_freed_memory(trim_threshold: int = 1 << 30) -> bool:
         log.info("retain_freed_memory: mallopt is not available here; allocator left as it is")
     _DONE.append(ok)
     return ok
+
+
+_DEVICE_PATHS: list[bool] = [False]
+
+
+def host_reads_ok(tensor) -> bool:
+    """True where a step may read ``tensor``'s values on the host: a CPU tensor, whose values the
+    host already holds (a branch that pays there, e.g. a faster path when no datum is missing).
+    Elsewhere (CUDA) a step takes the form without the read, with the same numbers. Inside
+    :func:`no_host_sync` it is False on the CPU too, so that the device form is what is checked."""
+    return tensor.device.type == "cpu" and not _DEVICE_PATHS[0]
+
+
+class HostSyncError(RuntimeError):
+    """Raised inside :func:`no_host_sync` where the host reads tensor values."""
+
+
+#: aten ops whose result the host must wait for: a value read back (item, bool, int, float), or an
+#: output whose size depends on the values (nonzero, masked_select, unique, ...)
+_SYNC_OPS = ("_local_scalar_dense", "nonzero", "masked_select", "unique", "_unique", "_unique2",
+             "unique_consecutive", "unique_dim", "equal", "is_nonzero", "repeat_interleave", "bincount")
+
+
+@contextlib.contextmanager
+def no_host_sync(where: str = "this block"):
+    """Raise :class:`HostSyncError` wherever the code inside reads tensor values on the host.
+
+    The check of torchmm's rule that a filter step runs asynchronously on a GPU (no ``.item()``,
+    ``bool(tensor)``, ``.tolist()``, ``.numpy()``, boolean-mask indexing or data-sized outputs), on
+    any device, the CPU included: a ``TorchDispatchMode`` that refuses the aten ops above, and
+    ``Tensor.tolist`` / ``numpy`` / ``__array__`` patched for the block. Inside it
+    :func:`host_reads_ok` is False, so CPU tensors take the device form of every step. For tests
+    and for checking one's own filter (``tests/test_host_sync.py``); it slows every op down.
+    """
+    import torch
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    class _Refuse(TorchDispatchMode):
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            name = func.name().split("::")[-1].split(".")[0]
+            bool_index = name == "index" and any(
+                isinstance(i, torch.Tensor) and i.dtype == torch.bool for i in (args[1] if len(args) > 1 else ()))
+            if name in _SYNC_OPS or bool_index:
+                raise HostSyncError(f"host synchronisation in {where}: {func.name()}"
+                                    + (" with a boolean mask" if bool_index else ""))
+            return func(*args, **(kwargs or {}))
+
+    def refuse(method):
+        def raiser(self, *args, **kwargs):
+            raise HostSyncError(f"host synchronisation in {where}: Tensor.{method}()")
+        return raiser
+
+    saved = {m: getattr(torch.Tensor, m) for m in ("tolist", "numpy", "__array__")}
+    previous = _DEVICE_PATHS[0]
+    try:
+        _DEVICE_PATHS[0] = True  # host_reads_ok is False: the code takes its device (GPU) form
+        for m in saved:
+            setattr(torch.Tensor, m, refuse(m))
+        with _Refuse():
+            yield
+    finally:
+        _DEVICE_PATHS[0] = previous
+        for m, f in saved.items():
+            setattr(torch.Tensor, m, f)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 
 import torch
 from torch import Tensor
@@ -21,11 +23,8 @@ def normalize_log_probs(log_probs: Tensor, dim: int = -1) -> Tensor:
     """
     norm = torch.logsumexp(log_probs, dim=dim, keepdim=True)
     out = log_probs - norm
-    bad = ~torch.isfinite(norm)
-    if bool(bad.any()):
-        uniform = -torch.log(torch.tensor(float(log_probs.shape[dim]), dtype=out.dtype))
-        out = torch.where(bad, uniform.to(out.device), out)
-    return out
+    # no host synchronisation: the repair is one masked pass, applied whether or not a slice needs it
+    return out.masked_fill_(~torch.isfinite(norm), -math.log(log_probs.shape[dim]))
 
 
 def mix_gaussians(mean: Tensor, cov: Tensor, weights: Tensor) -> tuple[Tensor, Tensor]:

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import logging
 import math
+import weakref
 
 import torch
 from torch import Tensor
@@ -33,6 +34,7 @@ from torchmm.beliefs import GaussianBelief, ParticleBelief, psd_sqrt, symmetrize
 from torchmm.beliefs.ops import normalize_log_probs
 from torchmm.filters.base import Filter, StepOutput
 from torchmm.linalg import any_observed, cholesky
+from torchmm.runtime import host_reads_ok
 from torchmm.filters.resampling import (
     RESAMPLING_SCHEMES,
     apply_indices,
@@ -93,6 +95,25 @@ def noise_factor(cov: Tensor, rtol: float = 1e-10) -> Tensor:
     return eigvecs[..., -rank:] * top.sqrt().unsqueeze(-2)
 
 
+_FACTORS: dict = {}
+
+
+def _cached_noise_factor(cov: Tensor) -> Tensor:
+    """:func:`noise_factor` of a model's ``Q``, computed once per tensor (and per in-place change):
+    its rank decides the number of normals, a host read that a step must not repeat. Recomputed
+    (with that read) where ``Q`` requires gradients, so that every call has its own graph."""
+    if cov.requires_grad and torch.is_grad_enabled():
+        return noise_factor(cov)
+    hit = _FACTORS.get(id(cov))
+    if hit is not None and hit[0]() is cov and hit[1] == cov._version:
+        return hit[2]
+    factor = noise_factor(cov)
+    if len(_FACTORS) > 64:  # per-step models with fresh Q tensors: do not grow without bound
+        _FACTORS.clear()
+    _FACTORS[id(cov)] = (weakref.ref(cov), cov._version, factor)
+    return factor
+
+
 def sample_gaussian(belief: GaussianBelief, num_particles: int, *,
                     generator: torch.Generator | None = None) -> Tensor:
     """``num_particles`` draws from every Gaussian of a batch.
@@ -147,7 +168,7 @@ def propagate_particles(motion: MotionModel, particles: Tensor, *, u: Tensor | N
     Shapes:
         particles: ``(*B, Np, n)``; u: ``(*B, k)`` -> ``(*B, Np, n)``
     """
-    factor = noise_factor(motion.noise_cov())  # (*P, n, r), shared by the particles of a set
+    factor = _cached_noise_factor(motion.noise_cov())  # (*P, n, r), shared by the particles of a set
     eps = standard_normal((*particles.shape[:-1], factor.shape[-1]), particles, generator=generator,
                           noise_dtype=noise_dtype)
     # x @ A^T with an unbatched A as `linear` (a contiguous operand: ~3x faster than a matmul with
@@ -237,7 +258,8 @@ def particle_log_likelihood(measurement: MeasurementModel, z: Tensor, particles:
         z: ``(*B, m)`` (NaN = missing); particles ``(*B, Np, n)`` -> ``(*B, Np)``, ``(*B, Np, m)``
     """
     missing = ~torch.isfinite(z)
-    any_missing = bool(missing.any())
+    # the whitened path needs complete data: asked on the CPU only; elsewhere the general path (no host read)
+    any_missing = bool(missing.any()) if host_reads_ok(z) else True
     if (not need_predicted and not state_dependent_noise and not any_missing
             and isinstance(measurement, LinearMeasurement) and measurement.H.dim() == 2):
         cov = measurement.noise_cov()
@@ -304,11 +326,10 @@ def particle_batch(belief, state_dim: int, name: str = "belief") -> torch.Size:
 
 
 def degenerate_guard(log_evidence: Tensor, where: str) -> Tensor:
-    degenerate = ~torch.isfinite(log_evidence)
-    if bool(degenerate.any()):
-        log.warning("%s: all particle weights vanished in %d of %d batch elements; their prior weights "
-                    "are kept (extras['degenerate'])", where, int(degenerate.sum()), degenerate.numel())
-    return degenerate
+    """``(*B,)`` True where every particle weight vanished (the evidence is not finite): the update
+    keeps the prior weights there (``extras["degenerate"]``). No host read in the step:
+    :func:`~torchmm.run_filter` warns once per run with the count (``where`` is kept for callers)."""
+    return ~torch.isfinite(log_evidence)
 
 
 def particle_innovation(z: Tensor, predicted: Tensor, log_w: Tensor, cov: Tensor | None) -> tuple[Tensor, Tensor | None]:

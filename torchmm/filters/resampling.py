@@ -31,6 +31,7 @@ from torch import Tensor
 
 from torchmm.beliefs.ops import normalize_log_probs
 from torchmm.beliefs.particle import ParticleBelief
+from torchmm.runtime import host_reads_ok
 from torchmm.validation import broadcast_shape
 
 __all__ = [
@@ -114,7 +115,7 @@ def searchsorted_rows(sorted_seq: Tensor, values: Tensor) -> Tensor:
     if sorted_seq.shape[:-1] != values.shape[:-1]:
         raise ValueError(f"values: batch {tuple(values.shape[:-1])} differs from sorted_seq {tuple(sorted_seq.shape[:-1])}")
     K, Q = sorted_seq.shape[-1], values.shape[-1]
-    if (sorted_seq.device.type != "cpu" or not sorted_seq.is_floating_point() or sorted_seq.numel() == 0
+    if (not host_reads_ok(sorted_seq) or not sorted_seq.is_floating_point() or sorted_seq.numel() == 0
             or values.numel() == 0):
         return torch.searchsorted(sorted_seq.contiguous(), values.contiguous(), right=True)
     seq = sorted_seq.detach().reshape(-1, K).double()

@@ -306,8 +306,9 @@ class StudentTVBFilter(_LinearVBFilter):
                   "singular": singular}
         if history:
             extras["elbo"] = torch.stack(elbos, -1)
-            log.debug("StudentTVBFilter ELBO per iteration (mean over batch): %s",
-                      extras["elbo"].detach().flatten(0, -2).mean(0).tolist())
+            if log.isEnabledFor(logging.DEBUG):  # (a host read: only when asked for)
+                log.debug("StudentTVBFilter ELBO per iteration (mean over batch): %s",
+                          extras["elbo"].detach().flatten(0, -2).mean(0).tolist())
         mean, cov, loglik = keep_prior_where_missing(missing, belief, mean, cov, elbos[-1])
         return StepOutput(GaussianBelief(mean, cov), belief, loglik, innovation, HPH + extras["noise_cov"],
                           extras=extras)
@@ -451,8 +452,9 @@ class SkewTIWVBFilter(_LinearVBFilter):
                   "skew": Eu, "u_loc": u_loc, "u_scale": u_scale, "gamma_rate": rate_b, "singular": singular}
         if history:
             extras["elbo"] = torch.stack(elbos, -1)
-            log.debug("SkewTIWVBFilter ELBO per iteration (mean over batch): %s",
-                      extras["elbo"].detach().flatten(0, -2).mean(0).tolist())
+            if log.isEnabledFor(logging.DEBUG):  # (a host read: only when asked for)
+                log.debug("SkewTIWVBFilter ELBO per iteration (mean over batch): %s",
+                          extras["elbo"].detach().flatten(0, -2).mean(0).tolist())
         mean, cov, loglik = keep_prior_where_missing(missing, belief, mean, cov, elbos[-1])
         return StepOutput(GaussianBelief(mean, cov), belief, loglik, z - z_pred,
                           H @ P_hat @ H.mT + extras["noise_cov"], extras=extras)

@@ -124,10 +124,11 @@ def mixing_indices(mode_log_probs: Tensor, log_transition: Tensor, within_log_we
     # within-model CDFs (*B', M, Np_prev), last entry exactly 1
     w = within_log_weights.double()
     top = w.amax(-1, keepdim=True)
-    if bool(((top <= 0) & (top > -100)).all()):  # normalised-like: exp cannot overflow or all underflow
-        w = w.exp()
-    else:
-        w = (w - torch.where(torch.isfinite(top), top, torch.zeros_like(top))).exp_()
+    # normalised-like weights (exp can neither overflow nor all underflow) are exponentiated as they
+    # are, others after subtracting their maximum: one pass, decided without a host read
+    normalised_like = ((top <= 0) & (top > -100)).all()
+    shift = torch.where(normalised_like | ~torch.isfinite(top), 0.0, top)
+    w = (w - shift).exp_()
     cdf_within = torch.cumsum(w, dim=-1)
     cdf_within.div_(cdf_within[..., -1:].clamp_min(torch.finfo(torch.float64).tiny))
     cdf_within[..., -1] = 1.0
@@ -371,10 +372,9 @@ class MultipleModelParticleFilter(MultipleModelFilter):
         log_evidence = torch.logsumexp(per_model, dim=-1)
         log_evidence = torch.where(any_observed(z), log_evidence, 0.0)  # exactly 0 without a datum
         degenerate = degenerate_guard(log_evidence, type(self).__name__)
-        if bool(degenerate.any()):
-            keep = degenerate[..., None, None]
-            joint = torch.where(keep, prior_within + prior_mode.unsqueeze(-1), joint)
-            per_model = torch.where(degenerate[..., None], prior_mode, per_model)
+        # applied whether or not a run degenerated (no host synchronisation)
+        joint = torch.where(degenerate[..., None, None], prior_within + prior_mode.unsqueeze(-1), joint)
+        per_model = torch.where(degenerate[..., None], prior_mode, per_model)
         return joint, per_model, log_evidence, degenerate, predicted, prior_within, prior_mode
 
     def update(self, belief: ModeBelief, z: Tensor, *, sensor: MeasurementModel | None = None,
@@ -386,9 +386,7 @@ class MultipleModelParticleFilter(MultipleModelFilter):
         safe_ev = torch.where(degenerate, torch.zeros_like(log_evidence), log_evidence)
         mode_log_probs = per_model - safe_ev.unsqueeze(-1)  # (34) summed over particles
         within = joint - per_model.unsqueeze(-1)
-        finite = torch.isfinite(per_model)
-        if not bool(finite.all()):
-            within = torch.where(finite.unsqueeze(-1), within, torch.full_like(within, -math.log(within.shape[-1])))
+        within = within.masked_fill_(~torch.isfinite(per_model).unsqueeze(-1), -math.log(within.shape[-1]))
         innovation = innovation_cov = None
         if self.innovation_stats:
             flat_prior = (prior_within + prior_mode.unsqueeze(-1)).flatten(-2)

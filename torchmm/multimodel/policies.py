@@ -421,7 +421,8 @@ class ChallengeMatch:
         counts.scatter_add_(-1, model, torch.ones_like(model, dtype=counts.dtype))
         active = counts >= self.threshold
         empty = ~active.any(-1)
-        best = torch.nn.functional.one_hot(counts.argmax(-1), M).bool()
+        # (one_hot checks its indices on the host; a comparison with arange does not)
+        best = counts.argmax(-1, keepdim=True) == torch.arange(M, device=counts.device)
         active = torch.where(empty.unsqueeze(-1), best, active)
         return active, {"winner_counts": counts, "fallback": empty}
 
