@@ -185,6 +185,7 @@ class BatchLastIMM:
         if matrix.dtype != like.dtype:  # the engine's own error for a transition of another dtype
             imm._matrix(like)
         self.matrix = matrix.reshape(M, M, *([1] * d))  # (i, j, 1...)
+        self.transposed = matrix.mT.contiguous()  # (j, i): c = P^T mu as one mm for one batch axis
         self.tiny = torch.finfo(like.dtype).tiny
         self.omitted: frozenset = frozenset()
         self.estimate_only = False
@@ -243,13 +244,13 @@ class BatchLastIMM:
         self.any_observed = observed.any(1)  # (T, *B)
         self.zero = torch.zeros((), dtype=z.dtype, device=z.device)
 
-    def core(self, x: list, C: list, log_mu: Tensor, zc: Tensor, ob: Tensor, anyob: Tensor, zraw: Tensor) -> tuple:
+    def core(self, x: list, C: list, mu: Tensor, zc: Tensor, ob: Tensor, anyob: Tensor, zraw: Tensor) -> tuple:
         """The step's arithmetic, tensors in and out (what ``compile=True`` compiles).
 
         Shapes:
             x: ``n`` tensors ``(M, *B)``; C: nested lists, ``C[a][c]`` ``(M, *B)`` for ``a <= c``;
-            log_mu ``(M, *B)``; zc, ob, zraw ``(m, *B)`` (the data with 0 where missing, the observed
-            mask, the data); anyob ``(*B,)`` -> the new ``x, C, log_mu``, the log-likelihood ``(*B,)``,
+            mu: the mode probabilities ``(M, *B)``; zc, ob, zraw ``(m, *B)`` (the data with 0 where missing, the observed
+            mask, the data); anyob ``(*B,)`` -> the new ``x, C, log_mu, mu``, the log-likelihood ``(*B,)``,
             then (None where not needed) the posterior ``X (n, M, *B), P (n, n, M, *B)``, the
             predicted ones, ``log c (M, *B)``, the mode log-likelihoods and singular flags ``(M, *B)``,
             the mixed ``X0, P0``, the innovations ``(m, M, *B)`` and their covariances
@@ -260,9 +261,8 @@ class BatchLastIMM:
         upper = [(a, c) for a in range(n) for c in range(a, n)]
         sym = lambda T, a, c: T[min(a, c)][max(a, c)]  # noqa: E731
         # interaction: c_j = sum_i mu_i pi_ij, mu_{i|j} = pi_ij mu_i / c_j
-        mu = log_mu.exp()
         mu_i = mu.unsqueeze(1)
-        cbar = (mu_i * self.matrix).sum(0)  # (j, *B)
+        cbar = torch.mm(self.transposed, mu) if self.d == 1 else (mu_i * self.matrix).sum(0)  # (j, *B)
         w = mu_i * self.matrix / cbar.clamp_min(tiny).unsqueeze(0)  # (i, j, *B)
         xs = [(w * x[a].unsqueeze(1)).sum(0) for a in range(n)]  # mixed means (j, *B)
         D = [x[a].unsqueeze(1) - xs[a].unsqueeze(0) for a in range(n)]  # (i, j, *B)
@@ -310,8 +310,8 @@ class BatchLastIMM:
         total = torch.where(anyob, top + log_sum, self.zero)  # exactly 0 without a datum
         stack, keep_extras = self.stack, "extras" not in omitted
         X = P = Xp = Ppt = nu_out = S_out = None
+        mu = new_log_mu.exp()  # for the estimate and the next step
         if self.estimate_only:  # the moment-matched collapse, (n, *B) and (n, n, *B)
-            mu = new_log_mu.exp()
             est = [(mu * xu[a]).sum(0) for a in range(n)]
             spread = [xu[a] - est[a] for a in range(n)]
             mu_spread = [mu * spread[a] for a in range(n)]
@@ -326,7 +326,7 @@ class BatchLastIMM:
             if "innovation" not in omitted or "innovation_cov" not in omitted:
                 nu_out, S_out = self._innovation(zraw, xp, Pp, s_first)
         return (
-            xu, Cu, new_log_mu, total, X, P, Xp, Ppt, log_cbar,
+            xu, Cu, new_log_mu, mu, total, X, P, Xp, Ppt, log_cbar,
             ll if keep_extras else None, singular,
             torch.stack(xs) if keep_extras else None, stack(Cm) if keep_extras else None,
             nu_out, S_out,
@@ -337,16 +337,16 @@ class BatchLastIMM:
         X, P, log_mu = self.to_batch_last(belief)
         n = self.n
         C = [[P[a, c] if c >= a else None for c in range(n)] for a in range(n)]
-        return list(X.unbind(0)), C, log_mu, 0
+        return list(X.unbind(0)), C, log_mu.exp(), 0
 
     def step(self, state: tuple, z: Tensor) -> tuple[tuple, StepOutput]:
         """One IMM step: :meth:`core` (compiled with ``compile=True``) on the prepared data of the
         state's step, its outputs as a :class:`StepOutput` of batch-first views (batch ``(*B,)``),
         and the next state. ``z`` is the step's measurement, which :meth:`prepare` holds."""
-        x, C, log_mu, k = state
-        (x, C, log_mu, total, X, P, Xp, Pp, log_cbar, ll, singular, Xm, Pm, nu, S) = self._core(
-            x, C, log_mu, self.z_clean[k], self.observed[k], self.any_observed[k], self.z_raw[k])
-        state = (x, C, log_mu, k + 1)
+        x, C, mu, k = state
+        (x, C, log_mu, mu, total, X, P, Xp, Pp, log_cbar, ll, singular, Xm, Pm, nu, S) = self._core(
+            x, C, mu, self.z_clean[k], self.observed[k], self.any_observed[k], self.z_raw[k])
+        state = (x, C, mu, k + 1)
         d, modes, gaussian = self.d, self.modes, self.gaussian
         if self.estimate_only:
             estimate = GaussianBelief(nu.movedim(0, d), S.movedim((0, 1), (d, d + 1)))
