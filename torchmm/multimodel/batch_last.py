@@ -185,7 +185,6 @@ class BatchLastIMM:
         if matrix.dtype != like.dtype:  # the engine's own error for a transition of another dtype
             imm._matrix(like)
         self.matrix = matrix.reshape(M, M, *([1] * d))  # (i, j, 1...)
-        self.transposed = matrix.mT.contiguous()  # (j, i): c = P^T mu as one mm for one batch axis
         self.tiny = torch.finfo(like.dtype).tiny
         self.omitted: frozenset = frozenset()
         self.estimate_only = False
@@ -262,7 +261,9 @@ class BatchLastIMM:
         sym = lambda T, a, c: T[min(a, c)][max(a, c)]  # noqa: E731
         # interaction: c_j = sum_i mu_i pi_ij, mu_{i|j} = pi_ij mu_i / c_j
         mu_i = mu.unsqueeze(1)
-        cbar = torch.mm(self.transposed, mu) if self.d == 1 else (mu_i * self.matrix).sum(0)  # (j, *B)
+        # (elementwise, not mm: BLAS would round by the batch size, and a run's numbers must not
+        # depend on how the runs are chunked: tests/experiments/test_run_streams.py)
+        cbar = (mu_i * self.matrix).sum(0)  # (j, *B)
         w = mu_i * self.matrix / cbar.clamp_min(tiny).unsqueeze(0)  # (i, j, *B)
         xs = [(w * x[a].unsqueeze(1)).sum(0) for a in range(n)]  # mixed means (j, *B)
         D = [x[a].unsqueeze(1) - xs[a].unsqueeze(0) for a in range(n)]  # (i, j, *B)
