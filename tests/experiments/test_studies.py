@@ -183,3 +183,16 @@ def test_joblib_multirun_sweep(tmp_path):
     assert "Joblib" in proc.stdout + proc.stderr
     runs = sorted(json.loads(p.read_text())["config"]["mc_runs"] for p in sweep.glob("*/results.json"))
     assert runs == [2, 3]
+
+
+@pytest.mark.skipif(not __import__("torch").cuda.is_available(), reason="needs CUDA (runs where a GPU is present)")
+@pytest.mark.parametrize("name", EXPERIMENTS)
+def test_experiment_runs_on_cuda(name, tmp_path):
+    """Every study runs with ``device=cuda`` at its debug sizes (the data are simulated on the CPU and
+    moved, so the numbers agree with the CPU record within the Monte Carlo tolerance of 4 runs)."""
+    cfg = _compose(name, *COMMON, "device=cuda", *FAST.get(name, []))
+    run_study(cfg, tmp_path)
+    data = json.loads((tmp_path / "results.json").read_text())
+    assert data["provenance"]["device"].startswith("cuda"), data["provenance"]
+    for table in REQUIRED_TABLES.get(name, {}):
+        assert data["tables"][table]["rows"], f"{table} is empty on CUDA"

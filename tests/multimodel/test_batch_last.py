@@ -229,6 +229,7 @@ def test_taken_only_where_it_applies():
         run_filter(imm, belief0, z, fast_path=True, update_first=True)
     with pytest.raises(ValueError, match="measurements' dtype"):
         run_filter(imm, belief0, z.float(), fast_path=True)
+    assert imm.fast_steps(belief0, z.to("meta")) == "the measurements' device differs from belief0's"
     with pytest.raises(ValueError, match="compile: compiles the fast path, and fast_path=False"):
         run_filter(imm, belief0, z, fast_path=False, compile=True)
     with pytest.raises(TypeError, match="fast_path: expected None, True or False"):

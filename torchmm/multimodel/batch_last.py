@@ -75,6 +75,8 @@ def why_not(imm, belief0, measurements) -> str | None:
         return "the measurements' batch differs from belief0's"
     if measurements.dtype != belief0.mode_log_probs.dtype:
         return "the measurements' dtype differs from belief0's"
+    if measurements.device != belief0.mode_log_probs.device:
+        return "the measurements' device differs from belief0's"
     if belief0.components.mean.shape[-2:] != (M, kf.state_dim):
         return "belief0's components are not (*B, M, n)"
     R = kf.measurement.R
