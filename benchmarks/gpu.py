@@ -35,7 +35,15 @@ import time
 
 import torch
 
-from torchmm import IMM, ConstantVelocity, GaussianBelief, KalmanFilter, ParticleFilter, PositionMeasurement, run_filter
+from torchmm import (
+    IMM,
+    ConstantVelocity,
+    GaussianBelief,
+    KalmanFilter,
+    ParticleFilter,
+    PositionMeasurement,
+    run_filter,
+)
 from torchmm.simulate import simulate_jump_system, simulate_measurements
 
 ACCELERATIONS = [0.25, 0.0, -0.25]

@@ -30,8 +30,8 @@ from hydra.utils import get_method
 from omegaconf import DictConfig, OmegaConf
 
 from experiments.config import ConfigError, precheck, validate
-from experiments.provenance import Provenance
 from experiments.harness import Results, open_context, unique_dir
+from experiments.provenance import Provenance
 from torchmm.runtime import compile_fast_paths, retain_freed_memory
 
 log = logging.getLogger("torchmm.experiments")

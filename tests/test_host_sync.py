@@ -13,7 +13,15 @@ import pytest
 import torch
 
 from tests.robustness.cases import CASES
-from torchmm import IMM, ConstantVelocity, GaussianBelief, KalmanFilter, PositionMeasurement, run_filter, smooth
+from torchmm import (
+    IMM,
+    ConstantVelocity,
+    GaussianBelief,
+    KalmanFilter,
+    PositionMeasurement,
+    run_filter,
+    smooth,
+)
 from torchmm.multimodel import MultiRate
 from torchmm.runtime import HostSyncError, host_reads_ok, no_host_sync
 

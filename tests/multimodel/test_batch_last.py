@@ -264,3 +264,19 @@ def test_process_default_of_compile():
         compile_fast_paths("yes")
     with pytest.raises(TypeError, match="compile: expected None, True or False"):
         run_filter(imm, belief0, z, compile="yes")
+
+
+def test_a_compiler_failure_runs_eagerly_with_a_warning(monkeypatch, caplog):
+    """A machine without a working compiler (inductor needs a C++ compiler on the CPU): compile=True
+    warns once and gives the eager numbers instead of aborting the run."""
+    def broken(fn, **kwargs):
+        def fail(*args, **kw):
+            raise RuntimeError("no C++ compiler found")
+        return fail
+
+    monkeypatch.setattr(torch, "compile", broken)
+    imm, belief0, z = _random_imm(2, 1, 2, (4,), steps=5, seed=9)
+    with caplog.at_level(logging.WARNING, logger="torchmm"):
+        got = run_filter(imm, belief0, z, compile=True)
+    assert caplog.text.count("torch.compile failed for the IMM fast path (RuntimeError: no C++ compiler") == 1
+    assert_same_trajectory(got, run_filter(imm, belief0, z))

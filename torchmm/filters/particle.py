@@ -33,16 +33,16 @@ from torch import Tensor
 from torchmm.beliefs import GaussianBelief, ParticleBelief, psd_sqrt, symmetrize
 from torchmm.beliefs.ops import normalize_log_probs
 from torchmm.filters.base import Filter, StepOutput
-from torchmm.linalg import any_observed, cholesky
-from torchmm.runtime import host_reads_ok
 from torchmm.filters.resampling import (
     RESAMPLING_SCHEMES,
     apply_indices,
     resample,
     resample_where_needed,
 )
+from torchmm.linalg import any_observed, cholesky
 from torchmm.models.base import MeasurementModel, MotionModel, check_model_pair
 from torchmm.models.linear import LinearMeasurement, LinearMotion
+from torchmm.runtime import host_reads_ok
 from torchmm.validation import (
     as_float,
     as_int,

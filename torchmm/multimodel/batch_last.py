@@ -2,23 +2,24 @@ r"""The IMM over linear Kalman modes in the batch-last layout: the engine's fast
 
 :func:`~torchmm.run_filter` runs an :class:`~torchmm.IMM` over one :class:`~torchmm.KalmanFilter`
 with mode-bank linear models through this kernel (docs/performance.md). The public layout stays
-batch-first; inside, the state is kept with the batch axes *last*:
+batch-first; inside, the state is kept with the batch axes *last*, one tensor ``(M, *B)`` per entry:
+the mode means ``x[a]``, the covariances' upper triangle ``C[a][c]`` (``a <= c``) and the mode
+probabilities. Model matrices are classified entry by entry once per run (exactly 0 or 1 in every
+mode: skipped or added, bit-identical; one number shared by the modes; a tensor per mode).
 
-- mode means ``X (n, M, *B)``, covariances ``P (n, n, M, *B)``, mode log-probabilities ``(M, *B)``;
-- model parameters as ``(n, n, M, 1, ...)`` (a mode bank) or ``(n, n, 1, 1, ...)``.
-
-Every small matrix product (``F C F^T``, ``P h``, the mixing sums) is then a broadcast elementwise
-product over the leading small axes and a sum over one of them: one contiguous pass over all runs
-and modes, where the batch-first engine calls ``bmm`` on ``2 x 2`` matrices and broadcasts over a
-trailing ``(n, n)``. The step computes what :meth:`IMM.step` does, in the same order:
+Every small matrix product (``F C F^T``, ``P h``, the mixing sums) is then a short sum of
+elementwise products, each one contiguous pass over all runs and modes, where the batch-first
+engine calls ``bmm`` on ``2 x 2`` matrices and broadcasts over a trailing ``(n, n)``. The step
+computes what :meth:`IMM.step` does, in the same order:
 
 - mixing ``mu_{i|j} = pi_ij mu_i / c_j`` and the moment-matched start beliefs (centred spread);
 - each mode's prediction ``F_j m + b_j``, ``F_j C F_j^T + Q_j``;
 - the update one measurement component after the other, exact for a diagonal ``R`` (the only case
   taken; anything else runs the batch-first engine): ``s = h P h^T + r``, ``K = P h^T / s``,
-  ``P+ = P - K (P h^T)^T`` symmetrised, ``s`` clamped at the smallest normal number and flagged as
-  in :func:`torchmm.linalg.condition`. A non-finite component is skipped (missing data, exact);
-- the mode posterior in log space (:func:`~torchmm.multimodel.imm.mode_posterior`).
+  ``P+ = P - K (P h^T)^T`` (one triangle: symmetric by construction), ``s`` clamped at the
+  smallest normal number and flagged as in :func:`torchmm.linalg.condition`. A component whose
+  datum is non-finite is skipped (missing data, exact; the masks are computed once per run);
+- the mode posterior in log space (:func:`~torchmm.multimodel.imm.mode_posterior`, in fewer passes).
 
 Every :class:`~torchmm.filters.StepOutput` field (prior, innovations, ``extras``: ``mixed``,
 ``mode_log_likelihood``, ``modes.singular``) is returned as a batch-first *view* of the batch-last
@@ -28,6 +29,7 @@ and cost nothing until :func:`~torchmm.run.stack_outputs` stacks what ``record``
 
 from __future__ import annotations
 
+import logging
 import math
 
 import torch
@@ -42,16 +44,19 @@ __all__ = ["BatchLastIMM", "why_not"]
 
 _LOG_2PI = math.log(2 * math.pi)
 
+log = logging.getLogger("torchmm")
+
 
 def why_not(imm, belief0, measurements) -> str | None:
     """Why the IMM ``imm`` (moment mixing, a vectorised bank: checked by the caller) cannot run on
     this kernel (a short reason), or None if it can.
 
     Shapes and types only, plus one look at ``R``'s off-diagonal values (the entry point's value
-    check, once per run). The reasons: a bank filter other than one :class:`~torchmm.KalmanFilter` with :class:`~torchmm.LinearMotion` (no control input) and
-    :class:`~torchmm.LinearMeasurement` models whose parameter batch is ``()`` or ``(M,)``; the Joseph
-    form; a non-diagonal ``R``; a belief that is not the ``ModeBelief`` of Gaussians of
-    ``imm.initial_belief``; measurements that are not one tensor ``(T, *B, m)`` of the belief's dtype.
+    check, once per run). The reasons: a bank filter other than one :class:`~torchmm.KalmanFilter`
+    with :class:`~torchmm.LinearMotion` (no control input) and :class:`~torchmm.LinearMeasurement`
+    models whose parameter batch is ``()`` or ``(M,)``; the Joseph form; a non-diagonal ``R``; a
+    belief that is not the ``ModeBelief`` of Gaussians of ``imm.initial_belief``; measurements that
+    are not one tensor ``(T, *B, m)`` of the belief's dtype and device.
     """
     kf = imm.bank.filter
     if type(kf) is not KalmanFilter:
@@ -347,8 +352,17 @@ class BatchLastIMM:
         state's step, its outputs as a :class:`StepOutput` of batch-first views (batch ``(*B,)``),
         and the next state. ``z`` is the step's measurement, which :meth:`prepare` holds."""
         x, C, mu, k = state
-        (x, C, log_mu, mu, total, X, P, Xp, Pp, log_cbar, ll, singular, Xm, Pm, nu, S) = self._core(
-            x, C, mu, self.z_clean[k], self.observed[k], self.any_observed[k], self.z_raw[k])
+        args = (x, C, mu, self.z_clean[k], self.observed[k], self.any_observed[k], self.z_raw[k])
+        try:
+            out = self._core(*args)
+        except Exception as error:  # noqa: BLE001 (a compiler failure: run eagerly, say so once)
+            if self._core is self.core:
+                raise
+            log.warning("compile: torch.compile failed for the IMM fast path (%s: %s); running it eagerly",
+                        type(error).__name__, str(error).splitlines()[0][:200] if str(error) else "")
+            self._core = self.core
+            out = self._core(*args)
+        (x, C, log_mu, mu, total, X, P, Xp, Pp, log_cbar, ll, singular, Xm, Pm, nu, S) = out
         state = (x, C, mu, k + 1)
         d, modes, gaussian = self.d, self.modes, self.gaussian
         if self.estimate_only:

@@ -28,9 +28,9 @@ from torch import Tensor
 from torchmm.beliefs import Belief, ModeBelief
 from torchmm.filters.base import FastSteps, Filter, StepOutput
 from torchmm.linalg import any_observed
+from torchmm.models.transition import as_transition
 from torchmm.multimodel.bank import VectorizedBank, make_bank
 from torchmm.multimodel.batch_last import BatchLastIMM, why_not
-from torchmm.models.transition import as_transition
 from torchmm.validation import (
     check_filter_dtype,
     check_measurement,
