@@ -136,7 +136,9 @@ def run_filter(
             unless set), for runs that have a fast path.
 
     Returns:
-        :class:`Trajectory` with every kept field stacked on a leading time axis.
+        :class:`Trajectory` with every kept field stacked on a leading time axis. The shapes are
+        batch-first; the memory need not be (a fast path's fields are permuted views of its own
+        layout), so reshape them with ``reshape``, not ``view``.
 
     Raises:
         ValueError / TypeError: naming ``belief0``, ``measurements`` or ``controls``, checked once
