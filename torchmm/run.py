@@ -126,7 +126,7 @@ def run_filter(
             output) and the log-likelihood; the fast path then computes the estimate inside its step.
         progress: show a tqdm bar (a string is used as its description).
         fast_path: run the filter's whole-run kernel (:meth:`~torchmm.filters.Filter.fast_steps`;
-            e.g. the IMM over linear Kalman modes in a batch-last layout, docs/performance.md), which
+            e.g. IMM and GPB1 over linear Kalman modes in a batch-last layout, docs/performance.md), which
             returns what the steps return, to rounding. None (default): where the filter has one and
             the run has no ``controls``, ``motions``, ``sensors`` or ``update_first``; True: always
             (a ``ValueError`` naming ``fast_path`` says why not where it cannot); False: never.

@@ -1,5 +1,5 @@
-"""The engine's fast path (torchmm/multimodel/batch_last.py): run_filter's IMM over linear Kalman
-modes in the batch-last layout returns what the batch-first steps return - every Trajectory field,
+"""The engine's fast path (torchmm/multimodel/batch_last.py): run_filter's IMM (and GPB1) over linear
+Kalman modes in the batch-last layout returns what the batch-first steps return - every Trajectory field,
 for random banks of every small size, per-mode and shared parameters, exact zeros and ones,
 missing components, batch shapes (), (B,) and (B1, B2), float32, gradients, record="estimate",
 compiled - and it is taken only where it applies."""
@@ -15,6 +15,7 @@ import torch.utils._pytree as pytree
 
 from torchmm import (
     GPB1,
+    GPB2,
     IMM,
     ConstantVelocity,
     GaussianBelief,
@@ -89,6 +90,18 @@ def test_every_field_equals_the_batch_first_steps(n, m, M):
     imm, belief0, z = _random_imm(n, m, M, (7,), steps=12, seed=10 * n + 3 * m + M)
     assert run_filter(imm, belief0, z, fast_path=True) is not None  # the fast path applies
     assert_same_trajectory(run_filter(imm, belief0, z), run_filter(imm, belief0, z, fast_path=False))
+
+
+@pytest.mark.parametrize("n,m,M", [(1, 1, 2), (2, 1, 3), (3, 2, 2), (4, 2, 3)])
+@pytest.mark.parametrize("shared", [False, True])
+def test_gpb1_every_field_equals_the_batch_first_steps(n, m, M, shared):
+    """GPB1 (every mode starts from the one collapsed posterior) takes the same kernel."""
+    imm, belief0, z = _random_imm(n, m, M, (6,), steps=10, seed=5 * n + m + M, shared=shared)
+    gpb1 = GPB1(imm.bank.filter, imm.transition.matrix())
+    assert not isinstance(gpb1.fast_steps(belief0, z), str)
+    got = run_filter(gpb1, belief0, z, fast_path=True)
+    assert_same_trajectory(got, run_filter(gpb1, belief0, z, fast_path=False))
+    assert got.extras["mixed"].components.mean.shape == (10, 6, M, n)
 
 
 @pytest.mark.parametrize("batch", [(), (5,), (2, 3)])
@@ -211,8 +224,8 @@ def test_taken_only_where_it_applies():
     cases = {
         "R is not diagonal": IMM(KalmanFilter(kf.motion, LinearMeasurement(kf.measurement.H, full)),
                                  imm.transition.matrix()),
-        "GPB1 has no fast path": GPB1(kf, imm.transition.matrix()),
-        "only IMM itself": _MyIMM(kf, imm.transition.matrix()),
+        "GPB2 has no fast path": GPB2(kf, imm.transition.matrix()),
+        "_MyIMM has no fast path": _MyIMM(kf, imm.transition.matrix()),
         "not one filter with mode-bank models": IMM(_list_bank(imm), imm.transition.matrix()),
         "the Joseph form": IMM(KalmanFilter(kf.motion, kf.measurement, joseph=True), imm.transition.matrix()),
         "not a KalmanFilter": IMM(ExtendedKalmanFilter(kf.motion, kf.measurement), imm.transition.matrix()),
@@ -254,7 +267,7 @@ def test_process_default_of_compile():
     previous = compile_fast_paths(True)
     try:
         assert fast_paths_compiled()
-        gpb = GPB1(imm.bank.filter, imm.transition.matrix())  # no fast path: runs its steps, no error
+        gpb = GPB2(imm.bank.filter, imm.transition.matrix())  # no fast path: runs its steps, no error
         assert_same_trajectory(run_filter(gpb, belief0, z), run_filter(gpb, belief0, z, compile=False))
         with pytest.raises(ValueError, match="compile: compiles the fast path, which this run has not"):
             run_filter(gpb, belief0, z, compile=True)  # asked for explicitly: an error

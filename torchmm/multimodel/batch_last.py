@@ -1,4 +1,4 @@
-r"""The IMM over linear Kalman modes in the batch-last layout: the engine's fast path (issue 17).
+r"""The IMM (and GPB1) over linear Kalman modes in the batch-last layout: the engine's fast path (issue 17).
 
 :func:`~torchmm.run_filter` runs an :class:`~torchmm.IMM` over one :class:`~torchmm.KalmanFilter`
 with mode-bank linear models through this kernel (docs/performance.md). The public layout stays
@@ -13,6 +13,7 @@ engine calls ``bmm`` on ``2 x 2`` matrices and broadcasts over a trailing ``(n, 
 computes what :meth:`IMM.step` does, in the same order:
 
 - mixing ``mu_{i|j} = pi_ij mu_i / c_j`` and the moment-matched start beliefs (centred spread);
+  for :class:`~torchmm.GPB1` the collapse with weights ``mu_i``, one start belief for every mode;
 - each mode's prediction ``F_j m + b_j``, ``F_j C F_j^T + Q_j``;
 - the update one measurement component after the other, exact for a diagonal ``R`` (the only case
   taken; anything else runs the batch-first engine): ``s = h P h^T + r``, ``K = P h^T / s``,
@@ -173,10 +174,12 @@ class BatchLastIMM:
         batch_dims: the number of batch axes ``len(B)``.
         like: a tensor of the run's dtype and device.
         normalize: :func:`~torchmm.multimodel.imm.safe_log_normalize` (passed in: imm imports this module).
+        collapse: the GPB1 interaction (every mode starts from the collapsed posterior) instead of
+            the IMM's mixing.
     """
 
-    def __init__(self, imm, batch_dims: int, like: Tensor, normalize):
-        self.normalize = normalize
+    def __init__(self, imm, batch_dims: int, like: Tensor, normalize, collapse: bool = False):
+        self.normalize, self.collapse = normalize, collapse
         kf = imm.bank.filter
         M, d = imm.num_modes, batch_dims
         self.M, self.n, self.m, self.d = M, kf.state_dim, kf.meas_dim, d
@@ -271,27 +274,33 @@ class BatchLastIMM:
         # (elementwise, not mm: BLAS would round by the batch size, and a run's numbers must not
         # depend on how the runs are chunked: tests/experiments/test_run_streams.py)
         cbar = (mu_i * self.matrix).sum(0)  # (j, *B)
-        w = mu_i * self.matrix / cbar.clamp_min(tiny).unsqueeze(0)  # (i, j, *B)
+        if self.collapse:  # GPB1: every mode starts from the one collapsed posterior, w_i = mu_i
+            w = mu_i  # (i, 1, *B)
+        else:  # IMM: mu_{i|j} = pi_ij mu_i / c_j
+            w = mu_i * self.matrix / cbar.clamp_min(tiny).unsqueeze(0)  # (i, j, *B)
         xs = [(w * x[a].unsqueeze(1)).sum(0) for a in range(n)]  # mixed means (j, *B)
         D = [x[a].unsqueeze(1) - xs[a].unsqueeze(0) for a in range(n)]  # (i, j, *B)
         wD = [w * D[a] for a in range(n)]
         Cm = [[None] * n for _ in range(n)]
         for a, c in upper:  # sum_i w_ij (P_i + d_ij d_ij^T)
             Cm[a][c] = torch.addcmul(w * C[a][c].unsqueeze(1), wD[a], D[c]).sum(0)
+        if self.collapse:  # the one start belief, seen by every mode (views)
+            xs = [t.expand_as(cbar) for t in xs]
+            Cm = [[None if t is None else t.expand_as(cbar) for t in row] for row in Cm]
         # prediction: x- = F m + b, P- = F C F^T + Q
-        xp = [_linear([(F[a][e], xs[e]) for e in range(n)], b[a], xs[0]) for a in range(n)]
-        A = [[_linear([(F[a][e], sym(Cm, e, c)) for e in range(n)], _ZERO, xs[0]) for c in range(n)]
+        xp = [_linear([(F[a][e], xs[e]) for e in range(n)], b[a], cbar) for a in range(n)]
+        A = [[_linear([(F[a][e], sym(Cm, e, c)) for e in range(n)], _ZERO, cbar) for c in range(n)]
              for a in range(n)]  # F C
         Pp = [[None] * n for _ in range(n)]
         for a, c in upper:
-            Pp[a][c] = _linear([(F[c][e], A[a][e]) for e in range(n)], Q[a][c], xs[0])
+            Pp[a][c] = _linear([(F[c][e], A[a][e]) for e in range(n)], Q[a][c], cbar)
         # update, one component at a time (diagonal R); a missing component has ob = 0, zc = 0
         xu, Cu = xp, Pp
         ll = singular = s_first = None
         for k in range(m):
-            g = [_linear([(H[k][c], sym(Cu, a, c)) for c in range(n)], _ZERO, xs[0]) for a in range(n)]  # P h^T
-            s_raw = _linear([(H[k][a], g[a]) for a in range(n)], r[k], xs[0])  # (M, *B)
-            nu = zc[k] - _linear([(H[k][a], xu[a]) for a in range(n)], _ZERO, xs[0])
+            g = [_linear([(H[k][c], sym(Cu, a, c)) for c in range(n)], _ZERO, cbar) for a in range(n)]  # P h^T
+            s_raw = _linear([(H[k][a], g[a]) for a in range(n)], r[k], cbar)  # (M, *B)
+            nu = zc[k] - _linear([(H[k][a], xu[a]) for a in range(n)], _ZERO, cbar)
             s = s_raw.clamp_min(tiny)
             ratio = ob[k] / s
             gain = [g[a] * ratio for a in range(n)]

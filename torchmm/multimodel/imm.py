@@ -306,6 +306,25 @@ class MultipleModelFilter(Filter):
         out.extras["mixed"] = mixed
         return out
 
+    def fast_steps(self, belief0, measurements, *, compile: bool = False) -> FastSteps | str:  # noqa: A002
+        """For :class:`IMM` (moment mixing) and :class:`GPB1` (collapse) over linear Kalman modes: the
+        batch-last kernel (``torchmm/multimodel/batch_last.py``, docs/performance.md) for
+        :func:`~torchmm.run_filter`; otherwise the reason it does not apply."""
+        kind = type(self)
+        if kind not in (IMM, GPB1) or type(self.interaction) is not kind.default_interaction:
+            return f"{kind.__name__} has no fast path (IMM and GPB1 themselves, with their own interactions, do)"
+        if type(self.bank) is not VectorizedBank:
+            return "the bank is not one filter with mode-bank models"
+        reason = why_not(self, belief0, measurements)
+        if reason is not None:
+            return reason
+        like = belief0.mode_log_probs
+        kernel = BatchLastIMM(self, like.dim() - 1, like, safe_log_normalize, collapse=kind is GPB1)
+        if compile:
+            kernel.compile()
+        kernel.prepare(measurements)
+        return FastSteps(kernel.initial_state(belief0), kernel.step, kernel.omit)
+
 
 class IMM(MultipleModelFilter):
     r"""Interacting multiple model estimator (Blom and Bar-Shalom 1988) over any filter bank.
@@ -338,23 +357,6 @@ class IMM(MultipleModelFilter):
     """
 
     default_interaction = MomentMixing
-
-    def fast_steps(self, belief0, measurements, *, compile: bool = False) -> FastSteps | str:  # noqa: A002
-        """The batch-last kernel over linear Kalman modes (``torchmm/multimodel/batch_last.py``,
-        docs/performance.md) for :func:`~torchmm.run_filter`, or the reason it does not apply."""
-        if type(self) is not IMM or type(self.interaction) is not MomentMixing:
-            return "only IMM itself, with moment mixing, has a fast path"
-        if type(self.bank) is not VectorizedBank:
-            return "the bank is not one filter with mode-bank models"
-        reason = why_not(self, belief0, measurements)
-        if reason is not None:
-            return reason
-        like = belief0.mode_log_probs
-        kernel = BatchLastIMM(self, like.dim() - 1, like, safe_log_normalize)
-        if compile:
-            kernel.compile()
-        kernel.prepare(measurements)
-        return FastSteps(kernel.initial_state(belief0), kernel.step, kernel.omit)
 
 
 class StaticMM(MultipleModelFilter):
