@@ -42,7 +42,7 @@ def mix_gaussians(mean: Tensor, cov: Tensor, weights: Tensor) -> tuple[Tensor, T
         -> mean ``(*B, J, n)``, cov ``(*B, J, n, n)``
     """
     n = mean.shape[-1]
-    if mean.dim() > 2 and mean.stride(-1) > mean.stride(-3) and cov.stride(-1) > cov.stride(-4):
+    if mean.dim() > 2 and mean.stride(-1) > mean.stride(-3) > 0 and cov.stride(-1) > cov.stride(-4) > 0:
         # batch-last memory (the outputs of torchmm/multimodel/batch_last.py): elementwise passes run
         # along the contiguous batch axis; bmm would first transpose every operand
         w = weights.unsqueeze(-1)  # (*B, K, J, 1)

@@ -17,13 +17,12 @@ the default of calls that pass none.
 
 All-underflow guard: if every weight of a batch element is zero (``-inf`` log-weight, e.g. a
 measurement impossible under every particle, or NaN likelihoods), that element keeps its prior
-weights, the step reports ``extras["degenerate"] = True`` and ``log_likelihood = -inf`` for it, a
-warning is logged, and no NaN is produced.
+weights, the step reports ``extras["degenerate"] = True`` and ``log_likelihood = -inf`` for it,
+:func:`~torchmm.run_filter` logs one warning per run with the count, and no NaN is produced.
 """
 
 from __future__ import annotations
 
-import logging
 import math
 import weakref
 
@@ -70,7 +69,6 @@ __all__ = [
     "standard_normal",
 ]
 
-log = logging.getLogger("torchmm")
 
 def noise_factor(cov: Tensor, rtol: float = 1e-10) -> Tensor:
     """A factor ``L`` with ``L L^T = cov``, dropping null directions shared by every matrix.
@@ -182,17 +180,19 @@ def propagate_particles(motion: MotionModel, particles: Tensor, *, u: Tensor | N
     factor = _cached_noise_factor(motion.noise_cov())  # (*P, n, r), shared by the particles of a set
     eps = standard_normal((*particles.shape[:-1], factor.shape[-1]), particles, generator=generator,
                           noise_dtype=noise_dtype)
-    if isinstance(motion, LinearMotion) and factor.dim() == 2 and particles.dim() >= 3:
+    offset = motion.offset.unsqueeze(-2) if isinstance(motion, LinearMotion) else None
+    if (offset is not None and factor.dim() == 2 and particles.dim() >= 3
+            and broadcast_shape(offset.shape, particles.shape) == particles.shape):
         # the offset and the noise in one batched GEMM over the particle sets: C + eps L^T with the
         # (small) offset as a stride-0 C; the same numbers as `linear` then `add_`, 25 % faster
-        noise = _affine_rows(eps, factor, motion.offset.unsqueeze(-2), particles.shape)
+        noise = _affine_rows(eps, factor, offset, particles.shape)
     else:
         # x @ A^T with an unbatched A as `linear` (a contiguous operand: ~3x faster than a matmul with
         # the transposed view for millions of rows on CPU)
         noise = torch.nn.functional.linear(eps, factor.contiguous()) if factor.dim() == 2 else eps @ factor.mT
-        if isinstance(motion, LinearMotion):
-            noise = _add(noise, motion.offset.unsqueeze(-2))
-    if isinstance(motion, LinearMotion):
+        if offset is not None:
+            noise = _add(noise, offset)
+    if offset is not None:
         if u is not None:
             if motion.input_matrix is None:
                 raise ValueError("u: this LinearMotion has no input_matrix")
@@ -283,8 +283,9 @@ def particle_log_likelihood(measurement: MeasurementModel, z: Tensor, particles:
         if cov.dim() == 2:
             inv, logdet = _whitening(cov)
             weights, shift = (inv @ measurement.H).contiguous(), -(z @ inv.mT).unsqueeze(-2)
-            if particles.dim() >= 3:  # C + x W^T in one batched GEMM (as in propagate_particles)
-                white = _affine_rows(particles, weights, shift, (*particles.shape[:-1], z.shape[-1]))
+            shape = (*particles.shape[:-1], z.shape[-1])
+            if particles.dim() >= 3 and broadcast_shape(shift.shape, shape) == shape:
+                white = _affine_rows(particles, weights, shift, shape)  # C + x W^T, one batched GEMM
             else:
                 white = _add(torch.nn.functional.linear(particles, weights), shift)  # (*B, Np, m)
             m = z.shape[-1]
@@ -345,10 +346,10 @@ def particle_batch(belief, state_dim: int, name: str = "belief") -> torch.Size:
     return belief.log_weights.shape[:-1]
 
 
-def degenerate_guard(log_evidence: Tensor, where: str) -> Tensor:
+def degenerate_guard(log_evidence: Tensor) -> Tensor:
     """``(*B,)`` True where every particle weight vanished (the evidence is not finite): the update
     keeps the prior weights there (``extras["degenerate"]``). No host read in the step:
-    :func:`~torchmm.run_filter` warns once per run with the count (``where`` is kept for callers)."""
+    :func:`~torchmm.run_filter` warns once per run with the count."""
     return ~torch.isfinite(log_evidence)
 
 
@@ -471,7 +472,7 @@ class ParticleFilter(Filter):
         joint = prior_log_w + loglik
         log_evidence = torch.logsumexp(joint, dim=-1)
         log_evidence = torch.where(any_observed(z), log_evidence, 0.0)  # exactly 0 without a datum
-        degenerate = degenerate_guard(log_evidence, "ParticleFilter.update")
+        degenerate = degenerate_guard(log_evidence)
         post_log_w = torch.where(degenerate.unsqueeze(-1), prior_log_w, joint - log_evidence.unsqueeze(-1))
         posterior = ParticleBelief(belief.particles, post_log_w)
         posterior, resampled, ess = resample_where_needed(posterior, self.ess_threshold, self.resampling,

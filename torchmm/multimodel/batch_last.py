@@ -30,6 +30,7 @@ and cost nothing until :func:`~torchmm.run.stack_outputs` stacks what ``record``
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 
@@ -122,7 +123,7 @@ def _coefficients(t: Tensor, M: int, event: int, batch_dims: int) -> list:
     if not traced:
         values = t.detach().cpu()  # one host read, at the entry point
     flat = []
-    for index in torch.cartesian_prod(*[torch.arange(s) for s in t.shape[1:]]).reshape(-1, event).tolist():
+    for index in itertools.product(*(range(size) for size in t.shape[1:])):
         entry = front[tuple(index)]
         if traced:
             flat.append(_Coef("tensor", entry))

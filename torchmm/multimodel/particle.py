@@ -371,7 +371,7 @@ class MultipleModelParticleFilter(MultipleModelFilter):
         per_model = torch.logsumexp(joint, dim=-1)
         log_evidence = torch.logsumexp(per_model, dim=-1)
         log_evidence = torch.where(any_observed(z), log_evidence, 0.0)  # exactly 0 without a datum
-        degenerate = degenerate_guard(log_evidence, type(self).__name__)
+        degenerate = degenerate_guard(log_evidence)
         # applied whether or not a run degenerated (no host synchronisation)
         joint = torch.where(degenerate[..., None, None], prior_within + prior_mode.unsqueeze(-1), joint)
         per_model = torch.where(degenerate[..., None], prior_mode, per_model)
