@@ -54,10 +54,17 @@ class Trajectory:
 
 def stack_outputs(outputs: list) -> Any:
     """Stack a list of equally structured pytrees (e.g. StepOutputs) along a new leading axis."""
-    flat, specs = zip(*(pytree.tree_flatten(o) for o in outputs))
-    spec = specs[0]
-    if any(s != spec for s in specs[1:]):
+    flat, structures = [], []
+    for output in outputs:  # pytree.tree_flatten's leaves, without its per-node work at every step
+        leaves, structure = [], []
+        _flatten(output, leaves, structure)
+        flat.append(leaves)
+        structures.append(structure)
+    if any(s != structures[0] for s in structures[1:]):
         raise ValueError("outputs: step outputs differ in structure between time steps")
+    spec = pytree.tree_structure(outputs[0])
+    if spec.num_leaves != len(flat[0]):  # a node type this flattening does not know as pytree does
+        flat = [pytree.tree_leaves(o) for o in outputs]
     leaves = []
     for column in zip(*flat):
         if column[0] is None:
@@ -66,6 +73,33 @@ def stack_outputs(outputs: list) -> Any:
         shape = broadcast_shape(*(t.shape for t in column))
         leaves.append(_stack_in_memory_order([t.expand(shape) for t in column]))
     return pytree.tree_unflatten(leaves, spec)
+
+
+_NODES: dict = {}
+
+
+def _node(cls: type) -> Any:
+    """pytree's node (flatten function) for instances of ``cls``, or None for a leaf (cached)."""
+    try:
+        return _NODES[cls]
+    except KeyError:
+        key = pytree.namedtuple if cls not in pytree.SUPPORTED_NODES and pytree.is_namedtuple_class(cls) else cls
+        node = _NODES[cls] = pytree.SUPPORTED_NODES.get(key)
+        return node
+
+
+def _flatten(tree: Any, leaves: list, structure: list) -> None:
+    """Append ``tree``'s leaves to ``leaves`` in ``pytree.tree_flatten``'s order, and a description
+    of its nodes (type, context, number of children; for a leaf, whether it is None) to ``structure``."""
+    node = _node(type(tree))
+    if node is None:
+        leaves.append(tree)
+        structure.append(tree is None)  # a field that is None at one step and not at another differs
+        return
+    children, context = node.flatten_fn(tree)
+    structure.append((type(tree), context, len(children)))
+    for child in children:
+        _flatten(child, leaves, structure)
 
 
 def _stack_in_memory_order(tensors: list) -> Tensor:
@@ -227,8 +261,9 @@ def run_filter(
         state = fast.state
         if estimate_only and fast.omit is not None:
             fast.omit(frozenset(StepOutput._fields) - {"belief", "log_likelihood"}, estimate=True)
+        data = measurements.unbind(0)  # (one op for the run: indexing is a dispatch per step)
         for k in iterator:
-            state, out = fast.step(state, measurements[k])
+            state, out = fast.step(state, data[k])
             kept.append(out if record is None else record(out))
             if (k == 0 and not estimate_only and record is not None and fast.omit is not None
                     and isinstance(kept[0], StepOutput)):  # what record drops need not be built

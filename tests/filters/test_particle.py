@@ -350,3 +350,22 @@ def test_retain_freed_memory_is_idempotent():
     assert proc.returncode == 0, proc.stderr[-2000:]
     first, second, total = proc.stdout.split()
     assert first == second and first in ("True", "False") and float(total) == 2.0 * (1 << 23)
+
+
+@pytest.mark.parametrize("num", [1, 5, 16, 17, 33, 1000])
+@pytest.mark.parametrize("d", [1, 2, 4, 7, 70])
+def test_repeat_rows_and_affine_rows_are_exact(num, d):
+    """The tiled broadcast copy and the in-place batched GEMM give the bits of a plain broadcast
+    copy and of torch.baddbmm with the stride-0 offset."""
+    from torchmm.filters.particle import _affine_rows, _repeat_rows
+
+    g = torch.Generator().manual_seed(num * 100 + d)
+    c = torch.randn(6, 1, d, dtype=torch.float64, generator=g)
+    out = _repeat_rows(c, num)
+    assert out.is_contiguous() and torch.equal(out, c.expand(6, num, d))
+    x = torch.randn(2, 3, num, 3, dtype=torch.float64, generator=g)
+    A = torch.randn(d, 3, dtype=torch.float64, generator=g)
+    offset = c.view(2, 3, 1, d)
+    expected = torch.baddbmm(offset.reshape(6, 1, d).expand(6, num, d), x.reshape(6, num, 3), A.mT.expand(6, 3, d))
+    got = _affine_rows(x, A, offset, (2, 3, num, d))
+    assert got.shape == (2, 3, num, d) and torch.equal(got, expected.view(2, 3, num, d))

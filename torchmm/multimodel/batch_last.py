@@ -197,6 +197,11 @@ class BatchLastIMM:
             imm._matrix(like)
         self.matrix = matrix.reshape(M, M, *([1] * d))  # (i, j, 1...)
         self.tiny = torch.finfo(like.dtype).tiny
+        # batch-last -> batch-first as one permute each (movedim costs twice the dispatch, every step)
+        self._to_front1 = (*range(1, d + 1), 0)  # (k, *B) -> (*B, k)
+        self._to_front2 = (*range(2, d + 2), 0, 1)  # (a, c, *B) -> (*B, a, c)
+        self._to_front_x = (*range(2, d + 2), 1, 0)  # (n, M, *B) -> (*B, M, n)
+        self._to_front_p = (*range(3, d + 3), 2, 0, 1)  # (n, n, M, *B) -> (*B, M, n, n)
         self.omitted: frozenset = frozenset()
         self.estimate_only = False
         self._core = self.core
@@ -233,14 +238,19 @@ class BatchLastIMM:
         n = self.n
         return torch.stack([C[min(a, c)][max(a, c)] for a in range(n) for c in range(n)]).unflatten(0, (n, n))
 
+    def entries(self, P: Tensor) -> list:
+        """``P (n, n, ...)`` as nested lists of views ``C[a][c]``."""
+        n = self.n
+        flat = P.flatten(0, 1).unbind(0)
+        return [flat[a * n:(a + 1) * n] for a in range(n)]
+
     def gaussian(self, X: Tensor, P: Tensor) -> GaussianBelief:
         """Batch-first views ``(*B, M, n)`` and ``(*B, M, n, n)`` of batch-last ``X (n, M, *B)``, ``P (n, n, M, *B)``."""
-        d = self.d
-        return GaussianBelief(X.movedim((1, 0), (d, d + 1)), P.movedim((2, 0, 1), (d, d + 1, d + 2)))
+        return GaussianBelief(X.permute(self._to_front_x), P.permute(self._to_front_p))
 
     def modes(self, t: Tensor) -> Tensor:
         """``(M, *B)`` -> ``(*B, M)`` (a view)."""
-        return t.movedim(0, self.d)
+        return t.permute(self._to_front1)
 
     # -- the step ---------------------------------------------------------------------------------
     def prepare(self, measurements: Tensor) -> None:
@@ -248,46 +258,49 @@ class BatchLastIMM:
         (non-finite) set to 0 and their masks, so that no step tests its data."""
         z = measurements.movedim(-1, 1)
         observed = torch.isfinite(z)
-        self.z_raw = z
-        self.z_clean = torch.where(observed, z, 0.0)
-        self.observed = observed.to(z.dtype)  # 1 observed, 0 missing
-        self.any_observed = observed.any(1)  # (T, *B)
+        ob = observed.to(z.dtype)  # 1 observed, 0 missing
+        # the step's tensors, split once per run (indexing them is a dispatch each, every step)
+        self.data = list(zip(torch.where(observed, z, 0.0).unbind(0), ob.unbind(0), ob.mul(-0.5).unbind(0),
+                             observed.any(1).unbind(0), z.unbind(0)))
         self.zero = torch.zeros((), dtype=z.dtype, device=z.device)
 
-    def core(self, x: list, C: list, mu: Tensor, zc: Tensor, ob: Tensor, anyob: Tensor, zraw: Tensor) -> tuple:
+    def core(self, X: Tensor, P: Tensor, mu: Tensor, zc: Tensor, ob: Tensor, nhob: Tensor, anyob: Tensor,
+             zraw: Tensor) -> tuple:
         """The step's arithmetic, tensors in and out (what ``compile=True`` compiles).
 
         Shapes:
-            x: ``n`` tensors ``(M, *B)``; C: nested lists, ``C[a][c]`` ``(M, *B)`` for ``a <= c``;
-            mu: the mode probabilities ``(M, *B)``; zc, ob, zraw ``(m, *B)`` (the data with 0 where missing, the observed
-            mask, the data); anyob ``(*B,)`` -> the new ``x, C, log_mu, mu``, the log-likelihood ``(*B,)``,
-            then (None where not needed) the posterior ``X (n, M, *B), P (n, n, M, *B)``, the
-            predicted ones, ``log c (M, *B)``, the mode log-likelihoods and singular flags ``(M, *B)``,
-            the mixed ``X0, P0``, the innovations ``(m, M, *B)`` and their covariances
-            ``(m, m, M, *B)`` (``estimate_only``: the estimate ``(n, *B)``, ``(n, n, *B)`` in these two).
+            X: the mode means ``(n, M, *B)``; P: their covariances ``(n, n, M, *B)`` (exactly
+            symmetric); mu: the mode probabilities ``(M, *B)``; zc, ob, nhob, zraw ``(m, *B)`` (the
+            data with 0 where missing, the observed mask, ``-0.5`` times it, the data); anyob
+            ``(*B,)`` -> the new ``X, P, log_mu, mu``, the log-likelihood ``(*B,)``, then (None where
+            not needed) the predicted ``X, P``, ``log c (M, *B)``, the mode log-likelihoods and
+            singular flags ``(M, *B)``, the mixed ``X0, P0``, the innovations ``(m, M, *B)`` and
+            their covariances ``(m, m, M, *B)`` (``estimate_only``: the estimate ``(n, *B)``,
+            ``(n, n, *B)`` in these two).
         """
         n, m, tiny, omitted = self.n, self.m, self.tiny, self.omitted
         F, Q, b, H, r = self.F, self.Q, self.b, self.H, self.r
         upper = [(a, c) for a in range(n) for c in range(a, n)]
         sym = lambda T, a, c: T[min(a, c)][max(a, c)]  # noqa: E731
         # interaction: c_j = sum_i mu_i pi_ij, mu_{i|j} = pi_ij mu_i / c_j
-        mu_i = mu.unsqueeze(1)
         # (elementwise, not mm: BLAS would round by the batch size, and a run's numbers must not
         # depend on how the runs are chunked: tests/experiments/test_run_streams.py)
-        cbar = (mu_i * self.matrix).sum(0)  # (j, *B)
+        mu_i = mu.unsqueeze(1)
+        joint_ij = mu_i * self.matrix  # (i, j, *B)
+        cbar = joint_ij.sum(0)  # (j, *B)
         if self.collapse:  # GPB1: every mode starts from the one collapsed posterior, w_i = mu_i
             w = mu_i  # (i, 1, *B)
         else:  # IMM: mu_{i|j} = pi_ij mu_i / c_j
-            w = mu_i * self.matrix / cbar.clamp_min(tiny).unsqueeze(0)  # (i, j, *B)
-        xs = [(w * x[a].unsqueeze(1)).sum(0) for a in range(n)]  # mixed means (j, *B)
-        D = [x[a].unsqueeze(1) - xs[a].unsqueeze(0) for a in range(n)]  # (i, j, *B)
-        wD = [w * D[a] for a in range(n)]
-        Cm = [[None] * n for _ in range(n)]
-        for a, c in upper:  # sum_i w_ij (P_i + d_ij d_ij^T)
-            Cm[a][c] = torch.addcmul(w * C[a][c].unsqueeze(1), wD[a], D[c]).sum(0)
+            w = joint_ij / cbar.clamp_min(tiny).unsqueeze(0)  # (i, j, *B)
+        # every entry at once: the mixed means and sum_i w_ij (P_i + d_ij d_ij^T), d_ij = x_i - x0_j
+        # (d d^T is exactly symmetric, so the sum is)
+        Xi = X.unsqueeze(2)  # (n, i, 1, *B)
+        Xm = (w * Xi).sum(1)  # (n, j, *B)
+        D = Xi - Xm.unsqueeze(1)  # (n, i, j, *B)
+        Pm = (w * (P.unsqueeze(3) + D.unsqueeze(1) * D.unsqueeze(0))).sum(2)  # (n, n, j, *B)
         if self.collapse:  # the one start belief, seen by every mode (views)
-            xs = [t.expand_as(cbar) for t in xs]
-            Cm = [[None if t is None else t.expand_as(cbar) for t in row] for row in Cm]
+            Xm, Pm = Xm.expand(n, *cbar.shape), Pm.expand(n, n, *cbar.shape)
+        xs, Cm = Xm.unbind(0), self.entries(Pm)
         # prediction: x- = F m + b, P- = F C F^T + Q
         xp = [_linear([(F[a][e], xs[e]) for e in range(n)], b[a], cbar) for a in range(n)]
         A = [[_linear([(F[a][e], sym(Cm, e, c)) for e in range(n)], _ZERO, cbar) for c in range(n)]
@@ -310,7 +323,7 @@ class BatchLastIMM:
             for a, c in upper:
                 new[a][c] = torch.addcmul(Cu[a][c], gain[a], g[c], value=-1.0)
             Cu = new
-            term = torch.addcdiv(s.log().add_(_LOG_2PI), nu * nu, s).mul_(-0.5 * ob[k])
+            term = torch.addcdiv(s.log().add_(_LOG_2PI), nu * nu, s).mul_(nhob[k])
             ll = term if ll is None else ll + term
             if "extras" not in omitted:
                 flag = (s_raw <= tiny) & (ob[k] > 0)
@@ -326,43 +339,41 @@ class BatchLastIMM:
         log_sum = shifted.exp().sum(0).log()
         new_log_mu = (shifted - log_sum).nan_to_num_(nan=-math.log(self.M), posinf=math.inf, neginf=-math.inf)
         total = torch.where(anyob, top + log_sum, self.zero)  # exactly 0 without a datum
-        stack, keep_extras = self.stack, "extras" not in omitted
-        X = P = Xp = Ppt = nu_out = S_out = None
+        keep_extras = "extras" not in omitted
+        X, P = torch.stack(xu), self.stack(Cu)  # the posterior and the next state
+        Xp = Ppt = nu_out = S_out = None
         mu = new_log_mu.exp()  # for the estimate and the next step
-        if self.estimate_only:  # the moment-matched collapse, (n, *B) and (n, n, *B)
-            est = [(mu * xu[a]).sum(0) for a in range(n)]
-            spread = [xu[a] - est[a] for a in range(n)]
-            mu_spread = [mu * spread[a] for a in range(n)]
-            est_cov = [[None] * n for _ in range(n)]
-            for a, c in upper:
-                est_cov[a][c] = torch.addcmul(mu * Cu[a][c], mu_spread[a], spread[c]).sum(0)
-            nu_out, S_out = torch.stack(est), stack(est_cov)  # returned in the innovation slots
+        if self.estimate_only:  # the moment-matched collapse, (n, *B) and (n, n, *B) (exactly symmetric)
+            est = (mu * X).sum(1)
+            spread = X - est.unsqueeze(1)
+            nu_out = est  # returned in the innovation slots
+            S_out = (mu * (P + spread.unsqueeze(1) * spread.unsqueeze(0))).sum(2)
         else:
-            X, P = torch.stack(xu), stack(Cu)
             if "prior" not in omitted:
-                Xp, Ppt = torch.stack(xp), stack(Pp)
+                Xp, Ppt = torch.stack(xp), self.stack(Pp)
             if "innovation" not in omitted or "innovation_cov" not in omitted:
                 nu_out, S_out = self._innovation(zraw, xp, Pp, s_first)
         return (
-            xu, Cu, new_log_mu, mu, total, X, P, Xp, Ppt, log_cbar,
+            X, P, new_log_mu, mu, total, Xp, Ppt, log_cbar,
             ll if keep_extras else None, singular,
-            torch.stack(xs) if keep_extras else None, stack(Cm) if keep_extras else None,
+            Xm if keep_extras else None, Pm if keep_extras else None,
             nu_out, S_out,
         )
 
     def initial_state(self, belief: ModeBelief) -> tuple:
-        """The state of :meth:`step` at time 0 from the batch-first ``belief``."""
+        """The state of :meth:`step` at time 0 from the batch-first ``belief``: ``X (n, M, *B)``,
+        ``P (n, n, M, *B)`` (its upper triangle, mirrored), the mode probabilities ``(M, *B)`` and
+        the step index."""
         X, P, log_mu = self.to_batch_last(belief)
         n = self.n
-        C = [[P[a, c] if c >= a else None for c in range(n)] for a in range(n)]
-        return list(X.unbind(0)), C, log_mu.exp(), 0
+        return X, self.stack([[P[a, c] if c >= a else None for c in range(n)] for a in range(n)]), log_mu.exp(), 0
 
     def step(self, state: tuple, z: Tensor) -> tuple[tuple, StepOutput]:
         """One IMM step: :meth:`core` (compiled with ``compile=True``) on the prepared data of the
         state's step, its outputs as a :class:`StepOutput` of batch-first views (batch ``(*B,)``),
         and the next state. ``z`` is the step's measurement, which :meth:`prepare` holds."""
-        x, C, mu, k = state
-        args = (x, C, mu, self.z_clean[k], self.observed[k], self.any_observed[k], self.z_raw[k])
+        X, P, mu, k = state
+        args = (X, P, mu, *self.data[k])
         try:
             out = self._core(*args)
         except Exception as error:  # noqa: BLE001 (a compiler failure: run eagerly, say so once)
@@ -372,11 +383,11 @@ class BatchLastIMM:
                         type(error).__name__, str(error).splitlines()[0][:200] if str(error) else "")
             self._core = self.core
             out = self._core(*args)
-        (x, C, log_mu, mu, total, X, P, Xp, Pp, log_cbar, ll, singular, Xm, Pm, nu, S) = out
-        state = (x, C, mu, k + 1)
-        d, modes, gaussian = self.d, self.modes, self.gaussian
+        (X, P, log_mu, mu, total, Xp, Pp, log_cbar, ll, singular, Xm, Pm, nu, S) = out
+        state = (X, P, mu, k + 1)
+        modes, gaussian = self.modes, self.gaussian
         if self.estimate_only:
-            estimate = GaussianBelief(nu.movedim(0, d), S.movedim((0, 1), (d, d + 1)))
+            estimate = GaussianBelief(nu.permute(self._to_front1), S.permute(self._to_front2))
             return state, StepOutput(estimate, None, total)
         extras = None
         if ll is not None:
@@ -389,9 +400,9 @@ class BatchLastIMM:
             belief=ModeBelief(modes(log_mu), gaussian(X, P)),
             prior=None if Xp is None else ModeBelief(modes(log_cbar), gaussian(Xp, Pp)),
             log_likelihood=total,
-            innovation=None if nu is None or "innovation" in self.omitted else nu.movedim((1, 0), (d, d + 1)),
+            innovation=None if nu is None or "innovation" in self.omitted else nu.permute(self._to_front_x),
             innovation_cov=None if S is None or "innovation_cov" in self.omitted
-            else S.movedim((2, 0, 1), (d, d + 1, d + 2)),
+            else S.permute(self._to_front_p),
             extras=extras,
         )
         return state, out
