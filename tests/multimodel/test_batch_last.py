@@ -82,11 +82,21 @@ def assert_same_trajectory(got, want, tol=1e-10):
             torch.testing.assert_close(a, b, rtol=tol, atol=tol, equal_nan=True)
 
 
+@pytest.fixture(params=["broadcast", "entries"])
+def layout(request, monkeypatch):
+    """Both layouts of the kernel's state: every entry in one broadcast operation (small batches,
+    as these tests' own) and one operation per stored entry (large batches)."""
+    from torchmm.multimodel import batch_last
+
+    monkeypatch.setattr(batch_last, "_BROADCAST_BYTES", 1 << 62 if request.param == "broadcast" else 0)
+    return request.param
+
+
 SIZES = [(n, m, M) for n, m, M in itertools.product([1, 2, 3, 4], [1, 2, 3], [1, 2, 3]) if m <= n]
 
 
 @pytest.mark.parametrize("n,m,M", SIZES)
-def test_every_field_equals_the_batch_first_steps(n, m, M):
+def test_every_field_equals_the_batch_first_steps(n, m, M, layout):
     imm, belief0, z = _random_imm(n, m, M, (7,), steps=12, seed=10 * n + 3 * m + M)
     assert run_filter(imm, belief0, z, fast_path=True) is not None  # the fast path applies
     assert_same_trajectory(run_filter(imm, belief0, z), run_filter(imm, belief0, z, fast_path=False))
@@ -94,7 +104,7 @@ def test_every_field_equals_the_batch_first_steps(n, m, M):
 
 @pytest.mark.parametrize("n,m,M", [(1, 1, 2), (2, 1, 3), (3, 2, 2), (4, 2, 3)])
 @pytest.mark.parametrize("shared", [False, True])
-def test_gpb1_every_field_equals_the_batch_first_steps(n, m, M, shared):
+def test_gpb1_every_field_equals_the_batch_first_steps(n, m, M, shared, layout):
     """GPB1 (every mode starts from the one collapsed posterior) takes the same kernel."""
     imm, belief0, z = _random_imm(n, m, M, (6,), steps=10, seed=5 * n + m + M, shared=shared)
     gpb1 = GPB1(imm.bank.filter, imm.transition.matrix())
@@ -106,7 +116,7 @@ def test_gpb1_every_field_equals_the_batch_first_steps(n, m, M, shared):
 
 @pytest.mark.parametrize("batch", [(), (5,), (2, 3)])
 @pytest.mark.parametrize("shared", [False, True])
-def test_batch_shapes_and_structured_models(batch, shared):
+def test_batch_shapes_and_structured_models(batch, shared, layout):
     imm, belief0, z = _random_imm(3, 2, 3, batch, steps=10, seed=len(batch) + 7 * shared, shared=shared)
     assert_same_trajectory(run_filter(imm, belief0, z, fast_path=True), run_filter(imm, belief0, z, fast_path=False))
 
@@ -126,7 +136,7 @@ def test_the_default_takes_it_and_record_sees_the_same_outputs():
     assert seen[0].belief.components.mean.stride()[-1] != 1  # the fast path ran: batch-last memory
 
 
-def test_record_estimate():
+def test_record_estimate(layout):
     imm, belief0, z = _random_imm(3, 2, 3, (8,), steps=10, seed=4)
     want = run_filter(imm, belief0, z, fast_path=False)
     for fast in (True, False):
@@ -149,7 +159,7 @@ def test_float32():
     assert_same_trajectory(got, run_filter(imm32, b32, z32, fast_path=False), tol=2e-4)
 
 
-def test_missing_steps_have_zero_log_likelihood_and_keep_the_prediction():
+def test_missing_steps_have_zero_log_likelihood_and_keep_the_prediction(layout):
     imm, belief0, z = _random_imm(2, 2, 2, (4,), steps=6, seed=6)
     z[2] = float("nan")  # no datum at step 2
     got = run_filter(imm, belief0, z, fast_path=True)
@@ -173,7 +183,7 @@ def test_singular_innovation_is_flagged_as_the_engine_does(caplog):
     assert "not numerically positive definite" in caplog.text
 
 
-def test_gradients_equal_the_batch_first_steps():
+def test_gradients_equal_the_batch_first_steps(layout):
     def loss(fast, F, q):
         kf = KalmanFilter(LinearMotion(F, q * torch.eye(2, dtype=D)), PositionMeasurement(2, [0], 1.0, dtype=D))
         imm = IMM(kf, torch.tensor([[0.9, 0.1], [0.2, 0.8]], dtype=D))
@@ -191,7 +201,7 @@ def test_gradients_equal_the_batch_first_steps():
         torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-12)
 
 
-def test_compiled_equals_eager():
+def test_compiled_equals_eager(layout):
     imm, belief0, z = _random_imm(2, 1, 3, (6,), steps=8, seed=8)
     got = run_filter(imm, belief0, z, compile=True)
     assert_same_trajectory(got, run_filter(imm, belief0, z, fast_path=False), tol=1e-9)
@@ -293,3 +303,15 @@ def test_a_compiler_failure_runs_eagerly_with_a_warning(monkeypatch, caplog):
         got = run_filter(imm, belief0, z, compile=True)
     assert caplog.text.count("torch.compile failed for the IMM fast path (RuntimeError: no C++ compiler") == 1
     assert_same_trajectory(got, run_filter(imm, belief0, z))
+
+
+def test_the_layout_follows_the_batch_size():
+    """Broadcast operations over every entry while the mixing's temporaries stay small (dispatch
+    bound), one operation per entry beyond (memory bound); both give the same numbers."""
+    imm, belief0, z = _random_imm(2, 1, 3, (400,), steps=3, seed=11)
+    fast = imm.fast_steps(belief0, z)
+    assert fast.step.__self__.broadcast
+    big, big0, zbig = _random_imm(2, 1, 3, (4000,), steps=3, seed=11)
+    fast = big.fast_steps(big0, zbig)
+    assert not fast.step.__self__.broadcast
+    assert_same_trajectory(run_filter(big, big0, zbig), run_filter(big, big0, zbig, fast_path=False))
