@@ -14,7 +14,8 @@ runs x ``--steps`` steps in float64, on the same simulated data in this one proc
   elementwise pass over all runs and modes.
 
 All four must give the same estimates (checked to 1e-9). torchmm and the NumPy versions are timed as
-the best of ``--repeats`` runs, FilterPy once; one thread each (``--threads``). The last line is
+the best of ``--repeats`` rounds in which they take turns (a contended machine's slow spells then
+hit every contender alike), FilterPy once; one thread each (``--threads``). The last line is
 ``speedup_vs_filterpy=<x> speedup_vs_numpy=<y> speedup_vs_numpy_soa=<z> compiled_vs_numpy_soa=<c>
 compiled_vs_filterpy=<f> compile_s=<s>`` (wall-time ratios, > 1 means torchmm is faster; the first
 three for eager torchmm; ``compile_s`` is the first compiled call, compile included).
@@ -174,6 +175,7 @@ def run_filterpy(F, b, Q, H, Rm, Pi, x0, P0, mu0, zs, runs: int):
 
 
 def best_of(fn, repeats: int):
+    """The best wall time of ``fn()`` over ``repeats`` calls, and its last result."""
     times, result = [], None
     for _ in range(repeats):
         tic = time.perf_counter()
@@ -182,11 +184,25 @@ def best_of(fn, repeats: int):
     return min(times), result
 
 
+def interleaved_best(fns: dict, repeats: int) -> tuple[dict, dict]:
+    """The best wall time of each of ``fns`` over ``repeats`` rounds, the contenders taking turns in
+    every round (on a contended machine, a slow spell then hits all of them, not one), and each one's
+    last result."""
+    best = dict.fromkeys(fns, float("inf"))
+    results = {}
+    for _ in range(repeats):
+        for name, fn in fns.items():
+            tic = time.perf_counter()
+            results[name] = fn()
+            best[name] = min(best[name], time.perf_counter() - tic)
+    return best, results
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--runs", type=int, default=400)
     parser.add_argument("--steps", type=int, default=100)
-    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--repeats", type=int, default=15)
     parser.add_argument("--filterpy-runs", type=int, default=None, help="time FilterPy on this many runs only")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=1, help="torch threads (NumPy: one, set before import)")
@@ -205,16 +221,23 @@ def main() -> None:
           f"torch {torch.__version__} ({torch.get_num_threads()} threads)")
 
     run_torchmm(motion, sensor, prior, transition, z[:2])  # warm-up (lazy inits)
-    t_torch, est_torch = best_of(lambda: run_torchmm(motion, sensor, prior, transition, z), args.repeats)
     t_compiled = compile_s = float("nan")
+    contenders = {
+        "torch": lambda: run_torchmm(motion, sensor, prior, transition, z),
+        "numpy": lambda: run_numpy(F, b, Q, H, Rm, Pi, x0, P0, mu0, zs),
+        "soa": lambda: run_numpy_soa(F, b, Q, H, Rm, Pi, x0, P0, mu0, zs),
+    }
     if not args.no_compile:
         tic = time.perf_counter()
-        est_compiled = run_torchmm(motion, sensor, prior, transition, z, compile=True)  # compiles (cached on disk)
+        run_torchmm(motion, sensor, prior, transition, z, compile=True)  # compiles (cached on disk)
         compile_s = time.perf_counter() - tic
-        t_compiled, est_compiled = best_of(lambda: run_torchmm(motion, sensor, prior, transition, z, compile=True),
-                                           args.repeats)
-    t_numpy, est_numpy = best_of(lambda: run_numpy(F, b, Q, H, Rm, Pi, x0, P0, mu0, zs), args.repeats)
-    t_soa, est_soa = best_of(lambda: run_numpy_soa(F, b, Q, H, Rm, Pi, x0, P0, mu0, zs), args.repeats)
+        contenders["compiled"] = lambda: run_torchmm(motion, sensor, prior, transition, z, compile=True)
+    best, results = interleaved_best(contenders, args.repeats)
+    t_torch, est_torch = best["torch"], results["torch"]
+    t_numpy, est_numpy = best["numpy"], results["numpy"]
+    t_soa, est_soa = best["soa"], results["soa"]
+    if not args.no_compile:
+        t_compiled, est_compiled = best["compiled"], results["compiled"]
     fp_runs = min(args.filterpy_runs or args.runs, args.runs)
     tic = time.perf_counter()
     est_fp = run_filterpy(F, b, Q, H, Rm, Pi, x0, P0, mu0, zs, fp_runs)
