@@ -2,9 +2,13 @@ r"""The IMM (and GPB1) over linear Kalman modes in the batch-last layout: the en
 
 :func:`~torchmm.run_filter` runs an :class:`~torchmm.IMM` over one :class:`~torchmm.KalmanFilter`
 with mode-bank linear models through this kernel (docs/performance.md). The public layout stays
-batch-first; inside, the state is kept with the batch axes *last*, one tensor ``(M, *B)`` per entry:
-the mode means ``x[a]``, the covariances' upper triangle ``C[a][c]`` (``a <= c``) and the mode
-probabilities. Model matrices are classified entry by entry once per run (exactly 0 or 1 in every
+batch-first; inside, the state is kept with the batch axes *last*: the mode probabilities ``(M, *B)``
+and, for large batches, one tensor ``(M, *B)`` per entry: the mode means ``x[a]`` and the
+covariances' upper triangle ``C[a][c]`` (``a <= c``); for small batches, where each operation
+costs its dispatch more than its arithmetic, ``X (n, M, *B)`` and an exactly symmetric
+``P (n, n, M, *B)``, so that the mixing and the estimate's moments take every entry in one
+broadcast operation (:meth:`BatchLastIMM.prepare` chooses by the size of the mixing's
+temporaries; docs/performance.md). Model matrices are classified entry by entry once per run (exactly 0 or 1 in every
 mode: skipped or added, bit-identical; one number shared by the modes; a tensor per mode).
 
 Every small matrix product (``F C F^T``, ``P h``, the mixing sums) is then a short sum of
@@ -259,7 +263,8 @@ class BatchLastIMM:
     # -- the step ---------------------------------------------------------------------------------
     def prepare(self, measurements: Tensor) -> None:
         """Once per run: the measurements ``(T, *B, m)`` as ``(T, m, *B)``, with missing components
-        (non-finite) set to 0 and their masks, so that no step tests its data."""
+        (non-finite) set to 0 and their masks, so that no step tests its data; and the state's
+        layout (``self.broadcast``) for this batch size."""
         z = measurements.movedim(-1, 1)
         # the layout of the state: every entry in one broadcast operation while the temporaries of the
         # mixing (n^2 M^2 values a run) stay within the cache (the step is bound by dispatch there),
@@ -279,7 +284,8 @@ class BatchLastIMM:
 
         Shapes:
             X: the mode means ``(n, M, *B)``; P: their covariances ``(n, n, M, *B)`` (exactly
-            symmetric); mu: the mode probabilities ``(M, *B)``; zc, ob, nhob, zraw ``(m, *B)`` (the
+            symmetric) - or, where ``self.broadcast`` is False, ``n`` tensors ``(M, *B)`` and nested
+            lists ``P[a][c]`` for ``a <= c`` (as returned: the next state); mu: the mode probabilities ``(M, *B)``; zc, ob, nhob, zraw ``(m, *B)`` (the
             data with 0 where missing, the observed mask, ``-0.5`` times it, the data); anyob
             ``(*B,)`` -> the new ``X, P, log_mu, mu``, the log-likelihood ``(*B,)``, then (None where
             not needed) the predicted ``X, P``, ``log c (M, *B)``, the mode log-likelihoods and
@@ -399,9 +405,10 @@ class BatchLastIMM:
         )
 
     def initial_state(self, belief: ModeBelief) -> tuple:
-        """The state of :meth:`step` at time 0 from the batch-first ``belief``: ``X (n, M, *B)``,
-        ``P (n, n, M, *B)`` (its upper triangle, mirrored), the mode probabilities ``(M, *B)`` and
-        the step index."""
+        """The state of :meth:`step` at time 0 from the batch-first ``belief``: the means and
+        covariances (``X (n, M, *B)`` and ``P (n, n, M, *B)``, the upper triangle mirrored, or the
+        per-entry lists: :meth:`prepare`'s layout), the mode probabilities ``(M, *B)`` and the step
+        index."""
         X, P, log_mu = self.to_batch_last(belief)
         n = self.n
         C = [[P[a, c] if c >= a else None for c in range(n)] for a in range(n)]
