@@ -108,7 +108,7 @@ def _plain(model, base: type, methods: tuple) -> bool:
 class _Coef:
     """One entry of a model matrix, classified once at the entry point: exactly zero or one in every
     mode (its products are skipped: bit-identical, as ``x * 0 = 0`` and ``x * 1 = x`` are exact), one
-    number shared by the modes (a Python scalar), or a tensor ``(1 or M, 1, ...)``. Entries of
+    number shared by the modes (a 0-dim tensor), or a tensor ``(1 or M, 1, ...)``. Entries of
     parameters that require gradients are always tensors (a skipped zero would lose its gradient)."""
 
     __slots__ = ("kind", "value")
@@ -141,7 +141,8 @@ def _coefficients(t: Tensor, M: int, event: int, batch_dims: int) -> list:
         elif bool((column == 1).all()):
             flat.append(_ONE)
         elif bool((column == column[0]).all()):
-            flat.append(_Coef("scalar", float(column[0])))
+            # a 0-dim tensor: an operation with a Python number costs more dispatch than with a tensor
+            flat.append(_Coef("scalar", column[0].to(t.device, copy=True)))
         else:
             flat.append(_Coef("tensor", entry))
     if event == 1:
@@ -152,7 +153,7 @@ def _coefficients(t: Tensor, M: int, event: int, batch_dims: int) -> list:
 
 def _linear(terms, const: _Coef = _ZERO, like: Tensor | None = None) -> Tensor:
     """``sum_e coef_e * t_e + const`` with the fewest operations (zero terms skipped, ones added,
-    shared scalars through ``alpha``, per-mode tensors through ``addcmul``).
+    shared scalars and per-mode tensors through ``addcmul``).
 
     ``like``: a tensor to take the shape from when every term is zero."""
     acc = None
@@ -163,9 +164,7 @@ def _linear(terms, const: _Coef = _ZERO, like: Tensor | None = None) -> Tensor:
             acc = t if coef.kind == "one" else t * coef.value
         elif coef.kind == "one":
             acc = acc + t
-        elif coef.kind == "scalar":
-            acc = torch.add(acc, t, alpha=coef.value)
-        else:
+        else:  # a shared scalar (0-dim) or a per-mode tensor
             acc = torch.addcmul(acc, t, coef.value)
     if acc is None:
         acc = torch.zeros_like(like)
@@ -205,6 +204,10 @@ class BatchLastIMM:
             imm._matrix(like)
         self.matrix = matrix.reshape(M, M, *([1] * d))  # (i, j, 1...)
         self.tiny = torch.finfo(like.dtype).tiny
+        # constants as 0-dim tensors (an operation with a Python number costs more dispatch)
+        constant = lambda value: torch.full((), value, dtype=like.dtype, device=like.device)  # noqa: E731
+        self.tiny_t, self.lowest = constant(self.tiny), constant(torch.finfo(like.dtype).min)
+        self.log_2pi = constant(_LOG_2PI)
         # batch-last -> batch-first as one permute each (movedim costs twice the dispatch, every step)
         self._to_front1 = (*range(1, d + 1), 0)  # (k, *B) -> (*B, k)
         self._to_front2 = (*range(2, d + 2), 0, 1)  # (a, c, *B) -> (*B, a, c)
@@ -306,7 +309,7 @@ class BatchLastIMM:
         if self.collapse:  # GPB1: every mode starts from the one collapsed posterior, w_i = mu_i
             w = mu_i  # (i, 1, *B)
         else:  # IMM: mu_{i|j} = pi_ij mu_i / c_j
-            w = joint_ij / cbar.clamp_min(tiny).unsqueeze(0)  # (i, j, *B)
+            w = joint_ij / torch.maximum(cbar, self.tiny_t).unsqueeze(0)  # (i, j, *B)
         if self.broadcast:
             # every entry at once: the mixed means and sum_i w_ij (P_i + d_ij d_ij^T), d_ij = x_i - x0_j
             # (d d^T is exactly symmetric, so the sum is)
@@ -345,7 +348,7 @@ class BatchLastIMM:
             g = [_linear([(H[k][c], sym(Cu, a, c)) for c in range(n)], _ZERO, cbar) for a in range(n)]  # P h^T
             s_raw = _linear([(H[k][a], g[a]) for a in range(n)], r[k], cbar)  # (M, *B)
             nu = zc[k] - _linear([(H[k][a], xu[a]) for a in range(n)], _ZERO, cbar)
-            s = s_raw.clamp_min(tiny)
+            s = torch.maximum(s_raw, self.tiny_t)
             ratio = ob[k] / s
             gain = [g[a] * ratio for a in range(n)]
             xu = [torch.addcmul(xu[a], gain[a], nu) for a in range(n)]
@@ -353,7 +356,7 @@ class BatchLastIMM:
             for a, c in upper:
                 new[a][c] = torch.addcmul(Cu[a][c], gain[a], g[c], value=-1.0)
             Cu = new
-            term = torch.addcdiv(s.log().add_(_LOG_2PI), nu * nu, s).mul_(nhob[k])
+            term = torch.addcdiv(s.log().add_(self.log_2pi), nu * nu, s).mul_(nhob[k])
             ll = term if ll is None else ll + term
             if "extras" not in omitted:
                 flag = (s_raw <= tiny) & (ob[k] > 0)
@@ -364,7 +367,7 @@ class BatchLastIMM:
         # and safe_log_normalize compute it (all -inf: -inf and uniform), in fewer passes
         log_cbar = cbar.log()
         joint = ll + log_cbar
-        top = joint.amax(0).clamp_min(torch.finfo(joint.dtype).min)
+        top = torch.maximum(joint.amax(0), self.lowest)
         shifted = joint - top
         log_sum = shifted.exp().sum(0).log()
         new_log_mu = (shifted - log_sum).nan_to_num_(nan=-math.log(self.M), posinf=math.inf, neginf=-math.inf)
