@@ -8,8 +8,9 @@ covariances' upper triangle ``C[a][c]`` (``a <= c``); for small batches, where e
 costs its dispatch more than its arithmetic, ``X (n, M, *B)`` and an exactly symmetric
 ``P (n, n, M, *B)``, so that the mixing and the estimate's moments take every entry in one
 broadcast operation (:meth:`BatchLastIMM.prepare` chooses by the size of the mixing's
-temporaries; docs/performance.md). Model matrices are classified entry by entry once per run (exactly 0 or 1 in every
-mode: skipped or added, bit-identical; one number shared by the modes; a tensor per mode).
+temporaries; docs/performance.md). Model matrices are classified entry by entry once per run
+(exactly 0 or 1 in every mode: skipped or added, bit-identical; one number shared by the modes; a
+tensor per mode).
 
 Every small matrix product (``F C F^T``, ``P h``, the mixing sums) is then a short sum of
 elementwise products, each one contiguous pass over all runs and modes, where the batch-first
@@ -288,8 +289,9 @@ class BatchLastIMM:
         Shapes:
             X: the mode means ``(n, M, *B)``; P: their covariances ``(n, n, M, *B)`` (exactly
             symmetric) - or, where ``self.broadcast`` is False, ``n`` tensors ``(M, *B)`` and nested
-            lists ``P[a][c]`` for ``a <= c`` (as returned: the next state); mu: the mode probabilities ``(M, *B)``; zc, ob, nhob, zraw ``(m, *B)`` (the
-            data with 0 where missing, the observed mask, ``-0.5`` times it, the data); anyob
+            lists ``P[a][c]`` for ``a <= c`` (as returned: the next state); mu: the mode
+            probabilities ``(M, *B)``; zc, ob, nhob, zraw ``(m, *B)`` (the data with 0 where
+            missing, the observed mask, ``-0.5`` times it, the data); anyob
             ``(*B,)`` -> the new ``X, P, log_mu, mu``, the log-likelihood ``(*B,)``, then (None where
             not needed) the predicted ``X, P``, ``log c (M, *B)``, the mode log-likelihoods and
             singular flags ``(M, *B)``, the mixed ``X0, P0``, the innovations ``(m, M, *B)`` and
@@ -343,7 +345,7 @@ class BatchLastIMM:
         Pp = [[None] * n for _ in range(n)]
         for a, c in upper:
             Pp[a][c] = _linear([(F[c][e], A[a][e]) for e in range(n)], Q[a][c], cbar)
-        del A, X, P, w, joint_ij
+        del A, w, joint_ij  # (X and P: the caller's state holds them)
         # update, one component at a time (diagonal R); a missing component has ob = 0, zc = 0
         xu, Cu = xp, Pp
         ll = singular = s_first = None
