@@ -315,3 +315,117 @@ def test_the_layout_follows_the_batch_size():
     fast = big.fast_steps(big0, zbig)
     assert not fast.step.__self__.broadcast
     assert_same_trajectory(run_filter(big, big0, zbig), run_filter(big, big0, zbig, fast_path=False))
+
+
+@pytest.fixture
+def trace_cache(monkeypatch):
+    """An empty cache of traced steps for the test, and a way to set the tracing threshold."""
+    from torchmm.multimodel import batch_last
+
+    monkeypatch.setattr(batch_last, "_TRACED", batch_last.OrderedDict())
+    monkeypatch.setattr(batch_last, "_STEPS_SEEN", {})
+
+    def after(steps):
+        monkeypatch.setattr(batch_last, "_TRACE_AFTER", steps)
+
+    return batch_last, after
+
+
+def _leaves(traj):
+    return pytree.tree_leaves(_fields(traj))
+
+
+def _assert_identical(got, want):
+    """Bit for bit: the same leaves, shapes, dtypes and values (NaN where NaN)."""
+    a, b = _leaves(got), _leaves(want)
+    assert len(a) == len(b)
+    for x, y in zip(a, b):
+        if x is None or y is None:
+            assert x is None and y is None
+            continue
+        assert x.shape == y.shape and x.dtype == y.dtype
+        assert torch.equal(x, y) or (x.is_floating_point() and torch.equal(x.isnan(), y.isnan())
+                                     and torch.equal(x.nan_to_num(0.0), y.nan_to_num(0.0)))
+
+
+@pytest.mark.parametrize("n,m,M,gpb", [(2, 1, 3, False), (3, 2, 2, False), (1, 1, 1, False), (4, 3, 3, False),
+                                       (2, 2, 3, True)])
+def test_the_traced_step_gives_the_same_numbers_bit_for_bit(n, m, M, gpb, layout, trace_cache):
+    batch_last, after = trace_cache
+    imm, belief0, z = _random_imm(n, m, M, (5,), steps=9, seed=20 + n + m + M, shared=n == 2)
+    if gpb:
+        imm = GPB1(imm.bank.filter, imm.transition.matrix())
+    for record in (None, "estimate", lambda out: out._replace(prior=None, innovation_cov=None)):
+        after(10**12)
+        want = run_filter(imm, belief0, z, record=record)
+        assert not batch_last._TRACED
+        after(0)
+        got = run_filter(imm, belief0, z, record=record)
+        assert batch_last._TRACED  # traced, and run
+        _assert_identical(got, want)
+        batch_last._TRACED.clear()
+
+
+def test_a_cached_graph_reads_each_kernels_own_constants(trace_cache):
+    """Two IMMs of one structure (the same kinds of entries) but other numbers share the graph; each
+    gets its own numbers (a graph with the first one's constants baked in would give the first's)."""
+    batch_last, after = trace_cache
+    after(0)
+    first, belief0, z = _random_imm(2, 1, 3, (4,), steps=6, seed=1)
+    second, belief1, z1 = _random_imm(2, 1, 3, (4,), steps=6, seed=2)
+    run_filter(first, belief0, z)
+    assert len(batch_last._TRACED) == 1
+    got = run_filter(second, belief1, z1)
+    assert len(batch_last._TRACED) == 1  # the same structure: the cached graph
+    assert_same_trajectory(got, run_filter(second, belief1, z1, fast_path=False))
+    with pytest.raises(AssertionError):
+        assert_same_trajectory(got, run_filter(first, belief0, z1, fast_path=False))
+
+
+def test_steps_are_traced_after_the_threshold_and_the_cache_is_bounded(trace_cache, monkeypatch):
+    batch_last, after = trace_cache
+    after(25)
+    imm, belief0, z = _random_imm(2, 1, 2, (3,), steps=10, seed=4)
+    for calls in (1, 2):  # untraced until 25 steps of the structure have run
+        run_filter(imm, belief0, z)
+        assert not batch_last._TRACED, calls
+    run_filter(imm, belief0, z)  # 30 steps of this structure
+    assert len(batch_last._TRACED) == 1
+    fast = imm.fast_steps(belief0, z)
+    assert fast.step.__self__._core != fast.step.__self__.core  # the next kernel starts traced
+    monkeypatch.setattr(batch_last, "_TRACED_MAX", 2)
+    after(0)
+    for M in (1, 3, 4):
+        other, b, zz = _random_imm(2, 1, M, (3,), steps=3, seed=M)
+        run_filter(other, b, zz)
+    assert len(batch_last._TRACED) == 2  # the least recently used dropped
+
+
+def test_gradients_through_the_traced_step(trace_cache):
+    batch_last, after = trace_cache
+
+    def grads():
+        F = torch.tensor([[[1.0, 1.0], [0.0, 1.0]], [[1.0, 0.0], [0.0, 0.5]]], dtype=D, requires_grad=True)
+        kf = KalmanFilter(LinearMotion(F, 0.3 * torch.eye(2, dtype=D)), PositionMeasurement(2, [0], 1.0, dtype=D))
+        imm = IMM(kf, torch.tensor([[0.9, 0.1], [0.2, 0.8]], dtype=D))
+        belief0 = imm.initial_belief(GaussianBelief(torch.zeros(5, 2, dtype=D), torch.eye(2, dtype=D)))
+        z = torch.linspace(-1, 2, 40, dtype=D).reshape(8, 5, 1)
+        return torch.autograd.grad(run_filter(imm, belief0, z).total_log_likelihood().sum(), F)[0]
+
+    after(10**12)
+    want = grads()
+    after(0)
+    got = grads()
+    assert batch_last._TRACED
+    assert bool(got.ne(0).any()) and torch.equal(got, want)
+
+
+def test_a_constant_left_out_of_the_graphs_inputs_is_caught(trace_cache, monkeypatch):
+    """A tensor the step reads besides its inputs would be baked into a cached graph (and silently
+    used by every other kernel of the structure): tracing refuses it."""
+    batch_last, _ = trace_cache
+    monkeypatch.setattr(batch_last, "_CONSTANTS", tuple(c for c in batch_last._CONSTANTS if c != "zero"))
+    imm, belief0, z = _random_imm(2, 1, 2, (3,), steps=3, seed=4)
+    kernel = imm.fast_steps(belief0, z).step.__self__
+    with pytest.raises(RuntimeError, match="holds tensors"):
+        kernel.trace()

@@ -27,6 +27,12 @@ computes what :meth:`IMM.step` does, in the same order:
   datum is non-finite is skipped (missing data, exact; the masks are computed once per run);
 - the mode posterior in log space (:func:`~torchmm.multimodel.imm.mode_posterior`, in fewer passes).
 
+Once a structure of the kernel (sizes, layout, which outputs are kept, which model entries are 0, 1,
+shared or per mode) has run ``_TRACE_AFTER`` = 1,000 steps in a process, its steps run as a
+``torch.fx`` graph of :meth:`BatchLastIMM.core`: the same torch operations in the same order (the
+same numbers, bit for bit) without the Python that builds them, 10-20 % faster a step; the graph is
+cached by structure, with the model constants as its inputs (docs/performance.md).
+
 Every :class:`~torchmm.filters.StepOutput` field (prior, innovations, ``extras``: ``mixed``,
 ``mode_log_likelihood``, ``modes.singular``) is returned as a batch-first *view* of the batch-last
 tensors, so the outputs equal the batch-first engine's to rounding (tests/multimodel/test_batch_last.py)
@@ -35,9 +41,12 @@ and cost nothing until :func:`~torchmm.run.stack_outputs` stacks what ``record``
 
 from __future__ import annotations
 
+import copy
 import itertools
 import logging
 import math
+import threading
+from collections import OrderedDict
 
 import torch
 from torch import Tensor
@@ -55,6 +64,21 @@ _LOG_2PI = math.log(2 * math.pi)
 _BROADCAST_BYTES = 1 << 18
 
 log = logging.getLogger("torchmm")
+
+#: the step as a ``torch.fx`` graph of :meth:`BatchLastIMM.core` (straight-line torch calls, no
+#: Python logic; the same operations in the same order, so the same numbers), cached by the kernel's
+#: structure (:meth:`BatchLastIMM.structure`) with every model constant an input of the graph
+_TRACED: OrderedDict = OrderedDict()
+#: how many structures the cache keeps (least recently used dropped)
+_TRACED_MAX = 64
+#: the steps each structure has run untraced in this process; tracing (~30 ms) pays after about 1,000
+#: (docs/performance.md: 5-19 % of a step, 15-400 us)
+_STEPS_SEEN: dict = {}
+_TRACE_AFTER = 1000
+_TRACE_LOCK = threading.Lock()
+#: the kernel's model coefficients (nested lists of _Coef) and tensor constants, in the graph's input order
+_COEFFICIENTS = ("F", "Q", "b", "H", "r")
+_CONSTANTS = ("matrix", "tiny_t", "lowest", "log_2pi", "zero", "R_front")
 
 
 def why_not(imm, belief0, measurements) -> str | None:
@@ -217,6 +241,9 @@ class BatchLastIMM:
         self.omitted: frozenset = frozenset()
         self.estimate_only = False
         self._core = self.core
+        self._compiled = False
+        self._key = None  # the structure the untraced steps are counted for (None: not counting)
+        self._steps_done = 0
 
     def compile(self) -> None:
         """Run :meth:`core` under ``torch.compile`` (fused kernels after seconds of compiling;
@@ -228,12 +255,100 @@ class BatchLastIMM:
         if getattr(dynamo_config, "recompile_limit", 64) < 64:
             dynamo_config.recompile_limit = 64
         self._core = torch.compile(self.core, dynamic=False)
+        self._compiled = True
 
     def omit(self, fields, estimate: bool = False) -> None:
         """The :class:`StepOutput` fields ``record`` discards (returned as None from now on);
         ``estimate``: return the belief's point estimate (computed inside the step) in its place."""
         self.omitted = frozenset(fields)
         self.estimate_only = estimate
+        self._select()
+
+    # -- the traced step ----------------------------------------------------------------------------
+    def structure(self) -> tuple:
+        """What the step's sequence of operations depends on: the sizes, the layout, the interaction,
+        the omitted outputs, the dtype's smallest normal number and the kind of every model
+        coefficient (zero, one, a shared scalar, a tensor). Two kernels of one structure run the same
+        operations on their own constants (:meth:`constants`)."""
+        kinds = lambda c: tuple(map(kinds, c)) if isinstance(c, list) else c.kind  # noqa: E731
+        return (self.n, self.m, self.M, self.d, self.broadcast, self.collapse, self.omitted, self.estimate_only,
+                self.tiny, *(kinds(getattr(self, name)) for name in _COEFFICIENTS))
+
+    def constants(self) -> tuple:
+        """Every tensor :meth:`core` reads besides its arguments: the coefficients that are not exactly
+        0 or 1, then the transition matrix and the 0-dim constants (the traced step's first input)."""
+        out = []
+
+        def walk(c):
+            if isinstance(c, list):
+                for item in c:
+                    walk(item)
+            elif c.kind in ("scalar", "tensor"):
+                out.append(c.value)
+
+        for name in _COEFFICIENTS:
+            walk(getattr(self, name))
+        return (*out, *(getattr(self, name) for name in _CONSTANTS))
+
+    def _bound(self, values) -> BatchLastIMM:
+        """A shallow copy of this kernel that reads its :meth:`constants` from ``values`` (the
+        graph's input while tracing)."""
+        clone, index = copy.copy(self), itertools.count()
+
+        def swap(c):
+            if isinstance(c, list):
+                return [swap(item) for item in c]
+            return c if c.kind in ("zero", "one") else _Coef(c.kind, values[next(index)])
+
+        for name in _COEFFICIENTS:
+            setattr(clone, name, swap(getattr(self, name)))
+        for name in _CONSTANTS:
+            setattr(clone, name, values[next(index)])
+        return clone
+
+    def trace(self) -> torch.fx.GraphModule:
+        """:meth:`core` as a ``torch.fx`` graph ``(constants, X, P, mu, zc, ob, nhob, anyob, zraw)``
+        (the arguments of :meth:`core` after :meth:`constants`). It holds no tensor of this kernel:
+        every constant is an input, so a graph serves every kernel of the same :meth:`structure`."""
+        def step(constants, X, P, mu, zc, ob, nhob, anyob, zraw):
+            return self._bound(constants).core(X, P, mu, zc, ob, nhob, anyob, zraw)
+
+        graph = torch.fx.symbolic_trace(step)
+        held = [node.target for node in graph.graph.nodes if node.op == "get_attr"]
+        if held:  # a constant read around constants(): a cached graph would use this kernel's values
+            raise RuntimeError(f"the traced IMM step holds tensors {held}: add them to constants()")
+        return graph
+
+    def _select(self) -> None:
+        """Run the steps to come on the traced graph of this kernel's structure where the cache holds
+        one, or once the structure has run ``_TRACE_AFTER`` steps untraced in this process (what is
+        left of this run counted); on :meth:`core` otherwise."""
+        if self._compiled or not hasattr(self, "data"):
+            return
+        remaining = len(self.data) - self._steps_done
+        with _TRACE_LOCK:
+            if self._key is not None:  # the steps counted for the previous structure run on this one
+                _STEPS_SEEN[self._key] -= remaining
+            key, self._key = self.structure(), None
+            graph = _TRACED.get(key)
+            if graph is None:
+                if len(_STEPS_SEEN) > 4 * _TRACED_MAX:  # bounded: counts of structures long unused go
+                    _STEPS_SEEN.clear()
+                _STEPS_SEEN[key] = _STEPS_SEEN.get(key, 0) + remaining
+                if _STEPS_SEEN[key] >= _TRACE_AFTER:
+                    graph = _TRACED[key] = self.trace()
+                    del _STEPS_SEEN[key]
+                    while len(_TRACED) > _TRACED_MAX:
+                        _TRACED.popitem(last=False)
+                else:
+                    self._key = key
+            else:
+                _TRACED.move_to_end(key)
+        if graph is None:
+            self._core = self.core
+        else:
+            forward, constants = graph.forward, self.constants()
+            self._core = lambda *args: forward(constants, *args)
 
     # -- layout -----------------------------------------------------------------------------------
     def to_batch_last(self, belief: ModeBelief) -> tuple[Tensor, Tensor, Tensor]:
@@ -281,6 +396,8 @@ class BatchLastIMM:
         self.data = list(zip(torch.where(observed, z, 0.0).unbind(0), ob.unbind(0), ob.mul(-0.5).unbind(0),
                              observed.any(1).unbind(0), z.unbind(0)))
         self.zero = torch.zeros((), dtype=z.dtype, device=z.device)
+        self._steps_done = 0
+        self._select()
 
     def core(self, X: Tensor, P: Tensor, mu: Tensor, zc: Tensor, ob: Tensor, nhob: Tensor, anyob: Tensor,
              zraw: Tensor) -> tuple:
@@ -320,7 +437,7 @@ class BatchLastIMM:
             D = Xi - Xm.unsqueeze(1)  # (n, i, j, *B)
             Pm = (w * (P.unsqueeze(3) + D.unsqueeze(1) * D.unsqueeze(0))).sum(2)  # (n, n, j, *B)
             if self.collapse:  # the one start belief, seen by every mode (views)
-                Xm, Pm = Xm.expand(n, *cbar.shape), Pm.expand(n, n, *cbar.shape)
+                Xm, Pm = Xm.expand_as(X), Pm.expand_as(P)
             xs, Cm = Xm.unbind(0), self.entries(Pm)
             del Xi, D  # temporaries freed as soon as they are dead: their memory is reused while hot
         else:
@@ -430,14 +547,15 @@ class BatchLastIMM:
         and the next state. ``z`` is the step's measurement, which :meth:`prepare` holds."""
         X, P, mu, k = state
         args = (X, P, mu, *self.data[k])
+        self._steps_done = k + 1
         try:
             out = self._core(*args)
         except Exception as error:  # noqa: BLE001 (a compiler failure: run eagerly, say so once)
-            if self._core is self.core:
+            if not self._compiled:
                 raise
             log.warning("compile: torch.compile failed for the IMM fast path (%s: %s); running it eagerly",
                         type(error).__name__, str(error).splitlines()[0][:200] if str(error) else "")
-            self._core = self.core
+            self._core, self._compiled = self.core, False
             out = self._core(*args)
         (X, P, X_out, P_out, log_mu, mu, total, Xp, Pp, log_cbar, ll, singular, Xm, Pm, nu, S) = out
         state = (X, P, mu, k + 1)
@@ -473,6 +591,6 @@ class BatchLastIMM:
         sym = lambda T, a, c: T[min(a, c)][max(a, c)]  # noqa: E731
         HP = [[_linear([(H[k][e], sym(Pp, e, c)) for e in range(n)], _ZERO, xp[0]) for c in range(n)]
               for k in range(m)]
-        S = torch.stack([torch.stack([_linear([(H[l][c], HP[k][c]) for c in range(n)], _ZERO, xp[0])
-                                      for l in range(m)]) for k in range(m)])
+        S = torch.stack([torch.stack([_linear([(H[j][c], HP[k][c]) for c in range(n)], _ZERO, xp[0])
+                                      for j in range(m)]) for k in range(m)])
         return nu, S + self.R_front
