@@ -112,3 +112,22 @@ def test_kinematic_argument_errors():
         ConstantVelocity(1, dt=0.0)
     with pytest.raises(ValueError, match=r"acceleration: expected shape \(\*P, 2\)"):
         ConstantVelocity(2, acceleration=[0.1, 0.2, 0.3])
+
+
+def test_covariance_check_of_broadcast_batches():
+    """A prior expanded over the runs is checked once per distinct matrix; a bad matrix is caught
+    whether it is repeated by a broadcast axis or stored in a real one."""
+    from torchmm.validation import check_covariance
+
+    good = torch.eye(2, dtype=torch.float64)
+    bad = torch.tensor([[1.0, 2.0], [2.0, 1.0]], dtype=torch.float64)  # eigenvalues 3 and -1
+    check_covariance(good.expand(500, 3, 2, 2), "prior")
+    with pytest.raises(ValueError, match="prior: covariance is not positive semi-definite"):
+        check_covariance(bad.expand(500, 3, 2, 2), "prior")
+    mixed = torch.stack([good, good, bad])  # (3, 2, 2): the bad one in a stored axis
+    with pytest.raises(ValueError, match="prior: covariance is not positive semi-definite"):
+        check_covariance(mixed.expand(500, 3, 2, 2), "prior")
+    with pytest.raises(ValueError, match="prior: covariance is not positive semi-definite"):
+        check_covariance(mixed.unsqueeze(1).expand(3, 400, 2, 2), "prior")
+    with pytest.raises(ValueError, match="prior: contains NaN"):
+        check_covariance(torch.full((2, 2), float("nan"), dtype=torch.float64).expand(7, 2, 2), "prior")

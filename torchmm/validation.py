@@ -149,6 +149,15 @@ def check_square(tensor: Tensor, name: str) -> int:
     return tensor.shape[-1]
 
 
+def _distinct(tensor: Tensor) -> Tensor:
+    """``tensor`` with every broadcast batch axis (stride 0: one matrix repeated, e.g. a prior
+    ``expand``-ed over the runs) narrowed to one entry: the same matrices, each checked once."""
+    for dim in range(tensor.dim() - 2):
+        if tensor.stride(dim) == 0 and tensor.shape[dim] > 1:
+            tensor = tensor.narrow(dim, 0, 1)
+    return tensor
+
+
 def check_covariance(tensor: Tensor, name: str, *, definite: bool = False) -> None:
     """Check that ``tensor`` (..., d, d) is finite, symmetric and positive semi-definite (or definite).
 
@@ -159,7 +168,7 @@ def check_covariance(tensor: Tensor, name: str, *, definite: bool = False) -> No
         ValueError: naming ``name`` and the failed property.
     """
     check_square(tensor, name)
-    value = tensor.detach().to(torch.float64)
+    value = _distinct(tensor.detach()).to(torch.float64)
     if not bool(torch.isfinite(value).all()):
         raise ValueError(f"{name}: contains NaN or infinite entries")
     if value.numel() == 0:
