@@ -152,24 +152,20 @@ def _coefficients(t: Tensor, M: int, event: int, batch_dims: int) -> list:
     front = t.movedim(0, -1)  # (*event, P)
     front = front.reshape(*front.shape, *([1] * batch_dims))  # (*event, P, 1...)
     traced = t.requires_grad and torch.is_grad_enabled()
-    if not traced:
-        values = t.detach().cpu()  # one host read, at the entry point
-    flat = []
-    for index in itertools.product(*(range(size) for size in t.shape[1:])):
-        entry = front[tuple(index)]
-        if traced:
-            flat.append(_Coef("tensor", entry))
-            continue
-        column = values[(slice(None), *index)]
-        if bool((column == 0).all()):
-            flat.append(_ZERO)
-        elif bool((column == 1).all()):
-            flat.append(_ONE)
-        elif bool((column == column[0]).all()):
-            # a 0-dim tensor: an operation with a Python number costs more dispatch than with a tensor
-            flat.append(_Coef("scalar", column[0].to(t.device, copy=True)))
-        else:
-            flat.append(_Coef("tensor", entry))
+    entries = front.flatten(0, event - 1).unbind(0) if event > 1 else front.unbind(0)
+    if traced:
+        flat = [_Coef("tensor", entry) for entry in entries]
+    else:
+        # every entry's kind in one pass and one host read, at the entry point: 0 zero in every mode,
+        # 1 one in every mode, 2 one number shared by the modes, 3 per mode
+        values = t.detach().flatten(1)  # (P, entries)
+        first = values[0]
+        kind = torch.where((values == 0).all(0), 0, torch.where((values == 1).all(0), 1,
+                           torch.where((values == first).all(0), 2, 3))).tolist()
+        # 0-dim copies (an operation with a Python number costs more dispatch than with a tensor)
+        shared = first.clone().unbind(0)
+        flat = [_ZERO if k == 0 else _ONE if k == 1 else _Coef("scalar", shared[e]) if k == 2
+                else _Coef("tensor", entries[e]) for e, k in enumerate(kind)]
     if event == 1:
         return flat
     cols = t.shape[-1]
