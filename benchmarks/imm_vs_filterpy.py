@@ -37,7 +37,7 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from torchmm import IMM, ConstantVelocity, GaussianBelief, KalmanFilter, PositionMeasurement, run_filter
+from torchmm import IMM, ConstantVelocity, GaussianBelief, KalmanFilter, PositionMeasurement, run_filter  # noqa: E402
 from torchmm.simulate import simulate_jump_system, simulate_measurements  # noqa: E402
 
 ACCELERATIONS = [0.25, 0.0, -0.25]
@@ -253,7 +253,11 @@ def main() -> None:
     if err_fp > 1e-9 or err_np > 1e-9 or err_soa > 1e-9 or err_compiled > 1e-9:
         raise SystemExit("estimates disagree: the comparison is void")
     note = "" if fp_runs == args.runs else f" (measured on {fp_runs} runs, scaled)"
-    print(f"torchmm  {t_torch:8.4f} s (eager, the default)")
+    from torchmm.multimodel import batch_last  # noqa: PLC0415
+
+    traced = "traced" if batch_last._TRACED else "not traced"
+    print(f"torchmm  {t_torch:8.4f} s (eager, the default; its steps {traced}: a structure's steps run as a cached "
+          f"torch.fx graph once it has run {batch_last._TRACE_AFTER} steps in the process)")
     print(f"torchmm compiled {t_compiled:8.4f} s (compile=True; the first call took {compile_s:.1f} s)")
     print(f"NumPy    {t_numpy:8.4f} s")
     print(f"NumPy SoA {t_soa:7.4f} s")

@@ -429,3 +429,25 @@ def test_a_constant_left_out_of_the_graphs_inputs_is_caught(trace_cache, monkeyp
     kernel = imm.fast_steps(belief0, z).step.__self__
     with pytest.raises(RuntimeError, match="holds tensors"):
         kernel.trace()
+
+
+@pytest.mark.parametrize("gpb,record", [(False, None), (False, "estimate"), (True, None)])
+def test_the_compiled_step_is_one_graph(gpb, record, layout):
+    """compile=True compiles the whole step, without a graph break (a `del` of a name that a
+    comprehension reads once split it into eager-glued pieces: the compiled step ran slower than eager)."""
+    import torch._dynamo
+
+    imm, belief0, z = _random_imm(2, 1, 3, (6,), steps=3, seed=8)
+    if gpb:
+        imm = GPB1(imm.bank.filter, imm.transition.matrix())
+    fast = imm.fast_steps(belief0, z)
+    kernel = fast.step.__self__
+    if record == "estimate":
+        kernel.omit(frozenset(["prior", "innovation", "innovation_cov", "extras"]), estimate=True)
+    torch._dynamo.reset()
+    whole = torch.compile(kernel.core, fullgraph=True, backend="eager", dynamic=False)
+    X, P, mu, _ = fast.state
+    want = kernel.core(X, P, mu, *kernel.data[0])
+    got = whole(X, P, mu, *kernel.data[0])  # raises at a graph break
+    for a, b in zip(pytree.tree_leaves(got), pytree.tree_leaves(want)):
+        assert (a is None and b is None) or torch.equal(a, b)

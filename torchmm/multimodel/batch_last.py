@@ -435,7 +435,9 @@ class BatchLastIMM:
             if self.collapse:  # the one start belief, seen by every mode (views)
                 Xm, Pm = Xm.expand_as(X), Pm.expand_as(P)
             xs, Cm = Xm.unbind(0), self.entries(Pm)
-            del Xi, D  # temporaries freed as soon as they are dead: their memory is reused while hot
+            # temporaries freed as soon as they are dead (their memory is reused while hot); by assignment,
+            # not del: a name a comprehension reads is a cell, and torch.compile breaks its graph at DELETE_DEREF
+            Xi = D = None
         else:
             # entry by entry (X, P: lists), each one pass over (i, j, *B)
             xs = [(w * X[a].unsqueeze(1)).sum(0) for a in range(n)]  # mixed means (j, *B)
@@ -450,7 +452,7 @@ class BatchLastIMM:
             Xm = Pm = None
             if "extras" not in omitted:
                 Xm, Pm = torch.stack(xs), self.stack(Cm)
-            del D, wD  # temporaries freed as soon as they are dead: their memory is reused while hot
+            D = wD = None  # freed as soon as dead (assignment, not del: see above)
         # prediction: x- = F m + b, P- = F C F^T + Q
         xp = [_linear([(F[a][e], xs[e]) for e in range(n)], b[a], cbar) for a in range(n)]
         A = [[_linear([(F[a][e], sym(Cm, e, c)) for e in range(n)], _ZERO, cbar) for c in range(n)]
@@ -458,7 +460,7 @@ class BatchLastIMM:
         Pp = [[None] * n for _ in range(n)]
         for a, c in upper:
             Pp[a][c] = _linear([(F[c][e], A[a][e]) for e in range(n)], Q[a][c], cbar)
-        del A, w, joint_ij  # (X and P: the caller's state holds them)
+        A = w = joint_ij = None  # freed (not del: cells); X and P: the caller's state holds them
         # update, one component at a time (diagonal R); a missing component has ob = 0, zc = 0
         xu, Cu = xp, Pp
         ll = singular = s_first = None
