@@ -323,7 +323,7 @@ class BatchLastIMM:
             return
         remaining = len(self.data) - self._steps_done
         with _TRACE_LOCK:
-            if self._key is not None:  # the steps counted for the previous structure run on this one
+            if self._key in _STEPS_SEEN:  # the steps counted for the previous structure run on this one
                 _STEPS_SEEN[self._key] -= remaining
             key, self._key = self.structure(), None
             graph = _TRACED.get(key)
