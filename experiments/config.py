@@ -234,6 +234,7 @@ class Common:
     device: str = spec("cpu", _device)
     dtype: str = spec("float64", one_of("float64", "float32", "double", "float"))
     progress: bool = True
+    figures: bool = True
     chunk_runs: Optional[int] = spec(None, positive_int)
     unit_runs: Optional[int] = spec(None, positive_int)
     threads: Optional[int] = spec(1, positive_int)

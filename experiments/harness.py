@@ -18,6 +18,7 @@ import json
 import logging
 import math
 import os
+import struct
 import zlib
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
@@ -265,7 +266,8 @@ class Logger:
 
     def histogram(self, tag: str, values: torch.Tensor, step: int = 0) -> None: ...
 
-    def figure(self, tag: str, figure) -> None: ...
+    def figure(self, tag: str, figure, png: bytes | None = None) -> None:
+        """A matplotlib figure; ``png``: the figure already rendered as PNG (logged as it is)."""
 
     def text(self, tag: str, text: str) -> None: ...
 
@@ -293,8 +295,17 @@ class TensorBoardLogger(Logger):
     def histogram(self, tag, values, step=0):
         self.writer.add_histogram(tag, values.detach().cpu(), step)
 
-    def figure(self, tag, figure):
-        self.writer.add_figure(tag, figure, close=False)
+    def figure(self, tag, figure, png=None):
+        if png is None:
+            self.writer.add_figure(tag, figure, close=False)
+            return
+        # the PNG the study saved, as TensorBoard's encoded image: no second rendering
+        from tensorboard.compat.proto.summary_pb2 import Summary
+
+        width, height = struct.unpack(">II", png[16:24])  # the IHDR chunk
+        channels = {0: 1, 2: 3, 4: 2, 6: 4}.get(png[25], 4)  # by the PNG colour type
+        image = Summary.Image(height=height, width=width, colorspace=channels, encoded_image_string=png)
+        self.writer._get_file_writer().add_summary(Summary(value=[Summary.Value(tag=tag, image=image)]))
 
     def text(self, tag, text):
         self.writer.add_text(tag, text)
@@ -346,8 +357,8 @@ class CurveRecorder(Logger):
     def histogram(self, tag, values, step=0):
         self.inner.histogram(tag, values, step)
 
-    def figure(self, tag, figure):
-        self.inner.figure(tag, figure)
+    def figure(self, tag, figure, png=None):
+        self.inner.figure(tag, figure, png=png)
 
     def text(self, tag, text):
         self.inner.text(tag, text)
@@ -355,10 +366,11 @@ class CurveRecorder(Logger):
     def close(self):
         self.inner.close()
 
-    def save(self, output_dir: Path) -> None:
+    def save(self, output_dir: Path, figures: bool = True) -> None:
         """``curves.npz``: per curve ``<tag>`` the values and ``<tag>#<axis>`` its x values - the time
         steps (``#step``) or a swept parameter (e.g. ``#alpha``); and a tidy ``curves.csv``
-        (``quantity, series, axis, x, value``; the tag is ``quantity/series``)."""
+        (``quantity, series, axis, x, value``; the tag is ``quantity/series``). ``figures``: also draw
+        the sweeps' curves for TensorBoard."""
         if not self.curves:
             return
         import numpy as np
@@ -377,7 +389,7 @@ class CurveRecorder(Logger):
                 lines.append(f"{_csv(quantity)},{_csv(series)},{_csv(axis)},{k!r},{v!r}")
         _write_atomic(output_dir / "curves.csv", "\n".join(lines) + "\n")
         sweeps = {tag: c for tag, c in self.curves.items() if c[0] != "step"}
-        if sweeps and not isinstance(self.inner, NullLogger):  # TensorBoard: sweeps on their own axis
+        if figures and sweeps and not isinstance(self.inner, NullLogger):  # TensorBoard: sweeps on their own axis
             from experiments.plot import draw_groups
 
             for quantity, fig in draw_groups(sweeps):
@@ -450,6 +462,8 @@ class StudyContext:
     device: torch.device
     seed: int
     progress: bool = True
+    #: ``figures=false``: :meth:`save_figure` draws nothing (sweeps of many jobs)
+    figures: bool = True
     #: in a ``-m`` sweep: the job's label on its bars (``[job 3]``) and the terminal line they keep, so
     #: parallel jobs' bars do not interleave
     bar_label: str = ""
@@ -599,16 +613,21 @@ class StudyContext:
             self._executor = None
 
     # -- outputs -------------------------------------------------------------------------------
-    def save_figure(self, name: str, figure) -> Path:
+    def save_figure(self, name: str, figure) -> Path | None:
         """Save ``figures/<name>.png`` (200 dpi) and ``figures/<name>.pdf`` (vector, for papers), and log
-        it to TensorBoard under ``figures/<name>``."""
+        the PNG to TensorBoard under ``figures/<name>``; closes ``figure``. With ``figures=false``
+        nothing is drawn and None is returned."""
         import matplotlib.pyplot as plt
 
+        from experiments.plot import save_tight
+
+        if not self.figures:
+            plt.close(figure)
+            return None
         path = self.output_dir / "figures" / f"{name}.png"
         path.parent.mkdir(parents=True, exist_ok=True)
-        figure.savefig(path, dpi=200, bbox_inches="tight")
-        figure.savefig(path.with_suffix(".pdf"), bbox_inches="tight")
-        self.logger.figure(f"figures/{name}", figure)
+        png = save_tight(figure, [(path, 200), (path.with_suffix(".pdf"), None)])
+        self.logger.figure(f"figures/{name}", figure, png=png)
         plt.close(figure)
         return path
 
@@ -646,8 +665,8 @@ def unique_dir(base: str) -> str:
 #: (``chunk_runs``: identical bit for bit - run-indexed streams, per-run reductions; docs/scaling.md)
 #: (``unit_runs``: the same to rounding - a unit's runs are filtered in one batch - and its own unit keys)
 #: (``compile``: the fast paths compiled, the same to rounding)
-NON_RESULT_KEYS = ("progress", "logger", "threads", "chunk_runs", "unit_runs", "retain_freed_memory", "compile",
-                   "executor", "resume")
+NON_RESULT_KEYS = ("progress", "figures", "logger", "threads", "chunk_runs", "unit_runs", "retain_freed_memory",
+                   "compile", "executor", "resume")
 
 
 def result_config(config_dict: dict) -> dict:
@@ -735,6 +754,7 @@ def open_context(cfg: Any, output_dir: Path, config_dict: dict, experiment: str,
         device=resolve_device(cfg.device),
         seed=int(cfg.seed),
         progress=bool(cfg.get("progress", True)),
+        figures=bool(cfg.get("figures", True)),
         _checkpoint=checkpoint,
         _checkpoint_refs=refs,
         _config_hash=digest,

@@ -14,7 +14,7 @@ import sys
 from collections import defaultdict
 from pathlib import Path
 
-__all__ = ["draw_groups", "load_curves", "main", "plot_curves"]
+__all__ = ["draw_groups", "load_curves", "main", "plot_curves", "save_tight"]
 
 #: a band of +- Z95 standard errors is drawn around ``<q>/<s>`` where ``<q>_se/<s>`` exists
 Z95 = 1.959963984540054
@@ -79,6 +79,37 @@ def draw_groups(curves: dict[str, tuple[str, object, object]]) -> list[tuple[str
     return figures
 
 
+def save_tight(figure, files, *, pad_inches: float | None = None) -> bytes | None:
+    """Write ``figure`` to every ``(path, dpi)`` of ``files`` (``dpi`` None: the figure's), cropped to
+    one tight bounding box; returns the bytes of the first PNG written (None if there is none).
+
+    ``savefig(bbox_inches="tight")`` draws the figure once more per file only to find that box;
+    here it is found once, so each file costs one draw. A figure with a layout engine (e.g.
+    ``constrained_layout``) is laid out once, by the first draw, and keeps that layout.
+    """
+    import io
+
+    import matplotlib
+
+    figure.draw_without_rendering()  # lays the figure out (its layout engine too, if any)
+    if figure.get_layout_engine() is not None:
+        figure.set_layout_engine("none")  # keep that layout: the saves below then draw once each
+    pad = matplotlib.rcParams["savefig.pad_inches"] if pad_inches is None else pad_inches
+    bbox = figure.get_tightbbox().padded(pad)
+    png = None
+    for path, dpi in files:
+        path = Path(path)
+        kwargs = {} if dpi is None else {"dpi": dpi}
+        if path.suffix.lower() == ".png" and png is None:
+            buffer = io.BytesIO()
+            figure.savefig(buffer, format="png", bbox_inches=bbox, **kwargs)
+            png = buffer.getvalue()
+            path.write_bytes(png)
+        else:
+            figure.savefig(path, bbox_inches=bbox, **kwargs)
+    return png
+
+
 def plot_curves(run_dir: Path, formats=("png", "pdf")) -> list[Path]:
     """Draw every quantity's curves into ``run_dir/figures/curves/``; returns the files written."""
     import matplotlib.pyplot as plt
@@ -88,10 +119,9 @@ def plot_curves(run_dir: Path, formats=("png", "pdf")) -> list[Path]:
     written = []
     for quantity, fig in draw_groups(load_curves(run_dir)):
         name = quantity.replace("/", "_") or "curve"
-        for fmt in formats:
-            path = out_dir / f"{name}.{fmt}"
-            fig.savefig(path, dpi=300, bbox_inches="tight")
-            written.append(path)
+        paths = [out_dir / f"{name}.{fmt}" for fmt in formats]
+        save_tight(fig, [(path, 300) for path in paths])
+        written.extend(paths)
         plt.close(fig)
     return written
 

@@ -305,9 +305,11 @@ def write_report(report: dict[str, Any], out_dir: Path) -> list[Path]:
     if fig is not None:
         import matplotlib.pyplot as plt
 
-        for fmt in ("png", "pdf"):
-            fig.savefig(out_dir / f"report.{fmt}", dpi=200, bbox_inches="tight")
-            written.append(out_dir / f"report.{fmt}")
+        from experiments.plot import save_tight
+
+        paths = [out_dir / f"report.{fmt}" for fmt in ("png", "pdf")]
+        save_tight(fig, [(path, 200) for path in paths])
+        written.extend(paths)
         plt.close(fig)
     return written
 

@@ -27,7 +27,8 @@ FAST = {
 
 def _compose(name: str, *overrides: str):
     with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
-        return compose("config", overrides=[f"experiment={name}", "progress=false", "logger=none", *overrides])
+        return compose("config", overrides=[f"experiment={name}", "progress=false", "logger=none", "figures=false",
+                                                    *overrides])
 
 
 def _assert_same(a, b, path="results", rel_tol=1e-11):

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from experiments.run import run_study
-from tests.experiments.test_studies import _compose
+from tests.experiments.test_studies import _compose_numbers as _compose
 
 
 def _capture(monkeypatch, module, name, pick):

@@ -8,7 +8,7 @@ import pytest
 
 from experiments.config import ConfigError, validate
 from experiments.run import run_study
-from tests.experiments.test_studies import _compose
+from tests.experiments.test_studies import _compose_numbers as _compose
 
 
 def _tables(name, tmp_path, *overrides):

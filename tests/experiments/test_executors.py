@@ -16,7 +16,7 @@ import pytest
 
 from experiments.executors import Job, ProcessExecutor, Unit, UnitError, make_executor
 from experiments.run import run_study
-from tests.experiments.test_studies import _compose
+from tests.experiments.test_studies import _compose_numbers as _compose
 
 WORKER_CONFIG = {"dtype": "float64", "device": "cpu", "seed": 0, "experiment_name": "executor_test"}
 

@@ -17,7 +17,8 @@ from tests.experiments.test_chunking import _assert_same
 
 def _compose(name: str, *overrides: str):
     with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
-        return compose("config", overrides=[f"experiment={name}", "progress=false", "logger=none", *overrides])
+        return compose("config", overrides=[f"experiment={name}", "progress=false", "logger=none", "figures=false",
+                                                    *overrides])
 
 
 def _ctx(tmp_path, *overrides):

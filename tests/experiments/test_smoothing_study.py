@@ -7,7 +7,7 @@ from __future__ import annotations
 import json
 
 from experiments.run import run_study
-from tests.experiments.test_studies import _compose
+from tests.experiments.test_studies import _compose_numbers as _compose
 
 
 def test_smoothing_study_tables(tmp_path):

@@ -57,6 +57,12 @@ def _compose(name: str, *overrides: str):
         return compose("config", overrides=[f"experiment={name}", *overrides])
 
 
+def _compose_numbers(name: str, *overrides: str):
+    """:func:`_compose` with ``figures=false``, for tests of numbers, not artefacts (drawing a study's
+    figures costs about as much as its filtering at test sizes)."""
+    return _compose(name, "figures=false", *overrides)
+
+
 def test_every_experiment_has_required_tables_listed():
     assert set(EXPERIMENTS) >= set(REQUIRED_TABLES)
 
@@ -94,8 +100,35 @@ def test_experiment_composes_and_runs(name, tmp_path):
     assert list((tmp_path / "figures" / "curves").glob("*.png"))
 
 
+def test_figures_false_draws_nothing_and_changes_no_number(tmp_path):
+    """``figures=false``: no PNG/PDF and no TensorBoard image, the same numbers; with figures, the
+    TensorBoard image is the saved PNG itself (its bytes, not a second rendering)."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    base = ["mc_runs=3", "progress=false", "logger=tensorboard", *FAST["imm_baseline"]]
+    drawn = run_study(_compose("imm_baseline", *base), tmp_path / "drawn")
+    bare = run_study(_compose("imm_baseline", *base, "figures=false"), tmp_path / "bare")
+    assert drawn.tables["rmse"].rows == bare.tables["rmse"].rows
+    assert not (tmp_path / "bare" / "figures").exists()
+    assert (tmp_path / "bare" / "curves.npz").exists()  # the curves are data, figures or not
+    png = tmp_path / "drawn" / "figures" / "rmse_over_time.png"
+    assert png.exists() and png.with_suffix(".pdf").exists()
+    images = {}
+    for name in ("drawn", "bare"):
+        events = EventAccumulator(str(tmp_path / name / "tb"), size_guidance={"images": 0})
+        events.Reload()
+        images[name] = {tag: events.Images(tag) for tag in events.Tags()["images"]}
+    assert images["bare"] == {}
+    logged = images["drawn"]["figures/rmse_over_time"][-1]
+    assert logged.encoded_image_string == png.read_bytes()
+    from PIL import Image
+
+    with Image.open(png) as im:
+        assert (logged.width, logged.height) == im.size
+
+
 def test_imm_analysis_conclusions_hold(tmp_path):
-    cfg = _compose("imm_analysis", "mc_runs=6", "progress=false", "logger=none", *FAST["imm_analysis"])
+    cfg = _compose_numbers("imm_analysis", "mc_runs=6", "progress=false", "logger=none", *FAST["imm_analysis"])
     results = run_study(cfg, tmp_path)
     rows = {row[0]: row for row in results.tables["conclusions"].rows}
     for conclusion in (1, 2, 3, 4, 5):
@@ -107,7 +140,7 @@ def test_imm_analysis_conclusions_hold(tmp_path):
 
 
 def test_imm_baseline_estimators_and_timing(tmp_path):
-    cfg = _compose("imm_baseline", "mc_runs=5", "progress=false", "logger=none")
+    cfg = _compose_numbers("imm_baseline", "mc_runs=5", "progress=false", "logger=none")
     results = run_study(cfg, tmp_path)
     names = [row[0] for row in results.tables["rmse"].rows]
     assert names == ["IMM", "GPB1", "GPB2", "KF"]
@@ -117,10 +150,10 @@ def test_imm_baseline_estimators_and_timing(tmp_path):
 
 
 def test_same_seed_same_numbers_and_chunking_is_transparent(tmp_path):
-    a = run_study(_compose("imm_baseline", "mc_runs=6", "progress=false", "logger=none"), tmp_path / "a")
-    b = run_study(_compose("imm_baseline", "mc_runs=6", "progress=false", "logger=none", "chunk_runs=4"),
+    a = run_study(_compose_numbers("imm_baseline", "mc_runs=6", "progress=false", "logger=none"), tmp_path / "a")
+    b = run_study(_compose_numbers("imm_baseline", "mc_runs=6", "progress=false", "logger=none", "chunk_runs=4"),
                   tmp_path / "b")
-    c = run_study(_compose("imm_baseline", "mc_runs=6", "progress=false", "logger=none", "seed=1"), tmp_path / "c")
+    c = run_study(_compose_numbers("imm_baseline", "mc_runs=6", "progress=false", "logger=none", "seed=1"), tmp_path / "c")
     rows_a, rows_b = a.tables["rmse"].rows, b.tables["rmse"].rows
     for ra, rb in zip(rows_a, rows_b):
         assert ra[1] == pytest.approx(rb[1], rel=1e-12) and ra[2] == pytest.approx(rb[2], rel=1e-12)
