@@ -128,7 +128,7 @@ def test_two_runs_started_together_write_into_their_own_folders(tmp_path):
     """Seeds 1 and 2 launched in the same second used to share (and overwrite) one folder."""
     exe = Path(sys.executable).with_name("torchmm-run")
     procs = [subprocess.Popen([str(exe), "mc_runs=2", f"seed={seed}", "progress=false", "logger=tensorboard",
-                               *TF_FAST, "hydra.run.dir=${torchmm.unique_dir:outputs/same}"],
+                               "figures=false", *TF_FAST, "hydra.run.dir=${torchmm.unique_dir:outputs/same}"],
                               cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
              for seed in (1, 2)]
     for p in procs:

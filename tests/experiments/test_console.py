@@ -90,7 +90,7 @@ def _run_cli(cwd, *args):
 
 
 def test_resume_latest_continues_the_newest_run_of_the_same_config(tmp_path):
-    base = ["experiment=imm_baseline", "debug=imm_baseline", "logger=none", "progress=false"]
+    base = ["experiment=imm_baseline", "debug=imm_baseline", "logger=none", "progress=false", "figures=false"]
     first = _run_cli(tmp_path, *base)
     assert first.returncode == 0, first.stderr[-2000:]
     folders = sorted((tmp_path / "outputs" / "imm_baseline").iterdir())
