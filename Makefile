@@ -8,7 +8,7 @@ ARGS   ?=
 # test processes (pytest-xdist): the CPUs, at most 4 (each process imports torch; files stay whole)
 JOBS   ?= $(shell n=$$(nproc 2>/dev/null || echo 1); [ $$n -gt 4 ] && n=4; echo $$n)
 
-.PHONY: install run test test-slow test-all bench clean
+.PHONY: install run test test-slow test-all bench gpu-wheels clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -37,6 +37,11 @@ test-all: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/imm_vs_filterpy.py $(ARGS)
+
+# for a lent GPU machine (benchmarks/gpu_session.sh): the pure-Python packages its image lacks, as wheels
+gpu-wheels: $(STAMP)
+	rm -rf .whl && mkdir -p .whl
+	$(BIN)/python -m pip wheel --quiet --no-deps -w .whl hydra-core==1.3.8 omegaconf==2.3.1 antlr4-python3-runtime==4.9.3
 
 clean:
 	rm -rf $(VENV) outputs multirun .pytest_cache .hypothesis
