@@ -74,16 +74,25 @@ def per_run(tensor: torch.Tensor):
     return tensor.detach().cpu().numpy()
 
 
+def _tensor(array: Any) -> torch.Tensor:
+    """``torch.as_tensor``; a read-only numpy array (a Ray worker's result, shared zero-copy) is copied
+    first, which torch would otherwise wrap with a warning that writing to it is undefined."""
+    flags = getattr(array, "flags", None)
+    if flags is not None and not flags.writeable:
+        array = array.copy()
+    return torch.as_tensor(array)
+
+
 def join_runs(arrays: Sequence[Any], dim: int = 1) -> torch.Tensor:
     """Per-run values of consecutive units, in run order, as one tensor (runs on ``dim``)."""
-    return torch.cat([torch.as_tensor(a) for a in arrays], dim)
+    return torch.cat([_tensor(a) for a in arrays], dim)
 
 
 def add_runs(arrays: Sequence[Any]) -> torch.Tensor:
     """Sums over the runs of consecutive units, added in run order (a single unit: its own sum)."""
-    total = torch.as_tensor(arrays[0])
+    total = _tensor(arrays[0])
     for a in arrays[1:]:
-        total = total + torch.as_tensor(a)
+        total = total + _tensor(a)
     return total
 
 

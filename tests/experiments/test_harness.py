@@ -50,3 +50,24 @@ def test_units_are_cached_in_the_checkpoint(tmp_path):
     assert value == {"x": 2.0}
     again = _ctx(tmp_path).unit("u1", lambda: calls.append(1) or {"x": 3.0})
     assert again == {"x": 2.0} and len(calls) == 1
+
+
+def test_read_only_per_run_arrays_join_without_a_warning():
+    """A Ray worker's arrays arrive read-only (shared zero-copy): joined and summed with the same
+    values, without torch's warning about non-writable arrays."""
+    import warnings
+
+    import numpy as np
+
+    from experiments.harness import add_runs, join_runs
+
+    parts = [np.arange(6.0).reshape(2, 3), np.arange(6.0, 10.0).reshape(2, 2)]
+    for part in parts:
+        part.flags.writeable = False
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        joined = join_runs(parts, dim=1)
+        total = add_runs([parts[0], parts[0]])
+    assert torch.equal(joined, torch.tensor([[0.0, 1, 2, 6, 7], [3, 4, 5, 8, 9]], dtype=torch.float64))
+    assert torch.equal(total, 2 * torch.arange(6.0, dtype=torch.float64).reshape(2, 3))
+    assert not parts[0].flags.writeable  # the caller's array is left as it was
