@@ -87,7 +87,7 @@ def run_study(cfg: DictConfig, output_dir: Path, overrides: list[str] | None = N
         ctx.results.provenance = provenance.data
         ctx.results.save()
         ctx.logger.save(ctx.output_dir, figures=ctx.figures)  # curves.npz / curves.csv: every curve as data
-        if ctx.figures and (ctx.output_dir / "curves.npz").exists():  # figures/curves/: drawn from that file alone
+        if ctx.figures and (ctx.output_dir / "curves.npz").exists():  # figures/curves/: from that file alone
             from experiments.plot import plot_curves
 
             plot_curves(ctx.output_dir, formats=("png",))  # PDF/SVG: torchmm-plot RUN_DIR

@@ -1,13 +1,14 @@
 """Defect 6: every filter family keeps its covariances finite, symmetric and PSD in float32.
 
 10^4 steps in float32 (the fast suite: 2,500; ``make test-slow``: 10^4) with an accurate position
-sensor (``R = 1e-6``, ``q = 1``), the setting in which the UKF's ``P - K S K^T`` lost positive definiteness from the first step (65 465 of 80 000
-posterior covariances indefinite, smallest eigenvalue -1.4x the largest). Every posterior
-covariance of every step is checked: finite, symmetric (to ``1e-6`` relative) and PSD to float32
-working precision: its smallest eigenvalue, computed in float64 from the float32 matrix, is at
-least ``-1e-5`` times the largest (for a particle filter's weighted sample covariance, whose
-rounding scale is that of the particles' second moment ``cov + mean mean^T``, times that). The data are NumPy noise (platform-independent); nothing here depends on the
-values a generator gives on one processor.
+sensor (``R = 1e-6``, ``q = 1``), the setting in which the UKF's ``P - K S K^T`` lost positive
+definiteness from the first step (65 465 of 80 000 posterior covariances indefinite, smallest
+eigenvalue -1.4x the largest). Every posterior covariance of every step is checked: finite,
+symmetric (to ``1e-6`` relative) and PSD to float32 working precision: its smallest eigenvalue,
+computed in float64 from the float32 matrix, is at least ``-1e-5`` times the largest (for a particle
+filter's weighted sample covariance, whose rounding scale is that of the particles' second moment
+``cov + mean mean^T``, times that). The data are NumPy noise (platform-independent); nothing here
+depends on the values a generator gives on one processor.
 """
 
 from __future__ import annotations
@@ -108,7 +109,7 @@ def _covariances(traj) -> list[tuple[torch.Tensor, torch.Tensor]]:
 
 
 #: the variational families: their test is in test_float32_variational.py (two files, so that the
-#: suite's processes, which take whole files, share the 10^4-step runs)
+#: suite's processes, which take whole files, share the long runs)
 VARIATIONAL = ("student_t", "skew_t", "skew_t_iw", "vbakf", "gimmaf", "imm_vbt")
 
 
