@@ -79,7 +79,7 @@ def draw_groups(curves: dict[str, tuple[str, object, object]]) -> list[tuple[str
     return figures
 
 
-def save_tight(figure, files, *, pad_inches: float | None = None) -> bytes | None:
+def save_tight(figure, files) -> bytes | None:
     """Write ``figure`` to every ``(path, dpi)`` of ``files`` (``dpi`` None: the figure's), cropped to
     one tight bounding box; returns the bytes of the first PNG written (None if there is none).
 
@@ -94,8 +94,7 @@ def save_tight(figure, files, *, pad_inches: float | None = None) -> bytes | Non
     figure.draw_without_rendering()  # lays the figure out (its layout engine too, if any)
     if figure.get_layout_engine() is not None:
         figure.set_layout_engine("none")  # keep that layout: the saves below then draw once each
-    pad = matplotlib.rcParams["savefig.pad_inches"] if pad_inches is None else pad_inches
-    bbox = figure.get_tightbbox().padded(pad)
+    bbox = figure.get_tightbbox().padded(matplotlib.rcParams["savefig.pad_inches"])
     png = None
     for path, dpi in files:
         path = Path(path)

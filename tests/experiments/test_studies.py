@@ -153,7 +153,8 @@ def test_same_seed_same_numbers_and_chunking_is_transparent(tmp_path):
     a = run_study(_compose_numbers("imm_baseline", "mc_runs=6", "progress=false", "logger=none"), tmp_path / "a")
     b = run_study(_compose_numbers("imm_baseline", "mc_runs=6", "progress=false", "logger=none", "chunk_runs=4"),
                   tmp_path / "b")
-    c = run_study(_compose_numbers("imm_baseline", "mc_runs=6", "progress=false", "logger=none", "seed=1"), tmp_path / "c")
+    c = run_study(_compose_numbers("imm_baseline", "mc_runs=6", "progress=false", "logger=none", "seed=1"),
+                  tmp_path / "c")
     rows_a, rows_b = a.tables["rmse"].rows, b.tables["rmse"].rows
     for ra, rb in zip(rows_a, rows_b):
         assert ra[1] == pytest.approx(rb[1], rel=1e-12) and ra[2] == pytest.approx(rb[2], rel=1e-12)
