@@ -132,15 +132,17 @@ class MinimumEntropyVSMM(MultipleModelParticleFilter):
 
     def predict(self, belief: ModeBelief, *, u: Tensor | None = None, motion=None,
                 generator: torch.Generator | None = None) -> ModelSetBelief:
-        prior = super().predict(belief, u=u, motion=motion, generator=generator)
+        return self._as_prior(super().predict(belief, u=u, motion=motion, generator=generator))
+
+    def _as_prior(self, prior: ModeBelief) -> ModelSetBelief:
         active = torch.ones(prior.mode_log_probs.shape, dtype=torch.bool, device=prior.mode_log_probs.device)
         return ModelSetBelief(prior.mode_log_probs, prior.components, active)
 
     def update(self, belief: ModeBelief, z: Tensor, *, sensor=None,
-               generator: torch.Generator | None = None) -> StepOutput:
+               generator: torch.Generator | None = None, _loglik=None) -> StepOutput:
         if sensor is not None:
             return self.with_sensor(sensor).update(belief, z, generator=generator)
-        out = super().update(belief, z)
+        out = super().update(belief, z, _loglik=_loglik)
         post = out.belief
         extras = dict(out.extras)
         joint = extras.pop("joint_log_weights")  # (33); the policies are invariant to its normalisation

@@ -26,11 +26,14 @@ import math
 import torch
 from torch import Tensor
 
+from torchmm import cpu_kernels
 from torchmm.beliefs import GaussianBelief, ModeBelief, ParticleBelief
 from torchmm.beliefs.ops import normalize_log_probs
 from torchmm.filters.base import StepOutput
 from torchmm.filters.particle import (
     ParticleFilter,
+    _cached_noise_factor,
+    _whitening,
     check_generator,
     check_particle_prior,
     degenerate_guard,
@@ -43,6 +46,8 @@ from torchmm.filters.particle import (
 from torchmm.filters.resampling import searchsorted_rows, systematic_search
 from torchmm.linalg import any_observed
 from torchmm.models.base import MeasurementModel, MotionModel, check_model_pair
+from torchmm.models.linear import LinearMeasurement, LinearMotion
+from torchmm.runtime import host_reads_ok
 from torchmm.multimodel.imm import Interaction, MultipleModelFilter
 from torchmm.validation import as_int, check_measurement, check_probabilities
 
@@ -73,7 +78,7 @@ def _stratified_points(shape, scheme: str, like: Tensor, generator) -> Tensor:
 
 def mixing_indices(mode_log_probs: Tensor, log_transition: Tensor, within_log_weights: Tensor,
                    num_particles: int, scheme: str = "systematic", *,
-                   generator: torch.Generator | None = None) -> tuple[Tensor, Tensor]:
+                   generator: torch.Generator | None = None, _defer: bool = False) -> tuple[Tensor, Tensor]:
     r"""Ancestors of the interaction step of a multiple-model particle filter.
 
     For every target model ``i``, ``Np`` ancestors ``(a, b)`` (model ``a``, particle ``b``) are drawn
@@ -96,6 +101,8 @@ def mixing_indices(mode_log_probs: Tensor, log_transition: Tensor, within_log_we
     Returns:
         ``(indices, log_cbar)``: flat indices ``a * Np_prev + b`` ``(*B, M, Np)`` and the predicted
         mode log-probabilities ``log c_i = logsumexp_a(log mu_a + log pi_ai)`` ``(*B, M)``.
+        (``_defer``, internal: where the compiled ``two_stage`` kernel runs, the indices come as a
+        zero-argument callable that waits for them; the kernel runs meanwhile in a worker thread.)
 
     Shapes:
         mode_log_probs: ``(*B, M)`` (normalised; inactive models ``-inf``);
@@ -109,30 +116,47 @@ def mixing_indices(mode_log_probs: Tensor, log_transition: Tensor, within_log_we
     cdf_models = _forced_cdf(mixing)
     batch, num_models = mixing.shape[:-2], mixing.shape[-1]
     shape = (*batch, num_models, num_particles)
+    # two_stage on CPU tensors: the points, ancestors and slots in one compiled pass (below)
+    fused = scheme == "two_stage" and cpu_kernels.applies(cdf_models)
     if scheme in ("systematic", "two_stage"):
         u0 = torch.rand((*shape[:-1], 1), dtype=torch.float64, device=cdf_models.device, generator=generator)
-        u = torch.arange(num_particles, dtype=torch.float64, device=u0.device).add(u0).div_(num_particles)
-        ancestor = systematic_search(cdf_models, u0, num_particles)  # (*B, i, Np)
+        if not fused:
+            u = torch.arange(num_particles, dtype=torch.float64, device=u0.device).add(u0).div_(num_particles)
+            ancestor = systematic_search(cdf_models, u0, num_particles)  # (*B, i, Np)
     else:
         u = _stratified_points(shape, scheme, cdf_models, generator)
         ancestor = torch.searchsorted(cdf_models, u, right=True).clamp_max(num_models - 1)
-    # position inside the ancestor's segment [C_{a-1}, C_a): per (run, i, a) tables, two gathers
-    low = torch.cat([torch.zeros_like(cdf_models[..., :1]), cdf_models[..., :-1]], dim=-1)
-    inv_width = (cdf_models - low).clamp_min_(torch.finfo(torch.float64).tiny).reciprocal_()
-    eps = torch.finfo(torch.float64).eps
-    inner = u.sub_(torch.gather(low, -1, ancestor)).mul_(torch.gather(inv_width, -1, ancestor)).clamp_(0.0, 1.0 - eps)
+    if not fused:
+        # position inside the ancestor's segment [C_{a-1}, C_a): per (run, i, a) tables, two gathers
+        low = torch.cat([torch.zeros_like(cdf_models[..., :1]), cdf_models[..., :-1]], dim=-1)
+        inv_width = (cdf_models - low).clamp_min_(torch.finfo(torch.float64).tiny).reciprocal_()
+        eps = torch.finfo(torch.float64).eps
+        inner = u.sub_(torch.gather(low, -1, ancestor)).mul_(torch.gather(inv_width, -1, ancestor))
+        inner = inner.clamp_(0.0, 1.0 - eps)
     # within-model CDFs (*B', M, Np_prev), last entry exactly 1
     w = within_log_weights.double()
     top = w.amax(-1, keepdim=True)
     # normalised-like weights (exp can neither overflow nor all underflow) are exponentiated as they
     # are, others after subtracting their maximum: one pass, decided without a host read
     normalised_like = ((top <= 0) & (top > -100)).all()
-    shift = torch.where(normalised_like | ~torch.isfinite(top), 0.0, top)
-    w = (w - shift).exp_()
+    if host_reads_ok(w) and bool(normalised_like):  # on the CPU: the shift is 0, skip its pass
+        w = w.exp()
+    else:
+        w = (w - torch.where(normalised_like | ~torch.isfinite(top), 0.0, top)).exp_()
+    num_prev = w.shape[-1]
+    if fused:  # the CDFs, points, ancestors and slots in one compiled pass (torchmm.cpu_kernels)
+        v0 = torch.rand((*batch, num_models, 1), dtype=torch.float64, device=w.device, generator=generator)
+        rows = batch.numel()
+        flat = cpu_kernels.two_stage_indices(
+            cdf_models.reshape(rows, num_models, num_models), u0.reshape(rows, num_models),
+            w.expand(*batch, num_models, num_prev).reshape(rows, num_models, num_prev),
+            v0.reshape(rows, num_models), num_particles, background=_defer)
+        if _defer:
+            return (lambda: flat.result().view(shape)), log_cbar.to(mode_log_probs.dtype)
+        return flat.view(shape), log_cbar.to(mode_log_probs.dtype)
     cdf_within = torch.cumsum(w, dim=-1)
     cdf_within.div_(cdf_within[..., -1:].clamp_min(torch.finfo(torch.float64).tiny))
     cdf_within[..., -1] = 1.0
-    num_prev = w.shape[-1]
     if scheme == "two_stage":
         # a systematic resample of every model's particles (one per run and model, by counting),
         # then the particle at index floor(Np_prev * inner) of the ancestor's resample: no search
@@ -177,14 +201,21 @@ class ParticleMixing(Interaction):
         self.scheme = scheme
         self.num_particles = None if num_particles is None else as_int(num_particles, "num_particles", minimum=1)
 
-    def __call__(self, belief: ModeBelief, transition, generator=None) -> ModeBelief:
+    def _indices(self, belief: ModeBelief, transition, generator=None, defer: bool = False):
+        """The ancestors without the gather: ``(flat, log_cbar)`` of :func:`mixing_indices` (with
+        ``defer``: ``flat`` may be a callable that waits for it) and the number drawn per model."""
         comps = belief.components
         if not isinstance(comps, ParticleBelief):
             raise TypeError(f"belief: ParticleMixing needs particle mode filters, got {type(comps).__name__} components")
         num = comps.particles.shape[-2] if self.num_particles is None else self.num_particles
         mode_log_probs = normalize_log_probs(belief.mode_log_probs)
         flat, log_cbar = mixing_indices(mode_log_probs, transition.log_matrix(), comps.log_weights, num,
-                                        self.scheme, generator=generator)
+                                        self.scheme, generator=generator, _defer=defer)
+        return flat, log_cbar, num
+
+    def __call__(self, belief: ModeBelief, transition, generator=None) -> ModeBelief:
+        flat, log_cbar, num = self._indices(belief, transition, generator)
+        comps = belief.components
         batch = flat.shape[:-2]
         source = comps.particles.expand(*batch, *comps.particles.shape[-3:])
         n, per_run = source.shape[-1], source.shape[-3] * source.shape[-2]
@@ -346,19 +377,75 @@ class MultipleModelParticleFilter(MultipleModelFilter):
 
     def step(self, belief: ModeBelief, z: Tensor, *, u: Tensor | None = None, motion=None, sensor=None,
              generator=None) -> StepOutput:
+        if u is None and motion is None and sensor is None:
+            fused = self._fused_prior(belief, z, generator)
+            if fused is not None:  # the same prior and log-likelihoods from one compiled pass
+                prior, loglik = fused
+                return self.update(self._as_prior(prior), z, generator=generator, _loglik=(prior, z, loglik))
         prior = self.predict(belief, u=u, motion=motion, generator=generator)
         return self.update(prior, z, sensor=sensor, generator=generator)
 
-    def _weigh(self, prior: ModeBelief, z: Tensor):
+    def _as_prior(self, prior: ModeBelief) -> ModeBelief:
+        """The predicted belief as :meth:`predict` returns it (a subclass may add to it)."""
+        return prior
+
+    def _fused_prior(self, belief: ModeBelief, z: Tensor, generator) -> tuple[ModeBelief, Tensor] | None:
+        """:meth:`predict` and the particles' log-likelihoods of ``z`` through
+        :func:`torchmm.cpu_kernels.propagate_log_likelihood` (the same draws, the same numbers);
+        None where it does not apply: CPU float64 tensors without autograd, a linear motion and
+        measurement with unbatched ``F``, ``Q``, ``H``, ``R``, complete data, the base class's
+        propagation, ``innovation_stats=False``."""
+        motion, measurement = self.motion, self.measurement
+        if (self.innovation_stats or type(self)._propagate is not MultipleModelParticleFilter._propagate
+                or not isinstance(self.interaction, ParticleMixing) or not isinstance(motion, LinearMotion)
+                or not isinstance(measurement, LinearMeasurement) or not isinstance(belief, ModeBelief)
+                or not isinstance(belief.components, ParticleBelief)):
+            return None
+        particles = belief.components.particles
+        F, H, Q, R = motion.F, measurement.H, motion.noise_cov(), measurement.noise_cov()
+        n, M = particles.shape[-1], self.num_modes
+        if (F.dim() != 2 or H.dim() != 2 or Q.dim() != 2 or R.dim() != 2 or particles.dim() < 3
+                or particles.dtype != torch.float64 or z.dtype != torch.float64 or z.dim() < 1
+                or z.shape[-1] != H.shape[0] or F.shape != (n, n) or H.shape[-1] != n
+                or motion.offset.dim() > 2 or motion.offset.shape[-1] != n or motion.offset.numel() not in (n, M * n)
+                or not cpu_kernels.applies(particles, z, F, H, Q, R, motion.offset)):
+            return None
+        batch = self._check_belief(belief)
+        if z.shape[:-1] != batch or not bool(torch.isfinite(z).all()):  # a host read: CPU tensors only here
+            return None
+        generator = self._generator(generator)
+        flat, log_cbar, num = self.interaction._indices(belief, self.transition, generator, defer=True)
+        factor = _cached_noise_factor(Q)
+        # the draw of standard_normal, left in its dtype (the kernel widens each normal as it reads it);
+        # a two_stage interaction's kernel runs meanwhile in a worker thread
+        eps = torch.randn((*batch, M, num, factor.shape[-1]), dtype=self.noise_dtype or particles.dtype,
+                          generator=generator)
+        flat = flat() if callable(flat) else flat
+        inv, logdet = _whitening(R)
+        rows = batch.numel()
+        source = particles.expand(*batch, *particles.shape[-3:])
+        x, loglik = cpu_kernels.propagate_log_likelihood(
+            source.reshape(rows, -1, n), flat.reshape(rows, M, num), eps.reshape(rows, M, num, -1), factor,
+            motion.offset.expand(M, n), F, (inv @ H).contiguous(), -(z.unsqueeze(-2) @ inv.mT).reshape(rows, -1),
+            float(logdet + H.shape[0] * math.log(2 * math.pi)))
+        log_w = torch.full((), -math.log(num), dtype=x.dtype).expand(*batch, M, num)
+        prior = ModeBelief(log_cbar, ParticleBelief(x.view(*batch, M, num, n), log_w))
+        return prior, loglik.view(*batch, M, num)
+
+    def _weigh(self, prior: ModeBelief, z: Tensor, loglik: Tensor | None = None):
         """Weights (33)-(34) as per-model quantities (few passes over the particles).
 
         Returns ``(joint, per_model, log_evidence, degenerate, predicted, prior_within)`` with the
         unnormalised joint log-weights ``(*B, M, Np)`` and their per-model ``logsumexp`` ``(*B, M)``.
+        ``loglik``: the particles' log-likelihoods where already computed (a fresh tensor, NaN
+        mapped to ``-inf``).
         """
         comps = prior.components
-        loglik, predicted = particle_log_likelihood(self.measurement, z.unsqueeze(-2), comps.particles, False,
-                                                     need_predicted=self.innovation_stats)
-        loglik = torch.nan_to_num(loglik, nan=-math.inf, posinf=math.inf, neginf=-math.inf)  # fresh, for add_
+        predicted = None
+        if loglik is None:
+            loglik, predicted = particle_log_likelihood(self.measurement, z.unsqueeze(-2), comps.particles, False,
+                                                         need_predicted=self.innovation_stats)
+            loglik = torch.nan_to_num(loglik, nan=-math.inf, posinf=math.inf, neginf=-math.inf)  # fresh, for add_
         lw = comps.log_weights
         prior_mode = normalize_log_probs(prior.mode_log_probs)
         if lw.dim() > 0 and lw.stride(-1) == 0 and lw.shape[-1] > 0:
@@ -373,20 +460,28 @@ class MultipleModelParticleFilter(MultipleModelFilter):
         log_evidence = torch.where(any_observed(z), log_evidence, 0.0)  # exactly 0 without a datum
         degenerate = degenerate_guard(log_evidence)
         # applied whether or not a run degenerated (no host synchronisation)
-        joint = torch.where(degenerate[..., None, None], prior_within + prior_mode.unsqueeze(-1), joint)
+        if not host_reads_ok(degenerate) or bool(degenerate.any()):  # on the CPU: only where a run degenerated
+            joint = torch.where(degenerate[..., None, None], prior_within + prior_mode.unsqueeze(-1), joint)
         per_model = torch.where(degenerate[..., None], prior_mode, per_model)
         return joint, per_model, log_evidence, degenerate, predicted, prior_within, prior_mode
 
     def update(self, belief: ModeBelief, z: Tensor, *, sensor: MeasurementModel | None = None,
-               generator: torch.Generator | None = None) -> StepOutput:
+               generator: torch.Generator | None = None, _loglik=None) -> StepOutput:
         if sensor is not None:
             return self.with_sensor(sensor).update(belief, z)
+        # _loglik (from step): (prior, z, log-likelihoods) computed with the prior, used only for them
+        loglik = None
+        if (_loglik is not None and _loglik[1] is z
+                and belief.components.particles is _loglik[0].components.particles):
+            loglik = _loglik[2]
         z = check_measurement(z, self.measurement.meas_dim, self._check_belief(belief), belief.components.particles)
-        joint, per_model, log_evidence, degenerate, predicted, prior_within, prior_mode = self._weigh(belief, z)
+        joint, per_model, log_evidence, degenerate, predicted, prior_within, prior_mode = self._weigh(belief, z, loglik)
         safe_ev = torch.where(degenerate, torch.zeros_like(log_evidence), log_evidence)
         mode_log_probs = per_model - safe_ev.unsqueeze(-1)  # (34) summed over particles
         within = joint - per_model.unsqueeze(-1)
-        within = within.masked_fill_(~torch.isfinite(per_model).unsqueeze(-1), -math.log(within.shape[-1]))
+        lost = ~torch.isfinite(per_model)
+        if not host_reads_ok(lost) or bool(lost.any()):  # on the CPU: only where a model lost every particle
+            within = within.masked_fill_(lost.unsqueeze(-1), -math.log(within.shape[-1]))
         innovation = innovation_cov = None
         if self.innovation_stats:
             flat_prior = (prior_within + prior_mode.unsqueeze(-1)).flatten(-2)

@@ -35,6 +35,7 @@ import math
 import torch
 from torch import Tensor
 
+from torchmm import cpu_kernels
 from torchmm.beliefs import ModeBelief, ParticleBelief
 from torchmm.beliefs.ops import normalize_log_probs
 from torchmm.validation import as_int
@@ -269,11 +270,18 @@ def challenge_match(scores: Tensor, num_winners: int, *, passes: int = 1,
     batch = scores.shape[:-1]
     flat = scores.reshape(batch.numel(), P)
     Bf, device = flat.shape[0], flat.device
+    pool_size = P - num_winners
+    if passes == 1 and pool_size > 0 and cpu_kernels.applies(flat):
+        # the same pass from the same random numbers in one compiled loop (torchmm.cpu_kernels)
+        a, b = _affine_coefficients(Bf, P, device, generator)
+        rounds = math.ceil(pool_size / num_winners)
+        shifts = torch.randint(0, num_winners, (rounds * Bf, 1), device=device, generator=generator)
+        winners = cpu_kernels.challenge_pass(flat, a.view(Bf), b.view(Bf), shifts.view(rounds, Bf), num_winners)
+        return winners.view(*batch, num_winners)
     order = _random_affine_permutation(Bf, P, device, generator)
     seq1 = order[:, :num_winners].contiguous()
     pool = order[:, num_winners:].contiguous()
     held = torch.gather(flat, 1, seq1)
-    pool_size = P - num_winners
     if pool_size > 0 and passes > 0:
         N = num_winners
         rounds = math.ceil(pool_size / N)
@@ -333,12 +341,18 @@ def _random_affine_permutation(rows: int, size: int, device, generator) -> Tenso
     Shapes:
         -> ``(rows, size)`` int64
     """
+    a, b = _affine_coefficients(rows, size, device, generator)
+    j = torch.arange(size, device=device)
+    return (a * j + b) % size
+
+
+def _affine_coefficients(rows: int, size: int, device, generator) -> tuple[Tensor, Tensor]:
+    """The random ``(a, b)`` of :func:`_random_affine_permutation`, each ``(rows, 1)`` int64."""
     units = _units(size).to(device)
     pick = torch.randint(0, units.numel(), (rows, 1), device=device, generator=generator)
     a = units[pick]
     b = torch.randint(0, size, (rows, 1), device=device, generator=generator)
-    j = torch.arange(size, device=device)
-    return (a * j + b) % size
+    return a, b
 
 
 # ------------------------------------------------------------------------------------------------

@@ -1,0 +1,401 @@
+r"""Fused CPU kernels (Numba) for the multiple-model particle filter's passes over its particles.
+
+The eager step of :class:`~torchmm.multimodel.MultipleModelParticleFilter` makes about a dozen
+memory-bound passes over its ``runs x M x Np`` particles. On CPU tensors, three of its stages run
+here instead as one loop each, compiled by `Numba <https://numba.pydata.org>`_ and parallel over
+the particle sets:
+
+* :func:`two_stage_indices`: the interaction's indices for ``mixing="two_stage"`` (the systematic
+  ancestor model by counting, the per-model systematic resample, the slot inside it);
+* :func:`propagate_log_likelihood`: the ancestors' gather, ``F x + L eps + offset`` and the whitened
+  linear-Gaussian log-likelihood of every particle;
+* :func:`challenge_pass`: one pass of the challenge-match tournament.
+
+**The same numbers.** The random numbers are drawn by torch, in the same order, before a kernel
+runs; the kernels add and multiply in the order torch's kernels do (measured: ``c + x A^T`` of a
+batched GEMM with ``beta = 1`` sums its products first and adds ``c`` last, an unbatched ``addmm_``
+starts from ``c``; ``addcmul`` is a fused multiply-add), so on the machines we measured the
+particles, weights and model sets equal the eager path's bit for bit and every particle study's
+regression record is unchanged. Elsewhere (another BLAS, another vector width) they may differ in
+the last bit, like the eager path itself between machines. Integer work (counting, gathers, the
+tournament's comparisons) is exact everywhere.
+
+**When they run.** CPU tensors, no autograd graph, Numba importable (a dependency of torchmm; without
+it the eager path runs), and not switched off with :func:`set_enabled` (or the environment variable
+``TORCHMM_CPU_KERNELS=0``). The filters decide per call; nothing else changes. The first call of
+each kernel in a process compiles it (seconds; Numba caches the machine code on disk next to this
+file). Threads: as many as torch uses (``torch.get_num_threads()``).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from concurrent.futures import ThreadPoolExecutor
+
+import torch
+from torch import Tensor
+
+from torchmm.runtime import host_reads_ok
+
+__all__ = ["available", "challenge_pass", "enabled", "propagate_log_likelihood", "set_enabled", "two_stage_indices"]
+
+_ENABLED: list[bool | None] = [None]  # None: on where Numba is importable (unless the environment says 0)
+_NUMBA: list = []  # [module or None], imported on first use
+
+
+def _numba():
+    if not _NUMBA:
+        try:
+            import numba
+        except ImportError:  # pragma: no cover - numba is a dependency; the GPU image may lack it
+            numba = None
+        _NUMBA.append(numba)
+    return _NUMBA[0]
+
+
+def available() -> bool:
+    """Whether Numba can be imported here."""
+    return _numba() is not None
+
+
+def set_enabled(flag: bool | None) -> bool | None:
+    """Use the fused CPU kernels where they apply (``True``), never (``False``), or decide by
+    availability and ``TORCHMM_CPU_KERNELS`` (``None``, the default). Returns the previous setting.
+
+    ``True`` where Numba is missing raises :class:`RuntimeError`.
+    """
+    if flag is not None and not isinstance(flag, bool):
+        raise TypeError(f"flag: expected True, False or None, got {flag!r}")
+    if flag and not available():
+        raise RuntimeError("flag: the fused CPU kernels need numba (pip install numba)")
+    previous = _ENABLED[0]
+    _ENABLED[0] = flag
+    return previous
+
+
+def enabled() -> bool:
+    """Whether the kernels are on in this process (see :func:`set_enabled`)."""
+    flag = _ENABLED[0]
+    if flag is None:
+        flag = os.environ.get("TORCHMM_CPU_KERNELS", "1").strip().lower() not in ("0", "false", "no", "off")
+        flag = flag and available()
+    return flag
+
+
+def applies(*tensors: Tensor) -> bool:
+    """Whether a kernel may run on these tensors: enabled, all on the CPU (and not inside
+    :func:`~torchmm.runtime.no_host_sync`, which checks the device form), no autograd graph."""
+    if not enabled():
+        return False
+    grad = torch.is_grad_enabled()
+    return all(host_reads_ok(t) and not (grad and t.requires_grad) for t in tensors)
+
+
+def _threads() -> None:
+    numba = _numba()
+    numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
+
+
+def _np(t: Tensor):
+    """A NumPy view of a contiguous CPU tensor (a copy where it is not contiguous)."""
+    return t.detach().contiguous().numpy()
+
+
+# ------------------------------------------------------------------------------------------------
+# kernels, compiled on first use
+# ------------------------------------------------------------------------------------------------
+_KERNELS: dict = {}
+
+
+def _fma():
+    """``fma(a, b, c)`` with one rounding (LLVM's intrinsic), as torch's vectorised ``addcmul``."""
+    if "fma" not in _KERNELS:
+        from numba.core import types
+        from numba.extending import intrinsic
+
+        @intrinsic
+        def fma(typingctx, a, b, c):
+            sig = types.float64(types.float64, types.float64, types.float64)
+
+            def codegen(context, builder, signature, args):
+                return builder.fma(*args)
+
+            return sig, codegen
+
+        _KERNELS["fma"] = fma
+    return _KERNELS["fma"]
+
+
+def _two_stage_kernel():
+    if "two_stage" in _KERNELS:
+        return _KERNELS["two_stage"]
+    numba = _numba()
+    import numpy as np
+
+    @numba.njit(parallel=True, nogil=True, cache=True)
+    def two_stage(cdf_models, u0, weights, v0, num):  # pragma: no cover - compiled
+        R, M, A = cdf_models.shape
+        P = weights.shape[2]
+        out = np.empty((R, M, num), dtype=np.int64)
+        eps = np.finfo(np.float64).eps
+        tiny = np.finfo(np.float64).tiny
+        for r in numba.prange(R):
+            # every ancestor model's systematic resample (systematic_search: counting, cumsum)
+            res = np.empty((A, P), dtype=np.int64)
+            counts = np.empty(max(P, num) + 1, dtype=np.int64)
+            cdf = np.empty(P)
+            for a in range(A):
+                # the within-model CDF: a cumulative sum (sequential, as torch's), normalised, last 1
+                acc = 0.0
+                for b in range(P):
+                    acc += weights[r, a, b]
+                    cdf[b] = acc
+                total = acc if acc >= tiny or acc != acc else tiny  # clamp_min(tiny), NaN kept
+                for b in range(P - 1):
+                    cdf[b] = cdf[b] / total
+                cdf[P - 1] = 1.0
+                counts[:P + 1] = 0
+                va = v0[r, a]
+                for b in range(P):
+                    c = cdf[b]
+                    pos = P if c >= 1.0 else int(math.ceil(c * P - va))
+                    counts[pos] += 1
+                acc = 0
+                for q in range(P):
+                    acc += counts[q]
+                    res[a, q] = acc
+            for i in range(M):
+                counts[:num + 1] = 0
+                ui = u0[r, i]
+                for a in range(A):
+                    c = cdf_models[r, i, a]
+                    pos = num if c >= 1.0 else int(math.ceil(c * num - ui))
+                    counts[pos] += 1
+                a = 0
+                for q in range(num):
+                    a += counts[q]  # the ancestor model of point q
+                    lo = 0.0 if a == 0 else cdf_models[r, i, a - 1]
+                    width = cdf_models[r, i, a] - lo
+                    inv = 1.0 / (width if width >= tiny else tiny)
+                    inner = ((q + ui) / num - lo) * inv
+                    inner = min(max(inner, 0.0), 1.0 - eps)
+                    out[r, i, q] = res[a, int(inner * P)] + a * P
+        return out
+
+    _KERNELS["two_stage"] = two_stage
+    return two_stage
+
+
+_BLOCK = 64  # particles a block: the block's states, noise and outputs stay in L1
+
+
+def _propagate_kernel(n: int, k: int, m: int):
+    key = ("propagate", n, k, m)
+    if key in _KERNELS:
+        return _KERNELS[key]
+    numba = _numba()
+    import numpy as np
+
+    fma = _fma()
+    block = _BLOCK
+
+    # n, k, m and block are compile-time constants of this closure: the short loops unroll
+    @numba.njit(parallel=True)
+    def propagate(table, flat, eps, G, offset, F, W, shift, const, x, loglik):  # pragma: no cover - compiled
+        R, M, Np = flat.shape
+        for ri in numba.prange(R * M):
+            r = ri // M
+            i = ri - r * M
+            tab, fl, ep, xo, lo = table[r], flat[r, i], eps[r, i], x[r, i], loglik[r, i]
+            off, sh = offset[i], shift[r]
+            xa = np.empty((n, block))
+            ef = np.empty((k, block))
+            od = np.empty((n, block))
+            wt = np.empty(block)
+            ss = np.empty(block)
+            for q0 in range(0, Np, block):
+                nb = min(block, Np - q0)
+                for t in range(nb):  # the ancestors and their normals, one column a component
+                    src = fl[q0 + t]
+                    for j in range(n):
+                        xa[j, t] = tab[src, j]
+                    for j in range(k):
+                        ef[j, t] = ep[q0 + t, j]
+                for d in range(n):
+                    # noise: offset + (sum_j eps_j G_dj), as a batched GEMM with beta = 1 sums it
+                    out = od[d]
+                    g = G[d, 0]
+                    e = ef[0]
+                    for t in range(nb):
+                        out[t] = e[t] * g
+                    for j in range(1, k):
+                        g = G[d, j]
+                        e = ef[j]
+                        for t in range(nb):
+                            out[t] = out[t] + e[t] * g
+                    o = off[d]
+                    for t in range(nb):
+                        out[t] = o + out[t]
+                    # + F x, from the noise on, as an unbatched addmm_ sums it
+                    for j in range(n):
+                        f = F[d, j]
+                        e = xa[j]
+                        for t in range(nb):
+                            out[t] = out[t] + e[t] * f
+                for c in range(m):
+                    # whitened residual L^-1 z - (L^-1 H) x: shift + (sum_j x_j W_cj)
+                    w = W[c, 0]
+                    e = od[0]
+                    for t in range(nb):
+                        wt[t] = e[t] * w
+                    for j in range(1, n):
+                        w = W[c, j]
+                        e = od[j]
+                        for t in range(nb):
+                            wt[t] = wt[t] + e[t] * w
+                    s = sh[c]
+                    if c == 0:
+                        for t in range(nb):
+                            v = s + wt[t]
+                            ss[t] = v * v
+                    else:
+                        for t in range(nb):
+                            v = s + wt[t]
+                            ss[t] = fma(v, v, ss[t])
+                for t in range(nb):
+                    value = (ss[t] + const) * -0.5
+                    lo[q0 + t] = -np.inf if value != value else value
+                    for d in range(n):
+                        xo[q0 + t, d] = od[d, t]
+
+    _KERNELS[key] = propagate
+    return propagate
+
+
+def _challenge_kernel():
+    if "challenge" in _KERNELS:
+        return _KERNELS["challenge"]
+    numba = _numba()
+    import numpy as np
+
+    @numba.njit(parallel=True, cache=True)
+    def challenge(scores, a, b, shifts, N):  # pragma: no cover - compiled
+        R, P = scores.shape
+        rounds = shifts.shape[0]
+        pool_size = P - N
+        out = np.empty((R, N), dtype=np.int64)
+        for r in numba.prange(R):
+            # the order (a j + b) mod P, by additions (a < P): no division per particle
+            order = np.empty(P, dtype=np.int64)
+            step = a[r] % P
+            value = b[r] % P
+            for j in range(P):
+                order[j] = value
+                value += step
+                if value >= P:
+                    value -= P
+            # holder p keeps the first strict maximum of its challengers, one per round (top starts
+            # at -inf: a challenger of score -inf is never kept, and could not beat the holder)
+            for p in range(N):
+                top = -np.inf
+                arg = 0
+                nan = False
+                for t in range(rounds):
+                    m = p - shifts[t, r]  # holder p meets slot (p - shift) mod N of window t
+                    if m < 0:
+                        m += N
+                    m += t * N
+                    if m < pool_size:  # past it: the last window's padding, which never wins
+                        idx = order[N + m]
+                        s = scores[r, idx]
+                        if s > top:  # rarely true after the first rounds: a predictable branch
+                            top = s
+                            arg = idx
+                        elif s != s:
+                            nan = True
+                holder = order[p]
+                out[r, p] = arg if (not nan and top > scores[r, holder]) else holder
+        return out
+
+    _KERNELS["challenge"] = challenge
+    return challenge
+
+
+# ------------------------------------------------------------------------------------------------
+# the calls
+# ------------------------------------------------------------------------------------------------
+def two_stage_indices(cdf_models: Tensor, u0: Tensor, weights: Tensor, v0: Tensor, num: int, *,
+                      background: bool = False):
+    """The ``two_stage`` interaction's flat indices ``a * Np_prev + b``, as
+    :func:`~torchmm.multimodel.particle.mixing_indices` computes them with torch ops (the
+    within-model CDFs of ``weights`` included).
+
+    ``background=True`` runs the kernel in a worker thread (on one thread fewer than torch's) and
+    returns a :class:`concurrent.futures.Future` of the indices: the filter draws its process
+    noise meanwhile (torch's CPU generator is serial, so a core would otherwise idle).
+
+    Shapes:
+        cdf_models: ``(R, M, A)`` float64 (target ``i``, ancestor ``a``; last entry 1); u0: ``(R, M)``;
+        weights: ``(R, A, P)`` float64, unnormalised, non-negative; v0: ``(R, A)`` -> ``(R, M, num)`` int64
+    """
+    kernel = _two_stage_kernel()
+    args = (_np(cdf_models), _np(u0), _np(weights), _np(v0), int(num))
+    if background:
+        return _pool().submit(_in_background, kernel, args)
+    _threads()
+    return torch.from_numpy(kernel(*args))
+
+
+def _in_background(kernel, args) -> Tensor:
+    numba = _numba()
+    numba.set_num_threads(max(1, min(torch.get_num_threads() - 1, numba.config.NUMBA_NUM_THREADS)))  # per thread
+    return torch.from_numpy(kernel(*args))
+
+
+_POOL: list = []  # [(pid, executor)]
+
+
+def _pool() -> ThreadPoolExecutor:
+    """One worker thread for background kernels (a new one in a forked child)."""
+    if not _POOL or _POOL[0][0] != os.getpid():
+        _POOL[:] = [(os.getpid(), ThreadPoolExecutor(1, thread_name_prefix="torchmm-cpu-kernels"))]
+    return _POOL[0][1]
+
+
+def propagate_log_likelihood(table: Tensor, flat: Tensor, eps: Tensor, factor: Tensor, offset: Tensor, F: Tensor,
+                             W: Tensor, shift: Tensor, const: float) -> tuple[Tensor, Tensor]:
+    """Gather, propagate and weigh: ``x = F table[flat] + factor eps + offset`` and
+    ``-0.5 (|shift + W x|^2 + const)`` (NaN -> ``-inf``), in one pass over the particles.
+
+    Shapes:
+        table: ``(R, S, n)`` float64 (the previous particles of a run); flat: ``(R, M, Np)`` int64 into
+        ``S``; eps: ``(R, M, Np, k)`` (float32 or float64); factor: ``(n, k)``; offset: ``(M, n)``;
+        F: ``(n, n)``; W: ``(m, n)``; shift: ``(R, m)`` -> particles ``(R, M, Np, n)``, log-likelihoods
+        ``(R, M, Np)``
+    """
+    R, M, Np = flat.shape
+    n, k, m = table.shape[-1], factor.shape[-1], W.shape[0]
+    x = torch.empty((R, M, Np, n), dtype=torch.float64)
+    loglik = torch.empty((R, M, Np), dtype=torch.float64)
+    _threads()
+    _propagate_kernel(n, k, m)(_np(table), _np(flat), _np(eps), _np(factor), _np(offset), _np(F), _np(W), _np(shift),
+                               float(const), x.numpy(), loglik.numpy())
+    return x, loglik
+
+
+def challenge_pass(scores: Tensor, a: Tensor, b: Tensor, shifts: Tensor, num_winners: int) -> Tensor:
+    """One pass of :func:`~torchmm.multimodel.policies.challenge_match` from its random numbers.
+
+    Sequence 1 and the pool are the random affine order ``(a j + b) mod P`` split at ``N``; holder
+    ``p`` meets pool slot ``(p - shift_t) mod N`` of window ``t`` and ends as the first strict
+    maximum over itself and its challengers (no winner where a challenger's score is NaN, as
+    torch's ``max``).
+
+    Shapes:
+        scores: ``(R, P)``; a, b: ``(R,)`` int64; shifts: ``(rounds, R)`` int64 -> winners ``(R, N)``
+    """
+    _threads()
+    out = _challenge_kernel()(_np(scores), _np(a), _np(b), _np(shifts), int(num_winners))
+    return torch.from_numpy(out)
+
