@@ -29,7 +29,6 @@ file). Threads: as many as torch uses (``torch.get_num_threads()``).
 
 from __future__ import annotations
 
-import math
 import os
 from concurrent.futures import ThreadPoolExecutor
 
@@ -102,224 +101,11 @@ def _np(t: Tensor):
     return t.detach().contiguous().numpy()
 
 
-# ------------------------------------------------------------------------------------------------
-# kernels, compiled on first use
-# ------------------------------------------------------------------------------------------------
-_KERNELS: dict = {}
+def _kernels():
+    """The kernels module (:mod:`torchmm._numba_kernels`), imported on first use."""
+    from torchmm import _numba_kernels
 
-
-def _fma():
-    """``fma(a, b, c)`` with one rounding (LLVM's intrinsic), as torch's vectorised ``addcmul``."""
-    if "fma" not in _KERNELS:
-        from numba.core import types
-        from numba.extending import intrinsic
-
-        @intrinsic
-        def fma(typingctx, a, b, c):
-            sig = types.float64(types.float64, types.float64, types.float64)
-
-            def codegen(context, builder, signature, args):
-                return builder.fma(*args)
-
-            return sig, codegen
-
-        _KERNELS["fma"] = fma
-    return _KERNELS["fma"]
-
-
-def _two_stage_kernel():
-    if "two_stage" in _KERNELS:
-        return _KERNELS["two_stage"]
-    numba = _numba()
-    import numpy as np
-
-    @numba.njit(parallel=True, nogil=True, cache=True)
-    def two_stage(cdf_models, u0, weights, v0, num):  # pragma: no cover - compiled
-        R, M, A = cdf_models.shape
-        P = weights.shape[2]
-        out = np.empty((R, M, num), dtype=np.int64)
-        eps = np.finfo(np.float64).eps
-        tiny = np.finfo(np.float64).tiny
-        for r in numba.prange(R):
-            # every ancestor model's systematic resample (systematic_search: counting, cumsum)
-            res = np.empty((A, P), dtype=np.int64)
-            counts = np.empty(max(P, num) + 1, dtype=np.int64)
-            cdf = np.empty(P)
-            for a in range(A):
-                # the within-model CDF: a cumulative sum (sequential, as torch's), normalised, last 1
-                acc = 0.0
-                for b in range(P):
-                    acc += weights[r, a, b]
-                    cdf[b] = acc
-                total = acc if acc >= tiny or acc != acc else tiny  # clamp_min(tiny), NaN kept
-                for b in range(P - 1):
-                    cdf[b] = cdf[b] / total
-                cdf[P - 1] = 1.0
-                counts[:P + 1] = 0
-                va = v0[r, a]
-                for b in range(P):
-                    c = cdf[b]
-                    pos = P if c >= 1.0 else int(math.ceil(c * P - va))
-                    counts[pos] += 1
-                acc = 0
-                for q in range(P):
-                    acc += counts[q]
-                    res[a, q] = acc
-            for i in range(M):
-                counts[:num + 1] = 0
-                ui = u0[r, i]
-                for a in range(A):
-                    c = cdf_models[r, i, a]
-                    pos = num if c >= 1.0 else int(math.ceil(c * num - ui))
-                    counts[pos] += 1
-                a = 0
-                for q in range(num):
-                    a += counts[q]  # the ancestor model of point q
-                    lo = 0.0 if a == 0 else cdf_models[r, i, a - 1]
-                    width = cdf_models[r, i, a] - lo
-                    inv = 1.0 / (width if width >= tiny else tiny)
-                    inner = ((q + ui) / num - lo) * inv
-                    inner = min(max(inner, 0.0), 1.0 - eps)
-                    out[r, i, q] = res[a, int(inner * P)] + a * P
-        return out
-
-    _KERNELS["two_stage"] = two_stage
-    return two_stage
-
-
-_BLOCK = 64  # particles a block: the block's states, noise and outputs stay in L1
-
-
-def _propagate_kernel(n: int, k: int, m: int):
-    key = ("propagate", n, k, m)
-    if key in _KERNELS:
-        return _KERNELS[key]
-    numba = _numba()
-    import numpy as np
-
-    fma = _fma()
-    block = _BLOCK
-
-    # n, k, m and block are compile-time constants of this closure: the short loops unroll
-    @numba.njit(parallel=True)
-    def propagate(table, flat, eps, G, offset, F, W, shift, const, x, loglik):  # pragma: no cover - compiled
-        R, M, Np = flat.shape
-        for ri in numba.prange(R * M):
-            r = ri // M
-            i = ri - r * M
-            tab, fl, ep, xo, lo = table[r], flat[r, i], eps[r, i], x[r, i], loglik[r, i]
-            off, sh = offset[i], shift[r]
-            xa = np.empty((n, block))
-            ef = np.empty((k, block))
-            od = np.empty((n, block))
-            wt = np.empty(block)
-            ss = np.empty(block)
-            for q0 in range(0, Np, block):
-                nb = min(block, Np - q0)
-                for t in range(nb):  # the ancestors and their normals, one column a component
-                    src = fl[q0 + t]
-                    for j in range(n):
-                        xa[j, t] = tab[src, j]
-                    for j in range(k):
-                        ef[j, t] = ep[q0 + t, j]
-                for d in range(n):
-                    # noise: offset + (sum_j eps_j G_dj), as a batched GEMM with beta = 1 sums it
-                    out = od[d]
-                    g = G[d, 0]
-                    e = ef[0]
-                    for t in range(nb):
-                        out[t] = e[t] * g
-                    for j in range(1, k):
-                        g = G[d, j]
-                        e = ef[j]
-                        for t in range(nb):
-                            out[t] = out[t] + e[t] * g
-                    o = off[d]
-                    for t in range(nb):
-                        out[t] = o + out[t]
-                    # + F x, from the noise on, as an unbatched addmm_ sums it
-                    for j in range(n):
-                        f = F[d, j]
-                        e = xa[j]
-                        for t in range(nb):
-                            out[t] = out[t] + e[t] * f
-                for c in range(m):
-                    # whitened residual L^-1 z - (L^-1 H) x: shift + (sum_j x_j W_cj)
-                    w = W[c, 0]
-                    e = od[0]
-                    for t in range(nb):
-                        wt[t] = e[t] * w
-                    for j in range(1, n):
-                        w = W[c, j]
-                        e = od[j]
-                        for t in range(nb):
-                            wt[t] = wt[t] + e[t] * w
-                    s = sh[c]
-                    if c == 0:
-                        for t in range(nb):
-                            v = s + wt[t]
-                            ss[t] = v * v
-                    else:
-                        for t in range(nb):
-                            v = s + wt[t]
-                            ss[t] = fma(v, v, ss[t])
-                for t in range(nb):
-                    value = (ss[t] + const) * -0.5
-                    lo[q0 + t] = -np.inf if value != value else value
-                    for d in range(n):
-                        xo[q0 + t, d] = od[d, t]
-
-    _KERNELS[key] = propagate
-    return propagate
-
-
-def _challenge_kernel():
-    if "challenge" in _KERNELS:
-        return _KERNELS["challenge"]
-    numba = _numba()
-    import numpy as np
-
-    @numba.njit(parallel=True, cache=True)
-    def challenge(scores, a, b, shifts, N):  # pragma: no cover - compiled
-        R, P = scores.shape
-        rounds = shifts.shape[0]
-        pool_size = P - N
-        out = np.empty((R, N), dtype=np.int64)
-        for r in numba.prange(R):
-            # the order (a j + b) mod P, by additions (a < P): no division per particle
-            order = np.empty(P, dtype=np.int64)
-            step = a[r] % P
-            value = b[r] % P
-            for j in range(P):
-                order[j] = value
-                value += step
-                if value >= P:
-                    value -= P
-            # holder p keeps the first strict maximum of its challengers, one per round (top starts
-            # at -inf: a challenger of score -inf is never kept, and could not beat the holder)
-            for p in range(N):
-                top = -np.inf
-                arg = 0
-                nan = False
-                for t in range(rounds):
-                    m = p - shifts[t, r]  # holder p meets slot (p - shift) mod N of window t
-                    if m < 0:
-                        m += N
-                    m += t * N
-                    if m < pool_size:  # past it: the last window's padding, which never wins
-                        idx = order[N + m]
-                        s = scores[r, idx]
-                        if s > top:  # rarely true after the first rounds: a predictable branch
-                            top = s
-                            arg = idx
-                        elif s != s:
-                            nan = True
-                holder = order[p]
-                out[r, p] = arg if (not nan and top > scores[r, holder]) else holder
-        return out
-
-    _KERNELS["challenge"] = challenge
-    return challenge
+    return _numba_kernels
 
 
 # ------------------------------------------------------------------------------------------------
@@ -339,7 +125,7 @@ def two_stage_indices(cdf_models: Tensor, u0: Tensor, weights: Tensor, v0: Tenso
         cdf_models: ``(R, M, A)`` float64 (target ``i``, ancestor ``a``; last entry 1); u0: ``(R, M)``;
         weights: ``(R, A, P)`` float64, unnormalised, non-negative; v0: ``(R, A)`` -> ``(R, M, num)`` int64
     """
-    kernel = _two_stage_kernel()
+    kernel = _kernels().two_stage
     args = (_np(cdf_models), _np(u0), _np(weights), _np(v0), int(num))
     if background:
         return _pool().submit(_in_background, kernel, args)
@@ -379,8 +165,8 @@ def propagate_log_likelihood(table: Tensor, flat: Tensor, eps: Tensor, factor: T
     x = torch.empty((R, M, Np, n), dtype=torch.float64)
     loglik = torch.empty((R, M, Np), dtype=torch.float64)
     _threads()
-    _propagate_kernel(n, k, m)(_np(table), _np(flat), _np(eps), _np(factor), _np(offset), _np(F), _np(W), _np(shift),
-                               float(const), x.numpy(), loglik.numpy())
+    _kernels().propagate(_np(table), _np(flat), _np(eps), _np(factor), _np(offset), _np(F), _np(W), _np(shift),
+                         float(const), x.numpy(), loglik.numpy(), (0,) * n, (0,) * k, (0,) * m)
     return x, loglik
 
 
@@ -396,6 +182,6 @@ def challenge_pass(scores: Tensor, a: Tensor, b: Tensor, shifts: Tensor, num_win
         scores: ``(R, P)``; a, b: ``(R,)`` int64; shifts: ``(rounds, R)`` int64 -> winners ``(R, N)``
     """
     _threads()
-    out = _challenge_kernel()(_np(scores), _np(a), _np(b), _np(shifts), int(num_winners))
+    out = _kernels().challenge(_np(scores), _np(a), _np(b), _np(shifts), int(num_winners))
     return torch.from_numpy(out)
 
