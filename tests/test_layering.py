@@ -12,7 +12,7 @@ ROOT = Path(torchmm.__file__).parent
 #: bottom to top; a package may import packages of lower layers only (docs/architecture.md)
 LAYERS = [
     {"validation", "typing", "runtime"},
-    {"distributions", "linalg"},
+    {"distributions", "linalg", "cpu_kernels"},
     {"beliefs"},
     {"models"},
     {"filters", "simulate"},

@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from torchmm import GaussianBelief, cpu_kernels
-from torchmm.filters.particle import _cached_noise_factor
+from torchmm.filters.particle import cached_noise_factor
 from torchmm.models import ConstantVelocity, LinearMotion, PositionMeasurement
 from torchmm.multimodel.mevsmm import ChallengeMatch, EqMAParticleFilter, MinimumEntropyVSMM, uniform_transition
 from torchmm.multimodel.particle import MultipleModelParticleFilter, mixing_indices
@@ -249,7 +249,7 @@ def test_the_eager_path_where_the_kernel_does_not_apply(case, spy):
 
     around = contextlib.nullcontext
     if case == "no_host_sync":  # the device form, for both runs
-        _cached_noise_factor(motion.noise_cov())  # Q's rank is read once, at its first use (cached)
+        cached_noise_factor(motion.noise_cov())  # Q's rank is read once, at its first use (cached)
         around = no_host_sync
     with kernels(True):
         fused = _run(make, prior, zs, around_steps=around)

@@ -54,6 +54,7 @@ from torchmm.validation import (
 
 __all__ = [
     "ParticleFilter",
+    "cached_noise_factor",
     "check_generator",
     "check_likelihood_noise",
     "check_noise_dtype",
@@ -67,6 +68,7 @@ __all__ = [
     "propagate_particles",
     "sample_gaussian",
     "standard_normal",
+    "whitening",
 ]
 
 
@@ -96,10 +98,13 @@ def noise_factor(cov: Tensor, rtol: float = 1e-10) -> Tensor:
 _FACTORS: dict = {}
 
 
-def _cached_noise_factor(cov: Tensor) -> Tensor:
+def cached_noise_factor(cov: Tensor) -> Tensor:
     """:func:`noise_factor` of a model's ``Q``, computed once per tensor (and per in-place change):
     its rank decides the number of normals, a host read that a step must not repeat. Recomputed
-    (with that read) where ``Q`` requires gradients, so that every call has its own graph."""
+    (with that read) where ``Q`` requires gradients, so that every call has its own graph.
+
+    Shapes:
+        cov: ``(*P, n, n)`` -> ``(*P, n, r)``"""
     if cov.requires_grad and torch.is_grad_enabled():
         return noise_factor(cov)
     hit = _FACTORS.get(id(cov))
@@ -196,7 +201,7 @@ def propagate_particles(motion: MotionModel, particles: Tensor, *, u: Tensor | N
     Shapes:
         particles: ``(*B, Np, n)``; u: ``(*B, k)`` -> ``(*B, Np, n)``
     """
-    factor = _cached_noise_factor(motion.noise_cov())  # (*P, n, r), shared by the particles of a set
+    factor = cached_noise_factor(motion.noise_cov())  # (*P, n, r), shared by the particles of a set
     eps = standard_normal((*particles.shape[:-1], factor.shape[-1]), particles, generator=generator,
                           noise_dtype=noise_dtype)
     offset = motion.offset.unsqueeze(-2) if isinstance(motion, LinearMotion) else None
@@ -246,7 +251,7 @@ def _sum_squares(x: Tensor) -> Tensor:
     return out
 
 
-def _whitening(cov: Tensor) -> tuple[Tensor, Tensor]:
+def whitening(cov: Tensor) -> tuple[Tensor, Tensor]:
     """``(L^{-1}, log det cov)`` with ``L L^T = cov``. Shapes: ``(..., m, m)`` -> same, ``(...)``.
 
     The factor is :func:`~torchmm.linalg.cholesky` (never raises; regularised where
@@ -269,13 +274,13 @@ def gaussian_log_likelihood(resid: Tensor, cov: Tensor, observed: Tensor | None 
     """
     m = resid.shape[-1]
     if observed is None:
-        inv, logdet = _whitening(cov)
+        inv, logdet = whitening(cov)
         count = torch.tensor(float(m), dtype=resid.dtype, device=resid.device)
     else:
         eye = torch.eye(m, dtype=resid.dtype, device=resid.device)
         resid = torch.where(observed.unsqueeze(-2), resid, torch.zeros((), dtype=resid.dtype, device=resid.device))
         pair = observed.unsqueeze(-1) & observed.unsqueeze(-2)
-        inv, logdet = _whitening(torch.where(pair, cov, eye))
+        inv, logdet = whitening(torch.where(pair, cov, eye))
         count = observed.sum(-1).to(resid.dtype).unsqueeze(-1)
     white = resid @ inv.mT
     return -0.5 * (_sum_squares(white) + logdet.unsqueeze(-1) + count * math.log(2 * math.pi))
@@ -300,7 +305,7 @@ def particle_log_likelihood(measurement: MeasurementModel, z: Tensor, particles:
             and isinstance(measurement, LinearMeasurement) and measurement.H.dim() == 2):
         cov = measurement.noise_cov()
         if cov.dim() == 2:
-            inv, logdet = _whitening(cov)
+            inv, logdet = whitening(cov)
             weights, shift = (inv @ measurement.H).contiguous(), -(z @ inv.mT).unsqueeze(-2)
             shape = (*particles.shape[:-1], z.shape[-1])
             if particles.dim() >= 3 and broadcast_shape(shift.shape, shape) == shape:

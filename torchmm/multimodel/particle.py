@@ -26,14 +26,14 @@ import math
 import torch
 from torch import Tensor
 
-from torchmm import cpu_kernels
+import torchmm.cpu_kernels as cpu_kernels
 from torchmm.beliefs import GaussianBelief, ModeBelief, ParticleBelief
 from torchmm.beliefs.ops import normalize_log_probs
 from torchmm.filters.base import StepOutput
 from torchmm.filters.particle import (
     ParticleFilter,
-    _cached_noise_factor,
-    _whitening,
+    cached_noise_factor,
+    whitening,
     check_generator,
     check_particle_prior,
     degenerate_guard,
@@ -415,13 +415,13 @@ class MultipleModelParticleFilter(MultipleModelFilter):
             return None
         generator = self._generator(generator)
         flat, log_cbar, num = self.interaction._indices(belief, self.transition, generator, defer=True)
-        factor = _cached_noise_factor(Q)
+        factor = cached_noise_factor(Q)
         # the draw of standard_normal, left in its dtype (the kernel widens each normal as it reads it);
         # a two_stage interaction's kernel runs meanwhile in a worker thread
         eps = torch.randn((*batch, M, num, factor.shape[-1]), dtype=self.noise_dtype or particles.dtype,
                           generator=generator)
         flat = flat() if callable(flat) else flat
-        inv, logdet = _whitening(R)
+        inv, logdet = whitening(R)
         rows = batch.numel()
         source = particles.expand(*batch, *particles.shape[-3:])
         x, loglik = cpu_kernels.propagate_log_likelihood(

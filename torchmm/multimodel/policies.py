@@ -35,7 +35,7 @@ import math
 import torch
 from torch import Tensor
 
-from torchmm import cpu_kernels
+import torchmm.cpu_kernels as cpu_kernels
 from torchmm.beliefs import ModeBelief, ParticleBelief
 from torchmm.beliefs.ops import normalize_log_probs
 from torchmm.validation import as_int

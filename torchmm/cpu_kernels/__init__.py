@@ -102,10 +102,10 @@ def _np(t: Tensor):
 
 
 def _kernels():
-    """The kernels module (:mod:`torchmm._numba_kernels`), imported on first use."""
-    from torchmm import _numba_kernels
+    """The kernels module (:mod:`torchmm.cpu_kernels.loops`), imported on first use."""
+    from torchmm.cpu_kernels import loops
 
-    return _numba_kernels
+    return loops
 
 
 # ------------------------------------------------------------------------------------------------
