@@ -76,6 +76,21 @@ def two_stage(cdf_models, u0, weights, v0, num):  # pragma: no cover
     return out
 
 
+@numba.njit(inline="always", cache=True)
+def _products(out, columns, row, count, nb):  # pragma: no cover
+    """``out[t] = (columns[0][t] row[0] + columns[1][t] row[1]) + ...`` for ``t < nb``: the products
+    summed in order, as a GEMM's inner loop over a short contraction."""
+    value = row[0]
+    column = columns[0]
+    for t in range(nb):
+        out[t] = column[t] * value
+    for j in range(1, count):
+        value = row[j]
+        column = columns[j]
+        for t in range(nb):
+            out[t] = out[t] + column[t] * value
+
+
 @numba.njit(parallel=True, cache=True)
 def propagate(table, flat, eps, G, offset, F, W, shift, const, x, loglik, n_, k_, m_):  # pragma: no cover
     # n, k, m: the lengths of three tuples, so compile-time constants of each specialisation (the
@@ -103,15 +118,7 @@ def propagate(table, flat, eps, G, offset, F, W, shift, const, x, loglik, n_, k_
             for d in range(n):
                 # noise: offset + (sum_j eps_j G_dj), as a batched GEMM with beta = 1 sums it
                 out = od[d]
-                g = G[d, 0]
-                e = ef[0]
-                for t in range(nb):
-                    out[t] = e[t] * g
-                for j in range(1, k):
-                    g = G[d, j]
-                    e = ef[j]
-                    for t in range(nb):
-                        out[t] = out[t] + e[t] * g
+                _products(out, ef, G[d], k, nb)
                 o = off[d]
                 for t in range(nb):
                     out[t] = o + out[t]
@@ -123,15 +130,7 @@ def propagate(table, flat, eps, G, offset, F, W, shift, const, x, loglik, n_, k_
                         out[t] = out[t] + e[t] * f
             for c in range(m):
                 # whitened residual L^-1 z - (L^-1 H) x: shift + (sum_j x_j W_cj)
-                w = W[c, 0]
-                e = od[0]
-                for t in range(nb):
-                    wt[t] = e[t] * w
-                for j in range(1, n):
-                    w = W[c, j]
-                    e = od[j]
-                    for t in range(nb):
-                        wt[t] = wt[t] + e[t] * w
+                _products(wt, od, W[c], n, nb)
                 s = sh[c]
                 if c == 0:
                     for t in range(nb):
