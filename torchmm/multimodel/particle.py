@@ -396,7 +396,7 @@ class MultipleModelParticleFilter(MultipleModelFilter):
         measurement with unbatched ``F``, ``Q``, ``H``, ``R``, complete data, the base class's
         propagation, ``innovation_stats=False``."""
         motion, measurement = self.motion, self.measurement
-        if (self.innovation_stats or type(self)._propagate is not MultipleModelParticleFilter._propagate
+        if (self.innovation_stats or not isinstance(z, Tensor) or type(self)._propagate is not MultipleModelParticleFilter._propagate
                 or not isinstance(self.interaction, ParticleMixing) or not isinstance(motion, LinearMotion)
                 or not isinstance(measurement, LinearMeasurement) or not isinstance(belief, ModeBelief)
                 or not isinstance(belief.components, ParticleBelief)):
@@ -459,7 +459,7 @@ class MultipleModelParticleFilter(MultipleModelFilter):
         log_evidence = torch.logsumexp(per_model, dim=-1)
         log_evidence = torch.where(any_observed(z), log_evidence, 0.0)  # exactly 0 without a datum
         degenerate = degenerate_guard(log_evidence)
-        # applied whether or not a run degenerated (no host synchronisation)
+        # on a device applied whether or not a run degenerated (no host synchronisation)
         if not host_reads_ok(degenerate) or bool(degenerate.any()):  # on the CPU: only where a run degenerated
             joint = torch.where(degenerate[..., None, None], prior_within + prior_mode.unsqueeze(-1), joint)
         per_model = torch.where(degenerate[..., None], prior_mode, per_model)
