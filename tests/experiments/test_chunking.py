@@ -13,7 +13,6 @@ import json
 import math
 
 import pytest
-import torch
 from hydra import compose, initialize_config_dir
 
 from experiments.run import CONFIG_DIR, run_study

@@ -152,7 +152,7 @@ def test_transfer_smoothing_is_the_rts_step_on_a_two_step_problem():
     source = LinearMeasurement(torch.tensor(Hs), torch.tensor(Rs))
     tf = TransferIMM(kf, torch.ones(1, 1), source)
     belief0 = sys_.prior()
-    y1, ys1 = torch.tensor(rng.normal(size=(1,))), torch.tensor(rng.normal(size=(1,)))
+    y1, _ys1 = torch.tensor(rng.normal(size=(1,))), torch.tensor(rng.normal(size=(1,)))
     step1 = tf.step(tf.initial_belief(belief0), MultiRate(y1, torch.full((1,), torch.nan)))
     filtered = step1.belief.estimate()  # x_{k-1|k-1} (the combined output at k-1)
     y2, ys2 = torch.tensor(rng.normal(size=(1,))), torch.tensor(rng.normal(size=(1,)))
