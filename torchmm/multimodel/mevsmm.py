@@ -138,11 +138,9 @@ class MinimumEntropyVSMM(MultipleModelParticleFilter):
         active = torch.ones(prior.mode_log_probs.shape, dtype=torch.bool, device=prior.mode_log_probs.device)
         return ModelSetBelief(prior.mode_log_probs, prior.components, active)
 
-    def update(self, belief: ModeBelief, z: Tensor, *, sensor=None,
-               generator: torch.Generator | None = None, _loglik=None) -> StepOutput:
-        if sensor is not None:
-            return self.with_sensor(sensor).update(belief, z, generator=generator)
-        out = super().update(belief, z, _loglik=_loglik)
+    def _update(self, belief: ModeBelief, z: Tensor, generator, loglik: Tensor | None = None) -> StepOutput:
+        """The joint update (33)-(34), then the selection of the model set."""
+        out = super()._update(belief, z, generator, loglik)
         post = out.belief
         extras = dict(out.extras)
         joint = extras.pop("joint_log_weights")  # (33); the policies are invariant to its normalisation

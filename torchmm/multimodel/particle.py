@@ -381,7 +381,7 @@ class MultipleModelParticleFilter(MultipleModelFilter):
             fused = self._fused_prior(belief, z, generator)
             if fused is not None:  # the same prior and log-likelihoods from one compiled pass
                 prior, loglik = fused
-                return self.update(self._as_prior(prior), z, generator=generator, _loglik=(prior, z, loglik))
+                return self._update(self._as_prior(prior), z, generator, loglik)
         prior = self.predict(belief, u=u, motion=motion, generator=generator)
         return self.update(prior, z, sensor=sensor, generator=generator)
 
@@ -466,14 +466,14 @@ class MultipleModelParticleFilter(MultipleModelFilter):
         return joint, per_model, log_evidence, degenerate, predicted, prior_within, prior_mode
 
     def update(self, belief: ModeBelief, z: Tensor, *, sensor: MeasurementModel | None = None,
-               generator: torch.Generator | None = None, _loglik=None) -> StepOutput:
+               generator: torch.Generator | None = None) -> StepOutput:
         if sensor is not None:
-            return self.with_sensor(sensor).update(belief, z)
-        # _loglik (from step): (prior, z, log-likelihoods) computed with the prior, used only for them
-        loglik = None
-        if (_loglik is not None and _loglik[1] is z
-                and belief.components.particles is _loglik[0].components.particles):
-            loglik = _loglik[2]
+            return self.with_sensor(sensor).update(belief, z, generator=generator)
+        return self._update(belief, z, generator)
+
+    def _update(self, belief: ModeBelief, z: Tensor, generator, loglik: Tensor | None = None) -> StepOutput:
+        """:meth:`update` with this model's sensor; ``loglik``: the prior particles' log-likelihoods of
+        ``z`` where :meth:`step` computed them with the prior (:meth:`_fused_prior`)."""
         z = check_measurement(z, self.measurement.meas_dim, self._check_belief(belief), belief.components.particles)
         joint, per_model, log_evidence, degenerate, predicted, prior_within, prior_mode = self._weigh(belief, z, loglik)
         safe_ev = torch.where(degenerate, torch.zeros_like(log_evidence), log_evidence)
