@@ -9,16 +9,26 @@ imports either. A study receives a :class:`StudyContext` and writes through it:
   directory (``hydra.run.dir=<dir>``) skips them;
 * PNG figures under ``figures/`` (also logged to TensorBoard);
 * TensorBoard events under ``tb/`` (or nothing with ``logger=none``).
+
+Run folders are safe from faults and from each other (docs/robustness.md, "Run folders and faults"):
+every file is written atomically (:func:`write_atomic`); each ``units/*.npz`` has its sha256 in the
+checkpoint, and a unit whose file is missing or corrupt is computed again; a run holds an exclusive
+lock on its folder (:func:`lock_folder`) for as long as it runs; a file-level failure is a
+:class:`RunFolderError`, one line naming the file.
 """
 
 from __future__ import annotations
 
+import errno
+import fcntl
 import hashlib
+import io
 import json
 import logging
 import math
 import os
 import struct
+import tempfile
 import zlib
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
@@ -121,23 +131,47 @@ def _array_refs(key: str, value: Any, output_dir: Path) -> Any:
     refs = walk(value)
     if arrays:
         rel = _arrays_file(key)
-        path = output_dir / rel
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.name + ".tmp.npz")
-        np.savez(tmp, **arrays)
-        os.replace(tmp, path)
-        refs = {ARRAY_REF + "file": rel, "value": refs}
+        buffer = io.BytesIO()
+        np.savez(buffer, **arrays)
+        data = buffer.getvalue()
+        write_atomic(output_dir / rel, data)
+        refs = {ARRAY_REF + "file": rel, "sha256": hashlib.sha256(data).hexdigest(), "value": refs}
     return refs
 
 
+class RunFolderError(Exception):
+    """A file of a run folder cannot be read or written, or the folder is in use: the message is one
+    line that names the file (the command line prints it and exits with status 2)."""
+
+
+class FolderInUse(RunFolderError):
+    """Another process holds the run folder's lock (:func:`lock_folder`)."""
+
+
+class UnitFileError(RunFolderError):
+    """A unit's ``units/*.npz`` is missing, truncated or not the file the checkpoint recorded."""
+
+
 def _load_arrays(value: Any, output_dir: Path) -> Any:
-    """Inverse of :func:`_array_refs`: a checkpointed value with its arrays read back."""
+    """Inverse of :func:`_array_refs`: a checkpointed value with its arrays read back. A file that
+    is missing, unreadable or whose sha256 differs from the checkpoint's is a :class:`UnitFileError`."""
     import numpy as np
 
     if not (isinstance(value, dict) and ARRAY_REF + "file" in value):
         return value
-    with np.load(output_dir / value[ARRAY_REF + "file"]) as data:
-        arrays = {name: np.require(data[name], requirements="W") for name in data.files}  # writable for torch
+    path = output_dir / value[ARRAY_REF + "file"]
+    try:
+        data = path.read_bytes()
+    except OSError as err:
+        raise UnitFileError(f"{path}: {_reason(err)}") from None
+    expected = value.get("sha256")
+    if expected is not None and hashlib.sha256(data).hexdigest() != expected:
+        raise UnitFileError(f"{path}: checksum mismatch ({len(data)} bytes; not the file the checkpoint recorded)")
+    try:
+        with np.load(io.BytesIO(data)) as npz:
+            arrays = {name: np.require(npz[name], requirements="W") for name in npz.files}  # writable for torch
+    except Exception as err:  # truncated or not an npz: BadZipFile, ValueError, EOFError, ...
+        raise UnitFileError(f"{path}: unreadable ({type(err).__name__}: {err})") from None
 
     def walk(v):
         if isinstance(v, dict):
@@ -151,10 +185,122 @@ def _load_arrays(value: Any, output_dir: Path) -> Any:
     return walk(value["value"])
 
 
-def _write_atomic(path: Path, text: str) -> None:
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+#: temporary files of :func:`write_atomic`: ``.<name>.<random>.tmp`` next to the file
+TMP_SUFFIX = ".tmp"
+
+
+def _reason(err: OSError) -> str:
+    return err.strerror or type(err).__name__
+
+
+def write_atomic(path: Path, content: str | bytes | Callable[[Any], None]) -> None:
+    """Write ``path`` atomically: into a temporary file in the same folder, flushed and fsynced, then
+    moved over ``path`` with ``os.replace`` - a reader (or a run killed at any moment) sees the old file or
+    the new one, never a part. ``content``: text, bytes, or ``write(binary_file)`` (e.g. ``np.savez``,
+    ``figure.savefig``). Every file a run writes goes through here; a failure is a
+    :class:`RunFolderError` naming ``path``."""
+    path = Path(path)
+    tmp = None
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=TMP_SUFFIX)
+        with os.fdopen(fd, "wb") as f:
+            if isinstance(content, str):
+                f.write(content.encode())
+            elif isinstance(content, (bytes, bytearray, memoryview)):
+                f.write(content)
+            else:
+                content(f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp's 0600 -> what open() would have made
+        os.replace(tmp, path)
+        tmp = None
+    except OSError as err:
+        raise RunFolderError(f"{path}: cannot write ({_reason(err)})") from None
+    finally:
+        if tmp is not None:
+            try:
+                os.unlink(tmp)
+            except OSError:
+                pass
+
+
+_write_atomic = write_atomic  # the former name
+
+
+_UMASK: list[int] = []
+
+
+def _umask() -> int:
+    """The process's umask (read once: reading it means setting it, which is not thread-safe)."""
+    if not _UMASK:
+        mask = os.umask(0o022)
+        os.umask(mask)
+        _UMASK.append(mask)
+    return _UMASK[0]
+
+
+def remove_temporaries(folder: Path) -> None:
+    """Remove what :func:`write_atomic` left behind in ``folder``, ``units/`` and ``figures/`` when a
+    run was killed between writing and replacing (call it holding the folder's lock)."""
+    for sub in (Path(folder), Path(folder) / "units", Path(folder) / "figures", Path(folder) / "figures" / "curves"):
+        for tmp in sub.glob(f".*{TMP_SUFFIX}"):
+            try:
+                tmp.unlink()
+            except OSError:
+                pass
+
+
+# -- the run folder's lock --------------------------------------------------------------------------
+#: the lock file in a run (or sweep) folder: ``fcntl.flock``-ed by the process that runs there
+LOCK_FILE = ".torchmm.lock"
+#: the locks this process holds: real path of the folder -> the lock file's descriptor
+_LOCKS: dict[str, int] = {}
+
+
+def lock_folder(folder: Path) -> bool:
+    """Take the exclusive lock of ``folder`` (created if needed) for this process: ``flock`` on
+    ``folder/.torchmm.lock``, released when the process ends, however it ends (SIGKILL too). True if
+    taken now, False if this process holds it already. Another process holding it: :class:`FolderInUse`,
+    and nothing in the folder is changed; a folder that cannot be written: :class:`RunFolderError`."""
+    folder = Path(folder)
+    key = os.path.realpath(folder)
+    if key in _LOCKS:
+        return False
+    lock = folder / LOCK_FILE
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+    except OSError as err:
+        raise RunFolderError(f"{folder}: cannot write there ({_reason(err)})") from None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError as err:
+        holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "?"
+        os.close(fd)
+        if err.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+            raise FolderInUse(f"{folder}: in use by another run (pid {holder}; lock {lock}); wait for it to "
+                              "end or choose another folder") from None
+        raise RunFolderError(f"{lock}: cannot lock ({_reason(err)})") from None
+    try:  # the lock file opens in a read-only folder too: check that the folder takes new files
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        probe_fd, probe = tempfile.mkstemp(dir=folder, prefix=".write-check.", suffix=TMP_SUFFIX)
+        os.close(probe_fd)
+        os.unlink(probe)
+    except OSError as err:
+        os.close(fd)
+        raise RunFolderError(f"{folder}: cannot write there ({_reason(err)})") from None
+    _LOCKS[key] = fd
+    return True
+
+
+def unlock_folder(folder: Path) -> None:
+    """Release this process's lock of ``folder`` (if it holds it)."""
+    fd = _LOCKS.pop(os.path.realpath(folder), None)
+    if fd is not None:
+        os.close(fd)
 
 
 def _format(value: Any) -> str:
@@ -254,9 +400,8 @@ class Results:
         return "\n".join(out)
 
     def save(self) -> None:
-        self.output_dir.mkdir(parents=True, exist_ok=True)
-        _write_atomic(self.output_dir / "results.json", json.dumps(self.to_json(), indent=2) + "\n")
-        _write_atomic(self.output_dir / "results.md", self.to_markdown())
+        write_atomic(self.output_dir / "results.json", json.dumps(self.to_json(), indent=2) + "\n")
+        write_atomic(self.output_dir / "results.md", self.to_markdown())
 
 
 class Logger:
@@ -388,15 +533,13 @@ class CurveRecorder(Logger):
         for tag, (axis, x, values) in self.curves.items():
             arrays[tag] = np.asarray(values, dtype=np.float64)
             arrays[f"{tag}#{axis}"] = np.asarray(x, dtype=np.int64 if axis == "step" else np.float64)
-        tmp = output_dir / "curves.tmp.npz"
-        np.savez(tmp, **arrays)
-        os.replace(tmp, output_dir / "curves.npz")
+        write_atomic(output_dir / "curves.npz", lambda f: np.savez(f, **arrays))
         lines = ["quantity,series,axis,x,value"]
         for tag, (axis, x, values) in self.curves.items():
             quantity, _, series = tag.partition("/")
             for k, v in zip(x, values):
                 lines.append(f"{_csv(quantity)},{_csv(series)},{_csv(axis)},{k!r},{v!r}")
-        _write_atomic(output_dir / "curves.csv", "\n".join(lines) + "\n")
+        write_atomic(output_dir / "curves.csv", "\n".join(lines) + "\n")
         sweeps = {tag: c for tag, c in self.curves.items() if c[0] != "step"}
         if figures and sweeps and not isinstance(self.inner, NullLogger):  # TensorBoard: sweeps on their own axis
             from experiments.plot import draw_groups
@@ -601,11 +744,11 @@ class StudyContext:
 
     def _store(self, key: str, value: Any) -> None:
         self._checkpoint[key] = value
-        self._checkpoint_refs[key] = _array_refs(key, value, self.output_dir)  # arrays: units/<key>.npz
-        _write_atomic(self.output_dir / "checkpoint.json",
-                      json.dumps({"config_hash": self._config_hash, "config": self._result_config,
-                                  "units": self._checkpoint_refs}, 
-                                 default=str) + "\n")
+        # arrays: units/<key>.npz, written (atomically) before the checkpoint that names them and their sha256
+        self._checkpoint_refs[key] = _array_refs(key, value, self.output_dir)
+        write_atomic(self.output_dir / "checkpoint.json",
+                     json.dumps({"config_hash": self._config_hash, "config": self._result_config,
+                                 "units": self._checkpoint_refs}, default=str) + "\n")
 
     @property
     def executor(self):
@@ -659,15 +802,19 @@ def unique_dir(base: str) -> str:
     (and every job of a sweep, whose configs share the cache) resolves it to one folder.
     """
     path = Path(base)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    for attempt in range(10_000):
-        candidate = path if attempt == 0 else path.with_name(f"{path.name}_{attempt}")
-        try:
-            os.mkdir(candidate)
-        except FileExistsError:
-            continue
-        return str(candidate)
-    raise RuntimeError(f"hydra.run.dir: no free folder name next to {base}")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        for attempt in range(10_000):
+            candidate = path if attempt == 0 else path.with_name(f"{path.name}_{attempt}")
+            try:
+                os.mkdir(candidate)
+            except FileExistsError:
+                continue
+            return str(candidate)
+    except OSError as err:  # a read-only parent, a file where a folder should be, ...
+        where = err.filename or path
+        raise RunFolderError(f"{where}: cannot create the run folder {path} ({_reason(err)})") from None
+    raise RunFolderError(f"{base}: no free folder name next to it")
 
 
 #: keys that do not change a study's numbers: a checkpoint made with other values is reused
@@ -689,25 +836,53 @@ def config_hash(config_dict: dict) -> str:
     return hashlib.sha256(json.dumps(kept, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
-def latest_run(base: Path, config_dict: dict) -> Path | None:
+def latest_run(base: Path, config_dict: dict, unreadable: list[str] | None = None) -> Path | None:
     """The newest run folder under ``base`` (``outputs/<study>``) holding work of this config
-    (a ``checkpoint.json`` or ``results.json`` of the same :func:`config_hash`), or None."""
+    (a ``checkpoint.json`` or ``results.json`` of the same :func:`config_hash`), or None.
+    ``unreadable``: a list that gets one line per folder skipped because its files cannot be read."""
     wanted = config_hash(config_dict)
     found = []
     for folder in Path(base).glob("*/"):
-        for name in ("checkpoint.json", "results.json"):
-            file = folder / name
-            if not file.exists():
-                continue
-            try:
-                data = json.loads(file.read_text())
-            except (OSError, json.JSONDecodeError):
-                continue
-            saved = data.get("config_hash") if name == "checkpoint.json" else config_hash(data.get("config") or {})
-            if saved == wanted:
-                found.append((file.stat().st_mtime, str(folder)))
-            break
+        try:
+            saved = saved_run(folder)
+        except RunFolderError as err:
+            if unreadable is not None:
+                unreadable.append(str(err))
+            continue
+        if saved is not None and saved[0] == wanted:
+            found.append((saved[2].stat().st_mtime, str(folder)))
     return Path(max(found)[1]).resolve() if found else None
+
+
+def _read_json(path: Path, what: str) -> dict:
+    try:
+        data = json.loads(path.read_text())
+    except OSError as err:
+        raise RunFolderError(f"{path}: cannot read ({_reason(err)})") from None
+    except ValueError as err:  # JSONDecodeError, UnicodeDecodeError: truncated or not JSON
+        raise RunFolderError(f"{path}: not a valid {what} ({type(err).__name__}: {err})") from None
+    if not isinstance(data, dict):
+        raise RunFolderError(f"{path}: not a valid {what} (a JSON {type(data).__name__}, not an object)")
+    return data
+
+
+def saved_run(folder: Path) -> tuple[str, dict | None, Path, dict] | None:
+    """What ``folder`` holds of an earlier run: ``(config_hash, result config, file, units)`` from its
+    ``checkpoint.json`` (else from a finished ``results.json``, with no units), or None for no run. A
+    file that cannot be read or is not what it should be: :class:`RunFolderError` naming it."""
+    ckpt_path, results_path = Path(folder) / "checkpoint.json", Path(folder) / "results.json"
+    if ckpt_path.exists():
+        saved = _read_json(ckpt_path, "checkpoint")
+        units = saved.get("units", {})
+        if not isinstance(saved.get("config_hash"), str) or not isinstance(units, dict):
+            raise RunFolderError(f"{ckpt_path}: not a valid checkpoint (no config_hash or units)")
+        return saved["config_hash"], saved.get("config"), ckpt_path, units
+    if results_path.exists():  # a finished study without units: compare the configs it recorded
+        recorded = _read_json(results_path, "results file").get("config") or {}
+        if not isinstance(recorded, dict):
+            raise RunFolderError(f"{results_path}: not a valid results file (its config is not an object)")
+        return config_hash(recorded), result_config(recorded), results_path, {}
+    return None
 
 
 def _differing_keys(a: Any, b: Any, prefix: str = "") -> list[str]:
@@ -729,24 +904,30 @@ def open_context(cfg: Any, output_dir: Path, config_dict: dict, experiment: str,
     The checkpoint is keyed on the keys that change results only (:func:`result_config`). If
     ``output_dir`` holds a checkpoint of a config that differs in such keys, the differing keys are
     named and the study runs in a fresh sibling folder (``<dir>_1``, ...): nothing is overwritten.
+    A ``checkpoint.json`` (or, without one, a ``results.json``) that cannot be read is a
+    :class:`RunFolderError` naming it; a unit whose ``units/*.npz`` is missing, truncated or fails its
+    checksum is one warning naming the file, and that unit is computed again.
     """
-    output_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        output_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise RunFolderError(f"{output_dir}: cannot create the run folder ({_reason(err)})") from None
     kept = result_config(config_dict)
     digest = config_hash(config_dict)
     checkpoint: dict = {}
     refs: dict = {}
-    ckpt_path, results_path = output_dir / "checkpoint.json", output_dir / "results.json"
-    saved_hash = saved_config = None
-    if ckpt_path.exists():
-        saved = json.loads(ckpt_path.read_text())
-        saved_hash, saved_config = saved.get("config_hash"), saved.get("config")
-        if saved_hash == digest:
-            refs = saved.get("units", {})
-            checkpoint = {k: _load_arrays(v, output_dir) for k, v in refs.items()}
-            log.info("found %d finished units in %s", len(checkpoint), ckpt_path)
-    elif results_path.exists():  # a finished study without units: compare the configs it recorded
-        recorded = json.loads(results_path.read_text()).get("config") or {}
-        saved_config, saved_hash = result_config(recorded), config_hash(recorded)
+    saved = saved_run(output_dir)
+    saved_hash, saved_config = (saved[0], saved[1]) if saved is not None else (None, None)
+    if saved is not None and saved_hash == digest:
+        remove_temporaries(output_dir)
+        for key, ref in saved[3].items():
+            try:
+                checkpoint[key] = _load_arrays(ref, output_dir)
+            except UnitFileError as err:
+                log.warning("%s; unit %s is computed again", err, key)
+                continue
+            refs[key] = ref
+        log.info("found %d finished units in %s", len(checkpoint), saved[2])
     if saved_hash is not None and saved_hash != digest:
         differ = _differing_keys(saved_config or {}, json.loads(json.dumps(kept, default=str)))
         fresh = Path(unique_dir(str(output_dir)))

@@ -28,14 +28,17 @@ def load_curves(run_dir: Path) -> dict[str, tuple[str, object, object]]:
     path = Path(run_dir) / "curves.npz"
     if not path.exists():
         raise FileNotFoundError(f"RUN_DIR: {path} does not exist (a study run writes it; older runs have none)")
-    with np.load(path) as data:
-        axes = {}
-        for key in data.files:
-            tag, sep, axis = key.rpartition("#")
-            if sep:
-                axes[tag] = (axis, data[key])
-        return {key: (*axes.get(key, ("step", np.arange(1, len(data[key]) + 1))), data[key])
-                for key in data.files if "#" not in key}
+    try:
+        with np.load(path) as data:
+            axes = {}
+            for key in data.files:
+                tag, sep, axis = key.rpartition("#")
+                if sep:
+                    axes[tag] = (axis, data[key])
+            return {key: (*axes.get(key, ("step", np.arange(1, len(data[key]) + 1))), data[key])
+                    for key in data.files if "#" not in key}
+    except Exception as err:  # truncated or not an npz (BadZipFile, EOFError, ValueError, OSError, ...)
+        raise ValueError(f"RUN_DIR: {path} is not a readable curves file ({type(err).__name__}: {err})") from None
 
 
 def draw_groups(curves: dict[str, tuple[str, object, object]]) -> list[tuple[str, object]]:
@@ -91,6 +94,8 @@ def save_tight(figure, files) -> bytes | None:
 
     import matplotlib
 
+    from experiments.harness import write_atomic
+
     figure.draw_without_rendering()  # lays the figure out (its layout engine too, if any)
     if figure.get_layout_engine() is not None:
         figure.set_layout_engine("none")  # keep that layout: the saves below then draw once each
@@ -103,9 +108,10 @@ def save_tight(figure, files) -> bytes | None:
             buffer = io.BytesIO()
             figure.savefig(buffer, format="png", bbox_inches=bbox, **kwargs)
             png = buffer.getvalue()
-            path.write_bytes(png)
-        else:
-            figure.savefig(path, bbox_inches=bbox, **kwargs)
+            write_atomic(path, png)
+        else:  # atomically too: a killed run leaves the old figure or the new one
+            fmt = path.suffix[1:].lower() or None
+            write_atomic(path, lambda f: figure.savefig(f, format=fmt, bbox_inches=bbox, **kwargs))
     return png
 
 
@@ -114,7 +120,6 @@ def plot_curves(run_dir: Path, formats=("png", "pdf")) -> list[Path]:
     import matplotlib.pyplot as plt
 
     out_dir = Path(run_dir) / "figures" / "curves"
-    out_dir.mkdir(parents=True, exist_ok=True)
     written = []
     for quantity, fig in draw_groups(load_curves(run_dir)):
         name = quantity.replace("/", "_") or "curve"
@@ -126,6 +131,8 @@ def plot_curves(run_dir: Path, formats=("png", "pdf")) -> list[Path]:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from experiments.harness import RunFolderError
+
     parser = argparse.ArgumentParser(prog="torchmm-plot", description=__doc__.splitlines()[0])
     parser.add_argument("run_dirs", nargs="+", metavar="RUN_DIR", help="a study's run folder (with curves.npz)")
     parser.add_argument("--format", default="png,pdf", help="comma-separated: png, pdf, svg (default png,pdf)")
@@ -138,7 +145,7 @@ def main(argv: list[str] | None = None) -> int:
     for run_dir in args.run_dirs:
         try:
             written = plot_curves(Path(run_dir), formats)
-        except FileNotFoundError as err:
+        except (FileNotFoundError, ValueError, RunFolderError) as err:  # missing, unreadable, unwritable: one line
             print(f"torchmm-plot: error: {err}", file=sys.stderr)
             return 2
         print(f"torchmm-plot: {len(written)} files in {Path(run_dir) / 'figures' / 'curves'}")

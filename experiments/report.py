@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from experiments.harness import NON_RESULT_KEYS, _format, _write_atomic
+from experiments.harness import NON_RESULT_KEYS, RunFolderError, _format, write_atomic
 
 __all__ = ["Run", "collect_runs", "combine", "main", "mean_interval", "write_report"]
 
@@ -71,8 +71,32 @@ def _flatten(tree: Any, prefix: str = "") -> dict[str, Any]:
     return {prefix: tree}
 
 
+class ResultsFileError(ValueError):
+    """A ``results.json`` that cannot be read or is not a results file: one line naming it."""
+
+
+def _check_results(data: Any, file: Path) -> dict:
+    """``data`` if it has the shape :func:`combine` reads (docs/studies.md), else :class:`ResultsFileError`."""
+    def bad(what: str):
+        return ResultsFileError(f"{file}: not a results file ({what}); remove it or report the other runs")
+
+    if not isinstance(data, dict):
+        raise bad(f"a JSON {type(data).__name__}, not an object")
+    if not isinstance(data.get("config") or {}, dict) or not isinstance(data.get("tables") or {}, dict):
+        raise bad("config and tables must be objects")
+    for name, table in (data.get("tables") or {}).items():
+        columns = table.get("columns") if isinstance(table, dict) else None
+        rows = table.get("rows") if isinstance(table, dict) else None
+        if not isinstance(columns, list) or not isinstance(rows, list) or not all(
+                isinstance(row, list) and len(row) == len(columns) for row in rows):
+            raise bad(f"table {name}: expected columns and rows of as many cells")
+    return data
+
+
 def collect_runs(paths: list[Path]) -> list[Run]:
-    """Every run under ``paths`` (a folder holding ``results.json``, or any folder above such ones)."""
+    """Every run under ``paths`` (a folder holding ``results.json``, or any folder above such ones).
+    A ``results.json`` that cannot be read or is not a results file is a :class:`ResultsFileError`
+    naming it: a report never leaves out a run silently."""
     found: dict[Path, None] = {}
     for path in map(Path, paths):
         if not path.exists():
@@ -86,10 +110,13 @@ def collect_runs(paths: list[Path]) -> list[Run]:
     runs = []
     for file in found:
         try:
-            results = json.loads(file.read_text())
-        except (OSError, json.JSONDecodeError) as err:
-            print(f"torchmm-report: skipping {file}: {err}", file=sys.stderr)
-            continue
+            results = _check_results(json.loads(file.read_text()), file)
+        except OSError as err:
+            raise ResultsFileError(f"{file}: cannot read ({err.strerror or type(err).__name__})") from None
+        except ValueError as err:  # JSONDecodeError, UnicodeDecodeError: truncated or not JSON
+            if isinstance(err, ResultsFileError):
+                raise
+            raise ResultsFileError(f"{file}: not a results file ({type(err).__name__}: {err})") from None
         overrides_file = file.parent / ".hydra" / "overrides.yaml"
         overrides = []
         if overrides_file.exists():
@@ -295,11 +322,10 @@ def figure(report: dict[str, Any]):
 
 
 def write_report(report: dict[str, Any], out_dir: Path) -> list[Path]:
-    out_dir.mkdir(parents=True, exist_ok=True)
     written = []
     for name, text in (("report.md", to_markdown(report)), ("report.csv", to_csv(report)),
                        ("report.json", json.dumps(report, indent=2, default=str) + "\n")):
-        _write_atomic(out_dir / name, text)
+        write_atomic(out_dir / name, text)
         written.append(out_dir / name)
     fig = figure(report)
     if fig is not None:
@@ -326,7 +352,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         runs = collect_runs([Path(p) for p in args.paths])
-    except FileNotFoundError as err:
+    except (FileNotFoundError, ResultsFileError) as err:
         print(f"torchmm-report: error: {err}", file=sys.stderr)
         return 2
     if not runs:
@@ -334,7 +360,11 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     report = combine(runs, args.replicate, args.level)
     out = args.out or (Path(args.paths[0]) / "report" if len(args.paths) == 1 else Path("report"))
-    write_report(report, out)
+    try:
+        write_report(report, out)
+    except RunFolderError as err:  # --out cannot be written: one line naming the file
+        print(f"torchmm-report: error: {err}", file=sys.stderr)
+        return 2
     for experiment, body in report.items():
         groups = body["groups"]
         print(f"torchmm-report: {experiment}: {sum(len(g['runs']) for g in groups)} runs, {len(groups)} group(s) "

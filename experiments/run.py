@@ -9,12 +9,17 @@ Before Hydra starts, :func:`experiments.config.precheck` validates the whole con
 a sweep): a user error is one line on stderr and exit status 2, and no run folder is created.
 Run folders are unique: ``${torchmm.unique_dir:<base>}`` (``conf/config.yaml``) creates
 ``<base>``, or ``<base>_1``, ``<base>_2``, ... if it exists, atomically (``os.mkdir``), so two
-runs started in the same second never share a folder.
+runs started in the same second never share a folder. A run holds its folder's lock
+(:func:`experiments.harness.lock_folder`) while it runs: a second run aimed at the same folder
+(``hydra.run.dir=<dir>``, ``resume=``), or a second sweep into the same ``hydra.sweep.dir``, is
+refused with one line and exit status 2 before it writes anything there; a file-level failure
+(a corrupt checkpoint, a folder that cannot be written) is one line naming the file, exit status 2.
 """
 
 from __future__ import annotations
 
 import hashlib
+import json
 import logging
 import os
 import re
@@ -30,7 +35,17 @@ from hydra.utils import get_method
 from omegaconf import DictConfig, OmegaConf
 
 from experiments.config import ConfigError, precheck, validate
-from experiments.harness import Results, open_context, unique_dir
+from torchmm.learn import NonFiniteLossError
+from experiments.harness import (
+    _LOCKS,
+    LOCK_FILE,
+    Results,
+    RunFolderError,
+    lock_folder,
+    open_context,
+    unique_dir,
+    unlock_folder,
+)
 from experiments.provenance import Provenance
 from torchmm.runtime import compile_fast_paths, retain_freed_memory
 
@@ -50,8 +65,19 @@ def sweep_subdir(num: Any, overrides: Any = "") -> str:
     return name
 
 
+def _unique_locked_dir(base: str) -> str:
+    """The ``torchmm.unique_dir`` resolver: :func:`unique_dir`, locked for this process's life (a run's
+    or a sweep's folder); a folder that cannot be made is one line and exit status 2, no traceback."""
+    try:
+        folder = unique_dir(base)
+        lock_folder(Path(folder))
+    except RunFolderError as err:
+        _fail(str(err))
+    return folder
+
+
 if not OmegaConf.has_resolver("torchmm.unique_dir"):
-    OmegaConf.register_new_resolver("torchmm.unique_dir", unique_dir, use_cache=True)
+    OmegaConf.register_new_resolver("torchmm.unique_dir", _unique_locked_dir, use_cache=True)
 if not OmegaConf.has_resolver("torchmm.sweep_subdir"):
     OmegaConf.register_new_resolver("torchmm.sweep_subdir", sweep_subdir)
 
@@ -66,7 +92,18 @@ def run_study(cfg: DictConfig, output_dir: Path, overrides: list[str] | None = N
     validate(cfg)
     config = OmegaConf.to_container(cfg, resolve=True)
     study = get_method(cfg.study)
-    ctx = open_context(cfg, Path(output_dir), config, experiment=str(cfg.experiment_name))
+    held = set(_LOCKS)  # the locks taken here are released at the end (the command line's: at exit)
+    try:
+        lock_folder(Path(output_dir))  # another process running there: FolderInUse, nothing written
+        ctx = open_context(cfg, Path(output_dir), config, experiment=str(cfg.experiment_name))
+        lock_folder(ctx.output_dir)  # a fresh sibling (another config was in output_dir)
+        return _run(cfg, ctx, study, config, overrides)
+    finally:
+        for key in set(_LOCKS) - held:
+            unlock_folder(Path(key))
+
+
+def _run(cfg: DictConfig, ctx, study, config: dict, overrides: list[str] | None) -> Results:
     ctx.bar_label, ctx.bar_position = _sweep_bars()
     if ctx._checkpoint:
         print(f"torchmm-run: resuming: {len(ctx._checkpoint)} finished units kept from {ctx.output_dir}",
@@ -157,6 +194,12 @@ def _hydra_main(cfg: DictConfig) -> None:
         _remove_if_unused(output_dir)
         print(f"torchmm-run: error: {err}", file=sys.stderr)
         raise SystemExit(2) from None
+    except RunFolderError as err:  # a corrupt checkpoint, a folder that cannot be written or is in use
+        print(f"torchmm-run: error: {err}", file=sys.stderr)
+        raise SystemExit(2) from None
+    except NonFiniteLossError as err:  # training diverged: one line naming the parameter (the units done are kept)
+        print(f"torchmm-run: error: {err}", file=sys.stderr)
+        raise SystemExit(1) from None
     except KeyboardInterrupt:
         print(f"torchmm-run: interrupted; the finished units are kept in {output_dir / 'checkpoint.json'}. "
               f"Resume with the same command and resume=latest (or resume={output_dir})", file=sys.stderr)
@@ -212,7 +255,8 @@ def help_text() -> str:
 
 def _remove_if_unused(output_dir: Path) -> None:
     """Delete a run folder holding nothing but Hydra's own files (``.hydra/``, ``*.log``)."""
-    if output_dir.is_dir() and all(p.name == ".hydra" or p.suffix == ".log" for p in output_dir.iterdir()):
+    ignored = (".hydra", LOCK_FILE)
+    if output_dir.is_dir() and all(p.name in ignored or p.suffix == ".log" for p in output_dir.iterdir()):
         shutil.rmtree(output_dir, ignore_errors=True)
 
 
@@ -228,8 +272,86 @@ def main() -> None:
         print(help_text(), end="")
         return
     precheck(args, CONFIG_DIR)
-    sys.argv[1:] = resolve_resume(args, CONFIG_DIR)
+    args = resolve_resume(args, CONFIG_DIR)
+    try:
+        args = claim_folder(args, CONFIG_DIR)
+    except RunFolderError as err:
+        _fail(str(err))
+    sys.argv[1:] = args
     _hydra_main()
+
+
+def _literal(args: list[str], key: str) -> str | None:
+    """The value of the last ``key=value`` in ``args`` if it is a plain path (no interpolation)."""
+    values = [a.split("=", 1)[1] for a in args if a.startswith(key + "=")]
+    if not values or "${" in values[-1] or values[-1][:1] in ("'", '"'):
+        return None
+    return values[-1]
+
+
+#: Hydra's options that print and run nothing (``--cfg job``, ``--info``, ...)
+_NO_RUN_FLAGS = ("--cfg", "-c", "--info", "-i", "--hydra-help", "--shell-completion", "-sc",
+                 "--experimental-rerun")
+
+
+def claim_folder(args: list[str], config_dir: str = CONFIG_DIR) -> list[str]:
+    """Before Hydra writes anything: lock the folder the command line names (``hydra.run.dir=<dir>``,
+    or ``hydra.sweep.dir=<dir>`` with ``-m``) for this process's life, and return the command line.
+
+    * the folder is in use by another run or sweep: :class:`~experiments.harness.FolderInUse`;
+      it cannot be made or written: :class:`~experiments.harness.RunFolderError` (nothing written);
+    * a run folder holding a run of another result config (or a corrupt checkpoint: an error naming
+      it): the run goes to a fresh sibling (``<dir>_1``, ...) so that Hydra's ``.hydra/`` and log of the
+      old run are kept too; the differing keys are named;
+    * a sweep folder holding an earlier sweep's ``multirun.yaml``: that record is kept as
+      ``multirun.1.yaml`` (``.2``, ...: oldest first) and the new sweep writes ``multirun.yaml``.
+
+    Folders named through ``${...}`` interpolation (the default, ``${torchmm.unique_dir:...}``) are
+    locked by their resolver or by :func:`run_study` instead.
+    """
+    from experiments.harness import _differing_keys, config_hash, result_config, saved_run
+
+    if any(a.split("=", 1)[0] in _NO_RUN_FLAGS for a in args):
+        return args  # Hydra prints something and runs nothing: no folder
+    if "-m" in args or "--multirun" in args:
+        sweep = _literal(args, "hydra.sweep.dir")
+        if sweep is not None:
+            folder = Path(sweep)
+            lock_folder(folder)
+            record = folder / "multirun.yaml"
+            if record.exists():
+                n = 1
+                while (folder / f"multirun.{n}.yaml").exists():
+                    n += 1
+                try:
+                    os.replace(record, folder / f"multirun.{n}.yaml")
+                except OSError as err:
+                    raise RunFolderError(f"{record}: cannot keep the earlier sweep's record "
+                                         f"({err.strerror})") from None
+                print(f"torchmm-run: {folder} holds an earlier sweep: its record is kept as multirun.{n}.yaml",
+                      file=sys.stderr)
+        return args
+    run_dir = _literal(args, "hydra.run.dir")
+    if run_dir is None:
+        return args
+    folder = Path(run_dir)
+    lock_folder(folder)
+    saved = saved_run(folder)
+    if saved is None:
+        return args
+    from experiments.config import _compose
+
+    cfg, _ = _compose([a for a in args if not a.startswith("-")], config_dir, "config")
+    config = OmegaConf.to_container(cfg, resolve=True)
+    if saved[0] == config_hash(config):
+        return args  # the same result config: continue the folder
+    differ = _differing_keys(saved[1] or {}, json.loads(json.dumps(result_config(config), default=str)))
+    fresh = Path(unique_dir(str(folder)))
+    lock_folder(fresh)
+    unlock_folder(folder)
+    print(f"torchmm-run: {folder} holds a run whose {', '.join(differ[:8]) or 'config'} differ; this run goes "
+          f"to {fresh} (the old one is kept)", file=sys.stderr)
+    return [a for a in args if not a.startswith("hydra.run.dir=")] + [f"hydra.run.dir={fresh}"]
 
 
 def resolve_resume(args: list[str], config_dir: str = CONFIG_DIR) -> list[str]:
@@ -254,10 +376,13 @@ def resolve_resume(args: list[str], config_dir: str = CONFIG_DIR) -> list[str]:
     cfg, _ = _compose([a for a in args if not a.startswith("-")], config_dir, "config")
     config = OmegaConf.to_container(cfg, resolve=True)
     base = Path("outputs") / str(config.get("experiment_name", "study"))
-    folder = latest_run(base, config)
+    unreadable: list[str] = []
+    folder = latest_run(base, config, unreadable)
+    for problem in unreadable:  # a corrupt checkpoint is never passed over silently
+        print(f"torchmm-run: resume=latest: skipping {problem}", file=sys.stderr)
     if folder is None:
-        print(f"torchmm-run: resume=latest: no earlier run of this config under {base}; starting a fresh one",
-              file=sys.stderr)
+        print(f"torchmm-run: resume=latest: no {'readable ' if unreadable else ''}earlier run of this config "
+              f"under {base}; starting a fresh one", file=sys.stderr)
         return args
     print(f"torchmm-run: resume=latest: continuing {folder}", file=sys.stderr)
     return [*args, f"hydra.run.dir={folder}"]

@@ -107,3 +107,24 @@ def test_periodic_mask():
         periodic_mask(10, (2,), 0)
     with pytest.raises(ValueError, match="probability"):
         bernoulli_mask(10, (2,), 1.5)
+
+
+def test_a_list_of_motion_models_is_one_model_per_mode():
+    """``simulate_jump_system([m_1, .., m_M], ...)`` (as IMM takes its modes) draws the same
+    trajectories as the equivalent mode bank, and a wrong list is refused naming ``motion``."""
+    P = torch.tensor([[0.9, 0.1], [0.2, 0.8]])
+    x0 = GaussianBelief(torch.zeros(2), torch.eye(2))
+    bank = ConstantVelocity(1, acceleration=[[0.25], [-0.25]])
+    models = [ConstantVelocity(1, acceleration=[[0.25]]), ConstantVelocity(1, acceleration=[[-0.25]])]
+    a = simulate_jump_system(bank, P, x0, 20, (5,), generator=torch.Generator().manual_seed(3))
+    b = simulate_jump_system(models, P, x0, 20, (5,), generator=torch.Generator().manual_seed(3))
+    assert torch.equal(a.modes, b.modes)
+    close(a.states, b.states)
+    with pytest.raises(ValueError, match=r"^motion: 1 models for the 2 modes"):
+        simulate_jump_system(models[:1], P, x0, 3, (2,))
+    with pytest.raises(TypeError, match=r"^motion\[1\]"):
+        simulate_jump_system([models[0], "CT"], P, x0, 3, (2,))
+    with pytest.raises(ValueError, match=r"^motion\[1\]: state_dim"):
+        simulate_jump_system([models[0], ConstantVelocity(2)], P, x0, 3, (2,))
+    with pytest.raises(TypeError, match=r"^batch_shape"):
+        simulate_jump_system(models, P, x0, 3, 5)

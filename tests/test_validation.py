@@ -106,7 +106,7 @@ def test_initial_mode_probability_errors():
 
 
 def test_kinematic_argument_errors():
-    with pytest.raises(ValueError, match="noise: expected 'discrete' or 'continuous'"):
+    with pytest.raises(ValueError, match=r"^noise: expected one of \['discrete', 'continuous'\]"):
         ConstantVelocity(1, noise="white")
     with pytest.raises(ValueError, match="dt: must be positive"):
         ConstantVelocity(1, dt=0.0)

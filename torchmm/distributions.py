@@ -31,7 +31,8 @@ import torch
 from torch import Tensor
 from torch.distributions import Distribution
 
-from torchmm.validation import as_tensor
+from torchmm.contract import Cov, Finite, Flag, Real, entry_point
+from torchmm.validation import SYMMETRY_RTOL, as_tensor
 
 __all__ = [
     "MultivariateStudentT",
@@ -219,7 +220,9 @@ class MultivariateStudentT(Distribution):
     Args:
         loc: ``(*B, m)``.
         scale: scale matrix ``(*B, m, m)`` (symmetric positive definite).
-        df: degrees of freedom ``(*B,)`` or a number (``> 0``).
+        df: degrees of freedom ``(*B,)`` or a number (``> 0``, finite).
+        validate_args: accepted for ``torch.distributions`` compatibility; the arguments are
+            always checked at construction (and ``log_prob``/``sample`` never validate).
 
     Shapes:
         sample: ``(*sample_shape, *B, m)``; log_prob: ``value (*S, *B, m)`` -> ``(*S, *B)``
@@ -233,6 +236,8 @@ class MultivariateStudentT(Distribution):
     arg_constraints: ClassVar[dict] = {}
     has_rsample = False
 
+    @entry_point(loc=Finite(check=False), scale=Cov(definite=True, check=False),
+                 df=Real(positive=True, tensor=True), validate_args=Flag(optional=True))
     def __init__(self, loc, scale, df, validate_args=None):
         loc = as_tensor(loc, "loc")
         scale = as_tensor(scale, "scale", dtype=loc.dtype, device=loc.device)
@@ -241,6 +246,10 @@ class MultivariateStudentT(Distribution):
             m = loc.shape[-1]
             raise ValueError(f"scale: expected (*B, {m}, {m}), got {tuple(scale.shape)}")
         _check_df(df)
+        value = scale.detach()
+        size = value.abs().amax(dim=(-1, -2), keepdim=True)
+        if bool(((value - value.mT).abs() > SYMMETRY_RTOL * size).any()):
+            raise ValueError("scale: must be symmetric positive definite (it is not symmetric)")
         chol, info = torch.linalg.cholesky_ex(scale)
         if bool((info != 0).any()):
             raise ValueError("scale: must be symmetric positive definite")
@@ -301,7 +310,9 @@ class SkewT(Distribution):
         loc: location ``mu``, ``(*B, m)``.
         scale: spread ``sigma^2`` (variances) as ``(*B, m)`` or a diagonal ``R (*B, m, m)``.
         skewness: ``delta`` as ``(*B, m)`` or a diagonal ``Delta (*B, m, m)``.
-        df: ``nu`` as a number, ``(*B,)`` or ``(*B, m)`` (``> 0``).
+        df: ``nu`` as a number, ``(*B,)`` or ``(*B, m)`` (``> 0``, finite).
+        validate_args: accepted for ``torch.distributions`` compatibility; the arguments are
+            always checked at construction.
 
     Moments (``nu > 2``): ``E[e_i] = mu_i + c(nu_i) delta_i`` with
     :func:`skew_t_mean_factor`, ``Var[e_i] = nu_i/(nu_i - 2) (sigma_i^2 + delta_i^2) -
@@ -320,6 +331,8 @@ class SkewT(Distribution):
     arg_constraints: ClassVar[dict] = {}
     has_rsample = False
 
+    @entry_point(loc=Finite(check=False), scale=Finite(check=False), skewness=Finite(check=False),
+                 df=Real(positive=True, tensor=True), validate_args=Flag(optional=True))
     def __init__(self, loc, scale, skewness, df, validate_args=None):
         loc = as_tensor(loc, "loc")
         if loc.dim() < 1:

@@ -10,9 +10,11 @@ update uses one forward substitution on ``[C^T | nu]``:
     x^+ = x + V^\top w,\quad P^+ = P - V^\top V,\quad
     \log p(z) = -\tfrac12\left(\|w\|^2 + 2\textstyle\sum_i \log L_{ii} + m \log 2\pi\right)
 
-Missing components (non-finite ``nu``: NaN or ``+-inf`` data) are conditioned out exactly with static shapes: their rows and
-columns of ``S`` are replaced by the identity, their columns of ``C`` and entries of ``nu`` by
-zero, so the gain for them is zero and they add nothing to the log-likelihood.
+Missing components (non-finite *data*: NaN or ``+-inf`` entries of ``z``, passed as ``observed``) are
+conditioned out exactly with static shapes: their rows and columns of ``S`` are replaced by the
+identity, their columns of ``C`` and entries of ``nu`` by zero, so the gain for them is zero and
+they add nothing to the log-likelihood. A non-finite *prediction* of an observed component is not
+missing data: it propagates (NaN log-likelihood) and :func:`flag_failed` flags the run.
 """
 
 from __future__ import annotations
@@ -63,6 +65,16 @@ def psd_sqrt(cov: Tensor) -> Tensor:
     eig_sqrt = eigvecs * eigvals.clamp_min(0).sqrt().unsqueeze(-2)
     eig_sqrt = torch.where(finite[..., None, None], eig_sqrt, torch.full_like(eig_sqrt, math.nan))
     return torch.where((info != 0)[..., None, None], eig_sqrt, chol)
+
+
+def flag_failed(log_likelihood: Tensor) -> Tensor:
+    """``failed (*B,)`` of an update whose missing mask came from the data (``condition(...,
+    observed=)``): True where its log-likelihood is NaN. A present datum with a NaN prediction,
+    innovation or innovation covariance gives a NaN log-likelihood there (a NaN gain or posterior
+    reaches it at the latest when it reaches the predicted measurement); a step without a datum has
+    log-likelihood exactly 0, so missing data never fail. One elementwise op, no host read
+    (``extras["failed"]``, docs/robustness.md)."""
+    return torch.isnan(log_likelihood)
 
 
 def any_observed(z: Tensor) -> Tensor:
@@ -172,13 +184,15 @@ def condition(
     joseph: tuple[Tensor, Tensor] | None = None,
     posterior_cov: Callable[[Tensor], Tensor] | None = None,
     with_flag: bool = False,
+    observed: Tensor | None = None,
 ):
     r"""Condition a Gaussian on an innovation (the shared core of KF, EKF, UKF and VB updates).
 
     Args:
         mean: prior mean ``x``.
         cov: prior covariance ``P``.
-        innovation: ``nu = z - z_pred``; non-finite entries (NaN, ``+-inf``) are missing components.
+        innovation: ``nu = z - z_pred``; without ``observed``, non-finite entries (NaN, ``+-inf``) are
+            missing components.
         innovation_cov: ``S = Cov[z]``.
         cross_cov: ``C = Cov[x, z]`` (``P H^T`` for linear models).
         joseph: ``(H, R)`` to update the covariance in Joseph form
@@ -188,6 +202,10 @@ def condition(
         with_flag: also return ``singular (*B,)``: True where ``S`` restricted to the observed
             components was not numerically positive definite and was regularised
             (:func:`cholesky`); the update is then finite but not meaningful for that element.
+        observed: ``(*B, m)`` bool (broadcasting), True where the *measurement* component is
+            present (``torch.isfinite(z)``). The filters pass it, so that a non-finite prediction of
+            an observed component gives a NaN update and log-likelihood (a failure,
+            :func:`flag_failed`) instead of being skipped as missing data.
 
     Returns:
         posterior mean, posterior covariance (symmetrised) and ``log N(nu; 0, S)`` over the
@@ -198,10 +216,13 @@ def condition(
         ``(*B, m, m)``, cross_cov ``(*B, n, m)`` -> ``(*B, n)``, ``(*B, n, n)``, ``(*B,)`` [, ``(*B,)``]
     """
     n, m = mean.shape[-1], innovation.shape[-1]
+    if observed is None:
+        observed = torch.isfinite(innovation)
+    elif observed.shape[-1] != m:  # (a mask broadcasting against the innovation: full event axis, for the count)
+        observed = observed.expand(*observed.shape[:-1], m)
     if m == 1 and joseph is None and posterior_cov is None:
-        out = _condition_scalar(mean, cov, innovation, innovation_cov, cross_cov)
+        out = _condition_scalar(mean, cov, innovation, innovation_cov, cross_cov, observed[..., 0])
         return out if with_flag else out[:3]
-    observed = torch.isfinite(innovation)
     nu = torch.where(observed, innovation, 0.0)
     if m == 1:
         S = torch.where(observed.unsqueeze(-1), innovation_cov, 1.0)
@@ -232,10 +253,9 @@ def condition(
     return (*out, singular) if with_flag else out
 
 
-def _condition_scalar(mean, cov, innovation, innovation_cov, cross_cov):
+def _condition_scalar(mean, cov, innovation, innovation_cov, cross_cov, observed):
     """``m = 1``: the same update in closed form (``K = c / s``, ``P+ = P - c c^T / s``)."""
     nu = innovation[..., 0]
-    observed = torch.isfinite(nu)  # False where NaN or +-inf (missing)
     nu = torch.where(observed, nu, 0.0)
     tiny = torch.finfo(nu.dtype).tiny
     s_raw = innovation_cov[..., 0, 0]

@@ -16,7 +16,8 @@ filtered means ``b`` and covariances ``C``. The smoother's elements ``(E_k, g_k,
 (``(0, m_T, P_T)`` last), combine backwards as ``(E_i E_j, E_i g_j + g_i, E_i L_j E_i^T + L_i)``.
 
 The scan (:func:`associative_scan`) is the odd-even recursion: ``log2 T`` levels of batched tensor
-operations, each over every run at once, no Python loop over time or runs, no host synchronisation.
+operations, each over every run at once, no Python loop over time or runs, no host synchronisation
+(the entry checks of :func:`filter`, those of :func:`~torchmm.run_filter`, read values once, before the scans).
 Missing data (NaN components of ``z``) are skipped exactly: a missing component gets a zero row of
 ``H`` and a decoupled unit noise, which gives it a zero gain. Priors, innovations and the
 log-likelihood come from one batched prediction and update over all steps, so the returned
@@ -25,21 +26,27 @@ log-likelihood come from one batched prediction and update over all steps, so th
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable
 
 import torch
 from torch import Tensor
 
 from torchmm.beliefs import GaussianBelief, symmetrize
+from torchmm.contract import BeliefArg, Data, Of, Tensors, entry_point
 from torchmm.filters.kalman import KalmanFilter
-from torchmm.run import Trajectory
-from torchmm.validation import broadcast_shape
+from torchmm.provenance import Provenance, fingerprints, tensor_versions
+from torchmm.run import Trajectory, attach_provenance
+from torchmm.validation import broadcast_shape, check_filter_dtype, check_measurement, gaussian_batch
 
 __all__ = ["associative_scan", "filter", "smooth"]
 
 Elements = tuple[Tensor, ...]
 
+log = logging.getLogger("torchmm")
 
+
+@entry_point(op=Of(callable_ok=True, what="a callable op(a, b) -> elements"), elems=Tensors(leading=True))
 def associative_scan(op: Callable[[Elements, Elements], Elements], elems: Elements) -> Elements:
     """Inclusive scan of ``elems`` (tensors with a shared leading axis) under the associative ``op``.
 
@@ -50,12 +57,20 @@ def associative_scan(op: Callable[[Elements, Elements], Elements], elems: Elemen
 
     Shapes:
         every element ``(T, ...)`` -> ``(T, ...)``
+
+    Raises:
+        TypeError: ``op`` is not callable, ``elems`` not a non-empty sequence of tensors;
+        ValueError: naming ``elems``, where they do not share a leading axis.
     """
+    return _scan(op, tuple(elems))  # op and elems: checked by kind at entry
+
+
+def _scan(op: Callable[[Elements, Elements], Elements], elems: Elements) -> Elements:
     n = elems[0].shape[0]
     if n < 2:
         return elems
     reduced = op(tuple(e[0:-1:2] for e in elems), tuple(e[1::2] for e in elems))
-    odd = associative_scan(op, reduced)  # the prefixes at positions 1, 3, 5, ...
+    odd = _scan(op, reduced)  # the prefixes at positions 1, 3, 5, ...
     if n % 2 == 0:
         even = op(tuple(o[:-1] for o in odd), tuple(e[2::2] for e in elems))
     else:
@@ -94,17 +109,26 @@ def _smoother_op(a: Elements, b: Elements) -> Elements:
     return E2 @ E1, (E2 @ g1.unsqueeze(-1)).squeeze(-1) + g2, symmetrize(E2 @ L1 @ E2.mT + L2)
 
 
-def _check(kf, belief0, z) -> None:
+def _check(kf, belief0, z) -> Tensor:
+    """The entry checks of :func:`~torchmm.run_filter`, for the scans: ``kf``'s type, ``belief0``'s values
+    (:meth:`~torchmm.beliefs.Belief.validate`) and dtype, ``z``'s shape against the prior's batch (a
+    batch it would enlarge is refused, as in every filter step). Returns ``z`` in ``belief0``'s dtype."""
     if not isinstance(kf, KalmanFilter):
         raise TypeError(f"kf: the parallel filter needs a KalmanFilter (linear-Gaussian models), got "
                         f"{type(kf).__name__}")
     if not isinstance(belief0, GaussianBelief):
         raise TypeError(f"belief0: expected a GaussianBelief, got {type(belief0).__name__}")
-    if not isinstance(z, Tensor) or z.dim() < 2 or z.shape[-1] != kf.meas_dim:
-        raise ValueError(f"z: expected shape (T, *B, {kf.meas_dim}), got "
-                         f"{tuple(z.shape) if isinstance(z, Tensor) else type(z).__name__}")
+    gaussian_batch(belief0, kf.state_dim, "belief0")
+    belief0.validate("belief0")
+    check_filter_dtype(kf, belief0, "belief0")
+    if not isinstance(z, Tensor):
+        raise TypeError(f"z: expected a tensor of shape (T, *B, {kf.meas_dim}), got {type(z).__name__}")
+    if z.dim() < 2 or z.shape[-1] != kf.meas_dim:
+        raise ValueError(f"z: expected shape (T, *B, {kf.meas_dim}), got {tuple(z.shape)}")
     if z.shape[0] < 1:
-        raise ValueError("z: needs at least one step")
+        raise ValueError("z: needs at least one step (T = 0)")
+    batch = gaussian_batch(kf.predict(belief0), kf.state_dim)  # the prior's batch: belief0's and the models'
+    return check_measurement(z, kf.meas_dim, torch.Size((z.shape[0], *batch)), belief0.mean, "z")
 
 
 def _elements(kf: KalmanFilter, belief0: GaussianBelief, z: Tensor) -> Elements:
@@ -149,6 +173,12 @@ def _elements(kf: KalmanFilter, belief0: GaussianBelief, z: Tensor) -> Elements:
     return A, b, C, eta, J
 
 
+# declared: _check refuses other filters and beliefs ("kf: the parallel filter needs a KalmanFilter")
+_KF = Of(KalmanFilter, check=False, what="a KalmanFilter")
+_BELIEF0 = BeliefArg(check=False)
+
+
+@entry_point(kf=_KF, belief0=_BELIEF0, z=Data())
 def filter(kf: KalmanFilter, belief0: GaussianBelief, z: Tensor) -> Trajectory:
     r"""Kalman filtering of all steps through a parallel scan: the :func:`~torchmm.run_filter` result.
 
@@ -161,7 +191,13 @@ def filter(kf: KalmanFilter, belief0: GaussianBelief, z: Tensor) -> Trajectory:
     Returns:
         a :class:`~torchmm.run.Trajectory` as ``run_filter(kf, belief0, z)``'s: filtered beliefs and
         priors with batch ``(T, *B)``, ``log_likelihood`` ``(T, *B)``, innovations and their
-        covariances, ``extras["singular"]``.
+        covariances, ``extras["singular"]``, and the record of the run (``provenance``: ``kf``, ``z``'s
+        fingerprint) that :func:`torchmm.smooth` checks.
+
+    Raises:
+        TypeError / ValueError: naming ``kf``, ``belief0`` or ``z``: the entry checks of
+        :func:`~torchmm.run_filter` (``belief0``'s values and dtype; ``z`` time-major, ``T >= 1``, its
+        batch broadcasting to the prior's - data of shape ``(T, 2, B, m)`` for ``B`` runs are refused).
 
     Shapes:
         belief0 batch ``(*B,)``, z ``(T, *B, m)`` -> beliefs batch ``(T, *B)``
@@ -178,20 +214,29 @@ def filter(kf: KalmanFilter, belief0: GaussianBelief, z: Tensor) -> Trajectory:
         >>> bool(torch.allclose(fast.belief.mean, slow.belief.mean, atol=1e-10))
         True
     """
-    _check(kf, belief0, z)
-    A, b, C, _, _ = associative_scan(_filter_op, _elements(kf, belief0, z))
+    given = z
+    z = _check(kf, belief0, z)
+    (data,), (infinite,) = fingerprints(given)  # one host read: the record smooth checks against
+    if infinite:
+        log.warning("z: %d infinite entries are treated as missing data (non-finite = missing, see "
+                    "docs/robustness.md)", infinite)
+    A, b, C, _, _ = _scan(_filter_op, _elements(kf, belief0, z))
     filtered = GaussianBelief(b, C)
     previous = GaussianBelief(torch.cat([belief0.mean.expand(b.shape[1:]).unsqueeze(0), b[:-1]]),
                               torch.cat([belief0.cov.expand(C.shape[1:]).unsqueeze(0), C[:-1]]))
     prior = kf.predict(previous)  # every step's prior at once (from the filtered belief before it)
     out = kf.update(prior, z)  # innovations, their covariances and the log-likelihood, all steps at once
-    return Trajectory(belief=filtered, prior=prior, log_likelihood=out.log_likelihood, innovation=out.innovation,
+    traj = Trajectory(belief=filtered, prior=prior, log_likelihood=out.log_likelihood, innovation=out.innovation,
                       innovation_cov=out.innovation_cov, extras=out.extras)
+    return attach_provenance(traj, Provenance("torchmm.parallel.filter", kf, z.shape[0], given, data,
+                                              tensor_versions(given)))
 
 
+@entry_point(kf=_KF, belief0=_BELIEF0, z=Data())
 def smooth(kf: KalmanFilter, belief0: GaussianBelief, z: Tensor) -> Trajectory:
     r"""RTS smoothing through two parallel scans (filter, then backward): ``torchmm.smooth(kf,
-    run_filter(kf, belief0, z))``'s result.
+    run_filter(kf, belief0, z))``'s result. The entry checks of :func:`filter` (errors naming ``kf``,
+    ``belief0``, ``z``).
 
     Shapes:
         belief0 batch ``(*B,)``, z ``(T, *B, m)`` -> smoothed beliefs batch ``(T, *B)``
@@ -208,7 +253,7 @@ def smooth(kf: KalmanFilter, belief0: GaussianBelief, z: Tensor) -> Trajectory:
     g = torch.cat([g, m[-1:]])
     L = torch.cat([L, P[-1:]])
     # backwards: scan the reversed sequence; element k's result composes k, k+1, ..., T
-    _, gs, Ls = associative_scan(_smoother_op, (E.flip(0), g.flip(0), L.flip(0)))
+    _, gs, Ls = _scan(_smoother_op, (E.flip(0), g.flip(0), L.flip(0)))
     belief = GaussianBelief(gs.flip(0), Ls.flip(0))
     return Trajectory(belief=belief, prior=None, log_likelihood=traj.log_likelihood, innovation=None,
                       innovation_cov=None, extras={})

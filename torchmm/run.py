@@ -2,21 +2,24 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import torch
 import torch.utils._pytree as pytree
 from torch import Tensor
 
+from torchmm.contract import BeliefArg, Data, Finite, Flag, Gen, Of, Unchecked, entry_point
 from torchmm.beliefs import Belief, GaussianBelief
 from torchmm.filters.base import Filter, StepOutput, call_with
+from torchmm.provenance import Provenance, fingerprints, module_state, tensor_versions
 from torchmm.runtime import fast_paths_compiled
-from torchmm.validation import broadcast_shape, check_filter_dtype
+from torchmm.validation import broadcast_shape, check_filter_dtype, check_measurement
 
-__all__ = ["Trajectory", "run_filter", "stack_outputs"]
+__all__ = ["Trajectory", "attach_provenance", "run_filter", "stack_outputs"]
 
 log = logging.getLogger("torchmm")
 
@@ -29,6 +32,11 @@ class Trajectory:
         belief, prior: beliefs with batch ``(T, *B)``; log_likelihood ``(T, *B)``;
         innovation ``(T, *B, [M,] m)``; innovation_cov ``(T, *B, [M,] m, m)``;
         extras: dict of stacked diagnostics (``(T, ...)``). Fields dropped by ``record`` are None.
+        provenance: what made it (:class:`~torchmm.provenance.Provenance`: the filter, the per-step
+            models, the data's fingerprint), set by :func:`run_filter` and
+            :func:`torchmm.parallel.filter`, checked by :func:`~torchmm.smooth`; None for a trajectory
+            built by hand (``dataclasses.replace`` keeps it, and ``smooth`` then refuses fields that
+            are not the run's own).
     """
 
     belief: Any
@@ -37,6 +45,7 @@ class Trajectory:
     innovation: Tensor | None
     innovation_cov: Tensor | None
     extras: dict | None
+    provenance: Provenance | None = field(default=None, compare=False, repr=False)
 
     def estimate(self) -> GaussianBelief:
         """Point estimates and covariances, batch ``(T, *B)`` (IMM/GPB: the combined output)."""
@@ -120,6 +129,15 @@ def _stack_in_memory_order(tensors: list) -> Tensor:
     return stacked.permute(0, *inverse)
 
 
+@entry_point(filter=Of(Filter), belief0=BeliefArg(), measurements=Data(), controls=Finite(optional=True, check=False),
+             motions=Of((list, tuple, torch.nn.Module), callable_ok=True, optional=True,
+                        what="a sequence of T models, a callable k -> model, or None"),
+             sensors=Of((list, tuple, torch.nn.Module), callable_ok=True, optional=True,
+                        what="a sequence of T models, a callable k -> model, or None"),
+             generator=Gen(), update_first=Flag(),
+             record=Of(str, callable_ok=True, optional=True, what="a callable, None or \"estimate\""),
+             progress=Unchecked("True, False or the progress bar's description (any string)"),
+             fast_path=Flag(optional=True), compile=Flag(optional=True))
 def run_filter(
     filter: Filter,
     belief0: Any,
@@ -194,6 +212,9 @@ def run_filter(
                         f"{type(belief0).__name__}")
     belief0.validate("belief0")
     check_filter_dtype(filter, belief0, "belief0")
+    if generator is not None and generator.device.type != belief0.device.type:
+        raise ValueError(f"generator: on {generator.device}, the belief on {belief0.device}; create it there: "
+                         f"torch.Generator(device={str(belief0.device)!r})")
     leaves = pytree.tree_leaves(measurements)
     if not leaves:
         raise ValueError("measurements: empty")
@@ -208,15 +229,19 @@ def run_filter(
         raise ValueError("measurements: all streams must share the leading time axis")
     if steps == 0:
         raise ValueError("measurements: no time steps (T = 0); run_filter needs at least one")
-    infinite = sum(int(torch.isinf(t).sum()) for t in leaves if t.is_floating_point())
-    if infinite:
-        log.warning("measurements: %d infinite entries are treated as missing data (non-finite = missing, "
-                    "see docs/robustness.md)", infinite)
+    meas_dim = getattr(filter, "meas_dim", None)
+    if isinstance(measurements, Tensor) and meas_dim is not None:  # the steps check z (*B, m) each; name it once here
+        check_measurement(measurements[0], meas_dim, belief0.batch_shape, _first_tensor(belief0, leaves[0]),
+                          "measurements")
     if controls is not None:
         if not isinstance(controls, Tensor) or controls.dim() < 2:
             raise ValueError("controls: expected a tensor (T, *B, k)")
         if controls.shape[0] != steps:
             raise ValueError(f"controls: expected {steps} time steps, got {controls.shape[0]}")
+    (data_prints, control_prints), (infinite, _) = fingerprints(measurements, controls)  # one host read: the data's record
+    if infinite:
+        log.warning("measurements: %d infinite entries are treated as missing data (non-finite = missing, "
+                    "see docs/robustness.md)", infinite)
     motion_at = _per_step(motions, steps, "motions")
     sensor_at = _per_step(sensors, steps, "sensors")
     for given, keyword, name in ((motions, "motion", "motions"), (sensors, "sensor", "sensors")):
@@ -250,6 +275,8 @@ def run_filter(
             fast = None
     elif compile:
         raise ValueError("compile: compiles the fast path, and fast_path=False turns it off")
+    if not isinstance(progress, (bool, str)):
+        raise TypeError(f"progress: expected True, False or the progress bar's description, got {progress!r}")
     iterator = range(steps)
     if progress:
         from tqdm.auto import tqdm
@@ -286,8 +313,19 @@ def run_filter(
         belief = out.belief
         kept.append(out if record is None else record(out))
     stacked = Trajectory(*stack_outputs(kept))
+    stacked = attach_provenance(stacked, Provenance(
+        "run_filter", filter, steps, measurements, data_prints, tensor_versions(measurements), controls, control_prints,
+        None if controls is None else tensor_versions(controls), motions, sensors, bool(update_first)))
     _report_flags(stacked.extras)
     return stacked
+
+
+def attach_provenance(trajectory: Trajectory, provenance: Provenance) -> Trajectory:
+    """``trajectory`` with its record: ``provenance`` completed with the trajectory's own fields and
+    the filter's parameter state at the end of the run."""
+    provenance = dataclasses.replace(provenance, belief=trajectory.belief, prior=trajectory.prior,
+                                     state=module_state(provenance.filter))
+    return dataclasses.replace(trajectory, provenance=provenance)
 
 
 def keep_estimate(out: StepOutput) -> StepOutput:
@@ -300,6 +338,12 @@ def _accepts(fn: Callable, keyword: str) -> bool:
 
     params = inspect.signature(fn).parameters
     return keyword in params or any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
+
+
+def _first_tensor(belief: Any, default: Tensor) -> Tensor:
+    """A tensor of ``belief``'s (its dtype and device), or ``default``."""
+    leaves = [t for t in pytree.tree_leaves(belief) if isinstance(t, Tensor) and t.is_floating_point()]
+    return leaves[0] if leaves else default
 
 
 def _per_step(models: Any, steps: int, name: str) -> Callable[[int], Any]:
@@ -322,9 +366,10 @@ def _per_step(models: Any, steps: int, name: str) -> Callable[[int], Any]:
 
 def _report_flags(extras: dict | None) -> None:
     """One warning per run for updates whose innovation covariance had to be regularised
-    (``extras["singular"]``, or the mode filters' ``extras["modes"]["singular"]``) and for particle
-    updates whose weights all vanished (``extras["degenerate"]``): the steps only flag them, so that
-    no step reads values on the host."""
+    (``extras["singular"]``, or the mode filters' ``extras["modes"]["singular"]``), for particle
+    updates whose weights all vanished (``extras["degenerate"]``) and for failed updates (a present
+    datum, a non-finite prediction: ``extras["failed"]``): the steps only flag them, so that no step
+    reads values on the host."""
     extras = extras or {}
     modes = extras.get("modes") if isinstance(extras.get("modes"), dict) else {}
     messages = {
@@ -332,6 +377,11 @@ def _report_flags(extras: dict | None) -> None:
                     "they used a regularised factor (extras['singular'], docs/robustness.md)",
         "degenerate": "%d of %d particle updates had every weight vanish; their prior weights were kept "
                       "(extras['degenerate'], docs/robustness.md)",
+        "failed": "%d of %d updates failed: a datum was present but the prediction (or its covariance) was NaN, "
+                  "e.g. a model whose parameters went NaN; their log-likelihood is NaN, not the 0 of missing data "
+                  "(extras['failed'], docs/robustness.md)",
+        "empty_set": "%d of %d steps of a variable-structure IMM got an empty model set from its policy; their "
+                     "log-likelihood is NaN (extras['empty_set'], docs/robustness.md)",
     }
     for key, message in messages.items():
         flags = extras.get(key)

@@ -47,9 +47,12 @@ import math
 from typing import Any
 
 import torch
+import torch.utils._pytree as pytree
 from torch import Tensor
 
 from torchmm.beliefs import GaussianBelief, ModeBelief, ParticleBelief, symmetrize
+from torchmm.contract import Choice, Data, Finite, Int, Of, entry_point
+from torchmm.filters.base import Filter
 from torchmm.filters.kalman import ExtendedKalmanFilter, KalmanFilter
 from torchmm.filters.particle import ParticleFilter
 from torchmm.filters.smoother import rts_step
@@ -58,6 +61,7 @@ from torchmm.linalg import cholesky, cholesky_solve, solve_lower
 from torchmm.models.base import MotionModel
 from torchmm.multimodel.bank import ListBank, VectorizedBank
 from torchmm.multimodel.imm import MultipleModelFilter, mode_posterior, safe_log_normalize
+from torchmm.provenance import fingerprints, module_state, tensor_versions
 from torchmm.run import Trajectory
 
 __all__ = ["backward_imm_update", "backward_predict", "diffuse_factor", "ffbsm_step", "kim_step", "smooth",
@@ -376,7 +380,7 @@ def _smooth_two_filter(filter: MultipleModelFilter, trajectory: Trajectory, meas
     prior_log = _prior_mode_log_probs(filter, trajectory, steps, filtered.mode_log_probs)
     last = filtered[steps - 1]
     if steps > 1:  # once, at the entry point: the backward filter runs every mode's motion backwards
-        _check_invertible(filter.bank if motions is None else filter.bank.with_motion(motions[steps - 1]),
+        _check_invertible(_bank_at(filter, motions, steps - 1),
                           last.components.mean, None if controls is None else controls[steps - 1].unsqueeze(-2))
     # the backward filter starts from a nearly flat prior, updated with the last datum
     est = last.estimate()
@@ -386,7 +390,7 @@ def _smooth_two_filter(filter: MultipleModelFilter, trajectory: Trajectory, meas
     backward = ModeBelief(mode_posterior(out.log_likelihood, prior_log[steps - 1])[0], out.belief)
     smoothed = [last]
     for k in range(steps - 2, -1, -1):  # the prediction k -> k+1 used motions[k+1] and controls[k+1]
-        bank = filter.bank if motions is None else filter.bank.with_motion(motions[k + 1])
+        bank = _bank_at(filter, motions, k + 1)
         u = None if controls is None else controls[k + 1].unsqueeze(-2)
         at = filtered[k].estimate().mean.unsqueeze(-2).expand(comps.mean[k].shape)  # the linearisation point
         predicted = ModeBelief(backward.mode_log_probs, backward_predict(bank, backward.components, at, u))
@@ -395,6 +399,12 @@ def _smooth_two_filter(filter: MultipleModelFilter, trajectory: Trajectory, meas
             backward = backward_imm_update(filter, predicted, z[k], prior_log[k],
                                            sensor=None if sensors is None else sensors[k])
     return _mode_trajectory(smoothed[::-1], trajectory)
+
+
+def _bank_at(filter: MultipleModelFilter, motions: list | None, k: int) -> Any:
+    """The bank that predicted into step ``k``: the filter's, or with ``motions[k]`` (None: the filter's)."""
+    motion = None if motions is None else motions[k]
+    return filter.bank if motion is None else filter.bank.with_motion(motion)
 
 
 def _two_filter_measurements(filter: MultipleModelFilter, measurements: Any, comps: GaussianBelief) -> Tensor:
@@ -428,33 +438,159 @@ def _check_invertible(bank: Any, at: Tensor, u: Tensor | None) -> None:
 
 
 def _per_step(value: Any, steps: int, name: str) -> list | None:
+    """Per-step models as a list of ``steps`` (from a sequence, a callable ``k -> model`` or one model)."""
     if value is None:
         return None
-    if len(value) != steps:
-        raise ValueError(f"{name}: expected one entry per step ({steps}), got {len(value)}")
+    if isinstance(value, torch.nn.Module):
+        return [value] * steps
+    if callable(value):
+        return [value(k) for k in range(steps)]
+    try:
+        count = len(value)
+    except TypeError:
+        raise TypeError(f"{name}: expected a sequence of models, a callable k -> model, or None, got "
+                        f"{type(value).__name__}") from None
+    if count != steps:
+        raise ValueError(f"{name}: expected one entry per step ({steps}), got {count}")
     return list(value)
 
 
-def smooth(filter: Any, trajectory: Trajectory, measurements: Tensor | None = None, *,
+# -- what the trajectory knows: the arguments checked against the run that made it --------------------
+
+#: the filters smooth dispatches on (a check against the run follows a check of the filter's type)
+_SMOOTHABLE = (MultipleModelFilter, ParticleFilter, UnscentedKalmanFilter, KalmanFilter, ExtendedKalmanFilter)
+
+
+def _checked_against_run(filter: Any, trajectory: Trajectory, measurements: Any, controls: Any, motions: Any,
+                         sensors: Any, method: str | None, steps: int) -> tuple:
+    """``(filter, measurements, controls, motions, sensors)``: those given, checked against
+    ``trajectory.provenance``, or the run's own where not given (motions and sensors as lists).
+
+    Host reads: none when the arguments are the run's own objects, unchanged (tensor version
+    counters); one checksum pass where other data are given."""
+    run = trajectory.provenance
+    if run is None or (filter is not None and not isinstance(filter, _SMOOTHABLE)):
+        # built by hand: nothing to check against, smoothed as given (or a filter that smooth refuses)
+        if filter is None:
+            raise TypeError("filter: this trajectory carries no record of the filter that made it (built by hand, "
+                            "joined, mapped or unpickled); pass it: smooth(filter, trajectory)")
+        return filter, measurements, controls, _per_step(motions, steps, "motions"), \
+            _per_step(sensors, steps, "sensors")
+    made = run.made_by
+    if trajectory.belief is not run.belief or trajectory.prior is not run.prior or steps != run.steps:
+        raise ValueError(f"trajectory: its beliefs are not the ones {made} returned ({steps} of its {run.steps} "
+                         "steps, or fields reversed, sliced or replaced); smooth the trajectory as the run returned "
+                         "it (a Trajectory built anew carries no record and is smoothed as given)")
+    if filter is None:
+        filter = run.filter
+    elif type(filter) is not type(run.filter):
+        raise TypeError(f"filter: a {type(filter).__name__}, but a {type(run.filter).__name__} made this trajectory "
+                        f"({made}); pass that filter, or smooth(trajectory) to use it")
+    elif filter is not run.filter:
+        raise ValueError(f"filter: not the filter that made this trajectory (a {type(run.filter).__name__}, given to "
+                         f"{made}); pass that same object, or smooth(trajectory) to use it. An equal filter "
+                         "built again is refused too: the trajectory knows its filter by identity")
+    if module_state(filter) != run.state:
+        raise ValueError(f"filter: its parameters or buffers changed (in place, or replaced) since {made} made this "
+                         "trajectory; filter again with the changed filter")
+    two_filter = isinstance(filter, MultipleModelFilter) and method in (None, "two_filter")
+    if measurements is not None or two_filter:
+        measurements = _same_data(measurements, run.measurements, run.data, run.data_versions, "measurements", made)
+    if controls is not None or run.controls is not None:
+        controls = _same_data(controls, run.controls, run.control_data, run.control_versions, "controls", made)
+    motions = _same_models(motions, run.motions, steps, "motions", made)
+    sensors = _same_models(sensors, run.sensors, steps, "sensors", made)
+    return filter, measurements, controls, motions, sensors
+
+
+def _same_data(given: Any, recorded: Any, prints: tuple | None, versions: tuple | None, name: str,
+               made: str) -> Any:
+    """``given`` (or the run's own ``recorded`` data where None), checked to be the data of the run."""
+    if recorded is None:
+        raise ValueError(f"{name}: {made} ran without {name}; smooth with what the run was given")
+    data = recorded if given is None else given
+    if data is recorded and versions is not None and tensor_versions(data) == versions:
+        return data  # the run's own tensors, unchanged since: nothing to read
+    leaves = pytree.tree_leaves(data)
+    if not all(isinstance(t, Tensor) for t in leaves):
+        bad = next(type(t).__name__ for t in leaves if not isinstance(t, Tensor))
+        raise TypeError(f"{name}: expected a tensor (T, *B, ...) like the one given to {made}, got {bad}")
+    if len(leaves) != len(prints):
+        raise ValueError(f"{name}: {len(leaves)} data streams, the {name} given to {made} had {len(prints)}")
+    for t, p in zip(leaves, prints):  # shapes, dtypes and devices first (no value read)
+        if tuple(t.shape) != p.shape:
+            raise ValueError(f"{name}: expected shape {p.shape} (the {name} {made} filtered), got {tuple(t.shape)}")
+        if t.dtype != p.dtype:
+            raise TypeError(f"{name}: dtype {t.dtype} differs from the {name} {made} filtered ({p.dtype})")
+        if t.device != p.device:
+            raise ValueError(f"{name}: on device {t.device}, the {name} {made} filtered were on {p.device}")
+    (again,), _ = fingerprints(data)  # one pass, one host read
+    for p, q in zip(prints, again):
+        why = p.differs(q)
+        if why is not None:
+            if given is None:
+                raise ValueError(f"{name}: the {name} given to {made} were changed in place since ({why}); pass "
+                                 "the data as filtered, or filter again")
+            raise ValueError(f"{name}: not the data {made} filtered ({why}: reversed, permuted, other or changed "
+                             "data); pass those, or smooth(trajectory) to use the ones the trajectory carries")
+    return data
+
+
+def _same_models(given: Any, recorded: Any, steps: int, name: str, made: str) -> list | None:
+    """The per-step models of the run as a list (``given``, checked to be the run's, or the run's own)."""
+    if given is None:
+        return _per_step(recorded, steps, name)
+    listed = _per_step(given, steps, name)
+    if recorded is None:
+        raise ValueError(f"{name}: {made} ran without per-step {name} (every step used the filter's own); "
+                         f"smooth with what the run was given")
+    if given is recorded:
+        return listed
+    for k, (a, b) in enumerate(zip(listed, _per_step(recorded, steps, name))):
+        if a is not b:
+            raise ValueError(f"{name}: entry {k} is not the model given to {made} for step {k} (a "
+                             f"{type(b).__name__}); pass the same models, or leave {name} out to use the run's")
+    return listed
+
+
+_PER_STEP = "a sequence of T models, a callable k -> model, or None"
+
+
+# declared only where smooth's own check says more (the filter types it smooths, the options a filter
+# has) or where the argument's meaning depends on another: smooth(trajectory, measurements)
+@entry_point(filter=Of((Filter, Trajectory), check=False, what="the filter that ran, or its Trajectory"),
+             trajectory=Of(Trajectory, optional=True, check=False, what="the Trajectory of run_filter"),
+             measurements=Data(optional=True), controls=Finite(optional=True, check=False),
+             motions=Of((list, tuple, torch.nn.Module), callable_ok=True, optional=True, what=_PER_STEP),
+             sensors=Of((list, tuple, torch.nn.Module), callable_ok=True, optional=True, what=_PER_STEP),
+             lag=Int(0, optional=True, check=False),
+             method=Choice("two_filter", "kim", optional=True, check=False))
+def smooth(filter: Any, trajectory: Trajectory | None = None, measurements: Tensor | None = None, *,
            controls: Tensor | None = None, motions: Any = None, sensors: Any = None, lag: int | None = None,
            method: str | None = None) -> Trajectory:
     r"""The fixed-interval smoothed beliefs ``p(x_k | z_{1:T})`` of a filtered ``trajectory``.
 
+    ``smooth(trajectory)`` smooths with what the run recorded (``trajectory.provenance``): its filter,
+    measurements, controls and per-step models. Whatever is passed is checked against that record
+    (docs/robustness.md, "What a trajectory knows").
+
     Args:
-        filter: the filter that made ``trajectory`` (:func:`~torchmm.run_filter`): a
+        filter: the filter that made ``trajectory`` (:func:`~torchmm.run_filter`), the same object: a
             :class:`~torchmm.KalmanFilter` (RTS), :class:`~torchmm.ExtendedKalmanFilter`
             (extended RTS), :class:`~torchmm.UnscentedKalmanFilter` (unscented RTS), a
             :class:`~torchmm.ParticleFilter` (FFBSm) or a multiple-model filter over Gaussian modes
-            (two-filter IMM smoother, or Kim's).
+            (two-filter IMM smoother, or Kim's). Or the trajectory itself, ``smooth(trajectory)``
+            (``smooth(trajectory, measurements)``), to use the run's filter.
         trajectory: its output, with the priors recorded (``trajectory.prior``; the default
             ``record`` keeps them).
         measurements: the measurements given to ``run_filter``, ``(T, *B, m)`` (NaN: missing). Needed
             by the two-filter smoother of multiple-model filters (its backward IMM filters them
-            again); the other smoothers use the filtered beliefs only.
-        controls: the inputs ``u_k`` given to ``run_filter``, ``(T, *B, k)``.
-        motions: the per-step motion models given to ``run_filter`` (a sequence of ``T``).
-        sensors: the per-step sensors given to ``run_filter`` (a sequence of ``T``; the two-filter
-            smoother's backward updates use them).
+            again); the other smoothers use the filtered beliefs only. Default: the run's.
+        controls: the inputs ``u_k`` given to ``run_filter``, ``(T, *B, k)``. Default: the run's.
+        motions: the per-step motion models given to ``run_filter`` (a sequence of ``T``, a callable
+            ``k -> model`` or one model). Default: the run's.
+        sensors: the per-step sensors given to ``run_filter`` (likewise; the two-filter smoother's
+            backward updates use them). Default: the run's.
         method: multiple-model filters only: ``"two_filter"`` (default) or ``"kim"``.
         lag: fixed-lag smoothing (Kalman, extended and unscented filters): step ``k`` is smoothed with
             the data up to ``k + lag``, ``p(x_k | z_{1:min(k + lag, T)})``. All ``T`` windows go back
@@ -464,6 +600,14 @@ def smooth(filter: Any, trajectory: Trajectory, measurements: Tensor | None = No
         a :class:`~torchmm.run.Trajectory` whose ``belief`` is the smoothed beliefs, batch ``(T, *B)``
         (``x_{k|T}``; the last equals the filter's last posterior), with the filter's
         ``log_likelihood`` (that of the data, unchanged by smoothing) and no priors or innovations.
+
+    Raises:
+        ValueError / TypeError: naming ``filter`` (not the object that ran, another type, or its
+        parameters changed in place since), ``measurements`` / ``controls`` (not the data the run
+        filtered: shape, dtype, device or checksum; or changed in place since), ``motions`` /
+        ``sensors`` (not the run's per-step models), ``trajectory`` (its beliefs are not the run's:
+        reversed, sliced or replaced), ``method`` or ``lag``. A trajectory without a record (built
+        by hand) is smoothed as given.
 
     Shapes:
         trajectory.belief, trajectory.prior: batch ``(T, *B)`` -> belief batch ``(T, *B)``.
@@ -490,12 +634,23 @@ def smooth(filter: Any, trajectory: Trajectory, measurements: Tensor | None = No
         >>> out.mode_probs.shape, out.estimate().mean.shape
         (torch.Size([20, 3, 2]), torch.Size([20, 3, 2]))
     """
+    if isinstance(filter, Trajectory):  # smooth(trajectory[, measurements]): the run's own filter
+        if trajectory is not None and measurements is not None:
+            raise TypeError("trajectory: smooth(trajectory, measurements) takes no filter; or pass "
+                            "smooth(filter, trajectory, measurements)")
+        filter, trajectory, measurements = None, filter, trajectory if trajectory is not None else measurements
     if not isinstance(trajectory, Trajectory):
         raise TypeError(f"trajectory: expected the Trajectory of run_filter, got {type(trajectory).__name__}")
     steps = trajectory.belief.batch_shape[0]
-    if controls is not None and controls.shape[0] != steps:
-        raise ValueError(f"controls: expected {steps} steps on the leading axis, got shape {tuple(controls.shape)}")
-    motions = _per_step(motions, steps, "motions")
+    if controls is not None and (not isinstance(controls, Tensor) or controls.dim() < 1 or controls.shape[0] != steps):
+        raise ValueError(f"controls: expected a tensor with {steps} steps on the leading axis, got "
+                         f"{tuple(controls.shape) if isinstance(controls, Tensor) else type(controls).__name__}")
+    filter, measurements, controls, motions, sensors = _checked_against_run(
+        filter, trajectory, measurements, controls, motions, sensors, method, steps)
+    if motions is not None and not isinstance(filter, MultipleModelFilter):  # None entries: the filter's model
+        motions = [filter.motion if m is None else m for m in motions] if hasattr(filter, "motion") else motions
+    if motions is not None and all(m is None for m in motions):
+        motions = None
     if lag is not None and isinstance(filter, (MultipleModelFilter, ParticleFilter)):
         raise ValueError(f"lag: fixed-lag smoothing is implemented for Kalman, extended and unscented filters, "
                          f"not {type(filter).__name__}")
@@ -504,8 +659,7 @@ def smooth(filter: Any, trajectory: Trajectory, measurements: Tensor | None = No
             raise ValueError(f"method: expected 'two_filter' or 'kim' for {type(filter).__name__}, got {method!r}")
         if method == "kim":
             return _smooth_modes(filter, trajectory, controls, motions)
-        return _smooth_two_filter(filter, trajectory, measurements, controls, motions,
-                                  _per_step(sensors, steps, "sensors"))
+        return _smooth_two_filter(filter, trajectory, measurements, controls, motions, sensors)
     if method is not None:
         raise ValueError(f"method: only multiple-model filters have a choice of smoother ('two_filter', 'kim'); "
                          f"got {method!r} for {type(filter).__name__}")

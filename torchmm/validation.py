@@ -161,8 +161,9 @@ def _distinct(tensor: Tensor) -> Tensor:
 def check_covariance(tensor: Tensor, name: str, *, definite: bool = False) -> None:
     """Check that ``tensor`` (..., d, d) is finite, symmetric and positive semi-definite (or definite).
 
-    Symmetry is checked to ``1e-5`` relative to the largest entry (float32 inputs pass), the
-    eigenvalues to ``-1e-10`` times it (``<= 1e-10`` times it fails ``definite``).
+    Both tolerances are relative to the matrix's largest entry, never absolute: symmetry to
+    ``1e-5`` times it (float32 inputs pass), the eigenvalues to ``-1e-10`` times it (``<= 1e-10``
+    times it fails ``definite``), so ``1e-12 I`` and ``1e-300 I`` are positive definite.
 
     Raises:
         ValueError: naming ``name`` and the failed property.
@@ -173,7 +174,9 @@ def check_covariance(tensor: Tensor, name: str, *, definite: bool = False) -> No
         raise ValueError(f"{name}: contains NaN or infinite entries")
     if value.numel() == 0:
         return
-    scale = value.abs().amax(dim=(-1, -2), keepdim=True).clamp_min(1.0)
+    # relative to each matrix's own scale: R = 1e-12 I is as valid as I (an absolute floor would
+    # call every tiny covariance indefinite); the all-zero matrix has scale 0 and passes as PSD
+    scale = value.abs().amax(dim=(-1, -2), keepdim=True)
     if bool(((value - value.mT).abs() > SYMMETRY_RTOL * scale).any()):
         raise ValueError(f"{name}: covariance is not symmetric")
     eigvals = torch.linalg.eigvalsh(0.5 * (value + value.mT))

@@ -335,7 +335,7 @@ def test_linear_fast_paths_equal_the_generic_formulas():
 
 
 def test_noise_dtype_must_be_a_float_dtype():
-    with pytest.raises(ValueError, match="noise_dtype"):
+    with pytest.raises(TypeError, match="^noise_dtype: expected a floating dtype"):  # a dtype is a TypeError
         ParticleFilter(ConstantVelocity(1), PositionMeasurement(2, [0], 1.0), noise_dtype=torch.int32)
 
 

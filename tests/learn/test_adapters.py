@@ -119,7 +119,7 @@ def test_bad_arguments_raise_value_errors_naming_them():
         LearnedMotion(nn.Linear(2, 3), 2, Q=1.0)(torch.zeros(2))
     with pytest.raises(ValueError, match="net"):
         LearnedMeasurement(nn.Linear(2, 3), 2, 1, R=1.0)(torch.zeros(2))
-    with pytest.raises(ValueError, match="net"):
+    with pytest.raises(TypeError, match="^net: expected a callable"):  # a wrong type (issue 29's contract)
         LearnedMotion(3, 2, Q=1.0)
 
 

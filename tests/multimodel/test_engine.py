@@ -305,7 +305,7 @@ def _bad_inputs():
         "empty fixed set": (lambda: FixedSet([]), ValueError, "members"),
         "drop threshold": (lambda: DropBelow(1.5, [0]), ValueError, "threshold"),
         "indexed bank": (lambda: IndexedBank(make_bank(kf, 3), [0, 5]), ValueError, "index"),
-        "mixing scheme": (lambda: ParticleMixing("bogus"), ValueError, "mixing"),
+        "mixing scheme": (lambda: ParticleMixing("bogus"), ValueError, "scheme"),
         "sensors type": (lambda: run_filter(kf, belief0, torch.zeros(3, 2, 1), sensors=42), TypeError, "sensors"),
         "motions count": (lambda: run_filter(kf, belief0, torch.zeros(3, 2, 1), motions=[motion]), ValueError,
                           "motions"),

@@ -3,6 +3,8 @@ against RTS on a linear model, the extended RTS against an independent NumPy imp
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -147,8 +149,10 @@ def test_clear_errors():
     traj = run_filter(kf, belief0, z)
     with pytest.raises(TypeError, match="filter: no smoother for ConstantVelocity"):
         smooth(cv, traj)
-    with pytest.raises(TypeError, match="trajectory.belief: expected particle beliefs"):
+    with pytest.raises(TypeError, match="filter: a ParticleFilter, but a KalmanFilter made this trajectory"):
         smooth(ParticleFilter(cv, sensor, num_particles=10), traj)
+    with pytest.raises(TypeError, match="trajectory.belief: expected particle beliefs"):  # no record to check against
+        smooth(ParticleFilter(cv, sensor, num_particles=10), dataclasses.replace(traj, provenance=None))
     with pytest.raises(ValueError, match="trajectory.prior"):
         smooth(kf, run_filter(kf, belief0, z, record=lambda o: o._replace(prior=None)))
     with pytest.raises(ValueError, match="motions: expected one entry per step"):

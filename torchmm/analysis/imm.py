@@ -21,6 +21,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from torchmm.contract import Finite, Labels, Real, Stochastic, entry_point
 from torchmm.models.transition import transition_alpha
 
 __all__ = [
@@ -38,15 +39,45 @@ __all__ = [
 ]
 
 
+# -- shape checks at entry (values are checked by the kinds: finite tensors, integer indices) -------
+def _check_alpha(alpha: Tensor, name: str = "alpha") -> None:
+    if alpha.dim() < 1 or alpha.shape[-1] < 1:
+        raise ValueError(f"{name}: expected shape (M,), got {tuple(alpha.shape)}")
+    if bool((alpha.detach() < 0).any()):
+        raise ValueError(f"{name}: must be non-negative (the off-diagonal entries of eq. (2.2))")
+
+
+def _check_modes(probs: Tensor, M: int, name: str = "mode_probs") -> None:
+    if probs.dim() < 1 or probs.shape[-1] != M:
+        raise ValueError(f"{name}: expected shape (*B, {M}), got {tuple(probs.shape)}")
+
+
+def _check_matched(matched: Tensor, M: int, batch, name: str = "matched") -> None:
+    if tuple(matched.shape) != tuple(batch):
+        raise ValueError(f"{name}: expected shape {tuple(batch)} (one index per run), "
+                         f"got {tuple(matched.shape)}")
+    if matched.numel() and bool((matched >= M).any()):
+        raise ValueError(f"{name}: model indices must be < {M}, got {int(matched.max())}")
+
+
+def _check_means(means: Tensor, M: int, batch, name: str = "means") -> None:
+    if means.dim() < 2 or means.shape[-2] != M or tuple(means.shape[:-2]) != tuple(batch):
+        raise ValueError(f"{name}: expected shape {(*batch, M, 'n')}, got {tuple(means.shape)}")
+
+
+@entry_point(alpha=Finite(), mode_probs=Finite())
 def predicted_mode_probs(alpha: Tensor, mode_probs: Tensor) -> Tensor:
     r"""Eq. (3.1): ``u_j^0(k) = (1 - sum_l alpha_l) u_j(k) + alpha_j``.
 
     Shapes:
         alpha ``(M,)``, mode_probs ``(*B, M)`` -> ``(*B, M)``
     """
+    _check_alpha(alpha)
+    _check_modes(mode_probs, alpha.shape[-1])
     return (1 - alpha.sum(-1, keepdim=True)) * mode_probs + alpha
 
 
+@entry_point(alpha=Finite())
 def mixed_probability_bounds(alpha: Tensor) -> tuple[Tensor, Tensor]:
     r"""Eqs. (3.2)/(3.3): the interval that contains ``u_j^0(k)`` whatever ``u(k)`` is.
 
@@ -55,6 +86,11 @@ def mixed_probability_bounds(alpha: Tensor) -> tuple[Tensor, Tensor]:
     Shapes:
         alpha ``(M,)`` -> lower ``(M,)``, upper ``(M,)``
     """
+    _check_alpha(alpha)
+    return _mixed_probability_bounds(alpha)
+
+
+def _mixed_probability_bounds(alpha: Tensor) -> tuple[Tensor, Tensor]:
     total = alpha.sum(-1, keepdim=True)
     dominant = total <= 1
     lower = torch.where(dominant, alpha, torch.zeros_like(alpha))
@@ -62,6 +98,7 @@ def mixed_probability_bounds(alpha: Tensor) -> tuple[Tensor, Tensor]:
     return lower, upper
 
 
+@entry_point(alpha=Finite(), mode_probs=Finite())
 def ratio_bounds(alpha: Tensor, mode_probs: Tensor) -> tuple[Tensor, Tensor]:
     r"""Eq. (3.8): ``u_i^0 / u_j^0`` lies between ``u_i / u_j`` and ``alpha_i / alpha_j``.
 
@@ -70,22 +107,34 @@ def ratio_bounds(alpha: Tensor, mode_probs: Tensor) -> tuple[Tensor, Tensor]:
     Shapes:
         alpha ``(M,)``, mode_probs ``(*B, M)`` -> lower, upper ``(*B, M, M)`` (entry ``[i, j]``)
     """
+    _check_alpha(alpha)
+    _check_modes(mode_probs, alpha.shape[-1])
+    return _ratio_bounds(alpha, mode_probs)
+
+
+def _ratio_bounds(alpha: Tensor, mode_probs: Tensor) -> tuple[Tensor, Tensor]:
     posterior = mode_probs.unsqueeze(-1) / mode_probs.unsqueeze(-2)
     prior = (alpha.unsqueeze(-1) / alpha.unsqueeze(-2)).expand_as(posterior)
     return torch.minimum(posterior, prior), torch.maximum(posterior, prior)
 
 
+@entry_point(alpha=Finite(), mode_probs=Finite(), matched=Labels())
 def delta_ratio(alpha: Tensor, mode_probs: Tensor, matched: Tensor) -> Tensor:
     r"""Eq. (4.10): ``delta(k) = alpha_i / ((1 - sum alpha) u_i(k) + alpha_i)`` for matched ``i``.
 
     Shapes:
         alpha ``(M,)``, mode_probs ``(*B, M)``, matched ``(*B,)`` -> ``(*B,)``
     """
+    _check_alpha(alpha)
+    M = alpha.shape[-1]
+    _check_modes(mode_probs, M)
+    _check_matched(matched, M, mode_probs.shape[:-1])
     a_i = alpha[matched]
     u_i = mode_probs.gather(-1, matched.unsqueeze(-1)).squeeze(-1)
     return a_i / ((1 - alpha.sum()) * u_i + a_i)
 
 
+@entry_point(transition=Stochastic(), mode_probs=Finite(), matched=Labels())
 def zeta_ratio(transition: Tensor, mode_probs: Tensor, matched: Tensor) -> Tensor:
     r"""Eq. (4.14), two-model IMM: ``zeta_j = 1 / (1 + pi_ij u_i / (pi_jj u_j))``, ``j != i``.
 
@@ -94,18 +143,25 @@ def zeta_ratio(transition: Tensor, mode_probs: Tensor, matched: Tensor) -> Tenso
     """
     if transition.shape[-1] != 2:
         raise ValueError(f"transition: eq. (4.14) is for two models, got {transition.shape[-1]}")
+    _check_modes(mode_probs, 2)
+    _check_matched(matched, 2, mode_probs.shape[:-1])
     other = 1 - matched
     u_i = mode_probs.gather(-1, matched.unsqueeze(-1)).squeeze(-1)
     u_j = mode_probs.gather(-1, other.unsqueeze(-1)).squeeze(-1)
     return 1 / (1 + transition[matched, other] * u_i / (transition[other, other] * u_j))
 
 
+@entry_point(means=Finite(), truth=Finite())
 def matched_model(means: Tensor, truth: Tensor) -> Tensor:
     """The model whose estimate is closest to the truth ("matched model", section 4).
 
     Shapes:
         means ``(*B, M, n)``, truth ``(*B, n)`` -> ``(*B,)``
     """
+    if means.dim() < 2:
+        raise ValueError(f"means: expected shape (*B, M, n), got {tuple(means.shape)}")
+    if truth.dim() < 1 or truth.shape[-1] != means.shape[-1]:
+        raise ValueError(f"truth: expected shape (*B, {means.shape[-1]}), got {tuple(truth.shape)}")
     return (means - truth.unsqueeze(-2)).square().sum(-1).argmin(-1)
 
 
@@ -123,6 +179,7 @@ class InteractionDeviations(NamedTuple):
     model: Tensor
 
 
+@entry_point(mode_probs=Finite(), means=Finite(), mixed_means=Finite(), matched=Labels())
 def interaction_deviations(
     mode_probs: Tensor, means: Tensor, mixed_means: Tensor, matched: Tensor
 ) -> InteractionDeviations:
@@ -132,6 +189,24 @@ def interaction_deviations(
         mode_probs ``(*B, M)``, means ``(*B, M, n)`` (``x_j(k|k)``), mixed_means ``(*B, M, n)``
         (``x_j^0(k|k)``), matched ``(*B,)``
     """
+    _check_internals(mode_probs, means, mixed_means, matched)
+    return _interaction_deviations(mode_probs, means, mixed_means, matched)
+
+
+def _check_internals(mode_probs: Tensor, means: Tensor, mixed_means: Tensor, matched: Tensor) -> None:
+    if mode_probs.dim() < 1:
+        raise ValueError(f"mode_probs: expected shape (*B, M), got {tuple(mode_probs.shape)}")
+    M, batch = mode_probs.shape[-1], mode_probs.shape[:-1]
+    _check_means(means, M, batch)
+    if mixed_means.shape != means.shape:
+        raise ValueError(f"mixed_means: expected the shape of means {tuple(means.shape)}, "
+                         f"got {tuple(mixed_means.shape)}")
+    _check_matched(matched, M, batch)
+
+
+def _interaction_deviations(
+    mode_probs: Tensor, means: Tensor, mixed_means: Tensor, matched: Tensor
+) -> InteractionDeviations:
     ref = means.gather(-2, matched[..., None, None].expand(*matched.shape, 1, means.shape[-1]))
     output = torch.einsum("...m,...mn->...n", mode_probs, means)
     return InteractionDeviations(
@@ -155,6 +230,8 @@ class ConclusionCheck(NamedTuple):
     applicable: Tensor
 
 
+@entry_point(transition=Stochastic(), mode_probs=Finite(), means=Finite(), mixed_means=Finite(),
+             matched=Labels(), tol=Real(minimum=0.0))
 def check_conclusions(
     transition: Tensor,
     mode_probs: Tensor,
@@ -191,7 +268,9 @@ def check_conclusions(
         ``{conclusion: ConclusionCheck}``; masks ``(*B,)`` except Conclusion 2 ``(*B, M)``.
     """
     M = transition.shape[-1]
-    dev = interaction_deviations(mode_probs, means, mixed_means, matched)
+    _check_modes(mode_probs, M)
+    _check_internals(mode_probs, means, mixed_means, matched)
+    dev = _interaction_deviations(mode_probs, means, mixed_means, matched)
     scale = 1 + means.abs().amax(dim=(-1, -2))
     floor = tol * scale  # (*B,): rounding level of the deviations; also the non-degeneracy threshold
     batch = matched.shape
@@ -245,6 +324,7 @@ def check_conclusions(
     return out
 
 
+@entry_point(alpha=Finite(), mode_probs=Finite(), predicted=Finite(), tol=Real(minimum=0.0))
 def check_probability_bounds(
     alpha: Tensor, mode_probs: Tensor, predicted: Tensor, *, tol: float = 1e-9
 ) -> dict[str, ConclusionCheck]:
@@ -259,12 +339,17 @@ def check_probability_bounds(
         ``{"3.2/3.3": ..., "3.8": ...}``; premises ``(*B, M)`` and ``(*B, M, M)``. (3.8) requires
         ``sum(alpha) <= 1``, ``alpha > 0`` and ``u > 0``, and is counted on pairs ``i != j``.
     """
-    lower, upper = mixed_probability_bounds(alpha)
+    _check_alpha(alpha)
+    _check_modes(mode_probs, alpha.shape[-1])
+    if predicted.shape != mode_probs.shape:
+        raise ValueError(f"predicted: expected the shape of mode_probs {tuple(mode_probs.shape)}, "
+                         f"got {tuple(predicted.shape)}")
+    lower, upper = _mixed_probability_bounds(alpha)
     margin = tol * (1 + predicted.abs())
     inside = (predicted >= lower - margin) & (predicted <= upper + margin)
     bounds = ConclusionCheck(torch.ones_like(inside), inside, torch.ones_like(inside))
 
-    lo, hi = ratio_bounds(alpha, mode_probs)
+    lo, hi = _ratio_bounds(alpha, mode_probs)
     ratio = predicted.unsqueeze(-1) / predicted.unsqueeze(-2)
     valid = (mode_probs > 0).unsqueeze(-1) & (mode_probs > 0).unsqueeze(-2)
     off_diagonal = ~torch.eye(alpha.shape[-1], dtype=torch.bool, device=alpha.device)

@@ -13,6 +13,7 @@ from torchmm.beliefs.base import Belief, register_belief
 from torchmm.beliefs.ops import mix_gaussians
 from torchmm.linalg import cholesky
 from torchmm.validation import as_tensor, check_covariance, check_shape
+from torchmm.contract import Cov, DType, Device, Finite, entry_point
 
 __all__ = ["GaussianBelief"]
 
@@ -75,6 +76,7 @@ class GaussianBelief(Belief):
         return self
 
     @classmethod
+    @entry_point(mean=Finite(check=False), cov=Cov(check=False), dtype=DType(), device=Device())
     def create(cls, mean, cov, *, dtype=None, device=None) -> GaussianBelief:
         """Validated constructor: converts to tensors, checks shapes and that ``cov`` is PSD."""
         mean = as_tensor(mean, "mean", dtype=dtype, device=device)

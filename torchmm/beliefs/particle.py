@@ -42,6 +42,9 @@ class ParticleBelief(Belief):
     def validate(self, name: str = "belief") -> ParticleBelief:
         """Finite particles; log-weights not NaN or ``+inf``, at least one finite per particle set."""
         self.batch_shape
+        if self.particles.shape[-2] == 0:
+            raise ValueError(f"{name}.particles: a particle set needs at least one particle, got shape "
+                             f"{tuple(self.particles.shape)}")
         if not bool(torch.isfinite(self.particles.detach()).all()):
             raise ValueError(f"{name}.particles: contains NaN or infinite entries")
         w = self.log_weights.detach()

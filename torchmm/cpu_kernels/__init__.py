@@ -150,24 +150,28 @@ def _pool() -> ThreadPoolExecutor:
 
 
 def propagate_log_likelihood(table: Tensor, flat: Tensor, eps: Tensor, factor: Tensor, offset: Tensor, F: Tensor,
-                             W: Tensor, shift: Tensor, const: float) -> tuple[Tensor, Tensor]:
+                             W: Tensor, shift: Tensor, const: float, *, with_nan: bool = False):
     """Gather, propagate and weigh: ``x = F table[flat] + factor eps + offset`` and
     ``-0.5 (|shift + W x|^2 + const)`` (NaN -> ``-inf``), in one pass over the particles.
+
+    ``with_nan``: also return ``(R, M)`` bool, True where a log-likelihood of the set was NaN before
+    it was mapped to ``-inf`` (non-finite particles: the filter flags the run as failed).
 
     Shapes:
         table: ``(R, S, n)`` float64 (the previous particles of a run); flat: ``(R, M, Np)`` int64 into
         ``S``; eps: ``(R, M, Np, k)`` (float32 or float64); factor: ``(n, k)``; offset: ``(M, n)``;
         F: ``(n, n)``; W: ``(m, n)``; shift: ``(R, m)`` -> particles ``(R, M, Np, n)``, log-likelihoods
-        ``(R, M, Np)``
+        ``(R, M, Np)`` [, NaN flags ``(R, M)``]
     """
     R, M, Np = flat.shape
     n, k, m = table.shape[-1], factor.shape[-1], W.shape[0]
     x = torch.empty((R, M, Np, n), dtype=torch.float64)
     loglik = torch.empty((R, M, Np), dtype=torch.float64)
+    nan = torch.empty((R, M), dtype=torch.bool)
     _threads()
     _kernels().propagate(_np(table), _np(flat), _np(eps), _np(factor), _np(offset), _np(F), _np(W), _np(shift),
-                         float(const), x.numpy(), loglik.numpy(), (0,) * n, (0,) * k, (0,) * m)
-    return x, loglik
+                         float(const), x.numpy(), loglik.numpy(), nan.numpy(), (0,) * n, (0,) * k, (0,) * m)
+    return (x, loglik, nan) if with_nan else (x, loglik)
 
 
 def challenge_pass(scores: Tensor, a: Tensor, b: Tensor, shifts: Tensor, num_winners: int) -> Tensor:

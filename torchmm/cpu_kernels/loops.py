@@ -92,7 +92,7 @@ def _products(out, columns, row, count, nb):  # pragma: no cover
 
 
 @numba.njit(parallel=True, cache=True)
-def propagate(table, flat, eps, G, offset, F, W, shift, const, x, loglik, n_, k_, m_):  # pragma: no cover
+def propagate(table, flat, eps, G, offset, F, W, shift, const, x, loglik, nan, n_, k_, m_):  # pragma: no cover
     # n, k, m: the lengths of three tuples, so compile-time constants of each specialisation (the
     # short loops unroll; Numba caches one per (n, k, m) on disk)
     n, k, m = len(n_), len(k_), len(m_)
@@ -101,6 +101,7 @@ def propagate(table, flat, eps, G, offset, F, W, shift, const, x, loglik, n_, k_
         r = ri // M
         i = ri - r * M
         tab, fl, ep, xo, lo = table[r], flat[r, i], eps[r, i], x[r, i], loglik[r, i]
+        bad = False  # a NaN log-likelihood in this set (non-finite particles: a failure, not missing data)
         off, sh = offset[i], shift[r]
         xa = np.empty((n, BLOCK))
         ef = np.empty((k, BLOCK))
@@ -142,9 +143,13 @@ def propagate(table, flat, eps, G, offset, F, W, shift, const, x, loglik, n_, k_
                         ss[t] = fma(v, v, ss[t])
             for t in range(nb):
                 value = (ss[t] + const) * -0.5
-                lo[q0 + t] = -np.inf if value != value else value
+                if value != value:
+                    bad = True
+                    value = -np.inf
+                lo[q0 + t] = value
                 for d in range(n):
                     xo[q0 + t, d] = od[d, t]
+        nan[r, i] = bad
 
 
 @numba.njit(parallel=True, cache=True)

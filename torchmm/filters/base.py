@@ -10,6 +10,8 @@ import torch
 from torch import Tensor, nn
 
 from torchmm.beliefs import Belief
+from torchmm.contract import BeliefArg, entry_point
+from torchmm.validation import broadcast_shape, check_filter_dtype
 
 __all__ = ["FastSteps", "Filter", "StepOutput"]
 
@@ -21,7 +23,8 @@ class StepOutput(NamedTuple):
         belief: the posterior belief, batch ``(*B,)``.
         prior: the predicted belief the update started from, batch ``(*B,)``.
         log_likelihood: ``log p(z_k | z_{1:k-1})``, ``(*B,)``; exactly 0 where ``z_k`` is
-            entirely missing (every component non-finite: NaN or ``+-inf``).
+            entirely missing (every component non-finite: NaN or ``+-inf``); NaN where the update
+            failed (a present datum, a non-finite prediction: ``extras["failed"]``).
         innovation: ``z_k - E[z_k | z_{1:k-1}]``, ``(*B, m)`` (``(*B, M, m)`` per mode for
             multiple-model filters); non-finite where the measurement is missing.
         innovation_cov: its covariance ``S``, ``(*B, m, m)`` (per mode likewise).
@@ -86,6 +89,7 @@ class Filter(nn.Module):
         """The measurement dimension ``m`` of the filter's sensor (None if it has none)."""
         return getattr(self._modules.get("measurement"), "meas_dim", None)
 
+    @entry_point(belief=BeliefArg())
     def initial_belief(self, belief: Any, **kwargs) -> Any:
         """This filter's belief at time 0 from a prior ``belief`` (batch ``(*B,)``).
 
@@ -97,6 +101,8 @@ class Filter(nn.Module):
             raise TypeError(f"{type(self).__name__}.initial_belief: unexpected arguments {sorted(kwargs)}")
         if not isinstance(belief, Belief):
             raise TypeError(f"belief: expected a belief (e.g. GaussianBelief), got {type(belief).__name__}")
+        check_filter_dtype(self, belief, "belief")
+        check_state_dim(self, belief, "belief")
         return belief.validate("belief")
 
     def predict(self, belief: Any, *, u: Tensor | None = None) -> Any:
@@ -175,6 +181,7 @@ class Filter(nn.Module):
         hit = cache.get(key)
         if hit is not None and hit._modules.get(slot) is module:
             return hit
+        _check_replacement(module, current, name, type(self).__name__)  # once per model (cached after)
         clone = copy.copy(self)
         for table in ("_modules", "_buffers", "_parameters"):
             clone.__dict__[table] = dict(self.__dict__[table])
@@ -194,3 +201,36 @@ def call_with(filter: Filter, method: str, *args, generator: torch.Generator | N
     if generator is not None and filter.uses_generator:
         kwargs["generator"] = generator
     return getattr(filter, method)(*args, **kwargs)
+
+
+def _first_float(module: nn.Module) -> torch.dtype | None:
+    for tensor in (*module.parameters(), *module.buffers()):
+        if tensor.is_floating_point():
+            return tensor.dtype
+    return None
+
+
+def _check_replacement(module: nn.Module, current: nn.Module, name: str, owner: str) -> None:
+    """A per-step model against the filter's own: the same floating dtype and a parameter batch
+    (the mode axis of a bank) that broadcasts to the filter's. Reads attributes only."""
+    new, old = _first_float(module), _first_float(current)
+    if new is not None and old is not None and new != old:
+        raise TypeError(f"{name}: dtype {new} differs from the {owner}'s {old}; build the per-step models in "
+                        f"{old} (or convert: model.to({old}))")
+    new_batch = getattr(module, "param_batch_shape", None)
+    old_batch = getattr(current, "param_batch_shape", None)
+    if new_batch is not None and old_batch is not None and tuple(new_batch) != tuple(old_batch):
+        try:  # per-run parameters (*B, M) are fine; a different mode count is not
+            broadcast_shape(new_batch, old_batch)
+        except RuntimeError:
+            raise ValueError(f"{name}: parameter batch {tuple(new_batch)} does not broadcast with the {owner}'s "
+                             f"{tuple(old_batch)} (a mode bank needs one model per mode: batch (M,) or (*B, M), "
+                             "or one shared by every mode)") from None
+
+
+def check_state_dim(filter: Filter, belief: Any, name: str) -> None:
+    """``ValueError`` naming ``name`` if the belief's state dimension differs from the filter's
+    (reads shapes only)."""
+    have, want = getattr(belief, "state_dim", None), getattr(filter, "state_dim", None)
+    if isinstance(have, int) and isinstance(want, int) and have != want:
+        raise ValueError(f"{name}: state dimension {have} differs from the filter's state_dim {want}")

@@ -18,10 +18,11 @@ from torch import Tensor
 
 from torchmm.beliefs import GaussianBelief
 from torchmm.filters.base import Filter, StepOutput
-from torchmm.linalg import condition
+from torchmm.linalg import condition, flag_failed
 from torchmm.models.base import MeasurementModel, MotionModel, check_model_pair
 from torchmm.models.linear import LinearMeasurement, LinearMotion
 from torchmm.validation import check_measurement, gaussian_batch
+from torchmm.contract import Flag, Of, entry_point
 
 __all__ = ["ExtendedKalmanFilter", "KalmanFilter"]
 
@@ -40,7 +41,10 @@ class ExtendedKalmanFilter(Filter):
         ``u``: ``(*B, k)``. Model parameter batches broadcast with ``*B`` (mode banks: ``*B``
         ends with the mode axis). ``extras["singular"]`` ``(*B,)`` bool: the innovation
         covariance was not numerically positive definite and was regularised (see
-        :func:`~torchmm.linalg.cholesky`).
+        :func:`~torchmm.linalg.cholesky`); ``extras["failed"]`` ``(*B,)`` bool: a datum was present but
+        the update was not finite (a NaN prediction or innovation covariance, e.g. a model whose
+        parameters went NaN): the log-likelihood is NaN there, where missing data would give 0
+        (:func:`~torchmm.linalg.flag_failed`, docs/robustness.md).
 
     Examples:
         >>> from torchmm.models import ConstantVelocity, PositionMeasurement
@@ -51,6 +55,7 @@ class ExtendedKalmanFilter(Filter):
         (torch.Size([5, 2]), torch.Size([5]))
     """
 
+    @entry_point(motion=Of(MotionModel), measurement=Of(MeasurementModel), joseph=Flag())
     def __init__(self, motion: MotionModel, measurement: MeasurementModel, *, joseph: bool = False):
         super().__init__()
         check_model_pair(motion, measurement)
@@ -85,12 +90,13 @@ class ExtendedKalmanFilter(Filter):
         cross_cov = belief.cov @ H.mT  # C = P- H'
         # S = H P- H' + R, written (P- H')' H' so that an unbatched H folds into one matmul
         innovation_cov = (cross_cov.mT @ H.mT if H.dim() == 2 else H @ cross_cov) + R
+        observed = torch.isfinite(z)  # missing = non-finite *data*; a non-finite prediction fails the run
         mean, cov, log_likelihood, singular = condition(
             belief.mean, belief.cov, innovation, innovation_cov, cross_cov,
-            joseph=(H, R) if self.joseph else None, with_flag=True,
+            joseph=(H, R) if self.joseph else None, with_flag=True, observed=observed,
         )
         return StepOutput(GaussianBelief(mean, cov), belief, log_likelihood, innovation, innovation_cov,
-                          {"singular": singular})
+                          {"singular": singular, "failed": flag_failed(log_likelihood)})
 
 
 class KalmanFilter(ExtendedKalmanFilter):
@@ -101,6 +107,7 @@ class KalmanFilter(ExtendedKalmanFilter):
     :meth:`stack`.
     """
 
+    @entry_point(motion=Of(MotionModel), measurement=Of(MeasurementModel), joseph=Flag())
     def __init__(self, motion: LinearMotion, measurement: LinearMeasurement, *, joseph: bool = False):
         if not isinstance(motion, LinearMotion):
             raise ValueError(

@@ -38,6 +38,7 @@ from torchmm.filters.resampling import (
     resample,
     resample_where_needed,
 )
+from torchmm.contract import BeliefArg, Choice, DType, Flag, Gen, Int, Of, Real, entry_point
 from torchmm.linalg import any_observed, cholesky
 from torchmm.models.base import MeasurementModel, MotionModel, check_model_pair
 from torchmm.models.linear import LinearMeasurement, LinearMotion
@@ -370,6 +371,14 @@ def particle_batch(belief, state_dim: int, name: str = "belief") -> torch.Size:
     return belief.log_weights.shape[:-1]
 
 
+def particle_failure(loglik: Tensor, present: Tensor) -> Tensor:
+    """``(*B,)`` True where the datum is present but a particle's likelihood ``loglik (*B, Np)`` is
+    NaN: non-finite particles after propagation (a model that went NaN), not missing data. The
+    update's log-likelihood is NaN there (``extras["failed"]``, docs/robustness.md); the weights
+    drop those particles as before. No host read."""
+    return torch.isnan(loglik).any(-1) & present
+
+
 def degenerate_guard(log_evidence: Tensor) -> Tensor:
     """``(*B,)`` True where every particle weight vanished (the evidence is not finite): the update
     keeps the prior weights there (``extras["degenerate"]``). No host read in the step:
@@ -412,7 +421,8 @@ class ParticleFilter(Filter):
         belief: :class:`ParticleBelief`, particles ``(*B, Np, n)``, log_weights ``(*B, Np)``;
         z: ``(*B, m)`` (NaN = missing); the step's ``log_likelihood`` is ``(*B,)``, ``innovation``
         ``(*B, m)``, ``innovation_cov`` ``(*B, m, m)``; ``extras``: ``"ess"`` (before resampling),
-        ``"resampled"`` and ``"degenerate"`` ``(*B,)``.
+        ``"resampled"``, ``"degenerate"`` and ``"failed"`` ``(*B,)`` (a present datum and NaN particle
+        likelihoods - non-finite particles -: the log-likelihood is NaN).
 
     Examples:
         >>> from torchmm.models import ConstantVelocity, PositionMeasurement
@@ -424,6 +434,9 @@ class ParticleFilter(Filter):
         (torch.Size([4, 500, 2]), torch.Size([4]))
     """
 
+    @entry_point(motion=Of(MotionModel), measurement=Of(MeasurementModel), resampling=Choice(*sorted(RESAMPLING_SCHEMES)),
+                 ess_threshold=Real(minimum=0.0), num_particles=Int(1, optional=True), generator=Gen(),
+                 state_dependent_noise=Flag(), noise_dtype=DType(strings=True))
     def __init__(self, motion: MotionModel, measurement: MeasurementModel, *, resampling: str = "systematic",
                  ess_threshold: float = 0.5, num_particles: int | None = None,
                  generator: torch.Generator | None = None, state_dependent_noise: bool = False,
@@ -451,6 +464,7 @@ class ParticleFilter(Filter):
 
     uses_generator = True
 
+    @entry_point(belief=BeliefArg(), num_particles=Int(1, optional=True), generator=Gen())
     def initial_belief(self, belief: GaussianBelief, num_particles: int | None = None, *,
                        generator: torch.Generator | None = None) -> ParticleBelief:
         """Sample a particle belief from a Gaussian prior (uniform weights).
@@ -492,12 +506,17 @@ class ParticleFilter(Filter):
         prior_log_w = normalize_log_probs(belief.log_weights)
         loglik, predicted = particle_log_likelihood(self.measurement, z, belief.particles,
                                                      self.state_dependent_noise)
+        present = any_observed(z)
+        # a NaN particle likelihood for a present datum: the particles (the model) went non-finite
+        failed = particle_failure(loglik, present)
         loglik = torch.where(torch.isnan(loglik), -math.inf, loglik)
         joint = prior_log_w + loglik
         log_evidence = torch.logsumexp(joint, dim=-1)
-        log_evidence = torch.where(any_observed(z), log_evidence, 0.0)  # exactly 0 without a datum
+        log_evidence = torch.where(present, log_evidence, 0.0)  # exactly 0 without a datum
         degenerate = degenerate_guard(log_evidence)
         post_log_w = torch.where(degenerate.unsqueeze(-1), prior_log_w, joint - log_evidence.unsqueeze(-1))
+        log_evidence = torch.where(failed, math.nan, log_evidence)
+        degenerate = degenerate & ~failed
         posterior = ParticleBelief(belief.particles, post_log_w)
         posterior, resampled, ess = resample_where_needed(posterior, self.ess_threshold, self.resampling,
                                                           generator=self._generator(generator))
@@ -509,7 +528,7 @@ class ParticleFilter(Filter):
             log_likelihood=log_evidence,
             innovation=innovation,
             innovation_cov=innovation_cov,
-            extras={"ess": ess, "resampled": resampled, "degenerate": degenerate},
+            extras={"ess": ess, "resampled": resampled, "degenerate": degenerate, "failed": failed},
         )
 
 

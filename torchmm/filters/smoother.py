@@ -17,10 +17,14 @@ from torch import Tensor
 from torchmm.beliefs import GaussianBelief, symmetrize
 from torchmm.linalg import cholesky, cholesky_solve
 from torchmm.models.base import MotionModel
+from torchmm.contract import BeliefArg, Finite, Of, entry_point
+from torchmm.validation import as_tensor, check_filter_dtype, check_same_dtype
 
 __all__ = ["rts_smoother", "rts_step"]
 
 
+@entry_point(motion=Of(MotionModel), filtered=BeliefArg(validate=True), predicted=BeliefArg(validate=True),
+             controls=Finite(optional=True, check=False))
 def rts_smoother(
     motion: MotionModel,
     filtered: GaussianBelief,
@@ -42,6 +46,10 @@ def rts_smoother(
     Shapes:
         filtered, predicted: batch ``(T, *B)`` -> batch ``(T, *B)``
     """
+    check_filter_dtype(motion, filtered, "filtered")
+    check_same_dtype(predicted.mean, "predicted", filtered.mean, "filtered")
+    if controls is not None:
+        controls = as_tensor(controls, "controls", dtype=filtered.dtype, device=filtered.device)
     if filtered.batch_shape != predicted.batch_shape:
         raise ValueError(
             f"predicted: batch shape {tuple(predicted.batch_shape)} differs from filtered "

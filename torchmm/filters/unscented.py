@@ -20,9 +20,10 @@ from torch import Tensor
 
 from torchmm.beliefs import GaussianBelief, psd_sqrt, symmetrize
 from torchmm.filters.base import Filter, StepOutput
-from torchmm.linalg import any_observed, check_joseph, condition, use_joseph
+from torchmm.linalg import check_joseph, condition, flag_failed, use_joseph
 from torchmm.models.base import MeasurementModel, MotionModel, check_model_pair
 from torchmm.validation import as_float, broadcast_shape, check_measurement, gaussian_batch
+from torchmm.contract import Flag, Of, Real, entry_point
 
 __all__ = [
     "CubatureSigmaPoints",
@@ -74,6 +75,7 @@ class SigmaPointStrategy:
 class MerweScaledSigmaPoints(SigmaPointStrategy):
     """Van der Merwe's scaled sigma points (``lambda = alpha^2 (n + kappa) - n``)."""
 
+    @entry_point(alpha=Real(positive=True), beta=Real(), kappa=Real())
     def __init__(self, alpha: float = 1.0, beta: float = 2.0, kappa: float = 0.0):
         self.alpha = as_float(alpha, "alpha", positive=True)
         self.beta = as_float(beta, "beta")
@@ -102,6 +104,7 @@ class MerweScaledSigmaPoints(SigmaPointStrategy):
 class JulierSigmaPoints(SigmaPointStrategy):
     """Julier's original sigma points with weight ``kappa / (n + kappa)`` at the centre."""
 
+    @entry_point(kappa=Real())
     def __init__(self, kappa: float = 0.0):
         self.kappa = as_float(kappa, "kappa")
 
@@ -161,9 +164,12 @@ class UnscentedKalmanFilter(Filter):
             below, ``P - K S K^T`` in float64.
 
     Shapes:
-        as :class:`~torchmm.filters.ExtendedKalmanFilter` (``extras["singular"]`` likewise).
+        as :class:`~torchmm.filters.ExtendedKalmanFilter` (``extras["singular"]`` and
+        ``extras["failed"]`` likewise).
     """
 
+    @entry_point(motion=Of(MotionModel), measurement=Of(MeasurementModel),
+                 sigma_points=Of(SigmaPointStrategy, optional=True), joseph=Flag(optional=True))
     def __init__(self, motion: MotionModel, measurement: MeasurementModel,
                  sigma_points: SigmaPointStrategy | None = None, *, joseph: bool | None = None):
         super().__init__()
@@ -219,11 +225,12 @@ class UnscentedKalmanFilter(Filter):
             return spread + gain @ R @ gain.mT
 
         psd_form = use_joseph(self.joseph, belief.dtype)
+        observed = torch.isfinite(z)  # missing = non-finite *data*; a non-finite prediction fails the run
         mean, cov, log_likelihood, singular = condition(
             belief.mean, belief.cov, innovation, symmetrize(innovation_cov), cross_cov,
-            posterior_cov=joseph if psd_form else None, with_flag=True,
+            posterior_cov=joseph if psd_form else None, with_flag=True, observed=observed,
         )
         if psd_form:  # no datum at all: exactly the prior (the sigma-point sum reproduces P to rounding)
-            cov = torch.where(any_observed(innovation)[..., None, None], cov, belief.cov)
+            cov = torch.where(observed.any(-1)[..., None, None], cov, belief.cov)
         return StepOutput(GaussianBelief(mean, cov), belief, log_likelihood, innovation, innovation_cov,
-                          {"singular": singular})
+                          {"singular": singular, "failed": flag_failed(log_likelihood)})

@@ -41,12 +41,14 @@ import math
 import torch
 from torch import Tensor
 
+from torchmm.contract import Choice, Finite, Flag, Int, Of, Real, entry_point
 from torchmm.beliefs import GaussianBelief
 from torchmm.beliefs.ops import symmetrize
 from torchmm.distributions import truncated_normal_entropy, truncated_normal_moments
 from torchmm.filters.base import Filter, StepOutput
 from torchmm.filters.kalman import KalmanFilter
-from torchmm.linalg import check_joseph, cholesky, cholesky_solve, condition, use_joseph
+from torchmm.linalg import check_joseph, cholesky, cholesky_solve, condition, flag_failed, use_joseph
+from torchmm.models.base import MeasurementModel, MotionModel
 from torchmm.models.linear import LinearMeasurement, LinearMotion, matvec
 from torchmm.validation import (
     as_float,
@@ -181,9 +183,13 @@ def fill_missing(z: Tensor, z_pred: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def keep_prior_where_missing(missing: Tensor, prior: GaussianBelief, mean: Tensor, cov: Tensor, loglik: Tensor):
+    """The prior and log-likelihood 0 where the datum is skipped; where it is present and the update
+    is not finite (a NaN prediction: not missing data) the log-likelihood is NaN and the run is
+    flagged: ``(mean, cov, loglik, failed)`` (:func:`~torchmm.linalg.flag_failed`)."""
     mean = torch.where(missing.unsqueeze(-1), prior.mean, mean)
     cov = torch.where(missing[..., None, None], prior.cov, cov)
-    return mean, cov, torch.where(missing, torch.zeros_like(loglik), loglik)
+    loglik = torch.where(missing, torch.zeros_like(loglik), loglik)
+    return mean, cov, loglik, flag_failed(loglik)
 
 
 class _LinearVBFilter(Filter):
@@ -260,6 +266,8 @@ class StudentTVBFilter(_LinearVBFilter):
         (torch.Size([3, 2]), torch.Size([3, 10]))
     """
 
+    @entry_point(motion=Of(MotionModel), measurement=Of(MeasurementModel), df=Real(positive=True),
+                 iterations=Int(1), elbo_history=Flag(), joseph=Flag(optional=True))
     def __init__(self, motion, measurement, df: float = 5.0, iterations: int = 10,
                  elbo_history: bool = False, joseph: bool | None = None):
         super().__init__(motion, measurement, iterations, joseph)
@@ -277,6 +285,7 @@ class StudentTVBFilter(_LinearVBFilter):
         m, n = R.shape[-1], belief.mean.shape[-1]
         z_pred = matvec(H, belief.mean)
         missing, z = fill_missing(z, z_pred)
+        observed = ~missing.unsqueeze(-1)  # from the data: a NaN prediction is a failure, not missing
         innovation = z - z_pred
         cross = belief.cov @ H.mT
         HPH = H @ cross
@@ -293,7 +302,8 @@ class StudentTVBFilter(_LinearVBFilter):
         for it in range(self.iterations):
             R_eff = R / Eu[..., None, None]
             mean, cov, _, flag = condition(belief.mean, belief.cov, innovation, HPH + R_eff, cross,
-                                           joseph=(H, R_eff) if joseph else None, with_flag=True)
+                                           joseph=(H, R_eff) if joseph else None, with_flag=True,
+                                           observed=observed)
             singular = singular | flag
             resid = z - matvec(H, mean)
             quad = cholesky_solve(L_R, resid.unsqueeze(-1)).squeeze(-1).mul(resid).sum(-1)
@@ -309,7 +319,8 @@ class StudentTVBFilter(_LinearVBFilter):
             if log.isEnabledFor(logging.DEBUG):  # (a host read: only when asked for)
                 log.debug("StudentTVBFilter ELBO per iteration (mean over batch): %s",
                           extras["elbo"].detach().flatten(0, -2).mean(0).tolist())
-        mean, cov, loglik = keep_prior_where_missing(missing, belief, mean, cov, elbos[-1])
+        mean, cov, loglik, failed = keep_prior_where_missing(missing, belief, mean, cov, elbos[-1])
+        extras["failed"] = failed
         return StepOutput(GaussianBelief(mean, cov), belief, loglik, innovation, HPH + extras["noise_cov"],
                           extras=extras)
 
@@ -382,6 +393,9 @@ class SkewTIWVBFilter(_LinearVBFilter):
         (torch.Size([5, 4]), torch.Size([5, 10]))
     """
 
+    @entry_point(motion=Of(MotionModel), measurement=Of(MeasurementModel), skewness=Finite(check=False),
+                 df=Finite(check=False), tau=Real(positive=True), iterations=Int(1),
+                 gamma_shape=Choice("derived", "printed"), elbo_history=Flag(), joseph=Flag(optional=True))
     def __init__(self, motion, measurement, skewness=0.0, df=5.0, tau: float = 3.0, iterations: int = 10,
                  gamma_shape: str = "derived", elbo_history: bool = False, joseph: bool | None = None):
         super().__init__(motion, measurement, iterations, joseph)
@@ -414,6 +428,7 @@ class SkewTIWVBFilter(_LinearVBFilter):
         x_pred, P_nom = belief.mean, belief.cov
         z_pred = matvec(H, x_pred)
         missing, z = fill_missing(z, z_pred)
+        observed = ~missing.unsqueeze(-1)  # from the data: a NaN prediction is a failure, not missing
         T_prior = tau * P_nom
         t_q = n + 1 + tau + 1  # (27): t = t^ + 1 (never accumulated)
         shape_a = 0.5 * nu + (1.0 if self.gamma_shape == "derived" else 0.0)
@@ -434,7 +449,8 @@ class SkewTIWVBFilter(_LinearVBFilter):
             cross = P_hat @ H.mT
             R_eff = torch.diag_embed(r / lam)
             mean, cov, _, flag = condition(x_pred, P_hat, z - z_pred - delta * Eu, H @ cross + R_eff, cross,
-                                           joseph=(H, R_eff) if joseph else None, with_flag=True)  # (29)-(31)
+                                           joseph=(H, R_eff) if joseph else None, with_flag=True,
+                                           observed=observed)  # (29)-(31)
             singular = singular | flag
             resid = z - matvec(H, mean)
             u_loc = gain_u * resid  # (32)
@@ -455,7 +471,8 @@ class SkewTIWVBFilter(_LinearVBFilter):
             if log.isEnabledFor(logging.DEBUG):  # (a host read: only when asked for)
                 log.debug("SkewTIWVBFilter ELBO per iteration (mean over batch): %s",
                           extras["elbo"].detach().flatten(0, -2).mean(0).tolist())
-        mean, cov, loglik = keep_prior_where_missing(missing, belief, mean, cov, elbos[-1])
+        mean, cov, loglik, failed = keep_prior_where_missing(missing, belief, mean, cov, elbos[-1])
+        extras["failed"] = failed
         return StepOutput(GaussianBelief(mean, cov), belief, loglik, z - z_pred,
                           H @ P_hat @ H.mT + extras["noise_cov"], extras=extras)
 
@@ -521,6 +538,8 @@ class SkewTVBFilter(_LinearVBFilter):
         torch.Size([5, 4])
     """
 
+    @entry_point(motion=Of(MotionModel), measurement=Of(MeasurementModel), skewness=Finite(check=False),
+                 df=Finite(check=False), iterations=Int(1), joseph=Flag(optional=True))
     def __init__(self, motion, measurement, skewness=0.0, df=5.0, iterations: int = 10,
                  joseph: bool | None = None):
         super().__init__(motion, measurement, iterations, joseph)
@@ -547,6 +566,7 @@ class SkewTVBFilter(_LinearVBFilter):
         batch = broadcast_shape(x_pred.shape[:-1], z.shape[:-1])
         z_pred = matvec(H, x_pred)
         missing, z = fill_missing(z, z_pred)
+        observed = ~missing.unsqueeze(-1)  # from the data: a NaN prediction is a failure, not missing
         Hb = H.expand(*batch, m, n)
         A = torch.cat([Hb, torch.diag_embed(delta).expand(*batch, m, m)], -1)  # [H Delta], (*B, m, n+m)
         u_prior = torch.zeros(*batch, m, dtype=z.dtype, device=z.device)
@@ -563,7 +583,8 @@ class SkewTVBFilter(_LinearVBFilter):
             cross = Sigma_prior @ A.mT
             R_eff = torch.diag_embed(r / lam)
             xi, Sigma, loglik, flag = condition(xi_prior, Sigma_prior, z - z_pred, A @ cross + R_eff, cross,
-                                                joseph=(A, R_eff) if joseph else None, with_flag=True)
+                                                joseph=(A, R_eff) if joseph else None, with_flag=True,
+                                                observed=observed)
             singular = singular | flag
             for i in range(m):  # sequential truncation u_i >= 0 (a loop over measurement coordinates)
                 j = n + i
@@ -585,13 +606,13 @@ class SkewTVBFilter(_LinearVBFilter):
             Eu2 = Sigma[..., n:, n:].diagonal(dim1=-2, dim2=-1) + xi[..., n:].square()
             lam = (0.5 * nu + 1.0) / (0.5 * nu + 0.5 * (Er / r + Eu2))
         mean, cov = xi[..., :n], symmetrize(Sigma[..., :n, :n])
-        mean, cov, loglik = keep_prior_where_missing(missing, belief, mean, cov, loglik)
+        mean, cov, loglik, failed = keep_prior_where_missing(missing, belief, mean, cov, loglik)
         noise_var = (r + delta.square() * (1 - 2 / math.pi)) / lam
         return StepOutput(
             GaussianBelief(mean, cov), belief, loglik, z - z_pred,
             H @ P_pred @ H.mT + torch.diag_embed(noise_var),
             extras={"noise_cov": torch.diag_embed(noise_var), "predicted_cov": P_pred.expand(*batch, n, n),
-                    "precision": lam, "skew": xi[..., n:], "singular": singular},
+                    "precision": lam, "skew": xi[..., n:], "singular": singular, "failed": failed},
         )
 
 

@@ -17,8 +17,18 @@ from torchmm.beliefs import AdaptiveGaussianBelief, GaussianBelief
 from torchmm.filters.base import Filter, StepOutput
 from torchmm.filters.variational import check_iterations, check_linear_models, fill_missing, keep_prior_where_missing
 from torchmm.linalg import check_joseph, condition, symmetrize, use_joseph
+from torchmm.models.base import MeasurementModel, MotionModel
 from torchmm.models.linear import LinearMeasurement, LinearMotion, matvec
-from torchmm.validation import as_float, as_tensor, check_covariance, check_measurement, check_shape, gaussian_batch
+from torchmm.validation import (
+    as_float,
+    as_tensor,
+    check_covariance,
+    check_filter_dtype,
+    check_measurement,
+    check_shape,
+    gaussian_batch,
+)
+from torchmm.contract import BeliefArg, Cov, Flag, Int, Of, Real, entry_point
 
 __all__ = ["VBAKFPR"]
 
@@ -63,6 +73,9 @@ class VBAKFPR(Filter):
         torch.Size([6, 2, 2])
     """
 
+    @entry_point(motion=Of(MotionModel), measurement=Of(MeasurementModel), tau=Real(positive=True),
+                 rho=Real(positive=True, maximum=1.0), iterations=Int(1), tau_r=Real(positive=True),
+                 joseph=Flag(optional=True))
     def __init__(self, motion, measurement, tau: float = 3.0, rho: float = 1 - math.exp(-4),
                  iterations: int = 10, tau_r: float = 3.0, joseph: bool | None = None):
         super().__init__()
@@ -80,6 +93,7 @@ class VBAKFPR(Filter):
             raise ValueError(f"{name}: VBAKFPR needs a {expected.__name__}, got {type(module).__name__}")
         return super()._with_module(slot, module, name)
 
+    @entry_point(belief=BeliefArg(), R0=Cov(optional=True, check=False))
     def initial_belief(self, belief: GaussianBelief, R0: Tensor | None = None) -> AdaptiveGaussianBelief:
         """``u_0 = m + 1 + tau_R``, ``U_0 = tau_R R~_0`` (so ``E[R_0] = R~_0``; default the model's R).
 
@@ -87,6 +101,7 @@ class VBAKFPR(Filter):
             belief batch ``(*B,)``; R0 ``(m, m)`` or ``(*B, m, m)`` -> batch ``(*B,)``
         """
         belief.validate("belief")
+        check_filter_dtype(self, belief, "belief")
         m = self.measurement.meas_dim
         if R0 is None:
             R0 = self.measurement.R
@@ -122,6 +137,7 @@ class VBAKFPR(Filter):
         x_pred, P_nom = belief.mean, belief.cov
         z_pred = matvec(H, x_pred)
         missing, z = fill_missing(z, z_pred)
+        observed = ~missing.unsqueeze(-1)  # from the data: a NaN prediction is a failure, not missing
         innovation = z - z_pred
         T_prior, t_q = self.tau * P_nom, n + self.tau + 1 + 1
         u_q = belief.r_dof + 1
@@ -139,15 +155,16 @@ class VBAKFPR(Filter):
             cross = P_hat @ H.mT
             S = H @ cross + R_hat
             mean, cov, loglik, flag = condition(x_pred, P_hat, innovation, S, cross,
-                                                joseph=(H, R_hat) if joseph else None, with_flag=True)
+                                                joseph=(H, R_hat) if joseph else None, with_flag=True,
+                                                observed=observed)
             singular = singular | flag
         keep = missing
-        mean, cov, loglik = keep_prior_where_missing(keep, belief.estimate(), mean, cov, loglik)
+        mean, cov, loglik, failed = keep_prior_where_missing(keep, belief.estimate(), mean, cov, loglik)
         dof = torch.where(keep, belief.r_dof, u_q)
         U = torch.where(keep[..., None, None], belief.r_scale, U)
         return StepOutput(
             AdaptiveGaussianBelief(mean, cov, dof, U), belief, loglik, innovation, S,
-            extras={"predicted_cov": P_hat, "noise_cov": R_hat, "singular": singular},
+            extras={"predicted_cov": P_hat, "noise_cov": R_hat, "singular": singular, "failed": failed},
         )
 
 

@@ -26,9 +26,11 @@ import torch
 from torch import Tensor
 
 from torchmm.beliefs.ops import symmetrize
+from torchmm.contract import Cov, Finite, Int, Values, entry_point
 from torchmm.linalg import solve_right
 from torchmm.fusion.local import check_measurements
-from torchmm.fusion.system import MultiSensorSystem, measurement_sequence
+from torchmm.fusion.system import SYSTEM_ARG, MultiSensorSystem, measurement_sequence
+from torchmm.validation import as_tensor
 
 __all__ = [
     "CorrelatedKFResult",
@@ -60,6 +62,8 @@ class CorrelatedKFResult:
     gain: Tensor
 
 
+@entry_point(Phi=Finite(square=True), G=Finite(), Q=Cov(), S=Finite(), Qv=Cov(), H=Finite(), x0=Finite(), P0=Cov(),
+             y=Finite())
 def correlated_kf(Phi, G, Q, S, Qv, H, x0, P0, y) -> CorrelatedKFResult:
     r"""Kalman filter (filter form) for ``x(t+1) = Phi x + G w``, ``y = H x + v``, ``E[w v^T] = S``.
 
@@ -71,7 +75,47 @@ def correlated_kf(Phi, G, Q, S, Qv, H, x0, P0, y) -> CorrelatedKFResult:
         Phi: ``(*S, d, d)``; G: ``(*S, d, q)``; Q: ``(T, *S, q, q)``; S: ``(T, *S, q, m)``;
         Qv: ``(T, *S, m, m)``; H: ``(T, *S, m, d)``; x0: ``(*S, d)``; P0: ``(*S, d, d)``;
         y: ``(T, *B, *S, m)``
+
+    Raises:
+        TypeError / ValueError: naming the argument that is not finite (``Q``, ``Qv``, ``P0``: not
+        symmetric PSD), not of ``Phi``'s dtype, or whose shape does not fit the others'.
     """
+    return _correlated_kf(*_kf_inputs(Phi=Phi, G=G, Q=Q, S=S, Qv=Qv, H=H, x0=x0, P0=P0, y=y))
+
+
+def _kf_inputs(**named) -> list[Tensor]:
+    """:func:`correlated_kf`'s arguments as tensors of ``Phi``'s dtype whose shapes fit (no value read:
+    the kinds checked the values)."""
+    out = {}
+    for name, value in named.items():
+        tensor = value if isinstance(value, Tensor) else as_tensor(value, name)
+        if out and tensor.dtype != out["Phi"].dtype:
+            raise TypeError(f"{name}: dtype {tensor.dtype} differs from Phi's {out['Phi'].dtype}")
+        out[name] = tensor
+    Phi, G, Q, S, Qv, H, x0, P0, y = out.values()
+    d = Phi.shape[-1]
+
+    def need(name, tensor, lead, trailing, text):
+        if tensor.dim() < lead + len(trailing) or any(want is not None and got != want for got, want in
+                                                     zip(tensor.shape[tensor.dim() - len(trailing):], trailing)) \
+                or (lead and tensor.shape[0] != y.shape[0]):
+            raise ValueError(f"{name}: expected shape {text}, got {tuple(tensor.shape)}")
+
+    if y.dim() < 2 or y.shape[0] < 1:
+        raise ValueError(f"y: expected shape (T, *B, *S, m) with T >= 1, got {tuple(y.shape)}")
+    T, m = y.shape[0], y.shape[-1]
+    need("G", G, 0, (d, None), f"(*S, {d}, q)")
+    q = G.shape[-1]
+    need("Q", Q, 1, (q, q), f"({T}, *S, {q}, {q})")
+    need("S", S, 1, (q, m), f"({T}, *S, {q}, {m})")
+    need("Qv", Qv, 1, (m, m), f"({T}, *S, {m}, {m})")
+    need("H", H, 1, (m, d), f"({T}, *S, {m}, {d})")
+    need("x0", x0, 0, (d,), f"(*S, {d})")
+    need("P0", P0, 0, (d, d), f"(*S, {d}, {d})")
+    return [Phi, G, Q, S, Qv, H, x0, P0, y]
+
+
+def _correlated_kf(Phi, G, Q, S, Qv, H, x0, P0, y) -> CorrelatedKFResult:
     T = y.shape[0]
     x = x0.expand(*y.shape[1:-1], x0.shape[-1])
     P = P0
@@ -154,6 +198,7 @@ def augmented_system(system: MultiSensorSystem, steps: int, present: Tensor | No
     return Phi, G, Q, S, Qv, H, x0, P0
 
 
+@entry_point(system=SYSTEM_ARG, y=Values(), N=Int())
 def augmented_local_estimates(system: MultiSensorSystem, y: Tensor, N: int = 0):
     r"""Local N-step estimates of ``x`` from the augmented system (12)-(15), all sensors batched.
 
@@ -165,7 +210,7 @@ def augmented_local_estimates(system: MultiSensorSystem, y: Tensor, N: int = 0):
         y = torch.where(torch.isnan(y), torch.zeros_like(y), y)
     n = system.state_dim
     Phi, G, Q, S, Qv, H, x0, P0 = augmented_system(system, y.shape[0], present)
-    res = correlated_kf(Phi, G, Q, S, Qv, H, x0, P0, y)
+    res = _correlated_kf(Phi, G, Q, S, Qv, H, x0, P0, y)
     mean, cov = correlated_kf_estimates(res, Phi, G, Q, H, x0, P0, N)
     return mean[..., :n], cov[..., :n, :n]
 
@@ -191,6 +236,7 @@ def centralized_system(system: MultiSensorSystem, steps: int, present: Tensor | 
     return Phi, G, Q, S, Qv, H, x0, P0
 
 
+@entry_point(system=SYSTEM_ARG, y=Values(), N=Int())
 def centralized_estimates(system: MultiSensorSystem, y: Tensor, N: int = 0):
     r"""Centralized fusion (Remark 10): the LMMSE estimate of ``x(t)`` from all sensors' data.
 
@@ -202,11 +248,12 @@ def centralized_estimates(system: MultiSensorSystem, y: Tensor, N: int = 0):
         y = torch.where(torch.isnan(y), torch.zeros_like(y), y)
     n = system.state_dim
     Phi, G, Q, S, Qv, H, x0, P0 = centralized_system(system, y.shape[0], present)
-    res = correlated_kf(Phi, G, Q, S, Qv, H, x0, P0, y.flatten(-2))
+    res = _correlated_kf(Phi, G, Q, S, Qv, H, x0, P0, y.flatten(-2))
     mean, cov = correlated_kf_estimates(res, Phi, G, Q, H, x0, P0, N)
     return mean[..., :n], cov[..., :n, :n]
 
 
+@entry_point(system=SYSTEM_ARG, steps=Int(1))
 def augmented_cross_predictor(system: MultiSensorSystem, steps: int) -> Tensor:
     r"""Cross-covariances of the augmented one-step errors from the error equation (49):
 
@@ -222,7 +269,7 @@ def augmented_cross_predictor(system: MultiSensorSystem, steps: int) -> Tensor:
     L, n, m = system.num_sensors, system.state_dim, system.meas_dim
     Phi, G, Q, S, Qv, H, x0, P0 = augmented_system(system, steps)
     dummy = torch.zeros(steps, L, m, dtype=Phi.dtype, device=Phi.device)
-    res = correlated_kf(Phi, G, Q, S, Qv, H, x0, P0, dummy)
+    res = _correlated_kf(Phi, G, Q, S, Qv, H, x0, P0, dummy)
     Psi = Phi - res.gain @ H  # (T, L, 2n, 2n)
     Gi, Gj = G[:, None], G[None]
     Xi0 = system.P0 + torch.outer(system.mu0, system.mu0)

@@ -34,8 +34,10 @@ import torch
 from torch import Tensor
 
 from torchmm.beliefs.ops import symmetrize
+from torchmm.contract import Flag, Int, Mask, Of, Values, entry_point
 from torchmm.linalg import solve_right
 from torchmm.fusion.system import (
+    SYSTEM_ARG,
     MeasurementSequence,
     MultiSensorSystem,
     measurement_pattern,
@@ -102,6 +104,9 @@ class LocalStats:
         return LocalStats(*(getattr(self, f)[k] for f in names), meas=self.meas)
 
 
+_STATS = Of(LocalStats, what="LocalStats (local_predictor_stats)")
+
+
 def local_gains(system: MultiSensorSystem, meas_t, Px, Pr, Pxr):
     """Innovation covariance (17) and gains (20), (21) with ``meas_t = (C, C~, R, Q^v)`` of one step."""
     C, Ct, R, Qv = meas_t
@@ -123,6 +128,7 @@ def _local_riccati(system: MultiSensorSystem, Px, Pr, Pxr, Qeps, Lx, Lr, Qxi):
     return Px1, Pr1, Pxr1
 
 
+@entry_point(system=SYSTEM_ARG, steps=Int(1), present=Mask(optional=True))
 def local_predictor_stats(system: MultiSensorSystem, steps: int, present: Tensor | None = None) -> LocalStats:
     r"""Theorem 1: gains and one-step prediction covariances of every sensor, ``t = 0..T-1``.
 
@@ -147,6 +153,7 @@ def local_predictor_stats(system: MultiSensorSystem, steps: int, present: Tensor
     return LocalStats(**{k: torch.stack(v) for k, v in out.items()}, aux_noise_cov=Qxi, meas=meas)
 
 
+@entry_point(system=SYSTEM_ARG, stats=_STATS, y=Values())
 def local_one_step(system: MultiSensorSystem, stats: LocalStats, y: Tensor):
     r"""(16), (18), (19): one-step predictors of ``x`` and ``x^r_i`` and the innovations.
 
@@ -207,6 +214,7 @@ def _pred_shift(mean: Tensor | None, cov: Tensor, k: int, system: MultiSensorSys
     return mean, cov
 
 
+@entry_point(system=SYSTEM_ARG, y=Values(), N=Int(), stats=Of(LocalStats, optional=True, what="LocalStats or None"))
 def local_estimates(system: MultiSensorSystem, y: Tensor, N: int = 0, stats: LocalStats | None = None):
     r"""Local N-step estimates of every sensor: predictor (N < 0, Thm 2), filter (N = 0) and
     smoother (N > 0, Thm 3), with their error covariances.
@@ -238,6 +246,7 @@ def local_estimates(system: MultiSensorSystem, y: Tensor, N: int = 0, stats: Loc
     return local_from_pred(system, stats, x_pred, eps, N)
 
 
+@entry_point(system=SYSTEM_ARG, stats=_STATS, N=Int(), steps=Int(1, optional=True))
 def local_covariances(system: MultiSensorSystem, stats: LocalStats, N: int,
                       steps: int | None = None) -> Tensor:
     """Error covariances ``P_i(t|t+N)`` only (no data). Shapes: -> ``(T, L, n, n)``."""
@@ -316,6 +325,9 @@ class CrossStats:
         return torch.cat([top, bottom], dim=-2)
 
 
+_CROSS = Of(CrossStats, what="CrossStats (cross_predictor_stats)")
+
+
 def _tr(x: Tensor) -> Tensor:
     """Swap the pair axes ``(.., i, j, a, b) -> (.., j, i, b, a)``: ``X_ji^T``."""
     return x.transpose(-4, -3).mT
@@ -352,6 +364,7 @@ def cross_step(system, meas_t, P, Pr, Pxr, Lx, Lr, Qxi):
     return P1, Pr1, Pxr1, Qeps
 
 
+@entry_point(system=SYSTEM_ARG, stats=_STATS, steps=Int(1, optional=True))
 def cross_predictor_stats(system: MultiSensorSystem, stats: LocalStats,
                           steps: int | None = None) -> CrossStats:
     r"""Theorem 4: one-step prediction error cross-covariances of all sensor pairs.
@@ -391,6 +404,7 @@ def _augmented_blocks(system, stats: LocalStats):
     return Cbar, Lbar, Phibar - Lbar @ Cbar
 
 
+@entry_point(system=SYSTEM_ARG, stats=_STATS, cross=_CROSS, N=Int(), steps=Int(1, optional=True))
 def cross_covariances(system: MultiSensorSystem, stats: LocalStats, cross: CrossStats, N: int,
                       steps: int | None = None) -> Tensor:
     r"""Cross-covariances ``P_ij(t|t+N)`` of all sensor pairs' estimation errors (Thms 4-6).
@@ -462,6 +476,7 @@ def symmetrize_pairs(P: Tensor) -> Tensor:
     return 0.5 * (P + _tr(P))
 
 
+@entry_point(system=SYSTEM_ARG, stats=_STATS, cross=_CROSS, N=Int(0), xi_term=Flag())
 def theorem6_cross_covariances(system: MultiSensorSystem, stats: LocalStats, cross: CrossStats, N: int,
                                xi_term: bool = True) -> Tensor:
     r"""Theorem 6: the closed sums (39)-(43) for the filter/smoother cross-covariances.

@@ -22,6 +22,7 @@ import torch
 from torch import Tensor
 
 from torchmm.beliefs.ops import symmetrize
+from torchmm.contract import Choice, Int, Of, Real, Values, entry_point
 from torchmm.fusion.augmented import block_diagonal2
 from torchmm.fusion.local import (
     CrossStats,
@@ -34,8 +35,8 @@ from torchmm.fusion.local import (
     local_one_step,
     symmetrize_pairs,
 )
-from torchmm.fusion.system import MultiSensorSystem, measurement_sequence
-from torchmm.fusion.weights import fusion_weights
+from torchmm.fusion.system import SYSTEM_ARG, MultiSensorSystem, measurement_sequence
+from torchmm.fusion.weights import FUSION_METHODS, fusion_weights
 
 log = logging.getLogger("torchmm")
 
@@ -52,6 +53,7 @@ def _spectral_radius(A: Tensor) -> float:
     return float(torch.linalg.eigvals(A.detach().to(torch.complex128)).abs().max())
 
 
+@entry_point(system=SYSTEM_ARG, tol=Real(positive=True), max_iter=Int(1))
 def steady_moments(system: MultiSensorSystem, tol: float = 1e-14, max_iter: int = 200):
     r"""Theorem 7: limits ``Xi`` (51), ``Q^r_i`` (52) and ``Q^xi_i`` (53).
 
@@ -106,6 +108,7 @@ class SteadyState:
         return local_from_pred(system, self.stats, None, None, N, steps=1)[1][0]
 
 
+@entry_point(system=SYSTEM_ARG, tol=Real(positive=True), max_iter=Int(1))
 def steady_state(system: MultiSensorSystem, tol: float = 1e-12, max_iter: int = 100_000) -> SteadyState:
     r"""Theorems 7-8 and Remark 9: iterate (50) and then the cross recursions to convergence.
 
@@ -171,6 +174,10 @@ def steady_state(system: MultiSensorSystem, tol: float = 1e-12, max_iter: int = 
     return SteadyState(stats, cross, P, torch.cat([Lx, Lr], dim=-2), it, cit)
 
 
+_STEADY = Of(SteadyState, what="a SteadyState (steady_state)")
+
+
+@entry_point(system=SYSTEM_ARG, ss=_STEADY, y=Values(), N=Int())
 def steady_local_estimates(system: MultiSensorSystem, ss: SteadyState, y: Tensor, N: int = 0):
     r"""Local steady-state N-step estimators (55) with the offline gains.
 
@@ -181,6 +188,7 @@ def steady_local_estimates(system: MultiSensorSystem, ss: SteadyState, y: Tensor
     return local_from_pred(system, ss.stats, x_pred, eps, N)
 
 
+@entry_point(system=SYSTEM_ARG, ss=_STEADY, y=Values(), N=Int(), method=Choice(*FUSION_METHODS))
 def steady_fused_estimates(system: MultiSensorSystem, ss: SteadyState, y: Tensor, N: int = 0,
                            method: str = "matrix"):
     r"""Steady-state distributed fusion: offline weights from the steady ``P_ij(N)``.

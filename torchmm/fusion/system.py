@@ -23,12 +23,13 @@ Second moments used by the estimators (Lemma 1): ``Xi(t) = E[x x^T]`` (10), ``Q^
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import torch
 from torch import Tensor
 
 from torchmm.beliefs.ops import psd_sqrt, symmetrize
+from torchmm.contract import Cov, Device, DType, Finite, Gen, Int, Mask, Of, Shape, Values, entry_point
 from torchmm.validation import as_tensor, check_covariance, check_shape, check_square
 
 __all__ = [
@@ -76,8 +77,19 @@ class MultiSensorSystem:
     mu0: Tensor
     P0: Tensor
 
+    def __post_init__(self):
+        # create / from_correlation convert and validate; a direct call takes the tensors themselves
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if not isinstance(value, Tensor):
+                raise TypeError(f"{f.name}: expected a tensor, got {type(value).__name__}; build a system from "
+                                "numbers or lists with MultiSensorSystem.create(...) or .from_correlation(...)")
+
     # -- construction ------------------------------------------------------------------------
     @classmethod
+    @entry_point(A=Finite(square=True), Gamma=Finite(), Qw=Cov(), C=Finite(), Ct=Finite(), h=Finite(), Qp=Finite(),
+                 R=Finite(), Qv=Finite(square=True), mu0=Finite(), P0=Cov(), Qr0=Finite(optional=True),
+                 dtype=DType(), device=Device())
     def create(cls, A, Gamma, Qw, C, Ct, h, Qp, R, Qv, mu0, P0, Qr0=None, *, dtype=None, device=None):
         """Validate and build. ``Qr0=None`` means the stationary variance ``Qp / (1 - h^2)``.
 
@@ -145,6 +157,9 @@ class MultiSensorSystem:
         return sys
 
     @classmethod
+    @entry_point(A=Finite(square=True), Gamma=Finite(), Qw=Cov(), C=Finite(), Ct=Finite(), h=Finite(), Qp=Finite(),
+                 d=Finite(), Q_eta=Cov(), mu0=Finite(), P0=Cov(), Qr0=Finite(optional=True), dtype=DType(),
+                 device=Device())
     def from_correlation(cls, A, Gamma, Qw, C, Ct, h, Qp, d, Q_eta, mu0, P0, Qr0=None, *, dtype=None,
                          device=None):
         r"""Build from ``v_i = d_i w + eta_i``: ``R_i = Q^w d_i^T``,
@@ -244,6 +259,15 @@ class MultiSensorSystem:
         return torch.stack(P)
 
 
+# the generated constructor (create and from_correlation validate shapes and the joint noise; a direct
+# call is checked by kind: finite matrices, PSD Qw and P0)
+MultiSensorSystem.__init__ = entry_point(
+    A=Finite(square=True), Gamma=Finite(), Qw=Cov(), C=Finite(), Ct=Finite(), h=Finite(), Qp=Finite(), Qr0=Finite(),
+    R=Finite(), Qv=Finite(square=True), mu0=Finite(), P0=Cov())(MultiSensorSystem.__init__)
+
+SYSTEM_ARG = Of(MultiSensorSystem, what="a MultiSensorSystem (MultiSensorSystem.create or .from_correlation)")
+
+
 @dataclass(frozen=True)
 class FusionSimulation:
     """Ground truth and measurements of :func:`simulate_fusion`.
@@ -261,6 +285,7 @@ class FusionSimulation:
         return FusionSimulation(self.x.to(dtype), self.r.to(dtype), self.y.to(dtype))
 
 
+@entry_point(system=SYSTEM_ARG, steps=Int(1), batch_shape=Shape(), generator=Gen())
 def simulate_fusion(system: MultiSensorSystem, steps: int, batch_shape=(),
                     generator: torch.Generator | None = None) -> FusionSimulation:
     r"""Simulate (1)-(3) for ``t = 0..steps-1`` (measurements at every ``t``, the first at ``t = 0``).
@@ -329,6 +354,7 @@ class MeasurementSequence:
         return self.C[k], self.Ct[k], self.R[k], self.Qv[k]
 
 
+@entry_point(system=SYSTEM_ARG, steps=Int(1), present=Mask(optional=True))
 def measurement_sequence(system: MultiSensorSystem, steps: int,
                          present: Tensor | None = None) -> MeasurementSequence:
     """Build the :class:`MeasurementSequence` of ``steps`` steps (``present (T, L, m)`` or ``None``)."""
@@ -349,6 +375,7 @@ def measurement_sequence(system: MultiSensorSystem, steps: int,
     return MeasurementSequence(C, Ct, R, Qv, present.clone())
 
 
+@entry_point(system=SYSTEM_ARG, y=Values())
 def measurement_pattern(system: MultiSensorSystem, y: Tensor) -> Tensor | None:
     """Missing-data pattern ``(T, L, m)`` of ``y (T, *B, L, m)`` (``None`` when complete).
 

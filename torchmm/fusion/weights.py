@@ -23,11 +23,79 @@ from torch import Tensor
 
 from torchmm.beliefs import Belief, GaussianBelief, stack
 from torchmm.beliefs.ops import symmetrize
+from torchmm.contract import Beliefs, Choice, Cov, Finite, Indices, entry_point
 from torchmm.linalg import cholesky, cholesky_solve
+from torchmm.validation import SYMMETRY_RTOL, as_choice, broadcast_shape, check_square
 
 __all__ = ["FusedEstimate", "constrained_weights", "fusion_weights", "fuse", "fuse_tracks", "FUSION_METHODS"]
 
 FUSION_METHODS = ("matrix", "diagonal", "scalar")
+
+
+def _check_relative_psd(cov: Tensor, name: str) -> None:
+    """``ValueError`` naming ``name`` unless ``cov (..., d, d)`` is finite, symmetric and positive
+    semi-definite, every tolerance relative to each matrix's own scale (its largest entry): symmetric
+    to ``1e-5``, eigenvalues above ``-max(1e-10, 100 eps)`` of it (``eps`` of ``cov``'s dtype), so that a
+    covariance of ``1e-12`` m^2 is held to the standard of one of ``1e6``. One host read."""
+    check_square(cov, name)
+    value = cov.detach()
+    if not value.is_floating_point():
+        raise TypeError(f"{name}: expected a floating-point covariance, got dtype {value.dtype}")
+    tol = max(1e-10, 100 * torch.finfo(value.dtype).eps)
+    value = value.to(torch.float64)
+    if value.numel() == 0:
+        return
+    scale = value.abs().amax(dim=(-1, -2), keepdim=True)
+    unit = value / torch.where(scale > 0, scale, torch.ones_like(scale))  # NaN/inf stay non-finite
+    asym = (unit - unit.mT).abs().amax(dim=(-1, -2))
+    eig = torch.linalg.eigvalsh(0.5 * (unit + unit.mT).nan_to_num(0.0, 0.0, 0.0))[..., 0]
+    finite, asym, eig = torch.stack([torch.isfinite(unit).all().double(), asym.max(), eig.min()]).tolist()
+    if not finite:
+        raise ValueError(f"{name}: contains NaN or infinite entries")
+    if asym > SYMMETRY_RTOL:
+        raise ValueError(f"{name}: covariance is not symmetric (asymmetry {asym:.3g} of its largest entry)")
+    if eig < -tol:
+        raise ValueError(f"{name}: covariance is not positive semi-definite (smallest eigenvalue {eig:.3g} times its "
+                         "largest entry)")
+
+
+def _checked_tracks(tracks) -> GaussianBelief:
+    """The tracks' moments stacked on a last batch axis ``(*B, L)``, each track checked at entry (its
+    values, :meth:`~torchmm.beliefs.Belief.validate`; its covariance PSD relative to its scale; state
+    dimension, dtype and device against the first track's; batches that broadcast)."""
+    if isinstance(tracks, Belief):
+        tracks.validate("tracks")
+        moments = tracks.estimate()
+        if len(moments.batch_shape) < 1:
+            raise ValueError("tracks: one belief needs a track axis (batch (*B, L)); got batch ()")
+        _check_relative_psd(moments.cov, "tracks.cov" if isinstance(tracks, GaussianBelief) else "tracks.estimate().cov")
+        return moments.materialize()
+    if isinstance(tracks, (str, bytes, Tensor)) or not hasattr(tracks, "__iter__"):
+        raise TypeError(f"tracks: expected a non-empty sequence of beliefs or one belief with a track axis, got "
+                        f"{type(tracks).__name__}")
+    tracks = list(tracks)
+    if not tracks or not all(isinstance(t, Belief) for t in tracks):
+        bad = "an empty sequence" if not tracks else next(type(t).__name__ for t in tracks if not isinstance(t, Belief))
+        raise TypeError(f"tracks: expected a non-empty sequence of beliefs or one belief with a track axis, got {bad}")
+    moments = []
+    for i, t in enumerate(tracks):
+        name = f"tracks[{i}]"
+        t.validate(name)
+        m = t.estimate()
+        first = moments[0] if moments else m
+        if m.state_dim != first.state_dim:
+            raise ValueError(f"{name}: state dimension {m.state_dim} differs from tracks[0]'s {first.state_dim}")
+        if m.mean.dtype != first.mean.dtype:
+            raise TypeError(f"{name}: dtype {m.mean.dtype} differs from tracks[0]'s {first.mean.dtype}")
+        if m.mean.device != first.mean.device:
+            raise ValueError(f"{name}: on device {m.mean.device}, tracks[0] on {first.mean.device}")
+        _check_relative_psd(m.cov, f"{name}.cov" if isinstance(t, GaussianBelief) else f"{name}.estimate().cov")
+        moments.append(m)
+    try:
+        broadcast_shape(*(m.batch_shape for m in moments))
+    except RuntimeError:
+        raise ValueError(f"tracks: batch shapes {[tuple(m.batch_shape) for m in moments]} do not broadcast") from None
+    return stack(moments, dim=-1).materialize()
 
 
 def _stack_blocks(P: Tensor) -> Tensor:
@@ -59,6 +127,7 @@ def constrained_weights(P: Tensor, F: Tensor) -> Tensor:
     return (torch.linalg.pinv(kkt, hermitian=True) @ rhs)[..., :K, :]
 
 
+@entry_point(P=Cov(check=False), method=Choice(*FUSION_METHODS))
 def fusion_weights(P: Tensor, method: str = "matrix") -> tuple[Tensor, Tensor]:
     r"""Fusion weights and fused error covariance from the joint covariance of the local errors.
 
@@ -75,9 +144,26 @@ def fusion_weights(P: Tensor, method: str = "matrix") -> tuple[Tensor, Tensor]:
         >>> A, Po = fusion_weights(P, "matrix")
         >>> [round(a, 4) for a in A.flatten().tolist()], round(Po.item(), 4)
         ([0.75, 0.25], 0.75)
+
+    Raises:
+        TypeError / ValueError: naming ``P`` (a floating tensor of that shape whose joint matrix
+        ``[P_ij]`` is finite, symmetric and positive semi-definite, relative to its scale) or ``method``.
     """
-    if P.dim() < 4 or P.shape[-4] != P.shape[-3] or P.shape[-1] != P.shape[-2]:
-        raise ValueError(f"P: expected shape (*B, L, L, n, n), got {tuple(P.shape)}")
+    _check_joint(P, "P")
+    method = as_choice(method, "method", FUSION_METHODS)
+    return _fusion_weights(P, method)
+
+
+def _check_joint(P, name: str) -> None:
+    """Entry check of a joint error covariance ``(*B, L, L, n, n)`` (shape, dtype, values)."""
+    if not isinstance(P, Tensor):
+        raise TypeError(f"{name}: expected a tensor (*B, L, L, n, n), got {type(P).__name__}")
+    if P.dim() < 4 or P.shape[-4] != P.shape[-3] or P.shape[-1] != P.shape[-2] or 0 in P.shape[-4:]:
+        raise ValueError(f"{name}: expected shape (*B, L, L, n, n), got {tuple(P.shape)}")
+    _check_relative_psd(_stack_blocks(P), name)
+
+
+def _fusion_weights(P: Tensor, method: str) -> tuple[Tensor, Tensor]:
     *b, L, _, n, _ = P.shape
     kw = dict(dtype=P.dtype, device=P.device)
     e = torch.ones(L, 1, **kw)
@@ -108,6 +194,8 @@ class FusedEstimate:
     weights: Tensor
 
 
+@entry_point(mean=Finite(check=False), P=Cov(check=False), method=Choice(*FUSION_METHODS),
+             components=Indices(optional=True))
 def fuse(mean: Tensor, P: Tensor, method: str = "matrix", components=None) -> FusedEstimate:
     r"""Distributed fusion (44) of local estimates with the weights of :func:`fusion_weights`.
 
@@ -116,18 +204,44 @@ def fuse(mean: Tensor, P: Tensor, method: str = "matrix", components=None) -> Fu
 
     Shapes:
         mean: ``(T, *B, L, n)``; P: ``(T, L, L, n, n)`` -> :class:`FusedEstimate`
+
+    Raises:
+        TypeError / ValueError: naming ``mean`` (finite, its shape matching ``P``'s), ``P`` (as
+        :func:`fusion_weights`), ``method`` or ``components`` (state indices in ``[0, n)``).
     """
+    method = as_choice(method, "method", FUSION_METHODS)
+    _check_joint(P, "P")
+    if P.dim() != 5:
+        raise ValueError(f"P: expected shape (T, L, L, n, n), got {tuple(P.shape)}")
+    T, L, _, n, _ = P.shape
+    if not isinstance(mean, Tensor):
+        raise TypeError(f"mean: expected a tensor (T, *B, L, n), got {type(mean).__name__}")
+    if mean.dim() < 3 or mean.shape[0] != T or tuple(mean.shape[-2:]) != (L, n):
+        raise ValueError(f"mean: expected shape ({T}, *B, {L}, {n}) (P's steps, tracks and state), got "
+                         f"{tuple(mean.shape)}")
+    if mean.dtype != P.dtype:
+        raise TypeError(f"mean: dtype {mean.dtype} differs from P's {P.dtype}")
+    if not bool(torch.isfinite(mean.detach()).all()):
+        raise ValueError("mean: contains NaN or infinite entries")
     if components is not None:
-        idx = torch.as_tensor(list(components), device=mean.device)
+        if isinstance(components, (str, bytes)) or not hasattr(components, "__iter__"):
+            raise TypeError(f"components: expected a sequence of state indices, got {type(components).__name__}")
+        components = list(components)
+        if not components or not all(isinstance(c, int) and not isinstance(c, bool) and 0 <= c < n
+                                     for c in components):
+            raise ValueError(f"components: expected state indices in [0, {n}), got {components}")
+        idx = torch.as_tensor(components, device=mean.device)
         mean = mean[..., idx]
         P = P[..., idx, :][..., idx]
-    weights, Po = fusion_weights(P, method)
+    weights, Po = _fusion_weights(P, method)
     T = mean.shape[0]
     W = weights.reshape(T, *([1] * (mean.dim() - 3)), *weights.shape[1:])
     fused = (W @ mean.unsqueeze(-1)).squeeze(-1).sum(-2)
     return FusedEstimate(fused, Po, weights)
 
 
+@entry_point(tracks=Beliefs(), cross_covs=Cov(optional=True, check=False),
+             method=Choice(*FUSION_METHODS, "covariance_intersection"))
 def fuse_tracks(tracks, cross_covs: Tensor | None = None, method: str = "matrix") -> GaussianBelief:
     r"""Track-to-track fusion of ``L`` local estimates of one state, on torchmm's belief types.
 
@@ -153,6 +267,14 @@ def fuse_tracks(tracks, cross_covs: Tensor | None = None, method: str = "matrix"
     Returns:
         :class:`~torchmm.beliefs.GaussianBelief` with batch ``(*B,)``: the fused mean and ``P_o``.
 
+    Raises:
+        TypeError / ValueError: naming the argument, checked once at entry: ``tracks`` (beliefs;
+        each track's values, :meth:`~torchmm.beliefs.Belief.validate`, e.g. ``tracks[1].cov:``; its
+        covariance finite, symmetric and positive semi-definite to a tolerance relative to its own
+        scale; state dimension, dtype and device equal, batches that broadcast), ``cross_covs``
+        (a finite tensor of the tracks' dtype, shape ``(*B, L, L, n, n)``, the joint covariance with the
+        tracks' own on its diagonal symmetric PSD likewise) and ``method``.
+
     Examples:
         >>> a = GaussianBelief(torch.zeros(1), torch.eye(1))
         >>> b = GaussianBelief(torch.ones(1), 3 * torch.eye(1))
@@ -160,16 +282,17 @@ def fuse_tracks(tracks, cross_covs: Tensor | None = None, method: str = "matrix"
         >>> round(fused.mean.item(), 4), round(fused.cov.item(), 4)
         (0.25, 0.75)
     """
-    if isinstance(tracks, Belief):
-        moments = tracks.estimate()
-    else:
-        tracks = list(tracks)
-        if not tracks or not all(isinstance(t, Belief) for t in tracks):
-            raise TypeError("tracks: expected a non-empty sequence of beliefs or one belief with a track axis")
-        moments = stack([t.estimate() for t in tracks], dim=-1)
-    moments = moments.materialize()
+    method = as_choice(method, "method", (*FUSION_METHODS, "covariance_intersection"))
+    moments = _checked_tracks(tracks)
     mean, cov = moments.mean, moments.cov  # (*B, L, n), (*B, L, n, n)
     *batch, L, n = mean.shape
+    if cross_covs is not None:
+        if not isinstance(cross_covs, Tensor):
+            raise TypeError(f"cross_covs: expected a tensor (*B, L, L, n, n) or None, got {type(cross_covs).__name__}")
+        if cross_covs.dtype != mean.dtype:
+            raise TypeError(f"cross_covs: dtype {cross_covs.dtype} differs from the tracks' {mean.dtype}")
+        if not bool(torch.isfinite(cross_covs.detach()).all()):  # its diagonal blocks too, though replaced
+            raise ValueError("cross_covs: contains NaN or infinite entries")
     if method == "covariance_intersection":
         if cross_covs is not None:
             raise ValueError("cross_covs: covariance intersection is for unknown cross-covariances; pass None")
@@ -186,12 +309,18 @@ def fuse_tracks(tracks, cross_covs: Tensor | None = None, method: str = "matrix"
     if cross_covs is None:
         P = torch.zeros(*batch, L, L, n, n, dtype=mean.dtype, device=mean.device)
     else:
-        if cross_covs.shape[-4:] != (L, L, n, n):
+        if cross_covs.dim() < 4 or cross_covs.shape[-4:] != (L, L, n, n):
             raise ValueError(f"cross_covs: expected shape (*B, {L}, {L}, {n}, {n}), got {tuple(cross_covs.shape)}")
-        P = cross_covs.expand(*batch, L, L, n, n).clone()
+        try:
+            P = cross_covs.to(mean.device).expand(*batch, L, L, n, n).clone()
+        except RuntimeError:
+            raise ValueError(f"cross_covs: batch shape {tuple(cross_covs.shape[:-4])} does not broadcast to the "
+                             f"tracks' {tuple(batch)}") from None
     idx = torch.arange(L, device=mean.device)
     P[..., idx, idx, :, :] = cov
-    weights, Po = fusion_weights(P, method)  # (*B, L, n, n)
+    if cross_covs is not None:  # the joint error covariance, with the tracks' own on its diagonal
+        _check_relative_psd(_stack_blocks(P), "cross_covs")
+    weights, Po = _fusion_weights(P, method)  # (*B, L, n, n); P checked above
     fused = (weights @ mean.unsqueeze(-1)).squeeze(-1).sum(-2)
     return GaussianBelief(fused, Po)
 

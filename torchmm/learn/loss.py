@@ -7,7 +7,10 @@ innovation density; IMM/GPB: ``logsumexp_j(ell_j + log c_j)``), so by the chain 
     -\log p_\theta(z_{1:T}) = -\textstyle\sum_{k=1}^T \log p_\theta(z_k \mid z_{1:k-1})
 
 is the prediction-error decomposition of the likelihood: exact for the Kalman filter, the
-filter's own approximation for EKF/UKF/IMM/GPB. Missing measurements (NaN) contribute 0.
+filter's own approximation for EKF/UKF/IMM/GPB. Missing measurements (NaN) contribute 0; a run
+whose update failed (a present datum and a non-finite prediction, e.g. a network whose weights went
+NaN: ``extras["failed"]``, docs/robustness.md) contributes NaN, so the loss is NaN, never a
+silently finite value.
 """
 
 from __future__ import annotations
@@ -18,8 +21,10 @@ from torch import Tensor
 from torch.nn.utils import parametrize
 
 from torchmm.beliefs import ModeBelief
+from torchmm.contract import BeliefArg, Choice, Data, Flag, Int, Of, entry_point
 from torchmm.filters.base import Filter, StepOutput
 from torchmm.run import run_filter
+from torchmm.validation import check_filter_dtype
 
 __all__ = ["negative_log_likelihood", "truncated_segments"]
 
@@ -34,6 +39,8 @@ def _keep_likelihood_and_detached_belief(out: StepOutput) -> StepOutput:
     return StepOutput(out.belief.detach(), None, out.log_likelihood)
 
 
+@entry_point(filter=Of(Filter), belief0=BeliefArg(validate=True), measurements=Data(),
+             controls=Data(optional=True), reduction=Choice(*_REDUCTIONS), return_final=Flag())
 def negative_log_likelihood(
     filter: Filter,
     belief0: Any,
@@ -90,6 +97,7 @@ def negative_log_likelihood(
     return (loss, traj.final_belief) if return_final else loss
 
 
+@entry_point(steps=Int(0), window=Int(1, optional=True))
 def truncated_segments(steps: int, window: int | None) -> list[slice]:
     """Time slices of at most ``window`` steps covering ``0 .. steps - 1`` (all of it if ``None``).
 
@@ -115,4 +123,5 @@ def as_start_belief(filter, belief0):
     base returns the prior validated)."""
     if isinstance(belief0, ModeBelief):
         return belief0
+    check_filter_dtype(filter, belief0, "belief0")  # named as the caller passed it (initial_belief says "belief")
     return filter.initial_belief(belief0)

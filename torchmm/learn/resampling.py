@@ -29,20 +29,19 @@ from torch import Tensor
 
 from torchmm.beliefs.ops import normalize_log_probs
 from torchmm.beliefs.particle import ParticleBelief
+from torchmm.contract import Choice, Gen, Of, Real, entry_point
 from torchmm.filters.base import StepOutput
 from torchmm.filters.particle import ParticleFilter
-from torchmm.filters.resampling import effective_sample_size, resample
+from torchmm.filters.resampling import RESAMPLING_SCHEMES, effective_sample_size, resample
+from torchmm.models.base import MeasurementModel, MotionModel
 
 __all__ = ["SoftResamplingParticleFilter", "soft_resample", "soft_resample_where_needed"]
 
 
-def _check_alpha(alpha: float) -> float:
-    alpha = float(alpha)
-    if not 0.0 <= alpha <= 1.0:
-        raise ValueError(f"alpha: must lie in [0, 1], got {alpha}")
-    return alpha
+_SCHEMES = Choice(*RESAMPLING_SCHEMES)
 
 
+@entry_point(belief=Of(ParticleBelief), alpha=Real(0.0, 1.0), scheme=_SCHEMES, generator=Gen())
 def soft_resample(belief: ParticleBelief, alpha: float = 0.5, scheme: str = "systematic", *,
                   generator: torch.Generator | None = None) -> ParticleBelief:
     """Soft-resample every batch element (see the module docstring).
@@ -67,7 +66,11 @@ def soft_resample(belief: ParticleBelief, alpha: float = 0.5, scheme: str = "sys
         >>> out.particles.shape, out.log_weights.requires_grad
         (torch.Size([4, 100, 2]), True)
     """
-    alpha = _check_alpha(alpha)
+    return _soft_resample(belief, float(alpha), scheme, generator)
+
+
+def _soft_resample(belief: ParticleBelief, alpha: float, scheme: str, generator) -> ParticleBelief:
+    """:func:`soft_resample` without the entry checks (inside a filter step)."""
     num = belief.num_particles
     log_w = normalize_log_probs(belief.log_weights)
     # log q = log(alpha w + (1 - alpha) / Np)
@@ -87,6 +90,8 @@ def soft_resample(belief: ParticleBelief, alpha: float = 0.5, scheme: str = "sys
     return ParticleBelief(gathered, normalize_log_probs(correction))
 
 
+@entry_point(belief=Of(ParticleBelief), threshold=Real(minimum=0.0), alpha=Real(0.0, 1.0), scheme=_SCHEMES,
+             generator=Gen())
 def soft_resample_where_needed(belief: ParticleBelief, threshold: float = 0.5, alpha: float = 0.5,
                                scheme: str = "systematic", *, generator: torch.Generator | None = None
                                ) -> tuple[ParticleBelief, Tensor, Tensor]:
@@ -101,11 +106,15 @@ def soft_resample_where_needed(belief: ParticleBelief, threshold: float = 0.5, a
     Shapes:
         particles ``(*B, Np, n)``, log_weights ``(*B, Np)`` -> same
     """
-    if threshold < 0:
-        raise ValueError(f"threshold: must be >= 0, got {threshold}")
+    return _soft_resample_where_needed(belief, float(threshold), float(alpha), scheme, generator)
+
+
+def _soft_resample_where_needed(belief: ParticleBelief, threshold: float, alpha: float, scheme: str,
+                                generator) -> tuple[ParticleBelief, Tensor, Tensor]:
+    """:func:`soft_resample_where_needed` without the entry checks (inside a filter step)."""
     ess = effective_sample_size(belief.log_weights)
     mask = ess < threshold * belief.num_particles
-    new = soft_resample(belief, alpha, scheme, generator=generator)
+    new = _soft_resample(belief, alpha, scheme, generator)
     particles = torch.where(mask[..., None, None], new.particles, belief.particles)
     log_w = torch.where(mask[..., None], new.log_weights, belief.log_weights)
     return ParticleBelief(particles, log_w), mask, ess
@@ -129,16 +138,16 @@ class SoftResamplingParticleFilter(ParticleFilter):
         torch.Size([4, 200, 2])
     """
 
+    @entry_point(motion=Of(MotionModel), measurement=Of(MeasurementModel), alpha=Real(0.0, 1.0),
+                 ess_threshold=Real(minimum=0.0))
     def __init__(self, motion, measurement, *, alpha: float = 0.5, ess_threshold: float = 0.5, **kwargs):
         super().__init__(motion, measurement, ess_threshold=0.0, **kwargs)
-        if not ess_threshold >= 0:
-            raise ValueError(f"ess_threshold: must be >= 0, got {ess_threshold}")
-        self.alpha = _check_alpha(alpha)
+        self.alpha = float(alpha)
         self.soft_ess_threshold = float(ess_threshold)
 
     def update(self, belief: ParticleBelief, z: Tensor) -> StepOutput:
         out = super().update(belief, z)  # weights only: the parent's threshold is 0
-        posterior, resampled, ess = soft_resample_where_needed(
-            out.belief, self.soft_ess_threshold, self.alpha, self.resampling, generator=self.generator)
+        posterior, resampled, ess = _soft_resample_where_needed(  # checked at construction
+            out.belief, self.soft_ess_threshold, self.alpha, self.resampling, self.generator)
         extras = {**(out.extras or {}), "ess": ess, "resampled": resampled}
         return out._replace(belief=posterior, extras=extras)

@@ -17,9 +17,17 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from torchmm.contract import BeliefArg, FilePath, Gen, Int, Of, Real, Text, Unchecked, Values, entry_point
 from torchmm.learn.loss import as_start_belief, negative_log_likelihood, truncated_segments
 
-__all__ = ["TrainRecord", "Trainer", "load_checkpoint", "save_checkpoint"]
+__all__ = ["TrainRecord", "Trainer", "load_checkpoint", "save_checkpoint"]  # (and NonFiniteLossError, below)
+
+
+class NonFiniteLossError(ValueError, FloatingPointError):
+    """:class:`Trainer` stopped: the loss or the parameters went non-finite. One line naming the
+    iteration and the non-finite parameter(s), or saying that they are all finite (then the filter
+    itself diverged, e.g. a learning rate too large). A ``ValueError`` (and, as before, a
+    ``FloatingPointError``)."""
 
 
 @dataclass
@@ -43,6 +51,9 @@ class TrainRecord:
     seconds: float = 0.0
 
 
+@entry_point(path=FilePath(), module=Of(nn.Module),
+             optimizer=Of(torch.optim.Optimizer, methods=("step", "zero_grad", "state_dict"),
+                          what="a torch.optim optimizer", optional=True))
 def save_checkpoint(path, module: nn.Module, optimizer: torch.optim.Optimizer | None = None,
                     **extra: Any) -> Path:
     """Write ``module`` (and ``optimizer``) state and any ``extra`` picklable data to ``path``."""
@@ -57,6 +68,9 @@ def save_checkpoint(path, module: nn.Module, optimizer: torch.optim.Optimizer | 
     return path
 
 
+@entry_point(path=FilePath(), module=Of(nn.Module),
+             optimizer=Of(torch.optim.Optimizer, methods=("step", "zero_grad", "state_dict"),
+                          what="a torch.optim optimizer", optional=True))
 def load_checkpoint(path, module: nn.Module, optimizer: torch.optim.Optimizer | None = None) -> dict:
     """Restore ``module`` (and ``optimizer``) from :func:`save_checkpoint`; returns the ``extra`` dict.
 
@@ -114,6 +128,15 @@ class Trainer:
         [1, 2, 3]
     """
 
+    @entry_point(filter=Of(nn.Module),
+                 optimizer=Of(torch.optim.Optimizer, methods=("step", "zero_grad", "state_dict"),
+                              what="a torch.optim optimizer"),
+                 window=Int(1, optional=True), clip_grad_norm=Real(positive=True, optional=True),
+                 loss_fn=Of(callable_ok=True, optional=True, what="a callable loss_fn(filter, belief0, z)"),
+                 track=Of(callable_ok=True, optional=True, what="a callable returning {name: value}"),
+                 logger=Of(methods=("scalar",), optional=True, what="an object with scalar(tag, value, i)"),
+                 callbacks=Unchecked("any iterable of callables; each is called with (trainer, record)"),
+                 checkpoint_path=FilePath(optional=True), checkpoint_every=Int(0), prefix=Text())
     def __init__(
         self,
         filter: nn.Module,
@@ -168,11 +191,9 @@ class Trainer:
             self.optimizer.zero_grad()
             loss, final = self.loss_fn(self.filter, belief, z, controls=u, return_final=True)
             if not bool(torch.isfinite(loss.detach())):
-                raise FloatingPointError(
-                    f"loss is {loss.item()} at iteration {self.iteration + 1}: the model diverged for "
-                    "the current parameters; lower the learning rate, clip gradients (clip_grad_norm=) "
-                    "or bound the model's outputs"
-                )
+                raise NonFiniteLossError(
+                    f"Trainer: the loss went non-finite ({loss.item()}) at iteration {self.iteration + 1}; "
+                    + self._diagnosis(params))
             loss.backward()
             max_norm = self.clip_grad_norm if self.clip_grad_norm is not None else math.inf
             norm = torch.nn.utils.clip_grad_norm_(params, max_norm)
@@ -182,12 +203,31 @@ class Trainer:
 
         self.optimizer.step(closure)
         if not all(bool(torch.isfinite(p.detach()).all()) for p in params):
-            raise FloatingPointError(
-                f"non-finite parameters after iteration {self.iteration + 1} (last loss {state['loss']}); "
-                "lower the learning rate or clip gradients (clip_grad_norm=)"
-            )
+            raise NonFiniteLossError(
+                f"Trainer: the parameters went non-finite in the update of iteration {self.iteration + 1} "
+                f"(loss {state['loss']:.6g} before it); " + self._diagnosis(params))
         return state["loss"], state["grad_norm"], state["final"]
 
+    def _diagnosis(self, params: list[Tensor]) -> str:
+        """The rest of the one-line error: the non-finite parameters by name (the filter's
+        ``named_parameters``; others as ``param_groups[g][i]``), or that all are finite."""
+        names = {id(p): name for name, p in self.filter.named_parameters()} if isinstance(self.filter, nn.Module) \
+            else {}
+        bad = []
+        for g, group in enumerate(self.optimizer.param_groups):
+            for i, p in enumerate(group["params"]):
+                if not bool(torch.isfinite(p.detach()).all()):
+                    bad.append(repr(names.get(id(p), f"param_groups[{g}][{i}]")))
+        if bad:
+            shown = ", ".join(bad[:5]) + (f" and {len(bad) - 5} more" if len(bad) > 5 else "")
+            return (f"parameter{'s' if len(bad) > 1 else ''} {shown} {'are' if len(bad) > 1 else 'is'} non-finite; "
+                    "lower the learning rate or clip gradients (clip_grad_norm=)")
+        return ("every parameter is finite, so the filter diverged at these parameters (e.g. a learning rate "
+                "too large, or a model whose outputs overflow); lower the learning rate, clip gradients "
+                "(clip_grad_norm=) or bound the model's outputs")
+
+    @entry_point(belief0=BeliefArg(validate=True), measurements=Values(), iterations=Int(0),
+                 controls=Values(optional=True), batch_size=Int(1, optional=True), generator=Gen())
     def fit(self, belief0, measurements: Tensor, iterations: int, *, controls: Tensor | None = None,
             batch_size: int | None = None, generator: torch.Generator | None = None) -> list[TrainRecord]:
         """Run ``iterations`` more iterations; returns the records of this call.

@@ -18,38 +18,86 @@ import torch
 from torch import Tensor
 
 from torchmm.beliefs import GaussianBelief
+from torchmm.contract import Cov, Finite, Indices, Labels, Of, Values, entry_point
 from torchmm.linalg import cholesky, solve_lower
 
 __all__ = ["armse", "mode_accuracy", "mode_hits", "nees", "nis", "rmse", "squared_error"]
 
+# The kinds: an estimate may be NaN or infinite (a diverged run is scored, not refused), and so may
+# mode (log-)probabilities (-inf) and innovations (NaN = missing); the truth is finite.
+_ERROR_KINDS = {"estimate": Values(), "truth": Finite(), "components": Indices(optional=True)}
 
+
+def _check_error_args(estimate: Tensor, truth: Tensor, components) -> None:
+    if estimate.dim() < 1:
+        raise ValueError(f"estimate: expected shape (..., n), got {tuple(estimate.shape)}")
+    if truth.dim() < 1 or estimate.shape[-1] != truth.shape[-1]:
+        raise ValueError(f"truth: state dim {truth.shape[-1] if truth.dim() else None} differs from the "
+                         f"estimate's {estimate.shape[-1]}")
+    try:
+        torch.broadcast_shapes(estimate.shape, truth.shape)
+    except RuntimeError:
+        raise ValueError(f"truth: shape {tuple(truth.shape)} does not broadcast with the estimate's "
+                         f"{tuple(estimate.shape)}") from None
+    if components is not None:
+        n = estimate.shape[-1]
+        bad = [int(c) for c in components if int(c) >= n]
+        if bad:
+            raise ValueError(f"components: indices {bad} out of range for a state of dimension {n}")
+
+
+def _check_modes(mode_probs: Tensor, true_modes: Tensor) -> None:
+    if mode_probs.dim() < 1 or mode_probs.shape[-1] < 1:
+        raise ValueError(f"mode_probs: expected shape (*B, M), got {tuple(mode_probs.shape)}")
+    if true_modes.shape != mode_probs.shape[:-1]:
+        raise ValueError(f"true_modes: expected shape {tuple(mode_probs.shape[:-1])} (mode_probs without its "
+                         f"mode axis), got {tuple(true_modes.shape)}")
+    M = mode_probs.shape[-1]
+    if true_modes.numel() and bool((true_modes >= M).any()):
+        raise ValueError(f"true_modes: mode indices must be < {M}, got {int(true_modes.max())}")
+
+
+@entry_point(**_ERROR_KINDS)
 def squared_error(estimate: Tensor, truth: Tensor, components: Sequence[int] | None = None) -> Tensor:
     """``||estimate - truth||^2`` over ``components`` (default all).
 
     Shapes:
-        estimate, truth: ``(..., n)`` -> ``(...)``
+        estimate, truth: ``(..., n)`` -> ``(...)``; ``estimate`` may hold NaN or infinite entries (a
+        diverged run), which propagate.
     """
-    if estimate.shape[-1] != truth.shape[-1]:
-        raise ValueError(f"truth: state dim {truth.shape[-1]} differs from the estimate's {estimate.shape[-1]}")
+    _check_error_args(estimate, truth, components)
+    return _squared_error(estimate, truth, components)
+
+
+def _squared_error(estimate: Tensor, truth: Tensor, components: Sequence[int] | None = None) -> Tensor:
     err = estimate - truth
     if components is not None:
         err = err[..., list(components)]
     return err.square().sum(-1)
 
 
+@entry_point(**_ERROR_KINDS)
 def rmse(estimate: Tensor, truth: Tensor, components: Sequence[int] | None = None) -> Tensor:
     """Per-step RMSE over all runs.
 
     Shapes:
         estimate, truth: ``(T, *B, n)`` -> ``(T,)`` (mean over every batch dim ``*B``)
     """
-    se = squared_error(estimate, truth, components)
-    return se.flatten(1).mean(-1).sqrt()
+    _check_error_args(estimate, truth, components)
+    if estimate.dim() < 2:
+        raise ValueError(f"estimate: expected shape (T, *B, n), got {tuple(estimate.shape)}")
+    return _rmse(estimate, truth, components)
 
 
+def _rmse(estimate: Tensor, truth: Tensor, components: Sequence[int] | None = None) -> Tensor:
+    se = _squared_error(estimate, truth, components)
+    return se.reshape(se.shape[0], -1).mean(-1).sqrt()
+
+
+@entry_point(**_ERROR_KINDS)
 def armse(estimate: Tensor, truth: Tensor, components: Sequence[int] | None = None) -> Tensor:
     """Time average of the per-step RMSE (the papers' "average RMSE"). Returns a scalar tensor."""
-    return rmse(estimate, truth, components).mean()
+    return rmse.__wrapped__(estimate, truth, components).mean()
 
 
 def _quadratic(residual: Tensor, cov: Tensor) -> Tensor:
@@ -64,26 +112,37 @@ def _quadratic(residual: Tensor, cov: Tensor) -> Tensor:
     return torch.where(observed.any(-1), out, torch.nan)
 
 
+@entry_point(estimate=Of(GaussianBelief), truth=Finite())
 def nees(estimate: GaussianBelief, truth: Tensor) -> Tensor:
     """Normalised estimation error squared ``e^T P^{-1} e`` per step and run.
 
     Its mean over runs is ``chi^2_n``-distributed-ish around ``n`` for a consistent filter.
 
     Shapes:
-        estimate: batch ``(T, *B)``; truth ``(T, *B, n)`` -> ``(T, *B)``
+        estimate: batch ``(T, *B)``; truth ``(T, *B, n)`` -> ``(T, *B)`` (NaN where the estimate
+        is not finite)
     """
+    n = estimate.mean.shape[-1]
+    if truth.dim() < 1 or truth.shape[-1] != n:
+        raise ValueError(f"truth: expected shape (T, *B, {n}), got {tuple(truth.shape)}")
     return _quadratic(estimate.mean - truth, estimate.cov)
 
 
+@entry_point(innovation=Values(), innovation_cov=Cov(definite=True))
 def nis(innovation: Tensor, innovation_cov: Tensor) -> Tensor:
     """Normalised innovation squared ``nu^T S^{-1} nu``; NaN where the measurement was missing.
 
     Shapes:
         innovation ``(..., m)``, innovation_cov ``(..., m, m)`` -> ``(...)``
     """
+    m = innovation_cov.shape[-1]
+    if innovation.dim() < 1 or innovation.shape[-1] != m:
+        raise ValueError(f"innovation: expected shape (..., {m}) for a {m}x{m} innovation_cov, "
+                         f"got {tuple(innovation.shape)}")
     return _quadratic(innovation, innovation_cov)
 
 
+@entry_point(mode_probs=Values(), true_modes=Labels())
 def mode_hits(mode_probs: Tensor, true_modes: Tensor) -> Tensor:
     """1 where the true mode is the most probable one, ``1/k`` where it ties with ``k - 1`` others,
     0 elsewhere.
@@ -95,12 +154,18 @@ def mode_hits(mode_probs: Tensor, true_modes: Tensor) -> Tensor:
     Shapes:
         mode_probs (or log-probs): ``(*B, M)``; true_modes ``(*B)`` -> ``(*B)``
     """
+    _check_modes(mode_probs, true_modes)
+    return _mode_hits(mode_probs, true_modes)
+
+
+def _mode_hits(mode_probs: Tensor, true_modes: Tensor) -> Tensor:
     top = mode_probs.amax(-1, keepdim=True)
     tied = mode_probs >= top - 1e-9 * top.abs()
     true = tied.gather(-1, true_modes.long().unsqueeze(-1)).squeeze(-1)
     return true.to(mode_probs.dtype) / tied.sum(-1).to(mode_probs.dtype)
 
 
+@entry_point(mode_probs=Values(), true_modes=Labels())
 def mode_accuracy(mode_probs: Tensor, true_modes: Tensor) -> Tensor:
     """Fraction of runs whose most probable mode is the true one, per step (a tie of ``k`` modes
     that includes the true one counts ``1/k``, :func:`mode_hits`).
@@ -108,4 +173,8 @@ def mode_accuracy(mode_probs: Tensor, true_modes: Tensor) -> Tensor:
     Shapes:
         mode_probs (or log-probs): ``(T, *B, M)``; true_modes ``(T, *B)`` -> ``(T,)``
     """
-    return mode_hits(mode_probs, true_modes).flatten(1).mean(-1)
+    _check_modes(mode_probs, true_modes)
+    if mode_probs.dim() < 2:
+        raise ValueError(f"mode_probs: expected shape (T, *B, M), got {tuple(mode_probs.shape)}")
+    hits = _mode_hits(mode_probs, true_modes)
+    return hits.reshape(hits.shape[0], -1).mean(-1)

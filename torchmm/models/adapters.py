@@ -37,6 +37,7 @@ from torch.nn.utils import parametrize
 
 from torchmm.models.base import MeasurementModel, MotionModel
 from torchmm.validation import as_int, as_tensor, check_covariance, check_shape
+from torchmm.contract import Choice, Cov, Flag, Indices, Int, Of, Text, entry_point
 
 __all__ = [
     "CholeskyCovariance",
@@ -121,6 +122,7 @@ class LogScaleCovariance(nn.Module):
         theta ``(*S,)`` -> covariance ``(*broadcast(S, P), d, d)``
     """
 
+    @entry_point(structure=Cov(), scale_shape=Indices(empty=True))
     def __init__(self, structure: Tensor, scale_shape=()):
         super().__init__()
         self.register_buffer("structure", structure.detach().clone())
@@ -155,6 +157,8 @@ def noise_parametrization(kind: str, value: Tensor, *, scale_shape=()) -> nn.Mod
     raise ValueError(f"kind: expected 'cholesky', 'log_diagonal' or 'scale', got {kind!r}")
 
 
+@entry_point(model=Of(torch.nn.Module, what="an nn.Module"), name=Text(),
+             kind=Choice("cholesky", "log_diagonal", "scale"), scale_shape=Indices(empty=True))
 def learnable_noise(model: nn.Module, name: str = "Q", kind: str = "cholesky", *,
                     scale_shape=()) -> nn.Module:
     """Make the covariance tensor ``model.<name>`` learnable and PSD by construction (in place).
@@ -278,6 +282,8 @@ class LearnedMotion(MotionModel):
         tensor([0.1000, 0.1000], grad_fn=<DiagonalBackward0>)
     """
 
+    @entry_point(net=Of(callable_ok=True, what="a callable (an nn.Module)"), state_dim=Int(1), Q=Cov(check=False),
+                 noise=Choice("cholesky", "log_diagonal", "scale", "fixed"), residual=Flag(), uses_input=Flag())
     def __init__(self, net, state_dim: int, Q, *, noise: str = "cholesky", residual: bool = False,
                  uses_input: bool = False):
         super().__init__()
@@ -317,6 +323,8 @@ class LearnedMeasurement(MeasurementModel):
         (torch.Size([3, 2]), torch.Size([3, 2, 4]))
     """
 
+    @entry_point(net=Of(callable_ok=True, what="a callable (an nn.Module)"), state_dim=Int(1), meas_dim=Int(1),
+                 R=Cov(check=False), noise=Choice("cholesky", "log_diagonal", "scale", "fixed"))
     def __init__(self, net, state_dim: int, meas_dim: int, R, *, noise: str = "cholesky"):
         super().__init__()
         self.net = _check_net(net, "net")

@@ -9,6 +9,7 @@ from torch import Tensor
 
 from torchmm.models.base import MeasurementModel, MotionModel, store_tensor
 from torchmm.validation import as_tensor, broadcast_shape, check_covariance, check_shape, check_square
+from torchmm.contract import Cov, Finite, entry_point
 
 __all__ = ["LinearMeasurement", "LinearMotion", "matvec"]
 
@@ -53,6 +54,8 @@ class LinearMotion(MotionModel):
         forward: ``x (*B, n)``, ``u (*B, k)`` -> ``(*B, n)``; ``*P`` broadcasts with ``*B``.
     """
 
+    @entry_point(F=Finite(square=True, check=False), Q=Cov(check=False), offset=Finite(optional=True, check=False),
+                 input_matrix=Finite(optional=True, check=False))
     def __init__(self, F, Q, offset=None, input_matrix=None):
         super().__init__()
         F = as_tensor(F, "F")
@@ -144,6 +147,7 @@ class LinearMeasurement(MeasurementModel):
         R: measurement-noise covariance ``(*P, m, m)``, symmetric PSD.
     """
 
+    @entry_point(H=Finite(check=False), R=Cov(check=False))
     def __init__(self, H, R):
         super().__init__()
         H = as_tensor(H, "H")

@@ -8,6 +8,7 @@ from torch import Tensor
 from torchmm.models.base import MeasurementModel, store_tensor
 from torchmm.models.linear import LinearMeasurement
 from torchmm.validation import as_int, as_tensor, check_covariance, check_shape
+from torchmm.contract import Cov, DType, Finite, Indices, Int, entry_point
 
 __all__ = ["PositionMeasurement", "RangeBearing"]
 
@@ -35,6 +36,7 @@ class PositionMeasurement(LinearMeasurement):
         R: noise covariance ``(*P, m, m)``, or a number ``r`` for ``r I``.
     """
 
+    @entry_point(state_dim=Int(1), indices=Indices(), R=Finite(check=False), dtype=DType())
     def __init__(self, state_dim: int, indices, R, *, dtype=None):
         state_dim = as_int(state_dim, "state_dim", minimum=1)
         indices = _indices(indices, "indices", state_dim)
@@ -61,6 +63,8 @@ class RangeBearing(MeasurementModel):
         origin: sensor position ``(2,)``; default the origin.
     """
 
+    @entry_point(state_dim=Int(1), R=Cov(definite=True, check=False), position_indices=Indices(),
+                 origin=Finite(check=False), dtype=DType())
     def __init__(self, state_dim: int, R, position_indices=(0, 2), origin=(0.0, 0.0), *, dtype=None):
         super().__init__()
         state_dim = as_int(state_dim, "state_dim", minimum=1)

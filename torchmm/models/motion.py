@@ -16,6 +16,7 @@ from torch import Tensor
 from torchmm.models.base import MotionModel, store_tensor
 from torchmm.models.linear import LinearMotion
 from torchmm.validation import as_float, as_int, as_tensor
+from torchmm.contract import Choice, DType, Finite, Int, Real, entry_point
 
 __all__ = [
     "ConstantVelocity",
@@ -26,6 +27,8 @@ __all__ = [
 ]
 
 
+@entry_point(order=Int(1), dt=Real(positive=True), q=Real(minimum=0.0), noise=Choice("discrete", "continuous"),
+             dtype=DType())
 def kinematic_matrices(order: int, dt: float, q: float, noise: str, dtype=None) -> tuple[Tensor, Tensor, Tensor]:
     """One-axis kinematic ``F``, noise gain ``G`` and ``Q`` for a state of ``order`` derivatives.
 
@@ -74,6 +77,8 @@ class ConstantVelocity(LinearMotion):
         acceleration: known acceleration per mode, ``(*P, ndim)``; default none.
     """
 
+    @entry_point(ndim=Int(1), dt=Real(positive=True), q=Real(minimum=0.0), noise=Choice("discrete", "continuous"),
+                 acceleration=Finite(optional=True), dtype=DType())
     def __init__(self, ndim: int = 1, dt: float = 1.0, q: float = 1.0, *, noise: str = "discrete",
                  acceleration=None, dtype=None):
         ndim = as_int(ndim, "ndim", minimum=1)
@@ -100,6 +105,8 @@ class ConstantAcceleration(LinearMotion):
     State per axis ``[p, v, a]``; ``q`` drives the jerk.
     """
 
+    @entry_point(ndim=Int(1), dt=Real(positive=True), q=Real(minimum=0.0), noise=Choice("discrete", "continuous"),
+                 dtype=DType())
     def __init__(self, ndim: int = 1, dt: float = 1.0, q: float = 1.0, *, noise: str = "discrete", dtype=None):
         ndim = as_int(ndim, "ndim", minimum=1)
         F1, _, Q1 = kinematic_matrices(3, dt, q, noise, dtype)
@@ -166,6 +173,8 @@ class CoordinatedTurn(LinearMotion):
     Process noise is white acceleration on both axes (``noise`` as in :class:`ConstantVelocity`).
     """
 
+    @entry_point(omega=Finite(), dt=Real(positive=True), q=Real(minimum=0.0),
+                 noise=Choice("discrete", "continuous"), dtype=DType())
     def __init__(self, omega, dt: float = 1.0, q: float = 1.0, *, noise: str = "discrete", dtype=None):
         _, _, Q1 = kinematic_matrices(2, dt, q, noise, dtype)
         omega = as_tensor(omega, "omega", dtype=Q1.dtype, device=Q1.device)
@@ -181,6 +190,8 @@ class NonlinearCoordinatedTurn(MotionModel):
     turn-rate random-walk variance per step.
     """
 
+    @entry_point(dt=Real(positive=True), q=Real(minimum=0.0), q_omega=Real(minimum=0.0),
+                 noise=Choice("discrete", "continuous"), dtype=DType())
     def __init__(self, dt: float = 1.0, q: float = 1.0, q_omega: float = 1e-4, *, noise: str = "discrete",
                  dtype=None):
         super().__init__()

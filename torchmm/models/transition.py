@@ -11,10 +11,12 @@ import torch
 from torch import Tensor, nn
 
 from torchmm.validation import as_tensor, check_stochastic_rows
+from torchmm.contract import DType, Finite, Flag, Real, Stochastic, Text, entry_point
 
 __all__ = ["ModeTransition", "alpha_transition", "as_transition", "transition_alpha", "validate_transition"]
 
 
+@entry_point(matrix=Stochastic(check=False), name=Text(label=True))
 def validate_transition(matrix, name: str = "transition") -> Tensor:
     """Convert and check a row-stochastic transition matrix ``(..., M, M)``.
 
@@ -27,6 +29,7 @@ def validate_transition(matrix, name: str = "transition") -> Tensor:
     return matrix
 
 
+@entry_point(alpha=Finite(check=False), dtype=DType())
 def alpha_transition(alpha, *, dtype=None) -> Tensor:
     r"""The ``m``-parameter transition matrix of paper 001, eq. (2.2).
 
@@ -60,6 +63,7 @@ def alpha_transition(alpha, *, dtype=None) -> Tensor:
     return matrix * (1 - eye) + torch.diag_embed(diagonal.clamp_min(0))
 
 
+@entry_point(matrix=Stochastic(), atol=Real(minimum=0.0))
 def transition_alpha(matrix: Tensor, atol: float = 1e-12) -> Tensor | None:
     """The ``alpha`` of a matrix in the form (2.2), or ``None`` if it is not of that form.
 
@@ -95,6 +99,7 @@ class ModeTransition(nn.Module):
                 [0.2000, 0.8000]])
     """
 
+    @entry_point(matrix=Stochastic(check=False), learnable=Flag())
     def __init__(self, matrix, *, learnable: bool = False):
         super().__init__()
         matrix = validate_transition(matrix, "matrix")

@@ -18,6 +18,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor, nn
 
+from torchmm.contract import Indices, Int, Of, entry_point
 from torchmm.beliefs import Belief, stack
 from torchmm.filters.base import Filter, StepOutput, call_with
 from torchmm.validation import broadcast_shape
@@ -76,6 +77,7 @@ class FilterBank(nn.Module):
 class VectorizedBank(FilterBank):
     """A single filter whose model parameters broadcast over the mode axis (batch ``(M,)``)."""
 
+    @entry_point(filter=Of(Filter), num_modes=Int(1))
     def __init__(self, filter: Filter, num_modes: int):
         super().__init__()
         if not isinstance(filter, Filter):
@@ -131,6 +133,7 @@ class VectorizedBank(FilterBank):
 class ListBank(FilterBank):
     """Heterogeneous filters, mode ``j`` handled by ``filters[j]`` (one call per filter)."""
 
+    @entry_point(filters=Of((list, tuple), what="a list of filters"))
     def __init__(self, filters: Sequence[Filter]):
         super().__init__()
         filters = list(filters)
@@ -221,6 +224,7 @@ class IndexedBank(FilterBank):
         ``(*B, K, m)`` / ``(*B, K, k)`` (a size-1 mode axis, as ``z.unsqueeze(-2)``).
     """
 
+    @entry_point(bank=Of(FilterBank), index=Indices())
     def __init__(self, bank: FilterBank, index: Sequence[int]):
         super().__init__()
         index = [int(i) for i in index]
@@ -343,6 +347,7 @@ def _stack_optional(values, event: int):
     return torch.stack([v.expand(shape) for v in values], dim=-1 - event)
 
 
+@entry_point(bank=Of((Filter, FilterBank, list, tuple), what="a Filter, a list of filters or a FilterBank"), num_modes=Int(1))
 def make_bank(bank, num_modes: int) -> FilterBank:
     """Build a :class:`FilterBank` for ``num_modes`` modes.
 

@@ -558,14 +558,18 @@ class BatchLastIMM:
         (X, P, X_out, P_out, log_mu, mu, total, Xp, Pp, log_cbar, ll, singular, Xm, Pm, nu, S) = out
         state = (X, P, mu, k + 1)
         modes, gaussian = self.modes, self.gaussian
-        if self.estimate_only:
+        if self.estimate_only:  # (a failed run: a NaN log-likelihood, as in the engine)
             estimate = GaussianBelief(nu.permute(self._to_front1), S.permute(self._to_front2))
             return state, StepOutput(estimate, None, total)
         extras = None
         if ll is not None:
+            # failures as the engine flags them (docs/robustness.md): a run's where its log-likelihood
+            # is NaN, a mode's where a datum is present and its likelihood is NaN (a missing component
+            # of a NaN mode gives NaN * 0 here, 0 in the engine)
             extras = {
                 "mode_log_likelihood": modes(ll),
-                "modes": {"singular": modes(singular)},
+                "modes": {"singular": modes(singular), "failed": modes(torch.isnan(ll) & self.data[k][3])},
+                "failed": torch.isnan(total),  # (the keys in the engine's order)
                 "mixed": ModeBelief(modes(log_cbar), gaussian(Xm, Pm)),
             }
         out = StepOutput(

@@ -32,6 +32,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
+from torchmm.contract import Finite, Indices, Int, Of, entry_point
 from torchmm.beliefs import GaussianBelief
 from torchmm.filters.base import Filter, StepOutput, call_with
 from torchmm.validation import as_tensor, check_shape, gaussian_batch
@@ -39,6 +40,7 @@ from torchmm.validation import as_tensor, check_shape, gaussian_batch
 __all__ = ["Embedded", "kinematic_index"]
 
 
+@entry_point(order=Int(1), common_order=Int(1), ndim=Int(1))
 def kinematic_index(order: int, common_order: int, *, ndim: int = 1) -> list[int]:
     """Positions of a per-axis kinematic state of ``order`` derivatives inside one of
     ``common_order`` (torchmm's layout: per axis, position first).
@@ -68,6 +70,8 @@ class Embedded(Filter):
         step's ``innovation`` and ``extras`` are the mode filter's.
     """
 
+    @entry_point(filter=Of(Filter), index=Indices(), common_dim=Int(1), fill_mean=Finite(optional=True, check=False),
+                 fill_cov=Finite(optional=True, check=False))
     def __init__(self, filter: Filter, index: Sequence[int], common_dim: int, *, fill_mean=None, fill_cov=None):
         super().__init__()
         if not isinstance(filter, Filter):

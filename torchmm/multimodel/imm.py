@@ -25,11 +25,12 @@ import math
 import torch
 from torch import Tensor
 
+from torchmm.contract import BeliefArg, Finite, Gen, Int, Of, Stochastic, entry_point
 from torchmm.beliefs import Belief, ModeBelief
-from torchmm.filters.base import FastSteps, Filter, StepOutput
+from torchmm.filters.base import FastSteps, Filter, StepOutput, check_state_dim
 from torchmm.linalg import any_observed
 from torchmm.models.transition import as_transition
-from torchmm.multimodel.bank import VectorizedBank, make_bank
+from torchmm.multimodel.bank import FilterBank, VectorizedBank, make_bank
 from torchmm.multimodel.batch_last import BatchLastIMM, why_not
 from torchmm.validation import (
     check_filter_dtype,
@@ -140,6 +141,15 @@ def mode_posterior(mode_log_likelihood: Tensor, prior_log_probs: Tensor,
     return mode_log_probs, log_likelihood
 
 
+def flag_run_failed(log_likelihood: Tensor) -> Tensor:
+    """``failed (*B,)`` of a multiple-model step: True where its log-likelihood is NaN. A mode filter
+    that failed on a present datum (``extras["modes"]["failed"]``) has a NaN mode likelihood, which
+    the ``logsumexp`` over the modes carries into the run's (and the mixing into every mode at the
+    next step); without a datum the log-likelihood is exactly 0. One op, no host read
+    (docs/robustness.md)."""
+    return torch.isnan(log_likelihood)
+
+
 def mode_batch(belief, name: str = "belief") -> torch.Size:
     """Batch shape of a mode belief (from its mode log-probabilities; shapes only)."""
     mode_log_probs = getattr(belief, "mode_log_probs", None)
@@ -170,6 +180,8 @@ class MultipleModelFilter(Filter):
     #: the interaction of subclasses that do not pass one (IMM: :class:`MomentMixing`)
     default_interaction: type[Interaction] | None = None
 
+    @entry_point(bank=Of((Filter, FilterBank, list, tuple), what="a Filter, a list of filters or a FilterBank"), transition=Stochastic(),
+                 interaction=Of(Interaction, optional=True))
     def __init__(self, bank, transition, interaction: Interaction | None = None):
         super().__init__()
         self.transition = as_transition(transition)
@@ -225,6 +237,7 @@ class MultipleModelFilter(Filter):
     def _matrix(self, like: Tensor) -> Tensor:
         return _matrix(self.transition, like)
 
+    @entry_point(belief=BeliefArg(), mode_probs=Finite(optional=True, check=False), generator=Gen())
     def initial_belief(self, belief: Belief, mode_probs=None, *, generator=None) -> ModeBelief:
         """Start every mode from ``belief`` with prior mode probabilities ``mode_probs``.
 
@@ -240,6 +253,7 @@ class MultipleModelFilter(Filter):
             raise TypeError(f"belief: expected a belief (e.g. GaussianBelief), got {type(belief).__name__}")
         belief.validate("belief")
         check_filter_dtype(self, belief, "belief")
+        check_state_dim(self.bank, belief, "belief")
         batch = belief.batch_shape
         if mode_probs is None:
             log_probs = torch.full((M,), -math.log(M), dtype=belief.dtype, device=belief.device)
@@ -270,6 +284,7 @@ class MultipleModelFilter(Filter):
         observed = any_observed(z) if observed is None else observed
         mode_log_probs, log_likelihood = mode_posterior(out.log_likelihood, prior.mode_log_probs, observed)
         extras = _mode_extras(out)
+        extras["failed"] = flag_run_failed(log_likelihood)
         return StepOutput(
             belief=ModeBelief(mode_log_probs, out.belief),
             prior=prior,
@@ -341,8 +356,9 @@ class IMM(MultipleModelFilter):
         belief: :class:`ModeBelief`, ``mode_log_probs (*B, M)``, components batch ``(*B, M)``;
         ``z``: ``(*B, m)``; the step's ``innovation`` is ``(*B, M, m)``. ``extras`` holds
         ``"mixed"`` (``ModeBelief`` of the mixed start beliefs with ``log c_j``),
-        ``"mode_log_likelihood"`` ``(*B, M)`` and, when the mode filters report diagnostics,
-        ``"modes"`` (their ``extras``, batch ``(*B, M)``).
+        ``"mode_log_likelihood"`` ``(*B, M)``, ``"failed"`` ``(*B,)`` (a mode filter failed on a
+        present datum - a NaN prediction -: the log-likelihood is NaN, docs/robustness.md) and, when
+        the mode filters report diagnostics, ``"modes"`` (their ``extras``, batch ``(*B, M)``).
 
     Examples:
         >>> from torchmm.filters import KalmanFilter
@@ -384,6 +400,7 @@ class StaticMM(MultipleModelFilter):
         torch.Size([4, 2])
     """
 
+    @entry_point(bank=Of((Filter, FilterBank, list, tuple), what="a Filter, a list of filters or a FilterBank"), num_modes=Int(1, optional=True))
     def __init__(self, bank, num_modes: int | None = None):
         if num_modes is None:
             if isinstance(bank, (list, tuple)):
@@ -463,6 +480,7 @@ class GPB2(MultipleModelFilter):
         mode_log_probs = safe_log_normalize(log_mode, log_likelihood.unsqueeze(-1))
         log_likelihood = torch.where(any_observed(z), log_likelihood, 0.0)  # exactly 0 without a datum
         extras = _mode_extras(out, mode_axes=2)
+        extras["failed"] = flag_run_failed(log_likelihood)
         return StepOutput(
             belief=ModeBelief(mode_log_probs, merged),
             prior=belief,

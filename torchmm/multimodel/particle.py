@@ -27,6 +27,7 @@ import torch
 from torch import Tensor
 
 import torchmm.cpu_kernels as cpu_kernels
+from torchmm.contract import BeliefArg, Choice, DType, Finite, Flag, Gen, Int, Of, Stochastic, entry_point
 from torchmm.beliefs import GaussianBelief, ModeBelief, ParticleBelief
 from torchmm.beliefs.ops import normalize_log_probs
 from torchmm.filters.base import StepOutput
@@ -195,6 +196,7 @@ class ParticleMixing(Interaction):
 
     uses_generator = True
 
+    @entry_point(scheme=Choice(*_INVERSE_CDF_SCHEMES), num_particles=Int(1, optional=True))
     def __init__(self, scheme: str = "systematic", num_particles: int | None = None):
         if scheme not in _INVERSE_CDF_SCHEMES:
             raise ValueError(f"mixing: expected one of {_INVERSE_CDF_SCHEMES}, got {scheme!r}")
@@ -263,6 +265,8 @@ class MultipleModelParticleFilter(MultipleModelFilter):
         ``ParticleBelief(particles (*B, M, Np, n), log_weights (*B, M, Np))`` (normalised within
         each model); z: ``(*B, m)``; ``log_likelihood`` ``(*B,)``; ``extras``: ``"ess"`` (of the
         joint weights, ``(*B,)``), ``"mode_log_likelihood"`` ``(*B, M)``, ``"degenerate"`` ``(*B,)``,
+        ``"failed"`` ``(*B,)`` (a present datum and NaN particle likelihoods - non-finite particles -:
+        the log-likelihood is NaN, docs/robustness.md),
         ``"joint_log_weights"`` (33) before normalisation ``(*B, M, Np)``.
 
     Examples:
@@ -277,6 +281,8 @@ class MultipleModelParticleFilter(MultipleModelFilter):
         (torch.Size([5, 3, 200, 2]), torch.Size([5]))
     """
 
+    @entry_point(motion=Of(MotionModel), measurement=Of(MeasurementModel), transition=Stochastic(), num_particles=Int(1),
+                 mixing=Choice(*_INVERSE_CDF_SCHEMES), generator=Gen(), innovation_stats=Flag(), noise_dtype=DType(strings=True))
     def __init__(self, motion: MotionModel, measurement: MeasurementModel, transition, num_particles: int, *,
                  mixing: str = "systematic", generator: torch.Generator | None = None,
                  innovation_stats: bool = True, noise_dtype: torch.dtype | None = None):
@@ -322,6 +328,7 @@ class MultipleModelParticleFilter(MultipleModelFilter):
         """The call's random stream; the filter's ``generator`` (a default) when none is given."""
         return self.generator if generator is None else check_generator(generator)
 
+    @entry_point(belief=BeliefArg(), mode_probs=Finite(optional=True, check=False), generator=Gen())
     def initial_belief(self, belief: GaussianBelief, mode_probs=None, *,
                        generator: torch.Generator | None = None) -> ModeBelief:
         """``Np`` particles per model, each set drawn independently from the Gaussian prior (32).
@@ -424,28 +431,36 @@ class MultipleModelParticleFilter(MultipleModelFilter):
         inv, logdet = whitening(R)
         rows = batch.numel()
         source = particles.expand(*batch, *particles.shape[-3:])
-        x, loglik = cpu_kernels.propagate_log_likelihood(
+        x, loglik, nan = cpu_kernels.propagate_log_likelihood(
             source.reshape(rows, -1, n), flat.reshape(rows, M, num), eps.reshape(rows, M, num, -1), factor,
             motion.offset.expand(M, n), F, (inv @ H).contiguous(), -(z.unsqueeze(-2) @ inv.mT).reshape(rows, -1),
-            float(logdet + H.shape[0] * math.log(2 * math.pi)))
+            float(logdet + H.shape[0] * math.log(2 * math.pi)), with_nan=True)
         log_w = torch.full((), -math.log(num), dtype=x.dtype).expand(*batch, M, num)
         prior = ModeBelief(log_cbar, ParticleBelief(x.view(*batch, M, num, n), log_w))
-        return prior, loglik.view(*batch, M, num)
+        # (complete data here: a NaN log-likelihood is a failure of its run)
+        return prior, (loglik.view(*batch, M, num), nan.view(*batch, M).any(-1))
 
-    def _weigh(self, prior: ModeBelief, z: Tensor, loglik: Tensor | None = None):
+    def _weigh(self, prior: ModeBelief, z: Tensor, loglik: tuple[Tensor, Tensor] | None = None):
         """Weights (33)-(34) as per-model quantities (few passes over the particles).
 
-        Returns ``(joint, per_model, log_evidence, degenerate, predicted, prior_within)`` with the
-        unnormalised joint log-weights ``(*B, M, Np)`` and their per-model ``logsumexp`` ``(*B, M)``.
-        ``loglik``: the particles' log-likelihoods where already computed (a fresh tensor, NaN
+        Returns ``(joint, per_model, log_evidence, degenerate, predicted, prior_within, prior_mode,
+        failed)`` with the unnormalised joint log-weights ``(*B, M, Np)`` and their per-model
+        ``logsumexp`` ``(*B, M)``; ``failed (*B,)``: a present datum and a NaN particle
+        log-likelihood (non-finite particles; the log-likelihood is NaN there, docs/robustness.md).
+        ``loglik``: ``(log-likelihoods, NaN flags (*B,))`` where already computed (a fresh tensor, NaN
         mapped to ``-inf``).
         """
         comps = prior.components
         predicted = None
+        present = any_observed(z)
         if loglik is None:
             loglik, predicted = particle_log_likelihood(self.measurement, z.unsqueeze(-2), comps.particles, False,
                                                          need_predicted=self.innovation_stats)
+            nan = torch.isnan(loglik.sum((-2, -1)))  # one pass (no +inf likelihoods: NaN iff one is NaN)
             loglik = torch.nan_to_num(loglik, nan=-math.inf, posinf=math.inf, neginf=-math.inf)  # fresh, for add_
+        else:
+            loglik, nan = loglik
+        failed = nan & present
         lw = comps.log_weights
         prior_mode = normalize_log_probs(prior.mode_log_probs)
         if lw.dim() > 0 and lw.stride(-1) == 0 and lw.shape[-1] > 0:
@@ -457,13 +472,13 @@ class MultipleModelParticleFilter(MultipleModelFilter):
             joint = (prior_within + prior_mode.unsqueeze(-1)) + loglik  # (33), unnormalised
         per_model = torch.logsumexp(joint, dim=-1)
         log_evidence = torch.logsumexp(per_model, dim=-1)
-        log_evidence = torch.where(any_observed(z), log_evidence, 0.0)  # exactly 0 without a datum
+        log_evidence = torch.where(present, log_evidence, 0.0)  # exactly 0 without a datum
         degenerate = degenerate_guard(log_evidence)
         # on a device applied whether or not a run degenerated (no host synchronisation)
         if not host_reads_ok(degenerate) or bool(degenerate.any()):  # on the CPU: only where a run degenerated
             joint = torch.where(degenerate[..., None, None], prior_within + prior_mode.unsqueeze(-1), joint)
         per_model = torch.where(degenerate[..., None], prior_mode, per_model)
-        return joint, per_model, log_evidence, degenerate, predicted, prior_within, prior_mode
+        return joint, per_model, log_evidence, degenerate, predicted, prior_within, prior_mode, failed
 
     def update(self, belief: ModeBelief, z: Tensor, *, sensor: MeasurementModel | None = None,
                generator: torch.Generator | None = None) -> StepOutput:
@@ -475,7 +490,8 @@ class MultipleModelParticleFilter(MultipleModelFilter):
         """:meth:`update` with this model's sensor; ``loglik``: the prior particles' log-likelihoods of
         ``z`` where :meth:`step` computed them with the prior (:meth:`_fused_prior`)."""
         z = check_measurement(z, self.measurement.meas_dim, self._check_belief(belief), belief.components.particles)
-        joint, per_model, log_evidence, degenerate, predicted, prior_within, prior_mode = self._weigh(belief, z, loglik)
+        joint, per_model, log_evidence, degenerate, predicted, prior_within, prior_mode, failed = self._weigh(
+            belief, z, loglik)
         safe_ev = torch.where(degenerate, torch.zeros_like(log_evidence), log_evidence)
         mode_log_probs = per_model - safe_ev.unsqueeze(-1)  # (34) summed over particles
         within = joint - per_model.unsqueeze(-1)
@@ -489,12 +505,12 @@ class MultipleModelParticleFilter(MultipleModelFilter):
                                                      self.measurement.noise_cov())
         # ESS of the normalised joint weights: 1 / sum_j p_j^2 sum_l v_jl^2 (within <= 0: exp is safe)
         sq = (2 * mode_log_probs).exp().mul_((2 * within).exp_().sum(-1)).sum(-1)
-        extras = {"ess": 1.0 / sq, "mode_log_likelihood": per_model - prior_mode, "degenerate": degenerate,
-                  "joint_log_weights": joint}
+        extras = {"ess": 1.0 / sq, "mode_log_likelihood": per_model - prior_mode, "degenerate": degenerate & ~failed,
+                  "failed": failed, "joint_log_weights": joint}
         return StepOutput(
             belief=ModeBelief(mode_log_probs, ParticleBelief(belief.components.particles, within)),
             prior=belief,
-            log_likelihood=log_evidence,
+            log_likelihood=torch.where(failed, math.nan, log_evidence),
             innovation=innovation,
             innovation_cov=innovation_cov,
             extras=extras,

@@ -36,6 +36,7 @@ import torch
 from torch import Tensor
 
 import torchmm.cpu_kernels as cpu_kernels
+from torchmm.contract import Choice, Indices, Int, Of, entry_point
 from torchmm.beliefs import ModeBelief, ParticleBelief
 from torchmm.beliefs.ops import normalize_log_probs
 from torchmm.validation import as_int
@@ -368,9 +369,22 @@ class ExactMinimumEntropy:
             ``"literal"`` (the product of (28) and (29) as printed).
     """
 
+    @entry_point(family=Of((list, tuple, Tensor), optional=True, what="a list of model-index lists or a (K, M) bool mask"),
+                 chunk_size=Int(1),
+                 entropy=Choice(*ENTROPY_READINGS))
     def __init__(self, family=None, *, chunk_size: int = 16384, entropy: str = "joint"):
         if entropy not in ENTROPY_READINGS:
             raise ValueError(f"entropy: expected one of {ENTROPY_READINGS}, got {entropy!r}")
+        if isinstance(family, Tensor):
+            if family.dtype != torch.bool or family.dim() != 2:
+                raise TypeError(f"family: expected a (K, M) bool mask or a list of model-index lists, got a tensor of "
+                                f"dtype {family.dtype} and shape {tuple(family.shape)}")
+        elif family is not None:
+            if isinstance(family, (str, bytes)) or not isinstance(family, (list, tuple)) or not family:
+                raise TypeError(f"family: expected a (K, M) bool mask or a non-empty list of model-index lists, got "
+                                f"{family!r}")
+            for k, members in enumerate(family):
+                Indices().check(members, f"family[{k}]")
         self.family, self.chunk_size, self.entropy = family, as_int(chunk_size, "chunk_size", minimum=1), entropy
 
     def _family(self, num_models: int, device) -> Tensor | None:
@@ -414,6 +428,7 @@ class ChallengeMatch:
     empty); ``info["fallback"]`` marks those runs.
     """
 
+    @entry_point(num_winners=Int(1), threshold=Int(0), method=Choice("cm", "topk"), passes=Int(1))
     def __init__(self, num_winners: int = 420, threshold: int = 23, *, method: str = "cm", passes: int = 1):
         if method not in ("cm", "topk"):
             raise ValueError(f"method: expected 'cm' or 'topk', got {method!r}")

@@ -16,13 +16,14 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from torchmm.contract import BeliefArg, Finite, Gen, Int, Of, Real, Stochastic, entry_point
 from torchmm.beliefs import Belief, GaussianBelief, ModeBelief, ModelSetBelief, SourceTrackBelief, cat, where
-from torchmm.filters.base import StepOutput
+from torchmm.filters.base import Filter, StepOutput
 from torchmm.linalg import any_observed, cholesky, condition
 from torchmm.models.base import MeasurementModel
 from torchmm.models.linear import LinearMeasurement
-from torchmm.multimodel.bank import IndexedBank
-from torchmm.multimodel.imm import IMM, mode_posterior, safe_log_normalize
+from torchmm.multimodel.bank import FilterBank, IndexedBank
+from torchmm.multimodel.imm import IMM, flag_run_failed, mode_posterior, safe_log_normalize
 from torchmm.multimodel.multirate import check_source_sensor, multirate_streams
 from torchmm.multimodel.structure import ActiveSetMixing, DropBelow
 
@@ -47,6 +48,8 @@ class SourceUpdateIMM(IMM):
         as :class:`TransferIMM` (``extras["source_log_likelihood"]`` ``(*B, M)``).
     """
 
+    @entry_point(bank=Of((Filter, FilterBank, list, tuple), what="a Filter, a list of filters or a FilterBank"),
+                 transition=Stochastic(), source=Of(MeasurementModel))
     def __init__(self, bank, transition, source: MeasurementModel):
         super().__init__(bank, transition)
         self.source = check_source_sensor(source, self.bank.state_dim)
@@ -70,10 +73,13 @@ class SourceUpdateIMM(IMM):
 class _SourceTrackIMM(IMM):
     """Shared set-up: the target IMM plus an independent source-only IMM over the same modes."""
 
+    @entry_point(bank=Of((Filter, FilterBank, list, tuple), what="a Filter, a list of filters or a FilterBank"),
+                 transition=Stochastic(), source=Of(MeasurementModel))
     def __init__(self, bank, transition, source: MeasurementModel):
         super().__init__(bank, transition)
         self.source = check_source_sensor(source, self.bank.state_dim)
 
+    @entry_point(belief=BeliefArg(), mode_probs=Finite(optional=True, check=False), generator=Gen())
     def initial_belief(self, belief: Belief, mode_probs=None, *, generator=None) -> SourceTrackBelief:
         """Both tracks start from ``belief`` (batch ``(*B,)``) -> :class:`SourceTrackBelief`."""
         start = super().initial_belief(belief, mode_probs, generator=generator)
@@ -150,6 +156,10 @@ class SourceModeVSIMM(_SourceTrackIMM):
         probability ``-inf``); ``z``: :class:`MultiRate`.
     """
 
+    @entry_point(bank=Of((Filter, FilterBank, list, tuple), what="a Filter, a list of filters or a FilterBank"),
+                 transition=Stochastic(), source=Of(MeasurementModel), extra_model=Int(0),
+                 p_new=Real(minimum=0.0, maximum=1.0, optional=True), p_ee=Real(minimum=0.0, maximum=1.0),
+                 eps=Real(minimum=0.0, maximum=1.0), drop_below=Real(minimum=0.0, maximum=1.0))
     def __init__(self, bank, transition, source: MeasurementModel, *, extra_model: int = 0,
                  p_new: float | None = None, p_ee: float = 0.9, eps: float = 0.01, drop_below: float = 1e-3):
         super().__init__(bank, transition, source)
@@ -180,6 +190,7 @@ class SourceModeVSIMM(_SourceTrackIMM):
         full = torch.cat([top, bottom], dim=-2)
         return full / full.sum(-1, keepdim=True)
 
+    @entry_point(belief=BeliefArg(), mode_probs=Finite(optional=True, check=False), generator=Gen())
     def initial_belief(self, belief: Belief, mode_probs=None, *, generator=None) -> SourceTrackBelief:
         start = IMM.initial_belief(self, belief, mode_probs, generator=generator)
         batch = belief.batch_shape
@@ -222,6 +233,7 @@ class SourceModeVSIMM(_SourceTrackIMM):
                   "extra_mode_active": active[..., M], "active": active}
         if out.extras:
             extras["modes"] = dict(out.extras)
+        extras["failed"] = flag_run_failed(log_likelihood)
         return StepOutput(SourceTrackBelief(new_target, source), prior, log_likelihood,
                           out.innovation, out.innovation_cov, extras)
 

@@ -24,9 +24,11 @@ import math
 import torch
 from torch import Tensor
 
+from torchmm.contract import Flag, Indices, Of, Real, Stochastic, entry_point
 from torchmm.beliefs import Belief, ModeBelief, ModelSetBelief
 from torchmm.beliefs.ops import normalize_log_probs
-from torchmm.filters.base import StepOutput
+from torchmm.filters.base import Filter, StepOutput
+from torchmm.multimodel.bank import FilterBank
 from torchmm.multimodel.imm import IMM, Interaction
 
 __all__ = ["ActiveSetMixing", "AllModels", "DropBelow", "FixedSet", "ModelSetPolicy", "VariableStructureIMM"]
@@ -55,6 +57,7 @@ class FixedSet(ModelSetPolicy):
         members: indices of the active models (non-empty).
     """
 
+    @entry_point(members=Indices())
     def __init__(self, members):
         self.members = sorted({int(i) for i in members})
         if not self.members:
@@ -78,6 +81,7 @@ class DropBelow(ModelSetPolicy):
         candidates: indices of the models that may be dropped (the others are always active).
     """
 
+    @entry_point(threshold=Real(minimum=0.0, maximum=1.0), candidates=Indices(empty=True))
     def __init__(self, threshold: float, candidates):
         self.threshold = float(threshold)
         if not 0.0 <= self.threshold < 1.0:
@@ -90,6 +94,26 @@ class DropBelow(ModelSetPolicy):
         candidate[self.candidates] = True
         low = lp < torch.log(torch.tensor(self.threshold, dtype=lp.dtype, device=lp.device))
         return ~(candidate & (low | (lp == -math.inf))), {}
+
+
+def check_active_set(active, shape: torch.Size, name: str = "policy") -> Tensor:
+    """A policy's active set: a bool tensor that broadcasts to the mode probabilities' ``(*B, M)``.
+    Shapes and dtype only (no values read: an empty set is flagged by the caller, per run)."""
+    if not isinstance(active, Tensor):
+        raise TypeError(f"{name}: select returned {type(active).__name__} for the active set, expected a bool "
+                        f"tensor of shape {tuple(shape)}")
+    if active.dtype != torch.bool:
+        raise TypeError(f"{name}: select returned an active set of dtype {active.dtype}, expected torch.bool")
+    if active.shape != shape:
+        try:
+            ok = torch.broadcast_shapes(active.shape, shape) == shape
+        except RuntimeError:
+            ok = False
+        if not ok:
+            raise ValueError(f"{name}: select returned an active set of shape {tuple(active.shape)}, expected "
+                             f"{tuple(shape)} (*B, M)")
+        active = active.expand(shape)
+    return active
 
 
 class ActiveSetMixing(Interaction):
@@ -148,6 +172,9 @@ class VariableStructureIMM(IMM):
         (torch.Size([4, 3]), torch.Size([4, 2]))
     """
 
+    @entry_point(bank=Of((Filter, FilterBank, list, tuple), what="a Filter, a list of filters or a FilterBank"),
+                 transition=Stochastic(), policy=Of(methods=("select",), what="a model-set policy (with a select method)"),
+                 feedback=Flag())
     def __init__(self, bank, transition, policy: ModelSetPolicy, *, feedback: bool = True):
         super().__init__(bank, transition)
         if not callable(getattr(policy, "select", None)):
@@ -172,12 +199,22 @@ class VariableStructureIMM(IMM):
     def update(self, belief: ModeBelief, z: Tensor, *, sensor=None, generator=None) -> StepOutput:
         out = super().update(belief, z, sensor=sensor, generator=generator)
         post = out.belief
-        active, info = self.policy.select(post, generator)
+        selected = self.policy.select(post, generator)
+        if not isinstance(selected, tuple) or len(selected) != 2 or not isinstance(selected[1], dict):
+            raise TypeError(f"policy: {type(self.policy).__name__}.select must return (active, info dict), got "
+                            f"{type(selected).__name__}")
+        active, info = selected
         carried = post.mode_log_probs
+        active = check_active_set(active, carried.shape)
+        # an empty set is that run's failure (never the others'): flagged, its likelihood NaN
+        empty = ~active.any(-1)
         if self.feedback:
             carried = normalize_log_probs(torch.where(active, carried, torch.full_like(carried, -math.inf)))
         extras = dict(out.extras)
         extras.update(info)
         extras["active"] = active
         extras["model_count"] = active.sum(-1)
-        return out._replace(belief=ModelSetBelief(carried, post.components, active), extras=extras)
+        extras["empty_set"] = empty
+        log_likelihood = torch.where(empty, torch.full_like(out.log_likelihood, math.nan), out.log_likelihood)
+        return out._replace(belief=ModelSetBelief(carried, post.components, active), extras=extras,
+                            log_likelihood=log_likelihood)

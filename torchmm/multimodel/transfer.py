@@ -26,8 +26,9 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from torchmm.contract import Choice, Cov, Finite, Int, Of, Real, Stochastic, entry_point
 from torchmm.beliefs import Belief, GaussianBelief, ModeBelief, where
-from torchmm.filters.base import StepOutput
+from torchmm.filters.base import Filter, StepOutput
 from torchmm.linalg import any_observed, cholesky, cholesky_solve, condition
 from torchmm.models.base import MeasurementModel
 from torchmm.models.linear import LinearMotion, matvec
@@ -174,6 +175,10 @@ class InfluenceGate:
             raise ValueError(f"weight: expected 'prior' or 'process', got {self.weight!r}")
 
 
+InfluenceGate.__init__ = entry_point(threshold=Real(), mode=Int(0), weight=Choice("prior", "process"))(
+    InfluenceGate.__init__)
+
+
 # --------------------------------------------------------------------------------------------
 # IMM-TF / IF-TF
 # --------------------------------------------------------------------------------------------
@@ -229,6 +234,9 @@ class TransferIMM(IMM):
         (torch.Size([8, 2]), torch.Size([8, 1]))
     """
 
+    @entry_point(bank=Of((Filter, FilterBank, list, tuple), what="a Filter, a list of filters or a FilterBank"),
+                 transition=Stochastic(), source=Of(MeasurementModel), smoothing_reference=Choice("combined", "mixed"),
+                 mode_likelihood=Choice("prior", "corrected"), gate=Of(InfluenceGate, optional=True))
     def __init__(self, bank, transition, source: MeasurementModel, *, smoothing_reference: str = "combined",
                  mode_likelihood: str = "prior", gate: InfluenceGate | None = None):
         super().__init__(bank, transition)
@@ -288,6 +296,7 @@ class TransferIMM(IMM):
         extras = dict(plain.extras)
         extras.update(mixed=mixed, influence=influence, transfer_used=used, source_present=present,
                       smoothed=smoothed, transferred_knowledge=u_s)
+        extras["failed"] = torch.isnan(log_likelihood)  # a failed mode: NaN (docs/robustness.md)
         return StepOutput(ModeBelief(mode_log_probs, components), prior, log_likelihood,
                           plain.innovation, plain.innovation_cov, extras)
 

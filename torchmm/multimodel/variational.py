@@ -12,6 +12,8 @@ noise-covariance estimates) in ``extras["modes"]``.
 
 from __future__ import annotations
 
+from torchmm.contract import Choice, Finite, Flag, Int, Of, Real, Stochastic, entry_point
+from torchmm.models.base import MeasurementModel, MotionModel
 from torchmm.filters.variational import SkewTIWVBFilter, StudentTVBFilter
 from torchmm.multimodel.imm import IMM
 
@@ -28,6 +30,9 @@ class VariationalIMM(IMM):
     """
 
 
+@entry_point(motion=Of(MotionModel), measurement=Of(MeasurementModel), transition=Stochastic(),
+             skewness=Finite(check=False), df=Finite(check=False), tau=Real(positive=True), iterations=Int(1),
+             gamma_shape=Choice("derived", "printed"), elbo_history=Flag(), joseph=Flag(optional=True))
 def gimmaf(motion, measurement, transition, *, skewness, df, tau: float = 3.0, iterations: int = 10,
            gamma_shape: str = "derived", elbo_history: bool = False, joseph: bool | None = None) -> VariationalIMM:
     r"""GIMMAF: IMM over skew-t + inverse-Wishart VB filters (:class:`SkewTIWVBFilter`).
@@ -57,6 +62,8 @@ def gimmaf(motion, measurement, transition, *, skewness, df, tau: float = 3.0, i
     return _build(bank, transition)
 
 
+@entry_point(motion=Of(MotionModel), measurement=Of(MeasurementModel), transition=Stochastic(), df=Real(positive=True),
+             iterations=Int(1), elbo_history=Flag(), joseph=Flag(optional=True))
 def imm_vbt(motion, measurement, transition, *, df, iterations: int = 10,
             elbo_history: bool = False, joseph: bool | None = None) -> VariationalIMM:
     """IMM-VBT: IMM over Student-t VB filters (:class:`StudentTVBFilter`), ELBO mode likelihood.

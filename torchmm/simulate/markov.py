@@ -15,13 +15,28 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from torchmm.beliefs import GaussianBelief, psd_sqrt
+from torchmm.contract import (
+    BeliefArg,
+    Device,
+    DType,
+    Finite,
+    Gen,
+    Int,
+    Labels,
+    Mask,
+    Of,
+    Real,
+    Shape,
+    Stochastic,
+    entry_point,
+)
 from torchmm.models.base import MeasurementModel, MotionModel
 from torchmm.models.streams import MultiRate
 from torchmm.models.transition import validate_transition
-from torchmm.validation import as_tensor
+from torchmm.validation import as_tensor, check_probabilities
 
 __all__ = [
     "JumpSimulation",
@@ -56,13 +71,30 @@ class JumpSimulation:
         return JumpSimulation(self.states.to(dtype), self.modes, self.initial_state.to(dtype), self.initial_mode)
 
 
+@entry_point(probs=Finite(check=False), generator=Gen())
 def sample_categorical(probs: Tensor, generator: torch.Generator | None = None) -> Tensor:
-    """One draw per batch element from ``probs (*B, M)`` (rows sum to one) -> ``(*B,)`` int64."""
+    """One draw per batch element from ``probs (*B, M)`` (rows sum to one) -> ``(*B,)`` int64.
+
+    Raises:
+        ValueError: naming ``probs`` if it is not a finite, non-negative ``(*B, M)`` tensor whose
+            rows sum to one.
+    """
+    probs = as_tensor(probs, "probs")
+    if probs.dim() < 1 or probs.shape[-1] < 1:
+        raise ValueError(f"probs: expected shape (*B, M), got {tuple(probs.shape)}")
+    probs = check_probabilities(probs, "probs", probs.shape[-1])
+    return _sample_categorical(probs, generator)
+
+
+def _sample_categorical(probs: Tensor, generator: torch.Generator | None = None) -> Tensor:
+    """:func:`sample_categorical` without the checks (inside the simulation loop)."""
     u = torch.rand(probs.shape[:-1], generator=generator, dtype=probs.dtype, device=probs.device)
     cdf = probs.cumsum(-1)
     return (u.unsqueeze(-1) >= cdf).sum(-1).clamp_max(probs.shape[-1] - 1)
 
 
+@entry_point(transition=Stochastic(check=False), steps=Int(1), batch_shape=Shape(),
+             initial_probs=Finite(optional=True, check=False), generator=Gen())
 def simulate_modes(
     transition,
     steps: int,
@@ -73,22 +105,35 @@ def simulate_modes(
 ) -> tuple[Tensor, Tensor]:
     """Markov chain paths ``r_1 .. r_T`` for every batch element.
 
+    Args:
+        transition: ``(M, M)`` row-stochastic matrix.
+        steps: ``T >= 1``.
+        batch_shape: ``*B``, e.g. ``(mc_runs,)``.
+        initial_probs: distribution of ``r_0``, ``(M,)`` (or ``(*B, M)``), default uniform.
+        generator: the only source of randomness.
+
     Returns:
         ``(modes (T, *B), initial_mode (*B,))``
     """
     transition = validate_transition(transition)
+    if transition.dim() != 2:
+        raise ValueError(f"transition: expected one (M, M) matrix, got shape {tuple(transition.shape)}")
     M = transition.shape[-1]
-    batch_shape = torch.Size(batch_shape)
     if initial_probs is None:
         initial_probs = torch.full((M,), 1.0 / M, dtype=transition.dtype, device=transition.device)
-    initial_probs = as_tensor(initial_probs, "initial_probs", dtype=transition.dtype, device=transition.device)
-    if initial_probs.shape[-1] != M:
-        raise ValueError(f"initial_probs: expected {M} entries, got shape {tuple(initial_probs.shape)}")
-    mode = sample_categorical(initial_probs.expand(*batch_shape, M), generator)
+    else:
+        initial_probs = check_probabilities(initial_probs, "initial_probs", M, dtype=transition.dtype,
+                                            device=transition.device)
+    try:
+        start = initial_probs.expand(*batch_shape, M)
+    except RuntimeError:
+        raise ValueError(f"initial_probs: shape {tuple(initial_probs.shape)} does not broadcast to the batch "
+                         f"{tuple(batch_shape)}") from None
+    mode = _sample_categorical(start, generator)
     initial_mode = mode
     modes = []
     for _ in range(steps):
-        mode = sample_categorical(transition[mode], generator)
+        mode = _sample_categorical(transition[mode], generator)
         modes.append(mode)
     return torch.stack(modes), initial_mode
 
@@ -112,6 +157,40 @@ def _gather_mode(values: Tensor, modes: Tensor, event: int) -> Tensor:
     return torch.take_along_dim(values, index, dim=-1 - event).squeeze(-1 - event)
 
 
+def _motion_models(motion, M: int, initial: GaussianBelief) -> list[MotionModel] | MotionModel:
+    """Check ``motion`` (a bank, or one model per mode) against the transition and the initial belief."""
+    models = list(motion) if isinstance(motion, (list, tuple, nn.ModuleList)) else None
+    for j, m in enumerate(models if models is not None else [motion]):
+        label = "motion" if models is None else f"motion[{j}]"
+        if not isinstance(m, MotionModel):
+            raise TypeError(f"{label}: expected a MotionModel, got {type(m).__name__}")
+        if m.state_dim != initial.state_dim:
+            raise ValueError(f"{label}: state_dim {m.state_dim} does not match the initial belief's "
+                             f"{initial.state_dim}")
+        for name, tensor in (*m.named_parameters(), *m.named_buffers()):
+            if tensor.is_floating_point() and tensor.dtype != initial.dtype:
+                raise TypeError(f"initial: dtype {initial.dtype} differs from the motion model's "
+                                f"{tensor.dtype} ({label}.{name}); convert one of them")
+    if models is not None and len(models) != M:
+        raise ValueError(f"motion: {len(models)} models for the {M} modes of the transition matrix")
+    return models if models is not None else motion
+
+
+def _all_modes(motion, x: Tensor) -> tuple[Tensor, Tensor]:
+    """Every mode's propagated state ``(*B, M, n)`` and noise factor ``(*B, M, n, n)`` (or a shared
+    mode axis of size 1) at ``x (*B, n)``."""
+    if isinstance(motion, list):
+        n = x.shape[-1]
+        mean = torch.stack([m(x).expand(x.shape) for m in motion], -2)
+        scale = torch.stack([psd_sqrt(m.noise_cov(x)).expand(*x.shape[:-1], n, n) for m in motion], -3)
+        return mean, scale
+    return motion(x.unsqueeze(-2)), psd_sqrt(motion.noise_cov(x.unsqueeze(-2)))
+
+
+@entry_point(motion=Of((MotionModel, list, tuple, nn.ModuleList),
+                       what="a MotionModel (a mode bank) or a sequence of one MotionModel per mode"),
+             transition=Stochastic(check=False), initial=BeliefArg(validate=True), steps=Int(1),
+             batch_shape=Shape(), initial_mode_probs=Finite(optional=True, check=False), generator=Gen())
 def simulate_jump_system(
     motion: MotionModel,
     transition,
@@ -125,11 +204,14 @@ def simulate_jump_system(
     """Simulate ``steps`` transitions of a Markov-jump system for a batch of runs.
 
     Args:
-        motion: a motion model whose parameters form a mode bank (batch ``(M,)``, or shared);
-            evaluated for all modes at once and the active mode picked per run.
+        motion: a motion model whose parameters form a mode bank (batch ``(M,)``, or shared),
+            evaluated for all modes at once, or a list (tuple) of ``M`` single-mode motion models
+            of the same state (e.g. ``[ConstantVelocity(1), CoordinatedTurn(...)]``, as for an
+            IMM), each evaluated every step; the active mode is picked per run.
         transition: ``(M, M)`` row-stochastic matrix.
-        initial: distribution of ``x_0`` (batch ``()`` or ``(*B,)``).
-        steps: ``T``.
+        initial: distribution of ``x_0`` (a :class:`GaussianBelief`, batch ``()`` or ``(*B,)``;
+            its dtype is the simulation's and must be the motion model's).
+        steps: ``T >= 1``.
         batch_shape: ``*B``, e.g. ``(mc_runs,)``.
         initial_mode_probs: distribution of ``r_0``, default uniform.
         generator: the only source of randomness.
@@ -137,9 +219,17 @@ def simulate_jump_system(
     Returns:
         :class:`JumpSimulation`.
     """
+    if not isinstance(initial, GaussianBelief):
+        raise TypeError(f"initial: expected a GaussianBelief, got {type(initial).__name__}")
     transition = validate_transition(transition)
-    batch_shape = torch.Size(batch_shape)
-    modes, initial_mode = simulate_modes(
+    if transition.dim() != 2:
+        raise ValueError(f"transition: expected one (M, M) matrix, got shape {tuple(transition.shape)}")
+    motion = _motion_models(motion, transition.shape[-1], initial)
+    if initial_mode_probs is not None:
+        M = transition.shape[-1]
+        initial_mode_probs = check_probabilities(initial_mode_probs, "initial_mode_probs", M,
+                                                 dtype=transition.dtype, device=transition.device)
+    modes, initial_mode = simulate_modes.__wrapped__(
         transition, steps, batch_shape, initial_probs=initial_mode_probs, generator=generator
     )
     dtype, device = initial.dtype, initial.device
@@ -151,14 +241,17 @@ def simulate_jump_system(
     states = []
     for k in range(steps):
         mode = modes[k]
-        propagated = _gather_mode(motion(x.unsqueeze(-2)), mode, event=1)
-        scale = _gather_mode(psd_sqrt(motion.noise_cov(x.unsqueeze(-2))), mode, event=2)
+        means, scales = _all_modes(motion, x)
+        propagated = _gather_mode(means, mode, event=1)
+        scale = _gather_mode(scales, mode, event=2)
         eps = torch.randn(*batch_shape, n, generator=generator, dtype=dtype, device=device)
         x = propagated + (scale @ eps.unsqueeze(-1)).squeeze(-1)
         states.append(x)
     return JumpSimulation(torch.stack(states), modes, initial_state, initial_mode)
 
 
+@entry_point(measurement=Of(MeasurementModel), states=Finite(), modes=Labels(optional=True),
+             available=Mask(optional=True), generator=Gen())
 def simulate_measurements(
     measurement: MeasurementModel,
     states: Tensor,
@@ -180,6 +273,15 @@ def simulate_measurements(
     Returns:
         ``(T, *B, m)`` measurements.
     """
+    if states.dim() < 1 or states.shape[-1] != measurement.state_dim:
+        raise ValueError(f"states: expected shape (T, *B, {measurement.state_dim}) for the sensor's state, "
+                         f"got {tuple(states.shape)}")
+    if modes is not None and modes.shape != states.shape[:-1]:
+        raise ValueError(f"modes: expected shape {tuple(states.shape[:-1])}, got {tuple(modes.shape)}")
+    return _simulate_measurements(measurement, states, modes=modes, available=available, generator=generator)
+
+
+def _simulate_measurements(measurement, states, *, modes=None, available=None, generator=None) -> Tensor:
     if modes is None:
         predicted = measurement(states)
         cov = measurement.noise_cov(states)
@@ -195,6 +297,8 @@ def simulate_measurements(
     return z
 
 
+@entry_point(steps=Int(0), batch_shape=Shape(), probability=Real(0.0, 1.0), generator=Gen(), device=Device(),
+             dtype=DType())
 def bernoulli_mask(steps: int, batch_shape, probability: float, *, generator=None, device=None,
                    dtype: torch.dtype = torch.float64) -> Tensor:
     """``(T, *B)`` bool mask, each entry true with ``probability`` (irregular slow-rate data).
@@ -202,21 +306,21 @@ def bernoulli_mask(steps: int, batch_shape, probability: float, *, generator=Non
     The uniforms are drawn in ``dtype`` (float64 by default, not the process's default dtype), so
     the mask and every later draw from ``generator`` do not depend on ``torch.get_default_dtype()``.
     """
-    if not 0.0 <= probability <= 1.0:
-        raise ValueError(f"probability: must lie in [0, 1], got {probability}")
     u = torch.rand(steps, *batch_shape, generator=generator, device=device, dtype=dtype)
     return u < probability
 
 
+@entry_point(steps=Int(0), batch_shape=Shape(), period=Int(1), offset=Int(), device=Device())
 def periodic_mask(steps: int, batch_shape, period: int, *, offset: int = 0, device=None) -> Tensor:
     """``(T, *B)`` bool mask true at steps ``k`` (1-based) with ``(k - offset) % period == 0``."""
-    if period < 1:
-        raise ValueError(f"period: must be a positive integer, got {period}")
     k = torch.arange(1, steps + 1, device=device)
     mask = (k - offset) % period == 0
     return mask.reshape(steps, *([1] * len(batch_shape))).expand(steps, *batch_shape)
 
 
+@entry_point(target=Of(MeasurementModel), source=Of(MeasurementModel), states=Finite(),
+             probability=Real(0.0, 1.0, optional=True), period=Int(1, optional=True), offset=Int(),
+             generator=Gen())
 def simulate_multirate(
     target: MeasurementModel,
     source: MeasurementModel,
@@ -251,10 +355,17 @@ def simulate_multirate(
 
     if (probability is None) == (period is None):
         raise ValueError("probability, period: give exactly one of them")
+    if states.dim() < 2:
+        raise ValueError(f"states: expected shape (T, *B, n), got {tuple(states.shape)}")
+    for name, sensor in (("target", target), ("source", source)):
+        if states.shape[-1] != sensor.state_dim:
+            raise ValueError(f"{name}: state_dim {sensor.state_dim} does not match the states' "
+                             f"{states.shape[-1]}")
     steps, batch = states.shape[0], states.shape[1:-1]
-    y = simulate_measurements(target, states, generator=generator)
+    y = _simulate_measurements(target, states, generator=generator)
     if probability is not None:
-        mask = bernoulli_mask(steps, batch, probability, generator=generator, device=states.device)
+        mask = bernoulli_mask.__wrapped__(steps, batch, probability, generator=generator,
+                                          device=states.device)
     else:
-        mask = periodic_mask(steps, batch, period, offset=offset, device=states.device)
-    return MultiRate(y, simulate_measurements(source, states, available=mask, generator=generator))
+        mask = periodic_mask.__wrapped__(steps, batch, period, offset=offset, device=states.device)
+    return MultiRate(y, _simulate_measurements(source, states, available=mask, generator=generator))

@@ -1,0 +1,194 @@
+"""Examples of the entry points of torchmm.analysis, metrics, simulate, learn and distributions
+(see tests/robustness/api_examples.py)."""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+
+import torch
+
+from tests.robustness.api_examples import _OP, NOT_ENTRY_POINTS, call, example
+from torchmm import analysis, distributions, learn, metrics, models, simulate
+from torchmm.beliefs import GaussianBelief, ParticleBelief
+from torchmm.filters import KalmanFilter
+
+NOT_ENTRY_POINTS.update({
+    "torchmm.distributions.truncated_normal_moments": _OP + " (the variational filters call it inside every "
+    "step; its inputs are the filter's own moments)",
+})
+
+
+# -- shared set-ups (built inside the examples, so in float64) ----------------------------------------
+def _gen():
+    return torch.Generator().manual_seed(0)
+
+
+def _cv(q=0.5):
+    return models.ConstantVelocity(1, q=q, dtype=torch.float64)
+
+
+def _pos():
+    return models.PositionMeasurement(2, [0], 1.0, dtype=torch.float64)
+
+
+def _alpha():
+    return torch.tensor([0.05, 0.1])
+
+
+def _probs():
+    return torch.tensor([[0.3, 0.7], [0.6, 0.4]])
+
+
+def _transition():
+    return torch.tensor([[0.9, 0.1], [0.2, 0.8]])
+
+
+def _means():
+    return torch.tensor([[[0.0, 1.0], [2.0, 1.0]], [[1.0, 0.0], [0.5, 0.5]]])  # (B=2, M=2, n=2)
+
+
+def _mixed():
+    return _means() + 0.1
+
+
+def _matched():
+    return torch.tensor([0, 1])
+
+
+# -- analysis -------------------------------------------------------------------------------------------
+_IMM = "torchmm.analysis.imm."
+example(_IMM + "predicted_mode_probs")(lambda: call(analysis.predicted_mode_probs, _alpha(), _probs()))
+example(_IMM + "mixed_probability_bounds")(lambda: call(analysis.mixed_probability_bounds, _alpha()))
+example(_IMM + "ratio_bounds")(lambda: call(analysis.ratio_bounds, _alpha(), _probs()))
+example(_IMM + "delta_ratio")(lambda: call(analysis.delta_ratio, _alpha(), _probs(), _matched()))
+example(_IMM + "zeta_ratio")(lambda: call(analysis.zeta_ratio, _transition(), _probs(), _matched()))
+example(_IMM + "matched_model")(
+    lambda: call(analysis.matched_model, _means(), torch.tensor([[0.0, 1.0], [0.4, 0.5]])))
+example(_IMM + "interaction_deviations")(
+    lambda: call(analysis.interaction_deviations, _probs(), _means(), _mixed(), _matched()))
+example(_IMM + "check_conclusions")(
+    lambda: call(analysis.check_conclusions, _transition(), _probs(), _means(), _mixed(), _matched(),
+                 tol=1e-9))
+example(_IMM + "check_probability_bounds")(
+    lambda: call(analysis.check_probability_bounds, _alpha(), _probs(),
+                 analysis.predicted_mode_probs(_alpha(), _probs()), tol=1e-9))
+
+
+# -- metrics --------------------------------------------------------------------------------------------
+def _estimate():
+    return torch.arange(12.0).reshape(3, 2, 2) / 4  # (T=3, B=2, n=2)
+
+
+_M = "torchmm.metrics."
+example(_M + "squared_error")(lambda: call(metrics.squared_error, _estimate(), torch.zeros(3, 2, 2), [0]))
+example(_M + "rmse")(lambda: call(metrics.rmse, _estimate(), torch.zeros(3, 2, 2), [0, 1]))
+example(_M + "armse")(lambda: call(metrics.armse, _estimate(), torch.zeros(3, 2, 2), components=[1]))
+example(_M + "nees")(
+    lambda: call(metrics.nees, GaussianBelief(_estimate(), torch.eye(2).expand(3, 2, 2, 2)),
+                 torch.zeros(3, 2, 2)))
+example(_M + "nis")(
+    lambda: call(metrics.nis, torch.tensor([[1.0, 2.0], [float("nan"), 1.0]]),
+                 torch.tensor([[4.0, 1.0], [1.0, 2.0]]).expand(2, 2, 2)))
+example(_M + "mode_hits")(lambda: call(metrics.mode_hits, _probs().log(), _matched()))
+example(_M + "mode_accuracy")(
+    lambda: call(metrics.mode_accuracy, torch.stack([_probs(), _probs()]),
+                 torch.stack([_matched(), _matched()])))
+
+
+# -- simulate -------------------------------------------------------------------------------------------
+_S = "torchmm.simulate.markov."
+example(_S + "sample_categorical")(lambda: call(simulate.sample_categorical, _probs(), generator=_gen()))
+example(_S + "simulate_modes")(
+    lambda: call(simulate.simulate_modes, _transition(), 3, (4,), initial_probs=torch.tensor([0.5, 0.5]),
+                 generator=_gen()))
+example(_S + "simulate_jump_system")(
+    lambda: call(simulate.simulate_jump_system, [_cv(0.5), _cv(2.0)], _transition(),
+                 GaussianBelief(torch.zeros(2), torch.eye(2)), 3, (4,),
+                 initial_mode_probs=torch.tensor([0.5, 0.5]), generator=_gen()))
+example(_S + "simulate_measurements")(
+    lambda: call(simulate.simulate_measurements, _pos(), torch.zeros(3, 4, 2),
+                 modes=torch.zeros(3, 4, dtype=torch.long), available=torch.ones(3, 4, dtype=torch.bool),
+                 generator=_gen()))
+example(_S + "bernoulli_mask")(
+    lambda: call(simulate.bernoulli_mask, 3, (4,), 0.5, generator=_gen(), device="cpu", dtype=torch.float64))
+example(_S + "periodic_mask")(lambda: call(simulate.periodic_mask, 5, (4,), 2, offset=1, device="cpu"))
+example(_S + "simulate_multirate")(
+    lambda: call(simulate.simulate_multirate, _pos(), _pos(), torch.zeros(3, 4, 2), probability=0.5, offset=0,
+                 generator=_gen()))
+
+
+# -- distributions --------------------------------------------------------------------------------------
+example("torchmm.distributions.MultivariateStudentT")(
+    lambda: call(distributions.MultivariateStudentT, torch.zeros(2), 2 * torch.eye(2), 5.0,
+                 validate_args=False))
+example("torchmm.distributions.SkewT")(
+    lambda: call(distributions.SkewT, torch.zeros(2), torch.full((2,), 4.0), torch.full((2,), 1.0), 10.0,
+                 validate_args=False))
+
+
+# -- learn ----------------------------------------------------------------------------------------------
+class _Logger:
+    def scalar(self, tag, value, step):
+        pass
+
+
+def _learnable_kf():
+    motion = models.learnable_noise(models.ConstantVelocity(1, q=1.0, dtype=torch.float64), "Q", "scale")
+    return KalmanFilter(motion, _pos())
+
+
+def _prior():
+    return GaussianBelief(torch.zeros(3, 2), torch.eye(2).expand(3, 2, 2))
+
+
+def _z():
+    return torch.randn(5, 3, 1, generator=_gen())
+
+
+def _trainer():
+    kf = _learnable_kf()
+    return learn.Trainer(kf, torch.optim.SGD(kf.parameters(), lr=1e-3))
+
+
+def _checkpoint() -> Path:
+    return Path(tempfile.mkdtemp(prefix="torchmm-contract-")) / "model.pt"
+
+
+def _saved():
+    kf = _learnable_kf()
+    opt = torch.optim.SGD(kf.parameters(), lr=1e-3)
+    path = learn.save_checkpoint(_checkpoint(), kf, opt)
+    return path, kf, opt
+
+
+_L = "torchmm.learn."
+example(_L + "loss.negative_log_likelihood")(
+    lambda: call(learn.negative_log_likelihood, KalmanFilter(_cv(), _pos()), _prior(), _z(), controls=None,
+                 reduction="sum", return_final=False))
+example(_L + "loss.truncated_segments")(lambda: call(learn.truncated_segments, 10, 4))
+example(_L + "trainer.Trainer")(
+    lambda: call(learn.Trainer, _learnable_kf(), torch.optim.SGD([torch.nn.Parameter(torch.zeros(1))], 0.1),
+                 window=4, clip_grad_norm=10.0, loss_fn=learn.negative_log_likelihood, track=lambda: {},
+                 logger=_Logger(), callbacks=[], checkpoint_path=_checkpoint(), checkpoint_every=0,
+                 prefix="train"))
+example(_L + "trainer.Trainer.fit")(
+    lambda: call(_trainer().fit, _prior(), _z(), 1, controls=None, batch_size=2, generator=_gen()))
+example(_L + "trainer.save_checkpoint")(
+    lambda: call(learn.save_checkpoint, _checkpoint(), _learnable_kf(), torch.optim.SGD(
+        [torch.nn.Parameter(torch.zeros(1))], lr=0.1), note="example"))
+example(_L + "trainer.load_checkpoint")(lambda: call(learn.load_checkpoint, *_saved()))
+
+
+def _particles():
+    g = _gen()
+    return ParticleBelief(torch.randn(4, 50, 2, generator=g), torch.randn(4, 50, generator=g))
+
+
+example(_L + "resampling.soft_resample")(
+    lambda: call(learn.soft_resample, _particles(), 0.5, "systematic", generator=_gen()))
+example(_L + "resampling.soft_resample_where_needed")(
+    lambda: call(learn.soft_resample_where_needed, _particles(), 0.9, 0.5, "stratified", generator=_gen()))
+example(_L + "resampling.SoftResamplingParticleFilter")(
+    lambda: call(learn.SoftResamplingParticleFilter, _cv(), _pos(), alpha=0.5, ess_threshold=0.5,
+                 generator=_gen()))

@@ -1,0 +1,160 @@
+"""The whole public API under the entry-point contract (torchmm/contract.py, docs/robustness.md).
+
+1. **Enumeration.** Every callable in ``torchmm.__all__`` and in every subpackage's ``__all__`` is
+   a registered entry point (``@entry_point`` on the function or the class's ``__init__``) or is
+   listed in :data:`~tests.robustness.api_examples.NOT_ENTRY_POINTS` with the reason. A new public
+   function is red here until it is one or the other.
+2. **Examples.** Every entry point has a valid example call
+   (:data:`~tests.robustness.api_examples.EXAMPLES`), which runs.
+3. **Invalid inputs, by kind.** For every declared parameter, every invalid input its kind lists
+   (wrong types, non-finite values, non-PSD matrices, non-stochastic rows, zero and empty sizes,
+   wrong shapes and dtypes, a class for an instance) replaces the example's argument, and the call
+   must raise ``TypeError`` or ``ValueError`` whose message starts with the parameter's name.
+"""
+
+from __future__ import annotations
+
+import importlib
+import inspect
+import re
+import warnings
+
+import pytest
+import torch
+
+import torchmm
+from torchmm import contract
+from tests.robustness.api_examples import EXAMPLES, NOT_ENTRY_POINTS, Call
+
+SUBPACKAGES = ["analysis", "beliefs", "cpu_kernels", "filters", "fusion", "learn", "metrics", "models",
+               "multimodel", "simulate", "parallel"]
+
+
+def public_objects() -> dict[str, object]:
+    """Every public callable, by the ``module.qualname`` where it is defined (deduplicated)."""
+    out = {}
+    for module_name in ["torchmm"] + [f"torchmm.{m}" for m in SUBPACKAGES]:
+        module = importlib.import_module(module_name)
+        for name in module.__all__:
+            obj = getattr(module, name)
+            if inspect.ismodule(obj) or not callable(obj):
+                continue
+            out[f"{obj.__module__}.{obj.__qualname__}"] = obj
+    return out
+
+
+PUBLIC = public_objects()
+
+
+def _key(obj) -> str:
+    return f"{obj.__module__}.{obj.__qualname__}"
+
+
+def entry_keys() -> list[str]:
+    """The keys of every entry point that needs an example: public classes and functions that are
+    entry points, and every registered method (``initial_belief``, ``create``, ...)."""
+    keys = {k for k, obj in PUBLIC.items() if k not in NOT_ENTRY_POINTS}
+    for qualname in contract.registered():
+        if not qualname.endswith(".__init__"):
+            keys.add(qualname)
+    return sorted(keys)
+
+
+@pytest.mark.parametrize("key", sorted(PUBLIC))
+def test_every_public_callable_is_an_entry_point_or_exempt(key):
+    obj = PUBLIC[key]
+    if key in NOT_ENTRY_POINTS:
+        assert contract.spec_of(obj) is None or isinstance(obj, type), \
+            f"{key} is registered as an entry point but listed in NOT_ENTRY_POINTS"
+        assert NOT_ENTRY_POINTS[key].strip(), f"{key}: give the reason it is not an entry point"
+        return
+    assert contract.spec_of(obj) is not None, (
+        f"{key} is public but not an entry point: declare its parameters with @entry_point(...) "
+        "(torchmm/contract.py) or list it in NOT_ENTRY_POINTS with the reason")
+
+
+def test_exempt_names_exist():
+    stale = sorted(set(NOT_ENTRY_POINTS) - set(PUBLIC))
+    assert not stale, f"NOT_ENTRY_POINTS names no public object: {stale}"
+
+
+def test_every_entry_point_has_an_example():
+    missing = [k for k in entry_keys() if k not in EXAMPLES]
+    assert not missing, f"entry points without a valid example in tests/robustness/api_examples.py: {missing}"
+    stale = sorted(set(EXAMPLES) - set(entry_keys()))
+    assert not stale, f"examples of no entry point: {stale}"
+
+
+def _spec(call: Call):
+    spec = contract.spec_of(call.fn) if isinstance(call.fn, type) else getattr(call.fn, "__entry_point__", None)
+    assert spec is not None, f"{call.fn!r} is not an entry point"
+    return spec
+
+
+def _bind(call: Call):
+    signature = inspect.signature(call.fn)
+    bound = signature.bind(*call.args, **call.kwargs)
+    return signature, bound
+
+
+@pytest.mark.parametrize("key", sorted(EXAMPLES))
+def test_example_runs(key):
+    call = EXAMPLES[key]()
+    _bind(call)
+    call.fn(*call.args, **call.kwargs)
+
+
+def _parameters():
+    out = []
+    for key in sorted(EXAMPLES):
+        obj = PUBLIC.get(key)
+        spec = contract.spec_of(obj) if obj is not None else contract.registered().get(key)
+        if spec is None:
+            continue  # reported by test_every_entry_point_has_an_example
+        for name, kind in spec.kinds.items():
+            out.append(pytest.param(key, name, id=f"{key.removeprefix('torchmm.')}-{name}"))
+    return out
+
+
+@pytest.mark.parametrize("key, name", _parameters())
+def test_invalid_inputs_raise_naming_the_parameter(key, name):
+    call = EXAMPLES[key]()
+    spec = _spec(call)
+    kind = spec.kinds[name]
+    signature, bound = _bind(call)
+    parameter = signature.parameters[name]
+    valid = bound.arguments.get(name, parameter.default)
+    if valid is inspect.Parameter.empty:
+        valid = None
+    # a validator's own ``name=`` parameter (Text(label=True)) is the label its errors carry
+    label = name
+    for other, other_kind in spec.kinds.items():
+        if other != name and getattr(other_kind, "label", False):
+            label = bound.arguments.get(other, signature.parameters[other].default)
+    failures = []
+    for invalid in kind.invalid(valid):
+        arguments = dict(bound.arguments)
+        arguments[name] = invalid.value
+        trial = signature.bind_partial()
+        trial.arguments.update(arguments)
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                call.fn(*trial.args, **trial.kwargs)
+        except invalid.raises as err:
+            message = str(err)
+            if not re.match(rf"{re.escape(label)}\b", message):
+                failures.append(f"{invalid.cls} {_show(invalid.value)}: {type(err).__name__} does not start "
+                                f"with {label!r}: {message[:200]!r}")
+        except Exception as err:  # noqa: BLE001 - a raw error is a failure of the contract
+            failures.append(f"{invalid.cls} {_show(invalid.value)}: raw {type(err).__name__}: {str(err)[:200]!r}")
+        else:
+            failures.append(f"{invalid.cls} {_show(invalid.value)}: accepted silently")
+    assert not failures, f"{key}({name}=...):\n" + "\n".join(failures)
+
+
+def _show(value) -> str:
+    if isinstance(value, torch.Tensor):
+        return f"tensor{tuple(value.shape)} {value.dtype}"
+    text = repr(value)
+    return text if len(text) < 60 else text[:57] + "..."

@@ -1,0 +1,844 @@
+r"""The entry-point contract: one mechanism that every public function and constructor goes through.
+
+Every public entry point of torchmm declares the *kind* of each of its parameters with
+:func:`entry_point`::
+
+    @entry_point(bank=Bank(), transition=Stochastic(), generator=Gen(optional=True), feedback=Flag())
+    def __init__(self, bank, transition, *, generator=None, feedback=True): ...
+
+The declaration does two things, both by construction:
+
+* **at run time**, the wrapper checks every argument the caller passed against its kind once, at
+  entry (a size is an integer, a flag a bool, a generator a :class:`torch.Generator`, a covariance
+  finite, symmetric and PSD relative to its scale, a transition row-stochastic, a policy an
+  instance and not a class, ...) and raises a ``TypeError`` or ``ValueError`` whose message starts
+  with the parameter's name. Defaults are trusted; nothing runs inside a filter step.
+* **in the test suite**, each kind lists the classes of invalid input that apply to it
+  (:meth:`Kind.invalid`: wrong types, non-finite values, non-PSD matrices, non-stochastic rows,
+  zero and empty sizes, wrong shapes and dtypes, classes for instances, ...).
+  ``tests/robustness/test_api_contract.py`` enumerates the public API (``torchmm.__all__`` and every
+  subpackage's), requires every public callable to be registered here (or listed, with a reason,
+  as not an entry point), and calls each entry point with each invalid input of each declared
+  parameter in place of a valid example's argument: every call must raise ``TypeError`` or
+  ``ValueError`` naming the parameter. A new public function, or a new parameter, without a
+  declaration is a red test (the decorator refuses a signature with an undeclared parameter at
+  import).
+
+Some kinds only *declare* (:class:`Data`, :class:`BeliefArg`, :class:`Of` with ``check=False``):
+the function checks the argument itself because the check needs context (the sensor's dimension,
+the filter's dtype), and the kind's invalid inputs test that it does. ``docs/robustness.md``
+describes the contract.
+"""
+
+from __future__ import annotations
+
+import functools
+import inspect
+import math
+import numbers
+import os
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from torchmm.validation import as_float, as_int, as_tensor, check_covariance, check_stochastic_rows
+
+__all__ = [
+    "BeliefArg",
+    "Beliefs",
+    "Choice",
+    "Cov",
+    "DType",
+    "Data",
+    "Device",
+    "EntryPoint",
+    "FilePath",
+    "Finite",
+    "Flag",
+    "Gen",
+    "Indices",
+    "Int",
+    "Kind",
+    "Labels",
+    "Mask",
+    "Of",
+    "Real",
+    "Shape",
+    "Stochastic",
+    "Tensors",
+    "Text",
+    "Unchecked",
+    "Values",
+    "entry_point",
+    "registered",
+    "spec_of",
+]
+
+#: Every registered entry point, by ``module.qualname`` of the function.
+REGISTRY: dict[str, EntryPoint] = {}
+
+_EMPTY = inspect.Parameter.empty
+
+
+@dataclass(frozen=True)
+class Invalid:
+    """One invalid input for a parameter: its class (``"type"``, ``"non-finite"``, ...), the value,
+    and the exception types an entry point may raise for it."""
+
+    cls: str
+    value: Any
+    raises: tuple = (TypeError, ValueError)
+
+
+class Kind:
+    """The kind of a parameter: ``check`` runs at entry, ``invalid`` lists what the tests try."""
+
+    optional: bool = False
+
+    def check(self, value: Any, name: str) -> Any:
+        """Return ``value`` (possibly converted) or raise naming ``name``."""
+        return value
+
+    def invalid(self, valid: Any) -> list[Invalid]:
+        """Invalid inputs, built from a valid one (``valid`` may be a default)."""
+        return []
+
+    def _none(self, value, name) -> bool:
+        if value is None:
+            if self.optional:
+                return True
+            raise TypeError(f"{name}: expected {self.describe()}, got None")
+        return False
+
+    def describe(self) -> str:
+        return type(self).__name__
+
+
+class Unchecked(Kind):
+    """A parameter that no check applies to (a callable, a free-form label); ``reason`` says why."""
+
+    def __init__(self, reason: str):
+        self.reason = reason
+
+
+class Int(Kind):
+    """An integer (``int``, NumPy integer, integral 0-d tensor; never ``bool`` or ``2.5``).
+    ``check=False``: the function checks it (the kind only declares what the tests try)."""
+
+    def __init__(self, minimum: int | None = None, *, optional: bool = False, check: bool = True):
+        self.minimum, self.optional, self.enforce = minimum, optional, check
+
+    def describe(self):
+        return "an integer"
+
+    def check(self, value, name):
+        if not self.enforce or self._none(value, name):
+            return value
+        return as_int(value, name, minimum=self.minimum)
+
+    def invalid(self, valid):
+        out = [Invalid("type", 2.5), Invalid("type", True), Invalid("type", "3")]
+        if self.minimum is not None:
+            out.append(Invalid("range", self.minimum - 1))
+        return out
+
+
+class Real(Kind):
+    """A finite real number, optionally bounded (``positive``: strictly above 0)."""
+
+    def __init__(self, minimum: float | None = None, maximum: float | None = None, *, positive: bool = False,
+                 optional: bool = False, tensor: bool = False):
+        self.minimum, self.maximum, self.positive, self.optional = minimum, maximum, positive, optional
+        self.tensor = tensor  # a tensor argument is kept as it is (autograd), only checked
+
+    def describe(self):
+        return "a number"
+
+    def check(self, value, name):
+        if self._none(value, name):
+            return value
+        if isinstance(value, Tensor):
+            if value.numel() != 1:
+                if not self.tensor:
+                    raise ValueError(f"{name}: expected a number, got a tensor of shape {tuple(value.shape)}")
+                return value
+            as_float(value, name, minimum=self.minimum, maximum=self.maximum, positive=self.positive)
+            return value
+        return as_float(value, name, minimum=self.minimum, maximum=self.maximum, positive=self.positive)
+
+    def invalid(self, valid):
+        out = [Invalid("type", "1"), Invalid("non-finite", math.nan), Invalid("non-finite", math.inf)]
+        if self.positive:
+            out.append(Invalid("range", 0.0))
+        if self.minimum is not None:
+            out.append(Invalid("range", self.minimum - 1.0))
+        if self.maximum is not None:
+            out.append(Invalid("range", self.maximum + 1.0))
+        return out
+
+
+class Flag(Kind):
+    """A ``bool`` (NumPy's too); ``'no'``, ``1`` or ``None`` are ``TypeError``."""
+
+    def __init__(self, *, optional: bool = False):
+        self.optional = optional
+
+    def describe(self):
+        return "True or False"
+
+    def check(self, value, name):
+        if self._none(value, name):
+            return value
+        if isinstance(value, bool):
+            return value
+        if type(value).__name__ == "bool_":  # numpy.bool_
+            return bool(value)
+        raise TypeError(f"{name}: expected True or False, got {value!r}")
+
+    def invalid(self, valid):
+        return [Invalid("type", "no"), Invalid("type", 1)]
+
+
+class Choice(Kind):
+    """One of a set of strings. ``check=False``: the function checks it (the options depend on
+    another argument)."""
+
+    def __init__(self, *choices: str, optional: bool = False, check: bool = True):
+        self.choices, self.optional, self.enforce = choices, optional, check
+
+    def describe(self):
+        return f"one of {list(self.choices)}"
+
+    def check(self, value, name):
+        if not self.enforce or self._none(value, name):
+            return value
+        if not isinstance(value, str) or value not in self.choices:
+            raise ValueError(f"{name}: expected one of {list(self.choices)}, got {value!r}")
+        return value
+
+    def invalid(self, valid):
+        return [Invalid("value", "no-such-option"), Invalid("type", 1)]
+
+
+class Text(Kind):
+    """A string (an attribute name, a label). ``label``: the name that the function's errors carry
+    in place of the other parameters' own (a validator's ``name=``)."""
+
+    def __init__(self, *, optional: bool = False, label: bool = False):
+        self.optional, self.label = optional, label
+
+    def describe(self):
+        return "a string"
+
+    def check(self, value, name):
+        if self._none(value, name):
+            return value
+        if not isinstance(value, str):
+            raise TypeError(f"{name}: expected a string, got {value!r}")
+        return value
+
+    def invalid(self, valid):
+        return [Invalid("type", 1)]
+
+
+class Gen(Kind):
+    """A :class:`torch.Generator` (``None`` allowed when ``optional``). Its device is checked
+    against the data where the data are known (``run_filter``)."""
+
+    def __init__(self, *, optional: bool = True):
+        self.optional = optional
+
+    def describe(self):
+        return "a torch.Generator"
+
+    def check(self, value, name):
+        if self._none(value, name):
+            return value
+        if not isinstance(value, torch.Generator):
+            hint = " (seed one: torch.Generator().manual_seed(seed))" if isinstance(value, (int, str)) else ""
+            raise TypeError(f"{name}: expected a torch.Generator, got {value!r}{hint}")
+        return value
+
+    def invalid(self, valid):
+        return [Invalid("type", "seed"), Invalid("type", 0), Invalid("type", torch.Generator)]
+
+
+class DType(Kind):
+    """A floating :class:`torch.dtype` (``None`` allowed when ``optional``: the default dtype)."""
+
+    def __init__(self, *, optional: bool = True, strings: bool = False):
+        self.optional, self.strings = optional, strings
+
+    def describe(self):
+        return "a floating torch.dtype"
+
+    def check(self, value, name):
+        if self._none(value, name):
+            return value
+        if self.strings and isinstance(value, str) and isinstance(getattr(torch, value, None), torch.dtype):
+            value = getattr(torch, value)
+        if not isinstance(value, torch.dtype):
+            raise TypeError(f"{name}: expected a torch.dtype such as torch.float64, got {value!r}")
+        if not value.is_floating_point:
+            raise TypeError(f"{name}: expected a floating dtype, got {value}")
+        return value
+
+    def invalid(self, valid):
+        return [Invalid("type", "float-64"), Invalid("type", 64), Invalid("dtype", torch.int64)]
+
+
+class Device(Kind):
+    """A :class:`torch.device` or its name (``"cpu"``, ``"cuda:0"``)."""
+
+    def __init__(self, *, optional: bool = True):
+        self.optional = optional
+
+    def check(self, value, name):
+        if self._none(value, name):
+            return value
+        if isinstance(value, torch.device):
+            return value
+        if isinstance(value, (str, int)) and not isinstance(value, bool):
+            try:
+                return torch.device(value)
+            except (RuntimeError, TypeError, ValueError) as err:
+                raise ValueError(f"{name}: not a device ({err})") from None
+        raise TypeError(f"{name}: expected a torch.device or its name, got {value!r}")
+
+    def invalid(self, valid):
+        return [Invalid("value", "no-such-device"), Invalid("type", 1.5)]
+
+
+class Of(Kind):
+    """An instance of ``types``, or an object with the ``methods`` (duck typing). A class given for
+    an instance (``policy=FixedSet``) is a ``TypeError`` that says so."""
+
+    def __init__(self, types: type | tuple = (), *, methods: Sequence[str] = (), what: str = "",
+                 optional: bool = False, callable_ok: bool = False, check: bool = True):
+        self.types = types if isinstance(types, tuple) else (types,)
+        self.methods, self.optional, self.callable_ok = tuple(methods), optional, callable_ok
+        self.enforce = check  # False: the function checks it (the argument's meaning depends on another)
+        self.what = what or " or ".join(t.__name__ for t in self.types) or "an object with " + \
+            ", ".join(self.methods)
+
+    def describe(self):
+        return self.what
+
+    def check(self, value, name):
+        if not self.enforce or self._none(value, name):
+            return value
+        if isinstance(value, type):
+            raise TypeError(f"{name}: expected an instance ({self.what}), got the class {value.__name__}; "
+                            f"create one: {value.__name__}(...)")
+        if self.types and isinstance(value, self.types):
+            return value
+        if self.methods and all(callable(getattr(value, m, None)) for m in self.methods):
+            return value
+        if self.callable_ok and callable(value):
+            return value
+        raise TypeError(f"{name}: expected {self.what}, got {type(value).__name__}")
+
+    def invalid(self, valid):
+        out = [Invalid("type", "not-an-object")]
+        if valid is not None and not isinstance(valid, type):
+            out.append(Invalid("type", type(valid)))  # the class for an instance
+        return out
+
+
+class Indices(Kind):
+    """A sequence of integers (state or model indices), non-empty unless ``empty``; each index at
+    least ``minimum``."""
+
+    def __init__(self, *, empty: bool = False, minimum: int = 0, optional: bool = False):
+        self.empty, self.minimum, self.optional = empty, minimum, optional
+
+    def describe(self):
+        return "a sequence of integers"
+
+    def check(self, value, name):
+        if self._none(value, name):
+            return value
+        if isinstance(value, Tensor):
+            if value.is_floating_point() or value.dim() != 1:
+                raise TypeError(f"{name}: expected a sequence of integers, got a tensor of dtype {value.dtype} "
+                                f"and shape {tuple(value.shape)}")
+            value = value.tolist()
+        if isinstance(value, (str, bytes)) or not isinstance(value, Sequence) and not hasattr(value, "__iter__"):
+            raise TypeError(f"{name}: expected a sequence of integers, got {value!r}")
+        items = list(value)
+        for i in items:
+            if isinstance(i, bool) or not isinstance(i, numbers.Integral):
+                raise TypeError(f"{name}: expected a sequence of integers, got the entry {i!r}")
+            if i < self.minimum:
+                raise ValueError(f"{name}: entries must be >= {self.minimum}, got {int(i)}")
+        if not items and not self.empty:
+            raise ValueError(f"{name}: must not be empty")
+        return value
+
+    def invalid(self, valid):
+        out = [Invalid("type", [0.5]), Invalid("type", "0"), Invalid("range", [-1])]
+        if not self.empty:
+            out.append(Invalid("empty", []))
+        return out
+
+
+def _perturb(valid, fn):
+    try:
+        return fn(torch.as_tensor(valid, dtype=torch.float64).clone())
+    except Exception:  # noqa: BLE001 - no invalid input of this class can be built from the example
+        return None
+
+
+class Finite(Kind):
+    """A tensor-like of finite reals (``square``: ``(..., d, d)``). ``check=False``: the function
+    converts and checks it (the kind only declares what the tests try)."""
+
+    def __init__(self, *, square: bool = False, optional: bool = False, check: bool = True, vector: bool = False):
+        self.square, self.optional, self.enforce, self.vector = square, optional, check, vector
+
+    def describe(self):
+        return "a tensor"
+
+    def check(self, value, name):
+        if not self.enforce or self._none(value, name):
+            return value
+        if isinstance(value, Tensor):
+            if value.is_complex():
+                raise TypeError(f"{name}: expected real numbers, got dtype {value.dtype}")
+            if value.is_floating_point() and not bool(torch.isfinite(value.detach()).all()):
+                raise ValueError(f"{name}: contains NaN or infinite entries")
+            tensor = value
+        else:
+            tensor = as_tensor(value, name)
+        if self.square and (tensor.dim() < 2 or tensor.shape[-1] != tensor.shape[-2]):
+            raise ValueError(f"{name}: expected a square matrix (..., d, d), got shape {tuple(tensor.shape)}")
+        return value
+
+    def invalid(self, valid):
+        out = [Invalid("type", "matrix")]
+        bad = _perturb(valid, lambda t: t.reshape(-1).index_fill_(0, torch.tensor([0]), math.nan).reshape(t.shape)
+                       if t.numel() else None)
+        if bad is not None:
+            out.append(Invalid("non-finite", bad))
+        if self.square:
+            bad = _perturb(valid, lambda t: t[..., :-1] if t.dim() >= 2 and t.shape[-1] > 1 else None)
+            if bad is not None:
+                out.append(Invalid("shape", bad))
+        return out
+
+
+class Cov(Finite):
+    """A covariance ``(..., d, d)``: finite, symmetric, positive semi-definite (``definite``:
+    positive definite), each relative to the matrix's scale."""
+
+    def __init__(self, *, definite: bool = False, optional: bool = False, check: bool = True):
+        super().__init__(square=True, optional=optional, check=check)
+        self.definite = definite
+
+    def describe(self):
+        return "a covariance matrix"
+
+    def check(self, value, name):
+        if not self.enforce or self._none(value, name):
+            return value
+        if isinstance(value, Tensor) and value.is_complex():
+            raise TypeError(f"{name}: expected real numbers, got dtype {value.dtype}")
+        tensor = value if isinstance(value, Tensor) else as_tensor(value, name)
+        check_covariance(tensor, name, definite=self.definite)
+        return value
+
+    def invalid(self, valid):
+        out = super().invalid(valid)
+        bad = _perturb(valid, lambda t: -t - torch.eye(t.shape[-1], dtype=t.dtype) if t.dim() >= 2 else None)
+        if bad is not None:
+            out.append(Invalid("non-PSD", bad))
+        bad = _perturb(valid, lambda t: t + torch.triu(torch.ones_like(t), 1) * (1 + t.abs().max())
+                       if t.dim() >= 2 and t.shape[-1] > 1 else None)
+        if bad is not None:
+            out.append(Invalid("non-symmetric", bad))
+        return out
+
+
+class Stochastic(Finite):
+    """A row-stochastic matrix ``(..., M, M)`` (a mode transition)."""
+
+    def __init__(self, *, optional: bool = False, check: bool = True):
+        super().__init__(square=True, optional=optional, check=check)
+
+    def describe(self):
+        return "a row-stochastic matrix"
+
+    def check(self, value, name):
+        if not self.enforce or self._none(value, name):
+            return value
+        if not isinstance(value, (Tensor, list, tuple)):
+            if callable(getattr(value, "matrix", None)):
+                return value  # a ModeTransition checks itself
+            raise TypeError(f"{name}: expected a row-stochastic matrix (M, M), got {type(value).__name__}")
+        tensor = value if isinstance(value, Tensor) else as_tensor(value, name)
+        check_stochastic_rows(tensor, name)
+        return value
+
+    def invalid(self, valid):
+        if not isinstance(valid, (Tensor, list, tuple)):
+            valid = getattr(valid, "matrix", lambda: None)()
+        out = super().invalid(valid)
+        bad = _perturb(valid, lambda t: 2 * t)
+        if bad is not None:
+            out.append(Invalid("non-stochastic", bad))
+        return out
+
+
+class Shape(Kind):
+    """A batch shape: a sequence of non-negative integers (``torch.Size``, tuple, list; ``()`` for
+    none). A bare integer is not a shape (``(runs,)``, not ``runs``). Converted to ``torch.Size``."""
+
+    def __init__(self, *, optional: bool = False):
+        self.optional = optional
+
+    def describe(self):
+        return "a shape (a sequence of non-negative integers)"
+
+    def check(self, value, name):
+        if self._none(value, name):
+            return value
+        if isinstance(value, torch.Size):
+            return value
+        if isinstance(value, (str, bytes, Tensor)) or not isinstance(value, Sequence):
+            hint = f" (a batch of {value} runs is ({value},))" if isinstance(value, int) and \
+                not isinstance(value, bool) else ""
+            raise TypeError(f"{name}: expected a shape such as (runs,), got {value!r}{hint}")
+        for size in value:
+            if isinstance(size, bool) or not isinstance(size, numbers.Integral):
+                raise TypeError(f"{name}: expected a sequence of integers, got the entry {size!r}")
+            if size < 0:
+                raise ValueError(f"{name}: sizes must be >= 0, got {int(size)}")
+        return torch.Size(int(size) for size in value)
+
+    def invalid(self, valid):
+        return [Invalid("type", 3), Invalid("type", "3"), Invalid("type", (2.5,)), Invalid("range", (-1,))]
+
+
+class Values(Kind):
+    """A tensor-like of real numbers whose entries may be NaN or infinite (an estimate of a diverged
+    run, log-probabilities, innovations with NaN = missing): only its type and dtype are checked
+    (no value is read). Lists are converted to a tensor of the default dtype."""
+
+    def __init__(self, *, optional: bool = False):
+        self.optional = optional
+
+    def describe(self):
+        return "a tensor of real numbers"
+
+    def check(self, value, name):
+        if self._none(value, name):
+            return value
+        if isinstance(value, Tensor):
+            if value.is_complex():
+                raise TypeError(f"{name}: expected real numbers, got dtype {value.dtype}")
+            return value
+        if isinstance(value, (str, bytes)):
+            raise TypeError(f"{name}: expected a tensor of real numbers, got the string {value!r}")
+        try:
+            out = torch.as_tensor(value, dtype=torch.get_default_dtype())
+        except (TypeError, ValueError, RuntimeError) as err:
+            raise TypeError(f"{name}: cannot convert to a tensor of real numbers ({err})") from None
+        return out
+
+    def invalid(self, valid):
+        out = [Invalid("type", "values")]
+        if isinstance(valid, Tensor) and valid.is_floating_point():
+            out.append(Invalid("dtype", valid.to(torch.complex128)))
+        return out
+
+
+class Labels(Kind):
+    """A tensor-like of integer indices (true modes, matched models), each at least ``minimum``;
+    the upper bound (the number of modes) needs context and is checked by the function. Lists are
+    converted to an int64 tensor."""
+
+    def __init__(self, *, minimum: int = 0, optional: bool = False):
+        self.minimum, self.optional = minimum, optional
+
+    def describe(self):
+        return "a tensor of integer indices"
+
+    def check(self, value, name):
+        if self._none(value, name):
+            return value
+        if not isinstance(value, Tensor):
+            if isinstance(value, (str, bytes)):
+                raise TypeError(f"{name}: expected a tensor of integer indices, got the string {value!r}")
+            try:
+                value = torch.as_tensor(value)
+            except (TypeError, ValueError, RuntimeError) as err:
+                raise TypeError(f"{name}: cannot convert to a tensor of integer indices ({err})") from None
+        if value.is_floating_point() or value.is_complex() or value.dtype == torch.bool:
+            raise TypeError(f"{name}: expected integer indices, got dtype {value.dtype}")
+        if value.numel() and bool((value < self.minimum).any()):
+            raise ValueError(f"{name}: indices must be >= {self.minimum}, got {int(value.min())}")
+        return value
+
+    def invalid(self, valid):
+        out = [Invalid("type", "0")]
+        if isinstance(valid, Tensor) and valid.numel():
+            out.append(Invalid("type", valid.to(torch.float64) + 0.5))
+            out.append(Invalid("range", torch.full_like(valid, self.minimum - 1)))
+        else:
+            out.append(Invalid("range", [self.minimum - 1]))
+        return out
+
+
+class Mask(Kind):
+    """A boolean tensor-like (availability, selection). Lists of bools are converted."""
+
+    def __init__(self, *, optional: bool = False):
+        self.optional = optional
+
+    def describe(self):
+        return "a boolean tensor"
+
+    def check(self, value, name):
+        if self._none(value, name):
+            return value
+        if not isinstance(value, Tensor):
+            if isinstance(value, (str, bytes)):
+                raise TypeError(f"{name}: expected a boolean tensor, got the string {value!r}")
+            try:
+                value = torch.as_tensor(value)
+            except (TypeError, ValueError, RuntimeError) as err:
+                raise TypeError(f"{name}: cannot convert to a boolean tensor ({err})") from None
+        if value.dtype != torch.bool:
+            raise TypeError(f"{name}: expected a boolean tensor, got dtype {value.dtype}")
+        return value
+
+    def invalid(self, valid):
+        out = [Invalid("type", "yes")]
+        if isinstance(valid, Tensor):
+            out.append(Invalid("dtype", valid.to(torch.float64)))
+        return out
+
+
+class FilePath(Kind):
+    """A file path: a non-empty ``str`` or an ``os.PathLike`` (``pathlib.Path``)."""
+
+    def __init__(self, *, optional: bool = False):
+        self.optional = optional
+
+    def describe(self):
+        return "a file path"
+
+    def check(self, value, name):
+        if self._none(value, name):
+            return value
+        if not isinstance(value, (str, os.PathLike)):
+            raise TypeError(f"{name}: expected a file path (str or pathlib.Path), got {value!r}")
+        if not os.fspath(value):
+            raise ValueError(f"{name}: the path is empty")
+        return value
+
+    def invalid(self, valid):
+        return [Invalid("type", 5), Invalid("value", "")]
+
+
+class Data(Kind):
+    """Measurements ``(T, *B, m)`` or ``(*B, m)`` (NaN = missing, so not invalid): the function
+    checks them against its sensor and belief; the tests try a string, a wrong event size and an
+    enlarged batch."""
+
+    def __init__(self, *, optional: bool = False, time: bool = True):
+        self.optional, self.time = optional, time
+
+    def invalid(self, valid):
+        out = [Invalid("type", "z")]
+        if isinstance(valid, Tensor) and valid.dim() >= 1 and valid.is_floating_point():
+            out.append(Invalid("shape", torch.cat([valid, valid[..., :1]], -1)))
+            lead = 1 if self.time else 0
+            if valid.dim() >= lead + 1:
+                out.append(Invalid("shape", valid.unsqueeze(lead).expand(
+                    *valid.shape[:lead], 2, *valid.shape[lead:]).contiguous()))
+            out.append(Invalid("dtype", valid.to(torch.complex128)))
+        return out
+
+
+class BeliefArg(Kind):
+    """A belief (:class:`~torchmm.beliefs.Belief`); ``validate``: its values are checked here
+    (otherwise the function validates it). ``check=False``: the function checks its type too (it
+    needs a particular belief type)."""
+
+    def __init__(self, *, optional: bool = False, validate: bool = False, check: bool = True):
+        self.optional, self.validate, self.enforce = optional, validate, check
+
+    def describe(self):
+        return "a belief"
+
+    def check(self, value, name):
+        if not self.enforce or self._none(value, name):
+            return value
+        if not _is_belief(value):
+            raise TypeError(f"{name}: expected a belief (e.g. GaussianBelief), got {type(value).__name__}")
+        if self.validate:
+            value.validate(name)
+        return value
+
+    def invalid(self, valid):
+        out = [Invalid("type", torch.zeros(2)), Invalid("type", "belief")]
+        if _is_belief(valid) and type(valid).__name__ == "GaussianBelief":
+            make = type(valid)
+            mean = valid.mean.detach().clone()
+            mean.view(-1)[0] = math.nan
+            out.append(Invalid("non-finite", make(mean, valid.cov)))
+            cov = -valid.cov.detach() - torch.eye(valid.cov.shape[-1], dtype=valid.cov.dtype)
+            out.append(Invalid("non-PSD", make(valid.mean, cov)))
+            other = torch.float32 if valid.mean.dtype == torch.float64 else torch.float64
+            out.append(Invalid("dtype", valid.to(other)))
+        return out
+
+
+def _is_belief(value) -> bool:
+    """A :class:`~torchmm.beliefs.Belief` (by its interface: this layer sits below the beliefs)."""
+    return callable(getattr(value, "validate", None)) and hasattr(type(value), "batch_shape")
+
+
+class Beliefs(Kind):
+    """A non-empty sequence of beliefs, or one belief whose last batch axis is the sequence (tracks
+    to fuse). Declared only: the function checks each entry, naming it ``name[i]``; the tests try
+    non-beliefs, an empty sequence, and (from Gaussian entries) a NaN mean, a non-PSD covariance
+    and (in a sequence) an entry of another dtype than the others'."""
+
+    def __init__(self, *, optional: bool = False):
+        self.optional = optional
+
+    def describe(self):
+        return "a sequence of beliefs"
+
+    def invalid(self, valid):
+        out = [Invalid("type", torch.zeros(2)), Invalid("type", "beliefs"), Invalid("empty", [])]
+        entries = [valid] if _is_belief(valid) else list(valid) if isinstance(valid, (list, tuple)) else []
+        if entries:
+            out.append(Invalid("type", [*entries[:-1], torch.zeros(2)]))
+        last = entries[-1] if entries else None
+        if _is_belief(last) and type(last).__name__ == "GaussianBelief":
+            make = type(last)
+            mean = last.mean.detach().clone()
+            mean.view(-1)[0] = math.nan
+            cov = -last.cov.detach() - torch.eye(last.cov.shape[-1], dtype=last.cov.dtype)
+            other = torch.float32 if last.mean.dtype == torch.float64 else torch.float64
+            trials = [("non-finite", make(mean, last.cov)), ("non-PSD", make(last.mean, cov))]
+            if len(entries) > 1:  # an entry whose dtype differs from the others'
+                trials.append(("dtype", last.to(other)))
+            for cls, bad in trials:
+                out.append(Invalid(cls, bad if _is_belief(valid) else [*entries[:-1], bad]))
+        return out
+
+
+class Tensors(Kind):
+    """A non-empty tuple (or list) of tensors; ``leading``: sharing their leading axis (a scan's
+    elements)."""
+
+    def __init__(self, *, leading: bool = False, optional: bool = False):
+        self.leading, self.optional = leading, optional
+
+    def describe(self):
+        return "a tuple of tensors"
+
+    def check(self, value, name):
+        if self._none(value, name):
+            return value
+        if isinstance(value, Tensor) or not isinstance(value, (tuple, list)) or not value:
+            raise TypeError(f"{name}: expected a non-empty tuple of tensors, got "
+                            f"{'an empty ' + type(value).__name__ if isinstance(value, (tuple, list)) else type(value).__name__}")
+        bad = next((type(t).__name__ for t in value if not isinstance(t, Tensor)), None)
+        if bad is not None:
+            raise TypeError(f"{name}: expected a tuple of tensors, got a {bad}")
+        if self.leading and any(t.dim() < 1 or t.shape[0] != value[0].shape[0] for t in value):
+            raise ValueError(f"{name}: expected tensors sharing a leading axis, got shapes "
+                             f"{[tuple(t.shape) for t in value]}")
+        return value
+
+    def invalid(self, valid):
+        out = [Invalid("type", torch.zeros(2)), Invalid("type", "tensors"), Invalid("empty", ())]
+        if isinstance(valid, (tuple, list)) and valid and isinstance(valid[0], Tensor):
+            out.append(Invalid("type", (*valid[:-1], "x")))
+            if self.leading and valid[0].dim() >= 1 and valid[0].shape[0] > 1:
+                out.append(Invalid("shape", (*valid, valid[0][:-1])))
+        return out
+
+
+# -- the decorator ---------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class EntryPoint:
+    """A registered entry point: its function and the kind of each parameter."""
+
+    qualname: str
+    function: Callable
+    kinds: dict
+    signature: inspect.Signature
+
+
+def entry_point(**kinds: Kind) -> Callable[[Callable], Callable]:
+    """Declare ``fn`` an entry point and the kind of each of its parameters.
+
+    Every parameter of the signature (except ``self``/``cls`` and ``*args``/``**kwargs``) must be
+    declared: an undeclared one is a ``TypeError`` at import (a new parameter is checked by
+    construction). Arguments the caller passes are checked against their kinds before ``fn`` runs;
+    defaults are not. Decorate ``__init__`` for a class, the function for a function (under
+    ``@classmethod``/``@staticmethod``).
+    """
+    for name, kind in kinds.items():
+        if not isinstance(kind, Kind):
+            raise TypeError(f"entry_point: the kind of {name!r} must be a Kind, got {kind!r}")
+
+    def decorate(fn: Callable) -> Callable:
+        signature = inspect.signature(fn)
+        names = [p.name for p in signature.parameters.values()
+                 if p.name not in ("self", "cls") and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)]
+        missing = [n for n in names if n not in kinds]
+        unknown = [n for n in kinds if n not in names]
+        if missing or unknown:
+            raise TypeError(f"entry_point({fn.__module__}.{fn.__qualname__}): "
+                            + (f"no kind declared for {missing}" if missing else "")
+                            + ("; " if missing and unknown else "")
+                            + (f"{unknown} are not parameters" if unknown else ""))
+        checked = tuple((n, k) for n, k in kinds.items() if type(k).check is not Kind.check
+                        and getattr(k, "enforce", True))
+
+        @functools.wraps(fn)
+        def wrapper(*args, **kwargs):
+            bound = signature.bind(*args, **kwargs)
+            arguments = bound.arguments
+            for name, kind in checked:
+                if name in arguments:
+                    value = arguments[name]
+                    new = kind.check(value, name)
+                    if new is not value:
+                        arguments[name] = new
+            return fn(*bound.args, **bound.kwargs)
+
+        spec = EntryPoint(f"{fn.__module__}.{fn.__qualname__}", fn, dict(kinds), signature)
+        wrapper.__entry_point__ = spec
+        REGISTRY[spec.qualname] = spec
+        return wrapper
+
+    return decorate
+
+
+def spec_of(obj: Any) -> EntryPoint | None:
+    """The entry point behind a public object: a function's own, a class's ``__init__``'s."""
+    if isinstance(obj, type):
+        init = obj.__dict__.get("__init__")
+        if init is None:  # inherited: the nearest registered base constructor
+            for base in obj.__mro__[1:]:
+                init = base.__dict__.get("__init__")
+                if init is not None:
+                    break
+        return getattr(init, "__entry_point__", None)
+    return getattr(obj, "__entry_point__", None)
+
+
+def registered() -> dict[str, EntryPoint]:
+    """Every registered entry point (a copy)."""
+    return dict(REGISTRY)

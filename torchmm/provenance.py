@@ -1,0 +1,197 @@
+"""What made a trajectory: the record that :func:`~torchmm.run_filter` (and
+:func:`torchmm.parallel.filter`) attach to their :class:`~torchmm.run.Trajectory`, so that the next
+function (:func:`~torchmm.smooth`) checks its arguments against the run instead of trusting them.
+
+A :class:`Provenance` holds the filter, the per-step models, the controls and a reference to the
+measurements, with a *fingerprint* of the data streams (shape, dtype, device and checksums: the
+float64 sums of the finite entries, of their magnitudes, and the same weighted by the flat index, so
+that a permutation - ``z.flip(0)``, two runs swapped - changes it). The fingerprints of all streams
+are taken in one pass and read by the host once, at the run's entry (the same read that counts the
+infinite entries). Nothing is checked per step.
+
+A record does not survive ``pickle`` or ``copy.deepcopy`` (an unpickled filter is another object),
+nor a ``torch.utils._pytree`` map over it: a trajectory derived that way carries none, and is
+smoothed as given.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+from typing import Any
+
+import torch
+import torch.utils._pytree as pytree
+from torch import Tensor
+
+__all__ = ["Fingerprint", "Provenance", "fingerprints", "module_state", "tensor_versions"]
+
+#: checksums of the same values summed again (another memory layout, another reduction order) agree
+#: to this, relative to the sum of the magnitudes
+CHECKSUM_RTOL = 1e-9
+
+
+@dataclasses.dataclass(frozen=True)
+class Fingerprint:
+    """One data stream, cheaply: ``shape``, ``dtype``, ``device`` and checksums (float64):
+    ``count`` finite entries, their ``total`` and ``magnitude`` (sum of ``|z|``), the same weighted by
+    ``w_i = (i + 1) / N`` over the flat (row-major) index ``i`` (``weighted``, ``weighted_magnitude``),
+    and ``where`` = the sum of ``i + 1`` over the finite entries (the pattern of missing data; exact)."""
+
+    shape: tuple
+    dtype: torch.dtype
+    device: torch.device
+    count: float = 0.0
+    total: float = 0.0
+    magnitude: float = 0.0
+    weighted: float = 0.0
+    weighted_magnitude: float = 0.0
+    where: float = 0.0
+
+    def differs(self, other: Fingerprint) -> str | None:
+        """Why ``other`` (the same stream fingerprinted again?) is not this one, or None."""
+        if other.shape != self.shape:
+            return f"shape {other.shape} differs from {self.shape}"
+        if other.dtype != self.dtype:
+            return f"dtype {other.dtype} differs from {self.dtype}"
+        if other.device != self.device:
+            return f"device {other.device} differs from {self.device}"
+        if other.count != self.count or other.where != self.where:
+            return "the missing (non-finite) entries differ"
+        for value, scale in (("total", "magnitude"), ("weighted", "weighted_magnitude")):
+            tol = CHECKSUM_RTOL * max(getattr(self, scale), getattr(other, scale))
+            if abs(getattr(other, value) - getattr(self, value)) > tol or \
+                    abs(getattr(other, scale) - getattr(self, scale)) > tol:
+                return "the values differ (checksum)"
+        return None
+
+
+def _stats(t: Tensor) -> Tensor:
+    """``(infinite, count, total, magnitude, weighted, weighted_magnitude, where)`` of ``t``, float64."""
+    x = t.detach().reshape(-1)
+    if x.is_complex():
+        x = torch.view_as_real(x).reshape(-1)
+    x = x.to(torch.float64)
+    n = x.numel()
+    finite = torch.isfinite(x)
+    infinite = torch.isinf(x).sum() if t.is_floating_point() else x.new_zeros(())
+    x = torch.where(finite, x, 0.0)
+    index = torch.arange(1, n + 1, device=x.device)
+    w = index.to(torch.float64) / max(n, 1)
+    a = x.abs()
+    where = torch.where(finite, index, 0).sum()  # exact (integers)
+    return torch.stack([infinite.to(torch.float64), finite.sum().to(torch.float64), x.sum(), a.sum(), x @ w, a @ w,
+                        where.to(torch.float64)])
+
+
+def fingerprints(*streams: Any) -> tuple[list, list]:
+    """The fingerprints of every tensor leaf of each of ``streams`` (pytrees of tensors, or None), and
+    the number of infinite floating entries of each: one host read for all.
+
+    Returns:
+        ``([tuple of Fingerprint per stream, or None], [infinite entries per stream])``.
+    """
+    leaves = [None if s is None else pytree.tree_leaves(s) for s in streams]
+    flat = [t for ls in leaves if ls is not None for t in ls]
+    values: list = []
+    if flat:
+        by_device: dict = {}
+        for i, t in enumerate(flat):
+            by_device.setdefault(t.device, []).append(i)
+        values = [None] * len(flat)
+        for device, index in by_device.items():  # one read per device (one in practice)
+            rows = torch.stack([_stats(flat[i]) for i in index]).tolist()
+            for i, row in zip(index, rows):
+                values[i] = row
+    out, k, infinite = [], 0, []
+    for ls in leaves:
+        infinite.append(0)
+        if ls is None:
+            out.append(None)
+            continue
+        prints = []
+        for t in ls:
+            inf, *rest = values[k]
+            k += 1
+            infinite[-1] += int(inf)
+            prints.append(Fingerprint(tuple(t.shape), t.dtype, t.device, *rest))
+        out.append(tuple(prints))
+    return out, infinite
+
+
+def tensor_versions(tree: Any) -> tuple | None:
+    """``(id, version)`` of every tensor leaf of ``tree`` (in-place changes bump a tensor's version);
+    None where a tensor has no version counter (made under ``torch.inference_mode``)."""
+    out = []
+    for t in pytree.tree_leaves(tree):
+        if isinstance(t, Tensor):
+            try:
+                out.append((id(t), t._version))
+            except RuntimeError:  # inference tensors track no version
+                return None
+    return tuple(out)
+
+
+def module_state(module: Any) -> tuple:
+    """``(name, id, version)`` of a module's parameters and buffers: equal as long as none of them is
+    replaced or changed in place (an optimiser step, ``copy_``, ``load_state_dict``)."""
+    if not isinstance(module, torch.nn.Module):
+        return ()
+    out = []
+    for name, t in itertools.chain(module.named_parameters(), module.named_buffers()):
+        try:
+            version = t._version
+        except RuntimeError:
+            version = None
+        out.append((name, id(t), version))
+    return tuple(out)
+
+
+def _dropped() -> None:
+    return None
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Provenance:
+    """What made a :class:`~torchmm.run.Trajectory` (``trajectory.provenance``).
+
+    Attributes:
+        made_by: ``"run_filter"`` or ``"torchmm.parallel.filter"``.
+        filter: the filter that ran (the object itself).
+        steps: the number of time steps ``T``.
+        measurements: the measurements given (a reference; ``smooth(trajectory)`` uses them).
+        data: their :class:`Fingerprint` per tensor leaf, taken at the run's entry.
+        data_versions: the leaves' version counters then (an in-place change bumps them), or None.
+        controls, control_data, control_versions: likewise for ``controls`` (None: no controls).
+        motions, sensors: the per-step models given (a sequence, a callable or None), as given.
+        update_first: as given.
+        belief, prior: the trajectory's own fields as the run returned them (a trajectory whose
+            fields are other objects - reversed, sliced, replaced - is refused by ``smooth``).
+        state: :func:`module_state` of the filter at the end of the run.
+    """
+
+    made_by: str
+    filter: Any
+    steps: int
+    measurements: Any
+    data: tuple
+    data_versions: tuple | None
+    controls: Tensor | None = None
+    control_data: tuple | None = None
+    control_versions: tuple | None = None
+    motions: Any = None
+    sensors: Any = None
+    update_first: bool = False
+    belief: Any = None
+    prior: Any = None
+    state: tuple = ()
+
+    def __reduce__(self):
+        return (_dropped, ())  # an unpickled (or deep-copied) trajectory carries no record
+
+    def __repr__(self) -> str:
+        return f"Provenance(made_by={self.made_by!r}, filter={type(self.filter).__name__}, steps={self.steps})"
+
+
+# a pytree map over a trajectory's fields gives data no run made: the record maps to None
+pytree.register_pytree_node(Provenance, lambda p: ([], None), lambda children, context: None)
