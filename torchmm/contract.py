@@ -196,7 +196,7 @@ class Flag(Kind):
             return value
         if type(value).__name__ == "bool_":  # numpy.bool_
             return bool(value)
-        raise TypeError(f"{name}: expected True or False, got {value!r}")
+        raise TypeError(f"{name}: expected {'None, ' if self.optional else ''}True or False, got {value!r}")
 
     def invalid(self, valid):
         return [Invalid("type", "no"), Invalid("type", 1)]

@@ -97,12 +97,13 @@ def test_range_bearing_needs_both_components():
         ekf.update(prior, torch.tensor([111.8]))
 
 
-def test_a_run_filter_sequence_of_the_wrong_size_names_z():
+def test_a_run_filter_sequence_of_the_wrong_size_names_measurements():
+    """The argument as the caller passed it (issue 29): run_filter checks the sequence's step shape once."""
     kf = KalmanFilter(ConstantVelocity(1), PositionMeasurement(2, [0], 1.0))
     prior = GaussianBelief(torch.zeros(3, 2), torch.eye(2).expand(3, 2, 2))
-    with pytest.raises(ValueError, match="z: expected shape"):
+    with pytest.raises(ValueError, match="^measurements: expected shape"):
         run_filter(kf, prior, torch.zeros(5, 3, 2))
-    with pytest.raises(ValueError, match="z: batch shape"):
+    with pytest.raises(ValueError, match="^measurements: batch shape"):
         run_filter(kf, prior, torch.zeros(5, 3, 3, 1))
 
 
