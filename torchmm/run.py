@@ -19,7 +19,7 @@ from torchmm.provenance import Provenance, fingerprints, module_state, tensor_ve
 from torchmm.runtime import fast_paths_compiled
 from torchmm.validation import broadcast_shape, check_filter_dtype, check_measurement
 
-__all__ = ["Trajectory", "attach_provenance", "run_filter", "stack_outputs"]
+__all__ = ["Trajectory", "attach_provenance", "per_step_models", "run_filter", "stack_outputs"]
 
 log = logging.getLogger("torchmm")
 
@@ -242,8 +242,8 @@ def run_filter(
     if infinite:
         log.warning("measurements: %d infinite entries are treated as missing data (non-finite = missing, "
                     "see docs/robustness.md)", infinite)
-    motion_at = _per_step(motions, steps, "motions")
-    sensor_at = _per_step(sensors, steps, "sensors")
+    motion_at = per_step_models(motions, steps, "motions")
+    sensor_at = per_step_models(sensors, steps, "sensors")
     for given, keyword, name in ((motions, "motion", "motions"), (sensors, "sensor", "sensors")):
         if given is not None and not _accepts(filter.step, keyword):
             raise TypeError(f"{name}: {type(filter).__name__}.step takes no per-step {keyword} (its models are "
@@ -346,7 +346,7 @@ def _first_tensor(belief: Any, default: Tensor) -> Tensor:
     return leaves[0] if leaves else default
 
 
-def _per_step(models: Any, steps: int, name: str) -> Callable[[int], Any]:
+def per_step_models(models: Any, steps: int, name: str) -> Callable[[int], Any]:
     """``k -> model or None`` from a sequence of ``steps`` models, a callable, or None."""
     if models is None:
         return lambda k: None
@@ -360,7 +360,7 @@ def _per_step(models: Any, steps: int, name: str) -> Callable[[int], Any]:
         raise TypeError(f"{name}: expected a sequence of models, a callable k -> model, or None, got "
                         f"{type(models).__name__}") from None
     if count != steps:
-        raise ValueError(f"{name}: expected {steps} per-step models (one per time step), got {count}")
+        raise ValueError(f"{name}: expected one entry per step ({steps}), got {count}")
     return lambda k: models[k]
 
 

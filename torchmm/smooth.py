@@ -62,7 +62,7 @@ from torchmm.models.base import MotionModel
 from torchmm.multimodel.bank import ListBank, VectorizedBank
 from torchmm.multimodel.imm import MultipleModelFilter, mode_posterior, safe_log_normalize
 from torchmm.provenance import fingerprints, module_state, tensor_versions
-from torchmm.run import Trajectory
+from torchmm.run import Trajectory, per_step_models
 
 __all__ = ["backward_imm_update", "backward_predict", "diffuse_factor", "ffbsm_step", "kim_step", "smooth",
            "two_filter_step", "unscented_rts_step"]
@@ -441,18 +441,8 @@ def _per_step(value: Any, steps: int, name: str) -> list | None:
     """Per-step models as a list of ``steps`` (from a sequence, a callable ``k -> model`` or one model)."""
     if value is None:
         return None
-    if isinstance(value, torch.nn.Module):
-        return [value] * steps
-    if callable(value):
-        return [value(k) for k in range(steps)]
-    try:
-        count = len(value)
-    except TypeError:
-        raise TypeError(f"{name}: expected a sequence of models, a callable k -> model, or None, got "
-                        f"{type(value).__name__}") from None
-    if count != steps:
-        raise ValueError(f"{name}: expected one entry per step ({steps}), got {count}")
-    return list(value)
+    at = per_step_models(value, steps, name)
+    return [at(k) for k in range(steps)]
 
 
 # -- what the trajectory knows: the arguments checked against the run that made it --------------------

@@ -134,7 +134,7 @@ def test_run_filter_per_step_motion_models_and_sensors(generator):
     for k in range(5):
         belief = KalmanFilter(motions[k], sensors[k]).step(belief, z[k]).belief
         torch.testing.assert_close(traj.belief[k].mean, belief.mean, rtol=0, atol=1e-14)
-    with pytest.raises(ValueError, match="motions: expected 5 per-step models"):
+    with pytest.raises(ValueError, match=r"^motions: expected one entry per step \(5\)"):
         run_filter(kf, belief0, z, motions=motions[:3])
 
 

@@ -22,7 +22,6 @@ import warnings
 import pytest
 import torch
 
-import torchmm
 from torchmm import contract
 from tests.robustness.api_examples import EXAMPLES, NOT_ENTRY_POINTS, Call
 

@@ -202,3 +202,33 @@ def test_every_kind_lists_invalid_inputs_its_check_refuses():
         for case in invalid:
             with pytest.raises(case.raises, match=r"^x"):
                 kind.check(case.value, "x")
+
+
+# -- found by a probe of common mistakes beside the contract -----------------------------------------------
+def test_imm_initial_belief_of_another_state_dimension(bank_filter):
+    imm = IMM(bank_filter, P3)
+    wrong = GaussianBelief(torch.zeros(4, 3, dtype=torch.float64), torch.eye(3, dtype=torch.float64))
+    with pytest.raises(ValueError, match=r"^belief: state dimension 3 differs from the filter's state_dim 2"):
+        imm.initial_belief(wrong)  # before: accepted, the first step then failed or ran on
+
+
+def test_metrics_truth_of_another_batch():
+    from torchmm import metrics
+
+    with pytest.raises(ValueError, match=r"^truth: shape \(5, 3, 2\) does not broadcast"):
+        metrics.rmse(torch.zeros(5, 4, 2), torch.zeros(5, 3, 2))  # before: a raw RuntimeError
+
+
+def test_minimum_entropy_family_of_non_integers():
+    from torchmm import ExactMinimumEntropy
+
+    with pytest.raises(TypeError, match=r"^family\[0\]: expected a sequence of integers"):
+        ExactMinimumEntropy([[0.5]])  # before: accepted at construction
+    with pytest.raises(TypeError, match=r"^family: expected a \(K, M\) bool mask"):
+        ExactMinimumEntropy(torch.ones(2, 3))
+
+
+def test_progress_is_a_flag_or_a_label():
+    kf = KalmanFilter(ConstantVelocity(1, dtype=torch.float64), PositionMeasurement(2, [0], 1.0, dtype=torch.float64))
+    with pytest.raises(TypeError, match=r"^progress: expected True, False or the progress bar's description"):
+        run_filter(kf, _prior(), _z(), progress=3)

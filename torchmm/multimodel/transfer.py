@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from torchmm.contract import Choice, Cov, Finite, Int, Of, Real, Stochastic, entry_point
+from torchmm.contract import Choice, Int, Of, Real, Stochastic, entry_point
 from torchmm.beliefs import Belief, GaussianBelief, ModeBelief, where
 from torchmm.filters.base import Filter, StepOutput
 from torchmm.linalg import any_observed, cholesky, cholesky_solve, condition
