@@ -166,10 +166,12 @@ def _load_arrays(value: Any, output_dir: Path) -> Any:
         raise UnitFileError(f"{path}: {_reason(err)}") from None
     expected = value.get("sha256")
     if expected is not None and hashlib.sha256(data).hexdigest() != expected:
-        raise UnitFileError(f"{path}: checksum mismatch ({len(data)} bytes; not the file the checkpoint recorded)")
+        raise UnitFileError(f"{path}: checksum mismatch ({len(data)} bytes; "
+                            "not the file the checkpoint recorded)")
     try:
         with np.load(io.BytesIO(data)) as npz:
-            arrays = {name: np.require(npz[name], requirements="W") for name in npz.files}  # writable for torch
+            # writable for torch
+            arrays = {name: np.require(npz[name], requirements="W") for name in npz.files}
     except Exception as err:  # truncated or not an npz: BadZipFile, ValueError, EOFError, ...
         raise UnitFileError(f"{path}: unreadable ({type(err).__name__}: {err})") from None
 
@@ -244,7 +246,8 @@ def _umask() -> int:
 def remove_temporaries(folder: Path) -> None:
     """Remove what :func:`write_atomic` left behind in ``folder``, ``units/`` and ``figures/`` when a
     run was killed between writing and replacing (call it holding the folder's lock)."""
-    for sub in (Path(folder), Path(folder) / "units", Path(folder) / "figures", Path(folder) / "figures" / "curves"):
+    for sub in (Path(folder), Path(folder) / "units", Path(folder) / "figures",
+                Path(folder) / "figures" / "curves"):
         for tmp in sub.glob(f".*{TMP_SUFFIX}"):
             try:
                 tmp.unlink()

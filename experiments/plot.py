@@ -38,7 +38,8 @@ def load_curves(run_dir: Path) -> dict[str, tuple[str, object, object]]:
             return {key: (*axes.get(key, ("step", np.arange(1, len(data[key]) + 1))), data[key])
                     for key in data.files if "#" not in key}
     except Exception as err:  # truncated or not an npz (BadZipFile, EOFError, ValueError, OSError, ...)
-        raise ValueError(f"RUN_DIR: {path} is not a readable curves file ({type(err).__name__}: {err})") from None
+        raise ValueError(f"RUN_DIR: {path} is not a readable curves file "
+                         f"({type(err).__name__}: {err})") from None
 
 
 def draw_groups(curves: dict[str, tuple[str, object, object]]) -> list[tuple[str, object]]:
@@ -145,7 +146,8 @@ def main(argv: list[str] | None = None) -> int:
     for run_dir in args.run_dirs:
         try:
             written = plot_curves(Path(run_dir), formats)
-        except (FileNotFoundError, ValueError, RunFolderError) as err:  # missing, unreadable, unwritable: one line
+        # missing, unreadable, unwritable: one line
+        except (FileNotFoundError, ValueError, RunFolderError) as err:
             print(f"torchmm-plot: error: {err}", file=sys.stderr)
             return 2
         print(f"torchmm-plot: {len(written)} files in {Path(run_dir) / 'figures' / 'curves'}")

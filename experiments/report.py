@@ -76,7 +76,8 @@ class ResultsFileError(ValueError):
 
 
 def _check_results(data: Any, file: Path) -> dict:
-    """``data`` if it has the shape :func:`combine` reads (docs/studies.md), else :class:`ResultsFileError`."""
+    """``data`` if it has the shape :func:`combine` reads (docs/studies.md), else
+    :class:`ResultsFileError`."""
     def bad(what: str):
         return ResultsFileError(f"{file}: not a results file ({what}); remove it or report the other runs")
 

@@ -197,7 +197,8 @@ def _hydra_main(cfg: DictConfig) -> None:
     except RunFolderError as err:  # a corrupt checkpoint, a folder that cannot be written or is in use
         print(f"torchmm-run: error: {err}", file=sys.stderr)
         raise SystemExit(2) from None
-    except NonFiniteLossError as err:  # training diverged: one line naming the parameter (the units done are kept)
+    # training diverged: one line naming the parameter (the units done are kept)
+    except NonFiniteLossError as err:
         print(f"torchmm-run: error: {err}", file=sys.stderr)
         raise SystemExit(1) from None
     except KeyboardInterrupt:
@@ -328,8 +329,8 @@ def claim_folder(args: list[str], config_dir: str = CONFIG_DIR) -> list[str]:
                 except OSError as err:
                     raise RunFolderError(f"{record}: cannot keep the earlier sweep's record "
                                          f"({err.strerror})") from None
-                print(f"torchmm-run: {folder} holds an earlier sweep: its record is kept as multirun.{n}.yaml",
-                      file=sys.stderr)
+                print(f"torchmm-run: {folder} holds an earlier sweep: its record is kept as "
+                      f"multirun.{n}.yaml", file=sys.stderr)
         return args
     run_dir = _literal(args, "hydra.run.dir")
     if run_dir is None:
@@ -349,8 +350,8 @@ def claim_folder(args: list[str], config_dir: str = CONFIG_DIR) -> list[str]:
     fresh = Path(unique_dir(str(folder)))
     lock_folder(fresh)
     unlock_folder(folder)
-    print(f"torchmm-run: {folder} holds a run whose {', '.join(differ[:8]) or 'config'} differ; this run goes "
-          f"to {fresh} (the old one is kept)", file=sys.stderr)
+    print(f"torchmm-run: {folder} holds a run whose {', '.join(differ[:8]) or 'config'} differ; "
+          f"this run goes to {fresh} (the old one is kept)", file=sys.stderr)
     return [a for a in args if not a.startswith("hydra.run.dir=")] + [f"hydra.run.dir={fresh}"]
 
 

@@ -363,10 +363,11 @@ class Indices(Kind):
             return value
         if isinstance(value, Tensor):
             if value.is_floating_point() or value.dim() != 1:
-                raise TypeError(f"{name}: expected a sequence of integers, got a tensor of dtype {value.dtype} "
-                                f"and shape {tuple(value.shape)}")
+                raise TypeError(f"{name}: expected a sequence of integers, got a tensor of dtype "
+                                f"{value.dtype} and shape {tuple(value.shape)}")
             value = value.tolist()
-        if isinstance(value, (str, bytes)) or not isinstance(value, Sequence) and not hasattr(value, "__iter__"):
+        if (isinstance(value, (str, bytes))
+                or not isinstance(value, Sequence) and not hasattr(value, "__iter__")):
             raise TypeError(f"{name}: expected a sequence of integers, got {value!r}")
         items = list(value)
         for i in items:
@@ -396,7 +397,8 @@ class Finite(Kind):
     """A tensor-like of finite reals (``square``: ``(..., d, d)``). ``check=False``: the function
     converts and checks it (the kind only declares what the tests try)."""
 
-    def __init__(self, *, square: bool = False, optional: bool = False, check: bool = True, vector: bool = False):
+    def __init__(self, *, square: bool = False, optional: bool = False, check: bool = True,
+                 vector: bool = False):
         self.square, self.optional, self.enforce, self.vector = square, optional, check, vector
 
     def describe(self):
@@ -419,8 +421,8 @@ class Finite(Kind):
 
     def invalid(self, valid):
         out = [Invalid("type", "matrix")]
-        bad = _perturb(valid, lambda t: t.reshape(-1).index_fill_(0, torch.tensor([0]), math.nan).reshape(t.shape)
-                       if t.numel() else None)
+        bad = _perturb(valid, lambda t: (t.reshape(-1).index_fill_(0, torch.tensor([0]), math.nan)
+                                         .reshape(t.shape)) if t.numel() else None)
         if bad is not None:
             out.append(Invalid("non-finite", bad))
         if self.square:
@@ -749,8 +751,9 @@ class Tensors(Kind):
         if self._none(value, name):
             return value
         if isinstance(value, Tensor) or not isinstance(value, (tuple, list)) or not value:
+            got = type(value).__name__
             raise TypeError(f"{name}: expected a non-empty tuple of tensors, got "
-                            f"{'an empty ' + type(value).__name__ if isinstance(value, (tuple, list)) else type(value).__name__}")
+                            f"{'an empty ' + got if isinstance(value, (tuple, list)) else got}")
         bad = next((type(t).__name__ for t in value if not isinstance(t, Tensor)), None)
         if bad is not None:
             raise TypeError(f"{name}: expected a tuple of tensors, got a {bad}")

@@ -218,7 +218,8 @@ def condition(
     n, m = mean.shape[-1], innovation.shape[-1]
     if observed is None:
         observed = torch.isfinite(innovation)
-    elif observed.shape[-1] != m:  # (a mask broadcasting against the innovation: full event axis, for the count)
+    elif observed.shape[-1] != m:
+        # (a mask broadcasting against the innovation: full event axis, for the count)
         observed = observed.expand(*observed.shape[:-1], m)
     if m == 1 and joseph is None and posterior_cov is None:
         out = _condition_scalar(mean, cov, innovation, innovation_cov, cross_cov, observed[..., 0])

@@ -17,7 +17,8 @@ filtered means ``b`` and covariances ``C``. The smoother's elements ``(E_k, g_k,
 
 The scan (:func:`associative_scan`) is the odd-even recursion: ``log2 T`` levels of batched tensor
 operations, each over every run at once, no Python loop over time or runs, no host synchronisation
-(the entry checks of :func:`filter`, those of :func:`~torchmm.run_filter`, read values once, before the scans).
+(the entry checks of :func:`filter`, those of :func:`~torchmm.run_filter`, read values once, before
+the scans).
 Missing data (NaN components of ``z``) are skipped exactly: a missing component gets a zero row of
 ``H`` and a decoupled unit noise, which gives it a zero gain. Priors, innovations and the
 log-likelihood come from one batched prediction and update over all steps, so the returned
@@ -226,7 +227,8 @@ def filter(kf: KalmanFilter, belief0: GaussianBelief, z: Tensor) -> Trajectory:
                               torch.cat([belief0.cov.expand(C.shape[1:]).unsqueeze(0), C[:-1]]))
     prior = kf.predict(previous)  # every step's prior at once (from the filtered belief before it)
     out = kf.update(prior, z)  # innovations, their covariances and the log-likelihood, all steps at once
-    traj = Trajectory(belief=filtered, prior=prior, log_likelihood=out.log_likelihood, innovation=out.innovation,
+    traj = Trajectory(belief=filtered, prior=prior, log_likelihood=out.log_likelihood,
+                      innovation=out.innovation,
                       innovation_cov=out.innovation_cov, extras=out.extras)
     return attach_provenance(traj, Provenance("torchmm.parallel.filter", kf, z.shape[0], given, data,
                                               tensor_versions(given)))

@@ -80,8 +80,8 @@ def _stats(t: Tensor) -> Tensor:
     w = index.to(torch.float64) / max(n, 1)
     a = x.abs()
     where = torch.where(finite, index, 0).sum()  # exact (integers)
-    return torch.stack([infinite.to(torch.float64), finite.sum().to(torch.float64), x.sum(), a.sum(), x @ w, a @ w,
-                        where.to(torch.float64)])
+    return torch.stack([infinite.to(torch.float64), finite.sum().to(torch.float64), x.sum(), a.sum(), x @ w,
+                        a @ w, where.to(torch.float64)])
 
 
 def fingerprints(*streams: Any) -> tuple[list, list]:
@@ -190,7 +190,8 @@ class Provenance:
         return (_dropped, ())  # an unpickled (or deep-copied) trajectory carries no record
 
     def __repr__(self) -> str:
-        return f"Provenance(made_by={self.made_by!r}, filter={type(self.filter).__name__}, steps={self.steps})"
+        return (f"Provenance(made_by={self.made_by!r}, filter={type(self.filter).__name__}, "
+                f"steps={self.steps})")
 
 
 # a pytree map over a trajectory's fields gives data no run made: the record maps to None

@@ -129,7 +129,8 @@ def _stack_in_memory_order(tensors: list) -> Tensor:
     return stacked.permute(0, *inverse)
 
 
-@entry_point(filter=Of(Filter), belief0=BeliefArg(), measurements=Data(), controls=Finite(optional=True, check=False),
+@entry_point(filter=Of(Filter), belief0=BeliefArg(), measurements=Data(),
+             controls=Finite(optional=True, check=False),
              motions=Of((list, tuple, torch.nn.Module), callable_ok=True, optional=True,
                         what="a sequence of T models, a callable k -> model, or None"),
              sensors=Of((list, tuple, torch.nn.Module), callable_ok=True, optional=True,
@@ -213,8 +214,8 @@ def run_filter(
     belief0.validate("belief0")
     check_filter_dtype(filter, belief0, "belief0")
     if generator is not None and generator.device.type != belief0.device.type:
-        raise ValueError(f"generator: on {generator.device}, the belief on {belief0.device}; create it there: "
-                         f"torch.Generator(device={str(belief0.device)!r})")
+        raise ValueError(f"generator: on {generator.device}, the belief on {belief0.device}; create it "
+                         f"there: torch.Generator(device={str(belief0.device)!r})")
     leaves = pytree.tree_leaves(measurements)
     if not leaves:
         raise ValueError("measurements: empty")
@@ -230,7 +231,8 @@ def run_filter(
     if steps == 0:
         raise ValueError("measurements: no time steps (T = 0); run_filter needs at least one")
     meas_dim = getattr(filter, "meas_dim", None)
-    if isinstance(measurements, Tensor) and meas_dim is not None:  # the steps check z (*B, m) each; name it once here
+    # the steps check z (*B, m) each; name it once here
+    if isinstance(measurements, Tensor) and meas_dim is not None:
         check_measurement(measurements[0], meas_dim, belief0.batch_shape, _first_tensor(belief0, leaves[0]),
                           "measurements")
     if controls is not None:
@@ -238,7 +240,8 @@ def run_filter(
             raise ValueError("controls: expected a tensor (T, *B, k)")
         if controls.shape[0] != steps:
             raise ValueError(f"controls: expected {steps} time steps, got {controls.shape[0]}")
-    (data_prints, control_prints), (infinite, _) = fingerprints(measurements, controls)  # one host read: the data's record
+    # one host read: the data's record
+    (data_prints, control_prints), (infinite, _) = fingerprints(measurements, controls)
     if infinite:
         log.warning("measurements: %d infinite entries are treated as missing data (non-finite = missing, "
                     "see docs/robustness.md)", infinite)
@@ -314,8 +317,9 @@ def run_filter(
         kept.append(out if record is None else record(out))
     stacked = Trajectory(*stack_outputs(kept))
     stacked = attach_provenance(stacked, Provenance(
-        "run_filter", filter, steps, measurements, data_prints, tensor_versions(measurements), controls, control_prints,
-        None if controls is None else tensor_versions(controls), motions, sensors, bool(update_first)))
+        "run_filter", filter, steps, measurements, data_prints, tensor_versions(measurements), controls,
+        control_prints, None if controls is None else tensor_versions(controls), motions, sensors,
+        bool(update_first)))
     _report_flags(stacked.extras)
     return stacked
 
@@ -377,11 +381,11 @@ def _report_flags(extras: dict | None) -> None:
                     "they used a regularised factor (extras['singular'], docs/robustness.md)",
         "degenerate": "%d of %d particle updates had every weight vanish; their prior weights were kept "
                       "(extras['degenerate'], docs/robustness.md)",
-        "failed": "%d of %d updates failed: a datum was present but the prediction (or its covariance) was NaN, "
-                  "e.g. a model whose parameters went NaN; their log-likelihood is NaN, not the 0 of missing data "
-                  "(extras['failed'], docs/robustness.md)",
-        "empty_set": "%d of %d steps of a variable-structure IMM got an empty model set from its policy; their "
-                     "log-likelihood is NaN (extras['empty_set'], docs/robustness.md)",
+        "failed": "%d of %d updates failed: a datum was present but the prediction (or its covariance) "
+                  "was NaN, e.g. a model whose parameters went NaN; their log-likelihood is NaN, not the 0 "
+                  "of missing data (extras['failed'], docs/robustness.md)",
+        "empty_set": "%d of %d steps of a variable-structure IMM got an empty model set from its policy; "
+                     "their log-likelihood is NaN (extras['empty_set'], docs/robustness.md)",
     }
     for key, message in messages.items():
         flags = extras.get(key)

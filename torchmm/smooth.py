@@ -462,32 +462,37 @@ def _checked_against_run(filter: Any, trajectory: Trajectory, measurements: Any,
     if run is None or (filter is not None and not isinstance(filter, _SMOOTHABLE)):
         # built by hand: nothing to check against, smoothed as given (or a filter that smooth refuses)
         if filter is None:
-            raise TypeError("filter: this trajectory carries no record of the filter that made it (built by hand, "
-                            "joined, mapped or unpickled); pass it: smooth(filter, trajectory)")
+            raise TypeError("filter: this trajectory carries no record of the filter that made it "
+                            "(built by hand, joined, mapped or unpickled); pass it: "
+                            "smooth(filter, trajectory)")
         return filter, measurements, controls, _per_step(motions, steps, "motions"), \
             _per_step(sensors, steps, "sensors")
     made = run.made_by
     if trajectory.belief is not run.belief or trajectory.prior is not run.prior or steps != run.steps:
-        raise ValueError(f"trajectory: its beliefs are not the ones {made} returned ({steps} of its {run.steps} "
-                         "steps, or fields reversed, sliced or replaced); smooth the trajectory as the run returned "
-                         "it (a Trajectory built anew carries no record and is smoothed as given)")
+        raise ValueError(f"trajectory: its beliefs are not the ones {made} returned ({steps} of its "
+                         f"{run.steps} steps, or fields reversed, sliced or replaced); smooth the trajectory "
+                         "as the run returned it (a Trajectory built anew carries no record and is smoothed "
+                         "as given)")
     if filter is None:
         filter = run.filter
     elif type(filter) is not type(run.filter):
-        raise TypeError(f"filter: a {type(filter).__name__}, but a {type(run.filter).__name__} made this trajectory "
-                        f"({made}); pass that filter, or smooth(trajectory) to use it")
+        raise TypeError(f"filter: a {type(filter).__name__}, but a {type(run.filter).__name__} made this "
+                        f"trajectory ({made}); pass that filter, or smooth(trajectory) to use it")
     elif filter is not run.filter:
-        raise ValueError(f"filter: not the filter that made this trajectory (a {type(run.filter).__name__}, given to "
-                         f"{made}); pass that same object, or smooth(trajectory) to use it. An equal filter "
-                         "built again is refused too: the trajectory knows its filter by identity")
+        raise ValueError(f"filter: not the filter that made this trajectory (a {type(run.filter).__name__}, "
+                         f"given to {made}); pass that same object, or smooth(trajectory) to use it. "
+                         "An equal filter built again is refused too: the trajectory knows its filter by "
+                         "identity")
     if module_state(filter) != run.state:
-        raise ValueError(f"filter: its parameters or buffers changed (in place, or replaced) since {made} made this "
-                         "trajectory; filter again with the changed filter")
+        raise ValueError(f"filter: its parameters or buffers changed (in place, or replaced) since {made} "
+                         "made this trajectory; filter again with the changed filter")
     two_filter = isinstance(filter, MultipleModelFilter) and method in (None, "two_filter")
     if measurements is not None or two_filter:
-        measurements = _same_data(measurements, run.measurements, run.data, run.data_versions, "measurements", made)
+        measurements = _same_data(measurements, run.measurements, run.data, run.data_versions,
+                                  "measurements", made)
     if controls is not None or run.controls is not None:
-        controls = _same_data(controls, run.controls, run.control_data, run.control_versions, "controls", made)
+        controls = _same_data(controls, run.controls, run.control_data, run.control_versions,
+                              "controls", made)
     motions = _same_models(motions, run.motions, steps, "motions", made)
     sensors = _same_models(sensors, run.sensors, steps, "sensors", made)
     return filter, measurements, controls, motions, sensors
@@ -509,7 +514,8 @@ def _same_data(given: Any, recorded: Any, prints: tuple | None, versions: tuple 
         raise ValueError(f"{name}: {len(leaves)} data streams, the {name} given to {made} had {len(prints)}")
     for t, p in zip(leaves, prints):  # shapes, dtypes and devices first (no value read)
         if tuple(t.shape) != p.shape:
-            raise ValueError(f"{name}: expected shape {p.shape} (the {name} {made} filtered), got {tuple(t.shape)}")
+            raise ValueError(f"{name}: expected shape {p.shape} (the {name} {made} filtered), "
+                             f"got {tuple(t.shape)}")
         if t.dtype != p.dtype:
             raise TypeError(f"{name}: dtype {t.dtype} differs from the {name} {made} filtered ({p.dtype})")
         if t.device != p.device:
@@ -519,10 +525,11 @@ def _same_data(given: Any, recorded: Any, prints: tuple | None, versions: tuple 
         why = p.differs(q)
         if why is not None:
             if given is None:
-                raise ValueError(f"{name}: the {name} given to {made} were changed in place since ({why}); pass "
-                                 "the data as filtered, or filter again")
-            raise ValueError(f"{name}: not the data {made} filtered ({why}: reversed, permuted, other or changed "
-                             "data); pass those, or smooth(trajectory) to use the ones the trajectory carries")
+                raise ValueError(f"{name}: the {name} given to {made} were changed in place since ({why}); "
+                                 "pass the data as filtered, or filter again")
+            raise ValueError(f"{name}: not the data {made} filtered ({why}: reversed, permuted, other or "
+                             "changed data); pass those, or smooth(trajectory) to use the ones the "
+                             "trajectory carries")
     return data
 
 
@@ -539,7 +546,8 @@ def _same_models(given: Any, recorded: Any, steps: int, name: str, made: str) ->
     for k, (a, b) in enumerate(zip(listed, _per_step(recorded, steps, name))):
         if a is not b:
             raise ValueError(f"{name}: entry {k} is not the model given to {made} for step {k} (a "
-                             f"{type(b).__name__}); pass the same models, or leave {name} out to use the run's")
+                             f"{type(b).__name__}); pass the same models, or leave {name} out to use "
+                             "the run's")
     return listed
 
 
@@ -628,17 +636,22 @@ def smooth(filter: Any, trajectory: Trajectory | None = None, measurements: Tens
         if trajectory is not None and measurements is not None:
             raise TypeError("trajectory: smooth(trajectory, measurements) takes no filter; or pass "
                             "smooth(filter, trajectory, measurements)")
-        filter, trajectory, measurements = None, filter, trajectory if trajectory is not None else measurements
+        filter, trajectory, measurements = (None, filter,
+                                            trajectory if trajectory is not None else measurements)
     if not isinstance(trajectory, Trajectory):
         raise TypeError(f"trajectory: expected the Trajectory of run_filter, got {type(trajectory).__name__}")
     steps = trajectory.belief.batch_shape[0]
-    if controls is not None and (not isinstance(controls, Tensor) or controls.dim() < 1 or controls.shape[0] != steps):
-        raise ValueError(f"controls: expected a tensor with {steps} steps on the leading axis, got "
-                         f"{tuple(controls.shape) if isinstance(controls, Tensor) else type(controls).__name__}")
+    if controls is not None and (not isinstance(controls, Tensor) or controls.dim() < 1
+                                 or controls.shape[0] != steps):
+        raise ValueError(
+            f"controls: expected a tensor with {steps} steps on the leading axis, got "
+            f"{tuple(controls.shape) if isinstance(controls, Tensor) else type(controls).__name__}")
     filter, measurements, controls, motions, sensors = _checked_against_run(
         filter, trajectory, measurements, controls, motions, sensors, method, steps)
-    if motions is not None and not isinstance(filter, MultipleModelFilter):  # None entries: the filter's model
-        motions = [filter.motion if m is None else m for m in motions] if hasattr(filter, "motion") else motions
+    # None entries: the filter's model
+    if motions is not None and not isinstance(filter, MultipleModelFilter):
+        motions = ([filter.motion if m is None else m for m in motions] if hasattr(filter, "motion")
+                   else motions)
     if motions is not None and all(m is None for m in motions):
         motions = None
     if lag is not None and isinstance(filter, (MultipleModelFilter, ParticleFilter)):

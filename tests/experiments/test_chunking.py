@@ -35,8 +35,9 @@ def _assert_same(a, b, path="results", rel_tol=1e-11):
         assert set(a) == set(b), path
         for key in a:
             if key in ("timing", "config", "relative_time", "provenance", "sha256") or "seconds" in key:
-                continue  # wall times, the run's provenance (its times), unit files' checksums (bytes of floats
-                # that agree to rounding; the files' arrays are compared through the results)
+                # wall times, the run's provenance (its times), unit files' checksums (bytes of
+                # floats that agree to rounding; the files' arrays are compared through the results)
+                continue
             _assert_same(a[key], b[key], f"{path}.{key}", rel_tol)
     elif isinstance(a, list):
         assert len(a) == len(b), path

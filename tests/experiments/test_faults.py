@@ -17,6 +17,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -44,8 +45,8 @@ def _env() -> dict:
 def _cli(cwd: Path, *args: str) -> subprocess.CompletedProcess:
     flags = [a for a in args if a.startswith("-")]  # -m before the overrides
     overrides = [a for a in args if not a.startswith("-")]
-    return subprocess.run([_exe(), *flags, "experiment=imm_baseline", *STUDY, *overrides], capture_output=True,
-                          text=True, timeout=300, cwd=cwd, env=_env())
+    return subprocess.run([_exe(), *flags, "experiment=imm_baseline", *STUDY, *overrides],
+                          capture_output=True, text=True, timeout=300, cwd=cwd, env=_env())
 
 
 def _popen(cwd: Path, *args: str) -> subprocess.Popen:
@@ -226,8 +227,8 @@ def test_corrupt_or_missing_unit_files_are_named_and_computed_again(tmp_path, re
     _assert_whole(folder)
 
 
-def test_a_corrupt_checkpoint_is_one_line_and_resume_latest_says_it_passes_it_over(tmp_path, reference, capsys,
-                                                                                    monkeypatch):
+def test_a_corrupt_checkpoint_is_one_line_and_resume_latest_says_it_passes_it_over(
+        tmp_path, reference, capsys, monkeypatch):
     from experiments.run import resolve_resume
 
     folder = tmp_path / "outputs" / "imm_baseline" / "2026-01-01_00-00-00"
@@ -247,8 +248,8 @@ def test_a_corrupt_checkpoint_is_one_line_and_resume_latest_says_it_passes_it_ov
     args = ["experiment=imm_baseline", *STUDY, "resume=latest"]
     assert resolve_resume(args) == args
     lines = capsys.readouterr().err.splitlines()
-    assert lines == [f"torchmm-run: resume=latest: skipping {ckpt.relative_to(tmp_path)}: not a valid checkpoint "
-                     f"({lines[0].split('(', 1)[1]}",
+    assert lines == [f"torchmm-run: resume=latest: skipping {ckpt.relative_to(tmp_path)}: "
+                     f"not a valid checkpoint ({lines[0].split('(', 1)[1]}",
                      "torchmm-run: resume=latest: no readable earlier run of this config under "
                      "outputs/imm_baseline; starting a fresh one"]
     assert _snapshot(folder) == before
@@ -285,20 +286,47 @@ def test_a_folder_that_cannot_be_made_is_one_line(tmp_path, capsys):
         run_study(_compose("imm_baseline", *STUDY), folder)
 
 
-@pytest.mark.skipif(hasattr(os, "geteuid") and os.geteuid() == 0,
-                    reason="root writes into read-only folders; test_a_folder_that_cannot_be_made_is_one_line "
-                           "covers unwritable folders with a path under a file")
+_NOBODY = ["setpriv", "--reuid=65534", "--regid=65534", "--clear-groups"]
+
+
+def _unprivileged() -> list[str] | None:
+    """How to run the CLI where a read-only folder is read-only: as this user when it is not root;
+    as root (CI, the developers' machines), as ``nobody`` through ``setpriv`` where that user can
+    read the environment (probed); None where neither works."""
+    if not hasattr(os, "geteuid") or os.geteuid() != 0:
+        return []
+    if shutil.which("setpriv") is None:
+        return None
+    probe = subprocess.run([*_NOBODY, sys.executable, "-c", "import experiments.run"], capture_output=True,
+                           cwd="/", env={**_env(), "HOME": "/tmp"})
+    return _NOBODY if probe.returncode == 0 else None
+
+
 def test_a_read_only_folder_is_one_line(tmp_path):
-    for folder in (tmp_path / "ro", tmp_path / "ro_parent" / "run"):
-        target = folder if folder.name == "ro" else folder.parent
-        target.mkdir()
-        target.chmod(0o500)
-        try:
-            proc = _cli(tmp_path, f"hydra.run.dir={folder}")
-        finally:
-            target.chmod(0o700)
-        assert proc.returncode == 2
-        _one_line(proc.stderr, folder)
+    prefix = _unprivileged()
+    if prefix is None:  # pragma: no cover - a root without setpriv, or an environment nobody may read
+        pytest.skip("cannot run the CLI unprivileged here (root writes into read-only folders); "
+                    "test_a_folder_that_cannot_be_made_is_one_line covers unwritable folders")
+    # a folder the unprivileged user can reach
+    base = Path(tempfile.mkdtemp(prefix="torchmm-ro-", dir="/tmp"))
+    try:
+        base.chmod(0o755)
+        for folder in (base / "ro", base / "ro_parent" / "run"):
+            target = folder if folder.name == "ro" else folder.parent
+            target.mkdir()
+            target.chmod(0o555)
+            proc = subprocess.run([*prefix, _exe(), "experiment=imm_baseline", *STUDY,
+                                   f"hydra.run.dir={folder}"],
+                                  capture_output=True, text=True, timeout=300, cwd=base,
+                                  env={**_env(), "HOME": str(base)})
+            assert proc.returncode == 2, proc.stderr[-3000:]
+            _one_line(proc.stderr, folder)
+            assert not list(target.iterdir()), "a refused run writes nothing"
+    finally:
+        for path in base.rglob("*"):
+            if path.is_dir():
+                path.chmod(0o755)
+        shutil.rmtree(base, ignore_errors=True)
 
 
 # -- two runs, two sweeps ------------------------------------------------------------------------------
@@ -368,8 +396,9 @@ def test_a_second_sweep_into_a_sweep_folder_keeps_the_first_ones_record(tmp_path
 
 
 # -- torchmm-report and torchmm-plot on malformed inputs -------------------------------------------------
-@pytest.mark.parametrize("content", ["[]\n", '{"experiment": "x", "tab',
-                                     '{"experiment": "x", "tables": {"t": {"columns": ["a"], "rows": [[1, 2]]}}}'])
+@pytest.mark.parametrize("content", [
+    "[]\n", '{"experiment": "x", "tab',
+    '{"experiment": "x", "tables": {"t": {"columns": ["a"], "rows": [[1, 2]]}}}'])
 def test_report_on_a_malformed_results_file_is_one_line(content, tmp_path, capsys):
     from experiments import report
 

@@ -44,7 +44,8 @@ def _f64(build: Callable[[], Call]) -> Callable[[], Call]:
     return wrapped
 
 
-_RECORD = "a result record (a dataclass or NamedTuple the library returns); built by the library, not validated"
+_RECORD = ("a result record (a dataclass or NamedTuple the library returns); built by the library, "
+           "not validated")
 _INTERFACE = "an interface (abstract base) to subclass; its subclasses are the entry points"
 _PER_STEP = ("a plain constructor that every filter step calls (shapes checked in __post_init__); values are "
              "checked where a user hands a belief in: Belief.validate at run_filter, initial_belief, create")
@@ -79,7 +80,8 @@ NOT_ENTRY_POINTS: dict[str, str] = {
     "torchmm.learn.trainer.NonFiniteLossError": "an exception type (Trainer raises it; a ValueError)",
     "torchmm.simulate.markov.JumpSimulation": _RECORD,
     # beliefs: built inside every step
-    "torchmm.beliefs.gaussian.GaussianBelief": _PER_STEP + " (GaussianBelief.create is the checked constructor)",
+    "torchmm.beliefs.gaussian.GaussianBelief":
+        _PER_STEP + " (GaussianBelief.create is the checked constructor)",
     "torchmm.beliefs.mode.ModeBelief": _PER_STEP,
     "torchmm.beliefs.mode.ModelSetBelief": _PER_STEP,
     "torchmm.beliefs.particle.ParticleBelief": _PER_STEP,
@@ -114,8 +116,10 @@ NOT_ENTRY_POINTS: dict[str, str] = {
     "torchmm.multimodel.imm.NoInteraction": _NO_ARGS,
     "torchmm.multimodel.structure.ActiveSetMixing": _NO_ARGS,
     "torchmm.multimodel.structure.AllModels": _NO_ARGS,
-    "torchmm.models.adapters.CholeskyCovariance": _NO_ARGS + " (a parametrization: learnable_noise applies it)",
-    "torchmm.models.adapters.LogDiagonalCovariance": _NO_ARGS + " (a parametrization: learnable_noise applies it)",
+    "torchmm.models.adapters.CholeskyCovariance":
+        _NO_ARGS + " (a parametrization: learnable_noise applies it)",
+    "torchmm.models.adapters.LogDiagonalCovariance":
+        _NO_ARGS + " (a parametrization: learnable_noise applies it)",
 }
 
 
@@ -153,7 +157,8 @@ example("torchmm.models.motion.kinematic_matrices")(
 example("torchmm.models.motion.NonlinearCoordinatedTurn")(
     lambda: call(models.NonlinearCoordinatedTurn, 1.0, 0.5, 1e-3, noise="discrete", dtype=torch.float64))
 example("torchmm.models.linear.LinearMotion")(
-    lambda: call(models.LinearMotion, [[1.0, 1.0], [0.0, 1.0]], 0.1 * torch.eye(2), [0.0, 0.5], [[0.0], [1.0]]))
+    lambda: call(models.LinearMotion, [[1.0, 1.0], [0.0, 1.0]], 0.1 * torch.eye(2), [0.0, 0.5],
+                 [[0.0], [1.0]]))
 example("torchmm.models.linear.LinearMeasurement")(
     lambda: call(models.LinearMeasurement, [[1.0, 0.0]], [[2.0]]))
 example("torchmm.models.measurement.PositionMeasurement")(
@@ -170,10 +175,11 @@ example("torchmm.models.transition.transition_alpha")(
 example("torchmm.models.transition.ModeTransition")(
     lambda: call(torchmm.ModeTransition, [[0.9, 0.1], [0.2, 0.8]], learnable=True))
 example("torchmm.models.adapters.LearnedMotion")(
-    lambda: call(models.LearnedMotion, torch.nn.Linear(2, 2).double(), 2, 0.1 * torch.eye(2), noise="cholesky",
-                 residual=True, uses_input=False))
+    lambda: call(models.LearnedMotion, torch.nn.Linear(2, 2).double(), 2, 0.1 * torch.eye(2),
+                 noise="cholesky", residual=True, uses_input=False))
 example("torchmm.models.adapters.LearnedMeasurement")(
-    lambda: call(models.LearnedMeasurement, torch.nn.Linear(2, 1).double(), 2, 1, torch.eye(1), noise="log_diagonal"))
+    lambda: call(models.LearnedMeasurement, torch.nn.Linear(2, 1).double(), 2, 1, torch.eye(1),
+                 noise="log_diagonal"))
 example("torchmm.models.adapters.LogScaleCovariance")(
     lambda: call(models.LogScaleCovariance, torch.eye(2), (3,)))
 example("torchmm.models.adapters.learnable_noise")(
@@ -195,13 +201,15 @@ example("torchmm.filters.kalman.ExtendedKalmanFilter")(
                  models.RangeBearing(5, torch.diag(torch.tensor([1.0, 0.01])), position_indices=(0, 2)),
                  joseph=False))
 example("torchmm.filters.unscented.UnscentedKalmanFilter")(
-    lambda: call(torchmm.UnscentedKalmanFilter, cv(), pos(), torchmm.MerweScaledSigmaPoints(1.0), joseph=None))
+    lambda: call(torchmm.UnscentedKalmanFilter, cv(), pos(), torchmm.MerweScaledSigmaPoints(1.0),
+                 joseph=None))
 example("torchmm.filters.unscented.MerweScaledSigmaPoints")(
     lambda: call(torchmm.MerweScaledSigmaPoints, 0.5, 2.0, 0.0))
 example("torchmm.filters.unscented.JulierSigmaPoints")(lambda: call(torchmm.JulierSigmaPoints, 1.0))
 example("torchmm.filters.particle.ParticleFilter")(
-    lambda: call(torchmm.ParticleFilter, cv(), pos(), resampling="systematic", ess_threshold=0.5, num_particles=50,
-                 generator=torch.Generator().manual_seed(0), state_dependent_noise=False, noise_dtype=torch.float64))
+    lambda: call(torchmm.ParticleFilter, cv(), pos(), resampling="systematic", ess_threshold=0.5,
+                 num_particles=50, generator=torch.Generator().manual_seed(0), state_dependent_noise=False,
+                 noise_dtype=torch.float64))
 example("torchmm.filters.particle.ParticleFilter.initial_belief")(
     lambda: call(torchmm.ParticleFilter.initial_belief, torchmm.ParticleFilter(cv(), pos()), prior(), 20,
                  generator=torch.Generator().manual_seed(0)))
@@ -219,7 +227,8 @@ example("torchmm.filters.vbakf.VBAKFPR.initial_belief")(
 
 def _rts():
     kf = torchmm.KalmanFilter(cv(), pos())
-    traj = torchmm.run_filter(kf, prior().expand(3), torch.randn(5, 3, 1, generator=torch.Generator().manual_seed(0)))
+    traj = torchmm.run_filter(kf, prior().expand(3),
+                              torch.randn(5, 3, 1, generator=torch.Generator().manual_seed(0)))
     return call(torchmm.rts_smoother, kf.motion, traj.belief, traj.prior, controls=None)
 
 
@@ -275,15 +284,17 @@ example("torchmm.multimodel.particle.MultipleModelParticleFilter.initial_belief"
                  torchmm.MultipleModelParticleFilter(cv_bank(), pos(), P2, 30), prior(), [0.5, 0.5],
                  generator=_gen()))
 example("torchmm.multimodel.mevsmm.MinimumEntropyVSMM")(
-    lambda: call(torchmm.MinimumEntropyVSMM, cv_bank(), pos(), P2, 30, selection=torchmm.ChallengeMatch(20, 5),
-                 feedback=True, mixing="systematic", generator=_gen(), innovation_stats=True, noise_dtype=None))
+    lambda: call(torchmm.MinimumEntropyVSMM, cv_bank(), pos(), P2, 30,
+                 selection=torchmm.ChallengeMatch(20, 5), feedback=True, mixing="systematic",
+                 generator=_gen(), innovation_stats=True, noise_dtype=None))
 example("torchmm.multimodel.mevsmm.MinimumEntropyVSMM.initial_belief")(
     lambda: call(torchmm.MinimumEntropyVSMM.initial_belief,
-                 torchmm.MinimumEntropyVSMM(cv_bank(), pos(), P2, 30, selection=torchmm.ExactMinimumEntropy()),
+                 torchmm.MinimumEntropyVSMM(cv_bank(), pos(), P2, 30,
+                                            selection=torchmm.ExactMinimumEntropy()),
                  prior(), [0.5, 0.5], generator=_gen()))
 example("torchmm.multimodel.mevsmm.EqMAParticleFilter")(
-    lambda: call(torchmm.EqMAParticleFilter, [[1.0, 1.0], [0.0, 1.0]], [[0.5], [1.0]], [[0.0], [1.0]], [[0.1]],
-                 pos(), 30, transition=None, stay=0.9, mixing="systematic", generator=_gen(),
+    lambda: call(torchmm.EqMAParticleFilter, [[1.0, 1.0], [0.0, 1.0]], [[0.5], [1.0]], [[0.0], [1.0]],
+                 [[0.1]], pos(), 30, transition=None, stay=0.9, mixing="systematic", generator=_gen(),
                  innovation_stats=True, noise_dtype=None))
 
 
@@ -303,21 +314,23 @@ example("torchmm.multimodel.source_baselines.SourceModeVSIMM.initial_belief")(
     lambda: call(mm.SourceModeVSIMM.initial_belief, mm.SourceModeVSIMM(kf_bank(), P2, _source()), prior(),
                  [0.5, 0.5], generator=None))
 example("torchmm.multimodel.transfer.TransferIMM")(
-    lambda: call(mm.TransferIMM, kf_bank(), P2, _source(), smoothing_reference="mixed", mode_likelihood="corrected",
-                 gate=mm.InfluenceGate(0.0, 1, "process")))
+    lambda: call(mm.TransferIMM, kf_bank(), P2, _source(), smoothing_reference="mixed",
+                 mode_likelihood="corrected", gate=mm.InfluenceGate(0.0, 1, "process")))
 example("torchmm.multimodel.transfer.InfluenceGate")(lambda: call(mm.InfluenceGate, 0.5, 1, "process"))
 example("torchmm.multimodel.variational.gimmaf")(
     lambda: call(torchmm.gimmaf, cv_bank(), pos(), P2, skewness=[1.0], df=[5.0], tau=3.0, iterations=5,
                  gamma_shape="derived", elbo_history=False, joseph=None))
 example("torchmm.multimodel.variational.imm_vbt")(
-    lambda: call(torchmm.imm_vbt, cv_bank(), pos(), P2, df=5.0, iterations=5, elbo_history=False, joseph=None))
+    lambda: call(torchmm.imm_vbt, cv_bank(), pos(), P2, df=5.0, iterations=5, elbo_history=False,
+                 joseph=None))
 
 # -- run_filter -------------------------------------------------------------------------------------------
 def _run_filter():
     kf = torchmm.KalmanFilter(cv(), pos())
     z = torch.randn(4, 3, 1, generator=_gen())
-    return call(torchmm.run_filter, kf, prior().expand(3), z, controls=None, motions=[cv()] * 4, sensors=None,
-                generator=None, update_first=True, record=None, progress=False, fast_path=False, compile=False)
+    return call(torchmm.run_filter, kf, prior().expand(3), z, controls=None, motions=[cv()] * 4,
+                sensors=None, generator=None, update_first=True, record=None, progress=False,
+                fast_path=False, compile=False)
 
 
 example("torchmm.run.run_filter")(_run_filter)

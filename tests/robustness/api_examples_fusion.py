@@ -52,13 +52,14 @@ def _cross(system, stats):
 # -- the system -----------------------------------------------------------------------------------------
 def _init():
     s = _system()
-    return call(fusion.MultiSensorSystem, s.A, s.Gamma, s.Qw, s.C, s.Ct, s.h, s.Qp, s.Qr0, s.R, s.Qv, s.mu0, s.P0)
+    return call(fusion.MultiSensorSystem, s.A, s.Gamma, s.Qw, s.C, s.Ct, s.h, s.Qp, s.Qr0, s.R, s.Qv, s.mu0,
+                s.P0)
 
 
 def _create():
     s = _system()
-    return call(fusion.MultiSensorSystem.create, s.A, s.Gamma, s.Qw, s.C, s.Ct, s.h, s.Qp, s.R, s.Qv, s.mu0, s.P0,
-                None, dtype=torch.float64, device="cpu")
+    return call(fusion.MultiSensorSystem.create, s.A, s.Gamma, s.Qw, s.C, s.Ct, s.h, s.Qp, s.R, s.Qv, s.mu0,
+                s.P0, None, dtype=torch.float64, device="cpu")
 
 
 example(_F + "system.MultiSensorSystem")(_init)
@@ -116,10 +117,12 @@ example(_F + "local.cross_covariances")(_pairs("cross_covariances", 1, steps=STE
 example(_F + "local.theorem6_cross_covariances")(_pairs("theorem6_cross_covariances", 1, xi_term=True))
 
 # -- augmented and centralized ----------------------------------------------------------------------
-example(_F + "augmented.augmented_cross_predictor")(lambda: call(fusion.augmented_cross_predictor, _system(), STEPS))
+example(_F + "augmented.augmented_cross_predictor")(
+    lambda: call(fusion.augmented_cross_predictor, _system(), STEPS))
 example(_F + "augmented.augmented_local_estimates")(
     lambda: call(fusion.augmented_local_estimates, _system(), _y(), 1))
-example(_F + "augmented.centralized_estimates")(lambda: call(fusion.centralized_estimates, _system(), _y(), N=0))
+example(_F + "augmented.centralized_estimates")(
+    lambda: call(fusion.centralized_estimates, _system(), _y(), N=0))
 
 
 def _correlated_kf():

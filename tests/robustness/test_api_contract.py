@@ -85,7 +85,8 @@ def test_every_entry_point_has_an_example():
 
 
 def _spec(call: Call):
-    spec = contract.spec_of(call.fn) if isinstance(call.fn, type) else getattr(call.fn, "__entry_point__", None)
+    spec = (contract.spec_of(call.fn) if isinstance(call.fn, type)
+            else getattr(call.fn, "__entry_point__", None))
     assert spec is not None, f"{call.fn!r} is not an entry point"
     return spec
 
@@ -146,7 +147,8 @@ def test_invalid_inputs_raise_naming_the_parameter(key, name):
                 failures.append(f"{invalid.cls} {_show(invalid.value)}: {type(err).__name__} does not start "
                                 f"with {label!r}: {message[:200]!r}")
         except Exception as err:  # noqa: BLE001 - a raw error is a failure of the contract
-            failures.append(f"{invalid.cls} {_show(invalid.value)}: raw {type(err).__name__}: {str(err)[:200]!r}")
+            failures.append(f"{invalid.cls} {_show(invalid.value)}: raw {type(err).__name__}: "
+                            f"{str(err)[:200]!r}")
         else:
             failures.append(f"{invalid.cls} {_show(invalid.value)}: accepted silently")
     assert not failures, f"{key}({name}=...):\n" + "\n".join(failures)

@@ -34,7 +34,8 @@ P3 = torch.full((3, 3), 1 / 3, dtype=torch.float64)
 
 
 def _prior(runs=4):
-    return GaussianBelief(torch.zeros(runs, 2, dtype=torch.float64), torch.eye(2, dtype=torch.float64).expand(runs, 2, 2))
+    return GaussianBelief(torch.zeros(runs, 2, dtype=torch.float64),
+                          torch.eye(2, dtype=torch.float64).expand(runs, 2, 2))
 
 
 def _z(steps=5, runs=4, seed=0):
@@ -103,7 +104,8 @@ def test_per_step_models_of_the_wrong_dtype_or_mode_count(bank_filter):
 
 # -- defect 4: values coerced silently --------------------------------------------------------------------
 def test_sizes_flags_and_generators_are_not_coerced(bank_filter):
-    kf = KalmanFilter(ConstantVelocity(2, dtype=torch.float64), PositionMeasurement(4, [0, 2], 1.0, dtype=torch.float64))
+    kf = KalmanFilter(ConstantVelocity(2, dtype=torch.float64),
+                      PositionMeasurement(4, [0, 2], 1.0, dtype=torch.float64))
     with pytest.raises(TypeError, match=r"^common_dim: expected an integer, got 6.5"):
         Embedded(kf, [0, 1, 3, 4], 6.5)
     with pytest.raises(TypeError, match=r"^members: expected a sequence of integers, got the entry 0.5"):
@@ -123,7 +125,8 @@ def test_sizes_flags_and_generators_are_not_coerced(bank_filter):
 
 
 def test_a_particle_set_without_particles():
-    pf = ParticleFilter(ConstantVelocity(1, dtype=torch.float64), PositionMeasurement(2, [0], 1.0, dtype=torch.float64))
+    pf = ParticleFilter(ConstantVelocity(1, dtype=torch.float64),
+                        PositionMeasurement(2, [0], 1.0, dtype=torch.float64))
     empty = ParticleBelief(torch.zeros(4, 0, 2, dtype=torch.float64), torch.zeros(4, 0, dtype=torch.float64))
     with pytest.raises(ValueError, match=r"^belief0.particles: a particle set needs at least one particle"):
         run_filter(pf, empty, _z())  # before: "ValueError: math domain error"
@@ -176,12 +179,14 @@ def test_the_wrapper_checks_passed_arguments_and_trusts_defaults():
         return n
 
     assert f(3) == 3 and f(n=torch.tensor(2)) == 2  # an integral 0-d tensor becomes an int
-    assert spec_of(f) is registered()[f"{__name__}.test_the_wrapper_checks_passed_arguments_and_trusts_defaults.<locals>.f"]
+    assert spec_of(f) is registered()[
+        f"{__name__}.test_the_wrapper_checks_passed_arguments_and_trusts_defaults.<locals>.f"]
     cases = [
         (dict(n=0), ValueError, "^n: must be >= 1"),
         (dict(n=True), TypeError, "^n: expected an integer"),
         (dict(n=1, flag="yes"), TypeError, "^flag: expected True or False"),
-        (dict(n=1, cov=[[1.0, 2.0], [2.0, 1.0]]), ValueError, "^cov: covariance is not positive semi-definite"),
+        (dict(n=1, cov=[[1.0, 2.0], [2.0, 1.0]]), ValueError,
+         "^cov: covariance is not positive semi-definite"),
         (dict(n=1, generator=torch.Generator), TypeError, "^generator: expected a torch.Generator"),
         (dict(n=1, members=[]), ValueError, "^members: must not be empty"),
         (dict(n=1, model=torch.nn.Linear), TypeError, "^model: expected an instance .*got the class Linear"),
@@ -229,6 +234,7 @@ def test_minimum_entropy_family_of_non_integers():
 
 
 def test_progress_is_a_flag_or_a_label():
-    kf = KalmanFilter(ConstantVelocity(1, dtype=torch.float64), PositionMeasurement(2, [0], 1.0, dtype=torch.float64))
+    kf = KalmanFilter(ConstantVelocity(1, dtype=torch.float64),
+                      PositionMeasurement(2, [0], 1.0, dtype=torch.float64))
     with pytest.raises(TypeError, match=r"^progress: expected True, False or the progress bar's description"):
         run_filter(kf, _prior(), _z(), progress=3)

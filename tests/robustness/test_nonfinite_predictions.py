@@ -56,7 +56,8 @@ def _ekf(nan: bool) -> ExtendedKalmanFilter:
 
 
 def _prior(runs: int = RUNS, n: int = 2) -> GaussianBelief:
-    return GaussianBelief(torch.zeros(runs, n, dtype=torch.float64), torch.eye(n, dtype=torch.float64).expand(runs, n, n))
+    return GaussianBelief(torch.zeros(runs, n, dtype=torch.float64),
+                          torch.eye(n, dtype=torch.float64).expand(runs, n, n))
 
 
 def _data(steps: int = 6, runs: int = RUNS, m: int = 1) -> torch.Tensor:
@@ -226,7 +227,8 @@ def test_multiple_model_pf_kernels_flag_failures_as_the_eager_path(monkeypatch):
         pytest.skip("numba not importable")
     calls = []
     original = cpu_kernels.propagate_log_likelihood
-    monkeypatch.setattr(cpu_kernels, "propagate_log_likelihood", lambda *a, **k: calls.append(1) or original(*a, **k))
+    monkeypatch.setattr(cpu_kernels, "propagate_log_likelihood",
+                        lambda *a, **k: calls.append(1) or original(*a, **k))
     bank = ConstantVelocity(1, q=0.5, acceleration=torch.tensor([[0.5], [-0.5]], dtype=torch.float64),
                             dtype=torch.float64)
     sensor = PositionMeasurement(2, [0], torch.tensor(1.0, dtype=torch.float64), dtype=torch.float64)
@@ -265,21 +267,25 @@ def test_trainer_stops_with_one_line_naming_the_nan_parameter():
 
 def test_trainer_says_when_the_loss_diverged_with_finite_parameters():
     motion = learnable_noise(ConstantVelocity(1, q=1.0, dtype=torch.float64), "Q", "scale")
-    kf = KalmanFilter(motion, PositionMeasurement(2, [0], torch.tensor(1.0, dtype=torch.float64), dtype=torch.float64))
+    kf = KalmanFilter(motion, PositionMeasurement(2, [0], torch.tensor(1.0, dtype=torch.float64),
+                                                  dtype=torch.float64))
     z = _data()
     z[3, 0] = 1e200  # the quadratic form overflows: log-likelihood -inf, parameters finite
     trainer = Trainer(kf, torch.optim.SGD(kf.parameters(), lr=0.01))
-    with pytest.raises(NonFiniteLossError, match=r"^Trainer: the loss went non-finite \(inf\) at iteration 1; "
-                                                 r"every parameter is finite") as info:
+    with pytest.raises(NonFiniteLossError,
+                       match=r"^Trainer: the loss went non-finite \(inf\) at iteration 1; "
+                             r"every parameter is finite") as info:
         trainer.fit(_prior(), z, 1)
     assert "\n" not in str(info.value)
 
 
 def test_trainer_names_a_parameter_an_update_made_non_finite():
     motion = learnable_noise(ConstantVelocity(1, q=1.0, dtype=torch.float64), "Q", "scale")
-    kf = KalmanFilter(motion, PositionMeasurement(2, [0], torch.tensor(1.0, dtype=torch.float64), dtype=torch.float64))
+    kf = KalmanFilter(motion, PositionMeasurement(2, [0], torch.tensor(1.0, dtype=torch.float64),
+                                                  dtype=torch.float64))
     trainer = Trainer(kf, torch.optim.SGD(kf.parameters(), lr=math.inf))
-    with pytest.raises(NonFiniteLossError, match=r"^Trainer: the parameters went non-finite in the update of "
-                                                 r"iteration 1 .*parameter 'motion.parametrizations.Q.original' "
-                                                 r"is non-finite"):
+    with pytest.raises(NonFiniteLossError,
+                       match=r"^Trainer: the parameters went non-finite in the update of "
+                             r"iteration 1 .*parameter 'motion.parametrizations.Q.original' "
+                             r"is non-finite"):
         trainer.fit(_prior(), _data(), 1)

@@ -31,9 +31,11 @@ def test_parallel_entry_points_run_the_entry_checks_of_run_filter(entry):
     with pytest.raises(ValueError, match="belief0.mean: contains NaN"):  # was: NaN output, silently
         entry(kf, nan_prior, z)
     negative = GaussianBelief(belief0.mean, -belief0.cov)
-    with pytest.raises(ValueError, match="belief0.cov: covariance is not positive semi-definite"):  # was: LinAlgError
+    # was: LinAlgError
+    with pytest.raises(ValueError, match="belief0.cov: covariance is not positive semi-definite"):
         entry(kf, negative, z)
-    with pytest.raises(ValueError, match=r"z: batch shape \(8, 2, 3\) does not broadcast"):  # was: batch (2, 3)
+    # was: batch (2, 3)
+    with pytest.raises(ValueError, match=r"z: batch shape \(8, 2, 3\) does not broadcast"):
         entry(kf, belief0, z.unsqueeze(1).expand(8, 2, 3, 1))
     with pytest.raises(TypeError, match="z: expected a tensor"):
         entry(kf, belief0, z.tolist())
@@ -53,7 +55,8 @@ def test_parallel_filter_accepts_what_run_filter_accepts():
     for got in (parallel.filter(kf, belief0, z.float()),  # another floating dtype: cast to the belief's
                 parallel.filter(kf, belief0, z[:, :1].expand(8, 3, 1).contiguous())):
         assert got.belief.mean.dtype == D and got.belief.batch_shape == (8, 3)
-    torch.testing.assert_close(parallel.filter(kf, belief0, z).belief.mean, want.belief.mean, rtol=1e-9, atol=1e-9)
+    torch.testing.assert_close(parallel.filter(kf, belief0, z).belief.mean, want.belief.mean,
+                               rtol=1e-9, atol=1e-9)
     shared = parallel.filter(kf, belief0, z[:, :1])  # one measurement shared by every run broadcasts
     assert shared.belief.batch_shape == (8, 3)
 
@@ -93,7 +96,8 @@ def test_fuse_tracks_refuses_an_indefinite_track():
     lopsided = GaussianBelief(bad.mean, 1e-12 * torch.tensor([[1.0, 0.5], [0.0, 1.0]], dtype=D))
     with pytest.raises(ValueError, match=r"tracks\[1\].cov: covariance is not symmetric"):
         fuse_tracks([a, lopsided])
-    with pytest.raises(ValueError, match=r"tracks.cov: covariance is not positive semi-definite"):  # one belief
+    # one belief
+    with pytest.raises(ValueError, match=r"tracks.cov: covariance is not positive semi-definite"):
         fuse_tracks(GaussianBelief(torch.stack([a.mean, bad.mean]), torch.stack([a.cov, bad.cov])))
 
 

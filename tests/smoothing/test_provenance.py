@@ -86,7 +86,8 @@ def test_other_data_are_refused_by_the_two_filter_smoother():
     imm, belief0, z = _imm()
     traj = run_filter(imm, belief0, z)
     want = smooth(imm, traj, z).belief
-    for bad in (z.flip(0), z[:, [1, 0, 2]], z + 1e-3, torch.where(torch.arange(10).view(10, 1, 1) == 4, float("nan"), z)):
+    for bad in (z.flip(0), z[:, [1, 0, 2]], z + 1e-3,
+                torch.where(torch.arange(10).view(10, 1, 1) == 4, float("nan"), z)):
         with pytest.raises(ValueError, match="measurements: not the data run_filter filtered"):
             smooth(imm, traj, bad)
     with pytest.raises(ValueError, match=r"measurements: expected shape \(10, 3, 1\)"):
@@ -103,7 +104,8 @@ def test_data_changed_in_place_after_the_run_are_refused():
     imm, belief0, z = _imm()
     traj = run_filter(imm, belief0, z)
     z[2, 0] += 1.0
-    with pytest.raises(ValueError, match="measurements: the measurements given to run_filter were changed in place"):
+    with pytest.raises(ValueError,
+                       match="measurements: the measurements given to run_filter were changed in place"):
         smooth(imm, traj)
     with pytest.raises(ValueError, match="measurements: not the data run_filter filtered"):
         smooth(imm, traj, z)
@@ -123,7 +125,8 @@ def test_the_rts_smoother_checks_data_it_is_given_and_reads_nothing_for_the_runs
 
 def test_controls_are_checked_and_carried():
     kf, sensor, belief0, z = _kalman()
-    driven = KalmanFilter(LinearMotion(kf.motion.F, kf.motion.Q, input_matrix=torch.tensor([[0.5], [1.0]], dtype=D)),
+    driven = KalmanFilter(LinearMotion(kf.motion.F, kf.motion.Q,
+                                       input_matrix=torch.tensor([[0.5], [1.0]], dtype=D)),
                           sensor)
     u = torch.randn(12, 3, 1, generator=torch.Generator().manual_seed(2), dtype=D)
     traj = run_filter(driven, belief0, z, controls=u)
@@ -166,7 +169,8 @@ def test_per_step_motions_of_a_multiple_model_filter_are_carried():
     got = smooth(traj).belief
     torch.testing.assert_close(got.mode_probs, want.mode_probs, rtol=0, atol=0)
     kim = smooth(imm, traj, method="kim").belief
-    torch.testing.assert_close(kim.mode_probs, smooth(imm, traj, method="kim", motions=motions).belief.mode_probs)
+    torch.testing.assert_close(kim.mode_probs,
+                               smooth(imm, traj, method="kim", motions=motions).belief.mode_probs)
 
 
 # -- the trajectory itself ---------------------------------------------------------------------------------
@@ -227,7 +231,8 @@ def test_the_fingerprint_is_read_once_at_entry_not_per_step():
     counts = []
     for steps in (5, 40):
         kf, sensor, belief0, z = _kalman(steps=steps)
-        driven = KalmanFilter(LinearMotion(kf.motion.F, kf.motion.Q, input_matrix=torch.ones(2, 1, dtype=D)), sensor)
+        driven = KalmanFilter(LinearMotion(kf.motion.F, kf.motion.Q, input_matrix=torch.ones(2, 1, dtype=D)),
+                              sensor)
         reads.clear()
         torch.Tensor.tolist = counting
         try:

@@ -151,7 +151,8 @@ def test_clear_errors():
         smooth(cv, traj)
     with pytest.raises(TypeError, match="filter: a ParticleFilter, but a KalmanFilter made this trajectory"):
         smooth(ParticleFilter(cv, sensor, num_particles=10), traj)
-    with pytest.raises(TypeError, match="trajectory.belief: expected particle beliefs"):  # no record to check against
+    # no record to check against
+    with pytest.raises(TypeError, match="trajectory.belief: expected particle beliefs"):
         smooth(ParticleFilter(cv, sensor, num_particles=10), dataclasses.replace(traj, provenance=None))
     with pytest.raises(ValueError, match="trajectory.prior"):
         smooth(kf, run_filter(kf, belief0, z, record=lambda o: o._replace(prior=None)))

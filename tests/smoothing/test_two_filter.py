@@ -294,7 +294,8 @@ def test_clear_errors():
     traj = run_filter(mm, mm.initial_belief(belief0), z)
     with pytest.raises(ValueError, match="measurements: the two-filter smoother .* method='kim'"):
         smooth(mm, dataclasses.replace(traj, provenance=None))  # a trajectory without its record of the data
-    torch.testing.assert_close(smooth(mm, traj).belief.mode_probs, smooth(mm, traj, z).belief.mode_probs)  # carried
+    # carried
+    torch.testing.assert_close(smooth(mm, traj).belief.mode_probs, smooth(mm, traj, z).belief.mode_probs)
     with pytest.raises(ValueError, match=r"measurements: expected shape \(5, 2, 1\)"):
         smooth(mm, traj, z[:4])
     with pytest.raises(TypeError, match="measurements: dtype"):

@@ -92,7 +92,8 @@ def _products(out, columns, row, count, nb):  # pragma: no cover
 
 
 @numba.njit(parallel=True, cache=True)
-def propagate(table, flat, eps, G, offset, F, W, shift, const, x, loglik, nan, n_, k_, m_):  # pragma: no cover
+def propagate(table, flat, eps, G, offset, F, W, shift, const, x, loglik, nan,  # pragma: no cover
+              n_, k_, m_):
     # n, k, m: the lengths of three tuples, so compile-time constants of each specialisation (the
     # short loops unroll; Numba caches one per (n, k, m) on disk)
     n, k, m = len(n_), len(k_), len(m_)

@@ -223,9 +223,9 @@ def _check_replacement(module: nn.Module, current: nn.Module, name: str, owner: 
         try:  # per-run parameters (*B, M) are fine; a different mode count is not
             broadcast_shape(new_batch, old_batch)
         except RuntimeError:
-            raise ValueError(f"{name}: parameter batch {tuple(new_batch)} does not broadcast with the {owner}'s "
-                             f"{tuple(old_batch)} (a mode bank needs one model per mode: batch (M,) or (*B, M), "
-                             "or one shared by every mode)") from None
+            raise ValueError(f"{name}: parameter batch {tuple(new_batch)} does not broadcast with the "
+                             f"{owner}'s {tuple(old_batch)} (a mode bank needs one model per mode: "
+                             "batch (M,) or (*B, M), or one shared by every mode)") from None
 
 
 def check_state_dim(filter: Filter, belief: Any, name: str) -> None:

@@ -434,7 +434,8 @@ class ParticleFilter(Filter):
         (torch.Size([4, 500, 2]), torch.Size([4]))
     """
 
-    @entry_point(motion=Of(MotionModel), measurement=Of(MeasurementModel), resampling=Choice(*sorted(RESAMPLING_SCHEMES)),
+    @entry_point(motion=Of(MotionModel), measurement=Of(MeasurementModel),
+                 resampling=Choice(*sorted(RESAMPLING_SCHEMES)),
                  ess_threshold=Real(minimum=0.0), num_particles=Int(1, optional=True), generator=Gen(),
                  state_dependent_noise=Flag(), noise_dtype=DType(strings=True))
     def __init__(self, motion: MotionModel, measurement: MeasurementModel, *, resampling: str = "systematic",

@@ -62,8 +62,8 @@ class CorrelatedKFResult:
     gain: Tensor
 
 
-@entry_point(Phi=Finite(square=True), G=Finite(), Q=Cov(), S=Finite(), Qv=Cov(), H=Finite(), x0=Finite(), P0=Cov(),
-             y=Finite())
+@entry_point(Phi=Finite(square=True), G=Finite(), Q=Cov(), S=Finite(), Qv=Cov(), H=Finite(), x0=Finite(),
+             P0=Cov(), y=Finite())
 def correlated_kf(Phi, G, Q, S, Qv, H, x0, P0, y) -> CorrelatedKFResult:
     r"""Kalman filter (filter form) for ``x(t+1) = Phi x + G w``, ``y = H x + v``, ``E[w v^T] = S``.
 
@@ -96,8 +96,9 @@ def _kf_inputs(**named) -> list[Tensor]:
     d = Phi.shape[-1]
 
     def need(name, tensor, lead, trailing, text):
-        if tensor.dim() < lead + len(trailing) or any(want is not None and got != want for got, want in
-                                                     zip(tensor.shape[tensor.dim() - len(trailing):], trailing)) \
+        if tensor.dim() < lead + len(trailing) or any(
+                want is not None and got != want
+                for got, want in zip(tensor.shape[tensor.dim() - len(trailing):], trailing)) \
                 or (lead and tensor.shape[0] != y.shape[0]):
             raise ValueError(f"{name}: expected shape {text}, got {tuple(tensor.shape)}")
 

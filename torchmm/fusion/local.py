@@ -214,7 +214,8 @@ def _pred_shift(mean: Tensor | None, cov: Tensor, k: int, system: MultiSensorSys
     return mean, cov
 
 
-@entry_point(system=SYSTEM_ARG, y=Values(), N=Int(), stats=Of(LocalStats, optional=True, what="LocalStats or None"))
+@entry_point(system=SYSTEM_ARG, y=Values(), N=Int(),
+             stats=Of(LocalStats, optional=True, what="LocalStats or None"))
 def local_estimates(system: MultiSensorSystem, y: Tensor, N: int = 0, stats: LocalStats | None = None):
     r"""Local N-step estimates of every sensor: predictor (N < 0, Thm 2), filter (N = 0) and
     smoother (N > 0, Thm 3), with their error covariances.

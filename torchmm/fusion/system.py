@@ -82,14 +82,15 @@ class MultiSensorSystem:
         for f in fields(self):
             value = getattr(self, f.name)
             if not isinstance(value, Tensor):
-                raise TypeError(f"{f.name}: expected a tensor, got {type(value).__name__}; build a system from "
-                                "numbers or lists with MultiSensorSystem.create(...) or .from_correlation(...)")
+                raise TypeError(f"{f.name}: expected a tensor, got {type(value).__name__}; build a system "
+                                "from numbers or lists with MultiSensorSystem.create(...) or "
+                                ".from_correlation(...)")
 
     # -- construction ------------------------------------------------------------------------
     @classmethod
-    @entry_point(A=Finite(square=True), Gamma=Finite(), Qw=Cov(), C=Finite(), Ct=Finite(), h=Finite(), Qp=Finite(),
-                 R=Finite(), Qv=Finite(square=True), mu0=Finite(), P0=Cov(), Qr0=Finite(optional=True),
-                 dtype=DType(), device=Device())
+    @entry_point(A=Finite(square=True), Gamma=Finite(), Qw=Cov(), C=Finite(), Ct=Finite(), h=Finite(),
+                 Qp=Finite(), R=Finite(), Qv=Finite(square=True), mu0=Finite(), P0=Cov(),
+                 Qr0=Finite(optional=True), dtype=DType(), device=Device())
     def create(cls, A, Gamma, Qw, C, Ct, h, Qp, R, Qv, mu0, P0, Qr0=None, *, dtype=None, device=None):
         """Validate and build. ``Qr0=None`` means the stationary variance ``Qp / (1 - h^2)``.
 
@@ -157,9 +158,9 @@ class MultiSensorSystem:
         return sys
 
     @classmethod
-    @entry_point(A=Finite(square=True), Gamma=Finite(), Qw=Cov(), C=Finite(), Ct=Finite(), h=Finite(), Qp=Finite(),
-                 d=Finite(), Q_eta=Cov(), mu0=Finite(), P0=Cov(), Qr0=Finite(optional=True), dtype=DType(),
-                 device=Device())
+    @entry_point(A=Finite(square=True), Gamma=Finite(), Qw=Cov(), C=Finite(), Ct=Finite(), h=Finite(),
+                 Qp=Finite(), d=Finite(), Q_eta=Cov(), mu0=Finite(), P0=Cov(), Qr0=Finite(optional=True),
+                 dtype=DType(), device=Device())
     def from_correlation(cls, A, Gamma, Qw, C, Ct, h, Qp, d, Q_eta, mu0, P0, Qr0=None, *, dtype=None,
                          device=None):
         r"""Build from ``v_i = d_i w + eta_i``: ``R_i = Q^w d_i^T``,
@@ -262,8 +263,8 @@ class MultiSensorSystem:
 # the generated constructor (create and from_correlation validate shapes and the joint noise; a direct
 # call is checked by kind: finite matrices, PSD Qw and P0)
 MultiSensorSystem.__init__ = entry_point(
-    A=Finite(square=True), Gamma=Finite(), Qw=Cov(), C=Finite(), Ct=Finite(), h=Finite(), Qp=Finite(), Qr0=Finite(),
-    R=Finite(), Qv=Finite(square=True), mu0=Finite(), P0=Cov())(MultiSensorSystem.__init__)
+    A=Finite(square=True), Gamma=Finite(), Qw=Cov(), C=Finite(), Ct=Finite(), h=Finite(), Qp=Finite(),
+    Qr0=Finite(), R=Finite(), Qv=Finite(square=True), mu0=Finite(), P0=Cov())(MultiSensorSystem.__init__)
 
 SYSTEM_ARG = Of(MultiSensorSystem, what="a MultiSensorSystem (MultiSensorSystem.create or .from_correlation)")
 

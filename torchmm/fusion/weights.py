@@ -55,8 +55,8 @@ def _check_relative_psd(cov: Tensor, name: str) -> None:
     if asym > SYMMETRY_RTOL:
         raise ValueError(f"{name}: covariance is not symmetric (asymmetry {asym:.3g} of its largest entry)")
     if eig < -tol:
-        raise ValueError(f"{name}: covariance is not positive semi-definite (smallest eigenvalue {eig:.3g} times its "
-                         "largest entry)")
+        raise ValueError(f"{name}: covariance is not positive semi-definite (smallest eigenvalue {eig:.3g} "
+                         "times its largest entry)")
 
 
 def _checked_tracks(tracks) -> GaussianBelief:
@@ -68,15 +68,18 @@ def _checked_tracks(tracks) -> GaussianBelief:
         moments = tracks.estimate()
         if len(moments.batch_shape) < 1:
             raise ValueError("tracks: one belief needs a track axis (batch (*B, L)); got batch ()")
-        _check_relative_psd(moments.cov, "tracks.cov" if isinstance(tracks, GaussianBelief) else "tracks.estimate().cov")
+        _check_relative_psd(moments.cov,
+                            "tracks.cov" if isinstance(tracks, GaussianBelief) else "tracks.estimate().cov")
         return moments.materialize()
     if isinstance(tracks, (str, bytes, Tensor)) or not hasattr(tracks, "__iter__"):
-        raise TypeError(f"tracks: expected a non-empty sequence of beliefs or one belief with a track axis, got "
-                        f"{type(tracks).__name__}")
+        raise TypeError("tracks: expected a non-empty sequence of beliefs or one belief with a track axis, "
+                        f"got {type(tracks).__name__}")
     tracks = list(tracks)
     if not tracks or not all(isinstance(t, Belief) for t in tracks):
-        bad = "an empty sequence" if not tracks else next(type(t).__name__ for t in tracks if not isinstance(t, Belief))
-        raise TypeError(f"tracks: expected a non-empty sequence of beliefs or one belief with a track axis, got {bad}")
+        bad = "an empty sequence" if not tracks else next(type(t).__name__ for t in tracks
+                                                          if not isinstance(t, Belief))
+        raise TypeError("tracks: expected a non-empty sequence of beliefs or one belief with a track axis, "
+                        f"got {bad}")
     moments = []
     for i, t in enumerate(tracks):
         name = f"tracks[{i}]"
@@ -84,17 +87,20 @@ def _checked_tracks(tracks) -> GaussianBelief:
         m = t.estimate()
         first = moments[0] if moments else m
         if m.state_dim != first.state_dim:
-            raise ValueError(f"{name}: state dimension {m.state_dim} differs from tracks[0]'s {first.state_dim}")
+            raise ValueError(f"{name}: state dimension {m.state_dim} differs from tracks[0]'s "
+                             f"{first.state_dim}")
         if m.mean.dtype != first.mean.dtype:
             raise TypeError(f"{name}: dtype {m.mean.dtype} differs from tracks[0]'s {first.mean.dtype}")
         if m.mean.device != first.mean.device:
             raise ValueError(f"{name}: on device {m.mean.device}, tracks[0] on {first.mean.device}")
-        _check_relative_psd(m.cov, f"{name}.cov" if isinstance(t, GaussianBelief) else f"{name}.estimate().cov")
+        _check_relative_psd(m.cov,
+                            f"{name}.cov" if isinstance(t, GaussianBelief) else f"{name}.estimate().cov")
         moments.append(m)
     try:
         broadcast_shape(*(m.batch_shape for m in moments))
     except RuntimeError:
-        raise ValueError(f"tracks: batch shapes {[tuple(m.batch_shape) for m in moments]} do not broadcast") from None
+        raise ValueError(f"tracks: batch shapes {[tuple(m.batch_shape) for m in moments]} "
+                         "do not broadcast") from None
     return stack(moments, dim=-1).materialize()
 
 
@@ -225,7 +231,8 @@ def fuse(mean: Tensor, P: Tensor, method: str = "matrix", components=None) -> Fu
         raise ValueError("mean: contains NaN or infinite entries")
     if components is not None:
         if isinstance(components, (str, bytes)) or not hasattr(components, "__iter__"):
-            raise TypeError(f"components: expected a sequence of state indices, got {type(components).__name__}")
+            raise TypeError("components: expected a sequence of state indices, "
+                            f"got {type(components).__name__}")
         components = list(components)
         if not components or not all(isinstance(c, int) and not isinstance(c, bool) and 0 <= c < n
                                      for c in components):
@@ -288,7 +295,8 @@ def fuse_tracks(tracks, cross_covs: Tensor | None = None, method: str = "matrix"
     *batch, L, n = mean.shape
     if cross_covs is not None:
         if not isinstance(cross_covs, Tensor):
-            raise TypeError(f"cross_covs: expected a tensor (*B, L, L, n, n) or None, got {type(cross_covs).__name__}")
+            raise TypeError("cross_covs: expected a tensor (*B, L, L, n, n) or None, "
+                            f"got {type(cross_covs).__name__}")
         if cross_covs.dtype != mean.dtype:
             raise TypeError(f"cross_covs: dtype {cross_covs.dtype} differs from the tracks' {mean.dtype}")
         if not bool(torch.isfinite(cross_covs.detach()).all()):  # its diagonal blocks too, though replaced
@@ -314,8 +322,8 @@ def fuse_tracks(tracks, cross_covs: Tensor | None = None, method: str = "matrix"
         try:
             P = cross_covs.to(mean.device).expand(*batch, L, L, n, n).clone()
         except RuntimeError:
-            raise ValueError(f"cross_covs: batch shape {tuple(cross_covs.shape[:-4])} does not broadcast to the "
-                             f"tracks' {tuple(batch)}") from None
+            raise ValueError(f"cross_covs: batch shape {tuple(cross_covs.shape[:-4])} does not broadcast "
+                             f"to the tracks' {tuple(batch)}") from None
     idx = torch.arange(L, device=mean.device)
     P[..., idx, idx, :, :] = cov
     if cross_covs is not None:  # the joint error covariance, with the tracks' own on its diagonal

@@ -123,5 +123,6 @@ def as_start_belief(filter, belief0):
     base returns the prior validated)."""
     if isinstance(belief0, ModeBelief):
         return belief0
-    check_filter_dtype(filter, belief0, "belief0")  # named as the caller passed it (initial_belief says "belief")
+    # named as the caller passed it (initial_belief says "belief")
+    check_filter_dtype(filter, belief0, "belief0")
     return filter.initial_belief(belief0)

@@ -211,8 +211,8 @@ class Trainer:
     def _diagnosis(self, params: list[Tensor]) -> str:
         """The rest of the one-line error: the non-finite parameters by name (the filter's
         ``named_parameters``; others as ``param_groups[g][i]``), or that all are finite."""
-        names = {id(p): name for name, p in self.filter.named_parameters()} if isinstance(self.filter, nn.Module) \
-            else {}
+        names = ({id(p): name for name, p in self.filter.named_parameters()}
+                 if isinstance(self.filter, nn.Module) else {})
         bad = []
         for g, group in enumerate(self.optimizer.param_groups):
             for i, p in enumerate(group["params"]):
@@ -220,7 +220,8 @@ class Trainer:
                     bad.append(repr(names.get(id(p), f"param_groups[{g}][{i}]")))
         if bad:
             shown = ", ".join(bad[:5]) + (f" and {len(bad) - 5} more" if len(bad) > 5 else "")
-            return (f"parameter{'s' if len(bad) > 1 else ''} {shown} {'are' if len(bad) > 1 else 'is'} non-finite; "
+            return (f"parameter{'s' if len(bad) > 1 else ''} {shown} "
+                    f"{'are' if len(bad) > 1 else 'is'} non-finite; "
                     "lower the learning rate or clip gradients (clip_grad_norm=)")
         return ("every parameter is finite, so the filter diverged at these parameters (e.g. a learning rate "
                 "too large, or a model whose outputs overflow); lower the learning rate, clip gradients "

@@ -282,8 +282,9 @@ class LearnedMotion(MotionModel):
         tensor([0.1000, 0.1000], grad_fn=<DiagonalBackward0>)
     """
 
-    @entry_point(net=Of(callable_ok=True, what="a callable (an nn.Module)"), state_dim=Int(1), Q=Cov(check=False),
-                 noise=Choice("cholesky", "log_diagonal", "scale", "fixed"), residual=Flag(), uses_input=Flag())
+    @entry_point(net=Of(callable_ok=True, what="a callable (an nn.Module)"), state_dim=Int(1),
+                 Q=Cov(check=False), noise=Choice("cholesky", "log_diagonal", "scale", "fixed"),
+                 residual=Flag(), uses_input=Flag())
     def __init__(self, net, state_dim: int, Q, *, noise: str = "cholesky", residual: bool = False,
                  uses_input: bool = False):
         super().__init__()
@@ -323,8 +324,9 @@ class LearnedMeasurement(MeasurementModel):
         (torch.Size([3, 2]), torch.Size([3, 2, 4]))
     """
 
-    @entry_point(net=Of(callable_ok=True, what="a callable (an nn.Module)"), state_dim=Int(1), meas_dim=Int(1),
-                 R=Cov(check=False), noise=Choice("cholesky", "log_diagonal", "scale", "fixed"))
+    @entry_point(net=Of(callable_ok=True, what="a callable (an nn.Module)"), state_dim=Int(1),
+                 meas_dim=Int(1), R=Cov(check=False),
+                 noise=Choice("cholesky", "log_diagonal", "scale", "fixed"))
     def __init__(self, net, state_dim: int, meas_dim: int, R, *, noise: str = "cholesky"):
         super().__init__()
         self.net = _check_net(net, "net")

@@ -54,8 +54,8 @@ class LinearMotion(MotionModel):
         forward: ``x (*B, n)``, ``u (*B, k)`` -> ``(*B, n)``; ``*P`` broadcasts with ``*B``.
     """
 
-    @entry_point(F=Finite(square=True, check=False), Q=Cov(check=False), offset=Finite(optional=True, check=False),
-                 input_matrix=Finite(optional=True, check=False))
+    @entry_point(F=Finite(square=True, check=False), Q=Cov(check=False),
+                 offset=Finite(optional=True, check=False), input_matrix=Finite(optional=True, check=False))
     def __init__(self, F, Q, offset=None, input_matrix=None):
         super().__init__()
         F = as_tensor(F, "F")

@@ -27,8 +27,8 @@ __all__ = [
 ]
 
 
-@entry_point(order=Int(1), dt=Real(positive=True), q=Real(minimum=0.0), noise=Choice("discrete", "continuous"),
-             dtype=DType())
+@entry_point(order=Int(1), dt=Real(positive=True), q=Real(minimum=0.0),
+             noise=Choice("discrete", "continuous"), dtype=DType())
 def kinematic_matrices(order: int, dt: float, q: float, noise: str, dtype=None) -> tuple[Tensor, Tensor, Tensor]:
     """One-axis kinematic ``F``, noise gain ``G`` and ``Q`` for a state of ``order`` derivatives.
 
@@ -77,8 +77,8 @@ class ConstantVelocity(LinearMotion):
         acceleration: known acceleration per mode, ``(*P, ndim)``; default none.
     """
 
-    @entry_point(ndim=Int(1), dt=Real(positive=True), q=Real(minimum=0.0), noise=Choice("discrete", "continuous"),
-                 acceleration=Finite(optional=True), dtype=DType())
+    @entry_point(ndim=Int(1), dt=Real(positive=True), q=Real(minimum=0.0),
+                 noise=Choice("discrete", "continuous"), acceleration=Finite(optional=True), dtype=DType())
     def __init__(self, ndim: int = 1, dt: float = 1.0, q: float = 1.0, *, noise: str = "discrete",
                  acceleration=None, dtype=None):
         ndim = as_int(ndim, "ndim", minimum=1)
@@ -105,8 +105,8 @@ class ConstantAcceleration(LinearMotion):
     State per axis ``[p, v, a]``; ``q`` drives the jerk.
     """
 
-    @entry_point(ndim=Int(1), dt=Real(positive=True), q=Real(minimum=0.0), noise=Choice("discrete", "continuous"),
-                 dtype=DType())
+    @entry_point(ndim=Int(1), dt=Real(positive=True), q=Real(minimum=0.0),
+                 noise=Choice("discrete", "continuous"), dtype=DType())
     def __init__(self, ndim: int = 1, dt: float = 1.0, q: float = 1.0, *, noise: str = "discrete", dtype=None):
         ndim = as_int(ndim, "ndim", minimum=1)
         F1, _, Q1 = kinematic_matrices(3, dt, q, noise, dtype)

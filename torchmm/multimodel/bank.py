@@ -347,7 +347,8 @@ def _stack_optional(values, event: int):
     return torch.stack([v.expand(shape) for v in values], dim=-1 - event)
 
 
-@entry_point(bank=Of((Filter, FilterBank, list, tuple), what="a Filter, a list of filters or a FilterBank"), num_modes=Int(1))
+@entry_point(bank=Of((Filter, FilterBank, list, tuple), what="a Filter, a list of filters or a FilterBank"),
+             num_modes=Int(1))
 def make_bank(bank, num_modes: int) -> FilterBank:
     """Build a :class:`FilterBank` for ``num_modes`` modes.
 

@@ -70,8 +70,8 @@ class Embedded(Filter):
         step's ``innovation`` and ``extras`` are the mode filter's.
     """
 
-    @entry_point(filter=Of(Filter), index=Indices(), common_dim=Int(1), fill_mean=Finite(optional=True, check=False),
-                 fill_cov=Finite(optional=True, check=False))
+    @entry_point(filter=Of(Filter), index=Indices(), common_dim=Int(1),
+                 fill_mean=Finite(optional=True, check=False), fill_cov=Finite(optional=True, check=False))
     def __init__(self, filter: Filter, index: Sequence[int], common_dim: int, *, fill_mean=None, fill_cov=None):
         super().__init__()
         if not isinstance(filter, Filter):

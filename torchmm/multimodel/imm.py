@@ -180,8 +180,9 @@ class MultipleModelFilter(Filter):
     #: the interaction of subclasses that do not pass one (IMM: :class:`MomentMixing`)
     default_interaction: type[Interaction] | None = None
 
-    @entry_point(bank=Of((Filter, FilterBank, list, tuple), what="a Filter, a list of filters or a FilterBank"), transition=Stochastic(),
-                 interaction=Of(Interaction, optional=True))
+    @entry_point(bank=Of((Filter, FilterBank, list, tuple),
+                         what="a Filter, a list of filters or a FilterBank"),
+                 transition=Stochastic(), interaction=Of(Interaction, optional=True))
     def __init__(self, bank, transition, interaction: Interaction | None = None):
         super().__init__()
         self.transition = as_transition(transition)
@@ -400,7 +401,9 @@ class StaticMM(MultipleModelFilter):
         torch.Size([4, 2])
     """
 
-    @entry_point(bank=Of((Filter, FilterBank, list, tuple), what="a Filter, a list of filters or a FilterBank"), num_modes=Int(1, optional=True))
+    @entry_point(bank=Of((Filter, FilterBank, list, tuple),
+                         what="a Filter, a list of filters or a FilterBank"),
+                 num_modes=Int(1, optional=True))
     def __init__(self, bank, num_modes: int | None = None):
         if num_modes is None:
             if isinstance(bank, (list, tuple)):

@@ -21,7 +21,8 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-from torchmm.contract import BeliefArg, Choice, Cov, DType, Finite, Flag, Gen, Int, Of, Real, Stochastic, entry_point
+from torchmm.contract import (BeliefArg, Choice, Cov, DType, Finite, Flag, Gen, Int, Of, Real, Stochastic,
+                              entry_point)
 from torchmm.beliefs import GaussianBelief, ModeBelief, ModelSetBelief, psd_sqrt, symmetrize
 from torchmm.beliefs.ops import normalize_log_probs
 from torchmm.filters.base import StepOutput
@@ -111,10 +112,12 @@ class MinimumEntropyVSMM(MultipleModelParticleFilter):
         (torch.Size([4, 3]), torch.Size([4, 2]))
     """
 
-    @entry_point(motion=Of(MotionModel), measurement=Of(MeasurementModel), transition=Stochastic(), num_particles=Int(1),
-                 selection=Of(callable_ok=True, what="a selection policy (ExactMinimumEntropy, ChallengeMatch)"),
-                 feedback=Flag(), mixing=Choice("multinomial", "stratified", "systematic", "two_stage"), generator=Gen(), innovation_stats=Flag(),
-                 noise_dtype=DType(strings=True))
+    @entry_point(motion=Of(MotionModel), measurement=Of(MeasurementModel), transition=Stochastic(),
+                 num_particles=Int(1),
+                 selection=Of(callable_ok=True,
+                              what="a selection policy (ExactMinimumEntropy, ChallengeMatch)"),
+                 feedback=Flag(), mixing=Choice("multinomial", "stratified", "systematic", "two_stage"),
+                 generator=Gen(), innovation_stats=Flag(), noise_dtype=DType(strings=True))
     def __init__(self, motion: MotionModel, measurement: MeasurementModel, transition, num_particles: int, *,
                  selection, feedback: bool = True, mixing: str = "systematic",
                  generator: torch.Generator | None = None, innovation_stats: bool = True,
@@ -184,8 +187,9 @@ class EqMAParticleFilter(MultipleModelParticleFilter):
         ``extras["equivalent_acceleration"]`` is not recorded (the prior belief's model N carries it).
     """
 
-    @entry_point(F=Finite(square=True, check=False), gain=Finite(check=False), accelerations=Finite(check=False),
-                 accel_noise_cov=Cov(check=False), measurement=Of(MeasurementModel), num_particles=Int(1),
+    @entry_point(F=Finite(square=True, check=False), gain=Finite(check=False),
+                 accelerations=Finite(check=False), accel_noise_cov=Cov(check=False),
+                 measurement=Of(MeasurementModel), num_particles=Int(1),
                  transition=Stochastic(optional=True), stay=Real(minimum=0.0, maximum=1.0),
                  mixing=Choice("multinomial", "stratified", "systematic", "two_stage"), generator=Gen(),
                  innovation_stats=Flag(), noise_dtype=DType(strings=True))

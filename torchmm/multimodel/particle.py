@@ -281,8 +281,9 @@ class MultipleModelParticleFilter(MultipleModelFilter):
         (torch.Size([5, 3, 200, 2]), torch.Size([5]))
     """
 
-    @entry_point(motion=Of(MotionModel), measurement=Of(MeasurementModel), transition=Stochastic(), num_particles=Int(1),
-                 mixing=Choice(*_INVERSE_CDF_SCHEMES), generator=Gen(), innovation_stats=Flag(), noise_dtype=DType(strings=True))
+    @entry_point(motion=Of(MotionModel), measurement=Of(MeasurementModel), transition=Stochastic(),
+                 num_particles=Int(1), mixing=Choice(*_INVERSE_CDF_SCHEMES), generator=Gen(),
+                 innovation_stats=Flag(), noise_dtype=DType(strings=True))
     def __init__(self, motion: MotionModel, measurement: MeasurementModel, transition, num_particles: int, *,
                  mixing: str = "systematic", generator: torch.Generator | None = None,
                  innovation_stats: bool = True, noise_dtype: torch.dtype | None = None):
@@ -505,8 +506,8 @@ class MultipleModelParticleFilter(MultipleModelFilter):
                                                      self.measurement.noise_cov())
         # ESS of the normalised joint weights: 1 / sum_j p_j^2 sum_l v_jl^2 (within <= 0: exp is safe)
         sq = (2 * mode_log_probs).exp().mul_((2 * within).exp_().sum(-1)).sum(-1)
-        extras = {"ess": 1.0 / sq, "mode_log_likelihood": per_model - prior_mode, "degenerate": degenerate & ~failed,
-                  "failed": failed, "joint_log_weights": joint}
+        extras = {"ess": 1.0 / sq, "mode_log_likelihood": per_model - prior_mode,
+                  "degenerate": degenerate & ~failed, "failed": failed, "joint_log_weights": joint}
         return StepOutput(
             belief=ModeBelief(mode_log_probs, ParticleBelief(belief.components.particles, within)),
             prior=belief,

@@ -369,7 +369,8 @@ class ExactMinimumEntropy:
             ``"literal"`` (the product of (28) and (29) as printed).
     """
 
-    @entry_point(family=Of((list, tuple, Tensor), optional=True, what="a list of model-index lists or a (K, M) bool mask"),
+    @entry_point(family=Of((list, tuple, Tensor), optional=True,
+                           what="a list of model-index lists or a (K, M) bool mask"),
                  chunk_size=Int(1),
                  entropy=Choice(*ENTROPY_READINGS))
     def __init__(self, family=None, *, chunk_size: int = 16384, entropy: str = "joint"):
@@ -377,12 +378,12 @@ class ExactMinimumEntropy:
             raise ValueError(f"entropy: expected one of {ENTROPY_READINGS}, got {entropy!r}")
         if isinstance(family, Tensor):
             if family.dtype != torch.bool or family.dim() != 2:
-                raise TypeError(f"family: expected a (K, M) bool mask or a list of model-index lists, got a tensor of "
-                                f"dtype {family.dtype} and shape {tuple(family.shape)}")
+                raise TypeError("family: expected a (K, M) bool mask or a list of model-index lists, got a "
+                                f"tensor of dtype {family.dtype} and shape {tuple(family.shape)}")
         elif family is not None:
             if isinstance(family, (str, bytes)) or not isinstance(family, (list, tuple)) or not family:
-                raise TypeError(f"family: expected a (K, M) bool mask or a non-empty list of model-index lists, got "
-                                f"{family!r}")
+                raise TypeError("family: expected a (K, M) bool mask or a non-empty list of "
+                                f"model-index lists, got {family!r}")
             for k, members in enumerate(family):
                 Indices().check(members, f"family[{k}]")
         self.family, self.chunk_size, self.entropy = family, as_int(chunk_size, "chunk_size", minimum=1), entropy

@@ -48,7 +48,8 @@ class SourceUpdateIMM(IMM):
         as :class:`TransferIMM` (``extras["source_log_likelihood"]`` ``(*B, M)``).
     """
 
-    @entry_point(bank=Of((Filter, FilterBank, list, tuple), what="a Filter, a list of filters or a FilterBank"),
+    @entry_point(bank=Of((Filter, FilterBank, list, tuple),
+                         what="a Filter, a list of filters or a FilterBank"),
                  transition=Stochastic(), source=Of(MeasurementModel))
     def __init__(self, bank, transition, source: MeasurementModel):
         super().__init__(bank, transition)
@@ -73,7 +74,8 @@ class SourceUpdateIMM(IMM):
 class _SourceTrackIMM(IMM):
     """Shared set-up: the target IMM plus an independent source-only IMM over the same modes."""
 
-    @entry_point(bank=Of((Filter, FilterBank, list, tuple), what="a Filter, a list of filters or a FilterBank"),
+    @entry_point(bank=Of((Filter, FilterBank, list, tuple),
+                         what="a Filter, a list of filters or a FilterBank"),
                  transition=Stochastic(), source=Of(MeasurementModel))
     def __init__(self, bank, transition, source: MeasurementModel):
         super().__init__(bank, transition)
@@ -156,7 +158,8 @@ class SourceModeVSIMM(_SourceTrackIMM):
         probability ``-inf``); ``z``: :class:`MultiRate`.
     """
 
-    @entry_point(bank=Of((Filter, FilterBank, list, tuple), what="a Filter, a list of filters or a FilterBank"),
+    @entry_point(bank=Of((Filter, FilterBank, list, tuple),
+                         what="a Filter, a list of filters or a FilterBank"),
                  transition=Stochastic(), source=Of(MeasurementModel), extra_model=Int(0),
                  p_new=Real(minimum=0.0, maximum=1.0, optional=True), p_ee=Real(minimum=0.0, maximum=1.0),
                  eps=Real(minimum=0.0, maximum=1.0), drop_below=Real(minimum=0.0, maximum=1.0))

@@ -100,8 +100,8 @@ def check_active_set(active, shape: torch.Size, name: str = "policy") -> Tensor:
     """A policy's active set: a bool tensor that broadcasts to the mode probabilities' ``(*B, M)``.
     Shapes and dtype only (no values read: an empty set is flagged by the caller, per run)."""
     if not isinstance(active, Tensor):
-        raise TypeError(f"{name}: select returned {type(active).__name__} for the active set, expected a bool "
-                        f"tensor of shape {tuple(shape)}")
+        raise TypeError(f"{name}: select returned {type(active).__name__} for the active set, expected a "
+                        f"bool tensor of shape {tuple(shape)}")
     if active.dtype != torch.bool:
         raise TypeError(f"{name}: select returned an active set of dtype {active.dtype}, expected torch.bool")
     if active.shape != shape:
@@ -110,8 +110,8 @@ def check_active_set(active, shape: torch.Size, name: str = "policy") -> Tensor:
         except RuntimeError:
             ok = False
         if not ok:
-            raise ValueError(f"{name}: select returned an active set of shape {tuple(active.shape)}, expected "
-                             f"{tuple(shape)} (*B, M)")
+            raise ValueError(f"{name}: select returned an active set of shape {tuple(active.shape)}, "
+                             f"expected {tuple(shape)} (*B, M)")
         active = active.expand(shape)
     return active
 
@@ -172,8 +172,10 @@ class VariableStructureIMM(IMM):
         (torch.Size([4, 3]), torch.Size([4, 2]))
     """
 
-    @entry_point(bank=Of((Filter, FilterBank, list, tuple), what="a Filter, a list of filters or a FilterBank"),
-                 transition=Stochastic(), policy=Of(methods=("select",), what="a model-set policy (with a select method)"),
+    @entry_point(bank=Of((Filter, FilterBank, list, tuple),
+                         what="a Filter, a list of filters or a FilterBank"),
+                 transition=Stochastic(),
+                 policy=Of(methods=("select",), what="a model-set policy (with a select method)"),
                  feedback=Flag())
     def __init__(self, bank, transition, policy: ModelSetPolicy, *, feedback: bool = True):
         super().__init__(bank, transition)
@@ -201,8 +203,8 @@ class VariableStructureIMM(IMM):
         post = out.belief
         selected = self.policy.select(post, generator)
         if not isinstance(selected, tuple) or len(selected) != 2 or not isinstance(selected[1], dict):
-            raise TypeError(f"policy: {type(self.policy).__name__}.select must return (active, info dict), got "
-                            f"{type(selected).__name__}")
+            raise TypeError(f"policy: {type(self.policy).__name__}.select must return (active, info dict), "
+                            f"got {type(selected).__name__}")
         active, info = selected
         carried = post.mode_log_probs
         active = check_active_set(active, carried.shape)

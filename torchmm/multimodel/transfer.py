@@ -234,8 +234,10 @@ class TransferIMM(IMM):
         (torch.Size([8, 2]), torch.Size([8, 1]))
     """
 
-    @entry_point(bank=Of((Filter, FilterBank, list, tuple), what="a Filter, a list of filters or a FilterBank"),
-                 transition=Stochastic(), source=Of(MeasurementModel), smoothing_reference=Choice("combined", "mixed"),
+    @entry_point(bank=Of((Filter, FilterBank, list, tuple),
+                         what="a Filter, a list of filters or a FilterBank"),
+                 transition=Stochastic(), source=Of(MeasurementModel),
+                 smoothing_reference=Choice("combined", "mixed"),
                  mode_likelihood=Choice("prior", "corrected"), gate=Of(InfluenceGate, optional=True))
     def __init__(self, bank, transition, source: MeasurementModel, *, smoothing_reference: str = "combined",
                  mode_likelihood: str = "prior", gate: InfluenceGate | None = None):

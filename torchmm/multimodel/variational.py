@@ -62,8 +62,8 @@ def gimmaf(motion, measurement, transition, *, skewness, df, tau: float = 3.0, i
     return _build(bank, transition)
 
 
-@entry_point(motion=Of(MotionModel), measurement=Of(MeasurementModel), transition=Stochastic(), df=Real(positive=True),
-             iterations=Int(1), elbo_history=Flag(), joseph=Flag(optional=True))
+@entry_point(motion=Of(MotionModel), measurement=Of(MeasurementModel), transition=Stochastic(),
+             df=Real(positive=True), iterations=Int(1), elbo_history=Flag(), joseph=Flag(optional=True))
 def imm_vbt(motion, measurement, transition, *, df, iterations: int = 10,
             elbo_history: bool = False, joseph: bool | None = None) -> VariationalIMM:
     """IMM-VBT: IMM over Student-t VB filters (:class:`StudentTVBFilter`), ELBO mode likelihood.
