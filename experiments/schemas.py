@@ -245,6 +245,15 @@ class ImmAnalysis:
         if name not in (data.get("estimators") or {}):
             raise ConfigError("analysis.interaction_estimator", name,
                               f"must name one of the estimators: {', '.join(data.get('estimators') or {})}")
+        # paper 001's (2.2) with M equal alphas has diagonal 1 - (M - 1) alpha: a transition only for
+        # alpha <= 1 / (M - 1) (before: one unit ran, then alpha_transition's error was a traceback)
+        for key, models in (("two_model", 2), ("three_model", 3)):
+            alphas = data["analysis"]["alphas"].get(key) or []
+            too_large = [a for a in alphas if a > 1.0 / (models - 1)]
+            if too_large:
+                raise ConfigError(f"analysis.alphas.{key}", alphas,
+                                  f"entries {too_large} exceed 1/(M-1) = {1.0 / (models - 1):g} for M = {models} "
+                                  "modes: (M-1) alpha <= 1 keeps the transition matrix's diagonal non-negative")
 
 
 @dataclass

@@ -61,6 +61,11 @@ BAD = [
      "scenario=det_small: does not fit the imm_baseline study; choose one of maneuver2, maneuver3, paper000"),
     (["experiment=mevsmm", "scenario=paper000"], "scenario=paper000: does not fit the mevsmm study"),
     (["experiment=imm_analysis", "scenario=paper000"], "scenario=paper000: the imm_analysis study takes no scenario"),
+    # (issue 30: it ran a unit, then printed a 20-line traceback and exited 1)
+    (["experiment=imm_analysis", "analysis.alphas.two_model=[0.01,2]"],
+     "analysis.alphas.two_model=[0.01, 2]: entries [2] exceed 1/(M-1) = 1 for M = 2 modes"),
+    (["experiment=imm_analysis", "analysis.alphas.three_model=[0.6]"],
+     "analysis.alphas.three_model=[0.6]: entries [0.6] exceed 1/(M-1) = 0.5 for M = 3 modes"),
     (["experiment=nope"], "experiment=nope: no such config; choose one of fusion_radar"),
     (["experiment=imm_baseline", "estimators.IMM.joseph=maybe"], "estimators.IMM.joseph=maybe: expected true or false"),
     (["experiment=mevsmm", "mevsmm.mixing=bogus"], "mevsmm.mixing=bogus: expected one of two_stage"),
@@ -97,7 +102,7 @@ def test_composition_errors_become_one_line_config_errors(override):
 
 CLI_CASES = [b for b in BAD if b[0][0] in ("mc_runs=abc", "mc_runs=2.5", "seed=-5", "device=gpu", "mc_run=5",
                                              "source.ratioo=0.5", "experiment=nope", "logger=tb")
-             or b[0][-1] == "scenario=det_small"]
+             or b[0][-1] in ("scenario=det_small", "analysis.alphas.two_model=[0.01,2]")]
 
 
 @pytest.mark.parametrize("overrides,message", CLI_CASES, ids=[" ".join(o) for o, _ in CLI_CASES])
