@@ -181,3 +181,18 @@ def test_a_callback_returning_true_stops_training():
     trainer = Trainer(kf, torch.optim.Adam(kf.parameters(), lr=0.01),
                       callbacks=[lambda t, r: r.iteration >= 2])
     assert [r.iteration for r in trainer.fit(prior, z, 5)] == [1, 2]
+
+
+def test_fit_shows_a_progress_bar_with_the_loss(capsys):
+    """Issue 30: 40 iterations ran 206 s with no output. A bar on a terminal by default (tqdm's
+    ``disable=None``: not in captured output), on request anywhere, with the last loss."""
+    prior, z = _data(4, 8, 0.5, 2.0, seed=7)
+    kf = _kf(1.0, 3.0)
+    trainer = Trainer(kf, torch.optim.Adam(kf.parameters(), lr=0.01))
+    trainer.fit(prior, z, 2)
+    assert "Trainer.fit" not in capsys.readouterr().err  # not a terminal: quiet by default
+    records = trainer.fit(prior, z, 3, progress="training the noise")
+    err = capsys.readouterr().err
+    assert "training the noise" in err and "3/3" in err and f"loss={records[-1].loss:.5g}" in err
+    with pytest.raises(TypeError, match=r"^progress: expected None, True, False or the bar's description"):
+        trainer.fit(prior, z, 1, progress=3)

@@ -16,6 +16,7 @@ from typing import Any
 
 import torch
 from torch import Tensor, nn
+from tqdm.auto import tqdm
 
 from torchmm.contract import BeliefArg, FilePath, Gen, Int, Of, Real, Text, Unchecked, Values, entry_point
 from torchmm.learn.loss import as_start_belief, negative_log_likelihood, truncated_segments
@@ -228,9 +229,11 @@ class Trainer:
                 "(clip_grad_norm=) or bound the model's outputs")
 
     @entry_point(belief0=BeliefArg(validate=True), measurements=Values(), iterations=Int(0),
-                 controls=Values(optional=True), batch_size=Int(1, optional=True), generator=Gen())
+                 controls=Values(optional=True), batch_size=Int(1, optional=True), generator=Gen(),
+                 progress=Unchecked("None, True, False or the bar's description (any string)"))
     def fit(self, belief0, measurements: Tensor, iterations: int, *, controls: Tensor | None = None,
-            batch_size: int | None = None, generator: torch.Generator | None = None) -> list[TrainRecord]:
+            batch_size: int | None = None, generator: torch.Generator | None = None,
+            progress: bool | str | None = None) -> list[TrainRecord]:
         """Run ``iterations`` more iterations; returns the records of this call.
 
         Args:
@@ -242,7 +245,12 @@ class Trainer:
             batch_size: sequences per iteration, drawn without replacement with ``generator``;
                 default all ``N``.
             generator: randomness of the mini-batches.
+            progress: a tqdm bar over the iterations with the last loss; None (default): on a
+                terminal only (not in logs, CI or notebooks' captured output); a string is its
+                description.
         """
+        if progress is not None and not isinstance(progress, (bool, str)):
+            raise TypeError(f"progress: expected None, True, False or the bar's description, got {progress!r}")
         if iterations < 0:
             raise ValueError(f"iterations: must be >= 0, got {iterations}")
         steps, runs = measurements.shape[0], measurements.shape[1]
@@ -251,33 +259,40 @@ class Trainer:
         belief0 = as_start_belief(self.filter, belief0)
         segments = truncated_segments(steps, self.window)
         records = []
-        for _ in range(iterations):
-            tic = time.perf_counter()
-            if batch_size is None or batch_size == runs:
-                start, z, u = belief0, measurements, controls
-            else:
-                index = torch.randperm(runs, generator=generator, device=measurements.device)[:batch_size]
-                start = belief0.expand(runs, *belief0.batch_shape[1:])[index]
-                z = measurements[:, index]
-                u = None if controls is None else controls[:, index]
-            total, norm, belief = 0.0, 0.0, start
-            for seg in segments:
-                loss, norm, belief = self._segment_step(belief, z[seg], None if u is None else u[seg])
-                total += loss * (seg.stop - seg.start)
-            record = TrainRecord(self.iteration + 1, total / steps, norm,
-                                 {k: float(v) for k, v in (self.track() if self.track else {}).items()},
-                                 time.perf_counter() - tic)
-            self.history.append(record)
-            records.append(record)
-            self._log(record)
-            stop = False
-            for callback in self.callbacks:
-                stop = bool(callback(self, record)) or stop
-            if self.checkpoint_path is not None and self.checkpoint_every and \
-                    record.iteration % self.checkpoint_every == 0:
-                self.save(self.checkpoint_path)
-            if stop:
-                break
+        bar = tqdm(total=iterations, desc=progress if isinstance(progress, str) else "Trainer.fit", leave=False,
+                   disable=None if progress is None else not progress)
+        try:
+            for _ in range(iterations):
+                tic = time.perf_counter()
+                if batch_size is None or batch_size == runs:
+                    start, z, u = belief0, measurements, controls
+                else:
+                    index = torch.randperm(runs, generator=generator, device=measurements.device)[:batch_size]
+                    start = belief0.expand(runs, *belief0.batch_shape[1:])[index]
+                    z = measurements[:, index]
+                    u = None if controls is None else controls[:, index]
+                total, norm, belief = 0.0, 0.0, start
+                for seg in segments:
+                    loss, norm, belief = self._segment_step(belief, z[seg], None if u is None else u[seg])
+                    total += loss * (seg.stop - seg.start)
+                record = TrainRecord(self.iteration + 1, total / steps, norm,
+                                     {k: float(v) for k, v in (self.track() if self.track else {}).items()},
+                                     time.perf_counter() - tic)
+                self.history.append(record)
+                records.append(record)
+                self._log(record)
+                bar.update(1)
+                bar.set_postfix(loss=f"{record.loss:.5g}")  # (a refresh per iteration: they take seconds)
+                stop = False
+                for callback in self.callbacks:
+                    stop = bool(callback(self, record)) or stop
+                if self.checkpoint_path is not None and self.checkpoint_every and \
+                        record.iteration % self.checkpoint_every == 0:
+                    self.save(self.checkpoint_path)
+                if stop:
+                    break
+        finally:
+            bar.close()
         if self.checkpoint_path is not None and records:
             self.save(self.checkpoint_path)
         return records
