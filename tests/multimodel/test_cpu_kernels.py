@@ -263,3 +263,22 @@ def test_the_eager_path_where_the_kernel_does_not_apply(case, spy):
     for e, f in zip(eager[0], fused[0]):  # the same code ran: the same numbers
         assert torch.equal(e.belief.components.particles, f.belief.components.particles)
         assert torch.equal(e.log_likelihood, f.log_likelihood)
+
+
+def test_the_first_compile_is_announced(tmp_path, monkeypatch, caplog):
+    """Issue 30: the first run on a machine was a minute of silence while Numba compiled."""
+    import logging
+
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
+    assert not cpu_kernels.compiled_before()  # an empty cache
+    (tmp_path / "x").mkdir()
+    (tmp_path / "x" / "loops.propagate-94.py311.nbi").write_bytes(b"")
+    assert cpu_kernels.compiled_before()
+    monkeypatch.setattr(cpu_kernels, "_ANNOUNCED", [])
+    monkeypatch.setattr(cpu_kernels, "compiled_before", lambda: False)
+    with caplog.at_level(logging.INFO, logger="torchmm.cpu_kernels"):
+        cpu_kernels._kernels()
+        cpu_kernels._kernels()
+    assert [r.getMessage() for r in caplog.records].count(
+        "compiling the particle filters' fused CPU kernels (Numba, once per machine: about a minute, then a few "
+        "seconds per new problem size; cached on disk)") == 1

@@ -29,13 +29,18 @@ file). Threads: as many as torch uses (``torch.get_num_threads()``).
 
 from __future__ import annotations
 
+import logging
 import os
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 
 import torch
 from torch import Tensor
 
 from torchmm.runtime import host_reads_ok
+
+log = logging.getLogger("torchmm.cpu_kernels")
+_ANNOUNCED: list[bool] = []
 
 __all__ = ["available", "challenge_pass", "enabled", "propagate_log_likelihood", "set_enabled", "two_stage_indices"]
 
@@ -103,9 +108,22 @@ def _np(t: Tensor):
 
 def _kernels():
     """The kernels module (:mod:`torchmm.cpu_kernels.loops`), imported on first use."""
+    if not _ANNOUNCED:
+        _ANNOUNCED.append(True)
+        if not compiled_before():  # the first run on a machine is otherwise a minute of silence
+            log.info("compiling the particle filters' fused CPU kernels (Numba, once per machine: about a "
+                     "minute, then a few seconds per new problem size; cached on disk)")
     from torchmm.cpu_kernels import loops
 
     return loops
+
+
+def compiled_before() -> bool:
+    """Whether Numba's on-disk cache holds compiled kernels of this module (``NUMBA_CACHE_DIR`` or
+    the ``__pycache__`` beside it)."""
+    custom = os.environ.get("NUMBA_CACHE_DIR")
+    root = Path(custom) if custom else Path(__file__).parent / "__pycache__"
+    return root.is_dir() and any(root.rglob("loops.*.nbi"))
 
 
 # ------------------------------------------------------------------------------------------------
