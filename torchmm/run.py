@@ -13,7 +13,7 @@ import torch.utils._pytree as pytree
 from torch import Tensor
 
 from torchmm.contract import BeliefArg, Data, Finite, Flag, Gen, Of, Unchecked, entry_point
-from torchmm.beliefs import Belief, GaussianBelief
+from torchmm.beliefs import GaussianBelief
 from torchmm.filters.base import Filter, StepOutput, call_with
 from torchmm.provenance import Provenance, fingerprints, module_state, tensor_versions
 from torchmm.runtime import fast_paths_compiled
@@ -206,12 +206,7 @@ def run_filter(
         >>> traj.estimate().mean.shape
         torch.Size([10, 4, 2])
     """
-    if not isinstance(filter, Filter):
-        raise TypeError(f"filter: expected a torchmm Filter, got {type(filter).__name__}")
-    if not isinstance(belief0, Belief):
-        raise TypeError(f"belief0: expected a belief (e.g. GaussianBelief or filter.initial_belief(...)), got "
-                        f"{type(belief0).__name__}")
-    belief0.validate("belief0")
+    belief0.validate("belief0")  # (its type, filter's, and the flags' are the contract's, at entry)
     check_filter_dtype(filter, belief0, "belief0")
     if generator is not None and generator.device.type != belief0.device.type:
         raise ValueError(f"generator: on {generator.device}, the belief on {belief0.device}; create it "
@@ -256,12 +251,6 @@ def run_filter(
         if record != "estimate":
             raise ValueError(f"record: expected a callable, None or 'estimate', got {record!r}")
         record = keep_estimate
-    elif record is not None and not callable(record):
-        raise TypeError(f"record: expected a callable, None or 'estimate', got {type(record).__name__}")
-    if fast_path not in (None, True, False):
-        raise TypeError(f"fast_path: expected None, True or False, got {fast_path!r}")
-    if compile not in (None, True, False):
-        raise TypeError(f"compile: expected None, True or False, got {compile!r}")
     explicit = compile is True
     if compile is None:
         compile = fast_paths_compiled() and fast_path is not False
@@ -319,7 +308,7 @@ def run_filter(
     stacked = attach_provenance(stacked, Provenance(
         "run_filter", filter, steps, measurements, data_prints, tensor_versions(measurements), controls,
         control_prints, None if controls is None else tensor_versions(controls), motions, sensors,
-        bool(update_first)))
+        update_first))
     _report_flags(stacked.extras)
     return stacked
 

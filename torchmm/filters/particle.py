@@ -444,8 +444,6 @@ class ParticleFilter(Filter):
                  noise_dtype: torch.dtype | None = None):
         super().__init__()
         check_model_pair(motion, measurement)
-        if resampling not in RESAMPLING_SCHEMES:
-            raise ValueError(f"resampling: expected one of {sorted(RESAMPLING_SCHEMES)}, got {resampling!r}")
         ess_threshold = as_float(ess_threshold, "ess_threshold", minimum=0.0)
         if num_particles is not None:
             num_particles = as_int(num_particles, "num_particles", minimum=1)

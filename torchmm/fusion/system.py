@@ -308,8 +308,6 @@ def simulate_fusion(system: MultiSensorSystem, steps: int, batch_shape=(),
         >>> tuple(sim.y.shape)
         (5, 3, 2, 1)
     """
-    if steps < 1:
-        raise ValueError(f"steps: expected >= 1, got {steps}")
     B = tuple(batch_shape)
     dtype, device = system.A.dtype, system.A.device
     kw = dict(dtype=dtype, device=device, generator=generator)

@@ -74,8 +74,6 @@ class Embedded(Filter):
                  fill_mean=Finite(optional=True, check=False), fill_cov=Finite(optional=True, check=False))
     def __init__(self, filter: Filter, index: Sequence[int], common_dim: int, *, fill_mean=None, fill_cov=None):
         super().__init__()
-        if not isinstance(filter, Filter):
-            raise TypeError(f"filter: expected a Filter, got {type(filter).__name__}")
         index = [int(i) for i in index]
         n = filter.state_dim
         if n is not None and len(index) != n:

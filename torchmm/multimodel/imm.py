@@ -250,8 +250,6 @@ class MultipleModelFilter(Filter):
             -> :class:`ModeBelief` with batch ``(*B,)``
         """
         M = self.num_modes
-        if not isinstance(belief, Belief):
-            raise TypeError(f"belief: expected a belief (e.g. GaussianBelief), got {type(belief).__name__}")
         belief.validate("belief")
         check_filter_dtype(self, belief, "belief")
         check_state_dim(self.bank, belief, "belief")

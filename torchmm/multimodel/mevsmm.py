@@ -124,8 +124,6 @@ class MinimumEntropyVSMM(MultipleModelParticleFilter):
                  noise_dtype: torch.dtype | None = None):
         super().__init__(motion, measurement, transition, num_particles, mixing=mixing, generator=generator,
                          innovation_stats=innovation_stats, noise_dtype=noise_dtype)
-        if not callable(selection):
-            raise TypeError("selection: expected a callable policy (ExactMinimumEntropy, ChallengeMatch)")
         if isinstance(selection, ChallengeMatch) and selection.num_winners > self.num_modes * self.num_particles:
             raise ValueError(f"selection: num_winners {selection.num_winners} exceeds the {self.num_modes} x "
                              f"{self.num_particles} particles")

@@ -198,8 +198,6 @@ class ParticleMixing(Interaction):
 
     @entry_point(scheme=Choice(*_INVERSE_CDF_SCHEMES), num_particles=Int(1, optional=True))
     def __init__(self, scheme: str = "systematic", num_particles: int | None = None):
-        if scheme not in _INVERSE_CDF_SCHEMES:
-            raise ValueError(f"mixing: expected one of {_INVERSE_CDF_SCHEMES}, got {scheme!r}")
         self.scheme = scheme
         self.num_particles = None if num_particles is None else as_int(num_particles, "num_particles", minimum=1)
 
@@ -288,8 +286,6 @@ class MultipleModelParticleFilter(MultipleModelFilter):
                  mixing: str = "systematic", generator: torch.Generator | None = None,
                  innovation_stats: bool = True, noise_dtype: torch.dtype | None = None):
         check_model_pair(motion, measurement)
-        if mixing not in _INVERSE_CDF_SCHEMES:
-            raise ValueError(f"mixing: expected one of {_INVERSE_CDF_SCHEMES}, got {mixing!r}")
         num_particles = as_int(num_particles, "num_particles", minimum=1)
         # the mode filters: one bootstrap PF over the mode bank (it never resamples: the interaction does)
         bank = ParticleFilter(motion, measurement, num_particles=num_particles, ess_threshold=0.0,

@@ -374,8 +374,6 @@ class ExactMinimumEntropy:
                  chunk_size=Int(1),
                  entropy=Choice(*ENTROPY_READINGS))
     def __init__(self, family=None, *, chunk_size: int = 16384, entropy: str = "joint"):
-        if entropy not in ENTROPY_READINGS:
-            raise ValueError(f"entropy: expected one of {ENTROPY_READINGS}, got {entropy!r}")
         if isinstance(family, Tensor):
             if family.dtype != torch.bool or family.dim() != 2:
                 raise TypeError("family: expected a (K, M) bool mask or a list of model-index lists, got a "
@@ -431,8 +429,6 @@ class ChallengeMatch:
 
     @entry_point(num_winners=Int(1), threshold=Int(0), method=Choice("cm", "topk"), passes=Int(1))
     def __init__(self, num_winners: int = 420, threshold: int = 23, *, method: str = "cm", passes: int = 1):
-        if method not in ("cm", "topk"):
-            raise ValueError(f"method: expected 'cm' or 'topk', got {method!r}")
         self.num_winners = as_int(num_winners, "num_winners", minimum=1)
         self.threshold = as_int(threshold, "threshold", minimum=0)
         self.method, self.passes = method, as_int(passes, "passes", minimum=0)

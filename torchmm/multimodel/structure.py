@@ -29,6 +29,7 @@ from torchmm.beliefs import Belief, ModeBelief, ModelSetBelief
 from torchmm.beliefs.ops import normalize_log_probs
 from torchmm.filters.base import Filter, StepOutput
 from torchmm.multimodel.bank import FilterBank
+from torchmm.validation import broadcast_shape
 from torchmm.multimodel.imm import IMM, Interaction
 
 __all__ = ["ActiveSetMixing", "AllModels", "DropBelow", "FixedSet", "ModelSetPolicy", "VariableStructureIMM"]
@@ -106,7 +107,7 @@ def check_active_set(active, shape: torch.Size, name: str = "policy") -> Tensor:
         raise TypeError(f"{name}: select returned an active set of dtype {active.dtype}, expected torch.bool")
     if active.shape != shape:
         try:
-            ok = torch.broadcast_shapes(active.shape, shape) == shape
+            ok = broadcast_shape(active.shape, shape) == shape
         except RuntimeError:
             ok = False
         if not ok:
@@ -179,9 +180,6 @@ class VariableStructureIMM(IMM):
                  feedback=Flag())
     def __init__(self, bank, transition, policy: ModelSetPolicy, *, feedback: bool = True):
         super().__init__(bank, transition)
-        if not callable(getattr(policy, "select", None)):
-            raise TypeError(f"policy: expected a model-set policy with a select(belief, generator) method, got "
-                            f"{type(policy).__name__}")
         self.policy, self.feedback = policy, bool(feedback)
 
     @property

@@ -242,12 +242,6 @@ class TransferIMM(IMM):
     def __init__(self, bank, transition, source: MeasurementModel, *, smoothing_reference: str = "combined",
                  mode_likelihood: str = "prior", gate: InfluenceGate | None = None):
         super().__init__(bank, transition)
-        if smoothing_reference not in {"combined", "mixed"}:
-            raise ValueError(f"smoothing_reference: expected 'combined' or 'mixed', got {smoothing_reference!r}")
-        if mode_likelihood not in {"prior", "corrected"}:
-            raise ValueError(f"mode_likelihood: expected 'prior' or 'corrected', got {mode_likelihood!r}")
-        if gate is not None and not isinstance(gate, InfluenceGate):
-            raise ValueError(f"gate: expected an InfluenceGate or None, got {type(gate).__name__}")
         bank_members(self.bank, type(self).__name__)
         self.source = check_source_sensor(source, self.bank.state_dim)
         if gate is not None and not 0 <= gate.mode < self.num_modes:
