@@ -40,7 +40,8 @@ def _keep_likelihood_and_detached_belief(out: StepOutput) -> StepOutput:
 
 
 @entry_point(filter=Of(Filter), belief0=BeliefArg(validate=True), measurements=Data(),
-             controls=Data(optional=True), reduction=Choice(*_REDUCTIONS), return_final=Flag())
+             controls=Data(optional=True), reduction=Choice(*_REDUCTIONS), return_final=Flag(),
+             update_first=Flag())
 def negative_log_likelihood(
     filter: Filter,
     belief0: Any,
@@ -49,6 +50,7 @@ def negative_log_likelihood(
     controls: Tensor | None = None,
     reduction: str = "mean",
     return_final: bool = False,
+    update_first: bool = False,
 ):
     r"""``-log p(z_{1:T})`` of a batch of measurement sequences through ``filter``.
 
@@ -64,6 +66,10 @@ def negative_log_likelihood(
             ``"none"`` - ``(*B,)`` totals over time.
         return_final: also return the final posterior, detached from the graph (to continue
             filtering, e.g. the next segment of truncated back-propagation through time).
+        update_first: ``belief0`` is the prior of the *first measurement* (step 0 is an update
+            only, no prediction: :func:`~torchmm.run_filter`'s ``update_first``), the convention of
+            statsmodels, pykalman and Durbin and Koopman's ``a_1, P_1``. Default False: ``belief0``
+            is the belief at time 0 and every step predicts, then updates.
 
     Returns:
         the loss (scalar, or ``(*B,)`` for ``reduction="none"``), and the final belief if asked.
@@ -86,7 +92,8 @@ def negative_log_likelihood(
     belief0 = as_start_belief(filter, belief0)
     record = _keep_likelihood_and_detached_belief if return_final else _keep_likelihood
     with parametrize.cached():  # parametrised covariances are computed once per pass
-        traj = run_filter(filter, belief0, measurements, controls=controls, record=record)
+        traj = run_filter(filter, belief0, measurements, controls=controls, record=record,
+                          update_first=update_first)
     total = -traj.log_likelihood.sum(0)  # (*B,)
     if reduction == "none":
         loss = total

@@ -18,7 +18,19 @@ import torch
 from torch import Tensor, nn
 from tqdm.auto import tqdm
 
-from torchmm.contract import BeliefArg, FilePath, Gen, Int, Of, Real, Text, Unchecked, Values, entry_point
+from torchmm.contract import (
+    BeliefArg,
+    FilePath,
+    Flag,
+    Gen,
+    Int,
+    Of,
+    Real,
+    Text,
+    Unchecked,
+    Values,
+    entry_point,
+)
 from torchmm.learn.loss import as_start_belief, negative_log_likelihood, truncated_segments
 
 __all__ = ["TrainRecord", "Trainer", "load_checkpoint", "save_checkpoint"]  # (and NonFiniteLossError, below)
@@ -113,6 +125,10 @@ class Trainer:
         checkpoint_path, checkpoint_every: save a checkpoint every ``checkpoint_every``
             iterations (and at the end of :meth:`fit`) when a path is given.
         prefix: tag prefix for the logger.
+        update_first: ``belief0`` of :meth:`fit` is the prior of the first measurement: the first
+            segment's step 0 is an update only (``update_first=True`` is passed to ``loss_fn``, which
+            must then accept it, as :func:`~torchmm.learn.negative_log_likelihood` does). Later
+            TBPTT segments start from the previous segment's posterior and always predict first.
 
     Shapes:
         :meth:`fit`: ``belief0`` batch ``(N,)`` (or ``(N, ...)``), ``measurements (T, N, ..., m)``,
@@ -137,7 +153,8 @@ class Trainer:
                  track=Of(callable_ok=True, optional=True, what="a callable returning {name: value}"),
                  logger=Of(methods=("scalar",), optional=True, what="an object with scalar(tag, value, i)"),
                  callbacks=Unchecked("any iterable of callables; each is called with (trainer, record)"),
-                 checkpoint_path=FilePath(optional=True), checkpoint_every=Int(0), prefix=Text())
+                 checkpoint_path=FilePath(optional=True), checkpoint_every=Int(0), prefix=Text(),
+                 update_first=Flag())
     def __init__(
         self,
         filter: nn.Module,
@@ -152,6 +169,7 @@ class Trainer:
         checkpoint_path: str | Path | None = None,
         checkpoint_every: int = 0,
         prefix: str = "train",
+        update_first: bool = False,
     ):
         if window is not None and int(window) < 1:
             raise ValueError(f"window: must be a positive number of steps, got {window}")
@@ -170,6 +188,7 @@ class Trainer:
         self.checkpoint_path = None if checkpoint_path is None else Path(checkpoint_path)
         self.checkpoint_every = int(checkpoint_every)
         self.prefix = prefix
+        self.update_first = bool(update_first)
         self.history: list[TrainRecord] = []
 
     @property
@@ -179,7 +198,8 @@ class Trainer:
     def _params(self) -> list[Tensor]:
         return [p for group in self.optimizer.param_groups for p in group["params"]]
 
-    def _segment_step(self, belief, z: Tensor, u: Tensor | None) -> tuple[float, float, Any]:
+    def _segment_step(self, belief, z: Tensor, u: Tensor | None,
+                      update_first: bool = False) -> tuple[float, float, Any]:
         """One optimiser step on one segment; returns (loss, grad_norm, final belief detached).
 
         The belief handed on is the one filtered with the parameters before the step (the first
@@ -187,10 +207,12 @@ class Trainer:
         """
         state: dict[str, Any] = {}
         params = self._params()
+        # only when asked, so that a custom loss_fn without the keyword keeps working
+        extra = {"update_first": True} if update_first else {}
 
         def closure():
             self.optimizer.zero_grad()
-            loss, final = self.loss_fn(self.filter, belief, z, controls=u, return_final=True)
+            loss, final = self.loss_fn(self.filter, belief, z, controls=u, return_final=True, **extra)
             if not bool(torch.isfinite(loss.detach())):
                 raise NonFiniteLossError(
                     f"Trainer: the loss went non-finite ({loss.item()}) at iteration {self.iteration + 1}; "
@@ -273,7 +295,8 @@ class Trainer:
                     u = None if controls is None else controls[:, index]
                 total, norm, belief = 0.0, 0.0, start
                 for seg in segments:
-                    loss, norm, belief = self._segment_step(belief, z[seg], None if u is None else u[seg])
+                    loss, norm, belief = self._segment_step(belief, z[seg], None if u is None else u[seg],
+                                                            self.update_first and seg.start == 0)
                     total += loss * (seg.stop - seg.start)
                 record = TrainRecord(self.iteration + 1, total / steps, norm,
                                      {k: float(v) for k, v in (self.track() if self.track else {}).items()},
