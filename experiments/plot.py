@@ -2,8 +2,9 @@
 
 One figure per quantity (the part of a curve's tag before ``/``, e.g. ``pos_rmse``), one labelled
 line per series (``pos_rmse/IMM``, ``pos_rmse/GPB1``, ...), over time steps or over a swept
-parameter (``alpha``), 95 % bands where the run saved standard errors (``pos_rmse_se/IMM``), the
-legend outside the axes, sized for a paper's column (3.4 in wide), written as PNG (300 dpi) and
+parameter (``alpha``), 95 % bands where the run saved standard errors (``pos_rmse_se/IMM``) or
+interval bounds (``nees_low/IMM`` and ``nees_high/IMM``: e.g. the chi-square band of a consistent
+filter's NEES), the legend outside the axes, sized for a paper's column (3.4 in wide), written as PNG (300 dpi) and
 PDF into ``RUN_DIR/figures/curves/``.
 """
 
@@ -45,7 +46,11 @@ def load_curves(run_dir: Path) -> dict[str, tuple[str, object, object]]:
 def draw_groups(curves: dict[str, tuple[str, object, object]]) -> list[tuple[str, object]]:
     """One figure per quantity (the tag before its first ``/``), one labelled line per series, the
     legend outside the axes, 3.4 in wide (a paper's column). ``<q>_se/<s>`` curves become shaded
-    95 % bands around ``<q>/<s>`` (and get no figure of their own when that curve exists)."""
+    95 % bands around ``<q>/<s>`` (and get no figure of their own when that curve exists).
+    ``<q>_low/<s>`` with ``<q>_high/<s>`` are the bounds of a reference interval of ``<q>/<s>`` (e.g.
+    the 95 % chi-square band of the NEES): shaded between them, once in grey with the label "95 %
+    band" when every series has the same bounds, else per series in its line's colour, and no figure
+    of their own."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -60,16 +65,44 @@ def draw_groups(curves: dict[str, tuple[str, object, object]]) -> list[tuple[str
     for quantity, lines in sorted(groups.items()):
         if quantity.endswith("_se") and quantity[:-3] in groups:
             continue  # drawn as bands
+        if (quantity.endswith("_low") or quantity.endswith("_high")) and quantity.rpartition("_")[0] in groups:
+            continue  # drawn as interval bands
         fig, ax = plt.subplots(figsize=(3.4, 2.4), constrained_layout=True)
         axis = lines[0][2][0]
+        intervals = {}  # series tag -> (x, low, high): the reference intervals of this quantity
+        for _, tag, (_, x, values) in lines:
+            series = tag.partition("/")[2]
+            low, high = curves.get(f"{quantity}_low/{series}"), curves.get(f"{quantity}_high/{series}")
+            if low is not None and high is not None and len(low[2]) == len(high[2]) == len(values):
+                intervals[tag] = (x, np.asarray(low[2], dtype=float), np.asarray(high[2], dtype=float))
+        shared = len(intervals) == len(lines) and all(
+            np.array_equal(b[1], a[1]) and np.array_equal(b[2], a[2])
+            for a in intervals.values() for b in intervals.values())
+        if shared:
+            x, low, high = next(iter(intervals.values()))
+            ax.fill_between(x, low, high, color="0.5", alpha=0.2, linewidth=0, label="95 % band")
+        # nested series (``<estimator>/<mode>``, e.g. mode probabilities of several estimators): the
+        # colour names the inner series, the line style the estimator, and the first estimator is
+        # drawn thicker, so that estimators whose lines coincide (GPB2 on IMM) stay visible
+        outer = list(dict.fromkeys(label.partition("/")[0] for label, _, _ in lines))
+        inner = list(dict.fromkeys(label.partition("/")[2] for label, _, _ in lines))
+        nested = len(outer) > 1 and all("/" in label for label, _, _ in lines)
         for i, (label, tag, (_, x, values)) in enumerate(lines):  # past 10 lines: the next line style
-            (line,) = ax.plot(x, values, label=label, linewidth=1.0, marker="o" if axis != "step" else None, ms=2.5,
-                              linestyle=("-", "--", ":", "-.")[(i // 10) % 4])
+            style = {"linewidth": 1.0, "linestyle": ("-", "--", ":", "-.")[(i // 10) % 4]}
+            if nested:
+                o, _, n = label.partition("/")
+                j = outer.index(o)
+                style = {"linewidth": 2.2 if j == 0 else 1.0, "linestyle": ("-", "--", ":", "-.")[j % 4],
+                         "color": f"C{inner.index(n) % 10}"}
+            (line,) = ax.plot(x, values, label=label, marker="o" if axis != "step" else None, ms=2.5, **style)
             band = curves.get(f"{quantity}_se/{tag.partition('/')[2]}")
             if band is not None and len(band[2]) == len(values):
                 se = np.asarray(band[2], dtype=float)
                 ax.fill_between(x, values - Z95 * se, values + Z95 * se, color=line.get_color(), alpha=0.2,
                                 linewidth=0)
+            if tag in intervals and not shared:
+                _, low, high = intervals[tag]
+                ax.fill_between(x, low, high, color=line.get_color(), alpha=0.12, linewidth=0)
         xs = np.concatenate([np.asarray(c[1], dtype=float) for _, _, c in lines])
         if axis != "step" and xs.size and (xs > 0).all() and xs.max() / xs.min() >= 100:
             ax.set_xscale("log")
@@ -77,7 +110,7 @@ def draw_groups(curves: dict[str, tuple[str, object, object]]) -> list[tuple[str
         ax.set_ylabel(quantity.replace("_", " "), fontsize=8)
         ax.grid(True, linewidth=0.3, alpha=0.5)
         ax.tick_params(labelsize=7)
-        if len(lines) > 1:
+        if len(lines) > 1 or shared:
             ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=6, frameon=False, borderaxespad=0)
         figures.append((quantity, fig))
     return figures

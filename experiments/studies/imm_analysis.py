@@ -81,6 +81,7 @@ def _analyse(ctx: StudyContext, scenario, sim, z, alpha: float, start: int = 0) 
         delta = delta_ratio(alphas, probs, matched)  # (T-1, runs)
         out["delta_sum"], out["delta_count"] = delta.sum().item(), delta.numel()
         out["delta_over_time_sum"] = delta.sum(-1).tolist()
+        out["delta_run_means"] = delta.mean(0).tolist()  # per run: the standard error of mean_delta
         out["zeta_sum"] = zeta_ratio(transition, probs, matched).sum().item() if M == 2 else None
     return out
 
@@ -101,6 +102,10 @@ def _merge(parts: list[dict]) -> dict:
         out["mean_zeta"] = sum(p["zeta_sum"] for p in parts) / count if first["zeta_sum"] is not None else None
         steps = len(first["delta_over_time_sum"])
         out["delta_over_time"] = [sum(p["delta_over_time_sum"][k] for p in parts) / runs for k in range(steps)]
+        per_run = [v for p in parts for v in p.get("delta_run_means", [])]
+        # every run has the same steps: mean_delta is the mean of the runs' means, se = sd_r / sqrt(N)
+        out["mean_delta_se"] = (torch.tensor(per_run, dtype=torch.float64).std().item() / len(per_run) ** 0.5
+                                if len(per_run) == runs and runs > 1 else None)
     return out
 
 
@@ -173,6 +178,9 @@ def _curves(ctx: StudyContext, units) -> None:
         if all("mean_delta" in v for _, v in rows):
             ctx.logger.sweep(f"mean_delta_vs_alpha/{models}_models", alphas, [v["mean_delta"] for _, v in rows],
                              "alpha")
+            se = [v.get("mean_delta_se") for _, v in rows]
+            if all(x is not None for x in se):  # its standard error: a band in torchmm-plot
+                ctx.logger.sweep(f"mean_delta_vs_alpha_se/{models}_models", alphas, se, "alpha")
         for alpha, v in rows:
             if v.get("delta_over_time"):
                 ctx.logger.series(f"delta/{models}_models/alpha={alpha:g}", v["delta_over_time"])
@@ -222,6 +230,9 @@ def _tables(ctx: StudyContext, units) -> None:
 
 
 def _figures(ctx: StudyContext, units) -> None:
+    """``rmse_vs_alpha`` and ``delta_vs_alpha``: Monte Carlo means over alpha, each point with its
+    95 % error bar (+- 1.96 se: the delta-method se of the average RMSE; sd / sqrt(N) of the runs'
+    mean delta)."""
     import matplotlib.pyplot as plt
 
     model_counts = sorted({m for m, _, _ in units})
@@ -231,12 +242,15 @@ def _figures(ctx: StudyContext, units) -> None:
         xs = [a for a, _ in rows]
         names = list(rows[0][1]["rmse"])
         series = {n: [v["rmse"][n]["pos_rmse"] for _, v in rows] for n in names}
-        plots.lines(xs, series, xlabel="alpha", ylabel="position RMSE", title=f"{models} models", logx=True, ax=ax)
+        errors = {n: [v["rmse"][n].get("pos_rmse_se") for _, v in rows] for n in names}  # 95 % error bars
+        plots.lines(xs, series, xlabel="alpha", ylabel="position RMSE", title=f"{models} models", logx=True, ax=ax,
+                    errors=errors)
     fig.tight_layout()
     ctx.save_figure("rmse_vs_alpha", fig)
     series = {f"{m} models": [v["mean_delta"] for mm, _, v in units if mm == m] for m in model_counts}
+    errors = {f"{m} models": [v.get("mean_delta_se") for mm, _, v in units if mm == m] for m in model_counts}
     xs = [a for m, a, _ in units if m == model_counts[0]]
     if all(len(s) == len(xs) for s in series.values()):
         ctx.save_figure("delta_vs_alpha", plots.lines(
             xs, series, xlabel="alpha", ylabel="mean delta(k), eq. (4.10)", logx=True,
-            title="interaction error compression of the matched model"))
+            title="interaction error compression of the matched model", errors=errors))

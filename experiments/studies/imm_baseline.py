@@ -2,7 +2,9 @@
 
 The paper-000 target (accelerations {0.25, 0, -0.25}, R = 100) without source data, by default.
 Tables: ``rmse`` (estimator, pos_rmse, vel_rmse, nees, mode_accuracy); metrics per estimator;
-timing; figures RMSE over time and one run's mode probabilities; TensorBoard per-step scalars.
+timing; figures RMSE over time (95 % bands), NEES over time (95 % chi-square band), run 0's mode
+probabilities (one panel per multiple-model estimator) and run 0's trajectory (+- 2 sigma bands);
+TensorBoard per-step scalars.
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ from hydra.utils import instantiate
 from experiments.estimators import evaluate_runs, reduce_runs
 from experiments.uncertainty import nees_consistency
 from experiments.executors import Unit
-from experiments.harness import StudyContext
+from experiments.harness import StudyContext, per_run
 from experiments.studies import plots
 
 log = logging.getLogger("torchmm.experiments")
@@ -40,7 +42,8 @@ UNIT = "experiments.studies.imm_baseline:unit"
 
 def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
     """Estimator ``name`` on runs ``start..stop-1`` (``ctx.run_ranges``): per-run values
-    (:func:`~experiments.estimators.evaluate_runs`), and run 0's mode probabilities in the first unit."""
+    (:func:`~experiments.estimators.evaluate_runs`), and in the first unit run 0's mode probabilities
+    and estimates (mean and covariance, for the trajectory figure)."""
     scenario, sim, z = _data(ctx, start, stop)
     est = instantiate(ctx.cfg.estimators[name])(scenario, name=name)
     stats = {"mode_probs": lambda traj: traj.belief.mode_probs} if est.multiple_model else {}
@@ -48,6 +51,9 @@ def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
                                  keep_trajectory=start == 0, per_step=stats, block_runs=ctx.block_runs,
                                  generators=ctx.block_generators("filter", scenario.name, est.name), first_run=start)
     values["example"] = kept.belief.mode_probs[:, 0] if est.multiple_model and kept is not None else None  # (T, M)
+    estimate = kept.estimate() if kept is not None else None  # run 0: (T, n), (T, n, n)
+    values["example_mean"] = per_run(estimate.mean[:, 0]) if estimate is not None else None
+    values["example_cov"] = per_run(estimate.cov[:, 0]) if estimate is not None else None
     return values
 
 
@@ -71,7 +77,9 @@ def run(ctx: StudyContext) -> None:
              "nees_steps_inside: the fraction of steps inside it (0.95 for a consistent filter).")
     curves = {"position RMSE": {}, "velocity RMSE": {}}
     bands = {"position RMSE": {}, "velocity RMSE": {}}  # per-step standard errors of the curves
-    example = None
+    examples = {}  # run 0's mode probabilities of each multiple-model estimator, (T, M)
+    estimates = {}  # run 0's estimate of each estimator: mean (T, n), covariance (T, n, n)
+    consistency = {}  # each estimator's 95 % chi-square band of the run-averaged NEES
     # every estimator x range of runs is a unit, all at once: an executor (executor=processes|slurm|ray)
     # runs them side by side; each estimator's ranges are reduced in run order
     units = [Unit(f"{name}/runs{a}-{b}", UNIT, {"name": name, "start": a, "stop": b})
@@ -86,6 +94,7 @@ def run(ctx: StudyContext) -> None:
         ev = reduce_runs(mine)
         summary = ev.summary()
         lo, hi, inside = nees_consistency(ev.nees, ev.runs, ev.state_dim)  # 95 % band of the run-averaged NEES
+        consistency[name] = (f64(ev.nees), (lo, hi))
         table.rows.append([name, summary["pos_rmse"], summary["vel_rmse"], summary["nees"],
                            summary.get("mode_accuracy"), summary["pos_rmse_se"], summary["vel_rmse_se"], lo, hi,
                            inside])
@@ -99,18 +108,31 @@ def run(ctx: StudyContext) -> None:
         ctx.logger.series(f"pos_rmse_se/{name}", ev.pos_rmse_band)
         ctx.logger.series(f"vel_rmse_se/{name}", ev.vel_rmse_band)
         ctx.logger.series(f"nees/{name}", ev.nees)
+        ctx.logger.series(f"nees_low/{name}", [lo] * len(ev.nees))  # the band torchmm-plot shades
+        ctx.logger.series(f"nees_high/{name}", [hi] * len(ev.nees))
+        if mine[0].get("example_mean") is not None:
+            estimates[name] = (f64(mine[0]["example_mean"]), f64(mine[0]["example_cov"]))
         if ev.mode_accuracy is not None:  # a multiple-model estimator
             ctx.logger.series(f"mode_accuracy/{name}", ev.mode_accuracy)
             probs = f64(ev.means["mode_probs"])  # average over all runs, (T, M)
             for j, label in enumerate(scenario.mode_labels):
                 ctx.logger.series(f"mode_probability/{name}/{label}", probs[:, j])
-            if example is None:
-                example = (name, f64(mine[0]["example"]))  # run 0, (T, M)
+            if mine[0].get("example") is not None:
+                examples[name] = f64(mine[0]["example"])  # run 0, (T, M)
         log.info("%s: %s", name, {k: round(val, 4) for k, val in summary.items() if isinstance(val, float)})
     ctx.results.save()
     ctx.save_figure("rmse_over_time", plots.rmse_over_time(curves, f"{scenario.name}, {cfg.mc_runs} runs",
                                                                   bands=bands))
-    if example is not None:
-        name, probs = example
+    ctx.save_figure("nees", plots.nees_over_time({n: v for n, (v, _) in consistency.items()},
+                                                 {n: b for n, (_, b) in consistency.items()},
+                                                 f"{scenario.name}, {cfg.mc_runs} runs"))
+    if examples:
         ctx.save_figure("mode_probabilities", plots.mode_probabilities(
-            probs, sim.modes[:, 0], scenario.mode_labels, f"{name}, run 0"))
+            examples, sim.modes[:, 0], scenario.mode_labels, "run 0"))
+    if estimates:
+        position = list(scenario.position)[:2]  # x (and y)
+        # the measurements as dots where they are the position itself (a position sensor)
+        direct = list(getattr(scenario.measurement, "indices", ())) == position
+        ctx.save_figure("trajectory", plots.trajectory(
+            sim.states[:, 0], z[:, 0] if direct else None, estimates, components=position, run=None,
+            title=f"{scenario.name}, run 0"))

@@ -30,7 +30,7 @@ from hydra.utils import instantiate
 from experiments.estimators import Estimator, build_mode_filter, evaluate_runs, reduce_runs, starter
 from experiments.executors import Unit
 from experiments.harness import StudyContext
-from experiments.uncertainty import inside, nees_consistency
+from experiments.uncertainty import Z95, inside, nees_consistency
 from experiments.studies import plots
 from torchmm import PositionMeasurement
 from torchmm.multimodel import TransferIMM
@@ -139,6 +139,8 @@ def _unit(ctx: StudyContext, scenario, ratio: float, source_R: float, key: str, 
             if transfer:  # influence value (33), m = 1 here
                 stats["influence_abs"] = lambda traj: traj.extras["influence"][..., 0].abs()
                 stats["influence_mean"] = lambda traj: traj.extras["influence"][..., 0]
+                # the second moment: the standard error of the mean |L_k| over the runs (the figure's band)
+                stats["influence_abs_sq"] = lambda traj: traj.extras["influence"][..., 0].square()
         out["runs"][est.name], _ = evaluate_runs(
             est, scenario, sim, z, chunk_runs=ctx.cfg.get("chunk_runs"), per_step=stats, block_runs=ctx.block_runs,
             generators=ctx.block_generators("filter", key, est.name), first_run=start)
@@ -166,8 +168,21 @@ def _merge(parts: list[dict], curves: bool) -> dict:
             if "influence_abs" in ev.means:
                 curve["influence_abs"] = ev.means["influence_abs"].tolist()
                 curve["influence_mean"] = ev.means["influence_mean"].tolist()
+                if "influence_abs_sq" in ev.means:  # se of a mean over N runs: sd / sqrt(N)
+                    curve["influence_abs_se"] = _mean_se(ev.means["influence_abs"], ev.means["influence_abs_sq"],
+                                                         ev.runs).tolist()
             out.setdefault("curves", {})[name] = curve
     return out
+
+
+def _mean_se(mean: torch.Tensor, mean_sq: torch.Tensor, runs: int) -> torch.Tensor:
+    """Standard error ``sd / sqrt(N)`` of a per-step mean over ``N`` runs from the means of the value
+    and of its square (``sd`` with the ``N - 1`` divisor); NaN for one run."""
+    mean, mean_sq = mean.to(torch.float64), mean_sq.to(torch.float64)
+    if runs < 2:
+        return torch.full_like(mean, float("nan"))
+    var = (mean_sq - mean.square()).clamp_min(0) * runs / (runs - 1)
+    return (var / runs).sqrt()
 
 
 #: the study's unit function (what an executor ships: this path, the config and the arguments)
@@ -229,17 +244,26 @@ def run(ctx: StudyContext) -> None:
             if key in curve:
                 ctx.logger.series(f"{key}/{name}", curve[key])
         ctx.logger.series(f"nees/{name}", curve["nees"])
+        steps = len(curve["nees"])  # the 95 % chi-square band of the run-averaged NEES (torchmm-plot shades it)
+        ctx.logger.series(f"nees_low/{name}", [default["summary"][name]["nees_low"]] * steps)
+        ctx.logger.series(f"nees_high/{name}", [default["summary"][name]["nees_high"]] * steps)
         for j, label in enumerate(scenario.mode_labels):
             ctx.logger.series(f"mode_probability/{name}/{label}", [p[j] for p in curve["mode_probs"]])
         if "influence_abs" in curve:
             ctx.logger.series(f"influence/{name}", curve["influence_mean"])
             ctx.logger.series(f"influence_abs/{name}", curve["influence_abs"])
+            if "influence_abs_se" in curve:
+                ctx.logger.series(f"influence_abs_se/{name}", curve["influence_abs_se"])
     as_tensor = {panel: {n: torch.tensor(c[key]) for n, c in curves.items()}
                  for panel, key in (("position RMSE", "pos_rmse"), ("velocity RMSE", "vel_rmse"))}
     bands = {panel: {n: torch.tensor(c[f"{key}_se"]) for n, c in curves.items() if f"{key}_se" in c}
              for panel, key in (("position RMSE", "pos_rmse"), ("velocity RMSE", "vel_rmse"))}
     ctx.save_figure("rmse_over_time", plots.rmse_over_time(
         as_tensor, f"{cfg.mc_runs} runs, source ratio {ratio:g}, R_S = {source_R:g}", bands=bands))
+    ctx.save_figure("nees", plots.nees_over_time(
+        {n: torch.tensor(c["nees"]) for n, c in curves.items()},
+        {n: (s["nees_low"], s["nees_high"]) for n, s in default["summary"].items()},
+        f"{cfg.mc_runs} runs, source ratio {ratio:g}, R_S = {source_R:g}"))
     if "IMM-TF" in curves:
         ctx.save_figure("influence", _influence_figure(curves, ratio, source_R))
     ctx.results.save()
@@ -293,32 +317,43 @@ def _published_vs_ours(ctx: StudyContext, table1) -> None:
 
 
 def _influence_figure(curves: dict, ratio: float, source_R: float):
-    """Fig. 3: the influence value over time next to the RMSE, IMM-TF (and IF-TF)."""
+    """Fig. 3: the influence value over time next to the RMSE, IMM-TF (and IF-TF).
+
+    Both are Monte Carlo quantities: each line has its 95 % band (+- 1.96 se) - the RMSE's delta-method
+    standard error per step (``pos_rmse_se``) and the mean |L_k|'s ``sd / sqrt(N)`` over the runs
+    (``influence_abs_se``)."""
     import matplotlib.pyplot as plt
+    import numpy as np
+
+    def draw(ax, values, se, label):
+        steps = np.arange(1, len(values) + 1)
+        (line,) = ax.plot(steps, values, label=label, lw=1.2)
+        if se is not None and len(se) == len(values):
+            values, se = np.asarray(values, dtype=float), np.asarray(se, dtype=float)
+            ax.fill_between(steps, values - Z95 * se, values + Z95 * se, color=line.get_color(), alpha=0.2, lw=0)
 
     fig, (ax0, ax1) = plt.subplots(2, 1, figsize=(7.5, 5.5), sharex=True)
     for name in ("IMM", "IMM-TF", "IF-TF"):
         if name in curves:
-            values = curves[name]["pos_rmse"]
-            ax0.plot(range(1, len(values) + 1), values, label=name, lw=1.2)
+            draw(ax0, curves[name]["pos_rmse"], curves[name].get("pos_rmse_se"), name)
     ax0.set_ylabel("position RMSE")
     ax0.legend(fontsize=8)
     ax0.grid(alpha=0.3)
     for name in ("IMM-TF", "IF-TF"):
         if name in curves and "influence_abs" in curves[name]:
-            values = curves[name]["influence_abs"]
-            ax1.plot(range(1, len(values) + 1), values, label=f"{name}: mean |L_k|", lw=1.2)
+            draw(ax1, curves[name]["influence_abs"], curves[name].get("influence_abs_se"), f"{name}: mean |L_k|")
     ax1.set_ylabel("influence value (33)")
     ax1.set_xlabel("time step k")
     ax1.legend(fontsize=8)
     ax1.grid(alpha=0.3)
-    ax0.set_title(f"influence of the source data (ratio {ratio:g}, R_S = {source_R:g})")
+    ax0.set_title(f"influence of the source data (ratio {ratio:g}, R_S = {source_R:g}; bands: 95 %)")
     fig.tight_layout()
     return fig
 
 
 def _sweep_figure(rows: list, xlabel: str, *, logx: bool, published: list | None = None):
-    """Position and velocity RMSE against the swept quantity, one line per estimator."""
+    """Position and velocity RMSE against the swept quantity, one line per estimator, each point with
+    its 95 % error bar (+- 1.96 se, the table's ``pos_rmse_se``/``vel_rmse_se``: columns 4 and 5)."""
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 3.8))
@@ -326,7 +361,8 @@ def _sweep_figure(rows: list, xlabel: str, *, logx: bool, published: list | None
     xs = sorted({r[0] for r in rows})
     for col, (ax, label) in enumerate(zip(axes, ("position RMSE", "velocity RMSE"))):
         series = {n: [next(r[2 + col] for r in rows if r[0] == x and r[1] == n) for x in xs] for n in names}
-        plots.lines(xs, series, xlabel=xlabel, ylabel=label, logx=logx, ax=ax)
+        errors = {n: [next(r[4 + col] for r in rows if r[0] == x and r[1] == n) for x in xs] for n in names}
+        plots.lines(xs, series, xlabel=xlabel, ylabel=label, logx=logx, ax=ax, errors=errors)
         if published:
             ax.plot([r[0] for r in published], [r[2 + col] for r in published], "k--", marker="x",
                     label="IMM-TF (published)")
