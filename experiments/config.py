@@ -374,7 +374,7 @@ def validate(cfg: DictConfig | dict, *, scenario_choice: str | None = None) -> N
     _validate_scenario(data, scenarios, scenario_choice)
     if "estimators" in own or "estimators" in data:
         for name, est in (data.get("estimators") or {}).items():
-            _merge(schemas.Estimator, est or {}, f"estimators.{name}")
+            _merge(getattr(schema, "estimator_schema", schemas.Estimator), est or {}, f"estimators.{name}")
     if hasattr(schema, "check"):
         schema.check(data)
 

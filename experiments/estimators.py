@@ -24,14 +24,14 @@ import torch
 import torch.utils._pytree as pytree
 from torch import Tensor
 
-from torchmm import GPB1, GPB2, IMM, Filter, GaussianBelief, KalmanFilter, run_filter
+from torchmm import GPB1, GPB2, IMM, Filter, GaussianBelief, KalmanFilter, MultipleModelFilter, run_filter
 from torchmm.metrics import mode_hits, nees, squared_error
 from torchmm.run import Trajectory
 
 from experiments.harness import add_runs, join_runs, per_run
 from experiments.uncertainty import armse_se, rmse_se_per_step
 
-__all__ = ["Estimator", "Evaluation", "build_mode_filter", "evaluate", "evaluate_runs", "gpb1", "gpb2", "imm",
+__all__ = ["Estimator", "Evaluation", "build_mode_filter", "custom", "evaluate", "evaluate_runs", "gpb1", "gpb2", "imm",
            "kalman", "multiple_model", "reduce_runs", "starter"]
 
 
@@ -45,6 +45,11 @@ class Estimator:
     #: picks this estimator's input from the study's measurements (e.g. the target stream of a
     #: multi-rate pytree); None = all of it
     select: Callable[[Any], Any] | None = None
+    #: the generic study (``compare``) also scores the smoothed trajectory (``torchmm.smooth``); a
+    #: string is the multiple-model smoother's ``method`` (``kim``, ``two_filter``)
+    smooth: bool | str = False
+    #: a single-mode estimator's mode of the scenario (its per-step models of irregular time stamps)
+    mode: int | None = None
 
     def run(self, prior: GaussianBelief, z: Any, generator: torch.Generator | None = None) -> Trajectory:
         """Filter every run of ``z``; ``generator`` is the random stream of particle mode filters."""
@@ -67,6 +72,11 @@ def starter(filt: Filter, mode_probs=None) -> Callable[..., Any]:
 def build_mode_filter(factory, motion, measurement, *, joseph: bool = False) -> Filter:
     """The mode filter a ``mode_filter`` config builds (``conf/mode_filter``) for ``motion`` and
     ``measurement`` (a mode bank for multiple-model estimators); None: a Kalman filter."""
+    if isinstance(measurement, (list, tuple)):  # one sensor per mode (mode-dependent measurements)
+        motions = motion if isinstance(motion, (list, tuple)) else [motion.select_mode(j) for j in range(len(measurement))]
+        return [build_mode_filter(factory, m, s, joseph=joseph) for m, s in zip(motions, measurement)]
+    if isinstance(motion, (list, tuple)):  # one model per mode (a heterogeneous bank: IMM takes the list)
+        return [build_mode_filter(factory, m, measurement, joseph=joseph) for m in motion]
     if factory is None:
         return KalmanFilter(motion, measurement, joseph=joseph)
     return factory(motion, measurement, **({"joseph": True} if joseph else {}))
@@ -78,14 +88,14 @@ def _transition(scenario, transition) -> Tensor:
     return torch.as_tensor(transition, dtype=scenario.transition.dtype, device=scenario.transition.device)
 
 
-def _multiple_model(build, scenario, name, transition, joseph, factory) -> Estimator:
+def _multiple_model(build, scenario, name, transition, joseph, factory, smooth=False) -> Estimator:
     bank = build_mode_filter(factory, scenario.motion, scenario.measurement, joseph=joseph)
     filt = build(bank, _transition(scenario, transition))
-    return Estimator(name, filt, starter(filt, scenario.initial_mode_probs), True)
+    return Estimator(name, filt, starter(filt, scenario.initial_mode_probs), True, smooth=smooth)
 
 
 def multiple_model(scenario, *, name: str = "MM", combinator=None, mode_filter=None, transition=None,
-                   joseph: bool = False) -> Estimator:
+                   joseph: bool = False, smooth: bool | str = False) -> Estimator:
     """The generic builder: ``combinator(bank, transition)`` over the scenario's mode bank.
 
     Args:
@@ -95,8 +105,9 @@ def multiple_model(scenario, *, name: str = "MM", combinator=None, mode_filter=N
             with a ``policy``); default IMM.
         mode_filter: a partial of a torchmm filter class (``conf/mode_filter``); default Kalman.
         transition: ``(M, M)``; default the scenario's.
+        smooth: the generic study (``compare``) also scores its smoothed trajectory.
     """
-    return _multiple_model(combinator or IMM, scenario, name, transition, joseph, mode_filter)
+    return _multiple_model(combinator or IMM, scenario, name, transition, joseph, mode_filter, smooth)
 
 
 def imm(scenario, *, name: str = "IMM", transition=None, joseph: bool = False, mode_filter=None) -> Estimator:
@@ -113,10 +124,34 @@ def gpb2(scenario, *, name: str = "GPB2", transition=None, joseph: bool = False,
 
 
 def kalman(scenario, *, name: str = "KF", mode: int = 0, joseph: bool = False, transition=None,
-           mode_filter=None) -> Estimator:
+           mode_filter=None, smooth: bool | str = False) -> Estimator:
     """A single filter (``mode_filter``; default Kalman) on mode ``mode``'s model (e.g. the CV model)."""
-    filt = build_mode_filter(mode_filter, scenario.motion.select_mode(mode), scenario.measurement, joseph=joseph)
-    return Estimator(name, filt, starter(filt), False)
+    if isinstance(scenario.motion, (list, tuple)):
+        if not 0 <= mode < len(scenario.motion):
+            raise ValueError(f"mode: {mode} is not one of the scenario's {len(scenario.motion)} modes")
+        model = scenario.motion[mode]
+    elif not tuple(getattr(scenario.motion, "param_batch_shape", ()) or ()):  # one mode, not a bank
+        if mode != 0:
+            raise ValueError(f"mode: {mode} is not a mode of a one-mode scenario")
+        model = scenario.motion
+    else:
+        model = scenario.motion.select_mode(mode)
+    sensor = scenario.measurement[mode] if isinstance(scenario.measurement, (list, tuple)) else scenario.measurement
+    filt = build_mode_filter(mode_filter, model, sensor, joseph=joseph)
+    return Estimator(name, filt, starter(filt), False, smooth=smooth, mode=mode)
+
+
+def custom(scenario, *, name: str = "filter", filter: Any, mode_probs=None, smooth: bool | str = False) -> Estimator:
+    """Any torchmm filter built from its config node (``filter: {_target_: ..., ...}``; the scenario's
+    models by interpolation, e.g. ``motion: ${scenario.modes[0]}``), started from the scenario's prior
+    (``mode_probs``: a multiple-model filter's initial mode probabilities, default the scenario's)."""
+    if not isinstance(filter, Filter):
+        raise TypeError(f"filter: expected a torchmm filter (a config node with a _target_), got {type(filter).__name__}")
+    multiple = isinstance(filter, MultipleModelFilter)
+    probs = mode_probs if mode_probs is not None else (scenario.initial_mode_probs if multiple else None)
+    if probs is not None:
+        probs = torch.as_tensor(probs, dtype=scenario.transition.dtype, device=scenario.transition.device)
+    return Estimator(name, filter, starter(filter, probs), multiple, smooth=smooth)
 
 
 @dataclass

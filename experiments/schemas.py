@@ -11,6 +11,7 @@ constructors the study calls (with errors naming the library argument).
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, List, Optional
@@ -70,6 +71,10 @@ class KinematicScenario:
     dt: float = spec(1.0, positive)
 
     def config_check(self):
+        if len(self.initial_mean) != 2 or len(self.initial_cov) != 2:  # issue 30: [] failed in the study
+            bad = "initial_mean" if len(self.initial_mean) != 2 else "initial_cov"
+            return bad, getattr(self, bad), "expected the 2-state [position, velocity] " + (
+                "mean" if bad == "initial_mean" else "covariance (2 x 2)")
         if len(self.transition) != len(self.accelerations):
             return ("transition", self.transition,
                     f"must be {len(self.accelerations)} x {len(self.accelerations)}: one row per acceleration mode")
@@ -101,7 +106,64 @@ class Paper003Scenario:
     D: str = spec("kinematic", one_of("kinematic", "printed"))
 
 
-SCENARIOS = {KINEMATIC: KinematicScenario, PAPER003: Paper003Scenario}
+SYSTEM = "experiments.scenarios.system"
+
+
+def _models(value) -> str | None:
+    """A model node (``_target_``) or a non-empty list of them."""
+    nodes = value if isinstance(value, list) else [value]
+    if not nodes:
+        return "needs at least one model"
+    for node in nodes:
+        if not isinstance(node, dict) or "_target_" not in node:
+            return "expected a model node with a _target_ (e.g. {_target_: torchmm.ConstantVelocity, ndim: 2}) or a list of them"
+    return None
+
+
+def _mode_probs(value) -> str | None:
+    if value is None or value == "ergodic":
+        return None
+    if not isinstance(value, list) or any(not isinstance(p, (int, float)) or p < 0 for p in value) \
+            or abs(sum(value) - 1) > 1e-6:
+        return "expected probabilities summing to 1, or ergodic"
+    return None
+
+
+@dataclass
+class DataSpec:
+    """``scenario.data``: recorded data (experiments/datafile.py)."""
+
+    path: str = "???"  # required
+    measurements: List[str] = spec(factory=list, check=non_empty)
+    truth: Optional[List[str]] = None
+    time: Optional[str] = None
+    series: Optional[str] = None
+
+
+@dataclass
+class SystemScenario:
+    """``experiments.scenarios.system``: the generic study's scenario (conf/experiment/compare.yaml)."""
+
+    _target_: str = SYSTEM
+    _recursive_: bool = False
+    name: str = "system"
+    modes: Any = spec(None, _models)
+    sensors: Any = spec(None, _models)
+    transition: Optional[List[Any]] = spec(None, _rows_stochastic)
+    initial_mean: List[float] = spec(factory=list, check=non_empty)
+    initial_cov: List[Any] = spec(factory=list, check=matrix_check)
+    initial_mode_probs: Any = spec(None, _mode_probs)
+    labels: Optional[List[str]] = None
+    groups: Optional[Dict[str, List[int]]] = None
+    steps: int = spec(100, positive_int)
+    missing: Any = 0.0
+    every: Any = 1
+    data: Optional[DataSpec] = None
+    mode_sensors: bool = False
+    dt_key: str = "dt"
+
+
+SCENARIOS = {KINEMATIC: KinematicScenario, PAPER003: Paper003Scenario, SYSTEM: SystemScenario}
 
 
 def scenario_names(targets) -> list[str]:
@@ -143,7 +205,91 @@ class Estimator:
     policy: Optional[Any] = None  # the conf/policy node
 
 
+BUILDERS = ("experiments.estimators.multiple_model", "experiments.estimators.imm", "experiments.estimators.gpb1",
+            "experiments.estimators.gpb2", "experiments.estimators.kalman", "experiments.estimators.custom")
+
+
+def _smooth(value) -> str | None:
+    return None if value in (True, False, "kim", "two_filter") else "expected true, false, kim or two_filter"
+
+
+@dataclass
+class CompareEstimator:
+    """An estimator of the generic study: any builder of experiments/estimators.py, ``smooth`` included."""
+
+    _target_: str = spec("experiments.estimators.multiple_model", one_of(*BUILDERS))
+    _partial_: bool = True
+    combinator: Optional[Any] = spec(None, _combinator)
+    filter: Optional[Any] = None  # custom: any torchmm filter node
+    mode_probs: Optional[List[float]] = None
+    transition: Optional[List[Any]] = spec(None, _rows_stochastic)
+    joseph: bool = False
+    mode: int = spec(0, non_negative)
+    mode_filter: Optional[Any] = None
+    smooth: Any = spec(False, _smooth)
+
+
 # -- studies ---------------------------------------------------------------------------------------
+METRICS = ("rmse", "nees", "nis", "mode_accuracy", "loglik", "whiteness", "time")
+
+
+def _model_name(value) -> str | None:
+    return None if re.fullmatch(r"(modes|sensors)(\[\d+\])?", str(value)) else "expected modes[i] or sensors[i]"
+
+
+@dataclass
+class LearnParameter:
+    model: str = spec("modes[0]", _model_name)
+    name: str = "Q"
+    kind: str = spec("log_diagonal", one_of("cholesky", "log_diagonal", "scale"))
+
+
+@dataclass
+class Learn:
+    parameters: List[LearnParameter] = spec(factory=list, check=non_empty)
+    estimator: Optional[str] = None
+    optimizer: str = spec("lbfgs", one_of("lbfgs", "adam"))
+    lr: float = spec(1.0, positive)
+    iterations: int = spec(30, positive_int)
+    tolerance: float = spec(1e-12, non_negative)  # stop once the loss's relative change is below it (0: never)
+
+
+@dataclass
+class Paired:
+    reference: Optional[str] = None
+
+
+@dataclass
+class Compare:
+    estimators: Dict[str, Any] = spec(factory=dict, check=non_empty)
+    metrics: List[str] = spec(factory=lambda: list(METRICS), check=each(one_of(*METRICS)))
+    paired: Paired = field(default_factory=Paired)
+    learn: Optional[Learn] = None
+    update_first: bool = False
+    burn: int = spec(0, non_negative)
+    estimator_schema = CompareEstimator
+
+    @staticmethod
+    def check(data: dict) -> None:
+        names = list(data.get("estimators") or {})
+        ref = (data.get("paired") or {}).get("reference")
+        if ref is not None and ref not in names and not ref.endswith(" smoothed"):
+            raise ConfigError("paired.reference", ref, f"must be one of the estimators ({', '.join(names)})")
+        scenario = data.get("scenario") or {}
+        if scenario.get("data"):  # a malformed file: one line naming file, column and row, before anything runs
+            from experiments.datafile import DataFileError, read_series
+
+            d = scenario["data"]
+            try:
+                read_series(d["path"], measurements=list(d["measurements"]), truth=d.get("truth"), time=d.get("time"),
+                            series=d.get("series"))
+            except DataFileError as err:
+                raise ConfigError("scenario.data", d["path"], str(err)) from None
+        learn = data.get("learn")
+        if learn and learn.get("estimator") is not None and learn["estimator"] not in names:
+            raise ConfigError("learn.estimator", learn["estimator"], f"must be one of the estimators ({', '.join(names)})")
+
+
 @dataclass
 class ImmBaseline:
     estimators: Dict[str, Any] = field(default_factory=dict)
@@ -180,6 +326,7 @@ class Vsimm:
     drop_below: float = spec(1e-3, lambda v: None if 0 <= v < 1 else "must lie in [0, 1)")
 
 
+_VSIMM_KEYS = ("extra_model", "p_new", "p_ee", "eps", "drop_below")
 TF_ESTIMATORS = ("IMM", "IMM-TF", "IF-TF", "IMM-FU", "VSIMM", "IMM-SU")
 TF_CLASSES = ("torchmm.IMM", "torchmm.GPB1", "torchmm.GPB2", "torchmm.TransferIMM", "torchmm.SourceUpdateIMM",
               "torchmm.FusionIMM", "torchmm.SourceModeVSIMM", "torchmm.VariableStructureIMM")
@@ -211,6 +358,17 @@ class ImmTf:
             if name not in known:
                 raise ConfigError("estimator_names", data["estimator_names"],
                                   f"entry {name}: expected one of {', '.join(known)} (the keys of tf_estimators)")
+        # an entry's own options, typed and ranged as the keys they normally come from (vsimm.*,
+        # transfer.influence.*); issue 30: tf_estimators.VSIMM.p_ee=abc failed with a traceback
+        from experiments.config import _merge
+
+        for name, node in (data.get("tf_estimators") or {}).items():
+            prefix = f"tf_estimators.{name}"
+            if node.get("_target_") == "torchmm.SourceModeVSIMM":
+                _merge(Vsimm, {k: v for k, v in node.items() if k in _VSIMM_KEYS}, prefix)
+            gate = node.get("gate")
+            if isinstance(gate, dict) and gate.get("_target_") == "torchmm.InfluenceGate":
+                _merge(Influence, {k: v for k, v in gate.items() if not k.startswith("_")}, f"{prefix}.gate")
 
 
 @dataclass
@@ -400,7 +558,7 @@ class MevsmmSection:
     num_particles: int = spec(1000, positive_int)
     num_winners: int = spec(420, positive_int)
     threshold: int = spec(23, non_negative)
-    cm_passes: int = spec(1, non_negative)
+    cm_passes: int = spec(1, positive_int)  # 0: the CM kernel refused it after the run started (issue 30)
     stay_prob: float = spec(0.9, probability)
     mevsmm_stay_prob: Optional[float] = spec(None, probability)
     accel_std: float = spec(5.0, positive)
@@ -429,7 +587,8 @@ class Mevsmm:
 class Radar:
     steps: int = spec(100, positive_int)
     T: float = spec(1.0, positive)
-    rho: List[float] = field(default_factory=list)
+    rho: List[float] = spec(factory=list, check=lambda v: None if len(v) == 2 else
+                            "expected 2 numbers (the x and y acceleration correlations)")
     tau: float = spec(5.0, positive)
     h_sign: int = spec(-1, lambda v: None if v in (-1, 1) else "expected -1 or 1")
     h_factor: List[float] = field(default_factory=list)
@@ -444,6 +603,15 @@ class Radar:
     Ct: List[Any] = field(default_factory=list)
     d: List[Any] = field(default_factory=list)
 
+    def config_check(self):  # the 6-state model's vectors (issue 30: a short one failed in the study)
+        for key in ("x0", "P0_diag", "Qw_diag"):
+            if len(getattr(self, key)) != 6:
+                return key, getattr(self, key), "expected 6 numbers (one per state)"
+        if len(self.h_factor) != len(self.sigma_r):
+            sensors = len(self.sigma_r)
+            return "h_factor", self.h_factor, f"expected {sensors} numbers (one per sensor, as sigma_r)"
+        return None
+
 
 @dataclass
 class FusionRadar:
@@ -454,7 +622,8 @@ class FusionRadar:
 class Ups:
     steps: int = spec(100, positive_int)
     burn_in: int = spec(30, non_negative)
-    horizons: List[int] = spec(factory=list, check=non_empty)
+    horizons: List[int] = spec(factory=list, check=lambda v: None if 0 in v else
+                               "must include 0 (the filter; negative: smoothing lags, positive: predictions)")
     ss_tol: float = spec(1e-12, positive)
     cf_ss_steps: int = spec(300, positive_int)
     A: List[Any] = spec(factory=list, check=matrix_check)
@@ -470,6 +639,15 @@ class Ups:
     P0_scale: float = spec(0.1, non_negative)
     Qr0: Optional[List[float]] = None
 
+    def config_check(self):  # sizes (issue 30: a short vector failed in the study, with a traceback)
+        n, sensors = len(self.A), len(self.Ct)
+        for key, size in (("C", n), ("mu0", n), ("h", sensors), ("Qp", sensors), ("d", sensors),
+                          ("Q_eta", sensors)):
+            if len(getattr(self, key)) != size:
+                unit = "state" if key in ("C", "mu0") else "sensor"
+                return key, getattr(self, key), f"expected {size} numbers (one per {unit})"
+        return None
+
 
 @dataclass
 class FusionUps:
@@ -482,10 +660,14 @@ class FusionUps:
             raise ConfigError("ups.burn_in", ups["burn_in"], f"must be below ups.steps = {ups['steps']}")
 
 
+TURNING = "experiments.scenarios.turning_2d"
+
+
 @dataclass
 class SmoothingStudy:
     scenarios: Dict[str, Any] = spec(factory=dict, check=non_empty)
     cv_mode: Dict[str, int] = field(default_factory=dict)
+    speed: bool = True  # the parallel_speed table (speed_steps x speed_runs); false in debug=smoothing
     speed_steps: List[int] = spec(factory=list, check=each(positive))
     speed_runs: int = spec(10, positive_int)
 
@@ -497,11 +679,30 @@ class Smoothing:
 
     @staticmethod
     def check(data: dict) -> None:
+        from experiments.config import _merge
+
         sm = data["smoothing"]
         missing = [k for k in sm["scenarios"] if k not in (sm.get("cv_mode") or {})]
         if missing:
             raise ConfigError("smoothing.cv_mode", sm.get("cv_mode"),
                               f"needs the constant-velocity mode of every scenario; missing {', '.join(missing)}")
+        # every scenario's keys, as its builder's schema types and ranges them (issue 30: steps=-3 or
+        # q=abc ran the filters, then failed with a traceback); the CV mode within its modes
+        for key, scenario in sm["scenarios"].items():
+            prefix = f"smoothing.scenarios.{key}"
+            target = (scenario or {}).get("_target_")
+            if target in SCENARIOS:
+                _merge(SCENARIOS[target], scenario, prefix)
+                modes = len(scenario.get("accelerations") or ()) if target == KINEMATIC else None
+            elif target == TURNING:
+                own = {k: v for k, v in scenario.items() if k not in ("_target_", "name")}
+                _merge(LearnScenario, own, prefix)
+                modes = 3  # constant velocity, left turn, right turn
+            else:
+                raise ConfigError(f"{prefix}._target_", target, f"expected one of {KINEMATIC}, {TURNING}")
+            mode = sm["cv_mode"][key]
+            if modes is not None and not 0 <= mode < modes:
+                raise ConfigError(f"smoothing.cv_mode.{key}", mode, f"must be a mode index in [0, {modes})")
 
 
 STUDIES: dict[str, tuple[type, tuple[str, ...] | None]] = {
@@ -515,4 +716,5 @@ STUDIES: dict[str, tuple[type, tuple[str, ...] | None]] = {
     "experiments.studies.fusion_radar.run": (FusionRadar, None),
     "experiments.studies.fusion_ups.run": (FusionUps, None),
     "experiments.studies.smoothing.run": (Smoothing, None),
+    "experiments.studies.compare.run": (Compare, (SYSTEM,)),
 }

@@ -46,7 +46,8 @@ def rmse_over_time(curves: Mapping[str, Mapping[str, torch.Tensor]], title: str 
 
 
 def mode_probabilities(probs, true_modes: torch.Tensor, labels: Sequence[str], title: str = ""):
-    """One run: each filter's mode probabilities ``(T, M)`` over the true mode sequence ``(T,)``.
+    """One run: each filter's mode probabilities ``(T, M)`` over the true mode sequence ``(T,)`` (None:
+    unknown, e.g. recorded data).
 
     ``probs``: one estimator's ``(T, M)`` tensor, or ``{estimator: (T, M)}`` for several. Several
     estimators are drawn as **small multiples** (one stacked-area panel per estimator, shared axes,
@@ -58,23 +59,25 @@ def mode_probabilities(probs, true_modes: torch.Tensor, labels: Sequence[str], t
     if not isinstance(probs, Mapping):
         probs = {"": probs}
     probs = {name: torch.as_tensor(p).detach().cpu().double() for name, p in probs.items()}
-    true_modes = torch.as_tensor(true_modes).detach().cpu()
+    known = true_modes is not None  # recorded data: no true mode sequence, no bottom panel
+    true_modes = torch.as_tensor(true_modes).detach().cpu() if known else None
     T, M = next(iter(probs.values())).shape
     n = len(probs)
-    fig, axes = plt.subplots(n + 1, 1, figsize=(8, 2.0 + 2.5 * n), sharex=True,
-                             gridspec_kw={"height_ratios": [3] * n + [1]}, squeeze=False)
+    fig, axes = plt.subplots(n + known, 1, figsize=(8, 2.0 + 2.5 * n), sharex=True,
+                             gridspec_kw={"height_ratios": [3] * n + [1] * known}, squeeze=False)
     steps = range(1, T + 1)
-    for i, (ax, (name, p)) in enumerate(zip(axes[:-1, 0], probs.items())):
+    for i, (ax, (name, p)) in enumerate(zip(axes[:n, 0], probs.items())):
         ax.stackplot(steps, p.T.numpy(), labels=labels, alpha=0.85)
         ax.set_ylabel(f"{name}\nmode probability" if name else "mode probability")
         ax.set_ylim(0, 1)
         if i == 0:
             ax.legend(loc="upper right", fontsize=8)
-    ax1 = axes[-1, 0]
-    ax1.step(steps, true_modes.numpy(), where="mid", color="k")
-    ax1.set_yticks(range(M), labels)
-    ax1.set_ylabel("true mode")
-    ax1.set_xlabel("time step k")
+    axes[-1, 0].set_xlabel("time step k")
+    if known:
+        ax1 = axes[-1, 0]
+        ax1.step(steps, true_modes.numpy(), where="mid", color="k")
+        ax1.set_yticks(range(M), labels)
+        ax1.set_ylabel("true mode")
     if title:
         axes[0, 0].set_title(title)
     fig.tight_layout()

@@ -109,8 +109,21 @@ class VectorizedBank(FilterBank):
         return self if f is self.filter else VectorizedBank(f, self.num_modes)
 
     def with_motion(self, motion) -> VectorizedBank:
+        if isinstance(motion, (list, tuple)):  # one model per mode, as for a list bank: stacked (once per list)
+            motion = self._stacked(motion)
         f = self.filter.with_motion(motion)
         return self if f is self.filter else VectorizedBank(f, self.num_modes)
+
+    def _stacked(self, models):
+        cache = self.__dict__.setdefault("_stacked_models", {})
+        hit = cache.get(id(models))
+        if hit is None or hit[0] is not models:
+            stack = getattr(type(getattr(self.filter, "motion", None)), "stack", None)
+            if stack is None or len(models) != self.num_modes:
+                raise TypeError(f"motion: expected a mode-bank model or {self.num_modes} stackable models, "
+                                f"got a list of {len(models)}")
+            hit = cache[id(models)] = (models, stack(list(models)))
+        return hit[1]
 
     def initial_belief(self, belief, *, generator=None):
         if type(self.filter).initial_belief is Filter.initial_belief:
@@ -118,6 +131,8 @@ class VectorizedBank(FilterBank):
         return call_with(self.filter, "initial_belief", belief, generator=generator)
 
     def predict(self, belief, *, u: Tensor | None = None, motion=None, generator=None):
+        if isinstance(motion, (list, tuple)):
+            motion = self._stacked(motion)
         f = self.filter if motion is None else self.filter.with_motion(motion)
         if generator is None:  # the common case, without the dispatch
             return f.predict(belief, u=u)

@@ -1,0 +1,208 @@
+"""Recorded data for a study: measurements (and optional truth and time stamps) from CSV or NPZ.
+
+A study's ``scenario.data`` node names a file and its columns (docs/studies.md, "Your own data").
+The file becomes time-major tensors, the layout every torchmm filter takes:
+
+* **CSV**: one row per time step (and series), a header naming the columns. Empty cells, ``nan``,
+  ``NA`` and ``NaN`` are missing (NaN: the filters skip them exactly). With a ``series`` column,
+  the rows of each series value are one run (in order of first appearance); series of different
+  lengths are padded at the end with missing steps, which score nothing (``DataSeries.present``).
+* **NPZ**: one array per column name, ``(T,)`` for one series or ``(T, runs)`` for several.
+
+A malformed file is one :class:`DataFileError` (a ``ValueError``) naming the file, the column and
+the row (the CSV line number, header = line 1).
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["DataFileError", "DataSeries", "read_series"]
+
+#: cells read as missing (case-insensitive)
+MISSING = ("", "nan", "na", "n/a", "null", "none")
+
+
+class DataFileError(ValueError):
+    """A data file that cannot be read as the config describes: one line naming file, column, row."""
+
+
+@dataclass
+class DataSeries:
+    """Time-major arrays of one data file (float64 numpy).
+
+    Shapes:
+        measurements: ``(T, runs, m)`` (NaN: missing)
+        truth: ``(T, runs, n)`` or None
+        times: ``(T,)`` the time stamps shared by every series, or None
+        present: ``(T, runs)`` bool: the step exists in that series (False: padding)
+    """
+
+    measurements: np.ndarray
+    truth: np.ndarray | None
+    times: np.ndarray | None
+    present: np.ndarray
+    series: list[str]
+
+    @property
+    def steps(self) -> int:
+        return self.measurements.shape[0]
+
+    @property
+    def runs(self) -> int:
+        return self.measurements.shape[1]
+
+
+def _number(text: str, file: Path, column: str, line: int) -> float:
+    cell = text.strip()
+    if cell.lower() in MISSING:
+        return math.nan
+    try:
+        return float(cell)
+    except ValueError:
+        raise DataFileError(f"{file}: column {column!r}, row {line}: {cell!r} is not a number") from None
+
+
+def _read_csv(file: Path, wanted: list[str], series: str | None) -> tuple[dict[str, list], list[int]]:
+    try:
+        handle = file.open(newline="", encoding="utf-8-sig")
+    except OSError as err:
+        raise DataFileError(f"{file}: cannot be read ({err.strerror or err})") from None
+    with handle:
+        reader = csv.reader(handle)
+        header = next(reader, None)
+        if not header:
+            raise DataFileError(f"{file}: empty file (expected a header line naming the columns)")
+        header = [h.strip() for h in header]
+        index = {}
+        for name in wanted + ([series] if series else []):
+            if name not in header:
+                raise DataFileError(f"{file}: column {name!r}, row 1: not in the header "
+                                    f"(columns: {', '.join(header)})")
+            index[name] = header.index(name)
+        values: dict[str, list] = {name: [] for name in index}
+        lines = []
+        for line, row in enumerate(reader, start=2):
+            if not row or all(not cell.strip() for cell in row):
+                continue
+            if len(row) != len(header):
+                raise DataFileError(f"{file}: row {line}: {len(row)} cells, the header has {len(header)}")
+            for name, i in index.items():
+                cell = row[i]
+                values[name].append(cell.strip() if name == series else _number(cell, file, name, line))
+            lines.append(line)
+    if not lines:
+        raise DataFileError(f"{file}: no data rows after the header")
+    return values, lines
+
+
+def _read_npz(file: Path, wanted: list[str]) -> dict[str, np.ndarray]:
+    try:
+        archive = np.load(file, allow_pickle=False)
+    except (OSError, ValueError) as err:
+        raise DataFileError(f"{file}: cannot be read as NPZ ({err})") from None
+    with archive:
+        out = {}
+        for name in wanted:
+            if name not in archive.files:
+                raise DataFileError(f"{file}: column {name!r}: no such array (arrays: {', '.join(archive.files)})")
+            array = np.asarray(archive[name], dtype=np.float64) if archive[name].dtype.kind in "fiub" else None
+            if array is None or array.ndim not in (1, 2):
+                raise DataFileError(f"{file}: column {name!r}: expected a numeric (T,) or (T, runs) array")
+            out[name] = array if array.ndim == 2 else array[:, None]
+    shapes = {name: a.shape for name, a in out.items()}
+    if len(set(shapes.values())) > 1:
+        raise DataFileError(f"{file}: arrays of different shapes {shapes}")
+    return out
+
+
+def read_series(path: str | Path, *, measurements: list[str], truth: list[str] | None = None,
+                time: str | None = None, series: str | None = None, base: Path | None = None) -> DataSeries:
+    """Read a CSV or NPZ file into a :class:`DataSeries`.
+
+    Args:
+        path: the file (``.csv`` or ``.npz``); relative paths are looked up in ``base`` (the working
+            directory by default), then in the repository's ``experiments/data``.
+        measurements: the measurement columns, in the order of the sensor's components.
+        truth: optional state columns, in the order of the state's components (for RMSE and NEES).
+        time: optional time-stamp column; increasing, the same grid in every series. Irregular steps
+            become per-step motion models (the study's ``dt``).
+        series: optional CSV column whose values name the series; each series is one run.
+
+    Raises:
+        DataFileError: naming the file, the column and the row.
+    """
+    file = Path(path)
+    if not file.is_absolute():
+        here = (base or Path.cwd()) / file
+        shipped = Path(__file__).resolve().parent / "data" / file
+        file = here if here.exists() or not shipped.exists() else shipped
+    if not file.exists():
+        raise DataFileError(f"{file}: no such file")
+    if not measurements:
+        raise DataFileError(f"{file}: no measurement columns given")
+    truth = list(truth or [])
+    wanted = list(measurements) + truth + ([time] if time else [])
+    suffix = file.suffix.lower()
+    if suffix == ".npz":
+        if series:
+            raise DataFileError(f"{file}: column {series!r}: NPZ arrays hold several series as (T, runs) columns; "
+                                "no series column")
+        arrays = _read_npz(file, wanted)
+        z = np.stack([arrays[c] for c in measurements], -1)
+        x = np.stack([arrays[c] for c in truth], -1) if truth else None
+        present = np.ones(z.shape[:2], dtype=bool)
+        stamps = None
+        if time:
+            t = arrays[time]
+            if not np.all(t == t[:, :1]):
+                raise DataFileError(f"{file}: column {time!r}: the series have different time stamps "
+                                    "(one shared time grid is supported)")
+            stamps = t[:, 0]
+            _check_increasing(stamps, file, time, list(range(len(stamps))), "index")
+        return DataSeries(z, x, stamps, present, [str(i) for i in range(z.shape[1])])
+    if suffix != ".csv":
+        raise DataFileError(f"{file}: expected a .csv or .npz file")
+    values, lines = _read_csv(file, wanted, series)
+    labels = values.pop(series) if series else ["0"] * len(lines)
+    order = list(dict.fromkeys(labels))
+    rows = {s: [i for i, label in enumerate(labels) if label == s] for s in order}
+    T = max(len(r) for r in rows.values())
+    R = len(order)
+    z = np.full((T, R, len(measurements)), np.nan)
+    x = np.full((T, R, len(truth)), np.nan) if truth else None
+    present = np.zeros((T, R), dtype=bool)
+    stamps = None
+    for j, s in enumerate(order):
+        idx = rows[s]
+        present[:len(idx), j] = True
+        z[:len(idx), j] = np.array([[values[c][i] for c in measurements] for i in idx])
+        if truth:
+            x[:len(idx), j] = np.array([[values[c][i] for c in truth] for i in idx])
+        if time:
+            t = np.array([values[time][i] for i in idx])
+            bad = [lines[i] for i, v in zip(idx, t) if not math.isfinite(v)]
+            if bad:
+                raise DataFileError(f"{file}: column {time!r}, row {bad[0]}: a time stamp is missing")
+            _check_increasing(t, file, time, [lines[i] for i in idx], "row")
+            if stamps is None:
+                stamps = t
+            elif len(t) > len(stamps) and np.array_equal(t[:len(stamps)], stamps):
+                stamps = t
+            elif not np.array_equal(t, stamps[:len(t)]):
+                raise DataFileError(f"{file}: column {time!r}, row {lines[idx[0]]}: series {s!r} has other time "
+                                    "stamps than the first series (one shared time grid is supported)")
+    return DataSeries(z, x, stamps, present, order)
+
+
+def _check_increasing(t: np.ndarray, file: Path, column: str, where: list[int], what: str) -> None:
+    steps = np.diff(t)
+    if np.any(steps <= 0):
+        i = int(np.argmax(steps <= 0)) + 1
+        raise DataFileError(f"{file}: column {column!r}, {what} {where[i]}: time stamps must increase "
+                            f"({t[i - 1]:g} then {t[i]:g})")

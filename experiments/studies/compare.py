@@ -1,0 +1,560 @@
+"""The generic study: your own scenario x estimators x metrics, from config alone (``experiment=compare``).
+
+* **Scenario** (``scenario``, :func:`experiments.scenarios.system`): any list of modes (linear,
+  nonlinear or learned ``nn.Module`` motion models by ``_target_``) or one mode bank, one or more
+  sensors with missing and multi-rate reports, a transition matrix, the prior; simulated for
+  ``mc_runs`` runs, or recorded data read from CSV / NPZ (``scenario.data``: one series per run,
+  optional truth and time stamps; irregular time stamps become per-step motion models).
+* **Estimators** (``estimators``): a map of config nodes, each a builder of
+  :mod:`experiments.estimators` (``multiple_model`` with any combinator and mode filter,
+  ``kalman``, ``custom`` for any torchmm filter node); ``smooth: true`` also scores its smoothed
+  trajectory (``torchmm.smooth``) as ``<name> smoothed``.
+* **Metrics** (``metrics``, by name): ``rmse`` (per component group, ``scenario.groups``),
+  ``nees`` and ``nis`` (with their 95 % chi-square bounds), ``mode_accuracy``, ``loglik`` (the log-
+  likelihood of each run's data), ``whiteness`` (lag-1 autocorrelation of the normalised innovations)
+  and ``time``. Without truth (recorded data without truth columns) only ``loglik``, ``nis``,
+  ``whiteness`` and ``time`` exist.
+* **Paired differences** (table ``paired``): every estimator minus the reference
+  (``paired.reference``, default the first) on the same runs, with a 95 % interval. The runs share
+  their data, so the paired interval is far tighter than two separate ones (``separate_half_width``).
+* **Learning** (``learn``, optional): named covariances of the scenario's models made learnable
+  (``torchmm.learnable_noise``) and fitted by maximum likelihood on the data through one estimator
+  (L-BFGS by default), before every estimator runs with the learned models.
+
+Tables: ``summary``, ``paired``, ``learned`` (with ``learn``). Curves: ``rmse_<group>/<estimator>``
+with ``_se`` bands, ``nees/<estimator>`` with ``nees_low``/``nees_high``, ``nis/<estimator>``,
+``mode_probability/<estimator>/<mode>``, ``learn/nll`` over the iteration.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from typing import Any
+
+import numpy as np
+import torch
+from hydra.utils import instantiate
+from torch import Tensor
+
+from experiments.executors import Unit
+from experiments.harness import StudyContext, join_runs, per_run
+from experiments.scenarios import Concatenated, _default_dtype
+from experiments.studies import plots
+from experiments.uncertainty import Z95, chi2_interval, rmse_se_per_step
+
+log = logging.getLogger("torchmm.experiments")
+
+UNIT = "experiments.studies.compare:unit"
+TRUTH_METRICS = ("rmse", "nees", "mode_accuracy")
+ALL_METRICS = ("rmse", "nees", "nis", "mode_accuracy", "loglik", "whiteness", "time")
+
+
+# -- the scenario, its data and its (learned) models ---------------------------------------------------
+def _built(ctx: StudyContext):
+    """The scenario as configured (before learning), once per process."""
+    return ctx.memo(("compare", "built"), lambda: ctx.scenarios(ctx.cfg.scenario)[0])
+
+
+def _scenario(ctx: StudyContext):
+    """``(scenario, learned)``: the scenario in the filters' dtype, its models fitted first when the study
+    has a ``learn`` block (once per process; the data do not depend on the fit)."""
+    def build():
+        scenario = _built(ctx)
+        return scenario, (_learn(ctx, scenario) if ctx.cfg.get("learn") else None)
+    return ctx.memo(("compare", "scenario"), build)
+
+
+def _data(ctx: StudyContext, start: int, stop: int):
+    """``(truth or None, modes or None, z, present)`` of runs ``start..stop-1``, in the filters' dtype."""
+    def load():
+        scenario = _built(ctx)
+        if scenario.data is not None:
+            d = scenario.data
+            z = torch.as_tensor(d.measurements[:, start:stop], dtype=ctx.dtype, device=ctx.device)
+            truth = None if d.truth is None else torch.as_tensor(d.truth[:, start:stop], dtype=ctx.dtype,
+                                                                  device=ctx.device)
+            present = torch.as_tensor(d.present[:, start:stop], device=ctx.device)
+            return truth, None, z, present
+        _, data_scenario = ctx.scenarios(ctx.cfg.scenario)
+        sim, z = ctx.simulate_runs(data_scenario.simulate, stop, "data", scenario.name, start=start)
+        present = torch.ones(z.shape[:2], dtype=torch.bool, device=z.device)
+        return sim.states.to(ctx.dtype), sim.modes, z.to(ctx.dtype), present
+    return ctx.memo(("compare", "data", start, stop), load)
+
+
+def runs_of(ctx: StudyContext) -> int:
+    scenario, _ = _scenario(ctx)
+    return scenario.data.runs if scenario.data is not None else int(ctx.cfg.mc_runs)
+
+
+def _estimator(ctx: StudyContext, scenario, name: str):
+    with _default_dtype(ctx.dtype):
+        est = instantiate(ctx.cfg.estimators[name])(scenario, name=name)
+    est.filter.to(device=ctx.device)
+    return est
+
+
+def _module(scenario, where: str):
+    """``modes[i]`` / ``modes`` / ``sensors[i]`` / ``sensors``: the scenario's model of that name."""
+    kind, _, index = where.partition("[")
+    index = int(index.rstrip("]")) if index else None
+    if kind == "modes":
+        models = scenario.motion if isinstance(scenario.motion, list) else [scenario.motion]
+    elif kind == "sensors":
+        models = list(scenario.measurement.sensors) if isinstance(scenario.measurement, Concatenated) \
+            else list(scenario.measurement) if isinstance(scenario.measurement, list) else [scenario.measurement]
+    else:
+        raise ValueError(f"learn.parameters: model {where!r}: expected modes[i] or sensors[i]")
+    if index is None:
+        index = 0
+    if not 0 <= index < len(models):
+        raise ValueError(f"learn.parameters: model {where!r}: there are {len(models)} {kind}")
+    return models[index]
+
+
+def _learn(ctx: StudyContext, scenario) -> dict:
+    """Maximum likelihood of the named covariances on the study's data (run before any estimator)."""
+    from torch.nn.utils import parametrize
+
+    from torchmm import learnable_noise, run_filter
+    from torchmm.learn import Trainer
+
+    spec = ctx.cfg.learn
+    targets = []
+    for p in spec.parameters:
+        module = _module(scenario, str(p.model))
+        initial = getattr(module, str(p.name)).detach().clone()
+        learnable_noise(module, str(p.name), str(p.get("kind") or "log_diagonal"))
+        targets.append((f"{p.model}.{p.name}", module, str(p.name), initial))
+    through = str(spec.get("estimator") or next(iter(ctx.cfg.estimators)))
+    est = _estimator(ctx, scenario, through)
+    runs = scenario.data.runs if scenario.data is not None else int(ctx.cfg.mc_runs)
+    _, _, z, _ = _data(ctx, 0, runs)
+    prior = scenario.initial.expand(runs)
+    burn, update_first = int(ctx.cfg.get("burn") or 0), bool(ctx.cfg.get("update_first"))
+    params = [p for p in est.filter.parameters() if p.requires_grad]
+    if not params:
+        raise ValueError("learn.parameters: nothing learnable in the estimator's filter")
+    if str(spec.optimizer) == "lbfgs":
+        optimizer = torch.optim.LBFGS(params, lr=float(spec.lr), max_iter=20, line_search_fn="strong_wolfe",
+                                      tolerance_grad=1e-10, tolerance_change=1e-14)
+    else:
+        optimizer = torch.optim.Adam(params, lr=float(spec.lr))
+
+    def loss_fn(filter, belief0, measurements, controls=None, return_final=False):
+        traj = run_filter(filter, est.init(belief0, None), measurements, update_first=update_first,
+                          record=lambda o: o._replace(belief=None, prior=None, innovation=None,
+                                                      innovation_cov=None, extras={}))
+        loss = -traj.log_likelihood[burn:].sum(0).mean()
+        return (loss, None) if return_final else loss
+
+    tol = float(spec.get("tolerance") or 0.0)
+
+    def converged(trainer, record) -> bool:  # the loss no longer moves (relative change below `tolerance`)
+        h = trainer.history
+        return len(h) > 1 and abs(h[-1].loss - h[-2].loss) <= tol * max(abs(h[-1].loss), 1.0)
+
+    trainer = Trainer(est.filter, optimizer, loss_fn=loss_fn, callbacks=[converged] if tol > 0 else [])
+    tic = time.perf_counter()
+    history = trainer.fit(prior, z, int(spec.iterations), progress=ctx.progress and "learn")
+    seconds = time.perf_counter() - tic
+    nll = [float(r.loss) for r in history]
+    with parametrize.cached():
+        learned = {key: getattr(module, name).detach().clone() for key, module, name, _ in targets}
+    rows = [[key, initial.cpu().tolist(), learned[key].cpu().tolist()] for key, _, _, initial in targets]
+    for _, module, name, _ in targets:  # freeze: the estimators run with the learned values
+        parametrize.remove_parametrizations(module, name, leave_parametrized=True)
+        getattr(module, name).requires_grad_(False)
+    return {"rows": rows, "nll": nll, "through": through, "seconds": seconds, "iterations": len(history)}
+
+
+# -- one unit: an estimator on a range of runs ------------------------------------------------------------
+def _innovation_stats(traj, z: Tensor, multiple: bool):
+    """``(nis (T, N), dof (T, N), white (T, N, m))``: the NIS over the present components, their number,
+    and the normalised innovations (NaN where a component is missing); None if the filter records no
+    innovation. For a multiple-model filter the innovation is the mixture's: the predicted-mode-weighted
+    mean of the mode innovations and its covariance (spread included)."""
+    nu, S = traj.innovation, traj.innovation_cov
+    if nu is None or S is None:
+        return None
+    if multiple:
+        c = traj.prior.mode_probs if traj.prior is not None else traj.belief.mode_probs
+        if c.shape[-1] != nu.shape[-2]:  # innovations per hypothesis (GPB2's mode pairs): not scored
+            return None
+        mean = (c.unsqueeze(-1) * nu).sum(-2)
+        d = nu - mean.unsqueeze(-2)
+        S = (c[..., None, None] * (S + d.unsqueeze(-1) * d.unsqueeze(-2))).sum(-3)
+        nu = mean
+    present = torch.isfinite(z) & torch.isfinite(nu)
+    nu0 = torch.where(present, nu, torch.zeros_like(nu))
+    keep = present.unsqueeze(-1) & present.unsqueeze(-2)
+    eye = torch.eye(nu.shape[-1], dtype=nu.dtype, device=nu.device)
+    S0 = torch.where(keep, torch.nan_to_num(S), eye)  # missing rows/cols -> identity, zero coupling
+    L = torch.linalg.cholesky(S0)
+    white = torch.linalg.solve_triangular(L, nu0.unsqueeze(-1), upper=False).squeeze(-1)
+    nis = white.square().sum(-1)
+    white = torch.where(present, white, torch.nan)
+    return nis, present.sum(-1), white
+
+
+def _motions(est, scenario):
+    """The per-step motion models of irregular time stamps for ``est``: the scenario's (one per mode) for a
+    multiple-model estimator, its own mode's for ``kalman``; None for other single filters (``custom``:
+    they keep their own ``dt``, noted in the results)."""
+    if scenario.motions is None:
+        return None
+    if est.multiple_model:
+        return scenario.motions
+    if est.mode is None:
+        return None
+
+    def pick(m):
+        if m is None:
+            return None
+        return m[est.mode] if isinstance(m, list) else m.select_mode(est.mode)
+    return [pick(m) for m in scenario.motions]
+
+
+def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
+    """Per-run values of estimator ``name`` (and its smoothed trajectory) on runs ``start..stop-1``."""
+    from torchmm import smooth
+    from torchmm.metrics import mode_hits, nees
+
+    scenario, _ = _scenario(ctx)
+    truth, modes, z, present = _data(ctx, start, stop)
+    est = _estimator(ctx, scenario, name)
+    runs = z.shape[1]
+    generator = ctx.block_generators("filter", scenario.name, name)(start // ctx.block_runs) \
+        if est.filter.uses_generator else None
+    tic = time.perf_counter()
+    from torchmm import run_filter
+    traj = run_filter(est.filter, est.init(scenario.initial.expand(runs), generator), z,
+                      motions=_motions(est, scenario), generator=generator,
+                      update_first=bool(ctx.cfg.get("update_first")))
+    est_belief = traj.estimate()
+    seconds = time.perf_counter() - tic
+    out = {}
+    trajectories = {name: (traj, est_belief, seconds)}
+    if est.smooth:
+        tic = time.perf_counter()
+        smoothed = smooth(traj, **({"method": est.smooth} if isinstance(est.smooth, str) else {}))
+        trajectories[f"{name} smoothed"] = (smoothed, smoothed.estimate(), seconds + time.perf_counter() - tic)
+    for label, (tr, estimate, secs) in trajectories.items():
+        v: dict[str, Any] = {"runs": runs, "steps": z.shape[0], "seconds": secs, "multiple_model": est.multiple_model}
+        if label == name:  # (a smoother does not change the data's likelihood); the first `burn` terms left out
+            v["loglik"] = per_run(traj.log_likelihood[int(ctx.cfg.get("burn") or 0):].detach())
+        if truth is not None:
+            scored = present.unsqueeze(-1) & torch.isfinite(truth)
+            for group, idx in scenario.groups.items():
+                err = (estimate.mean[..., idx] - truth[..., idx]).square()
+                ok = scored[..., idx].all(-1)
+                v[f"sq_{group}"] = per_run(torch.where(ok, err.sum(-1), torch.nan).detach())
+            ok = scored.all(-1)
+            v["nees"] = per_run(torch.where(ok, nees(estimate, torch.nan_to_num(truth)), torch.nan).detach())
+            if est.multiple_model and modes is not None:
+                v["hits"] = per_run(mode_hits(tr.belief.mode_log_probs, modes).to(ctx.dtype).detach())
+        if label == name:
+            stats = _innovation_stats(traj, z, est.multiple_model)
+            if stats is not None:
+                nis, dof, white = stats
+                v["nis"], v["dof"] = per_run(nis.detach()), per_run(dof.to(ctx.dtype))
+                v["white"] = per_run(white.detach())
+        if est.multiple_model and start == 0:
+            v["example_probs"] = per_run(tr.belief.mode_probs[:, 0].detach())
+        if start == 0:
+            v["example_mean"] = per_run(estimate.mean[:, 0].detach())
+            v["example_cov"] = per_run(estimate.cov[:, 0].detach())
+        out[label] = v
+    return out
+
+
+# -- reductions ---------------------------------------------------------------------------------------------
+def _t(x) -> Tensor:
+    return torch.as_tensor(x, dtype=torch.float64)
+
+
+def _influence_armse(sq: Tensor) -> tuple[float, Tensor, Tensor]:
+    """ARMSE of squared errors ``(T, N)`` (NaN: not scored), its per-run influence values ``(N,)`` (the
+    delta method: ARMSE ~ mean + mean_r h_r), and the per-step RMSE ``(T,)``."""
+    ok = torch.isfinite(sq)
+    n_t = ok.sum(1).clamp_min(1)
+    m = torch.where(ok, sq, 0.0).sum(1) / n_t
+    steps = (ok.sum(1) > 0)
+    T = int(steps.sum())
+    w = torch.where(steps, 1.0 / (2 * T * m.clamp_min(torch.finfo(m.dtype).tiny).sqrt()), 0.0)
+    N = sq.shape[1]
+    h = (torch.where(ok, sq - m.unsqueeze(1), 0.0) * (w * N / n_t).unsqueeze(1)).sum(0)  # (N,)
+    return float(m[steps].sqrt().mean()), h, m.sqrt()
+
+
+def _per_run_mean(x: Tensor) -> Tensor:
+    """Each run's time average of ``x (T, N)`` over its finite entries: ``(N,)``."""
+    ok = torch.isfinite(x)
+    return torch.where(ok, x, 0.0).sum(0) / ok.sum(0).clamp_min(1)
+
+
+def _mean_se(values: Tensor) -> tuple[float, float]:
+    values = values[torch.isfinite(values)]
+    n = values.numel()
+    if n == 0:
+        return math.nan, math.nan
+    return float(values.mean()), float(values.std() / math.sqrt(n)) if n > 1 else math.nan
+
+
+def _t_quantile(dof: int) -> float:
+    from scipy.stats import t
+
+    return float(t.ppf(0.975, dof)) if dof > 0 else math.nan
+
+
+def reduce(parts: list[dict], groups: list[str], metrics: list[str]) -> tuple[dict, dict]:
+    """One estimator's per-run values joined over its units -> ``(summary, per_run_influence)``."""
+    runs = sum(int(p["runs"]) for p in parts)
+    summary: dict[str, Any] = {}
+    influence: dict[str, Tensor] = {}
+    curves: dict[str, Tensor] = {}
+    steps = None
+    if "rmse" in metrics and f"sq_{groups[0]}" in parts[0]:
+        for g in groups:
+            sq = _t(join_runs([p[f"sq_{g}"] for p in parts]))
+            steps = sq.shape[0]
+            value, h, per_step = _influence_armse(sq)
+            summary[f"rmse_{g}"], summary[f"rmse_{g}_se"] = value, float(h.std() / math.sqrt(runs)) if runs > 1 else math.nan
+            influence[f"rmse_{g}"] = h
+            curves[f"rmse_{g}"] = per_step
+            curves[f"rmse_{g}_se"] = rmse_se_per_step(torch.nan_to_num(sq))
+    if "nees" in metrics and "nees" in parts[0]:
+        x = _t(join_runs([p["nees"] for p in parts]))
+        per = _per_run_mean(x)
+        summary["nees"], summary["nees_se"] = _mean_se(per)
+        influence["nees"] = per
+        n = int(parts[0]["state_dim"]) if "state_dim" in parts[0] else None
+        curve = torch.nanmean(x, 1)
+        curves["nees"] = curve
+        if n:
+            lo, hi = chi2_interval(runs * n)
+            summary["nees_low"], summary["nees_high"] = lo * n, hi * n
+            summary["nees_steps_inside"] = float(((curve >= lo * n) & (curve <= hi * n)).double().mean())
+    if "nis" in metrics and "nis" in parts[0]:
+        x = _t(join_runs([p["nis"] for p in parts]))
+        dof = _t(join_runs([p["dof"] for p in parts]))
+        x = torch.where(dof > 0, x, torch.nan)
+        per = _per_run_mean(x)
+        summary["nis"], summary["nis_se"] = _mean_se(per)
+        influence["nis"] = per
+        curves["nis"] = torch.nanmean(x, 1)
+        mean_dof = float(dof[dof > 0].mean()) if bool((dof > 0).any()) else 0.0
+        if mean_dof:  # the run-averaged NIS of a step with all components present: chi2(N m) / N
+            m = int(round(mean_dof))
+            lo, hi = chi2_interval(runs * m)
+            summary["nis_dof"], summary["nis_low"], summary["nis_high"] = m, lo * m, hi * m
+        white = _t(join_runs([p["white"] for p in parts]))  # (T, N, m)
+        if "whiteness" in metrics and white.shape[0] > 1:
+            a, b = white[:-1], white[1:]
+            ok = torch.isfinite(a) & torch.isfinite(b)
+            num = torch.where(ok, a * b, 0.0).sum(0)
+            den = torch.where(ok, a * a, 0.0).sum(0).clamp_min(1e-300)
+            r = num / den  # (N, m): each run's and component's lag-1 autocorrelation
+            pairs = int(ok.sum())
+            summary["whiteness_lag1"] = float(r.mean())
+            summary["whiteness_bound"] = Z95 / math.sqrt(max(pairs, 1))
+    if "loglik" in metrics and "loglik" in parts[0]:
+        ll = _t(join_runs([p["loglik"] for p in parts]))
+        per = ll.sum(0)
+        summary["loglik"], summary["loglik_se"] = _mean_se(per)
+        influence["loglik"] = per
+    if "mode_accuracy" in metrics and parts[0].get("hits") is not None:
+        hits = _t(join_runs([p["hits"] for p in parts]))
+        per = hits.mean(0)
+        summary["mode_accuracy"], summary["mode_accuracy_se"] = _mean_se(per)
+        influence["mode_accuracy"] = per
+        curves["mode_accuracy"] = hits.mean(1)
+    steps = steps or int(parts[0]["steps"])
+    summary["seconds_per_step"] = sum(float(p["seconds"]) for p in parts) / steps
+    return summary, {"influence": influence, "curves": curves}
+
+
+def paired(reference: str, estimators: dict[str, dict], metrics: list[str], runs: int) -> list[list]:
+    """Rows ``[metric, estimator, reference, difference, se, low, high, separate_half_width]``: each
+    estimator minus ``reference`` on the same runs. RMSEs by the delta method on the per-run influence
+    values of both (ARMSE_A - ARMSE_B ~ mean_r (h_A - h_B)); per-run means (NEES, NIS, log-likelihood,
+    mode accuracy) by their per-run differences. 95 % Student-t intervals over the runs."""
+    rows = []
+    ref = estimators[reference]
+    q = _t_quantile(runs - 1)
+    for name, est in estimators.items():
+        if name == reference:
+            continue
+        for key, h in est["influence"].items():
+            if key not in ref["influence"]:
+                continue
+            h_ref = ref["influence"][key]
+            d = h - h_ref
+            ok = torch.isfinite(d)
+            n = int(ok.sum())
+            if n < 2:
+                continue
+            if key.startswith("rmse_"):
+                diff = est["summary"][key] - ref["summary"][key]
+            else:
+                diff = float(d[ok].mean())
+            se = float(d[ok].std() / math.sqrt(n))
+            separate = q * math.hypot(float(h[torch.isfinite(h)].std()), float(h_ref[torch.isfinite(h_ref)].std())) \
+                / math.sqrt(n)
+            rows.append([key, name, reference, diff, se, diff - q * se, diff + q * se, separate])
+    return rows
+
+
+def run(ctx: StudyContext) -> None:
+    cfg = ctx.cfg
+    scenario, learned = _scenario(ctx)
+    runs = runs_of(ctx)
+    names = list(cfg.estimators)
+    if not names:
+        raise ValueError("estimators: the study needs at least one estimator")
+    for name in names:  # a bad estimator config: an error before any unit runs
+        _estimator(ctx, scenario, name)
+    has_truth = scenario.data is None or scenario.data.truth is not None
+    wanted = list(cfg.get("metrics") or ALL_METRICS)
+    metrics = [m for m in wanted if has_truth or m not in TRUTH_METRICS]
+    dropped = [m for m in wanted if m not in metrics]
+    groups = list(scenario.groups)
+    source = (f"recorded data `{cfg.scenario.data.path}` ({runs} series of {scenario.steps} steps)"
+              if scenario.data is not None else f"{runs} simulated Monte Carlo runs of {scenario.steps} steps")
+    ctx.results.description = (
+        f"Scenario `{scenario.name}`: {scenario.num_modes} mode(s) ({', '.join(scenario.mode_labels)}), "
+        f"{len(scenario.sensor_dims)} sensor(s); {source} (seed {cfg.seed}, {cfg.dtype}). RMSE is per step over "
+        "runs, then averaged over time; every +- is a standard error over the runs."
+        + (f" No truth in the data: {', '.join(dropped)} not computed." if dropped else ""))
+    if learned is not None:
+        table = ctx.results.table("learned", ["parameter", "initial", "learned"],
+                                  note=f"Maximum likelihood through `{learned['through']}`: {learned['iterations']} "
+                                       f"{cfg.learn.optimizer} iterations in {learned['seconds']:.2f} s; final "
+                                       f"negative log-likelihood {learned['nll'][-1]:.6f} (per run).")
+        table.rows.extend(learned["rows"])
+        ctx.logger.sweep("learn/nll", list(range(1, len(learned["nll"]) + 1)), learned["nll"], "iteration")
+        ctx.results.metric("learn", "nll", learned["nll"][-1])
+    if scenario.motions is not None:
+        own = [n for n in names if str(cfg.estimators[n].get("_target_", "")).endswith(".custom")]
+        if own:
+            ctx.results.notes.append(f"Irregular time stamps: {', '.join(own)} (custom filters) keep their own dt; "
+                                     "the scenario's estimators predict over each step's length.")
+    ranges = [(0, runs)] if scenario.data is not None else ctx.run_ranges(runs)
+    units = [Unit(f"{name}/runs{a}-{b}", UNIT, {"name": name, "start": a, "stop": b})
+             for name in names for a, b in ranges]
+    parts = ctx.map_units(units, desc="estimators")
+    results: dict[str, dict] = {}
+    examples = {}
+    for i, name in enumerate(names):
+        mine = parts[i * len(ranges):(i + 1) * len(ranges)]
+        for label in mine[0]:
+            pieces = [p[label] for p in mine]
+            for p in pieces:
+                p["state_dim"] = scenario.initial.state_dim
+            summary, extra = reduce(pieces, groups, metrics)
+            results[label] = {"summary": summary, **extra}
+            if "example_mean" in pieces[0]:
+                examples[label] = pieces[0]
+    columns = ["estimator"]
+    for key in [k for s in results.values() for k in s["summary"] if k != "seconds_per_step"]:
+        if key not in columns:
+            columns.append(key)
+    table = ctx.results.table(
+        "summary", columns,
+        note="rmse_<group>: average RMSE of the group's components; _se: standard errors over the runs (delta "
+             "method for RMSEs; 95 %: +- 1.96 se). nees/nis_low/high: the 95 % chi-square interval of a step's "
+             "run-averaged NEES/NIS; nees_steps_inside: the fraction of steps inside it. loglik: each run's "
+             "log-likelihood, averaged over runs. whiteness_lag1: lag-1 autocorrelation of the normalised "
+             "innovations (0 for a consistent filter; +- whiteness_bound is its 95 % range).")
+    for label, r in results.items():
+        s = r["summary"]
+        if all(s.get(c) is None for c in columns[1:]):
+            continue  # e.g. a smoother without truth: its mode probabilities are in the curves
+        table.rows.append([label, *[s.get(c) for c in columns[1:]]])
+        for key, value in s.items():
+            if key != "seconds_per_step":
+                ctx.results.metric(label, key, value)
+        if "time" in metrics:
+            ctx.results.timing[label] = s["seconds_per_step"]
+    reference = str((cfg.get("paired") or {}).get("reference") or names[0])
+    if reference not in results:
+        raise ValueError(f"paired.reference: {reference!r} is not an estimator ({', '.join(results)})")
+    rows = paired(reference, results, metrics, runs)
+    ctx.results.table(
+        "paired", ["metric", "estimator", "reference", "difference", "se", "ci_low", "ci_high", "separate_half_width"],
+        note=f"Each estimator minus `{reference}` on the same runs (common random numbers): the difference, its "
+             "standard error and 95 % Student-t interval; separate_half_width is the half-width two independent "
+             "intervals would give (the pairing's gain).").rows.extend(rows)
+    _curves_and_figures(ctx, scenario, results, examples, groups)
+    ctx.results.save()
+
+
+def _curves_and_figures(ctx, scenario, results, examples, groups) -> None:
+    curves = {f"RMSE {g}": {} for g in groups}
+    bands = {f"RMSE {g}": {} for g in groups}
+    for label, r in results.items():
+        c = r["curves"]
+        for g in groups:
+            if f"rmse_{g}" in c:
+                ctx.logger.series(f"rmse_{g}/{label}", c[f"rmse_{g}"])
+                ctx.logger.series(f"rmse_{g}_se/{label}", c[f"rmse_{g}_se"])
+                curves[f"RMSE {g}"][label], bands[f"RMSE {g}"][label] = c[f"rmse_{g}"], c[f"rmse_{g}_se"]
+        for key in ("nees", "nis", "mode_accuracy"):
+            if key in c:
+                ctx.logger.series(f"{key}/{label}", c[key])
+        s = r["summary"]
+        if "nees_low" in s:
+            ctx.logger.series(f"nees_low/{label}", [s["nees_low"]] * len(c["nees"]))
+            ctx.logger.series(f"nees_high/{label}", [s["nees_high"]] * len(c["nees"]))
+        if "nis_low" in s:
+            ctx.logger.series(f"nis_low/{label}", [s["nis_low"]] * len(c["nis"]))
+            ctx.logger.series(f"nis_high/{label}", [s["nis_high"]] * len(c["nis"]))
+        ex = examples.get(label)
+        if ex is not None and ex.get("example_probs") is not None:
+            probs = _t(ex["example_probs"])
+            for j, mode in enumerate(scenario.mode_labels):
+                ctx.logger.series(f"mode_probability/{label}/{mode}", probs[:, j])
+    if any(curves[k] for k in curves):
+        ctx.save_figure("rmse_over_time", plots.rmse_over_time({k: v for k, v in curves.items() if v},
+                                                                      f"{scenario.name}", bands=bands))
+    nees = {label: r["curves"]["nees"] for label, r in results.items() if "nees" in r["curves"]}
+    if nees:
+        ctx.save_figure("nees", plots.nees_over_time(nees, {label: (results[label]["summary"]["nees_low"],
+                                                                      results[label]["summary"]["nees_high"])
+                                                             for label in nees}, f"{scenario.name}, NEES"))
+    truth, modes, z, _ = _data(ctx, 0, min(runs_of(ctx), ctx.block_runs) if scenario.data is None else runs_of(ctx))
+    probs = {label: _t(ex["example_probs"]) for label, ex in examples.items() if ex.get("example_probs") is not None}
+    if probs:
+        ctx.save_figure("mode_probabilities", plots.mode_probabilities(
+            probs, None if modes is None else modes[:, 0], scenario.mode_labels, f"{scenario.name}, run 0"))
+    estimates = {label: (_t(ex["example_mean"]), _t(ex["example_cov"])) for label, ex in examples.items()}
+    comps = next(iter(scenario.groups.values()))
+    if truth is not None and len(comps) <= 2:
+        ctx.save_figure("trajectory", plots.trajectory(truth[:, 0], None, estimates, components=comps, run=None,
+                                                       title=f"{scenario.name}, run 0"))
+    elif truth is None:
+        ctx.save_figure("estimates", _estimates_figure(z[:, 0], estimates, scenario.name))
+
+
+def _estimates_figure(z: Tensor, estimates: dict, title: str):
+    """Recorded data without truth: the first series' measurements and each estimator's first state
+    component with its +- 2 sigma band."""
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 3.8))
+    steps = np.arange(1, z.shape[0] + 1)
+    for j in range(z.shape[-1]):
+        ax.plot(steps, z[:, j].cpu().numpy(), ".", color="k", ms=3, label="measurements" if j == 0 else None)
+    for label, (mean, cov) in estimates.items():
+        m, sd = mean[:, 0].numpy(), cov[:, 0, 0].clamp_min(0).sqrt().numpy()
+        (line,) = ax.plot(steps, m, lw=1.3, label=f"{label} (+- 2 sd)")
+        ax.fill_between(steps, m - 2 * sd, m + 2 * sd, color=line.get_color(), alpha=0.2, lw=0)
+    ax.set_xlabel("time step k")
+    ax.set_ylabel("state component 0")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8, frameon=False, borderaxespad=0)
+    ax.set_title(title)
+    fig.tight_layout()
+    return fig

@@ -1,0 +1,228 @@
+"""The generic study (``experiment=compare``): recorded data equal the library API, simulated scenarios of
+any list of modes and sensors, metrics and paired differences checked against hand computations."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf, open_dict
+
+from experiments.config import ConfigError, validate
+from experiments.datafile import DataFileError, read_series
+from experiments.run import CONFIG_DIR, run_study
+from torchmm import IMM, ConstantVelocity, GaussianBelief, KalmanFilter, PositionMeasurement, run_filter
+from torchmm.simulate import simulate_jump_system, simulate_measurements
+
+MODES = [{"_target_": "torchmm.ConstantVelocity", "ndim": 1, "q": 0.05, "acceleration": [a]} for a in (0.0, 1.0)]
+SENSOR = {"_target_": "torchmm.PositionMeasurement", "state_dim": 2, "indices": [0], "R": 4.0}
+TRANSITION = [[0.9, 0.1], [0.2, 0.8]]
+PRIOR_MEAN, PRIOR_COV = [0.0, 1.0], [[4.0, 0.0], [0.0, 1.0]]
+
+
+def _compose(*overrides: str):
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+        return compose("config", overrides=["experiment=compare", "logger=none", "progress=false", *overrides])
+
+
+def _library_models():
+    modes = [ConstantVelocity(1, q=0.05, acceleration=[a], dtype=torch.float64) for a in (0.0, 1.0)]
+    sensor = PositionMeasurement(2, [0], 4.0, dtype=torch.float64)
+    return modes, sensor
+
+
+def _write_csv(path: Path, z: np.ndarray, x: np.ndarray) -> None:
+    """``z (T, R, 1)``, ``x (T, R, 2)`` as rows ``series, t, pos_meas, pos, vel`` (NaN: an empty cell);
+    series 1 one step shorter (padding)."""
+    with path.open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["series", "t", "y", "pos", "vel"])
+        T, R, _ = z.shape
+        for r in range(R):
+            for k in range(T - (1 if r == 1 else 0)):
+                w.writerow([f"s{r}", k + 1, "" if math.isnan(z[k, r, 0]) else repr(float(z[k, r, 0])),
+                            repr(float(x[k, r, 0])), repr(float(x[k, r, 1]))])
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory):
+    """A 2-mode CSV of 3 series x 25 steps with missing data, and the same data as tensors."""
+    modes, sensor = _library_models()
+    g = torch.Generator().manual_seed(3)
+    prior = GaussianBelief.create(PRIOR_MEAN, PRIOR_COV, dtype=torch.float64)
+    sim = simulate_jump_system(modes, torch.tensor(TRANSITION, dtype=torch.float64), prior, 25, (3,), generator=g)
+    z = simulate_measurements(sensor, sim.states, generator=g)
+    z[4, 0] = torch.nan
+    z[10:13, 2] = torch.nan
+    folder = tmp_path_factory.mktemp("data")
+    path = folder / "track.csv"
+    _write_csv(path, z.numpy(), sim.states.numpy())
+    return path, z, sim.states
+
+
+def _data_config(path: Path, *overrides: str):
+    cfg = _compose(*overrides)
+    with open_dict(cfg):
+        cfg.scenario.modes = MODES
+        cfg.scenario.sensors = [SENSOR]
+        cfg.scenario.labels = ["a=0", "a=1"]
+        cfg.scenario.transition = TRANSITION
+        cfg.scenario.initial_mean = PRIOR_MEAN
+        cfg.scenario.initial_cov = PRIOR_COV
+        cfg.scenario.initial_mode_probs = None
+        cfg.scenario.groups = {"position": [0], "velocity": [1]}
+        cfg.scenario.data = {"path": str(path), "measurements": ["y"], "truth": ["pos", "vel"], "time": "t",
+                             "series": "series"}
+        cfg.estimators = {
+            "IMM": {"_target_": "experiments.estimators.multiple_model", "_partial_": True,
+                    "combinator": {"_target_": "torchmm.IMM", "_partial_": True}, "mode_filter": None},
+            "KF": {"_target_": "experiments.estimators.kalman", "_partial_": True, "mode": 0},
+        }
+    return cfg
+
+
+def test_read_series_pads_and_reads_missing(recorded):
+    path, z, x = recorded
+    data = read_series(path, measurements=["y"], truth=["pos", "vel"], time="t", series="series")
+    assert data.measurements.shape == (25, 3, 1) and data.series == ["s0", "s1", "s2"]
+    assert data.present[:, 1].sum() == 24 and not data.present[24, 1]
+    np.testing.assert_array_equal(np.isnan(data.measurements[:24]), np.isnan(z.numpy()[:24]))
+    np.testing.assert_array_equal(data.measurements[:24][~np.isnan(data.measurements[:24])],
+                                  z.numpy()[:24][~np.isnan(z.numpy()[:24])])
+    np.testing.assert_array_equal(data.times, np.arange(1, 26))
+
+
+@pytest.mark.parametrize("content, message", [
+    ("a,b\n1,2\n3,x\n", "column 'b', row 3: 'x' is not a number"),
+    ("a,c\n1,2\n", "column 'b', row 1: not in the header"),
+    ("a,b\n1,2\n3\n", "row 3: 1 cells, the header has 2"),
+    ("a,b,t\n1,2,1\n3,4,1\n", "column 't', row 3: time stamps must increase"),
+])
+def test_malformed_file_names_file_column_and_row(tmp_path, content, message):
+    path = tmp_path / "bad.csv"
+    path.write_text(content)
+    with pytest.raises(DataFileError, match="bad.csv: " + message.replace("(", r"\(").replace(")", r"\)")):
+        read_series(path, measurements=["a", "b"], time="t" if ",t" in content else None)
+
+
+def test_malformed_file_is_a_config_error_before_anything_runs(tmp_path):
+    path = tmp_path / "bad.csv"
+    path.write_text("series,t,y,pos,vel\ns0,1,1.0,0,0\ns0,2,oops,0,0\n")
+    cfg = _data_config(path)
+    with pytest.raises(ConfigError, match=r"scenario.data=.*bad.csv: column 'y', row 3: 'oops' is not a number"):
+        validate(cfg)
+
+
+def test_csv_run_equals_the_library_api(recorded, tmp_path):
+    """The study on a CSV gives the log-likelihood and RMSE of the same data filtered by hand (1e-12)."""
+    path, z, x = recorded
+    cfg = _data_config(path, "figures=false")
+    validate(cfg)
+    run_study(cfg, tmp_path)
+    res = json.loads((tmp_path / "results.json").read_text())
+    modes, sensor = _library_models()
+    transition = torch.tensor(TRANSITION, dtype=torch.float64)
+    prior = GaussianBelief.create(PRIOR_MEAN, PRIOR_COV, dtype=torch.float64).expand(3)
+    z_lib = z.clone()
+    z_lib[24, 1] = torch.nan  # series 1 is a step shorter: its last step is padding (missing)
+    imm = IMM([KalmanFilter(m, sensor) for m in modes], transition)
+    traj = run_filter(imm, imm.initial_belief(prior), z_lib)
+    ll = traj.log_likelihood.sum(0)
+    assert res["metrics"]["IMM"]["loglik"] == pytest.approx(float(ll.mean()), rel=1e-12, abs=1e-12)
+    est = traj.estimate().mean.numpy()
+    sq = (est[..., 0] - x.numpy()[..., 0]) ** 2  # (T, R); the padded step is not scored
+    sq[24, 1] = np.nan
+    armse = np.mean(np.sqrt(np.nanmean(sq, 1)))
+    assert res["metrics"]["IMM"]["rmse_position"] == pytest.approx(armse, rel=1e-12)
+    kf = KalmanFilter(modes[0], sensor)
+    ll_kf = run_filter(kf, prior, z_lib).log_likelihood.sum(0)
+    # the paired difference of the log-likelihood: the mean of the per-run differences, with a t interval
+    paired = {(r[0], r[1]): r for r in res["tables"]["paired"]["rows"]}
+    d = (ll_kf - ll).numpy()
+    row = paired[("loglik", "KF")]
+    assert row[3] == pytest.approx(d.mean(), rel=1e-12)
+    assert row[4] == pytest.approx(d.std(ddof=1) / math.sqrt(3), rel=1e-10)
+    from scipy.stats import t
+    assert row[6] - row[3] == pytest.approx(t.ppf(0.975, 2) * row[4], rel=1e-10)
+
+
+def test_simulated_multirate_sensors_and_missing(tmp_path):
+    """Two sensors (every step, and every 3rd step with 20 % missing) stacked into one stream."""
+    cfg = _compose("debug=compare", "figures=false", "scenario.steps=30", "mc_runs=50")
+    with open_dict(cfg):
+        cfg.scenario.sensors = [
+            {"_target_": "torchmm.PositionMeasurement", "state_dim": 4, "indices": [0, 2], "R": 25.0},
+            {"_target_": "torchmm.RangeBearing", "state_dim": 4, "R": [[1.0, 0.0], [0.0, 1e-4]]},
+        ]
+        cfg.scenario.every = [1, 3]
+        cfg.scenario.missing = [0.0, 0.2]
+        cfg.estimators = {"IMM": {"_target_": "experiments.estimators.multiple_model", "_partial_": True,
+                                  "combinator": {"_target_": "torchmm.IMM", "_partial_": True},
+                                  "mode_filter": {"_target_": "torchmm.ExtendedKalmanFilter", "_partial_": True}}}
+    validate(cfg)
+    from experiments.harness import open_context
+    config = OmegaConf.to_container(cfg, resolve=True)
+    ctx = open_context(cfg, tmp_path, config, "compare")
+    from experiments.studies import compare
+    _, _, z, _ = compare._data(ctx, 0, 50)
+    assert z.shape == (30, 50, 4)
+    assert not torch.isnan(z[..., :2]).any()
+    steps = torch.arange(1, 31)
+    off = steps % 3 != 0
+    assert torch.isnan(z[off][..., 2:]).all()
+    on = z[~off][..., 2:]
+    frac = torch.isnan(on[..., 0]).double().mean().item()
+    assert 0.1 < frac < 0.3  # 500 draws at p = 0.2
+    assert torch.equal(torch.isnan(on[..., 0]), torch.isnan(on[..., 1]))
+    run_study(cfg, tmp_path / "run")
+    res = json.loads((tmp_path / "run" / "results.json").read_text())
+    assert math.isfinite(res["metrics"]["IMM"]["loglik"]) and math.isfinite(res["metrics"]["IMM"]["nis"])
+
+
+def test_bad_estimator_and_reference_are_config_errors():
+    with pytest.raises(ConfigError, match="paired.reference"):
+        validate(_compose("paired.reference=nope"))
+    with pytest.raises(ConfigError, match="metrics"):
+        validate(_compose("metrics=[rmse,bogus]"))
+    with pytest.raises(ConfigError, match="estimators.IMM.smooth"):
+        validate(_compose("estimators.IMM.smooth=rts"))
+
+
+def test_irregular_time_stamps_become_per_step_motions(tmp_path):
+    """Irregular time stamps: step k predicts over t_k - t_{k-1}; equal to per-step models by hand."""
+    g = torch.Generator().manual_seed(5)
+    T = 15
+    dts = [1.0] + [float(d) for d in torch.tensor([0.5, 1.0, 2.0])[torch.randint(0, 3, (T - 1,), generator=g)]]
+    t = np.cumsum(dts)
+    z = torch.randn(T, 2, 1, generator=g, dtype=torch.float64) * 3
+    path = tmp_path / "irregular.csv"
+    with path.open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["series", "t", "y"])
+        for r in range(2):
+            for k in range(T):
+                w.writerow([r, repr(float(t[k])), repr(float(z[k, r, 0]))])
+    cfg = _data_config(path, "figures=false", "metrics=[loglik]")
+    with open_dict(cfg):
+        cfg.scenario.data.truth = None
+    validate(cfg)
+    run_study(cfg, tmp_path / "run")
+    res = json.loads((tmp_path / "run" / "results.json").read_text())
+    _, sensor = _library_models()
+
+    def bank(dt):
+        return [ConstantVelocity(1, dt=dt, q=0.05, acceleration=[a], dtype=torch.float64) for a in (0.0, 1.0)]
+
+    imm = IMM([KalmanFilter(m, sensor) for m in bank(1.0)], torch.tensor(TRANSITION, dtype=torch.float64))
+    prior = GaussianBelief.create(PRIOR_MEAN, PRIOR_COV, dtype=torch.float64).expand(2)
+    traj = run_filter(imm, imm.initial_belief(prior), z, motions=[None] + [bank(d) for d in dts[1:]])
+    assert res["metrics"]["IMM"]["loglik"] == pytest.approx(float(traj.log_likelihood.sum(0).mean()), rel=1e-12)
+    regular = run_filter(imm, imm.initial_belief(prior), z).log_likelihood.sum(0).mean()
+    assert abs(float(regular) - res["metrics"]["IMM"]["loglik"]) > 1e-3  # the time stamps mattered
+    assert set(res["metrics"]["IMM"]) >= {"loglik"} and "rmse_position" not in res["metrics"]["IMM"]
