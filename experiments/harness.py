@@ -349,6 +349,9 @@ class Results:
         self.timing: dict[str, float] = {}
         self.notes: list[str] = []
         self.provenance: dict[str, Any] = {}
+        #: what the config changes from the study's defaults (:func:`experiments.api.config_changes`),
+        #: set when the run starts; None: not known (results.md then lists no changes)
+        self.changes: dict | None = None
 
     def table(self, name: str, columns: Sequence[str], *, note: str = "", published: dict | None = None) -> Table:
         """Create (or reset) a table; append rows to ``.rows``."""
@@ -368,8 +371,39 @@ class Results:
             "provenance": _jsonable(self.provenance),
         }
 
+    @staticmethod
+    def _show_value(value: Any) -> str:
+        """A config value as written on the command line (``null``, ``true``, lists as JSON)."""
+        if value is None:
+            return "null"
+        if isinstance(value, bool):
+            return "true" if value else "false"
+        return str(value)
+
+    def _setup_markdown(self) -> list[str]:
+        """The command line (``provenance.command``) and every result value that differs from the
+        study's defaults (:attr:`changes`), for the top of results.md."""
+        out = []
+        command = (self.provenance or {}).get("command")
+        if command:
+            out += ["Command:", "", "```bash", str(command), "```", ""]
+        changes = self.changes
+        if changes is not None:
+            choices, keys = changes.get("choices") or {}, changes.get("keys") or {}
+            name = changes.get("experiment", self.experiment)
+            if not choices and not keys:
+                out += [f"Ran with the defaults of `{name}` (conf/experiment/{name}.yaml).", ""]
+            else:
+                out += [f"Differs from the defaults of `{name}` (conf/experiment/{name}.yaml) in:", ""]
+                out += [f"- `{group}={self._show_value(value)}` (default: {self._show_value(default)})"
+                        for group, (default, value) in choices.items()]
+                out += [f"- `{key}={self._show_value(value)}` (default: {self._show_value(default)})"
+                        for key, (default, value) in keys.items()]
+                out += [""]
+        return out
+
     def to_markdown(self) -> str:
-        out = [f"# {self.experiment}", ""]
+        out = [f"# {self.experiment}", "", *self._setup_markdown()]
         if self.description:
             out += [self.description, ""]
         for name, table in self.tables.items():

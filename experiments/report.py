@@ -1,4 +1,4 @@
-"""``torchmm-report PATH...``: one table across runs - seed sweeps, override sweeps, separate runs.
+r"""``torchmm-report PATH...``: one table across runs - seed sweeps, override sweeps, separate runs.
 
 Every ``results.json`` under the given paths (a run folder, a ``-m`` sweep folder, ``outputs/``)
 is one run. Runs of the same study are grouped by their *result config* (the resolved config
@@ -19,7 +19,23 @@ the group's runs with a Student-t confidence interval (``--level``, 95 % by defa
 Writes into ``--out`` (default: ``<PATH>/report`` for one PATH, else ``./report``):
 ``report.md`` (mean +- half-width), ``report.csv`` (tidy: one line per study, table, group, row and
 measurement, with ``n, mean, sd, ci_low, ci_high``), ``report.json`` (the same, nested) and
-``report.png`` / ``report.pdf`` (each study's first table's first measurement with its intervals).
+``report.png`` / ``report.pdf`` (each study's first table's first measurement with its intervals)
+and ``report.tex``.
+
+**Paired differences.** A table with an ``estimator`` label column also gets its estimators
+compared by replicate: the runs of a group share their seeds (and so their simulated data), so per
+run ``d = value(estimator) - value(reference)`` at the same other labels, then the mean of ``d``
+over the group's runs with its Student-t interval (:func:`mean_interval`). This interval is much
+narrower than the difference of two unpaired intervals when the estimators' errors are correlated.
+The reference is the first row's estimator (``--reference NAME`` for another). Written as the
+``paired`` section of report.json (``{experiment: {"paired": {table: {"reference", "labels",
+"measurements", "rows"}}}}``), report.md, report.tex and report.csv (the rows whose ``reference``
+column is set; their ``labels`` name the estimator subtracted from).
+
+**LaTeX.** ``report.tex`` is a fragment of one booktabs table per results table (and per paired
+section): ``\toprule``/``\midrule``/``\bottomrule``, cells ``mean $\pm$ half-width``, text
+escaped. It needs ``\usepackage{booktabs}`` only; ``\input{report.tex}`` it, or compile it alone
+inside ``\documentclass{article}\usepackage{booktabs}\begin{document} ... \end{document}``.
 """
 
 from __future__ import annotations
@@ -37,7 +53,8 @@ from typing import Any
 
 from experiments.harness import NON_RESULT_KEYS, RunFolderError, _format, write_atomic
 
-__all__ = ["Run", "collect_runs", "combine", "main", "mean_interval", "write_report"]
+__all__ = ["Run", "collect_runs", "combine", "main", "mean_interval", "paired_differences", "to_latex",
+           "write_report"]
 
 #: keys never treated as factors (they do not change the numbers, or are bookkeeping)
 IGNORED_KEYS = (*NON_RESULT_KEYS, "hydra")
@@ -164,12 +181,14 @@ def _label_columns(tables_by_group: list[list[dict]]) -> list[bool]:
     return labels
 
 
-def combine(runs: list[Run], replicate: str = "seed", level: float = 0.95) -> dict[str, Any]:
+def combine(runs: list[Run], replicate: str = "seed", level: float = 0.95, reference: str | None = None) -> dict[str, Any]:
     """Combine ``runs`` into ``{experiment: {"factors", "groups", "tables": {name: {...}}}}``.
 
     ``groups``: one entry per distinct factor setting, ``{"factors": {key: value}, "runs": [paths],
     "replicates": [replicate values]}``. Each table: ``{"labels": [columns], "measurements":
     [columns], "rows": [{"group": i, "labels": {...}, "values": {column: mean_interval}}]}``.
+    ``paired``: per table with an ``estimator`` label, :func:`paired_differences` against
+    ``reference`` (default: the table's first row's estimator).
     """
     by_experiment: dict[str, list[Run]] = defaultdict(list)
     for run in runs:
@@ -198,6 +217,7 @@ def combine(runs: list[Run], replicate: str = "seed", level: float = 0.95) -> di
             print(f"torchmm-report: warning: {experiment}: runs with the same config and {replicate} are "
                   f"combined as if independent ({paths})", file=sys.stderr)
         tables_out: dict[str, Any] = {}
+        paired_out: dict[str, Any] = {}
         table_names = list(dict.fromkeys(n for run in members for n in run.results.get("tables", {})))
         for name in table_names:
             tables = [run.results["tables"].get(name) for run in members]
@@ -221,6 +241,12 @@ def combine(runs: list[Run], replicate: str = "seed", level: float = 0.95) -> di
                               for i, c in enumerate(columns) if not is_label[i]}
                     rows.append({"group": gi, "labels": labels, "values": values})
             tables_out[name] = {"labels": label_cols, "measurements": measure_cols, "rows": rows}
+            if "estimator" in label_cols and measure_cols:
+                paired = paired_differences(
+                    [[run.results["tables"][name] for run in g["runs"]] for g in group_list], columns,
+                    measure_cols, label_cols, reference, level)
+                if paired is not None:
+                    paired_out[name] = paired
         report[experiment] = {
             "replicate": replicate,
             "level": level,
@@ -228,8 +254,50 @@ def combine(runs: list[Run], replicate: str = "seed", level: float = 0.95) -> di
             "groups": [{"factors": g["factors"], "runs": [str(r.path) for r in g["runs"]],
                         "replicates": g["replicates"]} for g in group_list],
             "tables": tables_out,
+            "paired": paired_out,
         }
     return report
+
+
+def paired_differences(tables_by_group: list[list[dict]], columns: list[str], measurements: list[str],
+                       labels: list[str], reference: str | None = None, level: float = 0.95) -> dict | None:
+    """Estimators minus ``reference``, paired by run: ``{"reference", "labels", "measurements",
+    "rows": [{"group", "labels", "values": {column: mean_interval}}]}`` or None (no reference row).
+
+    ``tables_by_group``: per group, the table of each of its runs (rows in the same order in every
+    run). A row of estimator ``B`` is paired with the row of ``reference`` holding the same other
+    labels in the same run; ``d_r = B_r - reference_r`` for each run ``r`` of the group, then
+    :func:`mean_interval` over ``d``. Cells that are not finite numbers are left out of ``n``.
+    """
+    est = columns.index("estimator")
+    others = [columns.index(c) for c in labels if c != "estimator"]
+    first = next((t["rows"][0] for g in tables_by_group for t in g[:1] if t["rows"]), None)
+    if first is None:
+        return None
+    reference = first[est] if reference is None else reference
+    if not any(row[est] == reference for g in tables_by_group for t in g for row in t["rows"]):
+        return None
+    measure = [columns.index(c) for c in measurements]
+    rows = []
+    for gi, group in enumerate(tables_by_group):
+        base = group[0]["rows"]
+        for r, row in enumerate(base):
+            if row[est] == reference:
+                continue
+            key = [row[i] for i in others]
+            ref = next((q for q, other in enumerate(base) if other[est] == reference
+                        and [other[i] for i in others] == key), None)
+            if ref is None:
+                continue
+            values = {}
+            for i, column in zip(measure, measurements):
+                diffs = []
+                for table in group:
+                    a, b = table["rows"][r][i], table["rows"][ref][i]
+                    diffs.append(a - b if _is_number(a) and _is_number(b) else float("nan"))
+                values[column] = mean_interval(diffs, level)
+            rows.append({"group": gi, "labels": {c: row[columns.index(c)] for c in labels}, "values": values})
+    return {"reference": reference, "labels": labels, "measurements": measurements, "rows": rows}
 
 
 def _sort_key(value: Any):
@@ -264,23 +332,119 @@ def to_markdown(report: dict[str, Any]) -> str:
                          str(n), *(_cell(row["values"][c]) for c in table["measurements"])]
                 lines.append("| " + " | ".join(cells) + " |")
             out += [f"### {name}", "", *lines, ""]
+        for name, paired in (body.get("paired") or {}).items():
+            columns, rows = _paired_rows(body, paired, minus=" − ")
+            lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
+            lines += ["| " + " | ".join(row) + " |" for row in rows]
+            out += [f"### {name}: paired differences", "",
+                    (f"Each estimator minus {paired['reference']}, run by run ({body['replicate']} paired: the runs "
+                     f"share their data), then mean ± half-width of the {pct} Student-t interval over the replicates."),
+                    "", *lines, ""]
     return "\n".join(out)
+
+
+def _paired_rows(body: dict, paired: dict, minus: str, cell=None, text=None) -> tuple[list[str], list[list[str]]]:
+    """Header and cells of a paired-differences table (the estimator column reads ``B - reference``)."""
+    cell = cell or _cell
+    text = text or (lambda v: v)
+    factors = body["factors"]
+    columns = [*factors, *paired["labels"], "n", *paired["measurements"]]
+    rows = []
+    for row in paired["rows"]:
+        g = body["groups"][row["group"]]
+        n = max((v["n"] for v in row["values"].values()), default=len(g["runs"]))
+        labels = [text(_format(row["labels"][c])) if c != "estimator"
+                  else text(_format(row["labels"][c])) + minus + text(str(paired["reference"]))
+                  for c in paired["labels"]]
+        rows.append([*(text(_format(g["factors"][k])) for k in factors), *labels, str(n),
+                     *(cell(row["values"][c]) for c in paired["measurements"])])
+    return [text(c) for c in columns], rows
 
 
 def to_csv(report: dict[str, Any]) -> str:
     buf = io.StringIO()
     writer = csv.writer(buf, lineterminator="\n")
     writer.writerow(["experiment", "table", "group", "factors", "labels", "measurement", "n", "mean", "sd",
-                     "ci_low", "ci_high"])
+                     "ci_low", "ci_high", "reference"])
     for experiment, body in report.items():
-        for name, table in body["tables"].items():
+        sections = [(name, table, "") for name, table in body["tables"].items()]
+        sections += [(name, paired, paired["reference"]) for name, paired in (body.get("paired") or {}).items()]
+        for name, table, reference in sections:  # reference set: the paired difference labels - reference
             for row in table["rows"]:
                 factors = json.dumps(body["groups"][row["group"]]["factors"], default=str)
                 labels = json.dumps(row["labels"], default=str)
                 for measurement, s in row["values"].items():
                     writer.writerow([experiment, name, row["group"], factors, labels, measurement, s["n"],
-                                     *("" if s[k] is None else repr(s[k]) for k in ("mean", "sd", "ci_low", "ci_high"))])
+                                     *("" if s[k] is None else repr(s[k]) for k in ("mean", "sd", "ci_low", "ci_high")),
+                                     reference])
     return buf.getvalue()
+
+
+#: LaTeX's special characters in text mode
+_LATEX_ESCAPES = {"\\": r"\textbackslash{}", "&": r"\&", "%": r"\%", "$": r"\$", "#": r"\#", "_": r"\_",
+                  "{": r"\{", "}": r"\}", "~": r"\textasciitilde{}", "^": r"\textasciicircum{}",
+                  "±": r"$\pm$", "−": "$-$"}
+
+
+def latex_escape(text: Any) -> str:
+    """``text`` safe in LaTeX's text mode (``_`` -> ``\\_``, ...)."""
+    return "".join(_LATEX_ESCAPES.get(ch, ch) for ch in str(text))
+
+
+def _latex_number(value: Any) -> str:
+    """``_format(value)`` typeset: a minus sign, not a hyphen; ``1.2e-04`` as ``$1.2\\times10^{-4}$``."""
+    text = _format(value)
+    mantissa, e, exponent = text.partition("e")
+    if e and exponent.lstrip("+-").isdigit():
+        return f"${mantissa}\\times10^{{{int(exponent)}}}$"
+    return "$-$" + text[1:] if text.startswith("-") else text
+
+
+def _latex_cell(stats: dict) -> str:
+    if stats["mean"] is None:
+        return ""
+    if stats["ci_low"] is None:
+        return _latex_number(stats["mean"])
+    return f"{_latex_number(stats['mean'])} $\\pm$ {_latex_number((stats['ci_high'] - stats['ci_low']) / 2)}"
+
+
+def _latex_table(columns: list[str], rows: list[list[str]], caption: str, align: str) -> list[str]:
+    return [r"\begin{table}[htbp]", r"\centering", rf"\caption{{{caption}}}", rf"\begin{{tabular}}{{{align}}}",
+            r"\toprule", " & ".join(columns) + r" \\", r"\midrule",
+            *(" & ".join(row) + r" \\" for row in rows), r"\bottomrule", r"\end{tabular}", r"\end{table}", ""]
+
+
+def to_latex(report: dict[str, Any]) -> str:
+    """``report.tex``: one booktabs table per results table and per paired section (needs
+    ``\\usepackage{booktabs}``; see the module docstring)."""
+    esc = latex_escape
+    out = ["% torchmm-report: booktabs tables (\\usepackage{booktabs}); \\input{report.tex} in a document,",
+           "% e.g. \\documentclass{article}\\usepackage{booktabs}\\begin{document}\\input{report.tex}\\end{document}",
+           "% cells: mean $\\pm$ half-width of the Student-t interval over the replicates; n = replicates", ""]
+    for experiment, body in report.items():
+        groups, factors = body["groups"], body["factors"]
+        pct = f"{100 * body['level']:g}\\,\\%"
+        for name, table in body["tables"].items():
+            columns = [*factors, *table["labels"], "n", *table["measurements"]]
+            rows = []
+            for row in table["rows"]:
+                g = groups[row["group"]]
+                n = max((v["n"] for v in row["values"].values()), default=len(g["runs"]))
+                rows.append([*(esc(_format(g["factors"][k])) for k in factors),
+                             *(esc(_format(row["labels"][c])) for c in table["labels"]), str(n),
+                             *(_latex_cell(row["values"][c]) for c in table["measurements"])])
+            align = "l" * (len(factors) + len(table["labels"])) + "r" * (1 + len(table["measurements"]))
+            caption = (f"{esc(experiment)}: {esc(name)} (mean $\\pm$ half-width of the {pct} Student-t interval "
+                       f"over {esc(body['replicate'])}; n replicates)")
+            out += _latex_table([esc(c) for c in columns], rows, caption, align)
+        for name, paired in (body.get("paired") or {}).items():
+            columns, rows = _paired_rows(body, paired, minus=" $-$ ", cell=_latex_cell, text=esc)
+            align = "l" * (len(factors) + len(paired["labels"])) + "r" * (1 + len(paired["measurements"]))
+            caption = (f"{esc(experiment)}: {esc(name)}, paired differences: each estimator minus "
+                       f"{esc(paired['reference'])} per {esc(body['replicate'])} (mean $\\pm$ half-width of the "
+                       f"{pct} Student-t interval)")
+            out += _latex_table(columns, rows, caption, align)
+    return "\n".join(out)
 
 
 def figure(report: dict[str, Any]):
@@ -325,7 +489,8 @@ def figure(report: dict[str, Any]):
 def write_report(report: dict[str, Any], out_dir: Path) -> list[Path]:
     written = []
     for name, text in (("report.md", to_markdown(report)), ("report.csv", to_csv(report)),
-                       ("report.json", json.dumps(report, indent=2, default=str) + "\n")):
+                       ("report.json", json.dumps(report, indent=2, default=str) + "\n"),
+                       ("report.tex", to_latex(report))):
         write_atomic(out_dir / name, text)
         written.append(out_dir / name)
     fig = figure(report)
@@ -347,6 +512,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=None, help="output folder (default PATH/report or ./report)")
     parser.add_argument("--replicate", default="seed", help="the config key whose runs are replications (seed)")
     parser.add_argument("--level", type=float, default=0.95, help="confidence level of the intervals (0.95)")
+    parser.add_argument("--reference", default=None, metavar="NAME",
+                        help="the estimator the paired differences subtract (default: each table's first row's)")
     args = parser.parse_args(argv)
     if not 0 < args.level < 1:
         print(f"torchmm-report: error: --level: expected a number in (0, 1), got {args.level}", file=sys.stderr)
@@ -359,7 +526,13 @@ def main(argv: list[str] | None = None) -> int:
     if not runs:
         print(f"torchmm-report: error: PATH: no results.json under {' '.join(args.paths)}", file=sys.stderr)
         return 2
-    report = combine(runs, args.replicate, args.level)
+    report = combine(runs, args.replicate, args.level, args.reference)
+    if args.reference is not None and not any(body["paired"] for body in report.values()):
+        names = sorted({str(row["labels"]["estimator"]) for body in report.values() for table in body["tables"].values()
+                        for row in table["rows"] if "estimator" in row["labels"]})
+        print(f"torchmm-report: error: --reference: no table has an estimator {args.reference!r} "
+              f"(estimators: {', '.join(names) or 'none'})", file=sys.stderr)
+        return 2
     out = args.out or (Path(args.paths[0]) / "report" if len(args.paths) == 1 else Path("report"))
     try:
         write_report(report, out)
@@ -370,7 +543,7 @@ def main(argv: list[str] | None = None) -> int:
         groups = body["groups"]
         print(f"torchmm-report: {experiment}: {sum(len(g['runs']) for g in groups)} runs, {len(groups)} group(s) "
               f"(factors: {', '.join(body['factors']) or 'none'})")
-    print(f"torchmm-report: report.md, report.csv, report.json, report.png in {out}")
+    print(f"torchmm-report: report.md, report.csv, report.json, report.tex, report.png in {out}")
     return 0
 
 

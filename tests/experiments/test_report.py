@@ -73,13 +73,13 @@ def test_report_files_and_cli(tmp_path):
     _synthetic_sweep(tmp_path / "sweep", np.random.default_rng(1))
     assert rep.main([str(tmp_path / "sweep"), "--level", "0.9"]) == 0
     out = tmp_path / "sweep" / "report"
-    for name in ("report.md", "report.csv", "report.json", "report.png", "report.pdf"):
+    for name in ("report.md", "report.csv", "report.json", "report.tex", "report.png", "report.pdf"):
         assert (out / name).stat().st_size > 0, name
     md = (out / "report.md").read_text()
     assert "| a | model.b | estimator | alpha | n | rmse | nees |" in md and "±" in md
     lines = (out / "report.csv").read_text().splitlines()
     assert lines[0].split(",")[:7] == ["experiment", "table", "group", "factors", "labels", "measurement", "n"]
-    assert len(lines) == 1 + 8 * 2  # 8 rows x 2 measurements
+    assert len(lines) == 1 + 8 * 2 + 4 * 2  # 8 rows x 2 measurements; paired: 4 (KF - IMM) x 2
     assert json.loads((out / "report.json").read_text())["toy"]["level"] == 0.9
 
 

@@ -1,0 +1,349 @@
+"""A study from Python: ``study("imm_baseline", mc_runs=20)`` runs what ``torchmm-run`` runs.
+
+::
+
+    from experiments import study, load
+
+    res = study("imm_baseline", mc_runs=20, mode_filter="unscented", scenario__R=25, progress=False)
+    res.table("rmse")          # a pandas DataFrame (a list of dicts without pandas)
+    res.figures                # [Path(".../figures/rmse_over_time.png"), ...]
+    again = load(res.dir)      # a finished run folder, read back
+
+**Overrides** are the command line's ``key=value`` as keyword arguments: ``mc_runs=20``,
+config groups by their option name (``mode_filter="unscented"``, ``debug="imm_baseline"``), nested
+keys with a double underscore (``scenario__R=25`` is ``scenario.R=25``). ``overrides=`` takes the
+same as a dict with dotted keys (``{"scenario.R": 25}``) or a list of Hydra override strings
+(``["scenario.R=25", "+new_key=1"]``); the keyword arguments come after it. Python values are
+written in Hydra's syntax (``True`` -> ``true``, ``None`` -> ``null``, lists -> ``[a,b]``).
+
+The config is composed from conf/ as ``torchmm-run`` composes it, then checked by
+:func:`experiments.config.validate`: a bad key or value raises
+:class:`~experiments.config.ConfigError` (a ``ValueError`` naming the key) before anything is
+written. The run goes to ``out`` (default: a fresh ``outputs/<experiment>/<date>_<time>`` under the
+working directory, as the command line's) through :func:`experiments.run.run_study`; its
+``results.json`` records the equivalent ``torchmm-run`` command line under ``provenance.command``
+(and the Python process's own under ``provenance.process_command``).
+
+:func:`config_changes` is what ``results.md`` opens with: the result keys and config-group choices
+of a run that differ from its study's defaults (the config composed with ``experiment=<name>``
+alone).
+"""
+
+from __future__ import annotations
+
+import contextvars
+import datetime as _dt
+import json
+import logging
+import re
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+__all__ = ["StudyResults", "config_changes", "load", "study"]
+
+log = logging.getLogger("torchmm.experiments")
+
+#: config groups whose choice never changes a study's numbers (as :data:`experiments.harness.NON_RESULT_KEYS`)
+_NON_RESULT_GROUPS = ("logger", "executor")
+
+#: the config-group choices of the run :func:`study` is starting (Hydra's own, on the command line)
+_CHOICES: contextvars.ContextVar[dict | None] = contextvars.ContextVar("torchmm_choices", default=None)
+
+
+# --------------------------------------------------------------------------------------------- config
+
+def _override_value(value: Any) -> str:
+    """``value`` in Hydra's override syntax."""
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (int, float)):
+        return repr(value)
+    if isinstance(value, Path):
+        value = str(value)
+    if isinstance(value, str):
+        if re.fullmatch(r"[A-Za-z0-9_./\-+:@]+", value):
+            return value
+        return "'" + value.replace("\\", "\\\\").replace("'", "\\'") + "'"
+    if isinstance(value, (list, tuple)):
+        return "[" + ",".join(_override_value(v) for v in value) + "]"
+    if isinstance(value, Mapping):
+        return "{" + ",".join(f"{k}:{_override_value(v)}" for k, v in value.items()) + "}"
+    raise TypeError(f"override value {value!r}: expected a number, string, bool, None, list or dict, "
+                    f"got {type(value).__name__}")
+
+
+def _override_list(overrides: Mapping[str, Any] | Sequence[str] | None, kwargs: Mapping[str, Any]) -> list[str]:
+    """The Hydra override strings of ``overrides=`` and the keyword arguments (``a__b`` -> ``a.b``)."""
+    items: list[str] = []
+    if overrides is None:
+        pass
+    elif isinstance(overrides, Mapping):
+        for key, value in overrides.items():
+            if not isinstance(key, str) or not key:
+                raise TypeError(f"overrides: keys must be non-empty strings, got {key!r}")
+            items.append(f"{key}={_override_value(value)}")
+    elif isinstance(overrides, (list, tuple)):
+        for item in overrides:
+            if not isinstance(item, str) or "=" not in item:
+                raise ValueError(f"overrides: expected 'key=value' strings, got {item!r}")
+            items.append(item)
+    else:
+        raise TypeError(f"overrides: expected a dict or a list of 'key=value' strings, got {type(overrides).__name__}")
+    for key, value in kwargs.items():
+        items.append(f"{key.replace('__', '.')}={_override_value(value)}")
+    for item in items:
+        if item.lstrip("+~").split("=", 1)[0] in ("experiment", "hydra") or item.startswith("hydra."):
+            raise ValueError(f"overrides: {item.split('=', 1)[0]} is not an override here: the study is the "
+                             "first argument, the run folder is out=")
+    return items
+
+
+def _compose(overrides: list[str]) -> tuple[Any, dict]:
+    """``(config without hydra, config-group choices)`` of conf/ with ``overrides``, as torchmm-run
+    composes it; a bad override is a :class:`~experiments.config.ConfigError`. Hydra's global state
+    (a running ``torchmm-run``'s) is kept."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.errors import HydraException, MissingConfigException
+    from hydra.initialize import get_gh_backup, restore_gh_from_backup
+    from omegaconf import OmegaConf, open_dict
+    from omegaconf.errors import OmegaConfBaseException
+
+    from experiments.config import _composition_error, _missing_config
+    from experiments.run import CONFIG_DIR
+
+    backup = get_gh_backup()
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+            cfg = compose("config", overrides=overrides, return_hydra_config=True)
+    except MissingConfigException as err:
+        raise _missing_config(err, overrides) from None
+    except (HydraException, OmegaConfBaseException) as err:
+        raise _composition_error(err, overrides) from None
+    finally:
+        restore_gh_from_backup(backup)
+    choices = OmegaConf.to_container(cfg.hydra.runtime.choices, resolve=False)
+    with open_dict(cfg):
+        del cfg["hydra"]  # never resolve hydra.run.dir: its resolver creates the run folder
+    return cfg, {str(k): v for k, v in choices.items()}
+
+
+def _flatten(tree: Any, prefix: str = "") -> dict[str, Any]:
+    from experiments.report import _flatten as flatten
+
+    return flatten(tree, prefix)
+
+
+def _relevant(key: str) -> bool:
+    from experiments.harness import NON_RESULT_KEYS
+
+    head = key.split(".", 1)[0].split("/", 1)[0]
+    return head not in NON_RESULT_KEYS and head not in _NON_RESULT_GROUPS and head != "hydra" \
+        and key not in ("experiment", "experiment_name", "study")
+
+
+def _run_choices() -> dict | None:
+    """The config-group choices of the run being started: :func:`study`'s, or Hydra's (torchmm-run)."""
+    choices = _CHOICES.get()
+    if choices is not None:
+        return choices
+    try:
+        from hydra.core.hydra_config import HydraConfig
+        from omegaconf import OmegaConf
+
+        if HydraConfig.initialized():
+            return {str(k): v for k, v in OmegaConf.to_container(HydraConfig.get().runtime.choices).items()}
+    except Exception as err:  # noqa: BLE001 - no Hydra run: choices are inferred
+        log.debug("no Hydra choices (%s); they are inferred", err)
+    return None
+
+
+def config_changes(config: dict, choices: dict | None = None) -> dict | None:
+    """What a run's resolved ``config`` changes from its study's defaults (the config composed with
+    ``experiment=<name>`` alone): ``{"experiment", "choices": {group: [default, value]}, "keys":
+    {dotted key: [default, value]}}``, result keys only (not :data:`experiments.harness.NON_RESULT_KEYS`).
+
+    ``choices``: the run's config-group choices (Hydra's ``runtime.choices``); by default
+    :func:`study`'s or the running ``torchmm-run``'s; without them a group whose subtree differs is
+    matched against its options in conf/. None when the defaults cannot be composed (a study that is
+    not in conf/experiment).
+    """
+    try:
+        return _config_changes(config, choices)
+    except Exception as err:  # noqa: BLE001 - results.md is written without the section, the run goes on
+        log.warning("results.md: cannot compare the config with the study's defaults (%s)", err)
+        return None
+
+
+def _config_changes(config: dict, choices: dict | None) -> dict | None:
+    from experiments.run import CONFIG_DIR
+
+    if choices is None:
+        choices = _run_choices()
+    experiment = (choices or {}).get("experiment") or config.get("experiment_name")
+    if not experiment or not (Path(CONFIG_DIR) / "experiment" / f"{experiment}.yaml").is_file():
+        return None
+    from omegaconf import OmegaConf
+
+    default_cfg, default_choices = _compose([f"experiment={experiment}"])
+    defaults = OmegaConf.to_container(default_cfg, resolve=True)
+    ours = json.loads(json.dumps(config, default=str))
+    defaults = json.loads(json.dumps(defaults, default=str))
+    flat, flat_default = _flatten(ours), _flatten(defaults)
+    keys = {}
+    for key in sorted(set(flat) | set(flat_default)):
+        if _relevant(key) and not (key in flat and key in flat_default and flat[key] == flat_default[key]):
+            keys[key] = [flat_default.get(key), flat.get(key)]
+    if choices is None:
+        choices = _infer_choices(ours, defaults, default_choices, experiment)
+    changed = {g: [default_choices.get(g), c] for g, c in sorted(choices.items())
+               if _relevant(g) and "@" not in g and c != default_choices.get(g)}
+    return {"experiment": experiment, "choices": changed, "keys": keys}
+
+
+def _infer_choices(config: dict, defaults: dict, default_choices: dict, experiment: str) -> dict:
+    """The choices of the groups whose subtree differs from the defaults, found by composing each option."""
+    from omegaconf import OmegaConf
+
+    from experiments.run import CONFIG_DIR
+
+    choices = dict(default_choices)
+    for group, default in default_choices.items():
+        if "/" in group or "@" in group or not _relevant(group) or group not in config \
+                or config.get(group) == defaults.get(group):
+            continue
+        for option in sorted(p.stem for p in (Path(CONFIG_DIR) / group).glob("*.yaml")):
+            if option == default:
+                continue
+            try:
+                cfg, _ = _compose([f"experiment={experiment}", f"{group}={option}"])
+                subtree = OmegaConf.to_container(cfg[group], resolve=True)
+            except Exception as err:  # noqa: BLE001 - an option that does not compose with this study
+                log.debug("%s=%s does not compose with %s (%s)", group, option, experiment, err)
+                continue
+            if json.loads(json.dumps(subtree, default=str)) == config.get(group):
+                choices[group] = option
+                break
+    return choices
+
+
+# --------------------------------------------------------------------------------------------- results
+
+class StudyResults:
+    """A finished run folder: its ``results.json``, tables, figures and ``results.md``.
+
+    ``dir`` (Path), ``json`` (the results.json dict), ``tables`` (names), ``table(name)``,
+    ``metrics``, ``config``, ``figures`` (image files under ``figures/``), ``markdown`` (results.md);
+    shown as its results.md in a notebook.
+    """
+
+    def __init__(self, run_dir: str | Path):
+        self.dir = Path(run_dir)
+        self._json: dict | None = None
+
+    @property
+    def json(self) -> dict:
+        if self._json is None:
+            file = self.dir / "results.json"
+            try:
+                self._json = json.loads(file.read_text())
+            except FileNotFoundError:
+                raise ValueError(f"run_dir: {self.dir} holds no results.json (not a finished run)") from None
+            except ValueError as err:
+                raise ValueError(f"run_dir: {file} is not a results file ({type(err).__name__}: {err})") from None
+        return self._json
+
+    @property
+    def experiment(self) -> str:
+        return str(self.json.get("experiment", "study"))
+
+    @property
+    def config(self) -> dict:
+        return self.json.get("config") or {}
+
+    @property
+    def tables(self) -> list[str]:
+        return list(self.json.get("tables") or {})
+
+    @property
+    def metrics(self) -> dict:
+        return self.json.get("metrics") or {}
+
+    def table(self, name: str):
+        """The table ``name``: a pandas DataFrame if pandas is installed, else a list of row dicts."""
+        tables = self.json.get("tables") or {}
+        if name not in tables:
+            raise KeyError(f"table {name!r}: not in {self.dir / 'results.json'}; tables: {', '.join(tables) or 'none'}")
+        columns, rows = tables[name]["columns"], tables[name]["rows"]
+        try:
+            import pandas as pd
+        except ImportError:
+            return [dict(zip(columns, row)) for row in rows]
+        return pd.DataFrame(rows, columns=columns)
+
+    @property
+    def figures(self) -> list[Path]:
+        folder = self.dir / "figures"
+        return sorted(p for p in folder.rglob("*") if p.suffix in (".png", ".pdf", ".svg")) if folder.is_dir() else []
+
+    @property
+    def markdown(self) -> str:
+        file = self.dir / "results.md"
+        return file.read_text() if file.exists() else ""
+
+    def _repr_markdown_(self) -> str:
+        return f"*{self.dir}*\n\n" + self.markdown
+
+    def __repr__(self) -> str:
+        return f"StudyResults({self.experiment!r}, dir={str(self.dir)!r}, tables={self.tables})"
+
+
+def load(run_dir: str | Path) -> StudyResults:
+    """A finished run folder (holding ``results.json``) as :class:`StudyResults`."""
+    if not isinstance(run_dir, (str, Path)):
+        raise TypeError(f"run_dir: expected a path, got {type(run_dir).__name__}")
+    results = StudyResults(run_dir)
+    results.json  # noqa: B018 - a folder without results.json is a ValueError now, not later
+    return results
+
+
+def study(name: str, *, out: str | Path | None = None, overrides: Mapping[str, Any] | Sequence[str] | None = None,
+          **kwargs: Any) -> StudyResults:
+    """Run the study ``name`` (a conf/experiment/*.yaml) with overrides; see the module docstring.
+
+    ``out``: the run folder (default ``outputs/<experiment>/<date>_<time>``, made fresh). A folder
+    holding a run of another result config is kept and the run goes to a fresh sibling (the
+    returned ``.dir``), as with ``torchmm-run hydra.run.dir=...``.
+    """
+    from experiments.config import validate
+    from experiments.harness import unique_dir
+    from experiments.run import CONFIG_DIR, run_study
+
+    if not isinstance(name, str) or not name:
+        raise TypeError(f"name: expected a study name (conf/experiment/*.yaml), got {name!r}")
+    if not (Path(CONFIG_DIR) / "experiment" / f"{name}.yaml").is_file():
+        known = sorted(p.stem for p in (Path(CONFIG_DIR) / "experiment").glob("*.yaml"))
+        raise ValueError(f"name: no study {name!r}; choose one of {', '.join(known)}")
+    if out is not None and not isinstance(out, (str, Path)):
+        raise TypeError(f"out: expected a folder path, got {type(out).__name__}")
+    items = _override_list(overrides, kwargs)
+    cfg, choices = _compose([f"experiment={name}", *items])
+    validate(cfg, scenario_choice=choices.get("scenario"))
+    if out is None:
+        stamp = _dt.datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
+        out = unique_dir(str(Path("outputs") / str(cfg.get("experiment_name", name)) / stamp))
+    token = _CHOICES.set(choices)
+    try:
+        results = run_study(cfg, Path(out), overrides=items)
+    finally:
+        _CHOICES.reset(token)
+    command = " ".join(["torchmm-run", f"experiment={name}", *items])
+    if results.provenance.get("command") != command:  # the equivalent command line, not the Python process's
+        results.provenance["process_command"] = results.provenance.get("command")
+        results.provenance["command"] = command
+        results.save()
+    return StudyResults(results.output_dir)
