@@ -172,7 +172,8 @@ def run_filter(
         generator: the random stream of filters that draw random numbers (particle filters; passed
             to every step); two calls with equally seeded generators give identical results.
         update_first: the first measurement is at the time of ``belief0``: step 0 is an update
-            only (no prediction).
+            only (no prediction). The trajectory's ``extras`` then hold the diagnostics every step
+            has (not the IMM's ``"mixed"``, which only a prediction makes).
         record: maps each :class:`StepOutput` to what is kept (e.g.
             ``lambda o: o._replace(prior=None)`` to save memory); default keeps everything.
             ``"estimate"``: keep only the point estimate (``belief.estimate()``, the IMM's combined
@@ -304,6 +305,8 @@ def run_filter(
                             generator=generator, **inputs)
         belief = out.belief
         kept.append(out if record is None else record(out))
+    if update_first:
+        kept = _common_extras(kept)
     stacked = Trajectory(*stack_outputs(kept))
     stacked = attach_provenance(stacked, Provenance(
         "run_filter", filter, steps, measurements, data_prints, tensor_versions(measurements), controls,
@@ -311,6 +314,16 @@ def run_filter(
         update_first))
     _report_flags(stacked.extras)
     return stacked
+
+
+def _common_extras(kept: list) -> list:
+    """``update_first``: step 0 is an update only, so the diagnostics that only a prediction makes (the
+    IMM's ``extras["mixed"]``) are missing there; every step keeps the extras all steps have."""
+    outs = [o for o in kept if isinstance(o, StepOutput) and isinstance(o.extras, dict)]
+    if len(outs) != len(kept) or len(kept) < 2 or all(set(o.extras) == set(outs[0].extras) for o in outs):
+        return kept
+    common = set.intersection(*(set(o.extras) for o in outs))
+    return [o._replace(extras={k: v for k, v in o.extras.items() if k in common}) for o in outs]
 
 
 def attach_provenance(trajectory: Trajectory, provenance: Provenance) -> Trajectory:

@@ -99,3 +99,24 @@ def test_update_first_is_a_flag():
     learnable_noise(kf.motion, "Q", "cholesky")
     with pytest.raises(TypeError, match="^update_first"):
         Trainer(kf, torch.optim.SGD(kf.parameters(), lr=0.1), update_first=1)
+
+
+def test_update_first_runs_an_imm():
+    """An IMM with ``update_first``: step 0 is the IMM's update of ``belief0`` (no mixing, no prediction),
+    then ordinary steps from its posterior; its extras are those every step has."""
+    import torch
+
+    from torchmm import IMM, ConstantVelocity, GaussianBelief, KalmanFilter, PositionMeasurement, run_filter
+
+    motion = ConstantVelocity(1, q=0.1, acceleration=[[0.0], [1.0]], dtype=torch.float64)
+    imm = IMM(KalmanFilter(motion, PositionMeasurement(2, [0], 1.0, dtype=torch.float64)),
+              torch.tensor([[0.9, 0.1], [0.2, 0.8]], dtype=torch.float64))
+    belief0 = imm.initial_belief(GaussianBelief.create([0.0, 1.0], torch.eye(2, dtype=torch.float64)).expand(3))
+    z = torch.randn(8, 3, 1, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    traj = run_filter(imm, belief0, z, update_first=True)
+    first = imm.update(belief0, z[0])
+    rest = run_filter(imm, first.belief, z[1:])
+    torch.testing.assert_close(traj.log_likelihood[0], first.log_likelihood, rtol=0, atol=0)
+    torch.testing.assert_close(traj.log_likelihood[1:], rest.log_likelihood, rtol=1e-14, atol=1e-14)
+    assert "mixed" not in traj.extras and "failed" in traj.extras
+    assert not torch.allclose(traj.log_likelihood, run_filter(imm, belief0, z).log_likelihood)
