@@ -196,3 +196,11 @@ def test_fit_shows_a_progress_bar_with_the_loss(capsys):
     assert "training the noise" in err and "3/3" in err and f"loss={records[-1].loss:.5g}" in err
     with pytest.raises(TypeError, match=r"^progress: expected None, True, False or the bar's description"):
         trainer.fit(prior, z, 1, progress=3)
+    # Trainer(progress=...) sets the default of every fit; fit's own argument overrides it
+    quiet = Trainer(kf, torch.optim.Adam(kf.parameters(), lr=0.01), progress="every fit")
+    quiet.fit(prior, z, 2)
+    assert "every fit" in capsys.readouterr().err
+    quiet.fit(prior, z, 2, progress=False)
+    assert "every fit" not in capsys.readouterr().err
+    with pytest.raises(TypeError, match=r"^progress: expected None, True, False or the bar's description"):
+        Trainer(kf, torch.optim.Adam(kf.parameters(), lr=0.01), progress=3)

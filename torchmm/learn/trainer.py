@@ -129,6 +129,8 @@ class Trainer:
             segment's step 0 is an update only (``update_first=True`` is passed to ``loss_fn``, which
             must then accept it, as :func:`~torchmm.learn.negative_log_likelihood` does). Later
             TBPTT segments start from the previous segment's posterior and always predict first.
+        progress: the default of :meth:`fit`'s ``progress`` (a tqdm bar over the iterations with the
+            last loss; None: on a terminal only; a string is the bar's description).
 
     Shapes:
         :meth:`fit`: ``belief0`` batch ``(N,)`` (or ``(N, ...)``), ``measurements (T, N, ..., m)``,
@@ -154,7 +156,8 @@ class Trainer:
                  logger=Of(methods=("scalar",), optional=True, what="an object with scalar(tag, value, i)"),
                  callbacks=Unchecked("any iterable of callables; each is called with (trainer, record)"),
                  checkpoint_path=FilePath(optional=True), checkpoint_every=Int(0), prefix=Text(),
-                 update_first=Flag())
+                 update_first=Flag(),
+                 progress=Unchecked("None, True, False or the bar's description (any string)"))
     def __init__(
         self,
         filter: nn.Module,
@@ -170,7 +173,10 @@ class Trainer:
         checkpoint_every: int = 0,
         prefix: str = "train",
         update_first: bool = False,
+        progress: bool | str | None = None,
     ):
+        if progress is not None and not isinstance(progress, (bool, str)):
+            raise TypeError(f"progress: expected None, True, False or the bar's description, got {progress!r}")
         if window is not None and int(window) < 1:
             raise ValueError(f"window: must be a positive number of steps, got {window}")
         if clip_grad_norm is not None and not clip_grad_norm > 0:
@@ -189,6 +195,7 @@ class Trainer:
         self.checkpoint_every = int(checkpoint_every)
         self.prefix = prefix
         self.update_first = bool(update_first)
+        self.progress = progress
         self.history: list[TrainRecord] = []
 
     @property
@@ -267,10 +274,11 @@ class Trainer:
             batch_size: sequences per iteration, drawn without replacement with ``generator``;
                 default all ``N``.
             generator: randomness of the mini-batches.
-            progress: a tqdm bar over the iterations with the last loss; None (default): on a
-                terminal only (not in logs, CI or notebooks' captured output); a string is its
-                description.
+            progress: a tqdm bar over the iterations with the last loss; None (default): the
+                trainer's ``progress`` (whose default None is: on a terminal only, not in logs, CI or
+                notebooks' captured output); a string is its description.
         """
+        progress = self.progress if progress is None else progress
         if progress is not None and not isinstance(progress, (bool, str)):
             raise TypeError(f"progress: expected None, True, False or the bar's description, got {progress!r}")
         if iterations < 0:
