@@ -441,6 +441,29 @@ class Vbakf:
     tau_r: float = spec(3.0, positive)
 
 
+#: what a node of ``gimmaf.estimators`` may build: IMMs over the model_rates bank (they take a
+#: ``transition``) and single VB filters on the CV model
+GIMMAF_TARGETS = ("torchmm.multimodel.variational.imm_vbt", "torchmm.multimodel.variational.gimmaf",
+                  "torchmm.filters.variational.SkewTVBFilter", "torchmm.filters.variational.StudentTVBFilter",
+                  "torchmm.filters.variational.SkewTIWVBFilter", "torchmm.filters.variational.VBAKFPR")
+
+
+@dataclass
+class GimmafEstimator:
+    """A node of ``gimmaf.estimators``: a torchmm function or class and its options (the noise's
+    ``skewness`` and ``df`` come from the setting: not options)."""
+
+    _target_: str = spec(GIMMAF_TARGETS[1], one_of(*GIMMAF_TARGETS))
+    _partial_: bool = True
+    iterations: Optional[int] = spec(None, positive_int)
+    tau: Optional[float] = spec(None, positive)
+    rho: Optional[float] = spec(None, lambda v: None if v is None or 0 < v <= 1 else "must lie in (0, 1]")
+    tau_r: Optional[float] = spec(None, positive)
+    gamma_shape: Optional[str] = spec(None, one_of("derived", "printed"))
+    elbo_history: Optional[bool] = None
+    joseph: Optional[bool] = None
+
+
 @dataclass
 class GimmafSection:
     steps: int = spec(250, positive_int)
@@ -459,6 +482,7 @@ class GimmafSection:
     vbakf: Vbakf = field(default_factory=Vbakf)
     oracle: bool = True
     table4: Table4 = field(default_factory=Table4)
+    estimators: Dict[str, Any] = spec(factory=dict, check=non_empty)  # name: node (checked by Gimmaf.check)
 
     def config_check(self):
         if len(self.transition) != len(self.model_rates):
@@ -471,6 +495,16 @@ class GimmafSection:
 class Gimmaf:
     noise: str = spec("skew_t", one_of("skew_t", "student_t", "gaussian"))
     gimmaf: GimmafSection = field(default_factory=GimmafSection)
+
+    @staticmethod
+    def check(data: dict) -> None:
+        from experiments.config import _merge
+
+        for name, node in data["gimmaf"]["estimators"].items():  # each node's target and options, one line
+            prefix = f"gimmaf.estimators.{name}"
+            if not isinstance(node, dict):
+                raise ConfigError(prefix, node, f"expected an estimator node with a _target_ (one of {', '.join(GIMMAF_TARGETS)})")
+            _merge(GimmafEstimator, node, prefix)
 
 
 def _nominal_q(value) -> str | None:
@@ -548,13 +582,77 @@ class LearnDynamics:
     learn: LearnSection = field(default_factory=LearnSection)
 
 
-MEVSMM_KINDS = ("eqma9", "eqma21", "cm", "topk", "nofeedback", "exact", "mmpf", "vsmm")
+#: the builders of ``mevsmm.estimators`` nodes (conf/mevsmm_estimator/*.yaml)
+MEVSMM_BUILDERS = ("experiments.studies.mevsmm.eqma", "experiments.studies.mevsmm.pf_mevsmm",
+                   "experiments.studies.mevsmm.vsmm")
+MEVSMM_SELECTIONS = ("torchmm.multimodel.mevsmm.ChallengeMatch", "torchmm.multimodel.mevsmm.ExactMinimumEntropy")
+_MEVSMM_HINT = "a conf/mevsmm_estimator entry, e.g. +mevsmm_estimator@mevsmm.estimators.NAME=topk"
+
+
+def _mevsmm_model(value) -> str | None:
+    return None if 1 <= value <= 21 else "must be a model m_j of section 4 (1..21)"
+
+
+@dataclass
+class MevsmmSelection:
+    """A PF-MEVSMM node's ``selection``: the challenge match / top-k or the exact minimum-entropy set."""
+
+    _target_: str = spec(MEVSMM_SELECTIONS[0], one_of(*MEVSMM_SELECTIONS))
+    num_winners: Optional[int] = spec(None, positive_int)
+    threshold: Optional[int] = spec(None, non_negative)
+    method: Optional[str] = spec(None, one_of("cm", "topk"))
+    passes: Optional[int] = spec(None, positive_int)
+    chunk_size: Optional[int] = spec(None, positive_int)
+    entropy: Optional[str] = spec(None, one_of("joint", "literal"))
+
+
+@dataclass
+class MevsmmEstimator:
+    """A node of ``mevsmm.estimators``: a builder of experiments/studies/mevsmm.py, its options, and
+    the study's own ``runs`` (cap on the runs) and ``timing_base`` (table2's base)."""
+
+    _target_: str = spec(MEVSMM_BUILDERS[1], one_of(*MEVSMM_BUILDERS))
+    _partial_: bool = True
+    runs: Optional[int] = spec(None, positive_int)
+    timing_base: bool = False
+    models: Optional[List[int]] = spec(None, each(_mevsmm_model))  # eqma: the m_j (1-based); null: all 21
+    num_particles: Optional[int] = spec(None, positive_int)
+    stay_prob: Optional[float] = spec(None, probability)
+    accel_std: float = spec(5.0, positive)
+    mixing: str = spec("two_stage", one_of("two_stage", "systematic", "stratified", "multinomial"))
+    noise_dtype: Optional[str] = spec(None, one_of("float32", "float64"))
+    feedback: bool = True
+    selection: Optional[Any] = None  # pf_mevsmm: a MevsmmSelection node
+    entropy: str = spec("joint", one_of("joint", "literal"))
+    mode_filter: Optional[Any] = None  # vsmm: the conf/mode_filter node
+    policy: Optional[Any] = None  # vsmm: the conf/policy node
+
+    def config_check(self):
+        import dataclasses
+
+        builder = self._target_.rsplit(".", 1)[-1]
+        options = {"eqma": ("models", "num_particles", "stay_prob", "accel_std", "mixing", "noise_dtype"),
+                   "pf_mevsmm": ("selection", "num_particles", "feedback", "stay_prob", "accel_std", "mixing",
+                                 "noise_dtype"),
+                   "vsmm": ("mode_filter", "policy", "entropy", "feedback", "stay_prob", "accel_std")}[builder]
+        defaults = {f.name: f.default for f in dataclasses.fields(self) if f.default is not dataclasses.MISSING}
+        for key, default in defaults.items():
+            if key not in options and not key.startswith("_") and key not in ("runs", "timing_base") \
+                    and getattr(self, key) != default:
+                return key, getattr(self, key), f"not an option of {self._target_} (its options: {', '.join(options)})"
+        if builder != "vsmm" and self.num_particles is None:
+            return "num_particles", None, f"missing: {self._target_} needs num_particles"
+        if builder == "eqma" and self.stay_prob is None:
+            return "stay_prob", None, "missing: EqMA needs its p_ii"
+        if builder == "pf_mevsmm" and self.selection is None:
+            return "selection", None, f"missing: {self._target_} needs a selection node ({', '.join(MEVSMM_SELECTIONS)})"
+        return None
 
 
 @dataclass
 class MevsmmSection:
-    estimators: Dict[str, str] = spec(factory=dict, check=lambda d: None if d and all(
-        k in MEVSMM_KINDS for k in d.values()) else f"every estimator kind must be one of {', '.join(MEVSMM_KINDS)}")
+    estimators: Dict[str, Any] = spec(factory=dict, check=non_empty)  # name: node (checked by Mevsmm.check)
+    estimator_names: Optional[List[str]] = spec(None, non_empty)  # which estimators run, in order (null: all)
     num_particles: int = spec(1000, positive_int)
     num_winners: int = spec(420, positive_int)
     threshold: int = spec(23, non_negative)
@@ -577,10 +675,36 @@ class Mevsmm:
 
     @staticmethod
     def check(data: dict) -> None:
+        from experiments.config import ModeFilter, Policy, _merge
+
         opts = data["mevsmm"]
         if opts["num_winners"] > 21 * opts["num_particles"]:
             raise ConfigError("mevsmm.num_winners", opts["num_winners"],
                               f"must not exceed the 21 x {opts['num_particles']} particles")
+        names = list(opts["estimators"])
+        for name in opts.get("estimator_names") or ():
+            if name not in names:
+                raise ConfigError("mevsmm.estimator_names", opts["estimator_names"],
+                                  f"entry {name}: expected one of {', '.join(names)} (the keys of mevsmm.estimators)")
+        # every node's builder (one_of) and options (types, ranges), as one line naming the key
+        for name, node in opts["estimators"].items():
+            prefix = f"mevsmm.estimators.{name}"
+            if not isinstance(node, dict):  # the kind strings of before (issue 30) are config-group entries now
+                raise ConfigError(prefix, node, f"expected an estimator node with a _target_ ({_MEVSMM_HINT})")
+            est = _merge(MevsmmEstimator, node, prefix)
+            if est.selection is not None:
+                if not isinstance(est.selection, dict):
+                    raise ConfigError(f"{prefix}.selection", est.selection,
+                                      f"expected a node with a _target_ ({', '.join(MEVSMM_SELECTIONS)})")
+                selection = _merge(MevsmmSelection, est.selection, f"{prefix}.selection")
+                winners = selection.num_winners
+                if winners is not None and est.num_particles is not None and winners > 21 * est.num_particles:
+                    raise ConfigError(f"{prefix}.selection.num_winners", winners,
+                                      f"must not exceed the 21 x {est.num_particles} particles")
+            if isinstance(est.mode_filter, dict):
+                _merge(ModeFilter, est.mode_filter, f"{prefix}.mode_filter")
+            if isinstance(est.policy, dict):
+                _merge(Policy, est.policy, f"{prefix}.policy")
 
 
 @dataclass

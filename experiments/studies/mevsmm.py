@@ -31,7 +31,6 @@ from torchmm import GaussianBelief, LinearMotion, PositionMeasurement, run_filte
 from torchmm.filters import StepOutput
 from torchmm.multimodel import VariableStructureIMM
 from torchmm.multimodel.mevsmm import (
-    ChallengeMatch,
     EqMAParticleFilter,
     ExactMinimumEntropy,
     MinimumEntropyVSMM,
@@ -46,7 +45,7 @@ MODELS = [
     [0, 20], [0, -20], [20, 0], [-20, 0], [20, 20], [20, -20], [-20, 20], [-20, -20],
     [0, 40], [0, -40], [40, 0], [-40, 0],
 ]
-#: EqMA9+1 centres {m1, m6..m13} (0-based indices)
+#: EqMA9+1 centres {m1, m6..m13} (0-based indices; conf/mevsmm_estimator/eqma9.yaml lists them 1-based)
 EQMA9 = [0, 5, 6, 7, 8, 9, 10, 11, 12]
 
 PUBLISHED_TABLE1 = {"det_small": 6.6, "det_large": 6.3}
@@ -121,37 +120,78 @@ def paper003_scenario(*, name: str, R: float, steps: int = 180, initial_state=(1
     )
 
 
-def _build(name: str, kind: str, scenario: Paper003Scenario, opts, mode_filter=None, policy=None):
-    """The estimator of ``kind``; its random stream is an argument of every call (:func:`_run`)."""
+# -- estimator builders (conf/mevsmm_estimator/*.yaml: the nodes of ``mevsmm.estimators``) ------------
+#: node keys the study reads itself (not builder options): ``runs`` (at most this many of the runs,
+#: e.g. ``${mevsmm.exact_runs}``) and ``timing_base`` (table2's relative_time is relative to it)
+STUDY_KEYS = ("runs", "timing_base")
+
+
+def _accelerations(scenario: Paper003Scenario, accel_std: float) -> tuple[Tensor, Tensor]:
+    """The 21 model accelerations ``(21, 2)`` and the filter acceleration-noise covariance ``(2, 2)``."""
     dtype, device = scenario.F.dtype, scenario.F.device
     acc = torch.tensor(MODELS, dtype=dtype, device=device)
-    qa = float(opts.accel_std) ** 2 * torch.eye(2, dtype=dtype, device=device)
-    sensor, Np = scenario.measurement, int(opts.num_particles)
-    noise_dtype = opts.get("noise_dtype")  # e.g. "float32": faster process-noise draws
-    if kind in ("eqma9", "eqma21"):
-        grid = acc[EQMA9] if kind == "eqma9" else acc
-        return EqMAParticleFilter(scenario.F, scenario.D, grid, qa, sensor, Np, stay=float(opts.stay_prob),
-                                  mixing=str(opts.mixing), innovation_stats=False, noise_dtype=noise_dtype)
+    return acc, float(accel_std) ** 2 * torch.eye(2, dtype=dtype, device=device)
+
+
+def _selection_motion(scenario: Paper003Scenario, accel_std: float, stay_prob: float | None):
+    """The 21-model bank as one :class:`LinearMotion` (offsets ``D a_j``) and its transition matrix
+    (``stay_prob`` null: uniform ``1/21``, the "maximum-likelihood" competition of section 3.4.3)."""
+    dtype, device = scenario.F.dtype, scenario.F.device
+    acc, qa = _accelerations(scenario, accel_std)
     motion = LinearMotion(scenario.F, scenario.D @ qa @ scenario.D.mT, offset=acc @ scenario.D.mT)
-    stay = opts.get("mevsmm_stay_prob")
-    stay = 1.0 / len(MODELS) if stay is None else float(stay)  # null: uniform, the "maximum-likelihood" competition
-    transition = uniform_transition(len(MODELS), stay, dtype=dtype, device=device)
-    if kind == "vsmm":  # the model-set policy (conf/policy) over the configured bank (conf/mode_filter)
-        bank = build_mode_filter(mode_filter, motion, sensor)
-        return VariableStructureIMM(bank, transition, policy or ExactMinimumEntropy(entropy=str(opts.entropy)),
-                                    feedback=bool(opts.feedback))
-    if kind == "exact":
-        selection = ExactMinimumEntropy(chunk_size=int(opts.exact_chunk), entropy=str(opts.entropy))
-        feedback = bool(opts.feedback)
-    elif kind == "mmpf":  # no selection: every model stays (the plain multiple-model PF over all 21)
-        selection, feedback = ChallengeMatch(1, 0, method="topk"), True
-    else:
-        method = "topk" if kind == "topk" else "cm"
-        selection = ChallengeMatch(int(opts.num_winners), int(opts.threshold), method=method,
-                                   passes=int(opts.cm_passes))
-        feedback = bool(opts.feedback) if kind != "nofeedback" else False
-    return MinimumEntropyVSMM(motion, sensor, transition, Np, selection=selection, feedback=feedback,
-                              mixing=str(opts.mixing), innovation_stats=False, noise_dtype=noise_dtype)
+    stay = 1.0 / len(MODELS) if stay_prob is None else float(stay_prob)
+    return motion, uniform_transition(len(MODELS), stay, dtype=dtype, device=device)
+
+
+def eqma(scenario: Paper003Scenario, *, models=None, num_particles: int, stay_prob: float = 0.9,
+         accel_std: float = 5.0, mixing: str = "two_stage", noise_dtype: str | None = None) -> EqMAParticleFilter:
+    """EqMA ``N+1`` on particle filters (docs/baselines.md §2.2) over the section-4 models ``models``
+    (``m_j``, 1-based; null: all 21): ``conf/mevsmm_estimator/eqma9.yaml``, ``eqma21.yaml``."""
+    acc, qa = _accelerations(scenario, accel_std)
+    grid = acc if models is None else acc[[int(m) - 1 for m in models]]
+    return EqMAParticleFilter(scenario.F, scenario.D, grid, qa, scenario.measurement, int(num_particles),
+                              stay=float(stay_prob), mixing=str(mixing), innovation_stats=False,
+                              noise_dtype=noise_dtype)
+
+
+def pf_mevsmm(scenario: Paper003Scenario, *, selection, num_particles: int, feedback: bool = True,
+              stay_prob: float | None = None, accel_std: float = 5.0, mixing: str = "two_stage",
+              noise_dtype: str | None = None) -> MinimumEntropyVSMM:
+    """PF-MEVSMM over the 21 models with a model-set ``selection`` (a ``ChallengeMatch`` or
+    ``ExactMinimumEntropy`` node): ``conf/mevsmm_estimator/cm.yaml``, ``topk``, ``nofeedback``,
+    ``exact``, ``mmpf``."""
+    motion, transition = _selection_motion(scenario, accel_std, stay_prob)
+    return MinimumEntropyVSMM(motion, scenario.measurement, transition, int(num_particles), selection=selection,
+                              feedback=bool(feedback), mixing=str(mixing), innovation_stats=False,
+                              noise_dtype=noise_dtype)
+
+
+def vsmm(scenario: Paper003Scenario, *, mode_filter=None, policy=None, entropy: str = "joint",
+         feedback: bool = True, stay_prob: float | None = None, accel_std: float = 5.0) -> VariableStructureIMM:
+    """The model-set ``policy`` (conf/policy; null: the exact minimum-entropy set with ``entropy``)
+    over a bank of ``mode_filter`` filters (conf/mode_filter) of the 21 models:
+    ``conf/mevsmm_estimator/vsmm.yaml``."""
+    motion, transition = _selection_motion(scenario, accel_std, stay_prob)
+    bank = build_mode_filter(mode_filter, motion, scenario.measurement)
+    return VariableStructureIMM(bank, transition, policy or ExactMinimumEntropy(entropy=str(entropy)),
+                                feedback=bool(feedback))
+
+
+def _node(opts, name: str) -> dict:
+    """Estimator ``name``'s node of ``mevsmm.estimators``, resolved (a plain dict)."""
+    from omegaconf import OmegaConf
+
+    node = opts.estimators[name]
+    return OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else dict(node)
+
+
+def _build(node: dict, scenario: Paper003Scenario):
+    """The estimator of a ``mevsmm.estimators`` node: its builder called with the scenario; its
+    random stream is an argument of every call (:func:`_run`)."""
+    from hydra.utils import instantiate
+
+    make = instantiate({k: v for k, v in node.items() if k not in STUDY_KEYS})
+    return make(scenario)
 
 
 def _run(filt, scenario: Paper003Scenario, z: Tensor, hist_steps: set[int], generator: torch.Generator) -> dict:
@@ -189,7 +229,7 @@ def _run(filt, scenario: Paper003Scenario, z: Tensor, hist_steps: set[int], gene
 
 def _estimate_mean(belief) -> Tensor:
     """The output estimate's mean (31) without its covariance: one batched matmul. ``(*B, n)``."""
-    if not hasattr(belief.components, "log_weights"):  # Gaussian mode filters (estimator kind vsmm)
+    if not hasattr(belief.components, "log_weights"):  # Gaussian mode filters (the vsmm builder)
         return belief.estimate().mean
     lp = belief.mode_log_probs
     if hasattr(belief, "active"):
@@ -217,22 +257,18 @@ def _data(ctx: StudyContext, start: int = 0, stop: int | None = None):
 UNIT = "experiments.studies.mevsmm:unit"
 
 
-def unit(ctx: StudyContext, *, name: str, kind: str, start: int, stop: int) -> dict:
-    """One estimator on runs ``start..stop-1``: per-run squared errors and model counts, and sums over
-    these runs of the per-step statistics (merged over units by :func:`_merge`); a function of the
-    config and these arguments only."""
-    from hydra.utils import instantiate
-
-    cfg, opts = ctx.cfg, ctx.cfg.mevsmm
+def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
+    """Estimator ``name`` (its node of ``mevsmm.estimators``) on runs ``start..stop-1``: per-run
+    squared errors and model counts, and sums over these runs of the per-step statistics (merged
+    over units by :func:`_merge`); a function of the config and these arguments only."""
+    opts = ctx.cfg.mevsmm
     scenario, truth, z = _data(ctx, start, stop)
     hist_steps = {int(s) for s in opts.histogram_steps}
     # the particle filters draw from one stream per block of runs (run-indexed): any chunking or
     # split over workers gives the same numbers; every figure is reduced over all runs at once
     values: dict[str, list] = {"pos": [], "vel": [], "count": [], "ess": [], "members": []}
     seconds, hists = 0.0, {}
-    mode_filter = instantiate(cfg.mode_filter) if kind == "vsmm" else None
-    policy = instantiate(cfg.policy) if kind == "vsmm" and cfg.get("policy") else None
-    filt = _build(name, kind, scenario, opts, mode_filter, policy)
+    filt = _build(_node(opts, name), scenario)
     stream, first = ctx.block_generators("filter", scenario.name, name), start // ctx.block_runs
     for b, sl in enumerate(ctx.blocks(stop - start)):
         res = _run(filt, scenario, z[:, sl], hist_steps if first + b == 0 else set(), stream(first + b))
@@ -321,20 +357,22 @@ def run(ctx: StudyContext) -> None:
                    "source": "paper 003 Table 2"},
     )
     curves, count_curves, memberships, base_time, bands = {}, {}, {}, None, {}
-    estimators = dict(opts.estimators)
+    names = list(opts.estimators) if opts.get("estimator_names") is None else [str(n) for n in opts.estimator_names]
+    nodes = {name: _node(opts, name) for name in names}
     # every estimator is a unit, all at once: an executor (executor=processes|slurm|ray) runs them side by side
-    # (and each range of runs, unit_runs=...; an estimator's ranges are merged in run order)
-    items = [(name, kind, runs if kind != "exact" else min(runs, int(opts.exact_runs))) for name, kind in estimators.items()]
+    # (and each range of runs, unit_runs=...; an estimator's ranges are merged in run order); a node's
+    # `runs` caps its runs (the exact selection: mevsmm.exact_runs), `timing_base` marks table2's base
+    items = [(name, bool(node.get("timing_base")), runs if node.get("runs") is None else min(runs, int(node["runs"])))
+             for name, node in nodes.items()]
     ranges = {name: ctx.run_ranges(n) for name, _, n in items}
-    parts = ctx.map_units([Unit(f"{scenario.name}/{name}/runs{a}-{b}", UNIT, {"name": name, "kind": kind, "start": a,
-                                                                           "stop": b})
-                           for name, kind, _ in items for a, b in ranges[name]], desc="estimators")
+    parts = ctx.map_units([Unit(f"{scenario.name}/{name}/runs{a}-{b}", UNIT, {"name": name, "start": a, "stop": b})
+                           for name, _, _ in items for a, b in ranges[name]], desc="estimators")
     window = slice(80, 120) if deterministic and scenario.steps >= 120 else None
     values, i = [], 0
     for name, _, _ in items:
         values.append(_merge(parts[i:i + len(ranges[name])], runs, window))
         i += len(ranges[name])
-    for (name, kind, est_runs), res in zip(items, values):
+    for (name, timing_base, est_runs), res in zip(items, values):
         # checkpointed lists of floats: keep float64 (torch.tensor would default to float32)
         pos, vel = torch.tensor(res["pos"], dtype=torch.float64), torch.tensor(res["vel"], dtype=torch.float64)
         maneuver = pos[80:120].mean().item() if deterministic and scenario.steps >= 120 else None
@@ -344,7 +382,7 @@ def run(ctx: StudyContext) -> None:
         avg_count = float(torch.tensor(res["count"], dtype=torch.float64).mean())
         table1.rows.append([label, avg_count, res.get("count_se"),
                             inside(published_counts.get(label), avg_count, res.get("count_se"))])
-        if base_time is None and kind == "eqma9":
+        if base_time is None and timing_base:
             base_time = res["seconds_per_step"]
         table2.rows.append([label, res["seconds_per_step"], None])
         ctx.results.timing[name] = res["seconds_per_step"]

@@ -43,7 +43,7 @@ def test_imm_baseline_composes_combinators_policies_and_particle_modes(tmp_path)
 
 
 def test_mevsmm_selection_over_a_kalman_bank(tmp_path):
-    t = _tables("mevsmm", tmp_path, "+mevsmm.estimators.KF-VSMM=vsmm", "policy=all")
+    t = _tables("mevsmm", tmp_path, "+mevsmm_estimator@mevsmm.estimators.KF-VSMM=vsmm", "policy=all")
     rows = {row[0]: row for row in t["table1"]["rows"]}
     assert rows["KF-VSMM"][1] == 21.0  # policy=all keeps the 21 models
     rmse = {row[0]: row for row in t["rmse"]["rows"]}

@@ -21,7 +21,6 @@ from experiments.config import ConfigError, validate
 from experiments.run import CONFIG_DIR, run_study, unique_dir
 
 EXPERIMENTS = sorted(p.stem for p in (Path(CONFIG_DIR) / "experiment").glob("*.yaml"))
-TF_FAST = ["table1_ratios=[0.3]", "rs_sweep=[1.0]"]
 
 
 def _compose(*overrides: str):
@@ -55,10 +54,11 @@ BAD = [
     (["dtype=float16"], "dtype=float16: expected one of float64, float32"),
     (["progress=maybe"], "progress=maybe: expected true or false"),
     (["mc_run=5"], "mc_run=5: unknown key (did you mean mc_runs?"),
-    (["source.ratio=1.5"], "source.ratio=1.5: must be a probability in [0, 1]"),
-    (["source.ratioo=0.5"], "source.ratioo=0.5: unknown key (did you mean source.ratio?"),
+    (["experiment=imm_tf_quick", "source.ratio=1.5"], "source.ratio=1.5: must be a probability in [0, 1]"),
+    (["experiment=imm_tf_quick", "source.ratioo=0.5"],
+     "source.ratioo=0.5: unknown key (did you mean source.ratio?"),
     (["experiment=imm_baseline", "scenario=det_small"],
-     "scenario=det_small: does not fit the imm_baseline study; choose one of maneuver2, maneuver3, paper000"),
+     "scenario=det_small: does not fit the imm_baseline study; choose one of maneuver2, maneuver3, maneuver_demo, paper000"),
     (["experiment=mevsmm", "scenario=paper000"], "scenario=paper000: does not fit the mevsmm study"),
     (["experiment=imm_analysis", "scenario=paper000"], "scenario=paper000: the imm_analysis study takes no scenario"),
     # (issue 30: it ran a unit, then printed a 20-line traceback and exited 1)
@@ -66,13 +66,45 @@ BAD = [
      "analysis.alphas.two_model=[0.01, 2]: entries [2] exceed 1/(M-1) = 1 for M = 2 modes"),
     (["experiment=imm_analysis", "analysis.alphas.three_model=[0.6]"],
      "analysis.alphas.three_model=[0.6]: entries [0.6] exceed 1/(M-1) = 0.5 for M = 3 modes"),
-    (["experiment=nope"], "experiment=nope: no such config; choose one of fusion_radar"),
+    (["experiment=nope"], "experiment=nope: no such config; choose one of "),
     (["experiment=imm_baseline", "estimators.IMM.joseph=maybe"], "estimators.IMM.joseph=maybe: expected true or false"),
     (["experiment=mevsmm", "mevsmm.mixing=bogus"], "mevsmm.mixing=bogus: expected one of two_stage"),
     (["experiment=gimmaf", "noise=laplace"], "noise=laplace: expected one of skew_t"),
-    (["scenario.transition=[[1,0],[0,1]]"], "scenario.transition=[[1, 0], [0, 1]]: must be 3 x 3"),
-    (["+foo=1"], "foo: not a key of the imm_tf_quick study"),
+    (["experiment=imm_tf_quick", "scenario.transition=[[1,0],[0,1]]"],
+     "scenario.transition=[[1, 0], [0, 1]]: must be 3 x 3"),
+    (["scenario.transition=[[1,0,0],[0,1,0],[0,0,1]]"], "scenario.transition=[[1, 0, 0], [0, 1, 0], [0, 0, 1]]: must be 2 x 2"),
+    (["+foo=1"], "foo: not a key of the quickstart study"),
     (["logger=tb"], "logger=tb: no such config; choose one of none, tensorboard"),
+    # issue 30: each of these ran the study (some a unit) and failed with a traceback or a Hydra error
+    (["experiment=smoothing", "smoothing.scenarios.paper000.steps=-3"],
+     "smoothing.scenarios.paper000.steps=-3: must be a positive integer"),
+    (["experiment=smoothing", "smoothing.scenarios.paper001.q=abc"], "smoothing.scenarios.paper001.q=abc: expected a number"),
+    (["experiment=smoothing", "smoothing.scenarios.turning.stay=1.5"], "smoothing.scenarios.turning.stay=1.5: must"),
+    (["experiment=smoothing", "+smoothing.scenarios.turning.bogus=1"], "smoothing.scenarios.turning.bogus: unknown key"),
+    (["experiment=smoothing", "smoothing.cv_mode.paper000=-3"],
+     "smoothing.cv_mode.paper000=-3: must be a mode index in [0, 3)"),
+    (["experiment=smoothing", "smoothing.speed=maybe"], "smoothing.speed=maybe: expected true or false"),
+    (["experiment=imm_tf_quick", "tf_estimators.VSIMM.p_ee=abc"], "tf_estimators.VSIMM.p_ee=abc: expected a number"),
+    (["experiment=imm_tf_quick", "tf_estimators.VSIMM.p_ee=1.5"], "tf_estimators.VSIMM.p_ee=1.5: must lie in [0, 1)"),
+    (["experiment=imm_tf_quick", "tf_estimators.IF-TF.gate.mode=-3"], "tf_estimators.IF-TF.gate.mode=-3: must be non-negative"),
+    (["experiment=mevsmm", "mevsmm.cm_passes=0"], "mevsmm.cm_passes=0: must be a positive integer"),
+    # issue 30: the estimators of mevsmm and gimmaf are config nodes; a bad node is one line naming its key
+    (["experiment=mevsmm", "mevsmm.estimators.PF-MEVSMM._target_=torch.nn.Linear"],
+     "mevsmm.estimators.PF-MEVSMM._target_=torch.nn.Linear: expected one of experiments.studies.mevsmm.eqma"),
+    (["experiment=mevsmm", "+mevsmm_estimator@mevsmm.estimators.T=topk", "mevsmm.estimators.T.selection.method=x"],
+     "mevsmm.estimators.T.selection.method=x: expected one of cm, topk"),
+    (["experiment=mevsmm", "+mevsmm.estimators.K=topk"], "mevsmm.estimators.K=topk: expected an estimator node"),
+    (["experiment=mevsmm", "mevsmm.estimator_names=[PF-MEVSMM,X]"], "mevsmm.estimator_names=['PF-MEVSMM', 'X']: entry X"),
+    (["experiment=gimmaf", "gimmaf.estimators.STVBF._target_=torch.nn.Linear"],
+     "gimmaf.estimators.STVBF._target_=torch.nn.Linear: expected one of torchmm.multimodel.variational.imm_vbt"),
+    (["experiment=gimmaf", "gimmaf.estimators.GIMMAF.iterations=0"],
+     "gimmaf.estimators.GIMMAF.iterations=0: must be a positive integer"),
+    (["experiment=fusion_radar", "radar.rho=[]"], "radar.rho=[]: expected 2 numbers"),
+    (["experiment=fusion_radar", "radar.x0=[1]"], "radar.x0=[1.0]: expected 6 numbers"),
+    (["experiment=fusion_ups", "ups.horizons=[-1]"], "ups.horizons=[-1]: must include 0"),
+    (["experiment=fusion_ups", "ups.C=[]"], "ups.C=[]: expected 3 numbers (one per state)"),
+    (["experiment=fusion_ups", "ups.d=[1]"], "ups.d=[1.0]: expected 3 numbers (one per sensor)"),
+    (["scenario.initial_mean=[]"], "scenario.initial_mean=[]: expected the 2-state [position, velocity] mean"),
 ]
 
 
@@ -90,19 +122,22 @@ def test_run_study_rejects_bad_keys_before_writing(overrides, message, tmp_path)
     assert not (tmp_path / "run").exists()
 
 
-@pytest.mark.parametrize("override", sorted(COMPOSITION))
-def test_composition_errors_become_one_line_config_errors(override):
+COMPOSING = [b for b in BAD if b[0][-1] in COMPOSITION]
+
+
+@pytest.mark.parametrize("overrides,message", COMPOSING, ids=[" ".join(o) for o, _ in COMPOSING])
+def test_composition_errors_become_one_line_config_errors(overrides, message):
     from experiments.config import _precheck
 
     with pytest.raises(ConfigError) as err:
-        _precheck([override], CONFIG_DIR, "config")
-    message = dict((o[-1], m) for o, m in BAD)[override]
+        _precheck(list(overrides), CONFIG_DIR, "config")
     assert str(err.value).startswith(message) and "\n" not in str(err.value)
 
 
-CLI_CASES = [b for b in BAD if b[0][0] in ("mc_runs=abc", "mc_runs=2.5", "seed=-5", "device=gpu", "mc_run=5",
-                                             "source.ratioo=0.5", "experiment=nope", "logger=tb")
-             or b[0][-1] in ("scenario=det_small", "analysis.alphas.two_model=[0.01,2]")]
+CLI_CASES = [b for b in BAD if b[0][-1] in ("mc_runs=abc", "mc_runs=2.5", "seed=-5", "device=gpu", "mc_run=5",
+                                              "source.ratioo=0.5", "experiment=nope", "logger=tb")
+             or b[0][-1] in ("scenario=det_small", "analysis.alphas.two_model=[0.01,2]",
+                             "smoothing.scenarios.paper000.steps=-3", "tf_estimators.VSIMM.p_ee=abc")]
 
 
 @pytest.mark.parametrize("overrides,message", CLI_CASES, ids=[" ".join(o) for o, _ in CLI_CASES])
@@ -133,7 +168,7 @@ def test_two_runs_started_together_write_into_their_own_folders(tmp_path):
     """Seeds 1 and 2 launched in the same second used to share (and overwrite) one folder."""
     exe = Path(sys.executable).with_name("torchmm-run")
     procs = [subprocess.Popen([str(exe), "mc_runs=2", f"seed={seed}", "progress=false", "logger=tensorboard",
-                               "figures=false", *TF_FAST, "hydra.run.dir=${torchmm.unique_dir:outputs/same}"],
+                               "figures=false", "hydra.run.dir=${torchmm.unique_dir:outputs/same}"],
                               cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
              for seed in (1, 2)]
     for p in procs:

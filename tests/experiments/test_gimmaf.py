@@ -43,3 +43,21 @@ def test_vbakf_huang_study_reproduces_table_1(tmp_path):
     assert rows["KF-nominal"][1] == pytest.approx(4.63, abs=0.05)
     assert rows["KF-true"][1] == pytest.approx(2.77, abs=0.05)
     assert rows["VBAKF-PR"][1] == pytest.approx(2.81, rel=0.05)
+
+
+def test_gimmaf_estimators_are_config_nodes(tmp_path):
+    """Issue 30: gimmaf.estimators maps names to nodes; one can be dropped or added on the command line
+    (a copy of GIMMAF under another name gives GIMMAF's numbers; the published rows stay keyed by name)."""
+    from experiments.config import validate
+
+    cfg = _compose("gimmaf", "mc_runs=3", "progress=false", "logger=none", "figures=false", "gimmaf.steps=30",
+                   "gimmaf.table4.noises=[gaussian]", "~gimmaf.estimators.STVBF",
+                   "+gimmaf.estimators.GIMMAF-copy={_target_:torchmm.multimodel.variational.gimmaf,_partial_:true,"
+                   "tau:${gimmaf.tau},iterations:${gimmaf.iterations},gamma_shape:${gimmaf.gamma_shape}}")
+    validate(cfg)
+    results = run_study(cfg, tmp_path)
+    rows = {row[0]: row for row in results.tables["table2"].rows}
+    assert list(rows) == ["IMM-VBT", "VBAKF-PR", "GIMMAF", "GIMMAF-copy", "KF-oracle"]
+    assert rows["GIMMAF-copy"][1:4] == rows["GIMMAF"][1:4]
+    assert rows["GIMMAF"][6] is not None and rows["GIMMAF-copy"][6] is None  # published figure: by name
+    assert {row[1] for row in results.tables["table4"].rows} == set(rows)

@@ -292,3 +292,44 @@ def test_bad_arguments():
     with pytest.raises(ValueError, match="family"):
         min_entropy_subset(torch.zeros(1, 31, 2))
     assert isinstance(LinearMotion(torch.eye(2), torch.eye(2)), LinearMotion)
+
+
+# -- the study's estimators: config nodes (issue 30) ---------------------------------------------------
+def _study_config(*overrides: str):
+    from hydra import compose, initialize_config_dir
+
+    from experiments.run import CONFIG_DIR
+
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+        return compose("config", overrides=["experiment=mevsmm", *overrides])
+
+
+def test_mevsmm_default_estimators_are_the_papers_three_nodes():
+    from experiments.config import validate
+
+    cfg = _study_config()
+    validate(cfg)
+    nodes = cfg.mevsmm.estimators
+    assert list(nodes) == ["EqMA9+1", "EqMA21+1", "PF-MEVSMM"]
+    assert nodes["EqMA9+1"]._target_ == "experiments.studies.mevsmm.eqma" and nodes["EqMA9+1"].timing_base
+    assert list(nodes["EqMA9+1"].models) == [1, 6, 7, 8, 9, 10, 11, 12, 13] and nodes["EqMA21+1"].models is None
+    assert nodes["PF-MEVSMM"].selection.method == "cm"
+    exact = _study_config("+mevsmm_estimator@mevsmm.estimators.X=exact", "mevsmm.exact_runs=7")
+    validate(exact)
+    assert exact.mevsmm.estimators.X.runs == 7  # the exact selection runs on mevsmm.exact_runs runs
+
+
+def test_mevsmm_estimator_added_on_the_command_line_runs(tmp_path):
+    from experiments.config import validate
+    from experiments.run import run_study
+
+    cfg = _study_config("debug=mevsmm", "logger=none", "figures=false", "scenario.steps=30",
+                        "+mevsmm_estimator@mevsmm.estimators.PF-MEVSMM-topk=topk",
+                        "mevsmm.estimator_names=[EqMA9+1,PF-MEVSMM-topk]")
+    validate(cfg)
+    results = run_study(cfg, tmp_path)
+    rows = {row[0]: row for row in results.tables["table1"].rows}
+    assert list(rows) == ["EqMA9+1", "PF-MEVSMM-topk"]
+    assert rows["EqMA9+1"][1] == 10.0 and 1.0 <= rows["PF-MEVSMM-topk"][1] <= 21.0
+    times = {row[0]: row for row in results.tables["table2"].rows}
+    assert times["EqMA9+1"][2] == 1.0  # the timing base (its node's timing_base)
