@@ -240,6 +240,7 @@ class Common:
     threads: Optional[int] = spec(1, positive_int)
     retain_freed_memory: bool = False
     compile: bool = False
+    cpu_kernels: bool = True  # false: the particle filters' eager path (the same numbers, no Numba compile)
     resume: Optional[str] = spec(None, _resume)
     experiment_name: str = "study"
     study: str = "experiments.studies.imm_tf.run"

@@ -859,7 +859,7 @@ def unique_dir(base: str) -> str:
 #: (``unit_runs``: the same to rounding - a unit's runs are filtered in one batch - and its own unit keys)
 #: (``compile``: the fast paths compiled, the same to rounding)
 NON_RESULT_KEYS = ("progress", "figures", "logger", "threads", "chunk_runs", "unit_runs", "retain_freed_memory",
-                   "compile", "executor", "resume")
+                   "compile", "cpu_kernels", "executor", "resume")
 
 
 def result_config(config_dict: dict) -> dict:

@@ -26,28 +26,43 @@ import re
 import shutil
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import hydra
-import torch
-from hydra.core.hydra_config import HydraConfig
-from hydra.utils import get_method
 from omegaconf import DictConfig, OmegaConf
 
 from experiments.config import ConfigError, precheck, validate
-from torchmm.learn import NonFiniteLossError
-from experiments.harness import (
-    _LOCKS,
-    LOCK_FILE,
-    Results,
-    RunFolderError,
-    lock_folder,
-    open_context,
-    unique_dir,
-    unlock_folder,
-)
-from experiments.provenance import Provenance
-from torchmm.runtime import compile_fast_paths, retain_freed_memory
+
+if TYPE_CHECKING:
+    from experiments.harness import Results
+
+# torch, Hydra, the harness and torchmm are imported where they are used (``torchmm-run --help``
+# and ``--version`` print in a fraction of a second; a run imports them once it starts). Their names
+# stay importable from here (``from experiments.run import unique_dir``): see ``__getattr__`` below.
+_LAZY = {
+    "torch": ("torch", None),
+    "hydra": ("hydra", None),
+    "HydraConfig": ("hydra.core.hydra_config", "HydraConfig"),
+    "get_method": ("hydra.utils", "get_method"),
+    "NonFiniteLossError": ("torchmm.learn", "NonFiniteLossError"),
+    "Provenance": ("experiments.provenance", "Provenance"),
+    "compile_fast_paths": ("torchmm.runtime", "compile_fast_paths"),
+    "retain_freed_memory": ("torchmm.runtime", "retain_freed_memory"),
+    **{name: ("experiments.harness", name) for name in (
+        "_LOCKS", "LOCK_FILE", "Results", "RunFolderError", "lock_folder", "open_context", "unique_dir",
+        "unlock_folder")},
+}
+
+
+def __getattr__(name: str) -> Any:
+    """The lazily imported names of ``_LAZY`` as attributes of this module."""
+    if name not in _LAZY:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    import importlib
+
+    module, attr = _LAZY[name]
+    value = importlib.import_module(module)
+    return value if attr is None else getattr(value, attr)
+
 
 log = logging.getLogger("torchmm.experiments")
 
@@ -69,6 +84,8 @@ def _unique_locked_dir(base: str) -> str:
     """The ``torchmm.unique_dir`` resolver: :func:`unique_dir`, locked for this process's life (a run's
     or a sweep's folder); a folder that cannot be made is one line and exit status 2, no traceback."""
     try:
+        from experiments.harness import RunFolderError, lock_folder, unique_dir
+
         folder = unique_dir(base)
         lock_folder(Path(folder))
     except RunFolderError as err:
@@ -89,6 +106,10 @@ def run_study(cfg: DictConfig, output_dir: Path, overrides: list[str] | None = N
     :class:`~experiments.config.ConfigError` before anything is written. ``overrides`` (the
     command line's ``key=value``; Hydra's task overrides) name the run in TensorBoard's hparams.
     """
+    from hydra.utils import get_method
+
+    from experiments.harness import _LOCKS, lock_folder, open_context, unlock_folder
+
     validate(cfg)
     config = OmegaConf.to_container(cfg, resolve=True)
     study = get_method(cfg.study)
@@ -97,6 +118,9 @@ def run_study(cfg: DictConfig, output_dir: Path, overrides: list[str] | None = N
         lock_folder(Path(output_dir))  # another process running there: FolderInUse, nothing written
         ctx = open_context(cfg, Path(output_dir), config, experiment=str(cfg.experiment_name))
         lock_folder(ctx.output_dir)  # a fresh sibling (another config was in output_dir)
+        from experiments.api import config_changes  # results.md: what differs from the study's defaults
+
+        ctx.results.changes = config_changes(config)
         return _run(cfg, ctx, study, config, overrides)
     finally:
         for key in set(_LOCKS) - held:
@@ -104,6 +128,12 @@ def run_study(cfg: DictConfig, output_dir: Path, overrides: list[str] | None = N
 
 
 def _run(cfg: DictConfig, ctx, study, config: dict, overrides: list[str] | None) -> Results:
+    import torch
+
+    from experiments.provenance import Provenance
+    from torchmm import cpu_kernels
+    from torchmm.runtime import compile_fast_paths, retain_freed_memory
+
     ctx.bar_label, ctx.bar_position = _sweep_bars()
     if ctx._checkpoint:
         print(f"torchmm-run: resuming: {len(ctx._checkpoint)} finished units kept from {ctx.output_dir}",
@@ -115,6 +145,8 @@ def _run(cfg: DictConfig, ctx, study, config: dict, overrides: list[str] | None)
     if cfg.get("retain_freed_memory"):
         retain_freed_memory()
     previous_compile = compile_fast_paths(bool(cfg.get("compile", False)))
+    kernels_off = cfg.get("cpu_kernels", True) is False  # the eager particle path (the same numbers)
+    previous_kernels = cpu_kernels.set_enabled(False) if kernels_off else None
     provenance = Provenance()
     provenance.start(device=ctx.device, dtype=ctx.dtype, threads=torch.get_num_threads())
     ctx.logger.text("config", "```yaml\n" + OmegaConf.to_yaml(config) + "```")  # the resolved config
@@ -134,12 +166,15 @@ def _run(cfg: DictConfig, ctx, study, config: dict, overrides: list[str] | None)
         ctx.logger.close()
         torch.set_num_threads(previous_threads)
         compile_fast_paths(previous_compile)
+        if kernels_off:
+            cpu_kernels.set_enabled(previous_kernels)
     log.info("results written to %s", ctx.output_dir)
     return ctx.results
 
 
 def _sweep_bars() -> tuple[str, int | None]:
     """In a ``-m`` sweep: ``("[job N]", terminal line)`` for the job's progress bars, else ``("", None)``."""
+    from hydra.core.hydra_config import HydraConfig
     from hydra.types import RunMode
 
     if not HydraConfig.initialized() or HydraConfig.get().mode != RunMode.MULTIRUN:
@@ -184,8 +219,20 @@ def hparams(config: dict, overrides: list[str], results: Results, max_metrics: i
     return settings, metrics
 
 
-@hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="config")
-def _hydra_main(cfg: DictConfig) -> None:
+def _hydra_main() -> None:
+    """Hydra's main (``@hydra.main``) around :func:`_study_main`, made when a run starts."""
+    import hydra
+
+    hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="config")(_study_main)()
+
+
+def _study_main(cfg: DictConfig) -> None:
+    """One run (or one sweep job) under Hydra: the study into Hydra's output folder."""
+    from hydra.core.hydra_config import HydraConfig
+
+    from experiments.harness import RunFolderError
+    from torchmm.learn import NonFiniteLossError
+
     output_dir = Path(HydraConfig.get().runtime.output_dir)
     print(f"torchmm-run: {cfg.get('experiment_name', 'study')} -> {output_dir}", file=sys.stderr, flush=True)
     try:
@@ -246,7 +293,7 @@ def help_text() -> str:
         "usage: torchmm-run [experiment=NAME] [key=value ...] [-m key=a,b ...]\n\n"
         "Runs a torchmm study: Monte Carlo runs batched in one call per time step; writes results.json,\n"
         "results.md, figures/ and TensorBoard logs into a fresh run folder (named when it starts).\n\n"
-        f"studies (experiment=NAME; default imm_tf_quick):\n{studies}\n\n"
+        f"studies (experiment=NAME; default quickstart):\n{studies}\n\n"
         "common keys:\n" + "\n".join(keys) + "\n\n"
         f"config groups: {', '.join(groups)} (e.g. mode_filter=unscented, debug=NAME for tiny sizes)\n"
         "-m sweeps (Hydra's joblib launcher); docs/studies.md lists every study's keys.\n"
@@ -256,6 +303,8 @@ def help_text() -> str:
 
 def _remove_if_unused(output_dir: Path) -> None:
     """Delete a run folder holding nothing but Hydra's own files (``.hydra/``, ``*.log``)."""
+    from experiments.harness import LOCK_FILE
+
     ignored = (".hydra", LOCK_FILE)
     if output_dir.is_dir() and all(p.name in ignored or p.suffix == ".log" for p in output_dir.iterdir()):
         shutil.rmtree(output_dir, ignore_errors=True)
@@ -272,6 +321,8 @@ def main() -> None:
     if "--help" in args or "-h" in args:
         print(help_text(), end="")
         return
+    from experiments.harness import RunFolderError
+
     precheck(args, CONFIG_DIR)
     args = resolve_resume(args, CONFIG_DIR)
     try:
@@ -310,7 +361,16 @@ def claim_folder(args: list[str], config_dir: str = CONFIG_DIR) -> list[str]:
     Folders named through ``${...}`` interpolation (the default, ``${torchmm.unique_dir:...}``) are
     locked by their resolver or by :func:`run_study` instead.
     """
-    from experiments.harness import _differing_keys, config_hash, result_config, saved_run
+    from experiments.harness import (
+        RunFolderError,
+        _differing_keys,
+        config_hash,
+        lock_folder,
+        result_config,
+        saved_run,
+        unique_dir,
+        unlock_folder,
+    )
 
     if any(a.split("=", 1)[0] in _NO_RUN_FLAGS for a in args):
         return args  # Hydra prints something and runs nothing: no folder

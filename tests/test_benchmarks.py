@@ -78,3 +78,13 @@ def test_imm_layout_benchmark_runs_and_agrees():
     assert re.fullmatch(r"soa_eager_vs_numpy_soa=[0-9.]+ soa_compiled_vs_numpy_soa=nan "
                         r"torchmm_batch_first_vs_numpy_soa=[0-9.]+ torchmm_vs_numpy_soa=[0-9.]+ "
                         r"torchmm_compiled_vs_numpy_soa=nan", last), last
+
+
+def test_startup_benchmark_runs():
+    """benchmarks/startup.py (issue 30) with one repeat: its figures and its last line (no timing asserted)."""
+    proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "startup.py"), "--repeats", "1"],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:] + proc.stdout[-2000:]
+    lines = proc.stdout.strip().splitlines()
+    assert re.fullmatch(r"help_s=[0-9.]+ import_torchmm_extra_s=-?[0-9.]+", lines[-1]), lines[-1]
+    assert sum("best" in line and "median" in line for line in lines) == 3

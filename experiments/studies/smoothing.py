@@ -10,7 +10,8 @@ smoother beside it for the multiple-model estimators: docs/smoothing.md).
 Tables: ``rmse`` (scenario, estimator, smoother, filter and smoother position / velocity RMSE with
 their delta-method standard errors, the smoother's position gain and NEES), ``modes`` (filter and
 smoother mode accuracy of the multiple-model estimators), ``parallel_speed`` (sequential against associative-scan
-Kalman filtering + smoothing, ``torchmm.parallel``, for ``smoothing.speed_steps``). Curves: position
+Kalman filtering + smoothing, ``torchmm.parallel``, for ``smoothing.speed_steps`` and ``speed_runs``; only with
+``smoothing.speed=true``: at T = 10^4 it takes most of a full run, whatever ``mc_runs``). Curves: position
 RMSE over time, filter and smoother, per scenario; figures of them and of the speed table.
 """
 
@@ -190,6 +191,8 @@ def run(ctx: StudyContext) -> None:
     for k in keys:
         rows = [r for r in rmse.rows if r[0] == k]
         ctx.save_figure(f"rmse_{k}", _bars(rows, k, int(cfg.mc_runs)))
+    if not cfg.smoothing.speed:  # smoothing.speed=false (debug=smoothing): no speed table
+        return
     speed = _speed_table(ctx)
     ctx.results.save()
     if speed.rows:

@@ -55,6 +55,20 @@ def test_help_lists_every_study_and_version_is_torchmms(tmp_path):
     assert not list(tmp_path.iterdir())  # neither writes a run folder
 
 
+def test_help_imports_neither_torch_nor_hydra():
+    """``torchmm-run --help`` is a fraction of a second (issue 30): experiments.run imports torch, Hydra
+    and the harness when a run starts, and its lazily imported names still resolve."""
+    code = ("import sys, io, contextlib; import experiments.run as r; out = io.StringIO()\n"
+            "with contextlib.redirect_stdout(out): sys.argv[1:] = ['--help']; r.main()\n"
+            "assert 'quickstart' in out.getvalue()\n"
+            "print(sorted(m for m in ('torch', 'hydra', 'experiments.harness', 'torchmm') if m in sys.modules))\n"
+            "assert r.unique_dir.__module__ == 'experiments.harness' and r.torch.__name__ == 'torch'")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                          cwd=Path(__file__).resolve().parents[2])
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stdout.strip() == "[]"
+
+
 def test_run_names_its_folder_first_and_prints_the_headline_table(tmp_path):
     out_dir = tmp_path / "run"
     proc = subprocess.run([_exe(), "experiment=imm_baseline", "debug=imm_baseline", "logger=none",
@@ -209,6 +223,7 @@ def test_sweep_curves_keep_their_own_axis_and_are_logged_once(tmp_path):
 def test_tensorboard_has_the_config_text_hparams_and_headline_metrics(tmp_path):
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
+    from experiments.harness import Results
     from experiments.run import hparams
 
     run_study(_compose("imm_baseline", "debug=imm_baseline", "logger=tensorboard"), tmp_path / "run",
@@ -227,7 +242,7 @@ def test_tensorboard_has_the_config_text_hparams_and_headline_metrics(tmp_path):
     assert "headline/IMM/pos_rmse" in tags["scalars"]
     settings, metrics = hparams({"seed": 0, "mc_runs": 4, "dtype": "float64", "device": "cpu"},
                                 ["scenario.R=50", "progress=false", "+extra=abc", "hydra.verbose=true"],
-                                run_study.__globals__["Results"](tmp_path, "x", {}))
+                                Results(tmp_path, "x", {}))
     assert settings == {"experiment": "x", "seed": 0, "mc_runs": 4, "dtype": "float64", "device": "cpu",
                         "scenario.R": 50, "extra": "abc"}
     assert metrics == {}

@@ -11,7 +11,7 @@ from tests.experiments.test_studies import _compose_numbers as _compose
 
 
 def test_smoothing_study_tables(tmp_path):
-    run_study(_compose("smoothing", "debug=smoothing", "logger=none", "mc_runs=20",
+    run_study(_compose("smoothing", "debug=smoothing", "smoothing.speed=true", "logger=none", "mc_runs=20",
                        "smoothing.scenarios.paper000.steps=40", "smoothing.scenarios.turning.steps=40"), tmp_path)
     tables = json.loads((tmp_path / "results.json").read_text())["tables"]
     cols = tables["rmse"]["columns"]

@@ -18,15 +18,16 @@ from tests.regression.record import COMMON
 EXPERIMENTS = sorted(p.stem for p in (Path(CONFIG_DIR) / "experiment").glob("*.yaml"))
 SCHEMA = {"experiment", "config", "metrics", "tables", "timing", "provenance"}
 #: per-study overrides that keep the fast suite fast (the structure is unchanged)
-TF_FAST = ["table1_ratios=[0.3,0.99]", "rs_sweep=[1.0,1000.0]"]
 #: every study's tiny sizes: the conf/debug group (the structure is unchanged)
 FAST = {name: [f"debug={name}"] for name in EXPERIMENTS}
+FAST["smoothing"] += ["smoothing.speed=true"]  # the parallel scan's table at its debug sizes (16 and 64 steps)
 TF_TABLES = {
     "table1": ["source_ratio", "estimator", "pos_rmse", "vel_rmse"],
     "rs_sweep": ["R_S", "estimator", "pos_rmse", "vel_rmse"],
 }
 REQUIRED_TABLES = {
     "imm_baseline": {"rmse": ["estimator", "pos_rmse", "vel_rmse"]},
+    "quickstart": {"rmse": ["estimator", "pos_rmse", "vel_rmse", "nees", "mode_accuracy"]},
     "imm_analysis": {
         "conclusions": ["conclusion", "premise_steps", "holds_fraction"],
         "alpha_sweep": ["alpha", "estimator", "pos_rmse", "vel_rmse"],
@@ -187,11 +188,11 @@ def _cli(*args: str, cwd: Path) -> subprocess.CompletedProcess:
 
 def test_cli_default_study_writes_every_artefact(tmp_path):
     out = tmp_path / "run"
-    proc = _cli("mc_runs=3", "progress=false", f"hydra.run.dir={out}", *TF_FAST, cwd=tmp_path)
+    proc = _cli("mc_runs=3", "progress=false", f"hydra.run.dir={out}", cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr[-3000:]
     data = json.loads((out / "results.json").read_text())
-    assert data["experiment"] == "imm_tf_quick"  # the flagship study, few runs
-    assert {"table1", "rs_sweep"} <= set(data["tables"])
+    assert data["experiment"] == "quickstart"  # IMM against a Kalman filter on a maneuvering target, seconds
+    assert {"rmse"} <= set(data["tables"])
     assert (out / "results.md").exists()
     assert (out / "figures" / "rmse_over_time.png").exists()
     assert list((out / "tb").glob("events.out.tfevents.*"))
@@ -202,7 +203,7 @@ def test_python_module_entry_point(tmp_path):
     out = tmp_path / "run"
     proc = subprocess.run(
         [sys.executable, "-m", "experiments.run", "mc_runs=2", "progress=false", "logger=none",
-         f"hydra.run.dir={out}", *TF_FAST],
+         f"hydra.run.dir={out}"],
         cwd=Path(CONFIG_DIR).parent, capture_output=True, text=True, timeout=300,
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
