@@ -33,7 +33,7 @@ from omegaconf.errors import (
     OmegaConfBaseException,
 )
 
-__all__ = ["Common", "ConfigError", "precheck", "spec", "validate"]
+__all__ = ["Common", "ConfigError", "infer_types", "precheck", "spec", "validate"]
 
 
 class ConfigError(ValueError):
@@ -331,27 +331,89 @@ def _check_fields(obj: Any, prefix: str) -> None:
             raise ConfigError(_join(prefix, problem[0]), problem[1], problem[2])
 
 
+def _study_module(study: str):
+    module, _, name = study.rpartition(".")
+    try:
+        mod = importlib.import_module(module)
+        getattr(mod, name)
+    except (ImportError, AttributeError, ValueError):
+        raise ConfigError("study", study, "not an importable study function (module.run)") from None
+    return mod
+
+
 def _study_entry(study: str) -> tuple[type | None, tuple[str, ...] | None]:
     from experiments import schemas
 
     entry = schemas.STUDIES.get(study)
     if entry is None:
-        try:
-            module, _, name = study.rpartition(".")
-            getattr(importlib.import_module(module), name)
-        except (ImportError, AttributeError, ValueError):
-            raise ConfigError("study", study, "not an importable study function (module.run)") from None
-        return None, None  # a user's own study: only the common keys are checked
+        _study_module(study)
+        return None, None  # a user's own study: its module's CHECKS and the defaults' types (validate)
     return entry
 
 
-def validate(cfg: DictConfig | dict, *, scenario_choice: str | None = None) -> None:
+def infer_types(reference: Any, value: Any, key: str = "") -> None:
+    """``value`` checked against the type of ``reference``, its default (the study's YAML): the keys of a
+    study without a schema are declared once, in its YAML. Numbers stay numbers, flags flags, strings
+    scalars, lists lists (elementwise like their first entry) and mappings mappings with the default's
+    keys - except open ones (empty, a map of config nodes, or a ``_target_`` node), which take new
+    keys. ``null`` defaults take anything. Raises :class:`ConfigError` naming the key."""
+    if reference is None or value is None:
+        return
+    if isinstance(reference, bool):
+        if not isinstance(value, bool):
+            raise ConfigError(key, value, "expected true or false")
+    elif isinstance(reference, (int, float)):
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(key, value, "expected a number")
+        if isinstance(value, float) and not math.isfinite(value):
+            raise ConfigError(key, value, "must be finite")
+    elif isinstance(reference, str):
+        if isinstance(value, (list, dict)):
+            raise ConfigError(key, value, "expected a string")
+    elif isinstance(reference, list):
+        if not isinstance(value, list):
+            raise ConfigError(key, value, "expected a list")
+        if reference:
+            for i, item in enumerate(value):
+                infer_types(reference[0], item, f"{key}[{i}]")
+    elif isinstance(reference, dict):
+        if not isinstance(value, dict):
+            raise ConfigError(key, value, "expected a mapping")
+        open_map = not reference or "_target_" in reference or all(isinstance(v, dict) for v in reference.values())
+        for k, v in value.items():
+            if k in reference:
+                infer_types(reference[k], v, _join(key, str(k)))
+            elif not open_map:
+                close = difflib.get_close_matches(str(k), [str(r) for r in reference], n=1)
+                hint = f"did you mean {_join(key, close[0])}?" if close else f"known: {', '.join(map(str, reference))}"
+                raise ConfigError(_join(key, str(k)), _NO_VALUE, f"unknown key ({hint})")
+
+
+def _own_checks(module, data: dict) -> None:
+    """A user study's ``CHECKS`` (``{dotted key: check}``, checks as in :func:`spec`) and its
+    ``check_config(data)`` (relations between keys: raise :class:`ConfigError`)."""
+    for key, check in (getattr(module, "CHECKS", None) or {}).items():
+        value = OmegaConf.select(OmegaConf.create(data), key, default=_NO_VALUE)
+        if value is _NO_VALUE:
+            raise ConfigError(key, _NO_VALUE, "missing (CHECKS names it, the config has no such key)")
+        error = check(value)
+        if error:
+            raise ConfigError(key, value, error)
+    relation = getattr(module, "check_config", None)
+    if relation is not None:
+        relation(data)
+
+
+def validate(cfg: DictConfig | dict, *, scenario_choice: str | None = None, reference: Any = None) -> None:
     """Check every key of a composed study config (no ``hydra`` node); raise :class:`ConfigError`.
 
     Args:
         cfg: the composed config (``hydra.compose`` or Hydra's task config).
         scenario_choice: the ``scenario=<name>`` chosen on the command line, for the message when
             the scenario does not fit the study (default: ``scenario.name``).
+        reference: the same study's config with its defaults (only the config-group choices
+            applied): a study without a schema in :mod:`experiments.schemas` has each of its own
+            keys typed by its default (:func:`infer_types`), and ranged by its module's ``CHECKS``.
     """
     from experiments import schemas
 
@@ -361,7 +423,13 @@ def validate(cfg: DictConfig | dict, *, scenario_choice: str | None = None) -> N
     _merge(Common, {k: v for k, v in data.items() if k in common_keys})
     study = str(data.get("study"))
     schema, scenarios = _study_entry(study)
-    if schema is None:
+    if schema is None:  # a user's own study: its keys are its YAML's (types) and its module's CHECKS
+        own = {k: v for k, v in data.items() if k not in common_keys}
+        if reference is not None:
+            ref = OmegaConf.to_container(reference, resolve=True) if isinstance(reference, DictConfig) \
+                else dict(reference)
+            infer_types({k: v for k, v in ref.items() if k not in common_keys and k != "hydra"}, own)
+        _own_checks(_study_module(study), data)
         return
     own = {f.name for f in dataclasses.fields(schema)}
     for key in data:
@@ -426,7 +494,34 @@ def _precheck(argv: list[str], config_dir: str, config_name: str) -> None:
     jobs = _sweep_jobs(overrides) if args.multirun else [overrides]
     for job in jobs:
         cfg, choice = _compose(job, config_dir, config_name)
-        validate(cfg, scenario_choice=choice)
+        reference = None
+        if str(cfg.get("study")) not in _registered():  # a study without a schema: typed by its defaults
+            reference, _ = _compose(_choices_only(job, config_dir), config_dir, config_name)
+        validate(cfg, scenario_choice=choice, reference=reference)
+
+
+def _registered() -> set[str]:
+    from experiments import schemas
+
+    return set(schemas.STUDIES)
+
+
+def _choices_only(overrides: list[str], config_dir: str) -> list[str]:
+    """The overrides that pick configs (config groups, ``group@package``, ``hydra.*``), not values: the
+    composition of the run's defaults."""
+    groups = {p.name for p in Path(config_dir).iterdir() if p.is_dir()}
+    for item in overrides:  # the user's own config folders (hydra.searchpath) add groups too
+        if item.startswith("hydra.searchpath="):
+            for entry in item.split("=", 1)[1].strip("[]").split(","):
+                folder = Path(entry.strip().removeprefix("file://"))
+                if folder.is_dir():
+                    groups |= {p.name for p in folder.iterdir() if p.is_dir()}
+    out = []
+    for item in overrides:
+        name = item.lstrip("+~").split("=", 1)[0]
+        if name.startswith("hydra.") or "@" in name or name.split("/", 1)[0] in groups:
+            out.append(item)
+    return out
 
 
 def _sweep_jobs(overrides: list[str]) -> list[list[str]]:
