@@ -25,7 +25,7 @@ from pathlib import Path
 from dataclasses import dataclass, field
 from typing import Any, Callable, Optional
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import MISSING, DictConfig, OmegaConf
 from omegaconf.errors import (
     ConfigAttributeError,
     ConfigKeyError,
@@ -33,217 +33,56 @@ from omegaconf.errors import (
     OmegaConfBaseException,
 )
 
+from experiments.checks import (  # noqa: F401 - re-exported: the checks studies use (experiments.config.positive, ...)
+    NO_VALUE,
+    Check,
+    ConfigError,
+    both,
+    check_fields,
+    device_name,
+    each,
+    join_key,
+    matrix,
+    merge,
+    non_empty,
+    non_negative,
+    one_of,
+    open_probability,
+    positive,
+    positive_int,
+    probability,
+    resume_value,
+    seed_value,
+    spec,
+    type_message,
+)
+from experiments import schemas as schemas_mod
+from experiments.schemas import ExecutorConfig, Logger, ModeFilter, Policy
+
 __all__ = ["Common", "ConfigError", "infer_types", "precheck", "spec", "validate"]
-
-
-class ConfigError(ValueError):
-    """A user error in a study config: ``key=value: what is allowed`` (one line)."""
-
-    def __init__(self, key: str, value: Any, allowed: str):
-        self.key, self.value, self.allowed = key, value, allowed
-        shown = "" if value is _NO_VALUE else f"={_show(value)}"
-        super().__init__(f"{key}{shown}: {allowed}")
-
-
-_NO_VALUE = object()
-
-
-def _show(value: Any) -> str:
-    if isinstance(value, str):
-        return value
-    if isinstance(value, float) and value.is_integer():
-        return repr(value)
-    text = repr(value)
-    return text if len(text) <= 60 else text[:57] + "..."
-
-
-# -- field checks ------------------------------------------------------------------------------
-Check = Callable[[Any], Optional[str]]
-
-
-def spec(default: Any = dataclasses.MISSING, check: Check | None = None, *, factory=None):
-    """A schema field with an optional range check ``check(value) -> error text | None``."""
-    kwargs: dict = {"metadata": {"check": check}}
-    if factory is not None:
-        kwargs["default_factory"] = factory
-    elif default is not dataclasses.MISSING:
-        kwargs["default"] = default
-    return field(**kwargs)
-
-
-def positive(value) -> str | None:
-    return None if value is None or value > 0 else "must be positive"
-
-
-def positive_int(value) -> str | None:
-    return None if value is None or value >= 1 else "must be a positive integer"
-
-
-def non_negative(value) -> str | None:
-    return None if value is None or value >= 0 else "must be non-negative"
-
-
-def probability(value) -> str | None:
-    return None if value is None or 0 <= value <= 1 else "must be a probability in [0, 1]"
-
-
-def open_probability(value) -> str | None:
-    return None if value is None or 0 < value < 1 else "must lie in (0, 1)"
-
-
-def one_of(*choices: str) -> Check:
-    def check(value):
-        return None if value is None or value in choices else f"expected one of {', '.join(choices)}"
-    return check
-
-
-def each(check: Check) -> Check:
-    """Apply ``check`` to every element of a list."""
-    def run(values):
-        for v in values or []:
-            error = check(v)
-            if error:
-                return f"entry {_show(v)}: {error}"
-        return None
-    return run
-
-
-def matrix(value) -> str | None:
-    """A list of rows of numbers (typed ``List[Any]``: OmegaConf rejects ints in nested float lists)."""
-    if value is None:
-        return None
-    if not isinstance(value, list) or not all(isinstance(row, list) and all(
-            isinstance(v, (int, float)) and not isinstance(v, bool) for v in row) for row in value):
-        return "expected a matrix: a list of rows of numbers"
-    return None
-
-
-def non_empty(values) -> str | None:
-    return None if values is None or len(values) else "must not be empty"
-
-
-def both(*checks: Check) -> Check:
-    def run(value):
-        for check in checks:
-            error = check(value)
-            if error:
-                return error
-        return None
-    return run
-
-
-def _device(value) -> str | None:
-    import torch
-
-    if value == "auto":
-        return None
-    try:
-        device = torch.device(value)
-    except (RuntimeError, TypeError):
-        return "expected cpu, cuda, cuda:<index> or auto"
-    if device.type not in ("cpu", "cuda"):
-        return "expected cpu, cuda, cuda:<index> or auto"
-    if device.type == "cuda" and not torch.cuda.is_available():
-        return "CUDA is not available on this machine (torch.cuda.is_available() is False); use device=cpu"
-    if device.type == "cuda" and device.index is not None and device.index >= torch.cuda.device_count():
-        return f"this machine has {torch.cuda.device_count()} CUDA device(s)"
-    return None
-
-
-def _seed(value) -> str | None:
-    return None if 0 <= value < 2**63 else "must be an integer in [0, 2^63)"
-
-
-def _resume(value) -> str | None:
-    if value is None or value == "latest" or Path(str(value)).is_dir():
-        return None
-    return "expected latest or an existing run folder"
 
 
 # -- the common keys ---------------------------------------------------------------------------
 @dataclass
-class Logger:
-    kind: str = spec("tensorboard", one_of("tensorboard", "none"))
-    subdir: str = "tb"
-    flush_secs: int = spec(10, positive_int)
-
-
-@dataclass
-class ExecutorConfig:
-    """``executor=local|processes|submitit_local|slurm|ray`` (conf/executor; experiments/executors.py)."""
-
-    kind: str = spec("local", one_of("local", "processes", "submitit_local", "slurm", "ray"))
-    workers: int = spec(2, positive_int)
-    retries: int = spec(2, non_negative)
-    address: Optional[str] = None
-    folder: Optional[str] = None
-    partition: Optional[str] = None
-    timeout_min: Optional[int] = spec(60, positive_int)
-    cpus_per_task: Optional[int] = spec(1, positive_int)
-    mem_gb: Optional[float] = spec(None, positive)
-    array_parallelism: Optional[int] = spec(64, positive_int)
-    slurm_parameters: dict = field(default_factory=dict)
-
-
-MODE_FILTERS = ("torchmm.KalmanFilter", "torchmm.ExtendedKalmanFilter", "torchmm.UnscentedKalmanFilter",
-                "torchmm.ParticleFilter")
-POLICIES = ("torchmm.multimodel.mevsmm.ExactMinimumEntropy", "torchmm.multimodel.mevsmm.ChallengeMatch",
-            "torchmm.multimodel.AllModels")
-
-
-@dataclass
-class ModeFilter:
-    """``conf/mode_filter``: the mode filters of the multiple-model estimators (a torchmm filter class)."""
-
-    _target_: str = spec("torchmm.KalmanFilter", one_of(*MODE_FILTERS))
-    _partial_: bool = True
-    num_particles: Optional[int] = spec(None, positive_int)
-    ess_threshold: Optional[float] = spec(None, non_negative)
-    resampling: Optional[str] = spec(None, one_of("systematic", "stratified", "multinomial", "residual"))
-
-    def config_check(self):
-        particle = self._target_ == "torchmm.ParticleFilter"
-        if particle and self.num_particles is None:
-            return "num_particles", None, "missing: particle mode filters need num_particles"
-        if not particle:
-            for key in ("num_particles", "ess_threshold", "resampling"):
-                if getattr(self, key) is not None:
-                    return key, getattr(self, key), f"only particle mode filters take {key}"
-        return None
-
-
-@dataclass
-class Policy:
-    """``conf/policy``: the model-set policy of the ``vsmm`` estimator."""
-
-    _target_: str = spec("torchmm.multimodel.mevsmm.ExactMinimumEntropy", one_of(*POLICIES))
-    entropy: Optional[str] = spec(None, one_of("joint", "literal"))
-    num_winners: Optional[int] = spec(None, positive_int)
-    threshold: Optional[int] = spec(None, non_negative)
-    method: Optional[str] = spec(None, one_of("cm", "topk"))
-    passes: Optional[int] = spec(None, non_negative)
-
-
-@dataclass
 class Common:
     """Keys every study has (``conf/config.yaml``)."""
 
-    mc_runs: int = spec(100, positive_int)
-    seed: int = spec(0, _seed)
-    block_runs: int = spec(50, positive_int)
-    device: str = spec("cpu", _device)
-    dtype: str = spec("float64", one_of("float64", "float32", "double", "float"))
-    progress: bool = True
-    figures: bool = True
-    chunk_runs: Optional[int] = spec(None, positive_int)
-    unit_runs: Optional[int] = spec(None, positive_int)
-    threads: Optional[int] = spec(1, positive_int)
-    retain_freed_memory: bool = False
-    compile: bool = False
-    cpu_kernels: bool = True  # false: the particle filters' eager path (the same numbers, no Numba compile)
-    resume: Optional[str] = spec(None, _resume)
-    experiment_name: str = "study"
-    study: str = "experiments.studies.imm_tf.run"
+    mc_runs: int = spec(MISSING, positive_int)
+    seed: int = spec(MISSING, seed_value)
+    block_runs: int = spec(MISSING, positive_int)
+    device: str = spec(MISSING, device_name)
+    dtype: str = spec(MISSING, one_of("float64", "float32", "double", "float"))
+    progress: bool = MISSING
+    figures: bool = MISSING
+    chunk_runs: Optional[int] = spec(MISSING, positive_int)
+    unit_runs: Optional[int] = spec(MISSING, positive_int)
+    threads: Optional[int] = spec(MISSING, positive_int)
+    retain_freed_memory: bool = MISSING
+    compile: bool = MISSING
+    cpu_kernels: bool = MISSING  # false: the particle filters' eager path (the same numbers, no Numba compile)
+    resume: Optional[str] = spec(MISSING, resume_value)
+    experiment_name: str = MISSING
+    study: str = MISSING
     logger: Logger = field(default_factory=Logger)
     executor: ExecutorConfig = field(default_factory=ExecutorConfig)
     mode_filter: ModeFilter = field(default_factory=ModeFilter)
@@ -261,76 +100,6 @@ _SHARED = {"scenario", "estimators"}
 
 
 # -- validation --------------------------------------------------------------------------------
-def _merge(schema: type, values: dict, prefix: str = "") -> Any:
-    """``values`` merged into ``schema`` and converted to the dataclass (type errors: ConfigError)."""
-    try:
-        merged = OmegaConf.merge(OmegaConf.structured(schema), values)
-        obj = OmegaConf.to_object(merged)
-    except (ConfigKeyError, ConfigAttributeError) as err:
-        key = _join(prefix, str(err.full_key or err.key))
-        known = [f.name for f in dataclasses.fields(_schema_at(schema, str(err.full_key or "")))]
-        leaf = key.rsplit(".", 1)[-1]
-        close = difflib.get_close_matches(leaf, known, n=1)
-        hint = f"; did you mean {close[0]}?" if close else f" (known: {', '.join(known)})"
-        raise ConfigError(key, _NO_VALUE, f"unknown key{hint}") from None
-    except MissingMandatoryValue as err:
-        raise ConfigError(_join(prefix, str(err.full_key)), _NO_VALUE, "missing (a required key)") from None
-    except OmegaConfBaseException as err:
-        key = _join(prefix, str(err.full_key or err.key))
-        raise ConfigError(key, err.value if err.value is not None else _NO_VALUE, _type_message(err)) from None
-    _check_fields(obj, prefix)
-    return obj
-
-
-def _schema_at(schema: type, path: str) -> type:
-    """The dataclass of the node that holds ``path``'s last key."""
-    parts = [p for p in path.split(".")[:-1] if p]
-    for part in parts:
-        fields = {f.name: f for f in dataclasses.fields(schema)}
-        if part not in fields or not dataclasses.is_dataclass(fields[part].type if isinstance(fields[part].type, type)
-                                                              else None):
-            break
-        schema = fields[part].type
-    return schema
-
-
-def _type_message(err: OmegaConfBaseException) -> str:
-    msg = str(err.msg).splitlines()[0]
-    for word, text in (("Integer", "expected an integer"), ("Float", "expected a number"),
-                       ("valid bool", "expected true or false"), ("String", "expected a string")):
-        if word in msg:
-            return text
-    return msg
-
-
-def _join(prefix: str, key: str) -> str:
-    return f"{prefix}.{key}" if prefix else key
-
-
-def _check_fields(obj: Any, prefix: str) -> None:
-    for f in dataclasses.fields(obj):
-        value = getattr(obj, f.name)
-        key = _join(prefix, f.name)
-        check = f.metadata.get("check")
-        if check is not None:
-            error = check(value)
-            if error:
-                raise ConfigError(key, value, error)
-        if dataclasses.is_dataclass(value):
-            _check_fields(value, key)
-        elif isinstance(value, dict):
-            for k, v in value.items():
-                if dataclasses.is_dataclass(v):
-                    _check_fields(v, f"{key}.{k}")
-        elif isinstance(value, float) and not math.isfinite(value):
-            raise ConfigError(key, value, "must be finite")
-    relation = getattr(obj, "config_check", None)
-    if relation is not None:
-        problem = relation()  # a check across fields: (key, value, message) or None
-        if problem:
-            raise ConfigError(_join(prefix, problem[0]), problem[1], problem[2])
-
-
 def _study_module(study: str):
     module, _, name = study.rpartition(".")
     try:
@@ -342,9 +111,8 @@ def _study_module(study: str):
 
 
 def _study_entry(study: str) -> tuple[type | None, tuple[str, ...] | None]:
-    from experiments import schemas
 
-    entry = schemas.STUDIES.get(study)
+    entry = schemas_mod.STUDIES.get(study)
     if entry is None:
         _study_module(study)
         return None, None  # a user's own study: its module's CHECKS and the defaults' types (validate)
@@ -382,20 +150,20 @@ def infer_types(reference: Any, value: Any, key: str = "") -> None:
         open_map = not reference or "_target_" in reference or all(isinstance(v, dict) for v in reference.values())
         for k, v in value.items():
             if k in reference:
-                infer_types(reference[k], v, _join(key, str(k)))
+                infer_types(reference[k], v, join_key(key, str(k)))
             elif not open_map:
                 close = difflib.get_close_matches(str(k), [str(r) for r in reference], n=1)
-                hint = f"did you mean {_join(key, close[0])}?" if close else f"known: {', '.join(map(str, reference))}"
-                raise ConfigError(_join(key, str(k)), _NO_VALUE, f"unknown key ({hint})")
+                hint = f"did you mean {join_key(key, close[0])}?" if close else f"known: {', '.join(map(str, reference))}"
+                raise ConfigError(join_key(key, str(k)), NO_VALUE, f"unknown key ({hint})")
 
 
 def _own_checks(module, data: dict) -> None:
     """A user study's ``CHECKS`` (``{dotted key: check}``, checks as in :func:`spec`) and its
     ``check_config(data)`` (relations between keys: raise :class:`ConfigError`)."""
     for key, check in (getattr(module, "CHECKS", None) or {}).items():
-        value = OmegaConf.select(OmegaConf.create(data), key, default=_NO_VALUE)
-        if value is _NO_VALUE:
-            raise ConfigError(key, _NO_VALUE, "missing (CHECKS names it, the config has no such key)")
+        value = OmegaConf.select(OmegaConf.create(data), key, default=NO_VALUE)
+        if value is NO_VALUE:
+            raise ConfigError(key, NO_VALUE, "missing (CHECKS names it, the config has no such key)")
         error = check(value)
         if error:
             raise ConfigError(key, value, error)
@@ -415,7 +183,6 @@ def validate(cfg: DictConfig | dict, *, scenario_choice: str | None = None, refe
             applied): a study without a schema in :mod:`experiments.schemas` has each of its own
             keys typed by its default (:func:`infer_types`), and ranged by its module's ``CHECKS``.
     """
-    from experiments import schemas
 
     data = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg)
     data.pop("hydra", None)
@@ -438,18 +205,17 @@ def validate(cfg: DictConfig | dict, *, scenario_choice: str | None = None, refe
             close = difflib.get_close_matches(key, known, n=1)
             hint = f"did you mean {close[0]}?" if close else f"the {data.get('experiment_name')} study's keys: " \
                 + ", ".join(sorted(own))
-            raise ConfigError(key, _NO_VALUE, f"not a key of the {data.get('experiment_name')} study ({hint})")
+            raise ConfigError(key, NO_VALUE, f"not a key of the {data.get('experiment_name')} study ({hint})")
     _merge(schema, {k: v for k, v in data.items() if k in own})
     _validate_scenario(data, scenarios, scenario_choice)
     if "estimators" in own or "estimators" in data:
         for name, est in (data.get("estimators") or {}).items():
-            _merge(getattr(schema, "estimator_schema", schemas.Estimator), est or {}, f"estimators.{name}")
+            _merge(getattr(schema, "estimator_schema", schemas_mod.Estimator), est or {}, f"estimators.{name}")
     if hasattr(schema, "check"):
         schema.check(data)
 
 
 def _validate_scenario(data: dict, scenarios: tuple[str, ...] | None, choice: str | None) -> None:
-    from experiments import schemas
 
     scenario = data.get("scenario")
     name = choice or (scenario or {}).get("name")
@@ -459,13 +225,13 @@ def _validate_scenario(data: dict, scenarios: tuple[str, ...] | None, choice: st
             raise ConfigError("scenario", name, f"the {experiment} study takes no scenario")
         return
     if not scenario:
-        raise ConfigError("scenario", _NO_VALUE, f"missing: the {experiment} study needs one of "
-                          f"{', '.join(schemas.scenario_names(scenarios))}")
+        raise ConfigError("scenario", NO_VALUE, f"missing: the {experiment} study needs one of "
+                          f"{', '.join(schemas_mod.scenario_names(scenarios))}")
     target = scenario.get("_target_")
     if target not in scenarios:
         raise ConfigError("scenario", name, f"does not fit the {experiment} study; choose one of "
-                          f"{', '.join(schemas.scenario_names(scenarios))}")
-    _merge(schemas.SCENARIOS[target], scenario, "scenario")
+                          f"{', '.join(schemas_mod.scenario_names(scenarios))}")
+    _merge(schemas_mod.SCENARIOS[target], scenario, "scenario")
 
 
 # -- the command line ------------------------------------------------------------------------------
@@ -501,9 +267,8 @@ def _precheck(argv: list[str], config_dir: str, config_name: str) -> None:
 
 
 def _registered() -> set[str]:
-    from experiments import schemas
 
-    return set(schemas.STUDIES)
+    return set(schemas_mod.STUDIES)
 
 
 def _choices_only(overrides: list[str], config_dir: str) -> list[str]:
@@ -537,7 +302,7 @@ def _sweep_jobs(overrides: list[str]) -> list[list[str]]:
     return [job for batch in batches for job in batch]
 
 
-def _compose(overrides: list[str], config_dir: str, config_name: str) -> tuple[DictConfig, str | None]:
+def compose_config(overrides: list[str], config_dir: str, config_name: str) -> tuple[DictConfig, str | None]:
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
     from hydra.errors import HydraException, MissingConfigException
@@ -572,7 +337,7 @@ def _close_keys(key: str, other_overrides: list[str]) -> str | None:
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
-    from experiments.run import CONFIG_DIR
+    from experiments.paths import CONFIG_DIR
 
     parent, _, leaf = key.rpartition(".")
     GlobalHydra.instance().clear()
@@ -590,7 +355,7 @@ def _close_keys(key: str, other_overrides: list[str]) -> str | None:
     return f"{parent}.{close[0]}" if close and parent else (close[0] if close else None)
 
 
-def _missing_config(err, overrides: list[str]) -> ConfigError:
+def missing_config(err, overrides: list[str]) -> ConfigError:
     text = str(err)
     group = None
     if "Could not find '" in text:
@@ -598,22 +363,26 @@ def _missing_config(err, overrides: list[str]) -> ConfigError:
     options = list(getattr(err, "options", None) or [])
     if group and options:
         item = _override_for(group, overrides)
-        value = item.split("=", 1)[1] if item and "=" in item else _NO_VALUE
+        value = item.split("=", 1)[1] if item and "=" in item else NO_VALUE
         return ConfigError(group, value, f"no such config; choose one of {', '.join(sorted(options))}")
-    return ConfigError("config", _NO_VALUE, text.splitlines()[0])
+    return ConfigError("config", NO_VALUE, text.splitlines()[0])
 
 
-def _composition_error(err, overrides: list[str]) -> ConfigError:
+def composition_error(err, overrides: list[str]) -> ConfigError:
     cause = err.__cause__ if isinstance(err.__cause__, OmegaConfBaseException) else err
     key = getattr(cause, "full_key", None) or getattr(cause, "key", None)
     text = str(err).splitlines()[0]
     if isinstance(cause, (ConfigKeyError, ConfigAttributeError)) and key:
         item = _override_for(str(key), overrides) or ""
-        value = item.split("=", 1)[1] if "=" in item else _NO_VALUE
+        value = item.split("=", 1)[1] if "=" in item else NO_VALUE
         close = _close_keys(str(key), [o for o in overrides if o != item])
         hint = f"did you mean {close}? " if close else ""
         return ConfigError(str(key), value, f"unknown key ({hint}to add a new key write +{key}=...)")
     if isinstance(cause, OmegaConfBaseException) and key:
-        return ConfigError(str(key), cause.value if cause.value is not None else _NO_VALUE,
-                           _type_message(cause))
+        return ConfigError(str(key), cause.value if cause.value is not None else NO_VALUE,
+                           type_message(cause))
     return ConfigError("overrides", " ".join(overrides), text)
+
+
+# the former private names (tests import them)
+_merge, _compose, _missing_config, _composition_error = merge, compose_config, missing_config, composition_error

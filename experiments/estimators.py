@@ -28,7 +28,7 @@ from torchmm import GPB1, GPB2, IMM, Filter, GaussianBelief, KalmanFilter, Multi
 from torchmm.metrics import mode_hits, nees, squared_error
 from torchmm.run import Trajectory
 
-from experiments.harness import add_runs, join_runs, per_run
+from experiments.arrays import add_runs, join_runs, per_run
 from experiments.uncertainty import armse_se, rmse_se_per_step
 
 __all__ = ["Estimator", "Evaluation", "build_mode_filter", "custom", "evaluate", "evaluate_runs", "gpb1", "gpb2", "imm",
@@ -236,7 +236,7 @@ def evaluate_runs(estimator: Estimator, scenario, sim, z: Any, *, chunk_runs: in
     the runs); ``first_run`` (a multiple of ``block_runs``) is the study-wide index
     of the first run here, so that block ``b`` of these runs draws from ``generators(first_run //
     block_runs + b)`` wherever the unit runs. The value is small to ship and exact to store (numpy,
-    ``experiments.harness.per_run``): ``pos``/``vel`` squared errors ``(T, runs)`` (the standard errors
+    ``experiments.arrays.per_run``): ``pos``/``vel`` squared errors ``(T, runs)`` (the standard errors
     need them per run), and sums over these runs of the NEES, the mode hits and each ``per_step``
     statistic.
     """

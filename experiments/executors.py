@@ -1,14 +1,14 @@
 """Where a study's units run: in this process, a local process pool, SLURM or local jobs through
 submitit, or a Ray cluster - with identical numbers (docs/scaling.md).
 
-A study hands its work to :meth:`experiments.harness.StudyContext.map_units` as :class:`Unit`\\ s:
+A study hands its work to :meth:`experiments.context.StudyContext.map_units` as :class:`Unit`\\ s:
 the dotted path of a module-level function ``fn(ctx, **args)`` and JSON arguments. A unit's value
 depends on the study's config and its arguments only (its random numbers come from
 ``ctx.generator(*key)``, seeded from ``seed`` and the key), so where it runs does not change it.
 
 What travels to a worker is a :class:`Job`: the resolved config (a dict), the run folder and the
 unit - never tensors. The worker rebuilds a study context from the config
-(:func:`experiments.harness.worker_context`), runs the function and sends back its JSON value; the
+(:func:`experiments.context.worker_context`), runs the function and sends back its JSON value; the
 study's process checkpoints each value as it arrives, so a lost worker costs its unit, not the
 study, and a re-run (``resume=latest``) skips every unit that arrived.
 
@@ -63,6 +63,10 @@ class Job:
     config: dict
     output_dir: str
     unit: Unit
+    #: the function that rebuilds the study context in the worker, ``context(config, output_dir)``, as
+    #: ``"package.module:function"`` (resolved there like a unit's ``fn``): the executors name the study
+    #: context rather than import it, which imports them (no import cycle)
+    context: str = "experiments.context:worker_context"
 
 
 class UnitError(RuntimeError):
@@ -82,11 +86,11 @@ def execute(job: Job) -> Any:
     its JSON value. A unit's exception comes back as :class:`UnitError` (with the traceback)."""
     import traceback
 
-    from experiments.harness import _jsonable, worker_context
+    from experiments.results import jsonable
 
-    ctx = worker_context(job.config, Path(job.output_dir))
+    ctx = resolve(job.context)(job.config, Path(job.output_dir))
     try:
-        return _jsonable(resolve(job.unit.fn)(ctx, **job.unit.args))
+        return jsonable(resolve(job.unit.fn)(ctx, **job.unit.args))
     except Exception as err:  # the unit's own error: travels back as text (picklable everywhere)
         raise UnitError(f"unit {job.unit.key}: {type(err).__name__}: {err}\n{traceback.format_exc()}") from None
 
@@ -109,11 +113,11 @@ class LocalExecutor(Executor):
     kind = "local"
 
     def run(self, jobs, ctx=None):
-        from experiments.harness import _jsonable, worker_context
+        from experiments.results import jsonable
 
         for index, job in enumerate(jobs):
-            context = ctx if ctx is not None else worker_context(job.config, Path(job.output_dir))
-            yield index, _jsonable(resolve(job.unit.fn)(context, **job.unit.args))
+            context = ctx if ctx is not None else resolve(job.context)(job.config, Path(job.output_dir))
+            yield index, jsonable(resolve(job.unit.fn)(context, **job.unit.args))
 
 
 def _init_worker(threads: int | None) -> None:

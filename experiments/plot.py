@@ -128,7 +128,7 @@ def save_tight(figure, files) -> bytes | None:
 
     import matplotlib
 
-    from experiments.harness import write_atomic
+    from experiments.files import write_atomic
 
     figure.draw_without_rendering()  # lays the figure out (its layout engine too, if any)
     if figure.get_layout_engine() is not None:
@@ -165,7 +165,7 @@ def plot_curves(run_dir: Path, formats=("png", "pdf")) -> list[Path]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from experiments.harness import RunFolderError
+    from experiments.files import RunFolderError
 
     parser = argparse.ArgumentParser(prog="torchmm-plot", description=__doc__.splitlines()[0])
     parser.add_argument("run_dirs", nargs="+", metavar="RUN_DIR", help="a study's run folder (with curves.npz)")

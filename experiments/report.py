@@ -2,7 +2,7 @@ r"""``torchmm-report PATH...``: one table across runs - seed sweeps, override sw
 
 Every ``results.json`` under the given paths (a run folder, a ``-m`` sweep folder, ``outputs/``)
 is one run. Runs of the same study are grouped by their *result config* (the resolved config
-without the keys that do not change numbers, :data:`experiments.harness.NON_RESULT_KEYS`):
+without the keys that do not change numbers, :data:`experiments.folders.NON_RESULT_KEYS`):
 
 * the **replicate key** (``seed`` by default, ``--replicate``) varies within a group: its runs are
   independent replications of one experiment;
@@ -51,7 +51,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from experiments.harness import NON_RESULT_KEYS, RunFolderError, _format, write_atomic
+from experiments.files import RunFolderError, write_atomic
+from experiments.folders import NON_RESULT_KEYS
+from experiments.results import format_value
 
 __all__ = ["Run", "collect_runs", "combine", "main", "mean_interval", "paired_differences", "to_latex",
            "write_report"]
@@ -74,14 +76,15 @@ class Run:
 
     @property
     def config(self) -> dict[str, Any]:
-        return _flatten({k: v for k, v in (self.results.get("config") or {}).items() if k not in IGNORED_KEYS})
+        return flatten({k: v for k, v in (self.results.get("config") or {}).items() if k not in IGNORED_KEYS})
 
 
-def _flatten(tree: Any, prefix: str = "") -> dict[str, Any]:
+def flatten(tree: Any, prefix: str = "") -> dict[str, Any]:
+    """A nested config as ``{dotted key: value}`` (lists are values)."""
     if isinstance(tree, dict):
         out: dict[str, Any] = {}
         for key, value in tree.items():
-            out.update(_flatten(value, f"{prefix}.{key}" if prefix else str(key)))
+            out.update(flatten(value, f"{prefix}.{key}" if prefix else str(key)))
         return out
     if isinstance(tree, list):  # compare and display lists as one value
         return {prefix: json.dumps(tree, sort_keys=True, default=str)}
@@ -308,8 +311,8 @@ def _cell(stats: dict) -> str:
     if stats["mean"] is None:
         return ""
     if stats["ci_low"] is None:
-        return _format(stats["mean"])
-    return f"{_format(stats['mean'])} ± {_format((stats['ci_high'] - stats['ci_low']) / 2)}"
+        return format_value(stats["mean"])
+    return f"{format_value(stats['mean'])} ± {format_value((stats['ci_high'] - stats['ci_low']) / 2)}"
 
 
 def to_markdown(report: dict[str, Any]) -> str:
@@ -328,7 +331,7 @@ def to_markdown(report: dict[str, Any]) -> str:
             for row in table["rows"]:
                 g = groups[row["group"]]
                 n = max((v["n"] for v in row["values"].values()), default=len(g["runs"]))
-                cells = [*(_format(g["factors"][k]) for k in factor_cols), *(_format(row["labels"][c]) for c in table["labels"]),
+                cells = [*(format_value(g["factors"][k]) for k in factor_cols), *(format_value(row["labels"][c]) for c in table["labels"]),
                          str(n), *(_cell(row["values"][c]) for c in table["measurements"])]
                 lines.append("| " + " | ".join(cells) + " |")
             out += [f"### {name}", "", *lines, ""]
@@ -353,10 +356,10 @@ def _paired_rows(body: dict, paired: dict, minus: str, cell=None, text=None) -> 
     for row in paired["rows"]:
         g = body["groups"][row["group"]]
         n = max((v["n"] for v in row["values"].values()), default=len(g["runs"]))
-        labels = [text(_format(row["labels"][c])) if c != "estimator"
-                  else text(_format(row["labels"][c])) + minus + text(str(paired["reference"]))
+        labels = [text(format_value(row["labels"][c])) if c != "estimator"
+                  else text(format_value(row["labels"][c])) + minus + text(str(paired["reference"]))
                   for c in paired["labels"]]
-        rows.append([*(text(_format(g["factors"][k])) for k in factors), *labels, str(n),
+        rows.append([*(text(format_value(g["factors"][k])) for k in factors), *labels, str(n),
                      *(cell(row["values"][c]) for c in paired["measurements"])])
     return [text(c) for c in columns], rows
 
@@ -392,8 +395,8 @@ def latex_escape(text: Any) -> str:
 
 
 def _latex_number(value: Any) -> str:
-    """``_format(value)`` typeset: a minus sign, not a hyphen; ``1.2e-04`` as ``$1.2\\times10^{-4}$``."""
-    text = _format(value)
+    """``format_value(value)`` typeset: a minus sign, not a hyphen; ``1.2e-04`` as ``$1.2\\times10^{-4}$``."""
+    text = format_value(value)
     mantissa, e, exponent = text.partition("e")
     if e and exponent.lstrip("+-").isdigit():
         return f"${mantissa}\\times10^{{{int(exponent)}}}$"
@@ -430,8 +433,8 @@ def to_latex(report: dict[str, Any]) -> str:
             for row in table["rows"]:
                 g = groups[row["group"]]
                 n = max((v["n"] for v in row["values"].values()), default=len(g["runs"]))
-                rows.append([*(esc(_format(g["factors"][k])) for k in factors),
-                             *(esc(_format(row["labels"][c])) for c in table["labels"]), str(n),
+                rows.append([*(esc(format_value(g["factors"][k])) for k in factors),
+                             *(esc(format_value(row["labels"][c])) for c in table["labels"]), str(n),
                              *(_latex_cell(row["values"][c]) for c in table["measurements"])])
             align = "l" * (len(factors) + len(table["labels"])) + "r" * (1 + len(table["measurements"]))
             caption = (f"{esc(experiment)}: {esc(name)} (mean $\\pm$ half-width of the {pct} Student-t interval "
@@ -470,8 +473,8 @@ def figure(report: dict[str, Any]):
                 continue
             factors = body["groups"][row["group"]]["factors"]
             names = [c for c in table["labels"] if not _is_number(row["labels"][c])] or table["labels"]
-            text = ", ".join([*(f"{k}={_format(v)}" for k, v in factors.items()),
-                              *(_format(row["labels"][c]) for c in names)])
+            text = ", ".join([*(f"{k}={format_value(v)}" for k, v in factors.items()),
+                              *(format_value(row["labels"][c]) for c in names)])
             labels.append(text or exp)
             means.append(s["mean"])
             lows.append(s["mean"] - (s["ci_low"] if s["ci_low"] is not None else s["mean"]))

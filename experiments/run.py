@@ -1,7 +1,7 @@
 """Hydra entry point of every torchmm study: ``torchmm-run experiment=<name> [key=value ...]``.
 
 Equivalently ``python -m experiments.run ...``. The study named by ``study`` (a dotted path to a
-``run(ctx)`` function) gets a :class:`~experiments.harness.StudyContext` and writes
+``run(ctx)`` function) gets a :class:`~experiments.context.StudyContext` and writes
 ``results.json``, ``results.md``, ``figures/*.png`` and TensorBoard events into the Hydra run
 directory.
 
@@ -10,7 +10,7 @@ a sweep): a user error is one line on stderr and exit status 2, and no run folde
 Run folders are unique: ``${torchmm.unique_dir:<base>}`` (``conf/config.yaml``) creates
 ``<base>``, or ``<base>_1``, ``<base>_2``, ... if it exists, atomically (``os.mkdir``), so two
 runs started in the same second never share a folder. A run holds its folder's lock
-(:func:`experiments.harness.lock_folder`) while it runs: a second run aimed at the same folder
+(:func:`experiments.files.lock_folder`) while it runs: a second run aimed at the same folder
 (``hydra.run.dir=<dir>``, ``resume=``), or a second sweep into the same ``hydra.sweep.dir``, is
 refused with one line and exit status 2 before it writes anything there; a file-level failure
 (a corrupt checkpoint, a folder that cannot be written) is one line naming the file, exit status 2.
@@ -31,9 +31,10 @@ from typing import TYPE_CHECKING, Any
 from omegaconf import DictConfig, OmegaConf
 
 from experiments.config import ConfigError, precheck, validate
+from experiments.paths import CONFIG_DIR
 
 if TYPE_CHECKING:
-    from experiments.harness import Results
+    from experiments.results import Results
 
 # torch, Hydra, the harness and torchmm are imported where they are used (``torchmm-run --help``
 # and ``--version`` print in a fraction of a second; a run imports them once it starts). Their names
@@ -47,9 +48,12 @@ _LAZY = {
     "Provenance": ("experiments.provenance", "Provenance"),
     "compile_fast_paths": ("torchmm.runtime", "compile_fast_paths"),
     "retain_freed_memory": ("torchmm.runtime", "retain_freed_memory"),
-    **{name: ("experiments.harness", name) for name in (
-        "_LOCKS", "LOCK_FILE", "Results", "RunFolderError", "lock_folder", "open_context", "unique_dir",
-        "unlock_folder")},
+    "Results": ("experiments.results", "Results"),
+    "open_context": ("experiments.context", "open_context"),
+    "unique_dir": ("experiments.folders", "unique_dir"),
+    "_LOCKS": ("experiments.files", "LOCKS"),  # the former name of LOCKS
+    **{name: ("experiments.files", name) for name in (
+        "LOCKS", "LOCK_FILE", "RunFolderError", "lock_folder", "unlock_folder")},
 }
 
 
@@ -66,9 +70,6 @@ def __getattr__(name: str) -> Any:
 
 log = logging.getLogger("torchmm.experiments")
 
-#: conf/ next to this package (absolute, so the console script works from any directory)
-CONFIG_DIR = str(Path(__file__).resolve().parent.parent / "conf")
-
 
 def sweep_subdir(num: Any, overrides: Any = "") -> str:
     """A sweep job's folder name: its number and its overrides, ``3_alpha=0.5,seed=1`` (``/`` and
@@ -84,7 +85,8 @@ def _unique_locked_dir(base: str) -> str:
     """The ``torchmm.unique_dir`` resolver: :func:`unique_dir`, locked for this process's life (a run's
     or a sweep's folder); a folder that cannot be made is one line and exit status 2, no traceback."""
     try:
-        from experiments.harness import RunFolderError, lock_folder, unique_dir
+        from experiments.files import RunFolderError, lock_folder
+        from experiments.folders import unique_dir
 
         folder = unique_dir(base)
         lock_folder(Path(folder))
@@ -108,22 +110,22 @@ def run_study(cfg: DictConfig, output_dir: Path, overrides: list[str] | None = N
     """
     from hydra.utils import get_method
 
-    from experiments.harness import _LOCKS, lock_folder, open_context, unlock_folder
+    from experiments.changes import config_changes
+    from experiments.context import open_context
+    from experiments.files import LOCKS, lock_folder, unlock_folder
 
     validate(cfg)
     config = OmegaConf.to_container(cfg, resolve=True)
     study = get_method(cfg.study)
-    held = set(_LOCKS)  # the locks taken here are released at the end (the command line's: at exit)
+    held = set(LOCKS)  # the locks taken here are released at the end (the command line's: at exit)
     try:
         lock_folder(Path(output_dir))  # another process running there: FolderInUse, nothing written
         ctx = open_context(cfg, Path(output_dir), config, experiment=str(cfg.experiment_name))
         lock_folder(ctx.output_dir)  # a fresh sibling (another config was in output_dir)
-        from experiments.api import config_changes  # results.md: what differs from the study's defaults
-
-        ctx.results.changes = config_changes(config)
+        ctx.results.changes = config_changes(config)  # results.md: what differs from the study's defaults
         return _run(cfg, ctx, study, config, overrides)
     finally:
-        for key in set(_LOCKS) - held:
+        for key in set(LOCKS) - held:
             unlock_folder(Path(key))
 
 
@@ -192,7 +194,7 @@ def hparams(config: dict, overrides: list[str], results: Results, max_metrics: i
     Settings: ``experiment``, ``seed``, ``mc_runs``, ``dtype``, ``device`` and every command-line
     override (``key=value``) except those that do not change results; metrics: the finite numbers
     of ``results.metrics`` as ``headline/<estimator>/<metric>`` (the first ``max_metrics``)."""
-    from experiments.harness import NON_RESULT_KEYS
+    from experiments.folders import NON_RESULT_KEYS
 
     settings: dict[str, Any] = {"experiment": results.experiment}
     for key in ("seed", "mc_runs", "dtype", "device"):
@@ -230,7 +232,7 @@ def _study_main(cfg: DictConfig) -> None:
     """One run (or one sweep job) under Hydra: the study into Hydra's output folder."""
     from hydra.core.hydra_config import HydraConfig
 
-    from experiments.harness import RunFolderError
+    from experiments.files import RunFolderError
     from torchmm.learn import NonFiniteLossError
 
     output_dir = Path(HydraConfig.get().runtime.output_dir)
@@ -274,20 +276,14 @@ def study_summaries(config_dir: str = CONFIG_DIR) -> list[tuple[str, str]]:
 
 
 def help_text() -> str:
-    """``torchmm-run --help``: the studies, the common keys and the config groups."""
-    import dataclasses
-
-    from experiments.config import Common
+    """``torchmm-run --help``: the studies, the common keys (with their defaults, read from
+    conf/config.yaml: the one place they are declared) and the config groups."""
+    import yaml
 
     studies = "\n".join(f"  {name:<16} {line}" for name, line in study_summaries())
-    keys = []
-    for f in dataclasses.fields(Common):
-        if f.name in ("study", "experiment_name"):
-            continue
-        default = f.default if f.default is not dataclasses.MISSING else "(see conf/config.yaml)"
-        if dataclasses.is_dataclass(default) or f.default is dataclasses.MISSING:
-            default = "(group)"
-        keys.append(f"  {f.name}={default}")
+    common = yaml.safe_load((Path(CONFIG_DIR) / "config.yaml").read_text())
+    keys = [f"  {key}={'null' if value is None else str(value).lower() if isinstance(value, bool) else value}"
+            for key, value in common.items() if key not in ("defaults", "hydra") and not isinstance(value, dict)]
     groups = sorted(p.name for p in Path(CONFIG_DIR).iterdir() if p.is_dir())
     return (
         "usage: torchmm-run [experiment=NAME] [key=value ...] [-m key=a,b ...]\n\n"
@@ -303,7 +299,7 @@ def help_text() -> str:
 
 def _remove_if_unused(output_dir: Path) -> None:
     """Delete a run folder holding nothing but Hydra's own files (``.hydra/``, ``*.log``)."""
-    from experiments.harness import LOCK_FILE
+    from experiments.files import LOCK_FILE
 
     ignored = (".hydra", LOCK_FILE)
     if output_dir.is_dir() and all(p.name in ignored or p.suffix == ".log" for p in output_dir.iterdir()):
@@ -321,7 +317,7 @@ def main() -> None:
     if "--help" in args or "-h" in args:
         print(help_text(), end="")
         return
-    from experiments.harness import RunFolderError
+    from experiments.files import RunFolderError
 
     precheck(args, CONFIG_DIR)
     args = resolve_resume(args, CONFIG_DIR)
@@ -350,8 +346,8 @@ def claim_folder(args: list[str], config_dir: str = CONFIG_DIR) -> list[str]:
     """Before Hydra writes anything: lock the folder the command line names (``hydra.run.dir=<dir>``,
     or ``hydra.sweep.dir=<dir>`` with ``-m``) for this process's life, and return the command line.
 
-    * the folder is in use by another run or sweep: :class:`~experiments.harness.FolderInUse`;
-      it cannot be made or written: :class:`~experiments.harness.RunFolderError` (nothing written);
+    * the folder is in use by another run or sweep: :class:`~experiments.files.FolderInUse`;
+      it cannot be made or written: :class:`~experiments.files.RunFolderError` (nothing written);
     * a run folder holding a run of another result config (or a corrupt checkpoint: an error naming
       it): the run goes to a fresh sibling (``<dir>_1``, ...) so that Hydra's ``.hydra/`` and log of the
       old run are kept too; the differing keys are named;
@@ -361,16 +357,9 @@ def claim_folder(args: list[str], config_dir: str = CONFIG_DIR) -> list[str]:
     Folders named through ``${...}`` interpolation (the default, ``${torchmm.unique_dir:...}``) are
     locked by their resolver or by :func:`run_study` instead.
     """
-    from experiments.harness import (
-        RunFolderError,
-        _differing_keys,
-        config_hash,
-        lock_folder,
-        result_config,
-        saved_run,
-        unique_dir,
-        unlock_folder,
-    )
+    from experiments.config import compose_config
+    from experiments.files import RunFolderError, lock_folder, unlock_folder
+    from experiments.folders import config_hash, differing_keys, result_config, saved_run, unique_dir
 
     if any(a.split("=", 1)[0] in _NO_RUN_FLAGS for a in args):
         return args  # Hydra prints something and runs nothing: no folder
@@ -400,13 +389,11 @@ def claim_folder(args: list[str], config_dir: str = CONFIG_DIR) -> list[str]:
     saved = saved_run(folder)
     if saved is None:
         return args
-    from experiments.config import _compose
-
-    cfg, _ = _compose([a for a in args if not a.startswith("-")], config_dir, "config")
+    cfg, _ = compose_config([a for a in args if not a.startswith("-")], config_dir, "config")
     config = OmegaConf.to_container(cfg, resolve=True)
     if saved[0] == config_hash(config):
         return args  # the same result config: continue the folder
-    differ = _differing_keys(saved[1] or {}, json.loads(json.dumps(result_config(config), default=str)))
+    differ = differing_keys(saved[1] or {}, json.loads(json.dumps(result_config(config), default=str)))
     fresh = Path(unique_dir(str(folder)))
     lock_folder(fresh)
     unlock_folder(folder)
@@ -431,10 +418,10 @@ def resolve_resume(args: list[str], config_dir: str = CONFIG_DIR) -> list[str]:
         _fail("resume: give either resume= or hydra.run.dir=, not both")
     if values[-1] != "latest":
         return [*args, f"hydra.run.dir={values[-1]}"]
-    from experiments.config import _compose
-    from experiments.harness import latest_run
+    from experiments.config import compose_config
+    from experiments.folders import latest_run
 
-    cfg, _ = _compose([a for a in args if not a.startswith("-")], config_dir, "config")
+    cfg, _ = compose_config([a for a in args if not a.startswith("-")], config_dir, "config")
     config = OmegaConf.to_container(cfg, resolve=True)
     base = Path("outputs") / str(config.get("experiment_name", "study"))
     unreadable: list[str] = []

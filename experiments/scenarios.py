@@ -183,7 +183,8 @@ def _block_diag(blocks: list[Tensor]) -> Tensor:
 
 
 @contextmanager
-def _default_dtype(dtype: torch.dtype):
+def default_dtype(dtype: torch.dtype):
+    """``torch``'s default dtype set to ``dtype`` inside the ``with`` block (restored after)."""
     previous = torch.get_default_dtype()
     torch.set_default_dtype(dtype)
     try:
@@ -201,7 +202,7 @@ def _build(node, key: str, dtype, device, **extra):
     from experiments.config import ConfigError
 
     try:
-        with _default_dtype(dtype):
+        with default_dtype(dtype):
             built = instantiate(node, **extra)
     except InstantiationException as err:
         cause = err.__cause__ or err

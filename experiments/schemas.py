@@ -2,8 +2,14 @@
 
 One dataclass per study section (checked by :func:`experiments.config.validate`); a field's type
 is enforced by OmegaConf, its range by ``spec(..., check)``. ``STUDIES`` maps a study function to
-its schema and the scenario builders it accepts (``None``: it takes no ``scenario``). A study
-that is not listed here gets its common keys checked only.
+its schema and the scenario builders it accepts (``None``: it takes no ``scenario``).
+
+**One source of truth per key.** A key that the study's YAML sets has its value there only: its
+field here has no default (``MISSING``: the YAML must set it) and only types and ranges it. A field
+the YAML does not set (an optional block such as compare's ``learn``, a builder's option) has its
+default here only (tests/experiments/test_keys_once.py). A study that is not listed here declares
+its keys in its YAML alone: their defaults type them and its module's ``CHECKS`` range them
+(:func:`experiments.config.infer_types`; tests/experiments/test_new_study.py).
 
 Matrices and vectors are typed ``List[...]`` of numbers; their sizes are checked by the library
 constructors the study calls (with errors naming the library argument).
@@ -17,10 +23,12 @@ from pathlib import Path
 from typing import Any, Dict, List, Optional
 
 import yaml
+from omegaconf import MISSING
 
-from experiments.config import (
+from experiments.checks import (
     ConfigError,
     each,
+    merge,
     non_empty,
     non_negative,
     one_of,
@@ -30,7 +38,7 @@ from experiments.config import (
     probability,
     spec,
 )
-from experiments.config import (
+from experiments.checks import (
     matrix as matrix_check,
 )
 
@@ -52,23 +60,88 @@ def _rows_stochastic(matrix) -> str | None:
     return None
 
 
+# -- the config groups' nodes (conf/logger, conf/executor, conf/mode_filter, conf/policy) ------------------
+@dataclass
+class Logger:
+    kind: str = spec("tensorboard", one_of("tensorboard", "none"))
+    subdir: str = "tb"
+    flush_secs: int = spec(10, positive_int)
+
+
+@dataclass
+class ExecutorConfig:
+    """``executor=local|processes|submitit_local|slurm|ray`` (conf/executor; experiments/executors.py)."""
+
+    kind: str = spec("local", one_of("local", "processes", "submitit_local", "slurm", "ray"))
+    workers: int = spec(2, positive_int)
+    retries: int = spec(2, non_negative)
+    address: Optional[str] = None
+    folder: Optional[str] = None
+    partition: Optional[str] = None
+    timeout_min: Optional[int] = spec(60, positive_int)
+    cpus_per_task: Optional[int] = spec(1, positive_int)
+    mem_gb: Optional[float] = spec(None, positive)
+    array_parallelism: Optional[int] = spec(64, positive_int)
+    slurm_parameters: dict = field(default_factory=dict)
+
+
+MODE_FILTERS = ("torchmm.KalmanFilter", "torchmm.ExtendedKalmanFilter", "torchmm.UnscentedKalmanFilter",
+                "torchmm.ParticleFilter")
+POLICIES = ("torchmm.multimodel.mevsmm.ExactMinimumEntropy", "torchmm.multimodel.mevsmm.ChallengeMatch",
+            "torchmm.multimodel.AllModels")
+
+
+@dataclass
+class ModeFilter:
+    """``conf/mode_filter``: the mode filters of the multiple-model estimators (a torchmm filter class)."""
+
+    _target_: str = spec("torchmm.KalmanFilter", one_of(*MODE_FILTERS))
+    _partial_: bool = True
+    num_particles: Optional[int] = spec(None, positive_int)
+    ess_threshold: Optional[float] = spec(None, non_negative)
+    resampling: Optional[str] = spec(None, one_of("systematic", "stratified", "multinomial", "residual"))
+
+    def config_check(self):
+        particle = self._target_ == "torchmm.ParticleFilter"
+        if particle and self.num_particles is None:
+            return "num_particles", None, "missing: particle mode filters need num_particles"
+        if not particle:
+            for key in ("num_particles", "ess_threshold", "resampling"):
+                if getattr(self, key) is not None:
+                    return key, getattr(self, key), f"only particle mode filters take {key}"
+        return None
+
+
+@dataclass
+class Policy:
+    """``conf/policy``: the model-set policy of the ``vsmm`` estimator."""
+
+    _target_: str = spec("torchmm.multimodel.mevsmm.ExactMinimumEntropy", one_of(*POLICIES))
+    entropy: Optional[str] = spec(None, one_of("joint", "literal"))
+    num_winners: Optional[int] = spec(None, positive_int)
+    threshold: Optional[int] = spec(None, non_negative)
+    method: Optional[str] = spec(None, one_of("cm", "topk"))
+    passes: Optional[int] = spec(None, non_negative)
+
+
+
 # -- scenarios -----------------------------------------------------------------------------------
 @dataclass
 class KinematicScenario:
     """``experiments.scenarios.kinematic_1d`` (paper000, maneuver2, maneuver3)."""
 
-    _target_: str = KINEMATIC
-    name: str = "scenario"
-    accelerations: List[float] = spec(factory=list, check=non_empty)
-    q: float = spec(1.0, non_negative)
-    noise: str = spec("discrete", one_of("discrete", "continuous"))
-    R: float = spec(100.0, positive)
-    transition: List[Any] = spec(factory=list, check=_rows_stochastic)
-    initial_mean: List[float] = field(default_factory=list)
-    initial_cov: List[Any] = spec(factory=list, check=matrix_check)
-    initial_mode_probs: Optional[List[float]] = None
-    steps: int = spec(100, positive_int)
-    dt: float = spec(1.0, positive)
+    _target_: str = MISSING
+    name: str = MISSING
+    accelerations: List[float] = spec(MISSING, check=non_empty)
+    q: float = spec(MISSING, non_negative)
+    noise: str = spec(MISSING, one_of("discrete", "continuous"))
+    R: float = spec(MISSING, positive)
+    transition: List[Any] = spec(MISSING, check=_rows_stochastic)
+    initial_mean: List[float] = MISSING
+    initial_cov: List[Any] = spec(MISSING, check=matrix_check)
+    initial_mode_probs: Optional[List[float]] = MISSING
+    steps: int = spec(MISSING, positive_int)
+    dt: float = spec(MISSING, positive)
 
     def config_check(self):
         if len(self.initial_mean) != 2 or len(self.initial_cov) != 2:  # issue 30: [] failed in the study
@@ -256,17 +329,17 @@ class Learn:
 
 @dataclass
 class Paired:
-    reference: Optional[str] = None
+    reference: Optional[str] = MISSING
 
 
 @dataclass
 class Compare:
-    estimators: Dict[str, Any] = spec(factory=dict, check=non_empty)
-    metrics: List[str] = spec(factory=lambda: list(METRICS), check=each(one_of(*METRICS)))
+    estimators: Dict[str, Any] = spec(MISSING, check=non_empty)
+    metrics: List[str] = spec(MISSING, check=each(one_of(*METRICS)))
     paired: Paired = field(default_factory=Paired)
-    learn: Optional[Learn] = None
-    update_first: bool = False
-    burn: int = spec(0, non_negative)
+    learn: Optional[Learn] = MISSING
+    update_first: bool = MISSING
+    burn: int = spec(MISSING, non_negative)
     estimator_schema = CompareEstimator
 
     @staticmethod
@@ -292,38 +365,38 @@ class Compare:
 
 @dataclass
 class ImmBaseline:
-    estimators: Dict[str, Any] = field(default_factory=dict)
+    estimators: Dict[str, Any] = MISSING
 
 
 @dataclass
 class Influence:
-    threshold: float = 0.0
-    mode: int = spec(0, non_negative)
-    weight: str = spec("prior", one_of("prior", "process"))
+    threshold: float = MISSING
+    mode: int = spec(MISSING, non_negative)
+    weight: str = spec(MISSING, one_of("prior", "process"))
 
 
 @dataclass
 class Transfer:
-    smoothing_reference: str = spec("combined", one_of("combined", "mixed"))
-    mode_likelihood: str = spec("prior", one_of("prior", "corrected"))
+    smoothing_reference: str = spec(MISSING, one_of("combined", "mixed"))
+    mode_likelihood: str = spec(MISSING, one_of("prior", "corrected"))
     influence: Influence = field(default_factory=Influence)
 
 
 @dataclass
 class Source:
-    R: float = spec(10.0, positive)
-    ratio: float = spec(0.6, probability)
-    availability: str = spec("bernoulli", one_of("bernoulli", "periodic"))
-    period: int = spec(2, positive_int)
+    R: float = spec(MISSING, positive)
+    ratio: float = spec(MISSING, probability)
+    availability: str = spec(MISSING, one_of("bernoulli", "periodic"))
+    period: int = spec(MISSING, positive_int)
 
 
 @dataclass
 class Vsimm:
-    extra_model: int = spec(1, non_negative)
-    p_new: Optional[float] = spec(None, open_probability)
-    p_ee: float = spec(0.9, lambda v: None if 0 <= v < 1 else "must lie in [0, 1)")
-    eps: float = spec(0.01, lambda v: None if 0 <= v < 1 else "must lie in [0, 1)")
-    drop_below: float = spec(1e-3, lambda v: None if 0 <= v < 1 else "must lie in [0, 1)")
+    extra_model: int = spec(MISSING, non_negative)
+    p_new: Optional[float] = spec(MISSING, open_probability)
+    p_ee: float = spec(MISSING, lambda v: None if 0 <= v < 1 else "must lie in [0, 1)")
+    eps: float = spec(MISSING, lambda v: None if 0 <= v < 1 else "must lie in [0, 1)")
+    drop_below: float = spec(MISSING, lambda v: None if 0 <= v < 1 else "must lie in [0, 1)")
 
 
 _VSIMM_KEYS = ("extra_model", "p_new", "p_ee", "eps", "drop_below")
@@ -342,11 +415,11 @@ def _tf_estimators(nodes) -> str | None:
 
 @dataclass
 class ImmTf:
-    estimator_names: List[str] = spec(factory=lambda: list(TF_ESTIMATORS), check=non_empty)
-    tf_estimators: Dict[str, Any] = spec(factory=dict, check=_tf_estimators)
+    estimator_names: List[str] = spec(MISSING, check=non_empty)
+    tf_estimators: Dict[str, Any] = spec(MISSING, check=_tf_estimators)
     source: Source = field(default_factory=Source)
-    table1_ratios: List[float] = spec(factory=list, check=each(probability))
-    rs_sweep: List[float] = spec(factory=list, check=each(positive))
+    table1_ratios: List[float] = spec(MISSING, check=each(probability))
+    rs_sweep: List[float] = spec(MISSING, check=each(positive))
     transfer: Transfer = field(default_factory=Transfer)
     vsimm: Vsimm = field(default_factory=Vsimm)
 
@@ -360,21 +433,20 @@ class ImmTf:
                                   f"entry {name}: expected one of {', '.join(known)} (the keys of tf_estimators)")
         # an entry's own options, typed and ranged as the keys they normally come from (vsimm.*,
         # transfer.influence.*); issue 30: tf_estimators.VSIMM.p_ee=abc failed with a traceback
-        from experiments.config import _merge
 
         for name, node in (data.get("tf_estimators") or {}).items():
             prefix = f"tf_estimators.{name}"
             if node.get("_target_") == "torchmm.SourceModeVSIMM":
-                _merge(Vsimm, {k: v for k, v in node.items() if k in _VSIMM_KEYS}, prefix)
+                merge(Vsimm, {k: v for k, v in node.items() if k in _VSIMM_KEYS}, prefix)
             gate = node.get("gate")
             if isinstance(gate, dict) and gate.get("_target_") == "torchmm.InfluenceGate":
-                _merge(Influence, {k: v for k, v in gate.items() if not k.startswith("_")}, f"{prefix}.gate")
+                merge(Influence, {k: v for k, v in gate.items() if not k.startswith("_")}, f"{prefix}.gate")
 
 
 @dataclass
 class Alphas:
-    two_model: List[float] = spec(factory=list, check=each(non_negative))
-    three_model: List[float] = spec(factory=list, check=each(non_negative))
+    two_model: List[float] = spec(MISSING, check=each(non_negative))
+    three_model: List[float] = spec(MISSING, check=each(non_negative))
 
 
 @dataclass
@@ -387,15 +459,15 @@ class AnalysisScenarios:
 class Analysis:
     scenarios: AnalysisScenarios = field(default_factory=AnalysisScenarios)
     alphas: Alphas = field(default_factory=Alphas)
-    matched: str = spec("closest", one_of("closest", "true_mode"))
-    interaction_estimator: str = "IMM"
-    tol: float = spec(1e-9, non_negative)
+    matched: str = spec(MISSING, one_of("closest", "true_mode"))
+    interaction_estimator: str = MISSING
+    tol: float = spec(MISSING, non_negative)
 
 
 @dataclass
 class ImmAnalysis:
     analysis: Analysis = field(default_factory=Analysis)
-    estimators: Dict[str, Any] = field(default_factory=dict)
+    estimators: Dict[str, Any] = MISSING
 
     @staticmethod
     def check(data: dict) -> None:
@@ -416,29 +488,29 @@ class ImmAnalysis:
 
 @dataclass
 class GimmafNoise:
-    kind: str = spec("skew_t", one_of("skew_t", "student_t", "gaussian"))
-    R: float = spec(2500.0, positive)
-    delta: float = 9.0
-    nu: float = spec(20.0, positive)
+    kind: str = spec(MISSING, one_of("skew_t", "student_t", "gaussian"))
+    R: float = spec(MISSING, positive)
+    delta: float = MISSING
+    nu: float = spec(MISSING, positive)
 
 
 @dataclass
 class Table4Noise:
-    R: float = spec(400.0, positive)
-    delta: float = 9.0
-    nu: float = spec(10.0, positive)
+    R: float = spec(MISSING, positive)
+    delta: float = MISSING
+    nu: float = spec(MISSING, positive)
 
 
 @dataclass
 class Table4:
-    noises: List[str] = spec(factory=list, check=each(one_of("skew_t", "student_t", "gaussian")))
+    noises: List[str] = spec(MISSING, check=each(one_of("skew_t", "student_t", "gaussian")))
     noise: Table4Noise = field(default_factory=Table4Noise)
 
 
 @dataclass
 class Vbakf:
-    rho: float = spec(0.98, lambda v: None if 0 < v <= 1 else "must lie in (0, 1]")
-    tau_r: float = spec(3.0, positive)
+    rho: float = spec(MISSING, lambda v: None if 0 < v <= 1 else "must lie in (0, 1]")
+    tau_r: float = spec(MISSING, positive)
 
 
 #: what a node of ``gimmaf.estimators`` may build: IMMs over the model_rates bank (they take a
@@ -466,23 +538,23 @@ class GimmafEstimator:
 
 @dataclass
 class GimmafSection:
-    steps: int = spec(250, positive_int)
-    dt: float = spec(1.0, positive)
-    x0: List[float] = field(default_factory=list)
-    P0: List[float] = spec(factory=list, check=each(positive))
-    segments: List[Any] = spec(factory=list, check=matrix_check)
+    steps: int = spec(MISSING, positive_int)
+    dt: float = spec(MISSING, positive)
+    x0: List[float] = MISSING
+    P0: List[float] = spec(MISSING, check=each(positive))
+    segments: List[Any] = spec(MISSING, check=matrix_check)
     noise: GimmafNoise = field(default_factory=GimmafNoise)
-    model_rates: List[float] = spec(factory=list, check=non_empty)
-    transition: List[Any] = spec(factory=list, check=_rows_stochastic)
-    nominal_q: float = spec(1e-2, positive)
-    tau: float = spec(3.0, positive)
-    iterations: int = spec(10, positive_int)
-    elbo_history: bool = False
-    gamma_shape: str = spec("derived", one_of("derived", "printed"))
+    model_rates: List[float] = spec(MISSING, check=non_empty)
+    transition: List[Any] = spec(MISSING, check=_rows_stochastic)
+    nominal_q: float = spec(MISSING, positive)
+    tau: float = spec(MISSING, positive)
+    iterations: int = spec(MISSING, positive_int)
+    elbo_history: bool = MISSING
+    gamma_shape: str = spec(MISSING, one_of("derived", "printed"))
     vbakf: Vbakf = field(default_factory=Vbakf)
-    oracle: bool = True
+    oracle: bool = MISSING
     table4: Table4 = field(default_factory=Table4)
-    estimators: Dict[str, Any] = spec(factory=dict, check=non_empty)  # name: node (checked by Gimmaf.check)
+    estimators: Dict[str, Any] = spec(MISSING, check=non_empty)  # name: node (checked by Gimmaf.check)
 
     def config_check(self):
         if len(self.transition) != len(self.model_rates):
@@ -493,18 +565,17 @@ class GimmafSection:
 
 @dataclass
 class Gimmaf:
-    noise: str = spec("skew_t", one_of("skew_t", "student_t", "gaussian"))
+    noise: str = spec(MISSING, one_of("skew_t", "student_t", "gaussian"))
     gimmaf: GimmafSection = field(default_factory=GimmafSection)
 
     @staticmethod
     def check(data: dict) -> None:
-        from experiments.config import _merge
 
         for name, node in data["gimmaf"]["estimators"].items():  # each node's target and options, one line
             prefix = f"gimmaf.estimators.{name}"
             if not isinstance(node, dict):
                 raise ConfigError(prefix, node, f"expected an estimator node with a _target_ (one of {', '.join(GIMMAF_TARGETS)})")
-            _merge(GimmafEstimator, node, prefix)
+            merge(GimmafEstimator, node, prefix)
 
 
 def _nominal_q(value) -> str | None:
@@ -518,12 +589,12 @@ def _nominal_q(value) -> str | None:
 
 @dataclass
 class Huang:
-    steps: int = spec(1000, positive_int)
-    nominal_q: Any = spec("true", _nominal_q)
-    beta: float = spec(100.0, positive)
-    tau: float = spec(3.0, positive)
-    rho: float = spec(0.98, lambda v: None if 0 < v <= 1 else "must lie in (0, 1]")
-    iterations: int = spec(10, positive_int)
+    steps: int = spec(MISSING, positive_int)
+    nominal_q: Any = spec(MISSING, _nominal_q)
+    beta: float = spec(MISSING, positive)
+    tau: float = spec(MISSING, positive)
+    rho: float = spec(MISSING, lambda v: None if 0 < v <= 1 else "must lie in (0, 1]")
+    iterations: int = spec(MISSING, positive_int)
 
 
 @dataclass
@@ -533,45 +604,45 @@ class VbakfHuang:
 
 @dataclass
 class LearnScenario:
-    steps: int = spec(100, positive_int)
-    dt: float = spec(1.0, positive)
-    turn_rate: float = 0.1
-    q: float = spec(0.05, positive)
-    R: float = spec(25.0, positive)
-    stay: float = spec(0.9, open_probability)
-    initial_mean: List[float] = field(default_factory=list)
-    initial_std: List[float] = spec(factory=list, check=each(non_negative))
+    steps: int = spec(MISSING, positive_int)
+    dt: float = spec(MISSING, positive)
+    turn_rate: float = MISSING
+    q: float = spec(MISSING, positive)
+    R: float = spec(MISSING, positive)
+    stay: float = spec(MISSING, open_probability)
+    initial_mean: List[float] = MISSING
+    initial_std: List[float] = spec(MISSING, check=each(non_negative))
 
 
 @dataclass
 class LearnPart:
-    enabled: bool = True
-    optimizer: str = spec("lbfgs", one_of("lbfgs", "adam"))
-    lr: float = spec(1.0, positive)
-    max_line_search: int = spec(20, positive_int)
-    iterations: int = spec(10, non_negative)
-    window: Optional[int] = spec(None, positive_int)
-    batch_size: Optional[int] = spec(None, positive_int)
+    enabled: bool = MISSING
+    optimizer: str = spec(MISSING, one_of("lbfgs", "adam"))
+    lr: float = spec(MISSING, positive)
+    max_line_search: int = spec(MISSING, positive_int)
+    iterations: int = spec(MISSING, non_negative)
+    window: Optional[int] = spec(MISSING, positive_int)
+    batch_size: Optional[int] = spec(MISSING, positive_int)
 
 
 @dataclass
 class LearnPartA(LearnPart):
-    initial_stay: Optional[float] = spec(None, open_probability)
-    initial_q_factor: float = spec(10.0, positive)
+    initial_stay: Optional[float] = spec(MISSING, open_probability)
+    initial_q_factor: float = spec(MISSING, positive)
 
 
 @dataclass
 class LearnPartB(LearnPart):
-    replaced_mode: int = spec(1, lambda v: None if v in (0, 1, 2) else "expected 0 (CV), 1 or 2 (CT)")
-    hidden: int = spec(16, positive_int)
-    v_scale: float = spec(15.0, positive)
-    a_scale: float = spec(1.5, positive)
+    replaced_mode: int = spec(MISSING, lambda v: None if v in (0, 1, 2) else "expected 0 (CV), 1 or 2 (CT)")
+    hidden: int = spec(MISSING, positive_int)
+    v_scale: float = spec(MISSING, positive)
+    a_scale: float = spec(MISSING, positive)
 
 
 @dataclass
 class LearnSection:
-    test_runs: Optional[int] = spec(None, positive_int)
-    num_threads: Optional[int] = spec(1, positive_int)
+    test_runs: Optional[int] = spec(MISSING, positive_int)
+    num_threads: Optional[int] = spec(MISSING, positive_int)
     scenario: LearnScenario = field(default_factory=LearnScenario)
     part_a: LearnPartA = field(default_factory=LearnPartA)
     part_b: LearnPartB = field(default_factory=LearnPartB)
@@ -651,22 +722,22 @@ class MevsmmEstimator:
 
 @dataclass
 class MevsmmSection:
-    estimators: Dict[str, Any] = spec(factory=dict, check=non_empty)  # name: node (checked by Mevsmm.check)
-    estimator_names: Optional[List[str]] = spec(None, non_empty)  # which estimators run, in order (null: all)
-    num_particles: int = spec(1000, positive_int)
-    num_winners: int = spec(420, positive_int)
-    threshold: int = spec(23, non_negative)
-    cm_passes: int = spec(1, positive_int)  # 0: the CM kernel refused it after the run started (issue 30)
-    stay_prob: float = spec(0.9, probability)
-    mevsmm_stay_prob: Optional[float] = spec(None, probability)
-    accel_std: float = spec(5.0, positive)
-    mixing: str = spec("two_stage", one_of("two_stage", "systematic", "stratified", "multinomial"))
-    noise_dtype: Optional[str] = spec(None, one_of("float32", "float64"))
-    feedback: bool = True
-    entropy: str = spec("joint", one_of("joint", "literal"))
-    exact_runs: int = spec(20, positive_int)
-    exact_chunk: int = spec(65536, positive_int)
-    histogram_steps: List[int] = spec(factory=list, check=each(positive_int))
+    estimators: Dict[str, Any] = spec(MISSING, check=non_empty)  # name: node (checked by Mevsmm.check)
+    estimator_names: Optional[List[str]] = spec(MISSING, non_empty)  # which estimators run, in order (null: all)
+    num_particles: int = spec(MISSING, positive_int)
+    num_winners: int = spec(MISSING, positive_int)
+    threshold: int = spec(MISSING, non_negative)
+    cm_passes: int = spec(MISSING, positive_int)  # 0: the CM kernel refused it after the run started (issue 30)
+    stay_prob: float = spec(MISSING, probability)
+    mevsmm_stay_prob: Optional[float] = spec(MISSING, probability)
+    accel_std: float = spec(MISSING, positive)
+    mixing: str = spec(MISSING, one_of("two_stage", "systematic", "stratified", "multinomial"))
+    noise_dtype: Optional[str] = spec(MISSING, one_of("float32", "float64"))
+    feedback: bool = MISSING
+    entropy: str = spec(MISSING, one_of("joint", "literal"))
+    exact_runs: int = spec(MISSING, positive_int)
+    exact_chunk: int = spec(MISSING, positive_int)
+    histogram_steps: List[int] = spec(MISSING, check=each(positive_int))
 
 
 @dataclass
@@ -675,7 +746,6 @@ class Mevsmm:
 
     @staticmethod
     def check(data: dict) -> None:
-        from experiments.config import ModeFilter, Policy, _merge
 
         opts = data["mevsmm"]
         if opts["num_winners"] > 21 * opts["num_particles"]:
@@ -691,41 +761,41 @@ class Mevsmm:
             prefix = f"mevsmm.estimators.{name}"
             if not isinstance(node, dict):  # the kind strings of before (issue 30) are config-group entries now
                 raise ConfigError(prefix, node, f"expected an estimator node with a _target_ ({_MEVSMM_HINT})")
-            est = _merge(MevsmmEstimator, node, prefix)
+            est = merge(MevsmmEstimator, node, prefix)
             if est.selection is not None:
                 if not isinstance(est.selection, dict):
                     raise ConfigError(f"{prefix}.selection", est.selection,
                                       f"expected a node with a _target_ ({', '.join(MEVSMM_SELECTIONS)})")
-                selection = _merge(MevsmmSelection, est.selection, f"{prefix}.selection")
+                selection = merge(MevsmmSelection, est.selection, f"{prefix}.selection")
                 winners = selection.num_winners
                 if winners is not None and est.num_particles is not None and winners > 21 * est.num_particles:
                     raise ConfigError(f"{prefix}.selection.num_winners", winners,
                                       f"must not exceed the 21 x {est.num_particles} particles")
             if isinstance(est.mode_filter, dict):
-                _merge(ModeFilter, est.mode_filter, f"{prefix}.mode_filter")
+                merge(ModeFilter, est.mode_filter, f"{prefix}.mode_filter")
             if isinstance(est.policy, dict):
-                _merge(Policy, est.policy, f"{prefix}.policy")
+                merge(Policy, est.policy, f"{prefix}.policy")
 
 
 @dataclass
 class Radar:
-    steps: int = spec(100, positive_int)
-    T: float = spec(1.0, positive)
-    rho: List[float] = spec(factory=list, check=lambda v: None if len(v) == 2 else
+    steps: int = spec(MISSING, positive_int)
+    T: float = spec(MISSING, positive)
+    rho: List[float] = spec(MISSING, check=lambda v: None if len(v) == 2 else
                             "expected 2 numbers (the x and y acceleration correlations)")
-    tau: float = spec(5.0, positive)
-    h_sign: int = spec(-1, lambda v: None if v in (-1, 1) else "expected -1 or 1")
-    h_factor: List[float] = field(default_factory=list)
-    sigma_r: List[float] = spec(factory=list, check=each(non_negative))
-    Qr0: Optional[List[float]] = None
-    eta_std: List[Any] = spec(factory=list, check=matrix_check)
-    Qw_diag: List[float] = spec(factory=list, check=each(non_negative))
-    x0: List[float] = field(default_factory=list)
-    P0_diag: List[float] = spec(factory=list, check=each(non_negative))
-    position_index: int = spec(0, non_negative)
-    C: List[Any] = field(default_factory=list)
-    Ct: List[Any] = field(default_factory=list)
-    d: List[Any] = field(default_factory=list)
+    tau: float = spec(MISSING, positive)
+    h_sign: int = spec(MISSING, lambda v: None if v in (-1, 1) else "expected -1 or 1")
+    h_factor: List[float] = MISSING
+    sigma_r: List[float] = spec(MISSING, check=each(non_negative))
+    Qr0: Optional[List[float]] = MISSING
+    eta_std: List[Any] = spec(MISSING, check=matrix_check)
+    Qw_diag: List[float] = spec(MISSING, check=each(non_negative))
+    x0: List[float] = MISSING
+    P0_diag: List[float] = spec(MISSING, check=each(non_negative))
+    position_index: int = spec(MISSING, non_negative)
+    C: List[Any] = MISSING
+    Ct: List[Any] = MISSING
+    d: List[Any] = MISSING
 
     def config_check(self):  # the 6-state model's vectors (issue 30: a short one failed in the study)
         for key in ("x0", "P0_diag", "Qw_diag"):
@@ -744,24 +814,24 @@ class FusionRadar:
 
 @dataclass
 class Ups:
-    steps: int = spec(100, positive_int)
-    burn_in: int = spec(30, non_negative)
-    horizons: List[int] = spec(factory=list, check=lambda v: None if 0 in v else
+    steps: int = spec(MISSING, positive_int)
+    burn_in: int = spec(MISSING, non_negative)
+    horizons: List[int] = spec(MISSING, check=lambda v: None if 0 in v else
                                "must include 0 (the filter; negative: smoothing lags, positive: predictions)")
-    ss_tol: float = spec(1e-12, positive)
-    cf_ss_steps: int = spec(300, positive_int)
-    A: List[Any] = spec(factory=list, check=matrix_check)
-    Gamma: List[Any] = spec(factory=list, check=matrix_check)
-    Qw: float = spec(5.0, non_negative)
-    C: List[float] = field(default_factory=list)
-    Ct: List[Any] = spec(factory=list, check=matrix_check)
-    h: List[float] = field(default_factory=list)
-    Qp: List[float] = spec(factory=list, check=each(non_negative))
-    d: List[float] = field(default_factory=list)
-    Q_eta: List[float] = spec(factory=list, check=each(positive))
-    mu0: List[float] = field(default_factory=list)
-    P0_scale: float = spec(0.1, non_negative)
-    Qr0: Optional[List[float]] = None
+    ss_tol: float = spec(MISSING, positive)
+    cf_ss_steps: int = spec(MISSING, positive_int)
+    A: List[Any] = spec(MISSING, check=matrix_check)
+    Gamma: List[Any] = spec(MISSING, check=matrix_check)
+    Qw: float = spec(MISSING, non_negative)
+    C: List[float] = MISSING
+    Ct: List[Any] = spec(MISSING, check=matrix_check)
+    h: List[float] = MISSING
+    Qp: List[float] = spec(MISSING, check=each(non_negative))
+    d: List[float] = MISSING
+    Q_eta: List[float] = spec(MISSING, check=each(positive))
+    mu0: List[float] = MISSING
+    P0_scale: float = spec(MISSING, non_negative)
+    Qr0: Optional[List[float]] = MISSING
 
     def config_check(self):  # sizes (issue 30: a short vector failed in the study, with a traceback)
         n, sensors = len(self.A), len(self.Ct)
@@ -789,21 +859,20 @@ TURNING = "experiments.scenarios.turning_2d"
 
 @dataclass
 class SmoothingStudy:
-    scenarios: Dict[str, Any] = spec(factory=dict, check=non_empty)
-    cv_mode: Dict[str, int] = field(default_factory=dict)
-    speed: bool = True  # the parallel_speed table (speed_steps x speed_runs); false in debug=smoothing
-    speed_steps: List[int] = spec(factory=list, check=each(positive))
-    speed_runs: int = spec(10, positive_int)
+    scenarios: Dict[str, Any] = spec(MISSING, check=non_empty)
+    cv_mode: Dict[str, int] = MISSING
+    speed: bool = MISSING  # the parallel_speed table (speed_steps x speed_runs); false in debug=smoothing
+    speed_steps: List[int] = spec(MISSING, check=each(positive))
+    speed_runs: int = spec(MISSING, positive_int)
 
 
 @dataclass
 class Smoothing:
     smoothing: SmoothingStudy = field(default_factory=SmoothingStudy)
-    estimators: Dict[str, Any] = field(default_factory=dict)
+    estimators: Dict[str, Any] = MISSING
 
     @staticmethod
     def check(data: dict) -> None:
-        from experiments.config import _merge
 
         sm = data["smoothing"]
         missing = [k for k in sm["scenarios"] if k not in (sm.get("cv_mode") or {})]
@@ -816,11 +885,11 @@ class Smoothing:
             prefix = f"smoothing.scenarios.{key}"
             target = (scenario or {}).get("_target_")
             if target in SCENARIOS:
-                _merge(SCENARIOS[target], scenario, prefix)
+                merge(SCENARIOS[target], scenario, prefix)
                 modes = len(scenario.get("accelerations") or ()) if target == KINEMATIC else None
             elif target == TURNING:
                 own = {k: v for k, v in scenario.items() if k not in ("_target_", "name")}
-                _merge(LearnScenario, own, prefix)
+                merge(LearnScenario, own, prefix)
                 modes = 3  # constant velocity, left turn, right turn
             else:
                 raise ConfigError(f"{prefix}._target_", target, f"expected one of {KINEMATIC}, {TURNING}")

@@ -57,3 +57,115 @@ def test_no_private_names_cross_modules():
     bad = [(m, t, n) for m, t, names in _imports() for n in names
            if n.startswith("_") and not n.startswith("__") and t != m]
     assert not bad, bad
+
+
+# -- the study harness (experiments/) -----------------------------------------------------------------
+EXPERIMENTS = ROOT.parent / "experiments"
+
+#: import edges allowed to close a cycle in experiments/, as (importer, imported)
+ALLOWED_CYCLE_EDGES: set[tuple[str, str]] = set()  # none: config -> schemas -> checks
+#: private names allowed to cross modules of experiments/, as (importer, imported module, name)
+ALLOWED_PRIVATE: set[tuple[str, str, str]] = set()
+
+
+def _module_name(path: Path, root: Path) -> str:
+    return ".".join(path.relative_to(root.parent).with_suffix("").parts).removesuffix(".__init__")
+
+
+def _experiments_imports():
+    """``(module, imported module, names)`` of every import in experiments/ - at the top of a module and
+    inside functions alike (AST walk) - of experiments modules; ``from experiments.x import y`` where
+    ``y`` is a submodule counts as an import of ``experiments.x.y``."""
+    modules = {_module_name(p, EXPERIMENTS): p for p in EXPERIMENTS.rglob("*.py")}
+    for module, path in sorted(modules.items()):
+        package = module if path.name == "__init__.py" else module.rpartition(".")[0]
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom):
+                base = node.module or ""
+                if node.level:  # relative: from the module's package upwards
+                    parts = package.split(".")
+                    base = ".".join(parts[:len(parts) - node.level + 1] + ([base] if base else []))
+                if base.split(".")[0] != "experiments":
+                    continue
+                plain = []
+                for alias in node.names:
+                    if f"{base}.{alias.name}" in modules:
+                        yield module, f"{base}.{alias.name}", []
+                    else:
+                        plain.append(alias.name)
+                if plain:
+                    yield module, base, plain
+            elif isinstance(node, ast.Import):
+                for alias in node.names:
+                    if alias.name.split(".")[0] == "experiments":
+                        yield module, alias.name, []
+
+
+def _cycle(graph: dict[str, set[str]]) -> list[str] | None:
+    """One cycle of ``graph`` (its modules in order, the first repeated at the end), or None."""
+    state: dict[str, int] = {}  # 1: on the path, 2: done
+    path: list[str] = []
+
+    def visit(node: str) -> list[str] | None:
+        state[node] = 1
+        path.append(node)
+        for nxt in sorted(graph.get(node, ())):
+            if state.get(nxt) == 1:
+                return path[path.index(nxt):] + [nxt]
+            if nxt not in state and (found := visit(nxt)):
+                return found
+        path.pop()
+        state[node] = 2
+        return None
+
+    for node in sorted(graph):
+        if node not in state and (found := visit(node)):
+            return found
+    return None
+
+
+def test_experiments_imports_are_found():
+    edges = {(m, t) for m, t, _ in _experiments_imports()}
+    # a top-level import, one inside a function, and a submodule named in ``from package import module``
+    assert ("experiments.context", "experiments.files") in edges
+    assert ("experiments.context", "experiments.executors") in edges
+    assert ("experiments.studies.imm_baseline", "experiments.studies.plots") in edges
+
+
+def test_experiments_has_no_import_cycles():
+    """experiments/ is a DAG of modules, counting imports inside functions (a lazy import is still a
+    dependency): a module never imports, however indirectly, a module that imports it."""
+    graph: dict[str, set[str]] = {}
+    for module, target, _ in _experiments_imports():
+        if module != target and (module, target) not in ALLOWED_CYCLE_EDGES:
+            graph.setdefault(module, set()).add(target)
+    cycle = _cycle(graph)
+    assert cycle is None, " -> ".join(cycle)
+
+
+def test_allowed_exceptions_still_exist():
+    """The whitelist holds only live edges (delete an entry once its cycle is gone)."""
+    imports = list(_experiments_imports())
+    edges = {(m, t) for m, t, _ in imports}
+    assert ALLOWED_CYCLE_EDGES <= edges, ALLOWED_CYCLE_EDGES - edges
+    names = {(m, t, n) for m, t, ns in imports for n in ns}
+    assert ALLOWED_PRIVATE <= names, ALLOWED_PRIVATE - names
+
+
+def test_experiments_import_no_private_names_of_other_modules():
+    bad = [(m, t, n) for m, t, names in _experiments_imports() for n in names
+           if n.startswith("_") and not n.startswith("__") and t != m and (m, t, n) not in ALLOWED_PRIVATE]
+    assert not bad, bad
+
+
+def test_studies_import_public_names_only():
+    """A study (experiments/studies/) uses the harness and the library through their public names only."""
+    bad = []
+    for path in (EXPERIMENTS / "studies").glob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and (node.module or "").split(".")[0] in ("experiments", "torchmm"):
+                bad += [(path.name, node.module, a.name) for a in node.names
+                        if a.name.startswith("_") and not a.name.startswith("__")]
+                bad += [(path.name, node.module, "") for part in node.module.split(".")
+                        if part.startswith("_") and not part.startswith("__")]
+    assert not bad, bad

@@ -40,7 +40,7 @@ from torch import Tensor
 
 from experiments.executors import Unit
 from experiments.harness import StudyContext, join_runs, per_run
-from experiments.scenarios import Concatenated, _default_dtype
+from experiments.scenarios import Concatenated, default_dtype
 from experiments.studies import plots
 from experiments.uncertainty import Z95, chi2_interval, rmse_se_per_step
 
@@ -90,7 +90,7 @@ def runs_of(ctx: StudyContext) -> int:
 
 
 def _estimator(ctx: StudyContext, scenario, name: str):
-    with _default_dtype(ctx.dtype):
+    with default_dtype(ctx.dtype):
         est = instantiate(ctx.cfg.estimators[name])(scenario, name=name)
     est.filter.to(device=ctx.device)
     return est

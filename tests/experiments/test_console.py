@@ -61,8 +61,9 @@ def test_help_imports_neither_torch_nor_hydra():
     code = ("import sys, io, contextlib; import experiments.run as r; out = io.StringIO()\n"
             "with contextlib.redirect_stdout(out): sys.argv[1:] = ['--help']; r.main()\n"
             "assert 'quickstart' in out.getvalue()\n"
-            "print(sorted(m for m in ('torch', 'hydra', 'experiments.harness', 'torchmm') if m in sys.modules))\n"
-            "assert r.unique_dir.__module__ == 'experiments.harness' and r.torch.__name__ == 'torch'")
+            "print(sorted(m for m in ('torch', 'hydra', 'experiments.harness', 'experiments.context', 'torchmm') "
+            "if m in sys.modules))\n"
+            "assert r.unique_dir.__module__ == 'experiments.folders' and r.torch.__name__ == 'torch'")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
                           cwd=Path(__file__).resolve().parents[2])
     assert proc.returncode == 0, proc.stderr[-2000:]

@@ -1,0 +1,223 @@
+"""The primitives of typed study configs: :class:`ConfigError` (one line naming the key), field
+specs with range checks (:func:`spec` and the checks), and :func:`merge` (a config section into its
+dataclass, with OmegaConf's type conversion and every field's check).
+
+:mod:`experiments.schemas` types the studies' keys with them and :mod:`experiments.config`
+validates whole configs; this module imports neither.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import math
+from dataclasses import field
+from pathlib import Path
+from typing import Any, Callable, Optional
+
+from omegaconf import OmegaConf
+from omegaconf.errors import (
+    ConfigAttributeError,
+    ConfigKeyError,
+    MissingMandatoryValue,
+    OmegaConfBaseException,
+)
+
+__all__ = ["NO_VALUE", "Check", "ConfigError", "both", "check_fields", "device_name", "each", "join_key", "matrix",
+           "merge", "non_empty", "non_negative", "one_of", "open_probability", "positive", "positive_int",
+           "probability", "resume_value", "schema_at", "seed_value", "show_value", "spec", "type_message"]
+
+
+class ConfigError(ValueError):
+    """A user error in a study config: ``key=value: what is allowed`` (one line)."""
+
+    def __init__(self, key: str, value: Any, allowed: str):
+        self.key, self.value, self.allowed = key, value, allowed
+        shown = "" if value is NO_VALUE else f"={show_value(value)}"
+        super().__init__(f"{key}{shown}: {allowed}")
+
+
+NO_VALUE = object()
+
+
+def show_value(value: Any) -> str:
+    if isinstance(value, str):
+        return value
+    if isinstance(value, float) and value.is_integer():
+        return repr(value)
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+# -- field checks ------------------------------------------------------------------------------
+Check = Callable[[Any], Optional[str]]
+
+
+def spec(default: Any = dataclasses.MISSING, check: Check | None = None, *, factory=None):
+    """A schema field with an optional range check ``check(value) -> error text | None``."""
+    kwargs: dict = {"metadata": {"check": check}}
+    if factory is not None:
+        kwargs["default_factory"] = factory
+    elif default is not dataclasses.MISSING:
+        kwargs["default"] = default
+    return field(**kwargs)
+
+
+def positive(value) -> str | None:
+    return None if value is None or value > 0 else "must be positive"
+
+
+def positive_int(value) -> str | None:
+    return None if value is None or value >= 1 else "must be a positive integer"
+
+
+def non_negative(value) -> str | None:
+    return None if value is None or value >= 0 else "must be non-negative"
+
+
+def probability(value) -> str | None:
+    return None if value is None or 0 <= value <= 1 else "must be a probability in [0, 1]"
+
+
+def open_probability(value) -> str | None:
+    return None if value is None or 0 < value < 1 else "must lie in (0, 1)"
+
+
+def one_of(*choices: str) -> Check:
+    def check(value):
+        return None if value is None or value in choices else f"expected one of {', '.join(choices)}"
+    return check
+
+
+def each(check: Check) -> Check:
+    """Apply ``check`` to every element of a list."""
+    def run(values):
+        for v in values or []:
+            error = check(v)
+            if error:
+                return f"entry {show_value(v)}: {error}"
+        return None
+    return run
+
+
+def matrix(value) -> str | None:
+    """A list of rows of numbers (typed ``List[Any]``: OmegaConf rejects ints in nested float lists)."""
+    if value is None:
+        return None
+    if not isinstance(value, list) or not all(isinstance(row, list) and all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) for v in row) for row in value):
+        return "expected a matrix: a list of rows of numbers"
+    return None
+
+
+def non_empty(values) -> str | None:
+    return None if values is None or len(values) else "must not be empty"
+
+
+def both(*checks: Check) -> Check:
+    def run(value):
+        for check in checks:
+            error = check(value)
+            if error:
+                return error
+        return None
+    return run
+
+
+def device_name(value) -> str | None:
+    import torch
+
+    if value == "auto":
+        return None
+    try:
+        device = torch.device(value)
+    except (RuntimeError, TypeError):
+        return "expected cpu, cuda, cuda:<index> or auto"
+    if device.type not in ("cpu", "cuda"):
+        return "expected cpu, cuda, cuda:<index> or auto"
+    if device.type == "cuda" and not torch.cuda.is_available():
+        return "CUDA is not available on this machine (torch.cuda.is_available() is False); use device=cpu"
+    if device.type == "cuda" and device.index is not None and device.index >= torch.cuda.device_count():
+        return f"this machine has {torch.cuda.device_count()} CUDA device(s)"
+    return None
+
+
+def seed_value(value) -> str | None:
+    return None if 0 <= value < 2**63 else "must be an integer in [0, 2^63)"
+
+
+def resume_value(value) -> str | None:
+    if value is None or value == "latest" or Path(str(value)).is_dir():
+        return None
+    return "expected latest or an existing run folder"
+
+
+
+def merge(schema: type, values: dict, prefix: str = "") -> Any:
+    """``values`` merged into ``schema`` and converted to the dataclass (type errors: ConfigError)."""
+    try:
+        merged = OmegaConf.merge(OmegaConf.structured(schema), values)
+        obj = OmegaConf.to_object(merged)
+    except (ConfigKeyError, ConfigAttributeError) as err:
+        key = join_key(prefix, str(err.full_key or err.key))
+        known = [f.name for f in dataclasses.fields(schema_at(schema, str(err.full_key or "")))]
+        leaf = key.rsplit(".", 1)[-1]
+        close = difflib.get_close_matches(leaf, known, n=1)
+        hint = f"; did you mean {close[0]}?" if close else f" (known: {', '.join(known)})"
+        raise ConfigError(key, NO_VALUE, f"unknown key{hint}") from None
+    except MissingMandatoryValue as err:
+        raise ConfigError(join_key(prefix, str(err.full_key)), NO_VALUE, "missing (a required key)") from None
+    except OmegaConfBaseException as err:
+        key = join_key(prefix, str(err.full_key or err.key))
+        raise ConfigError(key, err.value if err.value is not None else NO_VALUE, type_message(err)) from None
+    check_fields(obj, prefix)
+    return obj
+
+
+def schema_at(schema: type, path: str) -> type:
+    """The dataclass of the node that holds ``path``'s last key."""
+    parts = [p for p in path.split(".")[:-1] if p]
+    for part in parts:
+        fields = {f.name: f for f in dataclasses.fields(schema)}
+        if part not in fields or not dataclasses.is_dataclass(fields[part].type if isinstance(fields[part].type, type)
+                                                              else None):
+            break
+        schema = fields[part].type
+    return schema
+
+
+def type_message(err: OmegaConfBaseException) -> str:
+    msg = str(err.msg).splitlines()[0]
+    for word, text in (("Integer", "expected an integer"), ("Float", "expected a number"),
+                       ("valid bool", "expected true or false"), ("String", "expected a string")):
+        if word in msg:
+            return text
+    return msg
+
+
+def join_key(prefix: str, key: str) -> str:
+    return f"{prefix}.{key}" if prefix else key
+
+
+def check_fields(obj: Any, prefix: str) -> None:
+    for f in dataclasses.fields(obj):
+        value = getattr(obj, f.name)
+        key = join_key(prefix, f.name)
+        check = f.metadata.get("check")
+        if check is not None:
+            error = check(value)
+            if error:
+                raise ConfigError(key, value, error)
+        if dataclasses.is_dataclass(value):
+            check_fields(value, key)
+        elif isinstance(value, dict):
+            for k, v in value.items():
+                if dataclasses.is_dataclass(v):
+                    check_fields(v, f"{key}.{k}")
+        elif isinstance(value, float) and not math.isfinite(value):
+            raise ConfigError(key, value, "must be finite")
+    relation = getattr(obj, "config_check", None)
+    if relation is not None:
+        problem = relation()  # a check across fields: (key, value, message) or None
+        if problem:
+            raise ConfigError(join_key(prefix, problem[0]), problem[1], problem[2])
