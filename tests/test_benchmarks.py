@@ -88,3 +88,19 @@ def test_startup_benchmark_runs():
     lines = proc.stdout.strip().splitlines()
     assert re.fullmatch(r"help_s=[0-9.]+ import_torchmm_extra_s=-?[0-9.]+", lines[-1]), lines[-1]
     assert sum("best" in line and "median" in line for line in lines) == 3
+
+
+def test_single_series_benchmark_runs_and_agrees():
+    """benchmarks/single_series.py (torchmm against statsmodels on the Nile and Fed funds data, and a
+    one-run IMM) at tiny sizes: its equality checks hold and it prints its ratios."""
+    pytest.importorskip("statsmodels")
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "single_series.py"), "--repeats", "1", "--imm-steps", "20"],
+        capture_output=True, text=True, timeout=300, cwd=ROOT,
+        env={"PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "PATH": ""},
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:] + proc.stdout[-2000:]
+    last = proc.stdout.strip().splitlines()[-1]
+    assert re.fullmatch(r"nile_ratio=[0-9.]+ fedfunds_ratio=[0-9.]+ imm_us_per_step=[0-9.]+", last), last
+    diffs = [float(x) for x in re.findall(r"= ([0-9.]+e[-+][0-9]+)", proc.stdout)]
+    assert len(diffs) == 2 and max(diffs) < 1e-8, proc.stdout

@@ -1,0 +1,199 @@
+"""One long series, one thread: torchmm against statsmodels on the shipped real data (issue 31's workload).
+
+    python benchmarks/single_series.py [--repeats 20] [--imm-steps 2000]
+
+Side by side in one process, the same data and parameters, results checked equal:
+
+* **Nile, local level** (``UnobservedComponents(y, "llevel", use_exact_diffuse=True)``): one
+  log-likelihood evaluation at the MLE (statsmodels' ``loglike``; torchmm's
+  ``negative_log_likelihood`` from the exact diffuse start, experiments/realdata.py), the same with
+  its gradient (torchmm: backward through ``log_diagonal`` parametrised Q and R), and the whole MLE fit
+  (statsmodels' ``fit()``, L-BFGS; torchmm: ``torch.optim.LBFGS`` with a strong-Wolfe line search
+  from the same start) to the same optimum;
+* **Fed funds, 2-regime Markov switching** (``MarkovRegression(..., switching_variance=True)``):
+  filter + Kim smoother at the MLE (``smooth(params)``; torchmm: the IMM over a constant state,
+  ``run_filter`` + ``smooth(method="kim")``);
+* **a 3-mode IMM** (paper 000's modes, linear Kalman), one run of ``--imm-steps`` steps: microseconds
+  per step, and its gradient's cost relative to the likelihood.
+
+Prints best and median times and the ratios ``statsmodels time / torchmm time`` (above 1: torchmm is
+faster); the last line is ``nile_ratio=... fedfunds_ratio=... imm_us_per_step=...``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import statistics
+import time
+
+import numpy as np
+import torch
+
+torch.set_num_threads(1)
+
+
+def _times(fn, repeats: int) -> tuple[float, float]:
+    fn()  # warm-up (first-call costs are not what a fit pays per evaluation)
+    out = []
+    for _ in range(repeats):
+        tic = time.perf_counter()
+        fn()
+        out.append(time.perf_counter() - tic)
+    return min(out), statistics.median(out)
+
+
+def _show(name: str, best: float, median: float) -> None:
+    print(f"  {name:<44} best {best * 1e3:9.3f} ms   median {median * 1e3:9.3f} ms")
+
+
+def nile(repeats: int) -> float:
+    import statsmodels.api as sm
+
+    from experiments.realdata import load_nile, local_level, local_level_start
+    from torchmm.learn import negative_log_likelihood
+    from torchmm.models import learnable_noise
+
+    y = load_nile()
+    model = sm.tsa.UnobservedComponents(y[:, 0].numpy(), "llevel", use_exact_diffuse=True)
+    params = model.fit(method="bfgs", gtol=1e-8, maxiter=1000, disp=False).params  # (r, q)
+    r, q = (float(v) for v in params)
+    kf, belief0 = local_level(q, r, first=y[0])
+
+    def torch_ll():
+        with torch.no_grad():
+            return -negative_log_likelihood(kf, belief0, y[1:], reduction="sum")
+
+    constant = -0.5 * math.log(2 * math.pi)  # statsmodels keeps the diffuse observation's constant
+    diff = abs(float(torch_ll()) + constant - model.loglike(params))
+    print(f"Nile (T = {len(y)}): |torchmm - statsmodels| log-likelihood at the MLE = {diff:.1e}")
+    sm_best, sm_med = _times(lambda: model.loglike(params), repeats)
+    tm_best, tm_med = _times(torch_ll, repeats)
+    _show("statsmodels loglike", sm_best, sm_med)
+    _show("torchmm negative_log_likelihood (no grad)", tm_best, tm_med)
+    ratio = sm_best / tm_best
+
+    motion, sensor = kf.motion, kf.measurement
+    learnable_noise(motion, "Q", "log_diagonal")
+    learnable_noise(sensor, "R", "log_diagonal")
+
+    def with_grad():
+        start = local_level_start(kf, y[0])
+        loss = negative_log_likelihood(kf, start, y[1:], reduction="sum")
+        kf.zero_grad()
+        loss.backward()
+
+    g_best, g_med = _times(with_grad, repeats)
+    _show("torchmm likelihood + gradient", g_best, g_med)
+    print(f"  ratio loglike (statsmodels / torchmm) = {ratio:.4f}; gradient / likelihood = {g_best / tm_best:.2f}")
+
+    # the whole fit from the same start (q, r) = (1000, 10000)
+    fresh = sm.tsa.UnobservedComponents(y[:, 0].numpy(), "llevel", use_exact_diffuse=True)
+    tic = time.perf_counter()
+    sm_fit = fresh.fit(start_params=[10000.0, 1000.0], disp=False)
+    sm_fit_s = time.perf_counter() - tic
+    kf2, _ = local_level(1000.0, 10000.0, learnable=True)
+    optimizer = torch.optim.LBFGS(kf2.parameters(), lr=1.0, max_iter=100, line_search_fn="strong_wolfe",
+                                  tolerance_grad=1e-9, tolerance_change=1e-12)
+
+    def closure():
+        optimizer.zero_grad()
+        loss = negative_log_likelihood(kf2, local_level_start(kf2, y[0]), y[1:], reduction="sum")
+        loss.backward()
+        return loss
+
+    tic = time.perf_counter()
+    optimizer.step(closure)
+    tm_fit_s = time.perf_counter() - tic
+    from torch.nn.utils import parametrize
+
+    with parametrize.cached():
+        learned_q, learned_r = float(kf2.motion.Q.detach().reshape(())), float(kf2.measurement.R.detach().reshape(()))
+    print(f"  MLE fit: statsmodels fit() {sm_fit_s * 1e3:.1f} ms -> r = {sm_fit.params[0]:.2f}, q = {sm_fit.params[1]:.3f};"
+          f" torchmm L-BFGS {tm_fit_s * 1e3:.1f} ms -> r = {learned_r:.2f}, q = {learned_q:.3f}"
+          f" (ratio {sm_fit_s / tm_fit_s:.3f}; optimum r = {r:.2f}, q = {q:.3f})")
+    return ratio
+
+
+def fedfunds(repeats: int) -> float:
+    import statsmodels.api as sm
+
+    from experiments.realdata import fedfunds_imm, load_fedfunds
+    from torchmm import run_filter, smooth
+
+    y = load_fedfunds()
+    model = sm.tsa.MarkovRegression(y[:, 0].numpy(), k_regimes=2, trend="c", switching_variance=True)
+    params = model.fit().params
+    transition = model.regime_transition_matrix(params)[:, :, 0].T
+    imm, belief0 = fedfunds_imm(params[2:4], params[4:6], transition, mode_probs=model.initial_probabilities(params))
+
+    def torch_smooth():
+        with torch.no_grad():
+            traj = run_filter(imm, belief0, y)
+            return traj, smooth(traj, method="kim")
+
+    traj, smoothed = torch_smooth()
+    result = model.smooth(params)
+    diff = max(abs(float(traj.log_likelihood.sum()) - result.llf),
+               float(np.abs(smoothed.belief.mode_probs.numpy() - result.smoothed_marginal_probabilities).max()))
+    print(f"Fed funds (T = {len(y)}): largest |torchmm - statsmodels| (llf, smoothed probabilities) = {diff:.1e}")
+    sm_best, sm_med = _times(lambda: model.smooth(params), repeats)
+    tm_best, tm_med = _times(torch_smooth, repeats)
+    _show("statsmodels MarkovRegression.smooth", sm_best, sm_med)
+    _show("torchmm run_filter + smooth(kim)", tm_best, tm_med)
+    ratio = sm_best / tm_best
+    print(f"  ratio (statsmodels / torchmm) = {ratio:.4f}")
+    return ratio
+
+
+def imm(steps: int, repeats: int) -> float:
+    from torchmm import IMM, ConstantVelocity, GaussianBelief, KalmanFilter, PositionMeasurement, run_filter
+    from torchmm.learn import negative_log_likelihood
+    from torchmm.models import learnable_noise
+
+    motion = ConstantVelocity(1, q=1.0, acceleration=[[0.25], [0.0], [-0.25]], dtype=torch.float64)
+    sensor = PositionMeasurement(2, [0], 100.0, dtype=torch.float64)
+    transition = torch.tensor([[0.5, 0.25, 0.25], [0.25, 0.5, 0.25], [0.25, 0.25, 0.5]], dtype=torch.float64)
+    filt = IMM(KalmanFilter(motion, sensor), transition)
+    prior = filt.initial_belief(GaussianBelief.create([10.0, 10.0], [[100.0, 1.0], [1.0, 100.0]],
+                                                      dtype=torch.float64).expand(1))
+    z = torch.randn(steps, 1, 1, generator=torch.Generator().manual_seed(0), dtype=torch.float64) * 10
+
+    def run():
+        with torch.no_grad():
+            run_filter(filt, prior, z, record="estimate")
+
+    best, med = _times(run, max(2, repeats // 5))
+    us = best / steps * 1e6
+    print(f"3-mode IMM, 1 run x {steps} steps: best {us:.1f} us a step (median {med / steps * 1e6:.1f})")
+    learnable_noise(sensor, "R", "log_diagonal")
+
+    def grad():
+        loss = negative_log_likelihood(filt, prior, z, reduction="sum")
+        filt.zero_grad()
+        loss.backward()
+
+    def like():
+        with torch.no_grad():
+            negative_log_likelihood(filt, prior, z, reduction="sum")
+
+    l_best, _ = _times(like, max(2, repeats // 5))
+    g_best, _ = _times(grad, max(2, repeats // 5))
+    print(f"  likelihood {l_best / steps * 1e6:.1f} us a step; with its gradient {g_best / steps * 1e6:.1f} "
+          f"(x{g_best / l_best:.2f})")
+    return us
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=20)
+    parser.add_argument("--imm-steps", type=int, default=2000)
+    args = parser.parse_args(argv)
+    nile_ratio = nile(args.repeats)
+    fed_ratio = fedfunds(args.repeats)
+    us = imm(args.imm_steps, args.repeats)
+    print(f"nile_ratio={nile_ratio:.4f} fedfunds_ratio={fed_ratio:.4f} imm_us_per_step={us:.1f}")
+
+
+if __name__ == "__main__":
+    main()
