@@ -29,7 +29,7 @@ from torchmm.metrics import mode_hits, nees, squared_error
 from torchmm.run import Trajectory
 
 from experiments.arrays import add_runs, join_runs, per_run
-from experiments.uncertainty import armse_se, rmse_se_per_step
+from experiments.uncertainty import armse_se, mean_se_per_step, rmse_se_per_step
 
 __all__ = ["Estimator", "Evaluation", "build_mode_filter", "custom", "evaluate", "evaluate_runs", "gpb1", "gpb2", "imm",
            "kalman", "multiple_model", "reduce_runs", "starter"]
@@ -166,6 +166,13 @@ class Evaluation:
     trajectory: Trajectory | None = None
     #: per-step means over all runs of the ``per_step`` statistics, ``(T, ...)`` each
     means: dict[str, Tensor] = field(default_factory=dict)
+    #: their standard errors, ``sd over runs / sqrt(N)`` of the per-run values at each step (the
+    #: curves' bands; NaN for one run)
+    means_se: dict[str, Tensor] = field(default_factory=dict)
+    #: standard error of each step's mode accuracy (a mean of per-run hits), ``(T,)``
+    mode_accuracy_se: Tensor | None = None
+    #: standard error of the time-averaged mode accuracy: sd over runs of a run's average / sqrt(N)
+    mode_accuracy_avg_se: float = float("nan")
     #: delta-method standard errors of the average RMSEs (experiments/uncertainty.py)
     pos_rmse_se: float = float("nan")
     vel_rmse_se: float = float("nan")
@@ -238,7 +245,8 @@ def evaluate_runs(estimator: Estimator, scenario, sim, z: Any, *, chunk_runs: in
     block_runs + b)`` wherever the unit runs. The value is small to ship and exact to store (numpy,
     ``experiments.arrays.per_run``): ``pos``/``vel`` squared errors ``(T, runs)`` (the standard errors
     need them per run), and sums over these runs of the NEES, the mode hits and each ``per_step``
-    statistic.
+    statistic, with the sums of their squares (``hits_sq``, ``sq_sums``: each step's standard error
+    over the runs, :func:`~experiments.uncertainty.mean_se_per_step`).
     """
     leaf = pytree.tree_leaves(z)[0]
     runs = leaf.shape[1]
@@ -278,9 +286,21 @@ def evaluate_runs(estimator: Estimator, scenario, sim, z: Any, *, chunk_runs: in
         "pos": per_run(joined["pos"]), "vel": per_run(joined["vel"]),
         "nees_sum": per_run(joined["nees"].sum(1)),
         "hits_sum": per_run(joined["hits"].sum(1)) if estimator.multiple_model else None,
+        "hits_sq": per_run(joined["hits"].square().sum(1)) if estimator.multiple_model else None,
+        # each run's time-averaged mode accuracy: the standard error of the average over the runs
+        "hits_runs": per_run(joined["hits"].to(torch.float64).mean(0)) if estimator.multiple_model else None,
         "sums": {key: per_run(torch.cat(v, 1).sum(1)) for key, v in extra.items()},
+        "sq_sums": {key: per_run(torch.cat(v, 1).to(torch.float64).square().sum(1)) for key, v in extra.items()},
         "runs": runs, "seconds": elapsed, "state_dim": int(sim.states.shape[-1]),
     }, kept
+
+
+def _run_mean_se(per_run_values: list) -> float:
+    """``sd / sqrt(N)`` of per-run values joined over the parts (NaN for one run or a part without them)."""
+    if any(v is None for v in per_run_values):
+        return float("nan")
+    values = join_runs(per_run_values, 0).to(torch.float64)
+    return float(values.std() / values.numel() ** 0.5) if values.numel() > 1 else float("nan")
 
 
 def _join_trajectories(a: Trajectory, b: Trajectory) -> Trajectory:
@@ -300,6 +320,17 @@ def reduce_runs(parts: list[dict]) -> Evaluation:
     steps = pos.shape[0]
     sq_pos_all, sq_vel_all = pos.to(torch.float64), vel.to(torch.float64)
     multiple_model = parts[0]["hits_sum"] is not None
+
+    def se(key, sums, squares):  # per-step SE of a mean over the runs (None: a part without the squares)
+        if any(squares(p) is None for p in parts):
+            return None
+        return mean_se_per_step(add_runs([sums(p) for p in parts]), add_runs([squares(p) for p in parts]), runs)
+
+    means_se = {}
+    for key in parts[0]["sums"]:
+        band = se(key, lambda p, k=key: p["sums"][k], lambda p, k=key: (p.get("sq_sums") or {}).get(k))
+        if band is not None:
+            means_se[key] = band
     return Evaluation(
         pos_rmse=(pos.sum(1) / runs).sqrt(),
         vel_rmse=(vel.sum(1) / runs).sqrt(),
@@ -307,6 +338,9 @@ def reduce_runs(parts: list[dict]) -> Evaluation:
         mode_accuracy=(add_runs([p["hits_sum"] for p in parts]) / runs) if multiple_model else None,
         seconds_per_step=sum(float(p["seconds"]) for p in parts) / steps,
         means={key: add_runs([p["sums"][key] for p in parts]) / runs for key in parts[0]["sums"]},
+        means_se=means_se,
+        mode_accuracy_se=se("hits", lambda p: p["hits_sum"], lambda p: p.get("hits_sq")) if multiple_model else None,
+        mode_accuracy_avg_se=_run_mean_se([p.get("hits_runs") for p in parts]) if multiple_model else float("nan"),
         pos_rmse_se=armse_se(sq_pos_all),
         vel_rmse_se=armse_se(sq_vel_all),
         pos_rmse_band=rmse_se_per_step(sq_pos_all),

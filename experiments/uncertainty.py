@@ -32,7 +32,7 @@ import math
 import torch
 from torch import Tensor
 
-__all__ = ["armse_se", "chi2_interval", "inside", "nees_consistency", "rmse_se_per_step"]
+__all__ = ["armse_se", "chi2_interval", "inside", "mean_se_per_step", "nees_consistency", "rmse_se_per_step"]
 
 #: two-sided 95 % normal quantile
 Z95 = 1.959963984540054
@@ -61,6 +61,18 @@ def rmse_se_per_step(sq_err: Tensor) -> Tensor:
     m = sq_err.mean(1)
     sd = sq_err.std(1, unbiased=True)
     return sd / (2 * m.clamp_min(torch.finfo(m.dtype).tiny).sqrt() * math.sqrt(N))
+
+
+def mean_se_per_step(sums, sq_sums, runs: int) -> Tensor:
+    """Standard error ``sd_r(x_t) / sqrt(N)`` of each step's mean over ``N`` runs, from the per-step
+    sums over the runs of the values and of their squares (``sd`` with the ``N - 1`` divisor), float64,
+    the shape of ``sums``; NaN for one run. A 95 % band is ``mean_t +- 1.96 se_t``."""
+    sums = torch.as_tensor(sums).to(torch.float64)
+    sq_sums = torch.as_tensor(sq_sums).to(torch.float64)
+    if runs < 2:
+        return torch.full_like(sums, float("nan"))
+    var = (sq_sums - sums.square() / runs).clamp_min(0) / (runs - 1)
+    return (var / runs).sqrt()
 
 
 def chi2_interval(dof: int, level: float = 0.95) -> tuple[float, float]:

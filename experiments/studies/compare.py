@@ -371,6 +371,9 @@ def reduce(parts: list[dict], groups: list[str], metrics: list[str]) -> tuple[di
         summary["mode_accuracy"], summary["mode_accuracy_se"] = _mean_se(per)
         influence["mode_accuracy"] = per
         curves["mode_accuracy"] = hits.mean(1)
+        # each step's standard error over the runs: sd / sqrt(N) (NaN for one run)
+        curves["mode_accuracy_se"] = (hits.double().std(1) / math.sqrt(runs) if runs > 1
+                                      else torch.full((hits.shape[0],), math.nan, dtype=torch.float64))
     steps = steps or int(parts[0]["steps"])
     summary["seconds_per_step"] = sum(float(p["seconds"]) for p in parts) / steps
     return summary, {"influence": influence, "curves": curves}
@@ -501,7 +504,7 @@ def _curves_and_figures(ctx, scenario, results, examples, groups) -> None:
                 ctx.logger.series(f"rmse_{g}/{label}", c[f"rmse_{g}"])
                 ctx.logger.series(f"rmse_{g}_se/{label}", c[f"rmse_{g}_se"])
                 curves[f"RMSE {g}"][label], bands[f"RMSE {g}"][label] = c[f"rmse_{g}"], c[f"rmse_{g}_se"]
-        for key in ("nees", "nis", "mode_accuracy"):
+        for key in ("nees", "nis", "mode_accuracy", "mode_accuracy_se"):
             if key in c:
                 ctx.logger.series(f"{key}/{label}", c[key])
         s = r["summary"]

@@ -30,7 +30,7 @@ import torch
 from experiments.executors import Unit
 from experiments.harness import StudyContext, add_runs, join_runs, per_run
 from experiments.studies import plots
-from experiments.uncertainty import armse_se, inside, rmse_se_per_step
+from experiments.uncertainty import armse_se, inside, mean_se_per_step, rmse_se_per_step
 from torchmm import GaussianBelief, KalmanFilter, LinearMotion, run_filter
 from torchmm.distributions import SkewT
 from torchmm.models import ConstantVelocity, CoordinatedTurn, PositionMeasurement
@@ -179,6 +179,9 @@ def run_unit(g, noise_kind: str, noise_params, runs: int, generator, *, dtype, d
     def frobenius(estimate, reference):  # per step, summed over these runs: (T,)
         return per_run((estimate - reference).square().sum((-1, -2)).sum(-1))
 
+    def frobenius_sq(estimate, reference):  # the squares' sum (the per-step standard errors): (T,)
+        return per_run((estimate - reference).square().sum((-1, -2)).to(torch.float64).square().sum(-1))
+
     out = {}
     for name, est in estimators.items():
         b0 = est.initial_belief(start_belief)  # mode beliefs, adaptive noise; a plain filter: the prior itself
@@ -193,14 +196,17 @@ def run_unit(g, noise_kind: str, noise_params, runs: int, generator, *, dtype, d
             P_hat = (w * extras["predicted_cov"]).sum(-3)
             R_hat = (w * extras["noise_cov"]).sum(-3)
             mode_probs = per_run(traj.belief.mode_probs.sum(1))
+            mode_probs_sq = per_run(traj.belief.mode_probs.to(torch.float64).square().sum(1))
         else:
-            P_hat, R_hat, mode_probs = extras["predicted_cov"], extras["noise_cov"], None
+            P_hat, R_hat, mode_probs, mode_probs_sq = extras["predicted_cov"], extras["noise_cov"], None, None
         entry = {**errors(mean), "srnfn_P_sum": frobenius(P_hat, oracle_pred),
                  "srnfn_R_sum": frobenius(R_hat, data["e_cov"].expand_as(R_hat)),
+                 "srnfn_P_sq": frobenius_sq(P_hat, oracle_pred),
+                 "srnfn_R_sq": frobenius_sq(R_hat, data["e_cov"].expand_as(R_hat)),
                  "d": [int(P_hat.shape[-1]), int(R_hat.shape[-1])],
                  "seconds": seconds, "steps": steps}
         if mode_probs is not None:
-            entry["mode_probs_sum"] = mode_probs
+            entry["mode_probs_sum"], entry["mode_probs_sq"] = mode_probs, mode_probs_sq
         if "elbo" in extras:
             elbo = extras["elbo"].flatten(0, -2)
             entry["elbo_sum"], entry["elbo_count"] = per_run(elbo.sum(0)), elbo.shape[0]
@@ -229,9 +235,17 @@ def merge(parts: list[dict]) -> dict:
             d_P, d_R = first["d"]  # SRNFN: (1/(d^2 runs) sum_runs ||est - truth||_F^2)^(1/4) per step
             entry["srnfn_P"] = (add("srnfn_P_sum") / runs / d_P**2) ** 0.25
             entry["srnfn_R"] = (add("srnfn_R_sum") / runs / d_R**2) ** 0.25
+            if all("srnfn_P_sq" in m for m in mine):  # delta method: se(m^(1/4)) = m^(1/4) se(m) / (4 m)
+                for key in ("srnfn_P", "srnfn_R"):
+                    mean = add(f"{key}_sum").to(torch.float64) / runs
+                    se = mean_se_per_step(add(f"{key}_sum"), add(f"{key}_sq"), runs)
+                    entry[f"{key}_se"] = torch.where(mean > 0, entry[key].to(torch.float64) * se
+                                                     / (4 * mean.clamp_min(torch.finfo(mean.dtype).tiny)), 0.0)
             entry["seconds_per_step"] = sum(m["seconds"] for m in mine) / first["steps"]
         if "mode_probs_sum" in first:
             entry["mode_probs"] = add("mode_probs_sum") / runs
+            if all(m.get("mode_probs_sq") is not None for m in mine):
+                entry["mode_probs_se"] = mean_se_per_step(add("mode_probs_sum"), add("mode_probs_sq"), runs)
         if "elbo_sum" in first:
             entry["elbo_iterations"] = add("elbo_sum") / sum(m["elbo_count"] for m in mine)
         out[name] = {k: (v.tolist() if torch.is_tensor(v) else v) for k, v in entry.items()}
@@ -305,6 +319,7 @@ def run(ctx: StudyContext) -> None:
     curves = {"position RMSE": {}, "velocity RMSE": {}}
     bands = {"position RMSE": {}, "velocity RMSE": {}}  # per-step standard errors of the curves
     sr_curves = {"SRNFN of P_k|k-1": {}, "SRNFN of R": {}}
+    sr_bands = {"SRNFN of P_k|k-1": {}, "SRNFN of R": {}}  # their per-step standard errors
     for name, e in main.items():
         pos, vel = torch.tensor(e["pos"], dtype=torch.float64), torch.tensor(e["vel"], dtype=torch.float64)
         pub_pos, pub_vel = PUBLISHED_T2.get(name, (None, None))
@@ -329,16 +344,25 @@ def run(ctx: StudyContext) -> None:
             sr_curves["SRNFN of P_k|k-1"][name], sr_curves["SRNFN of R"][name] = sp, sr
             ctx.logger.series(f"srnfn_P/{name}", sp)
             ctx.logger.series(f"srnfn_R/{name}", sr)
+            if "srnfn_P_se" in e:  # per-step standard errors (delta method over the runs)
+                ctx.logger.series(f"srnfn_P_se/{name}", e["srnfn_P_se"])
+                ctx.logger.series(f"srnfn_R_se/{name}", e["srnfn_R_se"])
+                sr_bands["SRNFN of P_k|k-1"][name] = torch.tensor(e["srnfn_P_se"], dtype=torch.float64)
+                sr_bands["SRNFN of R"][name] = torch.tensor(e["srnfn_R_se"], dtype=torch.float64)
         if "elbo_iterations" in e:
             ctx.logger.series(f"elbo_per_iteration/{name}", e["elbo_iterations"])
         if "mode_probs" in e:
             probs = torch.tensor(e["mode_probs"], dtype=torch.float64)
             for j, label in enumerate(_segments_labels(g)):
                 ctx.logger.series(f"mode_probability/{name}/{label}", probs[:, j])
+            if "mode_probs_se" in e:  # sd over runs / sqrt(N)
+                probs_se = torch.tensor(e["mode_probs_se"], dtype=torch.float64)
+                for j, label in enumerate(_segments_labels(g)):
+                    ctx.logger.series(f"mode_probability_se/{name}/{label}", probs_se[:, j])
     ctx.results.save()
     title = f"paper 004 scenario, {main_kind} noise, {runs} runs"
     ctx.save_figure("rmse_over_time", plots.rmse_over_time(curves, title, bands=bands))
-    ctx.save_figure("srnfn_over_time", plots.rmse_over_time(sr_curves, title))
+    ctx.save_figure("srnfn_over_time", plots.rmse_over_time(sr_curves, title, bands=sr_bands))
     mm = {n: torch.tensor(e["mode_probs"], dtype=torch.float64) for n, e in main.items() if "mode_probs" in e}
     if mm:
         ctx.save_figure("mode_probabilities", _mode_figure(mm, g))

@@ -14,6 +14,7 @@ Tables: ``conclusions`` (conclusion, premise_steps, holds_fraction, ...), ``conc
 from __future__ import annotations
 
 import logging
+import math
 
 import torch
 from hydra.utils import instantiate
@@ -22,6 +23,7 @@ from experiments.estimators import evaluate_runs, reduce_runs
 from experiments.executors import Unit
 from experiments.harness import StudyContext
 from experiments.studies import plots
+from experiments.uncertainty import mean_se_per_step
 from torchmm import alpha_transition
 from torchmm.analysis import (
     check_conclusions,
@@ -81,6 +83,7 @@ def _analyse(ctx: StudyContext, scenario, sim, z, alpha: float, start: int = 0) 
         delta = delta_ratio(alphas, probs, matched)  # (T-1, runs)
         out["delta_sum"], out["delta_count"] = delta.sum().item(), delta.numel()
         out["delta_over_time_sum"] = delta.sum(-1).tolist()
+        out["delta_over_time_sq"] = delta.to(torch.float64).square().sum(-1).tolist()  # the per-step SE
         out["delta_run_means"] = delta.mean(0).tolist()  # per run: the standard error of mean_delta
         out["zeta_sum"] = zeta_ratio(transition, probs, matched).sum().item() if M == 2 else None
     return out
@@ -91,9 +94,13 @@ def _merge(parts: list[dict]) -> dict:
     conclusion and bound counts, mean delta and zeta, delta(k) over time."""
     first = parts[0]
     runs = sum(int(p["runs"][next(iter(p["runs"]))]["runs"]) for p in parts)
-    out: dict = {"rmse": {name: reduce_runs([p["runs"][name] for p in parts]).summary() for name in first["runs"]},
+    evaluations = {name: reduce_runs([p["runs"][name] for p in parts]) for name in first["runs"]}
+    out: dict = {"rmse": {name: ev.summary() for name, ev in evaluations.items()},
                  "bounds": {key: [sum(p["bounds"][key][i] for p in parts) for i in range(2)]
                             for key in first["bounds"]}}
+    for name, ev in evaluations.items():  # the curves' band of the time-averaged mode accuracy (not a table column)
+        if ev.mode_accuracy is not None and math.isfinite(ev.mode_accuracy_avg_se):
+            out["rmse"][name]["mode_accuracy_se"] = ev.mode_accuracy_avg_se
     if "conclusions" in first:
         out["conclusions"] = {c: [sum(p["conclusions"][c][i] for p in parts) for i in range(4)]
                               for c in first["conclusions"]}
@@ -102,6 +109,10 @@ def _merge(parts: list[dict]) -> dict:
         out["mean_zeta"] = sum(p["zeta_sum"] for p in parts) / count if first["zeta_sum"] is not None else None
         steps = len(first["delta_over_time_sum"])
         out["delta_over_time"] = [sum(p["delta_over_time_sum"][k] for p in parts) / runs for k in range(steps)]
+        if all("delta_over_time_sq" in p for p in parts):  # sd over runs / sqrt(N) at each step
+            out["delta_over_time_se"] = mean_se_per_step(
+                [sum(p["delta_over_time_sum"][k] for p in parts) for k in range(steps)],
+                [sum(p["delta_over_time_sq"][k] for p in parts) for k in range(steps)], runs).tolist()
         per_run = [v for p in parts for v in p.get("delta_run_means", [])]
         # every run has the same steps: mean_delta is the mean of the runs' means, se = sd_r / sqrt(N)
         out["mean_delta_se"] = (torch.tensor(per_run, dtype=torch.float64).std().item() / len(per_run) ** 0.5
@@ -170,7 +181,7 @@ def _curves(ctx: StudyContext, units) -> None:
         rows = [(a, v) for m, a, v in units if m == models]
         alphas = [a for a, _ in rows]
         for name in rows[0][1]["rmse"]:
-            for key in ("pos_rmse", "vel_rmse", "pos_rmse_se", "vel_rmse_se", "mode_accuracy"):
+            for key in ("pos_rmse", "vel_rmse", "pos_rmse_se", "vel_rmse_se", "mode_accuracy", "mode_accuracy_se"):
                 values = [v["rmse"][name].get(key) for _, v in rows]
                 quantity = f"{key[:-3]}_vs_alpha_se" if key.endswith("_se") else f"{key}_vs_alpha"  # se: bands
                 if all(x is not None for x in values):
@@ -184,6 +195,8 @@ def _curves(ctx: StudyContext, units) -> None:
         for alpha, v in rows:
             if v.get("delta_over_time"):
                 ctx.logger.series(f"delta/{models}_models/alpha={alpha:g}", v["delta_over_time"])
+                if v.get("delta_over_time_se"):
+                    ctx.logger.series(f"delta_se/{models}_models/alpha={alpha:g}", v["delta_over_time_se"])
 
 
 def _tables(ctx: StudyContext, units) -> None:

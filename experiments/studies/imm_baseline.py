@@ -114,9 +114,14 @@ def run(ctx: StudyContext) -> None:
             estimates[name] = (f64(mine[0]["example_mean"]), f64(mine[0]["example_cov"]))
         if ev.mode_accuracy is not None:  # a multiple-model estimator
             ctx.logger.series(f"mode_accuracy/{name}", ev.mode_accuracy)
+            if ev.mode_accuracy_se is not None:  # sd over runs / sqrt(N) (none: a unit checkpointed without it)
+                ctx.logger.series(f"mode_accuracy_se/{name}", ev.mode_accuracy_se)
             probs = f64(ev.means["mode_probs"])  # average over all runs, (T, M)
+            probs_se = ev.means_se.get("mode_probs")  # its standard error, (T, M)
             for j, label in enumerate(scenario.mode_labels):
                 ctx.logger.series(f"mode_probability/{name}/{label}", probs[:, j])
+                if probs_se is not None:
+                    ctx.logger.series(f"mode_probability_se/{name}/{label}", f64(probs_se)[:, j])
             if mine[0].get("example") is not None:
                 examples[name] = f64(mine[0]["example"])  # run 0, (T, M)
         log.info("%s: %s", name, {k: round(val, 4) for k, val in summary.items() if isinstance(val, float)})

@@ -165,9 +165,13 @@ def _merge(parts: list[dict], curves: bool) -> dict:
             curve = {"pos_rmse": ev.pos_rmse.tolist(), "vel_rmse": ev.vel_rmse.tolist(), "nees": ev.nees.tolist(),
                      "mode_probs": ev.means["mode_probs"].tolist(),
                      "pos_rmse_se": ev.pos_rmse_band.tolist(), "vel_rmse_se": ev.vel_rmse_band.tolist()}
+            if "mode_probs" in ev.means_se:  # sd over runs / sqrt(N) (none: a unit checkpointed without it)
+                curve["mode_probs_se"] = ev.means_se["mode_probs"].tolist()
             if "influence_abs" in ev.means:
                 curve["influence_abs"] = ev.means["influence_abs"].tolist()
                 curve["influence_mean"] = ev.means["influence_mean"].tolist()
+                if "influence_mean" in ev.means_se:  # sd over runs / sqrt(N)
+                    curve["influence_mean_se"] = ev.means_se["influence_mean"].tolist()
                 if "influence_abs_sq" in ev.means:  # se of a mean over N runs: sd / sqrt(N)
                     curve["influence_abs_se"] = _mean_se(ev.means["influence_abs"], ev.means["influence_abs_sq"],
                                                          ev.runs).tolist()
@@ -249,8 +253,12 @@ def run(ctx: StudyContext) -> None:
         ctx.logger.series(f"nees_high/{name}", [default["summary"][name]["nees_high"]] * steps)
         for j, label in enumerate(scenario.mode_labels):
             ctx.logger.series(f"mode_probability/{name}/{label}", [p[j] for p in curve["mode_probs"]])
+            if "mode_probs_se" in curve:
+                ctx.logger.series(f"mode_probability_se/{name}/{label}", [p[j] for p in curve["mode_probs_se"]])
         if "influence_abs" in curve:
             ctx.logger.series(f"influence/{name}", curve["influence_mean"])
+            if "influence_mean_se" in curve:
+                ctx.logger.series(f"influence_se/{name}", curve["influence_mean_se"])
             ctx.logger.series(f"influence_abs/{name}", curve["influence_abs"])
             if "influence_abs_se" in curve:
                 ctx.logger.series(f"influence_abs_se/{name}", curve["influence_abs_se"])

@@ -368,6 +368,13 @@ def _run(ctx: StudyContext) -> None:
         ctx.logger.series(f"vel_rmse/{label}", ev.vel_rmse)
         ctx.logger.series(f"pos_rmse_se/{label}", ev.pos_rmse_band)
         ctx.logger.series(f"vel_rmse_se/{label}", ev.vel_rmse_band)
+        steps = len(ev.nees)  # the run-averaged NEES and its 95 % chi-square band (torchmm-plot shades it)
+        ctx.logger.series(f"nees/{label}", ev.nees)
+        ctx.logger.series(f"nees_low/{label}", [summary["nees_low"]] * steps)
+        ctx.logger.series(f"nees_high/{label}", [summary["nees_high"]] * steps)
+        if ev.mode_accuracy is not None:  # with its standard error over the runs, sd / sqrt(N)
+            ctx.logger.series(f"mode_accuracy/{label}", ev.mode_accuracy)
+            ctx.logger.series(f"mode_accuracy_se/{label}", ev.mode_accuracy_se)
         scores[label] = (summary["pos_rmse"], summary["vel_rmse"])
         ctx.results.save()
         return scores[label]

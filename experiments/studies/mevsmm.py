@@ -26,7 +26,7 @@ from experiments.executors import Unit
 from experiments.harness import StudyContext, add_runs, join_runs, per_run
 from experiments.studies import plots
 from experiments.estimators import build_mode_filter
-from experiments.uncertainty import armse_se, inside, rmse_se_per_step
+from experiments.uncertainty import armse_se, inside, mean_se_per_step, rmse_se_per_step
 from torchmm import GaussianBelief, LinearMotion, PositionMeasurement, run_filter
 from torchmm.filters import StepOutput
 from torchmm.multimodel import VariableStructureIMM
@@ -287,6 +287,8 @@ def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
         "pos": per_run(joined["pos"]), "vel": per_run(joined["vel"]),
         "run_counts": per_run(joined["count"].to(torch.float64).mean(0)),  # a run's time-averaged model count
         "sums": {k: per_run(joined[k].sum(1)) for k in ("count", "ess", "members") if k in joined},
+        # sums of squares: each step's standard error of the mean count and ESS over the runs
+        "sq_sums": {k: per_run(joined[k].to(torch.float64).square().sum(1)) for k in ("count", "ess") if k in joined},
         "runs": stop - start, "seconds": seconds, "hists": hists,
     }
 
@@ -303,6 +305,13 @@ def _merge(parts: list[dict], runs: int, window: slice | None) -> dict:
     e_pos, e_vel = pos.to(torch.float64), vel.to(torch.float64)
     run_counts = join_runs([p["run_counts"] for p in parts], 0)
     count, ess, members = add("count"), add("ess"), add("members")
+
+    def band(key):  # sd over runs / sqrt(N) of each step's per-run values (None: no squares kept)
+        if key not in parts[0]["sums"] or any(key not in p.get("sq_sums", {}) for p in parts):
+            return None
+        return mean_se_per_step(add_runs([p["sums"][key] for p in parts]),
+                                add_runs([p["sq_sums"][key] for p in parts]), est_runs).tolist()
+
     return {
         "pos": (pos.sum(1) / est_runs).sqrt().tolist(), "vel": (vel.sum(1) / est_runs).sqrt().tolist(),
         "count": count.tolist(), "ess": ess.tolist() if ess is not None else None,
@@ -313,6 +322,7 @@ def _merge(parts: list[dict], runs: int, window: slice | None) -> dict:
         "maneuver_pos_se": armse_se(e_pos[window]) if window is not None else None,
         "count_se": (run_counts.std() / est_runs**0.5).item() if est_runs > 1 else float("nan"),
         "pos_band": rmse_se_per_step(e_pos).tolist(), "vel_band": rmse_se_per_step(e_vel).tolist(),
+        "count_band": band("count"), "ess_band": band("ess"),
     }
 
 
@@ -357,6 +367,7 @@ def run(ctx: StudyContext) -> None:
                    "source": "paper 003 Table 2"},
     )
     curves, count_curves, memberships, base_time, bands = {}, {}, {}, None, {}
+    count_bands = {}  # per-step standard errors of the mean model counts
     names = list(opts.estimators) if opts.get("estimator_names") is None else [str(n) for n in opts.estimator_names]
     nodes = {name: _node(opts, name) for name in names}
     # every estimator is a unit, all at once: an executor (executor=processes|slurm|ray) runs them side by side
@@ -401,8 +412,13 @@ def run(ctx: StudyContext) -> None:
             ctx.logger.series(f"pos_rmse_se/{name}", res["pos_band"])
             ctx.logger.series(f"vel_rmse_se/{name}", res["vel_band"])
         ctx.logger.series(f"model_count/{name}", res["count"])
+        if res.get("count_band") is not None:  # 0 where the count is fixed (EqMA)
+            ctx.logger.series(f"model_count_se/{name}", res["count_band"])
+            count_bands[label] = torch.tensor(res["count_band"], dtype=torch.float64)
         if res["ess"] is not None:
             ctx.logger.series(f"ess/{name}", res["ess"])
+            if res.get("ess_band") is not None:
+                ctx.logger.series(f"ess_se/{name}", res["ess_band"])
         for step, values in res["hists"].items():
             ctx.logger.histogram(f"log_weights/{name}", torch.tensor(values), int(step))
         log.info("%s: pos %.2f vel %.2f count %.2f %.3f s/step", name, pos.mean(), vel.mean(), avg_count,
@@ -414,7 +430,8 @@ def run(ctx: StudyContext) -> None:
     title = f"{scenario.name}, {runs} runs"
     ctx.save_figure("position_rmse", plots.rmse_over_time({"position RMSE (m)": curves}, title,
                                                                     bands={"position RMSE (m)": bands}))
-    ctx.save_figure("model_count", plots.rmse_over_time({"selected model count": count_curves}, title))
+    ctx.save_figure("model_count", plots.rmse_over_time({"selected model count": count_curves}, title,
+                                                                 bands={"selected model count": count_bands}))
     if memberships:
         ctx.save_figure("model_set_membership", _membership_figure(memberships, title))
     if not deterministic:

@@ -53,6 +53,49 @@ REQUIRED_TABLES = {
 }
 
 
+#: curves without a Monte Carlo uncertainty partner, per study: ``(regex on the tag, reason)``. Every
+#: other curve ``<q>/<s>`` of every study must come with ``<q>_se/<s>`` (a 95 % band) or with
+#: ``<q>_low/<s>`` and ``<q>_high/<s>`` (an interval), or be such a partner itself (issue 30)
+RUN_ZERO = "one run (run 0), shown as an example: no Monte Carlo uncertainty"
+EXEMPT: dict[str, list[tuple[str, str]]] = {
+    "compare": [(r"^mode_probability/", RUN_ZERO)],
+    "fedfunds": [(r"^mode_probability/", "one recorded series (real data): no Monte Carlo runs")],
+    "nile": [(r"^learn/nll$", "training curve over the fit's iterations (one fit), not a Monte Carlo mean")],
+    "fusion_ups": [(r"^variance/comp[123]/", ("the filters' computed variances P(t|t): exact (no Monte Carlo); "
+                                              "the Monte Carlo variances are tables with their _se"))],
+    "smoothing": [(r"^parallel_time_ratio/", ("wall-clock timing (best of repeats) over the swept step count, "
+                                             "not a Monte Carlo mean (smoothing.speed)"))],
+    "learn_dynamics": [(r"^training_(loss|grad_norm)/part_[ab]$", "training curve over the iterations (one fit)"),
+                       (r"^training_param/part_[ab]/", "a learned parameter over the iterations (one fit)")],
+}
+
+
+def uncovered_curves(name: str, curves) -> list[str]:
+    """The curves of study ``name`` without an uncertainty partner and not in :data:`EXEMPT`."""
+    import re
+
+    def partner(tag: str) -> bool:  # is an uncertainty of a curve (its _se, _low or _high)
+        base, _, series = tag.partition("/")
+        return any(base.endswith(suffix) and f"{base[:-len(suffix)]}/{series}" in curves
+                   for suffix in ("_se", "_low", "_high"))
+
+    exempt = EXEMPT.get(name, [])
+    missing = []
+    for tag in curves:
+        base, _, series = tag.partition("/")
+        if partner(tag) or any(re.search(pattern, tag) for pattern, _ in exempt):
+            continue
+        if f"{base}_se/{series}" in curves or (f"{base}_low/{series}" in curves and f"{base}_high/{series}" in curves):
+            continue
+        missing.append(tag)
+    return missing
+
+
+def test_uncertainty_exemptions_are_studies_with_reasons():
+    assert set(EXEMPT) <= set(EXPERIMENTS)
+    assert all(pattern and len(reason) > 20 for rules in EXEMPT.values() for pattern, reason in rules)
+
+
 def _compose(name: str, *overrides: str):
     with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
         return compose("config", overrides=[f"experiment={name}", *overrides])
@@ -98,6 +141,13 @@ def test_experiment_composes_and_runs(name, tmp_path):
         base, _, series = tag.partition("/")
         if base.endswith("_se") and f"{base[:-3]}/{series}" in curves:  # a band: same x as its curve
             assert list(curves[f"{base[:-3]}/{series}"][1]) == list(x), tag
+    # every Monte Carlo curve shows its uncertainty: a band, an interval, or a listed reason (EXEMPT)
+    missing = uncovered_curves(name, curves)
+    assert not missing, f"{name}: curves without _se or _low/_high partner and not in EXEMPT: {missing[:10]}"
+    for pattern, reason in EXEMPT.get(name, []):  # an exemption that matches nothing is stale
+        import re
+
+        assert any(re.search(pattern, tag) for tag in curves), (name, pattern, reason)
     assert list((tmp_path / "figures" / "curves").glob("*.png"))
 
 

@@ -78,3 +78,14 @@ def test_chi2_interval_against_scipy(dof):
     lo, hi = chi2_interval(dof)
     want_lo, want_hi = stats.chi2.ppf([0.025, 0.975], dof) / dof
     assert lo == pytest.approx(want_lo, rel=0.01) and hi == pytest.approx(want_hi, rel=0.005)
+
+
+def test_mean_se_per_step_is_sd_over_sqrt_n():
+    """The per-step SE of a mean over the runs from sums and sums of squares: sd_r (N - 1) / sqrt(N)."""
+    from experiments.uncertainty import mean_se_per_step
+
+    x = torch.randn(7, 11, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64)  # (T, N, M)
+    se = mean_se_per_step(x.sum(1), x.square().sum(1), 11)
+    assert torch.allclose(se, x.std(1) / 11 ** 0.5, rtol=1e-10)
+    assert torch.isnan(mean_se_per_step(x[:, :1].sum(1), x[:, :1].square().sum(1), 1)).all()
+    assert (mean_se_per_step(torch.full((4,), 6.0), torch.full((4,), 12.0), 3) == 0).all()  # a constant: 0
