@@ -104,3 +104,14 @@ def test_single_series_benchmark_runs_and_agrees():
     assert re.fullmatch(r"nile_ratio=[0-9.]+ fedfunds_ratio=[0-9.]+ imm_us_per_step=[0-9.]+", last), last
     diffs = [float(x) for x in re.findall(r"= ([0-9.]+e[-+][0-9]+)", proc.stdout)]
     assert len(diffs) == 2 and max(diffs) < 1e-8, proc.stdout
+
+
+def test_threads_benchmark_runs():
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "threads.py"), "--runs", "1", "20", "--steps", "3",
+         "--particles", "10"],
+        capture_output=True, text=True, timeout=300, cwd=ROOT,
+        env={"PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "2", "PATH": ""},
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:] + proc.stdout[-2000:]
+    assert re.fullmatch(r"worst_auto_vs_one_thread=[0-9.]+", proc.stdout.strip().splitlines()[-1])

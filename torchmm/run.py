@@ -16,7 +16,7 @@ from torchmm.contract import BeliefArg, Data, Finite, Flag, Gen, Of, Unchecked, 
 from torchmm.beliefs import GaussianBelief
 from torchmm.filters.base import Filter, StepOutput, call_with
 from torchmm.provenance import Provenance, fingerprints, module_state, tensor_versions
-from torchmm.runtime import fast_paths_compiled
+from torchmm.runtime import entries, fast_paths_compiled, one_thread_when_small
 from torchmm.validation import broadcast_shape, check_filter_dtype, check_measurement
 
 __all__ = ["Trajectory", "attach_provenance", "per_step_models", "run_filter", "stack_outputs"]
@@ -139,6 +139,7 @@ def _stack_in_memory_order(tensors: list) -> Tensor:
              record=Of(str, callable_ok=True, optional=True, what="a callable, None or \"estimate\""),
              progress=Unchecked("True, False or the progress bar's description (any string)"),
              fast_path=Flag(optional=True), compile=Flag(optional=True))
+@one_thread_when_small(lambda filter, belief0, *args, **kwargs: entries(belief0))
 def run_filter(
     filter: Filter,
     belief0: Any,

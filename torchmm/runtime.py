@@ -17,8 +17,8 @@ import ctypes
 import ctypes.util
 import logging
 
-__all__ = ["HostSyncError", "compile_fast_paths", "fast_paths_compiled", "host_reads_ok", "no_host_sync",
-           "retain_freed_memory"]
+__all__ = ["SMALL_PROBLEM", "HostSyncError", "compile_fast_paths", "fast_paths_compiled", "host_reads_ok",
+           "no_host_sync", "retain_freed_memory", "thread_policy"]
 
 log = logging.getLogger("torchmm")
 
@@ -132,3 +132,64 @@ def no_host_sync(where: str = "this block"):
         _DEVICE_PATHS[0] = previous
         for m, f in saved.items():
             setattr(torch.Tensor, m, f)
+
+
+# -- threads by problem size -------------------------------------------------------------------------
+#: a call whose start belief holds fewer tensor entries than this runs on one thread (``thread_policy``)
+SMALL_PROBLEM = 1 << 15
+_THREADS: list[str] = ["auto"]
+
+
+def thread_policy(policy: str | None = None) -> str:
+    """The thread rule of :func:`~torchmm.run_filter`, :func:`~torchmm.smooth` and
+    :meth:`~torchmm.learn.Trainer.fit`; with ``policy``, set it first. Returns the rule in force.
+
+    * ``"auto"`` (default): a call on a small problem - a start belief (or smoothed trajectory step) of
+      fewer than :data:`SMALL_PROBLEM` tensor entries, e.g. an IMM of 3 two-state modes below about
+      1,800 runs, a Kalman filter below about 5,000 - runs on one thread, then torch's setting is
+      restored. Such steps are dispatch-bound: a second thread never helps them, and on a busy machine
+      its spinning made them 2 to 4.5 times slower (docs/performance.md, "Threads by problem size").
+      Larger problems run at torch's setting (``torch.set_num_threads``).
+    * ``"torch"``: always torch's setting.
+    """
+    if policy is not None:
+        if policy not in ("auto", "torch"):
+            raise ValueError(f"policy: expected 'auto' or 'torch', got {policy!r}")
+        _THREADS[0] = policy
+    return _THREADS[0]
+
+
+def entries(tree) -> int:
+    """The tensor entries of a pytree (a belief, a trajectory): the size of a step's state."""
+    import torch.utils._pytree as pytree
+    from torch import Tensor
+
+    return sum(leaf.numel() for leaf in pytree.tree_leaves(tree) if isinstance(leaf, Tensor))
+
+
+def one_thread_when_small(size):
+    """Decorator: the call runs on one thread when ``size(*args, **kwargs)`` (tensor entries of one step's
+    state) is below :data:`SMALL_PROBLEM` and the rule is ``"auto"`` (:func:`thread_policy`)."""
+    import functools
+
+    def decorate(fn):
+        @functools.wraps(fn)
+        def wrapper(*args, **kwargs):
+            import torch
+
+            threads = torch.get_num_threads()
+            if _THREADS[0] != "auto" or threads <= 1:
+                return fn(*args, **kwargs)
+            try:
+                small = size(*args, **kwargs) < SMALL_PROBLEM
+            except Exception:  # noqa: BLE001 - a malformed argument: the call itself reports it
+                small = False
+            if not small:
+                return fn(*args, **kwargs)
+            torch.set_num_threads(1)
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                torch.set_num_threads(threads)
+        return wrapper
+    return decorate

@@ -59,6 +59,7 @@ from torchmm.filters.smoother import rts_step
 from torchmm.filters.unscented import SigmaPointStrategy, UnscentedKalmanFilter
 from torchmm.linalg import cholesky, cholesky_solve, solve_lower
 from torchmm.models.base import MotionModel
+from torchmm.runtime import entries, one_thread_when_small
 from torchmm.multimodel.bank import ListBank, VectorizedBank
 from torchmm.multimodel.imm import MultipleModelFilter, mode_posterior, safe_log_normalize
 from torchmm.provenance import fingerprints, module_state, tensor_versions
@@ -554,6 +555,12 @@ def _same_models(given: Any, recorded: Any, steps: int, name: str, made: str) ->
 _PER_STEP = "a sequence of T models, a callable k -> model, or None"
 
 
+def _step_entries(filter, trajectory=None, *args, **kwargs) -> int:
+    """One step's tensor entries of the trajectory to smooth (the thread rule, torchmm.runtime)."""
+    traj = filter if isinstance(filter, Trajectory) else trajectory
+    return entries(traj.belief) // max(int(traj.log_likelihood.shape[0]), 1)
+
+
 # declared only where smooth's own check says more (the filter types it smooths, the options a filter
 # has) or where the argument's meaning depends on another: smooth(trajectory, measurements)
 @entry_point(filter=Of((Filter, Trajectory), check=False, what="the filter that ran, or its Trajectory"),
@@ -563,6 +570,7 @@ _PER_STEP = "a sequence of T models, a callable k -> model, or None"
              sensors=Of((list, tuple, torch.nn.Module), callable_ok=True, optional=True, what=_PER_STEP),
              lag=Int(0, optional=True, check=False),
              method=Choice("two_filter", "kim", optional=True, check=False))
+@one_thread_when_small(_step_entries)
 def smooth(filter: Any, trajectory: Trajectory | None = None, measurements: Tensor | None = None, *,
            controls: Tensor | None = None, motions: Any = None, sensors: Any = None, lag: int | None = None,
            method: str | None = None) -> Trajectory:

@@ -31,6 +31,7 @@ from torchmm.contract import (
     Values,
     entry_point,
 )
+from torchmm.runtime import entries, one_thread_when_small
 from torchmm.learn.loss import as_start_belief, negative_log_likelihood, truncated_segments
 
 __all__ = ["TrainRecord", "Trainer", "load_checkpoint", "save_checkpoint"]  # (and NonFiniteLossError, below)
@@ -260,6 +261,7 @@ class Trainer:
     @entry_point(belief0=BeliefArg(validate=True), measurements=Values(), iterations=Int(0),
                  controls=Values(optional=True), batch_size=Int(1, optional=True), generator=Gen(),
                  progress=Unchecked("None, True, False or the bar's description (any string)"))
+    @one_thread_when_small(lambda self, belief0, *args, **kwargs: entries(belief0))
     def fit(self, belief0, measurements: Tensor, iterations: int, *, controls: Tensor | None = None,
             batch_size: int | None = None, generator: torch.Generator | None = None,
             progress: bool | str | None = None) -> list[TrainRecord]:
