@@ -32,7 +32,7 @@ from torch import Tensor
 from torch.distributions import Distribution
 
 from torchmm.contract import Cov, Finite, Flag, Real, entry_point
-from torchmm.validation import SYMMETRY_RTOL, as_tensor
+from torchmm.validation import SYMMETRY_RTOL, as_tensor, broadcast_shape
 
 __all__ = [
     "MultivariateStudentT",
@@ -253,7 +253,7 @@ class MultivariateStudentT(Distribution):
         chol, info = torch.linalg.cholesky_ex(scale)
         if bool((info != 0).any()):
             raise ValueError("scale: must be symmetric positive definite")
-        batch = torch.broadcast_shapes(loc.shape[:-1], scale.shape[:-2], df.shape)
+        batch = broadcast_shape(loc.shape[:-1], scale.shape[:-2], df.shape)
         m = loc.shape[-1]
         self.loc = loc.expand(*batch, m)
         self.scale_matrix = scale.expand(*batch, m, m)
@@ -346,7 +346,7 @@ class SkewT(Distribution):
         if bool((scale.detach() <= 0).any()):
             raise ValueError("scale: spread parameters must be positive")
         _check_df(df)
-        shape = torch.broadcast_shapes(loc.shape, scale.shape, skewness.shape, df.shape)
+        shape = broadcast_shape(loc.shape, scale.shape, skewness.shape, df.shape)
         if shape[-1] != m:
             raise ValueError(f"scale/skewness/df: do not broadcast with loc of size {m}")
         self.loc, self.scale, self.skewness, self.df = (t.expand(shape) for t in (loc, scale, skewness, df))

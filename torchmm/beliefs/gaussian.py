@@ -12,7 +12,7 @@ from torch import Tensor
 from torchmm.beliefs.base import Belief, register_belief
 from torchmm.beliefs.ops import mix_gaussians
 from torchmm.linalg import cholesky
-from torchmm.validation import as_tensor, check_covariance, check_shape
+from torchmm.validation import as_tensor, broadcast_shape, check_covariance, check_shape
 from torchmm.contract import Cov, DType, Device, Finite, entry_point
 
 __all__ = ["GaussianBelief"]
@@ -86,7 +86,7 @@ class GaussianBelief(Belief):
         check_shape(cov, "cov", (mean.shape[-1], mean.shape[-1]))
         check_covariance(cov, "cov")
         try:
-            torch.broadcast_shapes(mean.shape[:-1], cov.shape[:-2])
+            broadcast_shape(mean.shape[:-1], cov.shape[:-2])
         except RuntimeError:
             raise ValueError(
                 f"cov: batch shape {tuple(cov.shape[:-2])} does not broadcast with mean batch "

@@ -21,7 +21,7 @@ from torchmm.filters.base import Filter, StepOutput
 from torchmm.linalg import condition, flag_failed
 from torchmm.models.base import MeasurementModel, MotionModel, check_model_pair
 from torchmm.models.linear import LinearMeasurement, LinearMotion
-from torchmm.validation import check_measurement, gaussian_batch
+from torchmm.validation import broadcast_shape, check_measurement, gaussian_batch
 from torchmm.contract import Flag, Of, entry_point
 
 __all__ = ["ExtendedKalmanFilter", "KalmanFilter"]
@@ -129,7 +129,7 @@ class KalmanFilter(ExtendedKalmanFilter):
 
     @property
     def param_batch_shape(self) -> torch.Size:
-        return torch.broadcast_shapes(self.motion.param_batch_shape, self.measurement.param_batch_shape)
+        return broadcast_shape(self.motion.param_batch_shape, self.measurement.param_batch_shape)
 
     def _transition_matrix(self, mean: Tensor, u: Tensor | None) -> Tensor:
         return self.motion.F

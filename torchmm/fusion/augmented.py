@@ -30,7 +30,7 @@ from torchmm.contract import Cov, Finite, Int, Values, entry_point
 from torchmm.linalg import solve_right
 from torchmm.fusion.local import check_measurements
 from torchmm.fusion.system import SYSTEM_ARG, MultiSensorSystem, measurement_sequence
-from torchmm.validation import as_tensor
+from torchmm.validation import as_tensor, broadcast_shape
 
 __all__ = [
     "CorrelatedKFResult",
@@ -170,7 +170,7 @@ def correlated_kf_estimates(res: CorrelatedKFResult, Phi, G, Q, H, x0, P0, N: in
 
 def block_diagonal2(a: Tensor, b: Tensor) -> Tensor:
     """``diag(a, b)`` batched: ``a (*S, p, q)``, ``b (*S, r, s)``."""
-    batch = torch.broadcast_shapes(a.shape[:-2], b.shape[:-2])
+    batch = broadcast_shape(a.shape[:-2], b.shape[:-2])
     a, b = a.expand(*batch, *a.shape[-2:]), b.expand(*batch, *b.shape[-2:])
     top = torch.cat([a, a.new_zeros(*batch, a.shape[-2], b.shape[-1])], -1)
     bottom = torch.cat([b.new_zeros(*batch, b.shape[-2], a.shape[-1]), b], -1)

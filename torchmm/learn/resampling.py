@@ -31,6 +31,7 @@ from torchmm.beliefs.ops import normalize_log_probs
 from torchmm.beliefs.particle import ParticleBelief
 from torchmm.contract import Choice, Gen, Of, Real, entry_point
 from torchmm.filters.base import StepOutput
+from torchmm.validation import broadcast_shape
 from torchmm.filters.particle import ParticleFilter
 from torchmm.filters.resampling import RESAMPLING_SCHEMES, effective_sample_size, resample
 from torchmm.models.base import MeasurementModel, MotionModel
@@ -83,7 +84,7 @@ def _soft_resample(belief: ParticleBelief, alpha: float, scheme: str, generator)
         log_q = torch.logaddexp(log_w + math.log(alpha), uniform)
     indices = resample(log_q.detach(), scheme, num, generator=generator)
     particles = belief.particles
-    batch = torch.broadcast_shapes(particles.shape[:-2], indices.shape[:-1])
+    batch = broadcast_shape(particles.shape[:-2], indices.shape[:-1])
     particles = particles.expand(*batch, *particles.shape[-2:])
     gathered = torch.gather(particles, -2, indices.unsqueeze(-1).expand(*indices.shape, particles.shape[-1]))
     correction = torch.gather((log_w - log_q).expand(*batch, num), -1, indices)  # log(w / q) at ancestors

@@ -20,6 +20,7 @@ from torch import Tensor
 from torchmm.beliefs import GaussianBelief
 from torchmm.contract import Cov, Finite, Indices, Labels, Of, Values, entry_point
 from torchmm.linalg import cholesky, solve_lower
+from torchmm.validation import broadcast_shape
 
 __all__ = ["armse", "mode_accuracy", "mode_hits", "nees", "nis", "rmse", "squared_error"]
 
@@ -35,7 +36,7 @@ def _check_error_args(estimate: Tensor, truth: Tensor, components) -> None:
         raise ValueError(f"truth: state dim {truth.shape[-1] if truth.dim() else None} differs from the "
                          f"estimate's {estimate.shape[-1]}")
     try:
-        torch.broadcast_shapes(estimate.shape, truth.shape)
+        broadcast_shape(estimate.shape, truth.shape)
     except RuntimeError:
         raise ValueError(f"truth: shape {tuple(truth.shape)} does not broadcast with the estimate's "
                          f"{tuple(estimate.shape)}") from None

@@ -36,7 +36,7 @@ from torch import Tensor, nn
 from torch.nn.utils import parametrize
 
 from torchmm.models.base import MeasurementModel, MotionModel
-from torchmm.validation import as_int, as_tensor, check_covariance, check_shape
+from torchmm.validation import as_int, as_tensor, broadcast_shape, check_covariance, check_shape
 from torchmm.contract import Choice, Cov, Flag, Indices, Int, Of, Text, entry_point
 
 __all__ = [
@@ -202,7 +202,7 @@ def learnable_noise(model: nn.Module, name: str = "Q", kind: str = "cholesky", *
     param = noise_parametrization(kind, value, scale_shape=scale_shape)
     if kind == "scale":
         try:
-            torch.broadcast_shapes(param.scale_shape, value.shape[:-2])
+            broadcast_shape(param.scale_shape, value.shape[:-2])
         except RuntimeError:
             raise ValueError(
                 f"scale_shape: {tuple(param.scale_shape)} does not broadcast with {name}'s batch "

@@ -28,7 +28,7 @@ def matvec(A: Tensor, x: Tensor) -> Tensor:
 def _param_batch(name_shapes: dict[str, torch.Size], event: dict[str, int], owner: str) -> torch.Size:
     shapes = {k: s[: len(s) - event[k]] for k, s in name_shapes.items()}
     try:
-        return torch.broadcast_shapes(*shapes.values())
+        return broadcast_shape(*shapes.values())
     except RuntimeError:
         raise ValueError(
             f"{owner}: parameter batch shapes do not broadcast: "

@@ -358,7 +358,7 @@ def _stack_extras(extras, axis: int) -> dict | None:
 def _stack_optional(values, event: int):
     if any(v is None for v in values):
         return None
-    shape = torch.broadcast_shapes(*[v.shape for v in values])
+    shape = broadcast_shape(*[v.shape for v in values])
     return torch.stack([v.expand(shape) for v in values], dim=-1 - event)
 
 

@@ -33,6 +33,7 @@ from torchmm.models.transition import as_transition
 from torchmm.multimodel.bank import FilterBank, VectorizedBank, make_bank
 from torchmm.multimodel.batch_last import BatchLastIMM, why_not
 from torchmm.validation import (
+    broadcast_shape,
     check_filter_dtype,
     check_measurement,
     check_probabilities,
@@ -259,7 +260,7 @@ class MultipleModelFilter(Filter):
         else:
             probs = check_probabilities(mode_probs, "mode_probs", M, dtype=belief.dtype, device=belief.device)
             try:
-                batch = torch.broadcast_shapes(batch, probs.shape[:-1])
+                batch = broadcast_shape(batch, probs.shape[:-1])
             except RuntimeError:
                 raise ValueError(f"mode_probs: batch {tuple(probs.shape[:-1])} does not broadcast with the "
                                  f"belief's {tuple(batch)}") from None
