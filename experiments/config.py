@@ -23,13 +23,12 @@ import math
 import sys
 from pathlib import Path
 from dataclasses import dataclass, field
-from typing import Any, Callable, Optional
+from typing import Any, Optional
 
 from omegaconf import MISSING, DictConfig, OmegaConf
 from omegaconf.errors import (
     ConfigAttributeError,
     ConfigKeyError,
-    MissingMandatoryValue,
     OmegaConfBaseException,
 )
 
@@ -187,7 +186,7 @@ def validate(cfg: DictConfig | dict, *, scenario_choice: str | None = None, refe
     data = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg)
     data.pop("hydra", None)
     common_keys = {f.name for f in dataclasses.fields(Common)}
-    _merge(Common, {k: v for k, v in data.items() if k in common_keys})
+    merge(Common, {k: v for k, v in data.items() if k in common_keys})
     study = str(data.get("study"))
     schema, scenarios = _study_entry(study)
     if schema is None:  # a user's own study: its keys are its YAML's (types) and its module's CHECKS
@@ -206,11 +205,11 @@ def validate(cfg: DictConfig | dict, *, scenario_choice: str | None = None, refe
             hint = f"did you mean {close[0]}?" if close else f"the {data.get('experiment_name')} study's keys: " \
                 + ", ".join(sorted(own))
             raise ConfigError(key, NO_VALUE, f"not a key of the {data.get('experiment_name')} study ({hint})")
-    _merge(schema, {k: v for k, v in data.items() if k in own})
+    merge(schema, {k: v for k, v in data.items() if k in own})
     _validate_scenario(data, scenarios, scenario_choice)
     if "estimators" in own or "estimators" in data:
         for name, est in (data.get("estimators") or {}).items():
-            _merge(getattr(schema, "estimator_schema", schemas_mod.Estimator), est or {}, f"estimators.{name}")
+            merge(getattr(schema, "estimator_schema", schemas_mod.Estimator), est or {}, f"estimators.{name}")
     if hasattr(schema, "check"):
         schema.check(data)
 
@@ -231,7 +230,7 @@ def _validate_scenario(data: dict, scenarios: tuple[str, ...] | None, choice: st
     if target not in scenarios:
         raise ConfigError("scenario", name, f"does not fit the {experiment} study; choose one of "
                           f"{', '.join(schemas_mod.scenario_names(scenarios))}")
-    _merge(schemas_mod.SCENARIOS[target], scenario, "scenario")
+    merge(schemas_mod.SCENARIOS[target], scenario, "scenario")
 
 
 # -- the command line ------------------------------------------------------------------------------
@@ -259,10 +258,10 @@ def _precheck(argv: list[str], config_dir: str, config_name: str) -> None:
     overrides = list(args.overrides)
     jobs = _sweep_jobs(overrides) if args.multirun else [overrides]
     for job in jobs:
-        cfg, choice = _compose(job, config_dir, config_name)
+        cfg, choice = compose_config(job, config_dir, config_name)
         reference = None
         if str(cfg.get("study")) not in _registered():  # a study without a schema: typed by its defaults
-            reference, _ = _compose(_choices_only(job, config_dir), config_dir, config_name)
+            reference, _ = compose_config(_choices_only(job, config_dir), config_dir, config_name)
         validate(cfg, scenario_choice=choice, reference=reference)
 
 
@@ -313,9 +312,9 @@ def compose_config(overrides: list[str], config_dir: str, config_name: str) -> t
         with initialize_config_dir(config_dir=config_dir, version_base="1.3"):
             cfg = compose(config_name, overrides=overrides, return_hydra_config=True)
     except MissingConfigException as err:
-        raise _missing_config(err, overrides) from None
+        raise missing_config(err, overrides) from None
     except (HydraException, OmegaConfBaseException) as err:
-        raise _composition_error(err, overrides) from None
+        raise composition_error(err, overrides) from None
     finally:
         GlobalHydra.instance().clear()
     choice = OmegaConf.select(cfg, "hydra.runtime.choices.scenario")
@@ -382,7 +381,3 @@ def composition_error(err, overrides: list[str]) -> ConfigError:
         return ConfigError(str(key), cause.value if cause.value is not None else NO_VALUE,
                            type_message(cause))
     return ConfigError("overrides", " ".join(overrides), text)
-
-
-# the former private names (tests import them)
-_merge, _compose, _missing_config, _composition_error = merge, compose_config, missing_config, composition_error

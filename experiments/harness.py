@@ -110,13 +110,3 @@ __all__ = [
     "worker_context",
     "write_atomic",
 ]
-
-# the former private names, for code written against the one-module harness
-_jsonable = jsonable
-_format = format_value
-_write_atomic = write_atomic
-_LOCKS = LOCKS
-_reason = error_reason
-_array_refs = array_refs
-_load_arrays = load_arrays
-_differing_keys = differing_keys

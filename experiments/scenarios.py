@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -19,6 +20,7 @@ from torchmm import (
     PositionMeasurement,
     validate_transition,
 )
+from torchmm.fusion.augmented import block_diagonal2
 from torchmm.simulate import (
     JumpSimulation,
     bernoulli_mask,
@@ -164,22 +166,10 @@ class Concatenated(MeasurementModel):
         return torch.cat([s(x) for s in self.sensors], -1)
 
     def noise_cov(self, x: Tensor | None = None) -> Tensor:
-        return _block_diag([s.noise_cov(x) for s in self.sensors])
+        return functools.reduce(block_diagonal2, [s.noise_cov(x) for s in self.sensors])
 
     def jacobian(self, x: Tensor) -> Tensor:
         return torch.cat([s.jacobian(x) for s in self.sensors], -2)
-
-
-def _block_diag(blocks: list[Tensor]) -> Tensor:
-    batch = torch.broadcast_shapes(*[b.shape[:-2] for b in blocks])
-    size = sum(b.shape[-1] for b in blocks)
-    out = blocks[0].new_zeros(*batch, size, size)
-    i = 0
-    for b in blocks:
-        d = b.shape[-1]
-        out[..., i:i + d, i:i + d] = b
-        i += d
-    return out
 
 
 @contextmanager

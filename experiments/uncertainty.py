@@ -32,7 +32,7 @@ import math
 import torch
 from torch import Tensor
 
-__all__ = ["armse_se", "chi2_interval", "inside", "mean_se_per_step", "nees_consistency", "rmse_se_per_step"]
+__all__ = ["armse_influence", "armse_se", "chi2_interval", "inside", "mean_se_per_step", "nees_consistency", "rmse_se_per_step"]
 
 #: two-sided 95 % normal quantile
 Z95 = 1.959963984540054
@@ -47,6 +47,22 @@ def armse_se(sq_err: Tensor) -> float:
     weight = 1.0 / (2 * T * m.clamp_min(torch.finfo(m.dtype).tiny).sqrt())
     h = (sq_err * weight.unsqueeze(1)).sum(0)  # (N,)
     return float(h.std(unbiased=True) / math.sqrt(N))
+
+
+def armse_influence(sq: Tensor) -> tuple[float, Tensor, Tensor]:
+    """ARMSE of squared errors ``(T, N)`` with NaN where a step of a run is not scored (padding,
+    missing truth), its per-run influence values ``(N,)`` (the delta method: ARMSE ~ const + mean_r h_r,
+    so ``sd(h) / sqrt(N)`` is :func:`armse_se`'s standard error, and paired differences of estimators are
+    differences of their ``h``), and the per-step RMSE ``(T,)``."""
+    ok = torch.isfinite(sq)
+    n_t = ok.sum(1).clamp_min(1)
+    m = torch.where(ok, sq, 0.0).sum(1) / n_t
+    steps = (ok.sum(1) > 0)
+    T = int(steps.sum())
+    w = torch.where(steps, 1.0 / (2 * T * m.clamp_min(torch.finfo(m.dtype).tiny).sqrt()), 0.0)
+    N = sq.shape[1]
+    h = (torch.where(ok, sq - m.unsqueeze(1), 0.0) * (w * N / n_t).unsqueeze(1)).sum(0)  # (N,)
+    return float(m[steps].sqrt().mean()), h, m.sqrt()
 
 
 def rmse_se_per_step(sq_err: Tensor) -> Tensor:

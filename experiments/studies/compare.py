@@ -42,7 +42,9 @@ from experiments.executors import Unit
 from experiments.harness import StudyContext, join_runs, per_run
 from experiments.scenarios import Concatenated, default_dtype
 from experiments.studies import plots
-from experiments.uncertainty import Z95, chi2_interval, rmse_se_per_step
+from experiments.uncertainty import Z95, armse_influence, chi2_interval, rmse_se_per_step
+from torchmm import run_filter, smooth
+from torchmm.metrics import mode_hits, nees
 
 log = logging.getLogger("torchmm.experiments")
 
@@ -219,9 +221,6 @@ def _motions(est, scenario):
 
 def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
     """Per-run values of estimator ``name`` (and its smoothed trajectory) on runs ``start..stop-1``."""
-    from torchmm import smooth
-    from torchmm.metrics import mode_hits, nees
-
     scenario, _ = _scenario(ctx)
     truth, modes, z, present = _data(ctx, start, stop)
     est = _estimator(ctx, scenario, name)
@@ -229,7 +228,6 @@ def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
     generator = ctx.block_generators("filter", scenario.name, name)(start // ctx.block_runs) \
         if est.filter.uses_generator else None
     tic = time.perf_counter()
-    from torchmm import run_filter
     traj = run_filter(est.filter, est.init(scenario.initial.expand(runs), generator), z,
                       motions=_motions(est, scenario), generator=generator,
                       update_first=bool(ctx.cfg.get("update_first")))
@@ -242,7 +240,8 @@ def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
         smoothed = smooth(traj, **({"method": est.smooth} if isinstance(est.smooth, str) else {}))
         trajectories[f"{name} smoothed"] = (smoothed, smoothed.estimate(), seconds + time.perf_counter() - tic)
     for label, (tr, estimate, secs) in trajectories.items():
-        v: dict[str, Any] = {"runs": runs, "steps": z.shape[0], "seconds": secs, "multiple_model": est.multiple_model}
+        v: dict[str, Any] = {"runs": runs, "steps": z.shape[0], "seconds": secs, "multiple_model": est.multiple_model,
+                             "state_dim": scenario.initial.state_dim}
         if label == name:  # (a smoother does not change the data's likelihood); the first `burn` terms left out
             v["loglik"] = per_run(traj.log_likelihood[int(ctx.cfg.get("burn") or 0):].detach())
         if truth is not None:
@@ -273,20 +272,6 @@ def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
 # -- reductions ---------------------------------------------------------------------------------------------
 def _t(x) -> Tensor:
     return torch.as_tensor(x, dtype=torch.float64)
-
-
-def _influence_armse(sq: Tensor) -> tuple[float, Tensor, Tensor]:
-    """ARMSE of squared errors ``(T, N)`` (NaN: not scored), its per-run influence values ``(N,)`` (the
-    delta method: ARMSE ~ mean + mean_r h_r), and the per-step RMSE ``(T,)``."""
-    ok = torch.isfinite(sq)
-    n_t = ok.sum(1).clamp_min(1)
-    m = torch.where(ok, sq, 0.0).sum(1) / n_t
-    steps = (ok.sum(1) > 0)
-    T = int(steps.sum())
-    w = torch.where(steps, 1.0 / (2 * T * m.clamp_min(torch.finfo(m.dtype).tiny).sqrt()), 0.0)
-    N = sq.shape[1]
-    h = (torch.where(ok, sq - m.unsqueeze(1), 0.0) * (w * N / n_t).unsqueeze(1)).sum(0)  # (N,)
-    return float(m[steps].sqrt().mean()), h, m.sqrt()
 
 
 def _per_run_mean(x: Tensor) -> Tensor:
@@ -320,7 +305,7 @@ def reduce(parts: list[dict], groups: list[str], metrics: list[str]) -> tuple[di
         for g in groups:
             sq = _t(join_runs([p[f"sq_{g}"] for p in parts]))
             steps = sq.shape[0]
-            value, h, per_step = _influence_armse(sq)
+            value, h, per_step = armse_influence(sq)
             summary[f"rmse_{g}"], summary[f"rmse_{g}_se"] = value, float(h.std() / math.sqrt(runs)) if runs > 1 else math.nan
             influence[f"rmse_{g}"] = h
             curves[f"rmse_{g}"] = per_step
@@ -330,7 +315,7 @@ def reduce(parts: list[dict], groups: list[str], metrics: list[str]) -> tuple[di
         per = _per_run_mean(x)
         summary["nees"], summary["nees_se"] = _mean_se(per)
         influence["nees"] = per
-        n = int(parts[0]["state_dim"]) if "state_dim" in parts[0] else None
+        n = int(parts[0]["state_dim"])
         curve = torch.nanmean(x, 1)
         curves["nees"] = curve
         if n:
@@ -454,8 +439,6 @@ def run(ctx: StudyContext) -> None:
         mine = parts[i * len(ranges):(i + 1) * len(ranges)]
         for label in mine[0]:
             pieces = [p[label] for p in mine]
-            for p in pieces:
-                p["state_dim"] = scenario.initial.state_dim
             summary, extra = reduce(pieces, groups, metrics)
             results[label] = {"summary": summary, **extra}
             if "example_mean" in pieces[0]:
@@ -490,11 +473,11 @@ def run(ctx: StudyContext) -> None:
         note=f"Each estimator minus `{reference}` on the same runs (common random numbers): the difference, its "
              "standard error and 95 % Student-t interval; separate_half_width is the half-width two independent "
              "intervals would give (the pairing's gain).").rows.extend(rows)
-    _curves_and_figures(ctx, scenario, results, examples, groups)
+    _curves_and_figures(ctx, scenario, results, examples, groups, ranges[0])
     ctx.results.save()
 
 
-def _curves_and_figures(ctx, scenario, results, examples, groups) -> None:
+def _curves_and_figures(ctx, scenario, results, examples, groups, first_unit) -> None:
     curves = {f"RMSE {g}": {} for g in groups}
     bands = {f"RMSE {g}": {} for g in groups}
     for label, r in results.items():
@@ -527,7 +510,7 @@ def _curves_and_figures(ctx, scenario, results, examples, groups) -> None:
         ctx.save_figure("nees", plots.nees_over_time(nees, {label: (results[label]["summary"]["nees_low"],
                                                                       results[label]["summary"]["nees_high"])
                                                              for label in nees}, f"{scenario.name}, NEES"))
-    truth, modes, z, _ = _data(ctx, 0, min(runs_of(ctx), ctx.block_runs) if scenario.data is None else runs_of(ctx))
+    truth, modes, z, _ = _data(ctx, *first_unit)  # run 0 is in the first unit (memoised where it ran here)
     probs = {label: _t(ex["example_probs"]) for label, ex in examples.items() if ex.get("example_probs") is not None}
     if probs:
         ctx.save_figure("mode_probabilities", plots.mode_probabilities(

@@ -89,3 +89,23 @@ def test_mean_se_per_step_is_sd_over_sqrt_n():
     assert torch.allclose(se, x.std(1) / 11 ** 0.5, rtol=1e-10)
     assert torch.isnan(mean_se_per_step(x[:, :1].sum(1), x[:, :1].square().sum(1), 1)).all()
     assert (mean_se_per_step(torch.full((4,), 6.0), torch.full((4,), 12.0), 3) == 0).all()  # a constant: 0
+
+
+def test_armse_influence_gives_armse_se_without_gaps_and_skips_nan():
+    """armse_influence: sd(h)/sqrt(N) is armse_se's standard error when every entry is scored; a NaN entry
+    (a padded step) leaves the ARMSE that of the scored entries."""
+    import math
+
+    import torch
+
+    from experiments.uncertainty import armse_influence, armse_se
+
+    sq = torch.rand(20, 30, generator=torch.Generator().manual_seed(0), dtype=torch.float64) * 4
+    value, h, per_step = armse_influence(sq)
+    assert value == pytest.approx(float(sq.mean(1).sqrt().mean()), rel=1e-14)
+    assert float(h.std() / math.sqrt(30)) == pytest.approx(armse_se(sq), rel=1e-12)
+    gappy = sq.clone()
+    gappy[19, 3] = torch.nan
+    value, _, per_step = armse_influence(gappy)
+    kept = torch.cat([sq[19, :3], sq[19, 4:]])
+    assert float(per_step[19]) == pytest.approx(float(kept.mean().sqrt()), rel=1e-14)
