@@ -115,3 +115,21 @@ def test_threads_benchmark_runs():
     )
     assert proc.returncode == 0, proc.stderr[-2000:] + proc.stdout[-2000:]
     assert re.fullmatch(r"worst_auto_vs_one_thread=[0-9.]+", proc.stdout.strip().splitlines()[-1])
+
+
+def test_ct_imm_benchmark_runs_and_agrees():
+    """benchmarks/ct_imm.py (issue 31, goal 3: IMM over EKF and UKF coordinated-turn banks against a
+    NumPy batch-last reference) at tiny size: its equality checks (8 runs x 20 steps, 1e-9) pass
+    (the script exits non-zero otherwise) and it prints its ratios."""
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "ct_imm.py"), "--runs", "8", "--steps", "5",
+         "--repeats", "1"],
+        capture_output=True, text=True, timeout=300, cwd=ROOT,
+        env={"PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "PATH": ""},
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:] + proc.stdout[-2000:]
+    lines = proc.stdout.strip().splitlines()
+    assert re.fullmatch(r"ekf_ratio_8=[0-9.]+ ukf_ratio_8=[0-9.]+", lines[-1]), lines[-1]
+    checks = "\n".join(line for line in lines if line.startswith("equality check"))
+    diffs = [float(x) for x in re.findall(r"([0-9.]+e[-+][0-9]+)", checks)]
+    assert len(diffs) == 6 and max(diffs) < 1e-9, proc.stdout

@@ -22,7 +22,9 @@ from torchmm import (
     run_filter,
     smooth,
 )
+from torchmm import kernels
 from torchmm.multimodel import MultiRate
+from torchmm.multimodel.batch_last import BATCH_LAST
 from torchmm.runtime import HostSyncError, host_reads_ok, no_host_sync
 
 
@@ -55,15 +57,23 @@ def _imm(runs=5, steps=6):
 
 @pytest.mark.parametrize("estimate", [False, True])
 def test_fast_path_steps_never_read_values_on_the_host(estimate):
+    """The batch-last kernel's steps (torchmm/multimodel/batch_last.py, behind torchmm.kernels)."""
     imm, belief0, z = _imm()
-    fast = imm.fast_steps(belief0, z)  # the entry point (its one look at R's values)
-    if estimate:
-        fast.omit(frozenset({"prior", "innovation", "innovation_cov", "extras"}), estimate=True)
-    state = fast.state
+    request = kernels.Request(estimate=estimate,  # (as run_filter asks for record="estimate")
+                              keep=frozenset({"belief", "log_likelihood"}) if estimate else None)
+    run = BATCH_LAST.plan(imm, belief0, z, request)  # the plan (its one look at R's values)
+    assert callable(run), run
+    kernel = run.kernel
+    assert kernel.estimate_only == estimate
+    state = kernel.initial_state(belief0)
     with no_host_sync("the IMM fast path"):
-        for k in range(z.shape[0]):
-            state, out = fast.step(state, z[k])
+        for _ in range(z.shape[0]):
+            state, out = kernel.step(state, None)  # (the kernel holds the prepared measurements)
     assert torch.isfinite(out.log_likelihood).all()
+    run = BATCH_LAST.plan(imm, belief0, z, request)
+    with no_host_sync("the IMM fast path's whole run"):  # the start state, the steps, the stacking
+        fields = run()
+    torch.testing.assert_close(fields[2][-1], out.log_likelihood, rtol=0, atol=0)
 
 
 @pytest.mark.parametrize("name", ["kf", "ekf", "ukf", "imm", "gpb2"])

@@ -15,7 +15,7 @@ LAYERS = [
     {"contract"},  # the entry-point contract (torchmm/contract.py): every layer above declares through it
     {"distributions", "linalg", "cpu_kernels"},
     {"beliefs"},
-    {"models"},
+    {"models", "kernels"},  # kernels: the seam (torchmm/kernels/__init__.py) and the kernels behind it
     {"filters", "simulate"},
     {"run", "multimodel"},
     {"smooth", "parallel"},  # the backward passes, the time-parallel scans
@@ -169,3 +169,73 @@ def test_studies_import_public_names_only():
                 bad += [(path.name, node.module, "") for part in node.module.split(".")
                         if part.startswith("_") and not part.startswith("__")]
     assert not bad, bad
+
+
+# -- the one seam for speed (issue 31, goal 3) --------------------------------------------------------
+def _concrete_filter_classes() -> set[str]:
+    """Names of torchmm's concrete filter classes: every subclass of ``Filter`` that torchmm exports,
+    except the abstract bases a combinator is written against."""
+    import inspect
+
+    import torchmm.filters
+    import torchmm.fusion
+    import torchmm.multimodel
+    from torchmm.filters import Filter
+
+    abstract = {"Filter", "MultipleModelFilter"}
+    names = set()
+    for module in (torchmm, torchmm.filters, torchmm.multimodel, torchmm.fusion):
+        for name, value in vars(module).items():
+            if inspect.isclass(value) and issubclass(value, Filter) and name not in abstract:
+                names.add(name)
+    return names
+
+
+def _class_tests(tree: ast.AST) -> list[tuple[int, str]]:
+    """``(line, name)`` of every name in ``isinstance(x, C)``, ``issubclass(x, C)`` (also in tuples) and
+    in ``is / is not / in / not in / == / !=`` comparisons (``type(x) is C``, ``kind in (C, D)``)."""
+    found = []
+
+    def names(node):
+        if isinstance(node, ast.Name):
+            yield node.id
+        elif isinstance(node, ast.Attribute):
+            yield node.attr
+        elif isinstance(node, (ast.Tuple, ast.List, ast.Set)):
+            for item in node.elts:
+                yield from names(item)
+
+    for node in ast.walk(tree):
+        if (isinstance(node, ast.Call) and isinstance(node.func, ast.Name)
+                and node.func.id in ("isinstance", "issubclass") and len(node.args) == 2):
+            found += [(node.lineno, n) for n in names(node.args[1])]
+        elif isinstance(node, ast.Compare) and all(
+                isinstance(op, (ast.Is, ast.IsNot, ast.In, ast.NotIn, ast.Eq, ast.NotEq)) for op in node.ops):
+            # type(x) is C, kind not in (C, D), ...: any class compared by identity or membership
+            for operand in (node.left, *node.comparators):
+                found += [(node.lineno, n) for n in names(operand)]
+    return found
+
+
+def test_the_multiple_model_engine_tests_no_concrete_filter_class():
+    """multimodel/ finds speed (and everything else) through capabilities and the kernel seam
+    (torchmm.kernels: a filter joins a kernel family, a kernel registers), never by testing for a
+    concrete filter class such as KalmanFilter, IMM or GPB1 (docs/architecture.md, "Kernels")."""
+    concrete = _concrete_filter_classes()
+    assert {"KalmanFilter", "IMM", "GPB1", "ExtendedKalmanFilter"} <= concrete  # the check sees them
+    bad = []
+    for path in sorted((ROOT / "multimodel").rglob("*.py")):
+        for line, name in _class_tests(ast.parse(path.read_text())):
+            if name in concrete:
+                bad.append(f"{path.relative_to(ROOT.parent)}:{line}: {name}")
+    assert not bad, bad
+
+
+def test_the_class_test_finder_finds_class_tests():
+    source = ("isinstance(f, (KalmanFilter, Foo))\nif type(f) is not IMM: pass\nkind in (GPB1,)\n"
+              "issubclass(k, torchmm.UnscentedKalmanFilter)\nx < StaticMM\n")
+    found = [n for _, n in _class_tests(ast.parse(source))]
+    assert found == ["KalmanFilter", "Foo", "IMM", "kind", "GPB1", "UnscentedKalmanFilter"], found
+    # the engine before the seam (issue 31) fails the check
+    old = "kind = type(self)\nif kind not in (IMM, GPB1):\n    pass\nif type(kf) is not KalmanFilter:\n    pass\n"
+    assert {"IMM", "GPB1", "KalmanFilter"} <= {n for _, n in _class_tests(ast.parse(old))}

@@ -12,14 +12,15 @@ import torch
 import torch.utils._pytree as pytree
 from torch import Tensor
 
-from torchmm.contract import BeliefArg, Data, Finite, Flag, Gen, Of, Unchecked, entry_point
+import torchmm.kernels as kernels
 from torchmm.beliefs import GaussianBelief
+from torchmm.contract import BeliefArg, Data, Finite, Flag, Gen, Of, Unchecked, entry_point
 from torchmm.filters.base import Filter, StepOutput, call_with
 from torchmm.provenance import Provenance, fingerprints, module_state, tensor_versions
 from torchmm.runtime import entries, fast_paths_compiled, one_thread_when_small
 from torchmm.validation import broadcast_shape, check_filter_dtype, check_measurement
 
-__all__ = ["Trajectory", "attach_provenance", "per_step_models", "run_filter", "stack_outputs"]
+__all__ = ["Keep", "Trajectory", "attach_provenance", "per_step_models", "run_filter", "stack_outputs"]
 
 log = logging.getLogger("torchmm")
 
@@ -61,6 +62,38 @@ class Trajectory:
         return self.belief[-1]
 
 
+class Keep:
+    """``record=Keep("log_likelihood", "belief")``: the :class:`StepOutput` fields a run keeps (the others
+    are None), as a record a kernel understands (:mod:`torchmm.kernels`: it computes only those). A
+    record written as a function is applied to every step's output, which the eager steps and the
+    step-by-step kernels do; a whole-run kernel then does not apply.
+
+    Args:
+        fields: names of :class:`~torchmm.filters.StepOutput` fields.
+        detach: the kept belief is detached from the autograd graph (to continue filtering).
+
+    Examples:
+        >>> Keep("log_likelihood")(StepOutput("b", "p", 1.0))
+        StepOutput(belief=None, prior=None, log_likelihood=1.0, innovation=None, innovation_cov=None, extras=None)
+    """
+
+    def __init__(self, *fields: str, detach: bool = False):
+        unknown = [f for f in fields if f not in StepOutput._fields]
+        if unknown:
+            raise ValueError(f"fields: {unknown} are not StepOutput fields {StepOutput._fields}")
+        self.fields = frozenset(fields)
+        self.detach = bool(detach)
+
+    def __call__(self, out: StepOutput) -> StepOutput:
+        kept = {f: getattr(out, f) for f in self.fields}
+        if self.detach and kept.get("belief") is not None:
+            kept["belief"] = kept["belief"].detach()
+        return StepOutput(**{f: kept.get(f) for f in StepOutput._fields})
+
+    def __repr__(self) -> str:
+        return f"Keep({', '.join(repr(f) for f in sorted(self.fields))}{', detach=True' if self.detach else ''})"
+
+
 def stack_outputs(outputs: list) -> Any:
     """Stack a list of equally structured pytrees (e.g. StepOutputs) along a new leading axis."""
     flat, structures = [], []
@@ -80,7 +113,7 @@ def stack_outputs(outputs: list) -> Any:
             leaves.append(None)
             continue
         shape = broadcast_shape(*(t.shape for t in column))
-        leaves.append(_stack_in_memory_order([t.expand(shape) for t in column]))
+        leaves.append(torch.stack([t.expand(shape) for t in column]))
     return pytree.tree_unflatten(leaves, spec)
 
 
@@ -109,24 +142,6 @@ def _flatten(tree: Any, leaves: list, structure: list) -> None:
     structure.append((type(tree), context, len(children)))
     for child in children:
         _flatten(child, leaves, structure)
-
-
-def _stack_in_memory_order(tensors: list) -> Tensor:
-    """``torch.stack(tensors)``, copied in the tensors' own memory order when they are equally
-    permuted dense views (a batch-last kernel's batch-first outputs): the same values and shape, a
-    contiguous copy instead of a transposing gather, and a result that is a permuted view."""
-    first = tensors[0]
-    strides = first.stride()
-    if first.is_contiguous() or first.dim() < 2 or any(t.stride() != strides for t in tensors[1:]):
-        return torch.stack(tensors)
-    order = sorted(range(first.dim()), key=lambda i: -strides[i])
-    if not first.permute(order).is_contiguous():
-        return torch.stack(tensors)
-    stacked = torch.stack([t.permute(order) for t in tensors])
-    inverse = [0] * first.dim()
-    for position, axis in enumerate(order):
-        inverse[axis] = position + 1
-    return stacked.permute(0, *inverse)
 
 
 @entry_point(filter=Of(Filter), belief0=BeliefArg(), measurements=Data(),
@@ -180,20 +195,21 @@ def run_filter(
             ``"estimate"``: keep only the point estimate (``belief.estimate()``, the IMM's combined
             output) and the log-likelihood; the fast path then computes the estimate inside its step.
         progress: show a tqdm bar (a string is used as its description).
-        fast_path: run the filter's whole-run kernel (:meth:`~torchmm.filters.Filter.fast_steps`;
-            e.g. IMM and GPB1 over linear Kalman modes in a batch-last layout, docs/performance.md), which
-            returns what the steps return, to rounding. None (default): where the filter has one and
-            the run has no ``controls``, ``motions``, ``sensors`` or ``update_first``; True: always
-            (a ``ValueError`` naming ``fast_path`` says why not where it cannot); False: never.
+        fast_path: run a whole-run kernel (the seam :mod:`torchmm.kernels`, docs/architecture.md
+            "Kernels": the Numba linear-Gaussian kernel of Kalman filters, IMM, GPB1 and static banks
+            over linear-Gaussian modes for small CPU runs; the batch-last IMM/GPB1 kernel for larger
+            ones), which returns what the steps return, to rounding. None (default): where a kernel
+            applies to a run without ``controls``, ``motions`` or ``sensors`` and pays (the Numba
+            kernel: where Numba is loaded - by a likelihood :class:`~torchmm.learn.Objective`, a
+            study, an earlier run - or the run is long); True: always (a ``ValueError`` naming
+            ``fast_path`` gives every kernel's reason where none can); False: never (the steps).
         compile: run the fast path's step under ``torch.compile`` (seconds of compiling, cached on
             disk, then fused kernels: docs/performance.md says when it pays); True needs a fast path.
             None (default): the process default of :func:`torchmm.runtime.compile_fast_paths` (off
             unless set), for runs that have a fast path.
 
     Returns:
-        :class:`Trajectory` with every kept field stacked on a leading time axis. The shapes are
-        batch-first; the memory need not be (a fast path's fields are permuted views of its own
-        layout), so reshape them with ``reshape``, not ``view``.
+        :class:`Trajectory` with every kept field stacked on a leading time axis, batch-first.
 
     Raises:
         ValueError / TypeError: naming ``belief0``, ``measurements`` or ``controls``, checked once
@@ -256,40 +272,36 @@ def run_filter(
     explicit = compile is True
     if compile is None:
         compile = fast_paths_compiled() and fast_path is not False
-    fast = None
-    if fast_path is not False:
-        plain = controls is None and motions is None and sensors is None and not update_first
-        fast = (filter.fast_steps(belief0, measurements, compile=bool(compile)) if plain
-                else "controls, per-step models or update_first")
-        if isinstance(fast, str):
-            if fast_path:
-                raise ValueError(f"fast_path: no fast path for this run ({fast}); use fast_path=None or False")
-            if explicit:
-                raise ValueError(f"compile: compiles the fast path, which this run has not ({fast})")
-            fast = None
-    elif compile:
+    if compile and fast_path is False:
         raise ValueError("compile: compiles the fast path, and fast_path=False turns it off")
     if not isinstance(progress, (bool, str)):
         raise TypeError(f"progress: expected True, False or the progress bar's description, got {progress!r}")
+    fields = None
+    if fast_path is not False:  # the one seam for speed (torchmm.kernels): no filter class is named here
+        why, run = "controls or per-step models", None
+        if controls is None and motions is None and sensors is None:
+            request = kernels.Request(
+                update_first=update_first, forced=fast_path is True, compile=bool(compile),
+                compile_required=explicit, progress=progress,
+                keep=(frozenset({"belief", "log_likelihood"}) if estimate_only
+                      else record.fields if isinstance(record, Keep) else None),
+                estimate=estimate_only, detach_belief=isinstance(record, Keep) and record.detach,
+                record=None if estimate_only or isinstance(record, Keep) else record)
+            run, why = kernels.plan(filter, belief0, measurements, request)
+            fields = None if run is None else run()
+        if run is None:  # (a plan that declines at run time - a regularised update - leaves it to the steps)
+            if fast_path:
+                raise ValueError(f"fast_path: no fast path for this run ({why}); use fast_path=None or False")
+            if explicit:
+                raise ValueError(f"compile: compiles the fast path, which this run has not ({why})")
     iterator = range(steps)
-    if progress:
+    if progress and fields is None:
         from tqdm.auto import tqdm
 
         iterator = tqdm(iterator, desc=progress if isinstance(progress, str) else None, leave=False)
     belief = belief0
     kept = []
-    if fast is not None:
-        state = fast.state
-        if estimate_only and fast.omit is not None:
-            fast.omit(frozenset(StepOutput._fields) - {"belief", "log_likelihood"}, estimate=True)
-        data = measurements.unbind(0)  # (one op for the run: indexing is a dispatch per step)
-        for k in iterator:
-            state, out = fast.step(state, data[k])
-            kept.append(out if record is None else record(out))
-            if (k == 0 and not estimate_only and record is not None and fast.omit is not None
-                    and isinstance(kept[0], StepOutput)):  # what record drops need not be built
-                fast.omit(frozenset(f for f in StepOutput._fields
-                                    if getattr(kept[0], f) is None and getattr(out, f) is not None))
+    if fields is not None:
         iterator = ()
     for k in iterator:
         z = pytree.tree_map(lambda t: t[k], measurements)
@@ -308,7 +320,7 @@ def run_filter(
         kept.append(out if record is None else record(out))
     if update_first:
         kept = _common_extras(kept)
-    stacked = Trajectory(*stack_outputs(kept))
+    stacked = Trajectory(*(fields if fields is not None else stack_outputs(kept)))
     stacked = attach_provenance(stacked, Provenance(
         "run_filter", filter, steps, measurements, data_prints, tensor_versions(measurements), controls,
         control_prints, None if controls is None else tensor_versions(controls), motions, sensors,

@@ -50,6 +50,7 @@ import torch
 import torch.utils._pytree as pytree
 from torch import Tensor
 
+import torchmm.kernels as kernels
 from torchmm.beliefs import GaussianBelief, ModeBelief, ParticleBelief, symmetrize
 from torchmm.contract import Choice, Data, Finite, Int, Of, entry_point
 from torchmm.filters.base import Filter
@@ -59,11 +60,11 @@ from torchmm.filters.smoother import rts_step
 from torchmm.filters.unscented import SigmaPointStrategy, UnscentedKalmanFilter
 from torchmm.linalg import cholesky, cholesky_solve, solve_lower
 from torchmm.models.base import MotionModel
-from torchmm.runtime import entries, one_thread_when_small
 from torchmm.multimodel.bank import ListBank, VectorizedBank
 from torchmm.multimodel.imm import MultipleModelFilter, mode_posterior, safe_log_normalize
 from torchmm.provenance import fingerprints, module_state, tensor_versions
 from torchmm.run import Trajectory, per_step_models
+from torchmm.runtime import entries, one_thread_when_small
 
 __all__ = ["backward_imm_update", "backward_predict", "diffuse_factor", "ffbsm_step", "kim_step", "smooth",
            "two_filter_step", "unscented_rts_step"]
@@ -665,6 +666,12 @@ def smooth(filter: Any, trajectory: Trajectory | None = None, measurements: Tens
     if lag is not None and isinstance(filter, (MultipleModelFilter, ParticleFilter)):
         raise ValueError(f"lag: fixed-lag smoothing is implemented for Kalman, extended and unscented filters, "
                          f"not {type(filter).__name__}")
+    if controls is None and motions is None and lag is None:
+        run, _ = kernels.plan_smooth(filter, trajectory, method)
+        smoothed = None if run is None else run()
+        if smoothed is not None:  # a whole-run kernel (torchmm.kernels), to rounding the steps below
+            return Trajectory(belief=smoothed, prior=None, log_likelihood=trajectory.log_likelihood,
+                              innovation=None, innovation_cov=None, extras={})
     if isinstance(filter, MultipleModelFilter):
         if method not in (None, "two_filter", "kim"):
             raise ValueError(f"method: expected 'two_filter' or 'kim' for {type(filter).__name__}, got {method!r}")

@@ -1,8 +1,13 @@
-"""The engine's fast path (torchmm/multimodel/batch_last.py): run_filter's IMM (and GPB1) over linear
-Kalman modes in the batch-last layout returns what the batch-first steps return - every Trajectory field,
-for random banks of every small size, per-mode and shared parameters, exact zeros and ones,
-missing components, batch shapes (), (B,) and (B1, B2), float32, gradients, record="estimate",
-compiled - and it is taken only where it applies."""
+"""The batch-last kernel (torchmm/multimodel/batch_last.py, ``BATCH_LAST`` behind the seam
+:mod:`torchmm.kernels`): run_filter's IMM (and GPB1) over linear Kalman modes in the batch-last layout
+returns what the batch-first steps return - every Trajectory field, for random banks of every small
+size, per-mode and shared parameters, exact zeros and ones, missing components, batch shapes (),
+(B,) and (B1, B2), float32, gradients, record="estimate", compiled - and it is taken only where it
+applies.
+
+run_filter tries the small linear-Gaussian kernel (torchmm/kernels/linear.py) first, which takes runs
+of these tests' sizes; here it declines (the ``batch_last_steps`` fixture), so that the batch-last
+kernel runs, and the tests count its steps to make sure it did."""
 
 from __future__ import annotations
 
@@ -25,7 +30,11 @@ from torchmm import (
     PositionMeasurement,
     run_filter,
 )
+from torchmm import kernels
 from torchmm.filters import ExtendedKalmanFilter
+from torchmm.kernels import linear
+from torchmm.multimodel import ListBank, StaticMM
+from torchmm.multimodel.batch_last import BATCH_LAST, BatchLastIMM
 
 D = torch.float64
 
@@ -82,6 +91,32 @@ def assert_same_trajectory(got, want, tol=1e-10):
             torch.testing.assert_close(a, b, rtol=tol, atol=tol, equal_nan=True)
 
 
+_LINEAR_PLAN = linear.LinearKernel.plan
+
+
+@pytest.fixture(autouse=True)
+def batch_last_steps(monkeypatch):
+    """Every test here runs the batch-last kernel: the small linear kernel, which run_filter tries
+    first (and which ``fast_path=True`` takes at any size), declines; the list of the
+    :meth:`BatchLastIMM.step` calls (one per step the kernel ran) is the fixture's value."""
+    monkeypatch.setattr(linear.LinearKernel, "plan",
+                        lambda self, *args: "declined in tests/multimodel/test_batch_last.py")
+    calls = []
+    step = BatchLastIMM.step
+
+    def counted(self, state, z):
+        calls.append(self)
+        return step(self, state, z)
+
+    monkeypatch.setattr(BatchLastIMM, "step", counted)
+    return calls
+
+
+def _plan(filt, belief0, z, **request):
+    """The batch-last kernel's plan for this run (a callable with ``.kernel``, or the reason)."""
+    return BATCH_LAST.plan(filt, belief0, z, kernels.Request(**request))
+
+
 @pytest.fixture(params=["broadcast", "entries"])
 def layout(request, monkeypatch):
     """Both layouts of the kernel's state: every entry in one broadcast operation (small batches,
@@ -96,32 +131,40 @@ SIZES = [(n, m, M) for n, m, M in itertools.product([1, 2, 3, 4], [1, 2, 3], [1,
 
 
 @pytest.mark.parametrize("n,m,M", SIZES)
-def test_every_field_equals_the_batch_first_steps(n, m, M, layout):
+def test_every_field_equals_the_batch_first_steps(n, m, M, layout, batch_last_steps):
     imm, belief0, z = _random_imm(n, m, M, (7,), steps=12, seed=10 * n + 3 * m + M)
     assert run_filter(imm, belief0, z, fast_path=True) is not None  # the fast path applies
-    assert_same_trajectory(run_filter(imm, belief0, z), run_filter(imm, belief0, z, fast_path=False))
+    assert len(batch_last_steps) == 12
+    got = run_filter(imm, belief0, z)  # the default takes it
+    assert len(batch_last_steps) == 24
+    assert_same_trajectory(got, run_filter(imm, belief0, z, fast_path=False))
+    assert len(batch_last_steps) == 24
 
 
 @pytest.mark.parametrize("n,m,M", [(1, 1, 2), (2, 1, 3), (3, 2, 2), (4, 2, 3)])
 @pytest.mark.parametrize("shared", [False, True])
-def test_gpb1_every_field_equals_the_batch_first_steps(n, m, M, shared, layout):
+def test_gpb1_every_field_equals_the_batch_first_steps(n, m, M, shared, layout, batch_last_steps):
     """GPB1 (every mode starts from the one collapsed posterior) takes the same kernel."""
     imm, belief0, z = _random_imm(n, m, M, (6,), steps=10, seed=5 * n + m + M, shared=shared)
     gpb1 = GPB1(imm.bank.filter, imm.transition.matrix())
-    assert not isinstance(gpb1.fast_steps(belief0, z), str)
+    run = _plan(gpb1, belief0, z)
+    assert callable(run) and run.kernel.collapse
     got = run_filter(gpb1, belief0, z, fast_path=True)
+    assert len(batch_last_steps) == 10 and all(k.collapse for k in batch_last_steps)
     assert_same_trajectory(got, run_filter(gpb1, belief0, z, fast_path=False))
     assert got.extras["mixed"].components.mean.shape == (10, 6, M, n)
 
 
 @pytest.mark.parametrize("batch", [(), (5,), (2, 3)])
 @pytest.mark.parametrize("shared", [False, True])
-def test_batch_shapes_and_structured_models(batch, shared, layout):
+def test_batch_shapes_and_structured_models(batch, shared, layout, batch_last_steps):
     imm, belief0, z = _random_imm(3, 2, 3, batch, steps=10, seed=len(batch) + 7 * shared, shared=shared)
-    assert_same_trajectory(run_filter(imm, belief0, z, fast_path=True), run_filter(imm, belief0, z, fast_path=False))
+    got = run_filter(imm, belief0, z, fast_path=True)
+    assert len(batch_last_steps) == 10
+    assert_same_trajectory(got, run_filter(imm, belief0, z, fast_path=False))
 
 
-def test_the_default_takes_it_and_record_sees_the_same_outputs():
+def test_the_default_takes_it_and_record_sees_the_same_outputs(batch_last_steps):
     imm, belief0, z = _random_imm(2, 1, 3, (6,), steps=9, seed=3)
     seen = []
 
@@ -130,17 +173,34 @@ def test_the_default_takes_it_and_record_sees_the_same_outputs():
         return out._replace(prior=None, extras=None)
 
     got = run_filter(imm, belief0, z, record=record)
+    assert len(batch_last_steps) == 9
     want = run_filter(imm, belief0, z, record=record, fast_path=False)
     assert_same_trajectory(got, want)
     assert got.prior is None and got.extras is None
     assert seen[0].belief.components.mean.stride()[-1] != 1  # the fast path ran: batch-last memory
 
 
-def test_record_estimate(layout):
+def test_the_plan_runs_the_whole_trajectory_as_contiguous_batch_first_tensors(layout, batch_last_steps):
+    """``BATCH_LAST.plan(...)()`` (what run_filter stacks into its Trajectory) gives the six fields,
+    batch-first (time, *B, ...) and contiguous (one copy, no permuted views of batch-last memory)."""
+    imm, belief0, z = _random_imm(3, 2, 3, (2, 3), steps=5, seed=12)
+    fields = _plan(imm, belief0, z)()
+    assert len(fields) == 6 and len(batch_last_steps) == 5
+    want = run_filter(imm, belief0, z, fast_path=False)
+    for got, ref in zip(pytree.tree_leaves(fields), pytree.tree_leaves(_fields(want)), strict=True):
+        assert got.shape == ref.shape and got.is_contiguous()
+    got = run_filter(imm, belief0, z)
+    assert len(batch_last_steps) == 10
+    assert_same_trajectory(got, want)
+    assert all(t.is_contiguous() for t in pytree.tree_leaves(_fields(got)))
+
+
+def test_record_estimate(layout, batch_last_steps):
     imm, belief0, z = _random_imm(3, 2, 3, (8,), steps=10, seed=4)
     want = run_filter(imm, belief0, z, fast_path=False)
     for fast in (True, False):
         got = run_filter(imm, belief0, z, record="estimate", fast_path=fast)
+        assert len(batch_last_steps) == 10 and all(k.estimate_only for k in batch_last_steps)
         assert isinstance(got.belief, GaussianBelief) and got.prior is None and got.extras is None
         torch.testing.assert_close(got.belief.mean, want.estimate().mean, rtol=1e-10, atol=1e-10)
         torch.testing.assert_close(got.belief.cov, want.estimate().cov, rtol=1e-10, atol=1e-10)
@@ -149,25 +209,27 @@ def test_record_estimate(layout):
         run_filter(imm, belief0, z, record="means")
 
 
-def test_float32():
+def test_float32(batch_last_steps):
     imm64, b64, z64 = _random_imm(2, 1, 3, (9,), steps=15, seed=5)
     imm32, b32, z32 = _random_imm(2, 1, 3, (9,), steps=15, seed=5, dtype=torch.float32)
     got = run_filter(imm32, b32, z32, fast_path=True)
+    assert len(batch_last_steps) == 15
     assert got.estimate().mean.dtype == torch.float32
     torch.testing.assert_close(got.estimate().mean.double(), run_filter(imm64, b64, z64).estimate().mean,
                                rtol=1e-4, atol=1e-4)
     assert_same_trajectory(got, run_filter(imm32, b32, z32, fast_path=False), tol=2e-4)
 
 
-def test_missing_steps_have_zero_log_likelihood_and_keep_the_prediction(layout):
+def test_missing_steps_have_zero_log_likelihood_and_keep_the_prediction(layout, batch_last_steps):
     imm, belief0, z = _random_imm(2, 2, 2, (4,), steps=6, seed=6)
     z[2] = float("nan")  # no datum at step 2
     got = run_filter(imm, belief0, z, fast_path=True)
+    assert len(batch_last_steps) == 6
     assert torch.equal(got.log_likelihood[2], torch.zeros(4, dtype=D))
     torch.testing.assert_close(got.belief.components.mean[2], got.prior.components.mean[2], rtol=0, atol=0)
 
 
-def test_singular_innovation_is_flagged_as_the_engine_does(caplog):
+def test_singular_innovation_is_flagged_as_the_engine_does(caplog, batch_last_steps):
     motion = LinearMotion(torch.eye(2, dtype=D), torch.zeros(2, 2, dtype=D))
     sensor = LinearMeasurement(torch.tensor([[1.0, 0.0]], dtype=D), torch.zeros(1, 1, dtype=D))
     imm = IMM(KalmanFilter(motion, sensor), torch.full((2, 2), 0.5, dtype=D))
@@ -177,13 +239,14 @@ def test_singular_innovation_is_flagged_as_the_engine_does(caplog):
     # steps' logsumexp absorbs the log 2 of two equal modes: probabilities (1, 1) there, (0.5, 0.5) here)
     with caplog.at_level(logging.WARNING, logger="torchmm"):
         got = run_filter(imm, belief0, z, fast_path=True)
+    assert len(batch_last_steps) == 2
     want = run_filter(imm, belief0, z, fast_path=False)
     assert bool(got.extras["modes"]["singular"].all())
     assert_same_trajectory(got, want)
     assert "not numerically positive definite" in caplog.text
 
 
-def test_gradients_equal_the_batch_first_steps(layout):
+def test_gradients_equal_the_batch_first_steps(layout, batch_last_steps):
     def loss(fast, F, q):
         kf = KalmanFilter(LinearMotion(F, q * torch.eye(2, dtype=D)), PositionMeasurement(2, [0], 1.0, dtype=D))
         imm = IMM(kf, torch.tensor([[0.9, 0.1], [0.2, 0.8]], dtype=D))
@@ -196,14 +259,16 @@ def test_gradients_equal_the_batch_first_steps(layout):
         F = torch.tensor([[[1.0, 1.0], [0.0, 1.0]], [[1.0, 0.0], [0.0, 0.5]]], dtype=D, requires_grad=True)
         q = torch.tensor(0.3, dtype=D, requires_grad=True)
         grads.append(torch.autograd.grad(loss(fast, F, q), (F, q)))
+        assert len(batch_last_steps) == 8  # (the fast run's steps only)
     for a, b in zip(*grads):  # the zero entries of F keep their gradients (no skipped terms under autograd)
         assert bool(a.ne(0).any())
         torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-12)
 
 
-def test_compiled_equals_eager(layout):
+def test_compiled_equals_eager(layout, batch_last_steps):
     imm, belief0, z = _random_imm(2, 1, 3, (6,), steps=8, seed=8)
     got = run_filter(imm, belief0, z, compile=True)
+    assert len(batch_last_steps) == 8 and batch_last_steps[0]._compiled
     assert_same_trajectory(got, run_filter(imm, belief0, z, fast_path=False), tol=1e-9)
     est = run_filter(imm, belief0, z, compile=True, record="estimate")
     torch.testing.assert_close(est.belief.mean, got.estimate().mean, rtol=1e-9, atol=1e-9)
@@ -218,7 +283,14 @@ def _list_bank(imm):
 
 
 class _MyIMM(IMM):
-    """A subclass may override any step: it runs the batch-first steps."""
+    """A subclass that overrides a step has left the kernel family: it runs the batch-first steps."""
+
+    def step(self, belief, z, **inputs):
+        return super().step(belief, z, **inputs)
+
+
+class _PlainIMM(IMM):
+    """A subclass that keeps the steps stays in the family: it takes the kernel."""
 
 
 class _Shifted(LinearMotion):
@@ -226,7 +298,7 @@ class _Shifted(LinearMotion):
         return super().forward(x, u=u) + 1.0
 
 
-def test_taken_only_where_it_applies():
+def test_taken_only_where_it_applies(batch_last_steps):
     imm, belief0, z = _random_imm(2, 2, 2, (3,), steps=4, seed=1)
     kf = imm.bank.filter
     full = kf.measurement.R.clone()
@@ -234,32 +306,42 @@ def test_taken_only_where_it_applies():
     cases = {
         "R is not diagonal": IMM(KalmanFilter(kf.motion, LinearMeasurement(kf.measurement.H, full)),
                                  imm.transition.matrix()),
-        "GPB2 has no fast path": GPB2(kf, imm.transition.matrix()),
-        "_MyIMM has no fast path": _MyIMM(kf, imm.transition.matrix()),
-        "not one filter with mode-bank models": IMM(_list_bank(imm), imm.transition.matrix()),
+        "GPB2 has not joined the linear-Gaussian kernels": GPB2(kf, imm.transition.matrix()),
+        "_MyIMM has not joined the linear-Gaussian kernels": _MyIMM(kf, imm.transition.matrix()),
+        "the 'static' rule": StaticMM(kf, 2),
+        "mode 1: the Joseph form": IMM(_list_bank(imm), imm.transition.matrix()),
         "the Joseph form": IMM(KalmanFilter(kf.motion, kf.measurement, joseph=True), imm.transition.matrix()),
-        "not a KalmanFilter": IMM(ExtendedKalmanFilter(kf.motion, kf.measurement), imm.transition.matrix()),
+        "ExtendedKalmanFilter is not linear-Gaussian": IMM(ExtendedKalmanFilter(kf.motion, kf.measurement),
+                                                           imm.transition.matrix()),
         "not a LinearMotion": IMM(KalmanFilter(_Shifted(kf.motion.F, kf.motion.Q, kf.motion.offset), kf.measurement),
                                   imm.transition.matrix()),
     }
     for reason, filt in cases.items():
-        with pytest.raises(ValueError, match=f"fast_path: no fast path for this run .*{reason}"):
+        assert reason in _plan(filt, belief0, z)  # the batch-last kernel's own reason
+        with pytest.raises(ValueError, match=f"fast_path: no fast path for this run .*batch_last: .*{reason}"):
             run_filter(filt, belief0, z, fast_path=True)
         with pytest.raises(ValueError, match="compile: compiles the fast path"):
             run_filter(filt, belief0, z, compile=True)
         assert_same_trajectory(run_filter(filt, belief0, z), run_filter(filt, belief0, z, fast_path=False))
-    with pytest.raises(ValueError, match="fast_path: no fast path .*controls, per-step models or update_first"):
+        assert not batch_last_steps, reason  # the batch-first steps ran
+    plain = _PlainIMM(kf, imm.transition.matrix())
+    assert_same_trajectory(run_filter(plain, belief0, z, fast_path=True), run_filter(imm, belief0, z, fast_path=False))
+    assert len(batch_last_steps) == 4
+    with pytest.raises(ValueError, match="fast_path: no fast path .*batch_last: update_first"):
         run_filter(imm, belief0, z, fast_path=True, update_first=True)
+    with pytest.raises(ValueError, match="fast_path: no fast path .*controls or per-step models"):
+        run_filter(imm, belief0, z, fast_path=True, motions=[kf.motion] * 4)
     with pytest.raises(ValueError, match="measurements' dtype"):
         run_filter(imm, belief0, z.float(), fast_path=True)
-    assert imm.fast_steps(belief0, z.to("meta")) == "the measurements' device differs from belief0's"
+    assert _plan(imm, belief0, z.to("meta")) == "the measurements' device differs from belief0's"
+    assert len(batch_last_steps) == 4
     with pytest.raises(ValueError, match="compile: compiles the fast path, and fast_path=False"):
         run_filter(imm, belief0, z, fast_path=False, compile=True)
     with pytest.raises(TypeError, match="fast_path: expected None, True or False"):
         run_filter(imm, belief0, z, fast_path="yes")
 
 
-def test_constant_velocity_bank_of_the_benchmarks():
+def test_constant_velocity_bank_of_the_benchmarks(batch_last_steps):
     """Paper 000's IMM (ConstantVelocity acceleration modes: shared F, per-mode offsets)."""
     motion = ConstantVelocity(1, q=1.0, acceleration=torch.tensor([[0.25], [0.0], [-0.25]], dtype=D), dtype=D)
     imm = IMM(KalmanFilter(motion, PositionMeasurement(2, [0], torch.tensor(100.0, dtype=D), dtype=D)),
@@ -267,7 +349,9 @@ def test_constant_velocity_bank_of_the_benchmarks():
     belief0 = imm.initial_belief(GaussianBelief(torch.tensor([10.0, 10.0], dtype=D),
                                                 torch.tensor([[100.0, 1.0], [1.0, 100.0]], dtype=D)).expand(11))
     z = 10 * torch.randn(40, 11, 1, generator=torch.Generator().manual_seed(0), dtype=D)
-    assert_same_trajectory(run_filter(imm, belief0, z, fast_path=True), run_filter(imm, belief0, z, fast_path=False))
+    got = run_filter(imm, belief0, z, fast_path=True)
+    assert len(batch_last_steps) == 40
+    assert_same_trajectory(got, run_filter(imm, belief0, z, fast_path=False))
 
 
 def test_process_default_of_compile():
@@ -289,7 +373,7 @@ def test_process_default_of_compile():
         run_filter(imm, belief0, z, compile="yes")
 
 
-def test_a_compiler_failure_runs_eagerly_with_a_warning(monkeypatch, caplog):
+def test_a_compiler_failure_runs_eagerly_with_a_warning(monkeypatch, caplog, batch_last_steps):
     """A machine without a working compiler (inductor needs a C++ compiler on the CPU): compile=True
     warns once and gives the eager numbers instead of aborting the run."""
     def broken(fn, **kwargs):
@@ -301,20 +385,24 @@ def test_a_compiler_failure_runs_eagerly_with_a_warning(monkeypatch, caplog):
     imm, belief0, z = _random_imm(2, 1, 2, (4,), steps=5, seed=9)
     with caplog.at_level(logging.WARNING, logger="torchmm"):
         got = run_filter(imm, belief0, z, compile=True)
+    assert len(batch_last_steps) == 5 and not batch_last_steps[0]._compiled  # the kernel ran, eagerly
     assert caplog.text.count("torch.compile failed for the IMM fast path (RuntimeError: no C++ compiler") == 1
     assert_same_trajectory(got, run_filter(imm, belief0, z))
 
 
-def test_the_layout_follows_the_batch_size():
+def test_the_layout_follows_the_batch_size(monkeypatch, batch_last_steps):
     """Broadcast operations over every entry while the mixing's temporaries stay small (dispatch
-    bound), one operation per entry beyond (memory bound); both give the same numbers."""
+    bound), one operation per entry beyond (memory bound); both give the same numbers. Runs beyond
+    the small linear kernel's size take the batch-last kernel by default."""
+    monkeypatch.setattr(linear.LinearKernel, "plan", _LINEAR_PLAN)  # (the real one: it declines by size)
     imm, belief0, z = _random_imm(2, 1, 3, (400,), steps=3, seed=11)
-    fast = imm.fast_steps(belief0, z)
-    assert fast.step.__self__.broadcast
+    assert _plan(imm, belief0, z).kernel.broadcast
     big, big0, zbig = _random_imm(2, 1, 3, (4000,), steps=3, seed=11)
-    fast = big.fast_steps(big0, zbig)
-    assert not fast.step.__self__.broadcast
-    assert_same_trajectory(run_filter(big, big0, zbig), run_filter(big, big0, zbig, fast_path=False))
+    assert not _plan(big, big0, zbig).kernel.broadcast
+    assert 4000 > linear.MAX_RUNS
+    got = run_filter(big, big0, zbig)
+    assert len(batch_last_steps) == 3 and not batch_last_steps[0].broadcast
+    assert_same_trajectory(got, run_filter(big, big0, zbig, fast_path=False))
 
 
 @pytest.fixture
@@ -391,8 +479,8 @@ def test_steps_are_traced_after_the_threshold_and_the_cache_is_bounded(trace_cac
         assert not batch_last._TRACED, calls
     run_filter(imm, belief0, z)  # 30 steps of this structure
     assert len(batch_last._TRACED) == 1
-    fast = imm.fast_steps(belief0, z)
-    assert fast.step.__self__._core != fast.step.__self__.core  # the next kernel starts traced
+    kernel = _plan(imm, belief0, z).kernel
+    assert kernel._core != kernel.core  # the next kernel starts traced
     monkeypatch.setattr(batch_last, "_TRACED_MAX", 2)
     after(0)
     for M in (1, 3, 4):
@@ -426,7 +514,7 @@ def test_a_constant_left_out_of_the_graphs_inputs_is_caught(trace_cache, monkeyp
     batch_last, _ = trace_cache
     monkeypatch.setattr(batch_last, "_CONSTANTS", tuple(c for c in batch_last._CONSTANTS if c != "zero"))
     imm, belief0, z = _random_imm(2, 1, 2, (3,), steps=3, seed=4)
-    kernel = imm.fast_steps(belief0, z).step.__self__
+    kernel = _plan(imm, belief0, z).kernel
     with pytest.raises(RuntimeError, match="holds tensors"):
         kernel.trace()
 
@@ -440,13 +528,15 @@ def test_the_compiled_step_is_one_graph(gpb, record, layout):
     imm, belief0, z = _random_imm(2, 1, 3, (6,), steps=3, seed=8)
     if gpb:
         imm = GPB1(imm.bank.filter, imm.transition.matrix())
-    fast = imm.fast_steps(belief0, z)
-    kernel = fast.step.__self__
-    if record == "estimate":
-        kernel.omit(frozenset(["prior", "innovation", "innovation_cov", "extras"]), estimate=True)
+    estimate = record == "estimate"  # (as run_filter asks for record="estimate")
+    kernel = _plan(imm, belief0, z, estimate=estimate,
+                   keep=frozenset({"belief", "log_likelihood"}) if estimate else None).kernel
+    assert kernel.estimate_only == estimate
+    assert kernel.omitted == (frozenset(["prior", "innovation", "innovation_cov", "extras"]) if estimate
+                              else frozenset())
     torch._dynamo.reset()
     whole = torch.compile(kernel.core, fullgraph=True, backend="eager", dynamic=False)
-    X, P, mu, _ = fast.state
+    X, P, mu, _ = kernel.initial_state(belief0)
     want = kernel.core(X, P, mu, *kernel.data[0])
     got = whole(X, P, mu, *kernel.data[0])  # raises at a graph break
     for a, b in zip(pytree.tree_leaves(got), pytree.tree_leaves(want)):

@@ -66,7 +66,6 @@ NOT_ENTRY_POINTS: dict[str, str] = {
     "torchmm.multimodel.structure.ModelSetPolicy": _INTERFACE,
     # records
     "torchmm.filters.base.StepOutput": _RECORD,
-    "torchmm.filters.base.FastSteps": _RECORD,
     "torchmm.run.Trajectory": _RECORD + " (run_filter makes it; smooth checks where it came from)",
     "torchmm.analysis.imm.ConclusionCheck": _RECORD,
     "torchmm.analysis.imm.InteractionDeviations": _RECORD,
@@ -336,5 +335,7 @@ def _run_filter():
 example("torchmm.run.run_filter")(_run_filter)
 
 # -- the other subpackages' examples (one module each; they register into EXAMPLES / NOT_ENTRY_POINTS)
-from tests.robustness import api_examples_more  # noqa: E402,F401
-from tests.robustness import api_examples_fusion  # noqa: E402,F401
+from tests.robustness import (
+    api_examples_fusion,  # noqa: E402,F401
+    api_examples_more,  # noqa: E402,F401
+)

@@ -167,6 +167,9 @@ example(_L + "loss.negative_log_likelihood")(
     lambda: call(learn.negative_log_likelihood, KalmanFilter(_cv(), _pos()), _prior(), _z(), controls=None,
                  reduction="sum", return_final=False))
 example(_L + "loss.truncated_segments")(lambda: call(learn.truncated_segments, 10, 4))
+example(_L + "objective.Objective")(
+    lambda: call(learn.Objective, KalmanFilter(_cv(), _pos()), _prior(), _z(), reduction="sum", update_first=False))
+
 example(_L + "trainer.Trainer")(
     lambda: call(learn.Trainer, _learnable_kf(), torch.optim.SGD([torch.nn.Parameter(torch.zeros(1))], 0.1),
                  window=4, clip_grad_norm=10.0, loss_fn=learn.negative_log_likelihood, track=lambda: {},

@@ -42,14 +42,6 @@ def mix_gaussians(mean: Tensor, cov: Tensor, weights: Tensor) -> tuple[Tensor, T
         -> mean ``(*B, J, n)``, cov ``(*B, J, n, n)``
     """
     n = mean.shape[-1]
-    if mean.dim() > 2 and mean.stride(-1) > mean.stride(-3) > 0 and cov.stride(-1) > cov.stride(-4) > 0:
-        # batch-last memory (the outputs of torchmm/multimodel/batch_last.py): elementwise passes run
-        # along the contiguous batch axis; bmm would first transpose every operand
-        w = weights.unsqueeze(-1)  # (*B, K, J, 1)
-        mixed_mean = (w * mean.unsqueeze(-2)).sum(-3)  # (*B, J, n)
-        diff = mean.unsqueeze(-2) - mixed_mean.unsqueeze(-3)  # (*B, K, J, n)
-        spread = cov.unsqueeze(-3) + diff.unsqueeze(-1) * diff.unsqueeze(-2)  # (*B, K, J, n, n)
-        return mixed_mean, (w.unsqueeze(-1) * spread).sum(-4)
     wt = weights.mT  # (*B, J, K)
     mixed_mean = wt @ mean
     mixed_cov = (wt @ cov.flatten(-2)).unflatten(-1, (n, n))

@@ -1,6 +1,6 @@
 """Single-model filters sharing one interface (predict / update / step -> StepOutput)."""
 
-from torchmm.filters.base import FastSteps, Filter, StepOutput
+from torchmm.filters.base import Filter, StepOutput
 from torchmm.filters.kalman import ExtendedKalmanFilter, KalmanFilter
 from torchmm.filters.smoother import rts_smoother, rts_step
 from torchmm.filters.unscented import (
@@ -14,7 +14,6 @@ from torchmm.filters.unscented import (
 __all__ = [
     "CubatureSigmaPoints",
     "ExtendedKalmanFilter",
-    "FastSteps",
     "Filter",
     "JulierSigmaPoints",
     "KalmanFilter",

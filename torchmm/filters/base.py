@@ -13,7 +13,7 @@ from torchmm.beliefs import Belief
 from torchmm.contract import BeliefArg, entry_point
 from torchmm.validation import broadcast_shape, check_filter_dtype
 
-__all__ = ["FastSteps", "Filter", "StepOutput"]
+__all__ = ["Filter", "StepOutput"]
 
 
 class StepOutput(NamedTuple):
@@ -39,19 +39,6 @@ class StepOutput(NamedTuple):
     innovation: Tensor | None = None
     innovation_cov: Tensor | None = None
     extras: dict | None = None
-
-
-class FastSteps(NamedTuple):
-    """A filter's kernel for a whole run (:meth:`Filter.fast_steps`): ``step(state, z_k) ->
-    (state, StepOutput)`` from ``state`` (any internal layout; the outputs are the public one).
-    ``omit(fields, estimate=False)``, if given, is told which :class:`StepOutput` fields the run's
-    ``record`` discards (after the first step; before it for ``record="estimate"``, with
-    ``estimate=True``: the belief may then be its point estimate); the kernel may return None for
-    them from then on."""
-
-    state: Any
-    step: Callable[[Any, Any], tuple[Any, StepOutput]]
-    omit: Callable[..., None] | None = None
 
 
 class Filter(nn.Module):
@@ -132,17 +119,6 @@ class Filter(nn.Module):
         prior = call_with(predictor, "predict", belief, u=u, generator=generator)
         updater = self if sensor is None else self.with_sensor(sensor)
         return call_with(updater, "update", prior, z, generator=generator)
-
-    def fast_steps(self, belief0: Any, measurements: Any, *, compile: bool = False) -> FastSteps | str:  # noqa: A002
-        """A faster kernel for a whole run of plain steps, or the reason there is none.
-
-        :func:`~torchmm.run_filter` asks for it when a run has no controls, per-step models or
-        ``update_first`` (``fast_path=`` there). A filter that has one returns :class:`FastSteps`:
-        its steps must return what :meth:`step` returns, to rounding (e.g. :class:`~torchmm.IMM`
-        over linear Kalman modes, ``torchmm/multimodel/batch_last.py``); with ``compile`` it runs
-        them under ``torch.compile``. The default has none.
-        """
-        return f"{type(self).__name__} has no fast path"
 
     def forward(self, belief: Any, z: Any, **inputs) -> StepOutput:
         return self.step(belief, z, **inputs)

@@ -16,13 +16,14 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
+import torchmm.kernels as kernels
 from torchmm.beliefs import GaussianBelief
+from torchmm.contract import Flag, Of, entry_point
 from torchmm.filters.base import Filter, StepOutput
 from torchmm.linalg import condition, flag_failed
 from torchmm.models.base import MeasurementModel, MotionModel, check_model_pair
 from torchmm.models.linear import LinearMeasurement, LinearMotion
 from torchmm.validation import broadcast_shape, check_measurement, gaussian_batch
-from torchmm.contract import Flag, Of, entry_point
 
 __all__ = ["ExtendedKalmanFilter", "KalmanFilter"]
 
@@ -99,6 +100,13 @@ class ExtendedKalmanFilter(Filter):
                           {"singular": singular, "failed": flag_failed(log_likelihood)})
 
 
+def _plain(model, base: type, methods: tuple) -> bool:
+    """``model`` is a ``base`` whose ``methods`` are ``base``'s own (a subclass that only builds the
+    matrices, like ConstantVelocity, computes ``F x + b``; one overriding them may not)."""
+    return isinstance(model, base) and all(getattr(type(model), name) is getattr(base, name) for name in methods)
+
+
+@kernels.joins("linear_gaussian")
 class KalmanFilter(ExtendedKalmanFilter):
     """Kalman filter for :class:`LinearMotion` / :class:`LinearMeasurement` models (and banks).
 
@@ -136,6 +144,23 @@ class KalmanFilter(ExtendedKalmanFilter):
 
     def _measurement_matrix(self, mean: Tensor) -> Tensor:
         return self.measurement.H
+
+    def linear_gaussian(self):
+        """This filter's matrices for the linear-Gaussian kernel (:mod:`torchmm.kernels.linear`), or the
+        reason it has none (a model that overrides its own ``forward``, ``noise_cov`` or ``jacobian``,
+        a control input, the Joseph form)."""
+        if not kernels.joined(self, "linear_gaussian"):
+            return f"{type(self).__name__} overrides the Kalman filter's steps"
+        if self.joseph:
+            return "the Joseph form"
+        motion, sensor = self.motion, self.measurement
+        if not _plain(motion, LinearMotion, ("forward", "noise_cov", "jacobian")) or motion.input_matrix is not None:
+            return "the motion is not a LinearMotion (its own forward and noise) without a control input"
+        if not _plain(sensor, LinearMeasurement, ("forward", "noise_cov", "jacobian")):
+            return "the measurement is not a LinearMeasurement (its own forward and noise)"
+        from torchmm.kernels.linear import LinearGaussian
+
+        return LinearGaussian(motion.F, motion.offset, motion.Q, sensor.H, sensor.R)
 
     @classmethod
     def stack(cls, filters: Sequence[KalmanFilter]) -> KalmanFilter:

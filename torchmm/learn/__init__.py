@@ -13,6 +13,7 @@
 """
 
 from torchmm.learn.loss import negative_log_likelihood, truncated_segments
+from torchmm.learn.objective import Objective
 from torchmm.learn.resampling import (
     SoftResamplingParticleFilter,
     soft_resample,
@@ -21,6 +22,7 @@ from torchmm.learn.resampling import (
 from torchmm.learn.trainer import NonFiniteLossError, TrainRecord, Trainer, load_checkpoint, save_checkpoint
 
 __all__ = [
+    "Objective",
     "NonFiniteLossError",
     "SoftResamplingParticleFilter",
     "TrainRecord",

@@ -22,8 +22,8 @@ from torch.nn.utils import parametrize
 
 from torchmm.beliefs import ModeBelief
 from torchmm.contract import BeliefArg, Choice, Data, Flag, Int, Of, entry_point
-from torchmm.filters.base import Filter, StepOutput
-from torchmm.run import run_filter
+from torchmm.filters.base import Filter
+from torchmm.run import Keep, run_filter
 from torchmm.validation import check_filter_dtype
 
 __all__ = ["negative_log_likelihood", "truncated_segments"]
@@ -31,12 +31,24 @@ __all__ = ["negative_log_likelihood", "truncated_segments"]
 _REDUCTIONS = ("mean", "sum", "none")
 
 
-def _keep_likelihood(out: StepOutput) -> StepOutput:
-    return StepOutput(None, None, out.log_likelihood)
+_keep_likelihood = Keep("log_likelihood")
+_keep_likelihood_and_detached_belief = Keep("log_likelihood", "belief", detach=True)
 
 
-def _keep_likelihood_and_detached_belief(out: StepOutput) -> StepOutput:
-    return StepOutput(out.belief.detach(), None, out.log_likelihood)
+def _load_kernels() -> None:
+    """A likelihood is evaluated many times (an optimiser's): load the compiled kernels once, so that
+    :func:`~torchmm.run_filter` takes them from the first evaluation (torchmm.kernels.linear)."""
+    if not _LOADED:
+        _LOADED.append(True)
+        try:
+            from torchmm.kernels.linear import load
+
+            load()
+        except ImportError:  # pragma: no cover - Numba is a dependency; without it the eager steps run
+            pass
+
+
+_LOADED: list = []
 
 
 @entry_point(filter=Of(Filter), belief0=BeliefArg(validate=True), measurements=Data(),
@@ -90,6 +102,7 @@ def negative_log_likelihood(
     if not isinstance(measurements, Tensor) or measurements.dim() < 2:
         raise ValueError("measurements: expected a time-major tensor (T, *B, m)")
     belief0 = as_start_belief(filter, belief0)
+    _load_kernels()
     record = _keep_likelihood_and_detached_belief if return_final else _keep_likelihood
     with parametrize.cached():  # parametrised covariances are computed once per pass
         traj = run_filter(filter, belief0, measurements, controls=controls, record=record,

@@ -1,5 +1,12 @@
 """Multiple-model estimation: transition matrices, filter banks, IMM / GPB1 / GPB2, multi-rate IMMs."""
 
+from torchmm.models.transition import (
+    ModeTransition,
+    alpha_transition,
+    transition_alpha,
+    validate_transition,
+)
+from torchmm.multimodel import batch_last as _batch_last  # noqa: F401  (registers its kernel)
 from torchmm.multimodel.bank import FilterBank, IndexedBank, ListBank, VectorizedBank, make_bank
 from torchmm.multimodel.embedding import Embedded, kinematic_index
 from torchmm.multimodel.imm import (
@@ -31,12 +38,6 @@ from torchmm.multimodel.transfer import (
     SourceUpdateIMM,
     TransferIMM,
     influence_value,
-)
-from torchmm.models.transition import (
-    ModeTransition,
-    alpha_transition,
-    transition_alpha,
-    validate_transition,
 )
 
 __all__ = [

@@ -18,8 +18,8 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor, nn
 
-from torchmm.contract import Indices, Int, Of, entry_point
 from torchmm.beliefs import Belief, stack
+from torchmm.contract import Indices, Int, Of, entry_point
 from torchmm.filters.base import Filter, StepOutput, call_with
 from torchmm.validation import broadcast_shape
 
@@ -103,6 +103,12 @@ class VectorizedBank(FilterBank):
     @property
     def uses_generator(self) -> bool:
         return bool(getattr(self.filter, "uses_generator", False))
+
+    def linear_gaussian(self):
+        """The filter's description for the linear-Gaussian kernel (its parameters' batch is ``()`` or
+        the modes'), or the reason there is none."""
+        describe = getattr(self.filter, "linear_gaussian", None)
+        return describe() if describe is not None else f"{type(self.filter).__name__} is not linear-Gaussian"
 
     def with_sensor(self, sensor) -> VectorizedBank:
         f = self.filter.with_sensor(sensor)
@@ -189,6 +195,24 @@ class ListBank(FilterBank):
                 raise ValueError(f"{name}: expected one model per mode ({self.num_modes}), got {len(models)}")
             return [getattr(f, replace)(m) for f, m in zip(self.filters, models)]
         return [getattr(f, replace)(models) for f in self.filters]
+
+    def linear_gaussian(self):
+        """The members' descriptions for the linear-Gaussian kernel, stacked over the modes
+        (differentiable: learnable members keep their gradients), or the reason there is none."""
+        models = []
+        for j, member in enumerate(self.filters):
+            describe = getattr(member, "linear_gaussian", None)
+            model = describe() if describe is not None else f"{type(member).__name__} is not linear-Gaussian"
+            if isinstance(model, str):
+                return f"mode {j}: {model}"
+            models.append(model)
+        events = (2, 1, 2, 2, 2)  # F, b, Q, H, R
+        fields = []
+        for parts, event in zip(zip(*(tuple(m)[:5] for m in models)), events):
+            if any(p.dim() != event for p in parts) or len({p.shape for p in parts}) > 1:
+                return "the modes' matrices are batched or differ in shape"
+            fields.append(torch.stack(parts))
+        return type(models[0])(*fields)
 
     def with_sensor(self, sensor) -> ListBank:
         return ListBank(self._members(sensor, "with_sensor", "sensor"))

@@ -51,12 +51,11 @@ from collections import OrderedDict
 import torch
 from torch import Tensor
 
+import torchmm.kernels as kernels
 from torchmm.beliefs import GaussianBelief, ModeBelief
 from torchmm.filters.base import StepOutput
-from torchmm.filters.kalman import KalmanFilter
-from torchmm.models.linear import LinearMeasurement, LinearMotion
 
-__all__ = ["BatchLastIMM", "why_not"]
+__all__ = ["BATCH_LAST", "BatchLastIMM", "BatchLastKernel", "why_not"]
 
 _LOG_2PI = math.log(2 * math.pi)
 #: the largest mixing temporary (bytes) for which the step takes every matrix entry in one broadcast
@@ -81,53 +80,38 @@ _COEFFICIENTS = ("F", "Q", "b", "H", "r")
 _CONSTANTS = ("matrix", "tiny_t", "lowest", "log_2pi", "zero", "R_front")
 
 
-def why_not(imm, belief0, measurements) -> str | None:
-    """Why the IMM ``imm`` (moment mixing, a vectorised bank: checked by the caller) cannot run on
-    this kernel (a short reason), or None if it can.
+def why_not(model, M: int, belief0, measurements) -> str | None:
+    """Why a run of the linear-Gaussian description ``model`` (:class:`~torchmm.kernels.linear.LinearGaussian`
+    of an IMM or GPB1 over ``M`` Kalman modes) cannot run on this kernel (a short reason), or None if it can.
 
     Shapes and types only, plus one look at ``R``'s off-diagonal values (the entry point's value
-    check, once per run). The reasons: a bank filter other than one :class:`~torchmm.KalmanFilter`
-    with :class:`~torchmm.LinearMotion` (no control input) and :class:`~torchmm.LinearMeasurement`
-    models whose parameter batch is ``()`` or ``(M,)``; the Joseph form; a non-diagonal ``R``; a
-    belief that is not the ``ModeBelief`` of Gaussians of ``imm.initial_belief``; measurements that
-    are not one tensor ``(T, *B, m)`` of the belief's dtype and device.
+    check, once per run). The reasons: model parameters batched beyond ``()`` or ``(M,)``; a
+    non-diagonal ``R``; a belief that is not the ``ModeBelief`` of Gaussians of ``initial_belief``;
+    measurements that are not one tensor ``(T, *B, m)`` of the belief's dtype and device.
     """
-    kf = imm.bank.filter
-    if type(kf) is not KalmanFilter:
-        return f"the bank's filter is a {type(kf).__name__}, not a KalmanFilter"
-    if not _plain(kf.motion, LinearMotion, ("forward", "noise_cov", "jacobian")) or kf.motion.input_matrix is not None:
-        return "the motion is not a LinearMotion (its own forward and noise) without a control input"
-    if not _plain(kf.measurement, LinearMeasurement, ("forward", "noise_cov", "jacobian")):
-        return "the measurement is not a LinearMeasurement (its own forward and noise)"
-    if kf.joseph:
-        return "the Joseph form"
-    M = imm.num_modes
-    if any(tuple(s) not in {(), (1,), (M,)} for s in (kf.motion.param_batch_shape, kf.measurement.param_batch_shape)):
+    m, n = model.H.shape[-2], model.F.shape[-1]
+    events = (2, 1, 2, 2, 2)
+    if any(tuple(t.shape[:t.dim() - e]) not in {(), (1,), (M,)} for t, e in zip(model[:5], events)):
         return "model parameters batched over more than the modes"
     if not isinstance(belief0, ModeBelief) or type(belief0.components) is not GaussianBelief:
         return "belief0 is not a ModeBelief of Gaussians"
     if not isinstance(measurements, Tensor) or not measurements.is_floating_point():
         return "the measurements are not one floating-point tensor"
     batch = belief0.mode_log_probs.shape[:-1]
-    m = kf.meas_dim
     if measurements.dim() != len(batch) + 2 or measurements.shape[1:] != (*batch, m):
         return "the measurements' batch differs from belief0's"
     if measurements.dtype != belief0.mode_log_probs.dtype:
         return "the measurements' dtype differs from belief0's"
     if measurements.device != belief0.mode_log_probs.device:
         return "the measurements' device differs from belief0's"
-    if belief0.components.mean.shape[-2:] != (M, kf.state_dim):
+    if belief0.components.mean.shape[-2:] != (M, n):
         return "belief0's components are not (*B, M, n)"
-    R = kf.measurement.R
+    if model.transition.dtype != belief0.mode_log_probs.dtype:
+        return "the transition matrix's dtype differs from belief0's"
+    R = model.R
     if m > 1 and bool((R - torch.diag_embed(R.diagonal(dim1=-2, dim2=-1))).abs().amax() > 0):  # once per run
         return "R is not diagonal"
     return None
-
-
-def _plain(model, base: type, methods: tuple) -> bool:
-    """``model`` is a ``base`` whose ``methods`` are ``base``'s own (a subclass that only builds the
-    matrices, like ConstantVelocity, computes ``F x + b``; one overriding them may not)."""
-    return isinstance(model, base) and all(getattr(type(model), name) is getattr(base, name) for name in methods)
 
 
 class _Coef:
@@ -198,31 +182,29 @@ class BatchLastIMM:
     """One IMM step in the batch-last layout (module docstring), and the conversions.
 
     Args:
-        imm: an IMM for which :func:`why_not` is None.
+        model: the filter's :class:`~torchmm.kernels.linear.LinearGaussian` description (rule ``"mix"``
+            or ``"collapse"``) for which :func:`why_not` is None.
+        M: the number of modes.
         batch_dims: the number of batch axes ``len(B)``.
         like: a tensor of the run's dtype and device.
-        normalize: :func:`~torchmm.multimodel.imm.safe_log_normalize` (passed in: imm imports this module).
-        collapse: the GPB1 interaction (every mode starts from the collapsed posterior) instead of
-            the IMM's mixing.
     """
 
-    def __init__(self, imm, batch_dims: int, like: Tensor, normalize, collapse: bool = False):
-        self.normalize, self.collapse = normalize, collapse
+    def __init__(self, model, M: int, batch_dims: int, like: Tensor):
+        from torchmm.multimodel.imm import safe_log_normalize
+
+        self.normalize, self.collapse = safe_log_normalize, model.rule == "collapse"
         self.broadcast = True  # the state's layout (prepare chooses it by the batch size)
-        kf = imm.bank.filter
-        M, d = imm.num_modes, batch_dims
-        self.M, self.n, self.m, self.d = M, kf.state_dim, kf.meas_dim, d
-        self.F = _coefficients(kf.motion.F, M, 2, d)
-        self.Q = _coefficients(kf.motion.Q, M, 2, d)
-        self.b = _coefficients(kf.motion.offset, M, 1, d)
-        self.H = _coefficients(kf.measurement.H, M, 2, d)
-        self.r = _coefficients(kf.measurement.R.diagonal(dim1=-2, dim2=-1), M, 1, d)
-        R = kf.measurement.R
+        d = batch_dims
+        self.M, self.n, self.m, self.d = M, model.F.shape[-1], model.H.shape[-2], d
+        self.F = _coefficients(model.F, M, 2, d)
+        self.Q = _coefficients(model.Q, M, 2, d)
+        self.b = _coefficients(model.b, M, 1, d)
+        self.H = _coefficients(model.H, M, 2, d)
+        self.r = _coefficients(model.R.diagonal(dim1=-2, dim2=-1), M, 1, d)
+        R = model.R
         self.R_front = (R if R.dim() == 3 else R.unsqueeze(0)).movedim(0, -1).reshape(
             self.m, self.m, -1, *([1] * d))  # (m, m, P, 1...), for the recorded S only
-        matrix = imm.transition.matrix()
-        if matrix.dtype != like.dtype:  # the engine's own error for a transition of another dtype
-            imm._matrix(like)
+        matrix = model.transition
         self.matrix = matrix.reshape(M, M, *([1] * d))  # (i, j, 1...)
         self.tiny = torch.finfo(like.dtype).tiny
         # constants as 0-dim tensors (an operation with a Python number costs more dispatch)
@@ -596,3 +578,103 @@ class BatchLastIMM:
         S = torch.stack([torch.stack([_linear([(H[j][c], HP[k][c]) for c in range(n)], _ZERO, xp[0])
                                       for j in range(m)]) for k in range(m)])
         return nu, S + self.R_front
+
+
+class BatchLastKernel:
+    """The registered kernel (:mod:`torchmm.kernels`) of the batch-last IMM and GPB1 step: a filter that
+    describes itself as linear-Gaussian with the ``"mix"`` or ``"collapse"`` rule, a run without
+    ``update_first``; any size (the small linear kernel takes small problems first), any device,
+    ``compile`` and ``record`` functions included."""
+
+    name = "batch_last"
+
+    def plan(self, filter, belief0, measurements, request: kernels.Request):
+        describe = getattr(filter, "linear_gaussian", None)
+        if describe is None or not kernels.joined(filter, "linear_gaussian"):
+            return f"{type(filter).__name__} has not joined the linear-Gaussian kernels"
+        if request.update_first:
+            return "update_first"
+        if request.repeated:
+            return "no prepared (repeated) evaluation"
+        model = describe()
+        if isinstance(model, str):
+            return model
+        if model.rule not in ("mix", "collapse"):
+            return f"the {model.rule!r} rule (IMM and GPB1 only)"
+        M = model.transition.shape[-1]
+        reason = why_not(model, M, belief0, measurements)
+        if reason is not None:
+            return reason
+        like = belief0.mode_log_probs
+        kernel = BatchLastIMM(model, M, like.dim() - 1, like)
+        if request.compile:
+            kernel.compile()
+        kernel.prepare(measurements)
+        if request.estimate:
+            kernel.omit(frozenset(StepOutput._fields) - {"belief", "log_likelihood"}, estimate=True)
+        elif request.keep is not None:
+            kernel.omit(frozenset(StepOutput._fields) - request.keep)
+
+        def run():
+            state = kernel.initial_state(belief0)
+            record, detach = request.record, request.detach_belief
+            steps = range(len(kernel.data))
+            if request.progress:
+                from tqdm.auto import tqdm
+
+                steps = tqdm(steps, desc=request.progress if isinstance(request.progress, str) else None,
+                             leave=False)
+            kept = []
+            for k in steps:
+                state, out = kernel.step(state, None)
+                if detach and out.belief is not None:
+                    out = out._replace(belief=out.belief.detach())
+                kept.append(out if record is None else record(out))
+                if k == 0 and record is not None and isinstance(kept[0], StepOutput):
+                    # what the record drops need not be built
+                    kernel.omit(kernel.omitted | frozenset(
+                        f for f in StepOutput._fields if getattr(kept[0], f) is None and getattr(out, f) is not None))
+            return _stack_batch_first(kept)
+
+        run.kernel = kernel  # (its BatchLastIMM, for tests and profiling)
+        return run
+
+
+def _stack_batch_first(outputs: list) -> tuple:
+    """The steps' outputs (batch-first views of batch-last tensors) stacked on a new time axis, as
+    contiguous batch-first tensors: each field is stacked in its own memory order (a contiguous copy)
+    and permuted to batch-first once, so the trajectory costs one copy and holds no permuted views."""
+    import torch.utils._pytree as pytree
+
+    flat = [pytree.tree_flatten(o) for o in outputs]
+    spec = flat[0][1]
+    if any(s != spec for _, s in flat[1:]):
+        raise ValueError("outputs: step outputs differ in structure between time steps")
+    leaves = []
+    for column in zip(*(f for f, _ in flat)):
+        if column[0] is None:
+            leaves.append(None)
+        else:
+            leaves.append(_stack_in_memory_order(list(column)).contiguous())
+    fields = pytree.tree_unflatten(leaves, spec)
+    return tuple(fields) if isinstance(fields, StepOutput) else (*fields,)
+
+
+def _stack_in_memory_order(tensors: list) -> Tensor:
+    """``torch.stack(tensors)`` of equally permuted views, copied in their memory order (the same values
+    and shape; a contiguous copy instead of a transposing gather), as a permuted view."""
+    first = tensors[0]
+    strides = first.stride()
+    if first.is_contiguous() or first.dim() < 2 or any(t.stride() != strides for t in tensors[1:]):
+        return torch.stack(tensors)
+    order = sorted(range(first.dim()), key=lambda i: -strides[i])
+    if not first.permute(order).is_contiguous():
+        return torch.stack(tensors)
+    stacked = torch.stack([t.permute(order) for t in tensors])
+    inverse = [0] * first.dim()
+    for position, axis in enumerate(order):
+        inverse[axis] = position + 1
+    return stacked.permute(0, *inverse)
+
+
+BATCH_LAST = kernels.register(BatchLastKernel())

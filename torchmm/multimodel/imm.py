@@ -25,13 +25,13 @@ import math
 import torch
 from torch import Tensor
 
-from torchmm.contract import BeliefArg, Finite, Gen, Int, Of, Stochastic, entry_point
+import torchmm.kernels as kernels
 from torchmm.beliefs import Belief, ModeBelief
-from torchmm.filters.base import FastSteps, Filter, StepOutput, check_state_dim
+from torchmm.contract import BeliefArg, Finite, Gen, Int, Of, Stochastic, entry_point
+from torchmm.filters.base import Filter, StepOutput, check_state_dim
 from torchmm.linalg import any_observed
 from torchmm.models.transition import as_transition
-from torchmm.multimodel.bank import FilterBank, VectorizedBank, make_bank
-from torchmm.multimodel.batch_last import BatchLastIMM, why_not
+from torchmm.multimodel.bank import FilterBank, make_bank
 from torchmm.validation import (
     broadcast_shape,
     check_filter_dtype,
@@ -70,6 +70,9 @@ class Interaction:
 
     #: True if the interaction draws random numbers
     uses_generator: bool = False
+    #: how the linear-Gaussian kernel computes it (:mod:`torchmm.kernels.linear`: ``"mix"``,
+    #: ``"collapse"``, ``"static"``), or None: no kernel
+    kernel_rule: str | None = None
 
     def __call__(self, belief: ModeBelief, transition, generator=None) -> ModeBelief:
         raise NotImplementedError
@@ -79,6 +82,8 @@ class MomentMixing(Interaction):
     """The IMM interaction (Blom and Bar-Shalom 1988): mode ``j`` starts from the mixture of the mode
     posteriors with weights ``mu_{i|j} = pi_ij mu_i / c_j`` (moment-matched for Gaussians, exact
     unions for particle sets, via the components' ``mix``)."""
+
+    kernel_rule = "mix"
 
     def __call__(self, belief, transition, generator=None):
         mode_probs = belief.mode_probs
@@ -92,6 +97,8 @@ class MomentMixing(Interaction):
 class Collapse(Interaction):
     """The GPB1 interaction: every mode starts from the single collapsed posterior (weights ``mu_i``)."""
 
+    kernel_rule = "collapse"
+
     def __call__(self, belief, transition, generator=None):
         mode_probs = belief.mode_probs
         cbar = _predicted(mode_probs, _matrix(transition, mode_probs))
@@ -102,6 +109,8 @@ class Collapse(Interaction):
 class NoInteraction(Interaction):
     """No interaction (the static multiple-model estimator): every mode continues from its own
     posterior and the mode probabilities are carried unchanged (identity transition)."""
+
+    kernel_rule = "static"
 
     def __call__(self, belief, transition, generator=None):
         return ModeBelief(belief.mode_log_probs, belief.components)
@@ -294,6 +303,22 @@ class MultipleModelFilter(Filter):
             extras=extras,
         )
 
+    def linear_gaussian(self):
+        """The description of this filter for the linear-Gaussian kernel (:mod:`torchmm.kernels.linear`):
+        the bank's matrices, the transition matrix and the interaction's rule; or the reason there is
+        none (a bank that is not linear-Gaussian, an interaction without a kernel rule, a class that
+        has not joined the kernel family or overrides its steps)."""
+        if not kernels.joined(self, "linear_gaussian"):
+            return f"{type(self).__name__} has not joined the linear-Gaussian kernels (or overrides their steps)"
+        rule = self.interaction.kernel_rule
+        if rule is None:
+            return f"the interaction {type(self.interaction).__name__} has no kernel rule"
+        describe = getattr(self.bank, "linear_gaussian", None)
+        model = describe() if describe is not None else f"the bank {type(self.bank).__name__} is not linear-Gaussian"
+        if isinstance(model, str):
+            return model
+        return model._replace(transition=self._matrix(model.F), rule=rule)
+
     def mix(self, belief: ModeBelief, generator=None) -> ModeBelief:
         """Interaction step: predicted mode log-probs and the mode-conditioned start beliefs."""
         mode_batch(belief)
@@ -321,26 +346,8 @@ class MultipleModelFilter(Filter):
         out.extras["mixed"] = mixed
         return out
 
-    def fast_steps(self, belief0, measurements, *, compile: bool = False) -> FastSteps | str:  # noqa: A002
-        """For :class:`IMM` (moment mixing) and :class:`GPB1` (collapse) over linear Kalman modes: the
-        batch-last kernel (``torchmm/multimodel/batch_last.py``, docs/performance.md) for
-        :func:`~torchmm.run_filter`; otherwise the reason it does not apply."""
-        kind = type(self)
-        if kind not in (IMM, GPB1) or type(self.interaction) is not kind.default_interaction:
-            return f"{kind.__name__} has no fast path (IMM and GPB1 themselves, with their own interactions, do)"
-        if type(self.bank) is not VectorizedBank:
-            return "the bank is not one filter with mode-bank models"
-        reason = why_not(self, belief0, measurements)
-        if reason is not None:
-            return reason
-        like = belief0.mode_log_probs
-        kernel = BatchLastIMM(self, like.dim() - 1, like, safe_log_normalize, collapse=kind is GPB1)
-        if compile:
-            kernel.compile()
-        kernel.prepare(measurements)
-        return FastSteps(kernel.initial_state(belief0), kernel.step, kernel.omit)
 
-
+@kernels.joins("linear_gaussian")
 class IMM(MultipleModelFilter):
     r"""Interacting multiple model estimator (Blom and Bar-Shalom 1988) over any filter bank.
 
@@ -375,6 +382,7 @@ class IMM(MultipleModelFilter):
     default_interaction = MomentMixing
 
 
+@kernels.joins("linear_gaussian")
 class StaticMM(MultipleModelFilter):
     r"""Static multiple-model estimator (Magill 1965): a bank of filters that never interact.
 
@@ -422,6 +430,7 @@ class StaticMM(MultipleModelFilter):
         return self.update(prior, z, sensor=sensor, generator=generator)
 
 
+@kernels.joins("linear_gaussian")
 class GPB1(MultipleModelFilter):
     """First-order generalised pseudo-Bayesian estimator.
 

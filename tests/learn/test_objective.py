@@ -1,0 +1,121 @@
+"""torchmm.learn.Objective: the likelihood checked once and evaluated many times (issue 31).
+
+Its values and gradients are those of :func:`torchmm.learn.negative_log_likelihood` (the eager steps),
+for the Kalman filter (Nile, exact diffuse start built from the parameters at every call) and an IMM;
+it falls back to the eager steps where no kernel applies; ``minimize`` reaches statsmodels' optimum
+of the Nile local level (an independent implementation).
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from torch.nn.utils import parametrize
+
+from experiments.realdata import load_nile, local_level, local_level_start
+from torchmm import IMM, ExtendedKalmanFilter, GaussianBelief, KalmanFilter
+from torchmm.learn import Objective, negative_log_likelihood
+from torchmm.models import ConstantVelocity, PositionMeasurement, learnable_noise
+
+
+def _eager_loss(filter, belief0, z, **kwargs):
+    """negative_log_likelihood on the eager steps (no kernel): the reference."""
+    import torchmm.kernels as kernels
+
+    saved = list(kernels._KERNELS)
+    kernels._KERNELS.clear()
+    try:
+        kernels._LOADED.append(True)  # (keeps _load from registering the linear kernel again)
+        return negative_log_likelihood(filter, belief0, z, **kwargs)
+    finally:
+        kernels._KERNELS.extend(saved)
+
+
+def _grads(loss, params):
+    return torch.autograd.grad(loss, params)
+
+
+def test_nile_value_and_gradient_equal_the_eager_likelihood():
+    y = load_nile()
+    kf, _ = local_level(1400.0, 15000.0, learnable=True)
+    params = list(kf.parameters())
+    objective = Objective(kf, lambda f: local_level_start(f, y[0]), y[1:])
+    loss = objective()
+    assert objective.kernel == "linear_gaussian"
+    with parametrize.cached():
+        reference = _eager_loss(kf, local_level_start(kf, y[0]), y[1:], reduction="sum")
+    torch.testing.assert_close(loss, reference, rtol=1e-12, atol=0)
+    for got, want in zip(_grads(loss, params), _grads(reference, params)):
+        torch.testing.assert_close(got, want, rtol=1e-10, atol=1e-14)
+    # a parameter change is seen by the next call
+    with torch.no_grad():
+        params[0].add_(0.3)
+    moved = objective()
+    with parametrize.cached():
+        torch.testing.assert_close(moved, _eager_loss(kf, local_level_start(kf, y[0]), y[1:], reduction="sum"),
+                                   rtol=1e-12, atol=0)
+    assert float(moved.detach()) != float(loss.detach())
+
+
+@pytest.mark.parametrize("reduction", ["sum", "mean", "none"])
+def test_imm_objective_equals_negative_log_likelihood(reduction):
+    g = torch.Generator().manual_seed(3)
+    motion = ConstantVelocity(1, q=1.0, acceleration=[[0.5], [0.0], [-0.5]], dtype=torch.float64)
+    sensor = PositionMeasurement(2, [0], 4.0, dtype=torch.float64)
+    learnable_noise(sensor, "R", "log_diagonal")
+    imm = IMM(KalmanFilter(motion, sensor), torch.tensor([[0.8, 0.1, 0.1], [0.1, 0.8, 0.1], [0.1, 0.1, 0.8]],
+                                                         dtype=torch.float64))
+    belief0 = GaussianBelief(torch.zeros(3, 2, dtype=torch.float64), 10 * torch.eye(2, dtype=torch.float64))
+    z = torch.randn(40, 3, 1, generator=g, dtype=torch.float64) * 3
+    z[5, 1] = float("nan")
+    objective = Objective(imm, belief0, z, reduction=reduction)
+    loss = objective()
+    assert objective.kernel == "linear_gaussian"
+    reference = _eager_loss(imm, belief0, z, reduction=reduction)
+    torch.testing.assert_close(loss, reference, rtol=1e-12, atol=1e-12)
+    params = list(imm.parameters())
+    for got, want in zip(_grads(loss.sum(), params), _grads(reference.sum(), params)):
+        torch.testing.assert_close(got, want, rtol=1e-10, atol=1e-14)
+
+
+def test_a_filter_without_a_kernel_runs_the_eager_steps():
+    cv = ConstantVelocity(1, q=0.5, dtype=torch.float64)
+    ekf = ExtendedKalmanFilter(cv, PositionMeasurement(2, [0], 1.0, dtype=torch.float64))
+    belief0 = GaussianBelief(torch.zeros(2, dtype=torch.float64), torch.eye(2, dtype=torch.float64))
+    z = torch.randn(20, 1, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    objective = Objective(ekf, belief0, z)
+    assert objective.why  # why no kernel
+    torch.testing.assert_close(objective(), negative_log_likelihood(ekf, belief0, z, reduction="sum"))
+    assert objective.kernel == "eager"
+
+
+def test_checks_once_with_named_errors():
+    kf, belief0 = local_level(1.0, 1.0, first=torch.zeros(1, dtype=torch.float64))
+    with pytest.raises(ValueError, match="^measurements"):
+        Objective(kf, belief0, torch.zeros(5, 2, dtype=torch.float64))  # m = 2 for a one-sensor filter
+    with pytest.raises(ValueError, match="^belief0"):
+        Objective(kf, GaussianBelief(torch.zeros(1, dtype=torch.float64), -torch.ones(1, 1, dtype=torch.float64)),
+                  torch.zeros(5, 1, dtype=torch.float64))
+    with pytest.raises(ValueError, match="^reduction"):
+        Objective(kf, belief0, torch.zeros(5, 1, dtype=torch.float64), reduction="max")
+    with pytest.raises(ValueError, match="^parameters"):
+        Objective(kf, belief0, torch.zeros(5, 1, dtype=torch.float64)).minimize()  # nothing learnable
+
+
+def test_minimize_reaches_statsmodels_optimum_of_the_nile():
+    sm = pytest.importorskip("statsmodels.api")
+    y = load_nile()
+    model = sm.tsa.UnobservedComponents(y[:, 0].numpy(), "llevel", use_exact_diffuse=True)
+    optimum = model.fit(method="bfgs", gtol=1e-10, maxiter=2000, disp=False)
+    r, q = (float(v) for v in optimum.params)
+    kf, _ = local_level(1000.0, 10000.0, learnable=True)
+    objective = Objective(kf, lambda f: local_level_start(f, y[0]), y[1:])
+    result = objective.minimize(options={"gtol": 1e-10, "ftol": 1e-15})
+    assert result.success, result.message
+    with parametrize.cached():
+        learned_q, learned_r = float(kf.motion.Q.reshape(())), float(kf.measurement.R.reshape(()))
+    assert learned_q == pytest.approx(q, rel=1e-4) and learned_r == pytest.approx(r, rel=1e-4)
+    # the maximised log-likelihood is statsmodels' (which keeps the diffuse observation's constant)
+    import math
+
+    assert -float(objective()) - 0.5 * math.log(2 * math.pi) == pytest.approx(optimum.llf, abs=1e-6)

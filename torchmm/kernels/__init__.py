@@ -1,0 +1,146 @@
+r"""Kernels: the one seam through which a filter gets speed (docs/architecture.md, "Kernels").
+
+A *kernel* runs a whole filter run - every step - in a form faster than the filter's eager steps (one
+compiled loop, a fused layout), and returns what the steps return, to rounding. :func:`~torchmm.run_filter`
+(and so :func:`~torchmm.learn.negative_log_likelihood`, the :class:`~torchmm.learn.Trainer` and the
+studies) asks :func:`plan` for one before it steps; where none applies the eager steps run, which are
+correct everywhere.
+
+Two halves meet here, and neither names the other's classes:
+
+* a **filter joins** a kernel family with the class decorator :func:`joins` and describes itself
+  through a capability method (the linear-Gaussian family: ``filter.linear_gaussian()``, the model
+  matrices and the interaction rule, or the reason it has none). A subclass that overrides ``step``,
+  ``predict`` or ``update`` has left the family (its steps are no longer the ones the kernel computes)
+  until it joins again;
+* a **kernel registers** with :func:`register`: ``kernel.plan(filter, belief0, measurements, request)``
+  returns a callable that runs the whole trajectory, or a string saying why not.
+
+The engine (``run.py``, ``multimodel/``) tests no concrete filter class to find speed
+(tests/test_layering.py checks it).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+__all__ = ["Request", "joined", "joins", "plan", "plan_smooth", "register", "registered"]
+
+_KERNELS: list = []
+#: family -> {class: {method name: function}}: the steps each joining class computes
+_JOINED: dict[str, dict[type, dict[str, Any]]] = {}
+_METHODS = ("step", "predict", "update")
+
+
+def joins(family: str) -> Callable[[type], type]:
+    """Class decorator: ``cls`` (and its subclasses that keep its ``step``, ``predict`` and ``update``)
+    joins the kernel ``family`` (e.g. ``"linear_gaussian"``)."""
+
+    def decorate(cls: type) -> type:
+        _JOINED.setdefault(family, {})[cls] = {name: getattr(cls, name, None) for name in _METHODS}
+        return cls
+
+    return decorate
+
+
+def joined(filter: Any, family: str) -> bool:
+    """Whether ``filter`` belongs to the kernel ``family``: an instance of a joining class whose steps
+    are that class's own."""
+    kind = type(filter)
+    for cls, methods in _JOINED.get(family, {}).items():
+        if issubclass(kind, cls) and all(getattr(kind, name, None) is fn for name, fn in methods.items()):
+            return True
+    return False
+
+
+@dataclass(frozen=True)
+class Request:
+    """What a run asks of a kernel.
+
+    Attributes:
+        update_first: step 0 is an update only (:func:`~torchmm.run_filter`).
+        keep: the :class:`~torchmm.filters.StepOutput` fields kept (None: all of them).
+        estimate: keep the point estimate (``belief.estimate()``) instead of the belief.
+        detach_belief: the kept belief is detached from the autograd graph.
+        grad: an autograd graph is recorded (grad mode on and a parameter or input requires grad).
+        compile: compile the kernel's step (``torch.compile``), where it has one.
+        compile_required: the caller asked for the compiled step (``compile=True``): a kernel without
+            one declines.
+        forced: ``fast_path=True``: the caller wants a kernel even where it would not pay.
+        progress: a progress bar over the steps (True or its description), for kernels that step.
+        record: the caller's record function, applied to every step's output (None: ``keep`` says
+            what is kept); a whole-run kernel that cannot apply it declines.
+        repeated: the run is one of many evaluations of a likelihood (an optimiser's:
+            :class:`~torchmm.learn.Objective`): the plan is a *prepared* evaluation,
+            ``prepared(belief0, update_first) -> log_likelihood (T, *B)`` or None (the steps must run),
+            checked once; one-off costs (loading Numba) pay back. Kernels without one decline.
+    """
+
+    update_first: bool = False
+    keep: frozenset | None = None
+    estimate: bool = False
+    detach_belief: bool = False
+    grad: bool = False
+    compile: bool = False
+    compile_required: bool = False
+    forced: bool = False
+    repeated: bool = False
+    progress: bool | str = False
+    record: Callable | None = None
+
+
+def register(kernel: Any, *, first: bool = False) -> Any:
+    """Add ``kernel`` (an object with ``name`` and ``plan(filter, belief0, measurements, request)``) to
+    the kernels :func:`plan` tries, after the others (``first=True``: before them)."""
+    if first:
+        _KERNELS.insert(0, kernel)
+    else:
+        _KERNELS.append(kernel)
+    return kernel
+
+
+def registered() -> list:
+    """The registered kernels, in the order :func:`plan` tries them."""
+    _load()
+    return list(_KERNELS)
+
+
+def plan(filter: Any, belief0: Any, measurements: Any, request: Request) -> tuple[Callable | None, str]:
+    """The first registered kernel's plan for this run: ``(run, "")`` where ``run()`` returns the
+    trajectory's fields ``(belief, prior, log_likelihood, innovation, innovation_cov, extras)``
+    (stacked on a leading time axis, None where not kept), or ``(None, reasons)``."""
+    _load()
+    reasons = []
+    for kernel in _KERNELS:
+        out = kernel.plan(filter, belief0, measurements, request)
+        if not isinstance(out, str):
+            return out, ""
+        reasons.append(f"{kernel.name}: {out}")
+    return None, "; ".join(reasons) or "no kernel registered"
+
+
+def plan_smooth(filter: Any, trajectory: Any, method: str | None) -> tuple[Callable | None, str]:
+    """The first registered kernel's plan for smoothing ``trajectory`` (the run of ``filter``) with
+    ``method`` (None: the filter's default smoother): ``(run, "")`` where ``run()`` returns the smoothed
+    beliefs (batch ``(T, *B)``) or None (declined at run time), or ``(None, reasons)``."""
+    _load()
+    reasons = []
+    for kernel in _KERNELS:
+        planner = getattr(kernel, "plan_smooth", None)
+        out = f"{kernel.name}: no smoother" if planner is None else planner(filter, trajectory, method)
+        if not isinstance(out, str):
+            return out, ""
+        reasons.append(out)
+    return None, "; ".join(reasons) or "no kernel registered"
+
+
+def _load() -> None:
+    """Import the kernel modules that register themselves (once; they import torchmm's filters)."""
+    if not _LOADED:
+        _LOADED.append(True)
+        from torchmm.kernels import linear  # noqa: F401
+
+
+_LOADED: list = []

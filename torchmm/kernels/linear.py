@@ -1,0 +1,427 @@
+r"""The small linear-Gaussian kernel: a whole run of a Kalman filter, an IMM, a GPB1 or a static bank
+over linear-Gaussian modes in one compiled loop (Numba), with autograd through a hand-written reverse
+pass.
+
+**What it computes.** The eager steps' equations, operation by operation
+(torchmm/kernels/linear_loops.py): the interaction of torchmm/multimodel/imm.py, the prediction
+``F x + b``, ``F P F^T + Q``, the update of :func:`torchmm.linalg.condition` (missing components
+skipped, the posterior covariance symmetrised, the log-likelihood over the observed components) and
+the mode update of :func:`~torchmm.multimodel.imm.mode_posterior`. Results equal the eager steps' to
+rounding (tests/kernels/test_linear_kernel.py: 1e-12 relative in float64).
+
+**The gradient** is the adjoint of that loop (the reverse pass, stored forward values): one backward
+pass over the run whatever the number of parameters, about the cost of the forward. It covers the
+model matrices (``F``, ``b``, ``Q``, ``H``, ``R``), the transition matrix and the start belief, and the
+run's outputs ``log_likelihood`` and the filtered beliefs. The adjoints of the symmetric matrices
+``Q``, ``R`` and the start covariance are symmetric (the part of a gradient that any symmetric
+parametrisation sees).
+
+**When it runs** (:func:`~torchmm.kernels.plan` asks, :func:`~torchmm.run_filter` uses it; no option
+to set): the filter joined the ``"linear_gaussian"`` family (:class:`~torchmm.KalmanFilter`,
+:class:`~torchmm.IMM`, :class:`~torchmm.GPB1`, :class:`~torchmm.StaticMM` over Kalman modes) and
+describes itself through ``linear_gaussian()``; CPU tensors of one floating dtype; measurements one
+tensor ``(T, *B, m)``; no controls or per-step models; a small problem (at most :data:`MAX_RUNS` runs:
+the loop is serial, and beyond that the batched tensor kernels win); and Numba importable and worth
+loading (already loaded, a long run, a repeated evaluation as in a likelihood, or ``fast_path=True``).
+With autograd the run keeps only its log-likelihood and filtered beliefs (their gradients are the
+reverse pass's); a run that asks for more runs eagerly. A run with a regularised innovation covariance
+or a non-finite result is run again eagerly, which flags it as it always does (docs/robustness.md).
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from typing import Any, NamedTuple
+
+import numpy as np
+import torch
+from torch import Tensor
+
+import torchmm.kernels as kernels
+from torchmm.runtime import host_reads_ok
+from torchmm.beliefs import GaussianBelief, ModeBelief
+
+__all__ = ["MAX_RUNS", "LinearGaussian", "load"]
+
+#: the most runs (batch elements) the kernel takes: its loop is serial over runs (measured crossover
+#: with the batched tensor kernels, docs/performance.md)
+MAX_RUNS = 64
+#: an eager run longer than this many steps loads Numba for the kernel (the import costs ~0.2 s,
+#: about 2,000 eager steps of a Kalman filter)
+LONG_RUN = 4000
+_RULES = {"kalman": 2, "static": 2, "mix": 0, "collapse": 1}
+
+
+class LinearGaussian(NamedTuple):
+    """A filter's description of itself for the linear-Gaussian kernel (``filter.linear_gaussian()``).
+
+    Shapes (``*P``: the model parameters' batch, ``()`` or the modes ``(M,)``):
+        F ``(*P, n, n)``, b ``(*P, n)``, Q ``(*P, n, n)``, H ``(*P, m, n)``, R ``(*P, m, m)``;
+        transition ``(M, M)`` (None for a single filter); rule: ``"kalman"`` (one filter),
+        ``"mix"`` (IMM), ``"collapse"`` (GPB1) or ``"static"`` (no interaction).
+    """
+
+    F: Tensor
+    b: Tensor
+    Q: Tensor
+    H: Tensor
+    R: Tensor
+    transition: Tensor | None = None
+    rule: str = "kalman"
+
+
+def load():
+    """The compiled loops (imports Numba; the first call on a machine compiles them, ~10 s, cached)."""
+    from torchmm.kernels import linear_loops
+
+    return linear_loops
+
+
+def _numba_available() -> bool:
+    if "numba" in sys.modules:
+        return True
+    try:
+        import importlib.util
+
+        return importlib.util.find_spec("numba") is not None
+    except (ImportError, ValueError):  # pragma: no cover
+        return False
+
+
+def _np(t: Tensor):
+    """A NumPy view of a CPU tensor (a contiguous copy where it is not contiguous)."""
+    t = t.detach()
+    return (t if t.is_contiguous() else t.contiguous()).numpy()
+
+
+def _unbroadcast(g, shape: tuple):
+    """The adjoint of ``np.broadcast_to(a, g.shape)`` for ``a`` of ``shape``: ``g`` summed over the
+    broadcast axes."""
+    lead = g.ndim - len(shape)
+    if lead:
+        g = g.sum(axis=tuple(range(lead)))
+    axes = tuple(i for i, (have, want) in enumerate(zip(g.shape, shape)) if want == 1 and have != 1)
+    return g.sum(axis=axes, keepdims=True) if axes else g
+
+
+class _Run(torch.autograd.Function):
+    """The whole run: inputs the models and the start belief as given (broadcast and reshaped to the
+    kernel's layout in NumPy, so that autograd records one node); outputs ``ll``, ``logmu``, ``x``,
+    ``P`` (differentiable), then the count of failed or regularised updates and, with ``full``, the
+    intermediates ``xp, Pp, logc, xm, Pm, innov, S, mode_ll, flags`` (not differentiable).
+
+    ``layout``: for each of the nine inputs ``F, b, Q, H, R, Pi, logmu0, x0, P0``, the shape it is
+    broadcast to and the kernel's shape of that (``(M, n, n)``, ..., ``(B, M, n, n)``). The buffers are
+    NumPy arrays (cheaper to make than tensors); the outputs are tensors over them."""
+
+    @staticmethod
+    def forward(ctx, z, rule, update_first, full, layout, *tensors):
+        loops = load()
+        zz = _np(z)
+        inputs = [zz]
+        for t, (wide, target) in zip(tensors, layout):
+            a = _np(t)
+            if a.shape != target:
+                a = np.ascontiguousarray(np.broadcast_to(a, wide)).reshape(target)
+            inputs.append(a)
+        T, B, m = zz.shape
+        M, n = inputs[1].shape[0], inputs[1].shape[1]
+        dt = zz.dtype
+        empty = np.empty
+        outs = [empty((T, B), dt), empty((T, B, M), dt), empty((T, B, M, n), dt), empty((T, B, M, n, n), dt),
+                empty((T, B, M, n), dt), empty((T, B, M, n, n), dt), empty((T, B, M), dt), empty((T, B, M, n), dt),
+                empty((T, B, M, n, n), dt), empty((T, B, M, m), dt), empty((T, B, M, m, m), dt),
+                empty((T, B, M), dt), empty((T, B, M), np.int8)]
+        finfo = np.finfo(dt)
+        bad, regularised = loops.forward(*inputs[:7], rule, update_first, *inputs[7:], float(finfo.eps),
+                                         float(finfo.tiny), *outs)
+        ctx.arrays = (inputs, outs[1:9])
+        ctx.rule, ctx.update_first, ctx.layout = rule, update_first, layout
+        ctx.raw = [(t.shape, t.requires_grad) for t in tensors]
+        result = [torch.from_numpy(o) for o in outs[:4]]
+        trouble = torch.tensor(bad + regularised)
+        extra = [torch.from_numpy(o) for o in outs[4:]] if full else []
+        ctx.mark_non_differentiable(trouble, *extra)
+        return (*result, trouble, *extra)
+
+    @staticmethod
+    def backward(ctx, gll, glogmu, gx, gP, *unused):
+        loops = load()
+        inputs, saved = ctx.arrays
+        z = inputs[0]
+        T, B = z.shape[0], z.shape[1]
+        grads = [np.zeros(a.shape, a.dtype) for a in inputs[1:]]
+        adjoints = []
+        for g, ref in zip((gll, glogmu, gx, gP), ((T, B), *(s.shape for s in saved[:3]))):
+            adjoints.append(np.zeros(ref, z.dtype) if g is None else _np(g))
+        loops.backward(*inputs[:7], ctx.rule, ctx.update_first, *inputs[7:], *saved, *adjoints, *grads)
+        out = []
+        for g, (shape, needed), (wide, target) in zip(grads, ctx.raw, ctx.layout):
+            if not needed:
+                out.append(None)
+                continue
+            if tuple(shape) != target:
+                g = _unbroadcast(g.reshape(wide), tuple(shape))
+            out.append(torch.from_numpy(np.ascontiguousarray(g)).reshape(shape))
+        return (None, None, None, None, None, *out)
+
+
+def _layout(M: int, n: int, m: int, batch: tuple, kalman: bool) -> tuple:
+    """``_Run``'s layout (see there) of a run of ``M`` modes over the batch ``batch``."""
+    runs = math.prod(batch)
+    models = (((M, n, n),) * 2, ((M, n),) * 2, ((M, n, n),) * 2, ((M, m, n),) * 2, ((M, m, m),) * 2,
+              ((M, M),) * 2)
+    if kalman:
+        start = (((runs, 1), (runs, 1)), ((*batch, n), (runs, 1, n)), ((*batch, n, n), (runs, 1, n, n)))
+    else:
+        start = (((*batch, M), (runs, M)), ((*batch, M, n), (runs, M, n)), ((*batch, M, n, n), (runs, M, n, n)))
+    return (*models, *start)
+
+
+def _broadcasts(shape: tuple, wide: tuple) -> bool:
+    """Whether a tensor of ``shape`` broadcasts to ``wide`` (NumPy's rules)."""
+    if len(shape) > len(wide):
+        return False
+    return all(have in (1, want) for have, want in zip(reversed(shape), reversed(wide)))
+
+
+def _models(model: LinearGaussian) -> tuple:
+    """The model tensors as the filter gave them (``_Run`` broadcasts them), and the transition matrix
+    (``[[1]]`` for one filter)."""
+    Pi = model.transition if model.transition is not None else torch.ones(1, 1, dtype=model.F.dtype)
+    return model.F, model.b, model.Q, model.H, model.R, Pi
+
+
+class Prepared:
+    """A run planned once and evaluated many times (:class:`~torchmm.learn.Objective`): the data, shapes and
+    kernel choice fixed, the models read from the filter at every call (their current parameters).
+
+    ``prepared(belief0)`` returns the log-likelihoods ``(T, *B)`` (differentiable through the reverse
+    pass), or None where the run needs the eager steps (a regularised update, a non-finite result).
+    """
+
+    def __init__(self, filter: Any, belief0: Any, z: Tensor, batch: tuple, M: int, n: int, m: int, rule: str):
+        self.filter, self.z, self.batch, self.M, self.n, self.m = filter, z, batch, M, n, m
+        self.rule = _RULES[rule]
+        self.kalman = rule == "kalman"
+        self.runs = math.prod(batch)
+        self.layout = _layout(M, n, m, tuple(batch), self.kalman)
+        self.zeros = z.new_zeros(self.runs, 1)
+        self.shape = (belief0.mean.shape, belief0.cov.shape) if self.kalman else (
+            belief0.mode_log_probs.shape, belief0.components.mean.shape, belief0.components.cov.shape)
+
+    def __call__(self, belief0: Any, update_first: bool = False) -> Tensor | None:
+        model = self.filter.linear_gaussian()
+        if isinstance(model, str):
+            raise RuntimeError(f"filter: no longer linear-Gaussian since the objective was built ({model})")
+        if self.kalman:
+            if (belief0.mean.shape, belief0.cov.shape) != self.shape:
+                raise ValueError(f"belief0: shapes {(tuple(belief0.mean.shape), tuple(belief0.cov.shape))} differ "
+                                 f"from the objective's {tuple(tuple(s) for s in self.shape)}")
+            start = (self.zeros, belief0.mean, belief0.cov)
+        else:
+            comps = belief0.components
+            if (belief0.mode_log_probs.shape, comps.mean.shape, comps.cov.shape) != self.shape:
+                raise ValueError("belief0: shapes differ from the objective's")
+            start = (belief0.mode_log_probs, comps.mean, comps.cov)
+        outs = _Run.apply(self.z, self.rule, bool(update_first), False, self.layout, *_models(model), *start)
+        if int(outs[4]):
+            return None
+        return outs[0].reshape(self.z.shape[0], *self.batch)
+
+
+class LinearKernel:
+    """The registered kernel (see the module docstring)."""
+
+    name = "linear_gaussian"
+
+    def plan(self, filter: Any, belief0: Any, measurements: Any, request: kernels.Request):
+        describe = getattr(filter, "linear_gaussian", None)
+        if describe is None:
+            return f"{type(filter).__name__} does not describe itself as linear-Gaussian"
+        if not kernels.joined(filter, self.name):
+            return f"{type(filter).__name__} has not joined the linear-Gaussian kernels (or overrides their steps)"
+        if not isinstance(measurements, Tensor) or not measurements.is_floating_point():
+            return "the measurements are not one floating-point tensor"
+        if request.record is not None:
+            return "a record function (the kernel keeps fields: record=Keep(...) or 'estimate')"
+        if request.compile_required:
+            return "compile=True (the kernel is compiled by Numba, not torch.compile)"
+        model = describe()
+        if isinstance(model, str):
+            return model
+        if model.rule == "kalman":
+            if type(belief0) is not GaussianBelief:
+                return "belief0 is not a GaussianBelief"
+            batch = belief0.batch_shape
+            M = 1
+            x0, P0 = belief0.mean, belief0.cov
+            logmu0 = torch.zeros((math.prod(batch), 1), dtype=belief0.dtype)
+        else:
+            if type(belief0) is not ModeBelief or type(belief0.components) is not GaussianBelief:
+                return "belief0 is not a ModeBelief of Gaussians"
+            logmu0 = belief0.mode_log_probs
+            batch = logmu0.shape[:-1]
+            M = logmu0.shape[-1]
+            x0, P0 = belief0.components.mean, belief0.components.cov
+        dtype = logmu0.dtype
+        n, m = x0.shape[-1], model.H.shape[-2]
+        tensors = (measurements, x0, P0, logmu0, *(t for t in model if isinstance(t, Tensor)))
+        if any(t.device.type != "cpu" for t in tensors) or not host_reads_ok(tensors[0]):
+            return "not on the CPU (or host reads are off: torchmm.runtime.no_host_sync)"
+        if dtype not in (torch.float32, torch.float64) or any(t.dtype != dtype for t in tensors):
+            return "not one float32 or float64 dtype"
+        runs = math.prod(batch)
+        if runs > MAX_RUNS and not request.forced:
+            return f"{runs} runs: more than the serial loop's {MAX_RUNS} (the batched kernels win)"
+        steps = measurements.shape[0]
+        if measurements.dim() != len(batch) + 2 or measurements.shape[-1] != m:
+            return "the measurements are not (T, *B, m) of the belief's batch"
+        if measurements.requires_grad and torch.is_grad_enabled():
+            return "the measurements require grad"
+        grad = torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
+        if grad and (request.keep is None or request.keep - {"belief", "log_likelihood"}):
+            return "with autograd the kernel keeps only the log-likelihood and the filtered beliefs"
+        if not (request.forced or request.repeated or "numba" in sys.modules or steps * runs > LONG_RUN):
+            return "a short one-off run (loading Numba would cost more than it saves)"
+        if not _numba_available():
+            return "Numba is not installed"
+        try:
+            z = measurements.expand(steps, *batch, m).reshape(steps, runs, m)
+        except RuntimeError:
+            return "the measurements' batch does not broadcast to the belief's"
+        rule = _RULES[model.rule]
+        if model.rule != "kalman" and model.transition is not None and model.transition.shape != (M, M):
+            return "the transition matrix does not match the modes"
+        kalman = model.rule == "kalman"
+        layout = _layout(M, n, m, tuple(batch), kalman)
+        models = _models(model)
+        if not all(_broadcasts(t.shape, wide) for t, (wide, _) in zip((*models, logmu0, x0, P0), layout)):
+            return "the models' parameters are batched over more than the modes (or the start belief's shapes)"
+        start = (logmu0, x0, P0)
+        mixed = model.rule in ("mix", "collapse")
+        if request.repeated:
+            return Prepared(filter, belief0, z, tuple(batch), M, n, m, model.rule)
+
+        def run():
+            outs = _Run.apply(z, rule, bool(request.update_first), True, layout, *models, *start)
+            if int(outs[4]):
+                return None  # regularised or failed somewhere: the eager steps flag it as they do
+            return _fields((*outs[:4], *outs[5:]), batch, steps, M, kalman, mixed, request)
+
+        return run
+
+
+    def plan_smooth(self, filter: Any, trajectory: Any, method: str | None):
+        """Kim's smoother of an IMM or GPB1 run (``method="kim"``), or the RTS smoother of a Kalman
+        filter run, without autograd (with it, the eager smoother runs: its gradient is autograd's)."""
+        describe = getattr(filter, "linear_gaussian", None)
+        if describe is None or not kernels.joined(filter, self.name):
+            return f"{type(filter).__name__} has not joined the linear-Gaussian kernels"
+        model = describe()
+        if isinstance(model, str):
+            return model
+        if model.rule == "kalman":
+            if method is not None or trajectory.prior is None:
+                return "a smoother method for a single filter, or no priors recorded (the eager smoother says)"
+        elif method != "kim" or model.rule not in ("mix", "collapse"):
+            return "only Kim's smoother of IMM and GPB1 runs"
+        belief = trajectory.belief
+        if model.rule == "kalman":
+            if type(belief) is not GaussianBelief:
+                return "the trajectory's beliefs are not Gaussian"
+            logmu = torch.zeros((*belief.batch_shape, 1), dtype=belief.dtype)
+            mean, cov = belief.mean.unsqueeze(-2), belief.cov.unsqueeze(-3)
+        else:
+            if type(belief) is not ModeBelief or type(belief.components) is not GaussianBelief:
+                return "the trajectory's beliefs are not a ModeBelief of Gaussians"
+            logmu, mean, cov = belief.mode_log_probs, belief.components.mean, belief.components.cov
+        tensors = (logmu, mean, cov, *(t for t in model if isinstance(t, Tensor)))
+        if any(t.device.type != "cpu" for t in tensors) or not host_reads_ok(tensors[0]):
+            return "not on the CPU (or host reads are off: torchmm.runtime.no_host_sync)"
+        dtype = logmu.dtype
+        if dtype not in (torch.float32, torch.float64) or any(t.dtype != dtype for t in tensors):
+            return "not one float32 or float64 dtype"
+        if torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
+            return "autograd (the eager smoother's gradient is autograd's)"
+        steps, batch, M, n = logmu.shape[0], logmu.shape[1:-1], logmu.shape[-1], mean.shape[-1]
+        runs = math.prod(batch)
+        if runs > MAX_RUNS:
+            return f"{runs} runs: more than the serial loop's {MAX_RUNS}"
+        if not ("numba" in sys.modules or steps * runs > LONG_RUN):
+            return "a short one-off run (loading Numba would cost more than it saves)"
+        if not _numba_available():
+            return "Numba is not installed"
+        models = _models(model)
+        wide = ((M, n, n), (M, n), (M, n, n))
+        if not all(_broadcasts(t.shape, w) for t, w in zip(models[:3], wide)):
+            return "the models' parameters are batched over more than the modes"
+        F, b, Q = (np.ascontiguousarray(np.broadcast_to(_np(t), w)) for t, w in zip(models[:3], wide))
+        Pi = models[5]
+        kalman = model.rule == "kalman"
+
+        def run():
+            loops = load()
+            np_ = lambda t: t.detach().contiguous().numpy()  # noqa: E731
+            flat = [np_(t.reshape(steps, runs, *t.shape[1 + len(batch):])) for t in (logmu, mean, cov)]
+            out = [torch.empty(steps, runs, M, dtype=dtype), torch.empty(steps, runs, M, n, dtype=dtype),
+                   torch.empty(steps, runs, M, n, n, dtype=dtype)]
+            finfo = torch.finfo(dtype)
+            loops.kim(F, b, Q, np_(Pi.log()), *flat, finfo.eps, finfo.tiny, *[o.numpy() for o in out])
+            slogmu, sx, sP = (o.reshape(steps, *batch, *o.shape[2:]) for o in out)
+            if kalman:
+                return GaussianBelief(sx.squeeze(-2), sP.squeeze(-3))
+            return ModeBelief(slogmu, GaussianBelief(sx, sP))
+
+        return run
+
+
+def _fields(outs, batch, steps, M, kalman: bool, mixed: bool, request: kernels.Request) -> tuple:
+    """The trajectory's fields, batch ``(T, *B)``, from the kernel's ``(T, runs, ...)`` outputs."""
+    ll, logmu, x, P, xp, Pp, logc, xm, Pm, innov, S, mode_ll, flags = outs
+    keep = request.keep
+
+    def kept(name: str) -> bool:
+        return keep is None or name in keep
+
+    if kalman:
+        def single(t):
+            return t.squeeze(2).reshape(steps, *batch, *t.shape[3:])
+
+        belief = GaussianBelief(single(x), single(P))
+        prior = GaussianBelief(single(xp), single(Pp)) if kept("prior") else None
+        innovation = single(innov) if kept("innovation") else None
+        innovation_cov = single(S) if kept("innovation_cov") else None
+        extras = None
+        if kept("extras"):
+            singular = single(flags).to(torch.bool)
+            extras = {"singular": singular, "failed": torch.zeros_like(singular)}
+    else:
+        def modes(t):
+            return t.reshape(steps, *batch, M, *t.shape[3:])
+
+        lp = ll.reshape(steps, *batch)
+        belief = ModeBelief(modes(logmu), GaussianBelief(modes(x), modes(P)))
+        prior = ModeBelief(modes(logc), GaussianBelief(modes(xp), modes(Pp))) if kept("prior") else None
+        innovation = modes(innov) if kept("innovation") else None
+        innovation_cov = modes(S) if kept("innovation_cov") else None
+        extras = None
+        if kept("extras"):
+            singular = modes(flags).to(torch.bool)
+            extras = {"mode_log_likelihood": modes(mode_ll),
+                      "modes": {"singular": singular, "failed": torch.zeros_like(singular)},
+                      "failed": torch.zeros(lp.shape, dtype=torch.bool)}
+            if mixed and not request.update_first:
+                extras["mixed"] = ModeBelief(modes(logc), GaussianBelief(modes(xm), modes(Pm)))
+    log_likelihood = ll.reshape(steps, *batch) if kept("log_likelihood") else None
+    if not kept("belief"):
+        belief = None
+    elif request.estimate:
+        belief = belief.estimate()
+    elif request.detach_belief:
+        belief = belief.detach()
+    return belief, prior, log_likelihood, innovation, innovation_cov, extras
+
+
+kernels.register(LinearKernel(), first=True)  # small problems: before the batched kernels
