@@ -239,18 +239,6 @@ class StudyContext:
 
 
 
-def load_kernels() -> None:
-    """Load torchmm's small compiled kernels (:mod:`torchmm.kernels.linear`) with the study, in the
-    main process and in every worker, so that whether a run takes them never depends on which
-    estimator ran first or where a unit runs (their results equal the steps' to rounding)."""
-    try:
-        from torchmm.kernels.linear import load
-
-        load()
-    except ImportError:  # pragma: no cover - Numba is a dependency; without it every run steps
-        pass
-
-
 def open_context(cfg: Any, output_dir: Path, config_dict: dict, experiment: str, description: str = "") -> StudyContext:
     """Create the context; pick up a checkpoint left in ``output_dir`` by the same config.
 
@@ -261,7 +249,6 @@ def open_context(cfg: Any, output_dir: Path, config_dict: dict, experiment: str,
     :class:`RunFolderError` naming it; a unit whose ``units/*.npz`` is missing, truncated or fails its
     checksum is one warning naming the file, and that unit is computed again.
     """
-    load_kernels()
     try:
         output_dir.mkdir(parents=True, exist_ok=True)
     except OSError as err:
@@ -319,7 +306,6 @@ def worker_context(config: dict, output_dir: Path) -> StudyContext:
     token = hashlib.sha256(json.dumps([config, str(output_dir)], sort_keys=True, default=str).encode()).hexdigest()
     ctx = _WORKER_CONTEXTS.get(token)
     if ctx is None:
-        load_kernels()
         cfg = OmegaConf.create(config)
         ctx = StudyContext(cfg=cfg, output_dir=Path(output_dir),
                            results=Results(Path(output_dir), str(config.get("experiment_name", "study")), config),

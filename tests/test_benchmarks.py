@@ -133,3 +133,16 @@ def test_ct_imm_benchmark_runs_and_agrees():
     checks = "\n".join(line for line in lines if line.startswith("equality check"))
     diffs = [float(x) for x in re.findall(r"([0-9.]+e[-+][0-9]+)", checks)]
     assert len(diffs) == 6 and max(diffs) < 1e-9, proc.stdout
+
+
+def test_small_kernel_benchmark_runs_and_agrees():
+    """benchmarks/small_kernel.py (issue 31: the Numba kernel against the batch-last kernel, the
+    crossover behind MAX_RUNS) at tiny sizes: its equality asserts hold and it prints the crossover."""
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "small_kernel.py"), "--runs", "1", "4", "--steps", "5",
+         "--repeats", "1"],
+        capture_output=True, text=True, timeout=300, cwd=ROOT,
+        env={"PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "PATH": ""},
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:] + proc.stdout[-2000:]
+    assert re.fullmatch(r"crossover_runs=[0-9]+ \(MAX_RUNS = [0-9]+\)", proc.stdout.strip().splitlines()[-1])

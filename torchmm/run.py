@@ -200,8 +200,8 @@ def run_filter(
             over linear-Gaussian modes for small CPU runs; the batch-last IMM/GPB1 kernel for larger
             ones), which returns what the steps return, to rounding. None (default): where a kernel
             applies to a run without ``controls``, ``motions`` or ``sensors`` and pays (the Numba
-            kernel: where Numba is loaded - by a likelihood :class:`~torchmm.learn.Objective`, a
-            study, an earlier run - or the run is long); True: always (a ``ValueError`` naming
+            kernel: runs of at least ``torchmm.kernels.linear.LONG_RUN`` steps x runs; the choice
+            depends on the call only); True: always (a ``ValueError`` naming
             ``fast_path`` gives every kernel's reason where none can); False: never (the steps).
         compile: run the fast path's step under ``torch.compile`` (seconds of compiling, cached on
             disk, then fused kernels: docs/performance.md says when it pays); True needs a fast path.

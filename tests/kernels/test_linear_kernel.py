@@ -38,6 +38,13 @@ def _numba_loaded():
     linear.load()
 
 
+@pytest.fixture(autouse=True)
+def _short_runs_take_the_kernel(monkeypatch):
+    """The tests' runs are short (10-20 steps): by default (``LONG_RUN``) they would step eagerly;
+    here the default takes the kernel wherever it applies (test_long_run_rule tests the rule)."""
+    monkeypatch.setattr(linear, "LONG_RUN", 0)
+
+
 @pytest.fixture
 def calls(monkeypatch):
     """Counts of the kernel's runs: ``tried`` (the compiled loop ran) and ``used`` (its fields were
@@ -430,6 +437,25 @@ def test_default_takes_the_kernel_for_one_run(kind, batch, calls):
     auto = run_filter(f, b0, z)
     assert calls == {"tried": 1, "used": 1}
     assert_same(auto, run_filter(f, b0, z, fast_path=False))
+
+
+@pytest.mark.parametrize("kind", ["kf", "imm"])
+def test_long_run_rule(kind, calls, monkeypatch):
+    """The default takes the kernel from LONG_RUN steps x runs on, whatever the process ran before
+    (Numba is loaded here); shorter runs step eagerly, with the same results to rounding."""
+    monkeypatch.setattr(linear, "LONG_RUN", 40)
+    p, z = params(kind, B=(4,), T=10, seed=64)  # 10 x 4 = 40: the kernel
+    f, b0 = make(kind, p)
+    with torch.no_grad():
+        assert_same(run_filter(f, b0, z), run_filter(f, b0, z, fast_path=False))
+    assert calls == {"tried": 1, "used": 1}
+    with torch.no_grad():
+        short = run_filter(f, b0, z[:9])  # 9 x 4 = 36: the steps, bit for bit
+        eager = run_filter(f, b0, z[:9], fast_path=False)
+    assert calls["tried"] == 1
+    for got, want in zip(fields(short), fields(eager)):
+        if isinstance(got, torch.Tensor):
+            assert torch.equal(got.nan_to_num(), want.nan_to_num())
 
 
 def _assert_declines(calls, f, b0, z, **kwargs):

@@ -28,12 +28,12 @@ from torchmm import (
     LinearMeasurement,
     LinearMotion,
     PositionMeasurement,
+    kernels,
     run_filter,
 )
-from torchmm import kernels
 from torchmm.filters import ExtendedKalmanFilter
 from torchmm.kernels import linear
-from torchmm.multimodel import ListBank, StaticMM
+from torchmm.multimodel import StaticMM
 from torchmm.multimodel.batch_last import BATCH_LAST, BatchLastIMM
 
 D = torch.float64

@@ -21,8 +21,9 @@ to set): the filter joined the ``"linear_gaussian"`` family (:class:`~torchmm.Ka
 :class:`~torchmm.IMM`, :class:`~torchmm.GPB1`, :class:`~torchmm.StaticMM` over Kalman modes) and
 describes itself through ``linear_gaussian()``; CPU tensors of one floating dtype; measurements one
 tensor ``(T, *B, m)``; no controls or per-step models; a small problem (at most :data:`MAX_RUNS` runs:
-the loop is serial, and beyond that the batched tensor kernels win); and Numba importable and worth
-loading (already loaded, a long run, a repeated evaluation as in a likelihood, or ``fast_path=True``).
+the loop is serial, and beyond that the batched tensor kernels win); Numba importable; and a run of at
+least :data:`LONG_RUN` steps x runs, a repeated evaluation (:class:`~torchmm.learn.Objective`) or
+``fast_path=True``. The choice depends on the call only, never on what the process ran before.
 With autograd the run keeps only its log-likelihood and filtered beliefs (their gradients are the
 reverse pass's); a run that asks for more runs eagerly. A run with a regularised innovation covariance
 or a non-finite result is run again eagerly, which flags it as it always does (docs/robustness.md).
@@ -39,17 +40,19 @@ import torch
 from torch import Tensor
 
 import torchmm.kernels as kernels
-from torchmm.runtime import host_reads_ok
 from torchmm.beliefs import GaussianBelief, ModeBelief
+from torchmm.runtime import host_reads_ok
 
 __all__ = ["MAX_RUNS", "LinearGaussian", "load"]
 
 #: the most runs (batch elements) the kernel takes: its loop is serial over runs (measured crossover
 #: with the batched tensor kernels, docs/performance.md)
 MAX_RUNS = 64
-#: an eager run longer than this many steps loads Numba for the kernel (the import costs ~0.2 s,
-#: about 2,000 eager steps of a Kalman filter)
-LONG_RUN = 4000
+#: the smallest run (steps x runs) the kernel takes by default: the choice depends on the run only,
+#: never on the process's history, so the same call gives the same numbers everywhere. Shorter runs
+#: step eagerly (200 eager steps cost ~10-20 ms; the kernel's first call in a process costs ~0.3 s of
+#: loading Numba and its cached machine code, repaid from then on)
+LONG_RUN = 200
 _RULES = {"kalman": 2, "static": 2, "mix": 0, "collapse": 1}
 
 
@@ -283,8 +286,8 @@ class LinearKernel:
         grad = torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
         if grad and (request.keep is None or request.keep - {"belief", "log_likelihood"}):
             return "with autograd the kernel keeps only the log-likelihood and the filtered beliefs"
-        if not (request.forced or request.repeated or "numba" in sys.modules or steps * runs > LONG_RUN):
-            return "a short one-off run (loading Numba would cost more than it saves)"
+        if not (request.forced or request.repeated or steps * runs >= LONG_RUN):
+            return f"a short run ({steps} x {runs} < {LONG_RUN} steps x runs: the steps are as fast)"
         if not _numba_available():
             return "Numba is not installed"
         try:
@@ -349,8 +352,8 @@ class LinearKernel:
         runs = math.prod(batch)
         if runs > MAX_RUNS:
             return f"{runs} runs: more than the serial loop's {MAX_RUNS}"
-        if not ("numba" in sys.modules or steps * runs > LONG_RUN):
-            return "a short one-off run (loading Numba would cost more than it saves)"
+        if steps * runs < LONG_RUN:
+            return f"a short run ({steps} x {runs} < {LONG_RUN} steps x runs)"
         if not _numba_available():
             return "Numba is not installed"
         models = _models(model)

@@ -35,20 +35,6 @@ _keep_likelihood = Keep("log_likelihood")
 _keep_likelihood_and_detached_belief = Keep("log_likelihood", "belief", detach=True)
 
 
-def _load_kernels() -> None:
-    """A likelihood is evaluated many times (an optimiser's): load the compiled kernels once, so that
-    :func:`~torchmm.run_filter` takes them from the first evaluation (torchmm.kernels.linear)."""
-    if not _LOADED:
-        _LOADED.append(True)
-        try:
-            from torchmm.kernels.linear import load
-
-            load()
-        except ImportError:  # pragma: no cover - Numba is a dependency; without it the eager steps run
-            pass
-
-
-_LOADED: list = []
 
 
 @entry_point(filter=Of(Filter), belief0=BeliefArg(validate=True), measurements=Data(),
@@ -102,7 +88,6 @@ def negative_log_likelihood(
     if not isinstance(measurements, Tensor) or measurements.dim() < 2:
         raise ValueError("measurements: expected a time-major tensor (T, *B, m)")
     belief0 = as_start_belief(filter, belief0)
-    _load_kernels()
     record = _keep_likelihood_and_detached_belief if return_final else _keep_likelihood
     with parametrize.cached():  # parametrised covariances are computed once per pass
         traj = run_filter(filter, belief0, measurements, controls=controls, record=record,
