@@ -11,7 +11,8 @@ import torch.utils._pytree as pytree
 
 from torchmm.beliefs import GaussianBelief, ModeBelief
 from torchmm.filters.base import StepOutput
-from torchmm.run import _flatten, stack_outputs
+from torchmm.kernels import _flatten
+from torchmm.run import stack_outputs
 
 
 def _output(seed: int, extras=None) -> StepOutput:

@@ -18,7 +18,7 @@ from torchmm.contract import BeliefArg, Data, Finite, Flag, Gen, Of, Unchecked, 
 from torchmm.filters.base import Filter, StepOutput, call_with
 from torchmm.provenance import Provenance, fingerprints, module_state, tensor_versions
 from torchmm.runtime import entries, fast_paths_compiled, one_thread_when_small
-from torchmm.validation import broadcast_shape, check_filter_dtype, check_measurement
+from torchmm.validation import check_filter_dtype, check_measurement
 
 __all__ = ["Keep", "Trajectory", "attach_provenance", "per_step_models", "run_filter", "stack_outputs"]
 
@@ -96,52 +96,7 @@ class Keep:
 
 def stack_outputs(outputs: list) -> Any:
     """Stack a list of equally structured pytrees (e.g. StepOutputs) along a new leading axis."""
-    flat, structures = [], []
-    for output in outputs:  # pytree.tree_flatten's leaves, without its per-node work at every step
-        leaves, structure = [], []
-        _flatten(output, leaves, structure)
-        flat.append(leaves)
-        structures.append(structure)
-    if any(s != structures[0] for s in structures[1:]):
-        raise ValueError("outputs: step outputs differ in structure between time steps")
-    spec = pytree.tree_structure(outputs[0])
-    if spec.num_leaves != len(flat[0]):  # a node type this flattening does not know as pytree does
-        flat = [pytree.tree_leaves(o) for o in outputs]
-    leaves = []
-    for column in zip(*flat):
-        if column[0] is None:
-            leaves.append(None)
-            continue
-        shape = broadcast_shape(*(t.shape for t in column))
-        leaves.append(torch.stack([t.expand(shape) for t in column]))
-    return pytree.tree_unflatten(leaves, spec)
-
-
-_NODES: dict = {}
-
-
-def _node(cls: type) -> Any:
-    """pytree's node (flatten function) for instances of ``cls``, or None for a leaf (cached)."""
-    try:
-        return _NODES[cls]
-    except KeyError:
-        key = pytree.namedtuple if cls not in pytree.SUPPORTED_NODES and pytree.is_namedtuple_class(cls) else cls
-        node = _NODES[cls] = pytree.SUPPORTED_NODES.get(key)
-        return node
-
-
-def _flatten(tree: Any, leaves: list, structure: list) -> None:
-    """Append ``tree``'s leaves to ``leaves`` in ``pytree.tree_flatten``'s order, and a description
-    of its nodes (type, context, number of children; for a leaf, whether it is None) to ``structure``."""
-    node = _node(type(tree))
-    if node is None:
-        leaves.append(tree)
-        structure.append(tree is None)  # a field that is None at one step and not at another differs
-        return
-    children, context = node.flatten_fn(tree)
-    structure.append((type(tree), context, len(children)))
-    for child in children:
-        _flatten(child, leaves, structure)
+    return kernels.stack_steps(outputs)
 
 
 @entry_point(filter=Of(Filter), belief0=BeliefArg(), measurements=Data(),

@@ -17,6 +17,7 @@ import torch
 from torch import Tensor
 
 import torchmm.kernels as kernels
+from torchmm.kernels.linear import LinearGaussian
 from torchmm.beliefs import GaussianBelief
 from torchmm.contract import Flag, Of, entry_point
 from torchmm.filters.base import Filter, StepOutput
@@ -158,8 +159,6 @@ class KalmanFilter(ExtendedKalmanFilter):
             return "the motion is not a LinearMotion (its own forward and noise) without a control input"
         if not _plain(sensor, LinearMeasurement, ("forward", "noise_cov", "jacobian")):
             return "the measurement is not a LinearMeasurement (its own forward and noise)"
-        from torchmm.kernels.linear import LinearGaussian
-
         return LinearGaussian(motion.F, motion.offset, motion.Q, sensor.H, sensor.R)
 
     @classmethod

@@ -26,7 +26,12 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["Request", "joined", "joins", "plan", "plan_smooth", "register", "registered"]
+import torch
+import torch.utils._pytree as pytree
+
+from torchmm.validation import broadcast_shape
+
+__all__ = ["Request", "joined", "joins", "plan", "plan_smooth", "register", "registered", "stack_steps"]
 
 _KERNELS: list = []
 #: family -> {class: {method name: function}}: the steps each joining class computes
@@ -134,6 +139,58 @@ def plan_smooth(filter: Any, trajectory: Any, method: str | None) -> tuple[Calla
             return out, ""
         reasons.append(out)
     return None, "; ".join(reasons) or "no kernel registered"
+
+
+def stack_steps(outputs: list, stack: Callable | None = None) -> Any:
+    """Stack a list of equally structured pytrees (e.g. StepOutputs) along a new leading axis
+    (``torchmm.run.stack_outputs``; kernels that step use it too). ``stack``: how one leaf's column
+    (a list of tensors of one shape) is stacked, default ``torch.stack``."""
+    flat, structures = [], []
+    for output in outputs:  # pytree.tree_flatten's leaves, without its per-node work at every step
+        leaves, structure = [], []
+        _flatten(output, leaves, structure)
+        flat.append(leaves)
+        structures.append(structure)
+    if any(s != structures[0] for s in structures[1:]):
+        raise ValueError("outputs: step outputs differ in structure between time steps")
+    spec = pytree.tree_structure(outputs[0])
+    if spec.num_leaves != len(flat[0]):  # a node type this flattening does not know as pytree does
+        flat = [pytree.tree_leaves(o) for o in outputs]
+    leaves = []
+    for column in zip(*flat):
+        if column[0] is None:
+            leaves.append(None)
+            continue
+        shape = broadcast_shape(*(t.shape for t in column))
+        leaves.append((stack or torch.stack)([t.expand(shape) for t in column]))
+    return pytree.tree_unflatten(leaves, spec)
+
+
+_NODES: dict = {}
+
+
+def _node(cls: type) -> Any:
+    """pytree's node (flatten function) for instances of ``cls``, or None for a leaf (cached)."""
+    try:
+        return _NODES[cls]
+    except KeyError:
+        key = pytree.namedtuple if cls not in pytree.SUPPORTED_NODES and pytree.is_namedtuple_class(cls) else cls
+        node = _NODES[cls] = pytree.SUPPORTED_NODES.get(key)
+        return node
+
+
+def _flatten(tree: Any, leaves: list, structure: list) -> None:
+    """Append ``tree``'s leaves to ``leaves`` in ``pytree.tree_flatten``'s order, and a description
+    of its nodes (type, context, number of children; for a leaf, whether it is None) to ``structure``."""
+    node = _node(type(tree))
+    if node is None:
+        leaves.append(tree)
+        structure.append(tree is None)  # a field that is None at one step and not at another differs
+        return
+    children, context = node.flatten_fn(tree)
+    structure.append((type(tree), context, len(children)))
+    for child in children:
+        _flatten(child, leaves, structure)
 
 
 def _load() -> None:

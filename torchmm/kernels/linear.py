@@ -47,7 +47,7 @@ __all__ = ["MAX_RUNS", "LinearGaussian", "load"]
 
 #: the most runs (batch elements) the kernel takes: its loop is serial over runs (measured crossover
 #: with the batched tensor kernels, docs/performance.md)
-MAX_RUNS = 64
+MAX_RUNS = 128
 #: the smallest run (steps x runs) the kernel takes by default: the choice depends on the run only,
 #: never on the process's history, so the same call gives the same numbers everywhere. Shorter runs
 #: step eagerly (200 eager steps cost ~10-20 ms; the kernel's first call in a process costs ~0.3 s of
@@ -111,22 +111,26 @@ def _unbroadcast(g, shape: tuple):
 class _Run(torch.autograd.Function):
     """The whole run: inputs the models and the start belief as given (broadcast and reshaped to the
     kernel's layout in NumPy, so that autograd records one node); outputs ``ll``, ``logmu``, ``x``,
-    ``P`` (differentiable), then the count of failed or regularised updates and, with ``full``, the
+    ``P`` (differentiable) and, with ``full``, the
     intermediates ``xp, Pp, logc, xm, Pm, innov, S, mode_ll, flags`` (not differentiable).
 
     ``layout``: for each of the nine inputs ``F, b, Q, H, R, Pi, logmu0, x0, P0``, the shape it is
-    broadcast to and the kernel's shape of that (``(M, n, n)``, ..., ``(B, M, n, n)``). The buffers are
+    broadcast to and the kernel's shape of that (``(M, n, n)``, ..., ``(B, M, n, n)``). ``status``: a
+    one-element list that receives the count of failed or regularised updates. The buffers are
     NumPy arrays (cheaper to make than tensors); the outputs are tensors over them."""
 
     @staticmethod
-    def forward(ctx, z, rule, update_first, full, layout, *tensors):
+    def forward(ctx, z, rule, update_first, full, layout, status, *tensors):
         loops = load()
         zz = _np(z)
         inputs = [zz]
         for t, (wide, target) in zip(tensors, layout):
             a = _np(t)
             if a.shape != target:
-                a = np.ascontiguousarray(np.broadcast_to(a, wide)).reshape(target)
+                if a.size == math.prod(target):  # (a view: only unit axes differ)
+                    a = a.reshape(target)
+                else:
+                    a = np.ascontiguousarray(np.broadcast_to(a, wide)).reshape(target)
             inputs.append(a)
         T, B, m = zz.shape
         M, n = inputs[1].shape[0], inputs[1].shape[1]
@@ -142,11 +146,12 @@ class _Run(torch.autograd.Function):
         ctx.arrays = (inputs, outs[1:9])
         ctx.rule, ctx.update_first, ctx.layout = rule, update_first, layout
         ctx.raw = [(t.shape, t.requires_grad) for t in tensors]
+        status[0] = bad + regularised  # (the count of failed or regularised updates, for the caller)
         result = [torch.from_numpy(o) for o in outs[:4]]
-        trouble = torch.tensor(bad + regularised)
         extra = [torch.from_numpy(o) for o in outs[4:]] if full else []
-        ctx.mark_non_differentiable(trouble, *extra)
-        return (*result, trouble, *extra)
+        if extra:
+            ctx.mark_non_differentiable(*extra)
+        return (*result, *extra)
 
     @staticmethod
     def backward(ctx, gll, glogmu, gx, gP, *unused):
@@ -167,7 +172,7 @@ class _Run(torch.autograd.Function):
             if tuple(shape) != target:
                 g = _unbroadcast(g.reshape(wide), tuple(shape))
             out.append(torch.from_numpy(np.ascontiguousarray(g)).reshape(shape))
-        return (None, None, None, None, None, *out)
+        return (None, None, None, None, None, None, *out)
 
 
 def _layout(M: int, n: int, m: int, batch: tuple, kalman: bool) -> tuple:
@@ -192,8 +197,15 @@ def _broadcasts(shape: tuple, wide: tuple) -> bool:
 def _models(model: LinearGaussian) -> tuple:
     """The model tensors as the filter gave them (``_Run`` broadcasts them), and the transition matrix
     (``[[1]]`` for one filter)."""
-    Pi = model.transition if model.transition is not None else torch.ones(1, 1, dtype=model.F.dtype)
+    Pi = model.transition
+    if Pi is None:
+        Pi = _ONE.get(model.F.dtype)
+        if Pi is None:
+            Pi = _ONE[model.F.dtype] = torch.ones(1, 1, dtype=model.F.dtype)
     return model.F, model.b, model.Q, model.H, model.R, Pi
+
+
+_ONE: dict = {}  # the one-mode transition matrix [[1]] per dtype (never written: no grad, no in-place)
 
 
 class Prepared:
@@ -228,8 +240,9 @@ class Prepared:
             if (belief0.mode_log_probs.shape, comps.mean.shape, comps.cov.shape) != self.shape:
                 raise ValueError("belief0: shapes differ from the objective's")
             start = (belief0.mode_log_probs, comps.mean, comps.cov)
-        outs = _Run.apply(self.z, self.rule, bool(update_first), False, self.layout, *_models(model), *start)
-        if int(outs[4]):
+        status = [0]
+        outs = _Run.apply(self.z, self.rule, bool(update_first), False, self.layout, status, *_models(model), *start)
+        if status[0]:
             return None
         return outs[0].reshape(self.z.shape[0], *self.batch)
 
@@ -308,10 +321,11 @@ class LinearKernel:
             return Prepared(filter, belief0, z, tuple(batch), M, n, m, model.rule)
 
         def run():
-            outs = _Run.apply(z, rule, bool(request.update_first), True, layout, *models, *start)
-            if int(outs[4]):
+            status = [0]
+            outs = _Run.apply(z, rule, bool(request.update_first), True, layout, status, *models, *start)
+            if status[0]:
                 return None  # regularised or failed somewhere: the eager steps flag it as they do
-            return _fields((*outs[:4], *outs[5:]), batch, steps, M, kalman, mixed, request)
+            return _fields(outs, batch, steps, M, kalman, mixed, request)
 
         return run
 

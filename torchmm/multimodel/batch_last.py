@@ -634,30 +634,23 @@ class BatchLastKernel:
                     # what the record drops need not be built
                     kernel.omit(kernel.omitted | frozenset(
                         f for f in StepOutput._fields if getattr(kept[0], f) is None and getattr(out, f) is not None))
-            return _stack_batch_first(kept)
+            return _stack_batch_first(kept, contiguous=not request.estimate)
 
         run.kernel = kernel  # (its BatchLastIMM, for tests and profiling)
         return run
 
 
-def _stack_batch_first(outputs: list) -> tuple:
-    """The steps' outputs (batch-first views of batch-last tensors) stacked on a new time axis, as
-    contiguous batch-first tensors: each field is stacked in its own memory order (a contiguous copy)
-    and permuted to batch-first once, so the trajectory costs one copy and holds no permuted views."""
-    import torch.utils._pytree as pytree
+def _stack_batch_first(outputs: list, contiguous: bool = True) -> tuple:
+    """The steps' outputs (batch-first views of batch-last tensors) stacked on a new time axis: each
+    field stacked in its own memory order (a contiguous copy instead of a transposing gather), then,
+    with ``contiguous``, copied batch-first once, so that what follows the run (smoothers, mixing)
+    reads batch-first memory. ``record="estimate"`` keeps the permuted views (point estimates are read,
+    not mixed; the copy cost 8 % of a run at 4,000 runs)."""
+    def stack(column):
+        stacked = _stack_in_memory_order(column)
+        return stacked.contiguous() if contiguous else stacked
 
-    flat = [pytree.tree_flatten(o) for o in outputs]
-    spec = flat[0][1]
-    if any(s != spec for _, s in flat[1:]):
-        raise ValueError("outputs: step outputs differ in structure between time steps")
-    leaves = []
-    for column in zip(*(f for f, _ in flat)):
-        if column[0] is None:
-            leaves.append(None)
-        else:
-            leaves.append(_stack_in_memory_order(list(column)).contiguous())
-    fields = pytree.tree_unflatten(leaves, spec)
-    return tuple(fields) if isinstance(fields, StepOutput) else (*fields,)
+    return tuple(kernels.stack_steps(outputs, stack=stack))
 
 
 def _stack_in_memory_order(tensors: list) -> Tensor:
