@@ -110,6 +110,7 @@ def run_study(cfg: DictConfig, output_dir: Path, overrides: list[str] | None = N
     """
     from hydra.utils import get_method
 
+    import torchmm.kernels as kernels
     from experiments.changes import config_changes
     from experiments.context import open_context
     from experiments.files import LOCKS, lock_folder, unlock_folder
@@ -123,7 +124,10 @@ def run_study(cfg: DictConfig, output_dir: Path, overrides: list[str] | None = N
         ctx = open_context(cfg, Path(output_dir), config, experiment=str(cfg.experiment_name))
         lock_folder(ctx.output_dir)  # a fresh sibling (another config was in output_dir)
         ctx.results.changes = config_changes(config)  # results.md: what differs from the study's defaults
-        return _run(cfg, ctx, study, config, overrides)
+        # the kernels whose choice depends on the number of runs are off: a study's numbers must not
+        # depend on how its runs are split into units (experiments.context.batch_invariant_kernels)
+        with kernels.switched_off("linear_gaussian"):
+            return _run(cfg, ctx, study, config, overrides)
     finally:
         for key in set(LOCKS) - held:
             unlock_folder(Path(key))
@@ -230,14 +234,14 @@ def _hydra_main() -> None:
 
 def _study_main(cfg: DictConfig) -> None:
     """One run (or one sweep job) under Hydra: the study into Hydra's output folder."""
+    # the objects of the imports (torch, Hydra: about a million) never become garbage: kept out of the
+    # collector, whose first full pass over them otherwise costs ~70 ms in the study's first steps
+    import gc
+
     from hydra.core.hydra_config import HydraConfig
 
     from experiments.files import RunFolderError
     from torchmm.learn import NonFiniteLossError
-
-    # the objects of the imports (torch, Hydra: about a million) never become garbage: kept out of the
-    # collector, whose first full pass over them otherwise costs ~70 ms in the study's first steps
-    import gc
 
     gc.freeze()
     output_dir = Path(HydraConfig.get().runtime.output_dir)

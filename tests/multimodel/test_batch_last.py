@@ -306,8 +306,8 @@ def test_taken_only_where_it_applies(batch_last_steps):
     cases = {
         "R is not diagonal": IMM(KalmanFilter(kf.motion, LinearMeasurement(kf.measurement.H, full)),
                                  imm.transition.matrix()),
-        "GPB2 has not joined the linear-Gaussian kernels": GPB2(kf, imm.transition.matrix()),
-        "_MyIMM has not joined the linear-Gaussian kernels": _MyIMM(kf, imm.transition.matrix()),
+        "GPB2 has not joined the linear_gaussian kernels": GPB2(kf, imm.transition.matrix()),
+        "_MyIMM has not joined the linear_gaussian kernels": _MyIMM(kf, imm.transition.matrix()),
         "the 'static' rule": StaticMM(kf, 2),
         "mode 1: the Joseph form": IMM(_list_bank(imm), imm.transition.matrix()),
         "the Joseph form": IMM(KalmanFilter(kf.motion, kf.measurement, joseph=True), imm.transition.matrix()),

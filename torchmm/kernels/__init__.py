@@ -22,6 +22,7 @@ The engine (``run.py``, ``multimodel/``) tests no concrete filter class to find 
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -31,7 +32,8 @@ import torch.utils._pytree as pytree
 
 from torchmm.validation import broadcast_shape
 
-__all__ = ["Request", "joined", "joins", "plan", "plan_smooth", "register", "registered", "stack_steps"]
+__all__ = ["Request", "describe", "enabled", "joined", "joins", "plan", "plan_smooth", "register", "registered", "set_enabled",
+           "stack_steps", "switched_off"]
 
 _KERNELS: list = []
 #: family -> {class: {method name: function}}: the steps each joining class computes
@@ -58,6 +60,16 @@ def joined(filter: Any, family: str) -> bool:
         if issubclass(kind, cls) and all(getattr(kind, name, None) is fn for name, fn in methods.items()):
             return True
     return False
+
+
+def describe(filter: Any, family: str) -> Any:
+    """``filter``'s description of itself for the kernel ``family`` (its method of that name, e.g.
+    ``filter.linear_gaussian()``), or the reason there is none: the filter has no such method, has not
+    joined the family, or overrides the steps of the class that joined."""
+    method = getattr(filter, family, None)
+    if method is None or not joined(filter, family):
+        return f"{type(filter).__name__} has not joined the {family} kernels (or overrides their steps)"
+    return method()
 
 
 @dataclass(frozen=True)
@@ -96,6 +108,37 @@ class Request:
     record: Callable | None = None
 
 
+_OFF: set = set()
+
+
+def set_enabled(name: str, enabled: bool = True) -> None:
+    """Switch the registered kernel ``name`` on or off for this process (off: :func:`plan` passes it
+    over, ``fast_path=True`` included). The study harness switches the small linear-Gaussian kernel
+    off: its choice depends on the number of runs, and a study's numbers must not depend on how its
+    runs are split into units (experiments/context.py)."""
+    if enabled:
+        _OFF.discard(name)
+    else:
+        _OFF.add(name)
+
+
+@contextlib.contextmanager
+def switched_off(name: str):
+    """``with switched_off("linear_gaussian"): ...``: :func:`set_enabled` off inside, restored after."""
+    was = name in _OFF
+    _OFF.add(name)
+    try:
+        yield
+    finally:
+        if not was:
+            _OFF.discard(name)
+
+
+def enabled(name: str) -> bool:
+    """Whether the kernel ``name`` is switched on (:func:`set_enabled`)."""
+    return name not in _OFF
+
+
 def register(kernel: Any, *, first: bool = False) -> Any:
     """Add ``kernel`` (an object with ``name`` and ``plan(filter, belief0, measurements, request)``) to
     the kernels :func:`plan` tries, after the others (``first=True``: before them)."""
@@ -119,6 +162,9 @@ def plan(filter: Any, belief0: Any, measurements: Any, request: Request) -> tupl
     _load()
     reasons = []
     for kernel in _KERNELS:
+        if kernel.name in _OFF:
+            reasons.append(f"{kernel.name}: switched off (torchmm.kernels.set_enabled)")
+            continue
         out = kernel.plan(filter, belief0, measurements, request)
         if not isinstance(out, str):
             return out, ""
@@ -133,6 +179,8 @@ def plan_smooth(filter: Any, trajectory: Any, method: str | None) -> tuple[Calla
     _load()
     reasons = []
     for kernel in _KERNELS:
+        if kernel.name in _OFF:
+            continue
         planner = getattr(kernel, "plan_smooth", None)
         out = f"{kernel.name}: no smoother" if planner is None else planner(filter, trajectory, method)
         if not isinstance(out, str):

@@ -253,18 +253,13 @@ class LinearKernel:
     name = "linear_gaussian"
 
     def plan(self, filter: Any, belief0: Any, measurements: Any, request: kernels.Request):
-        describe = getattr(filter, "linear_gaussian", None)
-        if describe is None:
-            return f"{type(filter).__name__} does not describe itself as linear-Gaussian"
-        if not kernels.joined(filter, self.name):
-            return f"{type(filter).__name__} has not joined the linear-Gaussian kernels (or overrides their steps)"
         if not isinstance(measurements, Tensor) or not measurements.is_floating_point():
             return "the measurements are not one floating-point tensor"
         if request.record is not None:
             return "a record function (the kernel keeps fields: record=Keep(...) or 'estimate')"
         if request.compile_required:
             return "compile=True (the kernel is compiled by Numba, not torch.compile)"
-        model = describe()
+        model = kernels.describe(filter, self.name)
         if isinstance(model, str):
             return model
         if model.rule == "kalman":
@@ -333,10 +328,7 @@ class LinearKernel:
     def plan_smooth(self, filter: Any, trajectory: Any, method: str | None):
         """Kim's smoother of an IMM or GPB1 run (``method="kim"``), or the RTS smoother of a Kalman
         filter run, without autograd (with it, the eager smoother runs: its gradient is autograd's)."""
-        describe = getattr(filter, "linear_gaussian", None)
-        if describe is None or not kernels.joined(filter, self.name):
-            return f"{type(filter).__name__} has not joined the linear-Gaussian kernels"
-        model = describe()
+        model = kernels.describe(filter, self.name)
         if isinstance(model, str):
             return model
         if model.rule == "kalman":

@@ -589,14 +589,11 @@ class BatchLastKernel:
     name = "batch_last"
 
     def plan(self, filter, belief0, measurements, request: kernels.Request):
-        describe = getattr(filter, "linear_gaussian", None)
-        if describe is None or not kernels.joined(filter, "linear_gaussian"):
-            return f"{type(filter).__name__} has not joined the linear-Gaussian kernels"
         if request.update_first:
             return "update_first"
         if request.repeated:
             return "no prepared (repeated) evaluation"
-        model = describe()
+        model = kernels.describe(filter, "linear_gaussian")
         if isinstance(model, str):
             return model
         if model.rule not in ("mix", "collapse"):
