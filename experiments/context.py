@@ -239,18 +239,6 @@ class StudyContext:
 
 
 
-def batch_invariant_kernels() -> None:
-    """A worker process runs study units on the kernels whose choice does not depend on the number of
-    runs (``run_study`` does the same around a study in its process): the small
-    linear-Gaussian kernel (torchmm.kernels.linear) takes at most MAX_RUNS runs, so a study split into
-    units of runs (chunk_runs, executors) would take it for some units and not others, and its numbers
-    (equal to rounding, not bit for bit) would depend on the split
-    (tests/experiments/test_run_streams.py)."""
-    import torchmm.kernels as kernels
-
-    kernels.set_enabled("linear_gaussian", False)
-
-
 def open_context(cfg: Any, output_dir: Path, config_dict: dict, experiment: str, description: str = "") -> StudyContext:
     """Create the context; pick up a checkpoint left in ``output_dir`` by the same config.
 
@@ -318,7 +306,6 @@ def worker_context(config: dict, output_dir: Path) -> StudyContext:
     token = hashlib.sha256(json.dumps([config, str(output_dir)], sort_keys=True, default=str).encode()).hexdigest()
     ctx = _WORKER_CONTEXTS.get(token)
     if ctx is None:
-        batch_invariant_kernels()
         cfg = OmegaConf.create(config)
         ctx = StudyContext(cfg=cfg, output_dir=Path(output_dir),
                            results=Results(Path(output_dir), str(config.get("experiment_name", "study")), config),

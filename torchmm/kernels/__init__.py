@@ -115,7 +115,7 @@ def set_enabled(name: str, enabled: bool = True) -> None:
     """Switch the registered kernel ``name`` on or off for this process (off: :func:`plan` passes it
     over, ``fast_path=True`` included). The study harness switches the small linear-Gaussian kernel
     off: its choice depends on the number of runs, and a study's numbers must not depend on how its
-    runs are split into units (experiments/context.py)."""
+    runs are split into units (experiments/run.py, experiments/executors.py)."""
     if enabled:
         _OFF.discard(name)
     else:
