@@ -81,7 +81,6 @@ class Request:
         keep: the :class:`~torchmm.filters.StepOutput` fields kept (None: all of them).
         estimate: keep the point estimate (``belief.estimate()``) instead of the belief.
         detach_belief: the kept belief is detached from the autograd graph.
-        grad: an autograd graph is recorded (grad mode on and a parameter or input requires grad).
         compile: compile the kernel's step (``torch.compile``), where it has one.
         compile_required: the caller asked for the compiled step (``compile=True``): a kernel without
             one declines.
@@ -99,7 +98,6 @@ class Request:
     keep: frozenset | None = None
     estimate: bool = False
     detach_belief: bool = False
-    grad: bool = False
     compile: bool = False
     compile_required: bool = False
     forced: bool = False
