@@ -169,8 +169,10 @@ class _Run(torch.autograd.Function):
             if not needed:
                 out.append(None)
                 continue
-            if tuple(shape) != target:
-                g = _unbroadcast(g.reshape(wide), tuple(shape))
+            if g.size == math.prod(shape):  # (only unit axes differ: a view)
+                out.append(torch.from_numpy(g.reshape(tuple(shape))))
+                continue
+            g = _unbroadcast(g.reshape(wide), tuple(shape))
             out.append(torch.from_numpy(np.ascontiguousarray(g)).reshape(shape))
         return (None, None, None, None, None, None, *out)
 
@@ -213,7 +215,8 @@ class Prepared:
     kernel choice fixed, the models read from the filter at every call (their current parameters).
 
     ``prepared(belief0)`` returns the log-likelihoods ``(T, *B)`` (differentiable through the reverse
-    pass), or None where the run needs the eager steps (a regularised update, a non-finite result).
+    pass; ``total=True``: as ``(T, runs)``, for a caller that sums them all), or None where the run
+    needs the eager steps (a regularised update, a non-finite result).
     """
 
     def __init__(self, filter: Any, belief0: Any, z: Tensor, batch: tuple, M: int, n: int, m: int, rule: str):
@@ -226,7 +229,7 @@ class Prepared:
         self.shape = (belief0.mean.shape, belief0.cov.shape) if self.kalman else (
             belief0.mode_log_probs.shape, belief0.components.mean.shape, belief0.components.cov.shape)
 
-    def __call__(self, belief0: Any, update_first: bool = False) -> Tensor | None:
+    def __call__(self, belief0: Any, update_first: bool = False, total: bool = False) -> Tensor | None:
         model = self.filter.linear_gaussian()
         if isinstance(model, str):
             raise RuntimeError(f"filter: no longer linear-Gaussian since the objective was built ({model})")
@@ -244,7 +247,7 @@ class Prepared:
         outs = _Run.apply(self.z, self.rule, bool(update_first), False, self.layout, status, *_models(model), *start)
         if status[0]:
             return None
-        return outs[0].reshape(self.z.shape[0], *self.batch)
+        return outs[0] if total else outs[0].reshape(self.z.shape[0], *self.batch)
 
 
 class LinearKernel:

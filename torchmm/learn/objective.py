@@ -103,9 +103,12 @@ class Objective:
             if self._prepared is not None:
                 if not (self._prepared.kalman or isinstance(belief, ModeBelief)):
                     belief = as_start_belief(self.filter, belief)  # (a multiple-model filter's start)
-                ll = self._prepared(belief, self.update_first)
+                total = self.reduction == "sum"
+                ll = self._prepared(belief, self.update_first, total)
                 if ll is not None:
                     self.kernel = self._prepared_name
+                    if total:
+                        return -ll.sum()
                     return _reduce(-ll.sum(0), self.reduction, ll.shape[0])
             self.kernel = "eager"
             return negative_log_likelihood(self.filter, belief, self.measurements, reduction=self.reduction,
