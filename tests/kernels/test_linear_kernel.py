@@ -669,3 +669,37 @@ def test_keep_log_likelihood_on_the_kernel(kind, calls):
     assert_close(detached.final_belief.mean if kind == "kf" else detached.final_belief.components.mean,
                  run_filter(f, b0, z, fast_path=False).final_belief.mean if kind == "kf"
                  else run_filter(f, b0, z, fast_path=False).final_belief.components.mean, **TIGHT)
+
+
+# ------------------------------------------------------------------------------ smoothers (plan_smooth)
+
+
+@pytest.mark.parametrize("kind", ["kf", "imm", "gpb1"])
+def test_kernel_smoothers_equal_the_eager_smoothers(kind, monkeypatch):
+    """Kim's smoother of IMM/GPB1 runs and RTS of Kalman runs through the kernel equal torchmm.smooth's
+    eager steps (every kernel switched off), with missing data and a trajectory from the steps."""
+    import torchmm.kernels as kernels
+    from torchmm import smooth
+
+    p, z = params(kind, seed=71)
+    f, b0 = make(kind, p)
+    smoothed_by = []
+    original = linear.load
+
+    def counting_load():  # the smoother's run() loads the loops once per call
+        smoothed_by.append(True)
+        return original()
+
+    with torch.no_grad():
+        with kernels.switched_off("linear_gaussian"), kernels.switched_off("batch_last"):
+            traj = run_filter(f, b0, z)
+            eager = smooth(traj) if kind == "kf" else smooth(traj, method="kim")
+        monkeypatch.setattr(linear, "load", counting_load)
+        kernel = smooth(traj) if kind == "kf" else smooth(traj, method="kim")
+    assert smoothed_by, "the kernel smoother did not run"
+    got, want = pytree.tree_leaves(kernel.belief), pytree.tree_leaves(eager.belief)
+    assert len(got) == len(want)
+    for a, e in zip(got, want):
+        assert_close(a, e, **TIGHT)
+    # the smoother changes every step but the last (which is the filter's)
+    assert not torch.allclose(gaussian(kernel.belief).mean[0], gaussian(traj.belief).mean[0])

@@ -219,8 +219,10 @@ class Prepared:
     needs the eager steps (a regularised update, a non-finite result).
     """
 
+    name = "linear_gaussian"
+
     def __init__(self, filter: Any, belief0: Any, z: Tensor, batch: tuple, M: int, n: int, m: int, rule: str):
-        self.filter, self.z, self.batch, self.M, self.n, self.m = filter, z, batch, M, n, m
+        self.filter, self.z, self.batch = filter, z, batch
         self.rule = _RULES[rule]
         self.kalman = rule == "kalman"
         self.runs = math.prod(batch)

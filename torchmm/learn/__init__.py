@@ -19,7 +19,7 @@ from torchmm.learn.resampling import (
     soft_resample,
     soft_resample_where_needed,
 )
-from torchmm.learn.trainer import NonFiniteLossError, TrainRecord, Trainer, load_checkpoint, save_checkpoint
+from torchmm.learn.trainer import NonFiniteLossError, Trainer, TrainRecord, load_checkpoint, save_checkpoint
 
 __all__ = [
     "Objective",

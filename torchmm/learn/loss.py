@@ -28,7 +28,7 @@ from torchmm.validation import check_filter_dtype
 
 __all__ = ["negative_log_likelihood", "truncated_segments"]
 
-_REDUCTIONS = ("mean", "sum", "none")
+REDUCTIONS = ("mean", "sum", "none")
 
 
 _keep_likelihood = Keep("log_likelihood")
@@ -38,7 +38,7 @@ _keep_likelihood_and_detached_belief = Keep("log_likelihood", "belief", detach=T
 
 
 @entry_point(filter=Of(Filter), belief0=BeliefArg(validate=True), measurements=Data(),
-             controls=Data(optional=True), reduction=Choice(*_REDUCTIONS), return_final=Flag(),
+             controls=Data(optional=True), reduction=Choice(*REDUCTIONS), return_final=Flag(),
              update_first=Flag())
 def negative_log_likelihood(
     filter: Filter,
@@ -83,8 +83,8 @@ def negative_log_likelihood(
         >>> negative_log_likelihood(kf, prior, torch.randn(20, 3, 1), reduction="none").shape
         torch.Size([3])
     """
-    if reduction not in _REDUCTIONS:
-        raise ValueError(f"reduction: expected one of {_REDUCTIONS}, got {reduction!r}")
+    if reduction not in REDUCTIONS:
+        raise ValueError(f"reduction: expected one of {REDUCTIONS}, got {reduction!r}")
     if not isinstance(measurements, Tensor) or measurements.dim() < 2:
         raise ValueError("measurements: expected a time-major tensor (T, *B, m)")
     belief0 = as_start_belief(filter, belief0)
@@ -92,14 +92,19 @@ def negative_log_likelihood(
     with parametrize.cached():  # parametrised covariances are computed once per pass
         traj = run_filter(filter, belief0, measurements, controls=controls, record=record,
                           update_first=update_first)
-    total = -traj.log_likelihood.sum(0)  # (*B,)
-    if reduction == "none":
-        loss = total
-    elif reduction == "sum":
-        loss = total.sum()
-    else:
-        loss = total.mean() / measurements.shape[0]
+    loss = reduce_total(-traj.log_likelihood.sum(0), reduction, measurements.shape[0])
     return (loss, traj.final_belief) if return_final else loss
+
+
+def reduce_total(total: Tensor, reduction: str, steps: int) -> Tensor:
+    """The loss from the per-run totals ``-log p(z_{1:T})`` ``(*B,)``: ``"none"`` keeps them, ``"sum"``
+    adds them, ``"mean"`` averages over runs and the ``steps`` time steps (shared by
+    :func:`negative_log_likelihood` and :class:`~torchmm.learn.Objective`)."""
+    if reduction == "none":
+        return total
+    if reduction == "sum":
+        return total.sum()
+    return total.mean() / steps
 
 
 @entry_point(steps=Int(0), window=Int(1, optional=True))

@@ -20,12 +20,11 @@ import torchmm.kernels as kernels
 from torchmm.beliefs import Belief, ModeBelief
 from torchmm.contract import Choice, Data, Flag, Of, entry_point
 from torchmm.filters.base import Filter
-from torchmm.learn.loss import as_start_belief, negative_log_likelihood
+from torchmm.learn.loss import REDUCTIONS, as_start_belief, negative_log_likelihood, reduce_total
 from torchmm.validation import check_filter_dtype, check_measurement
 
 __all__ = ["Objective"]
 
-_REDUCTIONS = ("mean", "sum", "none")
 
 
 class Objective:
@@ -67,7 +66,7 @@ class Objective:
     """
 
     @entry_point(filter=Of(Filter), belief0=Of(Belief, callable_ok=True, what="a belief or a function filter -> belief"),
-                 measurements=Data(), reduction=Choice(*_REDUCTIONS), update_first=Flag())
+                 measurements=Data(), reduction=Choice(*REDUCTIONS), update_first=Flag())
     def __init__(self, filter: Filter, belief0: Belief | Callable[[Filter], Belief], measurements: Tensor, *,
                  reduction: str = "sum", update_first: bool = False):
         if not isinstance(measurements, Tensor) or measurements.dim() < 2:
@@ -92,7 +91,7 @@ class Objective:
                     check_measurement(measurements[0], meas_dim, batch, like, "measurements")
             request = kernels.Request(update_first=update_first, keep=frozenset({"log_likelihood"}),
                                       repeated=True)
-            self._prepared, self.why = _prepared(filter, first, measurements, request)
+            self._prepared, self.why = kernels.plan(filter, first, measurements, request)
 
     def _belief(self) -> Any:
         return self.start(self.filter) if callable(self.start) else self.start
@@ -106,15 +105,13 @@ class Objective:
                 total = self.reduction == "sum"
                 ll = self._prepared(belief, self.update_first, total)
                 if ll is not None:
-                    self.kernel = self._prepared_name
+                    self.kernel = self._prepared.name
                     if total:
                         return -ll.sum()
-                    return _reduce(-ll.sum(0), self.reduction, ll.shape[0])
+                    return reduce_total(-ll.sum(0), self.reduction, ll.shape[0])
             self.kernel = "eager"
             return negative_log_likelihood(self.filter, belief, self.measurements, reduction=self.reduction,
                                            update_first=self.update_first)
-
-    _prepared_name = "linear_gaussian"
 
     def minimize(self, *, parameters: Any = None, method: str = "L-BFGS-B", tol: float | None = None,
                  options: dict | None = None) -> Any:
@@ -170,18 +167,3 @@ class Objective:
     def __repr__(self) -> str:
         return (f"Objective({type(self.filter).__name__}, T={self.measurements.shape[0]}, "
                 f"reduction={self.reduction!r}, kernel={'none: ' + self.why if self._prepared is None else 'yes'})")
-
-
-def _prepared(filter: Filter, belief0: Any, measurements: Tensor, request: kernels.Request):
-    """The kernels' prepared evaluation of this likelihood (an object with ``__call__(belief0,
-    update_first)``), or ``(None, reasons)``."""
-    prepared, why = kernels.plan(filter, belief0, measurements, request)
-    return prepared, why
-
-
-def _reduce(total: Tensor, reduction: str, steps: int) -> Tensor:
-    if reduction == "none":
-        return total
-    if reduction == "sum":
-        return total.sum()
-    return total.mean() / steps

@@ -31,10 +31,10 @@ from torchmm.beliefs.ops import normalize_log_probs
 from torchmm.beliefs.particle import ParticleBelief
 from torchmm.contract import Choice, Gen, Of, Real, entry_point
 from torchmm.filters.base import StepOutput
-from torchmm.validation import broadcast_shape
 from torchmm.filters.particle import ParticleFilter
 from torchmm.filters.resampling import RESAMPLING_SCHEMES, effective_sample_size, resample
 from torchmm.models.base import MeasurementModel, MotionModel
+from torchmm.validation import broadcast_shape
 
 __all__ = ["SoftResamplingParticleFilter", "soft_resample", "soft_resample_where_needed"]
 

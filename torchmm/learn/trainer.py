@@ -31,8 +31,8 @@ from torchmm.contract import (
     Values,
     entry_point,
 )
-from torchmm.runtime import entries, one_thread_when_small
 from torchmm.learn.loss import as_start_belief, negative_log_likelihood, truncated_segments
+from torchmm.runtime import entries, one_thread_when_small
 
 __all__ = ["TrainRecord", "Trainer", "load_checkpoint", "save_checkpoint"]  # (and NonFiniteLossError, below)
 
