@@ -12,7 +12,7 @@ same algorithmic choices; each is written in its library's idiom.
    ``torch.Generator`` replays them), and both must give the same particles, weights, model sets
    and estimates (max abs difference printed, must be < 1e-9 relative).
 2. Timing: each implementation draws its own random numbers; median time per step. torchmm runs
-   twice: as it is (with :mod:`torchmm.cpu_kernels`, the fused Numba kernels, on the CPU) and
+   twice: as it is (with :mod:`torchmm.kernels.particle`, the fused Numba kernels, on the CPU) and
    with those kernels off (``torchmm_eager``). Both run in this process with
    ``torchmm.runtime.retain_freed_memory`` (``--no-retain`` to compare): freed large arrays stay
    in the heap instead of being unmapped and page-faulted afresh. Each repeat times torchmm, the
@@ -42,7 +42,8 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from experiments.studies.mevsmm import MODELS, paper003_scenario
-from torchmm import LinearMotion, cpu_kernels
+import torchmm.kernels.particle as cpu_kernels
+from torchmm import LinearMotion, kernels
 from torchmm.filters.particle import noise_factor
 from torchmm.multimodel.mevsmm import ChallengeMatch, MinimumEntropyVSMM, uniform_transition
 from torchmm.multimodel.policies import _units
@@ -308,12 +309,9 @@ def main(argv=None) -> None:
         for _ in range(args.steps):
             torch.randn(B, M, Np, r, dtype=torch.float32, generator=gen)
 
-    def eager_steps():  # the same steps without torchmm.cpu_kernels
-        previous = cpu_kernels.set_enabled(False)
-        try:
+    def eager_steps():  # the same steps without the particle stages (torchmm.kernels.particle)
+        with kernels.switched_off(cpu_kernels.NAME):
             torch_steps()
-        finally:
-            cpu_kernels.set_enabled(previous)
 
     # each repeat times all four back to back, so that the cap and the step share the machine's state
     times = {"torch": [], "eager": [], "numpy": [], "normals": []}

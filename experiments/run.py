@@ -137,7 +137,7 @@ def _run(cfg: DictConfig, ctx, study, config: dict, overrides: list[str] | None)
     import torch
 
     from experiments.provenance import Provenance
-    from torchmm import cpu_kernels
+    from torchmm import kernels
     from torchmm.runtime import compile_fast_paths, retain_freed_memory
 
     ctx.bar_label, ctx.bar_position = _sweep_bars()
@@ -152,7 +152,9 @@ def _run(cfg: DictConfig, ctx, study, config: dict, overrides: list[str] | None)
         retain_freed_memory()
     previous_compile = compile_fast_paths(bool(cfg.get("compile", False)))
     kernels_off = cfg.get("cpu_kernels", True) is False  # the eager particle path (the same numbers)
-    previous_kernels = cpu_kernels.set_enabled(False) if kernels_off else None
+    previous_kernels = kernels.enabled("particle_stages")
+    if kernels_off:
+        kernels.set_enabled("particle_stages", False)
     provenance = Provenance()
     provenance.start(device=ctx.device, dtype=ctx.dtype, threads=torch.get_num_threads())
     ctx.logger.text("config", "```yaml\n" + OmegaConf.to_yaml(config) + "```")  # the resolved config
@@ -173,7 +175,7 @@ def _run(cfg: DictConfig, ctx, study, config: dict, overrides: list[str] | None)
         torch.set_num_threads(previous_threads)
         compile_fast_paths(previous_compile)
         if kernels_off:
-            cpu_kernels.set_enabled(previous_kernels)
+            kernels.set_enabled("particle_stages", previous_kernels)
     log.info("results written to %s", ctx.output_dir)
     return ctx.results
 

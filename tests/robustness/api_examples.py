@@ -51,7 +51,9 @@ _PER_STEP = ("a plain constructor that every filter step calls (shapes checked i
              "checked where a user hands a belief in: Belief.validate at run_filter, initial_belief, create")
 _OP = ("a step-level operation (called inside every filter step: shapes only, no value checks, no host "
        "synchronisation)")
-_KERNEL = "a kernel of the fused CPU step (torchmm.cpu_kernels), called by the filters inside a step"
+_KERNEL = "a particle stage of the fused CPU step (torchmm.kernels.particle), called by the filters inside a step"
+_SEAM = ("the kernels seam (torchmm.kernels): a developer's hook that filters, kernels and the engine call; "
+         "the user's arguments were checked at the entry point that called it")
 _NO_ARGS = "takes no arguments: nothing to check"
 
 NOT_ENTRY_POINTS: dict[str, str] = {
@@ -102,12 +104,28 @@ NOT_ENTRY_POINTS: dict[str, str] = {
     "torchmm.multimodel.particle.mixing_indices": _OP + " (the particle interaction's ancestors)",
     "torchmm.beliefs.base.register_belief": "a class decorator for new belief types (a developer's hook)",
     # kernels
-    "torchmm.cpu_kernels.available": _KERNEL,
-    "torchmm.cpu_kernels.enabled": _KERNEL,
-    "torchmm.cpu_kernels.challenge_pass": _KERNEL,
-    "torchmm.cpu_kernels.propagate_log_likelihood": _KERNEL,
-    "torchmm.cpu_kernels.two_stage_indices": _KERNEL,
-    "torchmm.cpu_kernels.set_enabled": _KERNEL + " (a switch: True, False or None)",
+    "torchmm.kernels.particle.available": _KERNEL,
+    "torchmm.kernels.particle.applies": _KERNEL,
+    "torchmm.kernels.particle.enabled": _KERNEL,
+    "torchmm.kernels.particle.challenge_pass": _KERNEL,
+    "torchmm.kernels.particle.propagate_log_likelihood": _KERNEL,
+    "torchmm.kernels.particle.two_stage_indices": _KERNEL,
+    "torchmm.kernels.particle.LinearParticles": _RECORD + " (a filter's description of itself)",
+    "torchmm.kernels.linear.LinearGaussian": _RECORD + " (a filter's description of itself)",
+    "torchmm.kernels.linear.load": _SEAM,
+    "torchmm.kernels.Request": _RECORD + " (what run_filter asks of a kernel)",
+    "torchmm.kernels.describe": _SEAM,
+    "torchmm.kernels.enabled": _SEAM,
+    "torchmm.kernels.joined": _SEAM,
+    "torchmm.kernels.joins": _SEAM + " (a class decorator)",
+    "torchmm.kernels.names": _NO_ARGS,
+    "torchmm.kernels.plan": _SEAM,
+    "torchmm.kernels.plan_smooth": _SEAM,
+    "torchmm.kernels.register": _SEAM,
+    "torchmm.kernels.registered": _NO_ARGS,
+    "torchmm.kernels.set_enabled": "a switch; its name is checked against kernels.names() (ValueError naming it)",
+    "torchmm.kernels.stack_steps": _SEAM,
+    "torchmm.kernels.switched_off": "a switch; its name is checked against kernels.names() (ValueError naming it)",
     # no arguments
     "torchmm.filters.unscented.CubatureSigmaPoints": _NO_ARGS,
     "torchmm.multimodel.imm.MomentMixing": _NO_ARGS,

@@ -18,7 +18,8 @@ import math
 import pytest
 import torch
 
-import torchmm.cpu_kernels as cpu_kernels
+import torchmm.kernels.particle as cpu_kernels
+from torchmm import kernels
 from tests.robustness.cases import CASES, Case
 from torchmm import (
     IMM,
@@ -235,16 +236,16 @@ def test_multiple_model_pf_kernels_flag_failures_as_the_eager_path(monkeypatch):
     transition = torch.tensor([[0.9, 0.1], [0.1, 0.9]], dtype=torch.float64)
     z = _data(steps=1)[0]
     outs = []
-    previous = cpu_kernels.enabled()
+    previous = kernels.enabled(cpu_kernels.NAME)
     try:
         for flag in (False, True):
-            cpu_kernels.set_enabled(flag)
+            kernels.set_enabled(cpu_kernels.NAME, flag)
             g = torch.Generator().manual_seed(3)
             f = MultipleModelParticleFilter(bank, sensor, transition, 32, innovation_stats=False)
             belief = _break(f.initial_belief(_prior(), generator=g), run=1)
             outs.append(f.step(belief, z, generator=g))
     finally:
-        cpu_kernels.set_enabled(previous)
+        kernels.set_enabled(cpu_kernels.NAME, previous)
     eager, fused = outs
     assert calls == [1]  # the kernel ran once (kernels on), the eager path once (kernels off)
     assert fused.extras["failed"].tolist() == [False, True, False, False]

@@ -17,13 +17,13 @@ import torch
 from torch import Tensor
 
 import torchmm.kernels as kernels
-from torchmm.kernels.linear import LinearGaussian
 from torchmm.beliefs import GaussianBelief
 from torchmm.contract import Flag, Of, entry_point
 from torchmm.filters.base import Filter, StepOutput
+from torchmm.kernels.linear import LinearGaussian
 from torchmm.linalg import condition, flag_failed
 from torchmm.models.base import MeasurementModel, MotionModel, check_model_pair
-from torchmm.models.linear import LinearMeasurement, LinearMotion
+from torchmm.models.linear import LinearMeasurement, LinearMotion, plain_linear
 from torchmm.validation import broadcast_shape, check_measurement, gaussian_batch
 
 __all__ = ["ExtendedKalmanFilter", "KalmanFilter"]
@@ -101,12 +101,6 @@ class ExtendedKalmanFilter(Filter):
                           {"singular": singular, "failed": flag_failed(log_likelihood)})
 
 
-def _plain(model, base: type, methods: tuple) -> bool:
-    """``model`` is a ``base`` whose ``methods`` are ``base``'s own (a subclass that only builds the
-    matrices, like ConstantVelocity, computes ``F x + b``; one overriding them may not)."""
-    return isinstance(model, base) and all(getattr(type(model), name) is getattr(base, name) for name in methods)
-
-
 @kernels.joins("linear_gaussian")
 class KalmanFilter(ExtendedKalmanFilter):
     """Kalman filter for :class:`LinearMotion` / :class:`LinearMeasurement` models (and banks).
@@ -155,9 +149,9 @@ class KalmanFilter(ExtendedKalmanFilter):
         if self.joseph:
             return "the Joseph form"
         motion, sensor = self.motion, self.measurement
-        if not _plain(motion, LinearMotion, ("forward", "noise_cov", "jacobian")) or motion.input_matrix is not None:
+        if not (isinstance(motion, LinearMotion) and plain_linear(motion)) or motion.input_matrix is not None:
             return "the motion is not a LinearMotion (its own forward and noise) without a control input"
-        if not _plain(sensor, LinearMeasurement, ("forward", "noise_cov", "jacobian")):
+        if not (isinstance(sensor, LinearMeasurement) and plain_linear(sensor)):
             return "the measurement is not a LinearMeasurement (its own forward and noise)"
         return LinearGaussian(motion.F, motion.offset, motion.Q, sensor.H, sensor.R)
 

@@ -16,6 +16,12 @@ Two halves meet here, and neither names the other's classes:
 * a **kernel registers** with :func:`register`: ``kernel.plan(filter, belief0, measurements, request)``
   returns a callable that runs the whole trajectory, or a string saying why not.
 
+Some kernels replace *stages inside a step* instead of the whole run: the multiple-model particle
+filter's fused passes (:mod:`torchmm.kernels.particle`, name ``"particle_stages"``), asked for from the
+particle step between its random draws. They meet the filter the same way (the filter joins the
+``"linear_particles"`` family and describes its models), and are switched on and off by the same
+:func:`set_enabled` and :func:`switched_off`.
+
 The engine (``run.py``, ``multimodel/``) tests no concrete filter class to find speed
 (tests/test_layering.py checks it).
 """
@@ -32,7 +38,7 @@ import torch.utils._pytree as pytree
 
 from torchmm.validation import broadcast_shape
 
-__all__ = ["Request", "describe", "enabled", "joined", "joins", "plan", "plan_smooth", "register", "registered", "set_enabled",
+__all__ = ["Request", "describe", "enabled", "joined", "joins", "names", "plan", "plan_smooth", "register", "registered", "set_enabled",
            "stack_steps", "switched_off"]
 
 _KERNELS: list = []
@@ -41,12 +47,13 @@ _JOINED: dict[str, dict[type, dict[str, Any]]] = {}
 _METHODS = ("step", "predict", "update")
 
 
-def joins(family: str) -> Callable[[type], type]:
-    """Class decorator: ``cls`` (and its subclasses that keep its ``step``, ``predict`` and ``update``)
-    joins the kernel ``family`` (e.g. ``"linear_gaussian"``)."""
+def joins(family: str, methods: tuple[str, ...] = _METHODS) -> Callable[[type], type]:
+    """Class decorator: ``cls`` (and its subclasses that keep its ``methods``, by default ``step``,
+    ``predict`` and ``update``: the computation the family's kernels replace) joins the kernel
+    ``family`` (e.g. ``"linear_gaussian"``)."""
 
     def decorate(cls: type) -> type:
-        _JOINED.setdefault(family, {})[cls] = {name: getattr(cls, name, None) for name in _METHODS}
+        _JOINED.setdefault(family, {})[cls] = {name: getattr(cls, name, None) for name in methods}
         return cls
 
     return decorate
@@ -109,11 +116,22 @@ class Request:
 _OFF: set = set()
 
 
+#: kernels of stages inside a step (no plan; they ask enabled(name) themselves)
+_STAGES = ("particle_stages",)
+
+
+def names() -> list[str]:
+    """The names :func:`set_enabled` knows: the registered kernels' and the stage kernels'."""
+    return [kernel.name for kernel in registered()] + list(_STAGES)
+
+
 def set_enabled(name: str, enabled: bool = True) -> None:
-    """Switch the registered kernel ``name`` on or off for this process (off: :func:`plan` passes it
-    over, ``fast_path=True`` included). The study harness switches the small linear-Gaussian kernel
-    off: its choice depends on the number of runs, and a study's numbers must not depend on how its
-    runs are split into units (experiments/run.py, experiments/executors.py)."""
+    """Switch the kernel ``name`` (one of :func:`names`) on or off for this process (off: :func:`plan`
+    passes it over, ``fast_path=True`` included; a stage kernel's filter takes its eager passes). The
+    study harness switches the small linear-Gaussian kernel off: its choice depends on the number of
+    runs, and a study's numbers must not depend on how its runs are split into units
+    (experiments/run.py, experiments/executors.py)."""
+    _check_name(name)
     if enabled:
         _OFF.discard(name)
     else:
@@ -123,6 +141,7 @@ def set_enabled(name: str, enabled: bool = True) -> None:
 @contextlib.contextmanager
 def switched_off(name: str):
     """``with switched_off("linear_gaussian"): ...``: :func:`set_enabled` off inside, restored after."""
+    _check_name(name)
     was = name in _OFF
     _OFF.add(name)
     try:
@@ -130,6 +149,12 @@ def switched_off(name: str):
     finally:
         if not was:
             _OFF.discard(name)
+
+
+def _check_name(name: str) -> None:
+    known = names()
+    if name not in known:
+        raise ValueError(f"name: no kernel named {name!r}; the kernels are {known}")
 
 
 def enabled(name: str) -> bool:

@@ -7,11 +7,11 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
+from torchmm.contract import Cov, Finite, entry_point
 from torchmm.models.base import MeasurementModel, MotionModel, store_tensor
 from torchmm.validation import as_tensor, broadcast_shape, check_covariance, check_shape, check_square
-from torchmm.contract import Cov, Finite, entry_point
 
-__all__ = ["LinearMeasurement", "LinearMotion", "matvec"]
+__all__ = ["LinearMeasurement", "LinearMotion", "matvec", "plain_linear"]
 
 
 def matvec(A: Tensor, x: Tensor) -> Tensor:
@@ -217,3 +217,14 @@ def _check_stackable(models, cls, name: str) -> None:
     dims = {(m.state_dim, getattr(m, "meas_dim", None)) for m in models}
     if len(dims) > 1:
         raise ValueError(f"{name}: models have different dimensions {sorted(dims)}")
+
+
+def plain_linear(model) -> bool:
+    """Whether ``model`` is a :class:`LinearMotion` or :class:`LinearMeasurement` whose ``forward``,
+    ``noise_cov`` and ``jacobian`` are the base class's own: it computes ``F x + b`` (``H x``) with
+    its matrices, so a kernel may use the matrices instead of calling it. A subclass that only builds
+    the matrices (``ConstantVelocity``) is plain; one that overrides them is not."""
+    base = LinearMotion if isinstance(model, LinearMotion) else LinearMeasurement if isinstance(
+        model, LinearMeasurement) else None
+    return base is not None and all(getattr(type(model), name) is getattr(base, name)
+                                    for name in ("forward", "noise_cov", "jacobian"))

@@ -26,15 +26,15 @@ import math
 import torch
 from torch import Tensor
 
-import torchmm.cpu_kernels as cpu_kernels
-from torchmm.contract import BeliefArg, Choice, DType, Finite, Flag, Gen, Int, Of, Stochastic, entry_point
+import torchmm.kernels as kernels
+import torchmm.kernels.particle as particle_stages
 from torchmm.beliefs import GaussianBelief, ModeBelief, ParticleBelief
 from torchmm.beliefs.ops import normalize_log_probs
+from torchmm.contract import BeliefArg, Choice, DType, Finite, Flag, Gen, Int, Of, Stochastic, entry_point
 from torchmm.filters.base import StepOutput
 from torchmm.filters.particle import (
     ParticleFilter,
     cached_noise_factor,
-    whitening,
     check_generator,
     check_particle_prior,
     degenerate_guard,
@@ -43,13 +43,14 @@ from torchmm.filters.particle import (
     particle_log_likelihood,
     propagate_particles,
     sample_gaussian,
+    whitening,
 )
 from torchmm.filters.resampling import searchsorted_rows, systematic_search
 from torchmm.linalg import any_observed
 from torchmm.models.base import MeasurementModel, MotionModel, check_model_pair
-from torchmm.models.linear import LinearMeasurement, LinearMotion
-from torchmm.runtime import host_reads_ok
+from torchmm.models.linear import LinearMeasurement, LinearMotion, plain_linear
 from torchmm.multimodel.imm import Interaction, MultipleModelFilter
+from torchmm.runtime import host_reads_ok
 from torchmm.validation import as_int, check_measurement, check_probabilities
 
 __all__ = ["MultipleModelParticleFilter", "ParticleMixing", "mixing_indices"]
@@ -118,7 +119,7 @@ def mixing_indices(mode_log_probs: Tensor, log_transition: Tensor, within_log_we
     batch, num_models = mixing.shape[:-2], mixing.shape[-1]
     shape = (*batch, num_models, num_particles)
     # two_stage on CPU tensors: the points, ancestors and slots in one compiled pass (below)
-    fused = scheme == "two_stage" and cpu_kernels.applies(cdf_models)
+    fused = scheme == "two_stage" and particle_stages.applies(cdf_models)
     if scheme in ("systematic", "two_stage"):
         u0 = torch.rand((*shape[:-1], 1), dtype=torch.float64, device=cdf_models.device, generator=generator)
         if not fused:
@@ -145,10 +146,10 @@ def mixing_indices(mode_log_probs: Tensor, log_transition: Tensor, within_log_we
     else:
         w = (w - torch.where(normalised_like | ~torch.isfinite(top), 0.0, top)).exp_()
     num_prev = w.shape[-1]
-    if fused:  # the CDFs, points, ancestors and slots in one compiled pass (torchmm.cpu_kernels)
+    if fused:  # the CDFs, points, ancestors and slots in one compiled pass (torchmm.kernels.particle)
         v0 = torch.rand((*batch, num_models, 1), dtype=torch.float64, device=w.device, generator=generator)
         rows = batch.numel()
-        flat = cpu_kernels.two_stage_indices(
+        flat = particle_stages.two_stage_indices(
             cdf_models.reshape(rows, num_models, num_models), u0.reshape(rows, num_models),
             w.expand(*batch, num_models, num_prev).reshape(rows, num_models, num_prev),
             v0.reshape(rows, num_models), num_particles, background=_defer)
@@ -228,6 +229,7 @@ class ParticleMixing(Interaction):
         return ModeBelief(log_cbar, ParticleBelief(ancestors, log_w))
 
 
+@kernels.joins("linear_particles", ("step", "_propagate", "_weigh"))
 class MultipleModelParticleFilter(MultipleModelFilter):
     r"""Interacting multiple-model particle filter with ``Np`` particles per model.
 
@@ -235,6 +237,10 @@ class MultipleModelParticleFilter(MultipleModelFilter):
     with the :class:`ParticleMixing` interaction, and the fused joint update of (33)-(34) (the
     weights of every model's particles normalised together in a few passes, instead of one
     normalisation per model and one over the models).
+
+    It joins the ``"linear_particles"`` kernels (:mod:`torchmm.kernels.particle`): on the CPU, with
+    linear-Gaussian models, its propagation and likelihoods run as one compiled pass (the same draws,
+    the same numbers); a subclass that overrides ``step``, ``_propagate`` or ``_weigh`` leaves them.
 
     Paper 003 eqs. (32)-(34): every model of the set carries ``Np`` particles; the weight of
     particle ``j`` of model ``i`` is ``c_i p(z_k | x^j_k(m_i))`` (33), normalised over all models
@@ -393,27 +399,38 @@ class MultipleModelParticleFilter(MultipleModelFilter):
         """The predicted belief as :meth:`predict` returns it (a subclass may add to it)."""
         return prior
 
+    def linear_particles(self) -> particle_stages.LinearParticles | str:
+        """This filter's description for the ``"linear_particles"`` kernels (:mod:`torchmm.kernels`):
+        its models' matrices, or the reason it has none (innovation statistics asked for, a model
+        that is not a plain linear-Gaussian one, a control input)."""
+        motion, measurement = self.motion, self.measurement
+        if self.innovation_stats:
+            return "innovation_stats=True"
+        if not isinstance(self.interaction, ParticleMixing):
+            return "not the particle interaction"
+        if not (isinstance(motion, LinearMotion) and plain_linear(motion)) or motion.input_matrix is not None:
+            return "the motion is not a LinearMotion (its own forward and noise) without a control input"
+        if not (isinstance(measurement, LinearMeasurement) and plain_linear(measurement)):
+            return "the measurement is not a LinearMeasurement (its own forward and noise)"
+        return particle_stages.LinearParticles(motion.F, motion.offset, motion.noise_cov(), measurement.H,
+                                               measurement.noise_cov())
+
     def _fused_prior(self, belief: ModeBelief, z: Tensor, generator) -> tuple[ModeBelief, Tensor] | None:
         """:meth:`predict` and the particles' log-likelihoods of ``z`` through
-        :func:`torchmm.cpu_kernels.propagate_log_likelihood` (the same draws, the same numbers);
-        None where it does not apply: CPU float64 tensors without autograd, a linear motion and
-        measurement with unbatched ``F``, ``Q``, ``H``, ``R``, complete data, the base class's
-        propagation, ``innovation_stats=False``."""
-        motion, measurement = self.motion, self.measurement
-        if (self.innovation_stats or not isinstance(z, Tensor) or type(self)._propagate is not MultipleModelParticleFilter._propagate
-                or not isinstance(self.interaction, ParticleMixing) or not isinstance(motion, LinearMotion)
-                or not isinstance(measurement, LinearMeasurement) or not isinstance(belief, ModeBelief)
+        :func:`torchmm.kernels.particle.propagate_log_likelihood` (the same draws, the same numbers);
+        None where it does not apply: the filter's description (:meth:`linear_particles`, through
+        :func:`torchmm.kernels.describe`), the kernel's conditions
+        (:meth:`~torchmm.kernels.particle.LinearParticles.why_not`), complete data."""
+        described = kernels.describe(self, "linear_particles")
+        if (isinstance(described, str) or not isinstance(z, Tensor) or not isinstance(belief, ModeBelief)
                 or not isinstance(belief.components, ParticleBelief)):
             return None
         particles = belief.components.particles
-        F, H, Q, R = motion.F, measurement.H, motion.noise_cov(), measurement.noise_cov()
-        n, M = particles.shape[-1], self.num_modes
-        if (F.dim() != 2 or H.dim() != 2 or Q.dim() != 2 or R.dim() != 2 or particles.dim() < 3
-                or particles.dtype != torch.float64 or z.dtype != torch.float64 or z.dim() < 1
-                or z.shape[-1] != H.shape[0] or F.shape != (n, n) or H.shape[-1] != n
-                or motion.offset.dim() > 2 or motion.offset.shape[-1] != n or motion.offset.numel() not in (n, M * n)
-                or not cpu_kernels.applies(particles, z, F, H, Q, R, motion.offset)):
+        M = self.num_modes
+        if described.why_not(particles, z, M):
             return None
+        F, H, Q, R, offset = described.F, described.H, described.Q, described.R, described.offset
+        n = particles.shape[-1]
         batch = self._check_belief(belief)
         if z.shape[:-1] != batch or not bool(torch.isfinite(z).all()):  # a host read: CPU tensors only here
             return None
@@ -428,9 +445,9 @@ class MultipleModelParticleFilter(MultipleModelFilter):
         inv, logdet = whitening(R)
         rows = batch.numel()
         source = particles.expand(*batch, *particles.shape[-3:])
-        x, loglik, nan = cpu_kernels.propagate_log_likelihood(
+        x, loglik, nan = particle_stages.propagate_log_likelihood(
             source.reshape(rows, -1, n), flat.reshape(rows, M, num), eps.reshape(rows, M, num, -1), factor,
-            motion.offset.expand(M, n), F, (inv @ H).contiguous(), -(z.unsqueeze(-2) @ inv.mT).reshape(rows, -1),
+            offset.expand(M, n), F, (inv @ H).contiguous(), -(z.unsqueeze(-2) @ inv.mT).reshape(rows, -1),
             float(logdet + H.shape[0] * math.log(2 * math.pi)), with_nan=True)
         log_w = torch.full((), -math.log(num), dtype=x.dtype).expand(*batch, M, num)
         prior = ModeBelief(log_cbar, ParticleBelief(x.view(*batch, M, num, n), log_w))

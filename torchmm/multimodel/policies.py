@@ -35,10 +35,10 @@ import math
 import torch
 from torch import Tensor
 
-import torchmm.cpu_kernels as cpu_kernels
-from torchmm.contract import Choice, Indices, Int, Of, entry_point
+import torchmm.kernels.particle as particle_stages
 from torchmm.beliefs import ModeBelief, ParticleBelief
 from torchmm.beliefs.ops import normalize_log_probs
+from torchmm.contract import Choice, Indices, Int, Of, entry_point
 from torchmm.validation import as_int
 
 __all__ = [
@@ -272,12 +272,12 @@ def challenge_match(scores: Tensor, num_winners: int, *, passes: int = 1,
     flat = scores.reshape(batch.numel(), P)
     Bf, device = flat.shape[0], flat.device
     pool_size = P - num_winners
-    if passes == 1 and pool_size > 0 and cpu_kernels.applies(flat):
-        # the same pass from the same random numbers in one compiled loop (torchmm.cpu_kernels)
+    if passes == 1 and pool_size > 0 and particle_stages.applies(flat):
+        # the same pass from the same random numbers in one compiled loop (torchmm.kernels.particle)
         a, b = _affine_coefficients(Bf, P, device, generator)
         rounds = math.ceil(pool_size / num_winners)
         shifts = torch.randint(0, num_winners, (rounds * Bf, 1), device=device, generator=generator)
-        winners = cpu_kernels.challenge_pass(flat, a.view(Bf), b.view(Bf), shifts.view(rounds, Bf), num_winners)
+        winners = particle_stages.challenge_pass(flat, a.view(Bf), b.view(Bf), shifts.view(rounds, Bf), num_winners)
         return winners.view(*batch, num_winners)
     order = _random_affine_permutation(Bf, P, device, generator)
     seq1 = order[:, :num_winners].contiguous()

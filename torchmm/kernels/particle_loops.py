@@ -1,4 +1,4 @@
-"""The Numba kernels of :mod:`torchmm.cpu_kernels` (imported on first use: importing Numba takes a
+"""The Numba loops of :mod:`torchmm.kernels.particle` (imported on first use: importing Numba takes a
 moment). Each is compiled once per machine and argument types, and cached on disk by Numba."""
 
 from __future__ import annotations

@@ -1,4 +1,10 @@
-r"""Fused CPU kernels (Numba) for the multiple-model particle filter's passes over its particles.
+r"""The particle stages: fused CPU loops (Numba) for the multiple-model particle filter's passes over
+its particles, behind the kernels seam (:mod:`torchmm.kernels`, name ``"particle_stages"``).
+
+Unlike the whole-run kernels :func:`torchmm.kernels.plan` chooses, these replace *stages inside a
+step* (the random numbers are drawn between them). The step asks for them the seam's way: the filter
+joins the ``"linear_particles"`` family (:func:`torchmm.kernels.joins`) and describes its models with
+``filter.linear_particles()`` (or says why not); the data-dependent conditions are :func:`applies`.
 
 The eager step of :class:`~torchmm.multimodel.MultipleModelParticleFilter` makes about a dozen
 memory-bound passes over its ``runs x M x Np`` particles. On CPU tensors, three of its stages run
@@ -21,8 +27,10 @@ the last bit, like the eager path itself between machines. Integer work (countin
 tournament's comparisons) is exact everywhere.
 
 **When they run.** CPU tensors, no autograd graph, Numba importable (a dependency of torchmm; without
-it the eager path runs), and not switched off with :func:`set_enabled` (or the environment variable
-``TORCHMM_CPU_KERNELS=0``). The filters decide per call; nothing else changes. The first call of
+it the eager path runs), and not switched off: ``torchmm.kernels.set_enabled("particle_stages",
+False)``, ``with torchmm.kernels.switched_off("particle_stages")``, a study's ``cpu_kernels=false``,
+or the environment variable ``TORCHMM_CPU_KERNELS=0``. The filters decide per call; nothing else
+changes. The first call of
 each kernel in a process compiles it (seconds; Numba caches the machine code on disk next to this
 file). Threads: as many as torch uses (``torch.get_num_threads()``).
 """
@@ -32,19 +40,22 @@ from __future__ import annotations
 import logging
 import os
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 from torch import Tensor
 
+import torchmm.kernels as kernels
 from torchmm.runtime import host_reads_ok
 
-log = logging.getLogger("torchmm.cpu_kernels")
+log = logging.getLogger("torchmm.kernels.particle")
 _ANNOUNCED: list[bool] = []
 
-__all__ = ["available", "challenge_pass", "enabled", "propagate_log_likelihood", "set_enabled", "two_stage_indices"]
+__all__ = ["NAME", "LinearParticles", "applies", "available", "challenge_pass", "enabled", "propagate_log_likelihood", "two_stage_indices"]
 
-_ENABLED: list[bool | None] = [None]  # None: on where Numba is importable (unless the environment says 0)
+#: the name of the particle stages at the seam (torchmm.kernels.set_enabled, switched_off)
+NAME = "particle_stages"
 _NUMBA: list = []  # [module or None], imported on first use
 
 
@@ -63,28 +74,13 @@ def available() -> bool:
     return _numba() is not None
 
 
-def set_enabled(flag: bool | None) -> bool | None:
-    """Use the fused CPU kernels where they apply (``True``), never (``False``), or decide by
-    availability and ``TORCHMM_CPU_KERNELS`` (``None``, the default). Returns the previous setting.
-
-    ``True`` where Numba is missing raises :class:`RuntimeError`.
-    """
-    if flag is not None and not isinstance(flag, bool):
-        raise TypeError(f"flag: expected True, False or None, got {flag!r}")
-    if flag and not available():
-        raise RuntimeError("flag: the fused CPU kernels need numba (pip install numba)")
-    previous = _ENABLED[0]
-    _ENABLED[0] = flag
-    return previous
-
-
 def enabled() -> bool:
-    """Whether the kernels are on in this process (see :func:`set_enabled`)."""
-    flag = _ENABLED[0]
-    if flag is None:
-        flag = os.environ.get("TORCHMM_CPU_KERNELS", "1").strip().lower() not in ("0", "false", "no", "off")
-        flag = flag and available()
-    return flag
+    """Whether the particle stages are on in this process: Numba importable, not switched off at the
+    seam (``torchmm.kernels.set_enabled("particle_stages", False)``) nor by ``TORCHMM_CPU_KERNELS=0``."""
+    if not kernels.enabled(NAME):
+        return False
+    flag = os.environ.get("TORCHMM_CPU_KERNELS", "1").strip().lower() not in ("0", "false", "no", "off")
+    return flag and available()
 
 
 def applies(*tensors: Tensor) -> bool:
@@ -94,6 +90,46 @@ def applies(*tensors: Tensor) -> bool:
         return False
     grad = torch.is_grad_enabled()
     return all(host_reads_ok(t) and not (grad and t.requires_grad) for t in tensors)
+
+
+@dataclass(frozen=True)
+class LinearParticles:
+    """A particle filter's description of itself for the ``"linear_particles"`` family
+    (``filter.linear_particles()``): linear-Gaussian propagation ``x' = F x + offset_i + noise(Q)`` of
+    model ``i``'s particles and a linear-Gaussian measurement ``z = H x + noise(R)``, the models'
+    own matrices (:func:`torchmm.models.linear.plain_linear`).
+
+    Shapes:
+        F: ``(n, n)``; offset: ``(n,)`` or ``(M, n)``; Q: ``(n, n)``; H: ``(m, n)``; R: ``(m, m)``
+    """
+
+    F: Tensor
+    offset: Tensor
+    Q: Tensor
+    H: Tensor
+    R: Tensor
+
+    def why_not(self, particles: Tensor, z: Tensor, num_modes: int) -> str:
+        """Why :func:`propagate_log_likelihood` cannot run on these particles and data ("" where it
+        can): shapes, float64, unbatched matrices, and :func:`applies` (enabled, CPU, no autograd).
+        Missing data is the caller's to check (it needs a host read).
+
+        Shapes:
+            particles: ``(*B, M, Np, n)``; z: ``(*B, m)``
+        """
+        F, H, Q, R, offset = self.F, self.H, self.Q, self.R, self.offset
+        n = particles.shape[-1]
+        if F.dim() != 2 or H.dim() != 2 or Q.dim() != 2 or R.dim() != 2 or F.shape != (n, n) or H.shape[-1] != n:
+            return "batched model matrices"
+        if offset.dim() > 2 or offset.shape[-1] != n or offset.numel() not in (n, num_modes * n):
+            return "an offset batched beyond the modes"
+        if particles.dim() < 3 or particles.dtype != torch.float64 or z.dtype != torch.float64:
+            return "not float64 particles and data"
+        if z.dim() < 1 or z.shape[-1] != H.shape[0]:
+            return "data of another size"
+        if not applies(particles, z, F, H, Q, R, offset):
+            return "switched off, not on the CPU, or inside an autograd graph"
+        return ""
 
 
 def _threads() -> None:
@@ -107,23 +143,23 @@ def _np(t: Tensor):
 
 
 def _kernels():
-    """The kernels module (:mod:`torchmm.cpu_kernels.loops`), imported on first use."""
+    """The loops' module (:mod:`torchmm.kernels.particle_loops`), imported on first use."""
     if not _ANNOUNCED:
         _ANNOUNCED.append(True)
         if not compiled_before():  # the first run on a machine is otherwise a minute of silence
             log.info("compiling the particle filters' fused CPU kernels (Numba, once per machine: about a "
                      "minute, then a few seconds per new problem size; cached on disk)")
-    from torchmm.cpu_kernels import loops
+    from torchmm.kernels import particle_loops
 
-    return loops
+    return particle_loops
 
 
 def compiled_before() -> bool:
-    """Whether Numba's on-disk cache holds compiled kernels of this module (``NUMBA_CACHE_DIR`` or
-    the ``__pycache__`` beside it)."""
+    """Whether Numba's on-disk cache holds compiled loops of :mod:`torchmm.kernels.particle_loops`
+    (``NUMBA_CACHE_DIR`` or the ``__pycache__`` beside it)."""
     custom = os.environ.get("NUMBA_CACHE_DIR")
     root = Path(custom) if custom else Path(__file__).parent / "__pycache__"
-    return root.is_dir() and any(root.rglob("loops.*.nbi"))
+    return root.is_dir() and any(root.rglob("particle_loops.*.nbi"))
 
 
 # ------------------------------------------------------------------------------------------------

@@ -1,4 +1,4 @@
-"""The fused CPU kernels (torchmm.cpu_kernels) against the eager torch steps they replace.
+"""The particle stages (torchmm.kernels.particle, fused Numba loops) against the eager torch steps they replace.
 
 The integer work (interaction indices, tournament winners) must equal the eager path exactly on any
 machine: it is the same IEEE arithmetic and comparisons. The propagation and likelihood add in the
@@ -14,7 +14,9 @@ import math
 import pytest
 import torch
 
-from torchmm import GaussianBelief, cpu_kernels
+import torchmm.kernels.particle as cpu_kernels
+from torchmm import GaussianBelief
+from torchmm import kernels as seam
 from torchmm.filters.particle import cached_noise_factor
 from torchmm.models import ConstantVelocity, LinearMotion, PositionMeasurement
 from torchmm.multimodel.mevsmm import ChallengeMatch, EqMAParticleFilter, MinimumEntropyVSMM, uniform_transition
@@ -24,12 +26,14 @@ from torchmm.runtime import no_host_sync
 
 
 @contextlib.contextmanager
-def kernels(flag: bool):
-    previous = cpu_kernels.set_enabled(flag)
+def kernels(flag: bool | None):
+    """The particle stages on (True, or None: as by default), or off, at the seam."""
+    previous = seam.enabled(cpu_kernels.NAME)
+    seam.set_enabled(cpu_kernels.NAME, flag is not False)
     try:
         yield
     finally:
-        cpu_kernels.set_enabled(previous)
+        seam.set_enabled(cpu_kernels.NAME, previous)
 
 
 @pytest.fixture
@@ -65,8 +69,12 @@ def test_numba_is_there_and_on_by_default():
 
 
 def test_switches(monkeypatch):
-    with pytest.raises(TypeError, match="flag"):
-        cpu_kernels.set_enabled("yes")
+    with pytest.raises(ValueError, match="name: no kernel named 'particle'"):
+        seam.set_enabled("particle", False)
+    assert cpu_kernels.NAME in seam.names()
+    with seam.switched_off(cpu_kernels.NAME):
+        assert not cpu_kernels.enabled()
+    assert cpu_kernels.enabled()
     with kernels(None):
         monkeypatch.setenv("TORCHMM_CPU_KERNELS", "0")
         assert not cpu_kernels.enabled()
@@ -227,10 +235,41 @@ def test_mmpf_with_a_shared_offset_and_float64_noise(spy):
     _assert_steps_close(eager, fused)
 
 
-@pytest.mark.parametrize("case", ["innovation_stats", "missing", "float32", "eqma", "grad", "no_host_sync"])
+class _OwnForward(LinearMotion):
+    """A linear motion that computes its own forward (here: the same map, through its own code)."""
+
+    def forward(self, x, *, u=None):
+        return super().forward(x, u=u)
+
+
+class _OwnWeights(MultipleModelParticleFilter):
+    """A filter that overrides the weighting step: it leaves the linear_particles family."""
+
+    def _weigh(self, prior, z, loglik=None):
+        return super()._weigh(prior, z, loglik)
+
+
+def test_the_filter_describes_itself_at_the_seam():
+    motion, measurement, _, _ = _scenario((3,), dtype=torch.float64)
+    pi = uniform_transition(3, 0.8, dtype=torch.float64)
+    plain = MultipleModelParticleFilter(motion, measurement, pi, 5, innovation_stats=False)
+    described = seam.describe(plain, "linear_particles")
+    assert isinstance(described, cpu_kernels.LinearParticles) and torch.equal(described.F, motion.F)
+    assert "innovation_stats" in seam.describe(MultipleModelParticleFilter(motion, measurement, pi, 5), "linear_particles")
+    own = _OwnForward(motion.F, motion.Q, motion.offset)
+    assert "LinearMotion" in seam.describe(MultipleModelParticleFilter(own, measurement, pi, 5, innovation_stats=False),
+                                           "linear_particles")
+    assert "has not joined" in seam.describe(_OwnWeights(motion, measurement, pi, 5, innovation_stats=False),
+                                             "linear_particles")
+
+
+@pytest.mark.parametrize("case", ["innovation_stats", "missing", "float32", "eqma", "grad", "no_host_sync",
+                                  "own_forward", "own_weights"])
 def test_the_eager_path_where_the_kernel_does_not_apply(case, spy):
     dtype = torch.float32 if case == "float32" else torch.float64
     motion, measurement, prior, zs = _scenario((3,), dtype=dtype)
+    if case == "own_forward":  # the fused pass would skip its forward: the steps run it
+        motion = _OwnForward(motion.F, motion.Q, motion.offset)
     if case == "missing":
         zs = zs.clone()
         zs[2, 1, 0] = math.nan
@@ -244,8 +283,9 @@ def test_the_eager_path_where_the_kernel_does_not_apply(case, spy):
             return EqMAParticleFilter(motion.F, gain, torch.tensor([[0.5, 0.0], [0.0, -0.5], [0.3, 0.3]], dtype=dtype), 0.3 * torch.eye(2, dtype=dtype),
                                       measurement, 25, transition=uniform_transition(4, 0.8, dtype=dtype),
                                       generator=gen)
-        return MultipleModelParticleFilter(motion, measurement, pi, 25, generator=gen,
-                                           innovation_stats=case == "innovation_stats", mixing="systematic")
+        cls = _OwnWeights if case == "own_weights" else MultipleModelParticleFilter
+        return cls(motion, measurement, pi, 25, generator=gen, innovation_stats=case == "innovation_stats",
+                   mixing="systematic")
 
     around = contextlib.nullcontext
     if case == "no_host_sync":  # the device form, for both runs
@@ -272,11 +312,11 @@ def test_the_first_compile_is_announced(tmp_path, monkeypatch, caplog):
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
     assert not cpu_kernels.compiled_before()  # an empty cache
     (tmp_path / "x").mkdir()
-    (tmp_path / "x" / "loops.propagate-94.py311.nbi").write_bytes(b"")
+    (tmp_path / "x" / "particle_loops.propagate-94.py311.nbi").write_bytes(b"")
     assert cpu_kernels.compiled_before()
     monkeypatch.setattr(cpu_kernels, "_ANNOUNCED", [])
     monkeypatch.setattr(cpu_kernels, "compiled_before", lambda: False)
-    with caplog.at_level(logging.INFO, logger="torchmm.cpu_kernels"):
+    with caplog.at_level(logging.INFO, logger="torchmm.kernels.particle"):
         cpu_kernels._kernels()
         cpu_kernels._kernels()
     assert [r.getMessage() for r in caplog.records].count(
