@@ -198,3 +198,25 @@ def test_ekf_ukf_track_a_turning_target():
         assert 2.5 < nees[-10:].mean().item() < 10.0  # chi2(5) mean is 5
     pos_gap = (ekf.belief.mean[..., [0, 2]] - ukf.belief.mean[..., [0, 2]]).norm(dim=-1).mean()
     assert pos_gap.item() < 1.0
+
+
+def test_range_bearing_closed_form_jacobian_equals_autograd_and_is_differentiable():
+    """``RangeBearing.jacobian`` is written out (issue 31); equal to forward-mode autograd of ``h`` on a
+    batch, for any position components and origin, and differentiable in the state and the origin."""
+    from torchmm import RangeBearing
+    from torchmm.models.base import forward_jacobian
+
+    gen = torch.Generator().manual_seed(3)
+    for indices in ((0, 2), (3, 1)):
+        origin = torch.tensor([-30.0, 12.0], dtype=torch.float64, requires_grad=True)
+        sensor = RangeBearing(5, torch.eye(2, dtype=torch.float64), position_indices=indices, origin=origin)
+        x = 50 * torch.randn(4, 3, 5, generator=gen, dtype=torch.float64)
+        H = sensor.jacobian(x)
+        assert H.shape == (4, 3, 2, 5)
+        torch.testing.assert_close(H, forward_jacobian(sensor, x), rtol=1e-14, atol=1e-16)
+        others = [k for k in range(5) if k not in indices]
+        assert (H[..., others] == 0).all()
+        x0 = x[0, 0].clone().requires_grad_(True)
+        assert torch.autograd.gradcheck(lambda s, o: RangeBearing(5, torch.eye(2, dtype=torch.float64),
+                                                                  position_indices=indices, origin=o).jacobian(s),
+                                        (x0, origin), eps=1e-6, atol=1e-8)

@@ -128,3 +128,31 @@ def test_zero_turn_rate_is_exactly_constant_velocity_and_float32_is_accurate():
     ref = torch.tensor([_exact(float(v), 1.0)["dc"] for v in w.detach()], dtype=torch.float32)
     torch.testing.assert_close(dc, ref, rtol=1e-6, atol=1e-7)
     assert math.isfinite(F.sum().item())
+
+
+@pytest.mark.parametrize("T", [1.0, 2.5])
+def test_closed_form_jacobian_matches_the_50_digit_jacobian_and_autograd(T):
+    """``NonlinearCoordinatedTurn.jacobian`` is written out (issue 31: no forward-mode autograd per
+    step); against the mpmath Jacobian at every turn rate of OMEGAS, both signs, around the series
+    switch ``|omega T| = 0.1``, and against forward-mode autograd of the model."""
+    from torchmm.models.base import forward_jacobian
+
+    omegas = [sign * w for w in OMEGAS for sign in (1.0, -1.0)] + [0.1 / T * (1 + d) for d in (-1e-12, 0, 1e-12)]
+    x = torch.tensor([[100.0, 10.0 + k % 3, 50.0, -5.0 + k % 2, w] for k, w in enumerate(omegas)],
+                     dtype=torch.float64)
+    model = NonlinearCoordinatedTurn(dt=T, q=0.1, q_omega=1e-4)
+    J = model.jacobian(x)
+    assert J.shape == (len(omegas), 5, 5) and J.dtype == torch.float64
+    exact = _AnalyticTurn(dt=T, q=0.1, q_omega=1e-4).jacobian(x)
+    # entries of order |v| T^2 (the omega column) or 1: the series and closed forms to a few ulps
+    torch.testing.assert_close(J, exact, rtol=0, atol=2e-14 * T * T * 15)
+    torch.testing.assert_close(J, forward_jacobian(model, x), rtol=0, atol=2e-14 * T * T * 15)
+
+
+def test_closed_form_jacobian_is_differentiable():
+    """Training through an EKF differentiates the Jacobian: its derivatives in the state, in both
+    branches and at omega = 0, by finite differences."""
+    model = NonlinearCoordinatedTurn(dt=1.5)
+    for w0 in (0.0, 1e-7, 0.05, 0.0666, 0.07, 0.4, -0.3):
+        x = torch.tensor([1.0, 2.0, 3.0, -1.0, w0], dtype=torch.float64, requires_grad=True)
+        assert torch.autograd.gradcheck(model.jacobian, (x,), eps=1e-7, atol=1e-7)

@@ -5,10 +5,10 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from torchmm.contract import Cov, DType, Finite, Indices, Int, entry_point
 from torchmm.models.base import MeasurementModel, store_tensor
 from torchmm.models.linear import LinearMeasurement
 from torchmm.validation import as_int, as_tensor, check_covariance, check_shape
-from torchmm.contract import Cov, DType, Finite, Indices, Int, entry_point
 
 __all__ = ["PositionMeasurement", "RangeBearing"]
 
@@ -86,6 +86,23 @@ class RangeBearing(MeasurementModel):
         dx = x[..., self.position_indices[0]] - self.origin[0]
         dy = x[..., self.position_indices[1]] - self.origin[1]
         return torch.stack([torch.sqrt(dx.square() + dy.square()), torch.atan2(dy, dx)], dim=-1)
+
+    def jacobian(self, x: Tensor) -> Tensor:
+        """Closed-form ``dh/dx``: ``[dx, dy] / r`` and ``[-dy, dx] / r^2`` in the position columns, zero
+        elsewhere; differentiable (in the state and the origin), equal to autograd to rounding.
+
+        Shapes: ``x: (*B, n)`` -> ``(*B, 2, n)``
+        """
+        i, j = self.position_indices
+        dx = x[..., i] - self.origin[0]
+        dy = x[..., j] - self.origin[1]
+        r2 = dx.square() + dy.square()
+        r = torch.sqrt(r2)
+        zero = torch.zeros_like(r)
+        rows = [[zero] * self.state_dim for _ in range(2)]
+        rows[0][i], rows[0][j] = dx / r, dy / r
+        rows[1][i], rows[1][j] = -dy / r2, dx / r2
+        return torch.stack(rows[0] + rows[1], dim=-1).unflatten(-1, (2, self.state_dim))
 
     def noise_cov(self, x: Tensor | None = None) -> Tensor:
         return self.R

@@ -13,10 +13,10 @@ import math
 import torch
 from torch import Tensor
 
+from torchmm.contract import Choice, DType, Finite, Int, Real, entry_point
 from torchmm.models.base import MotionModel, store_tensor
 from torchmm.models.linear import LinearMotion
 from torchmm.validation import as_float, as_int, as_tensor
-from torchmm.contract import Choice, DType, Finite, Int, Real, entry_point
 
 __all__ = [
     "ConstantVelocity",
@@ -118,7 +118,7 @@ class ConstantAcceleration(LinearMotion):
 _TURN_SERIES_BELOW = 0.1
 
 
-def _turn_terms(omega: Tensor, dt: float) -> tuple[Tensor, Tensor]:
+def _turn_terms(omega: Tensor, dt: float, *, derivatives: bool = False) -> tuple[Tensor, ...]:
     r"""``s = sin(w T) / w`` and ``c = (1 - cos(w T)) / w``, cancellation-free, with exact derivatives.
 
     For ``|w T| >= 0.1`` the closed forms ``sin(w T) / w`` and ``2 sin^2(w T / 2) / w`` (no
@@ -130,21 +130,39 @@ def _turn_terms(omega: Tensor, dt: float) -> tuple[Tensor, Tensor]:
     exactly, ``T^2 / 2`` for ``dc/dw`` at ``w = 0``. The closed form is evaluated at a safe
     ``w`` where the series is used (``torch.where`` then passes no NaN gradient).
 
+    With ``derivatives`` also ``ds/dw = (T cos(w T) - s) / w`` and ``dc/dw = (T sin(w T) - c) / w``
+    in closed form (from ``|w T| >= 0.1``; their cancellation costs at most ``1e-15 T^2`` there) and
+    below by the series ``T^2 (-theta/3 + theta^3/30 - theta^5/840 + theta^7/45360 - theta^9/3991680)``
+    and ``T^2 (1/2 - theta^2/8 + theta^4/144 - theta^6/5760 + theta^8/403200 - theta^10/43545600)``
+    (truncation below ``1e-18`` relative), and ``cos(w T)``, ``sin(w T)``: what the coordinated turn's
+    closed-form Jacobian needs (:meth:`NonlinearCoordinatedTurn.jacobian`).
+
     Shapes:
-        omega: ``(*P,)`` -> two ``(*P,)`` tensors
+        omega: ``(*P,)`` -> two ``(*P,)`` tensors (six with ``derivatives``: ``s, c, ds, dc, cos, sin``)
     """
     theta = omega * dt
     small = theta.abs() < _TURN_SERIES_BELOW
     safe = torch.where(small, torch.ones_like(omega), omega)
     safe_theta = safe * dt
-    s_closed = torch.sin(safe_theta) / safe
+    sin_closed = torch.sin(safe_theta)
+    s_closed = sin_closed / safe
     c_closed = 2 * torch.sin(0.5 * safe_theta).square() / safe
     t = torch.where(small, theta, torch.zeros_like(theta))
     t2 = t * t
     # Horner forms of the series (coefficients 1/(2k+1)! and 1/(2k+2)!)
     s_series = dt * (1 - t2 / 6 * (1 - t2 / 20 * (1 - t2 / 42 * (1 - t2 / 72))))
     c_series = dt * t * (0.5 - t2 / 24 * (1 - t2 / 30 * (1 - t2 / 56 * (1 - t2 / 90))))
-    return torch.where(small, s_series, s_closed), torch.where(small, c_series, c_closed)
+    s, c = torch.where(small, s_series, s_closed), torch.where(small, c_series, c_closed)
+    if not derivatives:
+        return s, c
+    cos, sin = torch.cos(theta), torch.sin(theta)
+    ds_closed = (dt * cos - s_closed) / safe  # cos(theta) = cos(safe_theta) wherever this branch is kept
+    dc_closed = (dt * sin_closed - c_closed) / safe
+    dt2 = dt * dt
+    # derivatives of the series: coefficients -2k/(2k+1)! and (2k+1)/(2k+2)!, Horner
+    ds_series = -dt2 * t / 3 * (1 - t2 / 10 * (1 - t2 / 28 * (1 - t2 / 54 * (1 - t2 / 88))))
+    dc_series = dt2 * 0.5 * (1 - t2 / 4 * (1 - t2 / 18 * (1 - t2 / 40 * (1 - t2 / 70 * (1 - t2 / 108)))))
+    return (s, c, torch.where(small, ds_series, ds_closed), torch.where(small, dc_series, dc_closed), cos, sin)
 
 
 def turn_matrix(omega: Tensor, dt: float) -> Tensor:
@@ -203,9 +221,33 @@ class NonlinearCoordinatedTurn(MotionModel):
         self.state_dim, self.dt = 5, float(dt)
 
     def forward(self, x: Tensor, *, u: Tensor | None = None) -> Tensor:
-        F = turn_matrix(x[..., 4], self.dt)
-        pos_vel = (F @ x[..., :4].unsqueeze(-1)).squeeze(-1)
-        return torch.cat([pos_vel, x[..., 4:]], dim=-1)
+        # turn_matrix(omega) @ [x, vx, y, vy] written out: no dense (*B, 4, 4) matrix per state (or
+        # per sigma point), which cost more than all the arithmetic (docs/performance.md)
+        s, c = _turn_terms(x[..., 4], self.dt)
+        wt = x[..., 4] * self.dt
+        cos, sin = torch.cos(wt), torch.sin(wt)
+        px, vx, py, vy, omega = x.unbind(-1)
+        return torch.stack([px + s * vx - c * vy, cos * vx - sin * vy, py + c * vx + s * vy,
+                            sin * vx + cos * vy, omega], dim=-1)
+
+    def jacobian(self, x: Tensor, *, u: Tensor | None = None) -> Tensor:
+        """Closed-form ``df/dx`` (the turn terms' derivatives from :func:`_turn_terms`, exact at and
+        near ``omega = 0``); differentiable, equal to forward-mode autograd to rounding.
+
+        Shapes: ``x: (*B, 5)`` -> ``(*B, 5, 5)``
+        """
+        s, c, ds, dc, cos, sin = _turn_terms(x[..., 4], self.dt, derivatives=True)
+        vx, vy = x[..., 1], x[..., 3]
+        dt = self.dt
+        one, zero = torch.ones_like(s), torch.zeros_like(s)
+        rows = [
+            [one, s, zero, -c, vx * ds - vy * dc],
+            [zero, cos, zero, -sin, -dt * (vx * sin + vy * cos)],
+            [zero, c, one, s, vx * dc + vy * ds],
+            [zero, sin, zero, cos, dt * (vx * cos - vy * sin)],
+            [zero, zero, zero, zero, one],
+        ]
+        return torch.stack([entry for row in rows for entry in row], dim=-1).unflatten(-1, (5, 5))
 
     def noise_cov(self, x: Tensor | None = None) -> Tensor:
         return self.Q
