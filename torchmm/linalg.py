@@ -27,10 +27,33 @@ from torch import Tensor
 
 from torchmm.runtime import host_reads_ok
 
-__all__ = ["any_observed", "check_joseph", "cholesky", "cholesky_solve", "condition", "psd_sqrt", "solve_lower", "solve_right",
-           "solve_lower_transposed", "symmetrize", "use_joseph"]
+__all__ = ["any_observed", "check_joseph", "cholesky", "cholesky_solve", "condition", "half_log_det", "psd_sqrt",
+           "solve_lower", "solve_right", "solve_lower_transposed", "sum_last", "symmetrize", "use_joseph"]
 
 _LOG_2PI = math.log(2 * math.pi)
+
+
+def sum_last(x: Tensor) -> Tensor:
+    """``x.sum(-1)`` for a short last axis (a state, a measurement, a few modes), as a product with a
+    vector of ones: torch's CPU sum over a contiguous axis of a few entries costs ~15 ns an output
+    (5 ms for 360,000 sums of two), the matrix-vector product under 1 ns (docs/performance.md). The
+    same value for two entries; for more, to rounding (the product's summation order).
+
+    Shapes:
+        x: ``(..., k)`` floating -> ``(...)``
+    """
+    return x @ x.new_ones(x.shape[-1])
+
+
+def half_log_det(L: Tensor) -> Tensor:
+    """``sum_i log L_ii`` of a triangular factor, ``(1/2) log det(L L^T)``: the diagonal copied out
+    before the ``log`` (on the strided diagonal, torch's ``log`` runs 6x slower), summed by
+    :func:`sum_last`.
+
+    Shapes:
+        L: ``(..., m, m)`` -> ``(...)``
+    """
+    return sum_last(L.diagonal(dim1=-2, dim2=-1).contiguous().log())
 
 
 def symmetrize(matrix: Tensor) -> Tensor:
@@ -126,7 +149,7 @@ def cholesky(S: Tensor, *, with_flag: bool = False):
         pivot = c - l21 * l21
         l22 = pivot.maximum(scale).sqrt()
         zero = torch.zeros_like(a)
-        L = torch.stack([torch.stack([l11, zero], -1), torch.stack([l21, l22], -1)], -2)
+        L = torch.stack([l11, zero, l21, l22], -1).unflatten(-1, (2, 2))  # (one stack: 3x cheaper)
         return (L, ~((a > scale) & (pivot > scale))) if with_flag else L
     chol, info = torch.linalg.cholesky_ex(S)
     failed = info != 0
@@ -247,9 +270,8 @@ def condition(
             eye = torch.eye(n, dtype=cov.dtype, device=cov.device)
             A = eye - gain @ H
             post_cov = A @ cov @ A.mT + gain @ R @ gain.mT
-    half_logdet = L.diagonal(dim1=-2, dim2=-1).log().sum(-1)
-    count = observed.sum(-1).to(nu.dtype)
-    log_likelihood = -0.5 * (w.square().sum(-1) + count * math.log(2 * math.pi)) - half_logdet
+    count = sum_last(observed.to(nu.dtype))
+    log_likelihood = -0.5 * (sum_last(w.square()) + count * math.log(2 * math.pi)) - half_log_det(L)
     out = post_mean, symmetrize(post_cov), log_likelihood
     return (*out, singular) if with_flag else out
 

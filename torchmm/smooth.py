@@ -58,7 +58,7 @@ from torchmm.filters.kalman import ExtendedKalmanFilter, KalmanFilter
 from torchmm.filters.particle import ParticleFilter
 from torchmm.filters.smoother import rts_step
 from torchmm.filters.unscented import SigmaPointStrategy, UnscentedKalmanFilter
-from torchmm.linalg import cholesky, cholesky_solve, solve_lower
+from torchmm.linalg import cholesky, cholesky_solve, half_log_det, solve_lower, sum_last
 from torchmm.models.base import MotionModel
 from torchmm.multimodel.bank import ListBank, VectorizedBank
 from torchmm.multimodel.imm import MultipleModelFilter, mode_posterior, safe_log_normalize
@@ -235,17 +235,21 @@ def _member_motion(member: Any) -> MotionModel:
                     "ExtendedKalmanFilter, UnscentedKalmanFilter)")
 
 
-def _linearized_motions(bank: Any, at: Tensor, u: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
+def _linearized_motions(bank: Any, at: Tensor, u: Tensor | None, *,
+                        expand: bool = True) -> tuple[Tensor, Tensor, Tensor]:
     """Every mode's motion at ``at``: ``f_i(at)``, the Jacobian ``F_i(at)`` and ``Q_i``.
 
     Shapes:
         at: ``(*B, M, n)``; u: ``(*B, 1, k)`` -> ``(*B, M, n)``, ``(*B, M, n, n)``, ``(*B, M, n, n)``
+        (with ``expand=False``, ``F`` and ``Q`` as the models give them, broadcastable to those)
     """
     n = at.shape[-1]
     if isinstance(bank, VectorizedBank):  # the models broadcast over the mode axis
         motion = _member_motion(bank.filter)
-        fx, F = motion(at, u=u), motion.jacobian(at, u=u)
-        return fx, F.expand(*at.shape, n), motion.noise_cov(at).expand(*at.shape, n)
+        fx, F, Q = motion(at, u=u), motion.jacobian(at, u=u), motion.noise_cov(at)
+        if not expand:
+            return fx, F, Q
+        return fx, F.expand(*at.shape, n), Q.expand(*at.shape, n)
     if isinstance(bank, ListBank):  # one call per mode filter
         parts = []
         for i, member in enumerate(bank.filters):
@@ -268,7 +272,18 @@ def backward_predict(bank: Any, belief: GaussianBelief, at: Tensor, u: Tensor | 
     Shapes:
         belief: batch ``(*B, M)``; at: ``(*B, M, n)``; u: ``(*B, 1, k)`` -> batch ``(*B, M)``
     """
-    fx, F, Q = _linearized_motions(bank, at, u)
+    fx, F, Q = _linearized_motions(bank, at, u, expand=False)
+    # the distinct matrices: a model's Jacobian that is the same for every run (a linear model's F,
+    # returned as an expanded view) has stride 0 over those axes
+    distinct = F[tuple(slice(0, 1) if stride == 0 else slice(None) for stride in F.stride()[:-2])]
+    if distinct.shape[:-2].numel() * 8 <= at.shape[:-1].numel():
+        # one Jacobian per mode, shared by the runs: invert the few (M, n, n) once and multiply, where a
+        # batched solve would factorise the same matrix for every run
+        inverse = torch.linalg.inv_ex(distinct)[0]
+        mean = (inverse @ (belief.mean - fx).unsqueeze(-1)).squeeze(-1)
+        cov = inverse @ (belief.cov + Q) @ inverse.mT
+        return GaussianBelief(at + mean, symmetrize(cov))
+    F = F.expand(*at.shape, at.shape[-1])
     rhs = torch.cat([(belief.mean - fx).unsqueeze(-1), belief.cov + Q], dim=-1)  # (*B, M, n, 1 + n)
     solved = torch.linalg.solve_ex(F, rhs)[0]  # F^{-1} [m - f, P + Q]
     cov = torch.linalg.solve_ex(F, solved[..., 1:].mT)[0]  # F^{-1} (P + Q) F^{-T}
@@ -323,11 +338,10 @@ def two_filter_step(filter: MultipleModelFilter, filtered: ModeBelief, backward_
     D = Pj + bwd.cov.unsqueeze(-4)  # (*B, j, i, n, n)
     delta = bwd.mean.unsqueeze(-3) - fwd.mean.unsqueeze(-2)  # (*B, j, i, n)
     L = cholesky(D)
-    solved = solve_lower(L, torch.cat([Pj.expand(D.shape), delta.unsqueeze(-1)], dim=-1))
-    V, w = solved[..., :n], solved[..., n]  # L^{-1} P_j, L^{-1} delta
-    mean = fwd.mean.unsqueeze(-2) + (V.mT @ w.unsqueeze(-1)).squeeze(-1)
-    cov = symmetrize(Pj - V.mT @ V)
-    log_overlap = -0.5 * (w.square().sum(-1) + n * math.log(2 * math.pi)) - L.diagonal(dim1=-2, dim2=-1).log().sum(-1)
+    V = solve_lower(L, Pj)  # L^{-1} P_j (two solves: concatenating [P_j | delta] cost more than both)
+    w = solve_lower(L, delta.unsqueeze(-1)).squeeze(-1)  # L^{-1} delta
+    mean = fwd.mean.unsqueeze(-2) + (V.mT @ w.unsqueeze(-1)).squeeze(-1)  # x_ji
+    log_overlap = -0.5 * (sum_last(w.square()) + n * math.log(2 * math.pi)) - half_log_det(L)
     evidence = backward_prior.mode_log_probs - prior_log_probs_next  # log mu^b_i / p_{k+1}(i), (*B, i)
     log_pair = (filtered.mode_log_probs.unsqueeze(-1) + filter.transition.log_matrix() + log_overlap
                 + evidence.unsqueeze(-2))
@@ -335,7 +349,15 @@ def two_filter_step(filter: MultipleModelFilter, filtered: ModeBelief, backward_
     log_pair = safe_log_normalize(log_pair, norm)
     log_mode = torch.logsumexp(log_pair, dim=-1)  # log mu^s_k(j)
     weights = safe_log_normalize(log_pair, log_mode.unsqueeze(-1)).exp()  # P(s_{k+1} = i | s_k = j, z_{1:T})
-    return ModeBelief(log_mode, GaussianBelief(mean, cov).collapse(weights))
+    # the collapse over i of N(x_ji, P_j - V_ji^T V_ji), weights w_ji summing to one:
+    # P_j - sum_i w_ji V_ji^T V_ji + spread, the weighted sum as one product of the stacked sqrt(w_ji) V_ji
+    # (never forming the M x M pair covariances)
+    merged = (weights.unsqueeze(-2) @ mean).squeeze(-2)  # (*B, j, n)
+    diff = mean - merged.unsqueeze(-2)  # (*B, j, i, n)
+    spread = (diff * weights.unsqueeze(-1)).mT @ diff
+    root = (V * weights.sqrt()[..., None, None]).flatten(-3, -2)  # (*B, j, i n, n)
+    cov = symmetrize(fwd.cov - root.mT @ root + spread)
+    return ModeBelief(log_mode, GaussianBelief(merged, cov))
 
 
 def backward_imm_update(filter: MultipleModelFilter, predicted: ModeBelief, z: Tensor, prior_log_probs: Tensor, *,
