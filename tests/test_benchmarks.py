@@ -146,3 +146,16 @@ def test_small_kernel_benchmark_runs_and_agrees():
     )
     assert proc.returncode == 0, proc.stderr[-2000:] + proc.stdout[-2000:]
     assert re.fullmatch(r"crossover_runs=[0-9]+ \(MAX_RUNS = [0-9]+\)", proc.stdout.strip().splitlines()[-1])
+
+
+def test_engine_throughput_benchmark_runs():
+    """benchmarks/engine_throughput.py at tiny sizes (without --against: no worktree in the suite)."""
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "engine_throughput.py"), "--runs", "6", "--steps", "5",
+         "--repeats", "1"], capture_output=True, text=True, timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:] + proc.stdout[-2000:]
+    lines = proc.stdout.strip().splitlines()
+    assert re.fullmatch(r"gpb2_speedup_6=nan vsimm_speedup_6=nan imm_tf_speedup_6=nan "
+                        r"two_filter_vs_full_filter_6=[0-9.]+", lines[-1]), lines[-1]
+    assert sum(line.split()[0] == "6" for line in lines if line.strip()) == 5  # one row per contender

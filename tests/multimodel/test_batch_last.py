@@ -180,19 +180,26 @@ def test_the_default_takes_it_and_record_sees_the_same_outputs(batch_last_steps)
     assert seen[0].belief.components.mean.stride()[-1] != 1  # the fast path ran: batch-last memory
 
 
-def test_the_plan_runs_the_whole_trajectory_as_contiguous_batch_first_tensors(layout, batch_last_steps):
+def _memory_order_view(t) -> bool:
+    """``t`` is a permuted view of contiguous memory (no gaps, no broadcast axes)."""
+    order = sorted(range(t.dim()), key=lambda i: -t.stride()[i])
+    return t.permute(order).is_contiguous()
+
+
+def test_the_plan_runs_the_whole_trajectory_as_batch_first_views_in_memory_order(layout, batch_last_steps):
     """``BATCH_LAST.plan(...)()`` (what run_filter stacks into its Trajectory) gives the six fields,
-    batch-first (time, *B, ...) and contiguous (one copy, no permuted views of batch-last memory)."""
+    batch-first (time, *B, ...), each stacked in its memory order (no transposing copy: the full record
+    costs what the estimates cost), and equal to the eager steps'."""
     imm, belief0, z = _random_imm(3, 2, 3, (2, 3), steps=5, seed=12)
     fields = _plan(imm, belief0, z)()
     assert len(fields) == 6 and len(batch_last_steps) == 5
     want = run_filter(imm, belief0, z, fast_path=False)
     for got, ref in zip(pytree.tree_leaves(fields), pytree.tree_leaves(_fields(want)), strict=True):
-        assert got.shape == ref.shape and got.is_contiguous()
+        assert got.shape == ref.shape and _memory_order_view(got)
     got = run_filter(imm, belief0, z)
     assert len(batch_last_steps) == 10
     assert_same_trajectory(got, want)
-    assert all(t.is_contiguous() for t in pytree.tree_leaves(_fields(got)))
+    assert any(not t.is_contiguous() for t in pytree.tree_leaves(_fields(got)))  # batch-last memory
 
 
 def test_record_estimate(layout, batch_last_steps):

@@ -631,23 +631,20 @@ class BatchLastKernel:
                     # what the record drops need not be built
                     kernel.omit(kernel.omitted | frozenset(
                         f for f in StepOutput._fields if getattr(kept[0], f) is None and getattr(out, f) is not None))
-            return _stack_batch_first(kept, contiguous=not request.estimate)
+            return _stack_batch_first(kept)
 
         run.kernel = kernel  # (its BatchLastIMM, for tests and profiling)
         return run
 
 
-def _stack_batch_first(outputs: list, contiguous: bool = True) -> tuple:
-    """The steps' outputs (batch-first views of batch-last tensors) stacked on a new time axis: each
-    field stacked in its own memory order (a contiguous copy instead of a transposing gather), then,
-    with ``contiguous``, copied batch-first once, so that what follows the run (smoothers, mixing)
-    reads batch-first memory. ``record="estimate"`` keeps the permuted views (point estimates are read,
-    not mixed; the copy cost 8 % of a run at 4,000 runs)."""
-    def stack(column):
-        stacked = _stack_in_memory_order(column)
-        return stacked.contiguous() if contiguous else stacked
-
-    return tuple(kernels.stack_steps(outputs, stack=stack))
+def _stack_batch_first(outputs: list) -> tuple:
+    """The steps' outputs (batch-first views of batch-last tensors) stacked on a new time axis, each
+    field in its own memory order (a contiguous copy instead of a transposing gather): batch-first
+    *views* of batch-last memory, full records as estimates. A further batch-first copy of the full
+    record (2026-12-03 to 12-04) doubled a 40,000-run IMM's full-record run (14 -> 30 ms a step: 16
+    transposing copies) to make the two-filter smoother that reads it 7 % faster
+    (benchmarks/engine_throughput.py, docs/performance.md)."""
+    return tuple(kernels.stack_steps(outputs, stack=_stack_in_memory_order))
 
 
 def _stack_in_memory_order(tensors: list) -> Tensor:
