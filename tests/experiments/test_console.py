@@ -83,7 +83,9 @@ def test_run_names_its_folder_first_and_prints_the_headline_table(tmp_path):
 
 def test_ctrl_c_ends_with_one_line_that_says_how_to_resume(tmp_path):
     out_dir = tmp_path / "run"
-    proc = subprocess.Popen([_exe(), "experiment=imm_analysis", "mc_runs=200", "logger=none", "progress=false",
+    # mc_runs: a study that lasts well past the interrupt (200 runs took ~4 s once the engine got faster,
+    # and the signal then came after the study had ended); interrupted after 3 s, it costs no more
+    proc = subprocess.Popen([_exe(), "experiment=imm_analysis", "mc_runs=3000", "logger=none", "progress=false",
                              f"hydra.run.dir={out_dir}"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             cwd=tmp_path, env={**os.environ, "OMP_NUM_THREADS": "1"})
     deadline = time.time() + 120
