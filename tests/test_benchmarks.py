@@ -159,3 +159,13 @@ def test_engine_throughput_benchmark_runs():
     assert re.fullmatch(r"gpb2_speedup_6=nan vsimm_speedup_6=nan imm_tf_speedup_6=nan "
                         r"two_filter_vs_full_filter_6=[0-9.]+", lines[-1]), lines[-1]
     assert sum(line.split()[0] == "6" for line in lines if line.strip()) == 5  # one row per contender
+
+
+def test_set_metrics_benchmark_runs_and_agrees_with_stone_soup():
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "set_metrics.py"), "--runs", "4", "--steps", "5",
+         "--targets", "3", "--stone-soup-sets", "20", "--repeats", "1"], capture_output=True, text=True, timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:] + proc.stdout[-2000:]
+    assert re.fullmatch(r"speedup_vs_stone_soup=[0-9.]+", proc.stdout.strip().splitlines()[-1])
+    assert float(re.search(r"difference over those 20 pairs \(4 figures each\): ([0-9.e+-]+)", proc.stdout).group(1)) < 1e-9

@@ -13,7 +13,7 @@ ROOT = Path(torchmm.__file__).parent
 LAYERS = [
     {"validation", "typing", "runtime", "provenance"},
     {"contract"},  # the entry-point contract (torchmm/contract.py): every layer above declares through it
-    {"distributions", "linalg"},
+    {"distributions", "linalg", "assignment"},
     {"beliefs"},
     {"models", "kernels"},  # kernels: the seam (torchmm/kernels/__init__.py) and the kernels behind it
     {"filters", "simulate"},

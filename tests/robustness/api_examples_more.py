@@ -9,7 +9,7 @@ from pathlib import Path
 import torch
 
 from tests.robustness.api_examples import _OP, NOT_ENTRY_POINTS, call, example
-from torchmm import analysis, distributions, learn, metrics, models, simulate
+from torchmm import analysis, assignment, distributions, learn, metrics, models, simulate
 from torchmm.beliefs import GaussianBelief, ParticleBelief
 from torchmm.filters import KalmanFilter
 
@@ -94,6 +94,18 @@ example(_M + "mode_hits")(lambda: call(metrics.mode_hits, _probs().log(), _match
 example(_M + "mode_accuracy")(
     lambda: call(metrics.mode_accuracy, torch.stack([_probs(), _probs()]),
                  torch.stack([_matched(), _matched()])))
+
+_SETS = "torchmm.metrics.sets."
+example(_SETS + "gospa")(
+    lambda: call(metrics.gospa, torch.tensor([[0.0, 1.0], [9.0, 9.0]]), torch.tensor([[0.0, 0.0], [4.0, 0.0]]),
+                 c=3.0, p=2.0, estimate_present=torch.tensor([True, True]),
+                 truth_present=torch.tensor([True, False])))
+example(_SETS + "ospa")(
+    lambda: call(metrics.ospa, torch.tensor([[0.0, 1.0], [9.0, 9.0]]), torch.tensor([[0.0, 0.0], [4.0, 0.0]]),
+                 c=3.0, p=1.0, estimate_present=torch.tensor([True, False]),
+                 truth_present=torch.tensor([True, True])))
+example("torchmm.assignment.linear_assignment")(
+    lambda: call(assignment.linear_assignment, torch.tensor([[4.0, 1.0, 3.0], [2.0, 0.0, 5.0]])))
 
 
 # -- simulate -------------------------------------------------------------------------------------------
