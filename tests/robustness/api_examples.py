@@ -80,6 +80,7 @@ NOT_ENTRY_POINTS: dict[str, str] = {
     "torchmm.learn.trainer.TrainRecord": _RECORD,
     "torchmm.learn.trainer.NonFiniteLossError": "an exception type (Trainer raises it; a ValueError)",
     "torchmm.simulate.markov.JumpSimulation": _RECORD,
+    "torchmm.simulate.detections.Detections": _RECORD,
     # beliefs: built inside every step
     "torchmm.beliefs.gaussian.GaussianBelief":
         _PER_STEP + " (GaussianBelief.create is the checked constructor)",

@@ -110,6 +110,10 @@ example("torchmm.assignment.linear_assignment")(
 
 # -- simulate -------------------------------------------------------------------------------------------
 _S = "torchmm.simulate.markov."
+example("torchmm.simulate.detections.simulate_detections")(
+    lambda: call(simulate.simulate_detections, models.PositionMeasurement(4, [0, 2], 1.0, dtype=torch.float64),
+                 torch.zeros(3, 2, 2, 4), detection_probability=0.9, clutter_rate=1.0,
+                 region=torch.tensor([[-10.0, 10.0], [-10.0, 10.0]]), max_clutter=4, generator=_gen()))
 example(_S + "sample_categorical")(lambda: call(simulate.sample_categorical, _probs(), generator=_gen()))
 example(_S + "simulate_modes")(
     lambda: call(simulate.simulate_modes, _transition(), 3, (4,), initial_probs=torch.tensor([0.5, 0.5]),

@@ -1,5 +1,6 @@
 """Batched simulators (ground truth and sensors) with explicit generators."""
 
+from torchmm.simulate.detections import Detections, simulate_detections
 from torchmm.simulate.markov import (
     JumpSimulation,
     bernoulli_mask,
@@ -12,10 +13,12 @@ from torchmm.simulate.markov import (
 )
 
 __all__ = [
+    "Detections",
     "JumpSimulation",
     "bernoulli_mask",
     "periodic_mask",
     "sample_categorical",
+    "simulate_detections",
     "simulate_jump_system",
     "simulate_measurements",
     "simulate_modes",
