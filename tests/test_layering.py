@@ -17,7 +17,7 @@ LAYERS = [
     {"beliefs"},
     {"models", "kernels"},  # kernels: the seam (torchmm/kernels/__init__.py) and the kernels behind it
     {"filters", "simulate"},
-    {"run", "multimodel"},
+    {"run", "multimodel", "association"},
     {"smooth", "parallel"},  # the backward passes, the time-parallel scans
     {"fusion", "learn", "metrics", "analysis"},
     {"torchmm"},  # the top-level namespace

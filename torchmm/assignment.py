@@ -20,7 +20,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from torchmm.contract import Finite, entry_point
+from torchmm.contract import Finite, Values, entry_point
 from torchmm.runtime import host_reads_ok
 
 __all__ = ["assignment_cost", "linear_assignment"]
@@ -66,9 +66,19 @@ def linear_assignment(cost: Tensor) -> Tensor:
     return _hungarian(a).reshape(*batch, n)
 
 
+@entry_point(cost=Values(), assigned=Values())
 def assignment_cost(cost: Tensor, assigned: Tensor) -> Tensor:
     """The sum of the entries of ``cost (*B, n, m)`` that ``assigned (*B, n)`` (as returned by
-    :func:`linear_assignment`; ``-1``: none) chooses, ``(*B,)``."""
+    :func:`linear_assignment`; ``-1``: none) chooses, ``(*B,)``.
+
+    Raises:
+        ValueError naming ``assigned``: not ``(*B, n)`` integer column indices of ``cost``.
+    """
+    if cost.dim() < 2:
+        raise ValueError(f"cost: expected (*B, n, m), got shape {tuple(cost.shape)}")
+    if assigned.is_floating_point() or assigned.shape != cost.shape[:-1]:
+        raise ValueError(f"assigned: expected integer column indices of shape {tuple(cost.shape[:-1])}, got "
+                         f"{tuple(assigned.shape)} {assigned.dtype}")
     taken = cost.gather(-1, assigned.clamp_min(0).unsqueeze(-1)).squeeze(-1)
     return torch.where(assigned >= 0, taken, torch.zeros_like(taken)).sum(-1)
 

@@ -9,7 +9,17 @@ from pathlib import Path
 import torch
 
 from tests.robustness.api_examples import _OP, NOT_ENTRY_POINTS, call, example
-from torchmm import analysis, assignment, distributions, learn, metrics, models, simulate
+from torchmm import (
+    analysis,
+    assignment,
+    association,
+    distributions,
+    filters,
+    learn,
+    metrics,
+    models,
+    simulate,
+)
 from torchmm.beliefs import GaussianBelief, ParticleBelief
 from torchmm.filters import KalmanFilter
 
@@ -104,11 +114,20 @@ example(_SETS + "ospa")(
     lambda: call(metrics.ospa, torch.tensor([[0.0, 1.0], [9.0, 9.0]]), torch.tensor([[0.0, 0.0], [4.0, 0.0]]),
                  c=3.0, p=1.0, estimate_present=torch.tensor([True, False]),
                  truth_present=torch.tensor([True, True])))
+example("torchmm.assignment.assignment_cost")(
+    lambda: call(assignment.assignment_cost, torch.tensor([[4.0, 1.0, 3.0], [2.0, 0.0, 5.0]]), torch.tensor([1, 0])))
 example("torchmm.assignment.linear_assignment")(
     lambda: call(assignment.linear_assignment, torch.tensor([[4.0, 1.0, 3.0], [2.0, 0.0, 5.0]])))
 
 
 # -- simulate -------------------------------------------------------------------------------------------
+example("torchmm.association.pda.PDA")(
+    lambda: call(association.PDA,
+                 filters.KalmanFilter(models.ConstantVelocity(1, dtype=torch.float64),
+                                      models.PositionMeasurement(2, [0], 1.0, dtype=torch.float64)),
+                 detection_probability=0.9, clutter_density=0.01, gate_probability=0.99))
+example("torchmm.association.pda.chi2_gate")(
+    lambda: call(association.chi2_gate, 0.99, 2))
 _S = "torchmm.simulate.markov."
 example("torchmm.simulate.detections.simulate_detections")(
     lambda: call(simulate.simulate_detections, models.PositionMeasurement(4, [0, 2], 1.0, dtype=torch.float64),

@@ -25,9 +25,8 @@ import torch
 from torchmm import contract
 from tests.robustness.api_examples import EXAMPLES, NOT_ENTRY_POINTS, Call
 
-SUBPACKAGES = ["analysis", "beliefs", "kernels", "kernels.linear", "kernels.particle", "filters", "fusion", "learn",
-               "metrics", "models",
-               "multimodel", "simulate", "parallel"]
+SUBPACKAGES = ["analysis", "assignment", "association", "beliefs", "kernels", "kernels.linear", "kernels.particle",
+               "filters", "fusion", "learn", "metrics", "models", "multimodel", "simulate", "parallel"]
 
 
 def public_objects() -> dict[str, object]:

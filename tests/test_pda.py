@@ -1,0 +1,146 @@
+"""torchmm.association.PDA (issue 32): against the Kalman filter, Stone Soup 1.9's PDA, per-run loops."""
+
+from __future__ import annotations
+
+import datetime
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from torchmm import GaussianBelief, KalmanFilter, UnscentedKalmanFilter, run_filter
+from torchmm.association import PDA, chi2_gate
+from torchmm.models import ConstantVelocity, PositionMeasurement
+from torchmm.simulate import simulate_detections
+
+R = torch.tensor([[4.0, 0.5], [0.5, 2.0]], dtype=torch.float64)
+
+
+def _kf():
+    return KalmanFilter(ConstantVelocity(2, dt=1.0, q=0.5, dtype=torch.float64), PositionMeasurement(4, [0, 2], R))
+
+
+def _prior(batch=(), seed=0):
+    gen = torch.Generator().manual_seed(seed)
+    mean = torch.randn(*batch, 4, generator=gen, dtype=torch.float64) * 10
+    A = torch.randn(*batch, 4, 4, generator=gen, dtype=torch.float64)
+    return GaussianBelief(mean, A @ A.mT + 5 * torch.eye(4, dtype=torch.float64))
+
+
+def test_certain_detection_without_clutter_or_gate_is_the_kalman_update():
+    kf = _kf()
+    prior = _prior((5,))
+    z = torch.randn(5, 2, generator=torch.Generator().manual_seed(1), dtype=torch.float64) * 5
+    want = kf.update(prior, z)
+    got = PDA(kf, detection_probability=1.0, clutter_density=1.0, gate_probability=1.0).update(prior, z.unsqueeze(-2))
+    torch.testing.assert_close(got.belief.mean, want.belief.mean, rtol=1e-13, atol=1e-12)
+    torch.testing.assert_close(got.belief.cov, want.belief.cov, rtol=1e-13, atol=1e-12)
+    torch.testing.assert_close(got.log_likelihood, want.log_likelihood, rtol=1e-13, atol=1e-12)
+    torch.testing.assert_close(got.innovation, want.innovation, rtol=1e-13, atol=1e-12)
+    assert torch.equal(got.extras["association"][..., 0], torch.zeros(5, dtype=torch.float64))
+
+
+def test_no_detection_leaves_the_belief_and_weighs_the_missed_detection():
+    pda = PDA(_kf(), detection_probability=0.8, clutter_density=1e-3, gate_probability=0.95)
+    prior = _prior((3,))
+    out = pda.update(prior, torch.full((3, 4, 2), math.nan, dtype=torch.float64))
+    torch.testing.assert_close(out.belief.mean, prior.mean, rtol=0, atol=0)
+    torch.testing.assert_close(out.belief.cov, prior.cov, rtol=0, atol=1e-12)
+    torch.testing.assert_close(out.log_likelihood, torch.full((3,), math.log1p(-0.8 * 0.95), dtype=torch.float64))
+    assert not out.extras["validated"].any()
+
+
+def test_batched_equals_per_run_and_padding_does_not_matter():
+    pda = PDA(_kf(), detection_probability=0.9, clutter_density=1e-3, gate_probability=0.99)
+    prior = _prior((6,), seed=2)
+    gen = torch.Generator().manual_seed(3)
+    z = prior.mean[:, [0, 2]].unsqueeze(-2) + 4 * torch.randn(6, 5, 2, generator=gen, dtype=torch.float64)
+    z[0, 1:] = math.nan
+    z[2, 3] = math.nan
+    out = pda.update(prior, z)
+    for b in range(6):
+        keep = torch.isfinite(z[b]).all(-1)
+        one = pda.update(prior[b:b + 1], z[b:b + 1, keep])
+        torch.testing.assert_close(out.belief.mean[b], one.belief.mean[0], rtol=1e-13, atol=1e-12)
+        torch.testing.assert_close(out.belief.cov[b], one.belief.cov[0], rtol=1e-13, atol=1e-12)
+        torch.testing.assert_close(out.log_likelihood[b], one.log_likelihood[0], rtol=1e-13, atol=1e-12)
+    weights = out.extras["association"]
+    torch.testing.assert_close(weights.sum(-1), torch.ones(6, dtype=torch.float64))
+    assert (weights[0, 2:] == 0).all() and (weights[2, 4] == 0)
+
+
+def _stone_soup_pda(x, P, detections, pd, density, pg):
+    from stonesoup.hypothesiser.probability import PDAHypothesiser
+    from stonesoup.models.measurement.linear import LinearGaussian
+    from stonesoup.models.transition.linear import CombinedLinearGaussianTransitionModel
+    from stonesoup.models.transition.linear import ConstantVelocity as SSConstantVelocity
+    from stonesoup.predictor.kalman import KalmanPredictor
+    from stonesoup.types.detection import Detection
+    from stonesoup.types.state import GaussianState
+    from stonesoup.types.track import Track
+    from stonesoup.updater.kalman import KalmanUpdater
+    from stonesoup.updater.probability import PDAUpdater
+
+    when = datetime.datetime(2026, 12, 4)
+    sensor = LinearGaussian(ndim_state=4, mapping=(0, 2), noise_covar=R.numpy())
+    motion = CombinedLinearGaussianTransitionModel([SSConstantVelocity(0.5), SSConstantVelocity(0.5)])
+    hypothesiser = PDAHypothesiser(predictor=KalmanPredictor(motion), updater=KalmanUpdater(sensor),
+                                   clutter_spatial_density=density, prob_detect=pd, prob_gate=pg)
+    track = Track([GaussianState(x.reshape(-1, 1), P, timestamp=when)])  # predicted over zero time: itself
+    dets = {Detection(z.reshape(-1, 1), timestamp=when, measurement_model=sensor) for z in detections}
+    post = PDAUpdater(sensor).update(hypothesiser.hypothesise(track, dets, when))
+    return np.asarray(post.state_vector, dtype=float).ravel(), np.asarray(post.covar, dtype=float)
+
+
+@pytest.mark.parametrize("pd, density, pg", [(0.9, 1e-3, 0.99), (0.6, 1e-2, 0.9), (0.99, 1e-4, 1.0)])
+def test_equals_stone_soup_pda(pd, density, pg):
+    """Stone Soup 1.9: PDAHypothesiser (gate chi^2 at prob_gate, missed weight 1 - P_D P_G, detections
+    P_D N / lambda) and PDAUpdater (the innovation form), the same prior, detections and parameters."""
+    gen = torch.Generator().manual_seed(int(100 * pd))
+    pda = PDA(_kf(), detection_probability=pd, clutter_density=density, gate_probability=pg)
+    validated = gated = 0
+    for trial in range(6):
+        prior = _prior(seed=trial + 10)
+        count = 1 + trial % 4
+        spread = 2.0 + 4.0 * torch.arange(count, dtype=torch.float64).unsqueeze(-1)  # near and far detections
+        z = prior.mean[[0, 2]] + spread * torch.randn(count, 2, generator=gen, dtype=torch.float64)
+        out = pda.update(prior, z)
+        mean, cov = _stone_soup_pda(prior.mean.numpy(), prior.cov.numpy(), z.numpy(), pd, density, pg)
+        np.testing.assert_allclose(out.belief.mean.numpy(), mean, rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(out.belief.cov.numpy(), cov, rtol=1e-9, atol=1e-9)
+        validated += int(out.extras["validated"].sum())
+        gated += int((~out.extras["validated"]).sum())
+    assert validated >= 6 and (gated >= 1 or pg == 1.0)  # both kinds of detection were exercised
+
+
+def test_over_any_gaussian_filter_through_run_filter():
+    """The unscented filter's PDA on linear models equals the Kalman filter's (sigma points are exact
+    for linear maps), through run_filter on simulated detections in clutter."""
+    motion = ConstantVelocity(2, dt=1.0, q=0.5, dtype=torch.float64)
+    sensor = PositionMeasurement(4, [0, 2], R)
+    x0 = GaussianBelief(torch.tensor([0.0, 1.0, 0.0, 1.0], dtype=torch.float64), 10 * torch.eye(4, dtype=torch.float64))
+    gen = torch.Generator().manual_seed(5)
+    truth = x0.mean + torch.cumsum(torch.randn(15, 8, 4, generator=gen, dtype=torch.float64) * 0.3, 0)
+    det = simulate_detections(sensor, truth.unsqueeze(-2), detection_probability=0.9, clutter_rate=3.0,
+                              region=torch.tensor([[-30.0, 30.0], [-30.0, 30.0]]), generator=gen)
+    options = {"detection_probability": 0.9, "clutter_density": 3.0 / 3600, "gate_probability": 0.99}
+    kf, ukf = PDA(KalmanFilter(motion, sensor), **options), PDA(UnscentedKalmanFilter(motion, sensor), **options)
+    a = run_filter(kf, x0.expand(8), det.z)
+    b = run_filter(ukf, x0.expand(8), det.z)
+    assert a.belief.mean.shape == (15, 8, 4) and a.extras["association"].shape == (15, 8, det.z.shape[-2] + 1)
+    torch.testing.assert_close(a.belief.mean, b.belief.mean, rtol=1e-9, atol=1e-9)
+    torch.testing.assert_close(a.log_likelihood, b.log_likelihood, rtol=1e-9, atol=1e-9)
+    assert torch.isfinite(a.belief.mean).all()
+
+
+def test_gate_and_errors():
+    assert chi2_gate(0.99, 2) == pytest.approx(9.210340371976184, rel=1e-13)
+    assert chi2_gate(0.95, 1) == pytest.approx(3.841458820694124, rel=1e-13)
+    assert chi2_gate(1.0, 3) == math.inf
+    with pytest.raises(ValueError, match="detection_probability"):
+        PDA(_kf(), detection_probability=0.0, clutter_density=1.0)
+    with pytest.raises(ValueError, match="clutter_density"):
+        PDA(_kf(), detection_probability=0.9, clutter_density=0.0)
+    with pytest.raises(ValueError, match="z"):
+        PDA(_kf(), detection_probability=0.9, clutter_density=1.0).update(_prior(), torch.zeros(3))

@@ -1,0 +1,168 @@
+r"""Probabilistic data association (PDA; Bar-Shalom & Tse, Automatica 11, 1975; Bar-Shalom, Daum &
+Huang, IEEE Control Systems 29(6), 2009) over any Gaussian filter of the contract.
+
+At a scan with detections ``z_1 .. z_D`` (a padded set, ``(*B, D, m)``, NaN rows absent), the filter's
+own update is run for every detection at once (the detection axis leftmost, so that model banks keep
+broadcasting), giving each one's innovation ``nu_k``, its covariance ``S`` and Kalman posterior. A
+detection is *validated* when ``nu_k^T S^{-1} nu_k <= gamma``, the ``chi^2_m`` quantile of the gate
+probability ``P_G`` (no gate: ``P_G = 1``). The association weights are
+
+.. math::
+    \beta_0 \propto 1 - P_D P_G, \qquad
+    \beta_k \propto \frac{P_D\, \mathcal N(\nu_k; 0, S)}{\lambda}\ \ (k\ \text{validated}),
+
+``lambda`` the clutter spatial density (false detections per unit volume of measurement space), and
+the posterior is the moment-matched collapse of the prior (weight ``beta_0``: the target was not
+detected) and the ``D`` detection-conditioned posteriors: mean ``x + K sum_k beta_k nu_k`` and
+covariance ``beta_0 P + (1 - beta_0) P^c + K (sum_k beta_k nu_k nu_k^T - nu nu^T) K^T`` for a Kalman
+filter, the standard PDA update (Stone Soup's ``PDAUpdater``, tests/test_pda.py).
+
+The log-likelihood of the scan is that of the target hypothesis against "every detection is clutter",
+``log(1 - P_D P_G + sum_k P_D N(nu_k; 0, S) / lambda)``: the factors common to every hypothesis about
+the target (the clutter's Poisson law) are left out, so it compares models (modes, parameters) of the
+target, not scans. A scan without any detection gives ``log(1 - P_D P_G)`` and leaves the belief as it
+was.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from torchmm.beliefs import GaussianBelief
+from torchmm.contract import Of, Real, entry_point
+from torchmm.filters.base import Filter, StepOutput
+from torchmm.linalg import cholesky, solve_lower, sum_last
+
+__all__ = ["PDA", "chi2_gate"]
+
+
+@entry_point(probability=Real(0.0, 1.0), dim=Real(minimum=1.0))
+def chi2_gate(probability: float, dim: int) -> float:
+    """The ``chi^2`` quantile with ``dim`` degrees of freedom at ``probability``: the squared
+    Mahalanobis radius of the ellipsoidal gate that holds a Gaussian innovation with that probability
+    (``inf`` for probability 1). By bisection on the regularised incomplete gamma function, float64,
+    to a relative 1e-15."""
+    if probability >= 1.0:
+        return math.inf
+    if probability <= 0.0:
+        return 0.0
+    a = torch.tensor(float(dim) / 2, dtype=torch.float64)
+
+    def cdf(x: float) -> float:
+        return float(torch.special.gammainc(a, torch.tensor(x / 2, dtype=torch.float64)))
+
+    lo, hi = 0.0, 1.0
+    while cdf(hi) < probability:
+        hi *= 2
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        if cdf(mid) < probability:
+            lo = mid
+        else:
+            hi = mid
+        if hi - lo <= 1e-15 * hi:
+            break
+    return 0.5 * (lo + hi)
+
+
+class PDA(Filter):
+    r"""Probabilistic data association over a Gaussian filter: the update takes a padded set of
+    detections per scan (see the module docstring for the equations).
+
+    Args:
+        filter: a filter whose belief is a :class:`~torchmm.GaussianBelief` (Kalman, extended or
+            unscented); its ``predict`` is used as it is, its ``update`` once per detection.
+        detection_probability: ``P_D`` in (0, 1].
+        clutter_density: ``lambda`` > 0, false detections per unit volume of measurement space.
+        gate_probability: ``P_G`` in (0, 1]; 1 (default 0.99): no gate, every detection weighs.
+
+    Shapes:
+        belief: :class:`~torchmm.GaussianBelief` with batch ``(*B,)``; ``z``: ``(*B, D, m)`` (a row with
+        a non-finite entry is no detection; the set's batch broadcasts to ``*B``). ``extras``:
+        ``"association"`` ``(*B, D + 1)`` the weights ``beta_0, beta_1 .. beta_D`` (missed detection
+        first), ``"validated"`` ``(*B, D)`` bool.
+
+    Examples:
+        >>> from torchmm.filters import KalmanFilter
+        >>> from torchmm.models import ConstantVelocity, PositionMeasurement
+        >>> pda = PDA(KalmanFilter(ConstantVelocity(1), PositionMeasurement(2, [0], 1.0)),
+        ...           detection_probability=0.9, clutter_density=0.01)
+        >>> prior = GaussianBelief(torch.zeros(4, 2), torch.eye(2))
+        >>> detections = torch.tensor([[0.5], [8.0], [float("nan")]]).expand(4, 3, 1)
+        >>> out = pda.update(prior, detections)
+        >>> out.belief.mean.shape, out.extras["association"].shape
+        (torch.Size([4, 2]), torch.Size([4, 4]))
+    """
+
+    @entry_point(filter=Of(Filter), detection_probability=Real(0.0, 1.0), clutter_density=Real(positive=True),
+                 gate_probability=Real(0.0, 1.0))
+    def __init__(self, filter: Filter, *, detection_probability: float, clutter_density: float,
+                 gate_probability: float = 0.99):
+        super().__init__()
+        if not 0.0 < detection_probability <= 1.0:
+            raise ValueError(f"detection_probability: expected a probability in (0, 1], got {detection_probability}")
+        if not 0.0 < gate_probability <= 1.0:
+            raise ValueError(f"gate_probability: expected a probability in (0, 1], got {gate_probability}")
+        m = filter.meas_dim
+        if m is None:
+            raise ValueError(f"filter: PDA needs a filter with a sensor (meas_dim), got {type(filter).__name__}")
+        self.filter = filter
+        self.detection_probability = float(detection_probability)
+        self.clutter_density = float(clutter_density)
+        self.gate_probability = float(gate_probability)
+        self.gate = chi2_gate(self.gate_probability, m)
+
+    @property
+    def state_dim(self) -> int | None:
+        return self.filter.state_dim
+
+    @property
+    def meas_dim(self) -> None:
+        return None  # a set of detections, (*B, D, m): not a single measurement of the sensor
+
+    @property
+    def detections_dim(self) -> int:
+        """``m`` of each detection."""
+        return self.filter.meas_dim
+
+    def initial_belief(self, belief, **kwargs):
+        return self.filter.initial_belief(belief, **kwargs)
+
+    def predict(self, belief: GaussianBelief, *, u: Tensor | None = None) -> GaussianBelief:
+        return self.filter.predict(belief, u=u)
+
+    def update(self, belief: GaussianBelief, z: Tensor) -> StepOutput:
+        if not isinstance(belief, GaussianBelief):
+            raise TypeError(f"belief: PDA needs a GaussianBelief, got {type(belief).__name__}")
+        m = self.detections_dim
+        if not isinstance(z, Tensor) or z.dim() < 2 or z.shape[-1] != m:
+            raise ValueError(f"z: expected a padded set of detections (*B, D, {m}), got "
+                             f"{tuple(z.shape) if isinstance(z, Tensor) else type(z).__name__}")
+        batch = belief.batch_shape
+        D = z.shape[-2]
+        z = z.to(belief.dtype).expand(*batch, D, m)
+        present = torch.isfinite(z).all(-1)  # (*B, D)
+        zs = torch.where(present.unsqueeze(-1), z, torch.nan).movedim(-2, 0)  # (D, *B, m): detections leftmost
+        hyp = self.filter.update(belief.unsqueeze(0).expand(D, *batch), zs)  # every detection's update at once
+        nu, S = hyp.innovation, hyp.innovation_cov.expand(D, *batch, m, m)
+        white = solve_lower(cholesky(S), nu.nan_to_num(0.0).unsqueeze(-1)).squeeze(-1)
+        validated = present.movedim(-1, 0) & (sum_last(white.square()) <= self.gate)  # (D, *B)
+        pd, pg = self.detection_probability, self.gate_probability
+        log_missed = math.log1p(-pd * pg) if pd * pg < 1 else -math.inf
+        neg_inf = torch.full((), -math.inf, dtype=belief.dtype, device=belief.device)
+        log_detected = torch.where(validated, hyp.log_likelihood + math.log(pd) - math.log(self.clutter_density),
+                                   neg_inf)
+        log_weights = torch.cat([torch.full((1, *batch), log_missed, dtype=belief.dtype, device=belief.device),
+                                 log_detected], dim=0)  # (1 + D, *B): the missed detection first
+        log_likelihood = torch.logsumexp(log_weights, dim=0)
+        weights = (log_weights - log_likelihood).exp().nan_to_num(0.0).movedim(0, -1)  # (*B, 1 + D)
+        hypotheses = GaussianBelief(torch.cat([belief.mean.unsqueeze(0), hyp.belief.mean], 0).movedim(0, -2),
+                                    torch.cat([belief.cov.expand(*batch, *belief.cov.shape[-2:]).unsqueeze(0),
+                                               hyp.belief.cov], 0).movedim(0, -3))
+        posterior = hypotheses.collapse(weights)
+        combined = (weights[..., 1:].unsqueeze(-1) * nu.nan_to_num(0.0).movedim(0, -2)).sum(-2)
+        return StepOutput(posterior, belief, log_likelihood, combined, S[0],
+                          {"association": weights, "validated": validated.movedim(0, -1)})
