@@ -144,3 +144,41 @@ def test_gate_and_errors():
         PDA(_kf(), detection_probability=0.9, clutter_density=0.0)
     with pytest.raises(ValueError, match="z"):
         PDA(_kf(), detection_probability=0.9, clutter_density=1.0).update(_prior(), torch.zeros(3))
+
+
+def test_imm_over_pda_is_the_imm_pdaf():
+    """IMM(PDA(...)): the engine puts the mode axis before the detection set (measurement_rank = 2) and
+    every scan informs (an empty one too). With one mode it equals the PDAF, with every mode alike it
+    equals it too (mode probabilities unchanged), and a 3-mode IMM-PDAF runs through run_filter with
+    its mode probabilities summing to one."""
+    from torchmm import IMM
+
+    motion = ConstantVelocity(2, dt=1.0, q=0.5, dtype=torch.float64)
+    sensor = PositionMeasurement(4, [0, 2], R)
+    x0 = GaussianBelief(torch.tensor([0.0, 1.0, 0.0, 1.0], dtype=torch.float64), 10 * torch.eye(4, dtype=torch.float64))
+    gen = torch.Generator().manual_seed(8)
+    truth = x0.mean + torch.cumsum(torch.randn(12, 5, 4, generator=gen, dtype=torch.float64) * 0.3, 0)
+    det = simulate_detections(sensor, truth.unsqueeze(-2), detection_probability=0.8, clutter_rate=2.0,
+                              region=torch.tensor([[-30.0, 30.0], [-30.0, 30.0]]), generator=gen)
+    det.z[4] = math.nan  # an empty scan
+    options = {"detection_probability": 0.8, "clutter_density": 2.0 / 3600, "gate_probability": 0.99}
+    pdaf = run_filter(PDA(KalmanFilter(motion, sensor), **options), x0.expand(5), det.z)
+    one = IMM(PDA(KalmanFilter(motion, sensor), **options), torch.ones(1, 1, dtype=torch.float64))
+    got = run_filter(one, one.initial_belief(x0.expand(5)), det.z)
+    torch.testing.assert_close(got.belief.components.mean[..., 0, :], pdaf.belief.mean, rtol=1e-12, atol=1e-10)
+    torch.testing.assert_close(got.belief.components.cov[..., 0, :, :], pdaf.belief.cov, rtol=1e-12, atol=1e-10)
+    torch.testing.assert_close(got.log_likelihood, pdaf.log_likelihood, rtol=1e-12, atol=1e-12)
+    assert (got.log_likelihood[4] != 0).all()  # the empty scan is not "missing"
+    bank = ConstantVelocity(2, dt=1.0, q=0.5, acceleration=[[0.0, 0.0], [0.0, 0.0], [0.0, 0.0]], dtype=torch.float64)
+    Pi = torch.full((3, 3), 0.1, dtype=torch.float64) + 0.7 * torch.eye(3, dtype=torch.float64)
+    alike = IMM(PDA(KalmanFilter(bank, sensor), **options), Pi)
+    three = run_filter(alike, alike.initial_belief(x0.expand(5)), det.z)
+    torch.testing.assert_close(three.estimate().mean, pdaf.belief.mean, rtol=1e-10, atol=1e-9)
+    torch.testing.assert_close(three.log_likelihood, pdaf.log_likelihood, rtol=1e-10, atol=1e-10)
+    torch.testing.assert_close(three.belief.mode_probs, torch.full((12, 5, 3), 1 / 3, dtype=torch.float64))
+    turning = ConstantVelocity(2, dt=1.0, q=0.5, acceleration=[[0.0, 0.0], [0.5, 0.0], [-0.5, 0.0]],
+                               dtype=torch.float64)
+    imm = IMM(PDA(KalmanFilter(turning, sensor), **options), Pi)
+    run = run_filter(imm, imm.initial_belief(x0.expand(5)), det.z)
+    torch.testing.assert_close(run.belief.mode_probs.sum(-1), torch.ones(12, 5, dtype=torch.float64))
+    assert torch.isfinite(run.estimate().mean).all() and run.extras["modes"]["association"].shape == (12, 5, 3, det.z.shape[-2] + 1)

@@ -115,9 +115,16 @@ class PDA(Filter):
         self.gate_probability = float(gate_probability)
         self.gate = chi2_gate(self.gate_probability, m)
 
+    #: a set of detections per scan, (*B, D, m): the mode axes of a combinator go before (D, m)
+    measurement_rank = 2
+
     @property
     def state_dim(self) -> int | None:
         return self.filter.state_dim
+
+    def informative(self, z: Tensor) -> Tensor:
+        """Every scan informs, an empty one too (nothing was detected: weight ``1 - P_D P_G``)."""
+        return torch.ones(z.shape[:-2], dtype=torch.bool, device=z.device)
 
     @property
     def meas_dim(self) -> None:

@@ -10,6 +10,7 @@ from torch import Tensor, nn
 
 from torchmm.beliefs import Belief
 from torchmm.contract import BeliefArg, entry_point
+from torchmm.linalg import any_observed
 from torchmm.validation import broadcast_shape, check_filter_dtype
 
 __all__ = ["Filter", "StepOutput"]
@@ -64,6 +65,16 @@ class Filter(nn.Module):
 
     #: True for filters whose steps draw random numbers (they accept ``generator=``)
     uses_generator: bool = False
+    #: the number of trailing axes of one measurement: 1 for ``(*B, m)``; a set of detections
+    #: ``(*B, D, m)`` (torchmm.association.PDA) has 2. Combinators insert their mode axes before them.
+    measurement_rank: int = 1
+
+    def informative(self, z: Tensor) -> Tensor:
+        """``(*B,)`` bool: where the measurement ``z`` carries information (the engine's "observed";
+        where False the step's log-likelihood is exactly 0). Default: some component is finite (a
+        measurement with every component missing carries none). Set-valued measurements override it
+        (an empty scan still tells that nothing was detected)."""
+        return any_observed(z)
 
     @property
     def state_dim(self) -> int | None:

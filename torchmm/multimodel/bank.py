@@ -21,6 +21,7 @@ from torch import Tensor, nn
 from torchmm.beliefs import Belief, stack
 from torchmm.contract import Indices, Int, Of, entry_point
 from torchmm.filters.base import Filter, StepOutput, call_with
+from torchmm.linalg import any_observed
 from torchmm.validation import broadcast_shape
 
 __all__ = ["FilterBank", "IndexedBank", "ListBank", "VectorizedBank", "make_bank"]
@@ -40,6 +41,21 @@ class FilterBank(nn.Module):
     def meas_dim(self) -> int | None:
         """The measurement dimension every mode filter expects (None if a filter does not say)."""
         return None
+
+    def _mode_filters(self) -> list:
+        return []
+
+    @property
+    def measurement_rank(self) -> int:
+        """The trailing axes of one measurement of the mode filters (:attr:`Filter.measurement_rank`)."""
+        members = self._mode_filters()
+        return getattr(members[0], "measurement_rank", 1) if members else 1
+
+    def informative(self, z: Tensor) -> Tensor:
+        """``(*B,)`` bool: where ``z`` informs the modes (:meth:`Filter.informative` of the first mode
+        filter; the modes of a bank share their measurement)."""
+        members = self._mode_filters()
+        return members[0].informative(z) if members and hasattr(members[0], "informative") else any_observed(z)
 
     @property
     def state_dim(self) -> int | None:
@@ -95,6 +111,9 @@ class VectorizedBank(FilterBank):
     @property
     def meas_dim(self) -> int | None:
         return getattr(self.filter, "meas_dim", None)
+
+    def _mode_filters(self) -> list:
+        return [self.filter]
 
     @property
     def state_dim(self) -> int | None:
@@ -164,7 +183,7 @@ class ListBank(FilterBank):
             if not isinstance(f, Filter):
                 raise TypeError(f"bank[{j}]: expected a Filter, got {type(f).__name__}")
             f.check_bank_member(f"bank[{j}]", len(filters))
-        for attr in ("state_dim", "meas_dim"):
+        for attr in ("state_dim", "meas_dim", "measurement_rank"):
             dims = [getattr(f, attr, None) for f in filters]
             if len({d for d in dims if d is not None}) > 1:
                 hint = (" (modes with different state dimensions: wrap each in torchmm.multimodel.Embedded, "
@@ -177,6 +196,9 @@ class ListBank(FilterBank):
     @property
     def meas_dim(self) -> int | None:
         return getattr(self.filters[0], "meas_dim", None)
+
+    def _mode_filters(self) -> list:
+        return list(self.filters)
 
     @property
     def state_dim(self) -> int | None:
@@ -291,6 +313,9 @@ class IndexedBank(FilterBank):
     @property
     def meas_dim(self) -> int | None:
         return self.bank.meas_dim
+
+    def _mode_filters(self) -> list:
+        return self.bank._mode_filters()
 
     @property
     def state_dim(self) -> int | None:

@@ -29,7 +29,6 @@ import torchmm.kernels as kernels
 from torchmm.beliefs import Belief, ModeBelief
 from torchmm.contract import BeliefArg, Finite, Gen, Int, Of, Stochastic, entry_point
 from torchmm.filters.base import Filter, StepOutput, check_state_dim
-from torchmm.linalg import any_observed
 from torchmm.models.transition import as_transition
 from torchmm.multimodel.bank import FilterBank, make_bank
 from torchmm.validation import (
@@ -289,8 +288,9 @@ class MultipleModelFilter(Filter):
         step) the log-likelihood is exactly 0 (``logsumexp_j(log c_j)`` is 0 only up to rounding).
         """
         z = self._measurement(prior, z, sensor=sensor)
-        out = self.bank.update(prior.components, z.unsqueeze(-2), sensor=sensor, generator=generator)
-        observed = any_observed(z) if observed is None else observed
+        rank = self.bank.measurement_rank  # the mode axis goes before the measurement's own axes
+        out = self.bank.update(prior.components, z.unsqueeze(-1 - rank), sensor=sensor, generator=generator)
+        observed = self.bank.informative(z) if observed is None else observed
         mode_log_probs, log_likelihood = mode_posterior(out.log_likelihood, prior.mode_log_probs, observed)
         extras = _mode_extras(out)
         extras["failed"] = flag_run_failed(log_likelihood)
@@ -481,7 +481,9 @@ class GPB2(MultipleModelFilter):
         z = self._measurement(belief, z, sensor=sensor)
         batch = mode_batch(belief)
         prior_pairs = belief.components.reshape(*batch, M, M)
-        out = self.bank.update(prior_pairs, z.unsqueeze(-2).unsqueeze(-2), sensor=sensor, generator=generator)
+        rank = self.bank.measurement_rank
+        out = self.bank.update(prior_pairs, z.unsqueeze(-1 - rank).unsqueeze(-1 - rank), sensor=sensor,
+                               generator=generator)
         prior_joint = belief.mode_log_probs.unflatten(-1, (M, M))
         joint = out.log_likelihood + prior_joint  # log w_ij
         log_mode = torch.logsumexp(joint, dim=-2)  # (*B, j): unnormalised log mu_j
@@ -489,7 +491,7 @@ class GPB2(MultipleModelFilter):
         merge_weights = safe_log_normalize(joint, log_mode.unsqueeze(-2))  # mu_{i|j}, (*B, i, j)
         merged = out.belief.transpose_batch(-1, -2).collapse(merge_weights.mT.exp())  # (*B, j)
         mode_log_probs = safe_log_normalize(log_mode, log_likelihood.unsqueeze(-1))
-        log_likelihood = torch.where(any_observed(z), log_likelihood, 0.0)  # exactly 0 without a datum
+        log_likelihood = torch.where(self.bank.informative(z), log_likelihood, 0.0)  # exactly 0 without a datum
         extras = _mode_extras(out, mode_axes=2)
         extras["failed"] = flag_run_failed(log_likelihood)
         return StepOutput(
