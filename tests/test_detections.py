@@ -72,6 +72,9 @@ def test_certain_detection_without_clutter_is_every_target_and_max_clutter_pads(
                                  region=torch.tensor([[0.0, 2e3], [-1.0, 1.0]]), max_clutter=7,
                                  generator=torch.Generator().manual_seed(4))
     assert padded.z.shape == (4, 6, 9, 2) and (padded.origin == -1).all()
+    quiet = simulate_detections(sensor, x, detection_probability=1.0, max_clutter=3,
+                                generator=torch.Generator().manual_seed(5))
+    assert quiet.z.shape == (4, 6, 5, 2) and quiet.present[..., :2].all() and not quiet.present[..., 2:].any()
 
 
 def test_clear_errors():

@@ -51,6 +51,18 @@ def test_no_detection_leaves_the_belief_and_weighs_the_missed_detection():
     assert not out.extras["validated"].any()
 
 
+def test_an_impossible_scan_keeps_the_prior_with_zero_likelihood():
+    """P_D = P_G = 1 and nothing detected: impossible under the model; log-likelihood -inf, no NaN belief."""
+    pda = PDA(_kf(), detection_probability=1.0, clutter_density=1e-3, gate_probability=1.0)
+    prior = _prior((2,))
+    out = pda.update(prior, torch.full((2, 3, 2), math.nan, dtype=torch.float64))
+    assert torch.isneginf(out.log_likelihood).all()
+    torch.testing.assert_close(out.belief.mean, prior.mean, rtol=0, atol=0)
+    torch.testing.assert_close(out.belief.cov, prior.cov, rtol=0, atol=1e-12)
+    with pytest.raises(ValueError, match="z"):
+        pda.update(prior, torch.zeros(5, 3, 2, dtype=torch.float64))
+
+
 def test_batched_equals_per_run_and_padding_does_not_matter():
     pda = PDA(_kf(), detection_probability=0.9, clutter_density=1e-3, gate_probability=0.99)
     prior = _prior((6,), seed=2)

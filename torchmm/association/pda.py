@@ -150,7 +150,11 @@ class PDA(Filter):
                              f"{tuple(z.shape) if isinstance(z, Tensor) else type(z).__name__}")
         batch = belief.batch_shape
         D = z.shape[-2]
-        z = z.to(belief.dtype).expand(*batch, D, m)
+        try:
+            z = z.to(belief.dtype).expand(*batch, D, m)
+        except RuntimeError:
+            raise ValueError(f"z: the detections' batch {tuple(z.shape[:-2])} does not broadcast to the belief's "
+                             f"{tuple(batch)}") from None
         present = torch.isfinite(z).all(-1)  # (*B, D)
         zs = torch.where(present.unsqueeze(-1), z, torch.nan).movedim(-2, 0)  # (D, *B, m): detections leftmost
         hyp = self.filter.update(belief.unsqueeze(0).expand(D, *batch), zs)  # every detection's update at once
@@ -166,6 +170,9 @@ class PDA(Filter):
                                  log_detected], dim=0)  # (1 + D, *B): the missed detection first
         log_likelihood = torch.logsumexp(log_weights, dim=0)
         weights = (log_weights - log_likelihood).exp().nan_to_num(0.0).movedim(0, -1)  # (*B, 1 + D)
+        # an impossible scan (P_D P_G = 1 and no validated detection): likelihood 0, the prior kept
+        impossible = torch.isneginf(log_likelihood).unsqueeze(-1)
+        weights = torch.where(impossible, (torch.arange(D + 1, device=weights.device) == 0).to(weights.dtype), weights)
         hypotheses = GaussianBelief(torch.cat([belief.mean.unsqueeze(0), hyp.belief.mean], 0).movedim(0, -2),
                                     torch.cat([belief.cov.expand(*batch, *belief.cov.shape[-2:]).unsqueeze(0),
                                                hyp.belief.cov], 0).movedim(0, -3))

@@ -101,10 +101,10 @@ def simulate_detections(measurement: MeasurementModel, states: Tensor, *, detect
         u = torch.rand(*lead, C, m, generator=generator, dtype=dtype, device=device)
         z_clutter = region[:, 0] + (region[:, 1] - region[:, 0]) * u
         clutter_present = torch.arange(C, device=device) < counts.unsqueeze(-1)
-    else:
-        C = 0
-        z_clutter = torch.zeros(*lead, 0, m, dtype=dtype, device=device)
-        clutter_present = torch.zeros(*lead, 0, dtype=torch.bool, device=device)
+    else:  # no clutter: max_clutter rows of padding, if asked for (the same D whatever the rate)
+        C = 0 if max_clutter is None else int(max_clutter)
+        z_clutter = torch.zeros(*lead, C, m, dtype=dtype, device=device)
+        clutter_present = torch.zeros(*lead, C, dtype=torch.bool, device=device)
     z = torch.cat([z_target, z_clutter], dim=-2)
     present = torch.cat([detected, clutter_present], dim=-1)
     origin = torch.cat([torch.where(detected, torch.arange(N, device=device), -1),
