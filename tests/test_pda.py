@@ -63,6 +63,19 @@ def test_an_impossible_scan_keeps_the_prior_with_zero_likelihood():
         pda.update(prior, torch.zeros(5, 3, 2, dtype=torch.float64))
 
 
+def test_a_failed_run_is_flagged_and_leaves_the_others():
+    pda = PDA(_kf(), detection_probability=0.9, clutter_density=1e-3)
+    prior = _prior((3,))
+    prior = GaussianBelief(prior.mean.clone(), prior.cov)
+    prior.mean[1, 0] = math.nan  # a diverged run
+    z = prior.mean[:, [0, 2]].nan_to_num(0.0).unsqueeze(-2) + 1.0
+    out = pda.update(prior, z)
+    assert out.extras["failed"].tolist() == [False, True, False]
+    assert torch.isnan(out.belief.mean[1]).all() and torch.isfinite(out.belief.mean[[0, 2]]).all()
+    alone = pda.update(prior[[0, 2]], z[[0, 2]])
+    torch.testing.assert_close(out.belief.mean[[0, 2]], alone.belief.mean, rtol=0, atol=0)
+
+
 def test_batched_equals_per_run_and_padding_does_not_matter():
     pda = PDA(_kf(), detection_probability=0.9, clutter_density=1e-3, gate_probability=0.99)
     prior = _prior((6,), seed=2)

@@ -83,7 +83,8 @@ class PDA(Filter):
         belief: :class:`~torchmm.GaussianBelief` with batch ``(*B,)``; ``z``: ``(*B, D, m)`` (a row with
         a non-finite entry is no detection; the set's batch broadcasts to ``*B``). ``extras``:
         ``"association"`` ``(*B, D + 1)`` the weights ``beta_0, beta_1 .. beta_D`` (missed detection
-        first), ``"validated"`` ``(*B, D)`` bool.
+        first), ``"validated"`` ``(*B, D)`` bool, ``"failed"`` ``(*B,)`` bool: the update was not finite
+        (a NaN prediction): its log-likelihood, weights and posterior are NaN, the other runs untouched.
 
     Examples:
         >>> from torchmm.filters import KalmanFilter
@@ -173,10 +174,13 @@ class PDA(Filter):
         # an impossible scan (P_D P_G = 1 and no validated detection): likelihood 0, the prior kept
         impossible = torch.isneginf(log_likelihood).unsqueeze(-1)
         weights = torch.where(impossible, (torch.arange(D + 1, device=weights.device) == 0).to(weights.dtype), weights)
+        # a failed update (a NaN prediction or likelihood) fails its run visibly, as every filter's does
+        failed = torch.isnan(log_likelihood)
+        weights = torch.where(failed.unsqueeze(-1), torch.nan, weights)
         hypotheses = GaussianBelief(torch.cat([belief.mean.unsqueeze(0), hyp.belief.mean], 0).movedim(0, -2),
                                     torch.cat([belief.cov.expand(*batch, *belief.cov.shape[-2:]).unsqueeze(0),
                                                hyp.belief.cov], 0).movedim(0, -3))
         posterior = hypotheses.collapse(weights)
         combined = (weights[..., 1:].unsqueeze(-1) * nu.nan_to_num(0.0).movedim(0, -2)).sum(-2)
         return StepOutput(posterior, belief, log_likelihood, combined, S[0],
-                          {"association": weights, "validated": validated.movedim(0, -1)})
+                          {"association": weights, "validated": validated.movedim(0, -1), "failed": failed})
