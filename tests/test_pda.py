@@ -139,17 +139,24 @@ def test_equals_stone_soup_pda(pd, density, pg):
     assert validated >= 6 and (gated >= 1 or pg == 1.0)  # both kinds of detection were exercised
 
 
-def test_over_any_gaussian_filter_through_run_filter():
-    """The unscented filter's PDA on linear models equals the Kalman filter's (sigma points are exact
-    for linear maps), through run_filter on simulated detections in clutter."""
+def _scan_scenario(steps: int, runs: int, *, seed: int, pd: float, clutter: float):
+    """A target per run drifting near the origin, seen with P_D = ``pd`` among ``clutter`` false
+    detections a scan over a 60 m square; the models and the PDA options that match."""
     motion = ConstantVelocity(2, dt=1.0, q=0.5, dtype=torch.float64)
     sensor = PositionMeasurement(4, [0, 2], R)
     x0 = GaussianBelief(torch.tensor([0.0, 1.0, 0.0, 1.0], dtype=torch.float64), 10 * torch.eye(4, dtype=torch.float64))
-    gen = torch.Generator().manual_seed(5)
-    truth = x0.mean + torch.cumsum(torch.randn(15, 8, 4, generator=gen, dtype=torch.float64) * 0.3, 0)
-    det = simulate_detections(sensor, truth.unsqueeze(-2), detection_probability=0.9, clutter_rate=3.0,
+    gen = torch.Generator().manual_seed(seed)
+    truth = x0.mean + torch.cumsum(torch.randn(steps, runs, 4, generator=gen, dtype=torch.float64) * 0.3, 0)
+    det = simulate_detections(sensor, truth.unsqueeze(-2), detection_probability=pd, clutter_rate=clutter,
                               region=torch.tensor([[-30.0, 30.0], [-30.0, 30.0]]), generator=gen)
-    options = {"detection_probability": 0.9, "clutter_density": 3.0 / 3600, "gate_probability": 0.99}
+    options = {"detection_probability": pd, "clutter_density": clutter / 3600, "gate_probability": 0.99}
+    return motion, sensor, x0, det, options
+
+
+def test_over_any_gaussian_filter_through_run_filter():
+    """The unscented filter's PDA on linear models equals the Kalman filter's (sigma points are exact
+    for linear maps), through run_filter on simulated detections in clutter."""
+    motion, sensor, x0, det, options = _scan_scenario(15, 8, seed=5, pd=0.9, clutter=3.0)
     kf, ukf = PDA(KalmanFilter(motion, sensor), **options), PDA(UnscentedKalmanFilter(motion, sensor), **options)
     a = run_filter(kf, x0.expand(8), det.z)
     b = run_filter(ukf, x0.expand(8), det.z)
@@ -178,15 +185,8 @@ def test_imm_over_pda_is_the_imm_pdaf():
     its mode probabilities summing to one."""
     from torchmm import IMM
 
-    motion = ConstantVelocity(2, dt=1.0, q=0.5, dtype=torch.float64)
-    sensor = PositionMeasurement(4, [0, 2], R)
-    x0 = GaussianBelief(torch.tensor([0.0, 1.0, 0.0, 1.0], dtype=torch.float64), 10 * torch.eye(4, dtype=torch.float64))
-    gen = torch.Generator().manual_seed(8)
-    truth = x0.mean + torch.cumsum(torch.randn(12, 5, 4, generator=gen, dtype=torch.float64) * 0.3, 0)
-    det = simulate_detections(sensor, truth.unsqueeze(-2), detection_probability=0.8, clutter_rate=2.0,
-                              region=torch.tensor([[-30.0, 30.0], [-30.0, 30.0]]), generator=gen)
+    motion, sensor, x0, det, options = _scan_scenario(12, 5, seed=8, pd=0.8, clutter=2.0)
     det.z[4] = math.nan  # an empty scan
-    options = {"detection_probability": 0.8, "clutter_density": 2.0 / 3600, "gate_probability": 0.99}
     pdaf = run_filter(PDA(KalmanFilter(motion, sensor), **options), x0.expand(5), det.z)
     one = IMM(PDA(KalmanFilter(motion, sensor), **options), torch.ones(1, 1, dtype=torch.float64))
     got = run_filter(one, one.initial_belief(x0.expand(5)), det.z)
