@@ -42,20 +42,20 @@ class FilterBank(nn.Module):
         """The measurement dimension every mode filter expects (None if a filter does not say)."""
         return None
 
-    def _mode_filters(self) -> list:
-        return []
+    def _first_filter(self) -> Filter | None:
+        """A mode filter (the modes of a bank share their measurement); None for a bank without one."""
+        return None
 
     @property
     def measurement_rank(self) -> int:
         """The trailing axes of one measurement of the mode filters (:attr:`Filter.measurement_rank`)."""
-        members = self._mode_filters()
-        return getattr(members[0], "measurement_rank", 1) if members else 1
+        first = self._first_filter()
+        return 1 if first is None else first.measurement_rank
 
     def informative(self, z: Tensor) -> Tensor:
-        """``(*B,)`` bool: where ``z`` informs the modes (:meth:`Filter.informative` of the first mode
-        filter; the modes of a bank share their measurement)."""
-        members = self._mode_filters()
-        return members[0].informative(z) if members and hasattr(members[0], "informative") else any_observed(z)
+        """``(*B,)`` bool: where ``z`` informs the modes (:meth:`Filter.informative` of a mode filter)."""
+        first = self._first_filter()
+        return any_observed(z) if first is None else first.informative(z)
 
     @property
     def state_dim(self) -> int | None:
@@ -112,8 +112,8 @@ class VectorizedBank(FilterBank):
     def meas_dim(self) -> int | None:
         return getattr(self.filter, "meas_dim", None)
 
-    def _mode_filters(self) -> list:
-        return [self.filter]
+    def _first_filter(self) -> Filter:
+        return self.filter
 
     @property
     def state_dim(self) -> int | None:
@@ -197,8 +197,8 @@ class ListBank(FilterBank):
     def meas_dim(self) -> int | None:
         return getattr(self.filters[0], "meas_dim", None)
 
-    def _mode_filters(self) -> list:
-        return list(self.filters)
+    def _first_filter(self) -> Filter:
+        return self.filters[0]
 
     @property
     def state_dim(self) -> int | None:
@@ -314,8 +314,8 @@ class IndexedBank(FilterBank):
     def meas_dim(self) -> int | None:
         return self.bank.meas_dim
 
-    def _mode_filters(self) -> list:
-        return self.bank._mode_filters()
+    def _first_filter(self) -> Filter | None:
+        return self.bank._first_filter()
 
     @property
     def state_dim(self) -> int | None:
