@@ -41,7 +41,8 @@ bench: $(STAMP)
 # for a lent GPU machine (benchmarks/gpu_session.sh): the pure-Python packages its image lacks, as wheels
 gpu-wheels: $(STAMP)
 	rm -rf .whl && mkdir -p .whl
-	$(BIN)/python -m pip wheel --quiet --no-deps -w .whl hydra-core==1.3.8 omegaconf==2.3.1 antlr4-python3-runtime==4.9.3
+	$(BIN)/python -m pip wheel --quiet --no-deps -w .whl hydra-core==1.3.8 omegaconf==2.3.1 antlr4-python3-runtime==4.9.3 \
+		hydra-joblib-launcher==1.2.0
 
 clean:
 	rm -rf $(VENV) outputs multirun .pytest_cache .hypothesis

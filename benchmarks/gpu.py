@@ -19,6 +19,9 @@ Needs only torch and numpy (and this repository on the path)::
 * IMM through ``run_filter`` (what users get: the engine's batch-last fast path,
   ``record="estimate"``), eager and with ``compile=True``; both checked against ``IMM.step``'s
   estimates (1e-9).
+* PDA tracking (issue 32): ``--targets`` PDA tracks a run (benchmarks/pda_throughput.py's scenario:
+  P_D 0.9, 10 clutter points a scan, Kalman, float64) through ``run_filter`` at ``--tracking-runs``;
+  track-scans/s, and the first ``--check-runs`` runs' final means against the CPU's (1e-9).
 * Sizes whose particle count exceeds ``--max-particles`` are skipped. A size that takes longer than
   ``--size-seconds`` ends the escalation. The whole script stays under 5 minutes.
 
@@ -122,8 +125,21 @@ def timed(fn, device: torch.device, repeats: int) -> float:
 
 
 def compiled(step, device: torch.device):
-    mode = "reduce-overhead" if device.type == "cuda" else "default"
-    return torch.compile(step, mode=mode, dynamic=False)
+    """``step`` compiled; on CUDA captured as CUDA graphs, whose outputs the next replay overwrites:
+    each call marks a new step and hands back a copy of the belief (what a loop that feeds a step's
+    output to the next needs)."""
+    if device.type != "cuda":
+        return torch.compile(step, mode="default", dynamic=False)
+    graph = torch.compile(step, mode="reduce-overhead", dynamic=False)
+
+    def run(belief, z):
+        torch.compiler.cudagraph_mark_step_begin()
+        return graph(belief, z).map_tensors(lambda t, _: t.clone())
+    return run
+
+
+def _first_line(error: Exception) -> str:
+    return (str(error).splitlines() or [""])[0][:80]
 
 
 def main(argv=None) -> None:
@@ -138,6 +154,8 @@ def main(argv=None) -> None:
     parser.add_argument("--check-runs", type=int, default=200)
     parser.add_argument("--size-seconds", type=float, default=40.0, help="stop escalating after a size this slow")
     parser.add_argument("--no-compile", action="store_true")
+    parser.add_argument("--targets", type=int, default=10, help="PDA tracks a run (tracking)")
+    parser.add_argument("--tracking-runs", type=float, nargs="*", default=[1e3, 1e4, 1e5])
     args = parser.parse_args(argv)
     device = torch.device(args.device)
     runs_list = [int(r) for r in args.runs]
@@ -190,7 +208,7 @@ def main(argv=None) -> None:
                     line += (f" | compiled {runs * args.steps / t_comp:10.4g} run-steps/s (compile {t_compile:.1f} s, "
                              f"vs eager {diff_c:.1e})")
                 except Exception as error:  # a compiler failure is a measurement, not a crash
-                    line += f" | compiled: failed ({type(error).__name__}: {str(error).splitlines()[0][:80]})"
+                    line += f" | compiled: failed ({type(error).__name__}: {_first_line(error)})"
             # the engine's default route: run_filter's fast path (batch-last kernel), eager and compiled
             reference = imm_estimates(imm, belief, z, eager_step)
             scale = 1 + float(reference.abs().max())
@@ -231,8 +249,44 @@ def main(argv=None) -> None:
         if time.perf_counter() - tic > args.size_seconds or time.perf_counter() - started > 270:
             print(f"PF: stopping after runs={runs} (time budget)")
             break
+    track_rate, agree_tracks = pda_tracking(device, [int(r) for r in args.tracking_runs], args, started)
+    agree &= agree_tracks
     print(f"total {time.perf_counter() - started:.1f} s")
-    print(f"imm_run_steps_per_s={imm_rate:.4g} pf_particle_steps_per_s={pf_rate:.4g} agree={agree}")
+    print(f"imm_run_steps_per_s={imm_rate:.4g} pf_particle_steps_per_s={pf_rate:.4g} "
+          f"pda_track_scans_per_s={track_rate:.4g} agree={agree}")
+
+
+def pda_tracking(device: torch.device, runs_list: list[int], args, started: float) -> tuple[float, bool]:
+    """PDA tracks on the device (benchmarks/pda_throughput.py's scenario); rate and agreement."""
+    from benchmarks.pda_throughput import CLUTTER, GATE, P_D, SIDE, scenario
+    from torchmm.association import PDA
+
+    rate, agree = float("nan"), True
+    for runs in runs_list:
+        if time.perf_counter() - started > 285:
+            print(f"PDA runs={runs:>8}: skipped (time budget)")
+            break
+        motion, sensor, z, prior = scenario(runs, args.targets, 30)
+        n = min(args.check_runs, runs)
+        final = {}
+        for dev in ((torch.device("cpu"), device) if device.type != "cpu" else (device,)):
+            pda = PDA(KalmanFilter(motion.to(dev), sensor.to(dev)), detection_probability=P_D,
+                      clutter_density=CLUTTER / SIDE**2, gate_probability=GATE)
+            scans, start = z.to(dev).unsqueeze(2), prior.to(dev)
+            if dev.type == "cpu" and dev != device:
+                scans, start = scans[:, :n], start[:n]
+            go = lambda pda=pda, scans=scans, start=start: run_filter(pda, start, scans, record="estimate")  # noqa: E731
+            with torch.no_grad():
+                go()
+                if dev == device:
+                    t = timed(go, device, args.repeats)
+                final[dev.type] = go().belief.mean[-1, :n].cpu()
+        diff = float((final[device.type] - final["cpu"]).abs().max() / (1 + final["cpu"].abs().max()))
+        agree &= diff < 1e-9
+        rate = runs * args.targets * 30 / t
+        print(f"PDA runs={runs:>8} targets={args.targets} scans=30 (D={z.shape[-2]}) {rate:10.4g} track-scans/s "
+              f"(vs CPU {diff:.1e})", flush=True)
+    return rate, agree
 
 
 if __name__ == "__main__":

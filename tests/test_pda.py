@@ -207,3 +207,51 @@ def test_imm_over_pda_is_the_imm_pdaf():
     run = run_filter(imm, imm.initial_belief(x0.expand(5)), det.z)
     torch.testing.assert_close(run.belief.mode_probs.sum(-1), torch.ones(12, 5, dtype=torch.float64))
     assert torch.isfinite(run.estimate().mean).all() and run.extras["modes"]["association"].shape == (12, 5, 3, det.z.shape[-2] + 1)
+
+
+def test_a_scan_reads_nothing_on_the_host():
+    """The PDA step and the IMM-PDAF step run asynchronously on a GPU: no host read
+    (torchmm.runtime.no_host_sync, which also makes CPU code take its device form)."""
+    from torchmm import IMM
+    from torchmm.runtime import no_host_sync
+
+    motion, sensor, x0, det, options = _scan_scenario(3, 4, seed=9, pd=0.9, clutter=2.0)
+    pda = PDA(KalmanFilter(motion, sensor), **options)
+    imm = IMM(PDA(KalmanFilter(ConstantVelocity(2, dt=1.0, q=0.5, acceleration=[[0.0, 0.0], [0.5, -0.5]], dtype=torch.float64), sensor), **options),
+              torch.tensor([[0.9, 0.1], [0.1, 0.9]], dtype=torch.float64))
+    b, m = x0.expand(4), imm.initial_belief(x0.expand(4))
+    with no_host_sync("the PDA and IMM-PDAF steps"):
+        for k in range(3):
+            b = pda.step(b, det.z[k]).belief
+            m = imm.step(m, det.z[k]).belief
+    assert torch.isfinite(b.mean).all() and torch.isfinite(m.estimate().mean).all()
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA (runs where a GPU is present)")
+def test_on_cuda_equal_the_cpu_and_do_not_synchronise():
+    """The PDAF and a 2-mode IMM-PDAF through run_filter on CUDA equal the CPU's; their steps run under
+    ``torch.cuda.set_sync_debug_mode("error")``."""
+    from torchmm import IMM
+
+    motion, sensor, x0, det, options = _scan_scenario(10, 6, seed=10, pd=0.85, clutter=3.0)
+    bank = ConstantVelocity(2, dt=1.0, q=0.5, acceleration=[[0.0, 0.0], [0.5, -0.5]], dtype=torch.float64)
+    Pi = torch.tensor([[0.9, 0.1], [0.1, 0.9]], dtype=torch.float64)
+    made = {}
+    for dev in ("cpu", "cuda"):
+        pda = PDA(KalmanFilter(motion.to(dev), sensor.to(dev)), **options)
+        imm = IMM(PDA(KalmanFilter(bank.to(dev), sensor.to(dev)), **options), Pi.to(dev))
+        z = det.z.to(dev)
+        made[dev] = (run_filter(pda, x0.to(dev).expand(6), z), run_filter(imm, imm.initial_belief(x0.to(dev).expand(6)), z))
+        if dev == "cuda":
+            b, m = x0.to(dev).expand(6), imm.initial_belief(x0.to(dev).expand(6))
+            b, m = pda.step(b, z[0]).belief, imm.step(m, z[0]).belief  # (first calls fill caches)
+            torch.cuda.synchronize()
+            torch.cuda.set_sync_debug_mode("error")
+            try:
+                for k in range(1, 4):
+                    b, m = pda.step(b, z[k]).belief, imm.step(m, z[k]).belief
+            finally:
+                torch.cuda.set_sync_debug_mode("default")
+    for cpu, gpu in zip(made["cpu"], made["cuda"]):
+        torch.testing.assert_close(gpu.belief.estimate().mean.cpu(), cpu.belief.estimate().mean, rtol=1e-10, atol=1e-10)
+        torch.testing.assert_close(gpu.log_likelihood.cpu(), cpu.log_likelihood, rtol=1e-10, atol=1e-10)

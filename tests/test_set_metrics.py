@@ -189,3 +189,27 @@ def test_the_device_form_reads_nothing_and_equals_the_early_stopping_cpu_form():
     with no_host_sync("the batched assignment"):
         device = _hungarian(C)
     assert torch.equal(cpu, device)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA (runs where a GPU is present)")
+def test_on_cuda_equal_the_cpu_and_do_not_synchronise():
+    """The assignment and GOSPA on CUDA: the same assignments and figures as on the CPU, with no
+    host synchronisation (``torch.cuda.set_sync_debug_mode("error")``)."""
+    gen = torch.Generator().manual_seed(11)
+    C = torch.rand(64, 6, 9, generator=gen, dtype=torch.float64)
+    est, truth, ep, tp = _random_sets(gen, 64, 5, 7)
+    cpu_assigned, cpu_gospa = linear_assignment(C), gospa(est, truth, c=4.0, estimate_present=ep, truth_present=tp)
+    Cd, estd, truthd, epd, tpd = (t.cuda() for t in (C, est, truth, ep, tp))
+    from torchmm.assignment import _hungarian  # past the entry point's one value check
+    from torchmm.contract import unchecked
+
+    torch.cuda.synchronize()
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        assigned = _hungarian(Cd)
+        out = unchecked(gospa)(estd, truthd, c=4.0, estimate_present=epd, truth_present=tpd)  # past its checks
+    finally:
+        torch.cuda.set_sync_debug_mode("default")
+    assert torch.equal(assigned.cpu(), cpu_assigned)
+    for key in ("distance", "localisation", "missed", "false", "assigned"):
+        torch.testing.assert_close(out[key].cpu(), cpu_gospa[key], rtol=1e-12, atol=1e-12)

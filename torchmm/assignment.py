@@ -20,7 +20,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from torchmm.contract import Finite, Values, entry_point
+from torchmm.contract import Finite, Values, entry_point, unchecked
 from torchmm.runtime import host_reads_ok
 
 __all__ = ["assignment_cost", "linear_assignment"]
@@ -58,7 +58,7 @@ def linear_assignment(cost: Tensor) -> Tensor:
     if n == 0 or m == 0:
         return torch.full((*batch, n), -1, dtype=torch.long, device=cost.device)
     if n > m:  # solve the transpose: each column gets a row
-        col_to_row = linear_assignment(cost.mT)  # (*B, m)
+        col_to_row = unchecked(linear_assignment)(cost.mT)  # (*B, m): checked once, above
         rows = torch.full((*batch, n), -1, dtype=torch.long, device=cost.device)
         cols = torch.arange(m, device=cost.device).expand(*batch, m)
         return rows.scatter(-1, col_to_row, cols)
@@ -88,7 +88,7 @@ def _hungarian(cost: Tensor) -> Tensor:
     (1-based rows and columns inside, index 0 the virtual start column)."""
     B, n, m = cost.shape
     dev, dt = cost.device, cost.dtype
-    inf = torch.tensor(torch.inf, dtype=dt, device=dev)
+    inf = torch.full((), torch.inf, dtype=dt, device=dev)
     a = torch.zeros(B, n + 1, m + 1, dtype=dt, device=dev)
     a[:, 1:, 1:] = cost
     u = torch.zeros(B, n + 1, dtype=dt, device=dev)  # row potentials
@@ -98,7 +98,7 @@ def _hungarian(cost: Tensor) -> Tensor:
     rows = torch.arange(B, device=dev)
     early = host_reads_ok(cost)  # stop the scans when every matrix is done (a host read; CPU only)
     for i in range(1, n + 1):
-        p[:, 0] = i
+        p[:, 0].fill_(i)  # (fill_ with a Python number: no host-to-device copy on a GPU)
         j0 = torch.zeros(B, dtype=torch.long, device=dev)
         minv = inf.expand(B, m + 1).clone()
         used = torch.zeros(B, m + 1, dtype=torch.bool, device=dev)

@@ -75,6 +75,7 @@ __all__ = [
     "entry_point",
     "registered",
     "spec_of",
+    "unchecked",
 ]
 
 #: Every registered entry point, by ``module.qualname`` of the function.
@@ -780,6 +781,17 @@ class EntryPoint:
     function: Callable
     kinds: dict
     signature: inspect.Signature
+
+
+def unchecked(entry: Callable) -> Callable:
+    """The function behind an entry point, without its checks: for a library caller that checked
+    its values at its own entry point already, where a second check would read values on the host
+    again (a synchronisation on a GPU; e.g. ``gospa`` calling ``linear_assignment``). Shape and
+    dimension checks inside the function still run."""
+    spec = getattr(entry, "__entry_point__", None)
+    if spec is None:
+        raise TypeError(f"unchecked: {entry!r} is not an entry point")
+    return spec.function
 
 
 def entry_point(**kinds: Kind) -> Callable[[Callable], Callable]:

@@ -68,18 +68,27 @@ def symmetrize(matrix: Tensor) -> Tensor:
 def psd_sqrt(cov: Tensor) -> Tensor:
     """A square root ``L`` with ``L L^T = cov`` for symmetric PSD (possibly singular) matrices.
 
-    Uses Cholesky where it succeeds and a symmetric eigendecomposition elsewhere (negative
-    eigenvalues of a matrix indefinite by rounding clamped to 0), so that rank-deficient process
-    noise such as ``G G^T`` can be sampled. On the CPU the eigendecomposition is skipped when every
-    Cholesky succeeds; on other devices it is always computed, so that the host never waits
-    (:func:`torchmm.runtime.host_reads_ok`); the factor is the same. Never raises: a matrix with NaN or infinite entries
-    gets a NaN factor (that batch element only).
+    Uses Cholesky where it succeeds, so that rank-deficient process noise such as ``G G^T`` can be
+    sampled, and elsewhere:
+
+    * on the CPU, a symmetric eigendecomposition (negative eigenvalues of a matrix indefinite by
+      rounding clamped to 0), computed only when some Cholesky fails;
+    * on other devices (and inside :func:`torchmm.runtime.no_host_sync`), a Cholesky whose
+      non-positive pivots are set to 0 with their column (:func:`pivot_clamped_cholesky`), computed
+      for every matrix so that the host never waits (:func:`torchmm.runtime.host_reads_ok`). torch's
+      ``eigh`` checks its result on the host (a synchronisation on a GPU) and cuSOLVER's batched
+      ``eigh`` fails on a million matrices; this factor is another square root of the same matrix
+      (``L L^T`` equal to rounding), so only draws from a singular covariance differ between the two.
+
+    Never raises: a matrix with NaN or infinite entries gets a NaN factor (that batch element only).
 
     Shapes:
         cov: ``(..., d, d)`` -> ``(..., d, d)``
     """
     chol, info = torch.linalg.cholesky_ex(cov)
-    if host_reads_ok(info) and not bool((info != 0).any()):  # on a GPU: no read, the fallback always
+    if not host_reads_ok(info):  # on a GPU: no read, the sync-free fallback for every matrix
+        return torch.where((info != 0)[..., None, None], pivot_clamped_cholesky(cov), chol)
+    if not bool((info != 0).any()):
         return chol
     finite = torch.isfinite(cov).all(-1).all(-1)
     eye = torch.eye(cov.shape[-1], dtype=cov.dtype, device=cov.device)
@@ -88,6 +97,36 @@ def psd_sqrt(cov: Tensor) -> Tensor:
     eig_sqrt = eigvecs * eigvals.clamp_min(0).sqrt().unsqueeze(-2)
     eig_sqrt = torch.where(finite[..., None, None], eig_sqrt, torch.full_like(eig_sqrt, math.nan))
     return torch.where((info != 0)[..., None, None], eig_sqrt, chol)
+
+
+def pivot_clamped_cholesky(cov: Tensor) -> Tensor:
+    """A lower-triangular ``L`` with ``L L^T = cov`` for symmetric PSD, possibly singular matrices: the
+    Cholesky recursion, column by column, with a pivot below ``d eps max_i cov_ii`` (zero up to
+    rounding) set to 0 with the rest of its column (a PSD matrix's column below a zero pivot is zero).
+    Batched, without a host read or an eigendecomposition (the device form of :func:`psd_sqrt`). A
+    matrix with a non-finite entry gets a NaN factor.
+
+    Shapes:
+        cov: ``(..., d, d)`` -> ``(..., d, d)``
+    """
+    d = cov.shape[-1]
+    A = symmetrize(cov)
+    finite = torch.isfinite(A).flatten(-2).all(-1)[..., None]
+    A = torch.where(finite[..., None], A, torch.zeros((), dtype=A.dtype, device=A.device))
+    diag = A.diagonal(dim1=-2, dim2=-1)
+    tol = d * torch.finfo(A.dtype).eps * diag.amax(-1, keepdim=True).clamp_min(torch.finfo(A.dtype).tiny)
+    rows = torch.arange(d, device=A.device)
+    zero = torch.zeros((), dtype=A.dtype, device=A.device)
+    cols: list[Tensor] = []
+    for j in range(d):
+        v = A[..., :, j]
+        for c in cols:  # v -= L[:, k] L[j, k] over the columns done
+            v = v - c * c[..., j:j + 1]
+        pivot = v[..., j:j + 1]
+        keep = (pivot > tol) & (rows >= j)
+        cols.append(torch.where(keep, v / pivot.clamp_min(tol).sqrt(), zero))
+    L = torch.stack(cols, -1)
+    return torch.where(finite[..., None], L, torch.full((), math.nan, dtype=A.dtype, device=A.device))
 
 
 def flag_failed(log_likelihood: Tensor) -> Tensor:

@@ -113,6 +113,10 @@ def no_host_sync(where: str = "this block"):
             if name in _SYNC_OPS or bool_index:
                 raise HostSyncError(f"host synchronisation in {where}: {func.name()}"
                                     + (" with a boolean mask" if bool_index else ""))
+            if name == "lift_fresh":  # torch.tensor(...) of Python data, or t[i] = <Python number>
+                raise HostSyncError(f"host synchronisation in {where}: a tensor made from Python data "
+                                    "(torch.tensor, or a Python number assigned into a tensor) is a "
+                                    "host-to-device copy on a GPU")
             return func(*args, **(kwargs or {}))
 
     def refuse(method):

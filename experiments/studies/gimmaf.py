@@ -121,10 +121,11 @@ def build_estimators(g, R: float, delta: float, nu: float, *, dtype, device) -> 
 
     kw = {"dtype": dtype, "device": device}
     q0 = float(g.nominal_q)
-    rates = torch.tensor(list(g.model_rates), **kw)
-    bank = CoordinatedTurn(rates, dt=float(g.dt), q=q0, dtype=dtype)
-    cv = ConstantVelocity(2, dt=float(g.dt), q=q0, dtype=dtype)
-    meas = PositionMeasurement(4, [0, 2], torch.tensor(R, **kw))
+    # the models are modules: built on the CPU, then moved with their tensors (F, Q, H, R) to the device
+    rates = torch.tensor(list(g.model_rates), dtype=dtype)
+    bank = CoordinatedTurn(rates, dt=float(g.dt), q=q0, dtype=dtype).to(device)
+    cv = ConstantVelocity(2, dt=float(g.dt), q=q0, dtype=dtype).to(device)
+    meas = PositionMeasurement(4, [0, 2], torch.tensor(R, dtype=dtype)).to(device)
     transition = torch.tensor([list(r) for r in g.transition], **kw)
     noise = {"skewness": delta, "df": nu}
     out = {}

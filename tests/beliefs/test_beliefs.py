@@ -145,6 +145,37 @@ def test_psd_sqrt_of_singular_covariance():
     close(L, 2 * torch.eye(2))
 
 
+def test_psd_sqrt_device_form_reads_nothing_and_factors_singular_matrices():
+    """The device form (no eigendecomposition, no host read): a square root of positive definite,
+    singular (rank 1 to d - 1, ``G G^T``) and indefinite-by-rounding matrices, the Cholesky factor
+    where Cholesky succeeds, and a NaN factor for a non-finite matrix only."""
+    from torchmm.linalg import pivot_clamped_cholesky
+    from torchmm.runtime import no_host_sync
+
+    gen = torch.Generator().manual_seed(5)
+    d = 4
+    mats = []
+    for rank in range(1, d + 1):
+        G = torch.randn(6, d, rank, generator=gen, dtype=torch.float64) * 3
+        mats.append(G @ G.mT)
+    A = torch.cat(mats)  # (24, 4, 4): ranks 1, 2, 3, 4
+    A[0] = A[0] - 1e-15 * torch.eye(d, dtype=torch.float64) * A[0].diagonal().max()  # indefinite by rounding
+    A[1, 2, 2] = float("nan")
+    with no_host_sync("psd_sqrt's device form"):
+        L = psd_sqrt(A)
+    finite = torch.ones(24, dtype=torch.bool)
+    finite[1] = False
+    assert torch.isnan(L[1]).all() and torch.isfinite(L[finite]).all()
+    scale = A[finite].diagonal(dim1=-2, dim2=-1).amax(-1)[:, None, None]
+    assert ((L[finite] @ L[finite].mT - A[finite]).abs() / scale).max() < 1e-12
+    assert torch.equal(L[finite], L[finite].tril())
+    full = mats[-1]  # rank d: positive definite, Cholesky succeeds, so it is the factor
+    torch.testing.assert_close(L[-6:], torch.linalg.cholesky(full), rtol=0, atol=0)
+    torch.testing.assert_close(pivot_clamped_cholesky(full), torch.linalg.cholesky(full), rtol=1e-12, atol=1e-12)
+    Lc = psd_sqrt(A[finite])  # the CPU form (an eigendecomposition): another root of the same matrices
+    torch.testing.assert_close(Lc @ Lc.mT, L[finite] @ L[finite].mT, rtol=0, atol=1e-12 * float(scale.max()))
+
+
 def test_gaussian_log_prob():
     from scipy.stats import multivariate_normal
 

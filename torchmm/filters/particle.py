@@ -276,7 +276,7 @@ def gaussian_log_likelihood(resid: Tensor, cov: Tensor, observed: Tensor | None 
     m = resid.shape[-1]
     if observed is None:
         inv, logdet = whitening(cov)
-        count = torch.tensor(float(m), dtype=resid.dtype, device=resid.device)
+        count = torch.full((), float(m), dtype=resid.dtype, device=resid.device)
     else:
         eye = torch.eye(m, dtype=resid.dtype, device=resid.device)
         resid = torch.where(observed.unsqueeze(-2), resid, torch.zeros((), dtype=resid.dtype, device=resid.device))

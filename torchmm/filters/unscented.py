@@ -96,8 +96,8 @@ class MerweScaledSigmaPoints(SigmaPointStrategy):
         lam = c - n
         wm = torch.full((2 * n + 1,), 0.5 / c, dtype=dtype, device=device)
         wc = wm.clone()
-        wm[0] = lam / c
-        wc[0] = lam / c + (1 - self.alpha**2 + self.beta)
+        wm[:1].fill_(lam / c)  # (fill_ with a Python number: no host-to-device copy on a GPU)
+        wc[:1].fill_(lam / c + (1 - self.alpha**2 + self.beta))
         return wm, wc
 
 

@@ -115,12 +115,17 @@ def wishart_kl(dof_q: float, scale_q: Tensor, dof_p: float, scale_p: Tensor) -> 
     logdet_p = 2 * Lp.diagonal(dim1=-2, dim2=-1).log().sum(-1)
     trace = torch.cholesky_solve(scale_p, Lq).diagonal(dim1=-2, dim2=-1).sum(-1)
     kl = 0.5 * dof_p * (logdet_q - logdet_p) + 0.5 * dof_q * (trace - n)
-    dq = torch.tensor(0.5 * dof_q, dtype=scale_q.dtype, device=scale_q.device)
     if dof_q > n - 1:
-        kl = kl + 0.5 * (dof_q - dof_p) * _mvdigamma(dq, n) - torch.mvlgamma(dq, n)
+        dq = torch.full((), 0.5 * dof_q, dtype=scale_q.dtype, device=scale_q.device)  # (no host-to-device copy)
+        kl = kl + 0.5 * (dof_q - dof_p) * _mvdigamma(dq, n) - _mvlgamma(0.5 * dof_q, n)
     if dof_p > n - 1:
-        kl = kl + torch.mvlgamma(torch.tensor(0.5 * dof_p, dtype=scale_q.dtype), n)
+        kl = kl + _mvlgamma(0.5 * dof_p, n)
     return kl
+
+
+def _mvlgamma(x: float, n: int) -> float:
+    """``ln Gamma_n(x)`` of a Python number (``torch.mvlgamma`` without a tensor)."""
+    return 0.25 * n * (n - 1) * math.log(math.pi) + sum(math.lgamma(x - 0.5 * i) for i in range(n))
 
 
 def _gaussian_entropy(cov: Tensor) -> Tensor:
@@ -489,7 +494,7 @@ class SkewTIWVBFilter(_LinearVBFilter):
         tr = torch.cholesky_solve(A, L_T).diagonal(dim1=-2, dim2=-1).sum(-1)
         e_logdet_P = logdet_T - n * math.log(2.0)
         if dof_q > n - 1:  # otherwise an infinite constant (same for every mode and iteration): left out
-            e_logdet_P = e_logdet_P - _mvdigamma(torch.tensor(0.5 * dof_q, dtype=T.dtype), n)
+            e_logdet_P = e_logdet_P - _mvdigamma(torch.full((), 0.5 * dof_q, dtype=T.dtype, device=T.device), n)
         e_log_px = -0.5 * n * _LOG_2PI - 0.5 * e_logdet_P - 0.5 * dof_q * tr
         neg_kl_P = -wishart_kl(dof_q, T, dof_p, tau * P_nom)
         # measurement, half-normal and gamma terms (independent components)

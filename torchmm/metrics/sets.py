@@ -35,7 +35,7 @@ import torch
 from torch import Tensor
 
 from torchmm.assignment import linear_assignment
-from torchmm.contract import Mask, Real, Values, entry_point
+from torchmm.contract import Mask, Real, Values, entry_point, unchecked
 from torchmm.validation import broadcast_shape
 
 __all__ = ["gospa", "ospa"]
@@ -114,7 +114,7 @@ def gospa(estimates: Tensor, truth: Tensor, *, c: float, p: float = 2.0, estimat
     # one assignment of the N x K matrix min(d^p - c^p, 0) (0 for an absent point: never an assigned pair)
     both = tru_present.unsqueeze(-1) & est_present.unsqueeze(-2)
     gain = torch.where(both, distance.pow(p) - c**p, zero)
-    assigned = linear_assignment(gain)  # (*B, N): an estimate per truth, -1 where none (N > K)
+    assigned = unchecked(linear_assignment)(gain)  # (*B, N): an estimate per truth, -1 where none (N > K)
     pick = assigned.clamp(0, max(K - 1, 0))
     if K:
         d = distance.gather(-1, pick.unsqueeze(-1)).squeeze(-1)
@@ -154,7 +154,7 @@ def ospa(estimates: Tensor, truth: Tensor, *, c: float, p: float = 2.0, estimate
     # min over the pairings of the smaller set of sum min(d, c)^p: one assignment of min(d, c)^p - c^p
     # (<= 0; 0 for an absent point); the figure from the pairs it makes, the rest at c^p each
     both = tru_present.unsqueeze(-1) & est_present.unsqueeze(-2)
-    assigned = linear_assignment(torch.where(both, distance.pow(p) - c**p, zero))
+    assigned = unchecked(linear_assignment)(torch.where(both, distance.pow(p) - c**p, zero))
     pick = assigned.clamp(0, max(K - 1, 0))
     if K:
         paired = (assigned >= 0) & tru_present & est_present.gather(-1, pick)

@@ -158,7 +158,7 @@ def mixing_indices(mode_log_probs: Tensor, log_transition: Tensor, within_log_we
         return flat.view(shape), log_cbar.to(mode_log_probs.dtype)
     cdf_within = torch.cumsum(w, dim=-1)
     cdf_within.div_(cdf_within[..., -1:].clamp_min(torch.finfo(torch.float64).tiny))
-    cdf_within[..., -1] = 1.0
+    cdf_within[..., -1:].fill_(1.0)  # (fill_ with a Python number: no host-to-device copy on a GPU)
     if scheme == "two_stage":
         # a systematic resample of every model's particles (one per run and model, by counting),
         # then the particle at index floor(Np_prev * inner) of the ancestor's resample: no search

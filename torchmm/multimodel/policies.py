@@ -389,6 +389,13 @@ class ExactMinimumEntropy:
     def _family(self, num_models: int, device) -> Tensor | None:
         if self.family is None:
             return None
+        cache = self.__dict__.setdefault("_families", {})  # (a host-to-device copy once, not every step)
+        key = (num_models, str(device))
+        if key not in cache:
+            cache[key] = self._make_family(num_models, device)
+        return cache[key]
+
+    def _make_family(self, num_models: int, device) -> Tensor:
         fam = self.family
         if isinstance(fam, (list, tuple)) and fam and isinstance(fam[0], (list, tuple)):
             rows = torch.zeros(len(fam), num_models, dtype=torch.bool)

@@ -68,9 +68,20 @@ class FixedSet(ModelSetPolicy):
         M = belief.num_modes
         if self.members[-1] >= M or self.members[0] < 0:
             raise ValueError(f"members: {self.members} out of range for {M} models")
-        mask = torch.zeros(M, dtype=torch.bool, device=belief.mode_log_probs.device)
-        mask[self.members] = True
+        mask = _index_mask(self, self.members, M, belief.mode_log_probs.device)
         return mask.expand(belief.mode_log_probs.shape), {}
+
+
+def _index_mask(policy, indices: list[int], size: int, device) -> Tensor:
+    """``(size,)`` bool, True at ``indices``: made once per size and device and kept on the policy (a
+    mask built from a Python list is a host-to-device copy on a GPU, not for every step)."""
+    cache = policy.__dict__.setdefault("_masks", {})
+    key = (size, str(device))
+    if key not in cache:
+        mask = torch.zeros(size, dtype=torch.bool)
+        mask[indices] = True
+        cache[key] = mask.to(device)
+    return cache[key]
 
 
 class DropBelow(ModelSetPolicy):
@@ -91,9 +102,8 @@ class DropBelow(ModelSetPolicy):
 
     def select(self, belief, generator=None):
         lp = belief.mode_log_probs
-        candidate = torch.zeros(lp.shape[-1], dtype=torch.bool, device=lp.device)
-        candidate[self.candidates] = True
-        low = lp < torch.log(torch.tensor(self.threshold, dtype=lp.dtype, device=lp.device))
+        candidate = _index_mask(self, self.candidates, lp.shape[-1], lp.device)
+        low = lp < (math.log(self.threshold) if self.threshold > 0 else -math.inf)
         return ~(candidate & (low | (lp == -math.inf))), {}
 
 
