@@ -179,3 +179,14 @@ def test_pda_benchmark_runs_and_agrees_with_stone_soup():
     assert proc.returncode == 0, proc.stderr[-2000:] + proc.stdout[-2000:]
     assert re.fullmatch(r"speedup_vs_stone_soup=[0-9.]+", proc.stdout.strip().splitlines()[-1])
     assert float(re.search(r"final means on those runs: ([0-9.e+-]+)", proc.stdout).group(1)) < 1e-8
+
+
+def test_tracking_benchmark_runs_and_agrees_with_stone_soup():
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "tracking.py"), "--runs", "2", "--targets", "3",
+         "--steps", "4", "--stone-soup-runs", "1", "--repeats", "1"], capture_output=True, text=True, timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:] + proc.stdout[-2000:]
+    assert re.fullmatch(r"speedup_exact=[0-9.]+ speedup_lbp=[0-9.]+", proc.stdout.strip().splitlines()[-1])
+    diff = float(re.search(r"exact Stone Soup .* final means: ([0-9.e+-]+)", proc.stdout).group(1))
+    assert diff < 1e-8

@@ -156,17 +156,9 @@ class PDA(Filter):
         except RuntimeError:
             raise ValueError(f"z: the detections' batch {tuple(z.shape[:-2])} does not broadcast to the belief's "
                              f"{tuple(batch)}") from None
-        present = torch.isfinite(z).all(-1)  # (*B, D)
-        zs = torch.where(present.unsqueeze(-1), z, torch.nan).movedim(-2, 0)  # (D, *B, m): detections leftmost
-        hyp = self.filter.update(belief.unsqueeze(0).expand(D, *batch), zs)  # every detection's update at once
-        nu, S = hyp.innovation, hyp.innovation_cov.expand(D, *batch, m, m)
-        white = solve_lower(cholesky(S), nu.nan_to_num(0.0).unsqueeze(-1)).squeeze(-1)
-        validated = present.movedim(-1, 0) & (sum_last(white.square()) <= self.gate)  # (D, *B)
-        pd, pg = self.detection_probability, self.gate_probability
-        log_missed = math.log1p(-pd * pg) if pd * pg < 1 else -math.inf
-        neg_inf = torch.full((), -math.inf, dtype=belief.dtype, device=belief.device)
-        log_detected = torch.where(validated, hyp.log_likelihood + math.log(pd) - math.log(self.clutter_density),
-                                   neg_inf)
+        hyp, validated, log_detected = detection_hypotheses(self, belief, z)
+        S = hyp.innovation_cov.expand(D, *batch, m, m)
+        log_missed = missed_log_weight(self)
         log_weights = torch.cat([torch.full((1, *batch), log_missed, dtype=belief.dtype, device=belief.device),
                                  log_detected], dim=0)  # (1 + D, *B): the missed detection first
         log_likelihood = torch.logsumexp(log_weights, dim=0)
@@ -177,10 +169,49 @@ class PDA(Filter):
         # a failed update (a NaN prediction or likelihood) fails its run visibly, as every filter's does
         failed = torch.isnan(log_likelihood)
         weights = torch.where(failed.unsqueeze(-1), torch.nan, weights)
-        hypotheses = GaussianBelief(torch.cat([belief.mean.unsqueeze(0), hyp.belief.mean], 0).movedim(0, -2),
-                                    torch.cat([belief.cov.expand(*batch, *belief.cov.shape[-2:]).unsqueeze(0),
-                                               hyp.belief.cov], 0).movedim(0, -3))
-        posterior = hypotheses.collapse(weights)
-        combined = (weights[..., 1:].unsqueeze(-1) * nu.nan_to_num(0.0).movedim(0, -2)).sum(-2)
+        posterior, combined = mix_hypotheses(belief, hyp, weights)
         return StepOutput(posterior, belief, log_likelihood, combined, S[0],
                           {"association": weights, "validated": validated.movedim(0, -1), "failed": failed})
+
+
+def detection_hypotheses(assoc, belief: GaussianBelief, z: Tensor):
+    """Every detection's update by ``assoc.filter`` at once, its gate and its association log-weight.
+
+    Shapes:
+        belief: batch ``(*B,)``; z: ``(*B, D, m)`` (non-finite rows absent) -> the update's
+        :class:`StepOutput` with batch ``(D, *B)`` (detections leftmost), ``validated`` ``(D, *B)``
+        bool and the log-weights ``log(P_D N(nu; 0, S) / lambda)`` ``(D, *B)`` (``-inf`` where not
+        validated).
+    """
+    batch, D, m = belief.batch_shape, z.shape[-2], z.shape[-1]
+    present = torch.isfinite(z).all(-1)  # (*B, D)
+    zs = torch.where(present.unsqueeze(-1), z, torch.nan).movedim(-2, 0)  # (D, *B, m): detections leftmost
+    hyp = assoc.filter.update(belief.unsqueeze(0).expand(D, *batch), zs)  # every detection's update at once
+    nu, S = hyp.innovation, hyp.innovation_cov.expand(D, *batch, m, m)
+    white = solve_lower(cholesky(S), nu.nan_to_num(0.0).unsqueeze(-1)).squeeze(-1)
+    validated = present.movedim(-1, 0) & (sum_last(white.square()) <= assoc.gate)  # (D, *B)
+    neg_inf = torch.full((), -math.inf, dtype=belief.dtype, device=belief.device)
+    log_detected = torch.where(validated, hyp.log_likelihood + math.log(assoc.detection_probability)
+                               - math.log(assoc.clutter_density), neg_inf)
+    return hyp, validated, log_detected
+
+
+def missed_log_weight(assoc) -> float:
+    """``log(1 - P_D P_G)``, ``-inf`` when ``P_D P_G = 1``."""
+    pd, pg = assoc.detection_probability, assoc.gate_probability
+    return math.log1p(-pd * pg) if pd * pg < 1 else -math.inf
+
+
+def mix_hypotheses(belief: GaussianBelief, hyp: StepOutput, weights: Tensor) -> tuple[GaussianBelief, Tensor]:
+    """The moment-matched collapse of the prior (weight ``weights[..., 0]``) and the detection
+    hypotheses ``hyp`` (batch ``(D, *B)``), and the combined innovation ``sum_k beta_k nu_k``.
+
+    Shapes:
+        weights: ``(*B, 1 + D)`` -> a belief with batch ``(*B,)`` and ``(*B, m)``.
+    """
+    batch = belief.batch_shape
+    hypotheses = GaussianBelief(torch.cat([belief.mean.unsqueeze(0), hyp.belief.mean], 0).movedim(0, -2),
+                                torch.cat([belief.cov.expand(*batch, *belief.cov.shape[-2:]).unsqueeze(0),
+                                           hyp.belief.cov], 0).movedim(0, -3))
+    combined = (weights[..., 1:].unsqueeze(-1) * hyp.innovation.nan_to_num(0.0).movedim(0, -2)).sum(-2)
+    return hypotheses.collapse(weights), combined

@@ -157,7 +157,8 @@ class Belief:
         """Index the leading batch dimensions (ints, slices, tensors; no Ellipsis)."""
         if index is Ellipsis or (isinstance(index, tuple) and Ellipsis in index):
             raise IndexError("belief indexing applies to leading batch dims; Ellipsis is not supported")
-        return self.map_tensors(lambda t, e: t[index])
+        shape = self.batch_shape  # (a field broadcast over the batch is expanded first: a view)
+        return self.map_tensors(lambda t, e: t.expand(*shape, *t.shape[t.dim() - e:])[index])
 
     def to(self: B, *args, **kwargs) -> B:
         """``Tensor.to`` on every field (device and/or dtype)."""

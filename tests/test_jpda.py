@@ -1,0 +1,239 @@
+"""Joint probabilistic data association (torchmm.association.JPDA, jpda_marginals): exact against
+brute-force enumeration of every joint event, the PDA for one track, independent PDAs for tracks
+whose gates do not overlap, Stone Soup 1.9's JPDA and JPDAwithLBP, batched against per run."""
+
+from __future__ import annotations
+
+import datetime
+import itertools
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from torchmm import GaussianBelief, KalmanFilter, run_filter
+from torchmm.association import JPDA, PDA, jpda_marginals
+from torchmm.models import ConstantVelocity, PositionMeasurement
+from torchmm.simulate import simulate_detections
+
+R = torch.tensor([[4.0, 0.5], [0.5, 2.0]], dtype=torch.float64)
+
+
+def _kf():
+    return KalmanFilter(ConstantVelocity(2, dt=1.0, q=0.5, dtype=torch.float64), PositionMeasurement(4, [0, 2], R))
+
+
+def _brute(w: np.ndarray, missed: float) -> tuple[np.ndarray, float]:
+    """Every joint event of ``w (N, D)``: each track one detection (j >= 1) or none (0), no detection
+    twice; ``beta (N, 1 + D)`` and ``Z``."""
+    N, D = w.shape
+    beta, Z = np.zeros((N, D + 1)), 0.0
+    for event in itertools.product(range(D + 1), repeat=N):
+        used = [j for j in event if j]
+        if len(used) != len(set(used)):
+            continue
+        weight = math.prod(w[i, j - 1] if j else missed for i, j in enumerate(event))
+        Z += weight
+        for i, j in enumerate(event):
+            beta[i, j] += weight
+    return beta / Z, Z
+
+
+@pytest.mark.parametrize("N, D", [(1, 3), (2, 2), (3, 4), (4, 5), (5, 3)])
+def test_exact_equals_enumeration_of_every_joint_event(N, D):
+    from torchmm.runtime import no_host_sync
+
+    gen = torch.Generator().manual_seed(10 * N + D)
+    log_w = torch.randn(6, N, D, generator=gen, dtype=torch.float64) * 2
+    log_w[torch.rand(6, N, D, generator=gen) < 0.3] = -math.inf  # outside the gates
+    log_w[0] = -math.inf  # nothing validated
+    for missed in (0.3, 1e-3):
+        log_beta, log_z = jpda_marginals(log_w, missed)
+        with no_host_sync("the exact marginals"):
+            device_form, _ = jpda_marginals(log_w, missed)
+        for r in range(6):
+            beta, Z = _brute(log_w[r].exp().numpy(), missed)
+            np.testing.assert_allclose(log_beta[r].exp().numpy(), beta, rtol=1e-10, atol=1e-12)
+            assert float(log_z[r]) == pytest.approx(math.log(Z), rel=1e-10, abs=1e-12)
+        torch.testing.assert_close(device_form, log_beta, rtol=1e-12, atol=1e-12)
+
+
+def test_every_track_detected_and_an_impossible_scan():
+    """missed = 0 (P_D P_G = 1): only events that detect every track count; with fewer detections
+    than tracks there is none (log Z = -inf)."""
+    log_w = torch.log(torch.tensor([[[1.0, 2.0, 0.5], [3.0, 1.0, 1.0]]], dtype=torch.float64))
+    log_beta, log_z = jpda_marginals(log_w, 0.0)
+    beta, Z = _brute(log_w[0].exp().numpy(), 0.0)
+    np.testing.assert_allclose(log_beta[0].exp().numpy(), beta, rtol=1e-12, atol=1e-14)
+    assert float(log_z[0]) == pytest.approx(math.log(Z), rel=1e-12)
+    _, log_z = jpda_marginals(log_w[..., :1], 0.0)
+    assert torch.isneginf(log_z).all()
+
+
+def test_belief_propagation_is_exact_without_shared_detections_and_close_with():
+    gen = torch.Generator().manual_seed(3)
+    log_w = torch.full((2, 3, 5), -math.inf, dtype=torch.float64)
+    log_w[0, 0, :2] = torch.randn(2, generator=gen, dtype=torch.float64)  # disjoint gates
+    log_w[0, 1, 2:4] = torch.randn(2, generator=gen, dtype=torch.float64)
+    log_w[0, 2, 4] = 0.3
+    log_w[1] = torch.randn(3, 5, generator=gen, dtype=torch.float64) - 1  # every gate shared
+    exact, _ = jpda_marginals(log_w, 0.5)
+    lbp, none = jpda_marginals(log_w, 0.5, method="lbp")
+    assert none is None
+    torch.testing.assert_close(lbp[0].exp(), exact[0].exp(), rtol=1e-12, atol=1e-14)
+    # where gates overlap it approximates, far better than tracks treated apart (each one's PDA weights)
+    apart = torch.cat([torch.full((3, 1), math.log(0.5), dtype=torch.float64), log_w[1]], -1).softmax(-1)
+    lbp_error = (lbp[1].exp() - exact[1].exp()).abs().max()
+    assert lbp_error < 0.2 * (apart - exact[1].exp()).abs().max()
+    torch.testing.assert_close(lbp.exp().sum(-1), torch.ones(2, 3, dtype=torch.float64))
+
+
+def _tracks(N, seed=0, spread=6.0):
+    gen = torch.Generator().manual_seed(seed)
+    mean = torch.randn(N, 4, generator=gen, dtype=torch.float64) * spread
+    A = torch.randn(N, 4, 4, generator=gen, dtype=torch.float64)
+    return GaussianBelief(mean, A @ A.mT + 3 * torch.eye(4, dtype=torch.float64))
+
+
+def test_one_track_is_the_pda_and_separate_tracks_are_independent_pdas():
+    options = {"detection_probability": 0.85, "clutter_density": 2e-3, "gate_probability": 0.99}
+    gen = torch.Generator().manual_seed(4)
+    one = _tracks(1, seed=1)
+    z = one.mean[0, [0, 2]] + 3 * torch.randn(4, 2, generator=gen, dtype=torch.float64)
+    got = JPDA(_kf(), **options).update(one, z)
+    want = PDA(_kf(), **options).update(one, z.unsqueeze(0))
+    torch.testing.assert_close(got.belief.mean, want.belief.mean, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(got.belief.cov, want.belief.cov, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(got.log_likelihood, want.log_likelihood, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(got.extras["association"], want.extras["association"], rtol=1e-12, atol=1e-14)
+    far = _tracks(3, seed=2, spread=0.0)
+    far = GaussianBelief(far.mean + torch.tensor([[0.0], [500.0], [1000.0]], dtype=torch.float64), far.cov)
+    z = torch.cat([far.mean[:, [0, 2]] + 2 * torch.randn(3, 2, generator=gen, dtype=torch.float64),
+                   far.mean[:, [0, 2]] + 3 * torch.randn(3, 2, generator=gen, dtype=torch.float64)])
+    for method in ("exact", "lbp"):
+        got = JPDA(_kf(), method=method, **options).update(far, z)
+        want = PDA(_kf(), **options).update(far, z.expand(3, 6, 2))
+        torch.testing.assert_close(got.belief.mean, want.belief.mean, rtol=1e-12, atol=1e-10)
+        torch.testing.assert_close(got.belief.cov, want.belief.cov, rtol=1e-12, atol=1e-10)
+        torch.testing.assert_close(got.log_likelihood, want.log_likelihood.sum().expand(3), rtol=1e-12, atol=1e-12)
+
+
+def _stone_soup_jpda(means, covs, detections, pd, density, pg, lbp: bool):
+    from stonesoup.dataassociator.probability import JPDA as SSJPDA
+    from stonesoup.dataassociator.probability import JPDAwithLBP
+    from stonesoup.hypothesiser.probability import PDAHypothesiser
+    from stonesoup.models.measurement.linear import LinearGaussian
+    from stonesoup.models.transition.linear import CombinedLinearGaussianTransitionModel
+    from stonesoup.models.transition.linear import ConstantVelocity as SSConstantVelocity
+    from stonesoup.predictor.kalman import KalmanPredictor
+    from stonesoup.types.detection import Detection
+    from stonesoup.types.state import GaussianState
+    from stonesoup.types.track import Track
+    from stonesoup.updater.kalman import KalmanUpdater
+    from stonesoup.updater.probability import PDAUpdater
+
+    when = datetime.datetime(2026, 12, 4)
+    sensor = LinearGaussian(ndim_state=4, mapping=(0, 2), noise_covar=R.numpy())
+    motion = CombinedLinearGaussianTransitionModel([SSConstantVelocity(0.5), SSConstantVelocity(0.5)])
+    hypothesiser = PDAHypothesiser(predictor=KalmanPredictor(motion), updater=KalmanUpdater(sensor),
+                                   clutter_spatial_density=density, prob_detect=pd, prob_gate=pg)
+    class Converged(JPDAwithLBP):  # Stone Soup stops at delta = 1e-3; run it to convergence instead
+        @staticmethod
+        def _loopy_belief_propagation(likelihood_matrix, n_iterations, delta):
+            return JPDAwithLBP._loopy_belief_propagation(likelihood_matrix, n_iterations, 1e-10)
+
+    associator = Converged(hypothesiser=hypothesiser) if lbp else SSJPDA(hypothesiser=hypothesiser)
+    tracks = [Track([GaussianState(m.reshape(-1, 1), P, timestamp=when)]) for m, P in zip(means, covs)]
+    dets = {Detection(z.reshape(-1, 1), timestamp=when, measurement_model=sensor) for z in detections}
+    hypotheses = associator.associate(set(tracks), dets, when)
+    updater = PDAUpdater(sensor)
+    posts = [updater.update(hypotheses[t]) for t in tracks]
+    return (np.stack([np.asarray(p.state_vector, dtype=float).ravel() for p in posts]),
+            np.stack([np.asarray(p.covar, dtype=float) for p in posts]))
+
+
+@pytest.mark.parametrize("method", ["exact", "lbp"])
+def test_equals_stone_soup_jpda(method):
+    """Stone Soup 1.9's JPDA (every joint event of PDAHypothesiser's hypotheses) and JPDAwithLBP (run
+    to convergence, delta 1e-10) with PDAUpdater: three tracks whose gates overlap, near and far detections."""
+    pd, density, pg = 0.9, 1e-3, 0.99
+    jpda = JPDA(_kf(), detection_probability=pd, clutter_density=density, gate_probability=pg, method=method)
+    gen = torch.Generator().manual_seed(7)
+    shared = 0
+    for trial in range(4):
+        tracks = _tracks(3, seed=20 + trial, spread=2.0)
+        z = torch.cat([tracks.mean[:, [0, 2]] + 2 * torch.randn(3, 2, generator=gen, dtype=torch.float64),
+                       tracks.mean[:1, [0, 2]] + 8 * torch.randn(2, 2, generator=gen, dtype=torch.float64)])
+        out = jpda.update(tracks, z)
+        mean, cov = _stone_soup_jpda(tracks.mean.numpy(), tracks.cov.numpy(), z.numpy(), pd, density, pg,
+                                     lbp=method == "lbp")
+        tol = 1e-9 if method == "exact" else 1e-7
+        np.testing.assert_allclose(out.belief.mean.numpy(), mean, rtol=tol, atol=tol)
+        np.testing.assert_allclose(out.belief.cov.numpy(), cov, rtol=tol, atol=tol)
+        shared += int((out.extras["validated"].sum(-2) >= 2).sum())
+    assert shared >= 4  # detections validated by two tracks or more: the association is joint
+
+
+def _scene(steps, runs, N, *, seed, pd=0.9, clutter=4.0):
+    motion = ConstantVelocity(2, dt=1.0, q=0.5, dtype=torch.float64)
+    sensor = PositionMeasurement(4, [0, 2], R)
+    gen = torch.Generator().manual_seed(seed)
+    start = torch.zeros(runs, N, 4, dtype=torch.float64)
+    start[..., 0] = torch.linspace(-20, 20, N, dtype=torch.float64) if N > 1 else 0.0
+    start[..., 1] = 1.0
+    start[..., 3] = torch.linspace(1, -1, N, dtype=torch.float64) if N > 1 else 0.0  # crossing targets
+    truth = start + torch.cumsum(torch.randn(steps, runs, N, 4, generator=gen, dtype=torch.float64) * 0.2, 0)
+    det = simulate_detections(sensor, truth, detection_probability=pd, clutter_rate=clutter,
+                              region=torch.tensor([[-60.0, 60.0], [-60.0, 60.0]]), generator=gen)
+    prior = GaussianBelief(start, 4 * torch.eye(4, dtype=torch.float64))
+    options = {"detection_probability": pd, "clutter_density": clutter / 120**2, "gate_probability": 0.99}
+    return motion, sensor, prior, det, truth, options
+
+
+def test_batched_equals_per_run_through_run_filter():
+    motion, sensor, prior, det, truth, options = _scene(12, 5, 3, seed=11)
+    for method in ("exact", "lbp"):
+        jpda = JPDA(KalmanFilter(motion, sensor), method=method, **options)
+        all_runs = run_filter(jpda, prior, det.z)
+        assert all_runs.belief.mean.shape == (12, 5, 3, 4)
+        assert all_runs.extras["association"].shape == (12, 5, 3, det.z.shape[-2] + 1)
+        for r in (0, 3):
+            one = run_filter(jpda, prior[r:r + 1], det.z[:, r:r + 1])
+            torch.testing.assert_close(all_runs.belief.mean[:, r], one.belief.mean[:, 0], rtol=1e-12, atol=1e-10)
+            torch.testing.assert_close(all_runs.log_likelihood[:, r], one.log_likelihood[:, 0], rtol=1e-12, atol=1e-10)
+        err = (all_runs.belief.mean[-1][..., [0, 2]] - truth[-1][..., [0, 2]]).norm(dim=-1)
+        assert err.median() < 5.0  # the tracks follow their targets through the crossing
+
+
+def test_a_scan_reads_nothing_on_the_host_and_errors_name_the_argument():
+    from torchmm.runtime import no_host_sync
+
+    motion, sensor, prior, det, _, options = _scene(3, 2, 3, seed=12)
+    for method in ("exact", "lbp"):
+        jpda = JPDA(KalmanFilter(motion, sensor), method=method, **options)
+        b = prior
+        with no_host_sync(f"the JPDA step ({method})"):
+            for k in range(3):
+                b = jpda.step(b, det.z[k]).belief
+        assert torch.isfinite(b.mean).all()
+    jpda = JPDA(KalmanFilter(motion, sensor), max_targets=2, **options)
+    with pytest.raises(ValueError, match="belief: 3 tracks"):
+        jpda.update(prior, det.z[0])
+    with pytest.raises(ValueError, match="belief"):
+        JPDA(KalmanFilter(motion, sensor), **options).update(prior[0, 0], det.z[0, 0])
+    with pytest.raises(ValueError, match="z"):
+        JPDA(KalmanFilter(motion, sensor), **options).update(prior, torch.zeros(7, 4, 2, dtype=torch.float64))
+    with pytest.raises(ValueError, match="method"):
+        JPDA(KalmanFilter(motion, sensor), method="mht", **options)
+
+
+def test_a_failed_track_fails_its_run_only():
+    motion, sensor, prior, det, _, options = _scene(1, 3, 2, seed=13)
+    jpda = JPDA(KalmanFilter(motion, sensor), **options)
+    bad = GaussianBelief(prior.mean.clone(), prior.cov)
+    bad.mean[1, 0, 0] = math.nan
+    out = jpda.update(bad, det.z[0])
+    assert out.extras["failed"].tolist() == [[False, False], [True, True], [False, False]]
+    alone = jpda.update(prior[[0, 2]], det.z[0, [0, 2]])
+    torch.testing.assert_close(out.belief.mean[[0, 2]], alone.belief.mean, rtol=0, atol=0)

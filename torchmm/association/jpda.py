@@ -1,0 +1,291 @@
+r"""Joint probabilistic data association (JPDA; Fortmann, Bar-Shalom & Scheffe, IEEE J. Oceanic Eng.
+8(3), 1983) over any Gaussian filter of the contract: ``N`` tracks of a run share each scan.
+
+Every track's update is run for every detection at once and gated as in :mod:`torchmm.association.pda`.
+With ``w_ij = P_D N(nu_ij; 0, S_i) / lambda`` for detection ``j`` validated by track ``i`` (0 otherwise)
+and ``m = 1 - P_D P_G`` for a missed detection, a *joint event* assigns each track at most one
+detection and each detection at most one track; its weight is the product of its tracks' ``w_ij``
+(assigned) and ``m`` (missed). The association probability ``beta_ij`` is the total weight of the
+events that give detection ``j`` to track ``i``, over the total ``Z`` of all events; each track's
+posterior is the PDA collapse with its ``beta_i0 .. beta_iD``.
+
+``method="exact"`` sums over every joint event with a dynamic programme over the detections whose
+state is the set of tracks already assigned (``2^N`` states): a forward pass, and a backward pass
+that forms the marginals, in the log domain. Cost ``O(D' N 2^N)`` a run and scan, memory ``O(D'
+2^N)``, ``D'`` the detections validated by some track (on the CPU the others are dropped first; on
+other devices ``D' = D``, without a host read). Exact, for up to ``max_targets`` (default 12) tracks.
+
+``method="lbp"`` approximates the marginals by loopy belief propagation between tracks and
+detections (Williams & Lau, IEEE TAES 50(4), 2014): messages ``mu_ij = w_ij / (m + sum_{j' != j} w_ij'
+nu_j'i)`` and ``nu_ji = 1 / (1 + sum_{i' != i} mu_i'j)``, then ``beta_ij ∝ w_ij nu_ji``, ``beta_i0 ∝ m``.
+Cost ``O(iterations N D)`` a run and scan; exact when no detection is validated by two tracks.
+
+The log-likelihood of a scan is ``log Z`` (``method="exact"``): the joint target hypothesis against "every
+detection is clutter" (with one track, the PDA's). With ``"lbp"`` it is the sum over tracks of each
+track's PDA log-likelihood, which equals ``log Z`` when no detection is validated by two tracks.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from torchmm.association.pda import chi2_gate, detection_hypotheses, missed_log_weight, mix_hypotheses
+from torchmm.beliefs import GaussianBelief
+from torchmm.contract import Choice, Int, Of, Real, Values, entry_point
+from torchmm.filters.base import Filter, StepOutput
+from torchmm.runtime import host_reads_ok
+
+__all__ = ["JPDA", "jpda_marginals"]
+
+def _exact_marginals(log_w: Tensor, log_missed: float) -> tuple[Tensor, Tensor]:
+    """Exact JPDA marginals. ``log_w (R, N, D)`` -> ``log beta (R, N, 1 + D)`` (missed first), ``log Z (R,)``.
+
+    The dynamic programme over detections ``j`` with state ``S`` (the tracks assigned already), on
+    ``(R, 2^N)`` tables indexed by the bits of ``S``: viewed as ``(R, 2^(N-1-i), 2, 2^i)``, the middle
+    axis is track ``i``'s bit, so assigning track ``i`` moves its 0-slice to its 1-slice (no gather).
+    Linear domain, the weights relative to a missed detection, each table rescaled to a maximum of 1
+    per run with its log-scale kept.
+    """
+    R, N, D = log_w.shape
+    dtype, device = log_w.dtype, log_w.device
+    K = 1 << N
+    tiny = torch.finfo(dtype).tiny
+    if log_missed > -math.inf:  # w / m: a missed track weighs 1; Z = m^N sum_S F_D(S)
+        w, offset = (log_w - log_missed).exp(), N * log_missed
+        M = torch.ones(K, dtype=dtype, device=device)
+    else:  # m = 0: only events that assign every track
+        w, offset = log_w.exp(), 0.0
+        M = torch.zeros(K, dtype=dtype, device=device)
+        M[K - 1:].fill_(1.0)
+
+    def views(t: Tensor, i: int) -> tuple[Tensor, Tensor]:  # S without / with track i
+        v = t.view(R, -1, 2, 1 << i)
+        return v[:, :, 0, :], v[:, :, 1, :]
+
+    F = torch.zeros(R, K, dtype=dtype, device=device)
+    F[:, :1].fill_(1.0)
+    log_f = torch.zeros(R, dtype=dtype, device=device)  # F_j = F~_j exp(log_f)
+    forward = []
+    for j in range(D):  # F_{j+1}(S) = F_j(S) + sum_{i in S} w_ij F_j(S - i)
+        forward.append((F, log_f))
+        new = F.clone()
+        for i in range(N):
+            views(new, i)[1].add_(w[:, i, j, None, None] * views(F, i)[0])
+        top = new.amax(-1, keepdim=True).clamp_min(tiny)
+        F, log_f = new / top, log_f + top[:, 0].log()
+    end = F * M
+    total = end.sum(-1)
+    log_total = total.log()
+    log_z = log_total + log_f + offset
+    missed = torch.stack([views(end, i)[0].sum((-2, -1)) for i in range(N)], -1).log() - log_total.unsqueeze(-1)
+    G = M.expand(R, K)  # G_D(S) = M(S); G_j(S) = G_{j+1}(S) + sum_{i not in S} w_ij G_{j+1}(S + i)
+    log_g = torch.zeros(R, dtype=dtype, device=device)
+    detected = []
+    for j in range(D - 1, -1, -1):
+        Fj, log_fj = forward[j]
+        pair = torch.stack([(views(Fj, i)[0] * views(G, i)[1]).sum((-2, -1)) for i in range(N)], -1)  # (R, N)
+        detected.append((pair * w[:, :, j]).log() + (log_fj + log_g - log_f - log_total).unsqueeze(-1))
+        new = G.clone()
+        for i in range(N):
+            views(new, i)[0].add_(w[:, i, j, None, None] * views(G, i)[1])
+        top = new.amax(-1, keepdim=True).clamp_min(tiny)
+        G, log_g = new / top, log_g + top[:, 0].log()
+    log_detected = torch.stack(detected[::-1], -1) if D else log_w[:, :, :0]
+    return torch.cat([missed.unsqueeze(-1), log_detected], -1), log_z
+
+
+def _lbp_marginals(log_w: Tensor, log_missed: float, iterations: int, tolerance: float) -> Tensor:
+    """Loopy belief propagation (Williams & Lau 2014). ``log_w (R, N, D)`` -> ``log beta (R, N, 1 + D)``."""
+    w = (log_w - log_missed).exp() if log_missed > -math.inf else log_w.exp()  # relative to a miss
+    miss = 1.0 if log_missed > -math.inf else 0.0
+    nu = torch.ones_like(w)  # detection -> track messages
+    early = host_reads_ok(w)
+    for _ in range(iterations):
+        val = w * nu
+        mu = w / (miss + val.sum(-1, keepdim=True) - val)  # track -> detection
+        new = 1.0 / (1.0 + mu.sum(-2, keepdim=True) - mu)
+        if early and bool(((new - nu).abs() <= tolerance * new).all()):
+            nu = new
+            break
+        nu = new
+    num = torch.cat([torch.full_like(w[..., :1], miss), w * nu], -1)
+    return (num / num.sum(-1, keepdim=True)).log()
+
+
+@entry_point(log_weights=Values(), missed=Real(minimum=0.0), method=Choice("exact", "lbp"),
+             iterations=Int(1), tolerance=Real(minimum=0.0))
+def jpda_marginals(log_weights: Tensor, missed: float, *, method: str = "exact", iterations: int = 100,
+                   tolerance: float = 1e-13) -> tuple[Tensor, Tensor | None]:
+    r"""JPDA association probabilities from single-target log-weights.
+
+    Args:
+        log_weights: ``(*B, N, D)`` ``log w_ij`` (``-inf``: detection ``j`` not validated by track ``i``).
+        missed: ``m``, the weight of a missed detection (``1 - P_D P_G``; 0: every track is detected).
+        method: ``"exact"`` (every joint event) or ``"lbp"`` (loopy belief propagation).
+        iterations, tolerance: the belief propagation's most iterations and relative tolerance (on
+            the CPU it stops when every message moved less; elsewhere it runs every iteration).
+
+    Returns:
+        ``log beta (*B, N, 1 + D)`` (missed first; each track's sum to one) and ``log Z (*B,)``
+        (``None`` for ``"lbp"``).
+
+    Examples:
+        >>> log_w = torch.tensor([[[0.0, -1.0], [-1.0, 0.0]]])  # two tracks, two detections
+        >>> log_beta, log_z = jpda_marginals(log_w, 0.1)
+        >>> log_beta.exp().sum(-1)
+        tensor([[1.0000, 1.0000]])
+    """
+    if log_weights.dim() < 2:
+        raise ValueError(f"log_weights: expected (*B, N, D), got shape {tuple(log_weights.shape)}")
+    *batch, N, D = log_weights.shape
+    flat = log_weights.reshape(-1, N, D)
+    log_missed = math.log(missed) if missed > 0 else -math.inf
+    if method == "lbp":
+        return _lbp_marginals(flat, log_missed, iterations, tolerance).reshape(*batch, N, 1 + D), None
+    log_beta, log_z = _exact_marginals(flat, log_missed)
+    return log_beta.reshape(*batch, N, 1 + D), log_z.reshape(batch)
+
+
+class JPDA(Filter):
+    r"""Joint probabilistic data association over a Gaussian filter: the belief's last batch axis holds
+    a run's ``N`` tracks, which share each scan (the module docstring gives the equations).
+
+    Args:
+        filter: a filter whose belief is a :class:`~torchmm.GaussianBelief` (Kalman, extended or
+            unscented); its ``predict`` is used as it is, its ``update`` once per track and detection.
+        detection_probability: ``P_D`` in (0, 1].
+        clutter_density: ``lambda`` > 0, false detections per unit volume of measurement space.
+        gate_probability: ``P_G`` in (0, 1] (default 0.99; 1: no gate).
+        method: ``"exact"`` (default; every joint event, up to ``max_targets`` tracks) or ``"lbp"``
+            (loopy belief propagation, any number).
+        max_targets: the most tracks ``"exact"`` takes (its cost grows as ``2^N``).
+        iterations, tolerance: the belief propagation's (``"lbp"``).
+
+    Shapes:
+        belief: :class:`~torchmm.GaussianBelief` with batch ``(*B, N)``; ``z``: ``(*B, D, m)``, one scan
+        per run (a row with a non-finite entry is no detection). ``log_likelihood`` ``(*B, N)``: the
+        run's ``log Z`` for each of its tracks. ``extras``: ``"association"`` ``(*B, N, 1 + D)`` the
+        ``beta_i0 .. beta_iD`` (missed first), ``"validated"`` ``(*B, N, D)`` bool, ``"failed"``
+        ``(*B, N)`` bool: the run's update was not finite (a track's NaN prediction fails every track
+        of its run, the association being joint), its weights and posteriors NaN.
+
+    Examples:
+        >>> from torchmm.filters import KalmanFilter
+        >>> from torchmm.models import ConstantVelocity, PositionMeasurement
+        >>> jpda = JPDA(KalmanFilter(ConstantVelocity(1), PositionMeasurement(2, [0], 1.0)),
+        ...             detection_probability=0.9, clutter_density=0.01)
+        >>> tracks = GaussianBelief(torch.tensor([[0.0, 0.0], [3.0, 0.0]]), torch.eye(2))  # N = 2
+        >>> scan = torch.tensor([[0.2], [2.5], [float("nan")]])  # D = 3
+        >>> out = jpda.update(tracks, scan)
+        >>> out.belief.mean.shape, out.extras["association"].shape
+        (torch.Size([2, 2]), torch.Size([2, 4]))
+    """
+
+    @entry_point(filter=Of(Filter), detection_probability=Real(0.0, 1.0), clutter_density=Real(positive=True),
+                 gate_probability=Real(0.0, 1.0), method=Choice("exact", "lbp"), max_targets=Int(1),
+                 iterations=Int(1), tolerance=Real(minimum=0.0))
+    def __init__(self, filter: Filter, *, detection_probability: float, clutter_density: float,
+                 gate_probability: float = 0.99, method: str = "exact", max_targets: int = 12,
+                 iterations: int = 100, tolerance: float = 1e-13):
+        super().__init__()
+        if not 0.0 < detection_probability <= 1.0:
+            raise ValueError(f"detection_probability: expected a probability in (0, 1], got {detection_probability}")
+        if not 0.0 < gate_probability <= 1.0:
+            raise ValueError(f"gate_probability: expected a probability in (0, 1], got {gate_probability}")
+        m = filter.meas_dim
+        if m is None:
+            raise ValueError(f"filter: JPDA needs a filter with a sensor (meas_dim), got {type(filter).__name__}")
+        self.filter = filter
+        self.detection_probability = float(detection_probability)
+        self.clutter_density = float(clutter_density)
+        self.gate_probability = float(gate_probability)
+        self.gate = chi2_gate(self.gate_probability, m)
+        self.method, self.max_targets = method, int(max_targets)
+        self.iterations, self.tolerance = int(iterations), float(tolerance)
+
+    #: a set of detections per scan, (*B, D, m)
+    measurement_rank = 2
+
+    @property
+    def state_dim(self) -> int | None:
+        return self.filter.state_dim
+
+    def informative(self, z: Tensor) -> Tensor:
+        """Every scan informs, an empty one too."""
+        return torch.ones(z.shape[:-2], dtype=torch.bool, device=z.device)
+
+    @property
+    def meas_dim(self) -> None:
+        return None
+
+    @property
+    def detections_dim(self) -> int:
+        """``m`` of each detection."""
+        return self.filter.meas_dim
+
+    def initial_belief(self, belief, **kwargs):
+        return self.filter.initial_belief(belief, **kwargs)
+
+    def predict(self, belief: GaussianBelief, *, u: Tensor | None = None) -> GaussianBelief:
+        return self.filter.predict(belief, u=u)
+
+    def update(self, belief: GaussianBelief, z: Tensor) -> StepOutput:
+        if not isinstance(belief, GaussianBelief):
+            raise TypeError(f"belief: JPDA needs a GaussianBelief, got {type(belief).__name__}")
+        batch = belief.batch_shape
+        if len(batch) < 1:
+            raise ValueError("belief: JPDA needs a batch whose last axis holds the tracks, (*B, N); got none")
+        *runs, N = batch
+        if self.method == "exact" and N > self.max_targets:
+            raise ValueError(f"belief: {N} tracks a run exceed max_targets={self.max_targets} of the exact JPDA "
+                             f"(cost 2^N); use method='lbp' or raise max_targets")
+        m = self.detections_dim
+        if not isinstance(z, Tensor) or z.dim() < 2 or z.shape[-1] != m:
+            raise ValueError(f"z: expected a scan of detections (*B, D, {m}), got "
+                             f"{tuple(z.shape) if isinstance(z, Tensor) else type(z).__name__}")
+        D = z.shape[-2]
+        try:
+            z = z.to(belief.dtype).expand(*runs, D, m)
+        except RuntimeError:
+            raise ValueError(f"z: the scan's batch {tuple(z.shape[:-2])} does not broadcast to the runs "
+                             f"{tuple(runs)} of the belief's batch {tuple(batch)} (tracks last)") from None
+        hyp, validated, log_detected = detection_hypotheses(self, belief, z.unsqueeze(-3).expand(*runs, N, D, m))
+        log_w = log_detected.movedim(0, -1)  # (*B, N, D)
+        log_missed = missed_log_weight(self)
+        if self.method == "exact":
+            log_beta, log_z = self._exact(log_w, validated.movedim(0, -1), log_missed)
+        else:
+            log_beta = _lbp_marginals(log_w.reshape(-1, N, D), log_missed, self.iterations,
+                                      self.tolerance).reshape(*runs, N, 1 + D)
+            per_track = torch.logsumexp(torch.cat([torch.full_like(log_w[..., :1], log_missed), log_w], -1), -1)
+            log_z = per_track.sum(-1)
+        weights = log_beta.exp()
+        # an impossible scan (no joint event has weight): likelihood 0, every track keeps its prior
+        impossible = torch.isneginf(log_z)[..., None, None]
+        weights = torch.where(impossible, (torch.arange(D + 1, device=weights.device) == 0).to(weights.dtype), weights)
+        failed = torch.isnan(log_z)[..., None].expand(*runs, N)
+        weights = torch.where(failed.unsqueeze(-1), torch.nan, weights)
+        posterior, combined = mix_hypotheses(belief, hyp, weights)
+        S = hyp.innovation_cov.expand(D, *batch, m, m)[0] if D else hyp.innovation_cov
+        return StepOutput(posterior, belief, log_z[..., None].expand(*runs, N), combined, S,
+                          {"association": weights, "validated": validated.movedim(0, -1), "failed": failed})
+
+    def _exact(self, log_w: Tensor, validated: Tensor, log_missed: float) -> tuple[Tensor, Tensor]:
+        """The exact marginals; on the CPU over the detections some track validated only (a host read)."""
+        *runs, N, D = log_w.shape
+        flat = log_w.reshape(-1, N, D)
+        if not host_reads_ok(log_w) or D == 0:
+            log_beta, log_z = _exact_marginals(flat, log_missed)
+            return log_beta.reshape(*runs, N, 1 + D), log_z.reshape(runs)
+        used = validated.reshape(-1, N, D).any(-2)  # (R, D)
+        order = torch.argsort((~used).to(torch.int8), dim=-1, stable=True)  # the used detections first
+        keep = int(used.sum(-1).max())
+        cols = order[:, :keep]
+        log_beta_kept, log_z = _exact_marginals(flat.gather(-1, cols.unsqueeze(-2).expand(-1, N, keep)), log_missed)
+        log_beta = torch.full((flat.shape[0], N, 1 + D), -math.inf, dtype=log_w.dtype, device=log_w.device)
+        log_beta[..., :1] = log_beta_kept[..., :1]
+        log_beta[..., 1:] = log_beta[..., 1:].scatter(-1, cols.unsqueeze(-2).expand(-1, N, keep), log_beta_kept[..., 1:])
+        return log_beta.reshape(*runs, N, 1 + D), log_z.reshape(runs)
