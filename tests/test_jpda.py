@@ -237,3 +237,84 @@ def test_a_failed_track_fails_its_run_only():
     assert out.extras["failed"].tolist() == [[False, False], [True, True], [False, False]]
     alone = jpda.update(prior[[0, 2]], det.z[0, [0, 2]])
     torch.testing.assert_close(out.belief.mean[[0, 2]], alone.belief.mean, rtol=0, atol=0)
+
+
+def _imm(modes: int = 2):
+    from torchmm import IMM
+
+    acc = [[0.0, 0.0], [0.6, -0.4], [-0.5, 0.3]][:modes]
+    bank = ConstantVelocity(2, dt=1.0, q=0.5, acceleration=acc, dtype=torch.float64)
+    if modes == 1:
+        Pi = torch.ones(1, 1, dtype=torch.float64)
+    else:  # 0.9 to stay, 0.1 shared by the others
+        off = 0.1 / (modes - 1)
+        Pi = torch.full((modes, modes), off, dtype=torch.float64) + (0.9 - off) * torch.eye(modes, dtype=torch.float64)
+    return IMM(KalmanFilter(bank, PositionMeasurement(4, [0, 2], R)), Pi)
+
+
+def test_over_an_imm_is_blom_and_blooms_mixture():
+    """PDA over an IMM (the IMM-JPDAF's single-track form) against a float64 NumPy reference of Blom &
+    Bloem's update: each mode's Kalman update per detection, beta from the mode-mixed likelihoods, mode
+    probabilities sum_k beta_k mu_k^r and components collapsed with weights beta_k mu_k^r."""
+    from scipy.stats import multivariate_normal
+
+    imm = _imm(2)
+    pd, density, pg = 0.85, 2e-3, 0.99
+    pda = PDA(imm, detection_probability=pd, clutter_density=density, gate_probability=pg)
+    prior = imm.predict(imm.initial_belief(_tracks(1, seed=30)))[0]
+    gen = torch.Generator().manual_seed(31)
+    z = prior.components.mean[0, [0, 2]] + 3 * torch.randn(4, 2, generator=gen, dtype=torch.float64)
+    out = pda.update(prior, z)
+    H = np.zeros((2, 4))
+    H[0, 0] = H[1, 2] = 1.0
+    mu0 = prior.mode_probs.numpy()
+    xs, Ps = prior.components.mean.numpy(), prior.components.cov.numpy()
+    gamma = float(PDA(_kf(), detection_probability=pd, clutter_density=density, gate_probability=pg).gate)
+    hyps = [(1 - pd * pg, mu0, xs, Ps)]  # (weight, mode probabilities, means, covariances)
+    for zj in z.numpy():
+        g, post_x, post_P, inside = [], [], [], False
+        for r in range(2):
+            S = H @ Ps[r] @ H.T + R.numpy()
+            K = Ps[r] @ H.T @ np.linalg.inv(S)
+            nu = zj - H @ xs[r]
+            inside |= nu @ np.linalg.solve(S, nu) <= gamma
+            g.append(multivariate_normal(H @ xs[r], S).pdf(zj))
+            post_x.append(xs[r] + K @ nu)
+            post_P.append(Ps[r] - K @ S @ K.T)
+        if inside:
+            mixed = float(mu0 @ np.array(g))
+            hyps.append((pd * mixed / density, mu0 * np.array(g) / mixed, np.array(post_x), np.array(post_P)))
+    beta = np.array([h[0] for h in hyps])
+    beta /= beta.sum()
+    joint = np.array([b * h[1] for b, h in zip(beta, hyps)])  # (K, M)
+    mode_p = joint.sum(0)
+    np.testing.assert_allclose(out.belief.mode_probs.numpy(), mode_p, rtol=1e-10, atol=1e-12)
+    for r in range(2):
+        w = joint[:, r] / mode_p[r]
+        mean = sum(wk * h[2][r] for wk, h in zip(w, hyps))
+        cov = sum(wk * (h[3][r] + np.outer(h[2][r] - mean, h[2][r] - mean)) for wk, h in zip(w, hyps))
+        np.testing.assert_allclose(out.belief.components.mean[r].numpy(), mean, rtol=1e-10, atol=1e-10)
+        np.testing.assert_allclose(out.belief.components.cov[r].numpy(), cov, rtol=1e-10, atol=1e-10)
+    assert len(hyps) >= 3  # several detections weighed
+
+
+def test_imm_jpdaf_one_target_is_the_imm_pdaf_and_one_mode_the_jpdaf():
+    """JPDA over an IMM (the IMM-JPDAF): with one target it is the PDA over the IMM; with one mode it
+    is the JPDAF of that mode's filter, through run_filter on crossing targets in clutter."""
+    motion, sensor, prior, det, truth, options = _scene(10, 3, 3, seed=14)
+    imm = _imm(2)
+    jpdaf = run_filter(JPDA(imm, **options), imm.initial_belief(prior[:, :1]), det.z)
+    pdaf = run_filter(PDA(imm, **options), imm.initial_belief(prior[:, 0]), det.z)
+    torch.testing.assert_close(jpdaf.belief.mode_probs[:, :, 0], pdaf.belief.mode_probs, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(jpdaf.belief.components.mean[:, :, 0], pdaf.belief.components.mean, rtol=1e-12,
+                               atol=1e-10)
+    torch.testing.assert_close(jpdaf.log_likelihood[:, :, 0], pdaf.log_likelihood, rtol=1e-12, atol=1e-12)
+    one = _imm(1)
+    got = run_filter(JPDA(one, **options), one.initial_belief(prior), det.z)
+    want = run_filter(JPDA(KalmanFilter(motion, sensor), **options), prior, det.z)
+    torch.testing.assert_close(got.belief.components.mean[..., 0, :], want.belief.mean, rtol=1e-12, atol=1e-10)
+    torch.testing.assert_close(got.log_likelihood, want.log_likelihood, rtol=1e-12, atol=1e-10)
+    three = run_filter(JPDA(_imm(3), **options), _imm(3).initial_belief(prior), det.z)
+    torch.testing.assert_close(three.belief.mode_probs.sum(-1), torch.ones(10, 3, 3, dtype=torch.float64))
+    err = (three.belief.estimate().mean[-1][..., [0, 2]] - truth[-1][..., [0, 2]]).norm(dim=-1)
+    assert torch.isfinite(err).all() and err.median() < 5.0

@@ -32,7 +32,13 @@ import math
 import torch
 from torch import Tensor
 
-from torchmm.association.pda import chi2_gate, detection_hypotheses, missed_log_weight, mix_hypotheses
+from torchmm.association.pda import (
+    check_gaussian,
+    chi2_gate,
+    detection_hypotheses,
+    missed_log_weight,
+    mix_hypotheses,
+)
 from torchmm.beliefs import GaussianBelief
 from torchmm.contract import Choice, Int, Of, Real, Values, entry_point
 from torchmm.filters.base import Filter, StepOutput
@@ -155,7 +161,9 @@ class JPDA(Filter):
 
     Args:
         filter: a filter whose belief is a :class:`~torchmm.GaussianBelief` (Kalman, extended or
-            unscented); its ``predict`` is used as it is, its ``update`` once per track and detection.
+            unscented), or an IMM over such filters: the IMM-JPDAF (Blom & Bloem, IEEE TAC 45(2),
+            2000), as for :class:`~torchmm.association.PDA`; its ``predict`` is used as it is, its
+            ``update`` once per track and detection.
         detection_probability: ``P_D`` in (0, 1].
         clutter_density: ``lambda`` > 0, false detections per unit volume of measurement space.
         gate_probability: ``P_G`` in (0, 1] (default 0.99; 1: no gate).
@@ -165,8 +173,8 @@ class JPDA(Filter):
         iterations, tolerance: the belief propagation's (``"lbp"``).
 
     Shapes:
-        belief: :class:`~torchmm.GaussianBelief` with batch ``(*B, N)``; ``z``: ``(*B, D, m)``, one scan
-        per run (a row with a non-finite entry is no detection). ``log_likelihood`` ``(*B, N)``: the
+        belief: :class:`~torchmm.GaussianBelief` (or the IMM's ``ModeBelief``) with batch ``(*B, N)``;
+        ``z``: ``(*B, D, m)``, one scan per run (a row with a non-finite entry is no detection). ``log_likelihood`` ``(*B, N)``: the
         run's ``log Z`` for each of its tracks. ``extras``: ``"association"`` ``(*B, N, 1 + D)`` the
         ``beta_i0 .. beta_iD`` (missed first), ``"validated"`` ``(*B, N, D)`` bool, ``"failed"``
         ``(*B, N)`` bool: the run's update was not finite (a track's NaN prediction fails every track
@@ -233,8 +241,7 @@ class JPDA(Filter):
         return self.filter.predict(belief, u=u)
 
     def update(self, belief: GaussianBelief, z: Tensor) -> StepOutput:
-        if not isinstance(belief, GaussianBelief):
-            raise TypeError(f"belief: JPDA needs a GaussianBelief, got {type(belief).__name__}")
+        check_gaussian(belief, "JPDA")
         batch = belief.batch_shape
         if len(batch) < 1:
             raise ValueError("belief: JPDA needs a batch whose last axis holds the tracks, (*B, N); got none")
@@ -269,7 +276,7 @@ class JPDA(Filter):
         failed = torch.isnan(log_z)[..., None].expand(*runs, N)
         weights = torch.where(failed.unsqueeze(-1), torch.nan, weights)
         posterior, combined = mix_hypotheses(belief, hyp, weights)
-        S = hyp.innovation_cov.expand(D, *batch, m, m)[0] if D else hyp.innovation_cov
+        S = hyp.innovation_cov.expand(*hyp.innovation.shape, m)[0] if D else hyp.innovation_cov
         return StepOutput(posterior, belief, log_z[..., None].expand(*runs, N), combined, S,
                           {"association": weights, "validated": validated.movedim(0, -1), "failed": failed})
 
@@ -287,5 +294,6 @@ class JPDA(Filter):
         log_beta_kept, log_z = _exact_marginals(flat.gather(-1, cols.unsqueeze(-2).expand(-1, N, keep)), log_missed)
         log_beta = torch.full((flat.shape[0], N, 1 + D), -math.inf, dtype=log_w.dtype, device=log_w.device)
         log_beta[..., :1] = log_beta_kept[..., :1]
-        log_beta[..., 1:] = log_beta[..., 1:].scatter(-1, cols.unsqueeze(-2).expand(-1, N, keep), log_beta_kept[..., 1:])
+        index = cols.unsqueeze(-2).expand(-1, N, keep)
+        log_beta[..., 1:] = log_beta[..., 1:].scatter(-1, index, log_beta_kept[..., 1:])
         return log_beta.reshape(*runs, N, 1 + D), log_z.reshape(runs)

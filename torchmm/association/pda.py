@@ -31,7 +31,7 @@ import math
 import torch
 from torch import Tensor
 
-from torchmm.beliefs import GaussianBelief
+from torchmm.beliefs import GaussianBelief, ModeBelief
 from torchmm.contract import Of, Real, entry_point
 from torchmm.filters.base import Filter, StepOutput
 from torchmm.linalg import cholesky, solve_lower, sum_last
@@ -74,14 +74,17 @@ class PDA(Filter):
 
     Args:
         filter: a filter whose belief is a :class:`~torchmm.GaussianBelief` (Kalman, extended or
-            unscented); its ``predict`` is used as it is, its ``update`` once per detection.
+            unscented), or an IMM over such filters (a :class:`~torchmm.ModeBelief` of Gaussian
+            components: the association weighs the mode-mixed likelihoods, a detection is validated
+            in some mode's gate, and each mode is collapsed with weights ``beta_k mu_k^r``; Blom &
+            Bloem 2000); its ``predict`` is used as it is, its ``update`` once per detection.
         detection_probability: ``P_D`` in (0, 1].
         clutter_density: ``lambda`` > 0, false detections per unit volume of measurement space.
         gate_probability: ``P_G`` in (0, 1]; 1 (default 0.99): no gate, every detection weighs.
 
     Shapes:
-        belief: :class:`~torchmm.GaussianBelief` with batch ``(*B,)``; ``z``: ``(*B, D, m)`` (a row with
-        a non-finite entry is no detection; the set's batch broadcasts to ``*B``). ``extras``:
+        belief: :class:`~torchmm.GaussianBelief` (or the IMM's ``ModeBelief``) with batch ``(*B,)``;
+        ``z``: ``(*B, D, m)`` (a row with a non-finite entry is no detection; the set's batch broadcasts to ``*B``). ``extras``:
         ``"association"`` ``(*B, D + 1)`` the weights ``beta_0, beta_1 .. beta_D`` (missed detection
         first), ``"validated"`` ``(*B, D)`` bool, ``"failed"`` ``(*B,)`` bool: the update was not finite
         (a NaN prediction): its log-likelihood, weights and posterior are NaN, the other runs untouched.
@@ -142,9 +145,8 @@ class PDA(Filter):
     def predict(self, belief: GaussianBelief, *, u: Tensor | None = None) -> GaussianBelief:
         return self.filter.predict(belief, u=u)
 
-    def update(self, belief: GaussianBelief, z: Tensor) -> StepOutput:
-        if not isinstance(belief, GaussianBelief):
-            raise TypeError(f"belief: PDA needs a GaussianBelief, got {type(belief).__name__}")
+    def update(self, belief, z: Tensor) -> StepOutput:
+        check_gaussian(belief, "PDA")
         m = self.detections_dim
         if not isinstance(z, Tensor) or z.dim() < 2 or z.shape[-1] != m:
             raise ValueError(f"z: expected a padded set of detections (*B, D, {m}), got "
@@ -157,7 +159,7 @@ class PDA(Filter):
             raise ValueError(f"z: the detections' batch {tuple(z.shape[:-2])} does not broadcast to the belief's "
                              f"{tuple(batch)}") from None
         hyp, validated, log_detected = detection_hypotheses(self, belief, z)
-        S = hyp.innovation_cov.expand(D, *batch, m, m)
+        S = hyp.innovation_cov.expand(*hyp.innovation.shape, m)
         log_missed = missed_log_weight(self)
         log_weights = torch.cat([torch.full((1, *batch), log_missed, dtype=belief.dtype, device=belief.device),
                                  log_detected], dim=0)  # (1 + D, *B): the missed detection first
@@ -174,6 +176,14 @@ class PDA(Filter):
                           {"association": weights, "validated": validated.movedim(0, -1), "failed": failed})
 
 
+def check_gaussian(belief, who: str) -> None:
+    """A :class:`~torchmm.GaussianBelief`, or a :class:`~torchmm.ModeBelief` of Gaussian components."""
+    inner = belief.components if isinstance(belief, ModeBelief) else belief
+    if not isinstance(inner, GaussianBelief):
+        raise TypeError(f"belief: {who} needs a GaussianBelief (or a ModeBelief of Gaussian components), got "
+                        f"{type(belief).__name__}")
+
+
 def detection_hypotheses(assoc, belief: GaussianBelief, z: Tensor):
     """Every detection's update by ``assoc.filter`` at once, its gate and its association log-weight.
 
@@ -187,9 +197,12 @@ def detection_hypotheses(assoc, belief: GaussianBelief, z: Tensor):
     present = torch.isfinite(z).all(-1)  # (*B, D)
     zs = torch.where(present.unsqueeze(-1), z, torch.nan).movedim(-2, 0)  # (D, *B, m): detections leftmost
     hyp = assoc.filter.update(belief.unsqueeze(0).expand(D, *batch), zs)  # every detection's update at once
-    nu, S = hyp.innovation, hyp.innovation_cov.expand(D, *batch, m, m)
+    nu = hyp.innovation  # (D, *B, *E, m): E the mode axes of a multiple-model filter (an IMM's M), if any
+    S = hyp.innovation_cov.expand(*nu.shape, m)
     white = solve_lower(cholesky(S), nu.nan_to_num(0.0).unsqueeze(-1)).squeeze(-1)
-    validated = present.movedim(-1, 0) & (sum_last(white.square()) <= assoc.gate)  # (D, *B)
+    inside = sum_last(white.square()) <= assoc.gate
+    inside = inside.reshape(*inside.shape[:1 + len(batch)], -1).any(-1)  # in some mode's gate
+    validated = present.movedim(-1, 0) & inside  # (D, *B)
     neg_inf = torch.full((), -math.inf, dtype=belief.dtype, device=belief.device)
     log_detected = torch.where(validated, hyp.log_likelihood + math.log(assoc.detection_probability)
                                - math.log(assoc.clutter_density), neg_inf)
@@ -202,16 +215,37 @@ def missed_log_weight(assoc) -> float:
     return math.log1p(-pd * pg) if pd * pg < 1 else -math.inf
 
 
-def mix_hypotheses(belief: GaussianBelief, hyp: StepOutput, weights: Tensor) -> tuple[GaussianBelief, Tensor]:
+def _stack_gaussians(prior: GaussianBelief, hyp: GaussianBelief) -> GaussianBelief:
+    """The prior and the ``D`` hypotheses ``(D, *B)`` as one belief with batch ``(*B, 1 + D)``."""
+    batch = prior.batch_shape
+    return GaussianBelief(torch.cat([prior.mean.expand(*batch, prior.mean.shape[-1]).unsqueeze(0), hyp.mean],
+                                    0).movedim(0, -2),
+                          torch.cat([prior.cov.expand(*batch, *prior.cov.shape[-2:]).unsqueeze(0), hyp.cov],
+                                    0).movedim(0, -3))
+
+
+def mix_hypotheses(belief, hyp: StepOutput, weights: Tensor):
     """The moment-matched collapse of the prior (weight ``weights[..., 0]``) and the detection
     hypotheses ``hyp`` (batch ``(D, *B)``), and the combined innovation ``sum_k beta_k nu_k``.
 
+    For a :class:`~torchmm.ModeBelief` of Gaussian components (a filter over an IMM), mode by mode:
+    the posterior probability of mode ``r`` is ``sum_k beta_k mu_k^r`` (``mu_k^r`` its probability
+    under hypothesis ``k``, the prior's for ``k = 0``) and its component the collapse of the
+    hypotheses' with weights ``beta_k mu_k^r`` (Blom & Bloem, IEEE TAC 45(2), 2000).
+
     Shapes:
-        weights: ``(*B, 1 + D)`` -> a belief with batch ``(*B,)`` and ``(*B, m)``.
+        weights: ``(*B, 1 + D)`` -> a belief with batch ``(*B,)`` and ``(*B, *E, m)``.
     """
-    batch = belief.batch_shape
-    hypotheses = GaussianBelief(torch.cat([belief.mean.unsqueeze(0), hyp.belief.mean], 0).movedim(0, -2),
-                                torch.cat([belief.cov.expand(*batch, *belief.cov.shape[-2:]).unsqueeze(0),
-                                           hyp.belief.cov], 0).movedim(0, -3))
-    combined = (weights[..., 1:].unsqueeze(-1) * hyp.innovation.nan_to_num(0.0).movedim(0, -2)).sum(-2)
-    return hypotheses.collapse(weights), combined
+    nu = hyp.innovation.nan_to_num(0.0)  # (D, *B, *E, m)
+    w = weights[..., 1:].movedim(-1, 0)
+    combined = (w.reshape(*w.shape, *[1] * (nu.dim() - w.dim())) * nu).sum(0)
+    if isinstance(belief, GaussianBelief):
+        return _stack_gaussians(belief, hyp.belief).collapse(weights), combined
+    M = belief.num_modes
+    log_p = torch.cat([belief.mode_log_probs.expand(*belief.batch_shape, M).unsqueeze(0),
+                       hyp.belief.mode_log_probs], 0)  # (1 + D, *B, M)
+    joint = weights.movedim(-1, 0).unsqueeze(-1) * log_p.exp()  # beta_k mu_k^r
+    mode_p = joint.sum(0)  # (*B, M)
+    within = (joint / mode_p.clamp_min(torch.finfo(joint.dtype).tiny)).movedim(0, -1)  # (*B, M, 1 + D)
+    components = _stack_gaussians(belief.components, hyp.belief.components).collapse(within)
+    return ModeBelief(mode_p.log(), components), combined
