@@ -318,3 +318,66 @@ def test_imm_jpdaf_one_target_is_the_imm_pdaf_and_one_mode_the_jpdaf():
     torch.testing.assert_close(three.belief.mode_probs.sum(-1), torch.ones(10, 3, 3, dtype=torch.float64))
     err = (three.belief.estimate().mean[-1][..., [0, 2]] - truth[-1][..., [0, 2]]).norm(dim=-1)
     assert torch.isfinite(err).all() and err.median() < 5.0
+
+
+def _brute_best(w: np.ndarray, missed: float) -> tuple[tuple[int, ...], float]:
+    """The joint event of largest weight (0: missed, j >= 1: detection j) and its weight."""
+    N, D = w.shape
+    best, value = None, -1.0
+    for event in itertools.product(range(D + 1), repeat=N):
+        used = [j for j in event if j]
+        if len(used) != len(set(used)):
+            continue
+        weight = math.prod(w[i, j - 1] if j else missed for i, j in enumerate(event))
+        if weight > value:
+            best, value = event, weight
+    return best, value
+
+
+def test_gnn_takes_the_best_joint_event_and_updates_with_it_alone():
+    """GNN against enumeration of every joint event (random tracks, detections near them and gated-out
+    ones), and each track's posterior the Kalman update with its detection (or its prediction)."""
+    from torchmm.association import GNN
+
+    options = {"detection_probability": 0.8, "clutter_density": 5e-3, "gate_probability": 0.95}
+    gnn, kf = GNN(_kf(), **options), _kf()
+    gen = torch.Generator().manual_seed(40)
+    missed = 1 - 0.8 * 0.95
+    kinds = set()
+    for trial in range(8):
+        tracks = _tracks(3, seed=40 + trial, spread=3.0)
+        z = torch.cat([tracks.mean[:2, [0, 2]] + 2 * torch.randn(2, 2, generator=gen, dtype=torch.float64),
+                       tracks.mean[:1, [0, 2]] + 6 * torch.randn(2, 2, generator=gen, dtype=torch.float64)])
+        out = gnn.update(tracks, z)
+        w = JPDA(_kf(), **options).update(tracks, z)  # the same gates and weights
+        log_w = torch.where(w.extras["validated"], kf.update(tracks.unsqueeze(0).expand(4, 3),
+                                                               z.unsqueeze(1).expand(4, 3, 2)).log_likelihood.T
+                            + math.log(0.8 / 5e-3), -math.inf)
+        event, value = _brute_best(log_w.exp().numpy(), missed)
+        assert tuple(out.extras["association"].argmax(-1).tolist()) == event
+        assert float(out.log_likelihood[0]) == pytest.approx(math.log(value), rel=1e-12)
+        for i, j in enumerate(event):
+            want = kf.update(tracks[i], z[j - 1]).belief if j else tracks[i]
+            torch.testing.assert_close(out.belief.mean[i], want.mean, rtol=1e-12, atol=1e-12)
+            torch.testing.assert_close(out.belief.cov[i], want.cov, rtol=1e-12, atol=1e-12)
+            kinds.add(j > 0)
+    assert kinds == {True, False}  # tracks with a detection and tracks without
+
+
+def test_gnn_through_run_filter_batched_and_without_host_reads():
+    from torchmm.association import GNN
+    from torchmm.runtime import no_host_sync
+
+    motion, sensor, prior, det, truth, options = _scene(12, 4, 3, seed=15)
+    gnn = GNN(KalmanFilter(motion, sensor), **options)
+    out = run_filter(gnn, prior, det.z)
+    one = run_filter(gnn, prior[2:3], det.z[:, 2:3])
+    torch.testing.assert_close(out.belief.mean[:, 2], one.belief.mean[:, 0], rtol=1e-12, atol=1e-10)
+    assert ((out.extras["association"] == 0) | (out.extras["association"] == 1)).all()
+    taken = out.extras["association"][..., 1:].sum(-2)  # (T, R, D): no detection taken twice
+    assert (taken <= 1).all()
+    b = prior
+    with no_host_sync("the GNN step"):
+        for k in range(2):
+            b = gnn.step(b, det.z[k]).belief
+    assert torch.isfinite(b.mean).all()

@@ -2,10 +2,10 @@
 
 docs/tracking.md. :class:`PDA` (probabilistic data association) wraps any Gaussian filter of the
 contract (Kalman, extended, unscented); :class:`JPDA` associates a run's tracks jointly
-(:func:`jpda_marginals`: exact, or loopy belief propagation).
+(:func:`jpda_marginals`: exact, or loopy belief propagation); :class:`GNN` takes the best joint event.
 """
 
-from torchmm.association.jpda import JPDA, jpda_marginals
+from torchmm.association.jpda import GNN, JPDA, jpda_marginals
 from torchmm.association.pda import PDA, chi2_gate
 
-__all__ = ["JPDA", "PDA", "chi2_gate", "jpda_marginals"]
+__all__ = ["GNN", "JPDA", "PDA", "chi2_gate", "jpda_marginals"]

@@ -32,6 +32,7 @@ import math
 import torch
 from torch import Tensor
 
+from torchmm.assignment import linear_assignment
 from torchmm.association.pda import (
     check_gaussian,
     chi2_gate,
@@ -40,11 +41,11 @@ from torchmm.association.pda import (
     mix_hypotheses,
 )
 from torchmm.beliefs import GaussianBelief
-from torchmm.contract import Choice, Int, Of, Real, Values, entry_point
+from torchmm.contract import Choice, Int, Of, Real, Values, entry_point, unchecked
 from torchmm.filters.base import Filter, StepOutput
 from torchmm.runtime import host_reads_ok
 
-__all__ = ["JPDA", "jpda_marginals"]
+__all__ = ["GNN", "JPDA", "jpda_marginals"]
 
 def _exact_marginals(log_w: Tensor, log_missed: float) -> tuple[Tensor, Tensor]:
     """Exact JPDA marginals. ``log_w (R, N, D)`` -> ``log beta (R, N, 1 + D)`` (missed first), ``log Z (R,)``.
@@ -174,8 +175,8 @@ class JPDA(Filter):
 
     Shapes:
         belief: :class:`~torchmm.GaussianBelief` (or the IMM's ``ModeBelief``) with batch ``(*B, N)``;
-        ``z``: ``(*B, D, m)``, one scan per run (a row with a non-finite entry is no detection). ``log_likelihood`` ``(*B, N)``: the
-        run's ``log Z`` for each of its tracks. ``extras``: ``"association"`` ``(*B, N, 1 + D)`` the
+        ``z``: ``(*B, D, m)``, one scan per run (a row with a non-finite entry is no detection).
+        ``log_likelihood`` ``(*B, N)``: the run's ``log Z`` for each of its tracks. ``extras``: ``"association"`` ``(*B, N, 1 + D)`` the
         ``beta_i0 .. beta_iD`` (missed first), ``"validated"`` ``(*B, N, D)`` bool, ``"failed"``
         ``(*B, N)`` bool: the run's update was not finite (a track's NaN prediction fails every track
         of its run, the association being joint), its weights and posteriors NaN.
@@ -241,12 +242,12 @@ class JPDA(Filter):
         return self.filter.predict(belief, u=u)
 
     def update(self, belief: GaussianBelief, z: Tensor) -> StepOutput:
-        check_gaussian(belief, "JPDA")
+        check_gaussian(belief, type(self).__name__)
         batch = belief.batch_shape
         if len(batch) < 1:
             raise ValueError("belief: JPDA needs a batch whose last axis holds the tracks, (*B, N); got none")
         *runs, N = batch
-        if self.method == "exact" and N > self.max_targets:
+        if self.method == "exact" and N > self.max_targets and not isinstance(self, GNN):
             raise ValueError(f"belief: {N} tracks a run exceed max_targets={self.max_targets} of the exact JPDA "
                              f"(cost 2^N); use method='lbp' or raise max_targets")
         m = self.detections_dim
@@ -261,15 +262,7 @@ class JPDA(Filter):
                              f"{tuple(runs)} of the belief's batch {tuple(batch)} (tracks last)") from None
         hyp, validated, log_detected = detection_hypotheses(self, belief, z.unsqueeze(-3).expand(*runs, N, D, m))
         log_w = log_detected.movedim(0, -1)  # (*B, N, D)
-        log_missed = missed_log_weight(self)
-        if self.method == "exact":
-            log_beta, log_z = self._exact(log_w, validated.movedim(0, -1), log_missed)
-        else:
-            log_beta = _lbp_marginals(log_w.reshape(-1, N, D), log_missed, self.iterations,
-                                      self.tolerance).reshape(*runs, N, 1 + D)
-            per_track = torch.logsumexp(torch.cat([torch.full_like(log_w[..., :1], log_missed), log_w], -1), -1)
-            log_z = per_track.sum(-1)
-        weights = log_beta.exp()
+        weights, log_z = self._weights(log_w, validated.movedim(0, -1), missed_log_weight(self))
         # an impossible scan (no joint event has weight): likelihood 0, every track keeps its prior
         impossible = torch.isneginf(log_z)[..., None, None]
         weights = torch.where(impossible, (torch.arange(D + 1, device=weights.device) == 0).to(weights.dtype), weights)
@@ -279,6 +272,18 @@ class JPDA(Filter):
         S = hyp.innovation_cov.expand(*hyp.innovation.shape, m)[0] if D else hyp.innovation_cov
         return StepOutput(posterior, belief, log_z[..., None].expand(*runs, N), combined, S,
                           {"association": weights, "validated": validated.movedim(0, -1), "failed": failed})
+
+    def _weights(self, log_w: Tensor, validated: Tensor, log_missed: float) -> tuple[Tensor, Tensor]:
+        """The association weights ``(*B, N, 1 + D)`` and the run's log-likelihood ``(*B,)``."""
+        *runs, N, D = log_w.shape
+        if self.method == "exact":
+            log_beta, log_z = self._exact(log_w, validated, log_missed)
+        else:
+            log_beta = _lbp_marginals(log_w.reshape(-1, N, D), log_missed, self.iterations,
+                                      self.tolerance).reshape(*runs, N, 1 + D)
+            per_track = torch.logsumexp(torch.cat([torch.full_like(log_w[..., :1], log_missed), log_w], -1), -1)
+            log_z = per_track.sum(-1)
+        return log_beta.exp(), log_z
 
     def _exact(self, log_w: Tensor, validated: Tensor, log_missed: float) -> tuple[Tensor, Tensor]:
         """The exact marginals; on the CPU over the detections some track validated only (a host read)."""
@@ -297,3 +302,58 @@ class JPDA(Filter):
         index = cols.unsqueeze(-2).expand(-1, N, keep)
         log_beta[..., 1:] = log_beta[..., 1:].scatter(-1, index, log_beta_kept[..., 1:])
         return log_beta.reshape(*runs, N, 1 + D), log_z.reshape(runs)
+
+
+class GNN(JPDA):
+    r"""Global nearest neighbour: each scan, the single most likely joint event (each track at most one
+    detection, each detection at most one track; the largest product of the ``w_ij`` of
+    :class:`JPDA` and ``m`` for the tracks left without one), and every track updated with its
+    detection alone (or not at all). The best event is one batched assignment
+    (:func:`torchmm.assignment.linear_assignment`) of the ``N x (D + N)`` costs ``-log w_ij`` and, on
+    track ``i``'s own column ``D + i``, ``-log m``; gated-out pairs are forbidden.
+
+    Args:
+        filter, detection_probability, clutter_density, gate_probability: as for :class:`JPDA`.
+
+    The shapes are :class:`JPDA`'s. ``extras["association"]`` is one-hot (``1`` at the detection taken, or at 0 for none), and
+    the log-likelihood, the same for every track of a run, is the best event's ``log`` weight against
+    "all clutter" (``-inf`` where none has weight).
+
+    Examples:
+        >>> from torchmm.filters import KalmanFilter
+        >>> from torchmm.models import ConstantVelocity, PositionMeasurement
+        >>> gnn = GNN(KalmanFilter(ConstantVelocity(1), PositionMeasurement(2, [0], 1.0)),
+        ...           detection_probability=0.9, clutter_density=0.01)
+        >>> tracks = GaussianBelief(torch.tensor([[0.0, 0.0], [3.0, 0.0]]), torch.eye(2))
+        >>> out = gnn.update(tracks, torch.tensor([[0.2], [2.5], [float("nan")]]))
+        >>> out.extras["association"].argmax(-1)  # track 0 took detection 1, track 1 detection 2
+        tensor([1, 2])
+    """
+
+    @entry_point(filter=Of(Filter), detection_probability=Real(0.0, 1.0), clutter_density=Real(positive=True),
+                 gate_probability=Real(0.0, 1.0))
+    def __init__(self, filter: Filter, *, detection_probability: float, clutter_density: float,
+                 gate_probability: float = 0.99):
+        super().__init__(filter, detection_probability=detection_probability, clutter_density=clutter_density,
+                         gate_probability=gate_probability)
+
+    def _weights(self, log_w: Tensor, validated: Tensor, log_missed: float) -> tuple[Tensor, Tensor]:
+        *runs, N, D = log_w.shape
+        dtype, device = log_w.dtype, log_w.device
+        own = torch.eye(N, dtype=torch.bool, device=device)
+        log_m = torch.full((), log_missed, dtype=dtype, device=device)
+        neg_inf = torch.full((), -math.inf, dtype=dtype, device=device)
+        gain = torch.cat([log_w, torch.where(own, log_m, neg_inf).expand(*runs, N, N)], -1)  # (*B, N, D + N)
+        allowed = torch.isfinite(gain)
+        # forbidden pairs cost more than any whole assignment of allowed ones (a finite matrix to solve)
+        finite = torch.where(allowed, gain, torch.zeros((), dtype=dtype, device=device))
+        big = (finite.abs().amax((-2, -1), keepdim=True) + 1) * (2 * N + 1)
+        cost = torch.where(allowed, -gain, big).nan_to_num(nan=0.0)
+        col = unchecked(linear_assignment)(cost)  # (*B, N): every track a column (N <= D + N)
+        taken = allowed.gather(-1, col.unsqueeze(-1)).squeeze(-1) & (col < D)  # a detection in its gate
+        index = torch.where(taken, col + 1, torch.zeros_like(col))  # 0: missed
+        weights = (torch.arange(D + 1, device=device) == index.unsqueeze(-1)).to(dtype)
+        chosen = torch.where(taken, log_w.gather(-1, col.clamp(max=max(D - 1, 0)).unsqueeze(-1)).squeeze(-1)
+                             if D else log_m.expand(*runs, N), log_m)
+        log_z = chosen.sum(-1) + torch.where(torch.isnan(log_w).any(-1).any(-1), torch.nan, 0.0)
+        return weights, log_z
