@@ -27,6 +27,7 @@ from omegaconf import MISSING
 
 from experiments.checks import (
     ConfigError,
+    both,
     each,
     merge,
     non_empty,
@@ -866,6 +867,47 @@ class SmoothingStudy:
     speed_runs: int = spec(MISSING, positive_int)
 
 
+def _unit_interval_closed_above(value) -> str | None:
+    return None if value is None or 0 < value <= 1 else "must lie in (0, 1]"
+
+
+@dataclass
+class TrackingSection:
+    targets: int = spec(MISSING, positive_int)
+    steps: int = spec(MISSING, positive_int)
+    dt: float = spec(MISSING, positive)
+    radius: float = spec(MISSING, positive)
+    q: float = spec(MISSING, positive)
+    maneuver_start: int = spec(MISSING, non_negative)
+    maneuver_stop: int = spec(MISSING, non_negative)
+    maneuver_acceleration: float = MISSING
+    R: float = spec(MISSING, positive)
+    detection_probability: float = spec(MISSING, _unit_interval_closed_above)
+    clutter_rate: float = spec(MISSING, positive)
+    region: float = spec(MISSING, positive)
+    gate_probability: float = spec(MISSING, _unit_interval_closed_above)
+    P0: List[float] = spec(MISSING, check=each(non_negative))
+    stay: float = spec(MISSING, open_probability)
+    q_cv: float = spec(MISSING, positive)
+    gospa_c: float = spec(MISSING, positive)
+    gospa_p: float = spec(MISSING, lambda v: None if v is None or v >= 1 else "must be at least 1")
+    estimators: List[str] = spec(MISSING, check=both(non_empty, each(one_of("IMM-JPDAF", "JPDAF", "IMM-PDAF",
+                                                                            "GNN-IMM"))))
+
+
+@dataclass
+class Tracking:
+    tracking: TrackingSection = field(default_factory=TrackingSection)
+
+    @staticmethod
+    def check(data: dict) -> None:
+        t = data["tracking"]
+        if len(t["P0"]) != 4:
+            raise ConfigError("tracking.P0", t["P0"], "expected 4 variances, [x, vx, y, vy]")
+        if t["targets"] > 12 and any(name in ("IMM-JPDAF", "JPDAF") for name in t["estimators"]):
+            raise ConfigError("tracking.targets", t["targets"], "the exact JPDA takes at most 12 targets")
+
+
 @dataclass
 class Smoothing:
     smoothing: SmoothingStudy = field(default_factory=SmoothingStudy)
@@ -910,4 +952,5 @@ STUDIES: dict[str, tuple[type, tuple[str, ...] | None]] = {
     "experiments.studies.fusion_ups.run": (FusionUps, None),
     "experiments.studies.smoothing.run": (Smoothing, None),
     "experiments.studies.compare.run": (Compare, (SYSTEM,)),
+    "experiments.studies.tracking.run": (Tracking, None),
 }

@@ -105,6 +105,10 @@ BAD = [
     (["experiment=fusion_ups", "ups.C=[]"], "ups.C=[]: expected 3 numbers (one per state)"),
     (["experiment=fusion_ups", "ups.d=[1]"], "ups.d=[1.0]: expected 3 numbers (one per sensor)"),
     (["scenario.initial_mean=[]"], "scenario.initial_mean=[]: expected the 2-state [position, velocity] mean"),
+    (["experiment=tracking", "tracking.estimators=[IMM-JPDAF,MHT]"], "tracking.estimators=['IMM-JPDAF', 'MHT']: entry"),
+    (["experiment=tracking", "tracking.detection_probability=1.5"], "tracking.detection_probability=1.5: must lie in (0, 1]"),
+    (["experiment=tracking", "tracking.P0=[1.5,2.5]"], "tracking.P0=[1.5, 2.5]: expected 4 variances"),
+    (["experiment=tracking", "tracking.targets=20"], "tracking.targets=20: the exact JPDA takes at most 12"),
 ]
 
 

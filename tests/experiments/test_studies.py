@@ -47,6 +47,8 @@ REQUIRED_TABLES = {
     "mevsmm": {"rmse": ["estimator", "pos_rmse", "vel_rmse", "maneuver_pos_rmse"],
                "table1": ["estimator", "avg_model_count"],
                "table2": ["estimator", "seconds_per_step", "relative_time"]},
+    "tracking": {"gospa": ["estimator", "gospa", "gospa_se", "localisation", "missed", "false", "label_switches",
+                           "lost_fraction"]},
     "smoothing": {"rmse": ["scenario", "estimator", "filter_pos_rmse", "smoother_pos_rmse"],
                   "modes": ["scenario", "estimator", "filter_mode_accuracy", "smoother_mode_accuracy"],
                   "parallel_speed": ["steps", "runs", "sequential_seconds", "parallel_seconds"]},
