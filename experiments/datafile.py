@@ -9,6 +9,9 @@ The file becomes time-major tensors, the layout every torchmm filter takes:
   lengths are padded at the end with missing steps, which score nothing (``DataSeries.present``).
 * **NPZ**: one array per column name, ``(T,)`` for one series or ``(T, runs)`` for several.
 
+Detections in clutter (:func:`read_detections`, docs/tracking.md) are read one row per detection
+instead, grouped into scans by their time stamp: the padded sets every association filter takes.
+
 A malformed file is one :class:`DataFileError` (a ``ValueError``) naming the file, the column and
 the row (the CSV line number, header = line 1).
 """
@@ -22,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["DataFileError", "DataSeries", "read_series"]
+__all__ = ["DataFileError", "DataSeries", "DetectionScans", "read_detections", "read_series"]
 
 #: cells read as missing (case-insensitive)
 MISSING = ("", "nan", "na", "n/a", "null", "none")
@@ -206,3 +209,100 @@ def _check_increasing(t: np.ndarray, file: Path, column: str, where: list[int], 
         i = int(np.argmax(steps <= 0)) + 1
         raise DataFileError(f"{file}: column {column!r}, {what} {where[i]}: time stamps must increase "
                             f"({t[i - 1]:g} then {t[i]:g})")
+
+
+@dataclass
+class DetectionScans:
+    """Scans of detections read from a file, padded (float64 numpy): what ``PDA``, ``JPDA`` and
+    ``GNN`` take (``torch.as_tensor(scans.z)``), as :func:`torchmm.simulate.simulate_detections` makes.
+
+    Shapes:
+        z: ``(T, runs, D, m)``, NaN where ``present`` is False
+        present: ``(T, runs, D)`` bool (the detections of a scan first, in file order)
+        times: ``(T,)`` the scans' time stamps (the union over the series, increasing)
+    """
+
+    z: np.ndarray
+    present: np.ndarray
+    times: np.ndarray
+    series: list[str]
+
+
+def read_detections(path: str | Path, *, measurements: list[str], time: str, series: str | None = None,
+                    base: Path | None = None) -> DetectionScans:
+    """Read detections, one per row (CSV) or per entry (NPZ), into padded scans.
+
+    The rows with the same time stamp (and series) are one scan; the scans are every time stamp that
+    appears, in increasing order, so a series without a row at a stamp has an empty scan there. A row
+    whose measurement cells are all missing records an empty scan (nothing detected) without a
+    detection; a row with only some missing is an error (a detection has every component).
+
+    Args:
+        path: a ``.csv`` (a header naming the columns) or ``.npz`` (one ``(K,)`` array per column, one
+            entry per detection); relative paths as for :func:`read_series`.
+        measurements: the measurement columns, in the order of the sensor's components.
+        time: the time-stamp column (finite).
+        series: optional column whose values name the series (runs), e.g. recordings of several
+            sensors or days; NPZ: a numeric array.
+
+    Raises:
+        DataFileError: naming the file, the column and the row (CSV line, header = 1; NPZ entry index).
+
+    Examples:
+        A CSV ``time,x,y`` with rows ``0,1.5,2.0``, ``0,40,-3``, ``1,,`` and ``2,2.1,2.2`` gives
+        ``z`` of shape ``(3, 1, 2, 2)``: two detections at t = 0, none at 1, one at 2.
+    """
+    file = Path(path)
+    if not file.is_absolute():
+        here = (base or Path.cwd()) / file
+        shipped = Path(__file__).resolve().parent / "data" / file
+        file = here if here.exists() or not shipped.exists() else shipped
+    if not file.exists():
+        raise DataFileError(f"{file}: no such file")
+    if not measurements:
+        raise DataFileError(f"{file}: no measurement columns given")
+    wanted = list(measurements) + [time]
+    suffix = file.suffix.lower()
+    if suffix == ".npz":
+        arrays = _read_npz(file, wanted + ([series] if series else []))
+        if any(a.shape[1] != 1 for a in arrays.values()):
+            raise DataFileError(f"{file}: expected one (K,) array per column, one entry per detection")
+        values = {c: list(arrays[c][:, 0]) for c in wanted}
+        labels = [f"{v:g}" for v in arrays[series][:, 0]] if series else ["0"] * len(values[time])
+        where, what = list(range(len(labels))), "entry"
+    elif suffix == ".csv":
+        values, where = _read_csv(file, wanted, series)
+        labels = values.pop(series) if series else ["0"] * len(where)
+        what = "row"
+    else:
+        raise DataFileError(f"{file}: expected a .csv or .npz file")
+    stamps = np.array(values[time], dtype=np.float64)
+    bad = np.flatnonzero(~np.isfinite(stamps))
+    if len(bad):
+        raise DataFileError(f"{file}: column {time!r}, {what} {where[bad[0]]}: a time stamp is missing")
+    z_rows = np.array([[values[c][i] for c in measurements] for i in range(len(stamps))], dtype=np.float64)
+    finite = np.isfinite(z_rows)
+    partial = np.flatnonzero(finite.any(-1) & ~finite.all(-1))
+    if len(partial):
+        i = int(partial[0])
+        column = measurements[int(np.argmin(finite[i]))]
+        raise DataFileError(f"{file}: column {column!r}, {what} {where[i]}: a detection misses a component "
+                            "(leave every measurement cell of a row empty to record an empty scan)")
+    grid = np.unique(stamps)
+    order = list(dict.fromkeys(labels))
+    run_of = {s: j for j, s in enumerate(order)}
+    scan_of = np.searchsorted(grid, stamps)
+    detected = finite.all(-1)
+    counts = np.zeros((len(grid), len(order)), dtype=int)
+    for i in np.flatnonzero(detected):
+        counts[scan_of[i], run_of[labels[i]]] += 1
+    D = int(counts.max()) if counts.size else 0
+    z = np.full((len(grid), len(order), D, len(measurements)), np.nan)
+    present = np.zeros((len(grid), len(order), D), dtype=bool)
+    fill = np.zeros_like(counts)
+    for i in np.flatnonzero(detected):
+        k, r = scan_of[i], run_of[labels[i]]
+        z[k, r, fill[k, r]] = z_rows[i]
+        present[k, r, fill[k, r]] = True
+        fill[k, r] += 1
+    return DetectionScans(z, present, grid, order)
