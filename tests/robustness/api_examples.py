@@ -88,6 +88,7 @@ NOT_ENTRY_POINTS: dict[str, str] = {
     "torchmm.beliefs.mode.ModelSetBelief": _PER_STEP,
     "torchmm.beliefs.particle.ParticleBelief": _PER_STEP,
     "torchmm.beliefs.adaptive.AdaptiveGaussianBelief": _PER_STEP,
+    "torchmm.beliefs.existence.ExistenceBelief": _PER_STEP + " (IPDA.initial_belief checks the existence)",
     "torchmm.beliefs.track.SourceTrackBelief": _PER_STEP,
     "torchmm.models.streams.MultiRate": _PER_STEP.replace("every filter step calls", "every step indexes")
     + "; run_filter checks its streams",

@@ -2,6 +2,7 @@
 
 from torchmm.beliefs.adaptive import AdaptiveGaussianBelief
 from torchmm.beliefs.base import Belief, cat, register_belief, stack, where
+from torchmm.beliefs.existence import ExistenceBelief
 from torchmm.beliefs.gaussian import GaussianBelief
 from torchmm.beliefs.mode import ModeBelief, ModelSetBelief
 from torchmm.beliefs.ops import mix_gaussians, normalize_log_probs, psd_sqrt, symmetrize
@@ -11,6 +12,7 @@ from torchmm.beliefs.track import SourceTrackBelief
 __all__ = [
     "AdaptiveGaussianBelief",
     "Belief",
+    "ExistenceBelief",
     "GaussianBelief",
     "ModeBelief",
     "ModelSetBelief",
