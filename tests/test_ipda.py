@@ -122,3 +122,85 @@ def test_errors_name_the_argument():
         ipda.step(x0, torch.zeros(3, 2, dtype=torch.float64))
     with pytest.raises(ValueError, match="survival_probability"):
         IPDA(KalmanFilter(motion, sensor), detection_probability=0.9, clutter_density=1e-3, survival_probability=2.0)
+
+
+def test_jipda_equals_enumeration_of_every_joint_event_with_existence():
+    """JIPDA against a NumPy enumeration of every joint event (each track at most one detection, each
+    detection at most one track) with weights chi_i P_D N / lambda and 1 - P_D P_G chi_i: the posterior
+    existence, and the state given existence collapsed with beta_i0 (1 - P_D P_G) chi_i / m_i and
+    beta_ij, divided by chi_i."""
+    import itertools
+
+    from torchmm.association import JIPDA
+
+    motion, sensor = _models()
+    pd, pg, density = 0.85, 0.99, 2e-3
+    gen = torch.Generator().manual_seed(21)
+    for method in ("exact", "lbp"):
+        jipda = JIPDA(KalmanFilter(motion, sensor), detection_probability=pd, clutter_density=density,
+                      gate_probability=pg, survival_probability=1.0, method=method)
+        for trial in range(3):
+            mean = torch.randn(3, 4, generator=gen, dtype=torch.float64) * (2.0 if method == "exact" else 40.0)
+            prior = GaussianBelief(mean, 6 * torch.eye(4, dtype=torch.float64))
+            chi = torch.tensor([0.9, 0.4, 0.7], dtype=torch.float64)
+            belief = jipda.initial_belief(prior, existence=chi)
+            z = torch.cat([mean[:, [0, 2]] + 2 * torch.randn(3, 2, generator=gen, dtype=torch.float64),
+                           mean[:1, [0, 2]] + 5 * torch.randn(1, 2, generator=gen, dtype=torch.float64)])
+            out = jipda.update(belief, z)
+            kf = KalmanFilter(motion, sensor)
+            upd = [[kf.update(prior[i], z[j]) for j in range(4)] for i in range(3)]
+            gamma = chi2.ppf(pg, 2)
+            w = np.zeros((3, 4))
+            for i in range(3):
+                for j in range(4):
+                    nu, S = upd[i][j].innovation.numpy(), upd[i][j].innovation_cov.numpy()
+                    if nu @ np.linalg.solve(S, nu) <= gamma:
+                        w[i, j] = chi[i].item() * pd * multivariate_normal(np.zeros(2), S).pdf(nu) / density
+            m = 1 - pd * pg * chi.numpy()
+            beta, Z = np.zeros((3, 5)), 0.0
+            for event in itertools.product(range(5), repeat=3):
+                used = [j for j in event if j]
+                if len(used) != len(set(used)):
+                    continue
+                weight = math.prod(w[i, j - 1] if j else m[i] for i, j in enumerate(event))
+                Z += weight
+                for i, j in enumerate(event):
+                    beta[i, j] += weight
+            beta /= Z
+            missed_exists = beta[:, 0] * (1 - pd * pg) * chi.numpy() / m
+            existence = missed_exists + beta[:, 1:].sum(-1)
+            tol = 1e-10 if method == "exact" else 1e-7
+            np.testing.assert_allclose(out.belief.existence.numpy(), existence, rtol=tol, atol=tol)
+            if method == "exact":
+                assert float(out.log_likelihood[0]) == pytest.approx(math.log(Z), rel=1e-10)
+            for i in range(3):
+                weights = np.concatenate([[missed_exists[i]], beta[i, 1:]]) / existence[i]
+                means = [prior.mean[i].numpy()] + [upd[i][j].belief.mean.numpy() for j in range(4)]
+                covs = [prior[i].cov.numpy()] + [upd[i][j].belief.cov.numpy() for j in range(4)]
+                mu = sum(wk * mk for wk, mk in zip(weights, means))
+                cov = sum(wk * (ck + np.outer(mk - mu, mk - mu)) for wk, mk, ck in zip(weights, means, covs))
+                np.testing.assert_allclose(out.belief.mean[i].numpy(), mu, rtol=tol, atol=tol)
+                np.testing.assert_allclose(out.belief.cov[i].numpy(), cov, rtol=tol, atol=tol)
+
+
+def test_jipda_with_one_track_is_the_ipda_and_with_sure_targets_the_jpda():
+    from torchmm.association import JIPDA, JPDA
+
+    motion, sensor = _models()
+    options = {"detection_probability": 0.9, "clutter_density": 1e-3, "gate_probability": 0.99}
+    z = torch.randn(5, 2, 4, 2, generator=torch.Generator().manual_seed(3), dtype=torch.float64) * 3
+    x0 = GaussianBelief(torch.zeros(2, 1, 4, dtype=torch.float64), 5 * torch.eye(4, dtype=torch.float64))
+    jipda = JIPDA(KalmanFilter(motion, sensor), survival_probability=0.95, **options)
+    ipda = IPDA(KalmanFilter(motion, sensor), survival_probability=0.95, **options)
+    a = run_filter(jipda, jipda.initial_belief(x0, existence=0.6), z)
+    b = run_filter(ipda, ipda.initial_belief(x0[:, 0], existence=0.6), z)
+    torch.testing.assert_close(a.belief.mean[:, :, 0], b.belief.mean, rtol=1e-12, atol=1e-10)
+    torch.testing.assert_close(a.belief.existence[:, :, 0], b.belief.existence, rtol=1e-12, atol=1e-14)
+    torch.testing.assert_close(a.log_likelihood[:, :, 0], b.log_likelihood, rtol=1e-12, atol=1e-12)
+    x3 = GaussianBelief(torch.tensor([[0.0, 0, 0, 0], [3.0, 0, 1, 0], [-2.0, 0, 2, 0]], dtype=torch.float64)
+                        .expand(2, 3, 4), 5 * torch.eye(4, dtype=torch.float64))
+    sure = JIPDA(KalmanFilter(motion, sensor), survival_probability=1.0, **options)
+    got = run_filter(sure, sure.initial_belief(x3, existence=1.0), z)
+    want = run_filter(JPDA(KalmanFilter(motion, sensor), **options), x3, z)
+    torch.testing.assert_close(got.belief.mean, want.belief.mean, rtol=1e-12, atol=1e-10)
+    torch.testing.assert_close(got.log_likelihood, want.log_likelihood, rtol=1e-12, atol=1e-10)

@@ -6,19 +6,46 @@ birth probabilities). At a scan the PDA's likelihood ratio of the target against
 ``L = 1 - delta = 1 - P_D P_G + sum_k P_D N(nu_k; 0, S) / lambda`` (:mod:`torchmm.association.pda`),
 updates it: ``chi = L chi^- / (1 - delta chi^-)``, and the state given existence is the PDA's. The
 scan's log-likelihood is ``log(1 - delta chi^-)``: "a target or none" against "all clutter".
+
+JIPDA (Mušicki & Evans, IEEE TAES 40(3), 2004) is its joint form over a run's tracks: JPDA's joint
+events with ``w_ij = chi_i^- P_D N(nu_ij; 0, S_i) / lambda`` and, for a track left without a detection,
+``m_i = 1 - P_D P_G chi_i^-``. From the marginals ``beta_ij``: ``chi_i = beta_i0 (1 - P_D P_G) chi_i^- /
+m_i + sum_j beta_ij``, and the state given existence collapses the hypotheses with weights
+``beta_i0 (1 - P_D P_G) chi_i^- / (m_i chi_i)`` (missed) and ``beta_ij / chi_i``.
 """
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
+from torchmm.association.jpda import JPDA, exact_marginals, lbp_marginals
 from torchmm.association.pda import PDA
 from torchmm.beliefs import ExistenceBelief, GaussianBelief
-from torchmm.contract import Of, Real, entry_point
+from torchmm.contract import Choice, Int, Of, Real, entry_point
 from torchmm.filters.base import Filter, StepOutput
 
-__all__ = ["IPDA"]
+__all__ = ["IPDA", "JIPDA"]
+
+
+def _initial(assoc, belief: GaussianBelief, existence) -> ExistenceBelief:
+    state = assoc.filter.initial_belief(belief)
+    e = torch.as_tensor(existence, dtype=state.dtype, device=state.device)
+    if bool(((e < 0) | (e > 1) | e.isnan()).any()):
+        raise ValueError(f"existence: must be a probability in [0, 1], got {existence}")
+    return ExistenceBelief(state.mean, state.cov, e.log().expand(state.batch_shape))
+
+
+def _predict(assoc, belief: ExistenceBelief, u: Tensor | None) -> ExistenceBelief:
+    if not isinstance(belief, ExistenceBelief):
+        raise TypeError(f"belief: {type(assoc).__name__} needs an ExistenceBelief "
+                        f"({type(assoc).__name__}.initial_belief), got {type(belief).__name__}")
+    state = assoc.filter.predict(belief.state, u=u)
+    e = belief.existence
+    e = assoc.survival_probability * e + assoc.birth_probability * (1 - e)
+    return ExistenceBelief(state.mean, state.cov, e.log())
 
 
 class IPDA(PDA):
@@ -59,19 +86,10 @@ class IPDA(PDA):
     def initial_belief(self, belief: GaussianBelief, existence: float | Tensor = 0.5) -> ExistenceBelief:
         """The wrapped filter's initial belief and ``P(exists) = existence`` (a number in [0, 1] or a
         tensor broadcasting to the batch)."""
-        state = self.filter.initial_belief(belief)
-        e = torch.as_tensor(existence, dtype=state.dtype, device=state.device)
-        if bool(((e < 0) | (e > 1) | e.isnan()).any()):
-            raise ValueError(f"existence: must be a probability in [0, 1], got {existence}")
-        return ExistenceBelief(state.mean, state.cov, e.log().expand(state.batch_shape))
+        return _initial(self, belief, existence)
 
     def predict(self, belief: ExistenceBelief, *, u: Tensor | None = None) -> ExistenceBelief:
-        if not isinstance(belief, ExistenceBelief):
-            raise TypeError(f"belief: IPDA needs an ExistenceBelief (IPDA.initial_belief), got {type(belief).__name__}")
-        state = self.filter.predict(belief.state, u=u)
-        e = belief.existence
-        e = self.survival_probability * e + self.birth_probability * (1 - e)
-        return ExistenceBelief(state.mean, state.cov, e.log())
+        return _predict(self, belief, u)
 
     def update(self, belief: ExistenceBelief, z: Tensor) -> StepOutput:
         if not isinstance(belief, ExistenceBelief):
@@ -87,3 +105,82 @@ class IPDA(PDA):
         extras["existence"] = log_post.exp()
         return StepOutput(ExistenceBelief(post.mean, post.cov, log_post), belief, log_scan, out.innovation,
                           out.innovation_cov, extras)
+
+
+class JIPDA(JPDA):
+    r"""Joint IPDA: JPDA over a run's tracks, each with the probability that its target exists (the
+    module docstring gives the equations).
+
+    Args:
+        filter, detection_probability, clutter_density, gate_probability, method, max_targets,
+            iterations, tolerance: as for :class:`~torchmm.association.JPDA`.
+        survival_probability, birth_probability: as for :class:`IPDA`.
+
+    Shapes:
+        belief: :class:`~torchmm.beliefs.ExistenceBelief` with batch ``(*B, N)`` (:meth:`initial_belief`);
+        ``z``: ``(*B, D, m)``, one scan per run. ``extras``: JPDA's (``"association"``: the joint
+        marginals ``beta``) and ``"existence"`` ``(*B, N)``.
+
+    Examples:
+        >>> from torchmm.filters import KalmanFilter
+        >>> from torchmm.models import ConstantVelocity, PositionMeasurement
+        >>> jipda = JIPDA(KalmanFilter(ConstantVelocity(1), PositionMeasurement(2, [0], 1.0)),
+        ...               detection_probability=0.9, clutter_density=0.01)
+        >>> tracks = jipda.initial_belief(GaussianBelief(torch.tensor([[0.0, 0.0], [3.0, 0.0]]), torch.eye(2)))
+        >>> out = jipda.step(tracks, torch.tensor([[0.2], [float("nan")]]))
+        >>> out.belief.existence.shape  # track 0 saw a detection, track 1 none
+        torch.Size([2])
+    """
+
+    @entry_point(filter=Of(Filter), detection_probability=Real(0.0, 1.0), clutter_density=Real(positive=True),
+                 gate_probability=Real(0.0, 1.0), survival_probability=Real(0.0, 1.0),
+                 birth_probability=Real(0.0, 1.0), method=Choice("exact", "lbp"), max_targets=Int(1),
+                 iterations=Int(1), tolerance=Real(minimum=0.0))
+    def __init__(self, filter: Filter, *, detection_probability: float, clutter_density: float,
+                 gate_probability: float = 0.99, survival_probability: float = 0.98, birth_probability: float = 0.0,
+                 method: str = "exact", max_targets: int = 12, iterations: int = 100, tolerance: float = 1e-13):
+        super().__init__(filter, detection_probability=detection_probability, clutter_density=clutter_density,
+                         gate_probability=gate_probability, method=method, max_targets=max_targets,
+                         iterations=iterations, tolerance=tolerance)
+        self.survival_probability = float(survival_probability)
+        self.birth_probability = float(birth_probability)
+
+    def initial_belief(self, belief: GaussianBelief, existence: float | Tensor = 0.5) -> ExistenceBelief:
+        """The wrapped filter's initial belief (batch ``(*B, N)``) and ``P(exists) = existence``."""
+        return _initial(self, belief, existence)
+
+    def predict(self, belief: ExistenceBelief, *, u: Tensor | None = None) -> ExistenceBelief:
+        return _predict(self, belief, u)
+
+    def update(self, belief: ExistenceBelief, z: Tensor) -> StepOutput:
+        if not isinstance(belief, ExistenceBelief):
+            raise TypeError(f"belief: JIPDA needs an ExistenceBelief (JIPDA.initial_belief), got "
+                            f"{type(belief).__name__}")
+        state = belief.state
+        hyp, validated, log_w = self._scan(state, z)
+        *runs, N, D = log_w.shape
+        log_e = belief.log_existence.expand(*runs, N)
+        pdpg = self.detection_probability * self.gate_probability
+        log_w = log_w + log_e.unsqueeze(-1)  # chi_i P_D N / lambda
+        log_m = torch.log1p(-pdpg * log_e.exp())  # 1 - P_D P_G chi_i
+        flat_w, flat_m = log_w.reshape(-1, N, D), log_m.reshape(-1, N)
+        if self.method == "exact":
+            log_beta, log_z = exact_marginals(flat_w, flat_m)
+        else:
+            log_beta = lbp_marginals(flat_w - flat_m.unsqueeze(-1), 0.0, self.iterations, self.tolerance)
+            log_z = torch.logsumexp(torch.cat([flat_m.unsqueeze(-1), flat_w], -1), -1).sum(-1)
+        beta = log_beta.reshape(*runs, N, 1 + D).exp()
+        log_z = log_z.reshape(runs)
+        # P(exists | missed) = (1 - P_D P_G) chi / m: the state weights given existence
+        missed_exists = beta[..., 0] * ((math.log1p(-pdpg) if pdpg < 1 else -math.inf) + log_e - log_m).exp()
+        existence = missed_exists + beta[..., 1:].sum(-1)
+        weights = torch.cat([missed_exists.unsqueeze(-1), beta[..., 1:]], -1) / existence.unsqueeze(-1)
+        none = (existence <= 0).unsqueeze(-1)  # no chance of existing: the prediction kept
+        weights = torch.where(none, (torch.arange(D + 1, device=beta.device) == 0).to(beta.dtype), weights)
+        out = self._finish(state, hyp, validated, weights, log_z)
+        post = out.belief
+        extras = dict(out.extras)
+        extras["association"] = beta
+        extras["existence"] = existence
+        return StepOutput(ExistenceBelief(post.mean, post.cov, existence.log()), belief, out.log_likelihood,
+                          out.innovation, out.innovation_cov, extras)

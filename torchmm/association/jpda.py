@@ -47,8 +47,9 @@ from torchmm.runtime import host_reads_ok
 
 __all__ = ["GNN", "JPDA", "jpda_marginals"]
 
-def _exact_marginals(log_w: Tensor, log_missed: float) -> tuple[Tensor, Tensor]:
+def exact_marginals(log_w: Tensor, log_missed: float | Tensor) -> tuple[Tensor, Tensor]:
     """Exact JPDA marginals. ``log_w (R, N, D)`` -> ``log beta (R, N, 1 + D)`` (missed first), ``log Z (R,)``.
+    ``log_missed``: one number, or ``(R, N)`` a weight per track (JIPDA: ``1 - P_D P_G chi_i``).
 
     The dynamic programme over detections ``j`` with state ``S`` (the tracks assigned already), on
     ``(R, 2^N)`` tables indexed by the bits of ``S``: viewed as ``(R, 2^(N-1-i), 2, 2^i)``, the middle
@@ -60,7 +61,13 @@ def _exact_marginals(log_w: Tensor, log_missed: float) -> tuple[Tensor, Tensor]:
     dtype, device = log_w.dtype, log_w.device
     K = 1 << N
     tiny = torch.finfo(dtype).tiny
-    if log_missed > -math.inf:  # w / m: a missed track weighs 1; Z = m^N sum_S F_D(S)
+    if isinstance(log_missed, Tensor):  # per track: M(S) = prod_{i not in S} m_i, rescaled to a maximum of 1
+        bits = (torch.arange(K, device=device).unsqueeze(-1) >> torch.arange(N, device=device)) & 1 == 1
+        zero = torch.zeros((), dtype=dtype, device=device)
+        log_M = torch.where(bits, zero, log_missed.unsqueeze(-2)).sum(-1)  # (R, K)
+        offset = log_M.amax(-1)
+        w, M = log_w.exp(), (log_M - offset.unsqueeze(-1)).exp()
+    elif log_missed > -math.inf:  # w / m: a missed track weighs 1; Z = m^N sum_S F_D(S)
         w, offset = (log_w - log_missed).exp(), N * log_missed
         M = torch.ones(K, dtype=dtype, device=device)
     else:  # m = 0: only events that assign every track
@@ -104,7 +111,7 @@ def _exact_marginals(log_w: Tensor, log_missed: float) -> tuple[Tensor, Tensor]:
     return torch.cat([missed.unsqueeze(-1), log_detected], -1), log_z
 
 
-def _lbp_marginals(log_w: Tensor, log_missed: float, iterations: int, tolerance: float) -> Tensor:
+def lbp_marginals(log_w: Tensor, log_missed: float, iterations: int, tolerance: float) -> Tensor:
     """Loopy belief propagation (Williams & Lau 2014). ``log_w (R, N, D)`` -> ``log beta (R, N, 1 + D)``."""
     w = (log_w - log_missed).exp() if log_missed > -math.inf else log_w.exp()  # relative to a miss
     miss = 1.0 if log_missed > -math.inf else 0.0
@@ -151,8 +158,8 @@ def jpda_marginals(log_weights: Tensor, missed: float, *, method: str = "exact",
     flat = log_weights.reshape(-1, N, D)
     log_missed = math.log(missed) if missed > 0 else -math.inf
     if method == "lbp":
-        return _lbp_marginals(flat, log_missed, iterations, tolerance).reshape(*batch, N, 1 + D), None
-    log_beta, log_z = _exact_marginals(flat, log_missed)
+        return lbp_marginals(flat, log_missed, iterations, tolerance).reshape(*batch, N, 1 + D), None
+    log_beta, log_z = exact_marginals(flat, log_missed)
     return log_beta.reshape(*batch, N, 1 + D), log_z.reshape(batch)
 
 
@@ -242,6 +249,13 @@ class JPDA(Filter):
         return self.filter.predict(belief, u=u)
 
     def update(self, belief: GaussianBelief, z: Tensor) -> StepOutput:
+        hyp, validated, log_w = self._scan(belief, z)
+        weights, log_z = self._weights(log_w, validated, missed_log_weight(self))
+        return self._finish(belief, hyp, validated, weights, log_z)
+
+    def _scan(self, belief: GaussianBelief, z: Tensor) -> tuple[StepOutput, Tensor, Tensor]:
+        """Checks; every track's update for every detection (batch ``(D, *B, N)``), ``validated`` and the
+        log-weights ``log(P_D N / lambda)`` ``(*B, N, D)``."""
         check_gaussian(belief, type(self).__name__)
         batch = belief.batch_shape
         if len(batch) < 1:
@@ -261,8 +275,13 @@ class JPDA(Filter):
             raise ValueError(f"z: the scan's batch {tuple(z.shape[:-2])} does not broadcast to the runs "
                              f"{tuple(runs)} of the belief's batch {tuple(batch)} (tracks last)") from None
         hyp, validated, log_detected = detection_hypotheses(self, belief, z.unsqueeze(-3).expand(*runs, N, D, m))
-        log_w = log_detected.movedim(0, -1)  # (*B, N, D)
-        weights, log_z = self._weights(log_w, validated.movedim(0, -1), missed_log_weight(self))
+        return hyp, validated.movedim(0, -1), log_detected.movedim(0, -1)
+
+    def _finish(self, belief, hyp: StepOutput, validated: Tensor, weights: Tensor, log_z: Tensor) -> StepOutput:
+        """The collapse with ``weights (*B, N, 1 + D)``; an impossible scan keeps the priors, a failed
+        run is NaN."""
+        *runs, N, D = validated.shape
+        m = self.detections_dim
         # an impossible scan (no joint event has weight): likelihood 0, every track keeps its prior
         impossible = torch.isneginf(log_z)[..., None, None]
         weights = torch.where(impossible, (torch.arange(D + 1, device=weights.device) == 0).to(weights.dtype), weights)
@@ -271,7 +290,7 @@ class JPDA(Filter):
         posterior, combined = mix_hypotheses(belief, hyp, weights)
         S = hyp.innovation_cov.expand(*hyp.innovation.shape, m)[0] if D else hyp.innovation_cov
         return StepOutput(posterior, belief, log_z[..., None].expand(*runs, N), combined, S,
-                          {"association": weights, "validated": validated.movedim(0, -1), "failed": failed})
+                          {"association": weights, "validated": validated, "failed": failed})
 
     def _weights(self, log_w: Tensor, validated: Tensor, log_missed: float) -> tuple[Tensor, Tensor]:
         """The association weights ``(*B, N, 1 + D)`` and the run's log-likelihood ``(*B,)``."""
@@ -279,7 +298,7 @@ class JPDA(Filter):
         if self.method == "exact":
             log_beta, log_z = self._exact(log_w, validated, log_missed)
         else:
-            log_beta = _lbp_marginals(log_w.reshape(-1, N, D), log_missed, self.iterations,
+            log_beta = lbp_marginals(log_w.reshape(-1, N, D), log_missed, self.iterations,
                                       self.tolerance).reshape(*runs, N, 1 + D)
             per_track = torch.logsumexp(torch.cat([torch.full_like(log_w[..., :1], log_missed), log_w], -1), -1)
             log_z = per_track.sum(-1)
@@ -290,13 +309,13 @@ class JPDA(Filter):
         *runs, N, D = log_w.shape
         flat = log_w.reshape(-1, N, D)
         if not host_reads_ok(log_w) or D == 0:
-            log_beta, log_z = _exact_marginals(flat, log_missed)
+            log_beta, log_z = exact_marginals(flat, log_missed)
             return log_beta.reshape(*runs, N, 1 + D), log_z.reshape(runs)
         used = validated.reshape(-1, N, D).any(-2)  # (R, D)
         order = torch.argsort((~used).to(torch.int8), dim=-1, stable=True)  # the used detections first
         keep = int(used.sum(-1).max())
         cols = order[:, :keep]
-        log_beta_kept, log_z = _exact_marginals(flat.gather(-1, cols.unsqueeze(-2).expand(-1, N, keep)), log_missed)
+        log_beta_kept, log_z = exact_marginals(flat.gather(-1, cols.unsqueeze(-2).expand(-1, N, keep)), log_missed)
         log_beta = torch.full((flat.shape[0], N, 1 + D), -math.inf, dtype=log_w.dtype, device=log_w.device)
         log_beta[..., :1] = log_beta_kept[..., :1]
         index = cols.unsqueeze(-2).expand(-1, N, keep)
