@@ -89,6 +89,7 @@ NOT_ENTRY_POINTS: dict[str, str] = {
     "torchmm.beliefs.particle.ParticleBelief": _PER_STEP,
     "torchmm.beliefs.adaptive.AdaptiveGaussianBelief": _PER_STEP,
     "torchmm.beliefs.existence.ExistenceBelief": _PER_STEP + " (IPDA.initial_belief checks the existence)",
+    "torchmm.association.tracks.TrackTable": _PER_STEP + " (ManagedTracks.initial_belief makes it)",
     "torchmm.beliefs.track.SourceTrackBelief": _PER_STEP,
     "torchmm.models.streams.MultiRate": _PER_STEP.replace("every filter step calls", "every step indexes")
     + "; run_filter checks its streams",

@@ -149,6 +149,15 @@ example("torchmm.association.ipda.JIPDA")(
                                       models.PositionMeasurement(2, [0], 1.0, dtype=torch.float64)),
                  detection_probability=0.9, clutter_density=0.01, gate_probability=0.99, survival_probability=0.98,
                  birth_probability=0.01, method="lbp", max_targets=8, iterations=50, tolerance=1e-12))
+example("torchmm.association.tracks.ManagedTracks")(
+    lambda: call(association.ManagedTracks,
+                 association.JIPDA(filters.KalmanFilter(models.ConstantVelocity(1, dtype=torch.float64),
+                                                        models.PositionMeasurement(2, [0], 1.0, dtype=torch.float64)),
+                                   detection_probability=0.9, clutter_density=0.01),
+                 capacity=4, initiate=association.position_initiator(2, [0], 1.0, 4.0), birth_existence=0.1,
+                 unexplained=0.5, delete=0.01))
+example("torchmm.association.tracks.position_initiator")(
+    lambda: call(association.position_initiator, 4, [0, 2], torch.eye(2), 25.0))
 example("torchmm.association.jpda.jpda_marginals")(
     lambda: call(association.jpda_marginals, torch.tensor([[[0.0, -1.0], [-1.0, 0.0]]], dtype=torch.float64), 0.1,
                  method="exact", iterations=20, tolerance=1e-12))

@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import ClassVar
 
+import torch
 from torch import Tensor
 
 from torchmm.beliefs.base import Belief, register_belief
@@ -36,11 +37,8 @@ class ExistenceBelief(Belief):
                              f"cov {tuple(cov.shape)}")
 
     def validate(self, name: str = "belief") -> ExistenceBelief:
-        """Finite mean, PSD ``cov`` and ``log_existence`` in ``[-inf, 0]``."""
-        super().validate(name)
-        check_covariance(self.cov, f"{name}.cov")
-        if bool((self.log_existence.detach() > 0).any()) or bool(self.log_existence.detach().isnan().any()):
-            raise ValueError(f"{name}.log_existence: must be a log-probability (<= 0, not NaN)")
+        """Finite mean, PSD ``cov`` and ``log_existence`` in ``[-inf, 0]`` (``-inf``: existence 0)."""
+        check_existence_belief(self, name)
         return self
 
     @property
@@ -56,3 +54,17 @@ class ExistenceBelief(Belief):
     def estimate(self) -> GaussianBelief:
         """The state estimate given existence (what a confirmed track reports)."""
         return self.state
+
+
+def check_existence_belief(belief, name: str) -> None:
+    """The values of a belief with ``mean``, ``cov`` and ``log_existence`` (an entry point's check)."""
+    try:
+        belief.batch_shape
+    except ValueError as err:
+        raise ValueError(f"{name}: {err}") from None
+    if not bool(torch.isfinite(belief.mean.detach()).all()):
+        raise ValueError(f"{name}.mean: contains NaN or infinite entries")
+    check_covariance(belief.cov, f"{name}.cov")
+    log_e = belief.log_existence.detach()
+    if bool((log_e > 0).any()) or bool(log_e.isnan().any()):
+        raise ValueError(f"{name}.log_existence: must be a log-probability (<= 0, not NaN; -inf: existence 0)")

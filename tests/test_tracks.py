@@ -1,0 +1,81 @@
+"""Track management by existence (torchmm.association.ManagedTracks): a target that appears is found
+and confirmed, clutter's tentative tracks are deleted, labels stay with their tracks, batched equals
+per run, no host read."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from torchmm import KalmanFilter, run_filter
+from torchmm.association import JIPDA, ManagedTracks, position_initiator
+from torchmm.models import ConstantVelocity, PositionMeasurement
+from torchmm.simulate import simulate_detections
+
+
+def _scene(runs=6, steps=25, seed=0):
+    motion = ConstantVelocity(2, dt=1.0, q=0.1, dtype=torch.float64)
+    sensor = PositionMeasurement(4, [0, 2], 4.0, dtype=torch.float64)
+    gen = torch.Generator().manual_seed(seed)
+    start = torch.tensor([[-40.0, 2.0, 0.0, 0.5], [30.0, -1.0, 30.0, -1.5]], dtype=torch.float64)
+    truth = start + torch.cumsum(torch.randn(steps, runs, 2, 4, generator=gen, dtype=torch.float64) * 0.1, 0)
+    truth = truth + torch.arange(1, steps + 1, dtype=torch.float64)[:, None, None, None] * \
+        torch.stack([start[:, 1], torch.zeros(2), start[:, 3], torch.zeros(2)], -1).to(torch.float64)
+    truth[:8, :, 1] = math.nan  # the second target appears at scan 8
+    det = simulate_detections(sensor, truth, detection_probability=0.95, clutter_rate=3.0,
+                              region=torch.tensor([[-100.0, 100.0], [-100.0, 100.0]]), generator=gen)
+    jipda = JIPDA(KalmanFilter(motion, sensor), detection_probability=0.95, clutter_density=3.0 / 200**2,
+                  survival_probability=0.99, method="lbp")
+    manager = ManagedTracks(jipda, capacity=8, initiate=position_initiator(4, [0, 2], 4.0, 25.0),
+                            birth_existence=0.05, delete=0.01)
+    return manager, truth, det
+
+
+def test_targets_are_found_confirmed_and_keep_their_labels():
+    manager, truth, det = _scene()
+    out = run_filter(manager, manager.initial_belief((6,)), det.z)
+    table = out.belief  # batch (T, runs, K)
+    confirmed = table.confirmed(0.9)
+    pos = table.mean[..., [0, 2]]
+    for r in range(6):
+        for target in range(2):
+            near = (pos[-1, r] - truth[-1, r, target, [0, 2]]).norm(dim=-1) < 10  # (K,)
+            hits = (near & confirmed[-1, r]).nonzero().flatten()
+            assert len(hits) == 1, (r, target, hits)  # exactly one confirmed track on each target
+            slot = int(hits[0])
+            labels = table.label[-6:, r, slot]
+            assert (labels == labels[0]).all() and labels[0] >= 0  # its label stayed the same
+        false = confirmed[-1, r].sum() - 2
+        assert false == 0, (r, false)  # clutter confirmed no track at the end
+    # the second target (from scan 8) was not confirmed before it appeared
+    early = confirmed[:8]
+    near_b = (pos[:8] - truth[8, :, 1, [0, 2]].unsqueeze(-2)).norm(dim=-1) < 10
+    assert not (early & near_b).any()
+    assert (table.next_label[-1] >= 2).all()  # labels count up and are never reused
+
+
+def test_batched_equals_per_run_and_no_host_read():
+    from torchmm.runtime import no_host_sync
+
+    manager, truth, det = _scene(runs=3, steps=10, seed=1)
+    out = run_filter(manager, manager.initial_belief((3,)), det.z)
+    one = run_filter(manager, manager.initial_belief((1,)), det.z[:, 1:2])
+    torch.testing.assert_close(out.belief.mean[:, 1], one.belief.mean[:, 0], rtol=1e-12, atol=1e-10)
+    assert torch.equal(out.belief.label[:, 1], one.belief.label[:, 0])
+    b = manager.initial_belief((3,))
+    with no_host_sync("the track manager's step"):
+        for k in range(3):
+            b = manager.step(b, det.z[k]).belief
+    assert torch.isfinite(b.mean).all()
+
+
+def test_errors_name_the_argument():
+    manager, _, det = _scene(runs=1, steps=2)
+    with pytest.raises(TypeError, match="initiate"):
+        ManagedTracks(manager.association, capacity=4, initiate=3)
+    with pytest.raises(TypeError, match="belief: ManagedTracks needs a TrackTable"):
+        manager.step(manager.initial_belief((1,)).tracks, det.z[0])
+    with pytest.raises(ValueError, match="capacity"):
+        ManagedTracks(manager.association, capacity=0, initiate=position_initiator(4, [0, 2], 4.0, 25.0))

@@ -1,0 +1,201 @@
+r"""Track management by target existence: initiation, confirmation and deletion in a fixed table of
+track slots per run (docs/tracking.md, "Track management").
+
+Every scan, :class:`ManagedTracks`:
+
+1. associates the table's tracks jointly with existence (the wrapped :class:`JIPDA`); a free slot has
+   existence 0, so it takes no detection and weighs nothing;
+2. **deletes** the tracks whose existence fell below ``delete`` (their slot is freed);
+3. **initiates** a track from every detection that the tracks leave unexplained (``1 - sum_i beta_ij``
+   above ``unexplained``), in the run's free slots, in detection order: the state from ``initiate(z)``,
+   existence ``birth_existence`` and a new label (the run's labels count up from 0 and are never
+   reused), as many as there are free slots.
+
+A track is **confirmed** while its existence is at least ``confirm`` (``belief.confirmed(...)``); its
+label stays the same for the life of the track. Everything is batched over runs and slots, without a
+host read (the slots a run gives to its new tracks are matched by rank: the k-th unexplained
+detection to the k-th free slot).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable, ClassVar
+
+import torch
+from torch import Tensor
+
+from torchmm.association.ipda import JIPDA
+from torchmm.beliefs import Belief, ExistenceBelief, GaussianBelief, register_belief
+from torchmm.beliefs.existence import check_existence_belief
+from torchmm.contract import Finite, Indices, Int, Of, Real, entry_point
+from torchmm.filters.base import Filter, StepOutput
+
+__all__ = ["ManagedTracks", "TrackTable", "position_initiator"]
+
+
+@register_belief
+@dataclass(frozen=True)
+class TrackTable(Belief):
+    """A run's track slots: each slot's state given existence, ``log P(exists)`` (``-inf``: a free
+    slot), its label (-1 when free) and the run's next label (the same in every slot of a run).
+
+    Shapes:
+        mean ``(*B, K, n)``, cov ``(*B, K, n, n)``, log_existence ``(*B, K)``, label ``(*B, K)`` long,
+        next_label ``(*B, K)`` long
+    """
+
+    mean: Tensor
+    cov: Tensor
+    log_existence: Tensor
+    label: Tensor
+    next_label: Tensor
+
+    event_dims: ClassVar[dict[str, int]] = {"mean": 1, "cov": 2, "log_existence": 0, "label": 0, "next_label": 0}
+
+    @property
+    def existence(self) -> Tensor:
+        return self.log_existence.exp()
+
+    @property
+    def tracks(self) -> ExistenceBelief:
+        return ExistenceBelief(self.mean, self.cov, self.log_existence)
+
+    def validate(self, name: str = "belief") -> TrackTable:
+        """Finite means, PSD covariances, log-existences in ``[-inf, 0]``."""
+        check_existence_belief(self, name)
+        return self
+
+    def confirmed(self, threshold: float = 0.9) -> Tensor:
+        """``(*B, K)`` bool: the slots holding a confirmed track (existence at least ``threshold``)."""
+        return self.log_existence >= math.log(threshold)
+
+    def estimate(self) -> GaussianBelief:
+        """Every slot's state given existence (free slots hold their last state; see ``label``)."""
+        return GaussianBelief(self.mean, self.cov)
+
+
+@entry_point(state_dim=Int(1), indices=Indices(), noise_cov=Finite(), unobserved_variance=Real(minimum=0.0))
+def position_initiator(state_dim: int, indices, noise_cov, unobserved_variance: float) -> Callable:
+    """``initiate(z)`` for a sensor that measures state components ``indices`` directly (e.g.
+    ``PositionMeasurement``): the state ``z`` at ``indices`` and 0 elsewhere, the covariance
+    ``noise_cov`` at ``indices`` and ``unobserved_variance`` on the diagonal elsewhere (velocities).
+
+    Shapes: ``z (*B, m)`` -> a :class:`~torchmm.GaussianBelief` ``(*B, n)``."""
+    idx = list(indices)
+    m = len(idx)
+    H = torch.zeros(m, state_dim, dtype=torch.float64)
+    H[torch.arange(m), torch.tensor(idx)] = 1.0
+    R = torch.as_tensor(noise_cov, dtype=torch.float64).expand(m, m)
+    cov = H.mT @ R @ H + torch.diag((1.0 - H.sum(0)) * float(unobserved_variance))
+    made: dict = {}  # (dtype, device) -> (H, cov): copied to a device once, not at every scan
+
+    def initiate(z: Tensor) -> GaussianBelief:
+        key = (z.dtype, str(z.device))
+        if key not in made:
+            made[key] = (H.to(z.device, z.dtype), cov.to(z.device, z.dtype))
+        Hd, Pd = made[key]
+        return GaussianBelief(z @ Hd, Pd.expand(*z.shape[:-1], state_dim, state_dim))
+    return initiate
+
+
+class ManagedTracks(Filter):
+    """Track initiation, confirmation and deletion over a :class:`JIPDA` (the module docstring).
+
+    Args:
+        association: the :class:`~torchmm.association.JIPDA` that updates the tracks.
+        capacity: ``K``, the track slots per run (the exact JIPDA takes up to its ``max_targets``).
+        initiate: ``z (*B, D, m) -> GaussianBelief (*B, D, n)``, a new track's state from a detection
+            (:func:`position_initiator` for sensors that measure positions).
+        birth_existence: a new track's existence (default 0.1).
+        unexplained: a detection starts a track when the tracks explain it with probability below
+            ``1 - unexplained`` (default 0.5).
+        delete: a track is deleted when its existence falls below this (default 0.01).
+
+    Shapes:
+        belief: :class:`TrackTable` with batch ``(*B, K)`` (:meth:`initial_belief`: all slots free);
+        ``z``: ``(*B, D, m)``. ``extras``: JIPDA's and ``"born"`` ``(*B, K)`` bool (a track started in
+        the slot at this scan).
+    """
+
+    @entry_point(association=Of(JIPDA), capacity=Int(1), initiate=Of(object), birth_existence=Real(0.0, 1.0),
+                 unexplained=Real(0.0, 1.0), delete=Real(0.0, 1.0))
+    def __init__(self, association: JIPDA, *, capacity: int, initiate: Callable, birth_existence: float = 0.1,
+                 unexplained: float = 0.5, delete: float = 0.01):
+        super().__init__()
+        if not callable(initiate):
+            raise TypeError(f"initiate: expected a function z -> GaussianBelief, got {type(initiate).__name__}")
+        self.association = association
+        self.capacity = int(capacity)
+        self.initiate = initiate
+        self.birth_existence, self.unexplained, self.delete = float(birth_existence), float(unexplained), float(delete)
+
+    measurement_rank = 2
+
+    @property
+    def state_dim(self) -> int | None:
+        return self.association.state_dim
+
+    @property
+    def meas_dim(self) -> None:
+        return None
+
+    def informative(self, z: Tensor) -> Tensor:
+        return torch.ones(z.shape[:-2], dtype=torch.bool, device=z.device)
+
+    def initial_belief(self, batch_shape=(), *, dtype=torch.float64, device=None) -> TrackTable:
+        """An empty table: ``capacity`` free slots per run, batch ``(*batch_shape, K)``."""
+        n, K = self.state_dim, self.capacity
+        shape = (*tuple(batch_shape), K)
+        return TrackTable(torch.zeros(*shape, n, dtype=dtype, device=device),
+                          torch.eye(n, dtype=dtype, device=device).expand(*shape, n, n),
+                          torch.full(shape, -math.inf, dtype=dtype, device=device),
+                          torch.full(shape, -1, dtype=torch.long, device=device),
+                          torch.zeros(shape, dtype=torch.long, device=device))
+
+    def predict(self, belief: TrackTable, *, u: Tensor | None = None) -> TrackTable:
+        if not isinstance(belief, TrackTable):
+            raise TypeError(f"belief: ManagedTracks needs a TrackTable (ManagedTracks.initial_belief), got "
+                            f"{type(belief).__name__}")
+        p = self.association.predict(belief.tracks, u=u)
+        return TrackTable(p.mean, p.cov, p.log_existence, belief.label, belief.next_label)
+
+    def update(self, belief: TrackTable, z: Tensor) -> StepOutput:
+        if not isinstance(belief, TrackTable):
+            raise TypeError(f"belief: ManagedTracks needs a TrackTable (ManagedTracks.initial_belief), got "
+                            f"{type(belief).__name__}")
+        out = self.association.update(belief.tracks, z)
+        post = out.belief
+        *runs, K = post.log_existence.shape
+        D = z.shape[-2]
+        z = z.to(post.dtype).expand(*runs, D, z.shape[-1])
+        neg_inf = torch.full((), -math.inf, dtype=post.dtype, device=post.device)
+        # 2. deletion
+        alive = post.log_existence >= math.log(self.delete) if self.delete > 0 else post.log_existence > -math.inf
+        log_e = torch.where(alive, post.log_existence, neg_inf)
+        label = torch.where(alive, belief.label, -1)
+        # 3. initiation: unexplained detections into free slots, matched by rank
+        explained = out.extras["association"][..., 1:].nan_to_num(0.0).sum(-2)  # (*B, D)
+        present = torch.isfinite(z).all(-1)
+        candidate = present & (explained < 1.0 - self.unexplained)
+        free = ~alive
+        free_rank = torch.cumsum(free.long(), -1)  # 1-based among the free slots
+        cand_rank = torch.cumsum(candidate.long(), -1)
+        match = free.unsqueeze(-1) & candidate.unsqueeze(-2) & (free_rank.unsqueeze(-1) == cand_rank.unsqueeze(-2))
+        born = match.any(-1)  # (*B, K)
+        pick = match.to(post.dtype)  # (*B, K, D): one-hot where born
+        new = self.initiate(torch.where(present.unsqueeze(-1), z, 0.0))  # (*B, D, n)
+        new_mean = pick @ new.mean
+        new_cov = torch.einsum("...kd,...dij->...kij", pick, new.cov.expand(*runs, D, *new.cov.shape[-2:]))
+        mean = torch.where(born.unsqueeze(-1), new_mean, post.mean)
+        cov = torch.where(born[..., None, None], new_cov, post.cov)
+        birth = torch.full((), math.log(self.birth_existence) if self.birth_existence > 0 else -math.inf,
+                           dtype=post.dtype, device=post.device)
+        log_e = torch.where(born, birth, log_e)
+        label = torch.where(born, belief.next_label + free_rank - 1, label)
+        next_label = belief.next_label + born.sum(-1, keepdim=True)
+        extras = dict(out.extras)
+        extras["born"] = born
+        table = TrackTable(mean, cov, log_e, label, next_label.expand(*runs, K))
+        return StepOutput(table, belief, out.log_likelihood, out.innovation, out.innovation_cov, extras)
