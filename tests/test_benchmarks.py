@@ -56,14 +56,16 @@ def test_gpu_benchmark_runs_on_the_cpu_and_agrees():
     its figures and the agreement with the CPU (trivially the same device here, but the same code)."""
     proc = subprocess.run(
         [sys.executable, str(ROOT / "benchmarks" / "gpu.py"), "--device", "cpu", "--runs", "100", "300",
-         "--steps", "5", "--check-runs", "20", "--repeats", "1", "--no-compile"],
+         "--steps", "5", "--check-runs", "20", "--repeats", "1", "--no-compile", "--tracking-runs", "20"],
         capture_output=True, text=True, timeout=300, env={"PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "PATH": ""},
     )
     assert proc.returncode == 0, proc.stderr[-2000:] + proc.stdout[-2000:]
     lines = proc.stdout.strip().splitlines()
-    assert re.fullmatch(r"imm_run_steps_per_s=[0-9.e+]+ pf_particle_steps_per_s=[0-9.e+]+ agree=True", lines[-1]), lines
+    assert re.fullmatch(r"imm_run_steps_per_s=[0-9.e+]+ pf_particle_steps_per_s=[0-9.e+]+ "
+                        r"pda_track_scans_per_s=[0-9.e+]+ agree=True", lines[-1]), lines
     assert sum(line.startswith("IMM runs=") for line in lines) == 2
     assert sum(line.startswith("PF  runs=") for line in lines) == 2
+    assert sum(line.startswith("PDA runs=") for line in lines) == 1
 
 
 def test_imm_layout_benchmark_runs_and_agrees():
