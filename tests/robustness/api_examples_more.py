@@ -10,6 +10,7 @@ import torch
 
 from tests.robustness.api_examples import _OP, NOT_ENTRY_POINTS, call, example
 from torchmm import (
+    ParticleFilter,
     analysis,
     assignment,
     association,
@@ -158,6 +159,11 @@ example("torchmm.association.tracks.ManagedTracks")(
                  unexplained=0.5, delete=0.01))
 example("torchmm.association.tracks.position_initiator")(
     lambda: call(association.position_initiator, 4, [0, 2], torch.eye(2), 25.0))
+example("torchmm.association.particle.ParticlePDA")(
+    lambda: call(association.ParticlePDA,
+                 ParticleFilter(models.ConstantVelocity(1, noise="continuous", dtype=torch.float64),
+                                models.PositionMeasurement(2, [0], 1.0, dtype=torch.float64)),
+                 detection_probability=0.9, clutter_density=0.01))
 example("torchmm.association.jpda.jpda_marginals")(
     lambda: call(association.jpda_marginals, torch.tensor([[[0.0, -1.0], [-1.0, 0.0]]], dtype=torch.float64), 0.1,
                  method="exact", iterations=20, tolerance=1e-12))

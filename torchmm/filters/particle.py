@@ -502,10 +502,26 @@ class ParticleFilter(Filter):
             return self.with_sensor(sensor).update(belief, z, generator=generator)
         z = check_measurement(z, self.measurement.meas_dim, particle_batch(belief, self.motion.state_dim),
                               belief.particles)
-        prior_log_w = normalize_log_probs(belief.log_weights)
         loglik, predicted = particle_log_likelihood(self.measurement, z, belief.particles,
                                                      self.state_dependent_noise)
-        present = any_observed(z)
+        posterior, log_evidence, extras = self.reweight(belief, loglik, any_observed(z), generator=generator)
+        prior_log_w = normalize_log_probs(belief.log_weights)
+        cov = None if self.state_dependent_noise else self.measurement.noise_cov()
+        innovation, innovation_cov = particle_innovation(z, predicted, prior_log_w, cov)
+        return StepOutput(belief=posterior, prior=belief, log_likelihood=log_evidence, innovation=innovation,
+                          innovation_cov=innovation_cov, extras=extras)
+
+    def reweight(self, belief: ParticleBelief, loglik: Tensor, present: Tensor, *,
+                 generator: torch.Generator | None = None) -> tuple[ParticleBelief, Tensor, dict]:
+        """The update's weighting with the particles' log-likelihoods of the datum (the bootstrap
+        update after the likelihood; :class:`~torchmm.association.ParticlePDA` gives a scan's):
+        the posterior (resampled where the ESS is low), the log-evidence (0 where ``present`` is
+        False) and the flags ``ess``, ``resampled``, ``degenerate``, ``failed``.
+
+        Shapes:
+            loglik: ``(*B, Np)``; present: ``(*B,)`` -> the posterior, ``(*B,)``, flags ``(*B,)``
+        """
+        prior_log_w = normalize_log_probs(belief.log_weights)
         # a NaN particle likelihood for a present datum: the particles (the model) went non-finite
         failed = particle_failure(loglik, present)
         loglik = torch.where(torch.isnan(loglik), -math.inf, loglik)
@@ -519,16 +535,8 @@ class ParticleFilter(Filter):
         posterior = ParticleBelief(belief.particles, post_log_w)
         posterior, resampled, ess = resample_where_needed(posterior, self.ess_threshold, self.resampling,
                                                           generator=self._generator(generator))
-        cov = None if self.state_dependent_noise else self.measurement.noise_cov()
-        innovation, innovation_cov = particle_innovation(z, predicted, prior_log_w, cov)
-        return StepOutput(
-            belief=posterior,
-            prior=belief,
-            log_likelihood=log_evidence,
-            innovation=innovation,
-            innovation_cov=innovation_cov,
-            extras={"ess": ess, "resampled": resampled, "degenerate": degenerate, "failed": failed},
-        )
+        return posterior, log_evidence, {"ess": ess, "resampled": resampled, "degenerate": degenerate,
+                                         "failed": failed}
 
 
     def _generator(self, generator: torch.Generator | None) -> torch.Generator | None:
