@@ -124,6 +124,21 @@ def _read_npz(file: Path, wanted: list[str]) -> dict[str, np.ndarray]:
     return out
 
 
+def _locate(path: str | Path, base: Path | None, measurements: list[str]) -> Path:
+    """The data file: a relative ``path`` in ``base`` (the working directory), then in the shipped
+    ``experiments/data``; it must exist, and some measurement columns must be named."""
+    file = Path(path)
+    if not file.is_absolute():
+        here = (base or Path.cwd()) / file
+        shipped = Path(__file__).resolve().parent / "data" / file
+        file = here if here.exists() or not shipped.exists() else shipped
+    if not file.exists():
+        raise DataFileError(f"{file}: no such file")
+    if not measurements:
+        raise DataFileError(f"{file}: no measurement columns given")
+    return file
+
+
 def read_series(path: str | Path, *, measurements: list[str], truth: list[str] | None = None,
                 time: str | None = None, series: str | None = None, base: Path | None = None) -> DataSeries:
     """Read a CSV or NPZ file into a :class:`DataSeries`.
@@ -140,15 +155,7 @@ def read_series(path: str | Path, *, measurements: list[str], truth: list[str] |
     Raises:
         DataFileError: naming the file, the column and the row.
     """
-    file = Path(path)
-    if not file.is_absolute():
-        here = (base or Path.cwd()) / file
-        shipped = Path(__file__).resolve().parent / "data" / file
-        file = here if here.exists() or not shipped.exists() else shipped
-    if not file.exists():
-        raise DataFileError(f"{file}: no such file")
-    if not measurements:
-        raise DataFileError(f"{file}: no measurement columns given")
+    file = _locate(path, base, measurements)
     truth = list(truth or [])
     wanted = list(measurements) + truth + ([time] if time else [])
     suffix = file.suffix.lower()
@@ -252,15 +259,7 @@ def read_detections(path: str | Path, *, measurements: list[str], time: str, ser
         A CSV ``time,x,y`` with rows ``0,1.5,2.0``, ``0,40,-3``, ``1,,`` and ``2,2.1,2.2`` gives
         ``z`` of shape ``(3, 1, 2, 2)``: two detections at t = 0, none at 1, one at 2.
     """
-    file = Path(path)
-    if not file.is_absolute():
-        here = (base or Path.cwd()) / file
-        shipped = Path(__file__).resolve().parent / "data" / file
-        file = here if here.exists() or not shipped.exists() else shipped
-    if not file.exists():
-        raise DataFileError(f"{file}: no such file")
-    if not measurements:
-        raise DataFileError(f"{file}: no measurement columns given")
+    file = _locate(path, base, measurements)
     wanted = list(measurements) + [time]
     suffix = file.suffix.lower()
     if suffix == ".npz":

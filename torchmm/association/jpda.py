@@ -34,11 +34,12 @@ from torch import Tensor
 
 from torchmm.assignment import linear_assignment
 from torchmm.association.pda import (
+    DetectionSets,
     check_gaussian,
-    chi2_gate,
     detection_hypotheses,
     missed_log_weight,
     mix_hypotheses,
+    set_association,
 )
 from torchmm.beliefs import GaussianBelief
 from torchmm.contract import Choice, Int, Of, Real, Values, entry_point, unchecked
@@ -163,7 +164,7 @@ def jpda_marginals(log_weights: Tensor, missed: float, *, method: str = "exact",
     return log_beta.reshape(*batch, N, 1 + D), log_z.reshape(batch)
 
 
-class JPDA(Filter):
+class JPDA(DetectionSets):
     r"""Joint probabilistic data association over a Gaussian filter: the belief's last batch axis holds
     a run's ``N`` tracks, which share each scan (the module docstring gives the equations).
 
@@ -207,46 +208,9 @@ class JPDA(Filter):
                  gate_probability: float = 0.99, method: str = "exact", max_targets: int = 12,
                  iterations: int = 100, tolerance: float = 1e-13):
         super().__init__()
-        if not 0.0 < detection_probability <= 1.0:
-            raise ValueError(f"detection_probability: expected a probability in (0, 1], got {detection_probability}")
-        if not 0.0 < gate_probability <= 1.0:
-            raise ValueError(f"gate_probability: expected a probability in (0, 1], got {gate_probability}")
-        m = filter.meas_dim
-        if m is None:
-            raise ValueError(f"filter: JPDA needs a filter with a sensor (meas_dim), got {type(filter).__name__}")
-        self.filter = filter
-        self.detection_probability = float(detection_probability)
-        self.clutter_density = float(clutter_density)
-        self.gate_probability = float(gate_probability)
-        self.gate = chi2_gate(self.gate_probability, m)
+        set_association(self, filter, detection_probability, clutter_density, gate_probability)
         self.method, self.max_targets = method, int(max_targets)
         self.iterations, self.tolerance = int(iterations), float(tolerance)
-
-    #: a set of detections per scan, (*B, D, m)
-    measurement_rank = 2
-
-    @property
-    def state_dim(self) -> int | None:
-        return self.filter.state_dim
-
-    def informative(self, z: Tensor) -> Tensor:
-        """Every scan informs, an empty one too."""
-        return torch.ones(z.shape[:-2], dtype=torch.bool, device=z.device)
-
-    @property
-    def meas_dim(self) -> None:
-        return None
-
-    @property
-    def detections_dim(self) -> int:
-        """``m`` of each detection."""
-        return self.filter.meas_dim
-
-    def initial_belief(self, belief, **kwargs):
-        return self.filter.initial_belief(belief, **kwargs)
-
-    def predict(self, belief: GaussianBelief, *, u: Tensor | None = None) -> GaussianBelief:
-        return self.filter.predict(belief, u=u)
 
     def update(self, belief: GaussianBelief, z: Tensor) -> StepOutput:
         hyp, validated, log_w = self._scan(belief, z)

@@ -15,15 +15,16 @@ import math
 import torch
 from torch import Tensor
 
+from torchmm.association.pda import DetectionSets
 from torchmm.beliefs import ParticleBelief
 from torchmm.contract import Of, Real, entry_point
-from torchmm.filters.base import Filter, StepOutput
+from torchmm.filters.base import StepOutput
 from torchmm.filters.particle import ParticleFilter, particle_log_likelihood
 
 __all__ = ["ParticlePDA"]
 
 
-class ParticlePDA(Filter):
+class ParticlePDA(DetectionSets):
     r"""PDA over a :class:`~torchmm.ParticleFilter` (the module docstring gives the update).
 
     Args:
@@ -57,23 +58,9 @@ class ParticlePDA(Filter):
         self.detection_probability = float(detection_probability)
         self.clutter_density = float(clutter_density)
 
-    measurement_rank = 2
-
-    @property
-    def state_dim(self) -> int | None:
-        return self.filter.state_dim
-
-    @property
-    def meas_dim(self) -> None:
-        return None
-
     @property
     def detections_dim(self) -> int:
         return self.filter.measurement.meas_dim
-
-    def informative(self, z: Tensor) -> Tensor:
-        """Every scan informs, an empty one too (weight ``1 - P_D``)."""
-        return torch.ones(z.shape[:-2], dtype=torch.bool, device=z.device)
 
     def initial_belief(self, belief, *args, **kwargs):
         return self.filter.initial_belief(belief, *args, **kwargs)

@@ -68,7 +68,39 @@ def chi2_gate(probability: float, dim: int) -> float:
     return 0.5 * (lo + hi)
 
 
-class PDA(Filter):
+class DetectionSets(Filter):
+    """The filter contract of an association over a wrapped filter ``self.filter``: a padded set of
+    detections per scan (``measurement_rank = 2``: a combinator's mode axes go before ``(D, m)``),
+    every scan informative (an empty one too), the wrapped filter's state, start and prediction."""
+
+    #: a set of detections per scan, (*B, D, m)
+    measurement_rank = 2
+
+    @property
+    def state_dim(self) -> int | None:
+        return self.filter.state_dim
+
+    def informative(self, z: Tensor) -> Tensor:
+        """Every scan informs, an empty one too (nothing was detected: weight ``1 - P_D P_G``)."""
+        return torch.ones(z.shape[:-2], dtype=torch.bool, device=z.device)
+
+    @property
+    def meas_dim(self) -> None:
+        return None  # a set of detections, (*B, D, m): not a single measurement of the sensor
+
+    @property
+    def detections_dim(self) -> int:
+        """``m`` of each detection."""
+        return self.filter.meas_dim
+
+    def initial_belief(self, belief, **kwargs):
+        return self.filter.initial_belief(belief, **kwargs)
+
+    def predict(self, belief, *, u: Tensor | None = None):
+        return self.filter.predict(belief, u=u)
+
+
+class PDA(DetectionSets):
     r"""Probabilistic data association over a Gaussian filter: the update takes a padded set of
     detections per scan (see the module docstring for the equations).
 
@@ -106,44 +138,7 @@ class PDA(Filter):
     def __init__(self, filter: Filter, *, detection_probability: float, clutter_density: float,
                  gate_probability: float = 0.99):
         super().__init__()
-        if not 0.0 < detection_probability <= 1.0:
-            raise ValueError(f"detection_probability: expected a probability in (0, 1], got {detection_probability}")
-        if not 0.0 < gate_probability <= 1.0:
-            raise ValueError(f"gate_probability: expected a probability in (0, 1], got {gate_probability}")
-        m = filter.meas_dim
-        if m is None:
-            raise ValueError(f"filter: PDA needs a filter with a sensor (meas_dim), got {type(filter).__name__}")
-        self.filter = filter
-        self.detection_probability = float(detection_probability)
-        self.clutter_density = float(clutter_density)
-        self.gate_probability = float(gate_probability)
-        self.gate = chi2_gate(self.gate_probability, m)
-
-    #: a set of detections per scan, (*B, D, m): the mode axes of a combinator go before (D, m)
-    measurement_rank = 2
-
-    @property
-    def state_dim(self) -> int | None:
-        return self.filter.state_dim
-
-    def informative(self, z: Tensor) -> Tensor:
-        """Every scan informs, an empty one too (nothing was detected: weight ``1 - P_D P_G``)."""
-        return torch.ones(z.shape[:-2], dtype=torch.bool, device=z.device)
-
-    @property
-    def meas_dim(self) -> None:
-        return None  # a set of detections, (*B, D, m): not a single measurement of the sensor
-
-    @property
-    def detections_dim(self) -> int:
-        """``m`` of each detection."""
-        return self.filter.meas_dim
-
-    def initial_belief(self, belief, **kwargs):
-        return self.filter.initial_belief(belief, **kwargs)
-
-    def predict(self, belief: GaussianBelief, *, u: Tensor | None = None) -> GaussianBelief:
-        return self.filter.predict(belief, u=u)
+        set_association(self, filter, detection_probability, clutter_density, gate_probability)
 
     def update(self, belief, z: Tensor) -> StepOutput:
         check_gaussian(belief, "PDA")
@@ -174,6 +169,25 @@ class PDA(Filter):
         posterior, combined = mix_hypotheses(belief, hyp, weights)
         return StepOutput(posterior, belief, log_likelihood, combined, S[0],
                           {"association": weights, "validated": validated.movedim(0, -1), "failed": failed})
+
+
+def set_association(assoc, filter: Filter, detection_probability: float, clutter_density: float,
+                    gate_probability: float) -> None:
+    """Check and keep the association's filter and parameters (PDA, JPDA and their kin), and its
+    chi-square gate."""
+    if not 0.0 < detection_probability <= 1.0:
+        raise ValueError(f"detection_probability: expected a probability in (0, 1], got {detection_probability}")
+    if not 0.0 < gate_probability <= 1.0:
+        raise ValueError(f"gate_probability: expected a probability in (0, 1], got {gate_probability}")
+    m = filter.meas_dim
+    if m is None:
+        raise ValueError(f"filter: {type(assoc).__name__} needs a filter with a sensor (meas_dim), got "
+                         f"{type(filter).__name__}")
+    assoc.filter = filter
+    assoc.detection_probability = float(detection_probability)
+    assoc.clutter_density = float(clutter_density)
+    assoc.gate_probability = float(gate_probability)
+    assoc.gate = chi2_gate(assoc.gate_probability, m)
 
 
 def check_gaussian(belief, who: str) -> None:
