@@ -225,7 +225,7 @@ class JPDA(DetectionSets):
         if len(batch) < 1:
             raise ValueError("belief: JPDA needs a batch whose last axis holds the tracks, (*B, N); got none")
         *runs, N = batch
-        if self.method == "exact" and N > self.max_targets and not isinstance(self, GNN):
+        if self.method == "exact" and N > self.max_targets:
             raise ValueError(f"belief: {N} tracks a run exceed max_targets={self.max_targets} of the exact JPDA "
                              f"(cost 2^N); use method='lbp' or raise max_targets")
         m = self.detections_dim
@@ -278,11 +278,10 @@ class JPDA(DetectionSets):
         used = validated.reshape(-1, N, D).any(-2)  # (R, D)
         order = torch.argsort((~used).to(torch.int8), dim=-1, stable=True)  # the used detections first
         keep = int(used.sum(-1).max())
-        cols = order[:, :keep]
-        log_beta_kept, log_z = exact_marginals(flat.gather(-1, cols.unsqueeze(-2).expand(-1, N, keep)), log_missed)
+        index = order[:, :keep].unsqueeze(-2).expand(-1, N, keep)
+        log_beta_kept, log_z = exact_marginals(flat.gather(-1, index), log_missed)
         log_beta = torch.full((flat.shape[0], N, 1 + D), -math.inf, dtype=log_w.dtype, device=log_w.device)
         log_beta[..., :1] = log_beta_kept[..., :1]
-        index = cols.unsqueeze(-2).expand(-1, N, keep)
         log_beta[..., 1:] = log_beta[..., 1:].scatter(-1, index, log_beta_kept[..., 1:])
         return log_beta.reshape(*runs, N, 1 + D), log_z.reshape(runs)
 
@@ -319,6 +318,7 @@ class GNN(JPDA):
                  gate_probability: float = 0.99):
         super().__init__(filter, detection_probability=detection_probability, clutter_density=clutter_density,
                          gate_probability=gate_probability)
+        self.method = "assignment"  # (no exact programme: no limit on the tracks)
 
     def _weights(self, log_w: Tensor, validated: Tensor, log_missed: float) -> tuple[Tensor, Tensor]:
         *runs, N, D = log_w.shape
