@@ -871,6 +871,22 @@ def _unit_interval_closed_above(value) -> str | None:
     return None if value is None or 0 < value <= 1 else "must lie in (0, 1]"
 
 
+TRACKERS = ("IMM-JPDAF", "JPDAF", "IMM-PDAF", "GNN-IMM")  # one track per target, known from the first scan
+MANAGED_TRACKERS = ("JIPDA-TM",)  # start with no track: initiation, confirmation, deletion
+
+
+@dataclass
+class TrackManagement:
+    capacity: int = spec(MISSING, positive_int)
+    method: str = spec(MISSING, one_of("lbp", "exact"))
+    survival_probability: float = spec(MISSING, _unit_interval_closed_above)
+    birth_existence: float = spec(MISSING, open_probability)
+    unexplained: float = spec(MISSING, open_probability)
+    delete: float = spec(MISSING, probability)
+    confirm: float = spec(MISSING, _unit_interval_closed_above)
+    velocity_variance: float = spec(MISSING, positive)
+
+
 @dataclass
 class TrackingSection:
     targets: int = spec(MISSING, positive_int)
@@ -891,8 +907,9 @@ class TrackingSection:
     q_cv: float = spec(MISSING, positive)
     gospa_c: float = spec(MISSING, positive)
     gospa_p: float = spec(MISSING, lambda v: None if v is None or v >= 1 else "must be at least 1")
-    estimators: List[str] = spec(MISSING, check=both(non_empty, each(one_of("IMM-JPDAF", "JPDAF", "IMM-PDAF",
-                                                                            "GNN-IMM"))))
+    lifetimes: Optional[List[List[int]]] = None
+    management: TrackManagement = field(default_factory=TrackManagement)
+    estimators: List[str] = spec(MISSING, check=both(non_empty, each(one_of(*TRACKERS, *MANAGED_TRACKERS))))
 
 
 @dataclass
@@ -906,6 +923,24 @@ class Tracking:
             raise ConfigError("tracking.P0", t["P0"], "expected 4 variances, [x, vx, y, vy]")
         if t["targets"] > 12 and any(name in ("IMM-JPDAF", "JPDAF") for name in t["estimators"]):
             raise ConfigError("tracking.targets", t["targets"], "the exact JPDA takes at most 12 targets")
+        m = t["management"]
+        if m["method"] == "exact" and m["capacity"] > 12 and "JIPDA-TM" in t["estimators"]:
+            raise ConfigError("tracking.management.capacity", m["capacity"],
+                              "the exact JIPDA takes at most 12 track slots (method: lbp takes any number)")
+        lives = t["lifetimes"]
+        if lives is None:
+            return
+        if len(lives) != t["targets"] or any(len(life) != 2 for life in lives):
+            raise ConfigError("tracking.lifetimes", lives, f"expected [first, stop] for each of the {t['targets']} "
+                                                           "targets")
+        if any(not 0 <= first < stop <= t["steps"] for first, stop in lives):
+            raise ConfigError("tracking.lifetimes", lives, f"each [first, stop] needs 0 <= first < stop <= steps "
+                                                           f"({t['steps']})")
+        known = [name for name in t["estimators"] if name in TRACKERS]
+        if known:
+            raise ConfigError("tracking.estimators", t["estimators"],
+                              f"{', '.join(known)} start one track per target at the first scan; with "
+                              f"tracking.lifetimes (births and deaths) only {', '.join(MANAGED_TRACKERS)} applies")
 
 
 @dataclass

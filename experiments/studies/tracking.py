@@ -1,4 +1,4 @@
-"""Crossing, manoeuvring targets in clutter: IMM-JPDAF, JPDAF, IMM-PDAF and GNN-IMM (issue 32;
+"""Crossing, manoeuvring targets in clutter: IMM-JPDAF, JPDAF, IMM-PDAF, GNN-IMM and JIPDA-TM (issue 32;
 docs/tracking.md, "The tracking study").
 
 ``targets`` targets start evenly on a circle of radius ``radius`` and head for its centre, which they
@@ -6,8 +6,13 @@ all cross at mid-run; from ``maneuver_start`` to ``maneuver_stop`` each accelera
 for even targets, ``-a`` for odd ones; ``a = maneuver_acceleration``), then flies on. Constant velocity
 with white-acceleration noise ``q`` otherwise (2-D, state ``[x, vx, y, vy]``). A position sensor (``R``
 per axis) detects each target with probability ``P_D``; Poisson clutter (``clutter_rate`` a scan) is
-uniform over the square ``[-region, region]^2``. Tracks start from the true initial states perturbed
-by ``N(0, P0)``, one per target (no track initiation or deletion: the number of targets is known).
+uniform over the square ``[-region, region]^2``. With ``lifetimes`` (``[[first, stop], ...]``, one per
+target) a target exists only over scans ``first..stop-1`` (births and deaths): it makes no detection
+and is not scored outside them.
+
+The first four estimators start one track per target from the true initial state perturbed by
+``N(0, P0)`` (the number of targets is known; they refuse ``lifetimes``); ``JIPDA-TM`` starts with
+no track and initiates, confirms and deletes its own.
 
 Estimators (``tracking.estimators``):
 
@@ -17,11 +22,16 @@ Estimators (``tracking.estimators``):
 * ``IMM-PDAF``: ``IMM(PDA(KalmanFilter(bank)))`` per target (Houles & Bar-Shalom 1989): every track
   associates alone, the scan shared.
 * ``GNN-IMM``: ``GNN(IMM(KalmanFilter(bank)))``: the best joint event.
+* ``JIPDA-TM``: ``ManagedTracks(JIPDA(KalmanFilter(cv)))`` (``tracking.management``): a table of
+  ``capacity`` track slots a run, empty at the start; an unexplained detection starts a track, the
+  JIPDA's existence confirms it (``confirm``) or deletes it (``delete``). Only confirmed tracks are
+  shown and scored.
 
 Tables: ``gospa`` (estimator; time-averaged GOSPA (``c``, ``p``, ``alpha = 2``) with its standard
 error over the runs; its localisation / missed / false parts; label switches a run; the fraction of
-targets lost at the end (no track within ``c``); seconds per track-scan). Figures: GOSPA over time
-with 95 % bands. TensorBoard: the GOSPA curves. Sweeps: ``-m tracking.clutter_rate=2,10,30`` or
+targets lost at the end (no track within ``c``); scans from a target's first scan to its first track
+within ``c``; seconds per track-scan). Figures: GOSPA and the number of tracks shown over time, with
+95 % bands. TensorBoard: the same curves. Sweeps: ``-m tracking.clutter_rate=2,10,30`` or
 ``tracking.detection_probability=0.7,0.9,0.99``.
 """
 
@@ -29,15 +39,17 @@ from __future__ import annotations
 
 import math
 import time
+from typing import Callable, NamedTuple
 
 import torch
+from torch import Tensor
 
 from experiments.arrays import join_runs, per_run
 from experiments.executors import Unit
 from experiments.harness import StudyContext
 from experiments.studies import plots
 from torchmm import IMM, GaussianBelief, KalmanFilter, run_filter
-from torchmm.association import GNN, JPDA, PDA
+from torchmm.association import GNN, JIPDA, JPDA, PDA, ManagedTracks, position_initiator
 from torchmm.beliefs import psd_sqrt
 from torchmm.metrics import gospa
 from torchmm.models import ConstantVelocity, PositionMeasurement
@@ -53,8 +65,20 @@ def _bank(t, dtype) -> ConstantVelocity:
                             dtype=dtype)
 
 
+def lifetimes(t) -> Tensor:
+    """``(T, N)`` bool: which targets exist at each scan (``tracking.lifetimes``; all, where null)."""
+    T, N = int(t.steps), int(t.targets)
+    if t.lifetimes is None:
+        return torch.ones(T, N, dtype=torch.bool)
+    k = torch.arange(T).unsqueeze(-1)
+    first, stop = (torch.tensor([int(life[i]) for life in t.lifetimes]) for i in (0, 1))
+    return (k >= first) & (k < stop)
+
+
 def simulate(t, runs: int, generator: torch.Generator, dtype=torch.float64):
-    """Truth ``(T, runs, N, 4)``, detections ``(T, runs, D, 2)`` and the tracks' start ``(runs, N, 4)``."""
+    """Truth ``(T, runs, N, 4)``, detections ``(T, runs, D, 2)``, the tracks' start ``(runs, N, 4)`` and
+    which targets exist ``(T, runs, N)`` (a target that does not exist makes no detection; it still
+    moves, so that the draws do not depend on the lifetimes)."""
     N, T, dt = int(t.targets), int(t.steps), float(t.dt)
     bank = _bank(t, dtype)
     F, Q, offset = bank.F, bank.Q, bank.offset  # offset (3, 4): each mode's G a
@@ -71,19 +95,28 @@ def simulate(t, runs: int, generator: torch.Generator, dtype=torch.float64):
                                                                           dtype=dtype) @ LQ.mT
         states.append(x)
     truth = torch.stack(states)
+    present = lifetimes(t).unsqueeze(1).expand(T, runs, N)
     sensor = PositionMeasurement(4, [0, 2], float(t.R), dtype=dtype)
     L = float(t.region)
     rate = float(t.clutter_rate)
-    det = simulate_detections(sensor, truth, detection_probability=float(t.detection_probability),
+    seen = truth if t.lifetimes is None else torch.where(present.unsqueeze(-1), truth, math.nan)
+    det = simulate_detections(sensor, seen, detection_probability=float(t.detection_probability),
                               clutter_rate=rate, region=torch.tensor([[-L, L], [-L, L]], dtype=dtype),
                               max_clutter=int(rate + 6 * math.sqrt(rate) + 5), generator=generator)
     P0 = torch.tensor(list(t.P0), dtype=dtype)
     x0 = start + torch.randn(runs, N, 4, generator=generator, dtype=dtype) * P0.sqrt()
-    return truth, det.z, x0
+    return truth, det.z, x0, present
 
 
-def estimators(t, dtype) -> dict:
-    """The configured estimators: name -> (filter, initial-belief maker, whether scans go per track)."""
+class Estimator(NamedTuple):
+    filter: object
+    initial: Callable  # the tracks' start (a GaussianBelief (runs, N, 4)) -> the filter's initial belief
+    per_track: bool    # the scans go to every track alone (IMM-PDAF)
+    managed: bool      # a ManagedTracks: starts empty, confirms and deletes its tracks
+
+
+def estimators(t, dtype) -> dict[str, Estimator]:
+    """The configured estimators by name."""
     bank = _bank(t, dtype)
     cv = ConstantVelocity(2, dt=float(t.dt), q=float(t.q_cv), dtype=dtype)
     sensor = PositionMeasurement(4, [0, 2], float(t.R), dtype=dtype)
@@ -94,47 +127,79 @@ def estimators(t, dtype) -> dict:
             "clutter_density": float(t.clutter_rate) / (2 * float(t.region)) ** 2,
             "gate_probability": float(t.gate_probability)}
     imm = IMM(KalmanFilter(bank, sensor), Pi)
-    per_track = IMM(PDA(KalmanFilter(bank, sensor), **opts), Pi)
     made = {
-        "IMM-JPDAF": (JPDA(imm, **opts), imm.initial_belief, False),
-        "JPDAF": (JPDA(KalmanFilter(cv, sensor), **opts), lambda b: b, False),
-        "IMM-PDAF": (per_track, per_track.initial_belief, True),
-        "GNN-IMM": (GNN(imm, **opts), imm.initial_belief, False),
+        "IMM-JPDAF": lambda: Estimator(JPDA(imm, **opts), imm.initial_belief, False, False),
+        "JPDAF": lambda: Estimator(JPDA(KalmanFilter(cv, sensor), **opts), lambda b: b, False, False),
+        "IMM-PDAF": lambda: _per_track(IMM(PDA(KalmanFilter(bank, sensor), **opts), Pi)),
+        "GNN-IMM": lambda: Estimator(GNN(imm, **opts), imm.initial_belief, False, False),
+        "JIPDA-TM": lambda: _managed(t, KalmanFilter(cv, sensor), opts, dtype),
     }
-    return {name: made[name] for name in t.estimators}
+    return {name: made[name]() for name in t.estimators}
+
+
+def _per_track(filt) -> Estimator:
+    return Estimator(filt, filt.initial_belief, True, False)
+
+
+def _managed(t, filt, opts: dict, dtype) -> Estimator:
+    """``ManagedTracks(JIPDA(filt))`` with ``tracking.management``'s settings."""
+    m = t.management
+    jipda = JIPDA(filt, survival_probability=float(m.survival_probability), method=str(m.method),
+                  max_targets=max(12, int(m.capacity)), **opts)
+    start = position_initiator(4, [0, 2], float(t.R), float(m.velocity_variance))
+    manager = ManagedTracks(jipda, capacity=int(m.capacity), initiate=start, birth_existence=float(m.birth_existence),
+                            unexplained=float(m.unexplained), delete=float(m.delete))
+    return Estimator(manager, lambda b: manager.initial_belief(b.batch_shape[:-1], dtype=dtype), False, True)
 
 
 def _data(ctx: StudyContext, start: int, stop: int):
     t = ctx.cfg.tracking
 
     def simulate_block():
-        return ctx.simulate_runs(lambda n, gen: simulate(t, n, gen), stop, "tracking", axes=(1, 1, 0), start=start)
+        return ctx.simulate_runs(lambda n, gen: simulate(t, n, gen), stop, "tracking", axes=(1, 1, 0, 1), start=start)
     return ctx.memo(("data", start, stop), simulate_block)
 
 
 def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
     """Estimator ``name`` on runs ``start..stop-1``: per-run GOSPA curves and parts ``(T, runs)``,
-    label switches and lost targets ``(runs,)``, and the seconds it took."""
+    label switches, lost targets and the scans to a target's first track ``(runs,)``, and the seconds
+    it took."""
     t = ctx.cfg.tracking
-    truth, z, x0 = (v.to(ctx.dtype) for v in _data(ctx, start, stop))
-    filt, initial, per_track = estimators(t, ctx.dtype)[name]
+    truth, z, x0, present = (v.to(ctx.dtype) if v.is_floating_point() else v for v in _data(ctx, start, stop))
+    est = estimators(t, ctx.dtype)[name]
     P0 = torch.diag(torch.tensor(list(t.P0), dtype=ctx.dtype))
-    belief = initial(GaussianBelief(x0, P0))
-    scans = z.unsqueeze(-3) if per_track else z  # IMM-PDAF: every track sees the run's scan
-    filt, belief, scans = filt.to(ctx.device), belief.to(ctx.device), scans.to(ctx.device)
+    belief = est.initial(GaussianBelief(x0, P0))
+    scans = z.unsqueeze(-3) if est.per_track else z  # IMM-PDAF: every track sees the run's scan
+    filt, belief, scans = est.filter.to(ctx.device), belief.to(ctx.device), scans.to(ctx.device)
     tic = time.perf_counter()
     with torch.no_grad():
-        traj = run_filter(filt, belief, scans, record="estimate")
+        traj = run_filter(filt, belief, scans, record=None if est.managed else "estimate")
     seconds = time.perf_counter() - tic
-    est = traj.belief.mean[..., [0, 2]].cpu().double()  # (T, runs, N, 2)
-    out = gospa(est, truth[..., [0, 2]].double(), c=float(t.gospa_c), p=float(t.gospa_p))
+    if est.managed:  # the confirmed tracks, each with its label
+        table = traj.belief
+        shown, labels = table.confirmed(float(t.management.confirm)).cpu(), table.label.cpu()
+    else:  # one track per target, its index the label
+        shown, labels = None, torch.arange(int(t.targets)).expand(traj.belief.mean.shape[:-1])
+    position = traj.belief.mean[..., [0, 2]].cpu().double()  # (T, runs, K, 2)
+    out = gospa(position, truth[..., [0, 2]].double(), c=float(t.gospa_c), p=float(t.gospa_p),
+                estimate_present=shown, truth_present=present)
     assigned = out["assigned"]  # (T, runs, N): the track on each target, -1 none within c
-    both = (assigned[1:] >= 0) & (assigned[:-1] >= 0)
-    switches = (both & (assigned[1:] != assigned[:-1])).sum((0, 2)).double()  # (runs,)
-    lost = (assigned[-1] < 0).double().mean(-1)  # (runs,)
+    label = torch.where(assigned >= 0, labels.gather(-1, assigned.clamp(min=0)), -1)
+    both = (label[1:] >= 0) & (label[:-1] >= 0)
+    switches = (both & (label[1:] != label[:-1])).sum((0, 2)).double()  # (runs,)
+    last = present[-1]
+    lost = ((assigned[-1] < 0) & last).sum(-1).double() / last.sum(-1).clamp(min=1)  # (runs,)
+    steps = torch.arange(len(present)).view(-1, 1, 1)
+    never = torch.full_like(steps, len(present))
+    appears = torch.where(present, steps, never).amin(0)  # (runs, N)
+    tracked = torch.where(assigned >= 0, steps, never).amin(0)
+    delay = (tracked - appears).double().mean(-1)  # (runs,): scans from appearing to a track within c
     return {key: per_run(out[key]) for key in ("distance", "localisation", "missed", "false")} | {
-        "switches": per_run(switches), "lost": per_run(lost), "seconds": seconds,
-        "track_scans": int(est.shape[0] * est.shape[1] * est.shape[2])}
+        "switches": per_run(switches), "lost": per_run(lost), "delay": per_run(delay), "seconds": seconds,
+        "tracks": per_run((shown.sum(-1) if shown is not None else labels.new_full(labels.shape[:-1],
+                                                                                  labels.shape[-1])).double()),
+        "targets": per_run(present.sum(-1).double()),
+        "track_scans": int(position.shape[0] * position.shape[1] * position.shape[2])}
 
 
 def run(ctx: StudyContext) -> None:
@@ -149,36 +214,48 @@ def run(ctx: StudyContext) -> None:
         f"{t.targets} crossing targets, {t.steps} scans, manoeuvre {t.maneuver_start}-{t.maneuver_stop} "
         f"(+-{t.maneuver_acceleration} m/s^2), P_D = {t.detection_probability}, {t.clutter_rate} clutter "
         f"points a scan over [-{t.region}, {t.region}]^2, R = {t.R}; {runs} Monte Carlo runs (seed {cfg.seed}, "
-        f"{cfg.dtype}). GOSPA with c = {t.gospa_c}, p = {t.gospa_p}, alpha = 2.")
+        f"{cfg.dtype}). GOSPA with c = {t.gospa_c}, p = {t.gospa_p}, alpha = 2."
+        + ("" if t.lifetimes is None else f" Targets exist over scans [first, stop) = {list(map(list, t.lifetimes))}."))
     table = ctx.results.table(
         "gospa", ["estimator", "gospa", "gospa_se", "localisation", "missed", "false", "label_switches",
-                  "lost_fraction", "seconds_per_track_scan"],
+                  "lost_fraction", "first_track_delay", "seconds_per_track_scan"],
         note="gospa: the GOSPA distance averaged over steps and runs, gospa_se its standard error over the "
              "runs (95 %: +- 1.96 se). localisation / missed / false: the parts of GOSPA^p (units of "
              "distance^p), averaged the same way. label_switches: times a target's track changed, a run. "
-             "lost_fraction: targets without a track within c at the last scan.")
-    curves, bands = {"GOSPA": {}}, {"GOSPA": {}}
+             "lost_fraction: targets without a track within c at the last scan (of those that exist then). "
+             "first_track_delay: scans from a target's first scan to its first track within c (a target "
+             "never tracked counts the scans to the end). JIPDA-TM shows its confirmed tracks only "
+             "(existence >= tracking.management.confirm).")
+    curves, bands = {"GOSPA": {}, "tracks shown": {}}, {"GOSPA": {}, "tracks shown": {}}
+
+    def mean_and_band(runs_curves, panel: str, series: str, tag: str) -> None:  # (T, runs) -> curve, 95 % band
+        curve = runs_curves.mean(1)
+        curves[panel][series] = curve
+        ctx.logger.series(f"{tag}/{series}", curve)
+        if runs_curves.shape[1] > 1:
+            bands[panel][series] = band = runs_curves.std(1) / math.sqrt(runs_curves.shape[1])
+            ctx.logger.series(f"{tag}_se/{series}", band)
+
     n = len(ranges)
     for i, name in enumerate(names):
         mine = parts[i * n:(i + 1) * n]
         dist = join_runs([p["distance"] for p in mine])  # (T, runs)
         per_run_mean = dist.mean(0)
-        curve, band = dist.mean(1), dist.std(1) / math.sqrt(dist.shape[1]) if dist.shape[1] > 1 else None
         parts_mean = {k: float(join_runs([p[k] for p in mine]).mean()) for k in ("localisation", "missed", "false")}
         switches = float(join_runs([p["switches"] for p in mine], dim=0).mean())
         lost = float(join_runs([p["lost"] for p in mine], dim=0).mean())
+        delay = float(join_runs([p["delay"] for p in mine], dim=0).mean())
         seconds = sum(p["seconds"] for p in mine) / sum(p["track_scans"] for p in mine)
         se = float(per_run_mean.std() / math.sqrt(len(per_run_mean))) if len(per_run_mean) > 1 else None
         table.rows.append([name, float(per_run_mean.mean()), se, parts_mean["localisation"], parts_mean["missed"],
-                           parts_mean["false"], switches, lost, seconds])
+                           parts_mean["false"], switches, lost, delay, seconds])
         ctx.results.metric(name, "gospa", float(per_run_mean.mean()))
         ctx.results.metric(name, "lost_fraction", lost)
         ctx.results.timing[name] = seconds
-        curves["GOSPA"][name] = curve
-        ctx.logger.series(f"gospa/{name}", curve)
-        if band is not None:
-            bands["GOSPA"][name] = band
-            ctx.logger.series(f"gospa_se/{name}", band)
+        mean_and_band(dist, "GOSPA", name, "gospa")
+        mean_and_band(join_runs([p["tracks"] for p in mine]), "tracks shown", name, "tracks")
+    if names:
+        mean_and_band(join_runs([p["targets"] for p in parts[:n]]), "tracks shown", "truth", "tracks")
     ctx.results.save()
     ctx.save_figure("gospa_over_time", plots.rmse_over_time(curves, f"{t.targets} crossing targets in clutter, "
                                                                     f"{runs} runs", bands=bands))

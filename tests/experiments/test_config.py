@@ -109,6 +109,15 @@ BAD = [
     (["experiment=tracking", "tracking.detection_probability=1.5"], "tracking.detection_probability=1.5: must lie in (0, 1]"),
     (["experiment=tracking", "tracking.P0=[1.5,2.5]"], "tracking.P0=[1.5, 2.5]: expected 4 variances"),
     (["experiment=tracking", "tracking.targets=20"], "tracking.targets=20: the exact JPDA takes at most 12"),
+    (["experiment=tracking", "tracking.lifetimes=[[0,60],[10,60],[0,30],[0,60]]"],
+     "tracking.estimators=['IMM-JPDAF', 'JPDAF', 'IMM-PDAF', 'GNN-IMM', 'JIPDA-TM']: IMM-JPDAF, JPDAF, IMM-PDAF"),
+    (["experiment=tracking", "tracking.lifetimes=[[0,60]]", "tracking.estimators=[JIPDA-TM]"],
+     "tracking.lifetimes=[[0, 60]]: expected [first, stop] for each of the 4 targets"),
+    (["experiment=tracking", "tracking.lifetimes=[[0,60],[10,5],[0,30],[0,60]]", "tracking.estimators=[JIPDA-TM]"],
+     "tracking.lifetimes=[[0, 60], [10, 5], [0, 30], [0, 60]]: each [first, stop] needs 0 <= first < stop"),
+    (["experiment=tracking", "tracking.management.method=exact", "tracking.management.capacity=20"],
+     "tracking.management.capacity=20: the exact JIPDA takes at most 12"),
+    (["experiment=tracking", "tracking.management.confirm=0"], "tracking.management.confirm=0.0: must lie in (0, 1]"),
 ]
 
 

@@ -48,7 +48,7 @@ REQUIRED_TABLES = {
                "table1": ["estimator", "avg_model_count"],
                "table2": ["estimator", "seconds_per_step", "relative_time"]},
     "tracking": {"gospa": ["estimator", "gospa", "gospa_se", "localisation", "missed", "false", "label_switches",
-                           "lost_fraction"]},
+                           "lost_fraction", "first_track_delay"]},
     "smoothing": {"rmse": ["scenario", "estimator", "filter_pos_rmse", "smoother_pos_rmse"],
                   "modes": ["scenario", "estimator", "filter_mode_accuracy", "smoother_mode_accuracy"],
                   "parallel_speed": ["steps", "runs", "sequential_seconds", "parallel_seconds"]},

@@ -1,0 +1,55 @@
+"""The tracking study's births and deaths and its managed tracker (issue 32; docs/tracking.md)."""
+
+from __future__ import annotations
+
+import json
+
+import torch
+from omegaconf import OmegaConf
+
+from experiments.plot import load_curves
+from experiments.run import run_study
+from experiments.studies import tracking
+from tests.experiments.test_studies import _compose
+from tests.regression.record import COMMON
+
+LIVES = [[0, 24], [6, 24], [0, 16]]  # target 1 appears at scan 6, target 2 disappears after scan 15
+
+
+def _section(**changes):
+    cfg = _compose("tracking", "debug=tracking")
+    section = OmegaConf.to_container(cfg.tracking)
+    section.update(changes)
+    return OmegaConf.create(section)
+
+
+def test_a_target_outside_its_lifetime_makes_no_detection():
+    """With P_D = 1 and (practically) no clutter, every scan holds exactly the targets that exist."""
+    t = _section(steps=24, lifetimes=LIVES, detection_probability=1.0, clutter_rate=1e-12)
+    truth, z, x0, present = tracking.simulate(t, 5, torch.Generator().manual_seed(3))
+    expected = torch.tensor([[k in range(a, b) for a, b in LIVES] for k in range(24)])
+    assert torch.equal(present, expected.unsqueeze(1).expand(24, 5, 3))
+    detected = torch.isfinite(z).all(-1).sum(-1)  # (T, runs)
+    assert torch.equal(detected, present.sum(-1))
+    # and each detection lies near an existing target (within 6 sigma of R), none near an absent one
+    gap = (z.unsqueeze(-2) - truth[..., [0, 2]].unsqueeze(-3)).norm(dim=-1)  # (T, runs, D, N)
+    near = (gap < 6 * t.R**0.5) & torch.isfinite(z).all(-1, keepdim=True)
+    assert not bool((near & ~present.unsqueeze(-2)).any())
+
+
+def test_managed_tracker_follows_births_and_deaths(tmp_path):
+    overrides = ["debug=tracking", "tracking.steps=24", "tracking.management.velocity_variance=900",
+                 f"tracking.lifetimes={LIVES}".replace(" ", ""), "tracking.estimators=[JIPDA-TM]"]
+    run_study(_compose("tracking", *COMMON, "figures=false", *overrides), tmp_path)
+    curves = load_curves(tmp_path)
+    truth = torch.as_tensor(curves["tracks/truth"][2])
+    shown = torch.as_tensor(curves["tracks/JIPDA-TM"][2])
+    assert truth.tolist() == [float(sum(k in range(a, b) for a, b in LIVES)) for k in range(24)]
+    assert float(shown[0]) == 0.0  # a track born at a scan has the birth existence (0.1): not confirmed
+    # while all three live (scans 10-15) about three confirmed tracks; after the death, about two
+    assert abs(float(shown[10:16].mean()) - 3.0) < 0.6, shown.tolist()
+    assert abs(float(shown[-5:].mean()) - 2.0) < 0.5, shown.tolist()
+    row = json.loads((tmp_path / "results.json").read_text())["tables"]["gospa"]
+    record = dict(zip(row["columns"], row["rows"][0]))
+    assert 1.0 <= record["first_track_delay"] <= 6.0, record
+    assert record["lost_fraction"] <= 0.25, record
