@@ -872,7 +872,7 @@ def _unit_interval_closed_above(value) -> str | None:
 
 
 TRACKERS = ("IMM-JPDAF", "JPDAF", "IMM-PDAF", "GNN-IMM")  # one track per target, known from the first scan
-MANAGED_TRACKERS = ("JIPDA-TM",)  # start with no track: initiation, confirmation, deletion
+MANAGED_TRACKERS = ("JIPDA-TM", "IMM-JIPDA-TM")  # start with no track: initiation, confirmation, deletion
 
 
 @dataclass
@@ -924,7 +924,7 @@ class Tracking:
         if t["targets"] > 12 and any(name in ("IMM-JPDAF", "JPDAF") for name in t["estimators"]):
             raise ConfigError("tracking.targets", t["targets"], "the exact JPDA takes at most 12 targets")
         m = t["management"]
-        if m["method"] == "exact" and m["capacity"] > 12 and "JIPDA-TM" in t["estimators"]:
+        if m["method"] == "exact" and m["capacity"] > 12 and set(MANAGED_TRACKERS) & set(t["estimators"]):
             raise ConfigError("tracking.management.capacity", m["capacity"],
                               "the exact JIPDA takes at most 12 track slots (method: lbp takes any number)")
         lives = t["lifetimes"]
@@ -940,7 +940,8 @@ class Tracking:
         if known:
             raise ConfigError("tracking.estimators", t["estimators"],
                               f"{', '.join(known)} start one track per target at the first scan; with "
-                              f"tracking.lifetimes (births and deaths) only {', '.join(MANAGED_TRACKERS)} applies")
+                              "tracking.lifetimes (births and deaths) only the managed trackers "
+                              f"({', '.join(MANAGED_TRACKERS)}) apply")
 
 
 @dataclass

@@ -90,3 +90,23 @@ def test_clear_errors():
         simulate_detections(sensor, x, detection_probability=1.5)
     with pytest.raises(ValueError, match="clutter_rate"):
         simulate_detections(sensor, x, detection_probability=0.5, clutter_rate=-1.0)
+
+
+def test_the_draws_do_not_depend_on_the_default_dtype():
+    """Every draw takes the states' dtype: a float64 simulation is the same under either default."""
+    sensor = PositionMeasurement(4, [0, 2], 4.0, dtype=torch.float64)
+    states = torch.randn(6, 3, 2, 4, dtype=torch.float64, generator=torch.Generator().manual_seed(0)) * 10
+    box = torch.tensor([[-50.0, 50.0], [-50.0, 50.0]], dtype=torch.float64)
+    made = {}
+    before = torch.get_default_dtype()
+    try:
+        for default in (torch.float32, torch.float64):
+            torch.set_default_dtype(default)
+            det = simulate_detections(sensor, states, detection_probability=0.8, clutter_rate=4.0, region=box,
+                                      generator=torch.Generator().manual_seed(1))
+            made[default] = det
+    finally:
+        torch.set_default_dtype(before)
+    a, b = made[torch.float32], made[torch.float64]
+    assert torch.equal(a.present, b.present) and torch.equal(a.origin, b.origin)
+    assert torch.equal(a.z.nan_to_num(-1.0), b.z.nan_to_num(-1.0))

@@ -9,13 +9,17 @@ import math
 import pytest
 import torch
 
-from torchmm import KalmanFilter, run_filter
-from torchmm.association import JIPDA, ManagedTracks, position_initiator
+from torchmm import IMM, KalmanFilter, run_filter
+from torchmm.association import JIPDA, ManagedTracks, ModeTrackTable, TrackTable, position_initiator
 from torchmm.models import ConstantVelocity, PositionMeasurement
 from torchmm.simulate import simulate_detections
 
+TURNS = [[0.0, 0.0], [0.5, 0.0], [-0.5, 0.0]]  # an IMM of three accelerations on the x axis
 
-def _scene(runs=6, steps=25, seed=0):
+
+def _scene(runs=6, steps=25, seed=0, modes=None):
+    """Two targets, the second from scan 8; ``modes``: the tracks are an IMM over these accelerations
+    of the constant-velocity model (a list of ``[ax, ay]``), else one Kalman filter."""
     motion = ConstantVelocity(2, dt=1.0, q=0.1, dtype=torch.float64)
     sensor = PositionMeasurement(4, [0, 2], 4.0, dtype=torch.float64)
     gen = torch.Generator().manual_seed(seed)
@@ -26,19 +30,27 @@ def _scene(runs=6, steps=25, seed=0):
     truth[:8, :, 1] = math.nan  # the second target appears at scan 8
     det = simulate_detections(sensor, truth, detection_probability=0.95, clutter_rate=3.0,
                               region=torch.tensor([[-100.0, 100.0], [-100.0, 100.0]]), generator=gen)
-    jipda = JIPDA(KalmanFilter(motion, sensor), detection_probability=0.95, clutter_density=3.0 / 200**2,
+    filt = KalmanFilter(motion, sensor)
+    if modes is not None:
+        M = len(modes)
+        bank = ConstantVelocity(2, dt=1.0, q=0.1, acceleration=modes, dtype=torch.float64)
+        filt = IMM(KalmanFilter(bank, sensor), torch.full((M, M), 0.1 / max(M - 1, 1), dtype=torch.float64)
+                   + (0.9 - 0.1 / max(M - 1, 1)) * torch.eye(M, dtype=torch.float64))
+    jipda = JIPDA(filt, detection_probability=0.95, clutter_density=3.0 / 200**2,
                   survival_probability=0.99, method="lbp")
     manager = ManagedTracks(jipda, capacity=8, initiate=position_initiator(4, [0, 2], 4.0, 25.0),
                             birth_existence=0.05, delete=0.01)
     return manager, truth, det
 
 
-def test_targets_are_found_confirmed_and_keep_their_labels():
-    manager, truth, det = _scene()
+@pytest.mark.parametrize("modes", [None, TURNS], ids=["kalman", "imm"])
+def test_targets_are_found_confirmed_and_keep_their_labels(modes):
+    manager, truth, det = _scene(modes=modes)
     out = run_filter(manager, manager.initial_belief((6,)), det.z)
     table = out.belief  # batch (T, runs, K)
+    assert isinstance(table, TrackTable if modes is None else ModeTrackTable)
     confirmed = table.confirmed(0.9)
-    pos = table.mean[..., [0, 2]]
+    pos = table.estimate().mean[..., [0, 2]]
     for r in range(6):
         for target in range(2):
             near = (pos[-1, r] - truth[-1, r, target, [0, 2]]).norm(dim=-1) < 10  # (K,)
@@ -56,26 +68,56 @@ def test_targets_are_found_confirmed_and_keep_their_labels():
     assert (table.next_label[-1] >= 2).all()  # labels count up and are never reused
 
 
-def test_batched_equals_per_run_and_no_host_read():
+@pytest.mark.parametrize("modes", [None, TURNS], ids=["kalman", "imm"])
+def test_batched_equals_per_run_and_no_host_read(modes):
     from torchmm.runtime import no_host_sync
 
-    manager, truth, det = _scene(runs=3, steps=10, seed=1)
+    manager, truth, det = _scene(runs=3, steps=10, seed=1, modes=modes)
     out = run_filter(manager, manager.initial_belief((3,)), det.z)
     one = run_filter(manager, manager.initial_belief((1,)), det.z[:, 1:2])
-    torch.testing.assert_close(out.belief.mean[:, 1], one.belief.mean[:, 0], rtol=1e-12, atol=1e-10)
+    torch.testing.assert_close(out.belief.estimate().mean[:, 1], one.belief.estimate().mean[:, 0], rtol=1e-12,
+                               atol=1e-10)
     assert torch.equal(out.belief.label[:, 1], one.belief.label[:, 0])
     b = manager.initial_belief((3,))
     with no_host_sync("the track manager's step"):
         for k in range(3):
             b = manager.step(b, det.z[k]).belief
-    assert torch.isfinite(b.mean).all()
+    assert torch.isfinite(b.estimate().mean).all()
+
+
+def test_an_imm_of_identical_modes_manages_the_same_tracks():
+    """Over an IMM of two identical modes the table is the Kalman one's: labels, existence, states."""
+    kalman, _, det = _scene(runs=4, steps=16, seed=2)
+    imm, _, _ = _scene(runs=4, steps=16, seed=2, modes=[[0.0, 0.0], [0.0, 0.0]])
+    a = run_filter(kalman, kalman.initial_belief((4,)), det.z).belief
+    b = run_filter(imm, imm.initial_belief((4,)), det.z).belief
+    assert torch.equal(a.label, b.label)
+    assert (a.label[-1] >= 0).sum() >= 8  # tracks were started (two targets and clutter, 4 runs)
+    torch.testing.assert_close(a.log_existence.exp(), b.log_existence.exp(), rtol=0, atol=1e-12)
+    live = a.label >= 0
+    torch.testing.assert_close(a.mean[live], b.estimate().mean[live], rtol=0, atol=1e-9)
+
+
+def test_new_tracks_take_the_mode_probabilities_given():
+    manager, _, det = _scene(runs=2, steps=3, modes=TURNS)
+    given = ManagedTracks(manager.association, capacity=8, initiate=manager.initiate, mode_probs=[0.8, 0.1, 0.1])
+    out = given.step(given.predict(given.initial_belief((2,))), det.z[0])
+    born = out.extras["born"]
+    assert born.any()
+    torch.testing.assert_close(out.belief.mode_log_probs[born].exp(),
+                               torch.tensor([0.8, 0.1, 0.1], dtype=torch.float64).expand(int(born.sum()), 3))
+    with pytest.raises(ValueError, match="mode_probs"):
+        ManagedTracks(manager.association, capacity=8, initiate=manager.initiate, mode_probs=[0.5, 0.5])
+    kalman, _, _ = _scene(runs=1, steps=2)
+    with pytest.raises(ValueError, match="mode_probs: the JIPDA's filter"):
+        ManagedTracks(kalman.association, capacity=8, initiate=kalman.initiate, mode_probs=[1.0])
 
 
 def test_errors_name_the_argument():
     manager, _, det = _scene(runs=1, steps=2)
     with pytest.raises(TypeError, match="initiate"):
         ManagedTracks(manager.association, capacity=4, initiate=3)
-    with pytest.raises(TypeError, match="belief: ManagedTracks needs a TrackTable"):
+    with pytest.raises(TypeError, match="belief: ManagedTracks over KalmanFilter needs a TrackTable"):
         manager.step(manager.initial_belief((1,)).tracks, det.z[0])
     with pytest.raises(ValueError, match="capacity"):
         ManagedTracks(manager.association, capacity=0, initiate=position_initiator(4, [0, 2], 4.0, 25.0))

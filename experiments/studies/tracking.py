@@ -1,4 +1,4 @@
-"""Crossing, manoeuvring targets in clutter: IMM-JPDAF, JPDAF, IMM-PDAF, GNN-IMM and JIPDA-TM (issue 32;
+"""Crossing, manoeuvring targets in clutter: IMM-JPDAF, JPDAF, IMM-PDAF, GNN-IMM and managed tracks (issue 32;
 docs/tracking.md, "The tracking study").
 
 ``targets`` targets start evenly on a circle of radius ``radius`` and head for its centre, which they
@@ -12,7 +12,7 @@ and is not scored outside them.
 
 The first four estimators start one track per target from the true initial state perturbed by
 ``N(0, P0)`` (the number of targets is known; they refuse ``lifetimes``); ``JIPDA-TM`` starts with
-no track and initiates, confirms and deletes its own.
+no track and initiates, confirms and deletes its own, as does ``IMM-JIPDA-TM``.
 
 Estimators (``tracking.estimators``):
 
@@ -26,6 +26,8 @@ Estimators (``tracking.estimators``):
   ``capacity`` track slots a run, empty at the start; an unexplained detection starts a track, the
   JIPDA's existence confirms it (``confirm``) or deletes it (``delete``). Only confirmed tracks are
   shown and scored.
+* ``IMM-JIPDA-TM``: the same over ``JIPDA(IMM(KalmanFilter(bank)))``: the IMM-JIPDA, a new track in
+  every mode with equal probabilities.
 
 Tables: ``gospa`` (estimator; time-averaged GOSPA (``c``, ``p``, ``alpha = 2``) with its standard
 error over the runs; its localisation / missed / false parts; label switches a run; the fraction of
@@ -133,6 +135,7 @@ def estimators(t, dtype) -> dict[str, Estimator]:
         "IMM-PDAF": lambda: _per_track(IMM(PDA(KalmanFilter(bank, sensor), **opts), Pi)),
         "GNN-IMM": lambda: Estimator(GNN(imm, **opts), imm.initial_belief, False, False),
         "JIPDA-TM": lambda: _managed(t, KalmanFilter(cv, sensor), opts, dtype),
+        "IMM-JIPDA-TM": lambda: _managed(t, imm, opts, dtype),
     }
     return {name: made[name]() for name in t.estimators}
 
@@ -180,7 +183,7 @@ def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
         shown, labels = table.confirmed(float(t.management.confirm)).cpu(), table.label.cpu()
     else:  # one track per target, its index the label
         shown, labels = None, torch.arange(int(t.targets)).expand(traj.belief.mean.shape[:-1])
-    position = traj.belief.mean[..., [0, 2]].cpu().double()  # (T, runs, K, 2)
+    position = traj.belief.estimate().mean[..., [0, 2]].cpu().double()  # (T, runs, K, 2)
     out = gospa(position, truth[..., [0, 2]].double(), c=float(t.gospa_c), p=float(t.gospa_p),
                 estimate_present=shown, truth_present=present)
     assigned = out["assigned"]  # (T, runs, N): the track on each target, -1 none within c
@@ -225,7 +228,7 @@ def run(ctx: StudyContext) -> None:
              "lost_fraction: targets without a track within c at the last scan (of those that exist then). "
              "first_track_delay: scans from a target's first scan to its first track within c (a target "
              "never tracked counts the scans to the end). JIPDA-TM shows its confirmed tracks only "
-             "(existence >= tracking.management.confirm).")
+             "(existence >= tracking.management.confirm), as does IMM-JIPDA-TM.")
     curves, bands = {"GOSPA": {}, "tracks shown": {}}, {"GOSPA": {}, "tracks shown": {}}
 
     def mean_and_band(runs_curves, panel: str, series: str, tag: str) -> None:  # (T, runs) -> curve, 95 % band

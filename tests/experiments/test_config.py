@@ -110,7 +110,7 @@ BAD = [
     (["experiment=tracking", "tracking.P0=[1.5,2.5]"], "tracking.P0=[1.5, 2.5]: expected 4 variances"),
     (["experiment=tracking", "tracking.targets=20"], "tracking.targets=20: the exact JPDA takes at most 12"),
     (["experiment=tracking", "tracking.lifetimes=[[0,60],[10,60],[0,30],[0,60]]"],
-     "tracking.estimators=['IMM-JPDAF', 'JPDAF', 'IMM-PDAF', 'GNN-IMM', 'JIPDA-TM']: IMM-JPDAF, JPDAF, IMM-PDAF"),
+     "tracking.estimators=['IMM-JPDAF', 'JPDAF', 'IMM-PDAF', 'GNN-IMM', 'JIPDA-TM',...: IMM-JPDAF, JPDAF"),
     (["experiment=tracking", "tracking.lifetimes=[[0,60]]", "tracking.estimators=[JIPDA-TM]"],
      "tracking.lifetimes=[[0, 60]]: expected [first, stop] for each of the 4 targets"),
     (["experiment=tracking", "tracking.lifetimes=[[0,60],[10,5],[0,30],[0,60]]", "tracking.estimators=[JIPDA-TM]"],

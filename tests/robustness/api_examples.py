@@ -90,6 +90,10 @@ NOT_ENTRY_POINTS: dict[str, str] = {
     "torchmm.beliefs.adaptive.AdaptiveGaussianBelief": _PER_STEP,
     "torchmm.beliefs.existence.ExistenceBelief": _PER_STEP + " (IPDA.initial_belief checks the existence)",
     "torchmm.association.tracks.TrackTable": _PER_STEP + " (ManagedTracks.initial_belief makes it)",
+    "torchmm.association.tracks.ModeTrackTable": _PER_STEP + " (ManagedTracks.initial_belief makes it)",
+    "torchmm.beliefs.existence.ModeExistenceBelief": _PER_STEP + " (IPDA.initial_belief checks the existence)",
+    "torchmm.beliefs.existence.with_existence": _PER_STEP + " (a belief with its existence; IPDA.initial_belief "
+                                                            "checks the values)",
     "torchmm.beliefs.track.SourceTrackBelief": _PER_STEP,
     "torchmm.models.streams.MultiRate": _PER_STEP.replace("every filter step calls", "every step indexes")
     + "; run_filter checks its streams",

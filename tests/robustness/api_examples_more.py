@@ -10,6 +10,7 @@ import torch
 
 from tests.robustness.api_examples import _OP, NOT_ENTRY_POINTS, call, example
 from torchmm import (
+    IMM,
     ParticleFilter,
     analysis,
     assignment,
@@ -150,13 +151,15 @@ example("torchmm.association.ipda.JIPDA")(
                                       models.PositionMeasurement(2, [0], 1.0, dtype=torch.float64)),
                  detection_probability=0.9, clutter_density=0.01, gate_probability=0.99, survival_probability=0.98,
                  birth_probability=0.01, method="lbp", max_targets=8, iterations=50, tolerance=1e-12))
-example("torchmm.association.tracks.ManagedTracks")(
+example("torchmm.association.tracks.ManagedTracks")(  # over an IMM of two accelerations (IMM-JIPDA)
     lambda: call(association.ManagedTracks,
-                 association.JIPDA(filters.KalmanFilter(models.ConstantVelocity(1, dtype=torch.float64),
-                                                        models.PositionMeasurement(2, [0], 1.0, dtype=torch.float64)),
-                                   detection_probability=0.9, clutter_density=0.01),
+                 association.JIPDA(IMM(filters.KalmanFilter(
+                     models.ConstantVelocity(1, acceleration=[[0.0], [1.0]], dtype=torch.float64),
+                     models.PositionMeasurement(2, [0], 1.0, dtype=torch.float64)),
+                     torch.tensor([[0.9, 0.1], [0.1, 0.9]], dtype=torch.float64)),
+                     detection_probability=0.9, clutter_density=0.01),
                  capacity=4, initiate=association.position_initiator(2, [0], 1.0, 4.0), birth_existence=0.1,
-                 unexplained=0.5, delete=0.01))
+                 unexplained=0.5, delete=0.01, mode_probs=[0.7, 0.3]))
 example("torchmm.association.tracks.position_initiator")(
     lambda: call(association.position_initiator, 4, [0, 2], torch.eye(2), 25.0))
 example("torchmm.association.particle.ParticlePDA")(

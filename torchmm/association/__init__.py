@@ -12,7 +12,7 @@ from torchmm.association.ipda import IPDA, JIPDA
 from torchmm.association.jpda import GNN, JPDA, jpda_marginals
 from torchmm.association.particle import ParticlePDA
 from torchmm.association.pda import PDA, chi2_gate
-from torchmm.association.tracks import ManagedTracks, TrackTable, position_initiator
+from torchmm.association.tracks import ManagedTracks, ModeTrackTable, TrackTable, position_initiator
 
-__all__ = ["GNN", "IPDA", "JIPDA", "JPDA", "PDA", "ManagedTracks", "ParticlePDA", "TrackTable", "chi2_gate",
+__all__ = ["GNN", "IPDA", "JIPDA", "JPDA", "PDA", "ManagedTracks", "ModeTrackTable", "ParticlePDA", "TrackTable", "chi2_gate",
            "jpda_marginals", "position_initiator"]

@@ -23,29 +23,43 @@ from torch import Tensor
 
 from torchmm.association.jpda import JPDA, exact_marginals, lbp_marginals
 from torchmm.association.pda import PDA
-from torchmm.beliefs import ExistenceBelief, GaussianBelief
+from torchmm.beliefs import ExistenceBelief, GaussianBelief, ModeBelief, ModeExistenceBelief, with_existence
 from torchmm.contract import Choice, Int, Of, Real, entry_point
 from torchmm.filters.base import Filter, StepOutput
 
 __all__ = ["IPDA", "JIPDA"]
 
 
-def _initial(assoc, belief: GaussianBelief, existence) -> ExistenceBelief:
-    state = assoc.filter.initial_belief(belief)
+TRACK_BELIEFS = (ExistenceBelief, ModeExistenceBelief)
+
+
+def _initial(assoc, belief, existence) -> ExistenceBelief | ModeExistenceBelief:
+    if isinstance(belief, ModeBelief):  # a ready IMM belief (its own mode probabilities) is the state as it is
+        if getattr(assoc.filter, "num_modes", None) != belief.num_modes:
+            raise ValueError(f"belief: a ModeBelief of {belief.num_modes} modes needs an IMM of as many modes as the "
+                             f"filter, got {type(assoc.filter).__name__}")
+        state = belief.validate("belief")
+    else:
+        state = assoc.filter.initial_belief(belief)
     e = torch.as_tensor(existence, dtype=state.dtype, device=state.device)
     if bool(((e < 0) | (e > 1) | e.isnan()).any()):
         raise ValueError(f"existence: must be a probability in [0, 1], got {existence}")
-    return ExistenceBelief(state.mean, state.cov, e.log().expand(state.batch_shape))
+    return with_existence(state, e.log().expand(state.batch_shape))
 
 
-def _predict(assoc, belief: ExistenceBelief, u: Tensor | None) -> ExistenceBelief:
-    if not isinstance(belief, ExistenceBelief):
-        raise TypeError(f"belief: {type(assoc).__name__} needs an ExistenceBelief "
-                        f"({type(assoc).__name__}.initial_belief), got {type(belief).__name__}")
+def _check(assoc, belief) -> None:
+    if not isinstance(belief, TRACK_BELIEFS):
+        name = type(assoc).__name__
+        raise TypeError(f"belief: {name} needs an ExistenceBelief or a ModeExistenceBelief ({name}.initial_belief), "
+                        f"got {type(belief).__name__}")
+
+
+def _predict(assoc, belief, u: Tensor | None) -> ExistenceBelief | ModeExistenceBelief:
+    _check(assoc, belief)
     state = assoc.filter.predict(belief.state, u=u)
     e = belief.existence
     e = assoc.survival_probability * e + assoc.birth_probability * (1 - e)
-    return ExistenceBelief(state.mean, state.cov, e.log())
+    return with_existence(state, e.log())
 
 
 class IPDA(PDA):
@@ -53,13 +67,15 @@ class IPDA(PDA):
 
     Args:
         filter, detection_probability, clutter_density, gate_probability: as for
-            :class:`~torchmm.association.PDA` (a filter whose belief is Gaussian).
+            :class:`~torchmm.association.PDA`: a filter whose belief is Gaussian, or an IMM over such
+            filters (IMM-IPDA: the existence weighs the mode-mixed likelihood ratio, the state given
+            existence is the IMM-PDA's).
         survival_probability: ``p_S``, that an existing target still exists at the next scan.
         birth_probability: ``p_B``, that a target that did not exist does at the next scan (default 0).
 
     Shapes:
-        belief: :class:`~torchmm.beliefs.ExistenceBelief` with batch ``(*B,)``
-        (:meth:`initial_belief` makes it); ``z``: ``(*B, D, m)``. ``extras`` are PDA's and
+        belief: :class:`~torchmm.beliefs.ExistenceBelief` (over an IMM:
+        :class:`~torchmm.beliefs.ModeExistenceBelief`) with batch ``(*B,)`` (:meth:`initial_belief` makes it); ``z``: ``(*B, D, m)``. ``extras`` are PDA's and
         ``"existence"`` ``(*B,)``, the posterior ``P(exists)``.
 
     Examples:
@@ -83,17 +99,18 @@ class IPDA(PDA):
         self.survival_probability = float(survival_probability)
         self.birth_probability = float(birth_probability)
 
-    def initial_belief(self, belief: GaussianBelief, existence: float | Tensor = 0.5) -> ExistenceBelief:
-        """The wrapped filter's initial belief and ``P(exists) = existence`` (a number in [0, 1] or a
-        tensor broadcasting to the batch)."""
+    def initial_belief(self, belief: GaussianBelief | ModeBelief, existence: float | Tensor = 0.5
+                       ) -> ExistenceBelief | ModeExistenceBelief:
+        """The wrapped filter's initial belief from ``belief`` (or ``belief`` itself, an IMM's
+        ``ModeBelief``) and ``P(exists) = existence`` (a number in [0, 1] or a tensor broadcasting to the
+        batch)."""
         return _initial(self, belief, existence)
 
-    def predict(self, belief: ExistenceBelief, *, u: Tensor | None = None) -> ExistenceBelief:
+    def predict(self, belief, *, u: Tensor | None = None) -> ExistenceBelief | ModeExistenceBelief:
         return _predict(self, belief, u)
 
-    def update(self, belief: ExistenceBelief, z: Tensor) -> StepOutput:
-        if not isinstance(belief, ExistenceBelief):
-            raise TypeError(f"belief: IPDA needs an ExistenceBelief (IPDA.initial_belief), got {type(belief).__name__}")
+    def update(self, belief, z: Tensor) -> StepOutput:
+        _check(self, belief)
         out = super().update(belief.state, z)
         log_ratio = out.log_likelihood  # log L = log(1 - delta): target against all clutter
         log_e = belief.log_existence
@@ -103,7 +120,7 @@ class IPDA(PDA):
         post = out.belief
         extras = dict(out.extras)
         extras["existence"] = log_post.exp()
-        return StepOutput(ExistenceBelief(post.mean, post.cov, log_post), belief, log_scan, out.innovation,
+        return StepOutput(with_existence(post, log_post), belief, log_scan, out.innovation,
                           out.innovation_cov, extras)
 
 
@@ -113,11 +130,13 @@ class JIPDA(JPDA):
 
     Args:
         filter, detection_probability, clutter_density, gate_probability, method, max_targets,
-            iterations, tolerance: as for :class:`~torchmm.association.JPDA`.
+            iterations, tolerance: as for :class:`~torchmm.association.JPDA` (an IMM filter makes the
+            IMM-JIPDA).
         survival_probability, birth_probability: as for :class:`IPDA`.
 
     Shapes:
-        belief: :class:`~torchmm.beliefs.ExistenceBelief` with batch ``(*B, N)`` (:meth:`initial_belief`);
+        belief: :class:`~torchmm.beliefs.ExistenceBelief` (over an IMM:
+        :class:`~torchmm.beliefs.ModeExistenceBelief`) with batch ``(*B, N)`` (:meth:`initial_belief`);
         ``z``: ``(*B, D, m)``, one scan per run. ``extras``: JPDA's (``"association"``: the joint
         marginals ``beta``) and ``"existence"`` ``(*B, N)``.
 
@@ -145,17 +164,16 @@ class JIPDA(JPDA):
         self.survival_probability = float(survival_probability)
         self.birth_probability = float(birth_probability)
 
-    def initial_belief(self, belief: GaussianBelief, existence: float | Tensor = 0.5) -> ExistenceBelief:
+    def initial_belief(self, belief: GaussianBelief | ModeBelief, existence: float | Tensor = 0.5
+                       ) -> ExistenceBelief | ModeExistenceBelief:
         """The wrapped filter's initial belief (batch ``(*B, N)``) and ``P(exists) = existence``."""
         return _initial(self, belief, existence)
 
-    def predict(self, belief: ExistenceBelief, *, u: Tensor | None = None) -> ExistenceBelief:
+    def predict(self, belief, *, u: Tensor | None = None) -> ExistenceBelief | ModeExistenceBelief:
         return _predict(self, belief, u)
 
-    def update(self, belief: ExistenceBelief, z: Tensor) -> StepOutput:
-        if not isinstance(belief, ExistenceBelief):
-            raise TypeError(f"belief: JIPDA needs an ExistenceBelief (JIPDA.initial_belief), got "
-                            f"{type(belief).__name__}")
+    def update(self, belief, z: Tensor) -> StepOutput:
+        _check(self, belief)
         state = belief.state
         hyp, validated, log_w = self._scan(state, z)
         *runs, N, D = log_w.shape
@@ -182,5 +200,5 @@ class JIPDA(JPDA):
         extras = dict(out.extras)
         extras["association"] = beta
         extras["existence"] = existence
-        return StepOutput(ExistenceBelief(post.mean, post.cov, existence.log()), belief, out.log_likelihood,
+        return StepOutput(with_existence(post, existence.log()), belief, out.log_likelihood,
                           out.innovation, out.innovation_cov, extras)

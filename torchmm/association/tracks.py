@@ -27,12 +27,21 @@ import torch
 from torch import Tensor
 
 from torchmm.association.ipda import JIPDA
-from torchmm.beliefs import Belief, ExistenceBelief, GaussianBelief, register_belief
+from torchmm.beliefs import (
+    Belief,
+    ExistenceBelief,
+    GaussianBelief,
+    ModeBelief,
+    ModeExistenceBelief,
+    register_belief,
+    where,
+)
 from torchmm.beliefs.existence import check_existence_belief
 from torchmm.contract import Finite, Indices, Int, Of, Real, entry_point
 from torchmm.filters.base import Filter, StepOutput
+from torchmm.validation import check_probabilities
 
-__all__ = ["ManagedTracks", "TrackTable", "position_initiator"]
+__all__ = ["ManagedTracks", "ModeTrackTable", "TrackTable", "position_initiator"]
 
 
 @register_belief
@@ -60,7 +69,13 @@ class TrackTable(Belief):
 
     @property
     def tracks(self) -> ExistenceBelief:
+        """The slots as the JIPDA's tracks."""
         return ExistenceBelief(self.mean, self.cov, self.log_existence)
+
+    @property
+    def state(self) -> GaussianBelief:
+        """Every slot's state given existence."""
+        return GaussianBelief(self.mean, self.cov)
 
     def validate(self, name: str = "belief") -> TrackTable:
         """Finite means, PSD covariances, log-existences in ``[-inf, 0]``."""
@@ -74,6 +89,50 @@ class TrackTable(Belief):
     def estimate(self) -> GaussianBelief:
         """Every slot's state given existence (free slots hold their last state; see ``label``)."""
         return GaussianBelief(self.mean, self.cov)
+
+
+@register_belief
+@dataclass(frozen=True)
+class ModeTrackTable(Belief):
+    """:class:`TrackTable` over an IMM (IMM-JIPDA): each slot's mode log-probabilities and per-mode
+    components given existence, ``log P(exists)``, its label and the run's next label.
+
+    Shapes:
+        mode_log_probs ``(*B, K, M)``, components: a belief with batch ``(*B, K, M)``, log_existence
+        ``(*B, K)``, label ``(*B, K)`` long, next_label ``(*B, K)`` long
+    """
+
+    mode_log_probs: Tensor
+    components: Belief
+    log_existence: Tensor
+    label: Tensor
+    next_label: Tensor
+
+    event_dims: ClassVar[dict[str, int]] = {"mode_log_probs": 1, "log_existence": 0, "label": 0, "next_label": 0}
+
+    existence = TrackTable.existence
+    validate = TrackTable.validate
+    confirmed = TrackTable.confirmed
+
+    @property
+    def tracks(self) -> ModeExistenceBelief:
+        """The slots as the IMM-JIPDA's tracks."""
+        return ModeExistenceBelief(self.mode_log_probs, self.components, self.log_existence)
+
+    @property
+    def state(self) -> ModeBelief:
+        """Every slot's mode belief given existence."""
+        return ModeBelief(self.mode_log_probs, self.components)
+
+    def estimate(self) -> GaussianBelief:
+        """Every slot's moment-matched state given existence (free slots hold their last state)."""
+        return self.state.estimate()
+
+
+def _table(state, log_existence: Tensor, label: Tensor, next_label: Tensor) -> TrackTable | ModeTrackTable:
+    if isinstance(state, ModeBelief):
+        return ModeTrackTable(state.mode_log_probs, state.components, log_existence, label, next_label)
+    return TrackTable(state.mean, state.cov, log_existence, label, next_label)
 
 
 @entry_point(state_dim=Int(1), indices=Indices(), noise_cov=Finite(), unobserved_variance=Real(minimum=0.0))
@@ -120,9 +179,9 @@ class ManagedTracks(Filter):
     """
 
     @entry_point(association=Of(JIPDA), capacity=Int(1), initiate=Of(object), birth_existence=Real(0.0, 1.0),
-                 unexplained=Real(0.0, 1.0), delete=Real(0.0, 1.0))
+                 unexplained=Real(0.0, 1.0), delete=Real(0.0, 1.0), mode_probs=Finite(optional=True))
     def __init__(self, association: JIPDA, *, capacity: int, initiate: Callable, birth_existence: float = 0.1,
-                 unexplained: float = 0.5, delete: float = 0.01):
+                 unexplained: float = 0.5, delete: float = 0.01, mode_probs=None):
         super().__init__()
         if not callable(initiate):
             raise TypeError(f"initiate: expected a function z -> GaussianBelief, got {type(initiate).__name__}")
@@ -130,6 +189,19 @@ class ManagedTracks(Filter):
         self.capacity = int(capacity)
         self.initiate = initiate
         self.birth_existence, self.unexplained, self.delete = float(birth_existence), float(unexplained), float(delete)
+        M = getattr(association.filter, "num_modes", None)  # an IMM under the JIPDA: the tracks are mode beliefs
+        self.num_modes = M
+        if mode_probs is not None:
+            if M is None:
+                raise ValueError(f"mode_probs: the JIPDA's filter ({type(association.filter).__name__}) has no modes")
+            probs = check_probabilities(mode_probs, "mode_probs", M, dtype=torch.float64)
+            if probs.shape != (M,):
+                raise ValueError(f"mode_probs: expected the {M} modes' probabilities (M,), got shape "
+                                 f"{tuple(probs.shape)}")
+            self.mode_log_probs = probs.log()
+        else:
+            self.mode_log_probs = None if M is None else torch.full((M,), -math.log(M), dtype=torch.float64)
+        self._made: dict = {}  # (dtype, device) -> the new tracks' mode log-probabilities, copied once
 
     measurement_rank = 2
 
@@ -144,27 +216,40 @@ class ManagedTracks(Filter):
     def informative(self, z: Tensor) -> Tensor:
         return torch.ones(z.shape[:-2], dtype=torch.bool, device=z.device)
 
-    def initial_belief(self, batch_shape=(), *, dtype=torch.float64, device=None) -> TrackTable:
-        """An empty table: ``capacity`` free slots per run, batch ``(*batch_shape, K)``."""
+    def initial_belief(self, batch_shape=(), *, dtype=torch.float64, device=None) -> TrackTable | ModeTrackTable:
+        """An empty table: ``capacity`` free slots per run, batch ``(*batch_shape, K)`` (a
+        :class:`ModeTrackTable` over an IMM)."""
         n, K = self.state_dim, self.capacity
         shape = (*tuple(batch_shape), K)
-        return TrackTable(torch.zeros(*shape, n, dtype=dtype, device=device),
-                          torch.eye(n, dtype=dtype, device=device).expand(*shape, n, n),
-                          torch.full(shape, -math.inf, dtype=dtype, device=device),
-                          torch.full(shape, -1, dtype=torch.long, device=device),
-                          torch.zeros(shape, dtype=torch.long, device=device))
+        state = self._started(GaussianBelief(torch.zeros(*shape, n, dtype=dtype, device=device),
+                                             torch.eye(n, dtype=dtype, device=device).expand(*shape, n, n)))
+        return _table(state, torch.full(shape, -math.inf, dtype=dtype, device=device),
+                      torch.full(shape, -1, dtype=torch.long, device=device),
+                      torch.zeros(shape, dtype=torch.long, device=device))
 
-    def predict(self, belief: TrackTable, *, u: Tensor | None = None) -> TrackTable:
-        if not isinstance(belief, TrackTable):
-            raise TypeError(f"belief: ManagedTracks needs a TrackTable (ManagedTracks.initial_belief), got "
-                            f"{type(belief).__name__}")
+    def _started(self, state: GaussianBelief):
+        """A new track's state: the Gaussian itself, or over an IMM every mode from it with ``mode_probs``."""
+        if self.num_modes is None:
+            return state
+        key = (state.dtype, str(state.device))
+        if key not in self._made:
+            self._made[key] = self.mode_log_probs.to(state.device, state.dtype)
+        M, batch = self.num_modes, state.batch_shape
+        return ModeBelief(self._made[key].expand(*batch, M), state.unsqueeze(-1).expand(*batch, M))
+
+    def _check(self, belief) -> None:
+        kind = TrackTable if self.num_modes is None else ModeTrackTable
+        if not isinstance(belief, kind):
+            raise TypeError(f"belief: ManagedTracks over {type(self.association.filter).__name__} needs a "
+                            f"{kind.__name__} (ManagedTracks.initial_belief), got {type(belief).__name__}")
+
+    def predict(self, belief: TrackTable | ModeTrackTable, *, u: Tensor | None = None) -> TrackTable | ModeTrackTable:
+        self._check(belief)
         p = self.association.predict(belief.tracks, u=u)
-        return TrackTable(p.mean, p.cov, p.log_existence, belief.label, belief.next_label)
+        return _table(p.state, p.log_existence, belief.label, belief.next_label)
 
-    def update(self, belief: TrackTable, z: Tensor) -> StepOutput:
-        if not isinstance(belief, TrackTable):
-            raise TypeError(f"belief: ManagedTracks needs a TrackTable (ManagedTracks.initial_belief), got "
-                            f"{type(belief).__name__}")
+    def update(self, belief: TrackTable | ModeTrackTable, z: Tensor) -> StepOutput:
+        self._check(belief)
         out = self.association.update(belief.tracks, z)
         post = out.belief
         *runs, K = post.log_existence.shape
@@ -188,8 +273,7 @@ class ManagedTracks(Filter):
         new = self.initiate(torch.where(present.unsqueeze(-1), z, 0.0))  # (*B, D, n)
         new_mean = pick @ new.mean
         new_cov = torch.einsum("...kd,...dij->...kij", pick, new.cov.expand(*runs, D, *new.cov.shape[-2:]))
-        mean = torch.where(born.unsqueeze(-1), new_mean, post.mean)
-        cov = torch.where(born[..., None, None], new_cov, post.cov)
+        state = where(born, self._started(GaussianBelief(new_mean, new_cov)), post.state)
         birth = torch.full((), math.log(self.birth_existence) if self.birth_existence > 0 else -math.inf,
                            dtype=post.dtype, device=post.device)
         log_e = torch.where(born, birth, log_e)
@@ -197,5 +281,5 @@ class ManagedTracks(Filter):
         next_label = belief.next_label + born.sum(-1, keepdim=True)
         extras = dict(out.extras)
         extras["born"] = born
-        table = TrackTable(mean, cov, log_e, label, next_label.expand(*runs, K))
+        table = _table(state, log_e, label, next_label.expand(*runs, K))
         return StepOutput(table, belief, out.log_likelihood, out.innovation, out.innovation_cov, extras)

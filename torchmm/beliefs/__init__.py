@@ -2,7 +2,7 @@
 
 from torchmm.beliefs.adaptive import AdaptiveGaussianBelief
 from torchmm.beliefs.base import Belief, cat, register_belief, stack, where
-from torchmm.beliefs.existence import ExistenceBelief
+from torchmm.beliefs.existence import ExistenceBelief, ModeExistenceBelief, with_existence
 from torchmm.beliefs.gaussian import GaussianBelief
 from torchmm.beliefs.mode import ModeBelief, ModelSetBelief
 from torchmm.beliefs.ops import mix_gaussians, normalize_log_probs, psd_sqrt, symmetrize
@@ -15,6 +15,7 @@ __all__ = [
     "ExistenceBelief",
     "GaussianBelief",
     "ModeBelief",
+    "ModeExistenceBelief",
     "ModelSetBelief",
     "ParticleBelief",
     "SourceTrackBelief",
@@ -26,4 +27,5 @@ __all__ = [
     "stack",
     "symmetrize",
     "where",
+    "with_existence",
 ]

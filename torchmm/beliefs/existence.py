@@ -1,4 +1,5 @@
-"""A Gaussian track belief with the probability that its target exists (IPDA)."""
+"""Track beliefs with the probability that the target exists (IPDA, JIPDA): over one Gaussian
+(:class:`ExistenceBelief`) or over an IMM's modes (:class:`ModeExistenceBelief`)."""
 
 from __future__ import annotations
 
@@ -10,9 +11,10 @@ from torch import Tensor
 
 from torchmm.beliefs.base import Belief, register_belief
 from torchmm.beliefs.gaussian import GaussianBelief
+from torchmm.beliefs.mode import ModeBelief
 from torchmm.validation import check_covariance
 
-__all__ = ["ExistenceBelief"]
+__all__ = ["ExistenceBelief", "ModeExistenceBelief", "with_existence"]
 
 
 @register_belief
@@ -56,15 +58,68 @@ class ExistenceBelief(Belief):
         return self.state
 
 
+@register_belief
+@dataclass(frozen=True)
+class ModeExistenceBelief(Belief):
+    """An IMM track's state given that the target exists (mode log-probabilities and per-mode
+    components, as :class:`~torchmm.ModeBelief`) and the probability that it exists (IMM-IPDA).
+
+    Shapes:
+        mode_log_probs ``(*B, M)``, components: a belief with batch ``(*B, M)``, log_existence ``(*B,)``
+    """
+
+    mode_log_probs: Tensor
+    components: Belief
+    log_existence: Tensor
+
+    event_dims: ClassVar[dict[str, int]] = {"mode_log_probs": 1, "log_existence": 0}
+
+    def validate(self, name: str = "belief") -> ModeExistenceBelief:
+        """The mode belief's checks and ``log_existence`` in ``[-inf, 0]``."""
+        check_existence_belief(self, name)
+        return self
+
+    @property
+    def existence(self) -> Tensor:
+        """``P(exists)``, ``(*B,)``."""
+        return self.log_existence.exp()
+
+    @property
+    def state(self) -> ModeBelief:
+        """The mode belief given existence."""
+        return ModeBelief(self.mode_log_probs, self.components)
+
+    def estimate(self) -> GaussianBelief:
+        """The moment-matched state estimate given existence."""
+        return self.state.estimate()
+
+
+def with_existence(state, log_existence: Tensor) -> ExistenceBelief | ModeExistenceBelief:
+    """``state`` (a :class:`~torchmm.GaussianBelief` or a :class:`~torchmm.ModeBelief`) with
+    ``log P(exists)``.
+
+    Shapes: state batch ``(*B,)``, log_existence ``(*B,)``."""
+    if isinstance(state, GaussianBelief):
+        return ExistenceBelief(state.mean, state.cov, log_existence)
+    if isinstance(state, ModeBelief):
+        return ModeExistenceBelief(state.mode_log_probs, state.components, log_existence)
+    raise TypeError(f"belief: a target's existence goes with a GaussianBelief or an IMM's ModeBelief, got "
+                    f"{type(state).__name__}")
+
+
 def check_existence_belief(belief, name: str) -> None:
-    """The values of a belief with ``mean``, ``cov`` and ``log_existence`` (an entry point's check)."""
+    """The values of a belief with a ``state`` and ``log_existence`` (an entry point's check)."""
     try:
         belief.batch_shape
     except ValueError as err:
         raise ValueError(f"{name}: {err}") from None
-    if not bool(torch.isfinite(belief.mean.detach()).all()):
-        raise ValueError(f"{name}.mean: contains NaN or infinite entries")
-    check_covariance(belief.cov, f"{name}.cov")
+    state = belief.state
+    if isinstance(state, GaussianBelief):
+        if not bool(torch.isfinite(belief.mean.detach()).all()):
+            raise ValueError(f"{name}.mean: contains NaN or infinite entries")
+        check_covariance(belief.cov, f"{name}.cov")
+    else:
+        state.validate(name)
     log_e = belief.log_existence.detach()
     if bool((log_e > 0).any()) or bool(log_e.isnan().any()):
         raise ValueError(f"{name}.log_existence: must be a log-probability (<= 0, not NaN; -inf: existence 0)")

@@ -57,7 +57,8 @@ def simulate_detections(measurement: MeasurementModel, states: Tensor, *, detect
         max_clutter: the padding for clutter: at most this many false detections a scan (the Poisson
             draws above it are cut to it, a documented truncation: choose it well above
             ``clutter_rate``); default the largest count drawn (one host read, at simulation time).
-        generator: the only source of randomness.
+        generator: the only source of randomness (every draw in the states' dtype: the detections do not
+            depend on torch's default dtype).
 
     Returns:
         :class:`Detections` with ``D = N + max_clutter`` rows a scan.
@@ -92,10 +93,10 @@ def simulate_detections(measurement: MeasurementModel, states: Tensor, *, detect
     predicted = measurement(safe)
     noise = torch.randn(predicted.shape, generator=generator, dtype=dtype, device=device)
     z_target = predicted + (psd_sqrt(measurement.noise_cov(safe)) @ noise.unsqueeze(-1)).squeeze(-1)
-    detected = exists & (torch.rand(exists.shape, generator=generator, device=device) < detection_probability)
+    detected = exists & (torch.rand(exists.shape, generator=generator, dtype=dtype, device=device) < detection_probability)
     # clutter
     if clutter_rate > 0:
-        counts = torch.poisson(torch.full(lead, float(clutter_rate), device=device), generator=generator).long()
+        counts = torch.poisson(torch.full(lead, float(clutter_rate), dtype=dtype, device=device), generator=generator).long()
         C = int(counts.max()) if max_clutter is None else int(max_clutter)
         counts = counts.clamp(max=C)
         u = torch.rand(*lead, C, m, generator=generator, dtype=dtype, device=device)
@@ -110,7 +111,7 @@ def simulate_detections(measurement: MeasurementModel, states: Tensor, *, detect
     origin = torch.cat([torch.where(detected, torch.arange(N, device=device), -1),
                         torch.full((*lead, C), -1, dtype=torch.long, device=device)], dim=-1)
     # a random order of the present rows, the absent ones after them
-    key = torch.rand(present.shape, generator=generator, device=device) + (~present).to(torch.float32)
+    key = torch.rand(present.shape, generator=generator, dtype=dtype, device=device) + (~present).to(dtype)
     order = key.argsort(dim=-1)
     z = z.gather(-2, order.unsqueeze(-1).expand(z.shape))
     present = present.gather(-1, order)
