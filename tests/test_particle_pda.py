@@ -79,3 +79,30 @@ def test_through_run_filter_and_without_host_reads():
     b = pf.predict(belief)
     with no_host_sync("the particle PDA update"):
         ppda.update(b, z[0])
+
+
+def test_an_imm_of_particle_pdas_is_the_imm_pdaf_within_monte_carlo_error():
+    """``IMM(ParticlePDA(ParticleFilter(bank)))``: one scan (IMM interaction, prediction, the scan) from a
+    Gaussian prior against the IMM-PDAF over Kalman filters without a gate: the mode probabilities,
+    the log-likelihood and the mixed mean within Monte Carlo error (40,000 particles a mode)."""
+    from torchmm import IMM
+
+    bank = ConstantVelocity(2, dt=1.0, q=0.5, acceleration=[[0.0, 0.0], [6.0, 0.0], [-6.0, 0.0]], noise="continuous",
+                            dtype=torch.float64)
+    _, sensor = _models()
+    Pi = torch.full((3, 3), 0.05, dtype=torch.float64) + 0.85 * torch.eye(3, dtype=torch.float64)
+    options = {"detection_probability": 0.9, "clutter_density": 2e-3}
+    prior = GaussianBelief(torch.tensor([0.0, 1.0, 0.0, -1.0], dtype=torch.float64), torch.eye(4, dtype=torch.float64))
+    z = torch.tensor([[[4.2, -1.0], [8.0, 8.0], [math.nan, math.nan]]], dtype=torch.float64)
+    kalman = IMM(PDA(KalmanFilter(bank, sensor), gate_probability=1.0, **options), Pi)
+    want = run_filter(kalman, kalman.initial_belief(prior), z, record=None)
+    for seed in (5, 6):
+        gen = torch.Generator().manual_seed(seed)
+        pf = ParticleFilter(bank, sensor, num_particles=40000, ess_threshold=0.0, generator=gen)
+        imm = IMM(ParticlePDA(pf, **options), Pi)
+        got = run_filter(imm, imm.initial_belief(prior, generator=gen), z, record=None)
+        modes, expected = got.belief.mode_log_probs.exp()[0], want.belief.mode_log_probs.exp()[0]
+        assert float((modes - expected).abs().max()) < 0.01, (modes, expected)  # about 0.29 / 0.67 / 0.03
+        assert float((got.log_likelihood - want.log_likelihood).abs().max()) < 0.02
+        mean, ref = got.belief.estimate().mean[0], want.belief.estimate().mean[0]
+        assert float((mean - ref).abs().max()) < 0.05, (mean, ref)
