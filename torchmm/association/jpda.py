@@ -37,6 +37,7 @@ from torchmm.association.pda import (
     DetectionSets,
     check_gaussian,
     detection_hypotheses,
+    missed_hypothesis,
     missed_log_weight,
     mix_hypotheses,
     set_association,
@@ -251,7 +252,7 @@ class JPDA(DetectionSets):
         weights = torch.where(impossible, (torch.arange(D + 1, device=weights.device) == 0).to(weights.dtype), weights)
         failed = torch.isnan(log_z)[..., None].expand(*runs, N)
         weights = torch.where(failed.unsqueeze(-1), torch.nan, weights)
-        posterior, combined = mix_hypotheses(belief, hyp, weights)
+        posterior, combined = mix_hypotheses(missed_hypothesis(self, belief, hyp), hyp, weights)
         S = hyp.innovation_cov.expand(*hyp.innovation.shape, m)[0] if D else hyp.innovation_cov
         return StepOutput(posterior, belief, log_z[..., None].expand(*runs, N), combined, S,
                           {"association": weights, "validated": validated, "failed": failed})

@@ -31,7 +31,7 @@ import math
 import torch
 from torch import Tensor
 
-from torchmm.beliefs import GaussianBelief, ModeBelief
+from torchmm.beliefs import GaussianBelief, ModeBelief, ModelSetBelief
 from torchmm.contract import Of, Real, entry_point
 from torchmm.filters.base import Filter, StepOutput
 from torchmm.linalg import cholesky, solve_lower, sum_last
@@ -166,7 +166,7 @@ class PDA(DetectionSets):
         # a failed update (a NaN prediction or likelihood) fails its run visibly, as every filter's does
         failed = torch.isnan(log_likelihood)
         weights = torch.where(failed.unsqueeze(-1), torch.nan, weights)
-        posterior, combined = mix_hypotheses(belief, hyp, weights)
+        posterior, combined = mix_hypotheses(missed_hypothesis(self, belief, hyp), hyp, weights)
         return StepOutput(posterior, belief, log_likelihood, combined, S[0],
                           {"association": weights, "validated": validated.movedim(0, -1), "failed": failed})
 
@@ -211,6 +211,10 @@ def detection_hypotheses(assoc, belief: GaussianBelief, z: Tensor):
     present = torch.isfinite(z).all(-1)  # (*B, D)
     zs = torch.where(present.unsqueeze(-1), z, torch.nan).movedim(-2, 0)  # (D, *B, m): detections leftmost
     hyp = assoc.filter.update(belief.unsqueeze(0).expand(D, *batch), zs)  # every detection's update at once
+    if isinstance(hyp.belief, ModelSetBelief):  # a type test, no host read
+        raise TypeError(f"filter: {type(assoc).__name__} over a variable-structure IMM is not supported (its policy "
+                        "would select a model set in every detection hypothesis, before the association weighs "
+                        "them); use an IMM over the total model set")
     nu = hyp.innovation  # (D, *B, *E, m): E the mode axes of a multiple-model filter (an IMM's M), if any
     S = hyp.innovation_cov.expand(*nu.shape, m)
     white = solve_lower(cholesky(S), nu.nan_to_num(0.0).unsqueeze(-1)).squeeze(-1)
@@ -238,9 +242,21 @@ def _stack_gaussians(prior: GaussianBelief, hyp: GaussianBelief) -> GaussianBeli
                                     0).movedim(0, -3))
 
 
+def missed_hypothesis(assoc, belief, hyp: StepOutput):
+    """The belief under "no detection is the target's": the prior itself, or, for a combinator whose
+    update changes the set of modes (GPB2: the ``M^2`` pair hypotheses in, ``M`` modes out), its update
+    without a datum (a shape test, no host read)."""
+    if not isinstance(belief, ModeBelief) or hyp.belief.mode_log_probs.shape[-1] == belief.num_modes:
+        return belief
+    batch = belief.batch_shape
+    nothing = torch.full((*batch, assoc.detections_dim), math.nan, dtype=belief.dtype, device=belief.device)
+    return assoc.filter.update(belief, nothing).belief
+
+
 def mix_hypotheses(belief, hyp: StepOutput, weights: Tensor):
-    """The moment-matched collapse of the prior (weight ``weights[..., 0]``) and the detection
-    hypotheses ``hyp`` (batch ``(D, *B)``), and the combined innovation ``sum_k beta_k nu_k``.
+    """The moment-matched collapse of the prior (weight ``weights[..., 0]``; :func:`missed_hypothesis`)
+    and the detection hypotheses ``hyp`` (batch ``(D, *B)``), and the combined innovation
+    ``sum_k beta_k nu_k``.
 
     For a :class:`~torchmm.ModeBelief` of Gaussian components (a filter over an IMM), mode by mode:
     the posterior probability of mode ``r`` is ``sum_k beta_k mu_k^r`` (``mu_k^r`` its probability
