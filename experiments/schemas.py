@@ -884,6 +884,8 @@ class TrackManagement:
     unexplained: float = spec(MISSING, open_probability)
     delete: float = spec(MISSING, probability)
     confirm: float = spec(MISSING, _unit_interval_closed_above)
+    m_of_n: Optional[List[int]] = spec(MISSING, each(positive_int))
+    max_misses: Optional[int] = spec(MISSING, positive_int)
     velocity_variance: float = spec(MISSING, positive)
 
 
@@ -907,7 +909,7 @@ class TrackingSection:
     q_cv: float = spec(MISSING, positive)
     gospa_c: float = spec(MISSING, positive)
     gospa_p: float = spec(MISSING, lambda v: None if v is None or v >= 1 else "must be at least 1")
-    lifetimes: Optional[List[List[int]]] = None
+    lifetimes: Optional[List[List[int]]] = MISSING
     management: TrackManagement = field(default_factory=TrackManagement)
     estimators: List[str] = spec(MISSING, check=both(non_empty, each(one_of(*TRACKERS, *MANAGED_TRACKERS))))
 
@@ -927,6 +929,9 @@ class Tracking:
         if m["method"] == "exact" and m["capacity"] > 12 and set(MANAGED_TRACKERS) & set(t["estimators"]):
             raise ConfigError("tracking.management.capacity", m["capacity"],
                               "the exact JIPDA takes at most 12 track slots (method: lbp takes any number)")
+        mn = m["m_of_n"]
+        if mn is not None and (len(mn) != 2 or mn[0] > mn[1]):
+            raise ConfigError("tracking.management.m_of_n", mn, "expected [M, N] with 1 <= M <= N")
         lives = t["lifetimes"]
         if lives is None:
             return

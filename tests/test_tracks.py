@@ -121,3 +121,63 @@ def test_errors_name_the_argument():
         manager.step(manager.initial_belief((1,)).tracks, det.z[0])
     with pytest.raises(ValueError, match="capacity"):
         ManagedTracks(manager.association, capacity=0, initiate=position_initiator(4, [0, 2], 4.0, 25.0))
+
+
+def _still_target(**rule):
+    """One target at rest at the origin, no clutter to speak of; ``rule``: the manager's M-of-N and
+    misses settings."""
+    motion = ConstantVelocity(2, dt=1.0, q=0.01, dtype=torch.float64)
+    sensor = PositionMeasurement(4, [0, 2], 1.0, dtype=torch.float64)
+    jipda = JIPDA(KalmanFilter(motion, sensor), detection_probability=0.9, clutter_density=1e-6,
+                  survival_probability=0.99)
+    return ManagedTracks(jipda, capacity=3, initiate=position_initiator(4, [0, 2], 1.0, 1.0), birth_existence=0.1,
+                         delete=0.0, **rule)
+
+
+def _play(manager, seen):
+    """Scans of one detection at the origin where ``seen[k]``, none elsewhere: the tables after each."""
+    table, out = manager.initial_belief((1,)), []
+    for k, s in enumerate(seen):
+        z = torch.tensor([[[0.05 * k, 0.0] if s else [math.nan, math.nan]]], dtype=torch.float64)
+        table = manager.step(table, z).belief
+        out.append(table)
+    return out
+
+
+def test_m_of_n_confirms_at_the_mth_hit_and_keeps_it():
+    tables = _play(_still_target(m_of_n=(3, 4)), [1, 0, 1, 1, 0, 0, 0])
+    slot0 = [(int(t.age[0, 0]), int(t.hits[0, 0]), int(t.misses[0, 0]), bool(t.confirmed()[0, 0])) for t in tables]
+    assert slot0 == [(1, 1, 0, False), (2, 1, 1, False), (3, 2, 0, False), (4, 3, 0, True), (5, 3, 1, True),
+                     (6, 3, 2, True), (7, 3, 3, True)]
+    assert all(int(t.label[0, 0]) == 0 for t in tables) and all(int((t.label >= 0).sum()) == 1 for t in tables)
+
+
+def test_m_of_n_deletes_a_track_unconfirmed_after_n_scans():
+    tables = _play(_still_target(m_of_n=(3, 4)), [1, 0, 1, 0, 0])
+    assert [int(t.label[0, 0]) for t in tables] == [0, 0, 0, -1, -1]  # 2 hits in 4 scans: deleted at the 4th
+    assert not any(bool(t.confirmed().any()) for t in tables)
+    assert int(tables[-1].age[0, 0]) == 0 and int(tables[-1].hits[0, 0]) == 0
+
+
+def test_max_misses_deletes_a_confirmed_track():
+    tables = _play(_still_target(m_of_n=(2, 3), max_misses=2), [1, 1, 0, 1, 0, 0, 1])
+    labels = [int(t.label[0, 0]) for t in tables]
+    assert labels[:5] == [0, 0, 0, 0, 0] and labels[5] == -1  # confirmed at the 2nd scan, 2 misses: deleted
+    assert [bool(t.confirmed()[0, 0]) for t in tables[:5]] == [False, True, True, True, True]
+    assert int(tables[6].label.max()) == 1  # the detection after starts a new track with a new label
+
+
+def test_existence_rule_is_the_existence_threshold():
+    manager, truth, det = _scene(runs=3, steps=12, seed=4)
+    table = run_filter(manager, manager.initial_belief((3,)), det.z).belief
+    assert torch.equal(table.confirmed(), table.confirmed(0.9) & (table.label >= 0))
+    assert bool(table.confirmed().any())
+
+
+def test_m_of_n_errors_name_the_argument():
+    manager, _, _ = _scene(runs=1, steps=2)
+    for bad in [(3, 2), (0, 2), (2,), (2.0, 3)]:
+        with pytest.raises(ValueError, match="m_of_n"):
+            ManagedTracks(manager.association, capacity=4, initiate=manager.initiate, m_of_n=bad)
+    with pytest.raises(ValueError, match="max_misses"):
+        ManagedTracks(manager.association, capacity=4, initiate=manager.initiate, max_misses=0)

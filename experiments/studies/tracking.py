@@ -24,7 +24,9 @@ Estimators (``tracking.estimators``):
 * ``GNN-IMM``: ``GNN(IMM(KalmanFilter(bank)))``: the best joint event.
 * ``JIPDA-TM``: ``ManagedTracks(JIPDA(KalmanFilter(cv)))`` (``tracking.management``): a table of
   ``capacity`` track slots a run, empty at the start; an unexplained detection starts a track, the
-  JIPDA's existence confirms it (``confirm``) or deletes it (``delete``). Only confirmed tracks are
+  JIPDA's existence confirms it (``confirm``) or deletes it (``delete``); or, with ``m_of_n: [M, N]``,
+  M detections in its gate among its first N scans confirm it and a track unconfirmed after N scans
+  is deleted (``max_misses``: consecutive misses that delete a track). Only confirmed tracks are
   shown and scored.
 * ``IMM-JIPDA-TM``: the same over ``JIPDA(IMM(KalmanFilter(bank)))``: the IMM-JIPDA, a new track in
   every mode with equal probabilities.
@@ -151,7 +153,9 @@ def _managed(t, filt, opts: dict, dtype) -> Estimator:
                   max_targets=max(12, int(m.capacity)), **opts)
     start = position_initiator(4, [0, 2], float(t.R), float(m.velocity_variance))
     manager = ManagedTracks(jipda, capacity=int(m.capacity), initiate=start, birth_existence=float(m.birth_existence),
-                            unexplained=float(m.unexplained), delete=float(m.delete))
+                            unexplained=float(m.unexplained), delete=float(m.delete), confirm=float(m.confirm),
+                            m_of_n=None if m.m_of_n is None else tuple(int(v) for v in m.m_of_n),
+                            max_misses=None if m.max_misses is None else int(m.max_misses))
     return Estimator(manager, lambda b: manager.initial_belief(b.batch_shape[:-1], dtype=dtype), False, True)
 
 
@@ -180,7 +184,7 @@ def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
     seconds = time.perf_counter() - tic
     if est.managed:  # the confirmed tracks, each with its label
         table = traj.belief
-        shown, labels = table.confirmed(float(t.management.confirm)).cpu(), table.label.cpu()
+        shown, labels = table.confirmed().cpu(), table.label.cpu()
     else:  # one track per target, its index the label
         shown, labels = None, torch.arange(int(t.targets)).expand(traj.belief.mean.shape[:-1])
     position = traj.belief.estimate().mean[..., [0, 2]].cpu().double()  # (T, runs, K, 2)
@@ -227,8 +231,8 @@ def run(ctx: StudyContext) -> None:
              "distance^p), averaged the same way. label_switches: times a target's track changed, a run. "
              "lost_fraction: targets without a track within c at the last scan (of those that exist then). "
              "first_track_delay: scans from a target's first scan to its first track within c (a target "
-             "never tracked counts the scans to the end). JIPDA-TM shows its confirmed tracks only "
-             "(existence >= tracking.management.confirm), as does IMM-JIPDA-TM.")
+             "never tracked counts the scans to the end). JIPDA-TM and IMM-JIPDA-TM show their confirmed "
+             "tracks only (existence >= tracking.management.confirm, or by tracking.management.m_of_n).")
     curves, bands = {"GOSPA": {}, "tracks shown": {}}, {"GOSPA": {}, "tracks shown": {}}
 
     def mean_and_band(runs_curves, panel: str, series: str, tag: str) -> None:  # (T, runs) -> curve, 95 % band

@@ -50,9 +50,14 @@ class TrackTable(Belief):
     """A run's track slots: each slot's state given existence, ``log P(exists)`` (``-inf``: a free
     slot), its label (-1 when free) and the run's next label (the same in every slot of a run).
 
+    The track's record: ``age`` (scans since it started, 1 at its first), ``hits`` (scans with a
+    detection in its gate among its first ``N`` for an M-of-N rule, all of them otherwise), ``misses``
+    (consecutive scans without one) and ``firm`` (confirmed by the manager's rule; an M-of-N
+    confirmation is kept for the track's life).
+
     Shapes:
         mean ``(*B, K, n)``, cov ``(*B, K, n, n)``, log_existence ``(*B, K)``, label ``(*B, K)`` long,
-        next_label ``(*B, K)`` long
+        next_label ``(*B, K)`` long, age / hits / misses ``(*B, K)`` long, firm ``(*B, K)`` bool
     """
 
     mean: Tensor
@@ -60,8 +65,13 @@ class TrackTable(Belief):
     log_existence: Tensor
     label: Tensor
     next_label: Tensor
+    age: Tensor
+    hits: Tensor
+    misses: Tensor
+    firm: Tensor
 
-    event_dims: ClassVar[dict[str, int]] = {"mean": 1, "cov": 2, "log_existence": 0, "label": 0, "next_label": 0}
+    event_dims: ClassVar[dict[str, int]] = {"mean": 1, "cov": 2, "log_existence": 0, "label": 0, "next_label": 0,
+                                            "age": 0, "hits": 0, "misses": 0, "firm": 0}
 
     @property
     def existence(self) -> Tensor:
@@ -82,8 +92,11 @@ class TrackTable(Belief):
         check_existence_belief(self, name)
         return self
 
-    def confirmed(self, threshold: float = 0.9) -> Tensor:
-        """``(*B, K)`` bool: the slots holding a confirmed track (existence at least ``threshold``)."""
+    def confirmed(self, threshold: float | None = None) -> Tensor:
+        """``(*B, K)`` bool: the slots holding a confirmed track: by the manager's rule (``firm``), or,
+        given a ``threshold``, those whose existence is at least ``threshold``."""
+        if threshold is None:
+            return self.firm & (self.log_existence > -math.inf)
         return self.log_existence >= math.log(threshold)
 
     def estimate(self) -> GaussianBelief:
@@ -99,7 +112,8 @@ class ModeTrackTable(Belief):
 
     Shapes:
         mode_log_probs ``(*B, K, M)``, components: a belief with batch ``(*B, K, M)``, log_existence
-        ``(*B, K)``, label ``(*B, K)`` long, next_label ``(*B, K)`` long
+        ``(*B, K)``, label ``(*B, K)`` long, next_label ``(*B, K)`` long, age / hits / misses / firm as
+        :class:`TrackTable`'s
     """
 
     mode_log_probs: Tensor
@@ -107,8 +121,13 @@ class ModeTrackTable(Belief):
     log_existence: Tensor
     label: Tensor
     next_label: Tensor
+    age: Tensor
+    hits: Tensor
+    misses: Tensor
+    firm: Tensor
 
-    event_dims: ClassVar[dict[str, int]] = {"mode_log_probs": 1, "log_existence": 0, "label": 0, "next_label": 0}
+    event_dims: ClassVar[dict[str, int]] = {"mode_log_probs": 1, "log_existence": 0, "label": 0, "next_label": 0,
+                                            "age": 0, "hits": 0, "misses": 0, "firm": 0}
 
     existence = TrackTable.existence
     validate = TrackTable.validate
@@ -129,10 +148,15 @@ class ModeTrackTable(Belief):
         return self.state.estimate()
 
 
-def _table(state, log_existence: Tensor, label: Tensor, next_label: Tensor) -> TrackTable | ModeTrackTable:
+def _table(state, log_existence: Tensor, label: Tensor, next_label: Tensor, record) -> TrackTable | ModeTrackTable:
+    """A table from the slots' state and the rest; ``record``: ``(age, hits, misses, firm)``."""
     if isinstance(state, ModeBelief):
-        return ModeTrackTable(state.mode_log_probs, state.components, log_existence, label, next_label)
-    return TrackTable(state.mean, state.cov, log_existence, label, next_label)
+        return ModeTrackTable(state.mode_log_probs, state.components, log_existence, label, next_label, *record)
+    return TrackTable(state.mean, state.cov, log_existence, label, next_label, *record)
+
+
+def _record(table) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    return table.age, table.hits, table.misses, table.firm
 
 
 @entry_point(state_dim=Int(1), indices=Indices(), noise_cov=Finite(), unobserved_variance=Real(minimum=0.0))
@@ -170,7 +194,15 @@ class ManagedTracks(Filter):
         birth_existence: a new track's existence (default 0.1).
         unexplained: a detection starts a track when the tracks explain it with probability below
             ``1 - unexplained`` (default 0.5).
-        delete: a track is deleted when its existence falls below this (default 0.01).
+        delete: a track is deleted when its existence falls below this (default 0.01; 0: never by
+            existence).
+        confirm: without ``m_of_n``, a track is confirmed (``firm``) while its existence is at least
+            this (default 0.9).
+        m_of_n: ``(M, N)``: the M-of-N rule instead: a track is confirmed once ``M`` of its first ``N``
+            scans (the one that started it included) had a detection in its gate, and kept confirmed
+            for life; a track still unconfirmed after ``N`` scans is deleted.
+        max_misses: a track is deleted after this many consecutive scans without a detection in its
+            gate (default None: no such rule).
 
     Shapes:
         belief: :class:`TrackTable` with batch ``(*B, K)`` (:meth:`initial_belief`: all slots free);
@@ -179,16 +211,28 @@ class ManagedTracks(Filter):
     """
 
     @entry_point(association=Of(JIPDA), capacity=Int(1), initiate=Of(object), birth_existence=Real(0.0, 1.0),
-                 unexplained=Real(0.0, 1.0), delete=Real(0.0, 1.0), mode_probs=Finite(optional=True))
+                 unexplained=Real(0.0, 1.0), delete=Real(0.0, 1.0), confirm=Real(0.0, 1.0),
+                 m_of_n=Of((tuple, list), what="two integers (M, N)", optional=True), max_misses=Int(1, optional=True),
+                 mode_probs=Finite(optional=True))
     def __init__(self, association: JIPDA, *, capacity: int, initiate: Callable, birth_existence: float = 0.1,
-                 unexplained: float = 0.5, delete: float = 0.01, mode_probs=None):
+                 unexplained: float = 0.5, delete: float = 0.01, confirm: float = 0.9, m_of_n=None,
+                 max_misses: int | None = None, mode_probs=None):
         super().__init__()
         if not callable(initiate):
             raise TypeError(f"initiate: expected a function z -> GaussianBelief, got {type(initiate).__name__}")
+        if m_of_n is not None:
+            if len(m_of_n) != 2 or not all(isinstance(v, int) and not isinstance(v, bool) for v in m_of_n) or \
+                    not 1 <= m_of_n[0] <= m_of_n[1]:
+                raise ValueError(f"m_of_n: expected two integers (M, N) with 1 <= M <= N, got {m_of_n}")
+            m_of_n = (int(m_of_n[0]), int(m_of_n[1]))
+        if confirm <= 0:
+            raise ValueError(f"confirm: expected an existence in (0, 1], got {confirm}")
         self.association = association
         self.capacity = int(capacity)
         self.initiate = initiate
         self.birth_existence, self.unexplained, self.delete = float(birth_existence), float(unexplained), float(delete)
+        self.confirm, self.m_of_n = float(confirm), m_of_n
+        self.max_misses = None if max_misses is None else int(max_misses)
         M = getattr(association.filter, "num_modes", None)  # an IMM under the JIPDA: the tracks are mode beliefs
         self.num_modes = M
         if mode_probs is not None:
@@ -223,9 +267,10 @@ class ManagedTracks(Filter):
         shape = (*tuple(batch_shape), K)
         state = self._started(GaussianBelief(torch.zeros(*shape, n, dtype=dtype, device=device),
                                              torch.eye(n, dtype=dtype, device=device).expand(*shape, n, n)))
+        zero = torch.zeros(shape, dtype=torch.long, device=device)
         return _table(state, torch.full(shape, -math.inf, dtype=dtype, device=device),
-                      torch.full(shape, -1, dtype=torch.long, device=device),
-                      torch.zeros(shape, dtype=torch.long, device=device))
+                      torch.full(shape, -1, dtype=torch.long, device=device), zero,
+                      (zero, zero, zero, torch.zeros(shape, dtype=torch.bool, device=device)))
 
     def _started(self, state: GaussianBelief):
         """A new track's state: the Gaussian itself, or over an IMM every mode from it with ``mode_probs``."""
@@ -246,7 +291,7 @@ class ManagedTracks(Filter):
     def predict(self, belief: TrackTable | ModeTrackTable, *, u: Tensor | None = None) -> TrackTable | ModeTrackTable:
         self._check(belief)
         p = self.association.predict(belief.tracks, u=u)
-        return _table(p.state, p.log_existence, belief.label, belief.next_label)
+        return _table(p.state, p.log_existence, belief.label, belief.next_label, _record(belief))
 
     def update(self, belief: TrackTable | ModeTrackTable, z: Tensor) -> StepOutput:
         self._check(belief)
@@ -256,8 +301,22 @@ class ManagedTracks(Filter):
         D = z.shape[-2]
         z = z.to(post.dtype).expand(*runs, D, z.shape[-1])
         neg_inf = torch.full((), -math.inf, dtype=post.dtype, device=post.device)
-        # 2. deletion
+        # the tracks' record: a scan older, a hit when a detection fell in the gate
+        held = belief.log_existence > -math.inf  # the slots that held a track at this scan
+        hit = out.extras["validated"].any(-1) & held  # (*B, K)
+        age = torch.where(held, belief.age + 1, 0)
+        counted = hit if self.m_of_n is None else hit & (age <= self.m_of_n[1])
+        hits = belief.hits + counted.long()
+        misses = torch.where(hit, 0, belief.misses + held.long())
+        # 2. confirmation and deletion
         alive = post.log_existence >= math.log(self.delete) if self.delete > 0 else post.log_existence > -math.inf
+        if self.m_of_n is None:
+            firm = post.log_existence >= math.log(self.confirm)
+        else:
+            firm = belief.firm | (hits >= self.m_of_n[0])
+            alive = alive & (firm | (age < self.m_of_n[1]))  # unconfirmed after N scans: deleted
+        if self.max_misses is not None:
+            alive = alive & (misses < self.max_misses)
         log_e = torch.where(alive, post.log_existence, neg_inf)
         label = torch.where(alive, belief.label, -1)
         # 3. initiation: unexplained detections into free slots, matched by rank
@@ -279,7 +338,15 @@ class ManagedTracks(Filter):
         log_e = torch.where(born, birth, log_e)
         label = torch.where(born, belief.next_label + free_rank - 1, label)
         next_label = belief.next_label + born.sum(-1, keepdim=True)
+        # a new track's record: its first scan, one hit (its detection)
+        one = torch.ones((), dtype=torch.long, device=age.device)
+        zero = torch.zeros((), dtype=torch.long, device=age.device)
+        firm_at_birth = self.birth_existence >= self.confirm if self.m_of_n is None else self.m_of_n[0] <= 1
+        record = (torch.where(born, one, torch.where(alive, age, zero)),
+                  torch.where(born, one, torch.where(alive, hits, zero)),
+                  torch.where(born | ~alive, zero, misses),
+                  torch.where(born, firm_at_birth, firm & alive))
         extras = dict(out.extras)
         extras["born"] = born
-        table = _table(state, log_e, label, next_label.expand(*runs, K))
+        table = _table(state, log_e, label, next_label.expand(*runs, K), record)
         return StepOutput(table, belief, out.log_likelihood, out.innovation, out.innovation_cov, extras)
