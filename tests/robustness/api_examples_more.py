@@ -162,6 +162,12 @@ example("torchmm.association.tracks.ManagedTracks")(  # over an IMM of two accel
                  unexplained=0.5, delete=0.01, confirm=0.9, m_of_n=(2, 3), max_misses=3, mode_probs=[0.7, 0.3]))
 example("torchmm.association.tracks.position_initiator")(
     lambda: call(association.position_initiator, 4, [0, 2], torch.eye(2), 25.0))
+example("torchmm.association.particle.ParticleJPDA")(
+    lambda: call(association.ParticleJPDA,
+                 ParticleFilter(models.ConstantVelocity(1, noise="continuous", dtype=torch.float64),
+                                models.PositionMeasurement(2, [0], 1.0, dtype=torch.float64)),
+                 detection_probability=0.9, clutter_density=0.01, method="lbp", max_targets=4, iterations=50,
+                 tolerance=1e-10))
 example("torchmm.association.particle.ParticlePDA")(
     lambda: call(association.ParticlePDA,
                  ParticleFilter(models.ConstantVelocity(1, noise="continuous", dtype=torch.float64),
