@@ -127,8 +127,11 @@ def lbp_marginals(log_w: Tensor, log_missed: float, iterations: int, tolerance: 
             nu = new
             break
         nu = new
-    num = torch.cat([torch.full_like(w[..., :1], miss), w * nu], -1)
-    return (num / num.sum(-1, keepdim=True)).log()
+    # normalised in the log domain: a weight of 0 (an unvalidated detection) has log-marginal -inf with
+    # gradient 0, where log(num / sum) would give it a NaN gradient
+    log_num = torch.cat([torch.full_like(w[..., :1], math.log(miss) if miss else -math.inf),
+                         (log_w - log_missed if log_missed > -math.inf else log_w) + nu.log()], -1)
+    return torch.log_softmax(log_num, -1)
 
 
 @entry_point(log_weights=Values(), missed=Real(minimum=0.0), method=Choice("exact", "lbp"),
