@@ -210,14 +210,14 @@ def detection_hypotheses(assoc, belief: GaussianBelief, z: Tensor):
     batch, D, m = belief.batch_shape, z.shape[-2], z.shape[-1]
     present = torch.isfinite(z).all(-1)  # (*B, D)
     zs = torch.where(present.unsqueeze(-1), z, torch.nan).movedim(-2, 0)  # (D, *B, m): detections leftmost
-    hyp = assoc.filter.update(belief.unsqueeze(0).expand(D, *batch), zs)  # every detection's update at once
+    hyp = assoc.filter.update_each(belief, zs)  # every detection's update at once (a Kalman gain once)
     if isinstance(hyp.belief, ModelSetBelief):  # a type test, no host read
         raise TypeError(f"filter: {type(assoc).__name__} over a variable-structure IMM is not supported (its policy "
                         "would select a model set in every detection hypothesis, before the association weighs "
                         "them); use an IMM over the total model set")
     nu = hyp.innovation  # (D, *B, *E, m): E the mode axes of a multiple-model filter (an IMM's M), if any
-    S = hyp.innovation_cov.expand(*nu.shape, m)
-    white = solve_lower(cholesky(S), nu.nan_to_num(0.0).unsqueeze(-1)).squeeze(-1)
+    # S broadcasts against nu: a Kalman-type filter's one S a track (update_each), factorised once
+    white = solve_lower(cholesky(hyp.innovation_cov), nu.nan_to_num(0.0).unsqueeze(-1)).squeeze(-1)
     inside = sum_last(white.square()) <= assoc.gate
     inside = inside.reshape(*inside.shape[:1 + len(batch)], -1).any(-1)  # in some mode's gate
     validated = present.movedim(-1, 0) & inside  # (D, *B)

@@ -118,6 +118,20 @@ class Filter(nn.Module):
         """Measurement update of a prior ``belief`` with ``z`` (NaN = missing)."""
         raise NotImplementedError
 
+    def update_each(self, belief: Any, zs: Tensor) -> StepOutput:
+        """One prior and ``D`` alternative measurements (what data association asks for: an update per
+        detection). A measurement with a non-finite component counts as none (the prior kept,
+        log-likelihood 0). This default updates the prior repeated ``D`` times (a view); the Kalman
+        and extended Kalman filters compute what does not depend on the datum (gain, posterior
+        covariance) once.
+
+        Shapes:
+            belief: batch ``(*B,)``; zs: ``(D, *B, m)`` -> the updates with batch ``(D, *B)``.
+        """
+        if self.measurement_rank == 1:
+            zs = torch.where(torch.isfinite(zs).all(-1, keepdim=True), zs, torch.nan)
+        return self.update(belief.unsqueeze(0).expand(zs.shape[0], *belief.batch_shape), zs)
+
     def step(self, belief: Any, z: Any, *, u: Tensor | None = None, motion: nn.Module | None = None,
              sensor: nn.Module | None = None, generator: torch.Generator | None = None) -> StepOutput:
         """One predict/update cycle from the posterior at ``k-1`` to the posterior at ``k``.

@@ -11,17 +11,18 @@ model matrices and this is the Kalman filter; otherwise Jacobians come from auto
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import torch
 from torch import Tensor
 
 import torchmm.kernels as kernels
-from torchmm.beliefs import GaussianBelief
+from torchmm.beliefs import GaussianBelief, symmetrize
 from torchmm.contract import Flag, Of, entry_point
 from torchmm.filters.base import Filter, StepOutput
 from torchmm.kernels.linear import LinearGaussian
-from torchmm.linalg import condition, flag_failed
+from torchmm.linalg import cholesky, condition, flag_failed, half_log_det, solve_lower, sum_last
 from torchmm.models.base import MeasurementModel, MotionModel, check_model_pair
 from torchmm.models.linear import LinearMeasurement, LinearMotion, plain_linear
 from torchmm.validation import broadcast_shape, check_measurement, gaussian_batch
@@ -99,6 +100,35 @@ class ExtendedKalmanFilter(Filter):
         )
         return StepOutput(GaussianBelief(mean, cov), belief, log_likelihood, innovation, innovation_cov,
                           {"singular": singular, "failed": flag_failed(log_likelihood)})
+
+    def update_each(self, belief: GaussianBelief, zs: Tensor) -> StepOutput:
+        """:meth:`Filter.update_each` with the gain shared: the linearisation, innovation covariance,
+        its factor and the posterior covariance once per prior, one triangular solve per measurement.
+        Equal to :meth:`update` of each measurement to rounding (a subclass with its own update, or the
+        Joseph form, takes the default). ``innovation_cov`` is the one shared ``S``, ``(*B, m, m)``
+        (it broadcasts against ``innovation (D, *B, m)``)."""
+        if type(self).update is not ExtendedKalmanFilter.update or self.joseph:
+            return super().update_each(belief, zs)
+        batch = gaussian_batch(belief, self.state_dim)
+        zs = check_measurement(zs, self.meas_dim, torch.Size([zs.shape[0] if zs.dim() else 0, *batch]), belief.mean,
+                               "zs")
+        H = self._measurement_matrix(belief.mean)
+        R = self.measurement.noise_cov(belief.mean)
+        present = torch.isfinite(zs).all(-1)  # (D, *B): a whole measurement
+        innovation = torch.where(present.unsqueeze(-1), zs - self.measurement(belief.mean), torch.nan)
+        cross_cov = belief.cov @ H.mT
+        innovation_cov = (cross_cov.mT @ H.mT if H.dim() == 2 else H @ cross_cov) + R
+        L, singular = cholesky(innovation_cov, with_flag=True)
+        V = solve_lower(L, cross_cov.mT)  # (*B, m, n): L^-1 C^T, once
+        # (D, *B, m); an absent row's innovation 0 (its result is the prior), a NaN prediction's stays NaN
+        w = solve_lower(L, torch.where(present.unsqueeze(-1), innovation, 0.0).unsqueeze(-1)).squeeze(-1)
+        mean = torch.where(present.unsqueeze(-1), belief.mean + (V.mT @ w.unsqueeze(-1)).squeeze(-1), belief.mean)
+        cov = torch.where(present[..., None, None], symmetrize(belief.cov - V.mT @ V), belief.cov)
+        m = zs.shape[-1]
+        log_likelihood = -0.5 * (sum_last(w.square()) + m * math.log(2 * math.pi)) - half_log_det(L)
+        log_likelihood = torch.where(present, log_likelihood, 0.0)
+        return StepOutput(GaussianBelief(mean, cov), belief, log_likelihood, innovation, innovation_cov,
+                          {"singular": singular.expand(log_likelihood.shape), "failed": flag_failed(log_likelihood)})
 
 
 @kernels.joins("linear_gaussian")

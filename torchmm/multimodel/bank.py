@@ -89,6 +89,12 @@ class FilterBank(nn.Module):
         """Every mode's measurement update; ``sensor`` replaces the measurement model for this call."""
         raise NotImplementedError
 
+    def update_each(self, belief, zs: Tensor) -> StepOutput:
+        """Every mode's update by each of ``D`` measurements (:meth:`Filter.update_each`): belief batch
+        ``(*B, M)``, zs ``(D, *B, M, m)`` (broadcasting) -> batch ``(D, *B, M)``. The default repeats the
+        prior."""
+        return self.update(belief.unsqueeze(0).expand(zs.shape[0], *belief.batch_shape), zs)
+
 
 class VectorizedBank(FilterBank):
     """A single filter whose model parameters broadcast over the mode axis (batch ``(M,)``)."""
@@ -168,6 +174,9 @@ class VectorizedBank(FilterBank):
         if generator is None:
             return f.update(belief, z)
         return call_with(f, "update", belief, z, generator=generator)
+
+    def update_each(self, belief, zs: Tensor) -> StepOutput:
+        return self.filter.update_each(belief, zs)
 
 
 class ListBank(FilterBank):

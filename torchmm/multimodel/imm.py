@@ -338,6 +338,30 @@ class MultipleModelFilter(Filter):
         measurement model for this update (e.g. a second sensor at the same time step)."""
         return self._update_modes(belief, z, sensor=sensor, generator=generator)
 
+    def update_each(self, belief: ModeBelief, zs: Tensor) -> StepOutput:
+        """:meth:`~torchmm.filters.Filter.update_each`: the bank's ``update_each`` (a Kalman bank
+        shares each mode's gain over the measurements), then each measurement's mode probabilities.
+        A combinator with its own update (GPB2, variable structure, transfer) takes the default.
+
+        Shapes: belief batch ``(*B,)`` (components ``(*B, M)``); zs ``(D, *B, m)`` -> batch ``(D, *B)``."""
+        if (type(self).update is not MultipleModelFilter.update or
+                type(self)._update_modes is not MultipleModelFilter._update_modes or self.bank.uses_generator):
+            return super().update_each(belief, zs)
+        batch = mode_batch(belief)
+        m = self.bank.meas_dim
+        if m is not None:
+            zs = check_measurement(zs, m, torch.Size([zs.shape[0] if zs.dim() else 0, *batch]),
+                                   belief.mode_log_probs, "zs")
+            zs = torch.where(torch.isfinite(zs).all(-1, keepdim=True), zs, torch.nan)
+        rank = self.bank.measurement_rank
+        out = self.bank.update_each(belief.components, zs.unsqueeze(-1 - rank))
+        mode_log_probs, log_likelihood = mode_posterior(out.log_likelihood, belief.mode_log_probs,
+                                                        self.bank.informative(zs))
+        extras = _mode_extras(out)
+        extras["failed"] = flag_run_failed(log_likelihood)
+        return StepOutput(ModeBelief(mode_log_probs, out.belief), belief, log_likelihood, out.innovation,
+                          out.innovation_cov, extras)
+
     def step(self, belief: ModeBelief, z: Tensor, *, u: Tensor | None = None, motion=None, sensor=None,
              generator=None) -> StepOutput:
         mixed = self.mix(belief, generator)
