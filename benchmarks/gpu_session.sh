@@ -23,6 +23,7 @@ cat "$out/machine.txt"
 #    device=cuda (at most 220 s)
 timeout 220 python3 -m pytest -q -p no:cacheprovider -rs -n 4 -k cuda tests/test_host_sync.py \
     tests/smoothing/test_two_filter.py tests/smoothing/test_parallel.py tests/test_pda.py tests/test_set_metrics.py \
+    tests/test_association_cuda.py \
     tests/experiments/test_studies.py 2>&1 | tee "$out/cuda_tests.log"
 # 2. throughput (the script stops escalating past 40 s a size and ends within about 5 minutes)
 timeout 320 python3 benchmarks/gpu.py ${GPU_ARGS:-} 2>&1 | tee "$out/gpu_benchmark.log"
