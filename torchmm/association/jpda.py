@@ -168,6 +168,28 @@ def jpda_marginals(log_weights: Tensor, missed: float, *, method: str = "exact",
     return log_beta.reshape(*batch, N, 1 + D), log_z.reshape(batch)
 
 
+def check_scan(assoc, batch: torch.Size, z: Tensor, dtype: torch.dtype) -> Tensor:
+    """A joint association's checks: the belief's ``batch`` ends with the run's tracks (at most
+    ``max_targets`` for the exact method) and ``z (*B, D, m)`` broadcasts to the runs; returns ``z``
+    expanded to ``(*runs, D, m)`` in ``dtype``."""
+    name = type(assoc).__name__
+    if len(batch) < 1:
+        raise ValueError(f"belief: {name} needs a batch whose last axis holds the tracks, (*B, N); got none")
+    *runs, N = batch
+    if assoc.method == "exact" and N > assoc.max_targets:
+        raise ValueError(f"belief: {N} tracks a run exceed max_targets={assoc.max_targets} of the exact JPDA "
+                         f"(cost 2^N); use method='lbp' or raise max_targets")
+    m = assoc.detections_dim
+    if not isinstance(z, Tensor) or z.dim() < 2 or z.shape[-1] != m:
+        raise ValueError(f"z: expected a scan of detections (*B, D, {m}), got "
+                         f"{tuple(z.shape) if isinstance(z, Tensor) else type(z).__name__}")
+    try:
+        return z.to(dtype).expand(*runs, z.shape[-2], m)
+    except RuntimeError:
+        raise ValueError(f"z: the scan's batch {tuple(z.shape[:-2])} does not broadcast to the runs "
+                         f"{tuple(runs)} of the belief's batch {tuple(batch)} (tracks last)") from None
+
+
 class JPDA(DetectionSets):
     r"""Joint probabilistic data association over a Gaussian filter: the belief's last batch axis holds
     a run's ``N`` tracks, which share each scan (the module docstring gives the equations).
@@ -225,23 +247,9 @@ class JPDA(DetectionSets):
         """Checks; every track's update for every detection (batch ``(D, *B, N)``), ``validated`` and the
         log-weights ``log(P_D N / lambda)`` ``(*B, N, D)``."""
         check_gaussian(belief, type(self).__name__)
-        batch = belief.batch_shape
-        if len(batch) < 1:
-            raise ValueError("belief: JPDA needs a batch whose last axis holds the tracks, (*B, N); got none")
-        *runs, N = batch
-        if self.method == "exact" and N > self.max_targets:
-            raise ValueError(f"belief: {N} tracks a run exceed max_targets={self.max_targets} of the exact JPDA "
-                             f"(cost 2^N); use method='lbp' or raise max_targets")
-        m = self.detections_dim
-        if not isinstance(z, Tensor) or z.dim() < 2 or z.shape[-1] != m:
-            raise ValueError(f"z: expected a scan of detections (*B, D, {m}), got "
-                             f"{tuple(z.shape) if isinstance(z, Tensor) else type(z).__name__}")
-        D = z.shape[-2]
-        try:
-            z = z.to(belief.dtype).expand(*runs, D, m)
-        except RuntimeError:
-            raise ValueError(f"z: the scan's batch {tuple(z.shape[:-2])} does not broadcast to the runs "
-                             f"{tuple(runs)} of the belief's batch {tuple(batch)} (tracks last)") from None
+        z = check_scan(self, belief.batch_shape, z, belief.dtype)
+        *runs, N = belief.batch_shape
+        D, m = z.shape[-2:]
         hyp, validated, log_detected = detection_hypotheses(self, belief, z.unsqueeze(-3).expand(*runs, N, D, m))
         return hyp, validated.movedim(0, -1), log_detected.movedim(0, -1)
 

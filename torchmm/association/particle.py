@@ -23,7 +23,7 @@ import math
 import torch
 from torch import Tensor
 
-from torchmm.association.jpda import exact_marginals, lbp_marginals
+from torchmm.association.jpda import check_scan, exact_marginals, lbp_marginals
 from torchmm.association.pda import DetectionSets
 from torchmm.beliefs import ParticleBelief, normalize_log_probs
 from torchmm.contract import Choice, Int, Of, Real, entry_point
@@ -140,22 +140,9 @@ class ParticleJPDA(ParticlePDA):
         if not isinstance(belief, ParticleBelief):
             raise TypeError(f"belief: ParticleJPDA needs a ParticleBelief, got {type(belief).__name__}")
         batch = belief.batch_shape
-        if len(batch) < 1:
-            raise ValueError("belief: ParticleJPDA needs a batch whose last axis holds the tracks, (*B, N); got none")
+        z = check_scan(self, batch, z, belief.particles.dtype)
         *runs, N = batch
-        if self.method == "exact" and N > self.max_targets:
-            raise ValueError(f"belief: {N} tracks a run exceed max_targets={self.max_targets} of the exact JPDA "
-                             f"(cost 2^N); use method='lbp' or raise max_targets")
-        m = self.detections_dim
-        if not isinstance(z, Tensor) or z.dim() < 2 or z.shape[-1] != m:
-            raise ValueError(f"z: expected a scan of detections (*B, D, {m}), got "
-                             f"{tuple(z.shape) if isinstance(z, Tensor) else type(z).__name__}")
-        D = z.shape[-2]
-        try:
-            z = z.to(belief.particles.dtype).expand(*runs, D, m)
-        except RuntimeError:
-            raise ValueError(f"z: the scan's batch {tuple(z.shape[:-2])} does not broadcast to the runs "
-                             f"{tuple(runs)} of the belief's batch {tuple(batch)} (tracks last)") from None
+        D, m = z.shape[-2:]
         present = torch.isfinite(z).all(-1)  # (*R, D)
         zs = torch.where(present.unsqueeze(-1), z, 0.0).movedim(-2, 0).unsqueeze(-2).expand(D, *runs, N, m)
         loglik, _ = particle_log_likelihood(self.filter.measurement, zs, belief.particles,

@@ -207,7 +207,7 @@ def detection_hypotheses(assoc, belief: GaussianBelief, z: Tensor):
         bool and the log-weights ``log(P_D N(nu; 0, S) / lambda)`` ``(D, *B)`` (``-inf`` where not
         validated).
     """
-    batch, D, m = belief.batch_shape, z.shape[-2], z.shape[-1]
+    batch = belief.batch_shape
     present = torch.isfinite(z).all(-1)  # (*B, D)
     zs = torch.where(present.unsqueeze(-1), z, torch.nan).movedim(-2, 0)  # (D, *B, m): detections leftmost
     hyp = assoc.filter.update_each(belief, zs)  # every detection's update at once (a Kalman gain once)
