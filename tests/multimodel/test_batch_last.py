@@ -20,7 +20,6 @@ import torch.utils._pytree as pytree
 
 from torchmm import (
     GPB1,
-    GPB2,
     IMM,
     ConstantVelocity,
     GaussianBelief,
@@ -313,7 +312,6 @@ def test_taken_only_where_it_applies(batch_last_steps):
     cases = {
         "R is not diagonal": IMM(KalmanFilter(kf.motion, LinearMeasurement(kf.measurement.H, full)),
                                  imm.transition.matrix()),
-        "GPB2 has not joined the linear_gaussian kernels": GPB2(kf, imm.transition.matrix()),
         "_MyIMM has not joined the linear_gaussian kernels": _MyIMM(kf, imm.transition.matrix()),
         "the 'static' rule": StaticMM(kf, 2),
         "mode 1: the Joseph form": IMM(_list_bank(imm), imm.transition.matrix()),
@@ -368,7 +366,7 @@ def test_process_default_of_compile():
     previous = compile_fast_paths(True)
     try:
         assert fast_paths_compiled()
-        gpb = GPB2(imm.bank.filter, imm.transition.matrix())  # no fast path: runs its steps, no error
+        gpb = StaticMM(imm.bank.filter, 2)  # no fast path: runs its steps, no error
         assert_same_trajectory(run_filter(gpb, belief0, z), run_filter(gpb, belief0, z, compile=False))
         with pytest.raises(ValueError, match="compile: compiles the fast path, which this run has not"):
             run_filter(gpb, belief0, z, compile=True)  # asked for explicitly: an error

@@ -62,7 +62,8 @@ class LinearGaussian(NamedTuple):
     Shapes (``*P``: the model parameters' batch, ``()`` or the modes ``(M,)``):
         F ``(*P, n, n)``, b ``(*P, n)``, Q ``(*P, n, n)``, H ``(*P, m, n)``, R ``(*P, m, m)``;
         transition ``(M, M)`` (None for a single filter); rule: ``"kalman"`` (one filter),
-        ``"mix"`` (IMM), ``"collapse"`` (GPB1) or ``"static"`` (no interaction).
+        ``"mix"`` (IMM), ``"collapse"`` (GPB1), ``"static"`` (no interaction) or ``"pairs"`` (GPB2: the
+        batch-last kernel only, :mod:`torchmm.multimodel.batch_last_pairs`).
     """
 
     F: Tensor
@@ -267,6 +268,8 @@ class LinearKernel:
         model = kernels.describe(filter, self.name)
         if isinstance(model, str):
             return model
+        if model.rule not in _RULES:
+            return f"the {model.rule!r} rule (GPB2's pairs: the batch-last kernel)"
         if model.rule == "kalman":
             if type(belief0) is not GaussianBelief:
                 return "belief0 is not a GaussianBelief"

@@ -126,7 +126,7 @@ class _Coef:
         self.kind, self.value = kind, value
 
 
-_ZERO, _ONE = _Coef("zero"), _Coef("one")
+ZERO, ONE = _Coef("zero"), _Coef("one")
 
 
 def _coefficients(t: Tensor, M: int, event: int, batch_dims: int) -> list:
@@ -148,7 +148,7 @@ def _coefficients(t: Tensor, M: int, event: int, batch_dims: int) -> list:
                            torch.where((values == first).all(0), 2, 3))).tolist()
         # 0-dim copies (an operation with a Python number costs more dispatch than with a tensor)
         shared = first.clone().unbind(0)
-        flat = [_ZERO if k == 0 else _ONE if k == 1 else _Coef("scalar", shared[e]) if k == 2
+        flat = [ZERO if k == 0 else ONE if k == 1 else _Coef("scalar", shared[e]) if k == 2
                 else _Coef("tensor", entries[e]) for e, k in enumerate(kind)]
     if event == 1:
         return flat
@@ -156,7 +156,7 @@ def _coefficients(t: Tensor, M: int, event: int, batch_dims: int) -> list:
     return [flat[a * cols:(a + 1) * cols] for a in range(t.shape[-2])]
 
 
-def _linear(terms, const: _Coef = _ZERO, like: Tensor | None = None) -> Tensor:
+def combine(terms, const: _Coef = ZERO, like: Tensor | None = None) -> Tensor:
     """``sum_e coef_e * t_e + const`` with the fewest operations (zero terms skipped, ones added,
     shared scalars and per-mode tensors through ``addcmul``).
 
@@ -188,6 +188,9 @@ class BatchLastIMM:
         batch_dims: the number of batch axes ``len(B)``.
         like: a tensor of the run's dtype and device.
     """
+
+    #: what the kernel computes, for messages
+    kind = "IMM"
 
     def __init__(self, model, M: int, batch_dims: int, like: Tensor):
         from torchmm.multimodel.imm import safe_log_normalize
@@ -244,13 +247,13 @@ class BatchLastIMM:
 
     # -- the traced step ----------------------------------------------------------------------------
     def structure(self) -> tuple:
-        """What the step's sequence of operations depends on: the sizes, the layout, the interaction,
-        the omitted outputs, the dtype's smallest normal number and the kind of every model
-        coefficient (zero, one, a shared scalar, a tensor). Two kernels of one structure run the same
+        """What the step's sequence of operations depends on: the kernel (IMM/GPB1 or GPB2), the sizes,
+        the layout, the interaction, the omitted outputs, the dtype's smallest normal number and the
+        kind of every model coefficient (zero, one, a shared scalar, a tensor). Two kernels of one structure run the same
         operations on their own constants (:meth:`constants`)."""
         kinds = lambda c: tuple(map(kinds, c)) if isinstance(c, list) else c.kind  # noqa: E731
-        return (self.n, self.m, self.M, self.d, self.broadcast, self.collapse, self.omitted, self.estimate_only,
-                self.tiny, *(kinds(getattr(self, name)) for name in _COEFFICIENTS))
+        return (self.kind, self.n, self.m, self.M, self.d, self.broadcast, self.collapse, self.omitted,
+                self.estimate_only, self.tiny, *(kinds(getattr(self, name)) for name in _COEFFICIENTS))
 
     def constants(self) -> tuple:
         """Every tensor :meth:`core` reads besides its arguments: the coefficients that are not exactly
@@ -366,8 +369,7 @@ class BatchLastIMM:
         # the layout of the state: every entry in one broadcast operation while the temporaries of the
         # mixing (n^2 M^2 values a run) stay within the cache (the step is bound by dispatch there),
         # one operation per stored entry beyond (bound by memory)
-        runs = z.shape[2:].numel()
-        self.broadcast = self.n * self.n * self.M * self.M * runs * z.element_size() <= _BROADCAST_BYTES
+        self.broadcast = self.broadcast_layout(z.shape[2:].numel(), z.element_size())
         observed = torch.isfinite(z)
         ob = observed.to(z.dtype)  # 1 observed, 0 missing
         # the step's tensors, split once per run (indexing them is a dispatch each, every step)
@@ -376,6 +378,11 @@ class BatchLastIMM:
         self.zero = torch.zeros((), dtype=z.dtype, device=z.device)
         self._steps_done = 0
         self._select()
+
+    def broadcast_layout(self, runs: int, itemsize: int) -> bool:
+        """Whether the state of a run of ``runs`` runs takes the broadcast layout (``X (n, M, *B)``, ``P``
+        whole) rather than one tensor per entry (:meth:`prepare`)."""
+        return self.n * self.n * self.M * self.M * runs * itemsize <= _BROADCAST_BYTES
 
     def core(self, X: Tensor, P: Tensor, mu: Tensor, zc: Tensor, ob: Tensor, nhob: Tensor, anyob: Tensor,
              zraw: Tensor) -> tuple:
@@ -436,20 +443,20 @@ class BatchLastIMM:
                 Xm, Pm = torch.stack(xs), self.stack(Cm)
             D = wD = None  # freed as soon as dead (assignment, not del: see above)
         # prediction: x- = F m + b, P- = F C F^T + Q
-        xp = [_linear([(F[a][e], xs[e]) for e in range(n)], b[a], cbar) for a in range(n)]
-        A = [[_linear([(F[a][e], sym(Cm, e, c)) for e in range(n)], _ZERO, cbar) for c in range(n)]
+        xp = [combine([(F[a][e], xs[e]) for e in range(n)], b[a], cbar) for a in range(n)]
+        A = [[combine([(F[a][e], sym(Cm, e, c)) for e in range(n)], ZERO, cbar) for c in range(n)]
              for a in range(n)]  # F C
         Pp = [[None] * n for _ in range(n)]
         for a, c in upper:
-            Pp[a][c] = _linear([(F[c][e], A[a][e]) for e in range(n)], Q[a][c], cbar)
+            Pp[a][c] = combine([(F[c][e], A[a][e]) for e in range(n)], Q[a][c], cbar)
         A = w = joint_ij = None  # freed (not del: cells); X and P: the caller's state holds them
         # update, one component at a time (diagonal R); a missing component has ob = 0, zc = 0
         xu, Cu = xp, Pp
         ll = singular = s_first = None
         for k in range(m):
-            g = [_linear([(H[k][c], sym(Cu, a, c)) for c in range(n)], _ZERO, cbar) for a in range(n)]  # P h^T
-            s_raw = _linear([(H[k][a], g[a]) for a in range(n)], r[k], cbar)  # (M, *B)
-            nu = zc[k] - _linear([(H[k][a], xu[a]) for a in range(n)], _ZERO, cbar)
+            g = [combine([(H[k][c], sym(Cu, a, c)) for c in range(n)], ZERO, cbar) for a in range(n)]  # P h^T
+            s_raw = combine([(H[k][a], g[a]) for a in range(n)], r[k], cbar)  # (M, *B)
+            nu = zc[k] - combine([(H[k][a], xu[a]) for a in range(n)], ZERO, cbar)
             s = torch.maximum(s_raw, self.tiny_t)
             ratio = ob[k] / s
             gain = [g[a] * ratio for a in range(n)]
@@ -526,17 +533,7 @@ class BatchLastIMM:
         state's step, its outputs as a :class:`StepOutput` of batch-first views (batch ``(*B,)``),
         and the next state. ``z`` is the step's measurement, which :meth:`prepare` holds."""
         X, P, mu, k = state
-        args = (X, P, mu, *self.data[k])
-        self._steps_done = k + 1
-        try:
-            out = self._core(*args)
-        except Exception as error:  # noqa: BLE001 (a compiler failure: run eagerly, say so once)
-            if not self._compiled:
-                raise
-            log.warning("compile: torch.compile failed for the IMM fast path (%s: %s); running it eagerly",
-                        type(error).__name__, str(error).splitlines()[0][:200] if str(error) else "")
-            self._core, self._compiled = self.core, False
-            out = self._core(*args)
+        out = self.run_core((X, P, mu, *self.data[k]), k)
         (X, P, X_out, P_out, log_mu, mu, total, Xp, Pp, log_cbar, ll, singular, Xm, Pm, nu, S) = out
         state = (X, P, mu, k + 1)
         modes, gaussian = self.modes, self.gaussian
@@ -565,24 +562,39 @@ class BatchLastIMM:
         )
         return state, out
 
+    def run_core(self, args: tuple, k: int) -> tuple:
+        """:meth:`core` (traced or compiled where chosen) on ``args``, the arguments of step ``k``; a
+        compiler failure runs it eagerly from then on, said once."""
+        self._steps_done = k + 1
+        try:
+            return self._core(*args)
+        except Exception as error:  # noqa: BLE001 (a compiler failure: run eagerly, say so once)
+            if not self._compiled:
+                raise
+            log.warning("compile: torch.compile failed for the %s fast path (%s: %s); running it eagerly",
+                        self.kind, type(error).__name__, str(error).splitlines()[0][:200] if str(error) else "")
+            self._core, self._compiled = self.core, False
+            return self._core(*args)
+
     def _innovation(self, zraw, xp, Pp, s_first) -> tuple[Tensor, Tensor]:
         """The step's record of ``z - H x-`` ``(m, M, *B)`` (non-finite where missing) and
         ``S = H P- H^T + R`` ``(m, m, M, *B)``."""
         m, n, H = self.m, self.n, self.H
-        nu = torch.stack([zraw[k] - _linear([(H[k][a], xp[a]) for a in range(n)], _ZERO, xp[0]) for k in range(m)])
+        nu = torch.stack([zraw[k] - combine([(H[k][a], xp[a]) for a in range(n)], ZERO, xp[0]) for k in range(m)])
         if m == 1:
             return nu, s_first.unsqueeze(0).unsqueeze(0)
         sym = lambda T, a, c: T[min(a, c)][max(a, c)]  # noqa: E731
-        HP = [[_linear([(H[k][e], sym(Pp, e, c)) for e in range(n)], _ZERO, xp[0]) for c in range(n)]
+        HP = [[combine([(H[k][e], sym(Pp, e, c)) for e in range(n)], ZERO, xp[0]) for c in range(n)]
               for k in range(m)]
-        S = torch.stack([torch.stack([_linear([(H[j][c], HP[k][c]) for c in range(n)], _ZERO, xp[0])
+        S = torch.stack([torch.stack([combine([(H[j][c], HP[k][c]) for c in range(n)], ZERO, xp[0])
                                       for j in range(m)]) for k in range(m)])
         return nu, S + self.R_front
 
 
 class BatchLastKernel:
-    """The registered kernel (:mod:`torchmm.kernels`) of the batch-last IMM and GPB1 step: a filter that
-    describes itself as linear-Gaussian with the ``"mix"`` or ``"collapse"`` rule, a run without
+    """The registered kernel (:mod:`torchmm.kernels`) of the batch-last IMM, GPB1 and GPB2 step: a filter
+    that describes itself as linear-Gaussian with the ``"mix"``, ``"collapse"`` or ``"pairs"`` rule
+    (GPB2: :mod:`torchmm.multimodel.batch_last_pairs`), a run without
     ``update_first``; any size (the small linear kernel takes small problems first), any device,
     ``compile`` and ``record`` functions included."""
 
@@ -596,14 +608,19 @@ class BatchLastKernel:
         model = kernels.describe(filter, "linear_gaussian")
         if isinstance(model, str):
             return model
-        if model.rule not in ("mix", "collapse"):
-            return f"the {model.rule!r} rule (IMM and GPB1 only)"
+        if model.rule not in ("mix", "collapse", "pairs"):
+            return f"the {model.rule!r} rule (IMM, GPB1 and GPB2 only)"
         M = model.transition.shape[-1]
         reason = why_not(model, M, belief0, measurements)
         if reason is not None:
             return reason
         like = belief0.mode_log_probs
-        kernel = BatchLastIMM(model, M, like.dim() - 1, like)
+        if model.rule == "pairs":
+            from torchmm.multimodel.batch_last_pairs import BatchLastGPB2
+
+            kernel = BatchLastGPB2(model, M, like.dim() - 1, like)
+        else:
+            kernel = BatchLastIMM(model, M, like.dim() - 1, like)
         if request.compile:
             kernel.compile()
         kernel.prepare(measurements)

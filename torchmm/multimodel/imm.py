@@ -465,6 +465,7 @@ class GPB1(MultipleModelFilter):
     default_interaction = Collapse
 
 
+@kernels.joins("linear_gaussian")
 class GPB2(MultipleModelFilter):
     r"""Second-order generalised pseudo-Bayesian estimator (``M^2`` mode-matched filters).
 
@@ -490,6 +491,12 @@ class GPB2(MultipleModelFilter):
         batch = belief.batch_shape
         components = belief.components.unsqueeze(-1).expand(*batch, M, M)
         return ModeBelief(joint.flatten(-2), components.reshape(*batch, M * M))
+
+    def linear_gaussian(self):
+        """As :meth:`MultipleModelFilter.linear_gaussian`, with the rule ``"pairs"`` (the batch-last
+        kernel: :mod:`torchmm.multimodel.batch_last_pairs`)."""
+        model = super().linear_gaussian()
+        return model if isinstance(model, str) else model._replace(rule="pairs")
 
     def predict(self, belief: ModeBelief, *, u: Tensor | None = None, motion=None, generator=None) -> ModeBelief:
         M = self.num_modes

@@ -1,0 +1,211 @@
+r"""GPB2 over linear Kalman modes in the batch-last layout (issue 31, goal 3).
+
+:func:`~torchmm.run_filter` runs a :class:`~torchmm.GPB2` over one :class:`~torchmm.KalmanFilter` with
+mode-bank linear models through this kernel (:class:`~torchmm.multimodel.batch_last.BatchLastKernel`,
+the ``"pairs"`` rule of the linear-Gaussian description). It is the batch-last IMM kernel
+(:mod:`torchmm.multimodel.batch_last`) with the step of :meth:`GPB2.step <torchmm.GPB2.step>` in place of
+the IMM's, in the same order:
+
+- the pair hypotheses: pair ``(i, j)`` starts from mode ``i``'s posterior with prior weight
+  ``log mu_i + log pi_ij``;
+- pair ``(i, j)``'s prediction with mode ``j``'s model and its update, one measurement component
+  after the other (a diagonal ``R``), as the IMM kernel's;
+- ``log w_ij = ell_ij + log mu_i + log pi_ij``, ``log mu_j`` and the log-likelihood by ``logsumexp``
+  over ``i`` and then ``j``, the merge weights ``w_ij / sum_i w_ij`` (normalised as
+  :func:`~torchmm.multimodel.imm.safe_log_normalize` does), and mode ``j``'s posterior the
+  moment-matched collapse over ``i`` (centred spread).
+
+The state is kept one tensor per entry: the means ``x[a]`` and the covariances' upper triangle
+``C[a][c]``, each ``(M, *B)``; the pairs' tensors are ``(i, j, *B)``. A model entry shared by the modes
+(exactly 0 or 1, or one number) is applied once per ``i`` - shape ``(i, 1, *B)`` - and broadcast over
+``j`` only where a per-mode entry meets it. Where every mode shares ``F``, ``Q``, ``H`` and ``R`` (the
+modes differing in their input ``b``, paper 000's accelerations) the ``M^2`` pair covariances are the
+``M`` predicted from each ``i``: the batch-first engine computes all ``M^2``.
+
+Every :class:`~torchmm.filters.StepOutput` field is returned as in the engine (the prior over the
+``M^2`` pairs with mode axis ``i * M + j``, innovations ``(*B, M, M, m)``, ``extras``:
+``mode_log_likelihood`` and ``modes.singular``/``modes.failed`` ``(*B, M, M)``), as batch-first views of
+the batch-last tensors; equal to the engine's to rounding (tests/multimodel/test_batch_last_pairs.py).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from torchmm.beliefs import GaussianBelief, ModeBelief
+from torchmm.filters.base import StepOutput
+from torchmm.multimodel.batch_last import ZERO, BatchLastIMM, combine
+
+__all__ = ["BatchLastGPB2"]
+
+
+class BatchLastGPB2(BatchLastIMM):
+    """One GPB2 step in the batch-last layout (module docstring). ``matrix`` holds ``log pi_ij``
+    ``(i, j, 1...)``; the state's third item is the mode log-probabilities ``(M, *B)``.
+
+    Args: as :class:`~torchmm.multimodel.batch_last.BatchLastIMM` (a description with the ``"pairs"`` rule).
+    """
+
+    kind = "GPB2"
+
+    def __init__(self, model, M: int, batch_dims: int, like: Tensor):
+        super().__init__(model, M, batch_dims, like)
+        self.matrix = self.matrix.log()  # (i, j, 1...): the pair hypotheses' prior weights
+        self.R_front = self.R_front.unsqueeze(2)  # (m, m, 1, P, 1...): mode j's R for the pair (i, j)
+        d = batch_dims
+        self._to_front_pairs_x = (*range(3, d + 3), 1, 2, 0)  # (n, i, j, *B) -> (*B, i, j, n)
+        self._to_front_pairs_p = (*range(4, d + 4), 2, 3, 0, 1)  # (n, n, i, j, *B) -> (*B, i, j, n, n)
+
+    def broadcast_layout(self, runs: int, itemsize: int) -> bool:
+        """Always one tensor per entry (the pairs' temporaries are ``M`` times the IMM's)."""
+        return False
+
+    def initial_state(self, belief: ModeBelief) -> tuple:
+        """``(x[a] (M, *B), C[a][c] (M, *B) for a <= c, log_mu (M, *B), 0)``."""
+        X, P, log_mu = self.to_batch_last(belief)
+        n = self.n
+        C = [[P[a, c] if c >= a else None for c in range(n)] for a in range(n)]
+        return list(X.unbind(0)), C, log_mu, 0
+
+    def core(self, X: list, C: list, log_mu: Tensor, zc: Tensor, ob: Tensor, nhob: Tensor, anyob: Tensor,
+             zraw: Tensor) -> tuple:
+        """The GPB2 step's arithmetic, tensors in and out.
+
+        Shapes:
+            X: ``n`` mode means ``(M, *B)``; C: nested lists ``C[a][c]`` ``(M, *B)`` for ``a <= c``;
+            log_mu ``(M, *B)``; zc, ob, nhob, zraw ``(m, *B)``; anyob ``(*B,)`` (as the IMM's core)
+            -> the next ``X, C``, the posterior means ``(n, M, *B)`` and covariances ``(n, n, M, *B)``
+            (None with ``estimate_only``), ``log_mu``, ``mu (M, *B)``, the log-likelihood ``(*B,)``,
+            then (None where not needed) the pairs' predicted means ``(n, M, M, *B)`` and covariances
+            ``(n, n, M, M, *B)``, their prior log-weights, mode log-likelihoods and singular flags
+            ``(M, M, *B)``, the innovations ``(m, M, M, *B)`` and their covariances ``(m, m, M, M, *B)``
+            (``estimate_only``: the estimate ``(n, *B)``, ``(n, n, *B)`` in these two).
+        """
+        n, m, tiny, omitted = self.n, self.m, self.tiny, self.omitted
+        F, Q, b, H, r = self.F, self.Q, self.b, self.H, self.r
+        upper = [(a, c) for a in range(n) for c in range(a, n)]
+        sym = lambda T, a, c: T[min(a, c)][max(a, c)]  # noqa: E731
+        # pair hypotheses: (i, j) starts from mode i's posterior, log weight log mu_i + log pi_ij
+        prior_joint = log_mu.unsqueeze(1) + self.matrix  # (i, j, *B)
+        # (by index, not iteration: the traced step's arguments are proxies)
+        xs = [X[a].unsqueeze(1) for a in range(n)]  # (i, 1, *B)
+        Cs = [[C[a][c].unsqueeze(1) if c >= a else None for c in range(n)] for a in range(n)]
+        like = prior_joint
+        # prediction with mode j's model: x- = F_j x_i + b_j, P- = F_j C_i F_j^T + Q_j
+        xp = [combine([(F[a][e], xs[e]) for e in range(n)], b[a], like) for a in range(n)]
+        A = [[combine([(F[a][e], sym(Cs, e, c)) for e in range(n)], ZERO, like) for c in range(n)]
+             for a in range(n)]  # F C
+        Pp = [[None] * n for _ in range(n)]
+        for a, c in upper:
+            Pp[a][c] = combine([(F[c][e], A[a][e]) for e in range(n)], Q[a][c], like)
+        A = xs = Cs = None  # freed as soon as dead (assignment, not del: see BatchLastIMM.core)
+        # update, one component at a time (diagonal R); a missing component has ob = 0, zc = 0
+        xu, Cu = xp, Pp
+        ll = singular = s_first = None
+        keep_extras = "extras" not in omitted
+        for k in range(m):
+            g = [combine([(H[k][c], sym(Cu, a, c)) for c in range(n)], ZERO, like) for a in range(n)]  # P h^T
+            s_raw = combine([(H[k][a], g[a]) for a in range(n)], r[k], like)
+            nu = zc[k] - combine([(H[k][a], xu[a]) for a in range(n)], ZERO, like)
+            s = torch.maximum(s_raw, self.tiny_t)
+            ratio = ob[k] / s
+            gain = [g[a] * ratio for a in range(n)]
+            xu = [torch.addcmul(xu[a], gain[a], nu) for a in range(n)]
+            new = [[None] * n for _ in range(n)]
+            for a, c in upper:
+                new[a][c] = torch.addcmul(Cu[a][c], gain[a], g[c], value=-1.0)
+            Cu = new
+            term = torch.addcdiv(s.log().add_(self.log_2pi), nu * nu, s).mul_(nhob[k])
+            ll = term if ll is None else ll + term
+            if keep_extras:
+                flag = (s_raw <= tiny) & (ob[k] > 0)
+                singular = flag if singular is None else singular | flag
+            if k == 0:
+                s_first = s_raw
+        g = gain = nu = s = ratio = new = None
+        # log w_ij, log mu_j (unnormalised), the log-likelihood, merge weights and mode posterior
+        joint = ll + prior_joint  # (i, j, *B)
+        log_mode = torch.logsumexp(joint, 0)  # (j, *B)
+        total = torch.logsumexp(log_mode, 0)  # (*B,)
+        # safe_log_normalize (all -inf or NaN: uniform), its group size written out (the traced
+        # step's tensors have no numel)
+        uniform = -math.log(self.M)
+        merge = (joint - log_mode.unsqueeze(0)).nan_to_num_(nan=uniform, posinf=math.inf, neginf=-math.inf).exp()
+        new_log_mu = (log_mode - total.unsqueeze(0)).nan_to_num_(nan=uniform, posinf=math.inf, neginf=-math.inf)
+        total = torch.where(anyob, total, self.zero)  # exactly 0 without a datum
+        joint = log_mode = None
+        # mode j's posterior: the collapse over i, sum_i w_ij (P_ij + d_ij d_ij^T), d_ij = x_ij - x_j
+        xn = [(merge * xu[a]).sum(0) for a in range(n)]  # (j, *B)
+        spread = [xu[a] - xn[a] for a in range(n)]  # (i, j, *B)
+        w_spread = [merge * spread[a] for a in range(n)]
+        Cn = [[None] * n for _ in range(n)]
+        for a, c in upper:
+            Cn[a][c] = torch.addcmul(merge * Cu[a][c], w_spread[a], spread[c]).sum(0)
+        spread = w_spread = merge = None
+        mu = new_log_mu.exp()
+        Xp = Ppt = nu_out = S_out = X_out = P_out = None
+        if self.estimate_only:  # the moment-matched collapse over the modes, as the IMM kernel's
+            est = [(mu * xn[a]).sum(0) for a in range(n)]
+            spread = [xn[a] - est[a] for a in range(n)]
+            mu_spread = [mu * spread[a] for a in range(n)]
+            est_cov = [[None] * n for _ in range(n)]
+            for a, c in upper:
+                est_cov[a][c] = torch.addcmul(mu * Cn[a][c], mu_spread[a], spread[c]).sum(0)
+            nu_out, S_out = torch.stack(est), self.stack(est_cov)
+        else:
+            X_out, P_out = torch.stack(xn), self.stack(Cn)
+            shape = prior_joint.shape
+            if "prior" not in omitted:
+                Xp = torch.stack([t.expand(shape) for t in xp])
+                Ppt = self.stack([[None if t is None else t.expand(shape) for t in row] for row in Pp])
+            if "innovation" not in omitted or "innovation_cov" not in omitted:
+                nu_out, S_out = self._innovation(
+                    zraw, [t.expand(shape) for t in xp],
+                    [[None if t is None else t.expand(shape) for t in row] for row in Pp], s_first.expand(shape))
+        shape = prior_joint.shape
+        return (
+            xn, Cn, X_out, P_out, new_log_mu, mu, total, Xp, Ppt,
+            prior_joint if "prior" not in omitted else None,
+            ll.expand(shape) if keep_extras else None,
+            singular.expand(shape) if keep_extras else None,
+            nu_out, S_out,
+        )
+
+    def step(self, state: tuple, z: Tensor) -> tuple[tuple, StepOutput]:
+        """One GPB2 step: :meth:`core` on the prepared data of the state's step, its outputs as a
+        :class:`StepOutput` of batch-first views (batch ``(*B,)``; pairs ``(*B, M * M)``), and the next
+        state. ``z`` is the step's measurement, which :meth:`prepare` holds."""
+        X, C, log_mu, k = state
+        out = self.run_core((X, C, log_mu, *self.data[k]), k)
+        (X, C, X_out, P_out, log_mu, mu, total, Xp, Pp, prior_joint, ll, singular, nu, S) = out
+        state = (X, C, log_mu, k + 1)
+        if self.estimate_only:
+            estimate = GaussianBelief(nu.permute(self._to_front1), S.permute(self._to_front2))
+            return state, StepOutput(estimate, None, total)
+        pairs = lambda t: t.permute(self._to_front2)  # noqa: E731  (i, j, *B) -> (*B, i, j)
+        extras = None
+        if ll is not None:
+            extras = {
+                "mode_log_likelihood": pairs(ll),
+                "modes": {"singular": pairs(singular), "failed": pairs(torch.isnan(ll) & self.data[k][3])},
+                "failed": torch.isnan(total),
+            }
+        prior = None
+        if Xp is not None:
+            d = self.d
+            prior = ModeBelief(pairs(prior_joint).flatten(d, d + 1),
+                               GaussianBelief(Xp.permute(self._to_front_pairs_x).flatten(d, d + 1),
+                                              Pp.permute(self._to_front_pairs_p).flatten(d, d + 1)))
+        out = StepOutput(
+            belief=ModeBelief(self.modes(log_mu), self.gaussian(X_out, P_out)),
+            prior=prior,
+            log_likelihood=total,
+            innovation=None if nu is None or "innovation" in self.omitted else nu.permute(self._to_front_pairs_x),
+            innovation_cov=None if S is None or "innovation_cov" in self.omitted
+            else S.permute(self._to_front_pairs_p),
+            extras=extras,
+        )
+        return state, out
