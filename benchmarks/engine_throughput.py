@@ -112,6 +112,13 @@ def measure(runs_list: list[int], steps: int, repeats: int, only: list[str], kee
             times[name][runs] = (min(spans), statistics.median(spans))
             est = out.estimate().mean if name != "two-filter" else out.belief.estimate().mean
             estimates[f"{name}/{runs}"] = est[:, :64].contiguous()
+            if name == "VSIMM":  # the selected sets (an untimed run of the same arithmetic), for the check
+                filt = filters[name]
+                kept = run_filter(filt, filt.initial_belief(prior.expand(runs), generator=torch.Generator().manual_seed(1)),
+                                  y, record=lambda o: o._replace(prior=None, innovation=None, innovation_cov=None,
+                                                                 extras=None),
+                                  generator=torch.Generator().manual_seed(2))
+                estimates[f"{name}/{runs}/active"] = kept.belief.active[:, :64].contiguous()
     if keep is not None:
         torch.save(estimates, keep)
     return times
@@ -165,8 +172,24 @@ def main(argv: list[str] | None = None) -> None:
           + (f"; then = {args.against}" if args.against else ""))
     if then_est is not None:
         old = torch.load(then_est)
-        worst = max(((a - old[k]).abs().max() / old[k].abs().max().clamp_min(1e-300)).item() for k, a in now_est.items())
+        worst, other_sets = 0.0, {}
+        for k, a in now_est.items():
+            if k.endswith("/active"):
+                continue
+            o = old[k]
+            if f"{k}/active" in now_est and f"{k}/active" in old:
+                # VSIMM: runs whose selected sets differ at some step are left out of the comparison. Paper
+                # 000's modes share F, Q, H and R, so the single-model sets' entropies tie exactly (each is
+                # the modes' common within-entropy) and rounding decides the minimum: two correct
+                # implementations pick differently in some runs (tests/multimodel/test_batch_last_policy.py
+                # checks the kernel on models without ties)
+                same = (now_est[f"{k}/active"] == old[f"{k}/active"]).all(-1).all(0)  # (64,)
+                other_sets[k] = int((~same).sum())
+                a, o = a[:, same], o[:, same]
+            worst = max(worst, ((a - o).abs().max() / o.abs().max().clamp_min(1e-300)).item())
         print(f"estimates now vs then: largest relative difference {worst:.1e}")
+        for k, count in other_sets.items():
+            print(f"  {k}: {count} of 64 runs selected other model sets (exact ties decided by rounding), left out")
         if not worst <= 1e-9:
             raise SystemExit(f"the two trees' estimates differ ({worst:.1e} > 1e-9): the comparison is void")
     header = f"{'runs':>7} {'work':<11} | {'now best':>11} {'median':>11}" + (

@@ -241,7 +241,7 @@ def run_filter(
                 keep=(frozenset({"belief", "log_likelihood"}) if estimate_only
                       else record.fields if isinstance(record, Keep) else None),
                 estimate=estimate_only, detach_belief=isinstance(record, Keep) and record.detach,
-                record=None if estimate_only or isinstance(record, Keep) else record)
+                record=None if estimate_only or isinstance(record, Keep) else record, generator=generator)
             run, why = kernels.plan(filter, belief0, measurements, request)
             fields = None if run is None else run()
         if run is None:  # (a plan that declines at run time - a regularised update - leaves it to the steps)

@@ -11,7 +11,7 @@ from torch import Tensor
 
 from torchmm.beliefs.base import Belief, register_belief
 from torchmm.beliefs.ops import mix_gaussians
-from torchmm.linalg import cholesky
+from torchmm.linalg import cholesky, cholesky_diagonal
 from torchmm.validation import as_tensor, broadcast_shape, check_covariance, check_shape
 from torchmm.contract import Cov, DType, Device, Finite, entry_point
 
@@ -123,7 +123,11 @@ class GaussianBelief(Belief):
     def entropy(self) -> Tensor:
         """Differential entropy ``(1/2) log det(2 pi e P)``, shape ``(*B,)`` (regularised factor:
         never raises; ``-inf``-free for a numerically singular ``P`` only up to the repair)."""
-        half_logdet = cholesky(self.cov).diagonal(dim1=-2, dim2=-1).log().sum(-1)
+        if self.state_dim <= 2:  # the factor's diagonal without the factor; a + b is .sum(-1) of two
+            diagonal = cholesky_diagonal(self.cov)
+            half_logdet = diagonal[0].log() if self.state_dim == 1 else diagonal[0].log() + diagonal[1].log()
+        else:
+            half_logdet = cholesky(self.cov).diagonal(dim1=-2, dim2=-1).log().sum(-1)
         return half_logdet + 0.5 * self.state_dim * (1.0 + math.log(2 * math.pi))
 
     def log_prob(self, x: Tensor) -> Tensor:

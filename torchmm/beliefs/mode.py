@@ -67,9 +67,15 @@ class ModeBelief(Belief):
         """``exp(mode_log_probs)``, shape ``(*B, M)``."""
         return self.mode_log_probs.exp()
 
+    def output_log_weights(self) -> Tensor:
+        """The log-weights of the output combination ``(*B, M)``: :meth:`collapse` (and, for Gaussian
+        components, :meth:`estimate`) is the components' moment-matched mixture with these weights.
+        Here the mode log-probabilities."""
+        return self.mode_log_probs
+
     def collapse(self) -> Belief:
         """The mode-marginal belief (moment-matched for Gaussian components), batch ``(*B,)``."""
-        return self.components.collapse(self.mode_probs)
+        return self.components.collapse(self.output_log_weights().exp())
 
     def estimate(self) -> GaussianBelief:
         """Overall mean and covariance (the IMM output combination), batch ``(*B,)``."""
@@ -99,9 +105,9 @@ class ModelSetBelief(ModeBelief):
         restricted = torch.where(self.active, self.mode_log_probs, torch.full_like(self.mode_log_probs, -math.inf))
         return normalize_log_probs(restricted)
 
-    def collapse(self) -> Belief:
-        """The mixture over the active models as one belief, batch ``(*B,)``."""
-        return self.components.collapse(self.restricted_log_probs().exp())
+    def output_log_weights(self) -> Tensor:
+        """The active set's renormalised log-probabilities (:meth:`restricted_log_probs`)."""
+        return self.restricted_log_probs()
 
     def estimate(self) -> GaussianBelief:
         """Weighted mean and covariance over the active models, batch ``(*B,)``."""

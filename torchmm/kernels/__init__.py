@@ -95,6 +95,8 @@ class Request:
         progress: a progress bar over the steps (True or its description), for kernels that step.
         record: the caller's record function, applied to every step's output (None: ``keep`` says
             what is kept); a whole-run kernel that cannot apply it declines.
+        generator: the run's random-number generator (``run_filter(generator=)``), for a filter's
+            own per-step work that draws (a variable-structure policy's ``post_update``).
         repeated: the run is one of many evaluations of a likelihood (an optimiser's:
             :class:`~torchmm.learn.Objective`): the plan is a *prepared* evaluation,
             ``prepared(belief0, update_first) -> log_likelihood (T, *B)`` or None (the steps must run),
@@ -111,6 +113,7 @@ class Request:
     repeated: bool = False
     progress: bool | str = False
     record: Callable | None = None
+    generator: torch.Generator | None = None
 
 
 _OFF: set = set()

@@ -63,7 +63,10 @@ class LinearGaussian(NamedTuple):
         F ``(*P, n, n)``, b ``(*P, n)``, Q ``(*P, n, n)``, H ``(*P, m, n)``, R ``(*P, m, m)``;
         transition ``(M, M)`` (None for a single filter); rule: ``"kalman"`` (one filter),
         ``"mix"`` (IMM), ``"collapse"`` (GPB1), ``"static"`` (no interaction) or ``"pairs"`` (GPB2: the
-        batch-last kernel only, :mod:`torchmm.multimodel.batch_last_pairs`).
+        batch-last kernel only, :mod:`torchmm.multimodel.batch_last_pairs`); post_update: None, or the
+        filter's own work after each step's update, ``post_update(out, generator) -> StepOutput`` on the
+        step's output (batch-first; the run continues from its belief's mode probabilities): a
+        variable-structure IMM's model-set policy (the batch-last kernel only).
     """
 
     F: Tensor
@@ -73,6 +76,7 @@ class LinearGaussian(NamedTuple):
     R: Tensor
     transition: Tensor | None = None
     rule: str = "kalman"
+    post_update: Any = None
 
 
 def load():
@@ -270,6 +274,8 @@ class LinearKernel:
             return model
         if model.rule not in _RULES:
             return f"the {model.rule!r} rule (GPB2's pairs: the batch-last kernel)"
+        if model.post_update is not None:
+            return "a post-update (a model-set policy: the batch-last kernel)"
         if model.rule == "kalman":
             if type(belief0) is not GaussianBelief:
                 return "belief0 is not a GaussianBelief"
@@ -339,6 +345,8 @@ class LinearKernel:
         model = kernels.describe(filter, self.name)
         if isinstance(model, str):
             return model
+        if model.post_update is not None:
+            return "a post-update (a model-set policy): the eager smoother"
         if model.rule == "kalman":
             if method is not None or trajectory.prior is None:
                 return "a smoother method for a single filter, or no priors recorded (the eager smoother says)"

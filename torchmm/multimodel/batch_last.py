@@ -221,6 +221,10 @@ class BatchLastIMM:
         self._to_front_p = (*range(3, d + 3), 2, 0, 1)  # (n, n, M, *B) -> (*B, M, n, n)
         self.omitted: frozenset = frozenset()
         self.estimate_only = False
+        #: the filter's work after each update (a model-set policy: LinearGaussian.post_update), its
+        #: generator, and whether the estimate is taken after it (record="estimate" with a post-update)
+        self.post_update, self.generator, self.estimate_after = getattr(model, "post_update", None), None, False
+        self._to_back1 = (d, *range(d))  # (*B, M) -> (M, *B)
         self._core = self.core
         self._compiled = False
         self._key = None  # the structure the untraced steps are counted for (None: not counting)
@@ -490,18 +494,9 @@ class BatchLastIMM:
             X, P = xu, Cu  # the next state
         if self.estimate_only:  # the moment-matched collapse, (n, *B) and (n, n, *B) (exactly symmetric)
             if self.broadcast:
-                est = (mu * X).sum(1)
-                spread = X - est.unsqueeze(1)
-                nu_out = est  # returned in the innovation slots
-                S_out = (mu * (P + spread.unsqueeze(1) * spread.unsqueeze(0))).sum(2)
+                nu_out, S_out = self.collapse_modes(X, P, mu)  # returned in the innovation slots
             else:
-                est = [(mu * xu[a]).sum(0) for a in range(n)]
-                spread = [xu[a] - est[a] for a in range(n)]
-                mu_spread = [mu * spread[a] for a in range(n)]
-                est_cov = [[None] * n for _ in range(n)]
-                for a, c in upper:
-                    est_cov[a][c] = torch.addcmul(mu * Cu[a][c], mu_spread[a], spread[c]).sum(0)
-                nu_out, S_out = torch.stack(est), self.stack(est_cov)
+                nu_out, S_out = self.collapse_entries(xu, Cu, mu)
         X_out = P_out = None
         if not self.estimate_only:
             X_out, P_out = (X, P) if self.broadcast else (torch.stack(xu), self.stack(Cu))
@@ -515,6 +510,27 @@ class BatchLastIMM:
             Xm if keep_extras else None, Pm if keep_extras else None,
             nu_out, S_out,
         )
+
+    @staticmethod
+    def collapse_modes(X: Tensor, P: Tensor, mu: Tensor) -> tuple[Tensor, Tensor]:
+        """The moment-matched collapse over the modes (the estimate), ``(n, *B)`` and ``(n, n, *B)``
+        (exactly symmetric), of ``X (n, M, *B)``, ``P (n, n, M, *B)`` with weights ``mu (M, *B)``."""
+        est = (mu * X).sum(1)
+        spread = X - est.unsqueeze(1)
+        return est, (mu * (P + spread.unsqueeze(1) * spread.unsqueeze(0))).sum(2)
+
+    def collapse_entries(self, xu: list, Cu: list, mu: Tensor) -> tuple[Tensor, Tensor]:
+        """:meth:`collapse_modes` of the per-entry layout: the means ``xu[a] (M, *B)`` and the upper
+        triangle ``Cu[a][c] (M, *B)``, one pass over ``(M, *B)`` per entry."""
+        n = self.n
+        est = [(mu * xu[a]).sum(0) for a in range(n)]
+        spread = [xu[a] - est[a] for a in range(n)]
+        mu_spread = [mu * spread[a] for a in range(n)]
+        est_cov = [[None] * n for _ in range(n)]
+        for a in range(n):
+            for c in range(a, n):
+                est_cov[a][c] = torch.addcmul(mu * Cu[a][c], mu_spread[a], spread[c]).sum(0)
+        return torch.stack(est), self.stack(est_cov)
 
     def initial_state(self, belief: ModeBelief) -> tuple:
         """The state of :meth:`step` at time 0 from the batch-first ``belief``: the means and
@@ -548,8 +564,7 @@ class BatchLastIMM:
             extras = {
                 "mode_log_likelihood": modes(ll),
                 "modes": {"singular": modes(singular), "failed": modes(torch.isnan(ll) & self.data[k][3])},
-                "failed": torch.isnan(total),  # (the keys in the engine's order)
-                "mixed": ModeBelief(modes(log_cbar), gaussian(Xm, Pm)),
+                "failed": torch.isnan(total),  # (the keys in the engine's order; "mixed" last, below)
             }
         out = StepOutput(
             belief=ModeBelief(modes(log_mu), gaussian(X_out, P_out)),
@@ -560,6 +575,22 @@ class BatchLastIMM:
             else S.permute(self._to_front_p),
             extras=extras,
         )
+        if self.post_update is not None:  # the filter's own work after the update (a model-set policy)
+            out = self.post_update(out, self.generator)
+            # carried on, batch-last in memory as the state (a policy's batch-first tensors would make
+            # every operation of the next step a strided gather)
+            state = (X, P, out.belief.mode_log_probs.permute(self._to_back1).contiguous().exp(), k + 1)
+            if self.estimate_after:  # the belief's estimate: its Gaussians' collapse with its output weights
+                belief = out.belief
+                if isinstance(belief, ModeBelief) and type(belief.components) is GaussianBelief:
+                    w = belief.output_log_weights().permute(self._to_back1).contiguous().exp()
+                    est, cov = self.collapse_modes(X, P, w) if self.broadcast else self.collapse_entries(X, P, w)
+                    estimate = GaussianBelief(est.permute(self._to_front1), cov.permute(self._to_front2))
+                else:
+                    estimate = belief.estimate()
+                return state, StepOutput(estimate, None, out.log_likelihood)
+        if ll is not None:
+            out.extras["mixed"] = ModeBelief(modes(log_cbar), gaussian(Xm, Pm))
         return state, out
 
     def run_core(self, args: tuple, k: int) -> tuple:
@@ -624,7 +655,11 @@ class BatchLastKernel:
         if request.compile:
             kernel.compile()
         kernel.prepare(measurements)
-        if request.estimate:
+        kernel.generator = request.generator
+        if request.estimate and kernel.post_update is not None:  # the estimate from the post-update's belief
+            kernel.estimate_after = True
+            kernel.omit(frozenset(StepOutput._fields) - {"belief", "log_likelihood"})
+        elif request.estimate:
             kernel.omit(frozenset(StepOutput._fields) - {"belief", "log_likelihood"}, estimate=True)
         elif request.keep is not None:
             kernel.omit(frozenset(StepOutput._fields) - request.keep)

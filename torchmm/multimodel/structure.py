@@ -24,6 +24,7 @@ import math
 import torch
 from torch import Tensor
 
+import torchmm.kernels as kernels
 from torchmm.contract import Flag, Indices, Of, Real, Stochastic, entry_point
 from torchmm.beliefs import Belief, ModeBelief, ModelSetBelief
 from torchmm.beliefs.ops import normalize_log_probs
@@ -154,6 +155,7 @@ class ActiveSetMixing(Interaction):
         return ModeBelief(log_cbar, belief.components.mix(weights))
 
 
+@kernels.joins("linear_gaussian", ("step", "predict", "update", "mix", "select_models"))
 class VariableStructureIMM(IMM):
     r"""A variable-structure IMM over any bank: IMM interaction from the active set, a policy after
     every update (see the module docstring).
@@ -207,7 +209,18 @@ class VariableStructureIMM(IMM):
         return ModeBelief(mixed.mode_log_probs, mixed.components)
 
     def update(self, belief: ModeBelief, z: Tensor, *, sensor=None, generator=None) -> StepOutput:
-        out = super().update(belief, z, sensor=sensor, generator=generator)
+        return self.select_models(super().update(belief, z, sensor=sensor, generator=generator), generator)
+
+    def linear_gaussian(self):
+        """The IMM's description (:meth:`MultipleModelFilter.linear_gaussian`) with :meth:`select_models`
+        as its ``post_update``: the batch-last IMM kernel runs the steps and this policy after each."""
+        model = super().linear_gaussian()
+        return model if isinstance(model, str) else model._replace(post_update=self.select_models)
+
+    def select_models(self, out: StepOutput, generator=None) -> StepOutput:
+        """The policy after the IMM update ``out`` (batch-first, batch ``(*B,)``): the selected set, the
+        carried probabilities (restricted to the set with ``feedback``), the extras ``"active"``,
+        ``"model_count"``, ``"empty_set"`` and the policy's, a NaN log-likelihood for an empty set."""
         post = out.belief
         selected = self.policy.select(post, generator)
         if not isinstance(selected, tuple) or len(selected) != 2 or not isinstance(selected[1], dict):
@@ -220,7 +233,7 @@ class VariableStructureIMM(IMM):
         empty = ~active.any(-1)
         if self.feedback:
             carried = normalize_log_probs(torch.where(active, carried, torch.full_like(carried, -math.inf)))
-        extras = dict(out.extras)
+        extras = dict(out.extras or {})  # (None: a kernel's run that keeps no extras)
         extras.update(info)
         extras["active"] = active
         extras["model_count"] = active.sum(-1)
