@@ -14,6 +14,7 @@ import torch
 
 from tests.robustness.cases import CASES
 from torchmm import (
+    GPB2,
     IMM,
     ConstantVelocity,
     GaussianBelief,
@@ -23,7 +24,8 @@ from torchmm import (
     smooth,
 )
 from torchmm import kernels
-from torchmm.multimodel import MultiRate
+from torchmm.multimodel import MultiRate, VariableStructureIMM
+from torchmm.multimodel.mevsmm import ExactMinimumEntropy
 from torchmm.multimodel.batch_last import BATCH_LAST
 from torchmm.runtime import HostSyncError, host_reads_ok, no_host_sync
 
@@ -56,15 +58,23 @@ def _imm(runs=5, steps=6):
 
 
 @pytest.mark.parametrize("estimate", [False, True])
-def test_fast_path_steps_never_read_values_on_the_host(estimate):
-    """The batch-last kernel's steps (torchmm/multimodel/batch_last.py, behind torchmm.kernels)."""
+@pytest.mark.parametrize("combinator", ["IMM", "GPB2", "VSIMM"])
+def test_fast_path_steps_never_read_values_on_the_host(estimate, combinator):
+    """The batch-last kernel's steps (torchmm/multimodel/batch_last.py, behind torchmm.kernels): the
+    IMM's, GPB2's (batch_last_pairs.py) and the variable-structure IMM's (the IMM's and its policy's)."""
     imm, belief0, z = _imm()
+    if combinator == "GPB2":
+        imm = GPB2(imm.bank.filter, imm.transition.matrix())
+    elif combinator == "VSIMM":
+        imm = VariableStructureIMM(imm.bank.filter, imm.transition.matrix(), ExactMinimumEntropy())
+        start = GaussianBelief(torch.zeros(5, 2, dtype=z.dtype), 10 * torch.eye(2, dtype=z.dtype))
+        belief0 = imm.initial_belief(start)
     request = kernels.Request(estimate=estimate,  # (as run_filter asks for record="estimate")
                               keep=frozenset({"belief", "log_likelihood"}) if estimate else None)
     run = BATCH_LAST.plan(imm, belief0, z, request)  # the plan (its one look at R's values)
     assert callable(run), run
     kernel = run.kernel
-    assert kernel.estimate_only == estimate
+    assert (kernel.estimate_only or kernel.estimate_after) == estimate
     state = kernel.initial_state(belief0)
     with no_host_sync("the IMM fast path"):
         for _ in range(z.shape[0]):

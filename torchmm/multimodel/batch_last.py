@@ -1,7 +1,9 @@
 r"""The IMM (and GPB1) over linear Kalman modes in the batch-last layout: the engine's fast path (issue 17).
 
 :func:`~torchmm.run_filter` runs an :class:`~torchmm.IMM` over one :class:`~torchmm.KalmanFilter`
-with mode-bank linear models through this kernel (docs/performance.md). The public layout stays
+with mode-bank linear models through this kernel (docs/performance.md); also GPB2 (its step in
+:mod:`torchmm.multimodel.batch_last_pairs`) and the variable-structure IMM, whose model-set policy
+runs after each step as the description's ``post_update`` (:meth:`BatchLastIMM.step`). The public layout stays
 batch-first; inside, the state is kept with the batch axes *last*: the mode probabilities ``(M, *B)``
 and, for large batches, one tensor ``(M, *B)`` per entry: the mode means ``x[a]`` and the
 covariances' upper triangle ``C[a][c]`` (``a <= c``); for small batches, where each operation
