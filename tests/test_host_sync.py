@@ -20,13 +20,13 @@ from torchmm import (
     GaussianBelief,
     KalmanFilter,
     PositionMeasurement,
+    kernels,
     run_filter,
     smooth,
 )
-from torchmm import kernels
 from torchmm.multimodel import MultiRate, VariableStructureIMM
-from torchmm.multimodel.mevsmm import ExactMinimumEntropy
 from torchmm.multimodel.batch_last import BATCH_LAST
+from torchmm.multimodel.mevsmm import ExactMinimumEntropy
 from torchmm.runtime import HostSyncError, host_reads_ok, no_host_sync
 
 
