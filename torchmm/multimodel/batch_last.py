@@ -406,8 +406,8 @@ class BatchLastIMM:
             their covariances ``(m, m, M, *B)`` (``estimate_only``: the estimate ``(n, *B)``,
             ``(n, n, *B)`` in these two).
         """
-        n, m, tiny, omitted = self.n, self.m, self.tiny, self.omitted
-        F, Q, b, H, r = self.F, self.Q, self.b, self.H, self.r
+        n, omitted = self.n, self.omitted
+        F, Q, b = self.F, self.Q, self.b
         upper = [(a, c) for a in range(n) for c in range(a, n)]
         sym = lambda T, a, c: T[min(a, c)][max(a, c)]  # noqa: E731
         # interaction: c_j = sum_i mu_i pi_ij, mu_{i|j} = pi_ij mu_i / c_j
@@ -456,28 +456,7 @@ class BatchLastIMM:
         for a, c in upper:
             Pp[a][c] = combine([(F[c][e], A[a][e]) for e in range(n)], Q[a][c], cbar)
         A = w = joint_ij = None  # freed (not del: cells); X and P: the caller's state holds them
-        # update, one component at a time (diagonal R); a missing component has ob = 0, zc = 0
-        xu, Cu = xp, Pp
-        ll = singular = s_first = None
-        for k in range(m):
-            g = [combine([(H[k][c], sym(Cu, a, c)) for c in range(n)], ZERO, cbar) for a in range(n)]  # P h^T
-            s_raw = combine([(H[k][a], g[a]) for a in range(n)], r[k], cbar)  # (M, *B)
-            nu = zc[k] - combine([(H[k][a], xu[a]) for a in range(n)], ZERO, cbar)
-            s = torch.maximum(s_raw, self.tiny_t)
-            ratio = ob[k] / s
-            gain = [g[a] * ratio for a in range(n)]
-            xu = [torch.addcmul(xu[a], gain[a], nu) for a in range(n)]
-            new = [[None] * n for _ in range(n)]
-            for a, c in upper:
-                new[a][c] = torch.addcmul(Cu[a][c], gain[a], g[c], value=-1.0)
-            Cu = new
-            term = torch.addcdiv(s.log().add_(self.log_2pi), nu * nu, s).mul_(nhob[k])
-            ll = term if ll is None else ll + term
-            if "extras" not in omitted:
-                flag = (s_raw <= tiny) & (ob[k] > 0)
-                singular = flag if singular is None else singular | flag
-            if k == 0:
-                s_first = s_raw
+        xu, Cu, ll, singular, s_first = self.update_components(xp, Pp, zc, ob, nhob, cbar, "extras" not in omitted)
         # mode posterior: log mu_j = ell_j + log c_j - logsumexp_l(ell_l + log c_l), as torch.logsumexp
         # and safe_log_normalize compute it (all -inf: -inf and uniform), in fewer passes
         log_cbar = cbar.log()
@@ -512,6 +491,41 @@ class BatchLastIMM:
             Xm if keep_extras else None, Pm if keep_extras else None,
             nu_out, S_out,
         )
+
+    def update_components(self, xp: list, Pp: list, zc: Tensor, ob: Tensor, nhob: Tensor, like: Tensor,
+                          flags: bool) -> tuple:
+        """The Kalman update of per-entry beliefs ``xp[a]``, ``Pp[a][c]`` (``a <= c``, any broadcastable
+        shapes ``(..., *B)``), one measurement component after the other (diagonal ``R``): ``s = h P h^T +
+        r``, ``K = P h^T / s``, ``P+ = P - K (P h^T)^T``, ``s`` clamped at the smallest normal number; a
+        missing component has ``ob = 0``, ``zc = 0`` and is skipped exactly. ``like``: a tensor of the
+        result's shape for an all-zero sum. Returns the posterior ``xu``, ``Cu``, the log-likelihood, the
+        singular flags (None unless ``flags``) and the first component's ``s``."""
+        n, m, tiny = self.n, self.m, self.tiny
+        H, r = self.H, self.r
+        upper = [(a, c) for a in range(n) for c in range(a, n)]
+        sym = lambda T, a, c: T[min(a, c)][max(a, c)]  # noqa: E731
+        xu, Cu = xp, Pp
+        ll = singular = s_first = None
+        for k in range(m):
+            g = [combine([(H[k][c], sym(Cu, a, c)) for c in range(n)], ZERO, like) for a in range(n)]  # P h^T
+            s_raw = combine([(H[k][a], g[a]) for a in range(n)], r[k], like)
+            nu = zc[k] - combine([(H[k][a], xu[a]) for a in range(n)], ZERO, like)
+            s = torch.maximum(s_raw, self.tiny_t)
+            ratio = ob[k] / s
+            gain = [g[a] * ratio for a in range(n)]
+            xu = [torch.addcmul(xu[a], gain[a], nu) for a in range(n)]
+            new = [[None] * n for _ in range(n)]
+            for a, c in upper:
+                new[a][c] = torch.addcmul(Cu[a][c], gain[a], g[c], value=-1.0)
+            Cu = new
+            term = torch.addcdiv(s.log().add_(self.log_2pi), nu * nu, s).mul_(nhob[k])
+            ll = term if ll is None else ll + term
+            if flags:
+                flag = (s_raw <= tiny) & (ob[k] > 0)
+                singular = flag if singular is None else singular | flag
+            if k == 0:
+                s_first = s_raw
+        return xu, Cu, ll, singular, s_first
 
     @staticmethod
     def collapse_modes(X: Tensor, P: Tensor, mu: Tensor) -> tuple[Tensor, Tensor]:

@@ -84,8 +84,8 @@ class BatchLastGPB2(BatchLastIMM):
             ``(M, M, *B)``, the innovations ``(m, M, M, *B)`` and their covariances ``(m, m, M, M, *B)``
             (``estimate_only``: the estimate ``(n, *B)``, ``(n, n, *B)`` in these two).
         """
-        n, m, tiny, omitted = self.n, self.m, self.tiny, self.omitted
-        F, Q, b, H, r = self.F, self.Q, self.b, self.H, self.r
+        n, omitted = self.n, self.omitted
+        F, Q, b = self.F, self.Q, self.b
         upper = [(a, c) for a in range(n) for c in range(a, n)]
         sym = lambda T, a, c: T[min(a, c)][max(a, c)]  # noqa: E731
         # pair hypotheses: (i, j) starts from mode i's posterior, log weight log mu_i + log pi_ij
@@ -102,30 +102,8 @@ class BatchLastGPB2(BatchLastIMM):
         for a, c in upper:
             Pp[a][c] = combine([(F[c][e], A[a][e]) for e in range(n)], Q[a][c], like)
         A = xs = Cs = None  # freed as soon as dead (assignment, not del: see BatchLastIMM.core)
-        # update, one component at a time (diagonal R); a missing component has ob = 0, zc = 0
-        xu, Cu = xp, Pp
-        ll = singular = s_first = None
         keep_extras = "extras" not in omitted
-        for k in range(m):
-            g = [combine([(H[k][c], sym(Cu, a, c)) for c in range(n)], ZERO, like) for a in range(n)]  # P h^T
-            s_raw = combine([(H[k][a], g[a]) for a in range(n)], r[k], like)
-            nu = zc[k] - combine([(H[k][a], xu[a]) for a in range(n)], ZERO, like)
-            s = torch.maximum(s_raw, self.tiny_t)
-            ratio = ob[k] / s
-            gain = [g[a] * ratio for a in range(n)]
-            xu = [torch.addcmul(xu[a], gain[a], nu) for a in range(n)]
-            new = [[None] * n for _ in range(n)]
-            for a, c in upper:
-                new[a][c] = torch.addcmul(Cu[a][c], gain[a], g[c], value=-1.0)
-            Cu = new
-            term = torch.addcdiv(s.log().add_(self.log_2pi), nu * nu, s).mul_(nhob[k])
-            ll = term if ll is None else ll + term
-            if keep_extras:
-                flag = (s_raw <= tiny) & (ob[k] > 0)
-                singular = flag if singular is None else singular | flag
-            if k == 0:
-                s_first = s_raw
-        g = gain = nu = s = ratio = new = None
+        xu, Cu, ll, singular, s_first = self.update_components(xp, Pp, zc, ob, nhob, like, keep_extras)
         # log w_ij, log mu_j (unnormalised), the log-likelihood, merge weights and mode posterior
         joint = ll + prior_joint  # (i, j, *B)
         log_mode = torch.logsumexp(joint, 0)  # (j, *B)
