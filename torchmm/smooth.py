@@ -397,15 +397,22 @@ def diffuse_factor(dtype: torch.dtype) -> float:
 
 def _smooth_two_filter(filter: MultipleModelFilter, trajectory: Trajectory, measurements: Tensor, controls, motions,
                        sensors) -> Trajectory:
-    filtered = _gaussian_modes(trajectory)
-    steps = filtered.batch_shape[0]
-    comps = filtered.components
-    z = _two_filter_measurements(filter, measurements, comps)
-    prior_log = _prior_mode_log_probs(filter, trajectory, steps, filtered.mode_log_probs)
-    last = filtered[steps - 1]
+    _gaussian_modes(trajectory, materialize=False)  # (the type check)
+    steps = trajectory.belief.batch_shape[0]
+    z = _two_filter_measurements(filter, measurements, trajectory.belief.components)
+    prior_log = _prior_mode_log_probs(filter, trajectory, steps, trajectory.belief.mode_log_probs)
     if steps > 1:  # once, at the entry point: the backward filter runs every mode's motion backwards
-        _check_invertible(_bank_at(filter, motions, steps - 1),
-                          last.components.mean, None if controls is None else controls[steps - 1].unsqueeze(-2))
+        _check_invertible(_bank_at(filter, motions, steps - 1), trajectory.belief.components.mean[steps - 1],
+                          None if controls is None else controls[steps - 1].unsqueeze(-2))
+    if controls is None and motions is None and sensors is None:  # a whole-run kernel (torchmm.kernels)
+        run, _ = kernels.plan_smooth(filter, trajectory, "two_filter", measurements=z, prior_log=prior_log)
+        smoothed = None if run is None else run()
+        if smoothed is not None:
+            return Trajectory(belief=smoothed, prior=None, log_likelihood=trajectory.log_likelihood,
+                              innovation=None, innovation_cov=None, extras={})
+    filtered = _gaussian_modes(trajectory)
+    comps = filtered.components
+    last = filtered[steps - 1]
     # the backward filter starts from a nearly flat prior, updated with the last datum
     est = last.estimate()
     flat = GaussianBelief(est.mean.unsqueeze(-2).expand_as(last.components.mean),
@@ -737,14 +744,15 @@ def smooth(filter: Any, trajectory: Trajectory | None = None, measurements: Tens
                       innovation_cov=None, extras={})
 
 
-def _gaussian_modes(trajectory: Trajectory) -> ModeBelief:
-    """The filtered mode beliefs of ``trajectory``, checked to be Gaussian modes, materialised."""
+def _gaussian_modes(trajectory: Trajectory, materialize: bool = True) -> ModeBelief:
+    """The filtered mode beliefs of ``trajectory``, checked to be Gaussian modes, materialised (or as
+    they are)."""
     filtered = trajectory.belief
     if type(filtered) is not ModeBelief or not isinstance(filtered.components, GaussianBelief):
         raise TypeError(f"trajectory.belief: the multiple-model smoothers need a ModeBelief of Gaussian modes, got "
                         f"{type(filtered).__name__}" + ("" if type(filtered) is not ModeBelief else
                                                         f" of {type(filtered.components).__name__}"))
-    return ModeBelief(filtered.mode_log_probs, filtered.components.materialize())
+    return ModeBelief(filtered.mode_log_probs, filtered.components.materialize() if materialize else filtered.components)
 
 
 def _mode_trajectory(smoothed: list[ModeBelief], trajectory: Trajectory) -> Trajectory:

@@ -198,17 +198,19 @@ def plan(filter: Any, belief0: Any, measurements: Any, request: Request) -> tupl
     return None, "; ".join(reasons) or "no kernel registered"
 
 
-def plan_smooth(filter: Any, trajectory: Any, method: str | None) -> tuple[Callable | None, str]:
+def plan_smooth(filter: Any, trajectory: Any, method: str | None, **inputs: Any) -> tuple[Callable | None, str]:
     """The first registered kernel's plan for smoothing ``trajectory`` (the run of ``filter``) with
     ``method`` (None: the filter's default smoother): ``(run, "")`` where ``run()`` returns the smoothed
-    beliefs (batch ``(T, *B)``) or None (declined at run time), or ``(None, reasons)``."""
+    beliefs (batch ``(T, *B)``) or None (declined at run time), or ``(None, reasons)``. ``inputs``: what
+    the method reads besides the run, checked by :func:`~torchmm.smooth` (the two-filter smoother's
+    ``measurements (T, *B, m)`` and prior mode log-probabilities ``prior_log (T, [*B,] M)``)."""
     _load()
     reasons = []
     for kernel in _KERNELS:
         if kernel.name in _OFF:
             continue
         planner = getattr(kernel, "plan_smooth", None)
-        out = f"{kernel.name}: no smoother" if planner is None else planner(filter, trajectory, method)
+        out = f"{kernel.name}: no smoother" if planner is None else planner(filter, trajectory, method, **inputs)
         if not isinstance(out, str):
             return out, ""
         reasons.append(out)

@@ -339,7 +339,7 @@ class LinearKernel:
         return run
 
 
-    def plan_smooth(self, filter: Any, trajectory: Any, method: str | None):
+    def plan_smooth(self, filter: Any, trajectory: Any, method: str | None, **inputs: Any):
         """Kim's smoother of an IMM or GPB1 run (``method="kim"``), or the RTS smoother of a Kalman
         filter run, without autograd (with it, the eager smoother runs: its gradient is autograd's)."""
         model = kernels.describe(filter, self.name)

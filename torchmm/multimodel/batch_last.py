@@ -131,7 +131,7 @@ class _Coef:
 ZERO, ONE = _Coef("zero"), _Coef("one")
 
 
-def _coefficients(t: Tensor, M: int, event: int, batch_dims: int) -> list:
+def coefficients(t: Tensor, M: int, event: int, batch_dims: int) -> list:
     """A parameter ``([1 or M,] *event)`` as nested lists (``event`` deep) of :class:`_Coef`."""
     if t.dim() == event:
         t = t.unsqueeze(0)
@@ -201,11 +201,11 @@ class BatchLastIMM:
         self.broadcast = True  # the state's layout (prepare chooses it by the batch size)
         d = batch_dims
         self.M, self.n, self.m, self.d = M, model.F.shape[-1], model.H.shape[-2], d
-        self.F = _coefficients(model.F, M, 2, d)
-        self.Q = _coefficients(model.Q, M, 2, d)
-        self.b = _coefficients(model.b, M, 1, d)
-        self.H = _coefficients(model.H, M, 2, d)
-        self.r = _coefficients(model.R.diagonal(dim1=-2, dim2=-1), M, 1, d)
+        self.F = coefficients(model.F, M, 2, d)
+        self.Q = coefficients(model.Q, M, 2, d)
+        self.b = coefficients(model.b, M, 1, d)
+        self.H = coefficients(model.H, M, 2, d)
+        self.r = coefficients(model.R.diagonal(dim1=-2, dim2=-1), M, 1, d)
         R = model.R
         self.R_front = (R if R.dim() == 3 else R.unsqueeze(0)).movedim(0, -1).reshape(
             self.m, self.m, -1, *([1] * d))  # (m, m, P, 1...), for the recorded S only
@@ -703,6 +703,29 @@ class BatchLastKernel:
 
         run.kernel = kernel  # (its BatchLastIMM, for tests and profiling)
         return run
+
+    def plan_smooth(self, filter, trajectory, method, **inputs):
+        """The two-filter smoother of a run of an IMM, GPB1 or GPB2 over linear Kalman modes (``n <= 2``,
+        diagonal ``R``): ``run() -> ModeBelief`` (batch ``(T, *B)``), or the reason not."""
+        return _plan_two_filter(filter, trajectory, method, **inputs)
+
+
+def _plan_two_filter(filter, trajectory, method, measurements=None, prior_log=None, **inputs):
+    """:meth:`BatchLastKernel.plan_smooth`: the two-filter smoother's passes batch-last
+    (:mod:`torchmm.multimodel.batch_last_smooth`), or the reason not."""
+    from torchmm.multimodel.batch_last_smooth import BatchLastTwoFilter, why_not_smooth
+
+    if method != "two_filter":
+        return "only the two-filter smoother"
+    model = kernels.describe(filter, "linear_gaussian")
+    if isinstance(model, str):
+        return model
+    reason = why_not_smooth(model, trajectory, measurements, prior_log)
+    if reason is not None:
+        return reason
+    like = trajectory.belief.mode_log_probs
+    passes = BatchLastTwoFilter(model, model.transition.shape[-1], like.dim() - 2, like)
+    return lambda: passes.run(trajectory, measurements, prior_log)
 
 
 def _stack_batch_first(outputs: list) -> tuple:

@@ -1,0 +1,248 @@
+r"""The two-filter smoother of a multiple-model run over linear Kalman modes in the batch-last layout
+(issue 31, goal 3).
+
+:func:`~torchmm.smooth` runs the two-filter IMM smoother (docs/smoothing.md; ``torchmm/smooth.py``:
+``backward_predict``, ``two_filter_step``, ``backward_imm_update``) through this kernel where the
+filter describes itself as linear-Gaussian (an IMM, GPB1 or GPB2 over one
+:class:`~torchmm.KalmanFilter` with mode-bank linear models, a diagonal ``R``), the state has at most
+two components, and the run has no controls, per-step models or sensors. It computes what the eager
+smoother computes, in the same order, with every quantity one tensor per entry and the batch axes
+last: ``(M, *B)`` per mode, ``(j, i, *B)`` per pair of modes (mode ``j`` at ``k``, ``i`` at ``k + 1``):
+
+- the backward filter's start: the last collapsed estimate, its covariance times
+  :func:`~torchmm.smooth.diffuse_factor`, for every mode, updated with the last datum;
+- the backward prediction ``x_k = F_i^{-1} (m - b_i)``, ``P_k = F_i^{-1} (P + Q_i) F_i^{-T}`` (the
+  eager form linearises at the filtered estimate, ``at + F^{-1}(m - F at - b)``: equal for linear
+  models, to rounding); ``F_i^{-1}`` is inverted once per mode;
+- the fusion of every pair: ``D = P_j + B_i`` and its regularised factor in closed form
+  (:func:`torchmm.linalg.cholesky`'s for ``n <= 2``), ``V = L^{-1} P_j``, ``w = L^{-1} (b_i - x_j)``,
+  ``x_ji = x_j + V^T w``, the overlap ``N(b_i - x_j; 0, D)``, the pair weights and their
+  normalisations (as ``safe_log_normalize``), and mode ``j``'s collapse
+  ``P_j - sum_i w_ji V_ji^T V_ji + spread``;
+- the backward IMM's mixing with the backward transition and its update, one measurement component
+  after the other (:meth:`~torchmm.multimodel.batch_last.BatchLastIMM.update_components`).
+
+The smoothed beliefs are returned batch-first (views of batch-last memory), equal to the eager
+smoother's to rounding (tests/smoothing/test_two_filter_kernel.py).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from torchmm.beliefs import GaussianBelief, ModeBelief
+from torchmm.multimodel.batch_last import ONE, ZERO, BatchLastIMM, coefficients, combine, why_not
+
+__all__ = ["BatchLastTwoFilter", "why_not_smooth"]
+
+_LOG_2PI = math.log(2 * math.pi)
+
+
+def why_not_smooth(model, trajectory, measurements, prior_log) -> str | None:
+    """Why the two-filter smoother of ``trajectory`` (a run of the linear-Gaussian description ``model``)
+    cannot run on this kernel, or None. Shapes and types only, and :func:`why_not`'s one look at ``R``."""
+    if model.rule not in ("mix", "collapse", "pairs"):
+        return f"the {model.rule!r} rule"
+    if model.post_update is not None:
+        return "a post-update (a model-set policy)"
+    belief = trajectory.belief
+    if type(belief) is not ModeBelief or type(belief.components) is not GaussianBelief:
+        return "the trajectory's beliefs are not a ModeBelief of Gaussians"
+    if not isinstance(measurements, Tensor) or not isinstance(prior_log, Tensor):
+        return "no measurements (or prior mode probabilities) given"
+    n, M = model.F.shape[-1], model.transition.shape[-1]
+    if n > 2:
+        return f"a state of {n} components (the closed-form factor covers n <= 2)"
+    steps = belief.mode_log_probs.shape[0]
+    start = ModeBelief(belief.mode_log_probs[0], GaussianBelief(belief.components.mean[0], belief.components.cov[0]))
+    reason = why_not(model, M, start, measurements)
+    if reason is not None:
+        return reason
+    if measurements.shape[0] != steps:
+        return "the measurements' steps differ from the trajectory's"
+    return None
+
+
+class BatchLastTwoFilter:
+    """The two-filter smoother's passes in the batch-last layout (module docstring).
+
+    Args:
+        model: the filter's linear-Gaussian description (:func:`why_not_smooth` None).
+        M: the number of modes; batch_dims: ``len(B)``; like: a tensor of the run's dtype and device.
+    """
+
+    def __init__(self, model, M: int, batch_dims: int, like: Tensor):
+        self.imm = imm = BatchLastIMM(model, M, batch_dims, like)
+        imm.broadcast = False
+        self.M, self.n, self.d = M, imm.n, batch_dims
+        d = batch_dims
+        self.Finv = coefficients(torch.linalg.inv(model.F), M, 2, d)
+        log_pi = model.transition.log()  # [j, i]
+        self.log_pi = log_pi.reshape(M, M, *([1] * d))  # (j, i, 1...)
+        self.log_pi_t = log_pi.mT.reshape(M, M, *([1] * d))  # (i, j, 1...)
+        self.eps, self.tiny = torch.finfo(like.dtype).eps, torch.finfo(like.dtype).tiny
+        self.factor = torch.finfo(like.dtype).eps ** -0.5  # torchmm.smooth.diffuse_factor
+
+    # -- layout ---------------------------------------------------------------------------------
+    def entries(self, mean: Tensor, cov: Tensor) -> tuple[list, list]:
+        """Batch-first ``(*B, M, n)``, ``(*B, M, n, n)`` -> ``x[a]``, ``C[a][c]`` (``a <= c``), each ``(M, *B)``."""
+        d, n = self.d, self.n
+        X = mean.movedim((d, d + 1), (1, 0))
+        P = cov.movedim((d, d + 1, d + 2), (2, 0, 1))
+        return list(X.unbind(0)), [[P[a, c] if c >= a else None for c in range(n)] for a in range(n)]
+
+    def modes_last(self, t: Tensor) -> Tensor:
+        """``(*B, M)`` (or ``(M,)``) -> ``(M, *B)`` (or ``(M, 1...)``)."""
+        if t.dim() == 1:
+            return t.reshape(-1, *([1] * self.d))
+        return t.movedim(-1, 0)
+
+    # -- the passes ---------------------------------------------------------------------------------
+    def start(self, log_mu: Tensor, X: list, C: list, data) -> tuple:
+        """The backward filter at the last step: the collapsed estimate with a diffuse covariance, for
+        every mode, updated with the last datum; mode log-probabilities from ``prior`` (``data[-1]``)."""
+        n, imm = self.n, self.imm
+        mu = log_mu.exp()
+        est, est_cov = imm.collapse_entries(X, C, mu)  # (n, *B), (n, n, *B)
+        like = log_mu
+        xs = [est[a].unsqueeze(0).expand_as(like) for a in range(n)]
+        Cs = [[(self.factor * est_cov[a, c]).unsqueeze(0).expand_as(like) if c >= a else None for c in range(n)]
+              for a in range(n)]
+        zc, ob, nhob, _, _ = data[0]
+        xu, Cu, ll, _, _ = imm.update_components(xs, Cs, zc, ob, nhob, like, False)
+        return self.posterior(ll, data[1]), xu, Cu
+
+    def posterior(self, ll: Tensor, prior: Tensor) -> Tensor:
+        """``mode_posterior``'s mode log-probabilities ``(M, *B)`` from log-likelihoods and a prior."""
+        joint = ll + prior
+        total = torch.logsumexp(joint, 0)
+        return self._normalize(joint, total.unsqueeze(0), self.M)
+
+    @staticmethod
+    def _normalize(joint: Tensor, norm: Tensor, size: int) -> Tensor:
+        """``safe_log_normalize`` with the group size written out."""
+        return (joint - norm).nan_to_num_(nan=-math.log(size), posinf=math.inf, neginf=-math.inf)
+
+    def predict(self, x: list, C: list) -> tuple[list, list]:
+        """The backward prediction of every mode: ``F^{-1} (m - b)``, ``F^{-1} (P + Q) F^{-T}``."""
+        n, imm = self.n, self.imm
+        Finv, Q, b = self.Finv, imm.Q, imm.b
+        like = x[0]
+        diff = [_minus(x[a], b[a]) for a in range(n)]  # m - b
+        mean = [combine([(Finv[a][e], diff[e]) for e in range(n)], ZERO, like) for a in range(n)]
+        S = [[combine([(ONE, C[min(a, c)][max(a, c)])], Q[min(a, c)][max(a, c)], like) for c in range(n)]
+             for a in range(n)]  # P + Q
+        A = [[combine([(Finv[a][e], S[e][c]) for e in range(n)], ZERO, like) for c in range(n)] for a in range(n)]
+        cov = [[combine([(Finv[c][e], A[a][e]) for e in range(n)], ZERO, like) if c >= a else None
+                for c in range(n)] for a in range(n)]
+        return mean, cov
+
+    def fuse(self, log_mu: Tensor, x: list, P: list, log_mu_b: Tensor, b: list, B: list,
+             prior_next: Tensor) -> tuple[Tensor, list, list]:
+        """``two_filter_step``: the smoothed mode log-probabilities ``(M, *B)``, means and covariance
+        entries of step ``k`` from the filtered ``(log_mu, x, P)`` and the backward-predicted
+        ``(log_mu_b, b, B)``."""
+        n, M = self.n, self.M
+        sym = lambda T, a, c: T[min(a, c)][max(a, c)]  # noqa: E731
+        Pj = [[None if t is None else t.unsqueeze(1) for t in row] for row in P]  # (j, 1, *B)
+        D = [[None if P[a][c] is None else Pj[a][c] + B[a][c].unsqueeze(0) for c in range(n)]
+             for a in range(n)]  # (j, i, *B)
+        delta = [b[a].unsqueeze(0) - x[a].unsqueeze(1) for a in range(n)]
+        # the regularised factor (torchmm.linalg.cholesky, closed form for n <= 2)
+        if n == 1:
+            l11 = D[0][0].clamp_min(self.tiny).sqrt()
+            diag = [l11]
+            V = [[Pj[0][0] / l11]]
+            w = [delta[0] / l11]
+        else:
+            a0, b0, c0 = D[0][0], D[0][1], D[1][1]
+            scale = torch.maximum(a0.abs(), c0.abs()) * self.eps + self.tiny
+            l11 = a0.clamp_min(0).maximum(scale).sqrt()
+            l21 = b0 / l11
+            l22 = (c0 - l21 * l21).maximum(scale).sqrt()
+            diag = [l11, l22]
+            row0 = [sym(Pj, 0, c) / l11 for c in range(2)]  # L^{-1} P_j (solve_lower's closed form)
+            V = [row0, [(sym(Pj, 1, c) - l21 * row0[c]) / l22 for c in range(2)]]
+            w0 = delta[0] / l11
+            w = [w0, (delta[1] - l21 * w0) / l22]
+        # x_ji = x_j + V^T w; log N(b_i - x_j; 0, D)
+        mean = [x[a].unsqueeze(1) + _sum([V[e][a] * w[e] for e in range(n)]) for a in range(n)]
+        squares = w[0] * w[0] if n == 1 else w[0] * w[0] + w[1] * w[1]
+        half_log_det = diag[0].log() if n == 1 else diag[0].log() + diag[1].log()
+        log_overlap = -0.5 * (squares + n * _LOG_2PI) - half_log_det
+        evidence = log_mu_b - prior_next  # (i, *B)
+        log_pair = log_mu.unsqueeze(1) + self.log_pi + log_overlap + evidence.unsqueeze(0)  # (j, i, *B)
+        norm = torch.logsumexp(log_pair.flatten(0, 1), 0)
+        log_pair = self._normalize(log_pair, norm, M * M)
+        log_mode = torch.logsumexp(log_pair, 1)  # (j, *B)
+        weights = self._normalize(log_pair, log_mode.unsqueeze(1), M).exp()  # P(s_{k+1} = i | s_k = j)
+        merged = [(weights * mean[a]).sum(1) for a in range(n)]
+        diff = [mean[a] - merged[a].unsqueeze(1) for a in range(n)]
+        wdiff = [weights * diff[a] for a in range(n)]
+        cov = [[None] * n for _ in range(n)]
+        for a in range(n):
+            for c in range(a, n):
+                vv = _sum([V[e][a] * V[e][c] for e in range(n)])  # (V^T V)_ac
+                cov[a][c] = P[a][c] - (weights * vv).sum(1) + (wdiff[a] * diff[c]).sum(1)
+        return log_mode, merged, cov
+
+    def backward_update(self, log_mu_b: Tensor, b: list, B: list, prior: Tensor, data) -> tuple:
+        """``backward_imm_update``: the backward transition's mixing and every mode's update with ``z_k``."""
+        n, M, imm = self.n, self.M, self.imm
+        log_back = self.log_pi_t + prior.unsqueeze(0)  # (i, j, *B): log pi_ji p_k(j)
+        log_back = log_back - torch.logsumexp(log_back, 1, keepdim=True)
+        log_joint = log_mu_b.unsqueeze(1) + log_back  # (i, j, *B)
+        log_a = torch.logsumexp(log_joint, 0)  # (j, *B)
+        w = self._normalize(log_joint, log_a.unsqueeze(0), M).exp()
+        xs = [(w * b[a].unsqueeze(1)).sum(0) for a in range(n)]  # the mixed means (j, *B)
+        D = [b[a].unsqueeze(1) - xs[a].unsqueeze(0) for a in range(n)]
+        wD = [w * D[a] for a in range(n)]
+        Cm = [[torch.addcmul(w * B[a][c].unsqueeze(1), wD[a], D[c]).sum(0) if c >= a else None
+               for c in range(n)] for a in range(n)]
+        zc, ob, nhob, _, _ = data
+        xu, Cu, ll, _, _ = imm.update_components(xs, Cm, zc, ob, nhob, log_a, False)
+        return self.posterior(ll, log_a), xu, Cu
+
+    def run(self, trajectory, measurements: Tensor, prior_log: Tensor) -> ModeBelief:
+        """The smoothed beliefs, batch ``(T, *B)`` (components ``(T, *B, M)``)."""
+        d, imm = self.d, self.imm
+        filtered = trajectory.belief
+        steps = filtered.mode_log_probs.shape[0]
+        imm.prepare(measurements)
+        log_mus = [self.modes_last(filtered.mode_log_probs[k]) for k in range(steps)]
+        entries = [self.entries(filtered.components.mean[k], filtered.components.cov[k]) for k in range(steps)]
+        priors = [self.modes_last(prior_log[k]) for k in range(steps)]
+        last = steps - 1
+        out_mode, out_x, out_C = [None] * steps, [None] * steps, [None] * steps
+        out_mode[last], (out_x[last], out_C[last]) = log_mus[last], entries[last]
+        if steps > 1:
+            log_mu_b, b, B = self.start(log_mus[last], *entries[last], (imm.data[last], priors[last]))
+        for k in range(steps - 2, -1, -1):
+            pb, PB = self.predict(b, B)
+            out_mode[k], out_x[k], out_C[k] = self.fuse(log_mus[k], *entries[k], log_mu_b, pb, PB, priors[k + 1])
+            if k > 0:
+                log_mu_b, b, B = self.backward_update(log_mu_b, pb, PB, priors[k], imm.data[k])
+        mode = torch.stack(out_mode)  # (T, M, *B)
+        X = torch.stack([torch.stack(x) for x in out_x])  # (T, n, M, *B)
+        C = torch.stack([imm.stack(c) for c in out_C])  # (T, n, n, M, *B)
+        return ModeBelief(mode.movedim(1, -1),
+                          GaussianBelief(X.permute(0, *range(3, d + 3), 2, 1),
+                                         C.permute(0, *range(4, d + 4), 3, 1, 2)))
+
+
+def _minus(t: Tensor, coef) -> Tensor:
+    """``t - coef`` for a :func:`~torchmm.multimodel.batch_last.coefficients` entry (zero: ``t`` itself)."""
+    if coef.kind == "zero":
+        return t
+    return t - (1.0 if coef.kind == "one" else coef.value)
+
+
+def _sum(terms: list) -> Tensor:
+    """``terms[0] + terms[1] + ...`` in order."""
+    acc = terms[0]
+    for t in terms[1:]:
+        acc = acc + t
+    return acc
