@@ -752,7 +752,8 @@ def _gaussian_modes(trajectory: Trajectory, materialize: bool = True) -> ModeBel
         raise TypeError(f"trajectory.belief: the multiple-model smoothers need a ModeBelief of Gaussian modes, got "
                         f"{type(filtered).__name__}" + ("" if type(filtered) is not ModeBelief else
                                                         f" of {type(filtered.components).__name__}"))
-    return ModeBelief(filtered.mode_log_probs, filtered.components.materialize() if materialize else filtered.components)
+    components = filtered.components
+    return ModeBelief(filtered.mode_log_probs, components.materialize() if materialize else components)
 
 
 def _mode_trajectory(smoothed: list[ModeBelief], trajectory: Trajectory) -> Trajectory:
