@@ -406,10 +406,7 @@ class BatchLastIMM:
             their covariances ``(m, m, M, *B)`` (``estimate_only``: the estimate ``(n, *B)``,
             ``(n, n, *B)`` in these two).
         """
-        n, omitted = self.n, self.omitted
-        F, Q, b = self.F, self.Q, self.b
-        upper = [(a, c) for a in range(n) for c in range(a, n)]
-        sym = lambda T, a, c: T[min(a, c)][max(a, c)]  # noqa: E731
+        omitted = self.omitted
         # interaction: c_j = sum_i mu_i pi_ij, mu_{i|j} = pi_ij mu_i / c_j
         # (elementwise, not mm: BLAS would round by the batch size, and a run's numbers must not
         # depend on how the runs are chunked: tests/experiments/test_run_streams.py)
@@ -435,37 +432,17 @@ class BatchLastIMM:
             Xi = D = None
         else:
             # entry by entry (X, P: lists), each one pass over (i, j, *B)
-            xs = [(w * X[a].unsqueeze(1)).sum(0) for a in range(n)]  # mixed means (j, *B)
-            D = [X[a].unsqueeze(1) - xs[a].unsqueeze(0) for a in range(n)]  # (i, j, *B)
-            wD = [w * D[a] for a in range(n)]
-            Cm = [[None] * n for _ in range(n)]
-            for a, c in upper:  # sum_i w_ij (P_i + d_ij d_ij^T)
-                Cm[a][c] = torch.addcmul(w * P[a][c].unsqueeze(1), wD[a], D[c]).sum(0)
+            xs, Cm = self.mix_entries(X, P, w)
             if self.collapse:  # the one start belief, seen by every mode (views)
                 xs = [t.expand_as(cbar) for t in xs]
                 Cm = [[None if t is None else t.expand_as(cbar) for t in row] for row in Cm]
             Xm = Pm = None
             if "extras" not in omitted:
                 Xm, Pm = torch.stack(xs), self.stack(Cm)
-            D = wD = None  # freed as soon as dead (assignment, not del: see above)
-        # prediction: x- = F m + b, P- = F C F^T + Q
-        xp = [combine([(F[a][e], xs[e]) for e in range(n)], b[a], cbar) for a in range(n)]
-        A = [[combine([(F[a][e], sym(Cm, e, c)) for e in range(n)], ZERO, cbar) for c in range(n)]
-             for a in range(n)]  # F C
-        Pp = [[None] * n for _ in range(n)]
-        for a, c in upper:
-            Pp[a][c] = combine([(F[c][e], A[a][e]) for e in range(n)], Q[a][c], cbar)
-        A = w = joint_ij = None  # freed (not del: cells); X and P: the caller's state holds them
+        w = joint_ij = None  # freed (not del: cells); X and P: the caller's state holds them
+        xp, Pp = self.predict_entries(xs, Cm, cbar)
         xu, Cu, ll, singular, s_first = self.update_components(xp, Pp, zc, ob, nhob, cbar, "extras" not in omitted)
-        # mode posterior: log mu_j = ell_j + log c_j - logsumexp_l(ell_l + log c_l), as torch.logsumexp
-        # and safe_log_normalize compute it (all -inf: -inf and uniform), in fewer passes
-        log_cbar = cbar.log()
-        joint = ll + log_cbar
-        top = torch.maximum(joint.amax(0), self.lowest)
-        shifted = joint - top
-        log_sum = shifted.exp().sum(0).log()
-        new_log_mu = (shifted - log_sum).nan_to_num_(nan=-math.log(self.M), posinf=math.inf, neginf=-math.inf)
-        total = torch.where(anyob, top + log_sum, self.zero)  # exactly 0 without a datum
+        log_cbar, new_log_mu, total = self.mode_update(ll, cbar, anyob)
         keep_extras = "extras" not in omitted
         Xp = Ppt = nu_out = S_out = None
         mu = new_log_mu.exp()  # for the estimate and the next step
@@ -491,6 +468,48 @@ class BatchLastIMM:
             Xm if keep_extras else None, Pm if keep_extras else None,
             nu_out, S_out,
         )
+
+    def mix_entries(self, X: list, P: list, w: Tensor) -> tuple[list, list]:
+        """Moment-matched mixtures of per-entry beliefs ``X[a]``, ``P[a][c]`` ``(i, *B)`` with weights
+        ``w (i, j, *B)`` (columns summing to one over ``i``): the means ``(j, *B)`` and
+        ``sum_i w_ij (P_i + d_ij d_ij^T)``, ``d_ij = x_i - x_j`` (centred), each one pass over
+        ``(i, j, *B)``."""
+        n = self.n
+        xs = [(w * X[a].unsqueeze(1)).sum(0) for a in range(n)]  # mixed means (j, *B)
+        D = [X[a].unsqueeze(1) - xs[a].unsqueeze(0) for a in range(n)]  # (i, j, *B)
+        wD = [w * D[a] for a in range(n)]
+        Cm = [[None] * n for _ in range(n)]
+        for a in range(n):
+            for c in range(a, n):
+                Cm[a][c] = torch.addcmul(w * P[a][c].unsqueeze(1), wD[a], D[c]).sum(0)
+        return xs, Cm
+
+    def predict_entries(self, xs: list, Cs: list, like: Tensor) -> tuple[list, list]:
+        """Every mode's prediction of per-entry beliefs (any shapes broadcasting with the modes' ``(M, *B)``):
+        ``F m + b``, ``F C F^T + Q`` (upper triangle). ``like``: the shape of an all-zero entry."""
+        n, F, Q, b = self.n, self.F, self.Q, self.b
+        sym = lambda T, a, c: T[min(a, c)][max(a, c)]  # noqa: E731
+        xp = [combine([(F[a][e], xs[e]) for e in range(n)], b[a], like) for a in range(n)]
+        A = [[combine([(F[a][e], sym(Cs, e, c)) for e in range(n)], ZERO, like) for c in range(n)]
+             for a in range(n)]  # F C
+        Pp = [[None] * n for _ in range(n)]
+        for a in range(n):
+            for c in range(a, n):
+                Pp[a][c] = combine([(F[c][e], A[a][e]) for e in range(n)], Q[a][c], like)
+        return xp, Pp
+
+    def mode_update(self, ll: Tensor, cbar: Tensor, anyob: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """The mode posterior ``log mu_j = ell_j + log c_j - logsumexp_l(ell_l + log c_l)``, as
+        torch.logsumexp and safe_log_normalize compute it (all ``-inf``: ``-inf`` and uniform), in fewer
+        passes: ``log c (M, *B)``, ``log mu (M, *B)`` and the log-likelihood ``(*B,)`` (exactly 0 without
+        a datum)."""
+        log_cbar = cbar.log()
+        joint = ll + log_cbar
+        top = torch.maximum(joint.amax(0), self.lowest)
+        shifted = joint - top
+        log_sum = shifted.exp().sum(0).log()
+        new_log_mu = (shifted - log_sum).nan_to_num_(nan=-math.log(self.M), posinf=math.inf, neginf=-math.inf)
+        return log_cbar, new_log_mu, torch.where(anyob, top + log_sum, self.zero)
 
     def update_components(self, xp: list, Pp: list, zc: Tensor, ob: Tensor, nhob: Tensor, like: Tensor,
                           flags: bool) -> tuple:

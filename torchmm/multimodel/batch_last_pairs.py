@@ -37,7 +37,7 @@ from torch import Tensor
 
 from torchmm.beliefs import GaussianBelief, ModeBelief
 from torchmm.filters.base import StepOutput
-from torchmm.multimodel.batch_last import ZERO, BatchLastIMM, combine
+from torchmm.multimodel.batch_last import BatchLastIMM
 
 __all__ = ["BatchLastGPB2"]
 
@@ -85,9 +85,7 @@ class BatchLastGPB2(BatchLastIMM):
             (``estimate_only``: the estimate ``(n, *B)``, ``(n, n, *B)`` in these two).
         """
         n, omitted = self.n, self.omitted
-        F, Q, b = self.F, self.Q, self.b
         upper = [(a, c) for a in range(n) for c in range(a, n)]
-        sym = lambda T, a, c: T[min(a, c)][max(a, c)]  # noqa: E731
         # pair hypotheses: (i, j) starts from mode i's posterior, log weight log mu_i + log pi_ij
         prior_joint = log_mu.unsqueeze(1) + self.matrix  # (i, j, *B)
         # (by index, not iteration: the traced step's arguments are proxies)
@@ -95,13 +93,8 @@ class BatchLastGPB2(BatchLastIMM):
         Cs = [[C[a][c].unsqueeze(1) if c >= a else None for c in range(n)] for a in range(n)]
         like = prior_joint
         # prediction with mode j's model: x- = F_j x_i + b_j, P- = F_j C_i F_j^T + Q_j
-        xp = [combine([(F[a][e], xs[e]) for e in range(n)], b[a], like) for a in range(n)]
-        A = [[combine([(F[a][e], sym(Cs, e, c)) for e in range(n)], ZERO, like) for c in range(n)]
-             for a in range(n)]  # F C
-        Pp = [[None] * n for _ in range(n)]
-        for a, c in upper:
-            Pp[a][c] = combine([(F[c][e], A[a][e]) for e in range(n)], Q[a][c], like)
-        A = xs = Cs = None  # freed as soon as dead (assignment, not del: see BatchLastIMM.core)
+        xp, Pp = self.predict_entries(xs, Cs, like)
+        xs = Cs = None  # freed as soon as dead (assignment, not del: see BatchLastIMM.core)
         keep_extras = "extras" not in omitted
         xu, Cu, ll, singular, s_first = self.update_components(xp, Pp, zc, ob, nhob, like, keep_extras)
         # log w_ij, log mu_j (unnormalised), the log-likelihood, merge weights and mode posterior

@@ -191,17 +191,13 @@ class BatchLastTwoFilter:
 
     def backward_update(self, log_mu_b: Tensor, b: list, B: list, prior: Tensor, data) -> tuple:
         """``backward_imm_update``: the backward transition's mixing and every mode's update with ``z_k``."""
-        n, M, imm = self.n, self.M, self.imm
+        M, imm = self.M, self.imm
         log_back = self.log_pi_t + prior.unsqueeze(0)  # (i, j, *B): log pi_ji p_k(j)
         log_back = log_back - torch.logsumexp(log_back, 1, keepdim=True)
         log_joint = log_mu_b.unsqueeze(1) + log_back  # (i, j, *B)
         log_a = torch.logsumexp(log_joint, 0)  # (j, *B)
         w = self._normalize(log_joint, log_a.unsqueeze(0), M).exp()
-        xs = [(w * b[a].unsqueeze(1)).sum(0) for a in range(n)]  # the mixed means (j, *B)
-        D = [b[a].unsqueeze(1) - xs[a].unsqueeze(0) for a in range(n)]
-        wD = [w * D[a] for a in range(n)]
-        Cm = [[torch.addcmul(w * B[a][c].unsqueeze(1), wD[a], D[c]).sum(0) if c >= a else None
-               for c in range(n)] for a in range(n)]
+        xs, Cm = imm.mix_entries(b, B, w)  # the mixed beliefs (j, *B)
         zc, ob, nhob, _, _ = data
         xu, Cu, ll, _, _ = imm.update_components(xs, Cm, zc, ob, nhob, log_a, False)
         return self.posterior(ll, log_a), xu, Cu
