@@ -718,7 +718,7 @@ class BatchLastKernel:
                     # what the record drops need not be built
                     kernel.omit(kernel.omitted | frozenset(
                         f for f in StepOutput._fields if getattr(kept[0], f) is None and getattr(out, f) is not None))
-            return _stack_batch_first(kept)
+            return stack_batch_first(kept)
 
         run.kernel = kernel  # (its BatchLastIMM, for tests and profiling)
         return run
@@ -747,7 +747,7 @@ def _plan_two_filter(filter, trajectory, method, measurements=None, prior_log=No
     return lambda: passes.run(trajectory, measurements, prior_log)
 
 
-def _stack_batch_first(outputs: list) -> tuple:
+def stack_batch_first(outputs: list) -> tuple:
     """The steps' outputs (batch-first views of batch-last tensors) stacked on a new time axis, each
     field in its own memory order (a contiguous copy instead of a transposing gather): batch-first
     *views* of batch-last memory, full records as estimates. A further batch-first copy of the full

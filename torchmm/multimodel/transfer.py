@@ -22,16 +22,18 @@ The target-only baseline is the plain :class:`~torchmm.multimodel.IMM` on the ``
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor
 
+import torchmm.kernels as kernels
 from torchmm.contract import Choice, Int, Of, Real, Stochastic, entry_point
 from torchmm.beliefs import Belief, GaussianBelief, ModeBelief, where
 from torchmm.filters.base import Filter, StepOutput
 from torchmm.linalg import any_observed, cholesky, cholesky_solve, condition
 from torchmm.models.base import MeasurementModel
-from torchmm.models.linear import LinearMotion, matvec
+from torchmm.models.linear import LinearMeasurement, LinearMotion, matvec, plain_linear
 from torchmm.models.streams import MultiRate
 from torchmm.multimodel.bank import FilterBank, VectorizedBank
 from torchmm.multimodel.imm import IMM, mode_posterior
@@ -182,6 +184,24 @@ InfluenceGate.__init__ = entry_point(threshold=Real(), mode=Int(0), weight=Choic
 # --------------------------------------------------------------------------------------------
 # IMM-TF / IF-TF
 # --------------------------------------------------------------------------------------------
+class TransferGaussian(NamedTuple):
+    """A :class:`TransferIMM`'s description of itself for the batch-last kernel
+    (``filter.transfer_gaussian()``, :mod:`torchmm.multimodel.batch_last_transfer`).
+
+    Shapes (``*P``: ``()`` or the modes ``(M,)``): model: the IMM's
+    :class:`~torchmm.kernels.linear.LinearGaussian` (rule ``"mix"``); H_S ``(*P, m_S, n)`` and R_S
+    ``(*P, m_S, m_S)``: the source sensor; the options as the filter's.
+    """
+
+    model: Any
+    H_S: Tensor
+    R_S: Tensor
+    smoothing_reference: str
+    mode_likelihood: str
+    gate: Any
+
+
+@kernels.joins("transfer_gaussian", ("step", "predict", "update", "mix", "_influence"))
 class TransferIMM(IMM):
     r"""Transfer IMM (IMM-TF, paper 000) and, with ``gate``, IF-TF.
 
@@ -252,6 +272,21 @@ class TransferIMM(IMM):
 
     def update(self, belief, z, **kwargs):
         raise NotImplementedError("TransferIMM: the transfer needs the posterior at k-1; call step()")
+
+    def transfer_gaussian(self) -> TransferGaussian | str:
+        """This filter's description for the batch-last kernel (:class:`TransferGaussian`), or the reason
+        it has none (a bank that is not linear-Gaussian, a source sensor that is not a plain
+        :class:`~torchmm.models.LinearMeasurement`, a subclass that overrides the steps)."""
+        if not kernels.joined(self, "transfer_gaussian"):
+            return f"{type(self).__name__} has not joined the transfer kernels (or overrides their steps)"
+        describe = getattr(self.bank, "linear_gaussian", None)
+        model = describe() if describe is not None else f"the bank {type(self.bank).__name__} is not linear-Gaussian"
+        if isinstance(model, str):
+            return model
+        if not (isinstance(self.source, LinearMeasurement) and plain_linear(self.source)):
+            return "the source sensor is not a LinearMeasurement (its own forward and noise)"
+        return TransferGaussian(model._replace(transition=self._matrix(model.F), rule="mix"), self.source.H,
+                                self.source.R, self.smoothing_reference, self.mode_likelihood, self.gate)
 
     def step(self, belief: ModeBelief, z, *, u: Tensor | None = None, generator=None) -> StepOutput:
         who = type(self).__name__

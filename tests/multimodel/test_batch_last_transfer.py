@@ -1,0 +1,144 @@
+"""IMM-TF's batch-last kernel (torchmm/multimodel/batch_last_transfer.py, registered as
+``"batch_last_transfer"``): run_filter's TransferIMM without a gate, over linear Kalman modes with
+n <= 2, returns what the eager steps return - the estimates (record="estimate") and every kept field
+(``Keep`` without the extras: beliefs, priors, innovations) - for both smoothing references and both
+mode likelihoods, random banks and source sensors, missing target and source components, batch
+shapes, float32 and gradients; it is taken by default, and not where it does not apply (a gate, the
+extras kept, n > 2, update_first, a non-diagonal R_S, compile=True). The eager TransferIMM is checked
+against a NumPy reference in tests/multimodel/test_transfer.py."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from tests.multimodel.test_batch_last import D, _random_imm
+from tests.multimodel.test_transfer import paper_setup
+from torchmm import LinearMeasurement, kernels, run_filter
+from torchmm.multimodel import InfluenceGate, MultiRate, TransferIMM
+from torchmm.multimodel.batch_last_transfer import TRANSFER, BatchLastTransfer
+from torchmm.run import Keep
+from torchmm.runtime import no_host_sync
+
+FIELDS = ("belief", "prior", "log_likelihood", "innovation", "innovation_cov")
+
+
+@pytest.fixture(autouse=True)
+def transfer_steps(monkeypatch):
+    """The list of the kernel's steps."""
+    calls = []
+    step = BatchLastTransfer.step
+
+    def counted(self, state, z):
+        calls.append(self)
+        return step(self, state, z)
+
+    monkeypatch.setattr(BatchLastTransfer, "step", counted)
+    return calls
+
+
+def _random_transfer(n, m, mS, M, batch, steps, seed, dtype=D, **options):
+    imm, belief0, y = _random_imm(n, m, M, batch, steps, seed, dtype=dtype)
+    g = torch.Generator().manual_seed(seed + 100)
+    H_S = torch.randn(mS, n, generator=g, dtype=D).to(dtype)
+    R_S = torch.diag(0.2 + torch.rand(mS, generator=g, dtype=D)).to(dtype)
+    ys = (2 * torch.randn(steps, *batch, mS, generator=g, dtype=D)).to(dtype)
+    ys[torch.rand(steps, *batch, generator=g) < 0.4] = float("nan")  # gamma_k = 0
+    if mS > 1:
+        ys[..., 0][torch.rand(steps, *batch, generator=g) < 0.2] = float("nan")  # partly present
+    tf = TransferIMM(imm.bank.filter, imm.transition.matrix(), LinearMeasurement(H_S, R_S), **options)
+    return tf, belief0, MultiRate(y, ys)
+
+
+def _close(got, want, tol=1e-9):
+    for name in FIELDS:
+        a, b = getattr(got, name), getattr(want, name)
+        if a is None or b is None:
+            assert a is None and b is None, name
+            continue
+        for x, y in zip(torch.utils._pytree.tree_leaves(a), torch.utils._pytree.tree_leaves(b)):
+            assert x.shape == y.shape and x.dtype == y.dtype, name
+            torch.testing.assert_close(x, y, rtol=tol, atol=tol, equal_nan=True)
+
+
+@pytest.mark.parametrize("reference", ["combined", "mixed"])
+@pytest.mark.parametrize("likelihood", ["prior", "corrected"])
+@pytest.mark.parametrize("n,m,mS,M", [(1, 1, 1, 2), (2, 1, 1, 3), (2, 2, 2, 2), (2, 1, 2, 4)])
+def test_equals_the_eager_steps(reference, likelihood, n, m, mS, M, transfer_steps):
+    tf, belief0, z = _random_transfer(n, m, mS, M, (6,), steps=14, seed=7 * n + 3 * m + mS + M,
+                                      smoothing_reference=reference, mode_likelihood=likelihood)
+    got = run_filter(tf, belief0, z, record="estimate")  # the default takes it
+    assert len(transfer_steps) == 14
+    want = run_filter(tf, belief0, z, record="estimate", fast_path=False)
+    _close(got, want)
+    keep = Keep(*FIELDS)
+    _close(run_filter(tf, belief0, z, record=keep), run_filter(tf, belief0, z, record=keep, fast_path=False))
+    assert len(transfer_steps) == 28
+
+
+def test_the_paper_scenario_and_batch_shapes(transfer_steps):
+    kf, P, source, prior, z, _ = paper_setup(runs=6, steps=30)
+    tf = TransferIMM(kf, P, source)
+    belief0 = tf.initial_belief(prior)
+    _close(run_filter(tf, belief0, z, record="estimate"), run_filter(tf, belief0, z, record="estimate", fast_path=False))
+    for batch in ((), (2, 3)):
+        tf, belief0, z = _random_transfer(2, 1, 1, 3, batch, steps=8, seed=len(batch))
+        _close(run_filter(tf, belief0, z, record="estimate"),
+               run_filter(tf, belief0, z, record="estimate", fast_path=False))
+    assert len(transfer_steps) == 30 + 16
+
+
+def test_float32_and_gradients(transfer_steps):
+    tf32, b32, z32 = _random_transfer(2, 1, 1, 3, (5,), steps=10, seed=4, dtype=torch.float32)
+    got = run_filter(tf32, b32, z32, record="estimate")
+    assert got.belief.mean.dtype == torch.float32
+    _close(got, run_filter(tf32, b32, z32, record="estimate", fast_path=False), tol=2e-4)
+
+    def grads(fast):
+        tf, belief0, z = _random_transfer(2, 1, 1, 3, (5,), steps=10, seed=4)
+        y = z.target.clone().requires_grad_(True)
+        out = run_filter(tf, belief0, MultiRate(y, z.source), record="estimate", fast_path=fast)
+        return torch.autograd.grad(out.log_likelihood.sum() + out.belief.mean.sum(), y)[0]
+
+    fast, slow = grads(True), grads(False)
+    assert bool(fast.ne(0).any())
+    torch.testing.assert_close(fast, slow, rtol=1e-9, atol=1e-9)
+
+
+def test_no_host_reads_in_the_steps(transfer_steps):
+    tf, belief0, z = _random_transfer(2, 2, 2, 3, (4,), steps=6, seed=3)
+    request = kernels.Request(estimate=True, keep=frozenset({"belief", "log_likelihood"}))
+    run = TRANSFER.plan(tf, belief0, z, request)
+    with no_host_sync("the IMM-TF kernel"):
+        fields = run()
+    torch.testing.assert_close(fields[2], run_filter(tf, belief0, z, record="estimate").log_likelihood, rtol=0, atol=0)
+
+
+def test_declines_what_it_does_not_compute(transfer_steps):
+    tf, belief0, z = _random_transfer(2, 2, 2, 2, (3,), steps=5, seed=1)
+    estimate = kernels.Request(estimate=True, keep=frozenset({"belief", "log_likelihood"}))
+    gated = TransferIMM(tf.bank.filter, tf.transition.matrix(), tf.source, gate=InfluenceGate())
+    full = tf.source.R.clone()
+    full[0, 1] = full[1, 0] = 0.1
+    other = TransferIMM(tf.bank.filter, tf.transition.matrix(), LinearMeasurement(tf.source.H, full))
+    big, big0, zbig = _random_transfer(3, 1, 1, 2, (3,), steps=5, seed=2)
+
+    class _Mine(TransferIMM):
+        def step(self, belief, z, **inputs):
+            return super().step(belief, z, **inputs)
+
+    mine = _Mine(tf.bank.filter, tf.transition.matrix(), tf.source)
+    cases = [("an influence gate", gated, belief0, z, estimate),
+             ("R is not diagonal", other, belief0, z, estimate),
+             ("a state of 3 components", big, big0, zbig, estimate),
+             ("_Mine has not joined", mine, belief0, z, estimate),
+             ("keeps the extras", tf, belief0, z, kernels.Request()),
+             ("update_first", tf, belief0, z, kernels.Request(update_first=True, estimate=True)),
+             ("no compiled step", tf, belief0, z, kernels.Request(compile_required=True, estimate=True))]
+    for reason, filt, b0, data, request in cases:
+        assert reason in TRANSFER.plan(filt, b0, data, request)
+    for filt, b0, data in ((gated, belief0, z), (mine, belief0, z), (tf, belief0, z)):
+        run_filter(filt, b0, data)  # the eager steps (the full record keeps the extras)
+    assert not transfer_steps
+    with pytest.raises(ValueError, match="compile: compiles the fast path"):
+        run_filter(tf, belief0, z, record="estimate", compile=True)

@@ -1,0 +1,249 @@
+r"""IMM-TF (:class:`~torchmm.multimodel.TransferIMM`, paper 000) over linear Kalman modes in the batch-last
+layout (issue 31, goal 3).
+
+:func:`~torchmm.run_filter` runs a ``TransferIMM`` without a gate (IMM-TF; IF-TF's influence gate runs
+the eager steps) over one :class:`~torchmm.KalmanFilter` with mode-bank linear models, a diagonal
+``R`` and ``R_S``, a state of at most two components, through this kernel
+(:class:`BatchLastTransferKernel`, registered as ``"batch_last_transfer"``), where the run keeps its
+beliefs or estimates but not the ``extras`` (the influence values, the smoothed references and the
+transferred knowledge are the eager steps' diagnostics). It is the batch-last IMM kernel's step
+(:mod:`torchmm.multimodel.batch_last`, one tensor ``(M, *B)`` per entry) with the transfer of
+:meth:`TransferIMM.step <torchmm.multimodel.TransferIMM.step>`, in the same order:
+
+1. the IMM's mixing, prediction and update with ``y_k`` (the plain posterior and ``Lambda_j``);
+2. the source filter's posterior: the prediction updated with ``y_{S,k}`` (noise ``R_S``);
+3. the transfer smoothing (13)-(14) from the reference at ``k-1`` (the combined estimate, or each
+   mode's mixed start): ``G^T = (F P F^T + Q)^{-1} F P`` by the closed-form regularised factor of
+   :func:`torchmm.linalg.cholesky` (``n <= 2``), the smoothed mean ``x + G (m - f(x))``;
+4. the transferred knowledge ``u_S = H (F m_s + b)``, the correction (20)-(21) with it where the
+   source datum is present, the update (22)-(23) with ``y_k``;
+5. the mode probabilities from ``Lambda_j`` (or the corrected likelihoods), the components where the
+   source is present the transferred ones, else the plain ones.
+
+Equal to the eager steps to rounding (tests/multimodel/test_batch_last_transfer.py).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+import torchmm.kernels as kernels
+from torchmm.beliefs import GaussianBelief, ModeBelief
+from torchmm.filters.base import StepOutput
+from torchmm.multimodel.batch_last import ZERO, BatchLastIMM, combine, stack_batch_first, why_not
+from torchmm.multimodel.multirate import split_streams
+
+__all__ = ["TRANSFER", "BatchLastTransfer", "BatchLastTransferKernel"]
+
+
+class BatchLastTransfer(BatchLastIMM):
+    """One IMM-TF step in the batch-last layout (module docstring): the IMM kernel's state (per-entry
+    layout) and the source sensor's coefficients ``H_S``, ``r_S``.
+
+    Args:
+        description: the filter's :class:`~torchmm.multimodel.transfer.TransferGaussian`.
+        M, batch_dims, like: as :class:`~torchmm.multimodel.batch_last.BatchLastIMM`.
+    """
+
+    kind = "IMM-TF"
+
+    def __init__(self, description, M: int, batch_dims: int, like: Tensor):
+        super().__init__(description.model, M, batch_dims, like)
+        source = description.model._replace(H=description.H_S, R=description.R_S)
+        self.source = BatchLastIMM(source, M, batch_dims, like)  # (its coefficients and update only)
+        self.combined = description.smoothing_reference == "combined"
+        self.corrected = description.mode_likelihood == "corrected"
+        self.eps = torch.finfo(like.dtype).eps
+
+    def broadcast_layout(self, runs: int, itemsize: int) -> bool:
+        """Always one tensor per entry."""
+        return False
+
+    def _select(self) -> None:
+        """The step runs as written (no traced graph: its arguments are not the IMM step's)."""
+
+    def prepare_streams(self, y: Tensor, ys: Tensor) -> None:
+        """Once per run: the target data (:meth:`prepare`) and the source data ``(T, *B, m_S)`` as
+        ``(T, m_S, *B)`` with 0 where missing, its masks, and ``gamma_k`` (every component present)."""
+        self.prepare(y)
+        z = ys.movedim(-1, 1)
+        observed = torch.isfinite(z)
+        ob = observed.to(z.dtype)
+        present = observed.all(1)  # gamma_k (T, *B)
+        self.source_data = list(zip(torch.where(observed, z, 0.0).unbind(0), ob.unbind(0), ob.mul(-0.5).unbind(0),
+                                    present.unbind(0), present.to(z.dtype).unbind(0)))
+
+    def _factor_solve(self, S: list, rhs: list) -> list:
+        """``S^{-1} rhs`` for the per-entry symmetric ``S`` (upper triangle) and ``rhs[a][c]`` (a full
+        ``n x n``), by :func:`torchmm.linalg.cholesky`'s closed-form regularised factor and
+        :func:`~torchmm.linalg.cholesky_solve`'s substitutions (``n <= 2``)."""
+        n, tiny = self.n, self.tiny
+        if n == 1:
+            L = S[0][0].clamp_min(tiny).sqrt()
+            return [[rhs[0][0] / L / L]]
+        a, b, c = S[0][0], S[0][1], S[1][1]
+        scale = torch.maximum(a.abs(), c.abs()) * self.eps + tiny
+        l11 = a.clamp_min(0).maximum(scale).sqrt()
+        l21 = b / l11
+        l22 = (c - l21 * l21).maximum(scale).sqrt()
+        out = [[None] * 2 for _ in range(2)]
+        for col in range(2):
+            y0 = rhs[0][col] / l11
+            y1 = (rhs[1][col] - l21 * y0) / l22
+            x1 = y1 / l22
+            out[0][col], out[1][col] = (y0 - l21 * x1) / l11, x1
+        return out
+
+    def core(self, X: list, C: list, mu: Tensor, zc: Tensor, ob: Tensor, nhob: Tensor, anyob: Tensor, zraw: Tensor,
+             szc: Tensor, sob: Tensor, snhob: Tensor, present: Tensor, present_f: Tensor) -> tuple:
+        """The IMM-TF step's arithmetic (module docstring).
+
+        Shapes:
+            X, C: the state (per-entry ``(M, *B)``); mu ``(M, *B)``; the target's data as the IMM's core
+            (``(m, *B)``, anyob ``(*B,)``), the source's ``(m_S, *B)`` and ``gamma_k`` ``(*B,)`` (bool and
+            float) -> the next ``X, C``, ``log mu``, ``mu``, the log-likelihood ``(*B,)``, then (None where
+            not needed) the posterior ``(n, M, *B)``, ``(n, n, M, *B)``, the prior and ``log c``, the
+            innovations and their covariances (``estimate_only``: the estimate in these two).
+        """
+        n, omitted = self.n, self.omitted
+        F, H = self.F, self.H
+        sym = lambda T, a, c: T[min(a, c)][max(a, c)]  # noqa: E731
+        # 1. the IMM: mixing, prediction, update with y_k
+        mu_i = mu.unsqueeze(1)
+        joint_ij = mu_i * self.matrix
+        cbar = joint_ij.sum(0)
+        w = joint_ij / torch.maximum(cbar, self.tiny_t).unsqueeze(0)
+        xs, Cm = self.mix_entries(X, C, w)
+        w = joint_ij = None
+        xp, Pp = self.predict_entries(xs, Cm, cbar)
+        xu, Cu, ll, _, s_first = self.update_components(xp, Pp, zc, ob, nhob, cbar, False)
+        # 2. the source filter's posterior
+        ms, _, _, _, _ = self.source.update_components(xp, Pp, szc, sob, snhob, cbar, False)
+        # 3. the transfer smoothing from the reference at k-1
+        if self.combined:
+            est, est_cov = self.collapse_entries(X, C, mu)
+            rx = [est[a].unsqueeze(0) for a in range(n)]
+            rC = [[est_cov[a, c].unsqueeze(0) if c >= a else None for c in range(n)] for a in range(n)]
+        else:
+            rx, rC = xs, Cm
+        mp, Cp = self.predict_entries(rx, rC, cbar)  # f(x), F P F^T + Q
+        FP = [[combine([(F[a][e], sym(rC, e, c)) for e in range(n)], ZERO, cbar) for c in range(n)]
+              for a in range(n)]
+        gain_t = self._factor_solve(Cp, FP)  # (F P F^T + Q)^{-1} F P = G^T
+        dm = [ms[e] - mp[e] for e in range(n)]
+        smoothed = [rx[a] + _sum([gain_t[e][a] * dm[e] for e in range(n)]) for a in range(n)]
+        # 4. u_S = H (F m_s + b) where the source datum is present; the correction and the update
+        fm = [combine([(F[a][e], smoothed[e]) for e in range(n)], self.b[a], cbar) for a in range(n)]
+        u_s = [combine([(H[k][a], fm[a]) for a in range(n)], ZERO, cbar) for k in range(self.m)]
+        uzc = torch.stack([torch.where(present, u_s[k], 0.0) for k in range(self.m)])
+        uob = present_f.expand(self.m, *present_f.shape)
+        xc, Cc, _, _, _ = self.update_components(xp, Pp, uzc, uob, uob * -0.5, cbar, False)
+        xt, Ct, llt, _, _ = self.update_components(xc, Cc, zc, ob, nhob, cbar, False)
+        # 5. the mode probabilities and the components
+        if self.corrected:
+            ll = torch.where(present, llt, ll)
+        log_cbar, log_mu, total = self.mode_update(ll, cbar, anyob)
+        xn = [torch.where(present, xt[a], xu[a]) for a in range(n)]
+        Cn = [[torch.where(present, Ct[a][c], Cu[a][c]) if c >= a else None for c in range(n)] for a in range(n)]
+        mu = log_mu.exp()
+        X_out = P_out = Xp = Ppt = nu_out = S_out = None
+        if self.estimate_only:
+            nu_out, S_out = self.collapse_entries(xn, Cn, mu)
+        else:
+            X_out, P_out = torch.stack(xn), self.stack(Cn)
+            if "prior" not in omitted:
+                Xp, Ppt = torch.stack(xp), self.stack(Pp)
+            if "innovation" not in omitted or "innovation_cov" not in omitted:
+                nu_out, S_out = self._innovation(zraw, xp, Pp, s_first)
+        return xn, Cn, X_out, P_out, log_mu, mu, total, Xp, Ppt, log_cbar, nu_out, S_out
+
+    def step(self, state: tuple, z: Tensor) -> tuple[tuple, StepOutput]:
+        """One IMM-TF step on the prepared data of the state's step (``z``: held by the kernel)."""
+        X, C, mu, k = state
+        self._steps_done = k + 1
+        (X, C, X_out, P_out, log_mu, mu, total, Xp, Pp, log_cbar, nu, S) = self.core(
+            X, C, mu, *self.data[k], *self.source_data[k])
+        state = (X, C, mu, k + 1)
+        if self.estimate_only:
+            return state, StepOutput(GaussianBelief(nu.permute(self._to_front1), S.permute(self._to_front2)),
+                                     None, total)
+        out = StepOutput(
+            belief=ModeBelief(self.modes(log_mu), self.gaussian(X_out, P_out)),
+            prior=None if Xp is None else ModeBelief(self.modes(log_cbar), self.gaussian(Xp, Pp)),
+            log_likelihood=total,
+            innovation=None if nu is None or "innovation" in self.omitted else nu.permute(self._to_front_x),
+            innovation_cov=None if S is None or "innovation_cov" in self.omitted else S.permute(self._to_front_p),
+            extras=None,
+        )
+        return state, out
+
+
+def _sum(terms: list) -> Tensor:
+    """``terms[0] + terms[1] + ...`` in order."""
+    acc = terms[0]
+    for t in terms[1:]:
+        acc = acc + t
+    return acc
+
+
+class BatchLastTransferKernel:
+    """The registered kernel of IMM-TF (module docstring): a filter that describes itself with
+    ``transfer_gaussian()`` (no gate), ``n <= 2``, a run without ``update_first`` that keeps the belief or
+    the estimate and not the ``extras`` (``record="estimate"`` or ``Keep(...)`` without ``"extras"``)."""
+
+    name = "batch_last_transfer"
+
+    def plan(self, filter, belief0, measurements, request: kernels.Request):
+        if request.update_first:
+            return "update_first"
+        if request.repeated or request.compile_required:
+            return "no prepared evaluation and no compiled step"
+        description = kernels.describe(filter, "transfer_gaussian")
+        if isinstance(description, str):
+            return description
+        if description.gate is not None:
+            return "an influence gate (IF-TF: the eager steps)"
+        if not request.estimate and (request.keep is None or "extras" in request.keep):
+            return "the run keeps the extras (influence, smoothed references: the eager steps' diagnostics)"
+        model = description.model
+        n, M = model.F.shape[-1], model.transition.shape[-1]
+        if n > 2:
+            return f"a state of {n} components (the closed-form factor covers n <= 2)"
+        try:
+            y, ys = split_streams(measurements)
+        except TypeError:
+            return "the measurements are not MultiRate(target, source)"
+        reason = why_not(model, M, belief0, y) or why_not(model._replace(H=description.H_S, R=description.R_S),
+                                                          M, belief0, ys)
+        if reason is not None:
+            return reason
+        like = belief0.mode_log_probs
+        kernel = BatchLastTransfer(description, M, like.dim() - 1, like)
+        kernel.prepare_streams(y, ys)
+        if request.estimate:
+            kernel.omit(frozenset(StepOutput._fields) - {"belief", "log_likelihood"}, estimate=True)
+        else:
+            kernel.omit(frozenset(StepOutput._fields) - request.keep)
+
+        def run():
+            state = kernel.initial_state(belief0)
+            steps = range(len(kernel.data))
+            if request.progress:
+                from tqdm.auto import tqdm
+
+                steps = tqdm(steps, desc=request.progress if isinstance(request.progress, str) else None,
+                             leave=False)
+            kept = []
+            for _ in steps:
+                state, out = kernel.step(state, None)
+                if request.detach_belief and out.belief is not None:
+                    out = out._replace(belief=out.belief.detach())
+                kept.append(out)
+            return stack_batch_first(kept)
+
+        run.kernel = kernel
+        return run
+
+
+TRANSFER = kernels.register(BatchLastTransferKernel())
