@@ -100,14 +100,20 @@ def batch_last_steps(monkeypatch):
     :meth:`BatchLastIMM.step` calls (one per step the kernel ran) is the fixture's value."""
     monkeypatch.setattr(linear.LinearKernel, "plan",
                         lambda self, *args: "declined in tests/multimodel/test_batch_last.py")
+    return count_calls(monkeypatch, BatchLastIMM, "step")
+
+
+def count_calls(monkeypatch, cls: type, name: str) -> list:
+    """Wrap the method ``cls.name`` (for the test) so that every call appends its instance to the
+    returned list."""
     calls = []
-    step = BatchLastIMM.step
+    original = getattr(cls, name)
 
-    def counted(self, state, z):
+    def counted(self, *args, **kwargs):
         calls.append(self)
-        return step(self, state, z)
+        return original(self, *args, **kwargs)
 
-    monkeypatch.setattr(BatchLastIMM, "step", counted)
+    monkeypatch.setattr(cls, name, counted)
     return calls
 
 

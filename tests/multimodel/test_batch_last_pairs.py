@@ -14,7 +14,13 @@ import pytest
 import torch
 import torch.utils._pytree as pytree
 
-from tests.multimodel.test_batch_last import D, _assert_identical, _random_imm, assert_same_trajectory
+from tests.multimodel.test_batch_last import (
+    D,
+    _assert_identical,
+    _random_imm,
+    assert_same_trajectory,
+    count_calls,
+)
 from torchmm import (
     GPB2,
     ConstantVelocity,
@@ -37,15 +43,7 @@ def pair_steps(monkeypatch):
     """The small linear kernel declines (as it does for GPB2 anyway: tested below); the list of the
     :meth:`BatchLastGPB2.step` calls is the fixture's value."""
     monkeypatch.setattr(linear.LinearKernel, "plan", lambda self, *args: "declined in this test")
-    calls = []
-    step = BatchLastGPB2.step
-
-    def counted(self, state, z):
-        calls.append(self)
-        return step(self, state, z)
-
-    monkeypatch.setattr(BatchLastGPB2, "step", counted)
-    return calls
+    return count_calls(monkeypatch, BatchLastGPB2, "step")
 
 
 def _random_gpb2(n, m, M, batch, steps, seed, dtype=D, shared=False):

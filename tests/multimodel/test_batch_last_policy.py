@@ -17,7 +17,7 @@ import math
 import pytest
 import torch
 
-from tests.multimodel.test_batch_last import D, _random_imm, assert_same_trajectory
+from tests.multimodel.test_batch_last import D, _random_imm, assert_same_trajectory, count_calls
 from torchmm import GaussianBelief, KalmanFilter, LinearMotion, kernels, run_filter
 from torchmm.kernels import linear
 from torchmm.linalg import cholesky
@@ -32,15 +32,7 @@ def kernel_steps(monkeypatch):
     """The small linear kernel declines (as it does for any post-update: tested below); the list of
     the batch-last kernels that stepped."""
     monkeypatch.setattr(linear.LinearKernel, "plan", lambda self, *args: "declined in this test")
-    calls = []
-    step = BatchLastIMM.step
-
-    def counted(self, state, z):
-        calls.append(self)
-        return step(self, state, z)
-
-    monkeypatch.setattr(BatchLastIMM, "step", counted)
-    return calls
+    return count_calls(monkeypatch, BatchLastIMM, "step")
 
 
 def _random_vsimm(n, m, M, batch, steps, seed, policy=None, feedback=True, shared=False):

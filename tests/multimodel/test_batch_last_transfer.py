@@ -12,7 +12,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from tests.multimodel.test_batch_last import D, _random_imm
+from tests.multimodel.test_batch_last import D, _random_imm, count_calls
 from tests.multimodel.test_transfer import paper_setup
 from torchmm import LinearMeasurement, kernels, run_filter
 from torchmm.multimodel import InfluenceGate, MultiRate, TransferIMM
@@ -26,15 +26,7 @@ FIELDS = ("belief", "prior", "log_likelihood", "innovation", "innovation_cov")
 @pytest.fixture(autouse=True)
 def transfer_steps(monkeypatch):
     """The list of the kernel's steps."""
-    calls = []
-    step = BatchLastTransfer.step
-
-    def counted(self, state, z):
-        calls.append(self)
-        return step(self, state, z)
-
-    monkeypatch.setattr(BatchLastTransfer, "step", counted)
-    return calls
+    return count_calls(monkeypatch, BatchLastTransfer, "step")
 
 
 def _random_transfer(n, m, mS, M, batch, steps, seed, dtype=D, **options):

@@ -17,7 +17,7 @@ import dataclasses
 import pytest
 import torch
 
-from tests.multimodel.test_batch_last import _random_imm
+from tests.multimodel.test_batch_last import _random_imm, count_calls
 from torchmm import (
     GPB1,
     GPB2,
@@ -42,15 +42,7 @@ TOL = 1e-6
 @pytest.fixture(autouse=True)
 def kernel_runs(monkeypatch):
     """The list of the kernel's runs (one per smooth call it took)."""
-    calls = []
-    run = BatchLastTwoFilter.run
-
-    def counted(self, *args):
-        calls.append(self)
-        return run(self, *args)
-
-    monkeypatch.setattr(BatchLastTwoFilter, "run", counted)
-    return calls
+    return count_calls(monkeypatch, BatchLastTwoFilter, "run")
 
 
 def _eager(filt, traj, z, **kwargs):

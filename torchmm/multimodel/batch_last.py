@@ -700,25 +700,7 @@ class BatchLastKernel:
             kernel.omit(frozenset(StepOutput._fields) - request.keep)
 
         def run():
-            state = kernel.initial_state(belief0)
-            record, detach = request.record, request.detach_belief
-            steps = range(len(kernel.data))
-            if request.progress:
-                from tqdm.auto import tqdm
-
-                steps = tqdm(steps, desc=request.progress if isinstance(request.progress, str) else None,
-                             leave=False)
-            kept = []
-            for k in steps:
-                state, out = kernel.step(state, None)
-                if detach and out.belief is not None:
-                    out = out._replace(belief=out.belief.detach())
-                kept.append(out if record is None else record(out))
-                if k == 0 and record is not None and isinstance(kept[0], StepOutput):
-                    # what the record drops need not be built
-                    kernel.omit(kernel.omitted | frozenset(
-                        f for f in StepOutput._fields if getattr(kept[0], f) is None and getattr(out, f) is not None))
-            return stack_batch_first(kept)
+            return run_steps(kernel, belief0, request)
 
         run.kernel = kernel  # (its BatchLastIMM, for tests and profiling)
         return run
@@ -745,6 +727,30 @@ def _plan_two_filter(filter, trajectory, method, measurements=None, prior_log=No
     like = trajectory.belief.mode_log_probs
     passes = BatchLastTwoFilter(model, model.transition.shape[-1], like.dim() - 2, like)
     return lambda: passes.run(trajectory, measurements, prior_log)
+
+
+def run_steps(kernel: BatchLastIMM, belief0, request: kernels.Request) -> tuple:
+    """A planned kernel's whole run: its steps from ``belief0`` (a progress bar where asked), each
+    output detached and recorded as ``request`` says, stacked (:func:`stack_batch_first`). After step 0
+    the kernel stops building what a record function dropped."""
+    state = kernel.initial_state(belief0)
+    record, detach = request.record, request.detach_belief
+    steps = range(len(kernel.data))
+    if request.progress:
+        from tqdm.auto import tqdm
+
+        steps = tqdm(steps, desc=request.progress if isinstance(request.progress, str) else None, leave=False)
+    kept = []
+    for k in steps:
+        state, out = kernel.step(state, None)
+        if detach and out.belief is not None:
+            out = out._replace(belief=out.belief.detach())
+        kept.append(out if record is None else record(out))
+        if k == 0 and record is not None and isinstance(kept[0], StepOutput):
+            # what the record drops need not be built
+            kernel.omit(kernel.omitted | frozenset(
+                f for f in StepOutput._fields if getattr(kept[0], f) is None and getattr(out, f) is not None))
+    return stack_batch_first(kept)
 
 
 def stack_batch_first(outputs: list) -> tuple:

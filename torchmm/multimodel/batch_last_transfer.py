@@ -31,7 +31,7 @@ from torch import Tensor
 import torchmm.kernels as kernels
 from torchmm.beliefs import GaussianBelief, ModeBelief
 from torchmm.filters.base import StepOutput
-from torchmm.multimodel.batch_last import ZERO, BatchLastIMM, combine, stack_batch_first, why_not
+from torchmm.multimodel.batch_last import ZERO, BatchLastIMM, combine, run_steps, why_not
 from torchmm.multimodel.multirate import split_streams
 
 __all__ = ["TRANSFER", "BatchLastTransfer", "BatchLastTransferKernel"]
@@ -227,20 +227,7 @@ class BatchLastTransferKernel:
             kernel.omit(frozenset(StepOutput._fields) - request.keep)
 
         def run():
-            state = kernel.initial_state(belief0)
-            steps = range(len(kernel.data))
-            if request.progress:
-                from tqdm.auto import tqdm
-
-                steps = tqdm(steps, desc=request.progress if isinstance(request.progress, str) else None,
-                             leave=False)
-            kept = []
-            for _ in steps:
-                state, out = kernel.step(state, None)
-                if request.detach_belief and out.belief is not None:
-                    out = out._replace(belief=out.belief.detach())
-                kept.append(out)
-            return stack_batch_first(kept)
+            return run_steps(kernel, belief0, request)
 
         run.kernel = kernel
         return run
