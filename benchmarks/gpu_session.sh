@@ -19,11 +19,12 @@ export PYTHONPATH=.${PYTHONPATH:+:$PYTHONPATH} PYTHONUNBUFFERED=1
 { nvidia-smi; python3 -c "import torch; print('torch', torch.__version__, 'cuda', torch.cuda.is_available())"; } \
     > "$out/machine.txt" 2>&1
 cat "$out/machine.txt"
-# 1. the CUDA tests: host synchronisation, the smoothers, association and set metrics, every study with
+# 1. the CUDA tests: host synchronisation, the smoothers, association and set metrics, the batch-last
+#    kernels of GPB2, the VSIMM, IMM-TF and the two-filter smoother, every study with
 #    device=cuda (at most 220 s)
 timeout 220 python3 -m pytest -q -p no:cacheprovider -rs -n 4 -k cuda tests/test_host_sync.py \
     tests/smoothing/test_two_filter.py tests/smoothing/test_parallel.py tests/test_pda.py tests/test_set_metrics.py \
-    tests/test_association_cuda.py \
+    tests/test_association_cuda.py tests/test_batch_last_cuda.py \
     tests/experiments/test_studies.py 2>&1 | tee "$out/cuda_tests.log"
 # 2. throughput (the script stops escalating past 40 s a size and ends within about 5 minutes)
 timeout 320 python3 benchmarks/gpu.py ${GPU_ARGS:-} 2>&1 | tee "$out/gpu_benchmark.log"
