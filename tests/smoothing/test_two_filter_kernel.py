@@ -71,7 +71,7 @@ COMBINATORS = {"IMM": lambda imm: imm, "GPB1": lambda imm: GPB1(imm.bank.filter,
                "GPB2": lambda imm: GPB2(imm.bank.filter, imm.transition.matrix())}
 
 
-@pytest.mark.parametrize("n,m,M", [(1, 1, 1), (1, 1, 2), (2, 1, 3), (2, 2, 2), (2, 2, 4)])
+@pytest.mark.parametrize("n,m,M", [(1, 1, 1), (1, 1, 2), (2, 1, 3), (2, 2, 2), (2, 2, 4), (3, 2, 2), (4, 2, 3)])
 @pytest.mark.parametrize("shared", [False, True])
 @pytest.mark.parametrize("combinator", list(COMBINATORS))
 def test_equals_the_eager_passes(n, m, M, shared, combinator, kernel_runs):
@@ -150,11 +150,11 @@ def test_declines_what_it_does_not_compute(kernel_runs):
     kf = imm.bank.filter
     full = kf.measurement.R.clone()
     full[:, 0, 1] = full[:, 1, 0] = 0.1
-    big, big0, zbig = _random_imm(3, 1, 2, (3,), steps=5, seed=2)
+    big, big0, zbig = _random_imm(7, 1, 2, (3,), steps=5, seed=2)
     cases = {
         "R is not diagonal": (IMM(KalmanFilter(kf.motion, LinearMeasurement(kf.measurement.H, full)),
                                   imm.transition.matrix()), belief0, z),
-        "a state of 3 components": (big, big0, zbig),
+        "a state of 7 components": (big, big0, zbig),
         "ExtendedKalmanFilter is not linear-Gaussian": (IMM(ExtendedKalmanFilter(kf.motion, kf.measurement),
                                                             imm.transition.matrix()), belief0, z),
     }
@@ -175,3 +175,27 @@ def test_declines_what_it_does_not_compute(kernel_runs):
                                                                    belief0.components.cov[:, 0])), z), z)
     smooth(imm, traj, z)
     assert len(kernel_runs) == 1
+
+
+@pytest.mark.parametrize("n", [3, 4, 6])
+def test_the_factor_beyond_two_components_is_torchmms_regularised_one(n):
+    """Entry by entry, with cholesky_ex's retry: positive definite, singular (the jittered factor),
+    indefinite beyond the jitter (the diagonal fallback) and NaN matrices."""
+    from torchmm.linalg import cholesky  # noqa: PLC0415
+
+    imm, belief0, z = _random_imm(n, 1, 2, (3,), steps=2, seed=n)
+    traj = run_filter(imm, belief0, z)
+    passes = BatchLastTwoFilter(imm.linear_gaussian(), 2, 1, traj.belief.mode_log_probs)
+    g = torch.Generator().manual_seed(n)
+    A = torch.randn(40, n, n, generator=g, dtype=torch.float64)
+    S = A @ A.mT
+    S[5:10] = (A[5:10, :, :1] @ A[5:10, :, :1].mT)  # rank one: the jittered retry
+    S[10:15] = -S[10:15]  # negative definite: the diagonal fallback
+    S[15] = float("nan")
+    L = passes.factor([[S[:, a, c] if c >= a else None for c in range(n)] for a in range(n)])
+    got = torch.stack([torch.stack([L[a][c] if c <= a else torch.zeros(40, dtype=torch.float64)
+                                    for c in range(n)], -1) for a in range(n)], -2)
+    want = cholesky(S)
+    # (the jittered factors' last pivots are ~1e-4 of the matrix's scale: rounding of 1e-12 absolute)
+    torch.testing.assert_close(got, want, rtol=1e-10, atol=1e-10, equal_nan=True)
+    assert bool(torch.isfinite(got[:15]).all()) and bool(got[15].isnan().any())

@@ -706,7 +706,7 @@ class BatchLastKernel:
         return run
 
     def plan_smooth(self, filter, trajectory, method, **inputs):
-        """The two-filter smoother of a run of an IMM, GPB1 or GPB2 over linear Kalman modes (``n <= 2``,
+        """The two-filter smoother of a run of an IMM, GPB1 or GPB2 over linear Kalman modes (``n <= 6``,
         diagonal ``R``): ``run() -> ModeBelief`` (batch ``(T, *B)``), or the reason not."""
         return _plan_two_filter(filter, trajectory, method, **inputs)
 

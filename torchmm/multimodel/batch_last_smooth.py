@@ -15,7 +15,7 @@ last: ``(M, *B)`` per mode, ``(j, i, *B)`` per pair of modes (mode ``j`` at ``k`
   eager form linearises at the filtered estimate, ``at + F^{-1}(m - F at - b)``: equal for linear
   models, to rounding); ``F_i^{-1}`` is inverted once per mode;
 - the fusion of every pair: ``D = P_j + B_i`` and its regularised factor in closed form
-  (:func:`torchmm.linalg.cholesky`'s for ``n <= 2``), ``V = L^{-1} P_j``, ``w = L^{-1} (b_i - x_j)``,
+  (:func:`torchmm.linalg.cholesky`'s for ``n <= 2``; beyond, :meth:`BatchLastTwoFilter.factor`), ``V = L^{-1} P_j``, ``w = L^{-1} (b_i - x_j)``,
   ``x_ji = x_j + V^T w``, the overlap ``N(b_i - x_j; 0, D)``, the pair weights and their
   normalisations (as ``safe_log_normalize``), and mode ``j``'s collapse
   ``P_j - sum_i w_ji V_ji^T V_ji + spread``;
@@ -39,6 +39,8 @@ from torchmm.multimodel.batch_last import ONE, ZERO, BatchLastIMM, coefficients,
 __all__ = ["BatchLastTwoFilter", "why_not_smooth"]
 
 _LOG_2PI = math.log(2 * math.pi)
+#: the largest state the kernel takes: its factor of the pairs' ``n x n`` sums runs entry by entry
+MAX_STATE = 6
 
 
 def why_not_smooth(model, trajectory, measurements, prior_log) -> str | None:
@@ -54,8 +56,8 @@ def why_not_smooth(model, trajectory, measurements, prior_log) -> str | None:
     if not isinstance(measurements, Tensor) or not isinstance(prior_log, Tensor):
         return "no measurements (or prior mode probabilities) given"
     n, M = model.F.shape[-1], model.transition.shape[-1]
-    if n > 2:
-        return f"a state of {n} components (the closed-form factor covers n <= 2)"
+    if n > MAX_STATE:
+        return f"a state of {n} components (more than {MAX_STATE}: the factor entry by entry costs n^3 operations)"
     steps = belief.mode_log_probs.shape[0]
     start = ModeBelief(belief.mode_log_probs[0], GaussianBelief(belief.components.mean[0], belief.components.cov[0]))
     reason = why_not(model, M, start, measurements)
@@ -84,7 +86,7 @@ class BatchLastTwoFilter:
         self.log_pi = log_pi.reshape(M, M, *([1] * d))  # (j, i, 1...)
         self.log_pi_t = log_pi.mT.reshape(M, M, *([1] * d))  # (i, j, 1...)
         self.eps, self.tiny = torch.finfo(like.dtype).eps, torch.finfo(like.dtype).tiny
-        self.factor = torch.finfo(like.dtype).eps ** -0.5  # torchmm.smooth.diffuse_factor
+        self.diffuse = torch.finfo(like.dtype).eps ** -0.5  # torchmm.smooth.diffuse_factor
 
     # -- layout ---------------------------------------------------------------------------------
     def entries(self, mean: Tensor, cov: Tensor) -> tuple[list, list]:
@@ -109,7 +111,7 @@ class BatchLastTwoFilter:
         est, est_cov = imm.collapse_entries(X, C, mu)  # (n, *B), (n, n, *B)
         like = log_mu
         xs = [est[a].unsqueeze(0).expand_as(like) for a in range(n)]
-        Cs = [[(self.factor * est_cov[a, c]).unsqueeze(0).expand_as(like) if c >= a else None for c in range(n)]
+        Cs = [[(self.diffuse * est_cov[a, c]).unsqueeze(0).expand_as(like) if c >= a else None for c in range(n)]
               for a in range(n)]
         zc, ob, nhob, _, _ = data[0]
         xu, Cu, ll, _, _ = imm.update_components(xs, Cs, zc, ob, nhob, like, False)
@@ -157,7 +159,7 @@ class BatchLastTwoFilter:
             diag = [l11]
             V = [[Pj[0][0] / l11]]
             w = [delta[0] / l11]
-        else:
+        elif n == 2:
             a0, b0, c0 = D[0][0], D[0][1], D[1][1]
             scale = torch.maximum(a0.abs(), c0.abs()) * self.eps + self.tiny
             l11 = a0.clamp_min(0).maximum(scale).sqrt()
@@ -168,10 +170,15 @@ class BatchLastTwoFilter:
             V = [row0, [(sym(Pj, 1, c) - l21 * row0[c]) / l22 for c in range(2)]]
             w0 = delta[0] / l11
             w = [w0, (delta[1] - l21 * w0) / l22]
+        else:  # entry by entry, with cholesky_ex's retry
+            L = self.factor(D)
+            diag = [L[a][a] for a in range(n)]
+            V = self.solve_lower(L, [[sym(Pj, e, c) for c in range(n)] for e in range(n)])
+            w = [row[0] for row in self.solve_lower(L, [[delta[e]] for e in range(n)])]
         # x_ji = x_j + V^T w; log N(b_i - x_j; 0, D)
         mean = [x[a].unsqueeze(1) + _sum([V[e][a] * w[e] for e in range(n)]) for a in range(n)]
-        squares = w[0] * w[0] if n == 1 else w[0] * w[0] + w[1] * w[1]
-        half_log_det = diag[0].log() if n == 1 else diag[0].log() + diag[1].log()
+        squares = _sum([w[e] * w[e] for e in range(n)])
+        half_log_det = _sum([d.log() for d in diag])
         log_overlap = -0.5 * (squares + n * _LOG_2PI) - half_log_det
         evidence = log_mu_b - prior_next  # (i, *B)
         log_pair = log_mu.unsqueeze(1) + self.log_pi + log_overlap + evidence.unsqueeze(0)  # (j, i, *B)
@@ -188,6 +195,62 @@ class BatchLastTwoFilter:
                 vv = _sum([V[e][a] * V[e][c] for e in range(n)])  # (V^T V)_ac
                 cov[a][c] = P[a][c] - (weights * vv).sum(1) + (wdiff[a] * diff[c]).sum(1)
         return log_mode, merged, cov
+
+    def factor(self, S: list) -> list:
+        """:func:`torchmm.linalg.cholesky`'s regularised factor of the per-entry symmetric ``S`` (upper
+        triangle ``S[a][c]``, ``a <= c``) for ``n > 2``, entry by entry: the Cholesky factor where every
+        pivot is positive; elsewhere the factor of ``S + sqrt(eps) s I`` (``s = max |S_aa|``), and where
+        that fails too ``diag(sqrt(max(S_aa, eps s)))`` - ``cholesky_ex``'s retry, without reading a
+        value on the host. Returns the lower triangle ``L[a][c]`` (``c <= a``)."""
+        n = self.n
+        plain, failed = self._cholesky(S, None)
+        scale = S[0][0].abs()
+        for a in range(1, n):
+            scale = torch.maximum(scale, S[a][a].abs())
+        scale = scale.nan_to_num(nan=1.0).clamp_min(self.tiny)
+        jitter = torch.where(failed, scale * self.eps ** 0.5, 0.0)
+        retry, failed_again = self._cholesky(S, jitter)
+        floor = self.eps * scale
+        L = [[None] * n for _ in range(n)]
+        for a in range(n):
+            for c in range(a + 1):
+                fallback = S[a][a].maximum(floor).sqrt() if a == c else torch.zeros_like(scale)
+                L[a][c] = torch.where(failed, torch.where(failed_again, fallback, retry[a][c]), plain[a][c])
+        return L
+
+    def _cholesky(self, S: list, jitter: Tensor | None) -> tuple[list, Tensor]:
+        """The Cholesky factor of ``S (+ jitter I)`` entry by entry (lower ``L[a][c]``) and where a pivot
+        is not positive (or NaN): ``cholesky_ex``'s failure."""
+        n = self.n
+        L = [[None] * n for _ in range(n)]
+        failed = None
+        for j in range(n):
+            pivot = S[j][j] if jitter is None else S[j][j] + jitter
+            for k in range(j):
+                pivot = pivot - L[j][k] * L[j][k]
+            bad = ~(pivot > 0)
+            failed = bad if failed is None else failed | bad
+            L[j][j] = pivot.sqrt()
+            for i in range(j + 1, n):
+                acc = S[j][i]
+                for k in range(j):
+                    acc = acc - L[i][k] * L[j][k]
+                L[i][j] = acc / L[j][j]
+        return L, failed
+
+    def solve_lower(self, L: list, rhs: list) -> list:
+        """``L^{-1} rhs`` by forward substitution, ``rhs[e][c]`` (``n`` rows of any number of columns)."""
+        n = self.n
+        out = [None] * n
+        for a in range(n):
+            row = []
+            for c in range(len(rhs[a])):
+                acc = rhs[a][c]
+                for k in range(a):
+                    acc = acc - L[a][k] * out[k][c]
+                row.append(acc / L[a][a])
+            out[a] = row
+        return out
 
     def backward_update(self, log_mu_b: Tensor, b: list, B: list, prior: Tensor, data) -> tuple:
         """``backward_imm_update``: the backward transition's mixing and every mode's update with ``z_k``."""
