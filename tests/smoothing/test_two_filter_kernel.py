@@ -1,6 +1,6 @@
 """The two-filter smoother's batch-last kernel (torchmm/multimodel/batch_last_smooth.py, the
 ``plan_smooth`` of ``BATCH_LAST``): ``smooth`` of a run of an IMM, GPB1 or GPB2 over linear Kalman
-modes with ``n <= 2`` and a diagonal ``R`` runs there, and equals the eager passes (the kernel switched
+modes with ``n <= 6`` and a diagonal ``R`` runs there, and equals the eager passes (the kernel switched
 off) for random banks, per-mode and shared parameters, exact zeros and ones, missing data, batch
 shapes, float32 and gradients; it declines what it does not compute. (tests/smoothing/test_two_filter.py
 checks the smoother itself - through this kernel where it applies - against an independent NumPy

@@ -5,7 +5,7 @@ r"""The two-filter smoother of a multiple-model run over linear Kalman modes in 
 ``backward_predict``, ``two_filter_step``, ``backward_imm_update``) through this kernel where the
 filter describes itself as linear-Gaussian (an IMM, GPB1 or GPB2 over one
 :class:`~torchmm.KalmanFilter` with mode-bank linear models, a diagonal ``R``), the state has at most
-two components, and the run has no controls, per-step models or sensors. It computes what the eager
+six components, and the run has no controls, per-step models or sensors. It computes what the eager
 smoother computes, in the same order, with every quantity one tensor per entry and the batch axes
 last: ``(M, *B)`` per mode, ``(j, i, *B)`` per pair of modes (mode ``j`` at ``k``, ``i`` at ``k + 1``):
 
@@ -15,7 +15,8 @@ last: ``(M, *B)`` per mode, ``(j, i, *B)`` per pair of modes (mode ``j`` at ``k`
   eager form linearises at the filtered estimate, ``at + F^{-1}(m - F at - b)``: equal for linear
   models, to rounding); ``F_i^{-1}`` is inverted once per mode;
 - the fusion of every pair: ``D = P_j + B_i`` and its regularised factor in closed form
-  (:func:`torchmm.linalg.cholesky`'s for ``n <= 2``; beyond, :meth:`BatchLastTwoFilter.factor`), ``V = L^{-1} P_j``, ``w = L^{-1} (b_i - x_j)``,
+  (:func:`torchmm.linalg.cholesky`'s for ``n <= 2``; beyond, :meth:`BatchLastTwoFilter.factor`),
+  ``V = L^{-1} P_j``, ``w = L^{-1} (b_i - x_j)``,
   ``x_ji = x_j + V^T w``, the overlap ``N(b_i - x_j; 0, D)``, the pair weights and their
   normalisations (as ``safe_log_normalize``), and mode ``j``'s collapse
   ``P_j - sum_i w_ji V_ji^T V_ji + spread``;
