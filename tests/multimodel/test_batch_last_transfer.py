@@ -1,20 +1,21 @@
 """IMM-TF's batch-last kernel (torchmm/multimodel/batch_last_transfer.py, registered as
-``"batch_last_transfer"``): run_filter's TransferIMM without a gate, over linear Kalman modes with
-n <= 2, returns what the eager steps return - the estimates (record="estimate") and every kept field
-(``Keep`` without the extras: beliefs, priors, innovations) - for both smoothing references and both
-mode likelihoods, random banks and source sensors, missing target and source components, batch
-shapes, float32 and gradients; it is taken by default, and not where it does not apply (a gate, the
-extras kept, n > 2, update_first, a non-diagonal R_S, compile=True). The eager TransferIMM is checked
-against a NumPy reference in tests/multimodel/test_transfer.py."""
+``"batch_last_transfer"``): run_filter's TransferIMM (IMM-TF, and IF-TF with its influence gate) over
+linear Kalman modes with n <= 2 returns what the eager steps return - every field of the full record
+(the extras: influence values, the gate's choices, the smoothed references, the transferred knowledge),
+the estimates (record="estimate") and ``Keep`` records - for both smoothing references, both mode
+likelihoods, gates of either weight, random banks and source sensors, missing target and source
+components, batch shapes, float32 and gradients; it is taken by default, and not where it does not
+apply (n > 2, update_first, a non-diagonal R_S, compile=True, a process weight with a singular Q). The
+eager TransferIMM is checked against a NumPy reference in tests/multimodel/test_transfer.py."""
 
 from __future__ import annotations
 
 import pytest
 import torch
 
-from tests.multimodel.test_batch_last import D, _random_imm, count_calls
+from tests.multimodel.test_batch_last import D, _random_imm, assert_same_trajectory, count_calls
 from tests.multimodel.test_transfer import paper_setup
-from torchmm import LinearMeasurement, kernels, run_filter
+from torchmm import KalmanFilter, LinearMeasurement, LinearMotion, kernels, run_filter
 from torchmm.multimodel import InfluenceGate, MultiRate, TransferIMM
 from torchmm.multimodel.batch_last_transfer import TRANSFER, BatchLastTransfer
 from torchmm.run import Keep
@@ -53,19 +54,26 @@ def _close(got, want, tol=1e-9):
             torch.testing.assert_close(x, y, rtol=tol, atol=tol, equal_nan=True)
 
 
+GATES = {"IMM-TF": None, "IF-TF": InfluenceGate(), "IF-TF mode 1": InfluenceGate(threshold=0.5, mode=1),
+         "IF-TF process": InfluenceGate(weight="process", mode=1)}
+
+
 @pytest.mark.parametrize("reference", ["combined", "mixed"])
 @pytest.mark.parametrize("likelihood", ["prior", "corrected"])
 @pytest.mark.parametrize("n,m,mS,M", [(1, 1, 1, 2), (2, 1, 1, 3), (2, 2, 2, 2), (2, 1, 2, 4)])
-def test_equals_the_eager_steps(reference, likelihood, n, m, mS, M, transfer_steps):
+@pytest.mark.parametrize("gate", list(GATES))
+def test_equals_the_eager_steps(reference, likelihood, n, m, mS, M, gate, transfer_steps):
     tf, belief0, z = _random_transfer(n, m, mS, M, (6,), steps=14, seed=7 * n + 3 * m + mS + M,
-                                      smoothing_reference=reference, mode_likelihood=likelihood)
-    got = run_filter(tf, belief0, z, record="estimate")  # the default takes it
+                                      smoothing_reference=reference, mode_likelihood=likelihood, gate=GATES[gate])
+    got = run_filter(tf, belief0, z)  # the default takes it, the full record included
     assert len(transfer_steps) == 14
-    want = run_filter(tf, belief0, z, record="estimate", fast_path=False)
-    _close(got, want)
+    assert_same_trajectory(got, run_filter(tf, belief0, z, fast_path=False), tol=1e-9)
+    if GATES[gate] is not None:  # the gate chose: some present source data not used
+        assert bool((got.extras["source_present"] & ~got.extras["transfer_used"]).any())
+    _close(run_filter(tf, belief0, z, record="estimate"), run_filter(tf, belief0, z, record="estimate", fast_path=False))
     keep = Keep(*FIELDS)
     _close(run_filter(tf, belief0, z, record=keep), run_filter(tf, belief0, z, record=keep, fast_path=False))
-    assert len(transfer_steps) == 28
+    assert len(transfer_steps) == 42
 
 
 def test_the_paper_scenario_and_batch_shapes(transfer_steps):
@@ -110,7 +118,9 @@ def test_no_host_reads_in_the_steps(transfer_steps):
 def test_declines_what_it_does_not_compute(transfer_steps):
     tf, belief0, z = _random_transfer(2, 2, 2, 2, (3,), steps=5, seed=1)
     estimate = kernels.Request(estimate=True, keep=frozenset({"belief", "log_likelihood"}))
-    gated = TransferIMM(tf.bank.filter, tf.transition.matrix(), tf.source, gate=InfluenceGate())
+    kf = tf.bank.filter
+    singular = KalmanFilter(LinearMotion(kf.motion.F, torch.zeros_like(kf.motion.Q), kf.motion.offset), kf.measurement)
+    gated = TransferIMM(singular, tf.transition.matrix(), tf.source, gate=InfluenceGate(weight="process"))
     full = tf.source.R.clone()
     full[0, 1] = full[1, 0] = 0.1
     other = TransferIMM(tf.bank.filter, tf.transition.matrix(), LinearMeasurement(tf.source.H, full))
@@ -121,17 +131,17 @@ def test_declines_what_it_does_not_compute(transfer_steps):
             return super().step(belief, z, **inputs)
 
     mine = _Mine(tf.bank.filter, tf.transition.matrix(), tf.source)
-    cases = [("an influence gate", gated, belief0, z, estimate),
+    cases = [("a singular Q", gated, belief0, z, estimate),
              ("R is not diagonal", other, belief0, z, estimate),
              ("a state of 3 components", big, big0, zbig, estimate),
              ("_Mine has not joined", mine, belief0, z, estimate),
-             ("keeps the extras", tf, belief0, z, kernels.Request()),
              ("update_first", tf, belief0, z, kernels.Request(update_first=True, estimate=True)),
              ("no compiled step", tf, belief0, z, kernels.Request(compile_required=True, estimate=True))]
     for reason, filt, b0, data, request in cases:
         assert reason in TRANSFER.plan(filt, b0, data, request)
-    for filt, b0, data in ((gated, belief0, z), (mine, belief0, z), (tf, belief0, z)):
-        run_filter(filt, b0, data)  # the eager steps (the full record keeps the extras)
+    with pytest.raises(ValueError, match="gate: weight='process' needs a non-singular process noise"):
+        run_filter(gated, belief0, z)  # the eager steps say so
+    run_filter(mine, belief0, z)  # the eager steps
     assert not transfer_steps
     with pytest.raises(ValueError, match="compile: compiles the fast path"):
         run_filter(tf, belief0, z, record="estimate", compile=True)

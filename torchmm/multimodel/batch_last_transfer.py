@@ -1,12 +1,10 @@
-r"""IMM-TF (:class:`~torchmm.multimodel.TransferIMM`, paper 000) over linear Kalman modes in the batch-last
-layout (issue 31, goal 3).
+r"""IMM-TF and IF-TF (:class:`~torchmm.multimodel.TransferIMM`, paper 000) over linear Kalman modes in the
+batch-last layout (issue 31, goal 3).
 
-:func:`~torchmm.run_filter` runs a ``TransferIMM`` without a gate (IMM-TF; IF-TF's influence gate runs
-the eager steps) over one :class:`~torchmm.KalmanFilter` with mode-bank linear models, a diagonal
-``R`` and ``R_S``, a state of at most two components, through this kernel
-(:class:`BatchLastTransferKernel`, registered as ``"batch_last_transfer"``), where the run keeps its
-beliefs or estimates but not the ``extras`` (the influence values, the smoothed references and the
-transferred knowledge are the eager steps' diagnostics). It is the batch-last IMM kernel's step
+:func:`~torchmm.run_filter` runs a ``TransferIMM`` (with or without its influence gate) over one
+:class:`~torchmm.KalmanFilter` with mode-bank linear models, a diagonal ``R`` and ``R_S`` and a state of
+at most two components through this kernel (:class:`BatchLastTransferKernel`, registered as
+``"batch_last_transfer"``), for any record. It is the batch-last IMM kernel's step
 (:mod:`torchmm.multimodel.batch_last`, one tensor ``(M, *B)`` per entry) with the transfer of
 :meth:`TransferIMM.step <torchmm.multimodel.TransferIMM.step>`, in the same order:
 
@@ -14,16 +12,23 @@ transferred knowledge are the eager steps' diagnostics). It is the batch-last IM
 2. the source filter's posterior: the prediction updated with ``y_{S,k}`` (noise ``R_S``);
 3. the transfer smoothing (13)-(14) from the reference at ``k-1`` (the combined estimate, or each
    mode's mixed start): ``G^T = (F P F^T + Q)^{-1} F P`` by the closed-form regularised factor of
-   :func:`torchmm.linalg.cholesky` (``n <= 2``), the smoothed mean ``x + G (m - f(x))``;
+   :func:`torchmm.linalg.cholesky` (``n <= 2``), the smoothed mean ``x + G (m - f(x))`` (and, for the
+   record, its covariance ``P + G (D - P^-) G^T``);
 4. the transferred knowledge ``u_S = H (F m_s + b)``, the correction (20)-(21) with it where the
    source datum is present, the update (22)-(23) with ``y_k``;
-5. the mode probabilities from ``Lambda_j`` (or the corrected likelihoods), the components where the
-   source is present the transferred ones, else the plain ones.
+5. the mode probabilities from ``Lambda_j`` (or the corrected likelihoods); the influence value (33)
+   at the transferred output, ``-(H (x - x*))^T R^{-1}`` with ``x*`` the gate mode's update of
+   ``N(x^-, W)`` with ``y_k``; IF-TF's gate; the components: the transferred ones where the transfer
+   is used, else the plain ones.
 
-Equal to the eager steps to rounding (tests/multimodel/test_batch_last_transfer.py).
+Every ``extras`` entry of the eager step is returned, in its order (the influence is computed only
+where a gate or the extras need it). Equal to the eager steps to rounding
+(tests/multimodel/test_batch_last_transfer.py).
 """
 
 from __future__ import annotations
+
+import math
 
 import torch
 from torch import Tensor
@@ -54,6 +59,9 @@ class BatchLastTransfer(BatchLastIMM):
         self.source = BatchLastIMM(source, M, batch_dims, like)  # (its coefficients and update only)
         self.combined = description.smoothing_reference == "combined"
         self.corrected = description.mode_likelihood == "corrected"
+        self.gate = description.gate  # None: IMM-TF (the influence is still a diagnostic, mode 0's)
+        self.gate_mode = 0 if self.gate is None else self.gate.mode
+        self.process_weight = self.gate is not None and self.gate.weight == "process"
         self.eps = torch.finfo(like.dtype).eps
 
     def broadcast_layout(self, runs: int, itemsize: int) -> bool:
@@ -117,9 +125,10 @@ class BatchLastTransfer(BatchLastIMM):
         xs, Cm = self.mix_entries(X, C, w)
         w = joint_ij = None
         xp, Pp = self.predict_entries(xs, Cm, cbar)
-        xu, Cu, ll, _, s_first = self.update_components(xp, Pp, zc, ob, nhob, cbar, False)
+        extras = "extras" not in omitted
+        xu, Cu, ll, singular, s_first = self.update_components(xp, Pp, zc, ob, nhob, cbar, extras)
         # 2. the source filter's posterior
-        ms, _, _, _, _ = self.source.update_components(xp, Pp, szc, sob, snhob, cbar, False)
+        ms, Ds, _, _, _ = self.source.update_components(xp, Pp, szc, sob, snhob, cbar, False)
         # 3. the transfer smoothing from the reference at k-1
         if self.combined:
             est, est_cov = self.collapse_entries(X, C, mu)
@@ -140,13 +149,16 @@ class BatchLastTransfer(BatchLastIMM):
         uob = present_f.expand(self.m, *present_f.shape)
         xc, Cc, _, _, _ = self.update_components(xp, Pp, uzc, uob, uob * -0.5, cbar, False)
         xt, Ct, llt, _, _ = self.update_components(xc, Cc, zc, ob, nhob, cbar, False)
-        # 5. the mode probabilities and the components
-        if self.corrected:
-            ll = torch.where(present, llt, ll)
-        log_cbar, log_mu, total = self.mode_update(ll, cbar, anyob)
-        xn = [torch.where(present, xt[a], xu[a]) for a in range(n)]
-        Cn = [[torch.where(present, Ct[a][c], Cu[a][c]) if c >= a else None for c in range(n)] for a in range(n)]
+        # 5. the mode probabilities, the influence (33) and the gate, the components
+        log_cbar, log_mu, total = self.mode_update(torch.where(present, llt, ll) if self.corrected else ll, cbar,
+                                                   anyob)
         mu = log_mu.exp()
+        used, diagnostics = present, None
+        if self.gate is not None or extras:
+            value, used = self._influence(xt, Ct, mu, xp, Pp, xu, zc, ob, zraw, present)
+            diagnostics = (ll, singular, xs, Cm, value, smoothed, self._smoothed_cov(rC, gain_t, Ds, Cp), u_s)
+        xn = [torch.where(used, xt[a], xu[a]) for a in range(n)]
+        Cn = [[torch.where(used, Ct[a][c], Cu[a][c]) if c >= a else None for c in range(n)] for a in range(n)]
         X_out = P_out = Xp = Ppt = nu_out = S_out = None
         if self.estimate_only:
             nu_out, S_out = self.collapse_entries(xn, Cn, mu)
@@ -156,15 +168,56 @@ class BatchLastTransfer(BatchLastIMM):
                 Xp, Ppt = torch.stack(xp), self.stack(Pp)
             if "innovation" not in omitted or "innovation_cov" not in omitted:
                 nu_out, S_out = self._innovation(zraw, xp, Pp, s_first)
-        return xn, Cn, X_out, P_out, log_mu, mu, total, Xp, Ppt, log_cbar, nu_out, S_out
+        return xn, Cn, X_out, P_out, log_mu, mu, total, Xp, Ppt, log_cbar, nu_out, S_out, used, diagnostics
+
+    def _influence(self, xt, Ct, mu, xp, Pp, xu, zc, ob, zraw, present) -> tuple[Tensor, Tensor]:
+        """The influence value (33) ``(m, *B)`` at the transferred output and where the transfer is used
+        (``gamma_k``, and for IF-TF not harmful): ``L^T = -(H (x - x*))^T R^{-1}`` with ``x*`` the update
+        of the gate mode's prediction ``N(x^-, W)`` with ``y_k`` (``W`` its predicted covariance: then
+        ``x*`` is that mode's plain posterior; or its process noise)."""
+        n, m, j = self.n, self.m, self.gate_mode
+        H, r = self.H, self.r
+        est, _ = self.collapse_entries(xt, Ct, mu)  # the tentative output (27)
+        if self.process_weight:  # x*: the update of N(x^-, Q) with y_k
+            W = [[combine([], self.Q[a][c], xp[0]) if c >= a else None for c in range(n)] for a in range(n)]
+            x_star = self.update_components(xp, W, zc, ob, ob * -0.5, xp[0], False)[0]
+        else:
+            x_star = xu
+        x_star = [x_star[a][j] for a in range(n)]
+        anchor = [xp[a][j] for a in range(n)]
+        value, product = [], None
+        for k in range(m):
+            h = [_at_mode(H[k][a], j) for a in range(n)]
+            shift = _sum([(est[a] - x_star[a]) * h[a] for a in range(n) if h[a] is not None] or [est[0] * 0])
+            rk = _at_mode(r[k], j)  # R^{-1} shift through the factor of the diagonal R, as cholesky_solve
+            root = math.sqrt(rk) if isinstance(rk, float) else self.tiny_t.sqrt() if rk is None else rk.sqrt()
+            v = torch.where(ob[k] > 0, -(shift / root / root), 0.0)
+            predicted = _sum([anchor[a] * h[a] for a in range(n) if h[a] is not None] or [est[0] * 0])
+            innovation = torch.where(ob[k] > 0, zraw[k] - predicted, 0.0)
+            value.append(v)
+            product = v * innovation if product is None else product + v * innovation
+        used = present if self.gate is None else present & ~(product > self.gate.threshold)
+        return torch.stack(value), used
+
+    def _smoothed_cov(self, rC, gain_t, Ds, Cp) -> list:
+        """The transfer smoothing's covariance ``P + G (D - P^-) G^T`` (upper triangle)."""
+        n = self.n
+        sym = lambda T, a, c: T[min(a, c)][max(a, c)]  # noqa: E731
+        diff = [[sym(Ds, e, f) - sym(Cp, e, f) for f in range(n)] for e in range(n)]
+        inner = [[_sum([diff[e][f] * gain_t[f][c] for f in range(n)]) for c in range(n)] for e in range(n)]
+        return [[sym(rC, a, c) + _sum([gain_t[e][a] * inner[e][c] for e in range(n)]) if c >= a else None
+                 for c in range(n)] for a in range(n)]
 
     def step(self, state: tuple, z: Tensor) -> tuple[tuple, StepOutput]:
         """One IMM-TF step on the prepared data of the state's step (``z``: held by the kernel)."""
         X, C, mu, k = state
         self._steps_done = k + 1
-        (X, C, X_out, P_out, log_mu, mu, total, Xp, Pp, log_cbar, nu, S) = self.core(
+        (X, C, X_out, P_out, log_mu, mu, total, Xp, Pp, log_cbar, nu, S, used, diagnostics) = self.core(
             X, C, mu, *self.data[k], *self.source_data[k])
         state = (X, C, mu, k + 1)
+        extras = None
+        if diagnostics is not None and "extras" not in self.omitted:
+            extras = self._extras(k, total, log_cbar, used, *diagnostics)
         if self.estimate_only:
             return state, StepOutput(GaussianBelief(nu.permute(self._to_front1), S.permute(self._to_front2)),
                                      None, total)
@@ -174,9 +227,40 @@ class BatchLastTransfer(BatchLastIMM):
             log_likelihood=total,
             innovation=None if nu is None or "innovation" in self.omitted else nu.permute(self._to_front_x),
             innovation_cov=None if S is None or "innovation_cov" in self.omitted else S.permute(self._to_front_p),
-            extras=None,
+            extras=extras,
         )
         return state, out
+
+    def _extras(self, k, total, log_cbar, used, ll, singular, xs, Cm, value, smoothed, smoothed_cov, u_s) -> dict:
+        """The eager step's ``extras``, in its order, as batch-first views."""
+        modes, present = self.modes, self.source_data[k][3]
+        shape = log_cbar.shape
+        u = torch.stack([torch.where(present, t.expand(shape), torch.nan) for t in u_s])  # (m, M, *B)
+        mean = torch.stack([t.expand(shape) for t in smoothed])
+        cov = self.stack([[None if t is None else t.expand(shape) for t in row] for row in smoothed_cov])
+        return {
+            "mode_log_likelihood": modes(ll),
+            "modes": {"singular": modes(singular), "failed": modes(torch.isnan(ll) & self.data[k][3])},
+            "failed": torch.isnan(total),
+            "mixed": ModeBelief(modes(log_cbar), self.gaussian(torch.stack(xs), self.stack(Cm))),
+            "influence": value.permute(self._to_front1),
+            "transfer_used": used,
+            "source_present": present,
+            "smoothed": self.gaussian(mean, cov),
+            "transferred_knowledge": u.permute(self._to_front_x),
+        }
+
+
+def _at_mode(coef, j: int):
+    """Mode ``j``'s value of a :func:`~torchmm.multimodel.batch_last.coefficients` entry: None for an
+    exact zero, 1.0, a shared 0-dim tensor, or the ``(1...)`` slice of a per-mode tensor."""
+    if coef.kind == "zero":
+        return None
+    if coef.kind == "one":
+        return 1.0
+    if coef.kind == "scalar":
+        return coef.value
+    return coef.value[j if coef.value.shape[0] > 1 else 0]
 
 
 def _sum(terms: list) -> Tensor:
@@ -188,9 +272,8 @@ def _sum(terms: list) -> Tensor:
 
 
 class BatchLastTransferKernel:
-    """The registered kernel of IMM-TF (module docstring): a filter that describes itself with
-    ``transfer_gaussian()`` (no gate), ``n <= 2``, a run without ``update_first`` that keeps the belief or
-    the estimate and not the ``extras`` (``record="estimate"`` or ``Keep(...)`` without ``"extras"``)."""
+    """The registered kernel of IMM-TF and IF-TF (module docstring): a filter that describes itself with
+    ``transfer_gaussian()``, ``n <= 2``, a run without ``update_first``; any record."""
 
     name = "batch_last_transfer"
 
@@ -202,11 +285,12 @@ class BatchLastTransferKernel:
         description = kernels.describe(filter, "transfer_gaussian")
         if isinstance(description, str):
             return description
-        if description.gate is not None:
-            return "an influence gate (IF-TF: the eager steps)"
-        if not request.estimate and (request.keep is None or "extras" in request.keep):
-            return "the run keeps the extras (influence, smoothed references: the eager steps' diagnostics)"
         model = description.model
+        gate = description.gate
+        if gate is not None and gate.weight == "process":  # once per run, as the eager step's check
+            Q = model.Q if model.Q.dim() == 2 else model.Q[gate.mode if model.Q.shape[0] > 1 else 0]
+            if bool((torch.linalg.cholesky_ex(Q)[1] != 0).any()):
+                return "a gate with weight='process' and a singular Q (the eager steps say so)"
         n, M = model.F.shape[-1], model.transition.shape[-1]
         if n > 2:
             return f"a state of {n} components (the closed-form factor covers n <= 2)"
@@ -223,7 +307,7 @@ class BatchLastTransferKernel:
         kernel.prepare_streams(y, ys)
         if request.estimate:
             kernel.omit(frozenset(StepOutput._fields) - {"belief", "log_likelihood"}, estimate=True)
-        else:
+        elif request.keep is not None:
             kernel.omit(frozenset(StepOutput._fields) - request.keep)
 
         def run():
