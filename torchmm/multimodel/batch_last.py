@@ -690,20 +690,7 @@ class BatchLastKernel:
         if request.compile:
             kernel.compile()
         kernel.prepare(measurements)
-        kernel.generator = request.generator
-        if request.estimate and kernel.post_update is not None:  # the estimate from the post-update's belief
-            kernel.estimate_after = True
-            kernel.omit(frozenset(StepOutput._fields) - {"belief", "log_likelihood"})
-        elif request.estimate:
-            kernel.omit(frozenset(StepOutput._fields) - {"belief", "log_likelihood"}, estimate=True)
-        elif request.keep is not None:
-            kernel.omit(frozenset(StepOutput._fields) - request.keep)
-
-        def run():
-            return run_steps(kernel, belief0, request)
-
-        run.kernel = kernel  # (its BatchLastIMM, for tests and profiling)
-        return run
+        return planned(kernel, belief0, request)
 
     def plan_smooth(self, filter, trajectory, method, **inputs):
         """The two-filter smoother of a run of an IMM, GPB1 or GPB2 over linear Kalman modes (``n <= 6``,
@@ -727,6 +714,27 @@ def _plan_two_filter(filter, trajectory, method, measurements=None, prior_log=No
     like = trajectory.belief.mode_log_probs
     passes = BatchLastTwoFilter(model, model.transition.shape[-1], like.dim() - 2, like)
     return lambda: passes.run(trajectory, measurements, prior_log)
+
+
+def planned(kernel: BatchLastIMM, belief0, request: kernels.Request):
+    """The plan of a prepared kernel: what it builds set from ``request`` (the kept fields, the
+    estimate inside the step or after a post-update, the generator), and ``run()`` (:func:`run_steps`),
+    with ``run.kernel``."""
+    kernel.generator = request.generator
+    kept = frozenset(StepOutput._fields) - {"belief", "log_likelihood"}
+    if request.estimate and kernel.post_update is not None:  # the estimate from the post-update's belief
+        kernel.estimate_after = True
+        kernel.omit(kept)
+    elif request.estimate:
+        kernel.omit(kept, estimate=True)
+    elif request.keep is not None:
+        kernel.omit(frozenset(StepOutput._fields) - request.keep)
+
+    def run():
+        return run_steps(kernel, belief0, request)
+
+    run.kernel = kernel  # (for tests and profiling)
+    return run
 
 
 def run_steps(kernel: BatchLastIMM, belief0, request: kernels.Request) -> tuple:

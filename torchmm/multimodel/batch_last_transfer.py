@@ -36,7 +36,7 @@ from torch import Tensor
 import torchmm.kernels as kernels
 from torchmm.beliefs import GaussianBelief, ModeBelief
 from torchmm.filters.base import StepOutput
-from torchmm.multimodel.batch_last import ZERO, BatchLastIMM, combine, run_steps, why_not
+from torchmm.multimodel.batch_last import ZERO, BatchLastIMM, combine, planned, why_not
 from torchmm.multimodel.multirate import split_streams
 
 __all__ = ["TRANSFER", "BatchLastTransfer", "BatchLastTransferKernel"]
@@ -305,16 +305,7 @@ class BatchLastTransferKernel:
         like = belief0.mode_log_probs
         kernel = BatchLastTransfer(description, M, like.dim() - 1, like)
         kernel.prepare_streams(y, ys)
-        if request.estimate:
-            kernel.omit(frozenset(StepOutput._fields) - {"belief", "log_likelihood"}, estimate=True)
-        elif request.keep is not None:
-            kernel.omit(frozenset(StepOutput._fields) - request.keep)
-
-        def run():
-            return run_steps(kernel, belief0, request)
-
-        run.kernel = kernel
-        return run
+        return planned(kernel, belief0, request)
 
 
 TRANSFER = kernels.register(BatchLastTransferKernel())
