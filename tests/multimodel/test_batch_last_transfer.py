@@ -1,11 +1,11 @@
 """IMM-TF's batch-last kernel (torchmm/multimodel/batch_last_transfer.py, registered as
 ``"batch_last_transfer"``): run_filter's TransferIMM (IMM-TF, and IF-TF with its influence gate) over
-linear Kalman modes with n <= 2 returns what the eager steps return - every field of the full record
+linear Kalman modes with n <= 6 returns what the eager steps return - every field of the full record
 (the extras: influence values, the gate's choices, the smoothed references, the transferred knowledge),
 the estimates (record="estimate") and ``Keep`` records - for both smoothing references, both mode
 likelihoods, gates of either weight, random banks and source sensors, missing target and source
 components, batch shapes, float32 and gradients; it is taken by default, and not where it does not
-apply (n > 2, update_first, a non-diagonal R_S, compile=True, a process weight with a singular Q). The
+apply (n > 6, update_first, a non-diagonal R_S, compile=True, a process weight with a singular Q). The
 eager TransferIMM is checked against a NumPy reference in tests/multimodel/test_transfer.py."""
 
 from __future__ import annotations
@@ -60,7 +60,8 @@ GATES = {"IMM-TF": None, "IF-TF": InfluenceGate(), "IF-TF mode 1": InfluenceGate
 
 @pytest.mark.parametrize("reference", ["combined", "mixed"])
 @pytest.mark.parametrize("likelihood", ["prior", "corrected"])
-@pytest.mark.parametrize("n,m,mS,M", [(1, 1, 1, 2), (2, 1, 1, 3), (2, 2, 2, 2), (2, 1, 2, 4)])
+@pytest.mark.parametrize("n,m,mS,M", [(1, 1, 1, 2), (2, 1, 1, 3), (2, 2, 2, 2), (2, 1, 2, 4), (3, 2, 1, 2),
+                                       (4, 2, 2, 3)])
 @pytest.mark.parametrize("gate", list(GATES))
 def test_equals_the_eager_steps(reference, likelihood, n, m, mS, M, gate, transfer_steps):
     tf, belief0, z = _random_transfer(n, m, mS, M, (6,), steps=14, seed=7 * n + 3 * m + mS + M,
@@ -124,7 +125,7 @@ def test_declines_what_it_does_not_compute(transfer_steps):
     full = tf.source.R.clone()
     full[0, 1] = full[1, 0] = 0.1
     other = TransferIMM(tf.bank.filter, tf.transition.matrix(), LinearMeasurement(tf.source.H, full))
-    big, big0, zbig = _random_transfer(3, 1, 1, 2, (3,), steps=5, seed=2)
+    big, big0, zbig = _random_transfer(7, 1, 1, 2, (3,), steps=5, seed=2)
 
     class _Mine(TransferIMM):
         def step(self, belief, z, **inputs):
@@ -133,7 +134,7 @@ def test_declines_what_it_does_not_compute(transfer_steps):
     mine = _Mine(tf.bank.filter, tf.transition.matrix(), tf.source)
     cases = [("a singular Q", gated, belief0, z, estimate),
              ("R is not diagonal", other, belief0, z, estimate),
-             ("a state of 3 components", big, big0, zbig, estimate),
+             ("a state of 7 components", big, big0, zbig, estimate),
              ("_Mine has not joined", mine, belief0, z, estimate),
              ("update_first", tf, belief0, z, kernels.Request(update_first=True, estimate=True)),
              ("no compiled step", tf, belief0, z, kernels.Request(compile_required=True, estimate=True))]

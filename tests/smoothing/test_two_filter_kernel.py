@@ -192,7 +192,7 @@ def test_the_factor_beyond_two_components_is_torchmms_regularised_one(n):
     S[5:10] = (A[5:10, :, :1] @ A[5:10, :, :1].mT)  # rank one: the jittered retry
     S[10:15] = -S[10:15]  # negative definite: the diagonal fallback
     S[15] = float("nan")
-    L = passes.factor([[S[:, a, c] if c >= a else None for c in range(n)] for a in range(n)])
+    L = passes.imm.factor([[S[:, a, c] if c >= a else None for c in range(n)] for a in range(n)])
     got = torch.stack([torch.stack([L[a][c] if c <= a else torch.zeros(40, dtype=torch.float64)
                                     for c in range(n)], -1) for a in range(n)], -2)
     want = cholesky(S)

@@ -60,6 +60,9 @@ from torchmm.filters.base import StepOutput
 __all__ = ["BATCH_LAST", "BatchLastIMM", "BatchLastKernel", "why_not"]
 
 _LOG_2PI = math.log(2 * math.pi)
+#: the largest state whose n x n factors the kernels form entry by entry (the two-filter smoother's pairs,
+#: IMM-TF's transfer smoothing): n^3 operations a factor
+MAX_STATE = 6
 #: the largest mixing temporary (bytes) for which the step takes every matrix entry in one broadcast
 #: operation (docs/performance.md: 400 runs of n = 2, M = 3 gain 10 %, 4,000 lose 18 %)
 _BROADCAST_BYTES = 1 << 18
@@ -468,6 +471,76 @@ class BatchLastIMM:
             Xm if keep_extras else None, Pm if keep_extras else None,
             nu_out, S_out,
         )
+
+    def factor(self, S: list) -> list:
+        """:func:`torchmm.linalg.cholesky`'s regularised factor of the per-entry symmetric ``S`` (upper
+        triangle ``S[a][c]``, ``a <= c``) entry by entry (any ``n``; the kernels use it beyond ``n = 2``): the Cholesky factor where every
+        pivot is positive; elsewhere the factor of ``S + sqrt(eps) s I`` (``s = max |S_aa|``), and where
+        that fails too ``diag(sqrt(max(S_aa, eps s)))`` - ``cholesky_ex``'s retry, without reading a
+        value on the host. Returns the lower triangle ``L[a][c]`` (``c <= a``)."""
+        n = self.n
+        plain, failed = self._cholesky(S, None)
+        scale = S[0][0].abs()
+        for a in range(1, n):
+            scale = torch.maximum(scale, S[a][a].abs())
+        scale = scale.nan_to_num(nan=1.0).clamp_min(self.tiny)
+        jitter = torch.where(failed, scale * torch.finfo(scale.dtype).eps ** 0.5, 0.0)
+        retry, failed_again = self._cholesky(S, jitter)
+        floor = torch.finfo(scale.dtype).eps * scale
+        L = [[None] * n for _ in range(n)]
+        for a in range(n):
+            for c in range(a + 1):
+                fallback = S[a][a].maximum(floor).sqrt() if a == c else torch.zeros_like(scale)
+                L[a][c] = torch.where(failed, torch.where(failed_again, fallback, retry[a][c]), plain[a][c])
+        return L
+
+    def _cholesky(self, S: list, jitter: Tensor | None) -> tuple[list, Tensor]:
+        """The Cholesky factor of ``S (+ jitter I)`` entry by entry (lower ``L[a][c]``) and where a pivot
+        is not positive (or NaN): ``cholesky_ex``'s failure."""
+        n = self.n
+        L = [[None] * n for _ in range(n)]
+        failed = None
+        for j in range(n):
+            pivot = S[j][j] if jitter is None else S[j][j] + jitter
+            for k in range(j):
+                pivot = pivot - L[j][k] * L[j][k]
+            bad = ~(pivot > 0)
+            failed = bad if failed is None else failed | bad
+            L[j][j] = pivot.sqrt()
+            for i in range(j + 1, n):
+                acc = S[j][i]
+                for k in range(j):
+                    acc = acc - L[i][k] * L[j][k]
+                L[i][j] = acc / L[j][j]
+        return L, failed
+
+    def solve_lower(self, L: list, rhs: list) -> list:
+        """``L^{-1} rhs`` by forward substitution, ``rhs[e][c]`` (``n`` rows of any number of columns)."""
+        n = self.n
+        out = [None] * n
+        for a in range(n):
+            row = []
+            for c in range(len(rhs[a])):
+                acc = rhs[a][c]
+                for k in range(a):
+                    acc = acc - L[a][k] * out[k][c]
+                row.append(acc / L[a][a])
+            out[a] = row
+        return out
+
+    def solve_lower_transposed(self, L: list, rhs: list) -> list:
+        """``L^{-T} rhs`` by back substitution, ``rhs[e][c]`` (``n`` rows of any number of columns)."""
+        n = self.n
+        out = [None] * n
+        for a in range(n - 1, -1, -1):
+            row = []
+            for c in range(len(rhs[a])):
+                acc = rhs[a][c]
+                for k in range(a + 1, n):
+                    acc = acc - L[k][a] * out[k][c]
+                row.append(acc / L[a][a])
+            out[a] = row
+        return out
 
     def mix_entries(self, X: list, P: list, w: Tensor) -> tuple[list, list]:
         """Moment-matched mixtures of per-entry beliefs ``X[a]``, ``P[a][c]`` ``(i, *B)`` with weights

@@ -15,7 +15,7 @@ last: ``(M, *B)`` per mode, ``(j, i, *B)`` per pair of modes (mode ``j`` at ``k`
   eager form linearises at the filtered estimate, ``at + F^{-1}(m - F at - b)``: equal for linear
   models, to rounding); ``F_i^{-1}`` is inverted once per mode;
 - the fusion of every pair: ``D = P_j + B_i`` and its regularised factor in closed form
-  (:func:`torchmm.linalg.cholesky`'s for ``n <= 2``; beyond, :meth:`BatchLastTwoFilter.factor`),
+  (:func:`torchmm.linalg.cholesky`'s for ``n <= 2``; beyond, :meth:`~torchmm.multimodel.batch_last.BatchLastIMM.factor`),
   ``V = L^{-1} P_j``, ``w = L^{-1} (b_i - x_j)``,
   ``x_ji = x_j + V^T w``, the overlap ``N(b_i - x_j; 0, D)``, the pair weights and their
   normalisations (as ``safe_log_normalize``), and mode ``j``'s collapse
@@ -35,13 +35,11 @@ import torch
 from torch import Tensor
 
 from torchmm.beliefs import GaussianBelief, ModeBelief
-from torchmm.multimodel.batch_last import ONE, ZERO, BatchLastIMM, coefficients, combine, why_not
+from torchmm.multimodel.batch_last import MAX_STATE, ONE, ZERO, BatchLastIMM, coefficients, combine, why_not
 
 __all__ = ["BatchLastTwoFilter", "why_not_smooth"]
 
 _LOG_2PI = math.log(2 * math.pi)
-#: the largest state the kernel takes: its factor of the pairs' ``n x n`` sums runs entry by entry
-MAX_STATE = 6
 
 
 def why_not_smooth(model, trajectory, measurements, prior_log) -> str | None:
@@ -172,10 +170,10 @@ class BatchLastTwoFilter:
             w0 = delta[0] / l11
             w = [w0, (delta[1] - l21 * w0) / l22]
         else:  # entry by entry, with cholesky_ex's retry
-            L = self.factor(D)
+            L = self.imm.factor(D)
             diag = [L[a][a] for a in range(n)]
-            V = self.solve_lower(L, [[sym(Pj, e, c) for c in range(n)] for e in range(n)])
-            w = [row[0] for row in self.solve_lower(L, [[delta[e]] for e in range(n)])]
+            V = self.imm.solve_lower(L, [[sym(Pj, e, c) for c in range(n)] for e in range(n)])
+            w = [row[0] for row in self.imm.solve_lower(L, [[delta[e]] for e in range(n)])]
         # x_ji = x_j + V^T w; log N(b_i - x_j; 0, D)
         mean = [x[a].unsqueeze(1) + _sum([V[e][a] * w[e] for e in range(n)]) for a in range(n)]
         squares = _sum([w[e] * w[e] for e in range(n)])
@@ -196,62 +194,6 @@ class BatchLastTwoFilter:
                 vv = _sum([V[e][a] * V[e][c] for e in range(n)])  # (V^T V)_ac
                 cov[a][c] = P[a][c] - (weights * vv).sum(1) + (wdiff[a] * diff[c]).sum(1)
         return log_mode, merged, cov
-
-    def factor(self, S: list) -> list:
-        """:func:`torchmm.linalg.cholesky`'s regularised factor of the per-entry symmetric ``S`` (upper
-        triangle ``S[a][c]``, ``a <= c``) for ``n > 2``, entry by entry: the Cholesky factor where every
-        pivot is positive; elsewhere the factor of ``S + sqrt(eps) s I`` (``s = max |S_aa|``), and where
-        that fails too ``diag(sqrt(max(S_aa, eps s)))`` - ``cholesky_ex``'s retry, without reading a
-        value on the host. Returns the lower triangle ``L[a][c]`` (``c <= a``)."""
-        n = self.n
-        plain, failed = self._cholesky(S, None)
-        scale = S[0][0].abs()
-        for a in range(1, n):
-            scale = torch.maximum(scale, S[a][a].abs())
-        scale = scale.nan_to_num(nan=1.0).clamp_min(self.tiny)
-        jitter = torch.where(failed, scale * self.eps ** 0.5, 0.0)
-        retry, failed_again = self._cholesky(S, jitter)
-        floor = self.eps * scale
-        L = [[None] * n for _ in range(n)]
-        for a in range(n):
-            for c in range(a + 1):
-                fallback = S[a][a].maximum(floor).sqrt() if a == c else torch.zeros_like(scale)
-                L[a][c] = torch.where(failed, torch.where(failed_again, fallback, retry[a][c]), plain[a][c])
-        return L
-
-    def _cholesky(self, S: list, jitter: Tensor | None) -> tuple[list, Tensor]:
-        """The Cholesky factor of ``S (+ jitter I)`` entry by entry (lower ``L[a][c]``) and where a pivot
-        is not positive (or NaN): ``cholesky_ex``'s failure."""
-        n = self.n
-        L = [[None] * n for _ in range(n)]
-        failed = None
-        for j in range(n):
-            pivot = S[j][j] if jitter is None else S[j][j] + jitter
-            for k in range(j):
-                pivot = pivot - L[j][k] * L[j][k]
-            bad = ~(pivot > 0)
-            failed = bad if failed is None else failed | bad
-            L[j][j] = pivot.sqrt()
-            for i in range(j + 1, n):
-                acc = S[j][i]
-                for k in range(j):
-                    acc = acc - L[i][k] * L[j][k]
-                L[i][j] = acc / L[j][j]
-        return L, failed
-
-    def solve_lower(self, L: list, rhs: list) -> list:
-        """``L^{-1} rhs`` by forward substitution, ``rhs[e][c]`` (``n`` rows of any number of columns)."""
-        n = self.n
-        out = [None] * n
-        for a in range(n):
-            row = []
-            for c in range(len(rhs[a])):
-                acc = rhs[a][c]
-                for k in range(a):
-                    acc = acc - L[a][k] * out[k][c]
-                row.append(acc / L[a][a])
-            out[a] = row
-        return out
 
     def backward_update(self, log_mu_b: Tensor, b: list, B: list, prior: Tensor, data) -> tuple:
         """``backward_imm_update``: the backward transition's mixing and every mode's update with ``z_k``."""

@@ -3,7 +3,7 @@ batch-last layout (issue 31, goal 3).
 
 :func:`~torchmm.run_filter` runs a ``TransferIMM`` (with or without its influence gate) over one
 :class:`~torchmm.KalmanFilter` with mode-bank linear models, a diagonal ``R`` and ``R_S`` and a state of
-at most two components through this kernel (:class:`BatchLastTransferKernel`, registered as
+at most six components through this kernel (:class:`BatchLastTransferKernel`, registered as
 ``"batch_last_transfer"``), for any record. It is the batch-last IMM kernel's step
 (:mod:`torchmm.multimodel.batch_last`, one tensor ``(M, *B)`` per entry) with the transfer of
 :meth:`TransferIMM.step <torchmm.multimodel.TransferIMM.step>`, in the same order:
@@ -12,7 +12,7 @@ at most two components through this kernel (:class:`BatchLastTransferKernel`, re
 2. the source filter's posterior: the prediction updated with ``y_{S,k}`` (noise ``R_S``);
 3. the transfer smoothing (13)-(14) from the reference at ``k-1`` (the combined estimate, or each
    mode's mixed start): ``G^T = (F P F^T + Q)^{-1} F P`` by the closed-form regularised factor of
-   :func:`torchmm.linalg.cholesky` (``n <= 2``), the smoothed mean ``x + G (m - f(x))`` (and, for the
+   :func:`torchmm.linalg.cholesky` (closed form for ``n <= 2``, entry by entry beyond), the smoothed mean ``x + G (m - f(x))`` (and, for the
    record, its covariance ``P + G (D - P^-) G^T``);
 4. the transferred knowledge ``u_S = H (F m_s + b)``, the correction (20)-(21) with it where the
    source datum is present, the update (22)-(23) with ``y_k``;
@@ -36,7 +36,7 @@ from torch import Tensor
 import torchmm.kernels as kernels
 from torchmm.beliefs import GaussianBelief, ModeBelief
 from torchmm.filters.base import StepOutput
-from torchmm.multimodel.batch_last import ZERO, BatchLastIMM, combine, planned, why_not
+from torchmm.multimodel.batch_last import MAX_STATE, ZERO, BatchLastIMM, combine, planned, why_not
 from torchmm.multimodel.multirate import split_streams
 
 __all__ = ["TRANSFER", "BatchLastTransfer", "BatchLastTransferKernel"]
@@ -84,9 +84,12 @@ class BatchLastTransfer(BatchLastIMM):
 
     def _factor_solve(self, S: list, rhs: list) -> list:
         """``S^{-1} rhs`` for the per-entry symmetric ``S`` (upper triangle) and ``rhs[a][c]`` (a full
-        ``n x n``), by :func:`torchmm.linalg.cholesky`'s closed-form regularised factor and
-        :func:`~torchmm.linalg.cholesky_solve`'s substitutions (``n <= 2``)."""
+        ``n x n``), by :func:`torchmm.linalg.cholesky`'s regularised factor (closed form for ``n <= 2``,
+        :meth:`factor` beyond) and :func:`~torchmm.linalg.cholesky_solve`'s substitutions."""
         n, tiny = self.n, self.tiny
+        if n > 2:  # entry by entry, with cholesky_ex's retry: cholesky_solve's two substitutions
+            L = self.factor(S)
+            return self.solve_lower_transposed(L, self.solve_lower(L, rhs))
         if n == 1:
             L = S[0][0].clamp_min(tiny).sqrt()
             return [[rhs[0][0] / L / L]]
@@ -273,7 +276,7 @@ def _sum(terms: list) -> Tensor:
 
 class BatchLastTransferKernel:
     """The registered kernel of IMM-TF and IF-TF (module docstring): a filter that describes itself with
-    ``transfer_gaussian()``, ``n <= 2``, a run without ``update_first``; any record."""
+    ``transfer_gaussian()``, ``n <= 6``, a run without ``update_first``; any record."""
 
     name = "batch_last_transfer"
 
@@ -292,8 +295,8 @@ class BatchLastTransferKernel:
             if bool((torch.linalg.cholesky_ex(Q)[1] != 0).any()):
                 return "a gate with weight='process' and a singular Q (the eager steps say so)"
         n, M = model.F.shape[-1], model.transition.shape[-1]
-        if n > 2:
-            return f"a state of {n} components (the closed-form factor covers n <= 2)"
+        if n > MAX_STATE:
+            return f"a state of {n} components (more than {MAX_STATE}: the factor entry by entry costs n^3 operations)"
         try:
             y, ys = split_streams(measurements)
         except TypeError:
