@@ -258,7 +258,8 @@ class BatchLastIMM:
     def structure(self) -> tuple:
         """What the step's sequence of operations depends on: the kernel (IMM/GPB1 or GPB2), the sizes,
         the layout, the interaction, the omitted outputs, the dtype's smallest normal number and the
-        kind of every model coefficient (zero, one, a shared scalar, a tensor). Two kernels of one structure run the same
+        kind of every model coefficient (zero, one, a shared scalar, a tensor). Two kernels of one
+        structure run the same
         operations on their own constants (:meth:`constants`)."""
         kinds = lambda c: tuple(map(kinds, c)) if isinstance(c, list) else c.kind  # noqa: E731
         return (self.kind, self.n, self.m, self.M, self.d, self.broadcast, self.collapse, self.omitted,
@@ -474,10 +475,11 @@ class BatchLastIMM:
 
     def factor(self, S: list) -> list:
         """:func:`torchmm.linalg.cholesky`'s regularised factor of the per-entry symmetric ``S`` (upper
-        triangle ``S[a][c]``, ``a <= c``) entry by entry (any ``n``; the kernels use it beyond ``n = 2``): the Cholesky factor where every
-        pivot is positive; elsewhere the factor of ``S + sqrt(eps) s I`` (``s = max |S_aa|``), and where
-        that fails too ``diag(sqrt(max(S_aa, eps s)))`` - ``cholesky_ex``'s retry, without reading a
-        value on the host. Returns the lower triangle ``L[a][c]`` (``c <= a``)."""
+        triangle ``S[a][c]``, ``a <= c``) entry by entry (any ``n``; the kernels use it beyond ``n = 2``):
+        the Cholesky factor where every pivot is positive; elsewhere the factor of ``S + sqrt(eps) s I``
+        (``s = max |S_aa|``), and where that fails too ``diag(sqrt(max(S_aa, eps s)))`` -
+        ``cholesky_ex``'s retry, without reading a value on the host. Returns the lower triangle
+        ``L[a][c]`` (``c <= a``)."""
         n = self.n
         plain, failed = self._cholesky(S, None)
         scale = S[0][0].abs()

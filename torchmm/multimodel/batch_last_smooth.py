@@ -15,7 +15,8 @@ last: ``(M, *B)`` per mode, ``(j, i, *B)`` per pair of modes (mode ``j`` at ``k`
   eager form linearises at the filtered estimate, ``at + F^{-1}(m - F at - b)``: equal for linear
   models, to rounding); ``F_i^{-1}`` is inverted once per mode;
 - the fusion of every pair: ``D = P_j + B_i`` and its regularised factor in closed form
-  (:func:`torchmm.linalg.cholesky`'s for ``n <= 2``; beyond, :meth:`~torchmm.multimodel.batch_last.BatchLastIMM.factor`),
+  (:func:`torchmm.linalg.cholesky`'s for ``n <= 2``; beyond,
+  :meth:`~torchmm.multimodel.batch_last.BatchLastIMM.factor`),
   ``V = L^{-1} P_j``, ``w = L^{-1} (b_i - x_j)``,
   ``x_ji = x_j + V^T w``, the overlap ``N(b_i - x_j; 0, D)``, the pair weights and their
   normalisations (as ``safe_log_normalize``), and mode ``j``'s collapse

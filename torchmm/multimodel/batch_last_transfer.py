@@ -11,9 +11,9 @@ at most six components through this kernel (:class:`BatchLastTransferKernel`, re
 1. the IMM's mixing, prediction and update with ``y_k`` (the plain posterior and ``Lambda_j``);
 2. the source filter's posterior: the prediction updated with ``y_{S,k}`` (noise ``R_S``);
 3. the transfer smoothing (13)-(14) from the reference at ``k-1`` (the combined estimate, or each
-   mode's mixed start): ``G^T = (F P F^T + Q)^{-1} F P`` by the closed-form regularised factor of
-   :func:`torchmm.linalg.cholesky` (closed form for ``n <= 2``, entry by entry beyond), the smoothed mean ``x + G (m - f(x))`` (and, for the
-   record, its covariance ``P + G (D - P^-) G^T``);
+   mode's mixed start): ``G^T = (F P F^T + Q)^{-1} F P`` by the regularised factor of
+   :func:`torchmm.linalg.cholesky` (closed form for ``n <= 2``, entry by entry beyond), the smoothed
+   mean ``x + G (m - f(x))`` (and, for the record, its covariance ``P + G (D - P^-) G^T``);
 4. the transferred knowledge ``u_S = H (F m_s + b)``, the correction (20)-(21) with it where the
    source datum is present, the update (22)-(23) with ``y_k``;
 5. the mode probabilities from ``Lambda_j`` (or the corrected likelihoods); the influence value (33)
