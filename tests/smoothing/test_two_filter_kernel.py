@@ -177,10 +177,11 @@ def test_declines_what_it_does_not_compute(kernel_runs):
     assert len(kernel_runs) == 1
 
 
-@pytest.mark.parametrize("n", [3, 4, 6])
-def test_the_factor_beyond_two_components_is_torchmms_regularised_one(n):
-    """Entry by entry, with cholesky_ex's retry: positive definite, singular (the jittered factor),
-    indefinite beyond the jitter (the diagonal fallback) and NaN matrices."""
+@pytest.mark.parametrize("n", [1, 2, 3, 4, 6])
+def test_the_factor_is_torchmms_regularised_one(n):
+    """Entry by entry, the closed form for n <= 2 and beyond with cholesky_ex's retry: positive
+    definite, singular (the jittered factor), indefinite (the clamped pivots, the diagonal fallback) and
+    NaN matrices."""
     from torchmm.linalg import cholesky  # noqa: PLC0415
 
     imm, belief0, z = _random_imm(n, 1, 2, (3,), steps=2, seed=n)

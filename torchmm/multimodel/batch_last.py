@@ -161,6 +161,14 @@ def coefficients(t: Tensor, M: int, event: int, batch_dims: int) -> list:
     return [flat[a * cols:(a + 1) * cols] for a in range(t.shape[-2])]
 
 
+def sum_terms(terms: list) -> Tensor:
+    """``terms[0] + terms[1] + ...``, in that order."""
+    acc = terms[0]
+    for t in terms[1:]:
+        acc = acc + t
+    return acc
+
+
 def combine(terms, const: _Coef = ZERO, like: Tensor | None = None) -> Tensor:
     """``sum_e coef_e * t_e + const`` with the fewest operations (zero terms skipped, ones added,
     shared scalars and per-mode tensors through ``addcmul``).
@@ -228,7 +236,7 @@ class BatchLastIMM:
         self.estimate_only = False
         #: the filter's work after each update (a model-set policy: LinearGaussian.post_update), its
         #: generator, and whether the estimate is taken after it (record="estimate" with a post-update)
-        self.post_update, self.generator, self.estimate_after = getattr(model, "post_update", None), None, False
+        self.post_update, self.generator, self.estimate_after = model.post_update, None, False
         self._to_back1 = (d, *range(d))  # (*B, M) -> (M, *B)
         self._core = self.core
         self._compiled = False
@@ -475,12 +483,20 @@ class BatchLastIMM:
 
     def factor(self, S: list) -> list:
         """:func:`torchmm.linalg.cholesky`'s regularised factor of the per-entry symmetric ``S`` (upper
-        triangle ``S[a][c]``, ``a <= c``) entry by entry (any ``n``; the kernels use it beyond ``n = 2``):
-        the Cholesky factor where every pivot is positive; elsewhere the factor of ``S + sqrt(eps) s I``
-        (``s = max |S_aa|``), and where that fails too ``diag(sqrt(max(S_aa, eps s)))`` -
-        ``cholesky_ex``'s retry, without reading a value on the host. Returns the lower triangle
-        ``L[a][c]`` (``c <= a``)."""
+        triangle ``S[a][c]``, ``a <= c``), the same formulas entry by entry: for ``n <= 2`` its closed
+        form (pivots clamped at ``eps max|S_aa|``, ``tiny`` for ``n = 1``); beyond, the Cholesky factor
+        where every pivot is positive, elsewhere the factor of ``S + sqrt(eps) s I`` (``s = max |S_aa|``),
+        and where that fails too ``diag(sqrt(max(S_aa, eps s)))`` - ``cholesky_ex``'s retry, without
+        reading a value on the host. Returns the lower triangle ``L[a][c]`` (``c <= a``)."""
         n = self.n
+        if n == 1:
+            return [[S[0][0].clamp_min(self.tiny).sqrt()]]
+        if n == 2:
+            a, b, c = S[0][0], S[0][1], S[1][1]
+            scale = torch.maximum(a.abs(), c.abs()) * torch.finfo(a.dtype).eps + self.tiny
+            l11 = a.clamp_min(0).maximum(scale).sqrt()
+            l21 = b / l11
+            return [[l11, None], [l21, (c - l21 * l21).maximum(scale).sqrt()]]
         plain, failed = self._cholesky(S, None)
         scale = S[0][0].abs()
         for a in range(1, n):

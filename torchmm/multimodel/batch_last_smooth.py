@@ -36,7 +36,16 @@ import torch
 from torch import Tensor
 
 from torchmm.beliefs import GaussianBelief, ModeBelief
-from torchmm.multimodel.batch_last import MAX_STATE, ONE, ZERO, BatchLastIMM, coefficients, combine, why_not
+from torchmm.multimodel.batch_last import (
+    MAX_STATE,
+    ONE,
+    ZERO,
+    BatchLastIMM,
+    coefficients,
+    combine,
+    sum_terms,
+    why_not,
+)
 
 __all__ = ["BatchLastTwoFilter", "why_not_smooth"]
 
@@ -85,7 +94,6 @@ class BatchLastTwoFilter:
         log_pi = model.transition.log()  # [j, i]
         self.log_pi = log_pi.reshape(M, M, *([1] * d))  # (j, i, 1...)
         self.log_pi_t = log_pi.mT.reshape(M, M, *([1] * d))  # (i, j, 1...)
-        self.eps, self.tiny = torch.finfo(like.dtype).eps, torch.finfo(like.dtype).tiny
         self.diffuse = torch.finfo(like.dtype).eps ** -0.5  # torchmm.smooth.diffuse_factor
 
     # -- layout ---------------------------------------------------------------------------------
@@ -135,9 +143,10 @@ class BatchLastTwoFilter:
         like = x[0]
         diff = [_minus(x[a], b[a]) for a in range(n)]  # m - b
         mean = [combine([(Finv[a][e], diff[e]) for e in range(n)], ZERO, like) for a in range(n)]
-        S = [[combine([(ONE, C[min(a, c)][max(a, c)])], Q[min(a, c)][max(a, c)], like) for c in range(n)]
-             for a in range(n)]  # P + Q
-        A = [[combine([(Finv[a][e], S[e][c]) for e in range(n)], ZERO, like) for c in range(n)] for a in range(n)]
+        S = [[combine([(ONE, C[a][c])], Q[a][c], like) if c >= a else None for c in range(n)]
+             for a in range(n)]  # P + Q (upper triangle)
+        A = [[combine([(Finv[a][e], S[min(e, c)][max(e, c)]) for e in range(n)], ZERO, like) for c in range(n)]
+             for a in range(n)]
         cov = [[combine([(Finv[c][e], A[a][e]) for e in range(n)], ZERO, like) if c >= a else None
                 for c in range(n)] for a in range(n)]
         return mean, cov
@@ -153,32 +162,15 @@ class BatchLastTwoFilter:
         D = [[None if P[a][c] is None else Pj[a][c] + B[a][c].unsqueeze(0) for c in range(n)]
              for a in range(n)]  # (j, i, *B)
         delta = [b[a].unsqueeze(0) - x[a].unsqueeze(1) for a in range(n)]
-        # the regularised factor (torchmm.linalg.cholesky, closed form for n <= 2)
-        if n == 1:
-            l11 = D[0][0].clamp_min(self.tiny).sqrt()
-            diag = [l11]
-            V = [[Pj[0][0] / l11]]
-            w = [delta[0] / l11]
-        elif n == 2:
-            a0, b0, c0 = D[0][0], D[0][1], D[1][1]
-            scale = torch.maximum(a0.abs(), c0.abs()) * self.eps + self.tiny
-            l11 = a0.clamp_min(0).maximum(scale).sqrt()
-            l21 = b0 / l11
-            l22 = (c0 - l21 * l21).maximum(scale).sqrt()
-            diag = [l11, l22]
-            row0 = [sym(Pj, 0, c) / l11 for c in range(2)]  # L^{-1} P_j (solve_lower's closed form)
-            V = [row0, [(sym(Pj, 1, c) - l21 * row0[c]) / l22 for c in range(2)]]
-            w0 = delta[0] / l11
-            w = [w0, (delta[1] - l21 * w0) / l22]
-        else:  # entry by entry, with cholesky_ex's retry
-            L = self.imm.factor(D)
-            diag = [L[a][a] for a in range(n)]
-            V = self.imm.solve_lower(L, [[sym(Pj, e, c) for c in range(n)] for e in range(n)])
-            w = [row[0] for row in self.imm.solve_lower(L, [[delta[e]] for e in range(n)])]
+        # torchmm.linalg.cholesky's regularised factor; V = L^{-1} P_j, w = L^{-1} delta (solve_lower)
+        L = self.imm.factor(D)
+        diag = [L[a][a] for a in range(n)]
+        V = self.imm.solve_lower(L, [[sym(Pj, e, c) for c in range(n)] for e in range(n)])
+        w = [row[0] for row in self.imm.solve_lower(L, [[delta[e]] for e in range(n)])]
         # x_ji = x_j + V^T w; log N(b_i - x_j; 0, D)
-        mean = [x[a].unsqueeze(1) + _sum([V[e][a] * w[e] for e in range(n)]) for a in range(n)]
-        squares = _sum([w[e] * w[e] for e in range(n)])
-        half_log_det = _sum([d.log() for d in diag])
+        mean = [x[a].unsqueeze(1) + sum_terms([V[e][a] * w[e] for e in range(n)]) for a in range(n)]
+        squares = sum_terms([w[e] * w[e] for e in range(n)])
+        half_log_det = sum_terms([d.log() for d in diag])
         log_overlap = -0.5 * (squares + n * _LOG_2PI) - half_log_det
         evidence = log_mu_b - prior_next  # (i, *B)
         log_pair = log_mu.unsqueeze(1) + self.log_pi + log_overlap + evidence.unsqueeze(0)  # (j, i, *B)
@@ -192,7 +184,7 @@ class BatchLastTwoFilter:
         cov = [[None] * n for _ in range(n)]
         for a in range(n):
             for c in range(a, n):
-                vv = _sum([V[e][a] * V[e][c] for e in range(n)])  # (V^T V)_ac
+                vv = sum_terms([V[e][a] * V[e][c] for e in range(n)])  # (V^T V)_ac
                 cov[a][c] = P[a][c] - (weights * vv).sum(1) + (wdiff[a] * diff[c]).sum(1)
         return log_mode, merged, cov
 
@@ -241,11 +233,3 @@ def _minus(t: Tensor, coef) -> Tensor:
     if coef.kind == "zero":
         return t
     return t - (1.0 if coef.kind == "one" else coef.value)
-
-
-def _sum(terms: list) -> Tensor:
-    """``terms[0] + terms[1] + ...`` in order."""
-    acc = terms[0]
-    for t in terms[1:]:
-        acc = acc + t
-    return acc

@@ -36,7 +36,15 @@ from torch import Tensor
 import torchmm.kernels as kernels
 from torchmm.beliefs import GaussianBelief, ModeBelief
 from torchmm.filters.base import StepOutput
-from torchmm.multimodel.batch_last import MAX_STATE, ZERO, BatchLastIMM, combine, planned, why_not
+from torchmm.multimodel.batch_last import (
+    MAX_STATE,
+    ZERO,
+    BatchLastIMM,
+    combine,
+    planned,
+    sum_terms,
+    why_not,
+)
 from torchmm.multimodel.multirate import split_streams
 
 __all__ = ["TRANSFER", "BatchLastTransfer", "BatchLastTransferKernel"]
@@ -62,7 +70,6 @@ class BatchLastTransfer(BatchLastIMM):
         self.gate = description.gate  # None: IMM-TF (the influence is still a diagnostic, mode 0's)
         self.gate_mode = 0 if self.gate is None else self.gate.mode
         self.process_weight = self.gate is not None and self.gate.weight == "process"
-        self.eps = torch.finfo(like.dtype).eps
 
     def broadcast_layout(self, runs: int, itemsize: int) -> bool:
         """Always one tensor per entry."""
@@ -84,27 +91,10 @@ class BatchLastTransfer(BatchLastIMM):
 
     def _factor_solve(self, S: list, rhs: list) -> list:
         """``S^{-1} rhs`` for the per-entry symmetric ``S`` (upper triangle) and ``rhs[a][c]`` (a full
-        ``n x n``), by :func:`torchmm.linalg.cholesky`'s regularised factor (closed form for ``n <= 2``,
-        :meth:`factor` beyond) and :func:`~torchmm.linalg.cholesky_solve`'s substitutions."""
-        n, tiny = self.n, self.tiny
-        if n > 2:  # entry by entry, with cholesky_ex's retry: cholesky_solve's two substitutions
-            L = self.factor(S)
-            return self.solve_lower_transposed(L, self.solve_lower(L, rhs))
-        if n == 1:
-            L = S[0][0].clamp_min(tiny).sqrt()
-            return [[rhs[0][0] / L / L]]
-        a, b, c = S[0][0], S[0][1], S[1][1]
-        scale = torch.maximum(a.abs(), c.abs()) * self.eps + tiny
-        l11 = a.clamp_min(0).maximum(scale).sqrt()
-        l21 = b / l11
-        l22 = (c - l21 * l21).maximum(scale).sqrt()
-        out = [[None] * 2 for _ in range(2)]
-        for col in range(2):
-            y0 = rhs[0][col] / l11
-            y1 = (rhs[1][col] - l21 * y0) / l22
-            x1 = y1 / l22
-            out[0][col], out[1][col] = (y0 - l21 * x1) / l11, x1
-        return out
+        ``n x n``): :func:`~torchmm.linalg.cholesky_solve` of :func:`torchmm.linalg.cholesky`'s factor
+        (:meth:`factor`), its two substitutions entry by entry."""
+        L = self.factor(S)
+        return self.solve_lower_transposed(L, self.solve_lower(L, rhs))
 
     def core(self, X: list, C: list, mu: Tensor, zc: Tensor, ob: Tensor, nhob: Tensor, anyob: Tensor, zraw: Tensor,
              szc: Tensor, sob: Tensor, snhob: Tensor, present: Tensor, present_f: Tensor) -> tuple:
@@ -144,7 +134,7 @@ class BatchLastTransfer(BatchLastIMM):
               for a in range(n)]
         gain_t = self._factor_solve(Cp, FP)  # (F P F^T + Q)^{-1} F P = G^T
         dm = [ms[e] - mp[e] for e in range(n)]
-        smoothed = [rx[a] + _sum([gain_t[e][a] * dm[e] for e in range(n)]) for a in range(n)]
+        smoothed = [rx[a] + sum_terms([gain_t[e][a] * dm[e] for e in range(n)]) for a in range(n)]
         # 4. u_S = H (F m_s + b) where the source datum is present; the correction and the update
         fm = [combine([(F[a][e], smoothed[e]) for e in range(n)], self.b[a], cbar) for a in range(n)]
         u_s = [combine([(H[k][a], fm[a]) for a in range(n)], ZERO, cbar) for k in range(self.m)]
@@ -190,12 +180,13 @@ class BatchLastTransfer(BatchLastIMM):
         anchor = [xp[a][j] for a in range(n)]
         value, product = [], None
         for k in range(m):
-            h = [_at_mode(H[k][a], j) for a in range(n)]
-            shift = _sum([(est[a] - x_star[a]) * h[a] for a in range(n) if h[a] is not None] or [est[0] * 0])
-            rk = _at_mode(r[k], j)  # R^{-1} shift through the factor of the diagonal R, as cholesky_solve
+            h = [_at_mode(H[k][a], j) for a in range(n)]  # mode j's row (None: an exact zero)
+            shift = _dot(h, [est[a] - x_star[a] for a in range(n)])
+            # R^{-1} shift through the factor of the diagonal R, as cholesky_solve(cholesky(R), shift)
+            rk = _at_mode(r[k], j)
             root = math.sqrt(rk) if isinstance(rk, float) else self.tiny_t.sqrt() if rk is None else rk.sqrt()
             v = torch.where(ob[k] > 0, -(shift / root / root), 0.0)
-            predicted = _sum([anchor[a] * h[a] for a in range(n) if h[a] is not None] or [est[0] * 0])
+            predicted = _dot(h, anchor)
             innovation = torch.where(ob[k] > 0, zraw[k] - predicted, 0.0)
             value.append(v)
             product = v * innovation if product is None else product + v * innovation
@@ -207,8 +198,8 @@ class BatchLastTransfer(BatchLastIMM):
         n = self.n
         sym = lambda T, a, c: T[min(a, c)][max(a, c)]  # noqa: E731
         diff = [[sym(Ds, e, f) - sym(Cp, e, f) for f in range(n)] for e in range(n)]
-        inner = [[_sum([diff[e][f] * gain_t[f][c] for f in range(n)]) for c in range(n)] for e in range(n)]
-        return [[sym(rC, a, c) + _sum([gain_t[e][a] * inner[e][c] for e in range(n)]) if c >= a else None
+        inner = [[sum_terms([diff[e][f] * gain_t[f][c] for f in range(n)]) for c in range(n)] for e in range(n)]
+        return [[sym(rC, a, c) + sum_terms([gain_t[e][a] * inner[e][c] for e in range(n)]) if c >= a else None
                  for c in range(n)] for a in range(n)]
 
     def step(self, state: tuple, z: Tensor) -> tuple[tuple, StepOutput]:
@@ -266,12 +257,10 @@ def _at_mode(coef, j: int):
     return coef.value[j if coef.value.shape[0] > 1 else 0]
 
 
-def _sum(terms: list) -> Tensor:
-    """``terms[0] + terms[1] + ...`` in order."""
-    acc = terms[0]
-    for t in terms[1:]:
-        acc = acc + t
-    return acc
+def _dot(h: list, x: list) -> Tensor:
+    """``sum_a h[a] x[a]`` over the entries whose ``h`` is not an exact zero (zeros where all are)."""
+    terms = [x[a] * h[a] for a in range(len(h)) if h[a] is not None]
+    return sum_terms(terms) if terms else torch.zeros_like(x[0])
 
 
 class BatchLastTransferKernel:
