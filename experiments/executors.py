@@ -92,7 +92,7 @@ def execute(job: Job) -> Any:
     ctx = resolve(job.context)(job.config, Path(job.output_dir))
     try:
         # as run_study does around a study: no kernel whose choice depends on the number of runs
-        with kernels.switched_off("linear_gaussian"):
+        with kernels.switched_off(*kernels.by_size()):
             return jsonable(resolve(job.unit.fn)(ctx, **job.unit.args))
     except Exception as err:  # the unit's own error: travels back as text (picklable everywhere)
         raise UnitError(f"unit {job.unit.key}: {type(err).__name__}: {err}\n{traceback.format_exc()}") from None

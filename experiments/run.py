@@ -126,7 +126,7 @@ def run_study(cfg: DictConfig, output_dir: Path, overrides: list[str] | None = N
         ctx.results.changes = config_changes(config)  # results.md: what differs from the study's defaults
         # the kernels whose choice depends on the number of runs are off: a study's numbers must not
         # depend on how its runs are split into units (experiments.executors.execute does the same for each unit)
-        with kernels.switched_off("linear_gaussian"):
+        with kernels.switched_off(*kernels.by_size()):
             return _run(cfg, ctx, study, config, overrides)
     finally:
         for key in set(LOCKS) - held:

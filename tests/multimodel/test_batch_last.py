@@ -322,8 +322,6 @@ def test_taken_only_where_it_applies(batch_last_steps):
         "the 'static' rule": StaticMM(kf, 2),
         "mode 1: the Joseph form": IMM(_list_bank(imm), imm.transition.matrix()),
         "the Joseph form": IMM(KalmanFilter(kf.motion, kf.measurement, joseph=True), imm.transition.matrix()),
-        "ExtendedKalmanFilter is not linear-Gaussian": IMM(ExtendedKalmanFilter(kf.motion, kf.measurement),
-                                                           imm.transition.matrix()),
         "not a LinearMotion": IMM(KalmanFilter(_Shifted(kf.motion.F, kf.motion.Q, kf.motion.offset), kf.measurement),
                                   imm.transition.matrix()),
     }
@@ -335,6 +333,13 @@ def test_taken_only_where_it_applies(batch_last_steps):
             run_filter(filt, belief0, z, compile=True)
         assert_same_trajectory(run_filter(filt, belief0, z), run_filter(filt, belief0, z, fast_path=False))
         assert not batch_last_steps, reason  # the batch-first steps ran
+    # an extended bank: not this kernel's (the nonlinear banks' kernel takes it, batch_last_nonlinear.py)
+    extended = IMM(ExtendedKalmanFilter(kf.motion, kf.measurement), imm.transition.matrix())
+    assert "ExtendedKalmanFilter is not linear-Gaussian" in _plan(extended, belief0, z)
+    assert_same_trajectory(run_filter(extended, belief0, z, fast_path=True),
+                           run_filter(extended, belief0, z, fast_path=False))
+    assert batch_last_steps and all(type(k).__name__ == "BatchLastNonlinear" for k in batch_last_steps)
+    batch_last_steps.clear()
     plain = _PlainIMM(kf, imm.transition.matrix())
     assert_same_trajectory(run_filter(plain, belief0, z, fast_path=True), run_filter(imm, belief0, z, fast_path=False))
     assert len(batch_last_steps) == 4

@@ -126,6 +126,7 @@ NOT_ENTRY_POINTS: dict[str, str] = {
     "torchmm.kernels.joined": _SEAM,
     "torchmm.kernels.joins": _SEAM + " (a class decorator)",
     "torchmm.kernels.names": _NO_ARGS,
+    "torchmm.kernels.by_size": _NO_ARGS,
     "torchmm.kernels.plan": _SEAM,
     "torchmm.kernels.plan_smooth": _SEAM,
     "torchmm.kernels.register": _SEAM,

@@ -22,6 +22,7 @@ from torchmm.beliefs import GaussianBelief, symmetrize
 from torchmm.contract import Flag, Of, entry_point
 from torchmm.filters.base import Filter, StepOutput
 from torchmm.kernels.linear import LinearGaussian
+from torchmm.kernels.nonlinear import NonlinearGaussian
 from torchmm.linalg import cholesky, condition, flag_failed, half_log_det, solve_lower, sum_last
 from torchmm.models.base import MeasurementModel, MotionModel, check_model_pair
 from torchmm.models.linear import LinearMeasurement, LinearMotion, plain_linear
@@ -30,6 +31,7 @@ from torchmm.validation import broadcast_shape, check_measurement, gaussian_batc
 __all__ = ["ExtendedKalmanFilter", "KalmanFilter"]
 
 
+@kernels.joins("nonlinear_gaussian", ("step", "predict", "update", "_transition_matrix", "_measurement_matrix"))
 class ExtendedKalmanFilter(Filter):
     """Extended Kalman filter over any differentiable motion and measurement models.
 
@@ -100,6 +102,15 @@ class ExtendedKalmanFilter(Filter):
         )
         return StepOutput(GaussianBelief(mean, cov), belief, log_likelihood, innovation, innovation_cov,
                           {"singular": singular, "failed": flag_failed(log_likelihood)})
+
+    def nonlinear_gaussian(self):
+        """This filter's description for the nonlinear-Gaussian kernel (:mod:`torchmm.kernels.nonlinear`),
+        or the reason it has none (a subclass with its own steps or linearisation, the Joseph form)."""
+        if not kernels.joined(self, "nonlinear_gaussian"):
+            return f"{type(self).__name__} overrides the extended Kalman filter's steps"
+        if self.joseph:
+            return "the Joseph form"
+        return NonlinearGaussian(self.motion, self.measurement, "extended")
 
     def update_each(self, belief: GaussianBelief, zs: Tensor) -> StepOutput:
         """:meth:`Filter.update_each` with the gain shared: the linearisation, innovation covariance,

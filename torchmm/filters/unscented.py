@@ -18,12 +18,14 @@ import math
 import torch
 from torch import Tensor
 
+import torchmm.kernels as kernels
 from torchmm.beliefs import GaussianBelief, psd_sqrt, symmetrize
+from torchmm.contract import Flag, Of, Real, entry_point
 from torchmm.filters.base import Filter, StepOutput
+from torchmm.kernels.nonlinear import NonlinearGaussian
 from torchmm.linalg import check_joseph, condition, flag_failed, use_joseph
 from torchmm.models.base import MeasurementModel, MotionModel, check_model_pair
 from torchmm.validation import as_float, broadcast_shape, check_measurement, gaussian_batch
-from torchmm.contract import Flag, Of, Real, entry_point
 
 __all__ = [
     "CubatureSigmaPoints",
@@ -142,6 +144,7 @@ def _weighted_moments(points: Tensor, wm: Tensor) -> tuple[Tensor, Tensor]:
     return mean, points - mean
 
 
+@kernels.joins("nonlinear_gaussian")
 class UnscentedKalmanFilter(Filter):
     r"""Unscented Kalman filter.
 
@@ -184,6 +187,16 @@ class UnscentedKalmanFilter(Filter):
             self.sigma_points.check(motion.state_dim)
         except ValueError as err:
             raise ValueError(f"sigma_points: {err}") from None
+
+    def nonlinear_gaussian(self):
+        """This filter's description for the nonlinear-Gaussian kernel (:mod:`torchmm.kernels.nonlinear`),
+        or the reason it has none (a subclass with its own steps, a sigma-point rule with its own
+        ``points``)."""
+        if not kernels.joined(self, "nonlinear_gaussian"):
+            return f"{type(self).__name__} overrides the unscented Kalman filter's steps"
+        if type(self.sigma_points).points is not SigmaPointStrategy.points:
+            return f"the sigma-point rule {type(self.sigma_points).__name__} places its own points"
+        return NonlinearGaussian(self.motion, self.measurement, "unscented", self.sigma_points, self.joseph)
 
     def predict(self, belief: GaussianBelief, *, u: Tensor | None = None,
                 motion: MotionModel | None = None) -> GaussianBelief:

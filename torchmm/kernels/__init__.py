@@ -38,8 +38,8 @@ import torch.utils._pytree as pytree
 
 from torchmm.validation import broadcast_shape
 
-__all__ = ["Request", "describe", "enabled", "joined", "joins", "names", "plan", "plan_smooth", "register", "registered", "set_enabled",
-           "stack_steps", "switched_off"]
+__all__ = ["Request", "by_size", "describe", "enabled", "joined", "joins", "names", "plan", "plan_smooth",
+           "register", "registered", "set_enabled", "stack_steps", "switched_off"]
 
 _KERNELS: list = []
 #: family -> {class: {method name: function}}: the steps each joining class computes
@@ -133,7 +133,7 @@ def set_enabled(name: str, enabled: bool = True) -> None:
     passes it over, ``fast_path=True`` included; a stage kernel's filter takes its eager passes). The
     study harness switches the small linear-Gaussian kernel off: its choice depends on the number of
     runs, and a study's numbers must not depend on how its runs are split into units
-    (experiments/run.py, experiments/executors.py)."""
+    (experiments/run.py, experiments/executors.py; :func:`by_size`)."""
     _check_name(name)
     if enabled:
         _OFF.discard(name)
@@ -142,16 +142,26 @@ def set_enabled(name: str, enabled: bool = True) -> None:
 
 
 @contextlib.contextmanager
-def switched_off(name: str):
-    """``with switched_off("linear_gaussian"): ...``: :func:`set_enabled` off inside, restored after."""
-    _check_name(name)
-    was = name in _OFF
-    _OFF.add(name)
+def switched_off(*names: str):
+    """``with switched_off("linear_gaussian"): ...``: :func:`set_enabled` off inside for every kernel
+    named, restored after."""
+    for name in names:
+        _check_name(name)
+    was = {name for name in names if name in _OFF}
+    _OFF.update(names)
     try:
         yield
     finally:
-        if not was:
-            _OFF.discard(name)
+        _OFF.difference_update(set(names) - was)
+
+
+def by_size() -> list[str]:
+    """The names of the registered kernels that a run takes or not by its number of runs (``by_size =
+    True``: the small linear-Gaussian kernel, the nonlinear banks' batch-last kernel). The study
+    harness switches them off (:func:`switched_off`): a study's numbers must not depend on how its runs
+    are split into units (experiments/run.py, experiments/executors.py)."""
+    _load()
+    return [kernel.name for kernel in _KERNELS if getattr(kernel, "by_size", False)]
 
 
 def _check_name(name: str) -> None:

@@ -261,6 +261,7 @@ class LinearKernel:
     """The registered kernel (see the module docstring)."""
 
     name = "linear_gaussian"
+    by_size = True  # taken by the number of runs (kernels.by_size)
 
     def plan(self, filter: Any, belief0: Any, measurements: Any, request: kernels.Request):
         if not isinstance(measurements, Tensor) or not measurements.is_floating_point():

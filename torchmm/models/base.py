@@ -9,6 +9,7 @@ axes (sigma points, particles) put those axes leftmost when they call a model.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import torch
 from torch import Tensor, nn
@@ -64,6 +65,26 @@ class MotionModel(nn.Module):
         """``df/dx`` at ``x``. Shapes: ``x: (*B, n)`` -> ``(*B, n, n)``."""
         return forward_jacobian(lambda s: self(s, u=u), x)
 
+    def forward_entries(self, x: Sequence[Tensor], *, u: Tensor | None = None) -> list[Tensor]:
+        """:meth:`forward` one state component at a time, for the kernels that keep each component in
+        its own tensor (the batch-last IMM over extended and unscented banks,
+        :mod:`torchmm.multimodel.batch_last_nonlinear`). The default stacks the components and calls
+        :meth:`forward`; a model overrides it with the same arithmetic to skip the stack.
+
+        Shapes: ``x``: ``n`` tensors ``(*B,)`` (broadcasting) -> ``n`` tensors broadcasting to ``(*B,)``.
+        """
+        return list(self(torch.stack(torch.broadcast_tensors(*x), -1), u=u).unbind(-1))
+
+    def jacobian_entries(self, x: Sequence[Tensor], *, u: Tensor | None = None) -> list[list[Tensor | float]]:
+        """:meth:`jacobian` entry by entry (see :meth:`forward_entries`): rows ``J[a][e]`` of tensors, or
+        the Python numbers ``0.0`` and ``1.0`` where the entry is exactly that at every state (the
+        kernels skip those products, exactly). The default takes every entry of :meth:`jacobian`.
+
+        Shapes: ``x``: ``n`` tensors ``(*B,)`` -> ``n`` rows of ``n`` entries broadcasting to ``(*B,)``.
+        """
+        J = self.jacobian(torch.stack(torch.broadcast_tensors(*x), -1), u=u)
+        return [list(row.unbind(-1)) for row in J.unbind(-2)]
+
 
 class MeasurementModel(nn.Module):
     """Measurement ``z_k = h(x_k) + v_k``, ``v_k ~ N(0, R)``."""
@@ -82,6 +103,22 @@ class MeasurementModel(nn.Module):
     def jacobian(self, x: Tensor) -> Tensor:
         """``dh/dx`` at ``x``. Shapes: ``x: (*B, n)`` -> ``(*B, m, n)``."""
         return forward_jacobian(self, x)
+
+    def forward_entries(self, x: Sequence[Tensor]) -> list[Tensor]:
+        """:meth:`forward` one state component at a time (:meth:`MotionModel.forward_entries`).
+
+        Shapes: ``x``: ``n`` tensors ``(*B,)`` (broadcasting) -> ``m`` tensors broadcasting to ``(*B,)``.
+        """
+        return list(self(torch.stack(torch.broadcast_tensors(*x), -1)).unbind(-1))
+
+    def jacobian_entries(self, x: Sequence[Tensor]) -> list[list[Tensor | float]]:
+        """:meth:`jacobian` entry by entry (:meth:`MotionModel.jacobian_entries`: ``0.0`` and ``1.0`` for
+        entries exactly that at every state).
+
+        Shapes: ``x``: ``n`` tensors ``(*B,)`` -> ``m`` rows of ``n`` entries broadcasting to ``(*B,)``.
+        """
+        J = self.jacobian(torch.stack(torch.broadcast_tensors(*x), -1))
+        return [list(row.unbind(-1)) for row in J.unbind(-2)]
 
     def log_likelihood(self, z: Tensor, x: Tensor) -> Tensor:
         """Gaussian ``log p(z | x)``; NaN components of ``z`` are treated as missing.

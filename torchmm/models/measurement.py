@@ -83,9 +83,13 @@ class RangeBearing(MeasurementModel):
         self.state_dim, self.meas_dim = state_dim, 2
 
     def forward(self, x: Tensor) -> Tensor:
-        dx = x[..., self.position_indices[0]] - self.origin[0]
-        dy = x[..., self.position_indices[1]] - self.origin[1]
-        return torch.stack([torch.sqrt(dx.square() + dy.square()), torch.atan2(dy, dx)], dim=-1)
+        return torch.stack(self.forward_entries(x.unbind(-1)), dim=-1)
+
+    def forward_entries(self, x) -> list[Tensor]:
+        """:meth:`forward` one component at a time (the same operations)."""
+        dx = x[self.position_indices[0]] - self.origin[0]
+        dy = x[self.position_indices[1]] - self.origin[1]
+        return [torch.sqrt(dx.square() + dy.square()), torch.atan2(dy, dx)]
 
     def jacobian(self, x: Tensor) -> Tensor:
         """Closed-form ``dh/dx``: ``[dx, dy] / r`` and ``[-dy, dx] / r^2`` in the position columns, zero
@@ -93,16 +97,22 @@ class RangeBearing(MeasurementModel):
 
         Shapes: ``x: (*B, n)`` -> ``(*B, 2, n)``
         """
+        rows = self.jacobian_entries(x.unbind(-1))
+        zero = torch.zeros_like(rows[0][self.position_indices[0]])
+        entries = [zero if isinstance(e, float) else e for row in rows for e in row]
+        return torch.stack(entries, dim=-1).unflatten(-1, (2, self.state_dim))
+
+    def jacobian_entries(self, x) -> list[list[Tensor | float]]:
+        """:meth:`jacobian` entry by entry (``0.0`` outside the position columns)."""
         i, j = self.position_indices
-        dx = x[..., i] - self.origin[0]
-        dy = x[..., j] - self.origin[1]
+        dx = x[i] - self.origin[0]
+        dy = x[j] - self.origin[1]
         r2 = dx.square() + dy.square()
         r = torch.sqrt(r2)
-        zero = torch.zeros_like(r)
-        rows = [[zero] * self.state_dim for _ in range(2)]
+        rows = [[0.0] * self.state_dim for _ in range(2)]
         rows[0][i], rows[0][j] = dx / r, dy / r
         rows[1][i], rows[1][j] = -dy / r2, dx / r2
-        return torch.stack(rows[0] + rows[1], dim=-1).unflatten(-1, (2, self.state_dim))
+        return rows
 
     def noise_cov(self, x: Tensor | None = None) -> Tensor:
         return self.R

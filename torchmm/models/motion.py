@@ -223,12 +223,15 @@ class NonlinearCoordinatedTurn(MotionModel):
     def forward(self, x: Tensor, *, u: Tensor | None = None) -> Tensor:
         # turn_matrix(omega) @ [x, vx, y, vy] written out: no dense (*B, 4, 4) matrix per state (or
         # per sigma point), which cost more than all the arithmetic (docs/performance.md)
-        s, c = _turn_terms(x[..., 4], self.dt)
-        wt = x[..., 4] * self.dt
+        return torch.stack(self.forward_entries(x.unbind(-1)), dim=-1)
+
+    def forward_entries(self, x, *, u: Tensor | None = None) -> list[Tensor]:
+        """:meth:`forward` one component at a time (the same operations)."""
+        px, vx, py, vy, omega = x
+        s, c = _turn_terms(omega, self.dt)
+        wt = omega * self.dt
         cos, sin = torch.cos(wt), torch.sin(wt)
-        px, vx, py, vy, omega = x.unbind(-1)
-        return torch.stack([px + s * vx - c * vy, cos * vx - sin * vy, py + c * vx + s * vy,
-                            sin * vx + cos * vy, omega], dim=-1)
+        return [px + s * vx - c * vy, cos * vx - sin * vy, py + c * vx + s * vy, sin * vx + cos * vy, omega]
 
     def jacobian(self, x: Tensor, *, u: Tensor | None = None) -> Tensor:
         """Closed-form ``df/dx`` (the turn terms' derivatives from :func:`_turn_terms`, exact at and
@@ -236,18 +239,24 @@ class NonlinearCoordinatedTurn(MotionModel):
 
         Shapes: ``x: (*B, 5)`` -> ``(*B, 5, 5)``
         """
-        s, c, ds, dc, cos, sin = _turn_terms(x[..., 4], self.dt, derivatives=True)
-        vx, vy = x[..., 1], x[..., 3]
+        rows = self.jacobian_entries(x.unbind(-1))
+        like = rows[0][1]
+        one, zero = torch.ones_like(like), torch.zeros_like(like)
+        entries = [e if isinstance(e, Tensor) else one if e == 1.0 else zero for row in rows for e in row]
+        return torch.stack(entries, dim=-1).unflatten(-1, (5, 5))
+
+    def jacobian_entries(self, x, *, u: Tensor | None = None) -> list[list[Tensor | float]]:
+        """:meth:`jacobian` entry by entry: 13 of its 25 entries are exactly 0 or 1."""
+        _, vx, _, vy, omega = x
+        s, c, ds, dc, cos, sin = _turn_terms(omega, self.dt, derivatives=True)
         dt = self.dt
-        one, zero = torch.ones_like(s), torch.zeros_like(s)
-        rows = [
-            [one, s, zero, -c, vx * ds - vy * dc],
-            [zero, cos, zero, -sin, -dt * (vx * sin + vy * cos)],
-            [zero, c, one, s, vx * dc + vy * ds],
-            [zero, sin, zero, cos, dt * (vx * cos - vy * sin)],
-            [zero, zero, zero, zero, one],
+        return [
+            [1.0, s, 0.0, -c, vx * ds - vy * dc],
+            [0.0, cos, 0.0, -sin, -dt * (vx * sin + vy * cos)],
+            [0.0, c, 1.0, s, vx * dc + vy * ds],
+            [0.0, sin, 0.0, cos, dt * (vx * cos - vy * sin)],
+            [0.0, 0.0, 0.0, 0.0, 1.0],
         ]
-        return torch.stack([entry for row in rows for entry in row], dim=-1).unflatten(-1, (5, 5))
 
     def noise_cov(self, x: Tensor | None = None) -> Tensor:
         return self.Q

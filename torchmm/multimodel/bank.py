@@ -135,6 +135,12 @@ class VectorizedBank(FilterBank):
         describe = getattr(self.filter, "linear_gaussian", None)
         return describe() if describe is not None else f"{type(self.filter).__name__} is not linear-Gaussian"
 
+    def nonlinear_gaussian(self):
+        """The filter's description for the nonlinear-Gaussian kernel (:mod:`torchmm.kernels.nonlinear`),
+        or the reason there is none."""
+        describe = getattr(self.filter, "nonlinear_gaussian", None)
+        return describe() if describe is not None else f"{type(self.filter).__name__} is not nonlinear-Gaussian"
+
     def with_sensor(self, sensor) -> VectorizedBank:
         f = self.filter.with_sensor(sensor)
         return self if f is self.filter else VectorizedBank(f, self.num_modes)

@@ -80,7 +80,7 @@ _TRACED_MAX = 64
 _STEPS_SEEN: dict = {}
 _TRACE_AFTER = 1000
 _TRACE_LOCK = threading.Lock()
-#: the kernel's model coefficients (nested lists of _Coef) and tensor constants, in the graph's input order
+#: the kernel's model coefficients (nested lists of Coef) and tensor constants, in the graph's input order
 _COEFFICIENTS = ("F", "Q", "b", "H", "r")
 _CONSTANTS = ("matrix", "tiny_t", "lowest", "log_2pi", "zero", "R_front")
 
@@ -119,7 +119,7 @@ def why_not(model, M: int, belief0, measurements) -> str | None:
     return None
 
 
-class _Coef:
+class Coef:
     """One entry of a model matrix, classified once at the entry point: exactly zero or one in every
     mode (its products are skipped: bit-identical, as ``x * 0 = 0`` and ``x * 1 = x`` are exact), one
     number shared by the modes (a 0-dim tensor), or a tensor ``(1 or M, 1, ...)``. Entries of
@@ -131,11 +131,11 @@ class _Coef:
         self.kind, self.value = kind, value
 
 
-ZERO, ONE = _Coef("zero"), _Coef("one")
+ZERO, ONE = Coef("zero"), Coef("one")
 
 
 def coefficients(t: Tensor, M: int, event: int, batch_dims: int) -> list:
-    """A parameter ``([1 or M,] *event)`` as nested lists (``event`` deep) of :class:`_Coef`."""
+    """A parameter ``([1 or M,] *event)`` as nested lists (``event`` deep) of :class:`Coef`."""
     if t.dim() == event:
         t = t.unsqueeze(0)
     front = t.movedim(0, -1)  # (*event, P)
@@ -143,7 +143,7 @@ def coefficients(t: Tensor, M: int, event: int, batch_dims: int) -> list:
     traced = t.requires_grad and torch.is_grad_enabled()
     entries = front.flatten(0, event - 1).unbind(0) if event > 1 else front.unbind(0)
     if traced:
-        flat = [_Coef("tensor", entry) for entry in entries]
+        flat = [Coef("tensor", entry) for entry in entries]
     else:
         # every entry's kind in one pass and one host read, at the entry point: 0 zero in every mode,
         # 1 one in every mode, 2 one number shared by the modes, 3 per mode
@@ -153,8 +153,8 @@ def coefficients(t: Tensor, M: int, event: int, batch_dims: int) -> list:
                            torch.where((values == first).all(0), 2, 3))).tolist()
         # 0-dim copies (an operation with a Python number costs more dispatch than with a tensor)
         shared = first.clone().unbind(0)
-        flat = [ZERO if k == 0 else ONE if k == 1 else _Coef("scalar", shared[e]) if k == 2
-                else _Coef("tensor", entries[e]) for e, k in enumerate(kind)]
+        flat = [ZERO if k == 0 else ONE if k == 1 else Coef("scalar", shared[e]) if k == 2
+                else Coef("tensor", entries[e]) for e, k in enumerate(kind)]
     if event == 1:
         return flat
     cols = t.shape[-1]
@@ -169,7 +169,7 @@ def sum_terms(terms: list) -> Tensor:
     return acc
 
 
-def combine(terms, const: _Coef = ZERO, like: Tensor | None = None) -> Tensor:
+def combine(terms, const: Coef = ZERO, like: Tensor | None = None) -> Tensor:
     """``sum_e coef_e * t_e + const`` with the fewest operations (zero terms skipped, ones added,
     shared scalars and per-mode tensors through ``addcmul``).
 
@@ -206,12 +206,8 @@ class BatchLastIMM:
     kind = "IMM"
 
     def __init__(self, model, M: int, batch_dims: int, like: Tensor):
-        from torchmm.multimodel.imm import safe_log_normalize
-
-        self.normalize, self.collapse = safe_log_normalize, model.rule == "collapse"
-        self.broadcast = True  # the state's layout (prepare chooses it by the batch size)
         d = batch_dims
-        self.M, self.n, self.m, self.d = M, model.F.shape[-1], model.H.shape[-2], d
+        self.setup(model, M, model.F.shape[-1], model.H.shape[-2], d, like)
         self.F = coefficients(model.F, M, 2, d)
         self.Q = coefficients(model.Q, M, 2, d)
         self.b = coefficients(model.b, M, 1, d)
@@ -220,6 +216,16 @@ class BatchLastIMM:
         R = model.R
         self.R_front = (R if R.dim() == 3 else R.unsqueeze(0)).movedim(0, -1).reshape(
             self.m, self.m, -1, *([1] * d))  # (m, m, P, 1...), for the recorded S only
+
+    def setup(self, model, M: int, n: int, m: int, d: int, like: Tensor) -> None:
+        """What every batch-last IMM kernel holds besides its models: the sizes, the interaction (from
+        ``model.transition`` and ``model.rule``), the constants, the permutations between the layouts,
+        the record options and the filter's ``post_update``."""
+        from torchmm.multimodel.imm import safe_log_normalize
+
+        self.normalize, self.collapse = safe_log_normalize, model.rule == "collapse"
+        self.broadcast = True  # the state's layout (prepare chooses it by the batch size)
+        self.M, self.n, self.m, self.d = M, n, m, d
         matrix = model.transition
         self.matrix = matrix.reshape(M, M, *([1] * d))  # (i, j, 1...)
         self.tiny = torch.finfo(like.dtype).tiny
@@ -236,7 +242,8 @@ class BatchLastIMM:
         self.estimate_only = False
         #: the filter's work after each update (a model-set policy: LinearGaussian.post_update), its
         #: generator, and whether the estimate is taken after it (record="estimate" with a post-update)
-        self.post_update, self.generator, self.estimate_after = model.post_update, None, False
+        self.post_update = getattr(model, "post_update", None)
+        self.generator, self.estimate_after = None, False
         self._to_back1 = (d, *range(d))  # (*B, M) -> (M, *B)
         self._core = self.core
         self._compiled = False
@@ -297,7 +304,7 @@ class BatchLastIMM:
         def swap(c):
             if isinstance(c, list):
                 return [swap(item) for item in c]
-            return c if c.kind in ("zero", "one") else _Coef(c.kind, values[next(index)])
+            return c if c.kind in ("zero", "one") else Coef(c.kind, values[next(index)])
 
         for name in _COEFFICIENTS:
             setattr(clone, name, swap(getattr(self, name)))
@@ -481,22 +488,27 @@ class BatchLastIMM:
             nu_out, S_out,
         )
 
-    def factor(self, S: list) -> list:
+    def factor(self, S: list, with_flag: bool = False):
         """:func:`torchmm.linalg.cholesky`'s regularised factor of the per-entry symmetric ``S`` (upper
-        triangle ``S[a][c]``, ``a <= c``), the same formulas entry by entry: for ``n <= 2`` its closed
-        form (pivots clamped at ``eps max|S_aa|``, ``tiny`` for ``n = 1``); beyond, the Cholesky factor
-        where every pivot is positive, elsewhere the factor of ``S + sqrt(eps) s I`` (``s = max |S_aa|``),
-        and where that fails too ``diag(sqrt(max(S_aa, eps s)))`` - ``cholesky_ex``'s retry, without
-        reading a value on the host. Returns the lower triangle ``L[a][c]`` (``c <= a``)."""
-        n = self.n
+        triangle ``S[a][c]``, ``a <= c``, of any size ``len(S)``), the same formulas entry by entry: for
+        sizes up to 2 its closed form (pivots clamped at ``eps max|S_aa|``, ``tiny`` for size 1);
+        beyond, the Cholesky factor where every pivot is positive, elsewhere the factor of
+        ``S + sqrt(eps) s I`` (``s = max |S_aa|``), and where that fails too ``diag(sqrt(max(S_aa, eps
+        s)))`` - ``cholesky_ex``'s retry, without reading a value on the host. Returns the lower
+        triangle ``L[a][c]`` (``c <= a``) and, with ``with_flag``, where ``S`` was regularised
+        (:func:`~torchmm.linalg.cholesky`'s flag)."""
+        n = len(S)
         if n == 1:
-            return [[S[0][0].clamp_min(self.tiny).sqrt()]]
+            L = [[S[0][0].clamp_min(self.tiny).sqrt()]]
+            return (L, ~(S[0][0] > self.tiny)) if with_flag else L
         if n == 2:
             a, b, c = S[0][0], S[0][1], S[1][1]
             scale = torch.maximum(a.abs(), c.abs()) * torch.finfo(a.dtype).eps + self.tiny
             l11 = a.clamp_min(0).maximum(scale).sqrt()
             l21 = b / l11
-            return [[l11, None], [l21, (c - l21 * l21).maximum(scale).sqrt()]]
+            pivot = c - l21 * l21
+            L = [[l11, None], [l21, pivot.maximum(scale).sqrt()]]
+            return (L, ~((a > scale) & (pivot > scale))) if with_flag else L
         plain, failed = self._cholesky(S, None)
         scale = S[0][0].abs()
         for a in range(1, n):
@@ -510,12 +522,13 @@ class BatchLastIMM:
             for c in range(a + 1):
                 fallback = S[a][a].maximum(floor).sqrt() if a == c else torch.zeros_like(scale)
                 L[a][c] = torch.where(failed, torch.where(failed_again, fallback, retry[a][c]), plain[a][c])
-        return L
+        return (L, failed) if with_flag else L
 
-    def _cholesky(self, S: list, jitter: Tensor | None) -> tuple[list, Tensor]:
+    @staticmethod
+    def _cholesky(S: list, jitter: Tensor | None) -> tuple[list, Tensor]:
         """The Cholesky factor of ``S (+ jitter I)`` entry by entry (lower ``L[a][c]``) and where a pivot
         is not positive (or NaN): ``cholesky_ex``'s failure."""
-        n = self.n
+        n = len(S)
         L = [[None] * n for _ in range(n)]
         failed = None
         for j in range(n):
@@ -532,9 +545,10 @@ class BatchLastIMM:
                 L[i][j] = acc / L[j][j]
         return L, failed
 
-    def solve_lower(self, L: list, rhs: list) -> list:
-        """``L^{-1} rhs`` by forward substitution, ``rhs[e][c]`` (``n`` rows of any number of columns)."""
-        n = self.n
+    @staticmethod
+    def solve_lower(L: list, rhs: list) -> list:
+        """``L^{-1} rhs`` by forward substitution, ``rhs[e][c]`` (``len(L)`` rows of any number of columns)."""
+        n = len(L)
         out = [None] * n
         for a in range(n):
             row = []
@@ -546,9 +560,10 @@ class BatchLastIMM:
             out[a] = row
         return out
 
-    def solve_lower_transposed(self, L: list, rhs: list) -> list:
-        """``L^{-T} rhs`` by back substitution, ``rhs[e][c]`` (``n`` rows of any number of columns)."""
-        n = self.n
+    @staticmethod
+    def solve_lower_transposed(L: list, rhs: list) -> list:
+        """``L^{-T} rhs`` by back substitution, ``rhs[e][c]`` (``len(L)`` rows of any number of columns)."""
+        n = len(L)
         out = [None] * n
         for a in range(n - 1, -1, -1):
             row = []
@@ -578,16 +593,22 @@ class BatchLastIMM:
     def predict_entries(self, xs: list, Cs: list, like: Tensor) -> tuple[list, list]:
         """Every mode's prediction of per-entry beliefs (any shapes broadcasting with the modes' ``(M, *B)``):
         ``F m + b``, ``F C F^T + Q`` (upper triangle). ``like``: the shape of an all-zero entry."""
-        n, F, Q, b = self.n, self.F, self.Q, self.b
-        sym = lambda T, a, c: T[min(a, c)][max(a, c)]  # noqa: E731
+        n, F, b = self.n, self.F, self.b
         xp = [combine([(F[a][e], xs[e]) for e in range(n)], b[a], like) for a in range(n)]
+        return xp, self.sandwich(F, Cs, self.Q, like)
+
+    def sandwich(self, F: list, Cs: list, Q: list, like: Tensor) -> list:
+        """``F C F^T + Q`` (upper triangle) of per-entry ``F[a][e]`` (:class:`Coef`), ``C`` (upper
+        triangle) and ``Q[a][c]`` (:class:`Coef`); ``like``: the shape of an all-zero entry."""
+        n = self.n
+        sym = lambda T, a, c: T[min(a, c)][max(a, c)]  # noqa: E731
         A = [[combine([(F[a][e], sym(Cs, e, c)) for e in range(n)], ZERO, like) for c in range(n)]
              for a in range(n)]  # F C
         Pp = [[None] * n for _ in range(n)]
         for a in range(n):
             for c in range(a, n):
                 Pp[a][c] = combine([(F[c][e], A[a][e]) for e in range(n)], Q[a][c], like)
-        return xp, Pp
+        return Pp
 
     def mode_update(self, ll: Tensor, cbar: Tensor, anyob: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """The mode posterior ``log mu_j = ell_j + log c_j - logsumexp_l(ell_l + log c_l)``, as

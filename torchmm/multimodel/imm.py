@@ -319,6 +319,21 @@ class MultipleModelFilter(Filter):
             return model
         return model._replace(transition=self._matrix(model.F), rule=rule)
 
+    def nonlinear_gaussian(self):
+        """The description of this filter for the nonlinear-Gaussian kernel (:mod:`torchmm.kernels.nonlinear`):
+        the bank's extended or unscented filter, the transition matrix and the interaction's rule; or the
+        reason there is none."""
+        if not kernels.joined(self, "nonlinear_gaussian"):
+            return f"{type(self).__name__} has not joined the nonlinear-Gaussian kernels (or overrides their steps)"
+        rule = self.interaction.kernel_rule
+        if rule not in ("mix", "collapse"):
+            return f"the interaction {type(self.interaction).__name__} has no nonlinear kernel rule"
+        describe = getattr(self.bank, "nonlinear_gaussian", None)
+        model = describe() if describe is not None else f"the bank {type(self.bank).__name__} is not nonlinear-Gaussian"
+        if isinstance(model, str):
+            return model
+        return model._replace(transition=self.transition.matrix(), rule=rule)
+
     def mix(self, belief: ModeBelief, generator=None) -> ModeBelief:
         """Interaction step: predicted mode log-probs and the mode-conditioned start beliefs."""
         mode_batch(belief)
@@ -372,6 +387,7 @@ class MultipleModelFilter(Filter):
 
 
 @kernels.joins("linear_gaussian")
+@kernels.joins("nonlinear_gaussian")
 class IMM(MultipleModelFilter):
     r"""Interacting multiple model estimator (Blom and Bar-Shalom 1988) over any filter bank.
 
@@ -455,6 +471,7 @@ class StaticMM(MultipleModelFilter):
 
 
 @kernels.joins("linear_gaussian")
+@kernels.joins("nonlinear_gaussian")
 class GPB1(MultipleModelFilter):
     """First-order generalised pseudo-Bayesian estimator.
 
