@@ -11,8 +11,11 @@ manoeuvre; one mode-bank model, ``Q (3, 5, 5)``), a range-bearing sensor (m = 2,
 ``simulate_jump_system`` and ``simulate_measurements``. torchmm runs ``IMM(ExtendedKalmanFilter(bank,
 sensor), Pi)`` and ``IMM(UnscentedKalmanFilter(bank, sensor), Pi)`` (its default Van der Merwe
 points, alpha = 1, beta = 2, kappa = 0; weights taken from the filter) with ``run_filter(...,
-record="estimate")``, eager, in float64: the generic batch-first engine (the batch-last fast path
-covers linear Kalman modes only).
+record="estimate")`` in float64, twice: as a user gets it (the batch-last kernel of the nonlinear
+banks, ``torchmm/multimodel/batch_last_nonlinear.py``, from 300 runs x modes) and with
+``fast_path=False`` (the eager batch-first steps). ``--dense-jacobian`` gives the kernel the turn
+model's Jacobian without its 13 declared exact zeros and ones (the default entry hook), as the
+reference multiplies them.
 
 The NumPy reference implements the same equations in the same order, written for this model: every
 array has the Monte Carlo run axis *last* (mean ``(M, n, R)``, covariance ``(M, n, n, R)``, sigma
@@ -30,9 +33,10 @@ log-likelihood must equal torchmm's to 1e-9 relative (the script exits non-zero 
 the maximum differences); at every timed size the differences are printed again (checked to 1e-6).
 Then, one thread each (``torch.set_num_threads(1)``, NumPy's BLAS limited to one thread), each
 contender's best and median of ``--repeats`` runs of ``--steps`` steps (after a two-step warm-up), in
-milliseconds per step, and the ratio ``numpy_time / torchmm_time`` of the best times (above 1: torchmm
-is faster). The last line is ``ekf_ratio_<R>=... ukf_ratio_<R>=...`` for the largest run count ``R``
-given (``ekf_ratio_40000=... ukf_ratio_40000=...`` by default).
+milliseconds per step, and the ratios ``numpy_time / torchmm_time`` of the best times (above 1: torchmm
+is faster), the kernel's and the eager steps'. The last line is ``ekf_ratio_<R>=... ukf_ratio_<R>=...``
+(the kernel's) for the largest run count ``R`` given (``ekf_ratio_40000=... ukf_ratio_40000=...`` by
+default).
 """
 
 from __future__ import annotations
@@ -72,10 +76,10 @@ ORIGIN = (-2000.0, 0.0)  # the sensor, well away from the bearing's +-pi cut
 CHECK_RUNS, CHECK_STEPS = 8, 20
 
 
-def scenario(runs: int, steps: int, seed: int = 0, dtype=torch.float64):
+def scenario(runs: int, steps: int, seed: int = 0, dtype=torch.float64, dense_jacobian: bool = False):
     """The mode-bank motion, the sensor, the prior, the transition matrix and measurements ``(T, R, 2)``."""
     modes = [NonlinearCoordinatedTurn(DT, q, q_omega, dtype=dtype) for q, q_omega in MODES]
-    bank = NonlinearCoordinatedTurn(DT, *MODES[0], dtype=dtype)
+    bank = (DenseJacobianTurn if dense_jacobian else NonlinearCoordinatedTurn)(DT, *MODES[0], dtype=dtype)
     bank.Q = torch.stack([m.Q for m in modes])  # (M, n, n): one model, every mode's noise
     sensor = RangeBearing(5, torch.diag(torch.tensor(R_DIAG, dtype=dtype)), origin=ORIGIN, dtype=dtype)
     prior = GaussianBelief(torch.tensor(X0, dtype=dtype), torch.diag(torch.tensor(P0_DIAG, dtype=dtype)))
@@ -91,10 +95,20 @@ def make_imm(kind: str, bank, sensor, transition) -> IMM:
     return IMM(filt, transition)
 
 
-def run_torchmm(imm: IMM, prior: GaussianBelief, z: torch.Tensor):
+class DenseJacobianTurn(NonlinearCoordinatedTurn):
+    """The turn model with every Jacobian entry a tensor, its exact zeros and ones too (``--dense-jacobian``)."""
+
+    def jacobian_entries(self, x, *, u=None):
+        rows = super().jacobian_entries(x, u=u)
+        like = rows[0][1]
+        return [[e if isinstance(e, torch.Tensor) else torch.full_like(like, e) for e in row] for row in rows]
+
+
+def run_torchmm(imm: IMM, prior: GaussianBelief, z: torch.Tensor, fast_path: bool | None = None):
     """``(mean (T, R, n), cov (T, R, n, n), log-likelihood (T, R))`` of the combined estimate."""
     with torch.no_grad():
-        traj = run_filter(imm, imm.initial_belief(prior.expand(z.shape[1])), z, record="estimate")
+        traj = run_filter(imm, imm.initial_belief(prior.expand(z.shape[1])), z, record="estimate",
+                          fast_path=fast_path)
         est = traj.estimate()
         return est.mean, est.cov, traj.log_likelihood
 
@@ -338,16 +352,20 @@ def timings(fn, repeats: int) -> tuple[float, float, object]:
 
 
 def check_equal(kind: str) -> tuple[float, float, float]:
+    """The reference against torchmm's kernel (``fast_path=True``: taken at any size) and eager steps."""
     bank, sensor, prior, transition, z = scenario(CHECK_RUNS, CHECK_STEPS, seed=1)
     imm = make_imm(kind, bank, sensor, transition)
     reference = run_numpy(NumpyCTIMM(kind, imm), prior, z.permute(0, 2, 1).numpy())
-    diffs = differences(run_torchmm(imm, prior, z), reference)
-    print(f"equality check ({kind.upper()}, {CHECK_RUNS} runs x {CHECK_STEPS} steps, float64): max relative "
-          f"difference mean {diffs[0]:.1e}, cov {diffs[1]:.1e}, log-likelihood {diffs[2]:.1e}")
-    if not max(diffs) <= 1e-9:
-        raise SystemExit(f"{kind.upper()}: the NumPy reference disagrees with torchmm "
-                         f"({max(diffs):.1e} > 1e-9): the comparison is void")
-    return diffs
+    worst = (0.0, 0.0, 0.0)
+    for path, fast_path in (("kernel", True), ("eager", False)):
+        diffs = differences(run_torchmm(imm, prior, z, fast_path), reference)
+        print(f"equality check ({kind.upper()} {path}, {CHECK_RUNS} runs x {CHECK_STEPS} steps, float64): max "
+              f"relative difference mean {diffs[0]:.1e}, cov {diffs[1]:.1e}, log-likelihood {diffs[2]:.1e}")
+        if not max(diffs) <= 1e-9:
+            raise SystemExit(f"{kind.upper()} {path}: the NumPy reference disagrees with torchmm "
+                             f"({max(diffs):.1e} > 1e-9): the comparison is void")
+        worst = tuple(map(max, worst, diffs))
+    return worst
 
 
 def main(argv=None) -> None:
@@ -355,21 +373,25 @@ def main(argv=None) -> None:
     parser.add_argument("--runs", type=int, nargs="+", default=[400, 4000, 40000])
     parser.add_argument("--steps", type=int, default=50)
     parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--dense-jacobian", action="store_true",
+                        help="the kernel multiplies the turn model's exact Jacobian zeros too, as the reference")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     print(f"IMM over CT banks (n=5, m=2 range-bearing, M=3), float64, torch {torch.__version__}, "
-          f"numpy {np.__version__}, one thread")
+          f"numpy {np.__version__}, one thread" + (", dense Jacobian" if args.dense_jacobian else ""))
     for kind in ("ekf", "ukf"):
         check_equal(kind)
     print(f"{args.steps} steps, best / median of {args.repeats} (ms per step); "
-          "ratio = NumPy best / torchmm best (> 1: torchmm faster)")
+          "ratio = NumPy best / torchmm best (> 1: torchmm faster); kernel: as run_filter takes it "
+          "(the eager steps below 300 runs x modes), eager: fast_path=False")
     header = (f"{'runs':>7} {'bank':>4} | {'NumPy best':>11} {'median':>9} | "
-              f"{'torchmm best':>12} {'median':>9} | {'ratio':>6} | max rel. diff")
+              f"{'kernel best':>12} {'median':>9} {'ratio':>6} | {'eager best':>11} {'median':>9} {'ratio':>6} | "
+              "max rel. diff")
     print(header)
     print("-" * len(header))
     ratios = {}
     for runs in args.runs:
-        bank, sensor, prior, transition, z = scenario(runs, args.steps, seed=0)
+        bank, sensor, prior, transition, z = scenario(runs, args.steps, seed=0, dense_jacobian=args.dense_jacobian)
         zs = z.permute(0, 2, 1).contiguous().numpy()  # (T, 2, R): the reference's batch-last data
         for kind in ("ekf", "ukf"):
             imm = make_imm(kind, bank, sensor, transition)
@@ -380,14 +402,17 @@ def main(argv=None) -> None:
                                               args.repeats)
             tm_best, tm_med, tm_out = timings(lambda imm=imm, prior=prior, z=z: run_torchmm(imm, prior, z),
                                               args.repeats)
-            diff = max(differences(tm_out, np_out))
+            eg_best, eg_med, eg_out = timings(lambda imm=imm, prior=prior, z=z: run_torchmm(imm, prior, z, False),
+                                              args.repeats)
+            diff = max(max(differences(tm_out, np_out)), max(differences(eg_out, np_out)))
             if not diff <= 1e-6:
                 raise SystemExit(f"{kind.upper()} at {runs} runs: the reference disagrees with torchmm "
                                  f"({diff:.1e})")
             ratios[kind] = np_best / tm_best
             per = 1e3 / args.steps
             print(f"{runs:>7} {kind.upper():>4} | {np_best * per:>11.3f} {np_med * per:>9.3f} | "
-                  f"{tm_best * per:>12.3f} {tm_med * per:>9.3f} | {ratios[kind]:>6.2f} | {diff:.1e}")
+                  f"{tm_best * per:>12.3f} {tm_med * per:>9.3f} {ratios[kind]:>6.2f} | "
+                  f"{eg_best * per:>11.3f} {eg_med * per:>9.3f} {np_best / eg_best:>6.2f} | {diff:.1e}")
     runs = args.runs[-1]
     print(f"ekf_ratio_{runs}={ratios['ekf']:.2f} ukf_ratio_{runs}={ratios['ukf']:.2f}")
 
