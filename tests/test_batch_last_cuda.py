@@ -1,5 +1,6 @@
 """The batch-last kernels on CUDA (runs where a GPU is present; benchmarks/gpu_session.sh runs it):
-GPB2's, the variable-structure IMM's, IMM-TF's and the two-filter smoother's kernel runs equal the CPU's,
+GPB2's, the variable-structure IMM's, IMM-TF's, the two-filter smoother's and the extended and unscented
+banks' kernel runs equal the CPU's,
 and their steps run under ``torch.cuda.set_sync_debug_mode("error")`` (no host synchronisation)."""
 
 from __future__ import annotations
@@ -7,10 +8,12 @@ from __future__ import annotations
 import pytest
 import torch
 
+from tests.multimodel.test_batch_last_nonlinear import _turn
 from tests.multimodel.test_transfer import paper_setup
 from torchmm import GPB2, IMM, kernels, run_filter, smooth
 from torchmm.multimodel import TransferIMM, VariableStructureIMM
 from torchmm.multimodel.batch_last import BATCH_LAST
+from torchmm.multimodel.batch_last_nonlinear import NONLINEAR
 from torchmm.multimodel.batch_last_transfer import TRANSFER
 from torchmm.multimodel.mevsmm import ExactMinimumEntropy
 
@@ -32,6 +35,10 @@ def _runs(dev: str, runs: int = 6, steps: int = 20) -> dict:
     imm = IMM(kf, P)
     traj = run_filter(imm, imm.initial_belief(prior), y)
     out["two-filter"] = (smooth(imm, traj, y).belief.components.mean, traj.log_likelihood)
+    for kind in ("ekf", "ukf"):  # the nonlinear banks' kernel (batch_last_nonlinear.py)
+        mm, belief0, data = _turn(kind, steps=steps)
+        traj = run_filter(mm.to(dev), belief0.to(dev), data.to(dev), record="estimate", fast_path=True)
+        out[kind] = (traj.belief.mean, traj.log_likelihood)
     return out
 
 
@@ -45,6 +52,10 @@ def _no_sync_steps(dev: str) -> None:
              TRANSFER.plan(TransferIMM(kf, P, source), TransferIMM(kf, P, source).initial_belief(prior), z, request)]
     vs = VariableStructureIMM(kf, P, ExactMinimumEntropy())
     plans.append(BATCH_LAST.plan(vs, vs.initial_belief(prior), z.target, request))
+    for kind in ("ekf", "ukf"):
+        mm, belief0, data = _turn(kind, steps=6)
+        plans.append(NONLINEAR.plan(mm.to(dev), belief0.to(dev), data.to(dev),
+                                    kernels.Request(estimate=True, keep=request.keep, forced=True)))
     assert all(callable(p) for p in plans), plans
     if dev == "cuda":
         torch.cuda.synchronize()
@@ -69,7 +80,7 @@ def test_the_new_kernels_on_cuda_equal_the_cpu_and_do_not_synchronise():
 def test_the_cuda_tests_logic_on_the_cpu():
     """The same functions CPU against CPU (what this machine can check of the CUDA test)."""
     first, second = _runs("cpu"), _runs("cpu")
-    assert set(first) == {"GPB2", "VSIMM", "IMM-TF", "two-filter"}
+    assert set(first) == {"GPB2", "VSIMM", "IMM-TF", "two-filter", "ekf", "ukf"}
     for name in first:
         for a, b in zip(first[name], second[name]):
             assert torch.equal(a, b), name
