@@ -102,7 +102,7 @@ class ModelSetBelief(ModeBelief):
 
     def restricted_log_probs(self) -> Tensor:
         """Mode log-probabilities renormalised on the active set, ``(*B, M)``."""
-        restricted = torch.where(self.active, self.mode_log_probs, torch.full_like(self.mode_log_probs, -math.inf))
+        restricted = torch.where(self.active, self.mode_log_probs, -math.inf)
         return normalize_log_probs(restricted)
 
     def output_log_weights(self) -> Tensor:

@@ -85,10 +85,10 @@ def _scaled_stats(log_weights: Tensor, entropy: str) -> Tensor:
 def _stats_from(log_mass: Tensor, h: Tensor, entropy: str) -> Tensor:
     """The sufficient statistics from per-model log-masses and within-model entropies ``(*B, M)``."""
     top = log_mass.amax(-1, keepdim=True)
-    top = torch.where(torch.isfinite(top), top, torch.zeros_like(top))
+    top = torch.where(torch.isfinite(top), top, 0.0)
     log_scaled = log_mass - top  # <= 0, max 0
     mass = log_scaled.exp()
-    safe_log = torch.where(mass > 0, log_scaled, torch.zeros_like(log_scaled))
+    safe_log = torch.where(mass > 0, log_scaled, 0.0)
     if entropy == "joint":
         return torch.stack([mass, mass * (safe_log - h)], dim=-1)
     sq = mass.square()
@@ -99,12 +99,12 @@ def _entropy_from_sums(sums: Tensor, entropy: str) -> Tensor:
     """Entropies from subset sums ``(..., s)``; subsets without (representable) mass -> ``+inf``."""
     mass = sums[..., 0]
     ok = mass > 0
-    safe = torch.where(ok, mass, torch.ones_like(mass))
+    safe = torch.where(ok, mass, 1.0)  # (a Python scalar: no filled tensor, the same values)
     if entropy == "joint":
         value = safe.log() - sums[..., 1] / safe
     else:
         value = (sums[..., 1] + 2 * safe.log() * sums[..., 2]) / safe.square()
-    return torch.where(ok, value, torch.full_like(value, math.inf))
+    return torch.where(ok, value, math.inf)
 
 
 def subset_masks(num_models: int, start: int = 1, stop: int | None = None, *, device=None) -> Tensor:
@@ -179,8 +179,11 @@ def min_entropy_set(log_mass: Tensor, within_entropy: Tensor, family: Tensor | N
     """
     if entropy not in ENTROPY_READINGS:
         raise ValueError(f"entropy: expected one of {ENTROPY_READINGS}, got {entropy!r}")
-    h = torch.where(torch.isfinite(log_mass), within_entropy, torch.zeros_like(within_entropy))
-    return _min_entropy(_stats_from(log_mass, h, entropy), family, chunk_size, entropy)
+    h = torch.where(torch.isfinite(log_mass), within_entropy, 0.0)
+    active, value = _min_entropy(_stats_from(log_mass, h, entropy), family, chunk_size, entropy)
+    # the set in the memory order of log_mass (a batch-last kernel's view stays batch-last: the policy's
+    # renormalisations that follow then run over it 2x faster)
+    return torch.empty_like(log_mass, dtype=torch.bool).copy_(active), value
 
 
 def _min_entropy(stats: Tensor, family, chunk_size: int, entropy: str) -> tuple[Tensor, Tensor]:

@@ -232,12 +232,12 @@ class VariableStructureIMM(IMM):
         # an empty set is that run's failure (never the others'): flagged, its likelihood NaN
         empty = ~active.any(-1)
         if self.feedback:
-            carried = normalize_log_probs(torch.where(active, carried, torch.full_like(carried, -math.inf)))
+            carried = normalize_log_probs(torch.where(active, carried, -math.inf))
         extras = dict(out.extras or {})  # (None: a kernel's run that keeps no extras)
         extras.update(info)
         extras["active"] = active
         extras["model_count"] = active.sum(-1)
         extras["empty_set"] = empty
-        log_likelihood = torch.where(empty, torch.full_like(out.log_likelihood, math.nan), out.log_likelihood)
+        log_likelihood = torch.where(empty, math.nan, out.log_likelihood)
         return out._replace(belief=ModelSetBelief(carried, post.components, active), extras=extras,
                             log_likelihood=log_likelihood)
