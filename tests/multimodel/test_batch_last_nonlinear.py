@@ -13,6 +13,7 @@ import pytest
 import torch
 
 from tests.multimodel.test_batch_last import assert_same_trajectory, count_calls
+from tests.multimodel.test_batch_last_transfer import _close
 from torchmm import (
     GPB1,
     IMM,
@@ -32,7 +33,6 @@ from torchmm.runtime import no_host_sync
 
 D = torch.float64
 TRANSITION = [[0.9, 0.05, 0.05], [0.05, 0.9, 0.05], [0.05, 0.05, 0.9]]
-FIELDS = ("belief", "prior", "log_likelihood", "innovation", "innovation_cov")
 
 
 @pytest.fixture(autouse=True)
@@ -85,17 +85,6 @@ def _learned(kind, m, batch=(5,), steps=8, seed=1):
     z = 0.5 * torch.randn(steps, *batch, m, generator=g, dtype=D)
     z[torch.rand(steps, *batch, m, generator=g) < 0.2] = float("nan")
     return imm, imm.initial_belief(prior), z
-
-
-def _close(got, want, tol=1e-9):
-    for name in FIELDS:
-        a, b = getattr(got, name), getattr(want, name)
-        if a is None or b is None:
-            assert a is None and b is None, name
-            continue
-        for x, y in zip(torch.utils._pytree.tree_leaves(a), torch.utils._pytree.tree_leaves(b)):
-            assert x.shape == y.shape and x.dtype == y.dtype, name
-            torch.testing.assert_close(x, y, rtol=tol, atol=tol, equal_nan=True)
 
 
 @pytest.mark.parametrize("combinator", [IMM, GPB1], ids=["IMM", "GPB1"])

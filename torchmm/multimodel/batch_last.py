@@ -57,7 +57,7 @@ import torchmm.kernels as kernels
 from torchmm.beliefs import GaussianBelief, ModeBelief
 from torchmm.filters.base import StepOutput
 
-__all__ = ["BATCH_LAST", "BatchLastIMM", "BatchLastKernel", "why_not"]
+__all__ = ["BATCH_LAST", "BatchLastIMM", "BatchLastKernel", "described", "why_not"]
 
 _LOG_2PI = math.log(2 * math.pi)
 #: the largest state whose n x n factors the kernels form entry by entry (the two-filter smoother's pairs,
@@ -779,15 +779,9 @@ class BatchLastKernel:
     name = "batch_last"
 
     def plan(self, filter, belief0, measurements, request: kernels.Request):
-        if request.update_first:
-            return "update_first"
-        if request.repeated:
-            return "no prepared (repeated) evaluation"
-        model = kernels.describe(filter, "linear_gaussian")
+        model = described(filter, request, "linear_gaussian", ("mix", "collapse", "pairs"), "IMM, GPB1 and GPB2")
         if isinstance(model, str):
             return model
-        if model.rule not in ("mix", "collapse", "pairs"):
-            return f"the {model.rule!r} rule (IMM, GPB1 and GPB2 only)"
         M = model.transition.shape[-1]
         reason = why_not(model, M, belief0, measurements)
         if reason is not None:
@@ -808,6 +802,22 @@ class BatchLastKernel:
         """The two-filter smoother of a run of an IMM, GPB1 or GPB2 over linear Kalman modes (``n <= 6``,
         diagonal ``R``): ``run() -> ModeBelief`` (batch ``(T, *B)``), or the reason not."""
         return _plan_two_filter(filter, trajectory, method, **inputs)
+
+
+def described(filter, request: kernels.Request, family: str, rules: tuple, which: str):
+    """``filter``'s description for the kernel ``family`` where a batch-last kernel may plan the run (no
+    ``update_first``, not a repeated evaluation, an interaction rule in ``rules``, the estimators named
+    ``which``), or the reason not."""
+    if request.update_first:
+        return "update_first"
+    if request.repeated:
+        return "no prepared (repeated) evaluation"
+    model = kernels.describe(filter, family)
+    if isinstance(model, str):
+        return model
+    if model.rule not in rules:
+        return f"the {model.rule!r} rule ({which} only)"
+    return model
 
 
 def _plan_two_filter(filter, trajectory, method, measurements=None, prior_log=None, **inputs):

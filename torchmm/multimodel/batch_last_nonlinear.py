@@ -39,7 +39,7 @@ from torch import Tensor
 import torchmm.kernels as kernels
 from torchmm.beliefs import GaussianBelief, ModeBelief
 from torchmm.linalg import pivot_clamped_cholesky, psd_sqrt, use_joseph
-from torchmm.multimodel.batch_last import ONE, ZERO, BatchLastIMM, Coef, coefficients, combine, planned
+from torchmm.multimodel.batch_last import ONE, ZERO, BatchLastIMM, Coef, coefficients, combine, described, planned
 from torchmm.runtime import host_reads_ok
 
 __all__ = ["MIN_BATCH", "BatchLastNonlinear", "BatchLastNonlinearKernel", "why_not_nonlinear"]
@@ -293,15 +293,9 @@ class BatchLastNonlinearKernel:
     by_size = True  # taken from MIN_BATCH runs x modes (kernels.by_size: studies switch it off)
 
     def plan(self, filter, belief0, measurements, request: kernels.Request):
-        if request.update_first:
-            return "update_first"
-        if request.repeated:
-            return "no prepared (repeated) evaluation"
-        model = kernels.describe(filter, "nonlinear_gaussian")
+        model = described(filter, request, "nonlinear_gaussian", ("mix", "collapse"), "IMM and GPB1")
         if isinstance(model, str):
             return model
-        if model.rule not in ("mix", "collapse"):
-            return f"the {model.rule!r} rule (IMM and GPB1 only)"
         M = model.transition.shape[-1]
         reason = why_not_nonlinear(model, M, belief0, measurements)
         if reason is not None:
