@@ -19,6 +19,11 @@ Needs only torch and numpy (and this repository on the path)::
 * IMM through ``run_filter`` (what users get: the engine's batch-last fast path,
   ``record="estimate"``), eager and with ``compile=True``; both checked against ``IMM.step``'s
   estimates (1e-9).
+* IMM over extended and unscented banks (issue 31): benchmarks/ct_imm.py's coordinated turn with a
+  range-bearing sensor, float64, ``--nonlinear-runs`` runs x 20 steps through ``run_filter``
+  (``record="estimate"``): the nonlinear banks' batch-last kernel against the eager steps
+  (``fast_path=False``), run-steps/s, and the first ``--check-runs`` runs' estimates against the CPU's
+  kernel (1e-9). On the CPU 1,000 runs by default.
 * PDA tracking (issue 32): ``--targets`` PDA tracks a run (benchmarks/pda_throughput.py's scenario:
   P_D 0.9, 10 clutter points a scan, Kalman, float64) through ``run_filter`` at ``--tracking-runs``;
   track-scans/s, and the first ``--check-runs`` runs' final means against the CPU's (1e-9). On the
@@ -156,6 +161,8 @@ def main(argv=None) -> None:
     parser.add_argument("--size-seconds", type=float, default=40.0, help="stop escalating after a size this slow")
     parser.add_argument("--no-compile", action="store_true")
     parser.add_argument("--targets", type=int, default=10, help="PDA tracks a run (tracking)")
+    parser.add_argument("--nonlinear-runs", type=float, nargs="*", default=None,
+                        help="runs of the IMM over EKF/UKF banks (default 1e4 1e5 on CUDA, 1e3 on the CPU)")
     parser.add_argument("--tracking-runs", type=float, nargs="*", default=None,
                         help="PDA runs (default 1e3 1e4 1e5 on CUDA, 100 on the CPU)")
     args = parser.parse_args(argv)
@@ -251,12 +258,55 @@ def main(argv=None) -> None:
         if time.perf_counter() - tic > args.size_seconds or time.perf_counter() - started > 270:
             print(f"PF: stopping after runs={runs} (time budget)")
             break
+    nonlinear_runs = args.nonlinear_runs or ([1e4, 1e5] if device.type == "cuda" else [1e3])
+    agree &= nonlinear_banks(device, [int(r) for r in nonlinear_runs], args, started)
     tracking_runs = args.tracking_runs or ([1e3, 1e4, 1e5] if device.type == "cuda" else [100])
     track_rate, agree_tracks = pda_tracking(device, [int(r) for r in tracking_runs], args, started)
     agree &= agree_tracks
     print(f"total {time.perf_counter() - started:.1f} s")
     print(f"imm_run_steps_per_s={imm_rate:.4g} pf_particle_steps_per_s={pf_rate:.4g} "
           f"pda_track_scans_per_s={track_rate:.4g} agree={agree}")
+
+
+def nonlinear_banks(device: torch.device, runs_list: list[int], args, started: float) -> bool:
+    """The IMM over EKF and UKF coordinated-turn banks (benchmarks/ct_imm.py's scenario) on the device:
+    the kernel's and the eager steps' run-steps/s, and the kernel's estimates against the CPU's."""
+    from benchmarks.ct_imm import make_imm, scenario
+
+    agree, steps = True, 20
+    for runs in runs_list:
+        if time.perf_counter() - started > 250:
+            print(f"IMM-EKF/UKF runs={runs:>8}: skipped (time budget)")
+            break
+        bank, sensor, prior, transition, z = scenario(runs, steps, seed=0)
+        n = min(args.check_runs, runs)
+        for kind in ("ekf", "ukf"):
+            rates, means = {}, {}
+            for dev in ((torch.device("cpu"), device) if device.type != "cpu" else (device,)):
+                imm = make_imm(kind, bank.to(dev), sensor.to(dev), transition.to(dev))
+                data, start = z.to(dev), prior.to(dev).expand(runs)
+                if dev.type == "cpu" and dev != device:
+                    data, start = data[:, :n], start[:n]
+                for label, fast_path in (("kernel", True), ("eager", False)):
+                    if dev != device and label == "eager":
+                        continue
+                    go = lambda imm=imm, data=data, start=start, fast_path=fast_path: run_filter(  # noqa: E731
+                        imm, imm.initial_belief(start), data, record="estimate", fast_path=fast_path)
+                    with torch.no_grad():
+                        go()
+                        if dev == device:
+                            rates[label] = data.shape[1] * steps / timed(go, device, args.repeats)
+                        if label == "kernel":
+                            means[dev.type] = go().belief.mean[:, :n].cpu()
+            line = (f"IMM-{kind.upper()} runs={runs:>8} kernel {rates['kernel']:10.4g} run-steps/s | eager "
+                    f"{rates['eager']:10.4g} ({rates['kernel'] / rates['eager']:.2f}x)")
+            if device.type != "cpu":
+                ref = means["cpu"]
+                diff = float((means[device.type] - ref).abs().max() / (1 + ref.abs().max()))
+                agree &= diff < 1e-9
+                line += f" | vs CPU {diff:.1e}"
+            print(line, flush=True)
+    return agree
 
 
 def pda_tracking(device: torch.device, runs_list: list[int], args, started: float) -> tuple[float, bool]:

@@ -20,7 +20,7 @@ export PYTHONPATH=.${PYTHONPATH:+:$PYTHONPATH} PYTHONUNBUFFERED=1
     > "$out/machine.txt" 2>&1
 cat "$out/machine.txt"
 # 1. the CUDA tests: host synchronisation, the smoothers, association and set metrics, the batch-last
-#    kernels of GPB2, the VSIMM, IMM-TF and the two-filter smoother, every study with
+#    kernels of GPB2, the VSIMM, IMM-TF, the two-filter smoother and the EKF/UKF banks, every study with
 #    device=cuda (at most 220 s)
 timeout 220 python3 -m pytest -q -p no:cacheprovider -rs -n 4 -k cuda tests/test_host_sync.py \
     tests/smoothing/test_two_filter.py tests/smoothing/test_parallel.py tests/test_pda.py tests/test_set_metrics.py \

@@ -56,7 +56,8 @@ def test_gpu_benchmark_runs_on_the_cpu_and_agrees():
     its figures and the agreement with the CPU (trivially the same device here, but the same code)."""
     proc = subprocess.run(
         [sys.executable, str(ROOT / "benchmarks" / "gpu.py"), "--device", "cpu", "--runs", "100", "300",
-         "--steps", "5", "--check-runs", "20", "--repeats", "1", "--no-compile", "--tracking-runs", "20"],
+         "--steps", "5", "--check-runs", "20", "--repeats", "1", "--no-compile", "--tracking-runs", "20",
+         "--nonlinear-runs", "20"],
         capture_output=True, text=True, timeout=300, env={"PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "PATH": ""},
     )
     assert proc.returncode == 0, proc.stderr[-2000:] + proc.stdout[-2000:]
@@ -66,6 +67,7 @@ def test_gpu_benchmark_runs_on_the_cpu_and_agrees():
     assert sum(line.startswith("IMM runs=") for line in lines) == 2
     assert sum(line.startswith("PF  runs=") for line in lines) == 2
     assert sum(line.startswith("PDA runs=") for line in lines) == 1
+    assert sum(line.startswith(("IMM-EKF runs=", "IMM-UKF runs=")) for line in lines) == 2
 
 
 def test_imm_layout_benchmark_runs_and_agrees():
