@@ -32,7 +32,8 @@ from torchmm import (
 from torchmm.beliefs import ModeBelief
 from torchmm.filters import ExtendedKalmanFilter
 from torchmm.multimodel import VariableStructureIMM
-from torchmm.multimodel.batch_last_smooth import BatchLastTwoFilter
+from torchmm.multimodel.batch_last import LARGE_BATCH, LARGE_STATE, MAX_STATE
+from torchmm.multimodel.batch_last_smooth import LARGE_SMOOTHER, BatchLastTwoFilter
 from torchmm.multimodel.mevsmm import ExactMinimumEntropy
 from torchmm.runtime import no_host_sync
 
@@ -46,7 +47,7 @@ def kernel_runs(monkeypatch):
 
 
 def _eager(filt, traj, z, **kwargs):
-    with kernels.switched_off("batch_last"):
+    with kernels.switched_off("batch_last", "batch_last_smooth_large"):
         return smooth(filt, traj, z, **kwargs)
 
 
@@ -85,6 +86,36 @@ def test_equals_the_eager_passes(n, m, M, shared, combinator, kernel_runs):
     # at the last step the smoothed belief is the filtered one, exactly
     assert torch.equal(got.belief.components.cov[-1], traj.belief.components.cov[-1])
     assert torch.equal(got.belief.mode_log_probs[-1], traj.belief.mode_log_probs[-1])
+
+
+@pytest.mark.parametrize("n,combinator", [(7, "IMM"), (8, "GPB2"), (10, "GPB1")])
+def test_larger_states_from_a_large_batch(n, combinator, kernel_runs):
+    """States of MAX_STATE + 1 to LARGE_STATE components take the kernel (registered apart, as
+    ``"batch_last_smooth_large"``, chosen by the batch size: studies switch it off) from LARGE_BATCH runs
+    x modes, and equal the eager passes; below that batch, and beyond LARGE_STATE, the eager passes run."""
+    M = 2
+    runs = LARGE_BATCH // M
+    imm, belief0, z = _random_imm(n, 2, M, (runs,), steps=5, seed=n)
+    filt = COMBINATORS[combinator](imm)
+    traj = run_filter(filt, belief0, z)
+    got = smooth(filt, traj, z)
+    assert len(kernel_runs) == 1
+    assert_same(filt, belief0, z, traj, got, _eager(filt, traj, z))
+    assert "batch_last_smooth_large" in kernels.by_size()
+    imm, belief0, z = _random_imm(n, 2, M, (runs - 1,), steps=3, seed=n)  # one run fewer: the eager passes
+    filt = COMBINATORS[combinator](imm)
+    traj = run_filter(filt, belief0, z)
+    assert "small batch" in LARGE_SMOOTHER.plan_smooth(filt, traj, "two_filter", measurements=z, prior_log=None)
+    smooth(filt, traj, z)
+    assert len(kernel_runs) == 1
+
+
+def test_larger_states_decline_outside_their_range():
+    for n, reason in ((MAX_STATE, "states of"), (LARGE_STATE + 1, "states of")):
+        imm, belief0, z = _random_imm(n, 1, 2, (LARGE_BATCH,), steps=2, seed=n)
+        traj = run_filter(imm, belief0, z)
+        assert reason in LARGE_SMOOTHER.plan_smooth(imm, traj, "two_filter", measurements=z, prior_log=None)
+    assert "a smoother's kernel only" == LARGE_SMOOTHER.plan(imm, belief0, z, kernels.Request())
 
 
 @pytest.mark.parametrize("batch", [(), (5,), (2, 3)])

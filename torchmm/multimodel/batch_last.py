@@ -57,12 +57,17 @@ import torchmm.kernels as kernels
 from torchmm.beliefs import GaussianBelief, ModeBelief
 from torchmm.filters.base import StepOutput
 
-__all__ = ["BATCH_LAST", "BatchLastIMM", "BatchLastKernel", "described", "why_not"]
+__all__ = ["BATCH_LAST", "LARGE_BATCH", "LARGE_STATE", "MAX_STATE", "BatchLastIMM", "BatchLastKernel", "described", "why_not"]
 
 _LOG_2PI = math.log(2 * math.pi)
 #: the largest state whose n x n factors the kernels form entry by entry (the two-filter smoother's pairs,
 #: IMM-TF's transfer smoothing): n^3 operations a factor
 MAX_STATE = 6
+#: larger states, up to this many components, take the two-filter smoother's kernel from ``LARGE_BATCH``
+#: runs x modes (a kernel of its own, ``"batch_last_smooth_large"``, chosen by the batch size:
+#: torchmm.multimodel.batch_last_smooth.LargeStateSmoother)
+LARGE_STATE = 10
+LARGE_BATCH = 900
 #: the largest mixing temporary (bytes) for which the step takes every matrix entry in one broadcast
 #: operation (docs/performance.md: 400 runs of n = 2, M = 3 gain 10 %, 4,000 lose 18 %)
 _BROADCAST_BYTES = 1 << 18

@@ -35,8 +35,11 @@ import math
 import torch
 from torch import Tensor
 
+import torchmm.kernels as kernels
 from torchmm.beliefs import GaussianBelief, ModeBelief
 from torchmm.multimodel.batch_last import (
+    LARGE_BATCH,
+    LARGE_STATE,
     MAX_STATE,
     ONE,
     ZERO,
@@ -47,14 +50,15 @@ from torchmm.multimodel.batch_last import (
     why_not,
 )
 
-__all__ = ["BatchLastTwoFilter", "why_not_smooth"]
+__all__ = ["LARGE_SMOOTHER", "BatchLastTwoFilter", "LargeStateSmoother", "why_not_smooth"]
 
 _LOG_2PI = math.log(2 * math.pi)
 
 
-def why_not_smooth(model, trajectory, measurements, prior_log) -> str | None:
+def why_not_smooth(model, trajectory, measurements, prior_log, max_state: int = MAX_STATE) -> str | None:
     """Why the two-filter smoother of ``trajectory`` (a run of the linear-Gaussian description ``model``)
-    cannot run on this kernel, or None. Shapes and types only, and :func:`why_not`'s one look at ``R``."""
+    cannot run on this kernel (states of at most ``max_state`` components), or None. Shapes and types
+    only, and :func:`why_not`'s one look at ``R``."""
     if model.rule not in ("mix", "collapse", "pairs"):
         return f"the {model.rule!r} rule"
     if model.post_update is not None:
@@ -65,8 +69,8 @@ def why_not_smooth(model, trajectory, measurements, prior_log) -> str | None:
     if not isinstance(measurements, Tensor) or not isinstance(prior_log, Tensor):
         return "no measurements (or prior mode probabilities) given"
     n, M = model.F.shape[-1], model.transition.shape[-1]
-    if n > MAX_STATE:
-        return f"a state of {n} components (more than {MAX_STATE}: the factor entry by entry costs n^3 operations)"
+    if n > max_state:
+        return f"a state of {n} components (more than {max_state}: the factor entry by entry costs n^3 operations)"
     steps = belief.mode_log_probs.shape[0]
     start = ModeBelief(belief.mode_log_probs[0], GaussianBelief(belief.components.mean[0], belief.components.cov[0]))
     reason = why_not(model, M, start, measurements)
@@ -233,3 +237,39 @@ def _minus(t: Tensor, coef) -> Tensor:
     if coef.kind == "zero":
         return t
     return t - (1.0 if coef.kind == "one" else coef.value)
+
+
+class LargeStateSmoother:
+    """The registered kernel of the two-filter smoother for states of ``MAX_STATE + 1`` to ``LARGE_STATE``
+    components (:class:`BatchLastTwoFilter`, as :meth:`~torchmm.multimodel.batch_last.BatchLastKernel.plan_smooth`
+    runs it up to ``MAX_STATE``), from ``LARGE_BATCH`` runs x modes: below, its entry-by-entry factors
+    (``n^3`` passes) are bound by dispatch and the eager passes are faster (docs/performance.md). Its
+    choice depends on the batch size (``by_size``: studies switch it off). It smooths only."""
+
+    name = "batch_last_smooth_large"
+    by_size = True
+
+    def plan(self, filter, belief0, measurements, request):
+        return "a smoother's kernel only"
+
+    def plan_smooth(self, filter, trajectory, method, measurements=None, prior_log=None, **inputs):
+        if method != "two_filter":
+            return "only the two-filter smoother"
+        model = kernels.describe(filter, "linear_gaussian")
+        if isinstance(model, str):
+            return model
+        n = model.F.shape[-1]
+        if not MAX_STATE < n <= LARGE_STATE:
+            return f"states of {MAX_STATE + 1} to {LARGE_STATE} components only"
+        batch = trajectory.belief.mode_log_probs[0].numel()
+        if batch < LARGE_BATCH:
+            return f"a small batch ({batch} runs x modes < {LARGE_BATCH}: the eager passes are faster)"
+        reason = why_not_smooth(model, trajectory, measurements, prior_log, LARGE_STATE)
+        if reason is not None:
+            return reason
+        like = trajectory.belief.mode_log_probs
+        passes = BatchLastTwoFilter(model, model.transition.shape[-1], like.dim() - 2, like)
+        return lambda: passes.run(trajectory, measurements, prior_log)
+
+
+LARGE_SMOOTHER = kernels.register(LargeStateSmoother())
