@@ -5,8 +5,8 @@ linear Kalman modes with n <= 6 returns what the eager steps return - every fiel
 the estimates (record="estimate") and ``Keep`` records - for both smoothing references, both mode
 likelihoods, gates of either weight, random banks and source sensors, missing target and source
 components, batch shapes, float32 and gradients; it is taken by default, and not where it does not
-apply (n > 6, update_first, a non-diagonal R_S, compile=True, a process weight with a singular Q). The
-eager TransferIMM is checked against a NumPy reference in tests/multimodel/test_transfer.py."""
+apply (n > 6 below a large batch, update_first, a non-diagonal R_S, compile=True, a process weight with
+a singular Q). The eager TransferIMM is checked against a NumPy reference in tests/multimodel/test_transfer.py."""
 
 from __future__ import annotations
 
@@ -17,7 +17,8 @@ from tests.multimodel.test_batch_last import D, _random_imm, assert_same_traject
 from tests.multimodel.test_transfer import paper_setup
 from torchmm import KalmanFilter, LinearMeasurement, LinearMotion, kernels, run_filter
 from torchmm.multimodel import InfluenceGate, MultiRate, TransferIMM
-from torchmm.multimodel.batch_last_transfer import TRANSFER, BatchLastTransfer
+from torchmm.multimodel.batch_last import LARGE_BATCH, LARGE_STATE
+from torchmm.multimodel.batch_last_transfer import TRANSFER, TRANSFER_LARGE, BatchLastTransfer
 from torchmm.run import Keep
 from torchmm.runtime import no_host_sync
 
@@ -114,6 +115,28 @@ def test_no_host_reads_in_the_steps(transfer_steps):
     with no_host_sync("the IMM-TF kernel"):
         fields = run()
     torch.testing.assert_close(fields[2], run_filter(tf, belief0, z, record="estimate").log_likelihood, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("n,gate", [(7, "IMM-TF"), (8, "IF-TF")])
+def test_larger_states_from_a_large_batch(n, gate, transfer_steps):
+    """States of MAX_STATE + 1 to LARGE_STATE components take the kernel (registered apart, as
+    ``"batch_last_transfer_large"``, chosen by the batch size: studies switch it off) from LARGE_BATCH
+    runs x modes, equal to the eager steps; below that batch, and beyond LARGE_STATE, the eager steps."""
+    M = 2
+    runs = LARGE_BATCH // M
+    tf, belief0, z = _random_transfer(n, 2, 1, M, (runs,), steps=4, seed=n, gate=GATES[gate])
+    got = run_filter(tf, belief0, z)
+    assert len(transfer_steps) == 4
+    assert_same_trajectory(got, run_filter(tf, belief0, z, fast_path=False), tol=1e-9)
+    assert "batch_last_transfer_large" in kernels.by_size()
+    small, small0, zs = _random_transfer(n, 2, 1, M, (runs - 1,), steps=2, seed=n)
+    assert "small batch" in TRANSFER_LARGE.plan(small, small0, zs, kernels.Request())
+    big, big0, zbig = _random_transfer(LARGE_STATE + 1, 1, 1, M, (runs,), steps=2, seed=n)
+    assert f"a state of {LARGE_STATE + 1} components" in TRANSFER_LARGE.plan(big, big0, zbig, kernels.Request())
+    assert "states of" in TRANSFER_LARGE.plan(*_random_transfer(2, 1, 1, M, (runs,), steps=2, seed=n)[:3],
+                                              kernels.Request())
+    run_filter(small, small0, zs)
+    assert len(transfer_steps) == 4
 
 
 def test_declines_what_it_does_not_compute(transfer_steps):

@@ -37,6 +37,8 @@ import torchmm.kernels as kernels
 from torchmm.beliefs import GaussianBelief, ModeBelief
 from torchmm.filters.base import StepOutput
 from torchmm.multimodel.batch_last import (
+    LARGE_BATCH,
+    LARGE_STATE,
     MAX_STATE,
     ZERO,
     BatchLastIMM,
@@ -47,7 +49,7 @@ from torchmm.multimodel.batch_last import (
 )
 from torchmm.multimodel.multirate import split_streams
 
-__all__ = ["TRANSFER", "BatchLastTransfer", "BatchLastTransferKernel"]
+__all__ = ["TRANSFER", "TRANSFER_LARGE", "BatchLastTransfer", "BatchLastTransferKernel", "LargeStateTransfer"]
 
 
 class BatchLastTransfer(BatchLastIMM):
@@ -268,6 +270,8 @@ class BatchLastTransferKernel:
     ``transfer_gaussian()``, ``n <= 6``, a run without ``update_first``; any record."""
 
     name = "batch_last_transfer"
+    #: the largest state taken; the smallest batch (runs x modes)
+    max_state, min_batch = MAX_STATE, 0
 
     def plan(self, filter, belief0, measurements, request: kernels.Request):
         if request.update_first:
@@ -284,8 +288,14 @@ class BatchLastTransferKernel:
             if bool((torch.linalg.cholesky_ex(Q)[1] != 0).any()):
                 return "a gate with weight='process' and a singular Q (the eager steps say so)"
         n, M = model.F.shape[-1], model.transition.shape[-1]
-        if n > MAX_STATE:
-            return f"a state of {n} components (more than {MAX_STATE}: the factor entry by entry costs n^3 operations)"
+        if n > self.max_state:
+            return (f"a state of {n} components (more than {self.max_state}: the factor entry by entry costs n^3 "
+                    "operations)")
+        if n <= MAX_STATE < self.max_state:
+            return f"states of {MAX_STATE + 1} to {self.max_state} components only"
+        batch = belief0.mode_log_probs.numel() if isinstance(belief0, ModeBelief) else 0
+        if batch < self.min_batch:
+            return f"a small batch ({batch} runs x modes < {self.min_batch}: the eager steps are faster)"
         try:
             y, ys = split_streams(measurements)
         except TypeError:
@@ -300,4 +310,16 @@ class BatchLastTransferKernel:
         return planned(kernel, belief0, request)
 
 
+class LargeStateTransfer(BatchLastTransferKernel):
+    """IMM-TF's and IF-TF's kernel (:class:`BatchLastTransfer`) for states of ``MAX_STATE + 1`` to
+    ``LARGE_STATE`` components, from ``LARGE_BATCH`` runs x modes: below, its entry-by-entry factors are
+    bound by dispatch and the eager steps are faster (docs/performance.md). Its choice depends on the
+    batch size (``by_size``: studies switch it off)."""
+
+    name = "batch_last_transfer_large"
+    by_size = True
+    max_state, min_batch = LARGE_STATE, LARGE_BATCH
+
+
 TRANSFER = kernels.register(BatchLastTransferKernel())
+TRANSFER_LARGE = kernels.register(LargeStateTransfer())
