@@ -153,11 +153,13 @@ def run_filter(
         fast_path: run a whole-run kernel (the seam :mod:`torchmm.kernels`, docs/architecture.md
             "Kernels": the Numba linear-Gaussian kernel of Kalman filters, IMM, GPB1 and static banks
             over linear-Gaussian modes for small CPU runs; the batch-last kernels of IMM, GPB1, GPB2,
-            the variable-structure IMM and IMM-TF for larger ones; docs/performance.md has the table),
-            which returns what the steps return, to rounding. None (default): where a kernel applies
-            to a run without ``controls``, ``motions`` or ``sensors`` and pays (the Numba kernel: runs
-            of at least ``torchmm.kernels.linear.LONG_RUN`` steps x runs; the choice depends on the
-            call only); True: always (a ``ValueError`` naming
+            the variable-structure IMM and IMM-TF for larger ones, and of IMM and GPB1 over extended
+            and unscented banks; docs/performance.md has the table), which returns what the steps
+            return, to rounding. None (default): where a kernel applies to a run without
+            ``controls``, ``motions`` or ``sensors`` and pays (the Numba kernel: runs of at least
+            ``torchmm.kernels.linear.LONG_RUN`` steps x runs; the extended and unscented banks': at
+            least 300 runs x modes; IMM-TF's for 7 to 10 state components: 900; the choice depends
+            on the call only); True: always (a ``ValueError`` naming
             ``fast_path`` gives every kernel's reason where none can); False: never (the steps).
         compile: run the fast path's step under ``torch.compile`` (seconds of compiling, cached on
             disk, then fused kernels: docs/performance.md says when it pays); True needs a fast path.
