@@ -121,6 +121,16 @@ def test_batch_shapes_and_the_default(kind, kernel_steps):
     assert isinstance(run, str) and "small batch" in run
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", ["ekf", "ukf"])
+def test_compiled_equals_the_eager_steps(kind, kernel_steps):
+    """``compile=True`` takes the kernel at any size and compiles its step, the models' calls included."""
+    mm, belief0, z = _turn(kind, steps=4)
+    got = run_filter(mm, belief0, z, record="estimate", compile=True)
+    assert len(kernel_steps) == 4 and kernel_steps[0]._compiled
+    _close(got, run_filter(mm, belief0, z, record="estimate", fast_path=False), tol=1e-8)
+
+
 @pytest.mark.parametrize("m", [1, 3])
 @pytest.mark.parametrize("kind", ["ekf", "ukf"])
 def test_learned_models_through_the_default_hooks_and_their_gradients(kind, m, kernel_steps):

@@ -44,7 +44,8 @@ from torchmm.runtime import host_reads_ok
 
 __all__ = ["MIN_BATCH", "BatchLastNonlinear", "BatchLastNonlinearKernel", "why_not_nonlinear"]
 
-#: the fewest runs x modes for which the kernel is taken unasked (``fast_path=True`` takes it below):
+#: the fewest runs x modes for which the kernel is taken unasked (``fast_path=True`` and ``compile=True``
+#: take it below):
 #: its many small passes are bound by dispatch there, and the eager steps measured faster below about
 #: 270 (n = 5, 3 modes; docs/performance.md)
 MIN_BATCH = 300
@@ -301,9 +302,9 @@ class BatchLastNonlinearKernel:
         if reason is not None:
             return reason
         like = belief0.mode_log_probs
-        if not request.forced and like.numel() < MIN_BATCH:
+        if not (request.forced or request.compile_required) and like.numel() < MIN_BATCH:
             return (f"a small batch ({like.numel()} runs x modes < {MIN_BATCH}: the eager steps are faster; "
-                    "fast_path=True takes the kernel)")
+                    "fast_path=True or compile=True takes the kernel)")
         kernel = BatchLastNonlinear(model, M, like.dim() - 1, like)
         kernel.hold_noise(belief0.components.mean)
         if request.compile:
