@@ -20,6 +20,7 @@ from torchmm.multimodel.mevsmm import (
     ModelSetBelief,
     as_family,
     challenge_match,
+    min_entropy_set,
     min_entropy_subset,
     model_statistics,
     subset_entropies,
@@ -80,6 +81,66 @@ def test_joint_minimum_is_the_most_concentrated_single_model():
     assert torch.all(active.sum(-1) == 1)
     assert torch.equal(active.float().argmax(-1), h.argmin(-1))
     torch.testing.assert_close(best, h.min(-1).values)
+
+
+def _enumerated(log_mass, h):
+    """The joint minimum by the enumeration of every non-empty subset (the family of all subsets)."""
+    return min_entropy_set(log_mass, h, subset_masks(log_mass.shape[-1]))
+
+
+def test_joint_minimum_without_enumeration_equals_the_enumeration():
+    """The joint reading's minimum is found from the singletons (H(S) >= min_j h_j); the enumeration
+    over all 2^M - 1 subsets (and the NumPy brute force) selects the same set, with the same value."""
+    g = torch.Generator().manual_seed(3)
+    for M in (1, 2, 3, 5, 8):
+        log_mass = torch.randn(200, M, dtype=torch.float64, generator=g).mul(3.0).log_softmax(-1)
+        h = torch.randn(200, M, dtype=torch.float64, generator=g).mul(2.0)
+        active, best = min_entropy_set(log_mass, h)
+        enum_active, enum_best = _enumerated(log_mass, h)
+        assert torch.equal(active, enum_active) and active.sum(-1).eq(1).all()
+        torch.testing.assert_close(best, enum_best, rtol=1e-12, atol=1e-12)
+        assert torch.equal(best, h.gather(-1, active.long().argmax(-1, keepdim=True)).squeeze(-1))
+    lw = _random_log_weights((4,), 6, 9, seed=7)
+    active, best = min_entropy_subset(lw)
+    for b in range(4):
+        ref = _brute_force(lw[b].numpy(), "joint")
+        assert tuple(int(j) for j in torch.nonzero(active[b]).flatten()) == min(ref, key=ref.get)
+        assert best[b].item() == pytest.approx(min(ref.values()), rel=1e-10)
+
+
+def test_joint_minimum_conventions_of_the_enumeration():
+    """Ties go to the lowest index (the lowest code); models of no representable mass are not
+    candidates; a NaN statistic or a -inf minimum keeps every model, as the enumeration does."""
+    inf, nan = math.inf, math.nan
+    log_mass = torch.tensor([[-1.0, -1.0, -2.0],      # tie between 0 and 1
+                             [-inf, -0.5, -1.0],      # model 0 has no mass
+                             [-900.0, 0.0, -1.0],     # model 0's mass is not representable
+                             [-1.0, -1.0, -1.0],      # NaN entropy
+                             [-1.0, -1.0, -1.0],      # a singular model (h = -inf)
+                             [-900.0, 0.0, -1.0],     # a non-representable model with h = +inf
+                             [-inf, -inf, -inf]], dtype=torch.float64)
+    h = torch.tensor([[0.5, 0.5, 0.7], [-5.0, 1.0, 2.0], [-5.0, 1.0, 2.0], [0.0, nan, 1.0],
+                      [0.0, -inf, 1.0], [inf, 1.0, 2.0], [0.0, 0.0, 0.0]], dtype=torch.float64)
+    active, best = min_entropy_set(log_mass, h)
+    enum_active, enum_best = _enumerated(log_mass, h)
+    assert active.tolist() == [[True, False, False], [False, True, False], [False, True, False],
+                               [True] * 3, [True] * 3, [True] * 3, [True] * 3]
+    assert torch.equal(active, enum_active)
+    assert torch.equal(best[:3], torch.tensor([0.5, 1.0, 1.0], dtype=torch.float64))
+    assert torch.equal(torch.isfinite(best), torch.isfinite(enum_best))
+
+
+def test_joint_minimum_of_many_models_in_memory_order():
+    """Beyond the enumeration's 30 models, and the selected set in the memory order of ``log_mass``
+    (a batch-last view stays batch-last)."""
+    g = torch.Generator().manual_seed(5)
+    log_mass = torch.randn(7, 40, dtype=torch.float64, generator=g).log_softmax(0).t()  # (7, 40) memory
+    h = torch.randn(7, 40, dtype=torch.float64, generator=g).t()
+    active, best = min_entropy_set(log_mass, h)
+    assert active.stride() == log_mass.stride() and torch.equal(active.long().argmax(-1), h.argmin(-1))
+    lw = _random_log_weights((2,), 40, 3, seed=8)
+    active, best = min_entropy_subset(lw)
+    torch.testing.assert_close(best, model_statistics(lw)[1].min(-1).values)
 
 
 @pytest.mark.parametrize("entropy", ["joint", "literal"])
@@ -289,8 +350,8 @@ def test_bad_arguments():
         uniform_transition(3, 1.5)
     with pytest.raises(ValueError, match="accelerations"):
         EqMAParticleFilter(torch.eye(2), torch.ones(2, 1), torch.zeros(3, 2), torch.eye(1), sensor, 10)
-    with pytest.raises(ValueError, match="family"):
-        min_entropy_subset(torch.zeros(1, 31, 2))
+    with pytest.raises(ValueError, match="family"):  # (the enumeration; the joint reading needs none)
+        min_entropy_subset(torch.zeros(1, 31, 2), entropy="literal")
     assert isinstance(LinearMotion(torch.eye(2), torch.eye(2)), LinearMotion)
 
 
