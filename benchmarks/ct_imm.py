@@ -1,7 +1,7 @@
 """IMM over nonlinear banks (issue 31, goal 3): torchmm's IMM over an *extended* and over an *unscented*
 Kalman bank for the coordinated turn, against a hand-written NumPy **batch-last** reference.
 
-    python benchmarks/ct_imm.py [--runs 400 4000 40000] [--steps 50] [--repeats 5]
+    python benchmarks/ct_imm.py [--runs 400 4000 40000] [--steps 50] [--repeats 5] [--dense-jacobian] [--vsimm]
 
 The problem: state ``[x, vx, y, vy, omega]`` (n = 5, torchmm's ``NonlinearCoordinatedTurn``, turn
 rate in the state), three nearly-coordinated-turn modes that differ in their process noise (white
@@ -15,7 +15,8 @@ record="estimate")`` in float64, twice: as a user gets it (the batch-last kernel
 banks, ``torchmm/multimodel/batch_last_nonlinear.py``, from 300 runs x modes) and with
 ``fast_path=False`` (the eager batch-first steps). ``--dense-jacobian`` gives the kernel the turn
 model's Jacobian without its 13 declared exact zeros and ones (the default entry hook), as the
-reference multiplies them.
+reference multiplies them. ``--vsimm`` also times ``VariableStructureIMM`` (paper 003's
+minimum-entropy set) over the same banks, the kernel against the eager steps.
 
 The NumPy reference implements the same equations in the same order, written for this model: every
 array has the Monte Carlo run axis *last* (mean ``(M, n, R)``, covariance ``(M, n, n, R)``, sigma
@@ -375,6 +376,8 @@ def main(argv=None) -> None:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--dense-jacobian", action="store_true",
                         help="the kernel multiplies the turn model's exact Jacobian zeros too, as the reference")
+    parser.add_argument("--vsimm", action="store_true",
+                        help="also the variable-structure IMM over the same banks, kernel against eager steps")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     print(f"IMM over CT banks (n=5, m=2 range-bearing, M=3), float64, torch {torch.__version__}, "
@@ -413,8 +416,38 @@ def main(argv=None) -> None:
             print(f"{runs:>7} {kind.upper():>4} | {np_best * per:>11.3f} {np_med * per:>9.3f} | "
                   f"{tm_best * per:>12.3f} {tm_med * per:>9.3f} {ratios[kind]:>6.2f} | "
                   f"{eg_best * per:>11.3f} {eg_med * per:>9.3f} {np_best / eg_best:>6.2f} | {diff:.1e}")
+    if args.vsimm:
+        vsimm_rows(args)
     runs = args.runs[-1]
     print(f"ekf_ratio_{runs}={ratios['ekf']:.2f} ukf_ratio_{runs}={ratios['ukf']:.2f}")
+
+
+def vsimm_rows(args) -> None:
+    """``--vsimm``: ``VariableStructureIMM(filter, Pi, ExactMinimumEntropy())`` (paper 003's minimum-entropy
+    set after every update) over the same banks and data, as ``run_filter`` takes it (the same kernel,
+    with the policy as its post-update) and with ``fast_path=False``; no NumPy reference (the two
+    torchmm paths' largest relative difference, as :func:`differences`, is printed: the modes' noises
+    differ, so no two candidate sets tie)."""
+    from torchmm.multimodel import VariableStructureIMM
+    from torchmm.multimodel.mevsmm import ExactMinimumEntropy
+
+    print("VSIMM over the same banks (ms per step, best / median; speed-up = eager best / kernel best)")
+    header = f"{'runs':>7} {'bank':>4} | {'kernel best':>12} {'median':>9} | {'eager best':>11} {'median':>9} | speed-up | diff"
+    print(header)
+    print("-" * len(header))
+    for runs in args.runs:
+        bank, sensor, prior, transition, z = scenario(runs, args.steps, seed=0, dense_jacobian=args.dense_jacobian)
+        for kind in ("ekf", "ukf"):
+            vs = VariableStructureIMM(make_imm(kind, bank, sensor, transition).bank.filter, transition,
+                                      ExactMinimumEntropy())
+            run_torchmm(vs, prior, z[:2])
+            best, med, out = timings(lambda vs=vs, z=z: run_torchmm(vs, prior, z), args.repeats)
+            eg_best, eg_med, eg_out = timings(lambda vs=vs, z=z: run_torchmm(vs, prior, z, False), args.repeats)
+            diff = max(differences(out, (eg_out[0].movedim(1, -1).numpy(), eg_out[1].movedim(1, -1).numpy(),
+                                         eg_out[2].numpy())))
+            per = 1e3 / args.steps
+            print(f"{runs:>7} {kind.upper():>4} | {best * per:>12.3f} {med * per:>9.3f} | {eg_best * per:>11.3f} "
+                  f"{eg_med * per:>9.3f} | {eg_best / best:>8.2f} | {diff:.1e}")
 
 
 if __name__ == "__main__":

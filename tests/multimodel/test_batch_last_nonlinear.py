@@ -1,5 +1,5 @@
-"""The batch-last kernel of the IMM and GPB1 over extended and unscented Kalman banks
-(torchmm/multimodel/batch_last_nonlinear.py, registered as ``"batch_last_nonlinear"``): run_filter returns
+"""The batch-last kernel of the IMM, GPB1 and variable-structure IMM over extended and unscented Kalman
+banks (torchmm/multimodel/batch_last_nonlinear.py, registered as ``"batch_last_nonlinear"``): run_filter returns
 what the eager steps return - every field of the full record, the estimates and ``Keep`` records - for the
 coordinated turn with a range-bearing sensor (models that declare their Jacobians' exact zeros), for
 learned models through the default entry hooks (autograd Jacobians, m = 1 and m = 3), with missing
@@ -27,7 +27,9 @@ from torchmm import (
     run_filter,
 )
 from torchmm.models import LearnedMeasurement, LearnedMotion
+from torchmm.multimodel import VariableStructureIMM
 from torchmm.multimodel.batch_last_nonlinear import MIN_BATCH, NONLINEAR, BatchLastNonlinear
+from torchmm.multimodel.mevsmm import ExactMinimumEntropy
 from torchmm.run import Keep
 from torchmm.runtime import no_host_sync
 
@@ -101,6 +103,26 @@ def test_the_turn_model_equals_the_eager_steps(kind, combinator, kernel_steps):
     _close(run_filter(mm, belief0, z, record=keep, fast_path=True),
            run_filter(mm, belief0, z, record=keep, fast_path=False))
     assert len(kernel_steps) == 30
+
+
+@pytest.mark.parametrize("feedback", [True, False])
+@pytest.mark.parametrize("kind", ["ekf", "ukf"])
+def test_the_variable_structure_imm_equals_the_eager_steps(kind, feedback, kernel_steps):
+    """``VariableStructureIMM`` over extended and unscented modes: the kernel's IMM steps and the model-set
+    policy after each (paper 003's minimum-entropy set; the modes' process noises differ, so no two
+    candidate sets tie), every field, the extras in their order, and the estimate over the set."""
+    imm, belief0, z = _turn(kind, steps=8, seed=6)
+    vs = VariableStructureIMM(imm.bank.filter, imm.transition.matrix(), ExactMinimumEntropy(), feedback=feedback)
+    start = GaussianBelief(belief0.components.mean[..., 0, :], belief0.components.cov[..., 0, :, :])
+    belief0 = vs.initial_belief(start, belief0.mode_log_probs.exp())
+    got, want = run_filter(vs, belief0, z, fast_path=True), run_filter(vs, belief0, z, fast_path=False)
+    assert len(kernel_steps) == 8 and kernel_steps[0].post_update is not None
+    assert_same_trajectory(got, want, tol=1e-8)
+    assert list(got.extras) == list(want.extras)
+    assert not bool(got.extras["active"].all())  # the policy selected
+    est = run_filter(vs, belief0, z, record="estimate", fast_path=True)
+    assert len(kernel_steps) == 16 and kernel_steps[-1].estimate_after
+    _close(est, run_filter(vs, belief0, z, record="estimate", fast_path=False))
 
 
 @pytest.mark.parametrize("kind", ["ekf", "ukf"])

@@ -29,6 +29,8 @@ class NonlinearGaussian(NamedTuple):
         joseph: the unscented filter's ``joseph`` option (the kernel takes the ``P - K S K^T`` form only).
         transition: ``(M, M)``, None for a single filter.
         rule: ``"kalman"`` (one filter), ``"mix"`` (IMM) or ``"collapse"`` (GPB1).
+        post_update: None, or the filter's own work after each step's update, as
+            :class:`~torchmm.kernels.linear.LinearGaussian`'s (a variable-structure IMM's model-set policy).
     """
 
     motion: Any
@@ -38,3 +40,4 @@ class NonlinearGaussian(NamedTuple):
     joseph: bool | None = None
     transition: Tensor | None = None
     rule: str = "kalman"
+    post_update: Any = None

@@ -285,10 +285,11 @@ class BatchLastNonlinear(BatchLastIMM):
 
 
 class BatchLastNonlinearKernel:
-    """The registered kernel (:mod:`torchmm.kernels`) of the batch-last IMM and GPB1 over extended and
-    unscented modes: a filter that describes itself as nonlinear-Gaussian with the ``"mix"`` or
-    ``"collapse"`` rule, a run without ``update_first``; any size and device, autograd, ``compile``
-    and ``record`` functions included."""
+    """The registered kernel (:mod:`torchmm.kernels`) of the batch-last IMM, GPB1 and variable-structure
+    IMM over extended and unscented modes: a filter that describes itself as nonlinear-Gaussian with the
+    ``"mix"`` or ``"collapse"`` rule (and the VSIMM's model-set policy as its ``post_update``), a run
+    without ``update_first``; any size and device, autograd, ``compile`` and ``record`` functions
+    included."""
 
     name = "batch_last_nonlinear"
     by_size = True  # taken from MIN_BATCH runs x modes (kernels.by_size: studies switch it off)

@@ -156,6 +156,7 @@ class ActiveSetMixing(Interaction):
 
 
 @kernels.joins("linear_gaussian", ("step", "predict", "update", "mix", "select_models"))
+@kernels.joins("nonlinear_gaussian", ("step", "predict", "update", "mix", "select_models"))
 class VariableStructureIMM(IMM):
     r"""A variable-structure IMM over any bank: IMM interaction from the active set, a policy after
     every update (see the module docstring).
@@ -215,6 +216,12 @@ class VariableStructureIMM(IMM):
         """The IMM's description (:meth:`MultipleModelFilter.linear_gaussian`) with :meth:`select_models`
         as its ``post_update``: the batch-last IMM kernel runs the steps and this policy after each."""
         model = super().linear_gaussian()
+        return model if isinstance(model, str) else model._replace(post_update=self.select_models)
+
+    def nonlinear_gaussian(self):
+        """The IMM's nonlinear-Gaussian description (:meth:`IMM.nonlinear_gaussian`, extended or unscented
+        modes) with :meth:`select_models` as its ``post_update``, as :meth:`linear_gaussian`."""
+        model = super().nonlinear_gaussian()
         return model if isinstance(model, str) else model._replace(post_update=self.select_models)
 
     def select_models(self, out: StepOutput, generator=None) -> StepOutput:
