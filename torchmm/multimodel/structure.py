@@ -155,8 +155,12 @@ class ActiveSetMixing(Interaction):
         return ModeBelief(log_cbar, belief.components.mix(weights))
 
 
-@kernels.joins("linear_gaussian", ("step", "predict", "update", "mix", "select_models"))
-@kernels.joins("nonlinear_gaussian", ("step", "predict", "update", "mix", "select_models"))
+#: the steps the batch-last kernels replace (a subclass that overrides one runs its own, eagerly)
+_KERNEL_STEPS = ("step", "predict", "update", "mix", "select_models")
+
+
+@kernels.joins("linear_gaussian", _KERNEL_STEPS)
+@kernels.joins("nonlinear_gaussian", _KERNEL_STEPS)
 class VariableStructureIMM(IMM):
     r"""A variable-structure IMM over any bank: IMM interaction from the active set, a policy after
     every update (see the module docstring).
