@@ -3,23 +3,31 @@
 A study's ``scenario.data`` node names a file and its columns (docs/studies.md, "Your own data").
 The file becomes time-major tensors, the layout every torchmm filter takes:
 
-* **CSV**: one row per time step (and series), a header naming the columns. Empty cells, ``nan``,
-  ``NA`` and ``NaN`` are missing (NaN: the filters skip them exactly). With a ``series`` column,
-  the rows of each series value are one run (in order of first appearance); series of different
-  lengths are padded at the end with missing steps, which score nothing (``DataSeries.present``).
-* **NPZ**: one array per column name, ``(T,)`` for one series or ``(T, runs)`` for several.
+* **CSV** (UTF-8): one row per time step (and series), a header naming the columns. Empty cells,
+  ``nan`` (any case or sign), ``NA``, ``N/A``, ``null`` and ``none`` are missing (NaN: the filters skip
+  them exactly); ``inf`` is not missing but an error, as is any other cell that is not a finite number.
+  With a ``series`` column, the rows of each series value are one run (in order of first appearance;
+  every row names its series); series of different lengths are padded at the end with missing steps,
+  which score nothing (``DataSeries.present``).
+* **NPZ**: one array per column name, ``(T,)`` for one series or ``(T, runs)`` for several (NaN:
+  missing; infinite entries are an error).
 
 Detections in clutter (:func:`read_detections`, docs/tracking.md) are read one row per detection
 instead, grouped into scans by their time stamp: the padded sets every association filter takes.
 
 A malformed file is one :class:`DataFileError` (a ``ValueError``) naming the file, the column and
-the row (the CSV line number, header = line 1).
+the row (the CSV line number, header = line 1): a column missing from the header or named twice in
+it, a cell that is not a finite number, an empty series cell, bytes that are not UTF-8. An argument
+of the wrong type (``measurements="pos"`` for ``["pos"]``) is a ``TypeError`` naming it.
 """
 
 from __future__ import annotations
 
 import csv
+import io
 import math
+import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -66,39 +74,94 @@ def _number(text: str, file: Path, column: str, line: int) -> float:
     if cell.lower() in MISSING:
         return math.nan
     try:
-        return float(cell)
+        value = float(cell)
     except ValueError:
         raise DataFileError(f"{file}: column {column!r}, row {line}: {cell!r} is not a number") from None
+    if math.isinf(value):  # inf is not missing: only the MISSING cells (and NaN) are
+        raise DataFileError(f"{file}: column {column!r}, row {line}: {cell!r} is not finite (leave the cell "
+                            "empty or write nan for a missing value)")
+    return value  # NaN in any spelling float() reads (nan, -nan, +NaN) is missing
+
+
+def _columns(value, name: str, *, optional: bool = False) -> list[str] | None:
+    """``value`` as a list of column names: a sequence (list, tuple, a config's list) of non-empty
+    strings; a string, a mapping or an array is a ``TypeError`` naming ``name`` (a string would be
+    read letter by letter)."""
+    if value is None and optional:
+        return None
+    if isinstance(value, (str, bytes)) or not isinstance(value, Sequence):
+        hint = f" (one column: [{value!r}])" if isinstance(value, str) else ""
+        raise TypeError(f"{name}: expected a list of column names, got {value!r}{hint}")
+    out = list(value)
+    for i, column in enumerate(out):
+        if not isinstance(column, str) or not column.strip():
+            raise TypeError(f"{name}[{i}]: expected a column name (a non-empty string), got {column!r}")
+    return out
+
+
+def _column(value, name: str) -> str | None:
+    """``value`` as one optional column name (a non-empty string or None), else a ``TypeError``."""
+    if value is not None and (not isinstance(value, str) or not value.strip()):
+        raise TypeError(f"{name}: expected a column name (a non-empty string) or None, got {value!r}")
+    return value
+
+
+def _path(value, name: str, *, optional: bool = False) -> Path | None:
+    if value is None and optional:
+        return None
+    if not isinstance(value, (str, os.PathLike)) or not os.fspath(value):
+        raise TypeError(f"{name}: expected a file path (str or pathlib.Path), got {value!r}")
+    return Path(value)
+
+
+def _text(file: Path) -> str:
+    """The file's text (UTF-8, an optional byte-order mark dropped), or one :class:`DataFileError`
+    naming the file and the line of the first byte that is not UTF-8."""
+    try:
+        data = file.read_bytes()
+    except OSError as err:
+        raise DataFileError(f"{file}: cannot be read ({err.strerror or err})") from None
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as err:
+        line = data[:err.start].count(b"\n") + 1
+        raise DataFileError(f"{file}: line {line}: not UTF-8 text (byte 0x{data[err.start]:02x}); save the file "
+                            "as UTF-8") from None
 
 
 def _read_csv(file: Path, wanted: list[str], series: str | None) -> tuple[dict[str, list], list[int]]:
-    try:
-        handle = file.open(newline="", encoding="utf-8-sig")
-    except OSError as err:
-        raise DataFileError(f"{file}: cannot be read ({err.strerror or err})") from None
-    with handle:
-        reader = csv.reader(handle)
-        header = next(reader, None)
-        if not header:
-            raise DataFileError(f"{file}: empty file (expected a header line naming the columns)")
-        header = [h.strip() for h in header]
-        index = {}
-        for name in wanted + ([series] if series else []):
-            if name not in header:
-                raise DataFileError(f"{file}: column {name!r}, row 1: not in the header "
-                                    f"(columns: {', '.join(header)})")
-            index[name] = header.index(name)
-        values: dict[str, list] = {name: [] for name in index}
-        lines = []
-        for line, row in enumerate(reader, start=2):
-            if not row or all(not cell.strip() for cell in row):
-                continue
-            if len(row) != len(header):
-                raise DataFileError(f"{file}: row {line}: {len(row)} cells, the header has {len(header)}")
-            for name, i in index.items():
-                cell = row[i]
-                values[name].append(cell.strip() if name == series else _number(cell, file, name, line))
-            lines.append(line)
+    reader = csv.reader(io.StringIO(_text(file), newline=""))
+    header = next(reader, None)
+    if not header:
+        raise DataFileError(f"{file}: empty file (expected a header line naming the columns)")
+    header = [h.strip() for h in header]
+    index = {}
+    for name in wanted + ([series] if series else []):
+        if name not in header:
+            raise DataFileError(f"{file}: column {name!r}, row 1: not in the header "
+                                f"(columns: {', '.join(header)})")
+        if header.count(name) > 1:
+            raise DataFileError(f"{file}: column {name!r}, row 1: named {header.count(name)} times in the header "
+                                "(which one is meant?)")
+        index[name] = header.index(name)
+    values: dict[str, list] = {name: [] for name in index}
+    lines = []
+    for row in reader:
+        line = reader.line_num  # the row's last line (a quoted cell may span lines)
+        if not row or all(not cell.strip() for cell in row):
+            continue
+        if len(row) != len(header):
+            raise DataFileError(f"{file}: row {line}: {len(row)} cells, the header has {len(header)}")
+        for name, i in index.items():
+            cell = row[i]
+            if name == series:
+                if not cell.strip():
+                    raise DataFileError(f"{file}: column {name!r}, row {line}: the series cell is empty "
+                                        "(every row names its series)")
+                values[name].append(cell.strip())
+            else:
+                values[name].append(_number(cell, file, name, line))
+        lines.append(line)
     if not lines:
         raise DataFileError(f"{file}: no data rows after the header")
     return values, lines
@@ -117,6 +180,11 @@ def _read_npz(file: Path, wanted: list[str]) -> dict[str, np.ndarray]:
             array = np.asarray(archive[name], dtype=np.float64) if archive[name].dtype.kind in "fiub" else None
             if array is None or array.ndim not in (1, 2):
                 raise DataFileError(f"{file}: column {name!r}: expected a numeric (T,) or (T, runs) array")
+            infinite = np.argwhere(np.isinf(array))
+            if len(infinite):  # inf is not missing (NaN is)
+                where = tuple(int(i) for i in infinite[0])
+                raise DataFileError(f"{file}: column {name!r}, entry {where[0] if len(where) == 1 else where}: "
+                                    f"{array[where]:g} is not finite (NaN marks a missing value)")
             out[name] = array if array.ndim == 2 else array[:, None]
     shapes = {name: a.shape for name, a in out.items()}
     if len(set(shapes.values())) > 1:
@@ -127,7 +195,8 @@ def _read_npz(file: Path, wanted: list[str]) -> dict[str, np.ndarray]:
 def _locate(path: str | Path, base: Path | None, measurements: list[str]) -> Path:
     """The data file: a relative ``path`` in ``base`` (the working directory), then in the shipped
     ``experiments/data``; it must exist, and some measurement columns must be named."""
-    file = Path(path)
+    file = _path(path, "path")
+    base = _path(base, "base", optional=True)
     if not file.is_absolute():
         here = (base or Path.cwd()) / file
         shipped = Path(__file__).resolve().parent / "data" / file
@@ -153,11 +222,17 @@ def read_series(path: str | Path, *, measurements: list[str], truth: list[str] |
         series: optional CSV column whose values name the series; each series is one run.
 
     Raises:
-        DataFileError: naming the file, the column and the row.
+        DataFileError: naming the file, the column and the row: a column not in the header or named
+            twice in it, a cell that is not a finite number (``inf`` is not missing), an empty series
+            cell, a file that is not UTF-8.
+        TypeError: naming the argument: a string for a list of columns (``measurements="pos"``), a
+            column name that is not a string.
     """
+    measurements = _columns(measurements, "measurements")
+    truth = _columns(truth, "truth", optional=True) or []
+    time, series = _column(time, "time"), _column(series, "series")
     file = _locate(path, base, measurements)
-    truth = list(truth or [])
-    wanted = list(measurements) + truth + ([time] if time else [])
+    wanted = measurements + truth + ([time] if time else [])
     suffix = file.suffix.lower()
     if suffix == ".npz":
         if series:
@@ -241,8 +316,9 @@ def read_detections(path: str | Path, *, measurements: list[str], time: str, ser
 
     The rows with the same time stamp (and series) are one scan; the scans are every time stamp that
     appears, in increasing order, so a series without a row at a stamp has an empty scan there. A row
-    whose measurement cells are all missing records an empty scan (nothing detected) without a
-    detection; a row with only some missing is an error (a detection has every component).
+    whose measurement cells are all missing (empty, ``nan``, ``NA``) records an empty scan (nothing
+    detected) without a detection; a row with only some missing is an error (a detection has every
+    component), and so is an infinite cell (``inf`` is not missing: it would drop a detection).
 
     Args:
         path: a ``.csv`` (a header naming the columns) or ``.npz`` (one ``(K,)`` array per column, one
@@ -253,20 +329,32 @@ def read_detections(path: str | Path, *, measurements: list[str], time: str, ser
             sensors or days; NPZ: a numeric array.
 
     Raises:
-        DataFileError: naming the file, the column and the row (CSV line, header = 1; NPZ entry index).
+        DataFileError: naming the file, the column and the row (CSV line, header = 1; NPZ entry index),
+            as for :func:`read_series` (a missing or duplicated column, an infinite or non-numeric cell,
+            an empty series cell, a file that is not UTF-8), and a detection missing a component.
+        TypeError: naming the argument (``measurements="pos"`` for ``["pos"]``, ``time=None``).
 
     Examples:
         A CSV ``time,x,y`` with rows ``0,1.5,2.0``, ``0,40,-3``, ``1,,`` and ``2,2.1,2.2`` gives
         ``z`` of shape ``(3, 1, 2, 2)``: two detections at t = 0, none at 1, one at 2.
     """
+    measurements = _columns(measurements, "measurements")
+    if time is None:
+        raise TypeError("time: expected the time-stamp column's name, got None")
+    time, series = _column(time, "time"), _column(series, "series")
     file = _locate(path, base, measurements)
-    wanted = list(measurements) + [time]
+    wanted = measurements + [time]
     suffix = file.suffix.lower()
     if suffix == ".npz":
         arrays = _read_npz(file, wanted + ([series] if series else []))
         if any(a.shape[1] != 1 for a in arrays.values()):
             raise DataFileError(f"{file}: expected one (K,) array per column, one entry per detection")
         values = {c: list(arrays[c][:, 0]) for c in wanted}
+        if series:
+            missing = np.flatnonzero(np.isnan(arrays[series][:, 0]))
+            if len(missing):
+                raise DataFileError(f"{file}: column {series!r}, entry {int(missing[0])}: the series value is "
+                                    "missing (every entry names its series)")
         labels = [f"{v:g}" for v in arrays[series][:, 0]] if series else ["0"] * len(values[time])
         where, what = list(range(len(labels))), "entry"
     elif suffix == ".csv":

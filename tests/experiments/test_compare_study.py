@@ -119,6 +119,18 @@ def test_malformed_file_is_a_config_error_before_anything_runs(tmp_path):
         validate(cfg)
 
 
+@pytest.mark.parametrize("key", ["truth", "measurements"])
+def test_a_string_for_a_list_of_columns_is_a_config_error(tmp_path, key):
+    """``truth: pos`` (a string for ``[pos]``) in a study config is refused naming the key, before
+    read_series (which refuses it too, naming the argument: tests/robustness/test_data_specs.py)."""
+    path = tmp_path / "data.csv"
+    path.write_text("series,t,y,pos,vel\ns0,1,1.0,0,0\ns0,2,2.0,0,0\n")
+    cfg = _data_config(path)
+    cfg.scenario.data[key] = "pos"
+    with pytest.raises(ConfigError, match=rf"^scenario.data.{key}='pos': .*list"):
+        validate(cfg)
+
+
 def test_csv_run_equals_the_library_api(recorded, tmp_path):
     """The study on a CSV gives the log-likelihood and RMSE of the same data filtered by hand (1e-12)."""
     path, z, x = recorded
