@@ -122,7 +122,6 @@ NOT_ENTRY_POINTS: dict[str, str] = {
     "torchmm.kernels.linear.load": _SEAM,
     "torchmm.kernels.Request": _RECORD + " (what run_filter asks of a kernel)",
     "torchmm.kernels.describe": _SEAM,
-    "torchmm.kernels.enabled": _SEAM,
     "torchmm.kernels.joined": _SEAM,
     "torchmm.kernels.joins": _SEAM + " (a class decorator)",
     "torchmm.kernels.names": _NO_ARGS,
@@ -131,9 +130,10 @@ NOT_ENTRY_POINTS: dict[str, str] = {
     "torchmm.kernels.plan_smooth": _SEAM,
     "torchmm.kernels.register": _SEAM,
     "torchmm.kernels.registered": _NO_ARGS,
-    "torchmm.kernels.set_enabled": "a switch; its name is checked against kernels.names() (ValueError naming it)",
     "torchmm.kernels.stack_steps": _SEAM,
-    "torchmm.kernels.switched_off": "a switch; its name is checked against kernels.names() (ValueError naming it)",
+    "torchmm.kernels.switched_off": ("a context manager over *names (no parameter to declare): each name is "
+                                     "checked by the kernel-name kind, naming it names[i] "
+                                     "(tests/kernels/test_switches.py)"),
     # no arguments
     "torchmm.filters.unscented.CubatureSigmaPoints": _NO_ARGS,
     "torchmm.multimodel.imm.MomentMixing": _NO_ARGS,
@@ -359,6 +359,13 @@ def _run_filter():
 
 
 example("torchmm.run.run_filter")(_run_filter)
+
+# -- the kernels' switches (the valid calls keep the switch as it is) -------------------------------
+from torchmm import kernels  # noqa: E402
+
+example("torchmm.kernels.enabled")(lambda: call(kernels.enabled, "particle_stages"))
+example("torchmm.kernels.set_enabled")(
+    lambda: call(kernels.set_enabled, "particle_stages", kernels.enabled("particle_stages")))
 
 # -- the other subpackages' examples (one module each; they register into EXAMPLES / NOT_ENTRY_POINTS)
 from tests.robustness import (

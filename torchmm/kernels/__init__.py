@@ -36,6 +36,7 @@ from typing import Any
 import torch
 import torch.utils._pytree as pytree
 
+from torchmm.contract import Flag, Invalid, Kind, entry_point
 from torchmm.validation import broadcast_shape
 
 __all__ = ["Request", "by_size", "describe", "enabled", "joined", "joins", "names", "plan", "plan_smooth",
@@ -128,13 +129,37 @@ def names() -> list[str]:
     return [kernel.name for kernel in registered()] + list(_STAGES)
 
 
+class KernelName(Kind):
+    """The kind of a kernel-name parameter (torchmm.contract): a string among :func:`names` (known
+    when the call is made: a kernel registered later is one). Anything else is refused naming the
+    parameter and listing the kernels: a ``TypeError`` for a non-string, a ``ValueError`` for an
+    unknown name (before: ``enabled("bogus")`` said True)."""
+
+    def describe(self):
+        return "a kernel name"
+
+    def check(self, value, name):
+        known = names()
+        if not isinstance(value, str):
+            raise TypeError(f"{name}: expected a kernel name (a string), got {value!r}; the kernels are {known}")
+        if value not in known:
+            raise ValueError(f"{name}: no kernel named {value!r}; the kernels are {known}")
+        return value
+
+    def invalid(self, valid):
+        return [Invalid("value", "no-such-kernel"), Invalid("value", ""), Invalid("type", 1)]
+
+
+@entry_point(name=KernelName(), enabled=Flag())
 def set_enabled(name: str, enabled: bool = True) -> None:
     """Switch the kernel ``name`` (one of :func:`names`) on or off for this process (off: :func:`plan`
     passes it over, ``fast_path=True`` included; a stage kernel's filter takes its eager passes). The
     study harness switches the small linear-Gaussian kernel off: its choice depends on the number of
     runs, and a study's numbers must not depend on how its runs are split into units
-    (experiments/run.py, experiments/executors.py; :func:`by_size`)."""
-    _check_name(name)
+    (experiments/run.py, experiments/executors.py; :func:`by_size`).
+
+    ``enabled`` is a bool (``"no"`` or ``0`` is a ``TypeError`` naming it); an unknown ``name`` is a
+    ``ValueError`` naming it and listing the kernels."""
     if enabled:
         _OFF.discard(name)
     else:
@@ -144,9 +169,10 @@ def set_enabled(name: str, enabled: bool = True) -> None:
 @contextlib.contextmanager
 def switched_off(*names: str):
     """``with switched_off("linear_gaussian"): ...``: :func:`set_enabled` off inside for every kernel
-    named, restored after."""
-    for name in names:
-        _check_name(name)
+    named, restored after. Every name is checked first (``names[i]: no kernel named ...``, nothing
+    switched)."""
+    for i, name in enumerate(names):
+        _NAME.check(name, f"names[{i}]")
     was = {name for name in names if name in _OFF}
     _OFF.update(names)
     try:
@@ -164,14 +190,14 @@ def by_size() -> list[str]:
     return [kernel.name for kernel in _KERNELS if getattr(kernel, "by_size", False)]
 
 
-def _check_name(name: str) -> None:
-    known = names()
-    if name not in known:
-        raise ValueError(f"name: no kernel named {name!r}; the kernels are {known}")
+_NAME = KernelName()
 
 
+@entry_point(name=KernelName())
 def enabled(name: str) -> bool:
-    """Whether the kernel ``name`` is switched on (:func:`set_enabled`)."""
+    """Whether the kernel ``name`` (one of :func:`names`; else a ``ValueError`` naming it) is switched
+    on (:func:`set_enabled`). A stage kernel asks inside its filter's step through
+    ``torchmm.contract.unchecked(enabled)``: its own name needs no check there."""
     return name not in _OFF
 
 

@@ -47,6 +47,7 @@ import torch
 from torch import Tensor
 
 import torchmm.kernels as kernels
+from torchmm.contract import unchecked
 from torchmm.runtime import host_reads_ok
 
 log = logging.getLogger("torchmm.kernels.particle")
@@ -77,7 +78,7 @@ def available() -> bool:
 def enabled() -> bool:
     """Whether the particle stages are on in this process: Numba importable, not switched off at the
     seam (``torchmm.kernels.set_enabled("particle_stages", False)``) nor by ``TORCHMM_CPU_KERNELS=0``."""
-    if not kernels.enabled(NAME):
+    if not unchecked(kernels.enabled)(NAME):  # asked inside a step: our own name needs no check
         return False
     flag = os.environ.get("TORCHMM_CPU_KERNELS", "1").strip().lower() not in ("0", "false", "no", "off")
     return flag and available()
