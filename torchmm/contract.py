@@ -740,16 +740,17 @@ class Beliefs(Kind):
 
 class Tensors(Kind):
     """A non-empty tuple (or list) of tensors; ``leading``: sharing their leading axis (a scan's
-    elements)."""
+    elements). ``check=False``: the function checks it (it takes any iterable of tensors, e.g. a
+    module's ``parameters()``)."""
 
-    def __init__(self, *, leading: bool = False, optional: bool = False):
-        self.leading, self.optional = leading, optional
+    def __init__(self, *, leading: bool = False, optional: bool = False, check: bool = True):
+        self.leading, self.optional, self.enforce = leading, optional, check
 
     def describe(self):
         return "a tuple of tensors"
 
     def check(self, value, name):
-        if self._none(value, name):
+        if not self.enforce or self._none(value, name):
             return value
         if isinstance(value, Tensor) or not isinstance(value, (tuple, list)) or not value:
             got = type(value).__name__

@@ -114,3 +114,92 @@ def test_minimize_reaches_statsmodels_optimum_of_the_nile():
     import math
 
     assert -float(objective()) - 0.5 * math.log(2 * math.pi) == pytest.approx(optimum.llf, abs=1e-6)
+
+
+# -- issue 44: the objective's and minimize's arguments, checked at entry ------------------------------
+def _learnable(steps=30):
+    """A learnable local level (log q, log r) and its data (seeded, float64)."""
+    kf, belief0 = local_level(2.0, 3.0, learnable=True, known=(0.0, 10.0))
+    z = torch.randn(steps, 1, generator=torch.Generator().manual_seed(5), dtype=torch.float64).cumsum(0)
+    return kf, belief0, z
+
+
+def test_minimize_refuses_a_tensor_the_loss_does_not_depend_on():
+    """A tensor that is not a parameter of the filter (nor read by the start) was 'optimised' to
+    success after 0 iterations."""
+    kf, belief0, z = _learnable()
+    objective = Objective(kf, belief0, z, update_first=True)
+    stray = torch.nn.Parameter(torch.zeros(2, dtype=torch.float64))
+    before = [p.detach().clone() for p in kf.parameters()]
+    with pytest.raises(ValueError, match=r"^parameters\[0\]: the loss does not depend on it"):
+        objective.minimize(parameters=[stray])
+    own = list(kf.parameters())
+    with pytest.raises(ValueError, match=rf"^parameters\[{len(own)}\]: the loss does not depend on it"):
+        objective.minimize(parameters=[*own, stray])
+    for p, b in zip(kf.parameters(), before):  # left as they were
+        torch.testing.assert_close(p.detach(), b, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("bad, message", [
+    (lambda kf: [next(kf.parameters()), torch.zeros(1, dtype=torch.float64)], r"^parameters\[1\]: .*require"),
+    (lambda kf: [next(kf.parameters()), next(kf.parameters())], r"^parameters\[1\]: .*parameters\[0\]"),
+    (lambda kf: [next(kf.parameters()) * 2], r"^parameters\[0\]: .*leaf"),
+    (lambda kf: next(kf.parameters()), r"^parameters: expected"),
+    (lambda kf: "log_r", r"^parameters: expected"),
+    (lambda kf: [], r"^parameters: "),
+    (lambda kf: [next(kf.parameters()), "x"], r"^parameters\[1\]: expected a tensor"),
+])
+def test_minimize_refuses_malformed_parameters(bad, message):
+    """A tensor without grad among them was dropped silently, the same tensor twice was optimised as
+    two (the last copy won), a single tensor was iterated row by row."""
+    kf, belief0, z = _learnable()
+    with pytest.raises((TypeError, ValueError), match=message):
+        Objective(kf, belief0, z, update_first=True).minimize(parameters=bad(kf))
+
+
+def test_minimize_over_a_tensor_of_the_start_belief():
+    """A tensor the loss depends on through the start function, not the filter, is a parameter."""
+    kf, _, z = _learnable()
+    for p in kf.parameters():
+        p.requires_grad_(False)
+    mean = torch.nn.Parameter(torch.tensor([5.0], dtype=torch.float64))
+    objective = Objective(kf, lambda f: GaussianBelief(mean, torch.eye(1, dtype=torch.float64)), z,
+                          update_first=True)
+    result = objective.minimize(parameters=[mean])
+    assert result.success and result.nit > 0 and float(mean) != 5.0
+
+
+@pytest.mark.parametrize("kwargs, error, message", [
+    (dict(method="bogus"), ValueError, r"^method: expected one of \[.*'L-BFGS-B'"),
+    (dict(method="Nelder-Mead"), ValueError, r"^method: "),  # not a gradient method
+    (dict(method=1), ValueError, r"^method: "),
+    (dict(tol="small"), TypeError, r"^tol: "),
+    (dict(tol=-1.0), ValueError, r"^tol: "),
+    (dict(tol=float("nan")), ValueError, r"^tol: "),
+    (dict(options="fast"), TypeError, r"^options: "),
+])
+def test_minimize_refuses_a_bad_method_tol_or_options(kwargs, error, message):
+    kf, belief0, z = _learnable()
+    with pytest.raises(error, match=message):
+        Objective(kf, belief0, z, update_first=True).minimize(**kwargs)
+
+
+def test_an_objective_over_no_steps_names_the_measurements():
+    kf, belief0, _ = _learnable()
+    with pytest.raises(ValueError, match=r"^measurements: .*no time steps"):
+        Objective(kf, belief0, torch.zeros(0, 1, dtype=torch.float64), update_first=True)
+
+
+@pytest.mark.parametrize("value", [float("nan"), float("inf")])
+def test_a_parameter_turned_non_finite_is_named_at_the_evaluation(value):
+    """A filter parameter set to NaN after the objective was built gave a NaN loss without a word."""
+    kf, belief0, z = _learnable()
+    objective = Objective(kf, belief0, z, update_first=True)
+    assert torch.isfinite(objective())
+    name, parameter = list(kf.named_parameters())[-1]
+    with torch.no_grad():
+        parameter.fill_(value)
+    with pytest.raises(ValueError, match=rf"^filter\.{name.replace('.', chr(92) + '.')}: .*not finite"):
+        objective()
+    with pytest.raises(ValueError, match=rf"^filter\.{name.replace('.', chr(92) + '.')}: "):
+        objective.minimize()

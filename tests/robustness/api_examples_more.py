@@ -255,6 +255,16 @@ example(_L + "loss.truncated_segments")(lambda: call(learn.truncated_segments, 1
 example(_L + "objective.Objective")(
     lambda: call(learn.Objective, KalmanFilter(_cv(), _pos()), _prior(), _z(), reduction="sum", update_first=False))
 
+
+def _minimize():
+    kf = _learnable_kf()
+    objective = learn.Objective(kf, _prior(), _z())
+    return call(objective.minimize, parameters=list(kf.parameters()), method="L-BFGS-B", tol=1e-6,
+                options={"maxiter": 2})
+
+
+example(_L + "objective.Objective.minimize")(_minimize)
+
 example(_L + "trainer.Trainer")(
     lambda: call(learn.Trainer, _learnable_kf(), torch.optim.SGD([torch.nn.Parameter(torch.zeros(1))], 0.1),
                  window=4, clip_grad_norm=10.0, loss_fn=learn.negative_log_likelihood, track=lambda: {},

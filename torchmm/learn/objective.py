@@ -9,7 +9,8 @@ current parameters and runs.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import math
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import torch
@@ -18,13 +19,15 @@ from torch.nn.utils import parametrize
 
 import torchmm.kernels as kernels
 from torchmm.beliefs import Belief, ModeBelief
-from torchmm.contract import Choice, Data, Flag, Of, entry_point
+from torchmm.contract import Choice, Data, Flag, Of, Real, Tensors, entry_point
 from torchmm.filters.base import Filter
 from torchmm.learn.loss import REDUCTIONS, as_start_belief, negative_log_likelihood, reduce_total
 from torchmm.validation import check_filter_dtype, check_measurement
 
 __all__ = ["Objective"]
 
+#: the methods of ``scipy.optimize.minimize`` that use the gradient and need no Hessian
+GRADIENT_METHODS = ("L-BFGS-B", "BFGS", "CG", "Newton-CG", "TNC", "SLSQP", "trust-constr")
 
 
 class Objective:
@@ -71,7 +74,11 @@ class Objective:
                  reduction: str = "sum", update_first: bool = False):
         if not isinstance(measurements, Tensor) or measurements.dim() < 2:
             raise ValueError("measurements: expected a time-major tensor (T, *B, m)")
+        if measurements.shape[0] == 0:
+            raise ValueError(f"measurements: no time steps (shape {tuple(measurements.shape)}): a likelihood "
+                             "needs T >= 1")
         self.filter, self.start, self.measurements = filter, belief0, measurements
+        self._check_parameters()
         self.reduction, self.update_first = reduction, update_first
         self.kernel, self.why = "eager", ""
         with torch.no_grad(), parametrize.cached():
@@ -96,7 +103,38 @@ class Objective:
     def _belief(self) -> Any:
         return self.start(self.filter) if callable(self.start) else self.start
 
+    def _check_parameters(self) -> None:
+        """Every parameter of the filter finite (one host read for all of them), else a ``ValueError``
+        naming it (``filter.measurement.parametrizations.R.original: ...``): at construction, and at an
+        evaluation whose loss is not finite (each evaluation is an entry point: the parameters change
+        between calls, by an optimiser's step or a user's assignment)."""
+        named = list(self.filter.named_parameters())
+        if not named:
+            return
+        with torch.no_grad():
+            finite = torch.stack([torch.isfinite(p).all() for _, p in named])
+            if bool(finite.all()):
+                return
+            name, value = named[int((~finite).nonzero()[0, 0])]
+            bad = value[~torch.isfinite(value)].reshape(-1)[0].item()
+        raise ValueError(f"filter.{name}: a parameter of the filter is not finite ({bad}); the loss would be "
+                         "NaN (set it to a finite value, or start the optimiser from one)")
+
     def __call__(self) -> Tensor:
+        """The loss at the filter's current parameters. A loss that is not finite (or an error of the
+        evaluation) is checked against the parameters: a parameter that is not finite is a
+        ``ValueError`` naming it (a finite loss reads nothing more: one scalar read per call)."""
+        try:
+            loss = self._loss()
+        except ValueError:
+            self._check_parameters()  # the cause (e.g. a start belief built from a NaN parameter): named
+            raise
+        finite = math.isfinite(loss.detach().item()) if loss.dim() == 0 else bool(torch.isfinite(loss.detach()).all())
+        if not finite:
+            self._check_parameters()
+        return loss
+
+    def _loss(self) -> Tensor:
         with parametrize.cached():
             belief = self._belief()
             if self._prepared is not None:
@@ -113,32 +151,46 @@ class Objective:
             return negative_log_likelihood(self.filter, belief, self.measurements, reduction=self.reduction,
                                            update_first=self.update_first)
 
+    @entry_point(parameters=Tensors(optional=True, check=False), method=Choice(*GRADIENT_METHODS),
+                 tol=Real(positive=True, optional=True), options=Of(Mapping, optional=True, what="a dict"))
     def minimize(self, *, parameters: Any = None, method: str = "L-BFGS-B", tol: float | None = None,
                  options: dict | None = None) -> Any:
         """Minimise the loss over the filter's parameters with ``scipy.optimize.minimize`` (gradient from
         autograd, one evaluation giving both), leaving the parameters at the optimum found.
 
         Args:
-            parameters: the tensors to optimise (default: the filter's parameters that require grad).
-            method: a gradient method of ``scipy.optimize.minimize`` (default ``"L-BFGS-B"``, as
-                statsmodels' ``fit``).
-            tol, options: passed to ``scipy.optimize.minimize``.
+            parameters: the tensors to optimise: leaf tensors that require grad, each once, that the
+                loss depends on (the filter's, or those the start function reads); a list or any
+                iterable such as ``module.parameters()``. Default: the filter's parameters that require
+                grad.
+            method: a gradient method of ``scipy.optimize.minimize`` (one of :data:`GRADIENT_METHODS`;
+                default ``"L-BFGS-B"``, as statsmodels' ``fit``).
+            tol: a positive tolerance, passed to ``scipy.optimize.minimize``.
+            options: a dict, passed to ``scipy.optimize.minimize``.
 
         Returns:
             scipy's ``OptimizeResult`` (``x``: the flat parameters at the optimum, ``fun``: the loss,
             ``nfev``, ``nit``, ``success``, ``message``).
 
         Raises:
-            ValueError naming ``parameters``: none requires grad.
+            ValueError naming ``parameters`` (``parameters[i]``): none requires grad, an entry that does
+            not require grad, is not a leaf, repeats another, or that the loss does not depend on (found
+            at the first evaluation: before, such a tensor was "optimised" to success after 0
+            iterations); TypeError naming it: not an iterable of tensors. ``method``, ``tol`` and
+            ``options`` are checked at entry (ValueError/TypeError naming them); a filter parameter
+            that is not finite at an evaluation is a ValueError naming it.
         """
         from scipy.optimize import minimize
 
-        params = [p for p in (self.filter.parameters() if parameters is None else parameters) if p.requires_grad]
+        explicit = parameters is not None
+        params = _parameter_list(parameters) if explicit else \
+            [p for p in self.filter.parameters() if p.requires_grad]
         if not params:
             raise ValueError("parameters: none requires grad (make some learnable, e.g. torchmm.models.learnable_noise)")
         sizes = [p.numel() for p in params]
         with torch.no_grad():
-            start = torch.cat([p.detach().reshape(-1) for p in params]).to(torch.float64).numpy()
+            start = torch.cat([p.detach().reshape(-1) for p in params]).to(torch.float64).cpu().numpy()
+        checked = [not explicit]  # the loss's dependence on the given tensors, at the first evaluation
 
         def assign(x):
             with torch.no_grad():
@@ -154,16 +206,54 @@ class Objective:
             if loss.dim():
                 raise ValueError("reduction: minimize needs a scalar loss ('sum' or 'mean')")
             loss.backward()
+            if not checked[0]:
+                unused = next((i for i, p in enumerate(params) if p.grad is None), None)
+                if unused is not None:
+                    raise ValueError(f"parameters[{unused}]: the loss does not depend on it (not a parameter "
+                                     "of the filter, nor read by the start belief): nothing to optimise")
+                checked[0] = True
             grad = torch.cat([torch.zeros_like(p).reshape(-1) if p.grad is None else p.grad.reshape(-1)
                               for p in params])
-            return float(loss.detach()), grad.to(torch.float64).numpy()
+            return float(loss.detach()), grad.to(torch.float64).cpu().numpy()
 
-        result = minimize(loss_and_grad, start, jac=True, method=method, tol=tol, options=options)
-        assign(result.x)
-        for p in params:
-            p.grad = None
+        try:
+            result = minimize(loss_and_grad, start, jac=True, method=method, tol=tol,
+                              options=None if options is None else dict(options))
+            assign(result.x)
+        except BaseException:
+            assign(start)  # an error leaves the parameters where they were
+            raise
+        finally:
+            for p in params:
+                p.grad = None
         return result
 
     def __repr__(self) -> str:
         return (f"Objective({type(self.filter).__name__}, T={self.measurements.shape[0]}, "
                 f"reduction={self.reduction!r}, kernel={'none: ' + self.why if self._prepared is None else 'yes'})")
+
+
+def _parameter_list(parameters: Any) -> list[Tensor]:
+    """``minimize``'s ``parameters`` as a list of distinct leaf tensors that require grad, or an error
+    naming ``parameters`` / ``parameters[i]``."""
+    if isinstance(parameters, (Tensor, str, bytes)) or not hasattr(parameters, "__iter__"):
+        raise TypeError(f"parameters: expected an iterable of tensors (a list, module.parameters()), got "
+                        f"{'a tensor' if isinstance(parameters, Tensor) else repr(parameters)}"
+                        + (" (one tensor: [tensor])" if isinstance(parameters, Tensor) else ""))
+    params = list(parameters)
+    if not params:
+        raise ValueError("parameters: empty (nothing to optimise; None: the filter's parameters)")
+    seen: dict[int, int] = {}
+    for i, p in enumerate(params):
+        if not isinstance(p, Tensor):
+            raise TypeError(f"parameters[{i}]: expected a tensor, got {type(p).__name__}")
+        if not p.requires_grad:
+            raise ValueError(f"parameters[{i}]: does not require grad (make it learnable, e.g. "
+                             "torchmm.models.learnable_noise, or torch.nn.Parameter)")
+        if not p.is_leaf:
+            raise ValueError(f"parameters[{i}]: not a leaf tensor (a value computed from parameters: give the "
+                             "parameter it is computed from)")
+        if id(p) in seen:
+            raise ValueError(f"parameters[{i}]: the same tensor as parameters[{seen[id(p)]}] (give each once)")
+        seen[id(p)] = i
+    return params
