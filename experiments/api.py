@@ -67,8 +67,18 @@ def _override_value(value: Any) -> str:
         return "[" + ",".join(_override_value(v) for v in value) + "]"
     if isinstance(value, Mapping):
         return "{" + ",".join(f"{k}:{_override_value(v)}" for k, v in value.items()) + "}"
-    raise TypeError(f"override value {value!r}: expected a number, string, bool, None, list or dict, "
-                    f"got {type(value).__name__}")
+    raise TypeError(f"expected a number, string, bool, None, list or dict, got {type(value).__name__}")
+
+
+def _override(key: str, value: Any) -> str:
+    """``key=value`` in Hydra's override syntax; a value that has none is a
+    :class:`~experiments.config.ConfigError` naming the key (``mc_runs=<object ...>: expected ...``)."""
+    try:
+        return f"{key}={_override_value(value)}"
+    except TypeError as err:
+        from experiments.config import ConfigError
+
+        raise ConfigError(key, value, str(err)) from None
 
 
 def _override_list(overrides: Mapping[str, Any] | Sequence[str] | None, kwargs: Mapping[str, Any]) -> list[str]:
@@ -80,7 +90,7 @@ def _override_list(overrides: Mapping[str, Any] | Sequence[str] | None, kwargs: 
         for key, value in overrides.items():
             if not isinstance(key, str) or not key:
                 raise TypeError(f"overrides: keys must be non-empty strings, got {key!r}")
-            items.append(f"{key}={_override_value(value)}")
+            items.append(_override(key, value))
     elif isinstance(overrides, (list, tuple)):
         for item in overrides:
             if not isinstance(item, str) or "=" not in item:
@@ -89,7 +99,7 @@ def _override_list(overrides: Mapping[str, Any] | Sequence[str] | None, kwargs: 
     else:
         raise TypeError(f"overrides: expected a dict or a list of 'key=value' strings, got {type(overrides).__name__}")
     for key, value in kwargs.items():
-        items.append(f"{key.replace('__', '.')}={_override_value(value)}")
+        items.append(_override(key.replace("__", "."), value))
     for item in items:
         if item.lstrip("+~").split("=", 1)[0] in ("experiment", "hydra") or item.startswith("hydra."):
             raise ValueError(f"overrides: {item.split('=', 1)[0]} is not an override here: the study is the "
@@ -116,13 +126,24 @@ class StudyResults:
     @property
     def json(self) -> dict:
         if self._json is None:
+            if not self.dir.exists():
+                raise ValueError(f"run_dir: {self.dir} does not exist")
+            if not self.dir.is_dir():
+                raise ValueError(f"run_dir: {self.dir} is a file, not a run folder (give the folder holding "
+                                 "results.json)")
             file = self.dir / "results.json"
             try:
-                self._json = json.loads(file.read_text())
+                data = json.loads(file.read_text())
             except FileNotFoundError:
                 raise ValueError(f"run_dir: {self.dir} holds no results.json (not a finished run)") from None
-            except ValueError as err:
+            except OSError as err:
+                raise ValueError(f"run_dir: {file} cannot be read ({err.strerror or type(err).__name__})") from None
+            except ValueError as err:  # JSONDecodeError, UnicodeDecodeError
                 raise ValueError(f"run_dir: {file} is not a results file ({type(err).__name__}: {err})") from None
+            problem = _results_problem(data)
+            if problem:
+                raise ValueError(f"run_dir: {file}: not a results file ({problem})")
+            self._json = data
         return self._json
 
     @property
@@ -170,8 +191,34 @@ class StudyResults:
         return f"StudyResults({self.experiment!r}, dir={str(self.dir)!r}, tables={self.tables})"
 
 
+def _results_problem(data: Any) -> str:
+    """What keeps ``data`` from being a results.json (experiments.results.Results.to_json), or ''."""
+    if not isinstance(data, dict):
+        return f"a JSON {type(data).__name__}, not an object"
+    missing = [key for key in ("experiment", "tables") if key not in data]
+    if missing:
+        return "no " + ", ".join(repr(key) for key in missing)
+    for key in ("tables", "config", "metrics", "timing", "provenance"):
+        if data.get(key) is not None and not isinstance(data[key], dict):
+            return f"{key}: {type(data[key]).__name__}, not an object"
+    for name, table in data["tables"].items():
+        columns = table.get("columns") if isinstance(table, dict) else None
+        rows = table.get("rows") if isinstance(table, dict) else None
+        if not isinstance(columns, list) or not isinstance(rows, list) or not all(
+                isinstance(row, list) and len(row) == len(columns) for row in rows):
+            return f"table {name!r}: expected columns and rows of as many cells"
+    return ""
+
+
 def load(run_dir: str | Path) -> StudyResults:
-    """A finished run folder (holding ``results.json``) as :class:`StudyResults`."""
+    """A finished run folder (holding ``results.json``) as :class:`StudyResults`.
+
+    Raises:
+        ValueError naming ``run_dir`` and the path: it does not exist, is a file, holds no
+        results.json, or one that is not a results object (``{"experiment", "tables", ...}``, with
+        tables of columns and rows).
+        TypeError: ``run_dir`` is not a path.
+    """
     if not isinstance(run_dir, (str, Path)):
         raise TypeError(f"run_dir: expected a path, got {type(run_dir).__name__}")
     results = StudyResults(run_dir)

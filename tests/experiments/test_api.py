@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -110,7 +111,10 @@ def test_overrides_dict_list_and_python_values(tmp_path):
     (lambda: api.study("imm_baseline", overrides=["seed"]), ValueError, ["overrides"]),
     (lambda: api.study("imm_baseline", experiment="imm_tf"), ValueError, ["experiment"]),
     (lambda: api.study("imm_baseline", out=3), TypeError, ["out"]),
-    (lambda: api.study("imm_baseline", seed=object()), TypeError, ["object"]),
+    (lambda: api.study("imm_baseline", seed=object()), ConfigError, ["seed=<object", "expected a number"]),
+    (lambda: api.study("imm_baseline", mc_runs=object()), ConfigError, ["mc_runs=<object"]),
+    (lambda: api.study("imm_baseline", scenario__R=[1, object()]), ConfigError, ["scenario.R=[1, <object"]),
+    (lambda: api.study("imm_baseline", overrides={"mc_runs": object()}), ConfigError, ["mc_runs=<object"]),
 ])
 def test_user_errors_name_the_argument_and_write_nothing(tmp_path, monkeypatch, call, error, words):
     monkeypatch.chdir(tmp_path)
@@ -118,6 +122,8 @@ def test_user_errors_name_the_argument_and_write_nothing(tmp_path, monkeypatch, 
         call()
     for word in words:
         assert word in str(info.value)
+    if error is ConfigError:  # the message starts with the key (issue 44: mc_runs=object() did not name it)
+        assert str(info.value).startswith(words[0].split("=")[0]), str(info.value)
     assert not (tmp_path / "outputs").exists()
 
 
@@ -132,3 +138,31 @@ def test_load_errors(tmp_path):
     (tmp_path / "results.json").write_text(json.dumps({"experiment": "toy", "tables": {
         "t": {"columns": ["a", "b"], "rows": [[1, 2]]}}}))
     assert api.load(tmp_path).table("t")["b"].tolist() == [2]
+
+
+@pytest.mark.parametrize("content, message", [
+    ("[]", r"results.json: not a results file \(a JSON list, not an object\)"),
+    ('"done"', r"results.json: not a results file \(a JSON str, not an object\)"),
+    ("{}", r"results.json: not a results file \(no 'experiment', 'tables'\)"),
+    ('{"experiment": "toy"}', r"results.json: not a results file \(no 'tables'\)"),
+    ('{"experiment": "toy", "tables": []}', r"results.json: not a results file \(tables: list, not an object\)"),
+    ('{"experiment": "toy", "tables": {}, "metrics": 3}', r"not a results file \(metrics: int, not an object\)"),
+    ('{"experiment": "toy", "tables": {"t": {"columns": ["a"]}}}', r"not a results file \(table 't': "),
+    ('{"experiment": "toy", "tables": {"t": {"columns": ["a"], "rows": [[1, 2]]}}}', r"table 't': "),
+])
+def test_load_names_the_path_and_what_is_wrong(tmp_path, content, message):
+    """A results.json that is not a results object was a raw AttributeError or KeyError later (issue 44)."""
+    (tmp_path / "results.json").write_text(content)
+    with pytest.raises(ValueError, match=r"^run_dir: " + re.escape(str(tmp_path)) + ".*" + message):
+        api.load(tmp_path)
+
+
+def test_load_of_a_file_or_a_missing_folder_names_the_path(tmp_path):
+    """A file for the run folder was a raw NotADirectoryError (issue 44)."""
+    file = tmp_path / "results.json"
+    file.write_text(json.dumps({"experiment": "toy", "tables": {}}))
+    with pytest.raises(ValueError, match=rf"^run_dir: {re.escape(str(file))} is a file, not a run folder"):
+        api.load(file)
+    with pytest.raises(ValueError, match=rf"^run_dir: {re.escape(str(tmp_path / 'none'))} does not exist"):
+        api.load(tmp_path / "none")
+    assert api.load(tmp_path).tables == []  # the folder holding it is fine
