@@ -214,6 +214,10 @@ def check_fields(obj: Any, prefix: str) -> None:
             for k, v in value.items():
                 if dataclasses.is_dataclass(v):
                     check_fields(v, f"{key}.{k}")
+        elif isinstance(value, (list, tuple)):  # a list of typed entries (e.g. learn.parameters)
+            for i, v in enumerate(value):
+                if dataclasses.is_dataclass(v):
+                    check_fields(v, f"{key}[{i}]")
         elif isinstance(value, float) and not math.isfinite(value):
             raise ConfigError(key, value, "must be finite")
     relation = getattr(obj, "config_check", None)

@@ -196,6 +196,7 @@ def validate(cfg: DictConfig | dict, *, scenario_choice: str | None = None, refe
                 else dict(reference)
             infer_types({k: v for k, v in ref.items() if k not in common_keys and k != "hydra"}, own)
         _own_checks(_study_module(study), data)
+        dry_build(data, scenario=False)  # (a study of one's own: its module's check_build only)
         return
     own = {f.name for f in dataclasses.fields(schema)}
     for key in data:
@@ -212,6 +213,49 @@ def validate(cfg: DictConfig | dict, *, scenario_choice: str | None = None, refe
             merge(getattr(schema, "estimator_schema", schemas_mod.Estimator), est or {}, f"estimators.{name}")
     if hasattr(schema, "check"):
         schema.check(data)
+    dry_build(data)
+
+
+def dry_build(data: dict, *, scenario: bool = True) -> None:
+    """Build what the run will build from the config, before anything runs: the ``scenario`` (its
+    models, sensors, prior and data file) and whatever the study's module checks in
+    ``check_build(cfg, scenario)`` (``compare``: every estimator and the ``learn`` block), in the
+    run's dtype on the CPU. A value only a constructor can judge (a covariance that is not PSD, an
+    ``R`` of the wrong shape, a sensor whose size differs from the data's, a ``learn`` entry naming no
+    model or parameter) is then one :class:`ConfigError` naming the key, before any folder exists.
+    Nothing is simulated or filtered (milliseconds)."""
+    import torch
+    from hydra.errors import InstantiationException
+    from hydra.utils import instantiate
+
+    node = data.get("scenario") if scenario else None
+    scenario = None
+    dtype = {"float64": torch.float64, "double": torch.float64, "float32": torch.float32,
+             "float": torch.float32}.get(str(data.get("dtype")), torch.float64)
+    if isinstance(node, dict) and node.get("_target_"):
+        try:
+            scenario = instantiate(node, dtype=dtype, device="cpu")
+        except InstantiationException as err:
+            cause = err.__cause__ or err.__context__
+            if isinstance(cause, ConfigError):
+                raise cause from None
+            raise ConfigError("scenario", node.get("name", node["_target_"]),
+                              f"cannot be built: {_first_line(cause or err)}") from None
+        except (TypeError, ValueError) as err:
+            if isinstance(err, ConfigError):
+                raise
+            raise ConfigError("scenario", node.get("name", node["_target_"]),
+                              f"cannot be built: {_first_line(err)}") from None
+    study = data.get("study")
+    module = _study_module(str(study)) if study else None
+    check = getattr(module, "check_build", None)
+    if check is not None:
+        check(OmegaConf.create(data), scenario)
+
+
+def _first_line(err: BaseException) -> str:
+    text = str(err).strip().splitlines()
+    return text[0] if text else type(err).__name__
 
 
 def _validate_scenario(data: dict, scenarios: tuple[str, ...] | None, choice: str | None) -> None:

@@ -165,6 +165,57 @@ def mean_interval(values: list[float], level: float = 0.95) -> dict[str, float |
     return {"n": n, "mean": mean, "sd": sd, "ci_low": mean - half, "ci_high": mean + half}
 
 
+def is_standard_error(column: str) -> bool:
+    """A run's own standard error of another column (``se``, ``<metric>_se``): combined over the
+    replicates as the standard error of their mean (:func:`pooled_se`), never averaged or differenced."""
+    return column == "se" or column.endswith("_se")
+
+
+def is_bound(column: str, columns: list[str]) -> bool:
+    """A run's own interval bound or half-width (``ci_low``, ``ci_high``, ``separate_half_width``,
+    ``<metric>_low``/``_high``/``_bound`` beside ``<metric>``): meaningful in its run only, so not
+    combined (the report's own interval replaces it) - unless it is the same in every run (a label)."""
+    if column in ("ci_low", "ci_high", "separate_half_width") or column.endswith("_bound"):
+        return True
+    for suffix in ("_low", "_high"):
+        if column.endswith(suffix) and column[: -len(suffix)] in columns:
+            return True
+    return False
+
+
+def pooled_se(values: list[float]) -> dict[str, float | int | None]:
+    """The standard error of the mean of ``n`` independent estimates with standard errors ``values``,
+    ``sqrt(sum se_i^2) / n``, as a :func:`mean_interval` record without an interval (its ``mean``)."""
+    finite = [float(v) for v in values if _is_number(v) and math.isfinite(v)]
+    n = len(finite)
+    if n == 0:
+        return {"n": 0, "mean": None, "sd": None, "ci_low": None, "ci_high": None}
+    return {"n": n, "mean": math.sqrt(math.fsum(v * v for v in finite)) / n, "sd": None, "ci_low": None,
+            "ci_high": None}
+
+
+def identifying_labels(tables: list[dict], columns: list[str], labels: list[str]) -> list[str]:
+    """The label columns besides ``estimator`` that tell an estimator's rows apart (``alpha`` in a sweep
+    table): those that vary among the rows of one estimator in some run. Constant companions of a
+    measurement (``nees_low``, ``nis_dof``: empty for an estimator without them) do not identify a row."""
+    if "estimator" not in columns:
+        return [c for c in labels]
+    est = columns.index("estimator")
+    out = []
+    for c in labels:
+        if c == "estimator":
+            continue
+        i = columns.index(c)
+        for table in tables:
+            seen: dict[Any, set] = defaultdict(set)
+            for row in table["rows"]:
+                seen[json.dumps(row[est], default=str)].add(json.dumps(row[i], default=str))
+            if any(len(v) > 1 for v in seen.values()):
+                out.append(c)
+                break
+    return out
+
+
 def _is_number(value: Any) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool)
 
@@ -234,17 +285,25 @@ def combine(runs: list[Run], replicate: str = "seed", level: float = 0.95, refer
                 continue
             is_label = _label_columns([[run.results["tables"][name] for run in g["runs"]] for g in group_list])
             label_cols = [c for c, lab in zip(columns, is_label) if lab]
-            measure_cols = [c for c, lab in zip(columns, is_label) if not lab]
+            errors = [c for c, lab in zip(columns, is_label) if not lab and is_standard_error(c)]
+            bounds = [c for c, lab in zip(columns, is_label) if not lab and is_bound(c, columns)]
+            measure_cols = [c for c, lab in zip(columns, is_label) if not lab and c not in errors and c not in bounds]
             rows = []
             for gi, group in enumerate(group_list):
                 group_tables = [run.results["tables"][name] for run in group["runs"]]
                 for r in range(len(tables[0]["rows"])):
                     labels = {c: group_tables[0]["rows"][r][i] for i, c in enumerate(columns) if is_label[i]}
                     values = {c: mean_interval([t["rows"][r][i] for t in group_tables], level)
-                              for i, c in enumerate(columns) if not is_label[i]}
+                              for i, c in enumerate(columns) if c in measure_cols}
+                    values.update({c: pooled_se([t["rows"][r][columns.index(c)] for t in group_tables])
+                                   for c in errors})
                     rows.append({"group": gi, "labels": labels, "values": values})
-            tables_out[name] = {"labels": label_cols, "measurements": measure_cols, "rows": rows}
-            if "estimator" in label_cols and measure_cols:
+            identifying = identifying_labels([t for g in group_list for t in
+                                              (run.results["tables"][name] for run in g["runs"])], columns, label_cols)
+            tables_out[name] = {"labels": label_cols, "identifying": identifying, "measurements": measure_cols,
+                                "standard_errors": errors, "not_combined": bounds, "rows": rows}
+            # a table of the study's own paired differences (a `reference` column) is not paired again
+            if "estimator" in label_cols and "reference" not in columns and measure_cols:
                 paired = paired_differences(
                     [[run.results["tables"][name] for run in g["runs"]] for g in group_list], columns,
                     measure_cols, label_cols, reference, level)
@@ -269,11 +328,15 @@ def paired_differences(tables_by_group: list[list[dict]], columns: list[str], me
 
     ``tables_by_group``: per group, the table of each of its runs (rows in the same order in every
     run). A row of estimator ``B`` is paired with the row of ``reference`` holding the same other
-    labels in the same run; ``d_r = B_r - reference_r`` for each run ``r`` of the group, then
-    :func:`mean_interval` over ``d``. Cells that are not finite numbers are left out of ``n``.
+    identifying labels (:func:`identifying_labels`: e.g. ``alpha``; not a measurement's constant
+    companion such as ``nees_low``, which may be empty for one estimator) in the same run;
+    ``d_r = B_r - reference_r`` for each run ``r`` of the group, then :func:`mean_interval` over ``d``.
+    Cells that are not finite numbers are left out of ``n``. ``measurements`` are values, never standard
+    errors or bounds (:func:`is_standard_error`, :func:`is_bound`).
     """
     est = columns.index("estimator")
-    others = [columns.index(c) for c in labels if c != "estimator"]
+    keys = identifying_labels([t for g in tables_by_group for t in g], columns, labels)
+    others = [columns.index(c) for c in keys]
     first = next((t["rows"][0] for g in tables_by_group for t in g[:1] if t["rows"]), None)
     if first is None:
         return None
@@ -299,8 +362,9 @@ def paired_differences(tables_by_group: list[list[dict]], columns: list[str], me
                     a, b = table["rows"][r][i], table["rows"][ref][i]
                     diffs.append(a - b if _is_number(a) and _is_number(b) else float("nan"))
                 values[column] = mean_interval(diffs, level)
-            rows.append({"group": gi, "labels": {c: row[columns.index(c)] for c in labels}, "values": values})
-    return {"reference": reference, "labels": labels, "measurements": measurements, "rows": rows}
+            rows.append({"group": gi, "labels": {c: row[columns.index(c)] for c in ["estimator", *keys]},
+                         "values": values})
+    return {"reference": reference, "labels": ["estimator", *keys], "measurements": measurements, "rows": rows}
 
 
 def _sort_key(value: Any):
@@ -326,15 +390,18 @@ def to_markdown(report: dict[str, Any]) -> str:
                 f"(mean ± half-width of the {pct} Student-t interval over the replicates; n = replicates).", ""]
         for name, table in body["tables"].items():
             factor_cols = body["factors"]
-            columns = [*factor_cols, *table["labels"], "n", *table["measurements"]]
+            errors = table.get("standard_errors", [])
+            columns = [*factor_cols, *table["labels"], "n", *table["measurements"], *errors]
             lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
             for row in table["rows"]:
                 g = groups[row["group"]]
                 n = max((v["n"] for v in row["values"].values()), default=len(g["runs"]))
                 cells = [*(format_value(g["factors"][k]) for k in factor_cols), *(format_value(row["labels"][c]) for c in table["labels"]),
-                         str(n), *(_cell(row["values"][c]) for c in table["measurements"])]
+                         str(n), *(_cell(row["values"][c]) for c in [*table["measurements"], *errors])]
                 lines.append("| " + " | ".join(cells) + " |")
             out += [f"### {name}", "", *lines, ""]
+            if errors or table.get("not_combined"):
+                out += [_columns_note(table), ""]
         for name, paired in (body.get("paired") or {}).items():
             columns, rows = _paired_rows(body, paired, minus=" − ")
             lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
@@ -344,6 +411,18 @@ def to_markdown(report: dict[str, Any]) -> str:
                      f"share their data), then mean ± half-width of the {pct} Student-t interval over the replicates."),
                     "", *lines, ""]
     return "\n".join(out)
+
+
+def _columns_note(table: dict) -> str:
+    """What the report did with a table's own uncertainty columns."""
+    parts = []
+    if table.get("standard_errors"):
+        parts.append(f"{', '.join(table['standard_errors'])}: each run's standard error, combined as that of the mean "
+                     "over the replicates, sqrt(sum se^2) / n (no interval)")
+    if table.get("not_combined"):
+        parts.append(f"{', '.join(table['not_combined'])}: each run's own bounds, not combined (the intervals above "
+                     "replace them)")
+    return "; ".join(parts) + "."
 
 
 def _paired_rows(body: dict, paired: dict, minus: str, cell=None, text=None) -> tuple[list[str], list[list[str]]]:
@@ -428,15 +507,16 @@ def to_latex(report: dict[str, Any]) -> str:
         groups, factors = body["groups"], body["factors"]
         pct = f"{100 * body['level']:g}\\,\\%"
         for name, table in body["tables"].items():
-            columns = [*factors, *table["labels"], "n", *table["measurements"]]
+            values = [*table["measurements"], *table.get("standard_errors", [])]
+            columns = [*factors, *table["labels"], "n", *values]
             rows = []
             for row in table["rows"]:
                 g = groups[row["group"]]
                 n = max((v["n"] for v in row["values"].values()), default=len(g["runs"]))
                 rows.append([*(esc(format_value(g["factors"][k])) for k in factors),
                              *(esc(format_value(row["labels"][c])) for c in table["labels"]), str(n),
-                             *(_latex_cell(row["values"][c]) for c in table["measurements"])])
-            align = "l" * (len(factors) + len(table["labels"])) + "r" * (1 + len(table["measurements"]))
+                             *(_latex_cell(row["values"][c]) for c in values)])
+            align = "l" * (len(factors) + len(table["labels"])) + "r" * (1 + len(values))
             caption = (f"{esc(experiment)}: {esc(name)} (mean $\\pm$ half-width of the {pct} Student-t interval "
                        f"over {esc(body['replicate'])}; n replicates)")
             out += _latex_table([esc(c) for c in columns], rows, caption, align)
@@ -466,15 +546,20 @@ def figure(report: dict[str, Any]):
     for ax, (exp, name, table) in zip(axes[:, 0], panels):
         measure = table["measurements"][0]
         body = report[exp]
+        keys = table.get("identifying")
+        if keys is None:
+            keys = [c for c in table["labels"] if c != "estimator"]
         labels, means, lows, highs = [], [], [], []
         for row in table["rows"]:
             s = row["values"][measure]
             if s["mean"] is None:
                 continue
             factors = body["groups"][row["group"]]["factors"]
-            names = [c for c in table["labels"] if not _is_number(row["labels"][c])] or table["labels"]
+            names = ["estimator", *keys] if "estimator" in table["labels"] else keys
             text = ", ".join([*(f"{k}={format_value(v)}" for k, v in factors.items()),
-                              *(format_value(row["labels"][c]) for c in names)])
+                              *(f"{c}={format_value(row['labels'][c])}" if c != "estimator" and _is_number(row["labels"][c])
+                                else format_value(row["labels"][c])
+                                for c in names if row["labels"].get(c) not in (None, ""))])
             labels.append(text or exp)
             means.append(s["mean"])
             lows.append(s["mean"] - (s["ci_low"] if s["ci_low"] is not None else s["mean"]))

@@ -62,7 +62,9 @@ class Results:
     ``results.json``: ``{"experiment", "config", "metrics": {estimator: {metric: value}},
     "tables": {name: {"columns", "rows"}}, "timing": {estimator: seconds_per_step},
     "provenance": {versions, git, host, platform, command, start, end, wall_seconds, device, dtype,
-    threads}}`` (docs/studies.md).
+    threads}, "dropped": {metric: why}}`` (docs/studies.md). ``dropped`` names every metric that was
+    asked for but cannot be computed from the data (no truth, no measurement), with the reason: such a
+    metric is never reported as a number.
     """
 
     def __init__(self, output_dir: Path, experiment: str, config: dict, description: str = ""):
@@ -74,6 +76,8 @@ class Results:
         self.tables: dict[str, Table] = {}
         self.timing: dict[str, float] = {}
         self.notes: list[str] = []
+        #: ``{metric (estimator): why}``: metrics asked for that the data cannot give (never a number)
+        self.dropped: dict[str, str] = {}
         self.provenance: dict[str, Any] = {}
         #: what the config changes from the study's defaults (:func:`experiments.changes.config_changes`),
         #: set when the run starts; None: not known (results.md then lists no changes)
@@ -95,6 +99,7 @@ class Results:
             "tables": {k: {"columns": t.columns, "rows": jsonable(t.rows)} for k, t in self.tables.items()},
             "timing": jsonable(self.timing),
             "provenance": jsonable(self.provenance),
+            "dropped": dict(self.dropped),
         }
 
     @staticmethod
@@ -148,6 +153,9 @@ class Results:
             timing = Table(["estimator", "seconds_per_step"], [[k, v] for k, v in self.timing.items()])
             out += ["## timing", "", "Wall time per time step for all Monte Carlo runs at once.", "",
                     timing.markdown(), ""]
+        if self.dropped:
+            out += ["## not computed", "", "Asked for, but the data cannot give them (never reported as numbers):", ""]
+            out += [f"- `{name}`: {why}" for name, why in self.dropped.items()] + [""]
         if self.notes:
             out += ["## notes", ""] + [f"- {n}" for n in self.notes] + [""]
         if self.provenance:

@@ -8,6 +8,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -313,7 +314,6 @@ def system(
         dt_key: the keyword of the mode nodes that irregular time stamps set per step.
     """
     from experiments.config import ConfigError
-    from experiments.datafile import read_series
 
     mode_nodes = list(modes) if _is_list(modes) else None
     if mode_nodes is not None and not mode_nodes:
@@ -382,14 +382,7 @@ def system(
         probs = None if initial_mode_probs is None else torch.tensor(list(initial_mode_probs), dtype=dtype)
     recorded, motions = None, None
     if data is not None:
-        recorded = read_series(data["path"], measurements=list(data["measurements"]),
-                               truth=list(data["truth"]) if data.get("truth") else None,
-                               time=data.get("time"), series=data.get("series"))
-        if recorded.measurements.shape[-1] != sum(dims):
-            raise ConfigError("scenario.data.measurements", list(data["measurements"]),
-                              f"{recorded.measurements.shape[-1]} columns for a sensor of {sum(dims)}")
-        if recorded.truth is not None and recorded.truth.shape[-1] != n:
-            raise ConfigError("scenario.data.truth", list(data["truth"]), f"{recorded.truth.shape[-1]} columns for a state of {n}")
+        recorded = read_data(data, n, sum(dims))
         steps = recorded.steps
         if recorded.times is not None:
             regular, motions = _per_step_motions(mode_nodes if mode_nodes is not None else modes, recorded.times,
@@ -401,6 +394,40 @@ def system(
         initial=initial.to(device), steps=int(steps), initial_mode_probs=None if probs is None else probs.to(device),
         mode_labels=labels, groups=groups, sensor_dims=dims, missing=[float(p) for p in per_sensor[0]],
         every=[int(k) for k in per_sensor[1]], data=recorded, motions=motions)
+
+
+def read_data(data: Any, n: int, m: int):
+    """The recorded data of ``scenario.data`` for a state of ``n`` and a sensor of ``m`` components
+    (:func:`experiments.datafile.read_series`), with the config's errors named by key.
+
+    ``truth`` lists one column per state component, ``null`` for a component the file does not hold
+    (e.g. ``[px, null, py, null]``: position-only truth); such a component, or a column with no finite
+    cell, has no truth (NaN) and the metrics that need it are dropped and named (``compare``)."""
+    from experiments.config import ConfigError
+    from experiments.datafile import DataFileError, read_series
+
+    truth = list(data["truth"]) if data.get("truth") else None
+    if truth is not None and len(truth) != n:
+        raise ConfigError("scenario.data.truth", truth, f"{len(truth)} columns for a state of {n} (one column per "
+                          "state component, null for one the file does not hold)")
+    columns = None if truth is None else [c for c in truth if c is not None]
+    try:
+        recorded = read_series(data["path"], measurements=list(data["measurements"]), truth=columns or None,
+                               time=data.get("time"), series=data.get("series"))
+    except DataFileError as err:  # one line naming the file, the column and the row
+        raise ConfigError("scenario.data", data["path"], str(err)) from None
+    if recorded.measurements.shape[-1] != m:
+        raise ConfigError("scenario.data.measurements", list(data["measurements"]),
+                          f"{recorded.measurements.shape[-1]} columns for a sensor of {m}")
+    if not np.isfinite(recorded.measurements).any():
+        raise ConfigError("scenario.data.measurements", list(data["measurements"]),
+                          f"{data['path']}: every measurement cell is missing (nothing to filter)")
+    if truth is not None:
+        full = np.full(recorded.measurements.shape[:2] + (n,), np.nan)
+        if columns:
+            full[..., [i for i, c in enumerate(truth) if c is not None]] = recorded.truth
+        recorded.truth = full if np.isfinite(full).any() else None
+    return recorded
 
 
 def _stationary(matrix: Tensor) -> Tensor:

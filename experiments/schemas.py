@@ -209,7 +209,7 @@ class DataSpec:
 
     path: str = "???"  # required
     measurements: List[str] = spec(factory=list, check=non_empty)
-    truth: Optional[List[str]] = None
+    truth: Optional[List[Optional[str]]] = None  # one column per state component (null: not in the file)
     time: Optional[str] = None
     series: Optional[str] = None
 
@@ -321,7 +321,8 @@ class LearnParameter:
 @dataclass
 class Learn:
     parameters: List[LearnParameter] = spec(factory=list, check=non_empty)
-    estimator: Optional[str] = None
+    estimator: Optional[str] = None  # this one estimator learns (its own copy of the models)
+    estimators: Optional[List[str]] = None  # these learn, each its own copy (default: every estimator)
     optimizer: str = spec("lbfgs", one_of("lbfgs", "adam"))
     lr: float = spec(1.0, positive)
     iterations: int = spec(30, positive_int)
@@ -349,19 +350,19 @@ class Compare:
         ref = (data.get("paired") or {}).get("reference")
         if ref is not None and ref not in names and not ref.endswith(" smoothed"):
             raise ConfigError("paired.reference", ref, f"must be one of the estimators ({', '.join(names)})")
-        scenario = data.get("scenario") or {}
-        if scenario.get("data"):  # a malformed file: one line naming file, column and row, before anything runs
-            from experiments.datafile import DataFileError, read_series
-
-            d = scenario["data"]
-            try:
-                read_series(d["path"], measurements=list(d["measurements"]), truth=d.get("truth"), time=d.get("time"),
-                            series=d.get("series"))
-            except DataFileError as err:
-                raise ConfigError("scenario.data", d["path"], str(err)) from None
+        # (a malformed data file, models, estimators and learn entries: built by the study's check_build,
+        # experiments.studies.compare, before anything runs)
         learn = data.get("learn")
         if learn and learn.get("estimator") is not None and learn["estimator"] not in names:
             raise ConfigError("learn.estimator", learn["estimator"], f"must be one of the estimators ({', '.join(names)})")
+        if learn and learn.get("estimators") is not None:
+            if learn.get("estimator") is not None:
+                raise ConfigError("learn.estimators", learn["estimators"], "give learn.estimator or learn.estimators, "
+                                  "not both")
+            unknown = [n for n in learn["estimators"] if n not in names]
+            if unknown:
+                raise ConfigError("learn.estimators", learn["estimators"], f"{', '.join(unknown)}: not estimators "
+                                  f"({', '.join(names)})")
 
 
 @dataclass

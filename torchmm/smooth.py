@@ -51,8 +51,8 @@ import torch.utils._pytree as pytree
 from torch import Tensor
 
 import torchmm.kernels as kernels
-from torchmm.beliefs import GaussianBelief, ModeBelief, ParticleBelief, symmetrize
-from torchmm.contract import Choice, Data, Finite, Int, Of, entry_point
+from torchmm.beliefs import GaussianBelief, ModeBelief, ParticleBelief, symmetrize, where
+from torchmm.contract import Choice, Data, Finite, Int, Mask, Of, entry_point
 from torchmm.filters.base import Filter
 from torchmm.filters.kalman import ExtendedKalmanFilter, KalmanFilter
 from torchmm.filters.particle import ParticleFilter
@@ -140,7 +140,8 @@ def ffbsm_step(motion: MotionModel, filtered: ParticleBelief, following: Particl
     return torch.log_softmax(log_w + torch.logsumexp(log_f + back.unsqueeze(-2), dim=-1), dim=-1)
 
 
-def _smooth_particles(filter: ParticleFilter, trajectory: Trajectory, controls, motions) -> Trajectory:
+def _smooth_particles(filter: ParticleFilter, trajectory: Trajectory, controls, motions,
+                      padding: Tensor | None = None) -> Trajectory:
     filtered = trajectory.belief
     if not isinstance(filtered, ParticleBelief):
         raise TypeError(f"trajectory.belief: expected particle beliefs, got {type(filtered).__name__}")
@@ -154,8 +155,11 @@ def _smooth_particles(filter: ParticleFilter, trajectory: Trajectory, controls, 
     log_weights = [torch.log_softmax(filtered.log_weights[steps - 1], dim=-1)]
     for k in range(steps - 2, -1, -1):
         motion = filter.motion if motions is None else motions[k + 1]
-        log_weights.append(ffbsm_step(motion, filtered[k], filtered[k + 1], log_weights[-1],
-                                      u=None if controls is None else controls[k + 1]))
+        step = ffbsm_step(motion, filtered[k], filtered[k + 1], log_weights[-1],
+                          u=None if controls is None else controls[k + 1])
+        if padding is not None:  # a run whose step k+1 is padding ends at k: its filtered weights
+            step = torch.where(padding[k + 1].unsqueeze(-1), torch.log_softmax(filtered.log_weights[k], dim=-1), step)
+        log_weights.append(step)
     belief = ParticleBelief(filtered.particles, torch.stack(log_weights[::-1]))
     return Trajectory(belief=belief, prior=None, log_likelihood=trajectory.log_likelihood, innovation=None,
                       innovation_cov=None, extras={})
@@ -396,7 +400,7 @@ def diffuse_factor(dtype: torch.dtype) -> float:
 
 
 def _smooth_two_filter(filter: MultipleModelFilter, trajectory: Trajectory, measurements: Tensor, controls, motions,
-                       sensors) -> Trajectory:
+                       sensors, padding: Tensor | None = None) -> Trajectory:
     _gaussian_modes(trajectory, materialize=False)  # (the type check)
     steps = trajectory.belief.batch_shape[0]
     z = _two_filter_measurements(filter, measurements, trajectory.belief.components)
@@ -404,7 +408,7 @@ def _smooth_two_filter(filter: MultipleModelFilter, trajectory: Trajectory, meas
     if steps > 1:  # once, at the entry point: the backward filter runs every mode's motion backwards
         _check_invertible(_bank_at(filter, motions, steps - 1), trajectory.belief.components.mean[steps - 1],
                           None if controls is None else controls[steps - 1].unsqueeze(-2))
-    if controls is None and motions is None and sensors is None:  # a whole-run kernel (torchmm.kernels)
+    if controls is None and motions is None and sensors is None and padding is None:  # a whole-run kernel
         run, _ = kernels.plan_smooth(filter, trajectory, "two_filter", measurements=z, prior_log=prior_log)
         smoothed = None if run is None else run()
         if smoothed is not None:
@@ -413,22 +417,34 @@ def _smooth_two_filter(filter: MultipleModelFilter, trajectory: Trajectory, meas
     filtered = _gaussian_modes(trajectory)
     comps = filtered.components
     last = filtered[steps - 1]
-    # the backward filter starts from a nearly flat prior, updated with the last datum
-    est = last.estimate()
-    flat = GaussianBelief(est.mean.unsqueeze(-2).expand_as(last.components.mean),
-                          (diffuse_factor(est.cov.dtype) * est.cov).unsqueeze(-3).expand_as(last.components.cov))
-    out = filter.bank.update(flat, z[steps - 1].unsqueeze(-2), sensor=None if sensors is None else sensors[-1])
-    backward = ModeBelief(mode_posterior(out.log_likelihood, prior_log[steps - 1])[0], out.belief)
+
+    def start(k: int) -> ModeBelief:
+        """The backward filter's start at step ``k`` (a run's last step): a nearly flat prior around the
+        filter's collapsed estimate, updated with ``z_k``."""
+        est = filtered[k].estimate()
+        flat = GaussianBelief(est.mean.unsqueeze(-2).expand_as(comps.mean[k]),
+                              (diffuse_factor(est.cov.dtype) * est.cov).unsqueeze(-3).expand_as(comps.cov[k]))
+        out = filter.bank.update(flat, z[k].unsqueeze(-2), sensor=None if sensors is None else sensors[k])
+        return ModeBelief(mode_posterior(out.log_likelihood, prior_log[k])[0], out.belief)
+
+    # the steps at which some run ends before T (known at the entry point: padding is host data)
+    ends = set() if padding is None else set(torch.nonzero(padding[1:] & ~padding[:-1])[:, 0].tolist())
+    backward = start(steps - 1)
     smoothed = [last]
     for k in range(steps - 2, -1, -1):  # the prediction k -> k+1 used motions[k+1] and controls[k+1]
         bank = _bank_at(filter, motions, k + 1)
         u = None if controls is None else controls[k + 1].unsqueeze(-2)
         at = filtered[k].estimate().mean.unsqueeze(-2).expand(comps.mean[k].shape)  # the linearisation point
         predicted = ModeBelief(backward.mode_log_probs, backward_predict(bank, backward.components, at, u))
-        smoothed.append(two_filter_step(filter, filtered[k], predicted, prior_log[k + 1]))
+        step = two_filter_step(filter, filtered[k], predicted, prior_log[k + 1])
+        if padding is not None:  # a run whose step k+1 is padding ends at k: its filtered belief
+            step = where(padding[k + 1], filtered[k], step)
+        smoothed.append(step)
         if k > 0:
             backward = backward_imm_update(filter, predicted, z[k], prior_log[k],
                                            sensor=None if sensors is None else sensors[k])
+            if k in ends:  # the runs whose last step is k start their backward filter here
+                backward = where(padding[k + 1], start(k), backward)
     return _mode_trajectory(smoothed[::-1], trajectory)
 
 
@@ -591,6 +607,24 @@ def _step_entries(filter, trajectory=None, *args, **kwargs) -> int:
     return entries(traj.belief) // max(int(traj.log_likelihood.shape[0]), 1)
 
 
+def _padding(present: Tensor | None, trajectory: Trajectory) -> Tensor | None:
+    """``(T, *B)`` bool, True at the padding steps that follow each run's last step; None when every step
+    is present. Checked at the entry point (one host read): the shape, and padding only at a run's end."""
+    if present is None:
+        return None
+    batch = tuple(trajectory.log_likelihood.shape)
+    if tuple(present.shape) != batch:
+        raise ValueError(f"present: expected shape {batch} (the trajectory's steps and runs), got "
+                         f"{tuple(present.shape)}")
+    padding = ~present.to(trajectory.log_likelihood.device)
+    late = present[1:] & padding[:-1]
+    if bool(late.any()):
+        k, *run = torch.nonzero(late)[0].tolist()
+        raise ValueError(f"present: run {tuple(run)} has a present step {k + 1} after a padding step {k}; padding "
+                         "goes at the end of a run (a missing datum inside a run is a NaN measurement)")
+    return padding if bool(padding.any()) else None
+
+
 # declared only where smooth's own check says more (the filter types it smooths, the options a filter
 # has) or where the argument's meaning depends on another: smooth(trajectory, measurements)
 @entry_point(filter=Of((Filter, Trajectory), check=False, what="the filter that ran, or its Trajectory"),
@@ -599,11 +633,12 @@ def _step_entries(filter, trajectory=None, *args, **kwargs) -> int:
              motions=Of((list, tuple, torch.nn.Module), callable_ok=True, optional=True, what=_PER_STEP),
              sensors=Of((list, tuple, torch.nn.Module), callable_ok=True, optional=True, what=_PER_STEP),
              lag=Int(0, optional=True, check=False),
-             method=Choice("two_filter", "kim", optional=True, check=False))
+             method=Choice("two_filter", "kim", optional=True, check=False),
+             present=Mask(optional=True))
 @one_thread_when_small(_step_entries)
 def smooth(filter: Any, trajectory: Trajectory | None = None, measurements: Tensor | None = None, *,
            controls: Tensor | None = None, motions: Any = None, sensors: Any = None, lag: int | None = None,
-           method: str | None = None) -> Trajectory:
+           method: str | None = None, present: Tensor | None = None) -> Trajectory:
     r"""The fixed-interval smoothed beliefs ``p(x_k | z_{1:T})`` of a filtered ``trajectory``.
 
     ``smooth(trajectory)`` smooths with what the run recorded (``trajectory.provenance``): its filter,
@@ -628,6 +663,13 @@ def smooth(filter: Any, trajectory: Trajectory | None = None, measurements: Tens
         sensors: the per-step sensors given to ``run_filter`` (likewise; the two-filter smoother's
             backward updates use them). Default: the run's.
         method: multiple-model filters only: ``"two_filter"`` (default) or ``"kim"``.
+        present: ``(T, *B)`` bool, for runs of different lengths padded at the end (a batch of recorded
+            series): False at a run's padding steps, which must follow all its real steps. Each run is
+            smoothed over its own steps only, as if it were alone: its last real step keeps the filtered
+            belief and the padding never reaches back (the two-filter smoother starts each run's
+            backward filter at its own last step). Padding steps keep the filtered beliefs (the
+            predictions), which score nothing. One host read at entry; the whole-run kernels are not
+            used when a run is padded. Default: every step present.
         lag: fixed-lag smoothing (Kalman, extended and unscented filters): step ``k`` is smoothed with
             the data up to ``k + lag``, ``p(x_k | z_{1:min(k + lag, T)})``. All ``T`` windows go back
             together: ``lag`` batched backward steps (``O(T lag)`` work). ``None``: fixed interval.
@@ -695,7 +737,8 @@ def smooth(filter: Any, trajectory: Trajectory | None = None, measurements: Tens
     if lag is not None and isinstance(filter, (MultipleModelFilter, ParticleFilter)):
         raise ValueError(f"lag: fixed-lag smoothing is implemented for Kalman, extended and unscented filters, "
                          f"not {type(filter).__name__}")
-    if controls is None and motions is None and lag is None:
+    padding = _padding(present, trajectory)
+    if controls is None and motions is None and lag is None and padding is None:
         run, _ = kernels.plan_smooth(filter, trajectory, method)
         smoothed = None if run is None else run()
         if smoothed is not None:  # a whole-run kernel (torchmm.kernels), to rounding the steps below
@@ -705,13 +748,13 @@ def smooth(filter: Any, trajectory: Trajectory | None = None, measurements: Tens
         if method not in (None, "two_filter", "kim"):
             raise ValueError(f"method: expected 'two_filter' or 'kim' for {type(filter).__name__}, got {method!r}")
         if method == "kim":
-            return _smooth_modes(filter, trajectory, controls, motions)
-        return _smooth_two_filter(filter, trajectory, measurements, controls, motions, sensors)
+            return _smooth_modes(filter, trajectory, controls, motions, padding)
+        return _smooth_two_filter(filter, trajectory, measurements, controls, motions, sensors, padding)
     if method is not None:
         raise ValueError(f"method: only multiple-model filters have a choice of smoother ('two_filter', 'kim'); "
                          f"got {method!r} for {type(filter).__name__}")
     if isinstance(filter, ParticleFilter):
-        return _smooth_particles(filter, trajectory, controls, motions)
+        return _smooth_particles(filter, trajectory, controls, motions, padding)
     if isinstance(filter, UnscentedKalmanFilter):
         kind = "unscented"
     elif isinstance(filter, (KalmanFilter, ExtendedKalmanFilter)):
@@ -728,16 +771,20 @@ def smooth(filter: Any, trajectory: Trajectory | None = None, measurements: Tens
                          "record that drops them")
     filtered = filtered.materialize()
     predicted = trajectory.prior.materialize() if kind == "rts" else None
-    if lag is not None:
+    if lag is not None:  # (padding needs nothing here: a padded step's filtered belief is its prediction,
+        # which the Gaussian backward steps return unchanged; tests/smoothing/test_padding.py)
         return _fixed_lag(filter, kind, filtered, predicted, controls, motions, lag, trajectory)
     smoothed = [filtered[steps - 1]]
     for k in range(steps - 2, -1, -1):  # the prediction k -> k+1 used motions[k+1] and controls[k+1]
         motion = filter.motion if motions is None else motions[k + 1]
         u = None if controls is None else controls[k + 1]
         if kind == "rts":
-            smoothed.append(rts_step(motion, filtered[k], predicted[k + 1], smoothed[-1], u=u))
+            step = rts_step(motion, filtered[k], predicted[k + 1], smoothed[-1], u=u)
         else:
-            smoothed.append(unscented_rts_step(motion, filter.sigma_points, filtered[k], smoothed[-1], u=u))
+            step = unscented_rts_step(motion, filter.sigma_points, filtered[k], smoothed[-1], u=u)
+        # a run whose step k+1 is padding ends at k (the Gaussian smoothers give this to rounding anyway:
+        # the filtered belief at a padded step is its prediction)
+        smoothed.append(step if padding is None else where(padding[k + 1], filtered[k], step))
     belief = GaussianBelief(torch.stack([b.mean for b in smoothed[::-1]]),
                             torch.stack([b.cov for b in smoothed[::-1]]))
     return Trajectory(belief=belief, prior=None, log_likelihood=trajectory.log_likelihood, innovation=None,
@@ -764,13 +811,17 @@ def _mode_trajectory(smoothed: list[ModeBelief], trajectory: Trajectory) -> Traj
                       innovation_cov=None, extras={})
 
 
-def _smooth_modes(filter: MultipleModelFilter, trajectory: Trajectory, controls, motions) -> Trajectory:
+def _smooth_modes(filter: MultipleModelFilter, trajectory: Trajectory, controls, motions,
+                  padding: Tensor | None = None) -> Trajectory:
     filtered = _gaussian_modes(trajectory)
     steps = filtered.batch_shape[0]
     smoothed = [filtered[steps - 1]]
     for k in range(steps - 2, -1, -1):  # the prediction k -> k+1 used motions[k+1] and controls[k+1]
-        smoothed.append(kim_step(filter, filtered[k], smoothed[-1], u=None if controls is None else controls[k + 1],
-                                 motion=None if motions is None else motions[k + 1]))
+        step = kim_step(filter, filtered[k], smoothed[-1], u=None if controls is None else controls[k + 1],
+                        motion=None if motions is None else motions[k + 1])
+        if padding is not None:  # a run whose step k+1 is padding ends at k: its filtered belief
+            step = where(padding[k + 1], filtered[k], step)
+        smoothed.append(step)
     return _mode_trajectory(smoothed[::-1], trajectory)
 
 

@@ -43,7 +43,7 @@ from experiments.harness import StudyContext, join_runs, per_run
 from experiments.scenarios import Concatenated, default_dtype
 from experiments.studies import plots
 from experiments.uncertainty import Z95, armse_influence, chi2_interval, rmse_se_per_step
-from torchmm import run_filter, smooth
+from torchmm import GaussianBelief, run_filter, smooth
 from torchmm.metrics import mode_hits, nees
 
 log = logging.getLogger("torchmm.experiments")
@@ -51,6 +51,10 @@ log = logging.getLogger("torchmm.experiments")
 UNIT = "experiments.studies.compare:unit"
 TRUTH_METRICS = ("rmse", "nees", "mode_accuracy")
 ALL_METRICS = ("rmse", "nees", "nis", "mode_accuracy", "loglik", "whiteness", "time")
+#: the parametrisations of a learned covariance (torchmm.learnable_noise)
+KINDS = ("log_diagonal", "cholesky", "scale")
+#: the summary's values (the others are their standard errors, bounds and counts)
+_MAIN = ("nees", "nis", "loglik", "mode_accuracy", "whiteness_lag1")
 
 
 # -- the scenario, its data and its (learned) models ---------------------------------------------------
@@ -59,13 +63,43 @@ def _built(ctx: StudyContext):
     return ctx.memo(("compare", "built"), lambda: ctx.scenarios(ctx.cfg.scenario)[0])
 
 
-def _scenario(ctx: StudyContext):
-    """``(scenario, learned)``: the scenario in the filters' dtype, its models fitted first when the study
-    has a ``learn`` block (once per process; the data do not depend on the fit)."""
-    def build():
-        scenario = _built(ctx)
-        return scenario, (_learn(ctx, scenario) if ctx.cfg.get("learn") else None)
-    return ctx.memo(("compare", "scenario"), build)
+def learners(cfg) -> list[str]:
+    """The estimators that learn their own parameters (``learn.estimators``; ``learn.estimator``: that one;
+    default every estimator): each is fitted on its own copy of the scenario's models and runs with
+    its own fit; every other estimator runs with the configured values."""
+    spec = cfg.get("learn")
+    if not spec:
+        return []
+    if spec.get("estimator") is not None:
+        return [str(spec.estimator)]
+    if spec.get("estimators") is not None:
+        return [str(n) for n in spec.estimators]
+    return [str(n) for n in cfg.estimators]
+
+
+def _scenario_of(ctx: StudyContext, name: str | None = None):
+    """The scenario in the filters' dtype for estimator ``name``: its own models fitted first when it
+    learns (``learn``; once per process, on a copy: one estimator's fit never reaches another)."""
+    if name is None or name not in learners(ctx.cfg):
+        return _built(ctx)
+    return _learned(ctx, name)[0]
+
+
+def _learned(ctx: StudyContext, name: str):
+    """``(scenario, record)``: estimator ``name``'s own copy of the models, fitted (memoised)."""
+    def fit():
+        scenario = _own_models(_built(ctx))
+        return scenario, _learn(ctx, scenario, name)
+    return ctx.memo(("compare", "learned", name), fit)
+
+
+def _own_models(scenario):
+    """The scenario with copies of its models (the data and everything else shared)."""
+    import copy
+    import dataclasses
+
+    return dataclasses.replace(scenario, motion=copy.deepcopy(scenario.motion),
+                               measurement=copy.deepcopy(scenario.measurement))
 
 
 def _data(ctx: StudyContext, start: int, stop: int):
@@ -87,7 +121,7 @@ def _data(ctx: StudyContext, start: int, stop: int):
 
 
 def runs_of(ctx: StudyContext) -> int:
-    scenario, _ = _scenario(ctx)
+    scenario = _built(ctx)
     return scenario.data.runs if scenario.data is not None else int(ctx.cfg.mc_runs)
 
 
@@ -99,46 +133,73 @@ def _estimator(ctx: StudyContext, scenario, name: str):
 
 
 def _module(scenario, where: str):
-    """``modes[i]`` / ``modes`` / ``sensors[i]`` / ``sensors``: the scenario's model of that name."""
+    """``modes[i]`` / ``modes`` / ``sensors[i]`` / ``sensors``: the scenario's model of that name (a
+    ``ValueError`` saying what is wrong)."""
     kind, _, index = where.partition("[")
-    index = int(index.rstrip("]")) if index else None
+    if kind not in ("modes", "sensors") or (index and not index.rstrip("]").isdigit()):
+        raise ValueError("expected modes[i] or sensors[i]")
+    index = int(index.rstrip("]")) if index else 0
     if kind == "modes":
         models = scenario.motion if isinstance(scenario.motion, list) else [scenario.motion]
-    elif kind == "sensors":
+    else:
         models = list(scenario.measurement.sensors) if isinstance(scenario.measurement, Concatenated) \
             else list(scenario.measurement) if isinstance(scenario.measurement, list) else [scenario.measurement]
-    else:
-        raise ValueError(f"learn.parameters: model {where!r}: expected modes[i] or sensors[i]")
-    if index is None:
-        index = 0
     if not 0 <= index < len(models):
-        raise ValueError(f"learn.parameters: model {where!r}: there are {len(models)} {kind}")
+        raise ValueError(f"there {'is' if len(models) == 1 else 'are'} {len(models)} {kind} (indices 0.."
+                         f"{len(models) - 1})")
     return models[index]
 
 
-def _learn(ctx: StudyContext, scenario) -> dict:
-    """Maximum likelihood of the named covariances on the study's data (run before any estimator)."""
+def learn_targets(scenario, spec, est_name: str) -> list:
+    """``[(key, module, name, initial)]``: the named covariances of ``learn.parameters`` made learnable
+    on ``scenario``'s models (:func:`torchmm.learnable_noise`). Raises ``ConfigError`` naming the entry."""
+    from experiments.config import ConfigError
+    from torchmm import learnable_noise
+
+    targets = []
+    for i, p in enumerate(spec.parameters):
+        key = f"learn.parameters[{i}]"
+        try:
+            module = _module(scenario, str(p.model))
+        except ValueError as err:
+            raise ConfigError(f"{key}.model", str(p.model), str(err)) from None
+        name = str(p.name)
+        value = getattr(module, name, None)
+        if not isinstance(value, Tensor):
+            known = [n for n in ("Q", "R") if isinstance(getattr(module, n, None), Tensor)]
+            raise ConfigError(f"{key}.name", name, f"{p.model} ({type(module).__name__}) has no covariance {name!r}"
+                              + (f" (it has {', '.join(known)})" if known else ""))
+        initial = value.detach().clone()
+        kind = str(p.get("kind") or "log_diagonal")
+        if kind not in KINDS:
+            raise ConfigError(f"{key}.kind", kind, f"must be one of {', '.join(KINDS)}")
+        try:
+            learnable_noise(module, name, kind)
+        except (TypeError, ValueError) as err:
+            raise ConfigError(f"{key}", f"{p.model}.{name}", str(err)) from None
+        targets.append((f"{p.model}.{name}", module, name, initial))
+    return targets
+
+
+def _learn(ctx: StudyContext, scenario, est_name: str) -> dict:
+    """Maximum likelihood of the named covariances on the study's data through estimator ``est_name``,
+    on ``scenario`` (that estimator's own copy of the models; run before it filters)."""
     from torch.nn.utils import parametrize
 
-    from torchmm import learnable_noise, run_filter
+    from torchmm import run_filter
     from torchmm.learn import Trainer
 
     spec = ctx.cfg.learn
-    targets = []
-    for p in spec.parameters:
-        module = _module(scenario, str(p.model))
-        initial = getattr(module, str(p.name)).detach().clone()
-        learnable_noise(module, str(p.name), str(p.get("kind") or "log_diagonal"))
-        targets.append((f"{p.model}.{p.name}", module, str(p.name), initial))
-    through = str(spec.get("estimator") or next(iter(ctx.cfg.estimators)))
-    est = _estimator(ctx, scenario, through)
+    targets = learn_targets(scenario, spec, est_name)
+    est = _estimator(ctx, scenario, est_name)
     runs = scenario.data.runs if scenario.data is not None else int(ctx.cfg.mc_runs)
     _, _, z, _ = _data(ctx, 0, runs)
     prior = scenario.initial.expand(runs)
     burn, update_first = int(ctx.cfg.get("burn") or 0), bool(ctx.cfg.get("update_first"))
     params = [p for p in est.filter.parameters() if p.requires_grad]
     if not params:
-        raise ValueError("learn.parameters: nothing learnable in the estimator's filter")
+        raise ValueError(f"learn.estimators: {est_name} has no learnable parameter (its filter does not use the "
+                         "models of learn.parameters)")
     if str(spec.optimizer) == "lbfgs":
         optimizer = torch.optim.LBFGS(params, lr=float(spec.lr), max_iter=20, line_search_fn="strong_wolfe",
                                       tolerance_grad=1e-10, tolerance_change=1e-14)
@@ -146,7 +207,8 @@ def _learn(ctx: StudyContext, scenario) -> dict:
         optimizer = torch.optim.Adam(params, lr=float(spec.lr))
 
     def loss_fn(filter, belief0, measurements, controls=None, return_final=False):
-        traj = run_filter(filter, est.init(belief0, None), measurements, update_first=update_first,
+        # belief0 is the estimator's start belief (Trainer.fit takes it as it is: no second conversion)
+        traj = run_filter(filter, belief0, measurements, update_first=update_first,
                           record=lambda o: o._replace(belief=None, prior=None, innovation=None,
                                                       innovation_cov=None, extras={}))
         loss = -traj.log_likelihood[burn:].sum(0).mean()
@@ -160,16 +222,49 @@ def _learn(ctx: StudyContext, scenario) -> dict:
 
     trainer = Trainer(est.filter, optimizer, loss_fn=loss_fn, callbacks=[converged] if tol > 0 else [])
     tic = time.perf_counter()
-    history = trainer.fit(prior, z, int(spec.iterations), progress=ctx.progress and "learn")
+    history = trainer.fit(est.init(prior, None), z, int(spec.iterations),
+                          progress=ctx.progress and f"learn {est_name}")
     seconds = time.perf_counter() - tic
     nll = [float(r.loss) for r in history]
     with parametrize.cached():
         learned = {key: getattr(module, name).detach().clone() for key, module, name, _ in targets}
-    rows = [[key, initial.cpu().tolist(), learned[key].cpu().tolist()] for key, _, _, initial in targets]
-    for _, module, name, _ in targets:  # freeze: the estimators run with the learned values
+    rows = [[est_name, key, initial.cpu().tolist(), learned[key].cpu().tolist()] for key, _, _, initial in targets]
+    for _, module, name, _ in targets:  # freeze: the estimator runs with the learned values
         parametrize.remove_parametrizations(module, name, leave_parametrized=True)
         getattr(module, name).requires_grad_(False)
-    return {"rows": rows, "nll": nll, "through": through, "seconds": seconds, "iterations": len(history)}
+    return {"rows": rows, "nll": nll, "through": est_name, "seconds": seconds, "iterations": len(history)}
+
+
+def check_build(cfg, scenario) -> None:
+    """The config's dry construction before anything runs (:func:`experiments.config.dry_build`): every
+    estimator built on ``scenario``, and each learning estimator's ``learn.parameters`` made learnable
+    on its own copy of the models; a failure is one ``ConfigError`` naming the key."""
+    from experiments.config import ConfigError
+
+    if scenario is None:
+        return
+    for name in cfg.estimators:
+        try:
+            instantiate(cfg.estimators[name])(scenario, name=name)
+        except ConfigError:
+            raise
+        except Exception as err:  # noqa: BLE001 - any constructor's error, named by the estimator's key
+            cause = err.__cause__ if type(err).__name__ == "InstantiationException" and err.__cause__ else err
+            text = str(cause).strip().splitlines()
+            raise ConfigError(f"estimators.{name}", cfg.estimators[name].get("_target_"),
+                              f"cannot be built: {text[0] if text else type(cause).__name__}") from None
+    learning = learners(cfg)
+    if learning and scenario.motions is not None:
+        raise ConfigError("learn", "parameters", "learning with irregular time stamps (per-step motion models) is "
+                          "not supported yet; give regular time stamps or none")
+    for name in learning:
+        own = _own_models(scenario)
+        learn_targets(own, cfg.learn, name)
+        est = instantiate(cfg.estimators[name])(own, name=name)
+        if not any(p.requires_grad for p in est.filter.parameters()):
+            key = "learn.estimator" if cfg.learn.get("estimator") is not None else "learn.estimators"
+            raise ConfigError(key, name, "its filter does not use the models of learn.parameters (nothing to learn "
+                              "through it); name the estimators that do in learn.estimators")
 
 
 # -- one unit: an estimator on a range of runs ------------------------------------------------------------
@@ -219,9 +314,26 @@ def _motions(est, scenario):
     return [pick(m) for m in scenario.motions]
 
 
+def truth_components(scenario) -> list[int] | None:
+    """The state components with truth: every one for simulated data; for recorded data those with a
+    finite cell (``truth: [px, null, py, null]`` or an empty column gives none for that component);
+    None without truth."""
+    if scenario.data is None:
+        return list(range(scenario.initial.state_dim))
+    if scenario.data.truth is None:
+        return None
+    known = np.isfinite(scenario.data.truth).any(axis=(0, 1))
+    return [int(i) for i in np.flatnonzero(known)] or None
+
+
 def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
-    """Per-run values of estimator ``name`` (and its smoothed trajectory) on runs ``start..stop-1``."""
-    scenario, _ = _scenario(ctx)
+    """Per-run values of estimator ``name`` (and its smoothed trajectory) on runs ``start..stop-1``.
+
+    Padding (the steps after a recorded series' end, ``present`` False) is invisible: the smoother
+    ends each run at its own last step (``smooth(..., present=)``), and no padded step is scored
+    (RMSE, NEES) or shown (the run-0 examples are NaN there); the filter's own numbers at padded
+    steps are those of missing data (log-likelihood 0, no innovation)."""
+    scenario = _scenario_of(ctx, name)
     truth, modes, z, present = _data(ctx, start, stop)
     est = _estimator(ctx, scenario, name)
     runs = z.shape[1]
@@ -237,34 +349,41 @@ def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
     trajectories = {name: (traj, est_belief, seconds)}
     if est.smooth:
         tic = time.perf_counter()
-        smoothed = smooth(traj, **({"method": est.smooth} if isinstance(est.smooth, str) else {}))
+        smoothed = smooth(traj, present=present,
+                          **({"method": est.smooth} if isinstance(est.smooth, str) else {}))
         trajectories[f"{name} smoothed"] = (smoothed, smoothed.estimate(), seconds + time.perf_counter() - tic)
+    known = truth_components(scenario)
     for label, (tr, estimate, secs) in trajectories.items():
         v: dict[str, Any] = {"runs": runs, "steps": z.shape[0], "seconds": secs, "multiple_model": est.multiple_model,
-                             "state_dim": scenario.initial.state_dim}
+                             "state_dim": len(known) if known else 0}
         if label == name:  # (a smoother does not change the data's likelihood); the first `burn` terms left out
             v["loglik"] = per_run(traj.log_likelihood[int(ctx.cfg.get("burn") or 0):].detach())
-        if truth is not None:
+            v["measured"] = per_run(torch.isfinite(z).any(-1).sum(0))  # each run's steps with a datum
+        if truth is not None and known:
             scored = present.unsqueeze(-1) & torch.isfinite(truth)
             for group, idx in scenario.groups.items():
                 err = (estimate.mean[..., idx] - truth[..., idx]).square()
                 ok = scored[..., idx].all(-1)
                 v[f"sq_{group}"] = per_run(torch.where(ok, err.sum(-1), torch.nan).detach())
-            ok = scored.all(-1)
-            v["nees"] = per_run(torch.where(ok, nees(estimate, torch.nan_to_num(truth)), torch.nan).detach())
+            ok = scored[..., known].all(-1)  # NEES over the components with truth (their marginal)
+            marginal = GaussianBelief(estimate.mean[..., known], estimate.cov[..., known, :][..., known])
+            v["nees"] = per_run(torch.where(ok, nees(marginal, torch.nan_to_num(truth[..., known])),
+                                            torch.nan).detach())
             if est.multiple_model and modes is not None:
                 v["hits"] = per_run(mode_hits(tr.belief.mode_log_probs, modes).to(ctx.dtype).detach())
         if label == name:
             stats = _innovation_stats(traj, z, est.multiple_model)
             if stats is not None:
                 nis, dof, white = stats
-                v["nis"], v["dof"] = per_run(nis.detach()), per_run(dof.to(ctx.dtype))
+                v["nis"], v["dof"] = per_run(torch.where(dof > 0, nis, torch.nan).detach()), per_run(dof.to(ctx.dtype))
                 v["white"] = per_run(white.detach())
+        shown = present[:, 0]  # run 0's curves end at its own last step
         if est.multiple_model and start == 0:
-            v["example_probs"] = per_run(tr.belief.mode_probs[:, 0].detach())
+            probs = tr.belief.mode_probs[:, 0]
+            v["example_probs"] = per_run(torch.where(shown.unsqueeze(-1), probs, torch.nan).detach())
         if start == 0:
-            v["example_mean"] = per_run(estimate.mean[:, 0].detach())
-            v["example_cov"] = per_run(estimate.cov[:, 0].detach())
+            v["example_mean"] = per_run(torch.where(shown.unsqueeze(-1), estimate.mean[:, 0], torch.nan).detach())
+            v["example_cov"] = per_run(torch.where(shown[:, None, None], estimate.cov[:, 0], torch.nan).detach())
         out[label] = v
     return out
 
@@ -275,9 +394,11 @@ def _t(x) -> Tensor:
 
 
 def _per_run_mean(x: Tensor) -> Tensor:
-    """Each run's time average of ``x (T, N)`` over its finite entries: ``(N,)``."""
+    """Each run's time average of ``x (T, N)`` over its finite entries: ``(N,)``; NaN for a run with
+    none (a value that cannot be computed is never 0)."""
     ok = torch.isfinite(x)
-    return torch.where(ok, x, 0.0).sum(0) / ok.sum(0).clamp_min(1)
+    count = ok.sum(0)
+    return torch.where(count > 0, torch.where(ok, x, 0.0).sum(0) / count.clamp_min(1), torch.nan)
 
 
 def _mean_se(values: Tensor) -> tuple[float, float]:
@@ -300,6 +421,7 @@ def reduce(parts: list[dict], groups: list[str], metrics: list[str]) -> tuple[di
     summary: dict[str, Any] = {}
     influence: dict[str, Tensor] = {}
     curves: dict[str, Tensor] = {}
+    runs_rmse: dict[str, Tensor] = {}  # each run's own average RMSE (the per-series table)
     steps = None
     if "rmse" in metrics and f"sq_{groups[0]}" in parts[0]:
         for g in groups:
@@ -308,6 +430,7 @@ def reduce(parts: list[dict], groups: list[str], metrics: list[str]) -> tuple[di
             value, h, per_step = armse_influence(sq)
             summary[f"rmse_{g}"], summary[f"rmse_{g}_se"] = value, float(h.std() / math.sqrt(runs)) if runs > 1 else math.nan
             influence[f"rmse_{g}"] = h
+            runs_rmse[f"rmse_{g}"] = _per_run_mean(sq.sqrt())  # the study's ARMSE of that run alone
             curves[f"rmse_{g}"] = per_step
             curves[f"rmse_{g}_se"] = rmse_se_per_step(torch.nan_to_num(sq))
     if "nees" in metrics and "nees" in parts[0]:
@@ -315,13 +438,19 @@ def reduce(parts: list[dict], groups: list[str], metrics: list[str]) -> tuple[di
         per = _per_run_mean(x)
         summary["nees"], summary["nees_se"] = _mean_se(per)
         influence["nees"] = per
-        n = int(parts[0]["state_dim"])
+        n = int(parts[0]["state_dim"])  # the components with truth
         curve = torch.nanmean(x, 1)
         curves["nees"] = curve
-        if n:
+        if n and math.isfinite(summary["nees"]):
             lo, hi = chi2_interval(runs * n)
             summary["nees_low"], summary["nees_high"] = lo * n, hi * n
-            summary["nees_steps_inside"] = float(((curve >= lo * n) & (curve <= hi * n)).double().mean())
+            # each step's interval for the runs scored there (padding and missing truth: fewer)
+            count = torch.isfinite(x).sum(1)
+            bounds = {c: chi2_interval(c * n) for c in set(count.tolist()) if c > 0}
+            low = torch.tensor([bounds[c][0] * n if c else math.nan for c in count.tolist()], dtype=torch.float64)
+            high = torch.tensor([bounds[c][1] * n if c else math.nan for c in count.tolist()], dtype=torch.float64)
+            scored = count > 0
+            summary["nees_steps_inside"] = float(((curve >= low) & (curve <= high))[scored].double().mean())
     if "nis" in metrics and "nis" in parts[0]:
         x = _t(join_runs([p["nis"] for p in parts]))
         dof = _t(join_runs([p["dof"] for p in parts]))
@@ -340,11 +469,13 @@ def reduce(parts: list[dict], groups: list[str], metrics: list[str]) -> tuple[di
             a, b = white[:-1], white[1:]
             ok = torch.isfinite(a) & torch.isfinite(b)
             num = torch.where(ok, a * b, 0.0).sum(0)
-            den = torch.where(ok, a * a, 0.0).sum(0).clamp_min(1e-300)
-            r = num / den  # (N, m): each run's and component's lag-1 autocorrelation
+            den = torch.where(ok, a * a, 0.0).sum(0)
+            # each run's and component's lag-1 autocorrelation, over its pairs of consecutive innovations
+            r = torch.where(ok.any(0) & (den > 0), num / den.clamp_min(1e-300), torch.nan)  # (N, m)
             pairs = int(ok.sum())
-            summary["whiteness_lag1"] = float(r.mean())
-            summary["whiteness_bound"] = Z95 / math.sqrt(max(pairs, 1))
+            if pairs:
+                summary["whiteness_lag1"] = float(r[torch.isfinite(r)].mean())
+                summary["whiteness_bound"] = Z95 / math.sqrt(pairs)
     if "loglik" in metrics and "loglik" in parts[0]:
         ll = _t(join_runs([p["loglik"] for p in parts]))
         per = ll.sum(0)
@@ -361,7 +492,10 @@ def reduce(parts: list[dict], groups: list[str], metrics: list[str]) -> tuple[di
                                       else torch.full((hits.shape[0],), math.nan, dtype=torch.float64))
     steps = steps or int(parts[0]["steps"])
     summary["seconds_per_step"] = sum(float(p["seconds"]) for p in parts) / steps
-    return summary, {"influence": influence, "curves": curves}
+    per_run_values = {**{k: v for k, v in influence.items() if not k.startswith("rmse_")}, **runs_rmse}
+    if "measured" in parts[0]:
+        per_run_values["measured"] = _t(join_runs([p["measured"] for p in parts], dim=0))
+    return summary, {"influence": influence, "curves": curves, "per_run": per_run_values}
 
 
 def paired(reference: str, estimators: dict[str, dict], metrics: list[str], runs: int) -> list[list]:
@@ -397,33 +531,56 @@ def paired(reference: str, estimators: dict[str, dict], metrics: list[str], runs
 
 def run(ctx: StudyContext) -> None:
     cfg = ctx.cfg
-    scenario, learned = _scenario(ctx)
+    scenario = _built(ctx)
     runs = runs_of(ctx)
     names = list(cfg.estimators)
     if not names:
         raise ValueError("estimators: the study needs at least one estimator")
     for name in names:  # a bad estimator config: an error before any unit runs
         _estimator(ctx, scenario, name)
-    has_truth = scenario.data is None or scenario.data.truth is not None
+    known = truth_components(scenario)
     wanted = list(cfg.get("metrics") or ALL_METRICS)
-    metrics = [m for m in wanted if has_truth or m not in TRUTH_METRICS]
-    dropped = [m for m in wanted if m not in metrics]
+    metrics = [m for m in wanted if known or m not in TRUTH_METRICS]
+    dropped = {m: "no truth in the data" for m in wanted if m not in metrics}
+    if "mode_accuracy" in metrics and scenario.data is not None:  # recorded data carry no true modes
+        metrics.remove("mode_accuracy")
+        dropped["mode_accuracy"] = "recorded data carry no true modes"
     groups = list(scenario.groups)
-    source = (f"recorded data `{cfg.scenario.data.path}` ({runs} series of {scenario.steps} steps)"
+    if known and "rmse" in metrics:
+        for g, idx in scenario.groups.items():
+            missing = [i for i in idx if i not in known]
+            if missing:
+                dropped[f"rmse_{g}"] = f"no truth for state component(s) {missing}"
+        groups = [g for g in groups if f"rmse_{g}" not in dropped]
+        if not groups:
+            metrics.remove("rmse")
+    partial = known is not None and len(known) < scenario.initial.state_dim
+    source = (f"recorded data `{cfg.scenario.data.path}` ({runs} series of up to {scenario.steps} steps)"
               if scenario.data is not None else f"{runs} simulated Monte Carlo runs of {scenario.steps} steps")
     ctx.results.description = (
         f"Scenario `{scenario.name}`: {scenario.num_modes} mode(s) ({', '.join(scenario.mode_labels)}), "
         f"{len(scenario.sensor_dims)} sensor(s); {source} (seed {cfg.seed}, {cfg.dtype}). RMSE is per step over "
         "runs, then averaged over time; every +- is a standard error over the runs."
-        + (f" No truth in the data: {', '.join(dropped)} not computed." if dropped else ""))
-    if learned is not None:
-        table = ctx.results.table("learned", ["parameter", "initial", "learned"],
-                                  note=f"Maximum likelihood through `{learned['through']}`: {learned['iterations']} "
-                                       f"{cfg.learn.optimizer} iterations in {learned['seconds']:.2f} s; final "
-                                       f"negative log-likelihood {learned['nll'][-1]:.6f} (per run).")
-        table.rows.extend(learned["rows"])
-        ctx.logger.sweep("learn/nll", list(range(1, len(learned["nll"]) + 1)), learned["nll"], "iteration")
-        ctx.results.metric("learn", "nll", learned["nll"][-1])
+        + (f" Truth for state component(s) {known} only: NEES is over those ({len(known)} degrees of freedom)."
+           if partial and "nees" in metrics else ""))
+    learning = learners(cfg)
+    if learning:
+        table = ctx.results.table("learned", ["estimator", "parameter", "initial", "learned"],
+                                  note="Maximum likelihood of each learning estimator's own copy of the models "
+                                       f"({cfg.learn.optimizer}); it runs with its fit, the other estimators "
+                                       "with the configured values.")
+        for name in learning:
+            record = _learned(ctx, name)[1]
+            table.rows.extend(record["rows"])
+            ctx.results.notes.append(
+                f"Learned by {name}: {', '.join(r[1] for r in record['rows'])} in {record['iterations']} "
+                f"{cfg.learn.optimizer} iterations ({record['seconds']:.2f} s); final negative log-likelihood "
+                f"{record['nll'][-1]:.6f} (per run).")
+            ctx.logger.sweep(f"learn/nll/{name}", list(range(1, len(record["nll"]) + 1)), record["nll"], "iteration")
+            ctx.results.metric(name, "learn_nll", record["nll"][-1])
+        others = [n for n in names if n not in learning]
+        if others:
+            ctx.results.notes.append(f"Not learning (configured values): {', '.join(others)}.")
     if scenario.motions is not None:
         own = [n for n in names if str(cfg.estimators[n].get("_target_", "")).endswith(".custom")]
         if own:
@@ -443,6 +600,16 @@ def run(ctx: StudyContext) -> None:
             results[label] = {"summary": summary, **extra}
             if "example_mean" in pieces[0]:
                 examples[label] = pieces[0]
+    for label, r in results.items():  # a value the data cannot give is named, never reported
+        for key in [k for k in r["summary"] if k in _MAIN or k.startswith("rmse_") and not k.endswith("_se")]:
+            value = r["summary"][key]
+            if value is None or not math.isfinite(value):
+                dropped[f"{key} ({label})"] = ("no step of any run to compute it from (no measurement or no truth "
+                                               "where the estimate exists)")
+                for k in [k for k in r["summary"] if k == key or k.startswith(f"{key}_")]:
+                    del r["summary"][k]
+                r["influence"].pop(key, None)
+    ctx.results.dropped.update(dropped)
     columns = ["estimator"]
     for key in [k for s in results.values() for k in s["summary"] if k != "seconds_per_step"]:
         if key not in columns:
@@ -473,8 +640,34 @@ def run(ctx: StudyContext) -> None:
         note=f"Each estimator minus `{reference}` on the same runs (common random numbers): the difference, its "
              "standard error and 95 % Student-t interval; separate_half_width is the half-width two independent "
              "intervals would give (the pairing's gain).").rows.extend(rows)
+    if scenario.data is not None:
+        _series_table(ctx, scenario, results)
     _curves_and_figures(ctx, scenario, results, examples, groups, ranges[0])
     ctx.results.save()
+
+
+def _series_table(ctx, scenario, results: dict) -> None:
+    """Recorded data: each series' own numbers (its steps, the steps with a measurement, and each
+    estimator's log-likelihood, RMSEs, NEES and NIS over that series alone)."""
+    keys = []
+    for r in results.values():
+        keys += [k for k in r["per_run"] if k != "measured" and k not in keys and k in r["summary"]]
+    order = ["loglik", *sorted(k for k in keys if k.startswith("rmse_")), "nees", "nis", "mode_accuracy"]
+    keys = [k for k in order if k in keys]
+    table = ctx.results.table(
+        "series", ["estimator", "series", "steps", "measured", *keys],
+        note="Each series alone, as the summary of a file holding only it: steps (its length; shorter series are "
+             "padded, and padding changes none of its numbers), measured (steps with a datum), its log-likelihood, "
+             "average RMSE over its steps, mean NEES and NIS.")
+    steps = scenario.data.present.sum(0)
+    for label, r in results.items():
+        per = r["per_run"]
+        if not any(k in per for k in keys):
+            continue
+        for j, series in enumerate(scenario.data.series):
+            measured = per.get("measured")
+            table.rows.append([label, series, int(steps[j]), None if measured is None else int(measured[j]),
+                               *[float(per[k][j]) if k in per else None for k in keys]])
 
 
 def _curves_and_figures(ctx, scenario, results, examples, groups, first_unit) -> None:
