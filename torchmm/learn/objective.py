@@ -220,7 +220,7 @@ class Objective:
             result = minimize(loss_and_grad, start, jac=True, method=method, tol=tol,
                               options=None if options is None else dict(options))
             assign(result.x)
-        except BaseException:
+        except Exception:
             assign(start)  # an error leaves the parameters where they were
             raise
         finally:
