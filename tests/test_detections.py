@@ -92,6 +92,22 @@ def test_clear_errors():
         simulate_detections(sensor, x, detection_probability=0.5, clutter_rate=-1.0)
 
 
+def test_states_of_another_dtype_than_the_sensor_name_states():
+    """Issue 44: float32 states for a float64 sensor (or the reverse) were a raw dtype error of a matrix
+    product; now a TypeError naming ``states``. Integer states take the sensor's dtype; no targets
+    (N = 0) give the clutter alone."""
+    sensor = PositionMeasurement(4, [0, 2], 1.0, dtype=torch.float64)
+    x = _targets(steps=2, runs=2, N=2)
+    for states, model in ((x.float(), sensor), (x, PositionMeasurement(4, [0, 2], 1.0, dtype=torch.float32))):
+        with pytest.raises(TypeError, match=r"^states: dtype torch.float\d\d differs from the measurement model's"):
+            simulate_detections(model, states, detection_probability=0.9, clutter_rate=1.0, region=REGION)
+    det = simulate_detections(sensor, x.round().long(), detection_probability=1.0)
+    assert det.z.dtype == torch.float64 and det.present.all()
+    det = simulate_detections(sensor, x[..., :0, :], detection_probability=0.9, clutter_rate=2.0, region=REGION,
+                              generator=torch.Generator().manual_seed(0))
+    assert (det.origin == -1).all() and det.z.shape[:2] == (2, 2)
+
+
 def test_the_draws_do_not_depend_on_the_default_dtype():
     """Every draw takes the states' dtype: a float64 simulation is the same under either default."""
     sensor = PositionMeasurement(4, [0, 2], 4.0, dtype=torch.float64)

@@ -12,7 +12,7 @@ import torch
 from scipy.stats import chi2, multivariate_normal
 
 from torchmm import GaussianBelief, KalmanFilter, run_filter
-from torchmm.association import IPDA, PDA
+from torchmm.association import IPDA, JIPDA, PDA
 from torchmm.models import ConstantVelocity, PositionMeasurement
 from torchmm.simulate import simulate_detections
 
@@ -118,6 +118,16 @@ def test_errors_name_the_argument():
     x0 = GaussianBelief(torch.zeros(4, dtype=torch.float64), torch.eye(4, dtype=torch.float64))
     with pytest.raises(ValueError, match="existence"):
         ipda.initial_belief(x0, existence=1.5)
+    # issue 44: a wrong size and a string were raw errors of torch
+    runs = x0.expand(3)
+    for bad, error in ((torch.full((2,), 0.5), ValueError), (torch.full((3, 3), 0.5), ValueError),
+                       ("0.5", TypeError), (True, TypeError), (torch.tensor([0.5, math.nan, 0.5]), ValueError),
+                       (torch.tensor([0.5, -0.1, 0.5]), ValueError)):
+        for assoc in (ipda, JIPDA(KalmanFilter(motion, sensor), detection_probability=0.9, clutter_density=1e-3)):
+            with pytest.raises(error, match=r"^existence\b"):
+                assoc.initial_belief(runs, existence=bad)
+    track = ipda.initial_belief(runs, existence=torch.tensor([0.1, 0.5, 1.0]))  # one per run: accepted
+    torch.testing.assert_close(track.existence, torch.tensor([0.1, 0.5, 1.0], dtype=torch.float64))
     with pytest.raises(TypeError, match="belief: IPDA needs an ExistenceBelief"):
         ipda.step(x0, torch.zeros(3, 2, dtype=torch.float64))
     with pytest.raises(ValueError, match="survival_probability"):

@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from torchmm import GaussianBelief, KalmanFilter, run_filter
-from torchmm.association import JPDA, PDA, jpda_marginals
+from torchmm.association import GNN, JPDA, PDA, jpda_marginals
 from torchmm.models import ConstantVelocity, PositionMeasurement
 from torchmm.simulate import simulate_detections
 
@@ -237,6 +237,26 @@ def test_a_failed_track_fails_its_run_only():
     assert out.extras["failed"].tolist() == [[False, False], [True, True], [False, False]]
     alone = jpda.update(prior[[0, 2]], det.z[0, [0, 2]])
     torch.testing.assert_close(out.belief.mean[[0, 2]], alone.belief.mean, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("method", ["exact", "lbp"])
+def test_a_track_whose_covariance_is_not_psd_fails_its_run_only(method):
+    """Issue 44: a track of covariance ``-4 I`` gated every detection out and kept its covariance, with
+    ``failed`` False. Its innovation covariance is not positive definite (the Kalman update flags it
+    ``singular``): its run fails, every track of it (the association is joint), the others untouched;
+    GNN alike."""
+    motion, sensor, prior, det, _, options = _scene(1, 3, 2, seed=13)
+    for assoc in (JPDA(KalmanFilter(motion, sensor), method=method, **options),
+                  GNN(KalmanFilter(motion, sensor), **options)):
+        cov = prior.cov.expand(*prior.batch_shape, 4, 4).clone()
+        cov[1, 0] = -4 * torch.eye(4, dtype=torch.float64)
+        bad = GaussianBelief(prior.mean, cov)
+        out = assoc.update(bad, det.z[0])
+        assert out.extras["failed"].tolist() == [[False, False], [True, True], [False, False]]
+        assert torch.isnan(out.log_likelihood[1]).all() and torch.isnan(out.belief.cov[1]).all()
+        alone = assoc.update(prior[[0, 2]], det.z[0, [0, 2]])
+        torch.testing.assert_close(out.belief.mean[[0, 2]], alone.belief.mean, rtol=0, atol=0)
+        torch.testing.assert_close(out.log_likelihood[[0, 2]], alone.log_likelihood, rtol=0, atol=0)
 
 
 def _imm(modes: int = 2):

@@ -76,6 +76,34 @@ def test_a_failed_run_is_flagged_and_leaves_the_others():
     torch.testing.assert_close(out.belief.mean[[0, 2]], alone.belief.mean, rtol=0, atol=0)
 
 
+def test_a_track_without_a_positive_definite_innovation_covariance_fails_its_run():
+    """Issue 44: a track whose covariance is not PSD had its S regularised by the gate's factor, so every
+    detection was gated out and the track kept (finite log-likelihood, ``failed`` False). The association
+    now fails the run where the wrapped Kalman update flags its innovation covariance ``singular`` (not
+    numerically positive definite: no gate, no likelihood): ``failed`` True, a NaN log-likelihood and
+    posterior, the other runs as if alone."""
+    kf = _kf()
+    pda = PDA(kf, detection_probability=0.9, clutter_density=1e-3)
+    prior = _prior((5,))
+    eye = torch.eye(4, dtype=torch.float64)
+    cov = prior.cov.clone()
+    cov[1], cov[2], cov[3] = -eye, -4 * eye, -100 * eye  # S = H P H^T + R: PD for -I (this R), not for the others
+    bad = GaussianBelief(prior.mean, cov)
+    z = prior.mean[:, [0, 2]].unsqueeze(-2) + torch.tensor([[0.5, -0.5], [30.0, 30.0]], dtype=torch.float64)
+    singular = kf.update(bad, z[:, 0])
+    want = singular.extras["singular"]
+    assert want.tolist() == [False, False, True, True, False]
+    for scan in (z, z[:, :0]):
+        out = pda.update(bad, scan)
+        assert torch.equal(out.extras["failed"], want)
+        assert torch.isnan(out.log_likelihood[want]).all() and torch.isnan(out.belief.mean[want]).all()
+        assert torch.isnan(out.extras["association"][want]).all()
+        keep = ~want
+        alone = pda.update(bad[keep], scan[keep])
+        torch.testing.assert_close(out.belief.mean[keep], alone.belief.mean, rtol=0, atol=0)
+        torch.testing.assert_close(out.log_likelihood[keep], alone.log_likelihood, rtol=0, atol=0)
+
+
 def test_batched_equals_per_run_and_padding_does_not_matter():
     pda = PDA(_kf(), detection_probability=0.9, clutter_density=1e-3, gate_probability=0.99)
     prior = _prior((6,), seed=2)

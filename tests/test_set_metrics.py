@@ -117,6 +117,36 @@ def test_gospa_and_ospa_equal_enumeration_over_all_assignments(p):
             assert len(set(kept.tolist())) == len(kept) and bool(ep[b][kept].all()) and bool(tp[b][a >= 0].all())
 
 
+@pytest.mark.parametrize("p", [1.0, 2.0])
+def test_a_non_finite_true_point_is_a_target_that_does_not_exist(p):
+    """Issue 44: a truth row with a NaN or infinite coordinate (simulate_detections' states: a target not
+    yet born or dead) was a present point at distance c from everything, so every such row counted as a
+    missed target. It is absent: GOSPA and OSPA equal the enumeration over the sets without those rows
+    (and without the rows truth_present masks), and the row is never assigned."""
+    gen = torch.Generator().manual_seed(7)
+    for N, K in ((3, 3), (4, 2), (2, 4)):
+        est, truth, ep, tp = _random_sets(gen, 10, N, K)
+        truth = truth.clone()
+        gone = torch.rand(10, N, generator=gen) < 0.4
+        coordinate = torch.randint(0, 2, (10, N), generator=gen)
+        bad = torch.where(torch.rand(10, N, generator=gen) < 0.5, math.nan, math.inf)
+        truth[gone, coordinate[gone]] = bad[gone]  # one coordinate NaN or inf: the target does not exist
+        for masks in ({}, {"estimate_present": ep, "truth_present": tp}):
+            out = gospa(est, truth, c=5.0, p=p, **masks)
+            dist = ospa(est, truth, c=5.0, p=p, **masks)
+            for b in range(10):
+                keep = ~gone[b] & (tp[b] if masks else torch.ones(N, dtype=torch.bool))
+                X = truth[b][keep].numpy()
+                Y = est[b][ep[b]].numpy() if masks else est[b].numpy()
+                got = [float(out[k][b]) for k in ("distance", "localisation", "missed", "false")]
+                np.testing.assert_allclose(got, _brute_gospa(X, Y, 5.0, p), rtol=1e-12, atol=1e-12)
+                np.testing.assert_allclose(float(dist[b]), _brute_ospa(X, Y, 5.0, p), rtol=1e-12, atol=1e-12)
+                assert (out["assigned"][b][gone[b]] == -1).all()
+    # a diverged *estimate* is still scored: a false point and a missed target
+    out = gospa(torch.tensor([[math.nan, 0.0]]), torch.tensor([[0.0, 0.0]]), c=4.0)
+    assert float(out["missed"]) == 8.0 and float(out["false"]) == 8.0
+
+
 def test_masks_broadcasting_and_diverged_estimates():
     truth = torch.tensor([[0.0, 0.0], [10.0, 0.0], [float("nan"), float("nan")]])  # the last row: padding
     est = torch.tensor([[[0.0, 1.0], [float("nan"), 3.0]], [[10.0, 0.0], [0.0, 0.0]]])  # (2 runs, 2, 2)

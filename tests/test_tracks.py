@@ -123,6 +123,24 @@ def test_errors_name_the_argument():
         ManagedTracks(manager.association, capacity=0, initiate=position_initiator(4, [0, 2], 4.0, 25.0))
 
 
+def test_a_birth_existence_of_zero_and_more_slots_than_the_exact_jipda_takes_are_refused():
+    """Issue 44: ``birth_existence=0`` filled every free slot with a labelled track of existence 0 at every
+    scan (a slot of existence 0 is a free slot: a contradiction, and the labels ran on); it is refused,
+    naming ``birth_existence``. A table larger than the exact JIPDA's ``max_targets`` failed at the first
+    scan naming ``belief``; it is refused when the manager is built, naming ``capacity``."""
+    manager, _, _ = _scene(runs=1, steps=2)
+    initiate = position_initiator(4, [0, 2], 4.0, 25.0)
+    with pytest.raises(ValueError, match="^birth_existence: must be positive"):
+        ManagedTracks(manager.association, capacity=4, initiate=initiate, birth_existence=0.0)
+    exact = JIPDA(manager.association.filter, detection_probability=0.9, clutter_density=1e-4, max_targets=5)
+    with pytest.raises(ValueError, match="^capacity: 6 slots exceed max_targets=5"):
+        ManagedTracks(exact, capacity=6, initiate=initiate)
+    ManagedTracks(exact, capacity=5, initiate=initiate)
+    lbp = JIPDA(manager.association.filter, detection_probability=0.9, clutter_density=1e-4, method="lbp",
+                max_targets=5)
+    ManagedTracks(lbp, capacity=40, initiate=initiate)  # loopy belief propagation: no limit
+
+
 def _still_target(**rule):
     """One target at rest at the origin, no clutter to speak of; ``rule``: the manager's M-of-N and
     misses settings."""

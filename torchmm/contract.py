@@ -55,6 +55,7 @@ __all__ = [
     "Data",
     "Device",
     "EntryPoint",
+    "Equivalent",
     "FilePath",
     "Finite",
     "Flag",
@@ -65,7 +66,9 @@ __all__ = [
     "Labels",
     "Mask",
     "Of",
+    "Probability",
     "Real",
+    "Sets",
     "Shape",
     "Stochastic",
     "Tensors",
@@ -94,6 +97,18 @@ class Invalid:
     raises: tuple = (TypeError, ValueError)
 
 
+@dataclass(frozen=True)
+class Equivalent:
+    """A valid edge input that must give the result of another input: ``value`` (e.g. a set of size
+    0) and ``reference`` (e.g. a set whose rows are all missing); ``reference=None``: ``value`` must
+    only be accepted (no error). The contract test calls the function with both and compares the
+    results where their shapes agree."""
+
+    cls: str
+    value: Any
+    reference: Any = None
+
+
 class Kind:
     """The kind of a parameter: ``check`` runs at entry, ``invalid`` lists what the tests try."""
 
@@ -105,6 +120,10 @@ class Kind:
 
     def invalid(self, valid: Any) -> list[Invalid]:
         """Invalid inputs, built from a valid one (``valid`` may be a default)."""
+        return []
+
+    def equivalents(self, valid: Any) -> list[Equivalent]:
+        """Valid edge inputs and what they must equal (:class:`Equivalent`), built from a valid one."""
         return []
 
     def _none(self, value, name) -> bool:
@@ -555,6 +574,73 @@ class Values(Kind):
         out = [Invalid("type", "values")]
         if isinstance(valid, Tensor) and valid.is_floating_point():
             out.append(Invalid("dtype", valid.to(torch.complex128)))
+        return out
+
+
+class Sets(Values):
+    """A padded set ``(*B, D, m)`` of points or detections (``axis=-2``), or ``(*B, D)`` of numbers
+    per element (``axis=-1``: log-weights per detection), whose size ``D`` may be 0. Checked as
+    :class:`Values` (type and dtype; no value is read). An empty set is valid: where ``missing`` is
+    given (NaN: an absent detection or a target that does not exist; ``-inf``: a zero weight) it must
+    give exactly the result of the set of the same batch whose every element is ``missing``; with
+    ``missing=None`` it must only be accepted. The tests try both (:meth:`equivalents`); ``mask``
+    names the parameter that holds the set's presence flags ``(*B, D)``, emptied with it."""
+
+    def __init__(self, *, axis: int = -2, missing: float | None = math.nan, mask: str | None = None,
+                 optional: bool = False):
+        super().__init__(optional=optional)
+        self.axis, self.missing, self.mask = axis, missing, mask
+
+    def describe(self):
+        return "a padded set (a tensor)"
+
+    def equivalents(self, valid):
+        if not isinstance(valid, Tensor) or valid.dim() < -self.axis or not valid.is_floating_point():
+            return []
+        empty = valid.narrow(self.axis, 0, 0)
+        reference = None if self.missing is None else torch.full_like(valid, self.missing)
+        return [Equivalent("empty", empty, reference)]
+
+
+class Probability(Kind):
+    """A probability, or a tensor-like of probabilities (an existence per run or track), each in
+    ``[0, 1]``. The check reads values (an entry point's check): not a string or a bool, real, no NaN,
+    within ``[0, 1]``. Its size against the batch needs the belief: the function checks it (the tests
+    try a tensor with an axis of 3 appended to the valid one, which cannot broadcast to its batch)."""
+
+    def __init__(self, *, optional: bool = False):
+        self.optional = optional
+
+    def describe(self):
+        return "a probability in [0, 1]"
+
+    def check(self, value, name):
+        if self._none(value, name):
+            return value
+        if isinstance(value, (str, bytes, bool)) or type(value).__name__ == "bool_":
+            raise TypeError(f"{name}: expected a probability in [0, 1] (a number or a tensor), got {value!r}")
+        tensor = value
+        if not isinstance(value, Tensor):
+            try:
+                tensor = torch.as_tensor(value, dtype=torch.get_default_dtype())
+            except (TypeError, ValueError, RuntimeError) as err:
+                raise TypeError(f"{name}: cannot convert to a tensor of probabilities ({err})") from None
+        if tensor.is_complex() or tensor.dtype == torch.bool:
+            raise TypeError(f"{name}: expected real probabilities, got dtype {tensor.dtype}")
+        values = tensor.detach()
+        if values.numel() and bool((values.isnan() | (values < 0) | (values > 1)).any()):
+            bad = values[values.isnan() | (values < 0) | (values > 1)].reshape(-1)[0]
+            raise ValueError(f"{name}: must be a probability in [0, 1], got {float(bad)}")
+        return value
+
+    def invalid(self, valid):
+        out = [Invalid("type", "0.5"), Invalid("type", True), Invalid("non-finite", math.nan),
+               Invalid("range", -0.1), Invalid("range", 1.5)]
+        if isinstance(valid, (numbers.Real, Tensor)) and not isinstance(valid, bool):
+            v = torch.as_tensor(valid, dtype=torch.float64)
+            out.append(Invalid("shape", v.unsqueeze(-1).expand(*v.shape, 3).clone()))
+            out.append(Invalid("non-finite", v.clone().reshape(-1).index_fill_(0, torch.tensor([0]), math.nan)
+                               .reshape(v.shape)))
         return out
 
 

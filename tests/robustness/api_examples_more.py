@@ -151,6 +151,18 @@ example("torchmm.association.ipda.JIPDA")(
                                       models.PositionMeasurement(2, [0], 1.0, dtype=torch.float64)),
                  detection_probability=0.9, clutter_density=0.01, gate_probability=0.99, survival_probability=0.98,
                  birth_probability=0.01, method="lbp", max_targets=8, iterations=50, tolerance=1e-12))
+example("torchmm.association.ipda.IPDA.initial_belief")(  # an existence per run
+    lambda: call(association.IPDA.initial_belief,
+                 association.IPDA(filters.KalmanFilter(models.ConstantVelocity(1, dtype=torch.float64),
+                                                       models.PositionMeasurement(2, [0], 1.0, dtype=torch.float64)),
+                                  detection_probability=0.9, clutter_density=0.01),
+                 GaussianBelief(torch.zeros(2, 2), torch.eye(2)), existence=torch.tensor([0.5, 0.9])))
+example("torchmm.association.ipda.JIPDA.initial_belief")(  # an existence per track: (runs, tracks)
+    lambda: call(association.JIPDA.initial_belief,
+                 association.JIPDA(filters.KalmanFilter(models.ConstantVelocity(1, dtype=torch.float64),
+                                                        models.PositionMeasurement(2, [0], 1.0, dtype=torch.float64)),
+                                   detection_probability=0.9, clutter_density=0.01),
+                 GaussianBelief(torch.zeros(2, 3, 2), torch.eye(2)), existence=torch.full((2, 3), 0.4)))
 example("torchmm.association.tracks.ManagedTracks")(  # over an IMM of two accelerations (IMM-JIPDA)
     lambda: call(association.ManagedTracks,
                  association.JIPDA(IMM(filters.KalmanFilter(

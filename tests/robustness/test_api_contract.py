@@ -10,10 +10,16 @@
    (wrong types, non-finite values, non-PSD matrices, non-stochastic rows, zero and empty sizes,
    wrong shapes and dtypes, a class for an instance) replaces the example's argument, and the call
    must raise ``TypeError`` or ``ValueError`` whose message starts with the parameter's name.
+4. **Valid edges, by kind.** For every declared parameter, every equivalent its kind lists
+   (:meth:`~torchmm.contract.Kind.equivalents`: a padded set of size 0, :class:`~torchmm.contract.Sets`)
+   replaces the example's argument and must be accepted; where it names a reference (the set of the
+   same batch whose every element is missing), the two calls give the same results where their
+   shapes agree (the empty set's result has no column for the missing elements).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import inspect
 import re
@@ -159,3 +165,66 @@ def _show(value) -> str:
         return f"tensor{tuple(value.shape)} {value.dtype}"
     text = repr(value)
     return text if len(text) < 60 else text[:57] + "..."
+
+
+def _equivalent_parameters():
+    out = []
+    for key in sorted(EXAMPLES):
+        obj = PUBLIC.get(key)
+        spec = contract.spec_of(obj) if obj is not None else contract.registered().get(key)
+        if spec is None:
+            continue
+        for name, kind in spec.kinds.items():
+            if type(kind).equivalents is not contract.Kind.equivalents:
+                out.append(pytest.param(key, name, id=f"{key.removeprefix('torchmm.')}-{name}"))
+    return out
+
+
+def _leaves(result, path="result"):
+    """The tensors of a result (tuples, lists, dicts, dataclasses, NamedTuples), by path."""
+    if isinstance(result, torch.Tensor):
+        return [(path, result)]
+    if isinstance(result, dict):
+        return [leaf for k in result for leaf in _leaves(result[k], f"{path}[{k!r}]")]
+    if isinstance(result, (tuple, list)):
+        return [leaf for i, v in enumerate(result) for leaf in _leaves(v, f"{path}[{i}]")]
+    if dataclasses.is_dataclass(result):
+        return [leaf for f in dataclasses.fields(result) for leaf in _leaves(getattr(result, f.name), f"{path}.{f.name}")]
+    return []
+
+
+@pytest.mark.parametrize("key, name", _equivalent_parameters())
+def test_valid_edges_are_accepted_and_give_the_reference_result(key, name):
+    call = EXAMPLES[key]()
+    spec = _spec(call)
+    signature, bound = _bind(call)
+    valid = bound.arguments.get(name, signature.parameters[name].default)
+    kind = spec.kinds[name]
+    trials = kind.equivalents(valid)
+    assert trials, f"{key}({name}=...): the example's argument gives its kind no edge to try"
+    mask = getattr(kind, "mask", None)  # the set's presence flags, emptied with it
+    for edge in trials:
+        results = []
+        for value in (edge.value, edge.reference):
+            if value is None:
+                continue
+            arguments = {**bound.arguments, name: value}
+            if mask is not None and value is edge.value and arguments.get(mask) is not None:
+                arguments[mask] = arguments[mask].narrow(-1, 0, 0)
+            trial = signature.bind_partial()
+            trial.arguments.update(arguments)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                results.append(call.fn(*trial.args, **trial.kwargs))
+        if len(results) < 2:
+            continue
+        got, want = _leaves(results[0]), _leaves(results[1])
+        assert [p for p, _ in got] == [p for p, _ in want]
+        for (path, a), (_, b) in zip(got, want):
+            if a.dim() != b.dim():
+                continue
+            common = [min(x, y) for x, y in zip(a.shape, b.shape)]
+            for axis, size in enumerate(common):
+                a, b = a.narrow(axis, 0, size), b.narrow(axis, 0, size)
+            torch.testing.assert_close(a, b, rtol=0, atol=0, equal_nan=True,
+                                       msg=lambda m, path=path: f"{key}({name}={edge.cls}): {path}: {m}")

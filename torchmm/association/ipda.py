@@ -21,10 +21,10 @@ import math
 import torch
 from torch import Tensor
 
-from torchmm.association.jpda import JPDA, exact_marginals, lbp_marginals
+from torchmm.association.jpda import JPDA, exact_marginals, flat_runs, lbp_marginals
 from torchmm.association.pda import PDA
 from torchmm.beliefs import ExistenceBelief, GaussianBelief, ModeBelief, ModeExistenceBelief, with_existence
-from torchmm.contract import Choice, Int, Of, Real, entry_point
+from torchmm.contract import BeliefArg, Choice, Int, Of, Probability, Real, entry_point
 from torchmm.filters.base import Filter, StepOutput
 
 __all__ = ["IPDA", "JIPDA"]
@@ -41,10 +41,17 @@ def _initial(assoc, belief, existence) -> ExistenceBelief | ModeExistenceBelief:
         state = belief.validate("belief")
     else:
         state = assoc.filter.initial_belief(belief)
+    # (its type and values: the entry point's Probability; its size against the belief's batch here)
     e = torch.as_tensor(existence, dtype=state.dtype, device=state.device)
-    if bool(((e < 0) | (e > 1) | e.isnan()).any()):
-        raise ValueError(f"existence: must be a probability in [0, 1], got {existence}")
-    return with_existence(state, e.log().expand(state.batch_shape))
+    batch = state.batch_shape
+    try:
+        fits = torch.broadcast_shapes(e.shape, batch) == batch
+    except RuntimeError:
+        fits = False
+    if not fits:
+        raise ValueError(f"existence: shape {tuple(e.shape)} does not broadcast to the belief's batch {tuple(batch)} "
+                         "(a number, or one probability per run or track)")
+    return with_existence(state, e.log().expand(batch))
 
 
 def _check(assoc, belief) -> None:
@@ -99,6 +106,7 @@ class IPDA(PDA):
         self.survival_probability = float(survival_probability)
         self.birth_probability = float(birth_probability)
 
+    @entry_point(belief=BeliefArg(check=False), existence=Probability())
     def initial_belief(self, belief: GaussianBelief | ModeBelief, existence: float | Tensor = 0.5
                        ) -> ExistenceBelief | ModeExistenceBelief:
         """The wrapped filter's initial belief from ``belief`` (or ``belief`` itself, an IMM's
@@ -164,6 +172,7 @@ class JIPDA(JPDA):
         self.survival_probability = float(survival_probability)
         self.birth_probability = float(birth_probability)
 
+    @entry_point(belief=BeliefArg(check=False), existence=Probability())
     def initial_belief(self, belief: GaussianBelief | ModeBelief, existence: float | Tensor = 0.5
                        ) -> ExistenceBelief | ModeExistenceBelief:
         """The wrapped filter's initial belief (batch ``(*B, N)``) and ``P(exists) = existence``."""
@@ -175,27 +184,28 @@ class JIPDA(JPDA):
     def update(self, belief, z: Tensor) -> StepOutput:
         _check(self, belief)
         state = belief.state
-        hyp, validated, log_w = self._scan(state, z)
+        hyp, validated, log_w, S, singular = self._scan(state, z)
         *runs, N, D = log_w.shape
         log_e = belief.log_existence.expand(*runs, N)
         pdpg = self.detection_probability * self.gate_probability
         log_w = log_w + log_e.unsqueeze(-1)  # chi_i P_D N / lambda
         log_m = torch.log1p(-pdpg * log_e.exp())  # 1 - P_D P_G chi_i
-        flat_w, flat_m = log_w.reshape(-1, N, D), log_m.reshape(-1, N)
+        flat_w, flat_m = flat_runs(log_w, 2), flat_runs(log_m, 1)
         if self.method == "exact":
             log_beta, log_z = exact_marginals(flat_w, flat_m)
         else:
             log_beta = lbp_marginals(flat_w - flat_m.unsqueeze(-1), 0.0, self.iterations, self.tolerance)
             log_z = torch.logsumexp(torch.cat([flat_m.unsqueeze(-1), flat_w], -1), -1).sum(-1)
-        beta = log_beta.reshape(*runs, N, 1 + D).exp()
-        log_z = log_z.reshape(runs)
+        log_z = torch.where(singular.any(-1), torch.nan, log_z.reshape(runs))  # a track without a gate: failed
+        failed = torch.isnan(log_z)[..., None, None]
+        beta = torch.where(failed, torch.nan, log_beta.reshape(*runs, N, 1 + D).exp())
         # P(exists | missed) = (1 - P_D P_G) chi / m: the state weights given existence
         missed_exists = beta[..., 0] * ((math.log1p(-pdpg) if pdpg < 1 else -math.inf) + log_e - log_m).exp()
         existence = missed_exists + beta[..., 1:].sum(-1)
         weights = torch.cat([missed_exists.unsqueeze(-1), beta[..., 1:]], -1) / existence.unsqueeze(-1)
         none = (existence <= 0).unsqueeze(-1)  # no chance of existing: the prediction kept
         weights = torch.where(none, (torch.arange(D + 1, device=beta.device) == 0).to(beta.dtype), weights)
-        out = self._finish(state, hyp, validated, weights, log_z)
+        out = self._finish(state, hyp, validated, weights, log_z, S, singular)
         post = out.belief
         extras = dict(out.extras)
         extras["association"] = beta

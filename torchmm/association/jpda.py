@@ -35,6 +35,7 @@ from torch import Tensor
 from torchmm.assignment import linear_assignment
 from torchmm.association.pda import (
     DetectionSets,
+    check_detections,
     check_gaussian,
     detection_hypotheses,
     missed_hypothesis,
@@ -43,11 +44,20 @@ from torchmm.association.pda import (
     set_association,
 )
 from torchmm.beliefs import GaussianBelief
-from torchmm.contract import Choice, Int, Of, Real, Values, entry_point, unchecked
+from torchmm.contract import Choice, Int, Of, Real, Sets, entry_point, unchecked
 from torchmm.filters.base import Filter, StepOutput
 from torchmm.runtime import host_reads_ok
+from torchmm.validation import check_filter_dtype
 
 __all__ = ["GNN", "JPDA", "jpda_marginals"]
+
+
+def flat_runs(t: Tensor, event: int) -> Tensor:
+    """``t (*R, ...)`` with its leading axes (all but the last ``event``) as one, ``(prod R, ...)``: a
+    reshape with the sizes spelled out, valid when some size is 0 (``reshape(-1, ...)`` is ambiguous
+    for a tensor of no elements: an empty scan, no runs)."""
+    return t.reshape(math.prod(t.shape[:t.dim() - event]), *t.shape[t.dim() - event:])
+
 
 def exact_marginals(log_w: Tensor, log_missed: float | Tensor) -> tuple[Tensor, Tensor]:
     """Exact JPDA marginals. ``log_w (R, N, D)`` -> ``log beta (R, N, 1 + D)`` (missed first), ``log Z (R,)``.
@@ -129,19 +139,20 @@ def lbp_marginals(log_w: Tensor, log_missed: float, iterations: int, tolerance: 
         nu = new
     # normalised in the log domain: a weight of 0 (an unvalidated detection) has log-marginal -inf with
     # gradient 0, where log(num / sum) would give it a NaN gradient
-    log_num = torch.cat([torch.full_like(w[..., :1], math.log(miss) if miss else -math.inf),
+    log_num = torch.cat([w.new_full((*w.shape[:-1], 1), math.log(miss) if miss else -math.inf),  # (D may be 0)
                          (log_w - log_missed if log_missed > -math.inf else log_w) + nu.log()], -1)
     return torch.log_softmax(log_num, -1)
 
 
-@entry_point(log_weights=Values(), missed=Real(minimum=0.0), method=Choice("exact", "lbp"),
+@entry_point(log_weights=Sets(axis=-1, missing=-math.inf), missed=Real(minimum=0.0), method=Choice("exact", "lbp"),
              iterations=Int(1), tolerance=Real(minimum=0.0))
 def jpda_marginals(log_weights: Tensor, missed: float, *, method: str = "exact", iterations: int = 100,
                    tolerance: float = 1e-13) -> tuple[Tensor, Tensor | None]:
     r"""JPDA association probabilities from single-target log-weights.
 
     Args:
-        log_weights: ``(*B, N, D)`` ``log w_ij`` (``-inf``: detection ``j`` not validated by track ``i``).
+        log_weights: ``(*B, N, D)`` ``log w_ij`` (``-inf``: detection ``j`` not validated by track ``i``;
+            ``D = 0``: no detection, the same marginals ``beta_i0`` and ``Z`` as ``D`` columns of ``-inf``).
         missed: ``m``, the weight of a missed detection (``1 - P_D P_G``; 0: every track is detected).
         method: ``"exact"`` (every joint event) or ``"lbp"`` (loopy belief propagation).
         iterations, tolerance: the belief propagation's most iterations and relative tolerance (on
@@ -160,7 +171,7 @@ def jpda_marginals(log_weights: Tensor, missed: float, *, method: str = "exact",
     if log_weights.dim() < 2:
         raise ValueError(f"log_weights: expected (*B, N, D), got shape {tuple(log_weights.shape)}")
     *batch, N, D = log_weights.shape
-    flat = log_weights.reshape(-1, N, D)
+    flat = flat_runs(log_weights, 2)
     log_missed = math.log(missed) if missed > 0 else -math.inf
     if method == "lbp":
         return lbp_marginals(flat, log_missed, iterations, tolerance).reshape(*batch, N, 1 + D), None
@@ -170,8 +181,8 @@ def jpda_marginals(log_weights: Tensor, missed: float, *, method: str = "exact",
 
 def check_scan(assoc, batch: torch.Size, z: Tensor, dtype: torch.dtype) -> Tensor:
     """A joint association's checks: the belief's ``batch`` ends with the run's tracks (at most
-    ``max_targets`` for the exact method) and ``z (*B, D, m)`` broadcasts to the runs; returns ``z``
-    expanded to ``(*runs, D, m)`` in ``dtype``."""
+    ``max_targets`` for the exact method) and ``z (*B, D, m)`` (real; ``D`` may be 0) broadcasts to the
+    runs; returns ``z`` expanded to ``(*runs, D, m)`` in ``dtype``."""
     name = type(assoc).__name__
     if len(batch) < 1:
         raise ValueError(f"belief: {name} needs a batch whose last axis holds the tracks, (*B, N); got none")
@@ -179,15 +190,7 @@ def check_scan(assoc, batch: torch.Size, z: Tensor, dtype: torch.dtype) -> Tenso
     if assoc.method == "exact" and N > assoc.max_targets:
         raise ValueError(f"belief: {N} tracks a run exceed max_targets={assoc.max_targets} of the exact JPDA "
                          f"(cost 2^N); use method='lbp' or raise max_targets")
-    m = assoc.detections_dim
-    if not isinstance(z, Tensor) or z.dim() < 2 or z.shape[-1] != m:
-        raise ValueError(f"z: expected a scan of detections (*B, D, {m}), got "
-                         f"{tuple(z.shape) if isinstance(z, Tensor) else type(z).__name__}")
-    try:
-        return z.to(dtype).expand(*runs, z.shape[-2], m)
-    except RuntimeError:
-        raise ValueError(f"z: the scan's batch {tuple(z.shape[:-2])} does not broadcast to the runs "
-                         f"{tuple(runs)} of the belief's batch {tuple(batch)} (tracks last)") from None
+    return check_detections(z, assoc.detections_dim, torch.Size(runs), dtype, tracks=batch)
 
 
 class JPDA(DetectionSets):
@@ -239,32 +242,35 @@ class JPDA(DetectionSets):
         self.iterations, self.tolerance = int(iterations), float(tolerance)
 
     def update(self, belief: GaussianBelief, z: Tensor) -> StepOutput:
-        hyp, validated, log_w = self._scan(belief, z)
+        hyp, validated, log_w, S, singular = self._scan(belief, z)
         weights, log_z = self._weights(log_w, validated, missed_log_weight(self))
-        return self._finish(belief, hyp, validated, weights, log_z)
+        return self._finish(belief, hyp, validated, weights, log_z, S, singular)
 
-    def _scan(self, belief: GaussianBelief, z: Tensor) -> tuple[StepOutput, Tensor, Tensor]:
+    def _scan(self, belief: GaussianBelief, z: Tensor) -> tuple[StepOutput, Tensor, Tensor, Tensor, Tensor]:
         """Checks; every track's update for every detection (batch ``(D, *B, N)``), ``validated`` and the
-        log-weights ``log(P_D N / lambda)`` ``(*B, N, D)``."""
+        log-weights ``log(P_D N / lambda)`` ``(*B, N, D)``, the tracks' innovation covariances and
+        ``singular (*B, N)`` (:func:`~torchmm.association.pda.detection_hypotheses`)."""
         check_gaussian(belief, type(self).__name__)
         z = check_scan(self, belief.batch_shape, z, belief.dtype)
+        check_filter_dtype(self.filter, belief, "belief")
         *runs, N = belief.batch_shape
         D, m = z.shape[-2:]
-        hyp, validated, log_detected = detection_hypotheses(self, belief, z.unsqueeze(-3).expand(*runs, N, D, m))
-        return hyp, validated.movedim(0, -1), log_detected.movedim(0, -1)
+        hyp, validated, log_detected, S, singular = detection_hypotheses(
+            self, belief, z.unsqueeze(-3).expand(*runs, N, D, m))
+        return hyp, validated.movedim(0, -1), log_detected.movedim(0, -1), S, singular
 
-    def _finish(self, belief, hyp: StepOutput, validated: Tensor, weights: Tensor, log_z: Tensor) -> StepOutput:
+    def _finish(self, belief, hyp: StepOutput, validated: Tensor, weights: Tensor, log_z: Tensor, S: Tensor,
+                singular: Tensor) -> StepOutput:
         """The collapse with ``weights (*B, N, 1 + D)``; an impossible scan keeps the priors, a failed
-        run is NaN."""
+        run (a NaN ``log_z``, or a track of it ``singular``: no gate) is NaN."""
         *runs, N, D = validated.shape
-        m = self.detections_dim
+        log_z = torch.where(singular.any(-1), torch.nan, log_z)  # one track without a gate fails the joint event
         # an impossible scan (no joint event has weight): likelihood 0, every track keeps its prior
         impossible = torch.isneginf(log_z)[..., None, None]
         weights = torch.where(impossible, (torch.arange(D + 1, device=weights.device) == 0).to(weights.dtype), weights)
         failed = torch.isnan(log_z)[..., None].expand(*runs, N)
         weights = torch.where(failed.unsqueeze(-1), torch.nan, weights)
         posterior, combined = mix_hypotheses(missed_hypothesis(self, belief, hyp), hyp, weights)
-        S = hyp.innovation_cov.expand(*hyp.innovation.shape, m)[0] if D else hyp.innovation_cov
         return StepOutput(posterior, belief, log_z[..., None].expand(*runs, N), combined, S,
                           {"association": weights, "validated": validated, "failed": failed})
 
@@ -274,20 +280,20 @@ class JPDA(DetectionSets):
         if self.method == "exact":
             log_beta, log_z = self._exact(log_w, validated, log_missed)
         else:
-            log_beta = lbp_marginals(log_w.reshape(-1, N, D), log_missed, self.iterations,
+            log_beta = lbp_marginals(flat_runs(log_w, 2), log_missed, self.iterations,
                                       self.tolerance).reshape(*runs, N, 1 + D)
-            per_track = torch.logsumexp(torch.cat([torch.full_like(log_w[..., :1], log_missed), log_w], -1), -1)
+            per_track = torch.logsumexp(torch.cat([log_w.new_full((*log_w.shape[:-1], 1), log_missed), log_w], -1), -1)
             log_z = per_track.sum(-1)
         return log_beta.exp(), log_z
 
     def _exact(self, log_w: Tensor, validated: Tensor, log_missed: float) -> tuple[Tensor, Tensor]:
         """The exact marginals; on the CPU over the detections some track validated only (a host read)."""
         *runs, N, D = log_w.shape
-        flat = log_w.reshape(-1, N, D)
-        if not host_reads_ok(log_w) or D == 0:
+        flat = flat_runs(log_w, 2)
+        if not host_reads_ok(log_w) or D == 0 or flat.shape[0] == 0:
             log_beta, log_z = exact_marginals(flat, log_missed)
             return log_beta.reshape(*runs, N, 1 + D), log_z.reshape(runs)
-        used = validated.reshape(-1, N, D).any(-2)  # (R, D)
+        used = flat_runs(validated, 2).any(-2)  # (R, D)
         order = torch.argsort((~used).to(torch.int8), dim=-1, stable=True)  # the used detections first
         keep = int(used.sum(-1).max())
         index = order[:, :keep].unsqueeze(-2).expand(-1, N, keep)

@@ -23,12 +23,13 @@ import math
 import torch
 from torch import Tensor
 
-from torchmm.association.jpda import check_scan, exact_marginals, lbp_marginals
-from torchmm.association.pda import DetectionSets
+from torchmm.association.jpda import check_scan, exact_marginals, flat_runs, lbp_marginals
+from torchmm.association.pda import DetectionSets, check_detections
 from torchmm.beliefs import ParticleBelief, normalize_log_probs
 from torchmm.contract import Choice, Int, Of, Real, entry_point
 from torchmm.filters.base import StepOutput
 from torchmm.filters.particle import ParticleFilter, particle_log_likelihood
+from torchmm.validation import check_filter_dtype
 
 __all__ = ["ParticleJPDA", "ParticlePDA"]
 
@@ -81,11 +82,8 @@ class ParticlePDA(DetectionSets):
     def update(self, belief: ParticleBelief, z: Tensor, *, generator: torch.Generator | None = None) -> StepOutput:
         if not isinstance(belief, ParticleBelief):
             raise TypeError(f"belief: ParticlePDA needs a ParticleBelief, got {type(belief).__name__}")
-        m = self.detections_dim
-        if not isinstance(z, Tensor) or z.dim() < 2 or z.shape[-1] != m:
-            raise ValueError(f"z: expected a padded set of detections (*B, D, {m}), got "
-                             f"{tuple(z.shape) if isinstance(z, Tensor) else type(z).__name__}")
-        z = z.to(belief.particles.dtype)
+        check_filter_dtype(self.filter, belief, "belief")
+        z = check_detections(z, self.detections_dim, belief.batch_shape, belief.particles.dtype)
         present = torch.isfinite(z).all(-1).movedim(-1, 0)  # (D, *B)
         zs = torch.where(torch.isfinite(z), z, 0.0).movedim(-2, 0)  # (D, *B, m): absent rows masked below
         loglik, _ = particle_log_likelihood(self.filter.measurement, zs, belief.particles,
@@ -93,7 +91,7 @@ class ParticlePDA(DetectionSets):
         neg_inf = torch.full((), -math.inf, dtype=loglik.dtype, device=loglik.device)
         loglik = torch.where(present.reshape(*present.shape, *[1] * (loglik.dim() - present.dim())), loglik, neg_inf)
         pd = self.detection_probability
-        miss = torch.full_like(loglik[:1], math.log1p(-pd) if pd < 1 else -math.inf)
+        miss = loglik.new_full((1, *loglik.shape[1:]), math.log1p(-pd) if pd < 1 else -math.inf)  # (D may be 0)
         scan = torch.logsumexp(torch.cat([miss, loglik + (math.log(pd) - math.log(self.clutter_density))]), 0)
         every = torch.ones(scan.shape[:-1], dtype=torch.bool, device=scan.device)
         posterior, log_evidence, extras = self.filter.reweight(belief, scan, every, generator=generator)
@@ -141,6 +139,7 @@ class ParticleJPDA(ParticlePDA):
             raise TypeError(f"belief: ParticleJPDA needs a ParticleBelief, got {type(belief).__name__}")
         batch = belief.batch_shape
         z = check_scan(self, batch, z, belief.particles.dtype)
+        check_filter_dtype(self.filter, belief, "belief")
         *runs, N = batch
         D, m = z.shape[-2:]
         present = torch.isfinite(z).all(-1)  # (*R, D)
@@ -154,12 +153,12 @@ class ParticleJPDA(ParticlePDA):
         pd = self.detection_probability
         log_w = (log_l + (math.log(pd) - math.log(self.clutter_density))).movedim(0, -1)  # (*R, N, D)
         log_missed = math.log1p(-pd) if pd < 1 else -math.inf
-        flat = log_w.reshape(-1, N, D)
+        flat = flat_runs(log_w, 2)
         if self.method == "exact":
             log_beta, log_z = exact_marginals(flat, log_missed)
         else:
             log_beta = lbp_marginals(flat, log_missed, self.iterations, self.tolerance)
-            log_z = torch.logsumexp(torch.cat([torch.full_like(flat[..., :1], log_missed), flat], -1), -1).sum(-1)
+            log_z = torch.logsumexp(torch.cat([flat.new_full((*flat.shape[:-1], 1), log_missed), flat], -1), -1).sum(-1)
         log_beta, log_z = log_beta.reshape(*runs, N, 1 + D), log_z.reshape(runs)
         # each particle: beta_i0 + sum_j beta_ij p(z_j | x) / l_ij
         ratio = loglik - torch.where(torch.isneginf(log_l), 0.0, log_l).unsqueeze(-1)  # (D, *R, N, Np)

@@ -21,7 +21,12 @@ The log-likelihood of the scan is that of the target hypothesis against "every d
 ``log(1 - P_D P_G + sum_k P_D N(nu_k; 0, S) / lambda)``: the factors common to every hypothesis about
 the target (the clutter's Poisson law) are left out, so it compares models (modes, parameters) of the
 target, not scans. A scan without any detection gives ``log(1 - P_D P_G)`` and leaves the belief as it
-was.
+was; a scan of size 0, ``(*B, 0, m)``, is one (exactly the result of a scan whose rows are all missing).
+
+A track whose innovation covariance ``S`` (of some mode, over an IMM) is not numerically positive
+definite - a prediction whose covariance is not positive semi-definite, e.g. ``-I`` - has no gate and
+no likelihood ``N(nu; 0, S)``: its run *fails* (``extras["failed"]``, a NaN log-likelihood, weights
+and posterior), as a NaN prediction does, the other runs untouched (docs/robustness.md).
 """
 
 from __future__ import annotations
@@ -35,6 +40,7 @@ from torchmm.beliefs import GaussianBelief, ModeBelief, ModelSetBelief
 from torchmm.contract import Of, Real, entry_point
 from torchmm.filters.base import Filter, StepOutput
 from torchmm.linalg import cholesky, solve_lower, sum_last
+from torchmm.validation import check_filter_dtype
 
 __all__ = ["PDA", "chi2_gate"]
 
@@ -116,10 +122,12 @@ class PDA(DetectionSets):
 
     Shapes:
         belief: :class:`~torchmm.GaussianBelief` (or the IMM's ``ModeBelief``) with batch ``(*B,)``;
-        ``z``: ``(*B, D, m)`` (a row with a non-finite entry is no detection; the set's batch broadcasts to ``*B``). ``extras``:
+        ``z``: ``(*B, D, m)`` (a row with a non-finite entry is no detection; the set's batch broadcasts to
+        ``*B``; ``D = 0``: nothing detected, as an all-NaN scan). ``extras``:
         ``"association"`` ``(*B, D + 1)`` the weights ``beta_0, beta_1 .. beta_D`` (missed detection
         first), ``"validated"`` ``(*B, D)`` bool, ``"failed"`` ``(*B,)`` bool: the update was not finite
-        (a NaN prediction): its log-likelihood, weights and posterior are NaN, the other runs untouched.
+        (a NaN prediction) or the track's innovation covariance not positive definite (a covariance
+        that is not PSD): its log-likelihood, weights and posterior are NaN, the other runs untouched.
 
     Examples:
         >>> from torchmm.filters import KalmanFilter
@@ -142,23 +150,16 @@ class PDA(DetectionSets):
 
     def update(self, belief, z: Tensor) -> StepOutput:
         check_gaussian(belief, "PDA")
-        m = self.detections_dim
-        if not isinstance(z, Tensor) or z.dim() < 2 or z.shape[-1] != m:
-            raise ValueError(f"z: expected a padded set of detections (*B, D, {m}), got "
-                             f"{tuple(z.shape) if isinstance(z, Tensor) else type(z).__name__}")
+        check_filter_dtype(self.filter, belief, "belief")
         batch = belief.batch_shape
+        z = check_detections(z, self.detections_dim, batch, belief.dtype)
         D = z.shape[-2]
-        try:
-            z = z.to(belief.dtype).expand(*batch, D, m)
-        except RuntimeError:
-            raise ValueError(f"z: the detections' batch {tuple(z.shape[:-2])} does not broadcast to the belief's "
-                             f"{tuple(batch)}") from None
-        hyp, validated, log_detected = detection_hypotheses(self, belief, z)
-        S = hyp.innovation_cov.expand(*hyp.innovation.shape, m)
+        hyp, validated, log_detected, S, singular = detection_hypotheses(self, belief, z)
         log_missed = missed_log_weight(self)
         log_weights = torch.cat([torch.full((1, *batch), log_missed, dtype=belief.dtype, device=belief.device),
                                  log_detected], dim=0)  # (1 + D, *B): the missed detection first
-        log_likelihood = torch.logsumexp(log_weights, dim=0)
+        # a track without a positive definite S has no gate and no likelihood: its run fails (below)
+        log_likelihood = torch.where(singular, torch.nan, torch.logsumexp(log_weights, dim=0))
         weights = (log_weights - log_likelihood).exp().nan_to_num(0.0).movedim(0, -1)  # (*B, 1 + D)
         # an impossible scan (P_D P_G = 1 and no validated detection): likelihood 0, the prior kept
         impossible = torch.isneginf(log_likelihood).unsqueeze(-1)
@@ -167,8 +168,31 @@ class PDA(DetectionSets):
         failed = torch.isnan(log_likelihood)
         weights = torch.where(failed.unsqueeze(-1), torch.nan, weights)
         posterior, combined = mix_hypotheses(missed_hypothesis(self, belief, hyp), hyp, weights)
-        return StepOutput(posterior, belief, log_likelihood, combined, S[0],
+        return StepOutput(posterior, belief, log_likelihood, combined, S,
                           {"association": weights, "validated": validated.movedim(0, -1), "failed": failed})
+
+
+def check_detections(z, m: int, batch: torch.Size, dtype: torch.dtype, *, tracks: torch.Size | None = None
+                     ) -> Tensor:
+    """A scan of detections ``(*B', D, m)`` (``D`` may be 0) whose batch broadcasts to the belief's
+    ``batch`` (a joint association's runs: its ``tracks`` batch without the tracks): real numbers,
+    cast to ``dtype`` and expanded to ``(*batch, D, m)``. Shapes and dtypes only (no value is read).
+    ``ValueError``/``TypeError`` naming ``z``."""
+    what = "a scan of detections" if tracks is not None else "a padded set of detections"
+    if not isinstance(z, Tensor):
+        raise TypeError(f"z: expected {what} (*B, D, {m}), got {type(z).__name__}")
+    if z.dim() < 2 or z.shape[-1] != m:
+        raise ValueError(f"z: expected {what} (*B, D, {m}), got {tuple(z.shape)}")
+    if z.is_complex() or z.dtype == torch.bool:
+        raise TypeError(f"z: expected real detections, got dtype {z.dtype}")
+    try:
+        return z.to(dtype).expand(*batch, z.shape[-2], m)
+    except RuntimeError:
+        if tracks is not None:
+            raise ValueError(f"z: the scan's batch {tuple(z.shape[:-2])} does not broadcast to the runs "
+                             f"{tuple(batch)} of the belief's batch {tuple(tracks)} (tracks last)") from None
+        raise ValueError(f"z: the detections' batch {tuple(z.shape[:-2])} does not broadcast to the belief's "
+                         f"{tuple(batch)}") from None
 
 
 def set_association(assoc, filter: Filter, detection_probability: float, clutter_density: float,
@@ -201,15 +225,26 @@ def check_gaussian(belief, who: str) -> None:
 def detection_hypotheses(assoc, belief: GaussianBelief, z: Tensor):
     """Every detection's update by ``assoc.filter`` at once, its gate and its association log-weight.
 
+    An empty scan (``D = 0``) asks the filter for the update of one absent row, which is the prior
+    itself, for the track's innovation covariance (what an all-missing scan of any size gives: the
+    same ``S`` and the same failure flag), and returns no hypothesis.
+
     Shapes:
         belief: batch ``(*B,)``; z: ``(*B, D, m)`` (non-finite rows absent) -> the update's
         :class:`StepOutput` with batch ``(D, *B)`` (detections leftmost), ``validated`` ``(D, *B)``
-        bool and the log-weights ``log(P_D N(nu; 0, S) / lambda)`` ``(D, *B)`` (``-inf`` where not
-        validated).
+        bool, the log-weights ``log(P_D N(nu; 0, S) / lambda)`` ``(D, *B)`` (``-inf`` where not
+        validated), the track's innovation covariance ``(*B, *E, m, m)`` (``E`` the mode axes of a
+        multiple-model filter, if any; the first row's where the filter gives one per row) and
+        ``singular`` ``(*B,)`` bool: an innovation covariance (of some mode) is not numerically
+        positive definite (:func:`~torchmm.linalg.cholesky`'s flag), so the track has no gate and no
+        likelihood (a covariance that is not PSD): the association fails its run.
     """
     batch = belief.batch_shape
+    D, m = z.shape[-2:]
     present = torch.isfinite(z).all(-1)  # (*B, D)
     zs = torch.where(present.unsqueeze(-1), z, torch.nan).movedim(-2, 0)  # (D, *B, m): detections leftmost
+    if D == 0:  # a shape, not a value: one absent row, the track's S (dropped below)
+        zs = torch.full((1, *zs.shape[1:]), math.nan, dtype=zs.dtype, device=zs.device)
     hyp = assoc.filter.update_each(belief, zs)  # every detection's update at once (a Kalman gain once)
     if isinstance(hyp.belief, ModelSetBelief):  # a type test, no host read
         raise TypeError(f"filter: {type(assoc).__name__} over a variable-structure IMM is not supported (its policy "
@@ -217,14 +252,23 @@ def detection_hypotheses(assoc, belief: GaussianBelief, z: Tensor):
                         "them); use an IMM over the total model set")
     nu = hyp.innovation  # (D, *B, *E, m): E the mode axes of a multiple-model filter (an IMM's M), if any
     # S broadcasts against nu: a Kalman-type filter's one S a track (update_each), factorised once
-    white = solve_lower(cholesky(hyp.innovation_cov), nu.nan_to_num(0.0).unsqueeze(-1)).squeeze(-1)
-    inside = sum_last(white.square()) <= assoc.gate
-    inside = inside.reshape(*inside.shape[:1 + len(batch)], -1).any(-1)  # in some mode's gate
+    L, singular = cholesky(hyp.innovation_cov, with_flag=True)
+    white = solve_lower(L, nu.nan_to_num(0.0).unsqueeze(-1)).squeeze(-1)
+    inside = sum_last(white.square()) <= assoc.gate  # (D, *B, *E)
+    singular = singular.expand(inside.shape)
+    modes = inside.dim() - 1 - len(batch)
+    if modes:  # in some mode's gate; a singular S in some mode
+        inside, singular = inside.flatten(-modes).any(-1), singular.flatten(-modes).any(-1)
+    singular = singular.any(0)  # (*B,)
+    S = hyp.innovation_cov.expand(*nu.shape, m)[0]  # (*B, *E, m, m): the track's (the first row's)
+    if D == 0:
+        hyp = StepOutput(hyp.belief[:0], hyp.prior, hyp.log_likelihood[:0], nu[:0], hyp.innovation_cov, hyp.extras)
+        inside = inside[:0]
     validated = present.movedim(-1, 0) & inside  # (D, *B)
     neg_inf = torch.full((), -math.inf, dtype=belief.dtype, device=belief.device)
     log_detected = torch.where(validated, hyp.log_likelihood + math.log(assoc.detection_probability)
                                - math.log(assoc.clutter_density), neg_inf)
-    return hyp, validated, log_detected
+    return hyp, validated, log_detected, S, singular
 
 
 def missed_log_weight(assoc) -> float:

@@ -188,10 +188,12 @@ class ManagedTracks(Filter):
 
     Args:
         association: the :class:`~torchmm.association.JIPDA` that updates the tracks.
-        capacity: ``K``, the track slots per run (the exact JIPDA takes up to its ``max_targets``).
+        capacity: ``K``, the track slots per run (the exact JIPDA takes up to its ``max_targets``: more
+            is refused here).
         initiate: ``z (*B, D, m) -> GaussianBelief (*B, D, n)``, a new track's state from a detection
             (:func:`position_initiator` for sensors that measure positions).
-        birth_existence: a new track's existence (default 0.1).
+        birth_existence: a new track's existence, in (0, 1] (default 0.1; 0 is refused: a slot of
+            existence 0 is a free slot, so a track born so would be no track).
         unexplained: a detection starts a track when the tracks explain it with probability below
             ``1 - unexplained`` (default 0.5).
         delete: a track is deleted when its existence falls below this (default 0.01; 0: never by
@@ -210,7 +212,7 @@ class ManagedTracks(Filter):
         the slot at this scan).
     """
 
-    @entry_point(association=Of(JIPDA), capacity=Int(1), initiate=Of(object), birth_existence=Real(0.0, 1.0),
+    @entry_point(association=Of(JIPDA), capacity=Int(1), initiate=Of(object), birth_existence=Real(0.0, 1.0, positive=True),
                  unexplained=Real(0.0, 1.0), delete=Real(0.0, 1.0), confirm=Real(0.0, 1.0),
                  m_of_n=Of((tuple, list), what="two integers (M, N)", optional=True), max_misses=Int(1, optional=True),
                  mode_probs=Finite(optional=True))
@@ -227,6 +229,10 @@ class ManagedTracks(Filter):
             m_of_n = (int(m_of_n[0]), int(m_of_n[1]))
         if confirm <= 0:
             raise ValueError(f"confirm: expected an existence in (0, 1], got {confirm}")
+        if association.method == "exact" and capacity > association.max_targets:
+            raise ValueError(f"capacity: {capacity} slots exceed max_targets={association.max_targets} of the exact "
+                             "JIPDA (every slot is a track of its joint events, cost 2^K); use method='lbp' or raise "
+                             "max_targets")
         self.association = association
         self.capacity = int(capacity)
         self.initiate = initiate
@@ -333,7 +339,7 @@ class ManagedTracks(Filter):
         new_mean = pick @ new.mean
         new_cov = torch.einsum("...kd,...dij->...kij", pick, new.cov.expand(*runs, D, *new.cov.shape[-2:]))
         state = where(born, self._started(GaussianBelief(new_mean, new_cov)), post.state)
-        birth = torch.full((), math.log(self.birth_existence) if self.birth_existence > 0 else -math.inf,
+        birth = torch.full((), math.log(self.birth_existence),
                            dtype=post.dtype, device=post.device)
         log_e = torch.where(born, birth, log_e)
         label = torch.where(born, belief.next_label + free_rank - 1, label)

@@ -25,17 +25,26 @@ Euclidean distance of the points' coordinates; pass the components to compare (e
 
 Sets are padded tensors with a presence mask: ``truth (*B, N, d)`` with ``truth_present (*B, N)``,
 ``estimates (*B, K, d)`` with ``estimate_present (*B, K)`` (default: every row present). Absent rows
-are ignored whatever they hold (NaN padding is fine). A *present* point with a non-finite coordinate
-(a diverged estimate) is at distance ``c`` from every other point: scored, never refused.
+are ignored whatever they hold (NaN padding is fine). The two sets' non-finite rows differ, each as
+the library's simulators and estimators write them:
+
+* a *truth* row with a non-finite coordinate is a target that does not exist then (the convention of
+  :func:`~torchmm.simulate.simulate_detections`' states: not yet born, or dead): it is absent, as if
+  ``truth_present`` were False there;
+* an *estimate* row marked present with a non-finite coordinate is a diverged estimate: at distance
+  ``c`` from every point, so scored as a false point (and the target it should have covered as
+  missed), never hidden.
 """
 
 from __future__ import annotations
+
+import math
 
 import torch
 from torch import Tensor
 
 from torchmm.assignment import linear_assignment
-from torchmm.contract import Mask, Real, Values, entry_point, unchecked
+from torchmm.contract import Mask, Real, Sets, entry_point, unchecked
 from torchmm.validation import broadcast_shape
 
 __all__ = ["gospa", "ospa"]
@@ -72,22 +81,26 @@ def _prepare(estimates: Tensor, truth: Tensor, estimate_present, truth_present, 
                              f"{tuple(batch)}") from None
         masks.append(mask)
     est_present = masks[0].expand(*batch, K)
-    tru_present = masks[1].expand(*batch, N)
+    # a true point with a non-finite coordinate: a target that does not exist then (absent)
+    tru_present = masks[1].expand(*batch, N) & torch.isfinite(truth).all(-1).expand(*batch, N)
     diff = truth.expand(*batch, N, truth.shape[-1]).unsqueeze(-2) - estimates.expand(*batch, K, truth.shape[-1]).unsqueeze(-3)
     distance = diff.square().sum(-1).sqrt()  # (*B, N, K)
     distance = torch.where(torch.isfinite(distance), distance.clamp(max=c), torch.full_like(distance, c))
     return distance, est_present, tru_present
 
 
-@entry_point(estimates=Values(), truth=Values(), c=Real(positive=True), p=Real(minimum=1.0),
+@entry_point(estimates=Sets(missing=None, mask="estimate_present"),
+             truth=Sets(missing=math.nan, mask="truth_present"), c=Real(positive=True), p=Real(minimum=1.0),
              estimate_present=Mask(optional=True), truth_present=Mask(optional=True))
 def gospa(estimates: Tensor, truth: Tensor, *, c: float, p: float = 2.0, estimate_present: Tensor | None = None,
           truth_present: Tensor | None = None) -> dict[str, Tensor]:
     r"""GOSPA (``alpha = 2``) between estimated and true point sets, for every set pair of a batch.
 
     Args:
-        estimates: ``(*B, K, d)`` estimated points (e.g. track positions), padded.
-        truth: ``(*B, N, d)`` true points, padded (its batch broadcasts with the estimates').
+        estimates: ``(*B, K, d)`` estimated points (e.g. track positions), padded (a present row with a
+            non-finite coordinate: a diverged estimate, at distance ``c`` from everything).
+        truth: ``(*B, N, d)`` true points, padded (its batch broadcasts with the estimates'); a row with
+            a non-finite coordinate is a target that does not exist (absent, as ``truth_present`` False).
         c: the cut-off distance (> 0): a pair at least ``c`` apart counts as a missed and a false point.
         p: the order (>= 1); default 2.
         estimate_present, truth_present: ``(*B, K)`` / ``(*B, N)`` bool, which rows are points (default
@@ -130,7 +143,8 @@ def gospa(estimates: Tensor, truth: Tensor, *, c: float, p: float = 2.0, estimat
             "missed": missed, "false": false, "assigned": torch.where(matched, assigned, -1)}
 
 
-@entry_point(estimates=Values(), truth=Values(), c=Real(positive=True), p=Real(minimum=1.0),
+@entry_point(estimates=Sets(missing=None, mask="estimate_present"),
+             truth=Sets(missing=math.nan, mask="truth_present"), c=Real(positive=True), p=Real(minimum=1.0),
              estimate_present=Mask(optional=True), truth_present=Mask(optional=True))
 def ospa(estimates: Tensor, truth: Tensor, *, c: float, p: float = 2.0, estimate_present: Tensor | None = None,
          truth_present: Tensor | None = None) -> Tensor:

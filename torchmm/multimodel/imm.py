@@ -240,8 +240,15 @@ class MultipleModelFilter(Filter):
         batch = mode_batch(belief)
         m = self.bank.meas_dim if sensor is None or isinstance(sensor, (list, tuple)) else sensor.meas_dim
         like = belief.mode_log_probs
-        if m is None:
-            return z if isinstance(z, Tensor) else torch.as_tensor(z, dtype=like.dtype, device=like.device)
+        if m is None:  # a set of detections (an association's scan): the mode filters check it
+            if isinstance(z, Tensor):
+                return z
+            if z is None or isinstance(z, (str, bytes)):
+                raise TypeError(f"{name}: expected a tensor, got {type(z).__name__}")
+            try:
+                return torch.as_tensor(z, dtype=like.dtype, device=like.device)
+            except (TypeError, ValueError, RuntimeError) as err:
+                raise TypeError(f"{name}: cannot convert to a tensor ({err})") from None
         return check_measurement(z, m, batch, like, name)
 
     def _matrix(self, like: Tensor) -> Tensor:

@@ -17,7 +17,7 @@ import torch
 from torch import Tensor
 
 from torchmm.beliefs import psd_sqrt
-from torchmm.contract import Finite, Gen, Int, Of, Real, Values, entry_point
+from torchmm.contract import Finite, Gen, Int, Of, Real, Sets, entry_point
 from torchmm.models.base import MeasurementModel
 
 __all__ = ["Detections", "simulate_detections"]
@@ -38,7 +38,7 @@ class Detections(NamedTuple):
     origin: Tensor
 
 
-@entry_point(measurement=Of(MeasurementModel), states=Values(), detection_probability=Real(0.0, 1.0),
+@entry_point(measurement=Of(MeasurementModel), states=Sets(missing=None), detection_probability=Real(0.0, 1.0),
              clutter_rate=Real(minimum=0.0), region=Finite(optional=True), max_clutter=Int(0, optional=True),
              generator=Gen())
 def simulate_detections(measurement: MeasurementModel, states: Tensor, *, detection_probability: float,
@@ -48,8 +48,9 @@ def simulate_detections(measurement: MeasurementModel, states: Tensor, *, detect
 
     Args:
         measurement: the sensor model (``h`` and ``R``), shared by the targets.
-        states: ``(T, *B, N, n)`` the targets' states; a row with a non-finite entry is a target that
-            does not exist at that step (not yet born, or dead): never detected.
+        states: ``(T, *B, N, n)`` the targets' states, in the sensor model's floating dtype (integer
+            states take it); a row with a non-finite entry is a target that does not exist at that
+            step (not yet born, or dead): never detected. ``N`` may be 0 (clutter only).
         detection_probability: ``P_D`` in [0, 1], the same for every target.
         clutter_rate: the mean number of false detections a scan (>= 0).
         region: ``(m, 2)`` the box ``[low, high]`` per measurement component where clutter falls
@@ -76,8 +77,10 @@ def simulate_detections(measurement: MeasurementModel, states: Tensor, *, detect
     n, m = measurement.state_dim, measurement.meas_dim
     if states.dim() < 3 or states.shape[-1] != n:
         raise ValueError(f"states: expected (T, *B, N, {n}) (targets' states for the sensor), got {tuple(states.shape)}")
+    model = next((t.dtype for t in (*measurement.parameters(), *measurement.buffers()) if t.is_floating_point()),
+                 None)  # the sensor model's dtype (None: a model without tensors)
     if not states.is_floating_point():
-        states = states.to(torch.get_default_dtype())
+        states = states.to(model or torch.get_default_dtype())
     if clutter_rate > 0 and region is None:
         raise ValueError("region: needed for clutter (the box [low, high] per measurement component, (m, 2))")
     dtype, device = states.dtype, states.device
@@ -86,6 +89,9 @@ def simulate_detections(measurement: MeasurementModel, states: Tensor, *, detect
         if region.shape != (m, 2) or not bool((region[:, 1] > region[:, 0]).all()):
             raise ValueError(f"region: expected ({m}, 2) rows [low, high] with low < high, got "
                              f"{tuple(region.shape)}")
+    if model is not None and states.dtype != model:
+        raise TypeError(f"states: dtype {states.dtype} differs from the measurement model's {model}; convert one "
+                        f"of them (states.to({model}) or measurement.to({states.dtype}))")
     lead, N = states.shape[:-2], states.shape[-2]
     # the targets' detections
     exists = torch.isfinite(states).all(-1)  # (T, *B, N)
