@@ -246,11 +246,13 @@ def dry_build(data: dict, *, scenario: bool = True) -> None:
                 raise
             raise ConfigError("scenario", node.get("name", node["_target_"]),
                               f"cannot be built: {_first_line(err)}") from None
-    study = data.get("study")
-    module = _study_module(str(study)) if study else None
-    check = getattr(module, "check_build", None)
-    if check is not None:
-        check(OmegaConf.create(data), scenario)
+    study = str(data.get("study"))
+    entry = schemas_mod.BUILD_CHECKS.get(study)
+    if entry is not None or study not in schemas_mod.STUDIES:  # (a study of one's own: its module's, if any)
+        module, _, name = (entry or f"{study.rpartition('.')[0]}.check_build").rpartition(".")
+        check = getattr(importlib.import_module(module), name, None)
+        if check is not None:
+            check(OmegaConf.create(data), scenario)
 
 
 def _first_line(err: BaseException) -> str:

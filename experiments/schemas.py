@@ -237,6 +237,10 @@ class SystemScenario:
     dt_key: str = "dt"
 
 
+#: the studies whose config is also built dry before anything runs (experiments.config.dry_build), beyond
+#: the scenario every study's precheck builds: study -> its check_build(cfg, scenario)
+BUILD_CHECKS = {"experiments.studies.compare.run": "experiments.studies.compare.check_build"}
+
 SCENARIOS = {KINEMATIC: KinematicScenario, PAPER003: Paper003Scenario, SYSTEM: SystemScenario}
 
 
@@ -922,6 +926,9 @@ class Tracking:
     @staticmethod
     def check(data: dict) -> None:
         t = data["tracking"]
+        if t["maneuver_start"] > t["maneuver_stop"]:
+            raise ConfigError("tracking.maneuver_start", t["maneuver_start"], f"is after maneuver_stop "
+                              f"({t['maneuver_stop']}): the manoeuvre spans the scans [maneuver_start, maneuver_stop)")
         if len(t["P0"]) != 4:
             raise ConfigError("tracking.P0", t["P0"], "expected 4 variances, [x, vx, y, vy]")
         if t["targets"] > 12 and any(name in ("IMM-JPDAF", "JPDAF") for name in t["estimators"]):

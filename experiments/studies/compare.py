@@ -41,7 +41,6 @@ from torch import Tensor
 from experiments.executors import Unit
 from experiments.harness import StudyContext, join_runs, per_run
 from experiments.scenarios import Concatenated, default_dtype
-from experiments.studies import plots
 from experiments.uncertainty import Z95, armse_influence, chi2_interval, rmse_se_per_step
 from torchmm import GaussianBelief, run_filter, smooth
 from torchmm.metrics import mode_hits, nees
@@ -61,6 +60,18 @@ _MAIN = ("nees", "nis", "loglik", "mode_accuracy", "whiteness_lag1")
 def _built(ctx: StudyContext):
     """The scenario as configured (before learning), once per process."""
     return ctx.memo(("compare", "built"), lambda: ctx.scenarios(ctx.cfg.scenario)[0])
+
+
+def learn_spec(cfg):
+    """The ``learn`` block with the schema's defaults for the keys it does not set (``optimizer``,
+    ``lr``, ``iterations``, ...: experiments/schemas.py, ``Learn``); None without one."""
+    from omegaconf import OmegaConf
+
+    from experiments.schemas import Learn
+
+    if not cfg.get("learn"):
+        return None
+    return OmegaConf.merge(OmegaConf.structured(Learn), cfg.learn)
 
 
 def learners(cfg) -> list[str]:
@@ -189,7 +200,7 @@ def _learn(ctx: StudyContext, scenario, est_name: str) -> dict:
     from torchmm import run_filter
     from torchmm.learn import Trainer
 
-    spec = ctx.cfg.learn
+    spec = learn_spec(ctx.cfg)
     targets = learn_targets(scenario, spec, est_name)
     est = _estimator(ctx, scenario, est_name)
     runs = scenario.data.runs if scenario.data is not None else int(ctx.cfg.mc_runs)
@@ -259,7 +270,7 @@ def check_build(cfg, scenario) -> None:
                           "not supported yet; give regular time stamps or none")
     for name in learning:
         own = _own_models(scenario)
-        learn_targets(own, cfg.learn, name)
+        learn_targets(own, learn_spec(cfg), name)
         est = instantiate(cfg.estimators[name])(own, name=name)
         if not any(p.requires_grad for p in est.filter.parameters()):
             key = "learn.estimator" if cfg.learn.get("estimator") is not None else "learn.estimators"
@@ -567,14 +578,14 @@ def run(ctx: StudyContext) -> None:
     if learning:
         table = ctx.results.table("learned", ["estimator", "parameter", "initial", "learned"],
                                   note="Maximum likelihood of each learning estimator's own copy of the models "
-                                       f"({cfg.learn.optimizer}); it runs with its fit, the other estimators "
+                                       f"({learn_spec(cfg).optimizer}); it runs with its fit, the other estimators "
                                        "with the configured values.")
         for name in learning:
             record = _learned(ctx, name)[1]
             table.rows.extend(record["rows"])
             ctx.results.notes.append(
                 f"Learned by {name}: {', '.join(r[1] for r in record['rows'])} in {record['iterations']} "
-                f"{cfg.learn.optimizer} iterations ({record['seconds']:.2f} s); final negative log-likelihood "
+                f"{learn_spec(cfg).optimizer} iterations ({record['seconds']:.2f} s); final negative log-likelihood "
                 f"{record['nll'][-1]:.6f} (per run).")
             ctx.logger.sweep(f"learn/nll/{name}", list(range(1, len(record["nll"]) + 1)), record["nll"], "iteration")
             ctx.results.metric(name, "learn_nll", record["nll"][-1])
@@ -671,6 +682,8 @@ def _series_table(ctx, scenario, results: dict) -> None:
 
 
 def _curves_and_figures(ctx, scenario, results, examples, groups, first_unit) -> None:
+    from experiments.studies import plots  # (matplotlib: not at import, so that the config's precheck is light)
+
     curves = {f"RMSE {g}": {} for g in groups}
     bands = {f"RMSE {g}": {} for g in groups}
     for label, r in results.items():

@@ -20,7 +20,7 @@ def test_results_files_schema_and_published_table(tmp_path):
     results.timing["IMM"] = 0.001
     results.save()
     data = json.loads((tmp_path / "results.json").read_text())
-    assert set(data) == {"experiment", "config", "metrics", "tables", "timing", "provenance"}
+    assert set(data) == {"experiment", "config", "metrics", "tables", "timing", "provenance", "dropped"}
     assert data["tables"]["table1"] == {"columns": ["ratio", "pos_rmse"], "rows": [[0.1, 5.9]]}
     assert data["metrics"]["IMM"]["nees"] is None  # NaN is not valid JSON
     md = (tmp_path / "results.md").read_text()

@@ -16,7 +16,7 @@ from tests.regression.compare import mismatches
 from tests.regression.record import COMMON
 
 EXPERIMENTS = sorted(p.stem for p in (Path(CONFIG_DIR) / "experiment").glob("*.yaml"))
-SCHEMA = {"experiment", "config", "metrics", "tables", "timing", "provenance"}
+SCHEMA = {"experiment", "config", "metrics", "tables", "timing", "provenance", "dropped"}
 #: per-study overrides that keep the fast suite fast (the structure is unchanged)
 #: every study's tiny sizes: the conf/debug group (the structure is unchanged)
 FAST = {name: [f"debug={name}"] for name in EXPERIMENTS}

@@ -1,0 +1,101 @@
+"""Config errors that only a constructor can judge are caught before any folder (issue 44): the run's
+scenario, estimators and learn entries are built dry in the precheck (experiments.config.dry_build),
+so each is one line naming the key, exit status 2 and no run folder (before: Hydra's "Error executing
+job", a traceback, exit 1 and a folder holding only run.log)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from experiments.config import precheck
+from experiments.run import CONFIG_DIR
+
+
+@pytest.fixture(scope="module")
+def track(tmp_path_factory) -> Path:
+    """A 2-D track of two series (x, y measured; px, vx, py, vy truth) with a time column."""
+    rng = np.random.default_rng(0)
+    rows = ["series,t,x,y,px,vx,py,vy"]
+    for name, steps in (("a", 12), ("b", 9)):
+        for k in range(steps):
+            rows.append(f"{name},{k + 1},{k + rng.normal():.6f},{rng.normal():.6f},{k},1,0,0")
+    path = tmp_path_factory.mktemp("data") / "track.csv"
+    path.write_text("\n".join(rows) + "\n")
+    return path
+
+
+def _data(track: Path, **extra) -> str:
+    keys = {"path": str(track), "measurements": "[x,y]", "truth": "[px,vx,py,vy]", "series": "series", **extra}
+    return "scenario.data={" + ",".join(f"{k}:{v}" for k, v in keys.items()) + "}"
+
+
+CASES = [
+    # (overrides, the start of the one line)
+    (["scenario.sensors.0.R=-1"], "scenario.sensors[0]="),
+    (["scenario.sensors.0.R=[[1,2],[3,4]]"], "scenario.sensors[0]="),
+    (["scenario.sensors.0.R=[1,2,3]"], "scenario.sensors[0]="),
+    (["scenario.modes.0.q=-1"], "scenario.modes[0]="),
+    (["scenario.initial_cov=[[1,0,0,0],[0,-1,0,0],[0,0,1,0],[0,0,0,1]]"], "scenario.initial_cov="),
+    (["scenario.groups={position:[0,7]}"], "scenario.groups.position="),
+    (["MEASUREMENTS=[x]"], "scenario.data.measurements="),
+    (["TRUTH=[px,py]"], "scenario.data.truth="),
+    (["TIME=t", "scenario.modes=[" + ",".join(["{_target_:torchmm.LinearMotion,F:[[1,1,0,0],[0,1,0,0],[0,0,1,1],"
+                                                "[0,0,0,1]],Q:[[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}"] * 3) + "]"],
+     "scenario.modes[0]="),  # a time column: the modes are rebuilt with its dt, which LinearMotion has not
+    (["learn={parameters:[{model:'modes[9]',name:Q}]}"], "learn.parameters[0].model=modes[9]: there are 3 modes"),
+    (["learn={parameters:[{model:'modes[0]',name:Z}]}"], "learn.parameters[0].name=Z"),
+    (["learn={parameters:[{model:'modes[0]',name:Q,kind:bogus}]}"], "learn.parameters[0].kind=bogus"),
+    (["learn={parameters:[{model:'foo',name:Q}]}"], "learn.parameters[0].model=foo"),
+    (["learn={parameters:[{model:'sensors[3]',name:R}]}"], "learn.parameters[0].model=sensors[3]"),
+    (["learn={parameters:[{model:'sensors[0]',name:R}],estimators:[KF-CV-q]}"], "learn.estimators=KF-CV-q"),
+    (["learn={parameters:[{model:'modes[0]',name:Q}],estimators:[nope]}"], "learn.estimators="),
+    (["estimators.KF-CV.mode=7"], "estimators.KF-CV="),
+]
+
+
+@pytest.mark.parametrize("overrides, start", CASES, ids=[c[1].split("=")[0] + f"-{i}" for i, c in enumerate(CASES)])
+def test_each_config_error_is_one_line_before_any_folder(track, tmp_path, capsys, overrides, start):
+    extra = {}
+    rest = []
+    for item in overrides:
+        key, _, value = item.partition("=")
+        if key in ("MEASUREMENTS", "TRUTH", "TIME"):
+            extra[key.lower()] = value
+        else:
+            rest.append(item)
+    argv = ["experiment=compare", "logger=none", _data(track, **extra), *rest, f"hydra.run.dir={tmp_path / 'run'}"]
+    with pytest.raises(SystemExit) as stop:
+        precheck(argv, CONFIG_DIR)
+    assert stop.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith(f"torchmm-run: error: {start}"), err
+    assert not (tmp_path / "run").exists()
+
+
+def test_the_command_line_leaves_no_folder(track, tmp_path):
+    """The console script end to end: exit 2, one line, no folder (one case; the rest in-process above)."""
+    exe = str(Path(sys.executable).with_name("torchmm-run"))
+    out = tmp_path / "run"
+    proc = subprocess.run([exe, "experiment=compare", "logger=none", _data(track), "scenario.sensors.0.R=-1",
+                           f"hydra.run.dir={out}"], capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.strip().startswith("torchmm-run: error: scenario.sensors[0]=") and \
+        len(proc.stderr.strip().splitlines()) == 1
+    assert not out.exists()
+
+
+def test_a_valid_config_passes_the_dry_build(track, tmp_path):
+    precheck(["experiment=compare", "logger=none", _data(track, time="t"),
+              "learn={parameters:[{model:'sensors[0]',name:R}],estimators:[IMM,KF-CV]}"], CONFIG_DIR)
+
+
+def test_a_manoeuvre_that_ends_before_it_starts_is_refused(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        precheck(["experiment=tracking", "tracking.maneuver_start=30", "tracking.maneuver_stop=20",
+                  f"hydra.run.dir={tmp_path / 'run'}"], CONFIG_DIR)
+    assert capsys.readouterr().err.startswith("torchmm-run: error: tracking.maneuver_start=30: is after maneuver_stop")
