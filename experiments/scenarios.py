@@ -380,6 +380,10 @@ def system(
         probs = _stationary(matrix)
     else:
         probs = None if initial_mode_probs is None else torch.tensor(list(initial_mode_probs), dtype=dtype)
+        if probs is not None and (probs.shape != (count,) or bool((probs < 0).any())
+                                  or abs(float(probs.sum()) - 1) > 1e-6):
+            raise ConfigError("scenario.initial_mode_probs", list(initial_mode_probs),
+                              f"expected {count} probabilities (one per mode) summing to 1")
     recorded, motions = None, None
     if data is not None:
         recorded = read_data(data, n, sum(dims))

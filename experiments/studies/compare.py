@@ -176,6 +176,9 @@ def learn_targets(scenario, spec, est_name: str) -> list:
             raise ConfigError(f"{key}.model", str(p.model), str(err)) from None
         name = str(p.name)
         value = getattr(module, name, None)
+        if name not in ("Q", "R"):
+            raise ConfigError(f"{key}.name", name, "only the noise covariances Q (of a mode) and R (of a sensor) "
+                              "are learnable here")
         if not isinstance(value, Tensor):
             known = [n for n in ("Q", "R") if isinstance(getattr(module, n, None), Tensor)]
             raise ConfigError(f"{key}.name", name, f"{p.model} ({type(module).__name__}) has no covariance {name!r}"

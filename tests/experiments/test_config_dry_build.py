@@ -55,6 +55,8 @@ CASES = [
     (["learn={parameters:[{model:'sensors[0]',name:R}],estimators:[KF-CV-q]}"], "learn.estimators=KF-CV-q"),
     (["learn={parameters:[{model:'modes[0]',name:Q}],estimators:[nope]}"], "learn.estimators="),
     (["estimators.KF-CV.mode=7"], "estimators.KF-CV="),
+    (["scenario.initial_mode_probs=[0.5,0.5]"], "scenario.initial_mode_probs=[0.5, 0.5]: expected 3 probabilities"),
+    (["learn={parameters:[{model:'modes[0]',name:F}]}"], "learn.parameters[0].name=F: only the noise covariances"),
 ]
 
 
