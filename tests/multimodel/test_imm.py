@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from functools import partial
 
 import numpy as np
@@ -22,6 +23,7 @@ from torchmm import (
     LinearMeasurement,
     LinearMotion,
     ListBank,
+    ModeBelief,
     UnscentedKalmanFilter,
     VectorizedBank,
     run_filter,
@@ -257,3 +259,83 @@ def test_log_space_survives_extreme_outliers():
     assert bool(torch.isfinite(out.belief.mode_log_probs).all())
     assert bool(torch.isfinite(out.log_likelihood))
     close(out.belief.mode_probs.sum(), torch.tensor(1.0))
+
+
+# -- update_first: the first datum updates the start belief, no prediction ---------------------------
+def _update_first_case(M=3, batch=(4,), steps=6, seed=21):
+    rng = np.random.default_rng(seed)
+    base, models, bank = _mode_bank(2, 1, M, rng)
+    Pi = torch.tensor(random_transition(M, rng))
+    mu0 = torch.tensor(rng.dirichlet(np.ones(M)))
+    prior = base.prior().expand(*batch)
+    zs = torch.tensor(np.stack([_simulate_switching(base, models, Pi.numpy(), steps, rng)
+                                for _ in range(int(np.prod(batch)))], 1)).reshape(steps, *batch, -1)
+    return bank, Pi, mu0, prior, zs
+
+
+def test_gpb2_update_first_step0_is_the_mode_updates_weighted_by_the_start_probabilities():
+    """GPB2's step 0 with ``update_first``: every mode filter updates its start belief with the first
+    datum (no mode switch before it); mode j's posterior probability is ``mu0_j l_j / sum_l mu0_l l_l``
+    and the log-likelihood ``log sum_j mu0_j l_j`` - written out here with the bank's Kalman filter."""
+    bank, Pi, mu0, prior, zs = _update_first_case()
+    gpb2 = GPB2(bank, Pi)
+    traj = run_filter(gpb2, gpb2.initial_belief(prior, mu0), zs, update_first=True, fast_path=False)
+    # by hand: each mode's Kalman update of the prior (the bank's models broadcast over the mode axis)
+    out = bank.update(prior.unsqueeze(-1).expand(*prior.batch_shape, 3), zs[0].unsqueeze(-2))
+    joint = out.log_likelihood + mu0.log()
+    close(traj.log_likelihood[0], torch.logsumexp(joint, -1))
+    close(traj.belief.mode_probs[0], torch.softmax(joint, -1))
+    close(traj.belief.components.mean[0], out.belief.mean)
+    close(traj.belief.components.cov[0], out.belief.cov)
+    # the same step as the IMM's and GPB1's (their update_first is the same update of the start belief)
+    for other in (IMM(bank, Pi), GPB1(bank, Pi)):
+        ref = run_filter(other, other.initial_belief(prior, mu0), zs[:1], update_first=True, fast_path=False)
+        close(traj.belief.mode_probs[0], ref.belief.mode_probs[0])
+        close(traj.estimate().mean[0], ref.estimate().mean[0])
+        close(traj.estimate().cov[0], ref.estimate().cov[0])
+    # the trajectory stacks: step 0's prior is over the M^2 pairs like every later step's
+    assert traj.prior.mode_log_probs.shape == (6, 4, 9)
+    assert traj.innovation.shape == (6, 4, 3, 3, 1)
+
+
+def test_gpb2_update_first_then_steps_and_kernels_agree():
+    """The rest of the run continues from step 0's posterior; the default (kernels on) gives the numbers
+    of the steps (the kernels decline update_first), and fast_path=True says why it cannot."""
+    bank, Pi, mu0, prior, zs = _update_first_case()
+    gpb2 = GPB2(bank, Pi)
+    belief0 = gpb2.initial_belief(prior, mu0)
+    steps = run_filter(gpb2, belief0, zs, update_first=True, fast_path=False)
+    first = IMM(bank, Pi).update(belief0, zs[0])  # the update of the start belief
+    rest = run_filter(gpb2, first.belief, zs[1:], fast_path=False)
+    close(steps.log_likelihood, torch.cat([first.log_likelihood.unsqueeze(0), rest.log_likelihood]))
+    close(steps.estimate().mean[1:], rest.estimate().mean)
+    close(steps.belief.mode_probs[1:], rest.belief.mode_probs)
+    default = run_filter(gpb2, belief0, zs, update_first=True)  # fast_path=None: kernels on
+    close(default.log_likelihood, steps.log_likelihood, rtol=1e-12, atol=1e-12)
+    close(default.estimate().mean, steps.estimate().mean, rtol=1e-12, atol=1e-12)
+    with pytest.raises(ValueError, match="^fast_path: no fast path .*update_first"):
+        run_filter(gpb2, belief0, zs, fast_path=True, update_first=True)
+    # and without update_first the runs differ (the comparison tells the conventions apart)
+    assert not torch.allclose(run_filter(gpb2, belief0, zs).log_likelihood[0], steps.log_likelihood[0])
+
+
+def test_gpb2_update_first_with_one_mode_is_its_kalman_filter():
+    rng = np.random.default_rng(3)
+    system = random_system(3, 2, rng)
+    _, zs = system.simulate(10, rng)
+    kf = KalmanFilter(system.motion(), system.measurement())
+    gpb2 = GPB2(kf, torch.ones(1, 1))
+    traj = run_filter(gpb2, gpb2.initial_belief(system.prior()), torch.tensor(zs), update_first=True)
+    ref = run_filter(kf, system.prior(), torch.tensor(zs), update_first=True)
+    close(traj.estimate().mean, ref.belief.mean)
+    close(traj.estimate().cov, ref.belief.cov)
+    close(traj.log_likelihood, ref.log_likelihood)
+
+
+def test_gpb2_update_refuses_a_belief_of_another_mode_count():
+    bank, Pi, mu0, prior, zs = _update_first_case()
+    gpb2 = GPB2(bank, Pi)
+    start = gpb2.initial_belief(prior, mu0)
+    four = ModeBelief(torch.full((4, 4), -math.log(4)), start.components[:, :1].expand(4, 4))
+    with pytest.raises(ValueError, match=r"^belief: expected 3 modes .* or 9 pairs .*got 4"):
+        gpb2.update(four, zs[0])

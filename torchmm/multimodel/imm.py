@@ -500,6 +500,11 @@ class GPB2(MultipleModelFilter):
     Shapes:
         as :class:`IMM`, except: :meth:`predict` returns a ``ModeBelief`` over the ``M^2`` pairs
         (mode axis ``i * M + j``), and ``innovation`` is ``(*B, M, M, m)`` (``[..., i, j, :]``).
+
+    ``run_filter(..., update_first=True)``: step 0 updates the start belief without a prediction: every
+    mode filter's update of its own start belief, weighted by the start mode probabilities (IMM's and
+    GPB1's step 0; its ``prior`` is over the pairs, :meth:`start_pairs`). The kernels decline
+    ``update_first`` (the steps run).
     """
 
     default_interaction = NoInteraction  # GPB2 forms the M^2 pair hypotheses itself (mix below)
@@ -531,10 +536,35 @@ class GPB2(MultipleModelFilter):
         prior = self.bank.predict(components, u=u, motion=motion, generator=generator)
         return ModeBelief(pairs.mode_log_probs, prior.reshape(*batch, M * M))
 
-    def update(self, belief: ModeBelief, z: Tensor, *, sensor=None, generator=None) -> StepOutput:
+    def start_pairs(self, belief: ModeBelief) -> ModeBelief:
+        """A mode belief (``M`` modes: :meth:`initial_belief`'s or a posterior) as the pair hypotheses of a
+        datum at its own time, without a prediction (``run_filter(..., update_first=True)``): pair
+        ``(i, j)`` holds mode ``j``'s belief, with weight ``mu_j`` where ``i = j`` and 0 (``-inf``)
+        elsewhere, so that :meth:`update` gives every mode's update of its own belief and ``mu_j`` the
+        mode posterior ``mu_j l_j / sum_l mu_l l_l`` exactly (IMM's and GPB1's update of the same belief).
+
+        Shapes: ``mode_log_probs (*B, M)``, components ``(*B, M)`` -> ``(*B, M * M)``, mode axis ``i * M + j``.
+        """
         M = self.num_modes
-        z = self._measurement(belief, z, sensor=sensor)
         batch = mode_batch(belief)
+        diagonal = torch.eye(M, dtype=torch.bool, device=belief.mode_log_probs.device)
+        joint = torch.where(diagonal, belief.mode_log_probs.unsqueeze(-2), -math.inf)  # (*B, i, j)
+        components = belief.components.unsqueeze(-2).expand(*batch, M, M)  # (i, j): mode j's belief
+        return ModeBelief(joint.flatten(-2), components.reshape(*batch, M * M))
+
+    def update(self, belief: ModeBelief, z: Tensor, *, sensor=None, generator=None) -> StepOutput:
+        """The pair updates and the merge. ``belief`` is :meth:`predict`'s, over the ``M^2`` pairs; a
+        belief over the ``M`` modes (:meth:`initial_belief`'s: ``run_filter(..., update_first=True)``)
+        is updated without a mode switch (:meth:`start_pairs`), as IMM's and GPB1's ``update``."""
+        M = self.num_modes
+        batch = mode_batch(belief)
+        count = belief.mode_log_probs.shape[-1]
+        if count != M * M:
+            if count != M:
+                raise ValueError(f"belief: expected {M} modes (a start belief or a posterior) or {M * M} pairs "
+                                 f"(GPB2.predict's), got {count}")
+            belief = self.start_pairs(belief)
+        z = self._measurement(belief, z, sensor=sensor)
         prior_pairs = belief.components.reshape(*batch, M, M)
         rank = self.bank.measurement_rank
         out = self.bank.update(prior_pairs, z.unsqueeze(-1 - rank).unsqueeze(-1 - rank), sensor=sensor,
