@@ -203,3 +203,44 @@ def test_a_parameter_turned_non_finite_is_named_at_the_evaluation(value):
         objective()
     with pytest.raises(ValueError, match=rf"^filter\.{name.replace('.', chr(92) + '.')}: "):
         objective.minimize()
+
+
+# -- a fuzz after issue 44: data with no datum, a misspelt option ---------------------------------------
+def _position_kf():
+    kf = KalmanFilter(ConstantVelocity(1), PositionMeasurement(2, [0], 1.0))
+    learnable_noise(kf.measurement, "R", "log_diagonal")
+    return kf, GaussianBelief(torch.zeros(2), torch.eye(2))
+
+
+@pytest.mark.parametrize("shape", [(10, 1), (4, 3, 1)])
+def test_an_objective_over_measurements_that_are_all_missing_names_them(shape):
+    """Every entry missing gave a zero gradient (not None), so minimize returned success after 0
+    iterations with R unchanged: nothing informs the parameters."""
+    kf, belief0 = _position_kf()
+    if len(shape) == 3:
+        belief0 = belief0.expand(shape[1])
+    for missing in (float("nan"), float("inf")):
+        with pytest.raises(ValueError, match=r"^measurements: every entry is missing"):
+            Objective(kf, belief0, torch.full(shape, missing))
+    # one datum is enough to build it (and its gradient is not zero)
+    z = torch.full(shape, float("nan"))
+    z.view(-1)[-1] = 0.5
+    objective = Objective(kf, belief0, z)
+    objective().backward()
+    assert float(next(kf.parameters()).grad.abs().sum()) > 0
+
+
+@pytest.mark.parametrize("method", ["L-BFGS-B", "BFGS", "trust-constr"])
+def test_minimize_refuses_an_unknown_option(method):
+    """``options={'max_iter': 1}`` (for ``maxiter``) only warned (scipy's OptimizeWarning) and ran on."""
+    kf, belief0, z = _learnable()
+    before = [p.detach().clone() for p in kf.parameters()]
+    with pytest.raises(ValueError, match=r"^options: unknown option 'max_iter' of .*" + method):
+        Objective(kf, belief0, z, update_first=True).minimize(method=method, options={"max_iter": 1})
+    with pytest.raises(ValueError, match=r"^options: unknown options 'max_iter', 'tolerance'"):
+        Objective(kf, belief0, z, update_first=True).minimize(method=method,
+                                                                options={"max_iter": 1, "tolerance": 1.0})
+    for p, b in zip(kf.parameters(), before):  # left as they were
+        torch.testing.assert_close(p.detach(), b, rtol=0, atol=0)
+    result = Objective(kf, belief0, z, update_first=True).minimize(method=method, options={"maxiter": 1})
+    assert result.nit <= 1

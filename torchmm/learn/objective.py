@@ -9,7 +9,10 @@ current parameters and runs.
 
 from __future__ import annotations
 
+import inspect
 import math
+import re
+import warnings
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -40,7 +43,8 @@ class Objective:
             function ``filter -> belief`` called at every evaluation, for a start that depends on the
             parameters (e.g. the exact diffuse start of the local level, ``N(y_1, R)``:
             ``lambda kf: local_level_start(kf, y[0])``, experiments/realdata.py).
-        measurements: ``(T, *B, m)``, NaN = missing (checked once, here).
+        measurements: ``(T, *B, m)``, NaN = missing (checked once, here); at least one entry present
+            (data that are all missing inform no parameter: a ``ValueError`` naming ``measurements``).
         reduction: ``"sum"`` (default: the log-likelihood's scale), ``"mean"`` or ``"none"``, as for
             :func:`~torchmm.learn.negative_log_likelihood`.
         update_first: ``belief0`` is the prior of the first measurement (statsmodels' convention).
@@ -96,6 +100,12 @@ class Objective:
                 if isinstance(like, Tensor):
                     batch = like.shape[:-1]
                     check_measurement(measurements[0], meas_dim, batch, like, "measurements")
+            # one host read: data with no datum inform no parameter (the gradient is 0, not None, so
+            # minimize would stop at once with success)
+            if not bool(torch.isfinite(measurements).any()):
+                raise ValueError(f"measurements: every entry is missing (non-finite; shape "
+                                 f"{tuple(measurements.shape)}): the likelihood does not depend on the "
+                                 "parameters, nothing to learn from")
             request = kernels.Request(update_first=update_first, keep=frozenset({"log_likelihood"}),
                                       repeated=True)
             self._prepared, self.why = kernels.plan(filter, first, measurements, request)
@@ -166,7 +176,9 @@ class Objective:
             method: a gradient method of ``scipy.optimize.minimize`` (one of :data:`GRADIENT_METHODS`;
                 default ``"L-BFGS-B"``, as statsmodels' ``fit``).
             tol: a positive tolerance, passed to ``scipy.optimize.minimize``.
-            options: a dict, passed to ``scipy.optimize.minimize``.
+            options: a dict, passed to ``scipy.optimize.minimize``; a key the method does not take
+                (``max_iter`` for ``maxiter``) is a ``ValueError`` naming ``options`` and listing the
+                unknown keys (scipy only warns and runs on).
 
         Returns:
             scipy's ``OptimizeResult`` (``x``: the flat parameters at the optimum, ``fun``: the loss,
@@ -180,7 +192,7 @@ class Objective:
             ``options`` are checked at entry (ValueError/TypeError naming them); a filter parameter
             that is not finite at an evaluation is a ValueError naming it.
         """
-        from scipy.optimize import minimize
+        from scipy.optimize import OptimizeWarning, minimize
 
         explicit = parameters is not None
         params = _parameter_list(parameters) if explicit else \
@@ -217,8 +229,19 @@ class Objective:
             return float(loss.detach()), grad.to(torch.float64).cpu().numpy()
 
         try:
-            result = minimize(loss_and_grad, start, jac=True, method=method, tol=tol,
-                              options=None if options is None else dict(options))
+            with warnings.catch_warnings():  # a misspelt option (max_iter) is an error, not a warning
+                warnings.filterwarnings("error", message="Unknown solver options", category=OptimizeWarning)
+                try:
+                    result = minimize(loss_and_grad, start, jac=True, method=method, tol=tol,
+                                      options=None if options is None else dict(options))
+                except (OptimizeWarning, TypeError) as err:  # (scipy refuses them before any evaluation)
+                    unknown = _unknown_options(err, options)
+                    if not unknown:
+                        raise
+                    raise ValueError(
+                        f"options: unknown option{'s' if len(unknown) > 1 else ''} "
+                        f"{', '.join(repr(k) for k in unknown)} of scipy's {method} (its options: "
+                        f"scipy.optimize.show_options('minimize', {method!r}))") from None
             assign(result.x)
         except Exception:
             assign(start)  # an error leaves the parameters where they were
@@ -231,6 +254,36 @@ class Objective:
     def __repr__(self) -> str:
         return (f"Objective({type(self.filter).__name__}, T={self.measurements.shape[0]}, "
                 f"reduction={self.reduction!r}, kernel={'none: ' + self.why if self._prepared is None else 'yes'})")
+
+
+def _unknown_options(err: Exception, options: Mapping | None) -> list[str]:
+    """The keys of ``options`` that scipy's solver refused, from its ``OptimizeWarning`` ("Unknown
+    solver options: a, b", raised as an error before any evaluation) or from the ``TypeError`` of a
+    solver without a catch-all (trust-constr: "unexpected keyword argument 'a'", the first only; the
+    others from its signature). Empty: the error is not about the options."""
+    from scipy.optimize import OptimizeWarning
+
+    if not options:
+        return []
+    text = str(err)
+    if isinstance(err, OptimizeWarning):
+        if not text.startswith("Unknown solver options:"):
+            return []
+        named = {n.strip() for n in text.split(":", 1)[1].split(",")}
+        return [str(k) for k in options if str(k) in named]
+    match = re.search(r"unexpected keyword argument '([^']+)'", text)
+    if match is None or match.group(1) not in options:
+        return []
+    import scipy.optimize._minimize as scipy_minimize  # trust-constr's solver: its other unknown keys
+
+    solver = getattr(scipy_minimize, "_minimize_trustregion_constr", None)
+    try:
+        known = set(inspect.signature(solver).parameters) if solver is not None else None
+    except (TypeError, ValueError):
+        known = None
+    if known is None:
+        return [match.group(1)]
+    return [str(k) for k in options if str(k) not in known]
 
 
 def _parameter_list(parameters: Any) -> list[Tensor]:
