@@ -910,7 +910,10 @@ def entry_point(**kinds: Kind) -> Callable[[Callable], Callable]:
 
         @functools.wraps(fn)
         def wrapper(*args, **kwargs):
-            bound = signature.bind(*args, **kwargs)
+            try:
+                bound = signature.bind(*args, **kwargs)
+            except TypeError:  # a missing, unknown or extra argument: named, as every other error
+                raise TypeError(_bind_error(fn, signature, args, kwargs)) from None
             arguments = bound.arguments
             for name, kind in checked:
                 if name in arguments:
@@ -926,6 +929,66 @@ def entry_point(**kinds: Kind) -> Callable[[Callable], Callable]:
         return wrapper
 
     return decorate
+
+
+def _called(fn: Callable, signature: inspect.Signature, args: tuple, kwargs: dict) -> str:
+    """What the user called: the class for a constructor (the instance's, for an inherited one), the
+    class and method for a method, the function's name otherwise."""
+    first = next(iter(signature.parameters), None)
+    owner = None
+    if first in ("self", "cls"):
+        this = args[0] if args else kwargs.get(first)
+        if this is not None:
+            owner = this.__name__ if isinstance(this, type) else type(this).__name__
+    if owner is None:
+        return fn.__qualname__.removesuffix(".__init__")
+    return owner if fn.__name__ == "__init__" else f"{owner}.{fn.__name__}"
+
+
+def _bind_error(fn: Callable, signature: inspect.Signature, args: tuple, kwargs: dict) -> str:
+    """The message of a call that ``signature`` cannot bind, starting with the argument's name (a
+    missing or unknown one, one given twice) or, for too many positional arguments, the function's."""
+    import difflib
+
+    where = _called(fn, signature, args, kwargs)
+    params = signature.parameters
+    named = [p for p in params.values() if p.name not in ("self", "cls")
+             and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)]
+    names = [p.name for p in named]
+    variadic_keywords = any(p.kind is p.VAR_KEYWORD for p in params.values())
+    for key in kwargs:
+        if key not in params and not variadic_keywords or \
+                key in params and params[key].kind is params[key].POSITIONAL_ONLY:
+            close = difflib.get_close_matches(key, names, n=1)
+            hint = f"did you mean {close[0]}? " if close else ""
+            return f"{key}: not an argument of {where} ({hint}arguments: {', '.join(names)})"
+    positional = [p for p in params.values() if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)]
+    if len(args) > len(positional) and not any(p.kind is p.VAR_POSITIONAL for p in params.values()):
+        shown = [p.name for p in positional if p.name not in ("self", "cls")]
+        offset = len(positional) - len(shown)  # self / cls
+        keyword_only = [p.name for p in named if p.kind is p.KEYWORD_ONLY]
+        plural = "" if len(shown) == 1 else "s"
+        return (f"{where}: takes {len(shown)} positional argument{plural} ({', '.join(shown) or 'none'}), got "
+                f"{len(args) - offset}" + (f"; {', '.join(keyword_only)} {'is' if len(keyword_only) == 1 else 'are'} "
+                                           "keyword-only" if keyword_only else ""))
+    for p in positional[:len(args)]:
+        if p.name in kwargs and p.kind is not p.POSITIONAL_ONLY:
+            return f"{p.name}: given twice (by position and by keyword) to {where}"
+    try:
+        given = signature.bind_partial(*args, **kwargs).arguments
+    except TypeError as err:
+        return f"{where}: {err}"
+    missing = [p.name for p in params.values() if p.name not in given and p.default is p.empty
+               and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)]
+    if missing:
+        first, rest = missing[0], missing[1:]
+        also = f"; {', '.join(rest)} {'is' if len(rest) == 1 else 'are'} missing too" if rest else ""
+        return f"{first}: missing (a required argument of {where}{also})"
+    try:
+        signature.bind(*args, **kwargs)
+    except TypeError as err:
+        return f"{where}: {err}"
+    return f"{where}: the arguments do not fit its signature {signature}"
 
 
 def spec_of(obj: Any) -> EntryPoint | None:

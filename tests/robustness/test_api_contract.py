@@ -228,3 +228,70 @@ def test_valid_edges_are_accepted_and_give_the_reference_result(key, name):
                 a, b = a.narrow(axis, 0, size), b.narrow(axis, 0, size)
             torch.testing.assert_close(a, b, rtol=0, atol=0, equal_nan=True,
                                        msg=lambda m, path=path: f"{key}({name}={edge.cls}): {path}: {m}")
+
+
+# -- the call itself: a missing, unknown or extra argument names it (the contract's bind) ------------
+def _required_parameters():
+    out = []
+    for key in sorted(EXAMPLES):
+        call = EXAMPLES[key]()
+        signature = inspect.signature(call.fn)
+        for p in signature.parameters.values():
+            if p.name in ("self", "cls") or p.default is not p.empty or \
+                    p.kind not in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY):
+                continue
+            out.append(pytest.param(key, p.name, id=f"{key.removeprefix('torchmm.')}-{p.name}"))
+    return out
+
+
+@pytest.mark.parametrize("key, name", _required_parameters())
+def test_a_missing_required_argument_is_named(key, name):
+    """Every required parameter of every entry point, left out of its valid example: a ``TypeError``
+    starting with the parameter's name (before: Signature.bind's ``missing a required argument: ...``)."""
+    call = EXAMPLES[key]()
+    signature, bound = _bind(call)
+    trial = signature.bind_partial()
+    trial.arguments.update({k: v for k, v in bound.arguments.items() if k != name})
+    with pytest.raises(TypeError, match=rf"^{re.escape(name)}: missing \(a required argument of \w[\w.]*\)"):
+        call.fn(*trial.args, **trial.kwargs)
+
+
+@pytest.mark.parametrize("key", sorted(EXAMPLES))
+def test_an_unknown_keyword_is_named(key):
+    call = EXAMPLES[key]()
+    if any(p.kind is p.VAR_KEYWORD for p in inspect.signature(call.fn).parameters.values()):
+        pytest.skip("takes **kwargs")
+    with pytest.raises(TypeError, match=r"^no_such_argument: not an argument of \w[\w.]* \(arguments: "):
+        call.fn(*call.args, **call.kwargs, no_such_argument=1)
+
+
+def test_bind_errors_name_the_argument_or_the_function():
+    from torchmm import GPB1, GaussianBelief, KalmanFilter
+    from torchmm.association import PDA
+    from torchmm.models import ConstantVelocity, PositionMeasurement
+
+    kf = KalmanFilter(ConstantVelocity(2, q=0.5), PositionMeasurement(4, [0, 2], 1.0))
+    with pytest.raises(TypeError, match=r"^detection_probability: missing \(a required argument of PDA\)$"):
+        PDA(kf, clutter_density=0.01)
+    with pytest.raises(TypeError, match=r"^detection_probability: missing \(a required argument of PDA; "
+                                        r"clutter_density is missing too\)$"):
+        PDA(kf)
+    with pytest.raises(TypeError, match=r"^foo: not an argument of PDA \(arguments: filter, detection_probability, "
+                                        r"clutter_density, gate_probability\)$"):
+        PDA(kf, detection_probability=0.9, clutter_density=0.01, foo=1)
+    with pytest.raises(TypeError, match=r"^gate_probabilty: not an argument of PDA \(did you mean "
+                                        r"gate_probability\?"):
+        PDA(kf, detection_probability=0.9, clutter_density=0.01, gate_probabilty=0.9)
+    with pytest.raises(TypeError, match=r"^PDA: takes 1 positional argument \(filter\), got 3; "
+                                        r"detection_probability, clutter_density, gate_probability are keyword-only"):
+        PDA(kf, 0.9, 0.01)
+    with pytest.raises(TypeError, match=r"^filter: given twice \(by position and by keyword\) to PDA$"):
+        PDA(kf, filter=kf, detection_probability=0.9, clutter_density=0.01)
+    # an inherited constructor and a method: named by the class the user called
+    with pytest.raises(TypeError, match=r"^transition: missing \(a required argument of GPB1\)$"):
+        GPB1(kf)
+    gpb1 = GPB1([kf, kf], torch.eye(2))
+    with pytest.raises(TypeError, match=r"^belief: missing \(a required argument of GPB1.initial_belief\)$"):
+        gpb1.initial_belief()
+    with pytest.raises(TypeError, match=r"^GaussianBelief.create: takes 2 positional arguments "):
+        GaussianBelief.create(torch.zeros(2), torch.eye(2), 1, 2)
