@@ -245,6 +245,8 @@ def study(name: str, *, out: str | Path | None = None, overrides: Mapping[str, A
         raise ValueError(f"name: no study {name!r}; choose one of {', '.join(known)}")
     if out is not None and not isinstance(out, (str, Path)):
         raise TypeError(f"out: expected a folder path, got {type(out).__name__}")
+    if out is not None and Path(out).exists() and not Path(out).is_dir():
+        raise ValueError(f"out: {out} is a file, not a folder (the run's results go into a folder)")
     items = _override_list(overrides, kwargs)
     cfg, choices = compose_conf([f"experiment={name}", *items])
     validate(cfg, scenario_choice=choices.get("scenario"))

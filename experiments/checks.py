@@ -153,8 +153,45 @@ def resume_value(value) -> str | None:
 
 
 
+def _strict(schema: type, values: Any, prefix: str) -> None:
+    """No coercion of a string into a flag or a number: OmegaConf would check ``figures=no`` as False
+    while the run's config keeps the string ``'no'``, which Python reads as true. A string where the
+    schema has ``bool``, ``int`` or ``float`` is a ConfigError (``expected true or false``)."""
+    import typing
+
+    if not isinstance(values, dict) or not dataclasses.is_dataclass(schema):
+        return
+    try:
+        hints = typing.get_type_hints(schema)
+    except Exception:  # noqa: BLE001 - an unresolvable annotation: OmegaConf's own checks only
+        return
+    for f in dataclasses.fields(schema):
+        if f.name not in values:
+            continue
+        raw, kind = values[f.name], hints.get(f.name)
+        args = [a for a in typing.get_args(kind) if a is not type(None)] if typing.get_origin(kind) is typing.Union \
+            else [kind]
+        base = args[0] if len(args) == 1 else None
+        key = join_key(prefix, f.name)
+        if base in (bool, int, float) and isinstance(raw, str):
+            raise ConfigError(key, raw, {bool: "expected true or false", int: "expected an integer",
+                                         float: "expected a number"}[base])
+        if base is bool and raw is not None and not isinstance(raw, bool):
+            raise ConfigError(key, raw, "expected true or false")
+        if dataclasses.is_dataclass(base):
+            if raw is not None and not isinstance(raw, dict):
+                raise ConfigError(key, raw, f"expected a mapping of {', '.join(x.name for x in dataclasses.fields(base))}")
+            _strict(base, raw, key)
+        elif typing.get_origin(base) in (list, typing.List) and isinstance(raw, list):
+            inner = typing.get_args(base)[0] if typing.get_args(base) else None
+            for i, item in enumerate(raw):
+                if dataclasses.is_dataclass(inner):
+                    _strict(inner, item, f"{key}[{i}]")
+
+
 def merge(schema: type, values: dict, prefix: str = "") -> Any:
     """``values`` merged into ``schema`` and converted to the dataclass (type errors: ConfigError)."""
+    _strict(schema, values, prefix)
     try:
         merged = OmegaConf.merge(OmegaConf.structured(schema), values)
         obj = OmegaConf.to_object(merged)
@@ -189,7 +226,9 @@ def schema_at(schema: type, path: str) -> type:
 def type_message(err: OmegaConfBaseException) -> str:
     msg = str(err.msg).splitlines()[0]
     for word, text in (("Integer", "expected an integer"), ("Float", "expected a number"),
-                       ("valid bool", "expected true or false"), ("String", "expected a string")):
+                       ("valid bool", "expected true or false"), ("String", "expected a string"),
+                       ("not a ListConfig", "expected a list"), ("not a DictConfig", "expected a mapping"),
+                       ("not a subclass of", "expected a mapping of the section's keys")):
         if word in msg:
             return text
     return msg

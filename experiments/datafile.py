@@ -74,6 +74,8 @@ def _number(text: str, file: Path, column: str, line: int) -> float:
     if cell.lower() in MISSING:
         return math.nan
     try:
+        if "_" in cell:  # float() reads 1_000 as 1000: not a number a data file means
+            raise ValueError
         value = float(cell)
     except ValueError:
         raise DataFileError(f"{file}: column {column!r}, row {line}: {cell!r} is not a number") from None
@@ -96,6 +98,9 @@ def _columns(value, name: str, *, optional: bool = False) -> list[str] | None:
     for i, column in enumerate(out):
         if not isinstance(column, str) or not column.strip():
             raise TypeError(f"{name}[{i}]: expected a column name (a non-empty string), got {column!r}")
+        if column in out[:i]:
+            raise ValueError(f"{name}[{i}]: column {column!r} is named twice (as {name}[{out.index(column)}]): one "
+                             "column would feed two components")
     return out
 
 
@@ -177,7 +182,13 @@ def _read_npz(file: Path, wanted: list[str]) -> dict[str, np.ndarray]:
         for name in wanted:
             if name not in archive.files:
                 raise DataFileError(f"{file}: column {name!r}: no such array (arrays: {', '.join(archive.files)})")
-            array = np.asarray(archive[name], dtype=np.float64) if archive[name].dtype.kind in "fiub" else None
+            try:
+                raw = archive[name]
+            except ValueError:  # an object array (it would need pickle)
+                raise DataFileError(f"{file}: column {name!r}: an object array (pickled Python objects); save numbers "
+                                    "(a float or integer array)") from None
+            # numbers only: booleans (True/False read as 1/0) and strings are not measurements
+            array = np.asarray(raw, dtype=np.float64) if raw.dtype.kind in "fiu" else None
             if array is None or array.ndim not in (1, 2):
                 raise DataFileError(f"{file}: column {name!r}: expected a numeric (T,) or (T, runs) array")
             infinite = np.argwhere(np.isinf(array))
@@ -201,10 +212,10 @@ def _locate(path: str | Path, base: Path | None, measurements: list[str]) -> Pat
         here = (base or Path.cwd()) / file
         shipped = Path(__file__).resolve().parent / "data" / file
         file = here if here.exists() or not shipped.exists() else shipped
+    if not measurements:
+        raise ValueError("measurements: no columns given (name the measurement columns, e.g. ['x', 'y'])")
     if not file.exists():
         raise DataFileError(f"{file}: no such file")
-    if not measurements:
-        raise DataFileError(f"{file}: no measurement columns given")
     return file
 
 

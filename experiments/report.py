@@ -270,6 +270,13 @@ def combine(runs: list[Run], replicate: str = "seed", level: float = 0.95, refer
             paths = ", ".join(str(r.path) for r in duplicated[0]["runs"])
             print(f"torchmm-report: warning: {experiment}: runs with the same config and {replicate} are "
                   f"combined as if independent ({paths})", file=sys.stderr)
+        for g in group_list:  # replicates that give the same numbers are not independent replications
+            if len(g["runs"]) > 1 and all(run.results.get("tables") == g["runs"][0].results.get("tables")
+                                          for run in g["runs"][1:]):
+                paths = ", ".join(str(r.path) for r in g["runs"])
+                print(f"torchmm-report: warning: {experiment}: the {len(g['runs'])} runs with different {replicate} "
+                      f"give identical tables ({replicate} changes nothing here, e.g. recorded data): their "
+                      f"intervals are 0, not a measure of uncertainty ({paths})", file=sys.stderr)
         tables_out: dict[str, Any] = {}
         paired_out: dict[str, Any] = {}
         table_names = list(dict.fromkeys(n for run in members for n in run.results.get("tables", {})))
@@ -599,13 +606,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("paths", nargs="+", metavar="PATH", help="run folders, sweep folders or outputs/")
     parser.add_argument("--out", type=Path, default=None, help="output folder (default PATH/report or ./report)")
     parser.add_argument("--replicate", default="seed", help="the config key whose runs are replications (seed)")
-    parser.add_argument("--level", type=float, default=0.95, help="confidence level of the intervals (0.95)")
+    parser.add_argument("--level", default="0.95", help="confidence level of the intervals (0.95)")
     parser.add_argument("--reference", default=None, metavar="NAME",
                         help="the estimator the paired differences subtract (default: each table's first row's)")
     args = parser.parse_args(argv)
-    if not 0 < args.level < 1:
+    try:
+        level = float(args.level)
+    except ValueError:
+        level = math.nan
+    if not 0 < level < 1:
         print(f"torchmm-report: error: --level: expected a number in (0, 1), got {args.level}", file=sys.stderr)
         return 2
+    args.level = level
     try:
         runs = collect_runs([Path(p) for p in args.paths])
     except (FileNotFoundError, ResultsFileError) as err:
@@ -613,6 +625,11 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     if not runs:
         print(f"torchmm-report: error: PATH: no results.json under {' '.join(args.paths)}", file=sys.stderr)
+        return 2
+    if not any(args.replicate in run.config for run in runs):
+        keys = sorted({k for run in runs for k in run.config if k in ("seed", "block_runs") or "seed" in k})
+        print(f"torchmm-report: error: --replicate: no run's config has a key {args.replicate!r}"
+              + (f" (e.g. {', '.join(keys)})" if keys else ""), file=sys.stderr)
         return 2
     report = combine(runs, args.replicate, args.level, args.reference)
     if args.reference is not None and not any(body["paired"] for body in report.values()):

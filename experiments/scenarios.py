@@ -363,16 +363,24 @@ def system(
         [type(m).__name__ for m in motion] if isinstance(motion, list) else [f"mode {j}" for j in range(count)])
     if len(labels) != count:
         raise ConfigError("scenario.labels", labels, f"needs one name per mode ({count})")
+    if len(set(map(str, labels))) != len(labels):
+        raise ConfigError("scenario.labels", labels, "the modes' names must differ (each names a mode's curves)")
     groups = {str(k): [int(i) for i in v] for k, v in (groups or {"state": list(range(n))}).items()}
     for key, idx in groups.items():
         if not idx or any(not 0 <= i < n for i in idx):
             raise ConfigError(f"scenario.groups.{key}", idx, f"must list state components in 0..{n - 1}")
+        if len(set(idx)) != len(idx):
+            raise ConfigError(f"scenario.groups.{key}", idx, "lists a state component twice")
     per_sensor = []
-    for key, value, check in (("missing", missing, lambda p: 0 <= p < 1), ("every", every, lambda k: k >= 1)):
+    def number(v) -> bool:
+        return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+    for key, value, check in (("missing", missing, lambda p: number(p) and 0 <= p < 1),
+                              ("every", every, lambda k: number(k) and k >= 1 and float(k).is_integer())):
         values = list(value) if _is_list(value) else [value] * len(built)
         if len(values) != len(built) or not all(check(v) for v in values):
             raise ConfigError(f"scenario.{key}", value, "one value per sensor, "
-                              + ("probabilities in [0, 1)" if key == "missing" else "periods >= 1"))
+                              + ("probabilities in [0, 1)" if key == "missing" else "integer periods >= 1"))
         per_sensor.append(values)
     if isinstance(initial_mode_probs, str):
         if initial_mode_probs != "ergodic":
@@ -420,6 +428,10 @@ def read_data(data: Any, n: int, m: int):
                                time=data.get("time"), series=data.get("series"))
     except DataFileError as err:  # one line naming the file, the column and the row
         raise ConfigError("scenario.data", data["path"], str(err)) from None
+    except (TypeError, ValueError) as err:  # an argument of the reader: `measurements[1]: ...` and the like
+        name, _, why = str(err).partition(": ")
+        key = name.split("[", 1)[0]
+        raise ConfigError(f"scenario.data.{key}", data.get(key), f"{name}: {why}" if "[" in name else why) from None
     if recorded.measurements.shape[-1] != m:
         raise ConfigError("scenario.data.measurements", list(data["measurements"]),
                           f"{recorded.measurements.shape[-1]} columns for a sensor of {m}")

@@ -341,7 +341,7 @@ class Paired:
 @dataclass
 class Compare:
     estimators: Dict[str, Any] = spec(MISSING, check=non_empty)
-    metrics: List[str] = spec(MISSING, check=each(one_of(*METRICS)))
+    metrics: List[str] = spec(MISSING, check=both(non_empty, each(one_of(*METRICS))))
     paired: Paired = field(default_factory=Paired)
     learn: Optional[Learn] = MISSING
     update_first: bool = MISSING

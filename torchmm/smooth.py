@@ -738,6 +738,13 @@ def smooth(filter: Any, trajectory: Trajectory | None = None, measurements: Tens
         raise ValueError(f"lag: fixed-lag smoothing is implemented for Kalman, extended and unscented filters, "
                          f"not {type(filter).__name__}")
     padding = _padding(present, trajectory)
+    data = measurements if measurements is not None else getattr(trajectory.provenance, "measurements", None)
+    if padding is not None and isinstance(data, Tensor):  # padding holds no datum (one host read)
+        data = torch.isfinite(data).reshape(*padding.shape, -1).any(-1) & padding
+        if bool(data.any()):
+            k, *run = torch.nonzero(data)[0].tolist()
+            raise ValueError(f"present: run {tuple(run)} has a measurement at step {k}, marked as padding; padding "
+                             "is the steps after a run's last one (a missing datum is a NaN measurement)")
     if controls is None and motions is None and lag is None and padding is None:
         run, _ = kernels.plan_smooth(filter, trajectory, method)
         smoothed = None if run is None else run()

@@ -271,14 +271,19 @@ def check_build(cfg, scenario) -> None:
     if learning and scenario.motions is not None:
         raise ConfigError("learn", "parameters", "learning with irregular time stamps (per-step motion models) is "
                           "not supported yet; give regular time stamps or none")
+    burn = int(cfg.get("burn") or 0)
+    if burn >= scenario.steps:
+        raise ConfigError("burn", burn, f"leaves out every step (the data have {scenario.steps}): no log-likelihood "
+                          "term is left")
     for name in learning:
         own = _own_models(scenario)
         learn_targets(own, learn_spec(cfg), name)
         est = instantiate(cfg.estimators[name])(own, name=name)
         if not any(p.requires_grad for p in est.filter.parameters()):
             key = "learn.estimator" if cfg.learn.get("estimator") is not None else "learn.estimators"
-            raise ConfigError(key, name, "its filter does not use the models of learn.parameters (nothing to learn "
-                              "through it); name the estimators that do in learn.estimators")
+            raise ConfigError(key, name, "its filter does not use the scenario's models named in learn.parameters "
+                              "(a custom filter builds its own models from its node, even from an interpolation "
+                              "such as ${scenario.sensors.0}); name the estimators that do in learn.estimators")
 
 
 # -- one unit: an estimator on a range of runs ------------------------------------------------------------
@@ -371,7 +376,9 @@ def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
         v: dict[str, Any] = {"runs": runs, "steps": z.shape[0], "seconds": secs, "multiple_model": est.multiple_model,
                              "state_dim": len(known) if known else 0}
         if label == name:  # (a smoother does not change the data's likelihood); the first `burn` terms left out
-            v["loglik"] = per_run(traj.log_likelihood[int(ctx.cfg.get("burn") or 0):].detach())
+            burn = int(ctx.cfg.get("burn") or 0)
+            scored = torch.isfinite(z[burn:]).any(-1).any(0)  # a run without any datum after burn: no likelihood
+            v["loglik"] = per_run(torch.where(scored, traj.log_likelihood[burn:], torch.nan).detach())
             v["measured"] = per_run(torch.isfinite(z).any(-1).sum(0))  # each run's steps with a datum
         if truth is not None and known:
             scored = present.unsqueeze(-1) & torch.isfinite(truth)
@@ -624,6 +631,13 @@ def run(ctx: StudyContext) -> None:
                     del r["summary"][k]
                 r["influence"].pop(key, None)
     ctx.results.dropped.update(dropped)
+    what = "series" if scenario.data is not None else "runs"
+    for label, r in results.items():  # a per-run value that cannot be computed is left out of the mean, and said
+        for key, values in r["influence"].items():
+            bad = int((~torch.isfinite(values)).sum())
+            if 0 < bad < values.numel() and key in r["summary"]:
+                ctx.results.notes.append(f"{key} ({label}): {bad} of {values.numel()} {what} left out of the mean "
+                                         "(nothing to compute it from: no measurement, or no truth where scored).")
     columns = ["estimator"]
     for key in [k for s in results.values() for k in s["summary"] if k != "seconds_per_step"]:
         if key not in columns:

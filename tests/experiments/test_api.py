@@ -166,3 +166,10 @@ def test_load_of_a_file_or_a_missing_folder_names_the_path(tmp_path):
     with pytest.raises(ValueError, match=rf"^run_dir: {re.escape(str(tmp_path / 'none'))} does not exist"):
         api.load(tmp_path / "none")
     assert api.load(tmp_path).tables == []  # the folder holding it is fine
+
+
+def test_study_out_that_is_a_file_names_out(tmp_path):
+    file = tmp_path / "afile"
+    file.write_text("x")
+    with pytest.raises(ValueError, match=r"^out: .*afile is a file, not a folder"):
+        api.study("imm_baseline", out=file)

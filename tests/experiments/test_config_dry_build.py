@@ -57,6 +57,18 @@ CASES = [
     (["estimators.KF-CV.mode=7"], "estimators.KF-CV="),
     (["scenario.initial_mode_probs=[0.5,0.5]"], "scenario.initial_mode_probs=[0.5, 0.5]: expected 3 probabilities"),
     (["learn={parameters:[{model:'modes[0]',name:F}]}"], "learn.parameters[0].name=F: only the noise covariances"),
+    # the second fuzz: no coercion of words into flags or numbers, repeated names, empty lists, a burn of everything
+    (["figures=no"], "figures=no: expected true or false"),
+    (["progress=no"], "progress=no: expected true or false"),
+    (["update_first=no"], "update_first=no: expected true or false"),
+    (["mc_runs='3'"], "mc_runs=3: expected an integer"),
+    (["scenario.every=1.5"], "scenario.every=1.5: one value per sensor, integer periods"),
+    (["scenario.labels=[a,a,b]"], "scenario.labels=['a', 'a', 'b']: the modes' names must differ"),
+    (["scenario.groups={position:[0,0],velocity:[1,3]}"], "scenario.groups.position=[0, 0]: lists a state component twice"),
+    (["metrics=[]"], "metrics=[]: must not be empty"),
+    (["burn=50"], "burn=50: leaves out every step"),
+    (["MEASUREMENTS=[x,x]"], "scenario.data.measurements=['x', 'x']: measurements[1]: column 'x' is named twice"),
+    (["paired=3"], "paired=3: expected a mapping of reference"),
 ]
 
 

@@ -172,14 +172,17 @@ def test_without_truth_every_truth_metric_is_named_and_none_is_zero(series, tmp_
 
 
 def test_a_series_without_any_measurement_is_not_scored_as_measured(series, tmp_path):
-    """A series whose measurement cells are all empty: measured 0, no NIS (before: 0.0 as if measured), its
-    log-likelihood that of no data (0); the other series' numbers as without it."""
-    with_empty, _ = _run(tmp_path, _write(tmp_path / "e.csv", series, ["s0", "s1"], empty=("s1",)), "withempty")
+    """A series whose measurement cells are all empty: measured 0, no NIS and no log-likelihood (before: NIS
+    0.0 as if measured, and a log-likelihood of 0 averaged into the summary's), said in the notes; the
+    summary is the other series' alone."""
+    with_empty, md = _run(tmp_path, _write(tmp_path / "e.csv", series, ["s0", "s1"], empty=("s1",)), "withempty")
     rows = _series_rows(with_empty)
     assert rows[("IMM", "s1")]["measured"] == 0 and rows[("IMM", "s1")]["nis"] is None
-    assert rows[("IMM", "s1")]["loglik"] == 0.0 and rows[("IMM", "s0")]["measured"] == 39
+    assert rows[("IMM", "s1")]["loglik"] is None and rows[("IMM", "s0")]["measured"] == 39
+    assert "loglik (IMM): 1 of 2 series left out of the mean" in md
     alone, _ = _run(tmp_path, _write(tmp_path / "s0.csv", series, ["s0"]), "s0alone")
-    assert with_empty["metrics"]["IMM"]["nis"] == pytest.approx(alone["metrics"]["IMM"]["nis"], rel=1e-12)
+    for key in ("nis", "loglik"):
+        assert with_empty["metrics"]["IMM"][key] == pytest.approx(alone["metrics"]["IMM"][key], rel=1e-12)
 
 
 def test_a_file_without_any_measurement_is_a_config_error(series, tmp_path):

@@ -108,3 +108,29 @@ def test_the_report_files_hold_no_empty_label(sweep, tmp_path):
     fig = rep.figure(report)
     labels = [t.get_text() for ax in fig.axes for t in ax.get_yticklabels()]
     assert labels and all(", ," not in text and not text.endswith(", ") for text in labels)
+
+
+def test_report_arguments_are_one_line(sweep, tmp_path, capsys):
+    """--replicate naming no config key (before: seed silently a factor, 3 groups of n = 1) and --level
+    that is not a number (before: argparse's usage, 4 lines) are one line, exit 2."""
+    root, _ = sweep
+    assert rep.main([str(root), "--replicate", "NOPE", "--out", str(tmp_path / "r1")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("torchmm-report: error: --replicate: no run's config has a key 'NOPE'") and "\n" not in err
+    assert rep.main([str(root), "--level", "abc", "--out", str(tmp_path / "r2")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == "torchmm-report: error: --level: expected a number in (0, 1), got abc"
+    assert not (tmp_path / "r1").exists() and not (tmp_path / "r2").exists()
+
+
+def test_replicates_that_change_nothing_are_warned_about(tmp_path, capsys):
+    """Seeds over recorded data give identical runs: the report says their zero-width intervals measure
+    nothing (before: "n = 3 replicates" without a word)."""
+    from tests.experiments.test_report import _write_run
+
+    for seed in (0, 1, 2):
+        _write_run(tmp_path / f"run{seed}", {"seed": seed, "experiment_name": "toy"},
+                   {"t": {"columns": ["estimator", "loglik"], "rows": [["KF", -10.0], ["IMM", -9.0]]}})
+    rep.combine(rep.collect_runs([tmp_path]))
+    err = capsys.readouterr().err
+    assert "the 3 runs with different seed give identical tables" in err

@@ -49,6 +49,8 @@ READ_DETECTIONS = {
     "time-list": Spec(DETECTIONS, dict(measurements=["x", "y"], time=["t"]), TypeError, r"^time\b"),
     "series-number": Spec(SERIES, dict(measurements=["x", "y"], time="t", series=3), TypeError, r"^series\b"),
     "path-number": Spec(DETECTIONS, dict(measurements=["x", "y"], time="t"), TypeError, r"^path\b", path=5),
+    "measurements-empty": Spec(DETECTIONS, dict(measurements=[], time="t"), ValueError,
+                               r"^measurements: no columns given"),
     # malformed files: one DataFileError naming file, column and row
     "duplicated-column": Spec("t,x,x,y\n0,1,9,2\n", dict(measurements=["x", "y"], time="t"), DataFileError,
                               r"^{file}: column 'x', row 1: .*2 times in the header"),
@@ -104,6 +106,16 @@ READ_SERIES = {
                                            DataFileError, r"^{file}: column 's', row 3: .*series"),
     "npz-inf-entry": Spec(dict(x=np.array([[1.0, 2.0], [3.0, -np.inf]])), dict(measurements=["x"]), DataFileError,
                           r"^{file}: column 'x', entry \(1, 1\): -inf is not finite", suffix=".npz"),
+    # the second fuzz (issue 44): a column twice, no column, underscores, booleans and objects in an NPZ
+    "measurements-twice": Spec(SERIES, dict(measurements=["x", "x"]), ValueError,
+                               r"^measurements\[1\]: column 'x' is named twice"),
+    "measurements-empty": Spec(SERIES, dict(measurements=[]), ValueError, r"^measurements: no columns given"),
+    "underscore-number": Spec("t,x\n0,1_000\n", dict(measurements=["x"]), DataFileError,
+                              r"^{file}: column 'x', row 2: '1_000' is not a number"),
+    "npz-bool": Spec(dict(x=np.array([True, False])), dict(measurements=["x"]), DataFileError,
+                     r"^{file}: column 'x': expected a numeric", suffix=".npz"),
+    "npz-object": Spec(dict(x=np.array([1.0, "a"], dtype=object)), dict(measurements=["x"]), DataFileError,
+                       r"^{file}: column 'x': an object array", suffix=".npz"),
 }
 
 

@@ -117,6 +117,19 @@ def test_fixed_lag_needs_no_mask_for_gaussian_filters():
         torch.testing.assert_close(out.mean[:length, r], alone.mean[:, 0], rtol=1e-12, atol=1e-12)
 
 
+def test_padding_with_a_measurement_is_refused():
+    """``present`` False at a step that holds a datum would drop it silently: refused, naming present."""
+    bank, sensor = _models()
+    kf = KalmanFilter(bank.select_mode(0), sensor)
+    z, present = _data()
+    traj = run_filter(kf, GaussianBelief(torch.zeros(len(LENGTHS), 2, dtype=torch.float64),
+                                         torch.eye(2, dtype=torch.float64).expand(len(LENGTHS), 2, 2)), z)
+    shorter = present.clone()
+    shorter[10:, 0] = False  # run 0 has data up to step 299
+    with pytest.raises(ValueError, match=r"present: run \(0,\) has a measurement at step 10, marked as padding"):
+        smooth(traj, present=shorter)
+
+
 @pytest.mark.parametrize("bad, message", [
     (lambda p: p[:, :2], r"present: expected shape \(300, 4\)"),
     (lambda p: p.double(), "present: expected a boolean tensor"),
