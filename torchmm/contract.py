@@ -547,10 +547,11 @@ class Shape(Kind):
 class Values(Kind):
     """A tensor-like of real numbers whose entries may be NaN or infinite (an estimate of a diverged
     run, log-probabilities, innovations with NaN = missing): only its type and dtype are checked
-    (no value is read). Lists are converted to a tensor of the default dtype."""
+    (no value is read). Lists are converted to a tensor of the default dtype. ``floating``: a tensor
+    of an integer or boolean dtype is refused (log-weights: ``-inf`` has no integer)."""
 
-    def __init__(self, *, optional: bool = False):
-        self.optional = optional
+    def __init__(self, *, optional: bool = False, floating: bool = False):
+        self.optional, self.floating = optional, floating
 
     def describe(self):
         return "a tensor of real numbers"
@@ -561,6 +562,8 @@ class Values(Kind):
         if isinstance(value, Tensor):
             if value.is_complex():
                 raise TypeError(f"{name}: expected real numbers, got dtype {value.dtype}")
+            if self.floating and not value.is_floating_point():
+                raise TypeError(f"{name}: expected floating-point values, got dtype {value.dtype}")
             return value
         if isinstance(value, (str, bytes)):
             raise TypeError(f"{name}: expected a tensor of real numbers, got the string {value!r}")
@@ -574,6 +577,8 @@ class Values(Kind):
         out = [Invalid("type", "values")]
         if isinstance(valid, Tensor) and valid.is_floating_point():
             out.append(Invalid("dtype", valid.to(torch.complex128)))
+            if self.floating:
+                out.append(Invalid("dtype", valid.nan_to_num().to(torch.int64)))
         return out
 
 
@@ -587,8 +592,8 @@ class Sets(Values):
     names the parameter that holds the set's presence flags ``(*B, D)``, emptied with it."""
 
     def __init__(self, *, axis: int = -2, missing: float | None = math.nan, mask: str | None = None,
-                 optional: bool = False):
-        super().__init__(optional=optional)
+                 optional: bool = False, floating: bool = False):
+        super().__init__(optional=optional, floating=floating)
         self.axis, self.missing, self.mask = axis, missing, mask
 
     def describe(self):

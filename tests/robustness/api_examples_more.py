@@ -172,6 +172,14 @@ example("torchmm.association.tracks.ManagedTracks")(  # over an IMM of two accel
                      detection_probability=0.9, clutter_density=0.01),
                  capacity=4, initiate=association.position_initiator(2, [0], 1.0, 4.0), birth_existence=0.1,
                  unexplained=0.5, delete=0.01, confirm=0.9, m_of_n=(2, 3), max_misses=3, mode_probs=[0.7, 0.3]))
+example("torchmm.association.tracks.ManagedTracks.initial_belief")(  # an empty table of 2 runs
+    lambda: call(association.ManagedTracks.initial_belief,
+                 association.ManagedTracks(
+                     association.JIPDA(filters.KalmanFilter(models.ConstantVelocity(1, dtype=torch.float64),
+                                                            models.PositionMeasurement(2, [0], 1.0, dtype=torch.float64)),
+                                       detection_probability=0.9, clutter_density=0.01),
+                     capacity=3, initiate=association.position_initiator(2, [0], 1.0, 4.0)),
+                 (2,), dtype=torch.float64, device="cpu"))
 example("torchmm.association.tracks.position_initiator")(
     lambda: call(association.position_initiator, 4, [0, 2], torch.eye(2), 25.0))
 example("torchmm.association.particle.ParticleJPDA")(

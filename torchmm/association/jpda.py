@@ -144,15 +144,16 @@ def lbp_marginals(log_w: Tensor, log_missed: float, iterations: int, tolerance: 
     return torch.log_softmax(log_num, -1)
 
 
-@entry_point(log_weights=Sets(axis=-1, missing=-math.inf), missed=Real(minimum=0.0), method=Choice("exact", "lbp"),
+@entry_point(log_weights=Sets(axis=-1, missing=-math.inf, floating=True), missed=Real(minimum=0.0), method=Choice("exact", "lbp"),
              iterations=Int(1), tolerance=Real(minimum=0.0))
 def jpda_marginals(log_weights: Tensor, missed: float, *, method: str = "exact", iterations: int = 100,
                    tolerance: float = 1e-13) -> tuple[Tensor, Tensor | None]:
     r"""JPDA association probabilities from single-target log-weights.
 
     Args:
-        log_weights: ``(*B, N, D)`` ``log w_ij`` (``-inf``: detection ``j`` not validated by track ``i``;
-            ``D = 0``: no detection, the same marginals ``beta_i0`` and ``Z`` as ``D`` columns of ``-inf``).
+        log_weights: ``(*B, N, D)`` ``log w_ij``, floating point (an integer tensor is a ``TypeError``;
+            ``-inf``: detection ``j`` not validated by track ``i``; ``D = 0``: no detection, the same
+            marginals ``beta_i0`` and ``Z`` as ``D`` columns of ``-inf``).
         missed: ``m``, the weight of a missed detection (``1 - P_D P_G``; 0: every track is detected).
         method: ``"exact"`` (every joint event) or ``"lbp"`` (loopy belief propagation).
         iterations, tolerance: the belief propagation's most iterations and relative tolerance (on
@@ -229,6 +230,8 @@ class JPDA(DetectionSets):
         >>> out.belief.mean.shape, out.extras["association"].shape
         (torch.Size([2, 2]), torch.Size([2, 4]))
     """
+
+    joint = True
 
     @entry_point(filter=Of(Filter), detection_probability=Real(0.0, 1.0), clutter_density=Real(positive=True),
                  gate_probability=Real(0.0, 1.0), method=Choice("exact", "lbp"), max_targets=Int(1),

@@ -59,7 +59,8 @@ class ParticlePDA(DetectionSets):
         torch.Size([500, 2])
     """
 
-    @entry_point(filter=Of(ParticleFilter), detection_probability=Real(0.0, 1.0), clutter_density=Real(positive=True))
+    @entry_point(filter=Of(ParticleFilter, what="a ParticleFilter (for a Gaussian filter: PDA)"),
+                 detection_probability=Real(0.0, 1.0), clutter_density=Real(positive=True))
     def __init__(self, filter: ParticleFilter, *, detection_probability: float, clutter_density: float):
         super().__init__()
         if not 0.0 < detection_probability <= 1.0:
@@ -126,7 +127,10 @@ class ParticleJPDA(ParticlePDA):
         (torch.Size([2, 500, 2]), torch.Size([2, 4]))
     """
 
-    @entry_point(filter=Of(ParticleFilter), detection_probability=Real(0.0, 1.0), clutter_density=Real(positive=True),
+    joint = True
+
+    @entry_point(filter=Of(ParticleFilter, what="a ParticleFilter (for a Gaussian filter: JPDA)"),
+                 detection_probability=Real(0.0, 1.0), clutter_density=Real(positive=True),
                  method=Choice("exact", "lbp"), max_targets=Int(1), iterations=Int(1), tolerance=Real(minimum=0.0))
     def __init__(self, filter: ParticleFilter, *, detection_probability: float, clutter_density: float,
                  method: str = "exact", max_targets: int = 12, iterations: int = 100, tolerance: float = 1e-13):

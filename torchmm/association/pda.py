@@ -39,6 +39,7 @@ from torch import Tensor
 from torchmm.beliefs import GaussianBelief, ModeBelief, ModelSetBelief
 from torchmm.contract import Of, Real, entry_point
 from torchmm.filters.base import Filter, StepOutput
+from torchmm.filters.particle import ParticleFilter
 from torchmm.linalg import cholesky, solve_lower, sum_last
 from torchmm.validation import check_filter_dtype
 
@@ -81,6 +82,8 @@ class DetectionSets(Filter):
 
     #: a set of detections per scan, (*B, D, m)
     measurement_rank = 2
+    #: the belief's last batch axis holds a run's tracks, which share each scan (JPDA and its kin)
+    joint: bool = False
 
     @property
     def state_dim(self) -> int | None:
@@ -98,6 +101,21 @@ class DetectionSets(Filter):
     def detections_dim(self) -> int:
         """``m`` of each detection."""
         return self.filter.meas_dim
+
+    def check_measurements(self, measurements: Tensor, batch: torch.Size, name: str = "measurements", *,
+                           time: bool = True) -> None:
+        """Scans of detections ``(T, *B, D, m)`` (``time``; one scan ``(*B, D, m)`` without) against the
+        belief's ``batch`` (a joint association's: the runs, its tracks last): :func:`check_scans`."""
+        check_scans(measurements, self.detections_dim, batch, name, time=time, joint=self.joint)
+
+    def check_bank_member(self, name: str, num_modes: int) -> None:
+        """A joint association cannot be a mode filter: the combinator's mode axis, last, would be taken
+        for its tracks (each mode a track competing for the detections, each track a run). The
+        association over the multiple-model filter is the joint IMM form (``JPDA(IMM(...))``)."""
+        if self.joint:
+            cls = type(self).__name__
+            raise TypeError(f"{name}: {cls} cannot be a mode filter (the modes would be taken for its tracks); "
+                            f"associate over the multiple-model filter instead: {cls}(IMM(...), ...)")
 
     def initial_belief(self, belief, **kwargs):
         return self.filter.initial_belief(belief, **kwargs)
@@ -195,6 +213,37 @@ def check_detections(z, m: int, batch: torch.Size, dtype: torch.dtype, *, tracks
                          f"{tuple(batch)}") from None
 
 
+def check_scans(z, m: int, batch: torch.Size, name: str = "measurements", *, time: bool = True,
+                joint: bool = False) -> None:
+    """The scans of detections given to an association, checked in the shape the caller passed (a
+    combinator adds its mode axes only after): ``(T, *B', D, m)`` (``time``) or one scan
+    ``(*B', D, m)``, real, ``*B'`` broadcasting to the belief's ``batch`` without enlarging it (a joint
+    association's ``batch`` ends with the run's tracks, which share the scan: ``*B'`` broadcasts to the
+    runs). Shapes and dtypes only (no value is read). ``ValueError``/``TypeError`` naming ``name``."""
+    form = f"(T, *B, D, {m})" if time else f"(*B, D, {m})"
+    what = "scans of detections" if time else "a scan of detections"
+    if not isinstance(z, Tensor):
+        raise TypeError(f"{name}: expected {what} {form}, got {type(z).__name__}")
+    lead = 1 if time else 0
+    shape = tuple(z.shape)
+    if z.dim() < lead + 2 or z.shape[-1] != m:
+        raise ValueError(f"{name}: expected {what} {form}, got {shape}")
+    if z.is_complex() or z.dtype == torch.bool:
+        raise TypeError(f"{name}: expected real detections, got dtype {z.dtype}")
+    runs = batch[:-1] if joint and len(batch) else batch
+    given = z.shape[lead:-2]
+    try:
+        fits = torch.broadcast_shapes(given, runs) == runs
+    except RuntimeError:
+        fits = False
+    if not fits:
+        where = (f"the runs {tuple(runs)} of the belief's batch {tuple(batch)} (tracks last)" if joint
+                 else f"the belief's batch {tuple(batch)}")
+        whose = "the scans'" if time else "the scan's"
+        raise ValueError(f"{name}: {whose} batch {tuple(given)} does not broadcast to {where}; {name} {shape} are "
+                         f"{form.replace(str(m), 'm')}")
+
+
 def set_association(assoc, filter: Filter, detection_probability: float, clutter_density: float,
                     gate_probability: float) -> None:
     """Check and keep the association's filter and parameters (PDA, JPDA and their kin), and its
@@ -203,10 +252,16 @@ def set_association(assoc, filter: Filter, detection_probability: float, clutter
         raise ValueError(f"detection_probability: expected a probability in (0, 1], got {detection_probability}")
     if not 0.0 < gate_probability <= 1.0:
         raise ValueError(f"gate_probability: expected a probability in (0, 1], got {gate_probability}")
+    name = type(assoc).__name__
+    # the filter's family, at construction (its beliefs were checked only at the first step, naming belief)
+    if any(isinstance(module, ParticleFilter) for module in filter.modules()):  # an IMM over them, an MM-PF
+        instead = "ParticleJPDA" if getattr(assoc, "joint", False) else "ParticlePDA"
+        raise TypeError(f"filter: {name} needs a filter with Gaussian beliefs (Kalman, extended, unscented, or an "
+                        f"IMM/GPB over them); {type(filter).__name__} draws particles: for a ParticleFilter use "
+                        f"{instead}")
     m = filter.meas_dim
     if m is None:
-        raise ValueError(f"filter: {type(assoc).__name__} needs a filter with a sensor (meas_dim), got "
-                         f"{type(filter).__name__}")
+        raise ValueError(f"filter: {name} needs a filter with a sensor (meas_dim), got {type(filter).__name__}")
     assoc.filter = filter
     assoc.detection_probability = float(detection_probability)
     assoc.clutter_density = float(clutter_density)

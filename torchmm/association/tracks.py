@@ -27,6 +27,7 @@ import torch
 from torch import Tensor
 
 from torchmm.association.ipda import JIPDA
+from torchmm.association.pda import check_scans
 from torchmm.beliefs import (
     Belief,
     ExistenceBelief,
@@ -37,9 +38,9 @@ from torchmm.beliefs import (
     where,
 )
 from torchmm.beliefs.existence import check_existence_belief
-from torchmm.contract import Finite, Indices, Int, Of, Real, entry_point
+from torchmm.contract import DType, Device, Finite, Indices, Int, Of, Real, Shape, entry_point
 from torchmm.filters.base import Filter, StepOutput
-from torchmm.validation import check_probabilities
+from torchmm.validation import check_covariance, check_probabilities
 
 __all__ = ["ManagedTracks", "ModeTrackTable", "TrackTable", "position_initiator"]
 
@@ -165,12 +166,27 @@ def position_initiator(state_dim: int, indices, noise_cov, unobserved_variance: 
     ``PositionMeasurement``): the state ``z`` at ``indices`` and 0 elsewhere, the covariance
     ``noise_cov`` at ``indices`` and ``unobserved_variance`` on the diagonal elsewhere (velocities).
 
+    Raises (at the call, naming the argument): an index outside the ``state_dim`` components or given
+    twice (``indices``); a ``noise_cov`` that does not expand to ``(m, m)`` or is not a covariance
+    (symmetric, positive semi-definite: every track it started would fail).
+
     Shapes: ``z (*B, m)`` -> a :class:`~torchmm.GaussianBelief` ``(*B, n)``."""
-    idx = list(indices)
+    idx = [int(i) for i in indices]
     m = len(idx)
+    for i in idx:
+        if i >= state_dim:
+            raise ValueError(f"indices: entry {i} is outside the state's {state_dim} components (0 .. {state_dim - 1})")
+    repeated = next((i for k, i in enumerate(idx) if i in idx[:k]), None)
+    if repeated is not None:
+        raise ValueError(f"indices: {repeated} is given twice (each measured component once)")
     H = torch.zeros(m, state_dim, dtype=torch.float64)
     H[torch.arange(m), torch.tensor(idx)] = 1.0
-    R = torch.as_tensor(noise_cov, dtype=torch.float64).expand(m, m)
+    try:
+        R = torch.as_tensor(noise_cov, dtype=torch.float64).expand(m, m)
+    except RuntimeError:
+        raise ValueError(f"noise_cov: expected a number or a ({m}, {m}) matrix for the {m} indices, got shape "
+                         f"{tuple(torch.as_tensor(noise_cov).shape)}") from None
+    check_covariance(R, "noise_cov")
     cov = H.mT @ R @ H + torch.diag((1.0 - H.sum(0)) * float(unobserved_variance))
     made: dict = {}  # (dtype, device) -> (H, cov): copied to a device once, not at every scan
 
@@ -266,9 +282,27 @@ class ManagedTracks(Filter):
     def informative(self, z: Tensor) -> Tensor:
         return torch.ones(z.shape[:-2], dtype=torch.bool, device=z.device)
 
+    def check_measurements(self, measurements: Tensor, batch: torch.Size, name: str = "measurements", *,
+                           time: bool = True) -> None:
+        """The scans ``(T, *B, D, m)`` against the table's runs (its batch ``(*B, K)``, the slots last):
+        :func:`~torchmm.association.pda.check_scans`."""
+        check_scans(measurements, self.association.detections_dim, batch, name, time=time, joint=True)
+
+    def check_bank_member(self, name: str, num_modes: int) -> None:
+        """Not a mode filter: the table's slots are its last batch axis (manage an IMM-JIPDA instead:
+        ``ManagedTracks(JIPDA(IMM(...)), ...)``)."""
+        raise TypeError(f"{name}: ManagedTracks cannot be a mode filter (the modes would be taken for its slots); "
+                        "manage the tracks of a JIPDA over the multiple-model filter: ManagedTracks(JIPDA(IMM(...)), "
+                        "...)")
+
+    @entry_point(batch_shape=Shape(), dtype=DType(), device=Device())
     def initial_belief(self, batch_shape=(), *, dtype=torch.float64, device=None) -> TrackTable | ModeTrackTable:
         """An empty table: ``capacity`` free slots per run, batch ``(*batch_shape, K)`` (a
-        :class:`ModeTrackTable` over an IMM)."""
+        :class:`ModeTrackTable` over an IMM).
+
+        Args:
+            batch_shape: the runs, a shape (``(runs,)``; ``()``: one run); a bare integer is refused.
+            dtype: a floating dtype (default float64; None: the default dtype); device: where."""
         n, K = self.state_dim, self.capacity
         shape = (*tuple(batch_shape), K)
         state = self._started(GaussianBelief(torch.zeros(*shape, n, dtype=dtype, device=device),

@@ -114,6 +114,14 @@ class Filter(nn.Module):
         ``num_particles`` when ``num_modes > 1`` because mixing merges the particle sets.
         """
 
+    def check_measurements(self, measurements: Tensor, batch: torch.Size, name: str = "measurements", *,
+                           time: bool = True) -> None:
+        """Check the shape and dtype of measurements that are not a sensor's (``meas_dim`` is None: a
+        scan of detections, ``(*B, D, m)``) against the belief's batch ``(*B,)``, naming ``name``:
+        :func:`~torchmm.run_filter` calls it once at entry with the whole sequence (``time``:
+        ``(T, *B, ...)``), a combinator over such filters once per step with its datum (shapes only:
+        no value is read). The default checks nothing (a sensor's ``(T, *B, m)`` is checked by
+        ``run_filter`` itself; other filters check each step's datum)."""
     def update(self, belief: Any, z: Any) -> StepOutput:
         """Measurement update of a prior ``belief`` with ``z`` (NaN = missing)."""
         raise NotImplementedError

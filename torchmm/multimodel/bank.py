@@ -57,6 +57,14 @@ class FilterBank(nn.Module):
         first = self._first_filter()
         return any_observed(z) if first is None else first.informative(z)
 
+    def check_measurements(self, measurements: Tensor, batch: torch.Size, name: str = "measurements", *,
+                           time: bool = True) -> None:
+        """A mode filter's :meth:`~torchmm.filters.Filter.check_measurements` (the modes share their
+        measurement), with the combinator's batch ``(*B,)`` (without the mode axis)."""
+        first = self._first_filter()
+        if first is not None:
+            first.check_measurements(measurements, batch, name, time=time)
+
     @property
     def state_dim(self) -> int | None:
         """The state dimension the modes share (None if a filter does not say)."""

@@ -240,16 +240,24 @@ class MultipleModelFilter(Filter):
         batch = mode_batch(belief)
         m = self.bank.meas_dim if sensor is None or isinstance(sensor, (list, tuple)) else sensor.meas_dim
         like = belief.mode_log_probs
-        if m is None:  # a set of detections (an association's scan): the mode filters check it
-            if isinstance(z, Tensor):
-                return z
-            if z is None or isinstance(z, (str, bytes)):
-                raise TypeError(f"{name}: expected a tensor, got {type(z).__name__}")
-            try:
-                return torch.as_tensor(z, dtype=like.dtype, device=like.device)
-            except (TypeError, ValueError, RuntimeError) as err:
-                raise TypeError(f"{name}: cannot convert to a tensor ({err})") from None
+        if m is None:  # a set of detections (an association's scan): checked in the user's shape, here
+            if not isinstance(z, Tensor):
+                if z is None or isinstance(z, (str, bytes)):
+                    raise TypeError(f"{name}: expected a tensor, got {type(z).__name__}")
+                try:
+                    z = torch.as_tensor(z, dtype=like.dtype, device=like.device)
+                except (TypeError, ValueError, RuntimeError) as err:
+                    raise TypeError(f"{name}: cannot convert to a tensor ({err})") from None
+            if sensor is None:
+                self.bank.check_measurements(z, batch, name, time=False)
+            return z
         return check_measurement(z, m, batch, like, name)
+
+    def check_measurements(self, measurements: Tensor, batch: torch.Size, name: str = "measurements", *,
+                           time: bool = True) -> None:
+        """The mode filters' check (:meth:`~torchmm.filters.Filter.check_measurements`: an IMM over an
+        association checks the scans), with this filter's batch ``(*B,)``."""
+        self.bank.check_measurements(measurements, batch, name, time=time)
 
     def _matrix(self, like: Tensor) -> Tensor:
         return _matrix(self.transition, like)
