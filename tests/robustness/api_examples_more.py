@@ -26,6 +26,7 @@ from torchmm.beliefs import GaussianBelief, ParticleBelief
 from torchmm.filters import KalmanFilter
 
 NOT_ENTRY_POINTS.update({
+    "torchmm.learn.estimation.Estimate": "a result record (what estimate found), built by estimate",
     "torchmm.distributions.truncated_normal_moments": _OP + " (the variational filters call it inside every "
     "step; its inputs are the filter's own moments)",
 })
@@ -284,6 +285,22 @@ def _minimize():
 
 
 example(_L + "objective.Objective.minimize")(_minimize)
+
+
+def _estimation():
+    from torchmm.models import LinearMeasurement, LinearMotion
+
+    kf = KalmanFilter(LinearMotion([[1.0]], [[1.0]]), LinearMeasurement([[1.0]], [[1.0]]))
+    z = torch.randn(20, 1, generator=_gen()).cumsum(0)
+    return call(learn.estimate, kf, GaussianBelief(torch.zeros(1), torch.eye(1)), z, {"motion.Q": "variance"},
+                controls=None, update_first=False, burn=0, method="L-BFGS-B", se=True, hessian="differences",
+                tol=1e-8, maxiter=20, write=True, progress=False)
+
+
+example(_L + "estimation.estimate")(_estimation)
+example(_L + "estimation.Param")(lambda: call(learn.Param, "free", fixed=None, groups=None, lower=0.0, upper=2.0,
+                                              label="x"))
+example(_L + "estimation.stationary")(lambda: call(learn.stationary, _transition()))
 
 example(_L + "trainer.Trainer")(
     lambda: call(learn.Trainer, _learnable_kf(), torch.optim.SGD([torch.nn.Parameter(torch.zeros(1))], 0.1),

@@ -5,6 +5,9 @@
   modules (transition logits, parametrised noise covariances, networks).
 * :func:`truncated_segments` and :class:`Trainer` (``window=``) - truncated back-propagation
   through time for long sequences.
+* :func:`estimate` - maximum likelihood of any tensors of a filter (:class:`Param`: free, bounded,
+  variances, covariances, transition matrices, shared and fixed entries) with standard errors from the
+  observed information, AIC, BIC and expected durations (:class:`Estimate`).
 * :class:`Trainer` - a training loop with a logger/callback hook (no TensorBoard import: pass any
   object with ``scalar(tag, value, step)``), parameter tracking and checkpoints
   (:func:`save_checkpoint` / :func:`load_checkpoint`).
@@ -12,6 +15,7 @@
   resampling of particle beliefs and a particle filter that uses it.
 """
 
+from torchmm.learn.estimation import Estimate, Param, estimate, stationary
 from torchmm.learn.loss import negative_log_likelihood, truncated_segments
 from torchmm.learn.objective import Objective
 from torchmm.learn.resampling import (
@@ -22,15 +26,19 @@ from torchmm.learn.resampling import (
 from torchmm.learn.trainer import NonFiniteLossError, Trainer, TrainRecord, load_checkpoint, save_checkpoint
 
 __all__ = [
+    "Estimate",
     "Objective",
+    "Param",
     "NonFiniteLossError",
     "SoftResamplingParticleFilter",
     "TrainRecord",
     "Trainer",
+    "estimate",
     "load_checkpoint",
     "negative_log_likelihood",
     "save_checkpoint",
     "soft_resample",
     "soft_resample_where_needed",
+    "stationary",
     "truncated_segments",
 ]

@@ -22,9 +22,10 @@ from torch.nn.utils import parametrize
 
 import torchmm.kernels as kernels
 from torchmm.beliefs import Belief, ModeBelief
-from torchmm.contract import Choice, Data, Flag, Of, Real, Tensors, entry_point
+from torchmm.contract import Choice, Data, Flag, Int, Of, Real, Tensors, entry_point
 from torchmm.filters.base import Filter
 from torchmm.learn.loss import REDUCTIONS, as_start_belief, negative_log_likelihood, reduce_total
+from torchmm.run import Keep, run_filter
 from torchmm.validation import check_filter_dtype, check_measurement
 
 __all__ = ["Objective"]
@@ -48,6 +49,10 @@ class Objective:
         reduction: ``"sum"`` (default: the log-likelihood's scale), ``"mean"`` or ``"none"``, as for
             :func:`~torchmm.learn.negative_log_likelihood`.
         update_first: ``belief0`` is the prior of the first measurement (statsmodels' convention).
+        controls: ``(T, *B, k)``, the inputs ``u_k`` of the motion models (e.g. regressors).
+        motions, sensors: per-step models, as for :func:`~torchmm.run_filter` (irregular time stamps:
+            one motion model per step). With controls or per-step models the eager steps run.
+        burn: the first steps' log-likelihood terms left out (e.g. 1 under a diffuse prior).
 
     Returns (a call):
         the loss, differentiable in the filter's parameters (and the start belief's).
@@ -73,15 +78,29 @@ class Objective:
     """
 
     @entry_point(filter=Of(Filter), belief0=Of(Belief, callable_ok=True, what="a belief or a function filter -> belief"),
-                 measurements=Data(), reduction=Choice(*REDUCTIONS), update_first=Flag())
+                 measurements=Data(), reduction=Choice(*REDUCTIONS), update_first=Flag(),
+                 controls=Data(optional=True),
+                 motions=Of((list, tuple, torch.nn.Module), callable_ok=True, optional=True,
+                            what="a sequence of T models, a callable k -> model, or None"),
+                 sensors=Of((list, tuple, torch.nn.Module), callable_ok=True, optional=True,
+                            what="a sequence of T models, a callable k -> model, or None"),
+                 burn=Int(0))
     def __init__(self, filter: Filter, belief0: Belief | Callable[[Filter], Belief], measurements: Tensor, *,
-                 reduction: str = "sum", update_first: bool = False):
+                 reduction: str = "sum", update_first: bool = False, controls: Tensor | None = None,
+                 motions: Any = None, sensors: Any = None, burn: int = 0):
         if not isinstance(measurements, Tensor) or measurements.dim() < 2:
             raise ValueError("measurements: expected a time-major tensor (T, *B, m)")
         if measurements.shape[0] == 0:
             raise ValueError(f"measurements: no time steps (shape {tuple(measurements.shape)}): a likelihood "
                              "needs T >= 1")
+        if burn >= measurements.shape[0]:
+            raise ValueError(f"burn: leaves out all {measurements.shape[0]} steps ({burn}): no likelihood term is left")
+        if controls is not None and (not isinstance(controls, Tensor) or controls.dim() < 1
+                                     or controls.shape[0] != measurements.shape[0]):
+            raise ValueError(f"controls: expected (T, *B, k) with the measurements' {measurements.shape[0]} steps, got "
+                             f"{tuple(controls.shape) if isinstance(controls, Tensor) else type(controls).__name__}")
         self.filter, self.start, self.measurements = filter, belief0, measurements
+        self.controls, self.motions, self.sensors, self.burn = controls, motions, sensors, int(burn)
         self._check_parameters()
         self.reduction, self.update_first = reduction, update_first
         self.kernel, self.why = "eager", ""
@@ -106,9 +125,12 @@ class Objective:
                 raise ValueError(f"measurements: every entry is missing (non-finite; shape "
                                  f"{tuple(measurements.shape)}): the likelihood does not depend on the "
                                  "parameters, nothing to learn from")
-            request = kernels.Request(update_first=update_first, keep=frozenset({"log_likelihood"}),
-                                      repeated=True)
-            self._prepared, self.why = kernels.plan(filter, first, measurements, request)
+            if controls is not None or motions is not None or sensors is not None:
+                self._prepared, self.why = None, "controls or per-step models (the eager steps take them)"
+            else:
+                request = kernels.Request(update_first=update_first, keep=frozenset({"log_likelihood"}),
+                                          repeated=True)
+                self._prepared, self.why = kernels.plan(filter, first, measurements, request)
 
     def _belief(self) -> Any:
         return self.start(self.filter) if callable(self.start) else self.start
@@ -155,11 +177,17 @@ class Objective:
                 if ll is not None:
                     self.kernel = self._prepared.name
                     if total:
-                        return -ll.sum()
-                    return reduce_total(-ll.sum(0), self.reduction, ll.shape[0])
+                        return -ll[self.burn:].sum()
+                    return reduce_total(-ll[self.burn:].sum(0), self.reduction, ll.shape[0] - self.burn)
             self.kernel = "eager"
-            return negative_log_likelihood(self.filter, belief, self.measurements, reduction=self.reduction,
-                                           update_first=self.update_first)
+            if self.burn == 0 and self.controls is None and self.motions is None and self.sensors is None:
+                return negative_log_likelihood(self.filter, belief, self.measurements, reduction=self.reduction,
+                                               update_first=self.update_first)
+            traj = run_filter(self.filter, as_start_belief(self.filter, belief), self.measurements,
+                              controls=self.controls, motions=self.motions, sensors=self.sensors,
+                              record=Keep("log_likelihood"), update_first=self.update_first)
+            steps = self.measurements.shape[0] - self.burn
+            return reduce_total(-traj.log_likelihood[self.burn:].sum(0), self.reduction, steps)
 
     @entry_point(parameters=Tensors(optional=True, check=False), method=Choice(*GRADIENT_METHODS),
                  tol=Real(positive=True, optional=True), options=Of(Mapping, optional=True, what="a dict"))
