@@ -222,6 +222,11 @@ def test_an_objective_over_measurements_that_are_all_missing_names_them(shape):
     for missing in (float("nan"), float("inf")):
         with pytest.raises(ValueError, match=r"^measurements: every entry is missing"):
             Objective(kf, belief0, torch.full(shape, missing))
+    # burn: the steps left out of the likelihood do not count (data only there inform no term)
+    z = torch.full(shape, float("nan"))
+    z[0] = 1.0
+    with pytest.raises(ValueError, match=r"^measurements: every entry after the burn \(1 steps\) is missing"):
+        Objective(kf, belief0, z, burn=1)
     # one datum is enough to build it (and its gradient is not zero)
     z = torch.full(shape, float("nan"))
     z.view(-1)[-1] = 0.5

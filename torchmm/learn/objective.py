@@ -121,8 +121,9 @@ class Objective:
                     check_measurement(measurements[0], meas_dim, batch, like, "measurements")
             # one host read: data with no datum inform no parameter (the gradient is 0, not None, so
             # minimize would stop at once with success)
-            if not bool(torch.isfinite(measurements).any()):
-                raise ValueError(f"measurements: every entry is missing (non-finite; shape "
+            if not bool(torch.isfinite(measurements[self.burn:]).any()):
+                after = f" after the burn ({self.burn} steps)" if self.burn else ""
+                raise ValueError(f"measurements: every entry{after} is missing (non-finite; shape "
                                  f"{tuple(measurements.shape)}): the likelihood does not depend on the "
                                  "parameters, nothing to learn from")
             if controls is not None or motions is not None or sensors is not None:
