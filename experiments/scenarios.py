@@ -230,6 +230,9 @@ class SystemScenario:
     every: list[int]
     data: Any = None
     motions: list | None = None
+    #: ``initial_mode_probs: ergodic``: the start's mode probabilities are the transition matrix's
+    #: stationary ones (estimating the matrix re-derives them at every evaluation)
+    ergodic: bool = False
 
     @property
     def num_modes(self) -> int:
@@ -405,7 +408,8 @@ def system(
         transition=matrix.to(device),
         initial=initial.to(device), steps=int(steps), initial_mode_probs=None if probs is None else probs.to(device),
         mode_labels=labels, groups=groups, sensor_dims=dims, missing=[float(p) for p in per_sensor[0]],
-        every=[int(k) for k in per_sensor[1]], data=recorded, motions=motions)
+        every=[int(k) for k in per_sensor[1]], data=recorded, motions=motions,
+        ergodic=isinstance(initial_mode_probs, str))
 
 
 def read_data(data: Any, n: int, m: int):

@@ -311,26 +311,37 @@ class CompareEstimator:
 METRICS = ("rmse", "nees", "nis", "mode_accuracy", "loglik", "whiteness", "time")
 
 
-def _model_name(value) -> str | None:
-    return None if re.fullmatch(r"(modes|sensors)(\[\d+\])?", str(value)) else "expected modes[i] or sensors[i]"
+def _learn_model(value) -> str | None:
+    if value is None:
+        return None
+    return None if re.fullmatch(r"(modes|sensors)(\[\d+\])?", str(value)) else \
+        "expected modes, modes[i], sensors or sensors[i]"
 
 
 @dataclass
 class LearnParameter:
-    model: str = spec("modes[0]", _model_name)
-    name: str = "Q"
-    kind: str = spec("log_diagonal", one_of("cholesky", "log_diagonal", "scale"))
+    model: Optional[str] = spec(None, _learn_model)  # None: the transition matrix
+    name: str = "Q"  # the tensor: Q, R, F, H, offset, input_matrix, ..., or transition
+    kind: Optional[str] = spec(None, lambda v: None if v is None else one_of(
+        "free", "variance", "covariance", "stochastic", "probabilities", "log_diagonal", "cholesky", "scale")(v))
+    shared: bool = False  # one value for every mode (a bank's tensor)
+    fixed: Optional[Any] = None  # a boolean mask of one model's tensor: entries held at their values
+    lower: Optional[float] = None  # bounds of a free tensor's entries
+    upper: Optional[float] = None
 
 
 @dataclass
 class Learn:
     parameters: List[LearnParameter] = spec(factory=list, check=non_empty)
+    method: str = spec("mle", one_of("mle", "gradient"))  # mle: torchmm.learn.estimate, with standard errors
     estimator: Optional[str] = None  # this one estimator learns (its own copy of the models)
     estimators: Optional[List[str]] = None  # these learn, each its own copy (default: every estimator)
-    optimizer: str = spec("lbfgs", one_of("lbfgs", "adam"))
-    lr: float = spec(1.0, positive)
-    iterations: int = spec(30, positive_int)
-    tolerance: float = spec(1e-12, non_negative)  # stop once the loss's relative change is below it (0: never)
+    hessian: str = spec("differences", one_of("differences", "autograd"))  # mle: the information's computation
+    maxiter: Optional[int] = spec(None, lambda v: None if v is None else positive_int(v))  # mle: optimiser's limit
+    optimizer: str = spec("lbfgs", one_of("lbfgs", "adam"))  # gradient: the torch optimiser
+    lr: float = spec(1.0, positive)  # gradient
+    iterations: int = spec(30, positive_int)  # gradient
+    tolerance: float = spec(1e-12, non_negative)  # gradient: stop once the loss's relative change is below it
 
 
 @dataclass

@@ -38,6 +38,7 @@ import torch
 from hydra.utils import instantiate
 from torch import Tensor
 
+from experiments import learning
 from experiments.executors import Unit
 from experiments.harness import StudyContext, join_runs, per_run
 from experiments.scenarios import Concatenated, default_dtype
@@ -51,7 +52,6 @@ UNIT = "experiments.studies.compare:unit"
 TRUTH_METRICS = ("rmse", "nees", "mode_accuracy")
 ALL_METRICS = ("rmse", "nees", "nis", "mode_accuracy", "loglik", "whiteness", "time")
 #: the parametrisations of a learned covariance (torchmm.learnable_noise)
-KINDS = ("log_diagonal", "cholesky", "scale")
 #: the summary's values (the others are their standard errors, bounds and counts)
 _MAIN = ("nees", "nis", "loglik", "mode_accuracy", "whiteness_lag1")
 
@@ -62,55 +62,23 @@ def _built(ctx: StudyContext):
     return ctx.memo(("compare", "built"), lambda: ctx.scenarios(ctx.cfg.scenario)[0])
 
 
-def learn_spec(cfg):
-    """The ``learn`` block with the schema's defaults for the keys it does not set (``optimizer``,
-    ``lr``, ``iterations``, ...: experiments/schemas.py, ``Learn``); None without one."""
-    from omegaconf import OmegaConf
-
-    from experiments.schemas import Learn
-
-    if not cfg.get("learn"):
-        return None
-    return OmegaConf.merge(OmegaConf.structured(Learn), cfg.learn)
-
-
-def learners(cfg) -> list[str]:
-    """The estimators that learn their own parameters (``learn.estimators``; ``learn.estimator``: that one;
-    default every estimator): each is fitted on its own copy of the scenario's models and runs with
-    its own fit; every other estimator runs with the configured values."""
-    spec = cfg.get("learn")
-    if not spec:
-        return []
-    if spec.get("estimator") is not None:
-        return [str(spec.estimator)]
-    if spec.get("estimators") is not None:
-        return [str(n) for n in spec.estimators]
-    return [str(n) for n in cfg.estimators]
-
-
 def _scenario_of(ctx: StudyContext, name: str | None = None):
-    """The scenario in the filters' dtype for estimator ``name``: its own models fitted first when it
-    learns (``learn``; once per process, on a copy: one estimator's fit never reaches another)."""
-    if name is None or name not in learners(ctx.cfg):
+    """The scenario in the filters' dtype for estimator ``name``: its own models, fitted first when it
+    learns by ``method: gradient`` (once per process, on a copy: one estimator's fit never reaches
+    another)."""
+    if name is None or name not in learning.learners(ctx.cfg):
         return _built(ctx)
     return _learned(ctx, name)[0]
 
 
 def _learned(ctx: StudyContext, name: str):
-    """``(scenario, record)``: estimator ``name``'s own copy of the models, fitted (memoised)."""
+    """``(scenario, record, estimator)``: estimator ``name`` on its own copy of the models, fitted
+    (memoised)."""
     def fit():
-        scenario = _own_models(_built(ctx))
-        return scenario, _learn(ctx, scenario, name)
+        scenario = learning.own_models(_built(ctx))
+        record, est = _learn(ctx, scenario, name)
+        return scenario, record, est
     return ctx.memo(("compare", "learned", name), fit)
-
-
-def _own_models(scenario):
-    """The scenario with copies of its models (the data and everything else shared)."""
-    import copy
-    import dataclasses
-
-    return dataclasses.replace(scenario, motion=copy.deepcopy(scenario.motion),
-                               measurement=copy.deepcopy(scenario.measurement))
 
 
 def _data(ctx: StudyContext, start: int, stop: int):
@@ -161,64 +129,41 @@ def _module(scenario, where: str):
     return models[index]
 
 
-def learn_targets(scenario, spec, est_name: str) -> list:
-    """``[(key, module, name, initial)]``: the named covariances of ``learn.parameters`` made learnable
-    on ``scenario``'s models (:func:`torchmm.learnable_noise`). Raises ``ConfigError`` naming the entry."""
-    from experiments.config import ConfigError
-    from torchmm import learnable_noise
-
-    targets = []
-    for i, p in enumerate(spec.parameters):
-        key = f"learn.parameters[{i}]"
-        try:
-            module = _module(scenario, str(p.model))
-        except ValueError as err:
-            raise ConfigError(f"{key}.model", str(p.model), str(err)) from None
-        name = str(p.name)
-        value = getattr(module, name, None)
-        if name not in ("Q", "R"):
-            raise ConfigError(f"{key}.name", name, "only the noise covariances Q (of a mode) and R (of a sensor) "
-                              "are learnable here")
-        if not isinstance(value, Tensor):
-            known = [n for n in ("Q", "R") if isinstance(getattr(module, n, None), Tensor)]
-            raise ConfigError(f"{key}.name", name, f"{p.model} ({type(module).__name__}) has no covariance {name!r}"
-                              + (f" (it has {', '.join(known)})" if known else ""))
-        initial = value.detach().clone()
-        kind = str(p.get("kind") or "log_diagonal")
-        if kind not in KINDS:
-            raise ConfigError(f"{key}.kind", kind, f"must be one of {', '.join(KINDS)}")
-        try:
-            learnable_noise(module, name, kind)
-        except (TypeError, ValueError) as err:
-            raise ConfigError(f"{key}", f"{p.model}.{name}", str(err)) from None
-        targets.append((f"{p.model}.{name}", module, name, initial))
-    return targets
-
-
-def _learn(ctx: StudyContext, scenario, est_name: str) -> dict:
-    """Maximum likelihood of the named covariances on the study's data through estimator ``est_name``,
-    on ``scenario`` (that estimator's own copy of the models; run before it filters)."""
-    from torch.nn.utils import parametrize
-
-    from torchmm import run_filter
-    from torchmm.learn import Trainer
-
-    spec = learn_spec(ctx.cfg)
-    targets = learn_targets(scenario, spec, est_name)
-    est = _estimator(ctx, scenario, est_name)
+def _learn(ctx: StudyContext, scenario, est_name: str) -> tuple[dict, Any]:
+    """Estimator ``est_name`` fitted on the study's data, on ``scenario`` (its own copy of the models):
+    ``(record, estimator)`` (docs/studies.md, "Learning")."""
+    block = learning.spec(ctx.cfg)
     runs = scenario.data.runs if scenario.data is not None else int(ctx.cfg.mc_runs)
     _, _, z, _ = _data(ctx, 0, runs)
     prior = scenario.initial.expand(runs)
     burn, update_first = int(ctx.cfg.get("burn") or 0), bool(ctx.cfg.get("update_first"))
+    progress = ctx.progress and f"learn {est_name}"
+    if str(block.method) == "mle":
+        est = _estimator(ctx, scenario, est_name)
+        record = learning.fit_mle(est, scenario, block, z, prior=prior, update_first=update_first, burn=burn,
+                                  progress=progress)
+        return record, est
+    return _learn_gradient(ctx, scenario, est_name, block, z, prior, burn, update_first, progress), None
+
+
+def _learn_gradient(ctx, scenario, est_name, block, z, prior, burn, update_first, progress) -> dict:
+    """``method: gradient``: the named covariances made learnable on ``scenario``'s models and fitted with a
+    torch optimiser through :class:`torchmm.learn.Trainer`."""
+    from torch.nn.utils import parametrize
+
+    from torchmm.learn import Trainer
+
+    targets = learning.gradient_targets(scenario, block, _module)
+    est = _estimator(ctx, scenario, est_name)
     params = [p for p in est.filter.parameters() if p.requires_grad]
     if not params:
         raise ValueError(f"learn.estimators: {est_name} has no learnable parameter (its filter does not use the "
                          "models of learn.parameters)")
-    if str(spec.optimizer) == "lbfgs":
-        optimizer = torch.optim.LBFGS(params, lr=float(spec.lr), max_iter=20, line_search_fn="strong_wolfe",
+    if str(block.optimizer) == "lbfgs":
+        optimizer = torch.optim.LBFGS(params, lr=float(block.lr), max_iter=20, line_search_fn="strong_wolfe",
                                       tolerance_grad=1e-10, tolerance_change=1e-14)
     else:
-        optimizer = torch.optim.Adam(params, lr=float(spec.lr))
+        optimizer = torch.optim.Adam(params, lr=float(block.lr))
 
     def loss_fn(filter, belief0, measurements, controls=None, return_final=False):
         # belief0 is the estimator's start belief (Trainer.fit takes it as it is: no second conversion)
@@ -228,7 +173,7 @@ def _learn(ctx: StudyContext, scenario, est_name: str) -> dict:
         loss = -traj.log_likelihood[burn:].sum(0).mean()
         return (loss, None) if return_final else loss
 
-    tol = float(spec.get("tolerance") or 0.0)
+    tol = float(block.get("tolerance") or 0.0)
 
     def converged(trainer, record) -> bool:  # the loss no longer moves (relative change below `tolerance`)
         h = trainer.history
@@ -236,17 +181,22 @@ def _learn(ctx: StudyContext, scenario, est_name: str) -> dict:
 
     trainer = Trainer(est.filter, optimizer, loss_fn=loss_fn, callbacks=[converged] if tol > 0 else [])
     tic = time.perf_counter()
-    history = trainer.fit(est.init(prior, None), z, int(spec.iterations),
-                          progress=ctx.progress and f"learn {est_name}")
+    history = trainer.fit(est.init(prior, None), z, int(block.iterations), progress=progress)
     seconds = time.perf_counter() - tic
     nll = [float(r.loss) for r in history]
     with parametrize.cached():
         learned = {key: getattr(module, name).detach().clone() for key, module, name, _ in targets}
-    rows = [[est_name, key, initial.cpu().tolist(), learned[key].cpu().tolist()] for key, _, _, initial in targets]
+    rows = []
+    for key, _, _, _ in targets:
+        value = learned[key].cpu()
+        for flat, v in enumerate(value.reshape(-1).tolist()):
+            index = np.unravel_index(flat, tuple(value.shape)) if value.dim() else ()
+            rows.append([est_name, f"{key}[{','.join(str(int(i)) for i in index)}]", v, None, None])
     for _, module, name, _ in targets:  # freeze: the estimator runs with the learned values
         parametrize.remove_parametrizations(module, name, leave_parametrized=True)
         getattr(module, name).requires_grad_(False)
-    return {"rows": rows, "nll": nll, "through": est_name, "seconds": seconds, "iterations": len(history)}
+    return {"rows": rows, "nll": nll, "through": est_name, "seconds": seconds, "iterations": len(history),
+            "method": "gradient", "optimizer": str(block.optimizer)}
 
 
 def check_build(cfg, scenario) -> None:
@@ -267,17 +217,29 @@ def check_build(cfg, scenario) -> None:
             text = str(cause).strip().splitlines()
             raise ConfigError(f"estimators.{name}", cfg.estimators[name].get("_target_"),
                               f"cannot be built: {text[0] if text else type(cause).__name__}") from None
-    learning = learners(cfg)
-    if learning and scenario.motions is not None:
+    names = learning.learners(cfg)
+    if names and scenario.motions is not None:
         raise ConfigError("learn", "parameters", "learning with irregular time stamps (per-step motion models) is "
                           "not supported yet; give regular time stamps or none")
     burn = int(cfg.get("burn") or 0)
     if burn >= scenario.steps:
         raise ConfigError("burn", burn, f"leaves out every step (the data have {scenario.steps}): no log-likelihood "
                           "term is left")
-    for name in learning:
-        own = _own_models(scenario)
-        learn_targets(own, learn_spec(cfg), name)
+    block = learning.spec(cfg)
+    for name in names:
+        own = learning.own_models(scenario)
+        if str(block.method) == "mle":
+            from torchmm.learn.estimation import _Block, _resolve
+
+            est = instantiate(cfg.estimators[name])(own, name=name)
+            params, _ = learning.parameters_of(est, own, block)
+            for i, (tensor, param) in enumerate(params.items()):
+                try:
+                    _Block(tensor, _resolve(est.filter, tensor), param)
+                except (TypeError, ValueError) as err:
+                    raise ConfigError("learn.parameters", param.label, str(err).split(": ", 1)[-1]) from None
+            continue
+        learning.gradient_targets(own, block, _module)
         est = instantiate(cfg.estimators[name])(own, name=name)
         if not any(p.requires_grad for p in est.filter.parameters()):
             key = "learn.estimator" if cfg.learn.get("estimator") is not None else "learn.estimators"
@@ -354,7 +316,8 @@ def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
     steps are those of missing data (log-likelihood 0, no innovation)."""
     scenario = _scenario_of(ctx, name)
     truth, modes, z, present = _data(ctx, start, stop)
-    est = _estimator(ctx, scenario, name)
+    fitted = _learned(ctx, name)[2] if name in learning.learners(ctx.cfg) else None
+    est = fitted if fitted is not None else _estimator(ctx, scenario, name)
     runs = z.shape[1]
     generator = ctx.block_generators("filter", scenario.name, name)(start // ctx.block_runs) \
         if est.filter.uses_generator else None
@@ -584,24 +547,9 @@ def run(ctx: StudyContext) -> None:
         "runs, then averaged over time; every +- is a standard error over the runs."
         + (f" Truth for state component(s) {known} only: NEES is over those ({len(known)} degrees of freedom)."
            if partial and "nees" in metrics else ""))
-    learning = learners(cfg)
-    if learning:
-        table = ctx.results.table("learned", ["estimator", "parameter", "initial", "learned"],
-                                  note="Maximum likelihood of each learning estimator's own copy of the models "
-                                       f"({learn_spec(cfg).optimizer}); it runs with its fit, the other estimators "
-                                       "with the configured values.")
-        for name in learning:
-            record = _learned(ctx, name)[1]
-            table.rows.extend(record["rows"])
-            ctx.results.notes.append(
-                f"Learned by {name}: {', '.join(r[1] for r in record['rows'])} in {record['iterations']} "
-                f"{learn_spec(cfg).optimizer} iterations ({record['seconds']:.2f} s); final negative log-likelihood "
-                f"{record['nll'][-1]:.6f} (per run).")
-            ctx.logger.sweep(f"learn/nll/{name}", list(range(1, len(record["nll"]) + 1)), record["nll"], "iteration")
-            ctx.results.metric(name, "learn_nll", record["nll"][-1])
-        others = [n for n in names if n not in learning]
-        if others:
-            ctx.results.notes.append(f"Not learning (configured values): {', '.join(others)}.")
+    learners = learning.learners(cfg)
+    if learners:
+        _learned_tables(ctx, learners, names)
     if scenario.motions is not None:
         own = [n for n in names if str(cfg.estimators[n].get("_target_", "")).endswith(".custom")]
         if own:
@@ -672,6 +620,50 @@ def run(ctx: StudyContext) -> None:
         _series_table(ctx, scenario, results)
     _curves_and_figures(ctx, scenario, results, examples, groups, ranges[0])
     ctx.results.save()
+
+
+def _learned_tables(ctx, learners: list[str], names: list[str]) -> None:
+    """The tables ``learned`` (each estimate with its standard error and z, and the expected durations)
+    and ``fit`` (each learning estimator's log-likelihood, k, nobs, AIC, BIC and optimiser), the metrics
+    and notes of the learning estimators."""
+    block = learning.spec(ctx.cfg)
+    mle = str(block.method) == "mle"
+    table = ctx.results.table(
+        "learned", ["estimator", "parameter", "estimate", "se", "z"],
+        note=("Maximum likelihood (torchmm.learn.estimate) of each learning estimator's own parameters: it runs "
+              "with its estimates, the other estimators with the configured values. se: from the observed "
+              "information (delta method through the parametrisation); z = estimate / se. A duration is "
+              "1 / (1 - p_ii), the expected time in regime i." if mle else
+              f"Each learning estimator's own covariances fitted with {block.optimizer} (method gradient: no "
+              "standard errors); it runs with its fit, the other estimators with the configured values."))
+    fits = ctx.results.table("fit", ["estimator", "loglik", "k", "nobs", "aic", "bic", "iterations", "converged",
+                                     "seconds"],
+                             note="The maximised log-likelihood (the sum over the runs or series), the free "
+                                  "parameters k, the measured steps nobs, AIC = -2 loglik + 2 k, BIC = -2 loglik + "
+                                  "k log(nobs).") if mle else None
+    for name in learners:
+        record = _learned(ctx, name)[1]
+        table.rows.extend(record["rows"])
+        if mle:
+            fits.rows.append([name, record["loglik"], record["k"], record["nobs"], record["aic"], record["bic"],
+                              record["iterations"], record["converged"], record["seconds"]])
+            for key in ("loglik", "aic", "bic"):
+                ctx.results.metric(name, f"learn_{key}", record[key])
+            ctx.results.notes.append(
+                f"Learned by {name}: {len(record['rows'])} estimates in {record['iterations']} L-BFGS-B iterations "
+                f"({record['evaluations']} evaluations, {record['seconds']:.2f} s): log-likelihood "
+                f"{record['loglik']:.6f}" + ("" if record["converged"] else f" (not converged: {record['message']})")
+                + (f"; {record['note']}" if record["note"] else "") + ".")
+        else:
+            ctx.results.notes.append(
+                f"Learned by {name}: {len(record['rows'])} entries in {record['iterations']} {record['optimizer']} "
+                f"iterations ({record['seconds']:.2f} s); final negative log-likelihood {record['nll'][-1]:.6f} "
+                "(per run).")
+            ctx.logger.sweep(f"learn/nll/{name}", list(range(1, len(record["nll"]) + 1)), record["nll"], "iteration")
+            ctx.results.metric(name, "learn_nll", record["nll"][-1])
+    others = [n for n in names if n not in learners]
+    if others:
+        ctx.results.notes.append(f"Not learning (configured values): {', '.join(others)}.")
 
 
 def _series_table(ctx, scenario, results: dict) -> None:

@@ -1,0 +1,301 @@
+"""The ``learn`` block of the generic study (``compare``): each learning estimator estimates its own
+parameters on the study's data (docs/studies.md, "Learning").
+
+* ``method: mle`` (default): maximum likelihood of any named tensors of the estimator's filter with
+  :func:`torchmm.learn.estimate` - the modes' ``F``, ``Q``, ``offset``, ``input_matrix``, the sensors'
+  ``H``, ``R``, the transition matrix - with standard errors, log-likelihood, AIC, BIC and expected
+  durations. An entry names a model of the scenario (``modes``, ``modes[i]``, ``sensors``,
+  ``sensors[i]``) and a tensor; it is found in the estimator's filter, whatever the filter made of the
+  models (a bank stacks the modes' tensors on a mode axis: ``modes[1].Q`` is that axis' entry 1;
+  ``modes.Q`` every mode's, ``shared: true`` one value for all modes).
+* ``method: gradient``: the named covariances made learnable (:func:`torchmm.learnable_noise`) and
+  fitted with a torch optimiser (L-BFGS or Adam) through :class:`torchmm.learn.Trainer` (no errors).
+
+Every entry is checked before anything runs (:func:`check`, the config's dry construction): a model,
+tensor or estimator it does not name is one ``ConfigError`` naming the key.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import math
+import re
+import time
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from experiments.config import ConfigError
+
+#: old names of the covariance parametrisations (``method: gradient``) and their ``mle`` kinds
+KIND_ALIASES = {"log_diagonal": "variance", "cholesky": "covariance"}
+GRADIENT_KINDS = ("log_diagonal", "cholesky", "scale")
+MLE_KINDS = ("free", "variance", "covariance", "stochastic", "probabilities", "log_diagonal", "cholesky")
+
+
+def spec(cfg):
+    """The ``learn`` block with the schema's defaults for the keys it does not set; None without one."""
+    from omegaconf import OmegaConf
+
+    from experiments.schemas import Learn
+
+    if not cfg.get("learn"):
+        return None
+    return OmegaConf.merge(OmegaConf.structured(Learn), cfg.learn)
+
+
+def learners(cfg) -> list[str]:
+    """The estimators that learn their own parameters (``learn.estimators``; ``learn.estimator``: that one;
+    default every estimator): each is fitted on its own copy of the models and runs with its own fit;
+    every other estimator runs with the configured values."""
+    block = cfg.get("learn")
+    if not block:
+        return []
+    if block.get("estimator") is not None:
+        return [str(block.estimator)]
+    if block.get("estimators") is not None:
+        return [str(n) for n in block.estimators]
+    return [str(n) for n in cfg.estimators]
+
+
+def own_models(scenario):
+    """The scenario with copies of its models (the data and everything else shared)."""
+    return dataclasses.replace(scenario, motion=copy.deepcopy(scenario.motion),
+                               measurement=copy.deepcopy(scenario.measurement))
+
+
+# -- method: mle -----------------------------------------------------------------------------------------
+def _models_in(filter: torch.nn.Module, kind: str, tensor: str) -> list[tuple[str, torch.nn.Module]]:
+    """The filter's motion (``kind="modes"``) or measurement models that hold ``tensor`` as their own
+    buffer or parameter, in the filter's order (a bank's modes in mode order)."""
+    from torchmm.models.base import MeasurementModel, MotionModel
+
+    cls = MotionModel if kind == "modes" else MeasurementModel
+    out = []
+    for path, module in filter.named_modules():
+        if isinstance(module, cls) and (tensor in dict(module.named_buffers(recurse=False))
+                                        or tensor in dict(module.named_parameters(recurse=False))):
+            out.append((path, module))
+    return out
+
+
+def _entry_where(entry) -> tuple[str | None, int | None]:
+    model = entry.get("model")
+    if model is None:
+        return None, None
+    match = re.fullmatch(r"(modes|sensors)(?:\[(\d+)\])?", str(model))
+    if match is None:
+        raise ValueError("expected modes, modes[i], sensors or sensors[i]")
+    return match.group(1), None if match.group(2) is None else int(match.group(2))
+
+
+def parameters_of(est, scenario, block, key: str = "learn.parameters") -> tuple[dict, dict]:
+    """``({filter tensor name: Param}, {filter tensor name: (model, tensor, mode axis?)})``: each
+    ``learn.parameters`` entry found in the estimator's filter. ``ConfigError`` naming the entry."""
+    from torchmm.learn import Param
+    from torchmm.models.transition import ModeTransition
+
+    filter = est.filter
+    out, where = {}, {}
+    M = scenario.num_modes
+    for i, entry in enumerate(block.parameters):
+        at = f"{key}[{i}]"
+        name = str(entry.name)
+        kind = KIND_ALIASES.get(str(entry.get("kind") or ""), entry.get("kind"))
+        if kind == "scale":
+            raise ConfigError(f"{at}.kind", "scale", "method mle estimates a covariance as variance (its diagonal) or "
+                              "covariance (full); scale is method gradient's")
+        if name == "transition":
+            if entry.get("model") is not None:
+                raise ConfigError(f"{at}.model", entry.model, "the transition matrix belongs to no model (leave "
+                                  "model out)")
+            paths = [p for p, m in filter.named_modules() if isinstance(m, ModeTransition)]
+            if not paths:
+                raise ConfigError(f"{at}.name", name, f"{est.name} has no transition matrix (a single-mode filter)")
+            tensor = f"{paths[0]}.value" if paths[0] else "value"
+            if tensor not in dict(filter.named_buffers()):
+                raise ConfigError(f"{at}.name", name, f"{est.name}'s transition matrix is a learnable module "
+                                  "(ModeTransition(learnable=True)): estimate a fixed one")
+            if kind not in (None, "stochastic"):
+                raise ConfigError(f"{at}.kind", kind, "the transition matrix's kind is stochastic")
+            out[tensor] = Param("stochastic", label="transition")
+            where[tensor] = (None, "transition", False)
+            continue
+        try:
+            model, index = _entry_where(entry)
+        except ValueError as err:
+            raise ConfigError(f"{at}.model", entry.get("model"), str(err)) from None
+        if model is None:
+            raise ConfigError(f"{at}.model", None, f"name which model holds {name!r}: modes, modes[i], sensors or "
+                              "sensors[i] (only the transition matrix needs none)")
+        if model == "modes":
+            count = M
+        elif isinstance(scenario.measurement, list):  # one sensor per mode (mode_sensors)
+            count = len(scenario.measurement)
+        else:  # one sensor, or several stacked (Concatenated)
+            count = len(getattr(scenario.measurement, "sensors", [None]))
+        if index is not None and not 0 <= index < count:
+            raise ConfigError(f"{at}.model", entry.model, f"there {'is' if count == 1 else 'are'} {count} {model} "
+                              f"(indices 0..{count - 1})")
+        found = _models_in(filter, model, name)
+        if not found:
+            raise ConfigError(f"{at}.name", name, f"no {model[:-1]} model of {est.name}'s filter holds a tensor "
+                              f"{name!r} (a custom filter builds its own models; a nonlinear model's parameters "
+                              "are its own names)")
+        shared = bool(entry.get("shared"))
+        fixed_given = entry.get("fixed")
+        bounds = {k: entry.get(k) for k in ("lower", "upper") if entry.get(k) is not None}
+        if len(found) == 1:
+            path, module = found[0]
+            tensor = f"{path}.{name}" if path else name
+            value = getattr(module, name)
+            batch = tuple(getattr(module, "param_batch_shape", ()) or ())
+            stacked = len(batch) == 1 and batch[0] == count and count > 1 and value.shape[:1] == (count,)
+            if stacked:  # a bank's tensor with a mode axis: entry `index`, or every mode
+                fixed = None
+                if index is not None:
+                    fixed = torch.ones(value.shape, dtype=torch.bool)
+                    fixed[index] = False
+                groups = None
+                if shared:
+                    if index is not None:
+                        raise ConfigError(f"{at}.shared", True, f"shares {model}[i].{name} across the modes: name "
+                                          f"{model} without an index")
+                    per = value[0].numel()
+                    groups = torch.arange(per).reshape(value.shape[1:]).expand(value.shape).clone()
+                fixed = _with_fixed(fixed, fixed_given, value.shape, stacked=True, at=at)
+            else:  # one model (a single-mode estimator, or a sensor shared by every mode)
+                if index is not None and model == "modes" and M > 1 and est.mode is not None and index != est.mode:
+                    raise ConfigError(f"{at}.model", entry.model, f"{est.name} runs mode {est.mode} only")
+                fixed = _with_fixed(None, fixed_given, value.shape, stacked=False, at=at)
+                groups = None  # (shared: one model is shared by every mode already)
+            kind = kind or ("variance" if name in ("Q", "R") else "free")
+            if kind in ("variance", "covariance") and (value.dim() < 2 or value.shape[-1] != value.shape[-2]):
+                raise ConfigError(f"{at}.kind", kind, f"{name} is not a square matrix")
+            if tensor in out:
+                raise ConfigError(f"{at}", f"{entry.get('model')}.{name}", "names a tensor another entry names")
+            label = model if stacked else str(entry.model)
+            out[tensor] = Param(kind, fixed=fixed, groups=groups, label=f"{label}.{name}", **bounds)
+            where[tensor] = (label, name, stacked)
+        else:  # one model per mode (a list bank): modes[i] is the i-th
+            chosen = found if index is None else [found[index]] if index < len(found) else []
+            if not chosen:
+                raise ConfigError(f"{at}.model", entry.model, f"{est.name} has {len(found)} {model}")
+            if shared:
+                raise ConfigError(f"{at}.shared", True, f"{est.name}'s {model} are separate models (a list bank): "
+                                  "sharing a value across them is not supported")
+            for j, (path, module) in enumerate(chosen):
+                jj = j if index is None else index
+                tensor = f"{path}.{name}"
+                value = getattr(module, name)
+                fixed = _with_fixed(None, fixed_given, value.shape, stacked=False, at=at)
+                out[tensor] = Param(kind or ("variance" if name in ("Q", "R") else "free"), fixed=fixed,
+                                    label=f"{model}[{jj}].{name}", **bounds)
+                where[tensor] = (f"{model}[{jj}]", name, False)
+    return out, where
+
+
+def _with_fixed(fixed: Tensor | None, given, shape: torch.Size, *, stacked: bool, at: str) -> Tensor | None:
+    """The config's ``fixed`` mask (of one mode's tensor) or'ed into ``fixed``."""
+    if given is None:
+        return fixed
+    try:
+        mask = torch.as_tensor(list(given) if not isinstance(given, bool) else given, dtype=torch.bool)
+        mask = mask.expand(shape[1:] if stacked else shape)
+    except (RuntimeError, TypeError, ValueError):
+        raise ConfigError(f"{at}.fixed", given, f"expected a boolean mask of shape "
+                          f"{tuple(shape[1:] if stacked else shape)}") from None
+    mask = mask.expand(shape) if stacked else mask
+    return mask.clone() if fixed is None else fixed | mask
+
+
+def rename(name: str, where: dict) -> str:
+    """A reported entry's name in the study's terms: ``bank.filter.measurement.H[1,0,0]`` ->
+    ``sensors[1].H[0,0]``, ``transition.value[0,1]`` -> ``transition[0,1]``."""
+    match = re.fullmatch(r"(.*?)(\[[\d,]*\])?", name)
+    label, index = match.group(1), match.group(2) or ""
+    for model, tensor, stacked in where.values():
+        prefix = f"{model}.{tensor}" if model is not None else tensor
+        if label != prefix or not index:
+            continue
+        if stacked:
+            parts = index[1:-1].split(",")
+            rest = ",".join(parts[1:])
+            return f"{model}[{parts[0]}].{tensor}" + (f"[{rest}]" if rest else "")
+        return f"{prefix}{index}"
+    return name
+
+
+def start_function(est, scenario, transition_learned: bool):
+    """The estimator's start as a function of its filter: with ``initial_mode_probs: ergodic`` and the
+    transition matrix estimated, the stationary probabilities of the matrix being evaluated."""
+    from torchmm.learn import stationary
+
+    if not (scenario.ergodic and transition_learned and est.multiple_model):
+        return None
+
+    def init(prior, generator=None):
+        options = {"generator": generator} if generator is not None else {}
+        return est.filter.initial_belief(prior, stationary(est.filter.transition.matrix()), **options)
+    return init
+
+
+def fit_mle(est, scenario, block, z: Tensor, *, prior, update_first: bool, burn: int, controls=None,
+            progress: bool | str = False) -> dict:
+    """Estimate ``block.parameters`` of ``est``'s filter on ``z`` (in place) and return the record: the
+    rows of the ``learned`` table, the fit's figures, and the estimator's new start (if it changed)."""
+    from torchmm.learn import estimate
+
+    params, where = parameters_of(est, scenario, block)
+    transition = any(w[1] == "transition" for w in where.values())
+    init = start_function(est, scenario, transition)
+    if init is not None:
+        est.init = init
+    belief0 = (lambda f: est.init(prior, None)) if init is not None else est.init(prior, None)
+    tic = time.perf_counter()
+    result = estimate(est.filter, belief0, z, params, controls=controls, update_first=update_first, burn=burn,
+                      hessian=str(block.get("hessian") or "differences"), maxiter=block.get("maxiter"),
+                      progress=progress)
+    rows = [[est.name, rename(n, where), e, s, zv] for n, e, s, zv in result.rows()]
+    rows += [[est.name, f"duration of {rename(n.removeprefix('duration of '), where)}", d, s,
+              d / s if s and math.isfinite(s) and s > 0 else math.nan] for n, d, s in result.durations]
+    return {"rows": rows, "loglik": result.loglik, "k": result.k, "nobs": result.nobs, "aic": result.aic,
+            "bic": result.bic, "iterations": result.iterations, "evaluations": result.evaluations,
+            "converged": result.converged, "message": result.message, "seconds": time.perf_counter() - tic,
+            "note": result.note, "method": "mle", "nll": [-result.loglik], "through": est.name}
+
+
+# -- method: gradient (the covariances through learnable_noise and a torch optimiser) ------------------
+def gradient_targets(scenario, block, module_of) -> list:
+    """``[(key, module, name, initial)]``: the named covariances of ``learn.parameters`` made learnable
+    on ``scenario``'s models (:func:`torchmm.learnable_noise`). ``ConfigError`` naming the entry."""
+    from torchmm import learnable_noise
+
+    targets = []
+    for i, p in enumerate(block.parameters):
+        key = f"learn.parameters[{i}]"
+        try:
+            module = module_of(scenario, str(p.model))
+        except ValueError as err:
+            raise ConfigError(f"{key}.model", str(p.model), str(err)) from None
+        name = str(p.name)
+        value = getattr(module, name, None)
+        if name not in ("Q", "R"):
+            raise ConfigError(f"{key}.name", name, "method gradient learns the noise covariances Q (of a mode) and R "
+                              "(of a sensor); method mle estimates any tensor")
+        if not isinstance(value, Tensor):
+            known = [n for n in ("Q", "R") if isinstance(getattr(module, n, None), Tensor)]
+            raise ConfigError(f"{key}.name", name, f"{p.model} ({type(module).__name__}) has no covariance {name!r}"
+                              + (f" (it has {', '.join(known)})" if known else ""))
+        initial = value.detach().clone()
+        kind = str(p.get("kind") or "log_diagonal")
+        if kind not in GRADIENT_KINDS:
+            raise ConfigError(f"{key}.kind", kind, f"method gradient takes {', '.join(GRADIENT_KINDS)}")
+        try:
+            learnable_noise(module, name, kind)
+        except (TypeError, ValueError) as err:
+            raise ConfigError(f"{key}", f"{p.model}.{name}", str(err)) from None
+        targets.append((f"{p.model}.{name}", module, name, initial))
+    return targets
