@@ -165,6 +165,8 @@ def position_initiator(state_dim: int, indices, noise_cov, unobserved_variance: 
     """``initiate(z)`` for a sensor that measures state components ``indices`` directly (e.g.
     ``PositionMeasurement``): the state ``z`` at ``indices`` and 0 elsewhere, the covariance
     ``noise_cov`` at ``indices`` and ``unobserved_variance`` on the diagonal elsewhere (velocities).
+    ``noise_cov``: an ``(m, m)`` matrix, a vector (its diagonal) or a number ``r`` (``r I``, as
+    ``PositionMeasurement`` reads it).
 
     Raises (at the call, naming the argument): an index outside the ``state_dim`` components or given
     twice (``indices``); a ``noise_cov`` that does not expand to ``(m, m)`` or is not a covariance
@@ -182,7 +184,11 @@ def position_initiator(state_dim: int, indices, noise_cov, unobserved_variance: 
     H = torch.zeros(m, state_dim, dtype=torch.float64)
     H[torch.arange(m), torch.tensor(idx)] = 1.0
     try:
-        R = torch.as_tensor(noise_cov, dtype=torch.float64).expand(m, m)
+        R = torch.as_tensor(noise_cov, dtype=torch.float64)
+        # a number is r I, as PositionMeasurement reads it (issue 44: it was expanded to a matrix of r's, every
+        # new track's measured components fully correlated); a vector is the diagonal
+        R = R * torch.eye(m, dtype=torch.float64) if R.dim() == 0 else torch.diag(R) if R.dim() == 1 else R
+        R = R.expand(m, m)
     except RuntimeError:
         raise ValueError(f"noise_cov: expected a number or a ({m}, {m}) matrix for the {m} indices, got shape "
                          f"{tuple(torch.as_tensor(noise_cov).shape)}") from None
