@@ -199,3 +199,11 @@ def test_m_of_n_errors_name_the_argument():
             ManagedTracks(manager.association, capacity=4, initiate=manager.initiate, m_of_n=bad)
     with pytest.raises(ValueError, match="max_misses"):
         ManagedTracks(manager.association, capacity=4, initiate=manager.initiate, max_misses=0)
+
+
+def test_position_initiator_reads_a_number_as_r_times_the_identity():
+    """A number for noise_cov is r I, as PositionMeasurement reads it (before: a matrix of r's, every new
+    track's measured components fully correlated); a vector is the diagonal."""
+    for noise in (4.0, [4.0, 4.0], [[4.0, 0.0], [0.0, 4.0]]):
+        cov = position_initiator(4, [0, 2], noise, 25.0)(torch.zeros(1, 2, dtype=torch.float64)).cov[0]
+        torch.testing.assert_close(cov, torch.diag(torch.tensor([4.0, 25.0, 4.0, 25.0], dtype=torch.float64)))
