@@ -52,6 +52,8 @@ class DataSeries:
         truth: ``(T, runs, n)`` or None
         times: ``(T,)`` the time stamps shared by every series, or None
         present: ``(T, runs)`` bool: the step exists in that series (False: padding)
+        inputs: ``(T, runs, k)`` exogenous inputs (regressors, the models' controls ``u_k``), or None;
+            0 at padding steps
     """
 
     measurements: np.ndarray
@@ -59,6 +61,7 @@ class DataSeries:
     times: np.ndarray | None
     present: np.ndarray
     series: list[str]
+    inputs: np.ndarray | None = None
 
     @property
     def steps(self) -> int:
@@ -220,7 +223,8 @@ def _locate(path: str | Path, base: Path | None, measurements: list[str]) -> Pat
 
 
 def read_series(path: str | Path, *, measurements: list[str], truth: list[str] | None = None,
-                time: str | None = None, series: str | None = None, base: Path | None = None) -> DataSeries:
+                time: str | None = None, series: str | None = None, base: Path | None = None,
+                inputs: list[str] | None = None) -> DataSeries:
     """Read a CSV or NPZ file into a :class:`DataSeries`.
 
     Args:
@@ -231,6 +235,9 @@ def read_series(path: str | Path, *, measurements: list[str], truth: list[str] |
         time: optional time-stamp column; increasing, the same grid in every series. Irregular steps
             become per-step motion models (the study's ``dt``).
         series: optional CSV column whose values name the series; each series is one run.
+        inputs: optional columns of exogenous inputs (regressors): the controls ``u_k`` of the motion
+            models (``DataSeries.inputs``). Every step of a series needs them (a missing input is an error,
+            where a missing measurement is skipped).
 
     Raises:
         DataFileError: naming the file, the column and the row: a column not in the header or named
@@ -241,9 +248,10 @@ def read_series(path: str | Path, *, measurements: list[str], truth: list[str] |
     """
     measurements = _columns(measurements, "measurements")
     truth = _columns(truth, "truth", optional=True) or []
+    inputs = _columns(inputs, "inputs", optional=True) or []
     time, series = _column(time, "time"), _column(series, "series")
     file = _locate(path, base, measurements)
-    wanted = measurements + truth + ([time] if time else [])
+    wanted = measurements + truth + inputs + ([time] if time else [])
     suffix = file.suffix.lower()
     if suffix == ".npz":
         if series:
@@ -252,6 +260,11 @@ def read_series(path: str | Path, *, measurements: list[str], truth: list[str] |
         arrays = _read_npz(file, wanted)
         z = np.stack([arrays[c] for c in measurements], -1)
         x = np.stack([arrays[c] for c in truth], -1) if truth else None
+        u = np.stack([arrays[c] for c in inputs], -1) if inputs else None
+        if u is not None and not np.isfinite(u).all():
+            where = tuple(int(i) for i in np.argwhere(~np.isfinite(u))[0])
+            raise DataFileError(f"{file}: column {inputs[where[2]]!r}, entry {where[:2]}: an input is missing (every "
+                                "step needs its inputs)")
         present = np.ones(z.shape[:2], dtype=bool)
         stamps = None
         if time:
@@ -261,7 +274,7 @@ def read_series(path: str | Path, *, measurements: list[str], truth: list[str] |
                                     "(one shared time grid is supported)")
             stamps = t[:, 0]
             _check_increasing(stamps, file, time, list(range(len(stamps))), "index")
-        return DataSeries(z, x, stamps, present, [str(i) for i in range(z.shape[1])])
+        return DataSeries(z, x, stamps, present, [str(i) for i in range(z.shape[1])], u)
     if suffix != ".csv":
         raise DataFileError(f"{file}: expected a .csv or .npz file")
     values, lines = _read_csv(file, wanted, series)
@@ -272,6 +285,7 @@ def read_series(path: str | Path, *, measurements: list[str], truth: list[str] |
     R = len(order)
     z = np.full((T, R, len(measurements)), np.nan)
     x = np.full((T, R, len(truth)), np.nan) if truth else None
+    u = np.zeros((T, R, len(inputs))) if inputs else None
     present = np.zeros((T, R), dtype=bool)
     stamps = None
     for j, s in enumerate(order):
@@ -280,6 +294,13 @@ def read_series(path: str | Path, *, measurements: list[str], truth: list[str] |
         z[:len(idx), j] = np.array([[values[c][i] for c in measurements] for i in idx])
         if truth:
             x[:len(idx), j] = np.array([[values[c][i] for c in truth] for i in idx])
+        if inputs:
+            cells = np.array([[values[c][i] for c in inputs] for i in idx])
+            bad = np.argwhere(~np.isfinite(cells))
+            if len(bad):
+                raise DataFileError(f"{file}: column {inputs[bad[0][1]]!r}, row {lines[idx[bad[0][0]]]}: an input is "
+                                    "missing (every step needs its inputs; a missing measurement is skipped)")
+            u[:len(idx), j] = cells
         if time:
             t = np.array([values[time][i] for i in idx])
             bad = [lines[i] for i, v in zip(idx, t) if not math.isfinite(v)]
@@ -293,7 +314,7 @@ def read_series(path: str | Path, *, measurements: list[str], truth: list[str] |
             elif not np.array_equal(t, stamps[:len(t)]):
                 raise DataFileError(f"{file}: column {time!r}, row {lines[idx[0]]}: series {s!r} has other time "
                                     "stamps than the first series (one shared time grid is supported)")
-    return DataSeries(z, x, stamps, present, order)
+    return DataSeries(z, x, stamps, present, order, u)
 
 
 def _check_increasing(t: np.ndarray, file: Path, column: str, where: list[int], what: str) -> None:

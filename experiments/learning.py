@@ -100,7 +100,15 @@ def parameters_of(est, scenario, block, key: str = "learn.parameters") -> tuple[
     filter = est.filter
     out, where = {}, {}
     M = scenario.num_modes
-    for i, entry in enumerate(block.parameters):
+    entries = block.parameters
+    if isinstance(entries, str):
+        if entries != "auto" or getattr(scenario, "learn_parameters", None) is None:
+            raise ConfigError(f"{key}", entries, "expected a list of entries, or auto for a scenario that says what it "
+                              "estimates (experiments.scenarios.markov_switching)")
+        from omegaconf import OmegaConf
+
+        entries = OmegaConf.create(scenario.learn_parameters)
+    for i, entry in enumerate(entries):
         at = f"{key}[{i}]"
         name = str(entry.name)
         kind = KIND_ALIASES.get(str(entry.get("kind") or ""), entry.get("kind"))
@@ -121,7 +129,7 @@ def parameters_of(est, scenario, block, key: str = "learn.parameters") -> tuple[
             if kind not in (None, "stochastic"):
                 raise ConfigError(f"{at}.kind", kind, "the transition matrix's kind is stochastic")
             out[tensor] = Param("stochastic", label="transition")
-            where[tensor] = (None, "transition", False)
+            where[tensor] = (None, "transition", False, None, None, ())
             continue
         try:
             model, index = _entry_where(entry)
@@ -144,7 +152,7 @@ def parameters_of(est, scenario, block, key: str = "learn.parameters") -> tuple[
             raise ConfigError(f"{at}.name", name, f"no {model[:-1]} model of {est.name}'s filter holds a tensor "
                               f"{name!r} (a custom filter builds its own models; a nonlinear model's parameters "
                               "are its own names)")
-        shared = bool(entry.get("shared"))
+        shared = entry.get("shared") not in (None, False)
         fixed_given = entry.get("fixed")
         bounds = {k: entry.get(k) for k in ("lower", "upper") if entry.get(k) is not None}
         if len(found) == 1:
@@ -159,12 +167,14 @@ def parameters_of(est, scenario, block, key: str = "learn.parameters") -> tuple[
                     fixed = torch.ones(value.shape, dtype=torch.bool)
                     fixed[index] = False
                 groups = None
-                if shared:
+                share = _shared_mask(entry.get("shared"), value.shape[1:], at)
+                if share is not None and bool(share.any()):
                     if index is not None:
-                        raise ConfigError(f"{at}.shared", True, f"shares {model}[i].{name} across the modes: name "
-                                          f"{model} without an index")
+                        raise ConfigError(f"{at}.shared", entry.get("shared"), f"shares {model}[i].{name} across "
+                                          f"the modes: name {model} without an index")
                     per = value[0].numel()
-                    groups = torch.arange(per).reshape(value.shape[1:]).expand(value.shape).clone()
+                    groups = torch.arange(per).reshape(value.shape[1:])
+                    groups = torch.where(share, groups, -1).expand(value.shape).clone()
                 fixed = _with_fixed(fixed, fixed_given, value.shape, stacked=True, at=at)
             else:  # one model (a single-mode estimator, or a sensor shared by every mode)
                 if index is not None and model == "modes" and M > 1 and est.mode is not None and index != est.mode:
@@ -178,7 +188,8 @@ def parameters_of(est, scenario, block, key: str = "learn.parameters") -> tuple[
                 raise ConfigError(f"{at}", f"{entry.get('model')}.{name}", "names a tensor another entry names")
             label = model if stacked else str(entry.model)
             out[tensor] = Param(kind, fixed=fixed, groups=groups, label=f"{label}.{name}", **bounds)
-            where[tensor] = (label, name, stacked)
+            inner = tuple(value.shape[1:] if stacked else value.shape)
+            where[tensor] = (label, name, stacked, _entry_names(entry, inner, at), groups, inner)
         else:  # one model per mode (a list bank): modes[i] is the i-th
             chosen = found if index is None else [found[index]] if index < len(found) else []
             if not chosen:
@@ -193,8 +204,23 @@ def parameters_of(est, scenario, block, key: str = "learn.parameters") -> tuple[
                 fixed = _with_fixed(None, fixed_given, value.shape, stacked=False, at=at)
                 out[tensor] = Param(kind or ("variance" if name in ("Q", "R") else "free"), fixed=fixed,
                                     label=f"{model}[{jj}].{name}", **bounds)
-                where[tensor] = (f"{model}[{jj}]", name, False)
+                where[tensor] = (f"{model}[{jj}]", name, False, _entry_names(entry, value.shape, at), None,
+                                 tuple(value.shape))
     return out, where
+
+
+def _shared_mask(given, shape: torch.Size, at: str) -> Tensor | None:
+    """``shared``: true (every entry one value across the modes), false, or a boolean mask of one mode's
+    tensor (those entries shared, the others per mode)."""
+    if given is None or given is False:
+        return None
+    if given is True:
+        return torch.ones(shape, dtype=torch.bool)
+    try:
+        return torch.as_tensor(given, dtype=torch.bool).expand(shape).clone()
+    except (RuntimeError, TypeError, ValueError):
+        raise ConfigError(f"{at}.shared", given, f"expected true, false or a boolean mask of shape {tuple(shape)}"
+                          ) from None
 
 
 def _with_fixed(fixed: Tensor | None, given, shape: torch.Size, *, stacked: bool, at: str) -> Tensor | None:
@@ -211,18 +237,47 @@ def _with_fixed(fixed: Tensor | None, given, shape: torch.Size, *, stacked: bool
     return mask.clone() if fixed is None else fixed | mask
 
 
+def _entry_names(entry, shape: torch.Size, at: str) -> list | None:
+    """``names``: one model's tensor entries named (e.g. ``[[const, ogap, inf]]`` for an ``H`` of 1 x 3),
+    reported as ``const[regime]`` (``const`` where shared by every regime)."""
+    given = entry.get("names")
+    if given is None:
+        return None
+    flat = []
+
+    def walk(x):
+        if isinstance(x, (list, tuple)) or type(x).__name__ == "ListConfig":
+            for v in x:
+                walk(v)
+        else:
+            flat.append(str(x))
+    walk(given)
+    if len(flat) != math.prod(shape):
+        raise ConfigError(f"{at}.names", given, f"expected {math.prod(shape)} names, one per entry of shape "
+                          f"{tuple(shape)}")
+    return flat
+
+
 def rename(name: str, where: dict) -> str:
     """A reported entry's name in the study's terms: ``bank.filter.measurement.H[1,0,0]`` ->
-    ``sensors[1].H[0,0]``, ``transition.value[0,1]`` -> ``transition[0,1]``."""
+    ``sensors[1].H[0,0]`` (or its ``names`` entry: ``const[1]``, ``ogap`` where shared by every mode),
+    ``transition.value[0,1]`` -> ``transition[0,1]``."""
     match = re.fullmatch(r"(.*?)(\[[\d,]*\])?", name)
     label, index = match.group(1), match.group(2) or ""
-    for model, tensor, stacked in where.values():
+    for model, tensor, stacked, names, groups, shape in where.values():
         prefix = f"{model}.{tensor}" if model is not None else tensor
         if label != prefix or not index:
             continue
+        parts = [int(p) for p in index[1:-1].split(",")]
+        inner = parts[1:] if stacked else parts
+        if names is not None:
+            flat = 0
+            for size, i in zip(shape, inner):
+                flat = flat * size + i
+            shared = groups is not None and int(groups[tuple(parts)]) >= 0
+            return names[flat] if shared or not stacked else f"{names[flat]}[{parts[0]}]"
         if stacked:
-            parts = index[1:-1].split(",")
-            rest = ",".join(parts[1:])
+            rest = ",".join(str(i) for i in inner)
             return f"{model}[{parts[0]}].{tensor}" + (f"[{rest}]" if rest else "")
         return f"{prefix}{index}"
     return name

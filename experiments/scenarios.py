@@ -233,6 +233,9 @@ class SystemScenario:
     #: ``initial_mode_probs: ergodic``: the start's mode probabilities are the transition matrix's
     #: stationary ones (estimating the matrix re-derives them at every evaluation)
     ergodic: bool = False
+    #: the ``learn.parameters`` of ``learn.parameters: auto`` (a builder that knows what it estimates:
+    #: :func:`markov_switching`), or None
+    learn_parameters: list | None = None
 
     @property
     def num_modes(self) -> int:
@@ -429,7 +432,8 @@ def read_data(data: Any, n: int, m: int):
     columns = None if truth is None else [c for c in truth if c is not None]
     try:
         recorded = read_series(data["path"], measurements=list(data["measurements"]), truth=columns or None,
-                               time=data.get("time"), series=data.get("series"))
+                               time=data.get("time"), series=data.get("series"),
+                               inputs=list(data["inputs"]) if data.get("inputs") else None)
     except DataFileError as err:  # one line naming the file, the column and the row
         raise ConfigError("scenario.data", data["path"], str(err)) from None
     except (TypeError, ValueError) as err:  # an argument of the reader: `measurements[1]: ...` and the like
@@ -448,6 +452,134 @@ def read_data(data: Any, n: int, m: int):
             full[..., [i for i, c in enumerate(truth) if c is not None]] = recorded.truth
         recorded.truth = full if np.isfinite(full).any() else None
     return recorded
+
+
+def markov_switching(
+    *,
+    name: str = "markov_switching",
+    data: Any,
+    k_regimes: int = 2,
+    trend: str = "c",
+    switching_trend: bool = True,
+    switching_exog: bool = True,
+    switching_variance: bool = True,
+    transition: Sequence[Sequence[float]] | None = None,
+    start: dict | None = None,
+    labels: Sequence[str] | None = None,
+    dtype: torch.dtype = torch.float64,
+    device: torch.device | str = "cpu",
+) -> SystemScenario:
+    r"""A Markov-switching regression from one's own data, as statsmodels' ``MarkovRegression``:
+    ``y_t = c_{s_t} + x_t^T beta_{s_t} + e_t``, ``e_t ~ N(0, sigma2_{s_t})``, ``s_t`` a Markov chain of
+    ``k_regimes`` (docs/studies.md, "Estimating a Markov-switching model").
+
+    Written as an IMM over the exactly known state ``(1, x_t)`` (covariance 0, ``Q = 0``): the first
+    component is constant (``F = diag(1, 0, ..)``), the others are the inputs (``input_matrix``
+    ``[0; I]``: ``x_t = u_t``, the data's ``inputs`` columns), and regime ``s`` measures it with
+    ``H_s = (c_s, beta_s)``, ``R_s = sigma2_s``: every Kalman gain is 0, the mixing has no spread, so
+    the IMM is Hamilton's filter and Kim's smoother is Kim's.
+
+    Args:
+        data: the data node (``{path, measurements: [y], inputs: [x1, ...] or null, series, time}``).
+        k_regimes: the number of regimes.
+        trend: ``"c"`` a constant (intercept) or ``"n"`` none.
+        switching_trend, switching_exog, switching_variance: whether the constant, the regressors'
+            coefficients and the variance differ between the regimes (statsmodels' ``switching_trend``,
+            ``switching_exog``, ``switching_variance``); non-switching ones are one value shared by every
+            regime when estimated (``learn.parameters: auto``).
+        transition: the start of the transition matrix (rows = from); default every entry ``1/k``.
+        start: start values ``{const: [...], exog: [[...] per regime], variance: [...]}``; default
+            statsmodels' ``start_params``: the regression by least squares, regime ``i``'s coefficients
+            ``i / k`` of it, the variances ``linspace(var / 10, var, k)`` of its residual variance.
+        labels: the regimes' names (default ``regime 0``, ...).
+
+    The scenario's ``learn_parameters`` (``learn.parameters: auto``) estimate the transition matrix, every
+    coefficient and the variances, shared as the switching flags say; the start's mode probabilities are
+    the transition matrix's ergodic ones (statsmodels' default).
+    """
+    from experiments.config import ConfigError
+
+    if data is None:
+        raise ConfigError("scenario.data", None, "a Markov-switching regression is estimated from data: give "
+                          "{path, measurements: [y], inputs: [...] or null}")
+    if trend not in ("c", "n"):
+        raise ConfigError("scenario.trend", trend, "expected c (a constant) or n (none)")
+    if int(k_regimes) < 2:
+        raise ConfigError("scenario.k_regimes", k_regimes, "needs at least 2 regimes")
+    K = int(k_regimes)
+    if len(list(data["measurements"])) != 1:
+        raise ConfigError("scenario.data.measurements", list(data["measurements"]), "one column: the dependent "
+                          "variable y")
+    inputs = list(data.get("inputs") or [])
+    if trend == "n" and not inputs:
+        raise ConfigError("scenario.trend", trend, "without a constant the model needs inputs (regressors)")
+    n = 1 + len(inputs)
+    recorded = read_data(data, n, 1)
+    y = recorded.measurements[..., 0]
+    X = np.concatenate([np.ones(y.shape + (1,))] + ([recorded.inputs] if inputs else []), -1)
+    if trend == "n":
+        X = X[..., 1:]
+    ok = recorded.present & np.isfinite(y)
+    if start is None:  # statsmodels' start_params (MarkovRegression.start_params)
+        Xo, yo = X[ok], y[ok]
+        beta = np.linalg.pinv(Xo) @ yo
+        variance = float(np.var(yo - Xo @ beta))
+        coef = np.stack([beta * (i / K) for i in range(K)]) if (switching_trend or switching_exog) else \
+            np.stack([beta] * K)
+        if not switching_trend and trend == "c":
+            coef[:, 0] = beta[0]
+        if not switching_exog and inputs:
+            coef[:, -len(inputs):] = beta[-len(inputs):]
+        variances = np.linspace(variance / 10, variance, K) if switching_variance else np.full(K, variance)
+    else:
+        const = list(start.get("const") or [])
+        exog = [list(r) for r in (start.get("exog") or [])]
+        coef = np.array([([const[i]] if trend == "c" else []) + (exog[i] if inputs else []) for i in range(K)])
+        variances = np.array(list(start["variance"]), dtype=float)
+        if coef.shape != (K, X.shape[-1]) or variances.shape != (K,):
+            raise ConfigError("scenario.start", dict(start), f"expected const ({K}), exog ({K} x {len(inputs)}) "
+                              f"and variance ({K})")
+    if trend == "n":  # the state keeps its constant component; its coefficient is 0 and fixed
+        coef = np.concatenate([np.zeros((K, 1)), coef], -1)
+    matrix = [[1.0 / K] * K for _ in range(K)] if transition is None else [list(r) for r in transition]
+    try:
+        P = validate_transition(torch.tensor(matrix, dtype=dtype), "transition")
+    except ValueError as err:
+        raise ConfigError("scenario.transition", matrix, str(err).split(": ", 1)[-1]) from None
+    if P.shape[-1] != K:
+        raise ConfigError("scenario.transition", matrix, f"is {P.shape[-1]}x{P.shape[-1]} for {K} regimes")
+    from torchmm import LinearMeasurement
+
+    F = torch.zeros(n, n, dtype=dtype)
+    F[0, 0] = 1.0
+    B = torch.zeros(n, max(len(inputs), 1), dtype=dtype)
+    if inputs:
+        B[1:, :] = torch.eye(len(inputs), dtype=dtype)
+    motion = LinearMotion(F, torch.zeros(n, n, dtype=dtype), input_matrix=B if inputs else None)
+    sensors = [LinearMeasurement(torch.as_tensor(coef[i], dtype=dtype).reshape(1, n),
+                                 torch.full((1, 1), float(variances[i]), dtype=dtype)).to(device) for i in range(K)]
+    initial = GaussianBelief(torch.eye(n, dtype=dtype)[0], torch.zeros(n, n, dtype=dtype))
+    # what `learn.parameters: auto` estimates: the switching entries per regime, the others shared
+    switching = ([switching_trend] if trend == "c" else [True]) + [switching_exog] * len(inputs)
+    fixed_const = [False] * n if trend == "c" else [True] + [False] * len(inputs)
+    names = [["const" if trend == "c" else "(no constant)"] + [str(c) for c in inputs]]
+    learn = [{"name": "transition"},
+             {"model": "sensors", "name": "H", "kind": "free", "shared": [[not s for s in switching]],
+              "fixed": [fixed_const], "names": names},
+             {"model": "sensors", "name": "R", "kind": "variance", "shared": not switching_variance,
+              "names": [["sigma2"]]}]
+    return SystemScenario(
+        name=name, motion=[copy_motion(motion) for _ in range(K)],
+        measurement=sensors, transition=P.to(device), initial=initial.to(device), steps=recorded.steps,
+        initial_mode_probs=_stationary(P).to(device), mode_labels=list(labels) if labels else
+        [f"regime {i}" for i in range(K)], groups={"state": list(range(n))}, sensor_dims=[1], missing=[0.0],
+        every=[1], data=recorded, motions=None, ergodic=True, learn_parameters=learn)
+
+
+def copy_motion(motion: LinearMotion) -> LinearMotion:
+    """An independent copy of a linear motion model (each regime its own)."""
+    return LinearMotion(motion.F.clone(), motion.Q.clone(),
+                        input_matrix=None if motion.input_matrix is None else motion.input_matrix.clone())
 
 
 def _stationary(matrix: Tensor) -> Tensor:

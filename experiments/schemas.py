@@ -212,6 +212,7 @@ class DataSpec:
     truth: Optional[List[Optional[str]]] = None  # one column per state component (null: not in the file)
     time: Optional[str] = None
     series: Optional[str] = None
+    inputs: Optional[List[str]] = None  # exogenous inputs (regressors): the motion models' controls
 
 
 @dataclass
@@ -241,7 +242,30 @@ class SystemScenario:
 #: the scenario every study's precheck builds: study -> its check_build(cfg, scenario)
 BUILD_CHECKS = {"experiments.studies.compare.run": "experiments.studies.compare.check_build"}
 
-SCENARIOS = {KINEMATIC: KinematicScenario, PAPER003: Paper003Scenario, SYSTEM: SystemScenario}
+MARKOV_SWITCHING = "experiments.scenarios.markov_switching"
+
+
+@dataclass
+class MarkovSwitchingScenario:
+    """``experiments.scenarios.markov_switching``: a Markov-switching regression from one's own data
+    (conf/experiment/markov_switching.yaml)."""
+
+    _target_: str = MARKOV_SWITCHING
+    _recursive_: bool = False
+    name: str = "markov_switching"
+    data: Optional[DataSpec] = None
+    k_regimes: int = spec(2, lambda v: None if v >= 2 else "needs at least 2 regimes")
+    trend: str = spec("c", one_of("c", "n"))
+    switching_trend: bool = True
+    switching_exog: bool = True
+    switching_variance: bool = True
+    transition: Optional[List[Any]] = spec(None, _rows_stochastic)
+    start: Optional[Dict[str, Any]] = None
+    labels: Optional[List[str]] = None
+
+
+SCENARIOS = {KINEMATIC: KinematicScenario, PAPER003: Paper003Scenario, SYSTEM: SystemScenario,
+             MARKOV_SWITCHING: MarkovSwitchingScenario}
 
 
 def scenario_names(targets) -> list[str]:
@@ -324,15 +348,16 @@ class LearnParameter:
     name: str = "Q"  # the tensor: Q, R, F, H, offset, input_matrix, ..., or transition
     kind: Optional[str] = spec(None, lambda v: None if v is None else one_of(
         "free", "variance", "covariance", "stochastic", "probabilities", "log_diagonal", "cholesky", "scale")(v))
-    shared: bool = False  # one value for every mode (a bank's tensor)
+    shared: Any = False  # one value for every mode (a bank's tensor): true, or a mask of one mode's entries
     fixed: Optional[Any] = None  # a boolean mask of one model's tensor: entries held at their values
     lower: Optional[float] = None  # bounds of a free tensor's entries
     upper: Optional[float] = None
+    names: Optional[Any] = None  # one model's tensor entries named (e.g. [[const, ogap]]): const[regime]
 
 
 @dataclass
 class Learn:
-    parameters: List[LearnParameter] = spec(factory=list, check=non_empty)
+    parameters: Any = spec(factory=list, check=lambda v: None if v == "auto" else non_empty(v))  # or auto
     method: str = spec("mle", one_of("mle", "gradient"))  # mle: torchmm.learn.estimate, with standard errors
     estimator: Optional[str] = None  # this one estimator learns (its own copy of the models)
     estimators: Optional[List[str]] = None  # these learn, each its own copy (default: every estimator)
@@ -1011,6 +1036,6 @@ STUDIES: dict[str, tuple[type, tuple[str, ...] | None]] = {
     "experiments.studies.fusion_radar.run": (FusionRadar, None),
     "experiments.studies.fusion_ups.run": (FusionUps, None),
     "experiments.studies.smoothing.run": (Smoothing, None),
-    "experiments.studies.compare.run": (Compare, (SYSTEM,)),
+    "experiments.studies.compare.run": (Compare, (SYSTEM, MARKOV_SWITCHING)),
     "experiments.studies.tracking.run": (Tracking, None),
 }

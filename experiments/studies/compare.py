@@ -99,6 +99,16 @@ def _data(ctx: StudyContext, start: int, stop: int):
     return ctx.memo(("compare", "data", start, stop), load)
 
 
+def _controls(ctx: StudyContext, start: int, stop: int) -> Tensor | None:
+    """The data's inputs (``scenario.data.inputs``: regressors) of runs ``start..stop-1`` as the motion
+    models' controls ``(T, runs, k)``, or None."""
+    scenario = _built(ctx)
+    inputs = None if scenario.data is None else scenario.data.inputs
+    if inputs is None:
+        return None
+    return torch.as_tensor(inputs[:, start:stop], dtype=ctx.dtype, device=ctx.device)
+
+
 def runs_of(ctx: StudyContext) -> int:
     scenario = _built(ctx)
     return scenario.data.runs if scenario.data is not None else int(ctx.cfg.mc_runs)
@@ -139,14 +149,20 @@ def _learn(ctx: StudyContext, scenario, est_name: str) -> tuple[dict, Any]:
     burn, update_first = int(ctx.cfg.get("burn") or 0), bool(ctx.cfg.get("update_first"))
     progress = ctx.progress and f"learn {est_name}"
     if str(block.method) == "mle":
+        import torchmm.kernels as kernels
+
         est = _estimator(ctx, scenario, est_name)
-        record = learning.fit_mle(est, scenario, block, z, prior=prior, update_first=update_first, burn=burn,
-                                  progress=progress)
+        # the whole data at once, in this one process: no split into units can change the fit, so the
+        # kernels that the study otherwise switches off (kernels.by_size) evaluate the likelihood
+        with kernels.switched_on(*kernels.by_size()):
+            record = learning.fit_mle(est, scenario, block, z, prior=prior, update_first=update_first, burn=burn,
+                                      controls=_controls(ctx, 0, runs), progress=progress)
         return record, est
-    return _learn_gradient(ctx, scenario, est_name, block, z, prior, burn, update_first, progress), None
+    return _learn_gradient(ctx, scenario, est_name, block, z, prior, burn, update_first, progress,
+                           _controls(ctx, 0, runs)), None
 
 
-def _learn_gradient(ctx, scenario, est_name, block, z, prior, burn, update_first, progress) -> dict:
+def _learn_gradient(ctx, scenario, est_name, block, z, prior, burn, update_first, progress, u) -> dict:
     """``method: gradient``: the named covariances made learnable on ``scenario``'s models and fitted with a
     torch optimiser through :class:`torchmm.learn.Trainer`."""
     from torch.nn.utils import parametrize
@@ -167,7 +183,7 @@ def _learn_gradient(ctx, scenario, est_name, block, z, prior, burn, update_first
 
     def loss_fn(filter, belief0, measurements, controls=None, return_final=False):
         # belief0 is the estimator's start belief (Trainer.fit takes it as it is: no second conversion)
-        traj = run_filter(filter, belief0, measurements, update_first=update_first,
+        traj = run_filter(filter, belief0, measurements, update_first=update_first, controls=controls,
                           record=lambda o: o._replace(belief=None, prior=None, innovation=None,
                                                       innovation_cov=None, extras={}))
         loss = -traj.log_likelihood[burn:].sum(0).mean()
@@ -181,7 +197,7 @@ def _learn_gradient(ctx, scenario, est_name, block, z, prior, burn, update_first
 
     trainer = Trainer(est.filter, optimizer, loss_fn=loss_fn, callbacks=[converged] if tol > 0 else [])
     tic = time.perf_counter()
-    history = trainer.fit(est.init(prior, None), z, int(block.iterations), progress=progress)
+    history = trainer.fit(est.init(prior, None), z, int(block.iterations), controls=u, progress=progress)
     seconds = time.perf_counter() - tic
     nll = [float(r.loss) for r in history]
     with parametrize.cached():
@@ -217,6 +233,15 @@ def check_build(cfg, scenario) -> None:
             text = str(cause).strip().splitlines()
             raise ConfigError(f"estimators.{name}", cfg.estimators[name].get("_target_"),
                               f"cannot be built: {text[0] if text else type(cause).__name__}") from None
+    if scenario.data is not None and scenario.data.inputs is not None:
+        motions = scenario.motion if isinstance(scenario.motion, list) else [scenario.motion]
+        k = scenario.data.inputs.shape[-1]
+        for i, m in enumerate(motions):
+            B = getattr(m, "input_matrix", None)
+            if B is None or B.shape[-1] != k:
+                raise ConfigError("scenario.data.inputs", list(cfg.scenario.data.inputs), f"{k} input(s), but "
+                                  f"mode {i}'s motion model takes "
+                                  f"{'no input' if B is None else str(B.shape[-1]) + ' (its input_matrix)'}")
     names = learning.learners(cfg)
     if names and scenario.motions is not None:
         raise ConfigError("learn", "parameters", "learning with irregular time stamps (per-step motion models) is "
@@ -323,7 +348,7 @@ def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
         if est.filter.uses_generator else None
     tic = time.perf_counter()
     traj = run_filter(est.filter, est.init(scenario.initial.expand(runs), generator), z,
-                      motions=_motions(est, scenario), generator=generator,
+                      controls=_controls(ctx, start, stop), motions=_motions(est, scenario), generator=generator,
                       update_first=bool(ctx.cfg.get("update_first")))
     est_belief = traj.estimate()
     seconds = time.perf_counter() - tic

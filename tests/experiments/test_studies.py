@@ -62,6 +62,7 @@ RUN_ZERO = "one run (run 0), shown as an example: no Monte Carlo uncertainty"
 EXEMPT: dict[str, list[tuple[str, str]]] = {
     "compare": [(r"^mode_probability/", RUN_ZERO)],
     "fedfunds": [(r"^mode_probability/", "one recorded series (real data): no Monte Carlo runs")],
+    "markov_switching": [(r"^mode_probability/", "one recorded series (real data): no Monte Carlo runs")],
     "nile": [(r"^learn/nll/", "training curve over the fit's iterations (one fit), not a Monte Carlo mean")],
     "fusion_ups": [(r"^variance/comp[123]/", ("the filters' computed variances P(t|t): exact (no Monte Carlo); "
                                               "the Monte Carlo variances are tables with their _se"))],

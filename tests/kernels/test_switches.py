@@ -106,3 +106,15 @@ def test_every_caller_in_the_repository_passes_a_known_kernel_name():
     assert any(value == NAME for _, _, value in found)  # the scan sees the callers (experiments/run.py)
     unknown = [f"{path}:{line}: {value!r}" for path, line, value in found if value not in kernels.names()]
     assert not unknown, f"unknown kernel names (known: {kernels.names()}): {unknown}"
+
+
+def test_switched_on_switches_on_inside_and_restores():
+    name = kernels.by_size()[0]
+    with kernels.switched_off(name):
+        assert not kernels.enabled(name)
+        with kernels.switched_on(name):
+            assert kernels.enabled(name)
+        assert not kernels.enabled(name)
+    with pytest.raises(ValueError, match=r"^names\[0\]"):
+        with kernels.switched_on("bogus"):
+            pass

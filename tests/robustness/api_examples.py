@@ -134,6 +134,7 @@ NOT_ENTRY_POINTS: dict[str, str] = {
     "torchmm.kernels.switched_off": ("a context manager over *names (no parameter to declare): each name is "
                                      "checked by the kernel-name kind, naming it names[i] "
                                      "(tests/kernels/test_switches.py)"),
+    "torchmm.kernels.switched_on": ("a context manager over *names, as switched_off (tests/kernels/test_switches.py)"),
     # no arguments
     "torchmm.filters.unscented.CubatureSigmaPoints": _NO_ARGS,
     "torchmm.multimodel.imm.MomentMixing": _NO_ARGS,

@@ -40,7 +40,7 @@ from torchmm.contract import Flag, Invalid, Kind, entry_point
 from torchmm.validation import broadcast_shape
 
 __all__ = ["Request", "by_size", "describe", "enabled", "joined", "joins", "names", "plan", "plan_smooth",
-           "register", "registered", "set_enabled", "stack_steps", "switched_off"]
+           "register", "registered", "set_enabled", "stack_steps", "switched_off", "switched_on"]
 
 _KERNELS: list = []
 #: family -> {class: {method name: function}}: the steps each joining class computes
@@ -179,6 +179,21 @@ def switched_off(*names: str):
         yield
     finally:
         _OFF.difference_update(set(names) - was)
+
+
+@contextlib.contextmanager
+def switched_on(*names: str):
+    """``with switched_on(*by_size()): ...``: :func:`set_enabled` on inside for every kernel named, restored
+    after (a study's one-off whole-data work, such as its maximum-likelihood fit, which no split into
+    units can change). Every name is checked first (``names[i]: ...``, nothing switched)."""
+    for i, name in enumerate(names):
+        _NAME.check(name, f"names[{i}]")
+    was = {name for name in names if name in _OFF}
+    _OFF.difference_update(names)
+    try:
+        yield
+    finally:
+        _OFF.update(was)
 
 
 def by_size() -> list[str]:

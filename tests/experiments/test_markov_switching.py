@@ -1,0 +1,170 @@
+"""``experiment=markov_switching``: a Markov-switching regression estimated from config alone (issue 45),
+against statsmodels' ``MarkovRegression`` (and Stata's published results, statsmodels' own test data).
+
+* Fed funds, switching mean and variance: from statsmodels' start values the study reaches a maximum
+  (-504.40) higher than statsmodels' default fit (-505.70; its EM then BFGS stops at a lower one), and
+  statsmodels agrees: its own optimiser started there stays there, its log-likelihood (1e-6) and its
+  standard errors (1e-3) there are the study's.
+* Fed funds on its lag, the output gap and inflation (statsmodels' ``TestFedFundsConstL1Exog``, Stata's
+  ``mswitch`` manual): at Stata's estimates the study's log-likelihood is Stata's and statsmodels',
+  its estimates stay, and its standard errors are statsmodels' (1e-3) and Stata's (1e-4 absolute).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sm = pytest.importorskip("statsmodels.api")
+
+from experiments.config import validate
+from experiments.realdata import load_fedfunds
+from experiments.run import run_study
+
+
+def _compose(*overrides):
+    from hydra import compose, initialize_config_dir
+
+    from experiments.run import CONFIG_DIR
+
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+        return compose("config", overrides=["experiment=markov_switching", "logger=none", "progress=false",
+                                            "figures=false", *overrides])
+
+
+def _run(cfg, out: Path) -> dict:
+    validate(cfg)
+    run_study(cfg, out)
+    return json.loads((out / "results.json").read_text())
+
+
+def _learned(res) -> dict:
+    return {row[1]: (row[2], row[3]) for row in res["tables"]["learned"]["rows"]}
+
+
+def test_fedfunds_from_config(tmp_path):
+    res = _run(_compose(), tmp_path / "ff")
+    est = _learned(res)
+    fit = dict(zip(res["tables"]["fit"]["columns"], res["tables"]["fit"]["rows"][0]))
+    y = load_fedfunds()[:, 0].numpy()
+    model = sm.tsa.MarkovRegression(y, k_regimes=2, trend="c", switching_variance=True)
+    ours = np.array([est["transition[0,0]"][0], est["transition[1,0]"][0], est["const[0]"][0], est["const[1]"][0],
+                     est["sigma2[0]"][0], est["sigma2[1]"][0]])
+    default = model.fit(disp=False)
+    assert fit["loglik"] > default.llf + 1.0  # a higher maximum than statsmodels' default fit
+    there = model.fit(start_params=ours, method="bfgs", gtol=1e-8, disp=False)
+    np.testing.assert_allclose(ours, there.params, rtol=1e-4)
+    ours_se = [est[k][1] for k in ("transition[0,0]", "transition[1,0]", "const[0]", "const[1]", "sigma2[0]",
+                                   "sigma2[1]")]
+    np.testing.assert_allclose(ours_se, there.bse, rtol=1e-3)
+    assert fit["loglik"] == pytest.approx(there.llf, abs=1e-6)
+    assert (fit["k"], fit["nobs"]) == (6, 226)
+    assert fit["aic"] == pytest.approx(there.aic, abs=1e-5) and fit["bic"] == pytest.approx(there.bic, abs=1e-5)
+    np.testing.assert_allclose([est["duration of transition[0]"][0], est["duration of transition[1]"][0]],
+                               there.expected_durations, rtol=1e-4)
+    # the filter and Kim's smoother then run at the estimates: the study's log-likelihood is the fit's
+    assert res["metrics"]["Hamilton"]["loglik"] == pytest.approx(fit["loglik"], abs=1e-9)
+
+
+#: Stata's estimates (statsmodels' TestFedFundsConstL1Exog): p[0->0], p[1->0], const, x1, x2, x3 per regime,
+#: sigma2, and its observed-information standard errors
+STATA = dict(
+    params=[0.7279288, 0.2114578, 0.6554954, -0.0944924, 0.8314458, 0.9292574, 0.1355425, 0.0343072,
+            -0.0273928, 0.2125275, 0.5764495 ** 2],
+    llf=-229.25614,
+    bse=[0.0929915, 0.0641179, 0.1373889, 0.1279231, 0.0333236, 0.0270852, 0.0294113, 0.0240138, 0.0408057,
+         0.0297351])
+
+
+def _statsmodels_test_data(*names: str) -> list[np.ndarray]:
+    """The data arrays of statsmodels' Markov-regression tests, read from its test module's source (not
+    imported: its pytest marks are not this suite's)."""
+    import ast
+    import importlib.util
+
+    spec = importlib.util.find_spec("statsmodels.tsa.regime_switching.tests.test_markov_regression")
+    if spec is None or spec.origin is None:
+        pytest.skip("statsmodels' test data are not installed")
+    tree = ast.parse(Path(spec.origin).read_text())
+    found = {}
+    for node in tree.body:
+        if isinstance(node, ast.Assign) and len(node.targets) == 1 and isinstance(node.targets[0], ast.Name) \
+                and node.targets[0].id in names:
+            values = [float("nan") if isinstance(e, ast.Attribute) and e.attr == "nan" else ast.literal_eval(e)
+                      for e in node.value.elts]  # (np.nan: a missing value)
+            found[node.targets[0].id] = np.asarray(values, dtype=float)
+    return [found[n] for n in names]
+
+
+@pytest.fixture(scope="module")
+def exog_data(tmp_path_factory):
+    ff, ogap, inf = _statsmodels_test_data("fedfunds", "ogap", "inf")
+    y, X = ff[4:], np.c_[ff[3:-1], ogap[4:], inf[4:]]
+    path = tmp_path_factory.mktemp("exog") / "fedfunds_exog.csv"
+    with path.open("w") as f:
+        f.write("y,lag,ogap,infl\n")
+        for a, row in zip(y, X):
+            f.write(",".join(repr(float(v)) for v in (a, *row)) + "\n")
+    return path, sm.tsa.MarkovRegression(y, k_regimes=2, exog=X)
+
+
+def test_regressors_at_statas_estimates(exog_data, tmp_path):
+    path, model = exog_data
+    p = STATA["params"]
+    cfg = _compose(f"scenario.data={{path:{path},measurements:[y],inputs:[lag,ogap,infl]}}",
+                   "scenario.switching_variance=false",
+                   f"scenario.transition=[[{p[0]},{1 - p[0]}],[{p[1]},{1 - p[1]}]]",
+                   f"scenario.start={{const:[{p[2]},{p[3]}],exog:[[{p[4]},{p[6]},{p[8]}],[{p[5]},{p[7]},{p[9]}]],"
+                   f"variance:[{p[10]},{p[10]}]}}")
+    res = _run(cfg, tmp_path / "exog")
+    est = _learned(res)
+    fit = dict(zip(res["tables"]["fit"]["columns"], res["tables"]["fit"]["rows"][0]))
+    order = ["transition[0,0]", "transition[1,0]", "const[0]", "const[1]", "lag[0]", "lag[1]", "ogap[0]", "ogap[1]",
+             "infl[0]", "infl[1]", "sigma2"]
+    ours = np.array([est[k][0] for k in order])
+    assert fit["k"] == 11 and fit["nobs"] == 222
+    assert fit["loglik"] == pytest.approx(STATA["llf"], abs=1e-5)
+    assert fit["loglik"] == pytest.approx(model.loglike(ours), abs=1e-6)
+    np.testing.assert_allclose(ours, STATA["params"], rtol=1e-4, atol=1e-6)
+    there = model.fit(start_params=ours, method="bfgs", gtol=1e-8, disp=False)
+    np.testing.assert_allclose([est[k][1] for k in order], there.bse, rtol=1e-3)
+    np.testing.assert_allclose([est[k][1] for k in order[:-1]], STATA["bse"], atol=1e-4)
+    # sigma2 is one value shared by both regimes (switching_variance: false), reported once
+    assert "sigma2[0]" not in est and fit["converged"]
+
+
+def test_shared_regressors_are_reported_once(exog_data, tmp_path):
+    """switching_exog: false shares each regressor's coefficient across the regimes: one estimate each,
+    named without a regime; the constants and variances still switch (k = 2 + 2 + 3 + 2)."""
+    path, _ = exog_data
+    cfg = _compose(f"scenario.data={{path:{path},measurements:[y],inputs:[lag,ogap,infl]}}",
+                   "scenario.switching_exog=false", "+learn.maxiter=3")
+    res = _run(cfg, tmp_path / "shared")
+    names = [row[1] for row in res["tables"]["learned"]["rows"]]
+    assert {"lag", "ogap", "infl", "const[0]", "const[1]", "sigma2[0]", "sigma2[1]"} <= set(names)
+    assert "lag[0]" not in names
+    fit = dict(zip(res["tables"]["fit"]["columns"], res["tables"]["fit"]["rows"][0]))
+    assert fit["k"] == 9
+
+
+@pytest.mark.slow
+def test_regressors_from_statsmodels_start(exog_data, tmp_path):
+    """From statsmodels' start values (its `start_params`) the study reaches statsmodels' optimum (the
+    eager steps with controls: about a minute)."""
+    path, model = exog_data
+    cfg = _compose(f"scenario.data={{path:{path},measurements:[y],inputs:[lag,ogap,infl]}}",
+                   "scenario.switching_variance=false")
+    res = _run(cfg, tmp_path / "exog_start")
+    fit = dict(zip(res["tables"]["fit"]["columns"], res["tables"]["fit"]["rows"][0]))
+    assert fit["loglik"] == pytest.approx(model.fit(em_iter=10, maxiter=100, disp=False).llf, abs=1e-5)
+
+
+def test_markov_switching_config_errors():
+    for overrides, message in ((["scenario.k_regimes=1"], "scenario.k_regimes=1"),
+                               (["scenario.trend=x"], "scenario.trend=x"),
+                               (["scenario.data.measurements=[rate,rate2]"], "scenario.data.measurements")):
+        with pytest.raises(ValueError, match=message.replace("[", r"\[")):
+            validate(_compose(*overrides))
