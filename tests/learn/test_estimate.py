@@ -238,3 +238,16 @@ def test_stationary_is_the_chains_invariant_distribution():
     w, v = np.linalg.eig(P.numpy().T)
     ref = np.real(v[:, np.argmin(abs(w - 1))])
     np.testing.assert_allclose(pi.numpy(), ref / ref.sum(), atol=1e-12)
+
+
+def test_a_tensor_held_under_two_names_is_estimated_under_one():
+    """LinearMotion(I, I) holds one tensor object as F and Q: estimating Q leaves F alone (functional_call
+    would substitute both, a write in place would change both)."""
+    one = torch.ones(1, 1, dtype=torch.float64)
+    kf = KalmanFilter(LinearMotion(one, one), LinearMeasurement(one.clone(), one.clone()))
+    assert kf.motion.F is kf.motion.Q
+    z = torch.randn(200, 1, dtype=torch.float64, generator=torch.Generator().manual_seed(0)).cumsum(0)
+    est = estimate(kf, GaussianBelief(torch.zeros(1, dtype=torch.float64), one), z, {"motion.Q": "variance"},
+                   progress=False)
+    assert float(kf.motion.F) == 1.0 and float(kf.motion.Q) == pytest.approx(est.estimates[0])
+    assert est.converged and abs(est.estimates[0] - 1.0) > 1e-3

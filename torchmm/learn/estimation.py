@@ -373,13 +373,30 @@ def _resolve(filter: nn.Module, name: str) -> Tensor:
     owner, _, attr = name.rpartition(".")
     module = filter.get_submodule(owner) if owner else filter
     value = getattr(module, attr, None)
-    named = dict(filter.named_buffers()) | dict(filter.named_parameters())
+    named = dict(filter.named_buffers(remove_duplicate=False)) | dict(filter.named_parameters(remove_duplicate=False))
     if name not in named or not isinstance(value, Tensor):
         tensors = sorted(named)
         raise ValueError(f"parameters: {name!r} is not a tensor of the filter (its tensors: {', '.join(tensors)})")
     if not value.is_floating_point():
         raise TypeError(f"parameters[{name!r}]: not a floating-point tensor ({value.dtype})")
     return value
+
+
+def _write(filter: nn.Module, name: str, value: Tensor) -> None:
+    """The estimate into the filter's tensor ``name``: in place, or as a tensor of its own where the
+    model holds the same tensor object under another name too (it would change both)."""
+    current = _resolve(filter, name)
+    tied = [n for n, t in (*filter.named_buffers(remove_duplicate=False),
+                           *filter.named_parameters(remove_duplicate=False)) if t is current and n != name]
+    if not tied:
+        current.copy_(value)
+        return
+    owner, _, attr = name.rpartition(".")
+    module = filter.get_submodule(owner) if owner else filter
+    if attr in module._buffers:
+        module._buffers[attr] = value.detach().clone()
+    else:
+        module._parameters[attr] = nn.Parameter(value.detach().clone(), requires_grad=current.requires_grad)
 
 
 def _nobs(measurements: Tensor, burn: int, batch_dims: int) -> int:
@@ -427,7 +444,8 @@ def estimate(filter: Filter, belief0: Belief | Callable[[Filter], Belief], measu
             tests/learn/test_estimate.py); ``"autograd"``: the exact second derivative through the eager
             steps (no kernel has a second derivative: slower, seconds for a few hundred steps).
         tol, maxiter: the optimiser's tolerance and iteration limit (default for L-BFGS-B: ``ftol=1e-13``,
-            ``gtol=1e-8``, tighter than scipy's, which stops short on a flat likelihood).
+            ``gtol=1e-8`` in float64, tighter than scipy's, which stops short on a flat likelihood; ``1e-6``
+            and ``1e-3`` in float32).
         write: leave the estimates in the filter's tensors (in place, without gradient).
         progress: a bar over the evaluations (None: on a terminal only).
 
@@ -441,9 +459,10 @@ def estimate(filter: Filter, belief0: Belief | Callable[[Filter], Belief], measu
     Examples:
         >>> from torchmm.filters import KalmanFilter
         >>> from torchmm.models import LinearMotion, LinearMeasurement
-        >>> kf = KalmanFilter(LinearMotion([[1.0]], [[1.0]]), LinearMeasurement([[1.0]], [[1.0]]))
-        >>> z = torch.randn(200, 1, generator=torch.Generator().manual_seed(0)).cumsum(0)
-        >>> est = estimate(kf, GaussianBelief(torch.zeros(1), torch.eye(1)), z, {"motion.Q": "variance"})
+        >>> one = torch.ones(1, 1, dtype=torch.float64)
+        >>> kf = KalmanFilter(LinearMotion(one, one), LinearMeasurement(one, one))
+        >>> z = torch.randn(200, 1, dtype=torch.float64, generator=torch.Generator().manual_seed(0)).cumsum(0)
+        >>> est = estimate(kf, GaussianBelief(torch.zeros(1, dtype=torch.float64), one), z, {"motion.Q": "variance"})
         >>> est.names, est.converged, est.se[0] > 0
         (['motion.Q[0,0]'], True, True)
     """
@@ -480,7 +499,9 @@ def estimate(filter: Filter, belief0: Belief | Callable[[Filter], Belief], measu
         return {f"filter.{b.name}": b.build(u) for b, u in zip(blocks, theta.split(sizes))}
 
     def loss_at(theta: Tensor) -> Tensor:
-        return torch.func.functional_call(call, substitutes(theta), ())
+        # tie_weights=False: a tensor object that the model holds under two names (LinearMotion(I, I): F
+        # and Q the same tensor) is substituted under the estimated name only
+        return torch.func.functional_call(call, substitutes(theta), (), tie_weights=False)
 
     estimate.objective = objective  # (the last call's: which kernel ran, objective.kernel / objective.why)
     evaluations = [0]
@@ -498,7 +519,9 @@ def estimate(filter: Filter, belief0: Belief | Callable[[Filter], Belief], measu
 
     options = {} if maxiter is None else {"maxiter": int(maxiter)}
     if tol is None and method == "L-BFGS-B":  # to the optimum, not near it (likelihoods are cheap; scipy's
-        options.update(ftol=1e-13, gtol=1e-8)  # default ftol stops ~1e-4 short in flat directions)
+        # default ftol stops ~1e-4 short in flat directions); float32 likelihoods are only so precise
+        single = measurements.dtype == torch.float32
+        options.update(ftol=1e-6 if single else 1e-13, gtol=1e-3 if single else 1e-8)
     tic = time.perf_counter()
     try:
         result = minimize(loss_and_grad, theta0.numpy(), jac=True, method=method, tol=tol, options=options)
@@ -519,7 +542,7 @@ def estimate(filter: Filter, belief0: Belief | Callable[[Filter], Belief], measu
                 eager = _Call(filter, Objective(filter, belief0, measurements, reduction="sum",
                                                 update_first=update_first, controls=controls, burn=burn))
                 H = torch.autograd.functional.hessian(
-                    lambda t: torch.func.functional_call(eager, substitutes(t), ()), theta)
+                    lambda t: torch.func.functional_call(eager, substitutes(t), (), tie_weights=False), theta)
         else:  # central differences of the exact gradient (2 k evaluations, the kernels where they apply)
             H = torch.empty(len(theta), len(theta), dtype=torch.float64)
             for i in range(len(theta)):
@@ -564,7 +587,7 @@ def estimate(filter: Filter, belief0: Belief | Callable[[Filter], Belief], measu
     if write:
         with torch.no_grad():
             for b, u in zip(blocks, theta.split(sizes)):
-                _resolve(filter, b.name).copy_(b.build(u))
+                _write(filter, b.name, b.build(u))
     batch_dims = measurements.dim() - 2
     return Estimate(names=names, estimates=natural.tolist(), se=errors.tolist(), cov=cov, theta=theta,
                     theta_cov=theta_cov, loglik=loglik, k=len(theta), nobs=_nobs(measurements, burn, batch_dims),
