@@ -395,6 +395,11 @@ class Compare:
         learn = data.get("learn")
         if learn and learn.get("estimator") is not None and learn["estimator"] not in names:
             raise ConfigError("learn.estimator", learn["estimator"], f"must be one of the estimators ({', '.join(names)})")
+        if learn and isinstance(learn.get("parameters"), list):  # (typed Any, for `auto`): each entry's schema
+            for i, entry in enumerate(learn["parameters"]):
+                if not isinstance(entry, dict):
+                    raise ConfigError(f"learn.parameters[{i}]", entry, "expected a mapping {model, name, kind, ...}")
+                merge(LearnParameter, entry, f"learn.parameters[{i}]")
         if learn and learn.get("estimators") is not None:
             if learn.get("estimator") is not None:
                 raise ConfigError("learn.estimators", learn["estimators"], "give learn.estimator or learn.estimators, "

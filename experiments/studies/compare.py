@@ -254,13 +254,13 @@ def check_build(cfg, scenario) -> None:
     for name in names:
         own = learning.own_models(scenario)
         if str(block.method) == "mle":
-            from torchmm.learn.estimation import _Block, _resolve
+            from torchmm.learn import estimated_entries
 
             est = instantiate(cfg.estimators[name])(own, name=name)
             params, _ = learning.parameters_of(est, own, block)
-            for i, (tensor, param) in enumerate(params.items()):
+            for tensor, param in params.items():
                 try:
-                    _Block(tensor, _resolve(est.filter, tensor), param)
+                    estimated_entries(est.filter, {tensor: param})
                 except (TypeError, ValueError) as err:
                     raise ConfigError("learn.parameters", param.label, str(err).split(": ", 1)[-1]) from None
             continue

@@ -301,6 +301,8 @@ example(_L + "estimation.estimate")(_estimation)
 example(_L + "estimation.Param")(lambda: call(learn.Param, "free", fixed=None, groups=None, lower=0.0, upper=2.0,
                                               label="x"))
 example(_L + "estimation.stationary")(lambda: call(learn.stationary, _transition()))
+example(_L + "estimation.estimated_entries")(
+    lambda: call(learn.estimated_entries, KalmanFilter(_cv(), _pos()), {"measurement.R": "variance"}))
 
 example(_L + "trainer.Trainer")(
     lambda: call(learn.Trainer, _learnable_kf(), torch.optim.SGD([torch.nn.Parameter(torch.zeros(1))], 0.1),

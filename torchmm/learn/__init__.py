@@ -15,7 +15,7 @@
   resampling of particle beliefs and a particle filter that uses it.
 """
 
-from torchmm.learn.estimation import Estimate, Param, estimate, stationary
+from torchmm.learn.estimation import Estimate, Param, estimate, estimated_entries, stationary
 from torchmm.learn.loss import negative_log_likelihood, truncated_segments
 from torchmm.learn.objective import Objective
 from torchmm.learn.resampling import (
@@ -34,6 +34,7 @@ __all__ = [
     "TrainRecord",
     "Trainer",
     "estimate",
+    "estimated_entries",
     "load_checkpoint",
     "negative_log_likelihood",
     "save_checkpoint",

@@ -48,7 +48,7 @@ from torchmm.filters.base import Filter
 from torchmm.models.transition import ModeTransition
 from torchmm.runtime import one_thread_when_small
 
-__all__ = ["KINDS", "Estimate", "Param", "estimate", "stationary"]
+__all__ = ["KINDS", "Estimate", "Param", "estimate", "estimated_entries", "stationary"]
 
 #: the kinds of :class:`Param`
 KINDS = ("free", "variance", "covariance", "stochastic", "probabilities")
@@ -356,6 +356,49 @@ class Estimate:
         return self.estimates[i], self.se[i]
 
 
+def _blocks(filter: nn.Module, parameters: Mapping[str, Any]) -> list[_Block]:
+    """The estimated tensors of ``parameters`` (``{name: Param or kind}``), checked against the filter."""
+    if not parameters:
+        raise ValueError("parameters: empty (name the tensors to estimate)")
+    blocks = []
+    for name, param in parameters.items():
+        if not isinstance(name, str):
+            raise TypeError(f"parameters: keys are tensor names (strings), got {name!r}")
+        if isinstance(param, str):
+            if param not in KINDS:
+                raise ValueError(f"parameters[{name!r}]: expected a Param or one of {', '.join(KINDS)}, got {param!r}")
+            param = Param(param)
+        elif not isinstance(param, Param):
+            raise TypeError(f"parameters[{name!r}]: expected a Param or a kind, got {type(param).__name__}")
+        try:
+            owner = filter.get_submodule(name.rpartition(".")[0]) if "." in name else filter
+        except AttributeError:
+            owner = None  # (no such module: _resolve names the tensors there are)
+        if isinstance(owner, ModeTransition) and param.kind != "stochastic":
+            raise ValueError(f"parameters[{name!r}]: a transition matrix is estimated as 'stochastic' (its rows stay "
+                             f"probabilities), not {param.kind!r}")
+        blocks.append(_Block(name, _resolve(filter, name), param))
+    return blocks
+
+
+@entry_point(filter=Of(nn.Module, what="a filter (an nn.Module)"),
+             parameters=Of(Mapping, what="a mapping {tensor name: Param or kind}"))
+def estimated_entries(filter: nn.Module, parameters: Mapping[str, Param | str]) -> list[str]:
+    """The entries :func:`estimate` would report for ``parameters`` of ``filter`` (``"<label>[i,j]"``),
+    every entry checked as :func:`estimate` checks it (an unknown tensor, a kind that does not fit it, a
+    start outside its constraints, every entry fixed: ``ValueError`` naming ``parameters[...]``), without
+    evaluating anything: a dry run of a fit's set-up.
+
+    Examples:
+        >>> from torchmm.filters import KalmanFilter
+        >>> from torchmm.models import LinearMotion, LinearMeasurement
+        >>> kf = KalmanFilter(LinearMotion([[1.0]], [[1.0]]), LinearMeasurement([[1.0]], [[2.0]]))
+        >>> estimated_entries(kf, {"motion.Q": "variance", "measurement.R": Param("variance", label="R")})
+        ['motion.Q[0,0]', 'R[0,0]']
+    """
+    return [n for b in _blocks(filter, parameters) for n in b.names()]
+
+
 class _Call(nn.Module):
     """The objective as a module's forward, so that :func:`torch.func.functional_call` puts the
     estimated tensors in the filter's place for one evaluation."""
@@ -472,23 +515,7 @@ def estimate(filter: Filter, belief0: Belief | Callable[[Filter], Belief], measu
     import torchmm.kernels as kernels
     from torchmm.learn.objective import Objective
 
-    if not parameters:
-        raise ValueError("parameters: empty (name the tensors to estimate)")
-    blocks = []
-    for name, param in parameters.items():
-        if not isinstance(name, str):
-            raise TypeError(f"parameters: keys are tensor names (strings), got {name!r}")
-        if isinstance(param, str):
-            if param not in KINDS:
-                raise ValueError(f"parameters[{name!r}]: expected a Param or one of {', '.join(KINDS)}, got {param!r}")
-            param = Param(param)
-        elif not isinstance(param, Param):
-            raise TypeError(f"parameters[{name!r}]: expected a Param or a kind, got {type(param).__name__}")
-        owner = filter.get_submodule(name.rpartition(".")[0]) if "." in name else filter
-        if isinstance(owner, ModeTransition) and param.kind != "stochastic":
-            raise ValueError(f"parameters[{name!r}]: a transition matrix is estimated as 'stochastic' (its rows stay "
-                             f"probabilities), not {param.kind!r}")
-        blocks.append(_Block(name, _resolve(filter, name), param))
+    blocks = _blocks(filter, parameters)
     sizes = [b.u0.numel() for b in blocks]
     theta0 = torch.cat([b.u0 for b in blocks]).to(torch.float64)
     objective = Objective(filter, belief0, measurements, reduction="sum", update_first=update_first,
