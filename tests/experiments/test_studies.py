@@ -63,7 +63,6 @@ EXEMPT: dict[str, list[tuple[str, str]]] = {
     "compare": [(r"^mode_probability/", RUN_ZERO)],
     "fedfunds": [(r"^mode_probability/", "one recorded series (real data): no Monte Carlo runs")],
     "markov_switching": [(r"^mode_probability/", "one recorded series (real data): no Monte Carlo runs")],
-    "nile": [(r"^learn/nll/", "training curve over the fit's iterations (one fit), not a Monte Carlo mean")],
     "fusion_ups": [(r"^variance/comp[123]/", ("the filters' computed variances P(t|t): exact (no Monte Carlo); "
                                               "the Monte Carlo variances are tables with their _se"))],
     "smoothing": [(r"^parallel_time_ratio/", ("wall-clock timing (best of repeats) over the swept step count, "
