@@ -132,8 +132,11 @@ def _check(kf, belief0, z) -> Tensor:
     return check_measurement(z, kf.meas_dim, torch.Size((z.shape[0], *batch)), belief0.mean, "z")
 
 
-def _elements(kf: KalmanFilter, belief0: GaussianBelief, z: Tensor) -> Elements:
-    """The filtering elements ``(A, b, C, eta, J)``, each ``(T, *B, ...)``."""
+def _elements(kf: KalmanFilter, belief0: GaussianBelief, z: Tensor, *, update_first: bool = False,
+              offsets: Tensor | None = None) -> Elements:
+    """The filtering elements ``(A, b, C, eta, J)``, each ``(T, *B, ...)``. ``update_first``: ``belief0`` is
+    the first step's prior (no prediction into it); ``offsets`` ``(T, *B, n)``: each prediction's extra
+    offset (a motion model's inputs, ``B u_k``)."""
     n, m = kf.state_dim, kf.meas_dim
     dtype, device = belief0.mean.dtype, belief0.mean.device
     zero = torch.zeros(n, dtype=dtype, device=device)
@@ -145,13 +148,18 @@ def _elements(kf: KalmanFilter, belief0: GaussianBelief, z: Tensor) -> Elements:
     R = kf.measurement.noise_cov(zero)
     steps = z.shape[0]
     batch = broadcast_shape(belief0.batch_shape, z.shape[1:-1], F.shape[:-2], Q.shape[:-2], H.shape[:-2],
-                            R.shape[:-2], c.shape[:-1], d.shape[:-1])
+                            R.shape[:-2], c.shape[:-1], d.shape[:-1],
+                            () if offsets is None else offsets.shape[1:-1])
     full = (steps, *batch)
     # step 1: its element is the filtered belief (F = 0, c = m1-, Q = P1-); later steps the model's
-    m1 = (F @ belief0.mean.unsqueeze(-1)).squeeze(-1) + c
-    P1 = F @ belief0.cov @ F.mT + Q
+    if update_first:
+        m1, P1 = belief0.mean, belief0.cov
+    else:
+        m1 = (F @ belief0.mean.unsqueeze(-1)).squeeze(-1) + c + (0 if offsets is None else offsets[0])
+        P1 = F @ belief0.cov @ F.mT + Q
     Fk = torch.cat([torch.zeros_like(F.expand(*batch, n, n)).unsqueeze(0), F.expand(steps - 1, *batch, n, n)])
-    ck = torch.cat([m1.expand(*batch, n).unsqueeze(0), c.expand(steps - 1, *batch, n)])
+    later = c.expand(steps - 1, *batch, n) if offsets is None else c + offsets[1:].expand(steps - 1, *batch, n)
+    ck = torch.cat([m1.expand(*batch, n).unsqueeze(0), later])
     Qk = torch.cat([P1.expand(*batch, n, n).unsqueeze(0), Q.expand(steps - 1, *batch, n, n)])
     # missing components: a zero row of H and a decoupled unit noise (zero gain, exactly)
     observed = torch.isfinite(z).expand(*full, m)
@@ -172,6 +180,41 @@ def _elements(kf: KalmanFilter, belief0: GaussianBelief, z: Tensor) -> Elements:
     eta = (HF.mT @ torch.cholesky_solve(resid.unsqueeze(-1), L)).squeeze(-1)
     J = symmetrize(HF.mT @ Sinv_HF)
     return A, b, C, eta, J
+
+
+def filter_smooth(kf: KalmanFilter, belief0: GaussianBelief, z: Tensor, *, update_first: bool = False,
+                  offsets: Tensor | None = None) -> tuple[GaussianBelief, GaussianBelief, GaussianBelief, Tensor]:
+    """``(filtered, prior, smoothed, log_likelihood)`` of every step by the two scans, for callers inside
+    torchmm that checked their arguments (EM's E-step, :func:`torchmm.learn.em`): ``update_first`` and
+    each prediction's extra ``offsets`` ``(T, *B, n)`` (inputs ``B u_k``) as for :func:`_elements`.
+
+    Shapes:
+        belief0 batch ``(*B,)``, z ``(T, *B, m)`` -> beliefs batch ``(T, *B)``, log_likelihood ``(T, *B)``
+    """
+    A, b, C, _, _ = _scan(_filter_op, _elements(kf, belief0, z, update_first=update_first, offsets=offsets))
+    filtered = GaussianBelief(b, C)
+    previous = GaussianBelief(torch.cat([belief0.mean.expand(b.shape[1:]).unsqueeze(0), b[:-1]]),
+                              torch.cat([belief0.cov.expand(C.shape[1:]).unsqueeze(0), C[:-1]]))
+    prior = kf.predict(previous)
+    mean, cov = prior.mean, prior.cov
+    if offsets is not None:
+        mean = mean + offsets
+    if update_first:  # the first step's prior is belief0 itself
+        mean = torch.cat([belief0.mean.expand(mean.shape[1:]).unsqueeze(0), mean[1:]])
+        cov = torch.cat([belief0.cov.expand(cov.shape[1:]).unsqueeze(0), cov[1:]])
+    prior = GaussianBelief(mean, cov)
+    ll = kf.update(prior, z).log_likelihood
+    F = kf.motion.jacobian(torch.zeros(kf.state_dim, dtype=b.dtype, device=b.device))
+    if z.shape[0] == 1:
+        return filtered, prior, filtered, ll
+    E = torch.linalg.solve(cov[1:], (C[:-1] @ F.mT).mT).mT  # P_k F^T (P^-_{k+1})^{-1}
+    g = b[:-1] - (E @ mean[1:].unsqueeze(-1)).squeeze(-1)
+    L = symmetrize(C[:-1] - E @ cov[1:] @ E.mT)
+    E = torch.cat([E, torch.zeros_like(E[:1])])
+    g = torch.cat([g, b[-1:]])
+    L = torch.cat([L, C[-1:]])
+    _, gs, Ls = _scan(_smoother_op, (E.flip(0), g.flip(0), L.flip(0)))
+    return filtered, prior, GaussianBelief(gs.flip(0), Ls.flip(0)), ll
 
 
 # declared: _check refuses other filters and beliefs ("kf: the parallel filter needs a KalmanFilter")

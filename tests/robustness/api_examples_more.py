@@ -27,6 +27,7 @@ from torchmm.filters import KalmanFilter
 
 NOT_ENTRY_POINTS.update({
     "torchmm.learn.estimation.Estimate": "a result record (what estimate found), built by estimate",
+    "torchmm.learn.em.EMResult": "a result record (what em found), built by em",
     "torchmm.distributions.truncated_normal_moments": _OP + " (the variational filters call it inside every "
     "step; its inputs are the filter's own moments)",
 })
@@ -301,6 +302,17 @@ example(_L + "estimation.estimate")(_estimation)
 example(_L + "estimation.Param")(lambda: call(learn.Param, "free", fixed=None, groups=None, lower=0.0, upper=2.0,
                                               label="x"))
 example(_L + "estimation.stationary")(lambda: call(learn.stationary, _transition()))
+def _em():
+    from torchmm.models import LinearMeasurement, LinearMotion
+
+    one = torch.ones(1, 1)
+    kf = KalmanFilter(LinearMotion(one.clone(), one.clone()), LinearMeasurement(one.clone(), one.clone()))
+    z = torch.randn(20, 1, generator=_gen()).cumsum(0)
+    return call(learn.em, kf, GaussianBelief(torch.zeros(1), torch.eye(1)), z, ["Q", "R"], iterations=2, tol=None,
+                update_first=True, per_series=False, controls=None, present=None, progress=False)
+
+
+example(_L + "em.em")(_em)
 example(_L + "estimation.estimated_entries")(
     lambda: call(learn.estimated_entries, KalmanFilter(_cv(), _pos()), {"measurement.R": "variance"}))
 

@@ -15,6 +15,7 @@
   resampling of particle beliefs and a particle filter that uses it.
 """
 
+from torchmm.learn.em import EMResult, em
 from torchmm.learn.estimation import Estimate, Param, estimate, estimated_entries, stationary
 from torchmm.learn.loss import negative_log_likelihood, truncated_segments
 from torchmm.learn.objective import Objective
@@ -26,6 +27,7 @@ from torchmm.learn.resampling import (
 from torchmm.learn.trainer import NonFiniteLossError, Trainer, TrainRecord, load_checkpoint, save_checkpoint
 
 __all__ = [
+    "EMResult",
     "Estimate",
     "Objective",
     "Param",
@@ -33,6 +35,7 @@ __all__ = [
     "SoftResamplingParticleFilter",
     "TrainRecord",
     "Trainer",
+    "em",
     "estimate",
     "estimated_entries",
     "load_checkpoint",

@@ -1,0 +1,154 @@
+"""EM for linear-Gaussian models (``torchmm.learn.em``, issue 45), against pykalman on its robot data (the
+MATLAB log-likelihoods it ships) and against properties EM guarantees: the likelihood never decreases,
+each iteration's likelihood is the filter's at that iteration's parameters, a batch of series with
+parameters of their own equals the separate fits, and shared parameters over copies of one series equal
+that series' fit."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+pykalman = pytest.importorskip("pykalman")
+
+from pykalman import KalmanFilter as PyKalman  # noqa: E402
+from pykalman.datasets import load_robot  # noqa: E402
+
+from torchmm import GaussianBelief, KalmanFilter  # noqa: E402
+from torchmm.learn import em, negative_log_likelihood  # noqa: E402
+from torchmm.models import LinearMeasurement, LinearMotion  # noqa: E402
+
+F64 = torch.float64
+
+
+def _t(a):
+    return torch.as_tensor(np.asarray(a, dtype=float), dtype=F64)
+
+
+@pytest.fixture(scope="module")
+def robot():
+    return load_robot()
+
+
+def _robot_filter(d):
+    """pykalman's robot model in torchmm: its time-varying transition offsets as inputs (``B = I``), its
+    fixed observation offset taken off the data, its masked observations NaN."""
+    motion = LinearMotion(_t(d.transition_matrix), _t(d.initial_transition_covariance), input_matrix=torch.eye(5, dtype=F64))
+    sensor = LinearMeasurement(_t(d.observation_matrix), _t(d.initial_observation_covariance))
+    y = _t(np.ma.filled(d.observations.astype(float), np.nan) - d.observation_offset)
+    u = torch.cat([torch.zeros(1, 5, dtype=F64), _t(d.transition_offsets)])  # u_t: the offset into step t
+    return KalmanFilter(motion, sensor), GaussianBelief(_t(d.initial_state_mean), _t(d.initial_state_covariance)), y, u
+
+
+def _pykalman(d, em_vars):
+    return PyKalman(d.transition_matrix, d.observation_matrix, d.initial_transition_covariance,
+                    d.initial_observation_covariance, d.transition_offsets, d.observation_offset, d.initial_state_mean,
+                    d.initial_state_covariance, em_vars=em_vars)
+
+
+def test_robot_em_equals_pykalman_and_its_matlab_loglikelihoods(robot):
+    """EM of Q and R (pykalman's own test): 10 iterations' log-likelihoods equal the MATLAB values pykalman
+    ships (1e-8) and pykalman's; the parameters after 9 iterations equal pykalman's."""
+    kf, b0, y, u = _robot_filter(robot)
+    out = em(kf, b0, y, ["Q", "R"], iterations=9, controls=u, progress=False)
+    np.testing.assert_allclose(out.loglik, robot.loglikelihoods[:10], rtol=1e-8, atol=1e-8)
+    ref = _pykalman(robot, ["transition_covariance", "observation_covariance"])
+    lls = []
+    for _ in range(10):
+        lls.append(ref.loglikelihood(robot.observations))
+        if len(lls) < 10:
+            ref.em(X=robot.observations, n_iter=1)
+    np.testing.assert_allclose(out.loglik, lls, rtol=1e-10)
+    np.testing.assert_allclose(kf.motion.Q.numpy(), ref.transition_covariance, rtol=1e-8, atol=1e-12)
+    np.testing.assert_allclose(kf.measurement.R.numpy(), ref.observation_covariance, rtol=1e-8, atol=1e-12)
+    assert out.monotone and out.iterations == 9
+
+
+def _simulated(T=80, runs=1, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    F = torch.tensor([[0.9, 0.2], [-0.1, 0.8]], dtype=F64)
+    b = torch.tensor([0.5, -0.2], dtype=F64)
+    H = torch.tensor([[1.0, 0.5]], dtype=F64)
+    x = torch.zeros(runs, 2, dtype=F64)
+    ys = []
+    for _ in range(T):
+        x = x @ F.mT + b + 0.3 * torch.randn(runs, 2, dtype=F64, generator=g)
+        ys.append(x @ H.mT + 0.5 * torch.randn(runs, 1, dtype=F64, generator=g))
+    return torch.stack(ys)  # (T, runs, 1)
+
+
+def _start_filter():
+    motion = LinearMotion(torch.eye(2, dtype=F64) * 0.5, torch.eye(2, dtype=F64), offset=torch.zeros(2, dtype=F64))
+    sensor = LinearMeasurement(torch.tensor([[1.0, 1.0]], dtype=F64), torch.eye(1, dtype=F64))
+    return KalmanFilter(motion, sensor), GaussianBelief(torch.zeros(2, dtype=F64), torch.eye(2, dtype=F64) * 2)
+
+
+def test_every_parameter_equals_pykalman():
+    """EM of F, the offset, Q, H, R and the start's mean and covariance together (pykalman's em_vars
+    without the observation offsets, which torchmm's LinearMeasurement has not): 5 iterations equal."""
+    y = _simulated()[:, 0]
+    kf, b0 = _start_filter()
+    out = em(kf, b0, y, iterations=5, progress=False)
+    ref = PyKalman(np.eye(2) * 0.5, np.array([[1.0, 1.0]]), np.eye(2), np.eye(1), np.zeros(2), np.zeros(1),
+                   np.zeros(2), np.eye(2) * 2,
+                   em_vars=["transition_matrices", "transition_offsets", "transition_covariance",
+                            "observation_matrices", "observation_covariance", "initial_state_mean",
+                            "initial_state_covariance"])
+    ref.em(y.numpy(), n_iter=5)
+    for ours, theirs in ((kf.motion.F, ref.transition_matrices), (kf.motion.offset, ref.transition_offsets),
+                         (kf.motion.Q, ref.transition_covariance), (kf.measurement.H, ref.observation_matrices),
+                         (kf.measurement.R, ref.observation_covariance), (out.belief0.mean, ref.initial_state_mean),
+                         (out.belief0.cov, ref.initial_state_covariance)):
+        np.testing.assert_allclose(ours.numpy(), theirs, rtol=1e-8, atol=1e-10)
+    assert out.monotone
+
+
+@pytest.mark.parametrize("update_first", [True, False])
+def test_each_iterations_likelihood_is_the_filters_and_never_decreases(update_first):
+    y = _simulated(60)[:, 0]
+    y[10:14] = torch.nan  # missing steps inform the state only
+    kf, b0 = _start_filter()
+    out = em(kf, b0, y, iterations=12, update_first=update_first, progress=False)
+    assert out.monotone and all(b >= a - 1e-9 * abs(a) for a, b in zip(out.loglik, out.loglik[1:]))
+    nll = float(negative_log_likelihood(kf, out.belief0, y, reduction="sum", update_first=update_first))
+    assert out.loglik[-1] == pytest.approx(-nll, rel=1e-12)
+
+
+def test_a_batch_of_fits_equals_the_separate_fits():
+    y = _simulated(50, runs=4, seed=3)
+    kf, b0 = _start_filter()
+    out = em(kf, b0.expand(4), y, iterations=6, per_series=True, progress=False)
+    assert kf.motion.Q.shape == (4, 2, 2) and out.loglik[-1].shape == (4,)
+    for r in range(4):
+        one, start = _start_filter()
+        alone = em(one, start, y[:, r], iterations=6, progress=False)
+        torch.testing.assert_close(kf.motion.F[r], one.motion.F, rtol=1e-9, atol=1e-12)
+        torch.testing.assert_close(kf.measurement.R[r], one.measurement.R, rtol=1e-9, atol=1e-12)
+        assert float(out.loglik[-1][r]) == pytest.approx(alone.loglik[-1], rel=1e-10)
+
+
+def test_shared_parameters_over_copies_of_a_series_are_that_series_fit():
+    y = _simulated(50, seed=4)
+    kf2, b0 = _start_filter()
+    both = em(kf2, b0.expand(2), y.expand(50, 2, 1).clone(), ["F", "Q", "R"], iterations=5, progress=False)
+    kf1, b1 = _start_filter()
+    one = em(kf1, b1, y[:, 0], ["F", "Q", "R"], iterations=5, progress=False)
+    torch.testing.assert_close(kf2.motion.Q, kf1.motion.Q, rtol=1e-9, atol=1e-12)
+    assert both.loglik[-1] == pytest.approx(2 * one.loglik[-1], rel=1e-10)
+
+
+def test_em_errors_name_the_argument():
+    kf, b0 = _start_filter()
+    y = _simulated(20)[:, 0]
+    with pytest.raises(ValueError, match="^parameters: \\['G'\\]"):
+        em(kf, b0, y, ["G"])
+    with pytest.raises(TypeError, match="^parameters"):
+        em(kf, b0, y, "Q")
+    partial = torch.cat([y, y], -1)
+    partial[3, 0] = torch.nan
+    kf2 = KalmanFilter(kf.motion, LinearMeasurement(torch.eye(2, dtype=F64), torch.eye(2, dtype=F64)))
+    with pytest.raises(ValueError, match="^measurements: a vector with some components missing"):
+        em(kf2, b0, partial, ["Q"])
+    with pytest.raises(ValueError, match="^controls"):
+        em(kf, b0, y, ["Q"], controls=torch.zeros(20, 2, dtype=F64))

@@ -1,0 +1,291 @@
+r"""Expectation-maximisation for linear-Gaussian state-space models, batched over series (issue 45).
+
+:func:`em` fits a :class:`~torchmm.KalmanFilter` over :class:`~torchmm.LinearMotion` and
+:class:`~torchmm.LinearMeasurement` models (Shumway & Stoffer, J. Time Ser. Anal. 3(4), 1982;
+Ghahramani & Hinton, 1996): each iteration
+
+* **E-step**: the Kalman filter and the RTS smoother by parallel scans (:mod:`torchmm.parallel`:
+  ``log T`` batched levels, every series at once) and the lag-one smoothed covariances
+  ``P_{t,t-1|T} = P_{t|T} G_{t-1}^T`` (``G_t = P_{t|t} F^T P_{t+1|t}^{-1}``) give the expected
+  sufficient statistics, summed over the steps (and over the series, for parameters they share);
+* **M-step**, the exact conditional maximisers of the expected complete-data log-likelihood, in
+  pykalman's order (each uses the ones updated before it: an ECM step, which never lowers the
+  likelihood): ``H``, ``R``, ``F`` (given the offset ``b``), ``Q`` (given ``F`` and ``b``), the start's
+  mean and covariance, then ``b`` (given ``F``):
+
+  .. math::
+      H = \Big(\sum_t y_t \hat x_t^\top\Big)\Big(\sum_t \hat x_t \hat x_t^\top + P_t\Big)^{-1},\quad
+      R = \frac1{N_y} \sum_t (y_t - H\hat x_t)(y_t - H\hat x_t)^\top + H P_t H^\top,
+
+      F = \Big(\sum_t P_{t,t-1} + \hat x_t \hat x_{t-1}^\top - b\,\hat x_{t-1}^\top\Big)
+          \Big(\sum_t P_{t-1} + \hat x_{t-1}\hat x_{t-1}^\top\Big)^{-1},\quad
+      b = \frac1{N_x}\sum_t \hat x_t - F\hat x_{t-1},
+
+      Q = \frac1{N_x}\sum_t (\hat x_t - F\hat x_{t-1} - b)(\cdot)^\top + F P_{t-1} F^\top + P_t
+          - P_{t,t-1} F^\top - F P_{t,t-1}^\top,
+
+  ``x_0 = \hat x_{0|T}``, ``P_0 = P_{0|T}``.
+
+The log-likelihood of each iteration's parameters is that of its E-step's filter, so the history is
+the likelihood *before* each M-step (pykalman's test convention), and EM never lowers it: a decrease
+beyond rounding is reported (``EMResult.monotone``). Steps whose measurement is missing (NaN, the
+whole vector) add nothing to the ``H``, ``R`` statistics; padding of shorter series (``present``)
+adds nothing at all. ``per_series=True`` gives every series its own parameters (a batch of
+independent fits in one batched EM); otherwise the series share them.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+
+from torchmm.beliefs import GaussianBelief
+from torchmm.contract import BeliefArg, Data, Flag, Int, Mask, Of, Real, Unchecked, entry_point
+from torchmm.filters.kalman import KalmanFilter
+from torchmm.models.linear import LinearMeasurement, LinearMotion
+from torchmm.parallel import filter_smooth
+from torchmm.validation import check_filter_dtype, check_measurement, gaussian_batch
+from torchmm.runtime import entries, one_thread_when_small
+
+__all__ = ["EM_PARAMETERS", "EMResult", "em"]
+
+#: what :func:`em` estimates, by name
+EM_PARAMETERS = ("H", "R", "F", "offset", "Q", "initial_mean", "initial_cov")
+
+
+@dataclass
+class EMResult:
+    """What :func:`em` found.
+
+    Attributes:
+        loglik: the log-likelihood at each iteration's parameters (before its M-step), then at the
+            final ones: ``iterations + 1`` values, each ``(*B,)`` with ``per_series`` (else scalars, the
+            sum over the series).
+        belief0: the estimated start belief (the initial state's mean and covariance).
+        iterations: the M-steps done; converged: the relative change of the log-likelihood fell below
+            ``tol``; monotone: no iteration lowered it by more than rounding; seconds.
+    """
+
+    loglik: list
+    belief0: GaussianBelief
+    iterations: int
+    converged: bool
+    monotone: bool
+    seconds: float
+    decreases: list = field(default_factory=list)
+
+
+def _sum(x: Tensor, keep: int, shared: bool) -> Tensor:
+    """``x`` summed over time (axis 0) and, for shared parameters, over the series axes (``keep``
+    trailing axes are the event)."""
+    x = x.sum(0)
+    if shared:
+        x = x.reshape(-1, *x.shape[x.dim() - keep:]).sum(0) if x.dim() > keep else x
+    return x
+
+
+@entry_point(filter=Of(KalmanFilter, what="a KalmanFilter over LinearMotion and LinearMeasurement"),
+             belief0=BeliefArg(validate=True), measurements=Data(),
+             parameters=Unchecked("names of EM_PARAMETERS, checked by em"),
+             iterations=Int(1), tol=Real(minimum=0.0, optional=True), update_first=Flag(), per_series=Flag(),
+             controls=Data(optional=True),
+             present=Mask(optional=True), progress=Unchecked("None, True, False or a description"))
+@one_thread_when_small(lambda filter, belief0, measurements, *args, **kwargs: entries(belief0) * measurements.shape[0])
+def em(filter: KalmanFilter, belief0: GaussianBelief, measurements: Tensor,
+       parameters: Sequence[str] = ("H", "R", "F", "offset", "Q", "initial_mean", "initial_cov"), *,
+       iterations: int = 10, tol: float | None = None, update_first: bool = True, per_series: bool = False,
+       controls: Tensor | None = None, present: Tensor | None = None,
+       progress: bool | str | None = None) -> EMResult:
+    r"""Fit ``parameters`` of a linear-Gaussian Kalman filter by EM (module docstring), in place.
+
+    Args:
+        filter: a :class:`~torchmm.KalmanFilter` whose motion is a :class:`~torchmm.LinearMotion` and
+            whose measurement is a :class:`~torchmm.LinearMeasurement` (its ``F``, ``offset``, ``Q``,
+            ``H``, ``R`` are written with the estimates).
+        belief0: the start, batch ``(*B,)``: the prior of the first measurement with ``update_first``
+            (pykalman's and statsmodels' convention, the default), else the belief one step before it.
+        measurements: ``(T, *B, m)``; a step whose vector is missing (NaN) informs the state only.
+        parameters: which of :data:`EM_PARAMETERS` to estimate (the others stay).
+        iterations: at most this many EM iterations; tol: stop once the log-likelihood's relative change
+            is below it (None: run them all).
+        controls: ``(T, *B, k)``, the inputs of a motion model with an ``input_matrix`` ``B`` (kept fixed):
+            the prediction into step ``t`` adds ``B u_t`` (e.g. pykalman's time-varying
+            ``transition_offsets`` as ``u_t`` with ``B = I``).
+        per_series: each series its own parameters (a batch of fits; the models' tensors get the batch
+            ``*B`` in front), else one set for all.
+        present: ``(T, *B)`` bool, False at the padding after a shorter series' end (nothing there is
+            counted).
+        progress: a bar over the iterations (None: on a terminal only).
+
+    Returns:
+        an :class:`EMResult`; the filter's models hold the estimates, ``result.belief0`` the start.
+
+    Raises:
+        TypeError / ValueError naming ``filter`` (not linear-Gaussian), ``parameters`` (an unknown name),
+        ``measurements`` (a partly missing vector: not supported), ``present``.
+
+    Examples:
+        >>> from torchmm.models import LinearMotion, LinearMeasurement
+        >>> one = torch.ones(1, 1, dtype=torch.float64)
+        >>> kf = KalmanFilter(LinearMotion(one.clone(), one.clone()), LinearMeasurement(one.clone(), one.clone()))
+        >>> z = torch.randn(100, 1, dtype=torch.float64, generator=torch.Generator().manual_seed(0)).cumsum(0)
+        >>> out = em(kf, GaussianBelief(torch.zeros(1, dtype=torch.float64), one), z, ["Q", "R"], iterations=5)
+        >>> out.monotone, len(out.loglik)
+        (True, 6)
+    """
+    from tqdm.auto import tqdm
+
+    motion, sensor = filter.motion, filter.measurement
+    if type(motion) is not LinearMotion or type(sensor) is not LinearMeasurement:
+        raise TypeError(f"filter: EM needs a LinearMotion and a LinearMeasurement, got {type(motion).__name__} and "
+                        f"{type(sensor).__name__}")
+    if (controls is None) != (motion.input_matrix is None):
+        raise ValueError("controls: give controls exactly when the motion model has an input_matrix "
+                         f"({'none' if motion.input_matrix is None else tuple(motion.input_matrix.shape)})")
+    if controls is not None and (not isinstance(controls, Tensor) or controls.shape[0] != measurements.shape[0]):
+        raise ValueError(f"controls: expected (T, *B, k) with the measurements' {measurements.shape[0]} steps")
+    if isinstance(parameters, str) or not all(isinstance(p, str) for p in parameters):
+        raise TypeError(f"parameters: expected names of {', '.join(EM_PARAMETERS)}, got {parameters!r}")
+    unknown = [p for p in parameters if p not in EM_PARAMETERS]
+    if unknown or not parameters:
+        raise ValueError(f"parameters: {unknown or 'nothing'}: expected some of {', '.join(EM_PARAMETERS)}")
+    wanted = set(parameters)
+    if not isinstance(belief0, GaussianBelief):
+        raise TypeError(f"belief0: expected a GaussianBelief, got {type(belief0).__name__}")
+    check_filter_dtype(filter, belief0, "belief0")
+    gaussian_batch(belief0, filter.state_dim, "belief0")
+    z = measurements
+    if not isinstance(z, Tensor) or z.dim() < 2:
+        raise ValueError("measurements: expected a time-major tensor (T, *B, m)")
+    batch = belief0.batch_shape
+    if tuple(z.shape[1:-1]) != tuple(batch):
+        raise ValueError(f"measurements: batch {tuple(z.shape[1:-1])} is not the start belief's {tuple(batch)}")
+    z = check_measurement(z, filter.meas_dim, torch.Size((z.shape[0], *batch)), belief0.mean, "measurements")
+    seen = torch.isfinite(z)
+    observed = seen.all(-1)
+    if bool((seen.any(-1) & ~observed).any()):
+        raise ValueError("measurements: a vector with some components missing (not all): EM's H and R steps take "
+                         "whole vectors only (not implemented yet)")
+    T = z.shape[0]
+    if present is None:
+        present = torch.ones(z.shape[:-1], dtype=torch.bool, device=z.device)
+    elif tuple(present.shape) != tuple(z.shape[:-1]):
+        raise ValueError(f"present: expected shape {tuple(z.shape[:-1])}, got {tuple(present.shape)}")
+    observed = observed & present
+    shared = not per_series
+    dtype = z.dtype
+    yz = torch.where(observed.unsqueeze(-1), z, 0.0)
+    # the inputs' part of each prediction into step t (fixed): B u_t, for the pairs (t-1, t)
+    Bu = None if controls is None else (motion.input_matrix @ controls.to(dtype).unsqueeze(-1)).squeeze(-1)
+    w = observed.to(dtype)  # (T, *B)
+    pairs = (present[1:] & present[:-1]).to(dtype)  # transitions inside a series
+    n_obs = _sum(w, 0, shared)
+    n_pairs = _sum(pairs, 0, shared)
+    start = belief0
+    history, decreases = [], []
+    tic = time.perf_counter()
+    bar = tqdm(total=iterations, desc=progress if isinstance(progress, str) else "em",
+               disable=None if progress is None else not progress, leave=False)
+    converged, done = False, 0
+
+    def e_step(start):
+        """The log-likelihood and the smoothed moments ``(x_t, P_t, P_{t,t-1})`` by the parallel scans
+        (torchmm.parallel: ``log T`` batched levels, no loop over the steps); without ``update_first`` the
+        state one step before the first datum (the start's) is smoothed too, first in the sequence."""
+        filt, prior, sm, ll = filter_smooth(filter, start, z, update_first=update_first, offsets=Bu)
+        ll = torch.where(present, ll, 0.0).sum(0)
+        xs, Ps = sm.mean, sm.cov
+        F = motion.F
+        G = torch.linalg.solve(prior.cov[1:], (filt.cov[:-1] @ F.mT).mT).mT  # P_t F^T P_{t+1|t}^{-1}
+        Pc = Ps[1:] @ G.mT
+        if not update_first:
+            mean0 = start.mean.expand(xs.shape[1:])
+            cov0 = start.cov.expand(Ps.shape[1:])
+            G0 = torch.linalg.solve(prior.cov[0], (cov0 @ F.mT).mT).mT
+            x0 = mean0 + (G0 @ (xs[0] - prior.mean[0]).unsqueeze(-1)).squeeze(-1)
+            P0 = cov0 + G0 @ (Ps[0] - prior.cov[0]) @ G0.mT
+            xs = torch.cat([x0.unsqueeze(0), xs])
+            Ps = torch.cat([(0.5 * (P0 + P0.mT)).unsqueeze(0), Ps])
+            Pc = torch.cat([(Ps[1] @ G0.mT).unsqueeze(0), Pc])
+        return (ll.sum() if shared else ll), (xs, Ps, Pc)
+
+    with torch.no_grad():
+        for it in range(iterations):
+            ll, (xs, Ps, Pc) = e_step(start)
+            history.append(ll)
+            if it and bool((ll < history[-2] - 1e-9 * abs(history[-2]).clamp_min(1.0)).any()):
+                decreases.append(it)
+            if tol is not None and it and bool(((ll - history[-2]).abs() <= tol * ll.abs().clamp_min(1.0)).all()):
+                converged = True
+                break
+            # the measurement steps: the smoothed state at each datum (without update_first, the first
+            # smoothed state is the start's, one step before the first datum)
+            xo, Po = (xs, Ps) if update_first else (xs[1:], Ps[1:])
+            Exx = Po + xo.unsqueeze(-1) * xo.unsqueeze(-2)  # (T, *B, n, n)
+            wx = w[..., None, None]
+            if "H" in wanted:
+                Syx = _sum(wx * (yz.unsqueeze(-1) * xo.unsqueeze(-2)), 2, shared)
+                Sxx = _sum(wx * Exx, 2, shared)
+                sensor.H = torch.linalg.solve(Sxx.mT, Syx.mT).mT.reshape(_shape(sensor.H, Syx, shared))
+            if "R" in wanted:
+                H = sensor.H
+                r = yz - (H @ xo.unsqueeze(-1)).squeeze(-1)
+                term = r.unsqueeze(-1) * r.unsqueeze(-2) + H @ Po @ H.mT
+                R = _sum(wx * term, 2, shared) / n_obs.clamp_min(1)[..., None, None]
+                sensor.R = (0.5 * (R + R.mT)).reshape(_shape(sensor.R, R, shared))
+            # the transition steps: pairs (t-1, t) inside a series
+            x1, x0 = xs[1:], xs[:-1]
+            P1, P0, C = Ps[1:], Ps[:-1], Pc
+            if Bu is not None:  # the pairs' targets less the inputs' part: x_t - B u_t
+                x1 = x1 - (Bu[1:] if update_first else Bu)
+            pw = (pairs if update_first else torch.cat([present[:1].to(dtype), pairs]))[..., None, None]
+            npairs = n_pairs if update_first else _sum(torch.cat([present[:1].to(dtype), pairs]), 0, shared)
+            E00 = P0 + x0.unsqueeze(-1) * x0.unsqueeze(-2)
+            E10 = C + x1.unsqueeze(-1) * x0.unsqueeze(-2)
+            if "F" in wanted:
+                b = motion.offset
+                num = _sum(pw * (E10 - b.unsqueeze(-1) * x0.unsqueeze(-2)), 2, shared)
+                motion.F = torch.linalg.solve(_sum(pw * E00, 2, shared).mT, num.mT).mT.reshape(
+                    _shape(motion.F, num, shared))
+            F = motion.F
+            if "Q" in wanted:
+                b = motion.offset
+                e = x1 - (F @ x0.unsqueeze(-1)).squeeze(-1) - b
+                term = (e.unsqueeze(-1) * e.unsqueeze(-2) + F @ P0 @ F.mT + P1 - C @ F.mT - F @ C.mT)
+                Q = _sum(pw * term, 2, shared) / npairs.clamp_min(1)[..., None, None]
+                motion.Q = (0.5 * (Q + Q.mT)).reshape(_shape(motion.Q, Q, shared))
+            mean0, cov0 = start.mean, start.cov
+            if "initial_mean" in wanted:
+                mean0 = xs[0]
+            if "initial_cov" in wanted:
+                d = xs[0] - mean0
+                cov0 = Ps[0] + d.unsqueeze(-1) * d.unsqueeze(-2)
+                cov0 = 0.5 * (cov0 + cov0.mT)
+            start = GaussianBelief(mean0, cov0)
+            if "offset" in wanted:  # last, as pykalman (Q above used the offset before this M-step)
+                d = x1 - (F @ x0.unsqueeze(-1)).squeeze(-1)
+                b = _sum(pw[..., 0] * d, 1, shared) / npairs.clamp_min(1)[..., None]
+                motion.offset = b.reshape(_shape(motion.offset, b, shared))
+            done += 1
+            bar.update(1)
+            bar.set_postfix(loglik=f"{float(ll.sum()):.6g}")
+        else:
+            ll, _ = e_step(start)
+            history.append(ll)
+            if bool((ll < history[-2] - 1e-9 * abs(history[-2]).clamp_min(1.0)).any()):
+                decreases.append(len(history) - 1)
+    bar.close()
+    values = [float(h) if shared else h.clone() for h in history]
+    return EMResult(loglik=values, belief0=start, iterations=done, converged=converged, monotone=not decreases,
+                    seconds=time.perf_counter() - tic, decreases=decreases)
+
+
+def _shape(current: Tensor, new: Tensor, shared: bool) -> tuple:
+    """The shape the estimate takes in the model: the model's own for shared parameters, the series'
+    batch in front otherwise."""
+    return tuple(current.shape[-new.dim():]) if shared and new.dim() <= current.dim() else tuple(new.shape)
