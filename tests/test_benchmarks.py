@@ -194,3 +194,18 @@ def test_tracking_benchmark_runs_and_agrees_with_stone_soup():
     assert re.fullmatch(r"speedup_exact=[0-9.]+ speedup_lbp=[0-9.]+", proc.stdout.strip().splitlines()[-1])
     diff = float(re.search(r"exact Stone Soup .* final means: ([0-9.e+-]+)", proc.stdout).group(1))
     assert diff < 1e-8
+
+
+def test_estimation_benchmark_runs_and_agrees():
+    pytest.importorskip("pykalman")
+    pytest.importorskip("statsmodels")
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "estimation.py"), "--repeats", "1", "--series", "6",
+         "--steps", "30", "--iterations", "3", "--pykalman-series", "2", "--threads", "1"],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:] + proc.stdout[-2000:]
+    lines = proc.stdout.strip().splitlines()
+    assert re.fullmatch(r"em_robot_speedup=[0-9.]+ em_batch_speedup=[0-9.]+ fedfunds_speedup=[0-9.]+", lines[-1])
+    for diff in re.findall(r"difference(?: after \d+)? ([0-9.]+e[-+][0-9]+)", proc.stdout):
+        assert float(diff) < 1e-7

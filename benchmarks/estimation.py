@@ -1,0 +1,182 @@
+"""Estimation against its references, side by side in one run (issue 45): EM against pykalman, maximum
+likelihood against statsmodels.
+
+* ``em_robot``: one EM iteration of Q and R on pykalman's robot data (501 steps, 5 states, time-varying
+  offsets), torchmm (:func:`torchmm.learn.em`) against pykalman's ``em``; their parameters compared.
+* ``em_batch``: EM of every parameter of a 2-state model over ``--series`` simulated series of
+  ``--steps`` steps, each series its own fit: one batched ``em(per_series=True)`` against a loop of
+  pykalman fits (timed on ``--pykalman-series`` of them and scaled to all: the loop is linear in them);
+  the first series' parameters compared.
+* ``fedfunds``: statsmodels' ``MarkovRegression(k_regimes=2, trend="c", switching_variance=True).fit()`` on
+  the Fed funds rate against :func:`torchmm.learn.estimate` of the same model from statsmodels' start
+  values, standard errors included in both (``fit()`` then ``bse``); each one's log-likelihood printed
+  (they reach different maxima: docs/studies.md).
+
+The last line: ``em_robot_speedup=... em_batch_speedup=... fedfunds_speedup=...`` (reference time / torchmm
+time; above 1 torchmm is faster).
+
+    .venv/bin/python benchmarks/estimation.py
+    .venv/bin/python benchmarks/estimation.py --series 1000 --steps 100 --pykalman-series 20
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+import torch
+
+
+def best(fn, repeats: int) -> float:
+    times = []
+    for _ in range(repeats):
+        tic = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - tic)
+    return min(times)
+
+
+def em_robot(repeats: int) -> float:
+    from pykalman import KalmanFilter as PyKalman
+    from pykalman.datasets import load_robot
+
+    from torchmm import GaussianBelief, KalmanFilter
+    from torchmm.learn import em
+    from torchmm.models import LinearMeasurement, LinearMotion
+
+    d = load_robot()
+    t = lambda a: torch.as_tensor(np.asarray(a, dtype=float), dtype=torch.float64)  # noqa: E731
+    y = t(np.ma.filled(d.observations.astype(float), np.nan) - d.observation_offset)
+    u = torch.cat([torch.zeros(1, 5, dtype=torch.float64), t(d.transition_offsets)])
+
+    its = 10  # an iteration's time: 10 iterations' / 10 (torchmm's em also evaluates the final likelihood)
+
+    def ours():
+        kf = KalmanFilter(LinearMotion(t(d.transition_matrix), t(d.initial_transition_covariance),
+                                       input_matrix=torch.eye(5, dtype=torch.float64)),
+                          LinearMeasurement(t(d.observation_matrix), t(d.initial_observation_covariance)))
+        em(kf, GaussianBelief(t(d.initial_state_mean), t(d.initial_state_covariance)), y, ["Q", "R"], iterations=its,
+           controls=u, progress=False)
+        return kf
+
+    def theirs():
+        kf = PyKalman(d.transition_matrix, d.observation_matrix, d.initial_transition_covariance,
+                      d.initial_observation_covariance, d.transition_offsets, d.observation_offset,
+                      d.initial_state_mean, d.initial_state_covariance,
+                      em_vars=["transition_covariance", "observation_covariance"])
+        kf.em(d.observations, n_iter=its)
+        return kf
+
+    a, b = ours(), theirs()
+    diff = max(float(np.abs(a.motion.Q.numpy() - b.transition_covariance).max()),
+               float(np.abs(a.measurement.R.numpy() - b.observation_covariance).max()))
+    mine, ref = best(ours, repeats) / its, best(theirs, repeats) / its
+    print(f"em_robot: one iteration, torchmm {mine * 1e3:.1f} ms, pykalman {ref * 1e3:.1f} ms ({ref / mine:.1f}x); "
+          f"largest parameter difference after {its} {diff:.1e}")
+    return ref / mine
+
+
+def em_batch(series: int, steps: int, sample: int, iterations: int, threads: int) -> float:
+    from pykalman import KalmanFilter as PyKalman
+
+    from torchmm import GaussianBelief, KalmanFilter
+    from torchmm.learn import em
+    from torchmm.models import LinearMeasurement, LinearMotion
+
+    g = torch.Generator().manual_seed(0)
+    F = torch.tensor([[0.9, 0.2], [-0.1, 0.8]], dtype=torch.float64)
+    H = torch.tensor([[1.0, 0.5]], dtype=torch.float64)
+    x = torch.zeros(series, 2, dtype=torch.float64)
+    ys = []
+    for _ in range(steps):
+        x = x @ F.mT + 0.3 * torch.randn(series, 2, dtype=torch.float64, generator=g)
+        ys.append(x @ H.mT + 0.5 * torch.randn(series, 1, dtype=torch.float64, generator=g))
+    y = torch.stack(ys)
+    names = ["transition_matrices", "transition_covariance", "observation_matrices", "observation_covariance",
+             "initial_state_mean", "initial_state_covariance"]
+
+    def ours():
+        kf = KalmanFilter(LinearMotion(torch.eye(2, dtype=torch.float64) * 0.5, torch.eye(2, dtype=torch.float64)),
+                          LinearMeasurement(torch.tensor([[1.0, 1.0]], dtype=torch.float64),
+                                            torch.eye(1, dtype=torch.float64)))
+        b0 = GaussianBelief(torch.zeros(series, 2, dtype=torch.float64),
+                            torch.eye(2, dtype=torch.float64).expand(series, 2, 2))
+        em(kf, b0, y, ["F", "Q", "H", "R", "initial_mean", "initial_cov"], iterations=iterations, per_series=True,
+           progress=False)
+        return kf
+
+    def theirs(count):
+        fits = []
+        for r in range(count):
+            kf = PyKalman(np.eye(2) * 0.5, np.array([[1.0, 1.0]]), np.eye(2), np.eye(1), np.zeros(2), np.zeros(1),
+                          np.zeros(2), np.eye(2), em_vars=names)
+            kf.em(y[:, r].numpy(), n_iter=iterations)
+            fits.append(kf)
+        return fits
+
+    a, b = ours(), theirs(1)[0]
+    diff = float(np.abs(a.motion.Q[0].numpy() - b.transition_covariance).max())
+    torch.set_num_threads(threads)  # (the batched tensors are large: every core)
+    mine = best(ours, 1)
+    torch.set_num_threads(1)
+    tic = time.perf_counter()
+    theirs(sample)
+    ref = (time.perf_counter() - tic) * series / sample
+    print(f"em_batch: {series} series x {steps} steps, {iterations} iterations: torchmm {mine:.2f} s batched "
+          f"({threads} threads), "
+          f"pykalman {ref:.1f} s ({sample} fits timed, scaled) ({ref / mine:.0f}x); series 0's Q difference {diff:.1e}")
+    return ref / mine
+
+
+def fedfunds(repeats: int) -> float:
+    import statsmodels.api as sm
+
+    from experiments.realdata import fedfunds_imm, load_fedfunds
+    from torchmm import GaussianBelief
+    from torchmm.learn import estimate, stationary
+
+    y = load_fedfunds()[:, 0].numpy()
+    model = sm.tsa.MarkovRegression(y, k_regimes=2, trend="c", switching_variance=True)
+    p00, p10, c0, c1, s0, s1 = model.start_params
+    z = torch.as_tensor(y).reshape(-1, 1)
+    start = GaussianBelief(torch.ones(1, dtype=torch.float64), torch.zeros(1, 1, dtype=torch.float64))
+    out = {}
+
+    def ours():
+        imm, _ = fedfunds_imm([c0, c1], [s0, s1], [[p00, 1 - p00], [p10, 1 - p10]])
+        out["ours"] = estimate(imm, lambda f: f.initial_belief(start, stationary(f.transition.matrix())), z,
+                               {"transition.value": "stochastic", "bank.filter.measurement.H": "free",
+                                "bank.filter.measurement.R": "variance"}, progress=False)
+
+    def theirs():
+        res = model.fit(disp=False)
+        _ = res.bse
+        out["theirs"] = res
+
+    ours()  # (Numba's first load in this process: not timed)
+    mine, ref = best(ours, repeats), best(theirs, repeats)
+    print(f"fedfunds: fit with standard errors, torchmm {mine * 1e3:.0f} ms (llf {out['ours'].loglik:.4f}), "
+          f"statsmodels {ref * 1e3:.0f} ms (llf {out['theirs'].llf:.4f}) ({ref / mine:.2f}x)")
+    return ref / mine
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--series", type=int, default=1000)
+    parser.add_argument("--steps", type=int, default=100)
+    parser.add_argument("--iterations", type=int, default=10)
+    parser.add_argument("--pykalman-series", type=int, default=20)
+    parser.add_argument("--threads", type=int, default=torch.get_num_threads(),
+                        help="torch threads of the batched EM (the rest runs on one)")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    a = em_robot(args.repeats)
+    b = em_batch(args.series, args.steps, args.pykalman_series, args.iterations, args.threads)
+    c = fedfunds(args.repeats)
+    print(f"em_robot_speedup={a:.2f} em_batch_speedup={b:.1f} fedfunds_speedup={c:.2f}")
+
+
+if __name__ == "__main__":
+    main()
