@@ -24,6 +24,7 @@ import re
 import time
 from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -320,6 +321,101 @@ def fit_mle(est, scenario, block, z: Tensor, *, prior, update_first: bool, burn:
             "bic": result.bic, "iterations": result.iterations, "evaluations": result.evaluations,
             "converged": result.converged, "message": result.message, "seconds": time.perf_counter() - tic,
             "note": result.note, "method": "mle", "nll": [-result.loglik], "through": est.name}
+
+
+# -- method: em (linear-Gaussian Kalman filters) -----------------------------------------------------------
+EM_NAMES = {("modes", "F"): "F", ("modes", "offset"): "offset", ("modes", "Q"): "Q", ("sensors", "H"): "H",
+            ("sensors", "R"): "R", (None, "initial_mean"): "initial_mean", (None, "initial_cov"): "initial_cov"}
+
+
+def em_parameters(est, block, key: str = "learn.parameters") -> list[str]:
+    """The names :func:`torchmm.learn.em` takes for ``block.parameters`` of ``est`` (a Kalman filter over
+    linear models), or a ``ConfigError`` naming the entry."""
+    from torchmm import KalmanFilter, LinearMeasurement, LinearMotion
+
+    f = est.filter
+    if not (isinstance(f, KalmanFilter) and type(f.motion) is LinearMotion and type(f.measurement) is LinearMeasurement):
+        raise ConfigError("learn.method", str(block.method), f"EM fits a Kalman filter over linear models; "
+                          f"{est.name} is a {type(f).__name__} (EM for switching models is not implemented yet: "
+                          "method mle)")
+    names = []
+    entries = block.parameters
+    if isinstance(entries, str):
+        raise ConfigError(key, entries, "method em takes a list of entries")
+    for i, entry in enumerate(entries):
+        try:
+            model, index = _entry_where(entry)
+        except ValueError as err:
+            raise ConfigError(f"{key}[{i}].model", entry.get("model"), str(err)) from None
+        if index is not None and model == "modes" and est.mode is not None and index != est.mode:
+            raise ConfigError(f"{key}[{i}].model", entry.model, f"{est.name} runs mode {est.mode} only")
+        name = EM_NAMES.get((model, str(entry.name)))
+        if name is None:
+            known = ", ".join(f"{m}.{n}" if m else n for m, n in EM_NAMES)
+            raise ConfigError(f"{key}[{i}]", f"{entry.get('model')}.{entry.name}", f"method em estimates {known}")
+        for option in ("fixed", "shared", "lower", "upper"):
+            if entry.get(option) not in (None, False):
+                raise ConfigError(f"{key}[{i}].{option}", entry.get(option), "method em estimates whole tensors "
+                                  "(no fixed, shared or bounded entries yet: method mle)")
+        names.append(name)
+    return names
+
+
+def fit_em(est, scenario, block, z: Tensor, *, prior, update_first: bool, burn: int, controls=None, present=None,
+           progress: bool | str = False) -> dict:
+    """EM of ``block.parameters`` of ``est``'s Kalman filter on ``z`` (in place; the start belief too), then
+    with ``method: em_then_mle`` maximum likelihood from there (statsmodels' ``fit``: EM, then a
+    quasi-Newton method), which adds the standard errors. Returns the record."""
+    from torchmm.learn import em
+
+    names = em_parameters(est, block)
+    tic = time.perf_counter()
+    out = em(est.filter, est.init(prior, None), z, names, iterations=int(block.iterations),
+             tol=float(block.get("tolerance") or 0.0) or None, update_first=update_first, controls=controls,
+             present=present, progress=progress)
+    start = out.belief0
+    est.init = lambda prior_, generator=None: start
+    rows = []
+    tensors = {"F": est.filter.motion.F, "offset": est.filter.motion.offset, "Q": est.filter.motion.Q,
+               "H": est.filter.measurement.H, "R": est.filter.measurement.R, "initial_mean": start.mean[0] if
+               start.mean.dim() > 1 else start.mean, "initial_cov": start.cov[0] if start.cov.dim() > 2 else start.cov}
+    k = 0
+    for entry, name in zip(block.parameters, names):
+        value = tensors[name].detach().cpu()
+        label = f"{entry.model}.{name}" if entry.get("model") is not None else name
+        symmetric = name in ("Q", "R", "initial_cov")
+        for flat, v in enumerate(value.reshape(-1).tolist()):
+            index = [int(i) for i in np.unravel_index(flat, tuple(value.shape))] if value.dim() else []
+            if symmetric and index[-1] > index[-2]:
+                continue  # (the upper triangle repeats the lower)
+            rows.append([est.name, f"{label}[{','.join(map(str, index))}]", v, None, None])
+            k += 1
+    record = {"rows": rows, "loglik": out.loglik[-1], "k": k, "nobs": int(torch.isfinite(z).all(-1).sum()),
+              "aic": -2 * out.loglik[-1] + 2 * k, "bic": -2 * out.loglik[-1] + k * math.log(max(1, int(
+                  torch.isfinite(z).all(-1).sum()))), "iterations": out.iterations, "evaluations": len(out.loglik),
+              "converged": out.converged, "message": "" if out.monotone else
+              f"the likelihood decreased at iteration(s) {out.decreases}", "seconds": time.perf_counter() - tic,
+              "note": "", "method": "em", "nll": [-v for v in out.loglik], "through": est.name, "em": out.loglik}
+    if str(block.method) == "em_then_mle":
+        mle = fit_mle(est, scenario, _as_mle(block, names), z, prior=prior, update_first=update_first, burn=burn,
+                      controls=controls, progress=progress)
+        mle["em"] = out.loglik
+        mle["method"] = "em_then_mle"
+        mle["seconds"] = time.perf_counter() - tic
+        return mle
+    return record
+
+
+def _as_mle(block, names: list[str]):
+    """The ``learn`` block for :func:`fit_mle` after EM: each entry's tensor (``initial_*`` excepted: the
+    start is EM's), with ``mle``'s kinds."""
+    from omegaconf import OmegaConf
+
+    entries = [dict(OmegaConf.to_container(e)) for e, n in zip(block.parameters, names)
+               if not n.startswith("initial")]
+    for e in entries:
+        e["kind"] = "variance" if str(e["name"]) in ("Q", "R") else "free"
+    return OmegaConf.merge(block, {"parameters": entries})
 
 
 # -- method: gradient (the covariances through learnable_noise and a torch optimiser) ------------------

@@ -358,15 +358,15 @@ class LearnParameter:
 @dataclass
 class Learn:
     parameters: Any = spec(factory=list, check=lambda v: None if v == "auto" else non_empty(v))  # or auto
-    method: str = spec("mle", one_of("mle", "gradient"))  # mle: torchmm.learn.estimate, with standard errors
+    method: str = spec("mle", one_of("mle", "em", "em_then_mle", "gradient"))  # mle: torchmm.learn.estimate
     estimator: Optional[str] = None  # this one estimator learns (its own copy of the models)
     estimators: Optional[List[str]] = None  # these learn, each its own copy (default: every estimator)
     hessian: str = spec("differences", one_of("differences", "autograd"))  # mle: the information's computation
     maxiter: Optional[int] = spec(None, lambda v: None if v is None else positive_int(v))  # mle: optimiser's limit
     optimizer: str = spec("lbfgs", one_of("lbfgs", "adam"))  # gradient: the torch optimiser
     lr: float = spec(1.0, positive)  # gradient
-    iterations: int = spec(30, positive_int)  # gradient
-    tolerance: float = spec(1e-12, non_negative)  # gradient: stop once the loss's relative change is below it
+    iterations: int = spec(30, positive_int)  # gradient, em: at most this many iterations
+    tolerance: float = spec(1e-12, non_negative)  # gradient, em: stop once the loss's relative change is below it
 
 
 @dataclass

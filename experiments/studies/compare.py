@@ -158,6 +158,15 @@ def _learn(ctx: StudyContext, scenario, est_name: str) -> tuple[dict, Any]:
             record = learning.fit_mle(est, scenario, block, z, prior=prior, update_first=update_first, burn=burn,
                                       controls=_controls(ctx, 0, runs), progress=progress)
         return record, est
+    if str(block.method) in ("em", "em_then_mle"):
+        import torchmm.kernels as kernels
+
+        est = _estimator(ctx, scenario, est_name)
+        _, _, _, present = _data(ctx, 0, runs)
+        with kernels.switched_on(*kernels.by_size()):
+            record = learning.fit_em(est, scenario, block, z, prior=prior, update_first=update_first, burn=burn,
+                                     controls=_controls(ctx, 0, runs), present=present, progress=progress)
+        return record, est
     return _learn_gradient(ctx, scenario, est_name, block, z, prior, burn, update_first, progress,
                            _controls(ctx, 0, runs)), None
 
@@ -253,6 +262,13 @@ def check_build(cfg, scenario) -> None:
     block = learning.spec(cfg)
     for name in names:
         own = learning.own_models(scenario)
+        if str(block.method) in ("em", "em_then_mle"):
+            est = instantiate(cfg.estimators[name])(own, name=name)
+            learning.em_parameters(est, block)
+            if burn and str(block.method) == "em":
+                raise ConfigError("burn", burn, "method em maximises the likelihood of every step (burn: 0; "
+                                  "em_then_mle's maximum likelihood leaves the burn-in out)")
+            continue
         if str(block.method) == "mle":
             from torchmm.learn import estimated_entries
 
@@ -652,7 +668,7 @@ def _learned_tables(ctx, learners: list[str], names: list[str]) -> None:
     and ``fit`` (each learning estimator's log-likelihood, k, nobs, AIC, BIC and optimiser), the metrics
     and notes of the learning estimators."""
     block = learning.spec(ctx.cfg)
-    mle = str(block.method) == "mle"
+    mle = str(block.method) in ("mle", "em", "em_then_mle")
     table = ctx.results.table(
         "learned", ["estimator", "parameter", "estimate", "se", "z"],
         note=("Maximum likelihood (torchmm.learn.estimate) of each learning estimator's own parameters: it runs "
@@ -674,11 +690,15 @@ def _learned_tables(ctx, learners: list[str], names: list[str]) -> None:
                               record["iterations"], record["converged"], record["seconds"]])
             for key in ("loglik", "aic", "bic"):
                 ctx.results.metric(name, f"learn_{key}", record[key])
+            how = {"mle": "L-BFGS-B iterations", "em": "EM iterations",
+                   "em_then_mle": "L-BFGS-B iterations after EM"}[record["method"]]
             ctx.results.notes.append(
-                f"Learned by {name}: {len(record['rows'])} estimates in {record['iterations']} L-BFGS-B iterations "
-                f"({record['evaluations']} evaluations, {record['seconds']:.2f} s): log-likelihood "
-                f"{record['loglik']:.6f}" + ("" if record["converged"] else f" (not converged: {record['message']})")
+                f"Learned by {name}: {len(record['rows'])} estimates in {record['iterations']} {how} "
+                f"({record['seconds']:.2f} s): log-likelihood {record['loglik']:.6f}"
+                + ("" if record["converged"] else f" (not converged{': ' + record['message'] if record['message'] else ''})")
                 + (f"; {record['note']}" if record["note"] else "") + ".")
+            if "em" in record:
+                ctx.logger.sweep(f"learn/em_loglik/{name}", list(range(len(record["em"]))), record["em"], "iteration")
         else:
             ctx.results.notes.append(
                 f"Learned by {name}: {len(record['rows'])} entries in {record['iterations']} {record['optimizer']} "

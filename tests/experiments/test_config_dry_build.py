@@ -72,6 +72,9 @@ CASES = [
     (["burn=50"], "burn=50: leaves out every step"),
     (["MEASUREMENTS=[x,x]"], "scenario.data.measurements=['x', 'x']: measurements[1]: column 'x' is named twice"),
     (["paired=3"], "paired=3: expected a mapping of reference"),
+    (["learn={parameters:[{model:'sensors[0]',name:R}],method:em}"], "learn.method=em: EM fits a Kalman filter"),
+    (["learn={parameters:[{model:'sensors[0]',name:R,shared:true}],method:em,estimators:[KF-CV]}"],
+     "learn.parameters[0].shared=True: method em estimates whole tensors"),
 ]
 
 
