@@ -331,13 +331,17 @@ EM_NAMES = {("modes", "F"): "F", ("modes", "offset"): "offset", ("modes", "Q"): 
 def em_parameters(est, block, key: str = "learn.parameters") -> list[str]:
     """The names :func:`torchmm.learn.em` takes for ``block.parameters`` of ``est`` (a Kalman filter over
     linear models), or a ``ConfigError`` naming the entry."""
-    from torchmm import KalmanFilter, LinearMeasurement, LinearMotion
+    from torchmm import KalmanFilter
+    from torchmm.models.linear import plain_linear
 
     f = est.filter
-    if not (isinstance(f, KalmanFilter) and type(f.motion) is LinearMotion and type(f.measurement) is LinearMeasurement):
+    if not isinstance(f, KalmanFilter):
         raise ConfigError("learn.method", str(block.method), f"EM fits a Kalman filter over linear models; "
                           f"{est.name} is a {type(f).__name__} (EM for switching models is not implemented yet: "
                           "method mle)")
+    if not (plain_linear(f.motion) and plain_linear(f.measurement)):
+        raise ConfigError("learn.method", str(block.method), f"EM fits linear-Gaussian models; {est.name}'s are "
+                          f"{type(f.motion).__name__} and {type(f.measurement).__name__} (method mle)")
     names = []
     entries = block.parameters
     if isinstance(entries, str):

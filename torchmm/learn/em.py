@@ -47,7 +47,7 @@ from torch import Tensor
 from torchmm.beliefs import GaussianBelief
 from torchmm.contract import BeliefArg, Data, Flag, Int, Mask, Of, Real, Unchecked, entry_point
 from torchmm.filters.kalman import KalmanFilter
-from torchmm.models.linear import LinearMeasurement, LinearMotion
+from torchmm.models.linear import LinearMeasurement, LinearMotion, plain_linear
 from torchmm.parallel import filter_smooth
 from torchmm.validation import check_filter_dtype, check_measurement, gaussian_batch
 from torchmm.runtime import entries, one_thread_when_small
@@ -141,8 +141,10 @@ def em(filter: KalmanFilter, belief0: GaussianBelief, measurements: Tensor,
     from tqdm.auto import tqdm
 
     motion, sensor = filter.motion, filter.measurement
-    if type(motion) is not LinearMotion or type(sensor) is not LinearMeasurement:
-        raise TypeError(f"filter: EM needs a LinearMotion and a LinearMeasurement, got {type(motion).__name__} and "
+    if not (isinstance(motion, LinearMotion) and isinstance(sensor, LinearMeasurement)
+            and plain_linear(motion) and plain_linear(sensor)):
+        raise TypeError(f"filter: EM needs a LinearMotion and a LinearMeasurement (or subclasses that only build "
+                        f"their matrices, such as ConstantVelocity), got {type(motion).__name__} and "
                         f"{type(sensor).__name__}")
     if (controls is None) != (motion.input_matrix is None):
         raise ValueError("controls: give controls exactly when the motion model has an input_matrix "
