@@ -170,6 +170,22 @@ class Results:
                     f"({p.get('wall_seconds')} s).", ""]
         return "\n".join(out)
 
+    def to_latex(self) -> str:
+        """``results.tex``: every table as a booktabs table (``\\usepackage{booktabs}``; ``\\input`` it), numbers
+        as in results.md, text escaped: e.g. the ``learned`` estimates with their standard errors."""
+        from experiments.report import _latex_number, _latex_table, latex_escape
+
+        out = [f"% torchmm {latex_escape(self.experiment)}: the run's tables (booktabs; \\usepackage{{booktabs}})", ""]
+        for name, table in self.tables.items():
+            rows = [[_latex_number(v) if isinstance(v, (int, float)) and not isinstance(v, bool)
+                     else latex_escape(format_value(v)) for v in row] for row in table.rows]
+            align = "".join("r" if any(isinstance(r[i], (int, float)) and not isinstance(r[i], bool)
+                                       for r in table.rows) else "l" for i in range(len(table.columns)))
+            out += _latex_table([latex_escape(c) for c in table.columns], rows,
+                                f"{latex_escape(self.experiment)}: {latex_escape(name)}", align or "l")
+        return "\n".join(out)
+
     def save(self) -> None:
         write_atomic(self.output_dir / "results.json", json.dumps(self.to_json(), indent=2) + "\n")
         write_atomic(self.output_dir / "results.md", self.to_markdown())
+        write_atomic(self.output_dir / "results.tex", self.to_latex())

@@ -168,3 +168,16 @@ def test_markov_switching_config_errors():
                                (["scenario.data.measurements=[rate,rate2]"], "scenario.data.measurements")):
         with pytest.raises(ValueError, match=message.replace("[", r"\[")):
             validate(_compose(*overrides))
+
+
+def test_results_tex_holds_the_learned_table(tmp_path):
+    """results.tex: every table of the run as booktabs, the learned estimates and errors as in results.json."""
+    from tests.experiments.test_report_latex import _mean_half, parse_latex_tables
+
+    res = _run(_compose("+learn.maxiter=2"), tmp_path / "tex")
+    tables = parse_latex_tables((tmp_path / "tex" / "results.tex").read_text())
+    learned = next(t for t in tables if t["caption"].endswith("learned"))
+    assert learned["header"] == ["estimator", "parameter", "estimate", "se", "z"]
+    for cells, row in zip(learned["rows"], res["tables"]["learned"]["rows"]):
+        for cell, value in zip(cells[2:4], row[2:4]):
+            assert _mean_half(cell)[0] == pytest.approx(value, rel=1e-3, abs=6e-5)
