@@ -174,7 +174,7 @@ def test_results_tex_holds_the_learned_table(tmp_path):
     """results.tex: every table of the run as booktabs, the learned estimates and errors as in results.json."""
     from tests.experiments.test_report_latex import _mean_half, parse_latex_tables
 
-    res = _run(_compose("+learn.maxiter=2"), tmp_path / "tex")
+    res = _run(_compose(), tmp_path / "tex")
     tables = parse_latex_tables((tmp_path / "tex" / "results.tex").read_text())
     learned = next(t for t in tables if t["caption"].endswith("learned"))
     assert learned["header"] == ["estimator", "parameter", "estimate", "se", "z"]
