@@ -251,3 +251,40 @@ def test_a_tensor_held_under_two_names_is_estimated_under_one():
                    progress=False)
     assert float(kf.motion.F) == 1.0 and float(kf.motion.Q) == pytest.approx(est.estimates[0])
     assert est.converged and abs(est.estimates[0] - 1.0) > 1e-3
+
+
+@pytest.mark.slow
+def test_standard_errors_cover_the_truth():
+    """A coverage test of the standard errors (issue 45): 100 seeded data sets of a 2-mode IMM with CV modes
+    (10 series x 300 steps each, position measured, R = 1), the transition matrix and each mode's Q
+    estimated: the 95 % Wald interval covers the truth in >= 90 % of them for the transition matrix and
+    the well-identified variances (measured 0.94-0.96). The quiet mode's velocity variance (0.1) is not
+    among them: its estimate reaches the boundary 0 in some data sets, where a Wald interval does not hold
+    (measured 0.74; docs/estimation.md)."""
+    from torchmm.simulate import simulate_jump_system, simulate_measurements
+
+    F = torch.tensor([[1.0, 1.0], [0.0, 1.0]], dtype=torch.float64)
+    Qs = torch.stack([torch.diag(torch.tensor([0.5, 0.1], dtype=torch.float64)),
+                      torch.diag(torch.tensor([4.0, 1.0], dtype=torch.float64))])
+    P = torch.tensor([[0.95, 0.05], [0.1, 0.9]], dtype=torch.float64)
+    bank = LinearMotion(F.expand(2, 2, 2).clone(), Qs.clone())
+    sensor = PositionMeasurement(2, [0], 1.0, dtype=torch.float64)
+    runs, steps, sets = 10, 300, 100
+    prior = GaussianBelief(torch.zeros(runs, 2, dtype=torch.float64), torch.eye(2, dtype=torch.float64).expand(runs, 2, 2))
+    truth = {"transition.value[0,0]": 0.95, "transition.value[1,0]": 0.1, "bank.filter.motion.Q[0,0,0]": 0.5,
+             "bank.filter.motion.Q[1,0,0]": 4.0, "bank.filter.motion.Q[1,1,1]": 1.0}
+    covered = dict.fromkeys(truth, 0)
+    for seed in range(sets):
+        g = torch.Generator().manual_seed(seed)
+        sim = simulate_jump_system(bank, P, prior, steps, (runs,), generator=g)
+        z = simulate_measurements(sensor, sim.states, generator=g)
+        start = torch.stack([torch.diag(torch.tensor([0.3, 0.05], dtype=torch.float64)),
+                             torch.diag(torch.tensor([2.0, 0.5], dtype=torch.float64))])
+        imm = IMM(KalmanFilter(LinearMotion(F.expand(2, 2, 2).clone(), start), sensor),
+                  torch.tensor([[0.9, 0.1], [0.1, 0.9]], dtype=torch.float64))
+        est = estimate(imm, imm.initial_belief(prior), z, {"transition.value": "stochastic",
+                                                           "bank.filter.motion.Q": "variance"}, progress=False)
+        for name, value in truth.items():
+            e, s = est[name]
+            covered[name] += abs(e - value) <= 1.96 * s
+    assert all(c >= 0.9 * sets for c in covered.values()), covered
