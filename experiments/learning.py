@@ -335,6 +335,8 @@ def em_parameters(est, block, key: str = "learn.parameters") -> list[str]:
     from torchmm.models.linear import plain_linear
 
     f = est.filter
+    if est.multiple_model:
+        return switching_em_parameters(est, block, key)
     if not isinstance(f, KalmanFilter):
         raise ConfigError("learn.method", str(block.method), f"EM fits a Kalman filter over linear models; "
                           f"{est.name} is a {type(f).__name__} (EM for switching models is not implemented yet: "
@@ -365,6 +367,93 @@ def em_parameters(est, block, key: str = "learn.parameters") -> list[str]:
     return names
 
 
+def switching_em_parameters(est, block, key: str = "learn.parameters") -> tuple[list[str], list[str]]:
+    """``(parameters, shared)`` of :func:`torchmm.learn.em_switching` for ``block.parameters`` of a
+    multiple-model estimator (an IMM over a vectorised Kalman bank), or a ``ConfigError`` naming the entry."""
+    from torchmm import KalmanFilter, LinearMeasurement
+
+    inner = getattr(getattr(est.filter, "bank", None), "filter", None)
+    if not (isinstance(inner, KalmanFilter) and isinstance(inner.measurement, LinearMeasurement)):
+        raise ConfigError("learn.method", str(block.method), f"EM for switching models takes an IMM over Kalman "
+                          f"filters with linear sensors; {est.name}'s bank is not one (method mle)")
+    entries = block.parameters
+    if isinstance(entries, str):
+        raise ConfigError(key, entries, "method em takes a list of entries")
+    names, shared = [], []
+    for i, entry in enumerate(entries):
+        name = str(entry.name)
+        model = entry.get("model")
+        if name == "transition" and model is None:
+            names.append("transition")
+            continue
+        if str(model).startswith("sensors") and name in ("H", "R") and "[" not in str(model):
+            share = entry.get("shared")
+            if share not in (None, False, True):
+                raise ConfigError(f"{key}[{i}].shared", share, "method em shares a whole tensor across the modes "
+                                  "or none of it (entry by entry: method mle)")
+            if entry.get("fixed") is not None or entry.get("lower") is not None or entry.get("upper") is not None:
+                raise ConfigError(f"{key}[{i}]", f"{model}.{name}", "method em estimates whole tensors (no fixed or "
+                                  "bounded entries: method mle)")
+            names.append(name)
+            if share:
+                shared.append(name)
+            continue
+        raise ConfigError(f"{key}[{i}]", f"{model}.{name}", "method em for switching models estimates transition, "
+                          "sensors.H and sensors.R (every mode's); others: method mle")
+    return names, shared
+
+
+def fit_switching_em(est, scenario, block, z: Tensor, *, prior, update_first: bool, burn: int, controls=None,
+                     present=None, progress: bool | str = False) -> dict:
+    """EM (Baum-Welch for the chain, weighted least squares for each mode's sensor) of a multiple-model
+    estimator, then with ``em_then_mle`` maximum likelihood from there."""
+    from torchmm.learn import em_switching
+
+    names, shared = switching_em_parameters(est, block)
+    tic = time.perf_counter()
+    ergodic = bool(scenario.ergodic)
+    out = em_switching(est.filter, est.init(prior, None), z, names, iterations=int(block.iterations),
+                       tol=float(block.get("tolerance") or 0.0) or None, update_first=update_first, shared=shared,
+                       ergodic=ergodic, controls=controls, present=present, progress=progress)
+    if ergodic:
+        est.init = start_function(est, scenario, True)
+    if str(block.method) == "em_then_mle":
+        mle = fit_mle(est, scenario, block, z, prior=prior, update_first=update_first, burn=burn, controls=controls,
+                      progress=progress)
+        mle.update(em=out.loglik, method="em_then_mle", seconds=time.perf_counter() - tic)
+        return mle
+    rows = []
+    P = est.filter.transition.matrix().detach().cpu()
+    M = P.shape[-1]
+    for i in range(M):
+        for j in range(M):
+            rows.append([est.name, f"transition[{i},{j}]", float(P[i, j]), None, None])
+    sensor = est.filter.bank.filter.measurement
+    for name in ("H", "R"):
+        if name not in names:
+            continue
+        value = getattr(sensor, name).detach().cpu()
+        stacked = value.dim() == 3 and value.shape[0] == M and name not in shared
+        for flat, v in enumerate(value.reshape(-1).tolist()):
+            index = [int(k) for k in np.unravel_index(flat, tuple(value.shape))]
+            if value.dim() == 3 and not stacked and index[0] > 0:
+                continue  # (shared: every mode's the same)
+            label = f"sensors[{index[0]}].{name}" if stacked else f"sensors.{name}"
+            inner = index[1:] if value.dim() == 3 else index
+            rows.append([est.name, f"{label}[{','.join(map(str, inner))}]", v, None, None])
+    nobs = int(torch.isfinite(z).all(-1).sum())
+    k = M * (M - 1) + sum(1 for r in rows if not r[1].startswith("transition"))
+    return {"rows": rows, "loglik": out.loglik[-1], "k": k, "nobs": nobs, "aic": -2 * out.loglik[-1] + 2 * k,
+            "bic": -2 * out.loglik[-1] + k * math.log(max(1, nobs)), "iterations": out.iterations,
+            "evaluations": len(out.loglik), "converged": out.converged,
+            "message": "" if out.monotone else f"the likelihood decreased at iteration(s) {out.decreases}",
+            "seconds": time.perf_counter() - tic,
+            "note": "the ergodic start's dependence on the transition matrix is left out of EM's M-step "
+                    "(statsmodels does the same): its fixed point is near, not at, the maximum; em_then_mle "
+                    "finishes it" if ergodic else "", "method": "em", "nll": [-v for v in out.loglik],
+            "through": est.name, "em": out.loglik}
+
+
 def fit_em(est, scenario, block, z: Tensor, *, prior, update_first: bool, burn: int, controls=None, present=None,
            progress: bool | str = False) -> dict:
     """EM of ``block.parameters`` of ``est``'s Kalman filter on ``z`` (in place; the start belief too), then
@@ -372,6 +461,9 @@ def fit_em(est, scenario, block, z: Tensor, *, prior, update_first: bool, burn: 
     quasi-Newton method), which adds the standard errors. Returns the record."""
     from torchmm.learn import em
 
+    if est.multiple_model:
+        return fit_switching_em(est, scenario, block, z, prior=prior, update_first=update_first, burn=burn,
+                                controls=controls, present=present, progress=progress)
     names = em_parameters(est, block)
     tic = time.perf_counter()
     out = em(est.filter, est.init(prior, None), z, names, iterations=int(block.iterations),

@@ -28,6 +28,7 @@ from torchmm.filters import KalmanFilter
 NOT_ENTRY_POINTS.update({
     "torchmm.learn.estimation.Estimate": "a result record (what estimate found), built by estimate",
     "torchmm.learn.em.EMResult": "a result record (what em found), built by em",
+    "torchmm.learn.em.SwitchingEMResult": "a result record (what em_switching found), built by em_switching",
     "torchmm.distributions.truncated_normal_moments": _OP + " (the variational filters call it inside every "
     "step; its inputs are the filter's own moments)",
 })
@@ -313,6 +314,21 @@ def _em():
 
 
 example(_L + "em.em")(_em)
+
+
+def _em_switching():
+    from torchmm.models import LinearMeasurement, LinearMotion
+
+    one = torch.ones(2, 1, 1)
+    imm = IMM(KalmanFilter(LinearMotion(one.clone(), 0 * one), LinearMeasurement(torch.tensor([[[0.0]], [[3.0]]]),
+                                                                                 one.clone())), _transition())
+    b0 = imm.initial_belief(GaussianBelief(torch.ones(1), torch.zeros(1, 1)))
+    z = torch.randn(30, 1, generator=_gen())
+    return call(learn.em_switching, imm, b0, z, ["transition", "H", "R"], iterations=2, tol=None, update_first=False,
+                shared=(), ergodic=False, controls=None, present=None, progress=False)
+
+
+example(_L + "em.em_switching")(_em_switching)
 example(_L + "estimation.estimated_entries")(
     lambda: call(learn.estimated_entries, KalmanFilter(_cv(), _pos()), {"measurement.R": "variance"}))
 

@@ -15,7 +15,7 @@
   resampling of particle beliefs and a particle filter that uses it.
 """
 
-from torchmm.learn.em import EMResult, em
+from torchmm.learn.em import EMResult, SwitchingEMResult, em, em_switching
 from torchmm.learn.estimation import Estimate, Param, estimate, estimated_entries, stationary
 from torchmm.learn.loss import negative_log_likelihood, truncated_segments
 from torchmm.learn.objective import Objective
@@ -31,11 +31,13 @@ __all__ = [
     "Estimate",
     "Objective",
     "Param",
+    "SwitchingEMResult",
     "NonFiniteLossError",
     "SoftResamplingParticleFilter",
     "TrainRecord",
     "Trainer",
     "em",
+    "em_switching",
     "estimate",
     "estimated_entries",
     "load_checkpoint",

@@ -40,19 +40,22 @@ import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import torch
 from torch import Tensor
 
-from torchmm.beliefs import GaussianBelief
+from torchmm.beliefs import GaussianBelief, ModeBelief
 from torchmm.contract import BeliefArg, Data, Flag, Int, Mask, Of, Real, Unchecked, entry_point
 from torchmm.filters.kalman import KalmanFilter
 from torchmm.models.linear import LinearMeasurement, LinearMotion, plain_linear
+from torchmm.multimodel.imm import MultipleModelFilter
+from torchmm.run import run_filter
 from torchmm.parallel import filter_smooth
 from torchmm.validation import check_filter_dtype, check_measurement, gaussian_batch
 from torchmm.runtime import entries, one_thread_when_small
 
-__all__ = ["EM_PARAMETERS", "EMResult", "em"]
+__all__ = ["EM_PARAMETERS", "EMResult", "SWITCHING_PARAMETERS", "SwitchingEMResult", "em", "em_switching"]
 
 #: what :func:`em` estimates, by name
 EM_PARAMETERS = ("H", "R", "F", "offset", "Q", "initial_mean", "initial_cov")
@@ -291,3 +294,218 @@ def _shape(current: Tensor, new: Tensor, shared: bool) -> tuple:
     """The shape the estimate takes in the model: the model's own for shared parameters, the series'
     batch in front otherwise."""
     return tuple(current.shape[-new.dim():]) if shared and new.dim() <= current.dim() else tuple(new.shape)
+
+
+#: what :func:`em_switching` estimates, by name
+SWITCHING_PARAMETERS = ("transition", "H", "R", "initial_mode_probs")
+
+
+@dataclass
+class SwitchingEMResult:
+    """What :func:`em_switching` found (as :class:`EMResult`): ``loglik`` per iteration (before its M-step)
+    and at the end, the start belief (its mode probabilities estimated with ``initial_mode_probs``)."""
+
+    loglik: list
+    belief0: Any
+    iterations: int
+    converged: bool
+    monotone: bool
+    seconds: float
+    decreases: list = field(default_factory=list)
+
+
+@entry_point(filter=Of(MultipleModelFilter, what="an IMM / GPB1 over a bank of linear Kalman filters"),
+             belief0=Of(ModeBelief, what="the filter's start (a ModeBelief)"), measurements=Data(),
+             parameters=Unchecked("names of SWITCHING_PARAMETERS, checked by em_switching"),
+             iterations=Int(1), tol=Real(minimum=0.0, optional=True), update_first=Flag(),
+             shared=Unchecked("names of the parameters every mode shares, checked by em_switching"),
+             ergodic=Flag(),
+             controls=Data(optional=True), present=Mask(optional=True),
+             progress=Unchecked("None, True, False or a description"))
+@one_thread_when_small(lambda filter, belief0, measurements, *args, **kwargs: entries(belief0) * measurements.shape[0])
+def em_switching(filter: MultipleModelFilter, belief0: ModeBelief, measurements: Tensor,
+                 parameters: Sequence[str] = ("transition", "H", "R"), *, iterations: int = 50,
+                 tol: float | None = None, update_first: bool = False, shared: Sequence[str] = (),
+                 ergodic: bool = False,
+                 controls: Tensor | None = None, present: Tensor | None = None,
+                 progress: bool | str | None = None) -> SwitchingEMResult:
+    r"""EM for a Markov-switching model run by an IMM over linear Kalman filters, the series sharing the
+    parameters (Hamilton, J. Econometrics 45, 1990; Kim, J. Econometrics 60, 1994).
+
+    **E-step**: the filter and Kim's smoother (:func:`torchmm.smooth`, ``method="kim"``) give the
+    smoothed mode probabilities ``w_tj = P(s_t = j | z_{1:T})``, the pair probabilities
+    ``P(s_{t-1} = i, s_t = j | z) = P(s_{t-1} = i | z_{1:t-1}) pi_ij w_tj / P(s_t = j | z_{1:t-1})`` and
+    each mode's smoothed moments ``x_{t|T}^j``, ``P_{t|T}^j``. **M-step** (Baum-Welch for the chain):
+    ``pi_ij = sum_t pairs_ij / sum_t sum_j pairs_ij``; the start's mode probabilities ``w_0j``; each
+    mode's measurement by weighted least squares, ``H_j = (sum_t w_tj z_t x^{jT})(sum_t w_tj (P^j +
+    x^j x^{jT}))^{-1}``, ``R_j = sum_t w_tj ((z_t - H_j x^j)(..)^T + H_j P^j H_j^T) / sum_t w_tj`` (``shared``:
+    one ``H`` or ``R`` for all modes, the weights summed over the modes).
+
+    **Exact or approximate.** Where the state is known exactly (covariance 0 and ``Q = 0``: a
+    Markov-switching regression, ``experiments.scenarios.markov_switching``) the smoothed moments are the
+    state itself and Kim's probabilities are exact, so this is the exact EM of the model (statsmodels'
+    ``MarkovRegression`` EM). With an uncertain state, the IMM's likelihood and Kim's moments are
+    approximations (each mode's smoothed belief is Kim's collapse), so the steps are an approximate EM:
+    the likelihood is checked every iteration and a decrease is reported (``monotone``).
+
+    Args:
+        filter: an IMM (or GPB1) whose bank is one Kalman filter over a ``LinearMeasurement`` with a mode
+            axis (a vectorised bank: ``filter.bank.filter.measurement.H`` ``(M, m, n)``), or one sensor
+            shared by the modes (then ``H``, ``R`` are estimated as shared).
+        belief0: the start (:meth:`~torchmm.multimodel.MultipleModelFilter.initial_belief`).
+        measurements: ``(T, *B, m)``, NaN missing (a missing vector informs the chain only).
+        parameters: of :data:`SWITCHING_PARAMETERS`; shared: those of ``"H"``, ``"R"`` the modes share.
+        iterations, tol: at most so many iterations; stop once the log-likelihood's relative change is below
+            ``tol``.
+        update_first: as for :func:`~torchmm.run_filter` (statsmodels' convention: False).
+        ergodic: the start's mode probabilities are the stationary ones of the current transition matrix,
+            re-derived every iteration (statsmodels' default; ``initial_mode_probs`` is then not estimated).
+        controls: the motion models' inputs ``(T, *B, k)`` (a regression's regressors).
+        present: ``(T, *B)`` bool, False at a shorter series' padding.
+
+    Returns:
+        a :class:`SwitchingEMResult`; the filter holds the estimates.
+
+    Examples:
+        >>> import torch
+        >>> from torchmm import GaussianBelief, IMM, KalmanFilter, LinearMeasurement, LinearMotion
+        >>> dt = torch.float64
+        >>> one = torch.ones(2, 1, 1, dtype=dt)
+        >>> imm = IMM(KalmanFilter(LinearMotion(one, 0 * one), LinearMeasurement(torch.tensor([[[0.0]], [[3.0]]],
+        ...           dtype=dt), one)), torch.tensor([[0.9, 0.1], [0.1, 0.9]], dtype=dt))
+        >>> b0 = imm.initial_belief(GaussianBelief(torch.ones(1, dtype=dt), torch.zeros(1, 1, dtype=dt)))
+        >>> z = torch.cat([torch.zeros(50), 3 * torch.ones(50)]).to(dt).reshape(-1, 1)
+        >>> out = em_switching(imm, b0, z + torch.randn(100, 1, dtype=dt, generator=torch.Generator().manual_seed(0)))
+        >>> out.monotone, out.loglik[-1] > out.loglik[0]
+        (True, True)
+    """
+    from tqdm.auto import tqdm
+
+    from torchmm.smooth import smooth
+
+    bank = getattr(filter, "bank", None)
+    inner = getattr(bank, "filter", None)
+    M = filter.num_modes
+    if not (isinstance(inner, KalmanFilter) and isinstance(inner.measurement, LinearMeasurement)
+            and plain_linear(inner.measurement)):
+        raise TypeError(f"filter: EM for switching models needs an IMM over one Kalman filter with a "
+                        f"LinearMeasurement (a vectorised bank), got {type(bank).__name__}")
+    if isinstance(parameters, str) or not all(isinstance(p, str) for p in parameters):
+        raise TypeError(f"parameters: expected names of {', '.join(SWITCHING_PARAMETERS)}, got {parameters!r}")
+    unknown = [p for p in parameters if p not in SWITCHING_PARAMETERS]
+    if unknown or not parameters:
+        raise ValueError(f"parameters: {unknown or 'nothing'}: expected some of {', '.join(SWITCHING_PARAMETERS)}")
+    if isinstance(shared, str) or any(s not in ("H", "R") for s in shared):
+        raise ValueError(f"shared: expected some of H, R, got {shared!r}")
+    if "transition" in parameters and getattr(filter.transition, "learnable", False):
+        raise ValueError("filter: its transition matrix is a learnable module (logits): EM writes a fixed one")
+    sensor = inner.measurement
+    z = measurements
+    if not isinstance(z, Tensor) or z.dim() < 2:
+        raise TypeError(f"measurements: expected a time-major tensor (T, *B, m), got "
+                        f"{tuple(z.shape) if isinstance(z, Tensor) else type(z).__name__}")
+    batch = belief0.batch_shape
+    z = check_measurement(z, filter.meas_dim, torch.Size((z.shape[0], *batch)), belief0.mode_log_probs,
+                          "measurements")
+    seen = torch.isfinite(z)
+    observed = seen.all(-1)
+    if bool((seen.any(-1) & ~observed).any()):
+        raise ValueError("measurements: a vector with some components missing (not all): whole vectors only")
+    if present is None:
+        present = torch.ones(z.shape[:-1], dtype=torch.bool, device=z.device)
+    elif tuple(present.shape) != tuple(z.shape[:-1]):
+        raise ValueError(f"present: expected shape {tuple(z.shape[:-1])}, got {tuple(present.shape)}")
+    observed = observed & present
+    yz = torch.where(observed.unsqueeze(-1), z, 0.0)
+    wanted, share = set(parameters), set(shared)
+    stacked = sensor.H.dim() == 3 and sensor.H.shape[0] == M
+    if not stacked:
+        share |= {"H", "R"}  # one sensor for every mode
+    start = belief0
+    history, decreases = [], []
+    tic = time.perf_counter()
+    bar = tqdm(total=iterations, desc=progress if isinstance(progress, str) else "em_switching",
+               disable=None if progress is None else not progress, leave=False)
+    converged, done = False, 0
+
+    def e_step(start):
+        traj = run_filter(filter, start, z, controls=controls, update_first=update_first)
+        ll = torch.where(present, traj.log_likelihood, 0.0).sum()
+        sm = smooth(traj, method="kim", present=None if bool(present.all()) else present)
+        return ll, traj, sm
+
+    if ergodic and "initial_mode_probs" in wanted:
+        raise ValueError("parameters: initial_mode_probs with ergodic=True (the stationary ones): give one")
+    from torchmm.learn.estimation import stationary
+
+    def ergodic_start(start):
+        probs = stationary(filter.transition.matrix())
+        return ModeBelief(probs.log().expand(start.mode_log_probs.shape).clone(), start.components)
+
+    if ergodic:
+        start = ergodic_start(start)
+    with torch.no_grad():
+        for it in range(iterations + 1):
+            ll, traj, sm = e_step(start)
+            history.append(float(ll))
+            if it and history[-1] < history[-2] - 1e-9 * max(1.0, abs(history[-2])):
+                decreases.append(it)
+            if it == iterations:
+                break
+            if tol is not None and it and abs(history[-1] - history[-2]) <= tol * max(1.0, abs(history[-1])):
+                converged = True
+                break
+            w = sm.belief.mode_probs  # (T, *B, M): P(s_t = j | z)
+            filt = traj.belief.mode_probs  # P(s_t = j | z_{1:t})
+            pred = traj.prior.mode_probs  # P(s_t = j | z_{1:t-1})
+            P = filter.transition.matrix()
+            if "transition" in wanted:
+                before = torch.cat([start.mode_probs.expand(filt[:1].shape), filt[:-1]]) if not update_first \
+                    else filt[:-1]
+                after_w, after_pred = (w, pred) if not update_first else (w[1:], pred[1:])
+                ok = (present if not update_first else present[1:] & present[:-1]).to(z.dtype)
+                ratio = torch.where(after_pred > 0, after_w / after_pred, 0.0)
+                pairs = before.unsqueeze(-1) * P * ratio.unsqueeze(-2) * ok[..., None, None]  # (T', *B, M, M)
+                counts = pairs.reshape(-1, M, M).sum(0)  # over time and the series
+                rows = counts.sum(-1, keepdim=True)
+                newP = torch.where(rows > 0, counts / rows.clamp_min(1e-300), P)
+                filter.transition.value.copy_(newP)
+            x = sm.belief.components.mean  # (T, *B, M, n): each mode's smoothed state
+            Px = sm.belief.components.cov
+            wy = (w * observed.unsqueeze(-1).to(z.dtype))[..., None, None]  # (T, *B, M, 1, 1)
+            Exx = Px + x.unsqueeze(-1) * x.unsqueeze(-2)
+            yx = yz.unsqueeze(-2).unsqueeze(-1) * x.unsqueeze(-2)  # (T, *B, M, m, n)
+
+            def total(t):  # over time and series, keeping the mode axis (and the event)
+                return t.reshape(-1, *t.shape[z.dim() - 1:]).sum(0)
+            if "H" in wanted:
+                Syx, Sxx = total(wy * yx), total(wy * Exx)  # (M, m, n), (M, n, n)
+                if "H" in share:
+                    Syx, Sxx = Syx.sum(0, keepdim=True), Sxx.sum(0, keepdim=True)
+                H = torch.linalg.solve(Sxx.mT, Syx.mT).mT
+                sensor.H = (H.expand(M, *H.shape[1:]) if stacked else H[0]).clone()
+            if "R" in wanted:
+                H = sensor.H if stacked else sensor.H.expand(M, *sensor.H.shape)
+                r = yz.unsqueeze(-2) - (H @ x.unsqueeze(-1)).squeeze(-1)  # (T, *B, M, m)
+                term = r.unsqueeze(-1) * r.unsqueeze(-2) + H @ Px @ H.mT
+                num, den = total(wy * term), total(wy)  # (M, m, m), (M, 1, 1)
+                if "R" in share:
+                    num, den = num.sum(0, keepdim=True), den.sum(0, keepdim=True)
+                R = num / den.clamp_min(1e-300)
+                R = 0.5 * (R + R.mT)
+                sensor.R = (R.expand(M, *R.shape[1:]) if stacked else R[0]).clone()
+            if "initial_mode_probs" in wanted:
+                first = w[0]  # P(s_0 = j | z): the start one step before the first datum, from the chain
+                if not update_first:
+                    first = (start.mode_probs * (P * torch.where(pred[0] > 0, w[0] / pred[0], 0.0).unsqueeze(-2)
+                                                 ).sum(-1))
+                probs = first.reshape(-1, M).mean(0)
+                start = ModeBelief(probs.log().expand(start.mode_log_probs.shape).clone(), start.components)
+            if ergodic:
+                start = ergodic_start(start)
+            done += 1
+            bar.update(1)
+            bar.set_postfix(loglik=f"{history[-1]:.6g}")
+    bar.close()
+    return SwitchingEMResult(loglik=history, belief0=start, iterations=done, converged=converged,
+                             monotone=not decreases, seconds=time.perf_counter() - tic, decreases=decreases)
