@@ -386,7 +386,9 @@ def switching_em_parameters(est, block, key: str = "learn.parameters") -> tuple[
         if name == "transition" and model is None:
             names.append("transition")
             continue
-        if str(model).startswith("sensors") and name in ("H", "R") and "[" not in str(model):
+        one_sensor = not (getattr(inner.measurement, "H").dim() == 3)  # one sensor for every mode: sensors[0] is it
+        if str(model).startswith("sensors") and name in ("H", "R") and ("[" not in str(model)
+                                                                       or (one_sensor and str(model) == "sensors[0]")):
             share = entry.get("shared")
             if share not in (None, False, True):
                 raise ConfigError(f"{key}[{i}].shared", share, "method em shares a whole tensor across the modes "

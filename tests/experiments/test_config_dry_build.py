@@ -72,7 +72,8 @@ CASES = [
     (["burn=50"], "burn=50: leaves out every step"),
     (["MEASUREMENTS=[x,x]"], "scenario.data.measurements=['x', 'x']: measurements[1]: column 'x' is named twice"),
     (["paired=3"], "paired=3: expected a mapping of reference"),
-    (["learn={parameters:[{model:'sensors[0]',name:R}],method:em}"], "learn.method=em: EM fits a Kalman filter"),
+    (["learn={parameters:[{model:'modes[0]',name:Q}],method:em}"], "learn.parameters[0]=modes[0].Q: method em for "
+                                                                     "switching models estimates"),
     (["learn={parameters:[{model:'sensors[0]',name:R,shared:true}],method:em,estimators:[KF-CV]}"],
      "learn.parameters[0].shared=True: method em estimates whole tensors"),
 ]
