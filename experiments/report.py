@@ -53,7 +53,7 @@ from typing import Any
 
 from experiments.files import RunFolderError, write_atomic
 from experiments.folders import NON_RESULT_KEYS
-from experiments.results import format_value
+from experiments.formatting import format_value
 
 __all__ = ["Run", "collect_runs", "combine", "main", "mean_interval", "paired_differences", "to_latex",
            "write_report"]
@@ -469,24 +469,9 @@ def to_csv(report: dict[str, Any]) -> str:
     return buf.getvalue()
 
 
-#: LaTeX's special characters in text mode
-_LATEX_ESCAPES = {"\\": r"\textbackslash{}", "&": r"\&", "%": r"\%", "$": r"\$", "#": r"\#", "_": r"\_",
-                  "{": r"\{", "}": r"\}", "~": r"\textasciitilde{}", "^": r"\textasciicircum{}",
-                  "±": r"$\pm$", "−": "$-$"}
-
-
-def latex_escape(text: Any) -> str:
-    """``text`` safe in LaTeX's text mode (``_`` -> ``\\_``, ...)."""
-    return "".join(_LATEX_ESCAPES.get(ch, ch) for ch in str(text))
-
-
-def _latex_number(value: Any) -> str:
-    """``format_value(value)`` typeset: a minus sign, not a hyphen; ``1.2e-04`` as ``$1.2\\times10^{-4}$``."""
-    text = format_value(value)
-    mantissa, e, exponent = text.partition("e")
-    if e and exponent.lstrip("+-").isdigit():
-        return f"${mantissa}\\times10^{{{int(exponent)}}}$"
-    return "$-$" + text[1:] if text.startswith("-") else text
+from experiments.formatting import latex_escape  # noqa: E402
+from experiments.formatting import latex_number as _latex_number  # noqa: E402
+from experiments.formatting import latex_table as _latex_table  # noqa: E402
 
 
 def _latex_cell(stats: dict) -> str:
@@ -495,12 +480,6 @@ def _latex_cell(stats: dict) -> str:
     if stats["ci_low"] is None:
         return _latex_number(stats["mean"])
     return f"{_latex_number(stats['mean'])} $\\pm$ {_latex_number((stats['ci_high'] - stats['ci_low']) / 2)}"
-
-
-def _latex_table(columns: list[str], rows: list[list[str]], caption: str, align: str) -> list[str]:
-    return [r"\begin{table}[htbp]", r"\centering", rf"\caption{{{caption}}}", rf"\begin{{tabular}}{{{align}}}",
-            r"\toprule", " & ".join(columns) + r" \\", r"\midrule",
-            *(" & ".join(row) + r" \\" for row in rows), r"\bottomrule", r"\end{tabular}", r"\end{table}", ""]
 
 
 def to_latex(report: dict[str, Any]) -> str:

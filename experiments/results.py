@@ -13,6 +13,7 @@ from typing import Any
 import torch
 
 from experiments.files import write_atomic
+from experiments.formatting import format_value  # noqa: F401 - re-exported (experiments.results.format_value)
 
 
 def jsonable(value: Any) -> Any:
@@ -28,17 +29,6 @@ def jsonable(value: Any) -> Any:
         return [jsonable(v) for v in value]
     return value
 
-
-
-def format_value(value: Any) -> str:
-    """A table cell: floats to 4 decimals (or 4 significant digits in e-notation), None as empty."""
-    if isinstance(value, float):
-        if value != value:
-            return "nan"
-        if value == 0 or 1e-3 <= abs(value) < 1e5:
-            return f"{value:.4f}"
-        return f"{value:.3e}"
-    return "" if value is None else str(value)
 
 
 
@@ -173,15 +163,15 @@ class Results:
     def to_latex(self) -> str:
         """``results.tex``: every table as a booktabs table (``\\usepackage{booktabs}``; ``\\input`` it), numbers
         as in results.md, text escaped: e.g. the ``learned`` estimates with their standard errors."""
-        from experiments.report import _latex_number, _latex_table, latex_escape
+        from experiments.formatting import latex_escape, latex_number, latex_table
 
         out = [f"% torchmm {latex_escape(self.experiment)}: the run's tables (booktabs; \\usepackage{{booktabs}})", ""]
         for name, table in self.tables.items():
-            rows = [[_latex_number(v) if isinstance(v, (int, float)) and not isinstance(v, bool)
+            rows = [[latex_number(v) if isinstance(v, (int, float)) and not isinstance(v, bool)
                      else latex_escape(format_value(v)) for v in row] for row in table.rows]
             align = "".join("r" if any(isinstance(r[i], (int, float)) and not isinstance(r[i], bool)
                                        for r in table.rows) else "l" for i in range(len(table.columns)))
-            out += _latex_table([latex_escape(c) for c in table.columns], rows,
+            out += latex_table([latex_escape(c) for c in table.columns], rows,
                                 f"{latex_escape(self.experiment)}: {latex_escape(name)}", align or "l")
         return "\n".join(out)
 
