@@ -53,7 +53,9 @@ from typing import Any
 
 from experiments.files import RunFolderError, write_atomic
 from experiments.folders import NON_RESULT_KEYS
-from experiments.formatting import format_value
+from experiments.formatting import format_value, latex_escape
+from experiments.formatting import latex_number as _latex_number
+from experiments.formatting import latex_table as _latex_table
 
 __all__ = ["Run", "collect_runs", "combine", "main", "mean_interval", "paired_differences", "to_latex",
            "write_report"]
@@ -467,11 +469,6 @@ def to_csv(report: dict[str, Any]) -> str:
                                      *("" if s[k] is None else repr(s[k]) for k in ("mean", "sd", "ci_low", "ci_high")),
                                      reference])
     return buf.getvalue()
-
-
-from experiments.formatting import latex_escape  # noqa: E402
-from experiments.formatting import latex_number as _latex_number  # noqa: E402
-from experiments.formatting import latex_table as _latex_table  # noqa: E402
 
 
 def _latex_cell(stats: dict) -> str:
