@@ -17,8 +17,7 @@ from omegaconf import open_dict
 
 from experiments.config import ConfigError, validate
 from experiments.run import run_study
-from tests.experiments.test_compare_study import MODES, PRIOR_COV, PRIOR_MEAN, SENSOR, TRANSITION, _compose, \
-    _library_models
+from tests.experiments.test_compare_study import PRIOR_COV, PRIOR_MEAN, TRANSITION, _data_config, _library_models
 from torchmm import IMM, GaussianBelief, KalmanFilter, run_filter
 from torchmm.simulate import simulate_jump_system, simulate_measurements
 
@@ -56,18 +55,9 @@ def _write(path: Path, series: dict, names: list[str], *, velocity: str = "given
 
 
 def _run(tmp_path: Path, file: Path, tag: str, *, truth=("pos", "vel"), metrics=None):
-    cfg = _compose("figures=false")
+    cfg = _data_config(file, "figures=false")  # test_compare_study's two-mode scenario over the file
     with open_dict(cfg):
-        cfg.scenario.modes = MODES
-        cfg.scenario.sensors = [SENSOR]
-        cfg.scenario.labels = ["a=0", "a=1"]
-        cfg.scenario.transition = TRANSITION
-        cfg.scenario.initial_mean = PRIOR_MEAN
-        cfg.scenario.initial_cov = PRIOR_COV
-        cfg.scenario.initial_mode_probs = None
-        cfg.scenario.groups = {"position": [0], "velocity": [1]}
-        cfg.scenario.data = {"path": str(file), "measurements": ["y"], "truth": None if truth is None else list(truth),
-                             "time": "t", "series": "series"}
+        cfg.scenario.data.truth = None if truth is None else list(truth)
         imm = {"_target_": "experiments.estimators.multiple_model", "_partial_": True,
                "combinator": {"_target_": "torchmm.IMM", "_partial_": True}, "mode_filter": None}
         cfg.estimators = {"IMM": {**imm, "smooth": "two_filter"}, "IMM-kim": {**imm, "smooth": "kim"},

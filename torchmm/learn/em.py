@@ -83,6 +83,28 @@ class EMResult:
     decreases: list = field(default_factory=list)
 
 
+def _observed(z: Tensor, present: Tensor | None) -> tuple[Tensor, Tensor]:
+    """``(present, observed)`` ``(T, *B)``: the steps of each series (padding False) and those with a
+    measurement; a vector with only some components missing is refused (the M-steps take whole vectors)."""
+    seen = torch.isfinite(z)
+    observed = seen.all(-1)
+    if bool((seen.any(-1) & ~observed).any()):
+        raise ValueError("measurements: a vector with some components missing (not all): EM's steps take whole "
+                         "vectors only (not implemented yet)")
+    if present is None:
+        present = torch.ones(z.shape[:-1], dtype=torch.bool, device=z.device)
+    elif tuple(present.shape) != tuple(z.shape[:-1]):
+        raise ValueError(f"present: expected shape {tuple(z.shape[:-1])}, got {tuple(present.shape)}")
+    return present, observed & present
+
+
+def _bar(iterations: int, progress, name: str):
+    from tqdm.auto import tqdm
+
+    return tqdm(total=iterations, desc=progress if isinstance(progress, str) else name,
+                disable=None if progress is None else not progress, leave=False)
+
+
 def _sum(x: Tensor, keep: int, shared: bool) -> Tensor:
     """``x`` summed over time (axis 0) and, for shared parameters, over the series axes (``keep``
     trailing axes are the event)."""
@@ -141,8 +163,6 @@ def em(filter: KalmanFilter, belief0: GaussianBelief, measurements: Tensor,
         >>> out.monotone, len(out.loglik)
         (True, 6)
     """
-    from tqdm.auto import tqdm
-
     motion, sensor = filter.motion, filter.measurement
     if not (isinstance(motion, LinearMotion) and isinstance(sensor, LinearMeasurement)
             and plain_linear(motion) and plain_linear(sensor)):
@@ -171,17 +191,7 @@ def em(filter: KalmanFilter, belief0: GaussianBelief, measurements: Tensor,
     if tuple(z.shape[1:-1]) != tuple(batch):
         raise ValueError(f"measurements: batch {tuple(z.shape[1:-1])} is not the start belief's {tuple(batch)}")
     z = check_measurement(z, filter.meas_dim, torch.Size((z.shape[0], *batch)), belief0.mean, "measurements")
-    seen = torch.isfinite(z)
-    observed = seen.all(-1)
-    if bool((seen.any(-1) & ~observed).any()):
-        raise ValueError("measurements: a vector with some components missing (not all): EM's H and R steps take "
-                         "whole vectors only (not implemented yet)")
-    T = z.shape[0]
-    if present is None:
-        present = torch.ones(z.shape[:-1], dtype=torch.bool, device=z.device)
-    elif tuple(present.shape) != tuple(z.shape[:-1]):
-        raise ValueError(f"present: expected shape {tuple(z.shape[:-1])}, got {tuple(present.shape)}")
-    observed = observed & present
+    present, observed = _observed(z, present)
     shared = not per_series
     dtype = z.dtype
     yz = torch.where(observed.unsqueeze(-1), z, 0.0)
@@ -194,8 +204,7 @@ def em(filter: KalmanFilter, belief0: GaussianBelief, measurements: Tensor,
     start = belief0
     history, decreases = [], []
     tic = time.perf_counter()
-    bar = tqdm(total=iterations, desc=progress if isinstance(progress, str) else "em",
-               disable=None if progress is None else not progress, leave=False)
+    bar = _bar(iterations, progress, "em")
     converged, done = False, 0
 
     def e_step(start):
@@ -379,8 +388,6 @@ def em_switching(filter: MultipleModelFilter, belief0: ModeBelief, measurements:
         >>> out.monotone, out.loglik[-1] > out.loglik[0]
         (True, True)
     """
-    from tqdm.auto import tqdm
-
     from torchmm.smooth import smooth
 
     bank = getattr(filter, "bank", None)
@@ -407,15 +414,7 @@ def em_switching(filter: MultipleModelFilter, belief0: ModeBelief, measurements:
     batch = belief0.batch_shape
     z = check_measurement(z, filter.meas_dim, torch.Size((z.shape[0], *batch)), belief0.mode_log_probs,
                           "measurements")
-    seen = torch.isfinite(z)
-    observed = seen.all(-1)
-    if bool((seen.any(-1) & ~observed).any()):
-        raise ValueError("measurements: a vector with some components missing (not all): whole vectors only")
-    if present is None:
-        present = torch.ones(z.shape[:-1], dtype=torch.bool, device=z.device)
-    elif tuple(present.shape) != tuple(z.shape[:-1]):
-        raise ValueError(f"present: expected shape {tuple(z.shape[:-1])}, got {tuple(present.shape)}")
-    observed = observed & present
+    present, observed = _observed(z, present)
     yz = torch.where(observed.unsqueeze(-1), z, 0.0)
     wanted, share = set(parameters), set(shared)
     stacked = sensor.H.dim() == 3 and sensor.H.shape[0] == M
@@ -424,8 +423,7 @@ def em_switching(filter: MultipleModelFilter, belief0: ModeBelief, measurements:
     start = belief0
     history, decreases = [], []
     tic = time.perf_counter()
-    bar = tqdm(total=iterations, desc=progress if isinstance(progress, str) else "em_switching",
-               disable=None if progress is None else not progress, leave=False)
+    bar = _bar(iterations, progress, "em_switching")
     converged, done = False, 0
 
     def e_step(start):
