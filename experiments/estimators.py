@@ -150,7 +150,7 @@ def custom(scenario, *, name: str = "filter", filter: Any, mode_probs=None, smoo
     multiple = isinstance(filter, MultipleModelFilter)
     probs = mode_probs if mode_probs is not None else (scenario.initial_mode_probs if multiple else None)
     if probs is not None:
-        probs = torch.as_tensor(probs, dtype=scenario.transition.dtype, device=scenario.transition.device)
+        probs = torch.as_tensor(probs, dtype=scenario.initial.dtype, device=scenario.initial.mean.device)
     return Estimator(name, filter, starter(filter, probs), multiple, smooth=smooth)
 
 

@@ -120,6 +120,15 @@ def parameters_of(est, scenario, block, key: str = "learn.parameters") -> tuple[
             if entry.get("model") is not None:
                 raise ConfigError(f"{at}.model", entry.model, "the transition matrix belongs to no model (leave "
                                   "model out)")
+            from torchmm.models.transition import LogisticTransition
+
+            logistic = [p for p, m in filter.named_modules() if isinstance(m, LogisticTransition)]
+            if logistic:  # time-varying: its logistic coefficients, free
+                tensor = f"{logistic[0]}.coef" if logistic[0] else "coef"
+                shape = tuple(dict(filter.named_buffers())[tensor].shape)
+                out[tensor] = Param("free", label="transition")
+                where[tensor] = (None, "transition", False, _entry_names(entry, shape, at), None, shape)
+                continue
             paths = [p for p, m in filter.named_modules() if isinstance(m, ModeTransition)]
             if not paths:
                 raise ConfigError(f"{at}.name", name, f"{est.name} has no transition matrix (a single-mode filter)")
@@ -284,17 +293,21 @@ def rename(name: str, where: dict) -> str:
     return name
 
 
-def start_function(est, scenario, transition_learned: bool):
+def start_function(est, scenario, transition_learned: bool, controls: Tensor | None = None):
     """The estimator's start as a function of its filter: with ``initial_mode_probs: ergodic`` and the
-    transition matrix estimated, the stationary probabilities of the matrix being evaluated."""
+    transition matrix estimated, the stationary probabilities of the matrix being evaluated (a time-varying
+    one's at the first step's controls, each series its own)."""
     from torchmm.learn import stationary
 
     if not (scenario.ergodic and transition_learned and est.multiple_model):
         return None
+    first = None if controls is None else controls[0]
 
     def init(prior, generator=None):
         options = {"generator": generator} if generator is not None else {}
-        return est.filter.initial_belief(prior, stationary(est.filter.transition.matrix()), **options)
+        transition = est.filter.transition
+        matrix = transition.at(first).matrix() if getattr(transition, "takes_inputs", False) else transition.matrix()
+        return est.filter.initial_belief(prior, stationary(matrix), **options)
     return init
 
 
@@ -306,7 +319,7 @@ def fit_mle(est, scenario, block, z: Tensor, *, prior, update_first: bool, burn:
 
     params, where = parameters_of(est, scenario, block)
     transition = any(w[1] == "transition" for w in where.values())
-    init = start_function(est, scenario, transition)
+    init = start_function(est, scenario, transition, controls)
     if init is not None:
         est.init = init
     belief0 = (lambda f: est.init(prior, None)) if init is not None else est.init(prior, None)
@@ -384,6 +397,9 @@ def switching_em_parameters(est, block, key: str = "learn.parameters") -> tuple[
         name = str(entry.name)
         model = entry.get("model")
         if name == "transition" and model is None:
+            if getattr(est.filter.transition, "takes_inputs", False):
+                raise ConfigError(f"{key}[{i}]", "transition", "EM does not estimate a time-varying transition (its "
+                                  "M-step is a weighted logistic regression, not implemented yet): method mle")
             names.append("transition")
             continue
         one_sensor = not (getattr(inner.measurement, "H").dim() == 3)  # one sensor for every mode: sensors[0] is it

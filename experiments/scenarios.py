@@ -239,7 +239,8 @@ class SystemScenario:
 
     @property
     def num_modes(self) -> int:
-        return self.transition.shape[-1]
+        count = getattr(self.transition, "num_modes", None)  # (a time-varying transition module)
+        return int(count) if count is not None else self.transition.shape[-1]
 
     @property
     def mode_sensors(self) -> bool:
@@ -466,6 +467,8 @@ def markov_switching(
     transition: Sequence[Sequence[float]] | None = None,
     start: dict | None = None,
     labels: Sequence[str] | None = None,
+    tvtp: Sequence[str] | None = None,
+    tvtp_constant: bool = True,
     dtype: torch.dtype = torch.float64,
     device: torch.device | str = "cpu",
 ) -> SystemScenario:
@@ -492,6 +495,10 @@ def markov_switching(
             statsmodels' ``start_params``: the regression by least squares, regime ``i``'s coefficients
             ``i / k`` of it, the variances ``linspace(var / 10, var, k)`` of its residual variance.
         labels: the regimes' names (default ``regime 0``, ...).
+        tvtp: columns of the data whose values drive time-varying transition probabilities (statsmodels'
+            ``exog_tvtp``): :class:`~torchmm.LogisticTransition` over them (with a constant when
+            ``tvtp_constant``), started at 0 (every row ``1/k``, statsmodels' start); then ``transition``
+            must be null, and the start's regime probabilities are the first step's matrix's ergodic ones.
 
     The scenario's ``learn_parameters`` (``learn.parameters: auto``) estimate the transition matrix, every
     coefficient and the variances, shared as the switching flags say; the start's mode probabilities are
@@ -514,9 +521,18 @@ def markov_switching(
     if trend == "n" and not inputs:
         raise ConfigError("scenario.trend", trend, "without a constant the model needs inputs (regressors)")
     n = 1 + len(inputs)
-    recorded = read_data(data, n, 1)
+    tvtp = [str(c) for c in (tvtp or [])]
+    if tvtp and transition is not None:
+        raise ConfigError("scenario.transition", [list(r) for r in transition], "give no transition matrix with "
+                          "tvtp (the transition probabilities are the logistic of the tvtp columns)")
+    reading = dict(data)
+    extra = [c for c in tvtp if c not in inputs]
+    if extra:
+        reading["inputs"] = inputs + extra
+    recorded = read_data(reading, n, 1)
+    regressors = None if not inputs else recorded.inputs[..., :len(inputs)]
     y = recorded.measurements[..., 0]
-    X = np.concatenate([np.ones(y.shape + (1,))] + ([recorded.inputs] if inputs else []), -1)
+    X = np.concatenate([np.ones(y.shape + (1,))] + ([regressors] if inputs else []), -1)
     if trend == "n":
         X = X[..., 1:]
     ok = recorded.present & np.isfinite(y)
@@ -550,12 +566,25 @@ def markov_switching(
         raise ConfigError("scenario.transition", matrix, f"is {P.shape[-1]}x{P.shape[-1]} for {K} regimes")
     from torchmm import LinearMeasurement
 
+    from torchmm import LogisticTransition
+
+    # the controls: the regressors, then the transition's inputs (a constant first, then its columns)
+    if tvtp:
+        columns = {c: i for i, c in enumerate(list(data.get("inputs") or []) + extra)}
+        parts = ([regressors] if inputs else []) + ([np.ones(y.shape + (1,))] if tvtp_constant else []) + \
+            [recorded.inputs[..., [columns[c]]] for c in tvtp]
+        recorded.inputs = np.concatenate(parts, -1)
+        recorded.inputs[~recorded.present] = 0.0
+        q = len(tvtp) + int(tvtp_constant)
+        transition_model = LogisticTransition(torch.zeros(K, K - 1, q, dtype=dtype),
+                                              columns=list(range(len(inputs), len(inputs) + q))).to(device)
+    width = 0 if recorded.inputs is None else recorded.inputs.shape[-1]
     F = torch.zeros(n, n, dtype=dtype)
     F[0, 0] = 1.0
-    B = torch.zeros(n, max(len(inputs), 1), dtype=dtype)
+    B = torch.zeros(n, max(width, 1), dtype=dtype)
     if inputs:
-        B[1:, :] = torch.eye(len(inputs), dtype=dtype)
-    motion = LinearMotion(F, torch.zeros(n, n, dtype=dtype), input_matrix=B if inputs else None)
+        B[1:, :len(inputs)] = torch.eye(len(inputs), dtype=dtype)
+    motion = LinearMotion(F, torch.zeros(n, n, dtype=dtype), input_matrix=B if width else None)
     sensors = [LinearMeasurement(torch.as_tensor(coef[i], dtype=dtype).reshape(1, n),
                                  torch.full((1, 1), float(variances[i]), dtype=dtype)).to(device) for i in range(K)]
     initial = GaussianBelief(torch.eye(n, dtype=dtype)[0], torch.zeros(n, n, dtype=dtype))
@@ -563,17 +592,30 @@ def markov_switching(
     switching = ([switching_trend] if trend == "c" else [True]) + [switching_exog] * len(inputs)
     fixed_const = [False] * n if trend == "c" else [True] + [False] * len(inputs)
     names = [["const" if trend == "c" else "(no constant)"] + [str(c) for c in inputs]]
-    learn = [{"name": "transition"},
+    transition_names = None if not tvtp else [
+        f"p[{i}->{j}].{c}" for i in range(K) for j in range(K - 1) for c in (["const"] if tvtp_constant else []) + tvtp]
+    learn = [{"name": "transition", **({"names": transition_names} if tvtp else {})},
              {"model": "sensors", "name": "H", "kind": "free", "shared": [[not s for s in switching]],
               "fixed": [fixed_const], "names": names},
              {"model": "sensors", "name": "R", "kind": "variance", "shared": not switching_variance,
               "names": [["sigma2"]]}]
     return SystemScenario(
         name=name, motion=[copy_motion(motion) for _ in range(K)],
-        measurement=sensors, transition=P.to(device), initial=initial.to(device), steps=recorded.steps,
-        initial_mode_probs=_stationary(P).to(device), mode_labels=list(labels) if labels else
+        measurement=sensors, transition=transition_model if tvtp else P.to(device), initial=initial.to(device),
+        steps=recorded.steps,
+        initial_mode_probs=_first_ergodic(transition_model, recorded.inputs, dtype, device) if tvtp
+        else _stationary(P).to(device), mode_labels=list(labels) if labels else
         [f"regime {i}" for i in range(K)], groups={"state": list(range(n))}, sensor_dims=[1], missing=[0.0],
         every=[1], data=recorded, motions=None, ergodic=True, learn_parameters=learn)
+
+
+def _first_ergodic(transition, inputs: np.ndarray, dtype, device) -> Tensor:
+    """Each series' start regime probabilities under a time-varying transition: the ergodic ones of its
+    first step's matrix (statsmodels' ``exog_tvtp`` default), ``(runs, M)``."""
+    from torchmm.learn import stationary
+
+    u0 = torch.as_tensor(inputs[0], dtype=dtype, device=device)  # (runs, k)
+    return stationary(transition.at(u0).matrix())
 
 
 def copy_motion(motion: LinearMotion) -> LinearMotion:

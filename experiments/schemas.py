@@ -262,6 +262,8 @@ class MarkovSwitchingScenario:
     transition: Optional[List[Any]] = spec(None, _rows_stochastic)
     start: Optional[Dict[str, Any]] = None
     labels: Optional[List[str]] = None
+    tvtp: Optional[List[str]] = None  # columns driving time-varying transition probabilities (exog_tvtp)
+    tvtp_constant: bool = True
 
 
 SCENARIOS = {KINEMATIC: KinematicScenario, PAPER003: Paper003Scenario, SYSTEM: SystemScenario,

@@ -216,8 +216,9 @@ def kim_step(filter: MultipleModelFilter, filtered: ModeBelief, smoothed_next: M
     nxt = smoothed_next.components.unsqueeze(-2)  # (*B, 1, i)
     mean = pairs.mean + (gain_t.mT @ (nxt.mean - predicted.mean).unsqueeze(-1)).squeeze(-1)
     cov = symmetrize(pairs.cov + gain_t.mT @ (nxt.cov - predicted.cov) @ gain_t)
-    # mode probabilities, in log space
-    log_pi = filter.transition.log_matrix()
+    # mode probabilities, in log space (a time-varying transition's at the step's controls)
+    log_pi = filter.transition_at(u).log_matrix() if getattr(filter.transition, "takes_inputs", False) \
+        else filter.transition.log_matrix()
     joint_pred = filtered.mode_log_probs.unsqueeze(-1) + log_pi  # log mu_j pi_ji, (*B, j, i)
     log_pred = torch.logsumexp(joint_pred, dim=-2, keepdim=True)  # log mu^-_i
     ratio = (smoothed_next.mode_log_probs.unsqueeze(-2) - log_pred).nan_to_num(nan=-torch.inf)  # 0/0: no mass
@@ -754,6 +755,9 @@ def smooth(filter: Any, trajectory: Trajectory | None = None, measurements: Tens
     if isinstance(filter, MultipleModelFilter):
         if method not in (None, "two_filter", "kim"):
             raise ValueError(f"method: expected 'two_filter' or 'kim' for {type(filter).__name__}, got {method!r}")
+        if method != "kim" and getattr(filter.transition, "takes_inputs", False):
+            raise ValueError("method: a time-varying transition (LogisticTransition) is smoothed by Kim's smoother: "
+                             "method='kim' (the two-filter smoother's backward chain needs one matrix)")
         if method == "kim":
             return _smooth_modes(filter, trajectory, controls, motions, padding)
         return _smooth_two_filter(filter, trajectory, measurements, controls, motions, sensors, padding)

@@ -288,3 +288,40 @@ def test_standard_errors_cover_the_truth():
             e, s = est[name]
             covered[name] += abs(e - value) <= 1.96 * s
     assert all(c >= 0.9 * sets for c in covered.values()), covered
+
+
+def test_logistic_transition_equals_statsmodels_exog_tvtp():
+    """An IMM with LogisticTransition (time-varying transition probabilities from the controls) is
+    statsmodels' MarkovRegression(exog_tvtp=...): log-likelihood, filtered and Kim-smoothed regime
+    probabilities at given parameters (1e-12)."""
+    from torchmm import LogisticTransition, smooth
+    from tests.experiments.test_markov_switching import _statsmodels_test_data
+
+    ff, ogap = _statsmodels_test_data("fedfunds", "ogap")
+    y, X = ff[4:], np.c_[np.ones(len(ff) - 4), ogap[4:]]
+    model = sm.tsa.MarkovRegression(y, k_regimes=2, exog_tvtp=X, switching_variance=True)
+    params = dict(zip(model.param_names, [2.0, -3.0, 0.3, -0.2, 2.5, 7.5, 1.5, 8.0]))
+    ref = model.smooth(np.array(list(params.values())))
+    f64 = torch.float64
+    coef = torch.tensor([[[params["p[0->0].tvtp0"], params["p[0->0].tvtp1"]]],
+                         [[params["p[1->0].tvtp0"], params["p[1->0].tvtp1"]]]], dtype=f64)
+    transition = LogisticTransition(coef, columns=[0, 1])
+    one = torch.ones(2, 1, 1, dtype=f64)
+    imm = IMM(KalmanFilter(LinearMotion(one, 0 * one, input_matrix=torch.zeros(2, 1, 2, dtype=f64)),
+                           LinearMeasurement(torch.tensor([[[2.5]], [[7.5]]], dtype=f64),
+                                             torch.tensor([[[1.5]], [[8.0]]], dtype=f64))), transition)
+    u = torch.as_tensor(X, dtype=f64)
+    start = imm.initial_belief(GaussianBelief(torch.ones(1, dtype=f64), torch.zeros(1, 1, dtype=f64)),
+                               stationary(transition.at(u[0]).matrix()))  # statsmodels: the first step's ergodic
+    traj = run_filter(imm, start, torch.as_tensor(y, dtype=f64).reshape(-1, 1), controls=u)
+    assert float(traj.log_likelihood.sum()) == pytest.approx(ref.llf, abs=1e-9)
+    np.testing.assert_allclose(traj.belief.mode_probs.numpy(), ref.filtered_marginal_probabilities, atol=1e-12)
+    np.testing.assert_allclose(smooth(traj, method="kim").belief.mode_probs.numpy(),
+                               ref.smoothed_marginal_probabilities, atol=1e-12)
+    with pytest.raises(ValueError, match="^method: a time-varying transition"):
+        smooth(traj)
+    with pytest.raises(TypeError, match="^transition: a time-varying transition"):
+        from torchmm import GPB2
+        GPB2(KalmanFilter(LinearMotion(one, 0 * one), LinearMeasurement(one, one)), transition)
+    with pytest.raises(ValueError, match="^controls: a LogisticTransition needs"):
+        run_filter(imm, start, torch.as_tensor(y, dtype=f64).reshape(-1, 1))

@@ -200,6 +200,8 @@ example("torchmm.models.transition.transition_alpha")(
     lambda: call(torchmm.multimodel.transition_alpha, torch.tensor([[0.9, 0.1], [0.2, 0.8]]), 1e-12))
 example("torchmm.models.transition.ModeTransition")(
     lambda: call(torchmm.ModeTransition, [[0.9, 0.1], [0.2, 0.8]], learnable=True))
+example("torchmm.models.transition.LogisticTransition")(
+    lambda: call(torchmm.LogisticTransition, torch.zeros(2, 1, 2), columns=[0, 1]))
 example("torchmm.models.adapters.LearnedMotion")(
     lambda: call(models.LearnedMotion, torch.nn.Linear(2, 2).double(), 2, 0.1 * torch.eye(2),
                  noise="cholesky", residual=True, uses_input=False))

@@ -11,9 +11,10 @@ import torch
 from torch import Tensor, nn
 
 from torchmm.validation import as_tensor, check_stochastic_rows
-from torchmm.contract import DType, Finite, Flag, Real, Stochastic, Text, entry_point
+from torchmm.contract import DType, Finite, Flag, Of, Real, Stochastic, Text, entry_point
 
-__all__ = ["ModeTransition", "alpha_transition", "as_transition", "transition_alpha", "validate_transition"]
+__all__ = ["LogisticTransition", "ModeTransition", "StepTransition", "alpha_transition", "as_transition",
+           "transition_alpha", "validate_transition"]
 
 
 @entry_point(matrix=Stochastic(check=False), name=Text(label=True))
@@ -124,9 +125,91 @@ class ModeTransition(nn.Module):
         return self.log_matrix().exp() if self.learnable else self.value
 
 
+class StepTransition:
+    """One step's transition matrices ``(*B, M, M)`` (a :class:`LogisticTransition` at that step's inputs),
+    with the interface the interactions read (``matrix()``, ``log_matrix()``, ``num_modes``)."""
+
+    def __init__(self, log_matrix: Tensor):
+        self._log = log_matrix
+
+    @property
+    def num_modes(self) -> int:
+        return self._log.shape[-1]
+
+    def log_matrix(self) -> Tensor:
+        return self._log
+
+    def matrix(self) -> Tensor:
+        return self._log.exp()
+
+
+class LogisticTransition(nn.Module):
+    r"""Time-varying transition probabilities from inputs (statsmodels' ``exog_tvtp``): at step ``k`` the
+    row of regime ``i`` is a multinomial logistic of the inputs ``x_k = u_k[columns]``,
+
+    .. math::
+        P(s_k = j \mid s_{k-1} = i, x_k) = \frac{\exp(x_k^\top \beta_{ij})}
+        {1 + \sum_{l < M-1} \exp(x_k^\top \beta_{il})}, \quad j < M - 1,
+
+    the last regime the reference (its logit 0). ``u_k`` is the step's controls (``run_filter(controls=)``;
+    a regression's regressors may share them: ``columns`` picks the transition's).
+
+    Args:
+        coef: ``beta``, ``(M, M - 1, q)`` (a buffer: :func:`torchmm.learn.estimate` estimates it by name,
+            ``"transition.coef"``).
+        columns: the ``q`` columns of the controls that are the transition's inputs (a constant column of
+            ones gives the intercept).
+
+    ``matrix()`` and ``log_matrix()`` need the inputs: ``at(u)`` gives the step's :class:`StepTransition`.
+
+    Examples:
+        >>> t = LogisticTransition(torch.zeros(2, 1, 1), columns=[0])
+        >>> t.at(torch.ones(3, 1)).matrix().shape   # three runs' matrices, all 0.5
+        torch.Size([3, 2, 2])
+    """
+
+    takes_inputs = True
+
+    @entry_point(coef=Finite(), columns=Of((list, tuple), what="a list of column indices"))
+    def __init__(self, coef, columns):
+        super().__init__()
+        coef = as_tensor(coef, "coef")
+        if coef.dim() != 3 or coef.shape[1] != coef.shape[0] - 1:
+            raise ValueError(f"coef: expected (M, M - 1, q), got {tuple(coef.shape)}")
+        columns = [int(c) for c in columns]
+        if len(columns) != coef.shape[-1] or any(c < 0 for c in columns):
+            raise ValueError(f"columns: expected {coef.shape[-1]} non-negative column indices (one per input), got "
+                             f"{columns}")
+        self.register_buffer("coef", coef)
+        self.columns = columns
+
+    @property
+    def num_modes(self) -> int:
+        return self.coef.shape[0]
+
+    def at(self, u: Tensor | None) -> StepTransition:
+        """The transition matrices at the step's controls ``u`` ``(*B, k)``: ``(*B, M, M)``."""
+        if u is None:
+            raise ValueError("controls: a LogisticTransition needs the step's inputs (run_filter(controls=...))")
+        if u.shape[-1] <= max(self.columns):
+            raise ValueError(f"controls: {u.shape[-1]} columns, but the transition reads column {max(self.columns)}")
+        x = u[..., self.columns].to(self.coef.dtype)  # (*B, q)
+        logits = torch.einsum("ijq,...q->...ij", self.coef, x)  # (*B, M, M - 1)
+        logits = torch.cat([logits, torch.zeros_like(logits[..., :1])], dim=-1)
+        return StepTransition(torch.log_softmax(logits, dim=-1))
+
+    def matrix(self) -> Tensor:
+        raise ValueError("transition: time-varying (LogisticTransition): its matrix is at(u).matrix() for a step's "
+                         "inputs u")
+
+    def log_matrix(self) -> Tensor:
+        return self.matrix()
+
+
 def as_transition(transition, name: str = "transition") -> ModeTransition:
-    """``transition`` as a :class:`ModeTransition` (a matrix is validated; errors name ``name``)."""
-    if isinstance(transition, ModeTransition):
+    """``transition`` as a :class:`ModeTransition` (a matrix is validated; errors name ``name``); a
+    :class:`LogisticTransition` is kept as it is."""
+    if isinstance(transition, (ModeTransition, LogisticTransition)):
         return transition
     try:
         return ModeTransition(transition)

@@ -1,6 +1,7 @@
 """Multiple-model estimation: transition matrices, filter banks, IMM / GPB1 / GPB2, multi-rate IMMs."""
 
 from torchmm.models.transition import (
+    LogisticTransition,
     ModeTransition,
     alpha_transition,
     transition_alpha,
@@ -70,6 +71,7 @@ __all__ = [
     "TransferIMM",
     "influence_value",
     "ListBank",
+    "LogisticTransition",
     "ModeTransition",
     "MultipleModelFilter",
     "MultipleModelParticleFilter",

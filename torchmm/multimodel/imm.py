@@ -48,13 +48,16 @@ def _tiny(x: Tensor) -> float:
 
 
 def _predicted(mode_probs: Tensor, transition: Tensor) -> Tensor:
-    """``c_j = sum_i mu_i pi_ij``, shape ``(*B, M)``.
+    """``c_j = sum_i mu_i pi_ij``, shape ``(*B, M)`` (``transition`` ``(M, M)``, or ``(*B, M, M)``: a
+    time-varying transition's matrices at the step).
 
     Mixing works on the *normalised* probabilities in linear space (no overflow possible; exact
     down to underflow below the smallest normal number), which saves the log-sum-exp over the
     mode axis; the likelihood combination in :meth:`MultipleModelFilter._update_modes` is in log
     space, where underflow actually happens.
     """
+    if transition.dim() > 2:
+        return (mode_probs.unsqueeze(-2) @ transition).squeeze(-2)
     return mode_probs @ transition
 
 
@@ -204,6 +207,10 @@ class MultipleModelFilter(Filter):
         if not isinstance(interaction, Interaction):
             raise TypeError(f"interaction: expected an Interaction (MomentMixing, Collapse, NoInteraction, "
                             f"ParticleMixing), got {type(interaction).__name__}")
+        if getattr(self.transition, "takes_inputs", False) and not (
+                self.time_varying_transition and isinstance(interaction, (MomentMixing, Collapse, NoInteraction))):
+            raise TypeError(f"transition: a time-varying transition (LogisticTransition) is supported by IMM, GPB1 and "
+                            f"a static bank, not {type(self).__name__} with {type(interaction).__name__}")
         self.interaction = interaction
 
     @property
@@ -328,6 +335,8 @@ class MultipleModelFilter(Filter):
         rule = self.interaction.kernel_rule
         if rule is None:
             return f"the interaction {type(self.interaction).__name__} has no kernel rule"
+        if getattr(self.transition, "takes_inputs", False):
+            return "a time-varying transition (it reads each step's controls)"
         describe = getattr(self.bank, "linear_gaussian", None)
         model = describe() if describe is not None else f"the bank {type(self.bank).__name__} is not linear-Gaussian"
         if isinstance(model, str):
@@ -343,20 +352,40 @@ class MultipleModelFilter(Filter):
         rule = self.interaction.kernel_rule
         if rule not in ("mix", "collapse"):
             return f"the interaction {type(self.interaction).__name__} has no nonlinear kernel rule"
+        if getattr(self.transition, "takes_inputs", False):
+            return "a time-varying transition (it reads each step's controls)"
         describe = getattr(self.bank, "nonlinear_gaussian", None)
         model = describe() if describe is not None else f"the bank {type(self.bank).__name__} is not nonlinear-Gaussian"
         if isinstance(model, str):
             return model
         return model._replace(transition=self.transition.matrix(), rule=rule)
 
-    def mix(self, belief: ModeBelief, generator=None) -> ModeBelief:
-        """Interaction step: predicted mode log-probs and the mode-conditioned start beliefs."""
+    #: whether the class takes a time-varying transition (:class:`~torchmm.models.LogisticTransition`)
+    time_varying_transition: bool = True
+
+    def transition_at(self, u: Tensor | None = None):
+        """The step's transition: the filter's, or a time-varying one's matrices at the step's controls ``u``
+        (:class:`~torchmm.models.LogisticTransition`: ``(*B, M, M)``)."""
+        if getattr(self.transition, "takes_inputs", False):
+            return self.transition.at(u)
+        return self.transition
+
+    def mix(self, belief: ModeBelief, generator=None, *, u: Tensor | None = None) -> ModeBelief:
+        """Interaction step: predicted mode log-probs and the mode-conditioned start beliefs (``u``: the step's
+        controls, read by a time-varying transition)."""
         mode_batch(belief)
-        return self.interaction(belief, self.transition, generator)
+        return self.interaction(belief, self.transition_at(u), generator)
+
+    def _mixed(self, belief: ModeBelief, generator, u: Tensor | None) -> ModeBelief:
+        """:meth:`mix`, given the step's controls where the transition reads them (a subclass's own ``mix``
+        without ``u`` keeps working for a fixed transition)."""
+        if getattr(self.transition, "takes_inputs", False):
+            return self.mix(belief, generator, u=u)
+        return self.mix(belief, generator)
 
     def predict(self, belief: ModeBelief, *, u: Tensor | None = None, motion=None, generator=None) -> ModeBelief:
         """Interaction (:meth:`mix`) and every mode's time update (``motion``: per-step mode models)."""
-        return self._predict(self.mix(belief, generator), u=u, motion=motion, generator=generator)
+        return self._predict(self._mixed(belief, generator, u), u=u, motion=motion, generator=generator)
 
     def _predict(self, mixed: ModeBelief, *, u=None, motion=None, generator=None) -> ModeBelief:
         u = None if u is None else u.unsqueeze(-2)
@@ -394,7 +423,7 @@ class MultipleModelFilter(Filter):
 
     def step(self, belief: ModeBelief, z: Tensor, *, u: Tensor | None = None, motion=None, sensor=None,
              generator=None) -> StepOutput:
-        mixed = self.mix(belief, generator)
+        mixed = self._mixed(belief, generator, u)
         prior = self._predict(mixed, u=u, motion=motion, generator=generator)
         out = self.update(prior, z, sensor=sensor, generator=generator)
         out.extras["mixed"] = mixed
@@ -516,6 +545,7 @@ class GPB2(MultipleModelFilter):
     """
 
     default_interaction = NoInteraction  # GPB2 forms the M^2 pair hypotheses itself (mix below)
+    time_varying_transition = False  # (its pairs read one matrix)
 
     def mix(self, belief: ModeBelief, generator=None) -> ModeBelief:
         """Pair hypotheses: component ``(i, j)`` is mode ``i``'s posterior; weight ``mu_i pi_ij``."""
