@@ -116,6 +116,13 @@ def parameters_of(est, scenario, block, key: str = "learn.parameters") -> tuple[
         if kind == "scale":
             raise ConfigError(f"{at}.kind", "scale", "method mle estimates a covariance as variance (its diagonal) or "
                               "covariance (full); scale is method gradient's")
+        if name in START_NAMES:
+            tensor, param, shape = _start_entry(est, scenario, entry, name, kind, at)
+            if tensor in out:
+                raise ConfigError(at, name, "names a tensor another entry names")
+            out[tensor] = param
+            where[tensor] = (None, name, False, _entry_names(entry, shape, at), None, shape)
+            continue
         if name == "transition":
             if entry.get("model") is not None:
                 raise ConfigError(f"{at}.model", entry.model, "the transition matrix belongs to no model (leave "
@@ -216,7 +223,102 @@ def parameters_of(est, scenario, block, key: str = "learn.parameters") -> tuple[
                                     label=f"{model}[{jj}].{name}", **bounds)
                 where[tensor] = (f"{model}[{jj}]", name, False, _entry_names(entry, value.shape, at), None,
                                  tuple(value.shape))
+    starting = [w[1] for w in where.values() if w[1] in START_NAMES]
+    if starting and scenario.ergodic and est.multiple_model and any(w[1] == "transition" for w in where.values()):
+        raise ConfigError(key, starting[0], "with the transition matrix "
+                          "estimated, initial_mode_probs: ergodic makes the start a function of it; give "
+                          "initial_mode_probs (a list or null) to estimate the start")
     return out, where
+
+
+#: the start's entries (no model): the prior's mean and covariance, the start's mode probabilities
+START_NAMES = ("initial_mean", "initial_cov", "initial_mode_probs")
+
+
+def _gaussian_path(belief, path: str = "belief0") -> str | None:
+    """Where the Gaussian start sits in an estimator's start belief (``belief0``, a mode belief's
+    ``belief0.components``), or None (a particle start)."""
+    from torchmm import GaussianBelief
+    from torchmm.beliefs import Belief
+
+    if type(belief) is GaussianBelief:
+        return path
+    for f in dataclasses.fields(belief) if dataclasses.is_dataclass(belief) else ():
+        value = getattr(belief, f.name)
+        if isinstance(value, Belief):
+            found = _gaussian_path(value, f"{path}.{f.name}")
+            if found is not None:
+                return found
+    return None
+
+
+def _start_entry(est, scenario, entry, name: str, kind, at: str) -> tuple[str, Any, tuple]:
+    """``(belief0 field, Param, one value's shape)`` of a start entry (``initial_mean``, ``initial_cov``,
+    ``initial_mode_probs``): estimated once for every series and mode (the prior is shared)."""
+    from torchmm.learn import Param
+
+    if entry.get("model") is not None:
+        raise ConfigError(f"{at}.model", entry.model, f"{name} belongs to no model (leave model out)")
+    if entry.get("shared") not in (None, False, True):
+        raise ConfigError(f"{at}.shared", entry.get("shared"), f"{name} is one value for every mode and series "
+                          "already")
+    start = est.init(scenario.initial, None)
+    bounds = {k: entry.get(k) for k in ("lower", "upper") if entry.get(k) is not None}
+    n = scenario.initial.mean.shape[-1]
+    if name == "initial_mode_probs":
+        if not est.multiple_model or not hasattr(start, "mode_log_probs"):
+            raise ConfigError(at, name, f"{est.name} is not a mode filter: it has no mode probabilities")
+        if kind not in (None, "probabilities"):
+            raise ConfigError(f"{at}.kind", kind, "the start's mode probabilities are estimated as probabilities")
+        field, param_kind, shape = "belief0.mode_probs", "probabilities", (start.mode_log_probs.shape[-1],)
+    else:
+        path = _gaussian_path(start)
+        if path is None:
+            raise ConfigError(at, name, f"{est.name}'s start is a {type(start).__name__} (drawn from the prior): "
+                              "method mle estimates a Gaussian start's mean and covariance")
+        if name == "initial_mean":
+            field, param_kind, shape = f"{path}.mean", kind or "free", (n,)
+            if param_kind != "free":
+                raise ConfigError(f"{at}.kind", kind, "the start's mean is free (with optional bounds)")
+        else:
+            field, param_kind, shape = f"{path}.cov", kind or "variance", (n, n)
+            if param_kind not in ("variance", "covariance"):
+                raise ConfigError(f"{at}.kind", kind, "the start's covariance is a variance (its diagonal) or a "
+                                  "covariance (full)")
+    fixed = _with_fixed(None, entry.get("fixed"), torch.Size(shape), stacked=False, at=at)
+    if fixed is not None and param_kind == "covariance":
+        raise ConfigError(f"{at}.fixed", entry.get("fixed"), "a full covariance has no fixed entries (kind "
+                          "variance: its diagonal)")
+    try:
+        param = Param(param_kind, fixed=fixed, label=name, **bounds)
+    except ValueError as err:
+        raise ConfigError(at, name, str(err)) from None
+    return field, param, shape
+
+
+def start_after(est, result) -> None:
+    """The estimator starts from the estimated start from now on (``est.init``): the prior's mean and
+    covariance and the start's mode probabilities of ``result.belief0`` (one value for every series)."""
+    from torchmm import GaussianBelief
+
+    belief = result.belief0
+    path = _gaussian_path(belief)
+    gauss = belief
+    for part in path.split(".")[1:]:
+        gauss = getattr(gauss, part)
+    n = gauss.mean.shape[-1]
+    mean, cov = gauss.mean.reshape(-1, n)[0].clone(), gauss.cov.reshape(-1, n, n)[0].clone()
+    probs = belief.mode_log_probs.reshape(-1, belief.mode_log_probs.shape[-1])[0].exp().clone() \
+        if hasattr(belief, "mode_log_probs") else None
+    before = est.init
+
+    def init(prior, generator=None):
+        options = {"generator": generator} if generator is not None else {}
+        start = GaussianBelief(mean, cov).expand(prior.batch_shape)
+        if probs is not None:
+            return est.filter.initial_belief(start, probs, **options)
+        return before(start, generator)
+    est.init = init
 
 
 def _shared_mask(given, shape: torch.Size, at: str) -> Tensor | None:
@@ -320,6 +422,7 @@ def fit_mle(est, scenario, block, z: Tensor, *, prior, update_first: bool, burn:
     params, where = parameters_of(est, scenario, block)
     transition = any(w[1] == "transition" for w in where.values())
     init = start_function(est, scenario, transition, controls)
+    starting = [w[1] for w in where.values() if w[1] in START_NAMES]
     if init is not None:
         est.init = init
     belief0 = (lambda f: est.init(prior, None)) if init is not None else est.init(prior, None)
@@ -327,6 +430,8 @@ def fit_mle(est, scenario, block, z: Tensor, *, prior, update_first: bool, burn:
     result = estimate(est.filter, belief0, z, params, controls=controls, update_first=update_first, burn=burn,
                       hessian=str(block.get("hessian") or "differences"), maxiter=block.get("maxiter"),
                       progress=progress)
+    if starting:
+        start_after(est, result)
     rows = [[est.name, rename(n, where), e, s, zv] for n, e, s, zv in result.rows()]
     rows += [[est.name, f"duration of {rename(n.removeprefix('duration of '), where)}", d, s,
               d / s if s and math.isfinite(s) and s > 0 else math.nan] for n, d, s in result.durations]

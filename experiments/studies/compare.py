@@ -276,7 +276,7 @@ def check_build(cfg, scenario) -> None:
             params, _ = learning.parameters_of(est, own, block)
             for tensor, param in params.items():
                 try:
-                    estimated_entries(est.filter, {tensor: param})
+                    estimated_entries(est.filter, {tensor: param}, est.init(own.initial, None))
                 except (TypeError, ValueError) as err:
                     raise ConfigError("learn.parameters", param.label, str(err).split(": ", 1)[-1]) from None
             continue

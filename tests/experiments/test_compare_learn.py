@@ -16,8 +16,8 @@ from experiments.run import run_study
 from tests.experiments.test_compare_study import _compose
 
 
-def _run(tmp_path, tag, learn):
-    cfg = _compose("debug=compare", "figures=false", "mc_runs=6", "scenario.steps=30")
+def _run(tmp_path, tag, learn, *overrides):
+    cfg = _compose("debug=compare", "figures=false", "mc_runs=6", "scenario.steps=30", *overrides)
     with open_dict(cfg):
         cfg.learn = learn
         cfg.estimators.IMM.smooth = False
@@ -66,3 +66,31 @@ def test_both_learn_estimator_and_estimators_is_a_config_error():
         cfg.learn = {"parameters": [{"model": "sensors[0]", "name": "R"}], "estimator": "IMM", "estimators": ["IMM"]}
     with pytest.raises(ValueError, match="learn.estimators=.*not both"):
         validate(cfg)
+
+
+def test_the_start_is_estimated_and_the_estimator_runs_from_it(tmp_path, base):
+    """initial_mean, initial_cov and initial_mode_probs (issue 45: the initial state): one start for every
+    series, reported in the learned table, and the estimator runs from it - its log-likelihood in the
+    study is the fit's (the sum over the runs), above the configured start's."""
+    learn = {"parameters": [{"name": "initial_mean"}, {"name": "initial_mode_probs"},
+                            {"model": "sensors[0]", "name": "R"}], "estimator": "IMM"}
+    res, md = _run(tmp_path, "start", learn, "scenario.initial_mode_probs=[0.6,0.2,0.2]")
+    rows = {row[1]: row for row in res["tables"]["learned"]["rows"]}
+    n = sum(1 for name in rows if name.startswith("initial_mean["))
+    assert n == 4 and {f"initial_mode_probs[{j}]" for j in range(3)} <= set(rows)
+    assert sum(rows[f"initial_mode_probs[{j}]"][2] for j in range(3)) == pytest.approx(1.0, abs=1e-12)
+    fit = dict(zip(res["tables"]["fit"]["columns"], res["tables"]["fit"]["rows"][0]))
+    assert fit["k"] == 4 + 2 + 2 and fit["converged"]
+    assert res["metrics"]["IMM"]["loglik"] * 6 == pytest.approx(fit["loglik"], rel=1e-9)
+    configured, _ = _run(tmp_path, "configured", None, "scenario.initial_mode_probs=[0.6,0.2,0.2]")
+    assert res["metrics"]["IMM"]["loglik"] > configured["metrics"]["IMM"]["loglik"]
+    assert res["metrics"]["GPB2"] == configured["metrics"]["GPB2"]
+    kf = {"parameters": [{"name": "initial_mean"}, {"name": "initial_cov", "kind": "variance"}], "estimator": "KF-CV"}
+    res, _ = _run(tmp_path, "kf", kf)
+    assert res["metrics"]["KF-CV"]["loglik"] > base["metrics"]["KF-CV"]["loglik"]
+    names = [row[1] for row in res["tables"]["learned"]["rows"]]
+    assert names[:4] == [f"initial_mean[{i}]" for i in range(4)] and names[4:] == [f"initial_cov[{i},{i}]"
+                                                                                   for i in range(4)]
+    fit = dict(zip(res["tables"]["fit"]["columns"], res["tables"]["fit"]["rows"][0]))
+    assert res["metrics"]["KF-CV"]["loglik"] * 6 == pytest.approx(fit["loglik"], rel=1e-9)
+

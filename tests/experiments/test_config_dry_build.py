@@ -76,6 +76,14 @@ CASES = [
                                                                      "switching models estimates"),
     (["learn={parameters:[{model:'sensors[0]',name:R,shared:true}],method:em,estimators:[KF-CV]}"],
      "learn.parameters[0].shared=True: method em estimates whole tensors"),
+    # the start's entries (issue 45)
+    (["learn={parameters:[{model:modes,name:initial_mean}]}"], "learn.parameters[0].model=modes: initial_mean belongs "
+                                                               "to no model"),
+    (["learn={parameters:[{name:initial_cov,kind:free}]}"], "learn.parameters[0].kind=free: the start's covariance"),
+    (["learn={parameters:[{name:initial_mode_probs}],estimators:[KF-CV]}"], "learn.parameters[0]=initial_mode_probs: "
+                                                                            "KF-CV is not a mode filter"),
+    (["learn={parameters:[{name:initial_mean,fixed:[true,false]}]}"], "learn.parameters[0].fixed=[True, False]: "
+                                                                      "expected a boolean mask of shape (4,)"),
 ]
 
 

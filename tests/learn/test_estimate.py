@@ -325,3 +325,114 @@ def test_logistic_transition_equals_statsmodels_exog_tvtp():
         GPB2(KalmanFilter(LinearMotion(one, 0 * one), LinearMeasurement(one, one)), transition)
     with pytest.raises(ValueError, match="^controls: a LogisticTransition needs"):
         run_filter(imm, start, torch.as_tensor(y, dtype=f64).reshape(-1, 1))
+
+
+def _np_imm_loglik(models, H, R, Pi, x0, P0, mu0, zs):
+    """The IMM's log-likelihood of one series (tests/reference/mm_numpy.py's steps, float64 NumPy)."""
+    from tests.reference.mm_numpy import kf_step, merge
+
+    M = len(models)
+    xs, Ps, mu, total = [x0.copy()] * M, [P0.copy()] * M, mu0.copy(), 0.0
+    for z in zs:
+        cbar = Pi.T @ mu
+        mixed = [merge([Pi[i, j] * mu[i] / cbar[j] for i in range(M)], xs, Ps) for j in range(M)]
+        liks = np.zeros(M)
+        for j, (F, b, Q) in enumerate(models):
+            xs[j], Ps[j], liks[j] = kf_step(*mixed[j], F, b, Q, H, R, z)
+        total += math.log(np.sum(liks * cbar))
+        mu = liks * cbar / np.sum(liks * cbar)
+    return total
+
+
+def _cv_series(runs, steps, seed):
+    g = torch.Generator().manual_seed(seed)
+    x0 = torch.tensor([2.0, 1.0], dtype=torch.float64) + torch.randn(runs, 2, dtype=torch.float64, generator=g)
+    t = torch.arange(steps, dtype=torch.float64).reshape(-1, 1)
+    pos = x0[:, 0] + t * x0[:, 1] + 0.3 * torch.randn(steps, runs, dtype=torch.float64, generator=g).cumsum(0)
+    return (pos + torch.randn(steps, runs, dtype=torch.float64, generator=g)).unsqueeze(-1)
+
+
+def test_the_start_beliefs_mean_and_covariance_equal_a_numpy_fit():
+    """belief0.mean and belief0.cov (issue 45: the initial state): an expanded start is one mean and one
+    covariance for every series; the estimates equal scipy's optimum of a float64 NumPy Kalman filter's
+    likelihood (tests/reference/mm_numpy.py's step) and the returned start holds them."""
+    from scipy.optimize import minimize
+
+    from tests.reference.mm_numpy import kf_step
+
+    z = _cv_series(8, 30, seed=4)
+    cv = ConstantVelocity(1, dt=1.0, q=0.1, dtype=torch.float64)
+    kf = KalmanFilter(cv, PositionMeasurement(2, [0], 1.0, dtype=torch.float64))
+    start = GaussianBelief(torch.zeros(2, dtype=torch.float64), 4 * torch.eye(2, dtype=torch.float64)).expand(8)
+    est = estimate(kf, start, z, {"belief0.mean": "free", "belief0.cov": "variance"}, update_first=True,
+                   progress=False)
+    assert est.names == ["belief0.mean[0]", "belief0.mean[1]", "belief0.cov[0,0]", "belief0.cov[1,1]"]
+    F, Q = cv.F.numpy(), cv.Q.numpy()
+    H, R = np.array([[1.0, 0.0]]), np.eye(1)
+
+    def nll(p):
+        total = 0.0
+        for r in range(8):
+            x, P = p[:2], np.diag(np.exp(p[2:]))
+            for k in range(30):
+                if k:  # update_first: the start is the first measurement's prior
+                    x, P = F @ x, F @ P @ F.T + Q
+                x_post, P_post, lik = kf_step(x, P, np.eye(2), np.zeros(2), np.zeros((2, 2)), H, R, z[k, r].numpy())
+                x, P = x_post, P_post
+                total += math.log(lik)
+        return -total
+    ref = minimize(nll, np.array([0.0, 0.0, 0.0, 0.0]), method="BFGS", options={"gtol": 1e-9})
+    expected = np.concatenate([ref.x[:2], np.exp(ref.x[2:])])
+    np.testing.assert_allclose(est.estimates, expected, rtol=2e-4, atol=1e-5)
+    assert est.loglik == pytest.approx(-ref.fun, rel=1e-9, abs=1e-9)
+    assert all(math.isfinite(s) and s > 0 for s in est.se)
+    torch.testing.assert_close(est.belief0.mean, torch.tensor(expected[:2]).expand(8, 2), rtol=2e-4, atol=1e-5)
+    assert est.belief0.cov.shape == (8, 2, 2) and float(est.belief0.cov[3, 0, 1]) == 0.0
+    # a materialised mean is one mean a series
+    own = GaussianBelief(torch.zeros(8, 2, dtype=torch.float64), 4 * torch.eye(2, dtype=torch.float64).expand(8, 2, 2))
+    each = estimate(kf, own, z, {"belief0.mean": "free"}, update_first=True, progress=False, se=False)
+    assert len(each.names) == 16 and each.names[2] == "belief0.mean[1,0]"
+
+
+def test_the_start_mode_probabilities_and_mean_of_an_imm_equal_numpy():
+    """belief0.mode_probs and belief0.components.mean of an IMM's start: the likelihood at the estimates
+    equals a float64 NumPy IMM's there (each entry put where torchmm says it is), and no start NumPy's
+    optimiser finds is better."""
+    from scipy.optimize import minimize
+
+    z = _cv_series(1, 60, seed=5)[:, 0]
+    models = [ConstantVelocity(1, dt=1.0, q=q, dtype=torch.float64) for q in (0.01, 1.0)]
+    Pi = torch.tensor([[0.95, 0.05], [0.1, 0.9]], dtype=torch.float64)
+    imm = IMM(KalmanFilter(LinearMotion(torch.stack([m.F for m in models]), torch.stack([m.Q for m in models])),
+                           PositionMeasurement(2, [0], 1.0, dtype=torch.float64)), Pi)
+    prior = GaussianBelief(torch.zeros(2, dtype=torch.float64), 4 * torch.eye(2, dtype=torch.float64))
+    b0 = imm.initial_belief(prior, torch.tensor([0.5, 0.5], dtype=torch.float64))
+    est = estimate(imm, b0, z, {"belief0.mode_probs": "probabilities", "belief0.components.mean": "free"},
+                   progress=False, se=False)
+    assert est.names == ["belief0.mode_probs[0]", "belief0.mode_probs[1]", "belief0.components.mean[0]",
+                         "belief0.components.mean[1]"]
+    mu0, x0 = np.array(est.estimates[:2]), np.array(est.estimates[2:])
+    np_models = [(m.F.numpy(), np.zeros(2), m.Q.numpy()) for m in models]
+    H, R, P0 = np.array([[1.0, 0.0]]), np.eye(1), 4 * np.eye(2)
+    at = _np_imm_loglik(np_models, H, R, Pi.numpy(), x0, P0, mu0, z.numpy())
+    assert est.loglik == pytest.approx(at, rel=1e-10)
+    assert mu0.sum() == pytest.approx(1.0, abs=1e-12) and bool((est.belief0.mode_probs - torch.tensor(mu0)).abs().max()
+                                                               < 1e-12)
+
+    def nll(p):
+        mu = np.exp([p[0], 0.0]) / np.exp([p[0], 0.0]).sum()
+        return -_np_imm_loglik(np_models, H, R, Pi.numpy(), p[1:], P0, mu, z.numpy())
+    ref = minimize(nll, np.zeros(3), method="Nelder-Mead", options={"xatol": 1e-8, "fatol": 1e-10, "maxiter": 4000})
+    assert est.loglik >= -ref.fun - 1e-6
+
+
+@pytest.mark.parametrize("name, message", [
+    ("belief0.nope", r"'belief0.nope' is not a field of the start belief \(its fields: belief0.components.cov, "),
+    ("belief0.mode_log_probs", r"estimated as belief0.mode_probs"),
+])
+def test_start_field_errors_name_the_parameter(name, message):
+    imm, b0 = _regime_imm()
+    with pytest.raises(ValueError, match=message):
+        estimate(imm, b0, _two_mode_data(50), {name: "free"}, progress=False)
+    with pytest.raises(ValueError, match=r"belief0 is a function"):
+        estimate(imm, lambda f: b0, _two_mode_data(50), {"belief0.components.mean": "free"}, progress=False)

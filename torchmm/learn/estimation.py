@@ -1,7 +1,7 @@
 r"""Maximum-likelihood estimation of any tensor of a filter, with standard errors (issue 45).
 
 :func:`estimate` estimates named tensors of a filter - a bank's stacked ``H``, ``R``, ``F``, ``Q``, offsets,
-the transition matrix, the start belief's mean or mode probabilities (through a start function) -
+the transition matrix, the start belief's fields (``belief0.mean``, ``belief0.mode_probs``, ...) -
 by maximising the log-likelihood of the data, and reports each estimated entry with its standard
 error from the observed information:
 
@@ -33,6 +33,7 @@ error from the observed information:
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Callable, Mapping
@@ -231,7 +232,9 @@ class _Block:
             start = v.reshape(-1)[self.reported]
             self.u0 = self._inverse(start)
         if self.u0.numel() == 0:
-            raise ValueError(f"parameters[{name!r}]: every entry is fixed: nothing to estimate")
+            zeros = " (a probability's zeros stay zero: start from positive ones)" \
+                if self.kind in ("stochastic", "probabilities") else ""
+            raise ValueError(f"parameters[{name!r}]: every entry is fixed{zeros}: nothing to estimate")
 
     # -- the free entries' transforms (kind free and variance) -----------------------------------------
     def _inverse(self, x: Tensor) -> Tensor:
@@ -311,6 +314,8 @@ class Estimate:
         durations: ``[(name, 1 / (1 - p_ii), se)]`` for each ``"stochastic"`` tensor's diagonal.
         converged, iterations, evaluations, message, seconds: the optimiser's.
         note: why the errors are NaN, if they are.
+        belief0: the start belief with its estimated fields (``"belief0.<field>"`` parameters; the given
+            belief where none is estimated; None for a start function).
     """
 
     names: list[str]
@@ -330,6 +335,7 @@ class Estimate:
     method: str
     durations: list[tuple[str, float, float]] = field(default_factory=list)
     note: str = ""
+    belief0: Belief | None = None
 
     @property
     def z(self) -> list[float]:
@@ -356,8 +362,12 @@ class Estimate:
         return self.estimates[i], self.se[i]
 
 
-def _blocks(filter: nn.Module, parameters: Mapping[str, Any]) -> list[_Block]:
-    """The estimated tensors of ``parameters`` (``{name: Param or kind}``), checked against the filter."""
+START = "belief0."
+
+
+def _blocks(filter: nn.Module, parameters: Mapping[str, Any], start: _Start | None = None) -> list[_Block]:
+    """The estimated tensors of ``parameters`` (``{name: Param or kind}``), checked against the filter
+    (and, for names ``belief0.<field>``, against the start belief's fields ``start``)."""
     if not parameters:
         raise ValueError("parameters: empty (name the tensors to estimate)")
     blocks = []
@@ -370,6 +380,18 @@ def _blocks(filter: nn.Module, parameters: Mapping[str, Any]) -> list[_Block]:
             param = Param(param)
         elif not isinstance(param, Param):
             raise TypeError(f"parameters[{name!r}]: expected a Param or a kind, got {type(param).__name__}")
+        if name.startswith(START):
+            if start is None:
+                raise ValueError(f"parameters[{name!r}]: names a field of the start belief, but belief0 is a "
+                                 "function (estimate a start belief's fields by giving the belief itself)")
+            if name.endswith(".mode_log_probs"):
+                raise ValueError(f"parameters[{name!r}]: the mode probabilities are estimated as "
+                                 f"{name.removesuffix('.mode_log_probs')}.mode_probs (kind 'probabilities')")
+            if name.endswith(".mode_probs") and param.kind != "probabilities":
+                raise ValueError(f"parameters[{name!r}]: mode probabilities are estimated as 'probabilities', not "
+                                 f"{param.kind!r}")
+            blocks.append(_Block(name, _resolve(start, name.removeprefix(START), "belief0"), param))
+            continue
         try:
             owner = filter.get_submodule(name.rpartition(".")[0]) if "." in name else filter
         except AttributeError:
@@ -382,8 +404,10 @@ def _blocks(filter: nn.Module, parameters: Mapping[str, Any]) -> list[_Block]:
 
 
 @entry_point(filter=Of(nn.Module, what="a filter (an nn.Module)"),
-             parameters=Of(Mapping, what="a mapping {tensor name: Param or kind}"))
-def estimated_entries(filter: nn.Module, parameters: Mapping[str, Param | str]) -> list[str]:
+             parameters=Of(Mapping, what="a mapping {tensor name: Param or kind}"),
+             belief0=Of(Belief, optional=True))
+def estimated_entries(filter: nn.Module, parameters: Mapping[str, Param | str],
+                      belief0: Belief | None = None) -> list[str]:
     """The entries :func:`estimate` would report for ``parameters`` of ``filter`` (``"<label>[i,j]"``),
     every entry checked as :func:`estimate` checks it (an unknown tensor, a kind that does not fit it, a
     start outside its constraints, every entry fixed: ``ValueError`` naming ``parameters[...]``), without
@@ -396,30 +420,75 @@ def estimated_entries(filter: nn.Module, parameters: Mapping[str, Param | str]) 
         >>> estimated_entries(kf, {"motion.Q": "variance", "measurement.R": Param("variance", label="R")})
         ['motion.Q[0,0]', 'R[0,0]']
     """
-    return [n for b in _blocks(filter, parameters) for n in b.names()]
+    return [n for b in _blocks(filter, parameters, None if belief0 is None else _Start(belief0)) for n in b.names()]
 
 
 class _Call(nn.Module):
     """The objective as a module's forward, so that :func:`torch.func.functional_call` puts the
     estimated tensors in the filter's place for one evaluation."""
 
-    def __init__(self, filter: nn.Module, fn: Callable[[], Tensor]):
+    def __init__(self, filter: nn.Module, fn: Callable[[], Tensor], start: _Start | None = None):
         super().__init__()
         self.filter = filter
+        self.start = start
         self.fn = fn
 
     def forward(self) -> Tensor:
         return self.fn()
 
 
-def _resolve(filter: nn.Module, name: str) -> Tensor:
-    owner, _, attr = name.rpartition(".")
-    module = filter.get_submodule(owner) if owner else filter
-    value = getattr(module, attr, None)
+class _Start(nn.Module):
+    """A start belief's floating-point fields as buffers (``belief0.mean``, ``belief0.cov``,
+    ``belief0.components.mean``, ``belief0.mode_probs`` for the mode log-probabilities), so that
+    :func:`estimate` can estimate them by name. A field the belief broadcasts (an expanded view: stride 0
+    along an axis) is held once along that axis - one value estimated for every run or mode it is
+    broadcast to - and expanded again by :meth:`build`."""
+
+    def __init__(self, belief: Belief):
+        super().__init__()
+        self._template = belief
+        self._layout: dict[str, tuple[str, tuple[int, ...], torch.Size]] = {}
+        for f in dataclasses.fields(belief):
+            value = getattr(belief, f.name)
+            if isinstance(value, Belief):
+                self.add_module(f.name, _Start(value))
+            elif isinstance(value, Tensor) and value.is_floating_point():
+                keep = tuple(1 if st == 0 and n > 1 else n for n, st in zip(value.shape, value.stride()))
+                compact = value[tuple(slice(0, 1) if k == 1 and n > 1 else slice(None)
+                                      for k, n in zip(keep, value.shape))]
+                squeezed = compact.reshape([n for n, k, full in zip(compact.shape, keep, value.shape)
+                                            if not (k == 1 and full > 1)])
+                name = "mode_probs" if f.name == "mode_log_probs" else f.name
+                self.register_buffer(name, (squeezed.exp() if name != f.name else squeezed).detach().clone())
+                self._layout[name] = (f.name, keep, value.shape)
+
+    def build(self) -> Belief:
+        """The belief with the buffers' current values (expanded where it broadcasts them)."""
+        values = {}
+        for f in dataclasses.fields(self._template):
+            value = getattr(self._template, f.name)
+            if isinstance(value, Belief):
+                values[f.name] = getattr(self, f.name).build()
+                continue
+            values[f.name] = value
+            for name, (field_name, keep, full) in self._layout.items():
+                if field_name == f.name:
+                    t = getattr(self, name).reshape(keep).expand(full)
+                    values[f.name] = t.log() if name != field_name else t
+        return type(self._template)(**values)
+
+
+def _resolve(filter: nn.Module, name: str, what: str = "filter") -> Tensor:
     named = dict(filter.named_buffers(remove_duplicate=False)) | dict(filter.named_parameters(remove_duplicate=False))
-    if name not in named or not isinstance(value, Tensor):
+    if name not in named:
+        if what == "belief0":
+            tensors = [START + n for n in sorted(named)]
+            raise ValueError(f"parameters: {START + name!r} is not a field of the start belief (its fields: "
+                             f"{', '.join(tensors)})")
         tensors = sorted(named)
         raise ValueError(f"parameters: {name!r} is not a tensor of the filter (its tensors: {', '.join(tensors)})")
+    owner, _, attr = name.rpartition(".")
+    value = getattr(filter.get_submodule(owner) if owner else filter, attr)
     if not value.is_floating_point():
         raise TypeError(f"parameters[{name!r}]: not a floating-point tensor ({value.dtype})")
     return value
@@ -475,7 +544,11 @@ def estimate(filter: Filter, belief0: Belief | Callable[[Filter], Belief], measu
             log-likelihoods add up).
         parameters: ``{name: Param or kind}``: the tensors of ``filter`` to estimate, by their names in
             ``filter.named_buffers()`` / ``named_parameters()`` (``"transition.value"``,
-            ``"bank.filter.measurement.H"``, ...; a wrong name lists them).
+            ``"bank.filter.measurement.H"``, ...; a wrong name lists them), and the start belief's fields
+            as ``"belief0.<field>"`` where ``belief0`` is a belief (``"belief0.mean"``, ``"belief0.cov"``;
+            a mode belief's ``"belief0.mode_probs"`` (kind ``"probabilities"``) and
+            ``"belief0.components.mean"``): a field the belief broadcasts (an ``expand``-ed view) is one
+            value for every run or mode it is broadcast to, a materialised one a value each.
         controls: ``(T, *B, k)`` inputs ``u_k`` of the motion models (e.g. regressors).
         update_first: ``belief0`` is the prior of the first measurement.
         burn: the first steps' log-likelihood terms left out.
@@ -493,7 +566,7 @@ def estimate(filter: Filter, belief0: Belief | Callable[[Filter], Belief], measu
         progress: a bar over the evaluations (None: on a terminal only).
 
     Returns:
-        an :class:`Estimate`.
+        an :class:`Estimate` (``Estimate.belief0``: the start belief with its estimated fields).
 
     Raises:
         ValueError / TypeError naming ``parameters`` (an unknown name, a kind that does not fit the
@@ -515,15 +588,20 @@ def estimate(filter: Filter, belief0: Belief | Callable[[Filter], Belief], measu
     import torchmm.kernels as kernels
     from torchmm.learn.objective import Objective
 
-    blocks = _blocks(filter, parameters)
+    held = _Start(belief0) if isinstance(belief0, Belief) else None
+    blocks = _blocks(filter, parameters, held)
+    given = belief0 if isinstance(belief0, Belief) else None
+    if held is not None and any(b.name.startswith(START) for b in blocks):
+        belief0 = lambda f: held.build()  # noqa: E731 (the start's estimated fields in place at each evaluation)
     sizes = [b.u0.numel() for b in blocks]
     theta0 = torch.cat([b.u0 for b in blocks]).to(torch.float64)
     objective = Objective(filter, belief0, measurements, reduction="sum", update_first=update_first,
                           controls=controls, burn=burn)
-    call = _Call(filter, objective)
+    call = _Call(filter, objective, held)
 
     def substitutes(theta: Tensor) -> dict[str, Tensor]:
-        return {f"filter.{b.name}": b.build(u) for b, u in zip(blocks, theta.split(sizes))}
+        return {"start." + b.name.removeprefix(START) if b.name.startswith(START) else f"filter.{b.name}": b.build(u)
+                for b, u in zip(blocks, theta.split(sizes))}
 
     def loss_at(theta: Tensor) -> Tensor:
         # tie_weights=False: a tensor object that the model holds under two names (LinearMotion(I, I): F
@@ -567,7 +645,7 @@ def estimate(filter: Filter, belief0: Belief | Callable[[Filter], Belief], measu
         if hessian == "autograd":
             with kernels.switched_off(*kernels.names()):  # the eager steps: a second derivative through them
                 eager = _Call(filter, Objective(filter, belief0, measurements, reduction="sum",
-                                                update_first=update_first, controls=controls, burn=burn))
+                                                update_first=update_first, controls=controls, burn=burn), held)
                 H = torch.autograd.functional.hessian(
                     lambda t: torch.func.functional_call(eager, substitutes(t), (), tie_weights=False), theta)
         else:  # central differences of the exact gradient (2 k evaluations, the kernels where they apply)
@@ -611,13 +689,16 @@ def estimate(filter: Filter, belief0: Belief | Callable[[Filter], Belief], measu
         for i in range(d.numel()):
             where = f"[{i // M},{i % M}]" if rows > 1 else f"[{i}]"
             durations.append((f"duration of {b.label}{where}", float(d[i]), float(d_se[i])))
-    if write:
-        with torch.no_grad():
-            for b, u in zip(blocks, theta.split(sizes)):
+    with torch.no_grad():
+        for b, u in zip(blocks, theta.split(sizes)):
+            if b.name.startswith(START):
+                _write(held, b.name.removeprefix(START), b.build(u))
+            elif write:
                 _write(filter, b.name, b.build(u))
+        start_belief = held.build() if held is not None and given is not belief0 else given
     batch_dims = measurements.dim() - 2
     return Estimate(names=names, estimates=natural.tolist(), se=errors.tolist(), cov=cov, theta=theta,
                     theta_cov=theta_cov, loglik=loglik, k=len(theta), nobs=_nobs(measurements, burn, batch_dims),
                     converged=bool(result.success), iterations=int(getattr(result, "nit", 0)),
                     evaluations=evaluations[0], message=str(result.message), seconds=time.perf_counter() - tic,
-                    method=method, durations=durations, note=note)
+                    method=method, durations=durations, note=note, belief0=start_belief)
