@@ -11,8 +11,10 @@ likelihood against statsmodels.
   the Fed funds rate against :func:`torchmm.learn.estimate` of the same model from statsmodels' start
   values, standard errors included in both (``fit()`` then ``bse``); each one's log-likelihood printed
   (they reach different maxima: docs/studies.md).
+* ``fedfunds_exog``: the same with regressors (statsmodels' ``TestFedFundsConstL1Exog``: the lag, the output
+  gap and inflation, switching coefficients, one variance), the regressors the motion's controls.
 
-The last line: ``em_robot_speedup=... em_batch_speedup=... fedfunds_speedup=...`` (reference time / torchmm
+The last line: ``em_robot_speedup=... em_batch_speedup=... fedfunds_speedup=... fedfunds_exog_speedup=...`` (reference time / torchmm
 time; above 1 torchmm is faster).
 
     .venv/bin/python benchmarks/estimation.py
@@ -161,6 +163,63 @@ def fedfunds(repeats: int) -> float:
     return ref / mine
 
 
+def fedfunds_exog(repeats: int) -> float:
+    """statsmodels' ``TestFedFundsConstL1Exog`` model (Fed funds on its lag, the output gap and inflation,
+    switching coefficients, one variance): ``fit()`` with ``bse`` against :func:`torchmm.learn.estimate`
+    from its start values - the regressors the motion's controls, through the Numba kernel."""
+    import ast
+    import importlib.util
+    from pathlib import Path
+
+    import statsmodels.api as sm
+
+    from torchmm import IMM, GaussianBelief, KalmanFilter
+    from torchmm.learn import Param, estimate, stationary
+    from torchmm.models import LinearMeasurement, LinearMotion
+
+    spec = importlib.util.find_spec("statsmodels.tsa.regime_switching.tests.test_markov_regression")
+    found = {}
+    for node in ast.parse(Path(spec.origin).read_text()).body:  # (its data, not its pytest module)
+        if isinstance(node, ast.Assign) and len(node.targets) == 1 and getattr(node.targets[0], "id", "") in (
+                "fedfunds", "ogap", "inf"):
+            found[node.targets[0].id] = np.array([float("nan") if isinstance(e, ast.Attribute) else
+                                                  ast.literal_eval(e) for e in node.value.elts])  # (np.nan)
+    ff, ogap, inf = found["fedfunds"], found["ogap"], found["inf"]
+    y, X = ff[4:], np.c_[ff[3:-1], ogap[4:], inf[4:]]
+    model = sm.tsa.MarkovRegression(y, k_regimes=2, exog=X)
+    p = model.start_params  # p00, p10, const0, const1, (lag, ogap, inf) x (regime 0, 1), sigma2
+    t = lambda a: torch.as_tensor(np.asarray(a, dtype=float), dtype=torch.float64)  # noqa: E731
+    z, u = t(y).reshape(-1, 1), t(X)
+    out = {}
+
+    def ours():
+        F = torch.diag(t([1.0, 0.0, 0.0, 0.0]))  # the state (1, x_t): a constant and the inputs
+        G = torch.cat([torch.zeros(1, 3, dtype=torch.float64), torch.eye(3, dtype=torch.float64)])
+        motion = LinearMotion(F.expand(2, 4, 4), torch.zeros(2, 4, 4, dtype=torch.float64), input_matrix=G.expand(2, 4, 3))
+        H = t([[[p[2], p[4], p[6], p[8]]], [[p[3], p[5], p[7], p[9]]]])
+        sensor = LinearMeasurement(H, t([p[10], p[10]]).reshape(2, 1, 1))
+        imm = IMM(KalmanFilter(motion, sensor), t([[p[0], 1 - p[0]], [p[1], 1 - p[1]]]))
+        start = GaussianBelief(t([1.0, 0.0, 0.0, 0.0]), torch.zeros(4, 4, dtype=torch.float64))
+        shared = torch.full((2, 1, 1), 0, dtype=torch.long)
+        out["ours"] = estimate(imm, lambda f: f.initial_belief(start, stationary(f.transition.matrix())), z,
+                               {"transition.value": "stochastic",
+                                "bank.filter.measurement.H": "free",
+                                "bank.filter.measurement.R": Param("variance", groups=shared)},
+                               controls=u.reshape(-1, 3), progress=False)
+
+    def theirs():
+        res = model.fit(disp=False)
+        _ = res.bse
+        out["theirs"] = res
+
+    ours()  # (Numba's first load in this process: not timed)
+    mine, ref = best(ours, repeats), best(theirs, repeats)
+    print(f"fedfunds_exog: fit with standard errors, torchmm {mine * 1e3:.0f} ms (llf {out['ours'].loglik:.4f}, "
+          f"kernel {estimate.objective.kernel}), statsmodels {ref * 1e3:.0f} ms (llf {out['theirs'].llf:.4f}) "
+          f"({ref / mine:.2f}x)")
+    return ref / mine
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=3)
@@ -175,7 +234,8 @@ def main() -> None:
     a = em_robot(args.repeats)
     b = em_batch(args.series, args.steps, args.pykalman_series, args.iterations, args.threads)
     c = fedfunds(args.repeats)
-    print(f"em_robot_speedup={a:.2f} em_batch_speedup={b:.1f} fedfunds_speedup={c:.2f}")
+    d = fedfunds_exog(args.repeats)
+    print(f"em_robot_speedup={a:.2f} em_batch_speedup={b:.1f} fedfunds_speedup={c:.2f} fedfunds_exog_speedup={d:.2f}")
 
 
 if __name__ == "__main__":

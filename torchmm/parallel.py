@@ -204,9 +204,17 @@ def filter_smooth(kf: KalmanFilter, belief0: GaussianBelief, z: Tensor, *, updat
         cov = torch.cat([belief0.cov.expand(cov.shape[1:]).unsqueeze(0), cov[1:]])
     prior = GaussianBelief(mean, cov)
     ll = kf.update(prior, z).log_likelihood
+    return filtered, prior, smooth_scan(kf, filtered, prior), ll
+
+
+def smooth_scan(kf: KalmanFilter, filtered: GaussianBelief, prior: GaussianBelief) -> GaussianBelief:
+    """The RTS smoother of a Kalman filter's run by the backward scan, from its filtered beliefs and the
+    priors of every step (each step's prediction, ``prior[t]`` predicting ``t`` from ``filtered[t - 1]``),
+    batch ``(T, *B)``: EM's E-step after a filter run by either the scans or the Numba kernel."""
+    b, C, mean, cov = filtered.mean, filtered.cov, prior.mean, prior.cov
     F = kf.motion.jacobian(torch.zeros(kf.state_dim, dtype=b.dtype, device=b.device))
-    if z.shape[0] == 1:
-        return filtered, prior, filtered, ll
+    if b.shape[0] == 1:
+        return filtered
     E = torch.linalg.solve(cov[1:], (C[:-1] @ F.mT).mT).mT  # P_k F^T (P^-_{k+1})^{-1}
     g = b[:-1] - (E @ mean[1:].unsqueeze(-1)).squeeze(-1)
     L = symmetrize(C[:-1] - E @ cov[1:] @ E.mT)
@@ -214,7 +222,7 @@ def filter_smooth(kf: KalmanFilter, belief0: GaussianBelief, z: Tensor, *, updat
     g = torch.cat([g, b[-1:]])
     L = torch.cat([L, C[-1:]])
     _, gs, Ls = _scan(_smoother_op, (E.flip(0), g.flip(0), L.flip(0)))
-    return filtered, prior, GaussianBelief(gs.flip(0), Ls.flip(0)), ll
+    return GaussianBelief(gs.flip(0), Ls.flip(0))
 
 
 # declared: _check refuses other filters and beliefs ("kf: the parallel filter needs a KalmanFilter")

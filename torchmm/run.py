@@ -156,7 +156,8 @@ def run_filter(
             the variable-structure IMM and IMM-TF for larger ones, and of IMM and GPB1 over extended
             and unscented banks; docs/performance.md has the table), which returns what the steps
             return, to rounding. None (default): where a kernel applies to a run without
-            ``controls``, ``motions`` or ``sensors`` and pays (the Numba kernel: runs of at least
+            ``motions`` or ``sensors`` and pays (``controls`` only the Numba kernel takes, through
+            ``LinearMotion``'s ``input_matrix``; the Numba kernel: runs of at least
             ``torchmm.kernels.linear.LONG_RUN`` steps x runs; the extended and unscented banks': at
             least 300 runs x modes; IMM-TF's for 7 to 10 state components: 900; the choice depends
             on the call only); True: always (a ``ValueError`` naming
@@ -238,15 +239,16 @@ def run_filter(
         raise TypeError(f"progress: expected True, False or the progress bar's description, got {progress!r}")
     fields = None
     if fast_path is not False:  # the one seam for speed (torchmm.kernels): no filter class is named here
-        why, run = "controls or per-step models", None
-        if controls is None and motions is None and sensors is None:
+        why, run = "per-step models", None
+        if motions is None and sensors is None:
             request = kernels.Request(
                 update_first=update_first, forced=fast_path is True, compile=bool(compile),
                 compile_required=explicit, progress=progress,
                 keep=(frozenset({"belief", "log_likelihood"}) if estimate_only
                       else record.fields if isinstance(record, Keep) else None),
                 estimate=estimate_only, detach_belief=isinstance(record, Keep) and record.detach,
-                record=None if estimate_only or isinstance(record, Keep) else record, generator=generator)
+                record=None if estimate_only or isinstance(record, Keep) else record, generator=generator,
+                controls=controls)
             run, why = kernels.plan(filter, belief0, measurements, request)
             fields = None if run is None else run()
         if run is None:  # (a plan that declines at run time - a regularised update - leaves it to the steps)

@@ -276,7 +276,8 @@ def check_build(cfg, scenario) -> None:
             params, _ = learning.parameters_of(est, own, block)
             for tensor, param in params.items():
                 try:
-                    estimated_entries(est.filter, {tensor: param}, est.init(own.initial, None))
+                    estimated_entries(est.filter, {tensor: param},
+                                      est.init(own.initial, None) if tensor.startswith("belief0.") else None)
                 except (TypeError, ValueError) as err:
                     raise ConfigError("learn.parameters", param.label, str(err).split(": ", 1)[-1]) from None
             continue

@@ -488,18 +488,67 @@ def test_more_runs_than_max_runs_declines(calls):
     assert calls["used"] == 1
 
 
-def test_controls_decline(calls):
-    p, z = params("kf", 3, 2, B=(4,), seed=63)
-    G = torch.randn(3, 1, generator=torch.Generator().manual_seed(0))
+def _with_inputs(kind: str, p: dict, k: int = 2, seed: int = 0, grad: bool = False):
+    """The filter of ``make(kind, p)`` with an input matrix ``G`` (one per mode for a bank) and ``G``."""
+    g = torch.Generator().manual_seed(seed)
+    n = p["F"].shape[-1]
+    G = torch.randn(*p["F"].shape[:-2], n, k, generator=g, dtype=p["F"].dtype).requires_grad_(grad)
     kf = KalmanFilter(LinearMotion(p["F"], p["Q"], offset=p["b"], input_matrix=G), LinearMeasurement(p["H"], p["R"]))
-    b0 = GaussianBelief(p["x0"], p["P0"])
-    u = torch.randn(10, 4, 1, generator=torch.Generator().manual_seed(1))
-    _assert_declines(calls, kf, b0, z, controls=u)
-    with pytest.raises(ValueError, match="fast_path"):
+    belief0 = GaussianBelief(p["x0"], p["P0"])
+    if kind == "kf":
+        return kf, belief0, G
+    f = {"imm": lambda: IMM(kf, p["Pi"]), "gpb1": lambda: GPB1(kf, p["Pi"]),
+         "static": lambda: StaticMM(kf, p["mp"].shape[-1])}[kind]()
+    return f, f.initial_belief(belief0, p["mp"]), G
+
+
+@pytest.mark.parametrize("update_first", [False, True])
+@pytest.mark.parametrize("kind", KINDS)
+def test_controls_equal_eager(kind, update_first, calls):
+    """Controls through the motion's input matrix (``F x + b + G u_t``; issue 45: regressors): the kernel
+    takes them and equals the eager steps, per-run controls and controls shared by every run."""
+    p, z = params(kind, 3, 2, 3, B=(4,), seed=63 + KINDS.index(kind))
+    f, b0, _ = _with_inputs(kind, p)
+    g = torch.Generator().manual_seed(1)
+    for u in (torch.randn(10, 4, 2, generator=g, dtype=torch.float64),
+              torch.randn(10, 1, 2, generator=g, dtype=torch.float64)):
+        with torch.no_grad():
+            fast = run_filter(f, b0, z, controls=u, update_first=update_first, fast_path=True)
+            eager = run_filter(f, b0, z, controls=u, update_first=update_first, fast_path=False)
+        assert_same(fast, eager)
+    assert calls["used"] == 2
+    # the input matrix without controls: no input term, as in the eager steps
+    with torch.no_grad():
+        assert_same(run_filter(f, b0, z, fast_path=True), run_filter(f, b0, z, fast_path=False))
+
+
+@pytest.mark.parametrize("kind", ["kf", "imm"])
+def test_controls_gradients_equal_eager(kind, calls):
+    """The likelihood's gradient in the input matrix, the controls and the other models through the
+    kernel's reverse pass equals autograd's through the eager steps."""
+    p, z = params(kind, 3, 2, 2, B=(3,), seed=70, grad=True)
+    f, b0, G = _with_inputs(kind, p, grad=True)
+    u = torch.randn(10, 3, 2, generator=torch.Generator().manual_seed(2), dtype=torch.float64, requires_grad=True)
+    wrt = [G, u, p["F"], p["b"], p["Q"], p["R"]]
+    fast = run_filter(f, b0, z, controls=u, fast_path=True, record=Keep("log_likelihood")).log_likelihood.sum()
+    assert calls["used"] == 1
+    eager = run_filter(f, b0, z, controls=u, fast_path=False).log_likelihood.sum()
+    assert_close(fast, eager, **TIGHT)
+    for i, (a, b) in enumerate(zip(torch.autograd.grad(fast, wrt), torch.autograd.grad(eager, wrt))):
+        # (Q and R: the kernel's adjoints are the symmetric part of autograd's, module docstring)
+        assert_close(a, sym(b) if i >= 4 else b, **TIGHT)
+
+
+def test_controls_without_an_input_matrix_decline(calls):
+    """Controls for a motion without an input matrix: the kernel declines, and the eager steps name
+    ``u`` (as they do without kernels)."""
+    p, z = params("kf", 3, 2, B=(4,), seed=63)
+    kf, b0 = make("kf", p)
+    u = torch.randn(10, 4, 1, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    with pytest.raises(ValueError, match="fast_path: no fast path .*controls, but the motion has no input matrix"):
         run_filter(kf, b0, z, controls=u, fast_path=True)
-    # the same filter without controls: the input matrix alone keeps it off the kernel
-    with pytest.raises(ValueError, match="fast_path"):
-        run_filter(kf, b0, z, fast_path=True)
+    with pytest.raises(ValueError, match="^u: this LinearMotion has no input_matrix"):
+        run_filter(kf, b0, z, controls=u)
     assert calls["tried"] == 0
 
 

@@ -345,7 +345,7 @@ def test_taken_only_where_it_applies(batch_last_steps):
     assert len(batch_last_steps) == 4
     with pytest.raises(ValueError, match="fast_path: no fast path .*batch_last: update_first"):
         run_filter(imm, belief0, z, fast_path=True, update_first=True)
-    with pytest.raises(ValueError, match="fast_path: no fast path .*controls or per-step models"):
+    with pytest.raises(ValueError, match="fast_path: no fast path .*per-step models"):
         run_filter(imm, belief0, z, fast_path=True, motions=[kf.motion] * 4)
     with pytest.raises(ValueError, match="measurements' dtype"):
         run_filter(imm, belief0, z.float(), fast_path=True)

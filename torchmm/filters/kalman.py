@@ -184,17 +184,17 @@ class KalmanFilter(ExtendedKalmanFilter):
     def linear_gaussian(self):
         """This filter's matrices for the linear-Gaussian kernel (:mod:`torchmm.kernels.linear`), or the
         reason it has none (a model that overrides its own ``forward``, ``noise_cov`` or ``jacobian``,
-        a control input, the Joseph form)."""
+        the Joseph form); a motion's input matrix is its ``G`` (the kernels that take controls use it)."""
         if not kernels.joined(self, "linear_gaussian"):
             return f"{type(self).__name__} overrides the Kalman filter's steps"
         if self.joseph:
             return "the Joseph form"
         motion, sensor = self.motion, self.measurement
-        if not (isinstance(motion, LinearMotion) and plain_linear(motion)) or motion.input_matrix is not None:
-            return "the motion is not a LinearMotion (its own forward and noise) without a control input"
+        if not (isinstance(motion, LinearMotion) and plain_linear(motion)):
+            return "the motion is not a LinearMotion (its own forward and noise)"
         if not (isinstance(sensor, LinearMeasurement) and plain_linear(sensor)):
             return "the measurement is not a LinearMeasurement (its own forward and noise)"
-        return LinearGaussian(motion.F, motion.offset, motion.Q, sensor.H, sensor.R)
+        return LinearGaussian(motion.F, motion.offset, motion.Q, sensor.H, sensor.R, G=motion.input_matrix)
 
     @classmethod
     def stack(cls, filters: Sequence[KalmanFilter]) -> KalmanFilter:

@@ -70,14 +70,19 @@ def joined(filter: Any, family: str) -> bool:
     return False
 
 
-def describe(filter: Any, family: str) -> Any:
+def describe(filter: Any, family: str, *, inputs: bool = False) -> Any:
     """``filter``'s description of itself for the kernel ``family`` (its method of that name, e.g.
     ``filter.linear_gaussian()``), or the reason there is none: the filter has no such method, has not
-    joined the family, or overrides the steps of the class that joined."""
+    joined the family, or overrides the steps of the class that joined. A description with an input
+    matrix (``G``: a motion with controls) is given only to a kernel that takes controls
+    (``inputs=True``)."""
     method = getattr(filter, family, None)
     if method is None or not joined(filter, family):
         return f"{type(filter).__name__} has not joined the {family} kernels (or overrides their steps)"
-    return method()
+    model = method()
+    if not inputs and getattr(model, "G", None) is not None:
+        return "the motion has a control input (input_matrix): this kernel takes none"
+    return model
 
 
 @dataclass(frozen=True)
@@ -98,6 +103,8 @@ class Request:
             what is kept); a whole-run kernel that cannot apply it declines.
         generator: the run's random-number generator (``run_filter(generator=)``), for a filter's
             own per-step work that draws (a variable-structure policy's ``post_update``).
+        controls: the run's inputs ``(T, *B, k)`` (``run_filter(controls=)``), or None; only kernels
+            with ``takes_controls = True`` are asked (the others decline).
         repeated: the run is one of many evaluations of a likelihood (an optimiser's:
             :class:`~torchmm.learn.Objective`): the plan is a *prepared* evaluation,
             ``prepared(belief0, update_first) -> log_likelihood (T, *B)`` or None (the steps must run),
@@ -115,6 +122,7 @@ class Request:
     progress: bool | str = False
     record: Callable | None = None
     generator: torch.Generator | None = None
+    controls: torch.Tensor | None = None
 
 
 _OFF: set = set()
@@ -241,6 +249,9 @@ def plan(filter: Any, belief0: Any, measurements: Any, request: Request) -> tupl
     for kernel in _KERNELS:
         if kernel.name in _OFF:
             reasons.append(f"{kernel.name}: switched off (torchmm.kernels.set_enabled)")
+            continue
+        if request.controls is not None and not getattr(kernel, "takes_controls", False):
+            reasons.append(f"{kernel.name}: controls (the eager steps take them)")
             continue
         out = kernel.plan(filter, belief0, measurements, request)
         if not isinstance(out, str):

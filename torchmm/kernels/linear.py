@@ -20,7 +20,8 @@ parametrisation sees).
 to set): the filter joined the ``"linear_gaussian"`` family (:class:`~torchmm.KalmanFilter`,
 :class:`~torchmm.IMM`, :class:`~torchmm.GPB1`, :class:`~torchmm.StaticMM` over Kalman modes) and
 describes itself through ``linear_gaussian()``; CPU tensors of one floating dtype; measurements one
-tensor ``(T, *B, m)``; no controls or per-step models; a small problem (at most :data:`MAX_RUNS` runs:
+tensor ``(T, *B, m)``; no per-step models (controls are taken: a ``LinearMotion``'s input matrix ``G``,
+``F x + b + G u_t``, the terms ``G u_t`` computed by torch, so that their gradients are autograd's); a small problem (at most :data:`MAX_RUNS` runs:
 the loop is serial, and beyond that the batched tensor kernels win); Numba importable; and a run of at
 least :data:`LONG_RUN` steps x runs, a repeated evaluation (:class:`~torchmm.learn.Objective`) or
 ``fast_path=True``. The choice depends on the call only, never on what the process ran before.
@@ -66,7 +67,10 @@ class LinearGaussian(NamedTuple):
         batch-last kernel only, :mod:`torchmm.multimodel.batch_last_pairs`); post_update: None, or the
         filter's own work after each step's update, ``post_update(out, generator) -> StepOutput`` on the
         step's output (batch-first; the run continues from its belief's mode probabilities): a
-        variable-structure IMM's model-set policy (the batch-last kernel only).
+        variable-structure IMM's model-set policy (the batch-last kernel only); G ``(*P, n, k)``: the
+        motion's input matrix (``F x + b + G u_t`` with the run's controls ``u_t``), None without one
+        (only the kernels that take controls are given a description with one:
+        :func:`torchmm.kernels.describe`).
     """
 
     F: Tensor
@@ -77,6 +81,7 @@ class LinearGaussian(NamedTuple):
     transition: Tensor | None = None
     rule: str = "kalman"
     post_update: Any = None
+    G: Tensor | None = None
 
 
 def load():
@@ -119,8 +124,9 @@ class _Run(torch.autograd.Function):
     ``P`` (differentiable) and, with ``full``, the
     intermediates ``xp, Pp, logc, xm, Pm, innov, S, mode_ll, flags`` (not differentiable).
 
-    ``layout``: for each of the nine inputs ``F, b, Q, H, R, Pi, logmu0, x0, P0``, the shape it is
-    broadcast to and the kernel's shape of that (``(M, n, n)``, ..., ``(B, M, n, n)``). ``status``: a
+    ``layout``: for each of the ten inputs ``F, b, Q, H, R, Pi, logmu0, x0, P0, bu``, the shape it is
+    broadcast to and the kernel's shape of that (``(M, n, n)``, ..., ``(B, M, n, n)``; ``bu``: the
+    input terms ``G u_t``, ``(T, runs, M, n)``, or ``(1, 1, M, n)`` zeros without controls). ``status``: a
     one-element list that receives the count of failed or regularised updates. The buffers are
     NumPy arrays (cheaper to make than tensors); the outputs are tensors over them."""
 
@@ -182,16 +188,29 @@ class _Run(torch.autograd.Function):
         return (None, None, None, None, None, None, *out)
 
 
-def _layout(M: int, n: int, m: int, batch: tuple, kalman: bool) -> tuple:
-    """``_Run``'s layout (see there) of a run of ``M`` modes over the batch ``batch``."""
+def _layout(M: int, n: int, m: int, batch: tuple, kalman: bool, steps: int | None = None) -> tuple:
+    """``_Run``'s layout (see there) of a run of ``M`` modes over the batch ``batch`` (``steps``: with
+    controls, the run's steps)."""
     runs = math.prod(batch)
+    inputs = ((((steps, runs, M, n),) * 2),) if steps is not None else ((((1, 1, M, n),) * 2),)
     models = (((M, n, n),) * 2, ((M, n),) * 2, ((M, n, n),) * 2, ((M, m, n),) * 2, ((M, m, m),) * 2,
               ((M, M),) * 2)
     if kalman:
         start = (((runs, 1), (runs, 1)), ((*batch, n), (runs, 1, n)), ((*batch, n, n), (runs, 1, n, n)))
     else:
         start = (((*batch, M), (runs, M)), ((*batch, M, n), (runs, M, n)), ((*batch, M, n, n), (runs, M, n, n)))
-    return (*models, *start)
+    return (*models, *start, *inputs)
+
+
+def _input_terms(model: LinearGaussian, controls: Tensor | None, M: int, n: int, batch: tuple) -> Tensor:
+    """``bu``: each step's, run's and mode's input term ``G_j u_t`` ``(T, runs, M, n)`` (differentiable in
+    ``G`` and the controls, by torch), or zeros ``(1, 1, M, n)`` without controls."""
+    if controls is None or model.G is None:
+        return model.F.new_zeros(1, 1, M, n)
+    G = model.G.expand(M, n, model.G.shape[-1]) if model.G.dim() == 3 else model.G.expand(M, *model.G.shape)
+    T, k = controls.shape[0], controls.shape[-1]
+    u = controls.expand(T, *batch, k).reshape(T, math.prod(batch), k)
+    return torch.einsum("jnk,trk->trjn", G, u)
 
 
 def _broadcasts(shape: tuple, wide: tuple) -> bool:
@@ -226,18 +245,20 @@ class Prepared:
 
     name = "linear_gaussian"
 
-    def __init__(self, filter: Any, belief0: Any, z: Tensor, batch: tuple, M: int, n: int, m: int, rule: str):
-        self.filter, self.z, self.batch = filter, z, batch
+    def __init__(self, filter: Any, belief0: Any, z: Tensor, batch: tuple, M: int, n: int, m: int, rule: str,
+                 controls: Tensor | None = None):
+        self.filter, self.z, self.batch, self.controls = filter, z, batch, controls
+        self.M, self.n = M, n
         self.rule = _RULES[rule]
         self.kalman = rule == "kalman"
         self.runs = math.prod(batch)
-        self.layout = _layout(M, n, m, tuple(batch), self.kalman)
+        self.layout = _layout(M, n, m, tuple(batch), self.kalman, None if controls is None else z.shape[0])
         self.zeros = z.new_zeros(self.runs, 1)
         self.shape = (belief0.mean.shape, belief0.cov.shape) if self.kalman else (
             belief0.mode_log_probs.shape, belief0.components.mean.shape, belief0.components.cov.shape)
 
     def __call__(self, belief0: Any, update_first: bool = False, total: bool = False) -> Tensor | None:
-        model = self.filter.linear_gaussian()
+        model = kernels.describe(self.filter, self.name, inputs=True)
         if isinstance(model, str):
             raise RuntimeError(f"filter: no longer linear-Gaussian since the objective was built ({model})")
         if self.kalman:
@@ -251,7 +272,9 @@ class Prepared:
                 raise ValueError("belief0: shapes differ from the objective's")
             start = (belief0.mode_log_probs, comps.mean, comps.cov)
         status = [0]
-        outs = _Run.apply(self.z, self.rule, bool(update_first), False, self.layout, status, *_models(model), *start)
+        bu = _input_terms(model, self.controls, self.M, self.n, self.batch)
+        outs = _Run.apply(self.z, self.rule, bool(update_first), False, self.layout, status, *_models(model), *start,
+                          bu)
         if status[0]:
             return None
         return outs[0] if total else outs[0].reshape(self.z.shape[0], *self.batch)
@@ -262,6 +285,7 @@ class LinearKernel:
 
     name = "linear_gaussian"
     by_size = True  # taken by the number of runs (kernels.by_size)
+    takes_controls = True  # the motion's input terms G u_t (LinearMotion's input_matrix)
 
     def plan(self, filter: Any, belief0: Any, measurements: Any, request: kernels.Request):
         if not isinstance(measurements, Tensor) or not measurements.is_floating_point():
@@ -270,9 +294,12 @@ class LinearKernel:
             return "a record function (the kernel keeps fields: record=Keep(...) or 'estimate')"
         if request.compile_required:
             return "compile=True (the kernel is compiled by Numba, not torch.compile)"
-        model = kernels.describe(filter, self.name)
+        model = kernels.describe(filter, self.name, inputs=True)
         if isinstance(model, str):
             return model
+        controls = request.controls
+        if controls is not None and model.G is None:
+            return "controls, but the motion has no input matrix (the eager steps say so)"
         if model.rule not in _RULES:
             return f"the {model.rule!r} rule (GPB2's pairs: the batch-last kernel)"
         if model.post_update is not None:
@@ -293,12 +320,20 @@ class LinearKernel:
             x0, P0 = belief0.components.mean, belief0.components.cov
         dtype = logmu0.dtype
         n, m = x0.shape[-1], model.H.shape[-2]
-        tensors = (measurements, x0, P0, logmu0, *(t for t in model if isinstance(t, Tensor)))
+        tensors = (measurements, x0, P0, logmu0, *(t for t in model if isinstance(t, Tensor)),
+                   *((controls,) if controls is not None else ()))
         if any(t.device.type != "cpu" for t in tensors) or not host_reads_ok(tensors[0]):
             return "not on the CPU (or host reads are off: torchmm.runtime.no_host_sync)"
         if dtype not in (torch.float32, torch.float64) or any(t.dtype != dtype for t in tensors):
             return "not one float32 or float64 dtype"
         runs = math.prod(batch)
+        if controls is not None:
+            k = model.G.shape[-1]
+            if model.G.dim() not in (2, 3) or (model.G.dim() == 3 and model.G.shape[0] not in (1, M)):
+                return "the input matrix is batched over more than the modes"
+            if controls.dim() < 2 or controls.shape[0] != measurements.shape[0] or controls.shape[-1] != k \
+                    or not _broadcasts(controls.shape[1:-1], tuple(batch)):
+                return "the controls are not (T, *B, k) of the run's batch and the input matrix's k"
         if runs > MAX_RUNS and not request.forced:
             return f"{runs} runs: more than the serial loop's {MAX_RUNS} (the batched kernels win)"
         steps = measurements.shape[0]
@@ -321,18 +356,19 @@ class LinearKernel:
         if model.rule != "kalman" and model.transition is not None and model.transition.shape != (M, M):
             return "the transition matrix does not match the modes"
         kalman = model.rule == "kalman"
-        layout = _layout(M, n, m, tuple(batch), kalman)
+        layout = _layout(M, n, m, tuple(batch), kalman, None if controls is None else steps)
         models = _models(model)
         if not all(_broadcasts(t.shape, wide) for t, (wide, _) in zip((*models, logmu0, x0, P0), layout)):
             return "the models' parameters are batched over more than the modes (or the start belief's shapes)"
         start = (logmu0, x0, P0)
         mixed = model.rule in ("mix", "collapse")
         if request.repeated:
-            return Prepared(filter, belief0, z, tuple(batch), M, n, m, model.rule)
+            return Prepared(filter, belief0, z, tuple(batch), M, n, m, model.rule, controls)
 
         def run():
             status = [0]
-            outs = _Run.apply(z, rule, bool(request.update_first), True, layout, status, *models, *start)
+            bu = _input_terms(model, controls, M, n, tuple(batch))
+            outs = _Run.apply(z, rule, bool(request.update_first), True, layout, status, *models, *start, bu)
             if status[0]:
                 return None  # regularised or failed somewhere: the eager steps flag it as they do
             return _fields(outs, batch, steps, M, kalman, mixed, request)

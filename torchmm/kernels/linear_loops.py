@@ -10,7 +10,8 @@ sizes are a few each, so the cost is arithmetic, not the dispatch of ~40 tensor 
 
 Array layouts (C-contiguous, float32 or float64): ``z (T, B, m)``; models ``F (M, n, n)``, ``b (M, n)``,
 ``Q (M, n, n)``, ``H (M, m, n)``, ``R (M, m, m)``, ``Pi (M, M)``; start ``logmu0 (B, M)``,
-``x0 (B, M, n)``, ``P0 (B, M, n, n)``; outputs ``ll (T, B)``, ``logmu (T, B, M)``, ``x (T, B, M, n)``,
+``x0 (B, M, n)``, ``P0 (B, M, n, n)``; the input terms ``bu (T or 1, B or 1, M, n)`` (``G_j u_t`` of
+each step, run and mode, added to ``b``: zeros ``(1, 1, M, n)`` without controls); outputs ``ll (T, B)``, ``logmu (T, B, M)``, ``x (T, B, M, n)``,
 ``P (T, B, M, n, n)`` and the intermediates of the same shapes (``xp``/``Pp`` the mode priors,
 ``logc`` the predicted mode log-probabilities, ``xm``/``Pm`` the mixed start beliefs, ``innov (T, B, M, m)``,
 ``S (T, B, M, m, m)``, ``mode_ll (T, B, M)``, ``flags (T, B, M)``: 1 where the innovation covariance
@@ -97,7 +98,7 @@ def _logsumexp(a, M):
 
 
 @numba.njit(cache=True)
-def forward(z, F, b, Q, H, R, Pi, rule, update_first, logmu0, x0, P0, eps, tiny,
+def forward(z, F, b, Q, H, R, Pi, rule, update_first, logmu0, x0, P0, bu, eps, tiny,
             ll, logmu, x, P, xp, Pp, logc, xm, Pm, innov, Sout, mode_ll, flags):
     """The filter over every run and step (see the module docstring). Returns the numbers of
     non-finite log-likelihoods where a datum was present and of regularised updates (0, 0: none)."""
@@ -119,8 +120,11 @@ def forward(z, F, b, Q, H, R, Pi, rule, update_first, logmu0, x0, P0, eps, tiny,
     d = np.empty(n, dt)
     bad = 0
     regularised = 0
+    step_u, run_u = bu.shape[0] > 1, bu.shape[1] > 1
     for r in range(B):
+        ru = r if run_u else 0
         for t in range(T):
+            tu = t if step_u else 0
             if t == 0:
                 plm, px, pP = logmu0[r], x0[r], P0[r]
             else:
@@ -169,10 +173,10 @@ def forward(z, F, b, Q, H, R, Pi, rule, update_first, logmu0, x0, P0, eps, tiny,
                             for i in range(n):
                                 for k in range(n):
                                     Pm[t, r, j, i, k] += w[q, j] * (pP[q, i, k] + d[i] * d[k])
-                # -- prediction: xp = F xm + b, Pp = F Pm F^T + Q
+                # -- prediction: xp = F xm + b (+ the step's input term bu = G u_t), Pp = F Pm F^T + Q
                 for j in range(M):
                     for i in range(n):
-                        s = b[j, i]
+                        s = b[j, i] + bu[tu, ru, j, i]
                         for k in range(n):
                             s += F[j, i, k] * xm[t, r, j, k]
                         xp[t, r, j, i] = s
@@ -295,9 +299,9 @@ def forward(z, F, b, Q, H, R, Pi, rule, update_first, logmu0, x0, P0, eps, tiny,
 
 
 @numba.njit(cache=True)
-def backward(z, F, b, Q, H, R, Pi, rule, update_first, logmu0, x0, P0,
+def backward(z, F, b, Q, H, R, Pi, rule, update_first, logmu0, x0, P0, bu,
              logmu, x, P, xp, Pp, logc, xm, Pm, gll, glogmu, gx, gP,
-             gF, gb, gQ, gH, gR, gPi, glogmu0, gx0, gP0):
+             gF, gb, gQ, gH, gR, gPi, glogmu0, gx0, gP0, gbu):
     """The reverse pass of :func:`forward` (runs without regularised updates): accumulates the
     adjoints of the models and start beliefs from those of the outputs ``ll``, ``logmu``, ``x``, ``P``.
     The adjoints of the symmetric matrices (``Q``, ``R``, ``P0``) are symmetric."""
@@ -340,7 +344,9 @@ def backward(z, F, b, Q, H, R, Pi, rule, update_first, logmu0, x0, P0,
     mub = np.empty(M, dt)
     d = np.empty(n, dt)
     tmp = np.empty((n, n), dt)
+    step_u, run_u = bu.shape[0] > 1, bu.shape[1] > 1
     for r in range(B):
+        ru = r if run_u else 0
         for j in range(M):
             clm[j] = 0.0
             for i in range(n):
@@ -348,6 +354,7 @@ def backward(z, F, b, Q, H, R, Pi, rule, update_first, logmu0, x0, P0,
                 for k in range(n):
                     cP[j, i, k] = 0.0
         for t in range(T - 1, -1, -1):
+            tu = t if step_u else 0
             for j in range(M):
                 clm[j] += glogmu[t, r, j]
                 for i in range(n):
@@ -501,6 +508,7 @@ def backward(z, F, b, Q, H, R, Pi, rule, update_first, logmu0, x0, P0,
                     # xp = F xm + b; Pp = F Pm F^T + Q
                     for i in range(n):
                         gb[j, i] += xpb[i]
+                        gbu[tu, ru, j, i] += xpb[i]
                         s = 0.0
                         for k in range(n):
                             s += F[j, k, i] * xpb[k]

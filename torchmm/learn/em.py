@@ -4,8 +4,9 @@ r"""Expectation-maximisation for linear-Gaussian state-space models, batched ove
 :class:`~torchmm.LinearMeasurement` models (Shumway & Stoffer, J. Time Ser. Anal. 3(4), 1982;
 Ghahramani & Hinton, 1996): each iteration
 
-* **E-step**: the Kalman filter and the RTS smoother by parallel scans (:mod:`torchmm.parallel`:
-  ``log T`` batched levels, every series at once) and the lag-one smoothed covariances
+* **E-step**: the Kalman filter - for at most ``torchmm.kernels.linear.MAX_RUNS`` series on the CPU the
+  Numba kernel's serial loop, else the parallel scan (:mod:`torchmm.parallel`: ``log T`` batched
+  levels, every series at once) - the RTS smoother by the backward scan, and the lag-one smoothed covariances
   ``P_{t,t-1|T} = P_{t|T} G_{t-1}^T`` (``G_t = P_{t|t} F^T P_{t+1|t}^{-1}``) give the expected
   sufficient statistics, summed over the steps (and over the series, for parameters they share);
 * **M-step**, the exact conditional maximisers of the expected complete-data log-likelihood, in
@@ -45,13 +46,14 @@ from typing import Any
 import torch
 from torch import Tensor
 
+import torchmm.kernels as kernels
 from torchmm.beliefs import GaussianBelief, ModeBelief
 from torchmm.contract import BeliefArg, Data, Flag, Int, Mask, Of, Real, Unchecked, entry_point
 from torchmm.filters.kalman import KalmanFilter
 from torchmm.models.linear import LinearMeasurement, LinearMotion, plain_linear
 from torchmm.multimodel.imm import MultipleModelFilter
+from torchmm.parallel import filter_smooth, smooth_scan
 from torchmm.run import run_filter
-from torchmm.parallel import filter_smooth
 from torchmm.validation import check_filter_dtype, check_measurement, gaussian_batch
 from torchmm.runtime import entries, one_thread_when_small
 
@@ -205,13 +207,28 @@ def em(filter: KalmanFilter, belief0: GaussianBelief, measurements: Tensor,
     history, decreases = [], []
     tic = time.perf_counter()
     bar = _bar(iterations, progress, "em")
+    # the filter of the E-step: for at most MAX_RUNS series on the CPU the Numba kernel's serial loop
+    # (where it plans the run), else the parallel scans (log T batched levels); the smoother: the scan
+    from torchmm.kernels import linear as linear_kernel
+
+    sequential = math.prod(z.shape[1:-1]) <= linear_kernel.MAX_RUNS and z.device.type == "cpu"
+    request = kernels.Request(update_first=update_first, keep=frozenset({"belief", "prior", "log_likelihood"}),
+                              forced=True, controls=controls)
     converged, done = False, 0
 
     def e_step(start):
         """The log-likelihood and the smoothed moments ``(x_t, P_t, P_{t,t-1})`` by the parallel scans
         (torchmm.parallel: ``log T`` batched levels, no loop over the steps); without ``update_first`` the
         state one step before the first datum (the start's) is smoothed too, first in the sequence."""
-        filt, prior, sm, ll = filter_smooth(filter, start, z, update_first=update_first, offsets=Bu)
+        fields = None
+        if sequential:  # a few series on the CPU: the Numba kernel's filter (serial, no scan levels)
+            run, _ = kernels.plan(filter, start, z, request)
+            fields = run() if run is not None else None
+        if fields is not None:
+            filt, prior, ll = fields[0], fields[1], fields[2]
+            sm = smooth_scan(filter, filt, prior)
+        else:
+            filt, prior, sm, ll = filter_smooth(filter, start, z, update_first=update_first, offsets=Bu)
         ll = torch.where(present, ll, 0.0).sum(0)
         xs, Ps = sm.mean, sm.cov
         F = motion.F

@@ -51,7 +51,8 @@ class Objective:
         update_first: ``belief0`` is the prior of the first measurement (statsmodels' convention).
         controls: ``(T, *B, k)``, the inputs ``u_k`` of the motion models (e.g. regressors).
         motions, sensors: per-step models, as for :func:`~torchmm.run_filter` (irregular time stamps:
-            one motion model per step). With controls or per-step models the eager steps run.
+            one motion model per step). With per-step models the eager steps run; controls reach the
+            Numba kernel (a ``LinearMotion``'s ``input_matrix``).
         burn: the first steps' log-likelihood terms left out (e.g. 1 under a diffuse prior).
 
     Returns (a call):
@@ -126,11 +127,11 @@ class Objective:
                 raise ValueError(f"measurements: every entry{after} is missing (non-finite; shape "
                                  f"{tuple(measurements.shape)}): the likelihood does not depend on the "
                                  "parameters, nothing to learn from")
-            if controls is not None or motions is not None or sensors is not None:
-                self._prepared, self.why = None, "controls or per-step models (the eager steps take them)"
+            if motions is not None or sensors is not None:
+                self._prepared, self.why = None, "per-step models (the eager steps take them)"
             else:
                 request = kernels.Request(update_first=update_first, keep=frozenset({"log_likelihood"}),
-                                          repeated=True)
+                                          repeated=True, controls=controls)
                 self._prepared, self.why = kernels.plan(filter, first, measurements, request)
 
     def _belief(self) -> Any:

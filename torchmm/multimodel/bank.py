@@ -250,6 +250,8 @@ class ListBank(FilterBank):
             model = describe() if describe is not None else f"{type(member).__name__} is not linear-Gaussian"
             if isinstance(model, str):
                 return f"mode {j}: {model}"
+            if model.G is not None:
+                return f"mode {j}: a control input (input_matrix) in a list bank"
             models.append(model)
         events = (2, 1, 2, 2, 2)  # F, b, Q, H, R
         fields = []
