@@ -477,12 +477,41 @@ def em_parameters(est, block, key: str = "learn.parameters") -> list[str]:
         if name is None:
             known = ", ".join(f"{m}.{n}" if m else n for m, n in EM_NAMES)
             raise ConfigError(f"{key}[{i}]", f"{entry.get('model')}.{entry.name}", f"method em estimates {known}")
-        for option in ("fixed", "shared", "lower", "upper"):
+        for option in ("shared", "lower", "upper"):
             if entry.get(option) not in (None, False):
-                raise ConfigError(f"{key}[{i}].{option}", entry.get(option), "method em estimates whole tensors "
-                                  "(no fixed, shared or bounded entries yet: method mle)")
+                raise ConfigError(f"{key}[{i}].{option}", entry.get(option), "method em takes fixed entries, not "
+                                  "shared or bounded ones (method mle)")
         names.append(name)
     return names
+
+
+def em_fixed(est, block, prior, key: str = "learn.parameters") -> dict:
+    """The entries' ``fixed`` masks for :func:`torchmm.learn.em` (``{name: mask}``), checked against the
+    estimator's models and start (``ConfigError`` naming the entry: a shape, or a covariance pattern
+    without a closed-form M-step)."""
+    from torchmm.learn.em import fixed_masks
+
+    names = em_parameters(est, block, key)
+    masks = {}
+    if est.multiple_model:  # (em_switching: switching_em_parameters refuses fixed entries)
+        return masks
+    for i, (entry, name) in enumerate(zip(block.parameters, names)):
+        given = entry.get("fixed")
+        if given is None:
+            continue
+        mask = given if isinstance(given, bool) else _plain(given)
+        try:
+            masks.update(fixed_masks(est.filter, est.init(prior, None), names, {name: mask}))
+        except (TypeError, ValueError) as err:
+            raise ConfigError(f"{key}[{i}].fixed", given, str(err).split(": ", 1)[-1]) from None
+    return masks
+
+
+def _plain(value):
+    """A config list (nested ListConfig) as Python lists."""
+    if isinstance(value, (list, tuple)) or type(value).__name__ == "ListConfig":
+        return [_plain(v) for v in value]
+    return value
 
 
 def switching_em_parameters(est, block, key: str = "learn.parameters") -> tuple[list[str], list[str]]:
@@ -588,10 +617,11 @@ def fit_em(est, scenario, block, z: Tensor, *, prior, update_first: bool, burn: 
         return fit_switching_em(est, scenario, block, z, prior=prior, update_first=update_first, burn=burn,
                                 controls=controls, present=present, progress=progress)
     names = em_parameters(est, block)
+    masks = em_fixed(est, block, prior)
     tic = time.perf_counter()
     out = em(est.filter, est.init(prior, None), z, names, iterations=int(block.iterations),
              tol=float(block.get("tolerance") or 0.0) or None, update_first=update_first, controls=controls,
-             present=present, progress=progress)
+             present=present, fixed=masks or None, progress=progress)
     start = out.belief0
     est.init = lambda prior_, generator=None: start
     rows = []
@@ -603,10 +633,13 @@ def fit_em(est, scenario, block, z: Tensor, *, prior, update_first: bool, burn: 
         value = tensors[name].detach().cpu()
         label = f"{entry.model}.{name}" if entry.get("model") is not None else name
         symmetric = name in ("Q", "R", "initial_cov")
+        held = masks.get(name)
         for flat, v in enumerate(value.reshape(-1).tolist()):
             index = [int(i) for i in np.unravel_index(flat, tuple(value.shape))] if value.dim() else []
             if symmetric and index[-1] > index[-2]:
                 continue  # (the upper triangle repeats the lower)
+            if held is not None and bool(held.reshape(-1)[flat % held.numel()]):
+                continue  # (a fixed entry: not estimated)
             rows.append([est.name, f"{label}[{','.join(map(str, index))}]", v, None, None])
             k += 1
     record = {"rows": rows, "loglik": out.loglik[-1], "k": k, "nobs": int(torch.isfinite(z).all(-1).sum()),

@@ -94,3 +94,24 @@ def test_the_start_is_estimated_and_the_estimator_runs_from_it(tmp_path, base):
     fit = dict(zip(res["tables"]["fit"]["columns"], res["tables"]["fit"]["rows"][0]))
     assert res["metrics"]["KF-CV"]["loglik"] * 6 == pytest.approx(fit["loglik"], rel=1e-9)
 
+
+
+def test_em_with_fixed_entries_from_config(tmp_path, base):
+    """learn.method: em with fixed entries (issue 45): the position sensor's H with only its two gains
+    free, R diagonal; the table lists the free entries only, the likelihood never falls and the fixed
+    entries keep their values (the filter runs with them: its log-likelihood is the fit's)."""
+    H_fixed = [[False, True, True, True], [True, True, False, True]]
+    learn = {"method": "em", "iterations": 15, "estimator": "KF-CV",
+             "parameters": [{"model": "sensors[0]", "name": "H", "fixed": H_fixed},
+                            {"model": "sensors[0]", "name": "R", "fixed": [[False, True], [True, False]]}]}
+    res, _ = _run(tmp_path, "em_fixed", learn)
+    names = [row[1] for row in res["tables"]["learned"]["rows"]]
+    assert names == ["sensors[0].H[0,0]", "sensors[0].H[1,2]", "sensors[0].R[0,0]", "sensors[0].R[1,1]"]
+    fit = dict(zip(res["tables"]["fit"]["columns"], res["tables"]["fit"]["rows"][0]))
+    assert fit["k"] == 4
+    import numpy as np
+
+    curve = np.load(tmp_path / "em_fixed" / "curves.npz")["learn/em_loglik/KF-CV"]
+    assert len(curve) == 16 and bool((np.diff(curve) >= -1e-9 * np.abs(curve[1:])).all())
+    assert res["metrics"]["KF-CV"]["loglik"] * 6 == pytest.approx(fit["loglik"], rel=1e-9)
+    assert res["metrics"]["KF-CV"]["loglik"] > base["metrics"]["KF-CV"]["loglik"]

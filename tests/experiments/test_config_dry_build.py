@@ -75,7 +75,16 @@ CASES = [
     (["learn={parameters:[{model:'modes[0]',name:Q}],method:em}"], "learn.parameters[0]=modes[0].Q: method em for "
                                                                      "switching models estimates"),
     (["learn={parameters:[{model:'sensors[0]',name:R,shared:true}],method:em,estimators:[KF-CV]}"],
-     "learn.parameters[0].shared=True: method em estimates whole tensors"),
+     "learn.parameters[0].shared=True: method em takes fixed entries, not shared"),
+    (["learn={parameters:[{model:'sensors[0]',name:R,fixed:[true,false]}],method:em,estimators:[KF-CV]}"],
+     "learn.parameters[0].fixed=[True, False]: a covariance's mask must be symmetric"),  # (broadcast to 2 x 2)
+    (["learn={parameters:[{model:'modes[0]',name:F,fixed:[[true,false,true,true],[true,true,true,true],"
+      "[true,true,true,true],[true,true,true,true]]}],method:em,estimators:[KF-CV]}"],
+     "learn.parameters[0].fixed=[[True, False, True, True], [True, True, True, True], [Tr...: with fixed entries "
+     "the M-step of F is a least squares weighted by Q"),
+    (["learn={parameters:[{model:'sensors[0]',name:R,fixed:[[true,false],[false,false]]}],method:em,"
+      "estimators:[KF-CV]}"], "learn.parameters[0].fixed=[[True, False], [False, False]]: the free entries of a "
+                              "covariance must form diagonal blocks"),
     # the start's entries (issue 45)
     (["learn={parameters:[{model:modes,name:initial_mean}]}"], "learn.parameters[0].model=modes: initial_mean belongs "
                                                                "to no model"),

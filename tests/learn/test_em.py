@@ -154,6 +154,102 @@ def test_em_errors_name_the_argument():
         em(kf, b0, y, ["Q"], controls=torch.zeros(20, 2, dtype=F64))
 
 
+def _two_sensor_data(T=300, runs=3, seed=7):
+    """A 2-state model measured by two sensors (H = [[1, 0], [0.5, 1]]), diagonal Q and R."""
+    g = torch.Generator().manual_seed(seed)
+    F = torch.tensor([[0.9, 0.2], [-0.1, 0.8]], dtype=F64)
+    b = torch.tensor([0.5, -0.2], dtype=F64)
+    H = torch.tensor([[1.0, 0.0], [0.5, 1.0]], dtype=F64)
+    x, ys = torch.zeros(runs, 2, dtype=F64), []
+    for _ in range(T):
+        x = x @ F.mT + b + torch.tensor([0.3, 0.5], dtype=F64) * torch.randn(runs, 2, dtype=F64, generator=g)
+        ys.append(x @ H.mT + torch.tensor([0.5, 0.3], dtype=F64) * torch.randn(runs, 2, dtype=F64, generator=g))
+    return torch.stack(ys)
+
+
+def _two_sensor_filter():
+    return KalmanFilter(LinearMotion(torch.tensor([[0.9, 0.2], [-0.1, 0.8]], dtype=F64), 0.2 * torch.eye(2, dtype=F64),
+                                     offset=torch.tensor([0.5, 0.0], dtype=F64)),
+                        LinearMeasurement(torch.tensor([[1.0, 0.0], [0.5, 1.0]], dtype=F64), 0.2 * torch.eye(2, dtype=F64)))
+
+
+DIAGONAL = [[False, True], [True, False]]
+MASKS = {"H": [[True, True], [False, False]], "Q": DIAGONAL, "R": DIAGONAL, "offset": [False, True],
+         "initial_mean": [False, True]}
+
+
+def test_fixed_entries_the_constrained_maximum_is_a_fixed_point():
+    """EM with fixed entries (issue 45): H's first row, Q's and R's off-diagonal entries (diagonal
+    covariances), one offset and one start entry held. Started at the constrained maximum-likelihood
+    estimate (torchmm.learn.estimate with the same entries fixed), one EM iteration stays there - the
+    maximum is a fixed point of an exact constrained M-step - and keeps the fixed entries bit for bit;
+    without the masks the same step moves away."""
+    from torchmm.learn import Param
+
+    y = _two_sensor_data()
+    kf = _two_sensor_filter()
+    b0 = GaussianBelief(torch.zeros(3, 2, dtype=F64), 2 * torch.eye(2, dtype=F64))
+    mle = estimate(kf, b0, y, {"measurement.H": Param(fixed=torch.tensor([[True, True], [False, False]])),
+                               "motion.F": "free", "motion.offset": Param(fixed=torch.tensor([False, True])),
+                               "motion.Q": "variance", "measurement.R": "variance",
+                               "belief0.mean": Param(fixed=torch.tensor([[False, True]] * 3))},
+                   update_first=True, progress=False, se=False)
+    assert mle.converged
+    tensors = lambda f: [f.measurement.H, f.motion.F, f.motion.offset, f.motion.Q, f.measurement.R]  # noqa: E731
+    before = [t.clone() for t in tensors(kf)]
+    out = em(kf, mle.belief0, y, ["H", "R", "F", "offset", "Q", "initial_mean"], iterations=1, fixed=MASKS,
+             progress=False)
+    for a, b in zip(tensors(kf), before):
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-6)
+    torch.testing.assert_close(out.belief0.mean, mle.belief0.mean, rtol=0, atol=1e-4)  # (a flat direction)
+    assert torch.equal(kf.measurement.H[0], before[0][0]) and float(kf.motion.offset[1]) == float(before[2][1])
+    assert float(kf.motion.Q[0, 1]) == 0.0 and float(kf.measurement.R[1, 0]) == 0.0
+    assert bool((out.belief0.mean[:, 1] == 0).all()) and out.loglik[1] >= out.loglik[0] - 1e-9
+    # the same step without the masks leaves the constrained maximum
+    free = _two_sensor_filter()
+    for t, v in zip(tensors(free), before):
+        t.copy_(v)
+    em(free, mle.belief0, y, ["H", "R", "F", "offset", "Q", "initial_mean"], iterations=1, progress=False)
+    assert float((free.measurement.H[0] - before[0][0]).abs().max()) > 1e-3
+
+
+def test_fixed_entries_per_series_and_monotone():
+    """Masks with a batch of fits (per_series): every series keeps the fixed entries and its likelihood
+    never falls."""
+    y = _two_sensor_data(80, runs=4, seed=9)
+    kf = _two_sensor_filter()
+    b0 = GaussianBelief(torch.zeros(2, dtype=F64), 2 * torch.eye(2, dtype=F64)).expand(4)
+    out = em(kf, b0, y, ["H", "R", "F", "offset", "Q"], iterations=15, per_series=True, progress=False,
+             fixed={k: v for k, v in MASKS.items() if k != "initial_mean"})
+    assert out.monotone and kf.measurement.H.shape == (4, 2, 2)
+    assert bool((kf.measurement.H[:, 0] == torch.tensor([1.0, 0.0], dtype=F64)).all())
+    assert bool((kf.motion.Q[:, 0, 1] == 0).all()) and bool((kf.motion.offset[:, 1] == 0).all())
+
+
+@pytest.mark.parametrize("fixed, message", [
+    ({"F": [[True, True], [True, True]]}, r"^fixed\['F'\]: every entry is fixed"),
+    ({"G": [True]}, r"^fixed\['G'\]: not an estimated parameter"),
+    ({"Q": [[False, False], [True, False]]}, r"^fixed\['Q'\]: a covariance's mask must be symmetric"),
+    ({"H": [[True, True, True]]}, r"^fixed\['H'\]: expected a boolean mask of shape \(2, 2\)"),
+])
+def test_fixed_entry_errors_name_the_mask(fixed, message):
+    kf = _two_sensor_filter()
+    b0 = GaussianBelief(torch.zeros(2, dtype=F64), torch.eye(2, dtype=F64))
+    with pytest.raises(ValueError, match=message):
+        em(kf, b0, _two_sensor_data(10, runs=1)[:, 0], ["F", "Q", "H"], fixed=fixed, progress=False)
+
+
+def test_a_covariance_mask_without_a_closed_form_is_refused():
+    kf = _two_sensor_filter()
+    kf.motion.Q.copy_(torch.tensor([[1.0, 0.3], [0.3, 1.0]], dtype=F64))
+    b0 = GaussianBelief(torch.zeros(2, dtype=F64), torch.eye(2, dtype=F64))
+    y = _two_sensor_data(10, runs=1)[:, 0]
+    with pytest.raises(ValueError, match=r"^fixed\['Q'\]: the fixed entries between a free block and the rest must be 0"):
+        em(kf, b0, y, ["Q"], fixed={"Q": DIAGONAL}, progress=False)
+    with pytest.raises(ValueError, match=r"^fixed\['Q'\]: the free entries of a covariance must form diagonal blocks"):
+        em(kf, b0, y, ["Q"], fixed={"Q": [[True, False], [False, False]]}, progress=False)
+
+
 # --- switching models: em_switching ------------------------------------------------------------------------
 sm = pytest.importorskip("statsmodels.api")
 

@@ -39,7 +39,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -57,7 +57,8 @@ from torchmm.run import run_filter
 from torchmm.validation import check_filter_dtype, check_measurement, gaussian_batch
 from torchmm.runtime import entries, one_thread_when_small
 
-__all__ = ["EM_PARAMETERS", "EMResult", "SWITCHING_PARAMETERS", "SwitchingEMResult", "em", "em_switching"]
+__all__ = ["EM_PARAMETERS", "EMResult", "SWITCHING_PARAMETERS", "SwitchingEMResult", "em", "em_switching",
+           "fixed_masks"]
 
 #: what :func:`em` estimates, by name
 EM_PARAMETERS = ("H", "R", "F", "offset", "Q", "initial_mean", "initial_cov")
@@ -116,18 +117,102 @@ def _sum(x: Tensor, keep: int, shared: bool) -> Tensor:
     return x
 
 
+def _constrained(X: Tensor, B: Tensor, C: Tensor, W: Tensor, free: Tensor) -> Tensor:
+    r"""The exact conditional maximiser of ``-1/2 tr(W^{-1} (X C X^T - B X^T - X B^T))`` over the free
+    entries of ``X`` ``(*, r, c)``, its fixed entries held (an M-step of a regression with fixed
+    coefficients): on the free entries ``W^{-1} X C = W^{-1} B``, one linear system in ``vec(X)``
+    (``(W^{-1} X C)_{ij} = \sum_{kl} W^{-1}_{ik} C_{lj} X_{kl}``). Batched over the leading axes."""
+    r, c = X.shape[-2:]
+    batch = torch.broadcast_shapes(X.shape[:-2], B.shape[:-2], C.shape[:-2], W.shape[:-2])
+    Winv = torch.linalg.inv(W).expand(*batch, r, r)
+    K = torch.einsum("...ik,...lj->...ijkl", Winv, C.expand(*batch, c, c)).reshape(*batch, r * c, r * c)
+    rhs = (Winv @ B.expand(*batch, r, c)).reshape(*batch, r * c)
+    f = torch.nonzero(free.reshape(-1))[:, 0].to(X.device)
+    h = torch.nonzero(~free.reshape(-1))[:, 0].to(X.device)
+    x = X.expand(*batch, r, c).reshape(*batch, r * c).clone()
+    Kf = K.index_select(-2, f)
+    rhs_f = rhs.index_select(-1, f) - (Kf.index_select(-1, h) @ x.index_select(-1, h).unsqueeze(-1)).squeeze(-1)
+    x[..., f] = torch.linalg.solve(Kf.index_select(-1, f), rhs_f)
+    return x.reshape(*batch, r, c)
+
+
+def _covariance_mask(name: str, mask: Tensor, value: Tensor) -> None:
+    """A covariance's fixed entries must leave a closed-form M-step: symmetric, the free entries whole
+    diagonal blocks (a block-diagonal covariance: each block's estimate is the block of the unrestricted
+    one, exactly, the likelihood factorising over the blocks) and the fixed entries off those blocks 0."""
+    free = ~mask
+    if not torch.equal(free, free.mT):
+        raise ValueError(f"fixed[{name!r}]: a covariance's mask must be symmetric")
+    n = free.shape[-1]
+    for i in range(n):  # (once, at entry)
+        block = free[i]
+        if bool(block.any()) and not (bool(block[i]) and torch.equal(free[block][:, block],
+                                                                       torch.ones(int(block.sum()), int(block.sum()),
+                                                                                  dtype=torch.bool))
+                                     and bool((free[block].sum(0) == 0)[~block].all())):
+            raise ValueError(f"fixed[{name!r}]: the free entries of a covariance must form diagonal blocks (e.g. "
+                             "a diagonal covariance: every off-diagonal entry fixed at 0); other patterns have no "
+                             "closed-form M-step: use torchmm.learn.estimate")
+    rows = free.any(-1)
+    off = mask & (rows.unsqueeze(-1) | rows.unsqueeze(-2)) & ~torch.eye(n, dtype=torch.bool)
+    if bool((value.detach().expand(*value.shape[:-2], n, n)[..., off] != 0).any()):
+        raise ValueError(f"fixed[{name!r}]: the fixed entries between a free block and the rest must be 0 (the "
+                         "blocks are independent)")
+
+
+def fixed_masks(filter: KalmanFilter, belief0: GaussianBelief, parameters: Sequence[str],
+                fixed: Mapping[str, Any] | None) -> dict[str, Tensor]:
+    """:func:`em`'s ``fixed`` checked against the filter and the start (each mask a boolean tensor of its
+    parameter's shape, for an estimated parameter, not every entry fixed, a covariance's pattern one with
+    a closed-form M-step): ``{name: mask}`` of the masks that fix something. A ``ValueError`` naming
+    ``fixed[name]`` otherwise (the study's dry construction calls it before anything runs)."""
+    motion, sensor = filter.motion, filter.measurement
+    current = {"H": sensor.H, "R": sensor.R, "F": motion.F, "offset": motion.offset, "Q": motion.Q,
+               "initial_mean": belief0.mean, "initial_cov": belief0.cov}
+    masks = {}
+    if fixed is None:
+        return masks
+    if not isinstance(fixed, Mapping):
+        raise TypeError(f"fixed: expected a mapping {{parameter name: boolean mask}}, got {type(fixed).__name__}")
+    for name, mask in fixed.items():
+        if name not in parameters:
+            raise ValueError(f"fixed[{name!r}]: not an estimated parameter ({', '.join(parameters)})")
+        event = 1 if name in ("offset", "initial_mean") else 2
+        shape = tuple(current[name].shape[-event:])
+        try:
+            mask = torch.as_tensor(mask, dtype=torch.bool).expand(shape).clone()
+        except (RuntimeError, TypeError, ValueError):
+            raise ValueError(f"fixed[{name!r}]: expected a boolean mask of shape {shape}") from None
+        if bool(mask.all()):
+            raise ValueError(f"fixed[{name!r}]: every entry is fixed (leave {name} out of parameters)")
+        if name in ("Q", "R", "initial_cov"):
+            _covariance_mask(name, mask, current[name])
+        if bool(mask.any()):
+            masks[name] = mask
+    weights = {"H": "R", "F": "Q", "offset": "Q", "initial_mean": "initial_cov"}
+    for name in masks:
+        if name in weights:  # (once, at entry) the weighted M-step needs an invertible weight
+            weight = current[weights[name]].detach()
+            if bool((torch.linalg.cholesky_ex(weight).info != 0).any()):
+                raise ValueError(f"fixed[{name!r}]: with fixed entries the M-step of {name} is a least squares "
+                                 f"weighted by {weights[name]}, which must be positive definite (a singular "
+                                 f"{weights[name]}, e.g. ConstantVelocity's rank-deficient Q, has no unique one)")
+    return masks
+
+
 @entry_point(filter=Of(KalmanFilter, what="a KalmanFilter over LinearMotion and LinearMeasurement"),
              belief0=BeliefArg(validate=True), measurements=Data(),
              parameters=Unchecked("names of EM_PARAMETERS, checked by em"),
              iterations=Int(1), tol=Real(minimum=0.0, optional=True), update_first=Flag(), per_series=Flag(),
              controls=Data(optional=True),
-             present=Mask(optional=True), progress=Unchecked("None, True, False or a description"))
+             present=Mask(optional=True), fixed=Unchecked("{name: boolean mask}, checked by em"),
+             progress=Unchecked("None, True, False or a description"))
 @one_thread_when_small(lambda filter, belief0, measurements, *args, **kwargs: entries(belief0) * measurements.shape[0])
 def em(filter: KalmanFilter, belief0: GaussianBelief, measurements: Tensor,
        parameters: Sequence[str] = ("H", "R", "F", "offset", "Q", "initial_mean", "initial_cov"), *,
        iterations: int = 10, tol: float | None = None, update_first: bool = True, per_series: bool = False,
        controls: Tensor | None = None, present: Tensor | None = None,
-       progress: bool | str | None = None) -> EMResult:
+       fixed: Mapping[str, Any] | None = None, progress: bool | str | None = None) -> EMResult:
     r"""Fit ``parameters`` of a linear-Gaussian Kalman filter by EM (module docstring), in place.
 
     Args:
@@ -147,6 +232,13 @@ def em(filter: KalmanFilter, belief0: GaussianBelief, measurements: Tensor,
             ``*B`` in front), else one set for all.
         present: ``(T, *B)`` bool, False at the padding after a shorter series' end (nothing there is
             counted).
+        fixed: ``{name: mask}``, a boolean mask of a parameter's entries held at their current values
+            (``H`` ``(m, n)``, ``F`` ``(n, n)``, ``offset`` and ``initial_mean`` ``(n,)``, ``Q``, ``R``,
+            ``initial_cov`` square). ``H``, ``F``, ``offset`` and ``initial_mean`` take any mask: their
+            M-step is then a weighted least squares over the free entries (weighted by the current ``R``,
+            ``Q`` or start covariance: an exact conditional maximiser, so the likelihood still never
+            falls). A covariance takes masks whose free entries are diagonal blocks with 0 between the
+            blocks (e.g. a diagonal ``Q``: the estimate is the unrestricted one's blocks, exactly).
         progress: a bar over the iterations (None: on a terminal only).
 
     Returns:
@@ -184,6 +276,7 @@ def em(filter: KalmanFilter, belief0: GaussianBelief, measurements: Tensor,
     wanted = set(parameters)
     if not isinstance(belief0, GaussianBelief):
         raise TypeError(f"belief0: expected a GaussianBelief, got {type(belief0).__name__}")
+    masks = fixed_masks(filter, belief0, parameters, fixed)
     check_filter_dtype(filter, belief0, "belief0")
     gaussian_batch(belief0, filter.state_dim, "belief0")
     z = measurements
@@ -262,13 +355,20 @@ def em(filter: KalmanFilter, belief0: GaussianBelief, measurements: Tensor,
             if "H" in wanted:
                 Syx = _sum(wx * (yz.unsqueeze(-1) * xo.unsqueeze(-2)), 2, shared)
                 Sxx = _sum(wx * Exx, 2, shared)
-                sensor.H = torch.linalg.solve(Sxx.mT, Syx.mT).mT.reshape(_shape(sensor.H, Syx, shared))
+                if "H" in masks:
+                    H = _constrained(sensor.H, Syx, Sxx, sensor.R, ~masks["H"])
+                else:
+                    H = torch.linalg.solve(Sxx.mT, Syx.mT).mT
+                sensor.H = H.reshape(_shape(sensor.H, H, shared))
             if "R" in wanted:
                 H = sensor.H
                 r = yz - (H @ xo.unsqueeze(-1)).squeeze(-1)
                 term = r.unsqueeze(-1) * r.unsqueeze(-2) + H @ Po @ H.mT
                 R = _sum(wx * term, 2, shared) / n_obs.clamp_min(1)[..., None, None]
-                sensor.R = (0.5 * (R + R.mT)).reshape(_shape(sensor.R, R, shared))
+                R = 0.5 * (R + R.mT)
+                if "R" in masks:
+                    R = torch.where(masks["R"], sensor.R, R)
+                sensor.R = R.reshape(_shape(sensor.R, R, shared))
             # the transition steps: pairs (t-1, t) inside a series
             x1, x0 = xs[1:], xs[:-1]
             P1, P0, C = Ps[1:], Ps[:-1], Pc
@@ -281,26 +381,43 @@ def em(filter: KalmanFilter, belief0: GaussianBelief, measurements: Tensor,
             if "F" in wanted:
                 b = motion.offset
                 num = _sum(pw * (E10 - b.unsqueeze(-1) * x0.unsqueeze(-2)), 2, shared)
-                motion.F = torch.linalg.solve(_sum(pw * E00, 2, shared).mT, num.mT).mT.reshape(
-                    _shape(motion.F, num, shared))
+                den = _sum(pw * E00, 2, shared)
+                if "F" in masks:
+                    F = _constrained(motion.F, num, den, motion.Q, ~masks["F"])
+                else:
+                    F = torch.linalg.solve(den.mT, num.mT).mT
+                motion.F = F.reshape(_shape(motion.F, F, shared))
             F = motion.F
             if "Q" in wanted:
                 b = motion.offset
                 e = x1 - (F @ x0.unsqueeze(-1)).squeeze(-1) - b
                 term = (e.unsqueeze(-1) * e.unsqueeze(-2) + F @ P0 @ F.mT + P1 - C @ F.mT - F @ C.mT)
                 Q = _sum(pw * term, 2, shared) / npairs.clamp_min(1)[..., None, None]
-                motion.Q = (0.5 * (Q + Q.mT)).reshape(_shape(motion.Q, Q, shared))
+                Q = 0.5 * (Q + Q.mT)
+                if "Q" in masks:
+                    Q = torch.where(masks["Q"], motion.Q, Q)
+                motion.Q = Q.reshape(_shape(motion.Q, Q, shared))
             mean0, cov0 = start.mean, start.cov
             if "initial_mean" in wanted:
-                mean0 = xs[0]
+                if "initial_mean" in masks:  # the free entries given the fixed ones, weighted by the start's cov
+                    mean0 = _constrained(mean0.unsqueeze(-1), xs[0].unsqueeze(-1), torch.ones_like(xs[0][..., :1, None]),
+                                         cov0, ~masks["initial_mean"].unsqueeze(-1)).squeeze(-1)
+                else:
+                    mean0 = xs[0]
             if "initial_cov" in wanted:
                 d = xs[0] - mean0
-                cov0 = Ps[0] + d.unsqueeze(-1) * d.unsqueeze(-2)
-                cov0 = 0.5 * (cov0 + cov0.mT)
+                new0 = Ps[0] + d.unsqueeze(-1) * d.unsqueeze(-2)
+                new0 = 0.5 * (new0 + new0.mT)
+                cov0 = torch.where(masks["initial_cov"], cov0, new0) if "initial_cov" in masks else new0
             start = GaussianBelief(mean0, cov0)
             if "offset" in wanted:  # last, as pykalman (Q above used the offset before this M-step)
                 d = x1 - (F @ x0.unsqueeze(-1)).squeeze(-1)
-                b = _sum(pw[..., 0] * d, 1, shared) / npairs.clamp_min(1)[..., None]
+                if "offset" in masks:  # weighted by Q: the free entries given the fixed ones
+                    Sd = _sum(pw[..., 0] * d, 1, shared).unsqueeze(-1)
+                    b = _constrained(motion.offset.unsqueeze(-1), Sd, npairs[..., None, None].to(dtype), motion.Q,
+                                     ~masks["offset"].unsqueeze(-1)).squeeze(-1)
+                else:
+                    b = _sum(pw[..., 0] * d, 1, shared) / npairs.clamp_min(1)[..., None]
                 motion.offset = b.reshape(_shape(motion.offset, b, shared))
             done += 1
             bar.update(1)
