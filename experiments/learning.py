@@ -44,7 +44,10 @@ def spec(cfg):
 
     if not cfg.get("learn"):
         return None
-    return OmegaConf.merge(OmegaConf.structured(Learn), cfg.learn)
+    block = OmegaConf.merge(OmegaConf.structured(Learn), cfg.learn)
+    if str(block.method) == "em_then_lbfgs":  # (the issue's and statsmodels' name: EM, then L-BFGS-B)
+        block.method = "em_then_mle"
+    return block
 
 
 def learners(cfg) -> list[str]:

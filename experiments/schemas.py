@@ -360,7 +360,7 @@ class LearnParameter:
 @dataclass
 class Learn:
     parameters: Any = spec(factory=list, check=lambda v: None if v == "auto" else non_empty(v))  # or auto
-    method: str = spec("mle", one_of("mle", "em", "em_then_mle", "gradient"))  # mle: torchmm.learn.estimate
+    method: str = spec("mle", one_of("mle", "em", "em_then_mle", "em_then_lbfgs", "gradient"))  # em_then_lbfgs = em_then_mle
     estimator: Optional[str] = None  # this one estimator learns (its own copy of the models)
     estimators: Optional[List[str]] = None  # these learn, each its own copy (default: every estimator)
     hessian: str = spec("differences", one_of("differences", "autograd"))  # mle: the information's computation

@@ -93,7 +93,7 @@ def test_nile_by_em_and_by_em_then_mle(tmp_path, nile_mle):
     assert set(rows) == {"modes[0].Q[0,0]", "sensors[0].R[0,0]"}
     fit = dict(zip(res["tables"]["fit"]["columns"], res["tables"]["fit"]["rows"][0]))
     assert fit["converged"] is False or fit["iterations"] <= 40
-    both, _ = _run("nile", tmp_path / "em_mle", "learn.method=em_then_mle", "learn.iterations=10")
+    both, _ = _run("nile", tmp_path / "em_mle", "learn.method=em_then_lbfgs", "learn.iterations=10")
     learned = {row[1]: (row[2], row[3]) for row in both["tables"]["learned"]["rows"]}
     assert learned["modes[0].Q[0,0]"][0] == pytest.approx(q, rel=2e-3)
     assert learned["sensors[0].R[0,0]"][0] == pytest.approx(r, rel=2e-3)
