@@ -17,13 +17,15 @@ the costs: tested against ``scipy.optimize.linear_sum_assignment`` and brute-for
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
-from torchmm.contract import Finite, Values, entry_point, unchecked
+from torchmm.contract import Finite, Int, Values, entry_point, unchecked
 from torchmm.runtime import host_reads_ok
 
-__all__ = ["assignment_cost", "linear_assignment"]
+__all__ = ["assignment_cost", "k_best_assignments", "linear_assignment"]
 
 
 @entry_point(cost=Finite())
@@ -131,3 +133,127 @@ def _hungarian(cost: Tensor) -> Tensor:
     out = torch.zeros(B, n + 1, dtype=torch.long, device=dev)
     out = out.scatter(1, row_of_col, torch.arange(m, device=dev).expand(B, m))  # free columns land on row 0
     return out[:, 1:]
+
+
+@entry_point(cost=Values(), k=Int(1))
+def k_best_assignments(cost: Tensor, k: int) -> tuple[Tensor, Tensor]:
+    r"""The ``k`` least-cost assignments of every matrix of a batch, in order (Murty, Oper. Res. 16(3),
+    1968), each solved by the batched Hungarian method of :func:`linear_assignment`.
+
+    Murty's partition: the best assignment ``a`` of a subproblem (a cost matrix with some pairs forced
+    and some forbidden) splits the rest of its assignments into disjoint subproblems, one per row ``r``
+    not forced: rows before ``r`` forced to their columns in ``a``, the pair ``(r, a_r)`` forbidden. The
+    next best assignment is the best of the subproblems not yet taken; ``k`` rounds give the ``k`` best,
+    each once. Every run keeps its own pool of subproblems (at most ``1 + (k - 1) n``, each with its
+    solution); a round solves the ``n`` children of every run's chosen subproblem as one batch of
+    ``runs x n`` matrices. The Python loop is over the ``k`` rounds (and the Hungarian method's rows and
+    scans), never over runs or subproblems. Forbidden pairs (``+inf`` entries, and Murty's constraints)
+    cost more than any whole assignment of allowed ones, so every solve is of a finite matrix; a solution
+    that needs one is infeasible and ends the run's list.
+
+    Args:
+        cost: ``(*B, n, m)`` floating, ``+inf`` for a forbidden pair (NaN and ``-inf`` are refused).
+            Each of the ``min(n, m)`` rows (or columns, if fewer) is assigned one distinct column (row).
+        k: how many assignments.
+
+    Returns:
+        ``assignments (*B, k, n)`` long (the column of each row, ``-1`` for a row left unassigned when
+        ``n > m``; a whole row of ``-1`` past the last feasible assignment) and ``costs (*B, k)``
+        ascending (``+inf`` past the last feasible one). Ties are broken arbitrarily; the costs are
+        those of an enumeration of every assignment, sorted (tests/test_murty.py).
+
+    Raises:
+        ValueError naming ``cost`` (not ``(*B, n, m)`` floating, NaN or ``-inf`` entries) or ``k``.
+
+    Examples:
+        >>> cost = torch.tensor([[4.0, 1.0, 3.0], [2.0, 0.0, 5.0], [3.0, 2.0, 2.0]])
+        >>> assignments, costs = k_best_assignments(cost, 3)
+        >>> costs
+        tensor([5., 6., 6.])
+        >>> assignments[0]
+        tensor([1, 0, 2])
+    """
+    if not isinstance(cost, Tensor) or cost.dim() < 2 or not cost.is_floating_point():
+        raise ValueError(f"cost: expected a floating tensor (*B, n, m), got "
+                         f"{tuple(cost.shape) if isinstance(cost, Tensor) else type(cost).__name__}")
+    if bool((torch.isnan(cost) | torch.isneginf(cost)).any()):
+        raise ValueError("cost: NaN or -inf entries (+inf forbids a pair; every other entry must be finite)")
+    *batch, n, m = cost.shape
+    k = int(k)
+    if n > m:  # the columns are assigned rows: solve the transpose, then turn column -> row into row -> column
+        by_col, costs = unchecked(k_best_assignments)(cost.mT, k)  # (*B, k, m)
+        rows = torch.full((*batch, k, n), -1, dtype=torch.long, device=cost.device)
+        cols = torch.arange(m, device=cost.device).expand(*batch, k, m)
+        return _scatter_rows(rows, by_col, cols, n), costs
+    R = math.prod(batch)
+    dev, dt = cost.device, cost.dtype
+    out_assign = torch.full((R, k, n), -1, dtype=torch.long, device=dev)
+    out_cost = torch.full((R, k), math.inf, dtype=dt, device=dev)
+    if R == 0:
+        return out_assign.reshape(*batch, k, n), out_cost.reshape(*batch, k)
+    if n == 0:  # one assignment, the empty one
+        out_cost[:, 0] = 0.0
+        return out_assign.reshape(*batch, k, n), out_cost.reshape(*batch, k)
+    c = cost.reshape(R, n, m)
+    allowed = torch.isfinite(c)
+    finite = torch.where(allowed, c, torch.zeros((), dtype=dt, device=dev))
+    big = (finite.abs().amax((-2, -1), keepdim=True) + 1) * (2 * n + 1)  # > any feasible assignment's total
+    base = torch.where(allowed, c, big)
+    rows_r = torch.arange(R, device=dev)
+    cols = torch.arange(m, device=dev)
+
+    def true_cost(sol: Tensor, blocked: Tensor) -> Tensor:
+        """``sol (..., n)`` of ``c`` -> its cost, ``inf`` where it takes a forbidden or blocked pair."""
+        cc = c.reshape(R, *([1] * (sol.dim() - 2)), n, m).expand(*sol.shape, m)
+        taken = cc.gather(-1, sol.unsqueeze(-1)).squeeze(-1)
+        bad = blocked.gather(-1, sol.unsqueeze(-1)).squeeze(-1).any(-1) | ~torch.isfinite(taken).all(-1)
+        return torch.where(bad, math.inf, taken.sum(-1))
+
+    P = 1 + (k - 1) * n
+    pool_cost = torch.full((R, P), math.inf, dtype=dt, device=dev)
+    pool_assign = torch.zeros((R, P, n), dtype=torch.long, device=dev)
+    pool_forbid = torch.zeros((R, P, n, m), dtype=torch.bool, device=dev)
+    pool_forced = torch.full((R, P, n), -1, dtype=torch.long, device=dev)
+    root = _hungarian(base)
+    pool_assign[:, 0] = root
+    pool_cost[:, 0] = true_cost(root, torch.zeros(R, n, m, dtype=torch.bool, device=dev))
+    before = torch.arange(n, device=dev).unsqueeze(-1) > torch.arange(n, device=dev)  # [child, row]: row < child
+    child = torch.arange(n, device=dev)
+    for r in range(k):
+        best = pool_cost.argmin(-1)  # (R,)
+        bc = pool_cost[rows_r, best]
+        ok = torch.isfinite(bc)
+        a = pool_assign[rows_r, best]
+        out_cost[:, r] = bc
+        out_assign[:, r] = torch.where(ok.unsqueeze(-1), a, -1)
+        if r == k - 1:
+            break
+        pool_cost[rows_r, best] = math.inf
+        forbid, forced = pool_forbid[rows_r, best], pool_forced[rows_r, best]  # (R, n, m), (R, n)
+        free_row = forced < 0
+        # child c: the rows before c that are free forced to a's columns; the pair (c, a_c) forbidden
+        forced_c = torch.where(free_row.unsqueeze(-2) & before, a.unsqueeze(-2), forced.unsqueeze(-2))  # (R, n, n)
+        forbid_c = forbid.unsqueeze(1).expand(R, n, n, m).clone()
+        forbid_c[:, child, child] |= cols == a.unsqueeze(-1)  # (R, n, m) for child c, row c
+        exists = free_row & ok.unsqueeze(-1)  # (R, n): child c exists where row c is free
+        cell = (cols == forced_c.clamp_min(0).unsqueeze(-1)) & (forced_c >= 0).unsqueeze(-1)  # (R, n, n, m)
+        in_forced_row = (forced_c >= 0).unsqueeze(-1) & ~cell
+        in_forced_col = cell.any(-2, keepdim=True) & ~cell
+        blocked = forbid_c | in_forced_row | in_forced_col
+        C = torch.where(blocked, big.unsqueeze(1), base.unsqueeze(1))  # (R, n, n, m)
+        sol = _hungarian(C.reshape(R * n, n, m)).reshape(R, n, n)
+        child_cost = torch.where(exists, true_cost(sol, blocked), math.inf)
+        slots = 1 + r * n + child
+        pool_cost[:, slots] = child_cost
+        pool_assign[:, slots] = sol
+        pool_forbid[:, slots] = forbid_c
+        pool_forced[:, slots] = forced_c
+    return out_assign.reshape(*batch, k, n), out_cost.reshape(*batch, k)
+
+
+def _scatter_rows(rows: Tensor, by_col: Tensor, cols: Tensor, n: int) -> Tensor:
+    """``rows (..., n)`` filled from the column -> row assignments ``by_col (..., m)`` (``-1``: none)."""
+    found = by_col >= 0
+    wide = torch.cat([rows, torch.full_like(rows[..., :1], -1)], -1)  # slot n: where the unassigned land
+    wide = wide.scatter(-1, torch.where(found, by_col, n), torch.where(found, cols, -1))
+    return wide[..., :n]
