@@ -214,3 +214,13 @@ def test_estimation_benchmark_runs_and_agrees():
     assert abs(float(ours) - float(theirs)) < 1e-3
     for diff in re.findall(r"difference(?: after \d+)? ([0-9.]+e[-+][0-9]+)", proc.stdout):
         assert float(diff) < 1e-7
+
+
+def test_murty_benchmark_runs_and_agrees():
+    proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "murty.py"), "--runs", "20", "--reference-runs", "5",
+                           "--n", "6", "--d", "8", "--k", "5", "--threads", "1"],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert re.fullmatch(r"murty_speedup=[0-9.]+ murty_runs_per_s=[0-9.]+", proc.stdout.strip().splitlines()[-1])
+    diff = float(re.search(r"largest cost difference ([0-9.e+-]+)", proc.stdout).group(1))
+    assert diff < 1e-9

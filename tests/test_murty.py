@@ -10,7 +10,19 @@ import numpy as np
 import pytest
 import torch
 
+import torchmm.kernels as kernels
 from torchmm.assignment import k_best_assignments, linear_assignment
+
+
+@pytest.fixture(autouse=True, params=["compiled loop", "tensors"])
+def path(request):
+    """Every test on both paths: the compiled CPU loop (the default on the CPU) and the batched tensor
+    form (a device's; here with the loop switched off)."""
+    if request.param == "tensors":
+        with kernels.switched_off("assignment_loops"):
+            yield request.param
+    else:
+        yield request.param
 
 
 def enumerate_costs(cost: np.ndarray) -> list[tuple[float, tuple]]:
@@ -94,3 +106,13 @@ def test_shapes_empty_and_errors():
         k_best_assignments(torch.tensor([[float("nan")]]), 1)
     with pytest.raises(ValueError, match="^k"):
         k_best_assignments(torch.zeros(2, 2), 0)
+
+
+def test_both_paths_give_the_same_costs():
+    g = torch.Generator().manual_seed(5)
+    cost = torch.rand(40, 6, 8, dtype=torch.float64, generator=g)
+    cost[cost > 0.9] = math.inf
+    _, loop = k_best_assignments(cost, 15)
+    with kernels.switched_off("assignment_loops"):
+        _, tensors = k_best_assignments(cost, 15)
+    torch.testing.assert_close(loop, tensors, rtol=1e-12, atol=1e-12)

@@ -123,6 +123,8 @@ example("torchmm.assignment.assignment_cost")(
     lambda: call(assignment.assignment_cost, torch.tensor([[4.0, 1.0, 3.0], [2.0, 0.0, 5.0]]), torch.tensor([1, 0])))
 example("torchmm.assignment.linear_assignment")(
     lambda: call(assignment.linear_assignment, torch.tensor([[4.0, 1.0, 3.0], [2.0, 0.0, 5.0]])))
+example("torchmm.assignment.k_best_assignments")(
+    lambda: call(assignment.k_best_assignments, torch.tensor([[4.0, 1.0, 3.0], [2.0, 0.0, 5.0]]), 3))
 
 
 # -- simulate -------------------------------------------------------------------------------------------

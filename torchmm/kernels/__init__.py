@@ -129,7 +129,7 @@ _OFF: set = set()
 
 
 #: kernels of stages inside a step (no plan; they ask enabled(name) themselves)
-_STAGES = ("particle_stages",)
+_STAGES = ("particle_stages", "assignment_loops")
 
 
 def names() -> list[str]:
