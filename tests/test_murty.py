@@ -104,6 +104,8 @@ def test_shapes_empty_and_errors():
     assert a.shape == (0, 2, 3) and c.shape == (0, 2)
     with pytest.raises(ValueError, match="^cost: NaN or -inf"):
         k_best_assignments(torch.tensor([[float("nan")]]), 1)
+    with pytest.raises(ValueError, match="^cost: entries up to 1e\\+308"):
+        k_best_assignments(torch.tensor([[1e308, 1.0], [math.inf, 1e308]], dtype=torch.float64), 2)
     with pytest.raises(ValueError, match="^k"):
         k_best_assignments(torch.zeros(2, 2), 0)
 

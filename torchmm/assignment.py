@@ -224,6 +224,9 @@ def k_best_assignments(cost: Tensor, k: int) -> tuple[Tensor, Tensor]:
     allowed = torch.isfinite(c)
     finite = torch.where(allowed, c, torch.zeros((), dtype=dt, device=dev))
     big = (finite.abs().amax((-2, -1), keepdim=True) + 1) * (2 * n + 1)  # > any feasible assignment's total
+    if not bool(torch.isfinite(big).all()):
+        raise ValueError(f"cost: entries up to {float(finite.abs().max()):.3g} in magnitude leave no finite cost "
+                         "for a forbidden pair (+inf); rescale the costs")
     base = torch.where(allowed, c, big)
     if _loops_apply(cost):  # the CPU: the compiled loop, one run after another (the same algorithm)
         from torchmm.kernels import assignment_loops

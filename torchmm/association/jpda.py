@@ -20,7 +20,14 @@ detections (Williams & Lau, IEEE TAES 50(4), 2014): messages ``mu_ij = w_ij / (m
 nu_j'i)`` and ``nu_ji = 1 / (1 + sum_{i' != i} mu_i'j)``, then ``beta_ij ∝ w_ij nu_ji``, ``beta_i0 ∝ m``.
 Cost ``O(iterations N D)`` a run and scan; exact when no detection is validated by two tracks.
 
-The log-likelihood of a scan is ``log Z`` (``method="exact"``): the joint target hypothesis against "every
+``method="kbest"`` sums over the ``k`` most likely joint events only (Murty's k best assignments of the
+``N x (D + N)`` costs ``-log w_ij`` and, on track ``i``'s own column ``D + i``, ``-log m``:
+:func:`torchmm.assignment.k_best_assignments`), for many targets: ``beta_ij`` and ``Z`` as above over
+those events (``Z`` a lower bound of the exact one; with ``k`` at least the number of events, exact JPDA).
+Cost a Murty round per event; the event weights are differentiable in the ``w_ij`` (the events are
+chosen without gradient).
+
+The log-likelihood of a scan is ``log Z`` (``method="exact"``, ``"kbest"``): the joint target hypothesis against "every
 detection is clutter" (with one track, the PDA's). With ``"lbp"`` it is the sum over tracks of each
 track's PDA log-likelihood, which equals ``log Z`` when no detection is validated by two tracks.
 """
@@ -32,7 +39,7 @@ import math
 import torch
 from torch import Tensor
 
-from torchmm.assignment import linear_assignment
+from torchmm.assignment import k_best_assignments, linear_assignment
 from torchmm.association.pda import (
     DetectionSets,
     check_detections,
@@ -144,10 +151,38 @@ def lbp_marginals(log_w: Tensor, log_missed: float, iterations: int, tolerance: 
     return torch.log_softmax(log_num, -1)
 
 
-@entry_point(log_weights=Sets(axis=-1, missing=-math.inf, floating=True), missed=Real(minimum=0.0), method=Choice("exact", "lbp"),
-             iterations=Int(1), tolerance=Real(minimum=0.0))
+def kbest_marginals(log_w: Tensor, log_missed: float | Tensor, k: int) -> tuple[Tensor, Tensor]:
+    """JPDA marginals over the ``k`` most likely joint events. ``log_w (R, N, D)`` -> ``log beta (R, N, 1 + D)``
+    (missed first), ``log Z (R,)`` (over those events; ``-inf`` where none has weight). ``log_missed``: one
+    number or ``(R, N)``. The events are the k best assignments of the ``N x (D + N)`` costs (track
+    ``i``'s own column ``D + i`` its miss); their log-weights are re-gathered from ``log_w`` so that they
+    carry its gradient."""
+    R, N, D = log_w.shape
+    dtype, device = log_w.dtype, log_w.device
+    own = torch.eye(N, dtype=torch.bool, device=device)
+    log_m = log_missed if isinstance(log_missed, Tensor) else torch.full((R, N), log_missed, dtype=dtype, device=device)
+    neg_inf = torch.full((), -math.inf, dtype=dtype, device=device)
+    gain = torch.cat([log_w, torch.where(own, log_m.unsqueeze(-1), neg_inf)], -1)  # (R, N, D + N)
+    cost = torch.where(torch.isfinite(gain), -gain.detach(), math.inf)
+    cost = torch.where(torch.isnan(cost), math.inf, cost)  # (a failed track: no pair; its run is NaN below)
+    events, _ = unchecked(k_best_assignments)(cost, k)  # (R, k, N); -1 past the last
+    feasible = (events >= 0).all(-1)  # (R, k)
+    taken = gain.unsqueeze(1).expand(R, k, N, D + N).gather(-1, events.clamp_min(0).unsqueeze(-1)).squeeze(-1)
+    log_e = torch.where(feasible, taken.sum(-1), neg_inf)  # (R, k) each event's log-weight
+    log_z = torch.logsumexp(log_e, -1)
+    p = torch.where(feasible, (log_e - log_z.unsqueeze(-1)).exp(), torch.zeros((), dtype=dtype, device=device))
+    p = torch.where(torch.isneginf(log_z).unsqueeze(-1), torch.zeros((), dtype=dtype, device=device), p)
+    column = torch.where(events >= D, 0, events + 1).clamp_min(0)  # (R, k, N): 0 missed, 1 + j detection j
+    onehot = (column.unsqueeze(-1) == torch.arange(1 + D, device=device)).to(dtype)  # (R, k, N, 1 + D)
+    beta = (p[..., None, None] * onehot).sum(1)
+    log_z = log_z + torch.where(torch.isnan(log_w).any(-1).any(-1), torch.nan, 0.0)
+    return beta.log(), log_z
+
+
+@entry_point(log_weights=Sets(axis=-1, missing=-math.inf, floating=True), missed=Real(minimum=0.0),
+             method=Choice("exact", "lbp", "kbest"), iterations=Int(1), tolerance=Real(minimum=0.0), k=Int(1))
 def jpda_marginals(log_weights: Tensor, missed: float, *, method: str = "exact", iterations: int = 100,
-                   tolerance: float = 1e-13) -> tuple[Tensor, Tensor | None]:
+                   tolerance: float = 1e-13, k: int = 100) -> tuple[Tensor, Tensor | None]:
     r"""JPDA association probabilities from single-target log-weights.
 
     Args:
@@ -155,13 +190,15 @@ def jpda_marginals(log_weights: Tensor, missed: float, *, method: str = "exact",
             ``-inf``: detection ``j`` not validated by track ``i``; ``D = 0``: no detection, the same
             marginals ``beta_i0`` and ``Z`` as ``D`` columns of ``-inf``).
         missed: ``m``, the weight of a missed detection (``1 - P_D P_G``; 0: every track is detected).
-        method: ``"exact"`` (every joint event) or ``"lbp"`` (loopy belief propagation).
+        method: ``"exact"`` (every joint event), ``"lbp"`` (loopy belief propagation) or ``"kbest"``
+            (the ``k`` most likely joint events).
         iterations, tolerance: the belief propagation's most iterations and relative tolerance (on
             the CPU it stops when every message moved less; elsewhere it runs every iteration).
+        k: the events of ``"kbest"``.
 
     Returns:
         ``log beta (*B, N, 1 + D)`` (missed first; each track's sum to one) and ``log Z (*B,)``
-        (``None`` for ``"lbp"``).
+        (``None`` for ``"lbp"``; for ``"kbest"`` over its events).
 
     Examples:
         >>> log_w = torch.tensor([[[0.0, -1.0], [-1.0, 0.0]]])  # two tracks, two detections
@@ -176,6 +213,9 @@ def jpda_marginals(log_weights: Tensor, missed: float, *, method: str = "exact",
     log_missed = math.log(missed) if missed > 0 else -math.inf
     if method == "lbp":
         return lbp_marginals(flat, log_missed, iterations, tolerance).reshape(*batch, N, 1 + D), None
+    if method == "kbest":
+        log_beta, log_z = kbest_marginals(flat, log_missed, k)
+        return log_beta.reshape(*batch, N, 1 + D), log_z.reshape(batch)
     log_beta, log_z = exact_marginals(flat, log_missed)
     return log_beta.reshape(*batch, N, 1 + D), log_z.reshape(batch)
 
@@ -206,10 +246,12 @@ class JPDA(DetectionSets):
         detection_probability: ``P_D`` in (0, 1].
         clutter_density: ``lambda`` > 0, false detections per unit volume of measurement space.
         gate_probability: ``P_G`` in (0, 1] (default 0.99; 1: no gate).
-        method: ``"exact"`` (default; every joint event, up to ``max_targets`` tracks) or ``"lbp"``
-            (loopy belief propagation, any number).
+        method: ``"exact"`` (default; every joint event, up to ``max_targets`` tracks), ``"lbp"``
+            (loopy belief propagation, any number) or ``"kbest"`` (the ``k`` most likely joint events,
+            any number: Murty's k best assignments).
         max_targets: the most tracks ``"exact"`` takes (its cost grows as ``2^N``).
         iterations, tolerance: the belief propagation's (``"lbp"``).
+        k: the joint events of ``"kbest"`` (default 100; at least the number of events: exact JPDA).
 
     Shapes:
         belief: :class:`~torchmm.GaussianBelief` (or the IMM's ``ModeBelief``) with batch ``(*B, N)``;
@@ -234,15 +276,16 @@ class JPDA(DetectionSets):
     joint = True
 
     @entry_point(filter=Of(Filter), detection_probability=Real(0.0, 1.0), clutter_density=Real(positive=True),
-                 gate_probability=Real(0.0, 1.0), method=Choice("exact", "lbp"), max_targets=Int(1),
-                 iterations=Int(1), tolerance=Real(minimum=0.0))
+                 gate_probability=Real(0.0, 1.0), method=Choice("exact", "lbp", "kbest"), max_targets=Int(1),
+                 iterations=Int(1), tolerance=Real(minimum=0.0), k=Int(1))
     def __init__(self, filter: Filter, *, detection_probability: float, clutter_density: float,
                  gate_probability: float = 0.99, method: str = "exact", max_targets: int = 12,
-                 iterations: int = 100, tolerance: float = 1e-13):
+                 iterations: int = 100, tolerance: float = 1e-13, k: int = 100):
         super().__init__()
         set_association(self, filter, detection_probability, clutter_density, gate_probability)
         self.method, self.max_targets = method, int(max_targets)
         self.iterations, self.tolerance = int(iterations), float(tolerance)
+        self.k = int(k)
 
     def update(self, belief: GaussianBelief, z: Tensor) -> StepOutput:
         hyp, validated, log_w, S, singular = self._scan(belief, z)
@@ -282,6 +325,9 @@ class JPDA(DetectionSets):
         *runs, N, D = log_w.shape
         if self.method == "exact":
             log_beta, log_z = self._exact(log_w, validated, log_missed)
+        elif self.method == "kbest":
+            log_beta, log_z = kbest_marginals(flat_runs(log_w, 2), log_missed, self.k)
+            log_beta, log_z = log_beta.reshape(*runs, N, 1 + D), log_z.reshape(runs)
         else:
             log_beta = lbp_marginals(flat_runs(log_w, 2), log_missed, self.iterations,
                                       self.tolerance).reshape(*runs, N, 1 + D)
