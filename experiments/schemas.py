@@ -919,8 +919,16 @@ def _unit_interval_closed_above(value) -> str | None:
     return None if value is None or 0 < value <= 1 else "must lie in (0, 1]"
 
 
-TRACKERS = ("IMM-JPDAF", "JPDAF", "IMM-PDAF", "GNN-IMM")  # one track per target, known from the first scan
+TRACKERS = ("IMM-JPDAF", "JPDAF", "IMM-PDAF", "GNN-IMM", "IMM-JPDAF-LBP", "IMM-JPDAF-kbest")  # one track per
+# target, known from the first scan (IMM-JPDAF's association: tracking.jpda.method; the -LBP and -kbest ones fixed)
+EXACT_JPDA = ("IMM-JPDAF", "JPDAF")  # (with tracking.jpda.method exact: at most 12 targets)
 MANAGED_TRACKERS = ("JIPDA-TM", "IMM-JIPDA-TM")  # start with no track: initiation, confirmation, deletion
+
+
+@dataclass
+class JPDASettings:
+    method: str = spec("exact", one_of("exact", "lbp", "kbest"))  # IMM-JPDAF's and JPDAF's joint association
+    k: int = spec(100, positive_int)  # kbest: the joint events a scan
 
 
 @dataclass
@@ -959,6 +967,7 @@ class TrackingSection:
     gospa_p: float = spec(MISSING, lambda v: None if v is None or v >= 1 else "must be at least 1")
     lifetimes: Optional[List[List[int]]] = MISSING
     management: TrackManagement = field(default_factory=TrackManagement)
+    jpda: JPDASettings = field(default_factory=JPDASettings)
     estimators: List[str] = spec(MISSING, check=both(non_empty, each(one_of(*TRACKERS, *MANAGED_TRACKERS))))
 
 
@@ -974,8 +983,11 @@ class Tracking:
                               f"({t['maneuver_stop']}): the manoeuvre spans the scans [maneuver_start, maneuver_stop)")
         if len(t["P0"]) != 4:
             raise ConfigError("tracking.P0", t["P0"], "expected 4 variances, [x, vx, y, vy]")
-        if t["targets"] > 12 and any(name in ("IMM-JPDAF", "JPDAF") for name in t["estimators"]):
-            raise ConfigError("tracking.targets", t["targets"], "the exact JPDA takes at most 12 targets")
+        method = (t.get("jpda") or {}).get("method", "exact")
+        if t["targets"] > 12 and method == "exact" and any(name in EXACT_JPDA for name in t["estimators"]):
+            raise ConfigError("tracking.targets", t["targets"], "the exact JPDA takes at most 12 targets (tracking."
+                              "jpda.method: lbp or kbest, or the estimators IMM-JPDAF-LBP / IMM-JPDAF-kbest, take any "
+                              "number)")
         m = t["management"]
         if m["method"] == "exact" and m["capacity"] > 12 and set(MANAGED_TRACKERS) & set(t["estimators"]):
             raise ConfigError("tracking.management.capacity", m["capacity"],

@@ -13,10 +13,10 @@ ROOT = Path(torchmm.__file__).parent
 LAYERS = [
     {"validation", "typing", "runtime", "provenance"},
     {"contract"},  # the entry-point contract (torchmm/contract.py): every layer above declares through it
-    {"distributions", "linalg", "assignment"},
+    {"distributions", "linalg"},
     {"beliefs"},
     {"models", "kernels"},  # kernels: the seam (torchmm/kernels/__init__.py) and the kernels behind it
-    {"filters", "simulate"},
+    {"filters", "simulate", "assignment"},  # (assignment: its compiled loop is a stage kernel)
     {"run", "multimodel", "association"},
     {"smooth", "parallel"},  # the backward passes, the time-parallel scans
     {"fusion", "learn", "metrics", "analysis"},

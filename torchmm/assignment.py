@@ -317,10 +317,9 @@ def _loops_apply(cost: Tensor) -> bool:
     """The compiled CPU loop of :func:`k_best_assignments` runs: a CPU tensor without autograd, Numba
     importable, the stage kernel ``assignment_loops`` switched on (:func:`torchmm.kernels.set_enabled`)."""
     import torchmm.kernels as kernels
-    from torchmm.kernels.linear import _numba_available
 
     return (cost.device.type == "cpu" and not (cost.requires_grad and torch.is_grad_enabled())
-            and kernels.enabled("assignment_loops") and _numba_available())
+            and kernels.enabled("assignment_loops") and kernels.numba_available())
 
 
 def _scatter_rows(rows: Tensor, by_col: Tensor, cols: Tensor, n: int) -> Tensor:

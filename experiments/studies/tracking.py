@@ -17,7 +17,10 @@ no track and initiates, confirms and deletes its own, as does ``IMM-JIPDA-TM``.
 Estimators (``tracking.estimators``):
 
 * ``IMM-JPDAF``: ``JPDA(IMM(KalmanFilter(bank)))``: the joint association over an IMM of the truth's
-  three acceleration modes (Blom & Bloem 2000), exact.
+  three acceleration modes (Blom & Bloem 2000); ``tracking.jpda.method``: ``exact`` (default, at most
+  12 targets), ``lbp`` or ``kbest`` (the ``tracking.jpda.k`` most likely joint events: Murty).
+* ``IMM-JPDAF-LBP``, ``IMM-JPDAF-kbest``: the same with loopy belief propagation, and with the k best
+  joint events, whatever ``tracking.jpda.method`` says: the methods side by side in one study.
 * ``JPDAF``: ``JPDA(KalmanFilter(cv))``: one constant-velocity model with the inflated noise ``q_cv``.
 * ``IMM-PDAF``: ``IMM(PDA(KalmanFilter(bank)))`` per target (Houles & Bar-Shalom 1989): every track
   associates alone, the scan shared.
@@ -59,7 +62,7 @@ from torchmm.metrics import gospa
 from torchmm.models import ConstantVelocity, PositionMeasurement
 from torchmm.simulate import simulate_detections
 
-ESTIMATORS = ("IMM-JPDAF", "JPDAF", "IMM-PDAF", "GNN-IMM")
+ESTIMATORS = ("IMM-JPDAF", "JPDAF", "IMM-PDAF", "GNN-IMM", "IMM-JPDAF-LBP", "IMM-JPDAF-kbest")
 UNIT = "experiments.studies.tracking:unit"
 
 
@@ -131,9 +134,15 @@ def estimators(t, dtype) -> dict[str, Estimator]:
             "clutter_density": float(t.clutter_rate) / (2 * float(t.region)) ** 2,
             "gate_probability": float(t.gate_probability)}
     imm = IMM(KalmanFilter(bank, sensor), Pi)
+    jp = t.get("jpda") or {}
+    chosen = {"method": str(jp.get("method", "exact")), "k": int(jp.get("k", 100)),
+              "max_targets": max(12, int(t.targets))}
     made = {
-        "IMM-JPDAF": lambda: Estimator(JPDA(imm, **opts), imm.initial_belief, False, False),
-        "JPDAF": lambda: Estimator(JPDA(KalmanFilter(cv, sensor), **opts), lambda b: b, False, False),
+        "IMM-JPDAF": lambda: Estimator(JPDA(imm, **opts, **chosen), imm.initial_belief, False, False),
+        "IMM-JPDAF-LBP": lambda: Estimator(JPDA(imm, **opts, method="lbp"), imm.initial_belief, False, False),
+        "IMM-JPDAF-kbest": lambda: Estimator(JPDA(imm, **opts, method="kbest", k=chosen["k"]), imm.initial_belief,
+                                             False, False),
+        "JPDAF": lambda: Estimator(JPDA(KalmanFilter(cv, sensor), **opts, **chosen), lambda b: b, False, False),
         "IMM-PDAF": lambda: _per_track(IMM(PDA(KalmanFilter(bank, sensor), **opts), Pi)),
         "GNN-IMM": lambda: Estimator(GNN(imm, **opts), imm.initial_belief, False, False),
         "JIPDA-TM": lambda: _managed(t, KalmanFilter(cv, sensor), opts, dtype),

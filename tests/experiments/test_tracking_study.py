@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import pytest
 import torch
 from omegaconf import OmegaConf
 
@@ -53,3 +54,25 @@ def test_managed_tracker_follows_births_and_deaths(tmp_path):
     record = dict(zip(row["columns"], row["rows"][0]))
     assert 1.0 <= record["first_track_delay"] <= 6.0, record
     assert record["lost_fraction"] <= 0.25, record
+
+
+def test_the_association_methods_side_by_side(tmp_path):
+    """tracking.jpda.method and the IMM-JPDAF-LBP / IMM-JPDAF-kbest estimators (issue 46): with every joint
+    event the k-best IMM-JPDAF is the exact one, GOSPA for GOSPA; loopy belief propagation runs beside
+    them; more than 12 targets are refused for the exact method only."""
+    from experiments.config import validate
+
+    overrides = ["debug=tracking", "tracking.steps=12", "tracking.clutter_rate=2",
+                 "tracking.estimators=[IMM-JPDAF,IMM-JPDAF-LBP,IMM-JPDAF-kbest]", "tracking.jpda.k=5000"]
+    run_study(_compose("tracking", *COMMON, "figures=false", *overrides), tmp_path)
+    rows = json.loads((tmp_path / "results.json").read_text())["tables"]["gospa"]
+    table = {row[0]: dict(zip(rows["columns"], row)) for row in rows["rows"]}
+    assert set(table) == {"IMM-JPDAF", "IMM-JPDAF-LBP", "IMM-JPDAF-kbest"}
+    exact, kbest = table["IMM-JPDAF"], table["IMM-JPDAF-kbest"]
+    for key, value in exact.items():
+        if key not in ("estimator", "seconds_per_track_scan") and isinstance(value, float):
+            assert kbest[key] == pytest.approx(value, rel=1e-9, abs=1e-9), key
+    validate(_compose("tracking", "tracking.targets=20", "tracking.jpda.method=kbest",
+                      "tracking.estimators=[IMM-JPDAF,JPDAF]"))
+    with pytest.raises(ValueError, match="tracking.targets=20: the exact JPDA takes at most 12"):
+        validate(_compose("tracking", "tracking.targets=20", "tracking.estimators=[IMM-JPDAF]"))

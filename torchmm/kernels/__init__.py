@@ -132,6 +132,21 @@ _OFF: set = set()
 _STAGES = ("particle_stages", "assignment_loops")
 
 
+def numba_available() -> bool:
+    """Whether Numba can be imported (without importing it: it takes about 0.2 s), for the compiled
+    kernels and stages."""
+    import sys
+
+    if "numba" in sys.modules:
+        return True
+    try:
+        import importlib.util
+
+        return importlib.util.find_spec("numba") is not None
+    except (ImportError, ValueError):  # pragma: no cover
+        return False
+
+
 def names() -> list[str]:
     """The names :func:`set_enabled` knows: the registered kernels' and the stage kernels'."""
     return [kernel.name for kernel in registered()] + list(_STAGES)

@@ -33,7 +33,6 @@ or a non-finite result is run again eagerly, which flags it as it always does (d
 from __future__ import annotations
 
 import math
-import sys
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -89,17 +88,6 @@ def load():
     from torchmm.kernels import linear_loops
 
     return linear_loops
-
-
-def _numba_available() -> bool:
-    if "numba" in sys.modules:
-        return True
-    try:
-        import importlib.util
-
-        return importlib.util.find_spec("numba") is not None
-    except (ImportError, ValueError):  # pragma: no cover
-        return False
 
 
 def _np(t: Tensor):
@@ -346,7 +334,7 @@ class LinearKernel:
             return "with autograd the kernel keeps only the log-likelihood and the filtered beliefs"
         if not (request.forced or request.repeated or steps * runs >= LONG_RUN):
             return f"a short run ({steps} x {runs} < {LONG_RUN} steps x runs: the steps are as fast)"
-        if not _numba_available():
+        if not kernels.numba_available():
             return "Numba is not installed"
         try:
             z = measurements.expand(steps, *batch, m).reshape(steps, runs, m)
@@ -413,7 +401,7 @@ class LinearKernel:
             return f"{runs} runs: more than the serial loop's {MAX_RUNS}"
         if steps * runs < LONG_RUN:
             return f"a short run ({steps} x {runs} < {LONG_RUN} steps x runs)"
-        if not _numba_available():
+        if not kernels.numba_available():
             return "Numba is not installed"
         models = _models(model)
         wide = ((M, n, n), (M, n), (M, n, n))
