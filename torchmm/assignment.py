@@ -202,7 +202,8 @@ def k_best_assignments(cost: Tensor, k: int) -> tuple[Tensor, Tensor]:
     if not isinstance(cost, Tensor) or cost.dim() < 2 or not cost.is_floating_point():
         raise ValueError(f"cost: expected a floating tensor (*B, n, m), got "
                          f"{tuple(cost.shape) if isinstance(cost, Tensor) else type(cost).__name__}")
-    if bool((torch.isnan(cost) | torch.isneginf(cost)).any()):
+    checked = host_reads_ok(cost)  # (value checks read the host; under no_host_sync they are the caller's)
+    if checked and bool((torch.isnan(cost) | torch.isneginf(cost)).any()):
         raise ValueError("cost: NaN or -inf entries (+inf forbids a pair; every other entry must be finite)")
     *batch, n, m = cost.shape
     k = int(k)
@@ -218,13 +219,13 @@ def k_best_assignments(cost: Tensor, k: int) -> tuple[Tensor, Tensor]:
     if R == 0:
         return out_assign.reshape(*batch, k, n), out_cost.reshape(*batch, k)
     if n == 0:  # one assignment, the empty one
-        out_cost[:, 0] = 0.0
+        out_cost[:, :1].zero_()
         return out_assign.reshape(*batch, k, n), out_cost.reshape(*batch, k)
     c = cost.reshape(R, n, m)
     allowed = torch.isfinite(c)
     finite = torch.where(allowed, c, torch.zeros((), dtype=dt, device=dev))
     big = (finite.abs().amax((-2, -1), keepdim=True) + 1) * (2 * n + 1)  # > any feasible assignment's total
-    if not bool(torch.isfinite(big).all()):
+    if checked and not bool(torch.isfinite(big).all()):
         raise ValueError(f"cost: entries up to {float(finite.abs().max()):.3g} in magnitude leave no finite cost "
                          "for a forbidden pair (+inf); rescale the costs")
     base = torch.where(allowed, c, big)
@@ -281,7 +282,7 @@ def k_best_assignments(cost: Tensor, k: int) -> tuple[Tensor, Tensor]:
         out_assign[:, r] = torch.where(ok.unsqueeze(-1), a, -1)
         if r == k - 1:
             break
-        pool_cost[rows_r, best] = math.inf
+        pool_cost.scatter_(1, best.unsqueeze(-1), pool_cost.new_full((R, 1), math.inf))  # (taken)
         forbid, forced = pool_forbid[rows_r, best], pool_forced[rows_r, best]  # (R, n, m), (R, n)
         free_row = forced < 0
         # child c: the rows before c that are free forced to a's columns; the pair (c, a_c) forbidden
@@ -298,9 +299,8 @@ def k_best_assignments(cost: Tensor, k: int) -> tuple[Tensor, Tensor]:
                                  .reshape(R * n, m, m))
         uc.copy_(pool_u[rows_r, best].unsqueeze(1).expand(R, n, m + 1).reshape(R * n, m + 1))
         vc.copy_(pool_v[rows_r, best].unsqueeze(1).expand(R, n, m + 1).reshape(R * n, m + 1))
-        pc = pp.unsqueeze(1).expand(R, n, m + 1).clone()
-        pc[pc == (child + 1).reshape(1, n, 1)] = 0  # child c: row c's column freed
-        pc = pc.reshape(R * n, m + 1)
+        pc = pp.unsqueeze(1).expand(R, n, m + 1)
+        pc = torch.where(pc == (child + 1).reshape(1, n, 1), 0, pc).reshape(R * n, m + 1)  # row c's column freed
         _augment(ac, uc, vc, pc, (child + 1).repeat(R))
         sol = _row_columns(pc, m)[:, :n].reshape(R, n, n)
         slots = 1 + r * n + child
@@ -318,7 +318,7 @@ def _loops_apply(cost: Tensor) -> bool:
     importable, the stage kernel ``assignment_loops`` switched on (:func:`torchmm.kernels.set_enabled`)."""
     import torchmm.kernels as kernels
 
-    return (cost.device.type == "cpu" and not (cost.requires_grad and torch.is_grad_enabled())
+    return (cost.device.type == "cpu" and host_reads_ok(cost) and not (cost.requires_grad and torch.is_grad_enabled())
             and kernels.enabled("assignment_loops") and kernels.numba_available())
 
 

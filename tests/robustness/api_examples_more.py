@@ -29,6 +29,8 @@ NOT_ENTRY_POINTS.update({
     "torchmm.learn.estimation.Estimate": "a result record (what estimate found), built by estimate",
     "torchmm.learn.em.EMResult": "a result record (what em found), built by em",
     "torchmm.learn.em.SwitchingEMResult": "a result record (what em_switching found), built by em_switching",
+    "torchmm.association.mht.HypothesisBelief": "a belief built inside every step (MHT.initial_belief makes it; "
+    "its validate checks the log-weights, history and tracks)",
     "torchmm.distributions.truncated_normal_moments": _OP + " (the variational filters call it inside every "
     "step; its inputs are the filter's own moments)",
 })
@@ -139,6 +141,12 @@ example("torchmm.association.jpda.JPDA")(
                                       models.PositionMeasurement(2, [0], 1.0, dtype=torch.float64)),
                  detection_probability=0.9, clutter_density=0.01, gate_probability=0.99, method="lbp",
                  max_targets=8, iterations=50, tolerance=1e-12))
+example("torchmm.association.mht.MHT")(
+    lambda: call(association.MHT,
+                 filters.KalmanFilter(models.ConstantVelocity(1, dtype=torch.float64),
+                                      models.PositionMeasurement(2, [0], 1.0, dtype=torch.float64)),
+                 detection_probability=0.9, clutter_density=0.01, gate_probability=0.99, hypotheses=4, k=6,
+                 n_scan=2))
 example("torchmm.association.jpda.GNN")(
     lambda: call(association.GNN,
                  filters.KalmanFilter(models.ConstantVelocity(1, dtype=torch.float64),

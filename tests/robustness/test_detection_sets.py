@@ -36,6 +36,8 @@ import torch
 from torchmm import GPB2, IMM, GaussianBelief, KalmanFilter, ParticleFilter, UnscentedKalmanFilter, run_filter
 from torchmm.association import (
     GNN,
+    MHT,
+    HypothesisBelief,
     IPDA,
     JIPDA,
     JPDA,
@@ -144,6 +146,8 @@ CASES = [
     DetectionCase("jpda_gpb2", lambda: JPDA(_gpb2(), **ASSOC), _joint, tracks=True),
     DetectionCase("gnn", lambda: GNN(_kf(), **ASSOC), _joint, tracks=True),
     DetectionCase("gnn_imm", lambda: GNN(_imm(), **ASSOC), _joint, tracks=True),
+    DetectionCase("mht", lambda: MHT(_kf(), hypotheses=3, **ASSOC), _joint),
+    DetectionCase("mht_imm", lambda: MHT(_imm(), hypotheses=3, **ASSOC), _joint),
     DetectionCase("ipda", lambda: IPDA(_kf(), **ASSOC), _gauss),
     DetectionCase("ipda_imm", lambda: IPDA(_imm(), **ASSOC), _gauss),
     DetectionCase("jipda", lambda: JIPDA(_kf(), **ASSOC), _joint, tracks=True),
@@ -337,6 +341,8 @@ def _corrupt(belief, scale: float):
     """Run 0's covariances replaced by ``-scale I`` (every track and mode of the run)."""
     if isinstance(belief, (ModeBelief, ModeExistenceBelief)):
         return dataclasses.replace(belief, components=_corrupt(belief.components, scale))
+    if isinstance(belief, HypothesisBelief):  # (MHT: every hypothesis's tracks of run 0)
+        return dataclasses.replace(belief, tracks=_corrupt(belief.tracks, scale))
     cov = belief.cov.expand(*belief.batch_shape, *belief.cov.shape[-2:]).clone()
     cov[0] = -scale * torch.eye(cov.shape[-1], dtype=cov.dtype)
     return dataclasses.replace(belief, cov=cov)

@@ -151,12 +151,12 @@ def lbp_marginals(log_w: Tensor, log_missed: float, iterations: int, tolerance: 
     return torch.log_softmax(log_num, -1)
 
 
-def kbest_marginals(log_w: Tensor, log_missed: float | Tensor, k: int) -> tuple[Tensor, Tensor]:
-    """JPDA marginals over the ``k`` most likely joint events. ``log_w (R, N, D)`` -> ``log beta (R, N, 1 + D)``
-    (missed first), ``log Z (R,)`` (over those events; ``-inf`` where none has weight). ``log_missed``: one
-    number or ``(R, N)``. The events are the k best assignments of the ``N x (D + N)`` costs (track
-    ``i``'s own column ``D + i`` its miss); their log-weights are re-gathered from ``log_w`` so that they
-    carry its gradient."""
+def kbest_events(log_w: Tensor, log_missed: float | Tensor, k: int) -> tuple[Tensor, Tensor]:
+    """The ``k`` most likely joint events of ``log_w (R, N, D)``: ``columns (R, k, N)`` (0: missed,
+    ``1 + j``: detection ``j``) and their log-weights ``(R, k)`` (``-inf`` past the last feasible one).
+    ``log_missed``: one number or ``(R, N)``. The events are the k best assignments of the ``N x (D + N)``
+    costs (track ``i``'s own column ``D + i`` its miss); their log-weights are re-gathered from ``log_w``
+    so that they carry its gradient."""
     R, N, D = log_w.shape
     dtype, device = log_w.dtype, log_w.device
     own = torch.eye(N, dtype=torch.bool, device=device)
@@ -169,14 +169,24 @@ def kbest_marginals(log_w: Tensor, log_missed: float | Tensor, k: int) -> tuple[
     feasible = (events >= 0).all(-1)  # (R, k)
     taken = gain.unsqueeze(1).expand(R, k, N, D + N).gather(-1, events.clamp_min(0).unsqueeze(-1)).squeeze(-1)
     log_e = torch.where(feasible, taken.sum(-1), neg_inf)  # (R, k) each event's log-weight
+    log_e = log_e + torch.where(torch.isnan(log_w).any(-1).any(-1), torch.nan, 0.0).unsqueeze(-1)
+    columns = torch.where(events >= D, 0, events + 1).clamp_min(0)
+    return columns, log_e
+
+
+def kbest_marginals(log_w: Tensor, log_missed: float | Tensor, k: int) -> tuple[Tensor, Tensor]:
+    """JPDA marginals over the ``k`` most likely joint events (:func:`kbest_events`). ``log_w (R, N, D)``
+    -> ``log beta (R, N, 1 + D)`` (missed first), ``log Z (R,)`` (over those events; ``-inf`` where none
+    has weight, NaN for a failed run)."""
+    R, N, D = log_w.shape
+    dtype, device = log_w.dtype, log_w.device
+    columns, log_e = kbest_events(log_w, log_missed, k)
     log_z = torch.logsumexp(log_e, -1)
-    p = torch.where(feasible, (log_e - log_z.unsqueeze(-1)).exp(), torch.zeros((), dtype=dtype, device=device))
-    p = torch.where(torch.isneginf(log_z).unsqueeze(-1), torch.zeros((), dtype=dtype, device=device), p)
-    column = torch.where(events >= D, 0, events + 1).clamp_min(0)  # (R, k, N): 0 missed, 1 + j detection j
-    onehot = (column.unsqueeze(-1) == torch.arange(1 + D, device=device)).to(dtype)  # (R, k, N, 1 + D)
-    beta = (p[..., None, None] * onehot).sum(1)
-    log_z = log_z + torch.where(torch.isnan(log_w).any(-1).any(-1), torch.nan, 0.0)
-    return beta.log(), log_z
+    zero = torch.zeros((), dtype=dtype, device=device)
+    p = torch.where(torch.isfinite(log_e), (log_e - log_z.unsqueeze(-1)).exp(), zero)
+    p = torch.where(torch.isneginf(log_z).unsqueeze(-1), zero, p)
+    onehot = (columns.unsqueeze(-1) == torch.arange(1 + D, device=device)).to(dtype)  # (R, k, N, 1 + D)
+    return (p[..., None, None] * onehot).sum(1).log(), log_z
 
 
 @entry_point(log_weights=Sets(axis=-1, missing=-math.inf, floating=True), missed=Real(minimum=0.0),
