@@ -919,7 +919,7 @@ def _unit_interval_closed_above(value) -> str | None:
     return None if value is None or 0 < value <= 1 else "must lie in (0, 1]"
 
 
-TRACKERS = ("IMM-JPDAF", "JPDAF", "IMM-PDAF", "GNN-IMM", "IMM-JPDAF-LBP", "IMM-JPDAF-kbest")  # one track per
+TRACKERS = ("IMM-JPDAF", "JPDAF", "IMM-PDAF", "GNN-IMM", "IMM-JPDAF-LBP", "IMM-JPDAF-kbest", "IMM-MHT")  # one track per
 # target, known from the first scan (IMM-JPDAF's association: tracking.jpda.method; the -LBP and -kbest ones fixed)
 EXACT_JPDA = ("IMM-JPDAF", "JPDAF")  # (with tracking.jpda.method exact: at most 12 targets)
 MANAGED_TRACKERS = ("JIPDA-TM", "IMM-JIPDA-TM")  # start with no track: initiation, confirmation, deletion
@@ -929,6 +929,13 @@ MANAGED_TRACKERS = ("JIPDA-TM", "IMM-JIPDA-TM")  # start with no track: initiati
 class JPDASettings:
     method: str = spec("exact", one_of("exact", "lbp", "kbest"))  # IMM-JPDAF's and JPDAF's joint association
     k: int = spec(100, positive_int)  # kbest: the joint events a scan
+
+
+@dataclass
+class MHTSettings:
+    hypotheses: int = spec(10, positive_int)  # IMM-MHT: global hypotheses a run
+    k: Optional[int] = spec(None, lambda v: None if v is None else positive_int(v))  # events a hypothesis (None: hypotheses)
+    n_scan: int = spec(3, non_negative)  # N-scan pruning depth (0: none)
 
 
 @dataclass
@@ -968,6 +975,7 @@ class TrackingSection:
     lifetimes: Optional[List[List[int]]] = MISSING
     management: TrackManagement = field(default_factory=TrackManagement)
     jpda: JPDASettings = field(default_factory=JPDASettings)
+    mht: MHTSettings = field(default_factory=MHTSettings)
     estimators: List[str] = spec(MISSING, check=both(non_empty, each(one_of(*TRACKERS, *MANAGED_TRACKERS))))
 
 

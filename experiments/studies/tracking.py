@@ -21,6 +21,8 @@ Estimators (``tracking.estimators``):
   12 targets), ``lbp`` or ``kbest`` (the ``tracking.jpda.k`` most likely joint events: Murty).
 * ``IMM-JPDAF-LBP``, ``IMM-JPDAF-kbest``: the same with loopy belief propagation, and with the k best
   joint events, whatever ``tracking.jpda.method`` says: the methods side by side in one study.
+* ``IMM-MHT``: ``MHT(IMM(KalmanFilter(bank)))`` (``tracking.mht``: hypotheses, k, n_scan): the best
+  hypothesis's tracks.
 * ``JPDAF``: ``JPDA(KalmanFilter(cv))``: one constant-velocity model with the inflated noise ``q_cv``.
 * ``IMM-PDAF``: ``IMM(PDA(KalmanFilter(bank)))`` per target (Houles & Bar-Shalom 1989): every track
   associates alone, the scan shared.
@@ -56,13 +58,13 @@ from experiments.executors import Unit
 from experiments.harness import StudyContext
 from experiments.studies import plots
 from torchmm import IMM, GaussianBelief, KalmanFilter, run_filter
-from torchmm.association import GNN, JIPDA, JPDA, PDA, ManagedTracks, position_initiator
+from torchmm.association import GNN, JIPDA, JPDA, MHT, PDA, ManagedTracks, position_initiator
 from torchmm.beliefs import psd_sqrt
 from torchmm.metrics import gospa
 from torchmm.models import ConstantVelocity, PositionMeasurement
 from torchmm.simulate import simulate_detections
 
-ESTIMATORS = ("IMM-JPDAF", "JPDAF", "IMM-PDAF", "GNN-IMM", "IMM-JPDAF-LBP", "IMM-JPDAF-kbest")
+ESTIMATORS = ("IMM-JPDAF", "JPDAF", "IMM-PDAF", "GNN-IMM", "IMM-JPDAF-LBP", "IMM-JPDAF-kbest", "IMM-MHT")
 UNIT = "experiments.studies.tracking:unit"
 
 
@@ -143,12 +145,23 @@ def estimators(t, dtype) -> dict[str, Estimator]:
         "IMM-JPDAF-kbest": lambda: Estimator(JPDA(imm, **opts, method="kbest", k=chosen["k"]), imm.initial_belief,
                                              False, False),
         "JPDAF": lambda: Estimator(JPDA(KalmanFilter(cv, sensor), **opts, **chosen), lambda b: b, False, False),
+        "IMM-MHT": lambda: _mht(t, imm, opts),
         "IMM-PDAF": lambda: _per_track(IMM(PDA(KalmanFilter(bank, sensor), **opts), Pi)),
         "GNN-IMM": lambda: Estimator(GNN(imm, **opts), imm.initial_belief, False, False),
         "JIPDA-TM": lambda: _managed(t, KalmanFilter(cv, sensor), opts, dtype),
         "IMM-JIPDA-TM": lambda: _managed(t, imm, opts, dtype),
     }
     return {name: made[name]() for name in t.estimators}
+
+
+def _mht(t, imm, opts: dict) -> Estimator:
+    """``MHT(IMM(...))`` with ``tracking.mht``'s settings (the IMM-MHT: the best hypothesis's tracks shown)."""
+    h = t.get("mht") or {}
+    hypotheses = int(h.get("hypotheses", 10))
+    k = h.get("k")
+    mht = MHT(imm, **opts, hypotheses=hypotheses, k=int(k) if k is not None else hypotheses,
+              n_scan=int(h.get("n_scan", 3)))
+    return Estimator(mht, mht.initial_belief, False, False)
 
 
 def _per_track(filt) -> Estimator:

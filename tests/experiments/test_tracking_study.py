@@ -57,17 +57,23 @@ def test_managed_tracker_follows_births_and_deaths(tmp_path):
 
 
 def test_the_association_methods_side_by_side(tmp_path):
-    """tracking.jpda.method and the IMM-JPDAF-LBP / IMM-JPDAF-kbest estimators (issue 46): with every joint
-    event the k-best IMM-JPDAF is the exact one, GOSPA for GOSPA; loopy belief propagation runs beside
-    them; more than 12 targets are refused for the exact method only."""
+    """tracking.jpda.method, the IMM-JPDAF-LBP / IMM-JPDAF-kbest estimators and the IMM-MHT (issue 46):
+    with every joint event the k-best IMM-JPDAF is the exact one, GOSPA for GOSPA; the IMM-MHT with one
+    hypothesis is the GNN-IMM; loopy belief propagation runs beside them; more than 12 targets are
+    refused for the exact method only."""
     from experiments.config import validate
 
     overrides = ["debug=tracking", "tracking.steps=12", "tracking.clutter_rate=2",
-                 "tracking.estimators=[IMM-JPDAF,IMM-JPDAF-LBP,IMM-JPDAF-kbest]", "tracking.jpda.k=5000"]
+                 "tracking.estimators=[IMM-JPDAF,IMM-JPDAF-LBP,IMM-JPDAF-kbest,IMM-MHT,GNN-IMM]", "tracking.jpda.k=5000",
+                 "tracking.mht.hypotheses=1", "tracking.mht.n_scan=0"]
     run_study(_compose("tracking", *COMMON, "figures=false", *overrides), tmp_path)
     rows = json.loads((tmp_path / "results.json").read_text())["tables"]["gospa"]
     table = {row[0]: dict(zip(rows["columns"], row)) for row in rows["rows"]}
-    assert set(table) == {"IMM-JPDAF", "IMM-JPDAF-LBP", "IMM-JPDAF-kbest"}
+    assert set(table) == {"IMM-JPDAF", "IMM-JPDAF-LBP", "IMM-JPDAF-kbest", "IMM-MHT", "GNN-IMM"}
+    # the IMM-MHT with one hypothesis (and one event) is the GNN-IMM
+    for key, value in table["GNN-IMM"].items():
+        if key not in ("estimator", "seconds_per_track_scan") and isinstance(value, float):
+            assert table["IMM-MHT"][key] == pytest.approx(value, rel=1e-9, abs=1e-9), key
     exact, kbest = table["IMM-JPDAF"], table["IMM-JPDAF-kbest"]
     for key, value in exact.items():
         if key not in ("estimator", "seconds_per_track_scan") and isinstance(value, float):
