@@ -221,3 +221,61 @@ def lines(x: Sequence[float], series: Mapping[str, Sequence[float]], *, xlabel: 
         fig.tight_layout()
         return fig
     return ax.figure
+
+
+def tracks_xy(truth: torch.Tensor, present: torch.Tensor, detections: torch.Tensor,
+              tracks: Mapping[str, tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]],
+              sigma: float = 2.0, every: int | None = None, title: str = ""):
+    """One run of a multi-target tracker in the plane, a panel per estimator: the targets' true paths
+    (black, where they exist), every scan's detections (grey dots: the targets' and the clutter), and each
+    estimator's tracks, one colour per label, with ``sigma``-sigma ellipses every ``every`` scans and the
+    label at the track's last shown point.
+
+    ``truth (T, N, 2)``, ``present (T, N)`` bool, ``detections (T, D, 2)`` (NaN rows absent);
+    ``tracks[name] = (mean (T, K, 2), cov (T, K, 2, 2), shown (T, K) bool, labels (T, K) long)``.
+    """
+    from matplotlib.patches import Ellipse
+
+    names = list(tracks)
+    T = truth.shape[0]
+    k = every or max(1, T // 8)
+    cols = min(3, max(1, len(names)))
+    rows = math.ceil(max(1, len(names)) / cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(4.6 * cols, 4.4 * rows), squeeze=False)
+    z = detections.reshape(-1, 2)
+    z = z[torch.isfinite(z).all(-1)]
+    palette = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for ax, name in zip(axes.flat, names):
+        ax.plot(z[:, 0], z[:, 1], ".", color="0.7", ms=2, label="detections (targets' and clutter)")
+        for i in range(truth.shape[1]):
+            path = torch.where(present[:, i, None], truth[:, i], torch.nan)
+            ax.plot(path[:, 0], path[:, 1], color="k", lw=1.2, label="truth" if i == 0 else None)
+        mean, cov, shown, labels = tracks[name]
+        for slot in range(mean.shape[1]):
+            visible = shown[:, slot]
+            if not bool(visible.any()):
+                continue
+            label = int(labels[visible, slot][-1])
+            color = palette[label % len(palette)]
+            path = torch.where(visible[:, None], mean[:, slot], torch.nan)
+            ax.plot(path[:, 0], path[:, 1], color=color, lw=1.0)
+            for t in range(0, T, k):
+                if bool(visible[t]):
+                    width, height, angle = ellipse_axes(cov[t, slot], sigma)
+                    ax.add_patch(Ellipse((float(mean[t, slot, 0]), float(mean[t, slot, 1])), width, height,
+                                         angle=angle, fill=False, edgecolor=color, lw=0.7, alpha=0.8))
+            last = int(torch.nonzero(visible)[-1])
+            ax.annotate(str(label), (float(mean[last, slot, 0]), float(mean[last, slot, 1])), fontsize=7,
+                        color=color, xytext=(3, 3), textcoords="offset points")
+        ax.set_title(name, fontsize=9)
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.grid(alpha=0.3)
+        ax.set_xlabel("x (m)")
+        ax.set_ylabel("y (m)")
+    for ax in list(axes.flat)[len(names):]:
+        ax.axis("off")
+    axes.flat[0].legend(loc="lower left", fontsize=7, frameon=False)
+    fig.suptitle(f"{title + ': ' if title else ''}tracks (a colour and number per label), "
+                 f"{sigma:g}-sigma ellipses every {k} scans", fontsize=9)
+    fig.tight_layout()
+    return fig

@@ -40,7 +40,8 @@ Tables: ``gospa`` (estimator; time-averaged GOSPA (``c``, ``p``, ``alpha = 2``) 
 error over the runs; its localisation / missed / false parts; label switches a run; the fraction of
 targets lost at the end (no track within ``c``); scans from a target's first scan to its first track
 within ``c``; seconds per track-scan). Figures: GOSPA and the number of tracks shown over time, with
-95 % bands. TensorBoard: the same curves. Sweeps: ``-m tracking.clutter_rate=2,10,30`` or
+95 % bands; ``tracks_xy``: run 0 in the plane (truth, detections, each estimator's labelled tracks with
+2-sigma ellipses). TensorBoard: the same curves. Sweeps: ``-m tracking.clutter_rate=2,10,30`` or
 ``tracking.detection_probability=0.7,0.9,0.99``.
 """
 
@@ -223,7 +224,16 @@ def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
     appears = torch.where(present, steps, never).amin(0)  # (runs, N)
     tracked = torch.where(assigned >= 0, steps, never).amin(0)
     delay = (tracked - appears).double().mean(-1)  # (runs,): scans from appearing to a track within c
+    picture = None
+    if start == 0:  # run 0 for the x-y figure: its tracks (position block), truth and detections
+        est_b = traj.belief.estimate()
+        show0 = shown[:, 0] if shown is not None else torch.ones(position.shape[0], position.shape[2], dtype=torch.bool)
+        cov = est_b.cov[:, 0].expand(*position[:, 0].shape[:-1], 4, 4)
+        picture = {"mean": position[:, 0], "cov": cov[..., [0, 2], :][..., :, [0, 2]].cpu().double(),
+                   "shown": show0, "labels": labels[:, 0], "truth": truth[:, 0][..., [0, 2]].cpu().double(),
+                   "present": present[:, 0], "detections": z[:, 0].cpu().double()}
     return {key: per_run(out[key]) for key in ("distance", "localisation", "missed", "false")} | {
+        "picture": picture,
         "switches": per_run(switches), "lost": per_run(lost), "delay": per_run(delay), "seconds": seconds,
         "tracks": per_run((shown.sum(-1) if shown is not None else labels.new_full(labels.shape[:-1],
                                                                                   labels.shape[-1])).double()),
@@ -286,5 +296,13 @@ def run(ctx: StudyContext) -> None:
     if names:
         mean_and_band(join_runs([p["targets"] for p in parts[:n]]), "tracks shown", "truth", "tracks")
     ctx.results.save()
+    if ctx.figures and names:  # one run in the plane: truth, detections, each estimator's tracks
+        pics = {name: {k: torch.as_tensor(v) for k, v in parts[i * n]["picture"].items()}  # (units: lists)
+                for i, name in enumerate(names)}
+        first = pics[names[0]]
+        ctx.save_figure("tracks_xy", plots.tracks_xy(
+            first["truth"], first["present"], first["detections"],
+            {name: (p["mean"], p["cov"], p["shown"], p["labels"]) for name, p in pics.items()},
+            title=f"run 0 of {runs}"))
     ctx.save_figure("gospa_over_time", plots.rmse_over_time(curves, f"{t.targets} crossing targets in clutter, "
                                                                     f"{runs} runs", bands=bands))

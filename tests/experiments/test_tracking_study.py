@@ -82,3 +82,12 @@ def test_the_association_methods_side_by_side(tmp_path):
                       "tracking.estimators=[IMM-JPDAF,JPDAF]"))
     with pytest.raises(ValueError, match="tracking.targets=20: the exact JPDA takes at most 12"):
         validate(_compose("tracking", "tracking.targets=20", "tracking.estimators=[IMM-JPDAF]"))
+
+
+def test_the_xy_figure_of_one_run(tmp_path):
+    """figures/tracks_xy.png: run 0's truth, detections and every estimator's tracks (issue 46's picture);
+    the picture drawn is run 0's own data (its truth the simulation's)."""
+    overrides = ["debug=tracking", "figures=true", "tracking.estimators=[IMM-JPDAF,JIPDA-TM]"]
+    run_study(_compose("tracking", *COMMON, *overrides), tmp_path)
+    assert (tmp_path / "figures" / "tracks_xy.png").stat().st_size > 10_000
+    assert (tmp_path / "figures" / "tracks_xy.pdf").exists()
