@@ -151,6 +151,12 @@ def fedfunds(repeats: int) -> float:
                                {"transition.value": "stochastic", "bank.filter.measurement.H": "free",
                                 "bank.filter.measurement.R": "variance"}, progress=False)
 
+    return _against_statsmodels("fedfunds", ours, model, out, repeats)
+
+
+def _against_statsmodels(name: str, ours, model, out: dict, repeats: int, extra=lambda: "") -> float:
+    """Time ``ours()`` (which leaves its estimate in ``out["ours"]``) against statsmodels' ``model.fit()``
+    with its standard errors; print both log-likelihoods and the ratio."""
     def theirs():
         res = model.fit(disp=False)
         _ = res.bse
@@ -158,7 +164,7 @@ def fedfunds(repeats: int) -> float:
 
     ours()  # (Numba's first load in this process: not timed)
     mine, ref = best(ours, repeats), best(theirs, repeats)
-    print(f"fedfunds: fit with standard errors, torchmm {mine * 1e3:.0f} ms (llf {out['ours'].loglik:.4f}), "
+    print(f"{name}: fit with standard errors, torchmm {mine * 1e3:.0f} ms (llf {out['ours'].loglik:.4f}{extra()}), "
           f"statsmodels {ref * 1e3:.0f} ms (llf {out['theirs'].llf:.4f}) ({ref / mine:.2f}x)")
     return ref / mine
 
@@ -207,17 +213,8 @@ def fedfunds_exog(repeats: int) -> float:
                                 "bank.filter.measurement.R": Param("variance", groups=shared)},
                                controls=u.reshape(-1, 3), progress=False)
 
-    def theirs():
-        res = model.fit(disp=False)
-        _ = res.bse
-        out["theirs"] = res
-
-    ours()  # (Numba's first load in this process: not timed)
-    mine, ref = best(ours, repeats), best(theirs, repeats)
-    print(f"fedfunds_exog: fit with standard errors, torchmm {mine * 1e3:.0f} ms (llf {out['ours'].loglik:.4f}, "
-          f"kernel {estimate.objective.kernel}), statsmodels {ref * 1e3:.0f} ms (llf {out['theirs'].llf:.4f}) "
-          f"({ref / mine:.2f}x)")
-    return ref / mine
+    return _against_statsmodels("fedfunds_exog", ours, model, out, repeats,
+                                lambda: f", kernel {estimate.objective.kernel}")
 
 
 def main() -> None:

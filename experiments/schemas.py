@@ -927,15 +927,15 @@ MANAGED_TRACKERS = ("JIPDA-TM", "IMM-JIPDA-TM")  # start with no track: initiati
 
 @dataclass
 class JPDASettings:
-    method: str = spec("exact", one_of("exact", "lbp", "kbest"))  # IMM-JPDAF's and JPDAF's joint association
-    k: int = spec(100, positive_int)  # kbest: the joint events a scan
+    method: str = spec(MISSING, one_of("exact", "lbp", "kbest"))  # IMM-JPDAF's and JPDAF's joint association
+    k: int = spec(MISSING, positive_int)  # kbest: the joint events a scan
 
 
 @dataclass
 class MHTSettings:
-    hypotheses: int = spec(10, positive_int)  # IMM-MHT: global hypotheses a run
-    k: Optional[int] = spec(None, lambda v: None if v is None else positive_int(v))  # events a hypothesis (None: hypotheses)
-    n_scan: int = spec(3, non_negative)  # N-scan pruning depth (0: none)
+    hypotheses: int = spec(MISSING, positive_int)  # IMM-MHT: global hypotheses a run
+    k: Optional[int] = spec(MISSING, lambda v: None if v is None else positive_int(v))  # events a hypothesis (None: hypotheses)
+    n_scan: int = spec(MISSING, non_negative)  # N-scan pruning depth (0: none)
 
 
 @dataclass

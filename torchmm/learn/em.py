@@ -136,6 +136,14 @@ def _constrained(X: Tensor, B: Tensor, C: Tensor, W: Tensor, free: Tensor) -> Te
     return x.reshape(*batch, r, c)
 
 
+def _regression(X: Tensor, B: Tensor, C: Tensor, W: Tensor, mask: Tensor | None) -> Tensor:
+    """The M-step of a regression matrix (``H`` or ``F``): ``B C^{-1}``, or with fixed entries ``mask``
+    (True: held) :func:`_constrained`'s conditional maximiser weighted by ``W``."""
+    if mask is not None:
+        return _constrained(X, B, C, W, ~mask)
+    return torch.linalg.solve(C.mT, B.mT).mT
+
+
 def _covariance_mask(name: str, mask: Tensor, value: Tensor) -> None:
     """A covariance's fixed entries must leave a closed-form M-step: symmetric, the free entries whole
     diagonal blocks (a block-diagonal covariance: each block's estimate is the block of the unrestricted
@@ -355,10 +363,7 @@ def em(filter: KalmanFilter, belief0: GaussianBelief, measurements: Tensor,
             if "H" in wanted:
                 Syx = _sum(wx * (yz.unsqueeze(-1) * xo.unsqueeze(-2)), 2, shared)
                 Sxx = _sum(wx * Exx, 2, shared)
-                if "H" in masks:
-                    H = _constrained(sensor.H, Syx, Sxx, sensor.R, ~masks["H"])
-                else:
-                    H = torch.linalg.solve(Sxx.mT, Syx.mT).mT
+                H = _regression(sensor.H, Syx, Sxx, sensor.R, masks.get("H"))
                 sensor.H = H.reshape(_shape(sensor.H, H, shared))
             if "R" in wanted:
                 H = sensor.H
@@ -382,10 +387,7 @@ def em(filter: KalmanFilter, belief0: GaussianBelief, measurements: Tensor,
                 b = motion.offset
                 num = _sum(pw * (E10 - b.unsqueeze(-1) * x0.unsqueeze(-2)), 2, shared)
                 den = _sum(pw * E00, 2, shared)
-                if "F" in masks:
-                    F = _constrained(motion.F, num, den, motion.Q, ~masks["F"])
-                else:
-                    F = torch.linalg.solve(den.mT, num.mT).mT
+                F = _regression(motion.F, num, den, motion.Q, masks.get("F"))
                 motion.F = F.reshape(_shape(motion.F, F, shared))
             F = motion.F
             if "Q" in wanted:
