@@ -224,6 +224,19 @@ def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
     appears = torch.where(present, steps, never).amin(0)  # (runs, N)
     tracked = torch.where(assigned >= 0, steps, never).amin(0)
     delay = (tracked - appears).double().mean(-1)  # (runs,): scans from appearing to a track within c
+    # SIAP-style quality (Votruba, Naval Research Lab, 2001): a track "covers" a target it lies within c of
+    # (any number of tracks a target, unlike GOSPA's one-to-one assignment)
+    truth_xy = truth[..., [0, 2]].cpu().double()
+    gap = (position.unsqueeze(-2) - truth_xy.unsqueeze(-3)).norm(dim=-1)  # (T, runs, K, N)
+    visible = shown if shown is not None else torch.ones(position.shape[:-1], dtype=torch.bool)
+    near = (gap < float(t.gospa_c)) & visible.unsqueeze(-1) & present.unsqueeze(-2)
+    covered = near.any(-2)  # (T, runs, N): the target has a track
+    quality = {
+        "completeness": per_run(covered.sum((0, 2)).double() / present.sum((0, 2)).clamp(min=1)),
+        "ambiguity": per_run(near.sum((0, 2, 3)).double() / covered.sum((0, 2)).clamp(min=1)),
+        "spuriousness": per_run((visible & ~near.any(-1)).sum((0, 2)).double() / visible.sum((0, 2)).clamp(min=1)),
+        "breaks": per_run((covered[:-1] & ~covered[1:] & present[1:]).sum((0, 2)).double()),
+    }
     picture = None
     if start == 0:  # run 0 for the x-y figure: its tracks (position block), truth and detections
         est_b = traj.belief.estimate()
@@ -235,6 +248,7 @@ def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
     return {key: per_run(out[key]) for key in ("distance", "localisation", "missed", "false")} | {
         "picture": picture,
         "switches": per_run(switches), "lost": per_run(lost), "delay": per_run(delay), "seconds": seconds,
+        **quality,
         "tracks": per_run((shown.sum(-1) if shown is not None else labels.new_full(labels.shape[:-1],
                                                                                   labels.shape[-1])).double()),
         "targets": per_run(present.sum(-1).double()),
@@ -265,7 +279,16 @@ def run(ctx: StudyContext) -> None:
              "first_track_delay: scans from a target's first scan to its first track within c (a target "
              "never tracked counts the scans to the end). JIPDA-TM and IMM-JIPDA-TM show their confirmed "
              "tracks only (existence >= tracking.management.confirm, or by tracking.management.m_of_n).")
-    curves, bands = {"GOSPA": {}, "tracks shown": {}}, {"GOSPA": {}, "tracks shown": {}}
+    quality = ctx.results.table(
+        "track_quality", ["estimator", "completeness", "ambiguity", "spuriousness", "track_breaks", "label_switches",
+                          "first_track_delay"],
+        note="SIAP-style track quality, a track covering a target it lies within c of (any number of tracks a "
+             "target): completeness, the target-scans covered over those that exist; ambiguity, the covering "
+             "tracks per covered target-scan (1: one track each); spuriousness, the shown track-scans that "
+             "cover no target over all shown; track_breaks, times a target lost its cover while it existed, a "
+             "run; label_switches and first_track_delay as in the gospa table. Averages over the runs.")
+    panels = ("GOSPA", "localisation", "missed", "false", "tracks shown")
+    curves, bands = {k: {} for k in panels}, {k: {} for k in panels}
 
     def mean_and_band(runs_curves, panel: str, series: str, tag: str) -> None:  # (T, runs) -> curve, 95 % band
         curve = runs_curves.mean(1)
@@ -291,7 +314,12 @@ def run(ctx: StudyContext) -> None:
         ctx.results.metric(name, "gospa", float(per_run_mean.mean()))
         ctx.results.metric(name, "lost_fraction", lost)
         ctx.results.timing[name] = seconds
+        quality.rows.append([name, *(float(join_runs([p[key] for p in mine], dim=0).mean())
+                                     for key in ("completeness", "ambiguity", "spuriousness", "breaks")),
+                             switches, delay])
         mean_and_band(dist, "GOSPA", name, "gospa")
+        for part in ("localisation", "missed", "false"):  # GOSPA^p's parts over time
+            mean_and_band(join_runs([p[part] for p in mine]), part, name, f"gospa_{part}")
         mean_and_band(join_runs([p["tracks"] for p in mine]), "tracks shown", name, "tracks")
     if names:
         mean_and_band(join_runs([p["targets"] for p in parts[:n]]), "tracks shown", "truth", "tracks")

@@ -91,3 +91,22 @@ def test_the_xy_figure_of_one_run(tmp_path):
     run_study(_compose("tracking", *COMMON, *overrides), tmp_path)
     assert (tmp_path / "figures" / "tracks_xy.png").stat().st_size > 10_000
     assert (tmp_path / "figures" / "tracks_xy.pdf").exists()
+
+
+def test_track_quality_without_clutter_or_misses(tmp_path):
+    """The track_quality table (SIAP-style, issue 46) where the answer is known: P_D = 1 and no clutter,
+    tracks started on their targets - every target covered at every scan (completeness 1, no break), no
+    spurious track; with a one-run-in-two miss rate the completeness falls below 1."""
+    overrides = ["debug=tracking", "figures=false", "tracking.estimators=[IMM-JPDAF]", "tracking.detection_probability=1.0",
+                 "tracking.clutter_rate=1e-9"]
+    run_study(_compose("tracking", *COMMON, *overrides), tmp_path / "clean")
+    table = json.loads((tmp_path / "clean" / "results.json").read_text())["tables"]["track_quality"]
+    row = dict(zip(table["columns"], table["rows"][0]))
+    assert row["completeness"] == 1.0 and row["track_breaks"] == 0.0 and row["spuriousness"] == 0.0
+    assert row["ambiguity"] >= 1.0
+    overrides[-1] = "tracking.management.velocity_variance=900"
+    run_study(_compose("tracking", *COMMON, "debug=tracking", "figures=false", "tracking.steps=24",
+                       f"tracking.lifetimes={LIVES}".replace(" ", ""), "tracking.estimators=[JIPDA-TM]"), tmp_path / "tm")
+    table = json.loads((tmp_path / "tm" / "results.json").read_text())["tables"]["track_quality"]
+    row = dict(zip(table["columns"], table["rows"][0]))
+    assert 0.0 < row["completeness"] < 1.0 and 0.0 <= row["spuriousness"] < 1.0  # (a track confirms late)
