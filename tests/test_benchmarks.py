@@ -224,3 +224,11 @@ def test_murty_benchmark_runs_and_agrees():
     assert re.fullmatch(r"murty_speedup=[0-9.]+ murty_runs_per_s=[0-9.]+", proc.stdout.strip().splitlines()[-1])
     diff = float(re.search(r"largest cost difference ([0-9.e+-]+)", proc.stdout).group(1))
     assert diff < 1e-9
+
+
+def test_mht_benchmark_runs():
+    proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "mht.py"), "--targets", "3", "--runs", "4",
+                           "--steps", "4", "--hypotheses", "3", "--threads", "1"],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert re.fullmatch(r"mht_scans_per_s=[0-9.]+ mht_run_scans_per_s=[0-9.]+", proc.stdout.strip().splitlines()[-1])
