@@ -1,7 +1,7 @@
 """MHT throughput (issue 46): torchmm's batched MHT (``torchmm.association.MHT``, Murty per hypothesis,
 N-scan pruning) over ``--targets`` targets in ``--clutter`` clutter points a scan, ``--runs`` runs, beside
-the exact JPDA and the k-best JPDA on the same scans (one run; no external MHT is timed: Stone Soup's MFA
-tracker is not in its release used here).
+the exact JPDA and the k-best JPDA on the same scans (one run). No external MHT is timed yet: Stone Soup's
+multi-frame assignment (``stonesoup.dataassociator.mfa``) is the reference the issue names, left for later.
 
 Prints scans per second (a scan: every run's update) and run-scans per second for each. The last line:
 ``mht_scans_per_s=... mht_run_scans_per_s=...``.
