@@ -73,18 +73,20 @@ def test_imm_tracks_and_imm_gnn():
 
 
 def test_crossing_targets_identities_against_jpda():
-    """Crossing targets in clutter (50 runs): the fraction of tracks that end nearest their own target,
-    MHT (10 hypotheses, 3-scan pruning) against the exact JPDA - measured, and MHT not worse."""
-    motion, sensor, prior, det, truth, options = _scene(24, 50, 3, seed=21, clutter=6.0)
+    """Four crossing targets in heavy clutter with missed detections (P_D 0.6, 30 clutter points a scan,
+    40 runs, 30 scans): the fraction of tracks that end nearest their own target - measured, MHT (10
+    hypotheses, 3-scan pruning) keeps more identities than the exact JPDA (measured at 100 runs: 0.49
+    against 0.23, GNN 0.45; docs/tracking.md)."""
+    motion, sensor, prior, det, truth, options = _scene(30, 40, 4, seed=31, pd=0.6, clutter=30.0)
     kf = KalmanFilter(motion, sensor)
     mht = MHT(kf, hypotheses=10, n_scan=3, **options)
-    ours = run_filter(mht, mht.initial_belief(prior), det.z).belief.estimate().mean[-1]
-    jpda = run_filter(JPDA(kf, **options), prior, det.z).belief.mean[-1]
+    ours = run_filter(mht, mht.initial_belief(prior), det.z, record="estimate").belief.mean[-1]
+    jpda = run_filter(JPDA(kf, **options), prior, det.z, record="estimate").belief.mean[-1]
 
     def kept(final):  # (runs, N, 4): track i nearest target i at the end
         gap = (final[..., None, [0, 2]] - truth[-1][:, None, :, [0, 2]]).norm(dim=-1)  # (runs, N tracks, N targets)
-        return float((gap.argmin(-1) == torch.arange(3)).float().mean())
-    assert kept(ours) >= kept(jpda), (kept(ours), kept(jpda))
+        return float((gap.argmin(-1) == torch.arange(4)).float().mean())
+    assert kept(ours) > kept(jpda), (kept(ours), kept(jpda))
 
 
 def test_errors_name_the_argument():
