@@ -180,7 +180,7 @@ class MHT(JPDA):
         tracks = belief.by_hypothesis()  # (*B, H, N)
         D, m = z.shape[-2:]
         zz = z.unsqueeze(-3).expand(*runs, H, D, m)
-        hyp, validated, log_w, S, singular = self._scan(tracks, zz)  # log_w (*B, H, N, D)
+        hyp, _, log_w, _, singular = self._scan(tracks, zz)  # log_w (*B, H, N, D)
         R = math.prod(runs) * H
         k = self.k
         columns, log_e = kbest_events(log_w.reshape(R, N, D), missed_log_weight(self), k)  # (R, k, N), (R, k)
@@ -188,7 +188,7 @@ class MHT(JPDA):
         log_like = torch.logsumexp(children, -1)  # (*B,)
         failed = singular.reshape(*runs, -1).any(-1) | torch.isnan(log_like)
         top, index = children.nan_to_num(nan=-math.inf).topk(H, dim=-1)  # (*B, H), the best children first
-        parent, event = index // k, index % k
+        parent = index // k  # (the event: index % k, its columns gathered below)
         chosen = columns.reshape(*runs, H * k, N).gather(-2, index.unsqueeze(-1).expand(*runs, H, N))  # (*B, H, N)
         # the children's tracks: each its parent's track updated with its detection (option 1 + j) or missed (0)
         options = pytree.tree_map(_prepend, missed_hypothesis(self, tracks, hyp), hyp.belief)  # (1 + D, *B, H, N)

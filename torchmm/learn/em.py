@@ -124,7 +124,7 @@ def _constrained(X: Tensor, B: Tensor, C: Tensor, W: Tensor, free: Tensor) -> Te
     (``(W^{-1} X C)_{ij} = \sum_{kl} W^{-1}_{ik} C_{lj} X_{kl}``). Batched over the leading axes."""
     r, c = X.shape[-2:]
     batch = torch.broadcast_shapes(X.shape[:-2], B.shape[:-2], C.shape[:-2], W.shape[:-2])
-    Winv = torch.linalg.inv(W).expand(*batch, r, r)
+    Winv = torch.cholesky_inverse(torch.linalg.cholesky(W)).expand(*batch, r, r)  # (W positive definite: fixed_masks)
     K = torch.einsum("...ik,...lj->...ijkl", Winv, C.expand(*batch, c, c)).reshape(*batch, r * c, r * c)
     rhs = (Winv @ B.expand(*batch, r, c)).reshape(*batch, r * c)
     f = torch.nonzero(free.reshape(-1))[:, 0].to(X.device)
