@@ -108,7 +108,10 @@ def _config_changes(config: dict, choices: dict | None) -> dict | None:
     defaults = json.loads(json.dumps(defaults, default=str))
     flat, flat_default = flatten(ours), flatten(defaults)
     keys = {}
+    nodes = {k.rsplit(".", i)[0] for k in (*flat, *flat_default) for i in range(1, k.count(".") + 1)}
     for key in sorted(set(flat) | set(flat_default)):
+        if (key in flat) != (key in flat_default) and key in nodes:
+            continue  # a null node given a value (or the reverse): its keys are listed
         if _relevant(key) and not (key in flat and key in flat_default and flat[key] == flat_default[key]):
             keys[key] = [flat_default.get(key), flat.get(key)]
     if choices is None:

@@ -33,7 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["DataFileError", "DataSeries", "DetectionScans", "read_detections", "read_series"]
+__all__ = ["DataFileError", "DataSeries", "DetectionScans", "TargetRows", "read_detections", "read_series",
+           "read_targets"]
 
 #: cells read as missing (case-insensitive)
 MISSING = ("", "nan", "na", "n/a", "null", "none")
@@ -137,14 +138,18 @@ def _text(file: Path) -> str:
                             "as UTF-8") from None
 
 
-def _read_csv(file: Path, wanted: list[str], series: str | None) -> tuple[dict[str, list], list[int]]:
+def _read_csv(file: Path, wanted: list[str], series: str | None,
+              names: Sequence[str] = ()) -> tuple[dict[str, list], list[int]]:
+    """The columns ``wanted`` as numbers, ``series`` and ``names`` as labels (stripped, never empty), and
+    each row's line number."""
     reader = csv.reader(io.StringIO(_text(file), newline=""))
     header = next(reader, None)
     if not header:
         raise DataFileError(f"{file}: empty file (expected a header line naming the columns)")
     header = [h.strip() for h in header]
     index = {}
-    for name in wanted + ([series] if series else []):
+    labelled = ([series] if series else []) + list(names)
+    for name in wanted + labelled:
         if name not in header:
             raise DataFileError(f"{file}: column {name!r}, row 1: not in the header "
                                 f"(columns: {', '.join(header)})")
@@ -162,10 +167,11 @@ def _read_csv(file: Path, wanted: list[str], series: str | None) -> tuple[dict[s
             raise DataFileError(f"{file}: row {line}: {len(row)} cells, the header has {len(header)}")
         for name, i in index.items():
             cell = row[i]
-            if name == series:
+            if name in labelled:
                 if not cell.strip():
-                    raise DataFileError(f"{file}: column {name!r}, row {line}: the series cell is empty "
-                                        "(every row names its series)")
+                    what = "series" if name == series else "label"
+                    raise DataFileError(f"{file}: column {name!r}, row {line}: the {what} cell is empty "
+                                        f"(every row names its {what})")
                 values[name].append(cell.strip())
             else:
                 values[name].append(_number(cell, file, name, line))
@@ -425,3 +431,91 @@ def read_detections(path: str | Path, *, measurements: list[str], time: str, ser
         present[k, r, fill[k, r]] = True
         fill[k, r] += 1
     return DetectionScans(z, present, grid, order)
+
+
+@dataclass
+class TargetRows:
+    """Rows of a per-target file (:func:`read_targets`), in file order (float64 numpy).
+
+    Shapes:
+        values: ``(K, c)`` the ``columns`` of each row
+        target: ``K`` labels (the target column's cells as text)
+        series: ``K`` labels (``"0"`` without a series column)
+        times: ``(K,)`` time stamps, or None without a time column
+        rows: ``K`` row numbers (CSV line, header = 1; NPZ entry index), for errors
+    """
+
+    file: Path
+    values: np.ndarray
+    target: list[str]
+    series: list[str]
+    times: np.ndarray | None
+    rows: list[int]
+    what: str
+
+
+def read_targets(path: str | Path, *, columns: list[str], target: str, time: str | None = None,
+                 series: str | None = None, base: Path | None = None) -> TargetRows:
+    """Read a per-target file, one row per target (and time stamp, and series): the truth of a
+    tracking study (``time``, ``target``, the positions) or the tracks' start (``target``, the state,
+    its variances) (docs/tracking.md, "Your own detections").
+
+    Args:
+        path: a ``.csv`` (a header naming the columns) or ``.npz`` (one ``(K,)`` array per column, one
+            entry per row); relative paths as for :func:`read_series`.
+        columns: the value columns (every cell finite: a row is a target that exists).
+        target: the column naming the target (any text in a CSV; numbers in an NPZ).
+        time: optional time-stamp column (finite).
+        series: optional column naming the series (run) of the row, as in :func:`read_detections`.
+
+    Raises:
+        DataFileError: naming the file, the column and the row, as :func:`read_series`; a missing value
+            cell, and a (series, target[, time]) given twice.
+        TypeError: naming the argument.
+    """
+    columns = _columns(columns, "columns")
+    target, time, series = _column(target, "target"), _column(time, "time"), _column(series, "series")
+    if target is None:
+        raise TypeError("target: expected the target column's name, got None")
+    file = _locate(path, base, columns)
+    wanted = columns + ([time] if time else [])
+    suffix = file.suffix.lower()
+    if suffix == ".npz":
+        labelled = [target] + ([series] if series else [])
+        arrays = _read_npz(file, wanted + labelled)
+        if any(a.shape[1] != 1 for a in arrays.values()):
+            raise DataFileError(f"{file}: expected one (K,) array per column, one entry per row")
+        for name in labelled:
+            missing = np.flatnonzero(np.isnan(arrays[name][:, 0]))
+            if len(missing):
+                raise DataFileError(f"{file}: column {name!r}, entry {int(missing[0])}: the label is missing")
+        values = {c: list(arrays[c][:, 0]) for c in wanted}
+        names = {c: [f"{v:g}" for v in arrays[c][:, 0]] for c in labelled}
+        rows, what = list(range(len(values[columns[0]]))), "entry"
+    elif suffix == ".csv":
+        values, rows = _read_csv(file, wanted, series, names=[target])
+        names = {target: values.pop(target)} | ({series: values.pop(series)} if series else {})
+        what = "row"
+    else:
+        raise DataFileError(f"{file}: expected a .csv or .npz file")
+    cells = np.array([[values[c][i] for c in columns] for i in range(len(rows))], dtype=np.float64)
+    bad = np.argwhere(~np.isfinite(cells))
+    if len(bad):
+        i, j = (int(v) for v in bad[0])
+        raise DataFileError(f"{file}: column {columns[j]!r}, {what} {rows[i]}: a value is missing (a row is a "
+                            "target that exists: leave the row out where it does not)")
+    stamps = None
+    if time:
+        stamps = np.array(values[time], dtype=np.float64)
+        bad = np.flatnonzero(~np.isfinite(stamps))
+        if len(bad):
+            raise DataFileError(f"{file}: column {time!r}, {what} {rows[bad[0]]}: a time stamp is missing")
+    labels = names[series] if series else ["0"] * len(rows)
+    seen: dict = {}
+    for i, key in enumerate(zip(labels, names[target], stamps if time else [None] * len(rows))):
+        if key in seen:
+            raise DataFileError(f"{file}: column {target!r}, {what} {rows[i]}: target {key[1]!r} is given again"
+                                + (f" at time {key[2]:g}" if time else "") + (f" in series {key[0]!r}" if series else "")
+                                + f" (first at {what} {rows[seen[key]]})")
+        seen[key] = i
+    return TargetRows(file, cells, list(names[target]), list(labels), stamps, list(rows), what)

@@ -26,6 +26,7 @@ import yaml
 from omegaconf import MISSING
 
 from experiments.checks import (
+    NO_VALUE,
     ConfigError,
     both,
     each,
@@ -240,7 +241,8 @@ class SystemScenario:
 
 #: the studies whose config is also built dry before anything runs (experiments.config.dry_build), beyond
 #: the scenario every study's precheck builds: study -> its check_build(cfg, scenario)
-BUILD_CHECKS = {"experiments.studies.compare.run": "experiments.studies.compare.check_build"}
+BUILD_CHECKS = {"experiments.studies.compare.run": "experiments.studies.compare.check_build",
+                "experiments.studies.tracking.run": "experiments.studies.tracking.check_build"}
 
 MARKOV_SWITCHING = "experiments.scenarios.markov_switching"
 
@@ -953,6 +955,41 @@ class TrackManagement:
 
 
 @dataclass
+class TrackingTruthFile:
+    """``tracking.detections.truth``: one row per target and time stamp where it exists."""
+
+    path: str = "???"  # required
+    time: str = "???"
+    target: str = "???"
+    position: List[str] = spec(factory=list, check=non_empty)
+    series: Optional[str] = None
+
+
+@dataclass
+class TrackingStartFile:
+    """``tracking.detections.start``: one row per target (and series): the tracks' start."""
+
+    path: str = "???"  # required
+    target: str = "???"
+    state: List[str] = spec(factory=list, check=non_empty)  # [x, vx, y, vy]
+    variances: Optional[List[str]] = None  # the four diagonal entries (tracking.P0 where null)
+    series: Optional[str] = None
+
+
+@dataclass
+class TrackingDetections:
+    """``tracking.detections``: one's own detections file instead of the simulation
+    (experiments/studies/tracking_data.py)."""
+
+    path: str = "???"  # required
+    measurements: List[str] = spec(factory=list, check=non_empty)
+    time: str = "???"
+    series: Optional[str] = None
+    truth: Optional[TrackingTruthFile] = None
+    start: Optional[TrackingStartFile] = None
+
+
+@dataclass
 class TrackingSection:
     targets: int = spec(MISSING, positive_int)
     steps: int = spec(MISSING, positive_int)
@@ -977,6 +1014,8 @@ class TrackingSection:
     jpda: JPDASettings = field(default_factory=JPDASettings)
     mht: MHTSettings = field(default_factory=MHTSettings)
     estimators: List[str] = spec(MISSING, check=both(non_empty, each(one_of(*TRACKERS, *MANAGED_TRACKERS))))
+    detections: Optional[TrackingDetections] = MISSING
+    export: bool = MISSING
 
 
 @dataclass
@@ -991,18 +1030,26 @@ class Tracking:
                               f"({t['maneuver_stop']}): the manoeuvre spans the scans [maneuver_start, maneuver_stop)")
         if len(t["P0"]) != 4:
             raise ConfigError("tracking.P0", t["P0"], "expected 4 variances, [x, vx, y, vy]")
+        if t["detections"] is not None:
+            if t["lifetimes"] is not None:
+                raise ConfigError("tracking.lifetimes", t["lifetimes"], "with tracking.detections the truth file says "
+                                  "when each target exists (set lifetimes: null)")
+            if t["export"]:
+                raise ConfigError("tracking.export", True, "exports the simulated scenario; with tracking.detections "
+                                  "there is none (set export: false)")
+            fixed = [name for name in t["estimators"] if name in TRACKERS]
+            if fixed and t["detections"]["start"] is None:
+                raise ConfigError("tracking.detections.start", NO_VALUE,
+                                  f"missing: {', '.join(fixed)} keep one track per target from the first scan: give the "
+                                  f"tracks' start (a file, one row per target), or track with the managed trackers "
+                                  f"({', '.join(MANAGED_TRACKERS)}), which start with no track")
+            return _check_management(t)
         method = (t.get("jpda") or {}).get("method", "exact")
         if t["targets"] > 12 and method == "exact" and any(name in EXACT_JPDA for name in t["estimators"]):
             raise ConfigError("tracking.targets", t["targets"], "the exact JPDA takes at most 12 targets (tracking."
                               "jpda.method: lbp or kbest, or the estimators IMM-JPDAF-LBP / IMM-JPDAF-kbest, take any "
                               "number)")
-        m = t["management"]
-        if m["method"] == "exact" and m["capacity"] > 12 and set(MANAGED_TRACKERS) & set(t["estimators"]):
-            raise ConfigError("tracking.management.capacity", m["capacity"],
-                              "the exact JIPDA takes at most 12 track slots (method: lbp takes any number)")
-        mn = m["m_of_n"]
-        if mn is not None and (len(mn) != 2 or mn[0] > mn[1]):
-            raise ConfigError("tracking.management.m_of_n", mn, "expected [M, N] with 1 <= M <= N")
+        _check_management(t)
         lives = t["lifetimes"]
         if lives is None:
             return
@@ -1018,6 +1065,16 @@ class Tracking:
                               f"{', '.join(known)} start one track per target at the first scan; with "
                               "tracking.lifetimes (births and deaths) only the managed trackers "
                               f"({', '.join(MANAGED_TRACKERS)}) apply")
+
+
+def _check_management(t: dict) -> None:
+    m = t["management"]
+    if m["method"] == "exact" and m["capacity"] > 12 and set(MANAGED_TRACKERS) & set(t["estimators"]):
+        raise ConfigError("tracking.management.capacity", m["capacity"],
+                          "the exact JIPDA takes at most 12 track slots (method: lbp takes any number)")
+    mn = m["m_of_n"]
+    if mn is not None and (len(mn) != 2 or mn[0] > mn[1]):
+        raise ConfigError("tracking.management.m_of_n", mn, "expected [M, N] with 1 <= M <= N")
 
 
 @dataclass

@@ -57,7 +57,7 @@ from torch import Tensor
 from experiments.arrays import join_runs, per_run
 from experiments.executors import Unit
 from experiments.harness import StudyContext
-from experiments.studies import plots
+from experiments.studies import plots, tracking_data
 from torchmm import IMM, GaussianBelief, KalmanFilter, run_filter
 from torchmm.association import GNN, JIPDA, JPDA, MHT, PDA, ManagedTracks, position_initiator
 from torchmm.beliefs import psd_sqrt
@@ -125,8 +125,9 @@ class Estimator(NamedTuple):
     managed: bool      # a ManagedTracks: starts empty, confirms and deletes its tracks
 
 
-def estimators(t, dtype) -> dict[str, Estimator]:
-    """The configured estimators by name."""
+def estimators(t, dtype, targets: int | None = None) -> dict[str, Estimator]:
+    """The configured estimators by name (``targets``: the tracks of the fixed-track estimators, the
+    start file's where one is read; ``tracking.targets`` by default)."""
     bank = _bank(t, dtype)
     cv = ConstantVelocity(2, dt=float(t.dt), q=float(t.q_cv), dtype=dtype)
     sensor = PositionMeasurement(4, [0, 2], float(t.R), dtype=dtype)
@@ -139,7 +140,7 @@ def estimators(t, dtype) -> dict[str, Estimator]:
     imm = IMM(KalmanFilter(bank, sensor), Pi)
     jp = t.get("jpda") or {}
     chosen = {"method": str(jp.get("method", "exact")), "k": int(jp.get("k", 100)),
-              "max_targets": max(12, int(t.targets))}
+              "max_targets": max(12, int(t.targets if targets is None else targets))}
     made = {
         "IMM-JPDAF": lambda: Estimator(JPDA(imm, **opts, **chosen), imm.initial_belief, False, False),
         "IMM-JPDAF-LBP": lambda: Estimator(JPDA(imm, **opts, method="lbp"), imm.initial_belief, False, False),
@@ -183,11 +184,45 @@ def _managed(t, filt, opts: dict, dtype) -> Estimator:
 
 
 def _data(ctx: StudyContext, start: int, stop: int):
+    """Runs ``start..stop-1``: truth positions ``(T, runs, N, 2)`` (None: no truth), detections
+    ``(T, runs, D, 2)``, the tracks' start ``x0 (runs, K, 4)``, ``P0 (runs, K, 4, 4)`` and which targets
+    exist ``(T, runs, N)`` (None with no truth): simulated, or read from ``tracking.detections``."""
     t = ctx.cfg.tracking
+    if t.detections is not None:
+        got = ctx.memo(("recorded",), lambda: tracking_data.read(t.detections, dt=float(t.dt), P0=list(t.P0)))
+        cut = slice(start, stop)
+        return (None if got.truth is None else got.truth[:, cut], got.z[:, cut], got.x0[cut], got.P0[cut],
+                None if got.present is None else got.present[:, cut])
 
     def simulate_block():
         return ctx.simulate_runs(lambda n, gen: simulate(t, n, gen), stop, "tracking", axes=(1, 1, 0, 1), start=start)
-    return ctx.memo(("data", start, stop), simulate_block)
+    truth, z, x0, present = ctx.memo(("data", start, stop), simulate_block)
+    P0 = torch.diag(torch.tensor(list(t.P0), dtype=x0.dtype)).expand(*x0.shape, 4)
+    return truth[..., [0, 2]], z, x0, P0, present
+
+
+def runs_of(ctx: StudyContext) -> int:
+    """The runs: ``mc_runs``, or the detections file's series."""
+    t = ctx.cfg.tracking
+    if t.detections is None:
+        return int(ctx.cfg.mc_runs)
+    return len(ctx.memo(("recorded",), lambda: tracking_data.read(t.detections, dt=float(t.dt), P0=list(t.P0))).series)
+
+
+def check_build(cfg, scenario) -> None:
+    """Before any folder (:func:`experiments.config.dry_build`): ``tracking.detections``'s files read, every
+    error one line naming the key; the exact JPDA's limit on the start file's tracks."""
+    from experiments.config import ConfigError
+
+    t = cfg.tracking
+    if t.detections is None:
+        return
+    got = tracking_data.read(t.detections, dt=float(t.dt), P0=list(t.P0))
+    K = got.x0.shape[-2]
+    method = str((t.get("jpda") or {}).get("method", "exact"))
+    if K > 12 and method == "exact" and any(name in ("IMM-JPDAF", "JPDAF") for name in t.estimators):
+        raise ConfigError("tracking.detections.start", t.detections.start.path,
+                          f"{K} tracks: the exact JPDA takes at most 12 (tracking.jpda.method: lbp or kbest)")
 
 
 def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
@@ -195,9 +230,10 @@ def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
     label switches, lost targets and the scans to a target's first track ``(runs,)``, and the seconds
     it took."""
     t = ctx.cfg.tracking
-    truth, z, x0, present = (v.to(ctx.dtype) if v.is_floating_point() else v for v in _data(ctx, start, stop))
-    est = estimators(t, ctx.dtype)[name]
-    P0 = torch.diag(torch.tensor(list(t.P0), dtype=ctx.dtype))
+    truth, z, x0, P0, present = (None if v is None else v.to(ctx.dtype) if v.is_floating_point() else v
+                                 for v in _data(ctx, start, stop))
+    K = x0.shape[-2]
+    est = estimators(t, ctx.dtype, targets=K)[name]
     belief = est.initial(GaussianBelief(x0, P0))
     scans = z.unsqueeze(-3) if est.per_track else z  # IMM-PDAF: every track sees the run's scan
     filt, belief, scans = est.filter.to(ctx.device), belief.to(ctx.device), scans.to(ctx.device)
@@ -209,10 +245,26 @@ def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
         table = traj.belief
         shown, labels = table.confirmed().cpu(), table.label.cpu()
     else:  # one track per target, its index the label
-        shown, labels = None, torch.arange(int(t.targets)).expand(traj.belief.mean.shape[:-1])
+        shown, labels = None, torch.arange(K).expand(traj.belief.mean.shape[:-1])
     position = traj.belief.estimate().mean[..., [0, 2]].cpu().double()  # (T, runs, K, 2)
-    out = gospa(position, truth[..., [0, 2]].double(), c=float(t.gospa_c), p=float(t.gospa_p),
-                estimate_present=shown, truth_present=present)
+    visible = shown if shown is not None else torch.ones(position.shape[:-1], dtype=torch.bool)
+    picture = None
+    if start == 0:  # run 0 for the x-y figure: its tracks (position block), truth and detections
+        est_b = traj.belief.estimate()
+        cov = est_b.cov[:, 0].expand(*position[:, 0].shape[:-1], 4, 4)
+        picture = {"mean": position[:, 0], "cov": cov[..., [0, 2], :][..., :, [0, 2]].cpu().double(),
+                   "shown": visible[:, 0], "labels": labels[:, 0],
+                   "truth": (truth[:, 0] if truth is not None else position.new_zeros(len(position), 0, 2)).cpu().double(),
+                   "present": present[:, 0] if truth is not None else torch.zeros(len(position), 0, dtype=torch.bool),
+                   "detections": z[:, 0].cpu().double()}
+    common = {"picture": picture, "seconds": seconds,
+              "tracks": per_run(visible.sum(-1).double()),
+              "track_scans": int(position.shape[0] * position.shape[1] * position.shape[2])}
+    if truth is None:  # nothing to score: the tracks, their number and the time
+        return common
+    truth_xy = truth.cpu().double()
+    out = gospa(position, truth_xy, c=float(t.gospa_c), p=float(t.gospa_p), estimate_present=shown,
+                truth_present=present)
     assigned = out["assigned"]  # (T, runs, N): the track on each target, -1 none within c
     label = torch.where(assigned >= 0, labels.gather(-1, assigned.clamp(min=0)), -1)
     both = (label[1:] >= 0) & (label[:-1] >= 0)
@@ -226,9 +278,7 @@ def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
     delay = (tracked - appears).double().mean(-1)  # (runs,): scans from appearing to a track within c
     # SIAP-style quality (Votruba, Naval Research Lab, 2001): a track "covers" a target it lies within c of
     # (any number of tracks a target, unlike GOSPA's one-to-one assignment)
-    truth_xy = truth[..., [0, 2]].cpu().double()
     gap = (position.unsqueeze(-2) - truth_xy.unsqueeze(-3)).norm(dim=-1)  # (T, runs, K, N)
-    visible = shown if shown is not None else torch.ones(position.shape[:-1], dtype=torch.bool)
     near = (gap < float(t.gospa_c)) & visible.unsqueeze(-1) & present.unsqueeze(-2)
     covered = near.any(-2)  # (T, runs, N): the target has a track
     quality = {
@@ -237,38 +287,92 @@ def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
         "spuriousness": per_run((visible & ~near.any(-1)).sum((0, 2)).double() / visible.sum((0, 2)).clamp(min=1)),
         "breaks": per_run((covered[:-1] & ~covered[1:] & present[1:]).sum((0, 2)).double()),
     }
-    picture = None
-    if start == 0:  # run 0 for the x-y figure: its tracks (position block), truth and detections
-        est_b = traj.belief.estimate()
-        show0 = shown[:, 0] if shown is not None else torch.ones(position.shape[0], position.shape[2], dtype=torch.bool)
-        cov = est_b.cov[:, 0].expand(*position[:, 0].shape[:-1], 4, 4)
-        picture = {"mean": position[:, 0], "cov": cov[..., [0, 2], :][..., :, [0, 2]].cpu().double(),
-                   "shown": show0, "labels": labels[:, 0], "truth": truth[:, 0][..., [0, 2]].cpu().double(),
-                   "present": present[:, 0], "detections": z[:, 0].cpu().double()}
-    return {key: per_run(out[key]) for key in ("distance", "localisation", "missed", "false")} | {
-        "picture": picture,
-        "switches": per_run(switches), "lost": per_run(lost), "delay": per_run(delay), "seconds": seconds,
-        **quality,
-        "tracks": per_run((shown.sum(-1) if shown is not None else labels.new_full(labels.shape[:-1],
-                                                                                  labels.shape[-1])).double()),
-        "targets": per_run(present.sum(-1).double()),
-        "track_scans": int(position.shape[0] * position.shape[1] * position.shape[2])}
+    return common | {key: per_run(out[key]) for key in ("distance", "localisation", "missed", "false")} | {
+        "switches": per_run(switches), "lost": per_run(lost), "delay": per_run(delay), **quality,
+        "targets": per_run(present.sum(-1).double())}
 
 
 def run(ctx: StudyContext) -> None:
     cfg = ctx.cfg
     t = cfg.tracking
-    runs = int(cfg.mc_runs)
+    runs = runs_of(ctx)
     names = list(t.estimators)
     ranges = ctx.run_ranges(runs)
+    if t.export:  # the simulated scenario as the files tracking.detections reads
+        truth, z, x0, _, _ = _data(ctx, 0, runs)
+        paths = tracking_data.export(ctx.output_dir / "scenario", z=z, truth=truth, present=lifetimes(t).unsqueeze(1)
+                                     .expand(truth.shape[:-1]), x0=x0, dt=float(t.dt))
     parts = ctx.map_units([Unit(f"tracking/{name}/runs{a}-{b}", UNIT, {"name": name, "start": a, "stop": b})
                            for name in names for a, b in ranges], desc="estimators")
-    ctx.results.description = (
-        f"{t.targets} crossing targets, {t.steps} scans, manoeuvre {t.maneuver_start}-{t.maneuver_stop} "
-        f"(+-{t.maneuver_acceleration} m/s^2), P_D = {t.detection_probability}, {t.clutter_rate} clutter "
-        f"points a scan over [-{t.region}, {t.region}]^2, R = {t.R}; {runs} Monte Carlo runs (seed {cfg.seed}, "
-        f"{cfg.dtype}). GOSPA with c = {t.gospa_c}, p = {t.gospa_p}, alpha = 2."
-        + ("" if t.lifetimes is None else f" Targets exist over scans [first, stop) = {list(map(list, t.lifetimes))}."))
+    scored = "distance" in parts[0] if parts else True
+    d = t.detections
+    if d is not None:
+        got = ctx.memo(("recorded",), lambda: tracking_data.read(d, dt=float(t.dt), P0=list(t.P0)))
+        ctx.results.description = (
+            f"detections from `{d.path}` ({runs} series, {len(got.times)} scans every {t.dt}"
+            + (f", {got.truth.shape[2]} targets in the truth file `{d.truth.path}`" if d.truth is not None else
+               ", no truth file: nothing scored")
+            + (f", {got.x0.shape[1]} tracks started from `{d.start.path}`" if d.start is not None else "")
+            + f"). Trackers' model: P_D = {t.detection_probability}, {t.clutter_rate} clutter points a scan over "
+            f"[-{t.region}, {t.region}]^2, R = {t.R}; {cfg.dtype}." + (f" GOSPA with c = {t.gospa_c}, p = "
+                                                                        f"{t.gospa_p}, alpha = 2." if scored else ""))
+    else:
+        ctx.results.description = (
+            f"{t.targets} crossing targets, {t.steps} scans, manoeuvre {t.maneuver_start}-{t.maneuver_stop} "
+            f"(+-{t.maneuver_acceleration} m/s^2), P_D = {t.detection_probability}, {t.clutter_rate} clutter "
+            f"points a scan over [-{t.region}, {t.region}]^2, R = {t.R}; {runs} Monte Carlo runs (seed {cfg.seed}, "
+            f"{cfg.dtype}). GOSPA with c = {t.gospa_c}, p = {t.gospa_p}, alpha = 2."
+            + ("" if t.lifetimes is None else f" Targets exist over scans [first, stop) = "
+                                              f"{list(map(list, t.lifetimes))}."))
+    if t.export:
+        ctx.results.description += (" The scenario is in scenario/ (detections.csv, truth.csv, start.csv: "
+                                     "tracking.detections reads them back, docs/tracking.md).")
+    panels = ("GOSPA", "localisation", "missed", "false", "tracks shown") if scored else ("tracks shown",)
+    curves, bands = {k: {} for k in panels}, {k: {} for k in panels}
+
+    def mean_and_band(runs_curves, panel: str, series: str, tag: str) -> None:  # (T, runs) -> curve, 95 % band
+        curve = runs_curves.mean(1)
+        curves[panel][series] = curve
+        ctx.logger.series(f"{tag}/{series}", curve)
+        if runs_curves.shape[1] > 1:
+            bands[panel][series] = band = runs_curves.std(1) / math.sqrt(runs_curves.shape[1])
+            ctx.logger.series(f"{tag}_se/{series}", band)
+
+    n = len(ranges)
+    if scored:
+        _score_tables(ctx, names, parts, n, mean_and_band)
+    else:
+        why = "no truth (tracking.detections.truth is null)"
+        ctx.results.dropped.update({"gospa": why, "track_quality": why})
+        table = ctx.results.table(
+            "tracks", ["estimator", "tracks_shown", "seconds_per_track_scan"],
+            note="tracks_shown: the tracks shown a scan (every track of the fixed-track estimators; the confirmed "
+                 "ones of the managed trackers), averaged over scans and series. Without truth nothing is scored.")
+        for i, name in enumerate(names):
+            mine = parts[i * n:(i + 1) * n]
+            seconds = sum(p["seconds"] for p in mine) / sum(p["track_scans"] for p in mine)
+            table.rows.append([name, float(join_runs([p["tracks"] for p in mine]).mean()), seconds])
+            ctx.results.timing[name] = seconds
+    for i, name in enumerate(names):
+        mean_and_band(join_runs([p["tracks"] for p in parts[i * n:(i + 1) * n]]), "tracks shown", name, "tracks")
+    if names and scored:
+        mean_and_band(join_runs([p["targets"] for p in parts[:n]]), "tracks shown", "truth", "tracks")
+    ctx.results.save()
+    if ctx.figures and names:  # one run in the plane: truth, detections, each estimator's tracks
+        pics = {name: {k: torch.as_tensor(v) for k, v in parts[i * n]["picture"].items()}  # (units: lists)
+                for i, name in enumerate(names)}
+        first = pics[names[0]]
+        label = f"series {got.series[0]!r} of {runs}" if d is not None else f"run 0 of {runs}"
+        ctx.save_figure("tracks_xy", plots.tracks_xy(
+            first["truth"].reshape(len(first["present"]), -1, 2), first["present"].reshape(len(first["present"]), -1),
+            first["detections"], {name: (p["mean"], p["cov"], p["shown"], p["labels"]) for name, p in pics.items()},
+            title=label))
+    what = f"{t.targets} crossing targets in clutter, {runs} runs" if d is None else f"{d.path}, {runs} series"
+    ctx.save_figure("gospa_over_time" if scored else "tracks_over_time", plots.rmse_over_time(curves, what, bands=bands))
+
+
+def _score_tables(ctx: StudyContext, names: list[str], parts: list[dict], n: int, mean_and_band) -> None:
+    """The gospa and track_quality tables and the GOSPA curves (the study has truth)."""
     table = ctx.results.table(
         "gospa", ["estimator", "gospa", "gospa_se", "localisation", "missed", "false", "label_switches",
                   "lost_fraction", "first_track_delay", "seconds_per_track_scan"],
@@ -287,18 +391,6 @@ def run(ctx: StudyContext) -> None:
              "tracks per covered target-scan (1: one track each); spuriousness, the shown track-scans that "
              "cover no target over all shown; track_breaks, times a target lost its cover while it existed, a "
              "run; label_switches and first_track_delay as in the gospa table. Averages over the runs.")
-    panels = ("GOSPA", "localisation", "missed", "false", "tracks shown")
-    curves, bands = {k: {} for k in panels}, {k: {} for k in panels}
-
-    def mean_and_band(runs_curves, panel: str, series: str, tag: str) -> None:  # (T, runs) -> curve, 95 % band
-        curve = runs_curves.mean(1)
-        curves[panel][series] = curve
-        ctx.logger.series(f"{tag}/{series}", curve)
-        if runs_curves.shape[1] > 1:
-            bands[panel][series] = band = runs_curves.std(1) / math.sqrt(runs_curves.shape[1])
-            ctx.logger.series(f"{tag}_se/{series}", band)
-
-    n = len(ranges)
     for i, name in enumerate(names):
         mine = parts[i * n:(i + 1) * n]
         dist = join_runs([p["distance"] for p in mine])  # (T, runs)
@@ -320,17 +412,3 @@ def run(ctx: StudyContext) -> None:
         mean_and_band(dist, "GOSPA", name, "gospa")
         for part in ("localisation", "missed", "false"):  # GOSPA^p's parts over time
             mean_and_band(join_runs([p[part] for p in mine]), part, name, f"gospa_{part}")
-        mean_and_band(join_runs([p["tracks"] for p in mine]), "tracks shown", name, "tracks")
-    if names:
-        mean_and_band(join_runs([p["targets"] for p in parts[:n]]), "tracks shown", "truth", "tracks")
-    ctx.results.save()
-    if ctx.figures and names:  # one run in the plane: truth, detections, each estimator's tracks
-        pics = {name: {k: torch.as_tensor(v) for k, v in parts[i * n]["picture"].items()}  # (units: lists)
-                for i, name in enumerate(names)}
-        first = pics[names[0]]
-        ctx.save_figure("tracks_xy", plots.tracks_xy(
-            first["truth"], first["present"], first["detections"],
-            {name: (p["mean"], p["cov"], p["shown"], p["labels"]) for name, p in pics.items()},
-            title=f"run 0 of {runs}"))
-    ctx.save_figure("gospa_over_time", plots.rmse_over_time(curves, f"{t.targets} crossing targets in clutter, "
-                                                                    f"{runs} runs", bands=bands))

@@ -1,0 +1,201 @@
+"""The tracking study's own detections (issue 46; docs/tracking.md, "Your own detections"): a detections
+file, an optional truth file and an optional file of the tracks' start, read into the study's arrays,
+and the simulated scenario written as those three files (``tracking.export``).
+
+Files (CSV or NPZ, :mod:`experiments.datafile`):
+
+* **detections**: one row per detection, ``time`` and the two position columns (``measurements``), an
+  optional ``series`` column (each series is one run). A row with empty measurement cells records an
+  empty scan; so does a time on the scan grid with no row at all. The scans lie on the grid
+  ``t0 + k * tracking.dt`` (``t0`` the earliest time stamp of the files), every stamp on it.
+* **truth** (optional; GOSPA and the track-quality table need it): one row per target and time stamp
+  where it exists (births and deaths: the rows it has), ``time``, ``target``, the two ``position``
+  columns, optional ``series`` (without one, every series has this truth).
+* **start** (the estimators that keep one track per target need it: every one but the managed
+  trackers): one row per target (and series): ``target``, the four ``state`` columns ``[x, vx, y, vy]``
+  and optional ``variances`` (the four diagonal entries of that track's covariance; ``tracking.P0``
+  where not given). The start is the belief one period before the first scan, as ``run_filter``'s
+  initial belief (each scan is predicted to, then updated).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from experiments.config import ConfigError
+from experiments.datafile import DataFileError, read_detections, read_targets
+
+#: the files a study exports and the columns it writes (conf: tracking.export)
+FILES = {"detections": "detections.csv", "truth": "truth.csv", "start": "start.csv"}
+
+
+class Recorded(NamedTuple):
+    """The study's arrays from files (float64).
+
+    Shapes: ``z (T, R, D, 2)``; ``truth (T, R, N, 2)`` positions (NaN where a target does not exist) or
+    None; ``present (T, R, N)`` bool or None; ``x0 (R, K, 4)`` and ``P0 (R, K, 4, 4)`` the tracks' start
+    (``K = 0`` without a start file); ``times (T,)``; ``series``: R labels."""
+
+    z: Tensor
+    truth: Tensor | None
+    present: Tensor | None
+    x0: Tensor
+    P0: Tensor
+    times: np.ndarray
+    series: list[str]
+
+
+def _fail(key: str, value, err: Exception):
+    """A reader's error as one ConfigError naming the config key."""
+    if isinstance(err, DataFileError):
+        return ConfigError(key, value, str(err))
+    name, _, why = str(err).partition(": ")
+    return ConfigError(f"{key}.{name.split('[', 1)[0]}", value, why or name)
+
+
+def _grid(stamps: list[np.ndarray], dt: float, key: str) -> tuple[float, int]:
+    """``(t0, T)``: the scan grid ``t0 + k dt`` holding every stamp."""
+    every = np.concatenate([s for s in stamps if s is not None and len(s)])
+    t0 = float(every.min())
+    k = (every - t0) / dt
+    off = np.abs(k - np.round(k))
+    if off.max() > 1e-6:
+        bad = every[int(np.argmax(off))]
+        raise ConfigError("tracking.dt", dt, f"the time stamp {bad:g} ({key}) is not on the scan grid {t0:g} + k * dt "
+                          "(give the sensor's period as tracking.dt)")
+    return t0, int(np.round(k).max()) + 1
+
+
+def _index(stamps: np.ndarray, t0: float, dt: float) -> np.ndarray:
+    return np.round((stamps - t0) / dt).astype(int)
+
+
+def _series_of(rows, series: list[str], key: str, node) -> list[list[int]]:
+    """For each detection series, the rows that belong to it (every row where the file has no series
+    column); a series the detections do not have is an error."""
+    if node.get("series") is None:
+        return [list(range(len(rows.target)))] * len(series)
+    unknown = sorted(set(rows.series) - set(series))
+    if unknown:
+        raise ConfigError(f"{key}.series", node.get("series"), f"series {unknown[0]!r} of {rows.file.name} has no "
+                          f"detections (the detections' series: {', '.join(series)})")
+    return [[i for i, s in enumerate(rows.series) if s == label] for label in series]
+
+
+def read(node, *, dt: float, P0: list[float]) -> Recorded:
+    """``tracking.detections``'s files as the study's arrays; every error one ConfigError naming the key."""
+    key = "tracking.detections"
+    try:
+        scans = read_detections(node["path"], measurements=list(node["measurements"]), time=node["time"],
+                                series=node.get("series"))
+    except (DataFileError, TypeError, ValueError) as err:
+        raise _fail(key, node["path"], err) from None
+    if scans.z.shape[-1] != 2:
+        raise ConfigError(f"{key}.measurements", list(node["measurements"]), "expected the two position columns "
+                          "[x, y] (the study's sensor measures position)")
+    truth_node, start_node = node.get("truth"), node.get("start")
+    truth_rows = start_rows = None
+    if truth_node is not None:
+        try:
+            truth_rows = read_targets(truth_node["path"], columns=list(truth_node["position"]),
+                                      target=truth_node["target"], time=truth_node["time"],
+                                      series=truth_node.get("series"))
+        except (DataFileError, TypeError, ValueError) as err:
+            raise _fail(f"{key}.truth", truth_node["path"], err) from None
+        if truth_rows.values.shape[-1] != 2:
+            raise ConfigError(f"{key}.truth.position", list(truth_node["position"]), "expected two columns [x, y]")
+    if start_node is not None:
+        columns = list(start_node["state"]) + list(start_node.get("variances") or [])
+        for name in ("state", "variances"):
+            given = start_node.get(name)
+            if given is not None and len(given) != 4:
+                raise ConfigError(f"{key}.start.{name}", list(given), "expected four columns, for [x, vx, y, vy]")
+        try:
+            start_rows = read_targets(start_node["path"], columns=columns, target=start_node["target"],
+                                      series=start_node.get("series"))
+        except (DataFileError, TypeError, ValueError) as err:
+            raise _fail(f"{key}.start", start_node["path"], err) from None
+    t0, T = _grid([scans.times, truth_rows.times if truth_rows is not None else None], dt, key)
+    R, D = scans.z.shape[1], scans.z.shape[2]
+    z = np.full((T, R, D, 2), np.nan)
+    z[_index(scans.times, t0, dt)] = scans.z
+    truth = present = None
+    if truth_rows is not None:
+        targets = list(dict.fromkeys(truth_rows.target))
+        which = {name: i for i, name in enumerate(targets)}
+        truth = np.full((T, R, len(targets), 2), np.nan)
+        steps = _index(truth_rows.times, t0, dt)
+        for r, rows in enumerate(_series_of(truth_rows, scans.series, f"{key}.truth", truth_node)):
+            for i in rows:
+                truth[steps[i], r, which[truth_rows.target[i]]] = truth_rows.values[i]
+        present = np.isfinite(truth).all(-1)
+    if start_rows is not None:
+        per_series = _series_of(start_rows, scans.series, f"{key}.start", start_node)
+        counts = {len(rows) for rows in per_series}
+        if len(counts) != 1:
+            raise ConfigError(f"{key}.start", start_node["path"], "every series needs the same number of tracks "
+                              f"(one row per target); the series have {sorted(counts)}")
+        values = np.stack([start_rows.values[rows] for rows in per_series])  # (R, K, 4 or 8)
+        x0 = values[..., :4]
+        variances = values[..., 4:] if values.shape[-1] == 8 else np.broadcast_to(np.asarray(P0, float), x0.shape)
+        if (variances < 0).any():
+            raise ConfigError(f"{key}.start.variances", list(start_node["variances"]), "a variance is negative")
+        cov = np.zeros(x0.shape + (4,))
+        cov[..., range(4), range(4)] = variances
+    else:
+        x0, cov = np.zeros((R, 0, 4)), np.zeros((R, 0, 4, 4))
+    as_t = torch.as_tensor
+    return Recorded(as_t(z), None if truth is None else as_t(truth), None if present is None else as_t(present),
+                    as_t(x0), as_t(cov), t0 + dt * np.arange(T), list(scans.series))
+
+
+def _cells(values) -> list[str]:
+    return [repr(float(v)) if math.isfinite(v) else "" for v in values]
+
+
+def export(folder: Path, *, z: Tensor, truth: Tensor, present: Tensor, x0: Tensor, dt: float) -> dict[str, Path]:
+    """Write a simulated scenario as the files :func:`read` takes (full precision: read back, every
+    number is the same): ``detections.csv`` (``time, series, x, y``; an empty row for an empty scan),
+    ``truth.csv`` (``time, series, target, x, y``, the rows where a target exists) and ``start.csv``
+    (``series, target, x, vx, y, vy``).
+
+    Shapes: ``z (T, R, D, 2)``, ``truth (T, R, N, 2)``, ``present (T, R, N)``, ``x0 (R, N, 4)``."""
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = {name: folder / file for name, file in FILES.items()}
+    z, truth, present, x0 = (v.detach().cpu().double().numpy() if v.is_floating_point() else v.cpu().numpy()
+                             for v in (z, truth, present, x0))
+    T, R = z.shape[:2]
+    lines = ["time,series,x,y"]
+    for k in range(T):
+        for r in range(R):
+            seen = np.isfinite(z[k, r]).all(-1)
+            lines += [",".join([repr(k * dt), str(r), *_cells(z[k, r, d])]) for d in np.flatnonzero(seen)]
+            if not seen.any():
+                lines.append(f"{k * dt!r},{r},,")
+    paths["detections"].write_text("\n".join(lines) + "\n")
+    lines = ["time,series,target,x,y"]
+    for k in range(T):
+        for r in range(R):
+            lines += [",".join([repr(k * dt), str(r), str(i), *_cells(truth[k, r, i])])
+                      for i in np.flatnonzero(present[k, r])]
+    paths["truth"].write_text("\n".join(lines) + "\n")
+    lines = ["series,target,x,vx,y,vy"]
+    for r in range(R):
+        lines += [",".join([str(r), str(i), *_cells(x0[r, i])]) for i in range(x0.shape[1])]
+    paths["start"].write_text("\n".join(lines) + "\n")
+    return paths
+
+
+#: the config node that reads the exported files back (tracking.detections)
+def node_for(paths: dict[str, Path]) -> dict:
+    return {"path": str(paths["detections"]), "measurements": ["x", "y"], "time": "time", "series": "series",
+            "truth": {"path": str(paths["truth"]), "time": "time", "target": "target", "position": ["x", "y"],
+                      "series": "series"},
+            "start": {"path": str(paths["start"]), "target": "target", "state": ["x", "vx", "y", "vy"],
+                      "variances": None, "series": "series"}}

@@ -1,0 +1,186 @@
+"""The tracking study on one's own detections (issue 46; docs/tracking.md, "Your own detections"):
+files written from the simulation give the simulation's numbers, a study without truth scores nothing
+and says so, every malformed file or key is one line before any folder."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from experiments.config import precheck
+from experiments.datafile import DataFileError, read_targets
+from experiments.run import CONFIG_DIR, run_study
+from experiments.studies import tracking_data
+from tests.experiments.test_studies import _compose
+from tests.regression.record import COMMON
+
+LIVES = "[[0,24],[6,24],[0,16]]"  # target 1 appears at scan 6, target 2 disappears after scan 15
+
+
+def _node(paths: dict, **changes) -> str:
+    """``tracking.detections={...}`` reading ``paths`` (as tracking_data.node_for), one override."""
+    node = tracking_data.node_for(paths)
+    for key, value in changes.items():
+        where = node
+        *head, last = key.split(".")
+        for part in head:
+            where = where[part]
+        where[last] = value
+
+    def text(value) -> str:
+        if isinstance(value, dict):
+            return "{" + ",".join(f"{k}:{text(v)}" for k, v in value.items()) + "}"
+        if isinstance(value, list):
+            return "[" + ",".join(text(v) for v in value) + "]"
+        return "null" if value is None else str(value)
+    return f"tracking.detections={text(node)}"
+
+
+def _tables(folder: Path) -> dict:
+    return json.loads((folder / "results.json").read_text())["tables"]
+
+
+def _same_numbers(a: dict, b: dict) -> None:
+    """Every cell of every table equal (1e-12), the timing columns aside."""
+    assert set(a) == set(b)
+    for name in a:
+        assert a[name]["columns"] == b[name]["columns"]
+        columns = a[name]["columns"]
+        for row_a, row_b in zip(a[name]["rows"], b[name]["rows"], strict=True):
+            for column, x, y in zip(columns, row_a, row_b):
+                if "seconds" in column:
+                    continue
+                if isinstance(x, float):
+                    assert y == pytest.approx(x, rel=1e-12, abs=1e-12), (name, row_a[0], column)
+                else:
+                    assert x == y, (name, column)
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory):
+    """The debug tracking study with its scenario exported, and the exported files."""
+    folder = tmp_path_factory.mktemp("sim")
+    run_study(_compose("tracking", *COMMON, "debug=tracking", "figures=false", "tracking.export=true",
+                       "tracking.estimators=[IMM-JPDAF,IMM-MHT,IMM-PDAF,JIPDA-TM]"), folder)
+    return folder, {name: folder / "scenario" / file for name, file in tracking_data.FILES.items()}
+
+
+def test_files_written_from_the_simulation_give_its_numbers(exported, tmp_path):
+    """Issue 46's test: the study on the detections, truth and start files that tracking.export wrote
+    gives every number of the simulated study (GOSPA and its parts, switches, track quality), 1e-12;
+    the files' rows are the simulation's detections and truth."""
+    sim, paths = exported
+    run_study(_compose("tracking", *COMMON, "debug=tracking", "figures=true", _node(paths),
+                       "tracking.estimators=[IMM-JPDAF,IMM-MHT,IMM-PDAF,JIPDA-TM]"), tmp_path)
+    _same_numbers(_tables(sim), _tables(tmp_path))
+    assert (tmp_path / "figures" / "tracks_xy.png").stat().st_size > 10_000
+    text = (tmp_path / "results.md").read_text()
+    assert "detections from" in text and "4 series, 12 scans" in text
+    assert "`tracking.detections=null`" not in text  # (a null node given a value lists its keys only)
+    assert "`tracking.detections.path=" in text
+    # the files hold what the simulation drew: 3 targets, 12 scans, every run
+    got = tracking_data.read(tracking_data.node_for(paths) | {"start": None}, dt=1.0, P0=[1, 1, 1, 1])
+    assert got.z.shape[:2] == (12, 4) and got.truth.shape == (12, 4, 3, 2) and bool(got.present.all())
+
+
+def test_births_and_deaths_from_the_truth_file_with_no_start(tmp_path):
+    """Targets that appear and disappear (tracking.lifetimes) exported, and read back with no start file:
+    the managed tracker alone, the truth file's rows saying which targets exist, its numbers the simulation's."""
+    common = [*COMMON, "debug=tracking", "figures=false", "tracking.steps=24", "tracking.estimators=[JIPDA-TM]",
+              "tracking.management.velocity_variance=900"]
+    run_study(_compose("tracking", *common, f"tracking.lifetimes={LIVES}", "tracking.export=true"), tmp_path / "sim")
+    paths = {name: tmp_path / "sim" / "scenario" / file for name, file in tracking_data.FILES.items()}
+    rows = (tmp_path / "sim" / "scenario" / "truth.csv").read_text().splitlines()[1:]
+    assert len(rows) == 4 * (24 + 18 + 16)  # the target-scans that exist, each run
+    run_study(_compose("tracking", *common, _node(paths, start=None)), tmp_path / "file")
+    _same_numbers(_tables(tmp_path / "sim"), _tables(tmp_path / "file"))
+
+
+def test_without_truth_nothing_is_scored_and_the_tables_say_so(exported, tmp_path):
+    _, paths = exported
+    run_study(_compose("tracking", *COMMON, "debug=tracking", "figures=true", _node(paths, truth=None),
+                       "tracking.estimators=[IMM-JPDAF,JIPDA-TM]"), tmp_path)
+    results = json.loads((tmp_path / "results.json").read_text())
+    assert set(results["tables"]) == {"tracks"}
+    assert set(results["dropped"]) == {"gospa", "track_quality"}
+    assert "no truth" in results["dropped"]["gospa"]
+    rows = {row[0]: row for row in results["tables"]["tracks"]["rows"]}
+    assert rows["IMM-JPDAF"][1] == 3.0  # one track per target, always shown
+    assert 0.0 <= rows["JIPDA-TM"][1] <= 10.0
+    assert "- `gospa`: no truth (tracking.detections.truth is null)" in (tmp_path / "results.md").read_text()
+    assert (tmp_path / "figures" / "tracks_xy.png").exists() and (tmp_path / "figures" / "tracks_over_time.png").exists()
+
+
+def test_empty_scans_and_grid_gaps_are_scans_without_detections(tmp_path):
+    """A row with empty measurement cells and a time missing from the file are both empty scans on the
+    grid t0 + k dt; the start row's variances give that track's covariance."""
+    (tmp_path / "d.csv").write_text("time,x,y\n10,1,2\n10,5,5\n11,,\n13,2,2\n")
+    (tmp_path / "s.csv").write_text("target,x,vx,y,vy,px,pvx,py,pvy\nA,0,1,0,1,4,1,4,1\nB,5,0,5,0,9,2,9,2\n")
+    node = {"path": str(tmp_path / "d.csv"), "measurements": ["x", "y"], "time": "time", "series": None, "truth": None,
+            "start": {"path": str(tmp_path / "s.csv"), "target": "target", "state": ["x", "vx", "y", "vy"],
+                      "variances": ["px", "pvx", "py", "pvy"], "series": None}}
+    got = tracking_data.read(node, dt=1.0, P0=[1, 1, 1, 1])
+    assert got.z.shape == (4, 1, 2, 2) and list(got.times) == [10.0, 11.0, 12.0, 13.0]
+    assert torch.isfinite(got.z).all(-1).sum(-1)[:, 0].tolist() == [2, 0, 0, 1]
+    assert torch.equal(got.P0[0, 1], torch.diag(torch.tensor([9.0, 2.0, 9.0, 2.0], dtype=torch.float64)))
+    assert got.truth is None and got.x0.shape == (1, 2, 4)
+
+
+def test_read_targets_errors_name_file_column_and_row(tmp_path):
+    (tmp_path / "t.csv").write_text("time,target,x,y\n0,a,1,2\n0,b,3,\n")
+    with pytest.raises(DataFileError, match=r"column 'y', row 3: a value is missing"):
+        read_targets(tmp_path / "t.csv", columns=["x", "y"], target="target", time="time")
+    (tmp_path / "t.csv").write_text("time,target,x,y\n0,a,1,2\n1,a,3,4\n1,a,3,5\n")
+    with pytest.raises(DataFileError, match=r"row 4: target 'a' is given again at time 1 \(first at row 3\)"):
+        read_targets(tmp_path / "t.csv", columns=["x", "y"], target="target", time="time")
+    (tmp_path / "t.csv").write_text("time,target,x,y\n0, ,1,2\n")
+    with pytest.raises(DataFileError, match=r"column 'target', row 2: the label cell is empty"):
+        read_targets(tmp_path / "t.csv", columns=["x", "y"], target="target", time="time")
+    np.savez(tmp_path / "t.npz", time=np.array([0.0, 0.0]), target=np.array([1.0, 2.0]), x=np.array([1.0, 2.0]),
+             y=np.array([3.0, 4.0]))
+    rows = read_targets(tmp_path / "t.npz", columns=["x", "y"], target="target", time="time")
+    assert rows.target == ["1", "2"] and rows.values.tolist() == [[1.0, 3.0], [2.0, 4.0]]
+    with pytest.raises(TypeError, match="columns"):
+        read_targets(tmp_path / "t.npz", columns="x", target="target")
+
+
+CASES = [
+    # (how the files or keys differ from the exported ones, the start of the one line)
+    ({"start": None}, "tracking.detections.start: missing: IMM-JPDAF keep one track per target"),
+    ({"measurements": ["x"]}, "tracking.detections.measurements="),
+    ({"truth.position": ["x", "nope"]}, "tracking.detections.truth="),
+    ({"start.state": ["x", "vx", "y"]}, "tracking.detections.start.state="),
+    ({"truth.series": None, "series": None, "start.series": None}, "tracking.detections.truth="),  # a target twice
+    ("dt=0.7", "tracking.dt=0.7: the time stamp"),
+    (f"lifetimes={LIVES}", "tracking.lifetimes="),
+]
+
+
+@pytest.mark.parametrize("change, start", CASES, ids=[f"{i}-{c[1].split('=')[0]}" for i, c in enumerate(CASES)])
+def test_each_file_or_key_error_is_one_line_before_any_folder(exported, tmp_path, capsys, change, start):
+    _, paths = exported
+    node = _node(paths, **change) if isinstance(change, dict) else _node(paths)
+    extra = [f"tracking.{change}"] if isinstance(change, str) else []
+    with pytest.raises(SystemExit) as stop:
+        precheck(["experiment=tracking", "debug=tracking", "logger=none", node, "tracking.estimators=[IMM-JPDAF]",
+                  *extra, f"hydra.run.dir={tmp_path / 'run'}"], CONFIG_DIR)
+    assert stop.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith(f"torchmm-run: error: {start}"), err
+    assert not (tmp_path / "run").exists()
+
+
+def test_the_shipped_example_tracks_with_an_imm_mht_and_an_imm_jpdaf(tmp_path):
+    """conf/experiment/tracking_detections.yaml: the shipped files, the IMM-MHT and IMM-JPDAF keep every
+    target (the start file's tracks) through the crossing; the managed tracker finds them from nothing."""
+    run_study(_compose("tracking_detections", "logger=none", "progress=false", "figures=false"), tmp_path)
+    table = _tables(tmp_path)["track_quality"]
+    rows = {row[0]: dict(zip(table["columns"], row)) for row in table["rows"]}
+    assert set(rows) == {"IMM-MHT", "IMM-JPDAF", "JIPDA-TM"}
+    for name in ("IMM-MHT", "IMM-JPDAF"):
+        assert rows[name]["completeness"] > 0.95, rows[name]
+    assert rows["JIPDA-TM"]["completeness"] > 0.7, rows["JIPDA-TM"]
