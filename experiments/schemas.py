@@ -1009,6 +1009,7 @@ class TrackingSection:
     q_cv: float = spec(MISSING, positive)
     gospa_c: float = spec(MISSING, positive)
     gospa_p: float = spec(MISSING, lambda v: None if v is None or v >= 1 else "must be at least 1")
+    gospa_switching: float = spec(MISSING, non_negative)
     lifetimes: Optional[List[List[int]]] = MISSING
     management: TrackManagement = field(default_factory=TrackManagement)
     jpda: JPDASettings = field(default_factory=JPDASettings)

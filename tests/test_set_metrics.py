@@ -243,3 +243,64 @@ def test_on_cuda_equal_the_cpu_and_do_not_synchronise():
     assert torch.equal(assigned.cpu(), cpu_assigned)
     for key in ("distance", "localisation", "missed", "false", "assigned"):
         torch.testing.assert_close(out[key].cpu(), cpu_gospa[key], rtol=1e-12, atol=1e-12)
+
+
+def test_gospa_switching_equals_stone_soup_over_time():
+    """GOSPA's track-switching term (issue 46) against Stone Soup's ``GOSPAMetric(switching_penalty=...)``
+    over time: tracks that wander between targets, targets that appear and vanish, p = 1 and 2; the
+    switching term and the combined distance at every step (1e-9)."""
+    import datetime
+
+    from stonesoup.measures import Euclidean
+    from stonesoup.metricgenerator.ospametric import GOSPAMetric
+
+    from torchmm.metrics import gospa_switching
+
+    gen = torch.Generator().manual_seed(5)
+    T, N, K, c = 12, 3, 3, 4.0
+    base = datetime.datetime(2026, 12, 7)
+    for p in (1.0, 2.0):
+        for trial in range(4):
+            truth = torch.randn(T, N, 2, generator=gen, dtype=torch.float64).cumsum(0) * 2
+            present = torch.rand(T, N, generator=gen) > 0.2
+            # each track follows a random target each step (plus noise): switches, losses and gains
+            follow = torch.randint(0, N, (T, K), generator=gen)
+            est = truth.gather(1, follow.unsqueeze(-1).expand(T, K, 2)) + torch.randn(T, K, 2, generator=gen,
+                                                                                      dtype=torch.float64) * 1.5
+            out = gospa(est, torch.where(present.unsqueeze(-1), truth, math.nan), c=c, p=p)
+            term = gospa_switching(out["assigned"], penalty=3.0, p=p, truth_present=present)
+            combined = (out["distance"] ** 2 + term ** 2).sqrt()
+            from stonesoup.types.state import State
+            meas, meas_ids, tru, tru_ids = [], [], [], []
+            for k in range(T):
+                when = base + datetime.timedelta(seconds=k)
+                for j in range(K):
+                    meas.append(State(est[k, j].numpy().reshape(-1, 1), timestamp=when))
+                    meas_ids.append(j)
+                for i in range(N):
+                    if present[k, i]:
+                        tru.append(State(truth[k, i].numpy().reshape(-1, 1), timestamp=when))
+                        tru_ids.append(i)
+            metric = GOSPAMetric(c=c, p=p, measure=Euclidean(), switching_penalty=3.0)
+            theirs = metric.compute_over_time(meas, meas_ids, tru, tru_ids).value
+            assert len(theirs) == T
+            for k in range(T):
+                assert float(term[k]) == pytest.approx(theirs[k].value["switching"], abs=1e-9), (p, trial, k)
+                assert float(combined[k]) == pytest.approx(theirs[k].value["distance"], abs=1e-9), (p, trial, k)
+            assert float(term.sum()) > 0  # (the case exercises switches)
+
+
+def test_gospa_switching_cases_by_hand():
+    from torchmm.metrics import gospa_switching
+
+    # never tracked, then tracked: no cost; a track lost: half; another track: full; absent: nothing
+    labels = torch.tensor([[-1], [-1], [2], [-1], [-1], [3], [4], [4]])
+    present = torch.tensor([[True], [True], [True], [True], [False], [True], [True], [True]])
+    out = gospa_switching(labels, penalty=1.0, p=1.0, truth_present=present)
+    assert out.tolist() == [0.0, 0.0, 0.0, 0.5, 0.0, 0.5, 1.0, 0.0]
+    two = gospa_switching(torch.tensor([[0, 1], [1, 0]]), penalty=2.0, p=2.0)  # a swap: two full switches
+    assert two.tolist() == pytest.approx([0.0, 2.0 * 2 ** 0.5])
+    with pytest.raises(ValueError, match="penalty"):
+        gospa_switching(labels, penalty=-1.0)
+    with pytest.raises(ValueError, match="labels"):
+        gospa_switching(torch.tensor([[-2]]), penalty=1.0)

@@ -61,7 +61,7 @@ from experiments.studies import plots, tracking_data
 from torchmm import IMM, GaussianBelief, KalmanFilter, run_filter
 from torchmm.association import GNN, JIPDA, JPDA, MHT, PDA, ManagedTracks, position_initiator
 from torchmm.beliefs import psd_sqrt
-from torchmm.metrics import gospa
+from torchmm.metrics import gospa, gospa_switching
 from torchmm.models import ConstantVelocity, PositionMeasurement
 from torchmm.simulate import simulate_detections
 
@@ -267,6 +267,11 @@ def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
                 truth_present=present)
     assigned = out["assigned"]  # (T, runs, N): the track on each target, -1 none within c
     label = torch.where(assigned >= 0, labels.gather(-1, assigned.clamp(min=0)), -1)
+    penalty = float(t.get("gospa_switching") or 0.0)
+    if penalty > 0:  # GOSPA with its track-switching term (Stone Soup's switching_penalty)
+        term = gospa_switching(label, penalty=penalty, p=float(t.gospa_p), truth_present=present)
+        out["distance"] = (out["distance"] ** 2 + term ** 2).sqrt()
+        out["switching"] = term
     both = (label[1:] >= 0) & (label[:-1] >= 0)
     switches = (both & (label[1:] != label[:-1])).sum((0, 2)).double()  # (runs,)
     last = present[-1]
@@ -287,7 +292,8 @@ def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
         "spuriousness": per_run((visible & ~near.any(-1)).sum((0, 2)).double() / visible.sum((0, 2)).clamp(min=1)),
         "breaks": per_run((covered[:-1] & ~covered[1:] & present[1:]).sum((0, 2)).double()),
     }
-    return common | {key: per_run(out[key]) for key in ("distance", "localisation", "missed", "false")} | {
+    return common | {key: per_run(out[key]) for key in ("distance", "localisation", "missed", "false", "switching")
+                     if key in out} | {
         "switches": per_run(switches), "lost": per_run(lost), "delay": per_run(delay), **quality,
         "targets": per_run(present.sum(-1).double())}
 
@@ -373,8 +379,10 @@ def run(ctx: StudyContext) -> None:
 
 def _score_tables(ctx: StudyContext, names: list[str], parts: list[dict], n: int, mean_and_band) -> None:
     """The gospa and track_quality tables and the GOSPA curves (the study has truth)."""
+    switching = float(ctx.cfg.tracking.get("gospa_switching") or 0.0) > 0
     table = ctx.results.table(
-        "gospa", ["estimator", "gospa", "gospa_se", "localisation", "missed", "false", "label_switches",
+        "gospa", ["estimator", "gospa", "gospa_se", "localisation", "missed", "false",
+                  *(["switching"] if switching else []), "label_switches",
                   "lost_fraction", "first_track_delay", "seconds_per_track_scan"],
         note="gospa: the GOSPA distance averaged over steps and runs, gospa_se its standard error over the "
              "runs (95 %: +- 1.96 se). localisation / missed / false: the parts of GOSPA^p (units of "
@@ -382,7 +390,11 @@ def _score_tables(ctx: StudyContext, names: list[str], parts: list[dict], n: int
              "lost_fraction: targets without a track within c at the last scan (of those that exist then). "
              "first_track_delay: scans from a target's first scan to its first track within c (a target "
              "never tracked counts the scans to the end). JIPDA-TM and IMM-JIPDA-TM show their confirmed "
-             "tracks only (existence >= tracking.management.confirm, or by tracking.management.m_of_n).")
+             "tracks only (existence >= tracking.management.confirm, or by tracking.management.m_of_n)."
+             + (" switching: GOSPA's track-switching term (tracking.gospa_switching times the p-th root of the "
+                "step's switches: 1 for a target's track changing to another, 0.5 for one gained or lost), "
+                "averaged over steps and runs; gospa then includes it, (d^2 + switching^2)^(1/2) at each step, "
+                "as Stone Soup's GOSPAMetric(switching_penalty)." if switching else ""))
     quality = ctx.results.table(
         "track_quality", ["estimator", "completeness", "ambiguity", "spuriousness", "track_breaks", "label_switches",
                           "first_track_delay"],
@@ -401,8 +413,9 @@ def _score_tables(ctx: StudyContext, names: list[str], parts: list[dict], n: int
         delay = float(join_runs([p["delay"] for p in mine], dim=0).mean())
         seconds = sum(p["seconds"] for p in mine) / sum(p["track_scans"] for p in mine)
         se = float(per_run_mean.std() / math.sqrt(len(per_run_mean))) if len(per_run_mean) > 1 else None
+        term = [float(join_runs([p["switching"] for p in mine]).mean())] if switching else []
         table.rows.append([name, float(per_run_mean.mean()), se, parts_mean["localisation"], parts_mean["missed"],
-                           parts_mean["false"], switches, lost, delay, seconds])
+                           parts_mean["false"], *term, switches, lost, delay, seconds])
         ctx.results.metric(name, "gospa", float(per_run_mean.mean()))
         ctx.results.metric(name, "lost_fraction", lost)
         ctx.results.timing[name] = seconds

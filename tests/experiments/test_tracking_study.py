@@ -110,3 +110,21 @@ def test_track_quality_without_clutter_or_misses(tmp_path):
     table = json.loads((tmp_path / "tm" / "results.json").read_text())["tables"]["track_quality"]
     row = dict(zip(table["columns"], table["rows"][0]))
     assert 0.0 < row["completeness"] < 1.0 and 0.0 <= row["spuriousness"] < 1.0  # (a track confirms late)
+
+
+def test_gospa_with_the_track_switching_penalty(tmp_path):
+    """tracking.gospa_switching (issue 46): a `switching` column, GOSPA with it at least GOSPA without it
+    (equal parts otherwise); zero exactly where no label ever switched or was lost and regained."""
+    common = [*COMMON, "debug=tracking", "figures=false", "tracking.estimators=[IMM-JPDAF,JIPDA-TM]"]
+    run_study(_compose("tracking", *common), tmp_path / "off")
+    run_study(_compose("tracking", *common, "tracking.gospa_switching=5.0"), tmp_path / "on")
+    off, on = ({row[0]: dict(zip(t["columns"], row)) for row in t["rows"]}
+               for t in (json.loads((tmp_path / d / "results.json").read_text())["tables"]["gospa"]
+                         for d in ("off", "on")))
+    assert "switching" not in off["IMM-JPDAF"] and "switching" in on["IMM-JPDAF"]
+    for name in off:
+        for key in ("localisation", "missed", "false", "label_switches"):
+            assert on[name][key] == off[name][key]
+        assert on[name]["gospa"] >= off[name]["gospa"] - 1e-12
+        assert (on[name]["switching"] > 0) == (on[name]["gospa"] > off[name]["gospa"] + 1e-12)
+    assert on["JIPDA-TM"]["switching"] > 0  # its tracks are gained (and lost) over the run

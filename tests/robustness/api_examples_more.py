@@ -117,6 +117,9 @@ example(_SETS + "gospa")(
     lambda: call(metrics.gospa, torch.tensor([[0.0, 1.0], [9.0, 9.0]]), torch.tensor([[0.0, 0.0], [4.0, 0.0]]),
                  c=3.0, p=2.0, estimate_present=torch.tensor([True, True]),
                  truth_present=torch.tensor([True, False])))
+example(_SETS + "gospa_switching")(
+    lambda: call(metrics.gospa_switching, torch.tensor([[0, 1], [1, -1], [1, 0]]), penalty=2.0, p=2.0,
+                 truth_present=torch.tensor([[True, True], [True, True], [False, True]])))
 example(_SETS + "ospa")(
     lambda: call(metrics.ospa, torch.tensor([[0.0, 1.0], [9.0, 9.0]]), torch.tensor([[0.0, 0.0], [4.0, 0.0]]),
                  c=3.0, p=1.0, estimate_present=torch.tensor([True, False]),

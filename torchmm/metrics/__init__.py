@@ -20,10 +20,10 @@ from torch import Tensor
 from torchmm.beliefs import GaussianBelief
 from torchmm.contract import Cov, Finite, Indices, Labels, Of, Values, entry_point
 from torchmm.linalg import cholesky, solve_lower
-from torchmm.metrics.sets import gospa, ospa
+from torchmm.metrics.sets import gospa, gospa_switching, ospa
 from torchmm.validation import broadcast_shape
 
-__all__ = ["armse", "gospa", "mode_accuracy", "mode_hits", "nees", "nis", "ospa", "rmse", "squared_error"]
+__all__ = ["armse", "gospa", "gospa_switching", "mode_accuracy", "mode_hits", "nees", "nis", "ospa", "rmse", "squared_error"]
 
 # The kinds: an estimate may be NaN or infinite (a diverged run is scored, not refused), and so may
 # mode (log-)probabilities (-inf) and innovations (NaN = missing); the truth is finite.

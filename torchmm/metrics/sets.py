@@ -44,10 +44,10 @@ import torch
 from torch import Tensor
 
 from torchmm.assignment import linear_assignment
-from torchmm.contract import Mask, Real, Sets, entry_point, unchecked
+from torchmm.contract import Labels, Mask, Real, Sets, entry_point, unchecked
 from torchmm.validation import broadcast_shape
 
-__all__ = ["gospa", "ospa"]
+__all__ = ["gospa", "gospa_switching", "ospa"]
 
 
 def _prepare(estimates: Tensor, truth: Tensor, estimate_present, truth_present, c: float):
@@ -141,6 +141,58 @@ def gospa(estimates: Tensor, truth: Tensor, *, c: float, p: float = 2.0, estimat
     false = half * (est_present.sum(-1) - count).to(distance.dtype)
     return {"distance": (localisation + missed + false).pow(1.0 / p), "localisation": localisation,
             "missed": missed, "false": false, "assigned": torch.where(matched, assigned, -1)}
+
+
+@entry_point(labels=Labels(minimum=-1), penalty=Real(minimum=0.0), p=Real(minimum=1.0),
+             truth_present=Mask(optional=True))
+def gospa_switching(labels: Tensor, *, penalty: float, p: float = 2.0, truth_present: Tensor | None = None) -> Tensor:
+    r"""GOSPA's track-switching term over time (Rahmathullah, Garcia-Fernandez & Svensson 2016, Sec. V; as
+    Stone Soup's ``GOSPAMetric(switching_penalty=...)`` and MATLAB's ``trackGOSPAMetric`` compute it).
+
+    A target's track is the label of the estimate GOSPA assigns to it (-1: none). From the first step it
+    has a track, each change of it costs a *half switch* (0.5) when it gains or loses its track and a full
+    one (1) when it moves from one track to another; a step where the target does not exist
+    (``truth_present`` False) changes nothing. At step ``k`` the term is
+    ``penalty * (sum of the targets' switch costs at k)^(1/p)``, and the GOSPA with switching is
+    ``(d_k^2 + term_k^2)^(1/2)`` (``alpha = 2``; Stone Soup's combination).
+
+    Args:
+        labels: ``(T, *B, N)`` integer: the label of the track assigned to each target (``gospa``'s
+            ``assigned`` mapped through the estimates' labels), -1 where none.
+        penalty: the switching penalty (>= 0; Stone Soup's ``switching_penalty``).
+        p: GOSPA's order (>= 1).
+        truth_present: ``(T, *B, N)`` bool: which targets exist at each step (default all).
+
+    Returns:
+        ``(T, *B)`` the switching term at each step (0 at the first).
+
+    Examples:
+        >>> labels = torch.tensor([[0], [0], [1], [-1], [1]])  # a target's track: 0, 0, 1, none, 1
+        >>> gospa_switching(labels, penalty=2.0, p=1.0).tolist()
+        [0.0, 0.0, 2.0, 1.0, 1.0]
+    """
+    labels = labels.long()
+    if labels.dim() < 2:
+        raise ValueError(f"labels: expected (T, *B, N), got shape {tuple(labels.shape)}")
+    present = torch.ones_like(labels, dtype=torch.bool) if truth_present is None else truth_present
+    try:
+        present = present.expand(labels.shape)
+    except RuntimeError:
+        raise ValueError(f"truth_present: shape {tuple(present.shape)} does not match labels' "
+                         f"{tuple(labels.shape)}") from None
+    dtype = torch.get_default_dtype()
+    last = torch.full_like(labels[0], -1)  # the last track of each target (-1: none)
+    seen = torch.zeros_like(labels[0], dtype=torch.bool)  # the target has had a track
+    out = []
+    for k in range(labels.shape[0]):  # (over time only)
+        now, here = labels[k], present[k]
+        changed = here & seen & (now != last)
+        cost = 0.5 * changed.to(dtype) + 0.5 * (changed & (now >= 0) & (last >= 0)).to(dtype)
+        out.append(float(penalty) * cost.sum(-1).pow(1.0 / float(p)))
+        record = here & (seen | (now >= 0))
+        last = torch.where(record, now, last)
+        seen = seen | (here & (now >= 0))
+    return torch.stack(out)
 
 
 @entry_point(estimates=Sets(missing=None, mask="estimate_present"),
