@@ -17,6 +17,7 @@ constructors the study calls (with errors naming the library argument).
 
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -1011,6 +1012,7 @@ class TrackingSection:
     gospa_p: float = spec(MISSING, lambda v: None if v is None or v >= 1 else "must be at least 1")
     gospa_switching: float = spec(MISSING, non_negative)
     lifetimes: Optional[List[List[int]]] = MISSING
+    waypoints: Optional[List[Any]] = MISSING  # per target [[scan, x, y], ...] (checked in _check_waypoints)
     management: TrackManagement = field(default_factory=TrackManagement)
     jpda: JPDASettings = field(default_factory=JPDASettings)
     mht: MHTSettings = field(default_factory=MHTSettings)
@@ -1035,6 +1037,9 @@ class Tracking:
             if t["lifetimes"] is not None:
                 raise ConfigError("tracking.lifetimes", t["lifetimes"], "with tracking.detections the truth file says "
                                   "when each target exists (set lifetimes: null)")
+            if t["waypoints"] is not None:
+                raise ConfigError("tracking.waypoints", t["waypoints"], "with tracking.detections the truth file says "
+                                  "where the targets are (set waypoints: null)")
             if t["export"]:
                 raise ConfigError("tracking.export", True, "exports the simulated scenario; with tracking.detections "
                                   "there is none (set export: false)")
@@ -1045,6 +1050,8 @@ class Tracking:
                                   f"tracks' start (a file, one row per target), or track with the managed trackers "
                                   f"({', '.join(MANAGED_TRACKERS)}), which start with no track")
             return _check_management(t)
+        if t["waypoints"] is not None:
+            return _check_waypoints(t)
         method = (t.get("jpda") or {}).get("method", "exact")
         if t["targets"] > 12 and method == "exact" and any(name in EXACT_JPDA for name in t["estimators"]):
             raise ConfigError("tracking.targets", t["targets"], "the exact JPDA takes at most 12 targets (tracking."
@@ -1066,6 +1073,41 @@ class Tracking:
                               f"{', '.join(known)} start one track per target at the first scan; with "
                               "tracking.lifetimes (births and deaths) only the managed trackers "
                               f"({', '.join(MANAGED_TRACKERS)}) apply")
+
+
+def _check_waypoints(t: dict) -> None:
+    """``tracking.waypoints``: per target, at least two ``[scan, x, y]`` with increasing scans in
+    ``0 .. steps - 1``; not with ``lifetimes`` (the waypoints give the spans); the fixed-track estimators
+    need every target from scan 0; the exact JPDA at most 12 targets."""
+    ways = t["waypoints"]
+    if t["lifetimes"] is not None:
+        raise ConfigError("tracking.lifetimes", t["lifetimes"], "with tracking.waypoints each target exists from its "
+                          "first waypoint's scan to its last (set lifetimes: null)")
+    if not ways:
+        raise ConfigError("tracking.waypoints", ways, "no target (one list of [scan, x, y] waypoints per target)")
+    for i, target in enumerate(ways):
+        key = f"tracking.waypoints[{i}]"
+        if not isinstance(target, list) or len(target) < 2 or any(
+                not isinstance(point, list) or len(point) != 3 or
+                not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in point)
+                for point in target):
+            raise ConfigError(key, target, "expected at least two waypoints [scan, x, y] (numbers)")
+        scans = [point[0] for point in target]
+        if any(s != int(s) for s in scans) or any(b <= a for a, b in zip(scans, scans[1:])):
+            raise ConfigError(key, target, "the waypoints' scans must be whole numbers, increasing")
+        if scans[0] < 0 or scans[-1] > t["steps"] - 1:
+            raise ConfigError(key, target, f"the scans must lie in 0 .. steps - 1 = {t['steps'] - 1}")
+    late = [i for i, target in enumerate(ways) if target[0][0] != 0]
+    fixed = [name for name in t["estimators"] if name in TRACKERS]
+    if late and fixed:
+        raise ConfigError("tracking.estimators", t["estimators"],
+                          f"{', '.join(fixed)} start one track per target at the first scan; target(s) {late} start "
+                          f"later (births): only the managed trackers ({', '.join(MANAGED_TRACKERS)}) apply")
+    method = (t.get("jpda") or {}).get("method", "exact")
+    if len(ways) > 12 and method == "exact" and any(name in EXACT_JPDA for name in t["estimators"]):
+        raise ConfigError("tracking.waypoints", f"{len(ways)} targets", "the exact JPDA takes at most 12 targets "
+                          "(tracking.jpda.method: lbp or kbest)")
+    _check_management(t)
 
 
 def _check_management(t: dict) -> None:

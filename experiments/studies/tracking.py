@@ -75,8 +75,31 @@ def _bank(t, dtype) -> ConstantVelocity:
                             dtype=dtype)
 
 
+def waypoint_paths(t, dtype=torch.float64) -> tuple[Tensor, Tensor, Tensor]:
+    """``tracking.waypoints``' targets: the states ``(T, N, 4)``, which exist ``(T, N)`` and the states one
+    period before the first scan ``(N, 4)``. A target flies straight between its waypoints
+    ``[scan, x, y]`` (constant velocity on each leg) and exists from its first waypoint's scan to its last."""
+    T, dt = int(t.steps), float(t.dt)
+    paths = [torch.tensor([[float(v) for v in point] for point in target], dtype=dtype) for target in t.waypoints]
+    k = torch.arange(-1, T, dtype=dtype)
+    states, present = [], []
+    for path in paths:
+        scans, xy = path[:, 0].contiguous(), path[:, 1:]
+        leg = (torch.searchsorted(scans, k, right=True) - 1).clamp(0, len(scans) - 2)  # the leg of each scan
+        a, b = scans[leg], scans[leg + 1]
+        velocity = (xy[leg + 1] - xy[leg]) / ((b - a) * dt).unsqueeze(-1)
+        position = xy[leg] + velocity * ((k - a) * dt).unsqueeze(-1)
+        states.append(torch.stack([position[:, 0], velocity[:, 0], position[:, 1], velocity[:, 1]], -1))
+        present.append((k >= scans[0]) & (k <= scans[-1]))
+    states, present = torch.stack(states, 1), torch.stack(present, 1)  # (T + 1, N, ...)
+    return states[1:], present[1:], states[0]
+
+
 def lifetimes(t) -> Tensor:
-    """``(T, N)`` bool: which targets exist at each scan (``tracking.lifetimes``; all, where null)."""
+    """``(T, N)`` bool: which targets exist at each scan (``tracking.lifetimes``, or the waypoints' spans;
+    all, where null)."""
+    if t.get("waypoints") is not None:
+        return waypoint_paths(t)[1]
     T, N = int(t.steps), int(t.targets)
     if t.lifetimes is None:
         return torch.ones(T, N, dtype=torch.bool)
@@ -88,7 +111,10 @@ def lifetimes(t) -> Tensor:
 def simulate(t, runs: int, generator: torch.Generator, dtype=torch.float64):
     """Truth ``(T, runs, N, 4)``, detections ``(T, runs, D, 2)``, the tracks' start ``(runs, N, 4)`` and
     which targets exist ``(T, runs, N)`` (a target that does not exist makes no detection; it still
-    moves, so that the draws do not depend on the lifetimes)."""
+    moves, so that the draws do not depend on the lifetimes). With ``tracking.waypoints`` the targets fly
+    their legs (:func:`waypoint_paths`) in every run, without process noise."""
+    if t.get("waypoints") is not None:
+        return _simulate_waypoints(t, runs, generator, dtype)
     N, T, dt = int(t.targets), int(t.steps), float(t.dt)
     bank = _bank(t, dtype)
     F, Q, offset = bank.F, bank.Q, bank.offset  # offset (3, 4): each mode's G a
@@ -106,16 +132,33 @@ def simulate(t, runs: int, generator: torch.Generator, dtype=torch.float64):
         states.append(x)
     truth = torch.stack(states)
     present = lifetimes(t).unsqueeze(1).expand(T, runs, N)
+    seen = truth if t.lifetimes is None else torch.where(present.unsqueeze(-1), truth, math.nan)
+    return truth, _detect(t, seen, generator, dtype), _start(t, start, generator, dtype), present
+
+
+def _detect(t, seen: Tensor, generator: torch.Generator, dtype) -> Tensor:
+    """The scans ``(T, runs, D, 2)`` of the targets ``seen`` (NaN rows: absent) in clutter."""
     sensor = PositionMeasurement(4, [0, 2], float(t.R), dtype=dtype)
     L = float(t.region)
     rate = float(t.clutter_rate)
-    seen = truth if t.lifetimes is None else torch.where(present.unsqueeze(-1), truth, math.nan)
-    det = simulate_detections(sensor, seen, detection_probability=float(t.detection_probability),
-                              clutter_rate=rate, region=torch.tensor([[-L, L], [-L, L]], dtype=dtype),
-                              max_clutter=int(rate + 6 * math.sqrt(rate) + 5), generator=generator)
+    return simulate_detections(sensor, seen, detection_probability=float(t.detection_probability),
+                               clutter_rate=rate, region=torch.tensor([[-L, L], [-L, L]], dtype=dtype),
+                               max_clutter=int(rate + 6 * math.sqrt(rate) + 5), generator=generator).z
+
+
+def _start(t, start: Tensor, generator: torch.Generator, dtype) -> Tensor:
+    """The tracks' start: the true state one period before the first scan plus ``N(0, diag(P0))``."""
     P0 = torch.tensor(list(t.P0), dtype=dtype)
-    x0 = start + torch.randn(runs, N, 4, generator=generator, dtype=dtype) * P0.sqrt()
-    return truth, det.z, x0, present
+    return start + torch.randn(start.shape, generator=generator, dtype=dtype) * P0.sqrt()
+
+
+def _simulate_waypoints(t, runs: int, generator: torch.Generator, dtype):
+    states, exists, before = waypoint_paths(t, dtype)
+    T, N = exists.shape
+    truth = states.unsqueeze(1).expand(T, runs, N, 4)
+    present = exists.unsqueeze(1).expand(T, runs, N)
+    seen = torch.where(present.unsqueeze(-1), truth, math.nan)
+    return truth, _detect(t, seen, generator, dtype), _start(t, before.expand(runs, N, 4), generator, dtype), present
 
 
 class Estimator(NamedTuple):
@@ -322,6 +365,13 @@ def run(ctx: StudyContext) -> None:
             + f"). Trackers' model: P_D = {t.detection_probability}, {t.clutter_rate} clutter points a scan over "
             f"[-{t.region}, {t.region}]^2, R = {t.R}; {cfg.dtype}." + (f" GOSPA with c = {t.gospa_c}, p = "
                                                                         f"{t.gospa_p}, alpha = 2." if scored else ""))
+    elif t.get("waypoints") is not None:
+        ctx.results.description = (
+            f"{len(t.waypoints)} targets flying straight between their waypoints ([scan, x, y]: "
+            f"{[list(map(list, w)) for w in t.waypoints]}), each existing from its first waypoint's scan to its "
+            f"last; {t.steps} scans, P_D = {t.detection_probability}, {t.clutter_rate} clutter points a scan over "
+            f"[-{t.region}, {t.region}]^2, R = {t.R}; {runs} Monte Carlo runs (seed {cfg.seed}, {cfg.dtype}). GOSPA "
+            f"with c = {t.gospa_c}, p = {t.gospa_p}, alpha = 2.")
     else:
         ctx.results.description = (
             f"{t.targets} crossing targets, {t.steps} scans, manoeuvre {t.maneuver_start}-{t.maneuver_stop} "
@@ -373,7 +423,9 @@ def run(ctx: StudyContext) -> None:
             first["truth"].reshape(len(first["present"]), -1, 2), first["present"].reshape(len(first["present"]), -1),
             first["detections"], {name: (p["mean"], p["cov"], p["shown"], p["labels"]) for name, p in pics.items()},
             title=label))
-    what = f"{t.targets} crossing targets in clutter, {runs} runs" if d is None else f"{d.path}, {runs} series"
+    what = f"{d.path}, {runs} series" if d is not None else (
+        f"{len(t.waypoints)} targets from waypoints, {runs} runs" if t.get("waypoints") is not None else
+        f"{t.targets} crossing targets in clutter, {runs} runs")
     ctx.save_figure("gospa_over_time" if scored else "tracks_over_time", plots.rmse_over_time(curves, what, bands=bands))
 
 

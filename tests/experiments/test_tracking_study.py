@@ -128,3 +128,45 @@ def test_gospa_with_the_track_switching_penalty(tmp_path):
         assert on[name]["gospa"] >= off[name]["gospa"] - 1e-12
         assert (on[name]["switching"] > 0) == (on[name]["gospa"] > off[name]["gospa"] + 1e-12)
     assert on["JIPDA-TM"]["switching"] > 0  # its tracks are gained (and lost) over the run
+
+
+WAYS = "[[[0,-200,0],[10,0,0],[20,0,200]],[[4,200,-100],[20,-120,-100]]]"
+
+
+def test_targets_from_waypoints():
+    """tracking.waypoints (issue 46): each target is at its waypoints at their scans, flies each leg at
+    constant velocity, exists from its first waypoint's scan to its last; with P_D = 1 and no clutter
+    every scan holds one detection per existing target; the tracks' start is the state one period before
+    scan 0 (the first leg extrapolated back) plus N(0, P0)."""
+    t = _section(steps=24, detection_probability=1.0, clutter_rate=1e-12, waypoints=json.loads(WAYS),
+                 P0=[0.0, 0.0, 0.0, 0.0])
+    truth, z, x0, present = tracking.simulate(t, 3, torch.Generator().manual_seed(1))
+    assert truth.shape == (24, 3, 2, 4)
+    assert truth[10, 0, 0, [0, 2]].tolist() == pytest.approx([0.0, 0.0]) and truth[20, 1, 0, [0, 2]].tolist() == \
+        pytest.approx([0.0, 200.0])
+    assert truth[7, 0, 0, [1, 3]].tolist() == pytest.approx([20.0, 0.0])  # 200 m in 10 scans of 1 s
+    assert truth[15, 0, 0, [1, 3]].tolist() == pytest.approx([0.0, 20.0])
+    assert truth[12, 0, 1, [0, 1]].tolist() == pytest.approx([200.0 - 8 * 20.0, -20.0])
+    expected = torch.tensor([[k <= 20, 4 <= k <= 20] for k in range(24)])
+    assert torch.equal(present[:, 0], expected)
+    assert torch.equal(torch.isfinite(z).all(-1).sum(-1), present.sum(-1))
+    assert x0[0, 0].tolist() == pytest.approx([-220.0, 20.0, 0.0, 0.0])  # (P0 = 0: the true state at scan -1)
+
+
+def test_waypoint_study_with_a_birth_and_its_checks(tmp_path):
+    from experiments.config import validate
+
+    run_study(_compose("tracking", *COMMON, "debug=tracking", "figures=false", "tracking.steps=24",
+                       f"tracking.waypoints={WAYS}", "tracking.estimators=[JIPDA-TM]",
+                       "tracking.management.velocity_variance=900"), tmp_path)
+    curves = load_curves(tmp_path)
+    truth = torch.as_tensor(curves["tracks/truth"][2])
+    assert truth.tolist() == [float(k <= 20) + float(4 <= k <= 20) for k in range(24)]
+    assert "2 targets flying straight between their waypoints" in (tmp_path / "results.md").read_text()
+    with pytest.raises(ValueError, match=r"tracking.estimators=.*target\(s\) \[1\] start later"):
+        validate(_compose("tracking", f"tracking.waypoints={WAYS}", "tracking.estimators=[IMM-JPDAF]"))
+    with pytest.raises(ValueError, match=r"tracking.waypoints\[0\]=.*increasing"):
+        validate(_compose("tracking", "tracking.waypoints=[[[0,0,0],[0,1,1]]]", "tracking.estimators=[JIPDA-TM]"))
+    with pytest.raises(ValueError, match=r"tracking.waypoints\[0\]=.*0 .. steps - 1 = 59"):
+        validate(_compose("tracking", "tracking.waypoints=[[[0,0,0],[60,1,1]]]", "tracking.estimators=[JIPDA-TM]"))
+    validate(_compose("tracking", "tracking.waypoints=[[[0,0,0],[59,1,1]]]", "tracking.estimators=[IMM-JPDAF]"))
