@@ -236,3 +236,18 @@ def test_mht_benchmark_runs():
     # both track: each final median error below 10 m (the measurement noise is 2 m a coordinate)
     errors = [float(v) for v in re.findall(r"final median error ([0-9.]+)", proc.stdout)]
     assert len(errors) == 4 and max(errors) < 10.0, proc.stdout
+
+
+def test_tracking_scale_benchmark_runs():
+    """benchmarks/tracking_scale.py on a tiny grid: every method's cell, the exact JPDA refused beyond 12."""
+    proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "tracking_scale.py"), "--targets", "3", "13",
+                           "--clutter", "2", "--runs", "2", "--steps", "6", "--k", "20", "--hypotheses", "2",
+                           "--threads", "1"], capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    rows = [line for line in proc.stdout.splitlines() if line.startswith("| 3 |") or line.startswith("| 13 |")]
+    assert len(rows) == 2 and rows[1].split("|")[3].strip() == "-"  # (13 targets: no exact JPDA)
+    few, many = ([float(cell.split("/")[0]) for cell in row.split("|")[3:-1] if "/" in cell] for row in rows)
+    assert len(few) == 6 and len(many) == 5
+    assert all(0 < g < 20.0 for g in few), few  # 3 targets, little clutter: every method tracks (~10 m)
+    assert all(0 < g <= 30.0 * 13**0.5 for g in many), many  # (GOSPA's bound with 13 targets and 13 tracks)
+    assert re.fullmatch(r"cells=2 best=[A-Za-z_-]+", proc.stdout.strip().splitlines()[-1])
