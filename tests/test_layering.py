@@ -11,7 +11,8 @@ ROOT = Path(torchmm.__file__).parent
 
 #: bottom to top; a package may import packages of lower layers only (docs/architecture.md)
 LAYERS = [
-    {"validation", "typing", "runtime", "provenance"},
+    {"validation", "typing", "runtime"},
+    {"provenance"},  # (its small tensors' checksums in NumPy: validation.host_array)
     {"contract"},  # the entry-point contract (torchmm/contract.py): every layer above declares through it
     {"distributions", "linalg"},
     {"beliefs"},

@@ -17,12 +17,14 @@ smoothed as given.
 from __future__ import annotations
 
 import dataclasses
-import itertools
 from typing import Any
 
+import numpy as np
 import torch
 import torch.utils._pytree as pytree
 from torch import Tensor
+
+from torchmm.validation import host_array, module_tensors
 
 __all__ = ["Fingerprint", "Provenance", "fingerprints", "module_state", "tensor_versions"]
 
@@ -98,6 +100,24 @@ def _stats(t: Tensor) -> Tensor:
     return torch.cat([sums, where.to(torch.float64).reshape(1)])
 
 
+def _stats_numpy(t: Tensor) -> list | None:
+    """:func:`_stats` of a small CPU floating tensor, in NumPy (a few microseconds where torch's small
+    operations cost a hundred: the one-shot call's fixed cost, issue 47); None for any other tensor."""
+    array = host_array(t)
+    if array is None:
+        return None
+    x = array.reshape(-1).astype(np.float64)
+    n = x.size
+    finite = np.isfinite(x)
+    value = np.where(finite, x, 0.0)
+    size = np.abs(value)
+    index = np.arange(1, n + 1, dtype=np.float64)
+    infinite = float(np.isinf(x).sum())
+    where = float(int(np.flatnonzero(finite).sum()) + int(finite.sum()))  # sum of (i + 1) over finite i
+    return [infinite, float(finite.sum()), float(value.sum()), float(size.sum()), float(value @ index) / max(n, 1),
+            float(size @ index) / max(n, 1), where]
+
+
 def fingerprints(*streams: Any) -> tuple[list, list]:
     """The fingerprints of every tensor leaf of each of ``streams`` (pytrees of tensors, or None), and
     the number of infinite floating entries of each: one host read for all.
@@ -113,7 +133,12 @@ def fingerprints(*streams: Any) -> tuple[list, list]:
         for i, t in enumerate(flat):
             by_device.setdefault(t.device, []).append(i)
         values = [None] * len(flat)
+        for i, t in enumerate(flat):  # small CPU tensors: in NumPy
+            values[i] = _stats_numpy(t)
         for device, index in by_device.items():  # one read per device (one in practice)
+            index = [i for i in index if values[i] is None]
+            if not index:
+                continue
             rows = torch.stack([_stats(flat[i]) for i in index]).tolist()
             for i, row in zip(index, rows):
                 values[i] = row
@@ -152,7 +177,7 @@ def module_state(module: Any) -> tuple:
     if not isinstance(module, torch.nn.Module):
         return ()
     out = []
-    for name, t in itertools.chain(module.named_parameters(), module.named_buffers()):
+    for name, t in module_tensors(module):
         try:
             version = t._version
         except RuntimeError:

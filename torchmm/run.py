@@ -157,8 +157,8 @@ def run_filter(
             and unscented banks; docs/performance.md has the table), which returns what the steps
             return, to rounding. None (default): where a kernel applies to a run without
             ``motions`` or ``sensors`` and pays (``controls`` only the Numba kernel takes, through
-            ``LinearMotion``'s ``input_matrix``; the Numba kernel: runs of at least
-            ``torchmm.kernels.linear.LONG_RUN`` steps x runs; the extended and unscented banks': at
+            ``LinearMotion``'s ``input_matrix``; the Numba kernel: every run of at most 128 runs on
+            the CPU, its first call in a process loading Numba, ~0.3 s; the extended and unscented banks': at
             least 300 runs x modes; IMM-TF's for 7 to 10 state components: 900; the choice depends
             on the call only); True: always (a ``ValueError`` naming
             ``fast_path`` gives every kernel's reason where none can); False: never (the steps).
@@ -323,7 +323,9 @@ def _accepts(fn: Callable, keyword: str) -> bool:
 
 def _first_tensor(belief: Any, default: Tensor) -> Tensor:
     """A tensor of ``belief``'s (its dtype and device), or ``default``."""
-    leaves = [t for t in pytree.tree_leaves(belief) if isinstance(t, Tensor) and t.is_floating_point()]
+    fields = getattr(belief, "_tensors", None)  # (a Belief's own list: cheaper than a pytree walk)
+    leaves = [t for t in (pytree.tree_leaves(belief) if fields is None else (t for t, _ in fields()))
+              if isinstance(t, Tensor) and t.is_floating_point()]
     return leaves[0] if leaves else default
 
 
@@ -369,6 +371,6 @@ def _report_flags(extras: dict | None) -> None:
         if flags is None:
             flags = modes.get(key)
         if isinstance(flags, Tensor) and flags.dtype == torch.bool and flags.numel():
-            count = int(flags.sum())
+            count = int(flags.numpy().sum()) if flags.device.type == "cpu" else int(flags.sum())
             if count:
                 log.warning(message, count, flags.numel())

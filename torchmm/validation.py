@@ -22,6 +22,7 @@ import math
 import numbers
 from collections.abc import Sequence
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -158,6 +159,31 @@ def _distinct(tensor: Tensor) -> Tensor:
     return tensor
 
 
+#: a CPU tensor of at most this many entries is checked in NumPy at an entry point: its few small
+#: operations cost about a microsecond each there, several in torch (issue 47: the one-shot call's cost)
+SMALL_CHECK = 1 << 16
+_NUMPY_DTYPES = (torch.float64, torch.float32, torch.float16)
+
+
+def host_array(tensor: Tensor) -> np.ndarray | None:
+    """``tensor``'s values as a NumPy array (sharing memory, read-only use) when it is a small CPU
+    floating tensor (:data:`SMALL_CHECK` entries), else None (check it in torch)."""
+    if tensor.device.type != "cpu" or tensor.dtype not in _NUMPY_DTYPES or tensor.numel() > SMALL_CHECK:
+        return None
+    try:
+        return tensor.detach().numpy()
+    except (RuntimeError, TypeError):  # a view with a pending negation, or any other non-plain storage
+        return None
+
+
+def all_finite(tensor: Tensor) -> bool:
+    """Whether every entry of a floating ``tensor`` is finite (one host read)."""
+    array = host_array(tensor)
+    if array is not None:
+        return bool(np.isfinite(array).all())
+    return bool(torch.isfinite(tensor.detach()).all())
+
+
 def check_covariance(tensor: Tensor, name: str, *, definite: bool = False) -> None:
     """Check that ``tensor`` (..., d, d) is finite, symmetric and positive semi-definite (or definite).
 
@@ -169,6 +195,9 @@ def check_covariance(tensor: Tensor, name: str, *, definite: bool = False) -> No
         ValueError: naming ``name`` and the failed property.
     """
     check_square(tensor, name)
+    array = host_array(tensor)
+    if array is not None:
+        return _check_covariance_numpy(array, name, definite)
     value = _distinct(tensor.detach()).to(torch.float64)
     if not bool(torch.isfinite(value).all()):
         raise ValueError(f"{name}: contains NaN or infinite entries")
@@ -191,6 +220,28 @@ def check_covariance(tensor: Tensor, name: str, *, definite: bool = False) -> No
             f"{name}: covariance is not positive semi-definite (smallest eigenvalue "
             f"{eigvals.min().item():.3g})"
         )
+
+
+def _check_covariance_numpy(array: np.ndarray, name: str, definite: bool) -> None:
+    """:func:`check_covariance` of a small CPU tensor's values, in NumPy (the same tests and messages)."""
+    value = array.astype(np.float64)
+    if not np.isfinite(value).all():
+        raise ValueError(f"{name}: contains NaN or infinite entries")
+    if value.size == 0:
+        return
+    value = value.reshape(-1, *value.shape[-2:])
+    value = np.unique(value, axis=0) if value.shape[0] > 1 else value  # (a broadcast prior: each matrix once)
+    scale = np.abs(value).max(axis=(-1, -2), keepdims=True)
+    transposed = np.swapaxes(value, -1, -2)
+    if (np.abs(value - transposed) > SYMMETRY_RTOL * scale).any():
+        raise ValueError(f"{name}: covariance is not symmetric")
+    eigvals = np.linalg.eigvalsh(0.5 * (value + transposed))
+    tol = 1e-10 * scale[..., 0]
+    if definite and (eigvals <= tol).any():
+        raise ValueError(f"{name}: covariance is not positive definite (smallest eigenvalue {eigvals.min():.3g})")
+    if (eigvals < -tol).any():
+        raise ValueError(f"{name}: covariance is not positive semi-definite (smallest eigenvalue "
+                         f"{eigvals.min():.3g})")
 
 
 def check_stochastic_rows(matrix: Tensor, name: str) -> None:
@@ -318,6 +369,36 @@ def check_same_dtype(tensor: Tensor, name: str, like: Tensor, what: str = "the b
                         f"of them (e.g. filter.to({like.dtype}) or belief.to({tensor.dtype}))")
 
 
+def module_tensors(module: torch.nn.Module) -> list[tuple[str, Tensor]]:
+    """``(name, tensor)`` of a module's parameters, then its buffers, as ``named_parameters()`` and
+    ``named_buffers()`` list them (each tensor and module once), from the modules' own dictionaries:
+    a few microseconds where the two generators cost tens (read at every ``run_filter`` call)."""
+    params: list = []
+    buffers: list = []
+    seen: set = set()
+    seen_params: set = set()
+    seen_buffers: set = set()
+
+    def walk(prefix: str, mod: torch.nn.Module) -> None:
+        if id(mod) in seen:
+            return
+        seen.add(id(mod))
+        for key, t in mod._parameters.items():
+            if t is not None and id(t) not in seen_params:
+                seen_params.add(id(t))
+                params.append((prefix + key, t))
+        for key, t in mod._buffers.items():
+            if t is not None and id(t) not in seen_buffers:
+                seen_buffers.add(id(t))
+                buffers.append((prefix + key, t))
+        for key, child in mod._modules.items():
+            if child is not None:
+                walk(prefix + key + ".", child)
+
+    walk("", module)
+    return params + buffers
+
+
 def check_filter_dtype(filter, belief, name: str) -> None:
     """``TypeError`` naming ``name`` if the filter's floating tensors and the belief differ in dtype.
 
@@ -326,7 +407,7 @@ def check_filter_dtype(filter, belief, name: str) -> None:
     dtype = getattr(belief, "dtype", None)
     if dtype is None:
         return
-    for tensor_name, tensor in (*filter.named_parameters(), *filter.named_buffers()):
+    for tensor_name, tensor in module_tensors(filter):
         if tensor.is_floating_point() and tensor.dtype != dtype:
             raise TypeError(f"{name}: dtype {dtype} differs from the filter's {tensor.dtype} ({tensor_name}); "
                             f"convert one of them, e.g. filter.to({dtype}) or {name}.to({tensor.dtype})")

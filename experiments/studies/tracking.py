@@ -349,8 +349,8 @@ def run(ctx: StudyContext) -> None:
     ranges = ctx.run_ranges(runs)
     if t.export:  # the simulated scenario as the files tracking.detections reads
         truth, z, x0, _, _ = _data(ctx, 0, runs)
-        paths = tracking_data.export(ctx.output_dir / "scenario", z=z, truth=truth, present=lifetimes(t).unsqueeze(1)
-                                     .expand(truth.shape[:-1]), x0=x0, dt=float(t.dt))
+        tracking_data.export(ctx.output_dir / "scenario", z=z, truth=truth,
+                             present=lifetimes(t).unsqueeze(1).expand(truth.shape[:-1]), x0=x0, dt=float(t.dt))
     parts = ctx.map_units([Unit(f"tracking/{name}/runs{a}-{b}", UNIT, {"name": name, "start": a, "stop": b})
                            for name in names for a, b in ranges], desc="estimators")
     scored = "distance" in parts[0] if parts else True

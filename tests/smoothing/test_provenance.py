@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import math
 import pickle
 
 import pytest
@@ -218,9 +219,15 @@ def test_parallel_filter_trajectories_carry_their_record():
         smooth(KalmanFilter(ConstantVelocity(1, dt=5.0, q=0.1, dtype=D), kf.measurement), par)
 
 
-def test_the_fingerprint_is_read_once_at_entry_not_per_step():
+@pytest.mark.parametrize("small", [False, True], ids=["torch", "numpy"])
+def test_the_fingerprint_is_read_once_at_entry_not_per_step(small, monkeypatch):
     """run_filter reads the data's checksums once (with the infinite count), never per step: the
-    number of host reads does not grow with T, and every stream's fingerprint comes in one read."""
+    number of host reads does not grow with T, and every stream's fingerprint comes in one read (the
+    torch pass of a device's or a large tensor); a small CPU tensor's are computed in NumPy, no read."""
+    import torchmm.provenance as provenance
+
+    if not small:
+        monkeypatch.setattr(provenance, "_stats_numpy", lambda t: None)
     reads = []
     real = torch.Tensor.tolist
 
@@ -240,7 +247,7 @@ def test_the_fingerprint_is_read_once_at_entry_not_per_step():
         finally:
             torch.Tensor.tolist = real
         counts.append(len(reads))
-        assert (2, 7) in reads  # measurements and controls: one (streams, statistics) read
+        assert ((2, 7) in reads) != small  # measurements and controls: one (streams, statistics) read
         assert traj.provenance.data[0].shape == (steps, 3, 1)
     assert counts[0] == counts[1], counts
 
@@ -267,3 +274,19 @@ def test_the_fingerprint_in_blocks_equals_a_numpy_reference(monkeypatch):
         got = provenance._stats(torch.tensor(data)).tolist()
         np.testing.assert_allclose(got, want, rtol=1e-12)
         assert got[6] == want[6]  # exact
+
+
+def test_the_numpy_fingerprint_equals_the_torch_pass():
+    """A small CPU tensor's statistics in NumPy (issue 47: the one-shot call's cost) equal the torch
+    pass's (sums to 1e-13 relative, the count of finite entries and their index sum exactly), with
+    missing and infinite entries, float32 and float64."""
+    from torchmm.provenance import _stats, _stats_numpy
+
+    g = torch.Generator().manual_seed(2)
+    for dtype in (torch.float64, torch.float32):
+        x = torch.randn(37, 3, 2, generator=g, dtype=dtype) * 100
+        x[3, 1, 0], x[7, 2, 1], x[0, 0, 0] = math.nan, math.inf, -math.inf
+        ours, theirs = _stats_numpy(x), _stats(x).tolist()
+        assert ours[0] == theirs[0] == 2 and ours[1] == theirs[1] and ours[6] == theirs[6]
+        assert ours[2:6] == pytest.approx(theirs[2:6], rel=1e-13)
+    assert _stats_numpy(torch.arange(5)) is None  # (integers: the torch pass)

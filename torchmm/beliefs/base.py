@@ -19,7 +19,7 @@ import torch
 import torch.utils._pytree as pytree
 from torch import Tensor
 
-from torchmm.validation import broadcast_shape
+from torchmm.validation import all_finite, broadcast_shape
 
 __all__ = ["Belief", "register_belief", "stack", "cat", "where"]
 
@@ -34,6 +34,18 @@ def register_belief(cls: type[B]) -> type[B]:
     pytree.register_dataclass(cls)
     return cls
 
+
+
+_FIELDS: dict[type, tuple[str, ...]] = {}
+
+
+def _field_names(cls: type) -> tuple[str, ...]:
+    """The dataclass fields of a belief class (cached: ``dataclasses.fields`` costs microseconds)."""
+    try:
+        return _FIELDS[cls]
+    except KeyError:
+        names = _FIELDS[cls] = tuple(f.name for f in dataclasses.fields(cls))
+        return names
 
 class Belief:
     """Mixin for belief dataclasses. Subclasses set ``event_dims = {field: n_event_dims}``.
@@ -78,8 +90,19 @@ class Belief:
         return type(self)(**values)
 
     def _tensors(self) -> list[tuple[Tensor, int]]:
+        """``(tensor, event dims)`` of every tensor field, nested beliefs' too, in :meth:`map_tensors`'
+        order (without building a copy: this is read at every step)."""
         out: list[tuple[Tensor, int]] = []
-        self.map_tensors(lambda t, e: out.append((t, e)) or t)
+        if type(self).map_tensors is not Belief.map_tensors:  # (its own map: its own event axes)
+            self.map_tensors(lambda t, e: out.append((t, e)) or t)
+            return out
+        events = self.event_dims
+        for name in _field_names(type(self)):
+            value = getattr(self, name)
+            if name in events:
+                out.append((value, events[name]))
+            elif isinstance(value, Belief):
+                out.extend((t, e + 1) for t, e in value._tensors())
         return out
 
     # -- shape ------------------------------------------------------------------------------------
@@ -109,13 +132,13 @@ class Belief:
             self.batch_shape
         except ValueError as err:
             raise ValueError(f"{name}: {err}") from None
-        for field in dataclasses.fields(self):
-            value = getattr(self, field.name)
+        for field in _field_names(type(self)):
+            value = getattr(self, field)
             if isinstance(value, Belief):
-                value.validate(f"{name}.{field.name}")
+                value.validate(f"{name}.{field}")
             elif isinstance(value, Tensor) and value.is_floating_point():
-                if not bool(torch.isfinite(value.detach()).all()):
-                    raise ValueError(f"{name}.{field.name}: contains NaN or infinite entries")
+                if not all_finite(value):
+                    raise ValueError(f"{name}.{field}: contains NaN or infinite entries")
         return self
 
     @property

@@ -22,9 +22,9 @@ to set): the filter joined the ``"linear_gaussian"`` family (:class:`~torchmm.Ka
 describes itself through ``linear_gaussian()``; CPU tensors of one floating dtype; measurements one
 tensor ``(T, *B, m)``; no per-step models (controls are taken: a ``LinearMotion``'s input matrix ``G``,
 ``F x + b + G u_t``, the terms ``G u_t`` computed by torch, so that their gradients are autograd's); a small problem (at most :data:`MAX_RUNS` runs:
-the loop is serial, and beyond that the batched tensor kernels win); Numba importable; and a run of at
-least :data:`LONG_RUN` steps x runs, a repeated evaluation (:class:`~torchmm.learn.Objective`) or
-``fast_path=True``. The choice depends on the call only, never on what the process ran before.
+the loop is serial, and beyond that the batched tensor kernels win); Numba importable. Every such run
+takes it, short or long (:data:`LONG_RUN`): the one-shot call is then as fast as the repeated one. The
+choice depends on the call only, never on what the process ran before.
 With autograd the run keeps only its log-likelihood and filtered beliefs (their gradients are the
 reverse pass's); a run that asks for more runs eagerly. A run with a regularised innovation covariance
 or a non-finite result is run again eagerly, which flags it as it always does (docs/robustness.md).
@@ -48,11 +48,12 @@ __all__ = ["MAX_RUNS", "LinearGaussian", "load"]
 #: the most runs (batch elements) the kernel takes: its loop is serial over runs (measured crossover
 #: with the batched tensor kernels, docs/performance.md)
 MAX_RUNS = 128
-#: the smallest run (steps x runs) the kernel takes by default: the choice depends on the run only,
-#: never on the process's history, so the same call gives the same numbers everywhere. Shorter runs
-#: step eagerly (200 eager steps cost ~10-20 ms; the kernel's first call in a process costs ~0.3 s of
-#: loading Numba and its cached machine code, repaid from then on)
-LONG_RUN = 200
+#: the smallest run (steps x runs) the kernel takes by default: every run (issue 47). The choice depends on
+#: the run only, never on the process's history, so the same call gives the same numbers everywhere. The
+#: kernel's first call in a process costs ~0.3 s of loading Numba and its cached machine code, once; every
+#: call after it costs ~0.3 ms besides its steps (0.1-0.4 us a step), where 100 eager steps cost ~16 ms (it
+#: was 200 until then: short runs stepped eagerly, 0.003x statsmodels' loglike at 100 steps)
+LONG_RUN = 1
 _RULES = {"kalman": 2, "static": 2, "mix": 0, "collapse": 1}
 
 
@@ -176,6 +177,14 @@ class _Run(torch.autograd.Function):
         return (None, None, None, None, None, None, *out)
 
 
+class _NoGrad:
+    """The context of :meth:`_Run.forward` called directly, where no input needs a gradient: the autograd
+    node (about 20 microseconds of the one-shot call) is not made."""
+
+    def mark_non_differentiable(self, *tensors):
+        pass
+
+
 def _layout(M: int, n: int, m: int, batch: tuple, kalman: bool, steps: int | None = None) -> tuple:
     """``_Run``'s layout (see there) of a run of ``M`` modes over the batch ``batch`` (``steps``: with
     controls, the run's steps)."""
@@ -206,6 +215,17 @@ def _broadcasts(shape: tuple, wide: tuple) -> bool:
     if len(shape) > len(wide):
         return False
     return all(have in (1, want) for have, want in zip(reversed(shape), reversed(wide)))
+
+
+def _all_broadcast(shapes: list, layout: tuple) -> bool:
+    """Whether every shape broadcasts to its layout's wide shape (:func:`_broadcasts`, in one loop)."""
+    for shape, (wide, _) in zip(shapes, layout):
+        if len(shape) > len(wide):
+            return False
+        for have, want in zip(reversed(shape), reversed(wide)):
+            if have != 1 and have != want:
+                return False
+    return True
 
 
 def _models(model: LinearGaussian) -> tuple:
@@ -346,7 +366,7 @@ class LinearKernel:
         kalman = model.rule == "kalman"
         layout = _layout(M, n, m, tuple(batch), kalman, None if controls is None else steps)
         models = _models(model)
-        if not all(_broadcasts(t.shape, wide) for t, (wide, _) in zip((*models, logmu0, x0, P0), layout)):
+        if not _all_broadcast([t.shape for t in (*models, logmu0, x0, P0)], layout):
             return "the models' parameters are batched over more than the modes (or the start belief's shapes)"
         start = (logmu0, x0, P0)
         mixed = model.rule in ("mix", "collapse")
@@ -356,7 +376,8 @@ class LinearKernel:
         def run():
             status = [0]
             bu = _input_terms(model, controls, M, n, tuple(batch))
-            outs = _Run.apply(z, rule, bool(request.update_first), True, layout, status, *models, *start, bu)
+            args = (z, rule, bool(request.update_first), True, layout, status, *models, *start, bu)
+            outs = _Run.apply(*args) if grad else _Run.forward(_NoGrad(), *args)  # (no graph: no node)
             if status[0]:
                 return None  # regularised or failed somewhere: the eager steps flag it as they do
             return _fields(outs, batch, steps, M, kalman, mixed, request)
@@ -427,6 +448,11 @@ class LinearKernel:
         return run
 
 
+def _as_bool(flags: Tensor) -> Tensor:
+    """The kernel's int8 flags (0 or 1) as a bool tensor: a view of the same bytes on the CPU."""
+    return flags.view(torch.bool) if flags.dtype == torch.int8 else flags.to(torch.bool)
+
+
 def _fields(outs, batch, steps, M, kalman: bool, mixed: bool, request: kernels.Request) -> tuple:
     """The trajectory's fields, batch ``(T, *B)``, from the kernel's ``(T, runs, ...)`` outputs."""
     ll, logmu, x, P, xp, Pp, logc, xm, Pm, innov, S, mode_ll, flags = outs
@@ -436,8 +462,8 @@ def _fields(outs, batch, steps, M, kalman: bool, mixed: bool, request: kernels.R
         return keep is None or name in keep
 
     if kalman:
-        def single(t):
-            return t.squeeze(2).reshape(steps, *batch, *t.shape[3:])
+        def single(t):  # (T, runs, 1, ...) -> (T, *B, ...): one view of the kernel's contiguous output
+            return t.view(steps, *batch, *t.shape[3:])
 
         belief = GaussianBelief(single(x), single(P))
         prior = GaussianBelief(single(xp), single(Pp)) if kept("prior") else None
@@ -445,7 +471,7 @@ def _fields(outs, batch, steps, M, kalman: bool, mixed: bool, request: kernels.R
         innovation_cov = single(S) if kept("innovation_cov") else None
         extras = None
         if kept("extras"):
-            singular = single(flags).to(torch.bool)
+            singular = single(_as_bool(flags))
             extras = {"singular": singular, "failed": torch.zeros_like(singular)}
     else:
         def modes(t):
@@ -458,7 +484,7 @@ def _fields(outs, batch, steps, M, kalman: bool, mixed: bool, request: kernels.R
         innovation_cov = modes(S) if kept("innovation_cov") else None
         extras = None
         if kept("extras"):
-            singular = modes(flags).to(torch.bool)
+            singular = modes(_as_bool(flags))
             extras = {"mode_log_likelihood": modes(mode_ll),
                       "modes": {"singular": singular, "failed": torch.zeros_like(singular)},
                       "failed": torch.zeros(lp.shape, dtype=torch.bool)}
