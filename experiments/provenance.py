@@ -81,3 +81,14 @@ class Provenance:
     def finish(self) -> None:
         self.data["end"] = _now()
         self.data["wall_seconds"] = round(time.perf_counter() - self._tic, 3)
+
+    def record_kernels(self, runs: dict, *, executor: str, resumed: bool = False) -> None:
+        """``kernels``: the study's ``run_filter`` calls by the kernel that computed them (``{name: calls}``;
+        ``"eager steps"``: no kernel; torchmm.kernels.counting), counted in the study's process; with
+        ``kernels_note`` where units ran elsewhere (another executor) or came from the checkpoint."""
+        self.data["kernels"] = dict(sorted(runs.items()))
+        if executor != "local":
+            self.data["kernels_note"] = (f"executor {executor}: the units ran in other processes, whose runs are "
+                                         "not counted here")
+        elif resumed:
+            self.data["kernels_note"] = "the units came from the checkpoint: no run was made"

@@ -52,8 +52,9 @@ class Results:
     ``results.json``: ``{"experiment", "config", "metrics": {estimator: {metric: value}},
     "tables": {name: {"columns", "rows"}}, "timing": {estimator: seconds_per_step},
     "provenance": {versions, git, host, platform, command, start, end, wall_seconds, device, dtype,
-    threads}, "dropped": {metric: why}}`` (docs/studies.md). ``dropped`` names every metric that was
-    asked for but cannot be computed from the data (no truth, no measurement), with the reason: such a
+    threads, kernels: {name: run_filter calls}, kernels_note}, "dropped": {metric: why}}``
+    (docs/studies.md). ``dropped`` names every metric that was asked for but cannot be computed from
+    the data (no truth, no measurement), with the reason: such a
     metric is never reported as a number.
     """
 
@@ -157,7 +158,10 @@ class Results:
                     f"torchmm {v.get('torchmm')}, torch {v.get('torch')}, numpy {v.get('numpy')}, "
                     f"Python {v.get('python')}; commit {commit}; {p.get('host')}; device {p.get('device')}, "
                     f"{p.get('dtype')}, {p.get('threads')} threads; {p.get('start')} to {p.get('end')} "
-                    f"({p.get('wall_seconds')} s).", ""]
+                    f"({p.get('wall_seconds')} s)."
+                    + (" Runs by kernel (torchmm.kernels): " + ", ".join(f"{k} {v}" for k, v in p["kernels"].items())
+                       + "." if p.get("kernels") else "")
+                    + (f" ({p['kernels_note']}.)" if p.get("kernels_note") else ""), ""]
         return "\n".join(out)
 
     def to_latex(self) -> str:

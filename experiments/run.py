@@ -159,8 +159,11 @@ def _run(cfg: DictConfig, ctx, study, config: dict, overrides: list[str] | None)
     provenance.start(device=ctx.device, dtype=ctx.dtype, threads=torch.get_num_threads())
     ctx.logger.text("config", "```yaml\n" + OmegaConf.to_yaml(config) + "```")  # the resolved config
     try:
-        study(ctx)
+        with kernels.counting() as runs:  # which kernel computed each run_filter call of this process
+            study(ctx)
         provenance.finish()
+        provenance.record_kernels(runs, executor=str((cfg.get("executor") or {}).get("kind", "local")),
+                                  resumed=len(ctx._checkpoint) > 0 and not runs)
         ctx.results.provenance = provenance.data
         ctx.results.save()
         ctx.logger.save(ctx.output_dir, figures=ctx.figures)  # curves.npz / curves.csv: every curve as data

@@ -282,7 +282,7 @@ def filter(kf: KalmanFilter, belief0: GaussianBelief, z: Tensor) -> Trajectory:
                       innovation=out.innovation,
                       innovation_cov=out.innovation_cov, extras=out.extras)
     return attach_provenance(traj, Provenance("torchmm.parallel.filter", kf, z.shape[0], given, data,
-                                              tensor_versions(given)))
+                                              tensor_versions(given), kernel="parallel scans (torchmm.parallel)"))
 
 
 @entry_point(kf=_KF, belief0=_BELIEF0, z=Data())

@@ -207,6 +207,10 @@ class Provenance:
         belief, prior: the trajectory's own fields as the run returned them (a trajectory whose
             fields are other objects - reversed, sliced, replaced - is refused by ``smooth``).
         state: :func:`module_state` of the filter at the end of the run.
+        kernel: which computed the run: a registered kernel's name (:func:`torchmm.kernels.registered`)
+            or ``"eager steps"``.
+        declined: why the kernels tried before it (all of them, for the eager steps) declined,
+            ``"name: reason; ..."`` (``""``: the first one took it).
     """
 
     made_by: str
@@ -224,13 +228,15 @@ class Provenance:
     belief: Any = None
     prior: Any = None
     state: tuple = ()
+    kernel: str = "eager steps"
+    declined: str = ""
 
     def __reduce__(self):
         return (_dropped, ())  # an unpickled (or deep-copied) trajectory carries no record
 
     def __repr__(self) -> str:
         return (f"Provenance(made_by={self.made_by!r}, filter={type(self.filter).__name__}, "
-                f"steps={self.steps})")
+                f"steps={self.steps}, kernel={self.kernel!r})")
 
 
 # a pytree map over a trajectory's fields gives data no run made: the record maps to None

@@ -238,6 +238,7 @@ def run_filter(
     if not isinstance(progress, (bool, str)):
         raise TypeError(f"progress: expected True, False or the progress bar's description, got {progress!r}")
     fields = None
+    chosen, declined = kernels.EAGER, "fast_path=False"
     if fast_path is not False:  # the one seam for speed (torchmm.kernels): no filter class is named here
         why, run = "per-step models", None
         if motions is None and sensors is None:
@@ -249,8 +250,11 @@ def run_filter(
                 estimate=estimate_only, detach_belief=isinstance(record, Keep) and record.detach,
                 record=None if estimate_only or isinstance(record, Keep) else record, generator=generator,
                 controls=controls)
-            run, why = kernels.plan(filter, belief0, measurements, request)
+            run, chosen, why = kernels.choose(filter, belief0, measurements, request)
             fields = None if run is None else run()
+            if run is not None and fields is None:  # (declined at run time: the steps run)
+                chosen, why = kernels.EAGER, f"{chosen}: declined at run time (a regularised or failed update)"
+        declined = why
         if run is None:  # (a plan that declines at run time - a regularised update - leaves it to the steps)
             if fast_path:
                 raise ValueError(f"fast_path: no fast path for this run ({why}); use fast_path=None or False")
@@ -286,7 +290,8 @@ def run_filter(
     stacked = attach_provenance(stacked, Provenance(
         "run_filter", filter, steps, measurements, data_prints, tensor_versions(measurements), controls,
         control_prints, None if controls is None else tensor_versions(controls), motions, sensors,
-        update_first))
+        update_first, kernel=chosen, declined=declined))
+    kernels.count_run(chosen)
     _report_flags(stacked.extras)
     return stacked
 

@@ -6,6 +6,7 @@ import math
 from dataclasses import dataclass
 from typing import ClassVar
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -13,7 +14,7 @@ from torchmm.beliefs.base import Belief, register_belief
 from torchmm.beliefs.gaussian import GaussianBelief
 from torchmm.beliefs.ops import normalize_log_probs, symmetrize
 from torchmm.beliefs.particle import ParticleBelief
-from torchmm.validation import STOCHASTIC_ATOL
+from torchmm.validation import STOCHASTIC_ATOL, host_array
 
 __all__ = ["ModeBelief", "ModelSetBelief"]
 
@@ -46,9 +47,17 @@ class ModeBelief(Belief):
         """Mode log-probabilities normalised (not NaN, probabilities summing to 1 within 1e-5), the
         components' batch ending with the ``M`` modes, and the components valid themselves."""
         lp = self.mode_log_probs.detach()
-        if bool(torch.isnan(lp).any()) or bool((lp == math.inf).any()):
+        small = host_array(lp)  # (a small CPU tensor: in NumPy, microseconds)
+        if small is not None:
+            with np.errstate(over="ignore"):
+                bad = bool(np.isnan(small).any() or (small == math.inf).any())
+                unnormalised = small.size and bool((np.abs(np.exp(small).sum(-1) - 1) > STOCHASTIC_ATOL).any())
+        else:
+            bad = bool(torch.isnan(lp).any()) or bool((lp == math.inf).any())
+            unnormalised = lp.numel() and bool(((lp.exp().sum(-1) - 1).abs() > STOCHASTIC_ATOL).any())
+        if bad:
             raise ValueError(f"{name}.mode_log_probs: contains NaN or +inf")
-        if lp.numel() and bool(((lp.exp().sum(-1) - 1).abs() > STOCHASTIC_ATOL).any()):
+        if unnormalised:
             raise ValueError(f"{name}.mode_log_probs: probabilities must sum to 1 (normalised log-probabilities)")
         comp_batch = self.components.batch_shape
         if not comp_batch or comp_batch[-1] not in (1, self.num_modes):

@@ -31,7 +31,7 @@ from __future__ import annotations
 import contextlib
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import torch
 import torch.utils._pytree as pytree
@@ -39,8 +39,9 @@ import torch.utils._pytree as pytree
 from torchmm.contract import Flag, Invalid, Kind, entry_point
 from torchmm.validation import broadcast_shape
 
-__all__ = ["Request", "by_size", "describe", "enabled", "joined", "joins", "names", "plan", "plan_smooth",
-           "register", "registered", "set_enabled", "stack_steps", "switched_off", "switched_on"]
+__all__ = ["EAGER", "Choice", "Request", "by_size", "choose", "counting", "describe", "enabled", "joined", "joins",
+           "names", "count_run", "plan", "plan_smooth", "register", "registered", "set_enabled", "stack_steps",
+           "switched_off", "switched_on"]
 
 _KERNELS: list = []
 #: family -> {class: {method name: function}}: the steps each joining class computes
@@ -255,10 +256,24 @@ def registered() -> list:
     return list(_KERNELS)
 
 
-def plan(filter: Any, belief0: Any, measurements: Any, request: Request) -> tuple[Callable | None, str]:
-    """The first registered kernel's plan for this run: ``(run, "")`` where ``run()`` returns the
-    trajectory's fields ``(belief, prior, log_likelihood, innovation, innovation_cov, extras)``
-    (stacked on a leading time axis, None where not kept), or ``(None, reasons)``."""
+#: the name a run's record gives the eager steps (no kernel ran)
+EAGER = "eager steps"
+
+
+class Choice(NamedTuple):
+    """:func:`choose`'s answer: ``run`` (the plan, None where no kernel applies), the ``kernel``'s
+    registered name (:data:`EAGER` where none applies) and why the kernels before it, or all of them,
+    declined (``"name: reason; ..."``)."""
+
+    run: Callable | None
+    kernel: str
+    declined: str
+
+
+def choose(filter: Any, belief0: Any, measurements: Any, request: Request) -> Choice:
+    """The first registered kernel that takes this run, in :func:`registered`'s order, with the reasons
+    of those before it that declined (the record :func:`~torchmm.run_filter` keeps in the trajectory's
+    provenance: ``trajectory.provenance.kernel`` and ``.declined``)."""
     _load()
     reasons = []
     for kernel in _KERNELS:
@@ -270,9 +285,47 @@ def plan(filter: Any, belief0: Any, measurements: Any, request: Request) -> tupl
             continue
         out = kernel.plan(filter, belief0, measurements, request)
         if not isinstance(out, str):
-            return out, ""
+            return Choice(out, kernel.name, "; ".join(reasons))
         reasons.append(f"{kernel.name}: {out}")
-    return None, "; ".join(reasons) or "no kernel registered"
+    return Choice(None, EAGER, "; ".join(reasons) or "no kernel registered")
+
+
+def plan(filter: Any, belief0: Any, measurements: Any, request: Request) -> tuple[Callable | None, str]:
+    """The first registered kernel's plan for this run: ``(run, "")`` where ``run()`` returns the
+    trajectory's fields ``(belief, prior, log_likelihood, innovation, innovation_cov, extras)``
+    (stacked on a leading time axis, None where not kept), or ``(None, reasons)`` (:func:`choose` says
+    which kernel it is)."""
+    choice = choose(filter, belief0, measurements, request)
+    return (choice.run, "") if choice.run is not None else (None, choice.declined)
+
+
+_COUNTERS: list = []
+
+
+@contextlib.contextmanager
+def counting():
+    """Count the runs of :func:`~torchmm.run_filter` by the kernel that computed them (``{name: runs}``,
+    :data:`EAGER` for the eager steps) while the block runs, in this process: what a study's results
+    record (results.json's ``provenance.kernels``). Nested blocks each count.
+
+    Examples:
+        >>> with counting() as runs:
+        ...     pass  # run_filter(...) calls here
+        >>> dict(runs)
+        {}
+    """
+    counts: dict = {}
+    _COUNTERS.append(counts)
+    try:
+        yield counts
+    finally:
+        _COUNTERS.remove(counts)
+
+
+def count_run(kernel: str) -> None:
+    """Add one run computed by ``kernel`` to every open :func:`counting` block (run_filter calls it)."""
+    for counts in _COUNTERS:
+        counts[kernel] = counts.get(kernel, 0) + 1
 
 
 def plan_smooth(filter: Any, trajectory: Any, method: str | None, **inputs: Any) -> tuple[Callable | None, str]:

@@ -1,0 +1,67 @@
+"""Which kernel ran (issue 47): every trajectory's provenance names the kernel that computed it and why the
+kernels before it declined; a study's results.json counts its runs by kernel."""
+
+from __future__ import annotations
+
+import json
+
+import torch
+
+from torchmm import IMM, GaussianBelief, KalmanFilter, kernels, run_filter
+from torchmm.models import ConstantVelocity, LinearMeasurement, LinearMotion, PositionMeasurement
+
+D = torch.float64
+
+
+def _kf():
+    eye = torch.eye(1, dtype=D)
+    return KalmanFilter(LinearMotion(eye, eye), LinearMeasurement(eye, eye))
+
+
+def test_the_trajectory_names_its_kernel_and_the_reasons_of_the_others():
+    kf = _kf()
+    z = torch.randn(10, 3, 1, generator=torch.Generator().manual_seed(0), dtype=D)
+    b0 = GaussianBelief(torch.zeros(3, 1, dtype=D), torch.eye(1, dtype=D))
+    small = run_filter(kf, b0, z)
+    assert small.provenance.kernel == "linear_gaussian" and small.provenance.declined == ""
+    eager = run_filter(kf, b0, z, fast_path=False)
+    assert eager.provenance.kernel == kernels.EAGER and eager.provenance.declined == "fast_path=False"
+    with kernels.switched_off("linear_gaussian"):
+        off = run_filter(kf, b0, z)
+    assert off.provenance.kernel == kernels.EAGER
+    assert "linear_gaussian: switched off" in off.provenance.declined
+    assert torch.allclose(small.log_likelihood, eager.log_likelihood, rtol=1e-12, atol=1e-12)
+    # many runs of an IMM: the serial loop declines, the batch-last kernel takes it
+    imm = IMM(KalmanFilter(ConstantVelocity(1, q=1.0, acceleration=[[0.0], [0.5]], dtype=D),
+                           PositionMeasurement(2, [0], 4.0, dtype=D)), torch.tensor([[0.9, 0.1], [0.1, 0.9]], dtype=D))
+    start = imm.initial_belief(GaussianBelief(torch.zeros(500, 2, dtype=D), torch.eye(2, dtype=D)))
+    big = run_filter(imm, start, torch.randn(5, 500, 1, generator=torch.Generator().manual_seed(1), dtype=D))
+    assert big.provenance.kernel == "batch_last"
+    assert big.provenance.declined.startswith("linear_gaussian: 500 runs: more than the serial loop's 128")
+    assert "kernel='batch_last'" in repr(big.provenance)
+
+
+def test_counting_counts_each_run_by_its_kernel():
+    kf = _kf()
+    z = torch.randn(4, 1, dtype=D)
+    b0 = GaussianBelief(torch.zeros(1, dtype=D), torch.eye(1, dtype=D))
+    with kernels.counting() as outer:
+        run_filter(kf, b0, z)
+        with kernels.counting() as inner:
+            run_filter(kf, b0, z, fast_path=False)
+            run_filter(kf, b0, z, fast_path=False)
+    run_filter(kf, b0, z)  # (outside: not counted)
+    assert outer == {"linear_gaussian": 1, kernels.EAGER: 2} and inner == {kernels.EAGER: 2}
+
+
+def test_results_json_counts_the_study_runs_by_kernel(tmp_path):
+    from experiments.run import run_study
+    from tests.experiments.test_studies import _compose
+    from tests.regression.record import COMMON
+
+    run_study(_compose("quickstart", *COMMON, "debug=quickstart", "figures=false"), tmp_path)
+    provenance = json.loads((tmp_path / "results.json").read_text())["provenance"]
+    assert provenance["kernels"] and all(isinstance(v, int) and v > 0 for v in provenance["kernels"].values())
+    assert set(provenance["kernels"]) <= {k.name for k in kernels.registered()} | {kernels.EAGER}
+    assert "kernels_note" not in provenance
+    assert "Runs by kernel (torchmm.kernels): " in (tmp_path / "results.md").read_text()
