@@ -81,7 +81,7 @@ def test_imm_layout_benchmark_runs_and_agrees():
     last = proc.stdout.strip().splitlines()[-1]
     assert re.fullmatch(r"soa_eager_vs_numpy_soa=[0-9.]+ soa_compiled_vs_numpy_soa=nan "
                         r"torchmm_batch_first_vs_numpy_soa=[0-9.]+ torchmm_vs_numpy_soa=[0-9.]+ "
-                        r"torchmm_compiled_vs_numpy_soa=nan", last), last
+                        r"torchmm_compiled_vs_numpy_soa=nan torchmm_callable_record_vs_numpy_soa=[0-9.]+", last), last
 
 
 def test_startup_benchmark_runs():

@@ -65,8 +65,9 @@ class Trajectory:
 class Keep:
     """``record=Keep("log_likelihood", "belief")``: the :class:`StepOutput` fields a run keeps (the others
     are None), as a record a kernel understands (:mod:`torchmm.kernels`: it computes only those). A
-    record written as a function is applied to every step's output, which the eager steps and the
-    step-by-step kernels do; a whole-run kernel then does not apply.
+    record written as a function is applied to every step's output: by the eager steps and the
+    step-by-step kernels as they go, and to each step of a whole-run kernel's outputs after it ran
+    (the Numba kernel; issue 47: before, a record function turned that kernel off).
 
     Args:
         fields: names of :class:`~torchmm.filters.StepOutput` fields.
@@ -252,6 +253,8 @@ def run_filter(
                 controls=controls)
             run, chosen, why = kernels.choose(filter, belief0, measurements, request)
             fields = None if run is None else run()
+            if fields is not None and request.record is not None and not getattr(run, "applies_record", True):
+                fields = _record_each(fields, request.record, steps)  # (a whole-run kernel's outputs)
             if run is not None and fields is None:  # (declined at run time: the steps run)
                 chosen, why = kernels.EAGER, f"{chosen}: declined at run time (a regularised or failed update)"
         declined = why
@@ -294,6 +297,15 @@ def run_filter(
     kernels.count_run(chosen)
     _report_flags(stacked.extras)
     return stacked
+
+
+def _record_each(fields: tuple, record: Callable, steps: int) -> tuple:
+    """A record function applied to each step of a whole-run kernel's stacked fields (issue 47: the kernel
+    runs instead of the eager steps), the results stacked as the steps' would be."""
+    whole = StepOutput(*fields)
+    kept = [record(pytree.tree_map(lambda t, k=k: t[k] if isinstance(t, Tensor) else t, whole))
+            for k in range(steps)]
+    return tuple(stack_outputs(kept))
 
 
 def _common_extras(kept: list) -> list:

@@ -298,8 +298,6 @@ class LinearKernel:
     def plan(self, filter: Any, belief0: Any, measurements: Any, request: kernels.Request):
         if not isinstance(measurements, Tensor) or not measurements.is_floating_point():
             return "the measurements are not one floating-point tensor"
-        if request.record is not None:
-            return "a record function (the kernel keeps fields: record=Keep(...) or 'estimate')"
         if request.compile_required:
             return "compile=True (the kernel is compiled by Numba, not torch.compile)"
         model = kernels.describe(filter, self.name, inputs=True)
@@ -382,6 +380,7 @@ class LinearKernel:
                 return None  # regularised or failed somewhere: the eager steps flag it as they do
             return _fields(outs, batch, steps, M, kalman, mixed, request)
 
+        run.applies_record = False  # a record function: run_filter applies it to each step of the fields
         return run
 
 
