@@ -12,7 +12,7 @@ manoeuvre; one mode-bank model, ``Q (3, 5, 5)``), a range-bearing sensor (m = 2,
 sensor), Pi)`` and ``IMM(UnscentedKalmanFilter(bank, sensor), Pi)`` (its default Van der Merwe
 points, alpha = 1, beta = 2, kappa = 0; weights taken from the filter) with ``run_filter(...,
 record="estimate")`` in float64, twice: as a user gets it (the batch-last kernel of the nonlinear
-banks, ``torchmm/multimodel/batch_last_nonlinear.py``, from 300 runs x modes) and with
+banks, ``torchmm/kernels/batch_last/nonlinear.py``, from 300 runs x modes) and with
 ``fast_path=False`` (the eager batch-first steps). ``--dense-jacobian`` gives the kernel the turn
 model's Jacobian without its 13 declared exact zeros and ones (the default entry hook), as the
 reference multiplies them. ``--vsimm`` also times ``VariableStructureIMM`` (paper 003's

@@ -5,7 +5,7 @@ in closed form), eager and under ``torch.compile``, against the NumPy SoA refere
 
 The hand-written SoA step here is for n = 2, m = 1: the bound of the route. Beside it, torchmm's
 engine: its batch-first steps (``run_filter(..., fast_path=False)``) and its batch-last fast path
-(``torchmm/multimodel/batch_last.py``, generic in n, m and M, the default of ``run_filter``), eager
+(``torchmm/kernels/batch_last/imm.py``, generic in n, m and M, the default of ``run_filter``), eager
 and with ``compile=True``; all with ``record="estimate"``. All estimates are checked equal (1e-9
 relative). One thread each.
 

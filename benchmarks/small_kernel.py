@@ -6,7 +6,7 @@ A 3-mode IMM over linear Kalman modes (paper 000's modes, n = 2, m = 1, float64,
 same data, three routes through ``run_filter`` (results checked equal to 1e-9):
 
 * ``numba``: the linear-Gaussian kernel (``torchmm.kernels.linear``, forced with ``fast_path=True``);
-* ``batch_last``: the batch-last IMM kernel (``torchmm.multimodel.batch_last.BATCH_LAST``, the
+* ``batch_last``: the batch-last IMM kernel (``torchmm.kernels.batch_last.imm.BATCH_LAST``, the
   Numba kernel switched off);
 * ``steps``: the eager batch-first steps (``fast_path=False``),
 

@@ -12,9 +12,9 @@ from tests.multimodel.test_batch_last_nonlinear import _turn
 from tests.multimodel.test_transfer import paper_setup
 from torchmm import GPB2, IMM, kernels, run_filter, smooth
 from torchmm.multimodel import TransferIMM, VariableStructureIMM
-from torchmm.multimodel.batch_last import BATCH_LAST
-from torchmm.multimodel.batch_last_nonlinear import NONLINEAR
-from torchmm.multimodel.batch_last_transfer import TRANSFER
+from torchmm.kernels.batch_last.imm import BATCH_LAST
+from torchmm.kernels.batch_last.nonlinear import NONLINEAR
+from torchmm.kernels.batch_last.transfer import TRANSFER
 from torchmm.multimodel.mevsmm import ExactMinimumEntropy
 
 DT = torch.float64

@@ -25,7 +25,7 @@ from torchmm import (
     smooth,
 )
 from torchmm.multimodel import MultiRate, VariableStructureIMM
-from torchmm.multimodel.batch_last import BATCH_LAST
+from torchmm.kernels.batch_last.imm import BATCH_LAST
 from torchmm.multimodel.mevsmm import ExactMinimumEntropy
 from torchmm.runtime import HostSyncError, host_reads_ok, no_host_sync
 
@@ -60,7 +60,7 @@ def _imm(runs=5, steps=6):
 @pytest.mark.parametrize("estimate", [False, True])
 @pytest.mark.parametrize("combinator", ["IMM", "GPB2", "VSIMM"])
 def test_fast_path_steps_never_read_values_on_the_host(estimate, combinator):
-    """The batch-last kernel's steps (torchmm/multimodel/batch_last.py, behind torchmm.kernels): the
+    """The batch-last kernel's steps (torchmm/kernels/batch_last/imm.py, behind torchmm.kernels): the
     IMM's, GPB2's (batch_last_pairs.py) and the variable-structure IMM's (the IMM's and its policy's)."""
     imm, belief0, z = _imm()
     if combinator == "GPB2":

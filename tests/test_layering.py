@@ -16,7 +16,8 @@ LAYERS = [
     {"contract"},  # the entry-point contract (torchmm/contract.py): every layer above declares through it
     {"distributions", "linalg"},
     {"beliefs"},
-    {"models", "kernels"},  # kernels: the seam (torchmm/kernels/__init__.py) and the kernels behind it
+    {"models"},
+    {"kernels"},  # the seam (torchmm/kernels/__init__.py) and every whole-run kernel behind it (issue 47)
     {"filters", "simulate", "assignment"},  # (assignment: its compiled loop is a stage kernel)
     {"run", "multimodel", "association"},
     {"smooth", "parallel"},  # the backward passes, the time-parallel scans

@@ -21,9 +21,39 @@ their event dim (no ``(d, 1)`` columns). The transition matrix convention is
 NaN. Nothing is inferred from shapes beyond broadcasting of leading batch dims.
 """
 
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
 from torch import Tensor
 
 #: Alias used in annotations; the shapes are in each docstring's ``Shapes:`` block.
 TensorLike = Tensor
 
-__all__ = ["TensorLike"]
+__all__ = ["StepOutput", "TensorLike"]
+
+
+class StepOutput(NamedTuple):
+    """What every ``update``/``step`` returns.
+
+    Attributes:
+        belief: the posterior belief, batch ``(*B,)``.
+        prior: the predicted belief the update started from, batch ``(*B,)``.
+        log_likelihood: ``log p(z_k | z_{1:k-1})``, ``(*B,)``; exactly 0 where ``z_k`` is
+            entirely missing (every component non-finite: NaN or ``+-inf``); NaN where the update
+            failed (a present datum, a non-finite prediction: ``extras["failed"]``).
+        innovation: ``z_k - E[z_k | z_{1:k-1}]``, ``(*B, m)`` (``(*B, M, m)`` per mode for
+            multiple-model filters); non-finite where the measurement is missing.
+        innovation_cov: its covariance ``S``, ``(*B, m, m)`` (per mode likewise).
+        extras: filter-specific diagnostics (e.g. ``"mixed"`` beliefs of the IMM,
+            ``"singular"`` flags of regularised innovation covariances, docs/robustness.md); a
+            dict of tensors/beliefs with batch ``(*B, ...)``.
+    """
+
+    belief: Any
+    prior: Any
+    log_likelihood: Tensor
+    innovation: Tensor | None = None
+    innovation_cov: Tensor | None = None
+    extras: dict | None = None
+

@@ -1,4 +1,4 @@
-"""The batch-last kernel (torchmm/multimodel/batch_last.py, ``BATCH_LAST`` behind the seam
+"""The batch-last kernel (torchmm/kernels/batch_last/imm.py, ``BATCH_LAST`` behind the seam
 :mod:`torchmm.kernels`): run_filter's IMM (and GPB1) over linear Kalman modes in the batch-last layout
 returns what the batch-first steps return - every Trajectory field, for random banks of every small
 size, per-mode and shared parameters, exact zeros and ones, missing components, batch shapes (),
@@ -33,7 +33,7 @@ from torchmm import (
 from torchmm.filters import ExtendedKalmanFilter
 from torchmm.kernels import linear
 from torchmm.multimodel import StaticMM
-from torchmm.multimodel.batch_last import BATCH_LAST, BatchLastIMM
+from torchmm.kernels.batch_last.imm import BATCH_LAST, BatchLastIMM
 
 D = torch.float64
 
@@ -126,7 +126,7 @@ def _plan(filt, belief0, z, **request):
 def layout(request, monkeypatch):
     """Both layouts of the kernel's state: every entry in one broadcast operation (small batches,
     as these tests' own) and one operation per stored entry (large batches)."""
-    from torchmm.multimodel import batch_last
+    from torchmm.kernels.batch_last import imm as batch_last
 
     monkeypatch.setattr(batch_last, "_BROADCAST_BYTES", 1 << 62 if request.param == "broadcast" else 0)
     return request.param
@@ -424,7 +424,7 @@ def test_the_layout_follows_the_batch_size(monkeypatch, batch_last_steps):
 @pytest.fixture
 def trace_cache(monkeypatch):
     """An empty cache of traced steps for the test, and a way to set the tracing threshold."""
-    from torchmm.multimodel import batch_last
+    from torchmm.kernels.batch_last import imm as batch_last
 
     monkeypatch.setattr(batch_last, "_TRACED", batch_last.OrderedDict())
     monkeypatch.setattr(batch_last, "_STEPS_SEEN", {})

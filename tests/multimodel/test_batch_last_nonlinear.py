@@ -1,5 +1,5 @@
 """The batch-last kernel of the IMM, GPB1 and variable-structure IMM over extended and unscented Kalman
-banks (torchmm/multimodel/batch_last_nonlinear.py, registered as ``"batch_last_nonlinear"``): run_filter returns
+banks (torchmm/kernels/batch_last/nonlinear.py, registered as ``"batch_last_nonlinear"``): run_filter returns
 what the eager steps return - every field of the full record, the estimates and ``Keep`` records - for the
 coordinated turn with a range-bearing sensor (models that declare their Jacobians' exact zeros), for
 learned models through the default entry hooks (autograd Jacobians, m = 1 and m = 3), with missing
@@ -28,7 +28,7 @@ from torchmm import (
 )
 from torchmm.models import LearnedMeasurement, LearnedMotion
 from torchmm.multimodel import VariableStructureIMM
-from torchmm.multimodel.batch_last_nonlinear import MIN_BATCH, NONLINEAR, BatchLastNonlinear
+from torchmm.kernels.batch_last.nonlinear import MIN_BATCH, NONLINEAR, BatchLastNonlinear
 from torchmm.multimodel.mevsmm import ExactMinimumEntropy
 from torchmm.run import Keep
 from torchmm.runtime import no_host_sync
@@ -179,7 +179,7 @@ def test_sigma_points_of_a_singular_covariance(device_form, kernel_steps, monkey
     where the host may not read), as in the eager steps."""
     if device_form:
         from torchmm import linalg
-        from torchmm.multimodel import batch_last_nonlinear
+        from torchmm.kernels.batch_last import nonlinear as batch_last_nonlinear
 
         for module in (linalg, batch_last_nonlinear):
             monkeypatch.setattr(module, "host_reads_ok", lambda tensor: False)

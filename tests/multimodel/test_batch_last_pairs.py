@@ -1,4 +1,4 @@
-"""GPB2's batch-last kernel (torchmm/multimodel/batch_last_pairs.py, the ``"pairs"`` rule of
+"""GPB2's batch-last kernel (torchmm/kernels/batch_last/pairs.py, the ``"pairs"`` rule of
 ``BATCH_LAST``): run_filter's GPB2 over linear Kalman modes returns what GPB2's batch-first steps
 return - every Trajectory field (the M^2 pair priors, innovations and mode likelihoods included), for
 random banks of every small size with per-mode and shared parameters, exact zeros and ones, missing
@@ -34,8 +34,8 @@ from torchmm import (
 )
 from torchmm.kernels import linear
 from torchmm.models.transition import ModeTransition
-from torchmm.multimodel.batch_last import BATCH_LAST
-from torchmm.multimodel.batch_last_pairs import BatchLastGPB2
+from torchmm.kernels.batch_last.imm import BATCH_LAST
+from torchmm.kernels.batch_last.pairs import BatchLastGPB2
 
 
 @pytest.fixture(autouse=True)
@@ -169,7 +169,7 @@ def test_gradients_equal_the_batch_first_steps(pair_steps):
 
 
 def test_the_traced_step_gives_the_same_numbers_bit_for_bit(monkeypatch):
-    from torchmm.multimodel import batch_last
+    from torchmm.kernels.batch_last import imm as batch_last
 
     monkeypatch.setattr(batch_last, "_TRACED", batch_last.OrderedDict())
     monkeypatch.setattr(batch_last, "_STEPS_SEEN", {})

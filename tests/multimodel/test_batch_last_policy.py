@@ -22,7 +22,7 @@ from torchmm import GaussianBelief, KalmanFilter, LinearMotion, kernels, run_fil
 from torchmm.kernels import linear
 from torchmm.linalg import cholesky
 from torchmm.multimodel import VariableStructureIMM
-from torchmm.multimodel.batch_last import BATCH_LAST, BatchLastIMM
+from torchmm.kernels.batch_last.imm import BATCH_LAST, BatchLastIMM
 from torchmm.multimodel.mevsmm import ExactMinimumEntropy
 from torchmm.multimodel.structure import ModelSetPolicy
 

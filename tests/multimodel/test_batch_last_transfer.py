@@ -1,4 +1,4 @@
-"""IMM-TF's batch-last kernel (torchmm/multimodel/batch_last_transfer.py, registered as
+"""IMM-TF's batch-last kernel (torchmm/kernels/batch_last/transfer.py, registered as
 ``"batch_last_transfer"``): run_filter's TransferIMM (IMM-TF, and IF-TF with its influence gate) over
 linear Kalman modes with n <= 6 returns what the eager steps return - every field of the full record
 (the extras: influence values, the gate's choices, the smoothed references, the transferred knowledge),
@@ -17,8 +17,8 @@ from tests.multimodel.test_batch_last import D, _random_imm, assert_same_traject
 from tests.multimodel.test_transfer import paper_setup
 from torchmm import KalmanFilter, LinearMeasurement, LinearMotion, kernels, run_filter
 from torchmm.multimodel import InfluenceGate, MultiRate, TransferIMM
-from torchmm.multimodel.batch_last import LARGE_BATCH, LARGE_STATE
-from torchmm.multimodel.batch_last_transfer import TRANSFER, TRANSFER_LARGE, BatchLastTransfer
+from torchmm.kernels.batch_last.imm import LARGE_BATCH, LARGE_STATE
+from torchmm.kernels.batch_last.transfer import TRANSFER, TRANSFER_LARGE, BatchLastTransfer
 from torchmm.run import Keep
 from torchmm.runtime import no_host_sync
 

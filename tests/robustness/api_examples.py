@@ -67,7 +67,7 @@ NOT_ENTRY_POINTS: dict[str, str] = {
     "torchmm.multimodel.imm.Interaction": _INTERFACE,
     "torchmm.multimodel.structure.ModelSetPolicy": _INTERFACE,
     # records
-    "torchmm.filters.base.StepOutput": _RECORD,
+    "torchmm.typing.StepOutput": _RECORD + " (re-exported by torchmm.filters)",
     "torchmm.run.Trajectory": _RECORD + " (run_filter makes it; smooth checks where it came from)",
     "torchmm.analysis.imm.ConclusionCheck": _RECORD,
     "torchmm.analysis.imm.InteractionDeviations": _RECORD,
@@ -128,6 +128,7 @@ NOT_ENTRY_POINTS: dict[str, str] = {
     "torchmm.kernels.by_size": _NO_ARGS,
     "torchmm.kernels.plan": _SEAM,
     "torchmm.kernels.choose": _SEAM,
+    "torchmm.kernels.table": _NO_ARGS,
     "torchmm.kernels.count_run": _SEAM + " (run_filter calls it once a run)",
     "torchmm.kernels.counting": _NO_ARGS + " (a context manager: tests/kernels/test_kernel_record.py)",
     "torchmm.kernels.Choice": _RECORD + " (choose's answer)",

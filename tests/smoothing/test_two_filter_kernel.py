@@ -1,4 +1,4 @@
-"""The two-filter smoother's batch-last kernel (torchmm/multimodel/batch_last_smooth.py, the
+"""The two-filter smoother's batch-last kernel (torchmm/kernels/batch_last/smooth.py, the
 ``plan_smooth`` of ``BATCH_LAST``): ``smooth`` of a run of an IMM, GPB1 or GPB2 over linear Kalman
 modes with ``n <= 6`` and a diagonal ``R`` runs there, and equals the eager passes (the kernel switched
 off) for random banks, per-mode and shared parameters, exact zeros and ones, missing data, batch
@@ -32,8 +32,8 @@ from torchmm import (
 from torchmm.beliefs import ModeBelief
 from torchmm.filters import ExtendedKalmanFilter
 from torchmm.multimodel import VariableStructureIMM
-from torchmm.multimodel.batch_last import LARGE_BATCH, LARGE_STATE, MAX_STATE
-from torchmm.multimodel.batch_last_smooth import LARGE_SMOOTHER, BatchLastTwoFilter
+from torchmm.kernels.batch_last.imm import LARGE_BATCH, LARGE_STATE, MAX_STATE
+from torchmm.kernels.batch_last.smooth import LARGE_SMOOTHER, BatchLastTwoFilter
 from torchmm.multimodel.mevsmm import ExactMinimumEntropy
 from torchmm.runtime import no_host_sync
 

@@ -9,7 +9,7 @@ from torch import Tensor
 
 from torchmm.linalg import psd_sqrt, symmetrize
 
-__all__ = ["symmetrize", "mix_gaussians", "normalize_log_probs", "psd_sqrt"]
+__all__ = ["symmetrize", "mix_gaussians", "normalize_log_probs", "psd_sqrt", "safe_log_normalize"]
 
 
 def normalize_log_probs(log_probs: Tensor, dim: int = -1) -> Tensor:
@@ -48,3 +48,12 @@ def mix_gaussians(mean: Tensor, cov: Tensor, weights: Tensor) -> tuple[Tensor, T
     diff = mean.unsqueeze(-3) - mixed_mean.unsqueeze(-2)  # (*B, J, K, n)
     spread = (diff * wt.unsqueeze(-1)).mT @ diff
     return mixed_mean, mixed_cov + spread
+
+
+def safe_log_normalize(joint: Tensor, norm: Tensor) -> Tensor:
+    """``joint - norm`` where ``norm = logsumexp`` of ``joint`` over the axes ``norm`` keeps with size 1;
+    groups that are all ``-inf`` (``-inf - -inf = NaN``; or NaN) become uniform, ``-inf`` entries of
+    a finite group stay ``-inf``. One fused pass, no host synchronisation."""
+    size = joint.numel() // max(norm.numel(), 1)
+    uniform = -math.log(size) if size else 0.0
+    return (joint - norm).nan_to_num_(nan=uniform, posinf=math.inf, neginf=-math.inf)

@@ -39,9 +39,9 @@ import torch.utils._pytree as pytree
 from torchmm.contract import Flag, Invalid, Kind, entry_point
 from torchmm.validation import broadcast_shape
 
-__all__ = ["EAGER", "Choice", "Request", "by_size", "choose", "counting", "describe", "enabled", "joined", "joins",
+__all__ = ["EAGER", "TABLE", "Choice", "Request", "by_size", "choose", "counting", "describe", "enabled", "joined", "joins",
            "names", "count_run", "plan", "plan_smooth", "register", "registered", "set_enabled", "stack_steps",
-           "switched_off", "switched_on"]
+           "switched_off", "switched_on", "table"]
 
 _KERNELS: list = []
 #: family -> {class: {method name: function}}: the steps each joining class computes
@@ -242,7 +242,9 @@ def enabled(name: str) -> bool:
 
 def register(kernel: Any, *, first: bool = False) -> Any:
     """Add ``kernel`` (an object with ``name`` and ``plan(filter, belief0, measurements, request)``) to
-    the kernels :func:`plan` tries, after the others (``first=True``: before them)."""
+    the kernels :func:`plan` tries, after the others (``first=True``: before them); :data:`TABLE`'s
+    own are registered by the table."""
+    _load()
     if first:
         _KERNELS.insert(0, kernel)
     else:
@@ -399,11 +401,52 @@ def _flatten(tree: Any, leaves: list, structure: list) -> None:
         _flatten(child, leaves, structure)
 
 
+#: Every whole-run kernel, in the order :func:`plan` tries them (the first that takes a run computes it),
+#: each with the module constants that decide which runs it takes (:func:`table` reads their values):
+#: ``(name, module, instance, thresholds)``. No kernel registers itself when its module is imported:
+#: this table registers them, on first use (:func:`registered`, :func:`plan`). A kernel of one's own
+#: is added with :func:`register` (after these; ``first=True``: before them).
+TABLE = (
+    ("linear_gaussian", "torchmm.kernels.linear", "LINEAR", ("MAX_RUNS", "LONG_RUN")),
+    ("batch_last", "torchmm.kernels.batch_last.imm", "BATCH_LAST", ("MAX_STATE",)),
+    ("batch_last_transfer", "torchmm.kernels.batch_last.transfer", "TRANSFER", ()),
+    ("batch_last_transfer_large", "torchmm.kernels.batch_last.transfer", "TRANSFER_LARGE", ()),
+    ("batch_last_nonlinear", "torchmm.kernels.batch_last.nonlinear", "NONLINEAR", ("MIN_BATCH",)),
+    ("batch_last_smooth_large", "torchmm.kernels.batch_last.smooth", "LARGE_SMOOTHER", ()),
+)
+
+
+def table() -> list[tuple[str, str, dict]]:
+    """:data:`TABLE` as it stands: ``(name, module, {threshold: value})`` in the order tried (the
+    thresholds as the modules hold them now; the transfer kernels' are the batch-last module's
+    ``LARGE_STATE`` and ``LARGE_BATCH``)."""
+    import importlib
+
+    out = []
+    for name, module, _, thresholds in TABLE:
+        mod = importlib.import_module(module)
+        values = {key: getattr(mod, key) for key in thresholds}
+        if name == "batch_last_transfer_large":
+            imm = importlib.import_module("torchmm.kernels.batch_last.imm")
+            values = {"MAX_STATE": imm.MAX_STATE, "LARGE_STATE": imm.LARGE_STATE, "LARGE_BATCH": imm.LARGE_BATCH}
+        out.append((name, module, values))
+    return out
+
+
 def _load() -> None:
-    """Import the kernel modules that register themselves (once; they import torchmm's filters)."""
-    if not _LOADED:
-        _LOADED.append(True)
-        from torchmm.kernels import linear  # noqa: F401
+    """Register :data:`TABLE`'s kernels (once, before any registered with :func:`register`)."""
+    if _LOADED:
+        return
+    _LOADED.append(True)
+    import importlib
+
+    builtin = []
+    for name, module, instance, _ in TABLE:
+        kernel = getattr(importlib.import_module(module), instance)
+        if kernel.name != name:  # (the table and the kernel agree on its name)
+            raise RuntimeError(f"torchmm.kernels.TABLE: {module}.{instance} is named {kernel.name!r}, not {name!r}")
+        builtin.append(kernel)
+    _KERNELS[:0] = builtin  # (register() loads the table first: nothing is registered before it)
 
 
 _LOADED: list = []

@@ -64,7 +64,7 @@ class LinearGaussian(NamedTuple):
         F ``(*P, n, n)``, b ``(*P, n)``, Q ``(*P, n, n)``, H ``(*P, m, n)``, R ``(*P, m, m)``;
         transition ``(M, M)`` (None for a single filter); rule: ``"kalman"`` (one filter),
         ``"mix"`` (IMM), ``"collapse"`` (GPB1), ``"static"`` (no interaction) or ``"pairs"`` (GPB2: the
-        batch-last kernel only, :mod:`torchmm.multimodel.batch_last_pairs`); post_update: None, or the
+        batch-last kernel only, :mod:`torchmm.kernels.batch_last.pairs`); post_update: None, or the
         filter's own work after each step's update, ``post_update(out, generator) -> StepOutput`` on the
         step's output (batch-first; the run continues from its belief's mode probabilities): a
         variable-structure IMM's model-set policy (the batch-last kernel only); G ``(*P, n, k)``: the
@@ -499,4 +499,5 @@ def _fields(outs, batch, steps, M, kalman: bool, mixed: bool, request: kernels.R
     return belief, prior, log_likelihood, innovation, innovation_cov, extras
 
 
-kernels.register(LinearKernel(), first=True)  # small problems: before the batched kernels
+#: the registered instance (torchmm.kernels.TABLE: first, before the batched kernels)
+LINEAR = LinearKernel()

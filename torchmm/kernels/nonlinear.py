@@ -2,7 +2,7 @@
 
 An :class:`~torchmm.ExtendedKalmanFilter` or :class:`~torchmm.UnscentedKalmanFilter` (and an IMM or GPB1
 over one) describes itself through ``filter.nonlinear_gaussian()``; the batch-last kernel
-(:mod:`torchmm.multimodel.batch_last_nonlinear`) runs the whole run from it, calling the filter's own
+(:mod:`torchmm.kernels.batch_last.nonlinear`) runs the whole run from it, calling the filter's own
 models one state component at a time (:meth:`~torchmm.models.MotionModel.forward_entries`,
 :meth:`~torchmm.models.MotionModel.jacobian_entries`).
 """

@@ -68,7 +68,7 @@ class MotionModel(nn.Module):
     def forward_entries(self, x: Sequence[Tensor], *, u: Tensor | None = None) -> list[Tensor]:
         """:meth:`forward` one state component at a time, for the kernels that keep each component in
         its own tensor (the batch-last IMM over extended and unscented banks,
-        :mod:`torchmm.multimodel.batch_last_nonlinear`). The default stacks the components and calls
+        :mod:`torchmm.kernels.batch_last.nonlinear`). The default stacks the components and calls
         :meth:`forward`; a model overrides it with the same arithmetic to skip the stack.
 
         Shapes: ``x``: ``n`` tensors ``(*B,)`` (broadcasting) -> ``n`` tensors broadcasting to ``(*B,)``.

@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 from torch import Tensor
 
-__all__ = ["MultiRate"]
+__all__ = ["MultiRate", "split_streams"]
 
 
 class MultiRate(NamedTuple):
@@ -19,3 +19,17 @@ class MultiRate(NamedTuple):
 
     target: Tensor
     source: Tensor
+
+
+def split_streams(z: Any) -> tuple[Tensor, Tensor]:
+    """``(target, source)`` of a multi-rate measurement: a :class:`MultiRate`, a pair or a dict."""
+    if isinstance(z, MultiRate):
+        return z.target, z.source
+    if isinstance(z, dict) and {"target", "source"} <= set(z):
+        return z["target"], z["source"]
+    if isinstance(z, (tuple, list)) and len(z) == 2:
+        return z[0], z[1]
+    raise TypeError(
+        "z: expected MultiRate(target, source), a (target, source) pair or a dict with keys "
+        f"'target' and 'source', got {type(z).__name__}"
+    )

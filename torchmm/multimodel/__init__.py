@@ -7,10 +7,6 @@ from torchmm.models.transition import (
     transition_alpha,
     validate_transition,
 )
-from torchmm.multimodel import batch_last as _batch_last  # noqa: F401  (registers its kernel)
-from torchmm.multimodel import batch_last_transfer as _batch_last_transfer  # noqa: F401  (registers IMM-TF's)
-from torchmm.multimodel import batch_last_nonlinear as _batch_last_nonlinear  # noqa: F401  (EKF/UKF banks')
-from torchmm.multimodel import batch_last_smooth as _batch_last_smooth  # noqa: F401  (large states' smoother)
 from torchmm.multimodel.bank import FilterBank, IndexedBank, ListBank, VectorizedBank, make_bank
 from torchmm.multimodel.embedding import Embedded, kinematic_index
 from torchmm.multimodel.imm import (

@@ -27,6 +27,7 @@ from torch import Tensor
 
 import torchmm.kernels as kernels
 from torchmm.beliefs import Belief, ModeBelief
+from torchmm.beliefs.ops import safe_log_normalize
 from torchmm.contract import BeliefArg, Finite, Gen, Int, Of, Stochastic, entry_point
 from torchmm.filters.base import Filter, StepOutput, check_state_dim
 from torchmm.models.transition import as_transition
@@ -123,15 +124,6 @@ def _matrix(transition, like: Tensor) -> Tensor:
     if matrix.dtype != like.dtype:
         check_same_dtype(matrix, "transition", like)
     return matrix
-
-
-def safe_log_normalize(joint: Tensor, norm: Tensor) -> Tensor:
-    """``joint - norm`` where ``norm = logsumexp`` of ``joint`` over the axes ``norm`` keeps with size 1;
-    groups that are all ``-inf`` (``-inf - -inf = NaN``; or NaN) become uniform, ``-inf`` entries of
-    a finite group stay ``-inf``. One fused pass, no host synchronisation."""
-    size = joint.numel() // max(norm.numel(), 1)
-    uniform = -math.log(size) if size else 0.0
-    return (joint - norm).nan_to_num_(nan=uniform, posinf=math.inf, neginf=-math.inf)
 
 
 def mode_posterior(mode_log_likelihood: Tensor, prior_log_probs: Tensor,
@@ -561,7 +553,7 @@ class GPB2(MultipleModelFilter):
 
     def linear_gaussian(self):
         """As :meth:`MultipleModelFilter.linear_gaussian`, with the rule ``"pairs"`` (the batch-last
-        kernel: :mod:`torchmm.multimodel.batch_last_pairs`)."""
+        kernel: :mod:`torchmm.kernels.batch_last.pairs`)."""
         model = super().linear_gaussian()
         return model if isinstance(model, str) else model._replace(rule="pairs")
 

@@ -14,26 +14,13 @@ from torch import Tensor
 
 from torchmm.beliefs import Belief, GaussianBelief
 from torchmm.models.base import MeasurementModel
-from torchmm.models.streams import MultiRate
+from torchmm.models.streams import MultiRate, split_streams
 from torchmm.multimodel.bank import FilterBank, ListBank, VectorizedBank
 from torchmm.multimodel.imm import IMM, mode_batch
 from torchmm.validation import check_measurement
 
 __all__ = ["bank_members", "check_source_sensor", "gaussian_moments", "member_models", "mode_param",
            "multirate_streams", "per_mode", "split_streams"]
-
-
-def split_streams(z: Any) -> tuple[Tensor, Tensor]:
-    if isinstance(z, MultiRate):
-        return z.target, z.source
-    if isinstance(z, dict) and {"target", "source"} <= set(z):
-        return z["target"], z["source"]
-    if isinstance(z, (tuple, list)) and len(z) == 2:
-        return z[0], z[1]
-    raise TypeError(
-        "z: expected MultiRate(target, source), a (target, source) pair or a dict with keys "
-        f"'target' and 'source', got {type(z).__name__}"
-    )
 
 
 def multirate_streams(imm: IMM, belief, z: Any, source: MeasurementModel) -> tuple[Tensor, Tensor]:

@@ -186,7 +186,7 @@ InfluenceGate.__init__ = entry_point(threshold=Real(), mode=Int(0), weight=Choic
 # --------------------------------------------------------------------------------------------
 class TransferGaussian(NamedTuple):
     """A :class:`TransferIMM`'s description of itself for the batch-last kernel
-    (``filter.transfer_gaussian()``, :mod:`torchmm.multimodel.batch_last_transfer`).
+    (``filter.transfer_gaussian()``, :mod:`torchmm.kernels.batch_last.transfer`).
 
     Shapes (``*P``: ``()`` or the modes ``(M,)``): model: the IMM's
     :class:`~torchmm.kernels.linear.LinearGaussian` (rule ``"mix"``); H_S ``(*P, m_S, n)`` and R_S

@@ -4,7 +4,7 @@ r"""The IMM and GPB1 over extended and unscented Kalman banks in the batch-last 
 :class:`~torchmm.ExtendedKalmanFilter` or :class:`~torchmm.UnscentedKalmanFilter` (a mode bank: model
 parameters with a trailing mode axis, as for the filter's own steps) through this kernel: the family
 ``"nonlinear_gaussian"`` (:class:`~torchmm.kernels.nonlinear.NonlinearGaussian`). It keeps the state as
-:mod:`torchmm.multimodel.batch_last` does - one tensor ``(M, *B)`` per mean entry and per entry of the
+:mod:`torchmm.kernels.batch_last.imm` does - one tensor ``(M, *B)`` per mean entry and per entry of the
 covariances' upper triangle - and shares its mixing, mode posterior and estimate. The filters' own
 models are called on batch-first *views* of that memory, one state component at a time
 (:meth:`~torchmm.models.MotionModel.forward_entries`, :meth:`~torchmm.models.MotionModel.jacobian_entries`:
@@ -39,7 +39,7 @@ from torch import Tensor
 import torchmm.kernels as kernels
 from torchmm.beliefs import GaussianBelief, ModeBelief
 from torchmm.linalg import pivot_clamped_cholesky, psd_sqrt, use_joseph
-from torchmm.multimodel.batch_last import ONE, ZERO, BatchLastIMM, Coef, coefficients, combine, described, planned
+from torchmm.kernels.batch_last.imm import ONE, ZERO, BatchLastIMM, Coef, coefficients, combine, described, planned
 from torchmm.runtime import host_reads_ok
 
 __all__ = ["MIN_BATCH", "BatchLastNonlinear", "BatchLastNonlinearKernel", "why_not_nonlinear"]
@@ -314,4 +314,4 @@ class BatchLastNonlinearKernel:
         return planned(kernel, belief0, request)
 
 
-NONLINEAR = kernels.register(BatchLastNonlinearKernel())
+NONLINEAR = BatchLastNonlinearKernel()  # (registered by torchmm.kernels.TABLE)

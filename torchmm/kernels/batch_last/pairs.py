@@ -1,9 +1,9 @@
 r"""GPB2 over linear Kalman modes in the batch-last layout (issue 31, goal 3).
 
 :func:`~torchmm.run_filter` runs a :class:`~torchmm.GPB2` over one :class:`~torchmm.KalmanFilter` with
-mode-bank linear models through this kernel (:class:`~torchmm.multimodel.batch_last.BatchLastKernel`,
+mode-bank linear models through this kernel (:class:`~torchmm.kernels.batch_last.imm.BatchLastKernel`,
 the ``"pairs"`` rule of the linear-Gaussian description). It is the batch-last IMM kernel
-(:mod:`torchmm.multimodel.batch_last`) with the step of :meth:`GPB2.step <torchmm.GPB2.step>` in place of
+(:mod:`torchmm.kernels.batch_last.imm`) with the step of :meth:`GPB2.step <torchmm.GPB2.step>` in place of
 the IMM's, in the same order:
 
 - the pair hypotheses: pair ``(i, j)`` starts from mode ``i``'s posterior with prior weight
@@ -36,8 +36,8 @@ import torch
 from torch import Tensor
 
 from torchmm.beliefs import GaussianBelief, ModeBelief
-from torchmm.filters.base import StepOutput
-from torchmm.multimodel.batch_last import BatchLastIMM
+from torchmm.typing import StepOutput
+from torchmm.kernels.batch_last.imm import BatchLastIMM
 
 __all__ = ["BatchLastGPB2"]
 
@@ -46,7 +46,7 @@ class BatchLastGPB2(BatchLastIMM):
     """One GPB2 step in the batch-last layout (module docstring). ``matrix`` holds ``log pi_ij``
     ``(i, j, 1...)``; the state's third item is the mode log-probabilities ``(M, *B)``.
 
-    Args: as :class:`~torchmm.multimodel.batch_last.BatchLastIMM` (a description with the ``"pairs"`` rule).
+    Args: as :class:`~torchmm.kernels.batch_last.imm.BatchLastIMM` (a description with the ``"pairs"`` rule).
     """
 
     kind = "GPB2"

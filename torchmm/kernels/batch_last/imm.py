@@ -2,7 +2,7 @@ r"""The IMM (and GPB1) over linear Kalman modes in the batch-last layout: the en
 
 :func:`~torchmm.run_filter` runs an :class:`~torchmm.IMM` over one :class:`~torchmm.KalmanFilter`
 with mode-bank linear models through this kernel (docs/performance.md); also GPB2 (its step in
-:mod:`torchmm.multimodel.batch_last_pairs`) and the variable-structure IMM, whose model-set policy
+:mod:`torchmm.kernels.batch_last.pairs`) and the variable-structure IMM, whose model-set policy
 runs after each step as the description's ``post_update`` (:meth:`BatchLastIMM.step`). The public layout stays
 batch-first; inside, the state is kept with the batch axes *last*: the mode probabilities ``(M, *B)``
 and, for large batches, one tensor ``(M, *B)`` per entry: the mode means ``x[a]`` and the
@@ -55,7 +55,7 @@ from torch import Tensor
 
 import torchmm.kernels as kernels
 from torchmm.beliefs import GaussianBelief, ModeBelief
-from torchmm.filters.base import StepOutput
+from torchmm.typing import StepOutput
 
 __all__ = ["BATCH_LAST", "LARGE_BATCH", "LARGE_STATE", "MAX_STATE", "BatchLastIMM", "BatchLastKernel", "described", "why_not"]
 
@@ -65,7 +65,7 @@ _LOG_2PI = math.log(2 * math.pi)
 MAX_STATE = 6
 #: larger states, up to this many components, take the two-filter smoother's kernel from ``LARGE_BATCH``
 #: runs x modes (a kernel of its own, ``"batch_last_smooth_large"``, chosen by the batch size:
-#: torchmm.multimodel.batch_last_smooth.LargeStateSmoother)
+#: torchmm.kernels.batch_last.smooth.LargeStateSmoother)
 LARGE_STATE = 10
 LARGE_BATCH = 900
 #: the largest mixing temporary (bytes) for which the step takes every matrix entry in one broadcast
@@ -226,7 +226,7 @@ class BatchLastIMM:
         """What every batch-last IMM kernel holds besides its models: the sizes, the interaction (from
         ``model.transition`` and ``model.rule``), the constants, the permutations between the layouts,
         the record options and the filter's ``post_update``."""
-        from torchmm.multimodel.imm import safe_log_normalize
+        from torchmm.beliefs.ops import safe_log_normalize
 
         self.normalize, self.collapse = safe_log_normalize, model.rule == "collapse"
         self.broadcast = True  # the state's layout (prepare chooses it by the batch size)
@@ -777,7 +777,7 @@ class BatchLastIMM:
 class BatchLastKernel:
     """The registered kernel (:mod:`torchmm.kernels`) of the batch-last IMM, GPB1 and GPB2 step: a filter
     that describes itself as linear-Gaussian with the ``"mix"``, ``"collapse"`` or ``"pairs"`` rule
-    (GPB2: :mod:`torchmm.multimodel.batch_last_pairs`), a run without
+    (GPB2: :mod:`torchmm.kernels.batch_last.pairs`), a run without
     ``update_first``; any size (the small linear kernel takes small problems first), any device,
     ``compile`` and ``record`` functions included."""
 
@@ -793,7 +793,7 @@ class BatchLastKernel:
             return reason
         like = belief0.mode_log_probs
         if model.rule == "pairs":
-            from torchmm.multimodel.batch_last_pairs import BatchLastGPB2
+            from torchmm.kernels.batch_last.pairs import BatchLastGPB2
 
             kernel = BatchLastGPB2(model, M, like.dim() - 1, like)
         else:
@@ -827,8 +827,8 @@ def described(filter, request: kernels.Request, family: str, rules: tuple, which
 
 def _plan_two_filter(filter, trajectory, method, measurements=None, prior_log=None, **inputs):
     """:meth:`BatchLastKernel.plan_smooth`: the two-filter smoother's passes batch-last
-    (:mod:`torchmm.multimodel.batch_last_smooth`), or the reason not."""
-    from torchmm.multimodel.batch_last_smooth import BatchLastTwoFilter, why_not_smooth
+    (:mod:`torchmm.kernels.batch_last.smooth`), or the reason not."""
+    from torchmm.kernels.batch_last.smooth import BatchLastTwoFilter, why_not_smooth
 
     if method != "two_filter":
         return "only the two-filter smoother"
@@ -915,4 +915,4 @@ def _stack_in_memory_order(tensors: list) -> Tensor:
     return stacked.permute(0, *inverse)
 
 
-BATCH_LAST = kernels.register(BatchLastKernel())
+BATCH_LAST = BatchLastKernel()  # (registered by torchmm.kernels.TABLE)

@@ -5,7 +5,7 @@ batch-last layout (issue 31, goal 3).
 :class:`~torchmm.KalmanFilter` with mode-bank linear models, a diagonal ``R`` and ``R_S`` and a state of
 at most six components through this kernel (:class:`BatchLastTransferKernel`, registered as
 ``"batch_last_transfer"``), for any record. It is the batch-last IMM kernel's step
-(:mod:`torchmm.multimodel.batch_last`, one tensor ``(M, *B)`` per entry) with the transfer of
+(:mod:`torchmm.kernels.batch_last.imm`, one tensor ``(M, *B)`` per entry) with the transfer of
 :meth:`TransferIMM.step <torchmm.multimodel.TransferIMM.step>`, in the same order:
 
 1. the IMM's mixing, prediction and update with ``y_k`` (the plain posterior and ``Lambda_j``);
@@ -35,8 +35,8 @@ from torch import Tensor
 
 import torchmm.kernels as kernels
 from torchmm.beliefs import GaussianBelief, ModeBelief
-from torchmm.filters.base import StepOutput
-from torchmm.multimodel.batch_last import (
+from torchmm.typing import StepOutput
+from torchmm.kernels.batch_last.imm import (
     LARGE_BATCH,
     LARGE_STATE,
     MAX_STATE,
@@ -47,7 +47,7 @@ from torchmm.multimodel.batch_last import (
     sum_terms,
     why_not,
 )
-from torchmm.multimodel.multirate import split_streams
+from torchmm.models.streams import split_streams
 
 __all__ = ["TRANSFER", "TRANSFER_LARGE", "BatchLastTransfer", "BatchLastTransferKernel", "LargeStateTransfer"]
 
@@ -58,7 +58,7 @@ class BatchLastTransfer(BatchLastIMM):
 
     Args:
         description: the filter's :class:`~torchmm.multimodel.transfer.TransferGaussian`.
-        M, batch_dims, like: as :class:`~torchmm.multimodel.batch_last.BatchLastIMM`.
+        M, batch_dims, like: as :class:`~torchmm.kernels.batch_last.imm.BatchLastIMM`.
     """
 
     kind = "IMM-TF"
@@ -248,7 +248,7 @@ class BatchLastTransfer(BatchLastIMM):
 
 
 def _at_mode(coef, j: int):
-    """Mode ``j``'s value of a :func:`~torchmm.multimodel.batch_last.coefficients` entry: None for an
+    """Mode ``j``'s value of a :func:`~torchmm.kernels.batch_last.imm.coefficients` entry: None for an
     exact zero, 1.0, a shared 0-dim tensor, or the ``(1...)`` slice of a per-mode tensor."""
     if coef.kind == "zero":
         return None
@@ -321,5 +321,5 @@ class LargeStateTransfer(BatchLastTransferKernel):
     max_state, min_batch = LARGE_STATE, LARGE_BATCH
 
 
-TRANSFER = kernels.register(BatchLastTransferKernel())
-TRANSFER_LARGE = kernels.register(LargeStateTransfer())
+TRANSFER = BatchLastTransferKernel()  # (registered by torchmm.kernels.TABLE)
+TRANSFER_LARGE = LargeStateTransfer()

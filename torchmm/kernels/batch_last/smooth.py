@@ -16,13 +16,13 @@ last: ``(M, *B)`` per mode, ``(j, i, *B)`` per pair of modes (mode ``j`` at ``k`
   models, to rounding); ``F_i^{-1}`` is inverted once per mode;
 - the fusion of every pair: ``D = P_j + B_i`` and its regularised factor in closed form
   (:func:`torchmm.linalg.cholesky`'s for ``n <= 2``; beyond,
-  :meth:`~torchmm.multimodel.batch_last.BatchLastIMM.factor`),
+  :meth:`~torchmm.kernels.batch_last.imm.BatchLastIMM.factor`),
   ``V = L^{-1} P_j``, ``w = L^{-1} (b_i - x_j)``,
   ``x_ji = x_j + V^T w``, the overlap ``N(b_i - x_j; 0, D)``, the pair weights and their
   normalisations (as ``safe_log_normalize``), and mode ``j``'s collapse
   ``P_j - sum_i w_ji V_ji^T V_ji + spread``;
 - the backward IMM's mixing with the backward transition and its update, one measurement component
-  after the other (:meth:`~torchmm.multimodel.batch_last.BatchLastIMM.update_components`).
+  after the other (:meth:`~torchmm.kernels.batch_last.imm.BatchLastIMM.update_components`).
 
 The smoothed beliefs are returned batch-first (views of batch-last memory), equal to the eager
 smoother's to rounding (tests/smoothing/test_two_filter_kernel.py).
@@ -37,7 +37,7 @@ from torch import Tensor
 
 import torchmm.kernels as kernels
 from torchmm.beliefs import GaussianBelief, ModeBelief
-from torchmm.multimodel.batch_last import (
+from torchmm.kernels.batch_last.imm import (
     LARGE_BATCH,
     LARGE_STATE,
     MAX_STATE,
@@ -233,7 +233,7 @@ class BatchLastTwoFilter:
 
 
 def _minus(t: Tensor, coef) -> Tensor:
-    """``t - coef`` for a :func:`~torchmm.multimodel.batch_last.coefficients` entry (zero: ``t`` itself)."""
+    """``t - coef`` for a :func:`~torchmm.kernels.batch_last.imm.coefficients` entry (zero: ``t`` itself)."""
     if coef.kind == "zero":
         return t
     return t - (1.0 if coef.kind == "one" else coef.value)
@@ -241,7 +241,7 @@ def _minus(t: Tensor, coef) -> Tensor:
 
 class LargeStateSmoother:
     """The registered kernel of the two-filter smoother for states of ``MAX_STATE + 1`` to ``LARGE_STATE``
-    components (:class:`BatchLastTwoFilter`, as :meth:`~torchmm.multimodel.batch_last.BatchLastKernel.plan_smooth`
+    components (:class:`BatchLastTwoFilter`, as :meth:`~torchmm.kernels.batch_last.imm.BatchLastKernel.plan_smooth`
     runs it up to ``MAX_STATE``), from ``LARGE_BATCH`` runs x modes: below, its entry-by-entry factors
     (``n^3`` passes) are bound by dispatch and the eager passes are faster (docs/performance.md). Its
     choice depends on the batch size (``by_size``: studies switch it off). It smooths only."""
@@ -272,4 +272,4 @@ class LargeStateSmoother:
         return lambda: passes.run(trajectory, measurements, prior_log)
 
 
-LARGE_SMOOTHER = kernels.register(LargeStateSmoother())
+LARGE_SMOOTHER = LargeStateSmoother()  # (registered by torchmm.kernels.TABLE)
