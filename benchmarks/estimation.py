@@ -13,9 +13,11 @@ likelihood against statsmodels.
   (they reach different maxima: docs/studies.md).
 * ``fedfunds_exog``: the same with regressors (statsmodels' ``TestFedFundsConstL1Exog``: the lag, the output
   gap and inflation, switching coefficients, one variance), the regressors the motion's controls.
+* ``fedfunds_tvtp``: time-varying transition probabilities (``exog_tvtp``: a constant and the output gap,
+  switching mean and variance), torchmm's ``LogisticTransition`` over the same columns.
 
-The last line: ``em_robot_speedup=... em_batch_speedup=... fedfunds_speedup=... fedfunds_exog_speedup=...`` (reference time / torchmm
-time; above 1 torchmm is faster).
+The last line: ``em_robot_speedup=... em_batch_speedup=... fedfunds_speedup=... fedfunds_exog_speedup=...
+fedfunds_tvtp_speedup=...`` (reference time / torchmm time; above 1 torchmm is faster).
 
     .venv/bin/python benchmarks/estimation.py
     .venv/bin/python benchmarks/estimation.py --series 1000 --steps 100 --pykalman-series 20
@@ -24,10 +26,14 @@ time; above 1 torchmm is faster).
 from __future__ import annotations
 
 import argparse
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # (tests' statsmodels data reader)
 
 
 def best(fn, repeats: int) -> float:
@@ -217,6 +223,43 @@ def fedfunds_exog(repeats: int) -> float:
                                 lambda: f", kernel {estimate.objective.kernel}")
 
 
+def fedfunds_tvtp(repeats: int) -> float:
+    """statsmodels' Fed funds with time-varying transition probabilities (``exog_tvtp``: a constant and the
+    output gap; switching mean and variance) from its start values: ``fit()`` with ``bse`` against
+    :func:`torchmm.learn.estimate` of an IMM with a :class:`~torchmm.LogisticTransition`, the logistic
+    coefficients free (the Numba kernel reads each step's matrices)."""
+    import statsmodels.api as sm
+
+    from tests.experiments.test_markov_switching import _statsmodels_test_data
+    from torchmm import IMM, GaussianBelief, KalmanFilter, LogisticTransition
+    from torchmm.learn import estimate, stationary
+    from torchmm.models import LinearMeasurement, LinearMotion
+
+    ff, ogap = _statsmodels_test_data("fedfunds", "ogap")
+    y, X = ff[4:], np.c_[np.ones(len(ff) - 4), ogap[4:]]
+    model = sm.tsa.MarkovRegression(y, k_regimes=2, exog_tvtp=X, switching_variance=True)
+    p = dict(zip(model.param_names, model.start_params))
+    f64 = torch.float64
+    z, u = torch.as_tensor(y, dtype=f64).reshape(-1, 1), torch.as_tensor(X, dtype=f64)
+    out = {}
+
+    def ours():
+        coef = torch.tensor([[[p["p[0->0].tvtp0"], p["p[0->0].tvtp1"]]], [[p["p[1->0].tvtp0"], p["p[1->0].tvtp1"]]]],
+                            dtype=f64)
+        one = torch.ones(2, 1, 1, dtype=f64)
+        imm = IMM(KalmanFilter(LinearMotion(one, 0 * one, input_matrix=torch.zeros(2, 1, 2, dtype=f64)),
+                               LinearMeasurement(torch.tensor([[[p["const[0]"]]], [[p["const[1]"]]]], dtype=f64),
+                                                 torch.tensor([[[p["sigma2[0]"]]], [[p["sigma2[1]"]]]], dtype=f64))),
+                  LogisticTransition(coef, columns=[0, 1]))
+        start = GaussianBelief(torch.ones(1, dtype=f64), torch.zeros(1, 1, dtype=f64))
+        out["ours"] = estimate(imm, lambda f: f.initial_belief(start, stationary(f.transition.at(u[0]).matrix())), z,
+                               {"transition.coef": "free", "bank.filter.measurement.H": "free",
+                                "bank.filter.measurement.R": "variance"}, controls=u, progress=False)
+
+    return _against_statsmodels("fedfunds_tvtp", ours, model, out, repeats,
+                                lambda: f", kernel {estimate.objective.kernel}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=3)
@@ -232,7 +275,9 @@ def main() -> None:
     b = em_batch(args.series, args.steps, args.pykalman_series, args.iterations, args.threads)
     c = fedfunds(args.repeats)
     d = fedfunds_exog(args.repeats)
-    print(f"em_robot_speedup={a:.2f} em_batch_speedup={b:.1f} fedfunds_speedup={c:.2f} fedfunds_exog_speedup={d:.2f}")
+    e = fedfunds_tvtp(args.repeats)
+    print(f"em_robot_speedup={a:.2f} em_batch_speedup={b:.1f} fedfunds_speedup={c:.2f} fedfunds_exog_speedup={d:.2f} "
+          f"fedfunds_tvtp_speedup={e:.2f}")
 
 
 if __name__ == "__main__":

@@ -207,7 +207,11 @@ def test_estimation_benchmark_runs_and_agrees():
     assert proc.returncode == 0, proc.stderr[-2000:] + proc.stdout[-2000:]
     lines = proc.stdout.strip().splitlines()
     assert re.fullmatch(r"em_robot_speedup=[0-9.]+ em_batch_speedup=[0-9.]+ fedfunds_speedup=[0-9.]+ "
-                        r"fedfunds_exog_speedup=[0-9.]+", lines[-1])
+                        r"fedfunds_exog_speedup=[0-9.]+ fedfunds_tvtp_speedup=[0-9.]+", lines[-1])
+    # the time-varying transition's fit reaches statsmodels' optimum, through the kernel
+    tv_ours, tv_theirs = re.search(r"fedfunds_tvtp: .*llf (-[0-9.]+), kernel linear_gaussian\), statsmodels .*llf "
+                                   r"(-[0-9.]+)\)", proc.stdout).groups()
+    assert abs(float(tv_ours) - float(tv_theirs)) < 1e-3
     # the regressors' fit reaches statsmodels' optimum, through the kernel (its controls)
     ours, theirs = re.search(r"fedfunds_exog: .*llf (-[0-9.]+), kernel linear_gaussian\), statsmodels .*llf "
                              r"(-[0-9.]+)\)", proc.stdout).groups()

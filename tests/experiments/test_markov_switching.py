@@ -212,13 +212,11 @@ def test_em_then_mle_from_config_is_statsmodels_fit(tmp_path):
     assert fit["loglik"] == pytest.approx(ref.llf, abs=1e-6)
 
 
-@pytest.mark.slow
 def test_time_varying_transition_probabilities_from_config(tmp_path):
     """scenario.tvtp: the transition probabilities the logistic of a constant and the output gap
     (statsmodels' exog_tvtp): the study's estimates within 1e-3 of their standard errors of statsmodels' fit,
-    its errors (1e-3) and log-likelihood (1e-6) statsmodels'. (Slow: the time-varying transition reads the
-    controls, which the whole-run kernel does not take yet: the eager steps, about 20 s; the library test
-    tests/learn/test_estimate.py::test_logistic_transition_equals_statsmodels_exog_tvtp is the fast one.)"""
+    its errors (1e-3) and log-likelihood (1e-6) statsmodels'. (Out of `slow` since the Numba kernel takes
+    the time-varying transition, issue 47's session: the fit ~20 s -> ~1 s.)"""
     ff, ogap = _statsmodels_test_data("fedfunds", "ogap")
     y, gap = ff[4:], ogap[4:]
     path = tmp_path / "tvtp.csv"

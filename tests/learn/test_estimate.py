@@ -23,6 +23,7 @@ sm = pytest.importorskip("statsmodels.api")
 
 from experiments.realdata import fedfunds_imm, load_fedfunds, load_nile, local_level, local_level_start
 from torchmm import IMM, GaussianBelief, KalmanFilter, run_filter
+from torchmm.run import Keep
 from torchmm.learn import Objective, Param, estimate, stationary
 from torchmm.models import ConstantVelocity, LinearMeasurement, LinearMotion, PositionMeasurement
 
@@ -325,6 +326,45 @@ def test_logistic_transition_equals_statsmodels_exog_tvtp():
         GPB2(KalmanFilter(LinearMotion(one, 0 * one), LinearMeasurement(one, one)), transition)
     with pytest.raises(ValueError, match="^controls: a LogisticTransition needs"):
         run_filter(imm, start, torch.as_tensor(y, dtype=f64).reshape(-1, 1))
+
+
+def test_a_time_varying_transition_runs_on_the_numba_kernel():
+    """The Numba kernel takes a LogisticTransition (issue 45: its fits stepped eagerly, ~20 s): the step's
+    matrices at the controls, computed by torch, read per step and run by the loop. Its run equals the eager
+    steps' (1e-12) - several runs with their own controls, missing data - and so does the gradient of the
+    log-likelihood in the logistic coefficients and the models (1e-10)."""
+    from torchmm import LogisticTransition
+
+    f64 = torch.float64
+    g = torch.Generator().manual_seed(4)
+    T, runs = 30, 3
+    coef = torch.randn(2, 1, 2, generator=g, dtype=f64)
+    one = torch.ones(2, 1, 1, dtype=f64)
+
+    def build():
+        transition = LogisticTransition(coef.clone(), columns=[0, 1])
+        imm = IMM(KalmanFilter(LinearMotion(0.9 * one, 0.2 * one, input_matrix=torch.zeros(2, 1, 2, dtype=f64)),
+                               LinearMeasurement(one, torch.tensor([[[0.5]], [[3.0]]], dtype=f64))), transition)
+        return imm, transition
+
+    u = torch.cat([torch.ones(T, runs, 1, dtype=f64), torch.randn(T, runs, 1, generator=g, dtype=f64)], -1)
+    z = torch.randn(T, runs, 1, generator=g, dtype=f64)
+    z[5, 1] = z[17, 0] = float("nan")
+    results = {}
+    for fast in (None, False):
+        imm, transition = build()
+        transition.coef.requires_grad_(True)
+        start = imm.initial_belief(GaussianBelief(torch.zeros(runs, 1, dtype=f64), torch.ones(runs, 1, 1, dtype=f64)))
+        traj = run_filter(imm, start, z, controls=u, fast_path=fast, record=Keep("log_likelihood", "belief"))
+        total = traj.log_likelihood.sum()
+        total.backward()
+        results[fast] = (traj, transition.coef.grad.clone(), imm.bank.filter.measurement.R.grad)
+    (fast, g_fast, _), (slow, g_slow, _) = results[None], results[False]
+    assert fast.provenance.kernel == "linear_gaussian", fast.provenance.declined
+    assert slow.provenance.kernel != "linear_gaussian"
+    assert torch.allclose(fast.log_likelihood, slow.log_likelihood, rtol=1e-12, atol=1e-12)
+    assert torch.allclose(fast.belief.mode_log_probs, slow.belief.mode_log_probs, rtol=1e-12, atol=1e-12)
+    assert torch.allclose(g_fast, g_slow, rtol=1e-10, atol=1e-10) and float(g_fast.abs().max()) > 1e-3
 
 
 def _np_imm_loglik(models, H, R, Pi, x0, P0, mu0, zs):

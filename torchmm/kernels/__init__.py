@@ -75,14 +75,16 @@ def describe(filter: Any, family: str, *, inputs: bool = False) -> Any:
     """``filter``'s description of itself for the kernel ``family`` (its method of that name, e.g.
     ``filter.linear_gaussian()``), or the reason there is none: the filter has no such method, has not
     joined the family, or overrides the steps of the class that joined. A description with an input
-    matrix (``G``: a motion with controls) is given only to a kernel that takes controls
-    (``inputs=True``)."""
+    matrix (``G``: a motion with controls) or a time-varying transition (``time_varying``: matrices from
+    the controls) is given only to a kernel that takes controls (``inputs=True``)."""
     method = getattr(filter, family, None)
     if method is None or not joined(filter, family):
         return f"{type(filter).__name__} has not joined the {family} kernels (or overrides their steps)"
     model = method()
     if not inputs and getattr(model, "G", None) is not None:
         return "the motion has a control input (input_matrix): this kernel takes none"
+    if not inputs and getattr(model, "time_varying", None) is not None:
+        return "a time-varying transition (it reads each step's controls): this kernel takes none"
     return model
 
 

@@ -70,7 +70,9 @@ class LinearGaussian(NamedTuple):
         variable-structure IMM's model-set policy (the batch-last kernel only); G ``(*P, n, k)``: the
         motion's input matrix (``F x + b + G u_t`` with the run's controls ``u_t``), None without one
         (only the kernels that take controls are given a description with one:
-        :func:`torchmm.kernels.describe`).
+        :func:`torchmm.kernels.describe`); time_varying: a transition whose matrices are the step's
+        controls' (:class:`~torchmm.models.LogisticTransition`: ``time_varying.at(u_t).log_matrix()``,
+        ``(*B, M, M)``), ``transition`` then None; likewise only for the kernels that take controls.
     """
 
     F: Tensor
@@ -82,6 +84,7 @@ class LinearGaussian(NamedTuple):
     rule: str = "kalman"
     post_update: Any = None
     G: Tensor | None = None
+    time_varying: Any = None
 
 
 def load():
@@ -185,13 +188,16 @@ class _NoGrad:
         pass
 
 
-def _layout(M: int, n: int, m: int, batch: tuple, kalman: bool, steps: int | None = None) -> tuple:
+def _layout(M: int, n: int, m: int, batch: tuple, kalman: bool, steps: int | None = None,
+            varying: int | None = None) -> tuple:
     """``_Run``'s layout (see there) of a run of ``M`` modes over the batch ``batch`` (``steps``: with
-    controls, the run's steps)."""
+    an input matrix's controls, the run's steps; ``varying``: with a time-varying transition, the run's
+    steps: a transition matrix for each step and run)."""
     runs = math.prod(batch)
     inputs = ((((steps, runs, M, n),) * 2),) if steps is not None else ((((1, 1, M, n),) * 2),)
+    pi = (varying, runs, M, M) if varying is not None else (1, 1, M, M)
     models = (((M, n, n),) * 2, ((M, n),) * 2, ((M, n, n),) * 2, ((M, m, n),) * 2, ((M, m, m),) * 2,
-              ((M, M),) * 2)
+              (pi,) * 2)
     if kalman:
         start = (((runs, 1), (runs, 1)), ((*batch, n), (runs, 1, n)), ((*batch, n, n), (runs, 1, n, n)))
     else:
@@ -228,9 +234,14 @@ def _all_broadcast(shapes: list, layout: tuple) -> bool:
     return True
 
 
-def _models(model: LinearGaussian) -> tuple:
+def _models(model: LinearGaussian, controls: Tensor | None = None, batch: tuple = ()) -> tuple:
     """The model tensors as the filter gave them (``_Run`` broadcasts them), and the transition matrix
-    (``[[1]]`` for one filter)."""
+    (``[[1]]`` for one filter; a time-varying transition's ``(T, runs, M, M)`` at the run's controls,
+    computed by torch so that its gradient is autograd's)."""
+    if model.time_varying is not None:
+        T, k = controls.shape[0], controls.shape[-1]
+        u = controls.expand(T, *batch, k).reshape(T, math.prod(batch), k)
+        return model.F, model.b, model.Q, model.H, model.R, model.time_varying.at(u).log_matrix().exp()
     Pi = model.transition
     if Pi is None:
         Pi = _ONE.get(model.F.dtype)
@@ -260,7 +271,11 @@ class Prepared:
         self.rule = _RULES[rule]
         self.kalman = rule == "kalman"
         self.runs = math.prod(batch)
-        self.layout = _layout(M, n, m, tuple(batch), self.kalman, None if controls is None else z.shape[0])
+        model = kernels.describe(filter, self.name, inputs=True)
+        steps = z.shape[0]
+        self.layout = _layout(M, n, m, tuple(batch), self.kalman,
+                              None if controls is None or model.G is None else steps,
+                              None if model.time_varying is None else steps)
         self.zeros = z.new_zeros(self.runs, 1)
         self.shape = (belief0.mean.shape, belief0.cov.shape) if self.kalman else (
             belief0.mode_log_probs.shape, belief0.components.mean.shape, belief0.components.cov.shape)
@@ -281,8 +296,8 @@ class Prepared:
             start = (belief0.mode_log_probs, comps.mean, comps.cov)
         status = [0]
         bu = _input_terms(model, self.controls, self.M, self.n, self.batch)
-        outs = _Run.apply(self.z, self.rule, bool(update_first), False, self.layout, status, *_models(model), *start,
-                          bu)
+        outs = _Run.apply(self.z, self.rule, bool(update_first), False, self.layout, status,
+                          *_models(model, self.controls, self.batch), *start, bu)
         if status[0]:
             return None
         return outs[0] if total else outs[0].reshape(self.z.shape[0], *self.batch)
@@ -305,7 +320,10 @@ class LinearKernel:
             return model
         controls = request.controls
         if controls is not None and model.G is None:
-            return "controls, but the motion has no input matrix (the eager steps say so)"
+            if model.time_varying is None:
+                return "controls, but the motion has no input matrix (the eager steps say so)"
+        if model.time_varying is not None and controls is None:
+            return "a time-varying transition reads the controls, and none were given (the eager steps say so)"
         if model.rule not in _RULES:
             return f"the {model.rule!r} rule (GPB2's pairs: the batch-last kernel)"
         if model.post_update is not None:
@@ -326,14 +344,19 @@ class LinearKernel:
             x0, P0 = belief0.components.mean, belief0.components.cov
         dtype = logmu0.dtype
         n, m = x0.shape[-1], model.H.shape[-2]
-        tensors = (measurements, x0, P0, logmu0, *(t for t in model if isinstance(t, Tensor)),
+        batch = tuple(batch)
+        try:
+            models = _models(model, controls, batch)  # (a time-varying transition's matrices at the controls)
+        except (RuntimeError, ValueError) as err:
+            return f"the time-varying transition at the controls: {err}"
+        tensors = (measurements, x0, P0, logmu0, *(t for t in model if isinstance(t, Tensor)), models[5],
                    *((controls,) if controls is not None else ()))
         if any(t.device.type != "cpu" for t in tensors) or not host_reads_ok(tensors[0]):
             return "not on the CPU (or host reads are off: torchmm.runtime.no_host_sync)"
         if dtype not in (torch.float32, torch.float64) or any(t.dtype != dtype for t in tensors):
             return "not one float32 or float64 dtype"
         runs = math.prod(batch)
-        if controls is not None:
+        if controls is not None and model.G is not None:
             k = model.G.shape[-1]
             if model.G.dim() not in (2, 3) or (model.G.dim() == 3 and model.G.shape[0] not in (1, M)):
                 return "the input matrix is batched over more than the modes"
@@ -361,9 +384,11 @@ class LinearKernel:
         rule = _RULES[model.rule]
         if model.rule != "kalman" and model.transition is not None and model.transition.shape != (M, M):
             return "the transition matrix does not match the modes"
+        if model.time_varying is not None and models[5].shape != (steps, runs, M, M):
+            return "the time-varying transition's matrices do not match the modes and the runs"
         kalman = model.rule == "kalman"
-        layout = _layout(M, n, m, tuple(batch), kalman, None if controls is None else steps)
-        models = _models(model)
+        layout = _layout(M, n, m, batch, kalman, None if controls is None or model.G is None else steps,
+                         None if model.time_varying is None else steps)
         if not _all_broadcast([t.shape for t in (*models, logmu0, x0, P0)], layout):
             return "the models' parameters are batched over more than the modes (or the start belief's shapes)"
         start = (logmu0, x0, P0)

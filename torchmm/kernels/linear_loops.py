@@ -9,7 +9,8 @@ torchmm/filters/kalman.py and torchmm.linalg.condition, operation by operation; 
 sizes are a few each, so the cost is arithmetic, not the dispatch of ~40 tensor operations a step.
 
 Array layouts (C-contiguous, float32 or float64): ``z (T, B, m)``; models ``F (M, n, n)``, ``b (M, n)``,
-``Q (M, n, n)``, ``H (M, m, n)``, ``R (M, m, m)``, ``Pi (M, M)``; start ``logmu0 (B, M)``,
+``Q (M, n, n)``, ``H (M, m, n)``, ``R (M, m, m)``, ``Pi (T or 1, B or 1, M, M)`` (a time-varying
+transition's matrix of each step and run, or one); start ``logmu0 (B, M)``,
 ``x0 (B, M, n)``, ``P0 (B, M, n, n)``; the input terms ``bu (T or 1, B or 1, M, n)`` (``G_j u_t`` of
 each step, run and mode, added to ``b``: zeros ``(1, 1, M, n)`` without controls); outputs ``ll (T, B)``, ``logmu (T, B, M)``, ``x (T, B, M, n)``,
 ``P (T, B, M, n, n)`` and the intermediates of the same shapes (``xp``/``Pp`` the mode priors,
@@ -121,10 +122,12 @@ def forward(z, F, b, Q, H, R, Pi, rule, update_first, logmu0, x0, P0, bu, eps, t
     bad = 0
     regularised = 0
     step_u, run_u = bu.shape[0] > 1, bu.shape[1] > 1
+    step_pi, run_pi = Pi.shape[0] > 1, Pi.shape[1] > 1
     for r in range(B):
         ru = r if run_u else 0
         for t in range(T):
             tu = t if step_u else 0
+            Pt = Pi[t if step_pi else 0, r if run_pi else 0]  # (the step's transition matrix)
             if t == 0:
                 plm, px, pP = logmu0[r], x0[r], P0[r]
             else:
@@ -151,13 +154,13 @@ def forward(z, F, b, Q, H, R, Pi, rule, update_first, logmu0, x0, P0, bu, eps, t
                     for j in range(M):
                         s = 0.0
                         for i in range(M):
-                            s += mu[i] * Pi[i, j]
+                            s += mu[i] * Pt[i, j]
                         c[j] = s
                         logc[t, r, j] = math.log(s)
                     for j in range(M):
                         cj = c[j] if c[j] > tiny else tiny
                         for i in range(M):
-                            w[i, j] = mu[i] * Pi[i, j] / cj if rule == 0 else mu[i]
+                            w[i, j] = mu[i] * Pt[i, j] / cj if rule == 0 else mu[i]
                     for j in range(M):
                         for i in range(n):
                             s = 0.0
@@ -345,6 +348,7 @@ def backward(z, F, b, Q, H, R, Pi, rule, update_first, logmu0, x0, P0, bu,
     d = np.empty(n, dt)
     tmp = np.empty((n, n), dt)
     step_u, run_u = bu.shape[0] > 1, bu.shape[1] > 1
+    step_pi, run_pi = Pi.shape[0] > 1, Pi.shape[1] > 1
     for r in range(B):
         ru = r if run_u else 0
         for j in range(M):
@@ -355,6 +359,8 @@ def backward(z, F, b, Q, H, R, Pi, rule, update_first, logmu0, x0, P0, bu,
                     cP[j, i, k] = 0.0
         for t in range(T - 1, -1, -1):
             tu = t if step_u else 0
+            Pt = Pi[t if step_pi else 0, r if run_pi else 0]  # (the step's transition matrix, its adjoint)
+            gPt = gPi[t if step_pi else 0, r if run_pi else 0]
             for j in range(M):
                 clm[j] += glogmu[t, r, j]
                 for i in range(n):
@@ -568,11 +574,11 @@ def backward(z, F, b, Q, H, R, Pi, rule, update_first, logmu0, x0, P0, bu,
                 for j in range(M):
                     s = 0.0
                     for i in range(M):
-                        s += mu[i] * Pi[i, j]
+                        s += mu[i] * Pt[i, j]
                     c[j] = s
                 for j in range(M):
                     for i in range(M):
-                        w[i, j] = mu[i] * Pi[i, j] / c[j] if rule == 0 else mu[i]
+                        w[i, j] = mu[i] * Pt[i, j] / c[j] if rule == 0 else mu[i]
                 for j in range(M):
                     # the total adjoint of xm_j (its own and through d_ij = x_i - xm_j)
                     for i in range(n):
@@ -607,8 +613,8 @@ def backward(z, F, b, Q, H, R, Pi, rule, update_first, logmu0, x0, P0, bu,
                 if rule == 0:
                     for j in range(M):
                         for i in range(M):
-                            mub[i] += wb[i, j] * Pi[i, j] / c[j]
-                            gPi[i, j] += wb[i, j] * mu[i] / c[j]
+                            mub[i] += wb[i, j] * Pt[i, j] / c[j]
+                            gPt[i, j] += wb[i, j] * mu[i] / c[j]
                             cb[j] -= wb[i, j] * w[i, j] / c[j]
                 else:
                     for j in range(M):
@@ -616,8 +622,8 @@ def backward(z, F, b, Q, H, R, Pi, rule, update_first, logmu0, x0, P0, bu,
                             mub[i] += wb[i, j]
                 for j in range(M):
                     for i in range(M):
-                        mub[i] += cb[j] * Pi[i, j]
-                        gPi[i, j] += mu[i] * cb[j]
+                        mub[i] += cb[j] * Pt[i, j]
+                        gPt[i, j] += mu[i] * cb[j]
                 for i in range(M):
                     plmb[i] += mub[i] * mu[i]
             if t == 0:

@@ -327,12 +327,12 @@ class MultipleModelFilter(Filter):
         rule = self.interaction.kernel_rule
         if rule is None:
             return f"the interaction {type(self.interaction).__name__} has no kernel rule"
-        if getattr(self.transition, "takes_inputs", False):
-            return "a time-varying transition (it reads each step's controls)"
         describe = getattr(self.bank, "linear_gaussian", None)
         model = describe() if describe is not None else f"the bank {type(self.bank).__name__} is not linear-Gaussian"
         if isinstance(model, str):
             return model
+        if getattr(self.transition, "takes_inputs", False):  # (its matrices are the controls': kernels that take them)
+            return model._replace(transition=None, rule=rule, time_varying=self.transition)
         return model._replace(transition=self._matrix(model.F), rule=rule)
 
     def nonlinear_gaussian(self):
