@@ -449,7 +449,7 @@ EM_NAMES = {("modes", "F"): "F", ("modes", "offset"): "offset", ("modes", "Q"): 
             ("sensors", "R"): "R", (None, "initial_mean"): "initial_mean", (None, "initial_cov"): "initial_cov"}
 
 
-def em_parameters(est, block, key: str = "learn.parameters") -> list[str]:
+def em_parameters(est, block, key: str = "learn.parameters", scenario=None) -> list[str]:
     """The names :func:`torchmm.learn.em` takes for ``block.parameters`` of ``est`` (a Kalman filter over
     linear models), or a ``ConfigError`` naming the entry."""
     from torchmm import KalmanFilter
@@ -457,7 +457,7 @@ def em_parameters(est, block, key: str = "learn.parameters") -> list[str]:
 
     f = est.filter
     if est.multiple_model:
-        return switching_em_parameters(est, block, key)
+        return switching_em_parameters(est, block, key, scenario)[0]
     if not isinstance(f, KalmanFilter):
         raise ConfigError("learn.method", str(block.method), f"EM fits a Kalman filter over linear models; "
                           f"{est.name} is a {type(f).__name__} (EM for switching models is not implemented yet: "
@@ -488,15 +488,15 @@ def em_parameters(est, block, key: str = "learn.parameters") -> list[str]:
     return names
 
 
-def em_fixed(est, block, prior, key: str = "learn.parameters") -> dict:
+def em_fixed(est, block, prior, key: str = "learn.parameters", scenario=None) -> dict:
     """The entries' ``fixed`` masks for :func:`torchmm.learn.em` (``{name: mask}``), checked against the
     estimator's models and start (``ConfigError`` naming the entry: a shape, or a covariance pattern
     without a closed-form M-step)."""
     from torchmm.learn.em import fixed_masks
 
-    names = em_parameters(est, block, key)
+    names = em_parameters(est, block, key, scenario)
     masks = {}
-    if est.multiple_model:  # (em_switching: switching_em_parameters refuses fixed entries)
+    if est.multiple_model:  # (em_switching's own masks: switching_em_parameters, checked there)
         return masks
     for i, (entry, name) in enumerate(zip(block.parameters, names)):
         given = entry.get("fixed")
@@ -517,9 +517,13 @@ def _plain(value):
     return value
 
 
-def switching_em_parameters(est, block, key: str = "learn.parameters") -> tuple[list[str], list[str]]:
-    """``(parameters, shared)`` of :func:`torchmm.learn.em_switching` for ``block.parameters`` of a
-    multiple-model estimator (an IMM over a vectorised Kalman bank), or a ``ConfigError`` naming the entry."""
+def switching_em_parameters(est, block, key: str = "learn.parameters", scenario=None) -> tuple[list, dict, dict]:
+    """``(parameters, shared, fixed)`` of :func:`torchmm.learn.em_switching` for ``block.parameters`` of a
+    multiple-model estimator (an IMM over a vectorised Kalman bank; ``auto``: the scenario's entries), or a
+    ``ConfigError`` naming the entry. ``shared``: ``{"H": True or an (m, n) mask, "R": True}``; ``fixed``:
+    ``{"H": mask, "transition": mask}`` (entries held at their start values)."""
+    from omegaconf import OmegaConf
+
     from torchmm import KalmanFilter, LinearMeasurement
 
     inner = getattr(getattr(est.filter, "bank", None), "filter", None)
@@ -528,34 +532,59 @@ def switching_em_parameters(est, block, key: str = "learn.parameters") -> tuple[
                           f"filters with linear sensors; {est.name}'s bank is not one (method mle)")
     entries = block.parameters
     if isinstance(entries, str):
-        raise ConfigError(key, entries, "method em takes a list of entries")
-    names, shared = [], []
+        if entries != "auto" or getattr(scenario, "learn_parameters", None) is None:
+            raise ConfigError(key, entries, "method em takes a list of entries, or auto for a scenario that says "
+                              "what it estimates (experiments.scenarios.markov_switching)")
+        entries = OmegaConf.create(scenario.learn_parameters)
+    H = inner.measurement.H
+    m, n = H.shape[-2], H.shape[-1]
+    names, shared, fixed = [], {}, {}
+
+    def mask(value, at: str, shape: tuple, what: str):
+        try:
+            out = torch.as_tensor(OmegaConf.to_object(value) if OmegaConf.is_config(value) else value, dtype=torch.bool)
+            return out.expand(shape) if out.shape != shape and out.dim() <= len(shape) else out
+        except (TypeError, ValueError, RuntimeError):
+            raise ConfigError(at, value, f"expected a boolean mask of shape {shape} ({what})") from None
+
     for i, entry in enumerate(entries):
+        at = f"{key}[{i}]"
         name = str(entry.name)
         model = entry.get("model")
+        if entry.get("lower") is not None or entry.get("upper") is not None:
+            raise ConfigError(at, f"{model}.{name}" if model else name, "method em takes no bounds (method mle)")
         if name == "transition" and model is None:
             if getattr(est.filter.transition, "takes_inputs", False):
-                raise ConfigError(f"{key}[{i}]", "transition", "EM does not estimate a time-varying transition (its "
+                raise ConfigError(at, "transition", "EM does not estimate a time-varying transition (its "
                                   "M-step is a weighted logistic regression, not implemented yet): method mle")
             names.append("transition")
+            if entry.get("fixed") is not None:
+                M = est.filter.num_modes
+                fixed["transition"] = mask(entry.fixed, f"{at}.fixed", (M, M), "entries held at their start")
+                if fixed["transition"].shape != (M, M):
+                    raise ConfigError(f"{at}.fixed", entry.fixed, f"expected a boolean mask of shape ({M}, {M})")
             continue
         one_sensor = not (getattr(inner.measurement, "H").dim() == 3)  # one sensor for every mode: sensors[0] is it
         if str(model).startswith("sensors") and name in ("H", "R") and ("[" not in str(model)
                                                                        or (one_sensor and str(model) == "sensors[0]")):
             share = entry.get("shared")
             if share not in (None, False, True):
-                raise ConfigError(f"{key}[{i}].shared", share, "method em shares a whole tensor across the modes "
-                                  "or none of it (entry by entry: method mle)")
-            if entry.get("fixed") is not None or entry.get("lower") is not None or entry.get("upper") is not None:
-                raise ConfigError(f"{key}[{i}]", f"{model}.{name}", "method em estimates whole tensors (no fixed or "
-                                  "bounded entries: method mle)")
+                if name == "R":
+                    raise ConfigError(f"{at}.shared", share, "method em shares R whole across the modes or not at all")
+                share = mask(share, f"{at}.shared", (m, n), "the entries every mode shares")
+                if share.shape != (m, n):
+                    raise ConfigError(f"{at}.shared", entry.shared, f"expected a boolean mask of shape ({m}, {n})")
+            if entry.get("fixed") is not None:
+                if name == "R":
+                    raise ConfigError(f"{at}.fixed", entry.fixed, "method em estimates R whole (method mle)")
+                fixed["H"] = mask(entry.fixed, f"{at}.fixed", (m, n), "entries held at their start")
             names.append(name)
-            if share:
-                shared.append(name)
+            if share is not None and share is not False:
+                shared[name] = share
             continue
-        raise ConfigError(f"{key}[{i}]", f"{model}.{name}", "method em for switching models estimates transition, "
+        raise ConfigError(at, f"{model}.{name}", "method em for switching models estimates transition, "
                           "sensors.H and sensors.R (every mode's); others: method mle")
-    return names, shared
+    return names, shared, fixed
 
 
 def fit_switching_em(est, scenario, block, z: Tensor, *, prior, update_first: bool, burn: int, controls=None,
@@ -564,12 +593,16 @@ def fit_switching_em(est, scenario, block, z: Tensor, *, prior, update_first: bo
     estimator, then with ``em_then_mle`` maximum likelihood from there."""
     from torchmm.learn import em_switching
 
-    names, shared = switching_em_parameters(est, block)
+    names, shared, fixed = switching_em_parameters(est, block, scenario=scenario)
     tic = time.perf_counter()
     ergodic = bool(scenario.ergodic)
-    out = em_switching(est.filter, est.init(prior, None), z, names, iterations=int(block.iterations),
-                       tol=float(block.get("tolerance") or 0.0) or None, update_first=update_first, shared=shared,
-                       ergodic=ergodic, controls=controls, present=present, progress=progress)
+    try:
+        out = em_switching(est.filter, est.init(prior, None), z, names, iterations=int(block.iterations),
+                           tol=float(block.get("tolerance") or 0.0) or None, update_first=update_first, shared=shared,
+                           fixed=fixed, ergodic=ergodic, controls=controls, present=present, progress=progress)
+    except ValueError as err:  # a mask the model cannot take (a shared entry fixed in one regime only, ...)
+        raise ConfigError("learn.parameters", block.parameters if isinstance(block.parameters, str) else "entries",
+                          str(err)) from None
     if ergodic:
         est.init = start_function(est, scenario, True)
     if str(block.method) == "em_then_mle":

@@ -264,7 +264,7 @@ def check_build(cfg, scenario) -> None:
         own = learning.own_models(scenario)
         if str(block.method) in ("em", "em_then_mle"):
             est = instantiate(cfg.estimators[name])(own, name=name)
-            learning.em_fixed(est, block, own.initial)
+            learning.em_fixed(est, block, own.initial, scenario=own)
             if burn and str(block.method) == "em":
                 raise ConfigError("burn", burn, "method em maximises the likelihood of every step (burn: 0; "
                                   "em_then_mle's maximum likelihood leaves the burn-in out)")

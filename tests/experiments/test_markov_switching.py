@@ -232,3 +232,24 @@ def test_time_varying_transition_probabilities_from_config(tmp_path):
     np.testing.assert_allclose([est[k][1] for k in order], ref.bse, rtol=1e-3)
     fit = dict(zip(res["tables"]["fit"]["columns"], res["tables"]["fit"]["rows"][0]))
     assert fit["loglik"] == pytest.approx(ref.llf, abs=1e-6) and fit["k"] == 8
+
+
+@pytest.mark.parametrize("switches, statsmodels_kw", [
+    (["scenario.switching_exog=false"], {"switching_exog": False, "switching_variance": True}),
+    (["scenario.trend=n", "scenario.switching_variance=false"], {"trend": "n"}),
+], ids=["shared-slope", "no-constant"])
+def test_em_from_config_with_learn_auto(tmp_path, switches, statsmodels_kw):
+    """learn.method: em / em_then_lbfgs with `parameters: auto` on a Markov-switching regression whose
+    coefficients are partly shared (switching_exog: false) or whose constant is absent (trend: n): the
+    scenario's shared and fixed entries reach EM (issue 45: before, "method em takes a list of entries").
+    EM then L-BFGS-B reaches statsmodels' maximum (1e-4); tests/learn/test_em.py checks the masked EM steps
+    themselves (monotone, their fixed point the constrained maximum)."""
+    (areturns,) = _statsmodels_test_data("areturns")
+    y, lag = areturns[1:], areturns[:-1]
+    path = tmp_path / "areturns.csv"
+    path.write_text("y,lag\n" + "".join(f"{float(a)!r},{float(b)!r}\n" for a, b in zip(y, lag)))
+    ref = sm.tsa.MarkovRegression(y, k_regimes=2, exog=lag, **statsmodels_kw).fit(disp=False)
+    data = f"scenario.data={{path:{path},measurements:[y],inputs:[lag]}}"
+    both = _run(_compose(data, *switches, "learn.method=em_then_lbfgs", "+learn.iterations=10"), tmp_path / "both")
+    fit = dict(zip(both["tables"]["fit"]["columns"], both["tables"]["fit"]["rows"][0]))
+    assert fit["loglik"] == pytest.approx(ref.llf, abs=1e-4) and fit["k"] == len(ref.params)

@@ -342,3 +342,83 @@ def test_switching_em_with_regressors_batched_over_series():
     np.testing.assert_allclose(_regime_params(imm), at_em, rtol=1e-5)
     assert est.loglik == pytest.approx(out.loglik[-1], abs=1e-7)
     np.testing.assert_allclose(at_em[2:], [0.0, 1.0, 2.0, -0.5, 0.25, 1.0], atol=0.35)  # near the truth
+
+
+def _regression_data(seed: int = 11, T: int = 200, runs: int = 2):
+    """A 2-regime regression y = c_s + b x + e_s: the slope b shared, the constants and variances switching."""
+    g = torch.Generator().manual_seed(seed)
+    P = torch.tensor([[0.9, 0.1], [0.2, 0.8]], dtype=F64)
+    s = torch.zeros(runs, dtype=torch.long)
+    x = torch.randn(T, runs, dtype=F64, generator=g)
+    ys = []
+    for t in range(T):
+        s = torch.multinomial(P[s], 1, generator=g)[:, 0]
+        c, sd = torch.tensor([0.0, 2.0], dtype=F64)[s], torch.tensor([0.5, 1.5], dtype=F64)[s]
+        ys.append(c + 0.7 * x[t] + sd * torch.randn(runs, dtype=F64, generator=g))
+    return torch.stack(ys).unsqueeze(-1), x.unsqueeze(-1)
+
+
+def _regression_imm(runs: int, H, transition):
+    from torchmm import IMM
+    Fm = torch.tensor([[1.0, 0.0], [0.0, 0.0]], dtype=F64).expand(2, 2, 2).clone()
+    B = torch.tensor([[0.0], [1.0]], dtype=F64).expand(2, 2, 1).clone()
+    motion = LinearMotion(Fm, torch.zeros(2, 2, 2, dtype=F64), input_matrix=B)
+    sensor = LinearMeasurement(torch.tensor(H, dtype=F64), torch.tensor([[[1.0]], [[2.0]]], dtype=F64))
+    imm = IMM(KalmanFilter(motion, sensor), torch.tensor(transition, dtype=F64))
+    start = GaussianBelief(torch.tensor([1.0, 0.0], dtype=F64).expand(runs, 2), torch.zeros(runs, 2, 2, dtype=F64))
+    return imm, imm.initial_belief(start, torch.tensor([0.5, 0.5], dtype=F64))
+
+
+def test_switching_em_with_shared_and_fixed_entries_reaches_the_constrained_maximum():
+    """Entry-wise sharing and fixed entries in switching EM (issue 45): the regression's slope shared by the
+    regimes while the variances switch (the weighted least squares over the regimes, an ECM step), and a
+    transition entry held; EM's fixed point is the maximum L-BFGS-B finds with the same constraints
+    (Param groups / fixed): estimates 1e-5, log-likelihood 1e-7; every iteration raises the likelihood.
+    Then a constant held at 0 in regime 0 (statsmodels' trend="n" for one regime) likewise."""
+    from torchmm.learn import Param
+
+    y, u = _regression_data()
+    shared_slope = torch.tensor([[False, True]])
+    hold = torch.tensor([[False, True], [False, False]])  # P[0, 1] held at its start 0.1
+    imm, b0 = _regression_imm(2, [[[0.5, 0.2]], [[1.5, 0.2]]], [[0.9, 0.1], [0.3, 0.7]])
+    out = em_switching(imm, b0, y, ["transition", "H", "R"], iterations=3000, tol=1e-13, controls=u,
+                       shared={"H": shared_slope}, fixed={"transition": hold}, progress=False)
+    assert out.monotone and out.converged
+    H = imm.bank.filter.measurement.H
+    assert float(H[0, 0, 1]) == float(H[1, 0, 1])  # the slope one value
+    assert float(imm.transition.matrix()[0, 1]) == pytest.approx(0.1, abs=1e-15)
+    at_em = _regime_params(imm)
+    groups = torch.tensor([[[-1, 0]], [[-1, 0]]])
+    est = estimate(imm, b0, y, {"transition.value": Param("stochastic", fixed=hold),
+                                "bank.filter.measurement.H": Param("free", groups=groups),
+                                "bank.filter.measurement.R": "variance"}, controls=u, progress=False)
+    np.testing.assert_allclose(_regime_params(imm), at_em, rtol=1e-5, atol=1e-7)
+    assert est.loglik == pytest.approx(out.loglik[-1], abs=1e-7)
+    assert abs(float(H[0, 0, 1]) - 0.7) < 0.15  # (near the truth)
+
+    fixed_const = torch.tensor([[[True, False]], [[False, False]]])  # regime 0's constant held at 0
+    imm, b0 = _regression_imm(2, [[[0.0, 0.5]], [[1.5, 0.2]]], [[0.9, 0.1], [0.3, 0.7]])
+    out = em_switching(imm, b0, y, ["transition", "H", "R"], iterations=3000, tol=1e-13, controls=u,
+                       fixed={"H": fixed_const}, progress=False)
+    assert out.monotone and out.converged and float(imm.bank.filter.measurement.H[0, 0, 0]) == 0.0
+    at_em = _regime_params(imm)
+    est = estimate(imm, b0, y, {"transition.value": "stochastic",
+                                "bank.filter.measurement.H": Param("free", fixed=fixed_const),
+                                "bank.filter.measurement.R": "variance"}, controls=u, progress=False)
+    np.testing.assert_allclose(_regime_params(imm), at_em, rtol=1e-5, atol=1e-7)
+    assert est.loglik == pytest.approx(out.loglik[-1], abs=1e-7)
+
+
+def test_switching_em_masks_are_checked():
+    y, u = _regression_data(T=20)
+    imm, b0 = _regression_imm(2, [[[0.5, 0.2]], [[1.5, 0.2]]], [[0.9, 0.1], [0.3, 0.7]])
+    with pytest.raises(ValueError, match=r"shared: H's mask must be \(1, 2\)"):
+        em_switching(imm, b0, y, ["H"], controls=u, shared={"H": torch.ones(2, 2, dtype=torch.bool)}, progress=False)
+    with pytest.raises(ValueError, match="fixed: a row of the transition with every entry fixed"):
+        em_switching(imm, b0, y, ["transition"], controls=u, fixed={"transition": torch.tensor([[True, True],
+                                                                                                 [False, False]])},
+                     progress=False)
+    with pytest.raises(ValueError, match="fixed: expected masks of H or transition"):
+        em_switching(imm, b0, y, ["R"], controls=u, fixed={"R": torch.ones(1, 1, dtype=torch.bool)}, progress=False)
+    with pytest.raises(ValueError, match="shared: R is shared whole"):
+        em_switching(imm, b0, y, ["R"], controls=u, shared={"R": torch.ones(1, 1)}, progress=False)

@@ -463,15 +463,16 @@ class SwitchingEMResult:
              belief0=Of(ModeBelief, what="the filter's start (a ModeBelief)"), measurements=Data(),
              parameters=Unchecked("names of SWITCHING_PARAMETERS, checked by em_switching"),
              iterations=Int(1), tol=Real(minimum=0.0, optional=True), update_first=Flag(),
-             shared=Unchecked("names of the parameters every mode shares, checked by em_switching"),
+             shared=Unchecked("names of the parameters every mode shares (or {name: mask}), checked by em_switching"),
+             fixed=Unchecked("{name: bool mask} of entries held at their values, checked by em_switching"),
              ergodic=Flag(),
              controls=Data(optional=True), present=Mask(optional=True),
              progress=Unchecked("None, True, False or a description"))
 @one_thread_when_small(lambda filter, belief0, measurements, *args, **kwargs: entries(belief0) * measurements.shape[0])
 def em_switching(filter: MultipleModelFilter, belief0: ModeBelief, measurements: Tensor,
                  parameters: Sequence[str] = ("transition", "H", "R"), *, iterations: int = 50,
-                 tol: float | None = None, update_first: bool = False, shared: Sequence[str] = (),
-                 ergodic: bool = False,
+                 tol: float | None = None, update_first: bool = False, shared: Sequence[str] | dict = (),
+                 fixed: dict | None = None, ergodic: bool = False,
                  controls: Tensor | None = None, present: Tensor | None = None,
                  progress: bool | str | None = None) -> SwitchingEMResult:
     r"""EM for a Markov-switching model run by an IMM over linear Kalman filters, the series sharing the
@@ -486,6 +487,15 @@ def em_switching(filter: MultipleModelFilter, belief0: ModeBelief, measurements:
     x^j x^{jT}))^{-1}``, ``R_j = sum_t w_tj ((z_t - H_j x^j)(..)^T + H_j P^j H_j^T) / sum_t w_tj`` (``shared``:
     one ``H`` or ``R`` for all modes, the weights summed over the modes).
 
+    **Shared and fixed entries** (``shared={"H": mask}``, ``fixed={"H": mask, "transition": mask}``): the
+    entries of ``H`` the modes share, and those held at their current values, by the exact conditional
+    maximiser over the free ones given the current ``R`` (a least squares over the regimes, each weighted by
+    ``w_tj / R_j``: an expectation-conditional-maximisation step, which raises the likelihood as an EM step
+    does; a shared ``H`` with switching variances takes the same weighted form); a fixed transition entry
+    keeps its value and its row's free entries share the rest of the row's mass in proportion to their
+    pair counts. As statsmodels' ``MarkovRegression`` with ``switching_trend``/``switching_exog`` False
+    for some coefficients, or a constant held at 0 (``trend="n"``).
+
     **Exact or approximate.** Where the state is known exactly (covariance 0 and ``Q = 0``: a
     Markov-switching regression, ``experiments.scenarios.markov_switching``) the smoothed moments are the
     state itself and Kim's probabilities are exact, so this is the exact EM of the model (statsmodels'
@@ -499,7 +509,11 @@ def em_switching(filter: MultipleModelFilter, belief0: ModeBelief, measurements:
             shared by the modes (then ``H``, ``R`` are estimated as shared).
         belief0: the start (:meth:`~torchmm.multimodel.MultipleModelFilter.initial_belief`).
         measurements: ``(T, *B, m)``, NaN missing (a missing vector informs the chain only).
-        parameters: of :data:`SWITCHING_PARAMETERS`; shared: those of ``"H"``, ``"R"`` the modes share.
+        parameters: of :data:`SWITCHING_PARAMETERS`; shared: those of ``"H"``, ``"R"`` the modes share, or a
+            dict ``{"H": True or an (m, n) bool mask of the entries shared, "R": True}``.
+        fixed: ``{"H": (m, n) or (M, m, n) bool mask, "transition": (M, M) bool mask}``: entries held at
+            their current values (entry-wise masks of ``H`` need a diagonal ``R``: its rows are then
+            separate least squares).
         iterations, tol: at most so many iterations; stop once the log-likelihood's relative change is below
             ``tol``.
         update_first: as for :func:`~torchmm.run_filter` (statsmodels' convention: False).
@@ -540,9 +554,26 @@ def em_switching(filter: MultipleModelFilter, belief0: ModeBelief, measurements:
         raise ValueError(f"parameters: {unknown or 'nothing'}: expected some of {', '.join(SWITCHING_PARAMETERS)}")
     if isinstance(shared, str) or any(s not in ("H", "R") for s in shared):
         raise ValueError(f"shared: expected some of H, R, got {shared!r}")
+    shared_masks = {k: v for k, v in shared.items() if not isinstance(v, bool)} if isinstance(shared, dict) else {}
+    if isinstance(shared, dict):
+        if not isinstance(shared.get("R", False), bool):
+            raise ValueError("shared: R is shared whole or not at all (True or False)")
+        shared = [k for k, v in shared.items() if v is True]
+    fixed = dict(fixed or {})
+    if any(k not in ("H", "transition") for k in fixed):
+        raise ValueError(f"fixed: expected masks of H or transition, got {sorted(fixed)}")
     if "transition" in parameters and getattr(filter.transition, "learnable", False):
         raise ValueError("filter: its transition matrix is a learnable module (logits): EM writes a fixed one")
     sensor = inner.measurement
+    h_masks = _h_masks(sensor, M, shared_masks.get("H"), fixed.get("H"), "H" in shared,
+                       pooled="R" in shared and "R" in parameters)
+    t_fixed = None
+    if "transition" in fixed:
+        t_fixed = torch.as_tensor(fixed["transition"], dtype=torch.bool)
+        if t_fixed.shape != (M, M):
+            raise ValueError(f"fixed: the transition's mask must be ({M}, {M}), got {tuple(t_fixed.shape)}")
+        if bool(t_fixed.all(-1).any()):
+            raise ValueError("fixed: a row of the transition with every entry fixed (leave it out of parameters)")
     z = measurements
     if not isinstance(z, Tensor) or z.dim() < 2:
         raise TypeError(f"measurements: expected a time-major tensor (T, *B, m), got "
@@ -601,8 +632,14 @@ def em_switching(filter: MultipleModelFilter, belief0: ModeBelief, measurements:
                 ratio = torch.where(after_pred > 0, after_w / after_pred, 0.0)
                 pairs = before.unsqueeze(-1) * P * ratio.unsqueeze(-2) * ok[..., None, None]  # (T', *B, M, M)
                 counts = pairs.reshape(-1, M, M).sum(0)  # over time and the series
-                rows = counts.sum(-1, keepdim=True)
-                newP = torch.where(rows > 0, counts / rows.clamp_min(1e-300), P)
+                if t_fixed is not None:  # the free entries share what the fixed ones leave of each row
+                    counts = torch.where(t_fixed, 0.0, counts)
+                    left = 1.0 - torch.where(t_fixed, P, 0.0).sum(-1, keepdim=True)
+                    rows = counts.sum(-1, keepdim=True)
+                    newP = torch.where(t_fixed, P, torch.where(rows > 0, left * counts / rows.clamp_min(1e-300), P))
+                else:
+                    rows = counts.sum(-1, keepdim=True)
+                    newP = torch.where(rows > 0, counts / rows.clamp_min(1e-300), P)
                 filter.transition.value.copy_(newP)
             x = sm.belief.components.mean  # (T, *B, M, n): each mode's smoothed state
             Px = sm.belief.components.cov
@@ -614,9 +651,12 @@ def em_switching(filter: MultipleModelFilter, belief0: ModeBelief, measurements:
                 return t.reshape(-1, *t.shape[z.dim() - 1:]).sum(0)
             if "H" in wanted:
                 Syx, Sxx = total(wy * yx), total(wy * Exx)  # (M, m, n), (M, n, n)
-                if "H" in share:
-                    Syx, Sxx = Syx.sum(0, keepdim=True), Sxx.sum(0, keepdim=True)
-                H = torch.linalg.solve(Sxx.mT, Syx.mT).mT
+                if h_masks is not None:  # entries shared or fixed: the weighted least squares over the free ones
+                    H = _masked_h(sensor, M, stacked, Syx, Sxx, *h_masks)
+                else:
+                    if "H" in share:
+                        Syx, Sxx = Syx.sum(0, keepdim=True), Sxx.sum(0, keepdim=True)
+                    H = torch.linalg.solve(Sxx.mT, Syx.mT).mT
                 sensor.H = (H.expand(M, *H.shape[1:]) if stacked else H[0]).clone()
             if "R" in wanted:
                 H = sensor.H if stacked else sensor.H.expand(M, *sensor.H.shape)
@@ -643,3 +683,76 @@ def em_switching(filter: MultipleModelFilter, belief0: ModeBelief, measurements:
     bar.close()
     return SwitchingEMResult(loglik=history, belief0=start, iterations=done, converged=converged,
                              monotone=not decreases, seconds=time.perf_counter() - tic, decreases=decreases)
+
+
+def _h_masks(sensor, M: int, shared_mask, fixed_mask, shared_whole: bool, pooled: bool):
+    """``(shared (m, n), fixed (M, m, n))`` bool masks of ``H``'s entries for the weighted M-step, or None
+    where every entry is each mode's own and free (the plain M-step) or every entry shared with ``R``
+    shared and estimated too (``pooled``: the plain shared M-step, pooled least squares, is then the joint
+    maximiser of both)."""
+    H = sensor.H
+    m, n = H.shape[-2], H.shape[-1]
+    stacked = H.dim() == 3 and H.shape[0] == M
+    if shared_mask is None and fixed_mask is None and not (shared_whole and stacked):
+        return None
+    shared = torch.ones(m, n, dtype=torch.bool) if shared_whole or not stacked else torch.zeros(m, n, dtype=torch.bool)
+    if shared_mask is not None:
+        shared = torch.as_tensor(shared_mask, dtype=torch.bool)
+        if shared.shape != (m, n):
+            raise ValueError(f"shared: H's mask must be ({m}, {n}), got {tuple(shared.shape)}")
+        if not stacked and not bool(shared.all()):
+            raise ValueError("shared: one sensor for every mode shares every entry of H")
+    fixed = torch.zeros(M, m, n, dtype=torch.bool)
+    if fixed_mask is not None:
+        given = torch.as_tensor(fixed_mask, dtype=torch.bool)
+        try:
+            fixed = given.expand(M, m, n).clone()
+        except RuntimeError:
+            raise ValueError(f"fixed: H's mask must be ({m}, {n}) or ({M}, {m}, {n}), got {tuple(given.shape)}") from None
+        if bool((shared & ~(fixed.all(0) | ~fixed.any(0))).any()):
+            raise ValueError("fixed: a shared entry of H is fixed in some modes only")
+    if m > 1:
+        R = sensor.R if sensor.R.dim() == 3 else sensor.R.unsqueeze(0)
+        if bool((R - torch.diag_embed(torch.diagonal(R, dim1=-2, dim2=-1)) != 0).any()):
+            raise ValueError("shared/fixed: entry-wise masks of H need a diagonal R (its rows are separate least "
+                             "squares); estimate H whole")
+    if shared_whole and shared_mask is None and fixed_mask is None and pooled:
+        return None
+    return shared, fixed
+
+
+def _masked_h(sensor, M: int, stacked: bool, Syx: Tensor, Sxx: Tensor, shared: Tensor, fixed: Tensor) -> Tensor:
+    """The conditional maximiser of ``H`` over its free entries given the current ``R``: for each row ``i``
+    one least squares over the regimes, regime ``j`` weighted by ``1 / R_j[i, i]``; the shared entries one
+    unknown for every regime, the fixed ones their current values. ``(M, m, n)``."""
+    H = (sensor.H if stacked else sensor.H.expand(M, *sensor.H.shape)).clone()
+    R = sensor.R if sensor.R.dim() == 3 else sensor.R.expand(M, *sensor.R.shape)
+    m, n = H.shape[-2], H.shape[-1]
+    for i in range(m):  # (the rows: a few; the M-step's own loop, not a filter step's)
+        index = {}
+        for k in range(n):
+            for j in range(M):
+                if fixed[j, i, k]:
+                    continue
+                key = ("shared", k) if shared[i, k] else (j, k)
+                index.setdefault(key, len(index))
+        d = len(index)
+        if d == 0:
+            continue
+        N = Sxx.new_zeros(d, d)
+        rhs = Sxx.new_zeros(d)
+        for j in range(M):
+            A = Sxx.new_zeros(n, d)
+            for k in range(n):
+                if not fixed[j, i, k]:
+                    A[k, index[("shared", k) if shared[i, k] else (j, k)]] = 1.0
+            held = torch.where(fixed[j, i], H[j, i], 0.0)
+            a = 1.0 / R[j, i, i]
+            N = N + a * A.T @ Sxx[j] @ A
+            rhs = rhs + a * A.T @ (Syx[j, i] - Sxx[j] @ held)
+        theta = torch.linalg.solve(N, rhs)
+        for j in range(M):
+            for k in range(n):
+                if not fixed[j, i, k]:
+                    H[j, i, k] = theta[index[("shared", k) if shared[i, k] else (j, k)]]
+    return H
