@@ -554,10 +554,10 @@ def switching_em_parameters(est, block, key: str = "learn.parameters", scenario=
         if entry.get("lower") is not None or entry.get("upper") is not None:
             raise ConfigError(at, f"{model}.{name}" if model else name, "method em takes no bounds (method mle)")
         if name == "transition" and model is None:
-            if getattr(est.filter.transition, "takes_inputs", False):
-                raise ConfigError(at, "transition", "EM does not estimate a time-varying transition (its "
-                                  "M-step is a weighted logistic regression, not implemented yet): method mle")
-            names.append("transition")
+            names.append("transition")  # (a time-varying one: its logistic coefficients, em_switching's M-step)
+            if entry.get("fixed") is not None and getattr(est.filter.transition, "takes_inputs", False):
+                raise ConfigError(f"{at}.fixed", entry.fixed, "a time-varying transition's coefficients are "
+                                  "estimated whole by method em (method mle holds entries)")
             if entry.get("fixed") is not None:
                 M = est.filter.num_modes
                 fixed["transition"] = mask(entry.fixed, f"{at}.fixed", (M, M), "entries held at their start")

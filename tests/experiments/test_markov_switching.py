@@ -234,6 +234,21 @@ def test_time_varying_transition_probabilities_from_config(tmp_path):
     assert fit["loglik"] == pytest.approx(ref.llf, abs=1e-6) and fit["k"] == 8
 
 
+def test_em_of_time_varying_transition_probabilities_from_config(tmp_path):
+    """scenario.tvtp with learn.method=em_then_lbfgs (issue 45: EM of a time-varying transition was refused):
+    EM's logistic M-step, then L-BFGS-B, reaches statsmodels' maximum (1e-4)."""
+    ff, ogap = _statsmodels_test_data("fedfunds", "ogap")
+    y, gap = ff[4:], ogap[4:]
+    path = tmp_path / "tvtp.csv"
+    path.write_text("y,ogap\n" + "".join(f"{float(a)!r},{float(b)!r}\n" for a, b in zip(y, gap)))
+    ref = sm.tsa.MarkovRegression(y, k_regimes=2, exog_tvtp=np.c_[np.ones(len(y)), gap],
+                                  switching_variance=True).fit(disp=False)
+    res = _run(_compose(f"scenario.data={{path:{path},measurements:[y],inputs:null}}", "scenario.tvtp=[ogap]",
+                        "learn.method=em_then_lbfgs", "+learn.iterations=20"), tmp_path / "run")
+    fit = dict(zip(res["tables"]["fit"]["columns"], res["tables"]["fit"]["rows"][0]))
+    assert fit["loglik"] == pytest.approx(ref.llf, abs=1e-4) and fit["k"] == 8
+
+
 @pytest.mark.parametrize("switches, statsmodels_kw", [
     (["scenario.switching_exog=false"], {"switching_exog": False, "switching_variance": True}),
     (["scenario.trend=n", "scenario.switching_variance=false"], {"trend": "n"}),

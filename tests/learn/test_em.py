@@ -422,3 +422,39 @@ def test_switching_em_masks_are_checked():
         em_switching(imm, b0, y, ["R"], controls=u, fixed={"R": torch.ones(1, 1, dtype=torch.bool)}, progress=False)
     with pytest.raises(ValueError, match="shared: R is shared whole"):
         em_switching(imm, b0, y, ["R"], controls=u, shared={"R": torch.ones(1, 1)}, progress=False)
+
+
+def test_switching_em_of_a_time_varying_transition_reaches_the_maximum():
+    """EM of a LogisticTransition (issue 45): the transition's M-step a weighted multinomial logistic
+    regression of the pair probabilities (Newton with step halving, never lowering its objective). Fed funds
+    with statsmodels' exog_tvtp columns (a constant and the output gap), a start that does not depend on the
+    parameters: EM raises the likelihood every iteration and its fixed point is the maximum L-BFGS-B finds
+    from there (log-likelihood 1e-6, estimates 1e-4)."""
+    from tests.experiments.test_markov_switching import _statsmodels_test_data
+    from torchmm import IMM, LogisticTransition
+
+    ff, ogap = _statsmodels_test_data("fedfunds", "ogap")
+    y, X = ff[4:], np.c_[np.ones(len(ff) - 4), ogap[4:]]
+    z, u = torch.as_tensor(y, dtype=F64).reshape(-1, 1), torch.as_tensor(X, dtype=F64)
+    one = torch.ones(2, 1, 1, dtype=F64)
+
+    def build():
+        imm = IMM(KalmanFilter(LinearMotion(one, 0 * one, input_matrix=torch.zeros(2, 1, 2, dtype=F64)),
+                               LinearMeasurement(torch.tensor([[[2.0]], [[8.0]]], dtype=F64),
+                                                 torch.tensor([[[1.0]], [[8.0]]], dtype=F64))),
+                  LogisticTransition(torch.tensor([[[2.0, 0.0]], [[-2.0, 0.0]]], dtype=F64), columns=[0, 1]))
+        start = GaussianBelief(torch.ones(1, dtype=F64), torch.zeros(1, 1, dtype=F64))
+        return imm, imm.initial_belief(start, torch.tensor([0.5, 0.5], dtype=F64))
+
+    imm, b0 = build()
+    out = em_switching(imm, b0, z, ["transition", "H", "R"], iterations=2000, tol=1e-13, controls=u, progress=False)
+    assert out.monotone and out.converged, (out.decreases, out.iterations)
+    at_em = torch.cat([imm.transition.coef.flatten(), imm.bank.filter.measurement.H.flatten(),
+                       imm.bank.filter.measurement.R.flatten()])
+    est = estimate(imm, b0, z, {"transition.coef": "free", "bank.filter.measurement.H": "free",
+                                "bank.filter.measurement.R": "variance"}, controls=u, progress=False)
+    at_mle = torch.cat([imm.transition.coef.flatten(), imm.bank.filter.measurement.H.flatten(),
+                        imm.bank.filter.measurement.R.flatten()])
+    assert est.loglik == pytest.approx(out.loglik[-1], abs=1e-6)
+    np.testing.assert_allclose(at_em.numpy(), at_mle.numpy(), rtol=1e-4, atol=1e-4)
+    assert out.loglik[-1] > out.loglik[0] + 10

@@ -496,6 +496,10 @@ def em_switching(filter: MultipleModelFilter, belief0: ModeBelief, measurements:
     pair counts. As statsmodels' ``MarkovRegression`` with ``switching_trend``/``switching_exog`` False
     for some coefficients, or a constant held at 0 (``trend="n"``).
 
+    **A time-varying transition** (:class:`~torchmm.models.LogisticTransition`, needs ``controls``): each
+    origin regime's coefficients maximise the pair probabilities' multinomial logistic likelihood on the
+    step's inputs (Newton's method with step halving: a generalised EM step).
+
     **Exact or approximate.** Where the state is known exactly (covariance 0 and ``Q = 0``: a
     Markov-switching regression, ``experiments.scenarios.markov_switching``) the smoothed moments are the
     state itself and Kim's probabilities are exact, so this is the exact EM of the model (statsmodels'
@@ -564,6 +568,11 @@ def em_switching(filter: MultipleModelFilter, belief0: ModeBelief, measurements:
         raise ValueError(f"fixed: expected masks of H or transition, got {sorted(fixed)}")
     if "transition" in parameters and getattr(filter.transition, "learnable", False):
         raise ValueError("filter: its transition matrix is a learnable module (logits): EM writes a fixed one")
+    varying = getattr(filter.transition, "takes_inputs", False)  # a LogisticTransition: its coefficients
+    if varying and controls is None:
+        raise ValueError("controls: a time-varying transition reads them (the step's inputs)")
+    if varying and "transition" in (fixed or {}):
+        raise ValueError("fixed: a time-varying transition's coefficients are estimated whole")
     sensor = inner.measurement
     h_masks = _h_masks(sensor, M, shared_masks.get("H"), fixed.get("H"), "H" in shared,
                        pooled="R" in shared and "R" in parameters)
@@ -603,8 +612,8 @@ def em_switching(filter: MultipleModelFilter, belief0: ModeBelief, measurements:
         raise ValueError("parameters: initial_mode_probs with ergodic=True (the stationary ones): give one")
     from torchmm.learn.estimation import stationary
 
-    def ergodic_start(start):
-        probs = stationary(filter.transition.matrix())
+    def ergodic_start(start):  # (a time-varying transition: the ergodic ones of each series' first step)
+        probs = stationary(filter.transition.at(controls[0]).matrix() if varying else filter.transition.matrix())
         return ModeBelief(probs.log().expand(start.mode_log_probs.shape).clone(), start.components)
 
     if ergodic:
@@ -623,14 +632,21 @@ def em_switching(filter: MultipleModelFilter, belief0: ModeBelief, measurements:
             w = sm.belief.mode_probs  # (T, *B, M): P(s_t = j | z)
             filt = traj.belief.mode_probs  # P(s_t = j | z_{1:t})
             pred = traj.prior.mode_probs  # P(s_t = j | z_{1:t-1})
-            P = filter.transition.matrix()
+            P = filter.transition.at(controls).matrix() if varying else filter.transition.matrix()  # ((T, *B,) M, M)
             if "transition" in wanted:
                 before = torch.cat([start.mode_probs.expand(filt[:1].shape), filt[:-1]]) if not update_first \
                     else filt[:-1]
                 after_w, after_pred = (w, pred) if not update_first else (w[1:], pred[1:])
                 ok = (present if not update_first else present[1:] & present[:-1]).to(z.dtype)
                 ratio = torch.where(after_pred > 0, after_w / after_pred, 0.0)
-                pairs = before.unsqueeze(-1) * P * ratio.unsqueeze(-2) * ok[..., None, None]  # (T', *B, M, M)
+                Pt = P[1:] if varying and update_first else P
+                pairs = before.unsqueeze(-1) * Pt * ratio.unsqueeze(-2) * ok[..., None, None]  # (T', *B, M, M)
+            if "transition" in wanted and varying:  # the weighted multinomial logistic M-step of each row
+                x = controls[..., filter.transition.columns].to(z.dtype)
+                x = (x[1:] if update_first else x).expand(*pairs.shape[:-2], x.shape[-1])
+                coef = _logistic_m_step(filter.transition.coef, pairs.reshape(-1, M, M), x.reshape(-1, x.shape[-1]))
+                filter.transition.coef.copy_(coef)
+            elif "transition" in wanted:
                 counts = pairs.reshape(-1, M, M).sum(0)  # over time and the series
                 if t_fixed is not None:  # the free entries share what the fixed ones leave of each row
                     counts = torch.where(t_fixed, 0.0, counts)
@@ -671,8 +687,8 @@ def em_switching(filter: MultipleModelFilter, belief0: ModeBelief, measurements:
             if "initial_mode_probs" in wanted:
                 first = w[0]  # P(s_0 = j | z): the start one step before the first datum, from the chain
                 if not update_first:
-                    first = (start.mode_probs * (P * torch.where(pred[0] > 0, w[0] / pred[0], 0.0).unsqueeze(-2)
-                                                 ).sum(-1))
+                    first = (start.mode_probs * ((P[0] if varying else P)
+                                                 * torch.where(pred[0] > 0, w[0] / pred[0], 0.0).unsqueeze(-2)).sum(-1))
                 probs = first.reshape(-1, M).mean(0)
                 start = ModeBelief(probs.log().expand(start.mode_log_probs.shape).clone(), start.components)
             if ergodic:
@@ -756,3 +772,44 @@ def _masked_h(sensor, M: int, stacked: bool, Syx: Tensor, Sxx: Tensor, shared: T
                 if not fixed[j, i, k]:
                     H[j, i, k] = theta[index[("shared", k) if shared[i, k] else (j, k)]]
     return H
+
+
+def _logistic_m_step(coef: Tensor, pairs: Tensor, x: Tensor, steps: int = 30) -> Tensor:
+    """The M-step of a :class:`~torchmm.models.LogisticTransition`'s coefficients ``(M, M - 1, q)``: for each
+    origin regime ``i`` the maximiser of ``sum_n sum_j pairs[n, i, j] log p_ij(x_n)`` (a multinomial logistic
+    regression with soft counts, the last regime the reference) by Newton's method with step halving (each
+    step raises the objective: a generalised EM step, never a decrease). ``pairs (N, M, M)``, ``x (N, q)``."""
+    M, q = coef.shape[0], coef.shape[-1]
+    out = coef.detach().clone()
+    for i in range(M):  # (the regimes: a few; the M-step's own loop)
+        c = pairs[:, i, :]  # (N, M)
+        total = c.sum(-1)  # (N,)
+
+        def value(beta):  # (M - 1, q) -> the expected complete log-likelihood of row i
+            logits = torch.cat([x @ beta.T, torch.zeros_like(x[:, :1])], dim=-1)
+            return (c * torch.log_softmax(logits, dim=-1)).sum(), torch.softmax(logits, dim=-1)
+
+        beta = out[i]
+        current, p = value(beta)
+        for _ in range(steps):
+            pt = p[:, :-1]  # (N, M - 1)
+            grad = ((c[:, :-1] - total[:, None] * pt).T @ x).reshape(-1)  # ((M - 1) q,)
+            curv = torch.diag_embed(pt) - pt.unsqueeze(-1) * pt.unsqueeze(-2)  # (N, M-1, M-1)
+            hess = torch.einsum("n,njk,na,nb->jakb", total, curv, x, x).reshape((M - 1) * q, (M - 1) * q)
+            try:
+                direction = torch.linalg.solve(hess + 1e-12 * torch.eye(len(grad), dtype=hess.dtype), grad)
+            except RuntimeError:  # (a singular information: no row can move; keep it)
+                break
+            step, moved = 1.0, False
+            while step > 1e-8:
+                trial = beta + step * direction.reshape(M - 1, q)
+                new, p_new = value(trial)
+                if bool(new >= current):
+                    moved = bool(new > current)
+                    beta, current, p = trial, new, p_new
+                    break
+                step *= 0.5
+            if not moved or float(direction.abs().max()) * step < 1e-12:
+                break
+        out[i] = beta
+    return out
