@@ -233,6 +233,17 @@ def test_the_multiple_model_engine_tests_no_concrete_filter_class():
     assert not bad, bad
 
 
+def test_smooth_names_no_filter_class():
+    """torchmm.smooth runs the backward pass a filter names (``Filter.smoother``: "rts", "unscented",
+    "particles", "modes"; issue 47), never testing for a filter class, and imports none at run time."""
+    concrete = _concrete_filter_classes() | {"MultipleModelFilter"}
+    tree = ast.parse((ROOT / "smooth.py").read_text())
+    bad = [f"smooth.py:{line}: {name}" for line, name in _class_tests(tree) if name in concrete]
+    assert not bad, bad
+    runtime = [a.name for node in tree.body if isinstance(node, ast.ImportFrom) for a in node.names]
+    assert not set(runtime) & concrete, sorted(set(runtime) & concrete)
+
+
 def test_the_class_test_finder_finds_class_tests():
     source = ("isinstance(f, (KalmanFilter, Foo))\nif type(f) is not IMM: pass\nkind in (GPB1,)\n"
               "issubclass(k, torchmm.UnscentedKalmanFilter)\nx < StaticMM\n")

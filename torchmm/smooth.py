@@ -44,7 +44,7 @@ here: the filter's posterior at a missing step is its prior, and the backward pa
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 import torch.utils._pytree as pytree
@@ -54,17 +54,19 @@ import torchmm.kernels as kernels
 from torchmm.beliefs import GaussianBelief, ModeBelief, ParticleBelief, symmetrize, where
 from torchmm.contract import Choice, Data, Finite, Int, Mask, Of, entry_point
 from torchmm.filters.base import Filter
-from torchmm.filters.kalman import ExtendedKalmanFilter, KalmanFilter
-from torchmm.filters.particle import ParticleFilter
 from torchmm.filters.smoother import rts_step
-from torchmm.filters.unscented import SigmaPointStrategy, UnscentedKalmanFilter
 from torchmm.linalg import cholesky, cholesky_solve, half_log_det, solve_lower, sum_last
 from torchmm.models.base import MotionModel
 from torchmm.multimodel.bank import ListBank, VectorizedBank
-from torchmm.multimodel.imm import MultipleModelFilter, mode_posterior, safe_log_normalize
+from torchmm.multimodel.imm import mode_posterior, safe_log_normalize
 from torchmm.provenance import fingerprints, module_state, tensor_versions
 from torchmm.run import Trajectory, per_step_models
 from torchmm.runtime import entries, one_thread_when_small
+
+if TYPE_CHECKING:  # (annotations only: smooth dispatches on Filter.smoother, never on a filter class)
+    from torchmm.filters.particle import ParticleFilter
+    from torchmm.filters.unscented import SigmaPointStrategy
+    from torchmm.multimodel.imm import MultipleModelFilter
 
 __all__ = ["backward_imm_update", "backward_predict", "diffuse_factor", "ffbsm_step", "kim_step", "smooth",
            "two_filter_step", "unscented_rts_step"]
@@ -168,9 +170,10 @@ def _smooth_particles(filter: ParticleFilter, trajectory: Trajectory, controls, 
 def _cross_covariance(member: Any, filtered: GaussianBelief, u: Tensor | None) -> Tensor:
     """``Cov(x_k, x_{k+1} | z_{1:k})`` through ``member``'s motion model: ``P F^T`` (Kalman, extended:
     ``F`` the Jacobian at the mean) or the sigma-point cross-covariance (unscented). ``(*B, n, n)``."""
-    if isinstance(member, UnscentedKalmanFilter):
+    kind = getattr(member, "smoother", None)  # (the filter's own backward pass: Filter.smoother)
+    if kind == "unscented":
         return _sigma_moments(member.motion, member.sigma_points, filtered, u)[2]
-    if isinstance(member, (KalmanFilter, ExtendedKalmanFilter)):
+    if kind == "rts":
         return filtered.cov @ member.motion.jacobian(filtered.mean, u=u).mT
     raise TypeError(f"filter: no smoother for mode filters of type {type(member).__name__}; supported: "
                     "KalmanFilter, ExtendedKalmanFilter, UnscentedKalmanFilter")
@@ -233,7 +236,7 @@ def kim_step(filter: MultipleModelFilter, filtered: ModeBelief, smoothed_next: M
 # -- the two-filter IMM smoother (Helmick, Blair & Hoffman 1995) -------------------------------------
 
 def _member_motion(member: Any) -> MotionModel:
-    if isinstance(member, (KalmanFilter, ExtendedKalmanFilter, UnscentedKalmanFilter)):
+    if getattr(member, "smoother", None) in ("rts", "unscented"):
         return member.motion
     raise TypeError(f"filter: the two-filter smoother runs the mode filters' motion models backwards; no support "
                     f"for mode filters of type {type(member).__name__} (supported: KalmanFilter, "
@@ -496,7 +499,8 @@ def _per_step(value: Any, steps: int, name: str) -> list | None:
 # -- what the trajectory knows: the arguments checked against the run that made it --------------------
 
 #: the filters smooth dispatches on (a check against the run follows a check of the filter's type)
-_SMOOTHABLE = (MultipleModelFilter, ParticleFilter, UnscentedKalmanFilter, KalmanFilter, ExtendedKalmanFilter)
+#: the backward passes smooth runs, by the filter's ``smoother`` name (Filter.smoother)
+SMOOTHERS = ("modes", "particles", "unscented", "rts")
 
 
 def _checked_against_run(filter: Any, trajectory: Trajectory, measurements: Any, controls: Any, motions: Any,
@@ -507,7 +511,7 @@ def _checked_against_run(filter: Any, trajectory: Trajectory, measurements: Any,
     Host reads: none when the arguments are the run's own objects, unchanged (tensor version
     counters); one checksum pass where other data are given."""
     run = trajectory.provenance
-    if run is None or (filter is not None and not isinstance(filter, _SMOOTHABLE)):
+    if run is None or (filter is not None and getattr(filter, "smoother", None) not in SMOOTHERS):
         # built by hand: nothing to check against, smoothed as given (or a filter that smooth refuses)
         if filter is None:
             raise TypeError("filter: this trajectory carries no record of the filter that made it "
@@ -534,7 +538,7 @@ def _checked_against_run(filter: Any, trajectory: Trajectory, measurements: Any,
     if module_state(filter) != run.state:
         raise ValueError(f"filter: its parameters or buffers changed (in place, or replaced) since {made} "
                          "made this trajectory; filter again with the changed filter")
-    two_filter = isinstance(filter, MultipleModelFilter) and method in (None, "two_filter")
+    two_filter = getattr(filter, "smoother", None) == "modes" and method in (None, "two_filter")
     if measurements is not None or two_filter:
         measurements = _same_data(measurements, run.measurements, run.data, run.data_versions,
                                   "measurements", made)
@@ -730,12 +734,13 @@ def smooth(filter: Any, trajectory: Trajectory | None = None, measurements: Tens
     filter, measurements, controls, motions, sensors = _checked_against_run(
         filter, trajectory, measurements, controls, motions, sensors, method, steps)
     # None entries: the filter's model
-    if motions is not None and not isinstance(filter, MultipleModelFilter):
+    kind = getattr(filter, "smoother", None)  # the filter's backward pass (Filter.smoother): no class is named
+    if motions is not None and kind != "modes":
         motions = ([filter.motion if m is None else m for m in motions] if hasattr(filter, "motion")
                    else motions)
     if motions is not None and all(m is None for m in motions):
         motions = None
-    if lag is not None and isinstance(filter, (MultipleModelFilter, ParticleFilter)):
+    if lag is not None and kind in ("modes", "particles"):
         raise ValueError(f"lag: fixed-lag smoothing is implemented for Kalman, extended and unscented filters, "
                          f"not {type(filter).__name__}")
     padding = _padding(present, trajectory)
@@ -752,7 +757,7 @@ def smooth(filter: Any, trajectory: Trajectory | None = None, measurements: Tens
         if smoothed is not None:  # a whole-run kernel (torchmm.kernels), to rounding the steps below
             return Trajectory(belief=smoothed, prior=None, log_likelihood=trajectory.log_likelihood,
                               innovation=None, innovation_cov=None, extras={})
-    if isinstance(filter, MultipleModelFilter):
+    if kind == "modes":
         if method not in (None, "two_filter", "kim"):
             raise ValueError(f"method: expected 'two_filter' or 'kim' for {type(filter).__name__}, got {method!r}")
         if method != "kim" and getattr(filter.transition, "takes_inputs", False):
@@ -764,13 +769,9 @@ def smooth(filter: Any, trajectory: Trajectory | None = None, measurements: Tens
     if method is not None:
         raise ValueError(f"method: only multiple-model filters have a choice of smoother ('two_filter', 'kim'); "
                          f"got {method!r} for {type(filter).__name__}")
-    if isinstance(filter, ParticleFilter):
+    if kind == "particles":
         return _smooth_particles(filter, trajectory, controls, motions, padding)
-    if isinstance(filter, UnscentedKalmanFilter):
-        kind = "unscented"
-    elif isinstance(filter, (KalmanFilter, ExtendedKalmanFilter)):
-        kind = "rts"
-    else:
+    if kind not in ("unscented", "rts"):
         raise TypeError(f"filter: no smoother for {type(filter).__name__} yet; supported: KalmanFilter (RTS), "
                         "ExtendedKalmanFilter (extended RTS), UnscentedKalmanFilter (unscented RTS), ParticleFilter "
                         "(FFBSm), IMM / GPB1 / GPB2 over Gaussian mode filters (Kim's smoother)")

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import copy
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 from torch import Tensor, nn
@@ -38,6 +38,12 @@ class Filter(nn.Module):
       is an argument of the call, never state of the module. Combinators and
       :func:`~torchmm.run_filter` pass it only to filters that declare it.
     """
+
+    #: the backward pass :func:`torchmm.smooth` runs for this filter's trajectories, by name (issue 47:
+    #: ``smooth`` names no filter class): ``"rts"`` (Kalman, extended: Rauch-Tung-Striebel), ``"unscented"``
+    #: (the unscented RTS), ``"particles"`` (FFBSm), ``"modes"`` (Kim's and the two-filter smoother of a
+    #: multiple-model filter); None: no smoother
+    smoother: ClassVar[str | None] = None
 
     #: True for filters whose steps draw random numbers (they accept ``generator=``)
     uses_generator: bool = False

@@ -60,6 +60,8 @@ class ExtendedKalmanFilter(Filter):
         (torch.Size([5, 2]), torch.Size([5]))
     """
 
+    smoother = "rts"  # (torchmm.smooth's backward pass: Filter.smoother)
+
     @entry_point(motion=Of(MotionModel), measurement=Of(MeasurementModel), joseph=Flag())
     def __init__(self, motion: MotionModel, measurement: MeasurementModel, *, joseph: bool = False):
         super().__init__()

@@ -434,6 +434,8 @@ class ParticleFilter(Filter):
         (torch.Size([4, 500, 2]), torch.Size([4]))
     """
 
+    smoother = "particles"  # (torchmm.smooth's backward pass: Filter.smoother)
+
     @entry_point(motion=Of(MotionModel), measurement=Of(MeasurementModel),
                  resampling=Choice(*sorted(RESAMPLING_SCHEMES)),
                  ess_threshold=Real(minimum=0.0), num_particles=Int(1, optional=True), generator=Gen(),

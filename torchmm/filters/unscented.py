@@ -171,6 +171,8 @@ class UnscentedKalmanFilter(Filter):
         ``extras["failed"]`` likewise).
     """
 
+    smoother = "unscented"  # (torchmm.smooth's backward pass: Filter.smoother)
+
     @entry_point(motion=Of(MotionModel), measurement=Of(MeasurementModel),
                  sigma_points=Of(SigmaPointStrategy, optional=True), joseph=Flag(optional=True))
     def __init__(self, motion: MotionModel, measurement: MeasurementModel,

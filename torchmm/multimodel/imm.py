@@ -181,6 +181,8 @@ class MultipleModelFilter(Filter):
             :class:`~torchmm.multimodel.ModeTransition` (learnable).
     """
 
+    smoother = "modes"  # (torchmm.smooth's backward pass: Filter.smoother)
+
     #: the interaction of subclasses that do not pass one (IMM: :class:`MomentMixing`)
     default_interaction: type[Interaction] | None = None
 
