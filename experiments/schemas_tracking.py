@@ -1,0 +1,230 @@
+"""The tracking study's keys (conf/experiment/tracking.yaml; experiments/studies/tracking.py): the typed
+schema and its cross-key checks, split from :mod:`experiments.schemas` by study (issue 47), which lists it
+in ``STUDIES``. The same rules as there: a key the YAML sets has no default here (``MISSING``)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, List, Optional
+
+from omegaconf import MISSING
+
+from experiments.checks import (
+    NO_VALUE,
+    ConfigError,
+    both,
+    each,
+    non_empty,
+    non_negative,
+    one_of,
+    open_probability,
+    positive,
+    positive_int,
+    probability,
+    spec,
+)
+
+__all__ = ["EXACT_JPDA", "MANAGED_TRACKERS", "TRACKERS", "Tracking", "TrackingSection"]
+
+
+def _unit_interval_closed_above(value) -> str | None:
+    return None if value is None or 0 < value <= 1 else "must lie in (0, 1]"
+
+
+TRACKERS = ("IMM-JPDAF", "JPDAF", "IMM-PDAF", "GNN-IMM", "IMM-JPDAF-LBP", "IMM-JPDAF-kbest", "IMM-MHT")  # one track per
+# target, known from the first scan (IMM-JPDAF's association: tracking.jpda.method; the -LBP and -kbest ones fixed)
+EXACT_JPDA = ("IMM-JPDAF", "JPDAF")  # (with tracking.jpda.method exact: at most 12 targets)
+MANAGED_TRACKERS = ("JIPDA-TM", "IMM-JIPDA-TM")  # start with no track: initiation, confirmation, deletion
+
+
+@dataclass
+class JPDASettings:
+    method: str = spec(MISSING, one_of("exact", "lbp", "kbest"))  # IMM-JPDAF's and JPDAF's joint association
+    k: int = spec(MISSING, positive_int)  # kbest: the joint events a scan
+
+
+@dataclass
+class MHTSettings:
+    hypotheses: int = spec(MISSING, positive_int)  # IMM-MHT: global hypotheses a run
+    k: Optional[int] = spec(MISSING, lambda v: None if v is None else positive_int(v))  # events a hypothesis (None: hypotheses)
+    n_scan: int = spec(MISSING, non_negative)  # N-scan pruning depth (0: none)
+
+
+@dataclass
+class TrackManagement:
+    capacity: int = spec(MISSING, positive_int)
+    method: str = spec(MISSING, one_of("lbp", "exact"))
+    survival_probability: float = spec(MISSING, _unit_interval_closed_above)
+    birth_existence: float = spec(MISSING, open_probability)
+    unexplained: float = spec(MISSING, open_probability)
+    delete: float = spec(MISSING, probability)
+    confirm: float = spec(MISSING, _unit_interval_closed_above)
+    m_of_n: Optional[List[int]] = spec(MISSING, each(positive_int))
+    max_misses: Optional[int] = spec(MISSING, positive_int)
+    velocity_variance: float = spec(MISSING, positive)
+
+
+@dataclass
+class TrackingTruthFile:
+    """``tracking.detections.truth``: one row per target and time stamp where it exists."""
+
+    path: str = "???"  # required
+    time: str = "???"
+    target: str = "???"
+    position: List[str] = spec(factory=list, check=non_empty)
+    series: Optional[str] = None
+
+
+@dataclass
+class TrackingStartFile:
+    """``tracking.detections.start``: one row per target (and series): the tracks' start."""
+
+    path: str = "???"  # required
+    target: str = "???"
+    state: List[str] = spec(factory=list, check=non_empty)  # [x, vx, y, vy]
+    variances: Optional[List[str]] = None  # the four diagonal entries (tracking.P0 where null)
+    series: Optional[str] = None
+
+
+@dataclass
+class TrackingDetections:
+    """``tracking.detections``: one's own detections file instead of the simulation
+    (experiments/studies/tracking_data.py)."""
+
+    path: str = "???"  # required
+    measurements: List[str] = spec(factory=list, check=non_empty)
+    time: str = "???"
+    series: Optional[str] = None
+    truth: Optional[TrackingTruthFile] = None
+    start: Optional[TrackingStartFile] = None
+
+
+@dataclass
+class TrackingSection:
+    targets: int = spec(MISSING, positive_int)
+    steps: int = spec(MISSING, positive_int)
+    dt: float = spec(MISSING, positive)
+    radius: float = spec(MISSING, positive)
+    q: float = spec(MISSING, positive)
+    maneuver_start: int = spec(MISSING, non_negative)
+    maneuver_stop: int = spec(MISSING, non_negative)
+    maneuver_acceleration: float = MISSING
+    R: float = spec(MISSING, positive)
+    detection_probability: float = spec(MISSING, _unit_interval_closed_above)
+    clutter_rate: float = spec(MISSING, positive)
+    region: float = spec(MISSING, positive)
+    gate_probability: float = spec(MISSING, _unit_interval_closed_above)
+    P0: List[float] = spec(MISSING, check=each(non_negative))
+    stay: float = spec(MISSING, open_probability)
+    q_cv: float = spec(MISSING, positive)
+    gospa_c: float = spec(MISSING, positive)
+    gospa_p: float = spec(MISSING, lambda v: None if v is None or v >= 1 else "must be at least 1")
+    gospa_switching: float = spec(MISSING, non_negative)
+    lifetimes: Optional[List[List[int]]] = MISSING
+    waypoints: Optional[List[Any]] = MISSING  # per target [[scan, x, y], ...] (checked in _check_waypoints)
+    management: TrackManagement = field(default_factory=TrackManagement)
+    jpda: JPDASettings = field(default_factory=JPDASettings)
+    mht: MHTSettings = field(default_factory=MHTSettings)
+    estimators: List[str] = spec(MISSING, check=both(non_empty, each(one_of(*TRACKERS, *MANAGED_TRACKERS))))
+    detections: Optional[TrackingDetections] = MISSING
+    export: bool = MISSING
+
+
+@dataclass
+class Tracking:
+    tracking: TrackingSection = field(default_factory=TrackingSection)
+
+    @staticmethod
+    def check(data: dict) -> None:
+        t = data["tracking"]
+        if t["maneuver_start"] > t["maneuver_stop"]:
+            raise ConfigError("tracking.maneuver_start", t["maneuver_start"], f"is after maneuver_stop "
+                              f"({t['maneuver_stop']}): the manoeuvre spans the scans [maneuver_start, maneuver_stop)")
+        if len(t["P0"]) != 4:
+            raise ConfigError("tracking.P0", t["P0"], "expected 4 variances, [x, vx, y, vy]")
+        if t["detections"] is not None:
+            if t["lifetimes"] is not None:
+                raise ConfigError("tracking.lifetimes", t["lifetimes"], "with tracking.detections the truth file says "
+                                  "when each target exists (set lifetimes: null)")
+            if t["waypoints"] is not None:
+                raise ConfigError("tracking.waypoints", t["waypoints"], "with tracking.detections the truth file says "
+                                  "where the targets are (set waypoints: null)")
+            if t["export"]:
+                raise ConfigError("tracking.export", True, "exports the simulated scenario; with tracking.detections "
+                                  "there is none (set export: false)")
+            fixed = [name for name in t["estimators"] if name in TRACKERS]
+            if fixed and t["detections"]["start"] is None:
+                raise ConfigError("tracking.detections.start", NO_VALUE,
+                                  f"missing: {', '.join(fixed)} keep one track per target from the first scan: give the "
+                                  f"tracks' start (a file, one row per target), or track with the managed trackers "
+                                  f"({', '.join(MANAGED_TRACKERS)}), which start with no track")
+            return _check_management(t)
+        if t["waypoints"] is not None:
+            return _check_waypoints(t)
+        method = (t.get("jpda") or {}).get("method", "exact")
+        if t["targets"] > 12 and method == "exact" and any(name in EXACT_JPDA for name in t["estimators"]):
+            raise ConfigError("tracking.targets", t["targets"], "the exact JPDA takes at most 12 targets (tracking."
+                              "jpda.method: lbp or kbest, or the estimators IMM-JPDAF-LBP / IMM-JPDAF-kbest, take any "
+                              "number)")
+        _check_management(t)
+        lives = t["lifetimes"]
+        if lives is None:
+            return
+        if len(lives) != t["targets"] or any(len(life) != 2 for life in lives):
+            raise ConfigError("tracking.lifetimes", lives, f"expected [first, stop] for each of the {t['targets']} "
+                                                           "targets")
+        if any(not 0 <= first < stop <= t["steps"] for first, stop in lives):
+            raise ConfigError("tracking.lifetimes", lives, f"each [first, stop] needs 0 <= first < stop <= steps "
+                                                           f"({t['steps']})")
+        known = [name for name in t["estimators"] if name in TRACKERS]
+        if known:
+            raise ConfigError("tracking.estimators", t["estimators"],
+                              f"{', '.join(known)} start one track per target at the first scan; with "
+                              "tracking.lifetimes (births and deaths) only the managed trackers "
+                              f"({', '.join(MANAGED_TRACKERS)}) apply")
+
+
+def _check_waypoints(t: dict) -> None:
+    """``tracking.waypoints``: per target, at least two ``[scan, x, y]`` with increasing scans in
+    ``0 .. steps - 1``; not with ``lifetimes`` (the waypoints give the spans); the fixed-track estimators
+    need every target from scan 0; the exact JPDA at most 12 targets."""
+    ways = t["waypoints"]
+    if t["lifetimes"] is not None:
+        raise ConfigError("tracking.lifetimes", t["lifetimes"], "with tracking.waypoints each target exists from its "
+                          "first waypoint's scan to its last (set lifetimes: null)")
+    if not ways:
+        raise ConfigError("tracking.waypoints", ways, "no target (one list of [scan, x, y] waypoints per target)")
+    for i, target in enumerate(ways):
+        key = f"tracking.waypoints[{i}]"
+        if not isinstance(target, list) or len(target) < 2 or any(
+                not isinstance(point, list) or len(point) != 3 or
+                not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in point)
+                for point in target):
+            raise ConfigError(key, target, "expected at least two waypoints [scan, x, y] (numbers)")
+        scans = [point[0] for point in target]
+        if any(s != int(s) for s in scans) or any(b <= a for a, b in zip(scans, scans[1:])):
+            raise ConfigError(key, target, "the waypoints' scans must be whole numbers, increasing")
+        if scans[0] < 0 or scans[-1] > t["steps"] - 1:
+            raise ConfigError(key, target, f"the scans must lie in 0 .. steps - 1 = {t['steps'] - 1}")
+    late = [i for i, target in enumerate(ways) if target[0][0] != 0]
+    fixed = [name for name in t["estimators"] if name in TRACKERS]
+    if late and fixed:
+        raise ConfigError("tracking.estimators", t["estimators"],
+                          f"{', '.join(fixed)} start one track per target at the first scan; target(s) {late} start "
+                          f"later (births): only the managed trackers ({', '.join(MANAGED_TRACKERS)}) apply")
+    method = (t.get("jpda") or {}).get("method", "exact")
+    if len(ways) > 12 and method == "exact" and any(name in EXACT_JPDA for name in t["estimators"]):
+        raise ConfigError("tracking.waypoints", f"{len(ways)} targets", "the exact JPDA takes at most 12 targets "
+                          "(tracking.jpda.method: lbp or kbest)")
+    _check_management(t)
+
+
+def _check_management(t: dict) -> None:
+    m = t["management"]
+    if m["method"] == "exact" and m["capacity"] > 12 and set(MANAGED_TRACKERS) & set(t["estimators"]):
+        raise ConfigError("tracking.management.capacity", m["capacity"],
+                          "the exact JIPDA takes at most 12 track slots (method: lbp takes any number)")
+    mn = m["m_of_n"]
+    if mn is not None and (len(mn) != 2 or mn[0] > mn[1]):
+        raise ConfigError("tracking.management.m_of_n", mn, "expected [M, N] with 1 <= M <= N")
