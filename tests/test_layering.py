@@ -13,7 +13,7 @@ ROOT = Path(torchmm.__file__).parent
 LAYERS = [
     {"validation", "typing", "runtime"},
     {"provenance"},  # (its small tensors' checksums in NumPy: validation.host_array)
-    {"contract"},  # the entry-point contract (torchmm/contract.py): every layer above declares through it
+    {"contract"},  # the entry-point contract (torchmm/contract/): every layer above declares through it
     {"distributions", "linalg"},
     {"beliefs"},
     {"models"},

@@ -1,4 +1,4 @@
-"""The whole public API under the entry-point contract (torchmm/contract.py, docs/robustness.md).
+"""The whole public API under the entry-point contract (torchmm/contract/, docs/robustness.md).
 
 1. **Enumeration.** Every callable in ``torchmm.__all__`` and in every subpackage's ``__all__`` is
    a registered entry point (``@entry_point`` on the function or the class's ``__init__``) or is
@@ -75,7 +75,7 @@ def test_every_public_callable_is_an_entry_point_or_exempt(key):
         return
     assert contract.spec_of(obj) is not None, (
         f"{key} is public but not an entry point: declare its parameters with @entry_point(...) "
-        "(torchmm/contract.py) or list it in NOT_ENTRY_POINTS with the reason")
+        "(torchmm/contract/) or list it in NOT_ENTRY_POINTS with the reason")
 
 
 def test_exempt_names_exist():

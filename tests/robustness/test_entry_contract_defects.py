@@ -1,6 +1,6 @@
 """Issue 29's defects 3-5 (entry points that skipped their checks, values coerced silently, absolute
 tolerances), each with the input that was measured, and the contract mechanism itself
-(torchmm/contract.py)."""
+(torchmm/contract/)."""
 
 from __future__ import annotations
 

@@ -1,43 +1,14 @@
-r"""The entry-point contract: one mechanism that every public function and constructor goes through.
-
-Every public entry point of torchmm declares the *kind* of each of its parameters with
-:func:`entry_point`::
-
-    @entry_point(bank=Bank(), transition=Stochastic(), generator=Gen(optional=True), feedback=Flag())
-    def __init__(self, bank, transition, *, generator=None, feedback=True): ...
-
-The declaration does two things, both by construction:
-
-* **at run time**, the wrapper checks every argument the caller passed against its kind once, at
-  entry (a size is an integer, a flag a bool, a generator a :class:`torch.Generator`, a covariance
-  finite, symmetric and PSD relative to its scale, a transition row-stochastic, a policy an
-  instance and not a class, ...) and raises a ``TypeError`` or ``ValueError`` whose message starts
-  with the parameter's name. Defaults are trusted; nothing runs inside a filter step.
-* **in the test suite**, each kind lists the classes of invalid input that apply to it
-  (:meth:`Kind.invalid`: wrong types, non-finite values, non-PSD matrices, non-stochastic rows,
-  zero and empty sizes, wrong shapes and dtypes, classes for instances, ...).
-  ``tests/robustness/test_api_contract.py`` enumerates the public API (``torchmm.__all__`` and every
-  subpackage's), requires every public callable to be registered here (or listed, with a reason,
-  as not an entry point), and calls each entry point with each invalid input of each declared
-  parameter in place of a valid example's argument: every call must raise ``TypeError`` or
-  ``ValueError`` naming the parameter. A new public function, or a new parameter, without a
-  declaration is a red test (the decorator refuses a signature with an undeclared parameter at
-  import).
-
-Some kinds only *declare* (:class:`Data`, :class:`BeliefArg`, :class:`Of` with ``check=False``):
-the function checks the argument itself because the check needs context (the sensor's dimension,
-the filter's dtype), and the kind's invalid inputs test that it does. ``docs/robustness.md``
-describes the contract.
-"""
+"""The parameter kinds of the entry-point contract (:mod:`torchmm.contract`): what each public parameter
+is (an integer, a flag, a covariance, a transition, a belief, ...), how an argument is checked against it,
+and which invalid inputs the test suite tries for it (:meth:`Kind.invalid`). Split from the decorator that
+applies them (:mod:`torchmm.contract.engine`, issue 47)."""
 
 from __future__ import annotations
 
-import functools
-import inspect
 import math
 import numbers
 import os
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -54,7 +25,6 @@ __all__ = [
     "DType",
     "Data",
     "Device",
-    "EntryPoint",
     "Equivalent",
     "FilePath",
     "Finite",
@@ -75,16 +45,8 @@ __all__ = [
     "Text",
     "Unchecked",
     "Values",
-    "entry_point",
-    "registered",
-    "spec_of",
-    "unchecked",
 ]
 
-#: Every registered entry point, by ``module.qualname`` of the function.
-REGISTRY: dict[str, EntryPoint] = {}
-
-_EMPTY = inspect.Parameter.empty
 
 
 @dataclass(frozen=True)
@@ -864,151 +826,3 @@ class Tensors(Kind):
         return out
 
 
-# -- the decorator ---------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class EntryPoint:
-    """A registered entry point: its function and the kind of each parameter."""
-
-    qualname: str
-    function: Callable
-    kinds: dict
-    signature: inspect.Signature
-
-
-def unchecked(entry: Callable) -> Callable:
-    """The function behind an entry point, without its checks: for a library caller that checked
-    its values at its own entry point already, where a second check would read values on the host
-    again (a synchronisation on a GPU; e.g. ``gospa`` calling ``linear_assignment``). Shape and
-    dimension checks inside the function still run."""
-    spec = getattr(entry, "__entry_point__", None)
-    if spec is None:
-        raise TypeError(f"unchecked: {entry!r} is not an entry point")
-    return spec.function
-
-
-def entry_point(**kinds: Kind) -> Callable[[Callable], Callable]:
-    """Declare ``fn`` an entry point and the kind of each of its parameters.
-
-    Every parameter of the signature (except ``self``/``cls`` and ``*args``/``**kwargs``) must be
-    declared: an undeclared one is a ``TypeError`` at import (a new parameter is checked by
-    construction). Arguments the caller passes are checked against their kinds before ``fn`` runs;
-    defaults are not. Decorate ``__init__`` for a class, the function for a function (under
-    ``@classmethod``/``@staticmethod``).
-    """
-    for name, kind in kinds.items():
-        if not isinstance(kind, Kind):
-            raise TypeError(f"entry_point: the kind of {name!r} must be a Kind, got {kind!r}")
-
-    def decorate(fn: Callable) -> Callable:
-        signature = inspect.signature(fn)
-        names = [p.name for p in signature.parameters.values()
-                 if p.name not in ("self", "cls") and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)]
-        missing = [n for n in names if n not in kinds]
-        unknown = [n for n in kinds if n not in names]
-        if missing or unknown:
-            raise TypeError(f"entry_point({fn.__module__}.{fn.__qualname__}): "
-                            + (f"no kind declared for {missing}" if missing else "")
-                            + ("; " if missing and unknown else "")
-                            + (f"{unknown} are not parameters" if unknown else ""))
-        checked = tuple((n, k) for n, k in kinds.items() if type(k).check is not Kind.check
-                        and getattr(k, "enforce", True))
-
-        @functools.wraps(fn)
-        def wrapper(*args, **kwargs):
-            try:
-                bound = signature.bind(*args, **kwargs)
-            except TypeError:  # a missing, unknown or extra argument: named, as every other error
-                raise TypeError(_bind_error(fn, signature, args, kwargs)) from None
-            arguments = bound.arguments
-            for name, kind in checked:
-                if name in arguments:
-                    value = arguments[name]
-                    new = kind.check(value, name)
-                    if new is not value:
-                        arguments[name] = new
-            return fn(*bound.args, **bound.kwargs)
-
-        spec = EntryPoint(f"{fn.__module__}.{fn.__qualname__}", fn, dict(kinds), signature)
-        wrapper.__entry_point__ = spec
-        REGISTRY[spec.qualname] = spec
-        return wrapper
-
-    return decorate
-
-
-def _called(fn: Callable, signature: inspect.Signature, args: tuple, kwargs: dict) -> str:
-    """What the user called: the class for a constructor (the instance's, for an inherited one), the
-    class and method for a method, the function's name otherwise."""
-    first = next(iter(signature.parameters), None)
-    owner = None
-    if first in ("self", "cls"):
-        this = args[0] if args else kwargs.get(first)
-        if this is not None:
-            owner = this.__name__ if isinstance(this, type) else type(this).__name__
-    if owner is None:
-        return fn.__qualname__.removesuffix(".__init__")
-    return owner if fn.__name__ == "__init__" else f"{owner}.{fn.__name__}"
-
-
-def _bind_error(fn: Callable, signature: inspect.Signature, args: tuple, kwargs: dict) -> str:
-    """The message of a call that ``signature`` cannot bind, starting with the argument's name (a
-    missing or unknown one, one given twice) or, for too many positional arguments, the function's."""
-    import difflib
-
-    where = _called(fn, signature, args, kwargs)
-    params = signature.parameters
-    named = [p for p in params.values() if p.name not in ("self", "cls")
-             and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)]
-    names = [p.name for p in named]
-    variadic_keywords = any(p.kind is p.VAR_KEYWORD for p in params.values())
-    for key in kwargs:
-        if key not in params and not variadic_keywords or \
-                key in params and params[key].kind is params[key].POSITIONAL_ONLY:
-            close = difflib.get_close_matches(key, names, n=1)
-            hint = f"did you mean {close[0]}? " if close else ""
-            return f"{key}: not an argument of {where} ({hint}arguments: {', '.join(names)})"
-    positional = [p for p in params.values() if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)]
-    if len(args) > len(positional) and not any(p.kind is p.VAR_POSITIONAL for p in params.values()):
-        shown = [p.name for p in positional if p.name not in ("self", "cls")]
-        offset = len(positional) - len(shown)  # self / cls
-        keyword_only = [p.name for p in named if p.kind is p.KEYWORD_ONLY]
-        plural = "" if len(shown) == 1 else "s"
-        return (f"{where}: takes {len(shown)} positional argument{plural} ({', '.join(shown) or 'none'}), got "
-                f"{len(args) - offset}" + (f"; {', '.join(keyword_only)} {'is' if len(keyword_only) == 1 else 'are'} "
-                                           "keyword-only" if keyword_only else ""))
-    for p in positional[:len(args)]:
-        if p.name in kwargs and p.kind is not p.POSITIONAL_ONLY:
-            return f"{p.name}: given twice (by position and by keyword) to {where}"
-    try:
-        given = signature.bind_partial(*args, **kwargs).arguments
-    except TypeError as err:
-        return f"{where}: {err}"
-    missing = [p.name for p in params.values() if p.name not in given and p.default is p.empty
-               and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)]
-    if missing:
-        first, rest = missing[0], missing[1:]
-        also = f"; {', '.join(rest)} {'is' if len(rest) == 1 else 'are'} missing too" if rest else ""
-        return f"{first}: missing (a required argument of {where}{also})"
-    try:
-        signature.bind(*args, **kwargs)
-    except TypeError as err:
-        return f"{where}: {err}"
-    return f"{where}: the arguments do not fit its signature {signature}"
-
-
-def spec_of(obj: Any) -> EntryPoint | None:
-    """The entry point behind a public object: a function's own, a class's ``__init__``'s."""
-    if isinstance(obj, type):
-        init = obj.__dict__.get("__init__")
-        if init is None:  # inherited: the nearest registered base constructor
-            for base in obj.__mro__[1:]:
-                init = base.__dict__.get("__init__")
-                if init is not None:
-                    break
-        return getattr(init, "__entry_point__", None)
-    return getattr(obj, "__entry_point__", None)
-
-
-def registered() -> dict[str, EntryPoint]:
-    """Every registered entry point (a copy)."""
-    return dict(REGISTRY)
