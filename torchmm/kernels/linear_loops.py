@@ -98,6 +98,50 @@ def _logsumexp(a, M):
     return top + math.log(s)
 
 
+@numba.njit(cache=True, inline="always")
+def _mixing_weights(plm, Pt, rule, tiny, mu, c, w):
+    """The interaction's weights from the previous mode log-probabilities ``plm`` and the step's transition
+    matrix ``Pt``: ``mu`` the probabilities, ``c_j = sum_i mu_i Pt_ij`` the predicted ones, ``w[i, j]`` the
+    mixing weight of mode ``i`` into ``j`` (IMM, ``rule`` 0: ``mu_i Pt_ij / c_j``, ``c_j`` floored at
+    ``tiny``) or ``mu_i`` (GPB1's collapse). The forward and the reverse pass share it."""
+    M = mu.shape[0]
+    for i in range(M):
+        mu[i] = math.exp(plm[i])
+    for j in range(M):
+        s = 0.0
+        for i in range(M):
+            s += mu[i] * Pt[i, j]
+        c[j] = s
+    for j in range(M):
+        cj = c[j] if c[j] > tiny else tiny
+        for i in range(M):
+            w[i, j] = mu[i] * Pt[i, j] / cj if rule == 0 else mu[i]
+
+
+@numba.njit(cache=True, inline="always")
+def _predict(F, b, bu, Q, x, P, xp, Pp, FP):
+    """One mode's prediction: ``xp = F x + b + bu`` (``bu`` the step's input term ``G u_t``), ``FP = F P``
+    and ``Pp = FP F^T + Q``. The filter's forward pass and Kim's smoother share it."""
+    n = x.shape[0]
+    for i in range(n):
+        s = b[i] + bu[i]
+        for k in range(n):
+            s += F[i, k] * x[k]
+        xp[i] = s
+    for i in range(n):
+        for k in range(n):
+            s = 0.0
+            for q in range(n):
+                s += F[i, q] * P[q, k]
+            FP[i, k] = s
+    for i in range(n):
+        for k in range(n):
+            s = 0.0
+            for q in range(n):
+                s += FP[i, q] * F[k, q]
+            Pp[i, k] = s + Q[i, k]
+
+
 @numba.njit(cache=True)
 def forward(z, F, b, Q, H, R, Pi, rule, update_first, logmu0, x0, P0, bu, eps, tiny,
             ll, logmu, x, P, xp, Pp, logc, xm, Pm, innov, Sout, mode_ll, flags):
@@ -149,18 +193,9 @@ def forward(z, F, b, Q, H, R, Pi, rule, update_first, logmu0, x0, P0, bu, eps, t
                             for k in range(n):
                                 Pm[t, r, j, i, k] = pP[j, i, k]
                 else:
-                    for i in range(M):
-                        mu[i] = math.exp(plm[i])
+                    _mixing_weights(plm, Pt, rule, tiny, mu, c, w)
                     for j in range(M):
-                        s = 0.0
-                        for i in range(M):
-                            s += mu[i] * Pt[i, j]
-                        c[j] = s
-                        logc[t, r, j] = math.log(s)
-                    for j in range(M):
-                        cj = c[j] if c[j] > tiny else tiny
-                        for i in range(M):
-                            w[i, j] = mu[i] * Pt[i, j] / cj if rule == 0 else mu[i]
+                        logc[t, r, j] = math.log(c[j])
                     for j in range(M):
                         for i in range(n):
                             s = 0.0
@@ -178,23 +213,7 @@ def forward(z, F, b, Q, H, R, Pi, rule, update_first, logmu0, x0, P0, bu, eps, t
                                     Pm[t, r, j, i, k] += w[q, j] * (pP[q, i, k] + d[i] * d[k])
                 # -- prediction: xp = F xm + b (+ the step's input term bu = G u_t), Pp = F Pm F^T + Q
                 for j in range(M):
-                    for i in range(n):
-                        s = b[j, i] + bu[tu, ru, j, i]
-                        for k in range(n):
-                            s += F[j, i, k] * xm[t, r, j, k]
-                        xp[t, r, j, i] = s
-                    for i in range(n):
-                        for k in range(n):
-                            s = 0.0
-                            for q in range(n):
-                                s += F[j, i, q] * Pm[t, r, j, q, k]
-                            FP[i, k] = s
-                    for i in range(n):
-                        for k in range(n):
-                            s = 0.0
-                            for q in range(n):
-                                s += FP[i, q] * F[j, k, q]
-                            Pp[t, r, j, i, k] = s + Q[j, i, k]
+                    _predict(F[j], b[j], bu[tu, ru, j], Q[j], xm[t, r, j], Pm[t, r, j], xp[t, r, j], Pp[t, r, j], FP)
             # -- update of every mode (torchmm.linalg.condition)
             count = 0
             for k in range(m):
@@ -569,16 +588,7 @@ def backward(z, F, b, Q, H, R, Pi, rule, update_first, logmu0, x0, P0, bu,
                         for k in range(n):
                             pPb[j, i, k] += Pmb[j, i, k]
             else:
-                for i in range(M):
-                    mu[i] = math.exp(plm[i])
-                for j in range(M):
-                    s = 0.0
-                    for i in range(M):
-                        s += mu[i] * Pt[i, j]
-                    c[j] = s
-                for j in range(M):
-                    for i in range(M):
-                        w[i, j] = mu[i] * Pt[i, j] / c[j] if rule == 0 else mu[i]
+                _mixing_weights(plm, Pt, rule, 0.0, mu, c, w)  # (no floor: the forward pass's c exceeded it)
                 for j in range(M):
                     # the total adjoint of xm_j (its own and through d_ij = x_i - xm_j)
                     for i in range(n):
@@ -676,6 +686,8 @@ def kim(F, b, Q, logPi, logmu, x, P, eps, tiny, slogmu, sx, sP):
     mean = np.empty((M, M, n), dt)
     cov = np.empty((M, M, n, n), dt)
     C = np.empty((n, n), dt)
+    FP = np.empty((n, n), dt)
+    zero = np.zeros(n, dt)
     L = np.empty((n, n), dt)
     G = np.empty((n, n), dt)  # G^T = (P^-)^{-1} C^T
     Y = np.empty((n, n), dt)
@@ -698,24 +710,12 @@ def kim(F, b, Q, logPi, logmu, x, P, eps, tiny, slogmu, sx, sP):
         for t in range(T - 2, -1, -1):
             for j in range(M):
                 for i in range(M):
-                    # x^-_ji = F_i x_j + b_i, P^-_ji = F_i P_j F_i^T + Q_i, C_ji = P_j F_i^T
-                    for a in range(n):
-                        s = b[i, a]
-                        for c in range(n):
-                            s += F[i, a, c] * x[t, r, j, c]
-                        xp[j, i, a] = s
+                    # x^-_ji = F_i x_j + b_i, P^-_ji = F_i P_j F_i^T + Q_i (the forward pass's prediction),
+                    # C_ji = P_j F_i^T = (F_i P_j)^T (P_j symmetric, as the filter stores it)
+                    _predict(F[i], b[i], zero, Q[i], x[t, r, j], P[t, r, j], xp[j, i], Pp[j, i], FP)
                     for a in range(n):
                         for c in range(n):
-                            s = 0.0
-                            for q in range(n):
-                                s += P[t, r, j, a, q] * F[i, c, q]
-                            C[a, c] = s
-                    for a in range(n):
-                        for c in range(n):
-                            s = 0.0
-                            for q in range(n):
-                                s += F[i, a, q] * C[q, c]
-                            Pp[j, i, a, c] = s + Q[i, a, c]
+                            C[a, c] = FP[c, a]
                     chol_reg(Pp[j, i], n, eps, tiny, L)
                     # G^T = L^{-T} L^{-1} C^T
                     for c in range(n):
