@@ -265,6 +265,6 @@ def test_em_from_config_with_learn_auto(tmp_path, switches, statsmodels_kw):
     path.write_text("y,lag\n" + "".join(f"{float(a)!r},{float(b)!r}\n" for a, b in zip(y, lag)))
     ref = sm.tsa.MarkovRegression(y, k_regimes=2, exog=lag, **statsmodels_kw).fit(disp=False)
     data = f"scenario.data={{path:{path},measurements:[y],inputs:[lag]}}"
-    both = _run(_compose(data, *switches, "learn.method=em_then_lbfgs", "+learn.iterations=10"), tmp_path / "both")
+    both = _run(_compose(data, *switches, "learn.method=em_then_lbfgs", "+learn.iterations=5"), tmp_path / "both")
     fit = dict(zip(both["tables"]["fit"]["columns"], both["tables"]["fit"]["rows"][0]))
     assert fit["loglik"] == pytest.approx(ref.llf, abs=1e-4) and fit["k"] == len(ref.params)

@@ -344,7 +344,7 @@ def test_switching_em_with_regressors_batched_over_series():
     np.testing.assert_allclose(at_em[2:], [0.0, 1.0, 2.0, -0.5, 0.25, 1.0], atol=0.35)  # near the truth
 
 
-def _regression_data(seed: int = 11, T: int = 200, runs: int = 2):
+def _regression_data(seed: int = 11, T: int = 150, runs: int = 2):
     """A 2-regime regression y = c_s + b x + e_s: the slope b shared, the constants and variances switching."""
     g = torch.Generator().manual_seed(seed)
     P = torch.tensor([[0.9, 0.1], [0.2, 0.8]], dtype=F64)
