@@ -32,6 +32,7 @@ __all__ = [
     "Gen",
     "Indices",
     "Int",
+    "Invalid",
     "Kind",
     "Labels",
     "Mask",
