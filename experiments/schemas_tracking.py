@@ -54,7 +54,8 @@ class MHTSettings:
 @dataclass
 class TrackManagement:
     capacity: int = spec(MISSING, positive_int)
-    method: str = spec(MISSING, one_of("lbp", "exact"))
+    method: str = spec(MISSING, one_of("lbp", "exact", "kbest"))
+    k: int = spec(MISSING, positive_int)  # kbest: the joint events a scan
     survival_probability: float = spec(MISSING, _unit_interval_closed_above)
     birth_existence: float = spec(MISSING, open_probability)
     unexplained: float = spec(MISSING, open_probability)

@@ -217,7 +217,7 @@ def _managed(t, filt, opts: dict, dtype) -> Estimator:
     """``ManagedTracks(JIPDA(filt))`` with ``tracking.management``'s settings."""
     m = t.management
     jipda = JIPDA(filt, survival_probability=float(m.survival_probability), method=str(m.method),
-                  max_targets=max(12, int(m.capacity)), **opts)
+                  max_targets=max(12, int(m.capacity)), k=int(m.get("k") or 100), **opts)
     start = position_initiator(4, [0, 2], float(t.R), float(m.velocity_variance))
     manager = ManagedTracks(jipda, capacity=int(m.capacity), initiate=start, birth_existence=float(m.birth_existence),
                             unexplained=float(m.unexplained), delete=float(m.delete), confirm=float(m.confirm),

@@ -170,3 +170,18 @@ def test_waypoint_study_with_a_birth_and_its_checks(tmp_path):
     with pytest.raises(ValueError, match=r"tracking.waypoints\[0\]=.*0 .. steps - 1 = 59"):
         validate(_compose("tracking", "tracking.waypoints=[[[0,0,0],[60,1,1]]]", "tracking.estimators=[JIPDA-TM]"))
     validate(_compose("tracking", "tracking.waypoints=[[[0,0,0],[59,1,1]]]", "tracking.estimators=[IMM-JPDAF]"))
+
+
+def test_managed_trackers_take_the_k_best_events(tmp_path):
+    """tracking.management.method=kbest (issue 46: the association choice for the managed trackers): with k
+    above every joint event of the slots it is the exact JIPDA, table for table."""
+    common = [*COMMON, "debug=tracking", "figures=false", "tracking.estimators=[JIPDA-TM]", "tracking.clutter_rate=2",
+              "tracking.management.capacity=4"]
+    run_study(_compose("tracking", *common, "tracking.management.method=exact"), tmp_path / "exact")
+    run_study(_compose("tracking", *common, "tracking.management.method=kbest", "tracking.management.k=100000"),
+              tmp_path / "kbest")
+    a, b = (json.loads((tmp_path / d / "results.json").read_text())["tables"] for d in ("exact", "kbest"))
+    for name in ("gospa", "track_quality"):
+        for x, y, column in zip(a[name]["rows"][0], b[name]["rows"][0], a[name]["columns"]):
+            if isinstance(x, float) and "seconds" not in column:
+                assert y == pytest.approx(x, rel=1e-9, abs=1e-9), (name, column)

@@ -21,7 +21,7 @@ import math
 import torch
 from torch import Tensor
 
-from torchmm.association.jpda import JPDA, exact_marginals, flat_runs, lbp_marginals
+from torchmm.association.jpda import JPDA, exact_marginals, flat_runs, kbest_marginals, lbp_marginals
 from torchmm.association.pda import PDA
 from torchmm.beliefs import ExistenceBelief, GaussianBelief, ModeBelief, ModeExistenceBelief, with_existence
 from torchmm.contract import BeliefArg, Choice, Int, Of, Probability, Real, entry_point
@@ -138,8 +138,9 @@ class JIPDA(JPDA):
 
     Args:
         filter, detection_probability, clutter_density, gate_probability, method, max_targets,
-            iterations, tolerance: as for :class:`~torchmm.association.JPDA` (an IMM filter makes the
-            IMM-JIPDA).
+            iterations, tolerance, k: as for :class:`~torchmm.association.JPDA` (an IMM filter makes the
+            IMM-JIPDA; ``method="kbest"``: the ``k`` most likely joint events, each track its own
+            missed weight ``1 - P_D P_G chi_i``).
         survival_probability, birth_probability: as for :class:`IPDA`.
 
     Shapes:
@@ -161,14 +162,15 @@ class JIPDA(JPDA):
 
     @entry_point(filter=Of(Filter), detection_probability=Real(0.0, 1.0), clutter_density=Real(positive=True),
                  gate_probability=Real(0.0, 1.0), survival_probability=Real(0.0, 1.0),
-                 birth_probability=Real(0.0, 1.0), method=Choice("exact", "lbp"), max_targets=Int(1),
-                 iterations=Int(1), tolerance=Real(minimum=0.0))
+                 birth_probability=Real(0.0, 1.0), method=Choice("exact", "lbp", "kbest"), max_targets=Int(1),
+                 iterations=Int(1), tolerance=Real(minimum=0.0), k=Int(1))
     def __init__(self, filter: Filter, *, detection_probability: float, clutter_density: float,
                  gate_probability: float = 0.99, survival_probability: float = 0.98, birth_probability: float = 0.0,
-                 method: str = "exact", max_targets: int = 12, iterations: int = 100, tolerance: float = 1e-13):
+                 method: str = "exact", max_targets: int = 12, iterations: int = 100, tolerance: float = 1e-13,
+                 k: int = 100):
         super().__init__(filter, detection_probability=detection_probability, clutter_density=clutter_density,
                          gate_probability=gate_probability, method=method, max_targets=max_targets,
-                         iterations=iterations, tolerance=tolerance)
+                         iterations=iterations, tolerance=tolerance, k=k)
         self.survival_probability = float(survival_probability)
         self.birth_probability = float(birth_probability)
 
@@ -193,6 +195,8 @@ class JIPDA(JPDA):
         flat_w, flat_m = flat_runs(log_w, 2), flat_runs(log_m, 1)
         if self.method == "exact":
             log_beta, log_z = exact_marginals(flat_w, flat_m)
+        elif self.method == "kbest":  # the k most likely joint events (Murty), each track its own miss weight
+            log_beta, log_z = kbest_marginals(flat_w, flat_m, self.k)
         else:
             log_beta = lbp_marginals(flat_w - flat_m.unsqueeze(-1), 0.0, self.iterations, self.tolerance)
             log_z = torch.logsumexp(torch.cat([flat_m.unsqueeze(-1), flat_w], -1), -1).sum(-1)
