@@ -207,3 +207,25 @@ def test_position_initiator_reads_a_number_as_r_times_the_identity():
     for noise in (4.0, [4.0, 4.0], [[4.0, 0.0], [0.0, 4.0]]):
         cov = position_initiator(4, [0, 2], noise, 25.0)(torch.zeros(1, 2, dtype=torch.float64)).cov[0]
         torch.testing.assert_close(cov, torch.diag(torch.tensor([4.0, 25.0, 4.0, 25.0], dtype=torch.float64)))
+
+
+def test_one_point_initiation_with_a_velocity_bound_and_the_two_point_update():
+    """position_initiator(max_speed=v): the unmeasured components' variance v^2 / 3 (uniform on [-v, v]);
+    with a diffuse velocity, a new track's first update is two-point initiation: its velocity the two
+    detections' difference over the period (to R / variance), its position the second detection's
+    (weighted by the noise)."""
+    from torchmm.models import ConstantVelocity, PositionMeasurement
+
+    start = position_initiator(4, [0, 2], 4.0, max_speed=30.0)
+    first = start(torch.tensor([10.0, -5.0], dtype=torch.float64))
+    assert first.cov.diagonal().tolist() == pytest.approx([4.0, 300.0, 4.0, 300.0])
+    diffuse = position_initiator(4, [0, 2], 4.0, 1e12)
+    kf = KalmanFilter(ConstantVelocity(2, dt=2.0, q=0.0, dtype=torch.float64), PositionMeasurement(4, [0, 2], 4.0,
+                                                                                                  dtype=torch.float64))
+    z1, z2 = torch.tensor([10.0, -5.0], dtype=torch.float64), torch.tensor([16.0, 3.0], dtype=torch.float64)
+    out = kf.step(diffuse(z1), z2).belief
+    assert out.mean[[1, 3]].tolist() == pytest.approx([3.0, 4.0], rel=1e-9)  # (z2 - z1) / dt
+    with pytest.raises(TypeError, match="unobserved_variance: give it or max_speed"):
+        position_initiator(4, [0, 2], 4.0)
+    with pytest.raises(TypeError, match="unobserved_variance: give it or max_speed"):
+        position_initiator(4, [0, 2], 4.0, 25.0, max_speed=3.0)

@@ -160,19 +160,31 @@ def _record(table) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     return table.age, table.hits, table.misses, table.firm
 
 
-@entry_point(state_dim=Int(1), indices=Indices(), noise_cov=Finite(), unobserved_variance=Real(minimum=0.0))
-def position_initiator(state_dim: int, indices, noise_cov, unobserved_variance: float) -> Callable:
+@entry_point(state_dim=Int(1), indices=Indices(), noise_cov=Finite(), unobserved_variance=Real(minimum=0.0, optional=True),
+             max_speed=Real(positive=True, optional=True))
+def position_initiator(state_dim: int, indices, noise_cov, unobserved_variance: float | None = None, *,
+                       max_speed: float | None = None) -> Callable:
     """``initiate(z)`` for a sensor that measures state components ``indices`` directly (e.g.
     ``PositionMeasurement``): the state ``z`` at ``indices`` and 0 elsewhere, the covariance
     ``noise_cov`` at ``indices`` and ``unobserved_variance`` on the diagonal elsewhere (velocities).
     ``noise_cov``: an ``(m, m)`` matrix, a vector (its diagonal) or a number ``r`` (``r I``, as
     ``PositionMeasurement`` reads it).
 
+    **A velocity bound** (``max_speed=v`` instead of ``unobserved_variance``): each unmeasured component
+    uniform on ``[-v, v]``, its variance ``v^2 / 3`` (one-point initiation; the gate of the track's next
+    update then holds what a speed up to about ``v`` reaches). The next update is the **two-point**
+    initiation: with a diffuse velocity (a large variance) the updated velocity is the difference of the
+    two detections over the period, to ``R / variance`` (tests/test_tracks.py).
+
     Raises (at the call, naming the argument): an index outside the ``state_dim`` components or given
     twice (``indices``); a ``noise_cov`` that does not expand to ``(m, m)`` or is not a covariance
     (symmetric, positive semi-definite: every track it started would fail).
 
     Shapes: ``z (*B, m)`` -> a :class:`~torchmm.GaussianBelief` ``(*B, n)``."""
+    if (unobserved_variance is None) == (max_speed is None):
+        raise TypeError("unobserved_variance: give it or max_speed (a velocity bound), one of the two")
+    if max_speed is not None:
+        unobserved_variance = float(max_speed) ** 2 / 3.0
     idx = [int(i) for i in indices]
     m = len(idx)
     for i in idx:
