@@ -289,13 +289,15 @@ def run_filter(
         kept.append(out if record is None else record(out))
     if update_first:
         kept = _common_extras(kept)
-    stacked = Trajectory(*(fields if fields is not None else stack_outputs(kept)))
-    stacked = attach_provenance(stacked, Provenance(
+    parts = fields if fields is not None else stack_outputs(kept)
+    record = Provenance(  # (attach_provenance's record, made once: the one-shot call's cost)
         "run_filter", filter, steps, measurements, data_prints, tensor_versions(measurements), controls,
         control_prints, None if controls is None else tensor_versions(controls), motions, sensors,
-        update_first, kernel=chosen, declined=declined))
+        update_first, belief=parts[0], prior=parts[1], state=module_state(filter), kernel=chosen, declined=declined)
+    stacked = Trajectory(*parts, provenance=record)
     kernels.count_run(chosen)
-    _report_flags(stacked.extras)
+    if not (fields is not None and getattr(run, "flags_clear", False)):  # (a kernel that ran clean flags none)
+        _report_flags(stacked.extras)
     return stacked
 
 

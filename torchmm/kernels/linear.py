@@ -406,6 +406,7 @@ class LinearKernel:
             return _fields(outs, batch, steps, M, kalman, mixed, request)
 
         run.applies_record = False  # a record function: run_filter applies it to each step of the fields
+        run.flags_clear = True  # (its fields come back only from a run without a regularised or failed update)
         return run
 
 
