@@ -13,9 +13,15 @@ import torch
 from torch.nn.utils import parametrize
 
 from experiments.realdata import load_nile, local_level, local_level_start
-from torchmm import IMM, ExtendedKalmanFilter, GaussianBelief, KalmanFilter
+from torchmm import IMM, ExtendedKalmanFilter, GaussianBelief, KalmanFilter, run_filter
 from torchmm.learn import Objective, negative_log_likelihood
-from torchmm.models import ConstantVelocity, PositionMeasurement, learnable_noise
+from torchmm.models import (
+    ConstantVelocity,
+    LinearMeasurement,
+    LinearMotion,
+    PositionMeasurement,
+    learnable_noise,
+)
 
 
 def _eager_loss(filter, belief0, z, **kwargs):
@@ -249,3 +255,35 @@ def test_minimize_refuses_an_unknown_option(method):
         torch.testing.assert_close(p.detach(), b, rtol=0, atol=0)
     result = Objective(kf, belief0, z, update_first=True).minimize(method=method, options={"maxiter": 1})
     assert result.nit <= 1
+
+
+def test_smoothed_is_the_filter_and_smoother_at_the_current_parameters():
+    """Objective.smoothed() (issue 47): Kim's smoother of an IMM through the prepared compiled loops equals
+    run_filter + smooth(method="kim") (1e-12), follows a parameter change, and the RTS smoother of a Kalman
+    filter likewise; a filter without the loops (per-step models) takes run_filter + smooth."""
+    from experiments.realdata import fedfunds_imm, load_fedfunds
+    from torchmm import smooth
+
+    y = load_fedfunds()
+    imm, b0 = fedfunds_imm([3.7, 9.6], [4.0, 16.0], [[0.98, 0.02], [0.05, 0.95]])
+    objective = Objective(imm, b0, y)
+    for _ in range(2):
+        with torch.no_grad():
+            ref = smooth(run_filter(imm, b0, y), method="kim").belief
+        out = objective.smoothed()
+        assert objective.why == ""  # (the objective has the compiled loops' plan)
+        assert torch.allclose(out.mode_probs, ref.mode_probs, rtol=1e-12, atol=1e-12)
+        assert torch.allclose(out.components.mean, ref.components.mean, rtol=1e-12, atol=1e-12)
+        assert torch.allclose(out.components.cov, ref.components.cov, rtol=1e-12, atol=1e-12)
+        with torch.no_grad():
+            imm.bank.filter.measurement.H.mul_(1.1)  # (the next round: other parameters)
+    kf = KalmanFilter(LinearMotion(torch.eye(1, dtype=torch.float64), torch.eye(1, dtype=torch.float64)),
+                      LinearMeasurement(torch.eye(1, dtype=torch.float64), 4 * torch.eye(1, dtype=torch.float64)))
+    z = torch.randn(30, 2, 1, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    start = GaussianBelief(torch.zeros(2, 1, dtype=torch.float64), torch.eye(1, dtype=torch.float64))
+    with torch.no_grad():
+        ref = smooth(run_filter(kf, start, z)).belief
+    for objective in (Objective(kf, start, z), Objective(kf, start, z, motions=[kf.motion] * 30)):
+        out = objective.smoothed()
+        assert torch.allclose(out.mean, ref.mean, rtol=1e-12, atol=1e-12)
+        assert torch.allclose(out.cov, ref.cov, rtol=1e-12, atol=1e-12)

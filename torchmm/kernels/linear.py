@@ -302,6 +302,40 @@ class Prepared:
             return None
         return outs[0] if total else outs[0].reshape(self.z.shape[0], *self.batch)
 
+    def smooth(self, belief0: Any, update_first: bool = False) -> Any:
+        """The run and its smoother at the filter's current parameters, both compiled loops, no autograd:
+        Kim's smoother of an IMM or GPB1 (the RTS smoother of one Kalman filter) - what ``run_filter`` then
+        ``smooth`` return, without their entry checks (checked once, when the plan was made). The
+        smoothed beliefs, batch ``(T, *B)``, or None where the eager route must run (a regularised update,
+        a static bank, a time-varying transition)."""
+        model = kernels.describe(self.filter, self.name, inputs=True)
+        if isinstance(model, str) or model.time_varying is not None or self.rule == 2 and not self.kalman:
+            return None
+        start = (self.zeros, belief0.mean, belief0.cov) if self.kalman else (
+            belief0.mode_log_probs, belief0.components.mean, belief0.components.cov)
+        status = [0]
+        with torch.no_grad():
+            models = _models(model, self.controls, self.batch)
+            bu = _input_terms(model, self.controls, self.M, self.n, self.batch)
+            outs = _Run.forward(_NoGrad(), self.z, self.rule, bool(update_first), False, self.layout, status,
+                                *models, *start, bu)
+            if status[0]:
+                return None
+            _, logmu, x, P = outs
+            M, n, T = self.M, self.n, self.z.shape[0]
+            F, b, Q = (np.ascontiguousarray(np.broadcast_to(_np(t), w))
+                       for t, w in zip(models[:3], ((M, n, n), (M, n), (M, n, n))))
+            dtype = logmu.dtype
+            out = [torch.empty(T, self.runs, M, dtype=dtype), torch.empty(T, self.runs, M, n, dtype=dtype),
+                   torch.empty(T, self.runs, M, n, n, dtype=dtype)]
+            finfo = torch.finfo(dtype)
+            load().kim(F, b, Q, _np(models[5].log()), logmu.numpy(), x.numpy(), P.numpy(), finfo.eps, finfo.tiny,
+                       *[o.numpy() for o in out])
+        slogmu, sx, sP = (o.reshape(T, *self.batch, *o.shape[2:]) for o in out)
+        if self.kalman:
+            return GaussianBelief(sx.squeeze(-2), sP.squeeze(-3))
+        return ModeBelief(slogmu, GaussianBelief(sx, sP))
+
 
 class LinearKernel:
     """The registered kernel (see the module docstring)."""

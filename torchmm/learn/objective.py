@@ -191,6 +191,28 @@ class Objective:
             steps = self.measurements.shape[0] - self.burn
             return reduce_total(-traj.log_likelihood[self.burn:].sum(0), self.reduction, steps)
 
+    def smoothed(self) -> Any:
+        """The smoothed beliefs ``(T, *B)`` at the filter's current parameters: Kim's smoother of an IMM or
+        GPB1, the RTS smoother of a Kalman filter (what ``smooth(run_filter(...))`` returns, to rounding).
+        Where the objective has the compiled loops (``self.kernel``'s plan) the run and the smoother are
+        one prepared call, checked once - a repeated filter-and-smoother's cost (an E-step, a bootstrap;
+        issue 47: Fed funds 2x statsmodels' raw ``smooth``); elsewhere ``run_filter`` then ``smooth``."""
+        from torchmm.smooth import smooth
+
+        with torch.no_grad(), parametrize.cached():
+            belief = self._belief()
+            if self._prepared is not None and hasattr(self._prepared, "smooth"):
+                if not (self._prepared.kalman or isinstance(belief, ModeBelief)):
+                    belief = as_start_belief(self.filter, belief)
+                out = self._prepared.smooth(belief, self.update_first)
+                if out is not None:
+                    return out
+            traj = run_filter(self.filter, as_start_belief(self.filter, belief), self.measurements,
+                              controls=self.controls, motions=self.motions, sensors=self.sensors,
+                              update_first=self.update_first)
+            method = "kim" if isinstance(traj.belief, ModeBelief) else None
+            return smooth(traj, method=method).belief
+
     @entry_point(parameters=Tensors(optional=True, check=False), method=Choice(*GRADIENT_METHODS),
                  tol=Real(positive=True, optional=True), options=Of(Mapping, optional=True, what="a dict"))
     def minimize(self, *, parameters: Any = None, method: str = "L-BFGS-B", tol: float | None = None,
