@@ -290,11 +290,11 @@ def run_filter(
     if update_first:
         kept = _common_extras(kept)
     parts = fields if fields is not None else stack_outputs(kept)
-    record = Provenance(  # (attach_provenance's record, made once: the one-shot call's cost)
+    made = Provenance(  # (attach_provenance's record, made once: the one-shot call's cost)
         "run_filter", filter, steps, measurements, data_prints, tensor_versions(measurements), controls,
         control_prints, None if controls is None else tensor_versions(controls), motions, sensors,
         update_first, belief=parts[0], prior=parts[1], state=module_state(filter), kernel=chosen, declined=declined)
-    stacked = Trajectory(*parts, provenance=record)
+    stacked = Trajectory(*parts, provenance=made)
     kernels.count_run(chosen)
     if not (fields is not None and getattr(run, "flags_clear", False)):  # (a kernel that ran clean flags none)
         _report_flags(stacked.extras)
