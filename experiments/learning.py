@@ -417,7 +417,7 @@ def start_function(est, scenario, transition_learned: bool, controls: Tensor | N
 
 
 def fit_mle(est, scenario, block, z: Tensor, *, prior, update_first: bool, burn: int, controls=None,
-            progress: bool | str = False) -> dict:
+            progress: bool | str = False, motions=None) -> dict:
     """Estimate ``block.parameters`` of ``est``'s filter on ``z`` (in place) and return the record: the
     rows of the ``learned`` table, the fit's figures, and the estimator's new start (if it changed)."""
     from torchmm.learn import estimate
@@ -430,7 +430,8 @@ def fit_mle(est, scenario, block, z: Tensor, *, prior, update_first: bool, burn:
         est.init = init
     belief0 = (lambda f: est.init(prior, None)) if init is not None else est.init(prior, None)
     tic = time.perf_counter()
-    result = estimate(est.filter, belief0, z, params, controls=controls, update_first=update_first, burn=burn,
+    result = estimate(est.filter, belief0, z, params, controls=controls, motions=motions, update_first=update_first,
+                      burn=burn,
                       hessian=str(block.get("hessian") or "differences"), maxiter=block.get("maxiter"),
                       progress=progress)
     if starting:

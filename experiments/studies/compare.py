@@ -156,7 +156,8 @@ def _learn(ctx: StudyContext, scenario, est_name: str) -> tuple[dict, Any]:
         # kernels that the study otherwise switches off (kernels.by_size) evaluate the likelihood
         with kernels.switched_on(*kernels.by_size()):
             record = learning.fit_mle(est, scenario, block, z, prior=prior, update_first=update_first, burn=burn,
-                                      controls=_controls(ctx, 0, runs), progress=progress)
+                                      controls=_controls(ctx, 0, runs), progress=progress,
+                                      motions=_motions(est, scenario))
         return record, est
     if str(block.method) in ("em", "em_then_mle"):
         import torchmm.kernels as kernels
@@ -252,9 +253,17 @@ def check_build(cfg, scenario) -> None:
                                   f"mode {i}'s motion model takes "
                                   f"{'no input' if B is None else str(B.shape[-1]) + ' (its input_matrix)'}")
     names = learning.learners(cfg)
-    if names and scenario.motions is not None:
-        raise ConfigError("learn", "parameters", "learning with irregular time stamps (per-step motion models) is "
-                          "not supported yet; give regular time stamps or none")
+    if names and scenario.motions is not None:  # irregular time stamps: the per-step motion models are fixed
+        block = learning.spec(cfg)
+        if str(block.method) != "mle":
+            raise ConfigError("learn.method", str(block.method), "with irregular time stamps (per-step motion "
+                              "models) only method mle learns (the sensors, the transition, the start)")
+        entries = [] if isinstance(block.parameters, str) else list(block.parameters)
+        moving = [str(e.get("model")) for e in entries if str(e.get("model") or "").startswith("modes")]
+        if moving:
+            raise ConfigError("learn.parameters", moving[0], "a motion model's tensors with irregular time stamps: "
+                              "each step's model is rebuilt for its own dt, so a tensor of one is not the others' "
+                              "(learn the sensors, the transition or the start; or give regular time stamps)")
     burn = int(cfg.get("burn") or 0)
     if burn >= scenario.steps:
         raise ConfigError("burn", burn, f"leaves out every step (the data have {scenario.steps}): no log-likelihood "

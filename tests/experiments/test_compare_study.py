@@ -276,3 +276,51 @@ def test_a_learned_module_mode_by_target(tmp_path):
                                   dtype=torch.float64).expand(6)
     ll = run_filter(imm, imm.initial_belief(prior), z).log_likelihood.sum(0).mean()
     assert res["metrics"]["IMM-EKF"]["loglik"] == pytest.approx(float(ll), rel=1e-12)
+
+
+def test_learning_the_sensor_with_irregular_time_stamps(tmp_path):
+    """Irregular time stamps and `learn:` (issue 45: refused before): the per-step motion models stay fixed and
+    the sensor's R is estimated through them - the fit's log-likelihood is the library's with per-step models
+    at the learned R, above the one at the start R; a motion model's tensors are refused with the reason."""
+    from experiments.config import ConfigError
+
+    g = torch.Generator().manual_seed(6)
+    T = 40
+    dts = [1.0] + [float(d) for d in torch.tensor([0.5, 1.0, 2.0])[torch.randint(0, 3, (T - 1,), generator=g)]]
+    t = np.cumsum(dts)
+    z = torch.randn(T, 2, 1, generator=g, dtype=torch.float64) * 3
+    path = tmp_path / "irregular.csv"
+    with path.open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["series", "t", "y"])
+        for r in range(2):
+            for k in range(T):
+                w.writerow([r, repr(float(t[k])), repr(float(z[k, r, 0]))])
+    cfg = _data_config(path, "figures=false", "metrics=[loglik]")
+    with open_dict(cfg):
+        cfg.scenario.data.truth = None
+        cfg.learn = {"parameters": [{"model": "sensors[0]", "name": "R"}], "estimators": ["IMM"], "method": "mle"}
+    validate(cfg)
+    run_study(cfg, tmp_path / "run")
+    res = json.loads((tmp_path / "run" / "results.json").read_text())
+    learned = [row for row in res["tables"]["learned"]["rows"] if row[0] == "IMM"]
+    assert len(learned) == 1
+    r = learned[0][2]
+    fit = dict(zip(res["tables"]["fit"]["columns"], res["tables"]["fit"]["rows"][0]))
+
+    def loglik(variance):
+        sensor = PositionMeasurement(2, [0], variance, dtype=torch.float64)
+
+        def bank(dt):
+            return [ConstantVelocity(1, dt=dt, q=0.05, acceleration=[a], dtype=torch.float64) for a in (0.0, 1.0)]
+        imm = IMM([KalmanFilter(m, sensor) for m in bank(1.0)], torch.tensor(TRANSITION, dtype=torch.float64))
+        prior = GaussianBelief.create(PRIOR_MEAN, PRIOR_COV, dtype=torch.float64).expand(2)
+        traj = run_filter(imm, imm.initial_belief(prior), z, motions=[None] + [bank(d) for d in dts[1:]])
+        return float(traj.log_likelihood.sum())
+
+    assert fit["loglik"] == pytest.approx(loglik(r), rel=1e-9)
+    assert loglik(r) > loglik(4.0) and loglik(r) >= max(loglik(0.9 * r), loglik(1.1 * r))
+    with open_dict(cfg):
+        cfg.learn.parameters = [{"model": "modes[0]", "name": "Q"}]
+    with pytest.raises(ConfigError, match="learn.parameters=modes\\[0\\]: a motion model's tensors with irregular"):
+        validate(cfg)  # (the dry build: before any folder)

@@ -520,7 +520,10 @@ def _nobs(measurements: Tensor, burn: int, batch_dims: int) -> int:
 @entry_point(filter=Of(Filter), belief0=Of(Belief, callable_ok=True, what="a belief or a function filter -> belief"),
              measurements=Data(),
              parameters=Of(Mapping, what="a mapping {tensor name: Param or kind}"),
-             controls=Data(optional=True), update_first=Flag(), burn=Int(0),
+             controls=Data(optional=True),
+             motions=Of((list, tuple), callable_ok=True, optional=True,
+                        what="a sequence of T models, a callable k -> model, or None"),
+             update_first=Flag(), burn=Int(0),
              method=Choice("L-BFGS-B", "BFGS", "CG", "TNC", "SLSQP", "trust-constr"),
              se=Flag(), hessian=Choice("differences", "autograd"), tol=Real(positive=True, optional=True),
              maxiter=Int(1, optional=True),
@@ -528,7 +531,8 @@ def _nobs(measurements: Tensor, burn: int, batch_dims: int) -> int:
 @one_thread_when_small(lambda filter, belief0, measurements, *args, **kwargs:
                        measurements[0].numel() * max(1, getattr(filter, "num_modes", 1) or 1) * 8)
 def estimate(filter: Filter, belief0: Belief | Callable[[Filter], Belief], measurements: Tensor,
-        parameters: Mapping[str, Param | str], *, controls: Tensor | None = None, update_first: bool = False,
+        parameters: Mapping[str, Param | str], *, controls: Tensor | None = None, motions: Any = None,
+        update_first: bool = False,
         burn: int = 0, method: str = "L-BFGS-B", se: bool = True, hessian: str = "differences",
         tol: float | None = None,
         maxiter: int | None = None, write: bool = True, progress: bool | str | None = None) -> Estimate:
@@ -550,6 +554,9 @@ def estimate(filter: Filter, belief0: Belief | Callable[[Filter], Belief], measu
             ``"belief0.components.mean"``): a field the belief broadcasts (an ``expand``-ed view) is one
             value for every run or mode it is broadcast to, a materialised one a value each.
         controls: ``(T, *B, k)`` inputs ``u_k`` of the motion models (e.g. regressors).
+        motions: per-step motion models (irregular time stamps: one model per step,
+            :func:`~torchmm.run_filter`'s ``motions``), or None. The estimated tensors are the filter's:
+            those of the per-step models are fixed (a motion's own tensors are not shared with them).
         update_first: ``belief0`` is the prior of the first measurement.
         burn: the first steps' log-likelihood terms left out.
         method: ``scipy.optimize.minimize``'s (a gradient method).
@@ -596,7 +603,7 @@ def estimate(filter: Filter, belief0: Belief | Callable[[Filter], Belief], measu
     sizes = [b.u0.numel() for b in blocks]
     theta0 = torch.cat([b.u0 for b in blocks]).to(torch.float64)
     objective = Objective(filter, belief0, measurements, reduction="sum", update_first=update_first,
-                          controls=controls, burn=burn)
+                          controls=controls, motions=motions, burn=burn)
     call = _Call(filter, objective, held)
 
     def substitutes(theta: Tensor) -> dict[str, Tensor]:
@@ -645,7 +652,8 @@ def estimate(filter: Filter, belief0: Belief | Callable[[Filter], Belief], measu
         if hessian == "autograd":
             with kernels.switched_off(*kernels.names()):  # the eager steps: a second derivative through them
                 eager = _Call(filter, Objective(filter, belief0, measurements, reduction="sum",
-                                                update_first=update_first, controls=controls, burn=burn), held)
+                                                update_first=update_first, controls=controls, motions=motions,
+                                                burn=burn), held)
                 H = torch.autograd.functional.hessian(
                     lambda t: torch.func.functional_call(eager, substitutes(t), (), tie_weights=False), theta)
         else:  # central differences of the exact gradient (2 k evaluations, the kernels where they apply)
