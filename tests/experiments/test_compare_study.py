@@ -7,6 +7,7 @@ import csv
 import json
 import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -206,10 +207,10 @@ def test_bad_estimator_and_reference_are_config_errors():
         validate(_compose("estimators.IMM.smooth=rts"))
 
 
-def test_irregular_time_stamps_become_per_step_motions(tmp_path):
-    """Irregular time stamps: step k predicts over t_k - t_{k-1}; equal to per-step models by hand."""
-    g = torch.Generator().manual_seed(5)
-    T = 15
+def _irregular(tmp_path: Path, seed: int, T: int) -> tuple[list[float], torch.Tensor, Any]:
+    """Two series of ``T`` irregularly stamped measurements (steps of 0.5, 1 or 2) in a CSV without truth:
+    ``(dts, z (T, 2, 1), the study's config over it)``."""
+    g = torch.Generator().manual_seed(seed)
     dts = [1.0] + [float(d) for d in torch.tensor([0.5, 1.0, 2.0])[torch.randint(0, 3, (T - 1,), generator=g)]]
     t = np.cumsum(dts)
     z = torch.randn(T, 2, 1, generator=g, dtype=torch.float64) * 3
@@ -223,6 +224,23 @@ def test_irregular_time_stamps_become_per_step_motions(tmp_path):
     cfg = _data_config(path, "figures=false", "metrics=[loglik]")
     with open_dict(cfg):
         cfg.scenario.data.truth = None
+    return dts, z, cfg
+
+
+def _per_step_loglik(sensor, dts: list[float], z: torch.Tensor) -> float:
+    """The library's IMM log-likelihood of ``z`` (summed over the series) with one motion model per step."""
+    def bank(dt):
+        return [ConstantVelocity(1, dt=dt, q=0.05, acceleration=[a], dtype=torch.float64) for a in (0.0, 1.0)]
+
+    imm = IMM([KalmanFilter(m, sensor) for m in bank(1.0)], torch.tensor(TRANSITION, dtype=torch.float64))
+    prior = GaussianBelief.create(PRIOR_MEAN, PRIOR_COV, dtype=torch.float64).expand(2)
+    traj = run_filter(imm, imm.initial_belief(prior), z, motions=[None] + [bank(d) for d in dts[1:]])
+    return float(traj.log_likelihood.sum())
+
+
+def test_irregular_time_stamps_become_per_step_motions(tmp_path):
+    """Irregular time stamps: step k predicts over t_k - t_{k-1}; equal to per-step models by hand."""
+    dts, z, cfg = _irregular(tmp_path, 5, 15)
     validate(cfg)
     run_study(cfg, tmp_path / "run")
     res = json.loads((tmp_path / "run" / "results.json").read_text())
@@ -284,21 +302,8 @@ def test_learning_the_sensor_with_irregular_time_stamps(tmp_path):
     at the learned R, above the one at the start R; a motion model's tensors are refused with the reason."""
     from experiments.config import ConfigError
 
-    g = torch.Generator().manual_seed(6)
-    T = 40
-    dts = [1.0] + [float(d) for d in torch.tensor([0.5, 1.0, 2.0])[torch.randint(0, 3, (T - 1,), generator=g)]]
-    t = np.cumsum(dts)
-    z = torch.randn(T, 2, 1, generator=g, dtype=torch.float64) * 3
-    path = tmp_path / "irregular.csv"
-    with path.open("w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(["series", "t", "y"])
-        for r in range(2):
-            for k in range(T):
-                w.writerow([r, repr(float(t[k])), repr(float(z[k, r, 0]))])
-    cfg = _data_config(path, "figures=false", "metrics=[loglik]")
+    dts, z, cfg = _irregular(tmp_path, 6, 40)
     with open_dict(cfg):
-        cfg.scenario.data.truth = None
         cfg.learn = {"parameters": [{"model": "sensors[0]", "name": "R"}], "estimators": ["IMM"], "method": "mle"}
     validate(cfg)
     run_study(cfg, tmp_path / "run")
@@ -309,14 +314,7 @@ def test_learning_the_sensor_with_irregular_time_stamps(tmp_path):
     fit = dict(zip(res["tables"]["fit"]["columns"], res["tables"]["fit"]["rows"][0]))
 
     def loglik(variance):
-        sensor = PositionMeasurement(2, [0], variance, dtype=torch.float64)
-
-        def bank(dt):
-            return [ConstantVelocity(1, dt=dt, q=0.05, acceleration=[a], dtype=torch.float64) for a in (0.0, 1.0)]
-        imm = IMM([KalmanFilter(m, sensor) for m in bank(1.0)], torch.tensor(TRANSITION, dtype=torch.float64))
-        prior = GaussianBelief.create(PRIOR_MEAN, PRIOR_COV, dtype=torch.float64).expand(2)
-        traj = run_filter(imm, imm.initial_belief(prior), z, motions=[None] + [bank(d) for d in dts[1:]])
-        return float(traj.log_likelihood.sum())
+        return _per_step_loglik(PositionMeasurement(2, [0], variance, dtype=torch.float64), dts, z)
 
     assert fit["loglik"] == pytest.approx(loglik(r), rel=1e-9)
     assert loglik(r) > loglik(4.0) and loglik(r) >= max(loglik(0.9 * r), loglik(1.1 * r))

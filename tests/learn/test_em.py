@@ -305,22 +305,26 @@ def test_switching_em_step_is_statsmodels_for_the_regimes_measurements(fedfunds)
     np.testing.assert_allclose(_regime_params(imm)[2:], theirs[2:], rtol=1e-9)
 
 
-def test_switching_em_with_regressors_batched_over_series():
-    """A simulated 2-regime regression y = c_s + b_s x + e (3 series sharing the parameters, the regressor
-    as the motion model's input): EM and L-BFGS-B reach the same optimum (1e-5)."""
-    g = torch.Generator().manual_seed(7)
-    T, runs = 120, 3
+def _regression_data(seed: int = 11, T: int = 150, runs: int = 2, *, slopes=(0.7, 0.7), sds=(0.5, 1.5)):
+    """A simulated 2-regime regression y = c_s + b_s x + e_s (constants 0 and 2, transition [[0.9, 0.1],
+    [0.2, 0.8]]) over ``runs`` series: ``y (T, runs, 1)`` and the regressor ``x (T, runs, 1)``."""
+    g = torch.Generator().manual_seed(seed)
     P = torch.tensor([[0.9, 0.1], [0.2, 0.8]], dtype=F64)
     s = torch.zeros(runs, dtype=torch.long)
     x = torch.randn(T, runs, dtype=F64, generator=g)
     ys = []
     for t in range(T):
         s = torch.multinomial(P[s], 1, generator=g)[:, 0]
-        c, b, sd = torch.tensor([0.0, 2.0], dtype=F64)[s], torch.tensor([1.0, -0.5], dtype=F64)[s], \
-            torch.tensor([0.5, 1.0], dtype=F64)[s]
+        c, b, sd = (torch.tensor(v, dtype=F64)[s] for v in ((0.0, 2.0), slopes, sds))
         ys.append(c + b * x[t] + sd * torch.randn(runs, dtype=F64, generator=g))
-    y = torch.stack(ys).unsqueeze(-1)
-    u = x.unsqueeze(-1)  # (T, runs, 1)
+    return torch.stack(ys).unsqueeze(-1), x.unsqueeze(-1)
+
+
+def test_switching_em_with_regressors_batched_over_series():
+    """A simulated 2-regime regression y = c_s + b_s x + e (3 series sharing the parameters, the regressor
+    as the motion model's input): EM and L-BFGS-B reach the same optimum (1e-5)."""
+    T, runs = 120, 3
+    y, u = _regression_data(7, T, runs, slopes=(1.0, -0.5), sds=(0.5, 1.0))  # u (T, runs, 1)
 
     def build():
         from torchmm import IMM
@@ -344,18 +348,6 @@ def test_switching_em_with_regressors_batched_over_series():
     np.testing.assert_allclose(at_em[2:], [0.0, 1.0, 2.0, -0.5, 0.25, 1.0], atol=0.35)  # near the truth
 
 
-def _regression_data(seed: int = 11, T: int = 150, runs: int = 2):
-    """A 2-regime regression y = c_s + b x + e_s: the slope b shared, the constants and variances switching."""
-    g = torch.Generator().manual_seed(seed)
-    P = torch.tensor([[0.9, 0.1], [0.2, 0.8]], dtype=F64)
-    s = torch.zeros(runs, dtype=torch.long)
-    x = torch.randn(T, runs, dtype=F64, generator=g)
-    ys = []
-    for t in range(T):
-        s = torch.multinomial(P[s], 1, generator=g)[:, 0]
-        c, sd = torch.tensor([0.0, 2.0], dtype=F64)[s], torch.tensor([0.5, 1.5], dtype=F64)[s]
-        ys.append(c + 0.7 * x[t] + sd * torch.randn(runs, dtype=F64, generator=g))
-    return torch.stack(ys).unsqueeze(-1), x.unsqueeze(-1)
 
 
 def _regression_imm(runs: int, H, transition):

@@ -322,19 +322,7 @@ class Prepared:
             if status[0]:
                 return None
             _, logmu, x, P = outs
-            M, n, T = self.M, self.n, self.z.shape[0]
-            F, b, Q = (np.ascontiguousarray(np.broadcast_to(_np(t), w))
-                       for t, w in zip(models[:3], ((M, n, n), (M, n), (M, n, n))))
-            dtype = logmu.dtype
-            out = [torch.empty(T, self.runs, M, dtype=dtype), torch.empty(T, self.runs, M, n, dtype=dtype),
-                   torch.empty(T, self.runs, M, n, n, dtype=dtype)]
-            finfo = torch.finfo(dtype)
-            load().kim(F, b, Q, _np(models[5].log()), logmu.numpy(), x.numpy(), P.numpy(), finfo.eps, finfo.tiny,
-                       *[o.numpy() for o in out])
-        slogmu, sx, sP = (o.reshape(T, *self.batch, *o.shape[2:]) for o in out)
-        if self.kalman:
-            return GaussianBelief(sx.squeeze(-2), sP.squeeze(-3))
-        return ModeBelief(slogmu, GaussianBelief(sx, sP))
+            return _kim(models, logmu, x, P, tuple(self.batch), self.kalman)
 
 
 class LinearKernel:
@@ -487,24 +475,34 @@ class LinearKernel:
         wide = ((M, n, n), (M, n), (M, n, n))
         if not all(_broadcasts(t.shape, w) for t, w in zip(models[:3], wide)):
             return "the models' parameters are batched over more than the modes"
-        F, b, Q = (np.ascontiguousarray(np.broadcast_to(_np(t), w)) for t, w in zip(models[:3], wide))
-        Pi = models[5]
         kalman = model.rule == "kalman"
 
         def run():
-            loops = load()
-            np_ = lambda t: t.detach().contiguous().numpy()  # noqa: E731
-            flat = [np_(t.reshape(steps, runs, *t.shape[1 + len(batch):])) for t in (logmu, mean, cov)]
-            out = [torch.empty(steps, runs, M, dtype=dtype), torch.empty(steps, runs, M, n, dtype=dtype),
-                   torch.empty(steps, runs, M, n, n, dtype=dtype)]
-            finfo = torch.finfo(dtype)
-            loops.kim(F, b, Q, np_(Pi.log()), *flat, finfo.eps, finfo.tiny, *[o.numpy() for o in out])
-            slogmu, sx, sP = (o.reshape(steps, *batch, *o.shape[2:]) for o in out)
-            if kalman:
-                return GaussianBelief(sx.squeeze(-2), sP.squeeze(-3))
-            return ModeBelief(slogmu, GaussianBelief(sx, sP))
+            flat = [t.detach().reshape(steps, runs, *t.shape[1 + len(batch):]).contiguous()
+                    for t in (logmu, mean, cov)]
+            return _kim(models, *flat, tuple(batch), kalman)
 
         return run
+
+
+def _kim(models: tuple, logmu: Tensor, x: Tensor, P: Tensor, batch: tuple, kalman: bool) -> Any:
+    """Kim's smoother (one mode: RTS) of a filtered run in the compiled loop: the models ``_models``
+    gives, the run's ``logmu (T, runs, M)``, ``x (T, runs, M, n)``, ``P (T, runs, M, n, n)`` (contiguous)
+    -> the smoothed beliefs, batch ``(T, *batch)`` (a GaussianBelief for one Kalman filter)."""
+    steps, runs, M = logmu.shape
+    n = x.shape[-1]
+    F, b, Q = (np.ascontiguousarray(np.broadcast_to(_np(t), w))
+               for t, w in zip(models[:3], ((M, n, n), (M, n), (M, n, n))))
+    dtype = logmu.dtype
+    out = [torch.empty(steps, runs, M, dtype=dtype), torch.empty(steps, runs, M, n, dtype=dtype),
+           torch.empty(steps, runs, M, n, n, dtype=dtype)]
+    finfo = torch.finfo(dtype)
+    load().kim(F, b, Q, _np(models[5].log()), logmu.numpy(), x.numpy(), P.numpy(), finfo.eps, finfo.tiny,
+               *[o.numpy() for o in out])
+    slogmu, sx, sP = (o.reshape(steps, *batch, *o.shape[2:]) for o in out)
+    if kalman:
+        return GaussianBelief(sx.squeeze(-2), sP.squeeze(-3))
+    return ModeBelief(slogmu, GaussianBelief(sx, sP))
 
 
 def _as_bool(flags: Tensor) -> Tensor:
