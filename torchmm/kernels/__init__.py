@@ -411,27 +411,23 @@ def _flatten(tree: Any, leaves: list, structure: list) -> None:
 TABLE = (
     ("linear_gaussian", "torchmm.kernels.linear", "LINEAR", ("MAX_RUNS", "LONG_RUN")),
     ("batch_last", "torchmm.kernels.batch_last.imm", "BATCH_LAST", ("MAX_STATE",)),
-    ("batch_last_transfer", "torchmm.kernels.batch_last.transfer", "TRANSFER", ()),
-    ("batch_last_transfer_large", "torchmm.kernels.batch_last.transfer", "TRANSFER_LARGE", ()),
+    ("batch_last_transfer", "torchmm.kernels.batch_last.transfer", "TRANSFER", ("MAX_STATE",)),
+    ("batch_last_transfer_large", "torchmm.kernels.batch_last.transfer", "TRANSFER_LARGE",
+     ("MAX_STATE", "LARGE_STATE", "LARGE_BATCH")),
     ("batch_last_nonlinear", "torchmm.kernels.batch_last.nonlinear", "NONLINEAR", ("MIN_BATCH",)),
-    ("batch_last_smooth_large", "torchmm.kernels.batch_last.smooth", "LARGE_SMOOTHER", ()),
+    ("batch_last_smooth_large", "torchmm.kernels.batch_last.smooth", "LARGE_SMOOTHER", ("LARGE_STATE", "LARGE_BATCH")),
 )
 
 
 def table() -> list[tuple[str, str, dict]]:
     """:data:`TABLE` as it stands: ``(name, module, {threshold: value})`` in the order tried (the
-    thresholds as the modules hold them now; the transfer kernels' are the batch-last module's
-    ``LARGE_STATE`` and ``LARGE_BATCH``)."""
+    thresholds as the kernel's module holds them now)."""
     import importlib
 
     out = []
     for name, module, _, thresholds in TABLE:
         mod = importlib.import_module(module)
-        values = {key: getattr(mod, key) for key in thresholds}
-        if name == "batch_last_transfer_large":
-            imm = importlib.import_module("torchmm.kernels.batch_last.imm")
-            values = {"MAX_STATE": imm.MAX_STATE, "LARGE_STATE": imm.LARGE_STATE, "LARGE_BATCH": imm.LARGE_BATCH}
-        out.append((name, module, values))
+        out.append((name, module, {key: getattr(mod, key) for key in thresholds}))
     return out
 
 
