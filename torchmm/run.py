@@ -208,7 +208,7 @@ def run_filter(
     if isinstance(measurements, Tensor) and meas_dim is not None:
         check_measurement(measurements[0], meas_dim, belief0.batch_shape, _first_tensor(belief0, leaves[0]),
                           "measurements")
-    elif isinstance(measurements, Tensor):  # not a sensor's: the filter's own check (an association's scans)
+    elif isinstance(measurements, Tensor) or getattr(filter, "checks_pytrees", False):  # not a sensor's: the filter's own check
         filter.check_measurements(measurements, belief0.batch_shape, "measurements")
     if controls is not None:
         if not isinstance(controls, Tensor) or controls.dim() < 2:

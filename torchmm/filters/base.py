@@ -50,6 +50,9 @@ class Filter(nn.Module):
     #: the number of trailing axes of one measurement: 1 for ``(*B, m)``; a set of detections
     #: ``(*B, D, m)`` (torchmm.association.PDA) has 2. Combinators insert their mode axes before them.
     measurement_rank: int = 1
+    #: True for filters whose data is a pytree of their own that :meth:`check_measurements` checks
+    #: (:class:`~torchmm.association.SequentialSensors`' SensorScans); run_filter then calls it
+    checks_pytrees: bool = False
 
     def informative(self, z: Tensor) -> Tensor:
         """``(*B,)`` bool: where the measurement ``z`` carries information (the engine's "observed";
