@@ -337,19 +337,25 @@ class DetectionScans:
     ``GNN`` take (``torch.as_tensor(scans.z)``), as :func:`torchmm.simulate.simulate_detections` makes.
 
     Shapes:
-        z: ``(T, runs, D, m)``, NaN where ``present`` is False
-        present: ``(T, runs, D)`` bool (the detections of a scan first, in file order)
+        z: ``(T, runs, D, m)``, NaN where ``present`` is False; with a sensor column ``(T, runs, S, D, m)``
+        present: ``(T, runs, D)`` bool (the detections of a scan first, in file order; ``(T, runs, S, D)``
+            with a sensor column)
         times: ``(T,)`` the scans' time stamps (the union over the series, increasing)
+        reported: ``(T, runs)`` bool (``(T, runs, S)``): the file has a row there (a detection or an empty
+            scan's row)
+        sensors: the sensor column's values in order of appearance (None without one)
     """
 
     z: np.ndarray
     present: np.ndarray
     times: np.ndarray
     series: list[str]
+    reported: np.ndarray | None = None
+    sensors: list[str] | None = None
 
 
 def read_detections(path: str | Path, *, measurements: list[str], time: str, series: str | None = None,
-                    base: Path | None = None) -> DetectionScans:
+                    sensor: str | None = None, base: Path | None = None) -> DetectionScans:
     """Read detections, one per row (CSV) or per entry (NPZ), into padded scans.
 
     The rows with the same time stamp (and series) are one scan; the scans are every time stamp that
@@ -365,6 +371,8 @@ def read_detections(path: str | Path, *, measurements: list[str], time: str, ser
         time: the time-stamp column (finite).
         series: optional column whose values name the series (runs), e.g. recordings of several
             sensors or days; NPZ: a numeric array.
+        sensor: optional column naming each row's sensor (several sensors in one recording): the scans
+            get a sensor axis, ``z (T, runs, S, D, m)``, a sensor's scan at a time stamp holding its rows.
 
     Raises:
         DataFileError: naming the file, the column and the row (CSV line, header = 1; NPZ entry index),
@@ -379,12 +387,13 @@ def read_detections(path: str | Path, *, measurements: list[str], time: str, ser
     measurements = _columns(measurements, "measurements")
     if time is None:
         raise TypeError("time: expected the time-stamp column's name, got None")
-    time, series = _column(time, "time"), _column(series, "series")
+    time, series, sensor = _column(time, "time"), _column(series, "series"), _column(sensor, "sensor")
     file = _locate(path, base, measurements)
     wanted = measurements + [time]
     suffix = file.suffix.lower()
+    sensor_labels = None
     if suffix == ".npz":
-        arrays = _read_npz(file, wanted + ([series] if series else []))
+        arrays = _read_npz(file, wanted + ([series] if series else []) + ([sensor] if sensor else []))
         if any(a.shape[1] != 1 for a in arrays.values()):
             raise DataFileError(f"{file}: expected one (K,) array per column, one entry per detection")
         values = {c: list(arrays[c][:, 0]) for c in wanted}
@@ -395,9 +404,16 @@ def read_detections(path: str | Path, *, measurements: list[str], time: str, ser
                                     "missing (every entry names its series)")
         labels = [f"{v:g}" for v in arrays[series][:, 0]] if series else ["0"] * len(values[time])
         where, what = list(range(len(labels))), "entry"
+        if sensor:
+            missing = np.flatnonzero(np.isnan(arrays[sensor][:, 0]))
+            if len(missing):
+                raise DataFileError(f"{file}: column {sensor!r}, entry {int(missing[0])}: the sensor is missing "
+                                    "(every entry names its sensor)")
+            sensor_labels = [f"{v:g}" for v in arrays[sensor][:, 0]]
     elif suffix == ".csv":
-        values, where = _read_csv(file, wanted, series)
+        values, where = _read_csv(file, wanted, series, names=[sensor] if sensor else ())
         labels = values.pop(series) if series else ["0"] * len(where)
+        sensor_labels = values.pop(sensor) if sensor else None
         what = "row"
     else:
         raise DataFileError(f"{file}: expected a .csv or .npz file")
@@ -415,22 +431,30 @@ def read_detections(path: str | Path, *, measurements: list[str], time: str, ser
                             "(leave every measurement cell of a row empty to record an empty scan)")
     grid = np.unique(stamps)
     order = list(dict.fromkeys(labels))
+    sensors = list(dict.fromkeys(sensor_labels)) if sensor_labels is not None else ["0"]
     run_of = {s: j for j, s in enumerate(order)}
+    sensor_of = {s: j for j, s in enumerate(sensors)}
     scan_of = np.searchsorted(grid, stamps)
+    cell = [(scan_of[i], run_of[labels[i]], sensor_of[sensor_labels[i]] if sensor_labels is not None else 0)
+            for i in range(len(stamps))]
     detected = finite.all(-1)
-    counts = np.zeros((len(grid), len(order)), dtype=int)
-    for i in np.flatnonzero(detected):
-        counts[scan_of[i], run_of[labels[i]]] += 1
+    counts = np.zeros((len(grid), len(order), len(sensors)), dtype=int)
+    reported = np.zeros(counts.shape, dtype=bool)
+    for i, at in enumerate(cell):
+        reported[at] = True
+        counts[at] += int(detected[i])
     D = int(counts.max()) if counts.size else 0
-    z = np.full((len(grid), len(order), D, len(measurements)), np.nan)
-    present = np.zeros((len(grid), len(order), D), dtype=bool)
+    z = np.full((*counts.shape, D, len(measurements)), np.nan)
+    present = np.zeros((*counts.shape, D), dtype=bool)
     fill = np.zeros_like(counts)
     for i in np.flatnonzero(detected):
-        k, r = scan_of[i], run_of[labels[i]]
-        z[k, r, fill[k, r]] = z_rows[i]
-        present[k, r, fill[k, r]] = True
-        fill[k, r] += 1
-    return DetectionScans(z, present, grid, order)
+        at = cell[i]
+        z[at + (fill[at],)] = z_rows[i]
+        present[at + (fill[at],)] = True
+        fill[at] += 1
+    if sensor_labels is None:  # no sensor axis
+        return DetectionScans(z[:, :, 0], present[:, :, 0], grid, order, reported[:, :, 0])
+    return DetectionScans(z, present, grid, order, reported, sensors)
 
 
 @dataclass

@@ -97,6 +97,7 @@ class TrackingDetections:
     measurements: List[str] = spec(factory=list, check=non_empty)
     time: str = "???"
     series: Optional[str] = None
+    sensor: Optional[str] = None  # a column naming each row's sensor (tracking.sensors' names)
     truth: Optional[TrackingTruthFile] = None
     start: Optional[TrackingStartFile] = None
 
@@ -124,6 +125,7 @@ class TrackingSection:
     gospa_switching: float = spec(MISSING, non_negative)
     lifetimes: Optional[List[List[int]]] = MISSING
     waypoints: Optional[List[Any]] = MISSING  # per target [[scan, x, y], ...] (checked in _check_waypoints)
+    sensors: Optional[List[Any]] = MISSING  # [{name, R, detection_probability, clutter_rate, period, offset}]
     management: TrackManagement = field(default_factory=TrackManagement)
     jpda: JPDASettings = field(default_factory=JPDASettings)
     mht: MHTSettings = field(default_factory=MHTSettings)
@@ -139,6 +141,7 @@ class Tracking:
     @staticmethod
     def check(data: dict) -> None:
         t = data["tracking"]
+        _check_sensors(t)
         if t["maneuver_start"] > t["maneuver_stop"]:
             raise ConfigError("tracking.maneuver_start", t["maneuver_start"], f"is after maneuver_stop "
                               f"({t['maneuver_stop']}): the manoeuvre spans the scans [maneuver_start, maneuver_stop)")
@@ -229,3 +232,64 @@ def _check_management(t: dict) -> None:
     mn = m["m_of_n"]
     if mn is not None and (len(mn) != 2 or mn[0] > mn[1]):
         raise ConfigError("tracking.management.m_of_n", mn, "expected [M, N] with 1 <= M <= N")
+
+
+#: a sensor's keys (tracking.sensors[i]); period and offset are optional (tracking.dt and 0)
+SENSOR_KEYS = {"name": None, "R": positive, "detection_probability": _unit_interval_closed_above,
+               "clutter_rate": positive, "period": positive, "offset": non_negative}
+
+
+def _check_sensors(t: dict) -> None:
+    """``tracking.sensors``: each ``{name, R, detection_probability, clutter_rate}`` with optional
+    ``period`` (a whole multiple of ``dt``) and ``offset`` (a whole multiple of ``dt`` below the period);
+    distinct names; with a detections file, its ``sensor`` column when there are several."""
+    sensors, dt = t["sensors"], t["dt"]
+    column = (t["detections"] or {}).get("sensor")
+    if sensors is None:
+        if column is not None:
+            raise ConfigError("tracking.sensors", None, f"missing: tracking.detections.sensor ({column!r}) names "
+                              "each row's sensor; list the sensors (name, R, detection_probability, clutter_rate)")
+        return
+    if not isinstance(sensors, list) or not sensors:
+        raise ConfigError("tracking.sensors", sensors, "expected a list of sensors, each {name, R, "
+                          "detection_probability, clutter_rate, period, offset}")
+    names = []
+    for i, sensor in enumerate(sensors):
+        key = f"tracking.sensors[{i}]"
+        if not isinstance(sensor, dict):
+            raise ConfigError(key, sensor, "expected {name, R, detection_probability, clutter_rate} (period, "
+                              "offset optional)")
+        unknown = sorted(set(sensor) - set(SENSOR_KEYS))
+        if unknown:
+            raise ConfigError(f"{key}.{unknown[0]}", sensor[unknown[0]], f"not a sensor's key (keys: "
+                              f"{', '.join(SENSOR_KEYS)})")
+        for name, check in SENSOR_KEYS.items():
+            value = sensor.get(name)
+            if value is None:
+                if name in ("period", "offset"):
+                    continue
+                raise ConfigError(f"{key}.{name}", NO_VALUE, "missing")
+            if name == "name":
+                if not isinstance(value, str) or not value.strip():
+                    raise ConfigError(f"{key}.name", value, "expected the sensor's name (text)")
+                continue
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise ConfigError(f"{key}.{name}", value, "expected a number")
+            why = check(value)
+            if why:
+                raise ConfigError(f"{key}.{name}", value, why)
+        period = sensor.get("period") or dt
+        for name, value in (("period", period), ("offset", sensor.get("offset") or 0.0)):
+            ratio = value / dt
+            if abs(ratio - round(ratio)) > 1e-9 * max(1.0, ratio):
+                raise ConfigError(f"{key}.{name}", value, f"must be a whole multiple of tracking.dt ({dt:g}), the "
+                                  "scans' grid")
+        if (sensor.get("offset") or 0.0) >= period:
+            raise ConfigError(f"{key}.offset", sensor["offset"], f"must be below the sensor's period ({period:g})")
+        names.append(sensor["name"])
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:
+        raise ConfigError("tracking.sensors", names, f"the sensor {twice[0]!r} is named twice")
+    if t["detections"] is not None and len(sensors) > 1 and column is None:
+        raise ConfigError("tracking.detections.sensor", NO_VALUE, f"missing: {len(sensors)} sensors in "
+                          "tracking.sensors; name the column of each row's sensor")

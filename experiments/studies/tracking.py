@@ -52,6 +52,7 @@ import time
 from typing import Callable, NamedTuple
 
 import torch
+import torch.utils._pytree as pytree
 from torch import Tensor
 
 from experiments.arrays import join_runs, per_run
@@ -59,7 +60,17 @@ from experiments.executors import Unit
 from experiments.harness import StudyContext
 from experiments.studies import plots, tracking_data
 from torchmm import IMM, GaussianBelief, KalmanFilter, run_filter
-from torchmm.association import GNN, JIPDA, JPDA, MHT, PDA, ManagedTracks, position_initiator
+from torchmm.association import (
+    GNN,
+    JIPDA,
+    JPDA,
+    MHT,
+    PDA,
+    ManagedTracks,
+    SensorScans,
+    SequentialSensors,
+    position_initiator,
+)
 from torchmm.beliefs import psd_sqrt
 from torchmm.metrics import gospa, gospa_switching
 from torchmm.models import ConstantVelocity, PositionMeasurement
@@ -133,15 +144,49 @@ def simulate(t, runs: int, generator: torch.Generator, dtype=torch.float64):
     truth = torch.stack(states)
     present = lifetimes(t).unsqueeze(1).expand(T, runs, N)
     seen = truth if t.lifetimes is None else torch.where(present.unsqueeze(-1), truth, math.nan)
-    return truth, _detect(t, seen, generator, dtype), _start(t, start, generator, dtype), present
+    return truth, _scans(t, seen, generator, dtype), _start(t, start, generator, dtype), present
 
 
-def _detect(t, seen: Tensor, generator: torch.Generator, dtype) -> Tensor:
-    """The scans ``(T, runs, D, 2)`` of the targets ``seen`` (NaN rows: absent) in clutter."""
-    sensor = PositionMeasurement(4, [0, 2], float(t.R), dtype=dtype)
+def sensor_list(t) -> list[dict]:
+    """The sensors: ``tracking.sensors``, or the one of ``tracking.R``, ``detection_probability`` and
+    ``clutter_rate`` (every scan); each ``{name, R, detection_probability, clutter_rate, period, offset}``."""
+    given = t.get("sensors")
+    if given is None:
+        return [{"name": "sensor", "R": float(t.R), "detection_probability": float(t.detection_probability),
+                 "clutter_rate": float(t.clutter_rate), "period": float(t.dt), "offset": 0.0}]
+    return [{"name": str(s["name"]), "R": float(s["R"]), "detection_probability": float(s["detection_probability"]),
+             "clutter_rate": float(s["clutter_rate"]), "period": float(s.get("period") or t.dt),
+             "offset": float(s.get("offset") or 0.0)} for s in given]
+
+
+def schedule(t, T: int) -> Tensor:
+    """``(T, S)`` bool: which sensor reports at which scan (``offset``, then every ``period``)."""
+    dt, k = float(t.dt), torch.arange(T)
+    steps = [(round(s["period"] / dt), round(s["offset"] / dt)) for s in sensor_list(t)]
+    return torch.stack([(k >= o) & ((k - o) % p == 0) for p, o in steps], -1)
+
+
+def _scans(t, seen: Tensor, generator: torch.Generator, dtype) -> Tensor:
+    """The scans of the targets ``seen``: ``(T, runs, D, 2)``, or with ``tracking.sensors`` each sensor's
+    ``(T, runs, S, D, 2)`` (drawn at every scan in the sensors' order, NaN where it does not report)."""
+    if t.get("sensors") is None:
+        return _detect(t, seen, generator, dtype)
+    T = seen.shape[0]
+    on = schedule(t, T)
+    zs = [torch.where(on[:, s].view(T, 1, 1, 1), _detect(t, seen, generator, dtype, sensor), math.nan)
+          for s, sensor in enumerate(sensor_list(t))]
+    D = max(z.shape[-2] for z in zs)
+    return torch.stack([torch.nn.functional.pad(z, (0, 0, 0, D - z.shape[-2]), value=math.nan) for z in zs], 2)
+
+
+def _detect(t, seen: Tensor, generator: torch.Generator, dtype, sensor: dict | None = None) -> Tensor:
+    """The scans ``(T, runs, D, 2)`` of the targets ``seen`` (NaN rows: absent) in clutter, by ``sensor``
+    (:func:`sensor_list`; the study's one by default)."""
+    sensor = sensor or sensor_list(t)[0]
+    model = PositionMeasurement(4, [0, 2], sensor["R"], dtype=dtype)
     L = float(t.region)
-    rate = float(t.clutter_rate)
-    return simulate_detections(sensor, seen, detection_probability=float(t.detection_probability),
+    rate = sensor["clutter_rate"]
+    return simulate_detections(model, seen, detection_probability=sensor["detection_probability"],
                                clutter_rate=rate, region=torch.tensor([[-L, L], [-L, L]], dtype=dtype),
                                max_clutter=int(rate + 6 * math.sqrt(rate) + 5), generator=generator).z
 
@@ -158,7 +203,7 @@ def _simulate_waypoints(t, runs: int, generator: torch.Generator, dtype):
     truth = states.unsqueeze(1).expand(T, runs, N, 4)
     present = exists.unsqueeze(1).expand(T, runs, N)
     seen = torch.where(present.unsqueeze(-1), truth, math.nan)
-    return truth, _detect(t, seen, generator, dtype), _start(t, before.expand(runs, N, 4), generator, dtype), present
+    return truth, _scans(t, seen, generator, dtype), _start(t, before.expand(runs, N, 4), generator, dtype), present
 
 
 class Estimator(NamedTuple):
@@ -170,15 +215,26 @@ class Estimator(NamedTuple):
 
 def estimators(t, dtype, targets: int | None = None) -> dict[str, Estimator]:
     """The configured estimators by name (``targets``: the tracks of the fixed-track estimators, the
-    start file's where one is read; ``tracking.targets`` by default)."""
+    start file's where one is read; ``tracking.targets`` by default). With ``tracking.sensors`` each is
+    a :class:`~torchmm.association.SequentialSensors` of the estimator built for each sensor (its
+    ``R``, detection probability and clutter density), which takes :class:`SensorScans`."""
+    if t.get("sensors") is None:
+        return _estimators(t, dtype, targets, sensor_list(t)[0])
+    each = [_estimators(t, dtype, targets, sensor) for sensor in sensor_list(t)]
+    return {name: first._replace(filter=SequentialSensors([made[name].filter for made in each]))
+            for name, first in each[0].items()}
+
+
+def _estimators(t, dtype, targets: int | None, scanner: dict) -> dict[str, Estimator]:
+    """The estimators over one sensor (:func:`sensor_list`'s)."""
     bank = _bank(t, dtype)
     cv = ConstantVelocity(2, dt=float(t.dt), q=float(t.q_cv), dtype=dtype)
-    sensor = PositionMeasurement(4, [0, 2], float(t.R), dtype=dtype)
+    sensor = PositionMeasurement(4, [0, 2], scanner["R"], dtype=dtype)
     M, stay = 3, float(t.stay)
     off = (1 - stay) / (M - 1)
     Pi = torch.full((M, M), off, dtype=dtype) + (stay - off) * torch.eye(M, dtype=dtype)
-    opts = {"detection_probability": float(t.detection_probability),
-            "clutter_density": float(t.clutter_rate) / (2 * float(t.region)) ** 2,
+    opts = {"detection_probability": scanner["detection_probability"],
+            "clutter_density": scanner["clutter_rate"] / (2 * float(t.region)) ** 2,
             "gate_probability": float(t.gate_probability)}
     imm = IMM(KalmanFilter(bank, sensor), Pi)
     jp = t.get("jpda") or {}
@@ -193,8 +249,8 @@ def estimators(t, dtype, targets: int | None = None) -> dict[str, Estimator]:
         "IMM-MHT": lambda: _mht(t, imm, opts),
         "IMM-PDAF": lambda: _per_track(IMM(PDA(KalmanFilter(bank, sensor), **opts), Pi)),
         "GNN-IMM": lambda: Estimator(GNN(imm, **opts), imm.initial_belief, False, False),
-        "JIPDA-TM": lambda: _managed(t, KalmanFilter(cv, sensor), opts, dtype),
-        "IMM-JIPDA-TM": lambda: _managed(t, imm, opts, dtype),
+        "JIPDA-TM": lambda: _managed(t, KalmanFilter(cv, sensor), opts, dtype, scanner["R"]),
+        "IMM-JIPDA-TM": lambda: _managed(t, imm, opts, dtype, scanner["R"]),
     }
     return {name: made[name]() for name in t.estimators}
 
@@ -213,12 +269,13 @@ def _per_track(filt) -> Estimator:
     return Estimator(filt, filt.initial_belief, True, False)
 
 
-def _managed(t, filt, opts: dict, dtype) -> Estimator:
-    """``ManagedTracks(JIPDA(filt))`` with ``tracking.management``'s settings."""
+def _managed(t, filt, opts: dict, dtype, R: float) -> Estimator:
+    """``ManagedTracks(JIPDA(filt))`` with ``tracking.management``'s settings (new tracks from the sensor's
+    detections, noise variance ``R`` per axis)."""
     m = t.management
     jipda = JIPDA(filt, survival_probability=float(m.survival_probability), method=str(m.method),
                   max_targets=max(12, int(m.capacity)), k=int(m.get("k") or 100), **opts)
-    start = position_initiator(4, [0, 2], float(t.R), float(m.velocity_variance))
+    start = position_initiator(4, [0, 2], R, float(m.velocity_variance))
     manager = ManagedTracks(jipda, capacity=int(m.capacity), initiate=start, birth_existence=float(m.birth_existence),
                             unexplained=float(m.unexplained), delete=float(m.delete), confirm=float(m.confirm),
                             m_of_n=None if m.m_of_n is None else tuple(int(v) for v in m.m_of_n),
@@ -232,7 +289,7 @@ def _data(ctx: StudyContext, start: int, stop: int):
     exist ``(T, runs, N)`` (None with no truth): simulated, or read from ``tracking.detections``."""
     t = ctx.cfg.tracking
     if t.detections is not None:
-        got = ctx.memo(("recorded",), lambda: tracking_data.read(t.detections, dt=float(t.dt), P0=list(t.P0)))
+        got = ctx.memo(("recorded",), lambda: _read(t))
         cut = slice(start, stop)
         return (None if got.truth is None else got.truth[:, cut], got.z[:, cut], got.x0[cut], got.P0[cut],
                 None if got.present is None else got.present[:, cut])
@@ -244,12 +301,19 @@ def _data(ctx: StudyContext, start: int, stop: int):
     return truth[..., [0, 2]], z, x0, P0, present
 
 
+def _read(t) -> tracking_data.Recorded:
+    """``tracking.detections``'s files (with ``tracking.sensors``: each sensor's scans on its schedule)."""
+    sensors = None if t.get("sensors") is None else [s["name"] for s in sensor_list(t)]
+    return tracking_data.read(t.detections, dt=float(t.dt), P0=list(t.P0), sensors=sensors,
+                              schedule=None if sensors is None else lambda T: schedule(t, T))
+
+
 def runs_of(ctx: StudyContext) -> int:
     """The runs: ``mc_runs``, or the detections file's series."""
     t = ctx.cfg.tracking
     if t.detections is None:
         return int(ctx.cfg.mc_runs)
-    return len(ctx.memo(("recorded",), lambda: tracking_data.read(t.detections, dt=float(t.dt), P0=list(t.P0))).series)
+    return len(ctx.memo(("recorded",), lambda: _read(t)).series)
 
 
 def check_build(cfg, scenario) -> None:
@@ -260,7 +324,7 @@ def check_build(cfg, scenario) -> None:
     t = cfg.tracking
     if t.detections is None:
         return
-    got = tracking_data.read(t.detections, dt=float(t.dt), P0=list(t.P0))
+    got = _read(t)
     K = got.x0.shape[-2]
     method = str((t.get("jpda") or {}).get("method", "exact"))
     if K > 12 and method == "exact" and any(name in ("IMM-JPDAF", "JPDAF") for name in t.estimators):
@@ -278,8 +342,9 @@ def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
     K = x0.shape[-2]
     est = estimators(t, ctx.dtype, targets=K)[name]
     belief = est.initial(GaussianBelief(x0, P0))
-    scans = z.unsqueeze(-3) if est.per_track else z  # IMM-PDAF: every track sees the run's scan
-    filt, belief, scans = est.filter.to(ctx.device), belief.to(ctx.device), scans.to(ctx.device)
+    scans = _scans_for(t, z, est.per_track)
+    filt, belief = est.filter.to(ctx.device), belief.to(ctx.device)
+    scans = pytree.tree_map(lambda v: v.to(ctx.device), scans)
     tic = time.perf_counter()
     with torch.no_grad():
         traj = run_filter(filt, belief, scans, record=None if est.managed else "estimate")
@@ -299,7 +364,7 @@ def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
                    "shown": visible[:, 0], "labels": labels[:, 0],
                    "truth": (truth[:, 0] if truth is not None else position.new_zeros(len(position), 0, 2)).cpu().double(),
                    "present": present[:, 0] if truth is not None else torch.zeros(len(position), 0, dtype=torch.bool),
-                   "detections": z[:, 0].cpu().double()}
+                   "detections": z[:, 0].reshape(len(z), -1, 2).cpu().double()}  # (every sensor's)
     common = {"picture": picture, "seconds": seconds,
               "tracks": per_run(visible.sum(-1).double()),
               "track_scans": int(position.shape[0] * position.shape[1] * position.shape[2])}
@@ -341,6 +406,27 @@ def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
         "targets": per_run(present.sum(-1).double())}
 
 
+def _sensing(t) -> str:
+    """The sensors in words, for the description."""
+    region = f"[-{t.region}, {t.region}]^2"
+    if t.get("sensors") is None:
+        return (f"P_D = {t.detection_probability}, {t.clutter_rate} clutter points a scan over {region}, "
+                f"R = {t.R}")
+    return f"{len(t.sensors)} sensors in turn (clutter over {region}): " + ", ".join(
+        f"{s['name']} (P_D = {s['detection_probability']}, {s['clutter_rate']} clutter points, R = {s['R']}, every "
+        f"{s['period']:g} from {s['offset']:g})" for s in sensor_list(t))
+
+
+def _scans_for(t, z: Tensor, per_track: bool):
+    """The estimators' data: the scans ``z (T, runs, D, 2)`` (IMM-PDAF: every track sees the run's scan),
+    or with ``tracking.sensors`` ``z (T, runs, S, D, 2)`` as :class:`SensorScans` with the schedule."""
+    if t.get("sensors") is None:
+        return z.unsqueeze(-3) if per_track else z
+    T, runs, S = z.shape[:3]
+    scans = tuple(z[:, :, s].unsqueeze(-3) if per_track else z[:, :, s] for s in range(S))
+    return SensorScans(scans, schedule(t, T).unsqueeze(1).expand(T, runs, S).to(z.device))
+
+
 def run(ctx: StudyContext) -> None:
     cfg = ctx.cfg
     t = cfg.tracking
@@ -349,34 +435,33 @@ def run(ctx: StudyContext) -> None:
     ranges = ctx.run_ranges(runs)
     if t.export:  # the simulated scenario as the files tracking.detections reads
         truth, z, x0, _, _ = _data(ctx, 0, runs)
+        sensors = None if t.get("sensors") is None else [s["name"] for s in sensor_list(t)]
         tracking_data.export(ctx.output_dir / "scenario", z=z, truth=truth,
-                             present=lifetimes(t).unsqueeze(1).expand(truth.shape[:-1]), x0=x0, dt=float(t.dt))
+                             present=lifetimes(t).unsqueeze(1).expand(truth.shape[:-1]), x0=x0, dt=float(t.dt),
+                             sensors=sensors, reports=None if sensors is None else schedule(t, len(z)))
     parts = ctx.map_units([Unit(f"tracking/{name}/runs{a}-{b}", UNIT, {"name": name, "start": a, "stop": b})
                            for name in names for a, b in ranges], desc="estimators")
     scored = "distance" in parts[0] if parts else True
     d = t.detections
     if d is not None:
-        got = ctx.memo(("recorded",), lambda: tracking_data.read(d, dt=float(t.dt), P0=list(t.P0)))
+        got = ctx.memo(("recorded",), lambda: _read(t))
         ctx.results.description = (
             f"detections from `{d.path}` ({runs} series, {len(got.times)} scans every {t.dt}"
             + (f", {got.truth.shape[2]} targets in the truth file `{d.truth.path}`" if d.truth is not None else
                ", no truth file: nothing scored")
             + (f", {got.x0.shape[1]} tracks started from `{d.start.path}`" if d.start is not None else "")
-            + f"). Trackers' model: P_D = {t.detection_probability}, {t.clutter_rate} clutter points a scan over "
-            f"[-{t.region}, {t.region}]^2, R = {t.R}; {cfg.dtype}." + (f" GOSPA with c = {t.gospa_c}, p = "
+            + f"). Trackers' model: {_sensing(t)}; {cfg.dtype}." + (f" GOSPA with c = {t.gospa_c}, p = "
                                                                         f"{t.gospa_p}, alpha = 2." if scored else ""))
     elif t.get("waypoints") is not None:
         ctx.results.description = (
             f"{len(t.waypoints)} targets flying straight between their waypoints ([scan, x, y]: "
             f"{[list(map(list, w)) for w in t.waypoints]}), each existing from its first waypoint's scan to its "
-            f"last; {t.steps} scans, P_D = {t.detection_probability}, {t.clutter_rate} clutter points a scan over "
-            f"[-{t.region}, {t.region}]^2, R = {t.R}; {runs} Monte Carlo runs (seed {cfg.seed}, {cfg.dtype}). GOSPA "
+            f"last; {t.steps} scans, {_sensing(t)}; {runs} Monte Carlo runs (seed {cfg.seed}, {cfg.dtype}). GOSPA "
             f"with c = {t.gospa_c}, p = {t.gospa_p}, alpha = 2.")
     else:
         ctx.results.description = (
             f"{t.targets} crossing targets, {t.steps} scans, manoeuvre {t.maneuver_start}-{t.maneuver_stop} "
-            f"(+-{t.maneuver_acceleration} m/s^2), P_D = {t.detection_probability}, {t.clutter_rate} clutter "
-            f"points a scan over [-{t.region}, {t.region}]^2, R = {t.R}; {runs} Monte Carlo runs (seed {cfg.seed}, "
+            f"(+-{t.maneuver_acceleration} m/s^2), {_sensing(t)}; {runs} Monte Carlo runs (seed {cfg.seed}, "
             f"{cfg.dtype}). GOSPA with c = {t.gospa_c}, p = {t.gospa_p}, alpha = 2."
             + ("" if t.lifetimes is None else f" Targets exist over scans [first, stop) = "
                                               f"{list(map(list, t.lifetimes))}."))

@@ -5,8 +5,9 @@ and the simulated scenario written as those three files (``tracking.export``).
 Files (CSV or NPZ, :mod:`experiments.datafile`):
 
 * **detections**: one row per detection, ``time`` and the two position columns (``measurements``), an
-  optional ``series`` column (each series is one run). A row with empty measurement cells records an
-  empty scan; so does a time on the scan grid with no row at all. The scans lie on the grid
+  optional ``series`` column (each series is one run) and, with ``tracking.sensors``, a ``sensor`` column
+  naming each row's sensor. A row with empty measurement cells records an empty scan; so does a time on
+  the scan grid (a sensor's: its schedule) with no row at all. The scans lie on the grid
   ``t0 + k * tracking.dt`` (``t0`` the earliest time stamp of the files), every stamp on it.
 * **truth** (optional; GOSPA and the track-quality table need it): one row per target and time stamp
   where it exists (births and deaths: the rows it has), ``time``, ``target``, the two ``position``
@@ -38,9 +39,10 @@ FILES = {"detections": "detections.csv", "truth": "truth.csv", "start": "start.c
 class Recorded(NamedTuple):
     """The study's arrays from files (float64).
 
-    Shapes: ``z (T, R, D, 2)``; ``truth (T, R, N, 2)`` positions (NaN where a target does not exist) or
-    None; ``present (T, R, N)`` bool or None; ``x0 (R, K, 4)`` and ``P0 (R, K, 4, 4)`` the tracks' start
-    (``K = 0`` without a start file); ``times (T,)``; ``series``: R labels."""
+    Shapes: ``z (T, R, D, 2)`` (``(T, R, S, D, 2)``: each sensor's); ``truth (T, R, N, 2)`` positions (NaN
+    where a target does not exist) or None; ``present (T, R, N)`` bool or None; ``x0 (R, K, 4)`` and
+    ``P0 (R, K, 4, 4)`` the tracks' start (``K = 0`` without a start file); ``times (T,)``; ``series``: R
+    labels."""
 
     z: Tensor
     truth: Tensor | None
@@ -88,12 +90,15 @@ def _series_of(rows, series: list[str], key: str, node) -> list[list[int]]:
     return [[i for i, s in enumerate(rows.series) if s == label] for label in series]
 
 
-def read(node, *, dt: float, P0: list[float]) -> Recorded:
-    """``tracking.detections``'s files as the study's arrays; every error one ConfigError naming the key."""
+def read(node, *, dt: float, P0: list[float], sensors: list[str] | None = None, schedule=None) -> Recorded:
+    """``tracking.detections``'s files as the study's arrays; every error one ConfigError naming the key.
+    With ``sensors`` (``tracking.sensors``' names) the scans are each sensor's, ``z (T, R, S, D, 2)``
+    (the file's ``sensor`` column; one sensor may go without), and ``schedule(T) -> (T, S)`` bool says
+    when each reports: a row off it is an error, a scheduled time without a row an empty scan."""
     key = "tracking.detections"
     try:
         scans = read_detections(node["path"], measurements=list(node["measurements"]), time=node["time"],
-                                series=node.get("series"))
+                                series=node.get("series"), sensor=node.get("sensor"))
     except (DataFileError, TypeError, ValueError) as err:
         raise _fail(key, node["path"], err) from None
     if scans.z.shape[-1] != 2:
@@ -122,9 +127,12 @@ def read(node, *, dt: float, P0: list[float]) -> Recorded:
         except (DataFileError, TypeError, ValueError) as err:
             raise _fail(f"{key}.start", start_node["path"], err) from None
     t0, T = _grid([scans.times, truth_rows.times if truth_rows is not None else None], dt, key)
-    R, D = scans.z.shape[1], scans.z.shape[2]
-    z = np.full((T, R, D, 2), np.nan)
-    z[_index(scans.times, t0, dt)] = scans.z
+    R = scans.z.shape[1]
+    if sensors is None:
+        z = np.full((T, R) + scans.z.shape[2:], np.nan)
+        z[_index(scans.times, t0, dt)] = scans.z
+    else:
+        z = _by_sensor(node, scans, sensors, schedule, t0, dt, T)
     truth = present = None
     if truth_rows is not None:
         targets = list(dict.fromkeys(truth_rows.target))
@@ -155,29 +163,64 @@ def read(node, *, dt: float, P0: list[float]) -> Recorded:
                     as_t(x0), as_t(cov), t0 + dt * np.arange(T), list(scans.series))
 
 
+def _by_sensor(node, scans, sensors: list[str], schedule, t0: float, dt: float, T: int) -> np.ndarray:
+    """The scans ``(T, R, S, D, 2)`` in ``sensors``' order; a row of a sensor that is not configured, or off
+    its schedule, is a ConfigError."""
+    z_file, reported = scans.z, scans.reported
+    labels = scans.sensors
+    if labels is None:  # one sensor, no column
+        z_file, reported, labels = z_file[:, :, None], reported[:, :, None], [sensors[0]]
+    unknown = [label for label in labels if label not in sensors]
+    if unknown:
+        raise ConfigError("tracking.detections.sensor", node.get("sensor"), f"sensor {unknown[0]!r} of "
+                          f"{Path(node['path']).name} is not in tracking.sensors ({', '.join(sensors)})")
+    steps = _index(scans.times, t0, dt)
+    z = np.full((T, z_file.shape[1], len(sensors)) + z_file.shape[3:], np.nan)
+    rows = np.zeros((T, z_file.shape[1], len(sensors)), dtype=bool)
+    for j, label in enumerate(labels):
+        z[steps, :, sensors.index(label)] = z_file[:, :, j]
+        rows[steps, :, sensors.index(label)] = reported[:, :, j]
+    off = rows & ~np.asarray(schedule(T))[:, None, :]
+    if off.any():
+        k, _, s = (int(v[0]) for v in np.nonzero(off))
+        raise ConfigError(f"tracking.sensors[{s}]", sensors[s], f"{Path(node['path']).name} has a row of this "
+                          f"sensor at time {t0 + k * dt:g}, off its schedule (offset + n * period from {t0:g})")
+    return z
+
+
 def _cells(values) -> list[str]:
     return [repr(float(v)) if math.isfinite(v) else "" for v in values]
 
 
-def export(folder: Path, *, z: Tensor, truth: Tensor, present: Tensor, x0: Tensor, dt: float) -> dict[str, Path]:
+def export(folder: Path, *, z: Tensor, truth: Tensor, present: Tensor, x0: Tensor, dt: float,
+           sensors: list[str] | None = None, reports: Tensor | None = None) -> dict[str, Path]:
     """Write a simulated scenario as the files :func:`read` takes (full precision: read back, every
-    number is the same): ``detections.csv`` (``time, series, x, y``; an empty row for an empty scan),
+    number is the same): ``detections.csv`` (``time, series, x, y``; an empty row for an empty scan; with
+    ``sensors`` a ``sensor`` column, a sensor's rows where ``reports`` says it reported),
     ``truth.csv`` (``time, series, target, x, y``, the rows where a target exists) and ``start.csv``
     (``series, target, x, vx, y, vy``).
 
-    Shapes: ``z (T, R, D, 2)``, ``truth (T, R, N, 2)``, ``present (T, R, N)``, ``x0 (R, N, 4)``."""
+    Shapes: ``z (T, R, D, 2)`` (with sensors ``(T, R, S, D, 2)`` and ``reports (T, S)``), ``truth (T, R, N,
+    2)``, ``present (T, R, N)``, ``x0 (R, N, 4)``."""
     folder.mkdir(parents=True, exist_ok=True)
     paths = {name: folder / file for name, file in FILES.items()}
     z, truth, present, x0 = (v.detach().cpu().double().numpy() if v.is_floating_point() else v.cpu().numpy()
                              for v in (z, truth, present, x0))
     T, R = z.shape[:2]
-    lines = ["time,series,x,y"]
+    if sensors is None:
+        z, on, names, lines = z[:, :, None], np.ones((T, 1), dtype=bool), [None], ["time,series,x,y"]
+    else:
+        on, names, lines = reports.cpu().numpy(), sensors, ["time,series,sensor,x,y"]
     for k in range(T):
         for r in range(R):
-            seen = np.isfinite(z[k, r]).all(-1)
-            lines += [",".join([repr(k * dt), str(r), *_cells(z[k, r, d])]) for d in np.flatnonzero(seen)]
-            if not seen.any():
-                lines.append(f"{k * dt!r},{r},,")
+            for s, name in enumerate(names):
+                if not on[k, s]:
+                    continue
+                head = [repr(k * dt), str(r)] + ([] if name is None else [name])
+                seen = np.isfinite(z[k, r, s]).all(-1)
+                lines += [",".join([*head, *_cells(z[k, r, s, d])]) for d in np.flatnonzero(seen)]
+                if not seen.any():
+                    lines.append(",".join(head) + ",,")
     paths["detections"].write_text("\n".join(lines) + "\n")
     lines = ["time,series,target,x,y"]
     for k in range(T):
@@ -193,8 +236,9 @@ def export(folder: Path, *, z: Tensor, truth: Tensor, present: Tensor, x0: Tenso
 
 
 #: the config node that reads the exported files back (tracking.detections)
-def node_for(paths: dict[str, Path]) -> dict:
+def node_for(paths: dict[str, Path], *, sensors: bool = False) -> dict:
     return {"path": str(paths["detections"]), "measurements": ["x", "y"], "time": "time", "series": "series",
+            "sensor": "sensor" if sensors else None,
             "truth": {"path": str(paths["truth"]), "time": "time", "target": "target", "position": ["x", "y"],
                       "series": "series"},
             "start": {"path": str(paths["start"]), "target": "target", "state": ["x", "vx", "y", "vy"],

@@ -184,3 +184,80 @@ def test_the_shipped_example_tracks_with_an_imm_mht_and_an_imm_jpdaf(tmp_path):
     for name in ("IMM-MHT", "IMM-JPDAF"):
         assert rows[name]["completeness"] > 0.95, rows[name]
     assert rows["JIPDA-TM"]["completeness"] > 0.7, rows["JIPDA-TM"]
+
+
+SENSORS = ("tracking.sensors=[{name:radar,R:25.0,detection_probability:0.9,clutter_rate:10.0},"
+           "{name:camera,R:4.0,detection_probability:0.6,clutter_rate:2.0,period:2.0,offset:1.0}]")
+ONE_SENSOR = "tracking.sensors=[{name:radar,R:25.0,detection_probability:0.9,clutter_rate:10.0}]"
+SENSOR_ESTIMATORS = "tracking.estimators=[IMM-JPDAF,IMM-MHT,IMM-PDAF,JIPDA-TM]"
+
+
+def test_one_configured_sensor_is_the_study_sensor(exported, tmp_path):
+    """tracking.sensors with the one sensor of tracking.R / detection_probability / clutter_rate: the
+    estimators become SequentialSensors of one filter, the draws the same: every number the same (1e-12)."""
+    sim, _ = exported
+    run_study(_compose("tracking", *COMMON, "debug=tracking", "figures=false", ONE_SENSOR, SENSOR_ESTIMATORS),
+              tmp_path)
+    _same_numbers(_tables(sim), _tables(tmp_path))
+
+
+@pytest.fixture(scope="module")
+def two_sensors(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("sensors")
+    run_study(_compose("tracking", *COMMON, "debug=tracking", "figures=false", "tracking.export=true", SENSORS,
+                       SENSOR_ESTIMATORS), folder)
+    return folder, {name: folder / "scenario" / file for name, file in tracking_data.FILES.items()}
+
+
+def test_two_sensors_files_give_the_simulation_numbers(exported, two_sensors, tmp_path):
+    """A radar every scan and a camera every other scan (from scan 1): the exported detections file has a
+    sensor column and a camera row only at its scans; read back, every number is the simulation's (1e-12);
+    the camera's information shows (GOSPA below the radar alone's, the same draws of the radar)."""
+    sim, paths = two_sensors
+    rows = [line.split(",") for line in paths["detections"].read_text().splitlines()[1:]]
+    camera = {float(r[0]) for r in rows if r[2] == "camera"}
+    assert camera == {1.0, 3.0, 5.0, 7.0, 9.0, 11.0}
+    run_study(_compose("tracking", *COMMON, "debug=tracking", "figures=true", SENSORS, SENSOR_ESTIMATORS,
+                       _node(paths, sensor="sensor")), tmp_path)
+    _same_numbers(_tables(sim), _tables(tmp_path))
+    assert "2 sensors in turn" in (tmp_path / "results.md").read_text()
+    # the camera (R = 4 against the radar's 25) halves the localisation error (measured: 48 against 103 m^2)
+    table = {name: _tables(folder)["gospa"] for name, folder in (("one", exported[0]), ("two", sim))}
+    column = table["one"]["columns"].index("localisation")
+    for one, two in zip(table["one"]["rows"][:2], table["two"]["rows"][:2], strict=True):
+        assert one[0] == two[0] and two[column] < 0.75 * one[column], (one, two)
+
+
+SENSOR_CASES = [
+    ("camera_off_schedule", "tracking.sensors[1]=camera: detections.csv has a row of this sensor at time 0"),
+    ("unknown", "tracking.detections.sensor=sensor: sensor 'lidar' of detections.csv is not in tracking.sensors"),
+    ("no_column", "tracking.detections.sensor: missing: 2 sensors"),
+    ("period", "tracking.sensors[1].period=1.5: must be a whole multiple of tracking.dt"),
+    ("key", "tracking.sensors[0].rate=3: not a sensor's key"),
+]
+
+
+@pytest.mark.parametrize("case, start", SENSOR_CASES, ids=[c[0] for c in SENSOR_CASES])
+def test_sensor_errors_are_one_line_before_any_folder(two_sensors, tmp_path, capsys, case, start):
+    _, paths = two_sensors
+    lines = paths["detections"].read_text().splitlines()
+    sensors, node = SENSORS, _node(paths, sensor="sensor")
+    if case == "camera_off_schedule":  # a camera row at scan 0
+        (tmp_path / "detections.csv").write_text("\n".join([lines[0], "0.0,0,camera,1.0,2.0", *lines[1:]]) + "\n")
+        node = _node(paths | {"detections": tmp_path / "detections.csv"}, sensor="sensor")
+    elif case == "unknown":
+        (tmp_path / "detections.csv").write_text("\n".join([*lines, "1.0,0,lidar,1.0,2.0"]) + "\n")
+        node = _node(paths | {"detections": tmp_path / "detections.csv"}, sensor="sensor")
+    elif case == "no_column":
+        node = _node(paths)
+    elif case == "period":
+        sensors = SENSORS.replace("period:2.0", "period:1.5")
+    elif case == "key":
+        sensors = SENSORS.replace("clutter_rate:10.0", "clutter_rate:10.0,rate:3")
+    with pytest.raises(SystemExit) as stop:
+        precheck(["experiment=tracking", "debug=tracking", "logger=none", node, sensors, SENSOR_ESTIMATORS,
+                  f"hydra.run.dir={tmp_path / 'run'}"], CONFIG_DIR)
+    assert stop.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith(f"torchmm-run: error: {start}"), err
+    assert not (tmp_path / "run").exists()
