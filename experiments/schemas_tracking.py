@@ -67,6 +67,15 @@ class TrackManagement:
 
 
 @dataclass
+class Initiation:
+    """``tracking.initiation``: the trackers without existence (JPDA, GNN) with ``tracking.start:
+    detections``: M-of-N confirmation and deletion by misses."""
+
+    m_of_n: List[int] = spec(MISSING, each(positive_int))
+    max_misses: int = spec(MISSING, positive_int)
+
+
+@dataclass
 class TrackingTruthFile:
     """``tracking.detections.truth``: one row per target and time stamp where it exists."""
 
@@ -126,6 +135,8 @@ class TrackingSection:
     lifetimes: Optional[List[List[int]]] = MISSING
     waypoints: Optional[List[Any]] = MISSING  # per target [[scan, x, y], ...] (checked in _check_waypoints)
     sensors: Optional[List[Any]] = MISSING  # [{name, R, detection_probability, clutter_rate, period, offset}]
+    start: str = spec(MISSING, one_of("truth", "detections"))
+    initiation: Initiation = field(default_factory=Initiation)
     management: TrackManagement = field(default_factory=TrackManagement)
     jpda: JPDASettings = field(default_factory=JPDASettings)
     mht: MHTSettings = field(default_factory=MHTSettings)
@@ -147,6 +158,7 @@ class Tracking:
                               f"({t['maneuver_stop']}): the manoeuvre spans the scans [maneuver_start, maneuver_stop)")
         if len(t["P0"]) != 4:
             raise ConfigError("tracking.P0", t["P0"], "expected 4 variances, [x, vx, y, vy]")
+        _check_start(t)
         if t["detections"] is not None:
             if t["lifetimes"] is not None:
                 raise ConfigError("tracking.lifetimes", t["lifetimes"], "with tracking.detections the truth file says "
@@ -157,12 +169,12 @@ class Tracking:
             if t["export"]:
                 raise ConfigError("tracking.export", True, "exports the simulated scenario; with tracking.detections "
                                   "there is none (set export: false)")
-            fixed = [name for name in t["estimators"] if name in TRACKERS]
+            fixed = _fixed(t)
             if fixed and t["detections"]["start"] is None:
                 raise ConfigError("tracking.detections.start", NO_VALUE,
                                   f"missing: {', '.join(fixed)} keep one track per target from the first scan: give the "
-                                  f"tracks' start (a file, one row per target), or track with the managed trackers "
-                                  f"({', '.join(MANAGED_TRACKERS)}), which start with no track")
+                                  f"tracks' start (a file, one row per target), or start every tracker with no track "
+                                  f"(tracking.start: detections)")
             return _check_management(t)
         if t["waypoints"] is not None:
             return _check_waypoints(t)
@@ -181,12 +193,12 @@ class Tracking:
         if any(not 0 <= first < stop <= t["steps"] for first, stop in lives):
             raise ConfigError("tracking.lifetimes", lives, f"each [first, stop] needs 0 <= first < stop <= steps "
                                                            f"({t['steps']})")
-        known = [name for name in t["estimators"] if name in TRACKERS]
+        known = _fixed(t)
         if known:
             raise ConfigError("tracking.estimators", t["estimators"],
                               f"{', '.join(known)} start one track per target at the first scan; with "
-                              "tracking.lifetimes (births and deaths) only the managed trackers "
-                              f"({', '.join(MANAGED_TRACKERS)}) apply")
+                              "tracking.lifetimes (births and deaths) start them with no track (tracking.start: "
+                              f"detections) or use the managed trackers ({', '.join(MANAGED_TRACKERS)})")
 
 
 def _check_waypoints(t: dict) -> None:
@@ -212,11 +224,12 @@ def _check_waypoints(t: dict) -> None:
         if scans[0] < 0 or scans[-1] > t["steps"] - 1:
             raise ConfigError(key, target, f"the scans must lie in 0 .. steps - 1 = {t['steps'] - 1}")
     late = [i for i, target in enumerate(ways) if target[0][0] != 0]
-    fixed = [name for name in t["estimators"] if name in TRACKERS]
+    fixed = _fixed(t)
     if late and fixed:
         raise ConfigError("tracking.estimators", t["estimators"],
                           f"{', '.join(fixed)} start one track per target at the first scan; target(s) {late} start "
-                          f"later (births): only the managed trackers ({', '.join(MANAGED_TRACKERS)}) apply")
+                          f"later (births): start them with no track (tracking.start: detections) or use the managed "
+                          f"trackers ({', '.join(MANAGED_TRACKERS)})")
     method = (t.get("jpda") or {}).get("method", "exact")
     if len(ways) > 12 and method == "exact" and any(name in EXACT_JPDA for name in t["estimators"]):
         raise ConfigError("tracking.waypoints", f"{len(ways)} targets", "the exact JPDA takes at most 12 targets "
@@ -293,3 +306,26 @@ def _check_sensors(t: dict) -> None:
     if t["detections"] is not None and len(sensors) > 1 and column is None:
         raise ConfigError("tracking.detections.sensor", NO_VALUE, f"missing: {len(sensors)} sensors in "
                           "tracking.sensors; name the column of each row's sensor")
+
+
+#: with tracking.start: detections, the trackers that cannot start with no track (and why)
+NO_INITIATION = {"IMM-PDAF": "associates each track alone (no joint initiation); IMM-JPDAF starts from detections",
+                 "IMM-MHT": "keeps a fixed set of tracks in its hypotheses (no initiation yet)"}
+
+
+def _fixed(t: dict) -> list[str]:
+    """The estimators that keep one track per target from the first scan (none with ``start: detections``)."""
+    return [] if t["start"] == "detections" else [name for name in t["estimators"] if name in TRACKERS]
+
+
+def _check_start(t: dict) -> None:
+    """``tracking.start: detections``: every estimator that can starts with no track; M-of-N's ``[M, N]``."""
+    if t["start"] != "detections":
+        return
+    refused = [name for name in t["estimators"] if name in NO_INITIATION]
+    if refused:
+        raise ConfigError("tracking.estimators", t["estimators"], f"{refused[0]} {NO_INITIATION[refused[0]]} "
+                          "(tracking.start: detections)")
+    mn = t["initiation"]["m_of_n"]
+    if len(mn) != 2 or mn[0] > mn[1]:
+        raise ConfigError("tracking.initiation.m_of_n", mn, "expected [M, N] with 1 <= M <= N")

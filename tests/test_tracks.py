@@ -229,3 +229,41 @@ def test_one_point_initiation_with_a_velocity_bound_and_the_two_point_update():
         position_initiator(4, [0, 2], 4.0)
     with pytest.raises(TypeError, match="unobserved_variance: give it or max_speed"):
         position_initiator(4, [0, 2], 4.0, 25.0, max_speed=3.0)
+
+
+@pytest.mark.parametrize("modes", [None, 2])
+def test_tracks_that_exist_for_sure_are_jpdas_and_stay_at_existence_one(modes):
+    """A JIPDA whose tracks exist for sure (existence and survival 1) is the JPDA (exact and LBP) and, with
+    the single best event (kbest, k = 1), GNN: 1e-12 over a run of crossing targets in clutter; the
+    existence never leaves 1 (it is a repelling fixed point of a miss: before clamping, rounding grew by
+    1 / (1 - P_D P_G) a miss until the updates failed, the managed JPDA's failure found in issue 46)."""
+    from tests.test_jpda import _imm, _scene
+    from torchmm.association import GNN, JPDA
+
+    motion, sensor, prior, det, truth, options = _scene(30, 4, 3, seed=7, clutter=8.0)
+    filt = KalmanFilter(motion, sensor) if modes is None else _imm(modes)
+    start = prior if modes is None else filt.initial_belief(prior)
+    for kw, ref in (({"method": "exact"}, JPDA(filt, **options)), ({"method": "lbp"}, JPDA(filt, method="lbp", **options)),
+                    ({"method": "kbest", "k": 1}, GNN(filt, **options))):
+        jipda = JIPDA(filt, survival_probability=1.0, **kw, **options)
+        ours = run_filter(jipda, jipda.initial_belief(prior, existence=1.0), det.z, record="estimate")
+        theirs = run_filter(ref, start, det.z, record="estimate")
+        torch.testing.assert_close(ours.belief.mean, theirs.belief.mean, rtol=1e-12, atol=1e-10)
+        torch.testing.assert_close(ours.log_likelihood, theirs.log_likelihood, rtol=1e-12, atol=1e-10)
+        full = run_filter(jipda, jipda.initial_belief(prior, existence=1.0), det.z)
+        assert bool((full.belief.log_existence == 0).all()) and not bool(full.extras["failed"].any())
+
+
+def test_a_track_that_exists_for_sure_under_ipda_is_the_pda():
+    """IPDA from existence 1 with survival 1: the PDA's posterior and likelihood (1e-12), existence 1."""
+    from tests.test_jpda import _scene
+    from torchmm.association import IPDA, PDA
+
+    motion, sensor, prior, det, truth, options = _scene(30, 4, 1, seed=3, clutter=8.0)
+    kf = KalmanFilter(motion, sensor)
+    ipda = IPDA(kf, survival_probability=1.0, **options)
+    ours = run_filter(ipda, ipda.initial_belief(prior[:, 0], existence=1.0), det.z)
+    theirs = run_filter(PDA(kf, **options), prior[:, 0], det.z)
+    torch.testing.assert_close(ours.belief.state.mean, theirs.belief.mean, rtol=1e-12, atol=1e-10)
+    torch.testing.assert_close(ours.log_likelihood, theirs.log_likelihood, rtol=1e-12, atol=1e-10)
+    assert bool((ours.belief.log_existence == 0).all())

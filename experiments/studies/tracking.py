@@ -240,6 +240,19 @@ def _estimators(t, dtype, targets: int | None, scanner: dict) -> dict[str, Estim
     jp = t.get("jpda") or {}
     chosen = {"method": str(jp.get("method", "exact")), "k": int(jp.get("k", 100)),
               "max_targets": max(12, int(t.targets if targets is None else targets))}
+    if t.get("start") == "detections":  # every estimator starts with no track (the trackers without existence:
+        R = scanner["R"]                # a JIPDA whose tracks exist for sure, M-of-N confirmation and deletion)
+        k = chosen["k"]
+        made = {
+            "IMM-JPDAF": lambda: _initiated(t, imm, opts, dtype, R, chosen["method"], k),
+            "IMM-JPDAF-LBP": lambda: _initiated(t, imm, opts, dtype, R, "lbp", k),
+            "IMM-JPDAF-kbest": lambda: _initiated(t, imm, opts, dtype, R, "kbest", k),
+            "JPDAF": lambda: _initiated(t, KalmanFilter(cv, sensor), opts, dtype, R, chosen["method"], k),
+            "GNN-IMM": lambda: _initiated(t, imm, opts, dtype, R, "kbest", 1),  # (the best event: GNN)
+            "JIPDA-TM": lambda: _managed(t, KalmanFilter(cv, sensor), opts, dtype, R),
+            "IMM-JIPDA-TM": lambda: _managed(t, imm, opts, dtype, R),
+        }
+        return {name: made[name]() for name in t.estimators}
     made = {
         "IMM-JPDAF": lambda: Estimator(JPDA(imm, **opts, **chosen), imm.initial_belief, False, False),
         "IMM-JPDAF-LBP": lambda: Estimator(JPDA(imm, **opts, method="lbp"), imm.initial_belief, False, False),
@@ -280,6 +293,20 @@ def _managed(t, filt, opts: dict, dtype, R: float) -> Estimator:
                             unexplained=float(m.unexplained), delete=float(m.delete), confirm=float(m.confirm),
                             m_of_n=None if m.m_of_n is None else tuple(int(v) for v in m.m_of_n),
                             max_misses=None if m.max_misses is None else int(m.max_misses))
+    return Estimator(manager, lambda b: manager.initial_belief(b.batch_shape[:-1], dtype=dtype), False, True)
+
+
+def _initiated(t, filt, opts: dict, dtype, R: float, method: str, k: int) -> Estimator:
+    """A JPDA (or GNN: ``kbest`` with ``k = 1``) that starts with no track (``tracking.start: detections``):
+    ``ManagedTracks`` over a JIPDA whose tracks exist for sure (survival and birth existence 1: the JPDA's
+    own update, tests/test_tracks.py), confirmed and deleted by ``tracking.initiation``'s M-of-N logic and
+    misses; the slots, new-track velocity variance and unexplained threshold ``tracking.management``'s."""
+    m, i = t.management, t.initiation
+    jipda = JIPDA(filt, survival_probability=1.0, method=method, max_targets=max(12, int(m.capacity)), k=k, **opts)
+    manager = ManagedTracks(jipda, capacity=int(m.capacity), initiate=position_initiator(4, [0, 2], R,
+                                                                                         float(m.velocity_variance)),
+                            birth_existence=1.0, unexplained=float(m.unexplained), delete=0.0, confirm=1.0,
+                            m_of_n=tuple(int(v) for v in i.m_of_n), max_misses=int(i.max_misses))
     return Estimator(manager, lambda b: manager.initial_belief(b.batch_shape[:-1], dtype=dtype), False, True)
 
 

@@ -261,3 +261,30 @@ def test_sensor_errors_are_one_line_before_any_folder(two_sensors, tmp_path, cap
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and err.startswith(f"torchmm-run: error: {start}"), err
     assert not (tmp_path / "run").exists()
+
+
+def test_every_tracker_starts_from_the_detections_alone(exported, tmp_path):
+    """tracking.start: detections on the exported files without a start file: the JPDAFs and GNN start
+    with no track (M-of-N over a JIPDA whose tracks exist for sure) and find the three targets; the
+    numbers are those of the simulated study with the same key (1e-12)."""
+    sim, paths = exported
+    names = "tracking.estimators=[IMM-JPDAF,JPDAF,GNN-IMM,JIPDA-TM]"
+    run_study(_compose("tracking", *COMMON, "debug=tracking", "figures=false", "tracking.start=detections", names),
+              tmp_path / "sim")
+    run_study(_compose("tracking", *COMMON, "debug=tracking", "figures=false", "tracking.start=detections", names,
+                       _node(paths, start=None)), tmp_path / "file")
+    _same_numbers(_tables(tmp_path / "sim"), _tables(tmp_path / "file"))
+    table = _tables(tmp_path / "file")["track_quality"]
+    rows = {row[0]: dict(zip(table["columns"], row)) for row in table["rows"]}
+    for name in ("IMM-JPDAF", "JPDAF", "GNN-IMM"):
+        assert rows[name]["completeness"] > 0.6, rows[name]  # (a track confirmed at its second scan: 2 of 3)
+        assert rows[name]["first_track_delay"] >= 1.0  # (confirmed, not given)
+
+
+def test_a_tracker_that_cannot_start_from_detections_is_one_line(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        precheck(["experiment=tracking", "debug=tracking", "logger=none", "tracking.start=detections",
+                  "tracking.estimators=[IMM-JPDAF,IMM-PDAF]", f"hydra.run.dir={tmp_path / 'run'}"], CONFIG_DIR)
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("torchmm-run: error: tracking.estimators=") and "IMM-PDAF associates each track" in err
+    assert len(err.splitlines()) == 1 and not (tmp_path / "run").exists()

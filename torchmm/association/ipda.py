@@ -125,6 +125,8 @@ class IPDA(PDA):
         log_scan = torch.logaddexp(log_ratio + log_e, torch.log1p(-log_e.exp()))  # log(1 - delta chi^-)
         log_post = log_ratio + log_e - log_scan
         log_post = torch.where(torch.isneginf(log_e), log_e, log_post)  # a target that cannot exist stays so
+        # (rounding: existence 1 is a repelling fixed point of a miss, so it is kept exactly, NaN kept)
+        log_post = torch.where(log_e == 0, log_post.clamp(0.0, 0.0), log_post.clamp(max=0.0))
         post = out.belief
         extras = dict(out.extras)
         extras["existence"] = log_post.exp()
@@ -205,7 +207,10 @@ class JIPDA(JPDA):
         beta = torch.where(failed, torch.nan, log_beta.reshape(*runs, N, 1 + D).exp())
         # P(exists | missed) = (1 - P_D P_G) chi / m: the state weights given existence
         missed_exists = beta[..., 0] * ((math.log1p(-pdpg) if pdpg < 1 else -math.inf) + log_e - log_m).exp()
+        # (at most 1; a track that exists for sure, a JPDA's, stays at exactly 1: existence 1 is a repelling
+        # fixed point of the missed update, where rounding would grow by 1 / (1 - P_D P_G) a miss; NaN kept)
         existence = missed_exists + beta[..., 1:].sum(-1)
+        existence = torch.where(log_e == 0, existence.clamp(1.0, 1.0), existence.clamp(max=1.0))
         weights = torch.cat([missed_exists.unsqueeze(-1), beta[..., 1:]], -1) / existence.unsqueeze(-1)
         none = (existence <= 0).unsqueeze(-1)  # no chance of existing: the prediction kept
         weights = torch.where(none, (torch.arange(D + 1, device=beta.device) == 0).to(beta.dtype), weights)
