@@ -182,40 +182,68 @@ class MHT(JPDA):
         zz = z.unsqueeze(-3).expand(*runs, H, D, m)
         hyp, _, log_w, _, singular = self._scan(tracks, zz)  # log_w (*B, H, N, D)
         R = math.prod(runs) * H
-        k = self.k
-        columns, log_e = kbest_events(log_w.reshape(R, N, D), missed_log_weight(self), k)  # (R, k, N), (R, k)
-        children = (belief.log_weights.unsqueeze(-1) + log_e.reshape(*runs, H, k)).reshape(*runs, H * k)
-        log_like = torch.logsumexp(children, -1)  # (*B,)
+        columns, log_e = kbest_events(log_w.reshape(R, N, D), missed_log_weight(self), self.k)  # (R, k, N), (R, k)
+        log_like, log_w, parent, chosen = children(belief.log_weights, columns, log_e, self.k)
         failed = singular.reshape(*runs, -1).any(-1) | torch.isnan(log_like)
-        top, index = children.nan_to_num(nan=-math.inf).topk(H, dim=-1)  # (*B, H), the best children first
-        parent = index // k  # (the event: index % k, its columns gathered below)
-        chosen = columns.reshape(*runs, H * k, N).gather(-2, index.unsqueeze(-1).expand(*runs, H, N))  # (*B, H, N)
         # the children's tracks: each its parent's track updated with its detection (option 1 + j) or missed (0)
         options = pytree.tree_map(_prepend, missed_hypothesis(self, tracks, hyp), hyp.belief)  # (1 + D, *B, H, N)
-        lead = len(runs)
-
-        def pick(t: Tensor) -> Tensor:
-            e = t.dim() - (1 + lead + 2)
-            t = t.movedim(0, lead + 2)  # (*B, H, N, 1 + D, *E)
-            shape = t.shape
-            t = t.gather(lead, parent.reshape(*runs, H, 1, 1, *([1] * e)).expand(*runs, H, *shape[lead + 1:]))
-            t = t.gather(lead + 2, chosen.reshape(*runs, H, N, 1, *([1] * e)).expand(*runs, H, N, 1, *shape[lead + 3:]))
-            return t.squeeze(lead + 2).reshape(*runs, H * N, *shape[lead + 3:])
-        new_tracks = pytree.tree_map(pick, options)
-        history = belief.history.gather(-3, parent.reshape(*runs, H, 1, 1).expand(*runs, H, *belief.history.shape[-2:]))
-        history = torch.cat([history[..., 1:, :], chosen.unsqueeze(-2)], -2)
-        log_w = top
-        if self.n_scan > 0:  # N-scan pruning: agree with the best hypothesis n_scan scans back
-            best = log_w.argmax(-1, keepdim=True)
-            oldest = history[..., 0, :]  # (*B, H, N)
-            agree = (oldest == oldest.gather(-2, best.unsqueeze(-1).expand(*runs, 1, N))).all(-1)
-            log_w = torch.where(agree, log_w, -math.inf)
-        log_w = log_w - torch.logsumexp(log_w, -1, keepdim=True)
-        log_w = torch.where(failed.unsqueeze(-1), torch.nan, log_w)
+        new_tracks = pytree.tree_map(lambda t: pick_options(t, parent, chosen), options)
+        history = shift_history(belief.history, parent, chosen)
+        log_w = normalise(prune(log_w, history, self.n_scan), failed)
         out = HypothesisBelief(log_w, history, new_tracks)
         association = (chosen[..., 0, :].unsqueeze(-1) == torch.arange(1 + D, device=z.device)).to(log_w.dtype)
         return StepOutput(out, belief, torch.where(failed, torch.nan, log_like), None, None,
                           {"association": association, "failed": failed})
+
+
+def children(log_weights: Tensor, columns: Tensor, log_e: Tensor, k: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The ``H`` best children ``(h, e)`` of ``H`` parents of log-weights ``(*B, H)`` and their ``k`` events
+    each (``columns (R, k, W)``, ``log_e (R, k)``, ``R = prod(B) H``): the scan's log-likelihood ``(*B,)``
+    (over every child), the children's unnormalised log-weights ``(*B, H)`` (best first), their parents
+    ``(*B, H)`` and their events' columns ``(*B, H, W)``."""
+    *runs, H = log_weights.shape
+    W = columns.shape[-1]
+    every = (log_weights.unsqueeze(-1) + log_e.reshape(*runs, H, k)).reshape(*runs, H * k)
+    top, index = every.nan_to_num(nan=-math.inf).topk(H, dim=-1)  # (*B, H), the best children first
+    chosen = columns.reshape(*runs, H * k, W).gather(-2, index.unsqueeze(-1).expand(*runs, H, W))
+    return torch.logsumexp(every, -1), top, index // k, chosen
+
+
+def pick_options(t: Tensor, parent: Tensor, chosen: Tensor) -> Tensor:
+    """Each child's tracks from its parent's options: ``t (1 + D, *B, H, N, *E)`` (option 0 missed,
+    ``1 + j`` detection ``j``), ``parent (*B, H)``, ``chosen (*B, H, N)`` -> ``(*B, H * N, *E)``."""
+    *runs, H, N = chosen.shape
+    lead = len(runs)
+    e = t.dim() - (1 + lead + 2)
+    t = t.movedim(0, lead + 2)  # (*B, H, N, 1 + D, *E)
+    shape = t.shape
+    t = t.gather(lead, parent.reshape(*runs, H, 1, 1, *([1] * e)).expand(*runs, H, *shape[lead + 1:]))
+    t = t.gather(lead + 2, chosen.reshape(*runs, H, N, 1, *([1] * e)).expand(*runs, H, N, 1, *shape[lead + 3:]))
+    return t.squeeze(lead + 2).reshape(*runs, H * N, *shape[lead + 3:])
+
+
+def shift_history(history: Tensor, parent: Tensor, chosen: Tensor) -> Tensor:
+    """The children's histories ``(*B, H, L, N)``: the parent's, shifted, with ``chosen (*B, H, N)`` last."""
+    *runs, H = parent.shape
+    history = history.gather(-3, parent.reshape(*runs, H, 1, 1).expand(*runs, H, *history.shape[-2:]))
+    return torch.cat([history[..., 1:, :], chosen.unsqueeze(-2)], -2)
+
+
+def prune(log_w: Tensor, history: Tensor, n_scan: int) -> Tensor:
+    """N-scan pruning: a hypothesis whose assignments ``n_scan`` scans back differ from the best one's
+    gets weight 0 (``-inf``); ``n_scan = 0``: none."""
+    if n_scan <= 0:
+        return log_w
+    best = log_w.argmax(-1, keepdim=True)
+    oldest = history[..., 0, :]  # (*B, H, N)
+    agree = (oldest == oldest.gather(-2, best.unsqueeze(-1).expand(*oldest.shape[:-2], 1, oldest.shape[-1]))).all(-1)
+    return torch.where(agree, log_w, -math.inf)
+
+
+def normalise(log_w: Tensor, failed: Tensor) -> Tensor:
+    """The hypotheses' log-weights normalised, NaN in a failed run."""
+    log_w = log_w - torch.logsumexp(log_w, -1, keepdim=True)
+    return torch.where(failed.unsqueeze(-1), torch.nan, log_w)
 
 
 def _prepend(missed: Tensor, detections: Tensor) -> Tensor:
