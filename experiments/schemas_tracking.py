@@ -73,6 +73,7 @@ class Initiation:
 
     m_of_n: List[int] = spec(MISSING, each(positive_int))
     max_misses: int = spec(MISSING, positive_int)
+    birth_rate: float = spec(MISSING, positive)  # IMM-MHT: new targets a scan over the region
 
 
 @dataclass
@@ -309,8 +310,7 @@ def _check_sensors(t: dict) -> None:
 
 
 #: with tracking.start: detections, the trackers that cannot start with no track (and why)
-NO_INITIATION = {"IMM-PDAF": "associates each track alone (no joint initiation); IMM-JPDAF starts from detections",
-                 "IMM-MHT": "keeps a fixed set of tracks in its hypotheses (no initiation yet)"}
+NO_INITIATION = {"IMM-PDAF": "associates each track alone (no joint initiation); IMM-JPDAF starts from detections"}
 
 
 def _fixed(t: dict) -> list[str]:

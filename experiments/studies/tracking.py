@@ -66,6 +66,7 @@ from torchmm.association import (
     JPDA,
     MHT,
     PDA,
+    ManagedMHT,
     ManagedTracks,
     SensorScans,
     SequentialSensors,
@@ -210,7 +211,8 @@ class Estimator(NamedTuple):
     filter: object
     initial: Callable  # the tracks' start (a GaussianBelief (runs, N, 4)) -> the filter's initial belief
     per_track: bool    # the scans go to every track alone (IMM-PDAF)
-    managed: bool      # a ManagedTracks: starts empty, confirms and deletes its tracks
+    managed: bool      # starts empty, confirms and deletes its tracks (a track table each step)
+    record: Callable | None = None  # a managed filter's step -> its track table (ManagedMHT: the best hypothesis)
 
 
 def estimators(t, dtype, targets: int | None = None) -> dict[str, Estimator]:
@@ -249,6 +251,7 @@ def _estimators(t, dtype, targets: int | None, scanner: dict) -> dict[str, Estim
             "IMM-JPDAF-kbest": lambda: _initiated(t, imm, opts, dtype, R, "kbest", k),
             "JPDAF": lambda: _initiated(t, KalmanFilter(cv, sensor), opts, dtype, R, chosen["method"], k),
             "GNN-IMM": lambda: _initiated(t, imm, opts, dtype, R, "kbest", 1),  # (the best event: GNN)
+            "IMM-MHT": lambda: _managed_mht(t, imm, opts, R),
             "JIPDA-TM": lambda: _managed(t, KalmanFilter(cv, sensor), opts, dtype, R),
             "IMM-JIPDA-TM": lambda: _managed(t, imm, opts, dtype, R),
         }
@@ -294,6 +297,25 @@ def _managed(t, filt, opts: dict, dtype, R: float) -> Estimator:
                             m_of_n=None if m.m_of_n is None else tuple(int(v) for v in m.m_of_n),
                             max_misses=None if m.max_misses is None else int(m.max_misses))
     return Estimator(manager, lambda b: manager.initial_belief(b.batch_shape[:-1], dtype=dtype), False, True)
+
+
+def _managed_mht(t, imm, opts: dict, R: float) -> Estimator:
+    """``ManagedMHT(IMM(...))`` (``tracking.start: detections``): ``tracking.mht``'s hypotheses, the new-target
+    rate ``tracking.initiation.birth_rate`` over the region, M-of-N and misses as the JPDAs'; the best
+    hypothesis's confirmed tracks shown."""
+    h, m, i = t.mht, t.management, t.initiation
+    hypotheses = int(h.hypotheses)
+    mht = ManagedMHT(imm, **opts, hypotheses=hypotheses, k=int(h.k) if h.k is not None else hypotheses,
+                     n_scan=int(h.n_scan), capacity=int(m.capacity),
+                     initiate=position_initiator(4, [0, 2], R, float(m.velocity_variance)),
+                     birth_density=float(i.birth_rate) / (2 * float(t.region)) ** 2,
+                     m_of_n=tuple(int(v) for v in i.m_of_n), max_misses=int(i.max_misses))
+    return Estimator(mht, lambda b: mht.initial_belief(b.batch_shape[:-1], dtype=b.dtype), False, True, _best)
+
+
+def _best(out):
+    """A ManagedMHT's step as its best hypothesis's track table (what the study shows and scores)."""
+    return out._replace(belief=out.belief.best(), prior=None, extras=None)
 
 
 def _initiated(t, filt, opts: dict, dtype, R: float, method: str, k: int) -> Estimator:
@@ -374,7 +396,7 @@ def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
     scans = pytree.tree_map(lambda v: v.to(ctx.device), scans)
     tic = time.perf_counter()
     with torch.no_grad():
-        traj = run_filter(filt, belief, scans, record=None if est.managed else "estimate")
+        traj = run_filter(filt, belief, scans, record=est.record if est.managed else "estimate")
     seconds = time.perf_counter() - tic
     if est.managed:  # the confirmed tracks, each with its label
         table = traj.belief
