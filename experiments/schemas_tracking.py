@@ -135,6 +135,7 @@ class TrackingSection:
     gospa_switching: float = spec(MISSING, non_negative)
     lifetimes: Optional[List[List[int]]] = MISSING
     waypoints: Optional[List[Any]] = MISSING  # per target [[scan, x, y], ...] (checked in _check_waypoints)
+    motions: Optional[List[Any]] = MISSING  # per target {start, first, legs: [{scans, turn_rate | acceleration}]}
     sensors: Optional[List[Any]] = MISSING  # [{name, R, detection_probability, clutter_rate, period, offset}]
     start: str = spec(MISSING, one_of("truth", "detections"))
     initiation: Initiation = field(default_factory=Initiation)
@@ -164,9 +165,10 @@ class Tracking:
             if t["lifetimes"] is not None:
                 raise ConfigError("tracking.lifetimes", t["lifetimes"], "with tracking.detections the truth file says "
                                   "when each target exists (set lifetimes: null)")
-            if t["waypoints"] is not None:
-                raise ConfigError("tracking.waypoints", t["waypoints"], "with tracking.detections the truth file says "
-                                  "where the targets are (set waypoints: null)")
+            for key in ("waypoints", "motions"):
+                if t[key] is not None:
+                    raise ConfigError(f"tracking.{key}", t[key], "with tracking.detections the truth file says "
+                                      f"where the targets are (set {key}: null)")
             if t["export"]:
                 raise ConfigError("tracking.export", True, "exports the simulated scenario; with tracking.detections "
                                   "there is none (set export: false)")
@@ -177,8 +179,13 @@ class Tracking:
                                   f"tracks' start (a file, one row per target), or start every tracker with no track "
                                   f"(tracking.start: detections)")
             return _check_management(t)
+        if t["waypoints"] is not None and t["motions"] is not None:
+            raise ConfigError("tracking.motions", t["motions"], "give the targets by waypoints or by motions, not both "
+                              "(set one to null)")
         if t["waypoints"] is not None:
             return _check_waypoints(t)
+        if t["motions"] is not None:
+            return _check_motions(t)
         method = (t.get("jpda") or {}).get("method", "exact")
         if t["targets"] > 12 and method == "exact" and any(name in EXACT_JPDA for name in t["estimators"]):
             raise ConfigError("tracking.targets", t["targets"], "the exact JPDA takes at most 12 targets (tracking."
@@ -329,3 +336,63 @@ def _check_start(t: dict) -> None:
     mn = t["initiation"]["m_of_n"]
     if len(mn) != 2 or mn[0] > mn[1]:
         raise ConfigError("tracking.initiation.m_of_n", mn, "expected [M, N] with 1 <= M <= N")
+
+
+def _number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _check_motions(t: dict) -> None:
+    """``tracking.motions``: per target ``{start: [x, vx, y, vy], first: scan (optional), legs: [{scans: n,
+    turn_rate: w} | {scans: n, acceleration: [ax, ay]} | {scans: n}]}``, inside ``0 .. steps - 1``; not with
+    ``lifetimes``; the fixed-track estimators need every target from scan 0; the exact JPDA at most 12."""
+    motions = t["motions"]
+    if t["lifetimes"] is not None:
+        raise ConfigError("tracking.lifetimes", t["lifetimes"], "with tracking.motions each target exists from its "
+                          "first scan to the end of its last leg (set lifetimes: null)")
+    if not isinstance(motions, list) or not motions:
+        raise ConfigError("tracking.motions", motions, "no target (one {start, first, legs} per target)")
+    for i, target in enumerate(motions):
+        key = f"tracking.motions[{i}]"
+        if not isinstance(target, dict) or set(target) - {"start", "first", "legs"}:
+            raise ConfigError(key, target, "expected {start: [x, vx, y, vy], first: scan, legs: [...]}")
+        start = target.get("start")
+        if not isinstance(start, list) or len(start) != 4 or not all(_number(v) for v in start):
+            raise ConfigError(f"{key}.start", start, "expected [x, vx, y, vy] (numbers)")
+        first = target.get("first") or 0
+        if not isinstance(first, int) or isinstance(first, bool) or first < 0:
+            raise ConfigError(f"{key}.first", first, "expected the scan it appears at (a whole number >= 0)")
+        legs = target.get("legs")
+        if not isinstance(legs, list) or not legs:
+            raise ConfigError(f"{key}.legs", legs, "expected a list of legs, each {scans, turn_rate} or "
+                              "{scans, acceleration: [ax, ay]} or {scans}")
+        for j, leg in enumerate(legs):
+            where = f"{key}.legs[{j}]"
+            if not isinstance(leg, dict) or set(leg) - {"scans", "turn_rate", "acceleration"}:
+                raise ConfigError(where, leg, "expected {scans, turn_rate} or {scans, acceleration: [ax, ay]} or {scans}")
+            scans = leg.get("scans")
+            if not isinstance(scans, int) or isinstance(scans, bool) or scans < 1:
+                raise ConfigError(f"{where}.scans", scans, "expected a whole number of scans >= 1")
+            if leg.get("turn_rate") is not None and leg.get("acceleration") is not None:
+                raise ConfigError(where, leg, "a turn or an acceleration, not both")
+            if leg.get("turn_rate") is not None and not _number(leg["turn_rate"]):
+                raise ConfigError(f"{where}.turn_rate", leg["turn_rate"], "expected a number (rad/s)")
+            acc = leg.get("acceleration")
+            if acc is not None and (not isinstance(acc, list) or len(acc) != 2 or not all(_number(v) for v in acc)):
+                raise ConfigError(f"{where}.acceleration", acc, "expected [ax, ay] (numbers)")
+        last = first + sum(leg["scans"] for leg in legs)
+        if last > t["steps"] - 1:
+            raise ConfigError(key, target, f"its legs end at scan {last}, after the last scan (steps - 1 = "
+                              f"{t['steps'] - 1})")
+    late = [i for i, target in enumerate(motions) if (target.get("first") or 0) != 0]
+    fixed = _fixed(t)
+    if late and fixed:
+        raise ConfigError("tracking.estimators", t["estimators"],
+                          f"{', '.join(fixed)} start one track per target at the first scan; target(s) {late} start "
+                          f"later (births): start them with no track (tracking.start: detections) or use the managed "
+                          f"trackers ({', '.join(MANAGED_TRACKERS)})")
+    method = (t.get("jpda") or {}).get("method", "exact")
+    if len(motions) > 12 and method == "exact" and any(name in EXACT_JPDA for name in t["estimators"]):
+        raise ConfigError("tracking.motions", f"{len(motions)} targets", "the exact JPDA takes at most 12 targets "
+                          "(tracking.jpda.method: lbp or kbest)")
+    _check_management(t)

@@ -107,11 +107,63 @@ def waypoint_paths(t, dtype=torch.float64) -> tuple[Tensor, Tensor, Tensor]:
     return states[1:], present[1:], states[0]
 
 
-def lifetimes(t) -> Tensor:
-    """``(T, N)`` bool: which targets exist at each scan (``tracking.lifetimes``, or the waypoints' spans;
-    all, where null)."""
+def motion_paths(t, dtype=torch.float64) -> tuple[Tensor, Tensor, Tensor]:
+    """``tracking.motions``' targets, as :func:`waypoint_paths` returns them. Each target is at ``start``
+    ``[x, vx, y, vy]`` at scan ``first`` (default 0) and flies its legs in turn, ``scans`` scans each:
+    constant velocity, a coordinated turn (``turn_rate`` rad/s, positive anticlockwise) or a constant
+    ``acceleration`` ``[ax, ay]`` (exact motion, no noise); it exists from ``first`` to the end of its last
+    leg. Its state one period before ``first`` is its first leg run backwards."""
+    T, dt = int(t.steps), float(t.dt)
+    states, present, before = [], [], []
+    for target in t.motions:
+        first = int(target.get("first") or 0)
+        x = torch.tensor([float(v) for v in target["start"]], dtype=dtype)
+        legs = [(int(leg["scans"]), float(leg.get("turn_rate") or 0.0),
+                 [float(a) for a in (leg.get("acceleration") or [0.0, 0.0])]) for leg in target["legs"]]
+        path = torch.full((T + 1, 4), math.nan, dtype=dtype)  # scans -1 .. T - 1
+        back = _exact_step(x, -dt, legs[0][1], legs[0][2])
+        if first == 0:
+            path[0] = back
+        path[first + 1] = x
+        k = first
+        for scans, rate, acc in legs:
+            for _ in range(scans):
+                x = _exact_step(x, dt, rate, acc)
+                k += 1
+                path[k + 1] = x
+        states.append(path)
+        present.append(torch.isfinite(path[1:]).all(-1))
+        before.append(back)
+    states = torch.stack(states, 1)
+    return states[1:].nan_to_num(0.0), torch.stack(present, 1), torch.stack(before)
+
+
+def _exact_step(x: Tensor, dt: float, rate: float, acc: list[float]) -> Tensor:
+    """``[x, vx, y, vy]`` after ``dt``: a coordinated turn at ``rate``, or constant acceleration ``acc``."""
+    px, vx, py, vy = x.unbind(-1)
+    if rate != 0.0:
+        s, c = math.sin(rate * dt), math.cos(rate * dt)
+        return torch.stack([px + (s * vx - (1 - c) * vy) / rate, c * vx - s * vy,
+                            py + ((1 - c) * vx + s * vy) / rate, s * vx + c * vy], -1)
+    ax, ay = acc
+    return torch.stack([px + vx * dt + ax * dt * dt / 2, vx + ax * dt, py + vy * dt + ay * dt * dt / 2, vy + ay * dt], -1)
+
+
+def _paths(t):
+    """The targets' paths from ``tracking.waypoints`` or ``tracking.motions`` (None: the circle)."""
     if t.get("waypoints") is not None:
-        return waypoint_paths(t)[1]
+        return waypoint_paths(t)
+    if t.get("motions") is not None:
+        return motion_paths(t)
+    return None
+
+
+def lifetimes(t) -> Tensor:
+    """``(T, N)`` bool: which targets exist at each scan (``tracking.lifetimes``, or the waypoints' or
+    motions' spans; all, where null)."""
+    paths = _paths(t)
+    if paths is not None:
+        return paths[1]
     T, N = int(t.steps), int(t.targets)
     if t.lifetimes is None:
         return torch.ones(T, N, dtype=torch.bool)
@@ -125,8 +177,8 @@ def simulate(t, runs: int, generator: torch.Generator, dtype=torch.float64):
     which targets exist ``(T, runs, N)`` (a target that does not exist makes no detection; it still
     moves, so that the draws do not depend on the lifetimes). With ``tracking.waypoints`` the targets fly
     their legs (:func:`waypoint_paths`) in every run, without process noise."""
-    if t.get("waypoints") is not None:
-        return _simulate_waypoints(t, runs, generator, dtype)
+    if _paths(t) is not None:
+        return _simulate_paths(t, runs, generator, dtype)
     N, T, dt = int(t.targets), int(t.steps), float(t.dt)
     bank = _bank(t, dtype)
     F, Q, offset = bank.F, bank.Q, bank.offset  # offset (3, 4): each mode's G a
@@ -198,8 +250,8 @@ def _start(t, start: Tensor, generator: torch.Generator, dtype) -> Tensor:
     return start + torch.randn(start.shape, generator=generator, dtype=dtype) * P0.sqrt()
 
 
-def _simulate_waypoints(t, runs: int, generator: torch.Generator, dtype):
-    states, exists, before = waypoint_paths(t, dtype)
+def _simulate_paths(t, runs: int, generator: torch.Generator, dtype):
+    states, exists, before = (v.to(dtype) if v.is_floating_point() else v for v in _paths(t))
     T, N = exists.shape
     truth = states.unsqueeze(1).expand(T, runs, N, 4)
     present = exists.unsqueeze(1).expand(T, runs, N)
@@ -501,6 +553,12 @@ def run(ctx: StudyContext) -> None:
             + (f", {got.x0.shape[1]} tracks started from `{d.start.path}`" if d.start is not None else "")
             + f"). Trackers' model: {_sensing(t)}; {cfg.dtype}." + (f" GOSPA with c = {t.gospa_c}, p = "
                                                                         f"{t.gospa_p}, alpha = 2." if scored else ""))
+    elif t.get("motions") is not None:
+        ctx.results.description = (
+            f"{len(t.motions)} targets flying their legs (tracking.motions: constant velocity, coordinated turns, "
+            f"accelerations), each from its start at its first scan to the end of its last leg; {t.steps} scans, "
+            f"{_sensing(t)}; {runs} Monte Carlo runs (seed {cfg.seed}, {cfg.dtype}). GOSPA with c = {t.gospa_c}, "
+            f"p = {t.gospa_p}, alpha = 2.")
     elif t.get("waypoints") is not None:
         ctx.results.description = (
             f"{len(t.waypoints)} targets flying straight between their waypoints ([scan, x, y]: "
@@ -559,6 +617,7 @@ def run(ctx: StudyContext) -> None:
             title=label))
     what = f"{d.path}, {runs} series" if d is not None else (
         f"{len(t.waypoints)} targets from waypoints, {runs} runs" if t.get("waypoints") is not None else
+        f"{len(t.motions)} targets from their motions, {runs} runs" if t.get("motions") is not None else
         f"{t.targets} crossing targets in clutter, {runs} runs")
     ctx.save_figure("gospa_over_time" if scored else "tracks_over_time", plots.rmse_over_time(curves, what, bands=bands))
 

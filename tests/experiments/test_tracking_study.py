@@ -185,3 +185,53 @@ def test_managed_trackers_take_the_k_best_events(tmp_path):
         for x, y, column in zip(a[name]["rows"][0], b[name]["rows"][0], a[name]["columns"]):
             if isinstance(x, float) and "seconds" not in column:
                 assert y == pytest.approx(x, rel=1e-9, abs=1e-9), (name, column)
+
+
+MOTIONS = ("[{start:[0,10,0,0],legs:[{scans:5},{scans:10,turn_rate:0.1},{scans:4,acceleration:[0,2]}]},"
+           "{start:[100,0,50,-5],first:3,legs:[{scans:12}]}]")
+
+
+def test_targets_from_motion_schedules():
+    """tracking.motions (issue 46): constant velocity, a coordinated turn (speed kept, heading turned by
+    w n dt), an acceleration (velocity changed by a n dt); a target exists from its first scan to the end of
+    its last leg; the tracks' start is the first leg run back one period (P0 = 0)."""
+    motions = [{"start": [0, 10, 0, 0], "legs": [{"scans": 5}, {"scans": 10, "turn_rate": 0.1},
+                                                 {"scans": 4, "acceleration": [0, 2]}]},
+               {"start": [100, 0, 50, -5], "first": 3, "legs": [{"scans": 12}]}]  # (MOTIONS)
+    t = _section(steps=24, detection_probability=1.0, clutter_rate=1e-12, motions=motions, P0=[0.0, 0.0, 0.0, 0.0])
+    truth, z, x0, present = tracking.simulate(t, 2, torch.Generator().manual_seed(1))
+    a = truth[:, 0, 0]
+    assert a[5, [0, 1, 2, 3]].tolist() == pytest.approx([50.0, 10.0, 0.0, 0.0])
+    heading = torch.atan2(a[15, 3], a[15, 1])
+    assert float(a[15, [1, 3]].norm()) == pytest.approx(10.0) and float(heading) == pytest.approx(0.1 * 10)
+    assert (a[19, [1, 3]] - a[15, [1, 3]]).tolist() == pytest.approx([0.0, 8.0])
+    b = truth[:, 0, 1]
+    assert b[3].tolist() == pytest.approx([100.0, 0.0, 50.0, -5.0]) and b[15, 2].item() == pytest.approx(-10.0)
+    expected = torch.tensor([[k <= 19, 3 <= k <= 15] for k in range(24)])
+    assert torch.equal(present[:, 0], expected)
+    assert torch.equal(torch.isfinite(z).all(-1).sum(-1), present.sum(-1))
+    assert x0[0, 0].tolist() == pytest.approx([-10.0, 10.0, 0.0, 0.0])
+
+
+def test_motion_study_with_a_birth_and_its_checks(tmp_path):
+    from experiments.config import validate
+
+    run_study(_compose("tracking", *COMMON, "debug=tracking", "figures=false", "tracking.steps=24",
+                       f"tracking.motions={MOTIONS}", "tracking.start=detections",
+                       "tracking.estimators=[IMM-JPDAF,JIPDA-TM]", "tracking.management.velocity_variance=100"),
+              tmp_path)
+    assert "2 targets flying their legs" in (tmp_path / "results.md").read_text()
+    curves = load_curves(tmp_path)
+    assert torch.as_tensor(curves["tracks/truth"][2]).tolist() == [float(k <= 19) + float(3 <= k <= 15)
+                                                                   for k in range(24)]
+    with pytest.raises(ValueError, match=r"tracking.estimators=.*target\(s\) \[1\] start later"):
+        validate(_compose("tracking", f"tracking.motions={MOTIONS}", "tracking.estimators=[IMM-JPDAF]"))
+    with pytest.raises(ValueError, match=r"tracking.motions\[0\].legs\[1\]=.*not both"):
+        validate(_compose("tracking", "tracking.motions=[{start:[0,0,0,0],legs:[{scans:2},{scans:2,turn_rate:0.1,"
+                          "acceleration:[0,1]}]}]", "tracking.estimators=[JIPDA-TM]"))
+    with pytest.raises(ValueError, match=r"tracking.motions\[0\]=.*end at scan 60"):
+        validate(_compose("tracking", "tracking.motions=[{start:[0,0,0,0],legs:[{scans:60}]}]",
+                          "tracking.estimators=[JIPDA-TM]"))
+    with pytest.raises(ValueError, match=r"tracking.motions\[0\].start=.*\[x, vx, y, vy\]"):
+        validate(_compose("tracking", "tracking.motions=[{start:[0,0,0],legs:[{scans:6}]}]",
+                          "tracking.estimators=[JIPDA-TM]"))
