@@ -74,6 +74,8 @@ class Initiation:
     m_of_n: List[int] = spec(MISSING, each(positive_int))
     max_misses: int = spec(MISSING, positive_int)
     birth_rate: float = spec(MISSING, positive)  # IMM-MHT: new targets a scan over the region
+    confirm_score: Optional[float] = MISSING  # IMM-MHT: also confirmed once its score (log-likelihood ratio) reaches it
+    delete_drop: Optional[float] = spec(MISSING, positive)  # IMM-MHT: deleted once its score falls this far below its peak
 
 
 @dataclass

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -99,3 +100,54 @@ def test_errors_name_the_argument():
     mht = _managed(kf, options)
     with pytest.raises(TypeError, match="belief: ManagedMHT takes its TrackHypotheses"):
         mht.update(prior, det.z[0])
+
+
+def test_track_scores_are_the_log_likelihood_ratios_and_confirm_and_delete():
+    """The track-oriented rule (trackerTOMHT's): one target, practically no clutter, P_D = 0.8 (misses): the
+    track's score is log(b) at its birth plus log(P_D N(nu; 0, S) / lambda) at each detection (nu, S from a
+    float64 NumPy Kalman filter of its own detections) and log(1 - P_D P_G) at each miss (1e-9); it is
+    confirmed when the score reaches confirm_score, and a drop of delete_drop below its peak deletes it."""
+    motion, sensor, prior, det, truth, options = _scene(12, 1, 1, seed=4, pd=0.8, clutter=1e-9)
+    z = det.z[:, :, :1].clone()  # the target's detection (the clutter rows are empty), NaN where missed
+    z[:3] = truth[:3, :, :, [0, 2]]  # detected at first (else the track's ratio falls below clutter's and the
+    z[8:10] = math.nan                # best hypothesis drops it); two misses running (the deletion below)
+    options = options | {"clutter_density": 1e-6}
+    b = 1e-5
+    mht = _managed(KalmanFilter(motion, sensor), options, birth_density=b, m_of_n=None, confirm_score=30.0,
+                   max_misses=None, delete_drop=1e9)
+    traj = run_filter(mht, mht.initial_belief((1,)), z, record=lambda out: out._replace(
+        belief=(out.belief.best(), out.belief.best_scores()), prior=None, extras=None))
+    table, scores = traj.belief
+    F, Q = motion.F.numpy(), motion.Q.numpy()
+    H = np.zeros((2, 4))
+    H[0, 0] = H[1, 2] = 1.0
+    Rm = R.numpy()
+    x = np.array([z[0, 0, 0, 0].item(), 0.0, z[0, 0, 0, 1].item(), 0.0])
+    P = H.T @ Rm @ H + np.diag([0.0, 4.0, 0.0, 4.0])
+    pd, pg, lam = options["detection_probability"], options["gate_probability"], options["clutter_density"]
+    expected, firm = math.log(b / lam), False
+    for k in range(12):
+        if k > 0:
+            x, P = F @ x, F @ P @ F.T + Q
+            y = z[k, 0, 0].numpy()
+            if np.isfinite(y).all():
+                S = H @ P @ H.T + Rm
+                nu = y - H @ x
+                ll = -0.5 * (nu @ np.linalg.solve(S, nu) + np.log(np.linalg.det(2 * np.pi * S)))
+                expected += math.log(pd) + ll - math.log(lam)
+                K = P @ H.T @ np.linalg.inv(S)
+                x, P = x + K @ nu, (np.eye(4) - K @ H) @ P
+            else:
+                expected += math.log1p(-pd * pg)
+        firm = firm or expected >= 30.0
+        slot = int(torch.nonzero(table.label[k, 0] == 0)[0])
+        assert float(scores[k, 0, slot]) == pytest.approx(expected, rel=1e-9, abs=1e-9)
+        assert bool(table.confirmed()[k, 0, slot]) == firm
+    assert firm  # (confirmed along the way)
+    # a drop of 2 below the peak deletes it: a miss costs log(1 - 0.8 * 0.99) = -1.57, the second -3.1
+    strict = _managed(KalmanFilter(motion, sensor), options, birth_density=b, m_of_n=None, confirm_score=30.0,
+                      max_misses=None, delete_drop=2.0)
+    end = run_filter(strict, strict.initial_belief((1,)), z, record=lambda out: out._replace(
+        belief=out.belief.best(), prior=None, extras=None)).belief
+    assert bool((end.label[8, 0] == 0).any()) and not bool((end.label[9, 0] == 0).any())
+    assert bool((end.label[10:, 0] == 1).any(-1).all())  # the next detection starts a new track

@@ -75,18 +75,27 @@ class TrackHypotheses(HypothesisBelief):
     hits: Tensor
     misses: Tensor
     firm: Tensor
+    score: Tensor
+    peak: Tensor
 
     event_dims: ClassVar[dict[str, int]] = {"log_weights": 1, "history": 3, "alive": 2, "label": 2, "next_label": 1,
-                                            "age": 2, "hits": 2, "misses": 2, "firm": 2}
+                                            "age": 2, "hits": 2, "misses": 2, "firm": 2, "score": 2, "peak": 2}
+
+    def _pick(self, t: Tensor, e: int = 0) -> Tensor:
+        """The best hypothesis's entry of ``t (*B, H, ...)`` -> ``(*B, ...)``."""
+        best = self.log_weights.argmax(-1)  # (*B,)
+        lead = best.dim()
+        index = best.reshape(*best.shape, 1, *([1] * (t.dim() - lead - 1)))
+        return t.gather(lead, index.expand(*t.shape[:lead], 1, *t.shape[lead + 1:])).squeeze(lead)
+
+    def best_scores(self) -> Tensor:
+        """``(*B, K)``: the best hypothesis's tracks' scores (log-likelihood ratios; 0 in a free slot)."""
+        return torch.where(self._pick(self.alive), self._pick(self.score), 0.0)
 
     def best(self) -> TrackTable | ModeTrackTable:
         """The best hypothesis's slots as a track table, batch ``(*B, K)`` (a free slot: existence 0)."""
         best = self.log_weights.argmax(-1)  # (*B,)
-        lead = best.dim()
-
-        def pick(t: Tensor, e: int) -> Tensor:  # (*B, H, ...) -> (*B, ...)
-            index = best.reshape(*best.shape, 1, *([1] * (t.dim() - lead - 1)))
-            return t.gather(lead, index.expand(*t.shape[:lead], 1, *t.shape[lead + 1:])).squeeze(lead)
+        pick = self._pick
         state = self.by_hypothesis().map_tensors(pick)
         alive = pick(self.alive, 1)
         K = alive.shape[-1]
@@ -113,8 +122,12 @@ class ManagedMHT(MHT):
         initiate: ``z (*B, D, m) -> GaussianBelief (*B, D, n)``, a new track's state from its detection
             (:func:`~torchmm.association.position_initiator`).
         birth_density: ``beta_NT`` > 0, new targets' first detections per unit volume a scan.
-        m_of_n: ``(M, N)`` confirmation (default ``(2, 3)``); max_misses: deletion after this many misses
-            running (default 3; None: none).
+        m_of_n: ``(M, N)`` confirmation (default ``(2, 3)``; None: by score alone); max_misses: deletion
+            after this many misses running (default 3; None: none).
+        confirm_score: the track-oriented rule (MATLAB's ``trackerTOMHT``): a track is confirmed once its
+            score (its log-likelihood ratio: ``log b`` at birth, then ``log w_ij`` of its detections and
+            ``log m`` of its misses) reaches this; delete_drop: deleted once its score falls this far below
+            its peak (default None: neither).
         mode_probs: an IMM's new track's mode probabilities (default equal).
 
     Shapes:
@@ -141,22 +154,29 @@ class ManagedMHT(MHT):
     @entry_point(filter=Of(Filter), detection_probability=Real(0.0, 1.0), clutter_density=Real(positive=True),
                  gate_probability=Real(0.0, 1.0), hypotheses=Int(1), k=Int(1, optional=True), n_scan=Int(0),
                  capacity=Int(1), initiate=Of(object), birth_density=Real(positive=True),
-                 m_of_n=Of((tuple, list), what="two integers (M, N)"), max_misses=Int(1, optional=True),
-                 mode_probs=Finite(optional=True))
+                 m_of_n=Of((tuple, list), what="two integers (M, N)", optional=True), max_misses=Int(1, optional=True),
+                 mode_probs=Finite(optional=True), confirm_score=Real(optional=True),
+                 delete_drop=Real(positive=True, optional=True))
     def __init__(self, filter: Filter, *, detection_probability: float, clutter_density: float,
                  capacity: int, initiate: Callable, birth_density: float, gate_probability: float = 0.99,
                  hypotheses: int = 10, k: int | None = None, n_scan: int = 3, m_of_n=(2, 3),
-                 max_misses: int | None = 3, mode_probs=None):
+                 max_misses: int | None = 3, mode_probs=None, confirm_score: float | None = None,
+                 delete_drop: float | None = None):
         super().__init__(filter, detection_probability=detection_probability, clutter_density=clutter_density,
                          gate_probability=gate_probability, hypotheses=hypotheses, k=k, n_scan=n_scan)
         if not callable(initiate):
             raise TypeError(f"initiate: expected a function z -> GaussianBelief, got {type(initiate).__name__}")
-        if len(m_of_n) != 2 or not all(isinstance(v, int) and not isinstance(v, bool) for v in m_of_n) or \
-                not 1 <= m_of_n[0] <= m_of_n[1]:
+        if m_of_n is None and confirm_score is None:
+            raise ValueError("m_of_n: None needs confirm_score (a track is confirmed by one of the two rules)")
+        if m_of_n is not None and (len(m_of_n) != 2 or not all(isinstance(v, int) and not isinstance(v, bool)
+                                                              for v in m_of_n) or not 1 <= m_of_n[0] <= m_of_n[1]):
             raise ValueError(f"m_of_n: expected two integers (M, N) with 1 <= M <= N, got {m_of_n}")
         self.capacity, self.initiate = int(capacity), initiate
         self.birth_density = float(birth_density)
-        self.m_of_n = (int(m_of_n[0]), int(m_of_n[1]))
+        self.m_of_n = None if m_of_n is None else (int(m_of_n[0]), int(m_of_n[1]))
+        self.confirm_score = None if confirm_score is None else float(confirm_score)
+        self.delete_drop = None if delete_drop is None else float(delete_drop)
+        self.birth_log_weight = math.log(self.birth_density / self.clutter_density)
         self.max_misses = None if max_misses is None else int(max_misses)
         M = getattr(filter, "num_modes", None)
         self.num_modes = M
@@ -167,6 +187,11 @@ class ManagedMHT(MHT):
         if probs is not None and probs.shape != (M,):
             raise ValueError(f"mode_probs: expected the {M} modes' probabilities (M,), got {tuple(probs.shape)}")
         self.mode_log_probs = None if probs is None else probs.log()
+
+    @property
+    def _firm_at_birth(self) -> bool:
+        return (self.m_of_n is not None and self.m_of_n[0] <= 1) or (
+            self.confirm_score is not None and self.birth_log_weight >= self.confirm_score)
 
     def _started(self, state: GaussianBelief):
         """A new track's state: the Gaussian, or over an IMM every mode from it with ``mode_probs``."""
@@ -206,7 +231,7 @@ class ManagedMHT(MHT):
         held = (torch.arange(K, device=device) < N).expand(shape)
         return TrackHypotheses(log_w, torch.zeros((*runs, H, L, K), dtype=torch.long, device=device), state,
                                held, torch.where(held, torch.arange(K, device=device), -1), zero[..., 0] + N,
-                               zero + held.long(), zero + held.long(), zero, held)
+                               zero + held.long(), zero + held.long(), zero, held, zero.to(dtype), zero.to(dtype))
 
     def update(self, belief: TrackHypotheses, z: Tensor) -> StepOutput:
         if not isinstance(belief, TrackHypotheses):
@@ -225,12 +250,12 @@ class ManagedMHT(MHT):
         log_m = torch.where(alive, missed_log_weight(self), 0.0).to(dtype)
         present = torch.isfinite(z).all(-1)  # (*B, D)
         own = torch.eye(D, dtype=torch.bool, device=z.device) & present.unsqueeze(-2)  # (*B, D, D): row j, column j
-        birth = torch.where(own, math.log(self.birth_density / self.clutter_density), neg_inf)
+        birth = torch.where(own, self.birth_log_weight, neg_inf)
         gains = torch.cat([log_w, birth.unsqueeze(-3).expand(*runs, H, D, D)], -2)  # (*B, H, K + D, D)
         misses = torch.cat([log_m, torch.zeros(*runs, H, D, dtype=dtype, device=z.device)], -1)
         R = math.prod(runs) * H
         columns, log_e = kbest_events(gains.reshape(R, K + D, D), misses.reshape(R, K + D), self.k)
-        log_like, log_w, parent, chosen = children(belief.log_weights, columns, log_e, self.k)
+        log_like, child_w, parent, chosen = children(belief.log_weights, columns, log_e, self.k)
         failed = (singular & alive).reshape(*runs, -1).any(-1) | torch.isnan(log_like)
         slot, new = chosen[..., :K], chosen[..., K:] > 0  # (*B, H, K) the slots' options; (*B, H, D) new targets
         options = pytree.tree_map(_prepend, missed_hypothesis(self, tracks, hyp), hyp.belief)
@@ -242,12 +267,24 @@ class ManagedMHT(MHT):
         was, label, next_label = parents(alive), parents(belief.label), parents(belief.next_label)
         hit = (slot > 0) & was
         age = torch.where(was, parents(belief.age) + 1, 0)
-        hits = parents(belief.hits) + (hit & (age <= self.m_of_n[1])).long()
+        window = self.m_of_n[1] if self.m_of_n is not None else 0
+        hits = parents(belief.hits) + (hit & (age <= window)).long()
         misses_run = torch.where(hit, 0, parents(belief.misses) + was.long())
-        firm = parents(belief.firm) | (hits >= self.m_of_n[0])
-        kept = was & (firm | (age < self.m_of_n[1]))  # unconfirmed after N scans: deleted
+        # each track's score: its parent's plus its own log-weight in the event (log m_i missed, log w_ij)
+        own_gain = parents(torch.cat([log_m.unsqueeze(-1), log_w], -1)).gather(-1, slot.unsqueeze(-1)).squeeze(-1)
+        score = torch.where(was, parents(belief.score) + own_gain, 0.0)
+        peak = torch.maximum(parents(belief.peak), score)
+        firm = parents(belief.firm)
+        kept = was
+        if self.m_of_n is not None:
+            firm = firm | (hits >= self.m_of_n[0])
+            kept = kept & (firm | (age < window))  # unconfirmed after N scans: deleted
+        if self.confirm_score is not None:
+            firm = firm | (score >= self.confirm_score)
         if self.max_misses is not None:
             kept = kept & (misses_run < self.max_misses)
+        if self.delete_drop is not None:
+            kept = kept & (peak - score <= self.delete_drop)
         # new targets into the free slots, matched by rank
         free = ~kept
         free_rank = torch.cumsum(free.long(), -1)
@@ -266,11 +303,13 @@ class ManagedMHT(MHT):
         history = shift_history(belief.history, parent, torch.where(born, first, torch.where(kept, slot, 0)))
         one, zero = torch.ones((), dtype=torch.long, device=z.device), torch.zeros((), dtype=torch.long, device=z.device)
         out = TrackHypotheses(
-            normalise(prune(log_w, history, self.n_scan), failed), history, state, kept | born,
+            normalise(prune(child_w, history, self.n_scan), failed), history, state, kept | born,
             torch.where(born, next_label.unsqueeze(-1) + free_rank - 1, torch.where(kept, label, -1)),
             next_label + born.sum(-1), torch.where(born, one, torch.where(kept, age, zero)),
             torch.where(born, one, torch.where(kept, hits, zero)), torch.where(born | ~kept, zero, misses_run),
-            torch.where(born, self.m_of_n[0] <= 1, firm & kept))
+            torch.where(born, self._firm_at_birth, firm & kept),
+            torch.where(born, self.birth_log_weight, torch.where(kept, score, 0.0)),
+            torch.where(born, self.birth_log_weight, torch.where(kept, peak, 0.0)))
         best = torch.where(born, first, torch.where(kept, slot, 0))[..., 0, :]  # the best child's, (*B, K)
         association = (best.unsqueeze(-1) == torch.arange(1 + D, device=z.device)).to(dtype)
         return StepOutput(out, belief, torch.where(failed, torch.nan, log_like), None, None,
