@@ -382,9 +382,7 @@ def _initiated(t, filt, opts: dict, dtype, R: float, method: str, k: int) -> Est
     manager = ManagedTracks(jipda, capacity=int(m.capacity), initiate=position_initiator(4, [0, 2], R,
                                                                                          float(m.velocity_variance)),
                             birth_existence=1.0, unexplained=float(m.unexplained), delete=0.0, confirm=1.0,
-                            m_of_n=tuple(int(v) for v in i.m_of_n), max_misses=int(i.max_misses),
-                     confirm_score=None if i.get("confirm_score") is None else float(i.confirm_score),
-                     delete_drop=None if i.get("delete_drop") is None else float(i.delete_drop))
+                            m_of_n=tuple(int(v) for v in i.m_of_n), max_misses=int(i.max_misses))
     return Estimator(manager, lambda b: manager.initial_belief(b.batch_shape[:-1], dtype=dtype), False, True)
 
 

@@ -235,3 +235,15 @@ def test_motion_study_with_a_birth_and_its_checks(tmp_path):
     with pytest.raises(ValueError, match=r"tracking.motions\[0\].start=.*\[x, vx, y, vy\]"):
         validate(_compose("tracking", "tracking.motions=[{start:[0,0,0],legs:[{scans:6}]}]",
                           "tracking.estimators=[JIPDA-TM]"))
+
+
+def test_the_mht_from_detections_takes_its_initiation_keys():
+    """tracking.start: detections makes IMM-MHT a ManagedMHT with tracking.initiation's keys."""
+    from torchmm.association import ManagedMHT
+
+    t = _section(start="detections", estimators=["IMM-MHT"], initiation={
+        "m_of_n": [3, 5], "max_misses": 4, "birth_rate": 0.2, "confirm_score": 12.0, "delete_drop": 6.0})
+    mht = tracking.estimators(t, torch.float64)["IMM-MHT"].filter
+    assert isinstance(mht, ManagedMHT) and mht.m_of_n == (3, 5) and mht.max_misses == 4
+    assert mht.confirm_score == 12.0 and mht.delete_drop == 6.0
+    assert mht.birth_density == pytest.approx(0.2 / (2 * float(t.region)) ** 2)
