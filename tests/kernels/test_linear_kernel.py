@@ -752,3 +752,33 @@ def test_kernel_smoothers_equal_the_eager_smoothers(kind, monkeypatch):
         assert_close(a, e, **TIGHT)
     # the smoother changes every step but the last (which is the filter's)
     assert not torch.allclose(gaussian(kernel.belief).mean[0], gaussian(traj.belief).mean[0])
+
+
+def test_kernel_kim_takes_log_space_where_probabilities_are_tiny(monkeypatch):
+    """Kim's compiled loop weighs the modes in linear space where a step's log-probabilities lie within 700
+    of their largest and in log space elsewhere (issue 47): regimes 60 noise standard deviations apart make
+    probabilities of exp(-1800) at most steps, moderate ones where the data sit between; both paths equal
+    the eager smoother (every kernel off), the smoothed log-probabilities of the tiny ones included."""
+    import torchmm.kernels as kernels
+    from experiments.realdata import fedfunds_imm
+    from torchmm import smooth
+
+    y = torch.zeros(60, 1, dtype=torch.float64)
+    y[20:30] = 60.0
+    y[30:36] = torch.linspace(45.0, 15.0, 6, dtype=torch.float64).unsqueeze(-1)  # between: moderate weights
+    y += 0.3 * torch.randn(60, 1, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    imm, b0 = fedfunds_imm([0.0, 60.0], [1.0, 1.0], [[0.95, 0.05], [0.1, 0.9]])
+    with torch.no_grad():
+        with kernels.switched_off("linear_gaussian"), kernels.switched_off("batch_last"):
+            traj = run_filter(imm, b0, y)
+            eager = smooth(traj, method="kim").belief
+        loaded = []
+        original = linear.load
+        monkeypatch.setattr(linear, "load", lambda: loaded.append(True) or original())
+        kernel = smooth(traj, method="kim").belief
+    assert loaded, "the kernel smoother did not run"
+    logs = eager.mode_log_probs
+    assert bool((logs.amin(-1) < -700).sum() > 20) and bool(((logs.amin(-1) > -700) & (logs.amin(-1) < -1)).any())
+    assert_close(kernel.mode_log_probs, eager.mode_log_probs, **TIGHT)
+    assert_close(kernel.components.mean, eager.components.mean, **TIGHT)
+    assert_close(kernel.components.cov, eager.components.cov, **TIGHT)

@@ -277,6 +277,14 @@ def test_smoothed_is_the_filter_and_smoother_at_the_current_parameters():
         assert torch.allclose(out.components.cov, ref.components.cov, rtol=1e-12, atol=1e-12)
         with torch.no_grad():
             imm.bank.filter.measurement.H.mul_(1.1)  # (the next round: other parameters)
+            imm.bank.filter.measurement.R.mul_(0.9)  # (the kernel's own copies of them refreshed: versions)
+    # a new start belief (another object) is read, not the last call's arrays
+    b1 = b0.__class__(torch.tensor([0.3, 0.7], dtype=torch.float64).log(), b0.components)
+    objective = Objective(imm, b1, y)
+    objective.smoothed()
+    with torch.no_grad():
+        ref = smooth(run_filter(imm, b1, y), method="kim").belief
+    assert torch.allclose(objective.smoothed().mode_probs, ref.mode_probs, rtol=1e-12, atol=1e-12)
     kf = KalmanFilter(LinearMotion(torch.eye(1, dtype=torch.float64), torch.eye(1, dtype=torch.float64)),
                       LinearMeasurement(torch.eye(1, dtype=torch.float64), 4 * torch.eye(1, dtype=torch.float64)))
     z = torch.randn(30, 2, 1, generator=torch.Generator().manual_seed(1), dtype=torch.float64)

@@ -56,6 +56,7 @@ def joins(family: str, methods: tuple[str, ...] = _METHODS) -> Callable[[type], 
 
     def decorate(cls: type) -> type:
         _JOINED.setdefault(family, {})[cls] = {name: getattr(cls, name, None) for name in methods}
+        _JOINED_BY_TYPE.clear()
         return cls
 
     return decorate
@@ -65,10 +66,16 @@ def joined(filter: Any, family: str) -> bool:
     """Whether ``filter`` belongs to the kernel ``family``: an instance of a joining class whose steps
     are that class's own."""
     kind = type(filter)
-    for cls, methods in _JOINED.get(family, {}).items():
-        if issubclass(kind, cls) and all(getattr(kind, name, None) is fn for name, fn in methods.items()):
-            return True
-    return False
+    known = _JOINED_BY_TYPE.get((kind, family))
+    if known is None:
+        known = _JOINED_BY_TYPE[(kind, family)] = any(
+            issubclass(kind, cls) and all(getattr(kind, name, None) is fn for name, fn in methods.items())
+            for cls, methods in _JOINED.get(family, {}).items())
+    return known
+
+
+#: joined()'s answers by (class, family): a class's methods are fixed once defined (cleared when a class joins)
+_JOINED_BY_TYPE: dict = {}
 
 
 def describe(filter: Any, family: str, *, inputs: bool = False) -> Any:

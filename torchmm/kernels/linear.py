@@ -124,28 +124,8 @@ class _Run(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, z, rule, update_first, full, layout, status, *tensors):
-        loops = load()
-        zz = _np(z)
-        inputs = [zz]
-        for t, (wide, target) in zip(tensors, layout):
-            a = _np(t)
-            if a.shape != target:
-                if a.size == math.prod(target):  # (a view: only unit axes differ)
-                    a = a.reshape(target)
-                else:
-                    a = np.ascontiguousarray(np.broadcast_to(a, wide)).reshape(target)
-            inputs.append(a)
-        T, B, m = zz.shape
-        M, n = inputs[1].shape[0], inputs[1].shape[1]
-        dt = zz.dtype
-        empty = np.empty
-        outs = [empty((T, B), dt), empty((T, B, M), dt), empty((T, B, M, n), dt), empty((T, B, M, n, n), dt),
-                empty((T, B, M, n), dt), empty((T, B, M, n, n), dt), empty((T, B, M), dt), empty((T, B, M, n), dt),
-                empty((T, B, M, n, n), dt), empty((T, B, M, m), dt), empty((T, B, M, m, m), dt),
-                empty((T, B, M), dt), empty((T, B, M), np.int8)]
-        finfo = np.finfo(dt)
-        bad, regularised = loops.forward(*inputs[:7], rule, update_first, *inputs[7:], float(finfo.eps),
-                                         float(finfo.tiny), *outs)
+        inputs = _arrays(z, tensors, layout)
+        outs, bad, regularised = _forward_arrays(inputs, rule, update_first)
         ctx.arrays = (inputs, outs[1:9])
         ctx.rule, ctx.update_first, ctx.layout = rule, update_first, layout
         ctx.raw = [(t.shape, t.requires_grad) for t in tensors]
@@ -178,6 +158,49 @@ class _Run(torch.autograd.Function):
             g = _unbroadcast(g.reshape(wide), tuple(shape))
             out.append(torch.from_numpy(np.ascontiguousarray(g)).reshape(shape))
         return (None, None, None, None, None, None, *out)
+
+
+def _arrays(z: Tensor, tensors, layout) -> list:
+    """The kernel's NumPy inputs: the data ``z (T, runs, m)`` and each tensor broadcast and reshaped to its
+    layout's kernel shape (views where only unit axes differ)."""
+    inputs = [_np(z)]
+    for t, (wide, target) in zip(tensors, layout):
+        a = (t.detach() if t.requires_grad else t).numpy()  # (strided where the tensor is: one copy below)
+        if a.shape != target:
+            if a.size == math.prod(target):  # (only unit axes differ)
+                a = a.reshape(target)
+            else:
+                a = np.broadcast_to(a, wide).reshape(target)
+        inputs.append(a if a.flags.c_contiguous else np.ascontiguousarray(a))
+    return inputs
+
+
+def _forward_arrays(inputs: list, rule: int, update_first: bool) -> tuple[list, int, int]:
+    """The compiled forward loop on :func:`_arrays`' inputs: its thirteen NumPy outputs (``ll, logmu, x,
+    P``, then the intermediates) and the counts of failed and regularised updates."""
+    zz = inputs[0]
+    T, B, m = zz.shape
+    M, n = inputs[1].shape[0], inputs[1].shape[1]
+    dt = zz.dtype
+    empty = np.empty
+    outs = [empty((T, B), dt), empty((T, B, M), dt), empty((T, B, M, n), dt), empty((T, B, M, n, n), dt),
+            empty((T, B, M, n), dt), empty((T, B, M, n, n), dt), empty((T, B, M), dt), empty((T, B, M, n), dt),
+            empty((T, B, M, n, n), dt), empty((T, B, M, m), dt), empty((T, B, M, m, m), dt),
+            empty((T, B, M), dt), empty((T, B, M), np.int8)]
+    bad, regularised = load().forward(*inputs[:7], rule, update_first, *inputs[7:], *_finfo(dt), *outs)
+    return outs, bad, regularised
+
+
+_FINFO: dict = {}
+
+
+def _finfo(dtype) -> tuple[float, float]:
+    """``(eps, tiny)`` of a NumPy dtype (``np.finfo`` costs microseconds; read once a dtype)."""
+    got = _FINFO.get(dtype)
+    if got is None:
+        finfo = np.finfo(dtype)
+        got = _FINFO[dtype] = (float(finfo.eps), float(finfo.tiny))
+    return got
 
 
 class _NoGrad:
@@ -277,6 +300,8 @@ class Prepared:
                               None if controls is None or model.G is None else steps,
                               None if model.time_varying is None else steps)
         self.zeros = z.new_zeros(self.runs, 1)
+        self.zero_inputs = z.new_zeros(1, 1, M, n)  # (no controls: the input terms, made once)
+        self._smooth_key, self._smooth_inputs, self._smooth_held = None, None, None
         self.shape = (belief0.mean.shape, belief0.cov.shape) if self.kalman else (
             belief0.mode_log_probs.shape, belief0.components.mean.shape, belief0.components.cov.shape)
 
@@ -313,16 +338,26 @@ class Prepared:
             return None
         start = (self.zeros, belief0.mean, belief0.cov) if self.kalman else (
             belief0.mode_log_probs, belief0.components.mean, belief0.components.cov)
-        status = [0]
-        with torch.no_grad():
-            models = _models(model, self.controls, self.batch)
-            bu = _input_terms(model, self.controls, self.M, self.n, self.batch)
-            outs = _Run.forward(_NoGrad(), self.z, self.rule, bool(update_first), False, self.layout, status,
-                                *models, *start, bu)
-            if status[0]:
+        with torch.no_grad():  # (NumPy throughout, one compiled call: the forward pass's arrays stay inside)
+            bu = self.zero_inputs if self.controls is None else _input_terms(model, self.controls, self.M, self.n,
+                                                                               self.batch)
+            tensors = (*_models(model, self.controls, self.batch), *start, bu)
+            # the kernel's arrays of unchanged tensors (the same objects at the same versions: torch's own test of
+            # an in-place change) are the last call's: a repeated smoother at fixed parameters converts nothing
+            key = tuple((id(t), t._version) for t in tensors)
+            if key != self._smooth_key:
+                self._smooth_inputs = _arrays(self.z, tensors, self.layout)
+                self._smooth_key, self._smooth_held = key, tensors  # (held: no id is reused while cached)
+            inputs = self._smooth_inputs
+            T, runs = self.z.shape[0], self.runs
+            dt = inputs[0].dtype
+            out = [np.empty((T, runs, self.M), dt), np.empty((T, runs, self.M, self.n), dt),
+                   np.empty((T, runs, self.M, self.n, self.n), dt)]
+            bad, regularised = load().filter_and_kim(*inputs[:7], self.rule, bool(update_first), *inputs[7:],
+                                                     *_finfo(dt), *out)
+            if bad + regularised:
                 return None
-            _, logmu, x, P = outs
-            return _kim(models, logmu, x, P, tuple(self.batch), self.kalman)
+            return _smoothed(out, tuple(self.batch), self.kalman)
 
 
 class LinearKernel:
@@ -489,17 +524,31 @@ def _kim(models: tuple, logmu: Tensor, x: Tensor, P: Tensor, batch: tuple, kalma
     """Kim's smoother (one mode: RTS) of a filtered run in the compiled loop: the models ``_models``
     gives, the run's ``logmu (T, runs, M)``, ``x (T, runs, M, n)``, ``P (T, runs, M, n, n)`` (contiguous)
     -> the smoothed beliefs, batch ``(T, *batch)`` (a GaussianBelief for one Kalman filter)."""
+    M, n = logmu.shape[-1], x.shape[-1]
+    F, b, Q, Pi = (np.ascontiguousarray(np.broadcast_to(_np(t), w))
+                   for t, w in zip((*models[:3], models[5]), ((M, n, n), (M, n), (M, n, n), (M, M))))
+    return _kim_arrays(F, b, Q, Pi, logmu.numpy(), x.numpy(), P.numpy(), batch, kalman)
+
+
+def _kim_arrays(F, b, Q, Pi, logmu, x, P, batch: tuple, kalman: bool) -> Any:
+    """:func:`_kim` on NumPy arrays: ``F (M, n, n)``, ``b (M, n)``, ``Q (M, n, n)``, the transition ``Pi (M,
+    M)`` and the filtered ``logmu (T, runs, M)``, ``x``, ``P`` (contiguous)."""
     steps, runs, M = logmu.shape
     n = x.shape[-1]
-    F, b, Q = (np.ascontiguousarray(np.broadcast_to(_np(t), w))
-               for t, w in zip(models[:3], ((M, n, n), (M, n), (M, n, n))))
-    dtype = logmu.dtype
-    out = [torch.empty(steps, runs, M, dtype=dtype), torch.empty(steps, runs, M, n, dtype=dtype),
-           torch.empty(steps, runs, M, n, n, dtype=dtype)]
-    finfo = torch.finfo(dtype)
-    load().kim(F, b, Q, _np(models[5].log()), logmu.numpy(), x.numpy(), P.numpy(), finfo.eps, finfo.tiny,
-               *[o.numpy() for o in out])
-    slogmu, sx, sP = (o.reshape(steps, *batch, *o.shape[2:]) for o in out)
+    dt = logmu.dtype
+    out = [np.empty((steps, runs, M), dt), np.empty((steps, runs, M, n), dt), np.empty((steps, runs, M, n, n), dt)]
+    loops = load()
+    loops.kim(F, b, Q, Pi, loops.log_matrix(Pi), logmu, x, P, *_finfo(dt), *out)
+    return _smoothed(out, batch, kalman)
+
+
+def _smoothed(out: list, batch: tuple, kalman: bool) -> Any:
+    """The smoothed beliefs, batch ``(T, *batch)``, over the Kim loop's ``(T, runs, ...)`` arrays."""
+    steps, runs = out[0].shape[:2]
+    if batch == (runs,):
+        slogmu, sx, sP = (torch.from_numpy(o) for o in out)
+    else:
+        slogmu, sx, sP = (torch.from_numpy(o).reshape(steps, *batch, *o.shape[2:]) for o in out)
     if kalman:
         return GaussianBelief(sx.squeeze(-2), sP.squeeze(-3))
     return ModeBelief(slogmu, GaussianBelief(sx, sP))
