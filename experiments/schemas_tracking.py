@@ -233,7 +233,12 @@ def _check_waypoints(t: dict) -> None:
             raise ConfigError(key, target, "the waypoints' scans must be whole numbers, increasing")
         if scans[0] < 0 or scans[-1] > t["steps"] - 1:
             raise ConfigError(key, target, f"the scans must lie in 0 .. steps - 1 = {t['steps'] - 1}")
-    late = [i for i, target in enumerate(ways) if target[0][0] != 0]
+    _check_targets(t, "waypoints", [i for i, target in enumerate(ways) if target[0][0] != 0])
+
+
+def _check_targets(t: dict, key: str, late: list[int]) -> None:
+    """The targets of ``tracking.<key>`` (waypoints, motions): the fixed-track estimators need every one
+    from scan 0 (``late``: those born after it); the exact JPDA takes at most 12; the management keys."""
     fixed = _fixed(t)
     if late and fixed:
         raise ConfigError("tracking.estimators", t["estimators"],
@@ -241,8 +246,9 @@ def _check_waypoints(t: dict) -> None:
                           f"later (births): start them with no track (tracking.start: detections) or use the managed "
                           f"trackers ({', '.join(MANAGED_TRACKERS)})")
     method = (t.get("jpda") or {}).get("method", "exact")
-    if len(ways) > 12 and method == "exact" and any(name in EXACT_JPDA for name in t["estimators"]):
-        raise ConfigError("tracking.waypoints", f"{len(ways)} targets", "the exact JPDA takes at most 12 targets "
+    count = len(t[key])
+    if count > 12 and method == "exact" and any(name in EXACT_JPDA for name in t["estimators"]):
+        raise ConfigError(f"tracking.{key}", f"{count} targets", "the exact JPDA takes at most 12 targets "
                           "(tracking.jpda.method: lbp or kbest)")
     _check_management(t)
 
@@ -386,15 +392,4 @@ def _check_motions(t: dict) -> None:
         if last > t["steps"] - 1:
             raise ConfigError(key, target, f"its legs end at scan {last}, after the last scan (steps - 1 = "
                               f"{t['steps'] - 1})")
-    late = [i for i, target in enumerate(motions) if (target.get("first") or 0) != 0]
-    fixed = _fixed(t)
-    if late and fixed:
-        raise ConfigError("tracking.estimators", t["estimators"],
-                          f"{', '.join(fixed)} start one track per target at the first scan; target(s) {late} start "
-                          f"later (births): start them with no track (tracking.start: detections) or use the managed "
-                          f"trackers ({', '.join(MANAGED_TRACKERS)})")
-    method = (t.get("jpda") or {}).get("method", "exact")
-    if len(motions) > 12 and method == "exact" and any(name in EXACT_JPDA for name in t["estimators"]):
-        raise ConfigError("tracking.motions", f"{len(motions)} targets", "the exact JPDA takes at most 12 targets "
-                          "(tracking.jpda.method: lbp or kbest)")
-    _check_management(t)
+    _check_targets(t, "motions", [i for i, target in enumerate(motions) if (target.get("first") or 0) != 0])

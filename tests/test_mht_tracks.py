@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from tests.test_jpda import R, _imm, _scene
-from torchmm import GaussianBelief, KalmanFilter, run_filter
+from torchmm import KalmanFilter, run_filter
 from torchmm.association import MHT, ManagedMHT, TrackHypotheses, position_initiator
 from torchmm.metrics import gospa
 from torchmm.runtime import no_host_sync

@@ -169,18 +169,24 @@ class MHT(JPDA):
     def predict(self, belief: HypothesisBelief, *, u: Tensor | None = None) -> HypothesisBelief:
         return dataclasses.replace(belief, tracks=self.filter.predict(belief.tracks, u=u))
 
-    def update(self, belief: HypothesisBelief, z: Tensor) -> StepOutput:
-        if not isinstance(belief, HypothesisBelief):
-            raise TypeError(f"belief: MHT takes its HypothesisBelief (MHT.initial_belief of the tracks), got "
-                            f"{type(belief).__name__}")
+    def _scan_hypotheses(self, belief: HypothesisBelief, z: Tensor):
+        """The scan ``z`` checked, every hypothesis's tracks ``(*B, H, N)`` and their update for every
+        detection at once (:meth:`JPDA._scan`): ``(z, tracks, hyp, log_w (*B, H, N, D), singular (*B, H, N))``."""
         runs = belief.log_weights.shape[:-1]
         H, N = belief.num_hypotheses, belief.history.shape[-1]
         z = check_detections(z, self.detections_dim, torch.Size(runs), belief.log_weights.dtype,
                              tracks=torch.Size((*runs, N)))
         tracks = belief.by_hypothesis()  # (*B, H, N)
         D, m = z.shape[-2:]
-        zz = z.unsqueeze(-3).expand(*runs, H, D, m)
-        hyp, _, log_w, _, singular = self._scan(tracks, zz)  # log_w (*B, H, N, D)
+        hyp, _, log_w, _, singular = self._scan(tracks, z.unsqueeze(-3).expand(*runs, H, D, m))
+        return z, tracks, hyp, log_w, singular
+
+    def update(self, belief: HypothesisBelief, z: Tensor) -> StepOutput:
+        if not isinstance(belief, HypothesisBelief):
+            raise TypeError(f"belief: MHT takes its HypothesisBelief (MHT.initial_belief of the tracks), got "
+                            f"{type(belief).__name__}")
+        z, tracks, hyp, log_w, singular = self._scan_hypotheses(belief, z)
+        runs, H, N, D = log_w.shape[:-3], *log_w.shape[-3:]
         R = math.prod(runs) * H
         columns, log_e = kbest_events(log_w.reshape(R, N, D), missed_log_weight(self), self.k)  # (R, k, N), (R, k)
         log_like, log_w, parent, chosen = children(belief.log_weights, columns, log_e, self.k)

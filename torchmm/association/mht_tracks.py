@@ -47,9 +47,9 @@ from torchmm.association.mht import (
     prune,
     shift_history,
 )
-from torchmm.association.pda import check_detections, missed_hypothesis, missed_log_weight
+from torchmm.association.pda import missed_hypothesis, missed_log_weight
 from torchmm.association.tracks import ModeTrackTable, TrackTable
-from torchmm.beliefs import Belief, GaussianBelief, ModeBelief, register_belief, where
+from torchmm.beliefs import GaussianBelief, ModeBelief, register_belief, where
 from torchmm.contract import BeliefArg, DType, Device, Finite, Int, Of, Real, Shape, entry_point
 from torchmm.filters.base import Filter, StepOutput
 from torchmm.validation import check_probabilities
@@ -237,13 +237,9 @@ class ManagedMHT(MHT):
         if not isinstance(belief, TrackHypotheses):
             raise TypeError(f"belief: ManagedMHT takes its TrackHypotheses (ManagedMHT.initial_belief), got "
                             f"{type(belief).__name__}")
-        runs = belief.log_weights.shape[:-1]
-        H, K = belief.num_hypotheses, belief.history.shape[-1]
+        z, tracks, hyp, log_w, singular = self._scan_hypotheses(belief, z)  # log_w (*B, H, K, D)
+        runs, H, K, D = log_w.shape[:-3], *log_w.shape[-3:]
         dtype = belief.log_weights.dtype
-        z = check_detections(z, self.detections_dim, torch.Size(runs), dtype, tracks=torch.Size((*runs, K)))
-        tracks = belief.by_hypothesis()  # (*B, H, K)
-        D, m = z.shape[-2:]
-        hyp, _, log_w, _, singular = self._scan(tracks, z.unsqueeze(-3).expand(*runs, H, D, m))  # (*B, H, K, D)
         alive = belief.alive
         neg_inf = torch.full((), -math.inf, dtype=dtype, device=z.device)
         log_w = torch.where(alive.unsqueeze(-1), log_w, neg_inf)  # a free slot takes nothing, misses nothing
