@@ -192,7 +192,7 @@ class MHT(JPDA):
         log_like, log_w, parent, chosen = children(belief.log_weights, columns, log_e, self.k)
         failed = singular.reshape(*runs, -1).any(-1) | torch.isnan(log_like)
         # the children's tracks: each its parent's track updated with its detection (option 1 + j) or missed (0)
-        options = pytree.tree_map(_prepend, missed_hypothesis(self, tracks, hyp), hyp.belief)  # (1 + D, *B, H, N)
+        options = pytree.tree_map(prepend_missed, missed_hypothesis(self, tracks, hyp), hyp.belief)  # (1 + D, *B, H, N)
         new_tracks = pytree.tree_map(lambda t: pick_options(t, parent, chosen), options)
         history = shift_history(belief.history, parent, chosen)
         log_w = normalise(prune(log_w, history, self.n_scan), failed)
@@ -252,7 +252,7 @@ def normalise(log_w: Tensor, failed: Tensor) -> Tensor:
     return torch.where(failed.unsqueeze(-1), torch.nan, log_w)
 
 
-def _prepend(missed: Tensor, detections: Tensor) -> Tensor:
+def prepend_missed(missed: Tensor, detections: Tensor) -> Tensor:
     """The missed hypothesis ``(*B, ...)`` in front of the detections' ``(D, *B, ...)``."""
     full = torch.broadcast_shapes(missed.shape, detections.shape[1:])
     return torch.cat([missed.expand(full).unsqueeze(0), detections.expand(detections.shape[0], *full)], 0)

@@ -40,7 +40,7 @@ from torchmm.association.jpda import kbest_events
 from torchmm.association.mht import (
     MHT,
     HypothesisBelief,
-    _prepend,
+    prepend_missed,
     children,
     normalise,
     pick_options,
@@ -254,7 +254,7 @@ class ManagedMHT(MHT):
         log_like, child_w, parent, chosen = children(belief.log_weights, columns, log_e, self.k)
         failed = (singular & alive).reshape(*runs, -1).any(-1) | torch.isnan(log_like)
         slot, new = chosen[..., :K], chosen[..., K:] > 0  # (*B, H, K) the slots' options; (*B, H, D) new targets
-        options = pytree.tree_map(_prepend, missed_hypothesis(self, tracks, hyp), hyp.belief)
+        options = pytree.tree_map(prepend_missed, missed_hypothesis(self, tracks, hyp), hyp.belief)
         updated = pytree.tree_map(lambda t: pick_options(t, parent, slot), options)  # (*B, H * K)
 
         def parents(t: Tensor) -> Tensor:  # a record (*B, H, ...) of each child's parent

@@ -2,8 +2,8 @@ r"""The small linear-Gaussian kernel: a whole run of a Kalman filter, an IMM, a 
 over linear-Gaussian modes in one compiled loop (Numba), with autograd through a hand-written reverse
 pass.
 
-**What it computes.** The eager steps' equations, operation by operation
-(torchmm/kernels/linear_loops.py): the interaction of torchmm/multimodel/imm.py, the prediction
+**What it computes.** The eager steps' equations, operation by operation (torchmm/kernels/linear_loops.py,
+linear_reverse.py, linear_kim.py): the interaction of torchmm/multimodel/imm.py, the prediction
 ``F x + b``, ``F P F^T + Q``, the update of :func:`torchmm.linalg.condition` (missing components
 skipped, the posterior covariance symmetrised, the log-likelihood over the observed components) and
 the mode update of :func:`~torchmm.multimodel.imm.mode_posterior`. Results equal the eager steps' to
@@ -88,10 +88,23 @@ class LinearGaussian(NamedTuple):
 
 
 def load():
-    """The compiled loops (imports Numba; the first call on a machine compiles them, ~10 s, cached)."""
-    from torchmm.kernels import linear_loops
+    """The compiled loops (imports Numba; the first call on a machine compiles them, ~10 s, cached): the
+    forward pass (:mod:`~torchmm.kernels.linear_loops`), its reverse pass (:mod:`~torchmm.kernels.linear_reverse`)
+    and Kim's smoother (:mod:`~torchmm.kernels.linear_kim`), over the step functions they share
+    (:mod:`~torchmm.kernels.loop_algebra`), as one namespace."""
+    global _LOOPS
+    if _LOOPS is None:
+        from types import SimpleNamespace
 
-    return linear_loops
+        from torchmm.kernels import linear_kim, linear_loops, linear_reverse, loop_algebra
+
+        _LOOPS = SimpleNamespace(forward=linear_loops.forward, backward=linear_reverse.backward, kim=linear_kim.kim,
+                                 filter_and_kim=linear_kim.filter_and_kim, log_matrix=linear_kim.log_matrix,
+                                 chol_reg=loop_algebra.chol_reg)
+    return _LOOPS
+
+
+_LOOPS = None
 
 
 def _np(t: Tensor):
