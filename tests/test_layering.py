@@ -20,6 +20,7 @@ LAYERS = [
     {"kernels"},  # the seam (torchmm/kernels/__init__.py) and every whole-run kernel behind it (issue 47)
     {"filters", "simulate", "assignment"},  # (assignment: its compiled loop is a stage kernel)
     {"run", "multimodel", "association"},
+    {"two_filter"},  # the two-filter IMM smoother (split from smooth.py, issue 47)
     {"smooth", "parallel"},  # the backward passes, the time-parallel scans
     {"fusion", "learn", "metrics", "analysis"},
     {"torchmm"},  # the top-level namespace
@@ -237,11 +238,12 @@ def test_smooth_names_no_filter_class():
     """torchmm.smooth runs the backward pass a filter names (``Filter.smoother``: "rts", "unscented",
     "particles", "modes"; issue 47), never testing for a filter class, and imports none at run time."""
     concrete = _concrete_filter_classes() | {"MultipleModelFilter"}
-    tree = ast.parse((ROOT / "smooth.py").read_text())
-    bad = [f"smooth.py:{line}: {name}" for line, name in _class_tests(tree) if name in concrete]
-    assert not bad, bad
-    runtime = [a.name for node in tree.body if isinstance(node, ast.ImportFrom) for a in node.names]
-    assert not set(runtime) & concrete, sorted(set(runtime) & concrete)
+    for file in ("smooth.py", "two_filter.py"):  # (the two-filter smoother: split from smooth.py)
+        tree = ast.parse((ROOT / file).read_text())
+        bad = [f"{file}:{line}: {name}" for line, name in _class_tests(tree) if name in concrete]
+        assert not bad, bad
+        runtime = [a.name for node in tree.body if isinstance(node, ast.ImportFrom) for a in node.names]
+        assert not set(runtime) & concrete, sorted(set(runtime) & concrete)
 
 
 def test_the_class_test_finder_finds_class_tests():

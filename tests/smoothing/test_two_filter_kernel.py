@@ -166,7 +166,7 @@ def test_float32_and_gradients(kernel_runs):
 def test_no_host_reads_in_the_run(kernel_runs):
     imm, belief0, z = _random_imm(2, 2, 3, (5,), steps=6, seed=9)
     traj = run_filter(imm, belief0, z)
-    from torchmm.smooth import _prior_mode_log_probs  # noqa: PLC0415 (what smooth hands the kernel)
+    from torchmm.two_filter import prior_mode_log_probs as _prior_mode_log_probs  # noqa: PLC0415 (what smooth hands the kernel)
 
     prior_log = _prior_mode_log_probs(imm, traj, 6, traj.belief.mode_log_probs)
     run, why = kernels.plan_smooth(imm, traj, "two_filter", measurements=z, prior_log=prior_log)
@@ -191,7 +191,7 @@ def test_declines_what_it_does_not_compute(kernel_runs):
     }
     for reason, (filt, b0, data) in cases.items():
         traj = run_filter(filt, b0, data)
-        from torchmm.smooth import _prior_mode_log_probs  # noqa: PLC0415
+        from torchmm.two_filter import prior_mode_log_probs as _prior_mode_log_probs  # noqa: PLC0415
 
         prior_log = _prior_mode_log_probs(filt, traj, 5, traj.belief.mode_log_probs)
         run, why = kernels.plan_smooth(filt, traj, "two_filter", measurements=data, prior_log=prior_log)

@@ -11,7 +11,7 @@ import numba
 import numpy as np
 
 from torchmm.kernels.linear_loops import forward
-from torchmm.kernels.loop_algebra import logsumexp, predict_mode, chol_reg
+from torchmm.kernels.loop_algebra import chol_reg, logsumexp, predict_mode
 
 
 @numba.njit(cache=True)

@@ -27,7 +27,7 @@ import math
 import numba
 import numpy as np
 
-from torchmm.kernels.loop_algebra import LOG_2PI, logsumexp, mixing_weights, predict_mode, chol_reg
+from torchmm.kernels.loop_algebra import LOG_2PI, chol_reg, logsumexp, mixing_weights, predict_mode
 
 
 @numba.njit(cache=True)
