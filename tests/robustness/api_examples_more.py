@@ -31,6 +31,10 @@ NOT_ENTRY_POINTS.update({
     "torchmm.learn.em.SwitchingEMResult": "a result record (what em_switching found), built by em_switching",
     "torchmm.association.mht.HypothesisBelief": "a belief built inside every step (MHT.initial_belief makes it; "
     "its validate checks the log-weights, history and tracks)",
+    "torchmm.association.mht_tracks.TrackHypotheses": "a belief built inside every step (ManagedMHT.initial_belief "
+    "makes it)",
+    "torchmm.association.sensors.SensorScans": "a data record (the sensors' scans and which reported): "
+    "SequentialSensors.check_measurements checks it at run_filter's entry, naming each field",
     "torchmm.distributions.truncated_normal_moments": _OP + " (the variational filters call it inside every "
     "step; its inputs are the filter's own moments)",
 })
@@ -196,6 +200,33 @@ example("torchmm.association.tracks.ManagedTracks.initial_belief")(  # an empty 
                                        detection_probability=0.9, clutter_density=0.01),
                      capacity=3, initiate=association.position_initiator(2, [0], 1.0, 4.0)),
                  (2,), dtype=torch.float64, device="cpu"))
+example("torchmm.association.mht_tracks.ManagedMHT")(  # IMM tracks, score and M-of-N rules
+    lambda: call(association.ManagedMHT,
+                 IMM(filters.KalmanFilter(models.ConstantVelocity(1, acceleration=[[0.0], [1.0]], dtype=torch.float64),
+                                          models.PositionMeasurement(2, [0], 1.0, dtype=torch.float64)),
+                     torch.tensor([[0.9, 0.1], [0.1, 0.9]], dtype=torch.float64)),
+                 detection_probability=0.9, clutter_density=0.01, capacity=3,
+                 initiate=association.position_initiator(2, [0], 1.0, 4.0), birth_density=0.001,
+                 gate_probability=0.99, hypotheses=4, k=6, n_scan=2, m_of_n=(2, 3), max_misses=3,
+                 mode_probs=[0.7, 0.3], confirm_score=8.0, delete_drop=6.0))
+example("torchmm.association.mht_tracks.ManagedMHT.initial_belief")(  # two runs, one known track each
+    lambda: call(association.ManagedMHT.initial_belief,
+                 association.ManagedMHT(filters.KalmanFilter(models.ConstantVelocity(1, dtype=torch.float64),
+                                                             models.PositionMeasurement(2, [0], 1.0,
+                                                                                        dtype=torch.float64)),
+                                        detection_probability=0.9, clutter_density=0.01, capacity=3,
+                                        initiate=association.position_initiator(2, [0], 1.0, 4.0),
+                                        birth_density=0.001),
+                 (2,), tracks=GaussianBelief(torch.zeros(2, 1, 2), torch.eye(2)), dtype=torch.float64,
+                 device="cpu"))
+example("torchmm.association.sensors.SequentialSensors")(  # a radar and a finer sensor, each its JPDA
+    lambda: call(association.SequentialSensors,
+                 [association.JPDA(filters.KalmanFilter(models.ConstantVelocity(1, dtype=torch.float64),
+                                                        models.PositionMeasurement(2, [0], 1.0, dtype=torch.float64)),
+                                   detection_probability=0.9, clutter_density=0.01),
+                  association.JPDA(filters.KalmanFilter(models.ConstantVelocity(1, dtype=torch.float64),
+                                                        models.PositionMeasurement(2, [0], 0.1, dtype=torch.float64)),
+                                   detection_probability=0.7, clutter_density=0.05)]))
 example("torchmm.association.tracks.position_initiator")(
     lambda: call(association.position_initiator, 4, [0, 2], torch.eye(2), 25.0))
 example("torchmm.association.particle.ParticleJPDA")(

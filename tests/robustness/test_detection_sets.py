@@ -42,6 +42,7 @@ from torchmm.association import (
     JIPDA,
     JPDA,
     PDA,
+    ManagedMHT,
     ManagedTracks,
     ParticleJPDA,
     ParticlePDA,
@@ -165,6 +166,9 @@ CASES = [
     DetectionCase("managed_lbp", _managed(lambda: JIPDA(_kf(), method="lbp", **ASSOC)),
                   lambda f: f.initial_belief((RUNS,)), managed=True),
     DetectionCase("managed_imm", _managed(lambda: JIPDA(_imm(), method="lbp", **ASSOC)),
+                  lambda f: f.initial_belief((RUNS,)), managed=True),
+    DetectionCase("managed_mht", lambda: ManagedMHT(_imm(), capacity=3, initiate=position_initiator(2, [0], 1.0, 4.0),
+                                                    birth_density=0.01, hypotheses=3, **ASSOC),
                   lambda f: f.initial_belief((RUNS,)), managed=True),
 ]
 # the Gaussian cases whose filter factorises S from the prior's covariance (the UKF's sigma points take a

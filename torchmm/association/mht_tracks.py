@@ -52,7 +52,7 @@ from torchmm.association.tracks import ModeTrackTable, TrackTable
 from torchmm.beliefs import GaussianBelief, ModeBelief, register_belief, where
 from torchmm.contract import BeliefArg, DType, Device, Finite, Int, Of, Real, Shape, entry_point
 from torchmm.filters.base import Filter, StepOutput
-from torchmm.validation import check_probabilities
+from torchmm.validation import check_filter_dtype, check_probabilities
 
 __all__ = ["ManagedMHT", "TrackHypotheses"]
 
@@ -211,6 +211,7 @@ class ManagedMHT(MHT):
         if tracks is not None:
             if not isinstance(tracks, GaussianBelief) or len(tracks.batch_shape) < 1:
                 raise TypeError("tracks: expected a GaussianBelief with batch (*B, N), the tracks last")
+            check_filter_dtype(self, tracks, "tracks")
             tracks = tracks.validate("tracks")
             *runs, N = tracks.batch_shape
             if N > K:

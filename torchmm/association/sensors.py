@@ -31,6 +31,7 @@ import torch
 import torch.utils._pytree as pytree
 from torch import Tensor, nn
 
+from torchmm.contract import Of, entry_point
 from torchmm.filters.base import Filter, StepOutput, call_with
 
 __all__ = ["SensorScans", "SequentialSensors"]
@@ -99,6 +100,7 @@ class SequentialSensors(Filter):
 
     checks_pytrees = True  # (run_filter passes SensorScans to check_measurements)
 
+    @entry_point(filters=Of((list, tuple, nn.ModuleList), what="a list of filters, one per sensor"))
     def __init__(self, filters: Sequence[Filter]):
         super().__init__()
         filters = list(filters) if isinstance(filters, (list, tuple, nn.ModuleList)) else filters

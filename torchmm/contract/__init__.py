@@ -24,7 +24,8 @@ The declaration does two things, both by construction:
   declaration is a red test (the decorator refuses a signature with an undeclared parameter at
   import).
 
-The kinds live in :mod:`torchmm.contract.kinds`, the decorator in :mod:`torchmm.contract.engine`.
+The kinds live in :mod:`torchmm.contract.kinds` (and :mod:`torchmm.contract.tensor_kinds`), the decorator in
+:mod:`torchmm.contract.engine`.
 
 Some kinds only *declare* (:class:`Data`, :class:`BeliefArg`, :class:`Of` with ``check=False``):
 the function checks the argument itself because the check needs context (the sensor's dimension,
@@ -32,8 +33,9 @@ the filter's dtype), and the kind's invalid inputs test that it does. ``docs/rob
 describes the contract.
 """
 
-from torchmm.contract import engine, kinds
+from torchmm.contract import engine, kinds, tensor_kinds
 from torchmm.contract.engine import *  # noqa: F403  (the decorator and the registry)
 from torchmm.contract.kinds import *  # noqa: F403  (the parameter kinds)
+from torchmm.contract.tensor_kinds import *  # noqa: F403  (the kinds of tensors and beliefs)
 
-__all__ = [*engine.__all__, *kinds.__all__]
+__all__ = [*engine.__all__, *kinds.__all__, *tensor_kinds.__all__]
