@@ -55,6 +55,17 @@ from torch import Tensor
 
 import torchmm.kernels as kernels
 from torchmm.beliefs import GaussianBelief, ModeBelief
+from torchmm.kernels.batch_last.algebra import (
+    ZERO,
+    Coef,
+    coefficients,
+    collapse_entries,
+    collapse_modes,
+    combine,
+    mix_entries,
+    sandwich,
+    stack_upper,
+)
 from torchmm.typing import StepOutput
 
 __all__ = ["BATCH_LAST", "LARGE_BATCH", "LARGE_STATE", "MAX_STATE", "BatchLastIMM", "BatchLastKernel", "described", "why_not"]
@@ -122,78 +133,6 @@ def why_not(model, M: int, belief0, measurements) -> str | None:
     if m > 1 and bool((R - torch.diag_embed(R.diagonal(dim1=-2, dim2=-1))).abs().amax() > 0):  # once per run
         return "R is not diagonal"
     return None
-
-
-class Coef:
-    """One entry of a model matrix, classified once at the entry point: exactly zero or one in every
-    mode (its products are skipped: bit-identical, as ``x * 0 = 0`` and ``x * 1 = x`` are exact), one
-    number shared by the modes (a 0-dim tensor), or a tensor ``(1 or M, 1, ...)``. Entries of
-    parameters that require gradients are always tensors (a skipped zero would lose its gradient)."""
-
-    __slots__ = ("kind", "value")
-
-    def __init__(self, kind: str, value=None):
-        self.kind, self.value = kind, value
-
-
-ZERO, ONE = Coef("zero"), Coef("one")
-
-
-def coefficients(t: Tensor, M: int, event: int, batch_dims: int) -> list:
-    """A parameter ``([1 or M,] *event)`` as nested lists (``event`` deep) of :class:`Coef`."""
-    if t.dim() == event:
-        t = t.unsqueeze(0)
-    front = t.movedim(0, -1)  # (*event, P)
-    front = front.reshape(*front.shape, *([1] * batch_dims))  # (*event, P, 1...)
-    traced = t.requires_grad and torch.is_grad_enabled()
-    entries = front.flatten(0, event - 1).unbind(0) if event > 1 else front.unbind(0)
-    if traced:
-        flat = [Coef("tensor", entry) for entry in entries]
-    else:
-        # every entry's kind in one pass and one host read, at the entry point: 0 zero in every mode,
-        # 1 one in every mode, 2 one number shared by the modes, 3 per mode
-        values = t.detach().flatten(1)  # (P, entries)
-        first = values[0]
-        kind = torch.where((values == 0).all(0), 0, torch.where((values == 1).all(0), 1,
-                           torch.where((values == first).all(0), 2, 3))).tolist()
-        # 0-dim copies (an operation with a Python number costs more dispatch than with a tensor)
-        shared = first.clone().unbind(0)
-        flat = [ZERO if k == 0 else ONE if k == 1 else Coef("scalar", shared[e]) if k == 2
-                else Coef("tensor", entries[e]) for e, k in enumerate(kind)]
-    if event == 1:
-        return flat
-    cols = t.shape[-1]
-    return [flat[a * cols:(a + 1) * cols] for a in range(t.shape[-2])]
-
-
-def sum_terms(terms: list) -> Tensor:
-    """``terms[0] + terms[1] + ...``, in that order."""
-    acc = terms[0]
-    for t in terms[1:]:
-        acc = acc + t
-    return acc
-
-
-def combine(terms, const: Coef = ZERO, like: Tensor | None = None) -> Tensor:
-    """``sum_e coef_e * t_e + const`` with the fewest operations (zero terms skipped, ones added,
-    shared scalars and per-mode tensors through ``addcmul``).
-
-    ``like``: a tensor to take the shape from when every term is zero."""
-    acc = None
-    for coef, t in terms:
-        if coef.kind == "zero":
-            continue
-        if acc is None:
-            acc = t if coef.kind == "one" else t * coef.value
-        elif coef.kind == "one":
-            acc = acc + t
-        else:  # a shared scalar (0-dim) or a per-mode tensor
-            acc = torch.addcmul(acc, t, coef.value)
-    if acc is None:
-        acc = torch.zeros_like(like)
-    if const.kind == "zero":
-        return acc
-    return acc + (1.0 if const.kind == "one" else const.value)
 
 
 class BatchLastIMM:
@@ -371,11 +310,6 @@ class BatchLastIMM:
         log_mu = belief.mode_log_probs.movedim(d, 0)
         return X, P, log_mu
 
-    def stack(self, C: list) -> Tensor:
-        """The upper triangle ``C[a][c]`` (``a <= c``) of per-entry tensors as one symmetric ``(n, n, ...)``."""
-        n = self.n
-        return torch.stack([C[min(a, c)][max(a, c)] for a in range(n) for c in range(n)]).unflatten(0, (n, n))
-
     def entries(self, P: Tensor) -> list:
         """``P (n, n, ...)`` as nested lists of views ``C[a][c]``."""
         n = self.n
@@ -456,13 +390,13 @@ class BatchLastIMM:
             Xi = D = None
         else:
             # entry by entry (X, P: lists), each one pass over (i, j, *B)
-            xs, Cm = self.mix_entries(X, P, w)
+            xs, Cm = mix_entries(X, P, w, self.n)
             if self.collapse:  # the one start belief, seen by every mode (views)
                 xs = [t.expand_as(cbar) for t in xs]
                 Cm = [[None if t is None else t.expand_as(cbar) for t in row] for row in Cm]
             Xm = Pm = None
             if "extras" not in omitted:
-                Xm, Pm = torch.stack(xs), self.stack(Cm)
+                Xm, Pm = torch.stack(xs), stack_upper(Cm)
         w = joint_ij = None  # freed (not del: cells); X and P: the caller's state holds them
         xp, Pp = self.predict_entries(xs, Cm, cbar)
         xu, Cu, ll, singular, s_first = self.update_components(xp, Pp, zc, ob, nhob, cbar, "extras" not in omitted)
@@ -471,19 +405,19 @@ class BatchLastIMM:
         Xp = Ppt = nu_out = S_out = None
         mu = new_log_mu.exp()  # for the estimate and the next step
         if self.broadcast:
-            X, P = torch.stack(xu), self.stack(Cu)  # the next state, and the posterior
+            X, P = torch.stack(xu), stack_upper(Cu)  # the next state, and the posterior
         else:
             X, P = xu, Cu  # the next state
         if self.estimate_only:  # the moment-matched collapse, (n, *B) and (n, n, *B) (exactly symmetric)
             if self.broadcast:
-                nu_out, S_out = self.collapse_modes(X, P, mu)  # returned in the innovation slots
+                nu_out, S_out = collapse_modes(X, P, mu)  # returned in the innovation slots
             else:
-                nu_out, S_out = self.collapse_entries(xu, Cu, mu)
+                nu_out, S_out = collapse_entries(xu, Cu, mu, self.n)
         X_out = P_out = None
         if not self.estimate_only:
-            X_out, P_out = (X, P) if self.broadcast else (torch.stack(xu), self.stack(Cu))
+            X_out, P_out = (X, P) if self.broadcast else (torch.stack(xu), stack_upper(Cu))
             if "prior" not in omitted:
-                Xp, Ppt = torch.stack(xp), self.stack(Pp)
+                Xp, Ppt = torch.stack(xp), stack_upper(Pp)
             if "innovation" not in omitted or "innovation_cov" not in omitted:
                 nu_out, S_out = self._innovation(zraw, xp, Pp, s_first)
         return (
@@ -493,127 +427,12 @@ class BatchLastIMM:
             nu_out, S_out,
         )
 
-    def factor(self, S: list, with_flag: bool = False):
-        """:func:`torchmm.linalg.cholesky`'s regularised factor of the per-entry symmetric ``S`` (upper
-        triangle ``S[a][c]``, ``a <= c``, of any size ``len(S)``), the same formulas entry by entry: for
-        sizes up to 2 its closed form (pivots clamped at ``eps max|S_aa|``, ``tiny`` for size 1);
-        beyond, the Cholesky factor where every pivot is positive, elsewhere the factor of
-        ``S + sqrt(eps) s I`` (``s = max |S_aa|``), and where that fails too ``diag(sqrt(max(S_aa, eps
-        s)))`` - ``cholesky_ex``'s retry, without reading a value on the host. Returns the lower
-        triangle ``L[a][c]`` (``c <= a``) and, with ``with_flag``, where ``S`` was regularised
-        (:func:`~torchmm.linalg.cholesky`'s flag)."""
-        n = len(S)
-        if n == 1:
-            L = [[S[0][0].clamp_min(self.tiny).sqrt()]]
-            return (L, ~(S[0][0] > self.tiny)) if with_flag else L
-        if n == 2:
-            a, b, c = S[0][0], S[0][1], S[1][1]
-            scale = torch.maximum(a.abs(), c.abs()) * torch.finfo(a.dtype).eps + self.tiny
-            l11 = a.clamp_min(0).maximum(scale).sqrt()
-            l21 = b / l11
-            pivot = c - l21 * l21
-            L = [[l11, None], [l21, pivot.maximum(scale).sqrt()]]
-            return (L, ~((a > scale) & (pivot > scale))) if with_flag else L
-        plain, failed = self._cholesky(S, None)
-        scale = S[0][0].abs()
-        for a in range(1, n):
-            scale = torch.maximum(scale, S[a][a].abs())
-        scale = scale.nan_to_num(nan=1.0).clamp_min(self.tiny)
-        jitter = torch.where(failed, scale * torch.finfo(scale.dtype).eps ** 0.5, 0.0)
-        retry, failed_again = self._cholesky(S, jitter)
-        floor = torch.finfo(scale.dtype).eps * scale
-        L = [[None] * n for _ in range(n)]
-        for a in range(n):
-            for c in range(a + 1):
-                fallback = S[a][a].maximum(floor).sqrt() if a == c else torch.zeros_like(scale)
-                L[a][c] = torch.where(failed, torch.where(failed_again, fallback, retry[a][c]), plain[a][c])
-        return (L, failed) if with_flag else L
-
-    @staticmethod
-    def _cholesky(S: list, jitter: Tensor | None) -> tuple[list, Tensor]:
-        """The Cholesky factor of ``S (+ jitter I)`` entry by entry (lower ``L[a][c]``) and where a pivot
-        is not positive (or NaN): ``cholesky_ex``'s failure."""
-        n = len(S)
-        L = [[None] * n for _ in range(n)]
-        failed = None
-        for j in range(n):
-            pivot = S[j][j] if jitter is None else S[j][j] + jitter
-            for k in range(j):
-                pivot = pivot - L[j][k] * L[j][k]
-            bad = ~(pivot > 0)
-            failed = bad if failed is None else failed | bad
-            L[j][j] = pivot.sqrt()
-            for i in range(j + 1, n):
-                acc = S[j][i]
-                for k in range(j):
-                    acc = acc - L[i][k] * L[j][k]
-                L[i][j] = acc / L[j][j]
-        return L, failed
-
-    @staticmethod
-    def solve_lower(L: list, rhs: list) -> list:
-        """``L^{-1} rhs`` by forward substitution, ``rhs[e][c]`` (``len(L)`` rows of any number of columns)."""
-        n = len(L)
-        out = [None] * n
-        for a in range(n):
-            row = []
-            for c in range(len(rhs[a])):
-                acc = rhs[a][c]
-                for k in range(a):
-                    acc = acc - L[a][k] * out[k][c]
-                row.append(acc / L[a][a])
-            out[a] = row
-        return out
-
-    @staticmethod
-    def solve_lower_transposed(L: list, rhs: list) -> list:
-        """``L^{-T} rhs`` by back substitution, ``rhs[e][c]`` (``len(L)`` rows of any number of columns)."""
-        n = len(L)
-        out = [None] * n
-        for a in range(n - 1, -1, -1):
-            row = []
-            for c in range(len(rhs[a])):
-                acc = rhs[a][c]
-                for k in range(a + 1, n):
-                    acc = acc - L[k][a] * out[k][c]
-                row.append(acc / L[a][a])
-            out[a] = row
-        return out
-
-    def mix_entries(self, X: list, P: list, w: Tensor) -> tuple[list, list]:
-        """Moment-matched mixtures of per-entry beliefs ``X[a]``, ``P[a][c]`` ``(i, *B)`` with weights
-        ``w (i, j, *B)`` (columns summing to one over ``i``): the means ``(j, *B)`` and
-        ``sum_i w_ij (P_i + d_ij d_ij^T)``, ``d_ij = x_i - x_j`` (centred), each one pass over
-        ``(i, j, *B)``."""
-        n = self.n
-        xs = [(w * X[a].unsqueeze(1)).sum(0) for a in range(n)]  # mixed means (j, *B)
-        D = [X[a].unsqueeze(1) - xs[a].unsqueeze(0) for a in range(n)]  # (i, j, *B)
-        wD = [w * D[a] for a in range(n)]
-        Cm = [[None] * n for _ in range(n)]
-        for a in range(n):
-            for c in range(a, n):
-                Cm[a][c] = torch.addcmul(w * P[a][c].unsqueeze(1), wD[a], D[c]).sum(0)
-        return xs, Cm
-
     def predict_entries(self, xs: list, Cs: list, like: Tensor) -> tuple[list, list]:
         """Every mode's prediction of per-entry beliefs (any shapes broadcasting with the modes' ``(M, *B)``):
         ``F m + b``, ``F C F^T + Q`` (upper triangle). ``like``: the shape of an all-zero entry."""
         n, F, b = self.n, self.F, self.b
         xp = [combine([(F[a][e], xs[e]) for e in range(n)], b[a], like) for a in range(n)]
-        return xp, self.sandwich(F, Cs, self.Q, like)
-
-    def sandwich(self, F: list, Cs: list, Q: list, like: Tensor) -> list:
-        """``F C F^T + Q`` (upper triangle) of per-entry ``F[a][e]`` (:class:`Coef`), ``C`` (upper
-        triangle) and ``Q[a][c]`` (:class:`Coef`); ``like``: the shape of an all-zero entry."""
-        n = self.n
-        sym = lambda T, a, c: T[min(a, c)][max(a, c)]  # noqa: E731
-        A = [[combine([(F[a][e], sym(Cs, e, c)) for e in range(n)], ZERO, like) for c in range(n)]
-             for a in range(n)]  # F C
-        Pp = [[None] * n for _ in range(n)]
-        for a in range(n):
-            for c in range(a, n):
-                Pp[a][c] = combine([(F[c][e], A[a][e]) for e in range(n)], Q[a][c], like)
-        return Pp
+        return xp, sandwich(F, Cs, self.Q, like)
 
     def mode_update(self, ll: Tensor, cbar: Tensor, anyob: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """The mode posterior ``log mu_j = ell_j + log c_j - logsumexp_l(ell_l + log c_l)``, as
@@ -663,27 +482,6 @@ class BatchLastIMM:
                 s_first = s_raw
         return xu, Cu, ll, singular, s_first
 
-    @staticmethod
-    def collapse_modes(X: Tensor, P: Tensor, mu: Tensor) -> tuple[Tensor, Tensor]:
-        """The moment-matched collapse over the modes (the estimate), ``(n, *B)`` and ``(n, n, *B)``
-        (exactly symmetric), of ``X (n, M, *B)``, ``P (n, n, M, *B)`` with weights ``mu (M, *B)``."""
-        est = (mu * X).sum(1)
-        spread = X - est.unsqueeze(1)
-        return est, (mu * (P + spread.unsqueeze(1) * spread.unsqueeze(0))).sum(2)
-
-    def collapse_entries(self, xu: list, Cu: list, mu: Tensor) -> tuple[Tensor, Tensor]:
-        """:meth:`collapse_modes` of the per-entry layout: the means ``xu[a] (M, *B)`` and the upper
-        triangle ``Cu[a][c] (M, *B)``, one pass over ``(M, *B)`` per entry."""
-        n = self.n
-        est = [(mu * xu[a]).sum(0) for a in range(n)]
-        spread = [xu[a] - est[a] for a in range(n)]
-        mu_spread = [mu * spread[a] for a in range(n)]
-        est_cov = [[None] * n for _ in range(n)]
-        for a in range(n):
-            for c in range(a, n):
-                est_cov[a][c] = torch.addcmul(mu * Cu[a][c], mu_spread[a], spread[c]).sum(0)
-        return torch.stack(est), self.stack(est_cov)
-
     def initial_state(self, belief: ModeBelief) -> tuple:
         """The state of :meth:`step` at time 0 from the batch-first ``belief``: the means and
         covariances (``X (n, M, *B)`` and ``P (n, n, M, *B)``, the upper triangle mirrored, or the
@@ -693,7 +491,7 @@ class BatchLastIMM:
         n = self.n
         C = [[P[a, c] if c >= a else None for c in range(n)] for a in range(n)]
         if self.broadcast:
-            return X, self.stack(C), log_mu.exp(), 0
+            return X, stack_upper(C), log_mu.exp(), 0
         return list(X.unbind(0)), C, log_mu.exp(), 0
 
     def step(self, state: tuple, z: Tensor) -> tuple[tuple, StepOutput]:
@@ -736,7 +534,7 @@ class BatchLastIMM:
                 belief = out.belief
                 if isinstance(belief, ModeBelief) and type(belief.components) is GaussianBelief:
                     w = belief.output_log_weights().permute(self._to_back1).contiguous().exp()
-                    est, cov = self.collapse_modes(X, P, w) if self.broadcast else self.collapse_entries(X, P, w)
+                    est, cov = collapse_modes(X, P, w) if self.broadcast else collapse_entries(X, P, w, self.n)
                     estimate = GaussianBelief(est.permute(self._to_front1), cov.permute(self._to_front2))
                 else:
                     estimate = belief.estimate()

@@ -39,7 +39,19 @@ from torch import Tensor
 import torchmm.kernels as kernels
 from torchmm.beliefs import GaussianBelief, ModeBelief
 from torchmm.linalg import pivot_clamped_cholesky, psd_sqrt, use_joseph
-from torchmm.kernels.batch_last.imm import ONE, ZERO, BatchLastIMM, Coef, coefficients, combine, described, planned
+from torchmm.kernels.batch_last.algebra import (
+    ONE,
+    ZERO,
+    Coef,
+    cholesky_entries,
+    coefficients,
+    combine,
+    factor,
+    sandwich,
+    solve_lower,
+    stack_upper,
+)
+from torchmm.kernels.batch_last.imm import BatchLastIMM, described, planned
 from torchmm.runtime import host_reads_ok
 
 __all__ = ["MIN_BATCH", "BatchLastNonlinear", "BatchLastNonlinearKernel", "why_not_nonlinear"]
@@ -157,14 +169,14 @@ class BatchLastNonlinear(BatchLastIMM):
         full matrix; on the CPU, read on the host as the eager step reads it) or the pivot-clamped
         factor (elsewhere, for every matrix)."""
         n = self.n
-        L, failed = self._cholesky(Cs, None)
+        L, failed = cholesky_entries(Cs, None)
         if host_reads_ok(failed):
             if not bool(failed.any()):
                 return L
             repair = psd_sqrt
         else:
             repair = pivot_clamped_cholesky
-        P = self.stack(Cs).permute(*range(2, self.d + 3), 0, 1)  # (M, *B, n, n)
+        P = stack_upper(Cs).permute(*range(2, self.d + 3), 0, 1)  # (M, *B, n, n)
         other = repair(P).permute(-2, -1, *range(self.d + 1))
         return [[torch.where(failed, other[a, c], self.zero if L[a][c] is None else L[a][c]) for c in range(n)]
                 for a in range(n)]
@@ -212,7 +224,7 @@ class BatchLastNonlinear(BatchLastIMM):
         front = [self.front(x) for x in xs]
         F = [[self.coef(e) for e in row] for row in motion.jacobian_entries(front)]
         xp = [self.back(t).expand_as(like) for t in motion.forward_entries(front)]
-        return xp, self.sandwich(F, Cs, Q, like)
+        return xp, sandwich(F, Cs, Q, like)
 
     def update_components(self, xp: list, Pp: list, zc: Tensor, ob: Tensor, nhob: Tensor, like: Tensor,
                           flags: bool = True) -> tuple:
@@ -255,10 +267,10 @@ class BatchLastNonlinear(BatchLastIMM):
         one = self.tiny_t.new_ones(())
         masked = [[torch.where(observed[k] & observed[c], S[k][c], one if k == c else self.zero)
                    for c in range(k + 1)] for k in range(m)]
-        L, singular = self.factor([[masked[c][k] if c >= k else None for c in range(m)] for k in range(m)],
+        L, singular = factor([[masked[c][k] if c >= k else None for c in range(m)] for k in range(m)],
                                   with_flag=True)
         rhs = [[C[a][k] * ob[k] for a in range(n)] + [nu[k]] for k in range(m)]
-        solved = self.solve_lower(L, rhs)
+        solved = solve_lower(L, rhs)
         V, w = [row[:n] for row in solved], [row[n] for row in solved]
         xu = [xp[a] + combine([(Coef("tensor", V[k][a]), w[k]) for k in range(m)], ZERO, like) for a in range(n)]
         Cu = [[None] * a + [Pp[a][c] - combine([(Coef("tensor", V[k][a]), V[k][c]) for k in range(m)], ZERO, like)

@@ -37,6 +37,7 @@ from torch import Tensor
 
 from torchmm.beliefs import GaussianBelief, ModeBelief
 from torchmm.typing import StepOutput
+from torchmm.kernels.batch_last.algebra import stack_upper
 from torchmm.kernels.batch_last.imm import BatchLastIMM
 
 __all__ = ["BatchLastGPB2"]
@@ -125,13 +126,13 @@ class BatchLastGPB2(BatchLastIMM):
             est_cov = [[None] * n for _ in range(n)]
             for a, c in upper:
                 est_cov[a][c] = torch.addcmul(mu * Cn[a][c], mu_spread[a], spread[c]).sum(0)
-            nu_out, S_out = torch.stack(est), self.stack(est_cov)
+            nu_out, S_out = torch.stack(est), stack_upper(est_cov)
         else:
-            X_out, P_out = torch.stack(xn), self.stack(Cn)
+            X_out, P_out = torch.stack(xn), stack_upper(Cn)
             shape = prior_joint.shape
             if "prior" not in omitted:
                 Xp = torch.stack([t.expand(shape) for t in xp])
-                Ppt = self.stack([[None if t is None else t.expand(shape) for t in row] for row in Pp])
+                Ppt = stack_upper([[None if t is None else t.expand(shape) for t in row] for row in Pp])
             if "innovation" not in omitted or "innovation_cov" not in omitted:
                 nu_out, S_out = self._innovation(
                     zraw, [t.expand(shape) for t in xp],

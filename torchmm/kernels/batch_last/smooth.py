@@ -16,7 +16,7 @@ last: ``(M, *B)`` per mode, ``(j, i, *B)`` per pair of modes (mode ``j`` at ``k`
   models, to rounding); ``F_i^{-1}`` is inverted once per mode;
 - the fusion of every pair: ``D = P_j + B_i`` and its regularised factor in closed form
   (:func:`torchmm.linalg.cholesky`'s for ``n <= 2``; beyond,
-  :meth:`~torchmm.kernels.batch_last.imm.BatchLastIMM.factor`),
+  :func:`~torchmm.kernels.batch_last.algebra.factor`),
   ``V = L^{-1} P_j``, ``w = L^{-1} (b_i - x_j)``,
   ``x_ji = x_j + V^T w``, the overlap ``N(b_i - x_j; 0, D)``, the pair weights and their
   normalisations (as ``safe_log_normalize``), and mode ``j``'s collapse
@@ -37,18 +37,19 @@ from torch import Tensor
 
 import torchmm.kernels as kernels
 from torchmm.beliefs import GaussianBelief, ModeBelief
-from torchmm.kernels.batch_last.imm import (
-    LARGE_BATCH,
-    LARGE_STATE,
-    MAX_STATE,
+from torchmm.kernels.batch_last.algebra import (
     ONE,
     ZERO,
-    BatchLastIMM,
     coefficients,
+    collapse_entries,
     combine,
+    factor,
+    mix_entries,
+    solve_lower,
+    stack_upper,
     sum_terms,
-    why_not,
 )
+from torchmm.kernels.batch_last.imm import LARGE_BATCH, LARGE_STATE, MAX_STATE, BatchLastIMM, why_not
 
 __all__ = ["LARGE_SMOOTHER", "BatchLastTwoFilter", "LargeStateSmoother", "why_not_smooth"]
 
@@ -120,7 +121,7 @@ class BatchLastTwoFilter:
         every mode, updated with the last datum; mode log-probabilities from ``prior`` (``data[-1]``)."""
         n, imm = self.n, self.imm
         mu = log_mu.exp()
-        est, est_cov = imm.collapse_entries(X, C, mu)  # (n, *B), (n, n, *B)
+        est, est_cov = collapse_entries(X, C, mu, n)  # (n, *B), (n, n, *B)
         like = log_mu
         xs = [est[a].unsqueeze(0).expand_as(like) for a in range(n)]
         Cs = [[(self.diffuse * est_cov[a, c]).unsqueeze(0).expand_as(like) if c >= a else None for c in range(n)]
@@ -167,10 +168,10 @@ class BatchLastTwoFilter:
              for a in range(n)]  # (j, i, *B)
         delta = [b[a].unsqueeze(0) - x[a].unsqueeze(1) for a in range(n)]
         # torchmm.linalg.cholesky's regularised factor; V = L^{-1} P_j, w = L^{-1} delta (solve_lower)
-        L = self.imm.factor(D)
+        L = factor(D)
         diag = [L[a][a] for a in range(n)]
-        V = self.imm.solve_lower(L, [[sym(Pj, e, c) for c in range(n)] for e in range(n)])
-        w = [row[0] for row in self.imm.solve_lower(L, [[delta[e]] for e in range(n)])]
+        V = solve_lower(L, [[sym(Pj, e, c) for c in range(n)] for e in range(n)])
+        w = [row[0] for row in solve_lower(L, [[delta[e]] for e in range(n)])]
         # x_ji = x_j + V^T w; log N(b_i - x_j; 0, D)
         mean = [x[a].unsqueeze(1) + sum_terms([V[e][a] * w[e] for e in range(n)]) for a in range(n)]
         squares = sum_terms([w[e] * w[e] for e in range(n)])
@@ -200,7 +201,7 @@ class BatchLastTwoFilter:
         log_joint = log_mu_b.unsqueeze(1) + log_back  # (i, j, *B)
         log_a = torch.logsumexp(log_joint, 0)  # (j, *B)
         w = self._normalize(log_joint, log_a.unsqueeze(0), M).exp()
-        xs, Cm = imm.mix_entries(b, B, w)  # the mixed beliefs (j, *B)
+        xs, Cm = mix_entries(b, B, w, self.n)  # the mixed beliefs (j, *B)
         zc, ob, nhob, _, _ = data
         xu, Cu, ll, _, _ = imm.update_components(xs, Cm, zc, ob, nhob, log_a, False)
         return self.posterior(ll, log_a), xu, Cu
@@ -226,14 +227,14 @@ class BatchLastTwoFilter:
                 log_mu_b, b, B = self.backward_update(log_mu_b, pb, PB, priors[k], imm.data[k])
         mode = torch.stack(out_mode)  # (T, M, *B)
         X = torch.stack([torch.stack(x) for x in out_x])  # (T, n, M, *B)
-        C = torch.stack([imm.stack(c) for c in out_C])  # (T, n, n, M, *B)
+        C = torch.stack([stack_upper(c) for c in out_C])  # (T, n, n, M, *B)
         return ModeBelief(mode.movedim(1, -1),
                           GaussianBelief(X.permute(0, *range(3, d + 3), 2, 1),
                                          C.permute(0, *range(4, d + 4), 3, 1, 2)))
 
 
 def _minus(t: Tensor, coef) -> Tensor:
-    """``t - coef`` for a :func:`~torchmm.kernels.batch_last.imm.coefficients` entry (zero: ``t`` itself)."""
+    """``t - coef`` for a :func:`~torchmm.kernels.batch_last.algebra.coefficients` entry (zero: ``t`` itself)."""
     if coef.kind == "zero":
         return t
     return t - (1.0 if coef.kind == "one" else coef.value)

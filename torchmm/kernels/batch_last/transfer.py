@@ -36,17 +36,18 @@ from torch import Tensor
 import torchmm.kernels as kernels
 from torchmm.beliefs import GaussianBelief, ModeBelief
 from torchmm.typing import StepOutput
-from torchmm.kernels.batch_last.imm import (
-    LARGE_BATCH,
-    LARGE_STATE,
-    MAX_STATE,
+from torchmm.kernels.batch_last.algebra import (
     ZERO,
-    BatchLastIMM,
+    collapse_entries,
     combine,
-    planned,
+    factor,
+    mix_entries,
+    solve_lower,
+    solve_lower_transposed,
+    stack_upper,
     sum_terms,
-    why_not,
 )
+from torchmm.kernels.batch_last.imm import LARGE_BATCH, LARGE_STATE, MAX_STATE, BatchLastIMM, planned, why_not
 from torchmm.models.streams import split_streams
 
 __all__ = ["TRANSFER", "TRANSFER_LARGE", "BatchLastTransfer", "BatchLastTransferKernel", "LargeStateTransfer"]
@@ -95,8 +96,8 @@ class BatchLastTransfer(BatchLastIMM):
         """``S^{-1} rhs`` for the per-entry symmetric ``S`` (upper triangle) and ``rhs[a][c]`` (a full
         ``n x n``): :func:`~torchmm.linalg.cholesky_solve` of :func:`torchmm.linalg.cholesky`'s factor
         (:meth:`factor`), its two substitutions entry by entry."""
-        L = self.factor(S)
-        return self.solve_lower_transposed(L, self.solve_lower(L, rhs))
+        L = factor(S)
+        return solve_lower_transposed(L, solve_lower(L, rhs))
 
     def core(self, X: list, C: list, mu: Tensor, zc: Tensor, ob: Tensor, nhob: Tensor, anyob: Tensor, zraw: Tensor,
              szc: Tensor, sob: Tensor, snhob: Tensor, present: Tensor, present_f: Tensor) -> tuple:
@@ -117,7 +118,7 @@ class BatchLastTransfer(BatchLastIMM):
         joint_ij = mu_i * self.matrix
         cbar = joint_ij.sum(0)
         w = joint_ij / torch.maximum(cbar, self.tiny_t).unsqueeze(0)
-        xs, Cm = self.mix_entries(X, C, w)
+        xs, Cm = mix_entries(X, C, w, self.n)
         w = joint_ij = None
         xp, Pp = self.predict_entries(xs, Cm, cbar)
         extras = "extras" not in omitted
@@ -126,7 +127,7 @@ class BatchLastTransfer(BatchLastIMM):
         ms, Ds, _, _, _ = self.source.update_components(xp, Pp, szc, sob, snhob, cbar, False)
         # 3. the transfer smoothing from the reference at k-1
         if self.combined:
-            est, est_cov = self.collapse_entries(X, C, mu)
+            est, est_cov = collapse_entries(X, C, mu, self.n)
             rx = [est[a].unsqueeze(0) for a in range(n)]
             rC = [[est_cov[a, c].unsqueeze(0) if c >= a else None for c in range(n)] for a in range(n)]
         else:
@@ -156,11 +157,11 @@ class BatchLastTransfer(BatchLastIMM):
         Cn = [[torch.where(used, Ct[a][c], Cu[a][c]) if c >= a else None for c in range(n)] for a in range(n)]
         X_out = P_out = Xp = Ppt = nu_out = S_out = None
         if self.estimate_only:
-            nu_out, S_out = self.collapse_entries(xn, Cn, mu)
+            nu_out, S_out = collapse_entries(xn, Cn, mu, self.n)
         else:
-            X_out, P_out = torch.stack(xn), self.stack(Cn)
+            X_out, P_out = torch.stack(xn), stack_upper(Cn)
             if "prior" not in omitted:
-                Xp, Ppt = torch.stack(xp), self.stack(Pp)
+                Xp, Ppt = torch.stack(xp), stack_upper(Pp)
             if "innovation" not in omitted or "innovation_cov" not in omitted:
                 nu_out, S_out = self._innovation(zraw, xp, Pp, s_first)
         return xn, Cn, X_out, P_out, log_mu, mu, total, Xp, Ppt, log_cbar, nu_out, S_out, used, diagnostics
@@ -172,7 +173,7 @@ class BatchLastTransfer(BatchLastIMM):
         ``x*`` is that mode's plain posterior; or its process noise)."""
         n, m, j = self.n, self.m, self.gate_mode
         H, r = self.H, self.r
-        est, _ = self.collapse_entries(xt, Ct, mu)  # the tentative output (27)
+        est, _ = collapse_entries(xt, Ct, mu, self.n)  # the tentative output (27)
         if self.process_weight:  # x*: the update of N(x^-, Q) with y_k
             W = [[combine([], self.Q[a][c], xp[0]) if c >= a else None for c in range(n)] for a in range(n)]
             x_star = self.update_components(xp, W, zc, ob, ob * -0.5, xp[0], False)[0]
@@ -233,12 +234,12 @@ class BatchLastTransfer(BatchLastIMM):
         shape = log_cbar.shape
         u = torch.stack([torch.where(present, t.expand(shape), torch.nan) for t in u_s])  # (m, M, *B)
         mean = torch.stack([t.expand(shape) for t in smoothed])
-        cov = self.stack([[None if t is None else t.expand(shape) for t in row] for row in smoothed_cov])
+        cov = stack_upper([[None if t is None else t.expand(shape) for t in row] for row in smoothed_cov])
         return {
             "mode_log_likelihood": modes(ll),
             "modes": {"singular": modes(singular), "failed": modes(torch.isnan(ll) & self.data[k][3])},
             "failed": torch.isnan(total),
-            "mixed": ModeBelief(modes(log_cbar), self.gaussian(torch.stack(xs), self.stack(Cm))),
+            "mixed": ModeBelief(modes(log_cbar), self.gaussian(torch.stack(xs), stack_upper(Cm))),
             "influence": value.permute(self._to_front1),
             "transfer_used": used,
             "source_present": present,
@@ -248,7 +249,7 @@ class BatchLastTransfer(BatchLastIMM):
 
 
 def _at_mode(coef, j: int):
-    """Mode ``j``'s value of a :func:`~torchmm.kernels.batch_last.imm.coefficients` entry: None for an
+    """Mode ``j``'s value of a :func:`~torchmm.kernels.batch_last.algebra.coefficients` entry: None for an
     exact zero, 1.0, a shared 0-dim tensor, or the ``(1...)`` slice of a per-mode tensor."""
     if coef.kind == "zero":
         return None
