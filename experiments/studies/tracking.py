@@ -12,7 +12,14 @@ and is not scored outside them.
 
 The first four estimators start one track per target from the true initial state perturbed by
 ``N(0, P0)`` (the number of targets is known; they refuse ``lifetimes``); ``JIPDA-TM`` starts with
-no track and initiates, confirms and deletes its own, as does ``IMM-JIPDA-TM``.
+no track and initiates, confirms and deletes its own, as does ``IMM-JIPDA-TM``. With ``tracking.start:
+detections`` every estimator but IMM-PDAF starts with no track (the JPDAs and GNN as ``ManagedTracks`` over
+a JIPDA whose tracks exist for sure with ``tracking.initiation``'s M-of-N logic; IMM-MHT as ``ManagedMHT``).
+
+Targets may also come from ``tracking.waypoints`` or ``tracking.motions`` (legs of constant velocity,
+coordinated turns and accelerations), and several sensors (``tracking.sensors``: each its ``R``, ``P_D``,
+clutter rate, period and offset) update the tracks in turn (``SequentialSensors``); a detections file may
+name each row's sensor (docs/tracking.md).
 
 Estimators (``tracking.estimators``):
 
