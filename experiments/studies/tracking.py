@@ -301,20 +301,6 @@ def _estimators(t, dtype, targets: int | None, scanner: dict) -> dict[str, Estim
     jp = t.get("jpda") or {}
     chosen = {"method": str(jp.get("method", "exact")), "k": int(jp.get("k", 100)),
               "max_targets": max(12, int(t.targets if targets is None else targets))}
-    if t.get("start") == "detections":  # every estimator starts with no track (the trackers without existence:
-        R = scanner["R"]                # a JIPDA whose tracks exist for sure, M-of-N confirmation and deletion)
-        k = chosen["k"]
-        made = {
-            "IMM-JPDAF": lambda: _initiated(t, imm, opts, dtype, R, chosen["method"], k),
-            "IMM-JPDAF-LBP": lambda: _initiated(t, imm, opts, dtype, R, "lbp", k),
-            "IMM-JPDAF-kbest": lambda: _initiated(t, imm, opts, dtype, R, "kbest", k),
-            "JPDAF": lambda: _initiated(t, KalmanFilter(cv, sensor), opts, dtype, R, chosen["method"], k),
-            "GNN-IMM": lambda: _initiated(t, imm, opts, dtype, R, "kbest", 1),  # (the best event: GNN)
-            "IMM-MHT": lambda: _managed_mht(t, imm, opts, R),
-            "JIPDA-TM": lambda: _managed(t, KalmanFilter(cv, sensor), opts, dtype, R),
-            "IMM-JIPDA-TM": lambda: _managed(t, imm, opts, dtype, R),
-        }
-        return {name: made[name]() for name in t.estimators}
     made = {
         "IMM-JPDAF": lambda: Estimator(JPDA(imm, **opts, **chosen), imm.initial_belief, False, False),
         "IMM-JPDAF-LBP": lambda: Estimator(JPDA(imm, **opts, method="lbp"), imm.initial_belief, False, False),
@@ -327,6 +313,16 @@ def _estimators(t, dtype, targets: int | None, scanner: dict) -> dict[str, Estim
         "JIPDA-TM": lambda: _managed(t, KalmanFilter(cv, sensor), opts, dtype, scanner["R"]),
         "IMM-JIPDA-TM": lambda: _managed(t, imm, opts, dtype, scanner["R"]),
     }
+    if t.get("start") == "detections":  # every estimator starts with no track (the trackers without existence:
+        R, k = scanner["R"], chosen["k"]  # a JIPDA whose tracks exist for sure, M-of-N confirmation and deletion)
+        made |= {
+            "IMM-JPDAF": lambda: _initiated(t, imm, opts, dtype, R, chosen["method"], k),
+            "IMM-JPDAF-LBP": lambda: _initiated(t, imm, opts, dtype, R, "lbp", k),
+            "IMM-JPDAF-kbest": lambda: _initiated(t, imm, opts, dtype, R, "kbest", k),
+            "JPDAF": lambda: _initiated(t, KalmanFilter(cv, sensor), opts, dtype, R, chosen["method"], k),
+            "GNN-IMM": lambda: _initiated(t, imm, opts, dtype, R, "kbest", 1),  # (the best event: GNN)
+            "IMM-MHT": lambda: _managed_mht(t, imm, opts, R),
+        }
     return {name: made[name]() for name in t.estimators}
 
 

@@ -95,13 +95,7 @@ class HypothesisBelief(Belief):
     def estimate(self):
         """The best hypothesis's tracks' estimates, batch ``(*B, N)``."""
         best = self.log_weights.argmax(-1)  # (*B,)
-        est = self.by_hypothesis().estimate()
-        lead = best.dim()
-
-        def pick(t: Tensor, e: int) -> Tensor:
-            index = best.reshape(*best.shape, 1, 1, *([1] * e)).expand(*t.shape[:lead], 1, *t.shape[lead + 1:])
-            return t.gather(lead, index).squeeze(lead)
-        return est.map_tensors(pick)
+        return self.by_hypothesis().estimate().map_tensors(lambda t, e: take_hypothesis(t, best))
 
 
 class MHT(JPDA):
@@ -200,6 +194,13 @@ class MHT(JPDA):
         association = (chosen[..., 0, :].unsqueeze(-1) == torch.arange(1 + D, device=z.device)).to(log_w.dtype)
         return StepOutput(out, belief, torch.where(failed, torch.nan, log_like), None, None,
                           {"association": association, "failed": failed})
+
+
+def take_hypothesis(t: Tensor, index: Tensor) -> Tensor:
+    """Each run's hypothesis ``index (*B,)`` of ``t (*B, H, ...)`` -> ``(*B, ...)``."""
+    lead = index.dim()
+    at = index.reshape(*index.shape, 1, *([1] * (t.dim() - lead - 1)))
+    return t.gather(lead, at.expand(*t.shape[:lead], 1, *t.shape[lead + 1:])).squeeze(lead)
 
 
 def children(log_weights: Tensor, columns: Tensor, log_e: Tensor, k: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:

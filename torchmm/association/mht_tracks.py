@@ -46,6 +46,7 @@ from torchmm.association.mht import (
     pick_options,
     prune,
     shift_history,
+    take_hypothesis,
 )
 from torchmm.association.pda import missed_hypothesis, missed_log_weight
 from torchmm.association.tracks import ModeTrackTable, TrackTable
@@ -81,28 +82,24 @@ class TrackHypotheses(HypothesisBelief):
     event_dims: ClassVar[dict[str, int]] = {"log_weights": 1, "history": 3, "alive": 2, "label": 2, "next_label": 1,
                                             "age": 2, "hits": 2, "misses": 2, "firm": 2, "score": 2, "peak": 2}
 
-    def _pick(self, t: Tensor, e: int = 0) -> Tensor:
-        """The best hypothesis's entry of ``t (*B, H, ...)`` -> ``(*B, ...)``."""
-        best = self.log_weights.argmax(-1)  # (*B,)
-        lead = best.dim()
-        index = best.reshape(*best.shape, 1, *([1] * (t.dim() - lead - 1)))
-        return t.gather(lead, index.expand(*t.shape[:lead], 1, *t.shape[lead + 1:])).squeeze(lead)
-
     def best_scores(self) -> Tensor:
         """``(*B, K)``: the best hypothesis's tracks' scores (log-likelihood ratios; 0 in a free slot)."""
-        return torch.where(self._pick(self.alive), self._pick(self.score), 0.0)
+        best = self.log_weights.argmax(-1)
+        return torch.where(take_hypothesis(self.alive, best), take_hypothesis(self.score, best), 0.0)
 
     def best(self) -> TrackTable | ModeTrackTable:
         """The best hypothesis's slots as a track table, batch ``(*B, K)`` (a free slot: existence 0)."""
         best = self.log_weights.argmax(-1)  # (*B,)
-        pick = self._pick
+
+        def pick(t: Tensor, e: int = 0) -> Tensor:
+            return take_hypothesis(t, best)
         state = self.by_hypothesis().map_tensors(pick)
-        alive = pick(self.alive, 1)
+        alive = pick(self.alive)
         K = alive.shape[-1]
         log_e = torch.where(alive, 0.0, -math.inf).to(self.log_weights.dtype)
-        record = (pick(self.age, 1), pick(self.hits, 1), pick(self.misses, 1), pick(self.firm, 1) & alive)
-        next_label = pick(self.next_label, 0).unsqueeze(-1).expand(*best.shape, K)
-        label = torch.where(alive, pick(self.label, 1), -1)
+        record = (pick(self.age), pick(self.hits), pick(self.misses), pick(self.firm) & alive)
+        next_label = pick(self.next_label).unsqueeze(-1).expand(*best.shape, K)
+        label = torch.where(alive, pick(self.label), -1)
         if isinstance(state, ModeBelief):
             return ModeTrackTable(state.mode_log_probs, state.components, log_e, label, next_label, *record)
         return TrackTable(state.mean, state.cov, log_e, label, next_label, *record)

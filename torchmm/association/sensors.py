@@ -28,9 +28,9 @@ from collections.abc import Sequence
 from typing import Any, NamedTuple
 
 import torch
-import torch.utils._pytree as pytree
 from torch import Tensor, nn
 
+from torchmm.beliefs import where
 from torchmm.contract import Of, entry_point
 from torchmm.filters.base import Filter, StepOutput, call_with
 
@@ -49,25 +49,6 @@ class SensorScans(NamedTuple):
 
     scans: tuple
     reports: Tensor
-
-
-def where_runs(condition: Tensor, a: Any, b: Any) -> Any:
-    """``a`` where ``condition`` holds and ``b`` elsewhere, for two beliefs (any pytrees) of one structure
-    whose tensors all start with the batch axes ``condition`` indexes (left-aligned: a joint
-    association's tracks, an MHT's hypotheses and a track table's slots follow the runs)."""
-    leaves_a, spec = pytree.tree_flatten(a)
-    leaves_b, spec_b = pytree.tree_flatten(b)
-    if spec != spec_b:
-        raise ValueError("the sensors' filters return beliefs of different structures; every filter of "
-                         "SequentialSensors must keep the first one's belief type")
-    out = []
-    for x, y in zip(leaves_a, leaves_b):
-        if not isinstance(x, Tensor):
-            out.append(x)
-            continue
-        x, y = torch.broadcast_tensors(x, y)
-        out.append(torch.where(condition.reshape(*condition.shape, *(1,) * (x.dim() - condition.dim())), x, y))
-    return pytree.tree_unflatten(out, spec)
 
 
 class SequentialSensors(Filter):
@@ -188,7 +169,8 @@ class SequentialSensors(Filter):
         for s, f in enumerate(self.filters):
             out = call_with(f, "update", belief, scans[s], generator=generator)
             said = reports[..., s]
-            belief = where_runs(said, out.belief, belief)
+            rank = len(out.belief.batch_shape)  # (the runs lead: a joint belief's tracks, an MHT's hypotheses follow)
+            belief = where(said.reshape(*said.shape, *(1,) * (rank - said.dim())), out.belief, belief)
             ll = out.log_likelihood
             step = torch.where(said.reshape(*said.shape, *(1,) * (ll.dim() - said.dim())), ll, 0.0)
             log_like = step if log_like is None else log_like + step

@@ -96,11 +96,10 @@ def load():
     if _LOOPS is None:
         from types import SimpleNamespace
 
-        from torchmm.kernels import linear_kim, linear_loops, linear_reverse, loop_algebra
+        from torchmm.kernels import linear_kim, linear_loops, linear_reverse
 
         _LOOPS = SimpleNamespace(forward=linear_loops.forward, backward=linear_reverse.backward, kim=linear_kim.kim,
-                                 filter_and_kim=linear_kim.filter_and_kim, log_matrix=linear_kim.log_matrix,
-                                 chol_reg=loop_algebra.chol_reg)
+                                 filter_and_kim=linear_kim.filter_and_kim, log_matrix=linear_kim.log_matrix)
     return _LOOPS
 
 
