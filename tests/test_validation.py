@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
@@ -131,3 +132,68 @@ def test_covariance_check_of_broadcast_batches():
         check_covariance(mixed.unsqueeze(1).expand(3, 400, 2, 2), "prior")
     with pytest.raises(ValueError, match="prior: contains NaN"):
         check_covariance(torch.full((2, 2), float("nan"), dtype=torch.float64).expand(7, 2, 2), "prior")
+
+
+# -- Unchanged: answers kept while their objects are unchanged (the one-shot call's fixed cost, issue 47) --
+
+
+def test_unchanged_keeps_an_answer_until_a_tensor_changes_or_dies():
+    from torchmm.validation import Unchanged
+
+    memo = Unchanged(size=4)
+    x, y = torch.ones(3), torch.zeros(2)
+    assert memo.get((x, y)) is None
+    assert memo.put((x, y), "answer") == "answer"
+    assert memo.get((x, y)) == "answer"
+    assert memo.get((y, x)) is None  # the objects in their order
+    y[0] = 1.0  # an in-place change bumps the version
+    assert memo.get((x, y)) is None
+    memo.put((x, y), "again")
+    key_id = id(x)
+    del x
+    import gc
+
+    gc.collect()
+    fresh = torch.ones(3)
+    if id(fresh) == key_id:  # (an id reused: the dead object's weak reference tells them apart)
+        assert memo.get((fresh, y)) is None
+    with torch.inference_mode():
+        frozen = torch.ones(2)
+    assert memo.put((frozen,), "kept?") == "kept?" and memo.get((frozen,)) is None  # no version: never kept
+    for i in range(10):  # bounded: fresh objects every call never hold more than `size`
+        memo.put((torch.ones(1),), i)
+    assert len(memo._answers) <= 4
+
+
+def test_a_belief_changed_in_place_after_a_run_is_checked_again():
+    from torchmm import GaussianBelief, KalmanFilter, run_filter
+    from torchmm.models import ConstantVelocity, PositionMeasurement
+
+    kf = KalmanFilter(ConstantVelocity(1, dtype=torch.float64), PositionMeasurement(2, [0], 1.0, dtype=torch.float64))
+    belief = GaussianBelief(torch.zeros(3, 2, dtype=torch.float64), torch.eye(2, dtype=torch.float64).repeat(3, 1, 1))
+    z = torch.randn(5, 3, 1, dtype=torch.float64)
+    first = run_filter(kf, belief, z)
+    again = run_filter(kf, belief, z)  # the same unchanged start: its check and the data's fingerprint kept
+    assert torch.equal(first.log_likelihood, again.log_likelihood)
+    assert first.provenance.data == again.provenance.data
+    belief.cov[1, 0, 0] = -1.0  # indefinite now: the version moved, so the check runs again
+    with pytest.raises(ValueError, match=r"belief0\.cov.*positive semi-definite"):
+        run_filter(kf, belief, z)
+    z[2, 1, 0] = z[2, 1, 0] + 1.0  # the data's record follows an in-place change of the data
+    belief.cov[1, 0, 0] = 1.0
+    assert run_filter(kf, belief, z).provenance.data != first.provenance.data
+
+
+def test_small_covariances_closed_form_eigenvalues_agree_with_lapack():
+    from torchmm.validation import _small_eigvalsh
+
+    rng = np.random.default_rng(1)
+    for d in (1, 2):
+        for scale in (1e-300, 1e-12, 1.0, 1e300):
+            a = rng.standard_normal((200, d, d))
+            sym = a @ np.swapaxes(a, -1, -2) - np.eye(d)  # some indefinite
+            sym = 0.5 * (sym + np.swapaxes(sym, -1, -2)) * scale
+            top = np.abs(sym).max(axis=(-1, -2), keepdims=True)
+            got = _small_eigvalsh(sym, top)
+            assert np.all(np.isfinite(got))
+            np.testing.assert_allclose(got / top[..., 0], np.linalg.eigvalsh(sym) / top[..., 0], atol=1e-14)

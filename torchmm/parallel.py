@@ -120,7 +120,7 @@ def _check(kf, belief0, z) -> Tensor:
     if not isinstance(belief0, GaussianBelief):
         raise TypeError(f"belief0: expected a GaussianBelief, got {type(belief0).__name__}")
     gaussian_batch(belief0, kf.state_dim, "belief0")
-    belief0.validate("belief0")
+    belief0.validate_once("belief0")
     check_filter_dtype(kf, belief0, "belief0")
     if not isinstance(z, Tensor):
         raise TypeError(f"z: expected a tensor of shape (T, *B, {kf.meas_dim}), got {type(z).__name__}")

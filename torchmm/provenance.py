@@ -24,7 +24,7 @@ import torch
 import torch.utils._pytree as pytree
 from torch import Tensor
 
-from torchmm.validation import host_array, module_tensors
+from torchmm.validation import Unchanged, host_array, module_tensors
 
 __all__ = ["Fingerprint", "Provenance", "fingerprints", "module_state", "tensor_versions"]
 
@@ -118,6 +118,10 @@ def _stats_numpy(t: Tensor) -> list | None:
             float(size @ index) / max(n, 1), where]
 
 
+#: each tensor's statistics while it is unchanged (a run called again on the same data reads it once)
+_STATS = Unchanged()
+
+
 def fingerprints(*streams: Any) -> tuple[list, list]:
     """The fingerprints of every tensor leaf of each of ``streams`` (pytrees of tensors, or None), and
     the number of infinite floating entries of each: one host read for all.
@@ -133,15 +137,19 @@ def fingerprints(*streams: Any) -> tuple[list, list]:
         for i, t in enumerate(flat):
             by_device.setdefault(t.device, []).append(i)
         values = [None] * len(flat)
-        for i, t in enumerate(flat):  # small CPU tensors: in NumPy
-            values[i] = _stats_numpy(t)
+        for i, t in enumerate(flat):  # the same data as before (the same tensor, unchanged): its statistics
+            values[i] = _STATS.get((t,))
+            if values[i] is None:  # small CPU tensors: in NumPy
+                values[i] = _stats_numpy(t)
+                if values[i] is not None:
+                    _STATS.put((t,), values[i])
         for device, index in by_device.items():  # one read per device (one in practice)
             index = [i for i in index if values[i] is None]
             if not index:
                 continue
             rows = torch.stack([_stats(flat[i]) for i in index]).tolist()
             for i, row in zip(index, rows):
-                values[i] = row
+                values[i] = _STATS.put((flat[i],), row)
     out, k, infinite = [], 0, []
     for ls in leaves:
         infinite.append(0)

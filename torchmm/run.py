@@ -184,7 +184,7 @@ def run_filter(
         >>> traj.estimate().mean.shape
         torch.Size([10, 4, 2])
     """
-    belief0.validate("belief0")  # (its type, filter's, and the flags' are the contract's, at entry)
+    belief0.validate_once("belief0")  # (its type, filter's, and the flags' are the contract's, at entry)
     check_filter_dtype(filter, belief0, "belief0")
     if generator is not None and generator.device.type != belief0.device.type:
         raise ValueError(f"generator: on {generator.device}, the belief on {belief0.device}; create it "

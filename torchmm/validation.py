@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import math
 import numbers
+import weakref
 from collections.abc import Sequence
 
 import numpy as np
@@ -38,6 +39,7 @@ __all__ = [
     "check_probabilities",
     "check_same_dtype",
     "check_shape",
+    "Unchanged",
     "check_square",
     "check_stochastic_rows",
     "gaussian_batch",
@@ -159,6 +161,64 @@ def _distinct(tensor: Tensor) -> Tensor:
     return tensor
 
 
+class Unchanged:
+    """What was computed from some objects, kept while they are unchanged: the same objects (held by weak
+    reference, so no id is reused while an answer is kept) and, for tensors, at the same versions (torch's
+    record of in-place changes, the one autograd trusts). What a value check passed, a fingerprint, a
+    factor: the one-shot call's fixed cost (issue 47) without reading the same values again.
+
+    As for autograd, a change that bypasses the version counter (through ``.data``, or a NumPy view of a
+    tensor) is not seen: such a change after a first call keeps the first call's answer.
+
+    Examples:
+        >>> memo = Unchanged()
+        >>> x = torch.ones(2)
+        >>> memo.get((x,)) is None
+        True
+        >>> memo.put((x,), "checked")
+        'checked'
+        >>> memo.get((x,))
+        'checked'
+        >>> x.add_(1)  # an in-place change: a new version
+        tensor([2., 2.])
+        >>> memo.get((x,)) is None
+        True
+    """
+
+    def __init__(self, size: int = 32):
+        self.size = size
+        self._answers: dict = {}
+
+    @staticmethod
+    def _key(objects: Sequence) -> tuple | None:
+        try:
+            return tuple((id(o), o._version if isinstance(o, Tensor) else None) for o in objects)
+        except RuntimeError:  # a tensor made under torch.inference_mode has no version counter
+            return None
+
+    def get(self, objects: Sequence):
+        """The answer kept for ``objects`` (a sequence of tensors and other weakly referable objects), or
+        None where none is kept or one of them changed."""
+        key = self._key(objects)
+        hit = None if key is None else self._answers.get(key)
+        if hit is None or any(ref() is not o for ref, o in zip(hit[0], objects)):
+            return None
+        return hit[1]
+
+    def put(self, objects: Sequence, answer):
+        """Keep ``answer`` (not None) for ``objects`` as they are now; returns it."""
+        key = self._key(objects)
+        if key is not None:
+            try:
+                refs = tuple(weakref.ref(o) for o in objects)
+            except TypeError:  # an object without weak references: nothing kept
+                return answer
+            if len(self._answers) >= self.size:  # (fresh objects every call: never more than size kept)
+                self._answers.clear()
+            self._answers[key] = (refs, answer)
+        return answer
+
+
 #: a CPU tensor of at most this many entries is checked in NumPy at an entry point: its few small
 #: operations cost about a microsecond each there, several in torch (issue 47: the one-shot call's cost)
 SMALL_CHECK = 1 << 16
@@ -236,13 +296,29 @@ def _check_covariance_numpy(array: np.ndarray, name: str, definite: bool) -> Non
     transposed = np.swapaxes(value, -1, -2)
     if (np.abs(value - transposed) > SYMMETRY_RTOL * scale).any():
         raise ValueError(f"{name}: covariance is not symmetric")
-    eigvals = np.linalg.eigvalsh(0.5 * (value + transposed))
+    eigvals = _small_eigvalsh(0.5 * (value + transposed), scale)
     tol = 1e-10 * scale[..., 0]
     if definite and (eigvals <= tol).any():
         raise ValueError(f"{name}: covariance is not positive definite (smallest eigenvalue {eigvals.min():.3g})")
     if (eigvals < -tol).any():
         raise ValueError(f"{name}: covariance is not positive semi-definite (smallest eigenvalue "
                          f"{eigvals.min():.3g})")
+
+
+def _small_eigvalsh(sym: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """The eigenvalues of symmetric ``sym (..., d, d)``: in closed form for ``d <= 2`` (``np.linalg.eigvalsh``'s
+    call costs ten microseconds at any size: the one-shot call's check of a scalar or planar state), on
+    the matrices divided by their ``scale`` (their largest entry, ``(..., 1, 1)``) so that no square
+    overflows or underflows, then multiplied back (only the smallest is tested, to 1e-10 of the scale)."""
+    d = sym.shape[-1]
+    if d > 2:
+        return np.linalg.eigvalsh(sym)
+    if d == 1:
+        return sym[..., 0]
+    unit = np.where(scale > 0, scale, 1.0)[..., 0, 0]
+    a, b, c = sym[..., 0, 0] / unit, sym[..., 1, 0] / unit, sym[..., 1, 1] / unit
+    half, radius = 0.5 * (a + c), np.hypot(0.5 * (a - c), b)
+    return np.stack([half - radius, half + radius], axis=-1) * unit[..., None]
 
 
 def check_stochastic_rows(matrix: Tensor, name: str) -> None:

@@ -19,9 +19,12 @@ import torch
 import torch.utils._pytree as pytree
 from torch import Tensor
 
-from torchmm.validation import all_finite, broadcast_shape
+from torchmm.validation import Unchanged, all_finite, broadcast_shape
 
 __all__ = ["Belief", "register_belief", "stack", "cat", "where"]
+
+#: the beliefs that passed validate() and are unchanged since (Belief.validate_once)
+_VALIDATED = Unchanged()
 
 B = TypeVar("B", bound="Belief")
 
@@ -139,6 +142,17 @@ class Belief:
             elif isinstance(value, Tensor) and value.is_floating_point():
                 if not all_finite(value):
                     raise ValueError(f"{name}.{field}: contains NaN or infinite entries")
+        return self
+
+    def validate_once(self: B, name: str = "belief") -> B:
+        """:meth:`validate`, skipped for this very belief when it passed before and none of its tensors has
+        changed since (:class:`~torchmm.validation.Unchanged`; a change through ``.data`` or a NumPy view
+        is not seen, as for autograd): an entry point called again with the same start (a loop of
+        :func:`~torchmm.run_filter` calls, an objective) reads its values once. Returns the belief."""
+        objects = (self, *(t for t, _ in self._tensors()))
+        if _VALIDATED.get(objects) is None:
+            self.validate(name)
+            _VALIDATED.put(objects, True)
         return self
 
     @property

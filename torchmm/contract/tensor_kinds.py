@@ -357,8 +357,8 @@ class BeliefArg(Kind):
             return value
         if not _is_belief(value):
             raise TypeError(f"{name}: expected a belief (e.g. GaussianBelief), got {type(value).__name__}")
-        if self.validate:
-            value.validate(name)
+        if self.validate:  # (once for a belief unchanged since it passed: Belief.validate_once)
+            getattr(value, "validate_once", value.validate)(name)
         return value
 
     def invalid(self, valid):

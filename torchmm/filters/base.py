@@ -85,7 +85,7 @@ class Filter(nn.Module):
             raise TypeError(f"belief: expected a belief (e.g. GaussianBelief), got {type(belief).__name__}")
         check_filter_dtype(self, belief, "belief")
         check_state_dim(self, belief, "belief")
-        return belief.validate("belief")
+        return belief.validate_once("belief")
 
     def predict(self, belief: Any, *, u: Tensor | None = None) -> Any:
         """Time update. Returns the prior belief for the next measurement."""

@@ -24,7 +24,6 @@ weights, the step reports ``extras["degenerate"] = True`` and ``log_likelihood =
 from __future__ import annotations
 
 import math
-import weakref
 
 import torch
 from torch import Tensor
@@ -44,6 +43,7 @@ from torchmm.models.base import MeasurementModel, MotionModel, check_model_pair
 from torchmm.models.linear import LinearMeasurement, LinearMotion
 from torchmm.runtime import host_reads_ok
 from torchmm.validation import (
+    Unchanged,
     as_float,
     as_int,
     broadcast_shape,
@@ -96,7 +96,8 @@ def noise_factor(cov: Tensor, rtol: float = 1e-10) -> Tensor:
     return eigvecs[..., -rank:] * top.sqrt().unsqueeze(-2)
 
 
-_FACTORS: dict = {}
+#: each Q's factor while Q is unchanged (per-step models with fresh Q tensors: at most 64 kept)
+_FACTORS = Unchanged(size=64)
 
 
 def cached_noise_factor(cov: Tensor) -> Tensor:
@@ -108,14 +109,8 @@ def cached_noise_factor(cov: Tensor) -> Tensor:
         cov: ``(*P, n, n)`` -> ``(*P, n, r)``"""
     if cov.requires_grad and torch.is_grad_enabled():
         return noise_factor(cov)
-    hit = _FACTORS.get(id(cov))
-    if hit is not None and hit[0]() is cov and hit[1] == cov._version:
-        return hit[2]
-    factor = noise_factor(cov)
-    if len(_FACTORS) > 64:  # per-step models with fresh Q tensors: do not grow without bound
-        _FACTORS.clear()
-    _FACTORS[id(cov)] = (weakref.ref(cov), cov._version, factor)
-    return factor
+    hit = _FACTORS.get((cov,))
+    return hit if hit is not None else _FACTORS.put((cov,), noise_factor(cov))
 
 
 def sample_gaussian(belief: GaussianBelief, num_particles: int, *,
