@@ -199,34 +199,30 @@ def set_enabled(name: str, enabled: bool = True) -> None:
         _OFF.add(name)
 
 
-@contextlib.contextmanager
 def switched_off(*names: str):
     """``with switched_off("linear_gaussian"): ...``: :func:`set_enabled` off inside for every kernel
     named, restored after. Every name is checked first (``names[i]: no kernel named ...``, nothing
     switched)."""
-    for i, name in enumerate(names):
-        _NAME.check(name, f"names[{i}]")
-    was = {name for name in names if name in _OFF}
-    _OFF.update(names)
-    try:
-        yield
-    finally:
-        _OFF.difference_update(set(names) - was)
+    return _switched(names, off=True)
 
 
-@contextlib.contextmanager
 def switched_on(*names: str):
     """``with switched_on(*by_size()): ...``: :func:`set_enabled` on inside for every kernel named, restored
     after (a study's one-off whole-data work, such as its maximum-likelihood fit, which no split into
     units can change). Every name is checked first (``names[i]: ...``, nothing switched)."""
+    return _switched(names, off=False)
+
+
+@contextlib.contextmanager
+def _switched(names: tuple, off: bool):
     for i, name in enumerate(names):
         _NAME.check(name, f"names[{i}]")
-    was = {name for name in names if name in _OFF}
-    _OFF.difference_update(names)
+    changed = {name for name in names if (name in _OFF) != off}  # (those this block switches: restored after)
+    (_OFF.update if off else _OFF.difference_update)(changed)
     try:
         yield
     finally:
-        _OFF.update(was)
+        (_OFF.difference_update if off else _OFF.update)(changed)
 
 
 def by_size() -> list[str]:

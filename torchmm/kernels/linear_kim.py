@@ -11,7 +11,16 @@ import numba
 import numpy as np
 
 from torchmm.kernels.linear_loops import forward
-from torchmm.kernels.loop_algebra import chol_reg, logsumexp, predict_mode
+from torchmm.kernels.loop_algebra import (
+    chol_reg,
+    copy_modes,
+    logsumexp,
+    matmul,
+    matmul_add,
+    mix_moments,
+    predict_mode,
+    solve_lower,
+)
 
 
 @numba.njit(cache=True)
@@ -101,6 +110,7 @@ def kim(F, b, Q, Pi, logPi, logmu, x, P, eps, tiny, slogmu, sx, sP):
     G = np.empty((n, n), dt)  # G^T = (P^-)^{-1} C^T
     Y = np.empty((n, n), dt)
     D = np.empty((n, n), dt)
+    E = np.empty((n, n), dt)
     dv = np.empty(n, dt)
     jp = np.empty((M, M), dt)
     lpred = np.empty(M, dt)
@@ -112,12 +122,7 @@ def kim(F, b, Q, Pi, logPi, logmu, x, P, eps, tiny, slogmu, sx, sP):
     mu = np.empty(M, dt)
     smu = np.empty(M, dt)
     for r in range(B):
-        for j in range(M):
-            slogmu[T - 1, r, j] = logmu[T - 1, r, j]
-            for i in range(n):
-                sx[T - 1, r, j, i] = x[T - 1, r, j, i]
-                for k in range(n):
-                    sP[T - 1, r, j, i, k] = P[T - 1, r, j, i, k]
+        copy_modes(logmu[T - 1, r], x[T - 1, r], P[T - 1, r], slogmu[T - 1, r], sx[T - 1, r], sP[T - 1, r])
         for t in range(T - 2, -1, -1):
             for j in range(M):
                 for i in range(M):
@@ -126,12 +131,7 @@ def kim(F, b, Q, Pi, logPi, logmu, x, P, eps, tiny, slogmu, sx, sP):
                     predict_mode(F[i], b[i], zero, Q[i], x[t, r, j], P[t, r, j], xp[j, i], Pp[j, i], FP)
                     chol_reg(Pp[j, i], n, eps, tiny, L)
                     # G^T = L^{-T} L^{-1} C^T, C^T = F_i P_j = FP
-                    for c in range(n):
-                        for a in range(n):
-                            s = FP[a, c]
-                            for q in range(a):
-                                s -= L[a, q] * Y[q, c]
-                            Y[a, c] = s / L[a, a]
+                    solve_lower(L, FP, n, Y)
                     for c in range(n):
                         for a in range(n - 1, -1, -1):
                             s = Y[a, c]
@@ -148,16 +148,9 @@ def kim(F, b, Q, Pi, logPi, logmu, x, P, eps, tiny, slogmu, sx, sP):
                         mean[j, i, a] = s
                     for a in range(n):
                         for c in range(n):
-                            s = 0.0
-                            for q in range(n):
-                                s += G[q, a] * (sP[t + 1, r, i, q, c] - Pp[j, i, q, c])
-                            D[a, c] = s
-                    for a in range(n):
-                        for c in range(n):
-                            s = 0.0
-                            for q in range(n):
-                                s += D[a, q] * G[q, c]
-                            Y[a, c] = P[t, r, j, a, c] + s
+                            E[a, c] = sP[t + 1, r, i, a, c] - Pp[j, i, a, c]
+                    matmul(G.T, E, D)
+                    matmul_add(D, G, 1.0, P[t, r, j], Y)
                     for a in range(n):
                         for c in range(n):
                             cov[j, i, a, c] = 0.5 * (Y[a, c] + Y[c, a])
@@ -195,19 +188,5 @@ def kim(F, b, Q, Pi, logPi, logmu, x, P, eps, tiny, slogmu, sx, sP):
                         if v != v:
                             v = -math.log(M)
                         wts[j, i] = math.exp(v)
-            # the collapse over i (mix_gaussians)
-            for j in range(M):
-                for a in range(n):
-                    s = 0.0
-                    for i in range(M):
-                        s += wts[j, i] * mean[j, i, a]
-                    sx[t, r, j, a] = s
-                for a in range(n):
-                    for c in range(n):
-                        sP[t, r, j, a, c] = 0.0
-                for i in range(M):
-                    for a in range(n):
-                        dv[a] = mean[j, i, a] - sx[t, r, j, a]
-                    for a in range(n):
-                        for c in range(n):
-                            sP[t, r, j, a, c] += wts[j, i] * (cov[j, i, a, c] + dv[a] * dv[c])
+            for j in range(M):  # the collapse over i (mix_gaussians)
+                mix_moments(wts[j], mean[j], cov[j], sx[t, r, j], sP[t, r, j], dv)

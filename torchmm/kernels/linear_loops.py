@@ -27,7 +27,18 @@ import math
 import numba
 import numpy as np
 
-from torchmm.kernels.loop_algebra import LOG_2PI, chol_reg, logsumexp, mixing_weights, predict_mode
+from torchmm.kernels.loop_algebra import (
+    LOG_2PI,
+    chol_reg,
+    copy_modes,
+    innovation_cov,
+    logsumexp,
+    mix_moments,
+    mixing_weights,
+    predict_mode,
+    solve_lower,
+    update_workspace,
+)
 
 
 @numba.njit(cache=True)
@@ -43,13 +54,11 @@ def forward(z, F, b, Q, H, R, Pi, rule, update_first, logmu0, x0, P0, bu, eps, t
     w = np.empty((M, M), dt)
     a = np.empty(M, dt)
     FP = np.empty((n, n), dt)
-    C = np.empty((n, m), dt)
-    S = np.empty((m, m), dt)
-    L = np.empty((m, m), dt)
+    C, S, L, nu = update_workspace(n, m, dt)
     A = np.empty((m, n), dt)
     wv = np.empty(m, dt)
-    nu = np.empty(m, dt)
     obs = np.empty(m, np.bool_)
+    every = np.arange(m)  # (every measurement component: the innovation covariance's index)
     d = np.empty(n, dt)
     bad = 0
     regularised = 0
@@ -65,40 +74,16 @@ def forward(z, F, b, Q, H, R, Pi, rule, update_first, logmu0, x0, P0, bu, eps, t
             else:
                 plm, px, pP = logmu[t - 1, r], x[t - 1, r], P[t - 1, r]
             if t == 0 and update_first:
-                for j in range(M):
-                    logc[t, r, j] = plm[j]
-                    for i in range(n):
-                        xp[t, r, j, i] = px[j, i]
-                        for k in range(n):
-                            Pp[t, r, j, i, k] = pP[j, i, k]
+                copy_modes(plm, px, pP, logc[t, r], xp[t, r], Pp[t, r])
             else:
                 # -- interaction (torchmm/multimodel/imm.py: MomentMixing, Collapse, NoInteraction)
                 if rule == 2:
-                    for j in range(M):
-                        logc[t, r, j] = plm[j]
-                        for i in range(n):
-                            xm[t, r, j, i] = px[j, i]
-                            for k in range(n):
-                                Pm[t, r, j, i, k] = pP[j, i, k]
+                    copy_modes(plm, px, pP, logc[t, r], xm[t, r], Pm[t, r])
                 else:
                     mixing_weights(plm, Pt, rule, tiny, mu, c, w)
                     for j in range(M):
                         logc[t, r, j] = math.log(c[j])
-                    for j in range(M):
-                        for i in range(n):
-                            s = 0.0
-                            for k in range(M):
-                                s += w[k, j] * px[k, i]
-                            xm[t, r, j, i] = s
-                        for i in range(n):
-                            for k in range(n):
-                                Pm[t, r, j, i, k] = 0.0
-                        for q in range(M):
-                            for i in range(n):
-                                d[i] = px[q, i] - xm[t, r, j, i]
-                            for i in range(n):
-                                for k in range(n):
-                                    Pm[t, r, j, i, k] += w[q, j] * (pP[q, i, k] + d[i] * d[k])
+                        mix_moments(w[:, j], px, pP, xm[t, r, j], Pm[t, r, j], d)
                 # -- prediction: xp = F xm + b (+ the step's input term bu = G u_t), Pp = F Pm F^T + Q
                 for j in range(M):
                     predict_mode(F[j], b[j], bu[tu, ru, j], Q[j], xm[t, r, j], Pm[t, r, j], xp[t, r, j], Pp[t, r, j], FP)
@@ -114,19 +99,8 @@ def forward(z, F, b, Q, H, R, Pi, rule, update_first, logmu0, x0, P0, bu, eps, t
                     for i in range(n):
                         s += H[j, k, i] * xp[t, r, j, i]
                     innov[t, r, j, k] = z[t, r, k] - s
-                for i in range(n):
-                    for k in range(m):
-                        s = 0.0
-                        for q in range(n):
-                            s += Pp[t, r, j, i, q] * H[j, k, q]
-                        C[i, k] = s
-                for k in range(m):
-                    for l in range(m):
-                        s = 0.0
-                        for i in range(n):
-                            s += C[i, k] * H[j, l, i]
-                        S[k, l] = s + R[j, k, l]
-                        Sout[t, r, j, k, l] = S[k, l]
+                innovation_cov(Pp[t, r, j], H[j], R[j], every, m, C, S)
+                Sout[t, r, j] = S
                 flag = 0
                 ell = 0.0
                 if count == 0:
@@ -157,12 +131,8 @@ def forward(z, F, b, Q, H, R, Pi, rule, update_first, logmu0, x0, P0, bu, eps, t
                     else:
                         flag = chol_reg(S, m, eps, tiny, L)
                         # A = L^{-1} C^T, wv = L^{-1} nu (forward substitution)
+                        solve_lower(L, C.T, m, A)
                         for k in range(m):
-                            for i in range(n):
-                                s = C[i, k]
-                                for l in range(k):
-                                    s -= L[k, l] * A[l, i]
-                                A[k, i] = s / L[k, k]
                             s = nu[k]
                             for l in range(k):
                                 s -= L[k, l] * wv[l]

@@ -9,7 +9,18 @@ import math
 import numba
 import numpy as np
 
-from torchmm.kernels.loop_algebra import chol_plain, inverse_from_chol, mixing_weights
+from torchmm.kernels.loop_algebra import (
+    chol_plain,
+    copy_modes,
+    innovation_cov,
+    inverse_from_chol,
+    matmul,
+    matmul_add,
+    mixing_weights,
+    triple_entry,
+    update_workspace,
+    zero_modes,
+)
 
 
 @numba.njit(cache=True)
@@ -36,17 +47,14 @@ def backward(z, F, b, Q, H, R, Pi, rule, update_first, logmu0, x0, P0, bu,
     Abar = np.empty((n, n), dt)
     xmb = np.empty((M, n), dt)
     Pmb = np.empty((M, n, n), dt)
-    C = np.empty((n, m), dt)
+    C, S, L, nu = update_workspace(n, m, dt)
     Cb = np.empty((n, m), dt)
-    S = np.empty((m, m), dt)
-    L = np.empty((m, m), dt)
     V = np.empty((m, m), dt)
     Vb = np.empty((m, m), dt)
     Sb = np.empty((m, m), dt)
     W = np.empty((m, m), dt)
     u = np.empty(m, dt)
     ub = np.empty(m, dt)
-    nu = np.empty(m, dt)
     nub = np.empty(m, dt)
     obs = np.empty(m, np.bool_)
     idx = np.empty(m, np.int64)
@@ -62,12 +70,7 @@ def backward(z, F, b, Q, H, R, Pi, rule, update_first, logmu0, x0, P0, bu,
     step_pi, run_pi = Pi.shape[0] > 1, Pi.shape[1] > 1
     for r in range(B):
         ru = r if run_u else 0
-        for j in range(M):
-            clm[j] = 0.0
-            for i in range(n):
-                cx[j, i] = 0.0
-                for k in range(n):
-                    cP[j, i, k] = 0.0
+        zero_modes(clm, cx, cP)
         for t in range(T - 1, -1, -1):
             tu = t if step_u else 0
             Pt = Pi[t if step_pi else 0, r if run_pi else 0]  # (the step's transition matrix, its adjoint)
@@ -103,19 +106,8 @@ def backward(z, F, b, Q, H, R, Pi, rule, update_first, logmu0, x0, P0, bu,
                 if count > 0:
                     mo = count
                     # observed blocks: C_o = Pp H_o^T, S_o = H_o Pp H_o^T + R_oo, V = S_o^{-1}
-                    for i in range(n):
-                        for kk in range(mo):
-                            k = idx[kk]
-                            s = 0.0
-                            for q in range(n):
-                                s += Pp[t, r, j, i, q] * H[j, k, q]
-                            C[i, kk] = s
+                    innovation_cov(Pp[t, r, j], H[j], R[j], idx, mo, C, S)
                     for kk in range(mo):
-                        for ll_ in range(mo):
-                            s = 0.0
-                            for i in range(n):
-                                s += C[i, kk] * H[j, idx[ll_], i]
-                            S[kk, ll_] = s + R[j, idx[kk], idx[ll_]]
                         s = z[t, r, idx[kk]]
                         for i in range(n):
                             s -= H[j, idx[kk], i] * xp[t, r, j, i]
@@ -139,17 +131,10 @@ def backward(z, F, b, Q, H, R, Pi, rule, update_first, logmu0, x0, P0, bu,
                     # P+ = sym(Pp - C V C^T): Cb -= 2 Abar C V, Vb = -C^T Abar C
                     for i in range(n):
                         for kk in range(mo):
-                            s = 0.0
-                            for q in range(n):
-                                for ll_ in range(mo):
-                                    s += Abar[i, q] * C[q, ll_] * V[ll_, kk]
-                            Cb[i, kk] -= 2.0 * s
+                            Cb[i, kk] -= 2.0 * triple_entry(Abar, C, V, i, kk, n, mo)
                     for kk in range(mo):
                         for ll_ in range(mo):
-                            s = 0.0
-                            for i in range(n):
-                                for q in range(n):
-                                    s += C[i, kk] * Abar[i, q] * C[q, ll_]
+                            s = triple_entry(C.T, Abar, C, kk, ll_, n, n)
                             Vb[kk, ll_] = -s + ub[kk] * nu[ll_] - 0.5 * ellb * nu[kk] * nu[ll_]
                     # u = V nu; ell = -0.5 (nu^T u + logdet S + m log 2 pi)
                     for kk in range(mo):
@@ -234,41 +219,16 @@ def backward(z, F, b, Q, H, R, Pi, rule, update_first, logmu0, x0, P0, bu,
                         for k in range(n):
                             gQ[j, i, k] += Ppb[i, k]
                             gF[j, i, k] += xpb[i] * xm[t, r, j, k]
-                    for i in range(n):  # tmp = F Pm
-                        for k in range(n):
-                            s = 0.0
-                            for q in range(n):
-                                s += F[j, i, q] * Pm[t, r, j, q, k]
-                            tmp[i, k] = s
-                    for i in range(n):  # F_bar += 2 Ppb F Pm
-                        for k in range(n):
-                            s = 0.0
-                            for q in range(n):
-                                s += Ppb[i, q] * tmp[q, k]
-                            gF[j, i, k] += 2.0 * s
-                    for i in range(n):  # Pm_bar = F^T Ppb F
-                        for k in range(n):
-                            s = 0.0
-                            for q in range(n):
-                                s += Ppb[i, q] * F[j, q, k]
-                            tmp[i, k] = s
-                    for i in range(n):
-                        for k in range(n):
-                            s = 0.0
-                            for q in range(n):
-                                s += F[j, q, i] * tmp[q, k]
-                            Pmb[j, i, k] = s
+                    matmul(F[j], Pm[t, r, j], tmp)  # F_bar += 2 Ppb F Pm
+                    matmul_add(Ppb, tmp, 2.0, gF[j], gF[j])
+                    matmul(Ppb, F[j], tmp)  # Pm_bar = F^T Ppb F
+                    matmul(F[j].T, tmp, Pmb[j])
             # -- the interaction, back to the previous posterior
             if t == 0:
                 plm, px, pP = logmu0[r], x0[r], P0[r]
             else:
                 plm, px, pP = logmu[t - 1, r], x[t - 1, r], P[t - 1, r]
-            for i in range(M):
-                plmb[i] = 0.0
-                for q in range(n):
-                    pxb[i, q] = 0.0
-                    for k in range(n):
-                        pPb[i, q, k] = 0.0
+            zero_modes(plmb, pxb, pPb)
             if t == 0 and update_first:
                 for j in range(M):
                     glogmu0[r, j] += abar[j]
@@ -336,9 +296,4 @@ def backward(z, F, b, Q, H, R, Pi, rule, update_first, logmu0, x0, P0, bu,
                         for k in range(n):
                             gP0[r, j, i, k] += 0.5 * (pPb[j, i, k] + pPb[j, k, i])
             else:
-                for j in range(M):
-                    clm[j] = plmb[j]
-                    for i in range(n):
-                        cx[j, i] = pxb[j, i]
-                        for k in range(n):
-                            cP[j, i, k] = pPb[j, i, k]
+                copy_modes(plmb, pxb, pPb, clm, cx, cP)

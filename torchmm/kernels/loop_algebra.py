@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 
 import numba
+import numpy as np
 
 LOG_2PI = math.log(2.0 * math.pi)
 
@@ -91,11 +92,7 @@ def mixing_weights(plm, Pt, rule, tiny, mu, c, w):
     M = mu.shape[0]
     for i in range(M):
         mu[i] = math.exp(plm[i])
-    for j in range(M):
-        s = 0.0
-        for i in range(M):
-            s += mu[i] * Pt[i, j]
-        c[j] = s
+    matmul(mu.reshape((1, M)), Pt, c.reshape((1, M)))
     for j in range(M):
         cj = c[j] if c[j] > tiny else tiny
         for i in range(M):
@@ -112,18 +109,8 @@ def predict_mode(F, b, bu, Q, x, P, xp, Pp, FP):
         for k in range(n):
             s += F[i, k] * x[k]
         xp[i] = s
-    for i in range(n):
-        for k in range(n):
-            s = 0.0
-            for q in range(n):
-                s += F[i, q] * P[q, k]
-            FP[i, k] = s
-    for i in range(n):
-        for k in range(n):
-            s = 0.0
-            for q in range(n):
-                s += FP[i, q] * F[k, q]
-            Pp[i, k] = s + Q[i, k]
+    matmul(F, P, FP)
+    matmul_add(FP, F.T, 1.0, Q, Pp)
 
 
 @numba.njit(cache=True)
@@ -145,3 +132,122 @@ def inverse_from_chol(L, m, V, W):
             for k in range(max(i, j), m):
                 s += W[k, i] * W[k, j]
             V[i, j] = s
+
+
+@numba.njit(cache=True, inline="always")
+def matmul(A, B, out):
+    """``out = A B`` (``A (p, q)``, ``B (q, r)``; transposed views welcome: ``matmul(F.T, X, out)``)."""
+    for i in range(A.shape[0]):
+        for k in range(B.shape[1]):
+            s = 0.0
+            for q in range(A.shape[1]):
+                s += A[i, q] * B[q, k]
+            out[i, k] = s
+
+
+@numba.njit(cache=True, inline="always")
+def matmul_add(A, B, alpha, C, out):
+    """``out = alpha A B + C``, each entry's sum in float64 before the one rounding to ``out``'s dtype
+    (``C`` may be ``out``: an accumulation)."""
+    for i in range(A.shape[0]):
+        for k in range(B.shape[1]):
+            s = 0.0
+            for q in range(A.shape[1]):
+                s += A[i, q] * B[q, k]
+            out[i, k] = alpha * s + C[i, k]
+
+
+@numba.njit(cache=True, inline="always")
+def solve_lower(L, Bm, m, out):
+    """``out = L^{-1} B`` over the first ``m`` rows (``L`` lower triangular, ``B (m, c)``: forward
+    substitution column by column)."""
+    for c in range(Bm.shape[1]):
+        for a in range(m):
+            s = Bm[a, c]
+            for q in range(a):
+                s -= L[a, q] * out[q, c]
+            out[a, c] = s / L[a, a]
+
+
+@numba.njit(cache=True, inline="always")
+def copy_modes(lp, X, C, lp_out, X_out, C_out):
+    """``(lp_out, X_out, C_out) = (lp, X, C)``: the modes' log-probabilities ``(M,)``, means ``(M, n)``
+    and covariances ``(M, n, n)``."""
+    M, n = X.shape
+    for j in range(M):
+        lp_out[j] = lp[j]
+        for i in range(n):
+            X_out[j, i] = X[j, i]
+            for k in range(n):
+                C_out[j, i, k] = C[j, i, k]
+
+
+@numba.njit(cache=True, inline="always")
+def zero_modes(lp, X, C):
+    """``lp``, ``X`` and ``C`` (as :func:`copy_modes`' ) set to 0."""
+    M, n = X.shape
+    for j in range(M):
+        lp[j] = 0.0
+        for i in range(n):
+            X[j, i] = 0.0
+            for k in range(n):
+                C[j, i, k] = 0.0
+
+
+@numba.njit(cache=True, inline="always")
+def mix_moments(w, X, C, x_out, C_out, d):
+    """The moment-matched mixture with weights ``w (K,)`` of the Gaussians ``X (K, n)``, ``C (K, n, n)``:
+    ``x_out = sum_q w_q X_q``, ``C_out = sum_q w_q (C_q + (X_q - x_out)(X_q - x_out)^T)`` (``d``: workspace
+    ``(n,)``). The IMM's interaction (``w`` a column of the mixing weights) and Kim's collapse share it."""
+    K, n = X.shape
+    for i in range(n):
+        s = 0.0
+        for k in range(K):
+            s += w[k] * X[k, i]
+        x_out[i] = s
+    for i in range(n):
+        for k in range(n):
+            C_out[i, k] = 0.0
+    for q in range(K):
+        for i in range(n):
+            d[i] = X[q, i] - x_out[i]
+        for i in range(n):
+            for k in range(n):
+                C_out[i, k] += w[q] * (C[q, i, k] + d[i] * d[k])
+
+
+@numba.njit(cache=True, inline="always")
+def innovation_cov(Pp, H, R, idx, mo, C, S):
+    """The cross covariance ``C = Pp H_o^T (n, mo)`` and the innovation covariance ``S = H_o Pp H_o^T + R_oo
+    (mo, mo)`` over the measurement components ``idx[:mo]`` (the observed ones, or all of them)."""
+    n = Pp.shape[0]
+    for i in range(n):
+        for kk in range(mo):
+            s = 0.0
+            for q in range(n):
+                s += Pp[i, q] * H[idx[kk], q]
+            C[i, kk] = s
+    for kk in range(mo):
+        for ll in range(mo):
+            s = 0.0
+            for i in range(n):
+                s += C[i, kk] * H[idx[ll], i]
+            S[kk, ll] = s + R[idx[kk], idx[ll]]
+
+
+@numba.njit(cache=True, inline="always")
+def triple_entry(X, Y, Z, i, k, p, r):
+    """``(X Y Z)[i, k] = sum_q sum_l X[i, q] Y[q, l] Z[l, k]`` over ``q < p``, ``l < r``, summed in float64
+    (the reverse pass's products of three factors)."""
+    s = 0.0
+    for q in range(p):
+        for ll in range(r):
+            s += X[i, q] * Y[q, ll] * Z[ll, k]
+    return s
+
+
+@numba.njit(cache=True)
+def update_workspace(n, m, dt):
+    """The measurement update's workspace, for the forward and the reverse pass: the cross covariance ``C (n,
+    m)``, the innovation covariance ``S (m, m)``, its factor ``L (m, m)`` and the innovation ``nu (m,)``."""
+    return np.empty((n, m), dt), np.empty((m, m), dt), np.empty((m, m), dt), np.empty(m, dt)

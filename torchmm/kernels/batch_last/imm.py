@@ -582,13 +582,11 @@ class BatchLastKernel:
     name = "batch_last"
 
     def plan(self, filter, belief0, measurements, request: kernels.Request):
-        model = described(filter, request, "linear_gaussian", ("mix", "collapse", "pairs"), "IMM, GPB1 and GPB2")
+        model = described(filter, request, "linear_gaussian", ("mix", "collapse", "pairs"), "IMM, GPB1 and GPB2",
+                          belief0, measurements, why_not)
         if isinstance(model, str):
             return model
         M = model.transition.shape[-1]
-        reason = why_not(model, M, belief0, measurements)
-        if reason is not None:
-            return reason
         like = belief0.mode_log_probs
         if model.rule == "pairs":
             from torchmm.kernels.batch_last.pairs import BatchLastGPB2
@@ -607,10 +605,11 @@ class BatchLastKernel:
         return _plan_two_filter(filter, trajectory, method, **inputs)
 
 
-def described(filter, request: kernels.Request, family: str, rules: tuple, which: str):
+def described(filter, request: kernels.Request, family: str, rules: tuple, which: str, belief0=None,
+              measurements=None, why=None):
     """``filter``'s description for the kernel ``family`` where a batch-last kernel may plan the run (no
     ``update_first``, not a repeated evaluation, an interaction rule in ``rules``, the estimators named
-    ``which``), or the reason not."""
+    ``which``, and ``why(model, M, belief0, measurements)`` None where given), or the reason not."""
     if request.update_first:
         return "update_first"
     if request.repeated:
@@ -620,7 +619,8 @@ def described(filter, request: kernels.Request, family: str, rules: tuple, which
         return model
     if model.rule not in rules:
         return f"the {model.rule!r} rule ({which} only)"
-    return model
+    reason = None if why is None else why(model, model.transition.shape[-1], belief0, measurements)
+    return model if reason is None else reason
 
 
 def _plan_two_filter(filter, trajectory, method, measurements=None, prior_log=None, **inputs):

@@ -307,13 +307,11 @@ class BatchLastNonlinearKernel:
     by_size = True  # taken from MIN_BATCH runs x modes (kernels.by_size: studies switch it off)
 
     def plan(self, filter, belief0, measurements, request: kernels.Request):
-        model = described(filter, request, "nonlinear_gaussian", ("mix", "collapse"), "IMM and GPB1")
+        model = described(filter, request, "nonlinear_gaussian", ("mix", "collapse"), "IMM and GPB1", belief0,
+                          measurements, why_not_nonlinear)
         if isinstance(model, str):
             return model
         M = model.transition.shape[-1]
-        reason = why_not_nonlinear(model, M, belief0, measurements)
-        if reason is not None:
-            return reason
         like = belief0.mode_log_probs
         if not (request.forced or request.compile_required) and like.numel() < MIN_BATCH:
             return (f"a small batch ({like.numel()} runs x modes < {MIN_BATCH}: the eager steps are faster; "
