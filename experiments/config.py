@@ -56,7 +56,7 @@ from experiments.checks import (  # noqa: F401 - re-exported: the checks studies
     type_message,
 )
 from experiments import schemas as schemas_mod
-from experiments.schemas import ExecutorConfig, Logger, ModeFilter, Policy
+from experiments.schemas_groups import ExecutorConfig, Logger, ModeFilter, Policy, scenario_names
 
 __all__ = ["Common", "ConfigError", "infer_types", "precheck", "spec", "validate"]
 
@@ -271,11 +271,11 @@ def _validate_scenario(data: dict, scenarios: tuple[str, ...] | None, choice: st
         return
     if not scenario:
         raise ConfigError("scenario", NO_VALUE, f"missing: the {experiment} study needs one of "
-                          f"{', '.join(schemas_mod.scenario_names(scenarios))}")
+                          f"{', '.join(scenario_names(scenarios))}")
     target = scenario.get("_target_")
     if target not in scenarios:
         raise ConfigError("scenario", name, f"does not fit the {experiment} study; choose one of "
-                          f"{', '.join(schemas_mod.scenario_names(scenarios))}")
+                          f"{', '.join(scenario_names(scenarios))}")
     merge(schemas_mod.SCENARIOS[target], scenario, "scenario")
 
 
