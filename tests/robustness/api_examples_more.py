@@ -28,7 +28,7 @@ from torchmm.filters import KalmanFilter
 NOT_ENTRY_POINTS.update({
     "torchmm.learn.estimation.Estimate": "a result record (what estimate found), built by estimate",
     "torchmm.learn.em.EMResult": "a result record (what em found), built by em",
-    "torchmm.learn.em.SwitchingEMResult": "a result record (what em_switching found), built by em_switching",
+    "torchmm.learn.em_switching.SwitchingEMResult": "a result record (what em_switching found), built by em_switching",
     "torchmm.association.mht.HypothesisBelief": "a belief built inside every step (MHT.initial_belief makes it; "
     "its validate checks the log-weights, history and tracks)",
     "torchmm.association.mht_tracks.TrackHypotheses": "a belief built inside every step (ManagedMHT.initial_belief "
@@ -372,7 +372,7 @@ def _em_switching():
                 shared=(), ergodic=False, controls=None, present=None, progress=False)
 
 
-example(_L + "em.em_switching")(_em_switching)
+example(_L + "em_switching.em_switching")(_em_switching)
 example(_L + "estimation.estimated_entries")(
     lambda: call(learn.estimated_entries, KalmanFilter(_cv(), _pos()), {"measurement.R": "variance"}))
 

@@ -15,7 +15,8 @@
   resampling of particle beliefs and a particle filter that uses it.
 """
 
-from torchmm.learn.em import EMResult, SwitchingEMResult, em, em_switching
+from torchmm.learn.em import EMResult, em
+from torchmm.learn.em_switching import SwitchingEMResult, em_switching
 from torchmm.learn.estimation import Estimate, Param, estimate, estimated_entries, stationary
 from torchmm.learn.loss import negative_log_likelihood, truncated_segments
 from torchmm.learn.objective import Objective
