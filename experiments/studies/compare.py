@@ -38,7 +38,7 @@ import torch
 from hydra.utils import instantiate
 from torch import Tensor
 
-from experiments import learning
+from experiments import learning, learning_em
 from experiments.executors import Unit
 from experiments.harness import StudyContext, per_run
 from experiments.scenarios import Concatenated, default_dtype
@@ -165,7 +165,7 @@ def _learn(ctx: StudyContext, scenario, est_name: str) -> tuple[dict, Any]:
         est = _estimator(ctx, scenario, est_name)
         _, _, _, present = _data(ctx, 0, runs)
         with kernels.switched_on(*kernels.by_size()):
-            record = learning.fit_em(est, scenario, block, z, prior=prior, update_first=update_first, burn=burn,
+            record = learning_em.fit_em(est, scenario, block, z, prior=prior, update_first=update_first, burn=burn,
                                      controls=_controls(ctx, 0, runs), present=present, progress=progress)
         return record, est
     return _learn_gradient(ctx, scenario, est_name, block, z, prior, burn, update_first, progress,
@@ -273,7 +273,7 @@ def check_build(cfg, scenario) -> None:
         own = learning.own_models(scenario)
         if str(block.method) in ("em", "em_then_mle"):
             est = instantiate(cfg.estimators[name])(own, name=name)
-            learning.em_fixed(est, block, own.initial, scenario=own)
+            learning_em.em_fixed(est, block, own.initial, scenario=own)
             if burn and str(block.method) == "em":
                 raise ConfigError("burn", burn, "method em maximises the likelihood of every step (burn: 0; "
                                   "em_then_mle's maximum likelihood leaves the burn-in out)")

@@ -1,0 +1,278 @@
+"""The ``learn`` block's ``method: em`` (and ``em_then_mle``) of the generic study: EM of a Kalman filter over
+linear models (:func:`torchmm.learn.em`) and of a Markov-switching IMM (:func:`torchmm.learn.em_switching`),
+each entry of ``learn.parameters`` mapped to EM's names and checked before anything runs; split from
+:mod:`experiments.learning` by concern (issue 47)."""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from experiments.config import ConfigError
+from experiments.learning import entry_where, fit_mle, start_function
+
+
+# -- method: em (linear-Gaussian Kalman filters) -----------------------------------------------------------
+EM_NAMES = {("modes", "F"): "F", ("modes", "offset"): "offset", ("modes", "Q"): "Q", ("sensors", "H"): "H",
+            ("sensors", "R"): "R", (None, "initial_mean"): "initial_mean", (None, "initial_cov"): "initial_cov"}
+
+
+def em_parameters(est, block, key: str = "learn.parameters", scenario=None) -> list[str]:
+    """The names :func:`torchmm.learn.em` takes for ``block.parameters`` of ``est`` (a Kalman filter over
+    linear models), or a ``ConfigError`` naming the entry."""
+    from torchmm import KalmanFilter
+    from torchmm.models.linear import plain_linear
+
+    f = est.filter
+    if est.multiple_model:
+        return switching_em_parameters(est, block, key, scenario)[0]
+    if not isinstance(f, KalmanFilter):
+        raise ConfigError("learn.method", str(block.method), f"EM fits a Kalman filter over linear models; "
+                          f"{est.name} is a {type(f).__name__} (EM for switching models is not implemented yet: "
+                          "method mle)")
+    if not (plain_linear(f.motion) and plain_linear(f.measurement)):
+        raise ConfigError("learn.method", str(block.method), f"EM fits linear-Gaussian models; {est.name}'s are "
+                          f"{type(f.motion).__name__} and {type(f.measurement).__name__} (method mle)")
+    names = []
+    entries = block.parameters
+    if isinstance(entries, str):
+        raise ConfigError(key, entries, "method em takes a list of entries")
+    for i, entry in enumerate(entries):
+        try:
+            model, index = entry_where(entry)
+        except ValueError as err:
+            raise ConfigError(f"{key}[{i}].model", entry.get("model"), str(err)) from None
+        if index is not None and model == "modes" and est.mode is not None and index != est.mode:
+            raise ConfigError(f"{key}[{i}].model", entry.model, f"{est.name} runs mode {est.mode} only")
+        name = EM_NAMES.get((model, str(entry.name)))
+        if name is None:
+            known = ", ".join(f"{m}.{n}" if m else n for m, n in EM_NAMES)
+            raise ConfigError(f"{key}[{i}]", f"{entry.get('model')}.{entry.name}", f"method em estimates {known}")
+        for option in ("shared", "lower", "upper"):
+            if entry.get(option) not in (None, False):
+                raise ConfigError(f"{key}[{i}].{option}", entry.get(option), "method em takes fixed entries, not "
+                                  "shared or bounded ones (method mle)")
+        names.append(name)
+    return names
+
+
+def em_fixed(est, block, prior, key: str = "learn.parameters", scenario=None) -> dict:
+    """The entries' ``fixed`` masks for :func:`torchmm.learn.em` (``{name: mask}``), checked against the
+    estimator's models and start (``ConfigError`` naming the entry: a shape, or a covariance pattern
+    without a closed-form M-step)."""
+    from torchmm.learn.em import fixed_masks
+
+    names = em_parameters(est, block, key, scenario)
+    masks = {}
+    if est.multiple_model:  # (em_switching's own masks: switching_em_parameters, checked there)
+        return masks
+    for i, (entry, name) in enumerate(zip(block.parameters, names)):
+        given = entry.get("fixed")
+        if given is None:
+            continue
+        mask = given if isinstance(given, bool) else _plain(given)
+        try:
+            masks.update(fixed_masks(est.filter, est.init(prior, None), names, {name: mask}))
+        except (TypeError, ValueError) as err:
+            raise ConfigError(f"{key}[{i}].fixed", given, str(err).split(": ", 1)[-1]) from None
+    return masks
+
+
+def _plain(value):
+    """A config list (nested ListConfig) as Python lists."""
+    if isinstance(value, (list, tuple)) or type(value).__name__ == "ListConfig":
+        return [_plain(v) for v in value]
+    return value
+
+
+def switching_em_parameters(est, block, key: str = "learn.parameters", scenario=None) -> tuple[list, dict, dict]:
+    """``(parameters, shared, fixed)`` of :func:`torchmm.learn.em_switching` for ``block.parameters`` of a
+    multiple-model estimator (an IMM over a vectorised Kalman bank; ``auto``: the scenario's entries), or a
+    ``ConfigError`` naming the entry. ``shared``: ``{"H": True or an (m, n) mask, "R": True}``; ``fixed``:
+    ``{"H": mask, "transition": mask}`` (entries held at their start values)."""
+    from omegaconf import OmegaConf
+
+    from torchmm import KalmanFilter, LinearMeasurement
+
+    inner = getattr(getattr(est.filter, "bank", None), "filter", None)
+    if not (isinstance(inner, KalmanFilter) and isinstance(inner.measurement, LinearMeasurement)):
+        raise ConfigError("learn.method", str(block.method), f"EM for switching models takes an IMM over Kalman "
+                          f"filters with linear sensors; {est.name}'s bank is not one (method mle)")
+    entries = block.parameters
+    if isinstance(entries, str):
+        if entries != "auto" or getattr(scenario, "learn_parameters", None) is None:
+            raise ConfigError(key, entries, "method em takes a list of entries, or auto for a scenario that says "
+                              "what it estimates (experiments.scenarios.markov_switching)")
+        entries = OmegaConf.create(scenario.learn_parameters)
+    H = inner.measurement.H
+    m, n = H.shape[-2], H.shape[-1]
+    names, shared, fixed = [], {}, {}
+
+    def mask(value, at: str, shape: tuple, what: str):
+        try:
+            out = torch.as_tensor(OmegaConf.to_object(value) if OmegaConf.is_config(value) else value, dtype=torch.bool)
+            return out.expand(shape) if out.shape != shape and out.dim() <= len(shape) else out
+        except (TypeError, ValueError, RuntimeError):
+            raise ConfigError(at, value, f"expected a boolean mask of shape {shape} ({what})") from None
+
+    for i, entry in enumerate(entries):
+        at = f"{key}[{i}]"
+        name = str(entry.name)
+        model = entry.get("model")
+        if entry.get("lower") is not None or entry.get("upper") is not None:
+            raise ConfigError(at, f"{model}.{name}" if model else name, "method em takes no bounds (method mle)")
+        if name == "transition" and model is None:
+            names.append("transition")  # (a time-varying one: its logistic coefficients, em_switching's M-step)
+            if entry.get("fixed") is not None and getattr(est.filter.transition, "takes_inputs", False):
+                raise ConfigError(f"{at}.fixed", entry.fixed, "a time-varying transition's coefficients are "
+                                  "estimated whole by method em (method mle holds entries)")
+            if entry.get("fixed") is not None:
+                M = est.filter.num_modes
+                fixed["transition"] = mask(entry.fixed, f"{at}.fixed", (M, M), "entries held at their start")
+                if fixed["transition"].shape != (M, M):
+                    raise ConfigError(f"{at}.fixed", entry.fixed, f"expected a boolean mask of shape ({M}, {M})")
+            continue
+        one_sensor = not (getattr(inner.measurement, "H").dim() == 3)  # one sensor for every mode: sensors[0] is it
+        if str(model).startswith("sensors") and name in ("H", "R") and ("[" not in str(model)
+                                                                       or (one_sensor and str(model) == "sensors[0]")):
+            share = entry.get("shared")
+            if share not in (None, False, True):
+                if name == "R":
+                    raise ConfigError(f"{at}.shared", share, "method em shares R whole across the modes or not at all")
+                share = mask(share, f"{at}.shared", (m, n), "the entries every mode shares")
+                if share.shape != (m, n):
+                    raise ConfigError(f"{at}.shared", entry.shared, f"expected a boolean mask of shape ({m}, {n})")
+            if entry.get("fixed") is not None:
+                if name == "R":
+                    raise ConfigError(f"{at}.fixed", entry.fixed, "method em estimates R whole (method mle)")
+                fixed["H"] = mask(entry.fixed, f"{at}.fixed", (m, n), "entries held at their start")
+            names.append(name)
+            if share is not None and share is not False:
+                shared[name] = share
+            continue
+        raise ConfigError(at, f"{model}.{name}", "method em for switching models estimates transition, "
+                          "sensors.H and sensors.R (every mode's); others: method mle")
+    return names, shared, fixed
+
+
+def fit_switching_em(est, scenario, block, z: Tensor, *, prior, update_first: bool, burn: int, controls=None,
+                     present=None, progress: bool | str = False) -> dict:
+    """EM (Baum-Welch for the chain, weighted least squares for each mode's sensor) of a multiple-model
+    estimator, then with ``em_then_mle`` maximum likelihood from there."""
+    from torchmm.learn import em_switching
+
+    names, shared, fixed = switching_em_parameters(est, block, scenario=scenario)
+    tic = time.perf_counter()
+    ergodic = bool(scenario.ergodic)
+    try:
+        out = em_switching(est.filter, est.init(prior, None), z, names, iterations=int(block.iterations),
+                           tol=float(block.get("tolerance") or 0.0) or None, update_first=update_first, shared=shared,
+                           fixed=fixed, ergodic=ergodic, controls=controls, present=present, progress=progress)
+    except ValueError as err:  # a mask the model cannot take (a shared entry fixed in one regime only, ...)
+        raise ConfigError("learn.parameters", block.parameters if isinstance(block.parameters, str) else "entries",
+                          str(err)) from None
+    if ergodic:
+        est.init = start_function(est, scenario, True)
+    if str(block.method) == "em_then_mle":
+        mle = fit_mle(est, scenario, block, z, prior=prior, update_first=update_first, burn=burn, controls=controls,
+                      progress=progress)
+        mle.update(em=out.loglik, method="em_then_mle", seconds=time.perf_counter() - tic)
+        return mle
+    rows = []
+    P = est.filter.transition.matrix().detach().cpu()
+    M = P.shape[-1]
+    for i in range(M):
+        for j in range(M):
+            rows.append([est.name, f"transition[{i},{j}]", float(P[i, j]), None, None])
+    sensor = est.filter.bank.filter.measurement
+    for name in ("H", "R"):
+        if name not in names:
+            continue
+        value = getattr(sensor, name).detach().cpu()
+        stacked = value.dim() == 3 and value.shape[0] == M and name not in shared
+        for flat, v in enumerate(value.reshape(-1).tolist()):
+            index = [int(k) for k in np.unravel_index(flat, tuple(value.shape))]
+            if value.dim() == 3 and not stacked and index[0] > 0:
+                continue  # (shared: every mode's the same)
+            label = f"sensors[{index[0]}].{name}" if stacked else f"sensors.{name}"
+            inner = index[1:] if value.dim() == 3 else index
+            rows.append([est.name, f"{label}[{','.join(map(str, inner))}]", v, None, None])
+    nobs = int(torch.isfinite(z).all(-1).sum())
+    k = M * (M - 1) + sum(1 for r in rows if not r[1].startswith("transition"))
+    return {"rows": rows, "loglik": out.loglik[-1], "k": k, "nobs": nobs, "aic": -2 * out.loglik[-1] + 2 * k,
+            "bic": -2 * out.loglik[-1] + k * math.log(max(1, nobs)), "iterations": out.iterations,
+            "evaluations": len(out.loglik), "converged": out.converged,
+            "message": "" if out.monotone else f"the likelihood decreased at iteration(s) {out.decreases}",
+            "seconds": time.perf_counter() - tic,
+            "note": "the ergodic start's dependence on the transition matrix is left out of EM's M-step "
+                    "(statsmodels does the same): its fixed point is near, not at, the maximum; em_then_mle "
+                    "finishes it" if ergodic else "", "method": "em", "nll": [-v for v in out.loglik],
+            "through": est.name, "em": out.loglik}
+
+
+def fit_em(est, scenario, block, z: Tensor, *, prior, update_first: bool, burn: int, controls=None, present=None,
+           progress: bool | str = False) -> dict:
+    """EM of ``block.parameters`` of ``est``'s Kalman filter on ``z`` (in place; the start belief too), then
+    with ``method: em_then_mle`` maximum likelihood from there (statsmodels' ``fit``: EM, then a
+    quasi-Newton method), which adds the standard errors. Returns the record."""
+    from torchmm.learn import em
+
+    if est.multiple_model:
+        return fit_switching_em(est, scenario, block, z, prior=prior, update_first=update_first, burn=burn,
+                                controls=controls, present=present, progress=progress)
+    names = em_parameters(est, block)
+    masks = em_fixed(est, block, prior)
+    tic = time.perf_counter()
+    out = em(est.filter, est.init(prior, None), z, names, iterations=int(block.iterations),
+             tol=float(block.get("tolerance") or 0.0) or None, update_first=update_first, controls=controls,
+             present=present, fixed=masks or None, progress=progress)
+    start = out.belief0
+    est.init = lambda prior_, generator=None: start
+    rows = []
+    tensors = {"F": est.filter.motion.F, "offset": est.filter.motion.offset, "Q": est.filter.motion.Q,
+               "H": est.filter.measurement.H, "R": est.filter.measurement.R, "initial_mean": start.mean[0] if
+               start.mean.dim() > 1 else start.mean, "initial_cov": start.cov[0] if start.cov.dim() > 2 else start.cov}
+    k = 0
+    for entry, name in zip(block.parameters, names):
+        value = tensors[name].detach().cpu()
+        label = f"{entry.model}.{name}" if entry.get("model") is not None else name
+        symmetric = name in ("Q", "R", "initial_cov")
+        held = masks.get(name)
+        for flat, v in enumerate(value.reshape(-1).tolist()):
+            index = [int(i) for i in np.unravel_index(flat, tuple(value.shape))] if value.dim() else []
+            if symmetric and index[-1] > index[-2]:
+                continue  # (the upper triangle repeats the lower)
+            if held is not None and bool(held.reshape(-1)[flat % held.numel()]):
+                continue  # (a fixed entry: not estimated)
+            rows.append([est.name, f"{label}[{','.join(map(str, index))}]", v, None, None])
+            k += 1
+    record = {"rows": rows, "loglik": out.loglik[-1], "k": k, "nobs": int(torch.isfinite(z).all(-1).sum()),
+              "aic": -2 * out.loglik[-1] + 2 * k, "bic": -2 * out.loglik[-1] + k * math.log(max(1, int(
+                  torch.isfinite(z).all(-1).sum()))), "iterations": out.iterations, "evaluations": len(out.loglik),
+              "converged": out.converged, "message": "" if out.monotone else
+              f"the likelihood decreased at iteration(s) {out.decreases}", "seconds": time.perf_counter() - tic,
+              "note": "", "method": "em", "nll": [-v for v in out.loglik], "through": est.name, "em": out.loglik}
+    if str(block.method) == "em_then_mle":
+        mle = fit_mle(est, scenario, _as_mle(block, names), z, prior=prior, update_first=update_first, burn=burn,
+                      controls=controls, progress=progress)
+        mle["em"] = out.loglik
+        mle["method"] = "em_then_mle"
+        mle["seconds"] = time.perf_counter() - tic
+        return mle
+    return record
+
+
+def _as_mle(block, names: list[str]):
+    """The ``learn`` block for :func:`fit_mle` after EM: each entry's tensor (``initial_*`` excepted: the
+    start is EM's), with ``mle``'s kinds."""
+    from omegaconf import OmegaConf
+
+    entries = [dict(OmegaConf.to_container(e)) for e, n in zip(block.parameters, names)
+               if not n.startswith("initial")]
+    for e in entries:
+        e["kind"] = "variance" if str(e["name"]) in ("Q", "R") else "free"
+    return OmegaConf.merge(block, {"parameters": entries})
