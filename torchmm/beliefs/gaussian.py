@@ -12,7 +12,7 @@ from torch import Tensor
 from torchmm.beliefs.base import Belief, register_belief
 from torchmm.beliefs.ops import mix_gaussians
 from torchmm.linalg import cholesky, cholesky_diagonal
-from torchmm.validation import as_tensor, broadcast_shape, check_covariance, check_shape
+from torchmm.validation import all_finite, as_tensor, broadcast_shape, check_covariance, check_shape
 from torchmm.contract import Cov, DType, Device, Finite, entry_point
 
 __all__ = ["GaussianBelief"]
@@ -70,8 +70,14 @@ class GaussianBelief(Belief):
                              f"cov {tuple(cov.shape)}")
 
     def validate(self, name: str = "belief") -> GaussianBelief:
-        """Finite mean, symmetric PSD covariance (see :meth:`Belief.validate`)."""
-        super().validate(name)
+        """Finite mean, symmetric PSD covariance (see :meth:`Belief.validate`; the covariance's finiteness is
+        its own check's, with the same message)."""
+        try:
+            self.batch_shape
+        except ValueError as err:
+            raise ValueError(f"{name}: {err}") from None
+        if not all_finite(self.mean):
+            raise ValueError(f"{name}.mean: contains NaN or infinite entries")
         check_covariance(self.cov, f"{name}.cov")
         return self
 

@@ -50,7 +50,7 @@ class ModeBelief(Belief):
         small = host_array(lp)  # (a small CPU tensor: in NumPy, microseconds)
         if small is not None:
             with np.errstate(over="ignore"):
-                bad = bool(np.isnan(small).any() or (small == math.inf).any())
+                bad = not (small < math.inf).all()  # (NaN or +inf: -inf is a probability 0)
                 unnormalised = small.size and bool((np.abs(np.exp(small).sum(-1) - 1) > STOCHASTIC_ATOL).any())
         else:
             bad = bool(torch.isnan(lp).any()) or bool((lp == math.inf).any())
