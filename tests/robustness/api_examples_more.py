@@ -344,9 +344,9 @@ def _estimation():
 
 
 example(_L + "estimation.estimate")(_estimation)
-example(_L + "estimation.Param")(lambda: call(learn.Param, "free", fixed=None, groups=None, lower=0.0, upper=2.0,
+example(_L + "entries.Param")(lambda: call(learn.Param, "free", fixed=None, groups=None, lower=0.0, upper=2.0,
                                               label="x"))
-example(_L + "estimation.stationary")(lambda: call(learn.stationary, _transition()))
+example(_L + "entries.stationary")(lambda: call(learn.stationary, _transition()))
 def _em():
     from torchmm.models import LinearMeasurement, LinearMotion
 
@@ -373,7 +373,7 @@ def _em_switching():
 
 
 example(_L + "em_switching.em_switching")(_em_switching)
-example(_L + "estimation.estimated_entries")(
+example(_L + "entries.estimated_entries")(
     lambda: call(learn.estimated_entries, KalmanFilter(_cv(), _pos()), {"measurement.R": "variance"}))
 
 example(_L + "trainer.Trainer")(

@@ -17,7 +17,8 @@
 
 from torchmm.learn.em import EMResult, em
 from torchmm.learn.em_switching import SwitchingEMResult, em_switching
-from torchmm.learn.estimation import Estimate, Param, estimate, estimated_entries, stationary
+from torchmm.learn.entries import Param, estimated_entries, stationary
+from torchmm.learn.estimation import Estimate, estimate
 from torchmm.learn.loss import negative_log_likelihood, truncated_segments
 from torchmm.learn.objective import Objective
 from torchmm.learn.resampling import (

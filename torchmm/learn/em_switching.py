@@ -195,7 +195,7 @@ def em_switching(filter: MultipleModelFilter, belief0: ModeBelief, measurements:
 
     if ergodic and "initial_mode_probs" in wanted:
         raise ValueError("parameters: initial_mode_probs with ergodic=True (the stationary ones): give one")
-    from torchmm.learn.estimation import stationary
+    from torchmm.learn.entries import stationary
 
     def ergodic_start(start):  # (a time-varying transition: the ergodic ones of each series' first step)
         probs = stationary(filter.transition.at(controls[0]).matrix() if varying else filter.transition.matrix())
