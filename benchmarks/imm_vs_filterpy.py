@@ -253,7 +253,7 @@ def main() -> None:
     if err_fp > 1e-9 or err_np > 1e-9 or err_soa > 1e-9 or err_compiled > 1e-9:
         raise SystemExit("estimates disagree: the comparison is void")
     note = "" if fp_runs == args.runs else f" (measured on {fp_runs} runs, scaled)"
-    from torchmm.kernels.batch_last import imm as batch_last  # noqa: PLC0415
+    from torchmm.kernels.batch_last import traced as batch_last  # noqa: PLC0415
 
     traced = "traced" if batch_last._TRACED else "not traced"
     print(f"torchmm  {t_torch:8.4f} s (eager, the default; its steps {traced}: a structure's steps run as a cached "

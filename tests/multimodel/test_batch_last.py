@@ -424,7 +424,7 @@ def test_the_layout_follows_the_batch_size(monkeypatch, batch_last_steps):
 @pytest.fixture
 def trace_cache(monkeypatch):
     """An empty cache of traced steps for the test, and a way to set the tracing threshold."""
-    from torchmm.kernels.batch_last import imm as batch_last
+    from torchmm.kernels.batch_last import traced as batch_last
 
     monkeypatch.setattr(batch_last, "_TRACED", batch_last.OrderedDict())
     monkeypatch.setattr(batch_last, "_STEPS_SEEN", {})
@@ -532,7 +532,7 @@ def test_a_constant_left_out_of_the_graphs_inputs_is_caught(trace_cache, monkeyp
     imm, belief0, z = _random_imm(2, 1, 2, (3,), steps=3, seed=4)
     kernel = _plan(imm, belief0, z).kernel
     with pytest.raises(RuntimeError, match="holds tensors"):
-        kernel.trace()
+        batch_last.trace(kernel)
 
 
 @pytest.mark.parametrize("gpb,record", [(False, None), (False, "estimate"), (True, None)])

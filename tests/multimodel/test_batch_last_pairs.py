@@ -169,7 +169,7 @@ def test_gradients_equal_the_batch_first_steps(pair_steps):
 
 
 def test_the_traced_step_gives_the_same_numbers_bit_for_bit(monkeypatch):
-    from torchmm.kernels.batch_last import imm as batch_last
+    from torchmm.kernels.batch_last import traced as batch_last
 
     monkeypatch.setattr(batch_last, "_TRACED", batch_last.OrderedDict())
     monkeypatch.setattr(batch_last, "_STEPS_SEEN", {})

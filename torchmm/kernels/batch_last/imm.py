@@ -29,11 +29,9 @@ computes what :meth:`IMM.step` does, in the same order:
   datum is non-finite is skipped (missing data, exact; the masks are computed once per run);
 - the mode posterior in log space (:func:`~torchmm.multimodel.imm.mode_posterior`, in fewer passes).
 
-Once a structure of the kernel (sizes, layout, which outputs are kept, which model entries are 0, 1,
-shared or per mode) has run ``_TRACE_AFTER`` = 1,000 steps in a process, its steps run as a
-``torch.fx`` graph of :meth:`BatchLastIMM.core`: the same torch operations in the same order (the
-same numbers, bit for bit) without the Python that builds them, 10-20 % faster a step; the graph is
-cached by structure, with the model constants as its inputs (docs/performance.md).
+Once a structure of the kernel has run 1,000 steps in a process, its steps run as a ``torch.fx`` graph of
+:meth:`BatchLastIMM.core` (the same operations, bit for bit, 10-20 % faster a step):
+:mod:`torchmm.kernels.batch_last.traced`.
 
 Every :class:`~torchmm.filters.StepOutput` field (prior, innovations, ``extras``: ``mixed``,
 ``mode_log_likelihood``, ``modes.singular``) is returned as a batch-first *view* of the batch-last
@@ -43,12 +41,8 @@ and cost nothing until :func:`~torchmm.run.stack_outputs` stacks what ``record``
 
 from __future__ import annotations
 
-import copy
-import itertools
 import logging
 import math
-import threading
-from collections import OrderedDict
 
 import torch
 from torch import Tensor
@@ -57,7 +51,6 @@ import torchmm.kernels as kernels
 from torchmm.beliefs import GaussianBelief, ModeBelief
 from torchmm.kernels.batch_last.algebra import (
     ZERO,
-    Coef,
     coefficients,
     collapse_entries,
     collapse_modes,
@@ -66,6 +59,7 @@ from torchmm.kernels.batch_last.algebra import (
     sandwich,
     stack_upper,
 )
+from torchmm.kernels.batch_last.traced import select
 from torchmm.typing import StepOutput
 
 __all__ = ["BATCH_LAST", "LARGE_BATCH", "LARGE_STATE", "MAX_STATE", "BatchLastIMM", "BatchLastKernel", "described", "why_not"]
@@ -85,20 +79,6 @@ _BROADCAST_BYTES = 1 << 18
 
 log = logging.getLogger("torchmm")
 
-#: the step as a ``torch.fx`` graph of :meth:`BatchLastIMM.core` (straight-line torch calls, no
-#: Python logic; the same operations in the same order, so the same numbers), cached by the kernel's
-#: structure (:meth:`BatchLastIMM.structure`) with every model constant an input of the graph
-_TRACED: OrderedDict = OrderedDict()
-#: how many structures the cache keeps (least recently used dropped)
-_TRACED_MAX = 64
-#: the steps each structure has run untraced in this process; tracing (13-44 ms) pays after about 1,000
-#: (docs/performance.md: 10-20 % of a step, 45 us at 400 runs to 2.6 ms at 40,000)
-_STEPS_SEEN: dict = {}
-_TRACE_AFTER = 1000
-_TRACE_LOCK = threading.Lock()
-#: the kernel's model coefficients (nested lists of Coef) and tensor constants, in the graph's input order
-_COEFFICIENTS = ("F", "Q", "b", "H", "r")
-_CONSTANTS = ("matrix", "tiny_t", "lowest", "log_2pi", "zero", "R_front")
 
 
 def why_not(model, M: int, belief0, measurements) -> str | None:
@@ -213,92 +193,10 @@ class BatchLastIMM:
         self.estimate_only = estimate
         self._select()
 
-    # -- the traced step ----------------------------------------------------------------------------
-    def structure(self) -> tuple:
-        """What the step's sequence of operations depends on: the kernel (IMM/GPB1 or GPB2), the sizes,
-        the layout, the interaction, the omitted outputs, the dtype's smallest normal number and the
-        kind of every model coefficient (zero, one, a shared scalar, a tensor). Two kernels of one
-        structure run the same
-        operations on their own constants (:meth:`constants`)."""
-        kinds = lambda c: tuple(map(kinds, c)) if isinstance(c, list) else c.kind  # noqa: E731
-        return (self.kind, self.n, self.m, self.M, self.d, self.broadcast, self.collapse, self.omitted,
-                self.estimate_only, self.tiny, *(kinds(getattr(self, name)) for name in _COEFFICIENTS))
-
-    def constants(self) -> tuple:
-        """Every tensor :meth:`core` reads besides its arguments: the coefficients that are not exactly
-        0 or 1, then the transition matrix and the 0-dim constants (the traced step's first input)."""
-        out = []
-
-        def walk(c):
-            if isinstance(c, list):
-                for item in c:
-                    walk(item)
-            elif c.kind in ("scalar", "tensor"):
-                out.append(c.value)
-
-        for name in _COEFFICIENTS:
-            walk(getattr(self, name))
-        return (*out, *(getattr(self, name) for name in _CONSTANTS))
-
-    def _bound(self, values) -> BatchLastIMM:
-        """A shallow copy of this kernel that reads its :meth:`constants` from ``values`` (the
-        graph's input while tracing)."""
-        clone, index = copy.copy(self), itertools.count()
-
-        def swap(c):
-            if isinstance(c, list):
-                return [swap(item) for item in c]
-            return c if c.kind in ("zero", "one") else Coef(c.kind, values[next(index)])
-
-        for name in _COEFFICIENTS:
-            setattr(clone, name, swap(getattr(self, name)))
-        for name in _CONSTANTS:
-            setattr(clone, name, values[next(index)])
-        return clone
-
-    def trace(self) -> torch.fx.GraphModule:
-        """:meth:`core` as a ``torch.fx`` graph ``(constants, X, P, mu, zc, ob, nhob, anyob, zraw)``
-        (the arguments of :meth:`core` after :meth:`constants`). It holds no tensor of this kernel:
-        every constant is an input, so a graph serves every kernel of the same :meth:`structure`."""
-        def step(constants, X, P, mu, zc, ob, nhob, anyob, zraw):
-            return self._bound(constants).core(X, P, mu, zc, ob, nhob, anyob, zraw)
-
-        graph = torch.fx.symbolic_trace(step)
-        held = [node.target for node in graph.graph.nodes if node.op == "get_attr"]
-        if held:  # a constant read around constants(): a cached graph would use this kernel's values
-            raise RuntimeError(f"the traced IMM step holds tensors {held}: add them to constants()")
-        return graph
-
     def _select(self) -> None:
-        """Run the steps to come on the traced graph of this kernel's structure where the cache holds
-        one, or once the structure has run ``_TRACE_AFTER`` steps untraced in this process (what is
-        left of this run counted); on :meth:`core` otherwise."""
-        if self._compiled or not hasattr(self, "data"):
-            return
-        remaining = len(self.data) - self._steps_done
-        with _TRACE_LOCK:
-            if self._key in _STEPS_SEEN:  # the steps counted for the previous structure run on this one
-                _STEPS_SEEN[self._key] -= remaining
-            key, self._key = self.structure(), None
-            graph = _TRACED.get(key)
-            if graph is None:
-                if len(_STEPS_SEEN) > 4 * _TRACED_MAX:  # bounded: counts of structures long unused go
-                    _STEPS_SEEN.clear()
-                _STEPS_SEEN[key] = _STEPS_SEEN.get(key, 0) + remaining
-                if _STEPS_SEEN[key] >= _TRACE_AFTER:
-                    graph = _TRACED[key] = self.trace()
-                    del _STEPS_SEEN[key]
-                    while len(_TRACED) > _TRACED_MAX:
-                        _TRACED.popitem(last=False)
-                else:
-                    self._key = key
-            else:
-                _TRACED.move_to_end(key)
-        if graph is None:
-            self._core = self.core
-        else:
-            forward, constants = graph.forward, self.constants()
-            self._core = lambda *args: forward(constants, *args)
+        """The steps to come on the traced graph of this kernel's structure, or on :meth:`core`
+        (:func:`torchmm.kernels.batch_last.traced.select`)."""
+        select(self)
 
     # -- layout -----------------------------------------------------------------------------------
     def to_batch_last(self, belief: ModeBelief) -> tuple[Tensor, Tensor, Tensor]:
