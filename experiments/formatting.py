@@ -5,7 +5,12 @@ from __future__ import annotations
 
 from typing import Any
 
-__all__ = ["format_value", "latex_escape", "latex_number", "latex_table"]
+__all__ = ["format_value", "is_number", "latex_escape", "latex_number", "latex_table"]
+
+
+def is_number(value: Any) -> bool:
+    """A table cell that is a number (``int`` or ``float``, not ``bool``)."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
 def format_value(value: Any) -> str:

@@ -36,13 +36,13 @@ column is set; their ``labels`` name the estimator subtracted from).
 section): ``\toprule``/``\midrule``/``\bottomrule``, cells ``mean $\pm$ half-width``, text
 escaped. It needs ``\usepackage{booktabs}`` only; ``\input{report.tex}`` it, or compile it alone
 inside ``\documentclass{article}\usepackage{booktabs}\begin{document} ... \end{document}``.
+
+The formats are written by :mod:`experiments.report_formats`; here the runs' grouping and statistics.
 """
 
 from __future__ import annotations
 
 import argparse
-import csv
-import io
 import json
 import math
 import sys
@@ -51,14 +51,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from experiments.files import RunFolderError, write_atomic
+from experiments.files import RunFolderError
 from experiments.folders import NON_RESULT_KEYS
-from experiments.formatting import format_value, latex_escape
-from experiments.formatting import latex_number as _latex_number
-from experiments.formatting import latex_table as _latex_table
+from experiments.formatting import is_number
+from experiments.report_formats import figure, to_csv, to_latex, to_markdown, write_report  # (the formats)
 
-__all__ = ["Run", "collect_runs", "combine", "main", "mean_interval", "paired_differences", "to_latex",
-           "write_report"]
+__all__ = ["Run", "collect_runs", "combine", "figure", "main", "mean_interval", "paired_differences", "to_csv",
+           "to_latex", "to_markdown", "write_report"]
 
 #: keys never treated as factors (they do not change the numbers, or are bookkeeping)
 IGNORED_KEYS = (*NON_RESULT_KEYS, "hydra")
@@ -150,7 +149,7 @@ def collect_runs(paths: list[Path]) -> list[Run]:
 
 def mean_interval(values: list[float], level: float = 0.95) -> dict[str, float | int | None]:
     """``{"n", "mean", "sd", "ci_low", "ci_high"}`` of the finite ``values`` (Student-t interval)."""
-    finite = [float(v) for v in values if _is_number(v) and math.isfinite(v)]
+    finite = [float(v) for v in values if is_number(v) and math.isfinite(v)]
     n = len(finite)
     if n == 0:
         return {"n": 0, "mean": None, "sd": None, "ci_low": None, "ci_high": None}
@@ -188,12 +187,16 @@ def is_bound(column: str, columns: list[str]) -> bool:
 def pooled_se(values: list[float]) -> dict[str, float | int | None]:
     """The standard error of the mean of ``n`` independent estimates with standard errors ``values``,
     ``sqrt(sum se_i^2) / n``, as a :func:`mean_interval` record without an interval (its ``mean``)."""
-    finite = [float(v) for v in values if _is_number(v) and math.isfinite(v)]
+    finite = [float(v) for v in values if is_number(v) and math.isfinite(v)]
     n = len(finite)
     if n == 0:
         return {"n": 0, "mean": None, "sd": None, "ci_low": None, "ci_high": None}
     return {"n": n, "mean": math.sqrt(math.fsum(v * v for v in finite)) / n, "sd": None, "ci_low": None,
             "ci_high": None}
+
+
+def _sort_key(value: Any):
+    return (0, value, "") if is_number(value) else (1, 0, str(value))
 
 
 def identifying_labels(tables: list[dict], columns: list[str], labels: list[str]) -> list[str]:
@@ -218,10 +221,6 @@ def identifying_labels(tables: list[dict], columns: list[str], labels: list[str]
     return out
 
 
-def _is_number(value: Any) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool)
-
-
 def _label_columns(tables_by_group: list[list[dict]]) -> list[bool]:
     """Per column: is it a label? Non-numeric columns are; a numeric one is if it holds the same
     value in every run of each group (at every row), given that some group has replicates - else
@@ -231,7 +230,7 @@ def _label_columns(tables_by_group: list[list[dict]]) -> list[bool]:
     pools = replicated or [[t for g in tables_by_group for t in g]]
     labels = []
     for c in range(len(columns)):
-        numeric = any(_is_number(row[c]) for g in tables_by_group for t in g for row in t["rows"])
+        numeric = any(is_number(row[c]) for g in tables_by_group for t in g for row in t["rows"])
         same = all([row[c] for row in t["rows"]] == [row[c] for row in pool[0]["rows"]] for pool in pools for t in pool)
         labels.append(not numeric or same)
     return labels
@@ -369,212 +368,11 @@ def paired_differences(tables_by_group: list[list[dict]], columns: list[str], me
                 diffs = []
                 for table in group:
                     a, b = table["rows"][r][i], table["rows"][ref][i]
-                    diffs.append(a - b if _is_number(a) and _is_number(b) else float("nan"))
+                    diffs.append(a - b if is_number(a) and is_number(b) else float("nan"))
                 values[column] = mean_interval(diffs, level)
             rows.append({"group": gi, "labels": {c: row[columns.index(c)] for c in ["estimator", *keys]},
                          "values": values})
     return {"reference": reference, "labels": ["estimator", *keys], "measurements": measurements, "rows": rows}
-
-
-def _sort_key(value: Any):
-    return (0, value, "") if _is_number(value) else (1, 0, str(value))
-
-
-def _cell(stats: dict) -> str:
-    if stats["mean"] is None:
-        return ""
-    if stats["ci_low"] is None:
-        return format_value(stats["mean"])
-    return f"{format_value(stats['mean'])} ± {format_value((stats['ci_high'] - stats['ci_low']) / 2)}"
-
-
-def to_markdown(report: dict[str, Any]) -> str:
-    out = ["# torchmm report", ""]
-    for experiment, body in report.items():
-        groups = body["groups"]
-        pct = f"{100 * body['level']:g} %"
-        out += [f"## {experiment}", "",
-                f"{sum(len(g['runs']) for g in groups)} runs in {len(groups)} group(s); factors: "
-                f"{', '.join(body['factors']) or 'none'}; replicates: {body['replicate']} "
-                f"(mean ± half-width of the {pct} Student-t interval over the replicates; n = replicates).", ""]
-        for name, table in body["tables"].items():
-            factor_cols = body["factors"]
-            errors = table.get("standard_errors", [])
-            columns = [*factor_cols, *table["labels"], "n", *table["measurements"], *errors]
-            lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
-            for row in table["rows"]:
-                g = groups[row["group"]]
-                n = max((v["n"] for v in row["values"].values()), default=len(g["runs"]))
-                cells = [*(format_value(g["factors"][k]) for k in factor_cols), *(format_value(row["labels"][c]) for c in table["labels"]),
-                         str(n), *(_cell(row["values"][c]) for c in [*table["measurements"], *errors])]
-                lines.append("| " + " | ".join(cells) + " |")
-            out += [f"### {name}", "", *lines, ""]
-            if errors or table.get("not_combined"):
-                out += [_columns_note(table), ""]
-        for name, paired in (body.get("paired") or {}).items():
-            columns, rows = _paired_rows(body, paired, minus=" − ")
-            lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
-            lines += ["| " + " | ".join(row) + " |" for row in rows]
-            out += [f"### {name}: paired differences", "",
-                    (f"Each estimator minus {paired['reference']}, run by run ({body['replicate']} paired: the runs "
-                     f"share their data), then mean ± half-width of the {pct} Student-t interval over the replicates."),
-                    "", *lines, ""]
-    return "\n".join(out)
-
-
-def _columns_note(table: dict) -> str:
-    """What the report did with a table's own uncertainty columns."""
-    parts = []
-    if table.get("standard_errors"):
-        parts.append(f"{', '.join(table['standard_errors'])}: each run's standard error, combined as that of the mean "
-                     "over the replicates, sqrt(sum se^2) / n (no interval)")
-    if table.get("not_combined"):
-        parts.append(f"{', '.join(table['not_combined'])}: each run's own bounds, not combined (the intervals above "
-                     "replace them)")
-    return "; ".join(parts) + "."
-
-
-def _paired_rows(body: dict, paired: dict, minus: str, cell=None, text=None) -> tuple[list[str], list[list[str]]]:
-    """Header and cells of a paired-differences table (the estimator column reads ``B - reference``)."""
-    cell = cell or _cell
-    text = text or (lambda v: v)
-    factors = body["factors"]
-    columns = [*factors, *paired["labels"], "n", *paired["measurements"]]
-    rows = []
-    for row in paired["rows"]:
-        g = body["groups"][row["group"]]
-        n = max((v["n"] for v in row["values"].values()), default=len(g["runs"]))
-        labels = [text(format_value(row["labels"][c])) if c != "estimator"
-                  else text(format_value(row["labels"][c])) + minus + text(str(paired["reference"]))
-                  for c in paired["labels"]]
-        rows.append([*(text(format_value(g["factors"][k])) for k in factors), *labels, str(n),
-                     *(cell(row["values"][c]) for c in paired["measurements"])])
-    return [text(c) for c in columns], rows
-
-
-def to_csv(report: dict[str, Any]) -> str:
-    buf = io.StringIO()
-    writer = csv.writer(buf, lineterminator="\n")
-    writer.writerow(["experiment", "table", "group", "factors", "labels", "measurement", "n", "mean", "sd",
-                     "ci_low", "ci_high", "reference"])
-    for experiment, body in report.items():
-        sections = [(name, table, "") for name, table in body["tables"].items()]
-        sections += [(name, paired, paired["reference"]) for name, paired in (body.get("paired") or {}).items()]
-        for name, table, reference in sections:  # reference set: the paired difference labels - reference
-            for row in table["rows"]:
-                factors = json.dumps(body["groups"][row["group"]]["factors"], default=str)
-                labels = json.dumps(row["labels"], default=str)
-                for measurement, s in row["values"].items():
-                    writer.writerow([experiment, name, row["group"], factors, labels, measurement, s["n"],
-                                     *("" if s[k] is None else repr(s[k]) for k in ("mean", "sd", "ci_low", "ci_high")),
-                                     reference])
-    return buf.getvalue()
-
-
-def _latex_cell(stats: dict) -> str:
-    if stats["mean"] is None:
-        return ""
-    if stats["ci_low"] is None:
-        return _latex_number(stats["mean"])
-    return f"{_latex_number(stats['mean'])} $\\pm$ {_latex_number((stats['ci_high'] - stats['ci_low']) / 2)}"
-
-
-def to_latex(report: dict[str, Any]) -> str:
-    """``report.tex``: one booktabs table per results table and per paired section (needs
-    ``\\usepackage{booktabs}``; see the module docstring)."""
-    esc = latex_escape
-    out = ["% torchmm-report: booktabs tables (\\usepackage{booktabs}); \\input{report.tex} in a document,",
-           "% e.g. \\documentclass{article}\\usepackage{booktabs}\\begin{document}\\input{report.tex}\\end{document}",
-           "% cells: mean $\\pm$ half-width of the Student-t interval over the replicates; n = replicates", ""]
-    for experiment, body in report.items():
-        groups, factors = body["groups"], body["factors"]
-        pct = f"{100 * body['level']:g}\\,\\%"
-        for name, table in body["tables"].items():
-            values = [*table["measurements"], *table.get("standard_errors", [])]
-            columns = [*factors, *table["labels"], "n", *values]
-            rows = []
-            for row in table["rows"]:
-                g = groups[row["group"]]
-                n = max((v["n"] for v in row["values"].values()), default=len(g["runs"]))
-                rows.append([*(esc(format_value(g["factors"][k])) for k in factors),
-                             *(esc(format_value(row["labels"][c])) for c in table["labels"]), str(n),
-                             *(_latex_cell(row["values"][c]) for c in values)])
-            align = "l" * (len(factors) + len(table["labels"])) + "r" * (1 + len(values))
-            caption = (f"{esc(experiment)}: {esc(name)} (mean $\\pm$ half-width of the {pct} Student-t interval "
-                       f"over {esc(body['replicate'])}; n replicates)")
-            out += _latex_table([esc(c) for c in columns], rows, caption, align)
-        for name, paired in (body.get("paired") or {}).items():
-            columns, rows = _paired_rows(body, paired, minus=" $-$ ", cell=_latex_cell, text=esc)
-            align = "l" * (len(factors) + len(paired["labels"])) + "r" * (1 + len(paired["measurements"]))
-            caption = (f"{esc(experiment)}: {esc(name)}, paired differences: each estimator minus "
-                       f"{esc(paired['reference'])} per {esc(body['replicate'])} (mean $\\pm$ half-width of the "
-                       f"{pct} Student-t interval)")
-            out += _latex_table(columns, rows, caption, align)
-    return "\n".join(out)
-
-
-def figure(report: dict[str, Any]):
-    """Each study's first table's first measurement: means with their intervals, per group and row."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    panels = [(exp, name, table) for exp, body in report.items()
-              for name, table in list(body["tables"].items())[:1] if table["measurements"]]
-    if not panels:
-        return None
-    fig, axes = plt.subplots(len(panels), 1, figsize=(6.5, 2.2 + 0.18 * max(len(t["rows"]) for *_, t in panels)),
-                             squeeze=False)
-    for ax, (exp, name, table) in zip(axes[:, 0], panels):
-        measure = table["measurements"][0]
-        body = report[exp]
-        keys = table.get("identifying")
-        if keys is None:
-            keys = [c for c in table["labels"] if c != "estimator"]
-        labels, means, lows, highs = [], [], [], []
-        for row in table["rows"]:
-            s = row["values"][measure]
-            if s["mean"] is None:
-                continue
-            factors = body["groups"][row["group"]]["factors"]
-            names = ["estimator", *keys] if "estimator" in table["labels"] else keys
-            text = ", ".join([*(f"{k}={format_value(v)}" for k, v in factors.items()),
-                              *(f"{c}={format_value(row['labels'][c])}" if c != "estimator" and _is_number(row["labels"][c])
-                                else format_value(row["labels"][c])
-                                for c in names if row["labels"].get(c) not in (None, ""))])
-            labels.append(text or exp)
-            means.append(s["mean"])
-            lows.append(s["mean"] - (s["ci_low"] if s["ci_low"] is not None else s["mean"]))
-            highs.append((s["ci_high"] if s["ci_high"] is not None else s["mean"]) - s["mean"])
-        y = list(range(len(means)))[::-1]
-        ax.errorbar(means, y, xerr=[lows, highs], fmt="o", ms=3, capsize=2, lw=1)
-        ax.set_yticks(y, labels, fontsize=7)
-        ax.set_xlabel(f"{measure} (mean, {100 * body['level']:g} % interval over {body['replicate']})", fontsize=8)
-        ax.set_title(f"{exp}: {name}", fontsize=9)
-        ax.grid(True, axis="x", linewidth=0.3, alpha=0.5)
-    fig.tight_layout()
-    return fig
-
-
-def write_report(report: dict[str, Any], out_dir: Path) -> list[Path]:
-    written = []
-    for name, text in (("report.md", to_markdown(report)), ("report.csv", to_csv(report)),
-                       ("report.json", json.dumps(report, indent=2, default=str) + "\n"),
-                       ("report.tex", to_latex(report))):
-        write_atomic(out_dir / name, text)
-        written.append(out_dir / name)
-    fig = figure(report)
-    if fig is not None:
-        import matplotlib.pyplot as plt
-
-        from experiments.plot import save_tight
-
-        paths = [out_dir / f"report.{fmt}" for fmt in ("png", "pdf")]
-        save_tight(fig, [(path, 200) for path in paths])
-        written.extend(paths)
-        plt.close(fig)
-    return written
 
 
 def main(argv: list[str] | None = None) -> int:

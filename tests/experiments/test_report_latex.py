@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from experiments import report as rep
+from experiments import report_formats as formats
 from tests.experiments.test_report import _synthetic_sweep, _write_run
 
 #: t_{0.975} with 2 degrees of freedom (scipy.stats.t.ppf(0.975, 2))
@@ -113,16 +114,16 @@ def test_report_tex_parses_and_holds_the_json_numbers(tmp_path):
 
 
 def test_latex_numbers():
-    assert rep._latex_number(-0.5) == "$-$0.5000" and _number("$-$0.5000") == -0.5
-    assert rep._latex_number(1.5e-6) == "$1.500\\times10^{-6}$" and _number("$1.500\\times10^{-6}$") == 1.5e-6
-    assert _number(rep._latex_number(-2.5e7)) == -2.5e7
-    assert rep._latex_cell({"mean": 1.0, "ci_low": 0.5, "ci_high": 1.5}) == "1.0000 $\\pm$ 0.5000"
+    assert formats._latex_number(-0.5) == "$-$0.5000" and _number("$-$0.5000") == -0.5
+    assert formats._latex_number(1.5e-6) == "$1.500\\times10^{-6}$" and _number("$1.500\\times10^{-6}$") == 1.5e-6
+    assert _number(formats._latex_number(-2.5e7)) == -2.5e7
+    assert formats._latex_cell({"mean": 1.0, "ci_low": 0.5, "ci_high": 1.5}) == "1.0000 $\\pm$ 0.5000"
 
 
 def test_latex_escapes_and_structure_checks_fail_on_bad_input():
-    assert rep.latex_escape("pos_rmse & 5% #1 {x} $") == r"pos\_rmse \& 5\% \#1 \{x\} \$"
-    assert rep.latex_escape("a\\b") == r"a\textbackslash{}b"
-    good = rep._latex_table(["a\\_b", "n"], [["x", "1"]], "cap", "lr")
+    assert formats.latex_escape("pos_rmse & 5% #1 {x} $") == r"pos\_rmse \& 5\% \#1 \{x\} \$"
+    assert formats.latex_escape("a\\b") == r"a\textbackslash{}b"
+    good = formats._latex_table(["a\\_b", "n"], [["x", "1"]], "cap", "lr")
     assert parse_latex_tables("\n".join(good))[0]["header"] == ["a\\_b", "n"]
     with pytest.raises(AssertionError):
         parse_latex_tables("\n".join(good).replace("\\bottomrule", ""))
