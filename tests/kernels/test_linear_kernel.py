@@ -23,7 +23,7 @@ from torchmm import (
     StaticMM,
     run_filter,
 )
-from torchmm.kernels import linear
+from torchmm.kernels import linear, linear_run
 from torchmm.learn import negative_log_likelihood
 from torchmm.models import LinearMeasurement, LinearMotion, learnable_noise
 from torchmm.run import Keep
@@ -50,7 +50,7 @@ def calls(monkeypatch):
     """Counts of the kernel's runs: ``tried`` (the compiled loop ran) and ``used`` (its fields were
     returned; a run that failed at run time is re-run eagerly and not counted here)."""
     counts = {"tried": 0, "used": 0}
-    forward, fields = linear._Run.forward, linear._fields
+    forward, fields = linear_run.Run.forward, linear._fields
 
     def counting_forward(*args):  # (through autograd's apply, or called directly without a graph)
         counts["tried"] += 1
@@ -60,7 +60,7 @@ def calls(monkeypatch):
         counts["used"] += 1
         return fields(*args, **kwargs)
 
-    monkeypatch.setattr(linear._Run, "forward", staticmethod(counting_forward))
+    monkeypatch.setattr(linear_run.Run, "forward", staticmethod(counting_forward))
     monkeypatch.setattr(linear, "_fields", counting_fields)
     return counts
 

@@ -28,6 +28,9 @@ choice depends on the call only, never on what the process ran before.
 With autograd the run keeps only its log-likelihood and filtered beliefs (their gradients are the
 reverse pass's); a run that asks for more runs eagerly. A run with a regularised innovation covariance
 or a non-finite result is run again eagerly, which flags it as it always does (docs/robustness.md).
+
+Here the plan, the prepared (repeated) evaluation and the trajectory's fields; the run on NumPy arrays and its
+autograd node: :mod:`torchmm.kernels.linear_run`.
 """
 
 from __future__ import annotations
@@ -41,6 +44,19 @@ from torch import Tensor
 
 import torchmm.kernels as kernels
 from torchmm.beliefs import GaussianBelief, ModeBelief
+from torchmm.kernels.linear_run import (
+    NoGrad,
+    Run,
+    all_broadcast,
+    as_array,
+    broadcasts,
+    finfo,
+    input_terms,
+    kernel_arrays,
+    layout_of,
+    load,
+    model_tensors,
+)
 from torchmm.runtime import host_reads_ok
 
 __all__ = ["MAX_RUNS", "LinearGaussian", "load"]
@@ -87,205 +103,6 @@ class LinearGaussian(NamedTuple):
     time_varying: Any = None
 
 
-def load():
-    """The compiled loops (imports Numba; the first call on a machine compiles them, ~10 s, cached): the
-    forward pass (:mod:`~torchmm.kernels.linear_loops`), its reverse pass (:mod:`~torchmm.kernels.linear_reverse`)
-    and Kim's smoother (:mod:`~torchmm.kernels.linear_kim`), over the step functions they share
-    (:mod:`~torchmm.kernels.loop_algebra`), as one namespace."""
-    global _LOOPS
-    if _LOOPS is None:
-        from types import SimpleNamespace
-
-        from torchmm.kernels import linear_kim, linear_loops, linear_reverse
-
-        _LOOPS = SimpleNamespace(forward=linear_loops.forward, backward=linear_reverse.backward, kim=linear_kim.kim,
-                                 filter_and_kim=linear_kim.filter_and_kim, log_matrix=linear_kim.log_matrix)
-    return _LOOPS
-
-
-_LOOPS = None
-
-
-def _np(t: Tensor):
-    """A NumPy view of a CPU tensor (a contiguous copy where it is not contiguous)."""
-    t = t.detach()
-    return (t if t.is_contiguous() else t.contiguous()).numpy()
-
-
-def _unbroadcast(g, shape: tuple):
-    """The adjoint of ``np.broadcast_to(a, g.shape)`` for ``a`` of ``shape``: ``g`` summed over the
-    broadcast axes."""
-    lead = g.ndim - len(shape)
-    if lead:
-        g = g.sum(axis=tuple(range(lead)))
-    axes = tuple(i for i, (have, want) in enumerate(zip(g.shape, shape)) if want == 1 and have != 1)
-    return g.sum(axis=axes, keepdims=True) if axes else g
-
-
-class _Run(torch.autograd.Function):
-    """The whole run: inputs the models and the start belief as given (broadcast and reshaped to the
-    kernel's layout in NumPy, so that autograd records one node); outputs ``ll``, ``logmu``, ``x``,
-    ``P`` (differentiable) and, with ``full``, the
-    intermediates ``xp, Pp, logc, xm, Pm, innov, S, mode_ll, flags`` (not differentiable).
-
-    ``layout``: for each of the ten inputs ``F, b, Q, H, R, Pi, logmu0, x0, P0, bu``, the shape it is
-    broadcast to and the kernel's shape of that (``(M, n, n)``, ..., ``(B, M, n, n)``; ``bu``: the
-    input terms ``G u_t``, ``(T, runs, M, n)``, or ``(1, 1, M, n)`` zeros without controls). ``status``: a
-    one-element list that receives the count of failed or regularised updates. The buffers are
-    NumPy arrays (cheaper to make than tensors); the outputs are tensors over them."""
-
-    @staticmethod
-    def forward(ctx, z, rule, update_first, full, layout, status, *tensors):
-        inputs = _arrays(z, tensors, layout)
-        outs, bad, regularised = _forward_arrays(inputs, rule, update_first)
-        ctx.arrays = (inputs, outs[1:9])
-        ctx.rule, ctx.update_first, ctx.layout = rule, update_first, layout
-        ctx.raw = [(t.shape, t.requires_grad) for t in tensors]
-        status[0] = bad + regularised  # (the count of failed or regularised updates, for the caller)
-        result = [torch.from_numpy(o) for o in outs[:4]]
-        extra = [torch.from_numpy(o) for o in outs[4:]] if full else []
-        if extra:
-            ctx.mark_non_differentiable(*extra)
-        return (*result, *extra)
-
-    @staticmethod
-    def backward(ctx, gll, glogmu, gx, gP, *unused):
-        loops = load()
-        inputs, saved = ctx.arrays
-        z = inputs[0]
-        T, B = z.shape[0], z.shape[1]
-        grads = [np.zeros(a.shape, a.dtype) for a in inputs[1:]]
-        adjoints = []
-        for g, ref in zip((gll, glogmu, gx, gP), ((T, B), *(s.shape for s in saved[:3]))):
-            adjoints.append(np.zeros(ref, z.dtype) if g is None else _np(g))
-        loops.backward(*inputs[:7], ctx.rule, ctx.update_first, *inputs[7:], *saved, *adjoints, *grads)
-        out = []
-        for g, (shape, needed), (wide, target) in zip(grads, ctx.raw, ctx.layout):
-            if not needed:
-                out.append(None)
-                continue
-            if g.size == math.prod(shape):  # (only unit axes differ: a view)
-                out.append(torch.from_numpy(g.reshape(tuple(shape))))
-                continue
-            g = _unbroadcast(g.reshape(wide), tuple(shape))
-            out.append(torch.from_numpy(np.ascontiguousarray(g)).reshape(shape))
-        return (None, None, None, None, None, None, *out)
-
-
-def _arrays(z: Tensor, tensors, layout) -> list:
-    """The kernel's NumPy inputs: the data ``z (T, runs, m)`` and each tensor broadcast and reshaped to its
-    layout's kernel shape (views where only unit axes differ)."""
-    inputs = [_np(z)]
-    for t, (wide, target) in zip(tensors, layout):
-        a = (t.detach() if t.requires_grad else t).numpy()  # (strided where the tensor is: one copy below)
-        if a.shape != target:
-            if a.size == math.prod(target):  # (only unit axes differ)
-                a = a.reshape(target)
-            else:
-                a = np.broadcast_to(a, wide).reshape(target)
-        inputs.append(a if a.flags.c_contiguous else np.ascontiguousarray(a))
-    return inputs
-
-
-def _forward_arrays(inputs: list, rule: int, update_first: bool) -> tuple[list, int, int]:
-    """The compiled forward loop on :func:`_arrays`' inputs: its thirteen NumPy outputs (``ll, logmu, x,
-    P``, then the intermediates) and the counts of failed and regularised updates."""
-    zz = inputs[0]
-    T, B, m = zz.shape
-    M, n = inputs[1].shape[0], inputs[1].shape[1]
-    dt = zz.dtype
-    empty = np.empty
-    outs = [empty((T, B), dt), empty((T, B, M), dt), empty((T, B, M, n), dt), empty((T, B, M, n, n), dt),
-            empty((T, B, M, n), dt), empty((T, B, M, n, n), dt), empty((T, B, M), dt), empty((T, B, M, n), dt),
-            empty((T, B, M, n, n), dt), empty((T, B, M, m), dt), empty((T, B, M, m, m), dt),
-            empty((T, B, M), dt), empty((T, B, M), np.int8)]
-    bad, regularised = load().forward(*inputs[:7], rule, update_first, *inputs[7:], *_finfo(dt), *outs)
-    return outs, bad, regularised
-
-
-_FINFO: dict = {}
-
-
-def _finfo(dtype) -> tuple[float, float]:
-    """``(eps, tiny)`` of a NumPy dtype (``np.finfo`` costs microseconds; read once a dtype)."""
-    got = _FINFO.get(dtype)
-    if got is None:
-        finfo = np.finfo(dtype)
-        got = _FINFO[dtype] = (float(finfo.eps), float(finfo.tiny))
-    return got
-
-
-class _NoGrad:
-    """The context of :meth:`_Run.forward` called directly, where no input needs a gradient: the autograd
-    node (about 20 microseconds of the one-shot call) is not made."""
-
-    def mark_non_differentiable(self, *tensors):
-        pass
-
-
-def _layout(M: int, n: int, m: int, batch: tuple, kalman: bool, steps: int | None = None,
-            varying: int | None = None) -> tuple:
-    """``_Run``'s layout (see there) of a run of ``M`` modes over the batch ``batch`` (``steps``: with
-    an input matrix's controls, the run's steps; ``varying``: with a time-varying transition, the run's
-    steps: a transition matrix for each step and run)."""
-    runs = math.prod(batch)
-    inputs = ((((steps, runs, M, n),) * 2),) if steps is not None else ((((1, 1, M, n),) * 2),)
-    pi = (varying, runs, M, M) if varying is not None else (1, 1, M, M)
-    models = (((M, n, n),) * 2, ((M, n),) * 2, ((M, n, n),) * 2, ((M, m, n),) * 2, ((M, m, m),) * 2,
-              (pi,) * 2)
-    if kalman:
-        start = (((runs, 1), (runs, 1)), ((*batch, n), (runs, 1, n)), ((*batch, n, n), (runs, 1, n, n)))
-    else:
-        start = (((*batch, M), (runs, M)), ((*batch, M, n), (runs, M, n)), ((*batch, M, n, n), (runs, M, n, n)))
-    return (*models, *start, *inputs)
-
-
-def _input_terms(model: LinearGaussian, controls: Tensor | None, M: int, n: int, batch: tuple) -> Tensor:
-    """``bu``: each step's, run's and mode's input term ``G_j u_t`` ``(T, runs, M, n)`` (differentiable in
-    ``G`` and the controls, by torch), or zeros ``(1, 1, M, n)`` without controls."""
-    if controls is None or model.G is None:
-        return model.F.new_zeros(1, 1, M, n)
-    G = model.G.expand(M, n, model.G.shape[-1]) if model.G.dim() == 3 else model.G.expand(M, *model.G.shape)
-    T, k = controls.shape[0], controls.shape[-1]
-    u = controls.expand(T, *batch, k).reshape(T, math.prod(batch), k)
-    return torch.einsum("jnk,trk->trjn", G, u)
-
-
-def _broadcasts(shape: tuple, wide: tuple) -> bool:
-    """Whether a tensor of ``shape`` broadcasts to ``wide`` (NumPy's rules)."""
-    if len(shape) > len(wide):
-        return False
-    return all(have in (1, want) for have, want in zip(reversed(shape), reversed(wide)))
-
-
-def _all_broadcast(shapes: list, layout: tuple) -> bool:
-    """Whether every shape broadcasts to its layout's wide shape (:func:`_broadcasts`, in one loop)."""
-    for shape, (wide, _) in zip(shapes, layout):
-        if len(shape) > len(wide):
-            return False
-        for have, want in zip(reversed(shape), reversed(wide)):
-            if have != 1 and have != want:
-                return False
-    return True
-
-
-def _models(model: LinearGaussian, controls: Tensor | None = None, batch: tuple = ()) -> tuple:
-    """The model tensors as the filter gave them (``_Run`` broadcasts them), and the transition matrix
-    (``[[1]]`` for one filter; a time-varying transition's ``(T, runs, M, M)`` at the run's controls,
-    computed by torch so that its gradient is autograd's)."""
-    if model.time_varying is not None:
-        T, k = controls.shape[0], controls.shape[-1]
-        u = controls.expand(T, *batch, k).reshape(T, math.prod(batch), k)
-        return model.F, model.b, model.Q, model.H, model.R, model.time_varying.at(u).log_matrix().exp()
-    Pi = model.transition
-    if Pi is None:
-        Pi = _ONE.get(model.F.dtype)
-        if Pi is None:
-            Pi = _ONE[model.F.dtype] = torch.ones(1, 1, dtype=model.F.dtype)
-    return model.F, model.b, model.Q, model.H, model.R, Pi
-
-
-_ONE: dict = {}  # the one-mode transition matrix [[1]] per dtype (never written: no grad, no in-place)
 
 
 class Prepared:
@@ -308,7 +125,7 @@ class Prepared:
         self.runs = math.prod(batch)
         model = kernels.describe(filter, self.name, inputs=True)
         steps = z.shape[0]
-        self.layout = _layout(M, n, m, tuple(batch), self.kalman,
+        self.layout = layout_of(M, n, m, tuple(batch), self.kalman,
                               None if controls is None or model.G is None else steps,
                               None if model.time_varying is None else steps)
         self.zeros = z.new_zeros(self.runs, 1)
@@ -332,9 +149,9 @@ class Prepared:
                 raise ValueError("belief0: shapes differ from the objective's")
             start = (belief0.mode_log_probs, comps.mean, comps.cov)
         status = [0]
-        bu = _input_terms(model, self.controls, self.M, self.n, self.batch)
-        outs = _Run.apply(self.z, self.rule, bool(update_first), False, self.layout, status,
-                          *_models(model, self.controls, self.batch), *start, bu)
+        bu = input_terms(model, self.controls, self.M, self.n, self.batch)
+        outs = Run.apply(self.z, self.rule, bool(update_first), False, self.layout, status,
+                          *model_tensors(model, self.controls, self.batch), *start, bu)
         if status[0]:
             return None
         return outs[0] if total else outs[0].reshape(self.z.shape[0], *self.batch)
@@ -351,14 +168,14 @@ class Prepared:
         start = (self.zeros, belief0.mean, belief0.cov) if self.kalman else (
             belief0.mode_log_probs, belief0.components.mean, belief0.components.cov)
         with torch.no_grad():  # (NumPy throughout, one compiled call: the forward pass's arrays stay inside)
-            bu = self.zero_inputs if self.controls is None else _input_terms(model, self.controls, self.M, self.n,
+            bu = self.zero_inputs if self.controls is None else input_terms(model, self.controls, self.M, self.n,
                                                                                self.batch)
-            tensors = (*_models(model, self.controls, self.batch), *start, bu)
+            tensors = (*model_tensors(model, self.controls, self.batch), *start, bu)
             # the kernel's arrays of unchanged tensors (the same objects at the same versions: torch's own test of
             # an in-place change) are the last call's: a repeated smoother at fixed parameters converts nothing
             key = tuple((id(t), t._version) for t in tensors)
             if key != self._smooth_key:
-                self._smooth_inputs = _arrays(self.z, tensors, self.layout)
+                self._smooth_inputs = kernel_arrays(self.z, tensors, self.layout)
                 self._smooth_key, self._smooth_held = key, tensors  # (held: no id is reused while cached)
             inputs = self._smooth_inputs
             T, runs = self.z.shape[0], self.runs
@@ -366,7 +183,7 @@ class Prepared:
             out = [np.empty((T, runs, self.M), dt), np.empty((T, runs, self.M, self.n), dt),
                    np.empty((T, runs, self.M, self.n, self.n), dt)]
             bad, regularised = load().filter_and_kim(*inputs[:7], self.rule, bool(update_first), *inputs[7:],
-                                                     *_finfo(dt), *out)
+                                                     *finfo(dt), *out)
             if bad + regularised:
                 return None
             return _smoothed(out, tuple(self.batch), self.kalman)
@@ -415,7 +232,7 @@ class LinearKernel:
         n, m = x0.shape[-1], model.H.shape[-2]
         batch = tuple(batch)
         try:
-            models = _models(model, controls, batch)  # (a time-varying transition's matrices at the controls)
+            models = model_tensors(model, controls, batch)  # (a time-varying transition's matrices at the controls)
         except (RuntimeError, ValueError) as err:
             return f"the time-varying transition at the controls: {err}"
         tensors = (measurements, x0, P0, logmu0, *(t for t in model if isinstance(t, Tensor)), models[5],
@@ -430,7 +247,7 @@ class LinearKernel:
             if model.G.dim() not in (2, 3) or (model.G.dim() == 3 and model.G.shape[0] not in (1, M)):
                 return "the input matrix is batched over more than the modes"
             if controls.dim() < 2 or controls.shape[0] != measurements.shape[0] or controls.shape[-1] != k \
-                    or not _broadcasts(controls.shape[1:-1], tuple(batch)):
+                    or not broadcasts(controls.shape[1:-1], tuple(batch)):
                 return "the controls are not (T, *B, k) of the run's batch and the input matrix's k"
         if runs > MAX_RUNS and not request.forced:
             return f"{runs} runs: more than the serial loop's {MAX_RUNS} (the batched kernels win)"
@@ -456,9 +273,9 @@ class LinearKernel:
         if model.time_varying is not None and models[5].shape != (steps, runs, M, M):
             return "the time-varying transition's matrices do not match the modes and the runs"
         kalman = model.rule == "kalman"
-        layout = _layout(M, n, m, batch, kalman, None if controls is None or model.G is None else steps,
+        layout = layout_of(M, n, m, batch, kalman, None if controls is None or model.G is None else steps,
                          None if model.time_varying is None else steps)
-        if not _all_broadcast([t.shape for t in (*models, logmu0, x0, P0)], layout):
+        if not all_broadcast([t.shape for t in (*models, logmu0, x0, P0)], layout):
             return "the models' parameters are batched over more than the modes (or the start belief's shapes)"
         start = (logmu0, x0, P0)
         mixed = model.rule in ("mix", "collapse")
@@ -467,9 +284,9 @@ class LinearKernel:
 
         def run():
             status = [0]
-            bu = _input_terms(model, controls, M, n, tuple(batch))
+            bu = input_terms(model, controls, M, n, tuple(batch))
             args = (z, rule, bool(request.update_first), True, layout, status, *models, *start, bu)
-            outs = _Run.apply(*args) if grad else _Run.forward(_NoGrad(), *args)  # (no graph: no node)
+            outs = Run.apply(*args) if grad else Run.forward(NoGrad(), *args)  # (no graph: no node)
             if status[0]:
                 return None  # regularised or failed somewhere: the eager steps flag it as they do
             return _fields(outs, batch, steps, M, kalman, mixed, request)
@@ -518,9 +335,9 @@ class LinearKernel:
             return f"a short run ({steps} x {runs} < {LONG_RUN} steps x runs)"
         if not kernels.numba_available():
             return "Numba is not installed"
-        models = _models(model)
+        models = model_tensors(model)
         wide = ((M, n, n), (M, n), (M, n, n))
-        if not all(_broadcasts(t.shape, w) for t, w in zip(models[:3], wide)):
+        if not all(broadcasts(t.shape, w) for t, w in zip(models[:3], wide)):
             return "the models' parameters are batched over more than the modes"
         kalman = model.rule == "kalman"
 
@@ -537,7 +354,7 @@ def _kim(models: tuple, logmu: Tensor, x: Tensor, P: Tensor, batch: tuple, kalma
     gives, the run's ``logmu (T, runs, M)``, ``x (T, runs, M, n)``, ``P (T, runs, M, n, n)`` (contiguous)
     -> the smoothed beliefs, batch ``(T, *batch)`` (a GaussianBelief for one Kalman filter)."""
     M, n = logmu.shape[-1], x.shape[-1]
-    F, b, Q, Pi = (np.ascontiguousarray(np.broadcast_to(_np(t), w))
+    F, b, Q, Pi = (np.ascontiguousarray(np.broadcast_to(as_array(t), w))
                    for t, w in zip((*models[:3], models[5]), ((M, n, n), (M, n), (M, n, n), (M, M))))
     return _kim_arrays(F, b, Q, Pi, logmu.numpy(), x.numpy(), P.numpy(), batch, kalman)
 
@@ -550,7 +367,7 @@ def _kim_arrays(F, b, Q, Pi, logmu, x, P, batch: tuple, kalman: bool) -> Any:
     dt = logmu.dtype
     out = [np.empty((steps, runs, M), dt), np.empty((steps, runs, M, n), dt), np.empty((steps, runs, M, n, n), dt)]
     loops = load()
-    loops.kim(F, b, Q, Pi, loops.log_matrix(Pi), logmu, x, P, *_finfo(dt), *out)
+    loops.kim(F, b, Q, Pi, loops.log_matrix(Pi), logmu, x, P, *finfo(dt), *out)
     return _smoothed(out, batch, kalman)
 
 

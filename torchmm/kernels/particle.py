@@ -48,6 +48,7 @@ from torch import Tensor
 
 import torchmm.kernels as kernels
 from torchmm.contract import unchecked
+from torchmm.kernels.linear_run import as_array
 from torchmm.runtime import host_reads_ok
 
 log = logging.getLogger("torchmm.kernels.particle")
@@ -138,11 +139,6 @@ def _threads() -> None:
     numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
 
 
-def _np(t: Tensor):
-    """A NumPy view of a contiguous CPU tensor (a copy where it is not contiguous)."""
-    return t.detach().contiguous().numpy()
-
-
 def _kernels():
     """The loops' module (:mod:`torchmm.kernels.particle_loops`), imported on first use."""
     if not _ANNOUNCED:
@@ -181,7 +177,7 @@ def two_stage_indices(cdf_models: Tensor, u0: Tensor, weights: Tensor, v0: Tenso
         weights: ``(R, A, P)`` float64, unnormalised, non-negative; v0: ``(R, A)`` -> ``(R, M, num)`` int64
     """
     kernel = _kernels().two_stage
-    args = (_np(cdf_models), _np(u0), _np(weights), _np(v0), int(num))
+    args = (as_array(cdf_models), as_array(u0), as_array(weights), as_array(v0), int(num))
     if background:
         return _pool().submit(_in_background, kernel, args)
     _threads()
@@ -224,7 +220,7 @@ def propagate_log_likelihood(table: Tensor, flat: Tensor, eps: Tensor, factor: T
     loglik = torch.empty((R, M, Np), dtype=torch.float64)
     nan = torch.empty((R, M), dtype=torch.bool)
     _threads()
-    _kernels().propagate(_np(table), _np(flat), _np(eps), _np(factor), _np(offset), _np(F), _np(W), _np(shift),
+    _kernels().propagate(as_array(table), as_array(flat), as_array(eps), as_array(factor), as_array(offset), as_array(F), as_array(W), as_array(shift),
                          float(const), x.numpy(), loglik.numpy(), nan.numpy(), (0,) * n, (0,) * k, (0,) * m)
     return (x, loglik, nan) if with_nan else (x, loglik)
 
@@ -241,6 +237,6 @@ def challenge_pass(scores: Tensor, a: Tensor, b: Tensor, shifts: Tensor, num_win
         scores: ``(R, P)``; a, b: ``(R,)`` int64; shifts: ``(rounds, R)`` int64 -> winners ``(R, N)``
     """
     _threads()
-    out = _kernels().challenge(_np(scores), _np(a), _np(b), _np(shifts), int(num_winners))
+    out = _kernels().challenge(as_array(scores), as_array(a), as_array(b), as_array(shifts), int(num_winners))
     return torch.from_numpy(out)
 
