@@ -119,7 +119,7 @@ NOT_ENTRY_POINTS: dict[str, str] = {
     "torchmm.kernels.particle.two_stage_indices": _KERNEL,
     "torchmm.kernels.particle.LinearParticles": _RECORD + " (a filter's description of itself)",
     "torchmm.kernels.linear.LinearGaussian": _RECORD + " (a filter's description of itself)",
-    "torchmm.kernels.linear.load": _SEAM,
+    "torchmm.kernels.linear_run.load": _SEAM,
     "torchmm.kernels.Request": _RECORD + " (what run_filter asks of a kernel)",
     "torchmm.kernels.describe": _SEAM,
     "torchmm.kernels.joined": _SEAM,

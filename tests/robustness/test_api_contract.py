@@ -295,3 +295,37 @@ def test_bind_errors_name_the_argument_or_the_function():
         gpb1.initial_belief()
     with pytest.raises(TypeError, match=r"^GaussianBelief.create: takes 2 positional arguments "):
         GaussianBelief.create(torch.zeros(2), torch.eye(2), 1, 2)
+
+
+def test_the_fast_binder_binds_as_inspect_does():
+    """The entry points' binder (torchmm.contract.engine._binder, issue 47: the one-shot call's cost) gives
+    ``inspect.Signature.bind``'s arguments for every call that binds, and None (inspect then names the
+    error) for every call that does not, or for signatures it does not handle."""
+    import inspect
+    import itertools
+
+    from torchmm.contract.engine import _binder
+
+    def plain(self, a, b=1, *, c, d=2):
+        pass
+
+    def only(a, /, b):
+        pass
+
+    def variadic(a, *rest, **more):
+        pass
+
+    calls = [((), {}), ((0,), {}), ((0, 1), {}), ((0, 1, 2), {}), ((0, 1, 2, 3), {}), ((0,), {"a": 1, "c": 2}),
+             ((0, 1), {"c": 3}), ((0, 1), {"b": 2, "c": 3}), ((0, 1, 2), {"c": 3, "d": 4}), ((0, 1), {"e": 3, "c": 1}),
+             ((0,), {"a": 1, "b": 2, "c": 3}), ((), {"self": 0, "a": 1, "c": 2})]
+    for fn, (args, kwargs) in itertools.product((plain, only, variadic), calls):
+        sig = inspect.signature(fn)
+        try:
+            want = dict(sig.bind(*args, **kwargs).arguments)
+        except TypeError:
+            want = None
+        got = _binder(sig)(args, kwargs)
+        if fn is plain:
+            assert got == want, (args, kwargs, got, want)
+        else:
+            assert got is None  # (inspect binds these itself)

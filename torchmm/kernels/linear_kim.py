@@ -15,7 +15,6 @@ from torchmm.kernels.loop_algebra import (
     chol_reg,
     copy_modes,
     logsumexp,
-    matmul,
     matmul_add,
     mix_moments,
     predict_mode,
@@ -110,7 +109,6 @@ def kim(F, b, Q, Pi, logPi, logmu, x, P, eps, tiny, slogmu, sx, sP):
     G = np.empty((n, n), dt)  # G^T = (P^-)^{-1} C^T
     Y = np.empty((n, n), dt)
     D = np.empty((n, n), dt)
-    E = np.empty((n, n), dt)
     dv = np.empty(n, dt)
     jp = np.empty((M, M), dt)
     lpred = np.empty(M, dt)
@@ -148,8 +146,10 @@ def kim(F, b, Q, Pi, logPi, logmu, x, P, eps, tiny, slogmu, sx, sP):
                         mean[j, i, a] = s
                     for a in range(n):
                         for c in range(n):
-                            E[a, c] = sP[t + 1, r, i, a, c] - Pp[j, i, a, c]
-                    matmul(G.T, E, D)
+                            s = 0.0
+                            for q in range(n):
+                                s += G[q, a] * (sP[t + 1, r, i, q, c] - Pp[j, i, q, c])
+                            D[a, c] = s
                     matmul_add(D, G, 1.0, P[t, r, j], Y)
                     for a in range(n):
                         for c in range(n):

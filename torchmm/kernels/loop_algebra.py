@@ -110,7 +110,7 @@ def predict_mode(F, b, bu, Q, x, P, xp, Pp, FP):
             s += F[i, k] * x[k]
         xp[i] = s
     matmul(F, P, FP)
-    matmul_add(FP, F.T, 1.0, Q, Pp)
+    matmul_nt_add(FP, F, Q, Pp)
 
 
 @numba.njit(cache=True)
@@ -155,6 +155,17 @@ def matmul_add(A, B, alpha, C, out):
             for q in range(A.shape[1]):
                 s += A[i, q] * B[q, k]
             out[i, k] = alpha * s + C[i, k]
+
+
+@numba.njit(cache=True, inline="always")
+def matmul_nt_add(A, B, C, out):
+    """``out = A B^T + C`` (indexing ``B`` as it is: no transposed view in the loops' inner steps)."""
+    for i in range(A.shape[0]):
+        for k in range(B.shape[0]):
+            s = 0.0
+            for q in range(A.shape[1]):
+                s += A[i, q] * B[k, q]
+            out[i, k] = s + C[i, k]
 
 
 @numba.njit(cache=True, inline="always")
