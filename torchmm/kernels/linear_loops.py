@@ -37,7 +37,6 @@ from torchmm.kernels.loop_algebra import (
     mixing_weights,
     predict_mode,
     solve_lower,
-    update_workspace,
 )
 
 
@@ -54,9 +53,12 @@ def forward(z, F, b, Q, H, R, Pi, rule, update_first, logmu0, x0, P0, bu, eps, t
     w = np.empty((M, M), dt)
     a = np.empty(M, dt)
     FP = np.empty((n, n), dt)
-    C, S, L, nu = update_workspace(n, m, dt)
+    C = np.empty((n, m), dt)
+    S = np.empty((m, m), dt)
+    L = np.empty((m, m), dt)
     A = np.empty((m, n), dt)
     wv = np.empty(m, dt)
+    nu = np.empty(m, dt)
     obs = np.empty(m, np.bool_)
     every = np.arange(m)  # (every measurement component: the innovation covariance's index)
     d = np.empty(n, dt)

@@ -16,9 +16,9 @@ from torchmm.kernels.loop_algebra import (
     inverse_from_chol,
     matmul,
     matmul_add,
+    matmul_tn,
     mixing_weights,
     triple_entry,
-    update_workspace,
     zero_modes,
 )
 
@@ -47,14 +47,17 @@ def backward(z, F, b, Q, H, R, Pi, rule, update_first, logmu0, x0, P0, bu,
     Abar = np.empty((n, n), dt)
     xmb = np.empty((M, n), dt)
     Pmb = np.empty((M, n, n), dt)
-    C, S, L, nu = update_workspace(n, m, dt)
+    C = np.empty((n, m), dt)
     Cb = np.empty((n, m), dt)
+    S = np.empty((m, m), dt)
+    L = np.empty((m, m), dt)
     V = np.empty((m, m), dt)
     Vb = np.empty((m, m), dt)
     Sb = np.empty((m, m), dt)
     W = np.empty((m, m), dt)
     u = np.empty(m, dt)
     ub = np.empty(m, dt)
+    nu = np.empty(m, dt)
     nub = np.empty(m, dt)
     obs = np.empty(m, np.bool_)
     idx = np.empty(m, np.int64)
@@ -134,7 +137,10 @@ def backward(z, F, b, Q, H, R, Pi, rule, update_first, logmu0, x0, P0, bu,
                             Cb[i, kk] -= 2.0 * triple_entry(Abar, C, V, i, kk, n, mo)
                     for kk in range(mo):
                         for ll_ in range(mo):
-                            s = triple_entry(C.T, Abar, C, kk, ll_, n, n)
+                            s = 0.0
+                            for i in range(n):
+                                for q in range(n):
+                                    s += C[i, kk] * Abar[i, q] * C[q, ll_]
                             Vb[kk, ll_] = -s + ub[kk] * nu[ll_] - 0.5 * ellb * nu[kk] * nu[ll_]
                     # u = V nu; ell = -0.5 (nu^T u + logdet S + m log 2 pi)
                     for kk in range(mo):
@@ -219,10 +225,11 @@ def backward(z, F, b, Q, H, R, Pi, rule, update_first, logmu0, x0, P0, bu,
                         for k in range(n):
                             gQ[j, i, k] += Ppb[i, k]
                             gF[j, i, k] += xpb[i] * xm[t, r, j, k]
-                    matmul(F[j], Pm[t, r, j], tmp)  # F_bar += 2 Ppb F Pm
-                    matmul_add(Ppb, tmp, 2.0, gF[j], gF[j])
-                    matmul(Ppb, F[j], tmp)  # Pm_bar = F^T Ppb F
-                    matmul(F[j].T, tmp, Pmb[j])
+                    Fj, gFj = F[j], gF[j]
+                    matmul(Fj, Pm[t, r, j], tmp)  # F_bar += 2 Ppb F Pm
+                    matmul_add(Ppb, tmp, 2.0, gFj, gFj)
+                    matmul(Ppb, Fj, tmp)  # Pm_bar = F^T Ppb F
+                    matmul_tn(Fj, tmp, Pmb[j])
             # -- the interaction, back to the previous posterior
             if t == 0:
                 plm, px, pP = logmu0[r], x0[r], P0[r]

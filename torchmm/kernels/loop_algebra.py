@@ -9,7 +9,6 @@ from __future__ import annotations
 import math
 
 import numba
-import numpy as np
 
 LOG_2PI = math.log(2.0 * math.pi)
 
@@ -169,6 +168,17 @@ def matmul_nt_add(A, B, C, out):
 
 
 @numba.njit(cache=True, inline="always")
+def matmul_tn(A, B, out):
+    """``out = A^T B`` (indexing ``A`` as it is)."""
+    for i in range(A.shape[1]):
+        for k in range(B.shape[1]):
+            s = 0.0
+            for q in range(A.shape[0]):
+                s += A[q, i] * B[q, k]
+            out[i, k] = s
+
+
+@numba.njit(cache=True, inline="always")
 def solve_lower(L, Bm, m, out):
     """``out = L^{-1} B`` over the first ``m`` rows (``L`` lower triangular, ``B (m, c)``: forward
     substitution column by column)."""
@@ -255,10 +265,3 @@ def triple_entry(X, Y, Z, i, k, p, r):
         for ll in range(r):
             s += X[i, q] * Y[q, ll] * Z[ll, k]
     return s
-
-
-@numba.njit(cache=True)
-def update_workspace(n, m, dt):
-    """The measurement update's workspace, for the forward and the reverse pass: the cross covariance ``C (n,
-    m)``, the innovation covariance ``S (m, m)``, its factor ``L (m, m)`` and the innovation ``nu (m,)``."""
-    return np.empty((n, m), dt), np.empty((m, m), dt), np.empty((m, m), dt), np.empty(m, dt)
