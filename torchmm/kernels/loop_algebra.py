@@ -135,7 +135,8 @@ def inverse_from_chol(L, m, V, W):
 
 @numba.njit(cache=True, inline="always")
 def matmul(A, B, out):
-    """``out = A B`` (``A (p, q)``, ``B (q, r)``; transposed views welcome: ``matmul(F.T, X, out)``)."""
+    """``out = A B`` (``A (p, q)``, ``B (q, r)``). A transposed view as an argument costs the loops' inner
+    steps (docs/performance.md): :func:`matmul_nt_add` and :func:`matmul_tn` index their arguments as they are."""
     for i in range(A.shape[0]):
         for k in range(B.shape[1]):
             s = 0.0
