@@ -72,27 +72,20 @@ def entry_point(**kinds: Kind) -> Callable[[Callable], Callable]:
 
         @functools.wraps(fn)
         def wrapper(*args, **kwargs):
-            arguments = bind(args, kwargs)
+            arguments, bound = bind(args, kwargs), None
             if arguments is None:  # (variadic or positional-only parameters, or an error to name)
                 try:
                     bound = signature.bind(*args, **kwargs)
                 except TypeError:  # a missing, unknown or extra argument: named, as every other error
                     raise TypeError(_bind_error(fn, signature, args, kwargs)) from None
-                arguments = bound.arguments
-                for name, kind in checked:
-                    if name in arguments:
-                        value = arguments[name]
-                        new = kind.check(value, name)
-                        if new is not value:
-                            arguments[name] = new
-                return fn(*bound.args, **bound.kwargs)
+                arguments = bound.arguments  # (the mapping bound.args and bound.kwargs are made from)
             for name, kind in checked:
                 if name in arguments:
                     value = arguments[name]
                     new = kind.check(value, name)
                     if new is not value:
                         arguments[name] = new
-            return fn(**arguments)
+            return fn(**arguments) if bound is None else fn(*bound.args, **bound.kwargs)
 
         spec = EntryPoint(f"{fn.__module__}.{fn.__qualname__}", fn, dict(kinds), signature)
         wrapper.__entry_point__ = spec
