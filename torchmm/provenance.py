@@ -179,13 +179,15 @@ def tensor_versions(tree: Any) -> tuple | None:
     return tuple(out)
 
 
-def module_state(module: Any) -> tuple:
+def module_state(module: Any, tensors: list | None = None) -> tuple:
     """``(name, id, version)`` of a module's parameters and buffers: equal as long as none of them is
-    replaced or changed in place (an optimiser step, ``copy_``, ``load_state_dict``)."""
+    replaced or changed in place (an optimiser step, ``copy_``, ``load_state_dict``). ``tensors``:
+    :func:`~torchmm.validation.module_tensors`' list of them, where the caller has it (the versions are
+    read now)."""
     if not isinstance(module, torch.nn.Module):
         return ()
     out = []
-    for name, t in module_tensors(module):
+    for name, t in module_tensors(module) if tensors is None else tensors:
         try:
             version = t._version
         except RuntimeError:

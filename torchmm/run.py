@@ -18,7 +18,7 @@ from torchmm.contract import BeliefArg, Data, Finite, Flag, Gen, Of, Unchecked, 
 from torchmm.filters.base import Filter, StepOutput, call_with
 from torchmm.provenance import Provenance, fingerprints, module_state, tensor_versions
 from torchmm.runtime import entries, fast_paths_compiled, one_thread_when_small
-from torchmm.validation import check_filter_dtype, check_measurement
+from torchmm.validation import check_filter_dtype, check_measurement, module_tensors
 
 __all__ = ["Keep", "Trajectory", "attach_provenance", "per_step_models", "run_filter", "stack_outputs"]
 
@@ -185,7 +185,8 @@ def run_filter(
         torch.Size([10, 4, 2])
     """
     belief0.validate_once("belief0")  # (its type, filter's, and the flags' are the contract's, at entry)
-    check_filter_dtype(filter, belief0, "belief0")
+    owned = module_tensors(filter) if isinstance(filter, torch.nn.Module) else None  # (walked once a call)
+    check_filter_dtype(filter, belief0, "belief0", owned)
     if generator is not None and generator.device.type != belief0.device.type:
         raise ValueError(f"generator: on {generator.device}, the belief on {belief0.device}; create it "
                          f"there: torch.Generator(device={str(belief0.device)!r})")
@@ -293,7 +294,8 @@ def run_filter(
     made = Provenance(  # (attach_provenance's record, made once: the one-shot call's cost)
         "run_filter", filter, steps, measurements, data_prints, tensor_versions(measurements), controls,
         control_prints, None if controls is None else tensor_versions(controls), motions, sensors,
-        update_first, belief=parts[0], prior=parts[1], state=module_state(filter), kernel=chosen, declined=declined)
+        update_first, belief=parts[0], prior=parts[1], kernel=chosen, declined=declined,
+        state=module_state(filter, owned if fields is not None else None))  # (the steps may replace a tensor)
     stacked = Trajectory(*parts, provenance=made)
     kernels.count_run(chosen)
     if not (fields is not None and getattr(run, "flags_clear", False)):  # (a kernel that ran clean flags none)

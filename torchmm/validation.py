@@ -476,15 +476,16 @@ def module_tensors(module: torch.nn.Module) -> list[tuple[str, Tensor]]:
     return params + buffers
 
 
-def check_filter_dtype(filter, belief, name: str) -> None:
+def check_filter_dtype(filter, belief, name: str, tensors: list | None = None) -> None:
     """``TypeError`` naming ``name`` if the filter's floating tensors and the belief differ in dtype.
 
-    Reads dtypes only (an entry-point check: it walks the filter's parameters and buffers).
+    Reads dtypes only (an entry-point check: it walks the filter's parameters and buffers, or takes
+    ``tensors``, :func:`module_tensors`' list of them, where the caller has it).
     """
     dtype = getattr(belief, "dtype", None)
     if dtype is None:
         return
-    for tensor_name, tensor in module_tensors(filter):
+    for tensor_name, tensor in module_tensors(filter) if tensors is None else tensors:
         if tensor.is_floating_point() and tensor.dtype != dtype:
             raise TypeError(f"{name}: dtype {dtype} differs from the filter's {tensor.dtype} ({tensor_name}); "
                             f"convert one of them, e.g. filter.to({dtype}) or {name}.to({tensor.dtype})")
