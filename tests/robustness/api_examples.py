@@ -64,7 +64,7 @@ NOT_ENTRY_POINTS: dict[str, str] = {
     "torchmm.models.base.MotionModel": _INTERFACE,
     "torchmm.models.base.MeasurementModel": _INTERFACE,
     "torchmm.filters.unscented.SigmaPointStrategy": _INTERFACE,
-    "torchmm.multimodel.imm.Interaction": _INTERFACE,
+    "torchmm.multimodel.interaction.Interaction": _INTERFACE,
     "torchmm.multimodel.structure.ModelSetPolicy": _INTERFACE,
     # records
     "torchmm.typing.StepOutput": _RECORD + " (re-exported by torchmm.filters)",
@@ -142,9 +142,9 @@ NOT_ENTRY_POINTS: dict[str, str] = {
     "torchmm.kernels.switched_on": ("a context manager over *names, as switched_off (tests/kernels/test_switches.py)"),
     # no arguments
     "torchmm.filters.unscented.CubatureSigmaPoints": _NO_ARGS,
-    "torchmm.multimodel.imm.MomentMixing": _NO_ARGS,
-    "torchmm.multimodel.imm.Collapse": _NO_ARGS,
-    "torchmm.multimodel.imm.NoInteraction": _NO_ARGS,
+    "torchmm.multimodel.interaction.MomentMixing": _NO_ARGS,
+    "torchmm.multimodel.interaction.Collapse": _NO_ARGS,
+    "torchmm.multimodel.interaction.NoInteraction": _NO_ARGS,
     "torchmm.multimodel.structure.ActiveSetMixing": _NO_ARGS,
     "torchmm.multimodel.structure.AllModels": _NO_ARGS,
     "torchmm.models.adapters.CholeskyCovariance":
