@@ -58,6 +58,8 @@ class Belief:
     """
 
     event_dims: ClassVar[dict[str, int]] = {}
+    #: tensor fields whose finiteness a subclass's own ``validate`` checks (the same message): the base skips them
+    finite_checked_by_subclass: ClassVar[tuple[str, ...]] = ()
 
     # -- the protocol combinators use (docs/architecture.md) --------------------------------------
     # estimate() -> GaussianBelief (*B,): the point estimate and its covariance (moments).
@@ -140,7 +142,7 @@ class Belief:
             if isinstance(value, Belief):
                 value.validate(f"{name}.{field}")
             elif isinstance(value, Tensor) and value.is_floating_point():
-                if not all_finite(value):
+                if field not in self.finite_checked_by_subclass and not all_finite(value):
                     raise ValueError(f"{name}.{field}: contains NaN or infinite entries")
         return self
 

@@ -12,7 +12,7 @@ from torch import Tensor
 from torchmm.beliefs.base import Belief, register_belief
 from torchmm.beliefs.ops import mix_gaussians
 from torchmm.linalg import cholesky, cholesky_diagonal
-from torchmm.validation import all_finite, as_tensor, broadcast_shape, check_covariance, check_shape
+from torchmm.validation import as_tensor, broadcast_shape, check_covariance, check_shape
 from torchmm.contract import Cov, DType, Device, Finite, entry_point
 
 __all__ = ["GaussianBelief"]
@@ -55,6 +55,7 @@ class GaussianBelief(Belief):
     cov: Tensor
 
     event_dims: ClassVar[dict[str, int]] = {"mean": 1, "cov": 2}
+    finite_checked_by_subclass: ClassVar[tuple[str, ...]] = ("cov",)  # (check_covariance: finite first)
 
     def __post_init__(self):
         # shapes only (no values: this runs at every step); lists and integer tensors are converted
@@ -72,12 +73,7 @@ class GaussianBelief(Belief):
     def validate(self, name: str = "belief") -> GaussianBelief:
         """Finite mean, symmetric PSD covariance (see :meth:`Belief.validate`; the covariance's finiteness is
         its own check's, with the same message)."""
-        try:
-            self.batch_shape
-        except ValueError as err:
-            raise ValueError(f"{name}: {err}") from None
-        if not all_finite(self.mean):
-            raise ValueError(f"{name}.mean: contains NaN or infinite entries")
+        super().validate(name)
         check_covariance(self.cov, f"{name}.cov")
         return self
 

@@ -220,7 +220,7 @@ def propagate_log_likelihood(table: Tensor, flat: Tensor, eps: Tensor, factor: T
     loglik = torch.empty((R, M, Np), dtype=torch.float64)
     nan = torch.empty((R, M), dtype=torch.bool)
     _threads()
-    _kernels().propagate(as_array(table), as_array(flat), as_array(eps), as_array(factor), as_array(offset), as_array(F), as_array(W), as_array(shift),
+    _kernels().propagate(*(as_array(t) for t in (table, flat, eps, factor, offset, F, W, shift)),
                          float(const), x.numpy(), loglik.numpy(), nan.numpy(), (0,) * n, (0,) * k, (0,) * m)
     return (x, loglik, nan) if with_nan else (x, loglik)
 
