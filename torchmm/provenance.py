@@ -133,20 +133,19 @@ def fingerprints(*streams: Any) -> tuple[list, list]:
     Returns:
         ``([tuple of Fingerprint per stream, or None], [infinite entries per stream])``.
     """
-    leaves = [None if s is None else pytree.tree_leaves(s) for s in streams]
+    leaves = [None if s is None else [s] if isinstance(s, Tensor) else pytree.tree_leaves(s) for s in streams]
     flat = [t for ls in leaves if ls is not None for t in ls]
-    values: list = []
-    if flat:
+    values: list = [None] * len(flat)
+    for i, t in enumerate(flat):  # the same data as before (the same tensor, unchanged): its statistics
+        values[i] = _STATS.get((t,))
+        if values[i] is None:  # small CPU tensors: in NumPy
+            values[i] = _stats_numpy(t)
+            if values[i] is not None:
+                _STATS.put((t,), values[i])
+    if None in values:  # the others in torch
         by_device: dict = {}
         for i, t in enumerate(flat):
             by_device.setdefault(t.device, []).append(i)
-        values = [None] * len(flat)
-        for i, t in enumerate(flat):  # the same data as before (the same tensor, unchanged): its statistics
-            values[i] = _STATS.get((t,))
-            if values[i] is None:  # small CPU tensors: in NumPy
-                values[i] = _stats_numpy(t)
-                if values[i] is not None:
-                    _STATS.put((t,), values[i])
         for device, index in by_device.items():  # one read per device (one in practice)
             index = [i for i in index if values[i] is None]
             if not index:
@@ -174,7 +173,7 @@ def tensor_versions(tree: Any) -> tuple | None:
     """``(id, version)`` of every tensor leaf of ``tree`` (in-place changes bump a tensor's version);
     None where a tensor has no version counter (made under ``torch.inference_mode``)."""
     out = []
-    for t in pytree.tree_leaves(tree):
+    for t in (tree,) if isinstance(tree, Tensor) else pytree.tree_leaves(tree):
         if isinstance(t, Tensor):
             try:
                 out.append((id(t), t._version))

@@ -293,10 +293,13 @@ def _check_covariance_numpy(array: np.ndarray, name: str, definite: bool) -> Non
     if value.size == 0:
         return
     scale = np.abs(value).max(axis=(-1, -2), keepdims=True)
-    transposed = np.swapaxes(value, -1, -2)
-    if (np.abs(value - transposed) > SYMMETRY_RTOL * scale).any():
-        raise ValueError(f"{name}: covariance is not symmetric")
-    eigvals = _small_eigvalsh(0.5 * (value + transposed), scale)
+    if value.shape[-1] == 1:  # (a variance: symmetric, its own eigenvalue)
+        eigvals = value[..., 0]
+    else:
+        transposed = np.swapaxes(value, -1, -2)
+        if (np.abs(value - transposed) > SYMMETRY_RTOL * scale).any():
+            raise ValueError(f"{name}: covariance is not symmetric")
+        eigvals = _small_eigvalsh(0.5 * (value + transposed), scale)
     tol = 1e-10 * scale[..., 0]
     if definite and (eigvals <= tol).any():
         raise ValueError(f"{name}: covariance is not positive definite (smallest eigenvalue {eigvals.min():.3g})")

@@ -14,7 +14,7 @@ from torchmm.beliefs.base import Belief, register_belief
 from torchmm.beliefs.gaussian import GaussianBelief
 from torchmm.beliefs.ops import normalize_log_probs, symmetrize
 from torchmm.beliefs.particle import ParticleBelief
-from torchmm.validation import STOCHASTIC_ATOL, host_array
+from torchmm.validation import STOCHASTIC_ATOL, broadcast_shape, host_array
 
 __all__ = ["ModeBelief", "ModelSetBelief"]
 
@@ -49,9 +49,10 @@ class ModeBelief(Belief):
         lp = self.mode_log_probs.detach()
         small = host_array(lp)  # (a small CPU tensor: in NumPy, microseconds)
         if small is not None:
-            with np.errstate(over="ignore"):
-                bad = not (small < math.inf).all()  # (NaN or +inf: -inf is a probability 0)
-                unnormalised = small.size and bool((np.abs(np.exp(small).sum(-1) - 1) > STOCHASTIC_ATOL).any())
+            bad = not (small < math.inf).all()  # (NaN or +inf: -inf is a probability 0)
+            # (clipped at 1: no overflow, and a log-probability above 1 is unnormalised either way)
+            unnormalised = not bad and small.size and bool(
+                (np.abs(np.exp(np.minimum(small, 1.0)).sum(-1) - 1) > STOCHASTIC_ATOL).any())
         else:
             bad = bool(torch.isnan(lp).any()) or bool((lp == math.inf).any())
             unnormalised = lp.numel() and bool(((lp.exp().sum(-1) - 1).abs() > STOCHASTIC_ATOL).any())
@@ -63,7 +64,10 @@ class ModeBelief(Belief):
         if not comp_batch or comp_batch[-1] not in (1, self.num_modes):
             raise ValueError(f"{name}.components: batch {tuple(comp_batch)} must end with the {self.num_modes} "
                              "modes")
-        self.batch_shape
+        try:  # (the batch shape of the mode belief: its components' without the modes, once)
+            broadcast_shape(lp.shape[:-1], comp_batch[:-1])
+        except RuntimeError:
+            self.batch_shape  # (the error naming every field's batch)
         self.components.validate(f"{name}.components")
         return self
 
