@@ -165,6 +165,44 @@ def test_unchanged_keeps_an_answer_until_a_tensor_changes_or_dies():
     assert len(memo._answers) <= 4
 
 
+def test_unchanged_remember_computes_once_and_keeps_no_failure():
+    from torchmm.validation import Unchanged
+
+    memo = Unchanged(size=4)
+    x = torch.ones(2)
+    calls = []
+
+    def compute(answer):
+        def run():
+            calls.append(answer)
+            if isinstance(answer, Exception):
+                raise answer
+            return answer
+        return run
+
+    with pytest.raises(ValueError, match="bad"):  # a failed check keeps nothing: it fails again
+        memo.remember((x,), compute(ValueError("bad")))
+    with pytest.raises(ValueError, match="bad"):
+        memo.remember((x,), compute(ValueError("bad")))
+    assert memo.remember((x,), compute(None)) is None and memo.get((x,)) is None  # None is never kept
+    assert memo.remember((x,), compute("first")) == "first"
+    assert memo.remember((x,), compute("second")) == "first"  # kept: not computed again
+    assert calls == [calls[0], calls[1], None, "first"]
+    x.add_(1.0)  # a new version: computed again
+    assert memo.remember((x,), compute("third")) == "third" and memo.get((x,)) == "third"
+
+
+def test_broadcast_shape_agrees_with_torch():
+    from torchmm.validation import broadcast_shape
+
+    cases = [((3, 2), (3, 2)), ((3, 2), (2,)), ((1, 2), (4, 1)), ((), (5,)), ((2, 3), (2, 3), (2, 3)), ((0,), (1,))]
+    for shapes in cases:
+        assert broadcast_shape(*map(torch.Size, shapes)) == torch.broadcast_shapes(*shapes)
+    assert broadcast_shape() == torch.broadcast_shapes()
+    with pytest.raises(RuntimeError):
+        broadcast_shape(torch.Size([3]), torch.Size([2]))
+
+
 def test_a_belief_changed_in_place_after_a_run_is_checked_again():
     from torchmm import GaussianBelief, KalmanFilter, run_filter
     from torchmm.models import ConstantVelocity, PositionMeasurement

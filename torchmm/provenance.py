@@ -136,12 +136,8 @@ def fingerprints(*streams: Any) -> tuple[list, list]:
     leaves = [None if s is None else [s] if isinstance(s, Tensor) else pytree.tree_leaves(s) for s in streams]
     flat = [t for ls in leaves if ls is not None for t in ls]
     values: list = [None] * len(flat)
-    for i, t in enumerate(flat):  # the same data as before (the same tensor, unchanged): its statistics
-        values[i] = _STATS.get((t,))
-        if values[i] is None:  # small CPU tensors: in NumPy
-            values[i] = _stats_numpy(t)
-            if values[i] is not None:
-                _STATS.put((t,), values[i])
+    for i, t in enumerate(flat):  # the same data as before (the same tensor, unchanged): its statistics, else
+        values[i] = _STATS.remember((t,), lambda t=t: _stats_numpy(t))  # (small CPU tensors: in NumPy)
     if None in values:  # the others in torch
         by_device: dict = {}
         for i, t in enumerate(flat):

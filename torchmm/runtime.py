@@ -78,7 +78,7 @@ def host_reads_ok(tensor) -> bool:
     host already holds (a branch that pays there, e.g. a faster path when no datum is missing).
     Elsewhere (CUDA) a step takes the form without the read, with the same numbers. Inside
     :func:`no_host_sync` it is False on the CPU too, so that the device form is what is checked."""
-    return tensor.device.type == "cpu" and not _DEVICE_PATHS[0]
+    return tensor.is_cpu and not _DEVICE_PATHS[0]
 
 
 class HostSyncError(RuntimeError):

@@ -205,17 +205,29 @@ class Unchanged:
             return None
         return hit[1]
 
+    def remember(self, objects: Sequence, compute):
+        """The answer kept for ``objects``, else ``compute()``'s, kept unless None (an exception it raises
+        keeps nothing): :meth:`get` and :meth:`put` with one look at the objects."""
+        key = self._key(objects)
+        hit = None if key is None else self._answers.get(key)
+        if hit is not None and all(ref() is o for ref, o in zip(hit[0], objects)):
+            return hit[1]
+        answer = compute()
+        return answer if answer is None or key is None else self._keep(key, objects, answer)
+
     def put(self, objects: Sequence, answer):
         """Keep ``answer`` (not None) for ``objects`` as they are now; returns it."""
         key = self._key(objects)
-        if key is not None:
-            try:
-                refs = tuple(weakref.ref(o) for o in objects)
-            except TypeError:  # an object without weak references: nothing kept
-                return answer
-            if len(self._answers) >= self.size:  # (fresh objects every call: never more than size kept)
-                self._answers.clear()
-            self._answers[key] = (refs, answer)
+        return answer if key is None else self._keep(key, objects, answer)
+
+    def _keep(self, key: tuple, objects: Sequence, answer):
+        try:
+            refs = tuple(weakref.ref(o) for o in objects)
+        except TypeError:  # an object without weak references: nothing kept
+            return answer
+        if len(self._answers) >= self.size:  # (fresh objects every call: never more than size kept)
+            self._answers.clear()
+        self._answers[key] = (refs, answer)
         return answer
 
 
@@ -228,10 +240,10 @@ _NUMPY_DTYPES = (torch.float64, torch.float32, torch.float16)
 def host_array(tensor: Tensor) -> np.ndarray | None:
     """``tensor``'s values as a NumPy array (sharing memory, read-only use) when it is a small CPU
     floating tensor (:data:`SMALL_CHECK` entries), else None (check it in torch)."""
-    if tensor.device.type != "cpu" or tensor.dtype not in _NUMPY_DTYPES or tensor.numel() > SMALL_CHECK:
+    if not tensor.is_cpu or tensor.dtype not in _NUMPY_DTYPES or tensor.numel() > SMALL_CHECK:
         return None
     try:
-        return tensor.detach().numpy()
+        return (tensor.detach() if tensor.requires_grad else tensor).numpy()
     except (RuntimeError, TypeError):  # a view with a pending negation, or any other non-plain storage
         return None
 
@@ -362,6 +374,8 @@ def check_probabilities(probs, name: str, size: int, *, dtype=None, device=None)
 def broadcast_shape(*shapes) -> torch.Size:
     """``torch.broadcast_shapes`` in plain Python (several times faster for the few short shapes
     of a filter step). Raises ``RuntimeError`` like it when the shapes do not broadcast."""
+    if shapes and all(s == shapes[0] for s in shapes):  # (the usual case: one batch shape)
+        return torch.Size(shapes[0])
     ndim = max((len(s) for s in shapes), default=0)
     out = [1] * ndim
     for shape in shapes:

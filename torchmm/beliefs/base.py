@@ -151,10 +151,11 @@ class Belief:
         changed since (:class:`~torchmm.validation.Unchanged`; a change through ``.data`` or a NumPy view
         is not seen, as for autograd): an entry point called again with the same start (a loop of
         :func:`~torchmm.run_filter` calls, an objective) reads its values once. Returns the belief."""
-        objects = (self, *(t for t, _ in self._tensors()))
-        if _VALIDATED.get(objects) is None:
+        def checked() -> bool:
             self.validate(name)
-            _VALIDATED.put(objects, True)
+            return True
+
+        _VALIDATED.remember((self, *(t for t, _ in self._tensors())), checked)
         return self
 
     @property

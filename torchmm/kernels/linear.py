@@ -237,7 +237,7 @@ class LinearKernel:
             return f"the time-varying transition at the controls: {err}"
         tensors = (measurements, x0, P0, logmu0, *(t for t in model if isinstance(t, Tensor)), models[5],
                    *((controls,) if controls is not None else ()))
-        if any(t.device.type != "cpu" for t in tensors) or not host_reads_ok(tensors[0]):
+        if not all(t.is_cpu for t in tensors) or not host_reads_ok(tensors[0]):
             return "not on the CPU (or host reads are off: torchmm.runtime.no_host_sync)"
         if dtype not in (torch.float32, torch.float64) or any(t.dtype != dtype for t in tensors):
             return "not one float32 or float64 dtype"
@@ -320,7 +320,7 @@ class LinearKernel:
                 return "the trajectory's beliefs are not a ModeBelief of Gaussians"
             logmu, mean, cov = belief.mode_log_probs, belief.components.mean, belief.components.cov
         tensors = (logmu, mean, cov, *(t for t in model if isinstance(t, Tensor)))
-        if any(t.device.type != "cpu" for t in tensors) or not host_reads_ok(tensors[0]):
+        if not all(t.is_cpu for t in tensors) or not host_reads_ok(tensors[0]):
             return "not on the CPU (or host reads are off: torchmm.runtime.no_host_sync)"
         dtype = logmu.dtype
         if dtype not in (torch.float32, torch.float64) or any(t.dtype != dtype for t in tensors):

@@ -224,7 +224,14 @@ def plain_linear(model) -> bool:
     ``noise_cov`` and ``jacobian`` are the base class's own: it computes ``F x + b`` (``H x``) with
     its matrices, so a kernel may use the matrices instead of calling it. A subclass that only builds
     the matrices (``ConstantVelocity``) is plain; one that overrides them is not."""
-    base = LinearMotion if isinstance(model, LinearMotion) else LinearMeasurement if isinstance(
-        model, LinearMeasurement) else None
-    return base is not None and all(getattr(type(model), name) is getattr(base, name)
-                                    for name in ("forward", "noise_cov", "jacobian"))
+    kind = type(model)
+    known = _PLAIN.get(kind)
+    if known is None:  # (a class's methods are fixed once it is defined: answered once a class)
+        base = LinearMotion if issubclass(kind, LinearMotion) else LinearMeasurement if issubclass(
+            kind, LinearMeasurement) else None
+        known = _PLAIN[kind] = base is not None and all(getattr(kind, name) is getattr(base, name)
+                                                        for name in ("forward", "noise_cov", "jacobian"))
+    return known
+
+
+_PLAIN: dict = {}  # plain_linear's answers by class
