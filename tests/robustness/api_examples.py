@@ -248,9 +248,9 @@ example("torchmm.filters.particle.ParticleFilter.initial_belief")(
                  generator=torch.Generator().manual_seed(0)))
 example("torchmm.filters.variational.StudentTVBFilter")(
     lambda: call(torchmm.StudentTVBFilter, cv(), pos(), 5.0, 5, elbo_history=True, joseph=None))
-example("torchmm.filters.variational.SkewTVBFilter")(
+example("torchmm.filters.skew_t.SkewTVBFilter")(
     lambda: call(torchmm.SkewTVBFilter, cv(), pos(), [1.0], 5.0, 5, joseph=None))
-example("torchmm.filters.variational.SkewTIWVBFilter")(
+example("torchmm.filters.skew_t.SkewTIWVBFilter")(
     lambda: call(torchmm.SkewTIWVBFilter, cv(), pos(), [1.0], [5.0], 3.0, 5, "derived", False, None))
 example("torchmm.filters.vbakf.VBAKFPR")(
     lambda: call(torchmm.VBAKFPR, cv(), pos(), 3.0, 0.98, 5, 3.0, None))

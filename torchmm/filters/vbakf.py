@@ -15,7 +15,7 @@ from torch import Tensor
 
 from torchmm.beliefs import AdaptiveGaussianBelief, GaussianBelief
 from torchmm.filters.base import Filter, StepOutput
-from torchmm.filters.variational import check_iterations, check_linear_models, fill_missing, keep_prior_where_missing
+from torchmm.filters.vb_common import check_iterations, check_linear_models, fill_missing, keep_prior_where_missing
 from torchmm.linalg import check_joseph, condition, symmetrize, use_joseph
 from torchmm.models.base import MeasurementModel, MotionModel
 from torchmm.models.linear import LinearMeasurement, LinearMotion, matvec
