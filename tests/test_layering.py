@@ -20,7 +20,8 @@ LAYERS = [
     {"kernels"},  # the seam (torchmm/kernels/__init__.py) and every whole-run kernel behind it (issue 47)
     {"filters", "simulate", "assignment"},  # (assignment: its compiled loop is a stage kernel)
     {"run", "multimodel", "association"},
-    {"two_filter"},  # the two-filter IMM smoother (split from smooth.py, issue 47)
+    {"two_filter", "smooth_checks"},  # the two-filter IMM smoother; smooth's arguments checked against the
+    # run that made the trajectory (both split from smooth.py, issue 47)
     {"smooth", "parallel"},  # the backward passes, the time-parallel scans
     {"fusion", "learn", "metrics", "analysis"},
     {"torchmm"},  # the top-level namespace
