@@ -350,7 +350,7 @@ def test_steady_state_fused_estimator_monte_carlo():
 
 @pytest.mark.parametrize("make", [ups_system, random_system])
 def test_theorem6_closed_sums_match_the_recursion(make):
-    from torchmm.fusion.local import theorem6_cross_covariances
+    from torchmm.fusion.cross import theorem6_cross_covariances
 
     sys = make()
     T = 25

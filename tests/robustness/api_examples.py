@@ -71,7 +71,7 @@ NOT_ENTRY_POINTS: dict[str, str] = {
     "torchmm.run.Trajectory": _RECORD + " (run_filter makes it; smooth checks where it came from)",
     "torchmm.analysis.imm.ConclusionCheck": _RECORD,
     "torchmm.analysis.imm.InteractionDeviations": _RECORD,
-    "torchmm.fusion.local.CrossStats": _RECORD,
+    "torchmm.fusion.cross.CrossStats": _RECORD,
     "torchmm.fusion.local.LocalStats": _RECORD,
     "torchmm.fusion.weights.FusedEstimate": _RECORD,
     "torchmm.fusion.system.FusionSimulation": _RECORD,

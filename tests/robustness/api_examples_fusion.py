@@ -96,7 +96,7 @@ def _local(name, *args, **kwargs):
 
 example(_F + "local.local_one_step")(lambda: _local("local_one_step", _y())())
 example(_F + "local.local_covariances")(_local("local_covariances", 1, steps=STEPS))
-example(_F + "local.cross_predictor_stats")(_local("cross_predictor_stats", steps=STEPS))
+example(_F + "cross.cross_predictor_stats")(_local("cross_predictor_stats", steps=STEPS))
 
 
 def _local_estimates():
@@ -113,8 +113,8 @@ def _pairs(name, N, **kwargs):
 
 
 example(_F + "local.local_estimates")(_local_estimates)
-example(_F + "local.cross_covariances")(_pairs("cross_covariances", 1, steps=STEPS))
-example(_F + "local.theorem6_cross_covariances")(_pairs("theorem6_cross_covariances", 1, xi_term=True))
+example(_F + "cross.cross_covariances")(_pairs("cross_covariances", 1, steps=STEPS))
+example(_F + "cross.theorem6_cross_covariances")(_pairs("theorem6_cross_covariances", 1, xi_term=True))
 
 # -- augmented and centralized ----------------------------------------------------------------------
 example(_F + "augmented.augmented_cross_predictor")(

@@ -18,16 +18,13 @@ from torchmm.fusion.augmented import (
     centralized_estimates,
     correlated_kf,
 )
+from torchmm.fusion.cross import CrossStats, cross_covariances, cross_predictor_stats, theorem6_cross_covariances
 from torchmm.fusion.local import (
-    CrossStats,
     LocalStats,
-    cross_covariances,
-    cross_predictor_stats,
     local_covariances,
     local_estimates,
     local_one_step,
     local_predictor_stats,
-    theorem6_cross_covariances,
 )
 from torchmm.fusion.steady import (
     SteadyState,

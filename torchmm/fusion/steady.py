@@ -24,17 +24,8 @@ from torch import Tensor
 from torchmm.beliefs.ops import symmetrize
 from torchmm.contract import Choice, Int, Of, Real, Values, entry_point
 from torchmm.fusion.augmented import block_diagonal2
-from torchmm.fusion.local import (
-    CrossStats,
-    LocalStats,
-    cross_innovation,
-    cross_step,
-    local_from_pred,
-    local_gains,
-    cross_covariances,
-    local_one_step,
-    symmetrize_pairs,
-)
+from torchmm.fusion.cross import CrossStats, cross_covariances, cross_innovation, cross_step
+from torchmm.fusion.local import LocalStats, local_from_pred, local_gains, local_one_step, symmetrize_pairs
 from torchmm.fusion.system import SYSTEM_ARG, MultiSensorSystem, measurement_sequence
 from torchmm.fusion.weights import FUSION_METHODS, fusion_weights
 
