@@ -59,10 +59,11 @@ from torchmm.kernels.batch_last.algebra import (
     sandwich,
     stack_upper,
 )
+from torchmm.kernels.batch_last.plan import described, planned, why_not
 from torchmm.kernels.batch_last.traced import select
 from torchmm.typing import StepOutput
 
-__all__ = ["BATCH_LAST", "LARGE_BATCH", "LARGE_STATE", "MAX_STATE", "BatchLastIMM", "BatchLastKernel", "described", "why_not"]
+__all__ = ["BATCH_LAST", "LARGE_BATCH", "LARGE_STATE", "MAX_STATE", "BatchLastIMM", "BatchLastKernel"]
 
 _LOG_2PI = math.log(2 * math.pi)
 #: the largest state whose n x n factors the kernels form entry by entry (the two-filter smoother's pairs,
@@ -80,47 +81,12 @@ _BROADCAST_BYTES = 1 << 18
 log = logging.getLogger("torchmm")
 
 
-
-def why_not(model, M: int, belief0, measurements) -> str | None:
-    """Why a run of the linear-Gaussian description ``model`` (:class:`~torchmm.kernels.linear.LinearGaussian`
-    of an IMM or GPB1 over ``M`` Kalman modes) cannot run on this kernel (a short reason), or None if it can.
-
-    Shapes and types only, plus one look at ``R``'s off-diagonal values (the entry point's value
-    check, once per run). The reasons: model parameters batched beyond ``()`` or ``(M,)``; a
-    non-diagonal ``R``; a belief that is not the ``ModeBelief`` of Gaussians of ``initial_belief``;
-    measurements that are not one tensor ``(T, *B, m)`` of the belief's dtype and device.
-    """
-    m, n = model.H.shape[-2], model.F.shape[-1]
-    events = (2, 1, 2, 2, 2)
-    if any(tuple(t.shape[:t.dim() - e]) not in {(), (1,), (M,)} for t, e in zip(model[:5], events)):
-        return "model parameters batched over more than the modes"
-    if not isinstance(belief0, ModeBelief) or type(belief0.components) is not GaussianBelief:
-        return "belief0 is not a ModeBelief of Gaussians"
-    if not isinstance(measurements, Tensor) or not measurements.is_floating_point():
-        return "the measurements are not one floating-point tensor"
-    batch = belief0.mode_log_probs.shape[:-1]
-    if measurements.dim() != len(batch) + 2 or measurements.shape[1:] != (*batch, m):
-        return "the measurements' batch differs from belief0's"
-    if measurements.dtype != belief0.mode_log_probs.dtype:
-        return "the measurements' dtype differs from belief0's"
-    if measurements.device != belief0.mode_log_probs.device:
-        return "the measurements' device differs from belief0's"
-    if belief0.components.mean.shape[-2:] != (M, n):
-        return "belief0's components are not (*B, M, n)"
-    if model.transition.dtype != belief0.mode_log_probs.dtype:
-        return "the transition matrix's dtype differs from belief0's"
-    R = model.R
-    if m > 1 and bool((R - torch.diag_embed(R.diagonal(dim1=-2, dim2=-1))).abs().amax() > 0):  # once per run
-        return "R is not diagonal"
-    return None
-
-
 class BatchLastIMM:
     """One IMM step in the batch-last layout (module docstring), and the conversions.
 
     Args:
         model: the filter's :class:`~torchmm.kernels.linear.LinearGaussian` description (rule ``"mix"``
-            or ``"collapse"``) for which :func:`why_not` is None.
+            or ``"collapse"``) for which :func:`~torchmm.kernels.batch_last.plan.why_not` is None.
         M: the number of modes.
         batch_dims: the number of batch axes ``len(B)``.
         like: a tensor of the run's dtype and device.
@@ -503,24 +469,6 @@ class BatchLastKernel:
         return _plan_two_filter(filter, trajectory, method, **inputs)
 
 
-def described(filter, request: kernels.Request, family: str, rules: tuple, which: str, belief0=None,
-              measurements=None, why=None):
-    """``filter``'s description for the kernel ``family`` where a batch-last kernel may plan the run (no
-    ``update_first``, not a repeated evaluation, an interaction rule in ``rules``, the estimators named
-    ``which``, and ``why(model, M, belief0, measurements)`` None where given), or the reason not."""
-    if request.update_first:
-        return "update_first"
-    if request.repeated:
-        return "no prepared (repeated) evaluation"
-    model = kernels.describe(filter, family)
-    if isinstance(model, str):
-        return model
-    if model.rule not in rules:
-        return f"the {model.rule!r} rule ({which} only)"
-    reason = None if why is None else why(model, model.transition.shape[-1], belief0, measurements)
-    return model if reason is None else reason
-
-
 def _plan_two_filter(filter, trajectory, method, measurements=None, prior_log=None, **inputs):
     """:meth:`BatchLastKernel.plan_smooth`: the two-filter smoother's passes batch-last
     (:mod:`torchmm.kernels.batch_last.smooth`), or the reason not."""
@@ -537,78 +485,6 @@ def _plan_two_filter(filter, trajectory, method, measurements=None, prior_log=No
     like = trajectory.belief.mode_log_probs
     passes = BatchLastTwoFilter(model, model.transition.shape[-1], like.dim() - 2, like)
     return lambda: passes.run(trajectory, measurements, prior_log)
-
-
-def planned(kernel: BatchLastIMM, belief0, request: kernels.Request):
-    """The plan of a prepared kernel: what it builds set from ``request`` (the kept fields, the
-    estimate inside the step or after a post-update, the generator), and ``run()`` (:func:`run_steps`),
-    with ``run.kernel``."""
-    kernel.generator = request.generator
-    kept = frozenset(StepOutput._fields) - {"belief", "log_likelihood"}
-    if request.estimate and kernel.post_update is not None:  # the estimate from the post-update's belief
-        kernel.estimate_after = True
-        kernel.omit(kept)
-    elif request.estimate:
-        kernel.omit(kept, estimate=True)
-    elif request.keep is not None:
-        kernel.omit(frozenset(StepOutput._fields) - request.keep)
-
-    def run():
-        return run_steps(kernel, belief0, request)
-
-    run.kernel = kernel  # (for tests and profiling)
-    return run
-
-
-def run_steps(kernel: BatchLastIMM, belief0, request: kernels.Request) -> tuple:
-    """A planned kernel's whole run: its steps from ``belief0`` (a progress bar where asked), each
-    output detached and recorded as ``request`` says, stacked (:func:`stack_batch_first`). After step 0
-    the kernel stops building what a record function dropped."""
-    state = kernel.initial_state(belief0)
-    record, detach = request.record, request.detach_belief
-    steps = range(len(kernel.data))
-    if request.progress:
-        from tqdm.auto import tqdm
-
-        steps = tqdm(steps, desc=request.progress if isinstance(request.progress, str) else None, leave=False)
-    kept = []
-    for k in steps:
-        state, out = kernel.step(state, None)
-        if detach and out.belief is not None:
-            out = out._replace(belief=out.belief.detach())
-        kept.append(out if record is None else record(out))
-        if k == 0 and record is not None and isinstance(kept[0], StepOutput):
-            # what the record drops need not be built
-            kernel.omit(kernel.omitted | frozenset(
-                f for f in StepOutput._fields if getattr(kept[0], f) is None and getattr(out, f) is not None))
-    return stack_batch_first(kept)
-
-
-def stack_batch_first(outputs: list) -> tuple:
-    """The steps' outputs (batch-first views of batch-last tensors) stacked on a new time axis, each
-    field in its own memory order (a contiguous copy instead of a transposing gather): batch-first
-    *views* of batch-last memory, full records as estimates. A further batch-first copy of the full
-    record (2026-12-03 to 12-04) doubled a 40,000-run IMM's full-record run (14 -> 30 ms a step: 16
-    transposing copies) to make the two-filter smoother that reads it 7 % faster
-    (benchmarks/engine_throughput.py, docs/performance.md)."""
-    return tuple(kernels.stack_steps(outputs, stack=_stack_in_memory_order))
-
-
-def _stack_in_memory_order(tensors: list) -> Tensor:
-    """``torch.stack(tensors)`` of equally permuted views, copied in their memory order (the same values
-    and shape; a contiguous copy instead of a transposing gather), as a permuted view."""
-    first = tensors[0]
-    strides = first.stride()
-    if first.is_contiguous() or first.dim() < 2 or any(t.stride() != strides for t in tensors[1:]):
-        return torch.stack(tensors)
-    order = sorted(range(first.dim()), key=lambda i: -strides[i])
-    if not first.permute(order).is_contiguous():
-        return torch.stack(tensors)
-    stacked = torch.stack([t.permute(order) for t in tensors])
-    inverse = [0] * first.dim()
-    for position, axis in enumerate(order):
-        inverse[axis] = position + 1
-    return stacked.permute(0, *inverse)
 
 
 BATCH_LAST = BatchLastKernel()  # (registered by torchmm.kernels.TABLE)

@@ -51,7 +51,8 @@ from torchmm.kernels.batch_last.algebra import (
     solve_lower,
     stack_upper,
 )
-from torchmm.kernels.batch_last.imm import BatchLastIMM, described, planned
+from torchmm.kernels.batch_last.imm import BatchLastIMM
+from torchmm.kernels.batch_last.plan import described, planned
 from torchmm.runtime import host_reads_ok
 
 __all__ = ["MIN_BATCH", "BatchLastNonlinear", "BatchLastNonlinearKernel", "why_not_nonlinear"]

@@ -49,7 +49,8 @@ from torchmm.kernels.batch_last.algebra import (
     stack_upper,
     sum_terms,
 )
-from torchmm.kernels.batch_last.imm import LARGE_BATCH, LARGE_STATE, MAX_STATE, BatchLastIMM, why_not
+from torchmm.kernels.batch_last.imm import LARGE_BATCH, LARGE_STATE, MAX_STATE, BatchLastIMM
+from torchmm.kernels.batch_last.plan import why_not
 
 __all__ = ["LARGE_SMOOTHER", "BatchLastTwoFilter", "LargeStateSmoother", "why_not_smooth"]
 

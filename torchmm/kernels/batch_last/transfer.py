@@ -47,7 +47,8 @@ from torchmm.kernels.batch_last.algebra import (
     stack_upper,
     sum_terms,
 )
-from torchmm.kernels.batch_last.imm import LARGE_BATCH, LARGE_STATE, MAX_STATE, BatchLastIMM, planned, why_not
+from torchmm.kernels.batch_last.imm import LARGE_BATCH, LARGE_STATE, MAX_STATE, BatchLastIMM
+from torchmm.kernels.batch_last.plan import planned, why_not
 from torchmm.models.streams import split_streams
 
 __all__ = ["TRANSFER", "TRANSFER_LARGE", "BatchLastTransfer", "BatchLastTransferKernel", "LargeStateTransfer"]
