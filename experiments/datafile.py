@@ -23,25 +23,24 @@ of the wrong type (``measurements="pos"`` for ``["pos"]``) is a ``TypeError`` na
 
 from __future__ import annotations
 
-import csv
-import io
 import math
-import os
-from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from experiments.datafile_io import (
+    DataFileError,
+    check_increasing,
+    column_name,
+    column_names,
+    locate,
+    read_csv,
+    read_npz,
+)
+
 __all__ = ["DataFileError", "DataSeries", "DetectionScans", "TargetRows", "read_detections", "read_series",
            "read_targets"]
-
-#: cells read as missing (case-insensitive)
-MISSING = ("", "nan", "na", "n/a", "null", "none")
-
-
-class DataFileError(ValueError):
-    """A data file that cannot be read as the config describes: one line naming file, column, row."""
 
 
 @dataclass
@@ -73,161 +72,6 @@ class DataSeries:
         return self.measurements.shape[1]
 
 
-def _number(text: str, file: Path, column: str, line: int) -> float:
-    cell = text.strip()
-    if cell.lower() in MISSING:
-        return math.nan
-    try:
-        if "_" in cell:  # float() reads 1_000 as 1000: not a number a data file means
-            raise ValueError
-        value = float(cell)
-    except ValueError:
-        raise DataFileError(f"{file}: column {column!r}, row {line}: {cell!r} is not a number") from None
-    if math.isinf(value):  # inf is not missing: only the MISSING cells (and NaN) are
-        raise DataFileError(f"{file}: column {column!r}, row {line}: {cell!r} is not finite (leave the cell "
-                            "empty or write nan for a missing value)")
-    return value  # NaN in any spelling float() reads (nan, -nan, +NaN) is missing
-
-
-def _columns(value, name: str, *, optional: bool = False) -> list[str] | None:
-    """``value`` as a list of column names: a sequence (list, tuple, a config's list) of non-empty
-    strings; a string, a mapping or an array is a ``TypeError`` naming ``name`` (a string would be
-    read letter by letter)."""
-    if value is None and optional:
-        return None
-    if isinstance(value, (str, bytes)) or not isinstance(value, Sequence):
-        hint = f" (one column: [{value!r}])" if isinstance(value, str) else ""
-        raise TypeError(f"{name}: expected a list of column names, got {value!r}{hint}")
-    out = list(value)
-    for i, column in enumerate(out):
-        if not isinstance(column, str) or not column.strip():
-            raise TypeError(f"{name}[{i}]: expected a column name (a non-empty string), got {column!r}")
-        if column in out[:i]:
-            raise ValueError(f"{name}[{i}]: column {column!r} is named twice (as {name}[{out.index(column)}]): one "
-                             "column would feed two components")
-    return out
-
-
-def _column(value, name: str) -> str | None:
-    """``value`` as one optional column name (a non-empty string or None), else a ``TypeError``."""
-    if value is not None and (not isinstance(value, str) or not value.strip()):
-        raise TypeError(f"{name}: expected a column name (a non-empty string) or None, got {value!r}")
-    return value
-
-
-def _path(value, name: str, *, optional: bool = False) -> Path | None:
-    if value is None and optional:
-        return None
-    if not isinstance(value, (str, os.PathLike)) or not os.fspath(value):
-        raise TypeError(f"{name}: expected a file path (str or pathlib.Path), got {value!r}")
-    return Path(value)
-
-
-def _text(file: Path) -> str:
-    """The file's text (UTF-8, an optional byte-order mark dropped), or one :class:`DataFileError`
-    naming the file and the line of the first byte that is not UTF-8."""
-    try:
-        data = file.read_bytes()
-    except OSError as err:
-        raise DataFileError(f"{file}: cannot be read ({err.strerror or err})") from None
-    try:
-        return data.decode("utf-8-sig")
-    except UnicodeDecodeError as err:
-        line = data[:err.start].count(b"\n") + 1
-        raise DataFileError(f"{file}: line {line}: not UTF-8 text (byte 0x{data[err.start]:02x}); save the file "
-                            "as UTF-8") from None
-
-
-def _read_csv(file: Path, wanted: list[str], series: str | None,
-              names: Sequence[str] = ()) -> tuple[dict[str, list], list[int]]:
-    """The columns ``wanted`` as numbers, ``series`` and ``names`` as labels (stripped, never empty), and
-    each row's line number."""
-    reader = csv.reader(io.StringIO(_text(file), newline=""))
-    header = next(reader, None)
-    if not header:
-        raise DataFileError(f"{file}: empty file (expected a header line naming the columns)")
-    header = [h.strip() for h in header]
-    index = {}
-    labelled = ([series] if series else []) + list(names)
-    for name in wanted + labelled:
-        if name not in header:
-            raise DataFileError(f"{file}: column {name!r}, row 1: not in the header "
-                                f"(columns: {', '.join(header)})")
-        if header.count(name) > 1:
-            raise DataFileError(f"{file}: column {name!r}, row 1: named {header.count(name)} times in the header "
-                                "(which one is meant?)")
-        index[name] = header.index(name)
-    values: dict[str, list] = {name: [] for name in index}
-    lines = []
-    for row in reader:
-        line = reader.line_num  # the row's last line (a quoted cell may span lines)
-        if not row or all(not cell.strip() for cell in row):
-            continue
-        if len(row) != len(header):
-            raise DataFileError(f"{file}: row {line}: {len(row)} cells, the header has {len(header)}")
-        for name, i in index.items():
-            cell = row[i]
-            if name in labelled:
-                if not cell.strip():
-                    what = "series" if name == series else "label"
-                    raise DataFileError(f"{file}: column {name!r}, row {line}: the {what} cell is empty "
-                                        f"(every row names its {what})")
-                values[name].append(cell.strip())
-            else:
-                values[name].append(_number(cell, file, name, line))
-        lines.append(line)
-    if not lines:
-        raise DataFileError(f"{file}: no data rows after the header")
-    return values, lines
-
-
-def _read_npz(file: Path, wanted: list[str]) -> dict[str, np.ndarray]:
-    try:
-        archive = np.load(file, allow_pickle=False)
-    except (OSError, ValueError) as err:
-        raise DataFileError(f"{file}: cannot be read as NPZ ({err})") from None
-    with archive:
-        out = {}
-        for name in wanted:
-            if name not in archive.files:
-                raise DataFileError(f"{file}: column {name!r}: no such array (arrays: {', '.join(archive.files)})")
-            try:
-                raw = archive[name]
-            except ValueError:  # an object array (it would need pickle)
-                raise DataFileError(f"{file}: column {name!r}: an object array (pickled Python objects); save numbers "
-                                    "(a float or integer array)") from None
-            # numbers only: booleans (True/False read as 1/0) and strings are not measurements
-            array = np.asarray(raw, dtype=np.float64) if raw.dtype.kind in "fiu" else None
-            if array is None or array.ndim not in (1, 2):
-                raise DataFileError(f"{file}: column {name!r}: expected a numeric (T,) or (T, runs) array")
-            infinite = np.argwhere(np.isinf(array))
-            if len(infinite):  # inf is not missing (NaN is)
-                where = tuple(int(i) for i in infinite[0])
-                raise DataFileError(f"{file}: column {name!r}, entry {where[0] if len(where) == 1 else where}: "
-                                    f"{array[where]:g} is not finite (NaN marks a missing value)")
-            out[name] = array if array.ndim == 2 else array[:, None]
-    shapes = {name: a.shape for name, a in out.items()}
-    if len(set(shapes.values())) > 1:
-        raise DataFileError(f"{file}: arrays of different shapes {shapes}")
-    return out
-
-
-def _locate(path: str | Path, base: Path | None, measurements: list[str]) -> Path:
-    """The data file: a relative ``path`` in ``base`` (the working directory), then in the shipped
-    ``experiments/data``; it must exist, and some measurement columns must be named."""
-    file = _path(path, "path")
-    base = _path(base, "base", optional=True)
-    if not file.is_absolute():
-        here = (base or Path.cwd()) / file
-        shipped = Path(__file__).resolve().parent / "data" / file
-        file = here if here.exists() or not shipped.exists() else shipped
-    if not measurements:
-        raise ValueError("measurements: no columns given (name the measurement columns, e.g. ['x', 'y'])")
-    if not file.exists():
-        raise DataFileError(f"{file}: no such file")
-    return file
-
-
 def read_series(path: str | Path, *, measurements: list[str], truth: list[str] | None = None,
                 time: str | None = None, series: str | None = None, base: Path | None = None,
                 inputs: list[str] | None = None) -> DataSeries:
@@ -252,18 +96,18 @@ def read_series(path: str | Path, *, measurements: list[str], truth: list[str] |
         TypeError: naming the argument: a string for a list of columns (``measurements="pos"``), a
             column name that is not a string.
     """
-    measurements = _columns(measurements, "measurements")
-    truth = _columns(truth, "truth", optional=True) or []
-    inputs = _columns(inputs, "inputs", optional=True) or []
-    time, series = _column(time, "time"), _column(series, "series")
-    file = _locate(path, base, measurements)
+    measurements = column_names(measurements, "measurements")
+    truth = column_names(truth, "truth", optional=True) or []
+    inputs = column_names(inputs, "inputs", optional=True) or []
+    time, series = column_name(time, "time"), column_name(series, "series")
+    file = locate(path, base, measurements)
     wanted = measurements + truth + inputs + ([time] if time else [])
     suffix = file.suffix.lower()
     if suffix == ".npz":
         if series:
             raise DataFileError(f"{file}: column {series!r}: NPZ arrays hold several series as (T, runs) columns; "
                                 "no series column")
-        arrays = _read_npz(file, wanted)
+        arrays = read_npz(file, wanted)
         z = np.stack([arrays[c] for c in measurements], -1)
         x = np.stack([arrays[c] for c in truth], -1) if truth else None
         u = np.stack([arrays[c] for c in inputs], -1) if inputs else None
@@ -279,11 +123,11 @@ def read_series(path: str | Path, *, measurements: list[str], truth: list[str] |
                 raise DataFileError(f"{file}: column {time!r}: the series have different time stamps "
                                     "(one shared time grid is supported)")
             stamps = t[:, 0]
-            _check_increasing(stamps, file, time, list(range(len(stamps))), "index")
+            check_increasing(stamps, file, time, list(range(len(stamps))), "index")
         return DataSeries(z, x, stamps, present, [str(i) for i in range(z.shape[1])], u)
     if suffix != ".csv":
         raise DataFileError(f"{file}: expected a .csv or .npz file")
-    values, lines = _read_csv(file, wanted, series)
+    values, lines = read_csv(file, wanted, series)
     labels = values.pop(series) if series else ["0"] * len(lines)
     order = list(dict.fromkeys(labels))
     rows = {s: [i for i, label in enumerate(labels) if label == s] for s in order}
@@ -312,7 +156,7 @@ def read_series(path: str | Path, *, measurements: list[str], truth: list[str] |
             bad = [lines[i] for i, v in zip(idx, t) if not math.isfinite(v)]
             if bad:
                 raise DataFileError(f"{file}: column {time!r}, row {bad[0]}: a time stamp is missing")
-            _check_increasing(t, file, time, [lines[i] for i in idx], "row")
+            check_increasing(t, file, time, [lines[i] for i in idx], "row")
             if stamps is None:
                 stamps = t
             elif len(t) > len(stamps) and np.array_equal(t[:len(stamps)], stamps):
@@ -321,14 +165,6 @@ def read_series(path: str | Path, *, measurements: list[str], truth: list[str] |
                 raise DataFileError(f"{file}: column {time!r}, row {lines[idx[0]]}: series {s!r} has other time "
                                     "stamps than the first series (one shared time grid is supported)")
     return DataSeries(z, x, stamps, present, order, u)
-
-
-def _check_increasing(t: np.ndarray, file: Path, column: str, where: list[int], what: str) -> None:
-    steps = np.diff(t)
-    if np.any(steps <= 0):
-        i = int(np.argmax(steps <= 0)) + 1
-        raise DataFileError(f"{file}: column {column!r}, {what} {where[i]}: time stamps must increase "
-                            f"({t[i - 1]:g} then {t[i]:g})")
 
 
 @dataclass
@@ -384,16 +220,16 @@ def read_detections(path: str | Path, *, measurements: list[str], time: str, ser
         A CSV ``time,x,y`` with rows ``0,1.5,2.0``, ``0,40,-3``, ``1,,`` and ``2,2.1,2.2`` gives
         ``z`` of shape ``(3, 1, 2, 2)``: two detections at t = 0, none at 1, one at 2.
     """
-    measurements = _columns(measurements, "measurements")
+    measurements = column_names(measurements, "measurements")
     if time is None:
         raise TypeError("time: expected the time-stamp column's name, got None")
-    time, series, sensor = _column(time, "time"), _column(series, "series"), _column(sensor, "sensor")
-    file = _locate(path, base, measurements)
+    time, series, sensor = column_name(time, "time"), column_name(series, "series"), column_name(sensor, "sensor")
+    file = locate(path, base, measurements)
     wanted = measurements + [time]
     suffix = file.suffix.lower()
     sensor_labels = None
     if suffix == ".npz":
-        arrays = _read_npz(file, wanted + ([series] if series else []) + ([sensor] if sensor else []))
+        arrays = read_npz(file, wanted + ([series] if series else []) + ([sensor] if sensor else []))
         if any(a.shape[1] != 1 for a in arrays.values()):
             raise DataFileError(f"{file}: expected one (K,) array per column, one entry per detection")
         values = {c: list(arrays[c][:, 0]) for c in wanted}
@@ -411,7 +247,7 @@ def read_detections(path: str | Path, *, measurements: list[str], time: str, ser
                                     "(every entry names its sensor)")
             sensor_labels = [f"{v:g}" for v in arrays[sensor][:, 0]]
     elif suffix == ".csv":
-        values, where = _read_csv(file, wanted, series, names=[sensor] if sensor else ())
+        values, where = read_csv(file, wanted, series, names=[sensor] if sensor else ())
         labels = values.pop(series) if series else ["0"] * len(where)
         sensor_labels = values.pop(sensor) if sensor else None
         what = "row"
@@ -497,16 +333,16 @@ def read_targets(path: str | Path, *, columns: list[str], target: str, time: str
             cell, and a (series, target[, time]) given twice.
         TypeError: naming the argument.
     """
-    columns = _columns(columns, "columns")
-    target, time, series = _column(target, "target"), _column(time, "time"), _column(series, "series")
+    columns = column_names(columns, "columns")
+    target, time, series = column_name(target, "target"), column_name(time, "time"), column_name(series, "series")
     if target is None:
         raise TypeError("target: expected the target column's name, got None")
-    file = _locate(path, base, columns)
+    file = locate(path, base, columns)
     wanted = columns + ([time] if time else [])
     suffix = file.suffix.lower()
     if suffix == ".npz":
         labelled = [target] + ([series] if series else [])
-        arrays = _read_npz(file, wanted + labelled)
+        arrays = read_npz(file, wanted + labelled)
         if any(a.shape[1] != 1 for a in arrays.values()):
             raise DataFileError(f"{file}: expected one (K,) array per column, one entry per row")
         for name in labelled:
@@ -517,7 +353,7 @@ def read_targets(path: str | Path, *, columns: list[str], target: str, time: str
         names = {c: [f"{v:g}" for v in arrays[c][:, 0]] for c in labelled}
         rows, what = list(range(len(values[columns[0]]))), "entry"
     elif suffix == ".csv":
-        values, rows = _read_csv(file, wanted, series, names=[target])
+        values, rows = read_csv(file, wanted, series, names=[target])
         names = {target: values.pop(target)} | ({series: values.pop(series)} if series else {})
         what = "row"
     else:
