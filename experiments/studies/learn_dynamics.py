@@ -27,20 +27,16 @@ import logging
 import math
 import time
 
-import matplotlib
+import torch
+from torch import nn
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import torch  # noqa: E402
-from torch import nn  # noqa: E402
-
-from experiments.estimators import Estimator, evaluate, starter  # noqa: E402
-from experiments.executors import Unit  # noqa: E402
-from experiments.harness import StudyContext, per_run  # noqa: E402
-from experiments.uncertainty import nees_consistency  # noqa: E402
-from experiments.scenarios import JumpScenario, stay_matrix, turning_2d  # noqa: E402
-from experiments.studies import plots  # noqa: E402
-from torchmm import (  # noqa: E402
+from experiments.estimators import Estimator, evaluate, starter
+from experiments.executors import Unit
+from experiments.harness import StudyContext, per_run
+from experiments.uncertainty import nees_consistency
+from experiments.scenarios import JumpScenario, stay_matrix, turning_2d
+from experiments.studies.learn_dynamics_figures import figures
+from torchmm import (
     IMM,
     ConstantVelocity,
     CoordinatedTurn,
@@ -48,8 +44,8 @@ from torchmm import (  # noqa: E402
     KalmanFilter,
     ModeTransition,
 )
-from torchmm.learn import Trainer, negative_log_likelihood  # noqa: E402
-from torchmm.models import LearnedMotion, learnable_noise  # noqa: E402
+from torchmm.learn import Trainer, negative_log_likelihood
+from torchmm.models import LearnedMotion, learnable_noise
 
 log = logging.getLogger("torchmm.experiments")
 
@@ -463,7 +459,7 @@ def _run(ctx: StudyContext) -> None:
         )
 
     ctx.results.save()
-    _figures(ctx, histories, scores, curves, true_tpm, q_true, scenario, bands=bands)
+    figures(ctx, histories, scores, curves, true_tpm, q_true, scenario, bands=bands)
 
 
 def _training_bar(ctx, iterations: int, desc: str):
@@ -492,68 +488,3 @@ def _log_history(ctx, part: str, history: list[dict]) -> None:
             quantity = {"loss": "training_loss", "grad_norm": "training_grad_norm"}.get(key)
             tag = f"{quantity}/{part}" if quantity else f"training_param/{part}/{key}"
             ctx.logger.sweep(tag, iterations, values, "iteration")
-
-
-# -- figures ---------------------------------------------------------------------------------------
-def _figures(ctx, histories, scores, curves, true_tpm, q_true, scenario, bands=None) -> None:
-    if histories:
-        fig, axes = plt.subplots(1, len(histories), figsize=(5.5 * len(histories), 3.6), squeeze=False)
-        for ax, (part, hist) in zip(axes[0], histories.items()):
-            ax.plot([h["iteration"] for h in hist], [h["loss"] for h in hist], marker="o", ms=3)
-            ax.set_xlabel("iteration")
-            ax.set_ylabel("NLL per step and run")
-            ax.set_title(f"part {part}")
-            ax.grid(alpha=0.3)
-        fig.tight_layout()
-        ctx.save_figure("loss_curve", fig)
-
-        panels = []
-        if "a" in histories:
-            panels += ["tpm", "q"]
-        if "b" in histories:
-            panels.append("mlp")
-        fig, axes = plt.subplots(1, len(panels), figsize=(5.2 * len(panels), 3.6), squeeze=False)
-        for ax, panel in zip(axes[0], panels):
-            if panel == "tpm":
-                hist = histories["a"]
-                its = [h["iteration"] for h in hist]
-                for i in range(3):
-                    for j in range(3):
-                        line, = ax.plot(its, [h[f"tpm[{i},{j}]"] for h in hist], lw=1.2, label=f"[{i},{j}]")
-                        ax.axhline(true_tpm[i, j].item(), color=line.get_color(), ls=":", lw=0.8)
-                ax.set_ylabel("transition-matrix entry")
-                # every entry labelled, outside the curves
-                ax.legend(fontsize=7, title="entry (dotted: true)", title_fontsize=7, loc="upper left",
-                          bbox_to_anchor=(1.02, 1.0), frameon=False, borderaxespad=0)
-            elif panel == "q":
-                hist = histories["a"]
-                ax.plot([h["iteration"] for h in hist], [h["q"] for h in hist], marker="o", ms=3)
-                ax.axhline(q_true, color="k", ls=":", label="true")
-                ax.set_yscale("log")
-                ax.set_ylabel("q")
-                ax.legend(fontsize=8)
-            else:
-                hist = histories["b"]
-                ax.plot([h["iteration"] for h in hist], [h["mlp_turn_rate"] for h in hist], marker="o", ms=3)
-                ax.axhline(scenario.motion.omega[int(ctx.cfg.learn.part_b.replaced_mode)].item(), color="k",
-                           ls=":", label="true")
-                ax.set_ylabel("turn rate implied by the MLP mode")
-                ax.legend(fontsize=8)
-            ax.set_xlabel("iteration")
-            ax.grid(alpha=0.3)
-        fig.tight_layout()
-        ctx.save_figure("parameter_trajectories", fig)
-
-    labels = list(scores)
-    fig, axes = plt.subplots(1, 2, figsize=(11, 3.8))
-    for ax, k, name in ((axes[0], 0, "position RMSE"), (axes[1], 1, "velocity RMSE")):
-        values = [scores[label][k] for label in labels]
-        ax.bar(range(len(labels)), values, color=[f"C{i}" for i in range(len(labels))])
-        ax.set_xticks(range(len(labels)), labels, rotation=25, ha="right", fontsize=8)
-        ax.set_ylabel(name)
-        ax.grid(alpha=0.3, axis="y")
-    fig.suptitle("held-out RMSE before / after learning")
-    fig.tight_layout()
-    ctx.save_figure("rmse_before_after", fig)
-    ctx.save_figure("rmse_over_time", plots.rmse_over_time(curves, f"{scenario.name}, held-out runs",
-                                                                  bands=bands))
