@@ -11,7 +11,7 @@ ROOT = Path(torchmm.__file__).parent
 
 #: bottom to top; a package may import packages of lower layers only (docs/architecture.md)
 LAYERS = [
-    {"validation", "typing", "runtime"},
+    {"validation", "typing", "runtime", "unchanged"},
     {"provenance"},  # (its small tensors' checksums in NumPy: validation.host_array)
     {"contract"},  # the entry-point contract (torchmm/contract/): every layer above declares through it
     {"distributions", "linalg"},

@@ -138,7 +138,7 @@ def test_covariance_check_of_broadcast_batches():
 
 
 def test_unchanged_keeps_an_answer_until_a_tensor_changes_or_dies():
-    from torchmm.validation import Unchanged
+    from torchmm.unchanged import Unchanged
 
     memo = Unchanged(size=4)
     x, y = torch.ones(3), torch.zeros(2)
@@ -166,7 +166,7 @@ def test_unchanged_keeps_an_answer_until_a_tensor_changes_or_dies():
 
 
 def test_unchanged_remember_computes_once_and_keeps_no_failure():
-    from torchmm.validation import Unchanged
+    from torchmm.unchanged import Unchanged
 
     memo = Unchanged(size=4)
     x = torch.ones(2)

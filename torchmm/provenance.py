@@ -24,7 +24,8 @@ import torch
 import torch.utils._pytree as pytree
 from torch import Tensor
 
-from torchmm.validation import Unchanged, host_array, module_tensors
+from torchmm.unchanged import Unchanged
+from torchmm.validation import host_array, module_tensors
 
 __all__ = ["Fingerprint", "Provenance", "fingerprints", "module_state", "tensor_versions"]
 

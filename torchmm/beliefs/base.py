@@ -19,7 +19,8 @@ import torch
 import torch.utils._pytree as pytree
 from torch import Tensor
 
-from torchmm.validation import Unchanged, all_finite, broadcast_shape
+from torchmm.unchanged import Unchanged
+from torchmm.validation import all_finite, broadcast_shape
 
 __all__ = ["Belief", "register_belief", "stack", "cat", "where"]
 

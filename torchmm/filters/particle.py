@@ -42,8 +42,8 @@ from torchmm.linalg import any_observed, cholesky
 from torchmm.models.base import MeasurementModel, MotionModel, check_model_pair
 from torchmm.models.linear import LinearMeasurement, LinearMotion
 from torchmm.runtime import host_reads_ok
+from torchmm.unchanged import Unchanged
 from torchmm.validation import (
-    Unchanged,
     as_float,
     as_int,
     broadcast_shape,
