@@ -9,9 +9,9 @@ from torchmm.models.transition import (
 )
 from torchmm.multimodel.bank import FilterBank, IndexedBank, ListBank, VectorizedBank, make_bank
 from torchmm.multimodel.embedding import Embedded, kinematic_index
+from torchmm.multimodel.gpb2 import GPB2
 from torchmm.multimodel.imm import (
     GPB1,
-    GPB2,
     IMM,
     Collapse,
     Interaction,
