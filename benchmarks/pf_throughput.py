@@ -46,7 +46,7 @@ import torchmm.kernels.particle as cpu_kernels
 from torchmm import LinearMotion, kernels
 from torchmm.filters.particle import noise_factor
 from torchmm.multimodel.mevsmm import ChallengeMatch, MinimumEntropyVSMM, uniform_transition
-from torchmm.multimodel.policies import _units
+from torchmm.multimodel.challenge import _units
 from torchmm.runtime import retain_freed_memory
 
 

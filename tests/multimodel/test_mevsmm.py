@@ -208,7 +208,7 @@ def test_challenge_match_with_enough_passes_equals_topk():
 
 def _sequential_challenge_match(scores, num_winners, passes, generator):
     """The tournament of section 3.4.3 written literally: run by run, round by round, match by match."""
-    from torchmm.multimodel.policies import _random_affine_permutation
+    from torchmm.multimodel.challenge import _random_affine_permutation
 
     B, P = scores.shape
     N = num_winners

@@ -306,7 +306,7 @@ example("torchmm.multimodel.structure.VariableStructureIMM")(
     lambda: call(mm.VariableStructureIMM, kf_bank(), P2, mm.FixedSet([0, 1]), feedback=False))
 example("torchmm.multimodel.policies.ExactMinimumEntropy")(
     lambda: call(torchmm.ExactMinimumEntropy, [[0], [0, 1]], chunk_size=64, entropy="literal"))
-example("torchmm.multimodel.policies.ChallengeMatch")(
+example("torchmm.multimodel.challenge.ChallengeMatch")(
     lambda: call(torchmm.ChallengeMatch, 20, 5, method="cm", passes=2))
 example("torchmm.multimodel.particle.ParticleMixing")(lambda: call(mm.ParticleMixing, "stratified", 30))
 example("torchmm.multimodel.particle.MultipleModelParticleFilter")(

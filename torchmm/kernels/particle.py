@@ -226,7 +226,7 @@ def propagate_log_likelihood(table: Tensor, flat: Tensor, eps: Tensor, factor: T
 
 
 def challenge_pass(scores: Tensor, a: Tensor, b: Tensor, shifts: Tensor, num_winners: int) -> Tensor:
-    """One pass of :func:`~torchmm.multimodel.policies.challenge_match` from its random numbers.
+    """One pass of :func:`~torchmm.multimodel.challenge.challenge_match` from its random numbers.
 
     Sequence 1 and the pool are the random affine order ``(a j + b) mod P`` split at ``N``; holder
     ``p`` meets pool slot ``(p - shift_t) mod N`` of window ``t`` and ends as the first strict
