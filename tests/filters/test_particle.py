@@ -357,7 +357,7 @@ def test_retain_freed_memory_is_idempotent():
 def test_repeat_rows_and_affine_rows_are_exact(num, d):
     """The tiled broadcast copy and the in-place batched GEMM give the bits of a plain broadcast
     copy and of torch.baddbmm with the stride-0 offset."""
-    from torchmm.filters.particle import _affine_rows, _repeat_rows
+    from torchmm.filters.particle_ops import _affine_rows, _repeat_rows
 
     g = torch.Generator().manual_seed(num * 100 + d)
     c = torch.randn(6, 1, d, dtype=torch.float64, generator=g)
