@@ -108,7 +108,7 @@ NOT_ENTRY_POINTS: dict[str, str] = {
     "torchmm.models.base.forward_jacobian": _OP + " (the EKF's Jacobians)",
     "torchmm.filters.smoother.rts_step": _OP + " (rts_smoother is the entry point)",
     "torchmm.multimodel.transfer.influence_value": _OP + " (IMM-TF's gate, every step; NaN data are missing)",
-    "torchmm.multimodel.particle.mixing_indices": _OP + " (the particle interaction's ancestors)",
+    "torchmm.multimodel.particle_mixing.mixing_indices": _OP + " (the particle interaction's ancestors)",
     "torchmm.beliefs.base.register_belief": "a class decorator for new belief types (a developer's hook)",
     # kernels
     "torchmm.kernels.particle.available": _KERNEL,
@@ -308,7 +308,7 @@ example("torchmm.multimodel.policies.ExactMinimumEntropy")(
     lambda: call(torchmm.ExactMinimumEntropy, [[0], [0, 1]], chunk_size=64, entropy="literal"))
 example("torchmm.multimodel.challenge.ChallengeMatch")(
     lambda: call(torchmm.ChallengeMatch, 20, 5, method="cm", passes=2))
-example("torchmm.multimodel.particle.ParticleMixing")(lambda: call(mm.ParticleMixing, "stratified", 30))
+example("torchmm.multimodel.particle_mixing.ParticleMixing")(lambda: call(mm.ParticleMixing, "stratified", 30))
 example("torchmm.multimodel.particle.MultipleModelParticleFilter")(
     lambda: call(torchmm.MultipleModelParticleFilter, cv_bank(), pos(), P2, 30, mixing="two_stage",
                  generator=_gen(), innovation_stats=False, noise_dtype=torch.float64))

@@ -165,7 +165,7 @@ def compiled_before() -> bool:
 def two_stage_indices(cdf_models: Tensor, u0: Tensor, weights: Tensor, v0: Tensor, num: int, *,
                       background: bool = False):
     """The ``two_stage`` interaction's flat indices ``a * Np_prev + b``, as
-    :func:`~torchmm.multimodel.particle.mixing_indices` computes them with torch ops (the
+    :func:`~torchmm.multimodel.particle_mixing.mixing_indices` computes them with torch ops (the
     within-model CDFs of ``weights`` included).
 
     ``background=True`` runs the kernel in a worker thread (on one thread fewer than torch's) and
