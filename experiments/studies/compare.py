@@ -41,7 +41,7 @@ from torch import Tensor
 from experiments import learning, learning_em
 from experiments.executors import Unit
 from experiments.harness import StudyContext, per_run
-from experiments.scenarios import Concatenated, default_dtype
+from experiments.scenarios_system import Concatenated, default_dtype
 from experiments.studies.compare_results import curves_and_figures, learned_tables, paired, reduce, series_table
 from torchmm import GaussianBelief, run_filter, smooth
 from torchmm.metrics import mode_hits, nees
