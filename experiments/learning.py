@@ -443,37 +443,3 @@ def fit_mle(est, scenario, block, z: Tensor, *, prior, update_first: bool, burn:
             "bic": result.bic, "iterations": result.iterations, "evaluations": result.evaluations,
             "converged": result.converged, "message": result.message, "seconds": time.perf_counter() - tic,
             "note": result.note, "method": "mle", "nll": [-result.loglik], "through": est.name}
-
-
-# -- method: gradient (the covariances through learnable_noise and a torch optimiser) ------------------
-def gradient_targets(scenario, block, module_of) -> list:
-    """``[(key, module, name, initial)]``: the named covariances of ``learn.parameters`` made learnable
-    on ``scenario``'s models (:func:`torchmm.learnable_noise`). ``ConfigError`` naming the entry."""
-    from torchmm import learnable_noise
-
-    targets = []
-    for i, p in enumerate(block.parameters):
-        key = f"learn.parameters[{i}]"
-        try:
-            module = module_of(scenario, str(p.model))
-        except ValueError as err:
-            raise ConfigError(f"{key}.model", str(p.model), str(err)) from None
-        name = str(p.name)
-        value = getattr(module, name, None)
-        if name not in ("Q", "R"):
-            raise ConfigError(f"{key}.name", name, "method gradient learns the noise covariances Q (of a mode) and R "
-                              "(of a sensor); method mle estimates any tensor")
-        if not isinstance(value, Tensor):
-            known = [n for n in ("Q", "R") if isinstance(getattr(module, n, None), Tensor)]
-            raise ConfigError(f"{key}.name", name, f"{p.model} ({type(module).__name__}) has no covariance {name!r}"
-                              + (f" (it has {', '.join(known)})" if known else ""))
-        initial = value.detach().clone()
-        kind = str(p.get("kind") or "log_diagonal")
-        if kind not in GRADIENT_KINDS:
-            raise ConfigError(f"{key}.kind", kind, f"method gradient takes {', '.join(GRADIENT_KINDS)}")
-        try:
-            learnable_noise(module, name, kind)
-        except (TypeError, ValueError) as err:
-            raise ConfigError(f"{key}", f"{p.model}.{name}", str(err)) from None
-        targets.append((f"{p.model}.{name}", module, name, initial))
-    return targets

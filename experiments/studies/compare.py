@@ -38,7 +38,7 @@ import torch
 from hydra.utils import instantiate
 from torch import Tensor
 
-from experiments import learning, learning_em
+from experiments import learning, learning_em, learning_gradient
 from experiments.executors import Unit
 from experiments.harness import StudyContext, per_run
 from experiments.scenarios_system import Concatenated, default_dtype
@@ -168,61 +168,10 @@ def _learn(ctx: StudyContext, scenario, est_name: str) -> tuple[dict, Any]:
             record = learning_em.fit_em(est, scenario, block, z, prior=prior, update_first=update_first, burn=burn,
                                      controls=_controls(ctx, 0, runs), present=present, progress=progress)
         return record, est
-    return _learn_gradient(ctx, scenario, est_name, block, z, prior, burn, update_first, progress,
-                           _controls(ctx, 0, runs)), None
-
-
-def _learn_gradient(ctx, scenario, est_name, block, z, prior, burn, update_first, progress, u) -> dict:
-    """``method: gradient``: the named covariances made learnable on ``scenario``'s models and fitted with a
-    torch optimiser through :class:`torchmm.learn.Trainer`."""
-    from torch.nn.utils import parametrize
-
-    from torchmm.learn import Trainer
-
-    targets = learning.gradient_targets(scenario, block, _module)
-    est = _estimator(ctx, scenario, est_name)
-    params = [p for p in est.filter.parameters() if p.requires_grad]
-    if not params:
-        raise ValueError(f"learn.estimators: {est_name} has no learnable parameter (its filter does not use the "
-                         "models of learn.parameters)")
-    if str(block.optimizer) == "lbfgs":
-        optimizer = torch.optim.LBFGS(params, lr=float(block.lr), max_iter=20, line_search_fn="strong_wolfe",
-                                      tolerance_grad=1e-10, tolerance_change=1e-14)
-    else:
-        optimizer = torch.optim.Adam(params, lr=float(block.lr))
-
-    def loss_fn(filter, belief0, measurements, controls=None, return_final=False):
-        # belief0 is the estimator's start belief (Trainer.fit takes it as it is: no second conversion)
-        traj = run_filter(filter, belief0, measurements, update_first=update_first, controls=controls,
-                          record=lambda o: o._replace(belief=None, prior=None, innovation=None,
-                                                      innovation_cov=None, extras={}))
-        loss = -traj.log_likelihood[burn:].sum(0).mean()
-        return (loss, None) if return_final else loss
-
-    tol = float(block.get("tolerance") or 0.0)
-
-    def converged(trainer, record) -> bool:  # the loss no longer moves (relative change below `tolerance`)
-        h = trainer.history
-        return len(h) > 1 and abs(h[-1].loss - h[-2].loss) <= tol * max(abs(h[-1].loss), 1.0)
-
-    trainer = Trainer(est.filter, optimizer, loss_fn=loss_fn, callbacks=[converged] if tol > 0 else [])
-    tic = time.perf_counter()
-    history = trainer.fit(est.init(prior, None), z, int(block.iterations), controls=u, progress=progress)
-    seconds = time.perf_counter() - tic
-    nll = [float(r.loss) for r in history]
-    with parametrize.cached():
-        learned = {key: getattr(module, name).detach().clone() for key, module, name, _ in targets}
-    rows = []
-    for key, _, _, _ in targets:
-        value = learned[key].cpu()
-        for flat, v in enumerate(value.reshape(-1).tolist()):
-            index = np.unravel_index(flat, tuple(value.shape)) if value.dim() else ()
-            rows.append([est_name, f"{key}[{','.join(str(int(i)) for i in index)}]", v, None, None])
-    for _, module, name, _ in targets:  # freeze: the estimator runs with the learned values
-        parametrize.remove_parametrizations(module, name, leave_parametrized=True)
-        getattr(module, name).requires_grad_(False)
-    return {"rows": rows, "nll": nll, "through": est_name, "seconds": seconds, "iterations": len(history),
-            "method": "gradient", "optimizer": str(block.optimizer)}
+    record = learning_gradient.fit_gradient(scenario, block, lambda: _estimator(ctx, scenario, est_name), _module, z,
+                                            prior, name=est_name, burn=burn, update_first=update_first,
+                                            progress=progress, controls=_controls(ctx, 0, runs))
+    return record, None
 
 
 def check_build(cfg, scenario) -> None:
@@ -290,7 +239,7 @@ def check_build(cfg, scenario) -> None:
                 except (TypeError, ValueError) as err:
                     raise ConfigError("learn.parameters", param.label, str(err).split(": ", 1)[-1]) from None
             continue
-        learning.gradient_targets(own, block, _module)
+        learning_gradient.gradient_targets(own, block, _module)
         est = instantiate(cfg.estimators[name])(own, name=name)
         if not any(p.requires_grad for p in est.filter.parameters()):
             key = "learn.estimator" if cfg.learn.get("estimator") is not None else "learn.estimators"

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 import torch
 from omegaconf import open_dict
@@ -94,6 +95,28 @@ def test_the_start_is_estimated_and_the_estimator_runs_from_it(tmp_path, base):
     fit = dict(zip(res["tables"]["fit"]["columns"], res["tables"]["fit"]["rows"][0]))
     assert res["metrics"]["KF-CV"]["loglik"] * 6 == pytest.approx(fit["loglik"], rel=1e-9)
 
+
+
+def test_method_gradient_runs_the_study_with_its_fit(tmp_path, base):
+    """learn.method: gradient (experiments/learning_gradient.py): R made learnable through
+    torchmm.learnable_noise and fitted by Adam through the learning estimator; its NLL over the iterations
+    is recorded, it ends below where it started, the estimator runs with the fit (a higher log-likelihood
+    than the configured R's), and the other estimators keep the configured models bit for bit."""
+    learn = {"parameters": [{"model": "sensors[0]", "name": "R", "kind": "log_diagonal"}], "estimator": "KF-CV",
+             "method": "gradient", "optimizer": "adam", "lr": 0.3, "iterations": 12}
+    res, md = _run(tmp_path, "gradient", learn)
+    rows = {row[1]: row for row in res["tables"]["learned"]["rows"]}
+    assert {row[0] for row in rows.values()} == {"KF-CV"}
+    assert set(rows) == {f"sensors[0].R[{i},{j}]" for i in (0, 1) for j in (0, 1)}  # (the whole matrix)
+    assert rows["sensors[0].R[0,0]"][2] > 0 and rows["sensors[0].R[1,1]"][2] > 0
+    assert rows["sensors[0].R[0,1]"][2] == 0 and rows["sensors[0].R[1,0]"][2] == 0  # (log_diagonal: diagonal)
+    curve = np.load(tmp_path / "gradient" / "curves.npz")["learn/nll/KF-CV"]
+    assert curve.shape[-1] == 12 and curve[..., -1].max() < curve[..., 0].min()  # the fit lowered its NLL
+    assert res["metrics"]["KF-CV"]["loglik"] > base["metrics"]["KF-CV"]["loglik"]
+    for name in ("IMM", "GPB2", "KF-CV-q"):
+        assert res["metrics"][name] == base["metrics"][name]
+    assert "fitted with adam (method gradient: no standard errors)" in md
+    assert all(row[3] is None for row in rows.values())
 
 
 def test_em_with_fixed_entries_from_config(tmp_path, base):
