@@ -466,25 +466,9 @@ class BatchLastKernel:
     def plan_smooth(self, filter, trajectory, method, **inputs):
         """The two-filter smoother of a run of an IMM, GPB1 or GPB2 over linear Kalman modes (``n <= 6``,
         diagonal ``R``): ``run() -> ModeBelief`` (batch ``(T, *B)``), or the reason not."""
-        return _plan_two_filter(filter, trajectory, method, **inputs)
+        from torchmm.kernels.batch_last.smooth import plan_two_filter  # (smooth.py imports this module)
 
-
-def _plan_two_filter(filter, trajectory, method, measurements=None, prior_log=None, **inputs):
-    """:meth:`BatchLastKernel.plan_smooth`: the two-filter smoother's passes batch-last
-    (:mod:`torchmm.kernels.batch_last.smooth`), or the reason not."""
-    from torchmm.kernels.batch_last.smooth import BatchLastTwoFilter, why_not_smooth
-
-    if method != "two_filter":
-        return "only the two-filter smoother"
-    model = kernels.describe(filter, "linear_gaussian")
-    if isinstance(model, str):
-        return model
-    reason = why_not_smooth(model, trajectory, measurements, prior_log)
-    if reason is not None:
-        return reason
-    like = trajectory.belief.mode_log_probs
-    passes = BatchLastTwoFilter(model, model.transition.shape[-1], like.dim() - 2, like)
-    return lambda: passes.run(trajectory, measurements, prior_log)
+        return plan_two_filter(filter, trajectory, method, inputs.get("measurements"), inputs.get("prior_log"))
 
 
 BATCH_LAST = BatchLastKernel()  # (registered by torchmm.kernels.TABLE)

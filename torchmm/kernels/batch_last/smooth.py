@@ -52,7 +52,7 @@ from torchmm.kernels.batch_last.algebra import (
 from torchmm.kernels.batch_last.imm import LARGE_BATCH, LARGE_STATE, MAX_STATE, BatchLastIMM
 from torchmm.kernels.batch_last.plan import why_not
 
-__all__ = ["LARGE_SMOOTHER", "BatchLastTwoFilter", "LargeStateSmoother", "why_not_smooth"]
+__all__ = ["LARGE_SMOOTHER", "BatchLastTwoFilter", "LargeStateSmoother", "plan_two_filter", "why_not_smooth"]
 
 _LOG_2PI = math.log(2 * math.pi)
 
@@ -255,23 +255,32 @@ class LargeStateSmoother:
         return "a smoother's kernel only"
 
     def plan_smooth(self, filter, trajectory, method, measurements=None, prior_log=None, **inputs):
-        if method != "two_filter":
-            return "only the two-filter smoother"
-        model = kernels.describe(filter, "linear_gaussian")
-        if isinstance(model, str):
-            return model
+        return plan_two_filter(filter, trajectory, method, measurements, prior_log, large=True)
+
+
+def plan_two_filter(filter, trajectory, method, measurements=None, prior_log=None, *, large: bool = False):
+    """The plan of the two-filter smoother's passes batch-last (:class:`BatchLastTwoFilter`): states of at
+    most ``MAX_STATE`` components (:meth:`~torchmm.kernels.batch_last.imm.BatchLastKernel.plan_smooth`), or with
+    ``large``, of ``MAX_STATE + 1`` to ``LARGE_STATE`` from ``LARGE_BATCH`` runs x modes
+    (:class:`LargeStateSmoother`): ``run() -> ModeBelief`` (batch ``(T, *B)``), or the reason not."""
+    if method != "two_filter":
+        return "only the two-filter smoother"
+    model = kernels.describe(filter, "linear_gaussian")
+    if isinstance(model, str):
+        return model
+    if large:
         n = model.F.shape[-1]
         if not MAX_STATE < n <= LARGE_STATE:
             return f"states of {MAX_STATE + 1} to {LARGE_STATE} components only"
         batch = trajectory.belief.mode_log_probs[0].numel()
         if batch < LARGE_BATCH:
             return f"a small batch ({batch} runs x modes < {LARGE_BATCH}: the eager passes are faster)"
-        reason = why_not_smooth(model, trajectory, measurements, prior_log, LARGE_STATE)
-        if reason is not None:
-            return reason
-        like = trajectory.belief.mode_log_probs
-        passes = BatchLastTwoFilter(model, model.transition.shape[-1], like.dim() - 2, like)
-        return lambda: passes.run(trajectory, measurements, prior_log)
+    reason = why_not_smooth(model, trajectory, measurements, prior_log, LARGE_STATE if large else MAX_STATE)
+    if reason is not None:
+        return reason
+    like = trajectory.belief.mode_log_probs
+    passes = BatchLastTwoFilter(model, model.transition.shape[-1], like.dim() - 2, like)
+    return lambda: passes.run(trajectory, measurements, prior_log)
 
 
 LARGE_SMOOTHER = LargeStateSmoother()  # (registered by torchmm.kernels.TABLE)
