@@ -58,6 +58,7 @@ from torchmm.kernels.linear_run import (
     model_tensors,
 )
 from torchmm.runtime import host_reads_ok
+from torchmm.unchanged import Unchanged
 
 __all__ = ["MAX_RUNS", "LinearGaussian", "load"]
 
@@ -103,8 +104,6 @@ class LinearGaussian(NamedTuple):
     time_varying: Any = None
 
 
-
-
 class Prepared:
     """A run planned once and evaluated many times (:class:`~torchmm.learn.Objective`): the data, shapes and
     kernel choice fixed, the models read from the filter at every call (their current parameters).
@@ -130,7 +129,7 @@ class Prepared:
                               None if model.time_varying is None else steps)
         self.zeros = z.new_zeros(self.runs, 1)
         self.zero_inputs = z.new_zeros(1, 1, M, n)  # (no controls: the input terms, made once)
-        self._smooth_key, self._smooth_inputs, self._smooth_held = None, None, None
+        self._smooth_inputs = Unchanged(size=1)  # (the kernel's arrays of the last call's tensors)
         self.shape = (belief0.mean.shape, belief0.cov.shape) if self.kalman else (
             belief0.mode_log_probs.shape, belief0.components.mean.shape, belief0.components.cov.shape)
 
@@ -173,11 +172,7 @@ class Prepared:
             tensors = (*model_tensors(model, self.controls, self.batch), *start, bu)
             # the kernel's arrays of unchanged tensors (the same objects at the same versions: torch's own test of
             # an in-place change) are the last call's: a repeated smoother at fixed parameters converts nothing
-            key = tuple((id(t), t._version) for t in tensors)
-            if key != self._smooth_key:
-                self._smooth_inputs = kernel_arrays(self.z, tensors, self.layout)
-                self._smooth_key, self._smooth_held = key, tensors  # (held: no id is reused while cached)
-            inputs = self._smooth_inputs
+            inputs = self._smooth_inputs.remember(tensors, lambda: kernel_arrays(self.z, tensors, self.layout))
             T, runs = self.z.shape[0], self.runs
             dt = inputs[0].dtype
             out = [np.empty((T, runs, self.M), dt), np.empty((T, runs, self.M, self.n), dt),
