@@ -33,6 +33,7 @@ from torchmm.filters.vb_common import (
     gaussian_entropy,
     keep_prior_where_missing,
     mvdigamma,
+    record_elbo,
     rederive_scale,
     wishart_kl,
 )
@@ -170,11 +171,7 @@ class SkewTIWVBFilter(LinearVBFilter):
         noise_var = (r + delta.square() * (1 - 2 / math.pi)) / lam
         extras = {"predicted_cov": P_hat, "noise_cov": torch.diag_embed(noise_var), "precision": lam,
                   "skew": Eu, "u_loc": u_loc, "u_scale": u_scale, "gamma_rate": rate_b, "singular": singular}
-        if history:
-            extras["elbo"] = torch.stack(elbos, -1)
-            if log.isEnabledFor(logging.DEBUG):  # (a host read: only when asked for)
-                log.debug("SkewTIWVBFilter ELBO per iteration (mean over batch): %s",
-                          extras["elbo"].detach().flatten(0, -2).mean(0).tolist())
+        record_elbo(extras, elbos, history, "SkewTIWVBFilter")
         mean, cov, loglik, failed = keep_prior_where_missing(missing, belief, mean, cov, elbos[-1])
         extras["failed"] = failed
         return StepOutput(GaussianBelief(mean, cov), belief, loglik, z - z_pred,

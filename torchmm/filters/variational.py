@@ -53,6 +53,7 @@ from torchmm.filters.vb_common import (
     fill_missing,
     gamma_kl,
     keep_prior_where_missing,
+    record_elbo,
     wishart_kl,
 )
 from torchmm.validation import as_tensor, check_covariance
@@ -155,11 +156,7 @@ class StudentTVBFilter(LinearVBFilter):
                 elbos.append(self._elbo(belief, mean, cov, a, b, D, half_logdet_R, L_prior, m, n))
         extras = {"noise_cov": R / Eu[..., None, None], "predicted_cov": belief.cov.expand_as(cov),
                   "singular": singular}
-        if history:
-            extras["elbo"] = torch.stack(elbos, -1)
-            if log.isEnabledFor(logging.DEBUG):  # (a host read: only when asked for)
-                log.debug("StudentTVBFilter ELBO per iteration (mean over batch): %s",
-                          extras["elbo"].detach().flatten(0, -2).mean(0).tolist())
+        record_elbo(extras, elbos, history, "StudentTVBFilter")
         mean, cov, loglik, failed = keep_prior_where_missing(missing, belief, mean, cov, elbos[-1])
         extras["failed"] = failed
         return StepOutput(GaussianBelief(mean, cov), belief, loglik, innovation, HPH + extras["noise_cov"],

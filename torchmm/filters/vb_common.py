@@ -6,6 +6,7 @@ convention is the one :mod:`torchmm.filters.variational`'s docstring states."""
 
 from __future__ import annotations
 
+import logging
 import math
 
 import torch
@@ -30,11 +31,13 @@ __all__ = [
     "gaussian_entropy",
     "keep_prior_where_missing",
     "mvdigamma",
+    "record_elbo",
     "rederive_scale",
     "wishart_kl",
 ]
 
 LOG_2PI = math.log(2 * math.pi)
+log = logging.getLogger("torchmm")
 
 
 def gamma_kl(a: Tensor, b: Tensor, a0: Tensor, b0: Tensor) -> Tensor:
@@ -195,3 +198,13 @@ class LinearVBFilter(Filter):
         """``z`` checked against the sensor and the belief (shapes only)."""
         return check_measurement(z, self.measurement.meas_dim, gaussian_batch(belief, self.motion.state_dim),
                                  belief.mean)
+
+
+def record_elbo(extras: dict, elbos: list, history: bool, filter_name: str) -> None:
+    """With ``history`` (``elbo_history``, or DEBUG logging): the ELBO after every iteration in ``extras["elbo"]``
+    ``(*B, iterations)``, and at DEBUG level its mean over the batch logged (a host read: only when asked for)."""
+    if history:
+        extras["elbo"] = torch.stack(elbos, -1)
+        if log.isEnabledFor(logging.DEBUG):
+            log.debug("%s ELBO per iteration (mean over batch): %s", filter_name,
+                      extras["elbo"].detach().flatten(0, -2).mean(0).tolist())
