@@ -149,7 +149,7 @@ class Belief:
 
     def validate_once(self: B, name: str = "belief") -> B:
         """:meth:`validate`, skipped for this very belief when it passed before and none of its tensors has
-        changed since (:class:`~torchmm.validation.Unchanged`; a change through ``.data`` or a NumPy view
+        changed since (:class:`~torchmm.unchanged.Unchanged`; a change through ``.data`` or a NumPy view
         is not seen, as for autograd): an entry point called again with the same start (a loop of
         :func:`~torchmm.run_filter` calls, an objective) reads its values once. Returns the belief."""
         def checked() -> bool:
