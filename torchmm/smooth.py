@@ -50,13 +50,13 @@ from torch import Tensor
 
 import torchmm.kernels as kernels
 from torchmm.beliefs import GaussianBelief, ModeBelief, ParticleBelief, symmetrize, where
+from torchmm.beliefs.ops import safe_log_normalize
 from torchmm.contract import Choice, Data, Finite, Int, Mask, Of, entry_point
 from torchmm.filters.base import Filter
 from torchmm.filters.smoother import rts_step
 from torchmm.linalg import cholesky, cholesky_solve
 from torchmm.models.base import MotionModel
 from torchmm.multimodel.bank import ListBank, VectorizedBank
-from torchmm.multimodel.imm import safe_log_normalize
 from torchmm.run import Trajectory
 from torchmm.runtime import entries, one_thread_when_small
 from torchmm.smooth_checks import checked_against_run, padding_steps

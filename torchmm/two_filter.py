@@ -15,10 +15,11 @@ from torch import Tensor
 
 import torchmm.kernels as kernels
 from torchmm.beliefs import GaussianBelief, ModeBelief, symmetrize, where
+from torchmm.beliefs.ops import safe_log_normalize
 from torchmm.linalg import cholesky, half_log_det, solve_lower, sum_last
 from torchmm.models.base import MotionModel
 from torchmm.multimodel.bank import ListBank, VectorizedBank
-from torchmm.multimodel.imm import mode_posterior, safe_log_normalize
+from torchmm.multimodel.imm import mode_posterior
 from torchmm.run import Trajectory
 
 if TYPE_CHECKING:

@@ -28,7 +28,8 @@ from torchmm.association.pda import DetectionSets, check_detections
 from torchmm.beliefs import ParticleBelief, normalize_log_probs
 from torchmm.contract import Choice, Int, Of, Real, entry_point
 from torchmm.filters.base import StepOutput
-from torchmm.filters.particle import ParticleFilter, particle_log_likelihood
+from torchmm.filters.particle import ParticleFilter
+from torchmm.filters.particle_ops import particle_log_likelihood
 from torchmm.validation import check_filter_dtype
 
 __all__ = ["ParticleJPDA", "ParticlePDA"]

@@ -20,7 +20,8 @@ from torchmm.multimodel.imm import (
     NoInteraction,
     StaticMM,
 )
-from torchmm.multimodel.particle import MultipleModelParticleFilter, ParticleMixing, mixing_indices
+from torchmm.multimodel.particle import MultipleModelParticleFilter
+from torchmm.multimodel.particle_mixing import ParticleMixing, mixing_indices
 from torchmm.multimodel.structure import (
     ActiveSetMixing,
     AllModels,

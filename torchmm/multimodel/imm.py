@@ -27,7 +27,6 @@ from torch import Tensor
 
 import torchmm.kernels as kernels
 from torchmm.beliefs import Belief, ModeBelief
-from torchmm.beliefs.ops import safe_log_normalize  # (re-exported: the smoothers and baselines import it here)
 from torchmm.contract import BeliefArg, Finite, Gen, Int, Of, Stochastic, entry_point
 from torchmm.filters.base import Filter, StepOutput, check_state_dim
 from torchmm.models.transition import as_transition

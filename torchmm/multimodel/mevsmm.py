@@ -26,14 +26,13 @@ from torchmm.contract import (BeliefArg, Choice, Cov, DType, Finite, Flag, Gen, 
 from torchmm.beliefs import GaussianBelief, ModeBelief, ModelSetBelief, psd_sqrt, symmetrize
 from torchmm.beliefs.ops import normalize_log_probs
 from torchmm.filters.base import StepOutput
-from torchmm.filters.particle import standard_normal
+from torchmm.filters.particle_ops import standard_normal
 from torchmm.multimodel.particle import MultipleModelParticleFilter
 from torchmm.models.base import MeasurementModel, MotionModel
 from torchmm.models.linear import LinearMotion
-from torchmm.multimodel.policies import (  # re-exported: paper 003's policies live in .policies
-    ChallengeMatch,
+from torchmm.multimodel.challenge import ChallengeMatch, challenge_match  # (re-exported: paper 003's policies)
+from torchmm.multimodel.policies import (  # re-exported: paper 003's policies live in .policies and .challenge
     ExactMinimumEntropy,
-    challenge_match,
     min_entropy_set,
     min_entropy_subset,
     model_statistics,

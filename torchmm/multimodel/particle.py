@@ -32,8 +32,8 @@ from torchmm.beliefs import GaussianBelief, ModeBelief, ParticleBelief
 from torchmm.beliefs.ops import normalize_log_probs
 from torchmm.contract import BeliefArg, Choice, DType, Finite, Flag, Gen, Int, Of, Stochastic, entry_point
 from torchmm.filters.base import StepOutput
-from torchmm.filters.particle import (
-    ParticleFilter,
+from torchmm.filters.particle import ParticleFilter
+from torchmm.filters.particle_ops import (
     cached_noise_factor,
     check_generator,
     check_particle_prior,

@@ -18,12 +18,13 @@ from torch import Tensor
 
 from torchmm.contract import BeliefArg, Finite, Gen, Int, Of, Real, Stochastic, entry_point
 from torchmm.beliefs import Belief, GaussianBelief, ModeBelief, ModelSetBelief, SourceTrackBelief, cat, where
+from torchmm.beliefs.ops import safe_log_normalize
 from torchmm.filters.base import Filter, StepOutput
 from torchmm.linalg import any_observed, cholesky, condition
 from torchmm.models.base import MeasurementModel
 from torchmm.models.linear import LinearMeasurement
 from torchmm.multimodel.bank import FilterBank, IndexedBank
-from torchmm.multimodel.imm import IMM, flag_run_failed, mode_posterior, safe_log_normalize
+from torchmm.multimodel.imm import IMM, flag_run_failed, mode_posterior
 from torchmm.multimodel.multirate import check_source_sensor, multirate_streams
 from torchmm.multimodel.structure import ActiveSetMixing, DropBelow
 
