@@ -95,7 +95,7 @@ class Filter(nn.Module):
         """Raise if this filter, as configured, cannot be a mode filter of a bank of ``num_modes``.
 
         Called by the banks of IMM / GPB at construction (``name`` is the argument to blame). The
-        default accepts; e.g. a :class:`~torchmm.filters.ParticleFilter` needs a fixed
+        default accepts; e.g. a :class:`~torchmm.filters.particle.ParticleFilter` needs a fixed
         ``num_particles`` when ``num_modes > 1`` because mixing merges the particle sets.
         """
 

@@ -88,7 +88,7 @@ class LinearGaussian(NamedTuple):
         motion's input matrix (``F x + b + G u_t`` with the run's controls ``u_t``), None without one
         (only the kernels that take controls are given a description with one:
         :func:`torchmm.kernels.describe`); time_varying: a transition whose matrices are the step's
-        controls' (:class:`~torchmm.models.LogisticTransition`: ``time_varying.at(u_t).log_matrix()``,
+        controls' (:class:`~torchmm.models.transition.LogisticTransition`: ``time_varying.at(u_t).log_matrix()``,
         ``(*B, M, M)``), ``transition`` then None; likewise only for the kernels that take controls.
     """
 

@@ -81,7 +81,7 @@ def em_switching(filter: MultipleModelFilter, belief0: ModeBelief, measurements:
     pair counts. As statsmodels' ``MarkovRegression`` with ``switching_trend``/``switching_exog`` False
     for some coefficients, or a constant held at 0 (``trend="n"``).
 
-    **A time-varying transition** (:class:`~torchmm.models.LogisticTransition`, needs ``controls``): each
+    **A time-varying transition** (:class:`~torchmm.models.transition.LogisticTransition`, needs ``controls``): each
     origin regime's coefficients maximise the pair probabilities' multinomial logistic likelihood on the
     step's inputs (Newton's method with step halving: a generalised EM step).
 
@@ -360,7 +360,7 @@ def _masked_h(sensor, M: int, stacked: bool, Syx: Tensor, Sxx: Tensor, shared: T
 
 
 def _logistic_m_step(coef: Tensor, pairs: Tensor, x: Tensor, steps: int = 30) -> Tensor:
-    """The M-step of a :class:`~torchmm.models.LogisticTransition`'s coefficients ``(M, M - 1, q)``: for each
+    """The M-step of a :class:`~torchmm.models.transition.LogisticTransition`'s coefficients ``(M, M - 1, q)``: for each
     origin regime ``i`` the maximiser of ``sum_n sum_j pairs[n, i, j] log p_ij(x_n)`` (a multinomial logistic
     regression with soft counts, the last regime the reference) by Newton's method with step halving (each
     step raises the objective: a generalised EM step, never a decrease). ``pairs (N, M, M)``, ``x (N, q)``."""

@@ -231,12 +231,12 @@ class MultipleModelFilter(Filter):
             return model
         return model._replace(transition=self.transition.matrix(), rule=rule)
 
-    #: whether the class takes a time-varying transition (:class:`~torchmm.models.LogisticTransition`)
+    #: whether the class takes a time-varying transition (:class:`~torchmm.models.transition.LogisticTransition`)
     time_varying_transition: bool = True
 
     def transition_at(self, u: Tensor | None = None):
         """The step's transition: the filter's, or a time-varying one's matrices at the step's controls ``u``
-        (:class:`~torchmm.models.LogisticTransition`: ``(*B, M, M)``)."""
+        (:class:`~torchmm.models.transition.LogisticTransition`: ``(*B, M, M)``)."""
         if getattr(self.transition, "takes_inputs", False):
             return self.transition.at(u)
         return self.transition

@@ -88,7 +88,7 @@ class MinimumEntropyVSMM(MultipleModelParticleFilter):
 
     Args:
         motion, measurement, transition, num_particles, mixing, generator, innovation_stats,
-            noise_dtype: as :class:`~torchmm.filters.particle.MultipleModelParticleFilter`.
+            noise_dtype: as :class:`~torchmm.multimodel.particle.MultipleModelParticleFilter`.
         selection: the model-set policy (callable ``(log_weights (*B, M, Np), generator) ->
             (active (*B, M), info)``).
         feedback: ``True`` (the paper's (27)/(33): the next step starts from the selected set
@@ -177,10 +177,10 @@ class EqMAParticleFilter(MultipleModelParticleFilter):
         num_particles: ``Np`` per model.
         transition: ``(N+1, N+1)``; default :func:`uniform_transition` with ``stay``.
         mixing, generator, innovation_stats, noise_dtype: as
-            :class:`~torchmm.filters.particle.MultipleModelParticleFilter`.
+            :class:`~torchmm.multimodel.particle.MultipleModelParticleFilter`.
 
     Shapes:
-        as :class:`~torchmm.filters.particle.MultipleModelParticleFilter` with ``M = N + 1``;
+        as :class:`~torchmm.multimodel.particle.MultipleModelParticleFilter` with ``M = N + 1``;
         ``extras["equivalent_acceleration"]`` is not recorded (the prior belief's model N carries it).
     """
 

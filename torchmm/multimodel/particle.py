@@ -16,7 +16,7 @@ It computes the estimator ``IMM(ParticleFilter(bank, num_particles=Np, ess_thres
 (the same interaction in distribution, the same weights), with the interaction drawn directly
 from the product distribution (no ``M Np`` mixture to resample) and the weights in few passes:
 the fast path of the engine for particle banks. The all-underflow guard is
-:func:`~torchmm.filters.particle.degenerate_guard`'s.
+:func:`~torchmm.filters.particle_ops.degenerate_guard`'s.
 """
 
 from __future__ import annotations

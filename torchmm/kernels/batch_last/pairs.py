@@ -12,7 +12,7 @@ the IMM's, in the same order:
   after the other (a diagonal ``R``), as the IMM kernel's;
 - ``log w_ij = ell_ij + log mu_i + log pi_ij``, ``log mu_j`` and the log-likelihood by ``logsumexp``
   over ``i`` and then ``j``, the merge weights ``w_ij / sum_i w_ij`` (normalised as
-  :func:`~torchmm.multimodel.imm.safe_log_normalize` does), and mode ``j``'s posterior the
+  :func:`~torchmm.beliefs.ops.safe_log_normalize` does), and mode ``j``'s posterior the
   moment-matched collapse over ``i`` (centred spread).
 
 The state is kept one tensor per entry: the means ``x[a]`` and the covariances' upper triangle
