@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import ast
+import importlib
 from pathlib import Path
+
+import pytest
 
 import torchmm
 
@@ -255,3 +258,35 @@ def test_the_class_test_finder_finds_class_tests():
     # the engine before the seam (issue 31) fails the check
     old = "kind = type(self)\nif kind not in (IMM, GPB1):\n    pass\nif type(kf) is not KalmanFilter:\n    pass\n"
     assert {"IMM", "GPB1", "KalmanFilter"} <= {n for _, n in _class_tests(ast.parse(old))}
+
+
+# -- split modules keep the paths configs, docs and users name (issue 47) ------------------------------------
+MOVED = [  # (old path, new home): the same object through both
+    ("torchmm.filters.variational.SkewTVBFilter", "torchmm.filters.skew_t.SkewTVBFilter"),
+    ("torchmm.filters.variational.SkewTIWVBFilter", "torchmm.filters.skew_t.SkewTIWVBFilter"),
+    ("torchmm.filters.variational.gamma_kl", "torchmm.filters.vb_common.gamma_kl"),
+    ("torchmm.filters.variational.wishart_kl", "torchmm.filters.vb_common.wishart_kl"),
+    ("torchmm.filters.particle.noise_factor", "torchmm.filters.particle_ops.noise_factor"),
+    ("torchmm.filters.particle.propagate_particles", "torchmm.filters.particle_ops.propagate_particles"),
+    ("torchmm.multimodel.particle.ParticleMixing", "torchmm.multimodel.particle_mixing.ParticleMixing"),
+    ("torchmm.multimodel.particle.mixing_indices", "torchmm.multimodel.particle_mixing.mixing_indices"),
+    ("torchmm.multimodel.policies.ChallengeMatch", "torchmm.multimodel.challenge.ChallengeMatch"),
+    ("torchmm.multimodel.mevsmm.ChallengeMatch", "torchmm.multimodel.challenge.ChallengeMatch"),
+    ("torchmm.multimodel.GPB2", "torchmm.multimodel.gpb2.GPB2"),
+    ("torchmm.fusion.cross_covariances", "torchmm.fusion.cross.cross_covariances"),
+    ("experiments.scenarios.system", "experiments.scenarios_system.system"),
+    ("experiments.scenarios.SystemScenario", "experiments.scenarios_system.SystemScenario"),
+    ("experiments.datafile.DataFileError", "experiments.datafile_io.DataFileError"),
+    ("experiments.studies.tracking.estimators", "experiments.studies.tracking_estimators.estimators"),
+]
+
+
+def _object(path: str):
+    module, _, name = path.rpartition(".")
+    return getattr(importlib.import_module(module), name)
+
+
+@pytest.mark.parametrize("old, new", MOVED, ids=[old for old, _ in MOVED])
+def test_a_split_keeps_the_old_path(old, new):
+    """A config's ``_target_``, the docs and users' imports name the old path: it is the moved object itself."""
+    assert _object(old) is _object(new)
