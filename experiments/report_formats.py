@@ -18,12 +18,17 @@ from experiments.formatting import latex_table as _latex_table
 __all__ = ["figure", "to_csv", "to_latex", "to_markdown", "write_report"]
 
 
-def _cell(stats: dict) -> str:
+def _cell(stats: dict, number=format_value, plus_minus: str = " ± ") -> str:
+    """A table cell: the mean, ``± half the interval`` where there is one (empty without a mean)."""
     if stats["mean"] is None:
         return ""
     if stats["ci_low"] is None:
-        return format_value(stats["mean"])
-    return f"{format_value(stats['mean'])} ± {format_value((stats['ci_high'] - stats['ci_low']) / 2)}"
+        return number(stats["mean"])
+    return f"{number(stats['mean'])}{plus_minus}{number((stats['ci_high'] - stats['ci_low']) / 2)}"
+
+
+def _latex_cell(stats: dict) -> str:
+    return _cell(stats, _latex_number, " $\\pm$ ")
 
 
 def to_markdown(report: dict[str, Any]) -> str:
@@ -107,14 +112,6 @@ def to_csv(report: dict[str, Any]) -> str:
                                      *("" if s[k] is None else repr(s[k]) for k in ("mean", "sd", "ci_low", "ci_high")),
                                      reference])
     return buf.getvalue()
-
-
-def _latex_cell(stats: dict) -> str:
-    if stats["mean"] is None:
-        return ""
-    if stats["ci_low"] is None:
-        return _latex_number(stats["mean"])
-    return f"{_latex_number(stats['mean'])} $\\pm$ {_latex_number((stats['ci_high'] - stats['ci_low']) / 2)}"
 
 
 def to_latex(report: dict[str, Any]) -> str:
