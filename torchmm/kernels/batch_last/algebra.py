@@ -12,7 +12,8 @@ import torch
 from torch import Tensor
 
 __all__ = ["ONE", "ZERO", "Coef", "cholesky_entries", "coefficients", "collapse_entries", "collapse_modes", "combine",
-           "factor", "mix_entries", "sandwich", "solve_lower", "solve_lower_transposed", "stack_upper", "sum_terms"]
+           "factor", "mix_entries", "mixing", "moments", "sandwich", "solve_lower", "solve_lower_transposed",
+           "stack_upper", "sum_terms"]
 
 
 class Coef:
@@ -179,19 +180,40 @@ def solve_lower_transposed(L: list, rhs: list) -> list:
     return out
 
 
-def mix_entries(X: list, P: list, w: Tensor, n: int) -> tuple[list, list]:
-    """Moment-matched mixtures of per-entry beliefs ``X[a]``, ``P[a][c]`` ``(i, *B)`` with weights
-    ``w (i, j, *B)`` (columns summing to one over ``i``): the means ``(j, *B)`` and
-    ``sum_i w_ij (P_i + d_ij d_ij^T)``, ``d_ij = x_i - x_j`` (centred), each one pass over
-    ``(i, j, *B)``."""
-    xs = [(w * X[a].unsqueeze(1)).sum(0) for a in range(n)]  # mixed means (j, *B)
-    D = [X[a].unsqueeze(1) - xs[a].unsqueeze(0) for a in range(n)]  # (i, j, *B)
+def mixing(mu: Tensor, matrix: Tensor, tiny: Tensor, collapse: bool = False) -> tuple[Tensor, Tensor]:
+    """The interaction of the mode probabilities ``mu (M, *B)`` through ``matrix (i, j, 1...)``: the predicted
+    mode probabilities ``c_j = sum_i mu_i pi_ij`` ``(j, *B)`` and the mixing weights ``mu_{i|j} = pi_ij mu_i /
+    c_j`` ``(i, j, *B)`` (``c_j`` floored at ``tiny``); ``collapse`` (GPB1): ``mu_i`` ``(i, 1, *B)``, every
+    mode starting from the one collapsed posterior. Elementwise, not ``mm``: BLAS would round by the batch
+    size, and a run's numbers must not depend on how the runs are chunked
+    (tests/experiments/test_run_streams.py)."""
+    mu_i = mu.unsqueeze(1)
+    joint_ij = mu_i * matrix  # (i, j, *B)
+    cbar = joint_ij.sum(0)  # (j, *B)
+    return cbar, mu_i if collapse else joint_ij / torch.maximum(cbar, tiny).unsqueeze(0)
+
+
+def moments(X: list, P: list, w: Tensor, n: int) -> tuple[list, list]:
+    """Moment-matched mixtures of per-entry beliefs, the means ``X[a]`` and the upper triangle ``P[a][c]``
+    (``a <= c``), with weights ``w`` summing to one over the first axis (every shape broadcasting with
+    ``w``'s): the means ``sum_i w_i x_i`` and ``sum_i w_i (P_i + d_i d_i^T)``, ``d_i = x_i - x`` (centred),
+    each one pass over ``w``'s shape, the first axis summed out (lists as given)."""
+    xs = [(w * X[a]).sum(0) for a in range(n)]
+    D = [X[a] - xs[a] for a in range(n)]
     wD = [w * D[a] for a in range(n)]
     Cm = [[None] * n for _ in range(n)]
     for a in range(n):
         for c in range(a, n):
-            Cm[a][c] = torch.addcmul(w * P[a][c].unsqueeze(1), wD[a], D[c]).sum(0)
+            Cm[a][c] = torch.addcmul(w * P[a][c], wD[a], D[c]).sum(0)
     return xs, Cm
+
+
+def mix_entries(X: list, P: list, w: Tensor, n: int) -> tuple[list, list]:
+    """The IMM's mixing of per-entry beliefs ``X[a]``, ``P[a][c]`` ``(i, *B)`` with weights ``w (i, j, *B)``
+    (:func:`mixing`): the :func:`moments` over ``i`` of every ``j``, the means ``(j, *B)`` and the upper
+    triangle ``(j, *B)``. (By index, not iteration: a traced step's arguments are proxies.)"""
+    return moments([X[a].unsqueeze(1) for a in range(n)],
+                   [[P[a][c].unsqueeze(1) if c >= a else None for c in range(n)] for a in range(n)], w, n)
 
 
 def sandwich(F: list, Cs: list, Q: list, like: Tensor) -> list:
@@ -215,14 +237,9 @@ def collapse_modes(X: Tensor, P: Tensor, mu: Tensor) -> tuple[Tensor, Tensor]:
     spread = X - est.unsqueeze(1)
     return est, (mu * (P + spread.unsqueeze(1) * spread.unsqueeze(0))).sum(2)
 
+
 def collapse_entries(xu: list, Cu: list, mu: Tensor, n: int) -> tuple[Tensor, Tensor]:
     """:func:`collapse_modes` of the per-entry layout: the means ``xu[a] (M, *B)`` and the upper
-    triangle ``Cu[a][c] (M, *B)``, one pass over ``(M, *B)`` per entry."""
-    est = [(mu * xu[a]).sum(0) for a in range(n)]
-    spread = [xu[a] - est[a] for a in range(n)]
-    mu_spread = [mu * spread[a] for a in range(n)]
-    est_cov = [[None] * n for _ in range(n)]
-    for a in range(n):
-        for c in range(a, n):
-            est_cov[a][c] = torch.addcmul(mu * Cu[a][c], mu_spread[a], spread[c]).sum(0)
+    triangle ``Cu[a][c] (M, *B)`` (:func:`moments` over the modes), stacked ``(n, *B)`` and ``(n, n, *B)``."""
+    est, est_cov = moments(xu, Cu, mu, n)
     return torch.stack(est), stack_upper(est_cov)

@@ -56,6 +56,7 @@ from torchmm.kernels.batch_last.algebra import (
     collapse_modes,
     combine,
     mix_entries,
+    mixing,
     sandwich,
     stack_upper,
 )
@@ -229,29 +230,16 @@ class BatchLastIMM:
             ``(n, n, *B)`` in these two).
         """
         omitted = self.omitted
-        # interaction: c_j = sum_i mu_i pi_ij, mu_{i|j} = pi_ij mu_i / c_j
-        # (elementwise, not mm: BLAS would round by the batch size, and a run's numbers must not
-        # depend on how the runs are chunked: tests/experiments/test_run_streams.py)
-        mu_i = mu.unsqueeze(1)
-        joint_ij = mu_i * self.matrix  # (i, j, *B)
-        cbar = joint_ij.sum(0)  # (j, *B)
-        if self.collapse:  # GPB1: every mode starts from the one collapsed posterior, w_i = mu_i
-            w = mu_i  # (i, 1, *B)
-        else:  # IMM: mu_{i|j} = pi_ij mu_i / c_j
-            w = joint_ij / torch.maximum(cbar, self.tiny_t).unsqueeze(0)  # (i, j, *B)
+        # interaction: c_j = sum_i mu_i pi_ij and the weights: mu_{i|j} (IMM) or mu_i (GPB1: every mode starts
+        # from the one collapsed posterior)
+        cbar, w = mixing(mu, self.matrix, self.tiny_t, self.collapse)
         if self.broadcast:
             # every entry at once: the mixed means and sum_i w_ij (P_i + d_ij d_ij^T), d_ij = x_i - x0_j
             # (d d^T is exactly symmetric, so the sum is)
-            Xi = X.unsqueeze(2)  # (n, i, 1, *B)
-            Xm = (w * Xi).sum(1)  # (n, j, *B)
-            D = Xi - Xm.unsqueeze(1)  # (n, i, j, *B)
-            Pm = (w * (P.unsqueeze(3) + D.unsqueeze(1) * D.unsqueeze(0))).sum(2)  # (n, n, j, *B)
+            Xm, Pm = collapse_modes(X.unsqueeze(2), P.unsqueeze(3), w)  # (n, j, *B), (n, n, j, *B)
             if self.collapse:  # the one start belief, seen by every mode (views)
                 Xm, Pm = Xm.expand_as(X), Pm.expand_as(P)
             xs, Cm = Xm.unbind(0), self.entries(Pm)
-            # temporaries freed as soon as they are dead (their memory is reused while hot); by assignment,
-            # not del: a name a comprehension reads is a cell, and torch.compile breaks its graph at DELETE_DEREF
-            Xi = D = None
         else:
             # entry by entry (X, P: lists), each one pass over (i, j, *B)
             xs, Cm = mix_entries(X, P, w, self.n)
@@ -261,7 +249,8 @@ class BatchLastIMM:
             Xm = Pm = None
             if "extras" not in omitted:
                 Xm, Pm = torch.stack(xs), stack_upper(Cm)
-        w = joint_ij = None  # freed (not del: cells); X and P: the caller's state holds them
+        w = None  # freed (not del: a name a comprehension reads is a cell, and torch.compile breaks its graph at
+        # DELETE_DEREF); X and P: the caller's state holds them
         xp, Pp = self.predict_entries(xs, Cm, cbar)
         xu, Cu, ll, singular, s_first = self.update_components(xp, Pp, zc, ob, nhob, cbar, "extras" not in omitted)
         log_cbar, new_log_mu, total = self.mode_update(ll, cbar, anyob)

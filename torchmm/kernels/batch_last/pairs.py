@@ -37,7 +37,7 @@ from torch import Tensor
 
 from torchmm.beliefs import GaussianBelief, ModeBelief
 from torchmm.typing import StepOutput
-from torchmm.kernels.batch_last.algebra import stack_upper
+from torchmm.kernels.batch_last.algebra import collapse_entries, moments, stack_upper
 from torchmm.kernels.batch_last.imm import BatchLastIMM
 
 __all__ = ["BatchLastGPB2"]
@@ -86,7 +86,6 @@ class BatchLastGPB2(BatchLastIMM):
             (``estimate_only``: the estimate ``(n, *B)``, ``(n, n, *B)`` in these two).
         """
         n, omitted = self.n, self.omitted
-        upper = [(a, c) for a in range(n) for c in range(a, n)]
         # pair hypotheses: (i, j) starts from mode i's posterior, log weight log mu_i + log pi_ij
         prior_joint = log_mu.unsqueeze(1) + self.matrix  # (i, j, *B)
         # (by index, not iteration: the traced step's arguments are proxies)
@@ -110,23 +109,12 @@ class BatchLastGPB2(BatchLastIMM):
         total = torch.where(anyob, total, self.zero)  # exactly 0 without a datum
         joint = log_mode = None
         # mode j's posterior: the collapse over i, sum_i w_ij (P_ij + d_ij d_ij^T), d_ij = x_ij - x_j
-        xn = [(merge * xu[a]).sum(0) for a in range(n)]  # (j, *B)
-        spread = [xu[a] - xn[a] for a in range(n)]  # (i, j, *B)
-        w_spread = [merge * spread[a] for a in range(n)]
-        Cn = [[None] * n for _ in range(n)]
-        for a, c in upper:
-            Cn[a][c] = torch.addcmul(merge * Cu[a][c], w_spread[a], spread[c]).sum(0)
-        spread = w_spread = merge = None
+        xn, Cn = moments(xu, Cu, merge, n)  # (j, *B)
+        merge = None
         mu = new_log_mu.exp()
         Xp = Ppt = nu_out = S_out = X_out = P_out = None
         if self.estimate_only:  # the moment-matched collapse over the modes, as the IMM kernel's
-            est = [(mu * xn[a]).sum(0) for a in range(n)]
-            spread = [xn[a] - est[a] for a in range(n)]
-            mu_spread = [mu * spread[a] for a in range(n)]
-            est_cov = [[None] * n for _ in range(n)]
-            for a, c in upper:
-                est_cov[a][c] = torch.addcmul(mu * Cn[a][c], mu_spread[a], spread[c]).sum(0)
-            nu_out, S_out = torch.stack(est), stack_upper(est_cov)
+            nu_out, S_out = collapse_entries(xn, Cn, mu, n)
         else:
             X_out, P_out = torch.stack(xn), stack_upper(Cn)
             shape = prior_joint.shape

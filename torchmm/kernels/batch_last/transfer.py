@@ -42,6 +42,7 @@ from torchmm.kernels.batch_last.algebra import (
     combine,
     factor,
     mix_entries,
+    mixing,
     solve_lower,
     solve_lower_transposed,
     stack_upper,
@@ -115,12 +116,9 @@ class BatchLastTransfer(BatchLastIMM):
         F, H = self.F, self.H
         sym = lambda T, a, c: T[min(a, c)][max(a, c)]  # noqa: E731
         # 1. the IMM: mixing, prediction, update with y_k
-        mu_i = mu.unsqueeze(1)
-        joint_ij = mu_i * self.matrix
-        cbar = joint_ij.sum(0)
-        w = joint_ij / torch.maximum(cbar, self.tiny_t).unsqueeze(0)
+        cbar, w = mixing(mu, self.matrix, self.tiny_t)
         xs, Cm = mix_entries(X, C, w, self.n)
-        w = joint_ij = None
+        w = None
         xp, Pp = self.predict_entries(xs, Cm, cbar)
         extras = "extras" not in omitted
         xu, Cu, ll, singular, s_first = self.update_components(xp, Pp, zc, ob, nhob, cbar, extras)
