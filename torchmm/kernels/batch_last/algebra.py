@@ -8,11 +8,13 @@ the two-filter smoother and IMM-TF's transfer compose them."""
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
 __all__ = ["ONE", "ZERO", "Coef", "cholesky_entries", "coefficients", "collapse_entries", "collapse_modes", "combine",
-           "factor", "mix_entries", "mixing", "moments", "sandwich", "solve_lower", "solve_lower_transposed",
+           "factor", "log_normalized", "mix_entries", "mixing", "moments", "sandwich", "solve_lower", "solve_lower_transposed",
            "stack_upper", "sum_terms"]
 
 
@@ -191,6 +193,13 @@ def mixing(mu: Tensor, matrix: Tensor, tiny: Tensor, collapse: bool = False) -> 
     joint_ij = mu_i * matrix  # (i, j, *B)
     cbar = joint_ij.sum(0)  # (j, *B)
     return cbar, mu_i if collapse else joint_ij / torch.maximum(cbar, tiny).unsqueeze(0)
+
+
+def log_normalized(joint: Tensor, norm: Tensor, size: int) -> Tensor:
+    """``joint - norm`` as :func:`~torchmm.beliefs.ops.safe_log_normalize` gives it (a NaN, where every term
+    was ``-inf`` or one was NaN, is the uniform ``-log(size)``), the group size written out (a traced step's
+    tensors have no ``numel``)."""
+    return (joint - norm).nan_to_num_(nan=-math.log(size), posinf=math.inf, neginf=-math.inf)
 
 
 def moments(X: list, P: list, w: Tensor, n: int) -> tuple[list, list]:

@@ -55,6 +55,7 @@ from torchmm.kernels.batch_last.algebra import (
     collapse_entries,
     collapse_modes,
     combine,
+    log_normalized,
     mix_entries,
     mixing,
     sandwich,
@@ -297,7 +298,7 @@ class BatchLastIMM:
         top = torch.maximum(joint.amax(0), self.lowest)
         shifted = joint - top
         log_sum = shifted.exp().sum(0).log()
-        new_log_mu = (shifted - log_sum).nan_to_num_(nan=-math.log(self.M), posinf=math.inf, neginf=-math.inf)
+        new_log_mu = log_normalized(shifted, log_sum, self.M)
         return log_cbar, new_log_mu, torch.where(anyob, top + log_sum, self.zero)
 
     def update_components(self, xp: list, Pp: list, zc: Tensor, ob: Tensor, nhob: Tensor, like: Tensor,

@@ -30,14 +30,12 @@ the batch-last tensors; equal to the engine's to rounding (tests/multimodel/test
 
 from __future__ import annotations
 
-import math
-
 import torch
 from torch import Tensor
 
 from torchmm.beliefs import GaussianBelief, ModeBelief
 from torchmm.typing import StepOutput
-from torchmm.kernels.batch_last.algebra import collapse_entries, moments, stack_upper
+from torchmm.kernels.batch_last.algebra import collapse_entries, log_normalized, moments, stack_upper
 from torchmm.kernels.batch_last.imm import BatchLastIMM
 
 __all__ = ["BatchLastGPB2"]
@@ -101,11 +99,8 @@ class BatchLastGPB2(BatchLastIMM):
         joint = ll + prior_joint  # (i, j, *B)
         log_mode = torch.logsumexp(joint, 0)  # (j, *B)
         total = torch.logsumexp(log_mode, 0)  # (*B,)
-        # safe_log_normalize (all -inf or NaN: uniform), its group size written out (the traced
-        # step's tensors have no numel)
-        uniform = -math.log(self.M)
-        merge = (joint - log_mode.unsqueeze(0)).nan_to_num_(nan=uniform, posinf=math.inf, neginf=-math.inf).exp()
-        new_log_mu = (log_mode - total.unsqueeze(0)).nan_to_num_(nan=uniform, posinf=math.inf, neginf=-math.inf)
+        merge = log_normalized(joint, log_mode.unsqueeze(0), self.M).exp()
+        new_log_mu = log_normalized(log_mode, total.unsqueeze(0), self.M)
         total = torch.where(anyob, total, self.zero)  # exactly 0 without a datum
         joint = log_mode = None
         # mode j's posterior: the collapse over i, sum_i w_ij (P_ij + d_ij d_ij^T), d_ij = x_ij - x_j

@@ -44,7 +44,9 @@ from torchmm.kernels.batch_last.algebra import (
     collapse_entries,
     combine,
     factor,
+    log_normalized,
     mix_entries,
+    sandwich,
     solve_lower,
     stack_upper,
     sum_terms,
@@ -135,12 +137,7 @@ class BatchLastTwoFilter:
         """``mode_posterior``'s mode log-probabilities ``(M, *B)`` from log-likelihoods and a prior."""
         joint = ll + prior
         total = torch.logsumexp(joint, 0)
-        return self._normalize(joint, total.unsqueeze(0), self.M)
-
-    @staticmethod
-    def _normalize(joint: Tensor, norm: Tensor, size: int) -> Tensor:
-        """``safe_log_normalize`` with the group size written out."""
-        return (joint - norm).nan_to_num_(nan=-math.log(size), posinf=math.inf, neginf=-math.inf)
+        return log_normalized(joint, total.unsqueeze(0), self.M)
 
     def predict(self, x: list, C: list) -> tuple[list, list]:
         """The backward prediction of every mode: ``F^{-1} (m - b)``, ``F^{-1} (P + Q) F^{-T}``."""
@@ -151,11 +148,7 @@ class BatchLastTwoFilter:
         mean = [combine([(Finv[a][e], diff[e]) for e in range(n)], ZERO, like) for a in range(n)]
         S = [[combine([(ONE, C[a][c])], Q[a][c], like) if c >= a else None for c in range(n)]
              for a in range(n)]  # P + Q (upper triangle)
-        A = [[combine([(Finv[a][e], S[min(e, c)][max(e, c)]) for e in range(n)], ZERO, like) for c in range(n)]
-             for a in range(n)]
-        cov = [[combine([(Finv[c][e], A[a][e]) for e in range(n)], ZERO, like) if c >= a else None
-                for c in range(n)] for a in range(n)]
-        return mean, cov
+        return mean, sandwich(Finv, S, [[ZERO] * n for _ in range(n)], like)
 
     def fuse(self, log_mu: Tensor, x: list, P: list, log_mu_b: Tensor, b: list, B: list,
              prior_next: Tensor) -> tuple[Tensor, list, list]:
@@ -181,9 +174,9 @@ class BatchLastTwoFilter:
         evidence = log_mu_b - prior_next  # (i, *B)
         log_pair = log_mu.unsqueeze(1) + self.log_pi + log_overlap + evidence.unsqueeze(0)  # (j, i, *B)
         norm = torch.logsumexp(log_pair.flatten(0, 1), 0)
-        log_pair = self._normalize(log_pair, norm, M * M)
+        log_pair = log_normalized(log_pair, norm, M * M)
         log_mode = torch.logsumexp(log_pair, 1)  # (j, *B)
-        weights = self._normalize(log_pair, log_mode.unsqueeze(1), M).exp()  # P(s_{k+1} = i | s_k = j)
+        weights = log_normalized(log_pair, log_mode.unsqueeze(1), M).exp()  # P(s_{k+1} = i | s_k = j)
         merged = [(weights * mean[a]).sum(1) for a in range(n)]
         diff = [mean[a] - merged[a].unsqueeze(1) for a in range(n)]
         wdiff = [weights * diff[a] for a in range(n)]
@@ -201,7 +194,7 @@ class BatchLastTwoFilter:
         log_back = log_back - torch.logsumexp(log_back, 1, keepdim=True)
         log_joint = log_mu_b.unsqueeze(1) + log_back  # (i, j, *B)
         log_a = torch.logsumexp(log_joint, 0)  # (j, *B)
-        w = self._normalize(log_joint, log_a.unsqueeze(0), M).exp()
+        w = log_normalized(log_joint, log_a.unsqueeze(0), M).exp()
         xs, Cm = mix_entries(b, B, w, self.n)  # the mixed beliefs (j, *B)
         zc, ob, nhob, _, _ = data
         xu, Cu, ll, _, _ = imm.update_components(xs, Cm, zc, ob, nhob, log_a, False)
