@@ -358,27 +358,9 @@ class BatchLastIMM:
         state = (X, P, mu, k + 1)
         modes, gaussian = self.modes, self.gaussian
         if self.estimate_only:  # (a failed run: a NaN log-likelihood, as in the engine)
-            estimate = GaussianBelief(nu.permute(self._to_front1), S.permute(self._to_front2))
-            return state, StepOutput(estimate, None, total)
-        extras = None
-        if ll is not None:
-            # failures as the engine flags them (docs/robustness.md): a run's where its log-likelihood
-            # is NaN, a mode's where a datum is present and its likelihood is NaN (a missing component
-            # of a NaN mode gives NaN * 0 here, 0 in the engine)
-            extras = {
-                "mode_log_likelihood": modes(ll),
-                "modes": {"singular": modes(singular), "failed": modes(torch.isnan(ll) & self.data[k][3])},
-                "failed": torch.isnan(total),  # (the keys in the engine's order; "mixed" last, below)
-            }
-        out = StepOutput(
-            belief=ModeBelief(modes(log_mu), gaussian(X_out, P_out)),
-            prior=None if Xp is None else ModeBelief(modes(log_cbar), gaussian(Xp, Pp)),
-            log_likelihood=total,
-            innovation=None if nu is None or "innovation" in self.omitted else nu.permute(self._to_front_x),
-            innovation_cov=None if S is None or "innovation_cov" in self.omitted
-            else S.permute(self._to_front_p),
-            extras=extras,
-        )
+            return state, self.estimate_output(nu, S, total)
+        out = self.output(log_mu, X_out, P_out, None if Xp is None else ModeBelief(modes(log_cbar), gaussian(Xp, Pp)),
+                          total, nu, S, None if ll is None else self.failures(modes, ll, singular, total, k))
         if self.post_update is not None:  # the filter's own work after the update (a model-set policy)
             out = self.post_update(out, self.generator)
             # carried on, batch-last in memory as the state (a policy's batch-first tensors would make
@@ -389,13 +371,43 @@ class BatchLastIMM:
                 if isinstance(belief, ModeBelief) and type(belief.components) is GaussianBelief:
                     w = belief.output_log_weights().permute(self._to_back1).contiguous().exp()
                     est, cov = collapse_modes(X, P, w) if self.broadcast else collapse_entries(X, P, w, self.n)
-                    estimate = GaussianBelief(est.permute(self._to_front1), cov.permute(self._to_front2))
-                else:
-                    estimate = belief.estimate()
-                return state, StepOutput(estimate, None, out.log_likelihood)
+                    return state, self.estimate_output(est, cov, out.log_likelihood)
+                return state, StepOutput(belief.estimate(), None, out.log_likelihood)
         if ll is not None:
             out.extras["mixed"] = ModeBelief(modes(log_cbar), gaussian(Xm, Pm))
         return state, out
+
+    def estimate_output(self, est: Tensor, cov: Tensor, total: Tensor) -> StepOutput:
+        """A step's output with ``record="estimate"``: the estimate ``(n, *B)``, ``(n, n, *B)`` as a batch-first
+        belief, and the log-likelihood ``(*B,)``."""
+        return StepOutput(GaussianBelief(est.permute(self._to_front1), cov.permute(self._to_front2)), None, total)
+
+    def failures(self, modes, ll: Tensor, singular: Tensor, total: Tensor, k: int) -> dict:
+        """The ``extras`` failures as the engine flags them (docs/robustness.md), in its key order: a run's
+        where its log-likelihood is NaN, a hypothesis's (``modes``: its batch-first view) where a datum is
+        present at step ``k`` and its likelihood is NaN (a missing component of a NaN mode gives NaN * 0 here,
+        0 in the engine), with the mode log-likelihoods and singular flags."""
+        return {
+            "mode_log_likelihood": modes(ll),
+            "modes": {"singular": modes(singular), "failed": modes(torch.isnan(ll) & self.data[k][3])},
+            "failed": torch.isnan(total),
+        }
+
+    def output(self, log_mu: Tensor, X: Tensor, P: Tensor, prior, total: Tensor, nu, S, extras: dict | None,
+               to_x: tuple | None = None, to_p: tuple | None = None) -> StepOutput:
+        """A step's :class:`StepOutput` of batch-first views: the posterior from ``log_mu (M, *B)``, ``X (n, M,
+        *B)``, ``P (n, n, M, *B)``, the ``prior`` (a belief or None), the log-likelihood, the innovations and
+        their covariances batch-last (None, or dropped where ``record`` omits them; ``to_x``, ``to_p``: their
+        permutations to batch-first, the modes' by default) and ``extras``."""
+        omitted = self.omitted
+        return StepOutput(
+            belief=ModeBelief(self.modes(log_mu), self.gaussian(X, P)),
+            prior=prior,
+            log_likelihood=total,
+            innovation=None if nu is None or "innovation" in omitted else nu.permute(to_x or self._to_front_x),
+            innovation_cov=None if S is None or "innovation_cov" in omitted else S.permute(to_p or self._to_front_p),
+            extras=extras,
+        )
 
     def run_core(self, args: tuple, k: int) -> tuple:
         """:meth:`core` (traced or compiled where chosen) on ``args``, the arguments of step ``k``; a

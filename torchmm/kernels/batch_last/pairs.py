@@ -138,29 +138,15 @@ class BatchLastGPB2(BatchLastIMM):
         (X, C, X_out, P_out, log_mu, mu, total, Xp, Pp, prior_joint, ll, singular, nu, S) = out
         state = (X, C, log_mu, k + 1)
         if self.estimate_only:
-            estimate = GaussianBelief(nu.permute(self._to_front1), S.permute(self._to_front2))
-            return state, StepOutput(estimate, None, total)
+            return state, self.estimate_output(nu, S, total)
         pairs = lambda t: t.permute(self._to_front2)  # noqa: E731  (i, j, *B) -> (*B, i, j)
-        extras = None
-        if ll is not None:
-            extras = {
-                "mode_log_likelihood": pairs(ll),
-                "modes": {"singular": pairs(singular), "failed": pairs(torch.isnan(ll) & self.data[k][3])},
-                "failed": torch.isnan(total),
-            }
         prior = None
         if Xp is not None:
             d = self.d
             prior = ModeBelief(pairs(prior_joint).flatten(d, d + 1),
                                GaussianBelief(Xp.permute(self._to_front_pairs_x).flatten(d, d + 1),
                                               Pp.permute(self._to_front_pairs_p).flatten(d, d + 1)))
-        out = StepOutput(
-            belief=ModeBelief(self.modes(log_mu), self.gaussian(X_out, P_out)),
-            prior=prior,
-            log_likelihood=total,
-            innovation=None if nu is None or "innovation" in self.omitted else nu.permute(self._to_front_pairs_x),
-            innovation_cov=None if S is None or "innovation_cov" in self.omitted
-            else S.permute(self._to_front_pairs_p),
-            extras=extras,
-        )
+        out = self.output(log_mu, X_out, P_out, prior, total, nu, S,
+                          None if ll is None else self.failures(pairs, ll, singular, total, k),
+                          self._to_front_pairs_x, self._to_front_pairs_p)
         return state, out

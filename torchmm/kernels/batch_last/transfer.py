@@ -34,7 +34,7 @@ import torch
 from torch import Tensor
 
 import torchmm.kernels as kernels
-from torchmm.beliefs import GaussianBelief, ModeBelief
+from torchmm.beliefs import ModeBelief
 from torchmm.typing import StepOutput
 from torchmm.kernels.batch_last.algebra import (
     ZERO,
@@ -215,17 +215,9 @@ class BatchLastTransfer(BatchLastIMM):
         if diagnostics is not None and "extras" not in self.omitted:
             extras = self._extras(k, total, log_cbar, used, *diagnostics)
         if self.estimate_only:
-            return state, StepOutput(GaussianBelief(nu.permute(self._to_front1), S.permute(self._to_front2)),
-                                     None, total)
-        out = StepOutput(
-            belief=ModeBelief(self.modes(log_mu), self.gaussian(X_out, P_out)),
-            prior=None if Xp is None else ModeBelief(self.modes(log_cbar), self.gaussian(Xp, Pp)),
-            log_likelihood=total,
-            innovation=None if nu is None or "innovation" in self.omitted else nu.permute(self._to_front_x),
-            innovation_cov=None if S is None or "innovation_cov" in self.omitted else S.permute(self._to_front_p),
-            extras=extras,
-        )
-        return state, out
+            return state, self.estimate_output(nu, S, total)
+        prior = None if Xp is None else ModeBelief(self.modes(log_cbar), self.gaussian(Xp, Pp))
+        return state, self.output(log_mu, X_out, P_out, prior, total, nu, S, extras)
 
     def _extras(self, k, total, log_cbar, used, ll, singular, xs, Cm, value, smoothed, smoothed_cov, u_s) -> dict:
         """The eager step's ``extras``, in its order, as batch-first views."""
@@ -235,9 +227,7 @@ class BatchLastTransfer(BatchLastIMM):
         mean = torch.stack([t.expand(shape) for t in smoothed])
         cov = stack_upper([[None if t is None else t.expand(shape) for t in row] for row in smoothed_cov])
         return {
-            "mode_log_likelihood": modes(ll),
-            "modes": {"singular": modes(singular), "failed": modes(torch.isnan(ll) & self.data[k][3])},
-            "failed": torch.isnan(total),
+            **self.failures(modes, ll, singular, total, k),
             "mixed": ModeBelief(modes(log_cbar), self.gaussian(torch.stack(xs), stack_upper(Cm))),
             "influence": value.permute(self._to_front1),
             "transfer_used": used,
