@@ -9,7 +9,7 @@ import logging
 from pathlib import Path
 from typing import Any
 
-from experiments.folders import NON_RESULT_KEYS
+from experiments.folders import DATA_FILES, NON_RESULT_KEYS
 from experiments.paths import CONFIG_DIR
 
 __all__ = ["RUN_CHOICES", "compose_conf", "config_changes"]
@@ -55,8 +55,8 @@ def compose_conf(overrides: list[str]) -> tuple[Any, dict]:
 
 def _relevant(key: str) -> bool:
     head = key.split(".", 1)[0].split("/", 1)[0]
-    return head not in NON_RESULT_KEYS and head not in _NON_RESULT_GROUPS and head != "hydra" \
-        and key not in ("experiment", "experiment_name", "study")
+    return head not in NON_RESULT_KEYS and head not in _NON_RESULT_GROUPS \
+        and head not in ("hydra", DATA_FILES) and key not in ("experiment", "experiment_name", "study")
 
 
 def _run_choices() -> dict | None:

@@ -164,15 +164,20 @@ def read_npz(file: Path, wanted: list[str]) -> dict[str, np.ndarray]:
     return out
 
 
+def find(file: Path, base: Path | None = None) -> Path:
+    """Where the readers look for a data file: a relative path in ``base`` (the working directory), then in
+    the shipped ``experiments/data`` (the first that exists; the first if neither does)."""
+    if file.is_absolute():
+        return file
+    here = (base or Path.cwd()) / file
+    shipped = Path(__file__).resolve().parent / "data" / file
+    return here if here.exists() or not shipped.exists() else shipped
+
+
 def locate(path: str | Path, base: Path | None, measurements: list[str]) -> Path:
     """The data file: a relative ``path`` in ``base`` (the working directory), then in the shipped
     ``experiments/data``; it must exist, and some measurement columns must be named."""
-    file = path_arg(path, "path")
-    base = path_arg(base, "base", optional=True)
-    if not file.is_absolute():
-        here = (base or Path.cwd()) / file
-        shipped = Path(__file__).resolve().parent / "data" / file
-        file = here if here.exists() or not shipped.exists() else shipped
+    file = find(path_arg(path, "path"), path_arg(base, "base", optional=True))
     if not measurements:
         raise ValueError("measurements: no columns given (name the measurement columns, e.g. ['x', 'y'])")
     if not file.exists():

@@ -43,6 +43,43 @@ NON_RESULT_KEYS = ("progress", "figures", "logger", "threads", "chunk_runs", "un
                    "compile", "cpu_kernels", "executor", "resume")
 
 
+#: the key under which a run's config records the contents of the data files it reads
+#: (:func:`with_data_files`)
+DATA_FILES = "data_files"
+
+
+def with_data_files(config_dict: dict) -> dict:
+    """``config_dict`` with :data:`DATA_FILES`: ``{dotted key: "sha256:<16 hex digits>"}`` of every data
+    file the config names (each string ``path`` of a block, e.g. ``scenario.data.path``,
+    ``tracking.detections.truth.path``), found as the readers find it (the working directory, then the
+    shipped experiments/data). Recorded in results.json and hashed with the config (:func:`config_hash`), so
+    a run on a file whose contents changed is a different run: ``resume`` never mixes units computed from
+    the old contents with new ones, and the earlier results are kept. A file that does not exist is left
+    out (the study's reader names it)."""
+    from experiments.datafile_io import find
+
+    found: dict[str, str] = {}
+
+    def walk(node: Any, prefix: str) -> None:
+        if not isinstance(node, dict):
+            return
+        for key, value in node.items():
+            name = f"{prefix}{key}"
+            if key == "path" and isinstance(value, str) and value:
+                file = find(Path(value))
+                if file.is_file():
+                    digest = hashlib.sha256()
+                    with open(file, "rb") as handle:
+                        for block in iter(lambda: handle.read(1 << 20), b""):
+                            digest.update(block)
+                    found[name] = "sha256:" + digest.hexdigest()[:16]
+            elif key not in ("hydra", DATA_FILES):
+                walk(value, name + ".")
+
+    walk(config_dict, "")
+    return {**config_dict, DATA_FILES: found} if found else dict(config_dict)
+
+
 def result_config(config_dict: dict) -> dict:
     """The part of a resolved config that decides the numbers (without :data:`NON_RESULT_KEYS`)."""
     return {k: v for k, v in config_dict.items() if k not in NON_RESULT_KEYS and k != "hydra"}

@@ -115,8 +115,10 @@ def run_study(cfg: DictConfig, output_dir: Path, overrides: list[str] | None = N
     from experiments.context import open_context
     from experiments.files import LOCKS, lock_folder, unlock_folder
 
+    from experiments.folders import with_data_files
+
     validate(cfg)
-    config = OmegaConf.to_container(cfg, resolve=True)
+    config = with_data_files(OmegaConf.to_container(cfg, resolve=True))  # (the data files: result keys)
     study = get_method(cfg.study)
     held = set(LOCKS)  # the locks taken here are released at the end (the command line's: at exit)
     try:
@@ -373,7 +375,14 @@ def claim_folder(args: list[str], config_dir: str = CONFIG_DIR) -> list[str]:
     """
     from experiments.config import compose_config
     from experiments.files import RunFolderError, lock_folder, unlock_folder
-    from experiments.folders import config_hash, differing_keys, result_config, saved_run, unique_dir
+    from experiments.folders import (
+        config_hash,
+        differing_keys,
+        result_config,
+        saved_run,
+        unique_dir,
+        with_data_files,
+    )
 
     if any(a.split("=", 1)[0] in _NO_RUN_FLAGS for a in args):
         return args  # Hydra prints something and runs nothing: no folder
@@ -404,7 +413,7 @@ def claim_folder(args: list[str], config_dir: str = CONFIG_DIR) -> list[str]:
     if saved is None:
         return args
     cfg, _ = compose_config([a for a in args if not a.startswith("-")], config_dir, "config")
-    config = OmegaConf.to_container(cfg, resolve=True)
+    config = with_data_files(OmegaConf.to_container(cfg, resolve=True))
     if saved[0] == config_hash(config):
         return args  # the same result config: continue the folder
     differ = differing_keys(saved[1] or {}, json.loads(json.dumps(result_config(config), default=str)))
@@ -433,10 +442,10 @@ def resolve_resume(args: list[str], config_dir: str = CONFIG_DIR) -> list[str]:
     if values[-1] != "latest":
         return [*args, f"hydra.run.dir={values[-1]}"]
     from experiments.config import compose_config
-    from experiments.folders import latest_run
+    from experiments.folders import latest_run, with_data_files
 
     cfg, _ = compose_config([a for a in args if not a.startswith("-")], config_dir, "config")
-    config = OmegaConf.to_container(cfg, resolve=True)
+    config = with_data_files(OmegaConf.to_container(cfg, resolve=True))
     base = Path("outputs") / str(config.get("experiment_name", "study"))
     unreadable: list[str] = []
     folder = latest_run(base, config, unreadable)
