@@ -359,6 +359,9 @@ def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
             stats = _innovation_stats(traj, z, est.multiple_model)
             if stats is not None:
                 nis, dof, white = stats
+                burn = int(ctx.cfg.get("burn") or 0)  # the burn-in's innovations (a diffuse start's) left out
+                if burn:
+                    nis, dof, white = nis[burn:], dof[burn:], white[burn:]
                 v["nis"], v["dof"] = per_run(torch.where(dof > 0, nis, torch.nan).detach()), per_run(dof.to(ctx.dtype))
                 v["white"] = per_run(white.detach())
         shown = present[:, 0]  # run 0's curves end at its own last step
@@ -432,8 +435,9 @@ def run(ctx: StudyContext) -> None:
         for key in [k for k in r["summary"] if k in _MAIN or k.startswith("rmse_") and not k.endswith("_se")]:
             value = r["summary"][key]
             if value is None or not math.isfinite(value):
-                dropped[f"{key} ({label})"] = ("no step of any run to compute it from (no measurement or no truth "
-                                               "where the estimate exists)")
+                dropped[f"{key} ({label})"] = (
+                    "no two consecutive innovations to compute it from (after the burn-in)" if key == "whiteness_lag1"
+                    else "no step of any run to compute it from (no measurement or no truth where the estimate exists)")
                 for k in [k for k in r["summary"] if k == key or k.startswith(f"{key}_")]:
                     del r["summary"][k]
                 r["influence"].pop(key, None)

@@ -94,16 +94,19 @@ def reduce(parts: list[dict], groups: list[str], metrics: list[str]) -> tuple[di
             lo, hi = chi2_interval(runs * m)
             summary["nis_dof"], summary["nis_low"], summary["nis_high"] = m, lo * m, hi * m
         white = _t(join_runs([p["white"] for p in parts]))  # (T, N, m)
-        if "whiteness" in metrics and white.shape[0] > 1:
+        if "whiteness" in metrics:
+            # each run's and component's sample lag-1 autocorrelation of its normalised innovations (zero-mean
+            # under a consistent filter): sum_t x_t x_{t+1} over the pairs of consecutive ones present, over
+            # sum_t x_t^2 over all present, so that it lies in [-1, 1] (the pairs' sum is at most the squares')
             a, b = white[:-1], white[1:]
             ok = torch.isfinite(a) & torch.isfinite(b)
             num = torch.where(ok, a * b, 0.0).sum(0)
-            den = torch.where(ok, a * a, 0.0).sum(0)
-            # each run's and component's lag-1 autocorrelation, over its pairs of consecutive innovations
+            den = torch.where(torch.isfinite(white), white * white, 0.0).sum(0)
             r = torch.where(ok.any(0) & (den > 0), num / den.clamp_min(1e-300), torch.nan)  # (N, m)
             pairs = int(ok.sum())
+            # no pair of consecutive innovations: NaN, named as dropped by the study
+            summary["whiteness_lag1"] = float(r[torch.isfinite(r)].mean()) if pairs else math.nan
             if pairs:
-                summary["whiteness_lag1"] = float(r[torch.isfinite(r)].mean())
                 summary["whiteness_bound"] = Z95 / math.sqrt(pairs)
     if "loglik" in metrics and "loglik" in parts[0]:
         ll = _t(join_runs([p["loglik"] for p in parts]))

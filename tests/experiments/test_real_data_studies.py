@@ -77,11 +77,18 @@ def test_nile_study_learns_the_mle(tmp_path, nile_mle):
 
 def test_nile_study_loglikelihood_at_the_mle(tmp_path, nile_mle):
     """At statsmodels' MLE (no learning) the study's log-likelihood is statsmodels' to 1e-6 (its llf keeps
-    the diffuse observation's -log(2 pi)/2)."""
+    the diffuse observation's -log(2 pi)/2); its NIS and whiteness are those of statsmodels' standardised
+    forecast errors after the diffuse first one (``burn: 1``): their mean square, 1 at the MLE of a common
+    scale, and their lag-1 sample autocorrelation, in [-1, 1] (the burned innovation once made it 0.99 and
+    0.1215)."""
     model, (r, q) = nile_mle
     res, _ = _run("nile", tmp_path, "learn=null", f"scenario.modes.0.Q=[[{float(q)!r}]]",
                f"scenario.sensors.0.R=[[{float(r)!r}]]")
     assert res["metrics"]["KF"]["loglik"] + DIFFUSE_CONSTANT == pytest.approx(model.loglike(np.array([r, q])), abs=1e-6)
+    e = model.smooth(np.array([r, q])).standardized_forecasts_error[0, 1:]  # (the diffuse first one: NaN)
+    assert res["metrics"]["KF"]["nis"] == pytest.approx(np.mean(e * e), rel=1e-6)
+    assert res["metrics"]["KF"]["nis"] == pytest.approx(1.0, abs=1e-4)  # the scale's score at the MLE
+    assert res["metrics"]["KF"]["whiteness_lag1"] == pytest.approx(np.sum(e[:-1] * e[1:]) / np.sum(e * e), abs=1e-6)
 
 
 def test_nile_by_em_and_by_em_then_mle(tmp_path, nile_mle):
@@ -98,3 +105,18 @@ def test_nile_by_em_and_by_em_then_mle(tmp_path, nile_mle):
     assert learned["modes[0].Q[0,0]"][0] == pytest.approx(q, rel=2e-3)
     assert learned["sensors[0].R[0,0]"][0] == pytest.approx(r, rel=2e-3)
     assert learned["modes[0].Q[0,0]"][1] > 0
+
+
+def test_whiteness_of_a_short_series_is_an_autocorrelation_or_named_as_dropped(tmp_path, monkeypatch):
+    """Three years of Nile (two innovations after the burn-in): the lag-1 sample autocorrelation of the two,
+    x1 x2 / (x1^2 + x2^2), inside [-1, 1] (it was -5.06: the burned diffuse innovation, ~0, in the
+    denominator); two years (one innovation after it): no pair, so named as dropped, never a number."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "three.csv").write_text("year,flow\n1871,1120\n1872,1160\n1873,963\n")
+    (tmp_path / "two.csv").write_text("year,flow\n1871,1120\n1872,1160\n")
+    res, _ = _run("nile", tmp_path / "three", "learn=null", "scenario.data.path=three.csv")
+    x = res["metrics"]["KF"]
+    assert -1.0 <= x["whiteness_lag1"] <= 1.0 and x["nis"] > 0
+    res, _ = _run("nile", tmp_path / "two", "learn=null", "scenario.data.path=two.csv")
+    assert "whiteness_lag1" not in res["metrics"]["KF"]
+    assert "consecutive innovations" in res["dropped"]["whiteness_lag1 (KF)"]
