@@ -219,6 +219,15 @@ def test_errors_name_the_parameter(parameters, message):
         estimate(imm, b0, _two_mode_data(50), parameters, progress=False)
 
 
+def test_covariance_from_a_singular_start_names_the_parameter():
+    """kind 'covariance' from a rank-1 R: a ValueError naming it (before: torch's _LinAlgError)."""
+    kf = KalmanFilter(LinearMotion(torch.eye(2).double(), torch.eye(2).double()),
+                      LinearMeasurement(torch.eye(2).double(), torch.ones(2, 2).double()))
+    b0 = GaussianBelief(torch.zeros(2).double(), torch.eye(2).double())
+    with pytest.raises(ValueError, match=r"parameters\['measurement.R'\]: a 'covariance' starts from a positive "):
+        estimate(kf, b0, torch.zeros(5, 2).double(), {"measurement.R": "covariance"}, progress=False)
+
+
 def test_param_checks():
     with pytest.raises(ValueError, match="^lower: bounds are for kind 'free'"):
         Param("variance", lower=0.0)

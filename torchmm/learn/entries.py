@@ -37,7 +37,8 @@ class Param:
             ``L L^T`` with ``L`` lower triangular and its diagonal ``exp(u)``; ``"stochastic"``: each row
             (last axis) a probability vector, ``softmax`` over its free entries with the last free entry
             as the reference (``M - 1`` values a row), its zero entries and ``fixed`` entries kept (the
-            free ones share the rest of the row's mass); ``"probabilities"``: the last axis a probability
+            free ones share the rest of the row's mass: a row left with one free entry holds it at that
+            rest, neither estimated nor reported); ``"probabilities"``: the last axis a probability
             vector, as one row of ``"stochastic"``.
         fixed: a boolean mask of the tensor's shape (or broadcastable to it): entries held at their
             current values. ``"covariance"`` takes none.
@@ -156,7 +157,11 @@ class Block:
             d = self.shape[-1]
             tril = torch.tril(torch.ones(d, d, dtype=torch.bool)).expand(self.shape)
             self.reported = torch.nonzero(tril.reshape(-1))[:, 0]  # the lower triangle's entries
-            L = torch.linalg.cholesky(v)
+            L, info = torch.linalg.cholesky_ex(v)
+            if bool((info != 0).any()) or not bool(torch.isfinite(L).all()):
+                raise ValueError(f"parameters[{name!r}]: a 'covariance' starts from a positive definite matrix (its "
+                                 "Cholesky factor L L^T); this one is singular or indefinite (kind 'variance' "
+                                 "estimates a diagonal one, or start from a positive definite one)")
             start = torch.where(torch.eye(d, dtype=torch.bool), L.diagonal(dim1=-2, dim2=-1).log().diag_embed(), L)
             self.u0 = start.reshape(-1)[self.reported]
             self.slot = None
@@ -181,7 +186,9 @@ class Block:
                         logits[r, j] = rows[r, j].log() - rows[r, ref[r]].log()
             self.entries = torch.tensor(entries, dtype=torch.long)
             self.u0 = logits.reshape(-1)[self.entries] if entries else torch.zeros(0, dtype=torch.float64)
-            self.reported = torch.nonzero(free.reshape(-1))[:, 0]
+            # a row's free entries, where it has two or more (a row with one free entry holds it at the rest
+            # of its mass: nothing of it is estimated, so nothing is reported)
+            self.reported = torch.nonzero((free & (free.sum(-1, keepdim=True) > 1)).reshape(-1))[:, 0]
             self.fixed_mass = torch.where(free, 0.0, rows).sum(-1)  # each row's fixed probability
             if bool((self.fixed_mass > 1 + 1e-12).any()):
                 raise ValueError(f"parameters[{name!r}]: the fixed entries of a row sum to more than 1")
