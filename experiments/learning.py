@@ -28,7 +28,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from experiments.config import ConfigError
+from experiments.config import NO_VALUE, ConfigError
 
 #: old names of the covariance parametrisations (``method: gradient``) and their ``mle`` kinds
 KIND_ALIASES = {"log_diagonal": "variance", "cholesky": "covariance"}
@@ -98,7 +98,6 @@ def entry_where(entry) -> tuple[str | None, int | None]:
 def parameters_of(est, scenario, block, key: str = "learn.parameters") -> tuple[dict, dict]:
     """``({filter tensor name: Param}, {filter tensor name: (model, tensor, mode axis?)})``: each
     ``learn.parameters`` entry found in the estimator's filter. ``ConfigError`` naming the entry."""
-    from torchmm.learn import Param
     from torchmm.models.transition import ModeTransition
 
     filter = est.filter
@@ -132,11 +131,20 @@ def parameters_of(est, scenario, block, key: str = "learn.parameters") -> tuple[
                                   "model out)")
             from torchmm.models.transition import LogisticTransition
 
+            for option in ("shared", "lower", "upper"):
+                if entry.get(option) not in (None, False):
+                    what = "shared entries (it belongs to no mode)" if option == "shared" else "bounds"
+                    raise ConfigError(f"{at}.{option}", entry.get(option), f"the transition matrix takes no "
+                                      f"{what} (its rows are probabilities; fixed holds entries)")
             logistic = [p for p, m in filter.named_modules() if isinstance(m, LogisticTransition)]
             if logistic:  # time-varying: its logistic coefficients, free
+                if kind not in (None, "free", "stochastic"):
+                    raise ConfigError(f"{at}.kind", kind, "a time-varying transition's logistic coefficients "
+                                      "are free")
                 tensor = f"{logistic[0]}.coef" if logistic[0] else "coef"
                 shape = tuple(dict(filter.named_buffers())[tensor].shape)
-                out[tensor] = Param("free", label="transition")
+                fixed = _with_fixed(None, entry.get("fixed"), torch.Size(shape), stacked=False, at=at)
+                out[tensor] = _param("free", at, fixed=fixed, label="transition")
                 where[tensor] = (None, "transition", False, _entry_names(entry, shape, at), None, shape)
                 continue
             paths = [p for p, m in filter.named_modules() if isinstance(m, ModeTransition)]
@@ -148,8 +156,10 @@ def parameters_of(est, scenario, block, key: str = "learn.parameters") -> tuple[
                                   "(ModeTransition(learnable=True)): estimate a fixed one")
             if kind not in (None, "stochastic"):
                 raise ConfigError(f"{at}.kind", kind, "the transition matrix's kind is stochastic")
-            out[tensor] = Param("stochastic", label="transition")
-            where[tensor] = (None, "transition", False, None, None, ())
+            shape = tuple(dict(filter.named_buffers())[tensor].shape)
+            fixed = _with_fixed(None, entry.get("fixed"), torch.Size(shape), stacked=False, at=at)
+            out[tensor] = _param("stochastic", at, fixed=fixed, label="transition")
+            where[tensor] = (None, "transition", False, _entry_names(entry, shape, at), None, shape)
             continue
         try:
             model, index = entry_where(entry)
@@ -207,7 +217,7 @@ def parameters_of(est, scenario, block, key: str = "learn.parameters") -> tuple[
             if tensor in out:
                 raise ConfigError(f"{at}", f"{entry.get('model')}.{name}", "names a tensor another entry names")
             label = model if stacked else str(entry.model)
-            out[tensor] = Param(kind, fixed=fixed, groups=groups, label=f"{label}.{name}", **bounds)
+            out[tensor] = _param(kind, at, fixed=fixed, groups=groups, label=f"{label}.{name}", **bounds)
             inner = tuple(value.shape[1:] if stacked else value.shape)
             where[tensor] = (label, name, stacked, _entry_names(entry, inner, at), groups, inner)
         else:  # one model per mode (a list bank): modes[i] is the i-th
@@ -222,8 +232,8 @@ def parameters_of(est, scenario, block, key: str = "learn.parameters") -> tuple[
                 tensor = f"{path}.{name}"
                 value = getattr(module, name)
                 fixed = _with_fixed(None, fixed_given, value.shape, stacked=False, at=at)
-                out[tensor] = Param(kind or ("variance" if name in ("Q", "R") else "free"), fixed=fixed,
-                                    label=f"{model}[{jj}].{name}", **bounds)
+                out[tensor] = _param(kind or ("variance" if name in ("Q", "R") else "free"), at, fixed=fixed,
+                                     label=f"{model}[{jj}].{name}", **bounds)
                 where[tensor] = (f"{model}[{jj}]", name, False, _entry_names(entry, value.shape, at), None,
                                  tuple(value.shape))
     starting = [w[1] for w in where.values() if w[1] in START_NAMES]
@@ -232,6 +242,21 @@ def parameters_of(est, scenario, block, key: str = "learn.parameters") -> tuple[
                           "estimated, initial_mode_probs: ergodic makes the start a function of it; give "
                           "initial_mode_probs (a list or null) to estimate the start")
     return out, where
+
+
+def _param(kind, at: str, **options):
+    """``Param(kind, **options)``, its refusal (a bound on a variance, ``upper`` not above ``lower``, ...) a
+    ``ConfigError`` naming the entry's key (``learn.parameters[i].lower``)."""
+    from torchmm.learn import Param
+
+    try:
+        return Param(kind, **options)
+    except (TypeError, ValueError) as err:
+        option, _, reason = str(err).partition(": ")
+        if option not in ("kind", "fixed", "groups", "lower", "upper"):
+            raise ConfigError(at, NO_VALUE, str(err)) from None
+        value = kind if option == "kind" else options[option] if option in ("lower", "upper") else NO_VALUE
+        raise ConfigError(f"{at}.{'shared' if option == 'groups' else option}", value, reason) from None
 
 
 #: the start's entries (no model): the prior's mean and covariance, the start's mode probabilities
@@ -258,8 +283,6 @@ def _gaussian_path(belief, path: str = "belief0") -> str | None:
 def _start_entry(est, scenario, entry, name: str, kind, at: str) -> tuple[str, Any, tuple]:
     """``(belief0 field, Param, one value's shape)`` of a start entry (``initial_mean``, ``initial_cov``,
     ``initial_mode_probs``): estimated once for every series and mode (the prior is shared)."""
-    from torchmm.learn import Param
-
     if entry.get("model") is not None:
         raise ConfigError(f"{at}.model", entry.model, f"{name} belongs to no model (leave model out)")
     if entry.get("shared") not in (None, False, True):
@@ -292,11 +315,7 @@ def _start_entry(est, scenario, entry, name: str, kind, at: str) -> tuple[str, A
     if fixed is not None and param_kind == "covariance":
         raise ConfigError(f"{at}.fixed", entry.get("fixed"), "a full covariance has no fixed entries (kind "
                           "variance: its diagonal)")
-    try:
-        param = Param(param_kind, fixed=fixed, label=name, **bounds)
-    except ValueError as err:
-        raise ConfigError(at, name, str(err)) from None
-    return field, param, shape
+    return field, _param(param_kind, at, fixed=fixed, label=name, **bounds), shape
 
 
 def start_after(est, result) -> None:
@@ -385,7 +404,7 @@ def rename(name: str, where: dict) -> str:
             continue
         parts = [int(p) for p in index[1:-1].split(",")]
         inner = parts[1:] if stacked else parts
-        if names is not None:
+        if names is not None and len(inner) == len(shape):  # (a duration's [i] keeps the tensor's name)
             flat = 0
             for size, i in zip(shape, inner):
                 flat = flat * size + i

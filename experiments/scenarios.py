@@ -241,13 +241,18 @@ def markov_switching(
             coef[:, -len(inputs):] = beta[-len(inputs):]
         variances = np.linspace(variance / 10, variance, K) if switching_variance else np.full(K, variance)
     else:
-        const = list(start.get("const") or [])
-        exog = [list(r) for r in (start.get("exog") or [])]
+        consts = K if trend == "c" else "null: trend n"
+        expected = f"expected const ({consts}), exog ({K} x {len(inputs)}) and variance ({K})"
+        try:
+            const = [float(c) for c in (start.get("const") or [])]
+            exog = [[float(b) for b in r] for r in (start.get("exog") or [])]
+            variances = np.array([float(v) for v in (start.get("variance") or [])], dtype=float)
+        except (TypeError, ValueError, AttributeError):
+            raise ConfigError("scenario.start", dict(start), f"{expected}: numbers") from None
+        if len(const) != (K if trend == "c" else 0) or len(exog) != (K if inputs else 0) \
+                or any(len(r) != len(inputs) for r in exog) or variances.shape != (K,):
+            raise ConfigError("scenario.start", dict(start), expected)
         coef = np.array([([const[i]] if trend == "c" else []) + (exog[i] if inputs else []) for i in range(K)])
-        variances = np.array(list(start["variance"]), dtype=float)
-        if coef.shape != (K, X.shape[-1]) or variances.shape != (K,):
-            raise ConfigError("scenario.start", dict(start), f"expected const ({K}), exog ({K} x {len(inputs)}) "
-                              f"and variance ({K})")
     if trend == "n":  # the state keeps its constant component; its coefficient is 0 and fixed
         coef = np.concatenate([np.zeros((K, 1)), coef], -1)
     matrix = [[1.0 / K] * K for _ in range(K)] if transition is None else [list(r) for r in transition]

@@ -93,6 +93,24 @@ CASES = [
                                                                             "KF-CV is not a mode filter"),
     (["learn={parameters:[{name:initial_mean,fixed:[true,false]}]}"], "learn.parameters[0].fixed=[True, False]: "
                                                                       "expected a boolean mask of shape (4,)"),
+    # a Param's own refusals and a singular covariance start (before: a ValueError or _LinAlgError traceback)
+    (["learn={parameters:[{model:'sensors[0]',name:R,lower:5}]}"],
+     "learn.parameters[0].lower=5: bounds are for kind 'free' entries, not 'variance'"),
+    (["learn={parameters:[{model:'sensors[0]',name:H,lower:2,upper:1}]}"],
+     "learn.parameters[0].upper=1: must exceed lower"),
+    (["scenario.sensors.0.R=[[25.0,25.0],[25.0,25.0]]",
+      "learn={parameters:[{model:sensors,name:R,kind:covariance}],estimator:KF-CV}"],
+     "learn.parameters=sensors.R: a 'covariance' starts from a positive definite matrix"),
+    # the transition's options: fixed and names honoured (tests/experiments/test_learn_entries_config.py),
+    # the others refused
+    (["learn={parameters:[{name:transition,shared:true}]}"],
+     "learn.parameters[0].shared=True: the transition matrix takes no shared entries"),
+    (["learn={parameters:[{name:transition,lower:0.1}]}"],
+     "learn.parameters[0].lower=0.1: the transition matrix takes no bounds"),
+    (["learn={parameters:[{name:transition,fixed:[true,false]}]}"],
+     "learn.parameters[0].fixed=[True, False]: expected a boolean mask of shape (3, 3)"),
+    (["learn={parameters:[{name:transition,names:[a,b]}]}"],
+     "learn.parameters[0].names=['a', 'b']: expected 9 names"),
 ]
 
 
