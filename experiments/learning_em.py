@@ -13,7 +13,7 @@ import torch
 from torch import Tensor
 
 from experiments.config import ConfigError
-from experiments.learning import entry_where, fit_mle, start_function
+from experiments.learning import entry_where, fit_mle, parameters_of, rename, start_function
 
 
 # -- method: em (linear-Gaussian Kalman filters) -----------------------------------------------------------
@@ -156,6 +156,8 @@ def switching_em_parameters(est, block, key: str = "learn.parameters", scenario=
             continue
         raise ConfigError(at, f"{model}.{name}", "method em for switching models estimates transition, "
                           "sensors.H and sensors.R (every mode's); others: method mle")
+    if scenario is not None:  # each entry as method mle reads it (its names, masks): the learned table's rows
+        parameters_of(est, scenario, block, key)
     return names, shared, fixed
 
 
@@ -164,8 +166,10 @@ def fit_switching_em(est, scenario, block, z: Tensor, *, prior, update_first: bo
     """EM (Baum-Welch for the chain, weighted least squares for each mode's sensor) of a multiple-model
     estimator, then with ``em_then_mle`` maximum likelihood from there."""
     from torchmm.learn import em_switching
+    from torchmm.learn.entries import blocks
 
     names, shared, fixed = switching_em_parameters(est, block, scenario=scenario)
+    params, where = parameters_of(est, scenario, block)  # (the entries as mle names them: the learned table)
     tic = time.perf_counter()
     ergodic = bool(scenario.ergodic)
     try:
@@ -182,27 +186,19 @@ def fit_switching_em(est, scenario, block, z: Tensor, *, prior, update_first: bo
                       progress=progress)
         mle.update(em=out.loglik, method="em_then_mle", seconds=time.perf_counter() - tic)
         return mle
-    rows = []
-    P = est.filter.transition.matrix().detach().cpu()
-    M = P.shape[-1]
-    for i in range(M):
-        for j in range(M):
-            rows.append([est.name, f"transition[{i},{j}]", float(P[i, j]), None, None])
-    sensor = est.filter.bank.filter.measurement
-    for name in ("H", "R"):
-        if name not in names:
-            continue
-        value = getattr(sensor, name).detach().cpu()
-        stacked = value.dim() == 3 and value.shape[0] == M and name not in shared
-        for flat, v in enumerate(value.reshape(-1).tolist()):
-            index = [int(k) for k in np.unravel_index(flat, tuple(value.shape))]
-            if value.dim() == 3 and not stacked and index[0] > 0:
-                continue  # (shared: every mode's the same)
-            label = f"sensors[{index[0]}].{name}" if stacked else f"sensors.{name}"
-            inner = index[1:] if value.dim() == 3 else index
-            rows.append([est.name, f"{label}[{','.join(map(str, inner))}]", v, None, None])
+    rows, durations, k = [], [], 0
+    for b in blocks(est.filter, params):  # (at EM's estimates: each estimated entry, named as under mle)
+        values = b.value.to(torch.float64).cpu().reshape(-1)[b.reported].tolist()
+        rows += [[est.name, rename(n, where), v, None, None] for n, v in zip(b.names(), values)]
+        k += b.u0.numel()  # (the free values: a fixed entry, a shared one's copies, a row's rest not counted)
+        if b.kind == "stochastic":
+            M = b.shape[-1]
+            P = b.value.to(torch.float64).cpu().reshape(-1, M, M)
+            for i, d in enumerate((1 / (1 - P.diagonal(dim1=-2, dim2=-1))).reshape(-1).tolist()):
+                at = f"[{i // M},{i % M}]" if P.shape[0] > 1 else f"[{i}]"
+                durations.append([est.name, f"duration of {rename(b.label + at, where)}", d, None, None])
+    rows += durations  # (after the estimates, as under mle)
     nobs = int(torch.isfinite(z).all(-1).sum())
-    k = M * (M - 1) + sum(1 for r in rows if not r[1].startswith("transition"))
     return {"rows": rows, "loglik": out.loglik[-1], "k": k, "nobs": nobs, "aic": -2 * out.loglik[-1] + 2 * k,
             "bic": -2 * out.loglik[-1] + k * math.log(max(1, nobs)), "iterations": out.iterations,
             "evaluations": len(out.loglik), "converged": out.converged,

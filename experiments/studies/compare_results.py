@@ -166,12 +166,19 @@ def learned_tables(ctx, learners: list[str], names: list[str], records: dict) ->
     and ``fit`` (each learning estimator's log-likelihood, k, nobs, AIC, BIC and optimiser), the metrics
     and notes of the learning estimators."""
     block = learning.spec(ctx.cfg)
-    mle = str(block.method) in ("mle", "em", "em_then_mle")
+    method = str(block.method)
+    mle = method in ("mle", "em", "em_then_mle")
+    how = {"mle": "Maximum likelihood (torchmm.learn.estimate)",
+           "em": "EM (torchmm.learn.em, em_switching for a switching model)",
+           "em_then_mle": "EM, then maximum likelihood from EM's estimates (torchmm.learn.estimate),"
+           }.get(method)
+    errors = ("no standard errors (EM gives none: method em_then_mle adds them)" if method == "em" else
+              "se: from the observed information (delta method through the parametrisation); "
+              "z = estimate / se")
     table = ctx.results.table(
         "learned", ["estimator", "parameter", "estimate", "se", "z"],
-        note=("Maximum likelihood (torchmm.learn.estimate) of each learning estimator's own parameters: it runs "
-              "with its estimates, the other estimators with the configured values. se: from the observed "
-              "information (delta method through the parametrisation); z = estimate / se. A duration is "
+        note=(f"{how} of each learning estimator's own parameters: it runs with its estimates, the other "
+              f"estimators with the configured values. {errors[0].upper() + errors[1:]}. A duration is "
               "1 / (1 - p_ii), the expected time in regime i." if mle else
               f"Each learning estimator's own covariances fitted with {block.optimizer} (method gradient: no "
               "standard errors); it runs with its fit, the other estimators with the configured values."))
