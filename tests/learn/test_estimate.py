@@ -224,7 +224,7 @@ def test_covariance_from_a_singular_start_names_the_parameter():
     kf = KalmanFilter(LinearMotion(torch.eye(2).double(), torch.eye(2).double()),
                       LinearMeasurement(torch.eye(2).double(), torch.ones(2, 2).double()))
     b0 = GaussianBelief(torch.zeros(2).double(), torch.eye(2).double())
-    with pytest.raises(ValueError, match=r"parameters\['measurement.R'\]: a 'covariance' starts from a positive "):
+    with pytest.raises(ValueError, match=r"parameters\['measurement.R'\]: a 'covariance' starts from a posi"):
         estimate(kf, b0, torch.zeros(5, 2).double(), {"measurement.R": "covariance"}, progress=False)
 
 

@@ -46,8 +46,8 @@ def test_fixed_transition_entry_is_held_at_the_constrained_maximum():
     start = [[0.8, 0.1, 0.1], [0.1, 0.8, 0.1], [0.1, 0.1, 0.8]]
     hold = torch.tensor([[False, True, False], [False] * 3, [False] * 3])  # P[0, 1] held at 0.1
     imm, b0 = fedfunds_imm(list(MEANS), list(VARIANCES), start)
-    est = estimate(imm, b0, torch.as_tensor(y).reshape(-1, 1), {"transition.value": Param("stochastic", fixed=hold)},
-                   progress=False)
+    est = estimate(imm, b0, torch.as_tensor(y).reshape(-1, 1),
+                   {"transition.value": Param("stochastic", fixed=hold)}, progress=False)
     P = imm.transition.matrix().detach().numpy()
     assert P[0, 1] == 0.1
     np.testing.assert_allclose(P.sum(-1), 1.0, atol=1e-12)
@@ -58,9 +58,10 @@ def test_fixed_transition_entry_is_held_at_the_constrained_maximum():
     def full(x):
         return np.array([[x[0], 0.1, x[1]], [x[2], x[3], x[4]], [x[5], x[6], x[7]]])
     rows = [lambda x: x[0] + x[1] - 0.9, lambda x: x[2] + x[3] + x[4] - 1, lambda x: x[5] + x[6] + x[7] - 1]
-    ref = minimize(lambda x: -_hamilton_loglik(full(x), y), np.array([0.8, 0.1, 0.1, 0.8, 0.1, 0.1, 0.1, 0.8]),
-                   method="SLSQP", bounds=[(1e-9, 1.0)] * 8, constraints=[{"type": "eq", "fun": f} for f in rows],
-                   options={"ftol": 1e-14, "maxiter": 1000})
+    x0 = np.array([0.8, 0.1, 0.1, 0.8, 0.1, 0.1, 0.1, 0.8])
+    constraints = [{"type": "eq", "fun": f} for f in rows]
+    ref = minimize(lambda x: -_hamilton_loglik(full(x), y), x0, method="SLSQP", bounds=[(1e-9, 1.0)] * 8,
+                   constraints=constraints, options={"ftol": 1e-14, "maxiter": 1000})
     assert ref.success
     assert P.min() > 0.03  # (an interior maximum)
     np.testing.assert_allclose(P, full(ref.x), atol=1e-5)
@@ -73,7 +74,8 @@ def test_a_row_left_with_one_free_entry_is_held_and_not_reported():
     y = _data()[:120]
     imm, b0 = fedfunds_imm([0.0, 3.0], [1.0, 2.0], [[0.7, 0.3], [0.2, 0.8]])
     est = estimate(imm, b0, torch.as_tensor(y).reshape(-1, 1),
-                   {"transition.value": Param("stochastic", fixed=[[True, False], [False, False]])}, progress=False)
+                   {"transition.value": Param("stochastic", fixed=[[True, False], [False, False]])},
+                   progress=False)
     P = imm.transition.matrix()
     assert float(P[0, 0]) == 0.7 and float(P[0, 1]) == pytest.approx(0.3, abs=1e-15)
     assert est.k == 1 and est.names == ["transition.value[1,0]", "transition.value[1,1]"]

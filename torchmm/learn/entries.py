@@ -159,9 +159,10 @@ class Block:
             self.reported = torch.nonzero(tril.reshape(-1))[:, 0]  # the lower triangle's entries
             L, info = torch.linalg.cholesky_ex(v)
             if bool((info != 0).any()) or not bool(torch.isfinite(L).all()):
-                raise ValueError(f"parameters[{name!r}]: a 'covariance' starts from a positive definite matrix (its "
-                                 "Cholesky factor L L^T); this one is singular or indefinite (kind 'variance' "
-                                 "estimates a diagonal one, or start from a positive definite one)")
+                raise ValueError(f"parameters[{name!r}]: a 'covariance' starts from a positive definite "
+                                 "matrix (its Cholesky factor L L^T); this one is singular or indefinite "
+                                 "(kind 'variance' estimates a diagonal one, or start from a positive "
+                                 "definite one)")
             start = torch.where(torch.eye(d, dtype=torch.bool), L.diagonal(dim1=-2, dim2=-1).log().diag_embed(), L)
             self.u0 = start.reshape(-1)[self.reported]
             self.slot = None
