@@ -223,7 +223,7 @@ def fit_em(est, scenario, block, z: Tensor, *, prior, update_first: bool, burn: 
     names = em_parameters(est, block)
     masks = em_fixed(est, block, prior)
     tic = time.perf_counter()
-    out = em(est.filter, est.init(prior, None), z, names, iterations=int(block.iterations),
+    out = em(est.filter, _shared_start(est.init(prior, None)), z, names, iterations=int(block.iterations),
              tol=float(block.get("tolerance") or 0.0) or None, update_first=update_first, controls=controls,
              present=present, fixed=masks or None, progress=progress)
     start = out.belief0
@@ -260,6 +260,18 @@ def fit_em(est, scenario, block, z: Tensor, *, prior, update_first: bool, burn: 
         mle["seconds"] = time.perf_counter() - tic
         return mle
     return record
+
+
+def _shared_start(belief):
+    """The study's start (the prior is shared by the series) as one start broadcast over them (an expanded
+    view), which :func:`torchmm.learn.em` estimates as one start for all series (pooled), not one each."""
+    from torchmm import GaussianBelief
+
+    batch, n = belief.batch_shape, belief.mean.shape[-1]
+    mean, cov = belief.mean.expand(*batch, n).reshape(-1, n), belief.cov.expand(*batch, n, n).reshape(-1, n, n)
+    if batch.numel() > 1 and bool((mean == mean[:1]).all()) and bool((cov == cov[:1]).all()):
+        return GaussianBelief(mean[0], cov[0]).expand(batch)
+    return belief
 
 
 def _as_mle(block, names: list[str]):

@@ -25,7 +25,9 @@ Ghahramani & Hinton, 1996): each iteration
       Q = \frac1{N_x}\sum_t (\hat x_t - F\hat x_{t-1} - b)(\cdot)^\top + F P_{t-1} F^\top + P_t
           - P_{t,t-1} F^\top - F P_{t,t-1}^\top,
 
-  ``x_0 = \hat x_{0|T}``, ``P_0 = P_{0|T}``.
+  ``x_0 = \hat x_{0|T}``, ``P_0 = P_{0|T}``; with shared parameters a start broadcast over the series
+  (``belief0.expand(S)``: one start for all, as :func:`~torchmm.learn.estimate` holds it) pools them:
+  ``x_0 = mean_s \hat x^s_{0|T}``, ``P_0 = mean_s P^s_{0|T} + (\hat x^s_{0|T} - x_0)(\cdot)^T``.
 
 The log-likelihood of each iteration's parameters is that of its E-step's filter, so the history is
 the likelihood *before* each M-step (pykalman's test convention), and EM never lowers it: a decrease
@@ -227,6 +229,9 @@ def em(filter: KalmanFilter, belief0: GaussianBelief, measurements: Tensor,
             ``H``, ``R`` are written with the estimates).
         belief0: the start, batch ``(*B,)``: the prior of the first measurement with ``update_first``
             (pykalman's and statsmodels' convention, the default), else the belief one step before it.
+            With shared parameters a field it broadcasts over the series (an expanded view,
+            ``belief0.expand(B)``) is estimated as one value for them (pooled), a materialised one a value
+            per series (:func:`~torchmm.learn.estimate`'s convention); ``per_series``: one per series.
         measurements: ``(T, *B, m)``; a step whose vector is missing (NaN) informs the state only.
         parameters: which of :data:`EM_PARAMETERS` to estimate (the others stay).
         iterations: at most this many EM iterations; tol: stop once the log-likelihood's relative change
@@ -237,7 +242,7 @@ def em(filter: KalmanFilter, belief0: GaussianBelief, measurements: Tensor,
         per_series: each series its own parameters (a batch of fits; the models' tensors get the batch
             ``*B`` in front), else one set for all.
         present: ``(T, *B)`` bool, False at the padding after a shorter series' end (nothing there is
-            counted).
+            counted: its values are not read).
         fixed: ``{name: mask}``, a boolean mask of a parameter's entries held at their current values
             (``H`` ``(m, n)``, ``F`` ``(n, n)``, ``offset`` and ``initial_mean`` ``(n,)``, ``Q``, ``R``,
             ``initial_cov`` square). ``H``, ``F``, ``offset`` and ``initial_mean`` take any mask: their
@@ -252,7 +257,8 @@ def em(filter: KalmanFilter, belief0: GaussianBelief, measurements: Tensor,
 
     Raises:
         TypeError / ValueError naming ``filter`` (not linear-Gaussian), ``parameters`` (an unknown name),
-        ``measurements`` (a partly missing vector: not supported), ``present``.
+        ``measurements`` (a partly missing vector: not supported), ``present``, ``belief0`` (a start
+        mean shared over series whose covariance is one per series).
 
     Examples:
         >>> from torchmm.models import LinearMotion, LinearMeasurement
@@ -283,6 +289,8 @@ def em(filter: KalmanFilter, belief0: GaussianBelief, measurements: Tensor,
     if not isinstance(belief0, GaussianBelief):
         raise TypeError(f"belief0: expected a GaussianBelief, got {type(belief0).__name__}")
     masks = fixed_masks(filter, belief0, parameters, fixed)
+    if not per_series:
+        start_masks(belief0, parameters)
     check_filter_dtype(filter, belief0, "belief0")
     gaussian_batch(belief0, filter.state_dim, "belief0")
     z = measurements
@@ -293,6 +301,7 @@ def em(filter: KalmanFilter, belief0: GaussianBelief, measurements: Tensor,
         raise ValueError(f"measurements: batch {tuple(z.shape[1:-1])} is not the start belief's {tuple(batch)}")
     z = check_measurement(z, filter.meas_dim, torch.Size((z.shape[0], *batch)), belief0.mean, "measurements")
     present, observed = observed_steps(z, present)
+    z = torch.where(present.unsqueeze(-1), z, torch.nan)  # the padding is missing for the E-step's smoother too
     shared = not per_series
     dtype = z.dtype
     yz = torch.where(observed.unsqueeze(-1), z, 0.0)
@@ -397,19 +406,8 @@ def em(filter: KalmanFilter, belief0: GaussianBelief, measurements: Tensor,
                 if "Q" in masks:
                     Q = torch.where(masks["Q"], motion.Q, Q)
                 motion.Q = Q.reshape(_shape(motion.Q, Q, shared))
-            mean0, cov0 = start.mean, start.cov
-            if "initial_mean" in wanted:
-                if "initial_mean" in masks:  # the free entries given the fixed ones, weighted by the start's cov
-                    mean0 = _constrained(mean0.unsqueeze(-1), xs[0].unsqueeze(-1), torch.ones_like(xs[0][..., :1, None]),
-                                         cov0, ~masks["initial_mean"].unsqueeze(-1)).squeeze(-1)
-                else:
-                    mean0 = xs[0]
-            if "initial_cov" in wanted:
-                d = xs[0] - mean0
-                new0 = Ps[0] + d.unsqueeze(-1) * d.unsqueeze(-2)
-                new0 = 0.5 * (new0 + new0.mT)
-                cov0 = torch.where(masks["initial_cov"], cov0, new0) if "initial_cov" in masks else new0
-            start = GaussianBelief(mean0, cov0)
+            if "initial_mean" in wanted or "initial_cov" in wanted:
+                start = _start_step(start, xs[0], Ps[0], present[0], wanted, masks, shared)
             if "offset" in wanted:  # last, as pykalman (Q above used the offset before this M-step)
                 d = x1 - (F @ x0.unsqueeze(-1)).squeeze(-1)
                 if "offset" in masks:  # weighted by Q: the free entries given the fixed ones
@@ -431,6 +429,67 @@ def em(filter: KalmanFilter, belief0: GaussianBelief, measurements: Tensor,
     values = [float(h) if shared else h.clone() for h in history]
     return EMResult(loglik=values, belief0=start, iterations=done, converged=converged, monotone=not decreases,
                     seconds=time.perf_counter() - tic, decreases=decreases)
+
+
+def _pooled_axes(value: Tensor, batch: torch.Size, event: int) -> tuple[int, ...]:
+    """The batch axes along which a start field is one value (an expanded view: stride 0, or an axis it
+    lacks), as :class:`~torchmm.learn.entries.StartFields` holds them for :func:`~torchmm.learn.estimate`."""
+    full = value.expand(*batch, *value.shape[value.dim() - event:])
+    return tuple(i for i, n in enumerate(batch) if n > 1 and full.stride(i) == 0)
+
+
+def _pool(x: Tensor, first: Tensor, axes: tuple[int, ...], event: int) -> Tensor:
+    """``x`` ``(*B, *event)`` averaged over the batch ``axes`` (weights ``first`` ``(*B,)``: the series that
+    have a first step) and expanded back along them (a view: one value)."""
+    if not axes:
+        return x
+    w = first.to(x.dtype).reshape(*first.shape, *([1] * event))
+    return ((w * x).sum(axes, keepdim=True) / w.sum(axes, keepdim=True).clamp_min(1)).expand(x.shape)
+
+
+def _start_step(start: GaussianBelief, x0: Tensor, P0: Tensor, first: Tensor, wanted: set, masks: dict,
+                shared: bool) -> GaussianBelief:
+    r"""The M-step of the start's mean and covariance from the smoothed first state ``x0`` ``(*B, n)``,
+    ``P0`` ``(*B, n, n)``: ``mu = x0``, ``V = P0 + (x0 - mu)(x0 - mu)^T`` for a start per series. With
+    shared parameters a field the start broadcasts (an expanded view, ``belief0.expand(B)``) is one value
+    for the series it is broadcast to, as :func:`~torchmm.learn.estimate` holds it: its statistics pooled
+    over them (those with a first step, ``first`` ``(*B,)``, padding False): ``mu = mean_s x0_s``,
+    ``V = mean_s P0_s + (x0_s - mu_s)(x0_s - mu_s)^T``, the exact maximiser of the expected complete-data
+    log-likelihood, so EM's fixed point is the shared start's maximum-likelihood estimate. Fixed entries of
+    ``mu``: the weighted least squares over the free ones (weight ``V``)."""
+    batch, n = x0.shape[:-1], x0.shape[-1]
+    mean0, cov0 = start.mean.expand(*batch, n), start.cov.expand(*batch, n, n)
+    if "initial_mean" in wanted:
+        axes = _pooled_axes(start.mean, batch, 1) if shared else ()
+        target = _pool(x0, first, axes, 1)
+        mask = masks.get("initial_mean")
+        if mask is not None:  # (the covariance is one value along the pooled axes: start_masks)
+            target = _constrained(mean0.unsqueeze(-1), target.unsqueeze(-1), torch.ones_like(x0[..., :1, None]),
+                                  cov0, ~mask.unsqueeze(-1)).squeeze(-1)
+            target = target[tuple(slice(0, 1) if i in axes else slice(None) for i in range(len(batch)))]
+        mean0 = target.expand(*batch, n)
+    if "initial_cov" in wanted:
+        d = x0 - mean0
+        new0 = P0 + d.unsqueeze(-1) * d.unsqueeze(-2)
+        new0 = _pool(0.5 * (new0 + new0.mT), first, _pooled_axes(start.cov, batch, 2) if shared else (), 2)
+        cov0 = torch.where(masks["initial_cov"], cov0, new0) if "initial_cov" in masks else new0
+    return GaussianBelief(mean0, cov0)
+
+
+def start_masks(belief0: GaussianBelief, parameters: Sequence[str]) -> None:
+    """With shared parameters an estimated start mean broadcast over series (one value
+    for them) needs one covariance over them too: broadcast as well, or held (not estimated) with
+    the same value for each, else a ``ValueError`` naming ``belief0`` (once, at entry: the pooled mean with a
+    covariance per series would be a precision-weighted one, not implemented)."""
+    batch, n = belief0.batch_shape, belief0.mean.shape[-1]
+    if "initial_mean" not in parameters or batch.numel() < 2:
+        return
+    cov = belief0.cov.detach().expand(*batch, n, n)
+    for axis in set(_pooled_axes(belief0.mean, batch, 1)) - set(_pooled_axes(belief0.cov, batch, 2)):
+        if "initial_cov" in parameters or not bool((cov == cov.narrow(axis, 0, 1)).all()):
+            raise ValueError("belief0: its mean is one value for the series (an expanded view: estimated as one "
+                             "shared start mean) but its covariance is one per series; expand the covariance "
+                             "too (belief0.expand), or materialise the mean (a start mean per series)")
 
 
 def _shape(current: Tensor, new: Tensor, shared: bool) -> tuple:
