@@ -24,8 +24,11 @@ error from the observed information:
   each reported entry ``g(theta)`` by the delta method, ``Cov(g) = J I^{-1} J^T``. At a maximum this
   equals the inverse information in the natural parameters, whatever the parametrisation (the
   Hessians differ by ``J^T H J`` only where the gradient is zero), so the errors are those of
-  statsmodels' ``cov_type="approx"`` up to its finite differences. An information that is not
-  positive definite (a boundary, a flat direction) gives NaN errors and says so (``Estimate.note``).
+  statsmodels' ``cov_type="approx"`` up to its finite differences. An entry at a bound of its
+  parametrisation (a variance or probability at 0, :mod:`torchmm.learn.boundary`'s rule,
+  docs/estimation.md) gets a NaN error and a note naming it, the others' errors with it held; an
+  information that is not positive definite otherwise (a flat direction) gives NaN errors and says so
+  (``Estimate.note``).
 * **Criteria**: the log-likelihood, ``k`` (the free values), ``nobs`` (the steps with a measurement),
   AIC ``= -2 log L + 2 k``, BIC ``= -2 log L + k log nobs``, and for a ``"stochastic"`` tensor the
   expected durations ``1 / (1 - p_ii)`` with their delta-method errors.
@@ -48,6 +51,7 @@ from torch import Tensor, nn
 from torchmm.beliefs import Belief
 from torchmm.contract import Choice, Data, Flag, Int, Of, Real, Unchecked, entry_point
 from torchmm.filters.base import Filter
+from torchmm.learn.boundary import at_bounds, entry_directions, held_covariance
 from torchmm.learn.entries import START, Param, StartFields, write_back
 from torchmm.learn.entries import blocks as tensor_blocks  # (``blocks`` names the list in estimate)
 from torchmm.runtime import one_thread_when_small
@@ -61,7 +65,8 @@ class Estimate:
 
     Attributes:
         names: the reported entries, ``"<label>[i,j]"``; ``estimates``, ``se``: their values and
-            standard errors (NaN where the information is not positive definite); ``z = estimate / se``.
+            standard errors (NaN at a bound, or where the information is not positive definite);
+            ``z = estimate / se``.
         cov: the covariance of the reported entries ``(K, K)`` (delta method).
         theta, theta_cov: the free values at the optimum and the inverse information.
         loglik: the log-likelihood at the optimum (the sum over the runs); ``k``: the free values;
@@ -131,6 +136,21 @@ class _Call(nn.Module):
         return self.fn()
 
 
+def _parametrisation_curvature(blocks, sizes, theta: Tensor, loss_of: Callable[[dict], Tensor]) -> Tensor:
+    """``G = sum_e g_e d^2 v_e / d theta^2`` ``(P, P)``: the part of the Hessian in the free values that the
+    parametrisation's curvature contributes, ``g_e`` the gradient of the loss (``loss_of({name: tensor})``)
+    in the estimated tensors' entries ``v_e`` (torchmm/learn/boundary.py)."""
+    with torch.no_grad():
+        built = {b.name: b.build(u).detach().requires_grad_(True) for b, u in zip(blocks, theta.split(sizes))}
+    grads = torch.autograd.grad(loss_of(built), list(built.values()), allow_unused=True)
+    g = {name: (torch.zeros_like(v) if d is None else d).detach().to(torch.float64).cpu()
+         for (name, v), d in zip(built.items(), grads)}
+
+    def contracted(t: Tensor) -> Tensor:
+        return sum((g[b.name] * b.build(u).to(torch.float64).cpu()).sum() for b, u in zip(blocks, t.split(sizes)))
+    return torch.autograd.functional.hessian(contracted, theta)
+
+
 def _nobs(measurements: Tensor, burn: int, batch_dims: int) -> int:
     """The steps with a measurement after ``burn``, summed over the runs."""
     finite = torch.isfinite(measurements[burn:])
@@ -183,8 +203,9 @@ def estimate(filter: Filter, belief0: Belief | Callable[[Filter], Belief], measu
         se: compute the standard errors from the observed information.
         hessian: how the information is computed: ``"differences"`` (default): central differences of the
             exact (autograd) gradient, ``2 k`` evaluations through the kernels where they apply, step
-            ``1e-5 max(1, |theta_i|)`` (agrees with the exact Hessian to about 1e-7 relative,
-            tests/learn/test_estimate.py); ``"autograd"``: the exact second derivative through the eager
+            ``eps^(1/3) max(1, |theta_i|)``, ``eps`` the data's dtype's (in float64 it agrees with the exact
+            Hessian to about 1e-7 relative, tests/learn/test_estimate.py; float32 errors within about 0.1 %
+            of float64's, tests/learn/test_standard_errors.py); ``"autograd"``: the exact second derivative through the eager
             steps (no kernel has a second derivative: slower, seconds for a few hundred steps).
         tol, maxiter: the optimiser's tolerance and iteration limit (default for L-BFGS-B: ``ftol=1e-13``,
             ``gtol=1e-8`` in float64, tighter than scipy's, which stops short on a flat likelihood; ``1e-6``
@@ -267,7 +288,10 @@ def estimate(filter: Filter, belief0: Belief | Callable[[Filter], Belief], measu
     K = len(names)
     cov = torch.full((K, K), math.nan, dtype=torch.float64)
     theta_cov = torch.full((len(theta), len(theta)), math.nan, dtype=torch.float64)
-    note = ""
+    note, bound = "", []
+    # the central differences' step (hessian="differences"): eps^(1/3) max(1, |theta_i|), eps the data's
+    # dtype's (the step that balances the truncation error, O(h^2), with the gradient's rounding, O(eps / h))
+    step = torch.finfo(measurements.dtype if measurements.is_floating_point() else torch.float64).eps ** (1 / 3)
     if se:
         if hessian == "autograd":
             with kernels.switched_off(*kernels.names()):  # the eager steps: a second derivative through them
@@ -279,19 +303,44 @@ def estimate(filter: Filter, belief0: Belief | Callable[[Filter], Belief], measu
         else:  # central differences of the exact gradient (2 k evaluations, the kernels where they apply)
             H = torch.empty(len(theta), len(theta), dtype=torch.float64)
             for i in range(len(theta)):
-                h = 1e-5 * max(1.0, abs(float(theta[i])))
-                step = torch.zeros_like(theta)
-                step[i] = h
-                up = torch.from_numpy(loss_and_grad((theta + step).numpy())[1])
-                down = torch.from_numpy(loss_and_grad((theta - step).numpy())[1])
+                h = step * max(1.0, abs(float(theta[i])))
+                shift = torch.zeros_like(theta)
+                shift[i] = h
+                up = torch.from_numpy(loss_and_grad((theta + shift).numpy())[1])
+                down = torch.from_numpy(loss_and_grad((theta - shift).numpy())[1])
                 H[i] = (up - down) / (2 * h)
         hessian = 0.5 * (H + H.mT)
-        L, info = torch.linalg.cholesky_ex(hessian)
-        if int(info) == 0:
-            theta_cov = torch.cholesky_inverse(L)
+        # the entries at a bound of their parametrisation (torchmm/learn/boundary.py): NaN errors, the
+        # others' with them held
+        G = _parametrisation_curvature(blocks, sizes, theta, lambda built: torch.func.functional_call(
+            call, {k: built[b.name] for k, b in zip(substitutes(theta), blocks)}, (), tie_weights=False))
+        directions = [entry_directions(b) for b in blocks]
+        kinds = [b.kind for b in blocks for _ in b.names()]
+        D = torch.block_diag(*[d for d, _ in directions])
+        bound = at_bounds(hessian, G, D, torch.cat([b for _, b in directions]), step ** 3)
+        theta_cov, ok = held_covariance(hessian, D[bound])
+        if ok:
             J = torch.autograd.functional.jacobian(
                 lambda t: torch.cat([b.natural(u) for b, u in zip(blocks, t.split(sizes))]), theta)
             cov = J @ theta_cov @ J.mT
+            # a covariance's diagonal direction (its Cholesky factor's log-diagonal) at 0: the matrix is singular;
+            # the entry itself is at its bound (no error) only where that factor's term is most of it
+            singular = [k for k in bound if kinds[k] == "covariance"
+                        and float(theta[int(D[k].nonzero()[0, 0])].mul(2).exp()) < 0.5 * float(natural[k])]
+            nan = [k for k in bound if k not in singular]
+            cov[nan, :] = math.nan
+            cov[:, nan] = math.nan
+            notes = []
+            if nan:
+                notes.append("at a bound of its parametrisation (the log-likelihood slopes past it, or its coordinate "
+                             f"ran off: {', '.join(f'{names[k]} = {float(natural[k]):.3g}' for k in nan)}): no "
+                             "standard error")
+            if singular:
+                notes.append("a covariance singular at the estimate (its Cholesky factor's diagonal at 0, in the "
+                             f"direction of {', '.join(names[k] for k in singular)})")
+            if bound:
+                note = "; ".join(notes) + ("; the other errors with those directions held at the estimate (dropped "
+                                           "from the information)")
         else:
             note = ("the observed information is not positive definite at the optimum (a parameter on a boundary, "
                     "or one the data do not identify): no standard errors")
@@ -307,7 +356,9 @@ def estimate(filter: Filter, belief0: Belief | Callable[[Filter], Belief], measu
             return (1 / (1 - P.diagonal(dim1=-2, dim2=-1))).reshape(-1)
         start = sum(sizes[:blocks.index(b)])
         d = duration(u)
-        if se and not note:
+        diagonal = [names.index(f"{b.label}[{i},{i}]") if f"{b.label}[{i},{i}]" in names else -1 for i in range(M)]
+        if se and not math.isnan(float(theta_cov[start:start + u.numel()].sum())) \
+                and not any(k in bound for k in diagonal):
             Jd = torch.autograd.functional.jacobian(duration, u)
             cov_u = theta_cov[start:start + u.numel(), start:start + u.numel()]
             d_se = (Jd @ cov_u @ Jd.mT).diagonal().clamp_min(0).sqrt()
