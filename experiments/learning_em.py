@@ -268,7 +268,8 @@ def _shared_start(belief):
     from torchmm import GaussianBelief
 
     batch, n = belief.batch_shape, belief.mean.shape[-1]
-    mean, cov = belief.mean.expand(*batch, n).reshape(-1, n), belief.cov.expand(*batch, n, n).reshape(-1, n, n)
+    mean = belief.mean.expand(*batch, n).reshape(-1, n)
+    cov = belief.cov.expand(*batch, n, n).reshape(-1, n, n)
     if batch.numel() > 1 and bool((mean == mean[:1]).all()) and bool((cov == cov[:1]).all()):
         return GaussianBelief(mean[0], cov[0]).expand(batch)
     return belief

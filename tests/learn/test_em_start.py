@@ -40,7 +40,8 @@ def _start(S):
 
 def _em(y, present, **kwargs):
     kf = _local_level()
-    out = em(kf, _start(y.shape[1]), y, NAMES, iterations=3000, tol=1e-13, present=present, progress=False, **kwargs)
+    out = em(kf, _start(y.shape[1]), y, NAMES, iterations=3000, tol=1e-13, present=present, progress=False,
+             **kwargs)
     return kf, out
 
 
@@ -55,7 +56,8 @@ def test_a_shared_start_is_the_maximum_likelihood_start_whatever_the_order():
                                                   "belief0.mean": "free", "belief0.cov": "variance"},
                    update_first=True, progress=False, se=False)
     assert mle.converged
-    got = [kf.motion.Q.item(), kf.measurement.R.item(), out.belief0.mean[0, 0].item(), out.belief0.cov[0, 0, 0].item()]
+    got = [kf.motion.Q.item(), kf.measurement.R.item(), out.belief0.mean[0, 0].item(),
+           out.belief0.cov[0, 0, 0].item()]
     assert got == pytest.approx(mle.estimates, rel=2e-5)
     assert out.loglik[-1] == pytest.approx(mle.loglik, abs=1e-6)
     # the series in another order (their padding with them), and other values in the padding: the same numbers
@@ -85,11 +87,13 @@ def test_one_em_step_of_the_shared_start_is_the_pooled_smoothed_first_state():
     assert float(x0.std()) > 1.0  # (the per-series starts differ: a start per series)
     mu = x0.mean()
     torch.testing.assert_close(one.belief0.mean[:, 0], mu.expand(4), rtol=1e-12, atol=0)
-    torch.testing.assert_close(one.belief0.cov[:, 0, 0], (P0 + (x0 - mu) ** 2).mean().expand(4), rtol=1e-12, atol=0)
+    pooled = (P0 + (x0 - mu) ** 2).mean()
+    torch.testing.assert_close(one.belief0.cov[:, 0, 0], pooled.expand(4), rtol=1e-12, atol=0)
 
 
 def test_a_shared_mean_with_a_covariance_per_series_is_refused():
     y, present = _series()
-    start = GaussianBelief(torch.zeros(1, dtype=F64).expand(4, 1), torch.arange(1.0, 5.0, dtype=F64).reshape(4, 1, 1))
+    covs = torch.arange(1.0, 5.0, dtype=F64).reshape(4, 1, 1)
+    start = GaussianBelief(torch.zeros(1, dtype=F64).expand(4, 1), covs)
     with pytest.raises(ValueError, match="^belief0: its mean is one value for the series"):
         em(_local_level(), start, y, ["Q", "initial_mean"], present=present, progress=False)

@@ -24,7 +24,8 @@ def _local_level(Q, R, dtype=F64):
 def _fit(y, dtype=F64, **kwargs):
     kf = _local_level(100.0, 1000.0, dtype)
     b0 = GaussianBelief(torch.zeros(1, dtype=dtype), 1e6 * torch.ones(1, 1, dtype=dtype))
-    return estimate(kf, b0, y.to(dtype), {"motion.Q": "variance", "measurement.R": "variance"}, update_first=True,
+    return estimate(kf, b0, y.to(dtype), {"motion.Q": "variance", "measurement.R": "variance"},
+                    update_first=True,
                     burn=1, progress=False, **kwargs)
 
 
@@ -55,7 +56,8 @@ def test_a_variance_at_its_bound_has_no_error_and_a_note():
 
 def test_an_interior_estimate_keeps_its_errors_and_no_note():
     g = torch.Generator().manual_seed(2)
-    y = (3.0 * torch.randn(300, dtype=F64, generator=g)).cumsum(0) + 5 * torch.randn(300, dtype=F64, generator=g)
+    y = (3.0 * torch.randn(300, dtype=F64, generator=g)).cumsum(0)
+    y = y + 5 * torch.randn(300, dtype=F64, generator=g)
     fit = _fit(y.unsqueeze(-1))
     assert fit.note == "" and all(math.isfinite(s) and s > 0 for s in fit.se)
 
@@ -65,7 +67,8 @@ def test_float32_errors_within_a_tenth_of_a_percent_of_float64():
     well-conditioned problem float32's errors are within 0.1% of float64's (measured ~6e-5; with the
     float64 step, 1e-5, they were 0.3-0.7% off here and 2-3.5% on the Fed funds model)."""
     g = torch.Generator().manual_seed(3)
-    y = ((2.0 * torch.randn(1000, dtype=F64, generator=g)).cumsum(0) + 4 * torch.randn(1000, dtype=F64, generator=g))
+    y = (2.0 * torch.randn(1000, dtype=F64, generator=g)).cumsum(0)
+    y = y + 4 * torch.randn(1000, dtype=F64, generator=g)
     f64, f32 = _fit(y.unsqueeze(-1)), _fit(y.unsqueeze(-1), torch.float32)
     assert f64.note == "" and f32.note == ""
     np.testing.assert_allclose(f32.estimates, f64.estimates, rtol=1e-3)

@@ -97,7 +97,8 @@ def held_covariance(H: Tensor, held: Tensor) -> tuple[Tensor, bool]:
     return cov, True
 
 
-def at_bounds(H: Tensor, G: Tensor, D: Tensor, bounded: Tensor, eps: float, threshold: float = 0.5) -> list[int]:
+def at_bounds(H: Tensor, G: Tensor, D: Tensor, bounded: Tensor, eps: float,
+              threshold: float = 0.5) -> list[int]:
     """The reported entries at a bound (module docstring), by either rule, along each entry's direction
     (``D`` ``(K, P)``, ``bounded`` ``(K,)``: :func:`entry_directions`):
 

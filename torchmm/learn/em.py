@@ -301,7 +301,7 @@ def em(filter: KalmanFilter, belief0: GaussianBelief, measurements: Tensor,
         raise ValueError(f"measurements: batch {tuple(z.shape[1:-1])} is not the start belief's {tuple(batch)}")
     z = check_measurement(z, filter.meas_dim, torch.Size((z.shape[0], *batch)), belief0.mean, "measurements")
     present, observed = observed_steps(z, present)
-    z = torch.where(present.unsqueeze(-1), z, torch.nan)  # the padding is missing for the E-step's smoother too
+    z = torch.where(present.unsqueeze(-1), z, torch.nan)  # (the padding: missing for the smoother too)
     shared = not per_series
     dtype = z.dtype
     yz = torch.where(observed.unsqueeze(-1), z, 0.0)
@@ -464,8 +464,8 @@ def _start_step(start: GaussianBelief, x0: Tensor, P0: Tensor, first: Tensor, wa
         target = _pool(x0, first, axes, 1)
         mask = masks.get("initial_mean")
         if mask is not None:  # (the covariance is one value along the pooled axes: start_masks)
-            target = _constrained(mean0.unsqueeze(-1), target.unsqueeze(-1), torch.ones_like(x0[..., :1, None]),
-                                  cov0, ~mask.unsqueeze(-1)).squeeze(-1)
+            target = _constrained(mean0.unsqueeze(-1), target.unsqueeze(-1),
+                                  torch.ones_like(x0[..., :1, None]), cov0, ~mask.unsqueeze(-1)).squeeze(-1)
             target = target[tuple(slice(0, 1) if i in axes else slice(None) for i in range(len(batch)))]
         mean0 = target.expand(*batch, n)
     if "initial_cov" in wanted:
@@ -487,9 +487,10 @@ def start_masks(belief0: GaussianBelief, parameters: Sequence[str]) -> None:
     cov = belief0.cov.detach().expand(*batch, n, n)
     for axis in set(_pooled_axes(belief0.mean, batch, 1)) - set(_pooled_axes(belief0.cov, batch, 2)):
         if "initial_cov" in parameters or not bool((cov == cov.narrow(axis, 0, 1)).all()):
-            raise ValueError("belief0: its mean is one value for the series (an expanded view: estimated as one "
-                             "shared start mean) but its covariance is one per series; expand the covariance "
-                             "too (belief0.expand), or materialise the mean (a start mean per series)")
+            raise ValueError("belief0: its mean is one value for the series (an expanded view: estimated as "
+                             "one shared start mean) but its covariance is one per series; expand the "
+                             "covariance too (belief0.expand), or materialise the mean (a start mean per "
+                             "series)")
 
 
 def _shape(current: Tensor, new: Tensor, shared: bool) -> tuple:

@@ -147,7 +147,8 @@ def _parametrisation_curvature(blocks, sizes, theta: Tensor, loss_of: Callable[[
          for (name, v), d in zip(built.items(), grads)}
 
     def contracted(t: Tensor) -> Tensor:
-        return sum((g[b.name] * b.build(u).to(torch.float64).cpu()).sum() for b, u in zip(blocks, t.split(sizes)))
+        return sum((g[b.name] * b.build(u).to(torch.float64).cpu()).sum()
+                   for b, u in zip(blocks, t.split(sizes)))
     return torch.autograd.functional.hessian(contracted, theta)
 
 
@@ -205,8 +206,9 @@ def estimate(filter: Filter, belief0: Belief | Callable[[Filter], Belief], measu
             exact (autograd) gradient, ``2 k`` evaluations through the kernels where they apply, step
             ``eps^(1/3) max(1, |theta_i|)``, ``eps`` the data's dtype's (in float64 it agrees with the exact
             Hessian to about 1e-7 relative, tests/learn/test_estimate.py; float32 errors within about 0.1 %
-            of float64's, tests/learn/test_standard_errors.py); ``"autograd"``: the exact second derivative through the eager
-            steps (no kernel has a second derivative: slower, seconds for a few hundred steps).
+            of float64's, tests/learn/test_standard_errors.py); ``"autograd"``: the exact second
+            derivative through the eager steps (no kernel has a second derivative: slower, seconds for a
+            few hundred steps).
         tol, maxiter: the optimiser's tolerance and iteration limit (default for L-BFGS-B: ``ftol=1e-13``,
             ``gtol=1e-8`` in float64, tighter than scipy's, which stops short on a flat likelihood; ``1e-6``
             and ``1e-3`` in float32).
@@ -291,7 +293,8 @@ def estimate(filter: Filter, belief0: Belief | Callable[[Filter], Belief], measu
     note, bound = "", []
     # the central differences' step (hessian="differences"): eps^(1/3) max(1, |theta_i|), eps the data's
     # dtype's (the step that balances the truncation error, O(h^2), with the gradient's rounding, O(eps / h))
-    step = torch.finfo(measurements.dtype if measurements.is_floating_point() else torch.float64).eps ** (1 / 3)
+    dtype = measurements.dtype if measurements.is_floating_point() else torch.float64
+    step = torch.finfo(dtype).eps ** (1 / 3)
     if se:
         if hessian == "autograd":
             with kernels.switched_off(*kernels.names()):  # the eager steps: a second derivative through them
@@ -323,8 +326,9 @@ def estimate(filter: Filter, belief0: Belief | Callable[[Filter], Belief], measu
             J = torch.autograd.functional.jacobian(
                 lambda t: torch.cat([b.natural(u) for b, u in zip(blocks, t.split(sizes))]), theta)
             cov = J @ theta_cov @ J.mT
-            # a covariance's diagonal direction (its Cholesky factor's log-diagonal) at 0: the matrix is singular;
-            # the entry itself is at its bound (no error) only where that factor's term is most of it
+            # a covariance's diagonal direction (its Cholesky factor's log-diagonal) at 0: the matrix is
+            # singular; the entry itself is at its bound (no error) only where that factor's term is most
+            # of it
             singular = [k for k in bound if kinds[k] == "covariance"
                         and float(theta[int(D[k].nonzero()[0, 0])].mul(2).exp()) < 0.5 * float(natural[k])]
             nan = [k for k in bound if k not in singular]
@@ -332,15 +336,15 @@ def estimate(filter: Filter, belief0: Belief | Callable[[Filter], Belief], measu
             cov[:, nan] = math.nan
             notes = []
             if nan:
-                notes.append("at a bound of its parametrisation (the log-likelihood slopes past it, or its coordinate "
-                             f"ran off: {', '.join(f'{names[k]} = {float(natural[k]):.3g}' for k in nan)}): no "
-                             "standard error")
+                where = ", ".join(f"{names[k]} = {float(natural[k]):.3g}" for k in nan)
+                notes.append("at a bound of its parametrisation (the log-likelihood slopes past it, or its "
+                             f"coordinate ran off: {where}): no standard error")
             if singular:
-                notes.append("a covariance singular at the estimate (its Cholesky factor's diagonal at 0, in the "
-                             f"direction of {', '.join(names[k] for k in singular)})")
+                notes.append("a covariance singular at the estimate (its Cholesky factor's diagonal at 0, in "
+                             f"the direction of {', '.join(names[k] for k in singular)})")
             if bound:
-                note = "; ".join(notes) + ("; the other errors with those directions held at the estimate (dropped "
-                                           "from the information)")
+                note = "; ".join(notes) + ("; the other errors with those directions held at the estimate "
+                                           "(dropped from the information)")
         else:
             note = ("the observed information is not positive definite at the optimum (a parameter on a boundary, "
                     "or one the data do not identify): no standard errors")
@@ -356,7 +360,8 @@ def estimate(filter: Filter, belief0: Belief | Callable[[Filter], Belief], measu
             return (1 / (1 - P.diagonal(dim1=-2, dim2=-1))).reshape(-1)
         start = sum(sizes[:blocks.index(b)])
         d = duration(u)
-        diagonal = [names.index(f"{b.label}[{i},{i}]") if f"{b.label}[{i},{i}]" in names else -1 for i in range(M)]
+        diagonal = [names.index(f"{b.label}[{i},{i}]") if f"{b.label}[{i},{i}]" in names else -1
+                    for i in range(M)]
         if se and not math.isnan(float(theta_cov[start:start + u.numel()].sum())) \
                 and not any(k in bound for k in diagonal):
             Jd = torch.autograd.functional.jacobian(duration, u)
