@@ -8,10 +8,12 @@ Files (CSV or NPZ, :mod:`experiments.datafile`):
   optional ``series`` column (each series is one run) and, with ``tracking.sensors``, a ``sensor`` column
   naming each row's sensor. A row with empty measurement cells records an empty scan; so does a time on
   the scan grid (a sensor's: its schedule) with no row at all. The scans lie on the grid
-  ``t0 + k * tracking.dt`` (``t0`` the earliest time stamp of the files), every stamp on it.
+  ``t0 + k * tracking.dt`` (``t0`` the earliest time stamp of the files), every stamp on it (within
+  ``1e-6 dt``); the rows whose stamps fall on the same grid point (``0.3`` and ``0.1 + 0.2``) are one scan.
 * **truth** (optional; GOSPA and the track-quality table need it): one row per target and time stamp
   where it exists (births and deaths: the rows it has), ``time``, ``target``, the two ``position``
-  columns, optional ``series`` (without one, every series has this truth).
+  columns, optional ``series`` (without one, every series has this truth). A target given twice in one
+  scan (two stamps on the same grid point included) is an error.
 * **start** (the estimators that keep one track per target need it: every one but the managed
   trackers): one row per target (and series): ``target``, the four ``state`` columns ``[x, vx, y, vy]``
   and optional ``variances`` (the four diagonal entries of that track's covariance; ``tracking.P0``
@@ -78,6 +80,27 @@ def _index(stamps: np.ndarray, t0: float, dt: float) -> np.ndarray:
     return np.round((stamps - t0) / dt).astype(int)
 
 
+def _on_grid(z: np.ndarray, steps: np.ndarray, T: int) -> np.ndarray:
+    """The file's scans ``z (T', *B, D, m)`` (one for each distinct time stamp, NaN padding) as the grid's
+    ``(T, *B, D', m)``: the scans whose stamps round to the same grid index ``steps (T',)`` (stamps that
+    differ by float rounding, ``0.3`` and ``0.1 + 0.2``) are one scan holding all their detections;
+    each scan's detections first (in the order of their stamps, then of the file's rows), its padding
+    after them."""
+    B, m = z.shape[1:-2], z.shape[-1]
+    merged = []
+    for k in range(T):
+        part = np.moveaxis(z[steps == k], 0, -3)  # (*B, n_k, D, m): the file's scans on grid index k
+        part = part.reshape(*B, -1, m)
+        order = np.argsort(~np.isfinite(part).all(-1), axis=-1, kind="stable")
+        merged.append(np.take_along_axis(part, order[..., None], -2))
+    D = max([int(np.isfinite(p).all(-1).sum(-1).max(initial=0)) for p in merged], default=0)
+    out = np.full((T, *B, D, m), np.nan)
+    for k, part in enumerate(merged):
+        n = min(D, part.shape[-2])
+        out[k, ..., :n, :] = part[..., :n, :]
+    return out
+
+
 def _series_of(rows, series: list[str], key: str, node) -> list[list[int]]:
     """For each detection series, the rows that belong to it (every row where the file has no series
     column); a series the detections do not have is an error."""
@@ -129,8 +152,7 @@ def read(node, *, dt: float, P0: list[float], sensors: list[str] | None = None, 
     t0, T = _grid([scans.times, truth_rows.times if truth_rows is not None else None], dt, key)
     R = scans.z.shape[1]
     if sensors is None:
-        z = np.full((T, R) + scans.z.shape[2:], np.nan)
-        z[_index(scans.times, t0, dt)] = scans.z
+        z = _on_grid(scans.z, _index(scans.times, t0, dt), T)
     else:
         z = _by_sensor(node, scans, sensors, schedule, t0, dt, T)
     truth = present = None
@@ -140,8 +162,18 @@ def read(node, *, dt: float, P0: list[float], sensors: list[str] | None = None, 
         truth = np.full((T, R, len(targets), 2), np.nan)
         steps = _index(truth_rows.times, t0, dt)
         for r, rows in enumerate(_series_of(truth_rows, scans.series, f"{key}.truth", truth_node)):
+            given: dict = {}
             for i in rows:
-                truth[steps[i], r, which[truth_rows.target[i]]] = truth_rows.values[i]
+                at = (steps[i], which[truth_rows.target[i]])
+                if at in given:  # (stamps that differ by float rounding: read_targets saw two times)
+                    j, what = given[at], truth_rows.what
+                    raise ConfigError(f"{key}.truth", truth_node["path"], (
+                        f"{truth_rows.file.name}: target {truth_rows.target[i]!r} is given twice in scan {at[0]} "
+                        f"(time {t0 + at[0] * dt:g}): {what} {truth_rows.rows[j]} (time {float(truth_rows.times[j])!r}) "
+                        f"and {what} {truth_rows.rows[i]} (time {float(truth_rows.times[i])!r}) round to the same scan "
+                        "of the grid t0 + k * tracking.dt"))
+                given[at] = i
+                truth[steps[i], r, at[1]] = truth_rows.values[i]
         present = np.isfinite(truth).all(-1)
     if start_rows is not None:
         per_series = _series_of(start_rows, scans.series, f"{key}.start", start_node)
@@ -175,11 +207,14 @@ def _by_sensor(node, scans, sensors: list[str], schedule, t0: float, dt: float, 
         raise ConfigError("tracking.detections.sensor", node.get("sensor"), f"sensor {unknown[0]!r} of "
                           f"{Path(node['path']).name} is not in tracking.sensors ({', '.join(sensors)})")
     steps = _index(scans.times, t0, dt)
-    z = np.full((T, z_file.shape[1], len(sensors)) + z_file.shape[3:], np.nan)
+    where = [sensors.index(label) for label in labels]  # the file's sensor j is tracking.sensors[where[j]]
+    z = np.full(z_file.shape[:2] + (len(sensors),) + z_file.shape[3:], np.nan)
+    z[:, :, where] = z_file
+    z = _on_grid(z, steps, T)
     rows = np.zeros((T, z_file.shape[1], len(sensors)), dtype=bool)
-    for j, label in enumerate(labels):
-        z[steps, :, sensors.index(label)] = z_file[:, :, j]
-        rows[steps, :, sensors.index(label)] = reported[:, :, j]
+    for j, s in enumerate(where):  # (scans merged on the grid: a row in any of them)
+        for step, at in zip(steps, reported[:, :, j]):
+            rows[step, :, s] |= at
     off = rows & ~np.asarray(schedule(T))[:, None, :]
     if off.any():
         k, _, s = (int(v[0]) for v in np.nonzero(off))
