@@ -40,7 +40,7 @@ from experiments.datafile_io import (
 )
 
 __all__ = ["DataFileError", "DataSeries", "DetectionScans", "TargetRows", "read_detections", "read_series",
-           "read_targets"]
+           "npz_label", "read_targets"]
 
 
 @dataclass
@@ -167,6 +167,14 @@ def read_series(path: str | Path, *, measurements: list[str], truth: list[str] |
     return DataSeries(z, x, stamps, present, order, u)
 
 
+def npz_label(value: float) -> str:
+    """An NPZ entry of a label column (series, sensor, target) as its exact label: an integral value as
+    its integer (``1000001.0`` -> ``'1000001'``, as a CSV cell ``1000001`` reads), any other as its
+    shortest exact decimal (``repr``: ``0.5`` -> ``'0.5'``); two distinct values are never one label."""
+    value = float(value)
+    return str(int(value)) if value.is_integer() else repr(value)
+
+
 @dataclass
 class DetectionScans:
     """Scans of detections read from a file, padded (float64 numpy): what ``PDA``, ``JPDA`` and
@@ -206,7 +214,8 @@ def read_detections(path: str | Path, *, measurements: list[str], time: str, ser
         measurements: the measurement columns, in the order of the sensor's components.
         time: the time-stamp column (finite).
         series: optional column whose values name the series (runs), e.g. recordings of several
-            sensors or days; NPZ: a numeric array.
+            sensors or days; NPZ: a numeric array, each value's label exact (:func:`npz_label`: ``1000001``,
+            as the CSV cell ``1000001`` reads; integers beyond 2^53 are refused).
         sensor: optional column naming each row's sensor (several sensors in one recording): the scans
             get a sensor axis, ``z (T, runs, S, D, m)``, a sensor's scan at a time stamp holding its rows.
 
@@ -238,14 +247,14 @@ def read_detections(path: str | Path, *, measurements: list[str], time: str, ser
             if len(missing):
                 raise DataFileError(f"{file}: column {series!r}, entry {int(missing[0])}: the series value is "
                                     "missing (every entry names its series)")
-        labels = [f"{v:g}" for v in arrays[series][:, 0]] if series else ["0"] * len(values[time])
+        labels = [npz_label(v) for v in arrays[series][:, 0]] if series else ["0"] * len(values[time])
         where, what = list(range(len(labels))), "entry"
         if sensor:
             missing = np.flatnonzero(np.isnan(arrays[sensor][:, 0]))
             if len(missing):
                 raise DataFileError(f"{file}: column {sensor!r}, entry {int(missing[0])}: the sensor is missing "
                                     "(every entry names its sensor)")
-            sensor_labels = [f"{v:g}" for v in arrays[sensor][:, 0]]
+            sensor_labels = [npz_label(v) for v in arrays[sensor][:, 0]]
     elif suffix == ".csv":
         values, where = read_csv(file, wanted, series, names=[sensor] if sensor else ())
         labels = values.pop(series) if series else ["0"] * len(where)
@@ -324,7 +333,8 @@ def read_targets(path: str | Path, *, columns: list[str], target: str, time: str
         path: a ``.csv`` (a header naming the columns) or ``.npz`` (one ``(K,)`` array per column, one
             entry per row); relative paths as for :func:`read_series`.
         columns: the value columns (every cell finite: a row is a target that exists).
-        target: the column naming the target (any text in a CSV; numbers in an NPZ).
+        target: the column naming the target (any text in a CSV; numbers in an NPZ, labelled exactly as
+            :func:`npz_label`).
         time: optional time-stamp column (finite).
         series: optional column naming the series (run) of the row, as in :func:`read_detections`.
 
@@ -350,7 +360,7 @@ def read_targets(path: str | Path, *, columns: list[str], target: str, time: str
             if len(missing):
                 raise DataFileError(f"{file}: column {name!r}, entry {int(missing[0])}: the label is missing")
         values = {c: list(arrays[c][:, 0]) for c in wanted}
-        names = {c: [f"{v:g}" for v in arrays[c][:, 0]] for c in labelled}
+        names = {c: [npz_label(v) for v in arrays[c][:, 0]] for c in labelled}
         rows, what = list(range(len(values[columns[0]]))), "entry"
     elif suffix == ".csv":
         values, rows = read_csv(file, wanted, series, names=[target])
