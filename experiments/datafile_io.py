@@ -152,8 +152,9 @@ def read_npz(file: Path, wanted: list[str]) -> dict[str, np.ndarray]:
             array = np.asarray(raw, dtype=np.float64) if raw.dtype.kind in "fiu" else None
             if raw.dtype.kind in "iu" and raw.size and np.abs(raw).max() > 2 ** 53:  # (labels too: ids)
                 where = np.unravel_index(int(np.argmax(np.abs(raw))), raw.shape)
-                raise DataFileError(f"{file}: column {name!r}, entry {where[0] if raw.ndim == 1 else where}: the integer "
-                                    f"{raw[where]} is beyond 2^53, not exact in float64 (distinct values would merge)")
+                entry = where[0] if raw.ndim == 1 else where
+                raise DataFileError(f"{file}: column {name!r}, entry {entry}: the integer {raw[where]} is "
+                                    "beyond 2^53, not exact in float64 (distinct values would merge)")
             if array is None or array.ndim not in (1, 2):
                 raise DataFileError(f"{file}: column {name!r}: expected a numeric (T,) or (T, runs) array")
             infinite = np.argwhere(np.isinf(array))

@@ -166,12 +166,13 @@ def read(node, *, dt: float, P0: list[float], sensors: list[str] | None = None, 
             for i in rows:
                 at = (steps[i], which[truth_rows.target[i]])
                 if at in given:  # (stamps that differ by float rounding: read_targets saw two times)
-                    j, what = given[at], truth_rows.what
+                    what, stamps = truth_rows.what, truth_rows.times
+                    both = " and ".join(f"{what} {truth_rows.rows[j]} (time {float(stamps[j])!r})"
+                                        for j in (given[at], i))
                     raise ConfigError(f"{key}.truth", truth_node["path"], (
-                        f"{truth_rows.file.name}: target {truth_rows.target[i]!r} is given twice in scan {at[0]} "
-                        f"(time {t0 + at[0] * dt:g}): {what} {truth_rows.rows[j]} (time {float(truth_rows.times[j])!r}) "
-                        f"and {what} {truth_rows.rows[i]} (time {float(truth_rows.times[i])!r}) round to the same scan "
-                        "of the grid t0 + k * tracking.dt"))
+                        f"{truth_rows.file.name}: target {truth_rows.target[i]!r} is given twice in scan "
+                        f"{at[0]} (time {t0 + at[0] * dt:g}): {both} round to the same scan of the grid "
+                        "t0 + k * tracking.dt"))
                 given[at] = i
                 truth[steps[i], r, at[1]] = truth_rows.values[i]
         present = np.isfinite(truth).all(-1)

@@ -91,17 +91,20 @@ def test_npz_labels_are_exact_and_match_the_csv_s(tmp_path):
     ids = [1000000, 1000001, 1000000, 1000001]
     np.savez(tmp_path / "d.npz", time=np.array([0.0, 0.0, 1.0, 1.0]), x=np.array([1.0, 2.0, 3.0, 4.0]),
              y=np.zeros(4), series=np.array(ids), sensor=np.array([0.5, 0.25, 0.5, 0.25]))
-    (tmp_path / "d.csv").write_text("time,series,sensor,x,y\n" + "".join(
-        f"{t},{s},{c},{x},0\n" for t, s, c, x in zip([0, 0, 1, 1], ids, [0.5, 0.25, 0.5, 0.25], [1, 2, 3, 4])))
-    a = read_detections(tmp_path / "d.npz", measurements=["x", "y"], time="time", series="series", sensor="sensor")
-    b = read_detections(tmp_path / "d.csv", measurements=["x", "y"], time="time", series="series", sensor="sensor")
+    cells = zip([0, 0, 1, 1], ids, [0.5, 0.25, 0.5, 0.25], [1, 2, 3, 4])
+    (tmp_path / "d.csv").write_text("time,series,sensor,x,y\n" + "".join(f"{t},{s},{c},{x},0\n" for t, s, c, x in cells))
+    columns = {"measurements": ["x", "y"], "time": "time", "series": "series", "sensor": "sensor"}
+    a = read_detections(tmp_path / "d.npz", **columns)
+    b = read_detections(tmp_path / "d.csv", **columns)
     assert a.series == b.series == ["1000000", "1000001"] and a.sensors == b.sensors == ["0.5", "0.25"]
     np.testing.assert_array_equal(a.z, b.z)
     assert a.z[0, 0, 0, 0].tolist() == [1.0, 0.0] and a.z[0, 1, 1, 0].tolist() == [2.0, 0.0]  # not mixed
-    np.savez(tmp_path / "t.npz", time=np.zeros(2), target=np.array([1234567, 1234568]), x=np.ones(2), y=np.ones(2))
+    np.savez(tmp_path / "t.npz", time=np.zeros(2), target=np.array([1234567, 1234568]), x=np.ones(2),
+             y=np.ones(2))
     assert read_targets(tmp_path / "t.npz", columns=["x", "y"], target="target", time="time").target == [
         "1234567", "1234568"]
     np.savez(tmp_path / "big.npz", time=np.zeros(2), x=np.ones(2), y=np.ones(2),
              series=np.array([2 ** 53 + 1, 2 ** 53 + 2], dtype=np.int64))
-    with pytest.raises(DataFileError, match=r"column 'series', entry 1: the integer 9007199254740994 is beyond 2\^53"):
+    with pytest.raises(DataFileError, match=r"column 'series', entry 1: the integer 9007199254740994 is "
+                                            r"beyond 2\^53"):
         read_detections(tmp_path / "big.npz", measurements=["x", "y"], time="time", series="series")

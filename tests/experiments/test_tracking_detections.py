@@ -298,8 +298,8 @@ def test_stamps_on_one_grid_point_are_one_scan_and_every_row_is_kept(tmp_path):
     """Two stamps that differ by float rounding (0.3 and 0.1 + 0.2, dt = 0.1) are one scan holding both
     rows (no detection dropped), with or without a sensor column; a target given at both is refused,
     naming the key and both rows."""
-    (tmp_path / "d.csv").write_text("time,x,y\n0.0,1,1\n0.1,2,2\n0.2,3,3\n0.30000000000000004,4,4\n0.3,40,40\n"
-                                    "0.4,5,5\n")
+    (tmp_path / "d.csv").write_text("time,x,y\n0.0,1,1\n0.1,2,2\n0.2,3,3\n0.30000000000000004,4,4\n"
+                                    "0.3,40,40\n0.4,5,5\n")
     node = {"path": str(tmp_path / "d.csv"), "measurements": ["x", "y"], "time": "time"}
     got = tracking_data.read(node, dt=0.1, P0=[1, 1, 1, 1])
     assert got.z.shape[0] == 5 and int(torch.isfinite(got.z[..., 0]).sum()) == 6
@@ -307,11 +307,13 @@ def test_stamps_on_one_grid_point_are_one_scan_and_every_row_is_kept(tmp_path):
     (tmp_path / "s.csv").write_text("time,sensor,x,y\n" + "".join(
         f"{t},radar,{v},{v}\n" for t, v in (("0.0", 1), ("0.30000000000000004", 4), ("0.3", 40))))
     got = tracking_data.read(node | {"path": str(tmp_path / "s.csv"), "sensor": "sensor"}, dt=0.1,
-                             P0=[1, 1, 1, 1], sensors=["radar"], schedule=lambda T: np.ones((T, 1), dtype=bool))
+                             P0=[1, 1, 1, 1], sensors=["radar"],
+                             schedule=lambda T: np.ones((T, 1), dtype=bool))
     assert sorted(map(tuple, got.z[3, 0, 0].tolist())) == [(4.0, 4.0), (40.0, 40.0)]
     assert int(torch.isfinite(got.z[..., 0]).sum()) == 3
     (tmp_path / "t.csv").write_text("time,target,x,y\n0.3,0,1,1\n0.30000000000000004,0,99,99\n")
     truth = {"path": str(tmp_path / "t.csv"), "time": "time", "target": "target", "position": ["x", "y"]}
-    with pytest.raises(ValueError, match=r"^tracking\.detections\.truth=.*t\.csv: target '0' is given twice in "
-                                         r"scan 3 .*row 2 \(time 0\.3\) and row 3 \(time 0\.30000000000000004\)"):
+    with pytest.raises(ValueError, match=r"^tracking\.detections\.truth=.*t\.csv: target '0' is given twice "
+                                         r"in scan 3 .*row 2 \(time 0\.3\) and row 3 "
+                                         r"\(time 0\.30000000000000004\)"):
         tracking_data.read(node | {"truth": truth}, dt=0.1, P0=[1, 1, 1, 1])
