@@ -92,7 +92,8 @@ def test_npz_labels_are_exact_and_match_the_csv_s(tmp_path):
     np.savez(tmp_path / "d.npz", time=np.array([0.0, 0.0, 1.0, 1.0]), x=np.array([1.0, 2.0, 3.0, 4.0]),
              y=np.zeros(4), series=np.array(ids), sensor=np.array([0.5, 0.25, 0.5, 0.25]))
     cells = zip([0, 0, 1, 1], ids, [0.5, 0.25, 0.5, 0.25], [1, 2, 3, 4])
-    (tmp_path / "d.csv").write_text("time,series,sensor,x,y\n" + "".join(f"{t},{s},{c},{x},0\n" for t, s, c, x in cells))
+    text = "".join(f"{t},{s},{c},{x},0\n" for t, s, c, x in cells)
+    (tmp_path / "d.csv").write_text("time,series,sensor,x,y\n" + text)
     columns = {"measurements": ["x", "y"], "time": "time", "series": "series", "sensor": "sensor"}
     a = read_detections(tmp_path / "d.npz", **columns)
     b = read_detections(tmp_path / "d.csv", **columns)
