@@ -177,28 +177,57 @@ def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
         out["switching"] = term
     both = (label[1:] >= 0) & (label[:-1] >= 0)
     switches = (both & (label[1:] != label[:-1])).sum((0, 2)).double()  # (runs,)
+    # a figure over targets counts only the targets that exist (a truth file may give a series fewer
+    # targets, or none): NaN where a run has none to count, left out of the average over runs
     last = present[-1]
-    lost = ((assigned[-1] < 0) & last).sum(-1).double() / last.sum(-1).clamp(min=1)  # (runs,)
+    lost = _ratio(((assigned[-1] < 0) & last).sum(-1), last.sum(-1))  # (runs,)
     steps = torch.arange(len(present)).view(-1, 1, 1)
     never = torch.full_like(steps, len(present))
     appears = torch.where(present, steps, never).amin(0)  # (runs, N)
     tracked = torch.where(assigned >= 0, steps, never).amin(0)
-    delay = (tracked - appears).double().mean(-1)  # (runs,): scans from appearing to a track within c
+    exists = present.any(0)  # (runs, N): the target exists in the run
+    # (runs,): scans from appearing to a track within c, over the targets of the run
+    delay = _ratio(torch.where(exists, tracked - appears, 0).sum(-1), exists.sum(-1))
     # SIAP-style quality (Votruba, Naval Research Lab, 2001): a track "covers" a target it lies within c of
     # (any number of tracks a target, unlike GOSPA's one-to-one assignment)
     gap = (position.unsqueeze(-2) - truth_xy.unsqueeze(-3)).norm(dim=-1)  # (T, runs, K, N)
     near = (gap < float(t.gospa_c)) & visible.unsqueeze(-1) & present.unsqueeze(-2)
     covered = near.any(-2)  # (T, runs, N): the target has a track
     quality = {
-        "completeness": per_run(covered.sum((0, 2)).double() / present.sum((0, 2)).clamp(min=1)),
-        "ambiguity": per_run(near.sum((0, 2, 3)).double() / covered.sum((0, 2)).clamp(min=1)),
-        "spuriousness": per_run((visible & ~near.any(-1)).sum((0, 2)).double() / visible.sum((0, 2)).clamp(min=1)),
+        "completeness": per_run(_ratio(covered.sum((0, 2)), present.sum((0, 2)))),
+        "ambiguity": per_run(_ratio(near.sum((0, 2, 3)), covered.sum((0, 2)))),
+        "spuriousness": per_run(_ratio((visible & ~near.any(-1)).sum((0, 2)), visible.sum((0, 2)))),
         "breaks": per_run((covered[:-1] & ~covered[1:] & present[1:]).sum((0, 2)).double()),
     }
     return common | {key: per_run(out[key]) for key in ("distance", "localisation", "missed", "false", "switching")
                      if key in out} | {
         "switches": per_run(switches), "lost": per_run(lost), "delay": per_run(delay), **quality,
         "targets": per_run(present.sum(-1).double())}
+
+
+def _ratio(count: Tensor, total: Tensor) -> Tensor:
+    """``count / total`` per run (float64), NaN where ``total`` is 0 (nothing to count: not 0)."""
+    return torch.where(total > 0, count.double() / total.clamp(min=1).double(), math.nan)
+
+
+#: why a track-quality figure has no run to average over (every run NaN)
+_UNDEFINED = {
+    "lost_fraction": "no target exists at the last scan of any series (truth)",
+    "first_track_delay": "no target exists in any series (truth)",
+    "completeness": "no target exists in any series (truth)",
+    "ambiguity": "no target-scan is covered by a track in any series",
+    "spuriousness": "no track is shown in any series",
+}
+
+
+def _average(ctx: StudyContext, name: str, column: str, runs) -> float:
+    """The mean over the runs where ``column`` is defined (a run without the targets it counts is NaN and
+    left out); NaN, and named in ``dropped``, where no run has it."""
+    finite = runs[torch.isfinite(runs)]
+    if not len(finite):
+        ctx.results.dropped[f"{column} ({name})"] = _UNDEFINED[column]
+        return math.nan
+    return float(finite.mean())
 
 
 def _sensing(t) -> str:
@@ -328,7 +357,9 @@ def _score_tables(ctx: StudyContext, names: list[str], parts: list[dict], n: int
              "distance^p), averaged the same way. label_switches: times a target's track changed, a run. "
              "lost_fraction: targets without a track within c at the last scan (of those that exist then). "
              "first_track_delay: scans from a target's first scan to its first track within c (a target "
-             "never tracked counts the scans to the end). JIPDA-TM and IMM-JIPDA-TM show their confirmed "
+             "never tracked counts the scans to the end), over the targets that exist in a run. Both average "
+             "over the runs that have such targets (a run with none is left out; with none at all the figure "
+             "is not computed, see below). JIPDA-TM and IMM-JIPDA-TM show their confirmed "
              "tracks only (existence >= tracking.management.confirm, or by tracking.management.m_of_n)."
              + (" switching: GOSPA's track-switching term (tracking.gospa_switching times the p-th root of the "
                 "step's switches: 1 for a target's track changing to another, 0.5 for one gained or lost), "
@@ -341,26 +372,29 @@ def _score_tables(ctx: StudyContext, names: list[str], parts: list[dict], n: int
              "target): completeness, the target-scans covered over those that exist; ambiguity, the covering "
              "tracks per covered target-scan (1: one track each); spuriousness, the shown track-scans that "
              "cover no target over all shown; track_breaks, times a target lost its cover while it existed, a "
-             "run; label_switches and first_track_delay as in the gospa table. Averages over the runs.")
+             "run; label_switches and first_track_delay as in the gospa table. Averages over the runs; a run "
+             "where a ratio has nothing to count (no target for completeness, no covered target-scan for "
+             "ambiguity, no shown track for spuriousness) is left out of its average, never counted as 0.")
     for i, name in enumerate(names):
         mine = parts[i * n:(i + 1) * n]
         dist = join_runs([p["distance"] for p in mine])  # (T, runs)
         per_run_mean = dist.mean(0)
         parts_mean = {k: float(join_runs([p[k] for p in mine]).mean()) for k in ("localisation", "missed", "false")}
         switches = float(join_runs([p["switches"] for p in mine], dim=0).mean())
-        lost = float(join_runs([p["lost"] for p in mine], dim=0).mean())
-        delay = float(join_runs([p["delay"] for p in mine], dim=0).mean())
+        lost = _average(ctx, name, "lost_fraction", join_runs([p["lost"] for p in mine], dim=0))
+        delay = _average(ctx, name, "first_track_delay", join_runs([p["delay"] for p in mine], dim=0))
         seconds = sum(p["seconds"] for p in mine) / sum(p["track_scans"] for p in mine)
         se = float(per_run_mean.std() / math.sqrt(len(per_run_mean))) if len(per_run_mean) > 1 else None
         term = [float(join_runs([p["switching"] for p in mine]).mean())] if switching else []
         table.rows.append([name, float(per_run_mean.mean()), se, parts_mean["localisation"], parts_mean["missed"],
                            parts_mean["false"], *term, switches, lost, delay, seconds])
         ctx.results.metric(name, "gospa", float(per_run_mean.mean()))
-        ctx.results.metric(name, "lost_fraction", lost)
+        if math.isfinite(lost):
+            ctx.results.metric(name, "lost_fraction", lost)
         ctx.results.timing[name] = seconds
-        quality.rows.append([name, *(float(join_runs([p[key] for p in mine], dim=0).mean())
-                                     for key in ("completeness", "ambiguity", "spuriousness", "breaks")),
-                             switches, delay])
+        quality.rows.append([name, *(_average(ctx, name, key, join_runs([p[key] for p in mine], dim=0))
+                                     for key in ("completeness", "ambiguity", "spuriousness")),
+                             float(join_runs([p["breaks"] for p in mine], dim=0).mean()), switches, delay])
         mean_and_band(dist, "GOSPA", name, "gospa")
         for part in ("localisation", "missed", "false"):  # GOSPA^p's parts over time
             mean_and_band(join_runs([p[part] for p in mine]), part, name, f"gospa_{part}")

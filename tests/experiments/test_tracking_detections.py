@@ -317,3 +317,45 @@ def test_stamps_on_one_grid_point_are_one_scan_and_every_row_is_kept(tmp_path):
                                          r"in scan 3 .*row 2 \(time 0\.3\) and row 3 "
                                          r"\(time 0\.30000000000000004\)"):
         tracking_data.read(node | {"truth": truth}, dt=0.1, P0=[1, 1, 1, 1])
+
+
+def _rows(folder: Path, table: str) -> dict:
+    got = _tables(folder)[table]
+    return {row[0]: dict(zip(got["columns"], row)) for row in got["rows"]}
+
+
+def test_a_series_without_targets_is_left_out_of_the_track_quality_averages(exported, tmp_path):
+    """Partial truth: series 1-3 have no truth row (no target exists there). The figures over targets
+    (completeness, ambiguity, first_track_delay, lost_fraction) are series 0's alone (the study on series
+    0's rows only), not averaged with a 0 from each series without targets; where no target exists at the
+    last scan, lost_fraction is not computed (dropped, null), never 0."""
+    _, paths = exported
+    lines = {name: paths[name].read_text().splitlines() for name in ("detections", "truth")}
+    for name, keep in (("all", lambda r: True), ("zero", lambda r: r.split(",")[1] == "0")):
+        for file in ("detections", "truth"):
+            rows = [r for r in lines[file][1:] if keep(r) or (file == "detections" and name == "all")]
+            if file == "truth":
+                rows = [r for r in rows if r.split(",")[1] == "0"]  # truth for series 0 only
+            (tmp_path / f"{name}_{file}.csv").write_text("\n".join([lines[file][0], *rows]) + "\n")
+        files = {"detections": tmp_path / f"{name}_detections.csv", "truth": tmp_path / f"{name}_truth.csv"}
+        node = _node(paths | files, start=None)
+        run_study(_compose("tracking", *COMMON, "debug=tracking", "figures=false", node,
+                           "tracking.estimators=[JIPDA-TM]"), tmp_path / name)
+    assert "4 series" in (tmp_path / "all" / "results.md").read_text()
+    for table, columns in (("track_quality", ("completeness", "ambiguity", "first_track_delay")),
+                           ("gospa", ("lost_fraction", "first_track_delay"))):
+        both, alone = _rows(tmp_path / "all", table)["JIPDA-TM"], _rows(tmp_path / "zero", table)["JIPDA-TM"]
+        for column in columns:
+            assert both[column] == pytest.approx(alone[column], rel=1e-9, abs=1e-12), (table, column)
+    assert _rows(tmp_path / "zero", "track_quality")["JIPDA-TM"]["completeness"] > 0.3  # (a real figure)
+    # no target at the last scan (the truth's rows of scans 0-9 of 12): lost_fraction has nothing to count
+    truth = [r for r in lines["truth"][1:] if float(r.split(",")[0]) < 10]
+    (tmp_path / "early.csv").write_text("\n".join([lines["truth"][0], *truth]) + "\n")
+    run_study(_compose("tracking", *COMMON, "debug=tracking", "figures=false",
+                       "tracking.estimators=[JIPDA-TM]", _node(paths | {"truth": tmp_path / "early.csv"}, start=None)),
+              tmp_path / "early")
+    results = json.loads((tmp_path / "early" / "results.json").read_text())
+    assert _rows(tmp_path / "early", "gospa")["JIPDA-TM"]["lost_fraction"] is None
+    assert "no target exists at the last scan" in results["dropped"]["lost_fraction (JIPDA-TM)"]
+    assert "lost_fraction" not in results["metrics"]["JIPDA-TM"]
+    assert _rows(tmp_path / "early", "gospa")["JIPDA-TM"]["first_track_delay"] is not None
