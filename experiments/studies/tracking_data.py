@@ -24,6 +24,8 @@ Files (CSV or NPZ, :mod:`experiments.datafile`):
 from __future__ import annotations
 
 import math
+import re
+from collections.abc import Sequence
 from pathlib import Path
 from typing import NamedTuple
 
@@ -55,25 +57,48 @@ class Recorded(NamedTuple):
     series: list[str]
 
 
-def _fail(key: str, value, err: Exception):
-    """A reader's error as one ConfigError naming the config key."""
+def _fail(key: str, node, err: Exception, columns: tuple[str, ...] = ()):
+    """A reader's error as one ConfigError naming the config key the user gave, with its value: the file's
+    (``key.path``) for a :class:`DataFileError`, else the argument's. ``columns``: the config lists the
+    reader's ``columns`` argument joins, in order (truth: ``position``; start: ``state``, ``variances``)."""
     if isinstance(err, DataFileError):
-        return ConfigError(key, value, str(err))
+        return ConfigError(key, node["path"], str(err))
     name, _, why = str(err).partition(": ")
-    return ConfigError(f"{key}.{name.split('[', 1)[0]}", value, why or name)
+    if not why:
+        return ConfigError(key, node["path"], name)
+
+    def field(match: re.Match) -> str:  # columns[i] as the config list and index it came from
+        index = int(match.group(1))
+        for part in columns:
+            size = len(node.get(part) or [])
+            if index < size:
+                return f"{part}[{index}]"
+            index -= size
+        return match.group(0)
+    if columns:
+        name, why = (re.sub(r"\bcolumns\[(\d+)\]", field, text) for text in (name, why))
+        name = columns[0] if name == "columns" else name
+    arg = name.split("[", 1)[0]
+    value = node.get(arg)
+    listed = isinstance(value, Sequence) and not isinstance(value, str)
+    return ConfigError(f"{key}.{arg}", list(value) if listed else value, why)
 
 
-def _grid(stamps: list[np.ndarray], dt: float, key: str) -> tuple[float, int]:
-    """``(t0, T)``: the scan grid ``t0 + k dt`` holding every stamp."""
-    every = np.concatenate([s for s in stamps if s is not None and len(s)])
-    t0 = float(every.min())
-    k = (every - t0) / dt
-    off = np.abs(k - np.round(k))
-    if off.max() > 1e-6:
-        bad = every[int(np.argmax(off))]
-        raise ConfigError("tracking.dt", dt, f"the time stamp {bad:g} ({key}) is not on the scan grid {t0:g} + k * dt "
-                          "(give the sensor's period as tracking.dt)")
-    return t0, int(np.round(k).max()) + 1
+def _grid(stamps: dict[str, np.ndarray | None], dt: float) -> tuple[float, int]:
+    """``(t0, T)``: the scan grid ``t0 + k dt`` holding every stamp of ``stamps`` (the file's ``path`` key:
+    its stamps)."""
+    given = {key: s for key, s in stamps.items() if s is not None and len(s)}
+    t0 = float(min(s.min() for s in given.values()))
+    T = 0
+    for key, every in given.items():
+        k = (every - t0) / dt
+        off = np.abs(k - np.round(k))
+        if off.max() > 1e-6:
+            bad = float(every[int(np.argmax(off))])
+            raise ConfigError("tracking.dt", dt, f"the time stamp {bad!r} of {key} is not on the scan grid "
+                              f"{t0!r} + k * dt (give the sensor's period as tracking.dt)")
+        T = max(T, int(np.round(k).max()) + 1)
+    return t0, T
 
 
 def _index(stamps: np.ndarray, t0: float, dt: float) -> np.ndarray:
@@ -123,7 +148,7 @@ def read(node, *, dt: float, P0: list[float], sensors: list[str] | None = None, 
         scans = read_detections(node["path"], measurements=list(node["measurements"]), time=node["time"],
                                 series=node.get("series"), sensor=node.get("sensor"))
     except (DataFileError, TypeError, ValueError) as err:
-        raise _fail(key, node["path"], err) from None
+        raise _fail(key, node, err) from None
     if scans.z.shape[-1] != 2:
         raise ConfigError(f"{key}.measurements", list(node["measurements"]), "expected the two position columns "
                           "[x, y] (the study's sensor measures position)")
@@ -135,7 +160,7 @@ def read(node, *, dt: float, P0: list[float], sensors: list[str] | None = None, 
                                       target=truth_node["target"], time=truth_node["time"],
                                       series=truth_node.get("series"))
         except (DataFileError, TypeError, ValueError) as err:
-            raise _fail(f"{key}.truth", truth_node["path"], err) from None
+            raise _fail(f"{key}.truth", truth_node, err, ("position",)) from None
         if truth_rows.values.shape[-1] != 2:
             raise ConfigError(f"{key}.truth.position", list(truth_node["position"]), "expected two columns [x, y]")
     if start_node is not None:
@@ -148,8 +173,10 @@ def read(node, *, dt: float, P0: list[float], sensors: list[str] | None = None, 
             start_rows = read_targets(start_node["path"], columns=columns, target=start_node["target"],
                                       series=start_node.get("series"))
         except (DataFileError, TypeError, ValueError) as err:
-            raise _fail(f"{key}.start", start_node["path"], err) from None
-    t0, T = _grid([scans.times, truth_rows.times if truth_rows is not None else None], dt, key)
+            raise _fail(f"{key}.start", start_node, err, ("state", "variances")) from None
+    t0, T = _grid({f"{key}.path={node['path']}": scans.times,
+                   f"{key}.truth.path={truth_node['path']}" if truth_node is not None else "": (
+                       truth_rows.times if truth_rows is not None else None)}, dt)
     R = scans.z.shape[1]
     if sensors is None:
         z = _on_grid(scans.z, _index(scans.times, t0, dt), T)

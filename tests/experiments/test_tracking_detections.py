@@ -157,6 +157,13 @@ CASES = [
     ({"truth.series": None, "series": None, "start.series": None}, "tracking.detections.truth="),  # a target twice
     ("dt=0.7", "tracking.dt=0.7: the time stamp"),
     (f"lifetimes={LIVES}", "tracking.lifetimes="),
+    # a column list's error names the key given and its value (not the reader's argument and the file)
+    ({"measurements": ["x", "x"]}, "tracking.detections.measurements=['x', 'x']: column 'x' is named twice "
+                                   "(as measurements[0])"),
+    ({"truth.position": ["x", "x"]},
+     "tracking.detections.truth.position=['x', 'x']: column 'x' is named twice (as position[0])"),
+    ({"start.variances": ["x", "vx", "y", "vy"]},
+     "tracking.detections.start.variances=['x', 'vx', 'y', 'vy']: column 'x' is named twice (as state[0])"),
 ]
 
 
@@ -172,6 +179,19 @@ def test_each_file_or_key_error_is_one_line_before_any_folder(exported, tmp_path
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and err.startswith(f"torchmm-run: error: {start}"), err
     assert not (tmp_path / "run").exists()
+
+
+def test_an_off_grid_truth_stamp_names_the_truth_file_s_key(exported, tmp_path, capsys):
+    _, paths = exported
+    (tmp_path / "t.csv").write_text("time,series,target,x,y\n0.5,0,0,1,1\n")
+    with pytest.raises(SystemExit):
+        precheck(["experiment=tracking", "debug=tracking", "logger=none", "tracking.estimators=[IMM-JPDAF]",
+                  _node(paths | {"truth": tmp_path / "t.csv"}), f"hydra.run.dir={tmp_path / 'run'}"],
+                 CONFIG_DIR)
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("torchmm-run: error: tracking.dt=1.0: the time stamp 0.5 of "
+                          f"tracking.detections.truth.path={tmp_path / 't.csv'} is not on the scan grid "
+                          "0.0 + k * dt"), err
 
 
 def test_the_shipped_example_tracks_with_an_imm_mht_and_an_imm_jpdaf(tmp_path):
