@@ -151,3 +151,17 @@ def test_track_scores_are_the_log_likelihood_ratios_and_confirm_and_delete():
         belief=out.belief.best(), prior=None, extras=None)).belief
     assert bool((end.label[8, 0] == 0).any()) and not bool((end.label[9, 0] == 0).any())
     assert bool((end.label[10:, 0] == 1).any(-1).all())  # the next detection starts a new track
+
+
+def test_new_targets_left_without_a_slot_are_counted():
+    """Capacity 2, five far-apart detections, births far likelier than clutter: the best hypothesis makes
+    five new targets, two take the slots, three are counted in extras["unstarted"]."""
+    from torchmm.models import ConstantVelocity, PositionMeasurement
+
+    filt = KalmanFilter(ConstantVelocity(2, dt=1.0, q=0.1, dtype=torch.float64),
+                        PositionMeasurement(4, [0, 2], 1.0, dtype=torch.float64))
+    mht = ManagedMHT(filt, detection_probability=0.9, clutter_density=1e-9, hypotheses=3, capacity=2,
+                     birth_density=1e-3, initiate=position_initiator(4, [0, 2], 1.0, 1.0))
+    z = torch.tensor([[[100.0 * j, 0.0] for j in range(5)]], dtype=torch.float64)
+    out = mht.update(mht.initial_belief((1,), dtype=torch.float64), z)
+    assert out.extras["unstarted"].tolist() == [3]

@@ -267,3 +267,19 @@ def test_a_track_that_exists_for_sure_under_ipda_is_the_pda():
     torch.testing.assert_close(ours.belief.state.mean, theirs.belief.mean, rtol=1e-12, atol=1e-10)
     torch.testing.assert_close(ours.log_likelihood, theirs.log_likelihood, rtol=1e-12, atol=1e-10)
     assert bool((ours.belief.log_existence == 0).all())
+
+
+def test_detections_left_without_a_slot_are_counted():
+    """Capacity 2, an empty table, five far-apart detections: two start tracks (the first two in detection
+    order), three are counted in extras["unstarted"]; the next scan the two tracks explain their own and
+    the other three again find no slot."""
+    motion = ConstantVelocity(2, dt=1.0, q=0.1, dtype=torch.float64)
+    sensor = PositionMeasurement(4, [0, 2], 1.0, dtype=torch.float64)
+    jipda = JIPDA(KalmanFilter(motion, sensor), detection_probability=0.9, clutter_density=1e-6)
+    manager = ManagedTracks(jipda, capacity=2, initiate=position_initiator(4, [0, 2], 1.0, 1.0),
+                            birth_existence=0.5, delete=0.01)
+    z = torch.tensor([[[100.0 * j, 0.0] for j in range(5)]], dtype=torch.float64).expand(2, 1, 5, 2)
+    out = run_filter(manager, manager.initial_belief((1,), dtype=torch.float64), z)
+    assert out.extras["unstarted"].tolist() == [[3], [3]]
+    assert out.extras["born"][0].sum().item() == 2
+    torch.testing.assert_close(out.belief.mean[0, 0, :, [0, 2]], z[0, 0, :2])  # the first two detections

@@ -68,7 +68,7 @@ from experiments.arrays import join_runs, per_run
 from experiments.executors import Unit
 from experiments.harness import StudyContext
 from experiments.studies import plots, tracking_data
-from experiments.studies.tracking_estimators import estimators
+from experiments.studies.tracking_estimators import estimators, unstarted
 from experiments.studies.tracking_scenario import lifetimes, schedule, sensor_list, simulate
 from torchmm import GaussianBelief, run_filter
 from torchmm.association import SensorScans
@@ -161,6 +161,8 @@ def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
                    "present": present[:, 0] if truth is not None else torch.zeros(len(position), 0, dtype=torch.bool),
                    "detections": z[:, 0].reshape(len(z), -1, 2).cpu().double()}  # (every sensor's)
     common = {"picture": picture, "seconds": seconds,
+              # a managed tracker's new tracks it could not start for lack of slots, a run
+              "unstarted": per_run(unstarted(traj.extras).sum(0).double()) if est.managed else None,
               "tracks": per_run(visible.sum(-1).double()),
               "track_scans": int(position.shape[0] * position.shape[1] * position.shape[2])}
     if truth is None:  # nothing to score: the tracks, their number and the time
@@ -326,6 +328,15 @@ def run(ctx: StudyContext) -> None:
             ctx.results.timing[name] = seconds
     for i, name in enumerate(names):
         mean_and_band(join_runs([p["tracks"] for p in parts[i * n:(i + 1) * n]]), "tracks shown", name, "tracks")
+        if parts[i * n]["unstarted"] is not None:  # capacity: said wherever it bound
+            lost = float(join_runs([p["unstarted"] for p in parts[i * n:(i + 1) * n]], dim=0).mean())
+            ctx.results.metric(name, "unstarted_tracks", lost)
+            if lost > 0:
+                ctx.results.notes.append(
+                    f"{name}: {lost:.4g} unexplained detections a run (mean over the runs) could start no "
+                    f"track, every slot taken (tracking.management.capacity = {t.management.capacity}); the "
+                    "first ones in detection order took the free slots (metric unstarted_tracks). A larger "
+                    "capacity lifts it.")
     if names and scored:
         mean_and_band(join_runs([p["targets"] for p in parts[:n]]), "tracks shown", "truth", "tracks")
     ctx.results.save()

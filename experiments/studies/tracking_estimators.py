@@ -7,6 +7,7 @@ from __future__ import annotations
 from typing import Callable, NamedTuple
 
 import torch
+from torch import Tensor
 
 from experiments.studies.tracking_scenario import motion_bank, sensor_list
 from torchmm import IMM, KalmanFilter
@@ -133,8 +134,18 @@ def _managed_mht(t, imm, opts: dict, R: float) -> Estimator:
 
 
 def _best(out):
-    """A ManagedMHT's step as its best hypothesis's track table (what the study shows and scores)."""
-    return out._replace(belief=out.belief.best(), prior=None, extras=None)
+    """A ManagedMHT's step as its best hypothesis's track table (what the study shows and scores) and its
+    count of new targets without a slot (:func:`unstarted`)."""
+    return out._replace(belief=out.belief.best(), prior=None, extras={"unstarted": unstarted(out.extras)})
+
+
+def unstarted(extras: dict) -> Tensor:
+    """A managed tracker's unexplained detections (new targets) that found no free slot, ``(..., runs)``
+    (the steps' ``extras["unstarted"]``; with ``SequentialSensors`` summed over the sensors that reported)."""
+    if "unstarted" in extras:
+        return extras["unstarted"]
+    reports = extras["reports"]
+    return sum(e["unstarted"] * reports[..., s] for s, e in enumerate(extras["sensors"]))
 
 
 def _initiated(t, filt, opts: dict, dtype, R: float, method: str, k: int) -> Estimator:

@@ -131,7 +131,8 @@ class ManagedMHT(MHT):
         belief: :class:`TrackHypotheses` (:meth:`initial_belief`: every slot free); ``z``: ``(*B, D, m)``.
         ``log_likelihood`` ``(*B,)``; ``extras``: ``"association"`` ``(*B, K, 1 + D)`` the best
         hypothesis's slots' detections (one-hot, missed first; a new track's its first detection),
-        ``"failed"`` ``(*B,)``.
+        ``"failed"`` ``(*B,)``, ``"unstarted"`` ``(*B,)`` the best hypothesis's new targets left without a
+        free slot (new targets take the free slots in detection order; capacity binds where above 0).
 
     Examples:
         >>> from torchmm.filters import KalmanFilter
@@ -306,5 +307,6 @@ class ManagedMHT(MHT):
             torch.where(born, self.birth_log_weight, torch.where(kept, peak, 0.0)))
         best = torch.where(born, first, torch.where(kept, slot, 0))[..., 0, :]  # the best child's, (*B, K)
         association = (best.unsqueeze(-1) == torch.arange(1 + D, device=z.device)).to(dtype)
+        unstarted = (new.sum(-1) - born.sum(-1))[..., 0]  # (*B,): the best child's new targets without a slot
         return StepOutput(out, belief, torch.where(failed, torch.nan, log_like), None, None,
-                          {"association": association, "failed": failed})
+                          {"association": association, "failed": failed, "unstarted": unstarted})

@@ -9,7 +9,9 @@ Every scan, :class:`ManagedTracks`:
 3. **initiates** a track from every detection that the tracks leave unexplained (``1 - sum_i beta_ij``
    above ``unexplained``), in the run's free slots, in detection order: the state from ``initiate(z)``,
    existence ``birth_existence`` and a new label (the run's labels count up from 0 and are never
-   reused), as many as there are free slots.
+   reused), as many as there are free slots: the first ones in detection order. The step's
+   ``extras["unstarted"]`` ``(*B,)`` counts the unexplained detections left without a slot (capacity
+   binds where it is above 0).
 
 A track is **confirmed** while its existence is at least ``confirm`` (``belief.confirmed(...)``); its
 label stays the same for the life of the track. Everything is batched over runs and slots, without a
@@ -406,5 +408,6 @@ class ManagedTracks(Filter):
                   torch.where(born, firm_at_birth, firm & alive))
         extras = dict(out.extras)
         extras["born"] = born
+        extras["unstarted"] = candidate.sum(-1) - born.sum(-1)  # (*B,): no free slot left for them
         table = _table(state, log_e, label, next_label.expand(*runs, K), record)
         return StepOutput(table, belief, out.log_likelihood, out.innovation, out.innovation_cov, extras)
