@@ -36,7 +36,7 @@ from torch import Tensor
 from torchmm.beliefs import GaussianBelief, symmetrize
 from torchmm.contract import BeliefArg, Data, Of, Tensors, entry_point
 from torchmm.filters.kalman import KalmanFilter
-from torchmm.provenance import Provenance, fingerprints, tensor_versions
+from torchmm.provenance import Provenance, fingerprints, note_infinite, tensor_versions
 from torchmm.run import Trajectory, attach_provenance
 from torchmm.validation import broadcast_shape, check_filter_dtype, check_measurement, gaussian_batch
 
@@ -269,9 +269,7 @@ def filter(kf: KalmanFilter, belief0: GaussianBelief, z: Tensor) -> Trajectory:
     given = z
     z = _check(kf, belief0, z)
     (data,), (infinite,) = fingerprints(given)  # one host read: the record smooth checks against
-    if infinite:
-        log.warning("z: %d infinite entries are treated as missing data (non-finite = missing, see "
-                    "docs/robustness.md)", infinite)
+    note_infinite(infinite, "z")
     A, b, C, _, _ = _scan(_filter_op, _elements(kf, belief0, z))
     filtered = GaussianBelief(b, C)
     previous = GaussianBelief(torch.cat([belief0.mean.expand(b.shape[1:]).unsqueeze(0), b[:-1]]),

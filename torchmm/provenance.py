@@ -17,6 +17,7 @@ smoothed as given.
 from __future__ import annotations
 
 import dataclasses
+import logging
 from typing import Any
 
 import numpy as np
@@ -27,7 +28,9 @@ from torch import Tensor
 from torchmm.unchanged import Unchanged
 from torchmm.validation import host_array, module_tensors
 
-__all__ = ["Fingerprint", "Provenance", "fingerprints", "module_state", "tensor_versions"]
+__all__ = ["Fingerprint", "Provenance", "fingerprints", "module_state", "note_infinite", "tensor_versions"]
+
+log = logging.getLogger("torchmm")
 
 #: checksums of the same values summed again (another memory layout, another reduction order) agree
 #: to this, relative to the sum of the magnitudes
@@ -125,6 +128,14 @@ def _stats_numpy(t: Tensor) -> list | None:
 
 #: each tensor's statistics while it is unchanged (a run called again on the same data reads it once)
 _STATS = Unchanged()
+
+
+def note_infinite(count: int, name: str) -> None:
+    """Say (a warning of the ``torchmm`` logger) that ``count`` infinite entries of the data ``name`` are taken as
+    missing (non-finite = missing, docs/robustness.md), where there are any: one line per entry point."""
+    if count:
+        log.warning("%s: %d infinite entries are treated as missing data (non-finite = missing, see "
+                    "docs/robustness.md)", name, count)
 
 
 def fingerprints(*streams: Any) -> tuple[list, list]:

@@ -16,7 +16,7 @@ import torchmm.kernels as kernels
 from torchmm.beliefs import GaussianBelief
 from torchmm.contract import BeliefArg, Data, Finite, Flag, Gen, Of, Unchecked, entry_point
 from torchmm.filters.base import Filter, StepOutput, call_with
-from torchmm.provenance import Provenance, fingerprints, module_state, tensor_versions
+from torchmm.provenance import Provenance, fingerprints, module_state, note_infinite, tensor_versions
 from torchmm.runtime import entries, fast_paths_compiled, one_thread_when_small
 from torchmm.validation import check_filter_dtype, check_measurement, module_tensors
 
@@ -218,9 +218,7 @@ def run_filter(
             raise ValueError(f"controls: expected {steps} time steps, got {controls.shape[0]}")
     # one host read: the data's record
     (data_prints, control_prints), (infinite, _) = fingerprints(measurements, controls)
-    if infinite:
-        log.warning("measurements: %d infinite entries are treated as missing data (non-finite = missing, "
-                    "see docs/robustness.md)", infinite)
+    note_infinite(infinite, "measurements")
     motion_at = per_step_models(motions, steps, "motions")
     sensor_at = per_step_models(sensors, steps, "sensors")
     for given, keyword, name in ((motions, "motion", "motions"), (sensors, "sensor", "sensors")):

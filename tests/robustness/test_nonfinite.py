@@ -201,3 +201,20 @@ def test_vb_and_ukf_with_a_singular_sensor_do_not_raise():
     vb = StudentTVBFilter(ConstantVelocity(1), PositionMeasurement(2, [0], 1.0), iterations=2)
     out = vb.update(GaussianBelief(torch.zeros(2, 2), torch.zeros(2, 2, 2)), torch.tensor([[1.0], [INF]]))
     assert torch.isfinite(out.belief.mean).all() and out.log_likelihood[1] == 0.0
+
+
+def test_estimate_reports_infinite_measurements_once_and_skips_them(caplog):
+    """estimate's prepared (kernel) evaluations never pass run_filter's entry: its Objective says it once."""
+    from torchmm.learn import estimate
+
+    case = next(c for c in CASES if c.name == "kf")
+    z = case.data(30, 1)
+    z[3, 0, 0] = INF
+    f = case.make()
+    with caplog.at_level(logging.WARNING, logger="torchmm"):
+        fit = estimate(f, case.start(f, 1), z, {"measurement.R": "covariance"}, se=False, write=False)
+    assert caplog.text.count("1 infinite entries are treated as missing") == 1
+    missing = z.clone()
+    missing[3, 0, 0] = NAN
+    assert fit.nobs == estimate(f, case.start(f, 1), missing, {"measurement.R": "covariance"}, se=False,
+                                write=False).nobs

@@ -25,6 +25,7 @@ from torchmm.beliefs import Belief, ModeBelief
 from torchmm.contract import Choice, Data, Flag, Int, Of, Real, Tensors, entry_point
 from torchmm.filters.base import Filter
 from torchmm.learn.loss import REDUCTIONS, as_start_belief, negative_log_likelihood, reduce_total
+from torchmm.provenance import note_infinite
 from torchmm.run import Keep, run_filter
 from torchmm.validation import check_filter_dtype, check_measurement
 
@@ -120,6 +121,7 @@ class Objective:
                 if isinstance(like, Tensor):
                     batch = like.shape[:-1]
                     check_measurement(measurements[0], meas_dim, batch, like, "measurements")
+            note_infinite(int(torch.isinf(measurements).sum()), "measurements")  # (one host read, once)
             # one host read: data with no datum inform no parameter (the gradient is 0, not None, so
             # minimize would stop at once with success)
             if not bool(torch.isfinite(measurements[self.burn:]).any()):
