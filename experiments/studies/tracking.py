@@ -81,19 +81,23 @@ UNIT = "experiments.studies.tracking:unit"
 def _data(ctx: StudyContext, start: int, stop: int):
     """Runs ``start..stop-1``: truth positions ``(T, runs, N, 2)`` (None: no truth), detections
     ``(T, runs, D, 2)``, the tracks' start ``x0 (runs, K, 4)``, ``P0 (runs, K, 4, 4)`` and which targets
-    exist ``(T, runs, N)`` (None with no truth): simulated, or read from ``tracking.detections``."""
+    exist ``(T, runs, N)`` (None with no truth): simulated, or read from ``tracking.detections``. Every
+    scan's detections in the canonical order (:func:`experiments.studies.tracking_data.canonical_order`),
+    here where both pass: the file's row order and padding, and the simulation's draw order, change no
+    number, and a simulation exported and read back is the same scans."""
     t = ctx.cfg.tracking
     if t.detections is not None:
         got = ctx.memo(("recorded",), lambda: _read(t))
         cut = slice(start, stop)
-        return (None if got.truth is None else got.truth[:, cut], got.z[:, cut], got.x0[cut], got.P0[cut],
+        z = tracking_data.canonical_order(got.z[:, cut])
+        return (None if got.truth is None else got.truth[:, cut], z, got.x0[cut], got.P0[cut],
                 None if got.present is None else got.present[:, cut])
 
     def simulate_block():
         return ctx.simulate_runs(lambda n, gen: simulate(t, n, gen), stop, "tracking", axes=(1, 1, 0, 1), start=start)
     truth, z, x0, present = ctx.memo(("data", start, stop), simulate_block)
     P0 = torch.diag(torch.tensor(list(t.P0), dtype=x0.dtype)).expand(*x0.shape, 4)
-    return truth[..., [0, 2]], z, x0, P0, present
+    return truth[..., [0, 2]], tracking_data.canonical_order(z), x0, P0, present
 
 
 def _read(t) -> tracking_data.Recorded:

@@ -57,6 +57,48 @@ class Recorded(NamedTuple):
     series: list[str]
 
 
+#: splitmix64's constants (Steele, Lea & Flood, OOPSLA 2014), as signed 64-bit integers
+_GOLDEN, _MIX1, _MIX2 = (c - (1 << 64) if c >= 1 << 63 else c
+                         for c in (0x9E3779B97F4A7C15, 0xBF58476D1CE4E5B9, 0x94D049BB133111EB))
+
+
+def _shift(x: Tensor, bits: int) -> Tensor:
+    """``x >> bits`` as unsigned 64-bit integers (torch shifts int64 arithmetically)."""
+    return (x >> bits) & ((1 << (64 - bits)) - 1)
+
+
+def _mix(x: Tensor) -> Tensor:
+    """splitmix64's finaliser on int64 (products wrap modulo 2^64, the same on every CPU)."""
+    x = (x ^ _shift(x, 30)) * _MIX1
+    x = (x ^ _shift(x, 27)) * _MIX2
+    return x ^ _shift(x, 31)
+
+
+def canonical_order(z: Tensor) -> Tensor:
+    """The scans ``z (T, *B, D, m)`` with each scan's detections in one canonical order: the order of a
+    hash of each detection's values (their bits, ``-0.0`` as ``0.0``, mixed by splitmix64), absent
+    detections (a NaN component) last, all NaN. Any order of a scan's rows, and padding
+    anywhere, give the same scans (up to the width ``D``); identical detections tie harmlessly. A hash,
+    not a sort by value: no place in the plane comes first, so where the managed trackers' capacity binds
+    (they fill free slots in detection order) the detections left over are not those of one region.
+
+    The tracking study puts every scan its trackers see in this order (simulated or read from
+    ``tracking.detections``; with ``tracking.sensors`` each sensor's, ``(T, R, S, D, 2)``), docs/tracking.md
+    ("Detection order"); tests/experiments/test_tracking_detections.py."""
+    bits = {torch.float64: torch.int64, torch.float32: torch.int32}.get(z.dtype)
+    if bits is None:
+        raise TypeError(f"z: expected float32 or float64 detections, got {z.dtype}")
+    absent = torch.isnan(z).any(-1)  # (T, *B, D)
+    words = torch.where(z == 0, torch.zeros_like(z), z).view(bits).long()  # (T, *B, D, m): -0.0 as 0.0
+    key = torch.full(absent.shape, _GOLDEN, dtype=torch.int64)
+    for j in range(z.shape[-1]):  # (m components: a handful); the key's order of components matters
+        key = _mix(key ^ _mix(words[..., j])) + _GOLDEN
+    order = torch.argsort(key, dim=-1, stable=True)
+    order = order.gather(-1, torch.argsort(absent.gather(-1, order).to(torch.uint8), dim=-1, stable=True))
+    z = torch.where(absent.unsqueeze(-1), math.nan, z)  # (an absent detection: every component NaN)
+    return z.gather(-2, order.unsqueeze(-1).expand(z.shape))
+
+
 def _fail(key: str, node, err: Exception, columns: tuple[str, ...] = ()):
     """A reader's error as one ConfigError naming the config key the user gave, with its value: the file's
     (``key.path``) for a :class:`DataFileError`, else the argument's. ``columns``: the config lists the
