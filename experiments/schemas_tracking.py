@@ -225,9 +225,13 @@ def _check_waypoints(t: dict) -> None:
         key = f"tracking.waypoints[{i}]"
         if not isinstance(target, list) or len(target) < 2 or any(
                 not isinstance(point, list) or len(point) != 3 or
-                not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in point)
+                not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in point)
                 for point in target):
             raise ConfigError(key, target, "expected at least two waypoints [scan, x, y] (numbers)")
+        for j, point in enumerate(target):  # a NaN or infinite entry: named, not "two waypoints"
+            for name, v in zip(("scan", "x", "y"), point):
+                if not math.isfinite(v):
+                    raise ConfigError(f"{key}[{j}]", point, f"its {name} is {v!r}: expected a finite number")
         scans = [point[0] for point in target]
         if any(s != int(s) for s in scans) or any(b <= a for a, b in zip(scans, scans[1:])):
             raise ConfigError(key, target, "the waypoints' scans must be whole numbers, increasing")

@@ -390,6 +390,8 @@ def _score_tables(ctx: StudyContext, names: list[str], parts: list[dict], n: int
              "run; label_switches and first_track_delay as in the gospa table. Averages over the runs; a run "
              "where a ratio has nothing to count (no target for completeness, no covered target-scan for "
              "ambiguity, no shown track for spuriousness) is left out of its average, never counted as 0.")
+    if names and len(join_runs([p["distance"] for p in parts[:n]]).mean(0)) < 2:
+        ctx.results.dropped["gospa_se"] = "one run (series): no standard error over the runs"
     for i, name in enumerate(names):
         mine = parts[i * n:(i + 1) * n]
         dist = join_runs([p["distance"] for p in mine])  # (T, runs)

@@ -248,6 +248,19 @@ def test_two_sensors_files_give_the_simulation_numbers(exported, two_sensors, tm
         assert one[0] == two[0] and two[column] < 0.75 * one[column], (one, two)
 
 
+def test_the_documented_sensor_key_of_the_shipped_config(two_sensors):
+    """conf/experiment/tracking_detections.yaml has tracking.detections.sensor (null), so the documented
+    ``tracking.detections.sensor=sensor`` reads the exported two-sensor files (it was an unknown key)."""
+    from experiments.config import validate
+
+    _, paths = two_sensors
+    validate(_compose("tracking_detections", SENSORS, "tracking.detections.sensor=sensor",
+                      f"tracking.detections.path={paths['detections']}",
+                      f"tracking.detections.truth.path={paths['truth']}",
+                      f"tracking.detections.start.path={paths['start']}"))
+    assert _compose("tracking_detections").tracking.detections.sensor is None
+
+
 SENSOR_CASES = [
     ("camera_off_schedule", "tracking.sensors[1]=camera: detections.csv has a row of this sensor at time 0"),
     ("unknown", "tracking.detections.sensor=sensor: sensor 'lidar' of detections.csv is not in tracking.sensors"),

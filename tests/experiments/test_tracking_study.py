@@ -247,3 +247,30 @@ def test_the_mht_from_detections_takes_its_initiation_keys():
     assert isinstance(mht, ManagedMHT) and mht.m_of_n == (3, 5) and mht.max_misses == 4
     assert mht.confirm_score == 12.0 and mht.delete_drop == 6.0
     assert mht.birth_density == pytest.approx(0.2 / (2 * float(t.region)) ** 2)
+
+
+def test_one_run_names_gospa_se_as_dropped(tmp_path):
+    """With one run (series) the standard error has no value: null in results.json, named in dropped with
+    the reason (it was an unexplained empty cell); with more runs it is a number and not dropped."""
+    run_study(_compose("tracking", "mc_runs=1", "progress=false", "logger=none", "debug=tracking",
+                       "figures=false", "tracking.estimators=[IMM-PDAF]"), tmp_path / "one")
+    results = json.loads((tmp_path / "one" / "results.json").read_text())
+    gospa = results["tables"]["gospa"]
+    assert gospa["rows"][0][gospa["columns"].index("gospa_se")] is None
+    assert "no standard error" in results["dropped"]["gospa_se"]
+    assert "`gospa_se`: one run (series): no standard error" in (tmp_path / "one" / "results.md").read_text()
+    run_study(_compose("tracking", "mc_runs=2", "progress=false", "logger=none", "debug=tracking",
+                       "figures=false", "tracking.estimators=[IMM-PDAF]"), tmp_path / "two")
+    results = json.loads((tmp_path / "two" / "results.json").read_text())
+    assert "gospa_se" not in results["dropped"]
+    assert isinstance(results["tables"]["gospa"]["rows"][0][2], float)
+
+
+def test_a_non_finite_waypoint_value_is_named():
+    from experiments.config import validate
+
+    for given, name, value in (("[5,nan,1]", "x", "nan"), ("[inf,1,1]", "scan", "inf")):
+        want = rf"^tracking\.waypoints\[0\]\[1\]=.*its {name} is {value}: expected a finite number"
+        with pytest.raises(ValueError, match=want):
+            validate(_compose("tracking", f"tracking.waypoints=[[[0,0,0],{given}]]",
+                              "tracking.estimators=[JIPDA-TM]"))
