@@ -51,6 +51,10 @@ within ``c``; seconds per track-scan). Figures: GOSPA and the number of tracks s
 2-sigma ellipses). TensorBoard: the same curves. Sweeps: ``-m tracking.clutter_rate=2,10,30`` or
 ``tracking.detection_probability=0.7,0.9,0.99``.
 
+Every scan the trackers see, simulated or read, is first put in one canonical order of its detections
+(:func:`experiments.studies.tracking_data.canonical_order`; docs/tracking.md, "Detection order"), so that
+a file's row order and padding change no number.
+
 The targets, sensors and simulated scans: :mod:`experiments.studies.tracking_scenario`; detection files:
 :mod:`experiments.studies.tracking_data`; the trackers built: :mod:`experiments.studies.tracking_estimators`.
 """
