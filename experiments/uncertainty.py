@@ -51,17 +51,20 @@ def armse_se(sq_err: Tensor) -> float:
 
 def armse_influence(sq: Tensor) -> tuple[float, Tensor, Tensor]:
     """ARMSE of squared errors ``(T, N)`` with NaN where a step of a run is not scored (padding,
-    missing truth), its per-run influence values ``(N,)`` (the delta method: ARMSE ~ const + mean_r h_r,
-    so ``sd(h) / sqrt(N)`` is :func:`armse_se`'s standard error, and paired differences of estimators are
-    differences of their ``h``), and the per-step RMSE ``(T,)``."""
+    missing truth), its per-run influence values ``(N,)`` (the delta method: ARMSE ~ const + mean_r h_r
+    over the ``N'`` runs with a scored step, so ``sd(h) / sqrt(N')`` is :func:`armse_se`'s standard error,
+    and paired differences of estimators are differences of their ``h``; NaN for a run without any scored
+    step: it is no run of the ARMSE), and the per-step RMSE ``(T,)``."""
     ok = torch.isfinite(sq)
     n_t = ok.sum(1).clamp_min(1)
     m = torch.where(ok, sq, 0.0).sum(1) / n_t
     steps = (ok.sum(1) > 0)
     T = int(steps.sum())
     w = torch.where(steps, 1.0 / (2 * T * m.clamp_min(torch.finfo(m.dtype).tiny).sqrt()), 0.0)
-    N = sq.shape[1]
+    scored = ok.any(0)  # (N,) the runs with a scored step
+    N = int(scored.sum())
     h = (torch.where(ok, sq - m.unsqueeze(1), 0.0) * (w * N / n_t).unsqueeze(1)).sum(0)  # (N,)
+    h = torch.where(scored, h, torch.nan)
     return float(m[steps].sqrt().mean()), h, m.sqrt()
 
 

@@ -473,7 +473,7 @@ def run(ctx: StudyContext) -> None:
     reference = str((cfg.get("paired") or {}).get("reference") or names[0])
     if reference not in results:
         raise ValueError(f"paired.reference: {reference!r} is not an estimator ({', '.join(results)})")
-    rows = paired(reference, results, metrics, runs)
+    rows = paired(reference, results, metrics)
     ctx.results.table(
         "paired", ["metric", "estimator", "reference", "difference", "se", "ci_low", "ci_high", "separate_half_width"],
         note=f"Each estimator minus `{reference}` on the same runs (common random numbers): the difference, its "

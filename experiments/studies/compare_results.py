@@ -57,7 +57,7 @@ def reduce(parts: list[dict], groups: list[str], metrics: list[str]) -> tuple[di
             sq = _t(join_runs([p[f"sq_{g}"] for p in parts]))
             steps = sq.shape[0]
             value, h, per_step = armse_influence(sq)
-            summary[f"rmse_{g}"], summary[f"rmse_{g}_se"] = value, float(h.std() / math.sqrt(runs)) if runs > 1 else math.nan
+            summary[f"rmse_{g}"], summary[f"rmse_{g}_se"] = value, _mean_se(h)[1]  # (over the runs scored)
             influence[f"rmse_{g}"] = h
             runs_rmse[f"rmse_{g}"] = _per_run_mean(sq.sqrt())  # the study's ARMSE of that run alone
             curves[f"rmse_{g}"] = per_step
@@ -70,8 +70,8 @@ def reduce(parts: list[dict], groups: list[str], metrics: list[str]) -> tuple[di
         n = int(parts[0]["state_dim"])  # the components with truth
         curve = torch.nanmean(x, 1)
         curves["nees"] = curve
-        if n and math.isfinite(summary["nees"]):
-            lo, hi = chi2_interval(runs * n)
+        if n and math.isfinite(summary["nees"]):  # over the runs with a NEES (not those without truth)
+            lo, hi = chi2_interval(int(torch.isfinite(per).sum()) * n)
             summary["nees_low"], summary["nees_high"] = lo * n, hi * n
             # each step's interval for the runs scored there (padding and missing truth: fewer)
             count = torch.isfinite(x).sum(1)
@@ -91,7 +91,7 @@ def reduce(parts: list[dict], groups: list[str], metrics: list[str]) -> tuple[di
         mean_dof = float(dof[dof > 0].mean()) if bool((dof > 0).any()) else 0.0
         if mean_dof:  # the run-averaged NIS of a step with all components present: chi2(N m) / N
             m = int(round(mean_dof))
-            lo, hi = chi2_interval(runs * m)
+            lo, hi = chi2_interval(int(torch.isfinite(per).sum()) * m)  # (the runs with a NIS)
             summary["nis_dof"], summary["nis_low"], summary["nis_high"] = m, lo * m, hi * m
         white = _t(join_runs([p["white"] for p in parts]))  # (T, N, m)
         if "whiteness" in metrics:
@@ -130,14 +130,15 @@ def reduce(parts: list[dict], groups: list[str], metrics: list[str]) -> tuple[di
     return summary, {"influence": influence, "curves": curves, "per_run": per_run_values}
 
 
-def paired(reference: str, estimators: dict[str, dict], metrics: list[str], runs: int) -> list[list]:
+def paired(reference: str, estimators: dict[str, dict], metrics: list[str]) -> list[list]:
     """Rows ``[metric, estimator, reference, difference, se, low, high, separate_half_width]``: each
     estimator minus ``reference`` on the same runs. RMSEs by the delta method on the per-run influence
     values of both (ARMSE_A - ARMSE_B ~ mean_r (h_A - h_B)); per-run means (NEES, NIS, log-likelihood,
-    mode accuracy) by their per-run differences. 95 % Student-t intervals over the runs."""
+    mode accuracy) by their per-run differences. 95 % Student-t intervals over the ``n`` runs that have a
+    value of the metric for both (a series without truth or without measurements is no run of it):
+    ``n - 1`` degrees of freedom."""
     rows = []
     ref = estimators[reference]
-    q = _t_quantile(runs - 1)
     for name, est in estimators.items():
         if name == reference:
             continue
@@ -155,6 +156,7 @@ def paired(reference: str, estimators: dict[str, dict], metrics: list[str], runs
             else:
                 diff = float(d[ok].mean())
             se = float(d[ok].std() / math.sqrt(n))
+            q = _t_quantile(n - 1)
             separate = q * math.hypot(float(h[torch.isfinite(h)].std()), float(h_ref[torch.isfinite(h_ref)].std())) \
                 / math.sqrt(n)
             rows.append([key, name, reference, diff, se, diff - q * se, diff + q * se, separate])

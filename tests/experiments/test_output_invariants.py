@@ -39,9 +39,10 @@ def series():
 
 
 def _write(path: Path, series: dict, names: list[str], *, velocity: str = "given", rename: dict | None = None,
-           empty: tuple = ()) -> Path:
+           empty: tuple = (), no_truth: tuple = ()) -> Path:
     """A CSV ``series, t, y, pos, vel`` of the named series in this order (``velocity="empty"``: the
-    velocity column's cells empty; ``empty``: series whose measurement cells are all empty)."""
+    velocity column's cells empty; ``empty``: series whose measurement cells are all empty; ``no_truth``:
+    series whose truth cells are all empty)."""
     with path.open("w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["series", "t", "y", "pos", "vel"])
@@ -49,8 +50,9 @@ def _write(path: Path, series: dict, names: list[str], *, velocity: str = "given
             z, x = series[name]
             for k in range(len(z)):
                 y = "" if name in empty or math.isnan(z[k, 0]) else repr(float(z[k, 0]))
-                vel = "" if velocity == "empty" else repr(float(x[k, 1]))
-                w.writerow([(rename or {}).get(name, name), k + 1, y, repr(float(x[k, 0])), vel])
+                vel = "" if velocity == "empty" or name in no_truth else repr(float(x[k, 1]))
+                pos = "" if name in no_truth else repr(float(x[k, 0]))
+                w.writerow([(rename or {}).get(name, name), k + 1, y, pos, vel])
     return path
 
 
@@ -173,6 +175,30 @@ def test_a_series_without_any_measurement_is_not_scored_as_measured(series, tmp_
     alone, _ = _run(tmp_path, _write(tmp_path / "s0.csv", series, ["s0"]), "s0alone")
     for key in ("nis", "loglik"):
         assert with_empty["metrics"]["IMM"][key] == pytest.approx(alone["metrics"]["IMM"][key], rel=1e-12)
+
+
+@pytest.mark.parametrize("kind, keys", [
+    ("no_truth", ("rmse_position", "rmse_velocity", "nees")),
+    ("empty", ("nis", "loglik")),
+])
+def test_a_series_with_nothing_to_score_is_no_run_of_its_metrics(series, tmp_path, kind, keys):
+    """A third series without truth (or without measurements) beside s0 and s1: every number of the metrics it
+    cannot have (the mean, its standard error, the chi-square bounds, the paired rows with their t intervals)
+    is the file of s0 and s1's (before: it counted as a run with 0 spread, N = 3: KF's rmse_position_se
+    shrank, a paired t quantile of 2 dof for 1, nees_low/high of 3 runs)."""
+    two, _ = _run(tmp_path, _write(tmp_path / f"two_{kind}.csv", series, ["s0", "s1"]), f"two_{kind}")
+    three, _ = _run(tmp_path, _write(tmp_path / f"three_{kind}.csv", series, ["s0", "s1", "s2"], **{kind: ("s2",)}),
+                    f"three_{kind}")
+    for label, values in two["metrics"].items():
+        for key, value in values.items():
+            if key.split("_se")[0].split("_low")[0].split("_high")[0].split("_dof")[0] in keys:
+                _same(three["metrics"][label].get(key), value, label in SMOOTHED)
+    rows = {(r[0], r[1]): r for r in two["tables"]["paired"]["rows"] if r[0] in keys}
+    got = {(r[0], r[1]): r for r in three["tables"]["paired"]["rows"] if r[0] in keys}
+    assert rows and set(rows) == set(got)
+    for k, row in rows.items():
+        for a, b in zip(row[3:], got[k][3:]):
+            _same(b, a, False)
 
 
 def test_a_file_without_any_measurement_is_a_config_error(series, tmp_path):
