@@ -72,9 +72,18 @@ def rmse_se_per_step(sq_err: Tensor) -> Tensor:
     """Delta-method standard error of each step's RMSE from squared errors ``(T, N)`` (step, run): ``(T,)``.
 
     ``sd_r(e_t) / (2 sqrt(m_t) sqrt(N))`` with ``m_t`` the step's mean squared error (module docstring);
-    NaN for one run, 0 where every run's error is 0. A 95 % band is ``rmse_t +- 1.96 se_t``.
+    NaN for one run, 0 where every run's error is 0. A 95 % band is ``rmse_t +- 1.96 se_t``. A NaN entry
+    (a padded step, missing truth) is no run of its step: ``N``, ``m_t`` and ``sd`` are over the step's
+    ``N_t`` finite entries (NaN where ``N_t < 2``).
     """
     T, N = sq_err.shape
+    ok = torch.isfinite(sq_err)
+    if not bool(ok.all()):
+        n_t = ok.sum(1)
+        m = torch.where(ok, sq_err, 0.0).sum(1) / n_t.clamp_min(1)
+        var = torch.where(ok, sq_err - m.unsqueeze(1), 0.0).square().sum(1) / (n_t - 1).clamp_min(1)
+        se = var.sqrt() / (2 * m.clamp_min(torch.finfo(m.dtype).tiny).sqrt() * n_t.clamp_min(1).sqrt())
+        return torch.where(n_t > 1, se, torch.nan)
     if N < 2:
         return torch.full((T,), float("nan"), dtype=sq_err.dtype, device=sq_err.device)
     m = sq_err.mean(1)

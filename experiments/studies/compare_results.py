@@ -61,7 +61,7 @@ def reduce(parts: list[dict], groups: list[str], metrics: list[str]) -> tuple[di
             influence[f"rmse_{g}"] = h
             runs_rmse[f"rmse_{g}"] = _per_run_mean(sq.sqrt())  # the study's ARMSE of that run alone
             curves[f"rmse_{g}"] = per_step
-            curves[f"rmse_{g}_se"] = rmse_se_per_step(torch.nan_to_num(sq))
+            curves[f"rmse_{g}_se"] = rmse_se_per_step(sq)  # over each step's runs scored (NaN for one)
     if "nees" in metrics and "nees" in parts[0]:
         x = _t(join_runs([p["nees"] for p in parts]))
         per = _per_run_mean(x)
@@ -79,6 +79,7 @@ def reduce(parts: list[dict], groups: list[str], metrics: list[str]) -> tuple[di
             low = torch.tensor([bounds[c][0] * n if c else math.nan for c in count.tolist()], dtype=torch.float64)
             high = torch.tensor([bounds[c][1] * n if c else math.nan for c in count.tolist()], dtype=torch.float64)
             scored = count > 0
+            curves["nees_low"], curves["nees_high"] = low, high  # each step's band (drawn, and in curves.npz)
             summary["nees_steps_inside"] = float(((curve >= low) & (curve <= high))[scored].double().mean())
     if "nis" in metrics and "nis" in parts[0]:
         x = _t(join_runs([p["nis"] for p in parts]))
@@ -258,9 +259,9 @@ def curves_and_figures(ctx, scenario, results, examples, groups, first: tuple) -
             if key in c:
                 ctx.logger.series(f"{key}/{label}", c[key])
         s = r["summary"]
-        if "nees_low" in s:
-            ctx.logger.series(f"nees_low/{label}", [s["nees_low"]] * len(c["nees"]))
-            ctx.logger.series(f"nees_high/{label}", [s["nees_high"]] * len(c["nees"]))
+        if "nees_low" in c:  # each step's band for the runs scored there
+            ctx.logger.series(f"nees_low/{label}", c["nees_low"])
+            ctx.logger.series(f"nees_high/{label}", c["nees_high"])
         if "nis_low" in s:
             ctx.logger.series(f"nis_low/{label}", [s["nis_low"]] * len(c["nis"]))
             ctx.logger.series(f"nis_high/{label}", [s["nis_high"]] * len(c["nis"]))
@@ -274,9 +275,10 @@ def curves_and_figures(ctx, scenario, results, examples, groups, first: tuple) -
                                                                       f"{scenario.name}", bands=bands))
     nees = {label: r["curves"]["nees"] for label, r in results.items() if "nees" in r["curves"]}
     if nees:
-        ctx.save_figure("nees", plots.nees_over_time(nees, {label: (results[label]["summary"]["nees_low"],
-                                                                      results[label]["summary"]["nees_high"])
-                                                             for label in nees}, f"{scenario.name}, NEES"))
+        ctx.save_figure("nees", plots.nees_over_time(nees, {label: (results[label]["curves"]["nees_low"],
+                                                                      results[label]["curves"]["nees_high"])
+                                                             for label in nees if "nees_low" in results[label]["curves"]},
+                                                     f"{scenario.name}, NEES"))
     truth, modes, z, _ = first  # the first unit's data: run 0
     probs = {label: _t(ex["example_probs"]) for label, ex in examples.items() if ex.get("example_probs") is not None}
     if probs:

@@ -86,11 +86,17 @@ def mode_probabilities(probs, true_modes: torch.Tensor, labels: Sequence[str], t
 
 def nees_over_time(nees: Mapping[str, torch.Tensor], bounds: Mapping[str, tuple[float, float]], title: str = ""):
     """The run-averaged NEES of each estimator over time, ``nees[estimator] = (T,)``, with the 95 %
-    chi-square band of a consistent filter (``bounds[estimator] = (low, high)``,
-    experiments/uncertainty.py :func:`nees_consistency`) shaded: one grey band when every estimator
-    has the same bounds (the same runs and state size), else one band per estimator in its colour."""
+    chi-square band of a consistent filter (``bounds[estimator] = (low, high)``, each a number or a ``(T,)``
+    tensor of each step's bound, NaN where no run is scored; experiments/uncertainty.py
+    :func:`nees_consistency`) shaded: one grey band when every estimator has the same bounds (the same runs
+    and state size), else one band per estimator in its colour."""
     fig, ax = plt.subplots(figsize=(6.5, 3.8))
-    distinct = {tuple(b) for b in bounds.values()}
+
+    def key(b):
+        b = torch.as_tensor(b, dtype=torch.float64).detach().cpu()
+        return float(b) if b.ndim == 0 else tuple(b.tolist())
+    bounds = {name: (key(lo), key(hi)) for name, (lo, hi) in bounds.items()}
+    distinct = {(str(lo), str(hi)) for lo, hi in bounds.values()}  # (str: NaN equals NaN)
     steps = None
     for name, values in nees.items():
         values = torch.as_tensor(values).detach().cpu().double()
@@ -100,7 +106,7 @@ def nees_over_time(nees: Mapping[str, torch.Tensor], bounds: Mapping[str, tuple[
             lo, hi = bounds[name]
             ax.fill_between(steps, lo, hi, color=line.get_color(), alpha=0.12, lw=0)
     if steps is not None and len(distinct) == 1:
-        lo, hi = next(iter(distinct))
+        lo, hi = next(iter(bounds.values()))
         ax.fill_between(steps, lo, hi, color="0.5", alpha=0.2, lw=0, label="95 % chi-square band")
     ax.set_yscale("log")
     ax.set_xlabel("time step k")

@@ -125,6 +125,18 @@ def test_nees_figure_and_curves_shade_the_chi_square_band():
     plt.close(figures["nees"])
 
 
+def test_nees_figure_draws_each_steps_band():
+    """Per-step bounds (fewer runs at the padded steps: a wider band; none scored: NaN, no band there)."""
+    nees = torch.tensor([1.0, 2.0, 3.0, 2.5, 2.0], dtype=torch.float64)
+    lo = torch.tensor([0.4, 0.4, 0.2, 0.05, torch.nan], dtype=torch.float64)
+    hi = torch.tensor([4.8, 4.8, 5.6, 7.4, torch.nan], dtype=torch.float64)
+    fig = plots.nees_over_time({"IMM": nees, "KF": nees * 1.1}, {"IMM": (lo, hi), "KF": (lo.clone(), hi.clone())})
+    (band,) = _polys(fig.axes[0])  # the same per-step bounds: one band
+    ys = np.concatenate([p.vertices[:, 1] for p in band.get_paths()])
+    assert ys.min() == pytest.approx(0.05) and ys.max() == pytest.approx(7.4) and np.isfinite(ys).all()
+    plt.close(fig)
+
+
 # -- the studies' figures ------------------------------------------------------------------------
 def _probe(figure) -> dict:
     axes = figure.axes

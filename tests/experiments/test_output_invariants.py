@@ -201,6 +201,21 @@ def test_a_series_with_nothing_to_score_is_no_run_of_its_metrics(series, tmp_pat
             _same(b, a, False)
 
 
+def test_padding_changes_no_per_step_band(series, tmp_path):
+    """curves.npz: at the steps after s1's end (14 steps) the file s0, s1, s2 has the per-step RMSE standard
+    errors and NEES bands of the file s0, s2 (before: padded steps counted as zero error in the SE, and the
+    NEES band was the one of all 3 runs at every step); s1 alone: each step's SE is NaN (one run)."""
+    _run(tmp_path, _write(tmp_path / "p3.csv", series, ["s0", "s1", "s2"]), "p3")
+    _run(tmp_path, _write(tmp_path / "p2.csv", series, ["s0", "s2"]), "p2")
+    _run(tmp_path, _write(tmp_path / "p1.csv", series, ["s1"]), "p1")
+    three, two, one = (np.load(tmp_path / tag / "curves.npz") for tag in ("p3", "p2", "p1"))
+    n = LENGTHS["s1"]
+    for key in ("rmse_position_se/KF", "rmse_velocity_se/IMM", "nees_low/KF", "nees_high/IMM", "nees/KF"):
+        np.testing.assert_allclose(three[key][n:], two[key][n:], rtol=1e-12)
+        assert not np.allclose(three[key][:n], two[key][:n], rtol=1e-6)  # (3 runs there: another band)
+    assert np.isnan(one["rmse_position_se/KF"]).all()
+
+
 def test_a_file_without_any_measurement_is_a_config_error(series, tmp_path):
     file = _write(tmp_path / "none.csv", series, ["s0", "s1"], empty=("s0", "s1"))
     with pytest.raises(ConfigError, match=r"scenario.data.measurements=\['y'\]: .*every measurement cell is missing"):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 from scipy import stats
@@ -71,6 +72,21 @@ def test_rmse_se_per_step_edge_cases():
     se = rmse_se_per_step(sq)
     assert se[[0, 1, 2, 4]].eq(0).all() and se[3] > 0  # deterministic steps: no spread
     assert rmse_se_per_step(sq[:, :1]).isnan().all()  # one run: no spread to estimate
+
+
+def test_rmse_se_per_step_skips_nan_entries():
+    """A NaN entry (a padded step) is no run of its step: each step's SE is that of its finite entries
+    alone (a float64 NumPy reference), NaN with one left (before: NaN taken as a zero error by the caller)."""
+    sq = torch.rand(6, 5, generator=torch.Generator().manual_seed(1), dtype=torch.float64) * 3
+    sq[2:, 4] = torch.nan
+    sq[4:, 1:] = torch.nan
+    se = rmse_se_per_step(sq).numpy()
+    for t in range(6):
+        x = sq[t].numpy()
+        x = x[np.isfinite(x)]
+        want = x.std(ddof=1) / (2 * np.sqrt(x.mean()) * np.sqrt(len(x))) if len(x) > 1 else np.nan
+        np.testing.assert_allclose(se[t], want, rtol=1e-12)
+    assert np.isnan(se[4:]).all() and np.isfinite(se[:4]).all()
 
 
 @pytest.mark.parametrize("dof", [10, 40, 400, 4000])
