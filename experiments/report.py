@@ -8,7 +8,10 @@ without the keys that do not change numbers, :data:`experiments.folders.NON_RESU
   independent replications of one experiment;
 * every other key that differs between runs is a **factor**: one row (block of rows) per value.
 
-Within a group, the rows of each results table line up run by run. A column is a **label** (it
+Within a group, the rows of each results table are matched run by run by their text labels (``estimator``,
+``metric``, ...: a run whose config lists the estimators in another order is matched by name, never by
+position; :func:`aligned_rows`); a table whose runs of one config hold different labels is left out with a
+warning naming them. A column is a **label** (it
 names the row: ``estimator``, ``alpha``, ...) if it is not numeric or if it holds the same value in
 every run of each group (``nees_low`` of a given ``mc_runs``; with one run per group: in every
 run); every other numeric column is a **measurement**, reported as the mean over
@@ -56,7 +59,7 @@ from experiments.folders import NON_RESULT_KEYS
 from experiments.formatting import is_number
 from experiments.report_formats import figure, to_csv, to_latex, to_markdown, write_report  # (the formats)
 
-__all__ = ["Run", "collect_runs", "combine", "figure", "main", "mean_interval", "paired_differences", "to_csv",
+__all__ = ["Run", "aligned_rows", "collect_runs", "combine", "figure", "main", "mean_interval", "paired_differences", "to_csv",
            "to_latex", "to_markdown", "write_report"]
 
 #: keys never treated as factors (they do not change the numbers, or are bookkeeping)
@@ -236,6 +239,34 @@ def _label_columns(tables_by_group: list[list[dict]]) -> list[bool]:
     return labels
 
 
+def aligned_rows(tables: list[dict], key_columns: list[int]) -> list[dict] | str:
+    """The tables of one group's runs with each run's rows put in the first run's order by their labels
+    (the cells of ``key_columns``: e.g. ``estimator``; two rows with the same labels keep their order
+    among themselves), so that a row means the same estimator in every run whatever order a run's config
+    listed them in; a string saying which labels differ if the runs do not hold the same rows."""
+    def keys(table):
+        seen: dict[str, int] = defaultdict(int)
+        out = []
+        for row in table["rows"]:
+            k = json.dumps([row[i] for i in key_columns], default=str)
+            out.append((k, seen[k]))  # (labels, occurrence)
+            seen[k] += 1
+        return out
+
+    first = keys(tables[0])
+    out = [tables[0]]
+    for table in tables[1:]:
+        mine = keys(table)
+        if set(mine) != set(first):
+            def name(ks):
+                return ", ".join(sorted({k for k, _ in ks})) or "none"
+            return (f"labels {name(set(mine) - set(first))} in one run, {name(set(first) - set(mine))} in another"
+                    if set(mine) ^ set(first) else "the same labels, another count")
+        where = {k: r for r, k in enumerate(mine)}
+        out.append({**table, "rows": [table["rows"][where[k]] for k in first]})
+    return out
+
+
 def combine(runs: list[Run], replicate: str = "seed", level: float = 0.95, reference: str | None = None) -> dict[str, Any]:
     """Combine ``runs`` into ``{experiment: {"factors", "groups", "tables": {name: {...}}}}``.
 
@@ -291,14 +322,25 @@ def combine(runs: list[Run], replicate: str = "seed", level: float = 0.95, refer
                 print(f"torchmm-report: warning: {experiment}/{name}: runs differ in the table's columns or "
                       "rows; it is left out", file=sys.stderr)
                 continue
-            is_label = _label_columns([[run.results["tables"][name] for run in g["runs"]] for g in group_list])
+            # each run's rows matched to its group's first run's by their text labels (estimator, ...), never
+            # by position: a config listing the same estimators in another order is the same experiment
+            text = [i for i in range(len(columns))
+                    if not any(is_number(row[i]) for t in tables for row in t["rows"])]
+            by_group = [aligned_rows([run.results["tables"][name] for run in g["runs"]], text) for g in group_list]
+            bad = next((gi for gi, a in enumerate(by_group) if isinstance(a, str)), None)
+            if bad is not None:
+                paths = ", ".join(str(r.path) for r in group_list[bad]["runs"])
+                print(f"torchmm-report: warning: {experiment}/{name}: the runs of one config hold different rows "
+                      f"({by_group[bad]}: {', '.join(columns[i] for i in text) or 'no label column'}); the table is "
+                      f"left out ({paths})", file=sys.stderr)
+                continue
+            is_label = _label_columns(by_group)
             label_cols = [c for c, lab in zip(columns, is_label) if lab]
             errors = [c for c, lab in zip(columns, is_label) if not lab and is_standard_error(c)]
             bounds = [c for c, lab in zip(columns, is_label) if not lab and is_bound(c, columns)]
             measure_cols = [c for c, lab in zip(columns, is_label) if not lab and c not in errors and c not in bounds]
             rows = []
-            for gi, group in enumerate(group_list):
-                group_tables = [run.results["tables"][name] for run in group["runs"]]
+            for gi, group_tables in enumerate(by_group):
                 for r in range(len(tables[0]["rows"])):
                     labels = {c: group_tables[0]["rows"][r][i] for i, c in enumerate(columns) if is_label[i]}
                     values = {c: mean_interval([t["rows"][r][i] for t in group_tables], level)
@@ -306,15 +348,12 @@ def combine(runs: list[Run], replicate: str = "seed", level: float = 0.95, refer
                     values.update({c: pooled_se([t["rows"][r][columns.index(c)] for t in group_tables])
                                    for c in errors})
                     rows.append({"group": gi, "labels": labels, "values": values})
-            identifying = identifying_labels([t for g in group_list for t in
-                                              (run.results["tables"][name] for run in g["runs"])], columns, label_cols)
+            identifying = identifying_labels([t for g in by_group for t in g], columns, label_cols)
             tables_out[name] = {"labels": label_cols, "identifying": identifying, "measurements": measure_cols,
                                 "standard_errors": errors, "not_combined": bounds, "rows": rows}
             # a table of the study's own paired differences (a `reference` column) is not paired again
             if "estimator" in label_cols and "reference" not in columns and measure_cols:
-                paired = paired_differences(
-                    [[run.results["tables"][name] for run in g["runs"]] for g in group_list], columns,
-                    measure_cols, label_cols, reference, level)
+                paired = paired_differences(by_group, columns, measure_cols, label_cols, reference, level)
                 if paired is not None:
                     paired_out[name] = paired
         report[experiment] = {
@@ -335,7 +374,7 @@ def paired_differences(tables_by_group: list[list[dict]], columns: list[str], me
     "rows": [{"group", "labels", "values": {column: mean_interval}}]}`` or None (no reference row).
 
     ``tables_by_group``: per group, the table of each of its runs (rows in the same order in every
-    run). A row of estimator ``B`` is paired with the row of ``reference`` holding the same other
+    run: :func:`aligned_rows`). A row of estimator ``B`` is paired with the row of ``reference`` holding the same other
     identifying labels (:func:`identifying_labels`: e.g. ``alpha``; not a measurement's constant
     companion such as ``nees_low``, which may be empty for one estimator) in the same run;
     ``d_r = B_r - reference_r`` for each run ``r`` of the group, then :func:`mean_interval` over ``d``.

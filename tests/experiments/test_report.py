@@ -93,6 +93,38 @@ def test_report_errors_are_one_line(tmp_path, capsys):
     assert len(err) == 2 and "--level" in err[-1]
 
 
+def test_rows_are_matched_by_their_estimator_not_their_position(tmp_path, capsys):
+    """Two seeds of one config whose second lists the estimators in another order (the flattened config is
+    the same): each report row averages one estimator's values, and the paired differences subtract the
+    reference's (before: row "IMM" averaged IMM at seed 0 with KF at seed 1). Runs of one config with
+    other estimators: the table is left out with a warning naming them."""
+    values = {0: {"IMM": 4.0, "KF": 6.0, "GPB2": 5.0}, 1: {"IMM": 4.5, "KF": 6.3, "GPB2": 5.6}}
+    orders = {0: ["IMM", "KF", "GPB2"], 1: ["GPB2", "KF", "IMM"]}
+    for seed in (0, 1):
+        rows = [[est, values[seed][est], 2.0 * values[seed][est]] for est in orders[seed]]
+        _write_run(tmp_path / "runs" / f"s{seed}", {"seed": seed, "mc_runs": 10},
+                   {"summary": {"columns": ["estimator", "rmse", "nees"], "rows": rows}})
+    report = rep.combine(rep.collect_runs([tmp_path / "runs"]), reference="IMM")["toy"]
+    got = {row["labels"]["estimator"]: row["values"] for row in report["tables"]["summary"]["rows"]}
+    for est in ("IMM", "KF", "GPB2"):
+        want = [values[s][est] for s in (0, 1)]
+        assert got[est]["rmse"]["mean"] == pytest.approx(np.mean(want), rel=1e-14)
+        assert got[est]["nees"]["sd"] == pytest.approx(2 * np.std(want, ddof=1), rel=1e-12)
+    paired = {row["labels"]["estimator"]: row["values"] for row in report["paired"]["summary"]["rows"]}
+    for est in ("KF", "GPB2"):
+        d = [values[s][est] - values[s]["IMM"] for s in (0, 1)]
+        assert paired[est]["rmse"]["mean"] == pytest.approx(np.mean(d), rel=1e-12)
+        assert paired[est]["rmse"]["sd"] == pytest.approx(np.std(d, ddof=1), rel=1e-10)
+    capsys.readouterr()
+    _write_run(tmp_path / "runs" / "s2", {"seed": 2, "mc_runs": 10},
+               {"summary": {"columns": ["estimator", "rmse", "nees"], "rows": [["IMM", 4.1, 8.2], ["KF-q", 6.1, 1.0],
+                                                                            ["GPB2", 5.2, 10.4]]}})
+    report = rep.combine(rep.collect_runs([tmp_path / "runs"]))["toy"]
+    assert "summary" not in report["tables"]
+    err = capsys.readouterr().err
+    assert "toy/summary: the runs of one config hold different rows" in err and "KF-q" in err
+
+
 def test_single_runs_and_constant_columns():
     assert rep.mean_interval([3.0])["ci_low"] is None
     constant = rep.mean_interval([2.5, 2.5, 2.5])
