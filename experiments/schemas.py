@@ -178,8 +178,13 @@ class Compare:
     def check(data: dict) -> None:
         names = list(data.get("estimators") or {})
         ref = (data.get("paired") or {}).get("reference")
-        if ref is not None and ref not in names and not ref.endswith(" smoothed"):
-            raise ConfigError("paired.reference", ref, f"must be one of the estimators ({', '.join(names)})")
+        # "<name> smoothed" only for an estimator that smooths (``smooth:`` set: compare scores it under that label)
+        smoothed = [f"{n} smoothed" for n in names if isinstance(data["estimators"][n], dict)
+                    and data["estimators"][n].get("smooth") not in (None, False, "")]
+        if ref is not None and ref not in names and ref not in smoothed:
+            raise ConfigError("paired.reference", ref, f"must be one of the estimators ({', '.join(names + smoothed)})"
+                              + (" (an estimator's smoothed trajectory needs its smooth: true)"
+                                 if ref.endswith(" smoothed") else ""))
         # (a malformed data file, models, estimators and learn entries: built by the study's check_build,
         # experiments.studies.compare, before anything runs)
         learn = data.get("learn")

@@ -205,6 +205,12 @@ def test_bad_estimator_and_reference_are_config_errors():
         validate(_compose("metrics=[rmse,bogus]"))
     with pytest.raises(ConfigError, match="estimators.IMM.smooth"):
         validate(_compose("estimators.IMM.smooth=rts"))
+    # "<name> smoothed" names the smoothed trajectory of an estimator that smooths, no other (before: any name
+    # ending in " smoothed" passed, and the study failed after filtering with a traceback and a folder left)
+    validate(_compose("paired.reference=IMM smoothed"))  # (compare.yaml: IMM smooths)
+    for ref in ("KF-CV smoothed", "nope smoothed"):
+        with pytest.raises(ConfigError, match=f"^paired.reference={ref}: .*needs its smooth: true"):
+            validate(_compose(f"paired.reference={ref}"))
 
 
 def _irregular(tmp_path: Path, seed: int, T: int) -> tuple[list[float], torch.Tensor, Any]:
