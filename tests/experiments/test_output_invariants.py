@@ -214,6 +214,11 @@ def test_padding_changes_no_per_step_band(series, tmp_path):
         np.testing.assert_allclose(three[key][n:], two[key][n:], rtol=1e-12)
         assert not np.allclose(three[key][:n], two[key][:n], rtol=1e-6)  # (3 runs there: another band)
     assert np.isnan(one["rmse_position_se/KF"]).all()
+    # every step's band is chi2(N_t n) / N_t of its own N_t runs (scipy): 3 then 2, n = 2
+    from scipy import stats
+    count = np.where(np.arange(len(three["nees_low/KF"])) < n, 3, 2)
+    np.testing.assert_allclose(three["nees_low/KF"], stats.chi2.ppf(0.025, 2 * count) / count, rtol=1e-10)
+    np.testing.assert_allclose(three["nees_high/KF"], stats.chi2.ppf(0.975, 2 * count) / count, rtol=1e-10)
 
 
 def test_a_file_without_any_measurement_is_a_config_error(series, tmp_path):

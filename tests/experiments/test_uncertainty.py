@@ -89,11 +89,21 @@ def test_rmse_se_per_step_skips_nan_entries():
     assert np.isnan(se[4:]).all() and np.isfinite(se[:4]).all()
 
 
-@pytest.mark.parametrize("dof", [10, 40, 400, 4000])
+@pytest.mark.parametrize("dof", [1, 2, 3, 10, 40, 400, 4000])
 def test_chi2_interval_against_scipy(dof):
+    """The exact quantiles, small dof included (before: Wilson-Hilferty, dof 2: [0.02614, 7.336] for
+    [0.05064, 7.378]; dof 1: a lower bound of 0)."""
     lo, hi = chi2_interval(dof)
     want_lo, want_hi = stats.chi2.ppf([0.025, 0.975], dof) / dof
-    assert lo == pytest.approx(want_lo, rel=0.01) and hi == pytest.approx(want_hi, rel=0.005)
+    assert lo == pytest.approx(want_lo, rel=1e-12) and hi == pytest.approx(want_hi, rel=1e-12)
+
+
+def test_chi2_interval_covers_its_level_by_simulation():
+    """An independent check: the fraction of 200000 draws of chi^2(2) / 2 inside the bounds is 95 %."""
+    lo, hi = chi2_interval(2)
+    x = np.random.default_rng(0).chisquare(2, 200000) / 2
+    assert np.mean((x >= lo) & (x <= hi)) == pytest.approx(0.95, abs=0.003)  # (sd 0.0005)
+    assert np.mean(x < lo) == pytest.approx(0.025, abs=0.002)
 
 
 def test_mean_se_per_step_is_sd_over_sqrt_n():
