@@ -1,4 +1,5 @@
-"""Every ``torchmm-run`` command in README.md and docs/*.md runs as written: composed, validated and its
+"""Every ``torchmm-run`` command in README.md, docs/*.md and the comments of conf/experiment/*.yaml (the files
+users are told to copy) runs as written: composed, validated and its
 scenario, estimators and learn entries built dry, as ``torchmm-run`` checks a command before it creates a
 folder (experiments.config.precheck). Allowed: only what the reader must bring - a data file of their own
 (the command names a path that is not shipped), a GPU, a Hydra launcher plugin the docs say to install, an
@@ -34,6 +35,20 @@ def _commands() -> list[tuple[str, str]]:
                     line = line[:-1] + " " + lines[i].strip()
                 out.append((f"{file.relative_to(ROOT)}:{start + 1}", line))
             i += 1
+    for file in sorted((ROOT / "conf" / "experiment").glob("*.yaml")):
+        lines = file.read_text().splitlines()
+        for i, line in enumerate(lines):
+            if not line.lstrip().startswith("#"):
+                continue
+            text = line.lstrip()[1:].strip()
+            # a command on its own comment line (continued by "\" on the next), or inline in `backticks`
+            found = [text] if re.match(r"^torchmm-run(\s|$)", text) else re.findall(r"`(torchmm-run[^`]*)`", text)
+            for command in found:
+                j = i
+                while command.endswith("\\") and j + 1 < len(lines) and lines[j + 1].lstrip().startswith("#"):
+                    j += 1
+                    command = command[:-1] + " " + lines[j].lstrip()[1:].strip()
+                out.append((f"{file.relative_to(ROOT)}:{i + 1}", command))
     return out
 
 
