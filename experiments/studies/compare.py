@@ -441,6 +441,8 @@ def run(ctx: StudyContext) -> None:
                 for k in [k for k in r["summary"] if k == key or k.startswith(f"{key}_")]:
                     del r["summary"][k]
                 r["influence"].pop(key, None)
+    for label, r in results.items():
+        ctx.results.notes.extend(f"{label}: {note}" for note in r.get("notes", ()))
     ctx.results.dropped.update(dropped)
     what = "series" if scenario.data is not None else "runs"
     for label, r in results.items():  # a per-run value that cannot be computed is left out of the mean, and said

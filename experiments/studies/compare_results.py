@@ -51,6 +51,7 @@ def reduce(parts: list[dict], groups: list[str], metrics: list[str]) -> tuple[di
     influence: dict[str, Tensor] = {}
     curves: dict[str, Tensor] = {}
     runs_rmse: dict[str, Tensor] = {}  # each run's own average RMSE (the per-series table)
+    notes: list[str] = []  # said in the results' notes
     steps = None
     if "rmse" in metrics and f"sq_{groups[0]}" in parts[0]:
         for g in groups:
@@ -89,11 +90,23 @@ def reduce(parts: list[dict], groups: list[str], metrics: list[str]) -> tuple[di
         summary["nis"], summary["nis_se"] = _mean_se(per)
         influence["nis"] = per
         curves["nis"] = torch.nanmean(x, 1)
-        mean_dof = float(dof[dof > 0].mean()) if bool((dof > 0).any()) else 0.0
-        if mean_dof:  # the run-averaged NIS of a step with all components present: chi2(N m) / N
-            m = int(round(mean_dof))
-            lo, hi = chi2_interval(int(torch.isfinite(per).sum()) * m)  # (the runs with a NIS)
+        # each step's band: the run-averaged NIS of step t is chi2(D_t) / N_t for a consistent filter, D_t the
+        # sum of its N_t runs' degrees of freedom (multi-rate sensors, missing components: they differ by step)
+        n_t, d_t = (dof > 0).sum(1), torch.where(dof > 0, dof, 0.0).sum(1)
+        bands = {(d, n): chi2_interval(int(d)) for d, n in set(zip(d_t.tolist(), n_t.tolist())) if n > 0}
+        curves["nis_low"], curves["nis_high"] = (
+            torch.tensor([bands[(d, n)][j] * d / n if n > 0 else math.nan for d, n in zip(d_t.tolist(), n_t.tolist())],
+                         dtype=torch.float64) for j in (0, 1))
+        dofs = sorted({int(v) for v in dof[dof > 0].tolist()})
+        if len(dofs) == 1:  # the summary's band: a step's run-averaged NIS over the N runs with a NIS, chi2(N m) / N
+            m = dofs[0]
+            lo, hi = chi2_interval(int(torch.isfinite(per).sum()) * m)
             summary["nis_dof"], summary["nis_low"], summary["nis_high"] = m, lo * m, hi * m
+        elif dofs:  # no one band: no step of m degrees of freedom for a mean m (before: chi2 of the rounded mean)
+            notes.append(f"nis: the steps' degrees of freedom differ ({', '.join(map(str, dofs))}: multi-rate sensors "
+                         "or missing components), so the summary has no one chi-square band (nis_dof, nis_low, "
+                         "nis_high); each step's band, for its own degrees of freedom, is in the curves "
+                         "nis_low/nis_high.")
         white = _t(join_runs([p["white"] for p in parts]))  # (T, N, m)
         if "whiteness" in metrics:
             # each run's and component's sample lag-1 autocorrelation of its normalised innovations (zero-mean
@@ -128,7 +141,7 @@ def reduce(parts: list[dict], groups: list[str], metrics: list[str]) -> tuple[di
     per_run_values = {**{k: v for k, v in influence.items() if not k.startswith("rmse_")}, **runs_rmse}
     if "measured" in parts[0]:
         per_run_values["measured"] = _t(join_runs([p["measured"] for p in parts], dim=0))
-    return summary, {"influence": influence, "curves": curves, "per_run": per_run_values}
+    return summary, {"influence": influence, "curves": curves, "per_run": per_run_values, "notes": notes}
 
 
 def paired(reference: str, estimators: dict[str, dict], metrics: list[str]) -> list[list]:
@@ -262,9 +275,9 @@ def curves_and_figures(ctx, scenario, results, examples, groups, first: tuple) -
         if "nees_low" in c:  # each step's band for the runs scored there
             ctx.logger.series(f"nees_low/{label}", c["nees_low"])
             ctx.logger.series(f"nees_high/{label}", c["nees_high"])
-        if "nis_low" in s:
-            ctx.logger.series(f"nis_low/{label}", [s["nis_low"]] * len(c["nis"]))
-            ctx.logger.series(f"nis_high/{label}", [s["nis_high"]] * len(c["nis"]))
+        if "nis_low" in c:  # each step's band for its runs' degrees of freedom
+            ctx.logger.series(f"nis_low/{label}", c["nis_low"])
+            ctx.logger.series(f"nis_high/{label}", c["nis_high"])
         ex = examples.get(label)
         if ex is not None and ex.get("example_probs") is not None:
             probs = _t(ex["example_probs"])

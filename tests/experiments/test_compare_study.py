@@ -196,6 +196,15 @@ def test_simulated_multirate_sensors_and_missing(tmp_path):
     run_study(cfg, tmp_path / "run")
     res = json.loads((tmp_path / "run" / "results.json").read_text())
     assert math.isfinite(res["metrics"]["IMM"]["loglik"]) and math.isfinite(res["metrics"]["IMM"]["nis"])
+    # NIS of 2 or 4 degrees of freedom by step: each step's band is chi2(D_t) / N_t for its runs' dofs D_t (scipy),
+    # no one band in the summary (before: the band of dof 3 = the rounded mean, which no step has), said in a note
+    from scipy.stats import chi2
+    curves = np.load(tmp_path / "run" / "curves.npz")
+    d_t = torch.isfinite(z).sum(-1).sum(1).double().numpy()  # (T,) every run has a datum at every step
+    np.testing.assert_allclose(curves["nis_low/IMM"], chi2.ppf(0.025, d_t) / 50, rtol=1e-10)
+    np.testing.assert_allclose(curves["nis_high/IMM"], chi2.ppf(0.975, d_t) / 50, rtol=1e-10)
+    assert "nis_dof" not in res["metrics"]["IMM"] and "nis_low" not in res["metrics"]["IMM"]
+    assert "IMM: nis: the steps' degrees of freedom differ (2, 4" in (tmp_path / "run" / "results.md").read_text()
 
 
 def test_bad_estimator_and_reference_are_config_errors():
