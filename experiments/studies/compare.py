@@ -42,7 +42,8 @@ from experiments import learning, learning_em, learning_gradient
 from experiments.executors import Unit
 from experiments.harness import StudyContext, per_run
 from experiments.scenarios_system import Concatenated, default_dtype
-from experiments.studies.compare_results import curves_and_figures, learned_tables, paired, reduce, series_table
+from experiments.studies.compare_results import (curves_and_figures, learned_tables, not_computed, paired, reduce,
+                                                 series_table)
 from torchmm import GaussianBelief, run_filter, smooth
 from torchmm.metrics import mode_hits, nees
 
@@ -476,6 +477,7 @@ def run(ctx: StudyContext) -> None:
     if reference not in results:
         raise ValueError(f"paired.reference: {reference!r} is not an estimator ({', '.join(results)})")
     rows = paired(reference, results, metrics)
+    ctx.results.dropped.update(not_computed(results, metrics, groups, reference, rows, what, ctx.results.dropped))
     ctx.results.table(
         "paired", ["metric", "estimator", "reference", "difference", "se", "ci_low", "ci_high", "separate_half_width"],
         note=f"Each estimator minus `{reference}` on the same runs (common random numbers): the difference, its "

@@ -177,6 +177,42 @@ def paired(reference: str, estimators: dict[str, dict], metrics: list[str]) -> l
     return rows
 
 
+def not_computed(results: dict, metrics: list[str], groups: list[str], reference: str, rows: list[list],
+                 what: str, already: dict) -> dict[str, str]:
+    """The ``dropped`` entries of what was asked for and not computed though the data have it: a filter's
+    innovation metrics it records none for (GPB2: per mode pair), a standard error or paired difference
+    without two runs (``what``: "runs" or "series") with a value. A smoother has no innovations of its own
+    (its filter's row has them): not named; nor what ``already`` (the dropped entries so far) names."""
+    out: dict[str, str] = {}
+    keys = {"nis": ["nis"], "whiteness": ["whiteness_lag1"], "loglik": ["loglik"], "nees": ["nees"],
+            "rmse": [f"rmse_{g}" for g in groups]}
+    for label, r in results.items():
+        smoothed = label.endswith(" smoothed")
+        for metric in metrics:
+            if smoothed and metric in ("nis", "whiteness", "loglik"):
+                continue
+            for key in keys.get(metric, []):
+                if key not in r["summary"] and f"{key} ({label})" not in already:
+                    out[f"{key} ({label})"] = ("its filter records no innovation of the mixture (per mode pair)"
+                                               if metric in ("nis", "whiteness") else "not computed by this filter")
+    single = all(int(torch.isfinite(v).sum()) < 2 for r in results.values() for v in r["influence"].values())
+    if single and any(r["influence"] for r in results.values()):
+        out["standard errors (_se) and paired"] = f"at most one of the {what} has a value: they need two"
+        return out
+    for label, r in results.items():
+        for key, value in r["summary"].items():
+            if key.endswith("_se") and key[:-3] in r["summary"] and not (value is not None and math.isfinite(value)):
+                out[f"{key} ({label})"] = f"fewer than two {what} with a value"
+    done = {(row[0], row[1]) for row in rows}
+    ref = results[reference]["influence"]
+    for label, r in results.items():
+        if label != reference:
+            for key in r["influence"]:
+                if key in ref and (key, label) not in done:
+                    out[f"paired {key} ({label})"] = f"fewer than two {what} with a value for both"
+    return out
+
+
 def learned_tables(ctx, learners: list[str], names: list[str], records: dict) -> None:
     """The tables ``learned`` (each estimate with its standard error and z, and the expected durations)
     and ``fit`` (each learning estimator's log-likelihood, k, nobs, AIC, BIC and optimiser), the metrics

@@ -207,6 +207,17 @@ def test_simulated_multirate_sensors_and_missing(tmp_path):
     assert "IMM: nis: the steps' degrees of freedom differ (2, 4" in (tmp_path / "run" / "results.md").read_text()
 
 
+def test_gpb2s_innovation_metrics_are_named_as_dropped(tmp_path):
+    """GPB2 records its innovations per mode pair: no nis or whiteness_lag1, named in `dropped` (was {})."""
+    cfg = _compose("debug=compare", "figures=false", "scenario.steps=10", "mc_runs=4")
+    validate(cfg)
+    run_study(cfg, tmp_path)
+    res = json.loads((tmp_path / "results.json").read_text())
+    assert "nis" not in res["metrics"]["GPB2"] and "nis" in res["metrics"]["IMM"]
+    assert {"nis (GPB2)", "whiteness_lag1 (GPB2)"} <= set(res["dropped"])
+    assert not any("IMM" in key or "KF" in key for key in res["dropped"])
+
+
 def test_bad_estimator_and_reference_are_config_errors():
     with pytest.raises(ConfigError, match="paired.reference"):
         validate(_compose("paired.reference=nope"))

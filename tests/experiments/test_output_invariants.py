@@ -221,6 +221,16 @@ def test_padding_changes_no_per_step_band(series, tmp_path):
     np.testing.assert_allclose(three["nees_high/KF"], stats.chi2.ppf(0.975, 2 * count) / count, rtol=1e-10)
 
 
+def test_one_series_names_its_standard_errors_and_paired_differences_as_dropped(series, tmp_path):
+    """One series: every standard error is null and the paired table empty, and `dropped` says so (before:
+    nothing said); two series: no such entry."""
+    one, _ = _run(tmp_path, _write(tmp_path / "one.csv", series, ["s0"]), "one")
+    assert not one["tables"]["paired"]["rows"] and one["metrics"]["KF"]["nees_se"] is None
+    assert "need two" in one["dropped"]["standard errors (_se) and paired"]
+    two, _ = _run(tmp_path, _write(tmp_path / "two.csv", series, ["s0", "s1"]), "two")
+    assert "standard errors (_se) and paired" not in two["dropped"] and two["tables"]["paired"]["rows"]
+
+
 def test_a_file_without_any_measurement_is_a_config_error(series, tmp_path):
     file = _write(tmp_path / "none.csv", series, ["s0", "s1"], empty=("s0", "s1"))
     with pytest.raises(ConfigError, match=r"scenario.data.measurements=\['y'\]: .*every measurement cell is missing"):
