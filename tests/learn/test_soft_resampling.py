@@ -107,3 +107,46 @@ def test_soft_resampling_particle_filter_tracks_the_kalman_filter_and_is_trainab
     (-traj.total_log_likelihood().sum()).backward()
     grad = motion.parametrizations.Q.original.grad
     assert grad is not None and bool(torch.isfinite(grad).all()) and grad.abs().sum() > 0
+
+
+def test_soft_resampling_particle_filter_takes_the_call_generator_and_sensors():
+    """run_filter / step with generator= and sensors= (the parent's interface): reproducible, the
+    call's stream equals the constructor's when seeded alike, the global stream is not used, and a
+    per-step sensor equals a filter built with that sensor."""
+    from torchmm import GaussianBelief, run_filter
+    from torchmm.learn import SoftResamplingParticleFilter
+    from torchmm.models import ConstantVelocity, PositionMeasurement
+
+    z = 3.0 * torch.randn(12, 4, 1, generator=torch.Generator().manual_seed(0))
+    prior = GaussianBelief(torch.zeros(4, 2), torch.eye(2).expand(4, 2, 2))
+
+    def run(sensor_r=1.0, generator=None, ctor_generator=None, sensors=None):
+        pf = SoftResamplingParticleFilter(ConstantVelocity(1), PositionMeasurement(2, [0], sensor_r),
+                                          alpha=0.5, ess_threshold=0.9, generator=ctor_generator)
+        b0 = pf.initial_belief(prior, 100, generator=generator)
+        return run_filter(pf, b0, z, sensors=sensors, generator=generator)
+
+    torch.manual_seed(1)
+    a = run(generator=torch.Generator().manual_seed(42))
+    torch.manual_seed(2)  # a different global stream: no effect
+    b = run(generator=torch.Generator().manual_seed(42))
+    assert bool(a.extras["resampled"].any())  # the soft step ran (and drew ancestors)
+    torch.testing.assert_close(a.log_likelihood, b.log_likelihood, rtol=0, atol=0)
+    torch.testing.assert_close(a.belief.particles, b.belief.particles, rtol=0, atol=0)
+    c = run(ctor_generator=torch.Generator().manual_seed(42))
+    torch.testing.assert_close(a.log_likelihood, c.log_likelihood, rtol=0, atol=0)
+    d = run(generator=torch.Generator().manual_seed(43))
+    assert not torch.equal(a.log_likelihood, d.log_likelihood)
+    # one step with generator=
+    pf = SoftResamplingParticleFilter(ConstantVelocity(1), PositionMeasurement(2, [0], 1.0), alpha=0.5,
+                                      ess_threshold=2.0)
+    b0 = pf.initial_belief(prior, 50, generator=torch.Generator().manual_seed(5))
+    s1 = pf.step(b0, z[0], generator=torch.Generator().manual_seed(6))
+    s2 = pf.step(b0, z[0], generator=torch.Generator().manual_seed(6))
+    torch.testing.assert_close(s1.belief.particles, s2.belief.particles, rtol=0, atol=0)
+    # sensors: every step's sensor R = 2 equals a filter built with R = 2
+    r2 = PositionMeasurement(2, [0], 2.0)
+    e = run(generator=torch.Generator().manual_seed(42), sensors=[r2] * 12)
+    f = run(sensor_r=2.0, generator=torch.Generator().manual_seed(42))
+    torch.testing.assert_close(e.log_likelihood, f.log_likelihood, rtol=0, atol=0)
+    assert not torch.equal(e.log_likelihood, a.log_likelihood)

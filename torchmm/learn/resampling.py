@@ -125,7 +125,9 @@ class SoftResamplingParticleFilter(ParticleFilter):
     """Bootstrap particle filter whose ESS-gated resampling is soft (differentiable).
 
     Same interface, arguments and shapes as :class:`~torchmm.filters.particle.ParticleFilter`
-    (``resampling`` names the ancestor scheme), plus ``alpha`` of :func:`soft_resample`. The
+    (``resampling`` names the ancestor scheme; ``update`` / ``step`` / :func:`~torchmm.run_filter`
+    take ``sensor=`` and ``generator=``, the constructor's ``generator`` being only the default of
+    calls that pass none), plus ``alpha`` of :func:`soft_resample`. The
     weights are updated by the parent class (which is run with resampling disabled); the batch
     elements whose ESS fell below ``ess_threshold * Np`` are then soft-resampled.
 
@@ -146,9 +148,13 @@ class SoftResamplingParticleFilter(ParticleFilter):
         self.alpha = float(alpha)
         self.soft_ess_threshold = float(ess_threshold)
 
-    def update(self, belief: ParticleBelief, z: Tensor) -> StepOutput:
-        out = super().update(belief, z)  # weights only: the parent's threshold is 0
+    def update(self, belief: ParticleBelief, z: Tensor, *, sensor: MeasurementModel | None = None,
+               generator: torch.Generator | None = None) -> StepOutput:
+        if sensor is not None:
+            return self.with_sensor(sensor).update(belief, z, generator=generator)
+        generator = self._generator(generator)  # the call's stream; the constructor's by default
+        out = super().update(belief, z, generator=generator)  # weights only: the parent's threshold is 0
         posterior, resampled, ess = _soft_resample_where_needed(  # checked at construction
-            out.belief, self.soft_ess_threshold, self.alpha, self.resampling, self.generator)
+            out.belief, self.soft_ess_threshold, self.alpha, self.resampling, generator)
         extras = {**(out.extras or {}), "ess": ess, "resampled": resampled}
         return out._replace(belief=posterior, extras=extras)
