@@ -77,6 +77,64 @@ def test_truncated_normal_entropy_matches_quadrature(mu):
     assert got == pytest.approx(ref, abs=1e-6)
 
 
+def _mp_truncnorm_entropy(mu: float, s: float):
+    """Entropy of N(mu, s^2) on [0, inf) with 50-digit arithmetic (an mpmath number)."""
+    mu, s = mpmath.mpf(mu), mpmath.mpf(s)  # (no-ops on mpf arguments)
+    a = -mu / s
+    z = mpmath.erfc(a / mpmath.sqrt(2)) / 2
+    lam = mpmath.npdf(a) / z
+    return mpmath.log(mpmath.sqrt(2 * mpmath.pi * mpmath.e) * s * z) + a * lam / 2
+
+
+@pytest.mark.parametrize("ratio", [-1e4, -100.0, -40.0, -38.0, -20.0, -3.0, 0.0, 4.0, 37.0, 38.0, 40.0, 100.0,
+                                   1e4])
+def test_truncated_normal_entropy_is_finite_and_matches_references_in_both_tails(ratio):
+    """loc / scale from -1e4 to 1e4 (erfcx overflowed to +inf from loc/scale ~ 37.7 on): scipy's
+    truncnorm entropy where it is finite, else quadrature of scipy's (log-space) truncnorm logpdf,
+    and mpmath at 50 digits everywhere."""
+    s = 1.7
+    mu = ratio * s
+    got = truncated_normal_entropy(torch.tensor(mu), torch.tensor(s)).item()
+    assert math.isfinite(got)
+    assert got == pytest.approx(float(_mp_truncnorm_entropy(mu, s)), rel=1e-10, abs=1e-12)
+    dist = stats.truncnorm(-ratio, np.inf, loc=mu, scale=s)
+    with np.errstate(all="ignore"):
+        ref = float(dist.entropy())
+    if not math.isfinite(ref) and abs(ratio) <= 100:  # scipy's closed form fails in the tails
+        width = s / max(-ratio, 1.0)  # the support's scale: s, or s / alpha far in the lower tail
+        lo, hi = 0.0, max(mu, 0.0) + 40 * width
+        ref, _ = integrate.quad(lambda x: -math.exp(dist.logpdf(x)) * dist.logpdf(x), lo, hi,
+                                points=[max(mu, 0.0) + width], limit=400)
+    if math.isfinite(ref):
+        assert got == pytest.approx(ref, abs=1e-7)
+
+
+@pytest.mark.parametrize("ratio", [-1e4, -100.0, -40.0, -2.0, 0.5, 40.0, 100.0, 1e4])
+def test_truncated_normal_gradients_are_finite_and_match_mpmath(ratio):
+    """d/d(loc) and d/d(scale) of the mean, variance and entropy against mpmath's numerical
+    derivatives (the erfcx form gave NaN gradients from loc/scale ~ 37 on)."""
+    s0 = 1.3
+    mu0 = ratio * s0
+    loc = torch.tensor(mu0, requires_grad=True)
+    scale = torch.tensor(s0, requires_grad=True)
+    mean, var = truncated_normal_moments(loc, scale)
+    outs = {"mean": mean, "var": var, "entropy": truncated_normal_entropy(loc, scale)}
+    def mp_moments(m, s):  # 50 digits, unrounded (mpmath.diff differentiates it numerically)
+        a = -m / s
+        lam = mpmath.npdf(a) / (mpmath.erfc(a / mpmath.sqrt(2)) / 2)
+        return m + s * lam, s**2 * (1 - lam * (lam - a))
+
+    refs = {"mean": lambda m, s: mp_moments(m, s)[0], "var": lambda m, s: mp_moments(m, s)[1],
+            "entropy": _mp_truncnorm_entropy}
+    for name, out in outs.items():
+        g_loc, g_scale = torch.autograd.grad(out, (loc, scale), retain_graph=True)
+        f = refs[name]
+        for got, ref in ((g_loc, mpmath.diff(lambda m: f(m, mpmath.mpf(s0)), mpmath.mpf(mu0))),
+                         (g_scale, mpmath.diff(lambda s: f(mpmath.mpf(mu0), s), mpmath.mpf(s0)))):
+            assert math.isfinite(got.item()), name
+            assert got.item() == pytest.approx(float(ref), rel=1e-6, abs=1e-12), name
+
+
 # -- Student-t CDF ---------------------------------------------------------------------------------
 def _mp_t_log_cdf(x: float, df: float) -> float:
     df = mpmath.mpf(df)

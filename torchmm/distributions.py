@@ -15,7 +15,8 @@ r"""Heavy-tailed and skewed noise distributions, and stable truncated-normal mom
   ``delta -> 0`` gives the Student-t, and ``delta -> 0, nu -> inf`` the Gaussian.
 * :func:`truncated_normal_moments` / :func:`truncated_normal_entropy` — ``N(mu, s^2)`` truncated
   to ``[0, inf)``, computed in float64 through ``erfcx`` (the naive ``phi / (1 - Phi)`` fails
-  from ``alpha = -mu/s ~ 8`` on) with an asymptotic series for ``alpha > 30`` (docs/baselines.md §5).
+  from ``alpha = -mu/s ~ 8`` on) with an asymptotic series for ``alpha > 30`` (docs/baselines.md §5),
+  and through ``log_ndtr`` for ``alpha <= 0`` (where ``erfcx`` overflows from ``alpha ~ -37.7`` on).
 
 All classes follow ``torch.distributions`` conventions (``batch_shape``, ``event_shape``,
 ``sample(sample_shape)``, ``log_prob``, ``mean``), and ``sample`` takes an explicit
@@ -52,18 +53,34 @@ _SERIES = (1.0, -6.0, 50.0, -518.0, 6354.0, -89782.0, 1435330.0)
 
 
 # -- truncated normal ------------------------------------------------------------------------------
-def _alpha_terms(loc: Tensor, scale: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """``alpha = -mu/s``, inverse Mills ratio ``lambda(alpha)`` and the variance factor, float64."""
+def _alpha_terms(loc: Tensor, scale: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """``alpha = -mu/s``, inverse Mills ratio ``lambda(alpha)``, the variance factor and
+    ``d = lambda - alpha`` (without cancellation for ``alpha > 30``), float64.
+
+    Each side of ``alpha = 0`` is evaluated on its own clamped argument, so neither side overflows
+    and the unused side of a ``torch.where`` has finite values and derivatives: ``alpha > 0``
+    through ``erfcx`` (``<= 1`` there), ``alpha <= 0`` as ``exp(log phi(alpha) - log_ndtr(-alpha))``
+    (``erfcx`` of a large negative argument overflows from ``alpha ~ -37.7`` on).
+    """
     mu, s = loc.to(torch.float64), scale.to(torch.float64)
     alpha = -mu / s
-    lam = _SQRT_2_OVER_PI / torch.special.erfcx(alpha / math.sqrt(2.0))
+    a_pos, a_neg = alpha.clamp_min(0.0), alpha.clamp_max(0.0)
+    lam_pos = _SQRT_2_OVER_PI / torch.special.erfcx(a_pos / math.sqrt(2.0))
+    lam_neg = torch.exp(-0.5 * (a_neg.square() + _LOG_2PI) - torch.special.log_ndtr(-a_neg))
+    lam = torch.where(alpha > 0.0, lam_pos, lam_neg)
     direct = 1.0 - lam * (lam - alpha)
-    y = 1.0 / alpha.clamp_min(30.0).square()
+    tail = alpha > 30.0
+    a_tail = alpha.clamp_min(30.0)
+    y = 1.0 / a_tail.square()
     series = torch.zeros_like(y)
     for c in reversed(_SERIES):
         series = series * y + c
-    factor = torch.where(alpha > 30.0, y * series, direct).clamp_min(0.0)
-    return alpha, lam, factor
+    factor = torch.where(tail, y * series, direct).clamp_min(0.0)
+    # far in the tail lambda - alpha cancels; there d = lambda - alpha solves d^2 + alpha d = 1 - V/s^2
+    one_minus = 1.0 - y * series
+    d_tail = 2.0 * one_minus / (a_tail + torch.sqrt(a_tail.square() + 4.0 * one_minus))
+    d = torch.where(tail, d_tail, lam - alpha)
+    return alpha, lam, factor, d
 
 
 def truncated_normal_moments(loc: Tensor, scale: Tensor) -> tuple[Tensor, Tensor]:
@@ -76,7 +93,9 @@ def truncated_normal_moments(loc: Tensor, scale: Tensor) -> tuple[Tensor, Tensor
 
     Computed in float64 (the float32 variance is already 0.1 % off at ``alpha = 10``) and cast
     back to the input dtype; for ``alpha > 30`` the variance factor uses the asymptotic series and
-    the mean ``s (lambda - alpha)`` is recovered from it without cancellation.
+    the mean ``s (lambda - alpha)`` is recovered from it without cancellation; for ``alpha <= 0``
+    ``lambda = exp(log phi(alpha) - log_ndtr(-alpha))`` (finite values and gradients at any
+    ``loc / scale``).
 
     Shapes:
         loc, scale: broadcastable ``(*B,)`` -> mean ``(*B,)``, variance ``(*B,)``
@@ -88,10 +107,7 @@ def truncated_normal_moments(loc: Tensor, scale: Tensor) -> tuple[Tensor, Tensor
     """
     dtype = torch.promote_types(loc.dtype, scale.dtype)
     s = scale.to(torch.float64)
-    alpha, lam, factor = _alpha_terms(loc, scale)
-    # far in the tail mu + s lambda cancels; there d = lambda - alpha solves d^2 + alpha d = 1 - V/s^2
-    one_minus = 1.0 - factor
-    d = 2.0 * one_minus / (alpha + torch.sqrt(alpha.square() + 4.0 * one_minus))
+    alpha, lam, factor, d = _alpha_terms(loc, scale)
     mean = torch.where(alpha > 30.0, s * d, loc.to(torch.float64) + s * lam)
     var = s.square() * factor
     return mean.to(dtype), var.to(dtype)
@@ -100,16 +116,21 @@ def truncated_normal_moments(loc: Tensor, scale: Tensor) -> tuple[Tensor, Tensor
 def truncated_normal_entropy(loc: Tensor, scale: Tensor) -> Tensor:
     r"""Differential entropy of ``N(loc, scale^2)`` truncated to ``[0, inf)``.
 
-    ``H = 1/2 log(2 pi e) + log s + log Z + alpha lambda / 2`` with
-    ``log Z = log(erfc(alpha/sqrt2)/2) = log(erfcx(alpha/sqrt2)/2) - alpha^2/2`` (no underflow).
+    ``H = 1/2 log(2 pi e) + log s + log Z + alpha lambda / 2`` with ``log Z = log(1 - Phi(alpha))``.
+    For ``alpha <= 0`` (``loc >= 0``) ``log Z = log_ndtr(-alpha)``; for ``alpha > 0``
+    ``log Z = log(erfcx(alpha/sqrt2)/2) - alpha^2/2`` and the two ``alpha^2/2`` terms are cancelled
+    by hand: ``log Z + alpha lambda / 2 = log(erfcx(alpha/sqrt2)/2) + alpha (lambda - alpha) / 2``.
+    Finite (and with finite gradients) for any finite ``loc / scale``.
 
     Shapes:
         loc, scale: ``(*B,)`` -> ``(*B,)``
     """
     dtype = torch.promote_types(loc.dtype, scale.dtype)
-    alpha, lam, _ = _alpha_terms(loc, scale)
-    log_z = torch.log(0.5 * torch.special.erfcx(alpha / math.sqrt(2.0))) - 0.5 * alpha.square()
-    h = 0.5 * (_LOG_2PI + 1.0) + scale.to(torch.float64).log() + log_z + 0.5 * alpha * lam
+    alpha, lam, _, d = _alpha_terms(loc, scale)
+    a_pos, a_neg = alpha.clamp_min(0.0), alpha.clamp_max(0.0)
+    upper = torch.log(0.5 * torch.special.erfcx(a_pos / math.sqrt(2.0))) + 0.5 * a_pos * d
+    lower = torch.special.log_ndtr(-a_neg) + 0.5 * a_neg * lam
+    h = 0.5 * (_LOG_2PI + 1.0) + scale.to(torch.float64).log() + torch.where(alpha > 0.0, upper, lower)
     return h.to(dtype)
 
 

@@ -134,6 +134,37 @@ def test_skew_t_iw_elbo_bounds_the_exact_marginal_in_1d(z):
     assert exact - elbo < (0.3 if abs(z) < 1 else 0.1 * abs(z) + 0.2), (elbo, exact)
 
 
+@pytest.mark.parametrize("nu", [5.0, 200.0])
+def test_skew_t_iw_elbo_is_finite_when_q_u_lies_far_in_the_upper_tail(nu):
+    """A residual of 25 with r = 0.05 puts q(u)'s loc/scale at ~110: the truncated-normal entropy
+    overflowed to +inf there (ELBO +inf, a mode probability of 1 or NaN in GIMMAF). Now every
+    iteration's ELBO is finite, non-decreasing and below the exact log-evidence."""
+    P_nom, r, delta, tau, z = 2.0, 0.05, 2.0, 3.0, 25.0
+    motion, meas, prior = _scalar_model(P_nom, r, delta, nu, tau)
+    one = SkewTIWVBFilter(motion, meas, skewness=delta, df=nu, tau=tau, iterations=1)
+    first = one.update(prior, torch.tensor([z]))
+    assert (first.extras["u_loc"] / first.extras["u_scale"]).item() > 40  # the regime that overflowed
+    f = SkewTIWVBFilter(motion, meas, skewness=delta, df=nu, tau=tau, iterations=10, elbo_history=True)
+    out = f.update(prior, torch.tensor([z]))
+    elbo = out.extras["elbo"]
+    torch.testing.assert_close(elbo[..., 0], first.log_likelihood)
+    assert bool(torch.isfinite(elbo).all()), elbo
+    assert bool((elbo.diff() >= -1e-9 * elbo.abs()[1:]).all()), elbo
+    assert out.log_likelihood.item() <= _exact_skew_iw_evidence(z, P_nom, r, delta, nu, tau)
+
+
+def test_gimmaf_mode_probabilities_stay_finite_after_a_large_skew_residual():
+    bank = CoordinatedTurn(torch.tensor([0.0, 0.05]), q=0.01)
+    sen = PositionMeasurement(4, [0, 2], 0.5)
+    imm = gimmaf(bank, sen, torch.tensor([[0.9, 0.1], [0.1, 0.9]]), skewness=2.0, df=200.0, tau=3.0)
+    b = GaussianBelief(torch.zeros(1, 4), 0.01 * torch.eye(4).expand(1, 4, 4))
+    tr = run_filter(imm, imm.initial_belief(b), torch.tensor([[[0.1, 0.0]], [[100.0, 0.0]], [[0.2, 0.1]]]))
+    assert bool(torch.isfinite(tr.log_likelihood).all()), tr.log_likelihood
+    probs = tr.belief.mode_probs
+    assert bool(torch.isfinite(probs).all()) and bool((probs > 0).all())
+    torch.testing.assert_close(probs.sum(-1), torch.ones_like(probs[..., 0]))
+
+
 def test_skew_t_iw_elbo_formula_matches_monte_carlo_over_q():
     """The closed-form ELBO (39) equals E_q[log p(z, x, P, u, lam) - log q] estimated by sampling q."""
     P_nom, r, delta, nu, tau, z = 2.0, 1.5, 2.0, 5.0, 3.0, 4.0
