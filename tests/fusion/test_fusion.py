@@ -16,6 +16,7 @@ from torchmm.fusion import (
     fusion_weights,
     local_covariances,
     local_estimates,
+    local_one_step,
     local_predictor_stats,
     simulate_fusion,
     steady_fused_estimates,
@@ -89,6 +90,40 @@ def test_system_validation_errors():
     unstable = MultiSensorSystem.from_correlation(**{**good, "A": [[1.0]]})
     with pytest.raises(ValueError, match="A:"):
         steady_state(unstable)
+
+
+@pytest.mark.parametrize("stats_steps", [10, 30])
+def test_statistics_for_another_number_of_steps_raise_value_errors(stats_steps):
+    """Time-varying statistics computed for T' != T steps (an IndexError, a broadcast RuntimeError or,
+    for a predictor N < -1, covariances silently of T' steps beside means of T steps before)."""
+    sys = MultiSensorSystem.from_correlation(
+        A=[[0.5]], Gamma=[[1.0]], Qw=[[1.0]], C=[[[1.0]], [[1.0]]], Ct=[[[0.5]], [[0.2]]], h=[0.6, 0.7],
+        Qp=[0.1, 0.1], d=[[[0.0]], [[0.3]]], Q_eta=[[[1.0]], [[2.0]]], mu0=[0.0], P0=[[1.0]])
+    y = simulate_fusion(sys, 20, (4,), torch.Generator().manual_seed(0)).y
+    stats = local_predictor_stats(sys, stats_steps)
+    for N in (-2, 0, 2):
+        with pytest.raises(ValueError, match=f"stats: computed for {stats_steps} steps, but y has 20"):
+            local_estimates(sys, y, N, stats)
+    with pytest.raises(ValueError, match="stats:"):
+        local_one_step(sys, stats, y)
+    with pytest.raises(ValueError, match="stats:"):
+        local_covariances(sys, stats, 0, steps=20)
+    stats20 = local_predictor_stats(sys, 20)
+    cross = cross_predictor_stats(sys, stats)
+    for N in (-2, 0, 1):
+        with pytest.raises(ValueError, match="stats: computed for 20 steps"):
+            cross_covariances(sys, stats20, cross, N)
+        with pytest.raises(ValueError, match="cross:"):
+            cross_covariances(sys, stats, cross, N, steps=20)
+    with pytest.raises(ValueError, match="cross:"):
+        cross_covariances(sys, steady_state(sys).stats, cross, 0)
+    if stats_steps < 20:
+        with pytest.raises(ValueError, match="steps:"):
+            cross_predictor_stats(sys, stats, steps=20)
+    # matching lengths still run, and a stationary pair fits any number of steps
+    torch.testing.assert_close(local_estimates(sys, y, 1, stats20)[0], local_estimates(sys, y, 1)[0])
+    ss = steady_state(sys)
+    assert cross_covariances(sys, ss.stats, ss.cross, 1, steps=7).shape[0] == 7
 
 
 # ---------------------------------------------------------------------------------------------

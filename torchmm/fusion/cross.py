@@ -15,6 +15,7 @@ from torchmm.fusion.system import SYSTEM_ARG, MultiSensorSystem
 from torchmm.fusion.local import (
     LOCAL_STATS,
     LocalStats,
+    check_stats_steps,
     pair_transpose,
     pred_shift,
     shift_steps,
@@ -97,6 +98,8 @@ def cross_predictor_stats(system: MultiSensorSystem, stats: LocalStats,
     Shapes:
         -> :class:`CrossStats` with leading ``(T, L, L)``
     """
+    if steps is not None and not stats.stationary and steps > stats.state_cov.shape[0]:
+        raise ValueError(f"steps: {steps} steps, but `stats` were computed for {stats.state_cov.shape[0]}")
     T = stats.state_cov.shape[0] if steps is None else steps
     L, n = system.num_sensors, system.state_dim
     Xi0 = system.P0 + torch.outer(system.mu0, system.mu0)
@@ -144,10 +147,19 @@ def cross_covariances(system: MultiSensorSystem, stats: LocalStats, cross: Cross
 
     starting from ``E_ij = P_ij(t|t-1)``, ``X_ij = [P_ij, P^{xx^r}_ij](t|t-1)``; ``K_i(t|s) = X_ii C^{-T}_i
     (Q^eps_i)^{-1}`` is Theorem 3's gain (28). Each lag is one batched update of all ``t`` and pairs.
+    Time-varying ``stats`` and ``cross`` must cover the same steps (``steps``: their ``T``, the
+    default); stationary ones (``T = 1``) any ``steps``; else ``ValueError`` naming the argument.
 
     Shapes:
         -> ``(T, L, L, n, n)``
     """
+    if stats.stationary != cross.stationary:
+        raise ValueError("cross: stationary and time-varying statistics mixed (`stats` stationary="
+                         f"{stats.stationary}, `cross` stationary={cross.stationary})")
+    if not cross.stationary:
+        check_stats_steps("stats", stats, cross.state_cov.shape[0], "`cross` were computed for")
+    if steps is not None:
+        check_stats_steps("cross", cross, steps, "steps is")
     T = cross.state_cov.shape[0] if steps is None else steps
     stat = cross.stationary
     P_pred = cross.state_cov.expand(T, *cross.state_cov.shape[1:]) if stat else cross.state_cov

@@ -52,6 +52,7 @@ __all__ = [
     "local_estimates",
     "local_covariances",
     "check_measurements",
+    "check_stats_steps",
 ]
 
 
@@ -69,6 +70,19 @@ def check_measurements(system: MultiSensorSystem, y: Tensor, stats: "LocalStats 
         if not same:
             raise ValueError("y: its missing (NaN) pattern differs from the one `stats` were computed for")
     return present
+
+
+def check_stats_steps(name: str, stats, steps: int, what: str) -> None:
+    """Raise ``ValueError`` naming ``name`` when time-varying statistics (:class:`LocalStats` or
+    :class:`~torchmm.fusion.cross.CrossStats`, ``stationary=False``) cover a different number of
+    steps than ``what`` (e.g. ``"y has"``) ``steps``; stationary statistics fit any length.
+    """
+    if stats.stationary:
+        return
+    have = stats.state_cov.shape[0]
+    if have != steps:
+        raise ValueError(f"{name}: computed for {have} steps, but {what} {steps} (compute the statistics "
+                         "for the same number of steps)")
 
 
 @dataclass(frozen=True)
@@ -158,6 +172,7 @@ def local_one_step(system: MultiSensorSystem, stats: LocalStats, y: Tensor):
         y: ``(T, *B, L, m)`` -> x_pred ``(T, *B, L, n)`` (``x^_i(t|t-1)``), xr_pred ``(T, *B, L, n)``,
         eps ``(T, *B, L, m)``
     """
+    check_stats_steps("stats", stats, y.shape[0], "y has")
     if stats.stationary:
         if check_measurements(system, y) is not None:
             raise ValueError("y: the steady-state estimators need complete data (no NaN measurements)")
@@ -247,7 +262,10 @@ def local_estimates(system: MultiSensorSystem, y: Tensor, N: int = 0, stats: Loc
 @entry_point(system=SYSTEM_ARG, stats=LOCAL_STATS, N=Int(), steps=Int(1, optional=True))
 def local_covariances(system: MultiSensorSystem, stats: LocalStats, N: int,
                       steps: int | None = None) -> Tensor:
-    """Error covariances ``P_i(t|t+N)`` only (no data). Shapes: -> ``(T, L, n, n)``."""
+    """Error covariances ``P_i(t|t+N)`` only (no data); ``steps`` (time-varying ``stats``: their
+    ``T``, the default; stationary: any). Shapes: -> ``(T, L, n, n)``."""
+    if steps is not None:
+        check_stats_steps("stats", stats, steps, "steps is")
     return local_from_pred(system, stats, None, None, N, steps)[1]
 
 
