@@ -165,6 +165,57 @@ def test_gimmaf_mode_probabilities_stay_finite_after_a_large_skew_residual():
     torch.testing.assert_close(probs.sum(-1), torch.ones_like(probs[..., 0]))
 
 
+def _skew_mean_factor_scipy(nu: float) -> float:
+    """E[u] for u | lam ~ N+(0, 1/lam), lam ~ Ga(nu/2, nu/2): sqrt(2/pi) E[lam^-1/2] by quadrature."""
+    return math.sqrt(2 / math.pi) * stats.gamma(nu / 2, scale=2 / nu).expect(lambda lam: lam**-0.5)
+
+
+@pytest.mark.parametrize("kind", ["stvbf", "skew_t_iw"])
+def test_skew_t_innovation_is_z_minus_the_predicted_measurement_mean(kind):
+    """innovation = z - H x- - delta E[u] (it was z - H x-, whose mean is the skew noise's, NIS 1.9-3.0
+    on the filters' own data); NaN for a missing component and where the noise has no mean."""
+    motion, sensor = ConstantVelocity(2, q=0.5), PositionMeasurement(4, [0, 2], 2.0)
+    g = torch.Generator().manual_seed(3)
+    belief = GaussianBelief(torch.randn(3, 4, generator=g), torch.eye(4).expand(3, 4, 4))
+    z = 3 * torch.randn(3, 2, generator=g)
+    z[1, 1] = math.nan
+    delta, nu = torch.tensor([1.5, -0.5]), torch.tensor([4.0, 12.0])
+
+    def make(delta, nu):
+        if kind == "stvbf":
+            return SkewTVBFilter(motion, sensor, skewness=delta, df=nu)
+        return SkewTIWVBFilter(motion, sensor, skewness=delta, df=nu, tau=3.0)
+
+    out = make(delta, nu).update(belief, z)
+    mean = delta * torch.tensor([_skew_mean_factor_scipy(v) for v in nu.tolist()])
+    expected = z - belief.mean @ sensor.H.mT - mean
+    torch.testing.assert_close(out.innovation, expected, equal_nan=True, rtol=1e-10, atol=1e-10)
+    assert bool(torch.isnan(out.innovation[1, 1])) and bool(torch.isfinite(out.innovation[1, 0]))
+    # nu <= 1: the skew noise has no mean (NaN); delta = 0 there: the Student-t's z - H x-
+    out = make(torch.tensor([1.5, 0.0]), torch.tensor([0.8, 0.8])).update(belief, z[[0]])
+    assert bool(torch.isnan(out.innovation[0, 0]))
+    torch.testing.assert_close(out.innovation[0, 1], z[0, 1] - (belief.mean[0] @ sensor.H.mT)[1])
+
+
+def test_stvbf_innovation_is_centred_on_its_own_models_data():
+    from torchmm.distributions import SkewT
+
+    g = torch.Generator().manual_seed(0)
+    T, B, r, delta, nu = 40, 200, 1.0, 3.0, 10.0
+    motion, sensor = ConstantVelocity(1, q=0.1), PositionMeasurement(2, [0], r)
+    x, xs = torch.zeros(B, 2), []
+    L = torch.linalg.cholesky(motion.Q + 1e-12 * torch.eye(2))
+    for _ in range(T):
+        x = x @ motion.F.T + torch.randn(B, 2, generator=g) @ L.T
+        xs.append(x)
+    noise = SkewT(torch.zeros(1), torch.full((1,), r), torch.full((1,), delta), nu).sample((T, B), generator=g)
+    z = torch.stack(xs)[..., :1] + noise
+    f = SkewTVBFilter(motion, sensor, skewness=delta, df=nu)
+    inn = run_filter(f, f.initial_belief(GaussianBelief(torch.zeros(B, 2), torch.eye(2))), z).innovation[10:]
+    se = inn.std() / math.sqrt(inn.numel())  # the runs are independent; STVBF's innovations nearly white
+    assert abs(inn.mean().item()) < 5 * se.item(), (inn.mean(), se)
+
+
 def test_skew_t_iw_elbo_formula_matches_monte_carlo_over_q():
     """The closed-form ELBO (39) equals E_q[log p(z, x, P, u, lam) - log q] estimated by sampling q."""
     P_nom, r, delta, nu, tau, z = 2.0, 1.5, 2.0, 5.0, 3.0, 4.0

@@ -17,7 +17,7 @@ from torch import Tensor
 from torchmm.contract import Choice, Finite, Flag, Int, Of, Real, entry_point
 from torchmm.beliefs import GaussianBelief
 from torchmm.beliefs.ops import symmetrize
-from torchmm.distributions import truncated_normal_entropy, truncated_normal_moments
+from torchmm.distributions import skew_t_mean_factor, truncated_normal_entropy, truncated_normal_moments
 from torchmm.filters.base import StepOutput
 from torchmm.linalg import cholesky, condition, use_joseph
 from torchmm.models.base import MeasurementModel, MotionModel
@@ -41,6 +41,24 @@ from torchmm.filters.vb_common import (
 __all__ = ["SkewTIWVBFilter", "SkewTVBFilter"]
 
 log = logging.getLogger("torchmm")
+
+
+def _noise_mean(delta: Tensor, nu: Tensor) -> Tensor:
+    """The skew-t noise's mean ``delta c(nu)``, ``c(nu) = E[u]``
+    (:func:`~torchmm.distributions.skew_t_mean_factor`): NaN where it does not exist (``nu <= 1``
+    with ``delta != 0``), 0 where ``delta = 0``.
+
+    Shapes:
+        delta, nu: ``(m,)`` -> ``(m,)``
+    """
+    c = torch.where(nu > 1, skew_t_mean_factor(nu.clamp_min(1.0 + 1e-12)), math.nan)
+    return torch.where(delta == 0, torch.zeros_like(delta), delta * c)
+
+
+def _skew_innovation(z: Tensor, z_pred: Tensor, present: Tensor, delta: Tensor, nu: Tensor) -> Tensor:
+    """``z - E[z | past] = z - H x- - delta c(nu)``, NaN where a component is missing (``present``
+    False) or its noise has no mean. Shapes: ``(*B, m)`` -> ``(*B, m)``."""
+    return torch.where(present, z - z_pred - _noise_mean(delta, nu), math.nan)
 
 
 # -- skew-t + inverse Wishart (GIMMAF mode filter) -----------------------------------------------------
@@ -69,6 +87,10 @@ class SkewTIWVBFilter(LinearVBFilter):
     the derived ``nu/2 + 1`` (see docs/reproduction-004.md). ``log_likelihood`` is the ELBO (39)
     after the last iteration; ``extras`` carry the ELBO per iteration, the point estimate
     ``P^`` of ``P_{k|k-1}`` and the plug-in noise covariance ``diag((r + delta^2 (1 - 2/pi)) / lam)``.
+    ``innovation`` is ``z - E[z | past] = z - H x- - delta c(nu)`` (``delta c(nu)`` the skew noise's
+    mean, :func:`~torchmm.distributions.skew_t_mean_factor`; NaN where a component is missing or
+    its noise has no mean, ``nu <= 1`` and ``delta != 0``); ``innovation_cov`` is the plug-in
+    ``H P^ H^T + noise_cov`` (an approximation of its covariance, docs/variational.md).
 
     Args:
         motion: linear motion (bank allowed) with the nominal process noise ``Q_0``.
@@ -132,6 +154,7 @@ class SkewTIWVBFilter(LinearVBFilter):
         n = belief.mean.shape[-1]
         x_pred, P_nom = belief.mean, belief.cov
         z_pred = matvec(H, x_pred)
+        present = torch.isfinite(z)
         missing, z = fill_missing(z, z_pred)
         observed = ~missing.unsqueeze(-1)  # from the data: a NaN prediction is a failure, not missing
         T_prior = tau * P_nom
@@ -174,7 +197,8 @@ class SkewTIWVBFilter(LinearVBFilter):
         record_elbo(extras, elbos, history, "SkewTIWVBFilter")
         mean, cov, loglik, failed = keep_prior_where_missing(missing, belief, mean, cov, elbos[-1])
         extras["failed"] = failed
-        return StepOutput(GaussianBelief(mean, cov), belief, loglik, z - z_pred,
+        innovation = _skew_innovation(z, z_pred, present, delta, nu)
+        return StepOutput(GaussianBelief(mean, cov), belief, loglik, innovation,
                           H @ P_hat @ H.mT + extras["noise_cov"], extras=extras)
 
     def _elbo(self, x_pred, P_nom, T, t_q, mean, cov, z, u_loc, u_scale, Eu, Varu, a, b):
@@ -219,7 +243,9 @@ class SkewTVBFilter(LinearVBFilter):
     ``E_r = (z - A xi)(z - A xi)^T + A Sigma A^T``.
 
     ``log_likelihood`` is a plug-in value (the augmented Gaussian evidence with the final ``E[lam]``,
-    truncation ignored); the filter is used on its own, not inside an IMM.
+    truncation ignored); the filter is used on its own, not inside an IMM. ``innovation`` is
+    ``z - H x- - delta c(nu)`` (as :class:`SkewTIWVBFilter`'s), ``innovation_cov`` the plug-in
+    ``H P- H^T + diag((r + delta^2 (1 - 2/pi)) / lam)``.
 
     Args:
         motion, measurement: linear models; ``measurement.R`` is the (diagonal) spread matrix.
@@ -266,6 +292,7 @@ class SkewTVBFilter(LinearVBFilter):
         x_pred, P_pred = belief.mean, belief.cov
         batch = broadcast_shape(x_pred.shape[:-1], z.shape[:-1])
         z_pred = matvec(H, x_pred)
+        present = torch.isfinite(z)
         missing, z = fill_missing(z, z_pred)
         observed = ~missing.unsqueeze(-1)  # from the data: a NaN prediction is a failure, not missing
         Hb = H.expand(*batch, m, n)
@@ -310,7 +337,7 @@ class SkewTVBFilter(LinearVBFilter):
         mean, cov, loglik, failed = keep_prior_where_missing(missing, belief, mean, cov, loglik)
         noise_var = (r + delta.square() * (1 - 2 / math.pi)) / lam
         return StepOutput(
-            GaussianBelief(mean, cov), belief, loglik, z - z_pred,
+            GaussianBelief(mean, cov), belief, loglik, _skew_innovation(z, z_pred, present, delta, nu),
             H @ P_pred @ H.mT + torch.diag_embed(noise_var),
             extras={"noise_cov": torch.diag_embed(noise_var), "predicted_cov": P_pred.expand(*batch, n, n),
                     "precision": lam, "skew": xi[..., n:], "singular": singular, "failed": failed},
