@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from torchmm.linalg import cholesky, half_log_det, sum_last
+from torchmm.linalg import cholesky, half_log_det, not_psd, sum_last
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
@@ -34,3 +34,29 @@ def test_half_log_det_is_half_the_log_determinant(m):
     S.requires_grad_(True)
     assert torch.autograd.gradcheck(lambda s: half_log_det(cholesky(s @ s.mT + torch.eye(m, dtype=s.dtype))),
                                     (A[0, 0].clone().requires_grad_(True),))
+
+
+@pytest.mark.parametrize("n", [1, 2, 4])
+def test_not_psd_matches_the_eigenvalues(n):
+    """Against numpy's eigenvalues: PSD, singular PSD, zero, rounding-level negative and any scale pass;
+    an eigenvalue of -1e-6 x the scale and below, and a NaN entry, fail."""
+    import numpy as np
+
+    g = torch.Generator().manual_seed(n)
+    Q = torch.linalg.qr(torch.randn(n, n, generator=g, dtype=torch.float64))[0]
+    cases = []
+    for low in (1.0, 0.0, -1e-14, -1e-6, -0.3, -5.0):
+        eig = torch.linspace(1.0, 2.0, n, dtype=torch.float64)
+        eig[0] = low
+        for scale in (1e-200, 1.0, 1e24):
+            cases.append(scale * (Q * eig) @ Q.T)
+    S = torch.stack(cases + [torch.zeros(n, n, dtype=torch.float64)])
+    S = 0.5 * (S + S.mT)
+    lo = np.linalg.eigvalsh(S.numpy()).min(-1)
+    big = np.abs(S.numpy()).max((-2, -1))
+    expected = lo < -1e-9 * big
+    assert expected.any() and not expected.all()
+    assert not_psd(S).tolist() == expected.tolist()
+    nan = S[:1].clone()
+    nan[0, 0, -1] = float("nan")
+    assert bool(not_psd(nan)[0])

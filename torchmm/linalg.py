@@ -27,8 +27,8 @@ from torch import Tensor
 
 from torchmm.runtime import host_reads_ok
 
-__all__ = ["any_observed", "check_joseph", "cholesky", "cholesky_diagonal", "cholesky_solve", "condition", "half_log_det", "psd_sqrt",
-           "solve_lower", "solve_right", "solve_lower_transposed", "sum_last", "symmetrize", "use_joseph"]
+__all__ = ["any_observed", "check_joseph", "cholesky", "cholesky_diagonal", "cholesky_solve", "condition", "half_log_det", "not_psd",
+           "psd_sqrt", "solve_lower", "solve_right", "solve_lower_transposed", "sum_last", "symmetrize", "use_joseph"]
 
 _LOG_2PI = math.log(2 * math.pi)
 
@@ -137,6 +137,21 @@ def flag_failed(log_likelihood: Tensor) -> Tensor:
     log-likelihood exactly 0, so missing data never fail. One elementwise op, no host read
     (``extras["failed"]``, docs/robustness.md)."""
     return torch.isnan(log_likelihood)
+
+
+def not_psd(S: Tensor) -> Tensor:
+    """``(...)`` True where the symmetric ``S (..., n, n)`` is not numerically positive
+    semi-definite: a non-finite entry, or an eigenvalue below about ``-sqrt(eps) s`` (``s =
+    max|S_ij|``), i.e. the Cholesky factorisation of ``S / s + sqrt(eps) I`` fails. Singular PSD
+    matrices (the zero matrix included) and negative eigenvalues of rounding size pass. One batched
+    ``cholesky_ex``, no host read (a filter's failure flag, docs/robustness.md).
+    """
+    finite = torch.isfinite(S).all(-1).all(-1)
+    S = torch.where(finite[..., None, None], S, torch.zeros((), dtype=S.dtype, device=S.device))
+    scale = S.abs().amax((-2, -1)).clamp_min(torch.finfo(S.dtype).tiny)
+    eye = torch.eye(S.shape[-1], dtype=S.dtype, device=S.device)
+    info = torch.linalg.cholesky_ex(S / scale[..., None, None] + math.sqrt(torch.finfo(S.dtype).eps) * eye)[1]
+    return ~finite | (info != 0)
 
 
 def any_observed(z: Tensor) -> Tensor:

@@ -216,6 +216,31 @@ def test_stvbf_innovation_is_centred_on_its_own_models_data():
     assert abs(inn.mean().item()) < 5 * se.item(), (inn.mean(), se)
 
 
+@pytest.mark.parametrize("outlier", [1e4, 1e12, 1e15])
+def test_skew_t_iw_fails_a_step_with_an_indefinite_posterior_instead_of_going_on(outlier):
+    """After an outlier of 1e12-1e15 the next step's posterior covariance was indefinite, unflagged,
+    with an ELBO up to +1.4e15, then NaN: now a step is either failed (NaN log-likelihood and
+    posterior, extras["failed"]) or has a PSD posterior and an ELBO below the density's bound."""
+    motion, sensor = ConstantVelocity(1, q=0.5), PositionMeasurement(2, [0], 2.0)
+    prior = GaussianBelief(torch.tensor([[0.0, 1.0]]), torch.eye(2).expand(1, 2, 2))
+    z = torch.randn(8, 1, 1, generator=torch.Generator().manual_seed(0))
+    z[2, 0] = outlier
+    f = SkewTIWVBFilter(motion, sensor, skewness=1.5, df=4.0, tau=3.0)
+    tr = run_filter(f, f.initial_belief(prior), z)
+    ll, failed, cov = tr.log_likelihood[:, 0], tr.extras["failed"][:, 0], tr.belief.cov[:, 0]
+    assert torch.equal(failed, torch.isnan(ll))
+    assert bool(torch.isnan(tr.belief.mean[failed]).all())
+    ok = ~failed
+    # ELBO <= log p(z) <= log max of the skew-t density (2 t(.; 0, delta^2 + r, nu) at its mode) < 0
+    assert bool((ll[ok] < 0).all()), ll
+    eig = np.linalg.eigvalsh(cov[ok].numpy())
+    assert (eig.min(-1) >= -1e-9 * np.abs(cov[ok].numpy()).max((-2, -1))).all(), eig
+    if outlier == 1e4:
+        assert not bool(failed.any())
+    else:  # the failure is reported at the step where the covariance broke, and after it
+        assert bool(failed[3:].all()) and not bool(failed[:3].any())
+
+
 def test_skew_t_iw_elbo_formula_matches_monte_carlo_over_q():
     """The closed-form ELBO (39) equals E_q[log p(z, x, P, u, lam) - log q] estimated by sampling q."""
     P_nom, r, delta, nu, tau, z = 2.0, 1.5, 2.0, 5.0, 3.0, 4.0

@@ -19,7 +19,7 @@ from torchmm.beliefs import GaussianBelief
 from torchmm.beliefs.ops import symmetrize
 from torchmm.distributions import skew_t_mean_factor, truncated_normal_entropy, truncated_normal_moments
 from torchmm.filters.base import StepOutput
-from torchmm.linalg import cholesky, condition, use_joseph
+from torchmm.linalg import cholesky, condition, not_psd, use_joseph
 from torchmm.models.base import MeasurementModel, MotionModel
 from torchmm.models.linear import matvec
 from torchmm.validation import as_float, broadcast_shape
@@ -90,7 +90,9 @@ class SkewTIWVBFilter(LinearVBFilter):
     ``innovation`` is ``z - E[z | past] = z - H x- - delta c(nu)`` (``delta c(nu)`` the skew noise's
     mean, :func:`~torchmm.distributions.skew_t_mean_factor`; NaN where a component is missing or
     its noise has no mean, ``nu <= 1`` and ``delta != 0``); ``innovation_cov`` is the plug-in
-    ``H P^ H^T + noise_cov`` (an approximation of its covariance, docs/variational.md).
+    ``H P^ H^T + noise_cov`` (an approximation of its covariance, docs/variational.md). A step whose
+    posterior covariance is not numerically PSD or whose ELBO is not finite fails (NaN
+    log-likelihood and posterior, ``extras["failed"]``; docs/robustness.md).
 
     Args:
         motion: linear motion (bank allowed) with the nominal process noise ``Q_0``.
@@ -195,7 +197,14 @@ class SkewTIWVBFilter(LinearVBFilter):
         extras = {"predicted_cov": P_hat, "noise_cov": torch.diag_embed(noise_var), "precision": lam,
                   "skew": Eu, "u_loc": u_loc, "u_scale": u_scale, "gamma_rate": rate_b, "singular": singular}
         record_elbo(extras, elbos, history, "SkewTIWVBFilter")
-        mean, cov, loglik, failed = keep_prior_where_missing(missing, belief, mean, cov, elbos[-1])
+        # a posterior covariance that is not PSD (e.g. after an outlier of ~1e12 x the noise scale) or a
+        # non-finite ELBO: the update failed (NaN log-likelihood and posterior, extras["failed"])
+        broken = not_psd(cov) | ~torch.isfinite(elbos[-1])
+        nan = torch.full((), math.nan, dtype=cov.dtype, device=cov.device)
+        loglik = torch.where(broken, nan, elbos[-1])
+        mean = torch.where(broken.unsqueeze(-1), nan, mean)
+        cov = torch.where(broken[..., None, None], nan, cov)
+        mean, cov, loglik, failed = keep_prior_where_missing(missing, belief, mean, cov, loglik)
         extras["failed"] = failed
         innovation = _skew_innovation(z, z_pred, present, delta, nu)
         return StepOutput(GaussianBelief(mean, cov), belief, loglik, innovation,
