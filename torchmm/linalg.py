@@ -27,8 +27,9 @@ from torch import Tensor
 
 from torchmm.runtime import host_reads_ok
 
-__all__ = ["any_observed", "check_joseph", "cholesky", "cholesky_diagonal", "cholesky_solve", "condition", "half_log_det", "not_psd",
-           "psd_sqrt", "solve_lower", "solve_right", "solve_lower_transposed", "sum_last", "symmetrize", "use_joseph"]
+__all__ = ["any_observed", "check_joseph", "cholesky", "cholesky_diagonal", "cholesky_solve", "condition",
+           "half_log_det", "not_psd", "psd_sqrt", "solve_lower", "solve_right", "solve_lower_transposed",
+           "sum_last", "symmetrize", "use_joseph"]
 
 _LOG_2PI = math.log(2 * math.pi)
 
