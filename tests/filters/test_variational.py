@@ -241,6 +241,28 @@ def test_skew_t_iw_fails_a_step_with_an_indefinite_posterior_instead_of_going_on
         assert bool(failed[3:].all()) and not bool(failed[:3].any())
 
 
+@pytest.mark.parametrize("iterations", [1, 3, 10])
+def test_stvbf_log_likelihood_is_the_evidence_with_the_last_iterations_starting_precision(iterations):
+    """The documented plug-in: N(z; H x-, H P- H^T + Delta diag(1/lam) Delta + diag(r/lam)) with the
+    E[lam] the last iteration started from (1 for one iteration; else the precision of a run with one
+    iteration fewer), by scipy."""
+    motion, sensor = ConstantVelocity(2, q=0.5), PositionMeasurement(4, [0, 2], 2.0)
+    belief = GaussianBelief(torch.zeros(3, 4), torch.eye(4).expand(3, 4, 4))
+    z = torch.tensor([[0.5, -0.3], [4.0, 1.0], [12.0, -9.0]])
+    delta, r = 1.5, 2.0
+    out = SkewTVBFilter(motion, sensor, skewness=delta, df=4.0, iterations=iterations).update(belief, z)
+    if iterations == 1:
+        lam = torch.ones(3, 2)
+    else:
+        lam = SkewTVBFilter(motion, sensor, skewness=delta, df=4.0, iterations=iterations - 1).update(
+            belief, z).extras["precision"]
+    H = sensor.H.numpy()
+    for k in range(3):
+        S = H @ belief.cov[k].numpy() @ H.T + np.diag((delta**2 + r) / lam[k].numpy())
+        ref = stats.multivariate_normal(H @ belief.mean[k].numpy(), S).logpdf(z[k].numpy())
+        assert out.log_likelihood[k].item() == pytest.approx(ref, rel=1e-10)
+
+
 def test_skew_t_iw_elbo_formula_matches_monte_carlo_over_q():
     """The closed-form ELBO (39) equals E_q[log p(z, x, P, u, lam) - log q] estimated by sampling q."""
     P_nom, r, delta, nu, tau, z = 2.0, 1.5, 2.0, 5.0, 3.0, 4.0

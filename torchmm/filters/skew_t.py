@@ -251,8 +251,11 @@ class SkewTVBFilter(LinearVBFilter):
     ``q(lam_i) = Ga(nu_i/2 + 1, nu_i/2 + ([E_r]_ii / r_i + E[u_i^2])/2)`` with
     ``E_r = (z - A xi)(z - A xi)^T + A Sigma A^T``.
 
-    ``log_likelihood`` is a plug-in value (the augmented Gaussian evidence with the final ``E[lam]``,
-    truncation ignored); the filter is used on its own, not inside an IMM. ``innovation`` is
+    ``log_likelihood`` is a plug-in value: the Gaussian evidence of the last iteration's augmented
+    update, ``N(z; H x-, H P- H^T + Delta diag(1/lam) Delta + diag(r/lam))`` with the ``E[lam]`` that
+    iteration started from (before the final ``q(Lambda)`` update, whose ``E[lam]`` is
+    ``extras["precision"]``), ``u``'s prior mean 0 and the truncation ignored; the filter is used on
+    its own, not inside an IMM. ``innovation`` is
     ``z - H x- - delta c(nu)`` (as :class:`SkewTIWVBFilter`'s), ``innovation_cov`` the plug-in
     ``H P- H^T + diag((r + delta^2 (1 - 2/pi)) / lam)``.
 
