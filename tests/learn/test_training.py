@@ -166,6 +166,15 @@ def test_minibatches_and_bad_arguments():
     assert len(history) == 2 and all(math.isfinite(r.loss) for r in history)
     with pytest.raises(ValueError, match="batch_size"):
         trainer.fit(prior, z, 1, batch_size=13)
+    # a belief0 batch of neither 1 nor the 12 sequences: a ValueError naming belief0 with batch_size
+    # too (it was a raw RuntimeError from expand); 1 sequence is shared by all
+    bad = GaussianBelief(prior.mean[:5], prior.cov[:5])
+    for size in (None, 4):
+        with pytest.raises(ValueError, match="belief0" if size else "measurements"):
+            trainer.fit(bad, z, 1, batch_size=size)
+    one = GaussianBelief(prior.mean[:1], prior.cov[:1])
+    records = trainer.fit(one, z, 1, batch_size=4, generator=torch.Generator().manual_seed(1))
+    assert math.isfinite(records[0].loss)
     with pytest.raises(ValueError, match="window"):
         Trainer(kf, torch.optim.Adam(kf.parameters()), window=0)
     with pytest.raises(ValueError, match="clip_grad_norm"):

@@ -289,6 +289,10 @@ class Trainer:
         if batch_size is not None and not 0 < batch_size <= runs:
             raise ValueError(f"batch_size: must lie in 1..{runs}, got {batch_size}")
         belief0 = as_start_belief(self.filter, belief0)
+        batch = belief0.batch_shape
+        if batch_size is not None and len(batch) and batch[0] not in (1, runs):
+            raise ValueError(f"belief0: batch shape {tuple(batch)}, but measurements have {runs} sequences "
+                             f"(axis 1); with batch_size its first batch axis must be 1 or {runs}")
         segments = truncated_segments(steps, self.window)
         records = []
         bar = tqdm(total=iterations, desc=progress if isinstance(progress, str) else "Trainer.fit", leave=False,
