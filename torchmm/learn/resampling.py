@@ -18,6 +18,14 @@ keeps the particles' weights and draws ancestors uniformly. Ancestors come from 
 :class:`~torchmm.filters.particle.ParticleFilter` with this resampling step, so the particle
 estimate of the log-likelihood can be trained through (the particles themselves are
 reparametrised: ``x = f(x) + L eps``).
+
+Its likelihood is not the unbiased particle estimate of ``p(z_1:T)`` for ``0 < alpha < 1`` (nor does
+Karkus et al.'s method claim it): the corrected weights are normalised, which drops the factor
+``F = (1/N) sum_j w_{a_j} / q_{a_j}`` (expectation 1) that an unbiased estimate would carry into the
+next evidence, so ``exp(log_likelihood)`` estimates ``p(z_1:T)`` times ``1 / prod_t F_t``. Measured
+``E[p^ / p]`` (Kalman reference, 10 particles, 8 steps, 40,000 runs): 1.050 +- 0.017 at ``alpha = 0.2``,
+1.006 +- 0.013 at 0.5, 1.013 +- 0.015 at 0.8. ``alpha = 1``, and ``alpha = 0`` with a scheme that draws
+every particle once from a uniform ``q`` (systematic, stratified), have ``F = 1`` exactly.
 """
 
 from __future__ import annotations
