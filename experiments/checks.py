@@ -23,8 +23,8 @@ from omegaconf.errors import (
     OmegaConfBaseException,
 )
 
-__all__ = ["NO_VALUE", "Check", "ConfigError", "both", "check_fields", "device_name", "each", "join_key", "matrix",
-           "merge", "non_empty", "non_negative", "one_of", "open_probability", "positive", "positive_int",
+__all__ = ["NO_VALUE", "Check", "ConfigError", "both", "build_error", "check_fields", "device_name", "each", "join_key",
+           "matrix", "merge", "non_empty", "non_negative", "one_of", "open_probability", "positive", "positive_int",
            "probability", "resume_value", "schema_at", "seed_value", "show_value", "spec", "type_message"]
 
 
@@ -232,6 +232,35 @@ def type_message(err: OmegaConfBaseException) -> str:
         if word in msg:
             return text
     return msg
+
+
+def build_error(key: str, node: Any, err: BaseException, aliases: dict | None = None) -> ConfigError:
+    """The one-line :class:`ConfigError` for ``err``, raised while building the config node at ``key``
+    (a mapping of the constructor's keywords) before anything runs (:func:`experiments.config.dry_build`).
+
+    A constructor names the argument it refuses first (``mode: 7 is not one of the scenario's 3 modes``):
+    when that name is one of the node's keys, or is mapped to one by ``aliases`` (the library argument ->
+    the node's key, e.g. ``{"Q_eta": "eta_std"}``), the error names that key and its value; otherwise
+    the node itself "cannot be built", with the constructor's first line. A :class:`ConfigError` (and
+    one that Hydra's ``InstantiationException`` wraps) is returned as it is."""
+    cause = err
+    if type(err).__name__ == "InstantiationException" and err.__cause__ is not None:
+        cause = err.__cause__
+    if isinstance(cause, ConfigError):
+        return cause
+    lines = str(cause).strip().splitlines()
+    first = lines[0] if lines else type(cause).__name__
+    head, sep, rest = first.partition(": ")
+    head = head[len(key) + 1:] if head.startswith(f"{key}.") else head  # (a message naming the full key)
+    name = (aliases or {}).get(head, head)
+    if sep and rest and hasattr(node, "keys") and name in node:
+        value = node[name]
+        value = OmegaConf.to_container(value, resolve=True) if OmegaConf.is_config(value) else value
+        shown = show_value(value)
+        rest = rest[len(shown) + 1:] if rest.startswith(f"{shown} ") else rest
+        return ConfigError(join_key(key, name), value, rest)
+    target = node.get("_target_") if hasattr(node, "get") else None
+    return ConfigError(key, target if target else NO_VALUE, f"cannot be built: {first}")
 
 
 def join_key(prefix: str, key: str) -> str:

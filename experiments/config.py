@@ -37,6 +37,7 @@ from experiments.checks import (  # noqa: F401 - re-exported: the checks studies
     Check,
     ConfigError,
     both,
+    build_error,
     check_fields,
     device_name,
     each,
@@ -218,8 +219,9 @@ def validate(cfg: DictConfig | dict, *, scenario_choice: str | None = None, refe
 
 def dry_build(data: dict, *, scenario: bool = True) -> None:
     """Build what the run will build from the config, before anything runs: the ``scenario`` (its
-    models, sensors, prior and data file) and whatever the study's module checks in
-    ``check_build(cfg, scenario)`` (``compare``: every estimator and the ``learn`` block), in the
+    models, sensors, prior and data file) and what the study's ``check_build(cfg, scenario)`` builds
+    (``BUILD_CHECKS`` of :mod:`experiments.schemas`: every estimator on its scenario(s), ``compare``'s
+    ``learn`` block, the fusion studies' systems; a study of one's own: its module's), in the
     run's dtype on the CPU. A value only a constructor can judge (a covariance that is not PSD, an
     ``R`` of the wrong shape, a sensor whose size differs from the data's, a ``learn`` entry naming no
     model or parameter) is then one :class:`ConfigError` naming the key, before any folder exists.

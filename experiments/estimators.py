@@ -85,7 +85,12 @@ def build_mode_filter(factory, motion, measurement, *, joseph: bool = False) -> 
 def _transition(scenario, transition) -> Tensor:
     if transition is None:
         return scenario.transition
-    return torch.as_tensor(transition, dtype=scenario.transition.dtype, device=scenario.transition.device)
+    matrix = torch.as_tensor(transition, dtype=scenario.transition.dtype, device=scenario.transition.device)
+    M = int(scenario.transition.shape[-1]) if isinstance(scenario.transition, Tensor) else int(matrix.shape[-1])
+    if tuple(matrix.shape) != (M, M):
+        raise ValueError(f"transition: expected {M} x {M} (the scenario's {M} modes), got "
+                         f"{' x '.join(map(str, matrix.shape))}")
+    return matrix
 
 
 def _multiple_model(build, scenario, name, transition, joseph, factory, smooth=False) -> Estimator:
@@ -135,6 +140,9 @@ def kalman(scenario, *, name: str = "KF", mode: int = 0, joseph: bool = False, t
             raise ValueError(f"mode: {mode} is not a mode of a one-mode scenario")
         model = scenario.motion
     else:
+        count = int(scenario.motion.param_batch_shape[0])
+        if not 0 <= mode < count:
+            raise ValueError(f"mode: {mode} is not one of the scenario's {count} modes (0 to {count - 1})")
         model = scenario.motion.select_mode(mode)
     sensor = scenario.measurement[mode] if isinstance(scenario.measurement, (list, tuple)) else scenario.measurement
     filt = build_mode_filter(mode_filter, model, sensor, joseph=joseph)

@@ -62,10 +62,15 @@ from experiments.schemas_papers import (  # (the published papers' studies, by s
 from experiments.schemas_tracking import Tracking  # (the tracking study's keys, by study)
 
 
-#: the studies whose config is also built dry before anything runs (experiments.config.dry_build), beyond
-#: the scenario every study's precheck builds: study -> its check_build(cfg, scenario)
+#: what each study builds from its config, built dry before anything runs (experiments.config.dry_build), beyond
+#: the scenario every study's precheck builds: study -> its check_build(cfg, scenario) (the published studies':
+#: experiments/study_builds.py; every study of STUDIES has one: tests/experiments/test_config_dry_build.py)
 BUILD_CHECKS = {"experiments.studies.compare.run": "experiments.studies.compare.check_build",
-                "experiments.studies.tracking.run": "experiments.studies.tracking.check_build"}
+                "experiments.studies.tracking.run": "experiments.studies.tracking.check_build",
+                **{f"experiments.studies.{study}.run": f"experiments.study_builds.{study}" for study in (
+                    "imm_baseline", "imm_tf", "imm_analysis", "gimmaf", "learn_dynamics", "mevsmm", "fusion_radar",
+                    "fusion_ups", "smoothing")},
+                "experiments.studies.vbakf_huang.run": None}  # (its config: numbers the schema ranges)
 
 
 # -- estimators (conf/estimator/*.yaml) ------------------------------------------------------------

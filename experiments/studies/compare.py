@@ -179,20 +179,15 @@ def check_build(cfg, scenario) -> None:
     """The config's dry construction before anything runs (:func:`experiments.config.dry_build`): every
     estimator built on ``scenario``, and each learning estimator's ``learn.parameters`` made learnable
     on its own copy of the models; a failure is one ``ConfigError`` naming the key."""
-    from experiments.config import ConfigError
+    from experiments.config import ConfigError, build_error
 
     if scenario is None:
         return
     for name in cfg.estimators:
         try:
             instantiate(cfg.estimators[name])(scenario, name=name)
-        except ConfigError:
-            raise
-        except Exception as err:  # noqa: BLE001 - any constructor's error, named by the estimator's key
-            cause = err.__cause__ if type(err).__name__ == "InstantiationException" and err.__cause__ else err
-            text = str(cause).strip().splitlines()
-            raise ConfigError(f"estimators.{name}", cfg.estimators[name].get("_target_"),
-                              f"cannot be built: {text[0] if text else type(cause).__name__}") from None
+        except Exception as err:  # noqa: BLE001 - any constructor's error, named by the estimator's (sub)key
+            raise build_error(f"estimators.{name}", cfg.estimators[name], err) from None
     if scenario.data is not None and scenario.data.inputs is not None:
         motions = scenario.motion if isinstance(scenario.motion, list) else [scenario.motion]
         k = scenario.data.inputs.shape[-1]

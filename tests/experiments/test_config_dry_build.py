@@ -56,7 +56,7 @@ CASES = [
     (["learn={parameters:[{name:transition,kind:free}]}"], "learn.parameters[0].kind=free"),
     (["learn={parameters:[{name:H}]}"], "learn.parameters[0].model"),
     (["learn={parameters:[{model:'modes[0]',name:Q}],estimators:[nope]}"], "learn.estimators="),
-    (["estimators.KF-CV.mode=7"], "estimators.KF-CV="),
+    (["estimators.KF-CV.mode=7"], "estimators.KF-CV.mode=7: is not one of the scenario's 3 modes"),
     (["scenario.initial_mode_probs=[0.5,0.5]"], "scenario.initial_mode_probs=[0.5, 0.5]: expected 3 probabilities"),
     (["learn={parameters:[{model:'modes[0]',name:F}],method:gradient}"], "learn.parameters[0].name=F: method gradient"),
     (["learn={parameters:[{model:'modes[0]',name:Z}]}"], "learn.parameters[0].name=Z: no mode model"),
@@ -155,3 +155,41 @@ def test_a_manoeuvre_that_ends_before_it_starts_is_refused(tmp_path, capsys):
         precheck(["experiment=tracking", "tracking.maneuver_start=30", "tracking.maneuver_stop=20",
                   f"hydra.run.dir={tmp_path / 'run'}"], CONFIG_DIR)
     assert capsys.readouterr().err.startswith("torchmm-run: error: tracking.maneuver_start=30: is after maneuver_stop")
+
+
+# -- every study's config built dry (the audit of the config errors: each case ran the study's code after
+# creating its folder and failed with a traceback and exit 1, or was accepted and then ignored or lost)
+def _study(name: str, *overrides: str) -> list[str]:
+    return [f"experiment={name}", f"debug={name}", "logger=none", "figures=false", "progress=false", *overrides]
+
+
+STUDY_CASES = [
+    # (the command line, the start of the one line); before: a traceback after the run folder was made
+    (_study("quickstart", "estimators.KF.mode=2"), "estimators.KF.mode=2: is not one of the scenario's 2 modes"),
+    (_study("imm_baseline", "estimators.KF.mode=3"), "estimators.KF.mode=3: is not one of the scenario's 3 modes"),
+    (_study("imm_baseline", "estimators.IMM.transition=[[0.5,0.5],[0.5,0.5]]"),
+     "estimators.IMM.transition=[[0.5, 0.5], [0.5, 0.5]]: expected 3 x 3"),
+]
+
+
+@pytest.mark.parametrize("argv, start", STUDY_CASES, ids=[" ".join(a[5:]) for a, _ in STUDY_CASES])
+def test_each_study_config_error_is_one_line_before_any_folder(tmp_path, capsys, argv, start):
+    with pytest.raises(SystemExit) as stop:
+        precheck([*argv, f"hydra.run.dir={tmp_path / 'run'}"], CONFIG_DIR)
+    assert stop.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith(f"torchmm-run: error: {start}"), err
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("name", sorted(p.stem for p in (Path(CONFIG_DIR) / "debug").glob("*.yaml")))
+def test_every_debug_config_passes_the_dry_build(name):
+    """The small configs the fast tests run (debug=<study>) pass every check and dry build (mevsmm's
+    histogram steps lie within its shortened scenario)."""
+    precheck(_study(name), CONFIG_DIR)
+
+
+def test_every_registered_study_names_its_dry_build():
+    from experiments.schemas import BUILD_CHECKS, STUDIES
+
+    assert set(STUDIES) <= set(BUILD_CHECKS)
