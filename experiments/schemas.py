@@ -16,8 +16,8 @@ constructors the study calls (with errors naming the library argument).
 
 Split by concern (issue 47): here the estimators, the compare, learn-dynamics and smoothing studies and
 ``STUDIES``; the config groups' nodes and the scenario builders in :mod:`experiments.schemas_groups`; the
-published papers' studies in :mod:`experiments.schemas_papers`; the tracking study in
-:mod:`experiments.schemas_tracking`.
+published papers' studies in :mod:`experiments.schemas_papers` (the fusion studies in
+:mod:`experiments.schemas_fusion`); the tracking study in :mod:`experiments.schemas_tracking`.
 """
 
 from __future__ import annotations
@@ -49,9 +49,8 @@ from experiments.schemas_groups import (  # (the scenario builders' names and sc
     SYSTEM,
     rows_stochastic,
 )
+from experiments.schemas_fusion import FusionRadar, FusionUps  # (the fusion studies)
 from experiments.schemas_papers import (  # (the published papers' studies, by study)
-    FusionRadar,
-    FusionUps,
     Gimmaf,
     ImmAnalysis,
     ImmBaseline,
@@ -220,6 +219,12 @@ class LearnScenario:
     stay: float = spec(MISSING, open_probability)
     initial_mean: List[float] = MISSING
     initial_std: List[float] = spec(MISSING, check=each(non_negative))
+
+    def config_check(self):  # the 4-state [x, vx, y, vy] target of experiments.scenarios.turning_2d
+        for key in ("initial_mean", "initial_std"):
+            if len(getattr(self, key)) != 4:
+                return key, getattr(self, key), "expected 4 numbers (one per state: x, vx, y, vy)"
+        return None
 
 
 @dataclass

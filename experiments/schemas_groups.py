@@ -137,6 +137,9 @@ class KinematicScenario:
         if self.initial_mode_probs is not None and len(self.initial_mode_probs) != len(self.accelerations):
             return ("initial_mode_probs", self.initial_mode_probs,
                     f"expected {len(self.accelerations)} probabilities (one per mode)")
+        if self.initial_mode_probs is not None and (any(p < 0 for p in self.initial_mode_probs)
+                                                    or abs(sum(self.initial_mode_probs) - 1) > 1e-6):
+            return "initial_mode_probs", self.initial_mode_probs, "must be non-negative and sum to 1"
         return None
 
 
@@ -160,6 +163,20 @@ class Paper003Scenario:
     maneuvers: List[Any] = field(default_factory=list)
     random: Optional[RandomManeuvers] = None
     D: str = spec("kinematic", one_of("kinematic", "printed"))
+
+    def config_check(self):  # the 4-state [x, vx, y, vy] target; maneuvers' 1-based, inclusive seconds
+        if len(self.initial_state) != 4:
+            return "initial_state", self.initial_state, "expected 4 numbers: [x, vx, y, vy]"
+        if self.initial_std is not None and len(self.initial_std) != 2:
+            return "initial_std", self.initial_std, "expected 2 numbers: [position std, velocity std]"
+        for i, m in enumerate(self.maneuvers):
+            ok = isinstance(m, list) and len(m) == 3 and all(isinstance(v, int) and not isinstance(v, bool)
+                                                             for v in m[:2])
+            if not ok or not isinstance(m[2], list) or len(m[2]) != 2:
+                return f"maneuvers[{i}]", m, "expected [first second, last second, [a_x, a_y]]"
+            if not 1 <= m[0] <= m[1]:  # (past steps: cut off, e.g. a shorter run)
+                return f"maneuvers[{i}]", m, "needs 1 <= first <= last (1-based, inclusive seconds)"
+        return None
 
 
 SYSTEM = "experiments.scenarios.system"

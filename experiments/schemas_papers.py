@@ -1,6 +1,7 @@
 """The published papers' studies' keys (IMM-TF and its baseline, the IMM analysis, GIMMAF and the VBAKF
-comparison, MEVSMM, the two fusion studies), split from :mod:`experiments.schemas` by study (issue 47), which
-lists them in ``STUDIES``: the same rules as there (a key the YAML sets has no default here, ``MISSING``)."""
+comparison, MEVSMM), split from :mod:`experiments.schemas` by study (issue 47), which lists them in
+``STUDIES``: the same rules as there (a key the YAML sets has no default here, ``MISSING``). The two fusion
+studies' keys: :mod:`experiments.schemas_fusion`."""
 
 from __future__ import annotations
 
@@ -106,6 +107,21 @@ class ImmTf:
             gate = node.get("gate")
             if isinstance(gate, dict) and gate.get("_target_") == "torchmm.InfluenceGate":
                 merge(Influence, {k: v for k, v in gate.items() if not k.startswith("_")}, f"{prefix}.gate")
+        # mode indices within the scenario's modes, named by the key a user sets (the nodes interpolate them;
+        # a node's own value after: before, the run failed after creating its folder)
+        modes = len((data.get("scenario") or {}).get("accelerations") or ())
+        if modes:
+            for key, value in (("transfer.influence.mode", data["transfer"]["influence"]["mode"]),
+                               ("vsimm.extra_model", data["vsimm"]["extra_model"])):
+                if not 0 <= value < modes:
+                    raise ConfigError(key, value, f"must be a mode index in [0, {modes}) (the scenario's {modes} modes)")
+            for name, node in (data.get("tf_estimators") or {}).items():
+                gate = node.get("gate") if isinstance(node.get("gate"), dict) else {}
+                for key, value in ((f"tf_estimators.{name}.gate.mode", gate.get("mode")),
+                                   (f"tf_estimators.{name}.extra_model", node.get("extra_model"))):
+                    if isinstance(value, int) and not 0 <= value < modes:
+                        raise ConfigError(key, value, f"must be a mode index in [0, {modes}) (the scenario's {modes} "
+                                          "modes)")
 
 
 @dataclass
@@ -225,6 +241,14 @@ class GimmafSection:
         if len(self.transition) != len(self.model_rates):
             return ("transition", self.transition,
                     f"must be {len(self.model_rates)} x {len(self.model_rates)}: one row per model rate")
+        for i, row in enumerate(self.segments):  # Table 1's rows (before: a bad one failed in the study)
+            if len(row) != 4:
+                return f"segments[{i}]", row, "expected [first step, last step, turn rate, process-noise variance]"
+            first, last, _, q = row
+            if first != int(first) or last != int(last) or not 1 <= first <= last:  # (past steps: cut off)
+                return f"segments[{i}]", row, "needs whole steps 1 <= first <= last (1-based, inclusive)"
+            if q < 0:
+                return f"segments[{i}]", row, f"the process-noise variance {q} must be non-negative"
         return None
 
 
@@ -388,81 +412,3 @@ class Mevsmm:
                 merge(ModeFilter, est.mode_filter, f"{prefix}.mode_filter")
             if isinstance(est.policy, dict):
                 merge(Policy, est.policy, f"{prefix}.policy")
-
-
-@dataclass
-class Radar:
-    steps: int = spec(MISSING, positive_int)
-    T: float = spec(MISSING, positive)
-    rho: List[float] = spec(MISSING, check=lambda v: None if len(v) == 2 else
-                            "expected 2 numbers (the x and y acceleration correlations)")
-    tau: float = spec(MISSING, positive)
-    h_sign: int = spec(MISSING, lambda v: None if v in (-1, 1) else "expected -1 or 1")
-    h_factor: List[float] = MISSING
-    sigma_r: List[float] = spec(MISSING, check=each(non_negative))
-    Qr0: Optional[List[float]] = MISSING
-    eta_std: List[Any] = spec(MISSING, check=matrix_check)
-    Qw_diag: List[float] = spec(MISSING, check=each(non_negative))
-    x0: List[float] = MISSING
-    P0_diag: List[float] = spec(MISSING, check=each(non_negative))
-    position_index: int = spec(MISSING, non_negative)
-    C: List[Any] = MISSING
-    Ct: List[Any] = MISSING
-    d: List[Any] = MISSING
-
-    def config_check(self):  # the 6-state model's vectors (issue 30: a short one failed in the study)
-        for key in ("x0", "P0_diag", "Qw_diag"):
-            if len(getattr(self, key)) != 6:
-                return key, getattr(self, key), "expected 6 numbers (one per state)"
-        if len(self.h_factor) != len(self.sigma_r):
-            sensors = len(self.sigma_r)
-            return "h_factor", self.h_factor, f"expected {sensors} numbers (one per sensor, as sigma_r)"
-        return None
-
-
-@dataclass
-class FusionRadar:
-    radar: Radar = field(default_factory=Radar)
-
-
-@dataclass
-class Ups:
-    steps: int = spec(MISSING, positive_int)
-    burn_in: int = spec(MISSING, non_negative)
-    horizons: List[int] = spec(MISSING, check=lambda v: None if 0 in v else
-                               "must include 0 (the filter; negative: smoothing lags, positive: predictions)")
-    ss_tol: float = spec(MISSING, positive)
-    cf_ss_steps: int = spec(MISSING, positive_int)
-    A: List[Any] = spec(MISSING, check=matrix_check)
-    Gamma: List[Any] = spec(MISSING, check=matrix_check)
-    Qw: float = spec(MISSING, non_negative)
-    C: List[float] = MISSING
-    Ct: List[Any] = spec(MISSING, check=matrix_check)
-    h: List[float] = MISSING
-    Qp: List[float] = spec(MISSING, check=each(non_negative))
-    d: List[float] = MISSING
-    Q_eta: List[float] = spec(MISSING, check=each(positive))
-    mu0: List[float] = MISSING
-    P0_scale: float = spec(MISSING, non_negative)
-    Qr0: Optional[List[float]] = MISSING
-
-    def config_check(self):  # sizes (issue 30: a short vector failed in the study, with a traceback)
-        n, sensors = len(self.A), len(self.Ct)
-        for key, size in (("C", n), ("mu0", n), ("h", sensors), ("Qp", sensors), ("d", sensors),
-                          ("Q_eta", sensors)):
-            if len(getattr(self, key)) != size:
-                unit = "state" if key in ("C", "mu0") else "sensor"
-                return key, getattr(self, key), f"expected {size} numbers (one per {unit})"
-        return None
-
-
-@dataclass
-class FusionUps:
-    ups: Ups = field(default_factory=Ups)
-
-    @staticmethod
-    def check(data: dict) -> None:
-        ups = data["ups"]
-        if ups["burn_in"] >= ups["steps"]:
-            raise ConfigError("ups.burn_in", ups["burn_in"], f"must be below ups.steps = {ups['steps']}")
-
