@@ -269,6 +269,8 @@ class LearnDynamics:
 #: the builders of ``mevsmm.estimators`` nodes (conf/mevsmm_estimator/*.yaml)
 
 TURNING = "experiments.scenarios.turning_2d"
+#: the single-filter builder (the smoothing study sets its ``mode``)
+SINGLE = "experiments.estimators.kalman"
 
 
 @dataclass
@@ -289,6 +291,10 @@ class Smoothing:
     def check(data: dict) -> None:
 
         sm = data["smoothing"]
+        for name, est in (data.get("estimators") or {}).items():  # (before: accepted, then replaced)
+            if isinstance(est, dict) and est.get("_target_") == SINGLE and est.get("mode") not in (None, 0):
+                raise ConfigError(f"estimators.{name}.mode", est["mode"], "not used: the smoothing study runs each "
+                                  "single filter on its scenario's smoothing.cv_mode (set smoothing.cv_mode.<scenario>)")
         missing = [k for k in sm["scenarios"] if k not in (sm.get("cv_mode") or {})]
         if missing:
             raise ConfigError("smoothing.cv_mode", sm.get("cv_mode"),

@@ -152,6 +152,11 @@ class ImmAnalysis:
 
     @staticmethod
     def check(data: dict) -> None:
+        for key, est in (data.get("estimators") or {}).items():  # (before: accepted, then replaced)
+            if isinstance(est, dict) and est.get("transition") is not None:
+                raise ConfigError(f"estimators.{key}.transition", est["transition"], "not used: the imm_analysis "
+                                  "study sweeps the transition matrix (2.2) over analysis.alphas.two_model and "
+                                  "analysis.alphas.three_model")
         name = data["analysis"]["interaction_estimator"]
         if name not in (data.get("estimators") or {}):
             raise ConfigError("analysis.interaction_estimator", name,
@@ -388,6 +393,11 @@ class Mevsmm:
         if opts["num_winners"] > 21 * opts["num_particles"]:
             raise ConfigError("mevsmm.num_winners", opts["num_winners"],
                               f"must not exceed the 21 x {opts['num_particles']} particles")
+        steps = (data.get("scenario") or {}).get("steps")
+        late = [k for k in opts["histogram_steps"] if isinstance(steps, int) and k > steps]
+        if late:  # (before: no histogram at those steps, silently)
+            raise ConfigError("mevsmm.histogram_steps", opts["histogram_steps"],
+                              f"entries {late} lie past the scenario's last step (scenario.steps = {steps})")
         names = list(opts["estimators"])
         for name in opts.get("estimator_names") or ():
             if name not in names:

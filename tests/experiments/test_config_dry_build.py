@@ -190,6 +190,16 @@ STUDY_CASES = [
     (_study("learn_dynamics", "learn.scenario.initial_mean=[0,15]"),
      "learn.scenario.initial_mean=[0.0, 15.0]: expected 4 numbers"),
     (_study("mevsmm", "scenario.initial_state=[1,2]"), "scenario.initial_state=[1.0, 2.0]: expected 4 numbers"),
+    # before: accepted, then replaced by another key or part of the output silently lost
+    (_study("smoothing", "estimators.KF.mode=7"), "estimators.KF.mode=7: not used: the smoothing study runs each "
+                                                  "single filter on its scenario's smoothing.cv_mode"),
+    (_study("imm_analysis", "estimators.IMM.transition=[[0.5,0.5,0.0],[0.5,0.5,0.0],[0,0,1]]"),
+     "estimators.IMM.transition=[[0.5, 0.5, 0.0], [0.5, 0.5, 0.0], [0, 0, 1]]: not used: the imm_analysis study "
+     "sweeps the transition matrix"),
+    (_study("markov_switching", "scenario.labels=[a]"), "scenario.labels=['a']: needs one name per regime (2"),
+    (_study("markov_switching", "scenario.labels=[a,a]"), "scenario.labels=['a', 'a']: the regimes' names must differ"),
+    (_study("mevsmm", "mevsmm.histogram_steps=[500]"),
+     "mevsmm.histogram_steps=[500]: entries [500] lie past the scenario's last step (scenario.steps = 120)"),
     (_study("mevsmm", "scenario.maneuvers=[[31,20,[1.0,1.0]]]"),
      "scenario.maneuvers[0]=[31, 20, [1.0, 1.0]]: needs 1 <= first <= last"),
 ]
