@@ -379,27 +379,63 @@ def _override_for(key: str, overrides: list[str]) -> str | None:
     return None
 
 
-def _close_keys(key: str, other_overrides: list[str]) -> str | None:
-    """The existing key closest to a misspelt ``key`` (composing the config without it)."""
+def _composed(other_overrides: list[str]) -> DictConfig | None:
+    """The config composed without the refused override (for hints only; None if that fails too)."""
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
     from experiments.paths import CONFIG_DIR
 
-    parent, _, leaf = key.rpartition(".")
     GlobalHydra.instance().clear()
     try:
         with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
-            cfg = compose("config", overrides=other_overrides)
-        node = OmegaConf.select(cfg, parent) if parent else cfg
+            return compose("config", overrides=other_overrides)
     except Exception:  # noqa: BLE001 - only a hint
         return None
     finally:
         GlobalHydra.instance().clear()
+
+
+def _close_keys(key: str, cfg: DictConfig | None) -> str | None:
+    """The existing key of ``cfg`` closest to a misspelt ``key``."""
+    parent, _, leaf = key.rpartition(".")
+    try:
+        node = OmegaConf.select(cfg, parent) if parent else cfg
+    except Exception:  # noqa: BLE001 - only a hint
+        return None
     if not isinstance(node, DictConfig):
         return None
     close = difflib.get_close_matches(leaf, [str(k) for k in node.keys()], n=1)
     return f"{parent}.{close[0]}" if close and parent else (close[0] if close else None)
+
+
+def _reference_hint(key: str, cfg: DictConfig | None) -> str | None:
+    """For a ``key`` below a node that is an interpolation (``estimators.IMM.mode_filter: ${mode_filter}``),
+    which no override can reach into: what to set instead - the referenced group or key, or the whole node."""
+    from experiments.paths import CONFIG_DIR
+
+    if cfg is None:
+        return None
+    parts, node = key.split("."), cfg
+    for i, part in enumerate(parts[:-1]):
+        if not isinstance(node, DictConfig) or part not in node:
+            return None
+        if OmegaConf.is_interpolation(node, part):
+            path, rest = ".".join(parts[:i + 1]), ".".join(parts[i + 1:])
+            ref = str(OmegaConf.to_container(node, resolve=False)[part])  # the ${...} text
+            target = ref[2:-1] if ref.startswith("${") and ref.endswith("}") else None
+            folder = Path(CONFIG_DIR) / (target or "")
+            if target and folder.is_dir():
+                options = "|".join(sorted(p.stem for p in folder.glob("*.yaml")))
+                choice = f"choose the group, {target}=<{options}> (every node that refers to it)"
+            elif target:
+                choice = f"set {target}.{rest}=... (every node that refers to it)"
+            else:
+                choice = "set the keys it refers to"
+            return (f"{path} is {ref}, which an override cannot reach into: {choice}, or replace this node, "
+                    f"{path}={{_target_:...,...}}")
+        node = node[part]
+    return None
 
 
 def missing_config(err, overrides: list[str]) -> ConfigError:
@@ -422,7 +458,11 @@ def composition_error(err, overrides: list[str]) -> ConfigError:
     if isinstance(cause, (ConfigKeyError, ConfigAttributeError)) and key:
         item = _override_for(str(key), overrides) or ""
         value = item.split("=", 1)[1] if "=" in item else NO_VALUE
-        close = _close_keys(str(key), [o for o in overrides if o != item])
+        composed = _composed([o for o in overrides if o != item])
+        reference = _reference_hint(str(key), composed)
+        if reference:  # (before: "unknown key (did you mean <the same key>?)")
+            return ConfigError(str(key), value, reference)
+        close = _close_keys(str(key), composed)
         hint = f"did you mean {close}? " if close else ""
         return ConfigError(str(key), value, f"unknown key ({hint}to add a new key write +{key}=...)")
     if isinstance(cause, OmegaConfBaseException) and key:

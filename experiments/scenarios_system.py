@@ -215,6 +215,7 @@ def system(
     sensor_nodes = list(sensors) if is_list_node(sensors) else [sensors]
     built = [build_node(node, f"scenario.sensors[{i}]" if is_list_node(sensors) else "scenario.sensors", dtype, device)
              for i, node in enumerate(sensor_nodes)]
+    sensors_built = list(built)  # (mode_sensors keeps the first below: every one is checked against the prior)
     if mode_sensors:
         if len(built) != count or len({int(s.meas_dim) for s in built}) != 1:
             raise ConfigError("scenario.sensors", len(built), f"mode_sensors: needs one sensor per mode ({count}), "
@@ -240,11 +241,21 @@ def system(
     except ValueError as err:
         raise ConfigError("scenario.initial_cov", initial_cov, str(err)) from None
     n = initial.state_dim
-    first = motion[0] if isinstance(motion, list) else motion
-    one_sensor = sensor[0] if isinstance(sensor, list) else sensor
-    if getattr(first, "state_dim", n) not in (None, n) or getattr(one_sensor, "state_dim", n) not in (None, n):
-        raise ConfigError("scenario.initial_mean", list(initial_mean),
-                          f"has {n} components; the models' state has {getattr(first, 'state_dim', None)}")
+    motions = motion if isinstance(motion, list) else [motion]
+    first = getattr(motions[0], "state_dim", n)
+    if first not in (None, n):
+        raise ConfigError("scenario.initial_mean", list(initial_mean), f"has {n} components; the models' state has {first}")
+    for i, m in enumerate(motions[1:], 1):  # each model, each sensor named by its own key (the prior fits mode 0)
+        if getattr(m, "state_dim", n) not in (None, n):
+            raise ConfigError(f"scenario.modes[{i}]", mode_nodes[i].get("_target_"), f"has a {m.state_dim}-component "
+                              f"state; mode 0's model and scenario.initial_mean have {n}")
+    for i, s in enumerate(sensors_built):
+        if getattr(s, "state_dim", n) not in (None, n):
+            key = f"scenario.sensors[{i}]" if is_list_node(sensors) else "scenario.sensors"
+            own = "state_dim" in sensor_nodes[i]
+            raise ConfigError(f"{key}.state_dim" if own else key, s.state_dim if own else sensor_nodes[i].get("_target_"),
+                              f"the sensor measures a {s.state_dim}-component state; the models' state and "
+                              f"scenario.initial_mean have {n}")
     labels = list(labels) if labels else (
         [type(m).__name__ for m in motion] if isinstance(motion, list) else [f"mode {j}" for j in range(count)])
     if len(labels) != count:

@@ -202,6 +202,13 @@ STUDY_CASES = [
      "mevsmm.histogram_steps=[500]: entries [500] lie past the scenario's last step (scenario.steps = 120)"),
     (_study("mevsmm", "scenario.maneuvers=[[31,20,[1.0,1.0]]]"),
      "scenario.maneuvers[0]=[31, 20, [1.0, 1.0]]: needs 1 <= first <= last"),
+    # before: the line named another key (scenario.initial_mean), or suggested the refused key itself
+    (_study("compare", "scenario.sensors.0.state_dim=6"),
+     "scenario.sensors[0].state_dim=6: the sensor measures a 6-component state; the models' state and "
+     "scenario.initial_mean have 4"),
+    (_study("compare", "estimators.IMM.mode_filter._target_=torchmm.Foo"),
+     "estimators.IMM.mode_filter._target_=torchmm.Foo: estimators.IMM.mode_filter is ${mode_filter}, which an "
+     "override cannot reach into: choose the group, mode_filter=<extended|kalman|particle|unscented>"),
 ]
 
 
