@@ -23,9 +23,10 @@ from omegaconf.errors import (
     OmegaConfBaseException,
 )
 
-__all__ = ["NO_VALUE", "Check", "ConfigError", "both", "build_error", "check_fields", "device_name", "each", "join_key",
-           "matrix", "merge", "non_empty", "non_negative", "one_of", "open_probability", "positive", "positive_int",
-           "probability", "resume_value", "schema_at", "seed_value", "show_value", "spec", "type_message"]
+__all__ = ["NO_VALUE", "Check", "ConfigError", "both", "build_error", "check_fields", "device_name", "each",
+           "join_key", "matrix", "merge", "non_empty", "non_negative", "one_of", "open_probability",
+           "positive", "positive_int", "probability", "resume_value", "schema_at", "seed_value", "show_value",
+           "spec", "type_message"]
 
 
 class ConfigError(ValueError):

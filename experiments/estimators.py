@@ -86,7 +86,8 @@ def _transition(scenario, transition) -> Tensor:
     if transition is None:
         return scenario.transition
     matrix = torch.as_tensor(transition, dtype=scenario.transition.dtype, device=scenario.transition.device)
-    M = int(scenario.transition.shape[-1]) if isinstance(scenario.transition, Tensor) else int(matrix.shape[-1])
+    known = isinstance(scenario.transition, Tensor)  # (a time-varying transition model: its own check)
+    M = int(scenario.transition.shape[-1]) if known else int(matrix.shape[-1])
     if tuple(matrix.shape) != (M, M):
         raise ValueError(f"transition: expected {M} x {M} (the scenario's {M} modes), got "
                          f"{' x '.join(map(str, matrix.shape))}")

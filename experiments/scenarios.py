@@ -207,11 +207,12 @@ def markov_switching(
     if int(k_regimes) < 2:
         raise ConfigError("scenario.k_regimes", k_regimes, "needs at least 2 regimes")
     K = int(k_regimes)
-    if labels is not None and len(list(labels)) != K:  # (before: the regimes past the names lost their curves)
-        raise ConfigError("scenario.labels", list(labels), f"needs one name per regime ({K}: scenario.k_regimes)")
+    if labels is not None and len(list(labels)) != K:  # (before: regimes past the names lost their curves)
+        raise ConfigError("scenario.labels", list(labels),
+                          f"needs one name per regime ({K}: scenario.k_regimes)")
     if labels is not None and len(set(map(str, labels))) != K:
-        raise ConfigError("scenario.labels", list(labels), "the regimes' names must differ (each names a regime's "
-                          "curves)")
+        raise ConfigError("scenario.labels", list(labels),
+                          "the regimes' names must differ (each names a regime's curves)")
     if len(list(data["measurements"])) != 1:
         raise ConfigError("scenario.data.measurements", list(data["measurements"]), "one column: the dependent "
                           "variable y")

@@ -215,7 +215,7 @@ def system(
     sensor_nodes = list(sensors) if is_list_node(sensors) else [sensors]
     built = [build_node(node, f"scenario.sensors[{i}]" if is_list_node(sensors) else "scenario.sensors", dtype, device)
              for i, node in enumerate(sensor_nodes)]
-    sensors_built = list(built)  # (mode_sensors keeps the first below: every one is checked against the prior)
+    sensors_built = list(built)  # (mode_sensors keeps the first below; each is checked against the prior)
     if mode_sensors:
         if len(built) != count or len({int(s.meas_dim) for s in built}) != 1:
             raise ConfigError("scenario.sensors", len(built), f"mode_sensors: needs one sensor per mode ({count}), "
@@ -244,16 +244,19 @@ def system(
     motions = motion if isinstance(motion, list) else [motion]
     first = getattr(motions[0], "state_dim", n)
     if first not in (None, n):
-        raise ConfigError("scenario.initial_mean", list(initial_mean), f"has {n} components; the models' state has {first}")
-    for i, m in enumerate(motions[1:], 1):  # each model, each sensor named by its own key (the prior fits mode 0)
+        raise ConfigError("scenario.initial_mean", list(initial_mean),
+                          f"has {n} components; the models' state has {first}")
+    for i, m in enumerate(motions[1:], 1):  # each model, each sensor by its own key (the prior fits mode 0)
         if getattr(m, "state_dim", n) not in (None, n):
-            raise ConfigError(f"scenario.modes[{i}]", mode_nodes[i].get("_target_"), f"has a {m.state_dim}-component "
-                              f"state; mode 0's model and scenario.initial_mean have {n}")
+            raise ConfigError(f"scenario.modes[{i}]", mode_nodes[i].get("_target_"),
+                              f"has a {m.state_dim}-component state; mode 0's model and "
+                              f"scenario.initial_mean have {n}")
     for i, s in enumerate(sensors_built):
         if getattr(s, "state_dim", n) not in (None, n):
             key = f"scenario.sensors[{i}]" if is_list_node(sensors) else "scenario.sensors"
             own = "state_dim" in sensor_nodes[i]
-            raise ConfigError(f"{key}.state_dim" if own else key, s.state_dim if own else sensor_nodes[i].get("_target_"),
+            raise ConfigError(f"{key}.state_dim" if own else key,
+                              s.state_dim if own else sensor_nodes[i].get("_target_"),
                               f"the sensor measures a {s.state_dim}-component state; the models' state and "
                               f"scenario.initial_mean have {n}")
     labels = list(labels) if labels else (

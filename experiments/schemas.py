@@ -61,14 +61,15 @@ from experiments.schemas_papers import (  # (the published papers' studies, by s
 from experiments.schemas_tracking import Tracking  # (the tracking study's keys, by study)
 
 
-#: what each study builds from its config, built dry before anything runs (experiments.config.dry_build), beyond
-#: the scenario every study's precheck builds: study -> its check_build(cfg, scenario) (the published studies':
-#: experiments/study_builds.py; every study of STUDIES has one: tests/experiments/test_config_dry_build.py)
+#: what each study builds from its config, built dry before anything runs (experiments.config.dry_build),
+#: beyond the scenario every study's precheck builds: study -> its check_build(cfg, scenario) (the published
+#: studies': experiments/study_builds.py; every study of STUDIES has one:
+#: tests/experiments/test_config_dry_build.py)
 BUILD_CHECKS = {"experiments.studies.compare.run": "experiments.studies.compare.check_build",
                 "experiments.studies.tracking.run": "experiments.studies.tracking.check_build",
                 **{f"experiments.studies.{study}.run": f"experiments.study_builds.{study}" for study in (
-                    "imm_baseline", "imm_tf", "imm_analysis", "gimmaf", "learn_dynamics", "mevsmm", "fusion_radar",
-                    "fusion_ups", "smoothing")},
+                    "imm_baseline", "imm_tf", "imm_analysis", "gimmaf", "learn_dynamics", "mevsmm",
+                    "fusion_radar", "fusion_ups", "smoothing")},
                 "experiments.studies.vbakf_huang.run": None}  # (its config: numbers the schema ranges)
 
 
@@ -293,8 +294,9 @@ class Smoothing:
         sm = data["smoothing"]
         for name, est in (data.get("estimators") or {}).items():  # (before: accepted, then replaced)
             if isinstance(est, dict) and est.get("_target_") == SINGLE and est.get("mode") not in (None, 0):
-                raise ConfigError(f"estimators.{name}.mode", est["mode"], "not used: the smoothing study runs each "
-                                  "single filter on its scenario's smoothing.cv_mode (set smoothing.cv_mode.<scenario>)")
+                raise ConfigError(f"estimators.{name}.mode", est["mode"],
+                                  "not used: the smoothing study runs each single filter on its scenario's "
+                                  "smoothing.cv_mode (set smoothing.cv_mode.<scenario>)")
         missing = [k for k in sm["scenarios"] if k not in (sm.get("cv_mode") or {})]
         if missing:
             raise ConfigError("smoothing.cv_mode", sm.get("cv_mode"),

@@ -56,11 +56,11 @@ class Radar:
             value = getattr(self, key)
             if len(value) != sensors or any(not isinstance(M, list) or len(M) != rows or not rows or any(
                     not isinstance(r, list) or len(r) != 6 for r in M) for M in value):
-                return key, value, (f"expected {sensors} matrices (one per sensor, as sigma_r) of {rows or 'm'} rows "
-                                    "(as C's first) of 6 numbers (one per state)")
+                return key, value, (f"expected {sensors} matrices (one per sensor, as sigma_r) of "
+                                    f"{rows or 'm'} rows (as C's first) of 6 numbers (one per state)")
         if len(self.eta_std) != sensors or any(len(r) != rows for r in self.eta_std):
-            return "eta_std", self.eta_std, f"expected {sensors} rows (one per sensor) of {rows} numbers (one per " \
-                "measurement component)"
+            return "eta_std", self.eta_std, (f"expected {sensors} rows (one per sensor) of {rows} numbers "
+                                             "(one per measurement component)")
         return None
 
 
@@ -95,7 +95,8 @@ class Ups:
         if any(len(row) != n for row in self.A):
             return "A", self.A, f"expected a square matrix ({n} x {n})"
         if len(self.Gamma) != n or len({len(row) for row in self.Gamma}) != 1 or not self.Gamma[0]:
-            return "Gamma", self.Gamma, f"expected {n} rows (one per state) of p numbers (one per noise component)"
+            return "Gamma", self.Gamma, (f"expected {n} rows (one per state) of p numbers "
+                                         "(one per noise component)")
         if any(len(row) != n for row in self.Ct):
             return "Ct", self.Ct, f"expected rows of {n} numbers (one per state), one row per sensor"
         for key, size in (("C", n), ("mu0", n), ("h", sensors), ("Qp", sensors), ("d", sensors),

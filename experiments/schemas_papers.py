@@ -114,14 +114,15 @@ class ImmTf:
             for key, value in (("transfer.influence.mode", data["transfer"]["influence"]["mode"]),
                                ("vsimm.extra_model", data["vsimm"]["extra_model"])):
                 if not 0 <= value < modes:
-                    raise ConfigError(key, value, f"must be a mode index in [0, {modes}) (the scenario's {modes} modes)")
+                    raise ConfigError(key, value,
+                                      f"must be a mode index in [0, {modes}) (the scenario's {modes} modes)")
             for name, node in (data.get("tf_estimators") or {}).items():
                 gate = node.get("gate") if isinstance(node.get("gate"), dict) else {}
                 for key, value in ((f"tf_estimators.{name}.gate.mode", gate.get("mode")),
                                    (f"tf_estimators.{name}.extra_model", node.get("extra_model"))):
                     if isinstance(value, int) and not 0 <= value < modes:
-                        raise ConfigError(key, value, f"must be a mode index in [0, {modes}) (the scenario's {modes} "
-                                          "modes)")
+                        raise ConfigError(key, value, f"must be a mode index in [0, {modes}) "
+                                          f"(the scenario's {modes} modes)")
 
 
 @dataclass
@@ -154,9 +155,9 @@ class ImmAnalysis:
     def check(data: dict) -> None:
         for key, est in (data.get("estimators") or {}).items():  # (before: accepted, then replaced)
             if isinstance(est, dict) and est.get("transition") is not None:
-                raise ConfigError(f"estimators.{key}.transition", est["transition"], "not used: the imm_analysis "
-                                  "study sweeps the transition matrix (2.2) over analysis.alphas.two_model and "
-                                  "analysis.alphas.three_model")
+                raise ConfigError(f"estimators.{key}.transition", est["transition"],
+                                  "not used: the imm_analysis study sweeps the transition matrix (2.2) over "
+                                  "analysis.alphas.two_model and analysis.alphas.three_model")
         name = data["analysis"]["interaction_estimator"]
         if name not in (data.get("estimators") or {}):
             raise ConfigError("analysis.interaction_estimator", name,
@@ -248,7 +249,8 @@ class GimmafSection:
                     f"must be {len(self.model_rates)} x {len(self.model_rates)}: one row per model rate")
         for i, row in enumerate(self.segments):  # Table 1's rows (before: a bad one failed in the study)
             if len(row) != 4:
-                return f"segments[{i}]", row, "expected [first step, last step, turn rate, process-noise variance]"
+                return (f"segments[{i}]", row,
+                        "expected [first step, last step, turn rate, process-noise variance]")
             first, last, _, q = row
             if first != int(first) or last != int(last) or not 1 <= first <= last:  # (past steps: cut off)
                 return f"segments[{i}]", row, "needs whole steps 1 <= first <= last (1-based, inclusive)"

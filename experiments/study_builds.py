@@ -57,8 +57,8 @@ def smoothing(cfg, scenario) -> None:
     for key in cfg.smoothing.scenarios:
         built = _scenario(cfg, cfg.smoothing.scenarios[key], f"smoothing.scenarios.{key}")
         mode = int(cfg.smoothing.cv_mode[key])
-        _estimators(cfg.estimators, built, options=lambda node: {"mode": mode} if node.get("_target_") == SINGLE
-                    else {})
+        _estimators(cfg.estimators, built,
+                    options=lambda node: {"mode": mode} if node.get("_target_") == SINGLE else {})
 
 
 def imm_analysis(cfg, scenario) -> None:
@@ -86,7 +86,8 @@ def imm_tf(cfg, scenario) -> None:
 
 
 def gimmaf(cfg, scenario) -> None:
-    """The estimators of ``gimmaf.estimators`` (their models: ``model_rates``, ``transition``, ``nominal_q``)."""
+    """The estimators of ``gimmaf.estimators`` (their models: ``model_rates``, ``transition``,
+    ``nominal_q``)."""
     from experiments.studies.gimmaf import build_estimators
 
     g = cfg.gimmaf
@@ -95,7 +96,8 @@ def gimmaf(cfg, scenario) -> None:
 
 
 #: the fusion studies' library arguments -> their config keys
-RADAR_KEYS = {"Q_eta": "eta_std", "Qw": "Qw_diag", "mu0": "x0", "P0": "P0_diag", "h": "h_factor", "Qp": "sigma_r"}
+RADAR_KEYS = {"Q_eta": "eta_std", "Qw": "Qw_diag", "mu0": "x0", "P0": "P0_diag", "h": "h_factor",
+              "Qp": "sigma_r"}
 UPS_KEYS = {"P0": "P0_scale"}
 
 

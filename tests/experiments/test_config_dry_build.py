@@ -160,26 +160,34 @@ def test_a_manoeuvre_that_ends_before_it_starts_is_refused(tmp_path, capsys):
 # -- every study's config built dry (the audit of the config errors: each case ran the study's code after
 # creating its folder and failed with a traceback and exit 1, or was accepted and then ignored or lost)
 def _study(name: str, *overrides: str) -> list[str]:
-    return [f"experiment={name}", f"debug={name}", "logger=none", "figures=false", "progress=false", *overrides]
+    return [f"experiment={name}", f"debug={name}", "logger=none", "figures=false", "progress=false",
+            *overrides]
 
 
 STUDY_CASES = [
     # (the command line, the start of the one line); before: a traceback after the run folder was made
-    (_study("quickstart", "estimators.KF.mode=2"), "estimators.KF.mode=2: is not one of the scenario's 2 modes"),
-    (_study("imm_baseline", "estimators.KF.mode=3"), "estimators.KF.mode=3: is not one of the scenario's 3 modes"),
+    (_study("quickstart", "estimators.KF.mode=2"),
+     "estimators.KF.mode=2: is not one of the scenario's 2 modes"),
+    (_study("imm_baseline", "estimators.KF.mode=3"),
+     "estimators.KF.mode=3: is not one of the scenario's 3 modes"),
     (_study("imm_baseline", "estimators.IMM.transition=[[0.5,0.5],[0.5,0.5]]"),
      "estimators.IMM.transition=[[0.5, 0.5], [0.5, 0.5]]: expected 3 x 3"),
     (_study("quickstart", "scenario.initial_mode_probs=[0.2,0.2]"),
      "scenario.initial_mode_probs=[0.2, 0.2]: must be non-negative and sum to 1"),
-    (_study("imm_tf", "transfer.influence.mode=5"), "transfer.influence.mode=5: must be a mode index in [0, 3)"),
+    (_study("imm_tf", "transfer.influence.mode=5"),
+     "transfer.influence.mode=5: must be a mode index in [0, 3)"),
     (_study("imm_tf", "vsimm.extra_model=7"), "vsimm.extra_model=7: must be a mode index in [0, 3)"),
-    (_study("imm_tf", "tf_estimators.VSIMM.extra_model=7"), "tf_estimators.VSIMM.extra_model=7: must be a mode index"),
-    (_study("imm_tf", "tf_estimators.IF-TF.gate.mode=5"), "tf_estimators.IF-TF.gate.mode=5: must be a mode index"),
+    (_study("imm_tf", "tf_estimators.VSIMM.extra_model=7"),
+     "tf_estimators.VSIMM.extra_model=7: must be a mode index"),
+    (_study("imm_tf", "tf_estimators.IF-TF.gate.mode=5"),
+     "tf_estimators.IF-TF.gate.mode=5: must be a mode index"),
     (_study("gimmaf", "gimmaf.segments=[[1,50,0.0,-0.01]]"),
      "gimmaf.segments[0]=[1, 50, 0.0, -0.01]: the process-noise variance -0.01 must be non-negative"),
-    (_study("gimmaf", "gimmaf.segments=[[51,50,0.0,0.01]]"), "gimmaf.segments[0]=[51, 50, 0.0, 0.01]: needs whole"),
+    (_study("gimmaf", "gimmaf.segments=[[51,50,0.0,0.01]]"),
+     "gimmaf.segments[0]=[51, 50, 0.0, 0.01]: needs whole"),
     (_study("fusion_radar", "radar.C=[[[1,0,0]]]"), "radar.C=[[[1, 0, 0]]]: expected 3 matrices"),
-    (_study("fusion_radar", "radar.position_index=9"), "radar.position_index=9: must be a state index in [0, 6)"),
+    (_study("fusion_radar", "radar.position_index=9"),
+     "radar.position_index=9: must be a state index in [0, 6)"),
     (_study("fusion_radar", "radar.eta_std=[[1000.0,0.01],[900.0,0.02]]"),
      "radar.eta_std=[[1000.0, 0.01], [900.0, 0.02]]: expected 3 rows (one per sensor) of 2 numbers"),
     (_study("fusion_ups", "ups.Ct=[[8.0,12.0],[10.0,8.0],[8.0,6.0]]"),
@@ -189,15 +197,19 @@ STUDY_CASES = [
      "learn.scenario.initial_std=[10.0, 2.0]: expected 4 numbers"),
     (_study("learn_dynamics", "learn.scenario.initial_mean=[0,15]"),
      "learn.scenario.initial_mean=[0.0, 15.0]: expected 4 numbers"),
-    (_study("mevsmm", "scenario.initial_state=[1,2]"), "scenario.initial_state=[1.0, 2.0]: expected 4 numbers"),
+    (_study("mevsmm", "scenario.initial_state=[1,2]"),
+     "scenario.initial_state=[1.0, 2.0]: expected 4 numbers"),
     # before: accepted, then replaced by another key or part of the output silently lost
-    (_study("smoothing", "estimators.KF.mode=7"), "estimators.KF.mode=7: not used: the smoothing study runs each "
-                                                  "single filter on its scenario's smoothing.cv_mode"),
+    (_study("smoothing", "estimators.KF.mode=7"),
+     "estimators.KF.mode=7: not used: the smoothing study runs each single filter on its scenario's "
+     "smoothing.cv_mode"),
     (_study("imm_analysis", "estimators.IMM.transition=[[0.5,0.5,0.0],[0.5,0.5,0.0],[0,0,1]]"),
-     "estimators.IMM.transition=[[0.5, 0.5, 0.0], [0.5, 0.5, 0.0], [0, 0, 1]]: not used: the imm_analysis study "
-     "sweeps the transition matrix"),
-    (_study("markov_switching", "scenario.labels=[a]"), "scenario.labels=['a']: needs one name per regime (2"),
-    (_study("markov_switching", "scenario.labels=[a,a]"), "scenario.labels=['a', 'a']: the regimes' names must differ"),
+     "estimators.IMM.transition=[[0.5, 0.5, 0.0], [0.5, 0.5, 0.0], [0, 0, 1]]: not used: the imm_analysis "
+     "study sweeps the transition matrix"),
+    (_study("markov_switching", "scenario.labels=[a]"),
+     "scenario.labels=['a']: needs one name per regime (2"),
+    (_study("markov_switching", "scenario.labels=[a,a]"),
+     "scenario.labels=['a', 'a']: the regimes' names must differ"),
     (_study("mevsmm", "mevsmm.histogram_steps=[500]"),
      "mevsmm.histogram_steps=[500]: entries [500] lie past the scenario's last step (scenario.steps = 120)"),
     (_study("mevsmm", "scenario.maneuvers=[[31,20,[1.0,1.0]]]"),
@@ -207,8 +219,8 @@ STUDY_CASES = [
      "scenario.sensors[0].state_dim=6: the sensor measures a 6-component state; the models' state and "
      "scenario.initial_mean have 4"),
     (_study("compare", "estimators.IMM.mode_filter._target_=torchmm.Foo"),
-     "estimators.IMM.mode_filter._target_=torchmm.Foo: estimators.IMM.mode_filter is ${mode_filter}, which an "
-     "override cannot reach into: choose the group, mode_filter=<extended|kalman|particle|unscented>"),
+     "estimators.IMM.mode_filter._target_=torchmm.Foo: estimators.IMM.mode_filter is ${mode_filter}, which "
+     "an override cannot reach into: choose the group, mode_filter=<extended|kalman|particle|unscented>"),
 ]
 
 
