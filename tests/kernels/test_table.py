@@ -30,3 +30,24 @@ def test_importing_a_kernel_module_registers_nothing():
     assert out.returncode == 0, out.stderr[-2000:]
     before, after = (int(v) for v in out.stdout.split())
     assert before == 0 and after == len(kernels.TABLE)
+
+
+def test_the_batch_last_kernels_compose_one_algebra_instead_of_extending_a_kernel():
+    """Issue 47, item 2: each batch-last step extends only the frame (sizes, layouts, outputs) and holds its
+    modes' algebra as an object (a linear or a nonlinear bank); no kernel's step is another kernel's subclass
+    (the nonlinear IMM is the IMM's step over another bank: its class adds nothing but the bank)."""
+    from torchmm.kernels.batch_last.bank import LinearBank
+    from torchmm.kernels.batch_last.frame import Frame
+    from torchmm.kernels.batch_last.imm import BatchLastIMM
+    from torchmm.kernels.batch_last.nonlinear import BatchLastNonlinear, NonlinearBank
+    from torchmm.kernels.batch_last.pairs import BatchLastGPB2
+    from torchmm.kernels.batch_last.transfer import BatchLastTransfer
+
+    for step in (BatchLastIMM, BatchLastGPB2, BatchLastTransfer):
+        assert step.__mro__[1:] == (Frame, object), step
+    assert BatchLastNonlinear.__mro__[1] is BatchLastIMM
+    assert set(vars(BatchLastNonlinear)) <= {"__module__", "__doc__", "__init__", "kind", "__qualname__",
+                                              "__firstlineno__", "__static_attributes__"}
+    for bank in (LinearBank, NonlinearBank):
+        assert bank.__mro__[1:] == (object,)
+        assert all(callable(getattr(bank, name)) for name in ("predict", "update", "innovation"))

@@ -14,8 +14,8 @@ import torch
 from torch import Tensor
 
 __all__ = ["ONE", "ZERO", "Coef", "cholesky_entries", "coefficients", "collapse_entries", "collapse_modes", "combine",
-           "factor", "log_normalized", "mix_entries", "mixing", "moments", "sandwich", "solve_lower", "solve_lower_transposed",
-           "stack_upper", "sum_terms"]
+           "factor", "log_normalized", "mix_entries", "mixing", "mode_update", "moments", "sandwich", "solve_lower",
+           "solve_lower_transposed", "stack_upper", "sum_terms"]
 
 
 class Coef:
@@ -200,6 +200,20 @@ def log_normalized(joint: Tensor, norm: Tensor, size: int) -> Tensor:
     was ``-inf`` or one was NaN, is the uniform ``-log(size)``), the group size written out (a traced step's
     tensors have no ``numel``)."""
     return (joint - norm).nan_to_num_(nan=-math.log(size), posinf=math.inf, neginf=-math.inf)
+
+
+def mode_update(ll: Tensor, cbar: Tensor, anyob: Tensor, lowest: Tensor, zero: Tensor, M: int) -> tuple:
+    """The IMM's mode posterior ``log mu_j = ell_j + log c_j - logsumexp_l(ell_l + log c_l)`` from the mode
+    log-likelihoods and predicted probabilities ``(M, *B)``, as torch.logsumexp and safe_log_normalize compute
+    it (all ``-inf``: ``-inf`` and uniform), in fewer passes: ``log c (M, *B)``, ``log mu (M, *B)`` and the
+    log-likelihood ``(*B,)`` (exactly ``zero`` where ``anyob`` says no datum; ``lowest``: the dtype's)."""
+    log_cbar = cbar.log()
+    joint = ll + log_cbar
+    top = torch.maximum(joint.amax(0), lowest)
+    shifted = joint - top
+    log_sum = shifted.exp().sum(0).log()
+    new_log_mu = log_normalized(shifted, log_sum, M)
+    return log_cbar, new_log_mu, torch.where(anyob, top + log_sum, zero)
 
 
 def moments(X: list, P: list, w: Tensor, n: int) -> tuple[list, list]:

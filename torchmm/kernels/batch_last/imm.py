@@ -41,33 +41,26 @@ and cost nothing until :func:`~torchmm.run.stack_outputs` stacks what ``record``
 
 from __future__ import annotations
 
-import logging
-import math
-
 import torch
 from torch import Tensor
 
 import torchmm.kernels as kernels
 from torchmm.beliefs import GaussianBelief, ModeBelief
 from torchmm.kernels.batch_last.algebra import (
-    ZERO,
-    coefficients,
     collapse_entries,
     collapse_modes,
-    combine,
-    log_normalized,
     mix_entries,
     mixing,
-    sandwich,
+    mode_update,
     stack_upper,
 )
+from torchmm.kernels.batch_last.bank import LinearBank
+from torchmm.kernels.batch_last.frame import Frame
 from torchmm.kernels.batch_last.plan import described, planned, why_not
-from torchmm.kernels.batch_last.traced import select
 from torchmm.typing import StepOutput
 
 __all__ = ["BATCH_LAST", "LARGE_BATCH", "LARGE_STATE", "MAX_STATE", "BatchLastIMM", "BatchLastKernel"]
 
-_LOG_2PI = math.log(2 * math.pi)
 #: the largest state whose n x n factors the kernels form entry by entry (the two-filter smoother's pairs,
 #: IMM-TF's transfer smoothing): n^3 operations a factor
 MAX_STATE = 6
@@ -80,138 +73,30 @@ LARGE_BATCH = 900
 #: operation (docs/performance.md: 400 runs of n = 2, M = 3 gain 10 %, 4,000 lose 18 %)
 _BROADCAST_BYTES = 1 << 18
 
-log = logging.getLogger("torchmm")
 
-
-class BatchLastIMM:
-    """One IMM step in the batch-last layout (module docstring), and the conversions.
+class BatchLastIMM(Frame):
+    """One IMM (GPB1) step in the batch-last layout (module docstring): the :class:`Frame` of the kernel and
+    the step, over a mode bank's model algebra.
 
     Args:
         model: the filter's :class:`~torchmm.kernels.linear.LinearGaussian` description (rule ``"mix"``
-            or ``"collapse"``) for which :func:`~torchmm.kernels.batch_last.plan.why_not` is None.
+            or ``"collapse"``) for which :func:`~torchmm.kernels.batch_last.plan.why_not` is None (or, with
+            ``bank``, any description of the rule with a ``transition``).
         M: the number of modes.
         batch_dims: the number of batch axes ``len(B)``.
         like: a tensor of the run's dtype and device.
+        bank: the modes' algebra (its ``predict``, ``update`` and ``innovation``); by default the linear
+            Kalman modes of ``model`` (:class:`~torchmm.kernels.batch_last.bank.LinearBank`).
     """
 
-    #: what the kernel computes, for messages
-    kind = "IMM"
-
-    def __init__(self, model, M: int, batch_dims: int, like: Tensor):
-        d = batch_dims
-        self.setup(model, M, model.F.shape[-1], model.H.shape[-2], d, like)
-        self.F = coefficients(model.F, M, 2, d)
-        self.Q = coefficients(model.Q, M, 2, d)
-        self.b = coefficients(model.b, M, 1, d)
-        self.H = coefficients(model.H, M, 2, d)
-        self.r = coefficients(model.R.diagonal(dim1=-2, dim2=-1), M, 1, d)
-        R = model.R
-        self.R_front = (R if R.dim() == 3 else R.unsqueeze(0)).movedim(0, -1).reshape(
-            self.m, self.m, -1, *([1] * d))  # (m, m, P, 1...), for the recorded S only
-
-    def setup(self, model, M: int, n: int, m: int, d: int, like: Tensor) -> None:
-        """What every batch-last IMM kernel holds besides its models: the sizes, the interaction (from
-        ``model.transition`` and ``model.rule``), the constants, the permutations between the layouts,
-        the record options and the filter's ``post_update``."""
-        from torchmm.beliefs.ops import safe_log_normalize
-
-        self.normalize, self.collapse = safe_log_normalize, model.rule == "collapse"
-        self.broadcast = True  # the state's layout (prepare chooses it by the batch size)
-        self.M, self.n, self.m, self.d = M, n, m, d
-        matrix = model.transition
-        self.matrix = matrix.reshape(M, M, *([1] * d))  # (i, j, 1...)
-        self.tiny = torch.finfo(like.dtype).tiny
-        # constants as 0-dim tensors (an operation with a Python number costs more dispatch)
-        constant = lambda value: torch.full((), value, dtype=like.dtype, device=like.device)  # noqa: E731
-        self.tiny_t, self.lowest = constant(self.tiny), constant(torch.finfo(like.dtype).min)
-        self.log_2pi = constant(_LOG_2PI)
-        # batch-last -> batch-first as one permute each (movedim costs twice the dispatch, every step)
-        self._to_front1 = (*range(1, d + 1), 0)  # (k, *B) -> (*B, k)
-        self._to_front2 = (*range(2, d + 2), 0, 1)  # (a, c, *B) -> (*B, a, c)
-        self._to_front_x = (*range(2, d + 2), 1, 0)  # (n, M, *B) -> (*B, M, n)
-        self._to_front_p = (*range(3, d + 3), 2, 0, 1)  # (n, n, M, *B) -> (*B, M, n, n)
-        self.omitted: frozenset = frozenset()
-        self.estimate_only = False
-        #: the filter's work after each update (a model-set policy: LinearGaussian.post_update), its
-        #: generator, and whether the estimate is taken after it (record="estimate" with a post-update)
-        self.post_update = getattr(model, "post_update", None)
-        self.generator, self.estimate_after = None, False
-        self._to_back1 = (d, *range(d))  # (*B, M) -> (M, *B)
-        self._core = self.core
-        self._compiled = False
-        self._key = None  # the structure the untraced steps are counted for (None: not counting)
-        self._steps_done = 0
-
-    def compile(self) -> None:
-        """Run :meth:`core` under ``torch.compile`` (fused kernels after seconds of compiling;
-        docs/performance.md). Every model, shape and record option is its own compiled graph of
-        this one method; dynamo's per-function limit (8, after which it runs eagerly) is raised
-        to 64 so that a study's estimators all stay compiled."""
-        import torch._dynamo.config as dynamo_config  # noqa: PLC0415
-
-        if getattr(dynamo_config, "recompile_limit", 64) < 64:
-            dynamo_config.recompile_limit = 64
-        self._core = torch.compile(self.core, dynamic=False)
-        self._compiled = True
-
-    def omit(self, fields, estimate: bool = False) -> None:
-        """The :class:`StepOutput` fields ``record`` discards (returned as None from now on);
-        ``estimate``: return the belief's point estimate (computed inside the step) in its place."""
-        self.omitted = frozenset(fields)
-        self.estimate_only = estimate
-        self._select()
-
-    def _select(self) -> None:
-        """The steps to come on the traced graph of this kernel's structure, or on :meth:`core`
-        (:func:`torchmm.kernels.batch_last.traced.select`)."""
-        select(self)
-
-    # -- layout -----------------------------------------------------------------------------------
-    def to_batch_last(self, belief: ModeBelief) -> tuple[Tensor, Tensor, Tensor]:
-        """``ModeBelief`` (batch-first) -> ``X (n, M, *B)``, ``P (n, n, M, *B)``, ``log_mu (M, *B)``."""
-        d = self.d
-        comps = belief.components
-        X = comps.mean.movedim((d, d + 1), (1, 0))
-        P = comps.cov.movedim((d, d + 1, d + 2), (2, 0, 1))
-        log_mu = belief.mode_log_probs.movedim(d, 0)
-        return X, P, log_mu
-
-    def entries(self, P: Tensor) -> list:
-        """``P (n, n, ...)`` as nested lists of views ``C[a][c]``."""
-        n = self.n
-        flat = P.flatten(0, 1).unbind(0)
-        return [flat[a * n:(a + 1) * n] for a in range(n)]
-
-    def gaussian(self, X: Tensor, P: Tensor) -> GaussianBelief:
-        """Batch-first views ``(*B, M, n)`` and ``(*B, M, n, n)`` of batch-last ``X (n, M, *B)``, ``P (n, n, M, *B)``."""
-        return GaussianBelief(X.permute(self._to_front_x), P.permute(self._to_front_p))
-
-    def modes(self, t: Tensor) -> Tensor:
-        """``(M, *B)`` -> ``(*B, M)`` (a view)."""
-        return t.permute(self._to_front1)
-
-    # -- the step ---------------------------------------------------------------------------------
-    def prepare(self, measurements: Tensor) -> None:
-        """Once per run: the measurements ``(T, *B, m)`` as ``(T, m, *B)``, with missing components
-        (non-finite) set to 0 and their masks, so that no step tests its data; and the state's
-        layout (``self.broadcast``) for this batch size."""
-        z = measurements.movedim(-1, 1)
-        # the layout of the state: every entry in one broadcast operation while the temporaries of the
-        # mixing (n^2 M^2 values a run) stay within the cache (the step is bound by dispatch there),
-        # one operation per stored entry beyond (bound by memory)
-        self.broadcast = self.broadcast_layout(z.shape[2:].numel(), z.element_size())
-        observed = torch.isfinite(z)
-        ob = observed.to(z.dtype)  # 1 observed, 0 missing
-        # the step's tensors, split once per run (indexing them is a dispatch each, every step)
-        self.data = list(zip(torch.where(observed, z, 0.0).unbind(0), ob.unbind(0), ob.mul(-0.5).unbind(0),
-                             observed.any(1).unbind(0), z.unbind(0)))
-        self.zero = torch.zeros((), dtype=z.dtype, device=z.device)
-        self._steps_done = 0
-        self._select()
+    def __init__(self, model, M: int, batch_dims: int, like: Tensor, bank=None):
+        self.bank = LinearBank(model, M, batch_dims, like) if bank is None else bank
+        self.traceable = self.bank.traceable
+        super().__init__(model, M, self.bank.n, self.bank.m, batch_dims, like)
 
     def broadcast_layout(self, runs: int, itemsize: int) -> bool:
         """Whether the state of a run of ``runs`` runs takes the broadcast layout (``X (n, M, *B)``, ``P``
-        whole) rather than one tensor per entry (:meth:`prepare`)."""
+        whole) rather than one tensor per entry: while the mixing's temporaries stay within the cache."""
         return self.n * self.n * self.M * self.M * runs * itemsize <= _BROADCAST_BYTES
 
     def core(self, X: Tensor, P: Tensor, mu: Tensor, zc: Tensor, ob: Tensor, nhob: Tensor, anyob: Tensor,
@@ -230,7 +115,7 @@ class BatchLastIMM:
             their covariances ``(m, m, M, *B)`` (``estimate_only``: the estimate ``(n, *B)``,
             ``(n, n, *B)`` in these two).
         """
-        omitted = self.omitted
+        omitted, bank = self.omitted, self.bank
         # interaction: c_j = sum_i mu_i pi_ij and the weights: mu_{i|j} (IMM) or mu_i (GPB1: every mode starts
         # from the one collapsed posterior)
         cbar, w = mixing(mu, self.matrix, self.tiny_t, self.collapse)
@@ -252,9 +137,9 @@ class BatchLastIMM:
                 Xm, Pm = torch.stack(xs), stack_upper(Cm)
         w = None  # freed (not del: a name a comprehension reads is a cell, and torch.compile breaks its graph at
         # DELETE_DEREF); X and P: the caller's state holds them
-        xp, Pp = self.predict_entries(xs, Cm, cbar)
-        xu, Cu, ll, singular, s_first = self.update_components(xp, Pp, zc, ob, nhob, cbar, "extras" not in omitted)
-        log_cbar, new_log_mu, total = self.mode_update(ll, cbar, anyob)
+        xp, Pp = bank.predict(xs, Cm, cbar)
+        xu, Cu, ll, singular, s_first = bank.update(xp, Pp, zc, ob, nhob, cbar, "extras" not in omitted)
+        log_cbar, new_log_mu, total = mode_update(ll, cbar, anyob, self.lowest, self.zero, self.M)
         keep_extras = "extras" not in omitted
         Xp = Ppt = nu_out = S_out = None
         mu = new_log_mu.exp()  # for the estimate and the next step
@@ -273,80 +158,13 @@ class BatchLastIMM:
             if "prior" not in omitted:
                 Xp, Ppt = torch.stack(xp), stack_upper(Pp)
             if "innovation" not in omitted or "innovation_cov" not in omitted:
-                nu_out, S_out = self._innovation(zraw, xp, Pp, s_first)
+                nu_out, S_out = bank.innovation(zraw, xp, Pp, s_first)
         return (
             X, P, X_out, P_out, new_log_mu, mu, total, Xp, Ppt, log_cbar,
             ll if keep_extras else None, singular,
             Xm if keep_extras else None, Pm if keep_extras else None,
             nu_out, S_out,
         )
-
-    def predict_entries(self, xs: list, Cs: list, like: Tensor) -> tuple[list, list]:
-        """Every mode's prediction of per-entry beliefs (any shapes broadcasting with the modes' ``(M, *B)``):
-        ``F m + b``, ``F C F^T + Q`` (upper triangle). ``like``: the shape of an all-zero entry."""
-        n, F, b = self.n, self.F, self.b
-        xp = [combine([(F[a][e], xs[e]) for e in range(n)], b[a], like) for a in range(n)]
-        return xp, sandwich(F, Cs, self.Q, like)
-
-    def mode_update(self, ll: Tensor, cbar: Tensor, anyob: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """The mode posterior ``log mu_j = ell_j + log c_j - logsumexp_l(ell_l + log c_l)``, as
-        torch.logsumexp and safe_log_normalize compute it (all ``-inf``: ``-inf`` and uniform), in fewer
-        passes: ``log c (M, *B)``, ``log mu (M, *B)`` and the log-likelihood ``(*B,)`` (exactly 0 without
-        a datum)."""
-        log_cbar = cbar.log()
-        joint = ll + log_cbar
-        top = torch.maximum(joint.amax(0), self.lowest)
-        shifted = joint - top
-        log_sum = shifted.exp().sum(0).log()
-        new_log_mu = log_normalized(shifted, log_sum, self.M)
-        return log_cbar, new_log_mu, torch.where(anyob, top + log_sum, self.zero)
-
-    def update_components(self, xp: list, Pp: list, zc: Tensor, ob: Tensor, nhob: Tensor, like: Tensor,
-                          flags: bool) -> tuple:
-        """The Kalman update of per-entry beliefs ``xp[a]``, ``Pp[a][c]`` (``a <= c``, any broadcastable
-        shapes ``(..., *B)``), one measurement component after the other (diagonal ``R``): ``s = h P h^T +
-        r``, ``K = P h^T / s``, ``P+ = P - K (P h^T)^T``, ``s`` clamped at the smallest normal number; a
-        missing component has ``ob = 0``, ``zc = 0`` and is skipped exactly. ``like``: a tensor of the
-        result's shape for an all-zero sum. Returns the posterior ``xu``, ``Cu``, the log-likelihood, the
-        singular flags (None unless ``flags``) and the first component's ``s``."""
-        n, m, tiny = self.n, self.m, self.tiny
-        H, r = self.H, self.r
-        upper = [(a, c) for a in range(n) for c in range(a, n)]
-        sym = lambda T, a, c: T[min(a, c)][max(a, c)]  # noqa: E731
-        xu, Cu = xp, Pp
-        ll = singular = s_first = None
-        for k in range(m):
-            g = [combine([(H[k][c], sym(Cu, a, c)) for c in range(n)], ZERO, like) for a in range(n)]  # P h^T
-            s_raw = combine([(H[k][a], g[a]) for a in range(n)], r[k], like)
-            nu = zc[k] - combine([(H[k][a], xu[a]) for a in range(n)], ZERO, like)
-            s = torch.maximum(s_raw, self.tiny_t)
-            ratio = ob[k] / s
-            gain = [g[a] * ratio for a in range(n)]
-            xu = [torch.addcmul(xu[a], gain[a], nu) for a in range(n)]
-            new = [[None] * n for _ in range(n)]
-            for a, c in upper:
-                new[a][c] = torch.addcmul(Cu[a][c], gain[a], g[c], value=-1.0)
-            Cu = new
-            term = torch.addcdiv(s.log().add_(self.log_2pi), nu * nu, s).mul_(nhob[k])
-            ll = term if ll is None else ll + term
-            if flags:
-                flag = (s_raw <= tiny) & (ob[k] > 0)
-                singular = flag if singular is None else singular | flag
-            if k == 0:
-                s_first = s_raw
-        return xu, Cu, ll, singular, s_first
-
-    def initial_state(self, belief: ModeBelief) -> tuple:
-        """The state of :meth:`step` at time 0 from the batch-first ``belief``: the means and
-        covariances (``X (n, M, *B)`` and ``P (n, n, M, *B)``, the upper triangle mirrored, or the
-        per-entry lists: :meth:`prepare`'s layout), the mode probabilities ``(M, *B)`` and the step
-        index."""
-        X, P, log_mu = self.to_batch_last(belief)
-        n = self.n
-        C = [[P[a, c] if c >= a else None for c in range(n)] for a in range(n)]
-        if self.broadcast:
-            return X, stack_upper(C), log_mu.exp(), 0
-        return list(X.unbind(0)), C, log_mu.exp(), 0
 
     def step(self, state: tuple, z: Tensor) -> tuple[tuple, StepOutput]:
         """One IMM step: :meth:`core` (compiled with ``compile=True``) on the prepared data of the
@@ -376,66 +194,6 @@ class BatchLastIMM:
         if ll is not None:
             out.extras["mixed"] = ModeBelief(modes(log_cbar), gaussian(Xm, Pm))
         return state, out
-
-    def estimate_output(self, est: Tensor, cov: Tensor, total: Tensor) -> StepOutput:
-        """A step's output with ``record="estimate"``: the estimate ``(n, *B)``, ``(n, n, *B)`` as a batch-first
-        belief, and the log-likelihood ``(*B,)``."""
-        return StepOutput(GaussianBelief(est.permute(self._to_front1), cov.permute(self._to_front2)), None, total)
-
-    def failures(self, modes, ll: Tensor, singular: Tensor, total: Tensor, k: int) -> dict:
-        """The ``extras`` failures as the engine flags them (docs/robustness.md), in its key order: a run's
-        where its log-likelihood is NaN, a hypothesis's (``modes``: its batch-first view) where a datum is
-        present at step ``k`` and its likelihood is NaN (a missing component of a NaN mode gives NaN * 0 here,
-        0 in the engine), with the mode log-likelihoods and singular flags."""
-        return {
-            "mode_log_likelihood": modes(ll),
-            "modes": {"singular": modes(singular), "failed": modes(torch.isnan(ll) & self.data[k][3])},
-            "failed": torch.isnan(total),
-        }
-
-    def output(self, log_mu: Tensor, X: Tensor, P: Tensor, prior, total: Tensor, nu, S, extras: dict | None,
-               to_x: tuple | None = None, to_p: tuple | None = None) -> StepOutput:
-        """A step's :class:`StepOutput` of batch-first views: the posterior from ``log_mu (M, *B)``, ``X (n, M,
-        *B)``, ``P (n, n, M, *B)``, the ``prior`` (a belief or None), the log-likelihood, the innovations and
-        their covariances batch-last (None, or dropped where ``record`` omits them; ``to_x``, ``to_p``: their
-        permutations to batch-first, the modes' by default) and ``extras``."""
-        omitted = self.omitted
-        return StepOutput(
-            belief=ModeBelief(self.modes(log_mu), self.gaussian(X, P)),
-            prior=prior,
-            log_likelihood=total,
-            innovation=None if nu is None or "innovation" in omitted else nu.permute(to_x or self._to_front_x),
-            innovation_cov=None if S is None or "innovation_cov" in omitted else S.permute(to_p or self._to_front_p),
-            extras=extras,
-        )
-
-    def run_core(self, args: tuple, k: int) -> tuple:
-        """:meth:`core` (traced or compiled where chosen) on ``args``, the arguments of step ``k``; a
-        compiler failure runs it eagerly from then on, said once."""
-        self._steps_done = k + 1
-        try:
-            return self._core(*args)
-        except Exception as error:  # noqa: BLE001 (a compiler failure: run eagerly, say so once)
-            if not self._compiled:
-                raise
-            log.warning("compile: torch.compile failed for the %s fast path (%s: %s); running it eagerly",
-                        self.kind, type(error).__name__, str(error).splitlines()[0][:200] if str(error) else "")
-            self._core, self._compiled = self.core, False
-            return self._core(*args)
-
-    def _innovation(self, zraw, xp, Pp, s_first) -> tuple[Tensor, Tensor]:
-        """The step's record of ``z - H x-`` ``(m, M, *B)`` (non-finite where missing) and
-        ``S = H P- H^T + R`` ``(m, m, M, *B)``."""
-        m, n, H = self.m, self.n, self.H
-        nu = torch.stack([zraw[k] - combine([(H[k][a], xp[a]) for a in range(n)], ZERO, xp[0]) for k in range(m)])
-        if m == 1:
-            return nu, s_first.unsqueeze(0).unsqueeze(0)
-        sym = lambda T, a, c: T[min(a, c)][max(a, c)]  # noqa: E731
-        HP = [[combine([(H[k][e], sym(Pp, e, c)) for e in range(n)], ZERO, xp[0]) for c in range(n)]
-              for k in range(m)]
-        S = torch.stack([torch.stack([combine([(H[j][c], HP[k][c]) for c in range(n)], ZERO, xp[0])
-                                      for j in range(m)]) for k in range(m)])
-        return nu, S + self.R_front
 
 
 class BatchLastKernel:

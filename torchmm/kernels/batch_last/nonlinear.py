@@ -55,7 +55,9 @@ from torchmm.kernels.batch_last.imm import BatchLastIMM
 from torchmm.kernels.batch_last.plan import described, planned
 from torchmm.runtime import host_reads_ok
 
-__all__ = ["MIN_BATCH", "BatchLastNonlinear", "BatchLastNonlinearKernel", "why_not_nonlinear"]
+__all__ = ["MIN_BATCH", "BatchLastNonlinear", "BatchLastNonlinearKernel", "NonlinearBank", "why_not_nonlinear"]
+
+_LOG_2PI = math.log(2 * math.pi)
 
 #: the fewest runs x modes for which the kernel is taken unasked (``fast_path=True`` and ``compile=True``
 #: take it below):
@@ -90,8 +92,10 @@ def why_not_nonlinear(model, M: int, belief0, measurements) -> str | None:
     return None
 
 
-class BatchLastNonlinear(BatchLastIMM):
-    """The IMM (GPB1) step over extended or unscented modes in the batch-last layout (module docstring).
+class NonlinearBank:
+    """The model algebra of extended or unscented modes in the batch-last layout (module docstring): the models
+    called on batch-first views, the predictions and updates of per-entry beliefs - the three calls of
+    :class:`~torchmm.kernels.batch_last.bank.LinearBank` that the IMM step composes.
 
     Args:
         model: the filter's :class:`~torchmm.kernels.nonlinear.NonlinearGaussian` description (rule
@@ -101,13 +105,19 @@ class BatchLastNonlinear(BatchLastIMM):
         like: a tensor of the run's dtype and device.
     """
 
-    kind = "IMM over nonlinear modes"
+    #: no traced graph: the models' Python runs every step (compiled with ``compile=True``)
+    traceable = False
 
     def __init__(self, model, M: int, batch_dims: int, like: Tensor):
         self.motion, self.sensor = model.motion, model.measurement
-        self.setup(model, M, model.motion.state_dim, model.measurement.meas_dim, batch_dims, like)
+        self.M, self.n, self.m, self.d = M, model.motion.state_dim, model.measurement.meas_dim, batch_dims
         self.unscented = model.kind == "unscented"
         d = batch_dims
+        self.tiny = torch.finfo(like.dtype).tiny
+        constant = lambda value: torch.full((), value, dtype=like.dtype, device=like.device)  # noqa: E731
+        self.tiny_t, self.log_2pi, self.zero = constant(self.tiny), constant(_LOG_2PI), constant(0.0)
+        self._to_front1 = (*range(1, d + 1), 0)  # (M, *B) -> (*B, M)
+        self._to_back1 = (d, *range(d))  # (*B, M) -> (M, *B)
         self._to_front_s = (0, *range(2, d + 2), 1)  # (S, M, *B) -> (*B, M) behind the sigma points
         self._to_back_s = (0, d + 1, *range(1, d + 1))
         self._noise: dict = {}  # model -> (the tensor noise_cov returned at the entry point, its entries)
@@ -210,7 +220,7 @@ class BatchLastNonlinear(BatchLastIMM):
         return [[(wA[a] * B[c]).sum(0) for c in range(len(B))] for a in range(len(A))]
 
     # -- the step ---------------------------------------------------------------------------------
-    def predict_entries(self, xs: list, Cs: list, like: Tensor) -> tuple[list, list]:
+    def predict(self, xs: list, Cs: list, like: Tensor) -> tuple[list, list]:
         """Every mode's prediction from the per-entry start beliefs (extended or unscented)."""
         n, motion = self.n, self.motion
         Q = self.noise(motion, xs)
@@ -227,8 +237,8 @@ class BatchLastNonlinear(BatchLastIMM):
         xp = [self.back(t).expand_as(like) for t in motion.forward_entries(front)]
         return xp, sandwich(F, Cs, Q, like)
 
-    def update_components(self, xp: list, Pp: list, zc: Tensor, ob: Tensor, nhob: Tensor, like: Tensor,
-                          flags: bool = True) -> tuple:
+    def update(self, xp: list, Pp: list, zc: Tensor, ob: Tensor, nhob: Tensor, like: Tensor,
+               flags: bool = True) -> tuple:
         """The measurement update of every mode (module docstring): the posterior ``xu``, ``Cu``, the
         log-likelihood ``(M, *B)``, the singular flags and, for the record, ``(h(x-), S)`` (``S`` entries
         ``[k][l]``, ``l <= k``)."""
@@ -282,7 +292,7 @@ class BatchLastNonlinear(BatchLastIMM):
         ll = -0.5 * (quad + count * self.log_2pi) - half_log_det
         return xu, Cu, ll, singular if flags else None, (hx, S)
 
-    def _innovation(self, zraw, xp, Pp, s_first) -> tuple[Tensor, Tensor]:
+    def innovation(self, zraw, xp, Pp, s_first) -> tuple[Tensor, Tensor]:
         """The step's record of ``z - h(x-)`` ``(m, M, *B)`` (non-finite where missing) and ``S``
         ``(m, m, M, *B)``."""
         hx, S = s_first
@@ -291,10 +301,18 @@ class BatchLastNonlinear(BatchLastIMM):
         return nu, torch.stack([torch.stack([S[max(k, c)][min(k, c)].expand(shape) for c in range(m)])
                                 for k in range(m)])
 
-    def _select(self) -> None:
-        """No traced graph: the models' Python runs every step (compiled with ``compile=True``)."""
-        if not self._compiled:
-            self._core = self.core
+
+class BatchLastNonlinear(BatchLastIMM):
+    """The IMM (GPB1) step of :class:`~torchmm.kernels.batch_last.imm.BatchLastIMM` over extended or unscented
+    modes (:class:`NonlinearBank`; module docstring).
+
+    Args: as :class:`NonlinearBank`.
+    """
+
+    kind = "IMM over nonlinear modes"
+
+    def __init__(self, model, M: int, batch_dims: int, like: Tensor):
+        super().__init__(model, M, batch_dims, like, bank=NonlinearBank(model, M, batch_dims, like))
 
 
 class BatchLastNonlinearKernel:
@@ -318,7 +336,7 @@ class BatchLastNonlinearKernel:
             return (f"a small batch ({like.numel()} runs x modes < {MIN_BATCH}: the eager steps are faster; "
                     "fast_path=True or compile=True takes the kernel)")
         kernel = BatchLastNonlinear(model, M, like.dim() - 1, like)
-        kernel.hold_noise(belief0.components.mean)
+        kernel.bank.hold_noise(belief0.components.mean)
         if request.compile:
             kernel.compile()
         kernel.prepare(measurements)

@@ -36,31 +36,32 @@ from torch import Tensor
 from torchmm.beliefs import GaussianBelief, ModeBelief
 from torchmm.typing import StepOutput
 from torchmm.kernels.batch_last.algebra import collapse_entries, log_normalized, moments, stack_upper
-from torchmm.kernels.batch_last.imm import BatchLastIMM
+from torchmm.kernels.batch_last.bank import LinearBank
+from torchmm.kernels.batch_last.frame import Frame
 
 __all__ = ["BatchLastGPB2"]
 
 
-class BatchLastGPB2(BatchLastIMM):
-    """One GPB2 step in the batch-last layout (module docstring). ``matrix`` holds ``log pi_ij``
-    ``(i, j, 1...)``; the state's third item is the mode log-probabilities ``(M, *B)``.
+class BatchLastGPB2(Frame):
+    """One GPB2 step in the batch-last layout (module docstring): the :class:`~torchmm.kernels.batch_last.frame.Frame`
+    of the kernel, the pairs' step over the linear bank (:class:`~torchmm.kernels.batch_last.bank.LinearBank`).
+    ``matrix`` holds ``log pi_ij`` ``(i, j, 1...)``; the state's third item is the mode log-probabilities
+    ``(M, *B)``; the state is always one tensor per entry (the pairs' temporaries are ``M`` times the IMM's).
 
     Args: as :class:`~torchmm.kernels.batch_last.imm.BatchLastIMM` (a description with the ``"pairs"`` rule).
     """
 
     kind = "GPB2"
+    traceable = True
 
     def __init__(self, model, M: int, batch_dims: int, like: Tensor):
-        super().__init__(model, M, batch_dims, like)
+        self.bank = bank = LinearBank(model, M, batch_dims, like)
+        super().__init__(model, M, bank.n, bank.m, batch_dims, like)
         self.matrix = self.matrix.log()  # (i, j, 1...): the pair hypotheses' prior weights
-        self.R_front = self.R_front.unsqueeze(2)  # (m, m, 1, P, 1...): mode j's R for the pair (i, j)
+        bank.R_front = bank.R_front.unsqueeze(2)  # (m, m, 1, P, 1...): mode j's R for the pair (i, j)
         d = batch_dims
         self._to_front_pairs_x = (*range(3, d + 3), 1, 2, 0)  # (n, i, j, *B) -> (*B, i, j, n)
         self._to_front_pairs_p = (*range(4, d + 4), 2, 3, 0, 1)  # (n, n, i, j, *B) -> (*B, i, j, n, n)
-
-    def broadcast_layout(self, runs: int, itemsize: int) -> bool:
-        """Always one tensor per entry (the pairs' temporaries are ``M`` times the IMM's)."""
-        return False
 
     def initial_state(self, belief: ModeBelief) -> tuple:
         """``(x[a] (M, *B), C[a][c] (M, *B) for a <= c, log_mu (M, *B), 0)``."""
@@ -83,7 +84,7 @@ class BatchLastGPB2(BatchLastIMM):
             ``(M, M, *B)``, the innovations ``(m, M, M, *B)`` and their covariances ``(m, m, M, M, *B)``
             (``estimate_only``: the estimate ``(n, *B)``, ``(n, n, *B)`` in these two).
         """
-        n, omitted = self.n, self.omitted
+        n, omitted, bank = self.n, self.omitted, self.bank
         # pair hypotheses: (i, j) starts from mode i's posterior, log weight log mu_i + log pi_ij
         prior_joint = log_mu.unsqueeze(1) + self.matrix  # (i, j, *B)
         # (by index, not iteration: the traced step's arguments are proxies)
@@ -91,10 +92,10 @@ class BatchLastGPB2(BatchLastIMM):
         Cs = [[C[a][c].unsqueeze(1) if c >= a else None for c in range(n)] for a in range(n)]
         like = prior_joint
         # prediction with mode j's model: x- = F_j x_i + b_j, P- = F_j C_i F_j^T + Q_j
-        xp, Pp = self.predict_entries(xs, Cs, like)
+        xp, Pp = bank.predict(xs, Cs, like)
         xs = Cs = None  # freed as soon as dead (assignment, not del: see BatchLastIMM.core)
         keep_extras = "extras" not in omitted
-        xu, Cu, ll, singular, s_first = self.update_components(xp, Pp, zc, ob, nhob, like, keep_extras)
+        xu, Cu, ll, singular, s_first = bank.update(xp, Pp, zc, ob, nhob, like, keep_extras)
         # log w_ij, log mu_j (unnormalised), the log-likelihood, merge weights and mode posterior
         joint = ll + prior_joint  # (i, j, *B)
         log_mode = torch.logsumexp(joint, 0)  # (j, *B)
@@ -117,7 +118,7 @@ class BatchLastGPB2(BatchLastIMM):
                 Xp = torch.stack([t.expand(shape) for t in xp])
                 Ppt = stack_upper([[None if t is None else t.expand(shape) for t in row] for row in Pp])
             if "innovation" not in omitted or "innovation_cov" not in omitted:
-                nu_out, S_out = self._innovation(
+                nu_out, S_out = bank.innovation(
                     zraw, [t.expand(shape) for t in xp],
                     [[None if t is None else t.expand(shape) for t in row] for row in Pp], s_first.expand(shape))
         shape = prior_joint.shape

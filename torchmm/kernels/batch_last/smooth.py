@@ -22,7 +22,7 @@ last: ``(M, *B)`` per mode, ``(j, i, *B)`` per pair of modes (mode ``j`` at ``k`
   normalisations (as ``safe_log_normalize``), and mode ``j``'s collapse
   ``P_j - sum_i w_ji V_ji^T V_ji + spread``;
 - the backward IMM's mixing with the backward transition and its update, one measurement component
-  after the other (:meth:`~torchmm.kernels.batch_last.imm.BatchLastIMM.update_components`).
+  after the other (:meth:`~torchmm.kernels.batch_last.bank.LinearBank.update`).
 
 The smoothed beliefs are returned batch-first (views of batch-last memory), equal to the eager
 smoother's to rounding (tests/smoothing/test_two_filter_kernel.py).
@@ -51,7 +51,9 @@ from torchmm.kernels.batch_last.algebra import (
     stack_upper,
     sum_terms,
 )
-from torchmm.kernels.batch_last.imm import LARGE_BATCH, LARGE_STATE, MAX_STATE, BatchLastIMM
+from torchmm.kernels.batch_last.bank import LinearBank
+from torchmm.kernels.batch_last.frame import measurement_data
+from torchmm.kernels.batch_last.imm import LARGE_BATCH, LARGE_STATE, MAX_STATE
 from torchmm.kernels.batch_last.plan import why_not
 
 __all__ = ["LARGE_SMOOTHER", "BatchLastTwoFilter", "LargeStateSmoother", "plan_two_filter", "why_not_smooth"]
@@ -94,9 +96,8 @@ class BatchLastTwoFilter:
     """
 
     def __init__(self, model, M: int, batch_dims: int, like: Tensor):
-        self.imm = imm = BatchLastIMM(model, M, batch_dims, like)
-        imm.broadcast = False
-        self.M, self.n, self.d = M, imm.n, batch_dims
+        self.bank = bank = LinearBank(model, M, batch_dims, like)
+        self.M, self.n, self.d = M, bank.n, batch_dims
         d = batch_dims
         self.Finv = coefficients(torch.linalg.inv(model.F), M, 2, d)
         log_pi = model.transition.log()  # [j, i]
@@ -122,7 +123,7 @@ class BatchLastTwoFilter:
     def start(self, log_mu: Tensor, X: list, C: list, data) -> tuple:
         """The backward filter at the last step: the collapsed estimate with a diffuse covariance, for
         every mode, updated with the last datum; mode log-probabilities from ``prior`` (``data[-1]``)."""
-        n, imm = self.n, self.imm
+        n = self.n
         mu = log_mu.exp()
         est, est_cov = collapse_entries(X, C, mu, n)  # (n, *B), (n, n, *B)
         like = log_mu
@@ -130,7 +131,7 @@ class BatchLastTwoFilter:
         Cs = [[(self.diffuse * est_cov[a, c]).unsqueeze(0).expand_as(like) if c >= a else None for c in range(n)]
               for a in range(n)]
         zc, ob, nhob, _, _ = data[0]
-        xu, Cu, ll, _, _ = imm.update_components(xs, Cs, zc, ob, nhob, like, False)
+        xu, Cu, ll, _, _ = self.bank.update(xs, Cs, zc, ob, nhob, like, False)
         return self.posterior(ll, data[1]), xu, Cu
 
     def posterior(self, ll: Tensor, prior: Tensor) -> Tensor:
@@ -141,8 +142,8 @@ class BatchLastTwoFilter:
 
     def predict(self, x: list, C: list) -> tuple[list, list]:
         """The backward prediction of every mode: ``F^{-1} (m - b)``, ``F^{-1} (P + Q) F^{-T}``."""
-        n, imm = self.n, self.imm
-        Finv, Q, b = self.Finv, imm.Q, imm.b
+        n = self.n
+        Finv, Q, b = self.Finv, self.bank.Q, self.bank.b
         like = x[0]
         diff = [_minus(x[a], b[a]) for a in range(n)]  # m - b
         mean = [combine([(Finv[a][e], diff[e]) for e in range(n)], ZERO, like) for a in range(n)]
@@ -189,7 +190,7 @@ class BatchLastTwoFilter:
 
     def backward_update(self, log_mu_b: Tensor, b: list, B: list, prior: Tensor, data) -> tuple:
         """``backward_imm_update``: the backward transition's mixing and every mode's update with ``z_k``."""
-        M, imm = self.M, self.imm
+        M = self.M
         log_back = self.log_pi_t + prior.unsqueeze(0)  # (i, j, *B): log pi_ji p_k(j)
         log_back = log_back - torch.logsumexp(log_back, 1, keepdim=True)
         log_joint = log_mu_b.unsqueeze(1) + log_back  # (i, j, *B)
@@ -197,15 +198,15 @@ class BatchLastTwoFilter:
         w = log_normalized(log_joint, log_a.unsqueeze(0), M).exp()
         xs, Cm = mix_entries(b, B, w, self.n)  # the mixed beliefs (j, *B)
         zc, ob, nhob, _, _ = data
-        xu, Cu, ll, _, _ = imm.update_components(xs, Cm, zc, ob, nhob, log_a, False)
+        xu, Cu, ll, _, _ = self.bank.update(xs, Cm, zc, ob, nhob, log_a, False)
         return self.posterior(ll, log_a), xu, Cu
 
     def run(self, trajectory, measurements: Tensor, prior_log: Tensor) -> ModeBelief:
         """The smoothed beliefs, batch ``(T, *B)`` (components ``(T, *B, M)``)."""
-        d, imm = self.d, self.imm
+        d = self.d
         filtered = trajectory.belief
         steps = filtered.mode_log_probs.shape[0]
-        imm.prepare(measurements)
+        data = measurement_data(measurements)
         log_mus = [self.modes_last(filtered.mode_log_probs[k]) for k in range(steps)]
         entries = [self.entries(filtered.components.mean[k], filtered.components.cov[k]) for k in range(steps)]
         priors = [self.modes_last(prior_log[k]) for k in range(steps)]
@@ -213,12 +214,12 @@ class BatchLastTwoFilter:
         out_mode, out_x, out_C = [None] * steps, [None] * steps, [None] * steps
         out_mode[last], (out_x[last], out_C[last]) = log_mus[last], entries[last]
         if steps > 1:
-            log_mu_b, b, B = self.start(log_mus[last], *entries[last], (imm.data[last], priors[last]))
+            log_mu_b, b, B = self.start(log_mus[last], *entries[last], (data[last], priors[last]))
         for k in range(steps - 2, -1, -1):
             pb, PB = self.predict(b, B)
             out_mode[k], out_x[k], out_C[k] = self.fuse(log_mus[k], *entries[k], log_mu_b, pb, PB, priors[k + 1])
             if k > 0:
-                log_mu_b, b, B = self.backward_update(log_mu_b, pb, PB, priors[k], imm.data[k])
+                log_mu_b, b, B = self.backward_update(log_mu_b, pb, PB, priors[k], data[k])
         mode = torch.stack(out_mode)  # (T, M, *B)
         X = torch.stack([torch.stack(x) for x in out_x])  # (T, n, M, *B)
         C = torch.stack([stack_upper(c) for c in out_C])  # (T, n, n, M, *B)

@@ -29,9 +29,11 @@ _TRACED_MAX = 64
 _STEPS_SEEN: dict = {}
 _TRACE_AFTER = 1000
 _TRACE_LOCK = threading.Lock()
-#: the kernel's model coefficients (nested lists of Coef) and tensor constants, in the graph's input order
+#: the linear bank's model coefficients (nested lists of Coef), the kernel's and the bank's tensor constants, in
+#: the graph's input order
 _COEFFICIENTS = ("F", "Q", "b", "H", "r")
-_CONSTANTS = ("matrix", "tiny_t", "lowest", "log_2pi", "zero", "R_front")
+_CONSTANTS = ("matrix", "tiny_t", "lowest", "zero")
+_BANK_CONSTANTS = ("tiny_t", "log_2pi", "R_front")
 
 
 def structure(kernel) -> tuple:
@@ -41,12 +43,12 @@ def structure(kernel) -> tuple:
     structure run the same operations on their own constants (:func:`constants`)."""
     kinds = lambda c: tuple(map(kinds, c)) if isinstance(c, list) else c.kind  # noqa: E731
     return (kernel.kind, kernel.n, kernel.m, kernel.M, kernel.d, kernel.broadcast, kernel.collapse, kernel.omitted,
-            kernel.estimate_only, kernel.tiny, *(kinds(getattr(kernel, name)) for name in _COEFFICIENTS))
+            kernel.estimate_only, kernel.tiny, *(kinds(getattr(kernel.bank, name)) for name in _COEFFICIENTS))
 
 
 def constants(kernel) -> tuple:
-    """Every tensor the kernel's ``core`` reads besides its arguments: the coefficients that are not exactly 0 or
-    1, then the transition matrix and the 0-dim constants (the traced step's first input)."""
+    """Every tensor the kernel's ``core`` reads besides its arguments: its bank's coefficients that are not exactly
+    0 or 1, then the transition matrix and the 0-dim constants (the traced step's first input)."""
     out = []
 
     def walk(c):
@@ -57,14 +59,16 @@ def constants(kernel) -> tuple:
             out.append(c.value)
 
     for name in _COEFFICIENTS:
-        walk(getattr(kernel, name))
-    return (*out, *(getattr(kernel, name) for name in _CONSTANTS))
+        walk(getattr(kernel.bank, name))
+    return (*out, *(getattr(kernel, name) for name in _CONSTANTS),
+            *(getattr(kernel.bank, name) for name in _BANK_CONSTANTS))
 
 
 def bound(kernel, values):
-    """A shallow copy of the kernel that reads its :func:`constants` from ``values`` (the
+    """A shallow copy of the kernel (and of its bank) that reads its :func:`constants` from ``values`` (the
     graph's input while tracing)."""
     clone, index = copy.copy(kernel), itertools.count()
+    clone.bank = bank = copy.copy(kernel.bank)
 
     def swap(c):
         if isinstance(c, list):
@@ -72,9 +76,11 @@ def bound(kernel, values):
         return c if c.kind in ("zero", "one") else Coef(c.kind, values[next(index)])
 
     for name in _COEFFICIENTS:
-        setattr(clone, name, swap(getattr(kernel, name)))
+        setattr(bank, name, swap(getattr(kernel.bank, name)))
     for name in _CONSTANTS:
         setattr(clone, name, values[next(index)])
+    for name in _BANK_CONSTANTS:
+        setattr(bank, name, values[next(index)])
     return clone
 
 

@@ -43,21 +43,25 @@ from torchmm.kernels.batch_last.algebra import (
     factor,
     mix_entries,
     mixing,
+    mode_update,
     solve_lower,
     solve_lower_transposed,
     stack_upper,
     sum_terms,
 )
-from torchmm.kernels.batch_last.imm import LARGE_BATCH, LARGE_STATE, MAX_STATE, BatchLastIMM
+from torchmm.kernels.batch_last.bank import LinearBank
+from torchmm.kernels.batch_last.frame import Frame
+from torchmm.kernels.batch_last.imm import LARGE_BATCH, LARGE_STATE, MAX_STATE
 from torchmm.kernels.batch_last.plan import planned, why_not
 from torchmm.models.streams import split_streams
 
 __all__ = ["TRANSFER", "TRANSFER_LARGE", "BatchLastTransfer", "BatchLastTransferKernel", "LargeStateTransfer"]
 
 
-class BatchLastTransfer(BatchLastIMM):
-    """One IMM-TF step in the batch-last layout (module docstring): the IMM kernel's state (per-entry
-    layout) and the source sensor's coefficients ``H_S``, ``r_S``.
+class BatchLastTransfer(Frame):
+    """One IMM-TF step in the batch-last layout (module docstring): the :class:`~torchmm.kernels.batch_last.frame.Frame`
+    of the kernel (the state one tensor per entry), the linear bank of the modes
+    (:class:`~torchmm.kernels.batch_last.bank.LinearBank`) and the source sensor's (``H_S``, ``r_S``).
 
     Args:
         description: the filter's :class:`~torchmm.multimodel.transfer.TransferGaussian`.
@@ -67,21 +71,15 @@ class BatchLastTransfer(BatchLastIMM):
     kind = "IMM-TF"
 
     def __init__(self, description, M: int, batch_dims: int, like: Tensor):
-        super().__init__(description.model, M, batch_dims, like)
+        self.bank = bank = LinearBank(description.model, M, batch_dims, like)
+        super().__init__(description.model, M, bank.n, bank.m, batch_dims, like)
         source = description.model._replace(H=description.H_S, R=description.R_S)
-        self.source = BatchLastIMM(source, M, batch_dims, like)  # (its coefficients and update only)
+        self.source = LinearBank(source, M, batch_dims, like)  # (its update only)
         self.combined = description.smoothing_reference == "combined"
         self.corrected = description.mode_likelihood == "corrected"
         self.gate = description.gate  # None: IMM-TF (the influence is still a diagnostic, mode 0's)
         self.gate_mode = 0 if self.gate is None else self.gate.mode
         self.process_weight = self.gate is not None and self.gate.weight == "process"
-
-    def broadcast_layout(self, runs: int, itemsize: int) -> bool:
-        """Always one tensor per entry."""
-        return False
-
-    def _select(self) -> None:
-        """The step runs as written (no traced graph: its arguments are not the IMM step's)."""
 
     def prepare_streams(self, y: Tensor, ys: Tensor) -> None:
         """Once per run: the target data (:meth:`prepare`) and the source data ``(T, *B, m_S)`` as
@@ -112,18 +110,18 @@ class BatchLastTransfer(BatchLastIMM):
             not needed) the posterior ``(n, M, *B)``, ``(n, n, M, *B)``, the prior and ``log c``, the
             innovations and their covariances (``estimate_only``: the estimate in these two).
         """
-        n, omitted = self.n, self.omitted
-        F, H = self.F, self.H
+        n, omitted, bank = self.n, self.omitted, self.bank
+        F, H = bank.F, bank.H
         sym = lambda T, a, c: T[min(a, c)][max(a, c)]  # noqa: E731
         # 1. the IMM: mixing, prediction, update with y_k
         cbar, w = mixing(mu, self.matrix, self.tiny_t)
         xs, Cm = mix_entries(X, C, w, self.n)
         w = None
-        xp, Pp = self.predict_entries(xs, Cm, cbar)
+        xp, Pp = bank.predict(xs, Cm, cbar)
         extras = "extras" not in omitted
-        xu, Cu, ll, singular, s_first = self.update_components(xp, Pp, zc, ob, nhob, cbar, extras)
+        xu, Cu, ll, singular, s_first = bank.update(xp, Pp, zc, ob, nhob, cbar, extras)
         # 2. the source filter's posterior
-        ms, Ds, _, _, _ = self.source.update_components(xp, Pp, szc, sob, snhob, cbar, False)
+        ms, Ds, _, _, _ = self.source.update(xp, Pp, szc, sob, snhob, cbar, False)
         # 3. the transfer smoothing from the reference at k-1
         if self.combined:
             est, est_cov = collapse_entries(X, C, mu, self.n)
@@ -131,22 +129,22 @@ class BatchLastTransfer(BatchLastIMM):
             rC = [[est_cov[a, c].unsqueeze(0) if c >= a else None for c in range(n)] for a in range(n)]
         else:
             rx, rC = xs, Cm
-        mp, Cp = self.predict_entries(rx, rC, cbar)  # f(x), F P F^T + Q
+        mp, Cp = bank.predict(rx, rC, cbar)  # f(x), F P F^T + Q
         FP = [[combine([(F[a][e], sym(rC, e, c)) for e in range(n)], ZERO, cbar) for c in range(n)]
               for a in range(n)]
         gain_t = self._factor_solve(Cp, FP)  # (F P F^T + Q)^{-1} F P = G^T
         dm = [ms[e] - mp[e] for e in range(n)]
         smoothed = [rx[a] + sum_terms([gain_t[e][a] * dm[e] for e in range(n)]) for a in range(n)]
         # 4. u_S = H (F m_s + b) where the source datum is present; the correction and the update
-        fm = [combine([(F[a][e], smoothed[e]) for e in range(n)], self.b[a], cbar) for a in range(n)]
+        fm = [combine([(F[a][e], smoothed[e]) for e in range(n)], bank.b[a], cbar) for a in range(n)]
         u_s = [combine([(H[k][a], fm[a]) for a in range(n)], ZERO, cbar) for k in range(self.m)]
         uzc = torch.stack([torch.where(present, u_s[k], 0.0) for k in range(self.m)])
         uob = present_f.expand(self.m, *present_f.shape)
-        xc, Cc, _, _, _ = self.update_components(xp, Pp, uzc, uob, uob * -0.5, cbar, False)
-        xt, Ct, llt, _, _ = self.update_components(xc, Cc, zc, ob, nhob, cbar, False)
+        xc, Cc, _, _, _ = bank.update(xp, Pp, uzc, uob, uob * -0.5, cbar, False)
+        xt, Ct, llt, _, _ = bank.update(xc, Cc, zc, ob, nhob, cbar, False)
         # 5. the mode probabilities, the influence (33) and the gate, the components
-        log_cbar, log_mu, total = self.mode_update(torch.where(present, llt, ll) if self.corrected else ll, cbar,
-                                                   anyob)
+        log_cbar, log_mu, total = mode_update(torch.where(present, llt, ll) if self.corrected else ll, cbar, anyob,
+                                              self.lowest, self.zero, self.M)
         mu = log_mu.exp()
         used, diagnostics = present, None
         if self.gate is not None or extras:
@@ -162,7 +160,7 @@ class BatchLastTransfer(BatchLastIMM):
             if "prior" not in omitted:
                 Xp, Ppt = torch.stack(xp), stack_upper(Pp)
             if "innovation" not in omitted or "innovation_cov" not in omitted:
-                nu_out, S_out = self._innovation(zraw, xp, Pp, s_first)
+                nu_out, S_out = bank.innovation(zraw, xp, Pp, s_first)
         return xn, Cn, X_out, P_out, log_mu, mu, total, Xp, Ppt, log_cbar, nu_out, S_out, used, diagnostics
 
     def _influence(self, xt, Ct, mu, xp, Pp, xu, zc, ob, zraw, present) -> tuple[Tensor, Tensor]:
@@ -171,11 +169,11 @@ class BatchLastTransfer(BatchLastIMM):
         of the gate mode's prediction ``N(x^-, W)`` with ``y_k`` (``W`` its predicted covariance: then
         ``x*`` is that mode's plain posterior; or its process noise)."""
         n, m, j = self.n, self.m, self.gate_mode
-        H, r = self.H, self.r
+        H, r = self.bank.H, self.bank.r
         est, _ = collapse_entries(xt, Ct, mu, self.n)  # the tentative output (27)
         if self.process_weight:  # x*: the update of N(x^-, Q) with y_k
-            W = [[combine([], self.Q[a][c], xp[0]) if c >= a else None for c in range(n)] for a in range(n)]
-            x_star = self.update_components(xp, W, zc, ob, ob * -0.5, xp[0], False)[0]
+            W = [[combine([], self.bank.Q[a][c], xp[0]) if c >= a else None for c in range(n)] for a in range(n)]
+            x_star = self.bank.update(xp, W, zc, ob, ob * -0.5, xp[0], False)[0]
         else:
             x_star = xu
         x_star = [x_star[a][j] for a in range(n)]
