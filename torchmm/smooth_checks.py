@@ -136,11 +136,11 @@ def padding_steps(present: Tensor | None, trajectory: Trajectory) -> Tensor | No
     is present. Checked at the entry point (one host read): the shape, and padding only at a run's end."""
     if present is None:
         return None
-    batch = tuple(trajectory.log_likelihood.shape)
+    batch = tuple(trajectory.belief.batch_shape)  # (not the log-likelihood: a record may drop it)
     if tuple(present.shape) != batch:
         raise ValueError(f"present: expected shape {batch} (the trajectory's steps and runs), got "
                          f"{tuple(present.shape)}")
-    padding = ~present.to(trajectory.log_likelihood.device)
+    padding = ~present.to(trajectory.belief.device)
     late = present[1:] & padding[:-1]
     if bool(late.any()):
         k, *run = torch.nonzero(late)[0].tolist()

@@ -143,3 +143,23 @@ def test_present_is_checked(bad, message):
                                          torch.eye(2, dtype=torch.float64).expand(len(LENGTHS), 2, 2)), z)
     with pytest.raises((ValueError, TypeError), match=message):
         smooth(traj, present=bad(present))
+
+
+def test_present_without_a_recorded_log_likelihood():
+    """A run recorded without log-likelihoods (``record=Keep("belief", "prior")``) takes ``present`` too: the
+    batch shape is the beliefs' (it raised AttributeError reading ``trajectory.log_likelihood.shape``)."""
+    from torchmm.run import Keep
+
+    bank, sensor = _models()
+    kf = KalmanFilter(bank.select_mode(0), sensor)
+    z, present = _data()
+    prior = GaussianBelief(torch.zeros(len(LENGTHS), 2, dtype=torch.float64),
+                           torch.eye(2, dtype=torch.float64).expand(len(LENGTHS), 2, 2) * 100)
+    lean = run_filter(kf, prior, z, record=Keep("belief", "prior"))
+    assert lean.log_likelihood is None
+    got = smooth(lean, present=present).belief
+    want = smooth(run_filter(kf, prior, z), present=present).belief
+    torch.testing.assert_close(got.mean, want.mean, rtol=0, atol=0)
+    torch.testing.assert_close(got.cov, want.cov, rtol=0, atol=0)
+    with pytest.raises(ValueError, match=r"present: expected shape \(300, 4\)"):
+        smooth(lean, present=present[:, :2])
