@@ -35,10 +35,12 @@ One entry point, dispatching on the filter that produced ``trajectory`` (docs/sm
 unscented filters: all windows go back together, ``L`` batched backward steps.
 
 The backward pass is the only loop (over time), batched over every run (and mode) axis; it is
-differentiable, and reads no tensor value into Python (FFBSm checks ``Q`` once, at the entry point,
-before any step). Missing data (NaN measurements) need nothing
-here: the filter's posterior at a missing step is its prior, and the backward pass uses beliefs only
-(the two-filter smoother's backward IMM skips them as the forward one does).
+differentiable, and reads no tensor value into Python inside a step (FFBSm checks ``Q`` once, at the
+entry point, before any step). Missing data (NaN measurements): the filter's posterior at a missing step
+is its prior, and the RTS-type passes use beliefs only (the two-filter smoother's backward IMM skips them
+as the forward one does). Missing steps at the end of a run carry nothing about its earlier steps: the
+multiple-model smoothers and FFBSm end each run at its last step with a finite measurement, as
+``present=`` does (docs/smoothing.md, "Runs of different lengths").
 """
 
 from __future__ import annotations
@@ -58,8 +60,8 @@ from torchmm.linalg import cholesky, cholesky_solve
 from torchmm.models.base import MotionModel
 from torchmm.multimodel.bank import ListBank, VectorizedBank
 from torchmm.run import Trajectory
-from torchmm.runtime import entries, one_thread_when_small
-from torchmm.smooth_checks import checked_against_run, padding_steps
+from torchmm.runtime import entries, host_reads_ok, one_thread_when_small
+from torchmm.smooth_checks import checked_against_run, padding_steps, unobserved_tail
 from torchmm.two_filter import (
     backward_imm_update,
     backward_predict,
@@ -280,7 +282,9 @@ def smooth(filter: Any, trajectory: Trajectory | None = None, measurements: Tens
             ``record`` keeps them).
         measurements: the measurements given to ``run_filter``, ``(T, *B, m)`` (NaN: missing). Needed
             by the two-filter smoother of multiple-model filters (its backward IMM filters them
-            again); the other smoothers use the filtered beliefs only. Default: the run's.
+            again); the other smoothers use the filtered beliefs, and the multiple-model smoothers and
+            FFBSm end each run at its last step with a finite measurement (see ``present``). Default: the
+            run's.
         controls: the inputs ``u_k`` given to ``run_filter``, ``(T, *B, k)``. Default: the run's.
         motions: the per-step motion models given to ``run_filter`` (a sequence of ``T``, a callable
             ``k -> model`` or one model). Default: the run's.
@@ -292,8 +296,11 @@ def smooth(filter: Any, trajectory: Trajectory | None = None, measurements: Tens
             smoothed over its own steps only, as if it were alone: its last real step keeps the filtered
             belief and the padding never reaches back (the two-filter smoother starts each run's
             backward filter at its own last step). Padding steps keep the filtered beliefs (the
-            predictions), which score nothing. One host read at entry; the whole-run kernels are not
-            used when a run is padded. Default: every step present.
+            predictions), which score nothing. One host read at entry. Default: every step present.
+            Whether given or not, the multiple-model smoothers and FFBSm also end each run at its last
+            step with a finite measurement (the steps after it carry nothing about the earlier ones),
+            found from the measurements in one batched pass: a run ends at the earlier of the two. The
+            RTS-type smoothers return the filtered beliefs through such steps anyway (to rounding).
         lag: fixed-lag smoothing (Kalman, extended and unscented filters): step ``k`` is smoothed with
             the data up to ``k + lag``, ``p(x_k | z_{1:min(k + lag, T)})``. All ``T`` windows go back
             together: ``lag`` batched backward steps (``O(T lag)`` work). ``None``: fixed interval.
@@ -370,8 +377,19 @@ def smooth(filter: Any, trajectory: Trajectory | None = None, measurements: Tens
             k, *run = torch.nonzero(data)[0].tolist()
             raise ValueError(f"present: run {tuple(run)} has a measurement at step {k}, marked as padding; padding "
                              "is the steps after a run's last one (a missing datum is a NaN measurement)")
-    if controls is None and motions is None and lag is None and padding is None:
-        run, _ = kernels.plan_smooth(filter, trajectory, method)
+    if kind in ("modes", "particles"):  # a run ends at its last step with a datum (the steps after it
+        # carry nothing about the earlier ones; Kim's and FFBSm's backward steps through them would move
+        # its estimates)
+        tail = unobserved_tail(data, trajectory)
+        if tail is not None:
+            padding = tail if padding is None else padding | tail
+            # whether some run ends early: read where it is free (the CPU) or where the entry reads anyway
+            # (the two-filter smoother's checks); elsewhere the mask stays on the device (the steps' where)
+            if padding is tail and (host_reads_ok(tail) or (kind == "modes" and method != "kim")):
+                padding = tail if bool(tail.any()) else None
+    if controls is None and motions is None and lag is None:
+        run, _ = kernels.plan_smooth(filter, trajectory, method,
+                                     **({} if padding is None else {"padding": padding}))
         smoothed = None if run is None else run()
         if smoothed is not None:  # a whole-run kernel (torchmm.kernels), to rounding the steps below
             return Trajectory(belief=smoothed, prior=None, log_likelihood=trajectory.log_likelihood,

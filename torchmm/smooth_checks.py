@@ -1,6 +1,7 @@
 """What a trajectory knows (docs/robustness.md): :func:`~torchmm.smooth`'s arguments checked against the run
 that made the trajectory (its provenance: the same filter object and state, the same data by version or
-fingerprint, the same per-step models), and the padding steps of runs of unequal length."""
+fingerprint, the same per-step models), and the padding steps of runs of unequal length or of runs whose
+last steps hold no measurement."""
 
 from __future__ import annotations
 
@@ -13,7 +14,8 @@ from torch import Tensor
 from torchmm.provenance import fingerprints, module_state, tensor_versions
 from torchmm.run import Trajectory, per_step_models
 
-__all__ = ["SMOOTHERS", "checked_against_run", "padding_steps", "per_step_list", "same_data", "same_models"]
+__all__ = ["SMOOTHERS", "checked_against_run", "padding_steps", "per_step_list", "same_data", "same_models",
+           "unobserved_tail"]
 
 
 def per_step_list(value: Any, steps: int, name: str) -> list | None:
@@ -147,3 +149,24 @@ def padding_steps(present: Tensor | None, trajectory: Trajectory) -> Tensor | No
         raise ValueError(f"present: run {tuple(run)} has a present step {k + 1} after a padding step {k}; padding "
                          "goes at the end of a run (a missing datum inside a run is a NaN measurement)")
     return padding if bool(padding.any()) else None
+
+
+def unobserved_tail(data: Any, trajectory: Trajectory) -> Tensor | None:
+    """``(T, *B)`` bool, True at the steps after each run's last step with a finite measurement (every step of
+    a run without one): steps that carry no information about the earlier ones, which a smoother treats as
+    padding (docs/smoothing.md, "Runs of different lengths"). One batched pass over ``data`` (the
+    measurements the run filtered, ``(T, *B, ...)`` or a pytree of such streams), no host read. None where
+    the data are unknown (a trajectory built by hand, smoothed without them) or not laid out ``(T, *B, ...)``
+    like the trajectory's beliefs."""
+    if data is None:
+        return None
+    batch = tuple(trajectory.belief.batch_shape)
+    leaves = pytree.tree_leaves(data)
+    if not leaves or not all(isinstance(t, Tensor) and tuple(t.shape[:len(batch)]) == batch for t in leaves):
+        return None
+    observed = None
+    for t in leaves:  # a step is observed where any stream has any finite component
+        seen = torch.isfinite(t).reshape(*batch, -1).any(-1)
+        observed = seen if observed is None else observed | seen
+    # observed at this step or a later one: a cumulative "any" from the end
+    return ~observed.flip(0).cummax(0).values.flip(0).to(trajectory.belief.device)

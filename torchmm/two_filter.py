@@ -206,8 +206,11 @@ def smooth_two_filter(filter: MultipleModelFilter, trajectory: Trajectory, measu
     if steps > 1:  # once, at the entry point: the backward filter runs every mode's motion backwards
         check_invertible(bank_at(filter, motions, steps - 1), trajectory.belief.components.mean[steps - 1],
                           None if controls is None else controls[steps - 1].unsqueeze(-2))
-    if controls is None and motions is None and sensors is None and padding is None:  # a whole-run kernel
-        run, _ = kernels.plan_smooth(filter, trajectory, "two_filter", measurements=z, prior_log=prior_log)
+    # the steps at which some run ends before T (one host read at the entry point)
+    ends = set() if padding is None else set(torch.nonzero(padding[1:] & ~padding[:-1])[:, 0].tolist())
+    if controls is None and motions is None and sensors is None:  # a whole-run kernel
+        run, _ = kernels.plan_smooth(filter, trajectory, "two_filter", measurements=z, prior_log=prior_log,
+                                     **({} if padding is None else {"padding": padding, "ends": ends}))
         smoothed = None if run is None else run()
         if smoothed is not None:
             return Trajectory(belief=smoothed, prior=None, log_likelihood=trajectory.log_likelihood,
@@ -225,8 +228,6 @@ def smooth_two_filter(filter: MultipleModelFilter, trajectory: Trajectory, measu
         out = filter.bank.update(flat, z[k].unsqueeze(-2), sensor=None if sensors is None else sensors[k])
         return ModeBelief(mode_posterior(out.log_likelihood, prior_log[k])[0], out.belief)
 
-    # the steps at which some run ends before T (known at the entry point: padding is host data)
-    ends = set() if padding is None else set(torch.nonzero(padding[1:] & ~padding[:-1])[:, 0].tolist())
     backward = start(steps - 1)
     smoothed = [last]
     for k in range(steps - 2, -1, -1):  # the prediction k -> k+1 used motions[k+1] and controls[k+1]

@@ -309,7 +309,10 @@ def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
     Padding (the steps after a recorded series' end, ``present`` False) is invisible: the smoother
     ends each run at its own last step (``smooth(..., present=)``), and no padded step is scored
     (RMSE, NEES) or shown (the run-0 examples are NaN there); the filter's own numbers at padded
-    steps are those of missing data (log-likelihood 0, no innovation)."""
+    steps are those of missing data (log-likelihood 0, no innovation). A series' rows after its last
+    measurement are its steps (``present``: scored against their truth, counted in its length), but
+    ``smooth`` ends the run at its last measurement too: the smoothed beliefs there are the filtered
+    predictions, and the earlier steps' are those of the series without the empty rows."""
     scenario = _scenario_of(ctx, name)
     truth, modes, z, present = _data(ctx, start, stop)
     fitted = _learned(ctx, name)[2] if name in learning.learners(ctx.cfg) else None

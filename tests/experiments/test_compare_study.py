@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pandas as pd
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
@@ -348,3 +349,39 @@ def test_learning_the_sensor_with_irregular_time_stamps(tmp_path):
         cfg.learn.parameters = [{"model": "modes[0]", "name": "Q"}]
     with pytest.raises(ConfigError, match="learn.parameters=modes\\[0\\]: a motion model's tensors with irregular"):
         validate(cfg)  # (the dry build: before any folder)
+
+
+def test_trailing_rows_without_a_measurement_leave_the_smoother_as_it_is(tmp_path):
+    """Rows after a series' last measurement (their truth kept: scored as the filter's predictions) carry
+    nothing about the earlier steps: Kim's smoother on 25 rows with data and 15 empty ones gives, over the 25,
+    the numbers of the 25 rows alone (it ran back through the empty rows: at the last row with data an
+    audit's study measured a position error of 93.8 for 3.7)."""
+    modes, sensor = _library_models()
+    g = torch.Generator().manual_seed(11)
+    prior = GaussianBelief.create(PRIOR_MEAN, PRIOR_COV, dtype=torch.float64)
+    transition = torch.tensor(TRANSITION, dtype=torch.float64)
+    sim = simulate_jump_system(modes, transition, prior, 40, (2,), generator=g)
+    z = simulate_measurements(sensor, sim.states, generator=g).numpy()
+    z[25:] = np.nan
+    curves = {}
+    x = sim.states.numpy()
+    for label, steps in (("short", 25), ("long", 40)):
+        path = tmp_path / f"{label}.csv"
+        with path.open("w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(["series", "t", "y", "pos", "vel"])
+            w.writerows([f"s{r}", k + 1, "" if math.isnan(z[k, r, 0]) else repr(float(z[k, r, 0])),
+                         repr(float(x[k, r, 0])), repr(float(x[k, r, 1]))]
+                        for r in range(2) for k in range(steps))
+        cfg = _data_config(path, "figures=false")
+        with open_dict(cfg):
+            cfg.estimators.IMM.smooth = "kim"
+        run_study(cfg, tmp_path / label)
+        curves[label] = pd.read_csv(tmp_path / label / "curves.csv")
+
+    def smoothed(frame):
+        rows = frame[(frame.quantity == "rmse_position") & (frame.series == "IMM smoothed")].set_index("x")
+        return rows["value"].loc[:25].to_numpy()
+
+    np.testing.assert_allclose(smoothed(curves["long"]), smoothed(curves["short"]), rtol=1e-9, atol=1e-9)
+    assert len(smoothed(curves["long"])) == 25

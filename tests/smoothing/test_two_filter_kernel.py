@@ -37,6 +37,7 @@ from torchmm.kernels.batch_last.imm import LARGE_BATCH, LARGE_STATE, MAX_STATE
 from torchmm.kernels.batch_last.smooth import LARGE_SMOOTHER, BatchLastTwoFilter
 from torchmm.multimodel.mevsmm import ExactMinimumEntropy
 from torchmm.runtime import no_host_sync
+from torchmm.smooth_checks import unobserved_tail
 
 TOL = 1e-6
 
@@ -170,7 +171,12 @@ def test_no_host_reads_in_the_run(kernel_runs):
     from torchmm.two_filter import prior_mode_log_probs as _prior_mode_log_probs  # noqa: PLC0415 (what smooth hands the kernel)
 
     prior_log = _prior_mode_log_probs(imm, traj, 6, traj.belief.mode_log_probs)
-    run, why = kernels.plan_smooth(imm, traj, "two_filter", measurements=z, prior_log=prior_log)
+    # runs whose last steps hold no datum end at their last datum (smooth's padding): the restarts inside too
+    padding = unobserved_tail(z, traj)
+    ends = set(torch.nonzero(padding[1:] & ~padding[:-1])[:, 0].tolist())
+    assert ends
+    run, why = kernels.plan_smooth(imm, traj, "two_filter", measurements=z, prior_log=prior_log,
+                                   padding=padding, ends=ends)
     assert run is not None, why
     with no_host_sync("the two-filter kernel"):
         out = run()

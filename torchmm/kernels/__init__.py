@@ -340,11 +340,18 @@ def plan_smooth(filter: Any, trajectory: Any, method: str | None, **inputs: Any)
     ``method`` (None: the filter's default smoother): ``(run, "")`` where ``run()`` returns the smoothed
     beliefs (batch ``(T, *B)``) or None (declined at run time), or ``(None, reasons)``. ``inputs``: what
     the method reads besides the run, checked by :func:`~torchmm.smooth` (the two-filter smoother's
-    ``measurements (T, *B, m)`` and prior mode log-probabilities ``prior_log (T, [*B,] M)``)."""
+    ``measurements (T, *B, m)`` and prior mode log-probabilities ``prior_log (T, [*B,] M)``), and
+    ``padding (T, *B)`` bool where some run ends before ``T`` (True at the steps after its last one, which
+    keep their filtered beliefs; ``ends``: the steps at which some run ends, a set): only kernels with
+    ``smooths_padding = True`` are offered a padded run."""
     _load()
     reasons = []
+    padded = inputs.get("padding") is not None
     for kernel in _KERNELS:
         if kernel.name in _OFF:
+            continue
+        if padded and not getattr(kernel, "smooths_padding", False):
+            reasons.append(f"{kernel.name}: runs that end before the last step (padding)")
             continue
         planner = getattr(kernel, "plan_smooth", None)
         out = f"{kernel.name}: no smoother" if planner is None else planner(filter, trajectory, method, **inputs)

@@ -104,6 +104,15 @@ class LinearGaussian(NamedTuple):
     time_varying: Any = None
 
 
+def last_steps(z: Tensor, runs: int) -> np.ndarray:
+    """Each run's last step with a finite measurement (0 for a run without one), ``(runs,)`` int64, from the
+    measurements ``z (T, runs, m)``: where Kim's smoother ends it (``smooth``'s padding,
+    docs/smoothing.md)."""
+    seen = torch.isfinite(z).reshape(z.shape[0], runs, -1).any(-1)  # (T, runs)
+    index = torch.arange(z.shape[0], device=z.device).unsqueeze(-1)
+    return torch.where(seen, index, 0).amax(0).cpu().numpy().astype(np.int64)
+
+
 class Prepared:
     """A run planned once and evaluated many times (:class:`~torchmm.learn.Objective`): the data, shapes and
     kernel choice fixed, the models read from the filter at every call (their current parameters).
@@ -130,6 +139,9 @@ class Prepared:
         self.zeros = z.new_zeros(self.runs, 1)
         self.zero_inputs = z.new_zeros(1, 1, M, n)  # (no controls: the input terms, made once)
         self._smooth_inputs = Unchanged(size=1)  # (the kernel's arrays of the last call's tensors)
+        # each run's last step for Kim's smoother: its last with a datum (torchmm.smooth's padding);
+        # RTS: T - 1
+        self.last = np.full(self.runs, steps - 1, np.int64) if self.kalman else last_steps(z, self.runs)
         self.shape = (belief0.mean.shape, belief0.cov.shape) if self.kalman else (
             belief0.mode_log_probs.shape, belief0.components.mean.shape, belief0.components.cov.shape)
 
@@ -160,7 +172,8 @@ class Prepared:
         Kim's smoother of an IMM or GPB1 (the RTS smoother of one Kalman filter) - what ``run_filter`` then
         ``smooth`` return, without their entry checks (checked once, when the plan was made). The
         smoothed beliefs, batch ``(T, *B)``, or None where the eager route must run (a regularised update,
-        a static bank, a time-varying transition)."""
+        a static bank, a time-varying transition). Kim's smoother ends each run at its last step with a
+        datum, as ``smooth`` does (docs/smoothing.md)."""
         model = kernels.describe(self.filter, self.name, inputs=True)
         if isinstance(model, str) or model.time_varying is not None or self.rule == 2 and not self.kalman:
             return None
@@ -178,7 +191,7 @@ class Prepared:
             out = [np.empty((T, runs, self.M), dt), np.empty((T, runs, self.M, self.n), dt),
                    np.empty((T, runs, self.M, self.n, self.n), dt)]
             bad, regularised = load().filter_and_kim(*inputs[:7], self.rule, bool(update_first), *inputs[7:],
-                                                     *finfo(dt), *out)
+                                                     *finfo(dt), self.last, *out)
             if bad + regularised:
                 return None
             return _smoothed(out, tuple(self.batch), self.kalman)
@@ -188,6 +201,7 @@ class LinearKernel:
     """The registered kernel (see the module docstring)."""
 
     name = "linear_gaussian"
+    smooths_padding = True  # plan_smooth takes padding= (runs that end early)
     by_size = True  # taken by the number of runs (kernels.by_size)
     takes_controls = True  # the motion's input terms G u_t (LinearMotion's input_matrix)
 
@@ -291,9 +305,12 @@ class LinearKernel:
         return run
 
 
-    def plan_smooth(self, filter: Any, trajectory: Any, method: str | None, **inputs: Any):
+    def plan_smooth(self, filter: Any, trajectory: Any, method: str | None, padding: Tensor | None = None,
+                    **inputs: Any):
         """Kim's smoother of an IMM or GPB1 run (``method="kim"``), or the RTS smoother of a Kalman
-        filter run, without autograd (with it, the eager smoother runs: its gradient is autograd's)."""
+        filter run, without autograd (with it, the eager smoother runs: its gradient is autograd's).
+        ``padding (T, *B)`` bool: True at the steps after a run's last one (``smooth``'s), which keep their
+        filtered beliefs."""
         model = kernels.describe(filter, self.name)
         if isinstance(model, str):
             return model
@@ -339,30 +356,34 @@ class LinearKernel:
         def run():
             flat = [t.detach().reshape(steps, runs, *t.shape[1 + len(batch):]).contiguous()
                     for t in (logmu, mean, cov)]
-            return _kim(models, *flat, tuple(batch), kalman)
+            last = np.full(runs, steps - 1, np.int64) if padding is None else \
+                ((~padding).reshape(steps, runs).sum(0) - 1).clamp(min=0).numpy().astype(np.int64)
+            return _kim(models, *flat, last, tuple(batch), kalman)
 
         return run
 
 
-def _kim(models: tuple, logmu: Tensor, x: Tensor, P: Tensor, batch: tuple, kalman: bool) -> Any:
+def _kim(models: tuple, logmu: Tensor, x: Tensor, P: Tensor, last: np.ndarray, batch: tuple,
+         kalman: bool) -> Any:
     """Kim's smoother (one mode: RTS) of a filtered run in the compiled loop: the models ``_models``
-    gives, the run's ``logmu (T, runs, M)``, ``x (T, runs, M, n)``, ``P (T, runs, M, n, n)`` (contiguous)
-    -> the smoothed beliefs, batch ``(T, *batch)`` (a GaussianBelief for one Kalman filter)."""
+    gives, the run's ``logmu (T, runs, M)``, ``x (T, runs, M, n)``, ``P (T, runs, M, n, n)`` (contiguous),
+    each run's last step ``last (runs,)`` -> the smoothed beliefs, batch ``(T, *batch)`` (a GaussianBelief
+    for one Kalman filter)."""
     M, n = logmu.shape[-1], x.shape[-1]
     F, b, Q, Pi = (np.ascontiguousarray(np.broadcast_to(as_array(t), w))
                    for t, w in zip((*models[:3], models[5]), ((M, n, n), (M, n), (M, n, n), (M, M))))
-    return _kim_arrays(F, b, Q, Pi, logmu.numpy(), x.numpy(), P.numpy(), batch, kalman)
+    return _kim_arrays(F, b, Q, Pi, logmu.numpy(), x.numpy(), P.numpy(), last, batch, kalman)
 
 
-def _kim_arrays(F, b, Q, Pi, logmu, x, P, batch: tuple, kalman: bool) -> Any:
+def _kim_arrays(F, b, Q, Pi, logmu, x, P, last, batch: tuple, kalman: bool) -> Any:
     """:func:`_kim` on NumPy arrays: ``F (M, n, n)``, ``b (M, n)``, ``Q (M, n, n)``, the transition ``Pi (M,
-    M)`` and the filtered ``logmu (T, runs, M)``, ``x``, ``P`` (contiguous)."""
+    M)``, the filtered ``logmu (T, runs, M)``, ``x``, ``P`` (contiguous) and each run's last step ``last``."""
     steps, runs, M = logmu.shape
     n = x.shape[-1]
     dt = logmu.dtype
     out = [np.empty((steps, runs, M), dt), np.empty((steps, runs, M, n), dt), np.empty((steps, runs, M, n, n), dt)]
     loops = load()
-    loops.kim(F, b, Q, Pi, loops.log_matrix(Pi), logmu, x, P, *finfo(dt), *out)
+    loops.kim(F, b, Q, Pi, loops.log_matrix(Pi), logmu, x, P, *finfo(dt), last, *out)
     return _smoothed(out, batch, kalman)
 
 

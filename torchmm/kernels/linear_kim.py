@@ -23,10 +23,11 @@ from torchmm.kernels.loop_algebra import (
 
 
 @numba.njit(cache=True)
-def filter_and_kim(z, F, b, Q, H, R, Pi, rule, update_first, logmu0, x0, P0, bu, eps, tiny, slogmu, sx, sP):
+def filter_and_kim(z, F, b, Q, H, R, Pi, rule, update_first, logmu0, x0, P0, bu, eps, tiny, last, slogmu, sx,
+                   sP):
     """:func:`forward` then :func:`kim` in one call (a prepared filter-and-smoother: the forward pass's
-    intermediates stay inside). Returns :func:`forward`'s counts; the smoothed beliefs go to ``slogmu``,
-    ``sx``, ``sP`` (written only where both counts are 0)."""
+    intermediates stay inside; ``last (B,)``: each run's last step, as :func:`kim`). Returns :func:`forward`'s
+    counts; the smoothed beliefs go to ``slogmu``, ``sx``, ``sP`` (written only where both counts are 0)."""
     T, B, m = z.shape
     M, n = F.shape[0], F.shape[1]
     dt = z.dtype
@@ -40,7 +41,7 @@ def filter_and_kim(z, F, b, Q, H, R, Pi, rule, update_first, logmu0, x0, P0, bu,
                                np.empty_like(x), np.empty_like(P), np.empty((T, B, M, m), dt),
                                np.empty((T, B, M, m, m), dt), np.empty_like(logmu), flags)
     if bad + regularised == 0:
-        kim(F, b, Q, Pi[0, 0], log_matrix(Pi[0, 0]), logmu, x, P, eps, tiny, slogmu, sx, sP)
+        kim(F, b, Q, Pi[0, 0], log_matrix(Pi[0, 0]), logmu, x, P, eps, tiny, last, slogmu, sx, sP)
     return bad, regularised
 
 
@@ -92,10 +93,12 @@ def _kim_linear(logmu, slogmu_next, Pi, mu, smu, pred, pair, wts, out):
 
 
 @numba.njit(cache=True)
-def kim(F, b, Q, Pi, logPi, logmu, x, P, eps, tiny, slogmu, sx, sP):
-    """Kim's smoother (torchmm.smooth.kim_step) over every run, backwards from the last filtered
+def kim(F, b, Q, Pi, logPi, logmu, x, P, eps, tiny, last, slogmu, sx, sP):
+    """Kim's smoother (torchmm.smooth.kim_step) over every run, backwards from its last filtered
     belief: the pair RTS steps from mode ``j``'s posterior through mode ``i``'s model, the smoothed
-    mode probabilities in log space, and the moment-matched collapse over ``i``."""
+    mode probabilities in log space, and the moment-matched collapse over ``i``. ``last (B,)``: each
+    run's last step (``T - 1``, or earlier for a run that ends there: ``smooth``'s padding); the steps
+    from it on keep their filtered beliefs."""
     T, B, M = logmu.shape
     n = x.shape[3]
     dt = x.dtype
@@ -120,8 +123,9 @@ def kim(F, b, Q, Pi, logPi, logmu, x, P, eps, tiny, slogmu, sx, sP):
     mu = np.empty(M, dt)
     smu = np.empty(M, dt)
     for r in range(B):
-        copy_modes(logmu[T - 1, r], x[T - 1, r], P[T - 1, r], slogmu[T - 1, r], sx[T - 1, r], sP[T - 1, r])
-        for t in range(T - 2, -1, -1):
+        for t in range(last[r], T):
+            copy_modes(logmu[t, r], x[t, r], P[t, r], slogmu[t, r], sx[t, r], sP[t, r])
+        for t in range(last[r] - 1, -1, -1):
             for j in range(M):
                 for i in range(M):
                     # x^-_ji = F_i x_j + b_i, P^-_ji = F_i P_j F_i^T + Q_i (the forward pass's prediction),

@@ -204,6 +204,7 @@ class BatchLastKernel:
     ``compile`` and ``record`` functions included."""
 
     name = "batch_last"
+    smooths_padding = True  # plan_smooth takes padding= and ends= (runs that end early: two-filter passes)
 
     def plan(self, filter, belief0, measurements, request: kernels.Request):
         model = described(filter, request, "linear_gaussian", ("mix", "collapse", "pairs"), "IMM, GPB1 and GPB2",
@@ -228,7 +229,9 @@ class BatchLastKernel:
         diagonal ``R``): ``run() -> ModeBelief`` (batch ``(T, *B)``), or the reason not."""
         from torchmm.kernels.batch_last.smooth import plan_two_filter  # (smooth.py imports this module)
 
-        return plan_two_filter(filter, trajectory, method, inputs.get("measurements"), inputs.get("prior_log"))
+        return plan_two_filter(filter, trajectory, method, inputs.get("measurements"),
+                               inputs.get("prior_log"), padding=inputs.get("padding"),
+                               ends=inputs.get("ends", ()))
 
 
 BATCH_LAST = BatchLastKernel()  # (registered by torchmm.kernels.TABLE)

@@ -31,6 +31,7 @@ smoother's to rounding (tests/smoothing/test_two_filter_kernel.py).
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -201,8 +202,20 @@ class BatchLastTwoFilter:
         xu, Cu, ll, _, _ = self.bank.update(xs, Cm, zc, ob, nhob, log_a, False)
         return self.posterior(ll, log_a), xu, Cu
 
-    def run(self, trajectory, measurements: Tensor, prior_log: Tensor) -> ModeBelief:
-        """The smoothed beliefs, batch ``(T, *B)`` (components ``(T, *B, M)``)."""
+    @staticmethod
+    def keep(mask: Tensor, a: tuple, b: tuple) -> tuple:
+        """``a`` where ``mask (*B)`` is True, else ``b``: mode log-probabilities ``(M, *B)``, mean and
+        covariance entries (each ``(M, *B)``; None below the diagonal)."""
+        m = mask.unsqueeze(0)
+        pick = lambda x, y: None if x is None else torch.where(m, x, y)  # noqa: E731
+        return (pick(a[0], b[0]), [pick(x, y) for x, y in zip(a[1], b[1])],
+                [[pick(x, y) for x, y in zip(ra, rb)] for ra, rb in zip(a[2], b[2])])
+
+    def run(self, trajectory, measurements: Tensor, prior_log: Tensor, padding: Tensor | None = None,
+            ends: Any = ()) -> ModeBelief:
+        """The smoothed beliefs, batch ``(T, *B)`` (components ``(T, *B, M)``). ``padding (T, *B)`` bool: True
+        at the steps after a run's last one (they keep the filtered beliefs, and the run's backward filter
+        starts at its last step, as :func:`~torchmm.smooth`'s); ``ends``: the steps at which some run ends."""
         d = self.d
         filtered = trajectory.belief
         steps = filtered.mode_log_probs.shape[0]
@@ -217,9 +230,15 @@ class BatchLastTwoFilter:
             log_mu_b, b, B = self.start(log_mus[last], *entries[last], (data[last], priors[last]))
         for k in range(steps - 2, -1, -1):
             pb, PB = self.predict(b, B)
-            out_mode[k], out_x[k], out_C[k] = self.fuse(log_mus[k], *entries[k], log_mu_b, pb, PB, priors[k + 1])
+            fused = self.fuse(log_mus[k], *entries[k], log_mu_b, pb, PB, priors[k + 1])
+            if padding is not None:  # a run whose step k+1 is padding ends at k: its filtered belief
+                fused = self.keep(padding[k + 1], (log_mus[k], *entries[k]), fused)
+            out_mode[k], out_x[k], out_C[k] = fused
             if k > 0:
                 log_mu_b, b, B = self.backward_update(log_mu_b, pb, PB, priors[k], data[k])
+                if k in ends:  # the runs whose last step is k start their backward filter here
+                    restart = self.start(log_mus[k], *entries[k], (data[k], priors[k]))
+                    log_mu_b, b, B = self.keep(padding[k + 1], restart, (log_mu_b, b, B))
         mode = torch.stack(out_mode)  # (T, M, *B)
         X = torch.stack([torch.stack(x) for x in out_x])  # (T, n, M, *B)
         C = torch.stack([stack_upper(c) for c in out_C])  # (T, n, n, M, *B)
@@ -248,11 +267,15 @@ class LargeStateSmoother:
     def plan(self, filter, belief0, measurements, request):
         return "a smoother's kernel only"
 
+    smooths_padding = True  # plan_smooth takes padding= and ends= (runs that end early)
+
     def plan_smooth(self, filter, trajectory, method, measurements=None, prior_log=None, **inputs):
-        return plan_two_filter(filter, trajectory, method, measurements, prior_log, large=True)
+        return plan_two_filter(filter, trajectory, method, measurements, prior_log, large=True,
+                               padding=inputs.get("padding"), ends=inputs.get("ends", ()))
 
 
-def plan_two_filter(filter, trajectory, method, measurements=None, prior_log=None, *, large: bool = False):
+def plan_two_filter(filter, trajectory, method, measurements=None, prior_log=None, *, large: bool = False,
+                    padding: Tensor | None = None, ends: Any = ()):
     """The plan of the two-filter smoother's passes batch-last (:class:`BatchLastTwoFilter`): states of at
     most ``MAX_STATE`` components (:meth:`~torchmm.kernels.batch_last.imm.BatchLastKernel.plan_smooth`), or with
     ``large``, of ``MAX_STATE + 1`` to ``LARGE_STATE`` from ``LARGE_BATCH`` runs x modes
@@ -274,7 +297,7 @@ def plan_two_filter(filter, trajectory, method, measurements=None, prior_log=Non
         return reason
     like = trajectory.belief.mode_log_probs
     passes = BatchLastTwoFilter(model, model.transition.shape[-1], like.dim() - 2, like)
-    return lambda: passes.run(trajectory, measurements, prior_log)
+    return lambda: passes.run(trajectory, measurements, prior_log, padding, ends)
 
 
 LARGE_SMOOTHER = LargeStateSmoother()  # (registered by torchmm.kernels.TABLE)
