@@ -259,6 +259,9 @@ def test_controls_and_per_step_motions_are_the_forward_ones():
 
 
 def test_float32_agrees_with_float64():
+    """On data simulated from the model (docs/smoothing.md: 0.0007 / 0.0005 of a posterior sd eager / on the
+    kernel); on data far from the model float32 is not this close (there, "Float32 on data far from the
+    model": 0.17 / 0.055 sd)."""
     transition = torch.tensor([[0.95, 0.05], [0.05, 0.95]], dtype=D)
     cv, sensor, belief0, z = _maneuvering(60, 20, 3, transition)
     out = {}
