@@ -376,6 +376,7 @@ def test_trailing_rows_without_a_measurement_leave_the_smoother_as_it_is(tmp_pat
         cfg = _data_config(path, "figures=false")
         with open_dict(cfg):
             cfg.estimators.IMM.smooth = "kim"
+            del cfg.estimators["KF"]
         run_study(cfg, tmp_path / label)
         curves[label] = pd.read_csv(tmp_path / label / "curves.csv")
 
