@@ -473,6 +473,27 @@ def test_missing_measurements_are_skipped():
     assert torch.isfinite(out.belief.mean).all()
 
 
+def test_a_missing_components_recorded_innovation_is_nan_as_the_kalman_filters():
+    """StepOutput.innovation is non-finite where a component is missing (the Kalman filter's record,
+    which the compare study's NIS and whiteness read as absent); the Student-t filter and VBAKF-PR
+    recorded 0 there, a perfect prediction that lowered NIS and added a degree of freedom. The
+    present components keep z - H x- (the whole vector is still skipped by the update)."""
+    motion, meas, prior, z = _system((4,))
+    z = z.clone()
+    z[1] = float("nan")
+    z[2, 0] = float("nan")
+    kf = KalmanFilter(motion, meas)
+    want = kf.update(kf.predict(prior), z).innovation
+    assert bool(torch.isnan(want[1]).all()) and bool(torch.isnan(want[2, 0])) and bool(torch.isfinite(want[2, 1]))
+    v = VBAKFPR(motion, meas)
+    for f, b in ((StudentTVBFilter(motion, meas), StudentTVBFilter(motion, meas).predict(prior)),
+                 (v, v.predict(v.initial_belief(prior)))):
+        out = f.update(b, z)
+        expected = z - b.mean @ meas.H.mT
+        torch.testing.assert_close(out.innovation, expected, equal_nan=True)
+        assert torch.equal(torch.isnan(out.innovation), torch.isnan(want))
+
+
 def test_bad_arguments_raise_value_errors():
     motion, meas, _, _ = _system()
     with pytest.raises(ValueError, match="df"):

@@ -35,6 +35,8 @@ Missing data: a measurement with any NaN component is skipped for that run (post
 
 from __future__ import annotations
 
+import math
+
 import logging
 
 import torch
@@ -126,6 +128,7 @@ class StudentTVBFilter(LinearVBFilter):
         H, R = self.measurement.H, self.measurement.R
         m, n = R.shape[-1], belief.mean.shape[-1]
         z_pred = matvec(H, belief.mean)
+        present = torch.isfinite(z)  # (the record's innovation is NaN where a component is missing)
         missing, z = fill_missing(z, z_pred)
         observed = ~missing.unsqueeze(-1)  # from the data: a NaN prediction is a failure, not missing
         innovation = z - z_pred
@@ -159,7 +162,7 @@ class StudentTVBFilter(LinearVBFilter):
         record_elbo(extras, elbos, history, "StudentTVBFilter")
         mean, cov, loglik, failed = keep_prior_where_missing(missing, belief, mean, cov, elbos[-1])
         extras["failed"] = failed
-        return StepOutput(GaussianBelief(mean, cov), belief, loglik, innovation, HPH + extras["noise_cov"],
+        return StepOutput(GaussianBelief(mean, cov), belief, loglik, torch.where(present, innovation, math.nan), HPH + extras["noise_cov"],
                           extras=extras)
 
     def _elbo(self, prior, mean, cov, a, b, D, half_logdet_R, L_prior, m, n):

@@ -136,6 +136,7 @@ class VBAKFPR(Filter):
         n, m = belief.mean.shape[-1], z.shape[-1]
         x_pred, P_nom = belief.mean, belief.cov
         z_pred = matvec(H, x_pred)
+        present = torch.isfinite(z)  # (the record's innovation is NaN where a component is missing)
         missing, z = fill_missing(z, z_pred)
         observed = ~missing.unsqueeze(-1)  # from the data: a NaN prediction is a failure, not missing
         innovation = z - z_pred
@@ -163,7 +164,7 @@ class VBAKFPR(Filter):
         dof = torch.where(keep, belief.r_dof, u_q)
         U = torch.where(keep[..., None, None], belief.r_scale, U)
         return StepOutput(
-            AdaptiveGaussianBelief(mean, cov, dof, U), belief, loglik, innovation, S,
+            AdaptiveGaussianBelief(mean, cov, dof, U), belief, loglik, torch.where(present, innovation, math.nan), S,
             extras={"predicted_cov": P_hat, "noise_cov": R_hat, "singular": singular, "failed": failed},
         )
 
