@@ -395,11 +395,6 @@ class Mevsmm:
         if opts["num_winners"] > 21 * opts["num_particles"]:
             raise ConfigError("mevsmm.num_winners", opts["num_winners"],
                               f"must not exceed the 21 x {opts['num_particles']} particles")
-        steps = (data.get("scenario") or {}).get("steps")
-        late = [k for k in opts["histogram_steps"] if isinstance(steps, int) and k > steps]
-        if late:  # (before: no histogram at those steps, silently)
-            raise ConfigError("mevsmm.histogram_steps", opts["histogram_steps"],
-                              f"entries {late} lie past the scenario's last step (scenario.steps = {steps})")
         names = list(opts["estimators"])
         for name in opts.get("estimator_names") or ():
             if name not in names:

@@ -210,8 +210,6 @@ STUDY_CASES = [
      "scenario.labels=['a']: needs one name per regime (2"),
     (_study("markov_switching", "scenario.labels=[a,a]"),
      "scenario.labels=['a', 'a']: the regimes' names must differ"),
-    (_study("mevsmm", "mevsmm.histogram_steps=[500]"),
-     "mevsmm.histogram_steps=[500]: entries [500] lie past the scenario's last step (scenario.steps = 120)"),
     (_study("mevsmm", "scenario.maneuvers=[[31,20,[1.0,1.0]]]"),
      "scenario.maneuvers[0]=[31, 20, [1.0, 1.0]]: needs 1 <= first <= last"),
     # before: the line named another key (scenario.initial_mean), or suggested the refused key itself

@@ -394,3 +394,6 @@ def test_mevsmm_estimator_added_on_the_command_line_runs(tmp_path):
     assert rows["EqMA9+1"][1] == 10.0 and 1.0 <= rows["PF-MEVSMM-topk"][1] <= 21.0
     times = {row[0]: row for row in results.tables["table2"].rows}
     assert times["EqMA9+1"][2] == 1.0  # the timing base (its node's timing_base)
+    # the debug histogram steps past the shortened run's 30 steps are named, not lost silently
+    assert any("mevsmm.histogram_steps [60, 100, 120]: past the scenario's last step (30)" in n
+               for n in results.notes), results.notes
