@@ -18,7 +18,11 @@ other devices ``D' = D``, without a host read). Exact, for up to ``max_targets``
 ``method="lbp"`` approximates the marginals by loopy belief propagation between tracks and
 detections (Williams & Lau, IEEE TAES 50(4), 2014): messages ``mu_ij = w_ij / (m + sum_{j' != j} w_ij'
 nu_j'i)`` and ``nu_ji = 1 / (1 + sum_{i' != i} mu_i'j)``, then ``beta_ij ∝ w_ij nu_ji``, ``beta_i0 ∝ m``.
-Cost ``O(iterations N D)`` a run and scan; exact when no detection is validated by two tracks.
+Cost ``O(iterations N D)`` a run and scan; exact when no detection is validated by two tracks. With
+``m = 0`` (``P_D P_G = 1``: every track takes a detection) the messages are their ``m -> 0`` limit (a track
+left one detection sends it ``mu = inf``); where tracks share detections that limit can be far more confident
+than the exact marginals (two tracks, two detections, ``w = [[1, 0.5], [0.5, 1]]``: 1 against 0.8;
+tests/test_sure_detection.py).
 
 ``method="kbest"`` sums over the ``k`` most likely joint events only (Murty's k best assignments of the
 ``N x (D + N)`` costs ``-log w_ij`` and, on track ``i``'s own column ``D + i``, ``-log m``:
@@ -130,24 +134,54 @@ def exact_marginals(log_w: Tensor, log_missed: float | Tensor) -> tuple[Tensor, 
     return torch.cat([missed.unsqueeze(-1), log_detected], -1), log_z
 
 
-def lbp_marginals(log_w: Tensor, log_missed: float, iterations: int, tolerance: float) -> Tensor:
-    """Loopy belief propagation (Williams & Lau 2014). ``log_w (R, N, D)`` -> ``log beta (R, N, 1 + D)``."""
-    w = (log_w - log_missed).exp() if log_missed > -math.inf else log_w.exp()  # relative to a miss
-    miss = 1.0 if log_missed > -math.inf else 0.0
+def others_sum(x: Tensor, dim: int) -> Tensor:
+    """The sum of ``x >= 0`` along ``dim`` of every entry but each one's own, accurate where one entry dwarfs
+    the others or is ``inf`` (``sum - x`` would lose the others or give ``inf - inf``): the sum without one
+    largest entry ``M``, plus ``M - x`` for every entry but one equal to ``M``."""
+    top, where_top = x.max(dim, keepdim=True)
+    first = torch.arange(x.shape[dim], device=x.device).view(-1, *[1] * (x.dim() - 1 - dim % x.dim())) == where_top
+    rest = torch.where(first, 0.0, x).sum(dim, keepdim=True)  # the sum without one largest entry
+    return rest + torch.where(x == top, 0.0, top - x)
+
+
+def lbp_marginals(log_w: Tensor, log_missed: float | Tensor, iterations: int, tolerance: float,
+                  missed_may_vanish: bool | None = None) -> Tensor:
+    """Loopy belief propagation (Williams & Lau 2014). ``log_w (R, N, D)`` -> ``log beta (R, N, 1 + D)``.
+    ``log_missed``: one number, or ``(R, N)`` a weight per track (JIPDA: ``1 - P_D P_G chi_i``).
+
+    Each track's row ``(m_i, w_i1 .. w_iD)`` is scaled to a largest entry of 1 (the messages do not change).
+    A missed weight ``m_i = 0`` (``P_D P_G = 1``: the track must take a detection) is allowed: a track
+    left with one detection sends it ``mu = inf``, which tells that detection's other tracks ``nu = 0``
+    (the ``m -> 0`` limit of the messages; ``w_ij = 0`` sends ``mu = 0``). Then (``missed_may_vanish``;
+    by default where ``log_missed`` is ``-inf`` or a tensor) the sums over the other tracks and detections
+    are :func:`others_sum`'s, exact with ``inf`` and dominant terms; otherwise ``sum - own``."""
+    R, N, D = log_w.shape
+    if missed_may_vanish is None:
+        missed_may_vanish = isinstance(log_missed, Tensor) or log_missed == -math.inf
+    if not isinstance(log_missed, Tensor):
+        log_missed = log_w.new_full((R, N), log_missed)
+    scale = torch.maximum(log_w.amax(-1), log_missed) if D else log_missed
+    scale = torch.where(torch.isfinite(scale), scale, 0.0)  # (a row of no weight: 0; NaN stays NaN)
+    log_w, log_missed = log_w - scale.unsqueeze(-1), log_missed - scale
+    w, miss = log_w.exp(), log_missed.exp().unsqueeze(-1)  # (R, N, D), (R, N, 1)
+    others = others_sum if missed_may_vanish else (lambda x, dim: x.sum(dim, keepdim=True) - x)
+    valid = w > 0
     nu = torch.ones_like(w)  # detection -> track messages
     early = host_reads_ok(w)
     for _ in range(iterations):
-        val = w * nu
-        mu = w / (miss + val.sum(-1, keepdim=True) - val)  # track -> detection
-        new = 1.0 / (1.0 + mu.sum(-2, keepdim=True) - mu)
+        denominator = miss + others(w * nu, -1)
+        if missed_may_vanish:  # (0 / 0 -> 0: an unvalidated detection; w / 0 -> inf)
+            mu = torch.where(valid, w / torch.where(valid, denominator, 1.0), 0.0)
+        else:
+            mu = w / denominator  # track -> detection
+        new = 1.0 / (1.0 + others(mu, -2))
         if early and bool(((new - nu).abs() <= tolerance * new).all()):
             nu = new
             break
         nu = new
     # normalised in the log domain: a weight of 0 (an unvalidated detection) has log-marginal -inf with
     # gradient 0, where log(num / sum) would give it a NaN gradient
-    log_num = torch.cat([w.new_full((*w.shape[:-1], 1), math.log(miss) if miss else -math.inf),  # (D may be 0)
-                         (log_w - log_missed if log_missed > -math.inf else log_w) + nu.log()], -1)
+    log_num = torch.cat([log_missed.unsqueeze(-1), log_w + nu.log()], -1)
     return torch.log_softmax(log_num, -1)
 
 
