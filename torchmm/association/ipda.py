@@ -11,17 +11,24 @@ JIPDA (Mušicki & Evans, IEEE TAES 40(3), 2004) is its joint form over a run's t
 events with ``w_ij = chi_i^- P_D N(nu_ij; 0, S_i) / lambda`` and, for a track left without a detection,
 ``m_i = 1 - P_D P_G chi_i^-``. From the marginals ``beta_ij``: ``chi_i = beta_i0 (1 - P_D P_G) chi_i^- /
 m_i + sum_j beta_ij``, and the state given existence collapses the hypotheses with weights
-``beta_i0 (1 - P_D P_G) chi_i^- / (m_i chi_i)`` (missed) and ``beta_ij / chi_i``.
+``beta_i0 (1 - P_D P_G) chi_i^- / (m_i chi_i)`` (missed) and ``beta_ij / chi_i``. A sure target
+(``chi_i^- = 1``) keeps ``P(exists | missed) = 1``, also at ``P_D P_G = 1`` where it is ``0 / 0``: such a JIPDA is
+the JPDA (docs/tracking.md, tests/test_sure_detection.py).
 """
 
 from __future__ import annotations
 
-import math
-
 import torch
 from torch import Tensor
 
-from torchmm.association.jpda import JPDA, exact_marginals, flat_runs, kbest_marginals, lbp_marginals
+from torchmm.association.jpda import (
+    JPDA,
+    exact_marginals,
+    flat_runs,
+    kbest_marginals,
+    lbp_log_likelihood,
+    lbp_marginals,
+)
 from torchmm.association.pda import PDA
 from torchmm.beliefs import ExistenceBelief, GaussianBelief, ModeBelief, ModeExistenceBelief, with_existence
 from torchmm.contract import BeliefArg, Choice, Int, Of, Probability, Real, entry_point
@@ -193,24 +200,36 @@ class JIPDA(JPDA):
         log_e = belief.log_existence.expand(*runs, N)
         pdpg = self.detection_probability * self.gate_probability
         log_w = log_w + log_e.unsqueeze(-1)  # chi_i P_D N / lambda
-        log_m = torch.log1p(-pdpg * log_e.exp())  # 1 - P_D P_G chi_i
+        # m_i = 1 - P_D P_G chi_i = (1 - P_D P_G) + P_D P_G (1 - chi_i): two terms >= 0, no cancellation
+        # (0 exactly for a sure target, chi_i = 1, with P_D P_G = 1: it must take a detection)
+        missed = (1.0 - pdpg) - pdpg * torch.expm1(log_e)
+        log_m = missed.log()
         flat_w, flat_m = flat_runs(log_w, 2), flat_runs(log_m, 1)
         if self.method == "exact":
             log_beta, log_z = exact_marginals(flat_w, flat_m)
         elif self.method == "kbest":  # the k most likely joint events (Murty), each track its own miss weight
             log_beta, log_z = kbest_marginals(flat_w, flat_m, self.k)
         else:
-            log_beta = lbp_marginals(flat_w - flat_m.unsqueeze(-1), 0.0, self.iterations, self.tolerance)
-            log_z = torch.logsumexp(torch.cat([flat_m.unsqueeze(-1), flat_w], -1), -1).sum(-1)
+            log_beta = lbp_marginals(flat_w, flat_m, self.iterations, self.tolerance, missed_may_vanish=pdpg >= 1)
+            log_z = lbp_log_likelihood(flat_w, flat_m, missed_may_vanish=pdpg >= 1)
         log_z = torch.where(singular.any(-1), torch.nan, log_z.reshape(runs))  # a track without a gate: failed
         failed = torch.isnan(log_z)[..., None, None]
-        beta = torch.where(failed, torch.nan, log_beta.reshape(*runs, N, 1 + D).exp())
-        # P(exists | missed) = (1 - P_D P_G) chi / m: the state weights given existence
-        missed_exists = beta[..., 0] * ((math.log1p(-pdpg) if pdpg < 1 else -math.inf) + log_e - log_m).exp()
+        # an impossible scan (no joint event has weight: sure targets that cannot all take a detection): as
+        # the JPDA's, every track keeps its prior, its existence included
+        impossible = torch.isneginf(log_z)[..., None, None]
+        missed_only = (torch.arange(D + 1, device=log_w.device) == 0).to(log_w.dtype)
+        beta = log_beta.reshape(*runs, N, 1 + D).exp()
+        beta = torch.where(failed, torch.nan, torch.where(impossible, missed_only, beta))
+        # P(exists | missed) = (1 - P_D P_G) chi / m: the state weights given existence; 1 for a sure target
+        # (chi = 1: (1 - P_D P_G) / (1 - P_D P_G), and its limit P_D P_G -> 1, where it is 0 / 0)
+        sure = log_e == 0
+        ratio = (1.0 - pdpg) * log_e.exp() / torch.where(sure, 1.0, missed)
+        missed_exists = beta[..., 0] * torch.where(sure, 1.0, ratio)
         # (at most 1; a track that exists for sure, a JPDA's, stays at exactly 1: existence 1 is a repelling
         # fixed point of the missed update, where rounding would grow by 1 / (1 - P_D P_G) a miss; NaN kept)
         existence = missed_exists + beta[..., 1:].sum(-1)
-        existence = torch.where(log_e == 0, existence.clamp(1.0, 1.0), existence.clamp(max=1.0))
+        existence = torch.where(sure, existence.clamp(1.0, 1.0), existence.clamp(max=1.0))
+        existence = torch.where(impossible[..., 0], log_e.exp(), existence)
         weights = torch.cat([missed_exists.unsqueeze(-1), beta[..., 1:]], -1) / existence.unsqueeze(-1)
         none = (existence <= 0).unsqueeze(-1)  # no chance of existing: the prediction kept
         weights = torch.where(none, (torch.arange(D + 1, device=beta.device) == 0).to(beta.dtype), weights)

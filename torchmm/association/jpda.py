@@ -33,7 +33,8 @@ chosen without gradient).
 
 The log-likelihood of a scan is ``log Z`` (``method="exact"``, ``"kbest"``): the joint target hypothesis against "every
 detection is clutter" (with one track, the PDA's). With ``"lbp"`` it is the sum over tracks of each
-track's PDA log-likelihood, which equals ``log Z`` when no detection is validated by two tracks.
+track's PDA log-likelihood, which equals ``log Z`` when no detection is validated by two tracks; with ``m = 0``
+it is ``-inf`` where no joint event has weight (fewer detections than tracks, say), as ``log Z`` is.
 """
 
 from __future__ import annotations
@@ -183,6 +184,27 @@ def lbp_marginals(log_w: Tensor, log_missed: float | Tensor, iterations: int, to
     # gradient 0, where log(num / sum) would give it a NaN gradient
     log_num = torch.cat([log_missed.unsqueeze(-1), log_w + nu.log()], -1)
     return torch.log_softmax(log_num, -1)
+
+
+def lbp_log_likelihood(log_w: Tensor, log_missed: float | Tensor, missed_may_vanish: bool | None = None) -> Tensor:
+    """The loopy-belief-propagation JPDA's log-likelihood ``(R,)`` of ``log_w (R, N, D)``: the sum over tracks of
+    each one's PDA log-likelihood ``log(m_i + sum_j w_ij)``. Where a missed weight can vanish
+    (``missed_may_vanish``, as for :func:`lbp_marginals`) it is ``-inf`` for a run with no joint event of
+    weight (sure tracks that cannot all take a detection: an impossible scan, as the exact method finds it),
+    by one batched assignment that takes as few forbidden pairs as it can."""
+    R, N, D = log_w.shape
+    if missed_may_vanish is None:
+        missed_may_vanish = isinstance(log_missed, Tensor) or log_missed == -math.inf
+    if not isinstance(log_missed, Tensor):
+        log_missed = log_w.new_full((R, N), log_missed)
+    log_z = torch.logsumexp(torch.cat([log_missed.unsqueeze(-1), log_w], -1), -1).sum(-1)
+    if not missed_may_vanish or N == 0:
+        return log_z
+    own = torch.eye(N, dtype=torch.bool, device=log_w.device)
+    allowed = torch.cat([log_w > -math.inf, own & (log_missed > -math.inf).unsqueeze(-1)], -1)  # (R, N, D + N)
+    col = unchecked(linear_assignment)((~allowed).to(log_w.dtype))  # (every track a column: N <= D + N)
+    some_event = allowed.gather(-1, col.unsqueeze(-1)).all(-2).squeeze(-1)
+    return torch.where(some_event | torch.isnan(log_z), log_z, -math.inf)
 
 
 def kbest_events(log_w: Tensor, log_missed: float | Tensor, k: int) -> tuple[Tensor, Tensor]:
@@ -375,8 +397,7 @@ class JPDA(DetectionSets):
         else:
             log_beta = lbp_marginals(flat_runs(log_w, 2), log_missed, self.iterations,
                                       self.tolerance).reshape(*runs, N, 1 + D)
-            per_track = torch.logsumexp(torch.cat([log_w.new_full((*log_w.shape[:-1], 1), log_missed), log_w], -1), -1)
-            log_z = per_track.sum(-1)
+            log_z = lbp_log_likelihood(flat_runs(log_w, 2), log_missed).reshape(runs)
         return log_beta.exp(), log_z
 
     def _exact(self, log_w: Tensor, validated: Tensor, log_missed: float) -> tuple[Tensor, Tensor]:
