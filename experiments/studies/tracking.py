@@ -150,7 +150,7 @@ def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
     scans = pytree.tree_map(lambda v: v.to(ctx.device), scans)
     tic = time.perf_counter()
     with torch.no_grad():
-        traj = run_filter(filt, belief, scans, record=est.record if est.managed else "estimate")
+        traj = run_filter(filt, belief, scans, record=est.record if est.managed else _estimate_and_failed)
     seconds = time.perf_counter() - tic
     if est.managed:  # the confirmed tracks, each with its label
         table = traj.belief
@@ -158,6 +158,10 @@ def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
     else:  # one track per target, its index the label
         shown, labels = None, torch.arange(K).expand(traj.belief.mean.shape[:-1])
     position = traj.belief.estimate().mean[..., [0, 2]].cpu().double()  # (T, runs, K, 2)
+    # the runs where some update failed (extras["failed"]: a NaN prediction or association; docs/robustness.md)
+    flags = (traj.extras or {}).get("failed")
+    failed = (torch.zeros(position.shape[1], dtype=torch.bool) if flags is None
+              else flags.cpu().reshape(*flags.shape[:2], -1).any(-1).any(0))
     visible = shown if shown is not None else torch.ones(position.shape[:-1], dtype=torch.bool)
     picture = None
     if start == 0:  # run 0 for the x-y figure: its tracks (position block), truth and detections
@@ -168,7 +172,7 @@ def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
                    "truth": (truth[:, 0] if truth is not None else position.new_zeros(len(position), 0, 2)).cpu().double(),
                    "present": present[:, 0] if truth is not None else torch.zeros(len(position), 0, dtype=torch.bool),
                    "detections": z[:, 0].reshape(len(z), -1, 2).cpu().double()}  # (every sensor's)
-    common = {"picture": picture, "seconds": seconds,
+    common = {"picture": picture, "seconds": seconds, "failed": per_run(failed),
               # a managed tracker's new tracks it could not start for lack of slots, a run
               "unstarted": per_run(unstarted(traj.extras).sum(0).double()) if est.managed else None,
               "tracks": per_run(visible.sum(-1).double()),
@@ -213,6 +217,13 @@ def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
                      if key in out} | {
         "switches": per_run(switches), "lost": per_run(lost), "delay": per_run(delay), **quality,
         "targets": per_run(present.sum(-1).double())}
+
+
+def _estimate_and_failed(out):
+    """``record`` of a fixed-track estimator: the point estimate, the log-likelihood and ``extras["failed"]``."""
+    failed = (out.extras or {}).get("failed")
+    return type(out)(out.belief.estimate(), None, out.log_likelihood,
+                     extras=None if failed is None else {"failed": failed})
 
 
 def _ratio(count: Tensor, total: Tensor) -> Tensor:
@@ -336,6 +347,14 @@ def run(ctx: StudyContext) -> None:
             ctx.results.timing[name] = seconds
     for i, name in enumerate(names):
         mean_and_band(join_runs([p["tracks"] for p in parts[i * n:(i + 1) * n]]), "tracks shown", name, "tracks")
+        failed = int(join_runs([p["failed"] for p in parts[i * n:(i + 1) * n]], dim=0).sum())
+        if failed:  # said, never scored silently as a tracker that lost everything
+            ctx.results.metric(name, "failed_runs", failed)
+            ctx.results.notes.append(
+                f"{name}: {failed} of {runs} runs failed (the tracker flagged extras['failed'] at some scan: a "
+                "NaN prediction or association, docs/robustness.md); from that scan on their tracks are NaN, "
+                "scored as no track (every target missed), so its figures measure the failure, not its "
+                "accuracy (metric failed_runs).")
         if parts[i * n]["unstarted"] is not None:  # capacity: said wherever it bound
             lost = float(join_runs([p["unstarted"] for p in parts[i * n:(i + 1) * n]], dim=0).mean())
             ctx.results.metric(name, "unstarted_tracks", lost)

@@ -134,9 +134,10 @@ def _managed_mht(t, imm, opts: dict, R: float) -> Estimator:
 
 
 def _best(out):
-    """A ManagedMHT's step as its best hypothesis's track table (what the study shows and scores) and its
-    count of new targets without a slot (:func:`unstarted`)."""
-    return out._replace(belief=out.belief.best(), prior=None, extras={"unstarted": unstarted(out.extras)})
+    """A ManagedMHT's step as its best hypothesis's track table (what the study shows and scores), its
+    count of new targets without a slot (:func:`unstarted`) and its failed runs (``extras["failed"]``)."""
+    return out._replace(belief=out.belief.best(), prior=None,
+                        extras={"unstarted": unstarted(out.extras), "failed": out.extras.get("failed")})
 
 
 def unstarted(extras: dict) -> Tensor:

@@ -274,3 +274,29 @@ def test_a_non_finite_waypoint_value_is_named():
         with pytest.raises(ValueError, match=want):
             validate(_compose("tracking", f"tracking.waypoints=[[[0,0,0],{given}]]",
                               "tracking.estimators=[JIPDA-TM]"))
+
+
+def test_runs_whose_tracker_failed_are_counted_and_said(tmp_path, monkeypatch):
+    """A run whose tracker flagged extras["failed"] (here run 1's flag is raised at every scan, as a tracker's
+    failed update raises it) is counted (metric failed_runs) and named in a note, not scored silently as a
+    tracker that lost every target; a tracker that never failed has neither."""
+    real = tracking.run_filter
+
+    def run_filter(filt, belief, scans, record=None):
+        def flag(out):
+            failed = out.extras["failed"].clone()
+            failed[1] = True
+            out = out._replace(extras={**out.extras, "failed": failed})
+            return out if record is None else record(out)
+        return real(filt, belief, scans, record=flag if type(filt).__name__ != "ManagedTracks" else record)
+
+    monkeypatch.setattr(tracking, "run_filter", run_filter)
+    run_study(_compose("tracking", *COMMON, "debug=tracking", "figures=false",
+                       "tracking.estimators=[IMM-JPDAF,IMM-PDAF,IMM-MHT,JIPDA-TM]"), tmp_path)
+    results = json.loads((tmp_path / "results.json").read_text())
+    notes = (tmp_path / "results.md").read_text()
+    for name in ("IMM-JPDAF", "IMM-PDAF", "IMM-MHT"):
+        assert results["metrics"][name]["failed_runs"] == 1, name
+        assert f"- {name}: 1 of 4 runs failed" in notes, name
+    assert "failed_runs" not in results["metrics"]["JIPDA-TM"]  # (its flags left as they were: none raised)
+    assert "JIPDA-TM: 1 of 4" not in notes and "JIPDA-TM: 0 of" not in notes
