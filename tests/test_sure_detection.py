@@ -18,7 +18,8 @@ from torchmm.models import ConstantVelocity, PositionMeasurement
 
 
 def _brute(w: np.ndarray, missed: np.ndarray) -> tuple[np.ndarray, float]:
-    """Every joint event of ``w (N, D)`` with track ``i``'s missed weight ``missed[i]``: ``beta (N, 1 + D)``, ``Z``."""
+    """Every joint event of ``w (N, D)`` with track ``i``'s missed weight ``missed[i]``: ``beta (N, 1 + D)``,
+    ``Z``."""
     N, D = w.shape
     beta, Z = np.zeros((N, D + 1)), 0.0
     for event in itertools.product(range(D + 1), repeat=N):
@@ -39,7 +40,8 @@ def _williams_lau(w: np.ndarray, m: float, iterations: int = 20000) -> np.ndarra
     for _ in range(iterations):
         mu = np.array([[w[i, j] / (m + sum(w[i, k] * nu[i, k] for k in range(D) if k != j)) for j in range(D)]
                        for i in range(N)])
-        nu = np.array([[1.0 / (1.0 + sum(mu[k, j] for k in range(N) if k != i)) for j in range(D)] for i in range(N)])
+        nu = np.array([[1.0 / (1.0 + sum(mu[k, j] for k in range(N) if k != i)) for j in range(D)]
+                       for i in range(N)])
     num = np.concatenate([np.full((N, 1), m), w * nu], -1)
     return num / num.sum(-1, keepdims=True)
 
@@ -129,7 +131,8 @@ def test_jipda_with_sure_targets_and_sure_detection_is_the_jpda(method):
         predicted = jipda.predict(b_jipda)
         got = jipda.update(predicted, z[t])
         if t == 2:  # run 0's impossible scan: likelihood 0, every track keeps its prediction
-            assert torch.isneginf(got.log_likelihood[0]).all() and torch.isneginf(want.log_likelihood[0]).all()
+            assert torch.isneginf(got.log_likelihood[0]).all()
+            assert torch.isneginf(want.log_likelihood[0]).all()
             torch.testing.assert_close(got.belief.state.mean[0], predicted.state.mean[0], rtol=0, atol=0)
         assert not got.extras["failed"].any() and not want.extras["failed"].any()
         assert torch.equal(got.extras["existence"], torch.ones(2, 3, dtype=torch.float64))
@@ -177,12 +180,15 @@ def test_jipda_near_sure_detection_against_an_enumeration_in_50_digits(detection
     missed_exists = [beta[i][0] * ((1 - pdpg) * chi[i] / m[i] if m[i] != 0 else 1) for i in range(3)]
     existence = [missed_exists[i] + sum(beta[i][1:]) for i in range(3)]
     assert not out.extras["failed"].any()
-    np.testing.assert_allclose(out.extras["existence"].numpy(), np.array(existence, dtype=float), rtol=1e-12, atol=0)
+    np.testing.assert_allclose(out.extras["existence"].numpy(), np.array(existence, dtype=float), rtol=1e-12,
+                               atol=0)
     np.testing.assert_allclose(out.extras["association"].numpy(), np.array(beta, dtype=float), rtol=1e-10,
                                atol=1e-300)
     for i in range(3):
-        weights = ([float(missed_exists[i] / existence[i])] + [float(beta[i][j + 1] / existence[i]) for j in range(3)]
-                   if existence[i] > 0 else [1.0, 0.0, 0.0, 0.0])  # (no chance of existing: the prior kept)
-        mean = sum(wk * mk for wk, mk in zip(weights, [prior.mean[i]] + [upd[i][j].belief.mean for j in range(3)]))
+        weights = [missed_exists[i]] + beta[i][1:]
+        weights = ([float(v / existence[i]) for v in weights] if existence[i] > 0
+                   else [1.0, 0.0, 0.0, 0.0])  # (no chance of existing: the prior kept)
+        means = [prior.mean[i]] + [upd[i][j].belief.mean for j in range(3)]
+        mean = sum(wk * mk for wk, mk in zip(weights, means))
         torch.testing.assert_close(out.belief.state.mean[i], mean, rtol=1e-10, atol=1e-10)
     assert abs(float(existence[1]) - (0.5 if pd < 1 else 0.0)) < 1e-6

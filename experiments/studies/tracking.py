@@ -158,7 +158,8 @@ def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
     else:  # one track per target, its index the label
         shown, labels = None, torch.arange(K).expand(traj.belief.mean.shape[:-1])
     position = traj.belief.estimate().mean[..., [0, 2]].cpu().double()  # (T, runs, K, 2)
-    # the runs where some update failed (extras["failed"]: a NaN prediction or association; docs/robustness.md)
+    # the runs where some update failed (extras["failed"]: a NaN prediction or association,
+    # docs/robustness.md)
     flags = (traj.extras or {}).get("failed")
     failed = (torch.zeros(position.shape[1], dtype=torch.bool) if flags is None
               else flags.cpu().reshape(*flags.shape[:2], -1).any(-1).any(0))
@@ -220,7 +221,8 @@ def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
 
 
 def _estimate_and_failed(out):
-    """``record`` of a fixed-track estimator: the point estimate, the log-likelihood and ``extras["failed"]``."""
+    """``record`` of a fixed-track estimator: the point estimate, the log-likelihood and
+    ``extras["failed"]``."""
     failed = (out.extras or {}).get("failed")
     return type(out)(out.belief.estimate(), None, out.log_likelihood,
                      extras=None if failed is None else {"failed": failed})
@@ -351,10 +353,10 @@ def run(ctx: StudyContext) -> None:
         if failed:  # said, never scored silently as a tracker that lost everything
             ctx.results.metric(name, "failed_runs", failed)
             ctx.results.notes.append(
-                f"{name}: {failed} of {runs} runs failed (the tracker flagged extras['failed'] at some scan: a "
-                "NaN prediction or association, docs/robustness.md); from that scan on their tracks are NaN, "
-                "scored as no track (every target missed), so its figures measure the failure, not its "
-                "accuracy (metric failed_runs).")
+                f"{name}: {failed} of {runs} runs failed (the tracker flagged extras['failed'] at some "
+                "scan: a NaN prediction or association, docs/robustness.md); from that scan on their tracks "
+                "are NaN, scored as no track (every target missed), so its figures measure the failure, not "
+                "its accuracy (metric failed_runs).")
         if parts[i * n]["unstarted"] is not None:  # capacity: said wherever it bound
             lost = float(join_runs([p["unstarted"] for p in parts[i * n:(i + 1) * n]], dim=0).mean())
             ctx.results.metric(name, "unstarted_tracks", lost)

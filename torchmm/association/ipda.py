@@ -12,8 +12,8 @@ events with ``w_ij = chi_i^- P_D N(nu_ij; 0, S_i) / lambda`` and, for a track le
 ``m_i = 1 - P_D P_G chi_i^-``. From the marginals ``beta_ij``: ``chi_i = beta_i0 (1 - P_D P_G) chi_i^- /
 m_i + sum_j beta_ij``, and the state given existence collapses the hypotheses with weights
 ``beta_i0 (1 - P_D P_G) chi_i^- / (m_i chi_i)`` (missed) and ``beta_ij / chi_i``. A sure target
-(``chi_i^- = 1``) keeps ``P(exists | missed) = 1``, also at ``P_D P_G = 1`` where it is ``0 / 0``: such a JIPDA is
-the JPDA (docs/tracking.md, tests/test_sure_detection.py).
+(``chi_i^- = 1``) keeps ``P(exists | missed) = 1``, also at ``P_D P_G = 1`` where it is ``0 / 0``: such a
+JIPDA is the JPDA (docs/tracking.md, tests/test_sure_detection.py).
 """
 
 from __future__ import annotations
@@ -210,7 +210,8 @@ class JIPDA(JPDA):
         elif self.method == "kbest":  # the k most likely joint events (Murty), each track its own miss weight
             log_beta, log_z = kbest_marginals(flat_w, flat_m, self.k)
         else:
-            log_beta = lbp_marginals(flat_w, flat_m, self.iterations, self.tolerance, missed_may_vanish=pdpg >= 1)
+            log_beta = lbp_marginals(flat_w, flat_m, self.iterations, self.tolerance,
+                                     missed_may_vanish=pdpg >= 1)
             log_z = lbp_log_likelihood(flat_w, flat_m, missed_may_vanish=pdpg >= 1)
         log_z = torch.where(singular.any(-1), torch.nan, log_z.reshape(runs))  # a track without a gate: failed
         failed = torch.isnan(log_z)[..., None, None]

@@ -33,8 +33,8 @@ chosen without gradient).
 
 The log-likelihood of a scan is ``log Z`` (``method="exact"``, ``"kbest"``): the joint target hypothesis against "every
 detection is clutter" (with one track, the PDA's). With ``"lbp"`` it is the sum over tracks of each
-track's PDA log-likelihood, which equals ``log Z`` when no detection is validated by two tracks; with ``m = 0``
-it is ``-inf`` where no joint event has weight (fewer detections than tracks, say), as ``log Z`` is.
+track's PDA log-likelihood, which equals ``log Z`` when no detection is validated by two tracks; with
+``m = 0`` it is ``-inf`` where no joint event has weight (fewer detections than tracks, say), as ``log Z`` is.
 """
 
 from __future__ import annotations
@@ -140,7 +140,8 @@ def others_sum(x: Tensor, dim: int) -> Tensor:
     the others or is ``inf`` (``sum - x`` would lose the others or give ``inf - inf``): the sum without one
     largest entry ``M``, plus ``M - x`` for every entry but one equal to ``M``."""
     top, where_top = x.max(dim, keepdim=True)
-    first = torch.arange(x.shape[dim], device=x.device).view(-1, *[1] * (x.dim() - 1 - dim % x.dim())) == where_top
+    index = torch.arange(x.shape[dim], device=x.device).view(-1, *[1] * (x.dim() - 1 - dim % x.dim()))
+    first = index == where_top
     rest = torch.where(first, 0.0, x).sum(dim, keepdim=True)  # the sum without one largest entry
     return rest + torch.where(x == top, 0.0, top - x)
 
@@ -186,12 +187,13 @@ def lbp_marginals(log_w: Tensor, log_missed: float | Tensor, iterations: int, to
     return torch.log_softmax(log_num, -1)
 
 
-def lbp_log_likelihood(log_w: Tensor, log_missed: float | Tensor, missed_may_vanish: bool | None = None) -> Tensor:
-    """The loopy-belief-propagation JPDA's log-likelihood ``(R,)`` of ``log_w (R, N, D)``: the sum over tracks of
-    each one's PDA log-likelihood ``log(m_i + sum_j w_ij)``. Where a missed weight can vanish
+def lbp_log_likelihood(log_w: Tensor, log_missed: float | Tensor,
+                       missed_may_vanish: bool | None = None) -> Tensor:
+    """The loopy-belief-propagation JPDA's log-likelihood ``(R,)`` of ``log_w (R, N, D)``: the sum over
+    tracks of each one's PDA log-likelihood ``log(m_i + sum_j w_ij)``. Where a missed weight can vanish
     (``missed_may_vanish``, as for :func:`lbp_marginals`) it is ``-inf`` for a run with no joint event of
-    weight (sure tracks that cannot all take a detection: an impossible scan, as the exact method finds it),
-    by one batched assignment that takes as few forbidden pairs as it can."""
+    weight (sure tracks that cannot all take a detection: an impossible scan, as the exact method finds
+    it), by one batched assignment that takes as few forbidden pairs as it can."""
     R, N, D = log_w.shape
     if missed_may_vanish is None:
         missed_may_vanish = isinstance(log_missed, Tensor) or log_missed == -math.inf
@@ -201,7 +203,8 @@ def lbp_log_likelihood(log_w: Tensor, log_missed: float | Tensor, missed_may_van
     if not missed_may_vanish or N == 0:
         return log_z
     own = torch.eye(N, dtype=torch.bool, device=log_w.device)
-    allowed = torch.cat([log_w > -math.inf, own & (log_missed > -math.inf).unsqueeze(-1)], -1)  # (R, N, D + N)
+    own_miss = own & (log_missed > -math.inf).unsqueeze(-1)
+    allowed = torch.cat([log_w > -math.inf, own_miss], -1)  # (R, N, D + N)
     col = unchecked(linear_assignment)((~allowed).to(log_w.dtype))  # (every track a column: N <= D + N)
     some_event = allowed.gather(-1, col.unsqueeze(-1)).all(-2).squeeze(-1)
     return torch.where(some_event | torch.isnan(log_z), log_z, -math.inf)
