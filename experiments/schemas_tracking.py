@@ -48,7 +48,7 @@ class JPDASettings:
 class MHTSettings:
     hypotheses: int = spec(MISSING, positive_int)  # IMM-MHT: global hypotheses a run
     k: Optional[int] = spec(MISSING, lambda v: None if v is None else positive_int(v))  # events a hypothesis (None: hypotheses)
-    n_scan: int = spec(MISSING, non_negative)  # N-scan pruning depth (0: none)
+    n_scan: int = spec(MISSING, non_negative)  # N-scan pruning: decisions n_scan scans back fixed (0: none)
 
 
 @dataclass

@@ -75,7 +75,7 @@ def test_imm_tracks_and_imm_gnn():
 def test_crossing_targets_identities_against_jpda():
     """Four crossing targets in heavy clutter with missed detections (P_D 0.6, 30 clutter points a scan,
     40 runs, 30 scans): the fraction of tracks that end nearest their own target - measured, MHT (10
-    hypotheses, 3-scan pruning) keeps more identities than the exact JPDA (measured at 100 runs: 0.49
+    hypotheses, 3-scan pruning) keeps more identities than the exact JPDA (measured at 100 runs: 0.50
     against 0.23, GNN 0.45; docs/tracking.md)."""
     motion, sensor, prior, det, truth, options = _scene(30, 40, 4, seed=31, pd=0.6, clutter=30.0)
     kf = KalmanFilter(motion, sensor)

@@ -10,9 +10,13 @@ detection at most one track) of weight ``w_e``, the product of its ``w_ij`` and 
 events are Murty's k best assignments of the ``N x (D + N)`` costs ``-log w_ij`` (track ``i``'s own column
 ``D + i`` its miss; :func:`torchmm.assignment.k_best_assignments`). The children ``(h, e)`` weigh
 ``l_h + log w_e``; the ``H`` best are kept and normalised; each child's tracks are its parent's, each
-updated with its detection of ``e`` alone (or not at all). **N-scan pruning**: a hypothesis whose
-assignment ``n_scan`` scans back differs from the best hypothesis's is dropped (the decisions older than
-``n_scan`` scans are the best hypothesis's).
+updated with its detection of ``e`` alone (or not at all). **N-scan pruning** (N-scan-back, as in Blackman,
+IEEE AES Magazine 19(1), 2004): after the ``H`` best are kept, a hypothesis whose assignment ``n_scan``
+scans back differs from the best hypothesis's is dropped, so the decisions ``n_scan`` and more scans back
+are the best hypothesis's and the survivors differ on the last ``n_scan`` scans at most (``n_scan = 1``:
+on the current scan's assignment). The literature's ``N = 0`` (every decision fixed at once) is GNN,
+here ``hypotheses=1, k=1``; ``n_scan = 0`` here is no pruning. Fewer than ``H`` hypotheses may survive
+a scan (the pruning follows the cut to ``H``).
 
 The scan's log-likelihood is ``log sum_(h, e) exp(l_h + log w_e)`` over the parents' ``k`` events (the
 joint target hypotheses against "all clutter"; with every hypothesis and event kept, the exact marginal
@@ -54,8 +58,8 @@ class HypothesisBelief(Belief):
 
     Shapes:
         log_weights: ``(*B, H)`` normalised (``-inf``: an empty or pruned slot)
-        history: ``(*B, H, L, N)`` long, each hypothesis's last ``L`` assignments (0 missed, ``1 + j``
-            detection ``j``, ``-1`` before the first scan)
+        history: ``(*B, H, L, N)`` long, each hypothesis's last ``L = n_scan + 1`` assignments, oldest
+            first (0 missed, ``1 + j`` detection ``j``, ``-1`` before the first scan)
         tracks: a belief with batch ``(*B, H * N)`` (hypothesis-major)
     """
 
@@ -106,7 +110,8 @@ class MHT(JPDA):
         filter, detection_probability, clutter_density, gate_probability: as for :class:`JPDA`.
         hypotheses: ``H``, the global hypotheses kept a run (default 10).
         k: the best joint events of each hypothesis a scan (default ``hypotheses``).
-        n_scan: the N-scan pruning depth (default 3; 0: none).
+        n_scan: the N-scan pruning depth: the decisions ``n_scan`` scans back are fixed, the hypotheses
+            may differ on the last ``n_scan`` scans (default 3; 0: no pruning; the module docstring).
 
     Shapes:
         belief: :class:`HypothesisBelief` (from :meth:`initial_belief` of the tracks, batch ``(*B, N)``);
@@ -148,7 +153,7 @@ class MHT(JPDA):
         if len(batch) < 1:
             raise ValueError("belief: MHT needs tracks with a batch (*B, N), the tracks last")
         *runs, N = batch
-        H, L = self.hypotheses, max(self.n_scan, 1)
+        H, L = self.hypotheses, self.n_scan + 1  # (the decisions n_scan scans back and every later one)
         dtype, device = tracks.dtype, tracks.device
         log_w = torch.full((*runs, H), -math.inf, dtype=dtype, device=device)
         log_w[..., 0] = 0.0
@@ -238,11 +243,12 @@ def shift_history(history: Tensor, parent: Tensor, chosen: Tensor) -> Tensor:
 
 def prune(log_w: Tensor, history: Tensor, n_scan: int) -> Tensor:
     """N-scan pruning: a hypothesis whose assignments ``n_scan`` scans back differ from the best one's
-    gets weight 0 (``-inf``); ``n_scan = 0``: none."""
+    gets weight 0 (``-inf``), so the survivors differ on the last ``n_scan`` scans at most; ``n_scan = 0``:
+    none. ``history (*B, H, n_scan + 1, N)``: its first entry is the scan ``n_scan`` back."""
     if n_scan <= 0:
         return log_w
     best = log_w.argmax(-1, keepdim=True)
-    oldest = history[..., 0, :]  # (*B, H, N)
+    oldest = history[..., -1 - n_scan, :]  # (*B, H, N): the scan n_scan back
     agree = (oldest == oldest.gather(-2, best.unsqueeze(-1).expand(*oldest.shape[:-2], 1, oldest.shape[-1]))).all(-1)
     return torch.where(agree, log_w, -math.inf)
 

@@ -205,7 +205,7 @@ class ManagedMHT(MHT):
         """One hypothesis (the others empty) of ``capacity`` slots, runs ``batch_shape``: every slot free,
         or, given ``tracks`` (a :class:`~torchmm.GaussianBelief` with batch ``(*B, N)``, ``N <= capacity``,
         its runs then the batch), the first ``N`` slots holding them, confirmed, labelled ``0 .. N - 1``."""
-        n, K, H, L = self.state_dim, self.capacity, self.hypotheses, max(self.n_scan, 1)
+        n, K, H, L = self.state_dim, self.capacity, self.hypotheses, self.n_scan + 1
         if tracks is not None:
             if not isinstance(tracks, GaussianBelief) or len(tracks.batch_shape) < 1:
                 raise TypeError("tracks: expected a GaussianBelief with batch (*B, N), the tracks last")
