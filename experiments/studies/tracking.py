@@ -190,8 +190,7 @@ def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
         term = gospa_switching(label, penalty=penalty, p=float(t.gospa_p), truth_present=present)
         out["distance"] = (out["distance"] ** 2 + term ** 2).sqrt()
         out["switching"] = term
-    both = (label[1:] >= 0) & (label[:-1] >= 0)
-    switches = (both & (label[1:] != label[:-1])).sum((0, 2)).double()  # (runs,)
+    switches = label_switches(label)  # (runs,)
     # a figure over targets counts only the targets that exist (a truth file may give a series fewer
     # targets, or none): NaN where a run has none to count, left out of the average over runs
     last = present[-1]
@@ -218,6 +217,19 @@ def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
                      if key in out} | {
         "switches": per_run(switches), "lost": per_run(lost), "delay": per_run(delay), **quality,
         "targets": per_run(present.sum(-1).double())}
+
+
+def label_switches(label: Tensor) -> Tensor:
+    """Times a target's track changed, a run: ``label (T, runs, N)`` the label of each target's GOSPA-assigned
+    track (-1: none) -> ``(runs,)`` float64. Each step with a track compares it with the target's last one
+    (across steps without: A, none, B counts 1; A, none, A counts 0), as the full switches of
+    :func:`torchmm.metrics.gospa_switching`; gaining or losing a track is not a switch."""
+    T = label.shape[0]
+    steps = torch.arange(T, device=label.device).view(-1, *[1] * (label.dim() - 1))
+    seen = torch.where(label >= 0, steps, -1).cummax(0).values  # the last step with a track, up to each step
+    before = torch.cat([torch.full_like(seen[:1], -1), seen[:-1]])  # ... before each step
+    last = torch.where(before >= 0, label.gather(0, before.clamp(min=0)), -1)
+    return ((label >= 0) & (last >= 0) & (label != last)).sum((0, 2)).double()
 
 
 def _estimate_and_failed(out):
@@ -394,7 +406,9 @@ def _score_tables(ctx: StudyContext, names: list[str], parts: list[dict], n: int
                   "lost_fraction", "first_track_delay", "seconds_per_track_scan"],
         note="gospa: the GOSPA distance averaged over steps and runs, gospa_se its standard error over the "
              "runs (95 %: +- 1.96 se). localisation / missed / false: the parts of GOSPA^p (units of "
-             "distance^p), averaged the same way. label_switches: times a target's track changed, a run. "
+             "distance^p), averaged the same way. label_switches: times a target's track changed, a run (against "
+             "its last track, across scans without one: A, none, B counts 1; gaining or losing one is not a "
+             "switch). "
              "lost_fraction: targets without a track within c at the last scan (of those that exist then). "
              "first_track_delay: scans from a target's first scan to its first track within c (a target "
              "never tracked counts the scans to the end), over the targets that exist in a run. Both average "

@@ -300,3 +300,22 @@ def test_runs_whose_tracker_failed_are_counted_and_said(tmp_path, monkeypatch):
         assert f"- {name}: 1 of 4 runs failed" in notes, name
     assert "failed_runs" not in results["metrics"]["JIPDA-TM"]  # (its flags left as they were: none raised)
     assert "JIPDA-TM: 1 of 4" not in notes and "JIPDA-TM: 0 of" not in notes
+
+
+def test_label_switches_compare_with_the_last_track_across_gaps():
+    """label_switches counts a target's change of track against its last one, across scans without a track
+    (A, none, B: 1; A, none, A: 0; gained or lost: 0), as a plain loop over the scans does."""
+    import itertools
+
+    label = torch.tensor([[0, 0, 1], [-1, 0, 1], [2, 0, -1], [2, 1, -1], [-1, -1, 1], [0, -1, 3]]).view(6, 1, 3)
+    assert tracking.label_switches(label).tolist() == [4.0]  # target 0: 0 -> 2 -> 0; 1: 0 -> 1; 2: 1 -> 3
+    gen = torch.Generator().manual_seed(3)
+    label = torch.randint(-1, 3, (9, 5, 4), generator=gen)
+    want = []
+    for r in range(5):
+        count = 0
+        for i in range(4):
+            known = [int(v) for v in label[:, r, i] if v >= 0]
+            count += sum(a != b for a, b in itertools.pairwise(known))
+        want.append(float(count))
+    assert tracking.label_switches(label).tolist() == want
