@@ -262,6 +262,13 @@ def _check_management(t: dict) -> None:
     if m["method"] == "exact" and m["capacity"] > 12 and set(MANAGED_TRACKERS) & set(t["estimators"]):
         raise ConfigError("tracking.management.capacity", m["capacity"],
                           "the exact JIPDA takes at most 12 track slots (method: lbp takes any number)")
+    exact = [name for name in t["estimators"] if name in EXACT_JPDA]
+    method = (t.get("jpda") or {}).get("method", "exact")
+    if t["start"] == "detections" and method == "exact" and m["capacity"] > 12 and exact:
+        raise ConfigError("tracking.management.capacity", m["capacity"],
+                          f"with tracking.start: detections {', '.join(exact)} {'runs' if len(exact) == 1 else 'run'} "
+                          "the exact JPDA over the track slots, which takes at most 12 (tracking.jpda.method: lbp "
+                          "or kbest takes any number)")
     mn = m["m_of_n"]
     if mn is not None and (len(mn) != 2 or mn[0] > mn[1]):
         raise ConfigError("tracking.management.m_of_n", mn, "expected [M, N] with 1 <= M <= N")

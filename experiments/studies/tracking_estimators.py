@@ -154,8 +154,8 @@ def _initiated(t, filt, opts: dict, dtype, R: float, method: str, k: int) -> Est
     ``ManagedTracks`` over a JIPDA whose tracks exist for sure (survival and birth existence 1: the JPDA's
     own update, tests/test_tracks.py), confirmed and deleted by ``tracking.initiation``'s M-of-N logic and
     misses; the slots, new-track velocity variance and unexplained threshold ``tracking.management``'s."""
-    m, i = t.management, t.initiation
-    jipda = JIPDA(filt, survival_probability=1.0, method=method, max_targets=max(12, int(m.capacity)), k=k, **opts)
+    m, i = t.management, t.initiation  # (the exact method's limit of 12 slots kept: the config refuses more)
+    jipda = JIPDA(filt, survival_probability=1.0, method=method, k=k, **opts)
     manager = ManagedTracks(jipda, capacity=int(m.capacity), initiate=position_initiator(4, [0, 2], R,
                                                                                          float(m.velocity_variance)),
                             birth_existence=1.0, unexplained=float(m.unexplained), delete=0.0, confirm=1.0,

@@ -117,6 +117,10 @@ BAD = [
      "tracking.lifetimes=[[0, 60], [10, 5], [0, 30], [0, 60]]: each [first, stop] needs 0 <= first < stop"),
     (["experiment=tracking", "tracking.management.method=exact", "tracking.management.capacity=20"],
      "tracking.management.capacity=20: the exact JIPDA takes at most 12"),
+    (["experiment=tracking", "tracking.start=detections", "tracking.estimators=[GNN-IMM,IMM-JPDAF]",
+      "tracking.management.capacity=13"],
+     "tracking.management.capacity=13: with tracking.start: detections IMM-JPDAF runs the exact JPDA over the track "
+     "slots, which takes at most 12"),
     (["experiment=tracking", "tracking.management.m_of_n=[4,3]"],
      "tracking.management.m_of_n=[4, 3]: expected [M, N] with 1 <= M <= N"),
     (["experiment=tracking", "tracking.management.max_misses=0"], "tracking.management.max_misses=0: must be a positive"),
