@@ -24,9 +24,9 @@ from omegaconf.errors import (
 )
 
 __all__ = ["NO_VALUE", "Check", "ConfigError", "both", "build_error", "check_fields", "device_name", "each",
-           "join_key", "matrix", "merge", "non_empty", "non_negative", "one_of", "open_probability",
-           "positive", "positive_int", "probability", "resume_value", "schema_at", "seed_value", "show_value",
-           "spec", "type_message"]
+           "join_key", "matrix", "merge", "non_empty", "non_finite_entry", "non_negative", "one_of",
+           "open_probability", "positive", "positive_int", "probability", "resume_value", "schema_at", "seed_value",
+           "show_value", "spec", "type_message"]
 
 
 class ConfigError(ValueError):
@@ -268,10 +268,26 @@ def join_key(prefix: str, key: str) -> str:
     return f"{prefix}.{key}" if prefix else key
 
 
+def non_finite_entry(values: Any, key: str) -> tuple[str, float] | None:
+    """The first NaN or infinite number of a (nested) list, with its key (``key[i][j]``); None if none."""
+    for i, v in enumerate(values):
+        if isinstance(v, (list, tuple)):
+            found = non_finite_entry(v, f"{key}[{i}]")
+            if found:
+                return found
+        elif isinstance(v, float) and not math.isfinite(v):
+            return f"{key}[{i}]", v
+    return None
+
+
 def check_fields(obj: Any, prefix: str) -> None:
     for f in dataclasses.fields(obj):
         value = getattr(obj, f.name)
         key = join_key(prefix, f.name)
+        if isinstance(value, (list, tuple)):  # every number of a list finite, before its range check
+            found = non_finite_entry(value, key)
+            if found:
+                raise ConfigError(found[0], found[1], "must be finite")
         check = f.metadata.get("check")
         if check is not None:
             error = check(value)
