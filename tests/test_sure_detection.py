@@ -150,7 +150,11 @@ def test_jipda_near_sure_detection_against_an_enumeration_in_50_digits(detection
     0 at P_D = 1)."""
     import mpmath
 
-    mpmath.mp.dps = 50
+    with mpmath.workdps(50):
+        _near_sure(detection_probability, mpmath)
+
+
+def _near_sure(detection_probability, mpmath):
     pd = detection_probability
     kf = _kf()
     prior = GaussianBelief(torch.tensor([[0, 0, 0, 0.0], [60, 0, 60, 0], [10, 0, 0, 0]], dtype=torch.float64),

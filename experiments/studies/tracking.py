@@ -436,6 +436,13 @@ def _score_tables(ctx: StudyContext, names: list[str], parts: list[dict], n: int
         dist = join_runs([p["distance"] for p in mine])  # (T, runs)
         per_run_mean = dist.mean(0)
         parts_mean = {k: float(join_runs([p[k] for p in mine]).mean()) for k in ("localisation", "missed", "false")}
+        overflow = [k for k, v in parts_mean.items() if math.isinf(v)]
+        if overflow:  # (the parts are in distance^p; GOSPA itself is computed without forming them)
+            ctx.results.notes.append(
+                f"{name}: {', '.join(overflow)} {'is' if len(overflow) == 1 else 'are'} beyond the float "
+                "range (inf): the parts are in units of distance^p and c^p = "
+                f"{ctx.cfg.tracking.gospa_c}^{ctx.cfg.tracking.gospa_p} is beyond it; gospa is exact "
+                "(computed on d / c, docs/tracking.md).")
         switches = float(join_runs([p["switches"] for p in mine], dim=0).mean())
         lost = _average(ctx, name, "lost_fraction", join_runs([p["lost"] for p in mine], dim=0))
         delay = _average(ctx, name, "first_track_delay", join_runs([p["delay"] for p in mine], dim=0))

@@ -23,6 +23,17 @@ of the smaller set minimises it too. The figures are then summed from the pairs 
 (``d^p`` of the pairs closer than ``c``), not from the shifted costs, so no ``c^p`` cancels. The
 Euclidean distance of the points' coordinates; pass the components to compare (e.g. positions).
 
+**Any order p.** Everything is computed on ``u = min(d, c) / c`` in ``[0, 1]``: the assignment of
+``u^p - 1``, and the distance as ``c m (sum (u / m)^p + ...)^(1/p)`` with ``m`` the largest term's
+``u`` (log-sum-exp's rescaling for a p-norm), so no ``c^p`` is formed and no ``d^p`` overflows: at
+``p = 250`` and ``c = 30`` (``c^p = 1e369``) the distance is a number, not an ``OverflowError``. Where a
+pair's ``u^p`` or the pairs' sum of them is below ``2^-20`` (at large ``p`` every pair well within ``c``:
+its ``u^p - 1`` rounds to ``-1``), the pairs are assigned again with as many pairs on ``(u / s)^p``, no
+``-1`` beside them, ``s`` a lower bound of the best pairs' largest ``u`` and the first pairs' largest,
+and the smallest sum kept. The parts ``localisation``, ``missed``, ``false`` are in units of distance to
+the ``p``: ``inf`` beyond the float range (tests/test_set_metrics_large_p.py: against every assignment
+summed in 2000 digits, ``p`` up to 250; docs/tracking.md).
+
 Sets are padded tensors with a presence mask: ``truth (*B, N, d)`` with ``truth_present (*B, N)``,
 ``estimates (*B, K, d)`` with ``estimate_present (*B, K)`` (default: every row present). Absent rows
 are ignored whatever they hold (NaN padding is fine). The two sets' non-finite rows differ, each as
@@ -45,6 +56,7 @@ from torch import Tensor
 
 from torchmm.assignment import linear_assignment
 from torchmm.contract import Labels, Mask, Real, Sets, entry_point, unchecked
+from torchmm.runtime import host_reads_ok
 from torchmm.validation import broadcast_shape
 
 __all__ = ["gospa", "gospa_switching", "ospa"]
@@ -89,6 +101,110 @@ def _prepare(estimates: Tensor, truth: Tensor, estimate_present, truth_present, 
     return distance, est_present, tru_present
 
 
+#: a term u^p below this (units of c^p) keeps fewer than 32 bits in the cost u^p - 1, and a sum of u^p
+#: below it fewer than 32 bits beside the costs' -1s: there the assignment of u^p - 1 is checked against a
+#: rescaled one
+_RESOLVED = 2.0**-20
+
+
+def _pairs(assigned: Tensor, u: Tensor, both: Tensor) -> tuple[Tensor, Tensor]:
+    """The rows ``assigned (*B, N)`` pairs with a present point (``both (*B, N, K)``) and their
+    ``u (*B, N)``."""
+    if not u.shape[-1]:
+        return torch.zeros_like(assigned, dtype=torch.bool), torch.zeros(assigned.shape, dtype=u.dtype,
+                                                                          device=u.device)
+    pick = assigned.clamp(0, u.shape[-1] - 1).unsqueeze(-1)
+    return (assigned >= 0) & both.gather(-1, pick).squeeze(-1), u.gather(-1, pick).squeeze(-1)
+
+
+def _objective(up: Tensor, pairs: Tensor, p: float, rest: Tensor, weight: float) -> tuple[Tensor, Tensor]:
+    """``sum u^p`` over ``pairs (*B, N)`` (``up`` their ``u``) plus ``weight`` for each of ``rest (*B,)``
+    unpaired points, as ``(m, G)`` with the sum ``m^p G``: ``m`` the largest term's ``u``
+    (``weight^(1/p)`` for an unpaired point), so ``G`` lies in ``[1, points]`` and nothing overflows or
+    vanishes (``m = G = 0``: an empty sum)."""
+    zero = torch.zeros((), dtype=up.dtype, device=up.device)
+    top = torch.where(pairs, up, zero).amax(-1) if up.shape[-1] else zero.expand(up.shape[:-1])
+    m = torch.where(rest > 0, top.clamp(min=weight ** (1.0 / p)), top)
+    safe = torch.where(m > 0, m, torch.ones_like(m))
+    terms = torch.where(pairs, (up / safe.unsqueeze(-1)).pow(p), zero).sum(-1)
+    unpaired = rest.to(up.dtype) * torch.exp(math.log(weight) - p * torch.log(safe))  # (m^p >= weight)
+    G = terms + torch.where(rest > 0, unpaired, zero)
+    return m, torch.where(m > 0, G, zero)
+
+
+def _log_objective(m: Tensor, G: Tensor, p: float) -> Tensor:
+    """``log(m^p G)``, to compare two assignments (``-inf`` for an empty sum)."""
+    positive = m > 0
+    one = torch.ones_like(m)
+    logs = p * torch.where(positive, m, one).log() + torch.where(positive, G, one).log()
+    return torch.where(positive, logs, -math.inf)
+
+
+def _rescaled_assignment(u: Tensor, allowed: Tensor, p: float, count: Tensor, scale: Tensor) -> Tensor:
+    """The assignment ``(R, N)`` of exactly ``count (R,)`` pairs, each ``allowed``, of the least sum of
+    ``(u / scale)^p`` (no ``-1`` beside them: their relative precision kept): ``N - count`` dummy columns
+    of cost 0 take the other rows; a pair not allowed, or a dummy past them, costs more than any sum of
+    the others (terms above that cap, far beyond the optimum's, are capped)."""
+    R, N, K = u.shape
+    cap = torch.finfo(u.dtype).max / (4.0 * (N + 1))
+    zero = torch.zeros((), dtype=u.dtype, device=u.device)
+    scaled = (u / scale[:, None, None]).pow(p).clamp(max=cap)
+    free = torch.arange(N, device=u.device) < (N - count).unsqueeze(-1)  # (R, N): the dummies of cost 0
+    dummy = torch.where(free, zero, 2.0 * cap)
+    cost = torch.cat([torch.where(allowed, scaled, 2.0 * cap), dummy.unsqueeze(-2).expand(R, N, N)], -1)
+    assigned = unchecked(linear_assignment)(cost)
+    return torch.where(assigned < K, assigned, -1)
+
+
+def _best_assignment(u: Tensor, both: Tensor, allowed: Tensor, p: float, pieces, weight: float) -> Tensor:
+    """The assignment ``(R, N)`` of the set pairs' ``u (R, N, K)`` (``both``: two present points; ``allowed``:
+    the pairs that may count) minimising ``sum u^p`` over the pairs it makes plus ``weight`` per unpaired
+    point (``pieces(assigned, index) -> (pairs, u of them, unpaired points)``, ``index`` the set pairs or
+    None for all): the assignment of ``u^p - 1`` (0 for an absent point), exact to about ``n eps`` of the
+    objective; where a term or the sum of its pairs' ``u^p`` is below ``_RESOLVED`` (lost beside the
+    ``-1``s), also :func:`_rescaled_assignment` with as many pairs, scaled by a lower bound of the optimum's
+    largest term (the ``count``-th least of the rows' least ``u``) and by the first one's largest, and the
+    one of the smallest sum of ``u^p`` kept; on the CPU for those set pairs only (a host read)."""
+    zero = torch.zeros((), dtype=u.dtype, device=u.device)
+    first = unchecked(linear_assignment)(torch.where(both, u.pow(p) - 1, zero))
+    if not u.numel():
+        return first
+
+    def keys(assigned: Tensor, index):  # the pairs, the log of their sum of u^p, the largest u
+        pairs, up, _ = pieces(assigned, index)
+        log_pairs = _log_objective(*_objective(up, pairs, p, torch.zeros_like(pairs[..., 0]), weight), p)
+        return pairs.sum(-1), log_pairs, torch.where(pairs, up, zero).amax(-1)
+
+    pairs, up, rest = pieces(first, None)
+    terms = torch.where(pairs, up.pow(p), zero)  # (underflow is harmless here: compared with _RESOLVED)
+    count = pairs.sum(-1)
+    small = (pairs & (terms < _RESOLVED)).any(-1)
+    unresolved = (count > 0) & (((rest == 0) & (terms.sum(-1) < _RESOLVED)) | small)
+    if host_reads_ok(u):
+        if not bool(unresolved.any()):
+            return first
+        index = unresolved.nonzero(as_tuple=True)[0]
+    else:
+        index = torch.arange(u.shape[0], device=u.device)
+    uu, ok, n = u[index], allowed[index], count[index]
+    least = torch.where(ok, uu, math.inf).amin(-1).sort(-1).values  # (the rows' least u, ascending)
+    lower = least.gather(-1, (n - 1).clamp(min=0).unsqueeze(-1)).squeeze(-1)
+    _, best_key, top = keys(first[index], index)
+    best = first[index]
+    for scale in (lower, top):
+        scale = torch.where((scale > 0) & torch.isfinite(scale), scale, torch.ones_like(scale))
+        second = _rescaled_assignment(uu, ok, p, n, scale)
+        count2, log_pairs2, _ = keys(second, index)
+        better = (count2 == n) & (log_pairs2 < best_key)
+        best = torch.where(better.unsqueeze(-1), second, best)
+        best_key = torch.where(better, log_pairs2, best_key)
+    if host_reads_ok(u):
+        first = first.clone()
+        first[index] = best
+        return first
+    return torch.where(unresolved.unsqueeze(-1), best, first)
+
+
 @entry_point(estimates=Sets(missing=None, mask="estimate_present"),
              truth=Sets(missing=math.nan, mask="truth_present"), c=Real(positive=True), p=Real(minimum=1.0),
              estimate_present=Mask(optional=True), truth_present=Mask(optional=True))
@@ -108,7 +224,8 @@ def gospa(estimates: Tensor, truth: Tensor, *, c: float, p: float = 2.0, estimat
 
     Returns:
         ``{"distance", "localisation", "missed", "false"}``, each ``(*B,)`` (the last three in units of
-        distance to the ``p``; ``distance = (localisation + missed + false)^(1/p)``), and ``"assigned"``
+        distance to the ``p``, ``inf`` beyond the float range; ``distance = (localisation + missed +
+        false)^(1/p)``, computed without them), and ``"assigned"``
         ``(*B, N)`` long: the estimate assigned to each true point (-1: missed).
 
     Examples:
@@ -120,27 +237,39 @@ def gospa(estimates: Tensor, truth: Tensor, *, c: float, p: float = 2.0, estimat
     """
     c, p = float(c), float(p)
     distance, est_present, tru_present = _prepare(estimates, truth, estimate_present, truth_present, c)
-    *batch, N, K = distance.shape
-    half = c**p / 2
-    zero = torch.zeros((), dtype=distance.dtype, device=distance.device)
-    # GOSPA^p = c^p/2 (|X| + |Y|) + min over partial assignments of sum (d^p - c^p) over pairs closer than c:
-    # one assignment of the N x K matrix min(d^p - c^p, 0) (0 for an absent point: never an assigned pair)
+    dtype = distance.dtype
+    zero = torch.zeros((), dtype=dtype, device=distance.device)
+    u = distance / c  # in [0, 1] (cut at c)
     both = tru_present.unsqueeze(-1) & est_present.unsqueeze(-2)
-    gain = torch.where(both, distance.pow(p) - c**p, zero)
-    assigned = unchecked(linear_assignment)(gain)  # (*B, N): an estimate per truth, -1 where none (N > K)
-    pick = assigned.clamp(0, max(K - 1, 0))
-    if K:
-        d = distance.gather(-1, pick.unsqueeze(-1)).squeeze(-1)
-        matched = (assigned >= 0) & tru_present & est_present.gather(-1, pick) & (d < c)
-        localisation = torch.where(matched, d.pow(p), zero).sum(-1)
-    else:
-        matched = torch.zeros_like(tru_present)
-        localisation = torch.zeros(batch, dtype=distance.dtype, device=distance.device)
+    points = tru_present.sum(-1) + est_present.sum(-1)
+
+    # GOSPA^p / c^p = min over partial assignments of sum u^p + (|X| + |Y| - 2 |gamma|) / 2 over the pairs
+    # closer than c: one assignment of the N x K matrix u^p - 1 (<= 0; 0 for an absent point)
+    *batch, N, K = u.shape
+    R = math.prod(batch)  # (spelled out: reshape(-1, ...) is ambiguous for a set of no point)
+    flat_u, flat_both, flat_points = u.reshape(R, N, K), both.reshape(R, N, K), points.reshape(R)
+
+    def pieces(assigned: Tensor, index):  # the pairs closer than c, their u, the unpaired points
+        uu, bb, n = ((flat_u, flat_both, flat_points) if index is None
+                     else (flat_u[index], flat_both[index], flat_points[index]))
+        paired, up = _pairs(assigned, uu, bb)
+        matched = paired & (up < 1)
+        return matched, up, n - 2 * matched.sum(-1)
+
+    assigned = _best_assignment(flat_u, flat_both, flat_both & (flat_u < 1), p, pieces, 0.5)
+    assigned = assigned.reshape(*batch, N)
+    paired, up = _pairs(assigned, u, both)
+    matched = paired & (up < 1)
     count = matched.sum(-1)
-    missed = half * (tru_present.sum(-1) - count).to(distance.dtype)
-    false = half * (est_present.sum(-1) - count).to(distance.dtype)
-    return {"distance": (localisation + missed + false).pow(1.0 / p), "localisation": localisation,
-            "missed": missed, "false": false, "assigned": torch.where(matched, assigned, -1)}
+    m, G = _objective(up, matched, p, points - 2 * count, 0.5)
+    d = _pairs(assigned, distance, both)[1]
+    localisation = torch.where(matched, d.pow(p), zero).sum(-1)  # (the parts: inf beyond the float range)
+    half = torch.full((), c, dtype=dtype, device=distance.device).pow(p) / 2
+    missed, false = ((tru_present.sum(-1) - count).to(dtype), (est_present.sum(-1) - count).to(dtype))
+    missed = torch.where(missed > 0, half * missed, zero)  # (not inf * 0)
+    false = torch.where(false > 0, half * false, zero)
+    return {"distance": c * m * G.pow(1.0 / p), "localisation": localisation, "missed": missed,
+            "false": false, "assigned": torch.where(matched, assigned, -1)}
 
 
 @entry_point(labels=Labels(minimum=-1), penalty=Real(minimum=0.0), p=Real(minimum=1.0),
@@ -215,21 +344,24 @@ def ospa(estimates: Tensor, truth: Tensor, *, c: float, p: float = 2.0, estimate
     """
     c, p = float(c), float(p)
     distance, est_present, tru_present = _prepare(estimates, truth, estimate_present, truth_present, c)
-    *batch, N, K = distance.shape
-    zero = torch.zeros((), dtype=distance.dtype, device=distance.device)
-    # min over the pairings of the smaller set of sum min(d, c)^p: one assignment of min(d, c)^p - c^p
-    # (<= 0; 0 for an absent point); the figure from the pairs it makes, the rest at c^p each
+    u = distance / c  # in [0, 1] (cut at c)
     both = tru_present.unsqueeze(-1) & est_present.unsqueeze(-2)
-    assigned = unchecked(linear_assignment)(torch.where(both, distance.pow(p) - c**p, zero))
-    pick = assigned.clamp(0, max(K - 1, 0))
-    if K:
-        paired = (assigned >= 0) & tru_present & est_present.gather(-1, pick)
-        d = distance.gather(-1, pick.unsqueeze(-1)).squeeze(-1)
-        local = torch.where(paired, d.pow(p), zero).sum(-1)
-        pairs = paired.sum(-1)
-    else:
-        local = torch.zeros(batch, dtype=distance.dtype, device=distance.device)
-        pairs = torch.zeros(batch, dtype=torch.long, device=distance.device)
     size = torch.maximum(tru_present.sum(-1), est_present.sum(-1))
-    total = local + c**p * (size - pairs).to(distance.dtype)
-    return torch.where(size > 0, (total / size.clamp_min(1).to(total.dtype)).pow(1.0 / p), zero)
+
+    # min over the pairings of the smaller set of sum u^p (u cut at 1), each point of the larger one left
+    # over costing 1: one assignment of u^p - 1 (<= 0; 0 for an absent point)
+    *batch, N, K = u.shape
+    R = math.prod(batch)  # (spelled out: reshape(-1, ...) is ambiguous for a set of no point)
+    flat_u, flat_both, flat_size = u.reshape(R, N, K), both.reshape(R, N, K), size.reshape(R)
+
+    def pieces(assigned: Tensor, index):  # the pairs, their u (cut at 1), the points of the larger set left
+        uu, bb, n = ((flat_u, flat_both, flat_size) if index is None
+                     else (flat_u[index], flat_both[index], flat_size[index]))
+        paired, up = _pairs(assigned, uu, bb)
+        return paired, up, n - paired.sum(-1)
+
+    pairs, up, rest = pieces(_best_assignment(flat_u, flat_both, flat_both, p, pieces, 1.0), None)
+    m, G = _objective(up, pairs, p, rest, 1.0)
+    m, G = m.reshape(batch), G.reshape(batch)
+    zero = torch.zeros((), dtype=u.dtype, device=u.device)
+    return torch.where(size > 0, c * m * (G / size.clamp_min(1).to(u.dtype)).pow(1.0 / p), zero)
