@@ -54,9 +54,11 @@ def show_value(value: Any) -> str:
 Check = Callable[[Any], Optional[str]]
 
 
-def spec(default: Any = dataclasses.MISSING, check: Check | None = None, *, factory=None):
-    """A schema field with an optional range check ``check(value) -> error text | None``."""
-    kwargs: dict = {"metadata": {"check": check}}
+def spec(default: Any = dataclasses.MISSING, check: Check | None = None, *, factory=None,
+         finite: bool = True):
+    """A schema field with an optional range check ``check(value) -> error text | None``; ``finite=False``:
+    a list whose non-finite numbers its study's own check names (not :func:`check_fields`)."""
+    kwargs: dict = {"metadata": {"check": check, "finite": finite}}
     if factory is not None:
         kwargs["default_factory"] = factory
     elif default is not dataclasses.MISSING:
@@ -284,7 +286,7 @@ def check_fields(obj: Any, prefix: str) -> None:
     for f in dataclasses.fields(obj):
         value = getattr(obj, f.name)
         key = join_key(prefix, f.name)
-        if isinstance(value, (list, tuple)):  # every number of a list finite, before its range check
+        if isinstance(value, (list, tuple)) and f.metadata.get("finite", True):  # every number finite, first
             found = non_finite_entry(value, key)
             if found:
                 raise ConfigError(found[0], found[1], "must be finite")

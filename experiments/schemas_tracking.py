@@ -136,7 +136,8 @@ class TrackingSection:
     gospa_p: float = spec(MISSING, lambda v: None if v is None or v >= 1 else "must be at least 1")
     gospa_switching: float = spec(MISSING, non_negative)
     lifetimes: Optional[List[List[int]]] = MISSING
-    waypoints: Optional[List[Any]] = MISSING  # per target [[scan, x, y], ...] (checked in _check_waypoints)
+    waypoints: Optional[List[Any]] = spec(MISSING, finite=False)  # per target [[scan, x, y], ...] (checked,
+    # a non-finite value named with its waypoint, in _check_waypoints)
     motions: Optional[List[Any]] = MISSING  # per target {start, first, legs: [{scans, turn_rate | acceleration}]}
     sensors: Optional[List[Any]] = MISSING  # [{name, R, detection_probability, clutter_rate, period, offset}]
     start: str = spec(MISSING, one_of("truth", "detections"))
