@@ -12,12 +12,14 @@ Within a group, the rows of each results table are matched run by run by their t
 ``metric``, ...: a run whose config lists the estimators in another order is matched by name, never by
 position; :func:`aligned_rows`); a table whose runs of one config hold different labels is left out with a
 warning naming them. A column is a **label** (it
-names the row: ``estimator``, ``alpha``, ...) if it is not numeric or if it holds the same value in
+names the row: ``estimator``, ``alpha``, ...) if it is text (not a number, not true/false) or if it holds the same value in
 every run of each group (``nees_low`` of a given ``mc_runs``; with one run per group: in every
 run); every other numeric column is a **measurement**, reported as the mean over
 the group's runs with a Student-t confidence interval (``--level``, 95 % by default):
 ``mean +- t_{n-1} sd / sqrt(n)`` with ``sd`` the sample standard deviation over the ``n`` runs
-(no interval for ``n = 1``; non-finite values are left out of ``n``).
+(no interval for ``n = 1``; non-finite values are left out of ``n``). A true/false column
+(``pos_armse_inside_95``) is always a measurement, never a label: the fraction of the group's runs where
+it is True, with ``n`` (:func:`fraction_true`; no interval; not in the paired differences).
 
 Writes into ``--out`` (default: ``<PATH>/report`` for one PATH, else ``./report``):
 ``report.md`` (mean +- half-width), ``report.csv`` (tidy: one line per study, table, group, row and
@@ -40,7 +42,8 @@ section): ``\toprule``/``\midrule``/``\bottomrule``, cells ``mean $\pm$ half-wid
 escaped. It needs ``\usepackage{booktabs}`` only; ``\input{report.tex}`` it, or compile it alone
 inside ``\documentclass{article}\usepackage{booktabs}\begin{document} ... \end{document}``.
 
-The formats are written by :mod:`experiments.report_formats`; here the runs' grouping and statistics.
+The runs are found and read by :mod:`experiments.report_runs`, the formats written by
+:mod:`experiments.report_formats`; here the runs' grouping and statistics.
 """
 
 from __future__ import annotations
@@ -50,105 +53,16 @@ import json
 import math
 import sys
 from collections import defaultdict
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from experiments.files import RunFolderError
-from experiments.folders import NON_RESULT_KEYS
 from experiments.formatting import is_number
 from experiments.report_formats import figure, to_csv, to_latex, to_markdown, write_report  # (the formats)
+from experiments.report_runs import IGNORED_KEYS, ResultsFileError, Run, collect_runs, flatten  # (the runs)
 
-__all__ = ["Run", "aligned_rows", "collect_runs", "combine", "figure", "main", "mean_interval", "paired_differences", "to_csv",
-           "to_latex", "to_markdown", "write_report"]
-
-#: keys never treated as factors (they do not change the numbers, or are bookkeeping)
-IGNORED_KEYS = (*NON_RESULT_KEYS, "hydra")
-
-
-@dataclass
-class Run:
-    """One finished study run: its folder, its results.json and its (flattened) result config."""
-
-    path: Path
-    results: dict
-    overrides: list[str] = field(default_factory=list)
-
-    @property
-    def experiment(self) -> str:
-        return str(self.results.get("experiment", "study"))
-
-    @property
-    def config(self) -> dict[str, Any]:
-        return flatten({k: v for k, v in (self.results.get("config") or {}).items() if k not in IGNORED_KEYS})
-
-
-def flatten(tree: Any, prefix: str = "") -> dict[str, Any]:
-    """A nested config as ``{dotted key: value}`` (lists are values)."""
-    if isinstance(tree, dict):
-        out: dict[str, Any] = {}
-        for key, value in tree.items():
-            out.update(flatten(value, f"{prefix}.{key}" if prefix else str(key)))
-        return out
-    if isinstance(tree, list):  # compare and display lists as one value
-        return {prefix: json.dumps(tree, sort_keys=True, default=str)}
-    return {prefix: tree}
-
-
-class ResultsFileError(ValueError):
-    """A ``results.json`` that cannot be read or is not a results file: one line naming it."""
-
-
-def _check_results(data: Any, file: Path) -> dict:
-    """``data`` if it has the shape :func:`combine` reads (docs/studies.md), else
-    :class:`ResultsFileError`."""
-    def bad(what: str):
-        return ResultsFileError(f"{file}: not a results file ({what}); remove it or report the other runs")
-
-    if not isinstance(data, dict):
-        raise bad(f"a JSON {type(data).__name__}, not an object")
-    if not isinstance(data.get("config") or {}, dict) or not isinstance(data.get("tables") or {}, dict):
-        raise bad("config and tables must be objects")
-    for name, table in (data.get("tables") or {}).items():
-        columns = table.get("columns") if isinstance(table, dict) else None
-        rows = table.get("rows") if isinstance(table, dict) else None
-        if not isinstance(columns, list) or not isinstance(rows, list) or not all(
-                isinstance(row, list) and len(row) == len(columns) for row in rows):
-            raise bad(f"table {name}: expected columns and rows of as many cells")
-    return data
-
-
-def collect_runs(paths: list[Path]) -> list[Run]:
-    """Every run under ``paths`` (a folder holding ``results.json``, or any folder above such ones).
-    A ``results.json`` that cannot be read or is not a results file is a :class:`ResultsFileError`
-    naming it: a report never leaves out a run silently."""
-    found: dict[Path, None] = {}
-    for path in map(Path, paths):
-        if not path.exists():
-            raise FileNotFoundError(f"PATH: {path} does not exist")
-        if path.is_file():
-            candidates = [path] if path.name == "results.json" else []
-        else:
-            candidates = [path / "results.json"] if (path / "results.json").exists() else sorted(path.rglob("results.json"))
-        for candidate in candidates:
-            found[candidate.resolve()] = None
-    runs = []
-    for file in found:
-        try:
-            results = _check_results(json.loads(file.read_text()), file)
-        except OSError as err:
-            raise ResultsFileError(f"{file}: cannot read ({err.strerror or type(err).__name__})") from None
-        except ValueError as err:  # JSONDecodeError, UnicodeDecodeError: truncated or not JSON
-            if isinstance(err, ResultsFileError):
-                raise
-            raise ResultsFileError(f"{file}: not a results file ({type(err).__name__}: {err})") from None
-        overrides_file = file.parent / ".hydra" / "overrides.yaml"
-        overrides = []
-        if overrides_file.exists():
-            overrides = [line[2:].strip() for line in overrides_file.read_text().splitlines() if line.startswith("- ")]
-        runs.append(Run(file.parent, results, overrides))
-    return runs
-
+__all__ = ["IGNORED_KEYS", "ResultsFileError", "Run", "aligned_rows", "collect_runs", "combine", "figure", "flag_columns", "flatten", "fraction_true", "main",
+           "mean_interval", "paired_differences", "to_csv", "to_latex", "to_markdown", "write_report"]
 
 def mean_interval(values: list[float], level: float = 0.95) -> dict[str, float | int | None]:
     """``{"n", "mean", "sd", "ci_low", "ci_high"}`` of the finite ``values`` (Student-t interval)."""
@@ -224,15 +138,38 @@ def identifying_labels(tables: list[dict], columns: list[str], labels: list[str]
     return out
 
 
-def _label_columns(tables_by_group: list[list[dict]]) -> list[bool]:
-    """Per column: is it a label? Non-numeric columns are; a numeric one is if it holds the same
-    value in every run of each group (at every row), given that some group has replicates - else
-    (one run per group) if it holds the same value in every run."""
+def flag_columns(tables: list[dict]) -> list[int]:
+    """The columns of ``tables`` (one results table of several runs) that hold true/false values: some
+    cell is a ``bool`` and every other one is a ``bool`` or empty (None). They are measurements, never
+    labels (``pos_armse_inside_95`` is True in one seed and False in another): see :func:`fraction_true`."""
+    columns = tables[0]["columns"]
+    cells = [[row[i] for t in tables for row in t["rows"]] for i in range(len(columns))]
+    return [i for i, col in enumerate(cells)
+            if any(isinstance(v, bool) for v in col) and all(isinstance(v, bool) or v is None for v in col)]
+
+
+def fraction_true(values: list[Any]) -> dict[str, float | int | None]:
+    """A true/false column over a group's runs: ``{"n", "true", "mean", "sd", "ci_low", "ci_high"}`` with
+    ``n`` the runs holding a ``bool``, ``true`` how many of them are True and ``mean = true / n`` (None for
+    ``n = 0``); no interval (``sd``, ``ci_low``, ``ci_high`` None)."""
+    flags = [v for v in values if isinstance(v, bool)]
+    n, true = len(flags), sum(flags)
+    return {"n": n, "true": true, "mean": true / n if n else None, "sd": None, "ci_low": None, "ci_high": None}
+
+
+def _label_columns(tables_by_group: list[list[dict]], flags: list[int] = ()) -> list[bool]:
+    """Per column: is it a label? Non-numeric columns are (not the true/false ``flags``, which are
+    measurements); a numeric one is if it holds the same value in every run of each group (at every
+    row), given that some group has replicates - else (one run per group) if it holds the same value in
+    every run."""
     columns = tables_by_group[0][0]["columns"]
     replicated = [g for g in tables_by_group if len(g) > 1]
     pools = replicated or [[t for g in tables_by_group for t in g]]
     labels = []
     for c in range(len(columns)):
+        if c in flags:
+            labels.append(False)
+            continue
         numeric = any(is_number(row[c]) for g in tables_by_group for t in g for row in t["rows"])
         same = all([row[c] for row in t["rows"]] == [row[c] for row in pool[0]["rows"]] for pool in pools for t in pool)
         labels.append(not numeric or same)
@@ -324,8 +261,10 @@ def combine(runs: list[Run], replicate: str = "seed", level: float = 0.95, refer
                 continue
             # each run's rows matched to its group's first run's by their text labels (estimator, ...), never
             # by position: a config listing the same estimators in another order is the same experiment
+            # (not by a true/false column: a measurement that may differ between seeds)
+            flags = flag_columns(tables)
             text = [i for i in range(len(columns))
-                    if not any(is_number(row[i]) for t in tables for row in t["rows"])]
+                    if i not in flags and not any(is_number(row[i]) for t in tables for row in t["rows"])]
             by_group = [aligned_rows([run.results["tables"][name] for run in g["runs"]], text) for g in group_list]
             bad = next((gi for gi, a in enumerate(by_group) if isinstance(a, str)), None)
             if bad is not None:
@@ -334,7 +273,8 @@ def combine(runs: list[Run], replicate: str = "seed", level: float = 0.95, refer
                       f"({by_group[bad]}: {', '.join(columns[i] for i in text) or 'no label column'}); the table is "
                       f"left out ({paths})", file=sys.stderr)
                 continue
-            is_label = _label_columns(by_group)
+            is_label = _label_columns(by_group, flags)
+            fractions = [columns[i] for i in flags]
             label_cols = [c for c, lab in zip(columns, is_label) if lab]
             errors = [c for c, lab in zip(columns, is_label) if not lab and is_standard_error(c)]
             bounds = [c for c, lab in zip(columns, is_label) if not lab and is_bound(c, columns)]
@@ -343,17 +283,21 @@ def combine(runs: list[Run], replicate: str = "seed", level: float = 0.95, refer
             for gi, group_tables in enumerate(by_group):
                 for r in range(len(tables[0]["rows"])):
                     labels = {c: group_tables[0]["rows"][r][i] for i, c in enumerate(columns) if is_label[i]}
-                    values = {c: mean_interval([t["rows"][r][i] for t in group_tables], level)
+                    values = {c: fraction_true([t["rows"][r][i] for t in group_tables]) if c in fractions
+                              else mean_interval([t["rows"][r][i] for t in group_tables], level)
                               for i, c in enumerate(columns) if c in measure_cols}
                     values.update({c: pooled_se([t["rows"][r][columns.index(c)] for t in group_tables])
                                    for c in errors})
                     rows.append({"group": gi, "labels": labels, "values": values})
             identifying = identifying_labels([t for g in by_group for t in g], columns, label_cols)
             tables_out[name] = {"labels": label_cols, "identifying": identifying, "measurements": measure_cols,
-                                "standard_errors": errors, "not_combined": bounds, "rows": rows}
-            # a table of the study's own paired differences (a `reference` column) is not paired again
-            if "estimator" in label_cols and "reference" not in columns and measure_cols:
-                paired = paired_differences(by_group, columns, measure_cols, label_cols, reference, level)
+                                "standard_errors": errors, "not_combined": bounds, "fractions": fractions,
+                                "rows": rows}
+            # a table of the study's own paired differences (a `reference` column) is not paired again;
+            # true/false columns are not differenced
+            numbers = [c for c in measure_cols if c not in fractions]
+            if "estimator" in label_cols and "reference" not in columns and numbers:
+                paired = paired_differences(by_group, columns, numbers, label_cols, reference, level)
                 if paired is not None:
                     paired_out[name] = paired
         report[experiment] = {

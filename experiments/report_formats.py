@@ -19,9 +19,12 @@ __all__ = ["figure", "to_csv", "to_latex", "to_markdown", "write_report"]
 
 
 def _cell(stats: dict, number=format_value, plus_minus: str = " ± ") -> str:
-    """A table cell: the mean, ``± half the interval`` where there is one (empty without a mean)."""
+    """A table cell: the mean, ``± half the interval`` where there is one (empty without a mean); a
+    true/false column's fraction of runs where it is True with its count, ``0.2500 (1/4)``."""
     if stats["mean"] is None:
         return ""
+    if "true" in stats:
+        return f"{number(stats['mean'])} ({stats['true']}/{stats['n']})"
     if stats["ci_low"] is None:
         return number(stats["mean"])
     return f"{number(stats['mean'])}{plus_minus}{number((stats['ci_high'] - stats['ci_low']) / 2)}"
@@ -52,7 +55,7 @@ def to_markdown(report: dict[str, Any]) -> str:
                          str(n), *(_cell(row["values"][c]) for c in [*table["measurements"], *errors])]
                 lines.append("| " + " | ".join(cells) + " |")
             out += [f"### {name}", "", *lines, ""]
-            if errors or table.get("not_combined"):
+            if errors or table.get("not_combined") or table.get("fractions"):
                 out += [_columns_note(table), ""]
         for name, paired in (body.get("paired") or {}).items():
             columns, rows = _paired_rows(body, paired, minus=" − ")
@@ -74,6 +77,9 @@ def _columns_note(table: dict) -> str:
     if table.get("not_combined"):
         parts.append(f"{', '.join(table['not_combined'])}: each run's own bounds, not combined (the intervals above "
                      "replace them)")
+    if table.get("fractions"):
+        parts.append(f"{', '.join(table['fractions'])}: true or false in each run; the fraction of the runs where it "
+                     "is true (true/n), no interval")
     return "; ".join(parts) + "."
 
 
@@ -149,20 +155,24 @@ def to_latex(report: dict[str, Any]) -> str:
 
 
 def figure(report: dict[str, Any]):
-    """Each study's first table's first measurement: means with their intervals, per group and row."""
+    """Each study's first table's first measurement (not a true/false fraction): means with their
+    intervals, per group and row."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    def numbers(table):  # the measurements with a mean and an interval (not a true/false fraction)
+        return [c for c in table["measurements"] if c not in table.get("fractions", ())]
+
     panels = [(exp, name, table) for exp, body in report.items()
-              for name, table in list(body["tables"].items())[:1] if table["measurements"]]
+              for name, table in list(body["tables"].items())[:1] if numbers(table)]
     if not panels:
         return None
     fig, axes = plt.subplots(len(panels), 1, figsize=(6.5, 2.2 + 0.18 * max(len(t["rows"]) for *_, t in panels)),
                              squeeze=False)
     for ax, (exp, name, table) in zip(axes[:, 0], panels):
-        measure = table["measurements"][0]
+        measure = numbers(table)[0]
         body = report[exp]
         keys = table.get("identifying")
         if keys is None:

@@ -163,3 +163,36 @@ def test_report_of_a_real_sweep(tmp_path):
         values = own[(f["mc_runs"], row["labels"]["estimator"])]
         assert row["values"]["pos_rmse"]["n"] == 2
         assert row["values"]["pos_rmse"]["mean"] == pytest.approx(float(np.mean(values)), rel=1e-12)
+
+
+def test_a_true_false_column_is_a_measurement_the_fraction_of_runs_where_it_is_true(tmp_path):
+    """Two seeds whose ``rmse_inside_95`` differ for IMM (True, False): the table is reported (before: the
+    bool was taken for a row label, the runs' rows did not match and the whole table was left out), with
+    the fraction of runs where it is True and its n; a column True in every run is a measurement too (never
+    a label), an empty cell is left out of n, and the flag is not differenced in the paired table."""
+    flags = {0: {"IMM": True, "KF": False}, 1: {"IMM": False, "KF": False}}
+    rmse = {0: {"IMM": 4.0, "KF": 6.0}, 1: {"IMM": 4.4, "KF": 6.5}}
+    for seed in (0, 1):
+        rows = [[est, rmse[seed][est], flags[seed][est], True, None if (est, seed) == ("KF", 1) else True]
+                for est in ("IMM", "KF")]
+        _write_run(tmp_path / "runs" / f"s{seed}", {"seed": seed, "mc_runs": 10},
+                   {"t": {"columns": ["estimator", "rmse", "rmse_inside_95", "always", "sometimes"], "rows": rows}})
+    assert rep.main([str(tmp_path / "runs")]) == 0
+    body = json.loads((tmp_path / "runs" / "report" / "report.json").read_text())["toy"]
+    table = body["tables"]["t"]
+    assert table["labels"] == ["estimator"]
+    assert table["measurements"] == ["rmse", "rmse_inside_95", "always", "sometimes"]
+    assert table["fractions"] == ["rmse_inside_95", "always", "sometimes"]
+    got = {row["labels"]["estimator"]: row["values"] for row in table["rows"]}
+    for est in ("IMM", "KF"):
+        cells = [flags[s][est] for s in (0, 1)]
+        assert got[est]["rmse_inside_95"]["n"] == 2 and got[est]["rmse_inside_95"]["true"] == sum(cells)
+        assert got[est]["rmse_inside_95"]["mean"] == pytest.approx(np.mean(cells), rel=1e-15)
+        assert got[est]["rmse_inside_95"]["ci_low"] is None
+        assert got[est]["always"]["mean"] == 1.0 and got[est]["always"]["n"] == 2
+        assert got[est]["rmse"]["mean"] == pytest.approx(np.mean([rmse[s][est] for s in (0, 1)]), rel=1e-14)
+    assert (got["KF"]["sometimes"]["n"], got["KF"]["sometimes"]["true"]) == (1, 1)
+    assert body["paired"]["t"]["measurements"] == ["rmse"]
+    md = (tmp_path / "runs" / "report" / "report.md").read_text()
+    assert "| IMM | 2 | 4.2000 ± " in md and "| 0.5000 (1/2) | 1.0000 (2/2) |" in md
+    assert "rmse_inside_95, always, sometimes: true or false in each run" in md
