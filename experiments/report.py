@@ -59,9 +59,9 @@ from typing import Any
 from experiments.files import RunFolderError
 from experiments.formatting import is_number
 from experiments.report_formats import figure, to_csv, to_latex, to_markdown, write_report  # (the formats)
-from experiments.report_runs import IGNORED_KEYS, ResultsFileError, Run, collect_runs, flatten  # (the runs)
+from experiments.report_runs import IGNORED_KEYS, LeftOut, ResultsFileError, Run, attach_left_out, collect_runs, flatten
 
-__all__ = ["IGNORED_KEYS", "ResultsFileError", "Run", "aligned_rows", "collect_runs", "combine", "figure", "flag_columns", "flatten", "fraction_true", "main",
+__all__ = ["IGNORED_KEYS", "LeftOut", "ResultsFileError", "Run", "aligned_rows", "collect_runs", "combine", "figure", "flag_columns", "flatten", "fraction_true", "main",
            "mean_interval", "paired_differences", "to_csv", "to_latex", "to_markdown", "write_report"]
 
 def mean_interval(values: list[float], level: float = 0.95) -> dict[str, float | int | None]:
@@ -375,13 +375,17 @@ def main(argv: list[str] | None = None) -> int:
         print(f"torchmm-report: error: --level: expected a number in (0, 1), got {args.level}", file=sys.stderr)
         return 2
     args.level = level
+    left_out: list[LeftOut] = []
     try:
-        runs = collect_runs([Path(p) for p in args.paths])
+        runs = collect_runs([Path(p) for p in args.paths], left_out)
     except (FileNotFoundError, ResultsFileError) as err:
         print(f"torchmm-report: error: {err}", file=sys.stderr)
         return 2
+    for item in left_out:  # interrupted or failed runs, jobs never started: each named, never silently
+        print(f"torchmm-report: warning: {item.path}: left out: {item.reason}", file=sys.stderr)
     if not runs:
-        print(f"torchmm-report: error: PATH: no results.json under {' '.join(args.paths)}", file=sys.stderr)
+        print(f"torchmm-report: error: PATH: no finished run (results.json) under {' '.join(args.paths)}"
+              + (f" ({sum(i.runs for i in left_out)} not finished: see the warnings)" if left_out else ""), file=sys.stderr)
         return 2
     if not any(args.replicate in run.config for run in runs):
         keys = sorted({k for run in runs for k in run.config if k in ("seed", "block_runs") or "seed" in k})
@@ -395,6 +399,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"torchmm-report: error: --reference: no table has an estimator {args.reference!r} "
               f"(estimators: {', '.join(names) or 'none'})", file=sys.stderr)
         return 2
+    attach_left_out(report, left_out, {"replicate": args.replicate, "level": args.level, "factors": [], "groups": [],
+                                       "tables": {}, "paired": {}})
     out = args.out or (Path(args.paths[0]) / "report" if len(args.paths) == 1 else Path("report"))
     try:
         write_report(report, out)
@@ -404,7 +410,9 @@ def main(argv: list[str] | None = None) -> int:
     for experiment, body in report.items():
         groups = body["groups"]
         print(f"torchmm-report: {experiment}: {sum(len(g['runs']) for g in groups)} runs, {len(groups)} group(s) "
-              f"(factors: {', '.join(body['factors']) or 'none'})")
+              f"(factors: {', '.join(body['factors']) or 'none'})"
+              + (f"; {sum(i['runs'] for i in body['left_out'])} left out (not finished: see the warnings)"
+                 if body.get("left_out") else ""))
     print(f"torchmm-report: report.md, report.csv, report.json, report.tex, report.png in {out}")
     return 0
 

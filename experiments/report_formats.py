@@ -43,6 +43,10 @@ def to_markdown(report: dict[str, Any]) -> str:
                 f"{sum(len(g['runs']) for g in groups)} runs in {len(groups)} group(s); factors: "
                 f"{', '.join(body['factors']) or 'none'}; replicates: {body['replicate']} "
                 f"(mean ± half-width of the {pct} Student-t interval over the replicates; n = replicates).", ""]
+        if body.get("left_out"):
+            out += [f"**Left out: {sum(item['runs'] for item in body['left_out'])} run(s)** (not finished, so not in the "
+                    "tables below):", "",
+                    *(f"- `{item['path']}`: {item['reason']}" for item in body["left_out"]), ""]
         for name, table in body["tables"].items():
             factor_cols = body["factors"]
             errors = table.get("standard_errors", [])
@@ -130,6 +134,8 @@ def to_latex(report: dict[str, Any]) -> str:
     for experiment, body in report.items():
         groups, factors = body["groups"], body["factors"]
         pct = f"{100 * body['level']:g}\\,\\%"
+        out += [f"% {experiment}: left out (not finished): {item['path']}: {item['reason']}"
+                for item in body.get("left_out", [])]
         for name, table in body["tables"].items():
             values = [*table["measurements"], *table.get("standard_errors", [])]
             columns = [*factors, *table["labels"], "n", *values]

@@ -1,16 +1,22 @@
 """The runs of ``torchmm-report`` (:mod:`experiments.report`): every ``results.json`` under the paths
-given, read and checked (:func:`collect_runs`); split from the command's module by concern."""
+given, read and checked (:func:`collect_runs`), and the runs it cannot report, each named with why
+(:class:`LeftOut`: an interrupted or failed run, a sweep's job that never started); split from the
+command's module by concern."""
 
 from __future__ import annotations
 
 import json
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import yaml
+
 from experiments.folders import NON_RESULT_KEYS
 
-__all__ = ["IGNORED_KEYS", "ResultsFileError", "Run", "collect_runs", "flatten"]
+__all__ = ["IGNORED_KEYS", "LeftOut", "ResultsFileError", "Run", "attach_left_out", "collect_runs", "flatten",
+           "sweep_jobs"]
 
 #: keys never treated as factors (they do not change the numbers, or are bookkeeping)
 IGNORED_KEYS = (*NON_RESULT_KEYS, "hydra")
@@ -68,21 +74,43 @@ def _check_results(data: Any, file: Path) -> dict:
     return data
 
 
-def collect_runs(paths: list[Path]) -> list[Run]:
-    """Every run under ``paths`` (a folder holding ``results.json``, or any folder above such ones).
-    A ``results.json`` that cannot be read or is not a results file is a :class:`ResultsFileError`
-    naming it: a report never leaves out a run silently."""
+@dataclass
+class LeftOut:
+    """A run the report cannot hold, and why: ``path`` (a run folder, or a sweep folder for its jobs that
+    never started), ``reason`` (one phrase), the study it belongs to where its files say (else None) and
+    the number of ``runs`` it stands for."""
+
+    path: Path
+    reason: str
+    experiment: str | None = None
+    #: how many runs it stands for (a sweep folder: its jobs that never started)
+    runs: int = 1
+
+
+def collect_runs(paths: list[Path], left_out: list[LeftOut] | None = None) -> list[Run]:
+    """Every finished run under ``paths`` (a folder holding ``results.json``, or any folder above such
+    ones). A ``results.json`` that cannot be read or is not a results file is a :class:`ResultsFileError`
+    naming it. A run that did not finish is never left out silently: ``left_out`` (a list) gets a
+    :class:`LeftOut` for each run folder (with ``.hydra/`` or ``checkpoint.json``) without a finished
+    ``results.json`` - interrupted or failed; a ``results.json`` written before its study ended (a
+    ``provenance`` without ``end``: studies that rewrite it after each unit) is such a run too - and for
+    each sweep folder whose ``multirun.yaml`` names jobs without a folder (:func:`sweep_jobs`); without
+    ``left_out`` each is a warning on stderr."""
     found: dict[Path, None] = {}
+    searched: list[Path] = []
     for path in map(Path, paths):
         if not path.exists():
             raise FileNotFoundError(f"PATH: {path} does not exist")
         if path.is_file():
             candidates = [path] if path.name == "results.json" else []
+        elif (path / "results.json").exists():
+            candidates = [path / "results.json"]
         else:
-            candidates = [path / "results.json"] if (path / "results.json").exists() else sorted(path.rglob("results.json"))
+            candidates = sorted(path.rglob("results.json"))
+            searched.append(path)
         for candidate in candidates:
             found[candidate.resolve()] = None
-    runs = []
+    runs, missed = [], []
     for file in found:
         try:
             results = _check_results(json.loads(file.read_text()), file)
@@ -92,9 +120,118 @@ def collect_runs(paths: list[Path]) -> list[Run]:
             if isinstance(err, ResultsFileError):
                 raise
             raise ResultsFileError(f"{file}: not a results file ({type(err).__name__}: {err})") from None
+        provenance = results.get("provenance")
+        if isinstance(provenance, dict) and not provenance.get("end"):
+            missed.append(LeftOut(file.parent, "interrupted or failed: its results.json was written before the study "
+                                  f"ended (no provenance end; {_units(file.parent)})", _experiment_of(file.parent)))
+            continue
         overrides_file = file.parent / ".hydra" / "overrides.yaml"
         overrides = []
         if overrides_file.exists():
             overrides = [line[2:].strip() for line in overrides_file.read_text().splitlines() if line.startswith("- ")]
         runs.append(Run(file.parent, results, overrides))
+    missed += _unfinished_folders(searched, {f.parent for f in found})
+    if left_out is None:
+        for item in missed:
+            print(f"torchmm-report: warning: {item.path}: left out: {item.reason}", file=sys.stderr)
+    else:
+        left_out.extend(missed)
     return runs
+
+
+def _units(folder: Path) -> str:
+    """How many finished units ``folder``'s checkpoint.json holds, as a phrase."""
+    try:
+        units = json.loads((folder / "checkpoint.json").read_text()).get("units")
+    except FileNotFoundError:
+        return "no checkpoint.json"
+    except (OSError, ValueError, AttributeError) as err:
+        return f"its checkpoint.json cannot be read ({type(err).__name__})"
+    return f"checkpoint.json holds {len(units) if isinstance(units, dict) else 0} finished unit(s)"
+
+
+def _experiment_of(folder: Path) -> str | None:
+    """The study of a run folder, from its checkpoint.json's config or Hydra's .hydra/config.yaml."""
+    try:
+        name = (json.loads((folder / "checkpoint.json").read_text()).get("config") or {}).get("experiment_name")
+        if name is not None:
+            return str(name)
+    except (OSError, ValueError, AttributeError):
+        pass
+    try:
+        name = (yaml.safe_load((folder / ".hydra" / "config.yaml").read_text()) or {}).get("experiment_name")
+        return None if name is None else str(name)
+    except (OSError, ValueError, AttributeError, yaml.YAMLError):
+        return None
+
+
+def _unfinished_folders(searched: list[Path], finished: set[Path]) -> list[LeftOut]:
+    """The run folders under ``searched`` without a results.json, and the sweeps' jobs that never started."""
+    out: list[LeftOut] = []
+    folders: dict[Path, None] = {}
+    for root in searched:
+        for marker in (*root.rglob(".hydra"), *root.rglob("checkpoint.json")):
+            folders[marker.parent.resolve()] = None
+    for folder in sorted(folders):
+        if folder not in finished and not (folder / "results.json").exists():
+            out.append(LeftOut(folder, f"interrupted or failed: no results.json ({_units(folder)})",
+                               _experiment_of(folder)))
+    for record in sorted({r.resolve() for root in searched for r in root.rglob("multirun.yaml")}):
+        jobs = sweep_jobs(record)
+        if jobs is None:
+            continue
+        started = set()
+        for job in record.parent.glob("*/.hydra/hydra.yaml"):
+            num = _job_num(job)
+            if num is not None:
+                started.add(num)
+        missing = [n for n in range(jobs) if n not in started]
+        if missing:
+            shown = ", ".join(map(str, missing[:10])) + (", ..." if len(missing) > 10 else "")
+            names = {_experiment_of(job.parent.parent) for job in record.parent.glob("*/.hydra/hydra.yaml")}
+            out.append(LeftOut(record.parent, f"{len(missing)} of the {jobs} jobs of its multirun.yaml never started "
+                               f"(no folder: job {shown})", next(iter(names)) if len(names) == 1 else None,
+                               len(missing)))
+    return out
+
+
+def _job_num(hydra_yaml: Path) -> int | None:
+    try:
+        num = ((yaml.safe_load(hydra_yaml.read_text()) or {}).get("hydra") or {}).get("job", {}).get("num")
+        return int(num)
+    except (OSError, ValueError, TypeError, AttributeError, yaml.YAMLError):
+        return None
+
+
+def sweep_jobs(record: Path) -> int | None:
+    """How many jobs the sweep of ``record`` (a ``multirun.yaml``) has: the product of the numbers of
+    values of its sweep overrides (``seed=0,1,2``, ``range(...)``, ``choice(...)``; command line and
+    ``hydra.sweeper.params``), or None where it cannot be counted (``glob(...)``, an unreadable file)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import HydraException
+
+    try:
+
+        hydra = (yaml.safe_load(record.read_text()) or {}).get("hydra") or {}
+        task = list((hydra.get("overrides") or {}).get("task") or [])
+        task += [f"{key}={value}" for key, value in ((hydra.get("sweeper") or {}).get("params") or {}).items()]
+        jobs = 1
+        for override in OverridesParser.create().parse_overrides(task):
+            if override.is_sweep_override():
+                jobs *= len(list(override.sweep_iterator()))
+        return jobs
+    except (OSError, ValueError, AttributeError, TypeError, yaml.YAMLError, HydraException):
+        return None
+
+
+def attach_left_out(report: dict[str, Any], left_out: list[LeftOut], empty: dict[str, Any]) -> None:
+    """Put each :class:`LeftOut` into ``report`` (:func:`experiments.report.combine`'s) as its study's
+    ``left_out`` list of ``{"path", "reason", "runs"}`` - a study with no finished run gets a body ``empty``
+    (no groups, no tables) to hold it; one whose study is not known goes to the only study, else to
+    ``"(unknown study)"``."""
+    for item in left_out:
+        name = item.experiment
+        if name is None:
+            name = next(iter(report)) if len(report) == 1 else "(unknown study)"
+        body = report.setdefault(name, json.loads(json.dumps(empty)))
+        body.setdefault("left_out", []).append({"path": str(item.path), "reason": item.reason, "runs": item.runs})

@@ -196,3 +196,51 @@ def test_a_true_false_column_is_a_measurement_the_fraction_of_runs_where_it_is_t
     md = (tmp_path / "runs" / "report" / "report.md").read_text()
     assert "| IMM | 2 | 4.2000 ± " in md and "| 0.5000 (1/2) | 1.0000 (2/2) |" in md
     assert "rmse_inside_95, always, sometimes: true or false in each run" in md
+
+
+def _job(sweep: Path, num: int, seed: int) -> Path:
+    """A sweep job's folder with Hydra's record of its number (as -m writes it)."""
+    folder = sweep / f"{num}_seed={seed}"
+    (folder / ".hydra").mkdir(parents=True)
+    (folder / ".hydra" / "hydra.yaml").write_text(f"hydra:\n  job:\n    num: {num}\n")
+    (folder / ".hydra" / "config.yaml").write_text(f"experiment_name: toy\nseed: {seed}\n")
+    return folder
+
+
+def test_interrupted_runs_and_jobs_that_never_started_are_named_and_counted(tmp_path, capsys):
+    """A sweep of seed=0,1,2,3 (multirun.yaml) where job 0 finished, job 1 was interrupted after 2 units
+    (checkpoint.json, no results.json), job 2 stopped inside a study that rewrites results.json after each
+    unit (a results.json whose provenance has no end) and job 3 never started: the report holds job 0 only,
+    and names the 3 others with why (before: only results.json was looked for, so job 1 and 3 were skipped
+    without a word and job 2's partial tables were averaged as if it had finished)."""
+    sweep = tmp_path / "sweep"
+    sweep.mkdir()
+    (sweep / "multirun.yaml").write_text("hydra:\n  overrides:\n    task:\n    - experiment=toy\n    - seed=0,1,2,3\n"
+                                         "    - mc_runs=10\n")
+    table = {"t": {"columns": ["estimator", "rmse"], "rows": [["IMM", 4.0]]}}
+    done = _job(sweep, 0, 0)
+    (done / "results.json").write_text(json.dumps({"experiment": "toy", "config": {"seed": 0}, "tables": table,
+                                                   "provenance": {"start": "s", "end": "e"}}))
+    stopped = _job(sweep, 1, 1)
+    (stopped / "checkpoint.json").write_text(json.dumps({"config_hash": "x", "config": {"experiment_name": "toy"},
+                                                         "units": {"a": 1, "b": 2}}))
+    partial = _job(sweep, 2, 2)
+    (partial / "results.json").write_text(json.dumps({"experiment": "toy", "config": {"seed": 2},
+                                                      "tables": {"t": {"columns": ["estimator", "rmse"],
+                                                                       "rows": [["IMM", 99.0]]}}, "provenance": {}}))
+    assert rep.main([str(sweep)]) == 0
+    err = capsys.readouterr().err
+    assert f"{stopped.resolve()}: left out: interrupted or failed: no results.json (checkpoint.json holds 2 " in err
+    assert f"{partial.resolve()}: left out: interrupted or failed: its results.json was written before" in err
+    assert f"{sweep.resolve()}: left out: 1 of the 4 jobs of its multirun.yaml never started (no folder: job 3)" in err
+    body = json.loads((sweep / "report" / "report.json").read_text())["toy"]
+    assert [g["runs"] for g in body["groups"]] == [[str(done)]]
+    (row,) = body["tables"]["t"]["rows"]
+    assert row["labels"]["rmse"] == 4.0  # one run: its value (a label: the same in every run), not 99 or their mean
+    assert sorted(item["path"] for item in body["left_out"]) == sorted(map(str, (stopped.resolve(), partial.resolve(),
+                                                                                 sweep.resolve())))
+    assert sum(item["runs"] for item in body["left_out"]) == 4 - 1
+    assert "**Left out: 3 run(s)**" in (sweep / "report" / "report.md").read_text()
+    (done / "results.json").unlink()  # nothing finished: an error that says why
+    assert rep.main([str(sweep)]) == 2
+    assert "no finished run (results.json) under" in capsys.readouterr().err
