@@ -18,8 +18,9 @@ import torch
 
 from experiments.arrays import array_refs, cat_runs, load_arrays
 from experiments.files import RunFolderError, UnitFileError, error_reason, remove_temporaries, write_atomic
-from experiments.folders import config_hash, differing_keys, result_config, saved_run, unique_dir
+from experiments.folders import check_code, config_hash, differing_keys, result_config, saved_run, unique_dir
 from experiments.loggers import CurveRecorder, Logger, NullLogger, make_logger
+from experiments.provenance import code_version
 from experiments.results import Results, jsonable
 from torchmm.runtime import compile_fast_paths
 
@@ -67,6 +68,8 @@ class StudyContext:
     #: the checkpoint as written to checkpoint.json (arrays as references to units/*.npz)
     _checkpoint_refs: dict = field(default_factory=dict)
     _config_hash: str = ""
+    #: the code version the units are computed with (experiments.provenance.code_version), in checkpoint.json
+    _code: dict = field(default_factory=dict)
     _result_config: dict = field(default_factory=dict)
     #: the resolved config (JSON): what travels to workers
     _config: dict = field(default_factory=dict)
@@ -191,7 +194,7 @@ class StudyContext:
         self._checkpoint_refs[key] = array_refs(key, value, self.output_dir)
         write_atomic(self.output_dir / "checkpoint.json",
                      json.dumps({"config_hash": self._config_hash, "config": self._result_config,
-                                 "units": self._checkpoint_refs}, default=str) + "\n")
+                                 "code": self._code, "units": self._checkpoint_refs}, default=str) + "\n")
 
     @property
     def executor(self):
@@ -245,6 +248,9 @@ def open_context(cfg: Any, output_dir: Path, config_dict: dict, experiment: str,
     The checkpoint is keyed on the keys that change results only (:func:`result_config`). If
     ``output_dir`` holds a checkpoint of a config that differs in such keys, the differing keys are
     named and the study runs in a fresh sibling folder (``<dir>_1``, ...): nothing is overwritten.
+    Units of the same config computed by other code (checkpoint.json's ``code``:
+    :func:`experiments.provenance.code_version`) are never mixed with this run's:
+    :class:`~experiments.folders.CodeChanged` naming both versions (docs/studies.md, "Resuming").
     A ``checkpoint.json`` (or, without one, a ``results.json``) that cannot be read is a
     :class:`RunFolderError` naming it; a unit whose ``units/*.npz`` is missing, truncated or fails its
     checksum is one warning naming the file, and that unit is computed again.
@@ -259,7 +265,12 @@ def open_context(cfg: Any, output_dir: Path, config_dict: dict, experiment: str,
     refs: dict = {}
     saved = saved_run(output_dir)
     saved_hash, saved_config = (saved[0], saved[1]) if saved is not None else (None, None)
+    code = code_version()
     if saved is not None and saved_hash == digest:
+        check_code(output_dir, saved, code)  # units of other code: refused, never mixed
+        if saved[3] and saved[4] is None:
+            log.warning("%s records no code version (written before code versions were recorded): its units are "
+                        "kept as if this code had computed them", saved[2])
         remove_temporaries(output_dir)
         for key, ref in saved[3].items():
             try:
@@ -289,6 +300,7 @@ def open_context(cfg: Any, output_dir: Path, config_dict: dict, experiment: str,
         _checkpoint=checkpoint,
         _checkpoint_refs=refs,
         _config_hash=digest,
+        _code=code,
         _result_config=json.loads(json.dumps(kept, default=str)),
         _config=json.loads(json.dumps(config_dict, default=str)),
     )

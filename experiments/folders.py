@@ -1,6 +1,7 @@
 """Run folders: fresh names (:func:`unique_dir`), the part of a config that decides the numbers
 (:func:`result_config`, :data:`NON_RESULT_KEYS`, :func:`config_hash`) and what a folder holds of an earlier
-run (:func:`saved_run`, :func:`latest_run`, :func:`differing_keys`). Imports neither torch nor Hydra."""
+run (:func:`saved_run`, :func:`latest_run`, :func:`differing_keys`) and the code its units came from
+(:func:`check_code`). Imports neither torch nor Hydra."""
 
 from __future__ import annotations
 
@@ -121,23 +122,70 @@ def _read_json(path: Path, what: str) -> dict:
     return data
 
 
-def saved_run(folder: Path) -> tuple[str, dict | None, Path, dict] | None:
-    """What ``folder`` holds of an earlier run: ``(config_hash, result config, file, units)`` from its
-    ``checkpoint.json`` (else from a finished ``results.json``, with no units), or None for no run. A
-    file that cannot be read or is not what it should be: :class:`RunFolderError` naming it."""
+def saved_run(folder: Path) -> tuple[str, dict | None, Path, dict, dict | None] | None:
+    """What ``folder`` holds of an earlier run: ``(config_hash, result config, file, units, code)`` from its
+    ``checkpoint.json`` (``code``: the code version its units were computed with, None if not recorded;
+    :func:`code_difference`), else from a finished ``results.json`` (no units, no code), or None for no
+    run. A file that cannot be read or is not what it should be: :class:`RunFolderError` naming it."""
     ckpt_path, results_path = Path(folder) / "checkpoint.json", Path(folder) / "results.json"
     if ckpt_path.exists():
         saved = _read_json(ckpt_path, "checkpoint")
         units = saved.get("units", {})
         if not isinstance(saved.get("config_hash"), str) or not isinstance(units, dict):
             raise RunFolderError(f"{ckpt_path}: not a valid checkpoint (no config_hash or units)")
-        return saved["config_hash"], saved.get("config"), ckpt_path, units
+        code = saved.get("code")
+        return saved["config_hash"], saved.get("config"), ckpt_path, units, code if isinstance(code, dict) else None
     if results_path.exists():  # a finished study without units: compare the configs it recorded
         recorded = _read_json(results_path, "results file").get("config") or {}
         if not isinstance(recorded, dict):
             raise RunFolderError(f"{results_path}: not a valid results file (its config is not an object)")
-        return config_hash(recorded), result_config(recorded), results_path, {}
+        return config_hash(recorded), result_config(recorded), results_path, {}, None
     return None
+
+
+def code_difference(saved: dict | None, current: dict) -> str | None:
+    """None if the code versions ``saved`` (a checkpoint's ``code``) and ``current``
+    (:func:`experiments.provenance.code_version`) are the same - or ``saved`` is None (a checkpoint written
+    before code versions were recorded: nothing to compare) - else ``"<saved> ... <current>"`` naming both.
+    Compared: the torchmm version and, where both were made in a git checkout, the commit, whether the tree
+    had uncommitted changes and those changes (their ``diff`` fingerprint)."""
+    if not isinstance(saved, dict):
+        return None
+    keys = ["torchmm"]
+    if saved.get("commit") and current.get("commit"):
+        keys += ["commit", "dirty", "diff"]
+    if all(saved.get(k) == current.get(k) for k in keys):
+        return None
+    return f"{describe_code(saved)}; this run: {describe_code(current)}"
+
+
+def describe_code(code: dict) -> str:
+    """A code version in a few words: ``commit 0123456789ab (uncommitted changes 1a2b...), torchmm 0.1.0``."""
+    commit = code.get("commit")
+    where = f"commit {commit[:12]}" if commit else "no git commit"
+    if code.get("dirty"):
+        where += f" with uncommitted changes {code['diff']}" if code.get("diff") else " with uncommitted changes"
+    return f"{where}, torchmm {code.get('torchmm')}"
+
+
+class CodeChanged(RunFolderError):
+    """A run folder whose finished units were computed by other code than this run's: continuing it would
+    mix the two in one table; refused (one line naming both versions and what to do instead)."""
+
+
+def check_code(folder: Path, saved: tuple | None, current: dict) -> None:
+    """:class:`CodeChanged` if ``folder``'s checkpoint (``saved``: :func:`saved_run`'s) holds finished units
+    of another code version than ``current``; nothing for a folder without units."""
+    if saved is None or not saved[3] or saved[2].name != "checkpoint.json":
+        return
+    differ = code_difference(saved[4], current)
+    if differ is None:
+        return
+    old = saved[4].get("commit")
+    raise CodeChanged(
+        f"{saved[2]}: its {len(saved[3])} finished units come from other code ({differ}); continuing would mix "
+        f"the two: start a fresh run (without resume=, or another hydra.run.dir / hydra.sweep.dir)"
+        + (f", or finish this one with its own code (git checkout {old[:12]})" if old else ""))
 
 
 def differing_keys(a: Any, b: Any, prefix: str = "") -> list[str]:

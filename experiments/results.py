@@ -52,7 +52,8 @@ class Results:
     ``results.json``: ``{"experiment", "config", "metrics": {estimator: {metric: value}},
     "tables": {name: {"columns", "rows"}}, "timing": {estimator: seconds_per_step},
     "provenance": {versions, git, host, platform, command, start, end, wall_seconds, device, dtype,
-    threads, kernels: {name: run_filter calls}, kernels_note}, "dropped": {metric: why}}``
+    threads, kernels: {name: run_filter calls}, kernels_note, resumes / resumed / replaced (a continued
+    run: experiments.provenance.Provenance.continue_from)}, "dropped": {metric: why}}``
     (docs/studies.md). ``dropped`` names every metric that was asked for but cannot be computed from
     the data (no truth, no measurement), with the reason: such a
     metric is never reported as a number.
@@ -161,7 +162,12 @@ class Results:
                     f"({p.get('wall_seconds')} s)."
                     + (" Runs by kernel (torchmm.kernels): " + ", ".join(f"{k} {v}" for k, v in p["kernels"].items())
                        + "." if p.get("kernels") else "")
-                    + (f" ({p['kernels_note']}.)" if p.get("kernels_note") else ""), ""]
+                    + (f" ({p['kernels_note']}.)" if p.get("kernels_note") else "")
+                    + (f" Continued {len(p['resumes'])} time(s) since (provenance resumes), last "
+                       f"{p['resumes'][-1].get('start')} ({p['resumes'][-1].get('units_kept')} units kept)."
+                       if p.get("resumes") else "")
+                    + (f" Resumed from a checkpoint ({p['resumed'].get('units_kept')} units kept; the times are "
+                       "this process's)." if isinstance(p.get("resumed"), dict) else ""), ""]
         return "\n".join(out)
 
     def to_latex(self) -> str:

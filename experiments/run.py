@@ -159,6 +159,7 @@ def _run(cfg: DictConfig, ctx, study, config: dict, overrides: list[str] | None)
         kernels.set_enabled("particle_stages", False)
     provenance = Provenance()
     provenance.start(device=ctx.device, dtype=ctx.dtype, threads=torch.get_num_threads())
+    previous, units_kept = finished_provenance(ctx.output_dir), len(ctx._checkpoint)  # (before the study rewrites it)
     ctx.logger.text("config", "```yaml\n" + OmegaConf.to_yaml(config) + "```")  # the resolved config
     try:
         with kernels.counting() as runs:  # which kernel computed each run_filter call of this process
@@ -166,6 +167,7 @@ def _run(cfg: DictConfig, ctx, study, config: dict, overrides: list[str] | None)
         provenance.finish()
         provenance.record_kernels(runs, executor=str((cfg.get("executor") or {}).get("kind", "local")),
                                   resumed=len(ctx._checkpoint) > 0 and not runs)
+        provenance.continue_from(previous, units_kept)  # a finished run continued: its provenance kept
         ctx.results.provenance = provenance.data
         ctx.results.save()
         ctx.logger.save(ctx.output_dir, figures=ctx.figures)  # curves.npz / curves.csv: every curve as data
@@ -183,6 +185,15 @@ def _run(cfg: DictConfig, ctx, study, config: dict, overrides: list[str] | None)
             kernels.set_enabled("particle_stages", previous_kernels)
     log.info("results written to %s", ctx.output_dir)
     return ctx.results
+
+
+def finished_provenance(folder: Path) -> dict | None:
+    """The provenance of the finished run ``folder`` holds (its results.json's, with an ``end``), or None."""
+    try:
+        provenance = json.loads((Path(folder) / "results.json").read_text()).get("provenance")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return provenance if isinstance(provenance, dict) and provenance.get("end") else None
 
 
 def _sweep_bars() -> tuple[str, int | None]:
@@ -376,6 +387,7 @@ def claim_folder(args: list[str], config_dir: str = CONFIG_DIR) -> list[str]:
     from experiments.config import compose_config
     from experiments.files import RunFolderError, lock_folder, unlock_folder
     from experiments.folders import (
+        check_code,
         config_hash,
         differing_keys,
         result_config,
@@ -415,7 +427,10 @@ def claim_folder(args: list[str], config_dir: str = CONFIG_DIR) -> list[str]:
     cfg, _ = compose_config([a for a in args if not a.startswith("-")], config_dir, "config")
     config = with_data_files(OmegaConf.to_container(cfg, resolve=True))
     if saved[0] == config_hash(config):
-        return args  # the same result config: continue the folder
+        from experiments.provenance import code_version
+
+        check_code(folder, saved, code_version())  # units of other code: refused (CodeChanged), never mixed
+        return args  # the same result config and code: continue the folder
     differ = differing_keys(saved[1] or {}, json.loads(json.dumps(result_config(config), default=str)))
     fresh = Path(unique_dir(str(folder)))
     lock_folder(fresh)
@@ -455,6 +470,14 @@ def resolve_resume(args: list[str], config_dir: str = CONFIG_DIR) -> list[str]:
         print(f"torchmm-run: resume=latest: no {'readable ' if unreadable else ''}earlier run of this config "
               f"under {base}; starting a fresh one", file=sys.stderr)
         return args
+    from experiments.files import RunFolderError
+    from experiments.folders import check_code, saved_run
+    from experiments.provenance import code_version
+
+    try:  # units of other code: one line naming both versions, before anything is written
+        check_code(folder, saved_run(folder), code_version())
+    except RunFolderError as err:
+        _fail(f"resume=latest: {err}")
     print(f"torchmm-run: resume=latest: continuing {folder}", file=sys.stderr)
     return [*args, f"hydra.run.dir={folder}"]
 
