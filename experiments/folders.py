@@ -125,7 +125,7 @@ def _read_json(path: Path, what: str) -> dict:
 def saved_run(folder: Path) -> tuple[str, dict | None, Path, dict, dict | None] | None:
     """What ``folder`` holds of an earlier run: ``(config_hash, result config, file, units, code)`` from its
     ``checkpoint.json`` (``code``: the code version its units were computed with, None if not recorded;
-    :func:`code_difference`), else from a finished ``results.json`` (no units, no code), or None for no
+    :func:`experiments.provenance.code_difference`), else from a finished ``results.json`` (no units, no code), or None for no
     run. A file that cannot be read or is not what it should be: :class:`RunFolderError` naming it."""
     ckpt_path, results_path = Path(folder) / "checkpoint.json", Path(folder) / "results.json"
     if ckpt_path.exists():
@@ -143,31 +143,6 @@ def saved_run(folder: Path) -> tuple[str, dict | None, Path, dict, dict | None] 
     return None
 
 
-def code_difference(saved: dict | None, current: dict) -> str | None:
-    """None if the code versions ``saved`` (a checkpoint's ``code``) and ``current``
-    (:func:`experiments.provenance.code_version`) are the same - or ``saved`` is None (a checkpoint written
-    before code versions were recorded: nothing to compare) - else ``"<saved> ... <current>"`` naming both.
-    Compared: the torchmm version and, where both were made in a git checkout, the commit, whether the tree
-    had uncommitted changes and those changes (their ``diff`` fingerprint)."""
-    if not isinstance(saved, dict):
-        return None
-    keys = ["torchmm"]
-    if saved.get("commit") and current.get("commit"):
-        keys += ["commit", "dirty", "diff"]
-    if all(saved.get(k) == current.get(k) for k in keys):
-        return None
-    return f"{describe_code(saved)}; this run: {describe_code(current)}"
-
-
-def describe_code(code: dict) -> str:
-    """A code version in a few words: ``commit 0123456789ab (uncommitted changes 1a2b...), torchmm 0.1.0``."""
-    commit = code.get("commit")
-    where = f"commit {commit[:12]}" if commit else "no git commit"
-    if code.get("dirty"):
-        where += f" with uncommitted changes {code['diff']}" if code.get("diff") else " with uncommitted changes"
-    return f"{where}, torchmm {code.get('torchmm')}"
-
-
 class CodeChanged(RunFolderError):
     """A run folder whose finished units were computed by other code than this run's: continuing it would
     mix the two in one table; refused (one line naming both versions and what to do instead)."""
@@ -178,6 +153,8 @@ def check_code(folder: Path, saved: tuple | None, current: dict) -> None:
     of another code version than ``current``; nothing for a folder without units."""
     if saved is None or not saved[3] or saved[2].name != "checkpoint.json":
         return
+    from experiments.provenance import code_difference
+
     differ = code_difference(saved[4], current)
     if differ is None:
         return

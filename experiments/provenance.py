@@ -15,7 +15,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-__all__ = ["Provenance", "code_version", "git_revision", "versions"]
+__all__ = ["CODE_PATHS", "Provenance", "code_difference", "code_version", "describe_code", "git_revision", "versions"]
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -52,23 +52,75 @@ def git_revision(root: Path = ROOT) -> dict[str, Any]:
         return {"commit": None, "dirty": None}
 
 
+#: the source trees a study's numbers depend on (the code version compares them, not docs or tests)
+CODE_PATHS = ("torchmm", "experiments", "conf")
+
+
 def code_version(root: Path = ROOT) -> dict[str, Any]:
     """The code a run's numbers come from, as recorded in ``checkpoint.json`` (``code``) and compared when a
-    run is continued (:func:`experiments.folders.code_difference`): ``{"torchmm": version, "commit": sha or
-    None, "dirty": bool or None, "diff": the first 16 hex digits of the sha256 of ``git diff HEAD`` (the
-    uncommitted changes to tracked files) or None}`` (``commit``, ``dirty`` and ``diff`` None outside git)."""
+    run is continued (:func:`code_difference`): ``{"torchmm": version, "commit": sha, "dirty": bool,
+    "changed": bool, "source": fingerprint}`` - ``dirty``: uncommitted changes to tracked files anywhere;
+    ``changed``: to those of :data:`CODE_PATHS`; ``source``: the first 16 hex digits of the sha256 of the
+    list of the tracked files under :data:`CODE_PATHS` with their contents' blob ids as they are on disk
+    (``git ls-tree -r HEAD``, with ``git hash-object`` of those ``git diff HEAD`` names), so that it follows
+    the code alone: an edit or a commit of docs or tests keeps it, committing an edit keeps it, and any
+    change to a code file changes it (``commit``, ``dirty``, ``changed`` and ``source`` None outside git)."""
     from torchmm import __version__
 
     git = git_revision(root)
-    diff = None
-    if git["dirty"]:
+    out = {"torchmm": __version__, "commit": git["commit"], "dirty": git["dirty"], "changed": None, "source": None}
+    if git["commit"] is None:
+        return out
+    def git(*args: str) -> str | None:
         try:
-            out = subprocess.run(["git", "-C", str(root), "diff", "HEAD", "--no-ext-diff", "--binary"],
-                                 capture_output=True, timeout=30)
-            diff = hashlib.sha256(out.stdout).hexdigest()[:16] if out.returncode == 0 else None
+            done = subprocess.run(["git", "-C", str(root), *args], capture_output=True, text=True, timeout=60)
         except (OSError, subprocess.SubprocessError):
-            diff = None
-    return {"torchmm": __version__, "commit": git["commit"], "dirty": git["dirty"], "diff": diff}
+            return None
+        return done.stdout if done.returncode == 0 else None
+
+    listing = git("ls-tree", "-r", "-z", "HEAD", "--", *CODE_PATHS)  # "<mode> blob <sha>\t<path>\0" per file
+    changed = git("diff", "HEAD", "--name-only", "-z", "--no-renames", "--", *CODE_PATHS)
+    if listing is None or changed is None:
+        return out
+    blobs = {entry.split("\t", 1)[1]: entry.split()[2] for entry in listing.split("\0") if "\t" in entry}
+    edited = [path for path in changed.split("\0") if path]
+    for path in edited:
+        blobs.pop(path, None)  # deleted: gone; edited or added: its working-tree contents below
+    present = [path for path in edited if (root / path).is_file()]
+    if present:
+        shas = git("hash-object", "--", *present)  # (computes the blob ids; writes nothing)
+        if shas is None:
+            return out
+        blobs.update(zip(present, shas.split()))
+    out["changed"] = bool(edited)
+    text = "\n".join(f"{sha} {path}" for path, sha in sorted(blobs.items()))
+    out["source"] = hashlib.sha256(text.encode()).hexdigest()[:16]
+    return out
+
+
+def code_difference(saved: dict | None, current: dict) -> str | None:
+    """None if the code versions ``saved`` (a checkpoint's ``code``) and ``current`` (:func:`code_version`)
+    are the same - or ``saved`` is None (a checkpoint written before code versions were recorded: nothing to
+    compare) - else ``"<saved>; this run: <current>"`` naming both. Compared: the torchmm version and, where
+    both have one, the ``source`` fingerprint (the code's trees and their uncommitted changes)."""
+    if not isinstance(saved, dict):
+        return None
+    keys = ["torchmm"] + (["source"] if saved.get("source") and current.get("source") else [])
+    if all(saved.get(k) == current.get(k) for k in keys):
+        return None
+    return f"{describe_code(saved)}; this run: {describe_code(current)}"
+
+
+def describe_code(code: dict) -> str:
+    """A code version in a few words: ``commit 0123456789ab with uncommitted code changes (code 1a2b...),
+    torchmm 0.1.0``."""
+    commit = code.get("commit")
+    where = f"commit {commit[:12]}" if commit else "no git commit"
+    if code.get("changed"):
+        where += " with uncommitted code changes"
+    if code.get("source"):
+        where += f" (code {code['source']})"
+    return f"{where}, torchmm {code.get('torchmm')}"
 
 
 def _now() -> str:
@@ -87,7 +139,7 @@ class Provenance:
         code = code_version()
         self.data = {
             "versions": versions(),
-            "git": {k: code[k] for k in ("commit", "dirty", "diff")},
+            "git": {k: code[k] for k in ("commit", "dirty", "changed", "source")},
             "host": platform.node(),
             "platform": platform.platform(),
             "command": " ".join(sys.argv) if sys.argv and sys.argv[0] else None,
@@ -107,7 +159,7 @@ class Provenance:
         """After :meth:`finish`, for a run that continued a folder: ``previous`` is the provenance of the
         finished run the folder held (its results.json's; None if it held none: an interrupted run).
 
-        * a finished run of the same code (the same ``versions.torchmm`` and ``git``): its provenance is
+        * a finished run of the same code (:func:`code_difference` of ``versions.torchmm`` and ``git``): its provenance is
           kept (start, end, wall_seconds, command, ...: when and how its numbers were made) and this
           process is appended to its ``resumes``: ``{start, end, wall_seconds, command, host, units_kept,
           kernels}``;
@@ -137,6 +189,8 @@ class Provenance:
 
 
 def _same_code(a: dict, b: dict) -> bool:
-    """Whether two provenances name the same code: torchmm version and git commit, dirty flag and diff."""
-    return ((a.get("versions") or {}).get("torchmm") == (b.get("versions") or {}).get("torchmm")
-            and all((a.get("git") or {}).get(k) == (b.get("git") or {}).get(k) for k in ("commit", "dirty", "diff")))
+    """Whether two provenances name the same code (:func:`code_difference` of their versions and git)."""
+    def code(p: dict) -> dict:
+        return {"torchmm": (p.get("versions") or {}).get("torchmm"), **(p.get("git") or {})}
+
+    return code_difference(code(a), code(b)) is None

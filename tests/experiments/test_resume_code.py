@@ -12,8 +12,8 @@ from pathlib import Path
 import pytest
 
 import torchmm
-from experiments.folders import CodeChanged, code_difference
-from experiments.provenance import code_version
+from experiments.folders import CodeChanged
+from experiments.provenance import code_difference, code_version
 from experiments.run import run_study
 from tests.experiments.test_studies import _compose
 
@@ -60,15 +60,47 @@ def test_units_of_other_code_are_refused_in_one_line_naming_both_versions(tmp_pa
     assert _files(folder) == before
 
 
-def test_code_difference_compares_version_commit_and_uncommitted_changes():
-    code = {"torchmm": "0.1.0", "commit": "a" * 40, "dirty": False, "diff": None}
+def test_code_difference_compares_the_version_and_the_code_fingerprint():
+    code = {"torchmm": "0.1.0", "commit": "a" * 40, "dirty": False, "changed": False, "source": "s1"}
     assert code_difference(code, dict(code)) is None
     assert code_difference(None, code) is None  # an old checkpoint: nothing recorded to compare
-    assert "commit bbbbbbbbbbbb" in code_difference({**code, "commit": "b" * 40}, code)
-    assert "uncommitted changes 1234" in code_difference(code, {**code, "dirty": True, "diff": "1234"})
-    assert code_difference({**code, "dirty": True, "diff": "1"}, {**code, "dirty": True, "diff": "2"})
-    outside = {"torchmm": "0.1.0", "commit": None, "dirty": None, "diff": None}  # not a git checkout
+    assert code_difference({**code, "commit": "b" * 40}, code) is None  # a commit of docs alone: the same code
+    differ = code_difference({**code, "commit": "b" * 40, "source": "s2"}, code)
+    assert "commit bbbbbbbbbbbb (code s2)" in differ and "this run: commit aaaaaaaaaaaa (code s1)" in differ
+    assert "uncommitted code changes" in code_difference(code, {**code, "changed": True, "source": "s3"})
+    outside = {"torchmm": "0.1.0", "commit": None, "dirty": None, "changed": None, "source": None}  # not in git
     assert code_difference(outside, code) is None and code_difference({**outside, "torchmm": "0.2"}, code)
+
+
+def test_the_code_fingerprint_follows_the_code_not_the_docs(tmp_path):
+    """code_version on a small git repository: editing or committing docs keeps ``source``; an uncommitted
+    edit of experiments/ changes it (``changed``), committing that edit keeps the edit's; a deleted code file
+    changes it. Cross-checked against the blob ids git itself stores on commit."""
+    def git(*args):
+        subprocess.run(["git", "-C", str(tmp_path), "-c", "user.email=t@t", "-c", "user.name=t", *args],
+                       check=True, capture_output=True)
+
+    for name in ("torchmm/a.py", "experiments/b.py", "conf/c.yaml", "docs/d.md"):
+        (tmp_path / name).parent.mkdir(exist_ok=True)
+        (tmp_path / name).write_text("x = 1\n")
+    git("init", "-q")
+    git("add", ".")
+    git("commit", "-qm", "one")
+    first = code_version(tmp_path)
+    assert first["commit"] and first["changed"] is False and first["source"]
+    (tmp_path / "docs/d.md").write_text("more\n")
+    docs = code_version(tmp_path)
+    assert docs["dirty"] is True and docs["changed"] is False and docs["source"] == first["source"]
+    git("commit", "-qam", "docs")
+    assert code_version(tmp_path)["source"] == first["source"]
+    (tmp_path / "experiments/b.py").write_text("x = 2\n")
+    edited = code_version(tmp_path)
+    assert edited["changed"] is True and edited["source"] != first["source"]
+    git("commit", "-qam", "code")
+    committed = code_version(tmp_path)
+    assert committed["changed"] is False and committed["source"] == edited["source"] != first["source"]
+    (tmp_path / "conf/c.yaml").unlink()
+    assert code_version(tmp_path)["source"] not in (first["source"], edited["source"])
 
 
 def test_continuing_a_finished_run_keeps_its_provenance_and_appends_the_resume(tmp_path):
@@ -84,7 +116,7 @@ def test_continuing_a_finished_run_keeps_its_provenance_and_appends_the_resume(t
         again = json.loads((tmp_path / "run" / "results.json").read_text())
         assert again["tables"] == first["tables"]
         p = again["provenance"]
-        for key in ("start", "end", "wall_seconds", "command", "git", "versions"):
+        for key in ("start", "end", "wall_seconds", "command", "git", "versions"):  # the first run's
             assert p[key] == first["provenance"][key], key
         assert len(p["resumes"]) == n and p["resumes"][-1]["units_kept"] == units
         assert p["resumes"][-1]["start"] >= first["provenance"]["end"]
