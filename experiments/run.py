@@ -18,7 +18,6 @@ refused with one line and exit status 2 before it writes anything there; a file-
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 import os
@@ -30,6 +29,7 @@ from typing import TYPE_CHECKING, Any
 
 from omegaconf import DictConfig, OmegaConf
 
+from experiments.claim import claim_folder, fail, resolve_resume  # (before Hydra; registers torchmm.sweep_subdir)
 from experiments.config import ConfigError, precheck, validate
 from experiments.paths import CONFIG_DIR
 
@@ -51,6 +51,8 @@ _LAZY = {
     "Results": ("experiments.results", "Results"),
     "open_context": ("experiments.context", "open_context"),
     "unique_dir": ("experiments.folders", "unique_dir"),
+    "sweep_subdir": ("experiments.claim", "sweep_subdir"),
+    "sweep_job_dir": ("experiments.claim", "sweep_job_dir"),
     "_LOCKS": ("experiments.files", "LOCKS"),  # the former name of LOCKS
     **{name: ("experiments.files", name) for name in (
         "LOCKS", "LOCK_FILE", "RunFolderError", "lock_folder", "unlock_folder")},
@@ -69,16 +71,7 @@ def __getattr__(name: str) -> Any:
 
 
 log = logging.getLogger("torchmm.experiments")
-
-
-def sweep_subdir(num: Any, overrides: Any = "") -> str:
-    """A sweep job's folder name: its number and its overrides, ``3_alpha=0.5,seed=1`` (``/`` and
-    other characters unsafe in a file name become ``_``; long names are cut and end in a hash)."""
-    name = f"{num}_{overrides}" if overrides else str(num)
-    name = re.sub(r"[^A-Za-z0-9=,._+\-\[\]]", "_", name)
-    if len(name) > 120:
-        name = f"{name[:103]}_{hashlib.sha1(name.encode()).hexdigest()[:16]}"
-    return name
+_fail = fail  # one line, exit status 2
 
 
 def _unique_locked_dir(base: str) -> str:
@@ -97,8 +90,6 @@ def _unique_locked_dir(base: str) -> str:
 
 if not OmegaConf.has_resolver("torchmm.unique_dir"):
     OmegaConf.register_new_resolver("torchmm.unique_dir", _unique_locked_dir, use_cache=True)
-if not OmegaConf.has_resolver("torchmm.sweep_subdir"):
-    OmegaConf.register_new_resolver("torchmm.sweep_subdir", sweep_subdir)
 
 
 def run_study(cfg: DictConfig, output_dir: Path, overrides: list[str] | None = None) -> Results:
@@ -354,137 +345,6 @@ def main() -> None:
         _fail(str(err))
     sys.argv[1:] = args
     _hydra_main()
-
-
-def _literal(args: list[str], key: str) -> str | None:
-    """The value of the last ``key=value`` in ``args`` if it is a plain path (no interpolation)."""
-    values = [a.split("=", 1)[1] for a in args if a.startswith(key + "=")]
-    if not values or "${" in values[-1] or values[-1][:1] in ("'", '"'):
-        return None
-    return values[-1]
-
-
-#: Hydra's options that print and run nothing (``--cfg job``, ``--info``, ...)
-_NO_RUN_FLAGS = ("--cfg", "-c", "--info", "-i", "--hydra-help", "--shell-completion", "-sc",
-                 "--experimental-rerun")
-
-
-def claim_folder(args: list[str], config_dir: str = CONFIG_DIR) -> list[str]:
-    """Before Hydra writes anything: lock the folder the command line names (``hydra.run.dir=<dir>``,
-    or ``hydra.sweep.dir=<dir>`` with ``-m``) for this process's life, and return the command line.
-
-    * the folder is in use by another run or sweep: :class:`~experiments.files.FolderInUse`;
-      it cannot be made or written: :class:`~experiments.files.RunFolderError` (nothing written);
-    * a run folder holding a run of another result config (or a corrupt checkpoint: an error naming
-      it): the run goes to a fresh sibling (``<dir>_1``, ...) so that Hydra's ``.hydra/`` and log of the
-      old run are kept too; the differing keys are named;
-    * a sweep folder holding an earlier sweep's ``multirun.yaml``: that record is kept as
-      ``multirun.1.yaml`` (``.2``, ...: oldest first) and the new sweep writes ``multirun.yaml``.
-
-    Folders named through ``${...}`` interpolation (the default, ``${torchmm.unique_dir:...}``) are
-    locked by their resolver or by :func:`run_study` instead.
-    """
-    from experiments.config import compose_config
-    from experiments.files import RunFolderError, lock_folder, unlock_folder
-    from experiments.folders import (
-        check_code,
-        config_hash,
-        differing_keys,
-        result_config,
-        saved_run,
-        unique_dir,
-        with_data_files,
-    )
-
-    if any(a.split("=", 1)[0] in _NO_RUN_FLAGS for a in args):
-        return args  # Hydra prints something and runs nothing: no folder
-    if "-m" in args or "--multirun" in args:
-        sweep = _literal(args, "hydra.sweep.dir")
-        if sweep is not None:
-            folder = Path(sweep)
-            lock_folder(folder)
-            record = folder / "multirun.yaml"
-            if record.exists():
-                n = 1
-                while (folder / f"multirun.{n}.yaml").exists():
-                    n += 1
-                try:
-                    os.replace(record, folder / f"multirun.{n}.yaml")
-                except OSError as err:
-                    raise RunFolderError(f"{record}: cannot keep the earlier sweep's record "
-                                         f"({err.strerror})") from None
-                print(f"torchmm-run: {folder} holds an earlier sweep: its record is kept as "
-                      f"multirun.{n}.yaml", file=sys.stderr)
-        return args
-    run_dir = _literal(args, "hydra.run.dir")
-    if run_dir is None:
-        return args
-    folder = Path(run_dir)
-    lock_folder(folder)
-    saved = saved_run(folder)
-    if saved is None:
-        return args
-    cfg, _ = compose_config([a for a in args if not a.startswith("-")], config_dir, "config")
-    config = with_data_files(OmegaConf.to_container(cfg, resolve=True))
-    if saved[0] == config_hash(config):
-        from experiments.provenance import code_version
-
-        check_code(folder, saved, code_version())  # units of other code: refused (CodeChanged), never mixed
-        return args  # the same result config and code: continue the folder
-    differ = differing_keys(saved[1] or {}, json.loads(json.dumps(result_config(config), default=str)))
-    fresh = Path(unique_dir(str(folder)))
-    lock_folder(fresh)
-    unlock_folder(folder)
-    print(f"torchmm-run: {folder} holds a run whose {', '.join(differ[:8]) or 'config'} differ; "
-          f"this run goes to {fresh} (the old one is kept)", file=sys.stderr)
-    return [a for a in args if not a.startswith("hydra.run.dir=")] + [f"hydra.run.dir={fresh}"]
-
-
-def resolve_resume(args: list[str], config_dir: str = CONFIG_DIR) -> list[str]:
-    """``resume=latest`` / ``resume=<run folder>``: the command line with ``hydra.run.dir`` set to
-    the folder to continue (the newest one of the same result config under ``outputs/<study>``).
-
-    With no earlier run of the config, the run starts in a fresh folder (said on stderr). Not for
-    ``-m`` sweeps: re-run a sweep with ``hydra.sweep.dir=<its folder>`` to continue its jobs.
-    """
-    values = [a.split("=", 1)[1] for a in args if a.startswith("resume=")]
-    if not values or values[-1] in ("null", "None", ""):
-        return args
-    if "-m" in args or "--multirun" in args:
-        _fail("resume: not for -m sweeps; re-run the sweep with hydra.sweep.dir=<its folder> to continue it")
-    if any(a.startswith("hydra.run.dir=") for a in args):
-        _fail("resume: give either resume= or hydra.run.dir=, not both")
-    if values[-1] != "latest":
-        return [*args, f"hydra.run.dir={values[-1]}"]
-    from experiments.config import compose_config
-    from experiments.folders import latest_run, with_data_files
-
-    cfg, _ = compose_config([a for a in args if not a.startswith("-")], config_dir, "config")
-    config = with_data_files(OmegaConf.to_container(cfg, resolve=True))
-    base = Path("outputs") / str(config.get("experiment_name", "study"))
-    unreadable: list[str] = []
-    folder = latest_run(base, config, unreadable)
-    for problem in unreadable:  # a corrupt checkpoint is never passed over silently
-        print(f"torchmm-run: resume=latest: skipping {problem}", file=sys.stderr)
-    if folder is None:
-        print(f"torchmm-run: resume=latest: no {'readable ' if unreadable else ''}earlier run of this config "
-              f"under {base}; starting a fresh one", file=sys.stderr)
-        return args
-    from experiments.files import RunFolderError
-    from experiments.folders import check_code, saved_run
-    from experiments.provenance import code_version
-
-    try:  # units of other code: one line naming both versions, before anything is written
-        check_code(folder, saved_run(folder), code_version())
-    except RunFolderError as err:
-        _fail(f"resume=latest: {err}")
-    print(f"torchmm-run: resume=latest: continuing {folder}", file=sys.stderr)
-    return [*args, f"hydra.run.dir={folder}"]
-
-
-def _fail(message: str) -> None:
-    print(f"torchmm-run: error: {message}", file=sys.stderr)
-    raise SystemExit(2)
 
 
 if __name__ == "__main__":
