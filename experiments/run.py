@@ -269,10 +269,46 @@ def _study_main(cfg: DictConfig) -> None:
         print(f"torchmm-run: error: {err}", file=sys.stderr)
         raise SystemExit(1) from None
     except KeyboardInterrupt:
-        print(f"torchmm-run: interrupted; the finished units are kept in {output_dir / 'checkpoint.json'}. "
-              f"Resume with the same command and resume=latest (or resume={output_dir})", file=sys.stderr)
+        print(interrupted_line(output_dir, _sweep_folder()), file=sys.stderr)
         raise SystemExit(130) from None
     _print_headline(results, results.output_dir)
+
+
+def _sweep_folder() -> tuple[str, bool] | None:
+    """In a ``-m`` sweep: ``(hydra.sweep.dir, whether the command line gave it)``, else None."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    if not HydraConfig.initialized() or HydraConfig.get().mode != RunMode.MULTIRUN:
+        return None
+    hc = HydraConfig.get()
+    given = any(str(o).startswith("hydra.sweep.dir=") for o in hc.overrides.hydra)
+    return str(hc.sweep.dir), given
+
+
+def interrupted_line(output_dir: Path, sweep: tuple[str, bool] | None = None) -> str:
+    """What Ctrl-C prints: what the run folder keeps (the finished units in its checkpoint.json, or none)
+    and what continues it - a single run: the same command with ``resume=latest`` (or ``resume=<dir>``);
+    a ``-m`` sweep's job (``sweep``: ``(hydra.sweep.dir, given on the command line)``; ``resume=`` is
+    refused with ``-m``): the same command with that ``hydra.sweep.dir`` (docs/scaling.md, "Resuming a
+    sweep"); nothing kept in a single run: the same command, which starts afresh."""
+    checkpoint = Path(output_dir) / "checkpoint.json"
+    try:
+        units = json.loads(checkpoint.read_text()).get("units")
+        count = len(units) if isinstance(units, dict) else 0
+    except (OSError, ValueError, AttributeError):
+        count = 0
+    kept = (f"{count} finished unit{'s' if count != 1 else ''} kept in {checkpoint}" if count
+            else f"no unit had finished, so {output_dir} keeps none")
+    if sweep is not None:
+        folder, given = sweep
+        again = (f"re-run the same command (it has hydra.sweep.dir={folder})" if given
+                 else f"re-run the same command with hydra.sweep.dir={folder}")
+        return f"torchmm-run: interrupted; {kept}. To continue the sweep, {again}: each job continues its own folder"
+    if not count:
+        return f"torchmm-run: interrupted; {kept}. Run the same command again to start afresh"
+    return (f"torchmm-run: interrupted; {kept}. Resume with the same command and resume=latest "
+            f"(or resume={output_dir})")
 
 
 def _print_headline(results: Results, output_dir: Path) -> None:
