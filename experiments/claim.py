@@ -63,7 +63,8 @@ def sweep_job_dir(num: Any, overrides: Any = "", *, _root_: Any = None) -> str:
             value = _root_[key]
             config[key] = OmegaConf.to_container(value, resolve=True) if OmegaConf.is_config(value) else value
     try:
-        return job_folder(Path(str(OmegaConf.select(_root_, "hydra.sweep.dir"))), name, with_data_files(config))
+        sweep = Path(str(OmegaConf.select(_root_, "hydra.sweep.dir")))
+        return job_folder(sweep, name, with_data_files(config))
     except RunFolderError as err:  # a corrupt checkpoint, units of other code: one line, exit status 2
         fail(str(err))
         raise  # (not reached)
@@ -90,9 +91,10 @@ def job_folder(sweep_dir: Path, name: str, config: dict) -> str:
         if saved is None or saved[0] == digest:
             if attempt:
                 folder.mkdir(parents=True, exist_ok=True)
-                differ = differing_keys(first[1] or {}, json.loads(json.dumps(result_config(config), default=str)))
-                print(f"torchmm-run: {sweep_dir / name} holds a run whose {', '.join(differ[:8]) or 'config'} "
-                      f"differ; this job goes to {folder} (the old one is kept)", file=sys.stderr, flush=True)
+                kept = json.loads(json.dumps(result_config(config), default=str))
+                differ = ", ".join(differing_keys(first[1] or {}, kept)[:8]) or "config"
+                print(f"torchmm-run: {sweep_dir / name} holds a run whose {differ} differ; this job goes to "
+                      f"{folder} (the old one is kept)", file=sys.stderr, flush=True)
             return candidate
         first = first or saved
     raise RuntimeError(f"{sweep_dir / name}: no free folder name next to it")  # pragma: no cover

@@ -269,8 +269,8 @@ def open_context(cfg: Any, output_dir: Path, config_dict: dict, experiment: str,
     if saved is not None and saved_hash == digest:
         check_code(output_dir, saved, code)  # units of other code: refused, never mixed
         if saved[3] and saved[4] is None:
-            log.warning("%s records no code version (written before code versions were recorded): its units are "
-                        "kept as if this code had computed them", saved[2])
+            log.warning("%s records no code version (written before code versions were recorded): its units "
+                        "are kept as if this code had computed them", saved[2])
         remove_temporaries(output_dir)
         for key, ref in saved[3].items():
             try:

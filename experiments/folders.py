@@ -125,8 +125,9 @@ def _read_json(path: Path, what: str) -> dict:
 def saved_run(folder: Path) -> tuple[str, dict | None, Path, dict, dict | None] | None:
     """What ``folder`` holds of an earlier run: ``(config_hash, result config, file, units, code)`` from its
     ``checkpoint.json`` (``code``: the code version its units were computed with, None if not recorded;
-    :func:`experiments.provenance.code_difference`), else from a finished ``results.json`` (no units, no code), or None for no
-    run. A file that cannot be read or is not what it should be: :class:`RunFolderError` naming it."""
+    :func:`experiments.provenance.code_difference`), else from a finished ``results.json`` (no units, no
+    code), or None for no run. A file that cannot be read or is not what it should be:
+    :class:`RunFolderError` naming it."""
     ckpt_path, results_path = Path(folder) / "checkpoint.json", Path(folder) / "results.json"
     if ckpt_path.exists():
         saved = _read_json(ckpt_path, "checkpoint")
@@ -134,7 +135,8 @@ def saved_run(folder: Path) -> tuple[str, dict | None, Path, dict, dict | None] 
         if not isinstance(saved.get("config_hash"), str) or not isinstance(units, dict):
             raise RunFolderError(f"{ckpt_path}: not a valid checkpoint (no config_hash or units)")
         code = saved.get("code")
-        return saved["config_hash"], saved.get("config"), ckpt_path, units, code if isinstance(code, dict) else None
+        code = code if isinstance(code, dict) else None
+        return saved["config_hash"], saved.get("config"), ckpt_path, units, code
     if results_path.exists():  # a finished study without units: compare the configs it recorded
         recorded = _read_json(results_path, "results file").get("config") or {}
         if not isinstance(recorded, dict):
@@ -160,8 +162,8 @@ def check_code(folder: Path, saved: tuple | None, current: dict) -> None:
         return
     old = saved[4].get("commit")
     raise CodeChanged(
-        f"{saved[2]}: its {len(saved[3])} finished units come from other code ({differ}); continuing would mix "
-        f"the two: start a fresh run (without resume=, or another hydra.run.dir / hydra.sweep.dir)"
+        f"{saved[2]}: its {len(saved[3])} finished units come from other code ({differ}); continuing would "
+        f"mix the two: start a fresh run (without resume=, or another hydra.run.dir / hydra.sweep.dir)"
         + (f", or finish this one with its own code (git checkout {old[:12]})" if old else ""))
 
 

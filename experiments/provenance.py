@@ -15,7 +15,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-__all__ = ["CODE_PATHS", "Provenance", "code_difference", "code_version", "describe_code", "git_revision", "versions"]
+__all__ = ["CODE_PATHS", "Provenance", "code_difference", "code_version", "describe_code", "git_revision",
+           "versions"]
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -68,7 +69,8 @@ def code_version(root: Path = ROOT) -> dict[str, Any]:
     from torchmm import __version__
 
     git = git_revision(root)
-    out = {"torchmm": __version__, "commit": git["commit"], "dirty": git["dirty"], "changed": None, "source": None}
+    out = {"torchmm": __version__, "commit": git["commit"], "dirty": git["dirty"], "changed": None,
+           "source": None}
     if git["commit"] is None:
         return out
     def git(*args: str) -> str | None:
@@ -159,9 +161,9 @@ class Provenance:
         """After :meth:`finish`, for a run that continued a folder: ``previous`` is the provenance of the
         finished run the folder held (its results.json's; None if it held none: an interrupted run).
 
-        * a finished run of the same code (:func:`code_difference` of ``versions.torchmm`` and ``git``): its provenance is
-          kept (start, end, wall_seconds, command, ...: when and how its numbers were made) and this
-          process is appended to its ``resumes``: ``{start, end, wall_seconds, command, host, units_kept,
+        * a finished run of the same code (:func:`code_difference` of ``versions.torchmm`` and ``git``): its
+          provenance is kept (start, end, wall_seconds, command, ...: when and how its numbers were made) and
+          this process is appended to its ``resumes``: ``{start, end, wall_seconds, command, host, units_kept,
           kernels}``;
         * else this process's provenance, with ``resumed: {"units_kept"}`` where units came from the
           checkpoint (its start is this process's) and ``replaced``: the start, end, command and git of a

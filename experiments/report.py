@@ -12,9 +12,9 @@ Within a group, the rows of each results table are matched run by run by their t
 ``metric``, ...: a run whose config lists the estimators in another order is matched by name, never by
 position; :func:`aligned_rows`); a table whose runs of one config hold different labels is left out with a
 warning naming them. A column is a **label** (it
-names the row: ``estimator``, ``alpha``, ...) if it is text (not a number, not true/false) or if it holds the same value in
-every run of each group (``nees_low`` of a given ``mc_runs``; with one run per group: in every
-run); every other numeric column is a **measurement**, reported as the mean over
+names the row: ``estimator``, ``alpha``, ...) if it is text (not a number, not true/false) or if it holds
+the same value in every run of each group (``nees_low`` of a given ``mc_runs``; with one run per group: in
+every run); every other numeric column is a **measurement**, reported as the mean over
 the group's runs with a Student-t confidence interval (``--level``, 95 % by default):
 ``mean +- t_{n-1} sd / sqrt(n)`` with ``sd`` the sample standard deviation over the ``n`` runs
 (no interval for ``n = 1``; non-finite values are left out of ``n``). A true/false column
@@ -59,10 +59,20 @@ from typing import Any
 from experiments.files import RunFolderError
 from experiments.formatting import is_number
 from experiments.report_formats import figure, to_csv, to_latex, to_markdown, write_report  # (the formats)
-from experiments.report_runs import IGNORED_KEYS, LeftOut, ResultsFileError, Run, attach_left_out, collect_runs, flatten
+from experiments.report_runs import (  # (the runs)
+    IGNORED_KEYS,
+    LeftOut,
+    ResultsFileError,
+    Run,
+    attach_left_out,
+    collect_runs,
+    flatten,
+)
 
-__all__ = ["IGNORED_KEYS", "LeftOut", "ResultsFileError", "Run", "aligned_rows", "collect_runs", "combine", "figure", "flag_columns", "flatten", "fraction_true", "main",
-           "mean_interval", "paired_differences", "to_csv", "to_latex", "to_markdown", "write_report"]
+__all__ = ["IGNORED_KEYS", "LeftOut", "ResultsFileError", "Run", "aligned_rows", "collect_runs", "combine",
+           "figure", "flag_columns", "flatten", "fraction_true", "main", "mean_interval",
+           "paired_differences", "to_csv", "to_latex", "to_markdown", "write_report"]
+
 
 def mean_interval(values: list[float], level: float = 0.95) -> dict[str, float | int | None]:
     """``{"n", "mean", "sd", "ci_low", "ci_high"}`` of the finite ``values`` (Student-t interval)."""
@@ -154,7 +164,8 @@ def fraction_true(values: list[Any]) -> dict[str, float | int | None]:
     ``n = 0``); no interval (``sd``, ``ci_low``, ``ci_high`` None)."""
     flags = [v for v in values if isinstance(v, bool)]
     n, true = len(flags), sum(flags)
-    return {"n": n, "true": true, "mean": true / n if n else None, "sd": None, "ci_low": None, "ci_high": None}
+    return {"n": n, "true": true, "mean": true / n if n else None, "sd": None, "ci_low": None,
+            "ci_high": None}
 
 
 def _label_columns(tables_by_group: list[list[dict]], flags: list[int] = ()) -> list[bool]:
@@ -385,7 +396,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"torchmm-report: warning: {item.path}: left out: {item.reason}", file=sys.stderr)
     if not runs:
         print(f"torchmm-report: error: PATH: no finished run (results.json) under {' '.join(args.paths)}"
-              + (f" ({sum(i.runs for i in left_out)} not finished: see the warnings)" if left_out else ""), file=sys.stderr)
+              + (f" ({sum(i.runs for i in left_out)} not finished: see the warnings)" if left_out else ""),
+              file=sys.stderr)
         return 2
     if not any(args.replicate in run.config for run in runs):
         keys = sorted({k for run in runs for k in run.config if k in ("seed", "block_runs") or "seed" in k})
@@ -399,8 +411,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"torchmm-report: error: --reference: no table has an estimator {args.reference!r} "
               f"(estimators: {', '.join(names) or 'none'})", file=sys.stderr)
         return 2
-    attach_left_out(report, left_out, {"replicate": args.replicate, "level": args.level, "factors": [], "groups": [],
-                                       "tables": {}, "paired": {}})
+    empty = {"replicate": args.replicate, "level": args.level, "factors": [], "groups": [], "tables": {},
+             "paired": {}}
+    attach_left_out(report, left_out, empty)
     out = args.out or (Path(args.paths[0]) / "report" if len(args.paths) == 1 else Path("report"))
     try:
         write_report(report, out)

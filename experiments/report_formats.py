@@ -44,8 +44,8 @@ def to_markdown(report: dict[str, Any]) -> str:
                 f"{', '.join(body['factors']) or 'none'}; replicates: {body['replicate']} "
                 f"(mean ± half-width of the {pct} Student-t interval over the replicates; n = replicates).", ""]
         if body.get("left_out"):
-            out += [f"**Left out: {sum(item['runs'] for item in body['left_out'])} run(s)** (not finished, so not in the "
-                    "tables below):", "",
+            left = sum(item["runs"] for item in body["left_out"])
+            out += [f"**Left out: {left} run(s)** (not finished, so not in the tables below):", "",
                     *(f"- `{item['path']}`: {item['reason']}" for item in body["left_out"]), ""]
         for name, table in body["tables"].items():
             factor_cols = body["factors"]
@@ -82,8 +82,8 @@ def _columns_note(table: dict) -> str:
         parts.append(f"{', '.join(table['not_combined'])}: each run's own bounds, not combined (the intervals above "
                      "replace them)")
     if table.get("fractions"):
-        parts.append(f"{', '.join(table['fractions'])}: true or false in each run; the fraction of the runs where it "
-                     "is true (true/n), no interval")
+        parts.append(f"{', '.join(table['fractions'])}: true or false in each run; the fraction of the runs "
+                     "where it is true (true/n), no interval")
     return "; ".join(parts) + "."
 
 

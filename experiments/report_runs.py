@@ -122,13 +122,15 @@ def collect_runs(paths: list[Path], left_out: list[LeftOut] | None = None) -> li
             raise ResultsFileError(f"{file}: not a results file ({type(err).__name__}: {err})") from None
         provenance = results.get("provenance")
         if isinstance(provenance, dict) and not provenance.get("end"):
-            missed.append(LeftOut(file.parent, "interrupted or failed: its results.json was written before the study "
-                                  f"ended (no provenance end; {_units(file.parent)})", _experiment_of(file.parent)))
+            why = (f"interrupted or failed: its results.json was written before the study ended (no "
+                   f"provenance end; {_units(file.parent)})")
+            missed.append(LeftOut(file.parent, why, _experiment_of(file.parent)))
             continue
         overrides_file = file.parent / ".hydra" / "overrides.yaml"
         overrides = []
         if overrides_file.exists():
-            overrides = [line[2:].strip() for line in overrides_file.read_text().splitlines() if line.startswith("- ")]
+            overrides = [line[2:].strip() for line in overrides_file.read_text().splitlines()
+                         if line.startswith("- ")]
         runs.append(Run(file.parent, results, overrides))
     missed += _unfinished_folders(searched, {f.parent for f in found})
     if left_out is None:
@@ -153,7 +155,8 @@ def _units(folder: Path) -> str:
 def _experiment_of(folder: Path) -> str | None:
     """The study of a run folder, from its checkpoint.json's config or Hydra's .hydra/config.yaml."""
     try:
-        name = (json.loads((folder / "checkpoint.json").read_text()).get("config") or {}).get("experiment_name")
+        checkpoint = json.loads((folder / "checkpoint.json").read_text())
+        name = (checkpoint.get("config") or {}).get("experiment_name")
         if name is not None:
             return str(name)
     except (OSError, ValueError, AttributeError):
@@ -189,9 +192,9 @@ def _unfinished_folders(searched: list[Path], finished: set[Path]) -> list[LeftO
         if missing:
             shown = ", ".join(map(str, missing[:10])) + (", ..." if len(missing) > 10 else "")
             names = {_experiment_of(job.parent.parent) for job in record.parent.glob("*/.hydra/hydra.yaml")}
-            out.append(LeftOut(record.parent, f"{len(missing)} of the {jobs} jobs of its multirun.yaml never started "
-                               f"(no folder: job {shown})", next(iter(names)) if len(names) == 1 else None,
-                               len(missing)))
+            why = f"{len(missing)} of the {jobs} jobs of its multirun.yaml never started (no folder: job "
+            experiment = next(iter(names)) if len(names) == 1 else None
+            out.append(LeftOut(record.parent, why + f"{shown})", experiment, len(missing)))
     return out
 
 
@@ -214,7 +217,8 @@ def sweep_jobs(record: Path) -> int | None:
 
         hydra = (yaml.safe_load(record.read_text()) or {}).get("hydra") or {}
         task = list((hydra.get("overrides") or {}).get("task") or [])
-        task += [f"{key}={value}" for key, value in ((hydra.get("sweeper") or {}).get("params") or {}).items()]
+        params = (hydra.get("sweeper") or {}).get("params") or {}
+        task += [f"{key}={value}" for key, value in params.items()]
         jobs = 1
         for override in OverridesParser.create().parse_overrides(task):
             if override.is_sweep_override():
@@ -234,4 +238,5 @@ def attach_left_out(report: dict[str, Any], left_out: list[LeftOut], empty: dict
         if name is None:
             name = next(iter(report)) if len(report) == 1 else "(unknown study)"
         body = report.setdefault(name, json.loads(json.dumps(empty)))
-        body.setdefault("left_out", []).append({"path": str(item.path), "reason": item.reason, "runs": item.runs})
+        entry = {"path": str(item.path), "reason": item.reason, "runs": item.runs}
+        body.setdefault("left_out", []).append(entry)

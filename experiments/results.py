@@ -166,8 +166,8 @@ class Results:
                     + (f" Continued {len(p['resumes'])} time(s) since (provenance resumes), last "
                        f"{p['resumes'][-1].get('start')} ({p['resumes'][-1].get('units_kept')} units kept)."
                        if p.get("resumes") else "")
-                    + (f" Resumed from a checkpoint ({p['resumed'].get('units_kept')} units kept; the times are "
-                       "this process's)." if isinstance(p.get("resumed"), dict) else ""), ""]
+                    + (f" Resumed from a checkpoint ({p['resumed'].get('units_kept')} units kept; the times "
+                       "are this process's)." if isinstance(p.get("resumed"), dict) else ""), ""]
         return "\n".join(out)
 
     def to_latex(self) -> str:

@@ -29,7 +29,8 @@ from typing import TYPE_CHECKING, Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from experiments.claim import claim_folder, fail, resolve_resume  # (before Hydra; registers torchmm.sweep_subdir)
+# (before Hydra; importing it registers the resolver torchmm.sweep_subdir)
+from experiments.claim import claim_folder, fail, resolve_resume
 from experiments.config import ConfigError, precheck, validate
 from experiments.paths import CONFIG_DIR
 
@@ -150,7 +151,8 @@ def _run(cfg: DictConfig, ctx, study, config: dict, overrides: list[str] | None)
         kernels.set_enabled("particle_stages", False)
     provenance = Provenance()
     provenance.start(device=ctx.device, dtype=ctx.dtype, threads=torch.get_num_threads())
-    previous, units_kept = finished_provenance(ctx.output_dir), len(ctx._checkpoint)  # (before the study rewrites it)
+    # (read before the study rewrites results.json)
+    previous, units_kept = finished_provenance(ctx.output_dir), len(ctx._checkpoint)
     ctx.logger.text("config", "```yaml\n" + OmegaConf.to_yaml(config) + "```")  # the resolved config
     try:
         with kernels.counting() as runs:  # which kernel computed each run_filter call of this process
@@ -304,7 +306,8 @@ def interrupted_line(output_dir: Path, sweep: tuple[str, bool] | None = None) ->
         folder, given = sweep
         again = (f"re-run the same command (it has hydra.sweep.dir={folder})" if given
                  else f"re-run the same command with hydra.sweep.dir={folder}")
-        return f"torchmm-run: interrupted; {kept}. To continue the sweep, {again}: each job continues its own folder"
+        return (f"torchmm-run: interrupted; {kept}. To continue the sweep, {again}: each job continues its "
+                "own folder")
     if not count:
         return f"torchmm-run: interrupted; {kept}. Run the same command again to start afresh"
     return (f"torchmm-run: interrupted; {kept}. Resume with the same command and resume=latest "

@@ -101,8 +101,8 @@ def test_ctrl_c_ends_with_one_line_that_says_how_to_resume(tmp_path):
     assert proc.returncode == 130, err[-2000:]
     lines = [line for line in err.splitlines() if line.strip()]
     assert lines[-1].startswith("torchmm-run: interrupted;") and "Traceback" not in err
-    # what it says is kept is what the folder holds (before: "the finished units are kept in .../checkpoint.json"
-    # also when no unit had finished and there was no such file)
+    # what it says is kept is what the folder holds (before: "the finished units are kept in
+    # .../checkpoint.json" also when no unit had finished and there was no such file)
     checkpoint = out_dir / "checkpoint.json"
     if checkpoint.exists():
         units = len(json.loads(checkpoint.read_text())["units"])
@@ -122,7 +122,8 @@ def test_the_interrupted_line_says_what_is_kept_and_what_continues_it(tmp_path):
     folder.mkdir(parents=True)
     none = interrupted_line(folder)
     assert "no unit had finished" in none and "resume=" not in none and "checkpoint.json" not in none
-    (folder / "checkpoint.json").write_text(json.dumps({"config_hash": "x", "units": {"a": 1, "b": 2, "c": 3}}))
+    units = {"a": 1, "b": 2, "c": 3}
+    (folder / "checkpoint.json").write_text(json.dumps({"config_hash": "x", "units": units}))
     single = interrupted_line(folder)
     assert f"3 finished units kept in {folder / 'checkpoint.json'}" in single
     assert "resume=latest" in single and f"resume={folder}" in single
@@ -130,17 +131,18 @@ def test_the_interrupted_line_says_what_is_kept_and_what_continues_it(tmp_path):
     assert "re-run the same command (it has hydra.sweep.dir=sw)" in given and "resume=" not in given
     assert "3 finished units kept" in given
     default = interrupted_line(folder, (str(tmp_path / "sw"), False))
-    assert f"re-run the same command with hydra.sweep.dir={tmp_path / 'sw'}" in default and "resume=" not in default
+    assert f"re-run the same command with hydra.sweep.dir={tmp_path / 'sw'}" in default
+    assert "resume=" not in default
 
 
 @pytest.mark.slow  # a sweep interrupted and continued on the command line (~10 s)
 def test_ctrl_c_in_a_sweep_says_how_to_continue_it_and_that_command_continues_it(tmp_path):
     sweep = tmp_path / "sw"
-    cmd = [_exe(), "-m", "experiment=imm_analysis", "mc_runs=20", "logger=none", "figures=false", "progress=false",
-           "seed=0", "hydra/launcher=basic", f"hydra.sweep.dir={sweep}"]
+    cmd = [_exe(), "-m", "experiment=imm_analysis", "mc_runs=20", "logger=none", "figures=false",
+           "progress=false", "seed=0", "hydra/launcher=basic", f"hydra.sweep.dir={sweep}"]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path, env=env,
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path,
+                            env=env, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.time() + 120
     while not list(sweep.glob("0_*/checkpoint.json")) and time.time() < deadline and proc.poll() is None:
         time.sleep(0.05)

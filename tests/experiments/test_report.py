@@ -176,7 +176,8 @@ def test_a_true_false_column_is_a_measurement_the_fraction_of_runs_where_it_is_t
         rows = [[est, rmse[seed][est], flags[seed][est], True, None if (est, seed) == ("KF", 1) else True]
                 for est in ("IMM", "KF")]
         _write_run(tmp_path / "runs" / f"s{seed}", {"seed": seed, "mc_runs": 10},
-                   {"t": {"columns": ["estimator", "rmse", "rmse_inside_95", "always", "sometimes"], "rows": rows}})
+                   {"t": {"columns": ["estimator", "rmse", "rmse_inside_95", "always", "sometimes"],
+                          "rows": rows}})
     assert rep.main([str(tmp_path / "runs")]) == 0
     body = json.loads((tmp_path / "runs" / "report" / "report.json").read_text())["toy"]
     table = body["tables"]["t"]
@@ -215,30 +216,34 @@ def test_interrupted_runs_and_jobs_that_never_started_are_named_and_counted(tmp_
     without a word and job 2's partial tables were averaged as if it had finished)."""
     sweep = tmp_path / "sweep"
     sweep.mkdir()
-    (sweep / "multirun.yaml").write_text("hydra:\n  overrides:\n    task:\n    - experiment=toy\n    - seed=0,1,2,3\n"
-                                         "    - mc_runs=10\n")
+    (sweep / "multirun.yaml").write_text("hydra:\n  overrides:\n    task:\n    - experiment=toy\n"
+                                         "    - seed=0,1,2,3\n    - mc_runs=10\n")
     table = {"t": {"columns": ["estimator", "rmse"], "rows": [["IMM", 4.0]]}}
     done = _job(sweep, 0, 0)
-    (done / "results.json").write_text(json.dumps({"experiment": "toy", "config": {"seed": 0}, "tables": table,
-                                                   "provenance": {"start": "s", "end": "e"}}))
+    finished = {"experiment": "toy", "config": {"seed": 0}, "tables": table,
+                "provenance": {"start": "s", "end": "e"}}
+    (done / "results.json").write_text(json.dumps(finished))
     stopped = _job(sweep, 1, 1)
-    (stopped / "checkpoint.json").write_text(json.dumps({"config_hash": "x", "config": {"experiment_name": "toy"},
+    (stopped / "checkpoint.json").write_text(json.dumps({"config_hash": "x",
+                                                         "config": {"experiment_name": "toy"},
                                                          "units": {"a": 1, "b": 2}}))
     partial = _job(sweep, 2, 2)
+    partial_table = {"t": {"columns": ["estimator", "rmse"], "rows": [["IMM", 99.0]]}}
     (partial / "results.json").write_text(json.dumps({"experiment": "toy", "config": {"seed": 2},
-                                                      "tables": {"t": {"columns": ["estimator", "rmse"],
-                                                                       "rows": [["IMM", 99.0]]}}, "provenance": {}}))
+                                                      "tables": partial_table, "provenance": {}}))
     assert rep.main([str(sweep)]) == 0
     err = capsys.readouterr().err
-    assert f"{stopped.resolve()}: left out: interrupted or failed: no results.json (checkpoint.json holds 2 " in err
+    assert (f"{stopped.resolve()}: left out: interrupted or failed: no results.json (checkpoint.json holds 2 "
+            in err)
     assert f"{partial.resolve()}: left out: interrupted or failed: its results.json was written before" in err
-    assert f"{sweep.resolve()}: left out: 1 of the 4 jobs of its multirun.yaml never started (no folder: job 3)" in err
+    assert (f"{sweep.resolve()}: left out: 1 of the 4 jobs of its multirun.yaml never started "
+            "(no folder: job 3)" in err)
     body = json.loads((sweep / "report" / "report.json").read_text())["toy"]
     assert [g["runs"] for g in body["groups"]] == [[str(done)]]
     (row,) = body["tables"]["t"]["rows"]
-    assert row["labels"]["rmse"] == 4.0  # one run: its value (a label: the same in every run), not 99 or their mean
-    assert sorted(item["path"] for item in body["left_out"]) == sorted(map(str, (stopped.resolve(), partial.resolve(),
-                                                                                 sweep.resolve())))
+    assert row["labels"]["rmse"] == 4.0  # one run: its value (a label: the same in every run), not 99
+    named = sorted(map(str, (stopped.resolve(), partial.resolve(), sweep.resolve())))
+    assert sorted(item["path"] for item in body["left_out"]) == named
     assert sum(item["runs"] for item in body["left_out"]) == 4 - 1
     assert "**Left out: 3 run(s)**" in (sweep / "report" / "report.md").read_text()
     (done / "results.json").unlink()  # nothing finished: an error that says why

@@ -17,13 +17,14 @@ from experiments.provenance import code_difference, code_version
 from experiments.run import run_study
 from tests.experiments.test_studies import _compose
 
-STUDY = ["experiment=imm_baseline", "debug=imm_baseline", "logger=none", "figures=false", "progress=false", "mc_runs=4",
-         "scenario.steps=30"]
+STUDY = ["experiment=imm_baseline", "debug=imm_baseline", "logger=none", "figures=false", "progress=false",
+         "mc_runs=4", "scenario.steps=30"]
 
 
 def _cli(cwd: Path, *args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([str(Path(sys.executable).with_name("torchmm-run")), *STUDY, *args], capture_output=True,
-                          text=True, timeout=300, cwd=cwd, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    return subprocess.run([str(Path(sys.executable).with_name("torchmm-run")), *STUDY, *args],
+                          capture_output=True, text=True, timeout=300, cwd=cwd,
+                          env={**os.environ, "OMP_NUM_THREADS": "1"})
 
 
 def _files(folder: Path) -> dict[str, bytes]:
@@ -48,7 +49,8 @@ def test_units_of_other_code_are_refused_in_one_line_naming_both_versions(tmp_pa
     proc = _cli(tmp_path, "resume=latest")
     assert proc.returncode == 2, proc.stderr[-2000:]
     lines = proc.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("torchmm-run: error: resume=latest: ") and "Traceback" not in proc.stderr
+    assert len(lines) == 1 and lines[0].startswith("torchmm-run: error: resume=latest: ")
+    assert "Traceback" not in proc.stderr
     assert "come from other code" in lines[0] and "torchmm 0.0.0-other" in lines[0]
     assert "this run: " in lines[0] and f"torchmm {torchmm.__version__}" in lines[0]
     assert "start a fresh run" in lines[0]
@@ -64,11 +66,11 @@ def test_code_difference_compares_the_version_and_the_code_fingerprint():
     code = {"torchmm": "0.1.0", "commit": "a" * 40, "dirty": False, "changed": False, "source": "s1"}
     assert code_difference(code, dict(code)) is None
     assert code_difference(None, code) is None  # an old checkpoint: nothing recorded to compare
-    assert code_difference({**code, "commit": "b" * 40}, code) is None  # a commit of docs alone: the same code
+    assert code_difference({**code, "commit": "b" * 40}, code) is None  # a commit of docs alone: same code
     differ = code_difference({**code, "commit": "b" * 40, "source": "s2"}, code)
     assert "commit bbbbbbbbbbbb (code s2)" in differ and "this run: commit aaaaaaaaaaaa (code s1)" in differ
     assert "uncommitted code changes" in code_difference(code, {**code, "changed": True, "source": "s3"})
-    outside = {"torchmm": "0.1.0", "commit": None, "dirty": None, "changed": None, "source": None}  # not in git
+    outside = {"torchmm": "0.1.0", "commit": None, "dirty": None, "changed": None, "source": None}  # no git
     assert code_difference(outside, code) is None and code_difference({**outside, "torchmm": "0.2"}, code)
 
 

@@ -63,17 +63,17 @@ def test_a_second_sweep_whose_job_has_the_same_name_goes_to_a_sibling_and_the_fi
     run = [str(Path(sys.executable).with_name("torchmm-run")), "-m"]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     sweep = tmp_path / "sw"
-    first = subprocess.run([*run, "experiment=imm_baseline", *ARGS, f"hydra.sweep.dir={sweep}"], capture_output=True,
-                           text=True, timeout=300, cwd=tmp_path, env=env)
+    first = subprocess.run([*run, "experiment=imm_baseline", *ARGS, f"hydra.sweep.dir={sweep}"],
+                           capture_output=True, text=True, timeout=300, cwd=tmp_path, env=env)
     assert first.returncode == 0, first.stderr[-2000:]
     (job,) = [p for p in sweep.iterdir() if p.is_dir()]
     before = _files(job)
-    second = subprocess.run([*run, "experiment=quickstart", *ARGS, f"hydra.sweep.dir={sweep}"], capture_output=True,
-                            text=True, timeout=300, cwd=tmp_path, env=env)
+    second = subprocess.run([*run, "experiment=quickstart", *ARGS, f"hydra.sweep.dir={sweep}"],
+                            capture_output=True, text=True, timeout=300, cwd=tmp_path, env=env)
     assert second.returncode == 0, second.stderr[-2000:]
     sibling = job.with_name(job.name + "_1")
     assert _files(job) == before  # its .hydra/, run.log, results: as the first sweep left them
     assert json.loads((sibling / "results.json").read_text())["experiment"] == "quickstart"
     assert "experiment_name: quickstart" in (sibling / ".hydra" / "config.yaml").read_text()
     assert f"torchmm-run: quickstart -> {sibling}" in second.stderr
-    assert f"this job goes to {sweep.name}/{sibling.name}" in second.stderr or f"this job goes to {sibling}" in second.stderr
+    assert "this job goes to" in second.stderr and sibling.name in second.stderr
