@@ -24,16 +24,17 @@ def _kf():
     return KalmanFilter(ConstantVelocity(2, dt=1.0, q=0.5, dtype=torch.float64), PositionMeasurement(4, [0, 2], R))
 
 
-def _brute(w: np.ndarray, missed: float) -> tuple[np.ndarray, float]:
-    """Every joint event of ``w (N, D)``: each track one detection (j >= 1) or none (0), no detection
-    twice; ``beta (N, 1 + D)`` and ``Z``."""
+def _brute(w: np.ndarray, missed) -> tuple[np.ndarray, float]:
+    """Every joint event of ``w (N, D)``: each track one detection (j >= 1) or none (0, weight
+    ``missed``: one number, or one a track ``(N,)``), no detection twice; ``beta (N, 1 + D)`` and ``Z``."""
     N, D = w.shape
+    missed = np.broadcast_to(np.asarray(missed, dtype=float), (N,))
     beta, Z = np.zeros((N, D + 1)), 0.0
     for event in itertools.product(range(D + 1), repeat=N):
         used = [j for j in event if j]
         if len(used) != len(set(used)):
             continue
-        weight = math.prod(w[i, j - 1] if j else missed for i, j in enumerate(event))
+        weight = math.prod(w[i, j - 1] if j else missed[i] for i, j in enumerate(event))
         Z += weight
         for i, j in enumerate(event):
             beta[i, j] += weight

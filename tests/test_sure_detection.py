@@ -16,21 +16,7 @@ from torchmm import GaussianBelief, KalmanFilter
 from torchmm.association import JIPDA, JPDA, jpda_marginals
 from torchmm.models import ConstantVelocity, PositionMeasurement
 
-
-def _brute(w: np.ndarray, missed: np.ndarray) -> tuple[np.ndarray, float]:
-    """Every joint event of ``w (N, D)`` with track ``i``'s missed weight ``missed[i]``: ``beta (N, 1 + D)``,
-    ``Z``."""
-    N, D = w.shape
-    beta, Z = np.zeros((N, D + 1)), 0.0
-    for event in itertools.product(range(D + 1), repeat=N):
-        used = [j for j in event if j]
-        if len(used) != len(set(used)):
-            continue
-        weight = math.prod(w[i, j - 1] if j else missed[i] for i, j in enumerate(event))
-        Z += weight
-        for i, j in enumerate(event):
-            beta[i, j] += weight
-    return beta / Z, Z
+from tests.test_jpda import _brute  # (every joint event, a missed weight per track)
 
 
 def _williams_lau(w: np.ndarray, m: float, iterations: int = 20000) -> np.ndarray:

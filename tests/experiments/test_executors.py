@@ -77,6 +77,8 @@ def test_a_process_worker_that_dies_is_re_run(tmp_path, caplog):
         dict(ProcessExecutor(workers=1, retries=0).run(jobs))
 
 
+@pytest.mark.slow  # (submitit's job machinery, 20-22 s: make test-slow; the fast set keeps submitit_local
+# through the executors' tests: test_processes_submitit_and_ray_..., test_a_units_own_error_...)
 def test_a_submitit_job_that_dies_is_resubmitted(tmp_path):
     jobs = _jobs(tmp_path, "tests.experiments.test_executors:die_once", 2, marker=str(tmp_path / "died"))
     executor = make_executor({"kind": "submitit_local", "retries": 1, "timeout_min": 5}, tmp_path)

@@ -32,6 +32,8 @@ def _tables(sweep_dir: Path) -> list[dict]:
     return [json.loads((sweep_dir / job / "results.json").read_text())["tables"] for job in JOBS]
 
 
+@pytest.mark.slow  # (the Hydra submitit launcher's whole sweep, 20 s: make test-slow; submitit itself stays in the
+# fast set through the executors' tests, tests/experiments/test_executors.py)
 def test_submitit_local_sweep_matches_the_basic_launcher(tmp_path):
     basic, local = tmp_path / "basic", tmp_path / "submitit"
     for launcher, folder in (("basic", basic), ("submitit_local", local)):

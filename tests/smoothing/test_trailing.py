@@ -19,6 +19,8 @@ from torchmm.models import ConstantVelocity, PositionMeasurement
 from torchmm.run import Trajectory
 from torchmm.runtime import no_host_sync
 
+from tests.smoothing.test_padding import _fields  # (a belief's compared fields)
+
 D = torch.float64
 PI = np.array([[0.9, 0.1], [0.15, 0.85]])
 ACC = (0.0, 1.5)
@@ -75,14 +77,6 @@ def _alone(traj: Trajectory, r: int, length: int) -> Trajectory:
     return Trajectory(belief=cut(traj.belief), prior=cut(traj.prior),
                       log_likelihood=traj.log_likelihood[:length, r:r + 1], innovation=None,
                       innovation_cov=None, extras={})
-
-
-def _fields(belief):
-    if hasattr(belief, "mode_log_probs"):
-        return [belief.mode_probs, belief.components.mean, belief.components.cov]
-    if hasattr(belief, "log_weights"):
-        return [belief.log_weights.exp()]
-    return [belief.mean, belief.cov]
 
 
 @pytest.mark.parametrize("name", list(_filters()))
