@@ -86,6 +86,21 @@ def test_residual_with_exact_copies_is_deterministic(generator):
     assert idx.tolist() == [0, 0, 1, 2]
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64], ids=str)
+def test_residual_at_uniform_weights_copies_every_particle(dtype):
+    """Uniform weights are N w_i = 1 up to a rounding of exp(log w - logsumexp): every particle is copied
+    once (no residual draw), at every N, offset and dtype (1 - 1 ulp once floored to 0 copies: 826 of the N
+    in 2..2000 in float64, and all of N = 1000 in float32, which made residual resampling multinomial)."""
+    g = torch.Generator().manual_seed(0)
+    for num in [*range(2, 400), 1000, 4097, 100_000]:
+        for offset in (0.0, -3.7, 123.4):
+            idx = resample(torch.full((num,), offset, dtype=dtype), "residual", generator=g)
+            assert torch.equal(idx, torch.arange(num)), (num, offset)
+    # twice as many draws: two copies each
+    idx = resample(torch.zeros(9, dtype=dtype), "residual", 18, generator=g)
+    assert torch.equal(idx, torch.arange(9).repeat_interleave(2))
+
+
 def test_fixed_generator_reproducible():
     log_w = torch.randn(5, 30, generator=torch.Generator().manual_seed(0))
     for scheme in SCHEMES:
