@@ -93,6 +93,39 @@ def test_one_track_is_the_particle_pda():
     torch.testing.assert_close(joint.log_likelihood[:, 0], alone.log_likelihood, rtol=0, atol=1e-12)
 
 
+@pytest.mark.parametrize("method", ["exact", "lbp"])
+def test_an_impossible_scan_keeps_every_track_as_jpda_and_the_particle_pda_do(method):
+    """P_D = 1 with fewer detections than tracks: no joint event has weight, so the scan's likelihood is 0
+    and each track keeps its particles (not a failed run). Run 0: two tracks, one detection; run 1: the
+    same tracks and a detection each (possible: the enumeration's numbers). One track without a detection
+    is the ParticlePDA's answer (log-likelihood -inf, weights unchanged)."""
+    motion, sensor = _models()
+    pf = ParticleFilter(motion, sensor, ess_threshold=0.0, generator=torch.Generator().manual_seed(4))
+    prior = pf.initial_belief(GaussianBelief(torch.tensor([[0.0, 1.0, 0.0, 0.0], [3.0, 0.0, 1.0, 0.0]], dtype=DT),
+                                             3 * torch.eye(4, dtype=DT)).expand(2, 2), 50)
+    scan = torch.tensor([[[0.5, 0.2], [math.nan, math.nan]], [[0.5, 0.2], [2.0, 1.5]]], dtype=DT)
+    opts = {"detection_probability": 1.0, "clutter_density": 2e-3}
+    out = ParticleJPDA(pf, method=method, **opts).update(prior, scan)
+    assert torch.isneginf(out.log_likelihood[0]).all() and not out.extras["failed"].any()
+    torch.testing.assert_close(out.belief.log_weights[0].softmax(-1), prior.log_weights[0].softmax(-1),
+                               rtol=0, atol=1e-15)
+    assert torch.equal(out.extras["association"][0], torch.tensor([[1.0, 0, 0], [1.0, 0, 0]], dtype=DT))
+    assert torch.isfinite(out.log_likelihood[1]).all()
+    if method == "exact":
+        beta, post, log_total = _reference(prior.particles[1].numpy(), prior.log_weights[1].numpy(),
+                                           scan[1].numpy(), 1.0, opts["clutter_density"])
+        np.testing.assert_allclose(out.extras["association"][1].numpy(), beta, atol=1e-10)
+        np.testing.assert_allclose(out.log_likelihood[1].numpy(), log_total, atol=1e-10)
+    one = prior[:, :1]
+    nothing = torch.full((2, 1, 2), math.nan, dtype=DT)
+    joint = ParticleJPDA(pf, method=method, **opts).update(one, nothing)
+    alone = ParticlePDA(pf, **opts).update(one[:, 0], nothing)
+    assert torch.isneginf(alone.log_likelihood).all() and torch.isneginf(joint.log_likelihood).all()
+    assert not joint.extras["failed"].any() and not alone.extras["failed"].any()
+    torch.testing.assert_close(joint.belief.log_weights[:, 0].softmax(-1), alone.belief.log_weights.softmax(-1),
+                               rtol=0, atol=1e-15)
+
+
 def test_the_kalman_jpda_within_monte_carlo_error():
     """Two tracks 3 m apart, one scan from Gaussian priors on a linear-Gaussian model: the marginals
     and posterior means of the Kalman JPDA without a gate, within Monte Carlo error (40,000

@@ -114,7 +114,10 @@ class ParticleJPDA(ParticlePDA):
         belief: :class:`~torchmm.beliefs.ParticleBelief` with batch ``(*B, N)``, the run's tracks last
         (particles ``(*B, N, Np, n)``); ``z``: ``(*B, D, m)``, one scan per run. The log-likelihood is
         the run's, ``(*B, N)`` (the same for each of its tracks); ``extras``: the particle filter's flags
-        and ``"association"`` ``(*B, N, 1 + D)``, the marginals ``beta`` (missed first).
+        and ``"association"`` ``(*B, N, 1 + D)``, the marginals ``beta`` (missed first). An impossible
+        scan (``P_D = 1`` and fewer detections than tracks, or no joint event with weight) has likelihood
+        0 (log-likelihood ``-inf``, not failed) and every track keeps its particles, as
+        :class:`~torchmm.association.JPDA` keeps its priors.
 
     Examples:
         >>> from torchmm import GaussianBelief
@@ -165,6 +168,14 @@ class ParticleJPDA(ParticlePDA):
             log_beta = lbp_marginals(flat, log_missed, self.iterations, self.tolerance)
             log_z = torch.logsumexp(torch.cat([flat.new_full((*flat.shape[:-1], 1), log_missed), flat], -1), -1).sum(-1)
         log_beta, log_z = log_beta.reshape(*runs, N, 1 + D), log_z.reshape(runs)
+        # an impossible scan (P_D = 1 and fewer detections than tracks, or no joint event with weight): the
+        # scan's likelihood is 0 and every track keeps its particles and weights, as JPDA keeps its priors and
+        # as ParticlePDA does for one track
+        if pd == 1:
+            log_z = torch.where(present.sum(-1) < N, -math.inf, log_z)
+        impossible = torch.isneginf(log_z)[..., None, None]
+        missed_only = torch.where(torch.arange(1 + D, device=z.device) == 0, 0.0, -math.inf).to(log_beta.dtype)
+        log_beta = torch.where(impossible, missed_only, log_beta)
         # each particle: beta_i0 + sum_j beta_ij p(z_j | x) / l_ij
         ratio = loglik - torch.where(torch.isneginf(log_l), 0.0, log_l).unsqueeze(-1)  # (D, *R, N, Np)
         Np = ratio.shape[-1]
