@@ -375,6 +375,7 @@ def test_vbakf_pr_first_iteration_uses_the_nominal_prediction():
     torch.testing.assert_close(out.extras["noise_cov"], expected)
 
 
+@pytest.mark.slow  # 22 s; the fast set runs the vbakf_huang study at debug size against its record
 def test_vbakf_pr_reproduces_huang_table_1():
     """Huang et al. 2018, Table I (last 100 s, position): KF nominal 4.63, KF true 2.77, VBAKF-PR 2.81."""
     from experiments.studies.vbakf_huang import run_huang
