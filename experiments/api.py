@@ -249,7 +249,7 @@ def study(name: str, *, out: str | Path | None = None, overrides: Mapping[str, A
         raise ValueError(f"out: {out} is a file, not a folder (the run's results go into a folder)")
     items = _override_list(overrides, kwargs)
     cfg, choices = compose_conf([f"experiment={name}", *items])
-    validate(cfg, scenario_choice=choices.get("scenario"))
+    validate(cfg, scenario_choice=choices.get("scenario"), overrides=items)
     if out is None:
         stamp = _dt.datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
         out = unique_dir(str(Path("outputs") / str(cfg.get("experiment_name", name)) / stamp))

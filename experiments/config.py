@@ -172,7 +172,8 @@ def _own_checks(module, data: dict) -> None:
         relation(data)
 
 
-def validate(cfg: DictConfig | dict, *, scenario_choice: str | None = None, reference: Any = None) -> None:
+def validate(cfg: DictConfig | dict, *, scenario_choice: str | None = None, reference: Any = None,
+             overrides: list[str] | None = None) -> None:
     """Check every key of a composed study config (no ``hydra`` node); raise :class:`ConfigError`.
 
     Args:
@@ -182,6 +183,8 @@ def validate(cfg: DictConfig | dict, *, scenario_choice: str | None = None, refe
         reference: the same study's config with its defaults (only the config-group choices
             applied): a study without a schema in :mod:`experiments.schemas` has each of its own
             keys typed by its default (:func:`infer_types`), and ranged by its module's ``CHECKS``.
+        overrides: the command line's ``key=value`` strings: one the study would ignore is refused
+            (``mc_runs`` with a data file's series as the runs: experiments.schemas.check_overrides).
     """
 
     data = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg)
@@ -214,6 +217,7 @@ def validate(cfg: DictConfig | dict, *, scenario_choice: str | None = None, refe
             merge(getattr(schema, "estimator_schema", schemas_mod.Estimator), est or {}, f"estimators.{name}")
     if hasattr(schema, "check"):
         schema.check(data)
+    schemas_mod.check_overrides(data, overrides or [])
     dry_build(data)
 
 
@@ -310,7 +314,7 @@ def _precheck(argv: list[str], config_dir: str, config_name: str) -> None:
         reference = None
         if str(cfg.get("study")) not in _registered():  # a study without a schema: typed by its defaults
             reference, _ = compose_config(_choices_only(job, config_dir), config_dir, config_name)
-        validate(cfg, scenario_choice=choice, reference=reference)
+        validate(cfg, scenario_choice=choice, reference=reference, overrides=job)
 
 
 def _registered() -> set[str]:

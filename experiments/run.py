@@ -109,7 +109,7 @@ def run_study(cfg: DictConfig, output_dir: Path, overrides: list[str] | None = N
 
     from experiments.folders import with_data_files
 
-    validate(cfg)
+    validate(cfg, overrides=overrides)
     config = with_data_files(OmegaConf.to_container(cfg, resolve=True))  # (the data files: result keys)
     study = get_method(cfg.study)
     held = set(LOCKS)  # the locks taken here are released at the end (the command line's: at exit)

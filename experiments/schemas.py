@@ -320,6 +320,32 @@ class Smoothing:
                 raise ConfigError(f"smoothing.cv_mode.{key}", mode, f"must be a mode index in [0, {modes})")
 
 
+#: study -> (its data-file key, the config path to it): with that key set the runs are the file's series
+#: and ``mc_runs`` is unused (compare: nile, fedfunds, markov_switching and one's own CSV; tracking_detections)
+RUNS_FROM_FILE = {"experiments.studies.compare.run": ("scenario.data", ("scenario", "data")),
+                  "experiments.studies.tracking.run": ("tracking.detections", ("tracking", "detections"))}
+
+
+def check_overrides(data: dict, overrides: list[str]) -> None:
+    """Refuse an override whose value the study would ignore (it would be recorded in results.json and
+    listed under results.md's changes with no effect): ``mc_runs`` given while the runs are a data file's
+    series (:data:`RUNS_FROM_FILE`). ``overrides``: the command line's ``key=value`` strings."""
+    entry = RUNS_FROM_FILE.get(str(data.get("study")))
+    if entry is None:
+        return
+    key, path = entry
+    node: Any = data
+    for part in path:
+        node = node.get(part) if isinstance(node, dict) else None
+    if node is None:
+        return
+    for item in overrides:
+        name, _, value = str(item).lstrip("+~").partition("=")
+        if name.strip() == "mc_runs":
+            raise ConfigError("mc_runs", value, f"not used: the runs are the series of {key}, one run a "
+                              "series (leave mc_runs out)")
+
+
 STUDIES: dict[str, tuple[type, tuple[str, ...] | None]] = {
     "experiments.studies.imm_baseline.run": (ImmBaseline, (KINEMATIC,)),
     "experiments.studies.imm_tf.run": (ImmTf, (KINEMATIC,)),

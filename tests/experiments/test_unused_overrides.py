@@ -1,0 +1,76 @@
+"""An override the study would ignore is refused before any folder (docs/studies.md, "a key whose values
+would be lost"): ``mc_runs`` while the runs are a data file's series (compare's ``scenario.data``: nile,
+fedfunds, markov_switching, one's own CSV; the tracking study's ``tracking.detections``). Before, such a run
+exited 0 with the numbers of a run without it, while results.md listed ``mc_runs`` under "Differs from the
+defaults" and results.json recorded it."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from experiments.config import ConfigError, precheck
+from experiments.run import CONFIG_DIR
+
+
+@pytest.fixture(scope="module")
+def track(tmp_path_factory) -> Path:
+    """Two series of a 2-D track (x, y measured; px, vx, py, vy truth)."""
+    rng = np.random.default_rng(0)
+    rows = ["series,x,y,px,vx,py,vy"]
+    for name, steps in (("a", 8), ("b", 6)):
+        for k in range(steps):
+            rows.append(f"{name},{k + rng.normal():.6f},{rng.normal():.6f},{k},1,0,0")
+    path = tmp_path_factory.mktemp("data") / "track.csv"
+    path.write_text("\n".join(rows) + "\n")
+    return path
+
+
+def _own_data(track: Path) -> str:
+    return f"scenario.data={{path:{track},measurements:[x,y],truth:[px,vx,py,vy],series:series}}"
+
+
+FILE_STUDIES = [(["experiment=nile"], "scenario.data"), (["experiment=fedfunds"], "scenario.data"),
+                (["experiment=markov_switching"], "scenario.data"),
+                (["experiment=tracking_detections"], "tracking.detections")]
+
+
+@pytest.mark.parametrize("given", ["mc_runs=500", "++mc_runs=1"])
+def test_mc_runs_with_ones_own_data_file_is_refused(track, tmp_path, capsys, given):
+    argv = ["experiment=compare", "logger=none", _own_data(track), given, f"hydra.run.dir={tmp_path / 'run'}"]
+    with pytest.raises(SystemExit) as stop:
+        precheck(argv, CONFIG_DIR)
+    assert stop.value.code == 2
+    err = capsys.readouterr().err.strip()
+    value = given.split("=")[1]
+    assert err == (f"torchmm-run: error: mc_runs={value}: not used: the runs are the series of scenario.data, "
+                   "one run a series (leave mc_runs out)"), err
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("argv, key", FILE_STUDIES, ids=[a[0] for a, _ in FILE_STUDIES])
+def test_mc_runs_is_refused_by_every_study_that_reads_a_file(tmp_path, capsys, monkeypatch, argv, key):
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as stop:
+        precheck([*argv, "logger=none", "mc_runs=7", f"hydra.run.dir={tmp_path / 'run'}"], CONFIG_DIR)
+    assert stop.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith(f"torchmm-run: error: mc_runs=7: not used: the runs are "
+                                                         f"the series of {key}"), err
+    assert not (tmp_path / "run").exists()
+    precheck([*argv, "logger=none"], CONFIG_DIR)  # without it: the same study passes
+
+
+@pytest.mark.parametrize("argv", [["experiment=compare"], ["experiment=tracking", "debug=tracking"]])
+def test_mc_runs_of_simulated_runs_is_kept(argv):
+    precheck([*argv, "logger=none", "mc_runs=7"], CONFIG_DIR)
+
+
+def test_the_python_api_refuses_it_before_any_folder(tmp_path):
+    from experiments.api import study
+
+    with pytest.raises(ConfigError, match=r"^mc_runs=3: not used: the runs are the series of scenario.data"):
+        study("nile", out=tmp_path / "run", mc_runs=3, progress=False)
+    assert not (tmp_path / "run").exists()
