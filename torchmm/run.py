@@ -194,8 +194,11 @@ def run_filter(
     if not leaves:
         raise ValueError("measurements: empty")
     if not all(isinstance(t, Tensor) for t in leaves):
-        bad = next(type(t).__name__ for t in leaves if not isinstance(t, Tensor))
-        raise TypeError(f"measurements: expected a tensor (T, *B, m) or a pytree of tensors, got {bad}")
+        leaf = next(t for t in leaves if not isinstance(t, Tensor))
+        # (scans read from a file, experiments.datafile.DetectionScans: their padded array is .z)
+        hint = "; scans of detections: pass torch.as_tensor(scans.z)" if hasattr(leaf, "z") else ""
+        raise TypeError(f"measurements: expected a tensor (T, *B, m) or a pytree of tensors, got "
+                        f"{type(leaf).__name__}{hint}")
     if any(t.dim() < 2 for t in leaves):
         shapes = [tuple(t.shape) for t in leaves]
         raise ValueError(f"measurements: expected time-major (T, *B, m), got shapes {shapes}")
