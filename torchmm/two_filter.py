@@ -192,8 +192,9 @@ def diffuse_factor(dtype: torch.dtype) -> float:
     """The backward filter's start: the last collapsed estimate with its covariance times this factor,
     the same for every mode - a nearly flat prior, so that the backward filter carries the likelihood of
     the future data alone. ``eps^{-1/2}`` (6.7e7 in float64, 2.9e3 in float32) balances what the prior
-    still weighs (``~1/factor``) against the rounding of the first update (``~eps factor``); the results
-    are insensitive from about 1e3 up (docs/smoothing.md)."""
+    still weighs (``~1/factor``) against the rounding of the first update (``~eps factor``). With modes
+    that share ``F`` the results are insensitive to it from about 1e3 up; with modes of different ``F`` they
+    depend on it (docs/smoothing.md, "A nearly flat start")."""
     return torch.finfo(dtype).eps ** -0.5
 
 
