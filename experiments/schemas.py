@@ -320,30 +320,40 @@ class Smoothing:
                 raise ConfigError(f"smoothing.cv_mode.{key}", mode, f"must be a mode index in [0, {modes})")
 
 
-#: study -> (its data-file key, the config path to it): with that key set the runs are the file's series
-#: and ``mc_runs`` is unused (compare: nile, fedfunds, markov_switching and one's own CSV; tracking_detections)
-RUNS_FROM_FILE = {"experiments.studies.compare.run": ("scenario.data", ("scenario", "data")),
-                  "experiments.studies.tracking.run": ("tracking.detections", ("tracking", "detections"))}
+_SCENARIO_KEYS = ("tracking.targets", "tracking.steps", "tracking.radius", "tracking.maneuver_start",
+                  "tracking.maneuver_stop")
+
+#: study -> (the key that, when set, makes others unused; the keys it makes unused; why): an override of
+#: an unused key is refused (compare: nile, fedfunds, markov_switching and one's own CSV; tracking_detections;
+#: tracking from waypoints)
+UNUSED_WHEN = {
+    "experiments.studies.compare.run": [
+        ("scenario.data", ("mc_runs",), "the runs are the series of scenario.data, one run a series")],
+    "experiments.studies.tracking.run": [
+        ("tracking.detections", ("mc_runs",), "the runs are the series of tracking.detections, one run a series"),
+        ("tracking.detections", _SCENARIO_KEYS, "the targets and scans are those of tracking.detections"),
+        ("tracking.waypoints", _SCENARIO_KEYS[:1] + _SCENARIO_KEYS[2:], "the targets fly tracking.waypoints")],
+}
 
 
 def check_overrides(data: dict, overrides: list[str]) -> None:
     """Refuse an override whose value the study would ignore (it would be recorded in results.json and
     listed under results.md's changes with no effect): ``mc_runs`` given while the runs are a data file's
-    series (:data:`RUNS_FROM_FILE`). ``overrides``: the command line's ``key=value`` strings."""
-    entry = RUNS_FROM_FILE.get(str(data.get("study")))
-    if entry is None:
-        return
-    key, path = entry
-    node: Any = data
-    for part in path:
-        node = node.get(part) if isinstance(node, dict) else None
-    if node is None:
-        return
+    series, the simulated scenario's keys while the targets come from a file or from waypoints
+    (:data:`UNUSED_WHEN`). ``overrides``: the command line's ``key=value`` strings."""
+    given = {}
     for item in overrides:
         name, _, value = str(item).lstrip("+~").partition("=")
-        if name.strip() == "mc_runs":
-            raise ConfigError("mc_runs", value, f"not used: the runs are the series of {key}, one run a "
-                              "series (leave mc_runs out)")
+        given.setdefault(name.strip(), value)
+    for when, unused, why in UNUSED_WHEN.get(str(data.get("study")), ()):
+        node: Any = data
+        for part in when.split("."):
+            node = node.get(part) if isinstance(node, dict) else None
+        if node is None:
+            continue
+        for key in unused:
+            if key in given:
+                raise ConfigError(key, given[key], f"not used: {why} (leave {key} out)")
 
 
 STUDIES: dict[str, tuple[type, tuple[str, ...] | None]] = {

@@ -74,3 +74,35 @@ def test_the_python_api_refuses_it_before_any_folder(tmp_path):
     with pytest.raises(ConfigError, match=r"^mc_runs=3: not used: the runs are the series of scenario.data"):
         study("nile", out=tmp_path / "run", mc_runs=3, progress=False)
     assert not (tmp_path / "run").exists()
+
+
+WAYPOINTS = "tracking.waypoints=[[[0,0,0],[10,100,0]],[[0,0,50],[10,100,50]]]"
+
+
+@pytest.mark.parametrize("argv, given, why", [
+    (["experiment=tracking_detections"], "tracking.targets=3", "the targets and scans are those of tracking.detections"),
+    (["experiment=tracking_detections"], "tracking.steps=40", "the targets and scans are those of tracking.detections"),
+    (["experiment=tracking_detections"], "tracking.maneuver_start=5",
+     "the targets and scans are those of tracking.detections"),
+    (["experiment=tracking", "debug=tracking", WAYPOINTS], "tracking.radius=200", "the targets fly tracking.waypoints"),
+    (["experiment=tracking", "debug=tracking", WAYPOINTS], "tracking.targets=2", "the targets fly tracking.waypoints"),
+], ids=["detections-targets", "detections-steps", "detections-maneuver", "waypoints-radius", "waypoints-targets"])
+def test_the_simulated_scenarios_keys_are_refused_where_the_targets_come_from_elsewhere(tmp_path, capsys, monkeypatch,
+                                                                                       argv, given, why):
+    """docs/tracking.md: with a detections file the scenario keys (targets, steps, radius, the manoeuvre) are
+    not read, nor targets, radius and the manoeuvre with waypoints; given on the command line they were
+    recorded as changes that changed nothing."""
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as stop:
+        precheck([*argv, "logger=none", given, f"hydra.run.dir={tmp_path / 'run'}"], CONFIG_DIR)
+    assert stop.value.code == 2
+    err = capsys.readouterr().err.strip()
+    key = given.split("=")[0]
+    assert err == f"torchmm-run: error: {given}: not used: {why} (leave {key} out)", err
+    assert not (tmp_path / "run").exists()
+
+
+def test_the_scenarios_keys_of_a_simulated_circle_are_kept():
+    precheck(["experiment=tracking", "debug=tracking", "logger=none", "tracking.radius=200", "tracking.targets=3",
+              "tracking.steps=30"], CONFIG_DIR)
+    precheck(["experiment=tracking", "debug=tracking", "logger=none", WAYPOINTS, "tracking.steps=30"], CONFIG_DIR)
