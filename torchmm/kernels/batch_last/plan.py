@@ -116,7 +116,9 @@ def why_not(model, M: int, belief0, measurements) -> str | None:
 
     Shapes and types only, plus one look at ``R``'s off-diagonal values (the entry point's value
     check, once per run). The reasons: model parameters batched beyond ``()`` or ``(M,)``; a
-    non-diagonal ``R``; a belief that is not the ``ModeBelief`` of Gaussians of ``initial_belief``;
+    non-diagonal ``R``, or one of ``m > 1`` components that requires grad (the kernel reads its diagonal
+    only, so the off-diagonal entries' gradient would be 0) unless it is a ``torch.diag_embed`` output
+    (whose backward drops that gradient anyway); a belief that is not the ``ModeBelief`` of Gaussians of ``initial_belief``;
     measurements that are not one tensor ``(T, *B, m)`` of the belief's dtype and device.
     """
     m, n = model.H.shape[-2], model.F.shape[-1]
@@ -141,4 +143,10 @@ def why_not(model, M: int, belief0, measurements) -> str | None:
     R = model.R
     if m > 1 and bool((R - torch.diag_embed(R.diagonal(dim1=-2, dim2=-1))).abs().amax() > 0):  # once per run
         return "R is not diagonal"
+    diag_embedded = type(R.grad_fn).__name__ == "DiagEmbedBackward0"
+    if m > 1 and R.requires_grad and torch.is_grad_enabled() and not diag_embedded:
+        # the update reads R's diagonal only: the gradient of its off-diagonal entries would be 0, not the
+        # log-likelihood's (tests/multimodel/test_batch_last.py). A diag_embed output (the "log_diagonal"
+        # parametrisation) drops that adjoint in its own backward, so it keeps the kernel.
+        return "R requires grad (the diagonal update gives no gradient for its off-diagonal entries)"
     return None
