@@ -24,12 +24,15 @@ from torchmm.kernels.loop_algebra import (
 
 
 @numba.njit(cache=True)
-def backward(z, F, b, Q, H, R, Pi, rule, update_first, logmu0, x0, P0, bu,
+def backward(z, F, b, Q, H, R, Pi, rule, update_first, logmu0, x0, P0, bu, tiny,
              logmu, x, P, xp, Pp, logc, xm, Pm, gll, glogmu, gx, gP,
              gF, gb, gQ, gH, gR, gPi, glogmu0, gx0, gP0, gbu):
     """The reverse pass of :func:`forward` (runs without regularised updates): accumulates the
     adjoints of the models and start beliefs from those of the outputs ``ll``, ``logmu``, ``x``, ``P``.
-    The adjoints of the symmetric matrices (``Q``, ``R``, ``P0``) are symmetric."""
+    The adjoints of the symmetric matrices (``Q``, ``R``, ``P0``) are symmetric. ``tiny``: the forward
+    pass's floor of the predicted mode probabilities ``c_j``; where it applied (a mode no run can reach:
+    ``c_j = 0``), the adjoints through ``c_j`` and the mixing into mode ``j`` are 0, as the floor's
+    derivative (tests/kernels/test_unreachable_mode.py)."""
     T, B, m = z.shape
     M, n = F.shape[0], F.shape[1]
     dt = z.dtype
@@ -247,8 +250,12 @@ def backward(z, F, b, Q, H, R, Pi, rule, update_first, logmu0, x0, P0, bu,
                         for k in range(n):
                             pPb[j, i, k] += Pmb[j, i, k]
             else:
-                mixing_weights(plm, Pt, rule, 0.0, mu, c, w)  # (no floor: the forward pass's c exceeded it)
+                mixing_weights(plm, Pt, rule, tiny, mu, c, w)  # (floored as in the forward pass)
                 for j in range(M):
+                    if c[j] <= tiny:  # (the floor applied: no adjoint through mode j's mixing)
+                        for q in range(M):
+                            wb[q, j] = 0.0
+                        continue
                     # the total adjoint of xm_j (its own and through d_ij = x_i - xm_j)
                     for i in range(n):
                         s = 0.0
@@ -278,9 +285,11 @@ def backward(z, F, b, Q, H, R, Pi, rule, update_first, logmu0, x0, P0, bu,
                 for i in range(M):
                     mub[i] = 0.0
                 for j in range(M):
-                    cb[j] = abar[j] / c[j]
+                    cb[j] = abar[j] / c[j] if c[j] > tiny else 0.0
                 if rule == 0:
                     for j in range(M):
+                        if c[j] <= tiny:
+                            continue
                         for i in range(M):
                             mub[i] += wb[i, j] * Pt[i, j] / c[j]
                             gPt[i, j] += wb[i, j] * mu[i] / c[j]
