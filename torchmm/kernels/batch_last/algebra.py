@@ -202,17 +202,16 @@ def log_normalized(joint: Tensor, norm: Tensor, size: int) -> Tensor:
     return (joint - norm).nan_to_num_(nan=-math.log(size), posinf=math.inf, neginf=-math.inf)
 
 
-def mode_update(ll: Tensor, cbar: Tensor, anyob: Tensor, lowest: Tensor, zero: Tensor, M: int) -> tuple:
+def mode_update(ll: Tensor, cbar: Tensor, anyob: Tensor, lowest: Tensor, zero: Tensor, M: int,
+                tiny: Tensor) -> tuple:
     """The IMM's mode posterior ``log mu_j = ell_j + log c_j - logsumexp_l(ell_l + log c_l)`` from the mode
     log-likelihoods and predicted probabilities ``(M, *B)``, as torch.logsumexp and safe_log_normalize compute
     it (all ``-inf``: ``-inf`` and uniform), in fewer passes: ``log c (M, *B)``, ``log mu (M, *B)`` and the
-    log-likelihood ``(*B,)`` (exactly ``zero`` where ``anyob`` says no datum; ``lowest``: the dtype's). Under
-    autograd no gradient passes through a ``c_j`` at or below the smallest normal number (a mode no run can
+    log-likelihood ``(*B,)`` (exactly ``zero`` where ``anyob`` says no datum; ``lowest``: the dtype's). No
+    gradient passes through a ``c_j`` at or below ``tiny`` (the smallest normal number; a mode no run can
     reach: ``log``'s ``1 / c_j`` times its zero adjoint would be NaN in every mode), as the eager steps'
-    (:mod:`torchmm.multimodel.interaction`)."""
-    if cbar.requires_grad:
-        cbar = torch.where(cbar > torch.finfo(cbar.dtype).tiny, cbar, cbar.detach())
-    log_cbar = cbar.log()
+    (:mod:`torchmm.multimodel.interaction`); the values are ``c_j``'s."""
+    log_cbar = torch.where(cbar > tiny, cbar, cbar.detach()).log()
     joint = ll + log_cbar
     top = torch.maximum(joint.amax(0), lowest)
     shifted = joint - top

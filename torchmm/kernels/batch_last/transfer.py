@@ -144,7 +144,7 @@ class BatchLastTransfer(Frame):
         xt, Ct, llt, _, _ = bank.update(xc, Cc, zc, ob, nhob, cbar, False)
         # 5. the mode probabilities, the influence (33) and the gate, the components
         log_cbar, log_mu, total = mode_update(torch.where(present, llt, ll) if self.corrected else ll, cbar, anyob,
-                                              self.lowest, self.zero, self.M)
+                                              self.lowest, self.zero, self.M, self.tiny_t)
         mu = log_mu.exp()
         used, diagnostics = present, None
         if self.gate is not None or extras:
