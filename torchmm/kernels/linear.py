@@ -197,6 +197,19 @@ class Prepared:
             return _smoothed(out, tuple(self.batch), self.kalman)
 
 
+def _with_parameter_batch(model, batch: tuple) -> tuple | None:
+    """The batch of a Kalman filter's run: ``batch`` (the belief's) broadcast with the batch axes of the
+    description's ``F, b, Q, H, R`` (their shapes less the event axes), or None where that adds runs (more
+    than unit axes: the eager steps)."""
+    shapes = [t.shape[:t.dim() - event] for t, event in zip((model.F, model.b, model.Q, model.H, model.R),
+                                                            (2, 1, 2, 2, 2))]
+    try:
+        wide = tuple(torch.broadcast_shapes(batch, *shapes))
+    except RuntimeError:
+        return None
+    return wide if math.prod(wide) == math.prod(batch) else None
+
+
 class LinearKernel:
     """The registered kernel (see the module docstring)."""
 
@@ -240,6 +253,17 @@ class LinearKernel:
         dtype = logmu0.dtype
         n, m = x0.shape[-1], model.H.shape[-2]
         batch = tuple(batch)
+        if model.rule == "kalman":
+            # the eager steps' batch is the belief's broadcast with the parameters' (a Kalman filter's have
+            # no mode axis): unit axes the belief lacks are the run's too (tests/filters/test_broadcast_batches.py)
+            wide = _with_parameter_batch(model, batch)
+            if wide is None:
+                return "the model's parameters are batched over more than the belief"
+            if wide != batch:
+                if measurements.shape != (measurements.shape[0], *batch, m):
+                    return "the measurements are not (T, *B, m) of the belief's batch"
+                measurements = measurements.reshape(measurements.shape[0], *wide, m)
+                x0, P0, batch = x0.expand(*wide, n), P0.expand(*wide, n, n), wide
         try:
             models = model_tensors(model, controls, batch)  # (a time-varying transition's matrices at the controls)
         except (RuntimeError, ValueError) as err:
