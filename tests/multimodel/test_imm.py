@@ -339,3 +339,36 @@ def test_gpb2_update_refuses_a_belief_of_another_mode_count():
     four = ModeBelief(torch.full((4, 4), -math.log(4)), start.components[:, :1].expand(4, 4))
     with pytest.raises(ValueError, match=r"^belief: expected 3 modes .* or 9 pairs .*got 4"):
         gpb2.update(four, zs[0])
+
+
+@pytest.mark.parametrize("combinator", [IMM, GPB1])
+def test_controls_read_by_the_transition_only(combinator):
+    """A LogisticTransition reads the controls; motions without an input matrix do not: the eager steps pass
+    them to the transition only, as the linear kernel does (before: 'u: this LinearMotion has no
+    input_matrix'), and equal the same model with a zero input matrix. With a fixed transition nothing reads
+    the controls and the refusal names ``u``."""
+    from torchmm import LogisticTransition, kernels
+
+    d = torch.float64
+    g = torch.Generator().manual_seed(0)
+    F, Q = torch.eye(1, dtype=d).expand(2, 1, 1), 0.1 * torch.eye(1, dtype=d).expand(2, 1, 1)
+    sensor = LinearMeasurement(torch.ones(2, 1, 1, dtype=d), torch.tensor([[[1.0]], [[4.0]]], dtype=d))
+    trans = LogisticTransition(torch.tensor([[[2.0, 0.0]], [[-2.0, 0.0]]], dtype=d), columns=[0, 1])
+    z = torch.randn(6, 1, dtype=d, generator=g)
+    u = torch.stack([torch.ones(6, dtype=d), torch.randn(6, dtype=d, generator=g)], -1)
+    prior = GaussianBelief(torch.zeros(1, dtype=d), torch.eye(1, dtype=d))
+    lls = {}
+    for G in (None, torch.zeros(2, 1, 2, dtype=d)):
+        f = combinator(KalmanFilter(LinearMotion(F, Q, input_matrix=G), sensor), trans)
+        b0 = f.initial_belief(prior, torch.tensor([0.5, 0.5], dtype=d))
+        with kernels.switched_off(*kernels.names()):
+            lls[G is None] = run_filter(f, b0, z, controls=u, fast_path=False).log_likelihood
+    close(lls[True], lls[False])
+    f = combinator(KalmanFilter(LinearMotion(F, Q), sensor), trans)
+    b0 = f.initial_belief(prior, torch.tensor([0.5, 0.5], dtype=d))
+    fast = run_filter(f, b0, z, controls=u, fast_path=True)
+    assert fast.provenance.kernel != "eager steps"
+    close(fast.log_likelihood, lls[True])
+    fixed = combinator(KalmanFilter(LinearMotion(F, Q), sensor), torch.tensor([[0.9, 0.1], [0.2, 0.8]], dtype=d))
+    with pytest.raises(ValueError, match="^u: "):
+        run_filter(fixed, fixed.initial_belief(prior), z, controls=u, fast_path=False)

@@ -24,7 +24,7 @@ from torchmm.filters.base import Filter, StepOutput, call_with
 from torchmm.linalg import any_observed
 from torchmm.validation import broadcast_shape
 
-__all__ = ["FilterBank", "IndexedBank", "ListBank", "VectorizedBank", "make_bank"]
+__all__ = ["FilterBank", "IndexedBank", "ListBank", "VectorizedBank", "make_bank", "motion_reads_inputs"]
 
 
 class FilterBank(nn.Module):
@@ -475,3 +475,15 @@ def make_bank(bank, num_modes: int) -> FilterBank:
     raise TypeError(
         f"bank: expected a Filter, a sequence of Filters or a FilterBank, got {type(bank).__name__}"
     )
+
+
+def motion_reads_inputs(bank: FilterBank, motion=None) -> bool:
+    """Whether the mode filters' motion models (``motion``: the step's, where given) read controls ``u``: False
+    only where every one is a linear motion without ``input_matrix`` (:class:`~torchmm.models.LinearMotion`);
+    other models may read them (tests/multimodel/test_imm.py)."""
+    if motion is not None:
+        motions = list(motion) if isinstance(motion, (list, tuple)) else [motion]
+    else:
+        filters = getattr(bank, "filters", None) or [getattr(bank, "filter", None)]
+        motions = [getattr(f, "motion", None) for f in filters]
+    return not all(m is not None and hasattr(m, "input_matrix") and m.input_matrix is None for m in motions)

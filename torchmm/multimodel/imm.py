@@ -30,7 +30,7 @@ from torchmm.beliefs import Belief, ModeBelief
 from torchmm.contract import BeliefArg, Finite, Gen, Int, Of, Stochastic, entry_point
 from torchmm.filters.base import Filter, StepOutput, check_state_dim
 from torchmm.models.transition import as_transition
-from torchmm.multimodel.bank import FilterBank, make_bank
+from torchmm.multimodel.bank import FilterBank, make_bank, motion_reads_inputs
 from torchmm.multimodel.interaction import (  # (re-exported: the combinators' interactions and mode update)
     Collapse,
     Interaction,
@@ -259,6 +259,9 @@ class MultipleModelFilter(Filter):
         return self._predict(self._mixed(belief, generator, u), u=u, motion=motion, generator=generator)
 
     def _predict(self, mixed: ModeBelief, *, u=None, motion=None, generator=None) -> ModeBelief:
+        if u is not None and getattr(self.transition, "takes_inputs", False) and not motion_reads_inputs(
+                self.bank, motion):
+            u = None  # the controls are the time-varying transition's only (the linear kernel's reading too)
         u = None if u is None else u.unsqueeze(-2)
         components = self.bank.predict(mixed.components, u=u, motion=motion, generator=generator)
         return ModeBelief(mixed.mode_log_probs, components)
