@@ -372,3 +372,35 @@ def test_controls_read_by_the_transition_only(combinator):
     fixed = combinator(KalmanFilter(LinearMotion(F, Q), sensor), torch.tensor([[0.9, 0.1], [0.2, 0.8]], dtype=d))
     with pytest.raises(ValueError, match="^u: "):
         run_filter(fixed, fixed.initial_belief(prior), z, controls=u, fast_path=False)
+
+
+@pytest.fixture
+def float32_default():
+    """torch's own default dtype (float32) for one test, restored after (tests/conftest.py sets float64)."""
+    previous = torch.get_default_dtype()
+    torch.set_default_dtype(torch.float32)
+    yield
+    torch.set_default_dtype(previous)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_static_bank_takes_the_filters_dtype(float32_default, dtype):
+    """StaticMM built its identity transition in the default dtype: a float64 filter under float32's default
+    was refused ('belief: dtype torch.float64 differs from the filter's torch.float32 (transition.value)').
+    Its run equals one Kalman filter per mode (the static bank: no interaction) with Bayes' mode weights."""
+    from torchmm import StaticMM
+
+    F = torch.eye(2, dtype=dtype)
+    Q = torch.stack([0.1 * torch.eye(2, dtype=dtype), torch.eye(2, dtype=dtype)])
+    sensor = LinearMeasurement(torch.ones(1, 2, dtype=dtype), torch.eye(1, dtype=dtype))
+    s = StaticMM(KalmanFilter(LinearMotion(F.expand(2, 2, 2).clone(), Q), sensor), 2)
+    assert s.transition.matrix().dtype == dtype
+    prior = GaussianBelief(torch.zeros(3, 2, dtype=dtype), torch.eye(2, dtype=dtype))
+    z = torch.randn(4, 3, 1, generator=torch.Generator().manual_seed(0)).to(dtype)
+    traj = run_filter(s, s.initial_belief(prior, torch.tensor([0.5, 0.5], dtype=dtype)), z, fast_path=False)
+    per_mode = [run_filter(KalmanFilter(LinearMotion(F, Q[j]), sensor), prior, z, fast_path=False).log_likelihood
+                for j in range(2)]
+    joint = torch.stack(per_mode, -1).double().cumsum(0) + math.log(0.5)  # log p(z_1:t, mode)
+    want = torch.logsumexp(joint, -1).diff(dim=0, prepend=torch.zeros(1, 3, dtype=torch.float64))
+    tol = 1e-9 if dtype == torch.float64 else 1e-4
+    torch.testing.assert_close(traj.log_likelihood.double(), want, rtol=tol, atol=tol)

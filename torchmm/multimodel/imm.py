@@ -380,12 +380,24 @@ class StaticMM(MultipleModelFilter):
                 if not shape:
                     raise ValueError("num_modes: give it for a single filter whose models have no mode axis")
                 num_modes = shape[-1]
-        super().__init__(bank, torch.eye(int(num_modes), dtype=torch.get_default_dtype()), NoInteraction())
+        like = _floating_tensor(bank)  # (the identity in the bank's dtype and device, not the default dtype's)
+        eye = torch.eye(int(num_modes), dtype=torch.get_default_dtype() if like is None else like.dtype,
+                        device=None if like is None else like.device)
+        super().__init__(bank, eye, NoInteraction())
 
     def step(self, belief: ModeBelief, z: Tensor, *, u: Tensor | None = None, motion=None, sensor=None,
              generator=None) -> StepOutput:
         prior = self._predict(self.mix(belief), u=u, motion=motion, generator=generator)
         return self.update(prior, z, sensor=sensor, generator=generator)
+
+
+def _floating_tensor(bank) -> Tensor | None:
+    """The first floating-point parameter or buffer of a filter, a list of filters or a bank, or None."""
+    for module in bank if isinstance(bank, (list, tuple)) else [bank]:
+        for t in (*module.parameters(), *module.buffers()) if isinstance(module, torch.nn.Module) else ():
+            if t.is_floating_point():
+                return t
+    return None
 
 
 @kernels.joins("linear_gaussian")
