@@ -332,7 +332,7 @@ def condition(
     C = cross_cov * observed.unsqueeze(-2)
     L, singular = cholesky(S, with_flag=True)
     batch = torch.broadcast_shapes(C.shape[:-2], nu.shape[:-1])  # (a datum shared by the runs, or the converse)
-    rhs = torch.cat([C.mT.expand(*batch, m, n), nu.unsqueeze(-1).expand(*batch, m, 1)], dim=-1)  # (*B, m, n + 1)
+    rhs = torch.cat([C.mT.expand(*batch, m, n), nu.unsqueeze(-1).expand(*batch, m, 1)], dim=-1)  # (*B,m,n+1)
     solved = solve_lower(L, rhs)
     V, w = solved[..., :n], solved[..., n]
     post_mean = mean + (V.mT @ w.unsqueeze(-1)).squeeze(-1)

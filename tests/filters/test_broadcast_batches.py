@@ -89,7 +89,8 @@ def test_imm_with_measurements_shared_by_the_runs():
 def test_parameters_with_a_unit_batch_axis_and_one_run(which):
     """A Kalman filter whose ``Q`` or ``R`` is ``(1, d, d)`` and a start belief of batch ``()``: the run's
     batch is ``(1,)`` (broadcast, as the eager steps give it), on both paths, with a missing step."""
-    F, Q, H, R = torch.eye(2, dtype=D), 0.1 * torch.eye(2, dtype=D), torch.ones(1, 2, dtype=D), torch.eye(1, dtype=D)
+    F, Q = torch.eye(2, dtype=D), 0.1 * torch.eye(2, dtype=D)
+    H, R = torch.ones(1, 2, dtype=D), torch.eye(1, dtype=D)
     Qm, Rm = (Q.unsqueeze(0), R) if which == "Q" else (Q, R.unsqueeze(0))
     kf = KalmanFilter(LinearMotion(F, Qm), LinearMeasurement(H, Rm))
     b0 = GaussianBelief(torch.zeros(2, dtype=D), torch.eye(2, dtype=D))

@@ -60,5 +60,5 @@ def test_gradient_with_an_unreachable_mode(path, comb, update_first):
             up = _log_likelihood(comb, (q + e).reshape(2, 1, 1), update_first, fast_path=False)[0]
             down = _log_likelihood(comb, (q - e).reshape(2, 1, 1), update_first, fast_path=False)[0]
         fd.append(((up - down) / (2 * h)).item())
-    assert abs(fd[1]) > 0.1 and fd[0] == 0.0  # (the unreachable mode's Q does not matter; the live one's does)
+    assert abs(fd[1]) > 0.1 and fd[0] == 0.0  # (the unreachable mode's Q is irrelevant, the live one's not)
     torch.testing.assert_close(grad.flatten(), torch.tensor(fd, dtype=D), rtol=1e-6, atol=1e-8)

@@ -11,7 +11,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from torchmm import GPB2, IMM, GaussianBelief, KalmanFilter, LinearMeasurement, LinearMotion, kernels, run_filter
+from torchmm import (GPB2, IMM, GaussianBelief, KalmanFilter, LinearMeasurement, LinearMotion, kernels,
+                     run_filter)
 from torchmm.models.adapters import learnable_noise
 from torchmm.multimodel import MultiRate, TransferIMM
 
@@ -50,7 +51,8 @@ def _RS(off=0.0):
     return torch.tensor([[0.5, off], [off, 0.5]], dtype=D)
 
 
-@pytest.mark.parametrize("kind, target", [("imm", "R"), ("gpb2", "R"), ("transfer", "R"), ("transfer", "R_S")])
+@pytest.mark.parametrize("kind, target",
+                         [("imm", "R"), ("gpb2", "R"), ("transfer", "R"), ("transfer", "R_S")])
 def test_off_diagonal_gradient_of_a_diagonal_R(kind, target):
     R, R_S = _R().requires_grad_(True), _RS().requires_grad_(True)
     leaf = R if target == "R" else R_S

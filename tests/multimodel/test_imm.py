@@ -369,7 +369,8 @@ def test_controls_read_by_the_transition_only(combinator):
     fast = run_filter(f, b0, z, controls=u, fast_path=True)
     assert fast.provenance.kernel != "eager steps"
     close(fast.log_likelihood, lls[True])
-    fixed = combinator(KalmanFilter(LinearMotion(F, Q), sensor), torch.tensor([[0.9, 0.1], [0.2, 0.8]], dtype=d))
+    P = torch.tensor([[0.9, 0.1], [0.2, 0.8]], dtype=d)
+    fixed = combinator(KalmanFilter(LinearMotion(F, Q), sensor), P)
     with pytest.raises(ValueError, match="^u: "):
         run_filter(fixed, fixed.initial_belief(prior), z, controls=u, fast_path=False)
 
@@ -398,8 +399,8 @@ def test_static_bank_takes_the_filters_dtype(float32_default, dtype):
     prior = GaussianBelief(torch.zeros(3, 2, dtype=dtype), torch.eye(2, dtype=dtype))
     z = torch.randn(4, 3, 1, generator=torch.Generator().manual_seed(0)).to(dtype)
     traj = run_filter(s, s.initial_belief(prior, torch.tensor([0.5, 0.5], dtype=dtype)), z, fast_path=False)
-    per_mode = [run_filter(KalmanFilter(LinearMotion(F, Q[j]), sensor), prior, z, fast_path=False).log_likelihood
-                for j in range(2)]
+    per_mode = [run_filter(KalmanFilter(LinearMotion(F, Q[j]), sensor), prior, z,
+                           fast_path=False).log_likelihood for j in range(2)]
     joint = torch.stack(per_mode, -1).double().cumsum(0) + math.log(0.5)  # log p(z_1:t, mode)
     want = torch.logsumexp(joint, -1).diff(dim=0, prepend=torch.zeros(1, 3, dtype=torch.float64))
     tol = 1e-9 if dtype == torch.float64 else 1e-4

@@ -255,7 +255,8 @@ class LinearKernel:
         batch = tuple(batch)
         if model.rule == "kalman":
             # the eager steps' batch is the belief's broadcast with the parameters' (a Kalman filter's have
-            # no mode axis): unit axes the belief lacks are the run's too (tests/filters/test_broadcast_batches.py)
+            # no mode axis): unit axes the belief lacks are the run's too
+            # (tests/filters/test_broadcast_batches.py)
             wide = _with_parameter_batch(model, batch)
             if wide is None:
                 return "the model's parameters are batched over more than the belief"

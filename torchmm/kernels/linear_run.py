@@ -87,8 +87,8 @@ class Run(torch.autograd.Function):
         adjoints = []
         for g, ref in zip((gll, glogmu, gx, gP), ((T, B), *(s.shape for s in saved[:3]))):
             adjoints.append(np.zeros(ref, z.dtype) if g is None else as_array(g))
-        loops.backward(*inputs[:7], ctx.rule, ctx.update_first, *inputs[7:], finfo(z.dtype)[1], *saved, *adjoints,
-                       *grads)
+        tiny = finfo(z.dtype)[1]
+        loops.backward(*inputs[:7], ctx.rule, ctx.update_first, *inputs[7:], tiny, *saved, *adjoints, *grads)
         out = []
         for g, (shape, needed), (wide, target) in zip(grads, ctx.raw, ctx.layout):
             if not needed:

@@ -478,9 +478,9 @@ def make_bank(bank, num_modes: int) -> FilterBank:
 
 
 def motion_reads_inputs(bank: FilterBank, motion=None) -> bool:
-    """Whether the mode filters' motion models (``motion``: the step's, where given) read controls ``u``: False
-    only where every one is a linear motion without ``input_matrix`` (:class:`~torchmm.models.LinearMotion`);
-    other models may read them (tests/multimodel/test_imm.py)."""
+    """Whether the mode filters' motion models (``motion``: the step's, where given) read controls ``u``:
+    False only where every one is a linear motion without ``input_matrix``
+    (:class:`~torchmm.models.LinearMotion`); other models may read them (tests/multimodel/test_imm.py)."""
     if motion is not None:
         motions = list(motion) if isinstance(motion, (list, tuple)) else [motion]
     else:

@@ -380,7 +380,7 @@ class StaticMM(MultipleModelFilter):
                 if not shape:
                     raise ValueError("num_modes: give it for a single filter whose models have no mode axis")
                 num_modes = shape[-1]
-        like = _floating_tensor(bank)  # (the identity in the bank's dtype and device, not the default dtype's)
+        like = _floating_tensor(bank)  # (the identity in the bank's dtype and device, not the default's)
         eye = torch.eye(int(num_modes), dtype=torch.get_default_dtype() if like is None else like.dtype,
                         device=None if like is None else like.device)
         super().__init__(bank, eye, NoInteraction())

@@ -139,7 +139,8 @@ class BatchLastIMM(Frame):
         # DELETE_DEREF); X and P: the caller's state holds them
         xp, Pp = bank.predict(xs, Cm, cbar)
         xu, Cu, ll, singular, s_first = bank.update(xp, Pp, zc, ob, nhob, cbar, "extras" not in omitted)
-        log_cbar, new_log_mu, total = mode_update(ll, cbar, anyob, self.lowest, self.zero, self.M, self.tiny_t)
+        log_cbar, new_log_mu, total = mode_update(ll, cbar, anyob, self.lowest, self.zero, self.M,
+                                                  self.tiny_t)
         keep_extras = "extras" not in omitted
         Xp = Ppt = nu_out = S_out = None
         mu = new_log_mu.exp()  # for the estimate and the next step

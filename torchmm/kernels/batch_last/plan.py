@@ -118,7 +118,8 @@ def why_not(model, M: int, belief0, measurements) -> str | None:
     check, once per run). The reasons: model parameters batched beyond ``()`` or ``(M,)``; a
     non-diagonal ``R``, or one of ``m > 1`` components that requires grad (the kernel reads its diagonal
     only, so the off-diagonal entries' gradient would be 0) unless it is a ``torch.diag_embed`` output
-    (whose backward drops that gradient anyway); a belief that is not the ``ModeBelief`` of Gaussians of ``initial_belief``;
+    (whose backward drops that gradient anyway); a belief that is not the ``ModeBelief`` of Gaussians of
+    ``initial_belief``;
     measurements that are not one tensor ``(T, *B, m)`` of the belief's dtype and device.
     """
     m, n = model.H.shape[-2], model.F.shape[-1]
