@@ -25,6 +25,7 @@ LAYERS = [
     {"run", "multimodel", "association"},
     {"two_filter", "smooth_checks"},  # the two-filter IMM smoother; smooth's arguments checked against the
     # run that made the trajectory (both split from smooth.py, issue 47)
+    {"two_filter_info"},  # the information-form two-filter smoother (method="two_filter_info")
     {"smooth", "parallel"},  # the backward passes, the time-parallel scans
     {"fusion", "learn", "metrics", "analysis"},
     {"torchmm"},  # the top-level namespace

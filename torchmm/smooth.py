@@ -71,6 +71,7 @@ from torchmm.two_filter import (
     smooth_two_filter,
     two_filter_step,
 )
+from torchmm.two_filter_info import smooth_two_filter_info
 
 if TYPE_CHECKING:  # (annotations only: smooth dispatches on Filter.smoother, never on a filter class)
     from torchmm.filters.particle import ParticleFilter
@@ -259,7 +260,7 @@ def _step_entries(filter, trajectory=None, *args, **kwargs) -> int:
              motions=Of((list, tuple, torch.nn.Module), callable_ok=True, optional=True, what=_PER_STEP),
              sensors=Of((list, tuple, torch.nn.Module), callable_ok=True, optional=True, what=_PER_STEP),
              lag=Int(0, optional=True, check=False),
-             method=Choice("two_filter", "kim", optional=True, check=False),
+             method=Choice("two_filter", "kim", "two_filter_info", optional=True, check=False),
              present=Mask(optional=True))
 @one_thread_when_small(_step_entries)
 def smooth(filter: Any, trajectory: Trajectory | None = None, measurements: Tensor | None = None, *,
@@ -290,7 +291,9 @@ def smooth(filter: Any, trajectory: Trajectory | None = None, measurements: Tens
             ``k -> model`` or one model). Default: the run's.
         sensors: the per-step sensors given to ``run_filter`` (likewise; the two-filter smoother's
             backward updates use them). Default: the run's.
-        method: multiple-model filters only: ``"two_filter"`` (default) or ``"kim"``.
+        method: multiple-model filters only: ``"two_filter"`` (default), ``"kim"``, or
+            ``"two_filter_info"`` (IMM / GPB1 / GPB2 over Kalman mode filters: the information-form backward
+            filter, :mod:`torchmm.two_filter_info`; docs/smoothing.md).
         present: ``(T, *B)`` bool, for runs of different lengths padded at the end (a batch of recorded
             series): False at a run's padding steps, which must follow all its real steps. Each run is
             smoothed over its own steps only, as if it were alone: its last real step keeps the filtered
@@ -387,7 +390,7 @@ def smooth(filter: Any, trajectory: Trajectory | None = None, measurements: Tens
             # (the two-filter smoother's checks); elsewhere the mask stays on the device (the steps' where)
             if padding is tail and (host_reads_ok(tail) or (kind == "modes" and method != "kim")):
                 padding = tail if bool(tail.any()) else None
-    if controls is None and motions is None and lag is None:
+    if controls is None and motions is None and lag is None and method != "two_filter_info":
         run, _ = kernels.plan_smooth(filter, trajectory, method,
                                      **({} if padding is None else {"padding": padding}))
         smoothed = None if run is None else run()
@@ -395,16 +398,21 @@ def smooth(filter: Any, trajectory: Trajectory | None = None, measurements: Tens
             return Trajectory(belief=smoothed, prior=None, log_likelihood=trajectory.log_likelihood,
                               innovation=None, innovation_cov=None, extras={})
     if kind == "modes":
-        if method not in (None, "two_filter", "kim"):
-            raise ValueError(f"method: expected 'two_filter' or 'kim' for {type(filter).__name__}, got {method!r}")
+        if method not in (None, "two_filter", "kim", "two_filter_info"):
+            raise ValueError(f"method: expected 'two_filter', 'kim' or 'two_filter_info' for "
+                             f"{type(filter).__name__}, got {method!r}")
         if method != "kim" and getattr(filter.transition, "takes_inputs", False):
             raise ValueError("method: a time-varying transition (LogisticTransition) is smoothed by Kim's smoother: "
                              "method='kim' (the two-filter smoother's backward chain needs one matrix)")
         if method == "kim":
             return _smooth_modes(filter, trajectory, controls, motions, padding)
+        if method == "two_filter_info":
+            return smooth_two_filter_info(filter, trajectory, measurements, controls, motions, sensors,
+                                          padding)
         return smooth_two_filter(filter, trajectory, measurements, controls, motions, sensors, padding)
     if method is not None:
-        raise ValueError(f"method: only multiple-model filters have a choice of smoother ('two_filter', 'kim'); "
+        raise ValueError("method: only multiple-model filters have a choice of smoother ('two_filter', 'kim', "
+                         f"'two_filter_info'); "
                          f"got {method!r} for {type(filter).__name__}")
     if kind == "particles":
         return _smooth_particles(filter, trajectory, controls, motions, padding)

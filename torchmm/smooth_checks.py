@@ -68,7 +68,7 @@ def checked_against_run(filter: Any, trajectory: Trajectory, measurements: Any, 
     if module_state(filter) != run.state:
         raise ValueError(f"filter: its parameters or buffers changed (in place, or replaced) since {made} "
                          "made this trajectory; filter again with the changed filter")
-    two_filter = getattr(filter, "smoother", None) == "modes" and method in (None, "two_filter")
+    two_filter = getattr(filter, "smoother", None) == "modes" and method in (None, "two_filter", "two_filter_info")
     if measurements is not None or two_filter:
         measurements = same_data(measurements, run.measurements, run.data, run.data_versions,
                                   "measurements", made)

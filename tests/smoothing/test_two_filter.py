@@ -303,7 +303,7 @@ def test_clear_errors():
         smooth(mm, traj, z[:4])
     with pytest.raises(TypeError, match="measurements: dtype"):
         smooth(mm, traj, z.float())
-    with pytest.raises(ValueError, match="method: expected 'two_filter' or 'kim'"):
+    with pytest.raises(ValueError, match="method: expected 'two_filter', 'kim' or 'two_filter_info'"):
         smooth(mm, traj, z, method="rts")
     kf = KalmanFilter(ConstantVelocity(1, q=0.1, dtype=D), sensor)
     with pytest.raises(ValueError, match="method: only multiple-model filters"):
