@@ -130,6 +130,23 @@ def test_identical_modes_give_rts_for_any_transition(combinator):
 
 
 @pytest.mark.parametrize("combinator", [IMM, GPB2])
+def test_controls_through_the_input_matrix_give_rts_for_identical_modes(combinator):
+    """Controls u_k enter every mode's motion as B u; with identical modes the smoother is RTS's with them."""
+    cv, sensor, belief0, z = _linear()
+    B = torch.tensor([[0.5], [1.0]], dtype=D)
+    u = torch.randn(z.shape[0], z.shape[1], 1, generator=torch.Generator().manual_seed(9), dtype=D)
+    kf = KalmanFilter(LinearMotion(cv.F, cv.Q, input_matrix=B), sensor)
+    transition = torch.tensor([[0.7, 0.3], [0.2, 0.8]], dtype=D)
+    mm = combinator(KalmanFilter(LinearMotion(cv.F, cv.Q.expand(2, 2, 2), input_matrix=B), sensor), transition)
+    rts = smooth(kf, run_filter(kf, belief0, z, controls=u), controls=u).belief
+    out = smooth(mm, run_filter(mm, mm.initial_belief(belief0), z, controls=u), z, controls=u, method=INFO).belief
+    torch.testing.assert_close(out.estimate().mean, rts.mean, rtol=1e-9, atol=1e-9)
+    torch.testing.assert_close(out.estimate().cov, rts.cov, rtol=1e-9, atol=1e-9)
+    without = smooth(mm, run_filter(mm, mm.initial_belief(belief0), z), z, method=INFO).belief
+    assert (without.estimate().mean - rts.mean).abs().max() > 0.1  # the controls matter here
+
+
+@pytest.mark.parametrize("combinator", [IMM, GPB2])
 def test_exact_for_static_modes(combinator):
     """Identity transition, a missing datum: the smoothed states and mode probabilities are the exact
     posterior's (no flat start: to rounding). (Not GPB1: its forward filter collapses the modes before
