@@ -27,6 +27,7 @@ from torch import Tensor
 from torchmm import GPB1, GPB2, IMM, Filter, GaussianBelief, KalmanFilter, MultipleModelFilter, run_filter
 from torchmm.metrics import mode_hits, nees, squared_error
 from torchmm.run import Trajectory
+from torchmm.two_filter_info import linear_bank
 
 from experiments.arrays import add_runs, join_runs, per_run
 from experiments.uncertainty import armse_se, mean_se_per_step, rmse_se_per_step
@@ -46,10 +47,27 @@ class Estimator:
     #: multi-rate pytree); None = all of it
     select: Callable[[Any], Any] | None = None
     #: the generic study (``compare``) also scores the smoothed trajectory (``torchmm.smooth``); a
-    #: string is the multiple-model smoother's ``method`` (``kim``, ``two_filter``)
+    #: string is the multiple-model smoother's ``method`` (``kim``, ``two_filter``, ``two_filter_info``)
     smooth: bool | str = False
     #: a single-mode estimator's mode of the scenario (its per-step models of irregular time stamps)
     mode: int | None = None
+
+    def __post_init__(self):
+        """A smoother's ``method`` is checked when the estimator is built (the precheck's dry build), not
+        after the study's folder exists: a method names a multiple-model smoother, and
+        ``two_filter_info`` takes IMM, GPB1 and GPB2 over Kalman mode filters only."""
+        if not isinstance(self.smooth, str):
+            return
+        if not self.multiple_model:
+            raise ValueError(f"smooth: {self.smooth} picks a multiple-model smoother; {type(self.filter).__name__} "
+                             "is one filter (smooth: true smooths it)")
+        if self.smooth == "two_filter_info":
+            try:
+                linear_bank(self.filter, None, None, None)
+            except ValueError as err:
+                why = str(err).split(": ", 2)[-1].split(". Use method=")[0]
+                raise ValueError(f"smooth: two_filter_info needs IMM, GPB1 or GPB2 over Kalman mode filters, not "
+                                 f"{why} (smooth: two_filter or kim smooth this one)") from None
 
     def run(self, prior: GaussianBelief, z: Any, generator: torch.Generator | None = None) -> Trajectory:
         """Filter every run of ``z``; ``generator`` is the random stream of particle mode filters."""

@@ -107,7 +107,8 @@ BUILDERS = ("experiments.estimators.multiple_model", "experiments.estimators.imm
 
 
 def _smooth(value) -> str | None:
-    return None if value in (True, False, "kim", "two_filter") else "expected true, false, kim or two_filter"
+    return (None if value in (True, False, "kim", "two_filter", "two_filter_info")
+            else "expected true, false, kim, two_filter or two_filter_info")
 
 
 @dataclass

@@ -234,6 +234,27 @@ def test_bad_estimator_and_reference_are_config_errors():
             validate(_compose(f"paired.reference={ref}"))
 
 
+def test_the_information_form_smoother_from_config(tmp_path):
+    """``smooth: two_filter_info`` scores the information-form two-filter smoother
+    (torchmm/two_filter_info.py; its own tests in tests/smoothing/test_two_filter_info.py) as
+    ``IMM smoothed``, whose figures differ from the default two-filter reading's on the turning modes; a mode
+    filter it cannot take, or a smoother's method on one filter, is one line naming the key before any
+    folder (a single filter's smooth: kim failed after the filtering with a traceback)."""
+    base = ("debug=compare", "figures=false", "scenario.steps=12", "mc_runs=6")
+    runs = {}
+    for method in ("two_filter", "two_filter_info"):
+        cfg = _compose(*base, f"estimators.IMM.smooth={method}")
+        validate(cfg)
+        run_study(cfg, tmp_path / method)
+        runs[method] = json.loads((tmp_path / method / "results.json").read_text())["metrics"]["IMM smoothed"]
+    assert runs["two_filter"]["rmse_position"] != runs["two_filter_info"]["rmse_position"]
+    with pytest.raises(ConfigError, match=r"^estimators.IMM.smooth=two_filter_info: needs IMM, GPB1 or GPB2 over "
+                                          r"Kalman mode filters, not .*ExtendedKalmanFilter"):
+        validate(_compose(*base, "estimators.IMM.smooth=two_filter_info", "mode_filter=extended"))
+    with pytest.raises(ConfigError, match=r"^estimators.KF-CV-q.smooth=kim: picks a multiple-model smoother"):
+        validate(_compose(*base, "+estimators.KF-CV-q.smooth=kim"))
+
+
 def _irregular(tmp_path: Path, seed: int, T: int) -> tuple[list[float], torch.Tensor, Any]:
     """Two series of ``T`` irregularly stamped measurements (steps of 0.5, 1 or 2) in a CSV without truth:
     ``(dts, z (T, 2, 1), the study's config over it)``."""
