@@ -8,24 +8,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from experiments.config import ConfigError, precheck
 from experiments.run import CONFIG_DIR
-
-
-@pytest.fixture(scope="module")
-def track(tmp_path_factory) -> Path:
-    """Two series of a 2-D track (x, y measured; px, vx, py, vy truth)."""
-    rng = np.random.default_rng(0)
-    rows = ["series,x,y,px,vx,py,vy"]
-    for name, steps in (("a", 8), ("b", 6)):
-        for k in range(steps):
-            rows.append(f"{name},{k + rng.normal():.6f},{rng.normal():.6f},{k},1,0,0")
-    path = tmp_path_factory.mktemp("data") / "track.csv"
-    path.write_text("\n".join(rows) + "\n")
-    return path
+from tests.experiments.test_config_dry_build import track  # noqa: F401 - (a fixture: two series in a CSV)
 
 
 def _own_data(track: Path) -> str:

@@ -1,8 +1,8 @@
 """The information-form two-filter smoother (``smooth(..., method="two_filter_info")``,
 torchmm/two_filter_info.py): against the exact smoother (every mode sequence enumerated) on modes that differ
 in F (coordinated turns) and in Q, closer than the default two-filter reading and Kim's smoother on the
-turns; RTS for one mode and identical modes; exact for static modes; missing data skipped; a padded run
-equal to the run alone; float32; clear errors."""
+turns; RTS for one mode and identical modes (exact for static modes: tests/smoothing/test_two_filter.py);
+missing data skipped; a padded run equal to the run alone; float32; clear errors."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from torchmm import (GPB1, GPB2, IMM, ExtendedKalmanFilter, GaussianBelief, Kalm
 from torchmm.models import ConstantVelocity, CoordinatedTurn, PositionMeasurement
 from torchmm.simulate import simulate_jump_system, simulate_measurements
 
-from tests.smoothing.test_two_filter import _exact, _linear, _maneuvering
+from tests.smoothing.test_two_filter import _linear, _maneuvering
 
 D = torch.float64
 INFO = "two_filter_info"
@@ -144,22 +144,6 @@ def test_controls_through_the_input_matrix_give_rts_for_identical_modes(combinat
     torch.testing.assert_close(out.estimate().cov, rts.cov, rtol=1e-9, atol=1e-9)
     without = smooth(mm, run_filter(mm, mm.initial_belief(belief0), z), z, method=INFO).belief
     assert (without.estimate().mean - rts.mean).abs().max() > 0.1  # the controls matter here
-
-
-@pytest.mark.parametrize("combinator", [IMM, GPB2])
-def test_exact_for_static_modes(combinator):
-    """Identity transition, a missing datum: the smoothed states and mode probabilities are the exact
-    posterior's (no flat start: to rounding). (Not GPB1: its forward filter collapses the modes before
-    every prediction, so even its filtered beliefs are not the exact ones here.)"""
-    transition = torch.eye(2, dtype=D)
-    mu0 = torch.tensor([0.3, 0.7], dtype=D)
-    cv, sensor, belief0, z = _maneuvering(7, 5, 1, torch.tensor([[0.9, 0.1], [0.1, 0.9]], dtype=D))
-    z[3, 1] = float("nan")
-    exact_mean, exact_probs = _exact(cv, sensor, transition, mu0, belief0, z)
-    mm = combinator(KalmanFilter(cv, sensor), transition)
-    out = smooth(mm, run_filter(mm, mm.initial_belief(belief0, mu0), z), z, method=INFO).belief
-    torch.testing.assert_close(out.estimate().mean, exact_mean, rtol=1e-9, atol=1e-8)
-    torch.testing.assert_close(out.mode_probs, exact_probs, rtol=1e-9, atol=1e-10)
 
 
 def test_a_padded_run_equals_the_run_alone():
