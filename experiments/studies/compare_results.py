@@ -263,6 +263,9 @@ def learned_tables(ctx, learners: list[str], names: list[str], records: dict) ->
                 "(per run).")
             ctx.logger.sweep(f"learn/nll/{name}", list(range(1, len(record["nll"]) + 1)), record["nll"], "iteration")
             ctx.results.metric(name, "learn_nll", record["nll"][-1])
+    for name in learners:  # (torchmm.learn.estimate: NaN errors at a point that is not a maximum, said here)
+        if mle and method != "em" and not records[name]["converged"]:
+            table.note += f" {name}'s fit did not converge: {records[name]['note'] or 'see the notes'}."
     others = [n for n in names if n not in learners]
     if others:
         ctx.results.notes.append(f"Not learning (configured values): {', '.join(others)}.")

@@ -139,6 +139,15 @@ class Block:
             fixed = fixed | ~diag
             if bool((v.diagonal(dim1=-2, dim2=-1) <= 0).any()):
                 raise ValueError(f"parameters[{name!r}]: a 'variance' starts from a positive diagonal")
+            off = torch.nonzero((v != 0) & ~diag)
+            if len(off):  # (held there, the diagonal's estimate would be that of another model; and an
+                # indefinite matrix a few steps away)
+                where = "[" + ",".join(map(str, off[0].tolist())) + "]"
+                raise ValueError(f"parameters[{name!r}]: a 'variance' estimates a diagonal matrix (its "
+                                 f"off-diagonal entries 0), but the start has {len(off)} non-zero "
+                                 f"off-diagonal entr{'y' if len(off) == 1 else 'ies'} ({where} = "
+                                 f"{float(v[tuple(off[0])]):.6g}): kind 'covariance' estimates the full "
+                                 "matrix; or start from a diagonal one")
         if self.kind in ("stochastic", "probabilities"):
             if bool((v < 0).any()) or not torch.allclose(v.sum(-1), torch.ones(()).double(), atol=1e-9):
                 raise ValueError(f"parameters[{name!r}]: {self.kind!r} starts from probabilities (each "

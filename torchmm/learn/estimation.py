@@ -54,6 +54,7 @@ from torchmm.filters.base import Filter
 from torchmm.learn.boundary import at_bounds, entry_directions, held_covariance
 from torchmm.learn.entries import START, Param, StartFields, write_back
 from torchmm.learn.entries import blocks as tensor_blocks  # (``blocks`` names the list in estimate)
+from torchmm.learn.search import NEWTON_RATIO, Guarded, newton_ratio
 from torchmm.runtime import one_thread_when_small
 
 __all__ = ["Estimate", "estimate"]
@@ -278,13 +279,27 @@ def estimate(filter: Filter, belief0: Belief | Callable[[Filter], Belief], measu
         single = measurements.dtype == torch.float32
         options.update(ftol=1e-6 if single else 1e-13, gtol=1e-3 if single else 1e-8)
     tic = time.perf_counter()
+    guarded = Guarded(loss_and_grad)  # a non-finite loss: a failed step (torchmm/learn/search.py)
     try:
-        result = minimize(loss_and_grad, theta0.numpy(), jac=True, method=method, tol=tol, options=options)
+        result = minimize(guarded, theta0.numpy(), jac=True, method=method, tol=tol, options=options,
+                          callback=guarded.callback)
     finally:
         bar.close()
     theta = torch.from_numpy(result.x).to(torch.float64)
     with torch.no_grad():
         loglik = -float(loss_at(theta))
+    converged, message = bool(result.success), str(result.message)
+    if not math.isfinite(loglik) or -loglik > guarded.start[1]:
+        # never a point whose likelihood is not finite, or below the start's: the best point evaluated
+        message += (f"; the optimiser ended where the log-likelihood is {loglik:.10g} (the start's "
+                    f"{-guarded.start[1]:.10g}): the best point evaluated is reported, not converged")
+        converged = False
+        theta = torch.from_numpy(guarded.best[0]).to(torch.float64)
+        with torch.no_grad():
+            loglik = -float(loss_at(theta))
+    if guarded.failed:
+        message += (f"; {guarded.failed} evaluation(s) where the log-likelihood or its gradient was not "
+                    "finite (answered as failed steps)")
     natural = torch.cat([b.natural(u) for b, u in zip(blocks, theta.split(sizes))])
     names = [n for b in blocks for n in b.names()]
     K = len(names)
@@ -295,6 +310,7 @@ def estimate(filter: Filter, belief0: Belief | Callable[[Filter], Belief], measu
     # dtype's (the step that balances the truncation error, O(h^2), with the gradient's rounding, O(eps / h))
     dtype = measurements.dtype if measurements.is_floating_point() else torch.float64
     step = torch.finfo(dtype).eps ** (1 / 3)
+    stopped = ""  # (not converged, and not at a maximum: no errors)
     if se:
         if hessian == "autograd":
             with kernels.switched_off(*kernels.names()):  # the eager steps: a second derivative through them
@@ -313,6 +329,18 @@ def estimate(filter: Filter, belief0: Belief | Callable[[Filter], Belief], measu
                 down = torch.from_numpy(loss_and_grad((theta - shift).numpy())[1])
                 H[i] = (up - down) / (2 * h)
         hessian = 0.5 * (H + H.mT)
+        if not converged:  # the errors only where one Newton step from here is negligible against them
+            # (torchmm/learn/search.py): else the observed information is not the estimates' covariance, and
+            # the bound rule would read the gradient still there as a slope past a bound
+            ratio = newton_ratio(hessian, torch.from_numpy(loss_and_grad(theta.numpy())[1]))
+            stopped = "" if ratio <= NEWTON_RATIO else (
+                "not converged: no standard errors (" + (
+                    f"a Newton step from here moves a free value by {ratio:.3g} of its standard error"
+                    if math.isfinite(ratio) else "the observed information here is not positive definite")
+                + ": not a maximum, where alone the observed information is the estimates' covariance)")
+            note = stopped or (f"not converged, but a Newton step from here moves no free value by more than "
+                               f"{ratio:.2g} of its standard error: the errors are the maximum's")
+    if se and not stopped:
         # the entries at a bound of their parametrisation (torchmm/learn/boundary.py): NaN errors, the
         # others' with them held
         G = _parametrisation_curvature(blocks, sizes, theta, lambda built: torch.func.functional_call(
@@ -343,11 +371,13 @@ def estimate(filter: Filter, belief0: Belief | Callable[[Filter], Belief], measu
                 notes.append("a covariance singular at the estimate (its Cholesky factor's diagonal at 0, in "
                              f"the direction of {', '.join(names[k] for k in singular)})")
             if bound:
-                note = "; ".join(notes) + ("; the other errors with those directions held at the estimate "
-                                           "(dropped from the information)")
+                notes.append("the other errors with those directions held at the estimate (dropped from the "
+                             "information)")
+                note = "; ".join(([note] if note else []) + notes)
         else:
-            note = ("the observed information is not positive definite at the optimum (a parameter on a boundary, "
-                    "or one the data do not identify): no standard errors")
+            note = "; ".join(([note] if note else []) + [
+                "the observed information is not positive definite at the optimum (a parameter on a "
+                "boundary, or one the data do not identify): no standard errors"])
     errors = cov.diagonal().clamp_min(0).sqrt()
     durations = []
     for b, u in zip(blocks, theta.split(sizes)):
@@ -383,6 +413,6 @@ def estimate(filter: Filter, belief0: Belief | Callable[[Filter], Belief], measu
     batch_dims = measurements.dim() - 2
     return Estimate(names=names, estimates=natural.tolist(), se=errors.tolist(), cov=cov, theta=theta,
                     theta_cov=theta_cov, loglik=loglik, k=len(theta), nobs=_nobs(measurements, burn, batch_dims),
-                    converged=bool(result.success), iterations=int(getattr(result, "nit", 0)),
-                    evaluations=evaluations[0], message=str(result.message), seconds=time.perf_counter() - tic,
+                    converged=converged, iterations=int(getattr(result, "nit", 0)),
+                    evaluations=evaluations[0], message=message, seconds=time.perf_counter() - tic,
                     method=method, durations=durations, note=note, belief0=start_belief)
