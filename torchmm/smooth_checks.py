@@ -14,8 +14,8 @@ from torch import Tensor
 from torchmm.provenance import fingerprints, module_state, tensor_versions
 from torchmm.run import Trajectory, per_step_models
 
-__all__ = ["SMOOTHERS", "checked_against_run", "padding_steps", "per_step_list", "same_data", "same_models",
-           "unobserved_tail"]
+__all__ = ["SMOOTHERS", "after_last_datum", "checked_against_run", "padding_steps", "per_step_list",
+           "same_data", "same_models", "unobserved_tail"]
 
 
 def per_step_list(value: Any, steps: int, name: str) -> list | None:
@@ -158,9 +158,16 @@ def unobserved_tail(data: Any, trajectory: Trajectory) -> Tensor | None:
     measurements the run filtered, ``(T, *B, ...)`` or a pytree of such streams), no host read. None where
     the data are unknown (a trajectory built by hand, smoothed without them) or not laid out ``(T, *B, ...)``
     like the trajectory's beliefs."""
+    tail = after_last_datum(data, tuple(trajectory.belief.batch_shape))
+    return None if tail is None else tail.to(trajectory.belief.device)
+
+
+def after_last_datum(data: Any, batch: tuple) -> Tensor | None:
+    """:func:`unobserved_tail` for ``data`` laid out ``(*batch, ...)``, ``batch = (T, *B)``: ``(T, *B)`` bool,
+    True after each run's last step where any stream has a finite component (also :func:`torchmm.learn.em`'s
+    default ``present``); None where ``data`` is None or not laid out so."""
     if data is None:
         return None
-    batch = tuple(trajectory.belief.batch_shape)
     leaves = pytree.tree_leaves(data)
     if not leaves or not all(isinstance(t, Tensor) and tuple(t.shape[:len(batch)]) == batch for t in leaves):
         return None
@@ -169,4 +176,4 @@ def unobserved_tail(data: Any, trajectory: Trajectory) -> Tensor | None:
         seen = torch.isfinite(t).reshape(*batch, -1).any(-1)
         observed = seen if observed is None else observed | seen
     # observed at this step or a later one: a cumulative "any" from the end
-    return ~observed.flip(0).cummax(0).values.flip(0).to(trajectory.belief.device)
+    return ~observed.flip(0).cummax(0).values.flip(0)

@@ -52,8 +52,10 @@ import torchmm.kernels as kernels
 from torchmm.beliefs import GaussianBelief
 from torchmm.contract import BeliefArg, Data, Flag, Int, Mask, Of, Real, Unchecked, entry_point
 from torchmm.filters.kalman import KalmanFilter
+from torchmm.learn.em_checks import fixed_masks, pooled_axes, start_masks
 from torchmm.models.linear import LinearMeasurement, LinearMotion, plain_linear
 from torchmm.parallel import filter_smooth, smooth_scan
+from torchmm.smooth_checks import after_last_datum
 from torchmm.validation import check_filter_dtype, check_measurement, gaussian_batch
 from torchmm.runtime import entries, one_thread_when_small
 
@@ -74,6 +76,11 @@ class EMResult:
         belief0: the estimated start belief (the initial state's mean and covariance).
         iterations: the M-steps done; converged: the relative change of the log-likelihood fell below
             ``tol``; monotone: no iteration lowered it by more than rounding; seconds.
+        unestimated: ``{name: mask}``, the parameters that some series had nothing to estimate from, the
+            mask ``(*B,)`` of those series with ``per_series`` (else ``()``, or ``(*B,)`` for a start field
+            per series): no measurement (every parameter), or no transition, i.e. a series of one step
+            (``F``, ``Q``, the offset). Their values are NaN (held at the start values in the iterations:
+            the other series' fits are those without them), never the 0 of an empty sum.
     """
 
     loglik: list
@@ -83,6 +90,7 @@ class EMResult:
     monotone: bool
     seconds: float
     decreases: list = field(default_factory=list)
+    unestimated: dict = field(default_factory=dict)
 
 
 def observed_steps(z: Tensor, present: Tensor | None) -> tuple[Tensor, Tensor]:
@@ -144,70 +152,6 @@ def _regression(X: Tensor, B: Tensor, C: Tensor, W: Tensor, mask: Tensor | None)
     return torch.linalg.solve(C.mT, B.mT).mT
 
 
-def _covariance_mask(name: str, mask: Tensor, value: Tensor) -> None:
-    """A covariance's fixed entries must leave a closed-form M-step: symmetric, the free entries whole
-    diagonal blocks (a block-diagonal covariance: each block's estimate is the block of the unrestricted
-    one, exactly, the likelihood factorising over the blocks) and the fixed entries off those blocks 0."""
-    free = ~mask
-    if not torch.equal(free, free.mT):
-        raise ValueError(f"fixed[{name!r}]: a covariance's mask must be symmetric")
-    n = free.shape[-1]
-    for i in range(n):  # (once, at entry)
-        block = free[i]
-        if bool(block.any()) and not (bool(block[i]) and torch.equal(free[block][:, block],
-                                                                       torch.ones(int(block.sum()), int(block.sum()),
-                                                                                  dtype=torch.bool))
-                                     and bool((free[block].sum(0) == 0)[~block].all())):
-            raise ValueError(f"fixed[{name!r}]: the free entries of a covariance must form diagonal blocks (e.g. "
-                             "a diagonal covariance: every off-diagonal entry fixed at 0); other patterns have no "
-                             "closed-form M-step: use torchmm.learn.estimate")
-    rows = free.any(-1)
-    off = mask & (rows.unsqueeze(-1) | rows.unsqueeze(-2)) & ~torch.eye(n, dtype=torch.bool)
-    if bool((value.detach().expand(*value.shape[:-2], n, n)[..., off] != 0).any()):
-        raise ValueError(f"fixed[{name!r}]: the fixed entries between a free block and the rest must be 0 (the "
-                         "blocks are independent)")
-
-
-def fixed_masks(filter: KalmanFilter, belief0: GaussianBelief, parameters: Sequence[str],
-                fixed: Mapping[str, Any] | None) -> dict[str, Tensor]:
-    """:func:`em`'s ``fixed`` checked against the filter and the start (each mask a boolean tensor of its
-    parameter's shape, for an estimated parameter, not every entry fixed, a covariance's pattern one with
-    a closed-form M-step): ``{name: mask}`` of the masks that fix something. A ``ValueError`` naming
-    ``fixed[name]`` otherwise (the study's dry construction calls it before anything runs)."""
-    motion, sensor = filter.motion, filter.measurement
-    current = {"H": sensor.H, "R": sensor.R, "F": motion.F, "offset": motion.offset, "Q": motion.Q,
-               "initial_mean": belief0.mean, "initial_cov": belief0.cov}
-    masks = {}
-    if fixed is None:
-        return masks
-    if not isinstance(fixed, Mapping):
-        raise TypeError(f"fixed: expected a mapping {{parameter name: boolean mask}}, got {type(fixed).__name__}")
-    for name, mask in fixed.items():
-        if name not in parameters:
-            raise ValueError(f"fixed[{name!r}]: not an estimated parameter ({', '.join(parameters)})")
-        event = 1 if name in ("offset", "initial_mean") else 2
-        shape = tuple(current[name].shape[-event:])
-        try:
-            mask = torch.as_tensor(mask, dtype=torch.bool).expand(shape).clone()
-        except (RuntimeError, TypeError, ValueError):
-            raise ValueError(f"fixed[{name!r}]: expected a boolean mask of shape {shape}") from None
-        if bool(mask.all()):
-            raise ValueError(f"fixed[{name!r}]: every entry is fixed (leave {name} out of parameters)")
-        if name in ("Q", "R", "initial_cov"):
-            _covariance_mask(name, mask, current[name])
-        if bool(mask.any()):
-            masks[name] = mask
-    weights = {"H": "R", "F": "Q", "offset": "Q", "initial_mean": "initial_cov"}
-    for name in masks:
-        if name in weights:  # (once, at entry) the weighted M-step needs an invertible weight
-            weight = current[weights[name]].detach()
-            if bool((torch.linalg.cholesky_ex(weight).info != 0).any()):
-                raise ValueError(f"fixed[{name!r}]: with fixed entries the M-step of {name} is a least squares "
-                                 f"weighted by {weights[name]}, which must be positive definite (a singular "
-                                 f"{weights[name]}, e.g. ConstantVelocity's rank-deficient Q, has no unique one)")
-    return masks
-
-
 @entry_point(filter=Of(KalmanFilter, what="a KalmanFilter over LinearMotion and LinearMeasurement"),
              belief0=BeliefArg(validate=True), measurements=Data(),
              parameters=Unchecked("names of EM_PARAMETERS, checked by em"),
@@ -242,7 +186,10 @@ def em(filter: KalmanFilter, belief0: GaussianBelief, measurements: Tensor,
         per_series: each series its own parameters (a batch of fits; the models' tensors get the batch
             ``*B`` in front), else one set for all.
         present: ``(T, *B)`` bool, False at the padding after a shorter series' end (nothing there is
-            counted: its values are not read).
+            counted: its values are not read). Default: each series up to its last step with a measurement
+            (the steps after it never change the likelihood, but as latent steps they would enter the
+            M-steps' statistics: NaN padding would change the iterates), as :func:`~torchmm.smooth` treats
+            such a tail (torchmm.smooth_checks.after_last_datum).
         fixed: ``{name: mask}``, a boolean mask of a parameter's entries held at their current values
             (``H`` ``(m, n)``, ``F`` ``(n, n)``, ``offset`` and ``initial_mean`` ``(n,)``, ``Q``, ``R``,
             ``initial_cov`` square). ``H``, ``F``, ``offset`` and ``initial_mean`` take any mask: their
@@ -300,6 +247,9 @@ def em(filter: KalmanFilter, belief0: GaussianBelief, measurements: Tensor,
     if tuple(z.shape[1:-1]) != tuple(batch):
         raise ValueError(f"measurements: batch {tuple(z.shape[1:-1])} is not the start belief's {tuple(batch)}")
     z = check_measurement(z, filter.meas_dim, torch.Size((z.shape[0], *batch)), belief0.mean, "measurements")
+    if present is None:  # up to each series' last datum: later steps never change the likelihood, but as
+        # latent steps they would enter the M-steps' statistics (and change the iterates)
+        present = ~after_last_datum(z, tuple(z.shape[:-1]))
     present, observed = observed_steps(z, present)
     z = torch.where(present.unsqueeze(-1), z, torch.nan)  # (the padding: missing for the smoother too)
     shared = not per_series
@@ -311,6 +261,16 @@ def em(filter: KalmanFilter, belief0: GaussianBelief, measurements: Tensor,
     pairs = (present[1:] & present[:-1]).to(dtype)  # transitions inside a series
     n_obs = _sum(w, 0, shared)
     n_pairs = _sum(pairs, 0, shared)
+    n_moves = n_pairs if update_first else _sum(torch.cat([present[:1].to(dtype), pairs]), 0, shared)
+    # the series (or, shared, all of them) with nothing to estimate a parameter from: no datum (every
+    # parameter), no transition (F, Q, the offset: a series of one step); their values are held in the
+    # iterations and NaN at the end (EMResult.unestimated), never the 0 of an empty sum
+    none_obs = n_obs == 0
+    none_moves = none_obs | (n_moves == 0)
+    unestimated = {name: mask for name in parameters for mask in [
+        none_moves if name in ("F", "Q", "offset") else
+        _start_none(w, belief0, name, shared) if name.startswith("initial") else none_obs]
+        if bool(mask.any())}
     start = belief0
     history, decreases = [], []
     tic = time.perf_counter()
@@ -370,14 +330,16 @@ def em(filter: KalmanFilter, belief0: GaussianBelief, measurements: Tensor,
             if "H" in wanted:
                 Syx = _sum(wx * (yz.unsqueeze(-1) * xo.unsqueeze(-2)), 2, shared)
                 Sxx = _sum(wx * Exx, 2, shared)
-                H = _regression(sensor.H, Syx, Sxx, sensor.R, masks.get("H"))
+                Sxx = Sxx + none_obs[..., None, None] * torch.eye(Sxx.shape[-1], dtype=dtype)  # (held below)
+                H = torch.where(none_obs[..., None, None], sensor.H,
+                                _regression(sensor.H, Syx, Sxx, sensor.R, masks.get("H")))
                 sensor.H = H.reshape(_shape(sensor.H, H, shared))
             if "R" in wanted:
                 H = sensor.H
                 r = yz - (H @ xo.unsqueeze(-1)).squeeze(-1)
                 term = r.unsqueeze(-1) * r.unsqueeze(-2) + H @ Po @ H.mT
                 R = _sum(wx * term, 2, shared) / n_obs.clamp_min(1)[..., None, None]
-                R = 0.5 * (R + R.mT)
+                R = torch.where(none_obs[..., None, None], sensor.R, 0.5 * (R + R.mT))
                 if "R" in masks:
                     R = torch.where(masks["R"], sensor.R, R)
                 sensor.R = R.reshape(_shape(sensor.R, R, shared))
@@ -387,14 +349,16 @@ def em(filter: KalmanFilter, belief0: GaussianBelief, measurements: Tensor,
             if Bu is not None:  # the pairs' targets less the inputs' part: x_t - B u_t
                 x1 = x1 - (Bu[1:] if update_first else Bu)
             pw = (pairs if update_first else torch.cat([present[:1].to(dtype), pairs]))[..., None, None]
-            npairs = n_pairs if update_first else _sum(torch.cat([present[:1].to(dtype), pairs]), 0, shared)
+            npairs = n_moves
             E00 = P0 + x0.unsqueeze(-1) * x0.unsqueeze(-2)
             E10 = C + x1.unsqueeze(-1) * x0.unsqueeze(-2)
             if "F" in wanted:
                 b = motion.offset
                 num = _sum(pw * (E10 - b.unsqueeze(-1) * x0.unsqueeze(-2)), 2, shared)
                 den = _sum(pw * E00, 2, shared)
-                F = _regression(motion.F, num, den, motion.Q, masks.get("F"))
+                den = den + none_moves[..., None, None] * torch.eye(den.shape[-1], dtype=dtype)  # (held)
+                F = torch.where(none_moves[..., None, None], motion.F,
+                                _regression(motion.F, num, den, motion.Q, masks.get("F")))
                 motion.F = F.reshape(_shape(motion.F, F, shared))
             F = motion.F
             if "Q" in wanted:
@@ -402,7 +366,7 @@ def em(filter: KalmanFilter, belief0: GaussianBelief, measurements: Tensor,
                 e = x1 - (F @ x0.unsqueeze(-1)).squeeze(-1) - b
                 term = (e.unsqueeze(-1) * e.unsqueeze(-2) + F @ P0 @ F.mT + P1 - C @ F.mT - F @ C.mT)
                 Q = _sum(pw * term, 2, shared) / npairs.clamp_min(1)[..., None, None]
-                Q = 0.5 * (Q + Q.mT)
+                Q = torch.where(none_moves[..., None, None], motion.Q, 0.5 * (Q + Q.mT))
                 if "Q" in masks:
                     Q = torch.where(masks["Q"], motion.Q, Q)
                 motion.Q = Q.reshape(_shape(motion.Q, Q, shared))
@@ -416,6 +380,7 @@ def em(filter: KalmanFilter, belief0: GaussianBelief, measurements: Tensor,
                                      ~masks["offset"].unsqueeze(-1)).squeeze(-1)
                 else:
                     b = _sum(pw[..., 0] * d, 1, shared) / npairs.clamp_min(1)[..., None]
+                b = torch.where(none_moves[..., None], motion.offset, b)
                 motion.offset = b.reshape(_shape(motion.offset, b, shared))
             done += 1
             bar.update(1)
@@ -427,15 +392,39 @@ def em(filter: KalmanFilter, belief0: GaussianBelief, measurements: Tensor,
                 decreases.append(len(history) - 1)
     bar.close()
     values = [float(h) if shared else h.clone() for h in history]
+    start = _unestimated_nan(filter, start, unestimated)
     return EMResult(loglik=values, belief0=start, iterations=done, converged=converged, monotone=not decreases,
-                    seconds=time.perf_counter() - tic, decreases=decreases)
+                    seconds=time.perf_counter() - tic, decreases=decreases, unestimated=unestimated)
 
 
-def _pooled_axes(value: Tensor, batch: torch.Size, event: int) -> tuple[int, ...]:
-    """The batch axes along which a start field is one value (an expanded view: stride 0, or an axis it
-    lacks), as :class:`~torchmm.learn.entries.StartFields` holds them for :func:`~torchmm.learn.estimate`."""
-    full = value.expand(*batch, *value.shape[value.dim() - event:])
-    return tuple(i for i, n in enumerate(batch) if n > 1 and full.stride(i) == 0)
+def _start_none(w: Tensor, belief0: GaussianBelief, name: str, shared: bool) -> Tensor:
+    """``(*B,)`` (or, for a field one value for the series, ``()``): the series whose start field ``name``
+    no datum informs (a pooled field: none of the series it is pooled over has a datum)."""
+    none = w.sum(0) == 0
+    if not shared:
+        return none
+    event = 1 if name == "initial_mean" else 2
+    axes = pooled_axes(belief0.mean if event == 1 else belief0.cov, none.shape, event)
+    return none.all(axes, keepdim=True).expand(none.shape) if axes else none
+
+
+def _unestimated_nan(filter: KalmanFilter, start: GaussianBelief, unestimated: dict) -> GaussianBelief:
+    """NaN in the entries of ``unestimated`` (``{name: series mask}``): the models' tensors written, the
+    start returned."""
+    nan = math.nan
+    for name, none in unestimated.items():
+        if name.startswith("initial"):
+            mean, cov = start.mean, start.cov
+            if name == "initial_mean":
+                mean = torch.where(none[..., None], nan, mean.expand(*none.shape, mean.shape[-1]))
+            else:
+                cov = torch.where(none[..., None, None], nan, cov.expand(*none.shape, *cov.shape[-2:]))
+            start = GaussianBelief(mean, cov)
+            continue
+        model = filter.motion if name in ("F", "Q", "offset") else filter.measurement
+        value = getattr(model, name)
+        setattr(model, name, torch.where(none[(...,) + (None,) * (1 if name == "offset" else 2)], nan, value))
+    return start
 
 
 def _pool(x: Tensor, first: Tensor, axes: tuple[int, ...], event: int) -> Tensor:
@@ -460,7 +449,7 @@ def _start_step(start: GaussianBelief, x0: Tensor, P0: Tensor, first: Tensor, wa
     batch, n = x0.shape[:-1], x0.shape[-1]
     mean0, cov0 = start.mean.expand(*batch, n), start.cov.expand(*batch, n, n)
     if "initial_mean" in wanted:
-        axes = _pooled_axes(start.mean, batch, 1) if shared else ()
+        axes = pooled_axes(start.mean, batch, 1) if shared else ()
         target = _pool(x0, first, axes, 1)
         mask = masks.get("initial_mean")
         if mask is not None:  # (the covariance is one value along the pooled axes: start_masks)
@@ -471,26 +460,9 @@ def _start_step(start: GaussianBelief, x0: Tensor, P0: Tensor, first: Tensor, wa
     if "initial_cov" in wanted:
         d = x0 - mean0
         new0 = P0 + d.unsqueeze(-1) * d.unsqueeze(-2)
-        new0 = _pool(0.5 * (new0 + new0.mT), first, _pooled_axes(start.cov, batch, 2) if shared else (), 2)
+        new0 = _pool(0.5 * (new0 + new0.mT), first, pooled_axes(start.cov, batch, 2) if shared else (), 2)
         cov0 = torch.where(masks["initial_cov"], cov0, new0) if "initial_cov" in masks else new0
     return GaussianBelief(mean0, cov0)
-
-
-def start_masks(belief0: GaussianBelief, parameters: Sequence[str]) -> None:
-    """With shared parameters an estimated start mean broadcast over series (one value
-    for them) needs one covariance over them too: broadcast as well, or held (not estimated) with
-    the same value for each, else a ``ValueError`` naming ``belief0`` (once, at entry: the pooled mean with a
-    covariance per series would be a precision-weighted one, not implemented)."""
-    batch, n = belief0.batch_shape, belief0.mean.shape[-1]
-    if "initial_mean" not in parameters or batch.numel() < 2:
-        return
-    cov = belief0.cov.detach().expand(*batch, n, n)
-    for axis in set(_pooled_axes(belief0.mean, batch, 1)) - set(_pooled_axes(belief0.cov, batch, 2)):
-        if "initial_cov" in parameters or not bool((cov == cov.narrow(axis, 0, 1)).all()):
-            raise ValueError("belief0: its mean is one value for the series (an expanded view: estimated as "
-                             "one shared start mean) but its covariance is one per series; expand the "
-                             "covariance too (belief0.expand), or materialise the mean (a start mean per "
-                             "series)")
 
 
 def _shape(current: Tensor, new: Tensor, shared: bool) -> tuple:
