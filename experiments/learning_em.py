@@ -253,8 +253,8 @@ def fit_em(est, scenario, block, z: Tensor, *, prior, update_first: bool, burn: 
               f"the likelihood decreased at iteration(s) {out.decreases}", "seconds": time.perf_counter() - tic,
               "note": "", "method": "em", "nll": [-v for v in out.loglik], "through": est.name, "em": out.loglik}
     if str(block.method) == "em_then_mle":
-        mle = fit_mle(est, scenario, _as_mle(block, names), z, prior=prior, update_first=update_first, burn=burn,
-                      controls=controls, progress=progress)
+        mle = fit_mle(est, scenario, mle_stage(est, block, names, masks), z, prior=prior,
+                      update_first=update_first, burn=burn, controls=controls, progress=progress)
         mle["em"] = out.loglik
         mle["method"] = "em_then_mle"
         mle["seconds"] = time.perf_counter() - tic
@@ -275,13 +275,45 @@ def _shared_start(belief):
     return belief
 
 
-def _as_mle(block, names: list[str]):
-    """The ``learn`` block for :func:`fit_mle` after EM: each entry's tensor (``initial_*`` excepted: the
-    start is EM's), with ``mle``'s kinds."""
+def mle_stage(est, block, names: list[str], masks: dict, key: str = "learn.parameters"):
+    """The ``learn`` block of ``em_then_mle``'s maximum likelihood (:func:`fit_mle`) after EM: every entry EM
+    estimated, the start's (``initial_mean``, ``initial_cov``) included, from EM's values, each with the kind
+    that estimates what EM did: ``free`` for ``F``, ``H``, the offset and the start's mean; for ``Q``, ``R``
+    and ``initial_cov`` ``variance`` where EM estimated the diagonal (a 1x1 matrix, or ``fixed`` holding
+    every off-diagonal entry) and ``covariance`` where it estimated the whole matrix. An entry's own
+    ``kind`` is taken where it estimates the same; another (``variance`` of a matrix EM estimated whole,
+    ``covariance`` of one with fixed entries) or a mask with free blocks larger than one entry (EM's
+    block-diagonal covariance: no kind of ``mle`` estimates it) is a ``ConfigError`` naming the entry."""
     from omegaconf import OmegaConf
 
-    entries = [dict(OmegaConf.to_container(e)) for e, n in zip(block.parameters, names)
-               if not n.startswith("initial")]
-    for e in entries:
-        e["kind"] = "variance" if str(e["name"]) in ("Q", "R") else "free"
+    from experiments.learning import KIND_ALIASES
+
+    tensors = {"Q": est.filter.motion.Q, "R": est.filter.measurement.R, "initial_cov": None}
+    entries = []
+    for i, (e, name) in enumerate(zip(block.parameters, names)):
+        entry = dict(OmegaConf.to_container(e))
+        given = entry.get("kind")
+        given = KIND_ALIASES.get(str(given), given) if given is not None else None
+        if name not in ("Q", "R", "initial_cov"):
+            entry["kind"] = given or "free"
+            entries.append(entry)
+            continue
+        value = tensors[name]
+        d = int(value.shape[-1]) if value is not None else int(est.filter.state_dim)
+        mask = masks.get(name)
+        off = ~torch.eye(d, dtype=torch.bool)
+        diagonal = d == 1 or (mask is not None and bool(mask[off].all()))
+        if mask is not None and not diagonal:
+            raise ConfigError(f"{key}[{i}].fixed", entry.get("fixed"), "method em_then_mle: EM estimates "
+                              f"{name} in diagonal blocks larger than one entry, which no kind of maximum "
+                              "likelihood estimates (variance: the diagonal; covariance: the whole matrix, "
+                              "no fixed entries); method em, or fix every off-diagonal entry")
+        kind = "variance" if diagonal else "covariance"
+        if given is not None and given != kind and d > 1:
+            raise ConfigError(f"{key}[{i}].kind", e.get("kind"), f"method em_then_mle: EM estimates "
+                              f"{'the diagonal' if diagonal else 'the whole matrix'} of {name}, its maximum "
+                              f"likelihood stage the same (kind {kind}, or leave kind out)"
+                              + ("" if diagonal else "; fixed: every off-diagonal entry for a diagonal one"))
+        entry["kind"] = given if given is not None and d == 1 else kind
+        entries.append(entry)
     return OmegaConf.merge(block, {"parameters": entries})

@@ -218,7 +218,9 @@ def check_build(cfg, scenario) -> None:
         own = learning.own_models(scenario)
         if str(block.method) in ("em", "em_then_mle"):
             est = instantiate(cfg.estimators[name])(own, name=name)
-            learning_em.em_fixed(est, block, own.initial, scenario=own)
+            masks = learning_em.em_fixed(est, block, own.initial, scenario=own)
+            if str(block.method) == "em_then_mle" and not est.multiple_model:  # (its MLE stage's kinds)
+                learning_em.mle_stage(est, block, learning_em.em_parameters(est, block, scenario=own), masks)
             if burn and str(block.method) == "em":
                 raise ConfigError("burn", burn, "method em maximises the likelihood of every step (burn: 0; "
                                   "em_then_mle's maximum likelihood leaves the burn-in out)")
