@@ -29,6 +29,10 @@ error from the observed information:
   docs/estimation.md) gets a NaN error and a note naming it, the others' errors with it held; an
   information that is not positive definite otherwise (a flat direction) gives NaN errors and says so
   (``Estimate.note``).
+* **Failures** (:mod:`torchmm.learn.search`): a point where the objective is not finite is a failed step
+  for scipy, not a number; a fit is never reported at a point worse than its start (the best point
+  evaluated, not converged); a fit that did not converge has NaN errors unless one Newton step from it is
+  below 1 % of each error (docs/estimation.md, "When the search fails").
 * **Criteria**: the log-likelihood, ``k`` (the free values), ``nobs`` (the steps with a measurement),
   AIC ``= -2 log L + 2 k``, BIC ``= -2 log L + k log nobs``, and for a ``"stochastic"`` tensor the
   expected durations ``1 / (1 - p_ii)`` with their delta-method errors.
@@ -73,8 +77,12 @@ class Estimate:
         loglik: the log-likelihood at the optimum (the sum over the runs); ``k``: the free values;
         nobs: the steps with a measurement; ``aic``, ``bic``.
         durations: ``[(name, 1 / (1 - p_ii), se)]`` for each ``"stochastic"`` tensor's diagonal.
-        converged, iterations, evaluations, message, seconds: the optimiser's.
-        note: why the errors are NaN, if they are.
+        converged, iterations, evaluations, message, seconds: the optimiser's; converged is False also
+            where the optimiser ended at a point whose log-likelihood is not finite or below the start's
+            (the best point evaluated is reported then), and the message counts the evaluations that
+            were not finite (failed steps).
+        note: why the errors are NaN, if they are (a fit that did not converge: unless a Newton step from
+            it is below 1 % of each error).
         belief0: the start belief with its estimated fields (``"belief0.<field>"`` parameters; the given
             belief where none is estimated; None for a start function).
     """
