@@ -20,6 +20,7 @@ from torchmm.learn.em import iteration_bar, observed_steps
 from torchmm.models.linear import LinearMeasurement, plain_linear
 from torchmm.multimodel.imm import MultipleModelFilter
 from torchmm.run import run_filter
+from torchmm.smooth_checks import after_last_datum
 from torchmm.validation import check_measurement
 from torchmm.runtime import entries, one_thread_when_small
 
@@ -109,7 +110,9 @@ def em_switching(filter: MultipleModelFilter, belief0: ModeBelief, measurements:
         ergodic: the start's mode probabilities are the stationary ones of the current transition matrix,
             re-derived every iteration (statsmodels' default; ``initial_mode_probs`` is then not estimated).
         controls: the motion models' inputs ``(T, *B, k)`` (a regression's regressors).
-        present: ``(T, *B)`` bool, False at a shorter series' padding.
+        present: ``(T, *B)`` bool, False at a shorter series' padding. Default: each series up to its last
+            step with a finite datum (trailing NaN steps never change the likelihood, but as latent steps
+            they would enter the chain's counts and change the iterates), as :func:`~torchmm.learn.em`.
 
     Returns:
         a :class:`SwitchingEMResult`; the filter holds the estimates.
@@ -175,6 +178,9 @@ def em_switching(filter: MultipleModelFilter, belief0: ModeBelief, measurements:
     batch = belief0.batch_shape
     z = check_measurement(z, filter.meas_dim, torch.Size((z.shape[0], *batch)), belief0.mode_log_probs,
                           "measurements")
+    if present is None:  # up to each series' last datum, as em: later steps never change the likelihood, but
+        # as latent steps their expected transitions would enter the chain's counts (and change the iterates)
+        present = ~after_last_datum(z, tuple(z.shape[:-1]))
     present, observed = observed_steps(z, present)
     yz = torch.where(observed.unsqueeze(-1), z, 0.0)
     wanted, share = set(parameters), set(shared)
