@@ -130,6 +130,34 @@ def _learnable(steps=30):
     return kf, belief0, z
 
 
+def test_minimize_steps_back_from_a_non_finite_loss():
+    """A raw variance as the parameter: L-BFGS-B's first step from R = 4 goes negative (the loss NaN).
+    Passed to scipy, that ended the search at R = 3 with "CONVERGENCE" (loss 377.1 against the optimum's
+    283.0); answered as a failed step (torchmm.learn.search.Guarded) the search backtracks and reaches
+    the optimum a bounded scalar search of the same loss finds, and the message counts the failed steps."""
+    from scipy.optimize import minimize_scalar
+
+    g = torch.Generator().manual_seed(0)
+    T = 200
+    walk = torch.cumsum(torch.randn(T, generator=g, dtype=torch.float64), 0)
+    z = (walk + 0.1 * torch.randn(T, generator=g, dtype=torch.float64)).reshape(T, 1)
+    R = torch.tensor([[4.0]], dtype=torch.float64, requires_grad=True)
+    one = torch.eye(1, dtype=torch.float64)
+    kf = KalmanFilter(LinearMotion(one, one.clone()), LinearMeasurement(one.clone(), R))
+    obj = Objective(kf, GaussianBelief(torch.zeros(1, dtype=torch.float64), 10 * one), z)
+    result = obj.minimize(parameters=[kf.measurement.R])
+    found = float(kf.measurement.R.detach())
+
+    def loss(r):
+        with torch.no_grad():
+            kf.measurement.R.copy_(torch.tensor([[r]], dtype=torch.float64))
+            return float(obj())
+
+    ref = minimize_scalar(loss, bounds=(1e-6, 10.0), method="bounded", options={"xatol": 1e-12})
+    assert found == pytest.approx(ref.x, rel=1e-4) and result.fun == pytest.approx(ref.fun, rel=1e-10)
+    assert "not finite, answered as failed steps" in result.message
+
+
 def test_minimize_refuses_a_tensor_the_loss_does_not_depend_on():
     """A tensor that is not a parameter of the filter (nor read by the start) was 'optimised' to
     success after 0 iterations."""

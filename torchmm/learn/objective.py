@@ -25,6 +25,7 @@ from torchmm.beliefs import Belief, ModeBelief
 from torchmm.contract import Choice, Data, Flag, Int, Of, Real, Tensors, entry_point
 from torchmm.filters.base import Filter
 from torchmm.learn.loss import REDUCTIONS, as_start_belief, negative_log_likelihood, reduce_total
+from torchmm.learn.search import Guarded
 from torchmm.provenance import note_infinite
 from torchmm.run import Keep, run_filter
 from torchmm.validation import check_filter_dtype, check_measurement
@@ -286,8 +287,12 @@ class Objective:
             with warnings.catch_warnings():  # a misspelt option (max_iter) is an error, not a warning
                 warnings.filterwarnings("error", message="Unknown solver options", category=OptimizeWarning)
                 try:
-                    result = minimize(loss_and_grad, start, jac=True, method=method, tol=tol,
-                                      options=None if options is None else dict(options))
+                    guarded = Guarded(loss_and_grad)  # a non-finite loss: a failed step (torchmm/learn/search.py)
+                    result = minimize(guarded, start, jac=True, method=method, tol=tol,
+                                      options=None if options is None else dict(options), callback=guarded.callback)
+                    if guarded.failed:
+                        result.message = (f"{result.message} ({guarded.failed} evaluation(s) where the loss or its "
+                                          "gradient was not finite, answered as failed steps)")
                 except (OptimizeWarning, TypeError) as err:  # (scipy refuses them before any evaluation)
                     unknown = _unknown_options(err, options)
                     if not unknown:
