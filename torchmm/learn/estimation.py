@@ -28,7 +28,9 @@ error from the observed information:
   parametrisation (a variance or probability at 0, :mod:`torchmm.learn.boundary`'s rule,
   docs/estimation.md) gets a NaN error and a note naming it, the others' errors with it held; an
   information that is not positive definite otherwise (a flat direction) gives NaN errors and says so
-  (``Estimate.note``).
+  (``Estimate.note``). A free value that no datum touches (the start mean of a series without a finite
+  measurement: its gradient and its information row exactly 0, :func:`~torchmm.learn.search.untouched`) is
+  held out of the information and of ``k``, its entries reported NaN and named in the note.
 * **Failures** (:mod:`torchmm.learn.search`): a point where the objective is not finite is a failed step
   for scipy, not a number; a fit is never reported at a point worse than its start (the best point
   evaluated, not converged); a fit that did not converge has NaN errors unless one Newton step from it is
@@ -58,7 +60,7 @@ from torchmm.filters.base import Filter
 from torchmm.learn.boundary import at_bounds, entry_directions, held_covariance
 from torchmm.learn.entries import START, Param, StartFields, write_back
 from torchmm.learn.entries import blocks as tensor_blocks  # (``blocks`` names the list in estimate)
-from torchmm.learn.search import NEWTON_RATIO, Guarded, newton_ratio
+from torchmm.learn.search import NEWTON_RATIO, Guarded, newton_ratio, untouched
 from torchmm.runtime import one_thread_when_small
 
 __all__ = ["Estimate", "estimate"]
@@ -70,11 +72,15 @@ class Estimate:
 
     Attributes:
         names: the reported entries, ``"<label>[i,j]"``; ``estimates``, ``se``: their values and
-            standard errors (NaN at a bound, or where the information is not positive definite);
+            standard errors (NaN at a bound, or where the information is not positive definite); an entry no
+            datum touches (the start of a series without a finite measurement) is NaN in both, held out of
+            the information and of ``k``, and named in ``note``;
             ``z = estimate / se``.
         cov: the covariance of the reported entries ``(K, K)`` (delta method).
-        theta, theta_cov: the free values at the optimum and the inverse information.
-        loglik: the log-likelihood at the optimum (the sum over the runs); ``k``: the free values;
+        theta, theta_cov: the free values at the optimum and the inverse information (NaN rows for the free
+            values no datum touches).
+        loglik: the log-likelihood at the optimum (the sum over the runs); ``k``: the free values that some
+            datum touches;
         nobs: the steps with a measurement; ``aic``, ``bic``.
         durations: ``[(name, 1 / (1 - p_ii), se)]`` for each ``"stochastic"`` tensor's diagonal.
         converged, iterations, evaluations, message, seconds: the optimiser's; converged is False also
@@ -319,6 +325,7 @@ def estimate(filter: Filter, belief0: Belief | Callable[[Filter], Belief], measu
     dtype = measurements.dtype if measurements.is_floating_point() else torch.float64
     step = torch.finfo(dtype).eps ** (1 / 3)
     stopped = ""  # (not converged, and not at a maximum: no errors)
+    idle = untouched(guarded.touched)  # the free values no datum touches (torchmm/learn/search.py)
     if se:
         if hessian == "autograd":
             with kernels.switched_off(*kernels.names()):  # the eager steps: a second derivative through them
@@ -337,10 +344,12 @@ def estimate(filter: Filter, belief0: Belief | Callable[[Filter], Belief], measu
                 down = torch.from_numpy(loss_and_grad((theta - shift).numpy())[1])
                 H[i] = (up - down) / (2 * h)
         hessian = 0.5 * (H + H.mT)
+        idle = untouched(guarded.touched, hessian)
+        keep = ~idle
         if not converged:  # the errors only where one Newton step from here is negligible against them
             # (torchmm/learn/search.py): else the observed information is not the estimates' covariance, and
             # the bound rule would read the gradient still there as a slope past a bound
-            ratio = newton_ratio(hessian, torch.from_numpy(loss_and_grad(theta.numpy())[1]))
+            ratio = newton_ratio(hessian[keep][:, keep], torch.from_numpy(loss_and_grad(theta.numpy())[1])[keep])
             stopped = "" if ratio <= NEWTON_RATIO else (
                 "not converged: no standard errors (" + (
                     f"a Newton step from here moves a free value by {ratio:.3g} of its standard error"
@@ -348,6 +357,12 @@ def estimate(filter: Filter, belief0: Belief | Callable[[Filter], Belief], measu
                 + ": not a maximum, where alone the observed information is the estimates' covariance)")
             note = stopped or (f"not converged, but a Newton step from here moves no free value by more than "
                                f"{ratio:.2g} of its standard error: the errors are the maximum's")
+    unest = torch.zeros(K, dtype=torch.bool)  # the reported entries that depend on an untouched free value
+    if bool(idle.any()):  # (their dependence at a point off the optimum: a derivative not 0 there by chance)
+        probe = theta + 0.37 + 0.01 * torch.arange(len(theta), dtype=torch.float64)
+        unest = (torch.autograd.functional.jacobian(lambda t: torch.cat(
+            [b.natural(u) for b, u in zip(blocks, t.split(sizes))]), probe)[:, idle] != 0).any(-1)
+        natural[unest] = math.nan
     if se and not stopped:
         # the entries at a bound of their parametrisation (torchmm/learn/boundary.py): NaN errors, the
         # others' with them held
@@ -356,8 +371,10 @@ def estimate(filter: Filter, belief0: Belief | Callable[[Filter], Belief], measu
         directions = [entry_directions(b) for b in blocks]
         kinds = [b.kind for b in blocks for _ in b.names()]
         D = torch.block_diag(*[d for d, _ in directions])
-        bound = at_bounds(hessian, G, D, torch.cat([b for _, b in directions]), step ** 3)
-        theta_cov, ok = held_covariance(hessian, D[bound])
+        bound = [k for k in at_bounds(hessian, G, D, torch.cat([b for _, b in directions]), step ** 3)
+                 if not unest[k]]
+        theta_cov, ok = held_covariance(hessian, torch.cat([D[bound].to(hessian.dtype),
+                                                            torch.eye(len(theta), dtype=hessian.dtype)[idle]]))
         if ok:
             J = torch.autograd.functional.jacobian(
                 lambda t: torch.cat([b.natural(u) for b, u in zip(blocks, t.split(sizes))]), theta)
@@ -368,8 +385,12 @@ def estimate(filter: Filter, belief0: Belief | Callable[[Filter], Belief], measu
             singular = [k for k in bound if kinds[k] == "covariance"
                         and float(theta[int(D[k].nonzero()[0, 0])].mul(2).exp()) < 0.5 * float(natural[k])]
             nan = [k for k in bound if k not in singular]
+            nan += [k for k in range(K) if unest[k]]
             cov[nan, :] = math.nan
             cov[:, nan] = math.nan
+            theta_cov[idle, :] = math.nan
+            theta_cov[:, idle] = math.nan
+            nan = [k for k in nan if not unest[k]]
             notes = []
             if nan:
                 where = ", ".join(f"{names[k]} = {float(natural[k]):.3g}" for k in nan)
@@ -386,6 +407,12 @@ def estimate(filter: Filter, belief0: Belief | Callable[[Filter], Belief], measu
             note = "; ".join(([note] if note else []) + [
                 "the observed information is not positive definite at the optimum (a parameter on a "
                 "boundary, or one the data do not identify): no standard errors"])
+    if bool(idle.any()):
+        note = "; ".join(([note] if note else []) + [
+            f"not estimated: {', '.join(n for n, u in zip(names, unest) if u)} (no datum touches them, e.g. "
+            "the start of a series without a finite measurement: the log-likelihood's gradient in them is 0 "
+            "at every point evaluated): reported NaN, left out of the information and of k (the filter and "
+            "belief0 keep their start values there)"])
     errors = cov.diagonal().clamp_min(0).sqrt()
     durations = []
     for b, u in zip(blocks, theta.split(sizes)):
@@ -398,6 +425,8 @@ def estimate(filter: Filter, belief0: Belief | Callable[[Filter], Belief], measu
             return (1 / (1 - P.diagonal(dim1=-2, dim2=-1))).reshape(-1)
         start = sum(sizes[:blocks.index(b)])
         d = duration(u)
+        d[[i for i in range(M) if f"{b.label}[{i},{i}]" in names
+           and unest[names.index(f"{b.label}[{i},{i}]")]]] = math.nan
         diagonal = [names.index(f"{b.label}[{i},{i}]") if f"{b.label}[{i},{i}]" in names else -1
                     for i in range(M)]
         if se and not math.isnan(float(theta_cov[start:start + u.numel()].sum())) \
@@ -420,7 +449,7 @@ def estimate(filter: Filter, belief0: Belief | Callable[[Filter], Belief], measu
         start_belief = held.build() if held is not None and given is not belief0 else given
     batch_dims = measurements.dim() - 2
     return Estimate(names=names, estimates=natural.tolist(), se=errors.tolist(), cov=cov, theta=theta,
-                    theta_cov=theta_cov, loglik=loglik, k=len(theta), nobs=_nobs(measurements, burn, batch_dims),
+                    theta_cov=theta_cov, loglik=loglik, k=len(theta) - int(idle.sum()), nobs=_nobs(measurements, burn, batch_dims),
                     converged=converged, iterations=int(getattr(result, "nit", 0)),
                     evaluations=evaluations[0], message=message, seconds=time.perf_counter() - tic,
                     method=method, durations=durations, note=note, belief0=start_belief)

@@ -23,6 +23,12 @@ gets standard errors only where it is a maximum for them: where one Newton step 
 no free value by more than :data:`NEWTON_RATIO` (1 %) of that value's standard error
 (:func:`newton_ratio`), the distance to the maximum is negligible against the errors (e.g. a fit started at
 the optimum with ``maxiter=1``); otherwise the errors are NaN, said so.
+
+A free value that no datum touches (the start mean of a series without a finite measurement) leaves the
+log-likelihood unchanged: its gradient is exactly 0 at every point and its row of the information too, which
+is then singular. :func:`untouched` finds such values (:attr:`Guarded.touched`: a gradient not 0 at some
+evaluation; and the Hessian's row and column exactly 0); :func:`~torchmm.learn.estimate` holds them out of
+the information and of ``k`` and reports them NaN, named in its note.
 """
 
 from __future__ import annotations
@@ -34,7 +40,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["NEWTON_RATIO", "Guarded", "newton_ratio"]
+__all__ = ["NEWTON_RATIO", "Guarded", "newton_ratio", "untouched"]
 
 #: the largest Newton step, in standard errors of each free value, at which a fit that did not converge
 #: still reports its standard errors (:func:`~torchmm.learn.estimate`)
@@ -54,6 +60,16 @@ def newton_ratio(hessian: Tensor, gradient: Tensor) -> float:
     return float((step.abs() / se).max()) if len(g) else 0.0
 
 
+def untouched(touched: np.ndarray, hessian: Tensor | None = None) -> Tensor:
+    """``(P,)`` bool: the free values no datum touches: a gradient exactly 0 at every evaluation
+    (``touched`` ``(P,)``: :attr:`Guarded.touched`) and, where given, a row and a column of ``hessian``
+    ``(P, P)`` exactly 0."""
+    idle = ~torch.from_numpy(np.asarray(touched, dtype=bool))
+    if hessian is not None:
+        idle &= (hessian == 0).all(-1) & (hessian == 0).all(-2)
+    return idle
+
+
 class Guarded:
     """``fun(x) -> (loss, gradient)`` (NumPy float64) for ``scipy.optimize.minimize(jac=True)`` with its
     non-finite answers replaced by a failed step (module docstring); pass :meth:`callback` as
@@ -61,13 +77,15 @@ class Guarded:
 
     Attributes:
         start: ``(x0, loss, gradient)`` of the first evaluation; best: the same of the lowest finite loss
-            evaluated; failed: the evaluations that were not finite (answered as failed steps).
+            evaluated; failed: the evaluations that were not finite (answered as failed steps); touched:
+            ``(P,)`` bool, the free values whose gradient was not 0 at some finite evaluation.
     """
 
     def __init__(self, fun: Callable[[np.ndarray], tuple[float, np.ndarray]]):
         self.fun = fun
         self.start = self.best = self.anchor = None
         self.failed = 0
+        self.touched = None
         self._since: dict[bytes, tuple] = {}  # the finite evaluations since the last iterate
 
     def __call__(self, x: np.ndarray) -> tuple[float, np.ndarray]:
@@ -79,6 +97,7 @@ class Guarded:
             if self.best is None or loss < self.best[1]:
                 self.best = point
             self._since[point[0].tobytes()] = point
+            self.touched = (point[2] != 0) | (False if self.touched is None else self.touched)
             return loss, grad
         if self.start is None:
             raise ValueError(f"parameters: the log-likelihood at the start values is {-loss} (its gradient "
