@@ -179,8 +179,12 @@ def fit_switching_em(est, scenario, block, z: Tensor, *, prior, update_first: bo
     except ValueError as err:  # a mask the model cannot take (a shared entry fixed in one regime only, ...)
         raise ConfigError("learn.parameters", block.parameters if isinstance(block.parameters, str) else "entries",
                           str(err)) from None
-    if ergodic:
-        est.init = start_function(est, scenario, True)
+    # the ergodic start of the estimated transition (a time-varying one's at the first step's controls, as
+    # fit_mle's); where the transition is not estimated the start stays as it was, and EM is exact
+    approximate = ergodic and "transition" in names
+    init = start_function(est, scenario, "transition" in names, controls)
+    if init is not None:
+        est.init = init
     if str(block.method) == "em_then_mle":
         mle = fit_mle(est, scenario, block, z, prior=prior, update_first=update_first, burn=burn, controls=controls,
                       progress=progress)
@@ -206,7 +210,7 @@ def fit_switching_em(est, scenario, block, z: Tensor, *, prior, update_first: bo
             "seconds": time.perf_counter() - tic,
             "note": "the ergodic start's dependence on the transition matrix is left out of EM's M-step "
                     "(statsmodels does the same): its fixed point is near, not at, the maximum; em_then_mle "
-                    "finishes it" if ergodic else "", "method": "em", "nll": [-v for v in out.loglik],
+                    "finishes it" if approximate else "", "method": "em", "nll": [-v for v in out.loglik],
             "through": est.name, "em": out.loglik}
 
 

@@ -268,3 +268,38 @@ def test_em_from_config_with_learn_auto(tmp_path, switches, statsmodels_kw):
     both = _run(_compose(data, *switches, "learn.method=em_then_lbfgs", "+learn.iterations=5"), tmp_path / "both")
     fit = dict(zip(both["tables"]["fit"]["columns"], both["tables"]["fit"]["rows"][0]))
     assert fit["loglik"] == pytest.approx(ref.llf, abs=1e-4) and fit["k"] == len(ref.params)
+
+
+def test_em_alone_of_time_varying_transition_probabilities_from_config(tmp_path):
+    """scenario.tvtp with learn.method=em (EM alone): before, the fit ended in a traceback after EM (the
+    ergodic start of the time-varying transition was rebuilt without the controls, ``transition.at(None)``)
+    and the output folder held run.log only. Now the study reports EM's estimates, without errors, and
+    statsmodels' log-likelihood at those estimates is the one reported (1e-6)."""
+    ff, ogap = _statsmodels_test_data("fedfunds", "ogap")
+    y, gap = ff[4:], ogap[4:]
+    path = tmp_path / "tvtp.csv"
+    path.write_text("y,ogap\n" + "".join(f"{float(a)!r},{float(b)!r}\n" for a, b in zip(y, gap)))
+    res = _run(_compose(f"scenario.data={{path:{path},measurements:[y],inputs:null}}", "scenario.tvtp=[ogap]",
+                        "learn.method=em", "+learn.iterations=3"), tmp_path / "run")
+    est = _learned(res)
+    order = ["p[0->0].const", "p[1->0].const", "p[0->0].ogap", "p[1->0].ogap", "const[0]", "const[1]", "sigma2[0]",
+             "sigma2[1]"]
+    params = np.array([est[k][0] for k in order])
+    assert np.isfinite(params).all() and all(est[k][1] is None for k in order)
+    fit = dict(zip(res["tables"]["fit"]["columns"], res["tables"]["fit"]["rows"][0]))
+    model = sm.tsa.MarkovRegression(y, k_regimes=2, exog_tvtp=np.c_[np.ones(len(y)), gap], switching_variance=True)
+    assert fit["loglik"] == pytest.approx(model.loglike(params), abs=1e-6)
+    assert fit["k"] == 8 and fit["iterations"] == 3
+
+
+@pytest.mark.parametrize("transition", [False, True], ids=["transition-fixed", "transition-estimated"])
+def test_em_note_on_the_ergodic_start_only_where_the_transition_is_estimated(tmp_path, transition):
+    """learn.method=em on the (ergodic-start) Fed funds study: the note that EM leaves out the ergodic start's
+    dependence on the transition matrix (its fixed point near, not at, the maximum) only where the transition
+    is estimated; before, it was written whenever the start was ergodic, also where EM is exact."""
+    entries = ([{"name": "transition"}] if transition else []) + [{"model": "sensors", "name": "H"},
+                                                                  {"model": "sensors", "name": "R"}]
+    listed = ",".join("{" + ",".join(f"{k}:{v}" for k, v in e.items()) + "}" for e in entries)
+    _run(_compose(f"learn.parameters=[{listed}]", "learn.method=em", "+learn.iterations=2"), tmp_path / "run")
+    notes = (tmp_path / "run" / "results.md").read_text()
+    assert "Learned by" in notes and ("ergodic start's dependence" in notes) == transition
