@@ -289,9 +289,12 @@ def gaussian_modes(trajectory: Trajectory, materialize: bool = True) -> ModeBeli
     they are)."""
     filtered = trajectory.belief
     if type(filtered) is not ModeBelief or not isinstance(filtered.components, GaussianBelief):
-        raise TypeError(f"trajectory.belief: the multiple-model smoothers need a ModeBelief of Gaussian modes, got "
-                        f"{type(filtered).__name__}" + ("" if type(filtered) is not ModeBelief else
-                                                        f" of {type(filtered.components).__name__}"))
+        got = type(filtered).__name__ + ("" if type(filtered) is not ModeBelief else
+                                         f" of {type(filtered.components).__name__}")
+        why = ("; run_filter(..., record='estimate') keeps only the combined estimate: smooth a run that "
+               "keeps its beliefs (record=None, the default)" if isinstance(filtered, GaussianBelief) else "")
+        raise TypeError("trajectory.belief: the multiple-model smoothers need a ModeBelief of Gaussian "
+                        f"modes, got {got}{why}")
     components = filtered.components
     return ModeBelief(filtered.mode_log_probs, components.materialize() if materialize else components)
 

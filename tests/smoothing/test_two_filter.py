@@ -309,6 +309,12 @@ def test_clear_errors():
         smooth(mm, traj, z.float())
     with pytest.raises(ValueError, match="method: expected 'two_filter', 'kim' or 'two_filter_info'"):
         smooth(mm, traj, z, method="rts")
+    estimate_only = run_filter(mm, mm.initial_belief(belief0), z, record="estimate")
+    why = (r"GaussianBelief; run_filter\(..., record='estimate'\) keeps only the combined estimate: smooth a "
+           r"run that keeps its beliefs")
+    for method in ("two_filter", "kim", "two_filter_info"):
+        with pytest.raises(TypeError, match=why):
+            smooth(estimate_only, method=method)
     kf = KalmanFilter(ConstantVelocity(1, q=0.1, dtype=D), sensor)
     with pytest.raises(ValueError, match="method: only multiple-model filters"):
         smooth(kf, run_filter(kf, belief0, z), method="kim")
