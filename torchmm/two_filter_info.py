@@ -35,15 +35,12 @@ from torchmm.two_filter import gaussian_modes, mode_trajectory, two_filter_measu
 if TYPE_CHECKING:
     from torchmm.multimodel.imm import MultipleModelFilter
 
-__all__ = ["GUARD", "info_fuse", "info_measurements", "info_mixture", "info_predict",
-           "smooth_two_filter_info"]
+__all__ = ["info_fuse", "info_measurements", "info_mixture", "info_predict",
+           "proper_log_det", "reference_root", "smooth_two_filter_info"]
 
-#: The guard on the divided-out information (docs/smoothing.md): its eigenvalues relative to the
-#: reference's information, ``eig(L^T Omega L)`` with ``G = L L^T``, are floored at ``-GUARD`` (they are
-#: above -1 by construction; near -1 the backward likelihood is far broader than the reference along a
-#: direction and its fusions lose precision), ``lambda`` refitted so that the likelihood's mean under the
-#: reference is kept.
-GUARD = 0.5
+#: The reference's eigenvalues are floored at ``eps ** REFERENCE_FLOOR_POWER`` times its largest
+#: (:func:`reference_root`)
+REFERENCE_FLOOR_POWER = 0.25
 
 
 def _mv(A: Tensor, v: Tensor) -> Tensor:
@@ -52,6 +49,23 @@ def _mv(A: Tensor, v: Tensor) -> Tensor:
 
 def _dot(a: Tensor, b: Tensor) -> Tensor:
     return (a * b).sum(-1)
+
+
+def proper_log_det(LU: Tensor, pivots: Tensor) -> Tensor:
+    """``log det A`` from ``torch.linalg.lu_factor_ex``'s ``(LU, pivots)`` where ``det A > 0``, NaN where
+    not: the fusions' ``I + Omega Q`` and ``I + S Omega`` have real eigenvalues of at least 1 when ``Omega``
+    is positive semi-definite (:func:`info_mixture` keeps it so); a determinant of the wrong sign means a
+    divergent fusion, and its NaN reaches the run's smoothed belief (``extras["failed"]``) instead of a
+    number.
+
+    Shapes:
+        LU ``(*B, n, n)``, pivots ``(*B, n)`` -> ``(*B,)``
+    """
+    diag = LU.diagonal(dim1=-2, dim2=-1)
+    swaps = (pivots != torch.arange(1, pivots.shape[-1] + 1, device=pivots.device)).sum(-1)
+    negative = ((diag < 0).sum(-1) + swaps) % 2 == 1
+    log_det = diag.abs().log().sum(-1)
+    return torch.where(negative | (diag == 0).any(-1), torch.nan, log_det)
 
 
 def info_measurements(H: Tensor, R: Tensor, z: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -92,7 +106,7 @@ def info_predict(Omega: Tensor, omega: Tensor, lam: Tensor, F: Tensor, Q: Tensor
     LU, pivots, _ = torch.linalg.lu_factor_ex(eye + Omega @ Q)
     solved = torch.linalg.lu_solve(LU, pivots, torch.cat([Omega, omega.unsqueeze(-1)], dim=-1))
     Op, op = symmetrize(solved[..., :-1]), solved[..., -1]
-    log_det = LU.diagonal(dim1=-2, dim2=-1).abs().log().sum(-1)
+    log_det = proper_log_det(LU, pivots)
     lam = (lam + 0.5 * _dot(omega, _mv(Q, op)) - 0.5 * log_det - 0.5 * _dot(offset, _mv(Op, offset))
            + _dot(op, offset))
     return symmetrize(F.mT @ Op @ F), _mv(F.mT, op - _mv(Op, offset)), lam
@@ -114,24 +128,54 @@ def info_fuse(mean: Tensor, cov: Tensor, Omega: Tensor, omega: Tensor,
     Sf = symmetrize(torch.linalg.lu_solve(LU, pivots, cov.expand_as(A)))
     r = omega - _mv(Omega, mean)
     Sr = _mv(Sf, r)
-    log_det = LU.diagonal(dim1=-2, dim2=-1).abs().log().sum(-1)
+    log_det = proper_log_det(LU, pivots)
     ll = lam - 0.5 * _dot(mean, _mv(Omega, mean)) + _dot(omega, mean) + 0.5 * _dot(r, Sr) - 0.5 * log_det
     return ll, mean + Sr, Sf
+
+
+def reference_root(cov: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    r"""The reference covariance used by :func:`info_mixture`, ``G' = W W^T``, with its symmetric root ``W``
+    and ``W^{-1}``: ``G``'s eigenvalues below ``c * max eig(G)`` raised to it (``c = eps ** 0.25``: 1.2e-4 in
+    float64, 0.019 in float32), the identity where ``G`` is zero.
+
+    The forward filter's collapsed covariance ``G`` is singular wherever a state component is known exactly
+    (a constant 1 in the state, a mode with a zero row of ``F`` and no noise there): such a reference
+    cannot be divided out of the mixture. Any proper density serves (it cancels exactly for one mode and for
+    identical modes and only decides where the mixture is moment-matched), so ``G`` is kept where it is
+    well conditioned and raised only where it is not. The division is done relative to the reference
+    (:func:`info_mixture`), where the whitened mixture ``W^{-1} C W^{-T}`` carries relative rounding of
+    about ``eps / c = eps ** 0.75`` (3e-12 in float64, 6e-6 in float32); in float64 the floor leaves every
+    case of docs/smoothing.md's table unchanged.
+
+    Shapes:
+        cov ``(*B, n, n)`` -> ``G'``, ``W``, ``W^{-1}``, each ``(*B, n, n)``
+    """
+    e, U = torch.linalg.eigh(symmetrize(cov))
+    top = e.amax(-1, keepdim=True)
+    floor = torch.where(top > 0, top * torch.finfo(cov.dtype).eps ** REFERENCE_FLOOR_POWER, 1.0)
+    e = torch.where(top > 0, e.maximum(floor), 1.0)
+    root = e.sqrt()
+    W = U * root.unsqueeze(-2)
+    return symmetrize(W @ W.mT), W, U.mT / root.unsqueeze(-1)
 
 
 def info_mixture(log_weights: Tensor, reference: GaussianBelief, Omega: Tensor, omega: Tensor,
                  lam: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     r"""``sum_i w_ji beta^i(x)`` for every ``j`` as one information form, through the reference
-    ``N(g, G)``: each ``N(g, G) beta^i = exp(l_i) N(f_i, S_i)`` (:func:`info_fuse`), the mixture
-    ``sum_i w_ji exp(l_i) N(f_i, S_i) ~ exp(c_j) N(a_j, C_j)`` moment-matched, divided by ``N(g, G)``:
-    ``Omega_j = C_j^{-1} - G^{-1}``, ``omega_j = C_j^{-1} a_j - G^{-1} g`` (eigenvalues relative to
-    ``G^{-1}`` floored at ``-GUARD``), ``lambda_j`` such that ``E_{N(g, G)}[beta_j] = exp(c_j)``.
+    ``N(g, G)`` (``G`` conditioned by :func:`reference_root`): each ``N(g, G) beta^i = exp(l_i) N(f_i, S_i)``
+    (:func:`info_fuse`), the mixture ``sum_i w_ji exp(l_i) N(f_i, S_i) ~ exp(c_j) N(a_j, C_j)``
+    moment-matched, divided by ``N(g, G)``: ``Omega_j = C_j^{-1} - G^{-1}`` and, about the reference's
+    mean, ``omega_j = C_j^{-1} (a_j - g) + Omega_j g``; ``Omega_j``'s negative eigenvalues relative to
+    ``G^{-1}`` (``eig(W^T Omega_j W)``, ``G = W W^T``; above -1 by construction) set to 0, which keeps every
+    later fusion proper (:func:`proper_log_det`); ``lambda_j`` such that ``E_{N(g, G)}[beta_j] = exp(c_j)``.
+    The difference of inverses is taken whitened, ``(W^{-1} C_j W^{-T})^{-1} - I``.
 
     Shapes:
         log_weights ``(j, i)`` (or ``(*B, j, i)``); reference batch ``(*B,)``; Omega ``(*B, i, n, n)``,
         omega ``(*B, i, n)``, lam ``(*B, i)`` -> ``(*B, j, n, n)``, ``(*B, j, n)``, ``(*B, j)``
     """
-    g, G = reference.mean, reference.cov
+    g = reference.mean
+    G, _, Winv = reference_root(reference.cov)
     ll, f, S = info_fuse(g.unsqueeze(-2), G.unsqueeze(-3), Omega, omega, lam)  # (*B, i)
     log_w = log_weights + ll.unsqueeze(-2)  # (*B, j, i)
     c = torch.logsumexp(log_w, dim=-1)
@@ -139,17 +183,17 @@ def info_mixture(log_weights: Tensor, reference: GaussianBelief, Omega: Tensor, 
     n = g.shape[-1]
     pairs = GaussianBelief(f.unsqueeze(-3).expand(*w.shape, n), S.unsqueeze(-4).expand(*w.shape, n, n))
     mixed = pairs.collapse(w)
-    Lc, LG = cholesky(mixed.cov), cholesky(G).unsqueeze(-3)
-    Ci, Gi = torch.cholesky_inverse(Lc), torch.cholesky_inverse(LG)
-    Om = symmetrize(Ci - Gi)
-    om = _mv(Ci, mixed.mean) - _mv(Gi, g.unsqueeze(-2))
-    white = symmetrize(LG.mT @ Om @ LG)  # relative to the reference's information
-    ev, V = torch.linalg.eigh(white)
-    Linv = torch.linalg.solve_triangular(LG, torch.eye(n, dtype=g.dtype, device=g.device), upper=False)
-    root = V.mT @ Linv  # Om = root^T diag(ev) root
-    Om = symmetrize(root.mT @ (ev.clamp_min(-GUARD).unsqueeze(-1) * root))
+    Winv = Winv.unsqueeze(-3)
+    Cw = symmetrize(Winv @ mixed.cov @ Winv.mT)  # the mixture relative to the reference
+    Cwi = torch.cholesky_inverse(cholesky(Cw))
+    eye = torch.eye(n, dtype=g.dtype, device=g.device)
+    ev, V = torch.linalg.eigh(symmetrize(Cwi - eye))  # W^T Omega W
+    root = V.mT @ Winv  # Omega = root^T diag(ev) root
+    Om = symmetrize(root.mT @ (ev.clamp_min(0.0).unsqueeze(-1) * root))
+    gj = g.unsqueeze(-2)
+    om = _mv(Winv.mT @ Cwi, _mv(Winv, mixed.mean - gj)) + _mv(Om, gj)
     zero = torch.zeros_like(c)
-    lam = c - info_fuse(g.unsqueeze(-2), G.unsqueeze(-3), Om, om, zero)[0]
+    lam = c - info_fuse(gj, G.unsqueeze(-3), Om, om, zero)[0]
     return Om, om, lam
 
 
@@ -170,6 +214,12 @@ def linear_bank(filter: MultipleModelFilter, motions: Any, sensors: Any, control
                          f"{type(filter).__name__}: {why}. Use method='two_filter' or 'kim'")
     M = filter.num_modes
     F, b, Q, H, R = (t.expand(M, *t.shape[-e:]) for t, e in zip(tuple(model)[:5], (2, 1, 2, 2, 2)))
+    singular = cholesky(R, with_flag=True)[1]  # one host read, at entry
+    if bool(singular.any()):
+        raise ValueError(f"method: 'two_filter_info' needs a positive definite measurement covariance R (a "
+                         f"noise-free component has infinite information, which its information form cannot "
+                         f"carry); mode {int(singular.nonzero()[0, 0])}'s is singular. Use method='kim' or "
+                         f"'two_filter'")
     G = None if model.G is None or controls is None else model.G.expand(M, *model.G.shape[-2:])
     return F, b, Q, H, R, G
 
@@ -177,7 +227,9 @@ def linear_bank(filter: MultipleModelFilter, motions: Any, sensors: Any, control
 def smooth_two_filter_info(filter: MultipleModelFilter, trajectory: Trajectory, measurements: Tensor,
                            controls, motions, sensors, padding: Tensor | None = None) -> Trajectory:
     """``smooth(..., method="two_filter_info")``: the backward pass of the module docstring.
-    ``padding (T, *B)`` bool: True after a run's last step (its backward filter starts there)."""
+    ``padding (T, *B)`` bool: True after a run's last step (its backward filter starts there, and its
+    controls there are not read). The result's ``extras["failed"] (*B,)`` is True for a run whose smoothed
+    belief has a NaN (a failed forward run, or a fusion that came out improper: :func:`proper_log_det`)."""
     filtered = gaussian_modes(trajectory)
     comps = filtered.components
     steps = filtered.batch_shape[0]
@@ -190,9 +242,9 @@ def smooth_two_filter_info(filter: MultipleModelFilter, trajectory: Trajectory, 
     for k in range(steps - 2, -1, -1):  # the prediction k -> k+1 used controls[k+1]
         offset = b if G is None else b + _mv(G, controls[k + 1].unsqueeze(-2))
         if padding is not None:  # a run whose step k+1 is padding ends at k: nothing comes back from k+1
-            end = padding[k + 1]
-            Om, om, lam = (torch.where(end.view(*end.shape, *[1] * (t.dim() - end.dim())), 0.0, t)
-                           for t in (Om, om, lam))
+            end = padding[k + 1]  # (and its controls there, NaN padding perhaps, move nothing)
+            Om, om, lam, offset = (torch.where(end.view(*end.shape, *[1] * (t.dim() - end.dim())), 0.0, t)
+                                   for t in (Om, om, lam, offset.expand(*end.shape, *offset.shape[-2:])))
         Om, om, lam = info_predict(Om, om, lam - lam.amax(-1, keepdim=True), F, Q, offset)  # beta~_{k+1}
         ll, mean, cov = info_fuse(comps.mean[k].unsqueeze(-2), comps.cov[k].unsqueeze(-3),
                                   Om.unsqueeze(-4), om.unsqueeze(-3), lam.unsqueeze(-2))  # (*B, j, i)
@@ -208,4 +260,8 @@ def smooth_two_filter_info(filter: MultipleModelFilter, trajectory: Trajectory, 
         if k > 0:
             Om, om, lam = info_mixture(log_pi, filtered[k].estimate(), Om, om, lam)
             Om, om, lam = Om + Omz[k], om + omz[k], lam + lamz[k]
-    return mode_trajectory(smoothed[::-1], trajectory)
+    out = mode_trajectory(smoothed[::-1], trajectory)
+    belief = out.belief  # a divergent fusion (proper_log_det) or a failed forward run: NaN, flagged
+    failed = (belief.mode_log_probs.isnan().any(-1) | belief.estimate().mean.isnan().any(-1)).any(0)
+    return Trajectory(belief=belief, prior=None, log_likelihood=out.log_likelihood, innovation=None,
+                      innovation_cov=None, extras={"failed": failed})
