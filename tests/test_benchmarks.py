@@ -255,3 +255,14 @@ def test_tracking_scale_benchmark_runs():
     assert all(0 < g < 20.0 for g in few), few  # 3 targets, little clutter: every method tracks (~10 m)
     assert all(0 < g <= 30.0 * 13**0.5 for g in many), many  # (GOSPA's bound with 13 targets and 13 tracks)
     assert re.fullmatch(r"cells=2 best=[A-Za-z_-]+", proc.stdout.strip().splitlines()[-1])
+
+
+def test_smoother_accuracy_benchmark_runs():
+    """benchmarks/smoother_accuracy.py (docs/smoothing.md's table) on two tiny cases: a row per case with the
+    three smoothers' errors against the exact smoother, and its last line."""
+    proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "smoother_accuracy.py"), "--cases", "q 6 3 0 0.9",
+                           "ct 5 2 1"], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    rows = re.findall(r"^\| (q 6 3 0 0.9|ct 5 2 1) \| ([0-9.]+) \| ([0-9.]+) \| ([0-9.]+) \|$", proc.stdout, re.M)
+    assert len(rows) == 2, proc.stdout
+    assert re.fullmatch(r"worst_ratio_info_vs_kim=[0-9.]+", proc.stdout.strip().splitlines()[-1])
