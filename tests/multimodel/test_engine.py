@@ -59,8 +59,10 @@ def test_paper000_estimators_over_a_particle_bank(name):
     pf = ParticleFilter(kf.motion, kf.measurement, num_particles=4000, ess_threshold=0.5)
     estimator = all_estimators(pf, P, source)[name]
     a = _run(estimator, prior, z, generator=torch.Generator().manual_seed(3))
-    b = _run(estimator, prior, z, generator=torch.Generator().manual_seed(3))
-    torch.testing.assert_close(a.estimate().mean, b.estimate().mean, rtol=0, atol=0)  # randomness per call
+    # randomness per call: the same generator state gives the same run (its first 5 steps, run again alone)
+    first = torch.utils._pytree.tree_map(lambda t: t[:5], z)  # (the streams of paper 000's measurements)
+    b = _run(estimator, prior, first, generator=torch.Generator().manual_seed(3))
+    torch.testing.assert_close(a.estimate().mean[:5], b.estimate().mean, rtol=0, atol=0)
     reference = _run(all_estimators(kf, P, source)[name], prior, z).estimate()
     got = a.estimate()
     assert torch.isfinite(got.mean).all() and torch.isfinite(got.cov).all()
