@@ -25,12 +25,17 @@ import os
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import argparse
+import sys
+from pathlib import Path
 
 import torch
 
 from torchmm import IMM, GaussianBelief, KalmanFilter, LinearMotion, run_filter, smooth
 from torchmm.models import ConstantVelocity, CoordinatedTurn, PositionMeasurement
 from torchmm.simulate import simulate_jump_system, simulate_measurements
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # (the enumeration of tests/reference)
+from tests.reference.jump_enumeration import exact_moments  # noqa: E402
 
 CASES = ("ct 9 10 1", "ct 9 10 2", "ct 8 10 3", "ctq 10 10 0 0.9", "q 8 20 0 0.9", "q 10 20 0 0.95",
          "acc 11 12 0")
@@ -73,38 +78,13 @@ def setup(case: str, steps: int, runs: int, seed: int, stay: float = 0.9):
     return bank, sensor, transition, mu0, start, z
 
 
-def exact(motion, sensor, transition, mu0, belief0, z):
-    """The exact smoother's mean ``(T, runs, n)`` and covariance ``(T, runs, n, n)``: every mode sequence's
-    Kalman (RTS) smoother, weighted by the sequence's prior (the start ``mu0`` one step before the first
-    datum, as the IMM's) and marginal likelihood."""
-    steps, runs = z.shape[:2]
-    M, n = transition.shape[0], belief0.state_dim
-    seqs = torch.cartesian_prod(*[torch.arange(M)] * steps).reshape(-1, steps)
-    S = seqs.shape[0]
-    log_prior = torch.logsumexp(mu0.log().unsqueeze(1) + transition.log()[:, seqs[:, 0]], 0)
-    for k in range(1, steps):
-        log_prior = log_prior + transition.log()[seqs[:, k - 1], seqs[:, k]]
-    F, Q, b = motion.F.expand(M, n, n), motion.Q.expand(M, n, n), motion.offset.expand(M, n)
-    motions = [LinearMotion(F[seqs[:, k]].unsqueeze(1), Q[seqs[:, k]].unsqueeze(1), b[seqs[:, k]].unsqueeze(1))
-               for k in range(steps)]
-    kf = KalmanFilter(motions[0], sensor)
-    start = GaussianBelief(belief0.mean.expand(S, runs, n), belief0.cov.expand(S, runs, n, n))
-    traj = run_filter(kf, start, z.unsqueeze(1).expand(steps, S, runs, z.shape[-1]), motions=motions)
-    weight = (log_prior.unsqueeze(1) + traj.log_likelihood.sum(0)).softmax(0)  # (S, runs)
-    sm = smooth(kf, traj, motions=motions).belief
-    mean = (weight.unsqueeze(-1) * sm.mean).sum(1)
-    d = sm.mean - mean.unsqueeze(1)
-    cov = (weight[..., None, None] * (sm.cov + d.unsqueeze(-1) * d.unsqueeze(-2))).sum(1)
-    return mean, cov
-
-
 def errors(case: str) -> dict[str, float]:
     """``{method: mean |error| / exact sd}`` of one case (``name T runs seed [stay]``)."""
     parts = case.split()
     bank, sensor, transition, mu0, start, z = setup(parts[0], *map(int, parts[1:4]), *map(float, parts[4:]))
     imm = IMM(KalmanFilter(bank, sensor), transition)
     traj = run_filter(imm, imm.initial_belief(start, mu0), z)
-    mean, cov = exact(bank, sensor, transition, mu0, start, z)
+    mean, cov, _ = exact_moments(bank, sensor, transition, mu0, start, z)
     sd = cov.diagonal(dim1=-2, dim2=-1).sqrt()
     return {m: float(((smooth(traj, method=m).belief.estimate().mean - mean).abs() / sd)[:-1].mean())
             for m in METHODS}

@@ -14,34 +14,11 @@ from torchmm import (GPB1, GPB2, IMM, ExtendedKalmanFilter, GaussianBelief, Kalm
 from torchmm.models import ConstantVelocity, CoordinatedTurn, PositionMeasurement
 from torchmm.simulate import simulate_jump_system, simulate_measurements
 
+from tests.reference.jump_enumeration import exact_moments
 from tests.smoothing.test_two_filter import _linear, _maneuvering
 
 D = torch.float64
 INFO = "two_filter_info"
-
-
-def _exact_moments(motion, sensor, transition, mu0, belief0, z):
-    """The exact posterior mean, covariance and mode probabilities, enumerating every mode sequence (the
-    brute force of tests/smoothing/test_two_filter.py, with the mixture's covariance)."""
-    steps, runs = z.shape[:2]
-    M, n = transition.shape[0], belief0.state_dim
-    seqs = torch.cartesian_prod(*[torch.arange(M)] * steps)
-    S = seqs.shape[0]
-    log_prior = torch.logsumexp(mu0.log().unsqueeze(1) + transition.log()[:, seqs[:, 0]], 0)
-    for k in range(1, steps):
-        log_prior = log_prior + transition.log()[seqs[:, k - 1], seqs[:, k]]
-    F, Q, off = motion.F.expand(M, n, n), motion.Q.expand(M, n, n), motion.offset.expand(M, n)
-    motions = [LinearMotion(F[s].unsqueeze(1), Q[s].unsqueeze(1), off[s].unsqueeze(1)) for s in seqs.T]
-    kf = KalmanFilter(motions[0], sensor)
-    b0 = GaussianBelief(belief0.mean.expand(S, runs, n), belief0.cov.expand(S, runs, n, n))
-    traj = run_filter(kf, b0, z.unsqueeze(1).expand(steps, S, runs, z.shape[-1]), motions=motions)
-    post = (log_prior.unsqueeze(1) + traj.log_likelihood.sum(0)).softmax(0)  # (S, runs)
-    sm = smooth(kf, traj, motions=motions).belief
-    mean = (post.unsqueeze(-1) * sm.mean).sum(1)
-    d = sm.mean - mean.unsqueeze(1)
-    cov = (post[..., None, None] * (sm.cov + d.unsqueeze(-1) * d.unsqueeze(-2))).sum(1)
-    probs = torch.stack([(post.unsqueeze(0) * (seqs.T.unsqueeze(-1) == j)).sum(1) for j in range(M)], -1)
-    return mean, cov, probs
 
 
 def _case(name, steps, runs, seed):
@@ -77,7 +54,7 @@ def _errors(name, steps, runs, seed, missing=()):
     bank, sensor, transition, mu0, belief0, z = _case(name, steps, runs, seed)
     for index in missing:
         z[index] = float("nan")
-    mean, cov, probs = _exact_moments(bank, sensor, transition, mu0, belief0, z)
+    mean, cov, probs = exact_moments(bank, sensor, transition, mu0, belief0, z)
     sd = cov.diagonal(dim1=-2, dim2=-1).sqrt()
     imm = IMM(KalmanFilter(bank, sensor), transition)
     traj = run_filter(imm, imm.initial_belief(belief0, mu0), z)
