@@ -9,7 +9,7 @@ from torch import Tensor
 
 from torchmm.linalg import psd_sqrt, symmetrize
 
-__all__ = ["symmetrize", "mix_gaussians", "normalize_log_probs", "psd_sqrt", "safe_log_normalize"]
+__all__ = ["symmetrize", "mix_gaussians", "normalize_log_probs", "psd_sqrt", "safe_log_normalize", "dead_safe_logsumexp"]
 
 
 def normalize_log_probs(log_probs: Tensor, dim: int = -1) -> Tensor:
@@ -48,6 +48,15 @@ def mix_gaussians(mean: Tensor, cov: Tensor, weights: Tensor) -> tuple[Tensor, T
     diff = mean.unsqueeze(-3) - mixed_mean.unsqueeze(-2)  # (*B, J, K, n)
     spread = (diff * wt.unsqueeze(-1)).mT @ diff
     return mixed_mean, mixed_cov + spread
+
+
+def dead_safe_logsumexp(x: Tensor, dim: int) -> Tensor:
+    """``torch.logsumexp(x, dim)``, the same values, whose gradient is 0 (not NaN) where every entry along ``dim``
+    is ``-inf`` (a mode no run can reach: logsumexp's backward ``exp(x - out)`` is ``exp(-inf + inf) = NaN``
+    there, and it reached every parameter of the live modes; tests/kernels/test_unreachable_mode.py)."""
+    dead = torch.isneginf(x).all(dim, keepdim=True)
+    out = torch.logsumexp(torch.where(dead, 0.0, x), dim)
+    return torch.where(dead.squeeze(dim), -math.inf, out)
 
 
 def safe_log_normalize(joint: Tensor, norm: Tensor) -> Tensor:

@@ -11,7 +11,7 @@ from torch import Tensor
 
 import torchmm.kernels as kernels
 from torchmm.beliefs import ModeBelief
-from torchmm.beliefs.ops import safe_log_normalize
+from torchmm.beliefs.ops import dead_safe_logsumexp, safe_log_normalize
 from torchmm.filters.base import StepOutput
 from torchmm.multimodel.interaction import NoInteraction, flag_run_failed, mode_batch, mode_extras
 from torchmm.multimodel.imm import MultipleModelFilter
@@ -103,7 +103,7 @@ class GPB2(MultipleModelFilter):
                                generator=generator)
         prior_joint = belief.mode_log_probs.unflatten(-1, (M, M))
         joint = out.log_likelihood + prior_joint  # log w_ij
-        log_mode = torch.logsumexp(joint, dim=-2)  # (*B, j): unnormalised log mu_j
+        log_mode = dead_safe_logsumexp(joint, -2)  # (*B, j): unnormalised log mu_j (a dead j: no NaN gradient)
         log_likelihood = torch.logsumexp(log_mode, dim=-1)
         merge_weights = safe_log_normalize(joint, log_mode.unsqueeze(-2))  # mu_{i|j}, (*B, i, j)
         merged = out.belief.transpose_batch(-1, -2).collapse(merge_weights.mT.exp())  # (*B, j)

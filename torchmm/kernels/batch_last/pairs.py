@@ -34,6 +34,7 @@ import torch
 from torch import Tensor
 
 from torchmm.beliefs import GaussianBelief, ModeBelief
+from torchmm.beliefs.ops import dead_safe_logsumexp
 from torchmm.typing import StepOutput
 from torchmm.kernels.batch_last.algebra import collapse_entries, log_normalized, moments, stack_upper
 from torchmm.kernels.batch_last.bank import LinearBank
@@ -98,7 +99,7 @@ class BatchLastGPB2(Frame):
         xu, Cu, ll, singular, s_first = bank.update(xp, Pp, zc, ob, nhob, like, keep_extras)
         # log w_ij, log mu_j (unnormalised), the log-likelihood, merge weights and mode posterior
         joint = ll + prior_joint  # (i, j, *B)
-        log_mode = torch.logsumexp(joint, 0)  # (j, *B)
+        log_mode = dead_safe_logsumexp(joint, 0)  # (j, *B) (a dead j: no NaN gradient)
         total = torch.logsumexp(log_mode, 0)  # (*B,)
         merge = log_normalized(joint, log_mode.unsqueeze(0), self.M).exp()
         new_log_mu = log_normalized(log_mode, total.unsqueeze(0), self.M)
