@@ -28,7 +28,8 @@ from torch import Tensor
 import torchmm.kernels as kernels
 from torchmm.beliefs import GaussianBelief, ModeBelief, symmetrize, where
 from torchmm.beliefs.ops import safe_log_normalize
-from torchmm.linalg import cholesky
+from torchmm.linalg import cholesky, half_log_det
+from torchmm.models.linear import matvec
 from torchmm.run import Trajectory
 from torchmm.two_filter import gaussian_modes, mode_trajectory, two_filter_measurements
 
@@ -41,10 +42,6 @@ __all__ = ["info_fuse", "info_measurements", "info_mixture", "info_predict",
 #: The reference's eigenvalues are floored at ``eps ** REFERENCE_FLOOR_POWER`` times its largest
 #: (:func:`reference_root`)
 REFERENCE_FLOOR_POWER = 0.25
-
-
-def _mv(A: Tensor, v: Tensor) -> Tensor:
-    return (A @ v.unsqueeze(-1)).squeeze(-1)
 
 
 def _dot(a: Tensor, b: Tensor) -> Tensor:
@@ -86,9 +83,9 @@ def info_measurements(H: Tensor, R: Tensor, z: Tensor) -> tuple[Tensor, Tensor, 
     y = torch.where(seen, z, 0.0)
     Hm = torch.where(seen.unsqueeze(-1), H, 0.0)
     HtRi = Hm.mT @ Ri
-    log_det = 2 * L.diagonal(dim1=-2, dim2=-1).log().sum(-1)  # log det R_oo (the identity block adds 0)
-    lam = -0.5 * (_dot(y, _mv(Ri, y)) + log_det + seen.sum(-1).to(z.dtype) * math.log(2 * math.pi))
-    return symmetrize(HtRi @ Hm), _mv(HtRi, y), lam
+    log_det = 2 * half_log_det(L)  # log det R_oo (the identity block adds 0)
+    lam = -0.5 * (_dot(y, matvec(Ri, y)) + log_det + seen.sum(-1).to(z.dtype) * math.log(2 * math.pi))
+    return symmetrize(HtRi @ Hm), matvec(HtRi, y), lam
 
 
 def info_predict(Omega: Tensor, omega: Tensor, lam: Tensor, F: Tensor, Q: Tensor,
@@ -107,9 +104,9 @@ def info_predict(Omega: Tensor, omega: Tensor, lam: Tensor, F: Tensor, Q: Tensor
     solved = torch.linalg.lu_solve(LU, pivots, torch.cat([Omega, omega.unsqueeze(-1)], dim=-1))
     Op, op = symmetrize(solved[..., :-1]), solved[..., -1]
     log_det = proper_log_det(LU, pivots)
-    lam = (lam + 0.5 * _dot(omega, _mv(Q, op)) - 0.5 * log_det - 0.5 * _dot(offset, _mv(Op, offset))
+    lam = (lam + 0.5 * _dot(omega, matvec(Q, op)) - 0.5 * log_det - 0.5 * _dot(offset, matvec(Op, offset))
            + _dot(op, offset))
-    return symmetrize(F.mT @ Op @ F), _mv(F.mT, op - _mv(Op, offset)), lam
+    return symmetrize(F.mT @ Op @ F), matvec(F.mT, op - matvec(Op, offset)), lam
 
 
 def info_fuse(mean: Tensor, cov: Tensor, Omega: Tensor, omega: Tensor,
@@ -126,10 +123,10 @@ def info_fuse(mean: Tensor, cov: Tensor, Omega: Tensor, omega: Tensor,
     A = eye + cov @ Omega
     LU, pivots, _ = torch.linalg.lu_factor_ex(A)
     Sf = symmetrize(torch.linalg.lu_solve(LU, pivots, cov.expand_as(A)))
-    r = omega - _mv(Omega, mean)
-    Sr = _mv(Sf, r)
+    r = omega - matvec(Omega, mean)
+    Sr = matvec(Sf, r)
     log_det = proper_log_det(LU, pivots)
-    ll = lam - 0.5 * _dot(mean, _mv(Omega, mean)) + _dot(omega, mean) + 0.5 * _dot(r, Sr) - 0.5 * log_det
+    ll = lam - 0.5 * _dot(mean, matvec(Omega, mean)) + _dot(omega, mean) + 0.5 * _dot(r, Sr) - 0.5 * log_det
     return ll, mean + Sr, Sf
 
 
@@ -191,7 +188,7 @@ def info_mixture(log_weights: Tensor, reference: GaussianBelief, Omega: Tensor, 
     root = V.mT @ Winv  # Omega = root^T diag(ev) root
     Om = symmetrize(root.mT @ (ev.clamp_min(0.0).unsqueeze(-1) * root))
     gj = g.unsqueeze(-2)
-    om = _mv(Winv.mT @ Cwi, _mv(Winv, mixed.mean - gj)) + _mv(Om, gj)
+    om = matvec(Winv.mT @ Cwi, matvec(Winv, mixed.mean - gj)) + matvec(Om, gj)
     zero = torch.zeros_like(c)
     lam = c - info_fuse(gj, G.unsqueeze(-3), Om, om, zero)[0]
     return Om, om, lam
@@ -240,7 +237,7 @@ def smooth_two_filter_info(filter: MultipleModelFilter, trajectory: Trajectory, 
     Om, om, lam = Omz[steps - 1], omz[steps - 1], lamz[steps - 1]  # beta_{T-1}
     smoothed = [filtered[steps - 1]]
     for k in range(steps - 2, -1, -1):  # the prediction k -> k+1 used controls[k+1]
-        offset = b if G is None else b + _mv(G, controls[k + 1].unsqueeze(-2))
+        offset = b if G is None else b + matvec(G, controls[k + 1].unsqueeze(-2))
         if padding is not None:  # a run whose step k+1 is padding ends at k: nothing comes back from k+1
             end = padding[k + 1]  # (and its controls there, NaN padding perhaps, move nothing)
             Om, om, lam, offset = (torch.where(end.view(*end.shape, *[1] * (t.dim() - end.dim())), 0.0, t)
