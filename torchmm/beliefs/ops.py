@@ -9,7 +9,7 @@ from torch import Tensor
 
 from torchmm.linalg import psd_sqrt, symmetrize
 
-__all__ = ["symmetrize", "mix_gaussians", "normalize_log_probs", "psd_sqrt", "safe_log_normalize", "dead_safe_logsumexp"]
+__all__ = ["symmetrize", "mix_gaussians", "normalize_log_probs", "psd_sqrt", "safe_log_normalize", "dead_safe_logsumexp", "live_log"]
 
 
 def normalize_log_probs(log_probs: Tensor, dim: int = -1) -> Tensor:
@@ -48,6 +48,14 @@ def mix_gaussians(mean: Tensor, cov: Tensor, weights: Tensor) -> tuple[Tensor, T
     diff = mean.unsqueeze(-3) - mixed_mean.unsqueeze(-2)  # (*B, J, K, n)
     spread = (diff * wt.unsqueeze(-1)).mT @ diff
     return mixed_mean, mixed_cov + spread
+
+
+def live_log(p: Tensor, tiny: Tensor | float) -> Tensor:
+    """``p.log()``, the same values, with no gradient through an entry at or below ``tiny`` (the smallest normal
+    number): a mode no run can reach has ``p = 0``, where ``log``'s ``1 / p`` times its zero adjoint is NaN
+    and would reach every live mode (the IMM's predicted mode probabilities ``c_j``, eager and batch-last;
+    the linear kernel's reverse pass floors ``c_j`` alike; tests/kernels/test_unreachable_mode.py)."""
+    return torch.where(p > tiny, p, p.detach()).log()
 
 
 def dead_safe_logsumexp(x: Tensor, dim: int) -> Tensor:

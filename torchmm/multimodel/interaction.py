@@ -10,7 +10,7 @@ import torch
 from torch import Tensor
 
 from torchmm.beliefs import ModeBelief
-from torchmm.beliefs.ops import safe_log_normalize
+from torchmm.beliefs.ops import live_log, safe_log_normalize
 from torchmm.filters.base import StepOutput
 from torchmm.validation import check_same_dtype
 
@@ -34,15 +34,6 @@ def _predicted(mode_probs: Tensor, transition: Tensor) -> Tensor:
     if transition.dim() > 2:
         return (mode_probs.unsqueeze(-2) @ transition).squeeze(-2)
     return mode_probs @ transition
-
-
-def _log_predicted(cbar: Tensor) -> Tensor:
-    """``log c_j`` (``-inf`` for a mode no run can reach), with no gradient through a ``c_j`` at or below the
-    smallest normal number: there ``log``'s derivative ``1 / c_j`` times the zero adjoint of a dead mode
-    would be NaN (0 * inf) and reach every live mode through the mixing; the linear kernel's reverse pass
-    (:mod:`torchmm.kernels.linear_reverse`) floors ``c_j`` alike (tests/kernels/test_unreachable_mode.py)."""
-    live = cbar > _tiny(cbar)
-    return torch.where(live, cbar, cbar.detach()).log()
 
 
 class Interaction:
@@ -77,7 +68,7 @@ class MomentMixing(Interaction):
         cbar = _predicted(mode_probs, matrix)
         # mixing probabilities mu_{i|j} = pi_ij mu_i / c_j, (*B, i, j)
         weights = mode_probs.unsqueeze(-1) * matrix / cbar.clamp_min(_tiny(cbar)).unsqueeze(-2)
-        return ModeBelief(_log_predicted(cbar), belief.components.mix(weights))
+        return ModeBelief(live_log(cbar, _tiny(cbar)), belief.components.mix(weights))
 
 
 class Collapse(Interaction):
@@ -89,7 +80,7 @@ class Collapse(Interaction):
         mode_probs = belief.mode_probs
         cbar = _predicted(mode_probs, transition_matrix(transition, mode_probs))
         collapsed = belief.components.collapse(mode_probs)
-        return ModeBelief(_log_predicted(cbar), collapsed.unsqueeze(-1).expand(*collapsed.batch_shape,
+        return ModeBelief(live_log(cbar, _tiny(cbar)), collapsed.unsqueeze(-1).expand(*collapsed.batch_shape,
                                                                                cbar.shape[-1]))
 
 

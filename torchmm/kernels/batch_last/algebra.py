@@ -13,6 +13,8 @@ import math
 import torch
 from torch import Tensor
 
+from torchmm.beliefs.ops import live_log
+
 __all__ = ["ONE", "ZERO", "Coef", "cholesky_entries", "coefficients", "collapse_entries", "collapse_modes", "combine",
            "factor", "log_normalized", "mix_entries", "mixing", "mode_update", "moments", "sandwich", "solve_lower",
            "solve_lower_transposed", "stack_upper", "sum_terms"]
@@ -211,7 +213,7 @@ def mode_update(ll: Tensor, cbar: Tensor, anyob: Tensor, lowest: Tensor, zero: T
     gradient passes through a ``c_j`` at or below ``tiny`` (the smallest normal number; a mode no run can
     reach: ``log``'s ``1 / c_j`` times its zero adjoint would be NaN in every mode), as the eager steps'
     (:mod:`torchmm.multimodel.interaction`); the values are ``c_j``'s."""
-    log_cbar = torch.where(cbar > tiny, cbar, cbar.detach()).log()
+    log_cbar = live_log(cbar, tiny)
     joint = ll + log_cbar
     top = torch.maximum(joint.amax(0), lowest)
     shifted = joint - top
