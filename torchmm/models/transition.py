@@ -10,6 +10,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
+from torchmm.beliefs.ops import live_log
 from torchmm.validation import as_tensor, check_stochastic_rows
 from torchmm.contract import DType, Finite, Flag, Of, Real, Stochastic, Text, entry_point
 
@@ -115,10 +116,12 @@ class ModeTransition(nn.Module):
         return (self.logits if self.learnable else self.value).shape[-1]
 
     def log_matrix(self) -> Tensor:
-        """``log P`` (``-inf`` for zero entries). Shape ``(M, M)``."""
+        """``log P`` (``-inf`` for zero entries). Shape ``(M, M)``. A zero entry passes no gradient (not
+        ``log``'s ``1 / 0`` times a zero adjoint, NaN in every entry of its row's parametrisation: an estimated
+        matrix's kept zeros, :class:`torchmm.learn.Param` ``"stochastic"``; tests/learn/test_transition_zeros.py)."""
         if self.learnable:
             return torch.log_softmax(self.logits, dim=-1)
-        return self.value.log()
+        return live_log(self.value, 0.0) if self.value.requires_grad else self.value.log()
 
     def matrix(self) -> Tensor:
         """``P``, shape ``(M, M)``."""

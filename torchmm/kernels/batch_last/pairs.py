@@ -34,7 +34,7 @@ import torch
 from torch import Tensor
 
 from torchmm.beliefs import GaussianBelief, ModeBelief
-from torchmm.beliefs.ops import dead_safe_logsumexp
+from torchmm.beliefs.ops import dead_safe_logsumexp, live_log
 from torchmm.typing import StepOutput
 from torchmm.kernels.batch_last.algebra import collapse_entries, log_normalized, moments, stack_upper
 from torchmm.kernels.batch_last.bank import LinearBank
@@ -58,7 +58,7 @@ class BatchLastGPB2(Frame):
     def __init__(self, model, M: int, batch_dims: int, like: Tensor):
         self.bank = bank = LinearBank(model, M, batch_dims, like)
         super().__init__(model, M, bank.n, bank.m, batch_dims, like)
-        self.matrix = self.matrix.log()  # (i, j, 1...): the pair hypotheses' prior weights
+        self.matrix = live_log(self.matrix, 0.0)  # (i, j, 1...): the pairs' prior weights (a zero: no NaN gradient)
         bank.R_front = bank.R_front.unsqueeze(2)  # (m, m, 1, P, 1...): mode j's R for the pair (i, j)
         d = batch_dims
         self._to_front_pairs_x = (*range(3, d + 3), 1, 2, 0)  # (n, i, j, *B) -> (*B, i, j, n)
