@@ -27,6 +27,7 @@ from torch import Tensor
 
 import torchmm.kernels as kernels
 from torchmm.beliefs import Belief, ModeBelief
+from torchmm.beliefs.ops import live_log
 from torchmm.contract import BeliefArg, Finite, Gen, Int, Of, Stochastic, entry_point
 from torchmm.filters.base import Filter, StepOutput, check_state_dim
 from torchmm.models.transition import as_transition
@@ -168,7 +169,7 @@ class MultipleModelFilter(Filter):
             if batch != belief.batch_shape:
                 raise ValueError(f"mode_probs: batch {tuple(probs.shape[:-1])} would enlarge the belief's batch "
                                  f"{tuple(belief.batch_shape)}")
-            log_probs = probs.log()
+            log_probs = live_log(probs, 0.0)  # (a zero probability: no NaN gradient; test_transition_zeros.py)
         log_probs = log_probs.expand(*batch, M)
         components = self.bank.initial_belief(belief.unsqueeze(-1).expand(*batch, M), generator=generator)
         return ModeBelief(log_probs, components)

@@ -29,7 +29,7 @@ from torch import Tensor
 import torchmm.kernels as kernels
 import torchmm.kernels.particle as particle_stages
 from torchmm.beliefs import GaussianBelief, ModeBelief, ParticleBelief
-from torchmm.beliefs.ops import normalize_log_probs
+from torchmm.beliefs.ops import live_log, normalize_log_probs
 from torchmm.contract import BeliefArg, Choice, DType, Finite, Flag, Gen, Int, Of, Stochastic, entry_point
 from torchmm.filters.base import StepOutput
 from torchmm.filters.particle import ParticleFilter
@@ -178,7 +178,7 @@ class MultipleModelParticleFilter(MultipleModelFilter):
         else:
             probs = check_probabilities(mode_probs, "mode_probs", M, dtype=belief.dtype, device=belief.device)
             try:
-                log_probs = probs.log().expand(*batch, M)
+                log_probs = live_log(probs, 0.0).expand(*batch, M)  # (a zero: no NaN gradient)
             except RuntimeError:
                 raise ValueError(f"mode_probs: shape {tuple(probs.shape)} does not broadcast to the belief's "
                                  f"batch {tuple(batch)} x {M} modes") from None

@@ -38,6 +38,7 @@ from torch import Tensor
 
 import torchmm.kernels as kernels
 from torchmm.beliefs import GaussianBelief, ModeBelief
+from torchmm.beliefs.ops import live_log
 from torchmm.kernels.batch_last.algebra import (
     ONE,
     ZERO,
@@ -101,7 +102,7 @@ class BatchLastTwoFilter:
         self.M, self.n, self.d = M, bank.n, batch_dims
         d = batch_dims
         self.Finv = coefficients(torch.linalg.inv(model.F), M, 2, d)
-        log_pi = model.transition.log()  # [j, i]
+        log_pi = live_log(model.transition, 0.0)  # [j, i] (a zero entry: no NaN gradient)
         self.log_pi = log_pi.reshape(M, M, *([1] * d))  # (j, i, 1...)
         self.log_pi_t = log_pi.mT.reshape(M, M, *([1] * d))  # (i, j, 1...)
         self.diffuse = torch.finfo(like.dtype).eps ** -0.5  # torchmm.smooth.diffuse_factor
