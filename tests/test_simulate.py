@@ -9,12 +9,14 @@ import pytest
 import torch
 
 from torchmm import ConstantVelocity, GaussianBelief, LinearMeasurement, PositionMeasurement
+from torchmm.models import MotionModel
 from torchmm.simulate import (
     bernoulli_mask,
     periodic_mask,
     simulate_jump_system,
     simulate_measurements,
     simulate_modes,
+    simulate_multirate,
 )
 
 close = partial(torch.testing.assert_close, rtol=0, atol=1e-12)
@@ -128,3 +130,69 @@ def test_a_list_of_motion_models_is_one_model_per_mode():
         simulate_jump_system([models[0], ConstantVelocity(2)], P, x0, 3, (2,))
     with pytest.raises(TypeError, match=r"^batch_shape"):
         simulate_jump_system(models, P, x0, 3, 5)
+
+
+class _ShiftBank(MotionModel):
+    """A bank of ``len(shifts)`` modes ``x + shift_j`` that does not declare its parameter batch (the
+    simulator learns its mode axis from its output)."""
+
+    def __init__(self, shifts):
+        super().__init__()
+        self.state_dim = 2
+        self.register_buffer("shifts", torch.as_tensor(shifts, dtype=torch.float64))
+
+    def forward(self, x, *, u=None):
+        return x + self.shifts
+
+    def noise_cov(self, x=None):
+        return 1e-12 * torch.eye(2)
+
+
+@pytest.mark.parametrize("M", [2, 4])
+def test_a_transition_of_another_size_than_the_motion_bank_is_refused(M):
+    """A 3-mode bank with a 2x2 transition never moved as mode 2; with a 4x4 one the unchecked gather
+    drew a mode 3 the bank does not have. Both are refused naming ``transition`` and the bank's size,
+    for a bank that declares its parameter batch and for one that only shows it in its output."""
+    x0 = GaussianBelief(torch.zeros(2), 1e-12 * torch.eye(2))
+    cv = ConstantVelocity(1, q=0.0, acceleration=[[1.0], [0.0], [-1.0]])
+    shift = _ShiftBank([[1.0, 0.0], [0.0, 0.0], [-1.0, 0.0]])
+    for motion in (cv, shift):
+        with pytest.raises(ValueError, match=r"^transition: .*bank of 3 modes"):
+            simulate_jump_system(motion, torch.eye(M), x0, 3, (8,))
+        # the matching transition: each run moves as its own mode (an identity: step 1's mode throughout)
+        g = torch.Generator().manual_seed(1)
+        sim = simulate_jump_system(motion, torch.eye(3), x0, 3, (60,), generator=g)
+        assert set(sim.modes[0].tolist()) == {0, 1, 2}
+        step = torch.tensor([1.0, 0.0, -1.0])[sim.modes[0]]  # mode j's velocity (position) change a step
+        close(sim.states[-1, :, 1 if motion is cv else 0], 3 * step, atol=1e-4, rtol=0)
+
+
+def test_an_initial_belief_of_another_batch_than_batch_shape_is_refused():
+    motion = ConstantVelocity(1, acceleration=[[0.25], [0.0], [-0.25]])
+    x0 = GaussianBelief(torch.zeros(2), torch.eye(2))
+    with pytest.raises(ValueError, match=r"^initial: batch \(5,\) does not broadcast to batch_shape \(4,\)"):
+        simulate_jump_system(motion, PI, x0.expand(5), 4, (4,))
+    for batch in ((), (1,), (4,)):  # what broadcasts to (4,) is accepted, each run its own draw
+        g = torch.Generator().manual_seed(0)
+        sim = simulate_jump_system(motion, PI, x0.expand(*batch), 4, (4,), generator=g)
+        assert sim.states.shape == (4, 4, 2) and sim.initial_state.unique(dim=0).shape[0] == 4
+
+
+def test_a_sensor_bank_is_checked_against_the_modes_and_the_batch():
+    """Mode 2 of a 2-sensor bank read past the bank (no bounds check); a bank without ``modes`` paired
+    runs with sensors (or failed deep inside). Both are refused naming the argument."""
+    sensor = LinearMeasurement(torch.tensor([[1.0, 0.0]]).expand(2, 1, 2), torch.stack([1e-12 * torch.eye(1),
+                                                                                         torch.eye(1)]))
+    states = torch.zeros(3, 4, 2)
+    with pytest.raises(ValueError, match=r"^modes: mode 2 out of range for a bank of 2 sensors"):
+        simulate_measurements(sensor, states, modes=torch.tensor([0, 1, 2, 0]).expand(3, 4))
+    with pytest.raises(ValueError, match=r"^measurement: the sensor's parameter batch \(2,\)"):
+        simulate_measurements(sensor, states)
+    with pytest.raises(ValueError, match=r"^target: the sensor's parameter batch \(2,\)"):
+        simulate_multirate(sensor, PositionMeasurement(2, [0], 1.0), states, period=2)
+    # a shared sensor takes any mode index, and a bank its own modes
+    shared = PositionMeasurement(2, [0], 1.0)
+    assert simulate_measurements(shared, states, modes=torch.full((3, 4), 5)).shape == (3, 4, 1)
+    z = simulate_measurements(sensor, states, modes=torch.tensor([0, 1, 0, 1]).expand(3, 4),
+                              generator=torch.Generator().manual_seed(0))
+    assert bool((z[:, [0, 2]].abs() < 1e-4).all()) and bool((z[:, [1, 3]].abs() > 1e-4).all())

@@ -173,7 +173,20 @@ def _motion_models(motion, M: int, initial: GaussianBelief) -> list[MotionModel]
                                 f"{tensor.dtype} ({label}.{name}); convert one of them")
     if models is not None and len(models) != M:
         raise ValueError(f"motion: {len(models)} models for the {M} modes of the transition matrix")
+    if models is None:
+        shape = getattr(motion, "param_batch_shape", None)
+        if shape is not None and len(shape) and shape[-1] not in (1, M):
+            raise ValueError(f"transition: {M} modes, but motion is a bank of {shape[-1]} modes (parameter "
+                             f"batch {tuple(shape)}); give a ({shape[-1]}, {shape[-1]}) transition")
     return models if models is not None else motion
+
+
+def _check_mode_axis(size: int, M: int, what: str) -> None:
+    """A model's mode axis (``size``: 1 for a shared model) against the transition's ``M`` modes (for a
+    model that does not declare its parameter batch: checked on its output)."""
+    if size not in (1, M):
+        raise ValueError(f"transition: {M} modes, but motion is a bank of {size} modes ({what}); give a "
+                         f"({size}, {size}) transition")
 
 
 def _all_modes(motion, x: Tensor) -> tuple[Tensor, Tensor]:
@@ -218,6 +231,11 @@ def simulate_jump_system(
 
     Returns:
         :class:`JumpSimulation`.
+
+    Raises:
+        ValueError: naming ``transition`` if its ``M`` is not the bank's number of modes (a bank's
+            parameter batch, or its outputs' mode axis, must be ``M`` or 1: shared), ``motion`` for a
+            list of another length, ``initial`` if its batch does not broadcast to ``batch_shape``.
     """
     if not isinstance(initial, GaussianBelief):
         raise TypeError(f"initial: expected a GaussianBelief, got {type(initial).__name__}")
@@ -234,6 +252,13 @@ def simulate_jump_system(
     )
     dtype, device = initial.dtype, initial.device
     n = initial.state_dim
+    try:
+        fits = torch.broadcast_shapes(initial.batch_shape, tuple(batch_shape)) == tuple(batch_shape)
+    except RuntimeError:
+        fits = False
+    if not fits:
+        raise ValueError(f"initial: batch {tuple(initial.batch_shape)} does not broadcast to batch_shape "
+                         f"{tuple(batch_shape)}")
     noise = torch.randn(*batch_shape, n, generator=generator, dtype=dtype, device=device)
     x = initial.mean + (psd_sqrt(initial.cov) @ noise.unsqueeze(-1)).squeeze(-1)
     x = x.expand(*batch_shape, n)
@@ -242,6 +267,10 @@ def simulate_jump_system(
     for k in range(steps):
         mode = modes[k]
         means, scales = _all_modes(motion, x)
+        if k == 0 and not isinstance(motion, list):  # (shapes only: no value is read)
+            M, noise_modes = transition.shape[-1], scales.shape[-3] if scales.dim() >= 3 else 1
+            _check_mode_axis(means.shape[-2], M, f"its state has a mode axis of {means.shape[-2]}")
+            _check_mode_axis(noise_modes, M, f"its noise covariance has a mode axis of {noise_modes}")
         propagated = _gather_mode(means, mode, event=1)
         scale = _gather_mode(scales, mode, event=2)
         eps = torch.randn(*batch_shape, n, generator=generator, dtype=dtype, device=device)
@@ -272,6 +301,11 @@ def simulate_measurements(
 
     Returns:
         ``(T, *B, m)`` measurements.
+
+    Raises:
+        ValueError: naming ``modes`` if an index is not a mode of the sensor bank (a shared sensor takes
+            any), ``measurement`` if its parameter batch does not broadcast to ``(T, *B)`` without
+            ``modes`` (a bank of sensors needs them).
     """
     if states.dim() < 1 or states.shape[-1] != measurement.state_dim:
         raise ValueError(f"states: expected shape (T, *B, {measurement.state_dim}) for the sensor's state, "
@@ -281,13 +315,39 @@ def simulate_measurements(
     return _simulate_measurements(measurement, states, modes=modes, available=available, generator=generator)
 
 
-def _simulate_measurements(measurement, states, *, modes=None, available=None, generator=None) -> Tensor:
+def _sensor_outputs(measurement, x: Tensor, name: str, *, bank: bool = False) -> tuple[Tensor, Tensor]:
+    """``h(x)`` and ``R`` at ``x (*L, n)``; a ValueError naming ``name`` where the sensor's parameters
+    do not broadcast to ``*L`` (``bank``: a mode axis of any size may replace the last axis of ``*L``,
+    which is 1)."""
+    lead = tuple(x.shape[:-1])
+    try:
+        predicted, cov = measurement(x), measurement.noise_cov(x)
+        out = tuple(predicted.shape[:-1])
+        fits = out[: len(out) - bank] == lead[: len(lead) - bank] and len(out) == len(lead)
+        fits = fits and torch.broadcast_shapes(tuple(cov.shape[:-2]), out) == out
+    except RuntimeError:
+        fits = False
+    if not fits:
+        shape = getattr(measurement, "param_batch_shape", None)
+        what = f"parameter batch {tuple(shape)}" if shape is not None else "parameters"
+        hint = " (a bank of sensors needs modes=)" if name == "measurement" and not bank else ""
+        raise ValueError(f"{name}: the sensor's {what} do not broadcast to the states' batch "
+                         f"{lead[: len(lead) - bank]}{hint}")
+    return predicted, cov
+
+
+def _simulate_measurements(measurement, states, *, modes=None, available=None, generator=None,
+                           name: str = "measurement") -> Tensor:
     if modes is None:
-        predicted = measurement(states)
-        cov = measurement.noise_cov(states)
+        predicted, cov = _sensor_outputs(measurement, states, name)
     else:
-        predicted = _gather_mode(measurement(states.unsqueeze(-2)), modes, event=1)
-        cov = _gather_mode(measurement.noise_cov(states.unsqueeze(-2)), modes, event=2)
+        predicted, cov = _sensor_outputs(measurement, states.unsqueeze(-2), name, bank=True)
+        size = max(predicted.shape[-2], cov.shape[-3] if cov.dim() >= 3 else 1)  # (1: a shared sensor)
+        if size > 1 and modes.numel() and int(modes.max()) >= size:
+            raise ValueError(f"modes: mode {int(modes.max())} out of range for a bank of {size} sensors "
+                             f"({name})")
+        predicted = _gather_mode(predicted, modes, event=1)
+        cov = _gather_mode(cov, modes, event=2)
     eps = torch.randn(predicted.shape, generator=generator, dtype=predicted.dtype, device=predicted.device)
     z = predicted + (psd_sqrt(cov) @ eps.unsqueeze(-1)).squeeze(-1)
     if available is not None:
@@ -362,10 +422,11 @@ def simulate_multirate(
             raise ValueError(f"{name}: state_dim {sensor.state_dim} does not match the states' "
                              f"{states.shape[-1]}")
     steps, batch = states.shape[0], states.shape[1:-1]
-    y = _simulate_measurements(target, states, generator=generator)
+    y = _simulate_measurements(target, states, generator=generator, name="target")
     if probability is not None:
         mask = bernoulli_mask.__wrapped__(steps, batch, probability, generator=generator,
                                           device=states.device)
     else:
         mask = periodic_mask.__wrapped__(steps, batch, period, offset=offset, device=states.device)
-    return MultiRate(y, _simulate_measurements(source, states, available=mask, generator=generator))
+    return MultiRate(y, _simulate_measurements(source, states, available=mask, generator=generator,
+                                               name="source"))
