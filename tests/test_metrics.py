@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from functools import partial
 
+import numpy as np
+import pytest
 import torch
 
 from torchmm import GaussianBelief
@@ -62,3 +64,59 @@ def test_mode_hits_score_ties_the_same_whatever_the_rounding():
     close(mode_hits(three, torch.tensor([0, 2])), torch.full((2,), 1 / 3, dtype=torch.float64))
     close(mode_accuracy(torch.stack([scores, scores]), torch.stack([truth, truth])),
           torch.tensor([0.5, 0.5], dtype=torch.float64))
+
+
+@pytest.mark.parametrize("cov, problem", [([[1.0, 2.0], [2.0, 1.0]], "positive definite"),
+                                          ([[0.0, 0.0], [0.0, 0.0]], "positive definite"),
+                                          ([[1.0, 0.5], [0.0, 1.0]], "symmetric")])
+def test_nees_refuses_the_covariances_nis_refuses(cov, problem):
+    """An indefinite, a zero and a non-symmetric covariance gave 4.5e15, 8.99e307 and 2.0 (the lower
+    triangle's) through the regularised Cholesky factor; both metrics now refuse each, naming it."""
+    C = torch.tensor(cov).expand(1, 1, 2, 2)
+    e = torch.ones(1, 1, 2)
+    with pytest.raises(ValueError, match=rf"^estimate\.cov: covariance is not {problem}"):
+        nees(GaussianBelief(torch.zeros(1, 1, 2), C), e)
+    with pytest.raises(ValueError, match=rf"^innovation_cov: covariance is not {problem}"):
+        nis(e, C)
+
+
+def test_nees_of_a_diverged_run_is_nan_and_the_others_are_exact():
+    """A NaN mean component was skipped as if missing (NEES over the other component: 1.0) and an
+    infinite variance gave 0; a run with a non-finite estimate is now NaN (its covariance not checked),
+    the others e^T P^-1 e by NumPy."""
+    nan, inf = float("nan"), float("inf")
+    good = np.array([[4.0, 1.0], [1.0, 2.0]])
+    mean = torch.tensor([[nan, 0.0], [0.0, 0.0], [0.5, -1.0]])
+    cov = torch.stack([torch.tensor([[1.0, 2.0], [2.0, 1.0]]), torch.tensor([[inf, 0.0], [0.0, 1.0]]),
+                       torch.as_tensor(good)])
+    truth = torch.ones(3, 2)
+    out = nees(GaussianBelief(mean, cov), truth)
+    assert bool(out[:2].isnan().all())
+    e = np.array([0.5, -1.0]) - 1.0
+    close(out[2], torch.tensor(e @ np.linalg.solve(good, e)))
+
+
+def test_metric_shapes_that_do_not_fit_are_refused_naming_the_argument():
+    est = GaussianBelief(torch.zeros(3, 4, 2), torch.eye(2).expand(3, 4, 2, 2))
+    for shape in ((3, 5, 2), (3, 4, 1, 2)):  # another batch, or one that enlarges the estimate's
+        with pytest.raises(ValueError, match=r"^truth: shape .* does not broadcast to the estimate's"):
+            nees(est, torch.ones(shape))
+    assert nees(est, torch.ones(3, 1, 2)).shape == (3, 4)  # one truth shared by the runs
+    with pytest.raises(ValueError, match=r"^innovation_cov: batch \(3, 5\) does not broadcast"):
+        nis(torch.ones(3, 4, 2), torch.eye(2).expand(3, 5, 2, 2))
+
+
+def test_error_metrics_take_numpy_arrays_as_gospa_does():
+    """rmse, armse, squared_error (an AttributeError before), nees and nis on NumPy arrays: the same
+    numbers as on tensors, and as NumPy's own."""
+    rng = np.random.default_rng(0)
+    est, truth = rng.normal(size=(4, 6, 2)), rng.normal(size=(4, 6, 2))
+    want = np.sqrt(((est - truth) ** 2).sum(-1).mean(-1))
+    close(rmse(est, truth), torch.as_tensor(want))
+    close(armse(est, truth), torch.as_tensor(want.mean()))
+    close(squared_error(est, truth.tolist()), torch.as_tensor(((est - truth) ** 2).sum(-1)))
+    cov = np.array([[4.0, 1.0], [1.0, 2.0]])
+    e = est - truth
+    quad = torch.as_tensor(np.einsum("...i,ij,...j->...", e, np.linalg.inv(cov), e))
+    close(nis(e, cov), quad)
+    close(nees(GaussianBelief(torch.as_tensor(est), torch.as_tensor(cov).expand(4, 6, 2, 2)), truth), quad)

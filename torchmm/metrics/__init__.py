@@ -21,13 +21,18 @@ from torchmm.beliefs import GaussianBelief
 from torchmm.contract import Cov, Finite, Indices, Labels, Of, Values, entry_point
 from torchmm.linalg import cholesky, solve_lower
 from torchmm.metrics.sets import gospa, gospa_switching, ospa
-from torchmm.validation import broadcast_shape
+from torchmm.validation import broadcast_shape, check_covariance
 
 __all__ = ["armse", "gospa", "gospa_switching", "mode_accuracy", "mode_hits", "nees", "nis", "ospa", "rmse", "squared_error"]
 
 # The kinds: an estimate may be NaN or infinite (a diverged run is scored, not refused), and so may
 # mode (log-)probabilities (-inf) and innovations (NaN = missing); the truth is finite.
 _ERROR_KINDS = {"estimate": Values(), "truth": Finite(), "components": Indices(optional=True)}
+
+
+def _tensor(value) -> Tensor:
+    """A tensor-like (a NumPy array, a list) that its kind has checked as a tensor (a tensor is kept)."""
+    return value if isinstance(value, Tensor) else torch.as_tensor(value, dtype=torch.get_default_dtype())
 
 
 def _check_error_args(estimate: Tensor, truth: Tensor, components) -> None:
@@ -67,6 +72,7 @@ def squared_error(estimate: Tensor, truth: Tensor, components: Sequence[int] | N
         estimate, truth: ``(..., n)`` -> ``(...)``; ``estimate`` may hold NaN or infinite entries (a
         diverged run), which propagate.
     """
+    truth = _tensor(truth)
     _check_error_args(estimate, truth, components)
     return _squared_error(estimate, truth, components)
 
@@ -83,8 +89,10 @@ def rmse(estimate: Tensor, truth: Tensor, components: Sequence[int] | None = Non
     """Per-step RMSE over all runs.
 
     Shapes:
-        estimate, truth: ``(T, *B, n)`` -> ``(T,)`` (mean over every batch dim ``*B``)
+        estimate, truth: ``(T, *B, n)`` tensors (or NumPy arrays) -> ``(T,)`` (mean over every batch
+        dim ``*B``)
     """
+    truth = _tensor(truth)
     _check_error_args(estimate, truth, components)
     if estimate.dim() < 2:
         raise ValueError(f"estimate: expected shape (T, *B, n), got {tuple(estimate.shape)}")
@@ -121,13 +129,41 @@ def nees(estimate: GaussianBelief, truth: Tensor) -> Tensor:
     Its mean over runs is ``chi^2_n``-distributed-ish around ``n`` for a consistent filter.
 
     Shapes:
-        estimate: batch ``(T, *B)``; truth ``(T, *B, n)`` -> ``(T, *B)`` (NaN where the estimate
-        is not finite)
+        estimate: batch ``(T, *B)``; truth ``(T, *B, n)`` (or a shape that broadcasts to it) ->
+        ``(T, *B)``: NaN where the estimate's mean or covariance has a NaN or infinite entry (a
+        diverged run is scored NaN, never over its finite components only)
+
+    Raises:
+        ValueError: naming ``estimate`` where a finite covariance is not symmetric positive definite
+            (as :func:`nis`: the values are checked here, once), ``truth`` where its shape does not
+            broadcast to the estimate's ``(T, *B, n)``.
     """
-    n = estimate.mean.shape[-1]
+    truth = _tensor(truth)
+    mean, cov = estimate.mean, estimate.cov
+    n = mean.shape[-1]
     if truth.dim() < 1 or truth.shape[-1] != n:
         raise ValueError(f"truth: expected shape (T, *B, {n}), got {tuple(truth.shape)}")
-    return _quadratic(estimate.mean - truth, estimate.cov)
+    try:
+        batch = broadcast_shape(mean.shape[:-1], cov.shape[:-2])
+    except RuntimeError:
+        raise ValueError(f"estimate: mean batch {tuple(mean.shape[:-1])} and covariance batch "
+                         f"{tuple(cov.shape[:-2])} do not broadcast") from None
+    try:
+        fits = broadcast_shape(batch, truth.shape[:-1]) == batch
+    except RuntimeError:
+        fits = False
+    if not fits:
+        raise ValueError(f"truth: shape {tuple(truth.shape)} does not broadcast to the estimate's "
+                         f"{(*batch, n)}")
+    finite = torch.isfinite(cov.detach()).all(-1).all(-1) & torch.isfinite(mean.detach()).all(-1)
+    if bool(finite.all()):
+        check_covariance(cov, "estimate.cov", definite=True)
+        return _quadratic(mean - truth, cov)
+    scored = cov.detach().expand(*batch, n, n)[finite.expand(batch)]  # (a diverged run is not checked)
+    check_covariance(scored, "estimate.cov", definite=True)
+    eye = torch.eye(n, dtype=cov.dtype, device=cov.device)
+    out = _quadratic(mean - truth, torch.where(finite[..., None, None], cov, eye))
+    return torch.where(finite, out, torch.nan)
 
 
 @entry_point(innovation=Values(), innovation_cov=Cov(definite=True))
@@ -135,12 +171,19 @@ def nis(innovation: Tensor, innovation_cov: Tensor) -> Tensor:
     """Normalised innovation squared ``nu^T S^{-1} nu``; NaN where the measurement was missing.
 
     Shapes:
-        innovation ``(..., m)``, innovation_cov ``(..., m, m)`` -> ``(...)``
+        innovation ``(..., m)``, innovation_cov ``(..., m, m)`` (tensors or NumPy arrays; the two
+        batches broadcast) -> ``(...)``
     """
+    innovation_cov = _tensor(innovation_cov)
     m = innovation_cov.shape[-1]
     if innovation.dim() < 1 or innovation.shape[-1] != m:
         raise ValueError(f"innovation: expected shape (..., {m}) for a {m}x{m} innovation_cov, "
                          f"got {tuple(innovation.shape)}")
+    try:
+        broadcast_shape(innovation.shape[:-1], innovation_cov.shape[:-2])
+    except RuntimeError:
+        raise ValueError(f"innovation_cov: batch {tuple(innovation_cov.shape[:-2])} does not broadcast with "
+                         f"the innovation's {tuple(innovation.shape[:-1])}") from None
     return _quadratic(innovation, innovation_cov)
 
 
