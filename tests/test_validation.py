@@ -80,6 +80,33 @@ def test_measurement_errors():
         KalmanFilter(NonlinearCoordinatedTurn(), PositionMeasurement(5, [0], 1.0))
 
 
+def test_model_tensors_of_another_floating_dtype_are_refused_naming_them():
+    """A float32 Q (R) next to a float64 F (H) was converted silently while a float32 F (H) was refused
+    at the run; each is now a TypeError naming the tensor at the model, as for a network's noise."""
+    F, Q, H, R = torch.eye(2), torch.eye(2), torch.ones(1, 2), torch.eye(1)
+    with pytest.raises(TypeError, match=r"^Q: dtype torch.float32 differs from F's torch.float64"):
+        LinearMotion(F, Q.float())
+    with pytest.raises(TypeError, match=r"^Q: dtype torch.float64 differs from F's torch.float32"):
+        LinearMotion(F.float(), Q)
+    with pytest.raises(TypeError, match=r"^offset: dtype torch.float32"):
+        LinearMotion(F, Q, offset=torch.zeros(2, dtype=torch.float32))
+    with pytest.raises(TypeError, match=r"^input_matrix: dtype torch.float32"):
+        LinearMotion(F, Q, input_matrix=torch.ones(2, 1, dtype=torch.float32))
+    with pytest.raises(TypeError, match=r"^R: dtype torch.float32 differs from H's torch.float64"):
+        LinearMeasurement(H, R.float())
+    with pytest.raises(TypeError, match=r"^R: dtype torch.float64 differs from H's torch.float32"):
+        LinearMeasurement(H.float(), R)
+    from torchmm.models import LearnedMotion
+
+    with pytest.raises(TypeError, match=r"^Q: dtype torch.float32 differs from the network's torch.float64"):
+        LearnedMotion(torch.nn.Linear(2, 2), 2, Q=Q.float())
+    # numbers, lists, NumPy arrays and integer tensors take the model's dtype; one dtype throughout is kept
+    assert LinearMotion(F, np.eye(2, dtype=np.float32)).Q.dtype == torch.float64
+    assert LinearMotion(F, torch.eye(2, dtype=torch.int64)).Q.dtype == torch.float64
+    assert LinearMeasurement(H, [[2.0]]).R.dtype == torch.float64
+    assert LinearMotion(F.float(), Q.float()).Q.dtype == torch.float32
+
+
 def test_belief_errors():
     with pytest.raises(ValueError, match="cov: covariance is not symmetric"):
         GaussianBelief.create(torch.zeros(2), torch.tensor([[1.0, 0.3], [0.0, 1.0]]))

@@ -35,7 +35,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn.utils import parametrize
 
-from torchmm.models.base import MeasurementModel, MotionModel
+from torchmm.models.base import MeasurementModel, MotionModel, check_parameter_dtype
 from torchmm.validation import as_int, as_tensor, broadcast_shape, check_covariance, check_shape
 from torchmm.contract import Choice, Cov, Flag, Indices, Int, Of, Text, entry_point
 
@@ -238,6 +238,8 @@ def _check_net(net, name: str) -> nn.Module:
 
 def _noise_tensor(noise, dim: int, name: str, like: Tensor | None) -> Tensor:
     kwargs = {} if like is None else {"dtype": like.dtype, "device": like.device}
+    if like is not None:
+        check_parameter_dtype(noise, name, like.dtype, "the network")
     value = as_tensor(noise, name, **kwargs)
     if value.dim() == 0:
         value = value * torch.eye(dim, dtype=value.dtype, device=value.device)
@@ -263,7 +265,8 @@ class LearnedMotion(MotionModel):
             is called as ``net(x, u)``. It must treat all leading dims as batch (sigma points and
             particles add a leading axis; the EKF Jacobian adds one too).
         state_dim: ``n``.
-        Q: initial process-noise covariance ``(*P, n, n)`` (a number ``q`` means ``q I``).
+        Q: initial process-noise covariance ``(*P, n, n)`` (a number ``q`` means ``q I``), in the
+            network's dtype (a tensor of another floating dtype is refused, naming ``Q``).
         noise: ``"cholesky"``, ``"log_diagonal"``, ``"scale"`` (learnable, see
             :func:`learnable_noise`) or ``"fixed"`` (a buffer).
         residual: if true, ``f(x) = x + net(x)`` (a network initialised near zero then starts
@@ -312,7 +315,8 @@ class LearnedMeasurement(MeasurementModel):
     Args:
         net: module mapping ``x (*B, n) -> (*B, m)`` (leading dims are batch).
         state_dim: ``n``; meas_dim: ``m``.
-        R: initial noise covariance ``(*P, m, m)`` (a number ``r`` means ``r I``).
+        R: initial noise covariance ``(*P, m, m)`` (a number ``r`` means ``r I``), in the network's
+            dtype (a tensor of another floating dtype is refused, naming ``R``).
         noise: ``"cholesky"``, ``"log_diagonal"``, ``"scale"`` or ``"fixed"``.
 
     Shapes:

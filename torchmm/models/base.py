@@ -14,7 +14,8 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor, nn
 
-__all__ = ["MeasurementModel", "MotionModel", "check_model_pair", "forward_jacobian", "store_tensor"]
+__all__ = ["MeasurementModel", "MotionModel", "check_model_pair", "check_parameter_dtype", "forward_jacobian",
+           "store_tensor"]
 
 
 def store_tensor(module: nn.Module, name: str, value: Tensor) -> None:
@@ -23,6 +24,16 @@ def store_tensor(module: nn.Module, name: str, value: Tensor) -> None:
         module.register_parameter(name, value)
     else:
         module.register_buffer(name, value)
+
+
+def check_parameter_dtype(value, name: str, dtype: torch.dtype, owner: str) -> None:
+    """``TypeError`` naming ``name`` if ``value`` is a floating tensor of another dtype than ``dtype``
+    (the model's, from ``owner``, e.g. ``"F"``): a model converts numbers, lists and arrays to its
+    dtype, but a tensor's dtype is a choice it does not override (a float32 ``Q`` next to a float64
+    ``F`` is refused as a float32 ``F`` next to a float64 belief is)."""
+    if isinstance(value, Tensor) and value.is_floating_point() and value.dtype != dtype:
+        raise TypeError(f"{name}: dtype {value.dtype} differs from {owner}'s {dtype} (the model takes "
+                        f"{owner}'s); convert one of them ({name}.to({dtype}), or {owner} to {value.dtype})")
 
 
 def forward_jacobian(fn, x: Tensor) -> Tensor:

@@ -8,7 +8,7 @@ import torch
 from torch import Tensor
 
 from torchmm.contract import Cov, Finite, entry_point
-from torchmm.models.base import MeasurementModel, MotionModel, store_tensor
+from torchmm.models.base import MeasurementModel, MotionModel, check_parameter_dtype, store_tensor
 from torchmm.validation import as_tensor, broadcast_shape, check_covariance, check_shape, check_square
 
 __all__ = ["LinearMeasurement", "LinearMotion", "matvec", "plain_linear"]
@@ -46,7 +46,9 @@ class LinearMotion(MotionModel):
 
     Args:
         F: transition matrix, ``(*P, n, n)`` in math orientation (``x_out = F x_in``).
-        Q: process-noise covariance, ``(*P, n, n)``, symmetric PSD (may be singular).
+        Q: process-noise covariance, ``(*P, n, n)``, symmetric PSD (may be singular). ``Q``,
+            ``offset`` and ``input_matrix`` take ``F``'s dtype (numbers, lists and arrays are
+            converted; a tensor of another floating dtype is refused, a TypeError naming it).
         offset: constant input ``b``, ``(*P, n)``; default zero.
         input_matrix: ``B`` for a time-varying control ``u_k``, ``(*P, n, k)``; default none.
 
@@ -60,6 +62,8 @@ class LinearMotion(MotionModel):
         super().__init__()
         F = as_tensor(F, "F")
         n = check_square(F, "F")
+        for name, value in (("Q", Q), ("offset", offset), ("input_matrix", input_matrix)):
+            check_parameter_dtype(value, name, F.dtype, "F")
         Q = as_tensor(Q, "Q", dtype=F.dtype, device=F.device)
         check_shape(Q, "Q", (n, n))
         check_covariance(Q, "Q")
@@ -144,7 +148,8 @@ class LinearMeasurement(MeasurementModel):
 
     Args:
         H: measurement matrix ``(*P, m, n)``.
-        R: measurement-noise covariance ``(*P, m, m)``, symmetric PSD.
+        R: measurement-noise covariance ``(*P, m, m)``, symmetric PSD, in ``H``'s dtype (a tensor of
+            another floating dtype is refused, a TypeError naming ``R``).
     """
 
     @entry_point(H=Finite(check=False), R=Cov(check=False))
@@ -154,6 +159,7 @@ class LinearMeasurement(MeasurementModel):
         if H.dim() < 2:
             raise ValueError(f"H: expected shape (*P, m, n), got {tuple(H.shape)}")
         m, n = H.shape[-2:]
+        check_parameter_dtype(R, "R", H.dtype, "H")
         R = as_tensor(R, "R", dtype=H.dtype, device=H.device)
         check_shape(R, "R", (m, m))
         check_covariance(R, "R")
