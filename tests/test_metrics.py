@@ -66,18 +66,27 @@ def test_mode_hits_score_ties_the_same_whatever_the_rounding():
           torch.tensor([0.5, 0.5], dtype=torch.float64))
 
 
-@pytest.mark.parametrize("cov, problem", [([[1.0, 2.0], [2.0, 1.0]], "positive definite"),
-                                          ([[0.0, 0.0], [0.0, 0.0]], "positive definite"),
-                                          ([[1.0, 0.5], [0.0, 1.0]], "symmetric")])
-def test_nees_refuses_the_covariances_nis_refuses(cov, problem):
+def test_nees_scores_a_covariance_that_is_not_positive_definite_nan_and_refuses_an_asymmetric_one():
     """An indefinite, a zero and a non-symmetric covariance gave 4.5e15, 8.99e307 and 2.0 (the lower
-    triangle's) through the regularised Cholesky factor; both metrics now refuse each, naming it."""
-    C = torch.tensor(cov).expand(1, 1, 2, 2)
-    e = torch.ones(1, 1, 2)
-    with pytest.raises(ValueError, match=rf"^estimate\.cov: covariance is not {problem}"):
-        nees(GaussianBelief(torch.zeros(1, 1, 2), C), e)
-    with pytest.raises(ValueError, match=rf"^innovation_cov: covariance is not {problem}"):
-        nis(e, C)
+    triangle's) through the regularised Cholesky factor. Not positive definite is a run's numerical trouble
+    (a collapsed particle cloud): NaN for that run only, the others e^T P^-1 e by NumPy; not symmetric is a
+    mistake in the argument: refused, naming it (as nis refuses all three)."""
+    good = np.array([[4.0, 1.0], [1.0, 2.0]])
+    cov = torch.tensor([[[1.0, 2.0], [2.0, 1.0]], [[0.0, 0.0], [0.0, 0.0]], good.tolist()],
+                       dtype=torch.float64)
+    mean = torch.tensor([[0.0, 0.0], [0.0, 0.0], [0.5, -1.0]], dtype=torch.float64)
+    out = nees(GaussianBelief(mean, cov), torch.ones(3, 2, dtype=torch.float64))
+    assert bool(out[:2].isnan().all())
+    e = np.array([0.5, -1.0]) - 1.0
+    close(out[2], torch.tensor(e @ np.linalg.solve(good, e)))
+    e1 = torch.ones(1, 1, 2)
+    with pytest.raises(ValueError, match=r"^estimate\.cov: covariance is not symmetric"):
+        nees(GaussianBelief(torch.zeros(1, 1, 2), torch.tensor([[1.0, 0.5], [0.0, 1.0]]).expand(1, 1, 2, 2)),
+             e1)
+    for C, problem in (([[1.0, 2.0], [2.0, 1.0]], "positive definite"),
+                       ([[0.0, 0.0], [0.0, 0.0]], "positive definite"), ([[1.0, 0.5], [0.0, 1.0]], "symmetric")):
+        with pytest.raises(ValueError, match=rf"^innovation_cov: covariance is not {problem}"):
+            nis(e1, torch.tensor(C).expand(1, 1, 2, 2))
 
 
 def test_nees_of_a_diverged_run_is_nan_and_the_others_are_exact():

@@ -21,7 +21,7 @@ from torchmm.beliefs import GaussianBelief
 from torchmm.contract import Cov, Finite, Indices, Labels, Of, Values, entry_point
 from torchmm.linalg import cholesky, solve_lower
 from torchmm.metrics.sets import gospa, gospa_switching, ospa
-from torchmm.validation import broadcast_shape, check_covariance
+from torchmm.validation import SYMMETRY_RTOL, broadcast_shape
 
 __all__ = ["armse", "gospa", "gospa_switching", "mode_accuracy", "mode_hits", "nees", "nis", "ospa", "rmse", "squared_error"]
 
@@ -110,16 +110,20 @@ def armse(estimate: Tensor, truth: Tensor, components: Sequence[int] | None = No
     return rmse.__wrapped__(estimate, truth, components).mean()
 
 
-def _quadratic(residual: Tensor, cov: Tensor) -> Tensor:
-    """``r^T C^{-1} r`` by a Cholesky solve; NaN entries of ``r`` are skipped."""
+def _quadratic(residual: Tensor, cov: Tensor, *, definite_only: bool = False) -> Tensor:
+    """``r^T C^{-1} r`` by a Cholesky solve; NaN entries of ``r`` are skipped. ``definite_only``: NaN where
+    ``C`` (over the observed components) is not numerically positive definite, instead of the regularised
+    factor's answer (which can be ~1e300)."""
     observed = ~torch.isnan(residual)
     r = torch.where(observed, residual, 0.0)
     pair = observed.unsqueeze(-1) & observed.unsqueeze(-2)
     eye = torch.eye(cov.shape[-1], dtype=cov.dtype, device=cov.device)
     cov = torch.where(pair, cov, eye)
-    white = solve_lower(cholesky(cov), r.unsqueeze(-1)).squeeze(-1)
+    L, singular = cholesky(cov, with_flag=True)
+    white = solve_lower(L, r.unsqueeze(-1)).squeeze(-1)
     out = white.square().sum(-1)
-    return torch.where(observed.any(-1), out, torch.nan)
+    keep = observed.any(-1) & ~singular if definite_only else observed.any(-1)
+    return torch.where(keep, out, torch.nan)
 
 
 @entry_point(estimate=Of(GaussianBelief), truth=Finite())
@@ -131,12 +135,15 @@ def nees(estimate: GaussianBelief, truth: Tensor) -> Tensor:
     Shapes:
         estimate: batch ``(T, *B)``; truth ``(T, *B, n)`` (or a shape that broadcasts to it) ->
         ``(T, *B)``: NaN where the estimate's mean or covariance has a NaN or infinite entry (a
-        diverged run is scored NaN, never over its finite components only)
+        diverged run is scored NaN, never over its finite components only), and where its covariance is
+        not numerically positive definite (a particle cloud collapsed onto one particle, a diverged
+        filter: that run's step has no value, and the other runs are scored; before 2026-12-08 the
+        regularised factor gave up to 1e308)
 
     Raises:
-        ValueError: naming ``estimate`` where a finite covariance is not symmetric positive definite
-            (as :func:`nis`: the values are checked here, once), ``truth`` where its shape does not
-            broadcast to the estimate's ``(T, *B, n)``.
+        ValueError: naming ``estimate.cov`` where a finite covariance is not symmetric (beyond
+            ``1e-5`` of its largest entry: a mistake in the argument, not a run's trouble; checked here,
+            once), ``truth`` where its shape does not broadcast to the estimate's ``(T, *B, n)``.
     """
     truth = _tensor(truth)
     mean, cov = estimate.mean, estimate.cov
@@ -156,13 +163,12 @@ def nees(estimate: GaussianBelief, truth: Tensor) -> Tensor:
         raise ValueError(f"truth: shape {tuple(truth.shape)} does not broadcast to the estimate's "
                          f"{(*batch, n)}")
     finite = torch.isfinite(cov.detach()).all(-1).all(-1) & torch.isfinite(mean.detach()).all(-1)
-    if bool(finite.all()):
-        check_covariance(cov, "estimate.cov", definite=True)
-        return _quadratic(mean - truth, cov)
-    scored = cov.detach().expand(*batch, n, n)[finite.expand(batch)]  # (a diverged run is not checked)
-    check_covariance(scored, "estimate.cov", definite=True)
     eye = torch.eye(n, dtype=cov.dtype, device=cov.device)
-    out = _quadratic(mean - truth, torch.where(finite[..., None, None], cov, eye))
+    scored = torch.where(finite[..., None, None], cov.detach(), eye)  # (a diverged run is not checked)
+    scale = scored.abs().amax((-2, -1), keepdim=True)
+    if bool(((scored - scored.mT).abs() > SYMMETRY_RTOL * scale).any()):
+        raise ValueError("estimate.cov: covariance is not symmetric")
+    out = _quadratic(mean - truth, torch.where(finite[..., None, None], cov, eye), definite_only=True)
     return torch.where(finite, out, torch.nan)
 
 
