@@ -313,3 +313,8 @@ def test_sweep_jobs_label_their_progress_bars(tmp_path):
     assert "[job 0] estimators" in proc.stderr and "[job 1] estimators" in proc.stderr
     assert sorted(p.name for p in (tmp_path / "sweep").iterdir() if p.is_dir()) == [
         "0_debug=imm_baseline,seed=0", "1_debug=imm_baseline,seed=1"]  # progress: not in the names
+    # every job's Python log is run.log (docs/scaling.md; before: job 1 wrote app.log, the job name of the
+    # last compose of conf/ in job 0, experiments/changes.py)
+    for job in (p for p in (tmp_path / "sweep").iterdir() if p.is_dir()):
+        assert not (job / "app.log").exists(), job.name
+        assert "results written to" in (job / "run.log").read_text(), job.name
