@@ -5,6 +5,7 @@ importable inside the package.)"""
 
 from __future__ import annotations
 
+import logging
 import struct
 from collections.abc import Iterable, Sequence
 from pathlib import Path
@@ -12,6 +13,11 @@ from pathlib import Path
 import torch
 
 from experiments.files import write_atomic
+
+log = logging.getLogger("torchmm.experiments")
+
+#: where a run folder's earlier event files go when the run is continued (:func:`set_aside_event_files`)
+SUPERSEDED = "superseded"
 
 
 class Logger:
@@ -46,11 +52,15 @@ class NullLogger(Logger):
 
 
 class TensorBoardLogger(Logger):
-    """TensorBoard event files under ``<run dir>/tb``."""
+    """TensorBoard events under ``<run dir>/tb``: one event file, this execution's. A run continued in its
+    folder (``resume=``, a sweep re-run into its ``hydra.sweep.dir``) logs everything again (its curves,
+    figures and hparams are made from all its units, the kept ones included), so the earlier event files are
+    moved aside first (:func:`set_aside_event_files`): each point is in ``tb/`` once."""
 
     def __init__(self, log_dir: Path, flush_secs: int = 10):
         from torch.utils.tensorboard import SummaryWriter
 
+        set_aside_event_files(Path(log_dir))
         self.writer = SummaryWriter(log_dir=str(log_dir), flush_secs=flush_secs)
 
     def scalar(self, tag, value, step=0):
@@ -159,6 +169,25 @@ class CurveRecorder(Logger):
                 import matplotlib.pyplot as plt
 
                 plt.close(fig)
+
+
+def set_aside_event_files(log_dir: Path) -> Path | None:
+    """Move the event files already in ``log_dir`` (an earlier execution of this run folder's) into
+    ``log_dir/superseded/<k>/`` (``k = 1, 2, ...``: one folder per continuation), each renamed
+    ``tfevents`` -> ``superseded``: kept, but not read by TensorBoard (it reads files whose name holds
+    ``tfevents``, in every folder under ``--logdir``), which would show each point and the hparams row
+    twice. Rename one back to look at it. Returns the folder, or None when there was nothing to move."""
+    files = sorted(p for p in log_dir.glob("*tfevents*") if p.is_file()) if log_dir.is_dir() else []
+    if not files:
+        return None
+    used = [int(p.name) for p in (log_dir / SUPERSEDED).glob("*") if p.name.isdigit()]
+    folder = log_dir / SUPERSEDED / str(max(used, default=0) + 1)
+    folder.mkdir(parents=True)
+    for path in files:
+        path.rename(folder / path.name.replace("tfevents", SUPERSEDED))
+    log.info("%s: %d event file(s) of an earlier execution of this run moved to %s (renamed, so TensorBoard "
+             "shows this execution's points once)", log_dir, len(files), folder)
+    return folder
 
 
 def _floats(values) -> list[float]:

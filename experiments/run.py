@@ -203,12 +203,13 @@ def _sweep_bars() -> tuple[str, int | None]:
     return f"[job {num}]", num % max(jobs, 1)
 
 
-def hparams(config: dict, overrides: list[str], results: Results, max_metrics: int = 64) -> tuple[dict, dict]:
+def hparams(config: dict, overrides: list[str], results: Results) -> tuple[dict, dict]:
     """TensorBoard hparams of a run: ``(settings, headline metrics)``.
 
     Settings: ``experiment``, ``seed``, ``mc_runs``, ``dtype``, ``device`` and every command-line
-    override (``key=value``) except those that do not change results; metrics: the finite numbers
-    of ``results.metrics`` as ``headline/<estimator>/<metric>`` (the first ``max_metrics``)."""
+    override (``key=value``) except those that do not change results; metrics: every finite number
+    of ``results.metrics`` as ``headline/<estimator>/<metric>`` (no cap; a metric that is not a finite
+    number is not logged: results.json names why it was dropped)."""
     from experiments.folders import NON_RESULT_KEYS
 
     settings: dict[str, Any] = {"experiment": results.experiment}
@@ -231,7 +232,7 @@ def hparams(config: dict, overrides: list[str], results: Results, max_metrics: i
     for estimator, values in results.metrics.items():
         for name, value in values.items():
             if isinstance(value, (int, float)) and not isinstance(value, bool) and value == value \
-                    and abs(value) != float("inf") and len(metrics) < max_metrics:
+                    and abs(value) != float("inf"):
                 metrics[f"headline/{estimator}/{name}"] = float(value)
     return settings, metrics
 
