@@ -10,8 +10,10 @@ without the keys that do not change numbers, :data:`experiments.folders.NON_RESU
 
 Within a group, the rows of each results table are matched run by run by their text labels (``estimator``,
 ``metric``, ...: a run whose config lists the estimators in another order is matched by name, never by
-position; :func:`aligned_rows`); a table whose runs of one config hold different labels is left out with a
-warning naming them. A column is a **label** (it
+position; :func:`aligned_rows`). Runs need not hold the same columns or rows (a metric a run could not
+compute is not in its table): a table is combined on the union of its runs' columns and rows, a cell over the
+runs that have a value there (its ``n``), and the runs lacking a column, a row or the table are named
+(a warning; the table's ``absent``; :mod:`experiments.report_tables`). A column is a **label** (it
 names the row: ``estimator``, ``alpha``, ...) if it is text (not a number, not true/false) or if it holds
 the same value in every run of each group (``nees_low`` of a given ``mc_runs``; with one run per group: in
 every run); every other numeric column is a **measurement**, reported as the mean over
@@ -22,7 +24,8 @@ the group's runs with a Student-t confidence interval (``--level``, 95 % by defa
 it is True, with ``n`` (:func:`fraction_true`; no interval; not in the paired differences).
 
 Writes into ``--out`` (default: ``<PATH>/report`` for one PATH, else ``./report``):
-``report.md`` (mean +- half-width), ``report.csv`` (tidy: one line per study, table, group, row and
+``report.md`` (mean +- half-width, ``(n=k)`` in a cell whose ``n`` is not its row's; under the tables, what
+runs lack and the runs' own ``dropped`` entries), ``report.csv`` (tidy: one line per study, table, group, row and
 measurement, with ``n, mean, sd, ci_low, ci_high``), ``report.json`` (the same, nested) and
 ``report.png`` / ``report.pdf`` (each study's first table's first measurement with its intervals)
 and ``report.tex``.
@@ -68,161 +71,43 @@ from experiments.report_runs import (  # (the runs)
     collect_runs,
     flatten,
 )
+from experiments.report_tables import (  # (a table of several runs lined up; a cell's statistics)
+    absences,
+    aligned_rows,
+    flag_columns,
+    fraction_true,
+    identifying_labels,
+    is_bound,
+    is_standard_error,
+    label_columns,
+    mean_interval,
+    pooled_se,
+    se_base,
+    template_rows,
+    union_columns,
+    union_table,
+)
 
 __all__ = ["IGNORED_KEYS", "LeftOut", "ResultsFileError", "Run", "aligned_rows", "collect_runs", "combine",
-           "figure", "flag_columns", "flatten", "fraction_true", "main", "mean_interval",
-           "paired_differences", "to_csv", "to_latex", "to_markdown", "write_report"]
-
-
-def mean_interval(values: list[float], level: float = 0.95) -> dict[str, float | int | None]:
-    """``{"n", "mean", "sd", "ci_low", "ci_high"}`` of the finite ``values`` (Student-t interval)."""
-    finite = [float(v) for v in values if is_number(v) and math.isfinite(v)]
-    n = len(finite)
-    if n == 0:
-        return {"n": 0, "mean": None, "sd": None, "ci_low": None, "ci_high": None}
-    mean = math.fsum(finite) / n
-    if n == 1:
-        return {"n": 1, "mean": mean, "sd": None, "ci_low": None, "ci_high": None}
-    from scipy.stats import t as student_t
-
-    if min(finite) == max(finite):
-        mean, sd = finite[0], 0.0  # exactly: no rounding noise in the interval of a constant
-    else:
-        sd = math.sqrt(math.fsum((v - mean) ** 2 for v in finite) / (n - 1))
-    half = float(student_t.ppf(0.5 + level / 2, n - 1)) * sd / math.sqrt(n)
-    return {"n": n, "mean": mean, "sd": sd, "ci_low": mean - half, "ci_high": mean + half}
-
-
-def is_standard_error(column: str) -> bool:
-    """A run's own standard error of another column (``se``, ``<metric>_se``): combined over the
-    replicates as the standard error of their mean (:func:`pooled_se`), never averaged or differenced."""
-    return column == "se" or column.endswith("_se")
-
-
-def is_bound(column: str, columns: list[str]) -> bool:
-    """A run's own interval bound or half-width (``ci_low``, ``ci_high``, ``separate_half_width``,
-    ``<metric>_low``/``_high``/``_bound`` beside ``<metric>``): meaningful in its run only, so not
-    combined (the report's own interval replaces it) - unless it is the same in every run (a label)."""
-    if column in ("ci_low", "ci_high", "separate_half_width") or column.endswith("_bound"):
-        return True
-    for suffix in ("_low", "_high"):
-        if column.endswith(suffix) and column[: -len(suffix)] in columns:
-            return True
-    return False
-
-
-def pooled_se(values: list[float]) -> dict[str, float | int | None]:
-    """The standard error of the mean of ``n`` independent estimates with standard errors ``values``,
-    ``sqrt(sum se_i^2) / n``, as a :func:`mean_interval` record without an interval (its ``mean``)."""
-    finite = [float(v) for v in values if is_number(v) and math.isfinite(v)]
-    n = len(finite)
-    if n == 0:
-        return {"n": 0, "mean": None, "sd": None, "ci_low": None, "ci_high": None}
-    return {"n": n, "mean": math.sqrt(math.fsum(v * v for v in finite)) / n, "sd": None, "ci_low": None,
-            "ci_high": None}
+           "combine_table", "figure", "flag_columns", "flatten", "fraction_true", "identifying_labels", "is_bound",
+           "is_standard_error", "main", "mean_interval", "paired_differences", "pooled_se", "runs_dropped", "to_csv",
+           "to_latex", "to_markdown", "write_report"]
 
 
 def _sort_key(value: Any):
     return (0, value, "") if is_number(value) else (1, 0, str(value))
 
 
-def identifying_labels(tables: list[dict], columns: list[str], labels: list[str]) -> list[str]:
-    """The label columns besides ``estimator`` that tell an estimator's rows apart (``alpha`` in a sweep
-    table): those that vary among the rows of one estimator in some run. Constant companions of a
-    measurement (``nees_low``, ``nis_dof``: empty for an estimator without them) do not identify a row."""
-    if "estimator" not in columns:
-        return [c for c in labels]
-    est = columns.index("estimator")
-    out = []
-    for c in labels:
-        if c == "estimator":
-            continue
-        i = columns.index(c)
-        for table in tables:
-            seen: dict[Any, set] = defaultdict(set)
-            for row in table["rows"]:
-                seen[json.dumps(row[est], default=str)].add(json.dumps(row[i], default=str))
-            if any(len(v) > 1 for v in seen.values()):
-                out.append(c)
-                break
-    return out
-
-
-def flag_columns(tables: list[dict]) -> list[int]:
-    """The columns of ``tables`` (one results table of several runs) that hold true/false values: some
-    cell is a ``bool`` and every other one is a ``bool`` or empty (None). They are measurements, never
-    labels (``pos_armse_inside_95`` is True in one seed and False in another): see :func:`fraction_true`."""
-    columns = tables[0]["columns"]
-    cells = [[row[i] for t in tables for row in t["rows"]] for i in range(len(columns))]
-    return [i for i, col in enumerate(cells)
-            if any(isinstance(v, bool) for v in col) and all(isinstance(v, bool) or v is None for v in col)]
-
-
-def fraction_true(values: list[Any]) -> dict[str, float | int | None]:
-    """A true/false column over a group's runs: ``{"n", "true", "mean", "sd", "ci_low", "ci_high"}`` with
-    ``n`` the runs holding a ``bool``, ``true`` how many of them are True and ``mean = true / n`` (None for
-    ``n = 0``); no interval (``sd``, ``ci_low``, ``ci_high`` None)."""
-    flags = [v for v in values if isinstance(v, bool)]
-    n, true = len(flags), sum(flags)
-    return {"n": n, "true": true, "mean": true / n if n else None, "sd": None, "ci_low": None,
-            "ci_high": None}
-
-
-def _label_columns(tables_by_group: list[list[dict]], flags: list[int] = ()) -> list[bool]:
-    """Per column: is it a label? Non-numeric columns are (not the true/false ``flags``, which are
-    measurements); a numeric one is if it holds the same value in every run of each group (at every
-    row), given that some group has replicates - else (one run per group) if it holds the same value in
-    every run."""
-    columns = tables_by_group[0][0]["columns"]
-    replicated = [g for g in tables_by_group if len(g) > 1]
-    pools = replicated or [[t for g in tables_by_group for t in g]]
-    labels = []
-    for c in range(len(columns)):
-        if c in flags:
-            labels.append(False)
-            continue
-        numeric = any(is_number(row[c]) for g in tables_by_group for t in g for row in t["rows"])
-        same = all([row[c] for row in t["rows"]] == [row[c] for row in pool[0]["rows"]] for pool in pools for t in pool)
-        labels.append(not numeric or same)
-    return labels
-
-
-def aligned_rows(tables: list[dict], key_columns: list[int]) -> list[dict] | str:
-    """The tables of one group's runs with each run's rows put in the first run's order by their labels
-    (the cells of ``key_columns``: e.g. ``estimator``; two rows with the same labels keep their order
-    among themselves), so that a row means the same estimator in every run whatever order a run's config
-    listed them in; a string saying which labels differ if the runs do not hold the same rows."""
-    def keys(table):
-        seen: dict[str, int] = defaultdict(int)
-        out = []
-        for row in table["rows"]:
-            k = json.dumps([row[i] for i in key_columns], default=str)
-            out.append((k, seen[k]))  # (labels, occurrence)
-            seen[k] += 1
-        return out
-
-    first = keys(tables[0])
-    out = [tables[0]]
-    for table in tables[1:]:
-        mine = keys(table)
-        if set(mine) != set(first):
-            def name(ks):
-                return ", ".join(sorted({k for k, _ in ks})) or "none"
-            return (f"labels {name(set(mine) - set(first))} in one run, {name(set(first) - set(mine))} in another"
-                    if set(mine) ^ set(first) else "the same labels, another count")
-        where = {k: r for r, k in enumerate(mine)}
-        out.append({**table, "rows": [table["rows"][where[k]] for k in first]})
-    return out
-
-
 def combine(runs: list[Run], replicate: str = "seed", level: float = 0.95, reference: str | None = None) -> dict[str, Any]:
     """Combine ``runs`` into ``{experiment: {"factors", "groups", "tables": {name: {...}}}}``.
 
     ``groups``: one entry per distinct factor setting, ``{"factors": {key: value}, "runs": [paths],
-    "replicates": [replicate values]}``. Each table: ``{"labels": [columns], "measurements":
-    [columns], "rows": [{"group": i, "labels": {...}, "values": {column: mean_interval}}]}``.
-    ``paired``: per table with an ``estimator`` label, :func:`paired_differences` against
-    ``reference`` (default: the table's first row's estimator).
+    "replicates": [replicate values]}``. Each table (:func:`combine_table`): ``{"labels": [columns],
+    "measurements": [columns], "rows": [{"group": i, "labels": {...}, "values": {column: mean_interval},
+    "held_by": runs holding the row}], "absent": {...}}`` (``absent`` only where some runs lack a column,
+    a row or the table). ``paired``: per table with an ``estimator`` label, :func:`paired_differences`
+    against ``reference`` (default: the table's first row's estimator). ``dropped``: the runs' own
+    (:func:`runs_dropped`).
     """
     by_experiment: dict[str, list[Run]] = defaultdict(list)
     for run in runs:
@@ -261,56 +146,10 @@ def combine(runs: list[Run], replicate: str = "seed", level: float = 0.95, refer
         paired_out: dict[str, Any] = {}
         table_names = list(dict.fromkeys(n for run in members for n in run.results.get("tables", {})))
         for name in table_names:
-            tables = [run.results["tables"].get(name) for run in members]
-            if any(t is None for t in tables):
-                continue
-            columns = tables[0]["columns"]
-            comparable = [t for t in tables if t["columns"] == columns and len(t["rows"]) == len(tables[0]["rows"])]
-            if len(comparable) < len(tables):
-                print(f"torchmm-report: warning: {experiment}/{name}: runs differ in the table's columns or "
-                      "rows; it is left out", file=sys.stderr)
-                continue
-            # each run's rows matched to its group's first run's by their text labels (estimator, ...), never
-            # by position: a config listing the same estimators in another order is the same experiment
-            # (not by a true/false column: a measurement that may differ between seeds)
-            flags = flag_columns(tables)
-            text = [i for i in range(len(columns))
-                    if i not in flags and not any(is_number(row[i]) for t in tables for row in t["rows"])]
-            by_group = [aligned_rows([run.results["tables"][name] for run in g["runs"]], text) for g in group_list]
-            bad = next((gi for gi, a in enumerate(by_group) if isinstance(a, str)), None)
-            if bad is not None:
-                paths = ", ".join(str(r.path) for r in group_list[bad]["runs"])
-                print(f"torchmm-report: warning: {experiment}/{name}: the runs of one config hold different rows "
-                      f"({by_group[bad]}: {', '.join(columns[i] for i in text) or 'no label column'}); the table is "
-                      f"left out ({paths})", file=sys.stderr)
-                continue
-            is_label = _label_columns(by_group, flags)
-            fractions = [columns[i] for i in flags]
-            label_cols = [c for c, lab in zip(columns, is_label) if lab]
-            errors = [c for c, lab in zip(columns, is_label) if not lab and is_standard_error(c)]
-            bounds = [c for c, lab in zip(columns, is_label) if not lab and is_bound(c, columns)]
-            measure_cols = [c for c, lab in zip(columns, is_label) if not lab and c not in errors and c not in bounds]
-            rows = []
-            for gi, group_tables in enumerate(by_group):
-                for r in range(len(tables[0]["rows"])):
-                    labels = {c: group_tables[0]["rows"][r][i] for i, c in enumerate(columns) if is_label[i]}
-                    values = {c: fraction_true([t["rows"][r][i] for t in group_tables]) if c in fractions
-                              else mean_interval([t["rows"][r][i] for t in group_tables], level)
-                              for i, c in enumerate(columns) if c in measure_cols}
-                    values.update({c: pooled_se([t["rows"][r][columns.index(c)] for t in group_tables])
-                                   for c in errors})
-                    rows.append({"group": gi, "labels": labels, "values": values})
-            identifying = identifying_labels([t for g in by_group for t in g], columns, label_cols)
-            tables_out[name] = {"labels": label_cols, "identifying": identifying, "measurements": measure_cols,
-                                "standard_errors": errors, "not_combined": bounds, "fractions": fractions,
-                                "rows": rows}
-            # a table of the study's own paired differences (a `reference` column) is not paired again;
-            # true/false columns are not differenced
-            numbers = [c for c in measure_cols if c not in fractions]
-            if "estimator" in label_cols and "reference" not in columns and numbers:
-                paired = paired_differences(by_group, columns, numbers, label_cols, reference, level)
-                if paired is not None:
-                    paired_out[name] = paired
+            table, paired = combine_table(experiment, name, group_list, level, reference)
+            tables_out[name] = table
+            if paired is not None:
+                paired_out[name] = paired
         report[experiment] = {
             "replicate": replicate,
             "level": level,
@@ -319,36 +158,129 @@ def combine(runs: list[Run], replicate: str = "seed", level: float = 0.95, refer
                         "replicates": g["replicates"]} for g in group_list],
             "tables": tables_out,
             "paired": paired_out,
+            "dropped": runs_dropped(group_list),
         }
     return report
 
 
+def runs_dropped(group_list: list[dict]) -> list[dict]:
+    """The runs' own ``dropped`` entries (results.json: ``{metric: why}``, what a run could not compute):
+    ``[{"metric", "reason", "runs": [paths]}]``, one per metric and reason, in the runs' order."""
+    out: dict[tuple[str, str], list[str]] = {}
+    for g in group_list:
+        for run in g["runs"]:
+            dropped = run.results.get("dropped")
+            for metric, reason in (dropped.items() if isinstance(dropped, dict) else ()):
+                out.setdefault((str(metric), str(reason)), []).append(str(run.path))
+    return [{"metric": m, "reason": r, "runs": paths} for (m, r), paths in out.items()]
+
+
+def _names(labels: dict) -> str:
+    return ", ".join(str(v) for v in labels.values() if v not in (None, "")) or "(no label)"
+
+
+def combine_table(experiment: str, name: str, group_list: list[dict], level: float,
+                  reference: str | None) -> tuple[dict, dict | None]:
+    """One results table ``name`` of every run of ``group_list`` (one study's groups) combined:
+    ``(table, paired differences or None)`` (see :func:`combine`).
+
+    On the union of the runs' columns, and per group on the union of its runs' rows matched by their text
+    labels (:mod:`experiments.report_tables`): what a run lacks is no value there, so each cell's ``n``
+    counts the runs with a value; ``absent`` names the runs that lack a column, a row or the whole table
+    (and a warning says so), never dropping the table."""
+    with_table = [[run for run in g["runs"] if name in run.results.get("tables", {})] for g in group_list]
+    own = [run.results["tables"][name] for runs in with_table for run in runs]
+    columns = union_columns(own)
+    lined = [[union_table(run.results["tables"][name], columns) for run in runs] for runs in with_table]
+    flags = flag_columns([t for g in lined for t in g])
+    # rows are matched by their text labels (estimator, metric, ...) present in every run, never by
+    # position (nor by a true/false column: a measurement that may differ between seeds)
+    text = [i for i, c in enumerate(columns) if i not in flags and all(c in t["columns"] for t in own)
+            and not any(is_number(row[i]) for g in lined for t in g for row in t["rows"])]
+    by_group = [aligned_rows(g, text) for g in lined]
+    is_label = label_columns([g for g in by_group if g], flags)
+    fractions = [columns[i] for i in flags]
+    label_cols = [c for c, lab in zip(columns, is_label) if lab]
+    errors = [c for c, lab in zip(columns, is_label) if not lab and is_standard_error(c)]
+    bounds = [c for c, lab in zip(columns, is_label) if not lab and is_bound(c, columns)]
+    measure_cols = [c for c, lab in zip(columns, is_label) if not lab and c not in errors and c not in bounds]
+    bases = {c: se_base(c, columns) for c in errors}
+    rows = []
+    for gi, group in enumerate(by_group):
+        for r, template in enumerate(template_rows(group) if group else []):
+            held = [t["rows"][r] for t in group if t["rows"][r] is not None]
+            labels = {c: template[i] for i, c in enumerate(columns) if is_label[i]}
+            values = {c: fraction_true([row[i] for row in held]) if c in fractions
+                      else mean_interval([row[i] for row in held], level)
+                      for i, c in enumerate(columns) if c in measure_cols}
+            for c in errors:
+                base = columns.index(bases[c]) if bases[c] is not None else None
+                values[c] = pooled_se([row[columns.index(c)] for row in held],
+                                      None if base is None else [row[base] for row in held])
+            rows.append({"group": gi, "labels": labels, "values": values, "held_by": len(held)})
+    identifying = identifying_labels([t for g in by_group for t in g], columns, label_cols)
+    table = {"labels": label_cols, "identifying": identifying, "measurements": measure_cols,
+             "standard_errors": errors, "not_combined": bounds, "fractions": fractions, "rows": rows}
+    absent = absences([str(run.path) for runs in with_table for run in runs], [t["columns"] for t in own], columns,
+                      by_group, [[str(run.path) for run in runs] for runs in with_table], label_cols)
+    without = [str(run.path) for g in group_list for run in g["runs"] if name not in run.results.get("tables", {})]
+    if without:
+        absent["table"] = without
+    if absent:
+        table["absent"] = absent
+        total = sum(len(g["runs"]) for g in group_list)
+        parts = [f"not in {len(without)} of the {total} runs"] if without else []
+        parts += [f"{c} not in {len(p)} run(s)" for c, p in absent.get("columns", {}).items()]
+        held_rows = absent.get("rows", [])
+        parts += [f"row {_names(item['labels'])} not in {len(item['runs'])} run(s)" for item in held_rows[:3]]
+        parts += [f"{len(held_rows) - 3} more rows not in every run"] if len(held_rows) > 3 else []
+        print(f"torchmm-report: warning: {experiment}/{name}: {'; '.join(parts)}: no value there, so each cell's n "
+              "counts the runs with one (report.md names the runs)", file=sys.stderr)
+    dropped = [f"{c} ({_names({k: v for k, v in row['labels'].items() if not is_number(v)})})"
+               for row in rows for c, v in row["values"].items() if v.get("dropped")]
+    if dropped:
+        print(f"torchmm-report: warning: {experiment}/{name}: {len(dropped)} pooled standard error(s) not computed, "
+              f"some replicates in the mean having none ({', '.join(dropped[:3])}{', ...' if len(dropped) > 3 else ''}): "
+              "report.md names them", file=sys.stderr)
+    # a table of the study's own paired differences (a `reference` column) is not paired again;
+    # true/false columns are not differenced
+    numbers = [c for c in measure_cols if c not in fractions]
+    paired = None
+    if "estimator" in label_cols and "reference" not in columns and numbers:
+        paired = paired_differences([g for g in by_group if g], columns, numbers, label_cols, reference, level,
+                                    groups=[gi for gi, g in enumerate(by_group) if g])
+    return table, paired
+
+
 def paired_differences(tables_by_group: list[list[dict]], columns: list[str], measurements: list[str],
-                       labels: list[str], reference: str | None = None, level: float = 0.95) -> dict | None:
+                       labels: list[str], reference: str | None = None, level: float = 0.95,
+                       groups: list[int] | None = None) -> dict | None:
     """Estimators minus ``reference``, paired by run: ``{"reference", "labels", "measurements",
     "rows": [{"group", "labels", "values": {column: mean_interval}}]}`` or None (no reference row).
 
-    ``tables_by_group``: per group, the table of each of its runs (rows in the same order in every
-    run: :func:`aligned_rows`). A row of estimator ``B`` is paired with the row of ``reference`` holding the same other
-    identifying labels (:func:`identifying_labels`: e.g. ``alpha``; not a measurement's constant
-    companion such as ``nees_low``, which may be empty for one estimator) in the same run;
-    ``d_r = B_r - reference_r`` for each run ``r`` of the group, then :func:`mean_interval` over ``d``.
-    Cells that are not finite numbers are left out of ``n``. ``measurements`` are values, never standard
-    errors or bounds (:func:`is_standard_error`, :func:`is_bound`).
+    ``tables_by_group``: per group, the table of each of its runs on the same rows
+    (:func:`experiments.report_tables.aligned_rows`; a row a run lacks is None there); ``groups``: their
+    indices in the report (default 0, 1, ...). A row of estimator ``B`` is paired with the row of
+    ``reference`` holding the same other identifying labels (:func:`identifying_labels`: e.g. ``alpha``;
+    not a measurement's constant companion such as ``nees_low``, which may be empty for one estimator) in
+    the same run; ``d_r = B_r - reference_r`` for each run ``r`` of the group, then :func:`mean_interval`
+    over ``d``. Cells that are not finite numbers (or a row the run lacks) are left out of ``n``.
+    ``measurements`` are values, never standard errors or bounds (:func:`is_standard_error`,
+    :func:`is_bound`).
     """
     est = columns.index("estimator")
     keys = identifying_labels([t for g in tables_by_group for t in g], columns, labels)
     others = [columns.index(c) for c in keys]
-    first = next((t["rows"][0] for g in tables_by_group for t in g[:1] if t["rows"]), None)
+    first = next((template_rows(g)[0] for g in tables_by_group if g and g[0]["rows"]), None)
     if first is None:
         return None
     reference = first[est] if reference is None else reference
-    if not any(row[est] == reference for g in tables_by_group for t in g for row in t["rows"]):
+    if not any(row is not None and row[est] == reference for g in tables_by_group for t in g for row in t["rows"]):
         return None
     measure = [columns.index(c) for c in measurements]
     rows = []
-    for gi, group in enumerate(tables_by_group):
-        base = group[0]["rows"]
+    for gi, group in zip(groups if groups is not None else range(len(tables_by_group)), tables_by_group):
+        base = template_rows(group)
         for r, row in enumerate(base):
             if row[est] == reference:
                 continue
@@ -361,7 +293,8 @@ def paired_differences(tables_by_group: list[list[dict]], columns: list[str], me
             for i, column in zip(measure, measurements):
                 diffs = []
                 for table in group:
-                    a, b = table["rows"][r][i], table["rows"][ref][i]
+                    a, b = table["rows"][r], table["rows"][ref]
+                    a, b = (None, None) if a is None or b is None else (a[i], b[i])
                     diffs.append(a - b if is_number(a) and is_number(b) else float("nan"))
                 values[column] = mean_interval(diffs, level)
             rows.append({"group": gi, "labels": {c: row[columns.index(c)] for c in ["estimator", *keys]},
@@ -412,7 +345,7 @@ def main(argv: list[str] | None = None) -> int:
               f"(estimators: {', '.join(names) or 'none'})", file=sys.stderr)
         return 2
     empty = {"replicate": args.replicate, "level": args.level, "factors": [], "groups": [], "tables": {},
-             "paired": {}}
+             "paired": {}, "dropped": []}
     attach_left_out(report, left_out, empty)
     out = args.out or (Path(args.paths[0]) / "report" if len(args.paths) == 1 else Path("report"))
     try:

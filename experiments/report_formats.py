@@ -15,23 +15,78 @@ from experiments.formatting import format_value, is_number, latex_escape
 from experiments.formatting import latex_number as _latex_number
 from experiments.formatting import latex_table as _latex_table
 
-__all__ = ["figure", "to_csv", "to_latex", "to_markdown", "write_report"]
+__all__ = ["dropped_lines", "figure", "row_n", "table_notes", "to_csv", "to_latex", "to_markdown", "write_report"]
 
 
-def _cell(stats: dict, number=format_value, plus_minus: str = " ± ") -> str:
-    """A table cell: the mean, ``± half the interval`` where there is one (empty without a mean); a
+def _cell(stats: dict, number=format_value, plus_minus: str = " ± ", row_n: int | None = None) -> str:
+    """A table cell: the mean, ``± half the interval`` where there is one, and ``(n=k)`` where the cell
+    has fewer (or more) replicates than its row's ``row_n``; empty without a mean, ``dropped`` where the
+    report could not compute it (a pooled standard error some replicates lack: the notes say why); a
     true/false column's fraction of runs where it is True with its count, ``0.2500 (1/4)``."""
+    if stats.get("dropped"):
+        return "dropped"
     if stats["mean"] is None:
         return ""
     if "true" in stats:
         return f"{number(stats['mean'])} ({stats['true']}/{stats['n']})"
-    if stats["ci_low"] is None:
-        return number(stats["mean"])
-    return f"{number(stats['mean'])}{plus_minus}{number((stats['ci_high'] - stats['ci_low']) / 2)}"
+    text = number(stats["mean"])
+    if stats["ci_low"] is not None:
+        text += f"{plus_minus}{number((stats['ci_high'] - stats['ci_low']) / 2)}"
+    if row_n is not None and stats.get("n") is not None and stats["n"] != row_n:
+        text += f" (n={stats['n']})"
+    return text
 
 
-def _latex_cell(stats: dict) -> str:
-    return _cell(stats, _latex_number, " $\\pm$ ")
+def _latex_cell(stats: dict, row_n: int | None = None) -> str:
+    return _cell(stats, _latex_number, " $\\pm$ ", row_n)
+
+
+def row_n(row: dict, default: int) -> int:
+    """A row's ``n``: the most replicates any of its cells has (the runs holding the row without any)."""
+    return max((v["n"] for v in row["values"].values() if v["mean"] is not None), default=row.get("held_by", default))
+
+
+def _which(body: dict, paths: list[str]) -> str:
+    """Which runs ``paths`` are, by their group's factors and replicates: ``2 of 4 runs:
+    scenario.missing=0.7 (seed 0, 1)``."""
+    total = sum(len(g["runs"]) for g in body["groups"])
+    if len(paths) == total:
+        return f"all {total} runs"
+    parts = []
+    for g in body["groups"]:
+        reps = [format_value(rep) for run, rep in zip(g["runs"], g["replicates"]) if run in paths]
+        if reps:
+            factors = ", ".join(f"{k}={format_value(v)}" for k, v in g["factors"].items())
+            parts.append(f"{factors} ({body['replicate']} {', '.join(reps)})" if factors
+                         else f"{body['replicate']} {', '.join(reps)}")
+    return f"{len(paths)} of {total} runs: " + "; ".join(parts)
+
+
+def _labels_text(labels: dict) -> str:
+    return ", ".join(format_value(v) for v in labels.values() if v not in (None, "")) or "(no label)"
+
+
+def table_notes(body: dict, table: dict) -> list[str]:
+    """What a table's cells lack, one line each: the columns, rows (or the whole table) some runs do not
+    hold, naming those runs, and the standard errors the report did not pool (dropped, with why)."""
+    absent = table.get("absent", {})
+    lines = []
+    if absent.get("table"):
+        lines.append(f"the table: not in {_which(body, absent['table'])}")
+    lines += [f"column {c}: not in {_which(body, paths)}" for c, paths in absent.get("columns", {}).items()]
+    lines += [f"row {_labels_text(item['labels'])}: not in {_which(body, item['runs'])}"
+              for item in absent.get("rows", [])]
+    for row in table["rows"]:
+        factors = ", ".join(f"{k}={format_value(v)}" for k, v in body["groups"][row["group"]]["factors"].items())
+        where = ", ".join(x for x in (_labels_text({c: v for c, v in row["labels"].items() if not is_number(v)}),
+                                      factors) if x)
+        lines += [f"{c} of {where}: dropped: {v['dropped']}" for c, v in row["values"].items() if v.get("dropped")]
+    return lines
+
+
+def dropped_lines(body: dict) -> list[str]:
+    """The runs' own ``dropped`` entries (what a run could not compute, results.json), with the runs."""
+    return [f"{item['metric']}: {item['reason']} ({_which(body, item['runs'])})" for item in body.get("dropped", [])]
 
 
 def to_markdown(report: dict[str, Any]) -> str:
@@ -42,7 +97,8 @@ def to_markdown(report: dict[str, Any]) -> str:
         out += [f"## {experiment}", "",
                 f"{sum(len(g['runs']) for g in groups)} runs in {len(groups)} group(s); factors: "
                 f"{', '.join(body['factors']) or 'none'}; replicates: {body['replicate']} "
-                f"(mean ± half-width of the {pct} Student-t interval over the replicates; n = replicates).", ""]
+                f"(mean ± half-width of the {pct} Student-t interval over the replicates; n = the replicates with "
+                "a value, and (n=k) in a cell with another number).", ""]
         if body.get("left_out"):
             left = sum(item["runs"] for item in body["left_out"])
             out += [f"**Left out: {left} run(s)** (not finished, so not in the tables below):", "",
@@ -54,13 +110,17 @@ def to_markdown(report: dict[str, Any]) -> str:
             lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
             for row in table["rows"]:
                 g = groups[row["group"]]
-                n = max((v["n"] for v in row["values"].values()), default=len(g["runs"]))
+                n = row_n(row, len(g["runs"]))
                 cells = [*(format_value(g["factors"][k]) for k in factor_cols), *(format_value(row["labels"][c]) for c in table["labels"]),
-                         str(n), *(_cell(row["values"][c]) for c in [*table["measurements"], *errors])]
+                         str(n), *(_cell(row["values"][c], row_n=n) for c in [*table["measurements"], *errors])]
                 lines.append("| " + " | ".join(cells) + " |")
             out += [f"### {name}", "", *lines, ""]
             if errors or table.get("not_combined") or table.get("fractions"):
                 out += [_columns_note(table), ""]
+            notes = table_notes(body, table)
+            if notes:
+                out += ["Not in every run, or not computed (no value there; each cell's n counts the runs with one):",
+                        "", *(f"- {line}" for line in notes), ""]
         for name, paired in (body.get("paired") or {}).items():
             columns, rows = _paired_rows(body, paired, minus=" − ")
             lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
@@ -69,6 +129,9 @@ def to_markdown(report: dict[str, Any]) -> str:
                     (f"Each estimator minus {paired['reference']}, run by run ({body['replicate']} paired: the runs "
                      f"share their data), then mean ± half-width of the {pct} Student-t interval over the replicates."),
                     "", *lines, ""]
+        if body.get("dropped"):
+            out += ["**Dropped in the runs** (each run's results.json `dropped`: what it could not compute, so its "
+                    "cells hold no value from those runs):", "", *(f"- {line}" for line in dropped_lines(body)), ""]
     return "\n".join(out)
 
 
@@ -96,12 +159,12 @@ def _paired_rows(body: dict, paired: dict, minus: str, cell=None, text=None) -> 
     rows = []
     for row in paired["rows"]:
         g = body["groups"][row["group"]]
-        n = max((v["n"] for v in row["values"].values()), default=len(g["runs"]))
+        n = row_n(row, len(g["runs"]))
         labels = [text(format_value(row["labels"][c])) if c != "estimator"
                   else text(format_value(row["labels"][c])) + minus + text(str(paired["reference"]))
                   for c in paired["labels"]]
         rows.append([*(text(format_value(g["factors"][k])) for k in factors), *labels, str(n),
-                     *(cell(row["values"][c]) for c in paired["measurements"])])
+                     *(cell(row["values"][c], row_n=n) for c in paired["measurements"])])
     return [text(c) for c in columns], rows
 
 
@@ -130,7 +193,8 @@ def to_latex(report: dict[str, Any]) -> str:
     esc = latex_escape
     out = ["% torchmm-report: booktabs tables (\\usepackage{booktabs}); \\input{report.tex} in a document,",
            "% e.g. \\documentclass{article}\\usepackage{booktabs}\\begin{document}\\input{report.tex}\\end{document}",
-           "% cells: mean $\\pm$ half-width of the Student-t interval over the replicates; n = replicates", ""]
+           "% cells: mean $\\pm$ half-width of the Student-t interval over the replicates; n = replicates with a value",
+           "% (a cell with another number: (n=k)); what runs lack or could not compute: comments after each table", ""]
     for experiment, body in report.items():
         groups, factors = body["groups"], body["factors"]
         pct = f"{100 * body['level']:g}\\,\\%"
@@ -142,14 +206,15 @@ def to_latex(report: dict[str, Any]) -> str:
             rows = []
             for row in table["rows"]:
                 g = groups[row["group"]]
-                n = max((v["n"] for v in row["values"].values()), default=len(g["runs"]))
+                n = row_n(row, len(g["runs"]))
                 rows.append([*(esc(format_value(g["factors"][k])) for k in factors),
                              *(esc(format_value(row["labels"][c])) for c in table["labels"]), str(n),
-                             *(_latex_cell(row["values"][c]) for c in values)])
+                             *(_latex_cell(row["values"][c], row_n=n) for c in values)])
             align = "l" * (len(factors) + len(table["labels"])) + "r" * (1 + len(values))
             caption = (f"{esc(experiment)}: {esc(name)} (mean $\\pm$ half-width of the {pct} Student-t interval "
-                       f"over {esc(body['replicate'])}; n replicates)")
+                       f"over {esc(body['replicate'])}; n replicates, (n=k) in a cell with another number)")
             out += _latex_table([esc(c) for c in columns], rows, caption, align)
+            out += [f"% {experiment}/{name}: {line}" for line in table_notes(body, table)]
         for name, paired in (body.get("paired") or {}).items():
             columns, rows = _paired_rows(body, paired, minus=" $-$ ", cell=_latex_cell, text=esc)
             align = "l" * (len(factors) + len(paired["labels"])) + "r" * (1 + len(paired["measurements"]))
@@ -157,6 +222,7 @@ def to_latex(report: dict[str, Any]) -> str:
                        f"{esc(paired['reference'])} per {esc(body['replicate'])} (mean $\\pm$ half-width of the "
                        f"{pct} Student-t interval)")
             out += _latex_table(columns, rows, caption, align)
+        out += [f"% {experiment}: dropped in the runs: {line}" for line in dropped_lines(body)]
     return "\n".join(out)
 
 

@@ -96,8 +96,9 @@ def test_report_errors_are_one_line(tmp_path, capsys):
 def test_rows_are_matched_by_their_estimator_not_their_position(tmp_path, capsys):
     """Two seeds of one config whose second lists the estimators in another order (the flattened config is
     the same): each report row averages one estimator's values, and the paired differences subtract the
-    reference's (before: row "IMM" averaged IMM at seed 0 with KF at seed 1). Runs of one config with
-    other estimators: the table is left out with a warning naming them."""
+    reference's (before: row "IMM" averaged IMM at seed 0 with KF at seed 1). A run of the config with
+    another estimator (KF-q for KF): the table is combined on the union of the rows, each over the runs
+    holding it, and the runs lacking a row are named (before: the whole table was left out)."""
     values = {0: {"IMM": 4.0, "KF": 6.0, "GPB2": 5.0}, 1: {"IMM": 4.5, "KF": 6.3, "GPB2": 5.6}}
     orders = {0: ["IMM", "KF", "GPB2"], 1: ["GPB2", "KF", "IMM"]}
     for seed in (0, 1):
@@ -119,10 +120,26 @@ def test_rows_are_matched_by_their_estimator_not_their_position(tmp_path, capsys
     _write_run(tmp_path / "runs" / "s2", {"seed": 2, "mc_runs": 10},
                {"summary": {"columns": ["estimator", "rmse", "nees"], "rows": [["IMM", 4.1, 8.2], ["KF-q", 6.1, 1.0],
                                                                             ["GPB2", 5.2, 10.4]]}})
-    report = rep.combine(rep.collect_runs([tmp_path / "runs"]))["toy"]
-    assert "summary" not in report["tables"]
+    values[2] = {"IMM": 4.1, "KF-q": 6.1, "GPB2": 5.2}
+    report = rep.combine(rep.collect_runs([tmp_path / "runs"]), reference="IMM")["toy"]
+    table = report["tables"]["summary"]
+    got = {row["labels"]["estimator"]: row["values"] for row in table["rows"]}
+    assert sorted(got) == ["GPB2", "IMM", "KF", "KF-q"]
+    assert [e for e in got if e != "KF-q"] == orders[0]  # the first run's order
+    for est in got:
+        want = [values[s][est] for s in (0, 1, 2) if est in values[s]]
+        assert got[est]["rmse"]["n"] == len(want)
+        assert got[est]["rmse"]["mean"] == pytest.approx(np.mean(want), rel=1e-14)
+    assert got["KF-q"]["rmse"]["ci_low"] is None  # one run: no interval
+    paired = {row["labels"]["estimator"]: row["values"]["rmse"] for row in report["paired"]["summary"]["rows"]}
+    d = [values[s]["KF"] - values[s]["IMM"] for s in (0, 1)]
+    assert paired["KF"]["n"] == 2 and paired["KF"]["mean"] == pytest.approx(np.mean(d), rel=1e-12)
+    assert paired["KF-q"]["n"] == 1 and paired["KF-q"]["mean"] == pytest.approx(6.1 - 4.1, rel=1e-12)
+    absent = {item["labels"]["estimator"]: item["runs"] for item in table["absent"]["rows"]}
+    runs = {p.name: str(p) for p in (tmp_path / "runs").iterdir()}
+    assert absent == {"KF": [runs["s2"]], "KF-q": [runs["s0"], runs["s1"]]}
     err = capsys.readouterr().err
-    assert "toy/summary: the runs of one config hold different rows" in err and "KF-q" in err
+    assert "toy/summary: " in err and "row KF not in 1 run(s)" in err and "row KF-q not in 2 run(s)" in err
 
 
 def test_single_runs_and_constant_columns():

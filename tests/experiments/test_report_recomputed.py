@@ -59,12 +59,17 @@ def test_every_cell_is_recomputed_from_the_runs(sweep):
             if half > 0:
                 assert (stats_["ci_high"] - stats_["ci_low"]) / 2 == pytest.approx(half, rel=1e-9)
             assert stats_["ci_low"] <= stats_["ci_high"]
-        for column in summary["standard_errors"]:  # sqrt(sum se^2) / n: the se of the mean of the runs
-            values = [run["tables"]["summary"]["rows"][r][columns.index(column)] for run in runs]
-            values = [v for v in values if v is not None]
-            if values:
-                assert row["values"][column]["mean"] == pytest.approx(math.sqrt(sum(v * v for v in values)) / len(values))
-                assert row["values"][column]["mean"] >= 0
+        for column in summary["standard_errors"]:  # sqrt(sum se^2) / n: the se of the mean of the runs,
+            # over the runs in the mean of its metric, each with an se (else no value: dropped where some have one)
+            cells = [run["tables"]["summary"]["rows"][r] for run in runs]
+            values = [c[columns.index(column)] for c in cells if c[columns.index(column[:-3])] is not None]
+            got = row["values"][column]
+            if values and all(v is not None for v in values):
+                assert got["mean"] == pytest.approx(math.sqrt(sum(v * v for v in values)) / len(values))
+                assert got["mean"] >= 0 and got["n"] == len(values)
+            else:
+                assert got["mean"] is None
+                assert ("dropped" in got) == any(v is not None for v in values)
 
 
 def test_every_pair_is_there_and_the_paired_table_is_not_paired_again(sweep):
