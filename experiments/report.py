@@ -25,7 +25,8 @@ it is True, with ``n`` (:func:`fraction_true`; no interval; not in the paired di
 
 Writes into ``--out`` (default: ``<PATH>/report`` for one PATH, else ``./report``):
 ``report.md`` (mean +- half-width, ``(n=k)`` in a cell whose ``n`` is not its row's; under the tables, what
-runs lack and the runs' own ``dropped`` entries), ``report.csv`` (tidy: one line per study, table, group, row and
+runs lack and the runs' own ``dropped`` entries), ``report.csv`` (tidy: one line per study, table, group, row
+and
 measurement, with ``n, mean, sd, ci_low, ci_high``), ``report.json`` (the same, nested) and
 ``report.png`` / ``report.pdf`` (each study's first table's first measurement with its intervals)
 and ``report.tex``.
@@ -89,9 +90,9 @@ from experiments.report_tables import (  # (a table of several runs lined up; a 
 )
 
 __all__ = ["IGNORED_KEYS", "LeftOut", "ResultsFileError", "Run", "aligned_rows", "collect_runs", "combine",
-           "combine_table", "figure", "flag_columns", "flatten", "fraction_true", "identifying_labels", "is_bound",
-           "is_standard_error", "main", "mean_interval", "paired_differences", "pooled_se", "runs_dropped", "to_csv",
-           "to_latex", "to_markdown", "write_report"]
+           "combine_table", "figure", "flag_columns", "flatten", "fraction_true", "identifying_labels",
+           "is_bound", "is_standard_error", "main", "mean_interval", "paired_differences", "pooled_se",
+           "runs_dropped", "to_csv", "to_latex", "to_markdown", "write_report"]
 
 
 def _sort_key(value: Any):
@@ -221,9 +222,11 @@ def combine_table(experiment: str, name: str, group_list: list[dict], level: flo
     identifying = identifying_labels([t for g in by_group for t in g], columns, label_cols)
     table = {"labels": label_cols, "identifying": identifying, "measurements": measure_cols,
              "standard_errors": errors, "not_combined": bounds, "fractions": fractions, "rows": rows}
-    absent = absences([str(run.path) for runs in with_table for run in runs], [t["columns"] for t in own], columns,
-                      by_group, [[str(run.path) for run in runs] for runs in with_table], label_cols)
-    without = [str(run.path) for g in group_list for run in g["runs"] if name not in run.results.get("tables", {})]
+    paths = [[str(run.path) for run in runs] for runs in with_table]
+    absent = absences([p for group in paths for p in group], [t["columns"] for t in own], columns, by_group,
+                      paths, label_cols)
+    without = [str(run.path) for g in group_list for run in g["runs"]
+               if name not in run.results.get("tables", {})]
     if without:
         absent["table"] = without
     if absent:
@@ -234,21 +237,22 @@ def combine_table(experiment: str, name: str, group_list: list[dict], level: flo
         held_rows = absent.get("rows", [])
         parts += [f"row {_names(item['labels'])} not in {len(item['runs'])} run(s)" for item in held_rows[:3]]
         parts += [f"{len(held_rows) - 3} more rows not in every run"] if len(held_rows) > 3 else []
-        print(f"torchmm-report: warning: {experiment}/{name}: {'; '.join(parts)}: no value there, so each cell's n "
-              "counts the runs with one (report.md names the runs)", file=sys.stderr)
+        print(f"torchmm-report: warning: {experiment}/{name}: {'; '.join(parts)}: no value there, so each "
+              "cell's n counts the runs with one (report.md names the runs)", file=sys.stderr)
     dropped = [f"{c} ({_names({k: v for k, v in row['labels'].items() if not is_number(v)})})"
                for row in rows for c, v in row["values"].items() if v.get("dropped")]
     if dropped:
-        print(f"torchmm-report: warning: {experiment}/{name}: {len(dropped)} pooled standard error(s) not computed, "
-              f"some replicates in the mean having none ({', '.join(dropped[:3])}{', ...' if len(dropped) > 3 else ''}): "
+        more = ", ..." if len(dropped) > 3 else ""
+        print(f"torchmm-report: warning: {experiment}/{name}: {len(dropped)} pooled standard error(s) not "
+              f"computed, some replicates in the mean having none ({', '.join(dropped[:3])}{more}): "
               "report.md names them", file=sys.stderr)
     # a table of the study's own paired differences (a `reference` column) is not paired again;
     # true/false columns are not differenced
     numbers = [c for c in measure_cols if c not in fractions]
     paired = None
     if "estimator" in label_cols and "reference" not in columns and numbers:
-        paired = paired_differences([g for g in by_group if g], columns, numbers, label_cols, reference, level,
-                                    groups=[gi for gi, g in enumerate(by_group) if g])
+        paired = paired_differences([g for g in by_group if g], columns, numbers, label_cols, reference,
+                                    level, groups=[gi for gi, g in enumerate(by_group) if g])
     return table, paired
 
 
@@ -275,7 +279,8 @@ def paired_differences(tables_by_group: list[list[dict]], columns: list[str], me
     if first is None:
         return None
     reference = first[est] if reference is None else reference
-    if not any(row is not None and row[est] == reference for g in tables_by_group for t in g for row in t["rows"]):
+    if not any(row is not None and row[est] == reference
+               for g in tables_by_group for t in g for row in t["rows"]):
         return None
     measure = [columns.index(c) for c in measurements]
     rows = []

@@ -15,7 +15,8 @@ from experiments.formatting import format_value, is_number, latex_escape
 from experiments.formatting import latex_number as _latex_number
 from experiments.formatting import latex_table as _latex_table
 
-__all__ = ["dropped_lines", "figure", "row_n", "table_notes", "to_csv", "to_latex", "to_markdown", "write_report"]
+__all__ = ["dropped_lines", "figure", "row_n", "table_notes", "to_csv", "to_latex", "to_markdown",
+           "write_report"]
 
 
 def _cell(stats: dict, number=format_value, plus_minus: str = " ± ", row_n: int | None = None) -> str:
@@ -43,7 +44,8 @@ def _latex_cell(stats: dict, row_n: int | None = None) -> str:
 
 def row_n(row: dict, default: int) -> int:
     """A row's ``n``: the most replicates any of its cells has (the runs holding the row without any)."""
-    return max((v["n"] for v in row["values"].values() if v["mean"] is not None), default=row.get("held_by", default))
+    return max((v["n"] for v in row["values"].values() if v["mean"] is not None),
+               default=row.get("held_by", default))
 
 
 def _which(body: dict, paths: list[str]) -> str:
@@ -77,16 +79,19 @@ def table_notes(body: dict, table: dict) -> list[str]:
     lines += [f"row {_labels_text(item['labels'])}: not in {_which(body, item['runs'])}"
               for item in absent.get("rows", [])]
     for row in table["rows"]:
-        factors = ", ".join(f"{k}={format_value(v)}" for k, v in body["groups"][row["group"]]["factors"].items())
-        where = ", ".join(x for x in (_labels_text({c: v for c, v in row["labels"].items() if not is_number(v)}),
-                                      factors) if x)
-        lines += [f"{c} of {where}: dropped: {v['dropped']}" for c, v in row["values"].items() if v.get("dropped")]
+        factors = body["groups"][row["group"]]["factors"]
+        names = _labels_text({c: v for c, v in row["labels"].items() if not is_number(v)})
+        setting = ", ".join(f"{k}={format_value(v)}" for k, v in factors.items())
+        where = ", ".join(x for x in (names, setting) if x)
+        lines += [f"{c} of {where}: dropped: {v['dropped']}" for c, v in row["values"].items()
+                  if v.get("dropped")]
     return lines
 
 
 def dropped_lines(body: dict) -> list[str]:
     """The runs' own ``dropped`` entries (what a run could not compute, results.json), with the runs."""
-    return [f"{item['metric']}: {item['reason']} ({_which(body, item['runs'])})" for item in body.get("dropped", [])]
+    return [f"{item['metric']}: {item['reason']} ({_which(body, item['runs'])})"
+            for item in body.get("dropped", [])]
 
 
 def to_markdown(report: dict[str, Any]) -> str:
@@ -97,8 +102,8 @@ def to_markdown(report: dict[str, Any]) -> str:
         out += [f"## {experiment}", "",
                 f"{sum(len(g['runs']) for g in groups)} runs in {len(groups)} group(s); factors: "
                 f"{', '.join(body['factors']) or 'none'}; replicates: {body['replicate']} "
-                f"(mean ± half-width of the {pct} Student-t interval over the replicates; n = the replicates with "
-                "a value, and (n=k) in a cell with another number).", ""]
+                f"(mean ± half-width of the {pct} Student-t interval over the replicates; n = the replicates "
+                "with a value, and (n=k) in a cell with another number).", ""]
         if body.get("left_out"):
             left = sum(item["runs"] for item in body["left_out"])
             out += [f"**Left out: {left} run(s)** (not finished, so not in the tables below):", "",
@@ -112,15 +117,16 @@ def to_markdown(report: dict[str, Any]) -> str:
                 g = groups[row["group"]]
                 n = row_n(row, len(g["runs"]))
                 cells = [*(format_value(g["factors"][k]) for k in factor_cols), *(format_value(row["labels"][c]) for c in table["labels"]),
-                         str(n), *(_cell(row["values"][c], row_n=n) for c in [*table["measurements"], *errors])]
+                         str(n), *(_cell(row["values"][c], row_n=n)
+                                   for c in [*table["measurements"], *errors])]
                 lines.append("| " + " | ".join(cells) + " |")
             out += [f"### {name}", "", *lines, ""]
             if errors or table.get("not_combined") or table.get("fractions"):
                 out += [_columns_note(table), ""]
             notes = table_notes(body, table)
             if notes:
-                out += ["Not in every run, or not computed (no value there; each cell's n counts the runs with one):",
-                        "", *(f"- {line}" for line in notes), ""]
+                out += ["Not in every run, or not computed (no value there; each cell's n counts the runs "
+                        "with one):", "", *(f"- {line}" for line in notes), ""]
         for name, paired in (body.get("paired") or {}).items():
             columns, rows = _paired_rows(body, paired, minus=" − ")
             lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
@@ -130,8 +136,9 @@ def to_markdown(report: dict[str, Any]) -> str:
                      f"share their data), then mean ± half-width of the {pct} Student-t interval over the replicates."),
                     "", *lines, ""]
         if body.get("dropped"):
-            out += ["**Dropped in the runs** (each run's results.json `dropped`: what it could not compute, so its "
-                    "cells hold no value from those runs):", "", *(f"- {line}" for line in dropped_lines(body)), ""]
+            out += ["**Dropped in the runs** (each run's results.json `dropped`: what it could not compute, "
+                    "so its cells hold no value from those runs):", "",
+                    *(f"- {line}" for line in dropped_lines(body)), ""]
     return "\n".join(out)
 
 
@@ -193,8 +200,9 @@ def to_latex(report: dict[str, Any]) -> str:
     esc = latex_escape
     out = ["% torchmm-report: booktabs tables (\\usepackage{booktabs}); \\input{report.tex} in a document,",
            "% e.g. \\documentclass{article}\\usepackage{booktabs}\\begin{document}\\input{report.tex}\\end{document}",
-           "% cells: mean $\\pm$ half-width of the Student-t interval over the replicates; n = replicates with a value",
-           "% (a cell with another number: (n=k)); what runs lack or could not compute: comments after each table", ""]
+           "% cells: mean $\\pm$ half-width of the Student-t interval over the replicates; n = replicates",
+           "% with a value (a cell with another number: (n=k)); what runs lack or could not compute:",
+           "% comments after each table", ""]
     for experiment, body in report.items():
         groups, factors = body["groups"], body["factors"]
         pct = f"{100 * body['level']:g}\\,\\%"

@@ -95,8 +95,8 @@ def pooled_se(values: list[Any], means: list[Any] | None = None) -> dict[str, An
             record["dropped"] = "no replicate has a value of the quantity it is the standard error of"
         return record
     if 0 < len(have) < len(entering):
-        record["dropped"] = (f"{len(entering) - len(have)} of the {len(entering)} replicates in the mean have no "
-                             "standard error")
+        lacking = len(entering) - len(have)
+        record["dropped"] = f"{lacking} of the {len(entering)} replicates in the mean have no standard error"
         return record
     if have:
         record["mean"] = math.sqrt(math.fsum(v * v for v in have)) / len(have)
@@ -177,7 +177,8 @@ def aligned_rows(tables: list[dict], key_columns: list[int]) -> list[dict]:
 
 def template_rows(group: list[dict]) -> list[list]:
     """Per row of a group's aligned tables (:func:`aligned_rows`): the first run's row that holds it."""
-    return [next(t["rows"][r] for t in group if t["rows"][r] is not None) for r in range(len(group[0]["rows"]))]
+    return [next(t["rows"][r] for t in group if t["rows"][r] is not None)
+            for r in range(len(group[0]["rows"]))]
 
 
 def label_columns(tables_by_group: list[list[dict]], flags: list[int] = ()) -> list[bool]:
@@ -193,7 +194,8 @@ def label_columns(tables_by_group: list[list[dict]], flags: list[int] = ()) -> l
         if c in flags:
             labels.append(False)
             continue
-        numeric = any(is_number(row[c]) for g in tables_by_group for t in g for row in t["rows"] if row is not None)
+        numeric = any(is_number(row[c]) for g in tables_by_group for t in g for row in t["rows"]
+                      if row is not None)
         same = True
         for pool in pools:
             seen: dict[Any, set] = defaultdict(set)

@@ -131,7 +131,8 @@ def test_rows_are_matched_by_their_estimator_not_their_position(tmp_path, capsys
         assert got[est]["rmse"]["n"] == len(want)
         assert got[est]["rmse"]["mean"] == pytest.approx(np.mean(want), rel=1e-14)
     assert got["KF-q"]["rmse"]["ci_low"] is None  # one run: no interval
-    paired = {row["labels"]["estimator"]: row["values"]["rmse"] for row in report["paired"]["summary"]["rows"]}
+    paired = {row["labels"]["estimator"]: row["values"]["rmse"]
+              for row in report["paired"]["summary"]["rows"]}
     d = [values[s]["KF"] - values[s]["IMM"] for s in (0, 1)]
     assert paired["KF"]["n"] == 2 and paired["KF"]["mean"] == pytest.approx(np.mean(d), rel=1e-12)
     assert paired["KF-q"]["n"] == 1 and paired["KF-q"]["mean"] == pytest.approx(6.1 - 4.1, rel=1e-12)

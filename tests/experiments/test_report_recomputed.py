@@ -60,7 +60,8 @@ def test_every_cell_is_recomputed_from_the_runs(sweep):
                 assert (stats_["ci_high"] - stats_["ci_low"]) / 2 == pytest.approx(half, rel=1e-9)
             assert stats_["ci_low"] <= stats_["ci_high"]
         for column in summary["standard_errors"]:  # sqrt(sum se^2) / n: the se of the mean of the runs,
-            # over the runs in the mean of its metric, each with an se (else no value: dropped where some have one)
+            # over the runs in the mean of its metric, each with an se (else no value: dropped where some
+            # have one)
             cells = [run["tables"]["summary"]["rows"][r] for run in runs]
             values = [c[columns.index(column)] for c in cells if c[columns.index(column[:-3])] is not None]
             got = row["values"][column]

@@ -26,7 +26,8 @@ def _interval(values):
 def _summary_sweep(root):
     """2 groups (missing = 0.0, 0.7) x 3 seeds of a summary table; group 0.0's runs have ``white`` and
     ``white_bound`` (21 vs 19 columns in compare), group 0.7's seed 2 alone has ``extra``; seed 1 of group 0.7
-    records that it could not compute ``white``. Returns the values written, by (missing, estimator, column)."""
+    records that it could not compute ``white``. Returns the values written, by (missing, estimator,
+    column)."""
     rng = np.random.default_rng(11)
     written: dict = {}
     for missing in (0.0, 0.7):
@@ -61,7 +62,8 @@ def test_runs_with_other_columns_are_combined_on_the_union(tmp_path, capsys):
     assert "toy/summary: extra not in 5 run(s); white not in 3 run(s); white_bound not in 3 run(s)" in err
     body = json.loads((tmp_path / "runs" / "report" / "report.json").read_text())["toy"]
     table = body["tables"]["summary"]
-    assert table["measurements"] == ["rmse", "extra", "nees", "white"] and table["standard_errors"] == ["rmse_se"]
+    assert table["measurements"] == ["rmse", "extra", "nees", "white"]
+    assert table["standard_errors"] == ["rmse_se"]
     assert "white_bound" in table["labels"]  # the same in every run of its group (None in the other)
     for row in table["rows"]:
         missing = body["groups"][row["group"]]["factors"]["scenario.missing"]
@@ -89,9 +91,11 @@ def test_runs_with_other_columns_are_combined_on_the_union(tmp_path, capsys):
         assert row["values"]["rmse"]["mean"] == pytest.approx(d.mean(), rel=1e-12)
     md = (tmp_path / "runs" / "report" / "report.md").read_text()
     assert "- column white: not in 3 of 6 runs: scenario.missing=0.7000 (seed 0, 1, 2)" in md
-    assert "- column extra: not in 5 of 6 runs: scenario.missing=0.0000 (seed 0, 1, 2); scenario.missing=0.7000 (seed 0, 1)" in md
+    assert ("- column extra: not in 5 of 6 runs: scenario.missing=0.0000 (seed 0, 1, 2); "
+            "scenario.missing=0.7000 (seed 0, 1)") in md
     # the runs' own dropped entries, with the runs (the report read none before)
-    assert "- white (IMM): no two consecutive innovations (1 of 6 runs: scenario.missing=0.7000 (seed 1))" in md
+    assert "- white (IMM): no two consecutive innovations (1 of 6 runs: scenario.missing=0.7000 (seed 1))" \
+        in md
     assert body["dropped"] == [{"metric": "white (IMM)", "reason": "no two consecutive innovations",
                                 "runs": [runs["m0.7_s1"]]}]
     # a cell with fewer replicates than its row says so: extra (n=1) in a row of n = 3, in report.md and .tex
@@ -138,7 +142,8 @@ def test_a_study_paired_table_with_rows_only_some_runs_hold(tmp_path, capsys):
             d, se = rng.normal(0.1, 0.05), abs(rng.normal(0.02, 0.005))
             written.setdefault(metric, []).append((d, se))
             rows.append([metric, "KF", "IMM", d, se, d - 2 * se, d + 2 * se])
-        _write_run(tmp_path / "runs" / f"s{seed}", {"seed": seed}, {"paired": {"columns": columns, "rows": rows}})
+        _write_run(tmp_path / "runs" / f"s{seed}", {"seed": seed},
+                   {"paired": {"columns": columns, "rows": rows}})
     assert rep.main([str(tmp_path / "runs")]) == 0
     assert "toy/paired: row nis, KF, IMM not in 4 run(s)" in capsys.readouterr().err
     body = json.loads((tmp_path / "runs" / "report" / "report.json").read_text())["toy"]
@@ -152,7 +157,8 @@ def test_a_study_paired_table_with_rows_only_some_runs_hold(tmp_path, capsys):
         assert values["difference"]["mean"] == pytest.approx(d.mean(), rel=1e-12)
         assert values["se"]["mean"] == pytest.approx(np.sqrt(np.sum(se ** 2)) / len(se), rel=1e-12)
     (item,) = table["absent"]["rows"]
-    assert item["labels"] == {"metric": "nis", "estimator": "KF", "reference": "IMM"} and len(item["runs"]) == 4
+    assert item["labels"] == {"metric": "nis", "estimator": "KF", "reference": "IMM"}
+    assert len(item["runs"]) == 4
     md = (tmp_path / "runs" / "report" / "report.md").read_text()
     assert "- row nis, KF, IMM: not in 4 of 5 runs: seed 0, 1, 2, 3" in md
     assert f"| nis | KF | IMM | 1 | {written['nis'][0][0]:.4f} |" in md  # its own row's n
@@ -164,7 +170,8 @@ def test_a_dropped_standard_error_reads_dropped_in_the_report(tmp_path):
     for seed in range(5):
         se = 2.6485 if seed == 4 else None
         _write_run(tmp_path / "runs" / f"s{seed}", {"seed": seed},
-                   {"summary": {"columns": ["estimator", "nis", "nis_se"], "rows": [["IMM", 1.0 + seed, se]]}})
+                   {"summary": {"columns": ["estimator", "nis", "nis_se"],
+                                "rows": [["IMM", 1.0 + seed, se]]}})
     assert rep.main([str(tmp_path / "runs")]) == 0
     out = tmp_path / "runs" / "report"
     md = (out / "report.md").read_text()

@@ -26,7 +26,8 @@ def _scalars(folder):
 
 
 def _session_starts(folder) -> int:
-    """How many hparams rows (``_hparams_/session_start_info`` summaries) the event files in ``folder`` hold."""
+    """How many hparams rows (``_hparams_/session_start_info`` summaries) the event files in ``folder``
+    hold."""
     from tensorboard.backend.event_processing.event_file_loader import EventFileLoader
 
     return sum(value.tag == "_hparams_/session_start_info" for path in folder.glob("*tfevents*")
@@ -62,7 +63,8 @@ def test_a_continued_run_has_each_point_once_and_keeps_the_earlier_events(tmp_pa
     """run_study twice into one folder (what resume=latest on a finished run and a sweep re-run into its
     hydra.sweep.dir do): tb/ holds one event file, each scalar once per step and one hparams row; the
     first execution's events are kept under tb/superseded/1/, under names TensorBoard does not read."""
-    cfg = _compose("imm_baseline", "debug=imm_baseline", "logger=tensorboard", "figures=false", "progress=false")
+    cfg = _compose("imm_baseline", "debug=imm_baseline", "logger=tensorboard", "figures=false",
+                   "progress=false")
     run_study(cfg, tmp_path / "run")
     first = _scalars(tmp_path / "run" / "tb")
     run_study(cfg, tmp_path / "run")
