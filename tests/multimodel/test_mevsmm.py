@@ -252,9 +252,13 @@ def test_challenge_match_policy_counts_and_fallback():
     active, info = policy(lw)
     assert info["winner_counts"].sum(-1).tolist() == [40.0, 40.0]
     assert active[0].tolist() == [True, False, True, False]
-    strict = ChallengeMatch(40, 41, method="topk")
+    strict = ChallengeMatch(40, 31, method="topk")  # run 0: 30 winners of model 2, 10 of model 0
     active, info = strict(lw)
-    assert info["fallback"].all() and torch.all(active.sum(-1) == 1)
+    counts = info["winner_counts"]
+    assert (counts.amax(-1) < 31).all()  # (no model reaches it in either run: both fall back)
+    assert info["fallback"].all() and torch.equal(active, counts == counts.amax(-1, keepdim=True))
+    with pytest.raises(ValueError, match=r"^threshold: 41 exceeds num_winners \(40\)"):
+        ChallengeMatch(40, 41)  # never reachable: refused (before: every step fell back)
     cm = ChallengeMatch(40, 10, method="cm", passes=200)
     active_cm, _ = cm(lw, torch.Generator().manual_seed(2))
     assert active_cm[0].tolist() == [True, False, True, False]

@@ -15,6 +15,7 @@ import torchmm.kernels.particle as particle_stages
 from torchmm.beliefs import ModeBelief, ParticleBelief
 from torchmm.beliefs.ops import normalize_log_probs
 from torchmm.contract import Choice, Int, entry_point
+from torchmm.multimodel.structure import mode_filters, particle_counts
 from torchmm.validation import as_int
 
 __all__ = ["ChallengeMatch", "challenge_match"]
@@ -148,14 +149,38 @@ class ChallengeMatch:
         passes: tournament passes over the pool (the paper leaves the end condition open).
 
     If no model reaches the threshold, the model with the most winners is kept (the set is never
-    empty); ``info["fallback"]`` marks those runs.
+    empty); ``info["fallback"]`` marks those runs. A ``threshold`` above ``num_winners`` could never be
+    reached (every step would fall back) and is refused.
     """
 
     @entry_point(num_winners=Int(1), threshold=Int(0), method=Choice("cm", "topk"), passes=Int(1))
     def __init__(self, num_winners: int = 420, threshold: int = 23, *, method: str = "cm", passes: int = 1):
         self.num_winners = as_int(num_winners, "num_winners", minimum=1)
         self.threshold = as_int(threshold, "threshold", minimum=0)
+        if self.threshold > self.num_winners:
+            raise ValueError(f"threshold: {self.threshold} exceeds num_winners ({self.num_winners}): no "
+                             "model could reach it (every step would fall back to the model with the most "
+                             "winners)")
         self.method, self.passes = method, as_int(passes, "passes", minimum=0)
+
+    def check_bank(self, bank, name: str = "policy") -> None:
+        """Refuse a bank of mode filters that are not particle filters (``TypeError``) and more winners than
+        the bank's ``M x Np`` particles (``ValueError`` naming ``name.num_winners``); called once by
+        :class:`~torchmm.multimodel.VariableStructureIMM` when it is built (a bank whose filters are
+        not known is left to the step's checks)."""
+        filters = mode_filters(bank)
+        if filters is None:
+            return
+        counts = particle_counts(bank)
+        if counts is None:
+            kinds = sorted({type(f).__name__ for f in filters})
+            raise TypeError(f"{name}: ChallengeMatch ranks particles and needs particle mode filters "
+                            f"(ParticleFilter), got {', '.join(kinds)}; use ExactMinimumEntropy over other "
+                            "banks")
+        if all(c is not None for c in counts) and self.num_winners > sum(counts):
+            shown = f"{len(counts)} x {counts[0]} = " if len(set(counts)) == 1 else ""
+            raise ValueError(f"{name}.num_winners: {self.num_winners} exceeds the bank's "
+                             f"{shown}{sum(counts)} particles")
 
     def __call__(self, log_weights: Tensor, generator=None) -> tuple[Tensor, dict]:
         M, Np = log_weights.shape[-2:]

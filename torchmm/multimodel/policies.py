@@ -33,6 +33,7 @@ exactly by ``topk``; a model stays in the set if it has at least ``Thre`` of the
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import torch
 from torch import Tensor
@@ -133,13 +134,13 @@ def subset_entropies(log_weights: Tensor, subsets: Tensor, entropy: str = "joint
     return _entropy_from_sums(sums, entropy)
 
 
-def _check_subsets(subsets, num_models: int) -> Tensor:
+def _check_subsets(subsets, num_models: int, name: str = "family") -> Tensor:
     subsets = torch.as_tensor(subsets)
     if subsets.dim() != 2 or subsets.shape[-1] != num_models:
-        raise ValueError(f"family: expected a (K, {num_models}) indicator matrix, got {tuple(subsets.shape)}")
+        raise ValueError(f"{name}: expected a (K, {num_models}) indicator matrix, got {tuple(subsets.shape)}")
     subsets = subsets.bool()
     if not bool(subsets.any(-1).all()):
-        raise ValueError("family: every candidate set must contain at least one model")
+        raise ValueError(f"{name}: every candidate set must contain at least one model")
     return subsets
 
 
@@ -287,13 +288,15 @@ class ExactMinimumEntropy:
     :func:`min_entropy_subset`).
 
     Args:
-        family: ``(K, M)`` bool candidate sets, or a list of lists of model indices; None = all.
+        family: ``(K, M)`` bool candidate sets, or a list (any sequence: a tuple, a config's list) of lists
+            of model indices; None = all. :class:`~torchmm.multimodel.VariableStructureIMM` refuses an index
+            past its bank's ``M`` when it is built.
         chunk_size: subsets evaluated at once.
         entropy: ``"joint"`` (default; entropy of the renormalised weights on the set) or
             ``"literal"`` (the product of (28) and (29) as printed).
     """
 
-    @entry_point(family=Of((list, tuple, Tensor), optional=True,
+    @entry_point(family=Of((Sequence, Tensor), optional=True,
                            what="a list of model-index lists or a (K, M) bool mask"),
                  chunk_size=Int(1),
                  entropy=Choice(*ENTROPY_READINGS))
@@ -303,12 +306,20 @@ class ExactMinimumEntropy:
                 raise TypeError("family: expected a (K, M) bool mask or a list of model-index lists, got a "
                                 f"tensor of dtype {family.dtype} and shape {tuple(family.shape)}")
         elif family is not None:
-            if isinstance(family, (str, bytes)) or not isinstance(family, (list, tuple)) or not family:
+            # any sequence of index sequences (a list, a tuple, a config's ListConfig), kept as lists of ints
+            if isinstance(family, (str, bytes)) or not family:
                 raise TypeError("family: expected a (K, M) bool mask or a non-empty list of "
                                 f"model-index lists, got {family!r}")
-            for k, members in enumerate(family):
-                Indices().check(members, f"family[{k}]")
+            family = [[int(i) for i in Indices().check(members, f"family[{k}]")]
+                      for k, members in enumerate(family)]
         self.family, self.chunk_size, self.entropy = family, as_int(chunk_size, "chunk_size", minimum=1), entropy
+
+    def check_bank(self, bank, name: str = "policy") -> None:
+        """Refuse a ``family`` whose sets name a model past the bank's ``M`` (or a mask of another width):
+        ``ValueError`` naming ``name.family``; called once by
+        :class:`~torchmm.multimodel.VariableStructureIMM` when it is built."""
+        if self.family is not None:
+            self._make_family(bank.num_modes, "cpu", f"{name}.family")
 
     def _family(self, num_models: int, device) -> Tensor | None:
         if self.family is None:
@@ -319,14 +330,18 @@ class ExactMinimumEntropy:
             cache[key] = self._make_family(num_models, device)
         return cache[key]
 
-    def _make_family(self, num_models: int, device) -> Tensor:
+    def _make_family(self, num_models: int, device, name: str = "family") -> Tensor:
         fam = self.family
-        if isinstance(fam, (list, tuple)) and fam and isinstance(fam[0], (list, tuple)):
+        if isinstance(fam, list):
             rows = torch.zeros(len(fam), num_models, dtype=torch.bool)
             for k, members in enumerate(fam):
-                rows[k, list(members)] = True
+                bad = [i for i in members if not 0 <= i < num_models]
+                if bad:
+                    raise ValueError(f"{name}: entry {k} ({members}) has model index {bad[0]}, out of range "
+                                     f"for the bank's {num_models} models (0..{num_models - 1})")
+                rows[k, members] = True
             fam = rows
-        return _check_subsets(fam, num_models).to(device)
+        return _check_subsets(fam, num_models, name).to(device)
 
     def __call__(self, log_weights: Tensor, generator=None) -> tuple[Tensor, dict]:
         family = self._family(log_weights.shape[-2], log_weights.device)

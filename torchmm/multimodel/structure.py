@@ -10,7 +10,10 @@ static shapes and keeps an ``active`` mask ``(*B, M)`` per run: every step
 3. the policy selects ``S_k`` from the posterior, and the belief is renormalised on it
    (``feedback=True``) or the set only chooses the output (``feedback=False``).
 
-Policies are objects with ``select(posterior, generator) -> (active (*B, M) bool, info dict)``:
+Policies are objects with ``select(posterior, generator) -> (active (*B, M) bool, info dict)`` and,
+optionally, ``check_bank(bank, name)``, which :class:`VariableStructureIMM` calls once when it is built
+to refuse a policy that does not fit the bank (a model index past ``M``, a particle rule over
+Gaussian mode filters) before any step:
 :class:`AllModels` and :class:`FixedSet` here, paper 003's
 :class:`~torchmm.multimodel.mevsmm.ExactMinimumEntropy` (any bank whose beliefs define
 ``entropy()``: Kalman, unscented, particle) and :class:`~torchmm.multimodel.mevsmm.ChallengeMatch`
@@ -29,7 +32,7 @@ from torchmm.contract import Flag, Indices, Of, Real, Stochastic, entry_point
 from torchmm.beliefs import Belief, ModeBelief, ModelSetBelief
 from torchmm.beliefs.ops import normalize_log_probs
 from torchmm.filters.base import Filter, StepOutput
-from torchmm.multimodel.bank import FilterBank
+from torchmm.multimodel.bank import FilterBank, IndexedBank, ListBank, VectorizedBank
 from torchmm.validation import broadcast_shape
 from torchmm.multimodel.imm import IMM, Interaction
 
@@ -43,6 +46,50 @@ class ModelSetPolicy:
         """The active set ``(*B, M)`` bool (never empty) and diagnostics (tensors with batch ``(*B, ...)``)
         from the posterior ``belief`` over the total set (normalised mode probabilities)."""
         raise NotImplementedError
+
+    def check_bank(self, bank: FilterBank, name: str = "policy") -> None:
+        """Refuse (``ValueError``/``TypeError`` naming ``name.<argument>``) a policy that cannot run over
+        ``bank``; called once by :class:`VariableStructureIMM` when it is built. The default accepts any
+        bank."""
+
+
+def mode_filters(bank: FilterBank) -> list[Filter] | None:
+    """The mode filters of ``bank``, one per mode (a :class:`~torchmm.multimodel.VectorizedBank`'s one
+    filter ``M`` times); None for a bank of another kind, whose filters are not known."""
+    if isinstance(bank, VectorizedBank):
+        return [bank.filter] * bank.num_modes
+    if isinstance(bank, ListBank):
+        return list(bank.filters)
+    if isinstance(bank, IndexedBank):
+        inner = mode_filters(bank.bank)
+        return None if inner is None else [inner[i] for i in bank.index]
+    return None
+
+
+def particle_counts(bank: FilterBank) -> list[int | None] | None:
+    """Per mode, the particle count of a particle mode filter (its ``num_particles``; None where it
+    keeps the prior's count) and None for the list when a mode filter is not a particle filter (one
+    whose beliefs the particle smoother takes, ``smoother == "particles"`` as
+    :class:`~torchmm.ParticleFilter`'s, or one with an integer ``num_particles``) or the bank's filters
+    are not known (:func:`mode_filters`)."""
+    filters = mode_filters(bank)
+    if filters is None:
+        return None
+    counts = []
+    for f in filters:
+        count = getattr(f, "num_particles", None)
+        if getattr(f, "smoother", None) != "particles" and not isinstance(count, int):
+            return None
+        counts.append(count)
+    return counts
+
+
+def check_indices(indices: list[int], num_models: int, name: str) -> None:
+    """Refuse a model index outside ``[0, num_models)``: ``ValueError`` naming ``name``."""
+    bad = [i for i in indices if not 0 <= i < num_models]
+    if bad:
+        raise ValueError(f"{name}: {list(indices)} has model index {bad[0]}, out of range for the bank's "
+                         f"{num_models} models (0..{num_models - 1})")
 
 
 class AllModels(ModelSetPolicy):
@@ -65,20 +112,22 @@ class FixedSet(ModelSetPolicy):
         if not self.members:
             raise ValueError("members: the model set must not be empty")
 
+    def check_bank(self, bank, name="policy"):
+        check_indices(self.members, bank.num_modes, f"{name}.members")
+
     def select(self, belief, generator=None):
-        M = belief.num_modes
-        if self.members[-1] >= M or self.members[0] < 0:
-            raise ValueError(f"members: {self.members} out of range for {M} models")
-        mask = _index_mask(self, self.members, M, belief.mode_log_probs.device)
+        mask = _index_mask(self, self.members, belief.num_modes, belief.mode_log_probs.device, "members")
         return mask.expand(belief.mode_log_probs.shape), {}
 
 
-def _index_mask(policy, indices: list[int], size: int, device) -> Tensor:
-    """``(size,)`` bool, True at ``indices``: made once per size and device and kept on the policy (a
-    mask built from a Python list is a host-to-device copy on a GPU, not for every step)."""
+def _index_mask(policy, indices: list[int], size: int, device, name: str) -> Tensor:
+    """``(size,)`` bool, True at ``indices`` (the policy's argument ``name``, checked against ``size``): made
+    once per size and device and kept on the policy (a mask built from a Python list is a host-to-device
+    copy on a GPU, not for every step)."""
     cache = policy.__dict__.setdefault("_masks", {})
     key = (size, str(device))
     if key not in cache:
+        check_indices(indices, size, name)
         mask = torch.zeros(size, dtype=torch.bool)
         mask[indices] = True
         cache[key] = mask.to(device)
@@ -101,9 +150,12 @@ class DropBelow(ModelSetPolicy):
             raise ValueError(f"threshold: must lie in [0, 1), got {threshold}")
         self.candidates = sorted({int(i) for i in candidates})
 
+    def check_bank(self, bank, name="policy"):
+        check_indices(self.candidates, bank.num_modes, f"{name}.candidates")
+
     def select(self, belief, generator=None):
         lp = belief.mode_log_probs
-        candidate = _index_mask(self, self.candidates, lp.shape[-1], lp.device)
+        candidate = _index_mask(self, self.candidates, lp.shape[-1], lp.device, "candidates")
         low = lp < (math.log(self.threshold) if self.threshold > 0 else -math.inf)
         return ~(candidate & (low | (lp == -math.inf))), {}
 
@@ -168,7 +220,10 @@ class VariableStructureIMM(IMM):
     Args:
         bank: the mode filters of the total model set (any bank, as :class:`~torchmm.multimodel.IMM`).
         transition: ``(M, M)`` over the total set.
-        policy: a :class:`ModelSetPolicy` (e.g. ``ExactMinimumEntropy()`` for paper 003's rule).
+        policy: a :class:`ModelSetPolicy` (e.g. ``ExactMinimumEntropy()`` for paper 003's rule); its
+            ``check_bank(bank, "policy")``, where it has one, refuses here a policy that does not fit the
+            bank (``FixedSet``/``DropBelow``/``family`` indices past ``M``; ``ChallengeMatch`` over
+            mode filters that are not particle filters, or with more winners than particles).
         feedback: ``True``: the recursion continues from the selected set (probabilities
             renormalised on it); ``False``: the recursion keeps every model and the set only
             chooses the output :meth:`~torchmm.beliefs.ModelSetBelief.estimate`.
@@ -197,6 +252,9 @@ class VariableStructureIMM(IMM):
                  feedback=Flag())
     def __init__(self, bank, transition, policy: ModelSetPolicy, *, feedback: bool = True):
         super().__init__(bank, transition)
+        check = getattr(policy, "check_bank", None)
+        if callable(check):  # (once, here: a policy that does not fit the bank is refused before any step)
+            check(self.bank, "policy")
         self.policy, self.feedback = policy, bool(feedback)
 
     @property
