@@ -24,7 +24,8 @@ from omegaconf.errors import (
 )
 
 __all__ = ["NO_VALUE", "Check", "ConfigError", "both", "build_error", "check_fields", "device_name", "each",
-           "join_key", "matrix", "merge", "non_empty", "non_finite_entry", "non_negative", "one_of",
+           "join_key", "matrix", "merge", "node_key", "non_empty", "non_finite_entry", "non_negative",
+           "one_of",
            "open_probability", "positive", "positive_int", "probability", "resume_value", "schema_at", "seed_value",
            "show_value", "spec", "type_message"]
 
@@ -256,14 +257,45 @@ def build_error(key: str, node: Any, err: BaseException, aliases: dict | None = 
     head, sep, rest = first.partition(": ")
     head = head[len(key) + 1:] if head.startswith(f"{key}.") else head  # (a message naming the full key)
     name = (aliases or {}).get(head, head)
-    if sep and rest and hasattr(node, "keys") and name in node:
-        value = node[name]
+    path = node_key(node, name) if sep and rest and hasattr(node, "keys") else None
+    if path is not None:
+        value = OmegaConf.select(node, path) if OmegaConf.is_config(node) else _nested(node, path)
         value = OmegaConf.to_container(value, resolve=True) if OmegaConf.is_config(value) else value
         shown = show_value(value)
         rest = rest[len(shown) + 1:] if rest.startswith(f"{shown} ") else rest
-        return ConfigError(join_key(key, name), value, rest)
+        return ConfigError(join_key(key, path), value, rest)
     target = node.get("_target_") if hasattr(node, "get") else None
     return ConfigError(key, target if target else NO_VALUE, f"cannot be built: {first}")
+
+
+def node_key(node: Any, name: str) -> str | None:
+    """The dotted path in the mapping ``node`` of the key a constructor names: ``name`` itself when it is
+    one of the node's keys, else the one path whose last parts are ``name``'s (``policy.members`` is
+    ``combinator.policy.members`` of an estimator node); None when there is none or more than one."""
+    if name in node:
+        return name
+    parts, found = name.split("."), []
+
+    def walk(sub, prefix):
+        for k in list(sub.keys()):
+            path = [*prefix, str(k)]
+            if path[-len(parts):] == parts:
+                found.append(".".join(path))
+            try:
+                child = sub[k]
+            except OmegaConfBaseException:  # (a value that does not resolve: not searched)
+                continue
+            if hasattr(child, "keys"):
+                walk(child, path)
+
+    walk(node, [])
+    return found[0] if len(found) == 1 else None
+
+
+def _nested(node: Any, path: str) -> Any:
+    for part in path.split("."):
+        node = node[part]
+    return node
 
 
 def join_key(prefix: str, key: str) -> str:

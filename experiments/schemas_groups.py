@@ -95,6 +95,29 @@ class ModeFilter:
         return None
 
 
+def model_sets(value) -> str | None:
+    """A list of model sets, each a non-empty list of model indices (0-based; the bank's size is checked
+    when the estimator is built)."""
+    if value is None:
+        return None
+    if not value:
+        return "must not be empty (a list of model-index lists, e.g. [[0, 1], [2]])"
+    for k, members in enumerate(value):
+        if not isinstance(members, list) or not members or any(
+                isinstance(i, bool) or not isinstance(i, int) or i < 0 for i in members):
+            return f"entry {k} ({members!r}): expected a non-empty list of model indices >= 0 ([[0, 1], [2]])"
+    return None
+
+
+def threshold_check(threshold, num_winners, key: str = "threshold"):
+    """A challenge match's ``threshold`` above its ``num_winners`` could never be reached (every step would
+    fall back to the model with the most winners): ``(key, value, why)`` or None."""
+    if threshold is not None and num_winners is not None and threshold > num_winners:
+        return key, threshold, (f"exceeds num_winners ({num_winners}): no model could reach it (every step "
+                                "would fall back to the model with the most winners)")
+    return None
+
+
 @dataclass
 class Policy:
     """``conf/policy``: the model-set policy of the ``vsmm`` estimator."""
@@ -105,7 +128,12 @@ class Policy:
     threshold: Optional[int] = spec(None, non_negative)
     method: Optional[str] = spec(None, one_of("cm", "topk"))
     passes: Optional[int] = spec(None, non_negative)
+    family: Optional[List[Any]] = spec(None, model_sets)  # ExactMinimumEntropy's candidate sets
 
+    def config_check(self):
+        if self.family is not None and self._target_ != POLICIES[0]:
+            return "family", self.family, f"only {POLICIES[0]} takes family (candidate model sets)"
+        return threshold_check(self.threshold, self.num_winners)
 
 
 # -- scenarios -----------------------------------------------------------------------------------

@@ -26,7 +26,7 @@ from experiments.checks import (
 from experiments.checks import (
     matrix as matrix_check,
 )
-from experiments.schemas_groups import KinematicScenario, ModeFilter, Policy, rows_stochastic
+from experiments.schemas_groups import KinematicScenario, ModeFilter, Policy, rows_stochastic, threshold_check
 
 
 @dataclass
@@ -320,6 +320,9 @@ class MevsmmSelection:
     chunk_size: Optional[int] = spec(None, positive_int)
     entropy: Optional[str] = spec(None, one_of("joint", "literal"))
 
+    def config_check(self):
+        return threshold_check(self.threshold, self.num_winners)
+
 
 @dataclass
 class MevsmmEstimator:
@@ -359,6 +362,13 @@ class MevsmmEstimator:
             return "num_particles", None, f"missing: {self._target_} needs num_particles"
         if builder == "eqma" and self.stay_prob is None:
             return "stay_prob", None, "missing: EqMA needs its p_ii"
+        if builder == "eqma" and self.models is not None:
+            if not self.models:
+                return "models", self.models, "must not be empty (null: all 21 models)"
+            repeated = sorted({m for m in self.models if list(self.models).count(m) > 1})
+            if repeated:
+                return "models", self.models, (f"model m{repeated[0]} is listed more than once (each model "
+                                               "once: a repeat would run twice and count twice in table1)")
         if builder == "pf_mevsmm" and self.selection is None:
             return "selection", None, f"missing: {self._target_} needs a selection node ({', '.join(MEVSMM_SELECTIONS)})"
         return None
@@ -395,6 +405,9 @@ class Mevsmm:
         if opts["num_winners"] > 21 * opts["num_particles"]:
             raise ConfigError("mevsmm.num_winners", opts["num_winners"],
                               f"must not exceed the 21 x {opts['num_particles']} particles")
+        problem = threshold_check(opts["threshold"], opts["num_winners"])
+        if problem:
+            raise ConfigError(f"mevsmm.{problem[0]}", problem[1], problem[2])
         names = list(opts["estimators"])
         for name in opts.get("estimator_names") or ():
             if name not in names:

@@ -219,6 +219,8 @@ def _run(filt, scenario: Paper003Scenario, z: Tensor, hist_steps: set[int], gene
                 else torch.full((runs,), float(filt.num_modes), dtype=z.dtype, device=z.device)}
         if "active" in extras:
             kept["active"] = extras["active"]
+        if "fallback" in extras:  # (a challenge match: no model reached the threshold)
+            kept["fallback"] = extras["fallback"]
         if "ess" in extras:
             kept["ess"] = extras["ess"]
         if k in hist_steps and hasattr(belief.components, "log_weights"):
@@ -234,6 +236,7 @@ def _run(filt, scenario: Paper003Scenario, z: Tensor, hist_steps: set[int], gene
     return {
         "mean": kept["mean"], "count": kept["count"], "members": kept.get("active"),
         "ess": kept.get("ess"),  # particle estimators only
+        "fallback": kept.get("fallback"),  # a policy that can fall back (the challenge match) only
         "hists": hists, "seconds_per_step": elapsed / z.shape[0],
     }
 
@@ -277,7 +280,7 @@ def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
     hist_steps = {int(s) for s in opts.histogram_steps}
     # the particle filters draw from one stream per block of runs (run-indexed): any chunking or
     # split over workers gives the same numbers; every figure is reduced over all runs at once
-    values: dict[str, list] = {"pos": [], "vel": [], "count": [], "ess": [], "members": []}
+    values: dict[str, list] = {k: [] for k in ("pos", "vel", "count", "ess", "members", "fallback")}
     seconds, hists = 0.0, {}
     filt = _build(_node(opts, name), scenario)
     _warm_up(filt, scenario, z)
@@ -292,13 +295,15 @@ def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
             values["ess"].append(res["ess"].detach())
         if res["members"] is not None:
             values["members"].append(res["members"].to(ctx.dtype))
+        if res["fallback"] is not None:
+            values["fallback"].append(res["fallback"].to(ctx.dtype))
         seconds += res["seconds_per_step"]
         hists = hists or {str(k): v.tolist() for k, v in res["hists"].items()}
     joined = {k: torch.cat(v, 1) for k, v in values.items() if v}  # (T, runs here, ...)
     return {
         "pos": per_run(joined["pos"]), "vel": per_run(joined["vel"]),
         "run_counts": per_run(joined["count"].to(torch.float64).mean(0)),  # a run's time-averaged model count
-        "sums": {k: per_run(joined[k].sum(1)) for k in ("count", "ess", "members") if k in joined},
+        "sums": {k: per_run(v.sum(1)) for k, v in joined.items() if k not in ("pos", "vel")},
         # sums of squares: each step's standard error of the mean count and ESS over the runs
         "sq_sums": {k: per_run(joined[k].to(torch.float64).square().sum(1)) for k in ("count", "ess") if k in joined},
         "runs": stop - start, "seconds": seconds, "hists": hists,
@@ -317,6 +322,9 @@ def _merge(parts: list[dict], runs: int, window: slice | None) -> dict:
     e_pos, e_vel = pos.to(torch.float64), vel.to(torch.float64)
     run_counts = join_runs([p["run_counts"] for p in parts], 0)
     count, ess, members = add("count"), add("ess"), add("members")
+    # the fraction of (run, step) pairs at which the challenge match fell back (None: no such policy, or
+    # units checkpointed before it was kept)
+    fallback = add("fallback") if all("fallback" in p["sums"] for p in parts) else None
 
     def band(key):  # sd over runs / sqrt(N) of each step's per-run values (None: no squares kept)
         if key not in parts[0]["sums"] or any(key not in p.get("sq_sums", {}) for p in parts):
@@ -328,6 +336,7 @@ def _merge(parts: list[dict], runs: int, window: slice | None) -> dict:
         "pos": (pos.sum(1) / est_runs).sqrt().tolist(), "vel": (vel.sum(1) / est_runs).sqrt().tolist(),
         "count": count.tolist(), "ess": ess.tolist() if ess is not None else None,
         "members": members.tolist() if members is not None else None,
+        "fallback": fallback.mean().item() if fallback is not None else None,
         "seconds_per_step": sum(p["seconds"] for p in parts) * (runs / est_runs), "runs": est_runs,
         "hists": parts[0]["hists"],
         "pos_se": armse_se(e_pos), "vel_se": armse_se(e_vel),
@@ -364,6 +373,11 @@ def run(ctx: StudyContext) -> None:
     if late:  # (a shortened run keeps the default steps: named, not refused and not lost silently)
         ctx.results.notes.append(f"mevsmm.histogram_steps {late}: past the scenario's last step "
                                  f"({scenario.steps}): no weight histogram there")
+    if deterministic and scenario.steps < 120:  # the 81-120 s window needs all 120 steps (no partial average)
+        covered = (f"covers only 81-{scenario.steps} s of the 81-120 s maneuver window (not averaged over "
+                   "a part)" if scenario.steps > 80 else "ends before the 81-120 s maneuver window")
+        for key in ("maneuver_pos_rmse", "maneuver_pos_rmse_se"):
+            ctx.results.dropped[key] = f"the scenario's {scenario.steps} steps: the run {covered}"
     pub1 = PUBLISHED_TABLE1.get(scenario.name)
     published_counts = {} if pub1 is None else {"EqMA9+1": 10, "EqMA21+1": 22, "PF-MEVSMM": pub1}
     table1 = ctx.results.table(
@@ -382,7 +396,7 @@ def run(ctx: StudyContext) -> None:
         published={"columns": ["estimator", "relative_time"], "rows": PUBLISHED_TABLE2,
                    "source": "paper 003 Table 2"},
     )
-    curves, count_curves, memberships, base_time, bands = {}, {}, {}, None, {}
+    curves, count_curves, memberships, base_time, bands, fallbacks = {}, {}, {}, None, {}, {}
     count_bands = {}  # per-step standard errors of the mean model counts
     names = list(opts.estimators) if opts.get("estimator_names") is None else [str(n) for n in opts.estimator_names]
     nodes = {name: _node(opts, name) for name in names}
@@ -422,6 +436,8 @@ def run(ctx: StudyContext) -> None:
         count_curves[label] = torch.tensor(res["count"], dtype=torch.float64)
         if res["members"] is not None:
             memberships[label] = torch.tensor(res["members"])
+        if res.get("fallback") is not None:
+            fallbacks[label] = res["fallback"]
         ctx.logger.series(f"pos_rmse/{name}", pos)
         ctx.logger.series(f"vel_rmse/{name}", vel)
         if "pos_band" in res:  # per-step standard errors of the RMSE curves
@@ -443,6 +459,14 @@ def run(ctx: StudyContext) -> None:
     if base_time:
         for row in table2.rows:
             row[2] = row[1] / base_time
+    else:
+        bases = ", ".join(str(name) for name, node in opts.estimators.items() if node.get("timing_base"))
+        ctx.results.dropped["relative_time"] = (f"the timing base ({bases}: timing_base true) did not run"
+                                                if bases else "no estimator node has timing_base true")
+    for label, frac in fallbacks.items():
+        ctx.results.notes.append(
+            f"{label}: the challenge match fell back at {100 * frac:.2f} % of the (run, step) pairs (no "
+            "model held Thre of the N winners: the set was the model with the most winners, in table1)")
     title = f"{scenario.name}, {runs} runs"
     ctx.save_figure("position_rmse", plots.rmse_over_time({"position RMSE (m)": curves}, title,
                                                                     bands={"position RMSE (m)": bands}))
