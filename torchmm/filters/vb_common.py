@@ -194,6 +194,12 @@ class LinearVBFilter(Filter):
             clone._modules["kalman"] = self.kalman._with_module(slot, module, name)
         return clone
 
+    def informative(self, z: Tensor) -> Tensor:
+        """``(*B,)`` bool: the datum is used only where every component is finite (:func:`fill_missing`
+        skips the rest), so a multiple-model filter over these scores a partly missing datum exactly 0,
+        as each mode does (tests/filters/test_vb_partial_datum.py)."""
+        return torch.isfinite(z).all(-1)
+
     def _measurement(self, belief: GaussianBelief, z) -> Tensor:
         """``z`` checked against the sensor and the belief (shapes only)."""
         return check_measurement(z, self.measurement.meas_dim, gaussian_batch(belief, self.motion.state_dim),

@@ -126,6 +126,11 @@ class VBAKFPR(Filter):
         dof = self.rho * (belief.r_dof - m - 1) + m + 1
         return AdaptiveGaussianBelief(mean, cov, dof, self.rho * belief.r_scale)
 
+    def informative(self, z: Tensor) -> Tensor:
+        """``(*B,)`` bool: where every component is finite (a partly missing datum is skipped, as in
+        :meth:`torchmm.filters.vb_common.LinearVBFilter.informative`)."""
+        return torch.isfinite(z).all(-1)
+
     def update(self, belief: AdaptiveGaussianBelief, z: Tensor, *, sensor=None) -> StepOutput:
         if sensor is not None:
             return self.with_sensor(sensor).update(belief, z)
