@@ -18,7 +18,7 @@ from torchmm.contract import BeliefArg, Data, Finite, Flag, Gen, Of, Unchecked, 
 from torchmm.filters.base import Filter, StepOutput, call_with
 from torchmm.provenance import Provenance, fingerprints, module_state, note_infinite, tensor_versions
 from torchmm.runtime import entries, fast_paths_compiled, one_thread_when_small
-from torchmm.validation import check_filter_dtype, check_measurement, module_tensors
+from torchmm.validation import check_data_batch, check_filter_dtype, check_measurement, module_tensors
 
 __all__ = ["Keep", "Trajectory", "attach_provenance", "per_step_models", "run_filter", "stack_outputs"]
 
@@ -134,7 +134,8 @@ def run_filter(
         measurements: ``(T, *B, m)`` with NaN for missing data (any non-finite entry is missing;
             infinite ones are counted in a warning), or any pytree of time-major tensors (each
             filter step receives the pytree indexed at ``k``); ``T >= 1``.
-        controls: optional inputs ``(T, *B, k)``.
+        controls: optional inputs ``(T, *B, k)``; a batch that broadcasts to ``(*B,)`` is shared by the runs
+            (``(T, k)``), one that would enlarge it is refused, as the measurements'.
         motions: per-step motion models (time-varying parameters, a per-step ``dt``): a sequence
             of ``T`` models (None entries keep the filter's) or a callable ``k -> model or None``;
             step ``k`` predicts with it (:meth:`~torchmm.filters.Filter.with_motion`). For a
@@ -174,7 +175,10 @@ def run_filter(
     Raises:
         ValueError / TypeError: naming ``belief0``, ``measurements`` or ``controls``, checked once
         here: ``belief0``'s values (:meth:`~torchmm.beliefs.Belief.validate`), its dtype against
-        the filter's, the measurement streams' time axis; every step then checks shapes only.
+        the filter's, the measurement streams' time axis, the controls' batch and width; naming a
+        model parameter (``motion.F``, ``transition``) whose batch does not broadcast with ``belief0``'s
+        or adds runs to it (:meth:`~torchmm.filters.Filter.check_parameter_batch`); every step then
+        checks shapes only.
 
     Examples:
         >>> from torchmm.filters import KalmanFilter
@@ -215,10 +219,7 @@ def run_filter(
     elif isinstance(measurements, Tensor) or getattr(filter, "checks_pytrees", False):  # not a sensor's: the filter's own check
         filter.check_measurements(measurements, belief0.batch_shape, "measurements")
     if controls is not None:
-        if not isinstance(controls, Tensor) or controls.dim() < 2:
-            raise ValueError("controls: expected a tensor (T, *B, k)")
-        if controls.shape[0] != steps:
-            raise ValueError(f"controls: expected {steps} time steps, got {controls.shape[0]}")
+        _check_controls(filter, controls, steps, belief0.batch_shape)
     # one host read: the data's record
     (data_prints, control_prints), (infinite, _) = fingerprints(measurements, controls)
     note_infinite(infinite, "measurements")
@@ -228,6 +229,7 @@ def run_filter(
         if given is not None and not _accepts(filter.step, keyword):
             raise TypeError(f"{name}: {type(filter).__name__}.step takes no per-step {keyword} (its models are "
                             "fixed by its construction, e.g. the source sensor of a multi-rate estimator)")
+    filter.check_parameter_batch(belief0.batch_shape)  # (shapes only: a parameter adding runs is named)
     estimate_only = isinstance(record, str)
     if estimate_only:
         if record != "estimate":
@@ -334,6 +336,24 @@ def attach_provenance(trajectory: Trajectory, provenance: Provenance) -> Traject
 def keep_estimate(out: StepOutput) -> StepOutput:
     """``record="estimate"`` of :func:`run_filter`: the point estimate and the log-likelihood only."""
     return StepOutput(out.belief.estimate(), None, out.log_likelihood)
+
+
+def _check_controls(filter: Filter, controls: Any, steps: int, batch: torch.Size) -> None:
+    """``controls (T, *B', k)`` against the run (shapes only): ``T`` steps, a batch that broadcasts *to*
+    belief0's ``(*B,)`` (shared by the runs, not enlarging them: the measurements' rule) and ``k`` the columns
+    of every input matrix of the filter's motions (``LinearMotion``'s ``input_matrix``)."""
+    if not isinstance(controls, Tensor) or controls.dim() < 2:
+        raise ValueError("controls: expected a tensor (T, *B, k)")
+    if controls.shape[0] != steps:
+        raise ValueError(f"controls: expected {steps} time steps, got {controls.shape[0]}")
+    k = controls.shape[-1]
+    check_data_batch(controls.shape[1:-1], batch, "controls", (steps, *batch, k))
+    for name, module in filter.named_modules():
+        matrix = getattr(module, "input_matrix", None)
+        if isinstance(matrix, Tensor) and matrix.dim() >= 2 and matrix.shape[-1] != k:
+            width = matrix.shape[-1]
+            raise ValueError(f"controls: {k} inputs a step, but {name or 'the motion'}'s input_matrix "
+                             f"{tuple(matrix.shape)} reads {width}: expected (T, *B, {width})")
 
 
 def _accepts(fn: Callable, keyword: str) -> bool:

@@ -33,8 +33,10 @@ __all__ = [
     "as_tensor",
     "broadcast_shape",
     "check_covariance",
+    "check_data_batch",
     "check_filter_dtype",
     "check_measurement",
+    "check_parameter_batch",
     "check_probabilities",
     "check_same_dtype",
     "check_shape",
@@ -369,19 +371,55 @@ def check_measurement(z, meas_dim: int, batch: torch.Size, like: Tensor, name: s
             if meas_dim == 1 and z.dim() >= 1 else ""
         raise ValueError(f"{name}: expected shape (*B, {meas_dim}) for a {meas_dim}-dimensional "
                          f"sensor, got {tuple(z.shape)}{hint}")
-    zb = z.shape[:-1]
-    if zb != batch:
-        try:
-            ok = broadcast_shape(zb, batch) == batch
-        except RuntimeError:
-            ok = False
-        if not ok:
-            raise ValueError(f"{name}: batch shape {tuple(zb)} does not broadcast to the belief's batch "
-                             f"{tuple(batch)} (expected z of shape {(*batch, meas_dim)}; to filter several "
-                             "runs from one prior, expand the prior: belief.expand(runs))")
+    check_data_batch(z.shape[:-1], batch, name, (*batch, meas_dim))
     if z.device != like.device:
         z = z.to(like.device)
     return z
+
+
+def check_data_batch(shape: torch.Size, batch: torch.Size, name: str, expected: tuple) -> None:
+    """``ValueError`` naming ``name`` unless a datum's batch ``shape`` broadcasts *to* the belief's ``batch``
+    (shared by runs: yes; one that would enlarge the batch: no). Reads shapes only; ``expected``: the
+    datum's full shape, for the message. :func:`check_measurement`'s test, and ``run_filter``'s of
+    ``controls``."""
+    if shape == batch:
+        return
+    try:
+        ok = broadcast_shape(shape, batch) == batch
+    except RuntimeError:
+        ok = False
+    if not ok:
+        raise ValueError(f"{name}: batch shape {tuple(shape)} does not broadcast to the belief's batch "
+                         f"{tuple(batch)} (expected shape {expected}; to filter several runs from one prior, "
+                         "expand the prior: belief.expand(runs))")
+
+
+def check_parameter_batch(shape: torch.Size, batch: torch.Size, name: str, *, exact: bool = False) -> None:
+    """``ValueError`` naming ``name`` unless a model parameter's batch ``shape`` broadcasts with the belief's
+    ``batch`` (``belief0``'s at :func:`~torchmm.run_filter`'s entry) without adding runs: per-run
+    parameters of the belief's batch, or broadcasting to it, are fine; unit axes a parameter adds are the
+    run's (a ``Q (1, n, n)`` with one run of batch ``()``: tests/filters/test_broadcast_batches.py) unless
+    ``exact`` (the batch must stay ``batch``: a transition's). Reads shapes only.
+
+    Examples:
+        >>> check_parameter_batch(torch.Size([2, 1]), torch.Size([3]), "motion.F")  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+        ...
+        ValueError: motion.F: parameter batch (2, 1) would enlarge belief0's batch (3,) to (2, 3): ...
+    """
+    if shape == batch or not shape:
+        return
+    hint = ("per-run parameters have belief0's batch or broadcast to it (to filter several runs from one "
+            "prior, expand it: belief0.expand(runs))")
+    try:
+        wide = broadcast_shape(shape, batch)
+    except RuntimeError:
+        raise ValueError(f"{name}: parameter batch {tuple(shape)} does not broadcast with belief0's batch "
+                         f"{tuple(batch)}: {hint}") from None
+    same = wide == batch if exact else [s for s in wide if s != 1] == [s for s in batch if s != 1]
+    if not same:
+        raise ValueError(f"{name}: parameter batch {tuple(shape)} would enlarge belief0's batch "
+                         f"{tuple(batch)} to {tuple(wide)}: {hint}")
 
 
 def check_same_dtype(tensor: Tensor, name: str, like: Tensor, what: str = "the belief") -> None:

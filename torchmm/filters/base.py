@@ -12,9 +12,9 @@ from torchmm.beliefs import Belief
 from torchmm.contract import BeliefArg, entry_point
 from torchmm.linalg import any_observed
 from torchmm.typing import StepOutput
-from torchmm.validation import broadcast_shape, check_filter_dtype
+from torchmm.validation import broadcast_shape, check_filter_dtype, check_parameter_batch
 
-__all__ = ["Filter", "StepOutput"]
+__all__ = ["Filter", "StepOutput", "check_model_batches"]
 
 
 class Filter(nn.Module):
@@ -98,6 +98,14 @@ class Filter(nn.Module):
         default accepts; e.g. a :class:`~torchmm.filters.particle.ParticleFilter` needs a fixed
         ``num_particles`` when ``num_modes > 1`` because mixing merges the particle sets.
         """
+
+    def check_parameter_batch(self, batch: torch.Size) -> None:
+        """Check, reading shapes only, that this filter's model parameters broadcast with a start belief of
+        batch ``batch`` without adding runs (:func:`~torchmm.validation.check_parameter_batch`): a
+        ``ValueError`` naming the parameter (``motion.F``, ``measurement.R``, ``transition``).
+        :func:`~torchmm.run_filter` calls it once at entry. The default checks nothing (the steps check
+        shapes); the Gaussian filters check their models
+        (:func:`~torchmm.filters.base.check_model_batches`), the multiple-model filters their transition."""
 
     def check_measurements(self, measurements: Tensor, batch: torch.Size, name: str = "measurements", *,
                            time: bool = True) -> None:
@@ -186,6 +194,20 @@ class Filter(nn.Module):
             cache.clear()
         cache[key] = clone
         return clone
+
+
+def check_model_batches(filter: Filter, batch: torch.Size) -> None:
+    """:meth:`Filter.check_parameter_batch` of a filter whose ``motion`` and ``measurement`` models act on
+    beliefs of batch ``(*B,)`` (a Kalman, extended or unscented filter): each parameter of the models that
+    list their parameters' event axes (``param_events``: :class:`~torchmm.models.LinearMotion`,
+    :class:`~torchmm.models.LinearMeasurement`) against ``batch``, named ``motion.F``, ``measurement.R``."""
+    for slot in ("motion", "measurement"):
+        model = getattr(filter, slot, None)
+        events = getattr(model, "param_events", None) if isinstance(model, nn.Module) else None
+        for key, event in (events or {}).items():
+            tensor = getattr(model, key, None)
+            if isinstance(tensor, Tensor):
+                check_parameter_batch(tensor.shape[:tensor.dim() - event], batch, f"{slot}.{key}")
 
 
 def call_with(filter: Filter, method: str, *args, generator: torch.Generator | None = None, **kwargs):

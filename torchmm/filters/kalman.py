@@ -20,7 +20,7 @@ from torch import Tensor
 import torchmm.kernels as kernels
 from torchmm.beliefs import GaussianBelief, symmetrize
 from torchmm.contract import Flag, Of, entry_point
-from torchmm.filters.base import Filter, StepOutput
+from torchmm.filters.base import Filter, StepOutput, check_model_batches
 from torchmm.kernels.linear import LinearGaussian
 from torchmm.kernels.nonlinear import NonlinearGaussian
 from torchmm.linalg import cholesky, condition, flag_failed, half_log_det, solve_lower, sum_last
@@ -86,6 +86,11 @@ class ExtendedKalmanFilter(Filter):
         # P- = F P F' + Q (symmetric up to rounding; the update symmetrises its output)
         cov = F @ belief.cov @ F.mT + self.motion.noise_cov(belief.mean)
         return GaussianBelief(mean, cov)
+
+    def check_parameter_batch(self, batch: torch.Size) -> None:
+        """The models' parameter batches against the start belief's ``batch``
+        (:func:`~torchmm.filters.base.check_model_batches`)."""
+        check_model_batches(self, batch)
 
     def update(self, belief: GaussianBelief, z: Tensor, *, sensor: MeasurementModel | None = None) -> StepOutput:
         if sensor is not None:

@@ -21,7 +21,7 @@ from torch import Tensor
 import torchmm.kernels as kernels
 from torchmm.beliefs import GaussianBelief, psd_sqrt, symmetrize
 from torchmm.contract import Flag, Of, Real, entry_point
-from torchmm.filters.base import Filter, StepOutput
+from torchmm.filters.base import Filter, StepOutput, check_model_batches
 from torchmm.kernels.nonlinear import NonlinearGaussian
 from torchmm.linalg import check_joseph, condition, flag_failed, use_joseph
 from torchmm.models.base import MeasurementModel, MotionModel, check_model_pair
@@ -214,6 +214,11 @@ class UnscentedKalmanFilter(Filter):
         cov = torch.einsum("s...i,s...j->...ij", wc.reshape(shape) * dev, dev)
         cov = cov + self.motion.noise_cov(belief.mean)
         return GaussianBelief(mean, symmetrize(cov))
+
+    def check_parameter_batch(self, batch: torch.Size) -> None:
+        """The models' parameter batches against the start belief's ``batch``
+        (:func:`~torchmm.filters.base.check_model_batches`)."""
+        check_model_batches(self, batch)
 
     def update(self, belief: GaussianBelief, z: Tensor, *, sensor: MeasurementModel | None = None) -> StepOutput:
         if sensor is not None:

@@ -79,7 +79,9 @@ class LinearGaussian(NamedTuple):
 
     Shapes (``*P``: the model parameters' batch, ``()`` or the modes ``(M,)``):
         F ``(*P, n, n)``, b ``(*P, n)``, Q ``(*P, n, n)``, H ``(*P, m, n)``, R ``(*P, m, m)``;
-        transition ``(M, M)`` (None for a single filter); rule: ``"kalman"`` (one filter),
+        transition ``(M, M)``, or per run ``(*B, M, M)`` (only the Numba kernel's forward and reverse
+        passes take it: the batch-last kernels decline), None for a single filter;
+        rule: ``"kalman"`` (one filter),
         ``"mix"`` (IMM), ``"collapse"`` (GPB1), ``"static"`` (no interaction) or ``"pairs"`` (GPB2: the
         batch-last kernel only, :mod:`torchmm.kernels.batch_last.pairs`); post_update: None, or the
         filter's own work after each step's update, ``post_update(out, generator) -> StepOutput`` on the
@@ -133,9 +135,10 @@ class Prepared:
         self.runs = math.prod(batch)
         model = kernels.describe(filter, self.name, inputs=True)
         steps = z.shape[0]
+        self.per_run = per_run_transition(model)
         self.layout = layout_of(M, n, m, tuple(batch), self.kalman,
                               None if controls is None or model.G is None else steps,
-                              None if model.time_varying is None else steps)
+                              None if model.time_varying is None else steps, self.per_run)
         self.zeros = z.new_zeros(self.runs, 1)
         self.zero_inputs = z.new_zeros(1, 1, M, n)  # (no controls: the input terms, made once)
         self._smooth_inputs = Unchanged(size=1)  # (the kernel's arrays of the last call's tensors)
@@ -172,10 +175,12 @@ class Prepared:
         Kim's smoother of an IMM or GPB1 (the RTS smoother of one Kalman filter) - what ``run_filter`` then
         ``smooth`` return, without their entry checks (checked once, when the plan was made). The
         smoothed beliefs, batch ``(T, *B)``, or None where the eager route must run (a regularised update,
-        a static bank, a time-varying transition). Kim's smoother ends each run at its last step with a
+        a static bank, a time-varying or per-run transition: the compiled smoother reads one matrix). Kim's
+        smoother ends each run at its last step with a
         datum, as ``smooth`` does (docs/smoothing.md)."""
         model = kernels.describe(self.filter, self.name, inputs=True)
-        if isinstance(model, str) or model.time_varying is not None or self.rule == 2 and not self.kalman:
+        if isinstance(model, str) or model.time_varying is not None or self.per_run or self.rule == 2 \
+                and not self.kalman:
             return None
         start = (self.zeros, belief0.mean, belief0.cov) if self.kalman else (
             belief0.mode_log_probs, belief0.components.mean, belief0.components.cov)
@@ -208,6 +213,12 @@ def _with_parameter_batch(model, batch: tuple) -> tuple | None:
     except RuntimeError:
         return None
     return wide if math.prod(wide) == math.prod(batch) else None
+
+
+def per_run_transition(model: LinearGaussian) -> bool:
+    """Whether the description's transition is per run, ``(*B, M, M)`` (the forward and reverse loops read a
+    run's own matrix, ``Pi (1, runs, M, M)``; the compiled Kim smoother reads one)."""
+    return model.transition is not None and model.transition.dim() > 2
 
 
 class LinearKernel:
@@ -302,13 +313,16 @@ class LinearKernel:
         except RuntimeError:
             return "the measurements' batch does not broadcast to the belief's"
         rule = _RULES[model.rule]
-        if model.rule != "kalman" and model.transition is not None and model.transition.shape != (M, M):
-            return "the transition matrix does not match the modes"
+        per_run = per_run_transition(model)
+        Pi = model.transition
+        if model.rule != "kalman" and Pi is not None and (
+                Pi.shape[-2:] != (M, M) or not broadcasts(Pi.shape, (*batch, M, M))):
+            return "the transition matrix does not match the modes (or its batch the runs')"
         if model.time_varying is not None and models[5].shape != (steps, runs, M, M):
             return "the time-varying transition's matrices do not match the modes and the runs"
         kalman = model.rule == "kalman"
         layout = layout_of(M, n, m, batch, kalman, None if controls is None or model.G is None else steps,
-                         None if model.time_varying is None else steps)
+                         None if model.time_varying is None else steps, per_run)
         if not all_broadcast([t.shape for t in (*models, logmu0, x0, P0)], layout):
             return "the models' parameters are batched over more than the modes (or the start belief's shapes)"
         start = (logmu0, x0, P0)
@@ -346,6 +360,8 @@ class LinearKernel:
                 return "a smoother method for a single filter, or no priors recorded (the eager smoother says)"
         elif method != "kim" or model.rule not in ("mix", "collapse"):
             return "only Kim's smoother of IMM and GPB1 runs"
+        if per_run_transition(model):
+            return "a per-run transition (*B, M, M): the compiled Kim smoother reads one matrix"
         belief = trajectory.belief
         if model.rule == "kalman":
             if type(belief) is not GaussianBelief:

@@ -12,7 +12,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["NoGrad", "Run", "all_broadcast", "as_array", "broadcasts", "finfo", "forward_arrays", "input_terms",
+__all__ = ["NoGrad", "Run", "all_broadcast", "as_array", "broadcasts", "by_run", "finfo", "forward_arrays",
+           "input_terms",
            "kernel_arrays", "layout_of", "load", "model_tensors", "unbroadcast"]
 
 
@@ -154,15 +155,20 @@ class NoGrad:
 
 
 def layout_of(M: int, n: int, m: int, batch: tuple, kalman: bool, steps: int | None = None,
-            varying: int | None = None) -> tuple:
+            varying: int | None = None, per_run: bool = False) -> tuple:
     """``Run``'s layout (see there) of a run of ``M`` modes over the batch ``batch`` (``steps``: with
     an input matrix's controls, the run's steps; ``varying``: with a time-varying transition, the run's
-    steps: a transition matrix for each step and run)."""
+    steps: a transition matrix for each step and run; ``per_run``: a transition ``(*B', M, M)`` whose batch
+    broadcasts to ``batch``, one matrix a run, ``(1, runs, M, M)``)."""
     runs = math.prod(batch)
     inputs = ((((steps, runs, M, n),) * 2),) if steps is not None else ((((1, 1, M, n),) * 2),)
-    pi = (varying, runs, M, M) if varying is not None else (1, 1, M, M)
-    models = (((M, n, n),) * 2, ((M, n),) * 2, ((M, n, n),) * 2, ((M, m, n),) * 2, ((M, m, m),) * 2,
-              (pi,) * 2)
+    if varying is not None:
+        pi = ((varying, runs, M, M),) * 2
+    elif per_run:
+        pi = ((*batch, M, M), (1, runs, M, M))
+    else:
+        pi = ((1, 1, M, M),) * 2
+    models = (((M, n, n),) * 2, ((M, n),) * 2, ((M, n, n),) * 2, ((M, m, n),) * 2, ((M, m, m),) * 2, pi)
     if kalman:
         start = (((runs, 1), (runs, 1)), ((*batch, n), (runs, 1, n)), ((*batch, n, n), (runs, 1, n, n)))
     else:
@@ -176,9 +182,17 @@ def input_terms(model: Any, controls: Tensor | None, M: int, n: int, batch: tupl
     if controls is None or model.G is None:
         return model.F.new_zeros(1, 1, M, n)
     G = model.G.expand(M, n, model.G.shape[-1]) if model.G.dim() == 3 else model.G.expand(M, *model.G.shape)
+    return torch.einsum("jnk,trk->trjn", G, by_run(controls, batch))
+
+
+def by_run(controls: Tensor, batch: tuple) -> Tensor:
+    """The controls ``(T, *B', k)``, whose batch ``B'`` broadcasts to ``batch`` (shared by the runs:
+    ``(T, k)``, ``(T, 1, k)``, as the eager steps take them), as ``(T, runs, k)``."""
     T, k = controls.shape[0], controls.shape[-1]
-    u = controls.expand(T, *batch, k).reshape(T, math.prod(batch), k)
-    return torch.einsum("jnk,trk->trjn", G, u)
+    lead = len(batch) - (controls.dim() - 2)
+    if lead:  # (the batch axes the controls lack, in front of theirs: NumPy's rule)
+        controls = controls.reshape(T, *((1,) * lead), *controls.shape[1:])
+    return controls.expand(T, *batch, k).reshape(T, math.prod(batch), k)
 
 
 def broadcasts(shape: tuple, wide: tuple) -> bool:
@@ -204,8 +218,7 @@ def model_tensors(model: Any, controls: Tensor | None = None, batch: tuple = ())
     (``[[1]]`` for one filter; a time-varying transition's ``(T, runs, M, M)`` at the run's controls,
     computed by torch so that its gradient is autograd's)."""
     if model.time_varying is not None:
-        T, k = controls.shape[0], controls.shape[-1]
-        u = controls.expand(T, *batch, k).reshape(T, math.prod(batch), k)
+        u = by_run(controls, batch)
         return model.F, model.b, model.Q, model.H, model.R, model.time_varying.at(u).log_matrix().exp()
     Pi = model.transition
     if Pi is None:

@@ -56,6 +56,9 @@ class LinearMotion(MotionModel):
         forward: ``x (*B, n)``, ``u (*B, k)`` -> ``(*B, n)``; ``*P`` broadcasts with ``*B``.
     """
 
+    #: each parameter's number of event (trailing) axes, the rest its batch (``Filter.check_parameter_batch``)
+    param_events = {"F": 2, "Q": 2, "offset": 1, "input_matrix": 2}
+
     @entry_point(F=Finite(square=True, check=False), Q=Cov(check=False),
                  offset=Finite(optional=True, check=False), input_matrix=Finite(optional=True, check=False))
     def __init__(self, F, Q, offset=None, input_matrix=None):
@@ -151,6 +154,9 @@ class LinearMeasurement(MeasurementModel):
         R: measurement-noise covariance ``(*P, m, m)``, symmetric PSD, in ``H``'s dtype (a tensor of
             another floating dtype is refused, a TypeError naming ``R``).
     """
+
+    #: each parameter's number of event (trailing) axes (``Filter.check_parameter_batch``)
+    param_events = {"H": 2, "R": 2}
 
     @entry_point(H=Finite(check=False), R=Cov(check=False))
     def __init__(self, H, R):

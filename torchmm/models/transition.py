@@ -115,6 +115,11 @@ class ModeTransition(nn.Module):
     def num_modes(self) -> int:
         return (self.logits if self.learnable else self.value).shape[-1]
 
+    @property
+    def batch_shape(self) -> torch.Size:
+        """The matrix's batch: ``()`` for one ``(M, M)``, ``(*B,)`` for per-run matrices ``(*B, M, M)``."""
+        return (self.logits if self.learnable else self.value).shape[:-2]
+
     def log_matrix(self) -> Tensor:
         """``log P`` (``-inf`` for zero entries). Shape ``(M, M)``. A zero entry passes no gradient (not
         ``log``'s ``1 / 0`` times a zero adjoint, NaN in every entry of its row's parametrisation: an estimated

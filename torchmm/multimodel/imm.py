@@ -43,7 +43,13 @@ from torchmm.multimodel.interaction import (  # (re-exported: the combinators' i
     mode_posterior,
     transition_matrix,
 )
-from torchmm.validation import broadcast_shape, check_filter_dtype, check_measurement, check_probabilities
+from torchmm.validation import (
+    broadcast_shape,
+    check_filter_dtype,
+    check_measurement,
+    check_parameter_batch,
+    check_probabilities,
+)
 
 __all__ = ["GPB1", "IMM", "Collapse", "Interaction", "MomentMixing", "MultipleModelFilter", "NoInteraction",
            "StaticMM"]
@@ -84,6 +90,15 @@ class MultipleModelFilter(Filter):
             raise TypeError(f"transition: a time-varying transition (LogisticTransition) is supported by IMM, GPB1 and "
                             f"a static bank, not {type(self).__name__} with {type(interaction).__name__}")
         self.interaction = interaction
+
+    def check_parameter_batch(self, batch: torch.Size) -> None:
+        """The transition's batch (per-run matrices ``(*B, M, M)``) against the start belief's ``batch``: it
+        must broadcast to it, adding neither runs nor axes (a ``ValueError`` naming ``transition``; shapes
+        only)."""
+        super().check_parameter_batch(batch)
+        shape = getattr(self.transition, "batch_shape", None)
+        if shape is not None:
+            check_parameter_batch(shape, batch, "transition", exact=True)
 
     @property
     def meas_dim(self) -> int | None:

@@ -52,7 +52,7 @@ from torchmm.kernels.batch_last.algebra import (
     stack_upper,
 )
 from torchmm.kernels.batch_last.imm import BatchLastIMM
-from torchmm.kernels.batch_last.plan import described, planned
+from torchmm.kernels.batch_last.plan import PER_RUN_TRANSITION, described, planned
 from torchmm.runtime import host_reads_ok
 
 __all__ = ["MIN_BATCH", "BatchLastNonlinear", "BatchLastNonlinearKernel", "NonlinearBank", "why_not_nonlinear"]
@@ -70,7 +70,7 @@ def why_not_nonlinear(model, M: int, belief0, measurements) -> str | None:
     """Why a run of the description ``model`` (:class:`~torchmm.kernels.nonlinear.NonlinearGaussian` of an
     IMM or GPB1 over ``M`` modes) cannot run on this kernel, or None if it can: a belief that is not the
     ``ModeBelief`` of Gaussians ``(*B, M, n)``, measurements that are not one tensor ``(T, *B, m)`` of its
-    dtype and device, the unscented Joseph form."""
+    dtype and device, a per-run transition ``(*B, M, M)``, the unscented Joseph form."""
     n, m = model.motion.state_dim, model.measurement.meas_dim
     if not isinstance(belief0, ModeBelief) or type(belief0.components) is not GaussianBelief:
         return "belief0 is not a ModeBelief of Gaussians"
@@ -87,6 +87,8 @@ def why_not_nonlinear(model, M: int, belief0, measurements) -> str | None:
         return "belief0's components are not (*B, M, n)"
     if model.transition.dtype != like.dtype:
         return "the transition matrix's dtype differs from belief0's"
+    if model.transition.dim() != 2:
+        return PER_RUN_TRANSITION
     if model.kind == "unscented" and use_joseph(model.joseph, like.dtype):
         return "the unscented filter's Joseph form (float32's default; joseph=False takes the kernel)"
     return None

@@ -17,7 +17,7 @@ import torchmm.kernels as kernels
 from torchmm.beliefs import GaussianBelief, ModeBelief
 from torchmm.typing import StepOutput
 
-__all__ = ["described", "planned", "run_steps", "stack_batch_first", "why_not"]
+__all__ = ["PER_RUN_TRANSITION", "described", "planned", "run_steps", "stack_batch_first", "why_not"]
 
 
 def described(filter, request: kernels.Request, family: str, rules: tuple, which: str, belief0=None,
@@ -110,12 +110,17 @@ def _stack_in_memory_order(tensors: list) -> Tensor:
     return stacked.permute(0, *inverse)
 
 
+#: why a batch-last kernel declines a per-run transition ``(*B, M, M)`` (its interaction reads one matrix)
+PER_RUN_TRANSITION = "a per-run transition (*B, M, M): the kernel's interaction takes one (M, M)"
+
+
 def why_not(model, M: int, belief0, measurements) -> str | None:
     """Why a run of the linear-Gaussian description ``model`` (:class:`~torchmm.kernels.linear.LinearGaussian`
     of an IMM or GPB1 over ``M`` Kalman modes) cannot run on this kernel (a short reason), or None if it can.
 
     Shapes and types only, plus one look at ``R``'s off-diagonal values (the entry point's value
-    check, once per run). The reasons: model parameters batched beyond ``()`` or ``(M,)``; a
+    check, once per run). The reasons: a per-run transition ``(*B, M, M)``; model parameters batched beyond
+    ``()`` or ``(M,)``; a
     non-diagonal ``R``, or one of ``m > 1`` components that requires grad (the kernel reads its diagonal
     only, so the off-diagonal entries' gradient would be 0) unless it is a ``torch.diag_embed`` output
     (whose backward drops that gradient anyway); a belief that is not the ``ModeBelief`` of Gaussians of
@@ -123,6 +128,8 @@ def why_not(model, M: int, belief0, measurements) -> str | None:
     measurements that are not one tensor ``(T, *B, m)`` of the belief's dtype and device.
     """
     m, n = model.H.shape[-2], model.F.shape[-1]
+    if model.transition.dim() != 2:
+        return PER_RUN_TRANSITION
     events = (2, 1, 2, 2, 2)
     if any(tuple(t.shape[:t.dim() - e]) not in {(), (1,), (M,)} for t, e in zip(model[:5], events)):
         return "model parameters batched over more than the modes"
