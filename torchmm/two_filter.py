@@ -110,8 +110,8 @@ def prior_mode_log_probs(filter: MultipleModelFilter, trajectory: Trajectory, st
         first = (torch.full((M,), 1.0 / M, dtype=like.dtype, device=like.device) @ matrix).log()
     p = first.exp()
     out = [p]
-    for _ in range(steps - 1):  # the time loop; (*B, M) x (M, M) products
-        p = p @ matrix
+    for _ in range(steps - 1):  # the time loop; (*B, M) x (M, M) (per-run: (*B, 1, M) x (*B, M, M))
+        p = p @ matrix if matrix.dim() == 2 else (p.unsqueeze(-2) @ matrix).squeeze(-2)
         out.append(p)
     return torch.stack(out).log()
 
