@@ -222,3 +222,17 @@ def test_every_smoother_of_a_per_run_transition_equals_each_run_alone(cls, metho
                                    rtol=tol, atol=tol)
         torch.testing.assert_close(both.belief.mode_log_probs[:, r].exp(), one.belief.mode_log_probs.exp(),
                                    rtol=tol, atol=tol)
+
+
+def test_an_objective_names_a_batch_that_does_not_fit_when_it_is_built():
+    """``Objective`` checks once, at construction, what ``run_filter``'s entry checks (its calls skip them)."""
+    from torchmm.learn import Objective
+
+    kf, _ = _kf_with_input()
+    prior, z = GaussianBelief(torch.zeros(B, 2, dtype=D), torch.eye(2, dtype=D)), torch.zeros(T, B, 1, dtype=D)
+    with pytest.raises(ValueError, match=r"^controls: batch shape \(2, 4\)"):
+        Objective(kf, prior, z, controls=torch.ones(T, 2, B, 1, dtype=D))
+    with pytest.raises(ValueError, match=r"^controls: 2 inputs a step"):
+        Objective(kf, prior, z, controls=torch.ones(T, B, 2, dtype=D))
+    with pytest.raises(ValueError, match=r"^motion\.F: parameter batch \(2, 1\) would enlarge"):
+        Objective(_kf_with_input(F=torch.eye(2, dtype=D).expand(2, 1, 2, 2))[0], prior, z)

@@ -219,7 +219,7 @@ def run_filter(
     elif isinstance(measurements, Tensor) or getattr(filter, "checks_pytrees", False):  # not a sensor's: the filter's own check
         filter.check_measurements(measurements, belief0.batch_shape, "measurements")
     if controls is not None:
-        _check_controls(filter, controls, steps, belief0.batch_shape)
+        check_controls(filter, controls, steps, belief0.batch_shape)
     # one host read: the data's record
     (data_prints, control_prints), (infinite, _) = fingerprints(measurements, controls)
     note_infinite(infinite, "measurements")
@@ -338,7 +338,7 @@ def keep_estimate(out: StepOutput) -> StepOutput:
     return StepOutput(out.belief.estimate(), None, out.log_likelihood)
 
 
-def _check_controls(filter: Filter, controls: Any, steps: int, batch: torch.Size) -> None:
+def check_controls(filter: Filter, controls: Any, steps: int, batch: torch.Size) -> None:
     """``controls (T, *B', k)`` against the run (shapes only): ``T`` steps, a batch that broadcasts *to*
     belief0's ``(*B,)`` (shared by the runs, not enlarging them: the measurements' rule) and ``k`` the columns
     of every input matrix of the filter's motions (``LinearMotion``'s ``input_matrix``)."""

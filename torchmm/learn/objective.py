@@ -27,7 +27,7 @@ from torchmm.filters.base import Filter
 from torchmm.learn.loss import REDUCTIONS, as_start_belief, negative_log_likelihood, reduce_total
 from torchmm.learn.search import Guarded
 from torchmm.provenance import note_infinite
-from torchmm.run import Keep, run_filter
+from torchmm.run import Keep, check_controls, run_filter
 from torchmm.validation import check_filter_dtype, check_measurement
 
 __all__ = ["Objective"]
@@ -122,6 +122,11 @@ class Objective:
                 if isinstance(like, Tensor):
                     batch = like.shape[:-1]
                     check_measurement(measurements[0], meas_dim, batch, like, "measurements")
+            batch = getattr(first, "batch_shape", None)
+            if batch is not None:  # (run_filter's entry checks of shapes, once: the calls skip them)
+                if controls is not None:
+                    check_controls(filter, controls, measurements.shape[0], batch)
+                filter.check_parameter_batch(batch)
             note_infinite(int(torch.isinf(measurements).sum()), "measurements")  # (one host read, once)
             # one host read: data with no datum inform no parameter (the gradient is 0, not None, so
             # minimize would stop at once with success)
