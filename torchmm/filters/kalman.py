@@ -24,7 +24,7 @@ from torchmm.filters.base import Filter, StepOutput, check_model_batches
 from torchmm.kernels.linear import LinearGaussian
 from torchmm.kernels.nonlinear import NonlinearGaussian
 from torchmm.linalg import cholesky, condition, flag_failed, half_log_det, solve_lower, sum_last
-from torchmm.models.base import MeasurementModel, MotionModel, check_model_pair
+from torchmm.models.base import MeasurementModel, MotionModel, check_model_pair, check_output
 from torchmm.models.linear import LinearMeasurement, LinearMotion, plain_linear
 from torchmm.validation import broadcast_shape, check_measurement, gaussian_batch
 
@@ -80,12 +80,28 @@ class ExtendedKalmanFilter(Filter):
                 motion: MotionModel | None = None) -> GaussianBelief:
         if motion is not None:
             return self.with_motion(motion).predict(belief, u=u)
-        gaussian_batch(belief, self.state_dim)
+        batch = gaussian_batch(belief, self.state_dim)
         F = self._transition_matrix(belief.mean, u)
-        mean = self.motion(belief.mean, u=u)  # x- = f(x)
+        mean = self._checked(self.motion, self.motion(belief.mean, u=u), belief.mean, batch)  # x- = f(x)
+        F = self._checked(self.motion, F, belief.mean, batch, "jacobian")
+        Q = self._checked(self.motion, self.motion.noise_cov(belief.mean), belief.mean, batch, "noise_cov")
         # P- = F P F' + Q (symmetric up to rounding; the update symmetrises its output)
-        cov = F @ belief.cov @ F.mT + self.motion.noise_cov(belief.mean)
+        cov = F @ belief.cov @ F.mT + Q
         return GaussianBelief(mean, cov)
+
+    def _checked(self, model, out: Tensor, mean: Tensor, batch: torch.Size, kind: str = "forward") -> Tensor:
+        """A model's output against the belief (:func:`~torchmm.models.base.check_output`, shapes only)."""
+        return check_output(model, out, mean, "motion" if model is self.motion else "measurement", kind,
+                            batch=batch)
+
+    def _sensor_terms(self, belief: GaussianBelief, batch: torch.Size) -> tuple[Tensor, Tensor, Tensor]:
+        """``h(x-)``, ``H`` and ``R`` at the prior mean, checked (evaluated in the order ``H``, ``R``,
+        ``h``)."""
+        H = self._measurement_matrix(belief.mean)
+        R = self.measurement.noise_cov(belief.mean)
+        hx = self._checked(self.measurement, self.measurement(belief.mean), belief.mean, batch)
+        H = self._checked(self.measurement, H, belief.mean, batch, "jacobian")
+        return hx, H, self._checked(self.measurement, R, belief.mean, batch, "noise_cov")
 
     def check_parameter_batch(self, batch: torch.Size) -> None:
         """The models' parameter batches against the start belief's ``batch``
@@ -95,10 +111,10 @@ class ExtendedKalmanFilter(Filter):
     def update(self, belief: GaussianBelief, z: Tensor, *, sensor: MeasurementModel | None = None) -> StepOutput:
         if sensor is not None:
             return self.with_sensor(sensor).update(belief, z)
-        z = check_measurement(z, self.meas_dim, gaussian_batch(belief, self.state_dim), belief.mean)
-        H = self._measurement_matrix(belief.mean)
-        R = self.measurement.noise_cov(belief.mean)
-        innovation = z - self.measurement(belief.mean)  # nu = z - h(x-)
+        batch = gaussian_batch(belief, self.state_dim)
+        z = check_measurement(z, self.meas_dim, batch, belief.mean)
+        hx, H, R = self._sensor_terms(belief, batch)
+        innovation = z - hx  # nu = z - h(x-)
         cross_cov = belief.cov @ H.mT  # C = P- H'
         # S = H P- H' + R, written (P- H')' H' so that an unbatched H folds into one matmul
         innovation_cov = (cross_cov.mT @ H.mT if H.dim() == 2 else H @ cross_cov) + R
@@ -130,10 +146,9 @@ class ExtendedKalmanFilter(Filter):
         batch = gaussian_batch(belief, self.state_dim)
         zs = check_measurement(zs, self.meas_dim, torch.Size([zs.shape[0] if zs.dim() else 0, *batch]), belief.mean,
                                "zs")
-        H = self._measurement_matrix(belief.mean)
-        R = self.measurement.noise_cov(belief.mean)
+        hx, H, R = self._sensor_terms(belief, batch)
         present = torch.isfinite(zs).all(-1)  # (D, *B): a whole measurement
-        innovation = torch.where(present.unsqueeze(-1), zs - self.measurement(belief.mean), torch.nan)
+        innovation = torch.where(present.unsqueeze(-1), zs - hx, torch.nan)
         cross_cov = belief.cov @ H.mT
         innovation_cov = (cross_cov.mT @ H.mT if H.dim() == 2 else H @ cross_cov) + R
         L, singular = cholesky(innovation_cov, with_flag=True)

@@ -13,7 +13,7 @@ from torch import Tensor
 from torchmm.beliefs import GaussianBelief, ParticleBelief, psd_sqrt, symmetrize
 from torchmm.filters.base import Filter
 from torchmm.linalg import cholesky
-from torchmm.models.base import MeasurementModel, MotionModel
+from torchmm.models.base import MeasurementModel, MotionModel, check_output
 from torchmm.models.linear import LinearMeasurement, LinearMotion
 from torchmm.runtime import host_reads_ok
 from torchmm.unchanged import Unchanged
@@ -163,7 +163,8 @@ def propagate_particles(motion: MotionModel, particles: Tensor, *, u: Tensor | N
     Shapes:
         particles: ``(*B, Np, n)``; u: ``(*B, k)`` -> ``(*B, Np, n)``
     """
-    factor = cached_noise_factor(motion.noise_cov())  # (*P, n, r), shared by the particles of a set
+    Q = check_output(motion, motion.noise_cov(), None, "motion", "noise_cov", dtype=particles.dtype)
+    factor = cached_noise_factor(Q)  # (*P, n, r), shared by the particles of a set
     eps = standard_normal((*particles.shape[:-1], factor.shape[-1]), particles, generator=generator,
                           noise_dtype=noise_dtype)
     offset = motion.offset.unsqueeze(-2) if isinstance(motion, LinearMotion) else None
@@ -190,15 +191,17 @@ def propagate_particles(motion: MotionModel, particles: Tensor, *, u: Tensor | N
             rows = particles.shape[:-1].numel()
             return noise.view(rows, n).addmm_(particles.reshape(rows, n), F.mT.contiguous()).view(particles.shape)
         return particles @ F.mT + noise
-    out = motion(particles.movedim(-2, 0), u=None if u is None else u.unsqueeze(0)).movedim(0, -2)
-    return out + noise
+    states = particles.movedim(-2, 0)
+    out = check_output(motion, motion(states, u=None if u is None else u.unsqueeze(0)), states, "motion")
+    return out.movedim(0, -2) + noise
 
 
 def _predicted_measurement(measurement: MeasurementModel, particles: Tensor) -> Tensor:
     """``h(x)`` for particle sets ``(*B, Np, n)`` -> ``(*B, Np, m)``."""
     if isinstance(measurement, LinearMeasurement):
         return particles @ measurement.H.mT
-    return measurement(particles.movedim(-2, 0)).movedim(0, -2)
+    states = particles.movedim(-2, 0)
+    return check_output(measurement, measurement(states), states, "measurement").movedim(0, -2)
 
 
 def _sum_squares(x: Tensor) -> Tensor:
@@ -265,7 +268,7 @@ def particle_log_likelihood(measurement: MeasurementModel, z: Tensor, particles:
     any_missing = bool(missing.any()) if host_reads_ok(z) else True
     if (not need_predicted and not state_dependent_noise and not any_missing
             and isinstance(measurement, LinearMeasurement) and measurement.H.dim() == 2):
-        cov = measurement.noise_cov()
+        cov = _noise(measurement, particles)
         if cov.dim() == 2:
             inv, logdet = whitening(cov)
             weights, shift = (inv @ measurement.H).contiguous(), -(z @ inv.mT).unsqueeze(-2)
@@ -283,7 +286,13 @@ def particle_log_likelihood(measurement: MeasurementModel, z: Tensor, particles:
         return loglik, predicted
     observed = None if not any_missing else ~missing
     resid = z.unsqueeze(-2) - predicted
-    return gaussian_log_likelihood(resid, measurement.noise_cov(), observed), predicted
+    return gaussian_log_likelihood(resid, _noise(measurement, particles), observed), predicted
+
+
+def _noise(measurement: MeasurementModel, particles: Tensor) -> Tensor:
+    """``measurement.noise_cov()`` checked against the particles' dtype (shapes only)."""
+    return check_output(measurement, measurement.noise_cov(), None, "measurement", "noise_cov",
+                        dtype=particles.dtype)
 
 
 def check_noise_dtype(noise_dtype):

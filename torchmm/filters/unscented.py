@@ -24,7 +24,7 @@ from torchmm.contract import Flag, Of, Real, entry_point
 from torchmm.filters.base import Filter, StepOutput, check_model_batches
 from torchmm.kernels.nonlinear import NonlinearGaussian
 from torchmm.linalg import check_joseph, condition, flag_failed, use_joseph
-from torchmm.models.base import MeasurementModel, MotionModel, check_model_pair
+from torchmm.models.base import MeasurementModel, MotionModel, check_model_pair, check_output
 from torchmm.validation import as_float, broadcast_shape, check_measurement, gaussian_batch
 
 __all__ = [
@@ -205,14 +205,16 @@ class UnscentedKalmanFilter(Filter):
         if motion is not None:
             return self.with_motion(motion).predict(belief, u=u)
         n = belief.state_dim
-        gaussian_batch(belief, self.state_dim)
+        batch = gaussian_batch(belief, self.state_dim)
         wm, wc = self.sigma_points.weights(n, belief.dtype, belief.device)
         points = self.sigma_points.points(belief.mean, belief.cov)
         propagated = self.motion(points, u=None if u is None else u.unsqueeze(0))
+        propagated = check_output(self.motion, propagated, points, "motion")
         mean, dev = _weighted_moments(propagated, wm)
         shape = (-1,) + (1,) * (dev.dim() - 1)
         cov = torch.einsum("s...i,s...j->...ij", wc.reshape(shape) * dev, dev)
-        cov = cov + self.motion.noise_cov(belief.mean)
+        Q = self.motion.noise_cov(belief.mean)
+        cov = cov + check_output(self.motion, Q, belief.mean, "motion", "noise_cov", batch=batch)
         return GaussianBelief(mean, symmetrize(cov))
 
     def check_parameter_batch(self, batch: torch.Size) -> None:
@@ -224,16 +226,18 @@ class UnscentedKalmanFilter(Filter):
         if sensor is not None:
             return self.with_sensor(sensor).update(belief, z)
         n = belief.state_dim
-        z = check_measurement(z, self.meas_dim, gaussian_batch(belief, self.state_dim), belief.mean)
+        batch = gaussian_batch(belief, self.state_dim)
+        z = check_measurement(z, self.meas_dim, batch, belief.mean)
         wm, wc = self.sigma_points.weights(n, belief.dtype, belief.device)
         points = self.sigma_points.points(belief.mean, belief.cov)
-        predicted = self.measurement(points)
+        predicted = check_output(self.measurement, self.measurement(points), points, "measurement")
         z_pred, z_dev = _weighted_moments(predicted, wm)
         x_dev = points - belief.mean
         shape = (-1,) + (1,) * (z_dev.dim() - 1)
         wc = wc.reshape(shape)
         weighted = wc * z_dev
         R = self.measurement.noise_cov(belief.mean)
+        R = check_output(self.measurement, R, belief.mean, "measurement", "noise_cov", batch=batch)
         innovation_cov = torch.einsum("s...i,s...j->...ij", weighted, z_dev) + R
         cross_cov = torch.einsum("s...i,s...j->...ij", x_dev, weighted)
         innovation = z - z_pred

@@ -14,8 +14,8 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor, nn
 
-__all__ = ["MeasurementModel", "MotionModel", "check_model_pair", "check_parameter_dtype", "forward_jacobian",
-           "store_tensor"]
+__all__ = ["MeasurementModel", "MotionModel", "check_entries", "check_model_pair", "check_output",
+           "check_parameter_dtype", "forward_jacobian", "store_tensor"]
 
 
 def store_tensor(module: nn.Module, name: str, value: Tensor) -> None:
@@ -84,7 +84,8 @@ class MotionModel(nn.Module):
 
         Shapes: ``x``: ``n`` tensors ``(*B,)`` (broadcasting) -> ``n`` tensors broadcasting to ``(*B,)``.
         """
-        return list(self(torch.stack(torch.broadcast_tensors(*x), -1), u=u).unbind(-1))
+        states = torch.stack(torch.broadcast_tensors(*x), -1)
+        return list(check_output(self, self(states, u=u), states, "motion").unbind(-1))
 
     def jacobian_entries(self, x: Sequence[Tensor], *, u: Tensor | None = None) -> list[list[Tensor | float]]:
         """:meth:`jacobian` entry by entry (see :meth:`forward_entries`): rows ``J[a][e]`` of tensors, or
@@ -93,7 +94,8 @@ class MotionModel(nn.Module):
 
         Shapes: ``x``: ``n`` tensors ``(*B,)`` -> ``n`` rows of ``n`` entries broadcasting to ``(*B,)``.
         """
-        J = self.jacobian(torch.stack(torch.broadcast_tensors(*x), -1), u=u)
+        states = torch.stack(torch.broadcast_tensors(*x), -1)
+        J = check_output(self, self.jacobian(states, u=u), states, "motion", "jacobian")
         return [list(row.unbind(-1)) for row in J.unbind(-2)]
 
 
@@ -120,7 +122,8 @@ class MeasurementModel(nn.Module):
 
         Shapes: ``x``: ``n`` tensors ``(*B,)`` (broadcasting) -> ``m`` tensors broadcasting to ``(*B,)``.
         """
-        return list(self(torch.stack(torch.broadcast_tensors(*x), -1)).unbind(-1))
+        states = torch.stack(torch.broadcast_tensors(*x), -1)
+        return list(check_output(self, self(states), states, "measurement").unbind(-1))
 
     def jacobian_entries(self, x: Sequence[Tensor]) -> list[list[Tensor | float]]:
         """:meth:`jacobian` entry by entry (:meth:`MotionModel.jacobian_entries`: ``0.0`` and ``1.0`` for
@@ -128,7 +131,8 @@ class MeasurementModel(nn.Module):
 
         Shapes: ``x``: ``n`` tensors ``(*B,)`` -> ``m`` rows of ``n`` entries broadcasting to ``(*B,)``.
         """
-        J = self.jacobian(torch.stack(torch.broadcast_tensors(*x), -1))
+        states = torch.stack(torch.broadcast_tensors(*x), -1)
+        J = check_output(self, self.jacobian(states), states, "measurement", "jacobian")
         return [list(row.unbind(-1)) for row in J.unbind(-2)]
 
     def log_likelihood(self, z: Tensor, x: Tensor) -> Tensor:
@@ -138,10 +142,10 @@ class MeasurementModel(nn.Module):
             z: ``(*B, m)``, x: ``(*B, n)`` (e.g. particles ``(Np, *B, n)`` with ``z`` broadcast)
             -> ``(*B,)``
         """
-        resid = z - self(x)
+        resid = z - check_output(self, self(x), x, "measurement")
         observed = ~torch.isnan(resid)
         resid = torch.where(observed, resid, 0.0)
-        cov = self.noise_cov(x)
+        cov = check_output(self, self.noise_cov(x), x, "measurement", "noise_cov")
         pair = observed.unsqueeze(-1) & observed.unsqueeze(-2)
         eye = torch.eye(cov.shape[-1], dtype=cov.dtype, device=cov.device)
         cov = torch.where(pair, cov, eye)
@@ -163,3 +167,122 @@ def check_model_pair(motion, measurement) -> None:
             f"measurement: state_dim {measurement.state_dim} does not match the motion model's "
             f"{motion.state_dim}"
         )
+
+
+# -- the models' outputs, where a filter calls them ---------------------------------------------------
+_FORMS = {"forward": ("", "(*B, {k})"), "jacobian": (".jacobian", "(*B, {k}, n)"),
+          "noise_cov": (".noise_cov", "(*B, {k}, {k}) (a batch broadcasting to *B)")}
+
+
+def _broadcasts_into(shape: Sequence[int], batch: Sequence[int]) -> bool:
+    """Whether ``shape`` broadcasts with ``batch`` without adding runs: to ``batch`` itself or to ``batch``
+    behind unit axes (a parameter batch ``(1,)`` next to a belief of batch ``()``, as the steps broadcast
+    it; tests/filters/test_broadcast_batches.py). Python values only."""
+    if shape == batch:
+        return True
+    extra = len(shape) - len(batch)
+    if extra > 0 and any(s != 1 for s in shape[:extra]):
+        return False
+    return all(s == b or s == 1 for s, b in zip(reversed(shape), reversed(batch)))
+
+
+def _dims(model) -> tuple[int, int, str, str]:
+    """``(k, n)`` of a model's outputs, the symbol of ``k`` and the words naming the dimensions."""
+    n = model.state_dim
+    if isinstance(model, MeasurementModel):
+        return model.meas_dim, n, "m", f"meas_dim {model.meas_dim}, state_dim {n}"
+    return n, n, "n", f"state_dim {n}"
+
+
+def _dtype_error(what: str, got: torch.dtype, dtype: torch.dtype) -> TypeError:
+    return TypeError(f"{what}: returned dtype {got} for states of dtype {dtype}: a model returns the states' "
+                     f"dtype (build it in {dtype}, or convert it: model.to({dtype}))")
+
+
+def check_output(model: nn.Module, out, x: Tensor | None, name: str, kind: str = "forward", *,
+                 batch: Sequence[int] | None = None, dtype: torch.dtype | None = None) -> Tensor:
+    """A model's output, as a filter receives it, against the states it was evaluated at: a tensor of the
+    states' dtype whose shape is ``(*B', *event)`` with ``*B'`` broadcasting to the states' batch ``*B``
+    without adding runs (a shared output ``(1, m)`` or ``(m,)`` is fine, and so are leading unit axes; a
+    batch that adds or mixes runs is not). ``TypeError`` / ``ValueError`` naming ``name`` (the filter's
+    slot, ``"motion"`` or ``"measurement"``) otherwise; returns ``out`` unchanged. Reads shapes and dtypes
+    only: no host read, nothing computed, so the filters check every call (docs/robustness.md, "A model's
+    outputs").
+
+    Args:
+        model: the :class:`MotionModel` (``k = state_dim``) or :class:`MeasurementModel` (``k = meas_dim``).
+        out: what ``model``'s ``kind`` returned: ``"forward"`` (event ``(k,)``), ``"jacobian"`` (``(k, n)``)
+            or ``"noise_cov"`` (``(k, k)``).
+        x: the states ``(*B, n)``; None where the model had none (``noise_cov()``: only the event and
+            ``dtype`` are checked).
+        batch: ``*B`` where it is not ``x.shape[:-1]`` (a belief whose covariance carries the batch).
+        dtype: the expected dtype where ``x`` is None.
+
+    Shapes:
+        x: ``(*B, n)`` -> ``out``: ``(*B', *event)``, ``*B'`` broadcasting to ``*B``
+    """
+    n = model.state_dim
+    k = model.meas_dim if isinstance(model, MeasurementModel) else n
+    event = (k,) if kind == "forward" else (k, n) if kind == "jacobian" else (k, k)
+    if x is not None:
+        dtype = x.dtype
+        batch = x.shape[:-1] if batch is None else batch
+    if isinstance(out, Tensor) and (dtype is None or out.dtype == dtype):
+        shape, e = out.shape, len(event)
+        if shape[max(out.dim() - e, 0):] == event and (batch is None or _broadcasts_into(shape[:-e], batch)):
+            return out  # (the usual case: a few comparisons of Python values)
+    suffix, form = _FORMS[kind]
+    k, n, symbol, dims = _dims(model)
+    if not isinstance(out, Tensor):
+        raise TypeError(f"{name}{suffix}: returned {type(out).__name__}, expected a tensor "
+                        f"{form.format(k=symbol)}")
+    if dtype is not None and out.dtype != dtype:
+        raise _dtype_error(f"{name}{suffix}", out.dtype, dtype)
+    shape = out.shape
+    expected = "" if batch is None else f"expected {tuple((*batch, *event))} - "
+    states = "" if x is None else f" for states {tuple(x.shape)}"
+    hint = ""
+    if kind == "forward" and k == 1 and x is not None and tuple(shape) == tuple(x.shape[:-1]):
+        hint = " (the event axis is missing: return x[..., :1] or h.unsqueeze(-1), not x[..., 0])"
+    elif kind == "jacobian":
+        hint = f" (autograd's Jacobian of forward: does forward return (*B, {symbol}) for every batch (*B,)?)"
+    raise ValueError(f"{name}{suffix}: returned shape {tuple(shape)}{states}: {expected}"
+                     f"{form.format(k=symbol)} with {dims}{hint}")
+
+
+def check_entries(model: nn.Module, entries, x: Sequence[Tensor], name: str, kind: str = "forward") -> list:
+    """:func:`check_output` of a model's ``forward_entries`` (``k`` tensors) or ``jacobian_entries`` (``k``
+    rows of ``n`` entries, each a tensor or a Python number) at the components ``x``: each tensor of the
+    components' dtype, broadcasting to their batch without adding runs. Returns ``entries``.
+
+    Shapes:
+        x: ``n`` tensors broadcasting to ``(*B,)`` -> entries broadcasting to ``(*B,)``
+    """
+    k, n, _, dims = _dims(model)
+    batch, dtype = x[0].shape, x[0].dtype
+    for t in x[1:]:
+        if t.shape != batch:
+            batch = torch.broadcast_shapes(batch, t.shape)
+    method = f"{name}.{kind}_entries"
+    jacobian = kind == "jacobian"
+    if not isinstance(entries, (list, tuple)) or len(entries) != k:
+        what = "row(s)" if jacobian else "tensor(s)"
+        raise ValueError(f"{method}: returned {_count(entries)}, expected {k} {what} ({dims})")
+    for row in entries if jacobian else [entries]:
+        if not isinstance(row, (list, tuple)) or len(row) != (n if jacobian else k):
+            raise ValueError(f"{method}: returned a row of {_count(row)}, expected {n} entries ({dims})")
+        for entry in row:
+            if isinstance(entry, Tensor):
+                if entry.dtype != dtype:
+                    raise _dtype_error(method, entry.dtype, dtype)
+                if entry.shape != batch and not _broadcasts_into(entry.shape, batch):
+                    raise ValueError(f"{method}: returned an entry of shape {tuple(entry.shape)} for "
+                                     f"components {tuple(batch)}: each entry broadcasts to their batch (*B,)")
+            elif not jacobian or not isinstance(entry, (int, float)):
+                raise TypeError(f"{method}: returned a {type(entry).__name__} entry, expected a tensor"
+                                + (" or a Python number" if jacobian else ""))
+    return entries
+
+
+def _count(value) -> str:
+    return f"{len(value)} items" if isinstance(value, (list, tuple)) else f"a {type(value).__name__}"

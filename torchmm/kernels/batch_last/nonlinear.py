@@ -10,7 +10,9 @@ models are called on batch-first *views* of that memory, one state component at 
 (:meth:`~torchmm.models.MotionModel.forward_entries`, :meth:`~torchmm.models.MotionModel.jacobian_entries`:
 each component a contiguous slice, shaped ``(*B, M)`` as the steps give it), so every product of the
 filter is a short sum of elementwise passes over all runs and modes, and a Jacobian entry a model
-declares exactly 0 or 1 costs nothing. The step computes what the filters' steps compute, in the same
+declares exactly 0 or 1 costs nothing. Every output is checked as the eager steps check theirs
+(:func:`~torchmm.models.base.check_entries`, :func:`~torchmm.models.base.check_output`: shapes and dtypes
+only). The step computes what the filters' steps compute, in the same
 order:
 
 - extended: ``F = df/dx (x)``, ``x- = f(x)``, ``P- = F P F^T + Q``; ``H = dh/dx (x-)``, ``C = P- H^T``,
@@ -53,6 +55,7 @@ from torchmm.kernels.batch_last.algebra import (
 )
 from torchmm.kernels.batch_last.imm import BatchLastIMM
 from torchmm.kernels.batch_last.plan import PER_RUN_TRANSITION, described, planned
+from torchmm.models.base import check_entries, check_output
 from torchmm.runtime import host_reads_ok
 
 __all__ = ["MIN_BATCH", "BatchLastNonlinear", "BatchLastNonlinearKernel", "NonlinearBank", "why_not_nonlinear"]
@@ -160,7 +163,7 @@ class NonlinearBank:
         ``(*B, M, n)`` (batch-first), their entries classified (:func:`coefficients`: exact zeros skipped,
         one host read) where they are ``(n, n)`` or ``(M, n, n)``."""
         for model in (self.motion, self.sensor):
-            cov = model.noise_cov(mean)
+            cov = check_output(model, model.noise_cov(mean), mean, self._slot(model), "noise_cov")
             if cov.dim() <= 3 and cov.shape[:-2] in {(), (1,), (self.M,)}:
                 self._noise[id(model)] = (cov, coefficients(cov, self.M, 2, self.d))
 
@@ -168,12 +171,29 @@ class NonlinearBank:
         """``model.noise_cov(x)`` at the batch-first mean as per-entry :class:`Coef` ``[a][c]``: the
         classified entries (:meth:`hold_noise`) while the model returns the tensor it returned at the
         entry point (a fixed covariance), the entries as they come otherwise."""
-        cov = model.noise_cov(torch.stack([self.front(x) for x in xs], -1))
+        states = torch.stack([self.front(x) for x in xs], -1)
+        cov = check_output(model, model.noise_cov(states), states, self._slot(model), "noise_cov")
         held = self._noise.get(id(model))
         if held is not None and held[0] is cov:
             return held[1]
         k = cov.shape[-1]
         return [[self.coef(cov[..., a, c]) for c in range(k)] for a in range(k)]
+
+    def _slot(self, model) -> str:
+        return "motion" if model is self.motion else "measurement"
+
+    def forward_entries(self, model, xs: list, points: bool = False) -> list:
+        """``model.forward_entries`` at the batch-first views of ``xs``, checked
+        (:func:`~torchmm.models.base.check_entries`), back in the kernel's layout."""
+        front = [self.front(x) for x in xs]
+        call = model.forward_entries(front)
+        return [self.back(t, points=points) for t in check_entries(model, call, front, self._slot(model))]
+
+    def jacobian_entries(self, model, xs: list) -> list:
+        """``model.jacobian_entries`` at the batch-first views of ``xs``, checked, as :class:`Coef` rows."""
+        front = [self.front(x) for x in xs]
+        rows = check_entries(model, model.jacobian_entries(front), front, self._slot(model), "jacobian")
+        return [[self.coef(e) for e in row] for row in rows]
 
     def sigma_factor(self, Cs: list) -> list:
         """A square root ``L[a][c]`` (``L L^T = P``; None for an entry that is exactly 0) of the per-entry
@@ -228,15 +248,13 @@ class NonlinearBank:
         Q = self.noise(motion, xs)
         if self.unscented:
             points = self.sigma_points(xs, Cs)
-            moved = [self.back(t, points=True)
-                     for t in motion.forward_entries([self.front(p) for p in points])]
+            moved = self.forward_entries(motion, points, points=True)
             xp, dev = self.moments(moved)
             S = self.spread_sum(dev, dev, upper=True)
             Pp = [[None] * a + [combine([(ONE, S[a][c])], Q[a][c]) for c in range(a, n)] for a in range(n)]
             return [x.expand_as(like) for x in xp], Pp
-        front = [self.front(x) for x in xs]
-        F = [[self.coef(e) for e in row] for row in motion.jacobian_entries(front)]
-        xp = [self.back(t).expand_as(like) for t in motion.forward_entries(front)]
+        F = self.jacobian_entries(motion, xs)
+        xp = [t.expand_as(like) for t in self.forward_entries(motion, xs)]
         return xp, sandwich(F, Cs, Q, like)
 
     def update(self, xp: list, Pp: list, zc: Tensor, ob: Tensor, nhob: Tensor, like: Tensor,
@@ -249,7 +267,7 @@ class NonlinearBank:
         sym = lambda T, a, c: T[min(a, c)][max(a, c)]  # noqa: E731
         if self.unscented:
             points = self.sigma_points(xp, Pp)
-            predicted = [self.back(t, points=True) for t in sensor.forward_entries([self.front(p) for p in points])]
+            predicted = self.forward_entries(sensor, points, points=True)
             hx, zdev = self.moments(predicted)
             xdev = [p - x for p, x in zip(points, xp)]
             spread = self.spread_sum(zdev, zdev, upper=True)
@@ -257,9 +275,8 @@ class NonlinearBank:
             cross = self.spread_sum(zdev, xdev, upper=False)  # [k][a]
             C = [[cross[k][a] for k in range(m)] for a in range(n)]
         else:
-            front = [self.front(x) for x in xp]
-            H = [[self.coef(e) for e in row] for row in sensor.jacobian_entries(front)]
-            hx = [self.back(t) for t in sensor.forward_entries(front)]
+            H = self.jacobian_entries(sensor, xp)
+            hx = self.forward_entries(sensor, xp)
             C = [[combine([(H[k][c], sym(Pp, a, c)) for c in range(n)], ZERO, like) for k in range(m)]
                  for a in range(n)]  # P- H^T
             S = [[combine([(H[k][a], C[a][c]) for a in range(n)], R[k][c], like) for c in range(k + 1)]
