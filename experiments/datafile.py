@@ -10,7 +10,13 @@ The file becomes time-major tensors, the layout every torchmm filter takes:
   every row names its series); series of different lengths are padded at the end with missing steps,
   which score nothing (``DataSeries.present``).
 * **NPZ**: one array per column name, ``(T,)`` for one series or ``(T, runs)`` for several (NaN:
-  missing; infinite entries are an error).
+  missing; infinite entries are an error); the time column may be one ``(T,)`` array shared by the runs.
+  A series' trailing steps where every measurement and truth value is NaN are its padding (not its
+  steps: ``DataSeries.present``), as a shorter series' in a CSV.
+* **Blank lines** (CSV): a row of empty cells (``,,``, as ``csv.writer`` writes a step with every
+  value missing) is a step with every value missing. A blank line is ignored at the end of the file;
+  before another row it is a missing value in a file of one column and an error in a file of several
+  (it would drop a step, or be read as one).
 
 Detections in clutter (:func:`read_detections`, docs/tracking.md) are read one row per detection
 instead, grouped into scans by their time stamp: the padded sets every association filter takes.
@@ -54,6 +60,8 @@ class DataSeries:
         present: ``(T, runs)`` bool: the step exists in that series (False: padding)
         inputs: ``(T, runs, k)`` exogenous inputs (regressors, the models' controls ``u_k``), or None;
             0 at padding steps
+        rows: ``(T, runs)`` int: each step's CSV line (header = 1; -1 at padding), or None (NPZ: the
+            step ``k`` of series ``j`` is entry ``(k, j)``)
     """
 
     measurements: np.ndarray
@@ -62,6 +70,11 @@ class DataSeries:
     present: np.ndarray
     series: list[str]
     inputs: np.ndarray | None = None
+    rows: np.ndarray | None = None
+
+    def where(self, k: int, j: int) -> str:
+        """Step ``k`` of series ``j`` as the file names it: ``row 12`` (CSV) or ``entry (k, j)`` (NPZ)."""
+        return f"row {int(self.rows[k, j])}" if self.rows is not None else f"entry ({k}, {j})"
 
     @property
     def steps(self) -> int:
@@ -82,8 +95,9 @@ def read_series(path: str | Path, *, measurements: list[str], truth: list[str] |
             directory by default), then in the repository's ``experiments/data``.
         measurements: the measurement columns, in the order of the sensor's components.
         truth: optional state columns, in the order of the state's components (for RMSE and NEES).
-        time: optional time-stamp column; increasing, the same grid in every series. Irregular steps
-            become per-step motion models (the study's ``dt``).
+        time: optional time-stamp column; increasing, the same grid in every series (NPZ: one ``(T,)``
+            array may serve ``(T, runs)`` columns). A study rebuilds its modes with the grid's step, or
+            per-step motion models for irregular steps (``experiments.scenarios_system.per_step_motions``).
         series: optional CSV column whose values name the series; each series is one run.
         inputs: optional columns of exogenous inputs (regressors): the controls ``u_k`` of the motion
             models (``DataSeries.inputs``). Every step of a series needs them (a missing input is an error,
@@ -107,15 +121,22 @@ def read_series(path: str | Path, *, measurements: list[str], truth: list[str] |
         if series:
             raise DataFileError(f"{file}: column {series!r}: NPZ arrays hold several series as (T, runs) columns; "
                                 "no series column")
-        arrays = read_npz(file, wanted)
+        arrays = read_npz(file, wanted, shared=[time] if time else [])
         z = np.stack([arrays[c] for c in measurements], -1)
         x = np.stack([arrays[c] for c in truth], -1) if truth else None
         u = np.stack([arrays[c] for c in inputs], -1) if inputs else None
-        if u is not None and not np.isfinite(u).all():
-            where = tuple(int(i) for i in np.argwhere(~np.isfinite(u))[0])
-            raise DataFileError(f"{file}: column {inputs[where[2]]!r}, entry {where[:2]}: an input is missing (every "
-                                "step needs its inputs)")
-        present = np.ones(z.shape[:2], dtype=bool)
+        # a series' padding: its trailing steps where every measurement and truth value is NaN (NaN-padded
+        # (T, runs) columns); they score nothing either way, but are not its steps (the series table's length)
+        known = np.isfinite(z).any(-1) | (np.isfinite(x).any(-1) if x is not None else False)
+        last = np.where(known.any(0), known.shape[0] - np.argmax(known[::-1], axis=0), 0)  # (runs,) kept
+        present = np.arange(z.shape[0])[:, None] < last[None, :]
+        if u is not None:
+            bad = ~np.isfinite(u) & present[..., None]
+            if bad.any():
+                where = tuple(int(i) for i in np.argwhere(bad)[0])
+                raise DataFileError(f"{file}: column {inputs[where[2]]!r}, entry {where[:2]}: an input is "
+                                    "missing (every step needs its inputs; NaN only in a series' padding)")
+            u = np.where(present[..., None], u, 0.0)
         stamps = None
         if time:
             t = arrays[time]
@@ -137,10 +158,12 @@ def read_series(path: str | Path, *, measurements: list[str], truth: list[str] |
     x = np.full((T, R, len(truth)), np.nan) if truth else None
     u = np.zeros((T, R, len(inputs))) if inputs else None
     present = np.zeros((T, R), dtype=bool)
+    line_of = np.full((T, R), -1, dtype=np.int64)
     stamps = None
     for j, s in enumerate(order):
         idx = rows[s]
         present[:len(idx), j] = True
+        line_of[:len(idx), j] = [lines[i] for i in idx]
         z[:len(idx), j] = np.array([[values[c][i] for c in measurements] for i in idx])
         if truth:
             x[:len(idx), j] = np.array([[values[c][i] for c in truth] for i in idx])
@@ -164,7 +187,7 @@ def read_series(path: str | Path, *, measurements: list[str], truth: list[str] |
             elif not np.array_equal(t, stamps[:len(t)]):
                 raise DataFileError(f"{file}: column {time!r}, row {lines[idx[0]]}: series {s!r} has other time "
                                     "stamps than the first series (one shared time grid is supported)")
-    return DataSeries(z, x, stamps, present, order, u)
+    return DataSeries(z, x, stamps, present, order, u, line_of)
 
 
 def npz_label(value: float) -> str:

@@ -14,11 +14,16 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["MISSING", "DataFileError", "check_increasing", "column_name", "column_names", "file_text", "locate",
-           "number_cell", "path_arg", "read_csv", "read_npz"]
+__all__ = ["GRID_TOLERANCE", "MISSING", "DataFileError", "check_increasing", "column_name", "column_names",
+           "file_text", "grid_offsets", "locate", "number_cell", "path_arg", "read_csv", "read_npz",
+           "step_lengths"]
 
 #: cells read as missing (case-insensitive)
 MISSING = ("", "nan", "na", "n/a", "null", "none")
+#: time stamps within this fraction of a step of a grid point are on it (float rounding: ``0.1 + 0.2`` is not
+#: ``0.3``, and the differences of the stamps 0.0, 0.1, ..., 2.9 take six values): the tracking study's scan
+#: grid and a data file's step lengths (:func:`grid_offsets`, :func:`step_lengths`)
+GRID_TOLERANCE = 1e-6
 
 
 class DataFileError(ValueError):
@@ -93,7 +98,13 @@ def file_text(file: Path) -> str:
 def read_csv(file: Path, wanted: list[str], series: str | None,
               names: Sequence[str] = ()) -> tuple[dict[str, list], list[int]]:
     """The columns ``wanted`` as numbers, ``series`` and ``names`` as labels (stripped, never empty), and
-    each row's line number."""
+    each row's line number.
+
+    Every row is read, a row of empty cells (``,,``: what ``csv.writer`` writes for a step with every value
+    missing) as missing values. A blank line (nothing on it; spaces only, in a file of several columns) is
+    ignored at the end of the file; before another row it is, in a file of one column, that column's cell,
+    empty (a missing value), and in a file of several columns an error naming its line (it would otherwise
+    drop a step, or be read as one)."""
     reader = csv.reader(io.StringIO(file_text(file), newline=""))
     header = next(reader, None)
     if not header:
@@ -111,29 +122,49 @@ def read_csv(file: Path, wanted: list[str], series: str | None,
         index[name] = header.index(name)
     values: dict[str, list] = {name: [] for name in index}
     lines = []
+    blank: list[int] = []  # blank lines not yet followed by a row (at the end of the file they are ignored)
     for row in reader:
         line = reader.line_num  # the row's last line (a quoted cell may span lines)
-        if not row or all(not cell.strip() for cell in row):
+        if not row or (len(header) > 1 and len(row) == 1 and not row[0].strip()):
+            blank.append(line)  # a blank line (spaces only, in a file of several columns)
             continue
+        if blank:
+            if len(header) > 1:  # (a step with every value missing is a row of empty cells, `,,`)
+                commas = "," * (len(header) - 1)
+                raise DataFileError(f"{file}: row {blank[0]}: a blank line between rows (a step with every "
+                                    f"value missing is a row of {len(header)} empty cells, e.g. {commas!r}; "
+                                    "blank lines are ignored only at the end of the file)")
+            for missing in blank:  # one column: a blank line is its one cell, empty (missing)
+                _read_row([""], missing, index, labelled, series, values, file)
+                lines.append(missing)
+            blank = []
         if len(row) != len(header):
             raise DataFileError(f"{file}: row {line}: {len(row)} cells, the header has {len(header)}")
-        for name, i in index.items():
-            cell = row[i]
-            if name in labelled:
-                if not cell.strip():
-                    what = "series" if name == series else "label"
-                    raise DataFileError(f"{file}: column {name!r}, row {line}: the {what} cell is empty "
-                                        f"(every row names its {what})")
-                values[name].append(cell.strip())
-            else:
-                values[name].append(number_cell(cell, file, name, line))
+        _read_row(row, line, index, labelled, series, values, file)
         lines.append(line)
     if not lines:
         raise DataFileError(f"{file}: no data rows after the header")
     return values, lines
 
 
-def read_npz(file: Path, wanted: list[str]) -> dict[str, np.ndarray]:
+def _read_row(row: list[str], line: int, index: dict[str, int], labelled: list[str], series: str | None,
+              values: dict[str, list], file: Path) -> None:
+    for name, i in index.items():
+        cell = row[i]
+        if name in labelled:
+            if not cell.strip():
+                what = "series" if name == series else "label"
+                raise DataFileError(f"{file}: column {name!r}, row {line}: the {what} cell is empty "
+                                    f"(every row names its {what})")
+            values[name].append(cell.strip())
+        else:
+            values[name].append(number_cell(cell, file, name, line))
+
+
+def read_npz(file: Path, wanted: list[str], shared: Sequence[str] = ()) -> dict[str, np.ndarray]:
+    """The arrays ``wanted`` as ``(T, runs)`` float64 (a ``(T,)`` array as ``(T, 1)``), all of one shape; an
+    array named in ``shared`` (a time column) may be one ``(T,)`` array beside ``(T, runs)`` ones, shared by
+    the runs (broadcast)."""
     try:
         archive = np.load(file, allow_pickle=False)
     except (OSError, ValueError) as err:
@@ -164,8 +195,16 @@ def read_npz(file: Path, wanted: list[str]) -> dict[str, np.ndarray]:
                                     f"{array[where]:g} is not finite (NaN marks a missing value)")
             out[name] = array if array.ndim == 2 else array[:, None]
     shapes = {name: a.shape for name, a in out.items()}
+    widest = max(shapes.values(), key=lambda shape: shape[1])
+    for name in shared:  # a (T,) array shared by the runs of (T, runs) columns
+        if name in out and shapes[name][0] == widest[0] and shapes[name][1] == 1:
+            out[name] = np.broadcast_to(out[name], widest)
+            shapes[name] = widest
     if len(set(shapes.values())) > 1:
-        raise DataFileError(f"{file}: arrays of different shapes {shapes}")
+        also = f"; the {', '.join(map(repr, shared))} array may be one (T,) array shared by the runs" \
+            if shared else ""
+        raise DataFileError(f"{file}: arrays of different shapes {shapes} (every column is one (T,) array "
+                            f"for one series or one (T, runs) array for several, the same in each{also})")
     return out
 
 
@@ -196,3 +235,35 @@ def check_increasing(t: np.ndarray, file: Path, column: str, where: list[int], w
         i = int(np.argmax(steps <= 0)) + 1
         raise DataFileError(f"{file}: column {column!r}, {what} {where[i]}: time stamps must increase "
                             f"({t[i - 1]:g} then {t[i]:g})")
+
+
+def grid_offsets(stamps: np.ndarray, t0: float, dt: float) -> np.ndarray:
+    """How far each of ``stamps (K,)`` lies from the grid ``t0 + k dt``, in steps ``dt`` (``(K,)``, in
+    [0, 0.5]): a stamp is on the grid when its offset is at most :data:`GRID_TOLERANCE`."""
+    k = (np.asarray(stamps, dtype=np.float64) - t0) / dt
+    return np.abs(k - np.round(k))
+
+
+def step_lengths(times: np.ndarray) -> tuple[float | None, np.ndarray]:
+    """``(dt, lengths (T-1,))``: the step lengths ``t_k - t_{k-1}`` of increasing stamps ``times (T,)``.
+
+    ``dt`` is the grid's one step length when every stamp lies on ``t_0 + k dt`` (:func:`grid_offsets`,
+    within :data:`GRID_TOLERANCE`; ``dt = (t_{T-1} - t_0) / (T - 1)``, or the steps' one value where
+    they are equal bit for bit), and ``lengths`` that ``dt`` at every step; otherwise ``dt`` is None and
+    steps of equal length but for float rounding (relative difference at most :data:`GRID_TOLERANCE`)
+    have one length, their mean. None and ``(0,)`` for a single stamp."""
+    t = np.asarray(times, dtype=np.float64)
+    if len(t) < 2:
+        return None, np.zeros(0)
+    steps = np.diff(t)
+    dt = float(steps[0]) if np.all(steps == steps[0]) else float((t[-1] - t[0]) / (len(t) - 1))
+    if grid_offsets(t, float(t[0]), dt).max() <= GRID_TOLERANCE:
+        return dt, np.full(len(t) - 1, dt)
+    order = np.argsort(steps, kind="stable")
+    lengths = steps.copy()
+    start = 0
+    for i in range(1, len(order) + 1):  # runs of sorted steps within the tolerance of the run's shortest
+        if i == len(order) or steps[order[i]] - steps[order[start]] > GRID_TOLERANCE * steps[order[start]]:
+            lengths[order[start:i]] = steps[order[start:i]].mean()
+            start = i
+    return None, lengths

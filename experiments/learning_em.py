@@ -17,6 +17,23 @@ from experiments.learning import entry_where, fit_mle, parameters_of, rename, st
 
 
 # -- method: em (linear-Gaussian Kalman filters) -----------------------------------------------------------
+def check_whole_vectors(method: str, data) -> None:
+    """EM's steps take whole measurement vectors (:func:`torchmm.learn.em`, docs/estimation.md): recorded
+    ``data`` (:class:`experiments.datafile.DataSeries`) with a step whose measurement cells are missing in
+    part (not all) is a ``ConfigError`` naming ``learn.method`` and the file's first such row."""
+    z = data.measurements
+    seen = np.isfinite(z)
+    part = seen.any(-1) & ~seen.all(-1) & data.present
+    if not part.any():
+        return
+    rows = data.rows if data.rows is not None else np.arange(z.shape[0])[:, None] + 0 * part
+    k, j = min(zip(*np.nonzero(part)), key=lambda kj: (int(rows[kj]), kj[1]))  # the file's first such row
+    raise ConfigError("learn.method", method, f"EM's steps take whole measurement vectors; "
+                      f"{data.where(k, j)} (series {data.series[j]!r}, step {k}) has some measurement cells "
+                      "missing, not all (method mle learns from such steps; or leave every measurement "
+                      "cell of the step empty)")
+
+
 EM_NAMES = {("modes", "F"): "F", ("modes", "offset"): "offset", ("modes", "Q"): "Q", ("sensors", "H"): "H",
             ("sensors", "R"): "R", (None, "initial_mean"): "initial_mean", (None, "initial_cov"): "initial_cov"}
 

@@ -368,10 +368,17 @@ def is_list_node(value) -> bool:
 
 
 def per_step_motions(nodes, times, dt_key: str, dtype, device):
-    """``(motion, motions)`` for the time stamps ``times (T,)``: with one step length, the models rebuilt
-    with it and no per-step models; otherwise one motion model per step (step ``k`` covers
-    ``t_k - t_{k-1}``; step 1 keeps the nodes' own ``dt``), built once per distinct step length."""
+    """``(motion, motions)`` for the time stamps ``times (T,)``: with one step length (every stamp on the
+    grid ``t_0 + k dt`` to :data:`experiments.datafile_io.GRID_TOLERANCE`), the models rebuilt with that
+    ``dt`` and no per-step models; otherwise one motion model per step (step ``k`` covers
+    ``t_k - t_{k-1}``), built once per distinct step length (:func:`experiments.datafile_io.step_lengths`).
+    Step 0, the prediction from the prior to the first stamp, covers the first step's length
+    ``t_1 - t_0`` in both cases (the prior one step before the first stamp), so that a series' numbers
+    do not depend on whether another series makes the shared grid irregular; a single stamp keeps the
+    nodes' own ``dt``."""
     from omegaconf import OmegaConf
+
+    from experiments.datafile_io import step_lengths
 
     cache: dict[float, Any] = {}
 
@@ -386,7 +393,7 @@ def per_step_motions(nodes, times, dt_key: str, dtype, device):
                 cache[dt] = one(nodes, "scenario.modes")
         return cache[dt]
 
-    steps = [float(d) for d in (times[1:] - times[:-1])]
-    if len(set(steps)) <= 1:
-        return (models(steps[0]) if steps else None), None
-    return None, [None] + [models(dt) for dt in steps]
+    dt, steps = step_lengths(times)
+    if dt is not None or not len(steps):
+        return (None if dt is None else models(dt)), None
+    return None, [models(float(steps[0]))] + [models(float(d)) for d in steps]

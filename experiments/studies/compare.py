@@ -33,7 +33,6 @@ import math
 import time
 from typing import Any
 
-import numpy as np
 import torch
 from hydra.utils import instantiate
 from torch import Tensor
@@ -44,8 +43,9 @@ from experiments.harness import StudyContext, per_run
 from experiments.scenarios_system import Concatenated, default_dtype
 from experiments.studies.compare_results import (curves_and_figures, learned_tables, not_computed, paired, reduce,
                                                  series_table)
-from torchmm import GaussianBelief, run_filter, smooth
-from torchmm.metrics import mode_hits, nees
+from experiments.studies.compare_truth import marginal_nees, partial_series, series_nees, truth_components
+from torchmm import run_filter, smooth
+from torchmm.metrics import mode_hits
 
 log = logging.getLogger("torchmm.experiments")
 
@@ -214,6 +214,8 @@ def check_build(cfg, scenario) -> None:
         raise ConfigError("burn", burn, f"leaves out every step (the data have {scenario.steps}): no log-likelihood "
                           "term is left")
     block = learning.spec(cfg)
+    if names and str(block.method) in ("em", "em_then_mle") and scenario.data is not None:
+        learning_em.check_whole_vectors(str(block.method), scenario.data)
     for name in names:
         own = learning.own_models(scenario)
         if str(block.method) in ("em", "em_then_mle"):
@@ -293,18 +295,6 @@ def _motions(est, scenario):
     return [pick(m) for m in scenario.motions]
 
 
-def truth_components(scenario) -> list[int] | None:
-    """The state components with truth: every one for simulated data; for recorded data those with a
-    finite cell (``truth: [px, null, py, null]`` or an empty column gives none for that component);
-    None without truth."""
-    if scenario.data is None:
-        return list(range(scenario.initial.state_dim))
-    if scenario.data.truth is None:
-        return None
-    known = np.isfinite(scenario.data.truth).any(axis=(0, 1))
-    return [int(i) for i in np.flatnonzero(known)] or None
-
-
 def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
     """Per-run values of estimator ``name`` (and its smoothed trajectory) on runs ``start..stop-1``.
 
@@ -350,10 +340,10 @@ def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
                 err = (estimate.mean[..., idx] - truth[..., idx]).square()
                 ok = scored[..., idx].all(-1)
                 v[f"sq_{group}"] = per_run(torch.where(ok, err.sum(-1), torch.nan).detach())
-            ok = scored[..., known].all(-1)  # NEES over the components with truth (their marginal)
-            marginal = GaussianBelief(estimate.mean[..., known], estimate.cov[..., known, :][..., known])
-            v["nees"] = per_run(torch.where(ok, nees(marginal, torch.nan_to_num(truth[..., known])),
-                                            torch.nan).detach())
+            pooled = marginal_nees(estimate, truth, present, known)  # over the file's components with truth
+            v["nees"] = per_run(pooled.detach())
+            if scenario.data is not None:  # each series' own, over its components (the table `series`)
+                v["series_nees"] = per_run(series_nees(estimate, truth, present, known, pooled).detach())
             if est.multiple_model and modes is not None:
                 v["hits"] = per_run(mode_hits(tr.belief.mode_log_probs, modes).to(ctx.dtype).detach())
         if label == name:
@@ -432,12 +422,22 @@ def run(ctx: StudyContext) -> None:
             results[label] = {"summary": summary, **extra}
             if "example_mean" in pieces[0]:
                 examples[label] = pieces[0]
+    partial = partial_series(scenario, known) if "nees" in metrics else {}  # not pooled in the summary's NEES
+    if partial:
+        own = "; ".join(f"{s}: {c}" for s, c in partial.items())
+        ctx.results.notes.append(
+            f"nees: series {', '.join(partial)} left out of the summary's NEES (over component(s) {known}): "
+            f"the truth of those series covers fewer components ({own}), and a NEES over fewer components is "
+            "another figure (chi-square with fewer degrees of freedom). Each series' own NEES, over its "
+            "components as in a file holding it alone, is in the table series.")
     for label, r in results.items():  # a value the data cannot give is named, never reported
         for key in [k for k in r["summary"] if k in _MAIN or k.startswith("rmse_") and not k.endswith("_se")]:
             value = r["summary"][key]
             if value is None or not math.isfinite(value):
                 dropped[f"{key} ({label})"] = (
                     "no two consecutive innovations to compute it from (after the burn-in)" if key == "whiteness_lag1"
+                    else f"no series has truth for every one of the components {known} (each series' own "
+                    "NEES is in the table series)" if key == "nees" and partial
                     else "no step of any run to compute it from (no measurement or no truth where the estimate exists)")
                 for k in [k for k in r["summary"] if k == key or k.startswith(f"{key}_")]:
                     del r["summary"][k]
@@ -448,7 +448,7 @@ def run(ctx: StudyContext) -> None:
     what = "series" if scenario.data is not None else "runs"
     for label, r in results.items():  # a per-run value that cannot be computed is left out of the mean, and said
         for key, values in r["influence"].items():
-            bad = int((~torch.isfinite(values)).sum())
+            bad = int((~torch.isfinite(values)).sum()) - (len(partial) if key == "nees" else 0)  # (noted)
             if 0 < bad < values.numel() and key in r["summary"]:
                 ctx.results.notes.append(f"{key} ({label}): {bad} of {values.numel()} {what} left out of the mean "
                                          "(nothing to compute it from: no measurement, or no truth where scored).")

@@ -139,6 +139,8 @@ def reduce(parts: list[dict], groups: list[str], metrics: list[str]) -> tuple[di
     steps = steps or int(parts[0]["steps"])
     summary["seconds_per_step"] = sum(float(p["seconds"]) for p in parts) / steps
     per_run_values = {**{k: v for k, v in influence.items() if not k.startswith("rmse_")}, **runs_rmse}
+    if "nees" in per_run_values and "series_nees" in parts[0]:  # each series' NEES over its own components
+        per_run_values["nees"] = _per_run_mean(_t(join_runs([p["series_nees"] for p in parts])))
     if "measured" in parts[0]:
         per_run_values["measured"] = _t(join_runs([p["measured"] for p in parts], dim=0))
     return summary, {"influence": influence, "curves": curves, "per_run": per_run_values, "notes": notes}
@@ -276,7 +278,8 @@ def series_table(ctx, scenario, results: dict) -> None:
     estimator's log-likelihood, RMSEs, NEES and NIS over that series alone)."""
     keys = []
     for r in results.values():
-        keys += [k for k in r["per_run"] if k != "measured" and k not in keys and k in r["summary"]]
+        keys += [k for k in r["per_run"] if k != "measured" and k not in keys
+                 and (k in r["summary"] or bool(torch.isfinite(r["per_run"][k]).any()))]  # (a series' NEES)
     order = ["loglik", *sorted(k for k in keys if k.startswith("rmse_")), "nees", "nis", "mode_accuracy"]
     keys = [k for k in order if k in keys]
     table = ctx.results.table(

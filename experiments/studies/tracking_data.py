@@ -9,7 +9,9 @@ Files (CSV or NPZ, :mod:`experiments.datafile`):
   naming each row's sensor. A row with empty measurement cells records an empty scan; so does a time on
   the scan grid (a sensor's: its schedule) with no row at all. The scans lie on the grid
   ``t0 + k * tracking.dt`` (``t0`` the earliest time stamp of the files), every stamp on it (within
-  ``1e-6 dt``); the rows whose stamps fall on the same grid point (``0.3`` and ``0.1 + 0.2``) are one scan.
+  ``1e-6 dt``: ``experiments.datafile_io.GRID_TOLERANCE``, shared with the step lengths of
+  :func:`experiments.datafile.read_series`' time column); the rows whose stamps fall on the same grid
+  point (``0.3`` and ``0.1 + 0.2``) are one scan.
 * **truth** (optional; GOSPA and the track-quality table need it): one row per target and time stamp
   where it exists (births and deaths: the rows it has), ``time``, ``target``, the two ``position``
   columns, optional ``series`` (without one, every series has this truth). A target given twice in one
@@ -35,6 +37,7 @@ from torch import Tensor
 
 from experiments.config import ConfigError
 from experiments.datafile import DataFileError, read_detections, read_targets
+from experiments.datafile_io import GRID_TOLERANCE, grid_offsets
 
 #: the files a study exports and the columns it writes (conf: tracking.export)
 FILES = {"detections": "detections.csv", "truth": "truth.csv", "start": "start.csv"}
@@ -134,8 +137,8 @@ def _grid(stamps: dict[str, np.ndarray | None], dt: float) -> tuple[float, int]:
     T = 0
     for key, every in given.items():
         k = (every - t0) / dt
-        off = np.abs(k - np.round(k))
-        if off.max() > 1e-6:
+        off = grid_offsets(every, t0, dt)
+        if off.max() > GRID_TOLERANCE:
             bad = float(every[int(np.argmax(off))])
             raise ConfigError("tracking.dt", dt, f"the time stamp {bad!r} of {key} is not on the scan grid "
                               f"{t0!r} + k * dt (give the sensor's period as tracking.dt)")

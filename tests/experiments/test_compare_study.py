@@ -276,18 +276,20 @@ def _irregular(tmp_path: Path, seed: int, T: int) -> tuple[list[float], torch.Te
 
 
 def _per_step_loglik(sensor, dts: list[float], z: torch.Tensor) -> float:
-    """The library's IMM log-likelihood of ``z`` (summed over the series) with one motion model per step."""
+    """The library's IMM log-likelihood of ``z`` (summed over the series) with one motion model per step
+    (step 0: the first step's length)."""
     def bank(dt):
         return [ConstantVelocity(1, dt=dt, q=0.05, acceleration=[a], dtype=torch.float64) for a in (0.0, 1.0)]
 
     imm = IMM([KalmanFilter(m, sensor) for m in bank(1.0)], torch.tensor(TRANSITION, dtype=torch.float64))
     prior = GaussianBelief.create(PRIOR_MEAN, PRIOR_COV, dtype=torch.float64).expand(2)
-    traj = run_filter(imm, imm.initial_belief(prior), z, motions=[None] + [bank(d) for d in dts[1:]])
+    traj = run_filter(imm, imm.initial_belief(prior), z, motions=[bank(dts[1])] + [bank(d) for d in dts[1:]])
     return float(traj.log_likelihood.sum())
 
 
 def test_irregular_time_stamps_become_per_step_motions(tmp_path):
-    """Irregular time stamps: step k predicts over t_k - t_{k-1}; equal to per-step models by hand."""
+    """Irregular time stamps: step k predicts over t_k - t_{k-1}, step 0 over the first step's length
+    t_1 - t_0 (as on a regular grid); equal to per-step models by hand."""
     dts, z, cfg = _irregular(tmp_path, 5, 15)
     validate(cfg)
     run_study(cfg, tmp_path / "run")
@@ -299,7 +301,7 @@ def test_irregular_time_stamps_become_per_step_motions(tmp_path):
 
     imm = IMM([KalmanFilter(m, sensor) for m in bank(1.0)], torch.tensor(TRANSITION, dtype=torch.float64))
     prior = GaussianBelief.create(PRIOR_MEAN, PRIOR_COV, dtype=torch.float64).expand(2)
-    traj = run_filter(imm, imm.initial_belief(prior), z, motions=[None] + [bank(d) for d in dts[1:]])
+    traj = run_filter(imm, imm.initial_belief(prior), z, motions=[bank(dts[1])] + [bank(d) for d in dts[1:]])
     assert res["metrics"]["IMM"]["loglik"] == pytest.approx(float(traj.log_likelihood.sum(0).mean()), rel=1e-12)
     regular = run_filter(imm, imm.initial_belief(prior), z).log_likelihood.sum(0).mean()
     assert abs(float(regular) - res["metrics"]["IMM"]["loglik"]) > 1e-3  # the time stamps mattered
