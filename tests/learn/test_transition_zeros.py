@@ -22,18 +22,23 @@ CASES = [(path, comb) for path in PATHS for comb in (IMM, GPB1, GPB2)
          if not (path == "linear_gaussian" and comb is GPB2)]  # (the Numba kernel takes no GPB2)
 
 
-def _log_likelihood(comb, theta, **options):
+def _cyclic(comb, theta):
+    """``comb`` over three random walks of different noise, the transition a softmax over each row's free
+    entries (``theta (4,)``; 0 -> 2, 1 -> 0 and 2 -> 1 held at exactly 0): ``(filter, belief0, z (20, 1))``."""
     zero, out = torch.zeros((), dtype=D), torch.tensor(-torch.inf, dtype=D)
     logits = torch.stack([torch.stack([theta[0], theta[1], out]),
                           torch.stack([out, theta[2], zero]),
                           torch.stack([theta[3], out, zero])])
     Q = torch.tensor([0.01, 1.0, 10.0], dtype=D).reshape(3, 1, 1)
     one = torch.ones(1, 1, dtype=D)
-    kf = KalmanFilter(LinearMotion(one, Q), LinearMeasurement(one, one))
-    f = comb(kf, torch.softmax(logits, -1))
+    f = comb(KalmanFilter(LinearMotion(one, Q), LinearMeasurement(one, one)), torch.softmax(logits, -1))
     b0 = f.initial_belief(GaussianBelief(torch.zeros(1, dtype=D), torch.eye(1, dtype=D)),
                           torch.full((3,), 1 / 3, dtype=D))
-    z = torch.sin(torch.arange(20, dtype=D)).cumsum(0).reshape(-1, 1)
+    return f, b0, torch.sin(torch.arange(20, dtype=D)).cumsum(0).reshape(-1, 1)
+
+
+def _log_likelihood(comb, theta, **options):
+    f, b0, z = _cyclic(comb, theta)
     traj = run_filter(f, b0, z, **options)
     return traj.log_likelihood.sum(), traj.provenance.kernel
 
@@ -64,16 +69,7 @@ def test_gradient_through_a_transition_with_zero_entries(path, comb):
 
 def _smoothed(comb, theta, method, off=()):
     """The smoothed mixture means and mode-0 probabilities, summed (one number that reads every step)."""
-    zero, out = torch.zeros((), dtype=D), torch.tensor(-torch.inf, dtype=D)
-    logits = torch.stack([torch.stack([theta[0], theta[1], out]),
-                          torch.stack([out, theta[2], zero]),
-                          torch.stack([theta[3], out, zero])])
-    Q = torch.tensor([0.01, 1.0, 10.0], dtype=D).reshape(3, 1, 1)
-    one = torch.ones(1, 1, dtype=D)
-    f = comb(KalmanFilter(LinearMotion(one, Q), LinearMeasurement(one, one)), torch.softmax(logits, -1))
-    b0 = f.initial_belief(GaussianBelief(torch.zeros(1, dtype=D), torch.eye(1, dtype=D)),
-                          torch.full((3,), 1 / 3, dtype=D))
-    z = torch.sin(torch.arange(20, dtype=D)).cumsum(0).reshape(-1, 1)
+    f, b0, z = _cyclic(comb, theta)
     with kernels.switched_off(*off):
         s = smooth(f, run_filter(f, b0, z), z, method=method).belief
     mu = s.mode_log_probs.exp()
