@@ -27,6 +27,7 @@ import torch
 from torch import Tensor
 
 __all__ = [
+    "adds_no_runs",
     "as_choice",
     "as_float",
     "as_int",
@@ -394,6 +395,24 @@ def check_data_batch(shape: torch.Size, batch: torch.Size, name: str, expected: 
                          "expand the prior: belief.expand(runs))")
 
 
+def adds_no_runs(shape: Sequence[int], batch: Sequence[int]) -> bool:
+    """Whether a batch ``shape`` (a model parameter's, or a model output's) broadcasts with the runs' ``batch``
+    without adding runs: to ``batch`` itself, or to ``batch`` behind unit axes (a parameter batch ``(1,)`` next
+    to a belief of batch ``()``, as the steps broadcast it; tests/filters/test_broadcast_batches.py). Python
+    values only (the filters ask it at every model call).
+
+    Examples:
+        >>> adds_no_runs((1, 3), (3,)), adds_no_runs((2, 1), (3,)), adds_no_runs((4,), (3,))
+        (True, False, False)
+    """
+    if shape == batch:
+        return True
+    extra = len(shape) - len(batch)
+    if extra > 0 and any(s != 1 for s in shape[:extra]):
+        return False
+    return all(s == b or s == 1 for s, b in zip(reversed(shape), reversed(batch)))
+
+
 def check_parameter_batch(shape: torch.Size, batch: torch.Size, name: str, *, exact: bool = False) -> None:
     """``ValueError`` naming ``name`` unless a model parameter's batch ``shape`` broadcasts with the belief's
     ``batch`` (``belief0``'s at :func:`~torchmm.run_filter`'s entry) without adding runs: per-run
@@ -407,7 +426,7 @@ def check_parameter_batch(shape: torch.Size, batch: torch.Size, name: str, *, ex
         ...
         ValueError: motion.F: parameter batch (2, 1) would enlarge belief0's batch (3,) to (2, 3): ...
     """
-    if shape == batch or not shape:
+    if shape == batch or not shape or (not exact and adds_no_runs(shape, batch)):
         return
     hint = ("per-run parameters have belief0's batch or broadcast to it (to filter several runs from one "
             "prior, expand it: belief0.expand(runs))")
@@ -416,8 +435,7 @@ def check_parameter_batch(shape: torch.Size, batch: torch.Size, name: str, *, ex
     except RuntimeError:
         raise ValueError(f"{name}: parameter batch {tuple(shape)} does not broadcast with belief0's batch "
                          f"{tuple(batch)}: {hint}") from None
-    same = wide == batch if exact else [s for s in wide if s != 1] == [s for s in batch if s != 1]
-    if not same:
+    if not exact or wide != batch:
         raise ValueError(f"{name}: parameter batch {tuple(shape)} would enlarge belief0's batch "
                          f"{tuple(batch)} to {tuple(wide)}: {hint}")
 

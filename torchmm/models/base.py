@@ -14,6 +14,8 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor, nn
 
+from torchmm.validation import adds_no_runs
+
 __all__ = ["MeasurementModel", "MotionModel", "check_entries", "check_model_pair", "check_output",
            "check_parameter_dtype", "forward_jacobian", "store_tensor"]
 
@@ -174,18 +176,6 @@ _FORMS = {"forward": ("", "(*B, {k})"), "jacobian": (".jacobian", "(*B, {k}, n)"
           "noise_cov": (".noise_cov", "(*B, {k}, {k}) (a batch broadcasting to *B)")}
 
 
-def _broadcasts_into(shape: Sequence[int], batch: Sequence[int]) -> bool:
-    """Whether ``shape`` broadcasts with ``batch`` without adding runs: to ``batch`` itself or to ``batch``
-    behind unit axes (a parameter batch ``(1,)`` next to a belief of batch ``()``, as the steps broadcast
-    it; tests/filters/test_broadcast_batches.py). Python values only."""
-    if shape == batch:
-        return True
-    extra = len(shape) - len(batch)
-    if extra > 0 and any(s != 1 for s in shape[:extra]):
-        return False
-    return all(s == b or s == 1 for s, b in zip(reversed(shape), reversed(batch)))
-
-
 def _dims(model) -> tuple[int, int, str, str]:
     """``(k, n)`` of a model's outputs, the symbol of ``k`` and the words naming the dimensions."""
     n = model.state_dim
@@ -229,7 +219,7 @@ def check_output(model: nn.Module, out, x: Tensor | None, name: str, kind: str =
         batch = x.shape[:-1] if batch is None else batch
     if isinstance(out, Tensor) and (dtype is None or out.dtype == dtype):
         shape, e = out.shape, len(event)
-        if shape[max(out.dim() - e, 0):] == event and (batch is None or _broadcasts_into(shape[:-e], batch)):
+        if shape[max(out.dim() - e, 0):] == event and (batch is None or adds_no_runs(shape[:-e], batch)):
             return out  # (the usual case: a few comparisons of Python values)
     suffix, form = _FORMS[kind]
     k, n, symbol, dims = _dims(model)
@@ -275,7 +265,7 @@ def check_entries(model: nn.Module, entries, x: Sequence[Tensor], name: str, kin
             if isinstance(entry, Tensor):
                 if entry.dtype != dtype:
                     raise _dtype_error(method, entry.dtype, dtype)
-                if entry.shape != batch and not _broadcasts_into(entry.shape, batch):
+                if entry.shape != batch and not adds_no_runs(entry.shape, batch):
                     raise ValueError(f"{method}: returned an entry of shape {tuple(entry.shape)} for "
                                      f"components {tuple(batch)}: each entry broadcasts to their batch (*B,)")
             elif not jacobian or not isinstance(entry, (int, float)):
