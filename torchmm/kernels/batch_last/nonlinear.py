@@ -182,16 +182,14 @@ class NonlinearBank:
     def _slot(self, model) -> str:
         return "motion" if model is self.motion else "measurement"
 
-    def forward_entries(self, model, xs: list, points: bool = False) -> list:
-        """``model.forward_entries`` at the batch-first views of ``xs``, checked
-        (:func:`~torchmm.models.base.check_entries`), back in the kernel's layout."""
-        front = [self.front(x) for x in xs]
+    def forward_entries(self, model, front: list, points: bool = False) -> list:
+        """``model.forward_entries`` at the batch-first views ``front`` (:meth:`front` of each component),
+        checked (:func:`~torchmm.models.base.check_entries`), back in the kernel's layout."""
         call = model.forward_entries(front)
         return [self.back(t, points=points) for t in check_entries(model, call, front, self._slot(model))]
 
-    def jacobian_entries(self, model, xs: list) -> list:
-        """``model.jacobian_entries`` at the batch-first views of ``xs``, checked, as :class:`Coef` rows."""
-        front = [self.front(x) for x in xs]
+    def jacobian_entries(self, model, front: list) -> list:
+        """``model.jacobian_entries`` at the batch-first views ``front``, checked, as :class:`Coef` rows."""
         rows = check_entries(model, model.jacobian_entries(front), front, self._slot(model), "jacobian")
         return [[self.coef(e) for e in row] for row in rows]
 
@@ -248,13 +246,14 @@ class NonlinearBank:
         Q = self.noise(motion, xs)
         if self.unscented:
             points = self.sigma_points(xs, Cs)
-            moved = self.forward_entries(motion, points, points=True)
+            moved = self.forward_entries(motion, [self.front(p) for p in points], points=True)
             xp, dev = self.moments(moved)
             S = self.spread_sum(dev, dev, upper=True)
             Pp = [[None] * a + [combine([(ONE, S[a][c])], Q[a][c]) for c in range(a, n)] for a in range(n)]
             return [x.expand_as(like) for x in xp], Pp
-        F = self.jacobian_entries(motion, xs)
-        xp = [t.expand_as(like) for t in self.forward_entries(motion, xs)]
+        front = [self.front(x) for x in xs]
+        F = self.jacobian_entries(motion, front)
+        xp = [t.expand_as(like) for t in self.forward_entries(motion, front)]
         return xp, sandwich(F, Cs, Q, like)
 
     def update(self, xp: list, Pp: list, zc: Tensor, ob: Tensor, nhob: Tensor, like: Tensor,
@@ -267,7 +266,7 @@ class NonlinearBank:
         sym = lambda T, a, c: T[min(a, c)][max(a, c)]  # noqa: E731
         if self.unscented:
             points = self.sigma_points(xp, Pp)
-            predicted = self.forward_entries(sensor, points, points=True)
+            predicted = self.forward_entries(sensor, [self.front(p) for p in points], points=True)
             hx, zdev = self.moments(predicted)
             xdev = [p - x for p, x in zip(points, xp)]
             spread = self.spread_sum(zdev, zdev, upper=True)
@@ -275,8 +274,9 @@ class NonlinearBank:
             cross = self.spread_sum(zdev, xdev, upper=False)  # [k][a]
             C = [[cross[k][a] for k in range(m)] for a in range(n)]
         else:
-            H = self.jacobian_entries(sensor, xp)
-            hx = self.forward_entries(sensor, xp)
+            front = [self.front(x) for x in xp]
+            H = self.jacobian_entries(sensor, front)
+            hx = self.forward_entries(sensor, front)
             C = [[combine([(H[k][c], sym(Pp, a, c)) for c in range(n)], ZERO, like) for k in range(m)]
                  for a in range(n)]  # P- H^T
             S = [[combine([(H[k][a], C[a][c]) for a in range(n)], R[k][c], like) for c in range(k + 1)]
