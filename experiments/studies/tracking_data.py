@@ -136,13 +136,12 @@ def _grid(stamps: dict[str, np.ndarray | None], dt: float) -> tuple[float, int]:
     t0 = float(min(s.min() for s in given.values()))
     T = 0
     for key, every in given.items():
-        k = (every - t0) / dt
         off = grid_offsets(every, t0, dt)
         if off.max() > GRID_TOLERANCE:
             bad = float(every[int(np.argmax(off))])
             raise ConfigError("tracking.dt", dt, f"the time stamp {bad!r} of {key} is not on the scan grid "
                               f"{t0!r} + k * dt (give the sensor's period as tracking.dt)")
-        T = max(T, int(np.round(k).max()) + 1)
+        T = max(T, int(_index(every, t0, dt).max()) + 1)
     return t0, T
 
 
