@@ -175,15 +175,14 @@ def _motion_models(motion, M: int, initial: GaussianBelief) -> list[MotionModel]
         raise ValueError(f"motion: {len(models)} models for the {M} modes of the transition matrix")
     if models is None:
         shape = getattr(motion, "param_batch_shape", None)
-        if shape is not None and len(shape) and shape[-1] not in (1, M):
-            raise ValueError(f"transition: {M} modes, but motion is a bank of {shape[-1]} modes (parameter "
-                             f"batch {tuple(shape)}); give a ({shape[-1]}, {shape[-1]}) transition")
+        if shape is not None and len(shape):
+            _check_mode_axis(shape[-1], M, f"parameter batch {tuple(shape)}")
     return models if models is not None else motion
 
 
 def _check_mode_axis(size: int, M: int, what: str) -> None:
-    """A model's mode axis (``size``: 1 for a shared model) against the transition's ``M`` modes (for a
-    model that does not declare its parameter batch: checked on its output)."""
+    """A model's mode axis (``size``: 1 for a shared model) against the transition's ``M`` modes (its declared
+    parameter batch's, or, for a model that declares none, its output's)."""
     if size not in (1, M):
         raise ValueError(f"transition: {M} modes, but motion is a bank of {size} modes ({what}); give a "
                          f"({size}, {size}) transition")
