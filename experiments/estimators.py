@@ -27,6 +27,7 @@ from torch import Tensor
 from torchmm import GPB1, GPB2, IMM, Filter, GaussianBelief, KalmanFilter, MultipleModelFilter, run_filter
 from torchmm.metrics import mode_hits, nees, squared_error
 from torchmm.run import Trajectory
+from torchmm.smooth_checks import singular_process_noise, why_not_smoothable
 from torchmm.two_filter_info import linear_bank
 
 from experiments.arrays import add_runs, join_runs, per_run
@@ -55,7 +56,17 @@ class Estimator:
     def __post_init__(self):
         """A smoother's ``method`` is checked when the estimator is built (the precheck's dry build), not
         after the study's folder exists: a method names a multiple-model smoother, and
-        ``two_filter_info`` takes IMM, GPB1 and GPB2 over Kalman mode filters only."""
+        ``two_filter_info`` takes IMM, GPB1 and GPB2 over Kalman mode filters only; any ``smooth`` needs a
+        filter ``torchmm.smooth`` has a backward pass for (``why_not_smoothable``: not an IMM over particle
+        modes, nor a variable-structure IMM), and FFBSm a positive-definite process noise."""
+        if self.smooth in (False, None, ""):
+            return
+        why = why_not_smoothable(self.filter)
+        if why is not None:
+            raise ValueError(f"smooth: {why} (smooth: false scores the filter alone)")
+        if getattr(self.filter, "smoother", None) == "particles" and singular_process_noise(self.filter.motion):
+            raise ValueError("smooth: FFBSm (the particle filter's smoother) needs a positive-definite process "
+                             f"noise Q; {type(self.filter.motion).__name__}'s is singular")
         if not isinstance(self.smooth, str):
             return
         if not self.multiple_model:

@@ -32,13 +32,15 @@ def _built(key: str, node, make, aliases: dict | None = None):
         raise build_error(key, node, err, aliases) from None
 
 
-def _estimators(nodes, scenario, prefix: str = "estimators", options=None) -> None:
+def _estimators(nodes, scenario, prefix: str = "estimators", options=None) -> dict:
     """Every ``nodes[name]`` (a partial builder of experiments/estimators.py) called on ``scenario``;
-    ``options(node)``: the study's own keywords for a node."""
+    ``options(node)``: the study's own keywords for a node. The estimators by name."""
+    built = {}
     for name in nodes:
         node = nodes[name]
         extra = options(node) if options is not None else {}
-        _built(f"{prefix}.{name}", node, lambda: instantiate(node)(scenario, name=str(name), **extra))
+        built[name] = _built(f"{prefix}.{name}", node, lambda: instantiate(node)(scenario, name=str(name), **extra))
+    return built
 
 
 def _scenario(cfg, node, key: str):
@@ -53,12 +55,20 @@ def imm_baseline(cfg, scenario) -> None:
 
 def smoothing(cfg, scenario) -> None:
     """Every estimator on each of ``smoothing.scenarios``, a single filter on that scenario's
-    ``smoothing.cv_mode``."""
+    ``smoothing.cv_mode``; each one a filter ``torchmm.smooth`` has a smoother for (the study smooths them
+    all: ``why_not_smoothable``)."""
+    from torchmm.smooth_checks import why_not_smoothable
+
     for key in cfg.smoothing.scenarios:
         built = _scenario(cfg, cfg.smoothing.scenarios[key], f"smoothing.scenarios.{key}")
         mode = int(cfg.smoothing.cv_mode[key])
-        _estimators(cfg.estimators, built,
-                    options=lambda node: {"mode": mode} if node.get("_target_") == SINGLE else {})
+        estimators = _estimators(cfg.estimators, built,
+                                 options=lambda node: {"mode": mode} if node.get("_target_") == SINGLE else {})
+        for name, est in estimators.items():
+            why = why_not_smoothable(est.filter)
+            if why is not None:
+                raise ConfigError(f"estimators.{name}", cfg.estimators[name].get("_target_"),
+                                  f"the smoothing study smooths every estimator: {why}")
 
 
 def imm_analysis(cfg, scenario) -> None:

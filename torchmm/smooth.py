@@ -61,7 +61,13 @@ from torchmm.models.base import MotionModel
 from torchmm.multimodel.bank import ListBank, VectorizedBank
 from torchmm.run import Trajectory
 from torchmm.runtime import entries, host_reads_ok, one_thread_when_small
-from torchmm.smooth_checks import checked_against_run, padding_steps, unobserved_tail
+from torchmm.smooth_checks import (
+    checked_against_run,
+    padding_steps,
+    singular_process_noise,
+    unobserved_tail,
+    why_not_smoothable,
+)
 from torchmm.two_filter import (
     backward_imm_update,
     backward_predict,
@@ -159,8 +165,7 @@ def _smooth_particles(filter: ParticleFilter, trajectory: Trajectory, controls, 
         raise TypeError(f"trajectory.belief: expected particle beliefs, got {type(filtered).__name__}")
     steps = filtered.batch_shape[0]
     for k, motion in enumerate([filter.motion] if motions is None else motions):  # once, at the entry point
-        eig = torch.linalg.eigvalsh(motion.noise_cov())  # rank-deficient Q (e.g. q G G^T): no density
-        if bool((eig[..., 0] <= 1e-10 * eig[..., -1].abs()).any()):
+        if singular_process_noise(motion):
             where = "the filter's motion" if motions is None else f"motions[{k}]"
             raise ValueError(f"filter: FFBSm needs a positive-definite process noise Q (the transition "
                              f"density); {where} has a singular one")
@@ -364,6 +369,9 @@ def smooth(filter: Any, trajectory: Trajectory | None = None, measurements: Tens
         filter, trajectory, measurements, controls, motions, sensors, method, steps)
     # None entries: the filter's model
     kind = getattr(filter, "smoother", None)  # the filter's backward pass (Filter.smoother): no class is named
+    why = why_not_smoothable(filter)  # (the rule a study asks before it filters)
+    if why is not None:
+        raise TypeError(f"filter: {why}")
     if motions is not None and kind != "modes":
         motions = ([filter.motion if m is None else m for m in motions] if hasattr(filter, "motion")
                    else motions)
@@ -416,10 +424,6 @@ def smooth(filter: Any, trajectory: Trajectory | None = None, measurements: Tens
                          f"got {method!r} for {type(filter).__name__}")
     if kind == "particles":
         return _smooth_particles(filter, trajectory, controls, motions, padding)
-    if kind not in ("unscented", "rts"):
-        raise TypeError(f"filter: no smoother for {type(filter).__name__} yet; supported: KalmanFilter (RTS), "
-                        "ExtendedKalmanFilter (extended RTS), UnscentedKalmanFilter (unscented RTS), ParticleFilter "
-                        "(FFBSm), IMM / GPB1 / GPB2 over Gaussian mode filters (Kim's smoother)")
     filtered = trajectory.belief
     if not isinstance(filtered, GaussianBelief):
         raise TypeError(f"trajectory.belief: expected Gaussian beliefs, got {type(filtered).__name__}")

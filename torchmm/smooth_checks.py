@@ -11,10 +11,11 @@ import torch
 import torch.utils._pytree as pytree
 from torch import Tensor
 
+from torchmm.multimodel.bank import ListBank, VectorizedBank
 from torchmm.provenance import fingerprints, module_state, tensor_versions
 from torchmm.run import Trajectory, per_step_models
 
-__all__ = ["SMOOTHERS", "after_last_datum", "checked_against_run", "padding_steps", "per_step_list",
+__all__ = ["SMOOTHERS", "after_last_datum", "singular_process_noise", "why_not_smoothable", "checked_against_run", "padding_steps", "per_step_list",
            "same_data", "same_models", "unobserved_tail"]
 
 
@@ -31,6 +32,38 @@ def per_step_list(value: Any, steps: int, name: str) -> list | None:
 #: the filters smooth dispatches on (a check against the run follows a check of the filter's type)
 #: the backward passes smooth runs, by the filter's ``smoother`` name (Filter.smoother)
 SMOOTHERS = ("modes", "particles", "unscented", "rts")
+
+#: the smoothers :func:`~torchmm.smooth` has, for the message that names them
+SUPPORTED = ("KalmanFilter (RTS), ExtendedKalmanFilter (extended RTS), UnscentedKalmanFilter (unscented RTS), "
+             "ParticleFilter (FFBSm), IMM / GPB1 / GPB2 over Gaussian mode filters (the two-filter and Kim's "
+             "smoother)")
+
+
+def why_not_smoothable(filter: Any) -> str | None:
+    """Why :func:`~torchmm.smooth` has no backward pass for ``filter``'s runs, or None where it has one: by
+    the filter's declared ``smoother`` and, for a multiple-model filter, its mode filters' (the multiple-model
+    smoothers run Kalman, extended or unscented modes) and its bank's kind (a vectorised or a list bank).
+    Reads no data: a study asks it before it filters (experiments/estimators.py), ``smooth`` at its entry."""
+    kind = getattr(filter, "smoother", None)
+    if kind not in SMOOTHERS:
+        return f"no smoother for {type(filter).__name__} yet; supported: {SUPPORTED}"
+    if kind != "modes":
+        return None
+    bank = getattr(filter, "bank", None)
+    odd = [m for m in bank.members() if getattr(m, "smoother", None) not in ("rts", "unscented")]
+    if odd:
+        return (f"the multiple-model smoothers need Gaussian mode filters (Kalman, extended or unscented); "
+                f"{type(filter).__name__}'s are {type(odd[0]).__name__}")
+    if not isinstance(bank, (VectorizedBank, ListBank)):
+        return f"the multiple-model smoothers run a vectorised or a list bank, not {type(bank).__name__}"
+    return None
+
+
+def singular_process_noise(motion: Any) -> bool:
+    """Whether ``motion``'s process noise ``Q`` is singular (rank-deficient, e.g. ``q G G^T``): FFBSm needs
+    the transition density, which such a ``Q`` has not (one host read)."""
+    eig = torch.linalg.eigvalsh(motion.noise_cov())
+    return bool((eig[..., 0] <= 1e-10 * eig[..., -1].abs()).any())
 
 
 def checked_against_run(filter: Any, trajectory: Trajectory, measurements: Any, controls: Any, motions: Any,

@@ -255,6 +255,25 @@ def test_the_information_form_smoother_from_config(tmp_path):
         validate(_compose(*base, "+estimators.KF-CV-q.smooth=kim"))
 
 
+def test_a_smoother_that_does_not_exist_is_refused_before_the_run():
+    """``smooth: true`` over filters torchmm.smooth has no backward pass for (an IMM over particle modes: the
+    default study with ``mode_filter=particle``; a variable-structure IMM; FFBSm over a singular process
+    noise) is one line naming the key at validation (they filtered every run, made the folder, then failed
+    with a traceback: torchmm.smooth_checks.why_not_smoothable, tests/smoothing/test_smoothable.py)."""
+    base = ("debug=compare", "figures=false", "scenario.steps=12", "mc_runs=2")
+    with pytest.raises(ConfigError, match=r"^estimators.IMM.smooth=True: the multiple-model smoothers need "
+                                          r"Gaussian mode filters .*IMM's are ParticleFilter"):
+        validate(_compose(*base, "mode_filter=particle"))
+    validate(_compose(*base, "mode_filter=particle", "estimators.IMM.smooth=false"))  # the way out it names
+    with pytest.raises(ConfigError, match=r"^estimators.VS.smooth=True: no smoother for VariableStructureIMM"):
+        validate(_compose(*base, "+estimator@estimators.VS=vsmm", "+estimators.VS.smooth=true"))
+    pf = ("+estimators.PF={_target_:experiments.estimators.custom,_partial_:true,filter:{_target_:torchmm."
+          "ParticleFilter,motion:${scenario.modes.0},measurement:${scenario.sensors.0},num_particles:50},"
+          "smooth:true}")
+    with pytest.raises(ConfigError, match=r"^estimators.PF.smooth=True: FFBSm .* positive-definite process noise"):
+        validate(_compose(*base, pf))
+
+
 def _irregular(tmp_path: Path, seed: int, T: int) -> tuple[list[float], torch.Tensor, Any]:
     """Two series of ``T`` irregularly stamped measurements (steps of 0.5, 1 or 2) in a CSV without truth:
     ``(dts, z (T, 2, 1), the study's config over it)``."""

@@ -6,6 +6,10 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
+from experiments.checks import ConfigError
+from experiments.config import validate
 from experiments.run import run_study
 from tests.experiments.test_studies import _compose_numbers as _compose
 
@@ -39,3 +43,14 @@ def test_smoothing_study_tables(tmp_path):
     speed = tables["parallel_speed"]
     assert [r[0] for r in speed["rows"]] == [16, 64]
     assert all(r[-1] < 1e-9 for r in speed["rows"])  # parallel == sequential smoothed means
+
+
+def test_an_estimator_without_a_smoother_is_refused_before_the_run():
+    """The study smooths every estimator: an IMM over particle modes was filtered on every run, its folder
+    made, and then failed with a traceback; now it is one line naming the estimator at validation
+    (torchmm.smooth_checks.why_not_smoothable, tests/smoothing/test_smoothable.py)."""
+    particle = "estimators.IMM.mode_filter={_target_:torchmm.ParticleFilter,_partial_:true,num_particles:50}"
+    with pytest.raises(ConfigError, match=r"^estimators.IMM=experiments.estimators.multiple_model: the smoothing "
+                                          r"study smooths every estimator: .*IMM's are ParticleFilter"):
+        validate(_compose("smoothing", "debug=smoothing", particle))
+    validate(_compose("smoothing", "debug=smoothing"))  # the study as shipped passes

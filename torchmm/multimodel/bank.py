@@ -1,11 +1,11 @@
 """Filter banks: ``M`` mode-conditioned filters applied along the last batch axis of a belief.
 
-Two kinds, one interface:
+Two kinds, one interface (and :class:`IndexedBank`, a selection of another bank's modes):
 
-* :class:`VectorizedBank` - one filter whose models carry a mode axis (``F: (M, n, n)`` ...);
-  a single call predicts/updates every mode of every run.
-* :class:`ListBank` - a list of arbitrary filters (e.g. a KF mode next to a UKF mode); one call
-  per *distinct filter*, results stacked on the mode axis.
+* :class:`VectorizedBank` - one filter whose models carry a mode axis (``F: (M, n, n)`` ...); a single
+  call predicts/updates every mode of every run.
+* :class:`ListBank` - a list of arbitrary filters (e.g. a KF mode next to a UKF mode); one call per
+  *distinct filter*, results stacked on the mode axis.
 
 :func:`make_bank` builds the right one, fusing a list of stackable filters (e.g. Kalman filters
 with linear models) into a vectorised bank automatically.
@@ -45,6 +45,10 @@ class FilterBank(nn.Module):
     def _first_filter(self) -> Filter | None:
         """A mode filter (the modes of a bank share their measurement); None for a bank without one."""
         return None
+
+    def members(self) -> list[Filter]:
+        """The bank's mode filters, each once (a vectorised bank's one filter; none for a bank without)."""
+        return []
 
     @property
     def measurement_rank(self) -> int:
@@ -128,6 +132,9 @@ class VectorizedBank(FilterBank):
 
     def _first_filter(self) -> Filter:
         return self.filter
+
+    def members(self) -> list[Filter]:
+        return [self.filter]
 
     @property
     def state_dim(self) -> int | None:
@@ -222,6 +229,9 @@ class ListBank(FilterBank):
 
     def _first_filter(self) -> Filter:
         return self.filters[0]
+
+    def members(self) -> list[Filter]:
+        return list(self.filters)
 
     @property
     def state_dim(self) -> int | None:
@@ -341,6 +351,9 @@ class IndexedBank(FilterBank):
 
     def _first_filter(self) -> Filter | None:
         return self.bank._first_filter()
+
+    def members(self) -> list[Filter]:
+        return self.bank.members()
 
     @property
     def state_dim(self) -> int | None:
@@ -472,9 +485,7 @@ def make_bank(bank, num_modes: int) -> FilterBank:
             except ValueError:
                 pass  # e.g. different state dims or options: fall back to a list bank
         return ListBank(bank)
-    raise TypeError(
-        f"bank: expected a Filter, a sequence of Filters or a FilterBank, got {type(bank).__name__}"
-    )
+    raise TypeError(f"bank: expected a Filter, a sequence of Filters or a FilterBank, got {type(bank).__name__}")
 
 
 def motion_reads_inputs(bank: FilterBank, motion=None) -> bool:
@@ -484,6 +495,5 @@ def motion_reads_inputs(bank: FilterBank, motion=None) -> bool:
     if motion is not None:
         motions = list(motion) if isinstance(motion, (list, tuple)) else [motion]
     else:
-        filters = getattr(bank, "filters", None) or [getattr(bank, "filter", None)]
-        motions = [getattr(f, "motion", None) for f in filters]
+        motions = [getattr(f, "motion", None) for f in bank.members()] or [None]
     return not all(m is not None and hasattr(m, "input_matrix") and m.input_matrix is None for m in motions)

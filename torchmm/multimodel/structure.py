@@ -245,6 +245,8 @@ class VariableStructureIMM(IMM):
         (torch.Size([4, 3]), torch.Size([4, 2]))
     """
 
+    smoother = None  # its beliefs carry the active set (ModelSetBelief): no smoother yet (torchmm.smooth says so)
+
     @entry_point(bank=Of((Filter, FilterBank, list, tuple),
                          what="a Filter, a list of filters or a FilterBank"),
                  transition=Stochastic(),
