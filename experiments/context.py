@@ -65,6 +65,9 @@ class StudyContext:
     bar_label: str = ""
     bar_position: int | None = None
     _checkpoint: dict = field(default_factory=dict)
+    #: the checkpoint's units the study asked for again (what a resumed run really kept; a resume with another
+    #: ``unit_runs`` asks for other keys and keeps none)
+    reused: set = field(default_factory=set)
     #: the checkpoint as written to checkpoint.json (arrays as references to units/*.npz)
     _checkpoint_refs: dict = field(default_factory=dict)
     _config_hash: str = ""
@@ -162,6 +165,7 @@ class StudyContext:
         """
         if key in self._checkpoint:
             log.info("resuming: unit %s already done", key)
+            self.reused.add(key)
             return self._checkpoint[key]
         value = jsonable(compute())
         self._store(key, value)
@@ -179,6 +183,7 @@ class StudyContext:
         if len(set(keys)) != len(keys):
             raise ValueError(f"map_units: duplicate unit keys {sorted({k for k in keys if keys.count(k) > 1})}")
         todo = [u for u in units if u.key not in self._checkpoint]
+        self.reused.update(k for k in keys if k in self._checkpoint)
         if todo:
             executor = self.executor
             jobs = [Job(self._config, str(self.output_dir), u) for u in todo]

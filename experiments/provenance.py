@@ -161,14 +161,15 @@ class Provenance:
         """After :meth:`finish`, for a run that continued a folder: ``previous`` is the provenance of the
         finished run the folder held (its results.json's; None if it held none: an interrupted run).
 
-        * a finished run of the same code (:func:`code_difference` of ``versions.torchmm`` and ``git``): its
-          provenance is kept (start, end, wall_seconds, command, ...: when and how its numbers were made) and
+        * a finished run of the same code (:func:`code_difference` of ``versions.torchmm`` and ``git``) of which
+          units were kept (``units_kept``: those the study read back from the checkpoint): its provenance is kept (start, end, wall_seconds, command, ...: when and how its numbers were made) and
           this process is appended to its ``resumes``: ``{start, end, wall_seconds, command, host, units_kept,
           kernels}``;
         * else this process's provenance, with ``resumed: {"units_kept"}`` where units came from the
           checkpoint (its start is this process's) and ``replaced``: the start, end, command and git of a
-          finished run of other code whose results this run recomputed."""
-        if previous is not None and previous.get("end") and _same_code(previous, self.data):
+          finished run whose results this run recomputed (other code, or none of its units asked for again: a
+          resume with another ``unit_runs``)."""
+        if previous is not None and previous.get("end") and units_kept and _same_code(previous, self.data):
             record = {k: self.data.get(k) for k in ("start", "end", "wall_seconds", "command", "host")}
             record.update(units_kept=int(units_kept), kernels=self.data.get("kernels", {}))
             self.data = {**previous, "resumes": [*previous.get("resumes", []), record]}

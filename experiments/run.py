@@ -136,7 +136,8 @@ def _run(cfg: DictConfig, ctx, study, config: dict, overrides: list[str] | None)
 
     ctx.bar_label, ctx.bar_position = _sweep_bars()
     if ctx._checkpoint:
-        print(f"torchmm-run: resuming: {len(ctx._checkpoint)} finished units kept from {ctx.output_dir}",
+        print(f"torchmm-run: resuming: {len(ctx._checkpoint)} finished units in the checkpoint of {ctx.output_dir} "
+              "(those the study asks for again are kept)",
               file=sys.stderr, flush=True)
     previous_threads = torch.get_num_threads()
     threads = cfg.get("threads")
@@ -152,14 +153,15 @@ def _run(cfg: DictConfig, ctx, study, config: dict, overrides: list[str] | None)
     provenance = Provenance()
     provenance.start(device=ctx.device, dtype=ctx.dtype, threads=torch.get_num_threads())
     # (read before the study rewrites results.json)
-    previous, units_kept = finished_provenance(ctx.output_dir), len(ctx._checkpoint)
+    previous = finished_provenance(ctx.output_dir)
     ctx.logger.text("config", "```yaml\n" + OmegaConf.to_yaml(config) + "```")  # the resolved config
     try:
         with kernels.counting() as runs:  # which kernel computed each run_filter call of this process
             study(ctx)
         provenance.finish()
+        units_kept = len(ctx.reused)  # (the checkpoint's units the study read back, not all it held)
         provenance.record_kernels(runs, executor=str((cfg.get("executor") or {}).get("kind", "local")),
-                                  resumed=len(ctx._checkpoint) > 0 and not runs)
+                                  resumed=units_kept > 0 and not runs)
         provenance.continue_from(previous, units_kept)  # a finished run continued: its provenance kept
         ctx.results.provenance = provenance.data
         ctx.results.save()

@@ -162,8 +162,10 @@ def run_filter(
             ``LinearMotion``'s ``input_matrix``; the Numba kernel: every run of at most 128 runs on
             the CPU, its first call in a process loading Numba, ~0.3 s; the extended and unscented banks': at
             least 300 runs x modes; IMM-TF's for 7 to 10 state components: 900; the choice depends
-            on the call only); True: always (a ``ValueError`` naming
-            ``fast_path`` gives every kernel's reason where none can); False: never (the steps).
+            on the call only); True: always - the kernel None would take, else one where it would not pay
+            (a ``ValueError`` naming ``fast_path`` gives every kernel's reason where none can; a kernel that
+            gives a run back as it runs, at a regularised or failed update, leaves it to the steps, as under
+            None: ``provenance.declined`` says so); False: never (the steps).
         compile: run the fast path's step under ``torch.compile`` (seconds of compiling, cached on
             disk, then fused kernels: docs/performance.md says when it pays); True needs a fast path.
             None (default): the process default of :func:`torchmm.runtime.compile_fast_paths` (off

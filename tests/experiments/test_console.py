@@ -153,7 +153,7 @@ def test_ctrl_c_in_a_sweep_says_how_to_continue_it_and_that_command_continues_it
     assert f"re-run the same command (it has hydra.sweep.dir={sweep})" in line and "resume=" not in line
     again = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=tmp_path, env=env)
     assert again.returncode == 0, again.stderr[-2000:]
-    assert "torchmm-run: resuming:" in again.stderr and "finished units kept" in again.stderr
+    assert "torchmm-run: resuming:" in again.stderr and "finished units in the checkpoint" in again.stderr
 
 
 def _run_cli(cwd, *args):
@@ -173,7 +173,7 @@ def test_resume_latest_continues_the_newest_run_of_the_same_config(tmp_path):
     assert again.returncode == 0, again.stderr[-2000:]
     assert f"resume=latest: continuing {folders[0]}" in again.stderr
     assert sorted((tmp_path / "outputs" / "imm_baseline").iterdir()) == folders
-    assert f"resuming: {len(kept)} finished units kept" in again.stderr
+    assert f"resuming: {len(kept)} finished units in the checkpoint" in again.stderr
     assert json.loads((folders[0] / "checkpoint.json").read_text())["units"] == kept
     # another seed: no earlier run of that config, so a fresh folder; the old one is left alone
     other = _run_cli(tmp_path, *base, "resume=latest", "seed=5")

@@ -138,7 +138,7 @@ def _kill_and_resume(tmp_path: Path, reference, *args: str, seed: str) -> None:
     assert again.returncode == 0, again.stderr[-3000:]
     assert "Traceback" not in again.stderr
     assert f"resume=latest: continuing {folder.resolve()}" in again.stderr
-    assert f"resuming: {kept} finished units kept" in again.stderr  # nothing that was finished is lost
+    assert f"resuming: {kept} finished units in the checkpoint" in again.stderr  # nothing that was finished is lost
     assert _tables(folder) == _tables(reference(0))  # the numbers of an uninterrupted run
     _assert_whole(folder)
 

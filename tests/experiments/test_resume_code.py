@@ -123,3 +123,28 @@ def test_continuing_a_finished_run_keeps_its_provenance_and_appends_the_resume(t
         assert len(p["resumes"]) == n and p["resumes"][-1]["units_kept"] == units
         assert p["resumes"][-1]["start"] >= first["provenance"]["end"]
     assert "Continued 2 time(s) since" in (tmp_path / "run" / "results.md").read_text()
+
+
+def test_a_resume_that_reuses_no_unit_is_recorded_as_a_new_run(tmp_path):
+    """Resuming a finished run with another ``unit_runs`` asks for other unit keys: nothing of the old run is
+    used, and every unit is computed again. Its results.json kept the old run's provenance (its command, its
+    kernels) with "16 units kept"; now the provenance is the new run's, ``replaced`` names the old one, and
+    a resume that does reuse units still counts those it read back."""
+    cfg = _compose("imm_baseline", *STUDY[1:], "mc_runs=7", "block_runs=2", "unit_runs=2")
+    run_study(cfg, tmp_path / "run")
+    first = json.loads((tmp_path / "run" / "results.json").read_text())
+    other = _compose("imm_baseline", *STUDY[1:], "mc_runs=7", "block_runs=2", "unit_runs=4")  # no key in common
+    run_study(other, tmp_path / "run")
+    again = json.loads((tmp_path / "run" / "results.json").read_text())
+    fresh_dir = tmp_path / "fresh"
+    run_study(other, fresh_dir)
+    fresh = json.loads((fresh_dir / "results.json").read_text())
+    assert again["tables"] == fresh["tables"]
+    p = again["provenance"]
+    assert "resumes" not in p and "resumed" not in p
+    assert p["replaced"]["start"] == first["provenance"]["start"] and p["start"] > first["provenance"]["end"]
+    assert p["kernels"] == fresh["provenance"]["kernels"]
+    run_study(other, tmp_path / "run")  # the same unit_runs again: every unit read back
+    last = json.loads((tmp_path / "run" / "results.json").read_text())["provenance"]
+    units = len(json.loads((tmp_path / "run" / "checkpoint.json").read_text())["units"])
+    assert last["start"] == p["start"] and last["resumes"][-1]["units_kept"] < units  # (the old keys stay listed)

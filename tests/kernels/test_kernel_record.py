@@ -38,6 +38,15 @@ def test_the_trajectory_names_its_kernel_and_the_reasons_of_the_others():
     big = run_filter(imm, start, torch.randn(5, 500, 1, generator=torch.Generator().manual_seed(1), dtype=D))
     assert big.provenance.kernel == "batch_last"
     assert big.provenance.declined.startswith("linear_gaussian: 500 runs: more than the serial loop's 128")
+    # fast_path=True takes that same kernel (it forced the serial loop past its 128 runs before); a Kalman
+    # filter of 500 runs, which no kernel takes unasked, is forced onto the serial loop
+    z = torch.randn(5, 500, 1, generator=torch.Generator().manual_seed(1), dtype=D)
+    forced = run_filter(imm, start, z, fast_path=True)
+    assert forced.provenance.kernel == "batch_last"
+    assert torch.equal(forced.log_likelihood, big.log_likelihood)
+    kf_start = GaussianBelief(torch.zeros(500, 1, dtype=D), torch.eye(1, dtype=D))
+    assert run_filter(kf, kf_start, z).provenance.kernel == kernels.EAGER
+    assert run_filter(kf, kf_start, z, fast_path=True).provenance.kernel == "linear_gaussian"
     assert "kernel='batch_last'" in repr(big.provenance)
 
 

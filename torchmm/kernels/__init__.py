@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, NamedTuple
 
 import torch
@@ -280,7 +280,14 @@ class Choice(NamedTuple):
 def choose(filter: Any, belief0: Any, measurements: Any, request: Request) -> Choice:
     """The first registered kernel that takes this run, in :func:`registered`'s order, with the reasons
     of those before it that declined (the record :func:`~torchmm.run_filter` keeps in the trajectory's
-    provenance: ``trajectory.provenance.kernel`` and ``.declined``)."""
+    provenance: ``trajectory.provenance.kernel`` and ``.declined``). A ``forced`` request (``fast_path=True``)
+    takes the kernel the same run would take unforced, where one would; only where none would are the
+    kernels asked again to run where they would not pay (the serial Numba loop past its ``MAX_RUNS``, a
+    batch below ``MIN_BATCH``)."""
+    if request.forced:
+        unforced = choose(filter, belief0, measurements, replace(request, forced=False))
+        if unforced.run is not None:
+            return unforced
     _load()
     reasons = []
     for kernel in _KERNELS:
