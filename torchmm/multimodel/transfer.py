@@ -139,8 +139,12 @@ def influence_value(estimate: Tensor, prior_mean: Tensor, z: Tensor, H: Tensor, 
     observed = torch.isfinite(z)
     cross = weight_cov @ H.mT  # W H^T
     x_star, _, _ = condition(prior_mean, weight_cov, z - matvec(H, prior_mean), H @ cross + R, cross)
-    shift = matvec(H, estimate - x_star).unsqueeze(-1)
-    value = -cholesky_solve(cholesky(R), shift).squeeze(-1)  # R^{-1} shift (regularised if R is singular)
+    shift = torch.where(observed, matvec(H, estimate - x_star), 0.0).unsqueeze(-1)
+    # R_oo^{-1} shift_o: R restricted to the observed components (the identity elsewhere, as condition does; a
+    # correlated R's full inverse would mix a missing row's shift into the observed ones)
+    pair = observed.unsqueeze(-1) & observed.unsqueeze(-2)
+    R_o = torch.where(pair, R, torch.eye(R.shape[-1], dtype=R.dtype, device=R.device))
+    value = -cholesky_solve(cholesky(R_o), shift).squeeze(-1)  # (regularised if R is singular)
     return torch.where(observed, value, 0.0)
 
 
