@@ -181,6 +181,10 @@ STUDY_CASES = [
      "tf_estimators.VSIMM.extra_model=7: must be a mode index"),
     (_study("imm_tf", "tf_estimators.IF-TF.gate.mode=5"),
      "tf_estimators.IF-TF.gate.mode=5: must be a mode index"),
+    (_study("imm_tf", "transfer.influence.weight=process"),  # (the scenario's Q = q G G^T is singular)
+     "tf_estimators.IF-TF.gate.weight=process: needs a non-singular process noise Q of the anchor mode 0"),
+    (_study("compare", "mode_filter=particle"),  # (the IMM has smooth: true)
+     "estimators.IMM.smooth=True: the multiple-model smoothers need Gaussian mode filters"),
     (_study("gimmaf", "gimmaf.segments=[[1,50,0.0,-0.01]]"),
      "gimmaf.segments[0]=[1, 50, 0.0, -0.01]: the process-noise variance -0.01 must be non-negative"),
     (_study("gimmaf", "gimmaf.segments=[[51,50,0.0,0.01]]"),

@@ -273,6 +273,22 @@ class TransferIMM(IMM):
         self.smoothing_reference = smoothing_reference
         self.mode_likelihood = mode_likelihood
         self.gate = gate
+        #: whether the process weight's Q was checked here (a Q that needs the state is checked at its step)
+        self._process_checked = gate is None or gate.weight != "process" or self._check_process_weight(gate)
+
+    def _check_process_weight(self, gate: InfluenceGate) -> bool:
+        """``weight='process'`` needs the anchor mode's ``Q`` positive definite: checked once here where ``Q``
+        needs no state (a ``ValueError`` naming ``gate``, before any run); False where it needs one."""
+        filter, index = bank_members(self.bank, type(self).__name__)[gate.mode]
+        motion, _ = member_models(filter, type(self).__name__)
+        try:
+            Q = mode_param(motion.noise_cov(), index)
+        except (TypeError, ValueError, RuntimeError, AttributeError):
+            return False
+        if bool((torch.linalg.cholesky_ex(Q)[1] != 0).any()):
+            raise ValueError(f"gate.weight: process needs a non-singular process noise Q of the anchor mode "
+                             f"{gate.mode} (this one is singular, e.g. q G G^T); use weight='prior'")
+        return True
 
     def update(self, belief, z, **kwargs):
         raise NotImplementedError("TransferIMM: the transfer needs the posterior at k-1; call step()")
@@ -349,7 +365,7 @@ class TransferIMM(IMM):
             W = anchor.cov
         else:
             W = mode_param(motion.noise_cov(at), index)
-            if bool((torch.linalg.cholesky_ex(W)[1] != 0).any()):
+            if not self._process_checked and bool((torch.linalg.cholesky_ex(W)[1] != 0).any()):  # (a state's Q)
                 raise ValueError("gate: weight='process' needs a non-singular process noise Q of the "
                                  f"anchor mode {j}; use weight='prior'")
         H = H.expand(*estimate.shape[:-1], *H.shape[-2:])
