@@ -178,6 +178,17 @@ def test_an_initial_belief_of_another_batch_than_batch_shape_is_refused():
         assert sim.states.shape == (4, 4, 2) and sim.initial_state.unique(dim=0).shape[0] == 4
 
 
+def test_a_sensor_of_another_dtype_is_named_as_such():
+    """A float32 sensor over float64 states read "the sensor's parameter batch () do not broadcast to the
+    states' batch (50, 3)" (a bank of sensors needs modes=): the dtype is named instead."""
+    sensor, states = PositionMeasurement(2, [0], 1.0, dtype=torch.float32), torch.zeros(5, 3, 2, dtype=torch.float64)
+    with pytest.raises(TypeError, match=r"^measurement: the sensor's \w+ is torch.float32, the states torch.float64"):
+        simulate_measurements(sensor, states)
+    with pytest.raises(TypeError, match=r"^target: the sensor's \w+ is torch.float32"):
+        simulate_multirate(sensor, sensor, states, period=2)
+    assert simulate_measurements(sensor.to(torch.float64), states).dtype == torch.float64
+
+
 def test_a_sensor_bank_is_checked_against_the_modes_and_the_batch():
     """Mode 2 of a 2-sensor bank read past the bank (no bounds check); a bank without ``modes`` paired
     runs with sensors (or failed deep inside). Both are refused naming the argument."""

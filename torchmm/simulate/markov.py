@@ -36,7 +36,7 @@ from torchmm.contract import (
 from torchmm.models.base import MeasurementModel, MotionModel
 from torchmm.models.streams import MultiRate
 from torchmm.models.transition import validate_transition
-from torchmm.validation import as_tensor, check_probabilities
+from torchmm.validation import as_tensor, check_probabilities, module_tensors
 
 __all__ = [
     "JumpSimulation",
@@ -319,6 +319,11 @@ def _sensor_outputs(measurement, x: Tensor, name: str, *, bank: bool = False) ->
     do not broadcast to ``*L`` (``bank``: a mode axis of any size may replace the last axis of ``*L``,
     which is 1)."""
     lead = tuple(x.shape[:-1])
+    tensors = module_tensors(measurement) if isinstance(measurement, nn.Module) else []
+    other = next(((key, t.dtype) for key, t in tensors if t.is_floating_point() and t.dtype != x.dtype), None)
+    if other is not None:  # (a RuntimeError below would read as a batch mismatch)
+        raise TypeError(f"{name}: the sensor's {other[0]} is {other[1]}, the states {x.dtype}; build both in "
+                        f"one dtype (e.g. sensor.to({x.dtype}))")
     try:
         predicted, cov = measurement(x), measurement.noise_cov(x)
         out = tuple(predicted.shape[:-1])
