@@ -181,8 +181,9 @@ def test_an_initial_belief_of_another_batch_than_batch_shape_is_refused():
 def test_a_sensor_of_another_dtype_is_named_as_such():
     """A float32 sensor over float64 states read "the sensor's parameter batch () do not broadcast to the
     states' batch (50, 3)" (a bank of sensors needs modes=): the dtype is named instead."""
-    sensor, states = PositionMeasurement(2, [0], 1.0, dtype=torch.float32), torch.zeros(5, 3, 2, dtype=torch.float64)
-    with pytest.raises(TypeError, match=r"^measurement: the sensor's \w+ is torch.float32, the states torch.float64"):
+    sensor = PositionMeasurement(2, [0], 1.0, dtype=torch.float32)
+    states = torch.zeros(5, 3, 2, dtype=torch.float64)
+    with pytest.raises(TypeError, match=r"^measurement: the sensor.s \w+ is torch.float32, the states"):
         simulate_measurements(sensor, states)
     with pytest.raises(TypeError, match=r"^target: the sensor's \w+ is torch.float32"):
         simulate_multirate(sensor, sensor, states, period=2)
