@@ -93,6 +93,9 @@ class ImmTf:
     @staticmethod
     def check(data: dict) -> None:
         known = list(data.get("tf_estimators") or {})
+        twice = sorted({n for n in data["estimator_names"] if list(data["estimator_names"]).count(n) > 1})
+        if twice:  # (a name given twice was one row of the tables: silently fewer estimators than listed)
+            raise ConfigError("estimator_names", data["estimator_names"], f"{', '.join(twice)} given twice")
         for name in data["estimator_names"]:
             if name not in known:
                 raise ConfigError("estimator_names", data["estimator_names"],

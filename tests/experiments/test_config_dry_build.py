@@ -181,6 +181,8 @@ STUDY_CASES = [
      "tf_estimators.VSIMM.extra_model=7: must be a mode index"),
     (_study("imm_tf", "tf_estimators.IF-TF.gate.mode=5"),
      "tf_estimators.IF-TF.gate.mode=5: must be a mode index"),
+    (_study("imm_tf", "estimator_names=[IMM,IMM-TF,IMM-TF]"),  # (before: one IMM-TF row, no word)
+     "estimator_names=['IMM', 'IMM-TF', 'IMM-TF']: IMM-TF given twice"),
     (_study("imm_tf", "transfer.influence.weight=process"),  # (the scenario's Q = q G G^T is singular)
      "tf_estimators.IF-TF.gate.weight=process: needs a non-singular process noise Q of the anchor mode 0"),
     (_study("compare", "mode_filter=particle"),  # (the IMM has smooth: true)
