@@ -14,8 +14,8 @@ import pytest
 import torch
 
 from tests.multimodel.test_batch_last import D, _random_imm, assert_same_trajectory, count_calls
-from tests.multimodel.test_transfer import paper_setup
-from torchmm import KalmanFilter, LinearMeasurement, LinearMotion, kernels, run_filter
+from tests.multimodel.test_transfer import assert_gated_steps, paper_setup
+from torchmm import IMM, KalmanFilter, LinearMeasurement, LinearMotion, kernels, run_filter
 from torchmm.multimodel import InfluenceGate, MultiRate, TransferIMM
 from torchmm.kernels.batch_last.imm import LARGE_BATCH, LARGE_STATE
 from torchmm.kernels.batch_last.transfer import TRANSFER, TRANSFER_LARGE, BatchLastTransfer
@@ -89,6 +89,31 @@ def test_the_paper_scenario_and_batch_shapes(transfer_steps):
         _close(run_filter(tf, belief0, z, record="estimate"),
                run_filter(tf, belief0, z, record="estimate", fast_path=False))
     assert len(transfer_steps) == 30 + 16
+
+
+@pytest.mark.parametrize("likelihood", ["prior", "corrected"])
+@pytest.mark.parametrize("n,m,mS,M", [(2, 1, 1, 3), (3, 2, 2, 2)])
+def test_a_rejected_transfer_is_the_imm_step(likelihood, n, m, mS, M, transfer_steps):
+    """The kernel's IF-TF: a gate that rejects every transfer gives the plain IMM (the corrected mode
+    likelihoods included), and a gate that rejects some gives, step by step, the IMM-TF step where the
+    transfer is used and the IMM step elsewhere (tests/multimodel/test_transfer.py)."""
+    tf, belief0, z = _random_transfer(n, m, mS, M, (6,), steps=14, seed=5 * n + M, mode_likelihood=likelihood)
+    never = TransferIMM(tf.bank.filter, tf.transition.matrix(), tf.source, mode_likelihood=likelihood,
+                        gate=InfluenceGate(threshold=-1e300))
+    got = run_filter(never, belief0, z)
+    assert len(transfer_steps) == 14 and not bool(got.extras["transfer_used"].any())
+    imm = IMM(tf.bank.filter, tf.transition.matrix())
+    want = run_filter(imm, belief0, z.target, fast_path=False)
+    for a, b in [(got.estimate().mean, want.estimate().mean), (got.log_likelihood, want.log_likelihood),
+                 (got.belief.mode_log_probs, want.belief.mode_log_probs)]:
+        torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-9)
+    gated = TransferIMM(tf.bank.filter, tf.transition.matrix(), tf.source, mode_likelihood=likelihood,
+                        gate=InfluenceGate())
+    got = run_filter(gated, belief0, z)
+    assert len(transfer_steps) == 28
+    used, present = got.extras["transfer_used"], got.extras["source_present"]
+    assert bool(used.any()) and bool((present & ~used).any())
+    assert_gated_steps(got, gated, belief0, z, tol=1e-9)
 
 
 def test_float32_and_gradients(transfer_steps):

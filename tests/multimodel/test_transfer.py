@@ -262,6 +262,47 @@ def test_if_tf_gate_rejects_an_uninformative_source():
     assert 0.2 < share < 0.9
 
 
+def assert_gated_steps(traj, gated, belief0, z, tol=1e-12):
+    """Each step of an IF-TF trajectory, from its own previous belief: where ``transfer_used`` the step of
+    the same IMM-TF without a gate, elsewhere the plain IMM step (a rejected transfer is no transfer)."""
+    imm, ungated = IMM(gated.bank, gated.transition), TransferIMM(
+        gated.bank, gated.transition, gated.source, smoothing_reference=gated.smoothing_reference,
+        mode_likelihood=gated.mode_likelihood)
+    previous = belief0
+    for k in range(z.target.shape[0]):
+        plain = imm.step(previous, z.target[k])
+        transfer = ungated.step(previous, MultiRate(z.target[k], z.source[k]))
+        used = traj.extras["transfer_used"][k]
+        want_mu = torch.where(used[:, None], transfer.belief.mode_log_probs, plain.belief.mode_log_probs)
+        close(traj.belief.mode_log_probs[k], want_mu, rtol=tol, atol=tol)
+        mine, tf_step, imm_step = traj.belief.components, transfer.belief.components, plain.belief.components
+        for got, a, b in [(mine.mean[k], tf_step.mean, imm_step.mean), (mine.cov[k], tf_step.cov, imm_step.cov),
+                          (traj.log_likelihood[k], transfer.log_likelihood, plain.log_likelihood)]:
+            close(got, torch.where(used.reshape(used.shape + (1,) * (a.dim() - 1)), a, b), rtol=tol, atol=tol)
+        previous = traj.belief[k]
+
+
+@pytest.mark.parametrize("likelihood", ["prior", "corrected"])
+def test_a_rejected_transfer_is_the_imm_step(likelihood):
+    """IF-TF's gate "filters out" a harmful source datum (paper 000, sec. 3; docs/reproduction.md): with
+    either mode likelihood a rejected step is the plain IMM step, its mode probabilities and likelihood
+    too."""
+    kf, P, source, prior, z, _ = paper_setup(runs=6, steps=25)
+    imm = IMM(kf, P)
+    imm_traj = run_filter(imm, imm.initial_belief(prior), z.target, fast_path=False)
+    never = TransferIMM(kf, P, source, mode_likelihood=likelihood, gate=InfluenceGate(threshold=-1e300))
+    traj = _run(never, prior, z, fast_path=False)
+    assert not bool(traj.extras["transfer_used"].any()) and bool(traj.extras["source_present"].any())
+    close(traj.estimate().mean, imm_traj.estimate().mean, rtol=1e-12, atol=1e-12)
+    close(traj.belief.mode_log_probs, imm_traj.belief.mode_log_probs, rtol=1e-12, atol=1e-12)
+    close(traj.log_likelihood, imm_traj.log_likelihood, rtol=1e-12, atol=1e-12)
+    gated = TransferIMM(kf, P, source, mode_likelihood=likelihood, gate=InfluenceGate())  # rejects some
+    traj = _run(gated, prior, z, fast_path=False)
+    present, used = traj.extras["source_present"], traj.extras["transfer_used"]
+    assert bool(used.any()) and bool((present & ~used).any())
+    assert_gated_steps(traj, gated, gated.initial_belief(prior), z)
+
+
 def test_influence_gate_validation():
     with pytest.raises(ValueError, match="weight"):
         InfluenceGate(weight="hessian")

@@ -13,7 +13,7 @@ Estimators (all modes and runs in one batched call per step, loops only over tim
   :func:`~torchmm.filters.rts_step`), transferred knowledge ``u_S = H_j F_j m_{k-1}^j``,
   correction (20)-(21), update (22)-(23), mode probabilities (24)-(26), output (27)-(28). With
   an :class:`InfluenceGate` it is **IF-TF**: the transfer is skipped where the influence value
-  (29)-(36) marks the source datum as harmful.
+  (29)-(36) marks the source datum as harmful (that step is then the IMM step).
 * the baselines IMM-SU, IMM-FU and VSIMM are in :mod:`.source_baselines` (re-exported here).
 
 The target-only baseline is the plain :class:`~torchmm.multimodel.IMM` on the ``target`` stream.
@@ -227,7 +227,9 @@ class TransferIMM(IMM):
        (``mode_likelihood="prior"``, as printed; ``"corrected"`` uses ``(x̄, P̄)`` instead);
        output (27)-(28) is ``belief.estimate()``.
 
-    Where ``gamma_k = 0`` (source NaN) the step *is* the IMM step (bit for bit).
+    Where ``gamma_k = 0`` (source NaN), and where the gate rejects the transfer, the step *is* the IMM
+    step (bit for bit; with ``"corrected"`` its mode probabilities and log-likelihood too:
+    docs/reproduction.md).
 
     Args:
         bank: one :class:`~torchmm.filters.KalmanFilter` (or EKF) whose models are mode banks.
@@ -343,6 +345,10 @@ class TransferIMM(IMM):
         tentative = ModeBelief(mode_log_probs, transferred.belief).estimate()  # (27) with transfer
         influence, harmful = self._influence(tentative.mean, prior.components, y)
         used = present & ~harmful if self.gate is not None else present
+        if self.mode_likelihood == "corrected" and self.gate is not None:
+            # a rejected transfer is no transfer: the plain IMM step's mode probabilities and likelihood
+            mode_log_probs = torch.where(used.unsqueeze(-1), mode_log_probs, plain.belief.mode_log_probs)
+            log_likelihood = torch.where(used, log_likelihood, plain.log_likelihood)
         components = where(used.unsqueeze(-1), transferred.belief, plain.belief.components)
         extras = dict(plain.extras)
         extras.update(mixed=mixed, influence=influence, transfer_used=used, source_present=present,

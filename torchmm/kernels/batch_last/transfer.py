@@ -18,8 +18,9 @@ at most six components through this kernel (:class:`BatchLastTransferKernel`, re
    source datum is present, the update (22)-(23) with ``y_k``;
 5. the mode probabilities from ``Lambda_j`` (or the corrected likelihoods); the influence value (33)
    at the transferred output, ``-(H (x - x*))^T R^{-1}`` with ``x*`` the gate mode's update of
-   ``N(x^-, W)`` with ``y_k``; IF-TF's gate; the components: the transferred ones where the transfer
-   is used, else the plain ones.
+   ``N(x^-, W)`` with ``y_k``; IF-TF's gate; the components (and, with the corrected likelihoods, the
+   mode probabilities and the log-likelihood): the transferred ones where the transfer is used, else
+   the plain IMM step's.
 
 Every ``extras`` entry of the eager step is returned, in its order (the influence is computed only
 where a gate or the extras need it). Equal to the eager steps to rounding
@@ -143,13 +144,19 @@ class BatchLastTransfer(Frame):
         xc, Cc, _, _, _ = bank.update(xp, Pp, uzc, uob, uob * -0.5, cbar, False)
         xt, Ct, llt, _, _ = bank.update(xc, Cc, zc, ob, nhob, cbar, False)
         # 5. the mode probabilities, the influence (33) and the gate, the components
-        log_cbar, log_mu, total = mode_update(torch.where(present, llt, ll) if self.corrected else ll, cbar, anyob,
-                                              self.lowest, self.zero, self.M, self.tiny_t)
+        update = lambda lik: mode_update(lik, cbar, anyob, self.lowest, self.zero, self.M,  # noqa: E731
+                                         self.tiny_t)
+        log_cbar, log_mu, total = update(torch.where(present, llt, ll) if self.corrected else ll)
         mu = log_mu.exp()
         used, diagnostics = present, None
         if self.gate is not None or extras:
             value, used = self._influence(xt, Ct, mu, xp, Pp, xu, zc, ob, zraw, present)
             diagnostics = (ll, singular, xs, Cm, value, smoothed, self._smoothed_cov(rC, gain_t, Ds, Cp), u_s)
+        if self.corrected and self.gate is not None:
+            # a rejected transfer is no transfer: the plain IMM step's mode probabilities and likelihood
+            _, plain_log_mu, plain_total = update(ll)
+            log_mu, total = torch.where(used, log_mu, plain_log_mu), torch.where(used, total, plain_total)
+            mu = log_mu.exp()
         xn = [torch.where(used, xt[a], xu[a]) for a in range(n)]
         Cn = [[torch.where(used, Ct[a][c], Cu[a][c]) if c >= a else None for c in range(n)] for a in range(n)]
         X_out = P_out = Xp = Ppt = nu_out = S_out = None
