@@ -537,3 +537,52 @@ def test_local_unscented_filters_fused_by_covariance_intersection():
     assert math.isfinite(float(nees))
     with pytest.raises(ValueError, match="cross_covs"):
         fuse_tracks(tracks, torch.zeros(30, 200, 2, 2, 4, 4, **kw), method="covariance_intersection")
+
+
+# ---------------------------------------------------------------------------------------------
+# matrix weights on badly scaled state components (docs/reproduction-002.md, "fusion with singular P")
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("small", [1e-8, 1e-14, 1e-16])
+def test_matrix_weights_match_45_when_components_differ_in_scale(small):
+    """Two uncorrelated sensors, ``P_11 = diag(1, s)``, ``P_22 = diag(1, 2 s)``: (45) in float64 NumPy
+    gives component 2 the weights ``(2/3, 1/3)`` whatever ``s``; a cutoff relative to the largest
+    entry only used to truncate the small component (0.5 / 0.5 at ``s = 1e-16``)."""
+    P11, P22 = np.diag([1.0, small]), np.diag([1.0, 2 * small])
+    Sigma = np.block([[P11, np.zeros((2, 2))], [np.zeros((2, 2)), P22]])
+    F = np.vstack([np.eye(2), np.eye(2)])
+    Po_ref = np.linalg.inv(F.T @ np.linalg.solve(Sigma, F))  # (45)
+    A_ref = Po_ref @ F.T @ np.linalg.inv(Sigma)  # (2, 4) = [A_1, A_2]
+    P = torch.zeros(2, 2, 2, 2, dtype=torch.float64)
+    P[0, 0], P[1, 1] = torch.from_numpy(P11), torch.from_numpy(P22)
+    A, Po = fusion_weights(P, "matrix")
+    np.testing.assert_allclose(torch.cat([A[0], A[1]], -1).numpy(), A_ref, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(Po.diagonal().numpy(), np.diag(Po_ref), rtol=1e-12)
+
+
+def test_matrix_fusion_beats_diagonal_per_component_on_a_badly_scaled_state():
+    """Correlated sensors whose state components have variances ``1``, ``1e-8``, ``1e-16``: the
+    matrix-weighted variance (45) is at most the diagonal-weighted one (46) in every component, and
+    ``P_o <= P_i`` in the matrix sense, both relative to each component's scale. Reference: the
+    constraint-exact optimum ``x^_L + sum_{i<L} A_i (x^_i - x^_L)`` in float64 NumPy."""
+    L, n = 3, 3
+    scale = torch.tensor([1.0, 1e-4, 1e-8], dtype=torch.float64)
+    P0 = _random_joint(L, n, 11).double()
+    P = P0 * scale[:, None] * scale  # D P_ij D, D = diag(scale)
+    A, Po = fusion_weights(P, "matrix")
+    _, Pd = fusion_weights(P, "diagonal")
+    Sigma = P.transpose(-3, -2).reshape(L * n, L * n).numpy()
+    Tm = np.hstack([np.eye((L - 1) * n), -np.tile(np.eye(n), (L - 1, 1))])  # x^_i - x^_L, i < L
+    eL = np.hstack([np.zeros((n, (L - 1) * n)), np.eye(n)])
+    CD, CLD = Tm @ Sigma @ Tm.T, eL @ Sigma @ Tm.T
+    d = np.sqrt(np.diag(CD))
+    W = eL - np.linalg.solve(CD / np.outer(d, d), (CLD / d).T).T / d @ Tm
+    Po_ref = W @ Sigma @ W.T
+    var, var_d, var_ref = Po.diagonal().numpy(), Pd.diagonal().numpy(), np.diag(Po_ref)
+    np.testing.assert_allclose(var, var_ref, rtol=1e-9)
+    assert (var <= var_d * (1 + 1e-9)).all(), (var / var_d)
+    assert (var_d / var > 1 + 1e-3).any()  # the case separates the two methods
+    unit = 1 / scale[:, None] / scale
+    idx = torch.arange(L)
+    assert bool((torch.linalg.eigvalsh((P[idx, idx] - Po) * unit) > -1e-10).all())

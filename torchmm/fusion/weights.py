@@ -11,6 +11,10 @@ estimators, the fused estimate is ``x^_o = sum_i A_i x^_i`` with ``sum_i A_i = I
 * **scalar** weights (47): ``a = P_tr^{-1} e / (e^T P_tr^{-1} e)``, ``P_tr = [tr P_ij]``,
   ``P_o = sum_ij a_i a_j P_ij``.
 
+The matrix weights scale each state component ``c`` by ``s_c = sqrt(max_i [P_ii]_cc)`` before the
+solve and map the weights back (``A_i = S A'_i S^{-1}``, ``S = diag(s)``, which keeps ``sum A_i = I``),
+so that components of very different scale (m^2 next to rad^2/s^2) are weighted as (45) weights them.
+
 Everything is batched over leading dims (time steps); linear systems are solved, not inverted.
 """
 
@@ -110,6 +114,18 @@ def _stack_blocks(P: Tensor) -> Tensor:
     return P.transpose(-3, -2).reshape(*b, L * n, L * n)
 
 
+def _component_scales(P: Tensor) -> Tensor:
+    """``s_c = sqrt(max_i |[P_ii]_cc|)`` per state component (``1`` where every sensor's variance
+    is ``0`` or below the dtype's smallest normal number): the symmetric scaling that gives each
+    component unit largest local variance.
+
+    Shapes:
+        P: ``(*B, L, L, n, n)`` -> ``(*B, n)``
+    """
+    var = P.diagonal(dim1=-4, dim2=-3).diagonal(dim1=-3, dim2=-2).abs().amax(-2)  # (*B, n)
+    return torch.where(var > torch.finfo(P.dtype).tiny, var, torch.ones_like(var)).sqrt()
+
+
 def constrained_weights(P: Tensor, F: Tensor) -> Tensor:
     r"""``argmin_W tr(W^T P W)`` subject to ``F^T W = I``: the KKT system
     ``[[P, F], [F^T, 0]] [W; Lambda] = [0; I]``, solved with a symmetric pseudo-inverse.
@@ -138,7 +154,11 @@ def fusion_weights(P: Tensor, method: str = "matrix") -> tuple[Tensor, Tensor]:
     r"""Fusion weights and fused error covariance from the joint covariance of the local errors.
 
     The fused covariance is ``P_o = sum_ij A_i P_ij A_j^T``, which equals ``(F^T P^{-1} F)^{-1}``
-    of (45) for the matrix weights.
+    of (45) for the matrix weights. The matrix weights are computed on the state scaled to unit
+    largest local variance per component and mapped back, so a badly scaled state (components
+    whose variances differ by many orders) still gets the weights of (45); for singular ``P`` they
+    are the minimum-norm optimal weights in those scaled coordinates (docs/reproduction-002.md,
+    "fusion with singular P").
 
     Shapes:
         P: ``(*B, L, L, n, n)`` -> weights ``(*B, L, n, n)`` (``A_i``; diagonal for ``diagonal``,
@@ -174,9 +194,12 @@ def _fusion_weights(P: Tensor, method: str) -> tuple[Tensor, Tensor]:
     kw = dict(dtype=P.dtype, device=P.device)
     e = torch.ones(L, 1, **kw)
     if method == "matrix":
+        s = _component_scales(P)  # (*B, n)
+        Ps = P / (s[..., None, None, :, None] * s[..., None, None, None, :])
         F = torch.eye(n, **kw).repeat(L, 1)  # (L n, n)
-        W = constrained_weights(_stack_blocks(P), F)  # (*B, L n, n) = A^T
-        weights = W.mT.unflatten(-1, (L, n)).transpose(-3, -2)  # (*B, L, n, n)
+        W = constrained_weights(_stack_blocks(Ps), F)  # (*B, L n, n) = A'^T in the scaled coordinates
+        scaled = W.mT.unflatten(-1, (L, n)).transpose(-3, -2)  # (*B, L, n, n): A'_i = S^-1 A_i S
+        weights = s[..., None, :, None] * scaled / s[..., None, None, :]  # A_i = S A'_i S^-1
     elif method == "diagonal":
         Pc = P.diagonal(dim1=-2, dim2=-1).movedim(-1, -3)  # (*B, n, L, L): [P_ij]_cc
         a = constrained_weights(Pc, e).squeeze(-1)  # (*B, n, L)
