@@ -144,8 +144,9 @@ class BatchLastTransfer(Frame):
         xc, Cc, _, _, _ = bank.update(xp, Pp, uzc, uob, uob * -0.5, cbar, False)
         xt, Ct, llt, _, _ = bank.update(xc, Cc, zc, ob, nhob, cbar, False)
         # 5. the mode probabilities, the influence (33) and the gate, the components
-        update = lambda lik: mode_update(lik, cbar, anyob, self.lowest, self.zero, self.M,  # noqa: E731
-                                         self.tiny_t)
+        def update(lik):  # (the plain likelihoods' too, where a gate rejects a corrected transfer)
+            return mode_update(lik, cbar, anyob, self.lowest, self.zero, self.M, self.tiny_t)
+
         log_cbar, log_mu, total = update(torch.where(present, llt, ll) if self.corrected else ll)
         mu = log_mu.exp()
         used, diagnostics = present, None
