@@ -34,7 +34,7 @@ from experiments.arrays import add_runs, join_runs, per_run
 from experiments.uncertainty import armse_se, mean_se_per_step, rmse_se_per_step
 
 __all__ = ["Estimator", "Evaluation", "build_mode_filter", "custom", "evaluate", "evaluate_runs", "gpb1", "gpb2", "imm",
-           "kalman", "multiple_model", "reduce_runs", "starter"]
+           "kalman", "mode_model", "multiple_model", "reduce_runs", "starter"]
 
 
 @dataclass
@@ -158,22 +158,28 @@ def gpb2(scenario, *, name: str = "GPB2", transition=None, joseph: bool = False,
     return _multiple_model(GPB2, scenario, name, transition, joseph, mode_filter)
 
 
+def mode_model(motion, mode: int):
+    """Mode ``mode``'s motion model of a scenario's ``motion``: a list (one model per mode), one model
+    without a mode axis (a one-mode scenario: it is mode 0's), or a bank (``param_batch_shape (k,)``:
+    its ``select_mode``). A mode the scenario does not have is a ``ValueError`` naming ``mode``."""
+    if isinstance(motion, (list, tuple)):
+        if not 0 <= mode < len(motion):
+            raise ValueError(f"mode: {mode} is not one of the scenario's {len(motion)} modes")
+        return motion[mode]
+    if not tuple(getattr(motion, "param_batch_shape", ()) or ()):  # one mode, not a bank
+        if mode != 0:
+            raise ValueError(f"mode: {mode} is not a mode of a one-mode scenario")
+        return motion
+    count = int(motion.param_batch_shape[0])
+    if not 0 <= mode < count:
+        raise ValueError(f"mode: {mode} is not one of the scenario's {count} modes (0 to {count - 1})")
+    return motion.select_mode(mode)
+
+
 def kalman(scenario, *, name: str = "KF", mode: int = 0, joseph: bool = False, transition=None,
            mode_filter=None, smooth: bool | str = False) -> Estimator:
     """A single filter (``mode_filter``; default Kalman) on mode ``mode``'s model (e.g. the CV model)."""
-    if isinstance(scenario.motion, (list, tuple)):
-        if not 0 <= mode < len(scenario.motion):
-            raise ValueError(f"mode: {mode} is not one of the scenario's {len(scenario.motion)} modes")
-        model = scenario.motion[mode]
-    elif not tuple(getattr(scenario.motion, "param_batch_shape", ()) or ()):  # one mode, not a bank
-        if mode != 0:
-            raise ValueError(f"mode: {mode} is not a mode of a one-mode scenario")
-        model = scenario.motion
-    else:
-        count = int(scenario.motion.param_batch_shape[0])
-        if not 0 <= mode < count:
-            raise ValueError(f"mode: {mode} is not one of the scenario's {count} modes (0 to {count - 1})")
-        model = scenario.motion.select_mode(mode)
+    model = mode_model(scenario.motion, mode)
     sensor = scenario.measurement[mode] if isinstance(scenario.measurement, (list, tuple)) else scenario.measurement
     filt = build_mode_filter(mode_filter, model, sensor, joseph=joseph)
     return Estimator(name, filt, starter(filt), False, smooth=smooth, mode=mode)

@@ -38,6 +38,7 @@ from hydra.utils import instantiate
 from torch import Tensor
 
 from experiments import learning, learning_em, learning_gradient
+from experiments.estimators import mode_model
 from experiments.executors import Unit
 from experiments.harness import StudyContext, per_run
 from experiments.scenarios_system import Concatenated, default_dtype
@@ -288,11 +289,8 @@ def _motions(est, scenario):
     if est.mode is None:
         return None
 
-    def pick(m):
-        if m is None:
-            return None
-        return m[est.mode] if isinstance(m, list) else m.select_mode(est.mode)
-    return [pick(m) for m in scenario.motions]
+    # (est.mode was checked against the scenario's modes when the estimator was built: estimators.kalman)
+    return [None if m is None else mode_model(m, est.mode) for m in scenario.motions]
 
 
 def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:

@@ -25,23 +25,28 @@ from tests.experiments.test_compare_study import PRIOR_COV, PRIOR_MEAN, _data_co
 Q_CV, R_Y = 0.05, 4.0  # test_compare_study's mode 0 (a 1-D constant velocity, discrete noise) and its sensor
 
 
-def _kf_loglik(z: np.ndarray, dts: list[float]) -> float:
+def _kf(z: np.ndarray, dts: list[float]) -> tuple[float, np.ndarray]:
     """A float64 NumPy Kalman filter of mode 0 over ``z (T,)`` (NaN: missing), step ``k`` predicting over
-    ``dts[k]``: its log-likelihood."""
+    ``dts[k]``: ``(log-likelihood, filtered means (T, 2))``."""
     x, P, ll = np.array(PRIOR_MEAN, float), np.array(PRIOR_COV, float), 0.0
     H = np.array([[1.0, 0.0]])
+    means = np.zeros((len(z), 2))
     for k, y in enumerate(z):
         dt = dts[k]
         F, G = np.array([[1.0, dt], [0.0, 1.0]]), np.array([[dt * dt / 2], [dt]])
         x, P = F @ x, F @ P @ F.T + Q_CV * G @ G.T
-        if math.isnan(y):
-            continue
-        S = float((H @ P @ H.T)[0, 0]) + R_Y
-        nu = y - float((H @ x)[0])
-        ll += -0.5 * (nu * nu / S + math.log(2 * math.pi * S))
-        K = P @ H.T / S
-        x, P = x + (K * nu).ravel(), P - K @ H @ P
-    return ll
+        if not math.isnan(y):
+            S = float((H @ P @ H.T)[0, 0]) + R_Y
+            nu = y - float((H @ x)[0])
+            ll += -0.5 * (nu * nu / S + math.log(2 * math.pi * S))
+            K = P @ H.T / S
+            x, P = x + (K * nu).ravel(), P - K @ H @ P
+        means[k] = x
+    return ll, means
+
+
+def _kf_loglik(z: np.ndarray, dts: list[float]) -> float:
+    return _kf(z, dts)[0]
 
 
 def _track(T: int, seed: int, dt: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
@@ -56,9 +61,12 @@ def _track(T: int, seed: int, dt: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _study(tmp_path: Path, path: Path, tag: str, *, time="t", series="series", truth=("pos", "vel"),
-           metrics="[loglik,rmse,nees]", learn=None) -> dict:
+           metrics="[loglik,rmse,nees]", learn=None, one_mode=False) -> dict:
     cfg = _data_config(path, "figures=false", f"metrics={metrics}")
     with open_dict(cfg):
+        if one_mode:  # mode 0 alone: its model has no mode axis
+            cfg.scenario.modes, cfg.scenario.labels = [cfg.scenario.modes[0]], ["a=0"]
+            cfg.scenario.transition = [[1.0]]
         cfg.scenario.data = {"path": str(path), "measurements": ["y"], "time": time, "series": series,
                              "truth": None if truth is None else list(truth)}
         cfg.estimators = {"KF": {"_target_": "experiments.estimators.kalman", "_partial_": True, "mode": 0}}
@@ -275,3 +283,47 @@ def test_arrays_of_other_shapes_say_what_is_allowed(tmp_path):
     with pytest.raises(DataFileError, match=r"'u', entry \(1, 0\): an input is missing"):
         np.savez(tmp_path / "u.npz", y=np.array([1.0, np.nan, 3.0]), u=np.array([1.0, np.nan, 1.0]))
         read_series(tmp_path / "u.npz", measurements=["y"], inputs=["u"])
+
+
+# -- 8. one mode with irregular time stamps ------------------------------------------------------------------
+def test_one_mode_with_irregular_stamps_runs_its_kalman_filter_over_each_step(tmp_path):
+    """A one-mode scenario's per-step models have no mode axis (the model is mode 0's): ``kalman`` ran
+    ``select_mode`` on them (before: a ValueError traceback after the run folder existed). Each series'
+    log-likelihood and RMSEs equal the NumPy filter's with the per-step dt (one run: a step's RMSE is its
+    absolute error)."""
+    stamps = [float(k) for k in range(8)] + [7.5] + [float(k) for k in range(8, 15)]  # one half step
+    dts = [1.0] + list(np.diff(stamps))
+    za, xa = _track(16, 12)
+    zb, xb = _track(11, 13)
+    za[3] = np.nan
+    path = _stamped(tmp_path / "irr.csv", {"A": (stamps, za, xa), "B": (stamps[:11], zb, xb)})
+    one = _study(tmp_path, path, "one", one_mode=True)
+    for name, z, x in (("A", za, xa), ("B", zb, xb)):
+        row = _series(one)[("KF", name)]
+        ll, means = _kf(z, dts[:len(z)])
+        assert row["steps"] == len(z) and row["loglik"] == pytest.approx(ll, rel=1e-10)
+        assert row["rmse_position"] == pytest.approx(np.abs(means[:, 0] - x[:, 0]).mean(), rel=1e-10)
+        assert row["rmse_velocity"] == pytest.approx(np.abs(means[:, 1] - x[:, 1]).mean(), rel=1e-10)
+
+
+def test_a_mode_a_one_mode_scenario_lacks_is_refused_in_the_precheck(tmp_path, capsys):
+    """``kalman``'s ``mode: 1`` on a one-mode scenario with irregular stamps: one line naming the key, exit 2,
+    no folder."""
+    za, xa = _track(6, 14)
+    path = _stamped(tmp_path / "irr.csv", {"A": ([0.0, 1.0, 1.5, 2.0, 3.0, 4.0], za, xa)})
+    argv = ["experiment=compare", "logger=none", "~estimators.IMM", "~estimators.GPB2", "~estimators.KF-CV-q",
+            "scenario.modes=[{_target_:torchmm.ConstantVelocity,ndim:1,dt:1.0,q:0.05}]",
+            "scenario.labels=[CV]",
+            "scenario.sensors=[{_target_:torchmm.PositionMeasurement,state_dim:2,indices:[0],R:4.0}]",
+            "scenario.transition=[[1.0]]", "scenario.initial_mode_probs=[1.0]",
+            "scenario.initial_mean=[0.0,1.0]",
+            "scenario.initial_cov=[[4.0,0.0],[0.0,1.0]]", "scenario.groups={position:[0],velocity:[1]}",
+            f"scenario.data={{path:{path},measurements:[y],truth:[pos,vel],series:series,time:t}}",
+            "estimators.KF-CV.mode=1", f"hydra.run.dir={tmp_path / 'run'}"]
+    with pytest.raises(SystemExit) as stop:
+        precheck(argv, CONFIG_DIR)
+    assert stop.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith("torchmm-run: error: estimators.KF-CV.mode=1: "), err
+    assert not (tmp_path / "run").exists()
+
