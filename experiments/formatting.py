@@ -14,10 +14,12 @@ def is_number(value: Any) -> bool:
 
 
 def format_value(value: Any) -> str:
-    """A table cell: floats to 4 decimals (or 4 significant digits in e-notation), None as empty."""
+    """A table cell: floats to 4 decimals (or 4 significant digits in e-notation); None and NaN (a value
+    that could not be computed: results.json's null, named in "not computed", docs/studies.md) as empty,
+    never as a number."""
     if isinstance(value, float):
         if value != value:
-            return "nan"
+            return ""
         if value == 0 or 1e-3 <= abs(value) < 1e5:
             return f"{value:.4f}"
         return f"{value:.3e}"

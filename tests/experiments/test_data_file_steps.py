@@ -327,3 +327,33 @@ def test_a_mode_a_one_mode_scenario_lacks_is_refused_in_the_precheck(tmp_path, c
     assert len(err.splitlines()) == 1 and err.startswith("torchmm-run: error: estimators.KF-CV.mode=1: "), err
     assert not (tmp_path / "run").exists()
 
+
+# -- 9. a value that cannot be computed is an empty cell, never "nan" ----------------------------------------
+def _cells(text: str, latex: bool) -> list[str]:
+    """Every table cell of results.md (rows ``| ... |``) or of results.tex (rows ``a & b \\\\``)."""
+    if latex:
+        rows = [line.removesuffix("\\\\") for line in text.splitlines()
+                if line.endswith("\\\\") and "&" in line]
+        return [cell.strip() for row in rows for cell in row.split("&")]
+    rows = [line.strip().strip("|") for line in text.splitlines() if line.startswith("|")]
+    return [cell.strip() for row in rows for cell in row.split("|")]
+
+
+def test_one_series_standard_errors_are_empty_cells_not_nan(tmp_path):
+    """With one series no standard error exists: results.json has null and names it in "dropped", and
+    results.md / results.tex leave the cell empty (before: ``nan`` in every ``_se`` column)."""
+    za, xa = _track(12, 15)
+    res = _study(tmp_path, _stamped(tmp_path / "a.csv", {"A": ([float(k) for k in range(12)], za, xa)}), "a")
+    summary = res["tables"]["summary"]
+    row = dict(zip(summary["columns"], summary["rows"][0]))
+    assert row["rmse_position_se"] is None and row["loglik_se"] is None
+    assert "standard errors (_se) and paired" in res["dropped"]
+    md = (tmp_path / "a" / "results.md").read_text()
+    tex = (tmp_path / "a" / "results.tex").read_text()
+    for cells in (_cells(md, latex=False), _cells(tex, latex=True)):
+        assert cells and not [c for c in cells if c.lower() in ("nan", "-nan", "$-$nan")]
+    lines = md.splitlines()
+    at = lines.index("| " + " | ".join(summary["columns"]) + " |")  # the summary: header, rule, its one row
+    cells = dict(zip(summary["columns"], (c.strip() for c in lines[at + 2].strip("|").split("|"))))
+    assert cells["rmse_position_se"] == cells["loglik_se"] == ""
+    assert float(cells["rmse_position"]) == pytest.approx(row["rmse_position"], abs=1e-4)
