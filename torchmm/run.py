@@ -405,8 +405,9 @@ def _report_flags(extras: dict | None) -> None:
         "degenerate": "%d of %d particle updates had every weight vanish; their prior weights were kept "
                       "(extras['degenerate'], docs/robustness.md)",
         "failed": "%d of %d updates failed: a datum was present but the prediction (or its covariance) "
-                  "was NaN, e.g. a model whose parameters went NaN; their log-likelihood is NaN, not the 0 "
-                  "of missing data (extras['failed'], docs/robustness.md)",
+                  "was NaN, e.g. a model whose parameters went NaN (for particle filters: a NaN or +inf "
+                  "particle likelihood, or a state-dependent R(x) not positive definite); their "
+                  "log-likelihood is NaN, not the 0 of missing data (extras['failed'], docs/robustness.md)",
         "empty_set": "%d of %d steps of a variable-structure IMM got an empty model set from its policy; "
                      "their log-likelihood is NaN (extras['empty_set'], docs/robustness.md)",
     }

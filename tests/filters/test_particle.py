@@ -369,3 +369,31 @@ def test_repeat_rows_and_affine_rows_are_exact(num, d):
     expected = torch.baddbmm(offset.reshape(6, 1, d).expand(6, num, d), x.reshape(6, num, 3), A.mT.expand(6, 3, d))
     got = _affine_rows(x, A, offset, (2, 3, num, d))
     assert got.shape == (2, 3, num, d) and torch.equal(got, expected.view(2, 3, num, d))
+
+
+def test_linear_model_subclasses_with_their_own_forward_are_called():
+    """A LinearMotion / LinearMeasurement subclass that overrides ``forward`` is called by the particle
+    operations, not replaced by its matrices (before: ``F x`` and ``H x`` were used, the override ignored
+    silently; torchmm.models.linear.plain_linear)."""
+    from torchmm.filters.particle_ops import particle_log_likelihood, propagate_particles
+    from torchmm.models.linear import LinearMeasurement, LinearMotion
+
+    class Shifted(LinearMotion):
+        def forward(self, x, *, u=None):
+            return super().forward(x, u=u) + 1.0
+
+    class Offset(LinearMeasurement):
+        def forward(self, x):
+            return super().forward(x) + 2.0
+
+    F, Q = torch.tensor([[1.0, 0.5], [0.0, 1.0]]), 0.1 * torch.eye(2)
+    particles = torch.randn(3, 20, 2, generator=torch.Generator().manual_seed(0))
+    plain = propagate_particles(LinearMotion(F, Q), particles, generator=torch.Generator().manual_seed(1))
+    shifted = propagate_particles(Shifted(F, Q), particles, generator=torch.Generator().manual_seed(1))
+    torch.testing.assert_close(shifted, plain + 1.0)
+    H, R = torch.tensor([[1.0, 0.0]]), torch.eye(1)
+    z = torch.randn(3, 1, generator=torch.Generator().manual_seed(2))
+    for need in (False, True):
+        want = particle_log_likelihood(LinearMeasurement(H, R), z - 2.0, particles, False, need_predicted=need)[0]
+        got = particle_log_likelihood(Offset(H, R), z, particles, False, need_predicted=need)[0]
+        torch.testing.assert_close(got, want)

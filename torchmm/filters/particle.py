@@ -16,9 +16,15 @@ Random numbers come from the ``generator`` argument of each call (``initial_beli
 the default of calls that pass none.
 
 All-underflow guard: if every weight of a batch element is zero (``-inf`` log-weight, e.g. a
-measurement impossible under every particle, or NaN likelihoods), that element keeps its prior
+measurement so far out that every particle's likelihood underflows), that element keeps its prior
 weights, the step reports ``extras["degenerate"] = True`` and ``log_likelihood = -inf`` for it,
 :func:`~torchmm.run_filter` logs one warning per run with the count, and no NaN is produced.
+
+A model failure is not an underflow: where a datum is present and a particle's likelihood is NaN or
+``+inf`` (non-finite particles, a NaN ``h(x)``, a state-dependent ``R(x)`` that is not positive
+definite, a user likelihood with a point mass), the step reports ``extras["failed"] = True`` and a
+NaN ``log_likelihood`` for that element, the weights drop those particles (the prior weights are kept
+where none is left) and ``extras["degenerate"]`` is not set (docs/robustness.md).
 """
 
 from __future__ import annotations
@@ -56,6 +62,7 @@ from torchmm.filters.particle_ops import (  # (re-exported: the operations the p
     propagate_particles,
     sample_gaussian,
     standard_normal,
+    usable_loglik,
     whitening,
 )
 from torchmm.validation import as_float, as_int, check_measurement
@@ -104,8 +111,8 @@ class ParticleFilter(Filter):
         belief: :class:`ParticleBelief`, particles ``(*B, Np, n)``, log_weights ``(*B, Np)``;
         z: ``(*B, m)`` (NaN = missing); the step's ``log_likelihood`` is ``(*B,)``, ``innovation``
         ``(*B, m)``, ``innovation_cov`` ``(*B, m, m)``; ``extras``: ``"ess"`` (before resampling),
-        ``"resampled"``, ``"degenerate"`` and ``"failed"`` ``(*B,)`` (a present datum and NaN particle
-        likelihoods - non-finite particles -: the log-likelihood is NaN).
+        ``"resampled"``, ``"degenerate"`` and ``"failed"`` ``(*B,)`` (a present datum and a NaN or
+        ``+inf`` particle likelihood - a model failure -: the log-likelihood is NaN).
 
     Examples:
         >>> from torchmm.models import ConstantVelocity, PositionMeasurement
@@ -207,9 +214,10 @@ class ParticleFilter(Filter):
             loglik: ``(*B, Np)``; present: ``(*B,)`` -> the posterior, ``(*B,)``, flags ``(*B,)``
         """
         prior_log_w = normalize_log_probs(belief.log_weights)
-        # a NaN particle likelihood for a present datum: the particles (the model) went non-finite
+        # a NaN or +inf particle likelihood for a present datum: the model failed (non-finite particles,
+        # an R(x) not positive definite, a point mass), not an all-underflow
         failed = particle_failure(loglik, present)
-        loglik = torch.where(torch.isnan(loglik), -math.inf, loglik)
+        loglik = usable_loglik(loglik)
         joint = prior_log_w + loglik
         log_evidence = torch.logsumexp(joint, dim=-1)
         log_evidence = torch.where(present, log_evidence, 0.0)  # exactly 0 without a datum

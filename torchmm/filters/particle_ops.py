@@ -14,7 +14,7 @@ from torchmm.beliefs import GaussianBelief, ParticleBelief, psd_sqrt, symmetrize
 from torchmm.filters.base import Filter
 from torchmm.linalg import cholesky
 from torchmm.models.base import MeasurementModel, MotionModel, check_output
-from torchmm.models.linear import LinearMeasurement, LinearMotion
+from torchmm.models.linear import LinearMeasurement, LinearMotion, plain_linear
 from torchmm.runtime import host_reads_ok
 from torchmm.unchanged import Unchanged
 from torchmm.validation import as_int, broadcast_shape, check_covariance, check_filter_dtype, gaussian_batch
@@ -35,6 +35,7 @@ __all__ = [
     "propagate_particles",
     "sample_gaussian",
     "standard_normal",
+    "usable_loglik",
     "whitening",
 ]
 
@@ -155,7 +156,8 @@ def propagate_particles(motion: MotionModel, particles: Tensor, *, u: Tensor | N
 
     The model's parameter batch ``*P`` broadcasts against the particle sets' batch ``*B`` (a bank
     of ``M`` modes against ``(*B, M)``). Linear models are applied as one matmul on the particle
-    layout (with an unbatched ``F``: one ``addmm`` that also adds the noise and offset); any other
+    layout (with an unbatched ``F``: one ``addmm`` that also adds the noise and offset) where they are
+    :func:`~torchmm.models.linear.plain_linear` (a subclass with its own ``forward`` is called); any other
     model is called with the particle axis leftmost (the torchmm convention for sample axes). The
     process noise ``Q = motion.noise_cov()`` is taken as state-independent; its standard normals
     are drawn in ``noise_dtype`` (see :func:`standard_normal`).
@@ -167,7 +169,9 @@ def propagate_particles(motion: MotionModel, particles: Tensor, *, u: Tensor | N
     factor = cached_noise_factor(Q)  # (*P, n, r), shared by the particles of a set
     eps = standard_normal((*particles.shape[:-1], factor.shape[-1]), particles, generator=generator,
                           noise_dtype=noise_dtype)
-    offset = motion.offset.unsqueeze(-2) if isinstance(motion, LinearMotion) else None
+    # the matrices only for a plain LinearMotion: a subclass with its own forward is called (plain_linear)
+    plain = isinstance(motion, LinearMotion) and plain_linear(motion)
+    offset = motion.offset.unsqueeze(-2) if plain else None
     if (offset is not None and factor.dim() == 2 and particles.dim() >= 3
             and broadcast_shape(offset.shape, particles.shape) == particles.shape):
         # the offset and the noise in one batched GEMM over the particle sets: C + eps L^T with the
@@ -198,7 +202,7 @@ def propagate_particles(motion: MotionModel, particles: Tensor, *, u: Tensor | N
 
 def _predicted_measurement(measurement: MeasurementModel, particles: Tensor) -> Tensor:
     """``h(x)`` for particle sets ``(*B, Np, n)`` -> ``(*B, Np, m)``."""
-    if isinstance(measurement, LinearMeasurement):
+    if isinstance(measurement, LinearMeasurement) and plain_linear(measurement):  # (else its own forward)
         return particles @ measurement.H.mT
     states = particles.movedim(-2, 0)
     return check_output(measurement, measurement(states), states, "measurement").movedim(0, -2)
@@ -267,7 +271,8 @@ def particle_log_likelihood(measurement: MeasurementModel, z: Tensor, particles:
     # the whitened path needs complete data: asked on the CPU only; elsewhere the general path (no host read)
     any_missing = bool(missing.any()) if host_reads_ok(z) else True
     if (not need_predicted and not state_dependent_noise and not any_missing
-            and isinstance(measurement, LinearMeasurement) and measurement.H.dim() == 2):
+            and isinstance(measurement, LinearMeasurement) and plain_linear(measurement)
+            and measurement.H.dim() == 2):
         cov = _noise(measurement, particles)
         if cov.dim() == 2:
             inv, logdet = whitening(cov)
@@ -343,10 +348,18 @@ def particle_batch(belief, state_dim: int, name: str = "belief") -> torch.Size:
 
 def particle_failure(loglik: Tensor, present: Tensor) -> Tensor:
     """``(*B,)`` True where the datum is present but a particle's likelihood ``loglik (*B, Np)`` is
-    NaN: non-finite particles after propagation (a model that went NaN), not missing data. The
-    update's log-likelihood is NaN there (``extras["failed"]``, docs/robustness.md); the weights
-    drop those particles as before. No host read."""
-    return torch.isnan(loglik).any(-1) & present
+    NaN or ``+inf``: non-finite particles after propagation (a model that went NaN), a state-dependent
+    ``R(x)`` that is not positive definite, or a user likelihood with a point mass - a model failure,
+    not missing data and not an all-underflow. The update's log-likelihood is NaN there
+    (``extras["failed"]``, docs/robustness.md); the weights drop those particles (:func:`usable_loglik`).
+    No host read."""
+    return (~(loglik < math.inf)).any(-1) & present  # (one comparison: False for NaN and +inf)
+
+
+def usable_loglik(loglik: Tensor) -> Tensor:
+    """``loglik (*B, Np)`` with its NaN and ``+inf`` entries (:func:`particle_failure`) set to ``-inf``:
+    those particles get zero weight. Same shape."""
+    return torch.where(loglik < math.inf, loglik, -math.inf)
 
 
 def degenerate_guard(log_evidence: Tensor) -> Tensor:

@@ -138,24 +138,34 @@ class MeasurementModel(nn.Module):
         return [list(row.unbind(-1)) for row in J.unbind(-2)]
 
     def log_likelihood(self, z: Tensor, x: Tensor) -> Tensor:
-        """Gaussian ``log p(z | x)``; NaN components of ``z`` are treated as missing.
+        """Gaussian ``log p(z | x)`` with ``R = noise_cov(x)``; non-finite components of ``z`` (NaN or
+        ``+-inf``) are missing and marginalised out exactly (an all-missing ``z`` gives 0).
+
+        Missingness comes from ``z`` alone (docs/robustness.md): a NaN ``h(x)`` of a measured
+        component, or an ``R(x)`` that is not positive definite (``torch.linalg.cholesky_ex`` fails on
+        its measured block), gives a NaN log-likelihood for that state only - a particle filter then
+        flags its run failed (``extras["failed"]``) - never a ``LinAlgError`` for the whole batch.
 
         Shapes:
             z: ``(*B, m)``, x: ``(*B, n)`` (e.g. particles ``(Np, *B, n)`` with ``z`` broadcast)
             -> ``(*B,)``
         """
         resid = z - check_output(self, self(x), x, "measurement")
-        observed = ~torch.isnan(resid)
+        observed = torch.isfinite(z).expand_as(resid)
         resid = torch.where(observed, resid, 0.0)
         cov = check_output(self, self.noise_cov(x), x, "measurement", "noise_cov")
         pair = observed.unsqueeze(-1) & observed.unsqueeze(-2)
         eye = torch.eye(cov.shape[-1], dtype=cov.dtype, device=cov.device)
         cov = torch.where(pair, cov, eye)
-        chol = torch.linalg.cholesky(cov)
+        # where the factorisation fails (or R(x) is NaN), factor the identity instead (finite values and
+        # gradients) and return NaN; a positive definite R(x) gets torch.linalg.cholesky's factor
+        bad = torch.linalg.cholesky_ex(cov.detach())[1] != 0
+        chol = torch.linalg.cholesky_ex(torch.where(bad[..., None, None], eye, cov))[0]
         white = torch.linalg.solve_triangular(chol, resid.unsqueeze(-1), upper=False).squeeze(-1)
         logdet = 2 * chol.diagonal(dim1=-2, dim2=-1).log().sum(-1)
         count = observed.sum(-1).to(resid.dtype)
-        return -0.5 * (white.square().sum(-1) + logdet + count * math.log(2 * math.pi))
+        loglik = -0.5 * (white.square().sum(-1) + logdet + count * math.log(2 * math.pi))
+        return torch.where(bad, math.nan, loglik)
 
 
 def check_model_pair(motion, measurement) -> None:

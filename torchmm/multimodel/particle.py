@@ -286,10 +286,10 @@ class MultipleModelParticleFilter(MultipleModelFilter):
 
         Returns ``(joint, per_model, log_evidence, degenerate, predicted, prior_within, prior_mode,
         failed)`` with the unnormalised joint log-weights ``(*B, M, Np)`` and their per-model
-        ``logsumexp`` ``(*B, M)``; ``failed (*B,)``: a present datum and a NaN particle
-        log-likelihood (non-finite particles; the log-likelihood is NaN there, docs/robustness.md).
-        ``loglik``: ``(log-likelihoods, NaN flags (*B,))`` where already computed (a fresh tensor, NaN
-        mapped to ``-inf``).
+        ``logsumexp`` ``(*B, M)``; ``failed (*B,)``: a present datum and a NaN or ``+inf``
+        particle log-likelihood (non-finite particles; the log-likelihood is NaN there, those particles
+        get zero weight, docs/robustness.md). ``loglik``: ``(log-likelihoods, failure flags (*B,))``
+        where already computed (a fresh tensor, NaN and ``+inf`` mapped to ``-inf``).
         """
         comps = prior.components
         predicted = None
@@ -297,8 +297,10 @@ class MultipleModelParticleFilter(MultipleModelFilter):
         if loglik is None:
             loglik, predicted = particle_log_likelihood(self.measurement, z.unsqueeze(-2), comps.particles, False,
                                                          need_predicted=self.innovation_stats)
-            nan = torch.isnan(loglik.sum((-2, -1)))  # one pass (no +inf likelihoods: NaN iff one is NaN)
-            loglik = torch.nan_to_num(loglik, nan=-math.inf, posinf=math.inf, neginf=-math.inf)  # fresh, for add_
+            # one pass: the sum is NaN or +inf iff a likelihood is NaN or +inf (a model failure, as the
+            # ParticleFilter's particle_failure; -inf is an underflow)
+            nan = ~(loglik.sum((-2, -1)) < math.inf)
+            loglik = torch.nan_to_num(loglik, nan=-math.inf, posinf=-math.inf, neginf=-math.inf)  # (fresh)
         else:
             loglik, nan = loglik
         failed = nan & present
