@@ -117,6 +117,31 @@ def test_effective_sample_size_matches_definition(generator):
     assert torch.equal(ess, torch.zeros(2))
 
 
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_equal_weights_have_an_ess_of_exactly_np_so_threshold_one_keeps_them(dtype):
+    """Equal weights (uniform ``-log Np``, as after resampling, or any common value) have ESS exactly
+    ``Np`` for every ``Np`` up to 400 and in both dtypes, so ``ess_threshold=1`` does not resample them and a
+    step without a datum keeps the particles (docs/robustness.md). Before, ``exp(2 lse(l) - lse(2 l))``
+    gave 4.999999999999999 for ``Np = 5`` (float64) and ``ess < 1.0 * Np`` resampled the uniform set."""
+    from torchmm.filters.particle import ParticleFilter
+    from torchmm.models.linear import LinearMeasurement, LinearMotion
+
+    sizes = torch.arange(2, 401)
+    ess = torch.stack([effective_sample_size(torch.full((int(n),), -math.log(int(n)), dtype=dtype)) for n in sizes])
+    assert torch.equal(ess, sizes.to(dtype))
+    assert float(effective_sample_size(torch.full((7,), 123.4, dtype=dtype))) == 7.0
+    belief = ParticleBelief(torch.randn(3, 5, 1, dtype=dtype), torch.full((3, 5), -math.log(5), dtype=dtype))
+    kept, mask, _ = resample_where_needed(belief, 1.0, generator=torch.Generator().manual_seed(0))
+    assert not mask.any() and torch.equal(kept.particles, belief.particles)
+    eye = torch.eye(1, dtype=dtype)
+    pf = ParticleFilter(LinearMotion(eye, eye), LinearMeasurement(eye, eye), ess_threshold=1.0)
+    out = pf.update(belief, torch.tensor([[math.nan], [0.1], [math.nan]], dtype=dtype),
+                    generator=torch.Generator().manual_seed(1))
+    assert out.extras["resampled"].tolist() == [False, True, False]
+    assert torch.equal(out.belief.particles[0], belief.particles[0])
+    assert torch.equal(out.belief.log_weights[2], belief.log_weights[2])
+
+
 def test_apply_indices_and_ess_gating(generator):
     particles = torch.randn(3, 10, 2, generator=generator)
     log_w = torch.zeros(3, 10)

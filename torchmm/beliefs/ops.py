@@ -9,7 +9,8 @@ from torch import Tensor
 
 from torchmm.linalg import psd_sqrt, symmetrize
 
-__all__ = ["symmetrize", "mix_gaussians", "normalize_log_probs", "psd_sqrt", "safe_log_normalize", "dead_safe_logsumexp", "live_log"]
+__all__ = ["symmetrize", "mix_gaussians", "normalize_log_probs", "psd_sqrt", "safe_log_normalize",
+           "dead_safe_logsumexp", "live_log", "effective_sample_size"]
 
 
 def normalize_log_probs(log_probs: Tensor, dim: int = -1) -> Tensor:
@@ -24,6 +25,24 @@ def normalize_log_probs(log_probs: Tensor, dim: int = -1) -> Tensor:
     out = log_probs - norm
     # no host synchronisation: the repair is one masked pass, applied whether or not a slice needs it
     return out.masked_fill_(~torch.isfinite(norm), -math.log(log_probs.shape[dim]))
+
+
+def effective_sample_size(log_weights: Tensor) -> Tensor:
+    r"""Kong-Liu-Wong effective sample size ``1 / sum w_i^2`` of the normalised weights, from
+    unnormalised log-weights: ``s (s / q)`` with ``s = sum v_i``, ``q = sum v_i^2`` and
+    ``v_i = exp(l_i - max l)``. Equal weights give exactly ``Np`` (every ``v_i`` is 1; the former
+    ``exp(2 logsumexp(l) - logsumexp(2 l))`` gave 4.999999999999999 for 5 and made ``ess_threshold=1``
+    resample a uniform set); an all ``-inf`` (or NaN) slice gives 0.
+
+    Shapes:
+        log_weights: ``(*B, Np)`` -> ``(*B,)``
+    """
+    top = log_weights.amax(-1, keepdim=True)
+    v = torch.exp(log_weights - top)
+    s, q = v.sum(-1), v.square().sum(-1)
+    ess = s * (s / q)
+    zero = torch.zeros((), dtype=ess.dtype, device=ess.device)
+    return torch.where(torch.isfinite(top.squeeze(-1)), ess, zero)
 
 
 def mix_gaussians(mean: Tensor, cov: Tensor, weights: Tensor) -> tuple[Tensor, Tensor]:

@@ -11,7 +11,7 @@ from torch import Tensor
 
 from torchmm.beliefs.base import Belief, register_belief
 from torchmm.beliefs.gaussian import GaussianBelief
-from torchmm.beliefs.ops import normalize_log_probs, symmetrize
+from torchmm.beliefs.ops import effective_sample_size, normalize_log_probs, symmetrize
 
 __all__ = ["ParticleBelief"]
 
@@ -67,9 +67,9 @@ class ParticleBelief(Belief):
         return ParticleBelief(self.particles, normalize_log_probs(self.log_weights))
 
     def effective_sample_size(self) -> Tensor:
-        """``1 / sum(w^2)`` of the normalised weights. Shape ``(*B,)``."""
-        log_w = normalize_log_probs(self.log_weights)
-        return torch.exp(-torch.logsumexp(2 * log_w, dim=-1))
+        """``1 / sum(w^2)`` of the normalised weights (:func:`torchmm.beliefs.ops.effective_sample_size`:
+        exactly ``Np`` for equal weights). Shape ``(*B,)``."""
+        return effective_sample_size(self.log_weights)
 
     def entropy(self) -> Tensor:
         """Shannon entropy of the normalised weights ``-sum_i w_i log w_i``, shape ``(*B,)``."""

@@ -29,7 +29,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from torchmm.beliefs.ops import normalize_log_probs
+from torchmm.beliefs.ops import effective_sample_size as ess_of_log_weights, normalize_log_probs
 from torchmm.beliefs.particle import ParticleBelief
 from torchmm.runtime import host_reads_ok
 from torchmm.validation import broadcast_shape
@@ -51,9 +51,9 @@ __all__ = [
 
 
 def effective_sample_size(log_weights: Tensor) -> Tensor:
-    r"""Kong-Liu-Wong effective sample size ``1 / sum w_i^2`` from unnormalised log-weights.
-
-    Computed as ``exp(2 logsumexp(l) - logsumexp(2 l))``; an all ``-inf`` slice gives 0.
+    r"""Kong-Liu-Wong effective sample size ``1 / sum w_i^2`` from unnormalised log-weights
+    (:func:`torchmm.beliefs.ops.effective_sample_size`: exactly ``Np`` for equal weights, so
+    ``ess_threshold=1`` never resamples a uniform set); an all ``-inf`` slice gives 0.
 
     Shapes:
         log_weights: ``(*B, Np)`` -> ``(*B,)``
@@ -61,11 +61,10 @@ def effective_sample_size(log_weights: Tensor) -> Tensor:
     Examples:
         >>> effective_sample_size(torch.zeros(3, 10))
         tensor([10., 10., 10.])
+        >>> float(effective_sample_size(torch.full((5,), -math.log(5))))
+        5.0
     """
-    total = torch.logsumexp(log_weights, dim=-1)
-    square = torch.logsumexp(2 * log_weights, dim=-1)
-    ess = torch.exp(2 * total - square)
-    return torch.where(torch.isfinite(total), ess, torch.zeros_like(ess))
+    return ess_of_log_weights(log_weights)
 
 
 def _cdf(log_weights: Tensor) -> Tensor:
