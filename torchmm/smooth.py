@@ -127,10 +127,20 @@ def unscented_rts_step(motion: MotionModel, sigma_points: SigmaPointStrategy, fi
 def _transition_log_density(motion: MotionModel, particles: Tensor, following: Tensor, u: Tensor | None,
                             chol_q: Tensor) -> Tensor:
     """``log N(following_j; f(particles_i), Q)`` up to a constant, ``(*B, i, j)``: whitened by
-    ``chol(Q)`` and expanded as ``|a|^2 + |b|^2 - 2 a.b`` (one matmul, no ``(*B, Np, Np, n)`` tensor)."""
+    ``chol(Q)`` and expanded as ``|a|^2 + |b|^2 - 2 a.b`` (one matmul, no ``(*B, Np, Np, n)`` tensor).
+
+    Both sets are first taken relative to a per-run reference point (the mean of the finite
+    ``following`` particles, detached): the density depends on differences only, so the shift is exact
+    for values and gradients, and the expansion then cancels on the particles' spread instead of their
+    absolute coordinates (at 6.4e6 with a process sd of 0.1 it lost the weights to 3e-2 in total
+    variation in float64; tests/smoothing/test_smooth.py)."""
     mean = motion(particles.movedim(-2, 0), u=None if u is None else u.unsqueeze(0)).movedim(0, -2)  # f(x_i)
-    a = torch.linalg.solve_triangular(chol_q, mean.mT, upper=False).mT  # (*B, i, n)
-    b = torch.linalg.solve_triangular(chol_q, following.mT, upper=False).mT  # (*B, j, n)
+    reference = following.detach()
+    finite = torch.isfinite(reference).all(-1, keepdim=True)  # (*B, j, 1)
+    reference = (torch.where(finite, reference, 0.0).sum(-2, keepdim=True)
+                 / finite.sum(-2, keepdim=True).clamp_min(1))  # (*B, 1, n)
+    a = torch.linalg.solve_triangular(chol_q, (mean - reference).mT, upper=False).mT  # (*B, i, n)
+    b = torch.linalg.solve_triangular(chol_q, (following - reference).mT, upper=False).mT  # (*B, j, n)
     sq = (a.square().sum(-1).unsqueeze(-1) + b.square().sum(-1).unsqueeze(-2) - 2 * a @ b.mT).clamp_min(0)
     return -0.5 * sq
 
