@@ -34,7 +34,8 @@ from experiments.arrays import add_runs, join_runs, per_run
 from experiments.uncertainty import armse_se, mean_se_per_step, rmse_se_per_step
 
 __all__ = ["Estimator", "Evaluation", "build_mode_filter", "custom", "evaluate", "evaluate_runs", "gpb1", "gpb2", "imm",
-           "kalman", "mode_model", "multiple_model", "reduce_runs", "starter"]
+           "join_trajectories", "kalman", "mode_model", "multiple_model", "random_blocks", "reduce_runs",
+           "starter"]
 
 
 @dataclass
@@ -295,10 +296,7 @@ def evaluate_runs(estimator: Estimator, scenario, sim, z: Any, *, chunk_runs: in
     leaf = pytree.tree_leaves(z)[0]
     runs = leaf.shape[1]
     if estimator.filter.uses_generator and block_runs and generators is not None:
-        block = int(block_runs)  # each block of runs filtered alone, on its own stream
-        if first_run % block:
-            raise ValueError(f"evaluate_runs: first_run {first_run} is not a multiple of block_runs ({block})")
-        pieces = [(slice(s, min(s + block, runs)), (first_run + s) // block) for s in range(0, runs, block)]
+        pieces = random_blocks(runs, first_run, int(block_runs))  # each block alone, on its own stream
     else:
         chunk = runs if not chunk_runs else int(chunk_runs)
         pieces = [(slice(s, min(s + chunk, runs)), None) for s in range(0, runs, chunk)]
@@ -347,12 +345,33 @@ def _run_mean_se(per_run_values: list) -> float:
     return float(values.std() / values.numel() ** 0.5) if values.numel() > 1 else float("nan")
 
 
+def random_blocks(runs: int, first_run: int, block_runs: int) -> list[tuple[slice, int]]:
+    """``(slice of the runs, block index)`` for each block of ``block_runs`` of ``runs`` runs whose first is
+    the study's run ``first_run`` (a multiple of ``block_runs``): a filter that draws random numbers runs each
+    block alone on the block's own stream, so that a run's draws depend on its block only (not on
+    ``unit_runs``, ``chunk_runs`` or the executor: docs/scaling.md)."""
+    if first_run % block_runs:
+        raise ValueError(f"first_run {first_run} is not a multiple of block_runs ({block_runs})")
+    return [(slice(s, min(s + block_runs, runs)), (first_run + s) // block_runs)
+            for s in range(0, runs, block_runs)]
+
+
+def join_trajectories(parts: list[Trajectory]) -> Trajectory:
+    """Trajectories of consecutive runs as one (every field time-major, runs on axis 1; the parts'
+    provenance is not joined: smooth each part before)."""
+    out = parts[0]
+    for part in parts[1:]:
+        out = _join_trajectories(out, part)
+    return out
+
+
 def _join_trajectories(a: Trajectory, b: Trajectory) -> Trajectory:
     """Two trajectories of consecutive runs as one (every field is time-major: runs on axis 1)."""
     def cat(x, y):
         return None if x is None else pytree.tree_map(lambda s, t: torch.cat([s, t], 1), x, y)
 
-    return Trajectory(**{f.name: cat(getattr(a, f.name), getattr(b, f.name)) for f in dataclasses.fields(Trajectory)})
+    fields = [f.name for f in dataclasses.fields(Trajectory) if f.name != "provenance"]  # (each part's own)
+    return Trajectory(**{name: cat(getattr(a, name), getattr(b, name)) for name in fields})
 
 
 def reduce_runs(parts: list[dict]) -> Evaluation:

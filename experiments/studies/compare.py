@@ -38,7 +38,7 @@ from hydra.utils import instantiate
 from torch import Tensor
 
 from experiments import learning, learning_em, learning_gradient
-from experiments.estimators import mode_model
+from experiments.estimators import join_trajectories, mode_model, random_blocks
 from experiments.executors import Unit
 from experiments.harness import StudyContext, per_run
 from experiments.scenarios_system import Concatenated, default_dtype
@@ -308,21 +308,31 @@ def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
     fitted = _learned(ctx, name)[2] if name in learning.learners(ctx.cfg) else None
     est = fitted if fitted is not None else _estimator(ctx, scenario, name)
     runs = z.shape[1]
-    generator = ctx.block_generators("filter", scenario.name, name)(start // ctx.block_runs) \
-        if est.filter.uses_generator else None
-    tic = time.perf_counter()
-    traj = run_filter(est.filter, est.init(scenario.initial.expand(runs), generator), z,
-                      controls=_controls(ctx, start, stop), motions=_motions(est, scenario), generator=generator,
-                      update_first=bool(ctx.cfg.get("update_first")))
-    est_belief = traj.estimate()
-    seconds = time.perf_counter() - tic
-    out = {}
-    trajectories = {name: (traj, est_belief, seconds)}
-    if est.smooth:
+    # a filter that draws: each block of runs alone on its own stream (its draws do not depend on unit_runs)
+    blocks = (random_blocks(runs, start, ctx.block_runs) if est.filter.uses_generator
+              else [(slice(0, runs), None)])
+    controls, motions = _controls(ctx, start, stop), _motions(est, scenario)
+    parts, smoothed_parts, seconds, smoothing = [], [], 0.0, 0.0
+    for sl, block in blocks:
+        generator = None if block is None else ctx.block_generators("filter", scenario.name, name)(block)
         tic = time.perf_counter()
-        smoothed = smooth(traj, present=present,
-                          **({"method": est.smooth} if isinstance(est.smooth, str) else {}))
-        trajectories[f"{name} smoothed"] = (smoothed, smoothed.estimate(), seconds + time.perf_counter() - tic)
+        start_belief = est.init(scenario.initial.expand(sl.stop - sl.start), generator)
+        part = run_filter(est.filter, start_belief, z[:, sl],
+                          controls=None if controls is None else controls[:, sl], motions=motions,
+                          generator=generator, update_first=bool(ctx.cfg.get("update_first")))
+        seconds += time.perf_counter() - tic
+        parts.append(part)
+        if est.smooth:  # (each part with its own record of the run)
+            tic = time.perf_counter()
+            smoothed_parts.append(smooth(part, present=present[:, sl],
+                                         **({"method": est.smooth} if isinstance(est.smooth, str) else {})))
+            smoothing += time.perf_counter() - tic
+    traj = parts[0] if len(parts) == 1 else join_trajectories(parts)
+    out = {}
+    trajectories = {name: (traj, traj.estimate(), seconds)}
+    if est.smooth:
+        smoothed = smoothed_parts[0] if len(parts) == 1 else join_trajectories(smoothed_parts)
+        trajectories[f"{name} smoothed"] = (smoothed, smoothed.estimate(), seconds + smoothing)
     known = truth_components(scenario)
     for label, (tr, estimate, secs) in trajectories.items():
         v: dict[str, Any] = {"runs": runs, "steps": z.shape[0], "seconds": secs, "multiple_model": est.multiple_model,
