@@ -161,8 +161,9 @@ class Provenance:
         """After :meth:`finish`, for a run that continued a folder: ``previous`` is the provenance of the
         finished run the folder held (its results.json's; None if it held none: an interrupted run).
 
-        * a finished run of the same code (:func:`code_difference` of ``versions.torchmm`` and ``git``) of which
-          units were kept (``units_kept``: those the study read back from the checkpoint): its provenance is kept (start, end, wall_seconds, command, ...: when and how its numbers were made) and
+        * a finished run of the same code (:func:`code_difference` of ``versions.torchmm`` and ``git``) of
+          which units were kept (``units_kept``: those the study read back from the checkpoint): its
+          provenance is kept (start, end, wall_seconds, command, ...: when and how its numbers were made) and
           this process is appended to its ``resumes``: ``{start, end, wall_seconds, command, host, units_kept,
           kernels}``;
         * else this process's provenance, with ``resumed: {"units_kept"}`` where units came from the

@@ -136,8 +136,8 @@ def _run(cfg: DictConfig, ctx, study, config: dict, overrides: list[str] | None)
 
     ctx.bar_label, ctx.bar_position = _sweep_bars()
     if ctx._checkpoint:
-        print(f"torchmm-run: resuming: {len(ctx._checkpoint)} finished units in the checkpoint of {ctx.output_dir} "
-              "(those the study asks for again are kept)",
+        print(f"torchmm-run: resuming: {len(ctx._checkpoint)} finished units in the checkpoint of "
+              f"{ctx.output_dir} (those the study asks for again are kept)",
               file=sys.stderr, flush=True)
     previous_threads = torch.get_num_threads()
     threads = cfg.get("threads")

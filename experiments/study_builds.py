@@ -39,7 +39,8 @@ def _estimators(nodes, scenario, prefix: str = "estimators", options=None) -> di
     for name in nodes:
         node = nodes[name]
         extra = options(node) if options is not None else {}
-        built[name] = _built(f"{prefix}.{name}", node, lambda: instantiate(node)(scenario, name=str(name), **extra))
+        built[name] = _built(f"{prefix}.{name}", node,
+                             lambda: instantiate(node)(scenario, name=str(name), **extra))
     return built
 
 

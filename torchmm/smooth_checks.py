@@ -15,8 +15,8 @@ from torchmm.multimodel.bank import ListBank, VectorizedBank
 from torchmm.provenance import fingerprints, module_state, tensor_versions
 from torchmm.run import Trajectory, per_step_models
 
-__all__ = ["SMOOTHERS", "after_last_datum", "singular_process_noise", "why_not_smoothable", "checked_against_run", "padding_steps", "per_step_list",
-           "same_data", "same_models", "unobserved_tail"]
+__all__ = ["SMOOTHERS", "after_last_datum", "checked_against_run", "padding_steps", "per_step_list",
+           "same_data", "same_models", "singular_process_noise", "unobserved_tail", "why_not_smoothable"]
 
 
 def per_step_list(value: Any, steps: int, name: str) -> list | None:
