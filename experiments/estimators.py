@@ -304,7 +304,7 @@ def evaluate_runs(estimator: Estimator, scenario, sim, z: Any, *, chunk_runs: in
     per_step = per_step or {}
     extra: dict[str, list[Tensor]] = {key: [] for key in per_step}
     elapsed = 0.0
-    kept = None
+    kept = []
     prior = scenario.initial
     for sl, block_index in pieces:
         size = sl.stop - sl.start
@@ -321,8 +321,8 @@ def evaluate_runs(estimator: Estimator, scenario, sim, z: Any, *, chunk_runs: in
             values["hits"].append(mode_hits(traj.belief.mode_log_probs, sim.modes[:, sl]).to(est.mean.dtype))
         for key, fn in per_step.items():
             extra[key].append(fn(traj).detach())
-        if keep_trajectory == "all" or (keep_trajectory and kept is None):
-            kept = traj if kept is None else _join_trajectories(kept, traj)
+        if keep_trajectory == "all" or (keep_trajectory and not kept):
+            kept.append(traj)
     joined = {key: torch.cat(v, 1) for key, v in values.items() if v}  # (T, runs)
     return {
         "pos": per_run(joined["pos"]), "vel": per_run(joined["vel"]),
@@ -334,7 +334,7 @@ def evaluate_runs(estimator: Estimator, scenario, sim, z: Any, *, chunk_runs: in
         "sums": {key: per_run(torch.cat(v, 1).sum(1)) for key, v in extra.items()},
         "sq_sums": {key: per_run(torch.cat(v, 1).to(torch.float64).square().sum(1)) for key, v in extra.items()},
         "runs": runs, "seconds": elapsed, "state_dim": int(sim.states.shape[-1]),
-    }, kept
+    }, join_trajectories(kept) if kept else None
 
 
 def _run_mean_se(per_run_values: list) -> float:
@@ -357,21 +357,16 @@ def random_blocks(runs: int, first_run: int, block_runs: int) -> list[tuple[slic
 
 
 def join_trajectories(parts: list[Trajectory]) -> Trajectory:
-    """Trajectories of consecutive runs as one (every field time-major, runs on axis 1; the parts'
-    provenance is not joined: smooth each part before)."""
-    out = parts[0]
-    for part in parts[1:]:
-        out = _join_trajectories(out, part)
-    return out
+    """Trajectories of consecutive runs as one, each field concatenated once (time-major: runs on axis 1; a
+    single part is returned as it is). The parts' provenance is not joined: smooth each part before."""
+    if len(parts) == 1:
+        return parts[0]
 
+    def cat(*xs):
+        return None if xs[0] is None else pytree.tree_map(lambda *ts: torch.cat(ts, 1), *xs)
 
-def _join_trajectories(a: Trajectory, b: Trajectory) -> Trajectory:
-    """Two trajectories of consecutive runs as one (every field is time-major: runs on axis 1)."""
-    def cat(x, y):
-        return None if x is None else pytree.tree_map(lambda s, t: torch.cat([s, t], 1), x, y)
-
-    fields = [f.name for f in dataclasses.fields(Trajectory) if f.name != "provenance"]  # (each part's own)
-    return Trajectory(**{name: cat(getattr(a, name), getattr(b, name)) for name in fields})
+    fields = [f.name for f in dataclasses.fields(Trajectory) if f.name != "provenance"]
+    return Trajectory(**{name: cat(*(getattr(p, name) for p in parts)) for name in fields})
 
 
 def reduce_runs(parts: list[dict]) -> Evaluation:

@@ -327,11 +327,11 @@ def unit(ctx: StudyContext, *, name: str, start: int, stop: int) -> dict:
             smoothed_parts.append(smooth(part, present=present[:, sl],
                                          **({"method": est.smooth} if isinstance(est.smooth, str) else {})))
             smoothing += time.perf_counter() - tic
-    traj = parts[0] if len(parts) == 1 else join_trajectories(parts)
+    traj = join_trajectories(parts)
     out = {}
     trajectories = {name: (traj, traj.estimate(), seconds)}
     if est.smooth:
-        smoothed = smoothed_parts[0] if len(parts) == 1 else join_trajectories(smoothed_parts)
+        smoothed = join_trajectories(smoothed_parts)
         trajectories[f"{name} smoothed"] = (smoothed, smoothed.estimate(), seconds + smoothing)
     known = truth_components(scenario)
     for label, (tr, estimate, secs) in trajectories.items():

@@ -275,22 +275,23 @@ class TransferIMM(IMM):
         self.smoothing_reference = smoothing_reference
         self.mode_likelihood = mode_likelihood
         self.gate = gate
-        #: whether the process weight's Q was checked here (a Q that needs the state is checked at its step)
-        self._process_checked = gate is None or gate.weight != "process" or self._check_process_weight(gate)
+        if gate is not None and gate.weight == "process":
+            self._check_process_weight(gate)
 
-    def _check_process_weight(self, gate: InfluenceGate) -> bool:
-        """``weight='process'`` needs the anchor mode's ``Q`` positive definite: checked once here where ``Q``
-        needs no state (a ``ValueError`` naming ``gate``, before any run); False where it needs one."""
+    def _check_process_weight(self, gate: InfluenceGate) -> None:
+        """``weight='process'`` takes the anchor mode's ``Q`` as ``W`` of (34), which the paper inverts: a
+        ``ValueError`` naming ``gate.weight`` here, before any run, where ``Q`` needs no state and is singular.
+        A ``Q`` that needs the state is not checked at the steps (no host read there): (33) is computed
+        without inverting ``W`` (:func:`influence_value`), so a singular one gives its limit."""
         filter, index = bank_members(self.bank, type(self).__name__)[gate.mode]
         motion, _ = member_models(filter, type(self).__name__)
         try:
             Q = mode_param(motion.noise_cov(), index)
         except (TypeError, ValueError, RuntimeError, AttributeError):
-            return False
+            return  # (a Q that needs the state)
         if bool((torch.linalg.cholesky_ex(Q)[1] != 0).any()):
             raise ValueError(f"gate.weight: process needs a non-singular process noise Q of the anchor mode "
                              f"{gate.mode} (this one is singular, e.g. q G G^T); use weight='prior'")
-        return True
 
     def update(self, belief, z, **kwargs):
         raise NotImplementedError("TransferIMM: the transfer needs the posterior at k-1; call step()")
@@ -370,10 +371,7 @@ class TransferIMM(IMM):
         if gate.weight == "prior":
             W = anchor.cov
         else:
-            W = mode_param(motion.noise_cov(at), index)
-            if not self._process_checked and bool((torch.linalg.cholesky_ex(W)[1] != 0).any()):  # (a state's Q)
-                raise ValueError("gate: weight='process' needs a non-singular process noise Q of the "
-                                 f"anchor mode {j}; use weight='prior'")
+            W = mode_param(motion.noise_cov(at), index)  # (checked when built, where it needs no state)
         H = H.expand(*estimate.shape[:-1], *H.shape[-2:])
         R = R.expand(*estimate.shape[:-1], *R.shape[-2:])
         value = influence_value(estimate, anchor.mean, y, H, R, W.expand(*estimate.shape[:-1], *W.shape[-2:]))
